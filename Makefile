@@ -1,0 +1,37 @@
+# traffictwin — two commands on a fresh machine:
+#   make run    install into .venv (if needed), then `dvc repro` (default profile)
+#   make test   install into .venv (if needed), then the whole pytest suite
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.install-stamp
+export PATH := $(abspath $(VENV))/bin:$(PATH)
+export PYTHONHASHSEED := 0
+
+.PHONY: install run test params check-params bench clean-venv
+
+$(STAMP): pyproject.toml requirements.lock
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# torch==2.13.0 is the local CPU wheel (pip's find-links); requirements.lock pins the rest
+	$(PY) -m pip install -q -c requirements.lock -e '.[test]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+# params.yaml = Hydra composition of conf/ (commit it; a test checks they agree)
+params: install
+	$(PY) -m pipelines.compose_params
+
+run: install
+	$(VENV)/bin/dvc repro
+
+test: install
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: install
+	$(PY) -m benchmarks.run
+
+clean-venv:
+	rm -rf $(VENV)

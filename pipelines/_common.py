@@ -1,0 +1,36 @@
+"""Shared helpers for stage entry points (the workflow layer; no algorithms here)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from omegaconf import DictConfig
+
+from traffictwin.config import load_params
+from traffictwin.io.atomic import write_json_atomic
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMINGS = ROOT / "reports" / "timings"
+
+
+def params(path: str | Path | None = None) -> DictConfig:
+    """params.yaml of the repository this stage runs in."""
+    return load_params(path or ROOT / "params.yaml")
+
+
+def setup_logging() -> logging.Logger:
+    logging.basicConfig(level=os.environ.get("TRAFFICTWIN_LOGLEVEL", "INFO"), format="%(asctime)s %(name)s %(message)s")
+    return logging.getLogger("traffictwin")
+
+
+@contextmanager
+def stage_timer(stage: str) -> Iterator[None]:
+    """Record the wall time of ``stage`` in reports/timings/<stage>.json (for the report)."""
+    t0 = time.perf_counter()
+    yield
+    write_json_atomic(TIMINGS / f"{stage.replace('@', '-')}.json", {"stage": stage, "seconds": round(time.perf_counter() - t0, 2)})

@@ -1,0 +1,82 @@
+"""Shared fixtures: repository copies for stage/DAG tests, a temp MLflow database.
+
+``ci_dag`` runs the whole DVC pipeline once per test session on the ``ci`` profile in a
+temp copy of the repository; stage tests inspect its outputs instead of re-running stages.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+_IGNORE = shutil.ignore_patterns(
+    ".venv", ".git", "data", "models", "mlflow.db*", "mlartifacts", "mlruns", "__pycache__", ".pytest_cache",
+    "cache", "tmp", "outputs", "multirun", ".benchmarks", "incoming", "*.egg-info", ".gl", ".whl",
+)
+
+
+def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
+    """Environment for running stages in ``repo``: venv on PATH, its own MLflow database."""
+    env = dict(os.environ)
+    env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
+    env["PYTHONPATH"] = str(repo)
+    env["MLFLOW_TRACKING_URI"] = f"sqlite:///{mlflow_db or repo / 'mlflow.db'}"
+    env["TRAFFICTWIN_REPO_ROOT"] = str(repo)
+    env["PYTHONHASHSEED"] = "0"
+    env.setdefault("TQDM_DISABLE", "1")
+    return env
+
+
+def copy_repo(dest: Path) -> Path:
+    """Copy the working tree (no venv, data, models, MLflow db) into ``dest`` as a fresh git+DVC repo."""
+    shutil.copytree(ROOT, dest, ignore=_IGNORE, symlinks=True)
+    for rel in ("reports/metrics", "reports/figures", "reports/plots", "reports/timings"):
+        shutil.rmtree(dest / rel, ignore_errors=True)
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    subprocess.run([*git, "init", "-q"], cwd=dest, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=dest, check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "test copy"], cwd=dest, check=True)
+    return dest
+
+
+def run(cmd: list[str] | str, repo: Path, check: bool = True, timeout: int = 900, **kw) -> subprocess.CompletedProcess:
+    """Run ``cmd`` in ``repo`` with :func:`stage_env`; on failure show its output."""
+    env = kw.pop("env", None) or stage_env(repo)
+    proc = subprocess.run(
+        cmd, cwd=repo, env=env, capture_output=True, text=True, timeout=timeout, shell=isinstance(cmd, str), **kw
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"command failed ({proc.returncode}): {cmd}\n--- stdout\n{proc.stdout[-6000:]}\n--- stderr\n{proc.stderr[-6000:]}")
+    return proc
+
+
+@pytest.fixture
+def repo_copy(tmp_path: Path) -> Path:
+    """A fresh copy of the repository with params.yaml composed for the ``ci`` profile."""
+    repo = copy_repo(tmp_path / "repo")
+    run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
+    return repo
+
+
+@pytest.fixture(scope="session")
+def ci_dag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The whole DAG run once with `dvc repro` on the ci profile; returns the repo copy."""
+    repo = copy_repo(tmp_path_factory.mktemp("ci_dag") / "repo")
+    run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
+    run(["dvc", "repro"], repo, timeout=1800)
+    return repo
+
+
+@pytest.fixture
+def mlflow_uri(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """A temp SQLite MLflow backend, exported as MLFLOW_TRACKING_URI."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return uri
