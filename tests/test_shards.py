@@ -1,0 +1,121 @@
+"""Sharded dataset I/O: deterministic bytes, manifest verification, resume, atomicity."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.shards import Dataset, DatasetError, DatasetWriter, read_npz, write_npz_deterministic
+
+
+def _arrays(seed: int, n: int = 3) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {"x": rng.random((n, 2, 8, 8), dtype=np.float32), "id": np.arange(n, dtype=np.int64)}
+
+
+def _write(root: Path, seed: int = 0) -> dict:
+    w = DatasetWriter(root, "unit", {"n": 3}, seed=seed)
+    w.add_shard(0, _arrays(0), split="train")
+    w.add_shard(1, _arrays(1), split="test")
+    w.add_table("frames.csv", pd.DataFrame({"a": [1, 2], "b": [0.5, 0.25]}))
+    return w.finalize()
+
+
+def test_same_arrays_give_identical_bytes(tmp_path: Path) -> None:
+    a = write_npz_deterministic(tmp_path / "a.npz", _arrays(3))
+    b = write_npz_deterministic(tmp_path / "b.npz", _arrays(3))
+    assert a == b
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    got = read_npz(tmp_path / "a.npz")
+    np.testing.assert_array_equal(got["x"], _arrays(3)["x"])
+
+
+def test_round_trip_and_splits(tmp_path: Path) -> None:
+    m = _write(tmp_path / "ds")
+    assert m["count"] == 6 and m["split_counts"] == {"train": 3, "test": 3}
+    ds = Dataset(tmp_path / "ds", kind="unit")
+    assert len(ds) == 6
+    assert ds.shard_indices("test") == [1]
+    allx = ds.load_all(keys=["x"])["x"]
+    assert allx.shape == (6, 2, 8, 8)
+    assert ds.table("frames.csv")["b"].tolist() == [0.5, 0.25]
+    assert len(ds.manifest_hash()) == 64
+
+
+def test_tampered_shard_is_named(tmp_path: Path) -> None:
+    _write(tmp_path / "ds")
+    p = tmp_path / "ds" / "shard-00001.npz"
+    data = bytearray(p.read_bytes())
+    data[-10] ^= 0xFF
+    p.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"shard-00001\.npz.*SHA-256 mismatch"):
+        Dataset(tmp_path / "ds")
+
+
+def test_missing_shard_and_manifest(tmp_path: Path) -> None:
+    _write(tmp_path / "ds")
+    (tmp_path / "ds" / "shard-00000.npz").unlink()
+    with pytest.raises(DatasetError, match=r"shard-00000\.npz.*missing"):
+        Dataset(tmp_path / "ds")
+    (tmp_path / "ds" / "manifest.json").unlink()
+    with pytest.raises(DatasetError, match="manifest missing"):
+        Dataset(tmp_path / "ds")
+    with pytest.raises(DatasetError, match="not found"):
+        Dataset(tmp_path / "nope")
+
+
+def test_wrong_kind_and_schema(tmp_path: Path) -> None:
+    _write(tmp_path / "ds")
+    with pytest.raises(DatasetError, match="kind 'unit'.*expected 'risk'"):
+        Dataset(tmp_path / "ds", kind="risk")
+    mp = tmp_path / "ds" / "manifest.json"
+    m = json.loads(mp.read_text())
+    m["schema_version"] = 99
+    mp.write_text(json.dumps(m))
+    with pytest.raises(DatasetError, match="schema_version 99"):
+        Dataset(tmp_path / "ds")
+
+
+def test_truncated_npz_gives_clear_error(tmp_path: Path) -> None:
+    write_npz_deterministic(tmp_path / "a.npz", _arrays(0))
+    data = (tmp_path / "a.npz").read_bytes()
+    (tmp_path / "a.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DatasetError, match=r"a\.npz: not a readable"):
+        read_npz(tmp_path / "a.npz")
+
+
+def test_resume_keeps_identical_shards_and_wipes_foreign_ones(tmp_path: Path) -> None:
+    root = tmp_path / "ds"
+    w = DatasetWriter(root, "unit", {"n": 3}, seed=0)
+    w.add_shard(0, _arrays(0), split="train")
+    (root / "stray.tmp").write_text("junk")  # e.g. a killed writer's leftovers
+    # an interrupted run: no finalize; restart with the same identity keeps shard 0
+    w2 = DatasetWriter(root, "unit", {"n": 3}, seed=0)
+    assert w2.has_shard(0) and not w2.has_shard(1)
+    assert not (root / "stray.tmp").exists()
+    # different params: nothing is reused
+    w3 = DatasetWriter(root, "unit", {"n": 4}, seed=0)
+    assert not w3.has_shard(0)
+    assert not (root / "shard-00000.npz").exists()
+
+
+def test_shard_count_mismatch_rejected(tmp_path: Path) -> None:
+    w = DatasetWriter(tmp_path / "ds", "unit", {}, seed=0)
+    with pytest.raises(ValueError, match="disagree on the sample count"):
+        w.add_shard(0, {"a": np.zeros(2), "b": np.zeros(3)})
+
+
+def test_atomic_write_leaves_old_file_on_error(tmp_path: Path) -> None:
+    p = tmp_path / "out.json"
+    write_json_atomic(p, {"good": 1})
+    with pytest.raises(RuntimeError):
+        with atomic_path(p) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert json.loads(p.read_text()) == {"good": 1}
+    assert [q.name for q in tmp_path.iterdir()] == ["out.json"]
