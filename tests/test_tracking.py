@@ -30,3 +30,89 @@ def test_run_round_trip(mlflow_uri: str) -> None:
     assert got.data.metrics["val/loss"] == 0.5
     assert got.data.tags["profile"] == "ci" and got.data.tags["dvc_stage"] == "test"
     assert len(got.data.tags["git_commit"]) > 0
+
+
+def test_repo_root_precedence(tmp_path: Path, monkeypatch) -> None:
+    """TRAFFICTWIN_REPO_ROOT > DVC_ROOT (the parent repo even in a queued exp's temp copy) > cwd walk."""
+    parent = tmp_path / "repo"
+    temp_copy = parent / ".dvc" / "tmp" / "exps" / "tmpabc"
+    temp_copy.mkdir(parents=True)
+    (parent / "dvc.yaml").write_text("stages: {}\n")
+    (temp_copy / "dvc.yaml").write_text("stages: {}\n")
+    monkeypatch.chdir(temp_copy)
+    monkeypatch.delenv("TRAFFICTWIN_REPO_ROOT", raising=False)
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert tracking.repo_root() == temp_copy.resolve()  # no DVC: the checkout we are in
+    monkeypatch.setenv("DVC_ROOT", str(parent))
+    assert tracking.repo_root() == parent.resolve()
+    assert tracking.work_root() == temp_copy.resolve()
+    assert tracking.tracking_uri() == f"sqlite:///{parent.resolve()}/mlflow.db"
+    other = tmp_path / "elsewhere"
+    monkeypatch.setenv("TRAFFICTWIN_REPO_ROOT", str(other))
+    assert tracking.repo_root() == other.resolve()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://server:5000")
+    assert tracking.tracking_uri() == "http://server:5000"
+
+
+def test_artifact_location_beside_sqlite(tmp_path: Path) -> None:
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    assert tracking.artifact_location("fusion", uri) == (tmp_path.resolve() / "mlartifacts" / "fusion").as_uri()
+    assert tracking.artifact_location("fusion", "http://server:5000") is None
+    assert tracking.sqlite_path("postgresql://x") is None
+
+
+def test_git_commit_prefers_dvc_baseline(monkeypatch) -> None:
+    monkeypatch.setenv("DVC_EXP_BASELINE_REV", "a" * 40)
+    assert tracking.git_commit() == "a" * 40
+
+
+def test_pipeline_run_id_shared_and_distinct(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.delenv("TRAFFICTWIN_PIPELINE_RUN", raising=False)
+    p = tmp_path / "params.yaml"
+    p.write_text("seed: 1\n")
+    h1 = tracking.params_hash(p)
+    assert h1 == __import__("hashlib").sha256(b"seed: 1\n").hexdigest()
+    a = tracking.pipeline_run_id("0123456789abcdef", h1, "")
+    assert a == tracking.pipeline_run_id("0123456789abcdef", h1, "")  # every stage of one run agrees
+    assert a.startswith("01234567-") and len(a) == 17
+    p.write_text("seed: 2\n")
+    assert tracking.pipeline_run_id("0123456789abcdef", tracking.params_hash(p), "") != a  # other params
+    assert tracking.pipeline_run_id("0123456789abcdef", h1, "exp-1") != a  # other DVC experiment
+    assert tracking.params_hash(tmp_path / "missing.yaml") == ""
+    monkeypatch.setenv("TRAFFICTWIN_PIPELINE_RUN", "nightly-42")
+    assert tracking.pipeline_run_id("0123456789abcdef", h1, "") == "nightly-42"
+
+
+def test_base_tags_from_dvc_env(tmp_path: Path, monkeypatch) -> None:
+    (tmp_path / "dvc.yaml").write_text("stages: {}\n")
+    (tmp_path / "params.yaml").write_text("seed: 3\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("DVC_EXP_NAME", "brisk-lark")
+    monkeypatch.setenv("DVC_EXP_BASELINE_REV", "b" * 40)
+    monkeypatch.delenv("TRAFFICTWIN_PIPELINE_RUN", raising=False)
+    tags = tracking.base_tags("ci", "train_risk", {"data_manifest": "xyz"})
+    assert set(tracking.TAG_KEYS) <= set(tags)
+    assert tags["dvc_exp_name"] == "brisk-lark" and tags["git_commit"] == "b" * 40
+    assert tags["params_hash"] == tracking.params_hash(tmp_path / "params.yaml")
+    assert tags["pipeline_run"] == tracking.pipeline_run_id("b" * 40, tags["params_hash"], "brisk-lark")
+    assert tags["data_manifest"] == "xyz"
+
+
+def test_experiment_created_with_artifacts_beside_db(tmp_path: Path, monkeypatch) -> None:
+    """A run started from a temp copy keeps its artifacts beside the database, not in the copy."""
+    db_dir = tmp_path / "repo"
+    db_dir.mkdir()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db_dir}/mlflow.db")
+    work = tmp_path / "temp_copy"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    with tracking.start_run("artexp", "r1", profile="ci", stage="test") as run:
+        mlflow.log_text("hello", "note.txt")
+        rid = run.info.run_id
+    exp = mlflow.get_experiment_by_name("artexp")
+    assert exp.artifact_location == (db_dir.resolve() / "mlartifacts" / "artexp").as_uri()
+    assert (db_dir / "mlartifacts" / "artexp" / rid / "artifacts" / "note.txt").read_text() == "hello"
+    assert not any(work.iterdir())
+    with tracking.start_run("artexp", "r2", profile="ci", stage="test") as run2:  # existing experiment reused
+        assert run2.info.experiment_id == exp.experiment_id

@@ -1,12 +1,36 @@
 """MLflow tracking: where runs go and how they are tagged (DESIGN.md "Tracking").
 
-Tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite ``mlflow.db`` at the repository
-root, as an absolute path (so queued ``dvc exp run`` temp copies still reach it when the
-variable is exported; see :func:`repo_root`).
+Where runs go
+    ``MLFLOW_TRACKING_URI`` if set (a server for a team; always wins), else the SQLite file
+    ``mlflow.db`` at the *repository* root as an absolute path. The repository root is
+    (first that applies) ``TRAFFICTWIN_REPO_ROOT``; ``DVC_ROOT``; the nearest folder above the
+    working directory with ``dvc.yaml`` or ``.git``.
+
+    ``DVC_ROOT`` is what makes queued experiments work: ``dvc exp run --queue`` / ``--temp`` /
+    ``--run-all`` run the pipeline in a temp copy under ``.dvc/tmp/exps/…``, where walking up
+    from the working directory would find the *copy* (and its database is deleted with it).
+    DVC sets ``DVC_ROOT`` for every stage command; for queued and temp runs it deliberately
+    points to the parent repository, not the executor's temp folder
+    (``dvc/repo/experiments/queue/base.py``: "Override DVC_ROOT env var to point to the parent
+    DVC repo root"; documented at https://dvc.org/doc/user-guide/env).
+
+    Experiments this module creates get their artifact location beside the SQLite database
+    (``<db folder>/mlartifacts/<experiment>``), again so that a run started inside a temp copy
+    does not store checkpoints and models in a folder that DVC deletes afterwards (MLflow's
+    default is ``./mlruns`` relative to the working directory of whoever creates the experiment).
+
+How runs are tagged (:func:`base_tags`)
+    ``git_commit`` (the experiment's baseline commit ``DVC_EXP_BASELINE_REV`` inside a DVC
+    experiment, else ``HEAD``), ``profile``, ``dvc_stage``, ``dvc_exp_name`` (``DVC_EXP_NAME``,
+    set by ``dvc exp run``), ``params_hash`` (SHA-256 of the params.yaml the stage runs with) and
+    ``pipeline_run``: ``TRAFFICTWIN_PIPELINE_RUN`` if set, else derived from the git commit,
+    the params hash and the DVC experiment name, so every stage of one ``dvc repro`` /
+    ``dvc exp run`` shares it and ``traffictwin runs compare`` can group by it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 from contextlib import contextmanager
@@ -15,13 +39,20 @@ from typing import Any, Iterator, Mapping
 
 ENV_URI = "MLFLOW_TRACKING_URI"
 ENV_REPO = "TRAFFICTWIN_REPO_ROOT"
+ENV_PIPELINE_RUN = "TRAFFICTWIN_PIPELINE_RUN"
+ENV_DVC_ROOT = "DVC_ROOT"
+ENV_DVC_EXP_NAME = "DVC_EXP_NAME"
+ENV_DVC_BASELINE = "DVC_EXP_BASELINE_REV"
+ARTIFACTS_DIR = "mlartifacts"
+
+TAG_KEYS = ("git_commit", "profile", "dvc_stage", "dvc_exp_name", "params_hash", "pipeline_run")
 
 
-def repo_root(start: str | Path | None = None) -> Path:
-    """The project root: ``TRAFFICTWIN_REPO_ROOT`` if set, else the nearest folder with dvc.yaml or .git."""
-    env = os.environ.get(ENV_REPO)
-    if env:
-        return Path(env).resolve()
+def work_root(start: str | Path | None = None) -> Path:
+    """The checkout this process runs in: nearest folder at/above ``start`` (default cwd) with dvc.yaml or .git.
+
+    Inside a queued DVC experiment this is the temp copy (where params.yaml and the data are).
+    """
     here = Path(start or os.getcwd()).resolve()
     for p in (here, *here.parents):
         if (p / "dvc.yaml").exists() or (p / ".git").exists():
@@ -29,8 +60,21 @@ def repo_root(start: str | Path | None = None) -> Path:
     return here
 
 
+def repo_root(start: str | Path | None = None) -> Path:
+    """The repository whose ``mlflow.db`` collects the runs.
+
+    ``TRAFFICTWIN_REPO_ROOT`` if set, else ``DVC_ROOT`` (set by DVC for stage commands; the
+    parent repository even in queued/temp experiments), else :func:`work_root`.
+    """
+    for var in (ENV_REPO, ENV_DVC_ROOT):
+        env = os.environ.get(var)
+        if env:
+            return Path(env).resolve()
+    return work_root(start)
+
+
 def tracking_uri(root: str | Path | None = None) -> str:
-    """``MLFLOW_TRACKING_URI`` if set, else ``sqlite:////abs/path/mlflow.db`` at the repo root."""
+    """``MLFLOW_TRACKING_URI`` if set, else ``sqlite:////abs/path/mlflow.db`` at :func:`repo_root`."""
     env = os.environ.get(ENV_URI)
     if env:
         return env
@@ -38,15 +82,69 @@ def tracking_uri(root: str | Path | None = None) -> str:
     return f"sqlite:///{db}"
 
 
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` URI (``None`` for any other scheme)."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return Path(uri.removeprefix("sqlite:///"))
+
+
+def artifact_location(experiment: str, uri: str) -> str | None:
+    """Artifact folder for a new ``experiment`` on a local SQLite store: beside the database file.
+
+    ``None`` (let the server decide) for non-SQLite URIs.
+    """
+    db = sqlite_path(uri)
+    if db is None:
+        return None
+    return (db.parent.resolve() / ARTIFACTS_DIR / experiment).as_uri()
+
+
 def git_commit(root: str | Path | None = None) -> str:
-    """Current git commit hash (``"unknown"`` outside a git checkout)."""
+    """The git commit runs belong to: ``DVC_EXP_BASELINE_REV`` inside a DVC experiment, else ``HEAD``.
+
+    (A queued experiment's temp copy has its own throw-away HEAD; the baseline is the commit in
+    the user's repository.) ``"unknown"`` outside a git checkout.
+    """
+    base = os.environ.get(ENV_DVC_BASELINE)
+    if base:
+        return base
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root or repo_root(), capture_output=True, text=True, timeout=10
+            ["git", "rev-parse", "HEAD"], cwd=root or work_root(), capture_output=True, text=True, timeout=10
         )
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+def params_hash(path: str | Path | None = None) -> str:
+    """SHA-256 (hex) of the params file's bytes (default: params.yaml of :func:`work_root`); "" if absent.
+
+    Used as an identity only: this module does not interpret the parameters.
+    """
+    p = Path(path) if path else work_root() / "params.yaml"
+    try:
+        return hashlib.sha256(p.read_bytes()).hexdigest()
+    except OSError:
+        return ""
+
+
+def pipeline_run_id(commit: str | None = None, phash: str | None = None, exp_name: str | None = None) -> str:
+    """Id shared by all stages of one pipeline run.
+
+    ``TRAFFICTWIN_PIPELINE_RUN`` if set; else ``<commit[:8]>-<h[:8]>`` where ``h`` hashes the
+    params hash and the DVC experiment name (so two experiments of one commit differ, and
+    every stage of one ``dvc repro`` -- same commit, same params.yaml -- agrees).
+    """
+    env = os.environ.get(ENV_PIPELINE_RUN)
+    if env:
+        return env
+    commit = git_commit() if commit is None else commit
+    phash = params_hash() if phash is None else phash
+    exp_name = os.environ.get(ENV_DVC_EXP_NAME, "") if exp_name is None else exp_name
+    h = hashlib.sha256(f"{phash}\n{exp_name}".encode()).hexdigest()
+    return f"{commit[:8]}-{h[:8]}"
 
 
 def setup(root: str | Path | None = None) -> str:
@@ -58,14 +156,39 @@ def setup(root: str | Path | None = None) -> str:
     return uri
 
 
+def ensure_experiment(name: str, uri: str | None = None) -> str:
+    """Id of experiment ``name``, creating it (artifacts beside a SQLite db) if missing; makes it active."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    uri = uri or mlflow.get_tracking_uri()
+    exp = mlflow.get_experiment_by_name(name)
+    if exp is None:
+        try:
+            exp_id = mlflow.create_experiment(name, artifact_location=artifact_location(name, uri))
+        except MlflowException:  # created concurrently by another stage
+            exp = mlflow.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            exp_id = exp.experiment_id
+    else:
+        exp_id = exp.experiment_id
+    mlflow.set_experiment(experiment_id=exp_id)
+    return exp_id
+
+
 def base_tags(profile: str, stage: str, extra: Mapping[str, Any] | None = None) -> dict[str, str]:
-    """Tags every run carries: git commit, profile, DVC stage, DVC experiment name (if any)."""
+    """Tags every run carries (see the module docstring); ``extra`` adds or overrides."""
+    commit = git_commit()
+    phash = params_hash()
+    exp_name = os.environ.get(ENV_DVC_EXP_NAME, "")
     tags = {
-        "git_commit": git_commit(),
+        "git_commit": commit,
         "profile": profile,
         "dvc_stage": stage,
-        "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""),
-        "pipeline_run": os.environ.get("TRAFFICTWIN_PIPELINE_RUN", ""),
+        "dvc_exp_name": exp_name,
+        "params_hash": phash,
+        "pipeline_run": pipeline_run_id(commit, phash, exp_name),
     }
     if extra:
         tags.update({k: str(v) for k, v in extra.items()})
@@ -85,8 +208,8 @@ def start_run(
     """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``."""
     import mlflow
 
-    setup()
-    mlflow.set_experiment(experiment)
+    uri = setup()
+    ensure_experiment(experiment, uri)
     with mlflow.start_run(run_name=run_name, tags=base_tags(profile, stage, tags)) as run:
         if params:
             log_params(params)
