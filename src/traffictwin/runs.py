@@ -1,0 +1,126 @@
+"""Compare MLflow runs of one experiment as a table (``traffictwin runs compare --experiment fusion``).
+
+Every training stage logs the same parameter names (the flattened config) and metric names
+(``split/name``) across runs, and every run carries the tags of
+:func:`traffictwin.tracking.base_tags` (``git_commit``, ``profile``, ``dvc_exp_name``,
+``pipeline_run`` …), so runs from different ``dvc repro`` / ``dvc exp run`` invocations line
+up column by column. :func:`compare_runs` returns that table as a DataFrame; :func:`format_runs`
+renders it as text for a terminal.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import pandas as pd
+
+from . import tracking
+
+ID_COLUMNS = ("run_name", "run_id", "status", "start_time")
+TAG_COLUMNS = ("profile", "dvc_stage", "git_commit", "dvc_exp_name", "pipeline_run")
+
+
+class RunsError(LookupError):
+    """The experiment does not exist in the tracking store (message names both)."""
+
+
+def compare_runs(
+    experiment: str,
+    metrics: Sequence[str] | None = None,
+    uri: str | None = None,
+    *,
+    params: Sequence[str] | None = None,
+    filter_string: str = "",
+    include_unfinished: bool = False,
+    max_results: int = 5000,
+) -> pd.DataFrame:
+    """One row per run of ``experiment`` (newest first), columns::
+
+        run_name, run_id, status, start_time (UTC), profile, dvc_stage, git_commit (8 chars),
+        dvc_exp_name, pipeline_run, param:<name>..., <metric>...
+
+    ``metrics``: metric names to show (default: every metric logged by any of the runs, sorted;
+    a requested name no run has is an error). The value is the metric's last logged value.
+    ``params``: parameter names to show (default: those whose value differs between the runs,
+    i.e. what the compared experiments changed). ``uri``: tracking URI (default
+    :func:`traffictwin.tracking.tracking_uri`). ``filter_string``: an MLflow search filter,
+    e.g. ``"tags.profile = 'ci'"``. Unfinished (running / failed) runs are left out unless
+    ``include_unfinished``.
+    """
+    from mlflow.tracking import MlflowClient
+
+    uri = uri or tracking.tracking_uri()
+    client = MlflowClient(tracking_uri=uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        names = sorted(e.name for e in client.search_experiments())
+        raise RunsError(f"MLflow experiment {experiment!r} not found at {uri} (experiments there: {names or 'none'})")
+    runs: list[Any] = []
+    token = None
+    while len(runs) < max_results:
+        page = client.search_runs(
+            [exp.experiment_id], filter_string=filter_string, max_results=min(1000, max_results - len(runs)),
+            order_by=["attributes.start_time DESC"], page_token=token,
+        )
+        runs.extend(page)
+        token = page.token
+        if not token:
+            break
+    if not include_unfinished:
+        runs = [r for r in runs if r.info.status == "FINISHED"]
+
+    all_metrics = sorted({k for r in runs for k in r.data.metrics})
+    if metrics is None:
+        metric_cols = all_metrics
+    else:
+        missing = [m for m in metrics if m not in all_metrics]
+        if missing and runs:
+            raise RunsError(f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})")
+        metric_cols = list(metrics)
+    if params is None:
+        names = sorted({k for r in runs for k in r.data.params})
+        param_cols = [k for k in names if len({r.data.params.get(k) for r in runs}) > 1]
+    else:
+        param_cols = list(params)
+
+    rows = []
+    for r in runs:
+        row: dict[str, Any] = {
+            "run_name": r.info.run_name,
+            "run_id": r.info.run_id,
+            "status": r.info.status,
+            "start_time": pd.Timestamp(r.info.start_time, unit="ms", tz="UTC") if r.info.start_time else pd.NaT,
+        }
+        for t in TAG_COLUMNS:
+            v = r.data.tags.get(t, "")
+            row[t] = v[:8] if t == "git_commit" else v
+        for p in param_cols:
+            row[f"param:{p}"] = r.data.params.get(p)
+        for m in metric_cols:
+            row[m] = r.data.metrics.get(m, math.nan)
+        rows.append(row)
+    columns = [*ID_COLUMNS, *TAG_COLUMNS, *(f"param:{p}" for p in param_cols), *metric_cols]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str:
+    """Text table of :func:`compare_runs` output for a terminal.
+
+    Floats with ``digits`` significant digits (missing metric: ``-``); the run id shortened to
+    8 characters and empty tag columns dropped unless ``wide``.
+    """
+    if df.empty:
+        return "(no finished runs)"
+    out = df.copy()
+    if not wide:
+        out["run_id"] = out["run_id"].str[:8]
+        empty = [c for c in TAG_COLUMNS if c in out and (out[c].fillna("") == "").all()]
+        out = out.drop(columns=empty)
+    if "start_time" in out:
+        out["start_time"] = out["start_time"].map(lambda t: "" if pd.isna(t) else t.strftime("%Y-%m-%d %H:%M"))
+    for c in out.columns:
+        if pd.api.types.is_float_dtype(out[c]):
+            out[c] = out[c].map(lambda v: "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}g}")
+    out = out.fillna("-")
+    return out.to_string(index=False)

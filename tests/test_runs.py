@@ -1,0 +1,66 @@
+"""`traffictwin runs compare`: the MLflow comparison table (temp SQLite store)."""
+
+from __future__ import annotations
+
+import math
+
+import mlflow
+import pytest
+
+from traffictwin import runs, tracking
+
+
+def _log(name: str, params: dict, metrics: dict, **tags) -> str:
+    with tracking.start_run("cmp", name, profile="ci", stage="train_fusion@A", tags=tags, params=params) as run:
+        for k, v in metrics.items():
+            mlflow.log_metric(k, v, step=0)
+        return run.info.run_id
+
+
+def test_compare_runs_table(mlflow_uri: str, monkeypatch) -> None:
+    monkeypatch.setenv("TRAFFICTWIN_PIPELINE_RUN", "p1")
+    monkeypatch.setenv("DVC_EXP_NAME", "exp-one")
+    a = _log("fusion-A", {"loss.occupied_weight": 1, "epochs": 2}, {"val/loss": 0.5, "test/kld": 0.1})
+    monkeypatch.setenv("DVC_EXP_NAME", "exp-two")
+    b = _log("fusion-A", {"loss.occupied_weight": 3, "epochs": 2}, {"val/loss": 0.4})
+    # a metric logged twice: the table shows the last value
+    with mlflow.start_run(run_id=b):
+        mlflow.log_metric("val/loss", 0.3, step=1)
+
+    df = runs.compare_runs("cmp", uri=mlflow_uri)
+    assert list(df["run_id"]) == [b, a]  # newest first
+    assert list(df["dvc_exp_name"]) == ["exp-two", "exp-one"]
+    assert set(df["pipeline_run"]) == {"p1"}
+    # only the parameter that differs is shown
+    assert "param:loss.occupied_weight" in df and "param:epochs" not in df
+    assert list(df["param:loss.occupied_weight"]) == ["3", "1"]
+    assert df.loc[df.run_id == b, "val/loss"].item() == 0.3
+    assert math.isnan(df.loc[df.run_id == b, "test/kld"].item())
+    assert df.loc[df.run_id == a, "test/kld"].item() == 0.1
+
+    sub = runs.compare_runs("cmp", metrics=["test/kld"], uri=mlflow_uri, params=["epochs"])
+    assert [c for c in sub.columns if "/" in c] == ["test/kld"] and "param:epochs" in sub
+
+    text = runs.format_runs(df)
+    lines = text.splitlines()
+    assert len(lines) == 3 and "val/loss" in lines[0] and "param:loss.occupied_weight" in lines[0]
+    assert a[:8] in text and b[:8] in text and "0.3" in lines[1] and "-" in lines[1]
+
+
+def test_compare_runs_errors(mlflow_uri: str) -> None:
+    _log("r", {"x": 1}, {"val/loss": 1.0})
+    with pytest.raises(runs.RunsError, match="'nope' not found.*cmp"):
+        runs.compare_runs("nope", uri=mlflow_uri)
+    with pytest.raises(runs.RunsError, match=r"test/missing"):
+        runs.compare_runs("cmp", metrics=["test/missing"], uri=mlflow_uri)
+
+
+def test_unfinished_runs_left_out(mlflow_uri: str) -> None:
+    _log("ok", {}, {"val/loss": 1.0})
+    tracking.setup()
+    with pytest.raises(RuntimeError):
+        with tracking.start_run("cmp", "broken", profile="ci", stage="s"):
+            raise RuntimeError("boom")
+    assert list(runs.compare_runs("cmp", uri=mlflow_uri)["run_name"]) == ["ok"]
+    assert len(runs.compare_runs("cmp", uri=mlflow_uri, include_unfinished=True)) == 2
+    assert runs.format_runs(runs.compare_runs("cmp", uri=mlflow_uri, filter_string="tags.profile = 'paper'")) == "(no finished runs)"
