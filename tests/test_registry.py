@@ -1,0 +1,190 @@
+"""Promotion gate and registry: tiny torch models in a temp MLflow database."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from traffictwin import registry as reg
+
+NAME = "traffictwin-fusion-T"
+W_TRUE = np.array([[2.0, -1.0]], dtype=np.float32)
+X = np.random.default_rng(0).normal(size=(64, 2)).astype(np.float32)
+Y = X @ W_TRUE.T
+
+
+def _log_model(weight_error: float) -> str:
+    """Log a Linear(2,1) whose weights are off by ``weight_error``; returns the run id."""
+    import mlflow
+
+    m = torch.nn.Linear(2, 1, bias=False)
+    with torch.no_grad():
+        m.weight.copy_(torch.from_numpy(W_TRUE + weight_error))
+    mlflow.set_experiment("fusion")
+    with mlflow.start_run(run_name="fusion-T") as run:
+        mlflow.pytorch.log_model(m, name="model", serialization_format="pickle", pip_requirements=["torch"])
+    return run.info.run_id
+
+
+def _evaluate(uri: str) -> dict[str, float]:
+    """Same metric code for both versions: MSE on the fixed test set (X, Y)."""
+    import mlflow
+
+    model = mlflow.pytorch.load_model(uri)
+    with torch.no_grad():
+        pred = model(torch.from_numpy(X)).numpy()
+    return {"test/mse": float(np.mean((pred - Y) ** 2)), "test/n": float(len(X))}
+
+
+GATE = reg.Gate(metric="test/mse", mode="min", margin=1e-3)
+
+
+def _promote(cl, run_id: str, log, **kw) -> reg.Decision:
+    mv = reg.ensure_version(cl, NAME, run_id)
+    d = reg.decide(cl, NAME, mv, _evaluate, GATE, test_fingerprint="fp-1", **kw)
+    reg.apply(cl, d, log_path=log)
+    return d
+
+
+@pytest.fixture
+def cl(mlflow_uri, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MLflow artifacts (./mlruns) go to the temp folder
+    return reg.client(mlflow_uri)
+
+
+# ------------------------------------------------------------------ gate (pure, hand cases)
+
+
+def test_gate_min_and_max_with_margin():
+    g = reg.Gate("test/kld", "min", 0.1)
+    assert g.passes(0.5, 0.7)            # 0.2 better > 0.1
+    assert not g.passes(0.65, 0.7)       # 0.05 better <= margin
+    assert not g.passes(0.6, 0.7 - 1e-12) or g.improvement(0.6, 0.7) > 0.1
+    assert not g.passes(0.8, 0.7)        # worse
+    assert g.improvement(0.5, 0.7) == pytest.approx(0.2)
+    h = reg.Gate("test/acc", "max", 0.0)
+    assert h.passes(0.91, 0.90) and not h.passes(0.90, 0.90) and not h.passes(0.8, 0.9)
+
+
+def test_gate_nonfinite_and_first():
+    g = reg.Gate("m", "min", 0.0)
+    assert g.passes(1.0, None)                 # no champion yet
+    assert not g.passes(float("nan"), 1.0)     # NaN challenger never wins
+    assert not g.passes(float("inf"), None)
+    assert g.passes(1.0, float("nan"))         # broken champion figure is beaten
+
+
+@pytest.mark.parametrize("kw", [dict(margin=-0.1), dict(margin=float("nan")), dict(mode="lower"), dict(metric="")])
+def test_gate_rejects_bad_config(kw):
+    args = dict(metric="m", mode="min", margin=0.0) | kw
+    with pytest.raises(ValueError):
+        reg.Gate(**args)
+
+
+# ------------------------------------------------------------------ registry
+
+
+def test_first_model_becomes_champion(cl, tmp_path):
+    log = tmp_path / "promotions.jsonl"
+    run_id = _log_model(0.5)
+    d = _promote(cl, run_id, log)
+    assert d.action == "first" and d.champion_value is None
+    assert d.challenger_value == pytest.approx(_evaluate(reg.version_uri(NAME, 1))["test/mse"])
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "1"
+    assert str(reg.get_alias(cl, NAME, "challenger").version) == "1"
+    (rec,) = reg.read_log(log)
+    assert rec["action"] == "first" and rec["name"] == NAME and rec["challenger_run_id"] == run_id
+    # promoting the same run again registers nothing new and changes nothing
+    d2 = _promote(cl, run_id, log)
+    assert d2.action == "unchanged" and len(cl.search_model_versions(f"name='{NAME}'")) == 1
+    assert len(reg.read_log(log)) == 1
+
+
+def test_worse_challenger_does_not_move_champion_and_is_logged(cl, tmp_path):
+    log = tmp_path / "promotions.jsonl"
+    _promote(cl, _log_model(0.1), log)
+    d = _promote(cl, _log_model(0.8), log)
+    assert d.action == "rejected"
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "1"
+    assert str(reg.get_alias(cl, NAME, "challenger").version) == "2"
+    # both figures, measured by the same evaluate on the same test set
+    exp_ch = _evaluate(reg.version_uri(NAME, 2))["test/mse"]
+    exp_cp = _evaluate(reg.version_uri(NAME, 1))["test/mse"]
+    assert exp_ch > exp_cp
+    rec = reg.read_log(log)[-1]
+    assert rec["challenger_value"] == pytest.approx(exp_ch) and rec["champion_value"] == pytest.approx(exp_cp)
+    assert rec["champion_version"] == "1" and rec["test_fingerprint"] == "fp-1"
+    tags = cl.get_model_version(NAME, "2").tags
+    assert tags["gate.decision"] == "rejected"
+    assert float(tags["gate.challenger_value"]) == pytest.approx(exp_ch)
+    assert float(tags["gate.champion_value"]) == pytest.approx(exp_cp)
+    # the rejected challenger is not re-evaluated against the same champion
+    assert _promote(cl, rec["challenger_run_id"], log).action == "unchanged"
+    assert len(reg.read_log(log)) == 2
+
+
+def test_better_challenger_moves_champion(cl, tmp_path):
+    log = tmp_path / "promotions.jsonl"
+    _promote(cl, _log_model(0.8), log)
+    d = _promote(cl, _log_model(0.05), log)
+    assert d.action == "promoted" and d.challenger_value < d.champion_value - GATE.margin
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "2"
+    assert str(cl.get_model_version(NAME, "1").version) == "1"  # old champion stays registered
+    assert reg.champion_history(cl, NAME) == ["1", "2"]
+    assert [r["action"] for r in reg.read_log(log)] == ["first", "promoted"]
+
+
+def test_better_within_margin_is_rejected(cl, tmp_path):
+    gate = reg.Gate("test/mse", "min", margin=10.0)
+    mv1 = reg.ensure_version(cl, NAME, _log_model(0.8))
+    reg.apply(cl, reg.decide(cl, NAME, mv1, _evaluate, gate))
+    mv2 = reg.ensure_version(cl, NAME, _log_model(0.0))
+    d = reg.decide(cl, NAME, mv2, _evaluate, gate)
+    assert d.challenger_value < d.champion_value and d.action == "rejected"
+
+
+def test_rollback_previous_and_explicit(cl, tmp_path):
+    log = tmp_path / "promotions.jsonl"
+    _promote(cl, _log_model(0.8), log)
+    _promote(cl, _log_model(0.4), log)
+    _promote(cl, _log_model(0.1), log)
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "3"
+    rec = reg.rollback(cl, NAME, log_path=log)
+    assert (rec["from_version"], rec["to_version"]) == ("3", "2")
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "2"
+    reg.rollback(cl, NAME, log_path=log)
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "1"
+    with pytest.raises(reg.RegistryError, match="no previous champion"):
+        reg.rollback(cl, NAME)
+    reg.rollback(cl, NAME, version=3, log_path=log)
+    assert str(reg.get_alias(cl, NAME, "champion").version) == "3"
+    with pytest.raises(reg.RegistryError, match="no version 9"):
+        reg.rollback(cl, NAME, version=9)
+    assert [r["event"] for r in reg.read_log(log)][-3:] == ["rollback"] * 3
+
+
+def test_missing_model_alias_and_run_errors(cl):
+    with pytest.raises(reg.RegistryError, match="traffictwin-risk.*champion"):
+        reg.require_alias(cl, "traffictwin-risk", "champion")
+    with pytest.raises(reg.RegistryError, match="no registered model 'nope'"):
+        reg.rollback(cl, "nope")
+    with pytest.raises(reg.RegistryError, match="run 'deadbeef'"):
+        reg.ensure_version(cl, NAME, "deadbeef")
+
+
+def test_evaluation_without_gate_metric_is_an_error(cl):
+    mv = reg.ensure_version(cl, NAME, _log_model(0.1))
+    with pytest.raises(reg.RegistryError, match="no metric 'test/mse'"):
+        reg.decide(cl, NAME, mv, lambda uri: {"test/other": 1.0}, GATE)
+    assert reg.get_alias(cl, NAME, "champion") is None
+
+
+def test_log_appends_lines(tmp_path):
+    p = tmp_path / "log.jsonl"
+    reg.append_log(p, {"a": 1})
+    reg.append_log(p, {"b": np.float32(2.5)})
+    assert reg.read_log(p) == [{"a": 1}, {"b": 2.5}]
+    assert math.isclose(reg.read_log(p)[1]["b"], 2.5)
