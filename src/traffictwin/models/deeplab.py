@@ -1,0 +1,151 @@
+"""DeepLabV3+ (Chen et al. 2018) on a plain-torch ResNet, adapted to evidential fusion (paper III-A).
+
+Encoder: ResNet backbone at output stride 16 (last stage dilated) + ASPP (1x1 conv, three 3x3
+atrous convs at rates 6/12/18 and image pooling, concatenated and projected by a 1x1 conv).
+Decoder: the stride-4 low-level features projected to 48 channels, the ASPP output upsampled
+x4 and concatenated, two 3x3 convs, a 1x1 classifier to ``num_outputs`` channels, bilinear
+upsampling x4 to the input size. The final activation is ReLU instead of softmax: the outputs
+are evidences ``e >= 0`` for (free, occupied) per cell (see :mod:`traffictwin.models.evidential`).
+
+Input: ``(N, 4, H, W)`` float = ``[m_F1, m_O1, m_F2', m_O2']``; ``H`` and ``W`` divisible by 16.
+Output: ``(N, 2, H, W)`` evidences (channel 0 free, 1 occupied).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Mapping
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .resnet import ResNet, ResNetSpec
+
+
+@dataclass(frozen=True)
+class DeepLabSpec:
+    """Full architecture of the fusion network (what a checkpoint must match to be loaded).
+
+    backbone: the ResNet; aspp_channels: width of every ASPP branch and of its projection
+    (256 in DeepLabV3+); aspp_rates: atrous rates at output stride 16; low_level_channels:
+    the decoder's projection of the stride-4 features (48); decoder_channels: the two 3x3
+    decoder convs (256); num_outputs: evidence channels (2: free, occupied); aspp_dropout:
+    dropout after the ASPP projection (0.1 as in the reference implementation).
+    """
+
+    backbone: ResNetSpec = field(default_factory=ResNetSpec)
+    aspp_channels: int = 256
+    aspp_rates: tuple[int, ...] = (6, 12, 18)
+    low_level_channels: int = 48
+    decoder_channels: int = 256
+    num_outputs: int = 2
+    aspp_dropout: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("aspp_channels", "low_level_channels", "decoder_channels", "num_outputs"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"deeplab {name} must be >= 1, got {getattr(self, name)}")
+        if not self.aspp_rates or any(int(r) < 1 for r in self.aspp_rates):
+            raise ValueError(f"deeplab aspp_rates must be positive integers, got {self.aspp_rates!r}")
+        if not 0.0 <= self.aspp_dropout < 1.0:
+            raise ValueError(f"deeplab aspp_dropout must be in [0, 1), got {self.aspp_dropout}")
+        object.__setattr__(self, "aspp_rates", tuple(int(r) for r in self.aspp_rates))
+
+    @property
+    def output_stride(self) -> int:
+        return self.backbone.output_stride
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["backbone"] = self.backbone.as_dict()
+        d["aspp_rates"] = list(self.aspp_rates)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "DeepLabSpec":
+        d = dict(d)
+        bb = dict(d.pop("backbone", {}))
+        for k in ("layers", "dilate"):
+            if k in bb:
+                bb[k] = tuple(bb[k])
+        if "aspp_rates" in d:
+            d["aspp_rates"] = tuple(d["aspp_rates"])
+        return cls(backbone=ResNetSpec(**bb), **d)
+
+
+def _conv_bn_relu(cin: int, cout: int, k: int, dilation: int = 1) -> nn.Sequential:
+    pad = dilation * (k // 2)
+    return nn.Sequential(nn.Conv2d(cin, cout, k, padding=pad, dilation=dilation, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class ASPPPooling(nn.Module):
+    """Image-level features: global average pool, 1x1 conv + BN + ReLU, broadcast back."""
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, 1, bias=False)
+        self.bn = nn.BatchNorm2d(cout)
+        self.relu = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        size = x.shape[-2:]
+        y = self.relu(self.bn(self.conv(F.adaptive_avg_pool2d(x, 1))))
+        return y.expand(-1, -1, size[0], size[1])
+
+
+class ASPP(nn.Module):
+    """Atrous spatial pyramid pooling: 1x1, 3x3 at each rate, image pooling; concat; 1x1 projection."""
+
+    def __init__(self, cin: int, cout: int, rates: tuple[int, ...], dropout: float) -> None:
+        super().__init__()
+        branches = [_conv_bn_relu(cin, cout, 1)] + [_conv_bn_relu(cin, cout, 3, r) for r in rates] + [ASPPPooling(cin, cout)]
+        self.branches = nn.ModuleList(branches)
+        self.project = nn.Sequential(
+            nn.Conv2d(cout * len(branches), cout, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.Dropout(dropout)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.project(torch.cat([b(x) for b in self.branches], dim=1))
+
+
+class DeepLabV3Plus(nn.Module):
+    """Evidential DeepLabV3+: ``(N, C_in, H, W)`` masses -> ``(N, 2, H, W)`` evidences (ReLU)."""
+
+    def __init__(self, spec: DeepLabSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        bb = spec.backbone
+        self.backbone = ResNet(bb)
+        self.aspp = ASPP(bb.out_channels, spec.aspp_channels, spec.aspp_rates, spec.aspp_dropout)
+        self.low_proj = _conv_bn_relu(bb.low_level_channels, spec.low_level_channels, 1)
+        self.decoder = nn.Sequential(
+            _conv_bn_relu(spec.aspp_channels + spec.low_level_channels, spec.decoder_channels, 3),
+            _conv_bn_relu(spec.decoder_channels, spec.decoder_channels, 3),
+        )
+        self.classifier = nn.Conv2d(spec.decoder_channels, spec.num_outputs, 1)
+        for m in [*self.aspp.modules(), *self.low_proj.modules(), *self.decoder.modules()]:
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        nn.init.normal_(self.classifier.weight, std=0.01)
+        nn.init.constant_(self.classifier.bias, 0.1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        os_ = self.spec.output_stride
+        if h % os_ or w % os_:
+            raise ValueError(f"input height/width ({h}, {w}) must be divisible by the output stride {os_}")
+        if x.shape[-3] != self.spec.backbone.in_channels:
+            raise ValueError(f"input has {x.shape[-3]} channels, the network expects {self.spec.backbone.in_channels}")
+        low, high = self.backbone(x)
+        y = self.aspp(high)
+        y = F.interpolate(y, size=low.shape[-2:], mode="bilinear", align_corners=False)
+        y = self.decoder(torch.cat([y, self.low_proj(low)], dim=1))
+        y = self.classifier(y)
+        y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
+        return F.relu(y)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)

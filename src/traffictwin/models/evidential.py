@@ -1,0 +1,147 @@
+"""Evidential output, loss and fusion metrics in torch (paper III-A, DESIGN.md "Evidential output").
+
+Evidence -> masses (eqs. 3-5): ``alpha = e + 1``, ``S = sum(alpha)``, ``m = e / S``, ``u = K / S``
+with ``K = 2`` classes (free, occupied); ``m_F + m_O + u = 1``. Channel axis is ``-3``
+(arrays ``(..., 2, H, W)``), channel 0 = free, 1 = occupied.
+
+Loss (eqs. 6-7), per cell ``i`` with label masses ``y`` and ``p = alpha / S``::
+
+    L_i = w_i * sum_A [ (y_A - p_A)^2 + p_A (1 - p_A) / (S + 1) ],   w_i = o_w if y_O > 0.5 else 1
+
+averaged over cells. The KL regulariser of Sensoy et al. (2018), ``KL(Dir(alpha~) || Dir(1))``
+with ``alpha~ = y + (1 - y) alpha``, is available (``kl_weight > 0``) but off by default, as in
+the paper.
+
+Metrics (DESIGN.md "Fusion metrics"; the numpy evaluation implements the same formulas):
+``kld`` = KL(label || pred) over ``(m_F, m_O)`` with both clipped to [1e-7, 1], summed over the
+two entries and averaged over cells; ``kld_full`` = the same over ``(m_F, m_O, u)``; a cell is
+predicted occupied where ``p_O = m_O + u/2 > 0.5``, free where ``p_O < 0.5``; Dice per class over
+the cells whose label is known (label ``m_O > 0.5`` -> occupied, label ``m_F > 0.5`` -> free).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+NUM_CLASSES = 2
+KLD_EPS = 1e-7
+
+
+def evidence_to_masses(e: Any) -> tuple[Any, Any]:
+    """Evidences ``e >= 0`` ``(..., 2, H, W)`` -> masses ``m (..., 2, H, W)`` and uncertainty ``u (..., H, W)``.
+
+    Works on torch tensors and numpy arrays (returns the same type). ``m + u`` sums to 1 per cell.
+    """
+    if isinstance(e, torch.Tensor):
+        if e.shape[-3] != NUM_CLASSES:
+            raise ValueError(f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {tuple(e.shape)}")
+        s = (e + 1.0).sum(dim=-3, keepdim=True)
+        return e / s, (NUM_CLASSES / s).squeeze(-3)
+    arr = np.asarray(e)
+    if arr.ndim < 3 or arr.shape[-3] != NUM_CLASSES:
+        raise ValueError(f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {arr.shape}")
+    if np.any(arr < 0):
+        raise ValueError("evidence must be >= 0 (the network ends in a ReLU)")
+    s = (arr + 1.0).sum(axis=-3, keepdims=True)
+    return arr / s, np.squeeze(NUM_CLASSES / s, axis=-3)
+
+
+def dirichlet_params(e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``alpha = e + 1`` ``(..., 2, H, W)``, strength ``S (..., 1, H, W)``, expected probability ``p = alpha / S``."""
+    alpha = e + 1.0
+    s = alpha.sum(dim=-3, keepdim=True)
+    return alpha, s, alpha / s
+
+
+def kl_dirichlet_uniform(alpha: torch.Tensor) -> torch.Tensor:
+    """``KL(Dir(alpha) || Dir(1, ..., 1))`` per cell, over the class axis -3 -> ``(..., H, W)``."""
+    k = alpha.shape[-3]
+    s = alpha.sum(dim=-3)
+    return (
+        torch.lgamma(s)
+        - torch.lgamma(torch.tensor(float(k), dtype=alpha.dtype, device=alpha.device))
+        - torch.lgamma(alpha).sum(dim=-3)
+        + ((alpha - 1.0) * (torch.digamma(alpha) - torch.digamma(s).unsqueeze(-3))).sum(dim=-3)
+    )
+
+
+def evidential_loss_map(e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0) -> torch.Tensor:
+    """Per-cell loss ``(..., H, W)`` of eqs. (6)-(7) (+ ``kl_weight`` x the KL regulariser).
+
+    ``e``: evidences ``(..., 2, H, W)``; ``y``: label masses ``(..., 2, H, W)`` (free, occupied).
+    """
+    if e.shape != y.shape:
+        raise ValueError(f"evidence shape {tuple(e.shape)} != label shape {tuple(y.shape)}")
+    alpha, s, p = dirichlet_params(e)
+    per = ((y - p) ** 2 + p * (1.0 - p) / (s + 1.0)).sum(dim=-3)
+    w = torch.where(y[..., 1, :, :] > 0.5, torch.as_tensor(float(occupied_weight), dtype=per.dtype, device=per.device),
+                    torch.ones((), dtype=per.dtype, device=per.device))
+    loss = w * per
+    if kl_weight > 0:
+        alpha_t = y + (1.0 - y) * alpha
+        loss = loss + kl_weight * kl_dirichlet_uniform(alpha_t)
+    return loss
+
+
+def evidential_loss(e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0) -> torch.Tensor:
+    """Mean over cells (and batch) of :func:`evidential_loss_map`."""
+    return evidential_loss_map(e, y, occupied_weight, kl_weight).mean()
+
+
+# ---------------------------------------------------------------------------------------------
+# metrics (torch; per-sample values so that an epoch mean weights every pair equally)
+
+
+def kld(pred_m: torch.Tensor, label_m: torch.Tensor, eps: float = KLD_EPS) -> torch.Tensor:
+    """KL(label || pred) on ``(m_F, m_O)`` clipped to [eps, 1], mean over cells -> ``(...)`` per map."""
+    y = label_m.clamp(eps, 1.0)
+    p = pred_m.clamp(eps, 1.0)
+    return (y * torch.log(y / p)).sum(dim=-3).mean(dim=(-2, -1))
+
+
+def with_uncertainty(m: torch.Tensor) -> torch.Tensor:
+    """``(..., 2, H, W)`` masses -> ``(..., 3, H, W)`` = ``(m_F, m_O, u = 1 - m_F - m_O)``."""
+    return torch.cat([m, (1.0 - m.sum(dim=-3, keepdim=True))], dim=-3)
+
+
+def kld_full(pred_m: torch.Tensor, label_m: torch.Tensor, eps: float = KLD_EPS) -> torch.Tensor:
+    """KL(label || pred) over the full ``(m_F, m_O, u)`` vector, clipped to [eps, 1], mean over cells."""
+    return kld(with_uncertainty(pred_m), with_uncertainty(label_m), eps)
+
+
+def pignistic_occupied(m: torch.Tensor) -> torch.Tensor:
+    """``p_O = m_O + u / 2`` ``(..., H, W)``."""
+    u = 1.0 - m.sum(dim=-3)
+    return m[..., 1, :, :] + 0.5 * u
+
+
+def confusion_counts(pred_m: torch.Tensor, label_m: torch.Tensor) -> torch.Tensor:
+    """Counts over known label cells: ``[tp_occ, fp_occ, fn_occ, tp_free, fp_free, fn_free]`` (float64, summed).
+
+    Predicted occupied ⇔ ``p_O > 0.5``, free ⇔ ``p_O < 0.5``; label occupied ⇔ ``y_O > 0.5``,
+    free ⇔ ``y_F > 0.5``; cells with neither label are ignored.
+    """
+    p_o = pignistic_occupied(pred_m)
+    lab_occ = label_m[..., 1, :, :] > 0.5
+    lab_free = label_m[..., 0, :, :] > 0.5
+    pred_occ = p_o > 0.5
+    pred_free = p_o < 0.5
+    out = torch.stack([
+        (pred_occ & lab_occ).sum(), (pred_occ & lab_free).sum(), (~pred_occ & lab_occ).sum(),
+        (pred_free & lab_free).sum(), (pred_free & lab_occ).sum(), (~pred_free & lab_free).sum(),
+    ])
+    return out.to(torch.float64)
+
+
+def dice_from_counts(counts: torch.Tensor) -> dict[str, float]:
+    """Precision, recall, Dice for occupied and free from :func:`confusion_counts` (NaN when undefined)."""
+    c = counts.tolist()
+    out: dict[str, float] = {}
+    for name, (tp, fp, fn) in (("occ", c[0:3]), ("free", c[3:6])):
+        out[f"precision_{name}"] = tp / (tp + fp) if tp + fp > 0 else float("nan")
+        out[f"recall_{name}"] = tp / (tp + fn) if tp + fn > 0 else float("nan")
+        out[f"dice_{name}"] = 2 * tp / (2 * tp + fp + fn) if 2 * tp + fp + fn > 0 else float("nan")
+    return out

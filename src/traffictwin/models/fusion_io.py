@@ -1,0 +1,135 @@
+"""Loading a trained fusion network and predicting fused masses (evaluation, CLI).
+
+``models/fusion/<cfg>/model.ckpt`` is a slim Lightning checkpoint (``state_dict`` with ``net.``
+prefixes, ``hyper_parameters``) plus a ``traffictwin`` block (format, cfg, grid, architecture,
+data manifest hash); ``model_meta.json`` beside it says the same in JSON. :func:`load_fusion_model`
+checks the two agree and, when given, that they match what the caller expects (configuration,
+architecture, grid), and fails with a message naming the file and the mismatch otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from .deeplab import DeepLabSpec, DeepLabV3Plus
+from .evidential import evidence_to_masses
+
+CKPT_FORMAT = "traffictwin-fusion/1"
+META_NAME = "model_meta.json"
+
+
+class FusionModelError(RuntimeError):
+    """A fusion checkpoint is missing, unreadable, or not the one the caller expects."""
+
+
+def _describe_arch(a: Mapping[str, Any]) -> str:
+    bb = a.get("backbone", {})
+    return (f"{bb.get('block')} ResNet layers={bb.get('layers')} base_width={bb.get('base_width')}, "
+            f"aspp={a.get('aspp_channels')}, decoder={a.get('decoder_channels')}")
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint dict (tensors on CPU); errors name the file."""
+    path = Path(path)
+    if not path.exists():
+        raise FusionModelError(f"{path}: fusion checkpoint not found (run `dvc repro train_fusion` first)")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
+        raise FusionModelError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+    info = ck.get("traffictwin") if isinstance(ck, dict) else None
+    if not isinstance(info, dict) or info.get("format") != CKPT_FORMAT or "state_dict" not in ck:
+        raise FusionModelError(f"{path}: not a traffictwin fusion checkpoint (expected format '{CKPT_FORMAT}')")
+    return ck
+
+
+def load_fusion_model(
+    path: str | Path,
+    *,
+    expected_cfg: str | None = None,
+    expected_architecture: Mapping[str, Any] | DeepLabSpec | None = None,
+    expected_grid: Mapping[str, Any] | Any | None = None,
+    device: str | torch.device = "cpu",
+) -> DeepLabV3Plus:
+    """Load ``model.ckpt`` (path to the file or its folder) as an eval-mode :class:`DeepLabV3Plus`.
+
+    ``model.meta`` (dict) on the returned network holds the checkpoint's meta. Raises
+    :class:`FusionModelError` when the checkpoint and ``model_meta.json`` disagree, or the
+    checkpoint's configuration / architecture / grid differ from the expected ones.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.ckpt"
+    ck = read_checkpoint(path)
+    info = ck["traffictwin"]
+    meta_path = path.parent / META_NAME
+    if meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise FusionModelError(f"{meta_path}: not valid JSON ({exc})") from None
+        for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
+            if meta.get(key) != info.get(key):
+                raise FusionModelError(
+                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' "
+                    f"(checkpoint {info.get(key)!r}, meta {meta.get(key)!r}); the checkpoint was replaced by one "
+                    f"from another run — re-run `dvc repro train_fusion@{meta.get('cfg')}`"
+                )
+    if expected_cfg is not None and info.get("cfg") != expected_cfg:
+        noise = info.get("noise", {})
+        raise FusionModelError(
+            f"{path}: trained for configuration '{info.get('cfg')}' (r={noise.get('r')} m, alpha={noise.get('alpha')} deg), "
+            f"expected configuration '{expected_cfg}'"
+        )
+    arch = info.get("architecture")
+    if expected_architecture is not None:
+        exp = expected_architecture.as_dict() if isinstance(expected_architecture, DeepLabSpec) else \
+            DeepLabSpec.from_dict(expected_architecture).as_dict()
+        if arch != exp:
+            raise FusionModelError(
+                f"{path}: architecture mismatch: checkpoint has {_describe_arch(arch or {})}, expected {_describe_arch(exp)}"
+            )
+    if expected_grid is not None:
+        g = expected_grid if isinstance(expected_grid, Mapping) else \
+            {"rows": expected_grid.rows, "cols": expected_grid.cols, "cell": expected_grid.cell}
+        got = info.get("grid", {})
+        if any(abs(float(got.get(k, -1)) - float(g[k])) > 1e-9 for k in ("rows", "cols", "cell")):
+            raise FusionModelError(f"{path}: trained on grid {got}, expected grid {dict(g)}")
+    try:
+        spec = DeepLabSpec.from_dict(arch)
+    except (TypeError, ValueError) as exc:
+        raise FusionModelError(f"{path}: invalid architecture block ({exc})") from None
+    net = DeepLabV3Plus(spec)
+    state = {k[len("net."):]: v for k, v in ck["state_dict"].items() if k.startswith("net.")}
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise FusionModelError(f"{path}: weights do not fit the architecture {_describe_arch(arch)}: {str(exc)[:500]}") from None
+    net.meta = dict(info)  # type: ignore[attr-defined]
+    return net.to(device).eval()
+
+
+@torch.no_grad()
+def predict_evidence(model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16) -> np.ndarray:
+    """Evidences ``(N, 2, H, W)`` float32 for ``inputs (N, 4, H, W)`` float32 masses."""
+    x = np.asarray(inputs)
+    if x.ndim != 4 or x.shape[1] != 4:
+        raise ValueError(f"inputs must be (N, 4, H, W) = [m_F1, m_O1, m_F2', m_O2'], got shape {x.shape}")
+    model.eval()
+    dev = next(model.parameters()).device
+    out = np.empty((x.shape[0], 2, *x.shape[2:]), dtype=np.float32)
+    for i in range(0, x.shape[0], batch_size):
+        xb = torch.from_numpy(np.ascontiguousarray(x[i : i + batch_size], dtype=np.float32)).to(dev)
+        out[i : i + batch_size] = model(xb).float().cpu().numpy()
+    return out
+
+
+def predict_masses(model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Fused masses ``m (N, 2, H, W)`` (free, occupied) and uncertainty ``u (N, H, W)``, float32."""
+    m, u = evidence_to_masses(predict_evidence(model, inputs, batch_size))
+    return m.astype(np.float32), u.astype(np.float32)

@@ -1,0 +1,200 @@
+"""ResNet backbone in plain ``torch.nn`` (He et al. 2016), for DeepLabV3+.
+
+No torchvision here (DESIGN.md "Decisions"). The layout follows torchvision's ResNet v1.5
+(stride on the 3x3 conv of a bottleneck): stem = 7x7/2 conv + BN + ReLU + 3x3/2 max-pool,
+then four stages. ``replace_stride_with_dilation`` turns the stride of a stage into an atrous
+dilation (DeepLabV3+ with output stride 16 dilates the last stage; 8 the last two).
+
+Depth and width are configurable: ``block="bottleneck", layers=(3, 4, 6, 3), base_width=64`` is
+ResNet-50 (the paper), ``block="basic", layers=(2, 2, 2, 2)`` ResNet-18, and a smaller
+``base_width`` gives narrow variants for the CPU profile. Stage ``k`` has
+``base_width * 2**k * expansion`` output channels (expansion 4 for bottleneck, 1 for basic).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import torch
+from torch import nn
+
+BLOCKS = ("basic", "bottleneck")
+
+
+@dataclass(frozen=True)
+class ResNetSpec:
+    """Architecture of a ResNet backbone.
+
+    block: "basic" (ResNet-18/34) or "bottleneck" (ResNet-50/101); layers: blocks per stage;
+    base_width: channels of the stem and of stage 1's 3x3 convs (64 in the paper);
+    in_channels: input channels (4 = two mass maps); dilate: which of stages 2-4 use dilation
+    instead of stride (output stride 16 = (False, False, True)).
+    """
+
+    block: str = "basic"
+    layers: tuple[int, ...] = (2, 2, 2, 2)
+    base_width: int = 64
+    in_channels: int = 4
+    dilate: tuple[bool, bool, bool] = (False, False, True)
+
+    def __post_init__(self) -> None:
+        if self.block not in BLOCKS:
+            raise ValueError(f"resnet block must be one of {BLOCKS}, got {self.block!r}")
+        if len(self.layers) != 4 or any(int(n) < 1 for n in self.layers):
+            raise ValueError(f"resnet layers must be 4 positive block counts, got {self.layers!r}")
+        if self.base_width < 1 or self.in_channels < 1:
+            raise ValueError(f"resnet base_width and in_channels must be >= 1, got {self.base_width}, {self.in_channels}")
+        if len(self.dilate) != 3:
+            raise ValueError(f"resnet dilate must have 3 flags (stages 2-4), got {self.dilate!r}")
+        object.__setattr__(self, "layers", tuple(int(n) for n in self.layers))
+        object.__setattr__(self, "dilate", tuple(bool(d) for d in self.dilate))
+
+    @property
+    def expansion(self) -> int:
+        return 4 if self.block == "bottleneck" else 1
+
+    @property
+    def low_level_channels(self) -> int:
+        """Channels of stage 1's output (stride 4), the decoder's low-level features."""
+        return self.base_width * self.expansion
+
+    @property
+    def out_channels(self) -> int:
+        """Channels of stage 4's output."""
+        return self.base_width * 8 * self.expansion
+
+    @property
+    def output_stride(self) -> int:
+        return 4 * 2 ** sum(1 for d in self.dilate if not d)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["layers"] = list(self.layers)
+        d["dilate"] = list(self.dilate)
+        return d
+
+
+def conv3x3(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation, bias=False)
+
+
+def conv1x1(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 1, stride=stride, bias=False)
+
+
+class BasicBlock(nn.Module):
+    """Two 3x3 convs with a residual connection (ResNet-18/34)."""
+
+    expansion = 1
+
+    def __init__(self, cin: int, width: int, stride: int = 1, dilation: int = 1, downsample: nn.Module | None = None,
+                 first_dilation: int = 1) -> None:
+        super().__init__()
+        self.conv1 = conv3x3(cin, width, stride, first_dilation)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = conv3x3(width, width, 1, dilation)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = downsample
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        idt = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return self.relu(out + idt)
+
+
+class Bottleneck(nn.Module):
+    """1x1 reduce, 3x3 (carries stride/dilation, v1.5), 1x1 expand x4, residual (ResNet-50).
+
+    ``first_dilation`` is the 3x3's dilation: the previous stage's for a stage's first block
+    (as torchvision), the stage's own afterwards; ``dilation`` is unused here (BasicBlock's 2nd conv).
+    """
+
+    expansion = 4
+
+    def __init__(self, cin: int, width: int, stride: int = 1, dilation: int = 1, downsample: nn.Module | None = None,
+                 first_dilation: int = 1) -> None:
+        super().__init__()
+        self.conv1 = conv1x1(cin, width)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = conv3x3(width, width, stride, first_dilation)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.conv3 = conv1x1(width, width * 4)
+        self.bn3 = nn.BatchNorm2d(width * 4)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = downsample
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        idt = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.relu(self.bn2(self.conv2(out)))
+        out = self.bn3(self.conv3(out))
+        return self.relu(out + idt)
+
+
+class ResNet(nn.Module):
+    """ResNet feature extractor; ``forward`` returns ``(low_level (stride 4), high_level (stride os))``."""
+
+    def __init__(self, spec: ResNetSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        block = Bottleneck if spec.block == "bottleneck" else BasicBlock
+        w = spec.base_width
+        self.conv1 = nn.Conv2d(spec.in_channels, w, 7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(w)
+        self.relu = nn.ReLU(inplace=True)
+        self.maxpool = nn.MaxPool2d(3, stride=2, padding=1)
+        self._cin = w
+        self._dilation = 1
+        self.layer1 = self._make_layer(block, w, spec.layers[0])
+        self.layer2 = self._make_layer(block, w * 2, spec.layers[1], stride=2, dilate=spec.dilate[0])
+        self.layer3 = self._make_layer(block, w * 4, spec.layers[2], stride=2, dilate=spec.dilate[1])
+        self.layer4 = self._make_layer(block, w * 8, spec.layers[3], stride=2, dilate=spec.dilate[2])
+        self._init_weights()
+
+    def _make_layer(self, block: type, width: int, blocks: int, stride: int = 1, dilate: bool = False) -> nn.Sequential:
+        prev_dilation = self._dilation
+        if dilate:
+            self._dilation *= stride
+            stride = 1
+        downsample = None
+        if stride != 1 or self._cin != width * block.expansion:
+            downsample = nn.Sequential(conv1x1(self._cin, width * block.expansion, stride), nn.BatchNorm2d(width * block.expansion))
+        mods = [block(self._cin, width, stride, self._dilation, downsample, first_dilation=prev_dilation)]
+        self._cin = width * block.expansion
+        for _ in range(1, blocks):
+            mods.append(block(self._cin, width, 1, self._dilation, None, first_dilation=self._dilation))
+        return nn.Sequential(*mods)
+
+    def _init_weights(self) -> None:
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+        # zero-init the last BN of each residual branch: blocks start as identities (Goyal et al. 2017)
+        for m in self.modules():
+            if isinstance(m, Bottleneck):
+                nn.init.zeros_(m.bn3.weight)
+            elif isinstance(m, BasicBlock):
+                nn.init.zeros_(m.bn2.weight)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        low = self.layer1(x)
+        x = self.layer4(self.layer3(self.layer2(low)))
+        return low, x
+
+
+def resnet_spec(depth: int, base_width: int = 64, in_channels: int = 4,
+                dilate: Sequence[bool] = (False, False, True)) -> ResNetSpec:
+    """Standard depths: 18/34 (basic), 50/101/152 (bottleneck)."""
+    table = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)), 50: ("bottleneck", (3, 4, 6, 3)),
+             101: ("bottleneck", (3, 4, 23, 3)), 152: ("bottleneck", (3, 8, 36, 3))}
+    if depth not in table:
+        raise ValueError(f"resnet depth must be one of {sorted(table)}, got {depth}")
+    block, layers = table[depth]
+    return ResNetSpec(block=block, layers=layers, base_width=base_width, in_channels=in_channels, dilate=tuple(dilate))

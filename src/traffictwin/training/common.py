@@ -1,0 +1,283 @@
+"""Lightning + MLflow helpers shared by the fusion and risk trainers (DESIGN.md "Tracking").
+
+Stable API (the fusion and the risk stages both use it):
+
+- :class:`TrainerSettings` — the ``trainer`` config group (accelerator, devices, num_nodes,
+  strategy, precision, num_workers, optional deterministic), checked with
+  :func:`traffictwin.config.get`; :meth:`TrainerSettings.from_cfg`.
+- :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
+- :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
+  (metrics go to MLflow through :class:`EpochHistory`, which logs one value per epoch).
+- :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
+- :class:`EpochHistory` — collects ``split/name`` metrics and ``lr`` once per epoch, logs them
+  to the active MLflow run with ``step=epoch`` (rank zero only) and writes them as CSV.
+- :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
+  launcher re-runs the stage script in every rank; the other ranks get ``None``).
+- :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
+  the network as an MLflow model that :func:`mlflow.pytorch.load_model` restores.
+- :func:`copy_atomic` — publish a file (e.g. the best checkpoint) under its final name atomically.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import Callback
+
+from ..config import ConfigError, get
+from ..io.atomic import atomic_path
+
+PRECISIONS = ("32-true", "32", "64-true", "16-mixed", "bf16-mixed", "bf16-true", "16-true", "transformer-engine")
+ACCELERATORS = ("cpu", "gpu", "cuda", "mps", "tpu", "auto")
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """Where and how Lightning runs: one CPU, one GPU, or DDP over ``devices`` x ``num_nodes``."""
+
+    accelerator: str = "cpu"
+    devices: int | str = 1
+    num_nodes: int = 1
+    strategy: str = "auto"
+    precision: str = "32-true"
+    num_workers: int = 0
+    deterministic: bool | str | None = None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
+
+    @classmethod
+    def from_cfg(cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml") -> "TrainerSettings":
+        """Read the ``trainer`` group (``cfg`` is the whole params tree)."""
+        p = f"{key}." if key else ""
+        devices = get(cfg, p + "devices", (int, str), source=source)
+        if isinstance(devices, int) and devices < 1 and devices != -1:
+            raise ConfigError(f"{source}: '{p}devices' must be >= 1 or -1, got {devices!r}")
+        det = get(cfg, p + "deterministic", (bool, str), default=None, source=source)
+        return cls(
+            accelerator=get(cfg, p + "accelerator", str, choices=ACCELERATORS, source=source),
+            devices=devices,
+            num_nodes=get(cfg, p + "num_nodes", int, min=1, source=source),
+            strategy=get(cfg, p + "strategy", str, source=source),
+            precision=str(get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)),
+            num_workers=get(cfg, p + "num_workers", int, min=0, source=source),
+            deterministic=det,
+        )
+
+    def resolved_deterministic(self) -> bool | str:
+        if self.deterministic is not None:
+            return self.deterministic
+        return True if self.accelerator == "cpu" else "warn"
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python, numpy and torch (and dataloader workers, via Lightning) for run-to-run determinism."""
+    import lightning as L
+
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    L.seed_everything(int(seed), workers=True, verbose=False)
+
+
+def build_trainer(
+    settings: TrainerSettings,
+    *,
+    max_epochs: int,
+    callbacks: Sequence[Any] = (),
+    default_root_dir: str | Path | None = None,
+    fast_dev_run: bool | int = False,
+    limit_train_batches: int | float | None = None,
+    limit_val_batches: int | float | None = None,
+    gradient_clip_val: float | None = None,
+    num_sanity_val_steps: int = 0,
+    enable_progress_bar: bool = False,
+    **extra: Any,
+) -> Any:
+    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`EpochHistory`)."""
+    import lightning as L
+
+    kw: dict[str, Any] = dict(
+        accelerator=settings.accelerator,
+        devices=settings.devices,
+        num_nodes=settings.num_nodes,
+        strategy=settings.strategy,
+        precision=settings.precision,
+        deterministic=settings.resolved_deterministic(),
+        max_epochs=int(max_epochs),
+        callbacks=list(callbacks),
+        logger=False,
+        enable_progress_bar=enable_progress_bar,
+        enable_model_summary=False,
+        num_sanity_val_steps=num_sanity_val_steps,
+        default_root_dir=str(default_root_dir) if default_root_dir else None,
+        fast_dev_run=fast_dev_run,
+        gradient_clip_val=gradient_clip_val,
+    )
+    if limit_train_batches is not None:
+        kw["limit_train_batches"] = limit_train_batches
+    if limit_val_batches is not None:
+        kw["limit_val_batches"] = limit_val_batches
+    kw.update(extra)
+    if fast_dev_run:
+        kw.pop("enable_checkpointing", None)
+    return L.Trainer(**kw)
+
+
+def best_checkpoint(dirpath: str | Path, monitor: str = "val/loss", mode: str = "min", filename: str = "best") -> Any:
+    """ModelCheckpoint keeping only the best epoch on ``monitor`` (no 'last' file)."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    return ModelCheckpoint(
+        dirpath=str(dirpath), filename=filename, monitor=monitor, mode=mode, save_top_k=1,
+        save_last=False, auto_insert_metric_name=False, enable_version_counter=False,
+    )
+
+
+def early_stopping(monitor: str = "val/loss", patience: int = 30, mode: str = "min", min_delta: float = 0.0) -> Any:
+    """EarlyStopping on ``monitor`` (checked after each validation)."""
+    from lightning.pytorch.callbacks import EarlyStopping
+
+    return EarlyStopping(monitor=monitor, patience=int(patience), mode=mode, min_delta=min_delta, check_finite=True)
+
+
+def _to_float(v: Any) -> float | None:
+    try:
+        f = float(v.detach().cpu().item()) if isinstance(v, torch.Tensor) else float(v)
+    except (TypeError, ValueError, RuntimeError):
+        return None
+    return f
+
+
+class EpochHistory(Callback):
+    """Per-epoch metrics: every ``callback_metrics`` name with a ``/`` plus ``lr``.
+
+    One row per finished training epoch (after its validation): ``epoch`` (0-based), the
+    metrics, ``lr`` (first param group). When ``mlflow_log`` and an MLflow run is active on
+    rank zero, the row is logged with ``step=epoch``.
+    """
+
+    def __init__(self, mlflow_log: bool = True) -> None:
+        self.mlflow_log = mlflow_log
+        self.rows: list[dict[str, float]] = []
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        if trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        row: dict[str, float] = {}
+        for k, v in trainer.callback_metrics.items():
+            if "/" in k:
+                f = _to_float(v)
+                if f is not None:
+                    row[k] = f
+        if trainer.optimizers:
+            row["lr"] = float(trainer.optimizers[0].param_groups[0]["lr"])
+        self.rows.append({"epoch": int(trainer.current_epoch), **row})
+        if self.mlflow_log:
+            import mlflow
+
+            if mlflow.active_run() is not None:
+                finite = {k: v for k, v in row.items() if math.isfinite(v)}
+                mlflow.log_metrics(finite, step=int(trainer.current_epoch))
+
+    def write_csv(self, path: str | Path) -> None:
+        """Write the rows as CSV (atomically); columns: epoch, then sorted metric names."""
+        cols = sorted({k for r in self.rows for k in r if k != "epoch"})
+        with atomic_path(path, suffix=".csv") as tmp:
+            with open(tmp, "w", newline="") as fh:
+                w = csv.writer(fh, lineterminator="\n")
+                w.writerow(["epoch", *cols])
+                for r in self.rows:
+                    w.writerow([r["epoch"], *[("" if c not in r else f"{r[c]:.9g}") for c in cols]])
+
+
+def global_rank() -> int:
+    """This process's global rank from the launcher's environment (0 outside distributed runs)."""
+    for var in ("RANK", "SLURM_PROCID"):
+        if os.environ.get(var, "").isdigit():
+            return int(os.environ[var])
+    local = int(os.environ.get("LOCAL_RANK", "0") or 0)
+    node = int(os.environ.get("NODE_RANK", os.environ.get("GROUP_RANK", "0")) or 0)
+    if node == 0:
+        return local
+    # world layout unknown here; any process that is not local rank 0 of node 0 is not rank zero
+    return node * 1_000_000 + local
+
+
+@contextmanager
+def tracked_run(
+    experiment: str,
+    run_name: str,
+    *,
+    profile: str,
+    stage: str,
+    tags: Mapping[str, Any] | None = None,
+    params: Mapping[str, Any] | None = None,
+    enabled: bool = True,
+) -> Iterator[Any]:
+    """An MLflow run (project tags, params logged once) on rank zero; ``None`` elsewhere or when disabled."""
+    if not enabled or global_rank() != 0:
+        yield None
+        return
+    from ..tracking import start_run
+
+    with start_run(experiment, run_name, profile=profile, stage=stage, tags=tags, params=params) as run:
+        yield run
+
+
+def log_checkpoint(path: str | Path, artifact_path: str = "checkpoints") -> None:
+    """Log a checkpoint file as an artifact of the active MLflow run."""
+    import mlflow
+
+    mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+
+def log_torch_model(
+    model: torch.nn.Module,
+    input_example: np.ndarray,
+    *,
+    name: str = "model",
+    registered_model_name: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> str:
+    """Log ``model`` (moved to CPU, eval mode) as an MLflow PyTorch model; returns its model URI.
+
+    The signature is inferred from ``input_example`` (float32 numpy) and the model's output on it;
+    pip requirements are pinned to the running torch (no slow requirement inference). Serialised
+    with pickle (not MLflow 3's default traced 'pt2' graph, which would freeze the batch size and
+    grid shape); loading therefore needs ``traffictwin`` importable.
+    """
+    import mlflow
+    import mlflow.pytorch
+    from mlflow.models import infer_signature
+
+    model = model.to("cpu").eval()
+    x = np.ascontiguousarray(input_example, dtype=np.float32)
+    with torch.no_grad():
+        y = model(torch.from_numpy(x))
+    signature = infer_signature(x, y.numpy())
+    info = mlflow.pytorch.log_model(
+        model,
+        name=name,
+        signature=signature,
+        pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "traffictwin"],
+        registered_model_name=registered_model_name,
+        serialization_format="pickle",
+        metadata=dict(metadata) if metadata else None,
+    )
+    return info.model_uri
+
+
+def copy_atomic(src: str | Path, dest: str | Path) -> None:
+    """Copy ``src`` to ``dest`` through a temp file + rename (a reader never sees half a file)."""
+    with atomic_path(dest) as tmp:
+        shutil.copyfile(src, tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())

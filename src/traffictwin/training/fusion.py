@@ -1,0 +1,433 @@
+"""Training of the evidential DeepLabV3+ registration-and-fusion network (paper III, IV).
+
+- :func:`augment` — random horizontal/vertical flips and a random rotation in
+  ``[-max_rotation_deg, max_rotation_deg]`` applied with one ``grid_sample`` to inputs and
+  label together (paper III-D). Bilinear sampling with zero padding mixes masses convexly with
+  "unknown" (0, 0), so every cell stays on the simplex (``m_F, m_O >= 0``, ``m_F + m_O <= 1``).
+- :class:`FusionDataModule` — the ``prealigned`` dataset's ``train``/``val`` splits held in memory;
+  a seeded random subset of ``train_samples_per_epoch`` pairs per epoch (a fresh draw each epoch),
+  a fixed evenly spaced subset of ``val_samples`` validation pairs.
+- :class:`FusionLitModule` — Adam, ReduceLROnPlateau on ``val/loss``, the loss of eqs. (6)-(7),
+  validation metrics ``val/loss``, ``val/kld``, ``val/kld_full``, ``val/dice_occ``, ``val/dice_free``
+  (+ precision/recall), all reduced over DDP ranks.
+- :func:`fit_fusion` — the whole training run (seeding, trainer, callbacks, optional MLflow run,
+  slim best checkpoint published atomically, meta, metrics, curves); the stage
+  ``pipelines/train_fusion.py`` only reads params and calls it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
+
+from ..grid import GridSpec
+from ..io.atomic import atomic_path, write_json_atomic
+from ..io.shards import Dataset, DatasetError
+from ..models.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from ..models.fusion_io import CKPT_FORMAT
+from ..models.evidential import (
+    confusion_counts,
+    dice_from_counts,
+    evidence_to_masses,
+    evidential_loss,
+    kld,
+    kld_full,
+)
+from . import common
+
+log = logging.getLogger(__name__)
+
+VAL_METRICS = ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free")
+
+
+# ---------------------------------------------------------------------------------------------
+# augmentation
+
+
+def augmentation_matrices(n: int, height: int, width: int, *, flip: bool, max_rotation_deg: float,
+                          generator: torch.Generator | None = None) -> torch.Tensor:
+    """``(n, 2, 3)`` ``affine_grid`` matrices: random flips (p = 0.5 per axis) and rotation about the centre.
+
+    The rotation is in metric (cell) space — cells are square — so the normalised-coordinate
+    matrix is ``D^-1 R Fl D`` with ``D = diag(W/2, H/2)``.
+    """
+    g = generator
+    ang = (torch.rand(n, generator=g, dtype=torch.float64) * 2.0 - 1.0) * math.radians(max_rotation_deg)
+    if flip:
+        fx = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
+        fy = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
+    else:
+        fx = torch.ones(n, dtype=torch.float64)
+        fy = torch.ones(n, dtype=torch.float64)
+    c, s = torch.cos(ang), torch.sin(ang)
+    sx, sy = width / 2.0, height / 2.0
+    a = torch.zeros(n, 2, 3, dtype=torch.float64)
+    # [x_in; y_in]_pix = R @ diag(fx, fy) @ [x_out; y_out]_pix, then normalised
+    a[:, 0, 0] = c * fx
+    a[:, 0, 1] = -s * fy * sy / sx
+    a[:, 1, 0] = s * fx * sx / sy
+    a[:, 1, 1] = c * fy
+    return a.float()
+
+
+def augment(inputs: torch.Tensor, label: torch.Tensor, *, flip: bool = True, max_rotation_deg: float = 20.0,
+            mode: str = "bilinear", generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Apply the same random flip + rotation to ``inputs (N, C, H, W)`` and ``label (N, 2, H, W)``.
+
+    Outside the rotated map the masses are (0, 0) (unknown). ``generator`` (CPU) makes the draw
+    reproducible.
+    """
+    if inputs.shape[0] != label.shape[0] or inputs.shape[-2:] != label.shape[-2:]:
+        raise ValueError(f"inputs {tuple(inputs.shape)} and label {tuple(label.shape)} must share N, H, W")
+    n, c, h, w = inputs.shape
+    if not flip and max_rotation_deg <= 0:
+        return inputs, label
+    theta = augmentation_matrices(n, h, w, flip=flip, max_rotation_deg=max_rotation_deg, generator=generator)
+    theta = theta.to(device=inputs.device, dtype=inputs.dtype)
+    both = torch.cat([inputs, label.to(inputs.dtype)], dim=1)
+    grid = F.affine_grid(theta, list(both.shape), align_corners=False)
+    out = F.grid_sample(both, grid, mode=mode, padding_mode="zeros", align_corners=False)
+    return out[:, :c], out[:, c:].to(label.dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+
+
+@dataclass(frozen=True)
+class DataSettings:
+    """How the prealigned dataset feeds training.
+
+    batch_size: pairs per step; train_samples_per_epoch: pairs drawn (without replacement) per
+    epoch, 0 = all; val_samples: fixed validation pairs, 0 = all; num_workers: loader workers.
+    """
+
+    batch_size: int = 8
+    train_samples_per_epoch: int = 0
+    val_samples: int = 0
+    num_workers: int = 0
+
+
+def load_prealigned(root: str | Path, split: str, grid: GridSpec | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``inputs (N, 4, H, W)``, ``label (N, 2, H, W)`` float32 tensors of ``split`` (checked against ``grid``)."""
+    ds = Dataset(root, kind="prealigned")
+    arrays = ds.load_all(split, keys=["inputs", "label"])
+    x, y = arrays["inputs"], arrays["label"]
+    if x.ndim != 4 or x.shape[1] != 4:
+        raise DatasetError(f"{root}: array 'inputs' must be (N, 4, H, W), got {x.shape}")
+    if y.shape != (x.shape[0], 2, *x.shape[2:]):
+        raise DatasetError(f"{root}: array 'label' must be (N, 2, H, W) = {(x.shape[0], 2, *x.shape[2:])}, got {y.shape}")
+    if grid is not None and tuple(x.shape[2:]) != grid.shape:
+        raise DatasetError(f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)")
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(np.ascontiguousarray(y, dtype=np.float32))
+
+
+def evenly_spaced(n: int, k: int) -> np.ndarray:
+    """``k`` evenly spaced indices out of ``n`` (all when ``k`` is 0 or >= n)."""
+    if k <= 0 or k >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+
+
+class FusionDataModule(L.LightningDataModule):
+    """Prealigned pairs in memory; seeded per-epoch training subsets, a fixed validation subset."""
+
+    def __init__(self, root: str | Path, settings: DataSettings, seed: int, grid: GridSpec | None = None,
+                 tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None) -> None:
+        super().__init__()
+        self.root = Path(root)
+        self.settings = settings
+        self.seed = int(seed)
+        self.grid = grid
+        self._tensors = dict(tensors) if tensors else {}
+        self.train_set: TensorDataset | None = None
+        self.val_set: Subset | TensorDataset | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        for split in ("train", "val"):
+            if split not in self._tensors:
+                self._tensors[split] = load_prealigned(self.root, split, self.grid)
+        self.train_set = TensorDataset(*self._tensors["train"])
+        val = TensorDataset(*self._tensors["val"])
+        self.val_set = Subset(val, evenly_spaced(len(val), self.settings.val_samples).tolist())
+        if len(self.train_set) < self.settings.batch_size:
+            raise DatasetError(f"{self.root}: {len(self.train_set)} training pairs < batch_size {self.settings.batch_size}")
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train_set is not None
+        n = len(self.train_set)
+        k = self.settings.train_samples_per_epoch
+        k = n if k <= 0 else min(k, n)
+        gen = torch.Generator().manual_seed(self.seed)
+        sampler = RandomSampler(self.train_set, replacement=False, num_samples=k, generator=gen)
+        return DataLoader(self.train_set, batch_size=self.settings.batch_size, sampler=sampler, drop_last=True,
+                          num_workers=self.settings.num_workers, persistent_workers=self.settings.num_workers > 0)
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val_set is not None
+        return DataLoader(self.val_set, batch_size=self.settings.batch_size, shuffle=False,
+                          num_workers=self.settings.num_workers, persistent_workers=self.settings.num_workers > 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# model
+
+
+@dataclass(frozen=True)
+class FusionHParams:
+    """Optimisation and loss settings (paper IV: Adam lr 0.01, plateau decay 0.5 / patience 10, o_w 3)."""
+
+    lr: float = 0.01
+    weight_decay: float = 0.0
+    lr_factor: float = 0.5
+    lr_patience: int = 10
+    occupied_weight: float = 3.0
+    kl_weight: float = 0.0          # evidential KL regulariser (Sensoy et al.); off as in the paper
+    kl_anneal_epochs: int = 10      # its weight ramps as min(1, epoch / kl_anneal_epochs)
+    augment_flip: bool = True
+    augment_rotation_deg: float = 20.0
+
+
+def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLabSpec:
+    """DeepLabSpec from the ``fusion_model.architecture`` mapping (``backbone: {block, layers, base_width}``, ...)."""
+    d = json.loads(json.dumps(dict(model_cfg)))
+    bb = dict(d.pop("backbone", {}))
+    bb.setdefault("in_channels", in_channels)
+    if "output_stride" in bb:
+        os_ = int(bb.pop("output_stride"))
+        if os_ not in (8, 16, 32):
+            raise ValueError(f"backbone.output_stride must be 8, 16 or 32, got {os_}")
+        bb["dilate"] = {8: [False, True, True], 16: [False, False, True], 32: [False, False, False]}[os_]
+        if os_ == 8:
+            d.setdefault("aspp_rates", [12, 24, 36])
+    return DeepLabSpec.from_dict({**d, "backbone": bb})
+
+
+class FusionLitModule(L.LightningModule):
+    """LightningModule around :class:`DeepLabV3Plus` (``self.net``) with the evidential loss."""
+
+    def __init__(self, spec: Mapping[str, Any], hparams: Mapping[str, Any], meta: Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        self.save_hyperparameters({"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})})
+        self.spec = DeepLabSpec.from_dict(spec)
+        self.hp = FusionHParams(**hparams)
+        self.net = DeepLabV3Plus(self.spec)
+        self._val_counts: torch.Tensor | None = None
+        self._aug_gen: torch.Generator | None = None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+    def _kl_weight(self) -> float:
+        if self.hp.kl_weight <= 0:
+            return 0.0
+        return self.hp.kl_weight * min(1.0, self.current_epoch / max(1, self.hp.kl_anneal_epochs))
+
+    def on_train_start(self) -> None:
+        seed = int(self.hparams["meta"].get("seed", 0)) + 7919 * int(self.global_rank)
+        self._aug_gen = torch.Generator().manual_seed(seed)
+
+    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        x, y = batch
+        if self.hp.augment_flip or self.hp.augment_rotation_deg > 0:
+            x, y = augment(x, y, flip=self.hp.augment_flip, max_rotation_deg=self.hp.augment_rotation_deg,
+                           generator=self._aug_gen)
+        e = self.net(x).float()
+        loss = evidential_loss(e, y.float(), self.hp.occupied_weight, self._kl_weight())
+        self.log("train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0])
+        return loss
+
+    def on_validation_epoch_start(self) -> None:
+        self._val_counts = torch.zeros(6, dtype=torch.float64, device=self.device)
+
+    def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> None:
+        x, y = batch
+        e = self.net(x).float()
+        y = y.float()
+        loss = evidential_loss(e, y, self.hp.occupied_weight, 0.0)
+        m, _ = evidence_to_masses(e)
+        n = x.shape[0]
+        self.log("val/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        self.log("val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        self.log("val/kld_full", kld_full(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        assert self._val_counts is not None
+        self._val_counts += confusion_counts(m, y).to(self._val_counts.device)
+
+    def on_validation_epoch_end(self) -> None:
+        if self._val_counts is None:
+            return
+        counts = self.trainer.strategy.reduce(self._val_counts, reduce_op="sum")
+        for k, v in dice_from_counts(counts.cpu()).items():
+            self.log(f"val/{k}", float(v) if math.isfinite(v) else 0.0, sync_dist=False)
+
+    def configure_optimizers(self) -> Any:
+        opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=self.hp.lr_factor, patience=self.hp.lr_patience)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch", "frequency": 1}}
+
+
+# ---------------------------------------------------------------------------------------------
+# a whole training run
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """Epochs and stopping: max_epochs; early_stopping_patience (epochs without val/loss improvement)."""
+
+    max_epochs: int = 200
+    early_stopping_patience: int = 30
+    gradient_clip_val: float | None = None
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """MLflow: experiment, run name, profile and stage tags; enabled=False skips MLflow entirely."""
+
+    experiment: str = "fusion"
+    run_name: str = "fusion"
+    profile: str = "default"
+    stage: str = "train_fusion"
+    enabled: bool = True
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit_fusion` produced (paths written, best metrics, timing)."""
+
+    checkpoint: Path
+    meta: dict[str, Any]
+    metrics: dict[str, Any]
+    history: list[dict[str, float]]
+    run_id: str | None = None
+    model_uri: str | None = None
+
+
+def slim_checkpoint(lightning_ckpt: str | Path, extra: Mapping[str, Any]) -> dict[str, Any]:
+    """A Lightning checkpoint without optimizer/loop state (``load_from_checkpoint`` still works) + ``traffictwin`` meta."""
+    ck = torch.load(lightning_ckpt, map_location="cpu", weights_only=False)
+    keep = {k: ck[k] for k in ("state_dict", "epoch", "global_step", "pytorch-lightning_version") if k in ck}
+    keep["hyper_parameters"] = json.loads(json.dumps(dict(ck.get("hyper_parameters", {})), default=str))
+    keep["traffictwin"] = {"format": CKPT_FORMAT, **json.loads(json.dumps(dict(extra), default=str))}
+    return keep
+
+
+def fit_fusion(
+    data_root: str | Path,
+    *,
+    spec: DeepLabSpec,
+    hparams: FusionHParams,
+    data: DataSettings,
+    loop: LoopSettings,
+    trainer_settings: common.TrainerSettings,
+    seed: int,
+    grid: GridSpec,
+    cfg_name: str,
+    noise: Mapping[str, float],
+    ckpt_out: str | Path,
+    meta_out: str | Path | None = None,
+    metrics_out: str | Path | None = None,
+    curves_out: str | Path | None = None,
+    tracking: TrackingSettings | None = None,
+    log_mlflow_model: bool = True,
+    tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
+    **trainer_extra: Any,
+) -> FitResult | None:
+    """Train on ``data_root``'s train split, select on val/loss, publish the best model.
+
+    Writes (rank zero, each atomically, only after training succeeded): ``ckpt_out`` (slim
+    Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, MLflow run id, data manifest
+    hash), ``metrics_out`` (best-epoch metrics + timing), ``curves_out`` (per-epoch CSV).
+    Returns ``None`` on other DDP ranks.
+    """
+    common.seed_everything(seed)
+    grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
+    ds = Dataset(data_root, kind="prealigned")
+    manifest_hash = ds.manifest_hash()
+    tracking = tracking or TrackingSettings(enabled=False)
+    meta_base = {
+        "cfg": cfg_name, "noise": dict(noise), "grid": {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell},
+        "seed": int(seed), "data_manifest_hash": manifest_hash, "profile": tracking.profile,
+    }
+    module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
+    dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
+    n_params = count_parameters(module.net)
+
+    with tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work, common.tracked_run(
+        tracking.experiment, tracking.run_name, profile=tracking.profile, stage=tracking.stage,
+        tags={"data_manifest_hash": manifest_hash, "cfg": cfg_name}, params={**tracking.params, "data.manifest_hash": manifest_hash,
+                                                                          "model.param_count": n_params},
+        enabled=tracking.enabled,
+    ) as run:
+        history = common.EpochHistory(mlflow_log=run is not None)
+        ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
+        callbacks = [history, ckpt_cb, common.early_stopping("val/loss", loop.early_stopping_patience)]
+        trainer = common.build_trainer(trainer_settings, max_epochs=loop.max_epochs, callbacks=callbacks, default_root_dir=work,
+                                       gradient_clip_val=loop.gradient_clip_val, **trainer_extra)
+        t0 = time.perf_counter()
+        trainer.fit(module, datamodule=dm)
+        train_s = time.perf_counter() - t0
+        if not trainer.is_global_zero:
+            return None
+        best = ckpt_cb.best_model_path
+        if not best or not Path(best).exists():
+            raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
+        best_epoch = int(torch.load(best, map_location="cpu", weights_only=False).get("epoch", -1))
+        row = next((r for r in history.rows if r["epoch"] == best_epoch), history.rows[-1] if history.rows else {})
+        epochs_run = len(history.rows)
+        n_train = len(dm.train_set) if dm.train_set is not None else 0
+        k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
+        samples_seen = min(k, n_train) // data.batch_size * data.batch_size * epochs_run
+        metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
+        metrics.update({
+            "best_epoch": best_epoch, "epochs": epochs_run, "train_seconds": round(train_s, 2),
+            "train_samples_per_s": round(samples_seen / train_s, 3) if train_s > 0 else None,
+            "param_count": n_params, "train_pairs": n_train, "val_pairs": len(dm.val_set) if dm.val_set is not None else 0,
+        })
+        meta = {
+            **meta_base, "format": CKPT_FORMAT, "architecture": spec.as_dict(), "param_count": n_params,
+            "hparams": asdict(hparams), "best_epoch": best_epoch, "best_val_loss": metrics.get("val/loss"),
+            "mlflow_run_id": run.info.run_id if run is not None else None, "mlflow_model_uri": None,
+            "data_root": str(data_root),
+        }
+        slim = slim_checkpoint(best, meta)
+        model_uri = None
+        if run is not None:
+            import mlflow
+
+            mlflow.log_metrics({f"best/{k.replace('/', '_')}": float(v) for k, v in metrics.items()
+                                if isinstance(v, (int, float)) and v is not None and math.isfinite(float(v))})
+            with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
+                p = Path(art) / "model.ckpt"
+                torch.save(slim, p)
+                common.log_checkpoint(p)
+            best_module = FusionLitModule(spec.as_dict(), asdict(hparams), meta_base)
+            best_module.load_state_dict(slim["state_dict"])
+            example = np.zeros((1, spec.backbone.in_channels, grid.rows, grid.cols), dtype=np.float32)
+            model_uri = common.log_torch_model(best_module.net, example, name="model",
+                                               metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash})
+            meta["mlflow_model_uri"] = model_uri
+            slim["traffictwin"]["mlflow_model_uri"] = model_uri
+        with atomic_path(ckpt_out, suffix=".ckpt") as tmp:
+            torch.save(slim, tmp)
+        if meta_out:
+            write_json_atomic(meta_out, meta)
+        if metrics_out:
+            write_json_atomic(metrics_out, metrics)
+        if curves_out:
+            history.write_csv(curves_out)
+    return FitResult(Path(ckpt_out), meta, metrics, history.rows, meta["mlflow_run_id"], model_uri)
