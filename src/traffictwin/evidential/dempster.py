@@ -1,0 +1,91 @@
+"""Dempster's rule of combination and the pignistic transform on Θ = {F, O} (paper eq. 1, 2).
+
+Masses are arrays with the channel axis at ``-3`` (``(2, H, W)`` or batched ``(N, 2, H, W)``):
+channel 0 = ``m_F``, 1 = ``m_O``; the mass of Θ (unknown) is ``u = 1 − m_F − m_O``. NumPy
+arrays and torch tensors are both accepted (the result has the input's type and dtype).
+
+Dempster::
+
+    K   = m_F1·m_O2 + m_O1·m_F2                         (conflict)
+    m_F = (m_F1·m_F2 + m_F1·u2 + u1·m_F2) / (1 − K)
+    m_O = (m_O1·m_O2 + m_O1·u2 + u1·m_O2) / (1 − K)
+
+**Total conflict** (``1 − K < eps``, e.g. ``(1, 0) ⊕ (0, 1)``): the rule is undefined; this
+implementation returns the *vacuous* mass ``(0, 0)`` (``u = 1``, "nothing is known") for those
+cells — the same answer as Yager's rule in :mod:`traffictwin.evidential.rules` at ``K = 1``.
+
+Pignistic: ``p_O = m_O + u / 2``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+EPS = 1e-7
+
+
+def _is_torch(x: Any) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def _check_pair(m1: Any, m2: Any) -> None:
+    for name, m in (("m1", m1), ("m2", m2)):
+        if m.ndim < 3 or m.shape[-3] != 2:
+            raise ValueError(
+                f"dempster: {name} must have the channel axis of size 2 at -3 ((2,H,W) or (N,2,H,W)), got shape {tuple(m.shape)}"
+            )
+    if tuple(m1.shape[-2:]) != tuple(m2.shape[-2:]):
+        raise ValueError(f"dempster: grid shapes differ: m1 {tuple(m1.shape)} vs m2 {tuple(m2.shape)}")
+
+
+def dempster(m1: Any, m2: Any, eps: float = EPS) -> Any:
+    """Dempster's combination of two mass grids (see module docstring; broadcasting over leading axes)."""
+    torch_in = _is_torch(m1) or _is_torch(m2)
+    if not torch_in:
+        m1, m2 = np.asarray(m1), np.asarray(m2)
+    _check_pair(m1, m2)
+    f1, o1 = m1[..., 0, :, :], m1[..., 1, :, :]
+    f2, o2 = m2[..., 0, :, :], m2[..., 1, :, :]
+    u1, u2 = 1 - f1 - o1, 1 - f2 - o2
+    den = 1 - (f1 * o2 + o1 * f2)
+    num_f = f1 * f2 + f1 * u2 + u1 * f2
+    num_o = o1 * o2 + o1 * u2 + u1 * o2
+    if torch_in:
+        import torch
+
+        ok = den > eps
+        safe = torch.where(ok, den, torch.ones_like(den))
+        mf = torch.where(ok, num_f / safe, torch.zeros_like(den))
+        mo = torch.where(ok, num_o / safe, torch.zeros_like(den))
+        m = torch.stack([mf, mo], dim=-3).clamp(0.0, 1.0)
+        s = m.sum(dim=-3, keepdim=True)
+        return torch.where(s > 1, m / s.clamp_min(1.0), m)
+    ok = den > eps
+    safe = np.where(ok, den, 1)
+    mf = np.where(ok, num_f / safe, 0)
+    mo = np.where(ok, num_o / safe, 0)
+    dtype = np.result_type(m1.dtype, m2.dtype)
+    m = np.clip(np.stack([mf, mo], axis=-3), 0.0, 1.0).astype(dtype, copy=False)
+    s = m.sum(axis=-3, keepdims=True)
+    return np.where(s > 1, m / np.maximum(s, 1), m).astype(dtype, copy=False)
+
+
+def conflict(m1: Any, m2: Any) -> Any:
+    """Conflict ``K = m_F1·m_O2 + m_O1·m_F2`` per cell, shape ``(..., H, W)``."""
+    return m1[..., 0, :, :] * m2[..., 1, :, :] + m1[..., 1, :, :] * m2[..., 0, :, :]
+
+
+def pignistic(m: Any) -> Any:
+    """Pignistic occupancy probability ``p_O = m_O + (1 − m_F − m_O) / 2``, shape ``(..., H, W)``."""
+    if not _is_torch(m):
+        m = np.asarray(m)
+    if m.ndim < 3 or m.shape[-3] != 2:
+        raise ValueError(f"pignistic: masses must have the channel axis of size 2 at -3, got shape {tuple(m.shape)}")
+    return m[..., 1, :, :] + (1 - m[..., 0, :, :] - m[..., 1, :, :]) / 2
+
+
+def vacuous(shape: tuple[int, int], dtype: Any = np.float32) -> np.ndarray:
+    """The all-unknown mass grid ``(2, H, W)`` of zeros."""
+    return np.zeros((2, *shape), dtype=dtype)

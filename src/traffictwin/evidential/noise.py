@@ -1,0 +1,54 @@
+"""Pose-noise model (DESIGN.md "Pose noise", paper III-C).
+
+A configuration gives ``r`` (m) and ``alpha`` (deg): the 98 % two-sided intervals of zero-mean
+Gaussians on x, y and yaw, drawn independently: ``sigma_xy = r / 2.326``,
+``sigma_yaw = radians(alpha) / 2.326`` (2.326 = the standard normal's 99 % quantile).
+
+Noise is drawn as standard-normal vectors ``z (N, 3)`` from a seed that depends only on the
+pair id and the draw number (:func:`standard_normal_draws`), then scaled per configuration
+(:func:`scale_noise`): the same pair gets the same noise *direction* in every configuration,
+so evaluations across configurations are comparable and configuration A is exactly noise-free.
+The noise is added to map 2's world pose (:func:`apply_pose_noise`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+Z98 = 2.326  # two-sided 98 % interval half-width of N(0, 1) (the 99 % quantile)
+
+
+def noise_sigmas(r: float, alpha_deg: float) -> tuple[float, float]:
+    """Per-axis standard deviations: (sigma_xy in m, sigma_yaw in rad)."""
+    if r < 0 or alpha_deg < 0:
+        raise ValueError(f"pose noise: r (m) and alpha (deg) must be >= 0, got r={r}, alpha={alpha_deg}")
+    return float(r) / Z98, float(np.deg2rad(alpha_deg)) / Z98
+
+
+def standard_normal_draws(seed: int, pair_ids: np.ndarray, draw: int = 0) -> np.ndarray:
+    """Standard-normal ``(N, 3)`` draws, row i depending only on ``(seed, pair_ids[i], draw)``."""
+    pair_ids = np.asarray(pair_ids, dtype=np.int64).reshape(-1)
+    out = np.empty((len(pair_ids), 3))
+    for i, pid in enumerate(pair_ids):
+        out[i] = np.random.default_rng(np.random.SeedSequence([int(seed), int(pid), int(draw), 7003])).standard_normal(3)
+    return out
+
+
+def scale_noise(z: np.ndarray, r: float, alpha_deg: float) -> np.ndarray:
+    """Scale standard-normal draws ``z (N, 3)`` to pose noise (dx m, dy m, dyaw rad)."""
+    s_xy, s_yaw = noise_sigmas(r, alpha_deg)
+    return np.asarray(z, dtype=np.float64) * np.array([s_xy, s_xy, s_yaw])
+
+
+def sample_pose_noise(rng: np.random.Generator, n: int, r: float, alpha_deg: float) -> np.ndarray:
+    """``n`` pose-noise draws (dx m, dy m, dyaw rad) from ``rng``."""
+    if n < 0:
+        raise ValueError(f"sample_pose_noise: n must be >= 0, got {n}")
+    return scale_noise(rng.standard_normal((n, 3)), r, alpha_deg)
+
+
+def apply_pose_noise(pose: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """World pose(s) ``(…, 3)`` plus noise ``(…, 3)``; yaw wrapped to [-pi, pi)."""
+    out = np.asarray(pose, dtype=np.float64) + np.asarray(noise, dtype=np.float64)
+    out[..., 2] = (out[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    return out

@@ -1,0 +1,169 @@
+"""A Velodyne VLP-32C-like roof lidar: 32 channels, 360 deg, ray cast against the world.
+
+Elevations: the VLP-32C's non-uniform table (datasheet, -25 deg ... +15 deg, dense around the
+horizon), or ``uniform=True`` for 32 evenly spaced channels over the same interval. Azimuth
+resolution, maximum range, Gaussian range noise (sigma, m) and per-ray dropout (probability)
+are configurable. The scan is cast in azimuth sectors; every sector only tests the boxes whose
+angular footprint overlaps it (plus the ground plane), which keeps the ray-box work small.
+
+Frames: the sensor pose ``(x, y, yaw)`` is the lidar's ground projection in the world (m, rad);
+the lidar sits ``height`` m above the ground. Returned points are in the *sensor frame*
+(x forward, y left, z up from the ground under the sensor).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .raycast import HIT_GROUND, HIT_NOTHING, cast_rays
+from .scene import Boxes
+
+#: VLP-32C elevation angles (deg), sorted ascending (Velodyne VLP-32C user manual, table 9-2)
+VLP32C_ELEVATIONS_DEG: tuple[float, ...] = (
+    -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0,
+    -2.667, -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0,
+    1.333, 1.667, 2.333, 3.333, 4.667, 7.0, 10.333, 15.0,
+)
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    """Lidar parameters: ``azimuth_res_deg`` (deg), ``max_range``/``min_range`` (m),
+    ``range_noise`` (sigma, m), ``dropout`` (probability a ray returns nothing),
+    ``height`` (m above ground), ``uniform`` (evenly spaced elevations instead of the table)."""
+
+    azimuth_res_deg: float = 0.2
+    max_range: float = 100.0
+    min_range: float = 1.0
+    range_noise: float = 0.02
+    dropout: float = 0.0
+    height: float = 1.9
+    uniform: bool = False
+    sectors: int = 72
+
+    def __post_init__(self) -> None:
+        if not 0 < self.azimuth_res_deg <= 10:
+            raise ValueError(f"LidarSpec.azimuth_res_deg must be in (0, 10] deg, got {self.azimuth_res_deg}")
+        if abs(360.0 / self.azimuth_res_deg - round(360.0 / self.azimuth_res_deg)) > 1e-6:
+            raise ValueError(f"LidarSpec.azimuth_res_deg must divide 360 deg, got {self.azimuth_res_deg}")
+        if not self.max_range > self.min_range >= 0:
+            raise ValueError(f"LidarSpec: need max_range > min_range >= 0 m, got {self.max_range}, {self.min_range}")
+        if self.range_noise < 0 or not 0 <= self.dropout < 1:
+            raise ValueError(f"LidarSpec: range_noise >= 0 m and dropout in [0, 1) required, got {self.range_noise}, {self.dropout}")
+        if self.height <= 0:
+            raise ValueError(f"LidarSpec.height must be > 0 m, got {self.height}")
+
+    @property
+    def elevations(self) -> np.ndarray:
+        """Channel elevations (rad), ascending, shape (32,)."""
+        if self.uniform:
+            return np.deg2rad(np.linspace(-25.0, 15.0, 32))
+        return np.deg2rad(np.array(VLP32C_ELEVATIONS_DEG))
+
+    @property
+    def n_azimuth(self) -> int:
+        return int(round(360.0 / self.azimuth_res_deg))
+
+    @property
+    def azimuths(self) -> np.ndarray:
+        """Column azimuths (rad) in the sensor frame, 0 = forward, counter-clockwise, in [-pi, pi)."""
+        return -np.pi + (np.arange(self.n_azimuth) + 0.5) * (2 * np.pi / self.n_azimuth)
+
+
+@dataclass
+class Scan:
+    """One revolution: arrays of shape ``(n_azimuth, 32)`` (column-major in azimuth).
+
+    ``range`` (m along the ray; ``max_range`` for no return), ``hit`` (box index in the boxes
+    given to :func:`scan`, -1 ground, -2 nothing), ``azimuth`` / ``elevation`` (rad, sensor frame).
+    """
+
+    range: np.ndarray
+    hit: np.ndarray
+    azimuth: np.ndarray
+    elevation: np.ndarray
+    spec: LidarSpec
+
+    @property
+    def points(self) -> np.ndarray:
+        """Sensor-frame points (n_azimuth, 32, 3) (m; z above the ground under the sensor)."""
+        r, a, e = self.range, self.azimuth, self.elevation
+        ch = r * np.cos(e)
+        return np.stack([ch * np.cos(a), ch * np.sin(a), self.spec.height + r * np.sin(e)], -1)
+
+    @property
+    def horizontal(self) -> np.ndarray:
+        """Horizontal distance (m) of every return from the sensor."""
+        return self.range * np.cos(self.elevation)
+
+
+def scan(spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generator | None = None) -> Scan:
+    """Cast one revolution of ``spec`` from sensor ``pose`` (x, y, yaw; m, rad) against ``boxes`` + ground.
+
+    The caller excludes the sensor's own vehicle from ``boxes`` (a box around the origin is
+    ignored anyway). ``rng`` draws range noise and dropout (none when ``None``).
+    """
+    pose = np.asarray(pose, dtype=np.float64).reshape(3)
+    el = spec.elevations
+    az = spec.azimuths
+    n_az, n_el = len(az), len(el)
+    A, E = np.meshgrid(az, el, indexing="ij")  # (n_az, n_el)
+    wa = A + pose[2]
+    dirs = np.stack([np.cos(E) * np.cos(wa), np.cos(E) * np.sin(wa), np.sin(E)], -1).reshape(-1, 3)
+    origin = np.array([pose[0], pose[1], spec.height])
+    dist = np.full(n_az * n_el, spec.max_range)
+    hit = np.full(n_az * n_el, HIT_NOTHING, dtype=np.int64)
+
+    # candidate boxes within range, with their angular footprint seen from the sensor
+    if len(boxes):
+        rad = 0.5 * np.hypot(boxes.size[:, 0], boxes.size[:, 1])
+        rel = boxes.center - pose[:2]
+        dc = np.hypot(rel[:, 0], rel[:, 1])
+        cand = np.flatnonzero(dc - rad <= spec.max_range)
+    else:
+        cand = np.zeros(0, dtype=np.int64)
+    sub = boxes.subset(cand) if len(cand) else Boxes.empty()
+    n_sec = max(1, min(spec.sectors, n_az))
+    sec_of_col = (np.arange(n_az) * n_sec) // n_az
+    if len(sub):
+        rel = sub.center - pose[:2]
+        center_ang = np.arctan2(rel[:, 1], rel[:, 0]) - pose[2]
+        corners = sub.corners() - pose[:2]
+        ang = np.arctan2(corners[..., 1], corners[..., 0]) - pose[2]
+        dev = np.abs((ang - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi).max(1)
+        close = np.hypot(rel[:, 0], rel[:, 1]) <= 0.5 * np.hypot(sub.size[:, 0], sub.size[:, 1]) + 0.5
+        half_span = np.where(close, np.pi, dev + 1e-3)
+        sec_w = 2 * np.pi / n_sec
+        # sector k covers sensor azimuths [-pi + k w, -pi + (k+1) w)
+        sec_mid = -np.pi + (np.arange(n_sec) + 0.5) * sec_w
+        diff = np.abs((center_ang[None, :] - sec_mid[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        overlap = diff <= half_span[None, :] + sec_w / 2  # (n_sec, n_sub)
+    ray_sec = np.repeat(sec_of_col, n_el)
+    order = np.argsort(ray_sec, kind="stable")
+    bounds = np.searchsorted(ray_sec[order], np.arange(n_sec + 1))
+    for k in range(n_sec):
+        rays = order[bounds[k] : bounds[k + 1]]
+        if len(rays) == 0:
+            continue
+        bsel = np.flatnonzero(overlap[k]) if len(sub) else np.zeros(0, dtype=np.int64)
+        bk = sub.subset(bsel) if len(bsel) else Boxes.empty()
+        d, h = cast_rays(np.broadcast_to(origin, (len(rays), 3)), dirs[rays], bk, spec.max_range)
+        dist[rays] = d
+        hit[rays] = np.where(h >= 0, cand[bsel][np.maximum(h, 0)] if len(bsel) else -2, h)
+
+    if rng is not None:
+        if spec.range_noise > 0:
+            ret = hit != HIT_NOTHING
+            dist[ret] = dist[ret] + rng.normal(0.0, spec.range_noise, int(ret.sum()))
+        if spec.dropout > 0:
+            drop = rng.random(len(dist)) < spec.dropout
+            hit[drop] = HIT_NOTHING
+            dist[drop] = spec.max_range
+    short = (dist < spec.min_range) | (dist > spec.max_range)
+    hit[short] = HIT_NOTHING
+    dist[short] = spec.max_range
+    return Scan(
+        range=dist.reshape(n_az, n_el), hit=hit.reshape(n_az, n_el), azimuth=A, elevation=E, spec=spec,
+    )
