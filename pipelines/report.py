@@ -1,0 +1,88 @@
+"""Stage `report` (last in the DAG): reports/README.md, reports/index.html, reports/results_table.md.
+
+Reads params.yaml for what the report shows about the run -- the profile, the seed, the
+pose-noise configurations, and the *scale* parameters (every key that any profile in
+conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) -- and
+hands them to :func:`traffictwin.reporting.report.write_report` as explicit values, together
+with the git commit and the DVC stage order (for the timing table).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from traffictwin.config import flatten, get
+from traffictwin.reporting.report import ReportInputs, write_report
+from traffictwin.tracking import git_commit, pipeline_run_id
+
+from ._common import ROOT, params, setup_logging, stage_timer
+
+
+def profile_keys(conf_profile_dir: Path) -> set[str]:
+    """Dotted keys that any profile (conf/profile/*.yaml, ``@package _global_``) sets, except ``defaults``."""
+    keys: set[str] = set()
+    for p in sorted(conf_profile_dir.glob("*.yaml")):
+        data = yaml.safe_load(p.read_text()) or {}
+        data.pop("defaults", None)
+        keys.update(flatten(data))
+    return keys
+
+
+def run_params(cfg: Any, keys: set[str]) -> dict[str, Any]:
+    """Values of ``keys`` in params (a key that is a dict in params is expanded) plus every ``*seed*`` key."""
+    flat = flatten(cfg)
+    out: dict[str, Any] = {}
+    for k, v in flat.items():
+        leaf = k.rsplit(".", 1)[-1]
+        if k in keys or any(k.startswith(p + ".") for p in keys) or "seed" in leaf:
+            out[k] = v
+    out.pop("profile.name", None)
+    return out
+
+
+def stage_order(dvc_yaml: Path) -> list[str]:
+    """Stage names in dvc.yaml order (foreach stages as ``name@key``)."""
+    data = yaml.safe_load(dvc_yaml.read_text()) or {}
+    order: list[str] = []
+    for name, st in (data.get("stages") or {}).items():
+        items = st.get("foreach") if isinstance(st, dict) else None
+        if isinstance(items, dict):
+            order += [f"{name}@{k}" for k in items]
+        elif isinstance(items, list):
+            order += [f"{name}@{k}" for k in items]
+        else:
+            order.append(name)
+    return order
+
+
+def main() -> None:
+    setup_logging()
+    with stage_timer("report"):
+        cfg = params()
+        confs = get(cfg, "configurations", dict)
+        configurations = {
+            str(n): (get(cfg, f"configurations.{n}.r", float, min=0), get(cfg, f"configurations.{n}.alpha", float, min=0))
+            for n in confs
+        }
+        inputs = ReportInputs(
+            reports_dir=ROOT / "reports",
+            profile=get(cfg, "profile.name", str),
+            seed=get(cfg, "seed", int, min=0),
+            git_commit=git_commit(ROOT),
+            run_params=run_params(cfg, profile_keys(ROOT / "conf" / "profile")),
+            configurations=configurations,
+            dvc_exp_name=os.environ.get("DVC_EXP_NAME", ""),
+            pipeline_run=pipeline_run_id(),
+            stage_order=stage_order(ROOT / "dvc.yaml"),
+        )
+        report = write_report(inputs)
+    log = setup_logging()
+    log.info("report: %d sections, %d missing values -> reports/README.md, reports/index.html", len(report.sections), len(report.missing))
+
+
+if __name__ == "__main__":
+    main()

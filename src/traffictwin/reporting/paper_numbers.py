@@ -1,0 +1,143 @@
+"""Numbers and claims the two papers report, with the section / figure / table they come from.
+
+This is the ONLY place in the project where numbers are typed in by hand; the report puts them
+beside the numbers of our own run, which all come from metrics files. The papers' data differs
+from ours (theirs: VTD and GTA V, real scale; ours: the project's own simulator, profile-dependent
+scale), so the comparison is about trends and rankings, not absolute values.
+
+Sources (``/work/shared/seeds``):
+
+- ``FUSION``: van Kempen, Heidrich, Lampe, Wopen, Eckstein, "Combined Registration and Fusion of
+  Evidential Occupancy Grid Maps for Live Digital Twins of Traffic" (RWTH Aachen, ika).
+  The paper reports its evaluation as figures only (Fig. 5 KLD box plots, Figs. 6/7 precision /
+  recall / Dice curves) -- no numbers are printed -- so its results enter as qualitative claims.
+- ``RISK``: Feth, Akram, Schuster, Wasenmüller, "Dynamic Risk Assessment for Vehicles of Higher
+  Automation Levels by Deep Learning" (Fraunhofer IESE / DFKI).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class PaperNumber:
+    """One reported value: ``value`` in ``unit``, where it is printed (``source``), what it means."""
+
+    value: Any
+    unit: str
+    source: str
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class PaperClaim:
+    """A qualitative result of a paper (a sentence about a figure), keyed for the findings / report."""
+
+    text: str
+    source: str
+
+
+# --------------------------------------------------------------------------- fusion (van Kempen et al.)
+FUSION_CITATION = (
+    "van Kempen et al., Combined Registration and Fusion of Evidential Occupancy Grid Maps "
+    "for Live Digital Twins of Traffic (RWTH Aachen, ika)"
+)
+
+FUSION: dict[str, PaperNumber] = {
+    "n_pairs": PaperNumber(10_000, "input-label pairs", "Sec. IV", "generated from >600 scenarios"),
+    "n_scenarios": PaperNumber(600, "scenarios (more than)", "Sec. IV"),
+    "n_templates": PaperNumber(9, "road templates", "Sec. IV", "~400 m road sections"),
+    "split": PaperNumber("80:10:10", "train:val:test", "Sec. IV"),
+    "epochs": PaperNumber(200, "epochs (approx., to minimum val loss)", "Sec. IV"),
+    "lr": PaperNumber(0.01, "initial learning rate", "Sec. IV", "decay 0.5, plateau patience 10"),
+    "batch_size": PaperNumber(80, "max batch size", "Sec. IV"),
+    "occupied_weight": PaperNumber(3.0, "o_w", "Sec. III-A eq. (6), Sec. IV"),
+    "grid": PaperNumber("256 x 176 x 0.32 m", "cells", "Sec. IV"),
+    "backbone": PaperNumber("ResNet-50", "", "Sec. III-A"),
+}
+
+# Configurations A-D (Fig. 3): 98 % intervals r (m) and alpha (deg).
+FUSION_CONFIGURATIONS: dict[str, tuple[float, float]] = {"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)}
+
+FUSION_CLAIMS: dict[str, PaperClaim] = {
+    "kld_A_baseline_better": PaperClaim(
+        "Without pose noise (A) the network is, on average, worse than the naive fusion (KLD).", "Sec. V-A, Fig. 5"
+    ),
+    "kld_BCD_net_better": PaperClaim(
+        "With pose noise (B, C, D) the network's KLD is much better than the naive fusion's.", "Sec. V-A, Fig. 5"
+    ),
+    "kld_baseline_degrades_faster": PaperClaim(
+        "The naive fusion's KLD degrades much faster and stronger with growing noise.", "Sec. V-A, Fig. 5"
+    ),
+    "kld_net_less_spread": PaperClaim(
+        "The network's KLD varies much less over the test set (more reliable).", "Sec. V-A, Fig. 5"
+    ),
+    "scores_A_baseline_better": PaperClaim(
+        "Without uncertainty all precision / recall / Dice scores are better for the naive fusion.", "Sec. V-A, Figs. 6-7"
+    ),
+    "scores_flatter_net": PaperClaim(
+        "All scores decrease with noise; the network's curves are much flatter.", "Sec. V-A, Figs. 6-7"
+    ),
+    "scores_net_dominant_except": PaperClaim(
+        "With growing noise the network dominates most scores, except precision (occupied) and "
+        "recall (free), a consequence of o_w = 3.",
+        "Sec. V-A, Figs. 6-7; Sec. VI",
+    ),
+}
+
+# Which method the paper's Fig. 5 shows with the lower (better) KLD, per configuration.
+FUSION_KLD_WINNER: dict[str, str] = {"A": "baseline", "B": "network", "C": "network", "D": "network"}
+
+# --------------------------------------------------------------------------- risk (Feth et al.)
+RISK_CITATION = (
+    "Feth et al., Dynamic Risk Assessment for Vehicles of Higher Automation Levels by Deep Learning "
+    "(Fraunhofer IESE / DFKI)"
+)
+
+# Table 1: confusion matrix of the CNN over the whole effective data set (106,170 situations),
+# critical <=> time headway < 1.5 s. Counts; the paper prints the shares in brackets.
+RISK_CONFUSION = {
+    "tp": PaperNumber(67_052, "situations", "Table 1", "predicted critical, actually critical (63.16 %)"),
+    "fp": PaperNumber(19_069, "situations", "Table 1", "predicted critical, actually uncritical (17.96 %)"),
+    "fn": PaperNumber(9_737, "situations", "Table 1", "predicted uncritical, actually critical (9.17 %)"),
+    "tn": PaperNumber(10_312, "situations", "Table 1", "predicted uncritical, actually uncritical (9.71 %)"),
+}
+
+RISK: dict[str, PaperNumber] = {
+    "test_mse": PaperNumber(0.01470, "MSE (normalised risk)", "Sec. 4", "'testing average error'"),
+    "accuracy": PaperNumber(72.87, "%", "Sec. 4, Table 1", "critical vs uncritical at THW 1.5 s"),
+    "wang_kato_accuracy": PaperNumber(
+        70.77, "%", "Sec. 4 (ref. [20])",
+        "Wang & Kato, DICTA 2017: max accuracy of a 3-class subjective risk rating from dashcam video (another task and data)",
+    ),
+    "n_frames": PaperNumber(110_152, "stereo frames recorded", "Sec. 3.3, 3.5"),
+    "n_effective": PaperNumber(106_170, "frames after the ORB filter", "Sec. 3.5"),
+    "orb_outlier_pct": PaperNumber(3.5, "% of pairs flagged by ORB (approx.)", "Sec. 3.3",
+                                   "1 - 106,170 / 110,152 = 3.6 %"),
+    "n_critical": PaperNumber(76_789, "critical situations", "Sec. 4"),
+    "split": PaperNumber("70:10:20", "train:val:test (random)", "Sec. 3.5"),
+    "epochs": PaperNumber(30, "epochs", "Sec. 3.5", "validation error rises after ~15"),
+    "batch_size": PaperNumber(10, "", "Sec. 3.5"),
+    "baseline_m": PaperNumber(0.16, "m stereo baseline", "Sec. 3.3"),
+    "thw_threshold_s": PaperNumber(1.5, "s", "Sec. 4"),
+    "risk_clip": PaperNumber(20, "1/s (clip of 1/THW, then /20)", "Sec. 3.4"),
+}
+
+
+def risk_confusion_derived() -> dict[str, float]:
+    """Scores derived from :data:`RISK_CONFUSION` (shares in %; precision/recall of 'critical' in %).
+
+    Accuracy reproduces the paper's 72.87 %, so the table is read the right way round.
+    """
+    tp, fp, fn, tn = (RISK_CONFUSION[k].value for k in ("tp", "fp", "fn", "tn"))
+    n = tp + fp + fn + tn
+    return {
+        "n": float(n),
+        "accuracy_pct": 100.0 * (tp + tn) / n,
+        "precision_critical_pct": 100.0 * tp / (tp + fp),
+        "recall_critical_pct": 100.0 * tp / (tp + fn),
+        "critical_share_pct": 100.0 * (tp + fn) / n,
+        "orb_outlier_pct": 100.0 * (1 - RISK["n_effective"].value / RISK["n_frames"].value),
+    }

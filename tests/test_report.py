@@ -1,0 +1,310 @@
+"""The report: every number traced to its file, well-formed HTML, figures present.
+
+Unit tests render small synthetic metrics files (fast, no DAG); the slow test checks the
+report the ci DAG produced (`ci_dag`).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import re
+import struct
+import xml.etree.ElementTree as ET
+import zlib
+from html.parser import HTMLParser
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from traffictwin.reporting import paper_numbers as P
+from traffictwin.reporting import report as R
+
+NUM_RE = re.compile(r"^-?[\d,]*\.?\d+(e[+-]?\d+)?( %)?$|^\d+:\d\d(:\d\d)?$")
+
+
+# --------------------------------------------------------------------------- parsing helpers
+class _Tables(HTMLParser):
+    """Collects tables as rows of (text, attrs) cells, and every <img>."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.tables: list[list[list[tuple[str, dict[str, str]]]]] = []
+        self.imgs: list[dict[str, str]] = []
+        self._cell: list[str] | None = None
+        self._attrs: dict[str, str] = {}
+        self._in_body = False
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = {k: v or "" for k, v in attrs}
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tbody":
+            self._in_body = True
+        elif tag == "tr" and self._in_body:
+            self.tables[-1].append([])
+        elif tag == "td":
+            self._cell, self._attrs = [], a
+        elif tag == "img":
+            self.imgs.append(a)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == "td" and self._cell is not None:
+            self.tables[-1][-1].append(("".join(self._cell), self._attrs))
+            self._cell = None
+        elif tag == "tbody":
+            self._in_body = False
+
+    def handle_data(self, data: str) -> None:
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def md_tables(md: str) -> list[list[list[str]]]:
+    """Body rows of every markdown table (header and separator dropped), cells unescaped, inline code stripped."""
+    tables, cur = [], None
+    for line in md.splitlines():
+        if line.startswith("|"):
+            if cur is None:
+                cur = []
+                tables.append(cur)
+            cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+            cur.append([re.sub(r"`([^`]*)`", r"\1", c) for c in cells])
+        else:
+            cur = None
+    return [t[2:] for t in tables]
+
+
+def resolve(src: str, reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]) -> Any:
+    """The value a ``data-src`` names, read independently from its file."""
+    if src.startswith("paper:"):
+        ref = src.removeprefix("paper:")
+        table, _, key = ref.partition(".")
+        if table == "derived":
+            return P.risk_confusion_derived()[key]
+        if table == "FUSION_CONFIGURATIONS":
+            cfg, _, which = key.partition(".")
+            return P.FUSION_CONFIGURATIONS[cfg][0 if which == "r" else 1]
+        return getattr(P, table)[key].value
+    path, _, key = src.partition("#")
+    if path == "params":
+        if key.startswith("configurations."):
+            _, cfg, which = key.split(".")
+            return configurations[cfg][0 if which == "r" else 1]
+        return run_params[key]
+    data = json.loads((reports / path).read_text())
+    return R.lookup(data, key)
+
+
+def check_report(reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]) -> int:
+    """Assert the rendered files agree with their sources; returns the number of sourced cells checked."""
+    page = (reports / "index.html").read_text()
+    md = (reports / "README.md").read_text()
+    # well-formed: parses as XML once the doctype is dropped
+    ET.fromstring(page.replace("<!DOCTYPE html>", "", 1))
+    parser = _Tables()
+    parser.feed(page)
+    checked = 0
+    for table in parser.tables:
+        for row in table:
+            for text, attrs in row:
+                if "data-src" in attrs:
+                    want = resolve(attrs["data-src"], reports, run_params, configurations)
+                    assert want is not None, attrs["data-src"]
+                    got = json.loads(attrs["data-value"])
+                    assert got == want or (isinstance(want, float) and math.isnan(want) and math.isnan(got)), attrs["data-src"]
+                    assert text == R.fmt_value(want, attrs["data-fmt"]), (attrs["data-src"], text)
+                    checked += 1
+                elif "data-derived" in attrs:
+                    pass  # checked per table below
+                else:
+                    assert not NUM_RE.match(text.strip()), f"number without a source: {text!r} in row {row}"
+    # derived totals: the sum of the sourced cells above them
+    for table in parser.tables:
+        for row in table:
+            for i, (text, attrs) in enumerate(row):
+                if attrs.get("data-derived") == "sum of the wall times above":
+                    total = sum(json.loads(r[i][1]["data-value"]) for r in table if "data-src" in r[i][1])
+                    assert json.loads(attrs["data-value"]) == pytest.approx(total)
+    # the markdown tables are the same tables, cell for cell
+    mt = md_tables(md)
+    ht = [[[re.sub(r"\s+", " ", t).strip() for t, _ in row] for row in table] for table in parser.tables]
+    assert mt == ht
+    # every image referenced exists; embedded images are those files
+    for img in parser.imgs:
+        f = reports / img["data-file"]
+        assert f.is_file(), f
+        if img["src"].startswith("data:"):
+            assert base64.b64decode(img["src"].split(",", 1)[1]) == f.read_bytes()
+    for ref in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md):
+        assert (reports / ref).is_file(), ref
+    return checked
+
+
+# --------------------------------------------------------------------------- synthetic inputs
+def tiny_png() -> bytes:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    raw = b"\x00\xff\x00\x00" * 1  # one red pixel, filter byte 0
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 1, 1, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def fusion_metrics() -> dict:
+    """Layout of evaluate_fusion's fusion.json: test[cfg][method][metric], cross[net][test cfg][metric]."""
+    test = {}
+    for i, c in enumerate("ABCD"):
+        test[c] = {}
+        for m, worse in (("dnn", 1.0), ("naive", 3.0), ("registered", 2.0)):
+            kld = 0.1 + 0.05 * i * worse + (0.02 if m == "dnn" and c == "A" else 0)
+            test[c][m] = {"kld_fo_mean": kld, "kld_fo_median": 0.09 + 0.01 * i, "kld_fou_mean": 0.2 + 0.01 * i,
+                          "kld_fo_q25": 0.05, "kld_fo_q75": 0.15, "n": 12.0,
+                          **{f"{k}_{cls}": 0.9 - 0.05 * i * worse for k in ("precision", "recall", "dice") for cls in ("occ", "free")}}
+    cross = {n: {c: {"kld_fo_mean": 0.1 + 0.01 * (ord(n) + 2 * ord(c) - 195)} for c in "ABCD"} for n in "ABCD"}
+    return {"test": test, "cross": cross}
+
+
+def risk_metrics() -> dict:
+    net = {"test/mse": 0.0123456, "test/accuracy": 0.8125, "test/precision": 0.75, "test/recall": 0.6,
+           "test/critical_share": 0.3125, "test/tp": 3, "test/fp": 1, "test/fn": 2, "test/tn": 10}
+    base = {"test/mse": 0.031, "test/accuracy": 0.6875, "test/precision": float("nan"), "test/recall": 0.0,
+            "test/critical_share": 0.3125, "test/tp": 0, "test/fp": 0, "test/fn": 5, "test/tn": 11}
+    return {"network": net, "baseline_mean": base}
+
+
+@pytest.fixture
+def reports(tmp_path: Path) -> Path:
+    rep = tmp_path / "reports"
+    (rep / "metrics").mkdir(parents=True)
+    (rep / "figures").mkdir()
+    (rep / "timings").mkdir()
+    (rep / "metrics" / "fusion.json").write_text(json.dumps(fusion_metrics()))
+    # NaN is what json.dumps writes for a missing precision; the report shows n/a for it
+    (rep / "metrics" / "risk.json").write_text(json.dumps(risk_metrics()))
+    (rep / "metrics" / "disparity.json").write_text(json.dumps({"test": {"bad2_rate": 0.071, "density": 0.83, "n": 40}}))
+    (rep / "metrics" / "orb.json").write_text(json.dumps({"outlier_rate": 0.042, "detection": {"recall": 1.0, "precision": 0.95}}))
+    (rep / "metrics" / "train_fusion_A.json").write_text(json.dumps({"val/loss": 0.25, "epochs": 3}))
+    (rep / "figures" / "fusion_kld_box.png").write_bytes(tiny_png())
+    (rep / "figures" / "risk_training_curves.png").write_bytes(tiny_png())
+    (rep / "figures" / "something_else.png").write_bytes(tiny_png())
+    for stage, secs in (("generate_fusion", 12.5), ("train_fusion@A", 30.25), ("report", 1.0)):
+        (rep / "timings" / f"{stage.replace('@', '-')}.json").write_text(json.dumps({"stage": stage, "seconds": secs}))
+    (rep / "environment.json").write_text(json.dumps({"cpu": "Test CPU", "cpu_count": 2, "memory_gb": 23.4, "gpu": None,
+                                                      "python": "3.11.9", "packages": {"torch": "2.13.0"}}))
+    return rep
+
+
+def make_inputs(rep: Path) -> R.ReportInputs:
+    return R.ReportInputs(
+        reports_dir=rep, profile="ci", seed=7, git_commit="abc123",
+        run_params={"seed": 7, "fusion_data.n_scenarios": 4, "grid.cell": 0.64, "trainer.accelerator": "cpu"},
+        configurations={"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)},
+        dvc_exp_name="exp-x", pipeline_run="abc12345-0000ffff", stage_order=["generate_fusion", "train_fusion", "report"],
+    )
+
+
+# --------------------------------------------------------------------------- unit tests
+def test_fmt_value_hand_cases() -> None:
+    assert R.fmt_value(0.0123456) == "0.01235"
+    assert R.fmt_value(0.8125, "pct") == "81.25 %"
+    assert R.fmt_value(72.87, "pct_raw") == "72.87 %"
+    assert R.fmt_value(67052, "int") == "67,052"
+    assert R.fmt_value(75.4, "s") == "1:15" and R.fmt_value(3725, "s") == "1:02:05"
+    assert R.fmt_value(30.25, "f1") == "30.2"  # banker's rounding of the binary value, as Python formats it
+    assert R.fmt_value(float("nan")) == "n/a" and R.fmt_value(None) == "n/a"
+    assert R.fmt_value(float("inf")) == "inf" and R.fmt_value(True) == "true"
+    with pytest.raises(ValueError, match="unknown format"):
+        R.fmt_value(1.0, "x9")
+
+
+def test_lookup_nested_and_flat_keys() -> None:
+    data = {"A": {"net": {"test/kld": 1.5}}, "test/mse": 2.0, "a.b": {"c": 3}, "x": {"y": {"z": 4}}}
+    assert R.lookup(data, "A.net.test/kld") == 1.5
+    assert R.lookup(data, "test/mse") == 2.0
+    assert R.lookup(data, "a.b.c") == 3  # a segment containing '.'
+    assert R.lookup(data, "x.y.z") == 4
+    assert R.lookup(data, "A.missing") is None and R.lookup(None, "A") is None
+
+
+def test_paper_numbers_consistent() -> None:
+    d = P.risk_confusion_derived()
+    assert d["n"] == P.RISK["n_effective"].value  # Table 1 covers the whole effective data set
+    assert round(d["accuracy_pct"], 2) == P.RISK["accuracy"].value  # 72.87 %: the table is read the right way round
+    assert P.RISK_CONFUSION["tp"].value + P.RISK_CONFUSION["fn"].value == P.RISK["n_critical"].value
+    assert abs(d["orb_outlier_pct"] - P.RISK["orb_outlier_pct"].value) < 0.2
+    assert set(P.FUSION_KLD_WINNER) == set(P.FUSION_CONFIGURATIONS) == {"A", "B", "C", "D"}
+
+
+def test_renderer_on_synthetic_metrics(reports: Path) -> None:
+    inputs = make_inputs(reports)
+    rep = R.write_report(inputs)
+    checked = check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+    # fusion: 3 tables x 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
+    assert checked >= 3 * 4 * 5 + 12 * 6 + 16 + 10 + 6 + 8
+    md = (reports / "README.md").read_text()
+    page = (reports / "index.html").read_text()
+    # paper numbers and ours side by side, from their sources
+    assert "| MSE (normalised risk) | 0.0147 | 0.01235 | 0.031 | Sec. 4 |" in md
+    assert "| accuracy | 72.87 % | 81.25 % | 68.75 % |" in md
+    assert "| predicted critical | 67,052 | 19,069 | 3 | 1 |" in md
+    assert "| accuracy, Wang & Kato [20] | 70.77 % |" in md
+    # derived ranking: our numbers say network < baseline for B, paper too
+    anchors = [t.anchor for s in rep.sections for t in s.tables]
+    kld = md_tables(md)[anchors.index("fusion-kld")]
+    assert [r[-2:] for r in kld] == [["naive lower", "naive lower"]] + [["network lower", "network lower"]] * 3
+    assert kld[1][:6] == ["B", "1", "10", "0.15", "0.25", "0.2"]  # r, alpha, then dnn / naive / registered
+    assert "fusion-cross" in anchors and "| A | 0.1 | 0.12 | 0.14 | 0.16 |" in md
+    # the data differs: said plainly
+    assert "data differs from the papers'" in md and "own simulator" in md
+    # run info: commit, experiment, timings in DAG order, report's own timing left out
+    assert "abc123" in md and "exp-x" in md and "abc12345-0000ffff" in md
+    timing = next(t for s in rep.sections for t in s.tables if t.anchor == "timings")
+    assert [r[0].text for r in timing.rows] == ["generate_fusion", "train_fusion@A", "total (sum)"]
+    assert timing.rows[-1][1].text == "42.8" and timing.rows[-1][2].text == "0:43"
+    # NaN in a metrics file is shown as n/a
+    assert "n/a" in md
+    # figures grouped by paper, embedded in the HTML, referenced from the markdown
+    assert "![" in md and "(figures/fusion_kld_box.png)" in md
+    assert page.count("data:image/png;base64,") == 3
+    # results table for the project README
+    res = (reports / "results_table.md").read_text()
+    assert "Fusion: KLD(a) mean" in res and "Risk: test results" in res and "Risk: confusion matrix" in res
+    assert "Parameters of this run" not in res
+    # appendix lists the other metrics files
+    assert "reports/metrics/train_fusion_A.json" in md and "| val/loss | 0.25 |" in md
+    assert rep.missing == []
+
+
+def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
+    rep_dir = tmp_path / "reports"
+    (rep_dir / "metrics").mkdir(parents=True)
+    (rep_dir / "metrics" / "risk.json").write_text(json.dumps({"network": {"test/mse": 0.02}}))
+    inputs = R.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
+    rep = R.write_report(inputs)
+    check_report(rep_dir, {}, {})
+    md = (rep_dir / "README.md").read_text()
+    assert "`reports/metrics/fusion.json` is missing" in md
+    assert "metrics/risk.json#network.test/accuracy" in rep.missing  # named, shown as n/a
+    assert "| MSE (normalised risk) | 0.0147 | 0.02 | n/a |" in md
+
+
+def test_bad_metrics_file_named(tmp_path: Path) -> None:
+    rep_dir = tmp_path / "reports"
+    (rep_dir / "metrics").mkdir(parents=True)
+    (rep_dir / "metrics" / "fusion.json").write_text("{not json")
+    with pytest.raises(ValueError, match="fusion.json: not readable JSON"):
+        R.write_report(R.ReportInputs(reports_dir=rep_dir, profile="ci", seed=1, git_commit="x"))
+    assert not (rep_dir / "README.md").exists()
+
+
+def test_check_report_catches_a_wrong_number(reports: Path) -> None:
+    """The verifier itself fails when a number in the HTML disagrees with its file."""
+    inputs = make_inputs(reports)
+    R.write_report(inputs)
+    page = (reports / "index.html").read_text()
+    (reports / "index.html").write_text(page.replace(">0.01235<", ">0.01236<", 1))
+    with pytest.raises(AssertionError):
+        check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
