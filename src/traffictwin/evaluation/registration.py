@@ -1,0 +1,342 @@
+"""Classical grid-map registration: the `registered` baseline's pose correction.
+
+Given map 1, map 2 (each in its own sensor frame) and the *noisy* relative pose of map 2's
+sensor in map 1's frame, estimate a better relative pose from the maps themselves:
+
+1. **Prealign.** Warp map 2's feature image into map 1's frame with the noisy pose.
+2. **Coarse rotation** (Fourier–Mellin): magnitude spectra of both (square-padded, Hann-windowed,
+   high-pass filtered) feature images are translation invariant; in log-polar coordinates
+   a rotation is a cyclic shift along the angle axis, found by phase correlation. The spectrum is
+   point symmetric, so the angle is known modulo 180°; the candidate in (−90°, 90°] is kept, and
+   the prior (0°, i.e. trust the noisy pose) is always a candidate too; optionally a small grid of
+   angles around 0 (``search_step_deg``) is added for robustness on partially overlapping maps.
+3. **Coarse translation**: for each candidate angle, rotate and phase-correlate
+   (``cv2.phaseCorrelate``); the candidate with the best masked correlation coefficient wins.
+4. **Refinement**: ``cv2.findTransformECCWithMask`` (``MOTION_EUCLIDEAN``) on the raw map 2,
+   restricted to cells known in map 1 and map 2, started from the coarse estimate.
+5. **Fallback**: the estimate is accepted only if its masked correlation beats the noisy pose's by
+   ``min_gain``, reaches ``min_cc`` and the correction stays within ``max_trans_m`` /
+   ``max_rot_deg``; otherwise the noisy pose is returned (``accepted = False``).
+
+Geometry (DESIGN.md grid convention): cell (row v, col u) has its centre at
+``x = (H/2 − v − 0.5)·cell``, ``y = (W/2 − u − 0.5)·cell``. With ``P`` the metric → pixel map and
+``T`` the SE(2) matrix of the relative pose (map-2 frame → map-1 frame), the pixel transform
+map 2 → map 1 is ``A = P T P⁻¹``. ``P`` swaps and negates axes, so a metric yaw ``+ψ`` is a pixel
+rotation of ``−ψ`` — the code composes matrices and never reasons about angle signs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from traffictwin.grid import GridSpec
+
+__all__ = [
+    "RegistrationParams",
+    "RegistrationResult",
+    "metric_to_pixel",
+    "pose_to_pixel_affine",
+    "pixel_affine_to_pose",
+    "feature_image",
+    "known_mask",
+    "warp_image",
+    "register_pair",
+    "pose_error",
+]
+
+FEATURES = ("occ", "signed", "pignistic")
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Settings of :func:`register_pair` (units in the names: m, deg, cells)."""
+
+    feature: str = "signed"  # occ: m_O; signed: m_O − m_F; pignistic: p_O − 0.5
+    known_threshold: float = 0.05  # a cell is "known" where m_F + m_O > this
+    blur_sigma_cells: float = 1.0  # Gaussian blur of the feature images before the coarse step
+    n_angles: int = 720  # angle bins of the log-polar spectrum (0.5° each at 720)
+    search_step_deg: float = 0.0  # > 0 adds a grid of candidate angles in [−max_rot_deg, max_rot_deg]
+    ecc_iterations: int = 60
+    ecc_eps: float = 1e-5
+    ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
+    min_cc: float = 0.2  # minimum masked correlation coefficient of an accepted estimate
+    min_gain: float = 0.0  # the estimate's correlation must exceed the noisy pose's by more than this
+    max_trans_m: float = 10.0  # largest accepted correction of the translation (m)
+    max_rot_deg: float = 35.0  # largest accepted correction of the yaw (deg)
+    min_overlap: float = 0.05  # minimum fraction of cells known in both maps for a usable score
+
+    def __post_init__(self) -> None:
+        if self.feature not in FEATURES:
+            raise ValueError(f"RegistrationParams.feature must be one of {FEATURES}, got {self.feature!r}")
+        if self.n_angles < 36:
+            raise ValueError(f"RegistrationParams.n_angles must be >= 36, got {self.n_angles}")
+        if self.ecc_gauss_size < 1 or self.ecc_gauss_size % 2 == 0:
+            raise ValueError(f"RegistrationParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}")
+        for name in ("ecc_iterations", "max_trans_m", "max_rot_deg"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"RegistrationParams.{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of :func:`register_pair`.
+
+    pose: the relative pose used (x m, y m, yaw rad) — the estimate if accepted, else the noisy
+    pose; accepted: whether the estimate passed the checks; cc_noisy / cc_est: masked correlation
+    of the feature images under the noisy pose / the estimate; coarse_deg: the chosen coarse pixel
+    rotation; ecc_ok: ECC converged; seconds: wall time.
+    """
+
+    pose: np.ndarray
+    accepted: bool
+    cc_noisy: float
+    cc_est: float
+    coarse_deg: float
+    ecc_ok: bool
+    seconds: float
+    estimate: np.ndarray  # the (possibly rejected) estimate
+
+
+# -- geometry -----------------------------------------------------------------------------------
+def metric_to_pixel(grid: GridSpec) -> np.ndarray:
+    """3×3 matrix: sensor-frame (x, y, 1) in m → pixel (u = col, v = row, 1)."""
+    c = grid.cell
+    return np.array([[0.0, -1.0 / c, grid.cols / 2 - 0.5], [-1.0 / c, 0.0, grid.rows / 2 - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _se2(pose: np.ndarray) -> np.ndarray:
+    x, y, yaw = (float(v) for v in pose)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def pose_to_pixel_affine(rel_pose: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """3×3 pixel transform map-2 pixel → map-1 pixel for ``rel_pose`` (x m, y m, yaw rad)."""
+    p = metric_to_pixel(grid)
+    return p @ _se2(rel_pose) @ np.linalg.inv(p)
+
+
+def pixel_affine_to_pose(a: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """Inverse of :func:`pose_to_pixel_affine` (the rotation part is re-orthonormalised)."""
+    p = metric_to_pixel(grid)
+    t = np.linalg.inv(p) @ np.asarray(a, dtype=np.float64) @ p
+    yaw = np.arctan2(t[1, 0] - t[0, 1], t[0, 0] + t[1, 1])
+    return np.array([t[0, 2], t[1, 2], yaw])
+
+
+def pose_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (m) and absolute yaw (deg) error between pose arrays (…, 3)."""
+    est = np.asarray(est, dtype=np.float64)
+    true = np.asarray(true, dtype=np.float64)
+    dt = np.hypot(est[..., 0] - true[..., 0], est[..., 1] - true[..., 1])
+    dyaw = np.angle(np.exp(1j * (est[..., 2] - true[..., 2])))
+    return dt, np.degrees(np.abs(dyaw))
+
+
+# -- images -------------------------------------------------------------------------------------
+def feature_image(m: np.ndarray, kind: str = "signed") -> np.ndarray:
+    """Single-channel float32 image (H, W) of masses ``m`` (2, H, W) used for matching."""
+    m = np.asarray(m, dtype=np.float32)
+    if m.ndim != 3 or m.shape[0] != 2:
+        raise ValueError(f"feature_image: expected masses (2,H,W), got shape {m.shape}")
+    if kind == "occ":
+        return np.ascontiguousarray(m[1])
+    if kind == "signed":
+        return np.ascontiguousarray(m[1] - m[0])
+    if kind == "pignistic":
+        return np.ascontiguousarray(m[1] + 0.5 * (1 - m[0] - m[1]) - 0.5)
+    raise ValueError(f"feature_image: kind must be one of {FEATURES}, got {kind!r}")
+
+
+def known_mask(m: np.ndarray, threshold: float = 0.05) -> np.ndarray:
+    """uint8 mask (H, W): 255 where ``m_F + m_O > threshold``."""
+    m = np.asarray(m)
+    return ((m[0] + m[1]) > threshold).astype(np.uint8) * 255
+
+
+def warp_image(img: np.ndarray, a: np.ndarray, shape: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    """Warp ``img`` forward with the 3×3 pixel transform ``a`` (src pixel → dst pixel); outside → 0."""
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.warpAffine(img, np.ascontiguousarray(a[:2], dtype=np.float64), (shape[1], shape[0]), flags=flags, borderValue=0)
+
+
+def _masked_cc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """Zero-mean normalised correlation of ``a`` and ``b`` over ``mask`` (bool); −1 if undefined."""
+    n = int(mask.sum())
+    if n < 16:
+        return -1.0
+    x = a[mask].astype(np.float64)
+    y = b[mask].astype(np.float64)
+    x -= x.mean()
+    y -= y.mean()
+    d = np.sqrt((x * x).sum() * (y * y).sum())
+    return float((x * y).sum() / d) if d > 0 else -1.0
+
+
+def _pad_square(img: np.ndarray, size: int) -> np.ndarray:
+    h, w = img.shape
+    out = np.zeros((size, size), np.float32)
+    r0, c0 = (size - h) // 2, (size - w) // 2
+    out[r0 : r0 + h, c0 : c0 + w] = img
+    return out
+
+
+def _log_polar_spectrum(img: np.ndarray, n_angles: int) -> np.ndarray:
+    """High-pass filtered log magnitude spectrum of ``img`` (square) in log-polar coordinates (angles × radii)."""
+    s = img.shape[0]
+    win = cv2.createHanningWindow((s, s), cv2.CV_32F)
+    spec = np.fft.fftshift(np.abs(np.fft.fft2(img * win)))
+    f = np.fft.fftshift(np.fft.fftfreq(s))
+    fx, fy = np.meshgrid(f, f)
+    hp = (1.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy)) * (2.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy))
+    mag = (np.log1p(spec) * hp).astype(np.float32)
+    radius = s / 2
+    return cv2.warpPolar(mag, (s // 2, n_angles), (s / 2, s / 2), radius, cv2.WARP_POLAR_LOG | cv2.INTER_LINEAR)
+
+
+def _fourier_mellin_angle(f1: np.ndarray, g2: np.ndarray, n_angles: int) -> float:
+    """Pixel-space rotation (deg, in (−90, 90]) such that rotating by it (getRotationMatrix2D,
+    inverse map) brings ``g2`` onto ``f1``'s orientation."""
+    s = int(max(f1.shape))
+    lp1 = _log_polar_spectrum(_pad_square(f1, s), n_angles)
+    lp2 = _log_polar_spectrum(_pad_square(g2, s), n_angles)
+    (_, dy), _ = cv2.phaseCorrelate(lp1.astype(np.float64), lp2.astype(np.float64))
+    ang = dy * 360.0 / n_angles
+    ang = (ang + 90.0) % 180.0 - 90.0  # modulo 180 (point-symmetric spectrum), into [−90, 90)
+    return float(-ang)
+
+
+def phase_correlate_bounded(a: np.ndarray, b: np.ndarray, max_shift_px: float) -> tuple[float, float]:
+    """Shift ``s = (sx, sy)`` (px) with ``b(p + s) ≈ a(p)`` by phase correlation, searched only within
+    ``|s| ≤ max_shift_px``.
+
+    Like ``cv2.phaseCorrelate`` (same sign convention, Hann window) but zero-padded by the
+    search radius so shifts do not wrap around, and with the peak restricted to plausible shifts —
+    partially overlapping grid maps otherwise often lock onto the edges of their known areas.
+    Sub-pixel refinement: 3-point parabola per axis.
+    """
+    h, w = a.shape
+    pad = int(np.ceil(max_shift_px)) + 2
+    hh, ww = cv2.getOptimalDFTSize(h + pad), cv2.getOptimalDFTSize(w + pad)
+    win = cv2.createHanningWindow((w, h), cv2.CV_64F)
+    fa = np.fft.rfft2(a * win, s=(hh, ww))
+    fb = np.fft.rfft2(b * win, s=(hh, ww))
+    cross = fb * np.conj(fa)
+    cross /= np.maximum(np.abs(cross), 1e-12)
+    r = np.fft.irfft2(cross, s=(hh, ww))
+    dy = np.fft.fftfreq(hh, 1.0 / hh)[:, None]
+    dx = np.fft.fftfreq(ww, 1.0 / ww)[None, :]
+    r = np.where(dx * dx + dy * dy <= max_shift_px**2, r, -np.inf)
+    iy, ix = np.unravel_index(int(np.argmax(r)), r.shape)
+
+    def parabola(c_m: float, c_0: float, c_p: float) -> float:
+        if not (np.isfinite(c_m) and np.isfinite(c_p)):
+            return 0.0
+        d = c_m - 2 * c_0 + c_p
+        return float(0.5 * (c_m - c_p) / d) if d < 0 else 0.0
+
+    oy = parabola(r[(iy - 1) % hh, ix], r[iy, ix], r[(iy + 1) % hh, ix])
+    ox = parabola(r[iy, (ix - 1) % ww], r[iy, ix], r[iy, (ix + 1) % ww])
+    return float(dx[0, ix] + ox), float(dy[iy, 0] + oy)
+
+
+def _rot(center: tuple[float, float], deg: float) -> np.ndarray:
+    return np.vstack([cv2.getRotationMatrix2D(center, deg, 1.0), [0.0, 0.0, 1.0]])
+
+
+def register_pair(
+    map1: np.ndarray,
+    map2: np.ndarray,
+    rel_pose_noisy: np.ndarray,
+    grid: GridSpec,
+    params: RegistrationParams = RegistrationParams(),
+) -> RegistrationResult:
+    """Estimate the relative pose of map 2's sensor in map 1's frame from the maps (see module doc).
+
+    ``map1``, ``map2``: masses (2, H, W), each in its own sensor frame; ``rel_pose_noisy``:
+    (x m, y m, yaw rad) prior; ``grid``: geometry of both maps.
+    """
+    t0 = time.perf_counter()
+    shape = grid.shape
+    for name, m in (("map1", map1), ("map2", map2)):
+        if np.shape(m) != (2, *shape):
+            raise ValueError(f"register_pair: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}")
+    noisy = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(3)
+    f1 = feature_image(map1, params.feature)
+    f2 = feature_image(map2, params.feature)
+    k1 = known_mask(map1, params.known_threshold)
+    k2 = known_mask(map2, params.known_threshold)
+    a0 = pose_to_pixel_affine(noisy, grid)  # map2 px → map1 px
+    g2 = warp_image(f2, a0, shape)
+    kg2 = warp_image(k2, a0, shape, nearest=True)
+    both = (k1 > 0) & (kg2 > 0)
+    cc_noisy = _masked_cc(f1, g2, both)
+    min_cells = params.min_overlap * f1.size
+
+    def result(est: np.ndarray, accepted: bool, cc_est: float, coarse: float, ecc_ok: bool) -> RegistrationResult:
+        return RegistrationResult(
+            pose=est if accepted else noisy, accepted=accepted, cc_noisy=cc_noisy, cc_est=cc_est,
+            coarse_deg=coarse, ecc_ok=ecc_ok, seconds=time.perf_counter() - t0, estimate=est,
+        )
+
+    if both.sum() < min_cells:
+        return result(noisy.copy(), False, cc_noisy, 0.0, False)
+
+    # coarse: Fourier–Mellin rotation (+ prior 0, + optional grid), phase-correlation translation
+    if params.blur_sigma_cells > 0:
+        b1 = cv2.GaussianBlur(f1, (0, 0), params.blur_sigma_cells)
+        b2 = cv2.GaussianBlur(g2, (0, 0), params.blur_sigma_cells)
+    else:
+        b1, b2 = f1, g2
+    b1 = b1 * (k1 > 0)
+    b2 = b2 * (kg2 > 0)
+    center = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
+    cands = {0.0, round(_fourier_mellin_angle(b1, b2, params.n_angles), 3)}
+    if params.search_step_deg > 0:
+        cands |= set(np.round(np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3).tolist())
+    max_shift_px = params.max_trans_m / grid.cell
+    best = (-2.0, np.eye(3), 0.0)  # (cc, W: map1 px → prealigned px, angle)
+    for ang in sorted(cands):
+        if abs(ang) > params.max_rot_deg:
+            continue
+        r = _rot(center, ang)  # g2r(p) = g2(R p)
+        g2r = cv2.warpAffine(b2, r[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        sx, sy = phase_correlate_bounded(b1, g2r, max_shift_px)
+        w = r @ np.array([[1.0, 0.0, sx], [0.0, 1.0, sy], [0.0, 0.0, 1.0]])  # g2(W p) ≈ f1(p)
+        warped = cv2.warpAffine(g2, w[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        kw = cv2.warpAffine(kg2, w[:2], (shape[1], shape[0]), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+        cc = _masked_cc(f1, warped, (k1 > 0) & (kw > 0))
+        if cc > best[0]:
+            best = (cc, w, ang)
+    _, wc, coarse = best
+
+    # refine: ECC on the raw map 2, template = map 1; W_total maps map1 px → map2 px
+    w_total = np.linalg.inv(a0) @ wc
+    warp = np.ascontiguousarray(w_total[:2], dtype=np.float32)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(params.ecc_iterations), float(params.ecc_eps))
+    ecc_ok = True
+    try:
+        _, warp = cv2.findTransformECCWithMask(
+            f1, f2, k1, k2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
+        )
+        w_total = np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]])
+    except cv2.error:
+        ecc_ok = False  # keep the coarse estimate
+    a_est = np.linalg.inv(w_total)  # map2 px → map1 px
+    est = pixel_affine_to_pose(a_est, grid)
+    g_est = warp_image(f2, a_est, shape)
+    k_est = warp_image(k2, a_est, shape, nearest=True)
+    both_est = (k1 > 0) & (k_est > 0)
+    cc_est = _masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    dt, dr = pose_error(est, noisy)
+    ok = bool(
+        cc_est >= params.min_cc
+        and cc_est > cc_noisy + params.min_gain
+        and dt <= params.max_trans_m
+        and dr <= params.max_rot_deg
+    )
+    return result(est, ok, cc_est, coarse, ecc_ok)

@@ -1,0 +1,153 @@
+"""Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg, written atomically.
+
+- :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
+- :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
+- :func:`qualitative_grid` — label / naive / network maps per configuration (Fig. 4);
+- :func:`masses_to_rgb` — evidential map → image (red = m_O, green = m_F, black = unknown).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from traffictwin.io.atomic import atomic_path
+
+__all__ = ["masses_to_rgb", "kld_boxplot", "scores_plot", "qualitative_grid", "METHOD_STYLE"]
+
+METHOD_STYLE: dict[str, dict] = {
+    "dnn": {"color": "#1f77b4", "label": "network (own config)", "marker": "o"},
+    "naive": {"color": "#d62728", "label": "naive (noisy pose + Dempster)", "marker": "s"},
+    "registered": {"color": "#2ca02c", "label": "registered (FM + ECC) + Dempster", "marker": "^"},
+    "naive-yager": {"color": "#ff7f0e", "label": "naive + Yager", "marker": "v"},
+    "naive-cautious": {"color": "#9467bd", "label": "naive + cautious", "marker": "D"},
+    "ego": {"color": "#7f7f7f", "label": "ego (map 1 only)", "marker": "x"},
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: str | Path, dpi: int = 110) -> Path:
+    path = Path(path)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
+    _plt().close(fig)
+    return path
+
+
+def masses_to_rgb(m: np.ndarray) -> np.ndarray:
+    """Masses (2, H, W) → RGB float image (H, W, 3): red = m_O, green = m_F, unknown black."""
+    m = np.clip(np.asarray(m, dtype=np.float32), 0, 1)
+    if m.ndim != 3 or m.shape[0] != 2:
+        raise ValueError(f"masses_to_rgb: expected (2, H, W), got {m.shape}")
+    return np.stack([m[1], m[0], np.zeros_like(m[0])], axis=-1)
+
+
+def _style(method: str) -> dict:
+    return METHOD_STYLE.get(method, {"color": "#17becf", "label": method, "marker": "o"})
+
+
+def kld_boxplot(
+    values: Mapping[str, Mapping[str, Sequence[float]]],
+    configs: Sequence[str],
+    methods: Sequence[str],
+    path: str | Path,
+    ylabel: str = "KLD(label ‖ prediction)",
+    title: str = "Fusion quality per configuration (test set)",
+) -> Path:
+    """Box plots: ``values[method][config]`` = per-sample KLDs; one group per configuration."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(1.9 * len(configs) + 2, 4.2))
+    width = 0.8 / max(len(methods), 1)
+    handles = []
+    for j, meth in enumerate(methods):
+        data, pos = [], []
+        for i, cfg in enumerate(configs):
+            v = np.asarray(values.get(meth, {}).get(cfg, []), dtype=float)
+            v = v[np.isfinite(v)]
+            if v.size:
+                data.append(v)
+                pos.append(i + (j - (len(methods) - 1) / 2) * width)
+        if not data:
+            continue
+        st = _style(meth)
+        bp = ax.boxplot(data, positions=pos, widths=width * 0.85, patch_artist=True, showfliers=True,
+                        flierprops={"markersize": 2, "markeredgecolor": st["color"]}, medianprops={"color": "black"})
+        for b in bp["boxes"]:
+            b.set_facecolor(st["color"])
+            b.set_alpha(0.6)
+        handles.append(bp["boxes"][0])
+        handles[-1].set_label(st["label"])
+    ax.set_xticks(range(len(configs)))
+    ax.set_xticklabels([f"config {c}" for c in configs])
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(handles=handles, fontsize=8, loc="upper left")
+    return _save(fig, path)
+
+
+def scores_plot(
+    scores: Mapping[str, Mapping[str, Mapping[str, float]]],
+    configs: Sequence[str],
+    methods: Sequence[str],
+    cls: str,
+    path: str | Path,
+) -> Path:
+    """Precision / recall / Dice vs configuration for ``cls`` ("occ" or "free"); ``scores[method][config][metric]``."""
+    plt = _plt()
+    name = {"occ": "occupied", "free": "free"}.get(cls, cls)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), sharey=True)
+    x = np.arange(len(configs))
+    for ax, metric in zip(axes, ("precision", "recall", "dice")):
+        for meth in methods:
+            y = [scores.get(meth, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs]
+            st = _style(meth)
+            ls = "-" if meth in ("dnn", "naive") else "--"
+            ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"])
+        ax.set_xticks(x)
+        ax.set_xticklabels(configs)
+        ax.set_xlabel("configuration")
+        ax.set_title(f"{metric.capitalize()} ({name} cells)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("score")
+    axes[0].set_ylim(0, 1.02)
+    axes[-1].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"Classification scores for {name} cells vs pose-noise configuration (test set)")
+    return _save(fig, path)
+
+
+def qualitative_grid(
+    rows: Mapping[str, Sequence[np.ndarray]],
+    configs: Sequence[str],
+    path: str | Path,
+    title: str = "",
+) -> Path:
+    """Image grid: one row per entry of ``rows`` (e.g. label / naive / network), one column per config."""
+    plt = _plt()
+    names = list(rows)
+    h, w = np.asarray(rows[names[0]][0]).shape[-2:]
+    fig, axes = plt.subplots(len(names), len(configs), figsize=(2.3 * len(configs), 2.3 * len(names) * h / w + 0.6),
+                             squeeze=False)
+    for r, name in enumerate(names):
+        for c, cfg in enumerate(configs):
+            ax = axes[r][c]
+            ax.imshow(masses_to_rgb(rows[name][c]), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"config {cfg}", fontsize=9)
+            if c == 0:
+                ax.set_ylabel(name, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return _save(fig, path)
