@@ -103,8 +103,8 @@ def kld(pred_m: torch.Tensor, label_m: torch.Tensor, eps: float = KLD_EPS) -> to
 
 
 def with_uncertainty(m: torch.Tensor) -> torch.Tensor:
-    """``(..., 2, H, W)`` masses -> ``(..., 3, H, W)`` = ``(m_F, m_O, u = 1 - m_F - m_O)``."""
-    return torch.cat([m, (1.0 - m.sum(dim=-3, keepdim=True))], dim=-3)
+    """``(..., 2, H, W)`` masses -> ``(..., 3, H, W)`` = ``(m_F, m_O, u = clip(1 - m_F - m_O, 0, 1))``."""
+    return torch.cat([m, (1.0 - m.sum(dim=-3, keepdim=True)).clamp(0.0, 1.0)], dim=-3)
 
 
 def kld_full(pred_m: torch.Tensor, label_m: torch.Tensor, eps: float = KLD_EPS) -> torch.Tensor:
@@ -114,7 +114,7 @@ def kld_full(pred_m: torch.Tensor, label_m: torch.Tensor, eps: float = KLD_EPS) 
 
 def pignistic_occupied(m: torch.Tensor) -> torch.Tensor:
     """``p_O = m_O + u / 2`` ``(..., H, W)``."""
-    u = 1.0 - m.sum(dim=-3)
+    u = (1.0 - m.sum(dim=-3)).clamp(0.0, 1.0)
     return m[..., 1, :, :] + 0.5 * u
 
 

@@ -103,6 +103,7 @@ def build_trainer(
 ) -> Any:
     """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`EpochHistory`)."""
     import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
 
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
@@ -114,6 +115,8 @@ def build_trainer(
         max_epochs=int(max_epochs),
         callbacks=list(callbacks),
         logger=False,
+        # Lightning's implicit checkpoint callback would write into the cwd; only checkpoint when asked
+        enable_checkpointing=any(isinstance(cb, ModelCheckpoint) for cb in callbacks),
         enable_progress_bar=enable_progress_bar,
         enable_model_summary=False,
         num_sanity_val_steps=num_sanity_val_steps,
@@ -126,8 +129,6 @@ def build_trainer(
     if limit_val_batches is not None:
         kw["limit_val_batches"] = limit_val_batches
     kw.update(extra)
-    if fast_dev_run:
-        kw.pop("enable_checkpointing", None)
     return L.Trainer(**kw)
 
 

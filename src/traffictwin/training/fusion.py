@@ -9,7 +9,8 @@
   a fixed evenly spaced subset of ``val_samples`` validation pairs.
 - :class:`FusionLitModule` — Adam, ReduceLROnPlateau on ``val/loss``, the loss of eqs. (6)-(7),
   validation metrics ``val/loss``, ``val/kld``, ``val/kld_full``, ``val/dice_occ``, ``val/dice_free``
-  (+ precision/recall), all reduced over DDP ranks.
+  (+ precision/recall), all reduced over DDP ranks; the same KLDs and Dice of the naive fusion
+  (Dempster on the noisily prealigned inputs) as ``val/*_naive`` reference lines.
 - :func:`fit_fusion` — the whole training run (seeding, trainer, callbacks, optional MLflow run,
   slim best checkpoint published atomically, meta, metrics, curves); the stage
   ``pipelines/train_fusion.py`` only reads params and calls it.
@@ -32,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 
+from ..evidential.dempster import dempster
 from ..grid import GridSpec
 from ..io.atomic import atomic_path, write_json_atomic
 from ..io.shards import Dataset, DatasetError
@@ -252,7 +254,7 @@ class FusionLitModule(L.LightningModule):
         return loss
 
     def on_validation_epoch_start(self) -> None:
-        self._val_counts = torch.zeros(6, dtype=torch.float64, device=self.device)
+        self._val_counts = torch.zeros(12, dtype=torch.float64, device=self.device)
 
     def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> None:
         x, y = batch
@@ -264,15 +266,23 @@ class FusionLitModule(L.LightningModule):
         self.log("val/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
         self.log("val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
         self.log("val/kld_full", kld_full(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
+        naive = dempster(x[:, :2].float(), x[:, 2:].float())
+        self.log("val/kld_naive", kld(naive, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        self.log("val/kld_full_naive", kld_full(naive, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
         assert self._val_counts is not None
-        self._val_counts += confusion_counts(m, y).to(self._val_counts.device)
+        self._val_counts[:6] += confusion_counts(m, y).to(self._val_counts.device)
+        self._val_counts[6:] += confusion_counts(naive, y).to(self._val_counts.device)
 
     def on_validation_epoch_end(self) -> None:
         if self._val_counts is None:
             return
-        counts = self.trainer.strategy.reduce(self._val_counts, reduce_op="sum")
-        for k, v in dice_from_counts(counts.cpu()).items():
-            self.log(f"val/{k}", float(v) if math.isfinite(v) else 0.0, sync_dist=False)
+        counts = self.trainer.strategy.reduce(self._val_counts, reduce_op="sum").cpu()
+        for suffix, c in (("", counts[:6]), ("_naive", counts[6:])):
+            for k, v in dice_from_counts(c).items():
+                if suffix and not k.startswith("dice"):
+                    continue
+                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0, sync_dist=False)
 
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
