@@ -95,8 +95,9 @@ def cast_rays(
             t2 = (hi - org) * inv
             # a ray parallel to a slab misses unless its origin is inside that slab
             outside_par = small & ((org < lo) | (org > hi))
+            # (outside: both +inf -> tnear = +inf, a miss; inside: the slab does not constrain t)
             t1 = np.where(small, np.where(outside_par, np.inf, -np.inf), t1)
-            t2 = np.where(small, np.where(outside_par, -np.inf, np.inf), t2)
+            t2 = np.where(small, np.inf, t2)
             np.maximum(tnear, np.minimum(t1, t2), out=tnear)
             np.minimum(tfar, np.maximum(t1, t2), out=tfar)
         ok = (tnear <= tfar) & (tnear > _EPS) & ~inside
