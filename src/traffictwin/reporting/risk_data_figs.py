@@ -1,0 +1,127 @@
+"""Figures of the risk data part: grid-map risk metric (paper Fig. 3), stereo image + disparity
+(paper Fig. 2) and an ORB-flagged stereo pair. Matplotlib with the Agg backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import cv2  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..io.atomic import atomic_path  # noqa: E402
+from ..risk.dataset import RiskDataSpec  # noqa: E402
+from ..risk.metric import RiskCalculator, RiskConfig, rasterise, swept_cells, to_subject_frame  # noqa: E402
+from ..sim.camera import GroundTexture  # noqa: E402
+from ..sim.driving import generate_sequence  # noqa: E402
+from ..stereo.orb import match_offsets  # noqa: E402
+
+
+def _save(fig, path: str | Path) -> None:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequences: int = 12) -> dict:
+    """Camera view + grid map of one frame with a vehicle ahead (paper Fig. 3): occupied border
+    cells (black), cells occupied within 3 s at constant velocity (blue), the searched region
+    (shaded), the subject (red), the nearest vehicle found and its distance (orange)."""
+    grid = spec.grid
+    calc = RiskCalculator(grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"}))
+    chosen = None
+    for i in range(max_sequences):
+        seq = generate_sequence(seed, i, spec.driving)
+        for fr in seq.frames:
+            r = calc(fr.pose, fr.speed, fr.boxes)
+            if 0.4 < r.thw < 3.0:
+                chosen = (seq, fr, r)
+                break
+        if chosen:
+            break
+    if chosen is None:  # fall back to the first frame
+        seq = generate_sequence(seed, 0, spec.driving)
+        fr = seq.frames[0]
+        chosen = (seq, fr, calc(fr.pose, fr.speed, fr.boxes))
+    seq, fr, r = chosen
+    img = spec.camera.render_eye(fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res))[0]
+    obs = fr.boxes.subset(calc.obstacles(fr.boxes))
+    rel = to_subject_frame(obs, fr.pose)
+    lab = rasterise(rel, grid, "border")
+    swept = swept_cells(rel, grid) & (lab == 0)
+    rgb = np.ones(grid.shape + (3,))
+    rgb[calc.region] = [0.93, 0.96, 1.0]
+    rgb[swept] = [0.45, 0.6, 1.0]
+    rgb[lab > 0] = [0.0, 0.0, 0.0]
+    if r.target >= 0:
+        ti = int(np.flatnonzero(calc.obstacles(fr.boxes) == r.target)[0])
+        rgb[lab == ti + 1] = [1.0, 0.55, 0.0]
+    L, W = spec.risk.subject_length, spec.risk.subject_width
+    from ..sim.scene import Boxes
+
+    sub = rasterise(Boxes([[0.0, 0.0]], [[L, W, 1.5]], [0.0], [0]), grid, "filled") > 0
+    rgb[sub] = [0.85, 0.1, 0.1]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.6), gridspec_kw={"width_ratios": [1.6, 1]})
+    ax[0].imshow(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    ax[0].set_title(f"{seq.world.template} / {seq.situation}: v = {fr.speed:.1f} m/s")
+    ax[0].axis("off")
+    ext = [-grid.width / 2, grid.width / 2, -grid.length / 2, grid.length / 2]
+    ax[1].imshow(rgb[:, ::-1], extent=ext, interpolation="nearest")  # y to the left -> flip for display
+    ax[1].set_xlabel("-y (m, right)")
+    ax[1].set_ylabel("x (m, forward)")
+    ax[1].set_title(f"THW {r.thw:.2f} s, d = {r.distance:.1f} m, risk {r.risk_thw:.3f}")
+    fig.suptitle("Risk metric calculator: grid map (black: vehicle border cells, blue: next 3 s, "
+                 "orange: nearest vehicle, red: subject)", fontsize=9)
+    _save(fig, path)
+    return {"thw": r.thw, "risk": r.risk_thw, "template": seq.world.template, "situation": seq.situation}
+
+
+def _disp_rgb(d: np.ndarray, vmax: float) -> np.ndarray:
+    cm = plt.get_cmap("viridis")(np.clip(d / max(vmax, 1e-6), 0, 1))[..., :3]
+    cm[d < 0] = 0.0
+    return cm
+
+
+def stereo_figure(left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.ndarray, path: str | Path, title: str = "") -> None:
+    """Left/right image, GT disparity and SGM disparity (yellow = near, invalid black), like Fig. 2."""
+    vmax = float(np.percentile(gt[gt > 0], 99)) if (gt > 0).any() else 1.0
+    fig, ax = plt.subplots(2, 2, figsize=(10, 5.2))
+    ax[0, 0].imshow(cv2.cvtColor(left, cv2.COLOR_BGR2RGB))
+    ax[0, 0].set_title("left image")
+    ax[0, 1].imshow(cv2.cvtColor(right, cv2.COLOR_BGR2RGB))
+    ax[0, 1].set_title("right image")
+    gtv = np.where(gt > 0, gt, -1.0)
+    ax[1, 0].imshow(_disp_rgb(gtv, vmax))
+    ax[1, 0].set_title("ground-truth disparity f·B/Z (black: sky)")
+    ax[1, 1].imshow(_disp_rgb(sgm, vmax))
+    ax[1, 1].set_title("SGM disparity (black: invalid)")
+    for a in ax.ravel():
+        a.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    _save(fig, path)
+
+
+def orb_figure(left: np.ndarray, right: np.ndarray, path: str | Path, title: str = "", n_show: int = 40, **orb_kw) -> None:
+    """Left and right image side by side with the best ORB matches drawn (a flagged pair)."""
+    import traffictwin.stereo.orb as orb
+
+    gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+    gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+    o = orb._orb(orb_kw.get("n_features", 500), orb_kw.get("fast_threshold", 12), orb_kw.get("n_levels", 4), orb_kw.get("edge_threshold", 19))
+    kl, dl = o.detectAndCompute(gl, None)
+    kr, dr = o.detectAndCompute(gr, None)
+    W = left.shape[1]
+    fig, ax = plt.subplots(figsize=(11, 3.4))
+    ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
+    if dl is not None and dr is not None:
+        ms = sorted(cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr), key=lambda m: m.distance)[:n_show]
+        for m in ms:
+            (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
+            ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
+    ax.axis("off")
+    ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
+    _save(fig, path)

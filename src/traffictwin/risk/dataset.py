@@ -1,0 +1,91 @@
+"""Risk dataset generation: driving sequence -> stereo frames + risk labels (one shard per sequence).
+
+Shard ``i`` is sequence ``i`` (:func:`traffictwin.sim.driving.generate_sequence`), so it depends
+only on ``(seed, i)`` and shards can be generated in parallel; its split is assigned per
+sequence (= scenario) by :func:`assign_splits`, never per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..grid import GridSpec
+from ..sim.camera import GroundTexture, StereoCamera
+from ..sim.driving import DrivingConfig, generate_sequence
+from .metric import CRITICAL_THW, RiskCalculator, RiskConfig
+
+LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
+
+
+@dataclass(frozen=True)
+class RiskDataSpec:
+    """Everything a shard needs: driving config, camera, grid, risk config (region set per metric),
+    which metric is the training label, and the ground-texture resolution (m/px)."""
+
+    driving: DrivingConfig
+    camera: StereoCamera
+    grid: GridSpec
+    risk: RiskConfig
+    label: str = "thw_paper"
+    ground_res: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.label not in LABELS:
+            raise ValueError(f"risk label must be one of {LABELS}, got {self.label!r}")
+
+
+def assign_splits(n: int, seed: int, fractions: tuple[float, float, float] = (0.7, 0.1, 0.2)) -> list[str]:
+    """Split name per sequence (train/val/test) by a seeded permutation; each split gets at least
+    one sequence when ``n >= 3``."""
+    if n < 1:
+        raise ValueError(f"need at least one sequence, got {n}")
+    if abs(sum(fractions) - 1.0) > 1e-6 or min(fractions) < 0:
+        raise ValueError(f"split fractions must be >= 0 and sum to 1, got {fractions}")
+    n_val = int(round(fractions[1] * n))
+    n_test = int(round(fractions[2] * n))
+    if n >= 3:
+        n_val, n_test = max(1, n_val), max(1, n_test)
+    n_train = max(0, n - n_val - n_test)
+    names = np.array(["train"] * n_train + ["val"] * n_val + ["test"] * n_test)[:n]
+    perm = np.random.default_rng(np.random.SeedSequence([int(seed), 4004])).permutation(n)
+    out = np.empty(n, dtype=object)
+    out[perm] = names
+    return [str(x) for x in out]
+
+
+def make_shard(seed: int, index: int, spec: RiskDataSpec) -> tuple[dict[str, np.ndarray], list[dict]]:
+    """Render sequence ``index``: arrays ``left``, ``right`` (N, H, W, 3) uint8 BGR, ``disp_gt``
+    (N, H, W) float32 px, ``speed`` (N,) m/s, ``risk`` (N,) float32; plus one row per frame."""
+    seq = generate_sequence(seed, index, spec.driving)
+    cam = spec.camera
+    ground = GroundTexture.from_world(seq.world, res=spec.ground_res, seed=int(seq.world.seed) % 100003)
+    calcs = {
+        "paper": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"})),
+        "camera_fov": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "camera_fov"})),
+    }
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
+    left, right, disp, rows = [], [], [], []
+    for k, fr in enumerate(seq.frames):
+        out = cam.render_pair(fr.pose, fr.boxes, ground, fr.pose_right, fr.boxes_right, fr.right_cy_offset, rng)
+        left.append(out["left"])
+        right.append(out["right"])
+        disp.append(out["disp_gt"])
+        rp = calcs["paper"](fr.pose, fr.speed, fr.boxes)
+        rf = calcs["camera_fov"](fr.pose, fr.speed, fr.boxes)
+        values = {"thw_paper": rp.risk_thw, "thw_fov": rf.risk_thw, "ttc": rp.risk_ttc, "wttc": rp.risk_wttc}
+        thw = rf.thw if spec.label == "thw_fov" else rp.thw
+        rows.append(dict(
+            idx=k, scenario=int(index), situation=seq.situation, template=seq.world.template, t=round(fr.t, 4),
+            speed=fr.speed, x=fr.pose[0], y=fr.pose[1], yaw=fr.pose[2], thw=thw, distance=rp.distance,
+            ttc=rp.ttc, wttc=rp.wttc, risk=values[spec.label], risk_thw_paper=rp.risk_thw, risk_thw_fov=rf.risk_thw,
+            risk_ttc=rp.risk_ttc, risk_wttc=rp.risk_wttc, critical=bool(thw < CRITICAL_THW),
+            fault=fr.fault, vertical_px=fr.right_cy_offset,
+        ))
+    arrays = {
+        "left": np.stack(left), "right": np.stack(right), "disp_gt": np.stack(disp).astype(np.float32),
+        "speed": np.array([r["speed"] for r in rows], np.float32),
+        "risk": np.array([r["risk"] for r in rows], np.float32),
+    }
+    return arrays, rows
