@@ -17,6 +17,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from traffictwin.reporting import paper_numbers as P
@@ -168,11 +169,22 @@ def fusion_metrics() -> dict:
 
 
 def risk_metrics() -> dict:
-    net = {"test/mse": 0.0123456, "test/accuracy": 0.8125, "test/precision": 0.75, "test/recall": 0.6,
-           "test/critical_share": 0.3125, "test/tp": 3, "test/fp": 1, "test/fn": 2, "test/tn": 10}
-    base = {"test/mse": 0.031, "test/accuracy": 0.6875, "test/precision": float("nan"), "test/recall": 0.0,
-            "test/critical_share": 0.3125, "test/tp": 0, "test/fp": 0, "test/fn": 5, "test/tn": 11}
-    return {"network": net, "baseline_mean": base}
+    """risk.json as evaluate_risk writes it (built with the evaluation's own metric functions)."""
+    from traffictwin.evaluation.risk_metrics import PAPER, _finite_or_none, evaluate
+
+    y = np.array([0.0, 0.0, 0.05, 0.2, 0.01, 0.5, 0.0, 0.04])
+    p = np.array([0.01, 0.06, 0.04, 0.1, 0.0, 0.3, 0.02, 0.0])
+    base = np.full_like(y, 0.1)
+    out = {
+        "paper": PAPER, "split": "test", "primary_label": "risk_thw_paper", "thresholds_s": [1.5, 1.0],
+        "n_frames": {"total": 100, "orb_outliers_dropped": 7, "train": 60, "val": 12, "test": 21},
+        "models": {"rgbd": {"label": "risk_thw_paper", **evaluate(y, p)}, "rgb": {"label": "risk_thw_paper", **evaluate(y, p * 0.5)}},
+        "baselines": {"train_mean": {"label": "risk_thw_paper", "value": 0.1, **evaluate(y, base)}},
+        "region": {"predictors": {"rgbd": {"risk_thw_paper": {"test/mse": 0.01, "accuracy": 0.75},
+                                           "risk_thw_fov": {"test/mse": 0.005, "accuracy": 0.875}}}},
+        "main_variant": "rgbd",
+    }
+    return _finite_or_none(out)
 
 
 @pytest.fixture
@@ -184,8 +196,10 @@ def reports(tmp_path: Path) -> Path:
     (rep / "metrics" / "fusion.json").write_text(json.dumps(fusion_metrics()))
     # NaN is what json.dumps writes for a missing precision; the report shows n/a for it
     (rep / "metrics" / "risk.json").write_text(json.dumps(risk_metrics()))
-    (rep / "metrics" / "disparity.json").write_text(json.dumps({"test": {"bad2_rate": 0.071, "density": 0.83, "n": 40}}))
-    (rep / "metrics" / "orb.json").write_text(json.dumps({"outlier_rate": 0.042, "detection": {"recall": 1.0, "precision": 0.95}}))
+    (rep / "metrics" / "disparity.json").write_text(json.dumps({"all/bad2": 0.071, "all/density": 0.83, "all/frames": 40,
+                                                                "none/bad2": 0.05, "delay/bad2": 0.3}))
+    (rep / "metrics" / "orb.json").write_text(json.dumps({"all/dropped_share": 0.042, "all/detection_rate": 0.9,
+                                                          "delay/detection_rate": 0.8, "none/false_alarm_rate": 0.01}))
     (rep / "metrics" / "train_fusion_A.json").write_text(json.dumps({"val/loss": 0.25, "epochs": 3}))
     (rep / "figures" / "fusion_kld_box.png").write_bytes(tiny_png())
     (rep / "figures" / "risk_training_curves.png").write_bytes(tiny_png())
@@ -247,10 +261,22 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     md = (reports / "README.md").read_text()
     page = (reports / "index.html").read_text()
     # paper numbers and ours side by side, from their sources
-    assert "| MSE (normalised risk) | 0.0147 | 0.01235 | 0.031 | Sec. 4 |" in md
-    assert "| accuracy | 72.87 % | 81.25 % | 68.75 % |" in md
-    assert "| predicted critical | 67,052 | 19,069 | 3 | 1 |" in md
+    risk = json.loads((reports / "metrics" / "risk.json").read_text())
+    main = risk["models"]["rgbd"]
+    mse = R.fmt_value(main["test/mse"])
+    assert f"| MSE (normalised risk) | 0.0147 | {mse} | " in md
+    acc = main["at_1.5s"]["accuracy"]
+    assert acc == 0.75  # hand count: y > 1/30 at 2, 3, 5, 7; p > 1/30 at 1, 2, 3, 5 -> 6 of 8 agree
+    assert "| accuracy | 72.87 % | 75.00 % |" in md
+    assert "| precision (critical) | 77.86 % | 75.00 % |" in md  # paper: 67052 / (67052 + 19069)
+    cm = main["at_1.5s"]["confusion"]
+    assert (cm["tp"], cm["fp"], cm["fn"], cm["tn"]) == (3, 1, 1, 3)
+    assert "| predicted critical | 67,052 | 63.16 % | 19,069 | 17.96 % | 3 | 37.50 % | 1 | 12.50 % |" in md
+    assert "| predicted uncritical | 9,737 | 9.17 % | 10,312 | 9.71 % | 1 | 12.50 % | 3 | 37.50 % |" in md
     assert "| accuracy, Wang & Kato [20] | 70.77 % |" in md
+    assert "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md and "| dropped by the ORB check | 3,982 | 7 |" in md
+    assert "| share of pairs dropped by ORB | 3.50 % | 4.20 % |" in md
+    assert "| rgbd | 0.01 | 75.00 % | 0.005 | 87.50 % |" in md  # region table: the primary (paper-region) label first
     # derived ranking: our numbers say network < baseline for B, paper too
     anchors = [t.anchor for s in rep.sections for t in s.tables]
     kld = md_tables(md)[anchors.index("fusion-kld")]
@@ -281,14 +307,16 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
 def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     rep_dir = tmp_path / "reports"
     (rep_dir / "metrics").mkdir(parents=True)
-    (rep_dir / "metrics" / "risk.json").write_text(json.dumps({"network": {"test/mse": 0.02}}))
+    (rep_dir / "metrics" / "risk.json").write_text(json.dumps(
+        {"main_variant": "v", "models": {"v": {"test/mse": 0.02}}, "baselines": {"train_mean": {"test/mse": 0.03}}}))
     inputs = R.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
     rep = R.write_report(inputs)
     check_report(rep_dir, {}, {})
     md = (rep_dir / "README.md").read_text()
     assert "`reports/metrics/fusion.json` is missing" in md
-    assert "metrics/risk.json#network.test/accuracy" in rep.missing  # named, shown as n/a
-    assert "| MSE (normalised risk) | 0.0147 | 0.02 | n/a |" in md
+    assert "metrics/risk.json#models.v.at_1.5s.accuracy" in rep.missing  # named, shown as n/a
+    assert "| MSE (normalised risk) | 0.0147 | 0.02 | 0.03 | Sec. 4 |" in md
+    assert "| accuracy | 72.87 % | n/a | n/a |" in md
 
 
 def test_bad_metrics_file_named(tmp_path: Path) -> None:
@@ -305,6 +333,21 @@ def test_check_report_catches_a_wrong_number(reports: Path) -> None:
     inputs = make_inputs(reports)
     R.write_report(inputs)
     page = (reports / "index.html").read_text()
-    (reports / "index.html").write_text(page.replace(">0.01235<", ">0.01236<", 1))
-    with pytest.raises(AssertionError):
-        check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+    check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+    for good, bad in ((">0.15<", ">0.16<"), (">72.87 %<", ">72.88 %<")):  # a metrics value, a paper value
+        assert good in page
+        (reports / "index.html").write_text(page.replace(good, bad, 1))
+        with pytest.raises(AssertionError):
+            check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+
+
+def test_paper_numbers_agree_with_risk_evaluation() -> None:
+    """evaluate_risk keeps its own copy of the paper's figures (risk_metrics.PAPER): they must agree."""
+    from traffictwin.evaluation.risk_metrics import PAPER
+
+    assert PAPER["test/mse"] == P.RISK["test_mse"].value
+    assert round(100 * PAPER["accuracy"], 2) == P.RISK["accuracy"].value
+    assert round(100 * PAPER["wang_kato_accuracy"], 2) == P.RISK["wang_kato_accuracy"].value
+    assert PAPER["threshold_s"] == P.RISK["thw_threshold_s"].value
+    assert PAPER["confusion"] == {k: v.value for k, v in P.RISK_CONFUSION.items()}
+    assert PAPER["n_frames"] == P.RISK["n_effective"].value

@@ -140,4 +140,6 @@ def risk_confusion_derived() -> dict[str, float]:
         "recall_critical_pct": 100.0 * tp / (tp + fn),
         "critical_share_pct": 100.0 * (tp + fn) / n,
         "orb_outlier_pct": 100.0 * (1 - RISK["n_effective"].value / RISK["n_frames"].value),
+        "n_dropped": float(RISK["n_frames"].value - RISK["n_effective"].value),
+        **{f"share_{k}_pct": 100.0 * RISK_CONFUSION[k].value / n for k in ("tp", "fp", "fn", "tn")},
     }

@@ -169,27 +169,25 @@ class Sources:
     def has(self, file: str) -> bool:
         return file in self.metrics
 
-    def get(self, file: str, key: str) -> Any:
-        """Value at dotted ``key`` in metrics ``file`` (segments may themselves contain '/' or '.'), or None."""
+    def get(self, file: str, key: str, default: Any = None) -> Any:
+        """Value at dotted ``key`` in metrics ``file`` (segments may themselves contain '/' or '.')."""
         data = self.metrics.get(file)
-        return lookup(data, key) if data is not None else None
+        return lookup(data, key, default) if data is not None else default
 
     def cell(self, file: str, key: str, fmt: str = "g4", *, record: bool = True) -> Cell:
-        """Number cell from metrics ``file``#``key`` (``n/a`` + a missing note when absent)."""
-        v = self.get(file, key)
-        if v is None or isinstance(v, (dict, list)):
+        """Number cell from metrics ``file``#``key``.
+
+        Absent key: ``n/a`` without a source, recorded in :attr:`missing`. JSON ``null`` (the
+        writers' spelling of NaN, e.g. precision with no positive prediction): ``n/a`` with its source.
+        """
+        v = self.get(file, key, ABSENT)
+        if v is ABSENT or isinstance(v, (dict, list)):
             if record:
                 self.missing.append(f"metrics/{file}#{key}")
             return Cell(NA, title=f"not in reports/metrics/{file}: {key}")
+        if v is None:
+            return Cell(NA, src=f"metrics/{file}#{key}", value=None, fmt=fmt, title="undefined (null in the metrics file)")
         return Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)
-
-    def first_cell(self, file: str, keys: Sequence[str], fmt: str = "g4") -> Cell:
-        """Cell of the first of ``keys`` present in ``file`` (alternative spellings); n/a if none."""
-        for k in keys:
-            v = self.get(file, k)
-            if v is not None and not isinstance(v, (dict, list)):
-                return self.cell(file, k, fmt)
-        return self.cell(file, keys[0], fmt)
 
     def param_cell(self, key: str, fmt: str = "str") -> Cell:
         v = self.inputs.run_params.get(key)
@@ -211,26 +209,31 @@ def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
     return Cell(fmt_value(v, fmt), src=f"paper:derived.{key}", value=v, fmt=fmt, title="derived from Table 1 counts")
 
 
-def lookup(data: Any, key: str) -> Any:
+ABSENT = object()
+
+
+def lookup(data: Any, key: str, default: Any = None) -> Any:
     """Nested lookup of ``key`` = segments joined by '.', where a segment may contain '.' or '/'.
 
     At each level the longest prefix of the remaining key that is a dict key wins, so
-    ``"A.net.test/kld_fo_mean"`` and a flat ``{"test/mse": …}`` both resolve.
+    ``"test.A.dnn.kld_fo_mean"``, ``"models.v.at_1.5s.accuracy"`` and a flat
+    ``{"test/mse": …}`` all resolve. ``default`` when the key is absent (a JSON ``null`` is
+    present and returned as None).
     """
     if key == "":
         return data
     if not isinstance(data, dict):
-        return None
+        return default
     if key in data:
         return data[key]
     parts = key.split(".")
     for i in range(len(parts) - 1, 0, -1):
         head = ".".join(parts[:i])
         if head in data:
-            found = lookup(data[head], ".".join(parts[i:]))
-            if found is not None:
+            found = lookup(data[head], ".".join(parts[i:]), ABSENT)
+            if found is not ABSENT:
                 return found
-    return None
+    return default
 
 
 def flatten_numbers(data: Any, prefix: str = "") -> list[tuple[str, Any]]:
@@ -363,67 +366,124 @@ def fusion_tables(src: Sources) -> list[Table]:
     return tables
 
 
-def fusion_setup_table(src: Sources, keys: Mapping[str, str]) -> Table:
-    """Paper scale vs this run's scale (``keys``: paper_numbers.FUSION key → run_params key)."""
-    t = Table("Fusion: setup, paper vs this run", ["quantity", "paper", "this run", "paper source"], anchor="fusion-setup")
-    for pk, rk in keys.items():
-        num = P.FUSION[pk]
-        t.rows.append([Cell(f"{pk} ({num.unit})" if num.unit else pk), paper_cell("FUSION", pk, "str" if isinstance(num.value, str) else "g4"),
-                       src.param_cell(rk), Cell(num.source)])
-    return t
-
-
 # --------------------------------------------------------------------------- risk section
+# risk.json (stage evaluate_risk): models[variant] and baselines[name] each with test/mse, test/mae,
+# test/thw_mae_s, ... and at_<t>s {accuracy, precision, recall, f1, roc_auc, confusion{tp,fp,fn,tn},
+# confusion_pct, critical_fraction_true}; main_variant; thresholds_s; n_frames{total,
+# orb_outliers_dropped, train, val, test}; region{labels, agreement, predictors[name][label]}.
+RISK_BASELINE_LABELS = {"train_mean": "baseline: train mean", "train_median": "baseline: train median",
+                        "geometric": "baseline: geometric (SGM distance / speed)"}
+PAPER_DASH = "—"
+
+
+def _risk_threshold_key(src: Sources) -> str:
+    ts = src.get(RISK_FILE, "thresholds_s")
+    t = ts[0] if isinstance(ts, list) and ts else P.RISK["thw_threshold_s"].value
+    return f"at_{float(t):g}s"
+
+
+def risk_predictors(src: Sources) -> list[tuple[str, str, str]]:
+    """``(key prefix in risk.json, column label, name)``: main variant first, other variants, then baselines."""
+    models = src.get(RISK_FILE, "models")
+    baselines = src.get(RISK_FILE, "baselines")
+    main = src.get(RISK_FILE, "main_variant")
+    out = []
+    if isinstance(models, dict):
+        names = sorted(models, key=lambda v: (v != main, v))
+        out += [(f"models.{v}", f"ours: {v}" + (" (main)" if v == main else ""), v) for v in names]
+    if isinstance(baselines, dict):
+        out += [(f"baselines.{b}", RISK_BASELINE_LABELS.get(b, f"baseline: {b}"), b) for b in baselines]
+    return out
+
+
 def risk_tables(src: Sources) -> list[Table]:
-    """Paper vs ours vs baselines (MSE, accuracy, precision/recall of 'critical') and the confusion matrix."""
+    """Paper vs our variants vs baselines (MSE, accuracy, …), the confusion matrix, the risk-region check."""
+    at = _risk_threshold_key(src)
+    preds = risk_predictors(src)
     t = Table(
         "Risk: test results, paper vs this run (critical ⇔ THW < 1.5 s ⇔ risk > 1/30)",
-        ["metric", "paper (Feth et al.)", "ours: network", "ours: baseline (predict train mean)", "paper source"],
-        note=("The paper's accuracy and confusion matrix are over its whole effective data set; ours over the test "
-              f"split. Wang & Kato (ref. [20] of the paper) reach {P.RISK['wang_kato_accuracy'].value} % on a "
-              "different, 3-class task with subjective labels."),
+        ["metric", "paper (Feth et al.)", *[label for _, label, _ in preds], "paper source"],
+        note=("The paper's accuracy and confusion matrix are over its whole effective data set (106,170 frames), "
+              "ours over the test split; '—': the paper reports no such number. Wang & Kato (ref. [20] of the "
+              "paper) solve a different, 3-class task with subjective labels; the paper quotes their accuracy "
+              "as the related work's best."),
         anchor="risk-results",
     )
     rows = [
         ("MSE (normalised risk)", paper_cell("RISK", "test_mse", "g4"), "test/mse", "g4", "Sec. 4"),
-        ("accuracy", paper_cell("RISK", "accuracy", "pct_raw"), "test/accuracy", "pct", "Sec. 4, Table 1"),
-        ("precision (critical)", derived_paper_cell("precision_critical_pct"), "test/precision", "pct", "Table 1 (derived)"),
-        ("recall (critical)", derived_paper_cell("recall_critical_pct"), "test/recall", "pct", "Table 1 (derived)"),
-        ("critical share", derived_paper_cell("critical_share_pct"), "test/critical_share", "pct", "Sec. 4 (derived)"),
+        ("MAE (normalised risk)", None, "test/mae", "g4", ""),
+        ("THW abs. error [s] (capped)", None, "test/thw_mae_s", "g4", ""),
+        ("accuracy", paper_cell("RISK", "accuracy", "pct_raw"), f"{at}.accuracy", "pct", "Sec. 4, Table 1"),
+        ("balanced accuracy", None, f"{at}.balanced_accuracy", "pct", ""),
+        ("precision (critical)", derived_paper_cell("precision_critical_pct"), f"{at}.precision", "pct", "Table 1 (derived)"),
+        ("recall (critical)", derived_paper_cell("recall_critical_pct"), f"{at}.recall", "pct", "Table 1 (derived)"),
+        ("F1 (critical)", None, f"{at}.f1", "g4", ""),
+        ("ROC-AUC (risk as score for critical)", None, f"{at}.roc_auc", "g4", ""),
+        ("critical share (actual)", derived_paper_cell("critical_share_pct"), f"{at}.critical_fraction_true", "pct",
+         "Sec. 4 (derived)"),
     ]
     for label, pc, key, fmt, ref in rows:
-        t.rows.append([Cell(label), pc, src.cell(RISK_FILE, f"network.{key}", fmt),
-                       src.cell(RISK_FILE, f"baseline_mean.{key}", fmt), Cell(ref)])
-    t.rows.append([Cell("accuracy, Wang & Kato [20]"), paper_cell("RISK", "wang_kato_accuracy", "pct_raw"),
-                   Cell(NA, title="other task"), Cell(NA, title="other task"), Cell("Sec. 4")])
+        t.rows.append([Cell(label), pc or Cell(PAPER_DASH)]
+                      + [src.cell(RISK_FILE, f"{pre}.{key}", fmt) for pre, _, _ in preds] + [Cell(ref)])
+    t.rows.append([Cell("accuracy, Wang & Kato [20]"), paper_cell("RISK", "wang_kato_accuracy", "pct_raw")]
+                  + [Cell(PAPER_DASH) for _ in preds] + [Cell("Sec. 4")])
+    tables = [t]
 
-    cm = Table(
-        "Risk: confusion matrix (counts), paper Table 1 vs this run's test split",
-        ["", "paper: actual critical", "paper: actual uncritical", "ours: actual critical", "ours: actual uncritical"],
-        anchor="risk-confusion",
-    )
-    for label, (a, b) in (("predicted critical", ("tp", "fp")), ("predicted uncritical", ("fn", "tn"))):
-        cells = [Cell(label), paper_cell("RISK_CONFUSION", a, "int"), paper_cell("RISK_CONFUSION", b, "int")]
-        cells += [src.cell(RISK_FILE, f"network.test/{a}", "int"), src.cell(RISK_FILE, f"network.test/{b}", "int")]
-        cm.rows.append(cells)
-    return [t, cm]
+    main = src.get(RISK_FILE, "main_variant")
+    if isinstance(main, str):
+        pre = f"models.{main}.{at}"
+        cm = Table(
+            f"Risk: confusion matrix, paper Table 1 (whole effective data set) vs this run's test split ({main})",
+            ["", "paper: actual critical", "paper: share", "paper: actual uncritical", "paper: share",
+             "ours: actual critical", "ours: share", "ours: actual uncritical", "ours: share"],
+            anchor="risk-confusion",
+            note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of all frames.",
+        )
+        for label, (a, b) in (("predicted critical", ("tp", "fp")), ("predicted uncritical", ("fn", "tn"))):
+            cm.rows.append([
+                Cell(label),
+                paper_cell("RISK_CONFUSION", a, "int"), derived_paper_cell(f"share_{a}_pct"),
+                paper_cell("RISK_CONFUSION", b, "int"), derived_paper_cell(f"share_{b}_pct"),
+                src.cell(RISK_FILE, f"{pre}.confusion.{a}", "int"), src.cell(RISK_FILE, f"{pre}.confusion_pct.{a}", "pct_raw"),
+                src.cell(RISK_FILE, f"{pre}.confusion.{b}", "int"), src.cell(RISK_FILE, f"{pre}.confusion_pct.{b}", "pct_raw"),
+            ])
+        tables.append(cm)
+
+    region = src.get(RISK_FILE, "region.predictors")
+    if isinstance(region, dict) and region:
+        primary = src.get(RISK_FILE, "primary_label")
+        labels = sorted({lab for d in region.values() if isinstance(d, dict) for lab in d}, key=lambda x: (x != primary, x))
+        rt = Table(
+            "Risk: does the label's region explain the errors? Each predictor scored against the paper-style "
+            "region label and against a label restricted to the camera's field of view",
+            ["predictor", *[f"{m} vs {lab}" for lab in labels for m in ("MSE", "accuracy")]],
+            anchor="risk-region",
+            note=("The paper blames its errors on the metric's region not matching the camera view (Sec. 4); "
+                  "risk_thw_paper = the paper's region, risk_thw_fov = only what the camera sees."),
+        )
+        for name in region:
+            rt.rows.append([Cell(name)] + [
+                src.cell(RISK_FILE, f"region.predictors.{name}.{lab}.{k}", f)
+                for lab in labels for k, f in (("test/mse", "g4"), ("accuracy", "pct"))
+            ])
+        tables.append(rt)
+    return tables
 
 
-def risk_setup_table(src: Sources, keys: Mapping[str, str]) -> Table:
-    t = Table("Risk: data and setup, paper vs this run", ["quantity", "paper", "this run", "paper source"], anchor="risk-setup")
-    for pk, rk in keys.items():
-        num = P.RISK[pk]
-        ours = src.param_cell(rk) if not rk.startswith("metrics:") else src.cell(*rk.removeprefix("metrics:").split("#", 1))
-        t.rows.append([Cell(f"{pk} ({num.unit})" if num.unit else pk), paper_cell("RISK", pk), ours, Cell(num.source)])
-    return t
-
-
-def orb_table(src: Sources) -> Table:
-    t = Table("Risk data: ORB stereo-pair check", ["quantity", "paper", "this run", "paper source"], anchor="orb",
-              note="Paper: 110,152 recorded pairs, 106,170 kept (Sec. 3.3, 3.5). Ours: pairs with injected faults "
-                   "(time delay, vertical shift) are the ground truth for detection.")
-    t.rows.append([Cell("pairs flagged as outliers"), paper_cell("RISK", "orb_outlier_pct", "pct_raw"),
-                   src.first_cell(ORB_FILE, ["outlier_rate", "all/outlier_rate"], "pct"), Cell("Sec. 3.3")])
+def risk_data_table(src: Sources) -> Table | None:
+    """Frames recorded / dropped by ORB / per split, paper vs this run."""
+    if src.get(RISK_FILE, "n_frames") is None:
+        return None
+    t = Table("Risk: data, paper vs this run", ["quantity", "paper", "this run", "paper source"], anchor="risk-data",
+              note=f"Paper split {P.RISK['split'].value} (random frames); ours by scenario (neighbouring frames are near-duplicates).")
+    t.rows.append([Cell("stereo frames"), paper_cell("RISK", "n_frames", "int"), src.cell(RISK_FILE, "n_frames.total", "int"), Cell("Sec. 3.3")])
+    t.rows.append([Cell("dropped by the ORB check"), derived_paper_cell("n_dropped", "int"),
+                   src.cell(RISK_FILE, "n_frames.orb_outliers_dropped", "int"), Cell("Sec. 3.3, 3.5 (derived)")])
+    for split in ("train", "val", "test"):
+        t.rows.append([Cell(f"{split} frames"), Cell(PAPER_DASH), src.cell(RISK_FILE, f"n_frames.{split}", "int"), Cell("")])
+    if src.has(ORB_FILE):
+        t.rows.append([Cell("share of pairs dropped by ORB"), paper_cell("RISK", "orb_outlier_pct", "pct_raw"),
+                       src.cell(ORB_FILE, "all/dropped_share", "pct"), Cell("Sec. 3.3 ('around 3.5 %')")])
     return t
 
 
@@ -439,6 +499,38 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
             t.rows.append([Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)])
         else:
             t.rows.append([Cell(key), Cell(fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v)))])
+    return t
+
+
+def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table | None:
+    """Metrics ``file`` as a grid: flat ``"<group>/<metric>"`` keys → rows = groups, columns = metrics.
+
+    Falls back to :func:`generic_table` when the keys are not of that form. None if the file is absent.
+    """
+    data = src.metrics.get(file)
+    if data is None:
+        return None
+    flat = [(k, v) for k, v in flatten_numbers(data)]
+    if not flat or not all("/" in k and "." not in k for k, _ in flat):
+        return generic_table(src, file, title, anchor)
+    groups: list[str] = []
+    metrics: list[str] = []
+    for k, _ in flat:
+        g, m = k.split("/", 1)
+        groups += [g] if g not in groups else []
+        metrics += [m] if m not in metrics else []
+    t = Table(title, ["group", *metrics], anchor=anchor)
+    for g in groups:
+        row = [Cell(g)]
+        for m in metrics:
+            key = f"{g}/{m}"
+            if key in data:
+                v = data[key]
+                fmt = "int" if isinstance(v, int) and not isinstance(v, bool) else "g4"
+                row.append(src.cell(file, key, fmt) if not isinstance(v, (str, list)) else Cell(str(v)))
+            else:
+                row.append(Cell(""))
+        t.rows.append(row)
     return t
 
 
@@ -587,8 +679,12 @@ def markdown_bullets(text: str) -> list[str]:
 
 
 # --------------------------------------------------------------------------- assemble
-FUSION_SETUP_KEYS: dict[str, str] = {}
-RISK_SETUP_KEYS: dict[str, str] = {}
+DATA_FILES = (
+    ("fusion_data.json", "Fusion data (reports/metrics/fusion_data.json)"),
+    ("risk_data.json", "Risk data: stereo frames and risk labels (reports/metrics/risk_data.json)"),
+    (DISPARITY_FILE, "SGM disparity vs exact disparity (reports/metrics/disparity.json)"),
+    (ORB_FILE, "ORB stereo-pair check vs injected faults (reports/metrics/orb.json)"),
+)
 
 
 def build_report(inputs: ReportInputs) -> Report:
@@ -627,8 +723,6 @@ def build_report(inputs: ReportInputs) -> Report:
         fusion.tables.extend(fusion_tables(src))
     else:
         fusion.paragraphs.append(f"`reports/metrics/{FUSION_FILE}` is missing: the fusion evaluation has not run.")
-    if FUSION_SETUP_KEYS:
-        fusion.tables.append(fusion_setup_table(src, FUSION_SETUP_KEYS))
     bullets, note = findings("fusion", root / "metrics")
     fusion.bullet_groups.append(("Findings of this run", bullets or [note]))
     fusion.bullet_groups.append(("What the paper reports (qualitatively; it prints no numbers)",
@@ -641,25 +735,23 @@ def build_report(inputs: ReportInputs) -> Report:
         risk.tables.extend(risk_tables(src))
     else:
         risk.paragraphs.append(f"`reports/metrics/{RISK_FILE}` is missing: the risk evaluation has not run.")
-    if RISK_SETUP_KEYS:
-        risk.tables.append(risk_setup_table(src, RISK_SETUP_KEYS))
-    if src.has(ORB_FILE):
-        risk.tables.append(orb_table(src))
+    dt = risk_data_table(src)
+    if dt:
+        risk.tables.append(dt)
     bullets, note = findings("risk", root / "metrics")
     risk.bullet_groups.append(("Findings of this run", bullets or [note]))
     risk.figures = figs["risk"]
 
     data = Section("Data and disparity statistics")
-    for file, title, anchor in ((DISPARITY_FILE, "SGM disparity vs exact disparity (reports/metrics/disparity.json)", "disparity"),
-                                (ORB_FILE, "ORB pair check (reports/metrics/orb.json)", "orb-all")):
-        t = generic_table(src, file, title, anchor)
+    for file, title in DATA_FILES:
+        t = pivot_table(src, file, title, anchor=f"data-{Path(file).stem}")
         if t:
             data.tables.append(t)
-        else:
+        elif file in (DISPARITY_FILE, ORB_FILE):
             data.paragraphs.append(f"`reports/metrics/{file}` is missing.")
 
     appendix = Section("Appendix — every metrics file")
-    shown = {DISPARITY_FILE, ORB_FILE}
+    shown = {f for f, _ in DATA_FILES}
     for file in src.metrics:
         if file in shown:
             continue
