@@ -1,0 +1,131 @@
+"""Baselines for the risk network, evaluated on the same test frames.
+
+* :func:`constant_predictions` — the training-set mean (the MSE-optimal constant) and the
+  training-set median. The median is also the *majority-class* predictor at every THW
+  threshold at once: the median is above a threshold exactly when more than half of the
+  training frames are critical at it.
+* :func:`geometric_risk` — a non-learned stereo baseline: back-project the SGM disparity with the
+  camera intrinsics, keep the points inside the subject's corridor (lateral ``|y| <=
+  corridor_half_width`` in the vehicle frame, height above ground in ``[min_height, max_height]``
+  — so neither the road surface nor overhanging structures count), take the robust nearest one
+  (the ``min_pixels``-th smallest free distance, which rejects isolated SGM mismatches), measure
+  its free distance from the subject's front bumper segment as the risk metric does
+  (:mod:`traffictwin.risk.metric`), and turn it into THW with the *true* subject speed.
+  It cannot tell vehicles from walls or poles, and sees only what the camera sees.
+
+Geometry (DESIGN.md, :mod:`traffictwin.sim.camera`): camera frame X right, Y down, Z forward
+(m); the left optical centre is ``mount_x`` ahead of the vehicle reference point (footprint
+centre), ``baseline / 2`` to its left, ``mount_height`` above the ground. A pixel (u, v) with
+disparity d > 0 lies at Z = fx·B/d, X = (u − cx)·Z/fx, Y = (v − cy)·Z/fy; vehicle frame
+x = mount_x + Z, y = B/2 − X, z = mount_height − Y.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from .risk_metrics import thw_to_risk
+
+
+def constant_predictions(train_y: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    """``train_mean`` and ``train_median`` (= majority class) constant predictions for ``n`` frames."""
+    train_y = np.asarray(train_y, np.float64)
+    if len(train_y) == 0:
+        raise ValueError("constant baselines need training labels (the training split is empty)")
+    return {
+        "train_mean": np.full(n, float(np.mean(train_y)), np.float32),
+        "train_median": np.full(n, float(np.median(train_y)), np.float32),
+    }
+
+
+@dataclass(frozen=True)
+class GeometricParams:
+    """Corridor and robustness settings of :func:`geometric_risk` (m, px counts).
+
+    ``subject_length``/``subject_width`` must match the risk metric's subject footprint (risk data).
+    """
+
+    corridor_half_width: float = 2.0
+    min_height: float = 0.3
+    max_height: float = 2.5
+    min_pixels: int = 10
+    max_range: float = 80.0
+    subject_length: float = 4.5
+    subject_width: float = 1.8
+
+    def __post_init__(self) -> None:
+        if self.corridor_half_width <= 0 or self.max_range <= 0:
+            raise ValueError("geometric baseline: corridor_half_width and max_range must be > 0 m")
+        if not self.min_height < self.max_height:
+            raise ValueError("geometric baseline: min_height must be < max_height (m)")
+        if self.min_pixels < 1:
+            raise ValueError("geometric baseline: min_pixels must be >= 1")
+        if self.subject_length <= 0 or self.subject_width <= 0:
+            raise ValueError("geometric baseline: subject_length/subject_width must be > 0 m")
+
+
+_CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height")
+
+
+def geometric_distance(
+    disp: np.ndarray, camera: Mapping[str, float], params: GeometricParams, chunk: int = 32
+) -> np.ndarray:
+    """Free distance (m) from the front bumper to the robust nearest obstacle in the corridor, per frame.
+
+    ``disp``: (N, H, W) disparity in px at the camera's resolution (≤ 0 or non-finite = invalid).
+    Returns (N,) float64, ``inf`` where fewer than ``min_pixels`` valid points lie in the corridor.
+    Processed ``chunk`` frames at a time (memory).
+    """
+    missing = [k for k in _CAMERA_KEYS if k not in camera]
+    if missing:
+        raise ValueError(f"camera intrinsics: key(s) {missing} missing (have {sorted(camera)})")
+    disp = np.asarray(disp, np.float32)
+    if disp.ndim != 3:
+        raise ValueError(f"disparity: expected (N, H, W), got shape {disp.shape}")
+    n, h, w = disp.shape
+    if "width" in camera and "height" in camera and (int(camera["width"]), int(camera["height"])) != (w, h):
+        raise ValueError(
+            f"disparity is {w}×{h} px but the camera intrinsics are for {int(camera['width'])}×{int(camera['height'])}"
+        )
+    if n > chunk:
+        return np.concatenate([geometric_distance(disp[i : i + chunk], camera, params, chunk) for i in range(0, n, chunk)])
+    fx, fy, cx, cy = (float(camera[k]) for k in ("fx", "fy", "cx", "cy"))
+    B, mx, mh = float(camera["baseline"]), float(camera["mount_x"]), float(camera["mount_height"])
+    valid = np.isfinite(disp) & (disp > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Z = np.where(valid, (fx * B) / np.where(valid, disp, 1.0), np.inf)
+    u = (np.arange(w, dtype=np.float32) - cx)[None, None, :]
+    v = (np.arange(h, dtype=np.float32) - cy)[None, :, None]
+    X = u * Z / fx
+    Y = v * Z / fy
+    x = mx + Z
+    y = B / 2.0 - X
+    z = mh - Y
+    keep = (
+        valid & (Z <= params.max_range) & (np.abs(y) <= params.corridor_half_width)
+        & (z >= params.min_height) & (z <= params.max_height) & (x > params.subject_length / 2.0)
+    )
+    dx = x - params.subject_length / 2.0
+    dy = np.maximum(np.abs(y) - params.subject_width / 2.0, 0.0)
+    dist = np.where(keep, np.hypot(dx, dy), np.inf).reshape(n, -1)
+    k = min(params.min_pixels, dist.shape[1]) - 1
+    return np.partition(dist, k, axis=1)[:, k].astype(np.float64)
+
+
+def geometric_risk(
+    disp: np.ndarray, speed: np.ndarray, camera: Mapping[str, float], params: GeometricParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(distance m, THW s, normalised risk) per frame from SGM disparity and the true speed (m/s).
+
+    THW = distance / speed; speed 0 or nothing in the corridor → THW inf, risk 0.
+    """
+    dist = geometric_distance(disp, camera, params)
+    speed = np.asarray(speed, np.float64)
+    if speed.shape != dist.shape:
+        raise ValueError(f"speed has shape {speed.shape}, expected ({len(dist)},)")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        thw = np.where(speed > 0, dist / np.where(speed > 0, speed, 1.0), np.inf)
+    return dist, thw, thw_to_risk(thw)

@@ -1,0 +1,292 @@
+"""DAVE-2-like risk network (Feth et al., sec. 3.1; Bojarski et al. 2016) and its input preprocessing.
+
+Architecture (DESIGN.md "DAVE-2-like net"): five convolutions — 24, 36, 48 channels with 5×5
+kernels and stride 2, then 64, 64 channels with 3×3 kernels and stride 1 — each followed by a
+ReLU; flatten; fully connected layers 1164 → 100 → 50 → 10 → 1 with a ReLU on all but the last
+(the output is linear: a regression of the normalised risk in [0, 1]). No pooling: the input is
+already subsampled (66 × 200 by default, like DAVE-2). The first fully connected layer adapts to
+the flattened size of whatever resolution is configured.
+
+Input: a stack of image-like channels chosen by name (:data:`CHANNELS`): ``rgb`` (3 channels, the
+left image), ``disp_sgm`` (SGM disparity of the stereo pair), ``disp_gt`` (ground-truth disparity:
+the perfect-stereo upper bound). The paper's network sees ``rgb + disp_sgm`` (4 channels). Optionally
+(``use_speed``, off in the paper) the subject speed is concatenated to the flattened features as
+one more scalar input of the fully connected head.
+
+:func:`preprocess` turns raw frames (OpenCV BGR uint8 images, disparity in pixels with -1 = invalid)
+into the network's channel stack; training, evaluation and the CLI all call it, so the three can
+never disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+#: channel groups the network can be fed, with their channel counts
+CHANNELS: dict[str, int] = {"rgb": 3, "disp_sgm": 1, "disp_gt": 1}
+
+CONV_SPEC: tuple[tuple[int, int, int], ...] = ((24, 5, 2), (36, 5, 2), (48, 5, 2), (64, 3, 1), (64, 3, 1))
+FC_SPEC: tuple[int, ...] = (1164, 100, 50, 10)
+
+
+@dataclass(frozen=True)
+class Dave2Config:
+    """Everything that defines a risk network and how its inputs are prepared.
+
+    ``inputs``: channel groups in stacking order (keys of :data:`CHANNELS`);
+    ``height``, ``width``: model input resolution (px);
+    ``use_speed``: feed the subject speed (m/s, divided by ``speed_scale``) to the FC head;
+    ``disp_scale``: disparity (px at the source resolution) that maps to 1.0 after normalisation;
+    ``dropout``: dropout probability before each hidden FC layer (0 = the paper's plain net).
+    """
+
+    inputs: tuple[str, ...] = ("rgb", "disp_sgm")
+    height: int = 66
+    width: int = 200
+    use_speed: bool = False
+    speed_scale: float = 30.0
+    disp_scale: float = 64.0
+    dropout: float = 0.0
+    conv: tuple[tuple[int, int, int], ...] = field(default=CONV_SPEC)
+    fc: tuple[int, ...] = field(default=FC_SPEC)
+
+    def __post_init__(self) -> None:
+        if not self.inputs:
+            raise ValueError("Dave2Config.inputs: at least one input channel group is required")
+        bad = [c for c in self.inputs if c not in CHANNELS]
+        if bad:
+            raise ValueError(f"Dave2Config.inputs: unknown channel group(s) {bad}; expected a subset of {list(CHANNELS)}")
+        if len(set(self.inputs)) != len(self.inputs):
+            raise ValueError(f"Dave2Config.inputs: duplicate channel groups in {list(self.inputs)}")
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"Dave2Config: height/width must be positive, got {self.height}×{self.width}")
+        if self.speed_scale <= 0 or self.disp_scale <= 0:
+            raise ValueError("Dave2Config: speed_scale and disp_scale must be > 0")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"Dave2Config.dropout must be in [0, 1), got {self.dropout}")
+        # normalise list-ish fields (JSON round trips give lists)
+        object.__setattr__(self, "inputs", tuple(self.inputs))
+        object.__setattr__(self, "conv", tuple(tuple(int(v) for v in c) for c in self.conv))
+        object.__setattr__(self, "fc", tuple(int(v) for v in self.fc))
+        conv_output_shape(self.height, self.width, self.conv)  # raises when the input is too small
+
+    @property
+    def in_channels(self) -> int:
+        return sum(CHANNELS[c] for c in self.inputs)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["inputs"] = list(self.inputs)
+        d["conv"] = [list(c) for c in self.conv]
+        d["fc"] = list(self.fc)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Dave2Config":
+        known = set(cls.__dataclass_fields__)
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"Dave2Config: unknown field(s) {sorted(unknown)}")
+        d = dict(d)
+        for k in ("inputs", "fc"):
+            if k in d:
+                d[k] = tuple(d[k])
+        if "conv" in d:
+            d["conv"] = tuple(tuple(c) for c in d["conv"])
+        return cls(**d)
+
+
+def conv_output_shape(height: int, width: int, conv: Sequence[Sequence[int]] = CONV_SPEC) -> tuple[int, int, int]:
+    """(channels, height, width) after the unpadded convolution stack; error if the input is too small."""
+    h, w = int(height), int(width)
+    for i, (ch, k, s) in enumerate(conv):
+        h, w = (h - k) // s + 1, (w - k) // s + 1
+        if h < 1 or w < 1:
+            raise ValueError(
+                f"input resolution {height}×{width} is too small for the DAVE-2 conv stack "
+                f"(spatial size vanishes at conv layer {i + 1}); use at least ~{_min_size(conv)} px per side"
+            )
+    return int(conv[-1][0]), h, w
+
+
+def _min_size(conv: Sequence[Sequence[int]]) -> int:
+    n = 1
+    for _, k, s in reversed(conv):
+        n = (n - 1) * s + k
+    return n
+
+
+class Dave2(nn.Module):
+    """DAVE-2-like regression CNN. ``forward(x (N,C,H,W) float32, speed (N,) m/s or None) -> (N,) risk``."""
+
+    def __init__(self, cfg: Dave2Config | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or Dave2Config()
+        layers: list[nn.Module] = []
+        c_in = self.cfg.in_channels
+        for ch, k, s in self.cfg.conv:
+            layers += [nn.Conv2d(c_in, ch, kernel_size=k, stride=s), nn.ReLU(inplace=True)]
+            c_in = ch
+        self.features = nn.Sequential(*layers)
+        c, h, w = conv_output_shape(self.cfg.height, self.cfg.width, self.cfg.conv)
+        self.flat_size = c * h * w
+        head: list[nn.Module] = []
+        n_in = self.flat_size + (1 if self.cfg.use_speed else 0)
+        for n_out in self.cfg.fc:
+            if self.cfg.dropout > 0:
+                head.append(nn.Dropout(self.cfg.dropout))
+            head += [nn.Linear(n_in, n_out), nn.ReLU(inplace=True)]
+            n_in = n_out
+        head.append(nn.Linear(n_in, 1))
+        self.head = nn.Sequential(*head)
+
+    def forward(self, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
+        cfg = self.cfg
+        if x.ndim != 4 or x.shape[1] != cfg.in_channels or x.shape[2] != cfg.height or x.shape[3] != cfg.width:
+            raise ValueError(
+                f"Dave2 expects input (N, {cfg.in_channels}, {cfg.height}, {cfg.width}) for inputs {list(cfg.inputs)}, "
+                f"got {tuple(x.shape)}"
+            )
+        z = self.features(x).flatten(1)
+        if cfg.use_speed:
+            if speed is None:
+                raise ValueError("Dave2 was built with use_speed=True: pass speed (N,) in m/s")
+            z = torch.cat([z, (speed.reshape(-1, 1).to(z.dtype) / cfg.speed_scale)], dim=1)
+        return self.head(z).squeeze(1)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return int(sum(p.numel() for p in model.parameters() if p.requires_grad))
+
+
+# --------------------------------------------------------------------------------------------
+# preprocessing
+# --------------------------------------------------------------------------------------------
+
+
+def _resize_stack(arr: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize (N, H, W[, C]) to (N, height, width[, C]) with area interpolation (OpenCV)."""
+    if arr.shape[1] == height and arr.shape[2] == width:
+        return arr
+    out = np.empty((arr.shape[0], height, width, *arr.shape[3:]), dtype=arr.dtype)
+    for i in range(arr.shape[0]):  # per image, not per pixel: OpenCV does the pixels
+        out[i] = cv2.resize(arr[i], (width, height), interpolation=cv2.INTER_AREA).reshape(out.shape[1:])
+    return out
+
+
+def prepare_channels(
+    cfg: Dave2Config,
+    left_bgr: np.ndarray | None = None,
+    disp_sgm: np.ndarray | None = None,
+    disp_gt: np.ndarray | None = None,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Resize the raw inputs the network needs to the model resolution, compactly.
+
+    ``left_bgr``: (N, H, W, 3) uint8 BGR; ``disp_sgm``/``disp_gt``: (N, H, W) float disparity in px
+    (≤ 0 or non-finite = invalid, mapped to 0). Returns ``(rgb (N,3,h,w) uint8 or None,
+    disp (N,k,h,w) float16 or None)`` with the disparity channels in ``cfg.inputs`` order, already
+    divided by ``cfg.disp_scale``. Call :func:`normalise` on a batch of these to get the network input.
+    Raises ``ValueError`` naming the array when a needed input is missing or sizes disagree.
+    """
+    raw = {"rgb": left_bgr, "disp_sgm": disp_sgm, "disp_gt": disp_gt}
+    shapes: dict[str, tuple[int, ...]] = {}
+    for name in cfg.inputs:
+        a = raw[name]
+        if a is None:
+            raise ValueError(f"input '{name}' is required by the model (inputs {list(cfg.inputs)}) but was not given")
+        if name == "rgb":
+            if a.ndim != 4 or a.shape[-1] != 3:
+                raise ValueError(f"left image: expected (N, H, W, 3) BGR, got shape {a.shape}")
+            if a.dtype != np.uint8:
+                raise ValueError(f"left image: expected uint8, got {a.dtype}")
+            shapes[name] = a.shape[:3]
+        else:
+            if a.ndim != 3:
+                raise ValueError(f"{name}: expected (N, H, W) disparity in px, got shape {a.shape}")
+            shapes[name] = a.shape
+    if len(set(shapes.values())) > 1:
+        detail = ", ".join(f"{k} {v[1]}×{v[2]} (N={v[0]})" for k, v in shapes.items())
+        raise ValueError(f"input sizes disagree: {detail}; disparity must have the image's size and frame count")
+    rgb = None
+    if "rgb" in cfg.inputs:
+        small = _resize_stack(np.ascontiguousarray(left_bgr), cfg.height, cfg.width)
+        rgb = np.ascontiguousarray(small[..., ::-1].transpose(0, 3, 1, 2))  # BGR → RGB, NCHW
+    disp_names = [c for c in cfg.inputs if c != "rgb"]
+    disp = None
+    if disp_names:
+        chans = []
+        for name in disp_names:
+            d = np.asarray(raw[name], dtype=np.float32)
+            d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+            d = _resize_stack(d, cfg.height, cfg.width) / np.float32(cfg.disp_scale)
+            chans.append(d)
+        disp = np.stack(chans, axis=1).astype(np.float16)
+    return rgb, disp
+
+
+def normalise(cfg: Dave2Config, rgb: torch.Tensor | None, disp: torch.Tensor | None) -> torch.Tensor:
+    """Network input (N, C, h, w) float32 from :func:`prepare_channels` output (as tensors).
+
+    RGB: ``x / 127.5 − 1`` (DAVE-2's normalisation layer), disparity: already scaled, cast to float32.
+    Channels are stacked in ``cfg.inputs`` order.
+    """
+    parts: list[torch.Tensor] = []
+    di = 0
+    for name in cfg.inputs:
+        if name == "rgb":
+            assert rgb is not None
+            parts.append(rgb.float() / 127.5 - 1.0)
+        else:
+            assert disp is not None
+            parts.append(disp[:, di : di + 1].float())
+            di += 1
+    return torch.cat(parts, dim=1)
+
+
+def preprocess(
+    cfg: Dave2Config,
+    left_bgr: np.ndarray | None = None,
+    disp_sgm: np.ndarray | None = None,
+    disp_gt: np.ndarray | None = None,
+) -> torch.Tensor:
+    """Raw frames → network input (N, C, h, w) float32 (:func:`prepare_channels` + :func:`normalise`)."""
+    rgb, disp = prepare_channels(cfg, left_bgr, disp_sgm, disp_gt)
+    return normalise(
+        cfg,
+        torch.from_numpy(rgb) if rgb is not None else None,
+        torch.from_numpy(disp) if disp is not None else None,
+    )
+
+
+class PackedDave2(nn.Module):
+    """Single-tensor wrapper of :class:`Dave2` for export (MLflow models take one input array).
+
+    Input ``(N, C, h, w)`` normalised channels; for a speed model ``(N, C + 1, h, w)`` where the
+    last plane holds the subject speed in m/s (constant over the plane; :func:`pack_input`).
+    """
+
+    def __init__(self, net: Dave2) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.net.cfg.use_speed:
+            return self.net(x[:, :-1], x[:, -1, 0, 0])
+        return self.net(x)
+
+
+def pack_input(cfg: Dave2Config, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
+    """The :class:`PackedDave2` input: ``x`` plus, for speed models, a constant speed plane (m/s)."""
+    if not cfg.use_speed:
+        return x
+    if speed is None:
+        raise ValueError("pack_input: this model uses the subject speed; pass speed (N,) in m/s")
+    plane = speed.reshape(-1, 1, 1, 1).to(x.dtype).expand(x.shape[0], 1, x.shape[2], x.shape[3])
+    return torch.cat([x, plane], dim=1)

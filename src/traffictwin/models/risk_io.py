@@ -1,0 +1,128 @@
+"""Save and load trained risk networks: ``<dir>/model.ckpt`` + ``<dir>/model_meta.json``.
+
+``model.ckpt`` is a plain ``torch.save`` dict ``{"format": 1, "config": Dave2Config.to_dict(),
+"state_dict": ...}`` loadable with ``weights_only=True`` (no pickled code). ``model_meta.json``
+repeats the config and adds what a user of the model needs: the training label column, the
+variant name, parameter count, best validation error, the MLflow run/model URI (when tracked),
+the data manifest hash. :func:`load_risk_model` returns a :class:`RiskModel` that preprocesses raw
+frames exactly like training did.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from ..io.atomic import atomic_path, write_json_atomic
+from .dave2 import Dave2, Dave2Config, count_parameters, preprocess
+
+FORMAT = 1
+CKPT = "model.ckpt"
+META = "model_meta.json"
+
+
+class RiskModelError(RuntimeError):
+    """A risk model file is missing, unreadable or inconsistent."""
+
+
+@dataclass
+class RiskModel:
+    """A trained network plus its metadata; :meth:`predict` works on raw frames."""
+
+    net: Dave2
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def cfg(self) -> Dave2Config:
+        return self.net.cfg
+
+    @torch.no_grad()
+    def predict(
+        self,
+        left_bgr: np.ndarray | None = None,
+        disp_sgm: np.ndarray | None = None,
+        disp_gt: np.ndarray | None = None,
+        speed: np.ndarray | None = None,
+        batch_size: int = 256,
+    ) -> np.ndarray:
+        """Predicted normalised risk (N,) float32 for raw frames (see :func:`~.dave2.prepare_channels`).
+
+        ``speed``: (N,) subject speed in m/s, required when the model uses it.
+        """
+        self.net.eval()
+        n = next(len(a) for a in (left_bgr, disp_sgm, disp_gt) if a is not None)
+        if self.cfg.use_speed and speed is None:
+            raise ValueError("this risk model uses the subject speed: pass speed (N,) in m/s")
+        out = []
+        for i in range(0, n, batch_size):
+            sl = slice(i, i + batch_size)
+            x = preprocess(
+                self.cfg,
+                left_bgr[sl] if left_bgr is not None else None,
+                disp_sgm[sl] if disp_sgm is not None else None,
+                disp_gt[sl] if disp_gt is not None else None,
+            )
+            s = torch.as_tensor(np.asarray(speed[sl], dtype=np.float32)) if self.cfg.use_speed else None
+            out.append(self.net(x, s).float().numpy())
+        return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+
+def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | None = None) -> Path:
+    """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` (atomically); returns the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
+    with atomic_path(out / CKPT, suffix=".ckpt") as tmp:
+        torch.save({"format": FORMAT, "config": net.cfg.to_dict(), "state_dict": state}, tmp)
+    full_meta = {
+        "format": FORMAT,
+        "architecture": "dave2",
+        "config": net.cfg.to_dict(),
+        "in_channels": net.cfg.in_channels,
+        "n_parameters": count_parameters(net),
+        **(dict(meta) if meta else {}),
+    }
+    write_json_atomic(out / META, full_meta)
+    return out
+
+
+def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") -> RiskModel:
+    """Load a risk model from its folder (or its ``model.ckpt``); errors name the file and the problem."""
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    ckpt = p if p.is_file() else folder / CKPT
+    if not ckpt.exists():
+        raise RiskModelError(f"{ckpt}: risk model checkpoint not found (run the train_risk stage first)")
+    try:
+        blob = torch.load(ckpt, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise RiskModelError(f"{ckpt}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
+        raise RiskModelError(f"{ckpt}: expected a dict with 'config' and 'state_dict' (a traffictwin risk model)")
+    if blob.get("format") != FORMAT:
+        raise RiskModelError(f"{ckpt}: format {blob.get('format')!r}, expected {FORMAT}")
+    try:
+        cfg = Dave2Config.from_dict(blob["config"])
+    except (TypeError, ValueError) as exc:
+        raise RiskModelError(f"{ckpt}: invalid model config ({exc})") from None
+    net = Dave2(cfg)
+    try:
+        net.load_state_dict(blob["state_dict"])
+    except RuntimeError as exc:
+        raise RiskModelError(f"{ckpt}: weights do not match the configured network ({exc})") from None
+    net.eval()
+    meta: dict[str, Any] = {}
+    mpath = folder / META
+    if mpath.exists():
+        try:
+            meta = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
+        if meta.get("config") not in (None, cfg.to_dict()):
+            raise RiskModelError(f"{mpath}: config disagrees with {ckpt} (files from different trainings?)")
+    return RiskModel(net=net, meta=meta)

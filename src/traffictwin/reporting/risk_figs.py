@@ -1,0 +1,105 @@
+"""Figures of the risk network (matplotlib, Agg): the paper's Figs. 5–7 and Table 1 as images.
+
+* :func:`plot_training_curves` — train (left) and validation (right) average error over training
+  steps, one line per variant (Figs. 5–6);
+* :func:`plot_scatter` — predicted vs true risk with the critical threshold lines;
+* :func:`plot_examples` — test frames (left image + SGM disparity) with true and predicted risk (Fig. 7);
+* :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from ..io.atomic import atomic_path  # noqa: E402
+
+
+def _save(fig: "plt.Figure", path: str | Path) -> None:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+def plot_training_curves(histories: Mapping[str, pd.DataFrame], path: str | Path, paper_test_mse: float | None = None) -> None:
+    """``histories``: variant → DataFrame with ``step``, ``train/mse``, ``val/mse`` (from train_risk)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for name, h in histories.items():
+        if len(h) == 0:
+            continue
+        axes[0].plot(h["step"], h["train/mse"], label=name, lw=1.2)
+        axes[1].plot(h["step"], h["val/mse"], label=name, lw=1.2)
+    for ax, title in zip(axes, ("training average error (MSE)", "validation average error (MSE)")):
+        ax.set_title(title)
+        ax.set_xlabel("training step")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        if paper_test_mse is not None:
+            ax.axhline(paper_test_mse, color="k", ls=":", lw=1, label="paper test MSE")
+    axes[0].set_ylabel("MSE (normalised risk)")
+    axes[1].legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_scatter(
+    y: np.ndarray, preds: Mapping[str, np.ndarray], path: str | Path, threshold: float, title: str = ""
+) -> None:
+    """Predicted vs true normalised risk for one or more predictors; dashed lines = critical threshold."""
+    fig, axes = plt.subplots(1, len(preds), figsize=(4.2 * len(preds), 4), squeeze=False)
+    hi = float(max(np.max(y), *(np.max(p) for p in preds.values()), threshold * 2)) * 1.05
+    for ax, (name, p) in zip(axes[0], preds.items()):
+        ax.scatter(y, p, s=6, alpha=0.5)
+        ax.plot([0, hi], [0, hi], "k-", lw=0.8)
+        ax.axvline(threshold, color="r", ls="--", lw=0.8)
+        ax.axhline(threshold, color="r", ls="--", lw=0.8)
+        ax.set_xlim(-0.02, hi)
+        ax.set_ylim(min(-0.02, float(np.min(p))), hi)
+        ax.set_xlabel("true risk")
+        ax.set_ylabel("predicted risk")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+def plot_examples(
+    examples: Sequence[dict], path: str | Path, disp_max: float | None = None
+) -> None:
+    """Each example: ``left`` (H,W,3) BGR uint8, ``disp`` (H,W) px (≤0 invalid), ``true``, ``pred``, ``title``."""
+    n = len(examples)
+    fig, axes = plt.subplots(n, 2, figsize=(10, 2.8 * n), squeeze=False)
+    for row, ex in zip(axes, examples):
+        row[0].imshow(ex["left"][..., ::-1])
+        row[0].set_title(f"{ex.get('title', '')}: true {ex['true']:.2f}, predicted {ex['pred']:.2f}", fontsize=9)
+        d = np.where(ex["disp"] > 0, ex["disp"], np.nan)
+        vmax = disp_max if disp_max else (float(np.nanmax(d)) if np.isfinite(d).any() else 1.0)
+        im = row[1].imshow(d, cmap="viridis", vmin=0, vmax=vmax)
+        row[1].set_title("SGM disparity (px; yellow = near)", fontsize=9)
+        fig.colorbar(im, ax=row[1], fraction=0.025)
+        for ax in row:
+            ax.axis("off")
+    _save(fig, path)
+
+
+def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = "") -> None:
+    """2×2 matrix like the paper's Table 1: rows predicted (critical, uncritical), columns actual."""
+    m = np.array([[confusion["tp"], confusion["fp"]], [confusion["fn"], confusion["tn"]]], dtype=float)
+    n = max(m.sum(), 1.0)
+    fig, ax = plt.subplots(figsize=(4.8, 4))
+    ax.imshow(m / n, cmap="Blues", vmin=0, vmax=1)
+    for i in range(2):
+        for j in range(2):
+            ax.text(j, i, f"{int(m[i, j])}\n({100 * m[i, j] / n:.2f} %)", ha="center", va="center",
+                    color="white" if m[i, j] / n > 0.5 else "black")
+    ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
+    ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
+    ax.set_title(title or "confusion matrix (THW 1.5 s)")
+    _save(fig, path)

@@ -1,0 +1,465 @@
+"""Training of the DAVE-2-like risk network with Lightning (Feth et al., sec. 3.5).
+
+Data: ``data/risk`` (kind "risk": ``left``/``right`` BGR images, ``disp_gt``, ``frames.csv``),
+``data/disparity`` (kind "disparity": ``disp_sgm`` shards aligned 1:1 with data/risk) and the ORB
+pair check ``data/orb/orb.csv``. Only frames whose stereo pair passed the ORB check
+(``outlier == False``) are used, in the train/val/test splits of ``frames.csv`` (by scenario).
+
+:class:`RiskSource` reads and cross-checks the three inputs; :func:`prepare_split` loads one split
+at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 kB a frame at
+66×200), normalised per batch on the device by the LightningModule (:class:`RiskRegressor`).
+Loss: MSE on the normalised risk; optimiser: Adam; validation every ``val_every_n_steps``
+optimiser steps (the paper: every 10), the checkpoint with the lowest validation MSE is kept.
+
+The Trainer, seeding, best-checkpoint callback and MLflow model logging come from
+:mod:`traffictwin.training.common`. Risk-specific here: :class:`StepHistory`, which records the
+train/val error *per validation step* (the paper's Figs. 5–6 are over iterations, not epochs),
+and logs it to the active MLflow run with ``step = global step``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import lightning as L
+import numpy as np
+import pandas as pd
+import torch
+from lightning.pytorch.callbacks import Callback
+from torch.utils.data import DataLoader, TensorDataset
+
+from ..io.shards import Dataset, DatasetError
+from ..models.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
+from .common import TrainerSettings, best_checkpoint, build_trainer, seed_everything
+
+log = logging.getLogger(__name__)
+
+LABELS = ("risk", "risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc")
+SPLITS = ("train", "val", "test")
+_FRAME_COLS = ("frame_id", "shard", "idx", "split", "speed")
+
+
+# --------------------------------------------------------------------------------------------
+# data
+# --------------------------------------------------------------------------------------------
+
+
+class RiskSource:
+    """The risk frames that passed the ORB check, with their images and disparities.
+
+    ``risk_root``: data/risk; ``disparity_root``: data/disparity (``None`` if no model input or
+    baseline needs SGM disparity); ``orb_csv``: data/orb/orb.csv (``None`` = keep every frame).
+    Raises :class:`DatasetError` naming the file and the problem when the three disagree.
+    """
+
+    def __init__(
+        self, risk_root: str | Path, disparity_root: str | Path | None = None, orb_csv: str | Path | None = None
+    ) -> None:
+        self.risk = Dataset(risk_root, kind="risk")
+        self.disparity = Dataset(disparity_root, kind="disparity") if disparity_root is not None else None
+        frames = self.risk.table("frames.csv")
+        fpath = self.risk.root / "frames.csv"
+        missing = [c for c in _FRAME_COLS if c not in frames.columns]
+        if missing:
+            raise DatasetError(f"{fpath}: column(s) {missing} missing (has {list(frames.columns)})")
+        self._names = [s["name"] for s in self.risk.shards]
+        counts = [int(s["count"]) for s in self.risk.shards]
+        # frames.csv 'shard' is the writer's shard index; map it to the manifest position by name
+        from ..io.shards import shard_name
+
+        pos = {name: i for i, name in enumerate(self._names)}
+        frames = frames.copy()
+        frames["_pos"] = frames["shard"].map(lambda s: pos.get(shard_name(int(s)), -1))
+        bad = frames[frames["_pos"] < 0]
+        if len(bad):
+            raise DatasetError(f"{fpath}: frame {bad['frame_id'].iloc[0]} refers to shard {bad['shard'].iloc[0]}, not in the manifest")
+        over = frames["idx"].to_numpy() >= np.asarray(counts)[frames["_pos"].to_numpy()]
+        if over.any():
+            r = frames[over].iloc[0]
+            raise DatasetError(f"{fpath}: frame {r['frame_id']} has idx {r['idx']} beyond its shard's {counts[int(r['_pos'])]} frames")
+        bad_split = sorted(set(frames["split"]) - set(SPLITS))
+        if bad_split:
+            raise DatasetError(f"{fpath}: unknown split value(s) {bad_split} (expected {list(SPLITS)})")
+        if self.disparity is not None:
+            dnames = [s["name"] for s in self.disparity.shards]
+            dcounts = [int(s["count"]) for s in self.disparity.shards]
+            if dnames != self._names or dcounts != counts:
+                raise DatasetError(
+                    f"{self.disparity.root / 'manifest.json'}: shards/counts {list(zip(dnames, dcounts))[:3]}… do not match "
+                    f"{self.risk.root / 'manifest.json'} {list(zip(self._names, counts))[:3]}… (must be aligned 1:1)"
+                )
+        if orb_csv is not None:
+            orb_path = Path(orb_csv)
+            if not orb_path.exists():
+                raise DatasetError(f"{orb_path}: ORB check table not found (run the stage that writes it first)")
+            orb = pd.read_csv(orb_path)
+            for c in ("frame_id", "outlier"):
+                if c not in orb.columns:
+                    raise DatasetError(f"{orb_path}: column '{c}' missing (has {list(orb.columns)})")
+            outlier = orb.set_index("frame_id")["outlier"].map(_as_bool)
+            flag = frames["frame_id"].map(outlier)
+            if flag.isna().any():
+                fid = frames.loc[flag.isna(), "frame_id"].iloc[0]
+                raise DatasetError(f"{orb_path}: no ORB result for frame {fid} of {fpath} ({int(flag.isna().sum())} frames lack one)")
+            self.n_orb_outliers = int(flag.astype(bool).sum())
+            frames = frames[~flag.astype(bool).to_numpy()]
+        else:
+            self.n_orb_outliers = 0
+        self.n_total = int(len(self.risk.table("frames.csv")))
+        self.frames = frames.sort_values(["_pos", "idx"]).reset_index(drop=True)
+
+    @property
+    def camera(self) -> dict[str, float]:
+        """The camera intrinsics of data/risk's manifest (``camera`` key)."""
+        cam = self.risk.manifest.get("camera")
+        if not isinstance(cam, dict):
+            raise DatasetError(f"{self.risk.root / 'manifest.json'}: key 'camera' (intrinsics) missing")
+        return cam
+
+    def split_frames(self, split: str) -> pd.DataFrame:
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        return self.frames[self.frames["split"] == split].reset_index(drop=True)
+
+    def iter_arrays(
+        self, frames: pd.DataFrame, keys: Sequence[str]
+    ) -> Iterator[tuple[pd.DataFrame, dict[str, np.ndarray]]]:
+        """Per shard: the rows of ``frames`` in it and their arrays ``keys`` (left, right, disp_gt, disp_sgm).
+
+        Checks that every array of a frame has the image's height and width.
+        """
+        keys = list(keys)
+        for p, rows in frames.groupby("_pos", sort=True):
+            idx = rows["idx"].to_numpy()
+            arrays: dict[str, np.ndarray] = {}
+            need_risk = [k for k in keys if k != "disp_sgm"]
+            if need_risk:
+                shard = self.risk.load_shard(int(p))
+                for k in need_risk:
+                    if k not in shard:
+                        raise DatasetError(f"{self.risk.root / self._names[int(p)]}: array '{k}' missing (has {sorted(shard)})")
+                    arrays[k] = shard[k][idx]
+            if "disp_sgm" in keys:
+                if self.disparity is None:
+                    raise ValueError("RiskSource: 'disp_sgm' requested but no disparity_root was given")
+                dshard = self.disparity.load_shard(int(p))
+                if "disp_sgm" not in dshard:
+                    raise DatasetError(f"{self.disparity.root / self._names[int(p)]}: array 'disp_sgm' missing")
+                arrays["disp_sgm"] = dshard["disp_sgm"][idx]
+            shapes = {k: tuple(v.shape[1:3]) for k, v in arrays.items()}
+            if len(set(shapes.values())) > 1:
+                files = f"{self.risk.root / self._names[int(p)]}" + (
+                    f" / {self.disparity.root / self._names[int(p)]}" if self.disparity is not None else ""
+                )
+                raise DatasetError(
+                    f"{files}: image and disparity sizes disagree {shapes} (H, W); "
+                    "disparity maps must have the left image's size"
+                )
+            yield rows, arrays
+
+
+def _as_bool(v: Any) -> bool:
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, str):
+        s = v.strip().lower()
+        if s in ("true", "1", "yes"):
+            return True
+        if s in ("false", "0", "no"):
+            return False
+        raise DatasetError(f"orb.csv: 'outlier' value {v!r} is not a boolean")
+    return bool(v)
+
+
+def input_keys(cfg: Dave2Config) -> list[str]:
+    """Dataset arrays a model config needs: left (for rgb), disp_sgm, disp_gt."""
+    return ["left" if c == "rgb" else c for c in cfg.inputs]
+
+
+@dataclass
+class RiskArrays:
+    """One split at the model resolution (see :func:`prepare_channels`)."""
+
+    frame_id: np.ndarray  # (N,)
+    rgb: np.ndarray  # (N, 3 or 0, h, w) uint8
+    disp: np.ndarray  # (N, k, h, w) float16 (k = disparity inputs, may be 0)
+    speed: np.ndarray  # (N,) float32 m/s
+    y: np.ndarray  # (N,) float32 normalised risk label
+
+    def __len__(self) -> int:
+        return len(self.frame_id)
+
+    def tensors(self) -> TensorDataset:
+        return TensorDataset(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (self.rgb, self.disp, self.speed, self.y)))
+
+
+def check_label(frames: pd.DataFrame, label: str, source: str = "frames.csv") -> np.ndarray:
+    """The label column as float32; errors if missing, non-finite or outside [0, 1]."""
+    if label not in frames.columns:
+        raise DatasetError(f"{source}: label column '{label}' missing (has {list(frames.columns)})")
+    y = frames[label].to_numpy(dtype=np.float64)
+    if not np.all(np.isfinite(y)) or (len(y) and (y.min() < 0 or y.max() > 1)):
+        raise DatasetError(f"{source}: label '{label}' must be finite and in [0, 1] (normalised risk)")
+    return y.astype(np.float32)
+
+
+def prepare_split(
+    source: RiskSource,
+    cfg: Dave2Config,
+    split: str,
+    label: str,
+    max_frames: int | None = None,
+    seed: int = 0,
+) -> RiskArrays:
+    """Load ``split`` (ORB-passed frames) at the model resolution; ``max_frames`` subsamples (seeded)."""
+    frames = source.split_frames(split)
+    if max_frames is not None and len(frames) > max_frames:
+        keep = np.sort(np.random.default_rng(seed).choice(len(frames), size=max_frames, replace=False))
+        frames = frames.iloc[keep].reset_index(drop=True)
+    h, w = cfg.height, cfg.width
+    n_disp = sum(1 for c in cfg.inputs if c != "rgb")
+    rgb_parts, disp_parts, order = [], [], []
+    for rows, arrays in source.iter_arrays(frames, input_keys(cfg)):
+        rgb, disp = prepare_channels(cfg, arrays.get("left"), arrays.get("disp_sgm"), arrays.get("disp_gt"))
+        n = len(rows)
+        rgb_parts.append(rgb if rgb is not None else np.zeros((n, 0, h, w), np.uint8))
+        disp_parts.append(disp if disp is not None else np.zeros((n, 0, h, w), np.float16))
+        order.append(rows.index.to_numpy())
+    if not order:
+        return RiskArrays(
+            np.zeros(0, np.int64), np.zeros((0, 3 if "rgb" in cfg.inputs else 0, h, w), np.uint8),
+            np.zeros((0, n_disp, h, w), np.float16), np.zeros(0, np.float32), np.zeros(0, np.float32),
+        )
+    ix = np.concatenate(order)
+    frames = frames.loc[ix].reset_index(drop=True)
+    return RiskArrays(
+        frame_id=frames["frame_id"].to_numpy(),
+        rgb=np.concatenate(rgb_parts),
+        disp=np.concatenate(disp_parts),
+        speed=frames["speed"].to_numpy(dtype=np.float32),
+        y=check_label(frames, label, str(source.risk.root / "frames.csv")),
+    )
+
+
+class RiskDataModule(L.LightningDataModule):
+    """Train/val/test loaders over in-memory :class:`RiskArrays` (shuffled train, seeded)."""
+
+    def __init__(
+        self, train: RiskArrays, val: RiskArrays, test: RiskArrays | None = None,
+        batch_size: int = 10, eval_batch_size: int = 256, num_workers: int = 0, seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if len(train) == 0:
+            raise ValueError("RiskDataModule: the training split has no frames (after the ORB check)")
+        if len(val) == 0:
+            raise ValueError("RiskDataModule: the validation split has no frames (after the ORB check)")
+        self.train, self.val, self.test = train, val, test
+        self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
+        self.num_workers, self.seed = int(num_workers), int(seed)
+
+    def _loader(self, arrays: RiskArrays, shuffle: bool, bs: int) -> DataLoader:
+        g = torch.Generator()
+        g.manual_seed(self.seed)
+        return DataLoader(
+            arrays.tensors(), batch_size=bs, shuffle=shuffle, generator=g if shuffle else None,
+            num_workers=self.num_workers, persistent_workers=self.num_workers > 0, drop_last=False,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train, True, self.batch_size)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val, False, self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        if self.test is None:
+            raise ValueError("RiskDataModule: no test split given")
+        return self._loader(self.test, False, self.eval_batch_size)
+
+
+# --------------------------------------------------------------------------------------------
+# model
+# --------------------------------------------------------------------------------------------
+
+
+class RiskRegressor(L.LightningModule):
+    """Dave2 + MSE loss + Adam. Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``."""
+
+    def __init__(self, cfg: Dave2Config, lr: float = 1e-4, weight_decay: float = 0.0) -> None:
+        super().__init__()
+        self.net = Dave2(cfg)
+        self.cfg = cfg
+        self.lr, self.weight_decay = float(lr), float(weight_decay)
+        self._sums: dict[str, list[float]] = {}
+
+    def forward(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+        x = normalise(self.cfg, rgb if rgb.shape[1] else None, disp if disp.shape[1] else None)
+        return self.net(x, speed if self.cfg.use_speed else None)
+
+    def training_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> torch.Tensor:
+        rgb, disp, speed, y = batch
+        pred = self(rgb, disp, speed)
+        loss = torch.mean((pred.float() - y) ** 2)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"risk training loss is not finite at step {self.global_step}")
+        self.log("train/mse", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
+        return loss
+
+    def _eval_step(self, batch: Sequence[torch.Tensor], prefix: str) -> None:
+        rgb, disp, speed, y = batch
+        err = self(rgb, disp, speed).float() - y
+        s = self._sums.setdefault(prefix, [0.0, 0.0, 0.0])
+        s[0] += float(torch.sum(err**2))
+        s[1] += float(torch.sum(err.abs()))
+        s[2] += float(len(y))
+
+    def _eval_end(self, prefix: str) -> None:
+        s = self._sums.pop(prefix, [0.0, 0.0, 0.0])
+        n = max(s[2], 1.0)
+        self.log(f"{prefix}/mse", s[0] / n, sync_dist=True)
+        self.log(f"{prefix}/mae", s[1] / n, sync_dist=True)
+
+    def validation_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_end("val")
+
+    def test_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_end("test")
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+
+
+class StepHistory(Callback):
+    """Train/val error per validation: one row ``step, epoch, train/mse, val/mse, val/mae``.
+
+    ``train/mse`` is the mean training loss over the steps since the previous validation. Rows are
+    logged to the active MLflow run (if any) with ``step = global step``.
+    """
+
+    def __init__(self, mlflow_log: bool = True) -> None:
+        self.mlflow_log = mlflow_log
+        self.rows: list[dict[str, float]] = []
+        self._acc: list[float] = []
+
+    def on_train_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int) -> None:
+        loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
+        if loss is not None:
+            self._acc.append(float(loss.detach()))
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        m = trainer.callback_metrics
+        row = {
+            "step": int(trainer.global_step),
+            "epoch": float(trainer.global_step) / max(1, trainer.num_training_batches),
+            "train/mse": float(np.mean(self._acc)) if self._acc else float("nan"),
+            "val/mse": float(m["val/mse"]) if "val/mse" in m else float("nan"),
+            "val/mae": float(m["val/mae"]) if "val/mae" in m else float("nan"),
+        }
+        self._acc = []
+        self.rows.append(row)
+        if self.mlflow_log:
+            import mlflow
+
+            if mlflow.active_run() is not None:
+                finite = {k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)}
+                mlflow.log_metrics(finite, step=row["step"])
+
+    def frame(self) -> pd.DataFrame:
+        return pd.DataFrame(self.rows, columns=["step", "epoch", "train/mse", "val/mse", "val/mae"])
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (paper sec. 3.5: Adam, batch 10, 30 epochs, validation every 10 steps)."""
+
+    epochs: int = 30
+    batch_size: int = 10
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    val_every_n_steps: int = 10
+    limit_val_batches: int | float = 1.0
+    eval_batch_size: int = 256
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for k in ("epochs", "batch_size", "val_every_n_steps", "eval_batch_size"):
+            if int(getattr(self, k)) < 1:
+                raise ValueError(f"TrainConfig.{k} must be >= 1, got {getattr(self, k)}")
+        if not self.lr > 0:
+            raise ValueError(f"TrainConfig.lr must be > 0, got {self.lr}")
+
+
+@dataclass
+class TrainResult:
+    net: Dave2
+    history: pd.DataFrame
+    best_val_mse: float
+    best_step: int
+    steps: int
+    seconds: float
+    n_train: int
+    n_val: int
+
+
+def fit(
+    cfg: Dave2Config,
+    train: RiskArrays,
+    val: RiskArrays,
+    tc: TrainConfig,
+    settings: TrainerSettings | None = None,
+    workdir: str | Path | None = None,
+    fast_dev_run: bool | int = False,
+    mlflow_log: bool = True,
+    extra_callbacks: Sequence[Any] = (),
+) -> TrainResult:
+    """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode)."""
+    settings = settings or TrainerSettings()
+    seed_everything(tc.seed)
+    dm = RiskDataModule(train, val, batch_size=tc.batch_size, eval_batch_size=tc.eval_batch_size,
+                        num_workers=settings.num_workers, seed=tc.seed)
+    module = RiskRegressor(cfg, lr=tc.lr, weight_decay=tc.weight_decay)
+    steps_per_epoch = math.ceil(len(train) / tc.batch_size)
+    total = steps_per_epoch * tc.epochs
+    # validate at least once at the end: the interval never exceeds the run's step count
+    interval = max(1, min(tc.val_every_n_steps, total))
+    history = StepHistory(mlflow_log=mlflow_log)
+    with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
+        ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
+        trainer = build_trainer(
+            settings, max_epochs=tc.epochs, callbacks=[ckpt, history, *extra_callbacks], default_root_dir=tmp,
+            fast_dev_run=fast_dev_run, limit_val_batches=tc.limit_val_batches,
+            val_check_interval=interval, check_val_every_n_epoch=None,
+        )
+        t0 = time.perf_counter()
+        trainer.fit(module, datamodule=dm)
+        seconds = time.perf_counter() - t0
+        best_path = getattr(ckpt, "best_model_path", "") if not fast_dev_run else ""
+        best_step = -1
+        if best_path:
+            blob = torch.load(best_path, map_location="cpu", weights_only=False)
+            module.load_state_dict(blob["state_dict"])
+            best_step = int(blob.get("global_step", -1))
+    hist = history.frame()
+    best_val = float(hist["val/mse"].min()) if len(hist) and hist["val/mse"].notna().any() else float("nan")
+    net = module.net.cpu().eval()
+    log.info("risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
+             list(cfg.inputs), count_parameters(net), trainer.global_step, seconds, best_val, best_step)
+    return TrainResult(net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val))
+
+
+def train_config_dict(tc: TrainConfig) -> dict[str, Any]:
+    return asdict(tc)
