@@ -35,6 +35,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping, Sequence
 
+import numpy as np
+
 from .io.atomic import write_text_atomic
 
 CHAMPION = "champion"
@@ -261,12 +263,17 @@ def decide(
                         action="first" if ok else "rejected",
                         reason="no champion yet: first model becomes champion" if ok else f"{gate.metric} is not finite",
                         challenger_metrics=ch_metrics)
-    cp_metrics = {k: float(v) for k, v in evaluate(version_uri(name, champ.version)).items()}
-    cp_val = _metric(cp_metrics, gate.metric, f"{name} v{champ.version} (champion)")
+    cp_error = ""
+    try:
+        cp_metrics = {k: float(v) for k, v in evaluate(version_uri(name, champ.version)).items()}
+        cp_val = _metric(cp_metrics, gate.metric, f"{name} v{champ.version} (champion)")
+    except Exception as exc:  # noqa: BLE001 - a champion that no longer runs on the current test set
+        cp_metrics, cp_val = {}, float("nan")
+        cp_error = f"champion v{champ.version} could not be evaluated on this test set ({type(exc).__name__}: {exc}); "
     better = gate.passes(ch_val, cp_val)
     word = "lower" if gate.mode == "min" else "higher"
     imp = gate.improvement(ch_val, cp_val) if math.isfinite(ch_val) and math.isfinite(cp_val) else float("nan")
-    reason = (f"{gate.metric}: challenger {ch_val:.6g} vs champion {cp_val:.6g} ({word} is better; "
+    reason = (f"{cp_error}{gate.metric}: challenger {ch_val:.6g} vs champion {cp_val:.6g} ({word} is better; "
               f"improvement {imp:.3g} {'>' if better else '<='} margin {gate.margin:g})")
     return Decision(**common, champion_version=str(champ.version), challenger_value=ch_val, champion_value=cp_val,
                     action="promoted" if better else "rejected", reason=reason,
@@ -420,3 +427,151 @@ def status(cl, names: Sequence[str], champion_alias: str = CHAMPION, challenger_
         row["history"] = champion_history(cl, n)
         rows.append(row)
     return rows
+
+
+# --------------------------------------------------------------------------- candidates + evaluators
+
+
+@dataclass
+class Candidate:
+    """A newly trained model to put through the gate: its registered name and MLflow run."""
+
+    name: str
+    run_id: str
+    model_uri: str | None
+    meta_path: Path
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def read_candidate(name: str, model_dir: str | Path) -> Candidate:
+    """The candidate behind ``<model_dir>/model_meta.json`` (keys ``mlflow_run_id``/``run_id``,
+    optional ``mlflow_model_uri``/``model_uri``). Errors name the file and the missing key."""
+    meta_path = Path(model_dir) / "model_meta.json"
+    if not meta_path.exists():
+        raise RegistryError(f"{meta_path}: not found (train the model first: `dvc repro`)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise RegistryError(f"{meta_path}: not valid JSON ({exc})") from None
+    run_id = meta.get("mlflow_run_id") or meta.get("run_id")
+    if not run_id:
+        raise RegistryError(f"{meta_path}: no MLflow run id (key 'mlflow_run_id'); was the model trained with tracking enabled?")
+    uri = meta.get("mlflow_model_uri") or meta.get("model_uri")
+    return Candidate(name=name, run_id=str(run_id), model_uri=str(uri) if uri else None, meta_path=meta_path, meta=meta)
+
+
+def load_registered(uri: str):
+    """Load an MLflow PyTorch model (``models:/name/version`` or ``models:/name@alias``) on CPU, eval mode."""
+    import mlflow.pytorch
+
+    model = mlflow.pytorch.load_model(uri, map_location="cpu")
+    return model.eval()
+
+
+def _take_first(order_key: np.ndarray, k: int | None) -> np.ndarray:
+    idx = np.argsort(order_key, kind="stable")
+    return idx if k is None or k <= 0 else idx[:k]
+
+
+def fusion_test_set(data_root: str | Path, split: str = "test", max_pairs: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+    """Gate test set of a prealigned dataset: ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first
+    ``max_pairs`` pairs by ``pair_id`` (a fixed selection), and its fingerprint."""
+    from .io.shards import Dataset
+
+    ds = Dataset(data_root, kind="prealigned")
+    a = ds.load_all(split, keys=["inputs", "label", "pair_id"])
+    sel = _take_first(np.asarray(a["pair_id"]), max_pairs)
+    fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}"
+    return np.ascontiguousarray(a["inputs"][sel], np.float32), np.ascontiguousarray(a["label"][sel], np.float32), fp
+
+
+def fusion_evaluator(inputs: np.ndarray, label: np.ndarray, batch_size: int = 8) -> Callable[[str], dict[str, float]]:
+    """``evaluate(model_uri)``: fused masses of the model on ``inputs``, scored with
+    :mod:`traffictwin.evaluation.fusion_metrics` (the evaluate_fusion stage's code) as ``test/<name>``."""
+    from .evaluation import fusion_metrics as fm
+    from .models.fusion_io import predict_masses
+
+    def evaluate(uri: str) -> dict[str, float]:
+        model = load_registered(uri)
+        m, _ = predict_masses(model, inputs, batch_size=batch_size)
+        agg = fm.aggregate(fm.per_sample_metrics(label, m))
+        return {f"test/{k}": float(v) for k, v in agg.items()}
+
+    return evaluate
+
+
+def unwrap_risk_net(model):
+    """The :class:`~traffictwin.models.dave2.Dave2` inside an MLflow-loaded risk model."""
+    from .models.dave2 import Dave2
+
+    for cand in (model, getattr(model, "net", None)):
+        if isinstance(cand, Dave2):
+            return cand
+    raise RegistryError(f"registered risk model is a {type(model).__name__}, expected a Dave2 (or a wrapper with .net)")
+
+
+def risk_test_set(
+    risk_root: str | Path, disparity_root: str | Path, orb_csv: str | Path | None, split: str = "test",
+    max_frames: int | None = None,
+) -> tuple[dict[str, np.ndarray], str]:
+    """Raw test frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
+    ``risk*`` label column), the first ``max_frames`` by frame id, and the fingerprint."""
+    from .io.shards import sha256_file
+    from .training.risk import RiskSource
+
+    src = RiskSource(risk_root, disparity_root, orb_csv)
+    frames = src.split_frames(split).sort_values("frame_id", kind="stable")
+    if max_frames:
+        frames = frames.iloc[:max_frames]
+    parts: dict[str, list[np.ndarray]] = {"left": [], "disp_sgm": [], "disp_gt": []}
+    rows_all = []
+    for rows, arrays in src.iter_arrays(frames, ["left", "disp_sgm", "disp_gt"]):
+        for k in parts:
+            parts[k].append(arrays[k])
+        rows_all.append(rows)
+    if not rows_all:
+        raise RegistryError(f"{risk_root}: no ORB-passed frames in split '{split}' to evaluate on")
+    import pandas as pd
+
+    rows = pd.concat(rows_all)
+    data = {k: np.concatenate(v) for k, v in parts.items()}
+    data["speed"] = rows["speed"].to_numpy(np.float32)
+    for c in rows.columns:
+        if c.startswith("risk"):
+            data[f"label:{c}"] = rows[c].to_numpy(np.float32)
+    orb_fp = sha256_file(orb_csv)[:8] if orb_csv else "none"
+    fp = (f"risk:{src.risk.manifest_hash()[:16]}:disp:{src.disparity.manifest_hash()[:8] if src.disparity else 'none'}"
+          f":orb:{orb_fp}:{split}:{len(rows)}")
+    return data, fp
+
+
+def risk_evaluator(
+    data: Mapping[str, np.ndarray], label: str, thresholds_s: Sequence[float] = (1.5, 1.0), thw_cap: float = 10.0,
+    batch_size: int = 256,
+) -> Callable[[str], dict[str, float]]:
+    """``evaluate(model_uri)``: predicted risk of the model (its own preprocessing) on the raw test
+    frames, scored with :func:`traffictwin.evaluation.risk_metrics.evaluate` against ``label``.
+
+    Returns ``test/mse``, ``test/mae``, … and ``test/accuracy`` (+ ``test/balanced_accuracy``) at the
+    first threshold."""
+    from .evaluation import risk_metrics as rm
+    from .models.risk_io import RiskModel
+
+    key = f"label:{label}"
+    if key not in data:
+        have = sorted(k[6:] for k in data if k.startswith("label:"))
+        raise RegistryError(f"risk label column '{label}' not in frames.csv (has {have})")
+    y = np.asarray(data[key], np.float32)
+
+    def evaluate(uri: str) -> dict[str, float]:
+        rmodel = RiskModel(net=unwrap_risk_net(load_registered(uri)))
+        p = rmodel.predict(left_bgr=data["left"], disp_sgm=data["disp_sgm"], disp_gt=data["disp_gt"],
+                           speed=data["speed"], batch_size=batch_size)
+        res = rm.evaluate(y, p, thresholds_s=tuple(thresholds_s), thw_cap=thw_cap)
+        out = {k: float(v) for k, v in res.items() if isinstance(v, (int, float))}
+        first = res[f"at_{float(thresholds_s[0]):g}s"]
+        out["test/accuracy"] = float(first["accuracy"])
+        out["test/balanced_accuracy"] = float(first["balanced_accuracy"])
+        return out
+
+    return evaluate

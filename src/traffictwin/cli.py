@@ -1,0 +1,596 @@
+"""``traffictwin`` — the user-facing command (inference on your own files, registry, runs).
+
+Subcommands::
+
+    traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model champion|challenger|PATH]
+                     [--config D] [--cell M] -o OUT
+    traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model champion|challenger|PATH] [-o OUT.json]
+    traffictwin risk FOLDER [--speed M_S] [--model ...] [-o OUT.csv]
+    traffictwin promote [--only NAME ...] [--dry-run] [--force]
+    traffictwin rollback --model NAME [--version V]
+    traffictwin status
+    traffictwin runs compare --experiment fusion [--metrics a b ...] [--uri URI] [--wide]
+
+Input formats
+-------------
+- Evidential grid map (``fuse``): a ``.npz`` with ``m_free`` and ``m_occ``, each a ``(H, W)``
+  float array (float32 preferred) of masses in the map's own sensor frame (row 0 = front/+x,
+  col 0 = left/+y, sensor at the centre), every cell with ``m_free, m_occ >= 0`` and
+  ``m_free + m_occ <= 1`` (``u = 1 - m_free - m_occ``), no NaN. Optional scalar ``cell``
+  (m per cell). H and W must be divisible by 16 (the network's output stride).
+- Poses: ``x,y,yaw`` in a common world frame, metres and **radians** (for a negative first
+  value write ``--pose1=-3,2,0.1``).
+- Stereo pairs (``risk``): rectified 8-bit images readable by OpenCV (PNG, JPEG…) of equal size.
+  A folder holds pairs named ``<id>_left.<ext>`` / ``<id>_right.<ext>``; the result is a CSV with
+  one row per ``<id>``.
+
+Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
+the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
+blue = u).
+
+Errors (bad shapes, masses outside the simplex or NaN, unreadable images, mismatched sizes,
+missing model alias, …) exit with status 1 and a message naming the file/argument and the
+problem; nothing is written unless every input is valid (outputs are written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+SIMPLEX_TOL = 1e-4
+DIVISOR = 16
+ALIASES = ("champion", "challenger")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
+
+
+class CliError(Exception):
+    """A user-facing error: printed as ``traffictwin <cmd>: error: <message>``, exit status 1."""
+
+
+# ============================================================================ input validation
+
+
+def parse_pose(text: str, name: str) -> np.ndarray:
+    """``"x,y,yaw"`` (m, m, rad) -> float64 (3,); errors name the option."""
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) != 3:
+        raise CliError(f"{name}: expected three comma-separated numbers x,y,yaw (m, m, rad), got {text!r}")
+    try:
+        vals = np.array([float(p) for p in parts], dtype=np.float64)
+    except ValueError:
+        raise CliError(f"{name}: expected numbers x,y,yaw (m, m, rad), got {text!r}") from None
+    if not np.all(np.isfinite(vals)):
+        raise CliError(f"{name}: pose values must be finite, got {text!r}")
+    return vals
+
+
+def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """Read and validate an evidential grid ``.npz``: returns masses ``(2, H, W)`` float32 and the
+    optional ``cell`` (m). Raises :class:`CliError` naming the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise CliError(f"{path}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 - zip/format errors of all kinds
+        raise CliError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    missing = [k for k in ("m_free", "m_occ") if k not in data]
+    if missing:
+        raise CliError(f"{path}: array(s) {missing} missing (has {sorted(data)}); expected m_free and m_occ, (H, W) float")
+    mf, mo = data["m_free"], data["m_occ"]
+    for k, a in (("m_free", mf), ("m_occ", mo)):
+        if a.ndim != 2:
+            raise CliError(f"{path}: '{k}' must be a 2-D (H, W) grid, got shape {a.shape}")
+        if not np.issubdtype(a.dtype, np.floating):
+            raise CliError(f"{path}: '{k}' must be a float array of masses, got dtype {a.dtype}")
+    if mf.shape != mo.shape:
+        raise CliError(f"{path}: 'm_free' {mf.shape} and 'm_occ' {mo.shape} differ in shape")
+    for k, a in (("m_free", mf), ("m_occ", mo)):
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise CliError(f"{path}: '{k}' has {int(bad.sum())} NaN/inf cell(s) (first at row,col {tuple(np.argwhere(bad)[0])})")
+    m = np.stack([mf, mo]).astype(np.float64)
+    neg = m < -SIMPLEX_TOL
+    over = m.sum(0) > 1.0 + SIMPLEX_TOL
+    if neg.any() or (m > 1 + SIMPLEX_TOL).any() or over.any():
+        n_bad = int(neg.any(0).sum() + over.sum())
+        raise CliError(
+            f"{path}: masses outside the simplex at {n_bad} cell(s) (need m_free, m_occ >= 0 and m_free + m_occ <= 1; "
+            f"min mass {m.min():.4g}, max m_free + m_occ {m.sum(0).max():.4g})"
+        )
+    m = np.clip(m, 0.0, 1.0)
+    s = m.sum(0, keepdims=True)
+    m = np.where(s > 1.0, m / s, m).astype(np.float32)
+    cell = None
+    if "cell" in data:
+        c = np.asarray(data["cell"])
+        if c.size != 1 or not np.issubdtype(c.dtype, np.number) or not (float(c) > 0 and math.isfinite(float(c))):
+            raise CliError(f"{path}: 'cell' must be one positive number (m per cell), got {c!r}")
+        cell = float(c)
+    return m, cell
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An 8-bit BGR image (grayscale is expanded to 3 channels); errors name the file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise CliError(f"{path}: image not found")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CliError(f"{path}: not a readable image (OpenCV could not decode it)")
+    if img.dtype != np.uint8:
+        raise CliError(f"{path}: expected an 8-bit image, got {img.dtype}")
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    elif img.shape[2] != 3:
+        raise CliError(f"{path}: expected a grayscale, BGR or BGRA image, got {img.shape[2]} channels")
+    return np.ascontiguousarray(img)
+
+
+def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
+    """``(id, left, right)`` for every ``<id>_left.<ext>`` / ``<id>_right.<ext>`` in ``folder`` (sorted).
+
+    Errors on a folder without pairs and on a left or right image without its partner.
+    """
+    lefts, rights = {}, {}
+    for p in sorted(folder.iterdir()):
+        if not p.is_file() or p.suffix.lower() not in IMAGE_EXTS:
+            continue
+        stem = p.stem
+        if stem.endswith("_left"):
+            lefts[stem[: -len("_left")]] = p
+        elif stem.endswith("_right"):
+            rights[stem[: -len("_right")]] = p
+    lonely = sorted(set(lefts) ^ set(rights))
+    if lonely:
+        k = lonely[0]
+        have = lefts.get(k) or rights.get(k)
+        want = "_right" if k in lefts else "_left"
+        raise CliError(f"{have}: no partner image '{k}{want}.*' in {folder} ({len(lonely)} unpaired image(s))")
+    if not lefts:
+        raise CliError(f"{folder}: no stereo pairs found (expected <id>_left.png / <id>_right.png)")
+    return [(k, lefts[k], rights[k]) for k in sorted(lefts)]
+
+
+# ============================================================================ models
+
+
+def _registry_client():
+    from . import registry as reg
+
+    return reg.client()
+
+
+def _registered_params(name: str, alias: str) -> tuple[str, dict[str, str]]:
+    """URI of ``name@alias`` (error if missing) and its training run's params."""
+    from . import registry as reg
+
+    cl = _registry_client()
+    try:
+        mv = reg.require_alias(cl, name, alias)
+    except reg.RegistryError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        params = dict(cl.get_run(mv.run_id).data.params) if mv.run_id else {}
+    except Exception:  # noqa: BLE001 - params only refine checks
+        params = {}
+    return reg.version_uri(name, mv.version), params
+
+
+def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
+    """The fusion network for ``--model`` (an alias of ``traffictwin-fusion-<config>`` or a path),
+    its training grid (dict, may be empty) and a description."""
+    from . import registry as reg
+
+    if model in ALIASES:
+        name = reg.fusion_name(config)
+        uri, params = _registered_params(name, model)
+        try:
+            net = reg.load_registered(uri)
+        except Exception as exc:  # noqa: BLE001
+            raise CliError(f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})") from None
+        grid = {k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params}
+        return net, grid, f"{name}@{model} ({uri})"
+    from .models.fusion_io import FusionModelError, load_fusion_model
+
+    p = Path(model)
+    if not p.exists():
+        raise CliError(f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path")
+    try:
+        net = load_fusion_model(p)
+    except FusionModelError as exc:
+        raise CliError(str(exc)) from None
+    return net, dict(getattr(net, "meta", {}).get("grid", {}) or {}), str(p)
+
+
+def load_risk(model: str):
+    """A :class:`~traffictwin.models.risk_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk`` or a path)."""
+    from . import registry as reg
+    from .models.risk_io import RiskModel, RiskModelError, load_risk_model
+
+    if model in ALIASES:
+        uri, _ = _registered_params(reg.RISK_NAME, model)
+        try:
+            net = reg.unwrap_risk_net(reg.load_registered(uri))
+        except Exception as exc:  # noqa: BLE001
+            raise CliError(f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})") from None
+        return RiskModel(net=net), f"{reg.RISK_NAME}@{model} ({uri})"
+    p = Path(model)
+    if not p.exists():
+        raise CliError(f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path")
+    try:
+        return load_risk_model(p), str(p)
+    except RiskModelError as exc:
+        raise CliError(str(exc)) from None
+
+
+# ============================================================================ fuse
+
+
+def fuse_arrays(net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pose2: np.ndarray, cell: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Prealign map 2 into map 1's frame by the poses, run the network.
+
+    Returns ``(m (2,H,W), u (H,W), m2_prealigned (2,H,W), rel_pose (3,))``, float32 masses.
+    """
+    from .evidential.warp import warp_masses
+    from .grid import GridSpec
+    from .models.fusion_io import predict_masses
+    from .sim.scene import relative_pose
+
+    grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
+    rel = relative_pose(pose1, pose2)
+    m2w = warp_masses(m2, rel, grid)
+    x = np.concatenate([m1, m2w])[None].astype(np.float32)
+    m, u = predict_masses(net, x, batch_size=1)
+    return m[0], u[0], m2w, rel
+
+
+def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """BGR uint8 preview: map 1 | map 2 prealigned | fused; red = m_occ, green = m_free, blue = u."""
+    def rgb(mm: np.ndarray, uu: np.ndarray | None = None) -> np.ndarray:
+        uu = 1.0 - mm[0] - mm[1] if uu is None else uu
+        bgr = np.stack([uu, mm[0], mm[1]], axis=-1)
+        return np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+    h = m.shape[1]
+    sep = np.full((h, 4, 3), 255, np.uint8)
+    img = np.concatenate([rgb(m1), sep, rgb(m2w), sep, rgb(m, u)], axis=1)
+    scale = max(1, int(round(384 / h)))
+    return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+
+
+def cmd_fuse(args: argparse.Namespace) -> int:
+    import cv2
+
+    from .io.atomic import atomic_path
+
+    pose1 = parse_pose(args.pose1, "--pose1")
+    pose2 = parse_pose(args.pose2, "--pose2")
+    m1, c1 = load_masses(args.map1)
+    m2, c2 = load_masses(args.map2)
+    if m1.shape != m2.shape:
+        raise CliError(f"{args.map2}: grid size {m2.shape[1:]} differs from {args.map1}'s {m1.shape[1:]} (rows, cols)")
+    h, w = m1.shape[1:]
+    if h % DIVISOR or w % DIVISOR:
+        raise CliError(f"{args.map1}: grid {h}x{w} cells: rows and cols must be divisible by {DIVISOR} (network output stride)")
+    if c1 is not None and c2 is not None and abs(c1 - c2) > 1e-9:
+        raise CliError(f"{args.map2}: cell size {c2} m differs from {args.map1}'s {c1} m")
+    if args.cell is not None and not (args.cell > 0 and math.isfinite(args.cell)):
+        raise CliError(f"--cell: must be a positive number of metres, got {args.cell}")
+    out = Path(args.output)
+    base = out.with_suffix("") if out.suffix == ".npz" else out
+    npz_path, png_path = base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
+    if not base.parent.exists():
+        raise CliError(f"-o: output folder {base.parent} does not exist")
+    net, train_grid, desc = load_fusion(args.model, args.config)
+    cell = args.cell if args.cell is not None else (c1 if c1 is not None else train_grid.get("cell"))
+    if cell is None:
+        raise CliError("grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz")
+    if "cell" in train_grid and abs(float(train_grid["cell"]) - cell) > 1e-9:
+        raise CliError(f"maps have {cell} m cells but the model ({desc}) was trained on {train_grid['cell']} m cells")
+    t0 = time.perf_counter()
+    m, u, m2w, rel = fuse_arrays(net, m1, m2, pose1, pose2, cell)
+    ms = (time.perf_counter() - t0) * 1e3
+    preview = preview_image(m1, m2w, m, u)
+    ok, png = cv2.imencode(".png", preview)
+    if not ok:
+        raise CliError("could not encode the PNG preview")
+    buf = io.BytesIO()
+    np.savez_compressed(buf, m_free=m[0], m_occ=m[1], u=u, pose1=pose1, pose2=pose2, rel_pose=rel,
+                        cell=np.float64(cell))
+    with atomic_path(npz_path, suffix=".npz") as t1, atomic_path(png_path, suffix=".png") as t2:
+        t1.write_bytes(buf.getvalue())
+        t2.write_bytes(png.tobytes())
+    summary = {"output": str(npz_path), "preview": str(png_path), "model": desc, "grid": [h, w], "cell_m": cell,
+               "rel_pose": [float(v) for v in rel], "fuse_ms": round(ms, 2),
+               "mean_u": float(u.mean()), "occupied_cells": int(((m[1] + u / 2) > 0.5).sum())}
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+# ============================================================================ risk
+
+
+@dataclass
+class StereoSettings:
+    sgm: dict[str, Any]
+    orb: dict[str, Any]
+    source: str
+
+
+def stereo_settings(params_path: str | None) -> StereoSettings:
+    """SGM/ORB settings the risk data were made with: ``risk_data.sgm`` / ``risk_data.orb`` of
+    ``params_path`` (default: params.yaml of the project, if found), else the library defaults."""
+    import yaml
+
+    from .tracking import repo_root
+
+    path = Path(params_path) if params_path else repo_root() / "params.yaml"
+    if params_path and not path.is_file():
+        raise CliError(f"--params: {path} not found")
+    if path.is_file():
+        try:
+            cfg = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise CliError(f"{path}: not valid YAML ({exc})") from None
+        rd = cfg.get("risk_data") or {}
+        if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
+            return StereoSettings(dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(path))
+    return StereoSettings({}, {}, "library defaults")
+
+
+def risk_one(rmodel: Any, left: np.ndarray, right: np.ndarray, speed: float | None, st: StereoSettings,
+             thw_threshold: float) -> dict[str, Any]:
+    """ORB verdict, SGM disparity, predicted risk and THW verdict of one pair (see :func:`risk_verdict`)."""
+    from .stereo.orb import check_pair
+    from .stereo.sgm import compute_disparity
+
+    t0 = time.perf_counter()
+    orb = check_pair(left, right, **st.orb)
+    t1 = time.perf_counter()
+    disp = compute_disparity(left, right, **st.sgm)
+    t2 = time.perf_counter()
+    sp = None if speed is None else np.array([speed], np.float32)
+    risk = float(rmodel.predict(left_bgr=left[None], disp_sgm=disp[None], disp_gt=None, speed=sp, batch_size=1)[0])
+    t3 = time.perf_counter()
+    valid = disp >= 0
+    out = {
+        "orb_outlier": bool(orb.outlier), "orb_verdict": "unreliable pair" if orb.outlier else "ok",
+        "orb_n_matches": int(orb.n_matches), "orb_n_reliable": int(orb.n_reliable),
+        "orb_mean_dx": float(orb.mean_dx), "orb_mean_dy": float(orb.mean_dy),
+        "disp_valid_fraction": float(valid.mean()),
+        "disp_median_px": float(np.median(disp[valid])) if valid.any() else float("nan"),
+        **risk_verdict(risk, speed, thw_threshold),
+        "orb_ms": round((t1 - t0) * 1e3, 2), "sgm_ms": round((t2 - t1) * 1e3, 2), "model_ms": round((t3 - t2) * 1e3, 2),
+    }
+    return out
+
+
+def risk_verdict(risk: float, speed: float | None, thw_threshold: float = 1.5) -> dict[str, Any]:
+    """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
+    no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s).
+    With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
+    thw = 1.0 / (20.0 * risk) if risk > 0 else math.inf
+    out: dict[str, Any] = {
+        "risk": risk, "thw_s": thw, "thw_threshold_s": thw_threshold,
+        "critical": bool(thw < thw_threshold), "verdict": "critical" if thw < thw_threshold else "uncritical",
+    }
+    if speed is not None:
+        out["speed_m_s"] = float(speed)
+        out["gap_m"] = thw * speed if math.isfinite(thw) else math.inf
+    return out
+
+
+def cmd_risk(args: argparse.Namespace) -> int:
+    from .io.atomic import write_json_atomic, write_text_atomic
+
+    if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
+        raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
+    if not args.thw_threshold > 0:
+        raise CliError(f"--thw-threshold: must be > 0 s, got {args.thw_threshold}")
+    src = Path(args.left)
+    if src.is_dir():
+        if args.right is not None:
+            raise CliError(f"{src} is a folder: pass no RIGHT image (pairs are found by *_left/*_right names)")
+        pairs = find_pairs(src)
+    else:
+        if args.right is None:
+            raise CliError(f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs")
+        pairs = [(src.stem, src, Path(args.right))]
+    images = []
+    for pid, lp, rp in pairs:  # read + validate everything before any work or output
+        left, right = read_image(lp), read_image(rp)
+        if left.shape != right.shape:
+            raise CliError(f"{rp}: size {right.shape[1]}x{right.shape[0]} differs from {lp}'s {left.shape[1]}x{left.shape[0]} (W x H)")
+        images.append((pid, lp, rp, left, right))
+    rmodel, desc = load_risk(args.model)
+    if rmodel.cfg.use_speed and args.speed is None:
+        raise CliError(f"the model ({desc}) uses the subject speed: pass --speed (m/s)")
+    st = stereo_settings(args.params)
+    rows = []
+    for pid, lp, rp, left, right in images:
+        r = risk_one(rmodel, left, right, args.speed, st, args.thw_threshold)
+        rows.append({"id": pid, "left": str(lp), "right": str(rp), **r})
+    if src.is_dir():
+        cols = list(rows[0])
+        buf = io.StringIO()
+        wr = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
+        wr.writeheader()
+        wr.writerows(rows)
+        if args.output:
+            write_text_atomic(args.output, buf.getvalue())
+            print(f"{len(rows)} pair(s) -> {args.output} (model {desc}; stereo settings: {st.source})")
+        else:
+            sys.stdout.write(buf.getvalue())
+    else:
+        res = {**rows[0], "model": desc, "stereo_settings": st.source}
+        if args.output:
+            write_json_atomic(args.output, res)
+        print(json.dumps(res, indent=2, default=str))
+    return 0
+
+
+# ============================================================================ registry / runs
+
+
+def cmd_promote(args: argparse.Namespace) -> int:
+    """Delegates to ``python -m pipelines.promote`` in the project (the gate reads params.yaml)."""
+    from .tracking import repo_root
+
+    root = repo_root()
+    if not (root / "pipelines" / "promote.py").exists():
+        raise CliError(f"{root}: not a traffictwin project (pipelines/promote.py missing); run inside the repository")
+    cmd = [sys.executable, "-m", "pipelines.promote"]
+    if args.only:
+        cmd += ["--only", *args.only]
+    cmd += ["--dry-run"] * args.dry_run + ["--force"] * args.force + ["--json"] * args.json
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
+    return subprocess.run(cmd, cwd=root, env=env).returncode
+
+
+def _log_path(arg: str | None) -> Path:
+    from .tracking import repo_root
+
+    return Path(arg) if arg else repo_root() / "reports" / "promotions.jsonl"
+
+
+def cmd_rollback(args: argparse.Namespace) -> int:
+    from . import registry as reg
+
+    try:
+        rec = reg.rollback(_registry_client(), args.model, args.version, log_path=_log_path(args.log))
+    except reg.RegistryError as exc:
+        raise CliError(str(exc)) from None
+    print(f"{rec['name']}: champion v{rec['from_version']} -> v{rec['to_version']}")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from . import registry as reg
+
+    cl = _registry_client()
+    names = args.model or sorted(m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-"))
+    rows = reg.status(cl, names)
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    if not rows:
+        print("no traffictwin models registered yet (run `traffictwin promote` after `dvc repro`)")
+    for r in rows:
+        ch, cd = r["champion"], r["challenger"]
+        print(f"{r['name']:28s} champion {'v' + ch['version'] if ch else '-':>5s}   challenger "
+              f"{'v' + cd['version'] if cd else '-':>5s} ({(cd or {}).get('decision') or '-'})   history {r['history']}")
+    return 0
+
+
+def cmd_runs_compare(args: argparse.Namespace) -> int:
+    from .runs import RunsError, compare_runs, format_runs
+
+    try:
+        df = compare_runs(args.experiment, metrics=args.metrics, uri=args.uri)
+    except RunsError as exc:
+        raise CliError(str(exc)) from None
+    if args.csv:
+        from .io.atomic import write_text_atomic
+
+        write_text_atomic(args.csv, df.to_csv(index=False))
+    print(format_runs(df, wide=args.wide))
+    return 0
+
+
+# ============================================================================ parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="traffictwin", description="traffictwin: cooperative OGM fusion and stereo risk — inference, registry, runs.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    f = sub.add_parser("fuse", help="fuse two evidential grid maps with the fusion network",
+                       description="Prealign MAP2 into MAP1's frame by the poses and fuse them with the network.")
+    f.add_argument("map1", help=".npz with m_free, m_occ (H, W) float32 masses, ego map")
+    f.add_argument("map2", help=".npz of the other vehicle's map, same size")
+    f.add_argument("--pose1", required=True, help="x,y,yaw of map 1's sensor in the world (m, m, rad)")
+    f.add_argument("--pose2", required=True, help="x,y,yaw of map 2's sensor in the world (m, m, rad)")
+    f.add_argument("--model", default="champion", help="champion | challenger (registry) or a model folder/.ckpt (default champion)")
+    f.add_argument("--config", default="D", choices=("A", "B", "C", "D"),
+                   help="pose-noise configuration of the registered model traffictwin-fusion-<config> (default D)")
+    f.add_argument("--cell", type=float, default=None, help="m per cell (default: the .npz 'cell', else the model's)")
+    f.add_argument("-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png")
+    f.set_defaults(func=cmd_fuse)
+
+    r = sub.add_parser("risk", help="stereo risk: ORB check, SGM disparity, predicted risk and THW verdict",
+                       description="LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV).")
+    r.add_argument("left", help="left image, or a folder of pairs")
+    r.add_argument("right", nargs="?", default=None, help="right image (omit for a folder)")
+    r.add_argument("--speed", type=float, default=None, help="subject speed (m/s): gap = THW * speed; required by speed models")
+    r.add_argument("--model", default="champion", help="champion | challenger (registry traffictwin-risk) or a model folder")
+    r.add_argument("--thw-threshold", type=float, default=1.5, help="critical if THW below this (s), default 1.5")
+    r.add_argument("--params", default=None, help="params.yaml with risk_data.sgm/orb (default: the project's, if found)")
+    r.add_argument("-o", "--output", default=None, help="write the JSON (pair) or CSV (folder) here (default: stdout)")
+    r.set_defaults(func=cmd_risk)
+
+    p = sub.add_parser("promote", help="register trained models and run the champion/challenger gate")
+    p.add_argument("--only", nargs="+", metavar="NAME", help="registered model names (default: all configured)")
+    p.add_argument("--dry-run", action="store_true", help="evaluate and decide, change nothing")
+    p.add_argument("--force", action="store_true", help="re-evaluate challengers that were already decided")
+    p.add_argument("--json", action="store_true", help="print decisions as JSON")
+    p.set_defaults(func=cmd_promote)
+
+    b = sub.add_parser("rollback", help="move the champion alias back (previous champion or --version)")
+    b.add_argument("--model", required=True, help="registered model name, e.g. traffictwin-fusion-D")
+    b.add_argument("--version", default=None, help="version to make champion (default: the previous champion)")
+    b.add_argument("--log", default=None, help="decision log (default reports/promotions.jsonl of the project)")
+    b.set_defaults(func=cmd_rollback)
+
+    s = sub.add_parser("status", help="champion / challenger of the registered models")
+    s.add_argument("--model", nargs="+", default=None, help="registered model names (default: all traffictwin-*)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_status)
+
+    ru = sub.add_parser("runs", help="MLflow runs")
+    rsub = ru.add_subparsers(dest="runs_command", required=True, metavar="SUBCOMMAND")
+    c = rsub.add_parser("compare", help="compare the runs of an experiment as a table")
+    c.add_argument("--experiment", required=True, help="MLflow experiment (fusion | risk | ...)")
+    c.add_argument("--metrics", nargs="+", default=None, help="metric names (default: all)")
+    c.add_argument("--uri", default=None, help="tracking URI (default: MLFLOW_TRACKING_URI or the project's mlflow.db)")
+    c.add_argument("--wide", action="store_true", help="full run ids and every tag column")
+    c.add_argument("--csv", default=None, help="also write the table as CSV")
+    c.set_defaults(func=cmd_runs_compare)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        rc = args.func(args)
+    except CliError as exc:
+        print(f"traffictwin {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return int(rc or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
