@@ -67,7 +67,7 @@ class StereoCamera:
     mount_x: float = 1.2
     mount_height: float = 1.3
     near: float = 0.2
-    max_range: float = 150.0
+    max_range: float = 100.0
     noise_std: float = 2.0
 
     def __post_init__(self) -> None:
@@ -77,11 +77,12 @@ class StereoCamera:
             raise ValueError(f"camera hfov_deg must be in [5, 150] deg, got {self.hfov_deg}")
         if self.baseline <= 0 or self.mount_height <= 0 or self.near <= 0 or self.max_range <= self.near:
             raise ValueError("camera baseline, mount_height, near must be > 0 and max_range > near (m)")
+        object.__setattr__(self, "_fx", float((self.width / 2.0) / np.tan(np.radians(self.hfov_deg) / 2.0)))
 
     @property
     def fx(self) -> float:
         """Focal length (px)."""
-        return (self.width / 2.0) / np.tan(np.radians(self.hfov_deg) / 2.0)
+        return self._fx  # type: ignore[attr-defined]
 
     @property
     def fy(self) -> float:
@@ -154,9 +155,26 @@ class StereoCamera:
         zbuf[below] = self.mount_height / dv[below]
         face = np.full((H, W), -1, np.int64)  # -1 ground (where finite), >=0 face index
         faces = _box_faces(boxes)
-        vis = self._cull(faces, centre, R)
-        for fi in np.flatnonzero(vis):
-            self._raster_face(faces.verts[fi], faces.normal[fi], fi, centre, R, d, zbuf, face)
+        vis = np.flatnonzero(self._cull(faces, centre, R))
+        if len(vis):
+            cy_eff = self.cy + cy_offset
+            pc_all = (faces.verts[vis] - centre) @ R.T  # (F, 4, 3) camera frame
+            n_all = faces.normal[vis] @ R.T  # plane normals in the camera frame
+            c_all = np.einsum("fk,fk->f", n_all, pc_all[:, 0])
+            straddle = (pc_all[..., 2] < self.near).any(1)
+            z = np.maximum(pc_all[..., 2], 1e-9)
+            u_all = self.cx + self.fx * pc_all[..., 0] / z
+            v_all = cy_eff + self.fy * pc_all[..., 1] / z
+            for j in range(len(vis)):  # loop over faces; pixels are vectorised
+                if straddle[j]:
+                    poly = _clip_near(pc_all[j], self.near)
+                    if len(poly) < 3:
+                        continue
+                    u = self.cx + self.fx * poly[:, 0] / poly[:, 2]
+                    v = cy_eff + self.fy * poly[:, 1] / poly[:, 2]
+                else:
+                    u, v = u_all[j], v_all[j]
+                self._raster_face(u, v, n_all[j], c_all[j], int(vis[j]), d, zbuf, face)
 
         # colour
         img = np.empty((H, W, 3), np.float32)
@@ -194,16 +212,11 @@ class StereoCamera:
         return front & in_depth & ~left_out & ~right_out
 
     def _raster_face(
-        self, verts: np.ndarray, normal: np.ndarray, fi: int, centre: np.ndarray, R: np.ndarray,
+        self, u: np.ndarray, v: np.ndarray, n_c: np.ndarray, c: float, fi: int,
         d: np.ndarray, zbuf: np.ndarray, face: np.ndarray,
     ) -> None:
-        pc = (verts - centre) @ R.T
-        poly = _clip_near(pc, self.near)
-        if len(poly) < 3:
-            return
-        u = self.cx + self.fx * poly[:, 0] / poly[:, 2]
-        cy_eff = -d[0, 0, 1] * self.fy  # principal row incl. any cy_offset (row 0's ray is -cy/fy)
-        v = cy_eff + self.fy * poly[:, 1] / poly[:, 2]
+        """Fill the projected polygon (u, v) (px) of face ``fi`` (plane n_c . X = c, camera
+        frame) into the z-buffer with its exact per-pixel depth."""
         H, W = zbuf.shape
         x0, x1 = int(np.floor(max(u.min(), 0))), int(np.ceil(min(u.max(), W - 1))) + 1
         y0, y1 = int(np.floor(max(v.min(), 0))), int(np.ceil(min(v.max(), H - 1))) + 1
@@ -213,15 +226,11 @@ class StereoCamera:
         pts = np.round(np.stack([u - x0, v - y0], 1) * (1 << _SHIFT))
         pts = np.clip(pts, -(1 << 26), 1 << 26).astype(np.int32)
         cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
-        m = mask.astype(bool)
-        if not m.any():
-            return
-        n_c = R @ normal
-        c = float(n_c @ pc[0])
+        m = mask.view(bool)
         dd = d[y0:y1, x0:x1]
-        den = dd @ n_c
+        den = dd[..., 0] * n_c[0] + dd[..., 1] * n_c[1] + n_c[2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            Z = np.where(np.abs(den) > 1e-12, c / den, np.inf)
+            Z = c / den
         zb = zbuf[y0:y1, x0:x1]
         upd = m & (Z > self.near * 0.5) & (Z < zb)
         zb[upd] = Z[upd]

@@ -1,0 +1,134 @@
+"""Grid-map risk metric: hand cases (THW, TTC, worst-case TTC, regions, clipping)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from traffictwin.grid import GridSpec
+from traffictwin.risk.metric import RiskCalculator, RiskConfig, rasterise, region_mask, risk_from_time, to_subject_frame
+from traffictwin.sim.scene import Boxes, Cls
+
+G = GridSpec()
+L, W = 4.5, 1.8
+
+
+def car(x, y=0.0, vx=0.0, vy=0.0, yaw=0.0, cls=Cls.CAR, length=4.5):
+    return Boxes([[x, y]], [[length, 1.8, 1.5]], [yaw], [cls], velocity=[[vx, vy]])
+
+
+def calc(region="paper", grid=G, **kw):
+    return RiskCalculator(grid, RiskConfig(subject_length=L, subject_width=W, region=region, **kw))
+
+
+def ahead(gap, **kw):
+    """A car whose rear is ``gap`` m ahead of the subject's front bumper."""
+    return car(L / 2 + gap + 2.25, **kw)
+
+
+@pytest.mark.parametrize("region", ["paper", "camera_fov"])
+def test_vehicle_20m_ahead_at_10mps(region):
+    r = calc(region)((0.0, 0.0, 0.0), 10.0, ahead(20.0))
+    assert r.distance == pytest.approx(20.0, abs=G.cell / 2)
+    assert r.thw == pytest.approx(2.0, abs=G.cell / 2 / 10)
+    assert r.risk_thw == pytest.approx(0.025, abs=1e-3)
+    assert r.target == 0
+
+
+def test_risk_from_time_hand_values():
+    assert risk_from_time(2.0) == pytest.approx(0.025)
+    assert risk_from_time(0.238) == pytest.approx(0.21, abs=1e-3)  # the paper's Fig. 4 example
+    assert risk_from_time(np.inf) == 0.0
+    assert risk_from_time(0.0) == 1.0
+    assert risk_from_time(0.01) == 1.0  # 1/THW = 100 clipped at 20
+    assert risk_from_time(1.5) == pytest.approx(1 / 30)
+    np.testing.assert_allclose(risk_from_time(np.array([0.05, 0.1, 1.0])), [1.0, 0.5, 0.05])
+
+
+def test_standing_subject_has_zero_risk():
+    r = calc()((0.0, 0.0, 0.0), 0.0, ahead(3.0))
+    assert r.thw == np.inf and r.risk_thw == 0.0 and np.isfinite(r.distance)
+
+
+def test_nothing_ahead_has_zero_risk():
+    c = calc()
+    r = c((0.0, 0.0, 0.0), 15.0, Boxes.empty())
+    assert (r.thw, r.risk_thw, r.risk_ttc, r.risk_wttc, r.target) == (np.inf, 0.0, 0.0, 0.0, -1)
+    r = c((0.0, 0.0, 0.0), 15.0, car(-15.0))  # behind
+    assert r.risk_thw == 0.0 and r.target == -1
+
+
+def test_vehicle_beside_follows_the_region_rule():
+    beside_behind = car(0.0, 3.5)  # entirely behind the front bumper line
+    assert calc("paper")((0, 0, 0), 10.0, beside_behind).risk_thw == 0.0
+    # beside, its front 3.5 m beyond our bumper: ahead for the paper's pessimistic region,
+    # outside the 60 deg camera view
+    beside_ahead = car(3.5, 4.0)
+    rp = calc("paper")((0, 0, 0), 10.0, beside_ahead)
+    rf = calc("camera_fov")((0, 0, 0), 10.0, beside_ahead)
+    assert rp.risk_thw > 0 and rp.distance == pytest.approx(4.0 - 0.9 - 0.9, abs=G.cell)
+    assert rf.risk_thw == 0.0
+
+
+def test_clip_at_20():
+    r = calc()((0, 0, 0), 20.0, ahead(0.5))
+    assert r.thw < 0.05 and r.risk_thw == 1.0
+
+
+def test_nearest_vehicle_wins_and_pose_transform():
+    others = Boxes.concat([ahead(30.0), ahead(10.0)])
+    r = calc()((0, 0, 0), 10.0, others)
+    assert r.target == 1 and r.thw == pytest.approx(1.0, abs=0.02)
+    # the same scene rotated and translated into the world
+    yaw = 0.7
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s], [s, c]])
+    moved = Boxes(others.center @ R.T + [100.0, -50.0], others.size, others.yaw + yaw, others.cls)
+    r2 = calc()((100.0, -50.0, yaw), 10.0, moved)
+    assert r2.target == 1 and r2.distance == pytest.approx(r.distance, abs=G.cell)
+
+
+def test_ttc_and_worst_case_ttc():
+    c = calc()
+    # lead at the same speed: THW finite, TTC infinite
+    r = c((0, 0, 0), 10.0, ahead(20.0, vx=10.0))
+    assert r.thw == pytest.approx(2.0, abs=0.02) and r.ttc == np.inf and r.risk_ttc == 0.0
+    # lead at 5 m/s: closing at 5 m/s -> TTC 4 s; worst case: 20 / (10 + 5)
+    r = c((0, 0, 0), 10.0, ahead(20.0, vx=5.0))
+    assert r.ttc == pytest.approx(4.0, abs=0.04)
+    assert r.wttc == pytest.approx(20.0 / 15.0, abs=0.02)
+    # oncoming at 10 m/s, subject standing: THW inf, TTC 2 s
+    r = c((0, 0, 0), 0.0, ahead(20.0, vx=-10.0))
+    assert r.thw == np.inf and r.ttc == pytest.approx(2.0, abs=0.02)
+    assert r.wttc <= r.ttc
+
+
+def test_pedestrians_only_when_configured():
+    ped = car(L / 2 + 5.0, cls=Cls.PEDESTRIAN, length=0.5)
+    assert calc()((0, 0, 0), 10.0, ped).risk_thw == 0.0
+    assert calc(include_pedestrians=True)((0, 0, 0), 10.0, ped).risk_thw > 0
+
+
+def test_border_and_filled_give_the_same_distance():
+    scene = Boxes.concat([ahead(12.0), car(20.0, -6.0, yaw=0.4)])
+    a = calc(fill="border")((0, 0, 0), 8.0, scene)
+    b = calc(fill="filled")((0, 0, 0), 8.0, scene)
+    assert a.distance == pytest.approx(b.distance)
+    lab = rasterise(to_subject_frame(scene, np.zeros(3)), G, "border")
+    full = rasterise(to_subject_frame(scene, np.zeros(3)), G, "filled")
+    assert 0 < (lab > 0).sum() < (full > 0).sum()
+
+
+def test_works_on_the_ci_grid():
+    g = GridSpec(128, 96, 0.64)
+    r = calc(grid=g)((0, 0, 0), 10.0, ahead(20.0))
+    assert r.thw == pytest.approx(2.0, abs=g.cell / 2 / 10)
+    m = region_mask(g, RiskConfig(region="camera_fov"))
+    assert m.shape == g.shape and m[:, g.cols // 2].sum() > 0 and not m[-1].any()
+
+
+def test_bad_input_raises():
+    with pytest.raises(ValueError, match="region"):
+        RiskConfig(region="everywhere")
+    with pytest.raises(ValueError, match="speed"):
+        calc()((0, 0, 0), -1.0, Boxes.empty())

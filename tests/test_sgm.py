@@ -1,0 +1,73 @@
+"""SGM wrapper and disparity metrics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from traffictwin.sim.camera import StereoCamera
+from traffictwin.sim.scene import Boxes, Cls
+from traffictwin.stereo.metrics import add_sums, disparity_errors, summarise
+from traffictwin.stereo.sgm import INVALID, compute_disparity, make_matcher
+
+BAD2_BOUND = 0.05  # stated bound: < 5 % of valid pixels off by > 2 px on a clean rendered pair
+
+
+@pytest.fixture(scope="module")
+def pair():
+    cam = StereoCamera()
+    boxes = Boxes(
+        [[15, 0], [25, 3.5], [8, -3.5], [40, -10], [30, 12]],
+        [[4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [20, 10, 12], [15, 8, 9]],
+        [0, 0.1, 0, 0, 0.3], [Cls.CAR, Cls.CAR, Cls.CAR, Cls.BUILDING, Cls.BUILDING],
+    )
+    return cam.render_pair((0.0, 0.0, 0.0), boxes, rng=np.random.default_rng(0))
+
+
+def test_sgm_on_rendered_pair_matches_gt(pair):
+    d = compute_disparity(pair["left"], pair["right"], num_disparities=32, block_size=5)
+    m = summarise(disparity_errors(d, pair["disp_gt"]))
+    assert m["bad2"] < BAD2_BOUND
+    assert m["density"] > 0.5
+    assert m["epe"] < 1.0
+
+
+def test_invalid_pixels_are_minus_one(pair):
+    d = compute_disparity(pair["left"], pair["right"], num_disparities=32)
+    assert d.dtype == np.float32
+    # OpenCV cannot match the left border without the full search range: invalid, kept invalid
+    assert np.all(d[:, :32] == INVALID)
+    assert set(np.unique(d[d < 0])) == {INVALID}
+    assert np.all(d[d >= 0] <= 32)
+
+
+def test_penalties_follow_the_design():
+    m = make_matcher(64, 5, channels=3)
+    assert m.getP1() == 8 * 3 * 25 and m.getP2() == 32 * 3 * 25
+    assert m.getDisp12MaxDiff() == 1 and m.getMode() == 1  # STEREO_SGBM_MODE_HH
+    with pytest.raises(ValueError, match="multiple of 16"):
+        make_matcher(30)
+    with pytest.raises(ValueError, match="odd"):
+        make_matcher(32, 4)
+
+
+def test_mismatched_sizes_and_dtypes_raise(pair):
+    with pytest.raises(ValueError, match="differ in size"):
+        compute_disparity(pair["left"], pair["right"][:, :-4])
+    with pytest.raises(ValueError, match="uint8"):
+        compute_disparity(pair["left"].astype(np.float32), pair["right"])
+
+
+def test_metric_hand_case():
+    gt = np.array([[10.0, 10.0, 10.0, 10.0, 0.0]], np.float32)
+    est = np.array([[10.5, 13.0, 11.0, -1.0, 5.0]], np.float32)
+    s = disparity_errors(est, gt)
+    m = summarise(s)
+    assert m["density"] == pytest.approx(3 / 4)
+    assert m["bad2"] == pytest.approx(1 / 3)     # only the 3 px error
+    assert m["d1"] == pytest.approx(0.0)         # 3 px is not > 3 px
+    assert m["epe"] == pytest.approx((0.5 + 3.0 + 1.0) / 3)
+    s2 = add_sums(s, s)
+    assert summarise(s2) == pytest.approx(m)
+    with pytest.raises(ValueError, match="shape"):
+        disparity_errors(est, gt[:, :3])
