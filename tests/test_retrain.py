@@ -1,0 +1,142 @@
+"""Scheduled retraining: lock, seed bump in conf/, restore on failure, end to end on the ci profile."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipelines import retrain as rt
+from traffictwin import registry as reg
+from traffictwin.config import ConfigError, compose_config, load_params
+
+from conftest import run, stage_env
+
+MODELS = ["traffictwin-fusion-A", "traffictwin-fusion-B", "traffictwin-fusion-C", "traffictwin-fusion-D", "traffictwin-risk"]
+
+
+# ------------------------------------------------------------------ fast unit tests
+
+
+def test_lock_is_exclusive(tmp_path):
+    lock = tmp_path / ".retrain.lock"
+    with rt.retrain_lock(lock):
+        with pytest.raises(rt.LockBusy, match=r"another retraining run holds the lock .*\.retrain\.lock \(pid \d+"):
+            with rt.retrain_lock(lock):
+                pass
+    with rt.retrain_lock(lock):  # released after the block
+        pass
+
+
+def test_set_conf_value_and_conf_file_for(tmp_path):
+    conf = tmp_path / "conf"
+    (conf / "risk_data").mkdir(parents=True)
+    (conf / "config.yaml").write_text("defaults:\n  - _self_\n  - risk_data: base\n\nseed: 41   # global\ngrid:\n  seed: 3\n")
+    (conf / "risk_data" / "base.yaml").write_text("seed: 0   # offset\nother: 1\n")
+    assert rt.conf_file_for("seed", conf) == (conf / "config.yaml", "seed")
+    assert rt.conf_file_for("risk_data.seed", conf) == (conf / "risk_data" / "base.yaml", "seed")
+    rt.set_conf_value(conf / "config.yaml", "seed", 42)
+    text = (conf / "config.yaml").read_text()
+    assert "seed: 42   # global" in text and "  seed: 3" in text  # nested key untouched
+    rt.set_conf_value(conf / "risk_data" / "base.yaml", "seed", 7)
+    assert yaml.safe_load((conf / "risk_data" / "base.yaml").read_text()) == {"seed": 7, "other": 1}
+    with pytest.raises(ConfigError, match="exactly one top-level line 'nope: <integer>'"):
+        rt.set_conf_value(conf / "config.yaml", "nope", 1)
+    with pytest.raises(ConfigError, match="no defaults entry for group 'fusion_data'"):
+        rt.conf_file_for("fusion_data.seed", conf)
+    with pytest.raises(ConfigError, match="top-level key or <group>.<key>"):
+        rt.conf_file_for("a.b.c", conf)
+
+
+def test_data_versions_reads_dvc_lock(tmp_path):
+    (tmp_path / "dvc.lock").write_text(yaml.safe_dump({"schema": "2.0", "stages": {
+        "gen": {"cmd": "x", "outs": [{"path": "data/fusion", "md5": "abc.dir"}, {"path": "reports/m.json", "md5": "1"}]},
+        "train": {"cmd": "y", "outs": [{"path": "models/fusion/A", "md5": "m"}]}}}))
+    assert rt.data_versions(tmp_path) == {"data/fusion": "abc.dir"}
+    assert rt.data_versions(tmp_path / "nowhere") == {}
+
+
+def test_snapshot_restores_conf_params_reports(tmp_path):
+    root = tmp_path / "r"
+    (root / "conf").mkdir(parents=True)
+    (root / "reports").mkdir()
+    (root / "conf" / "config.yaml").write_text("seed: 1\n")
+    (root / "params.yaml").write_text("seed: 1\n")
+    (root / "reports" / "a.json").write_text("{}")
+    snap_dir = tmp_path / "snap"
+    snap_dir.mkdir()
+    snap = rt.Snapshot(root, snap_dir)
+    (root / "conf" / "config.yaml").write_text("seed: 2\n")
+    (root / "params.yaml").write_text("seed: 2\n")
+    (root / "reports" / "a.json").write_text("{\"new\": 1}")
+    (root / "reports" / "b.json").write_text("{}")
+    (root / "dvc.lock").write_text("schema: '2.0'\n")  # created by the failed run: removed again
+    assert snap.restore(logging.getLogger("t")) == []
+    assert (root / "conf" / "config.yaml").read_text() == "seed: 1\n" and (root / "params.yaml").read_text() == "seed: 1\n"
+    assert sorted(p.name for p in (root / "reports").iterdir()) == ["a.json"] and (root / "reports" / "a.json").read_text() == "{}"
+    assert not (root / "dvc.lock").exists()
+
+
+# ------------------------------------------------------------------ end to end (ci profile)
+
+
+def _champions(repo: Path) -> dict[str, str | None]:
+    cl = reg.client(f"sqlite:///{repo / 'mlflow.db'}")
+    return {n: (None if (mv := reg.get_alias(cl, n, "champion")) is None else str(mv.version)) for n in MODELS}
+
+
+@pytest.mark.slow
+def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
+    repo = repo_copy
+    seed0 = load_params(repo / "params.yaml")["seed"]
+
+    # 1. a full retraining on the ci profile: new seed in conf/, dvc repro, first models become champions
+    proc = run([sys.executable, "-m", "pipelines.retrain"], repo, timeout=1500)
+    summary = json.loads((repo / "reports" / "retrain_summary.json").read_text())
+    assert summary["status"] == "succeeded", proc.stderr[-3000:]
+    assert summary["seeds"] == {"seed": [seed0, seed0 + 1]}
+    assert f"seed: {seed0 + 1}" in (repo / "conf" / "config.yaml").read_text()
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    assert params == compose_config(repo / "conf", ["profile=ci"]) and params["seed"] == seed0 + 1
+    assert set(summary["data_after"]) >= {"data/fusion", "data/risk"}
+    champs = _champions(repo)
+    assert all(v == "1" for v in champs.values()), champs
+    log = reg.read_log(repo / "reports" / "promotions.jsonl")
+    assert sorted(r["name"] for r in log) == sorted(MODELS) and {r["action"] for r in log} == {"first"}
+    assert all(r["challenger_value"] is not None and r["test_fingerprint"] for r in log)
+    md = (repo / "reports" / "retrain_summary.md").read_text()
+    assert "Retraining succeeded" in md and "traffictwin-risk" in md
+
+    lock_before = (repo / "dvc.lock").read_text()
+    params_before = (repo / "params.yaml").read_text()
+    conf_before = (repo / "conf" / "config.yaml").read_text()
+
+    # 2. a second run while one holds the lock exits 75 with the lock message and changes nothing
+    with open(repo / ".retrain.lock", "a+") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        busy = run([sys.executable, "-m", "pipelines.retrain"], repo, check=False, timeout=300)
+    assert busy.returncode == rt.EXIT_LOCKED
+    assert "another retraining run holds the lock" in busy.stderr
+    assert (repo / "params.yaml").read_text() == params_before
+
+    # 3. a failure after new data were generated restores data, params, conf; champion unchanged
+    env = stage_env(repo)
+    env[rt.FAIL_ENV] = "after_repro"
+    failed = run([sys.executable, "-m", "pipelines.retrain", "--targets", "generate_fusion", "generate_risk"], repo,
+                 check=False, timeout=900, env=env)
+    assert failed.returncode == 1 and "injected failure at 'after_repro'" in failed.stderr
+    s2 = json.loads((repo / "reports" / "retrain_summary.json").read_text())
+    assert s2["status"] == "failed" and s2["restored"] is True
+    assert s2["data_after"]["data/fusion"] != summary["data_after"]["data/fusion"]  # new data had been made ...
+    assert (repo / "dvc.lock").read_text() == lock_before                            # ... and were rolled back
+    assert (repo / "params.yaml").read_text() == params_before
+    assert (repo / "conf" / "config.yaml").read_text() == conf_before
+    status = run(["dvc", "status", "generate_fusion", "generate_risk"], repo)
+    assert "up to date" in status.stdout, status.stdout
+    assert _champions(repo) == champs
+    assert len(reg.read_log(repo / "reports" / "promotions.jsonl")) == len(log)
