@@ -68,9 +68,9 @@ def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequ
     ax[0].imshow(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
     ax[0].set_title(f"{seq.world.template} / {seq.situation}: v = {fr.speed:.1f} m/s")
     ax[0].axis("off")
-    ext = [-grid.width / 2, grid.width / 2, -grid.length / 2, grid.length / 2]
-    ax[1].imshow(rgb[:, ::-1], extent=ext, interpolation="nearest")  # y to the left -> flip for display
-    ax[1].set_xlabel("-y (m, right)")
+    ext = [grid.width / 2, -grid.width / 2, -grid.length / 2, grid.length / 2]  # col 0 = +y (left)
+    ax[1].imshow(rgb, extent=ext, interpolation="nearest")
+    ax[1].set_xlabel("y (m, + = left)")
     ax[1].set_ylabel("x (m, forward)")
     ax[1].set_title(f"THW {r.thw:.2f} s, d = {r.distance:.1f} m, risk {r.risk_thw:.3f}")
     fig.suptitle("Risk metric calculator: grid map (black: vehicle border cells, blue: next 3 s, "
