@@ -45,6 +45,8 @@ __all__ = [
     "known_mask",
     "warp_image",
     "register_pair",
+    "phase_correlate_bounded",
+    "BoundedPhaseCorrelator",
     "pose_error",
 ]
 
@@ -55,18 +57,18 @@ FEATURES = ("occ", "signed", "pignistic")
 class RegistrationParams:
     """Settings of :func:`register_pair` (units in the names: m, deg, cells)."""
 
-    feature: str = "signed"  # occ: m_O; signed: m_O − m_F; pignistic: p_O − 0.5
+    feature: str = "occ"  # occ: m_O; signed: m_O − m_F; pignistic: p_O − 0.5
     known_threshold: float = 0.05  # a cell is "known" where m_F + m_O > this
     blur_sigma_cells: float = 1.0  # Gaussian blur of the feature images before the coarse step
     n_angles: int = 720  # angle bins of the log-polar spectrum (0.5° each at 720)
-    search_step_deg: float = 0.0  # > 0 adds a grid of candidate angles in [−max_rot_deg, max_rot_deg]
+    search_step_deg: float = 2.0  # > 0 adds a grid of candidate angles in [−max_rot_deg, max_rot_deg]
     ecc_iterations: int = 60
     ecc_eps: float = 1e-5
     ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
     min_cc: float = 0.2  # minimum masked correlation coefficient of an accepted estimate
-    min_gain: float = 0.0  # the estimate's correlation must exceed the noisy pose's by more than this
+    min_gain: float = 0.02  # the estimate's correlation must exceed the noisy pose's by more than this
     max_trans_m: float = 10.0  # largest accepted correction of the translation (m)
-    max_rot_deg: float = 35.0  # largest accepted correction of the yaw (deg)
+    max_rot_deg: float = 30.0  # largest accepted correction of the yaw (deg)
     min_overlap: float = 0.05  # minimum fraction of cells known in both maps for a usable score
 
     def __post_init__(self) -> None:
@@ -210,38 +212,56 @@ def _fourier_mellin_angle(f1: np.ndarray, g2: np.ndarray, n_angles: int) -> floa
     return float(-ang)
 
 
-def phase_correlate_bounded(a: np.ndarray, b: np.ndarray, max_shift_px: float) -> tuple[float, float]:
-    """Shift ``s = (sx, sy)`` (px) with ``b(p + s) ≈ a(p)`` by phase correlation, searched only within
-    ``|s| ≤ max_shift_px``.
+class BoundedPhaseCorrelator:
+    """Phase correlation against a fixed image ``a`` with the shift searched only within a radius.
 
-    Like ``cv2.phaseCorrelate`` (same sign convention, Hann window) but zero-padded by the
-    search radius so shifts do not wrap around, and with the peak restricted to plausible shifts —
-    partially overlapping grid maps otherwise often lock onto the edges of their known areas.
-    Sub-pixel refinement: 3-point parabola per axis.
+    Like ``cv2.phaseCorrelate`` (same sign convention: ``b(p + s) ≈ a(p)``, Hann window) but
+    zero-padded by the search radius so shifts do not wrap around, with the peak restricted to
+    ``|s| ≤ max_shift_px`` (partially overlapping grid maps otherwise often lock onto the edges of
+    their known areas), and with ``a``'s spectrum computed once for many ``b``. Sub-pixel
+    refinement: 3-point parabola per axis.
     """
-    h, w = a.shape
-    pad = int(np.ceil(max_shift_px)) + 2
-    hh, ww = cv2.getOptimalDFTSize(h + pad), cv2.getOptimalDFTSize(w + pad)
-    win = cv2.createHanningWindow((w, h), cv2.CV_64F)
-    fa = np.fft.rfft2(a * win, s=(hh, ww))
-    fb = np.fft.rfft2(b * win, s=(hh, ww))
-    cross = fb * np.conj(fa)
-    cross /= np.maximum(np.abs(cross), 1e-12)
-    r = np.fft.irfft2(cross, s=(hh, ww))
-    dy = np.fft.fftfreq(hh, 1.0 / hh)[:, None]
-    dx = np.fft.fftfreq(ww, 1.0 / ww)[None, :]
-    r = np.where(dx * dx + dy * dy <= max_shift_px**2, r, -np.inf)
-    iy, ix = np.unravel_index(int(np.argmax(r)), r.shape)
 
-    def parabola(c_m: float, c_0: float, c_p: float) -> float:
-        if not (np.isfinite(c_m) and np.isfinite(c_p)):
-            return 0.0
-        d = c_m - 2 * c_0 + c_p
-        return float(0.5 * (c_m - c_p) / d) if d < 0 else 0.0
+    def __init__(self, a: np.ndarray, max_shift_px: float) -> None:
+        from scipy import fft
 
-    oy = parabola(r[(iy - 1) % hh, ix], r[iy, ix], r[(iy + 1) % hh, ix])
-    ox = parabola(r[iy, (ix - 1) % ww], r[iy, ix], r[iy, (ix + 1) % ww])
-    return float(dx[0, ix] + ox), float(dy[iy, 0] + oy)
+        self._fft = fft
+        h, w = a.shape
+        pad = int(np.ceil(max_shift_px)) + 2
+        self.size = (cv2.getOptimalDFTSize(h + pad), cv2.getOptimalDFTSize(w + pad))
+        self.win = cv2.createHanningWindow((w, h), cv2.CV_32F)
+        self.fa_conj = np.conj(fft.rfft2(a.astype(np.float32) * self.win, s=self.size))
+        hh, ww = self.size
+        self.dy = np.fft.fftfreq(hh, 1.0 / hh)
+        self.dx = np.fft.fftfreq(ww, 1.0 / ww)
+        self.outside = (self.dx[None, :] ** 2 + self.dy[:, None] ** 2) > max_shift_px**2
+
+    def shift(self, b: np.ndarray) -> tuple[float, float, float]:
+        """``(sx, sy, peak)``: the shift (px) and the height of the correlation peak (≤ 1)."""
+        fft = self._fft
+        cross = fft.rfft2(b.astype(np.float32) * self.win, s=self.size) * self.fa_conj
+        cross /= np.maximum(np.abs(cross), 1e-12)
+        r = fft.irfft2(cross, s=self.size)
+        r[self.outside] = -np.inf
+        hh, ww = self.size
+        iy, ix = np.unravel_index(int(np.argmax(r)), r.shape)
+
+        def parabola(c_m: float, c_0: float, c_p: float) -> float:
+            if not (np.isfinite(c_m) and np.isfinite(c_p)):
+                return 0.0
+            d = c_m - 2 * c_0 + c_p
+            return float(0.5 * (c_m - c_p) / d) if d < 0 else 0.0
+
+        oy = parabola(r[(iy - 1) % hh, ix], r[iy, ix], r[(iy + 1) % hh, ix])
+        ox = parabola(r[iy, (ix - 1) % ww], r[iy, ix], r[iy, (ix + 1) % ww])
+        return float(self.dx[ix] + ox), float(self.dy[iy] + oy), float(r[iy, ix])
+
+
+def phase_correlate_bounded(a: np.ndarray, b: np.ndarray, max_shift_px: float) -> tuple[float, float]:
+    """Shift ``s = (sx, sy)`` (px) with ``b(p + s) ≈ a(p)``, searched within ``|s| ≤ max_shift_px``
+    (see :class:`BoundedPhaseCorrelator`)."""
+    sx, sy, _ = BoundedPhaseCorrelator(a, max_shift_px).shift(b)
+    return sx, sy
 
 
 def _rot(center: tuple[float, float], deg: float) -> np.ndarray:
@@ -298,34 +318,36 @@ def register_pair(
     cands = {0.0, round(_fourier_mellin_angle(b1, b2, params.n_angles), 3)}
     if params.search_step_deg > 0:
         cands |= set(np.round(np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3).tolist())
-    max_shift_px = params.max_trans_m / grid.cell
+    pc = BoundedPhaseCorrelator(b1, params.max_trans_m / grid.cell)
     best = (-2.0, np.eye(3), 0.0)  # (cc, W: map1 px → prealigned px, angle)
+    size = (shape[1], shape[0])
     for ang in sorted(cands):
         if abs(ang) > params.max_rot_deg:
             continue
         r = _rot(center, ang)  # g2r(p) = g2(R p)
-        g2r = cv2.warpAffine(b2, r[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        sx, sy = phase_correlate_bounded(b1, g2r, max_shift_px)
+        g2r = cv2.warpAffine(b2, r[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        sx, sy, _ = pc.shift(g2r)
         w = r @ np.array([[1.0, 0.0, sx], [0.0, 1.0, sy], [0.0, 0.0, 1.0]])  # g2(W p) ≈ f1(p)
-        warped = cv2.warpAffine(g2, w[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        kw = cv2.warpAffine(kg2, w[:2], (shape[1], shape[0]), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        cc = _masked_cc(f1, warped, (k1 > 0) & (kw > 0))
+        warped = cv2.warpAffine(b2, w[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        kw = cv2.warpAffine(kg2, w[:2], size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+        cc = _masked_cc(b1, warped, (k1 > 0) & (kw > 0))
         if cc > best[0]:
             best = (cc, w, ang)
     _, wc, coarse = best
 
-    # refine: ECC on the raw map 2, template = map 1; W_total maps map1 px → map2 px
-    w_total = np.linalg.inv(a0) @ wc
-    warp = np.ascontiguousarray(w_total[:2], dtype=np.float32)
+    # refine: ECC in the prealigned frame, template = map 1 (OpenCV's Euclidean ECC recovers the
+    # angle with asin, so it only handles |rotation| < 90°: the large relative yaw stays in a0)
+    warp = np.ascontiguousarray(wc[:2], dtype=np.float32)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(params.ecc_iterations), float(params.ecc_eps))
     ecc_ok = True
     try:
         _, warp = cv2.findTransformECCWithMask(
-            f1, f2, k1, k2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
+            f1, g2, k1, kg2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
         )
-        w_total = np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]])
+        wc = np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]])
     except cv2.error:
         ecc_ok = False  # keep the coarse estimate
+    w_total = np.linalg.inv(a0) @ wc  # map1 px → map2 px
     a_est = np.linalg.inv(w_total)  # map2 px → map1 px
     est = pixel_affine_to_pose(a_est, grid)
     g_est = warp_image(f2, a_est, shape)
