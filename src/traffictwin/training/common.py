@@ -51,6 +51,7 @@ class TrainerSettings:
     precision: str = "32-true"
     num_workers: int = 0
     deterministic: bool | str | None = None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
+    num_threads: int = 0  # torch intra-op CPU threads; 0 = torch's default (all cores)
 
     @classmethod
     def from_cfg(cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml") -> "TrainerSettings":
@@ -68,6 +69,7 @@ class TrainerSettings:
             precision=str(get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)),
             num_workers=get(cfg, p + "num_workers", int, min=0, source=source),
             deterministic=det,
+            num_threads=get(cfg, p + "num_threads", int, min=0, default=0, source=source),
         )
 
     def resolved_deterministic(self) -> bool | str:
@@ -105,6 +107,8 @@ def build_trainer(
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
+    if settings.num_threads > 0:
+        torch.set_num_threads(settings.num_threads)
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
         devices=settings.devices,

@@ -1,0 +1,148 @@
+"""Evidence -> masses, the loss of eqs. (6)-(7), the KL regulariser and the torch fusion metrics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from traffictwin.models.evidential import (
+    confusion_counts,
+    dice_from_counts,
+    evidence_to_masses,
+    evidential_loss,
+    evidential_loss_map,
+    kl_dirichlet_uniform,
+    kld,
+    kld_full,
+    pignistic_occupied,
+)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_torch_thread():
+    """One intra-op thread: on the shared 2-core machine OpenMP spinning makes 2 threads ~10x slower under load."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def cell(a: float, b: float) -> torch.Tensor:
+    """A 1-cell map (1, 2, 1, 1) with channel values (a, b)."""
+    return torch.tensor([a, b], dtype=torch.float64).reshape(1, 2, 1, 1)
+
+
+def test_evidence_to_masses_hand_case() -> None:
+    # e = (2, 1): alpha = (3, 2), S = 5, m = (0.4, 0.2), u = 2/5
+    m, u = evidence_to_masses(cell(2.0, 1.0))
+    assert torch.allclose(m.flatten(), torch.tensor([0.4, 0.2], dtype=torch.float64))
+    assert u.shape == (1, 1, 1) and math.isclose(float(u), 0.4)
+    m0, u0 = evidence_to_masses(cell(0.0, 0.0))  # no evidence: fully unknown
+    assert float(m0.abs().sum()) == 0.0 and float(u0) == 1.0
+
+
+def test_masses_plus_u_is_one_and_numpy_matches_torch() -> None:
+    e = torch.relu(torch.randn(3, 2, 5, 4, generator=torch.Generator().manual_seed(0)) * 10)
+    m, u = evidence_to_masses(e)
+    assert torch.allclose(m.sum(-3) + u, torch.ones_like(u), atol=1e-6)
+    assert torch.all(m >= 0) and torch.all(u > 0) and torch.all(u <= 1)
+    mn, un = evidence_to_masses(e.numpy())
+    assert isinstance(mn, np.ndarray) and np.allclose(mn, m.numpy()) and np.allclose(un, u.numpy())
+    with pytest.raises(ValueError, match=">= 0"):
+        evidence_to_masses(-e.numpy() - 1)
+    with pytest.raises(ValueError, match="channels"):
+        evidence_to_masses(np.zeros((3, 4, 4)))
+
+
+def test_loss_hand_computed_one_cell() -> None:
+    # e = (2, 1): p = alpha/S = (0.6, 0.4), S = 5, variance terms p(1-p)/(S+1) = 0.24/6 = 0.04 each
+    e = cell(2.0, 1.0)
+    # y = (0.7, 0.2): (0.1)^2 + 0.04 + (0.2)^2 + 0.04 = 0.13, y_O <= 0.5 -> weight 1
+    assert math.isclose(float(evidential_loss(e, cell(0.7, 0.2), occupied_weight=3.0)), 0.13, rel_tol=1e-12)
+    # y = (0.1, 0.8): (0.5)^2 + 0.04 + (0.4)^2 + 0.04 = 0.49, y_O > 0.5 -> x o_w = 3
+    assert math.isclose(float(evidential_loss(e, cell(0.1, 0.8), occupied_weight=3.0)), 1.47, rel_tol=1e-12)
+
+
+def test_occupied_weight_only_where_label_occupied() -> None:
+    # three cells: y_O = 0.9 (occupied), 0.5 (boundary: not > 0.5), 0.0
+    y = torch.tensor([[0.05, 0.4, 0.9], [0.9, 0.5, 0.0]], dtype=torch.float64).reshape(1, 2, 1, 3)
+    e = torch.tensor([[1.0, 2.0, 3.0], [0.5, 1.0, 0.0]], dtype=torch.float64).reshape(1, 2, 1, 3)
+    l1 = evidential_loss_map(e, y, occupied_weight=1.0)
+    l3 = evidential_loss_map(e, y, occupied_weight=3.0)
+    ratio = (l3 / l1).flatten().tolist()
+    assert ratio == pytest.approx([3.0, 1.0, 1.0])
+    assert float(evidential_loss(e, y, 3.0)) == pytest.approx(float(l3.mean()))
+
+
+def test_loss_gradient_finite_including_zero_evidence() -> None:
+    logits = torch.randn(2, 2, 8, 6, generator=torch.Generator().manual_seed(3), requires_grad=True)
+    e = torch.relu(logits * 5)
+    y = torch.rand(2, 2, 8, 6, generator=torch.Generator().manual_seed(4)) / 2
+    loss = evidential_loss(e, y, 3.0, kl_weight=0.5)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad).all()
+
+
+def test_kl_regulariser_hand_case_and_off_by_default() -> None:
+    # KL(Dir(2,1) || Dir(1,1)) = ln G(3) - ln G(2) - ln G(2) - ln G(1) + (psi(2) - psi(3)) = ln 2 - 1/2
+    alpha = cell(2.0, 1.0)
+    assert float(kl_dirichlet_uniform(alpha)) == pytest.approx(math.log(2) - 0.5, rel=1e-9)
+    assert float(kl_dirichlet_uniform(cell(1.0, 1.0))) == pytest.approx(0.0, abs=1e-12)
+    e, y = cell(2.0, 1.0), cell(0.7, 0.2)
+    assert float(evidential_loss(e, y)) == pytest.approx(0.13)  # default: no KL term
+    # alpha~ = y + (1 - y) alpha = (0.7 + 0.3*3, 0.2 + 0.8*2) = (1.6, 1.8)
+    kl = float(kl_dirichlet_uniform(cell(1.6, 1.8)))
+    assert float(evidential_loss(e, y, kl_weight=0.5)) == pytest.approx(0.13 + 0.5 * kl)
+
+
+def test_shape_mismatch_is_rejected() -> None:
+    with pytest.raises(ValueError, match="shape"):
+        evidential_loss(torch.zeros(1, 2, 4, 4), torch.zeros(1, 2, 4, 5))
+
+
+def test_kld_hand_cases() -> None:
+    # (a) y = (0.7, 0.2), p = (0.4, 0.2): 0.7 ln(0.7/0.4) + 0.2 ln 1
+    y, p = cell(0.7, 0.2), cell(0.4, 0.2)
+    assert float(kld(p, y)) == pytest.approx(0.7 * math.log(0.7 / 0.4))
+    # (b) adds u: y_u = 0.1, p_u = 0.4
+    assert float(kld_full(p, y)) == pytest.approx(0.7 * math.log(0.7 / 0.4) + 0.1 * math.log(0.1 / 0.4))
+    # clipping: label 0 vs pred 0 -> eps ln(eps/eps) = 0, no NaN
+    assert float(kld(cell(0.0, 0.0), cell(0.0, 0.0))) == 0.0
+
+
+def test_torch_metrics_match_numpy_evaluation_metrics() -> None:
+    """Same definitions as the fusion-eval numpy metrics (DESIGN.md 'Fusion metrics')."""
+    from traffictwin.evaluation import fusion_metrics as fm
+
+    g = np.random.default_rng(0)
+    raw = g.random((3, 3, 16, 12))
+    raw[:, :, :4] = 0.0  # some all-unknown cells
+    raw /= raw.sum(1, keepdims=True) + 1e-12
+    lab = raw[:, :2].astype(np.float64)
+    e = g.exponential(2.0, (3, 2, 16, 12)) * (g.random((3, 1, 16, 12)) > 0.2)
+    pred, _ = evidence_to_masses(e)
+    np.testing.assert_allclose(kld(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(), fm.kld_fo(lab, pred), rtol=1e-9)
+    np.testing.assert_allclose(kld_full(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(), fm.kld_fou(lab, pred), rtol=1e-9)
+    c = fm.confusion_counts(lab, pred)
+    ours = confusion_counts(torch.from_numpy(pred), torch.from_numpy(lab)).tolist()
+    keys = ["tp_occ", "fp_occ", "fn_occ", "tp_free", "fp_free", "fn_free"]
+    assert ours == [float(c[k].sum()) for k in keys]
+
+
+def test_pignistic_and_dice_hand_case() -> None:
+    # cells: pred (m_F, m_O) -> p_O: (0.1, 0.8) -> 0.85 occ; (0.7, 0.1) -> 0.2 free; (0, 0) -> 0.5 neither;
+    #        (0.2, 0.6) -> 0.7 occ
+    pred = torch.tensor([[0.1, 0.7, 0.0, 0.2], [0.8, 0.1, 0.0, 0.6]]).reshape(1, 2, 1, 4)
+    # labels: occ, occ, free, free  (known: y_O > 0.5 or y_F > 0.5)
+    lab = torch.tensor([[0.0, 0.1, 0.9, 0.6], [0.9, 0.8, 0.0, 0.3]]).reshape(1, 2, 1, 4)
+    assert pignistic_occupied(pred).flatten().tolist() == pytest.approx([0.85, 0.2, 0.5, 0.7])
+    c = confusion_counts(pred, lab).tolist()
+    # occ: TP cell0, FP cell3, FN cell1 ; free: TP 0, FP cell1, FN cells 2, 3
+    assert c == [1, 1, 1, 0, 1, 2]
+    d = dice_from_counts(torch.tensor(c, dtype=torch.float64))
+    assert d["dice_occ"] == pytest.approx(2 / 4) and d["dice_free"] == 0.0
+    assert d["precision_occ"] == 0.5 and d["recall_occ"] == 0.5
+    assert math.isnan(dice_from_counts(torch.zeros(6, dtype=torch.float64))["dice_occ"])

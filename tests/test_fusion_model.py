@@ -1,0 +1,119 @@
+"""Plain-torch ResNet / DeepLabV3+: shapes, output stride, evidences, parameter counts."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from traffictwin.models.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.models.evidential import evidence_to_masses
+from traffictwin.models.resnet import ResNet, ResNetSpec, resnet_spec
+from traffictwin.training.fusion import spec_from_cfg
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_torch_thread():
+    """One intra-op thread: on the shared 2-core machine OpenMP spinning makes 2 threads ~10x slower under load."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def tiny_spec(**kw) -> DeepLabSpec:
+    return DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
+                       aspp_channels=16, low_level_channels=8, decoder_channels=16, **kw)
+
+
+@pytest.mark.parametrize("hw", [(256, 176), (128, 96)])
+def test_output_shape_equals_input_shape_and_evidence_nonnegative(hw) -> None:
+    torch.manual_seed(0)
+    net = DeepLabV3Plus(tiny_spec()).eval()
+    x = torch.rand(2, 4, *hw)
+    with torch.no_grad():
+        e = net(x)
+    assert e.shape == (2, 2, *hw)
+    assert torch.all(e >= 0)
+    m, u = evidence_to_masses(e)
+    assert torch.allclose(m.sum(1) + u, torch.ones_like(u), atol=1e-6)
+
+
+def test_default_profile_network_shape_at_paper_grid() -> None:
+    spec = spec_from_cfg({"backbone": {"block": "basic", "layers": [2, 2, 2, 2], "base_width": 16, "output_stride": 16},
+                          "aspp_channels": 64, "low_level_channels": 24, "decoder_channels": 64})
+    net = DeepLabV3Plus(spec).eval()
+    with torch.no_grad():
+        e = net(torch.rand(1, 4, 256, 176))
+    assert e.shape == (1, 2, 256, 176) and torch.all(e >= 0)
+
+
+def test_resnet50_backbone_matches_torchvision_parameter_count() -> None:
+    # torchvision resnet50 has 25,557,032 parameters, 2,049,000 of them in the 1000-way fc layer;
+    # resnet18: 11,689,512 incl. 513,000 in fc. Same layout with 3 input channels here.
+    assert count_parameters(ResNet(resnet_spec(50, in_channels=3))) == 25_557_032 - 2_049_000
+    assert count_parameters(ResNet(resnet_spec(18, in_channels=3))) == 11_689_512 - 513_000
+
+
+def test_resnet50_deeplab_parameter_count_in_expected_range() -> None:
+    net = DeepLabV3Plus(DeepLabSpec(backbone=resnet_spec(50)))
+    n = count_parameters(net)
+    print(f"DeepLabV3+ ResNet-50 (4 in, 2 out): {n:,} parameters")
+    # backbone 23.5 M + ASPP (2048->5x256, 3 atrous 3x3) ~15.4 M + decoder ~1.2 M
+    assert 38_000_000 < n < 43_000_000
+
+
+def test_resnet50_forward_shape_ci_grid() -> None:
+    net = DeepLabV3Plus(DeepLabSpec(backbone=resnet_spec(50))).eval()
+    with torch.no_grad():
+        e = net(torch.rand(1, 4, 128, 96))
+    assert e.shape == (1, 2, 128, 96) and torch.all(e >= 0)
+
+
+def test_output_stride_16_dilates_last_stage() -> None:
+    spec = resnet_spec(18, base_width=8)
+    assert spec.output_stride == 16
+    bb = ResNet(spec).eval()
+    with torch.no_grad():
+        low, high = bb(torch.rand(1, 4, 128, 96))
+    assert low.shape == (1, 8, 32, 24)          # stride 4
+    assert high.shape == (1, 64, 8, 6)          # stride 16, not 32
+    assert bb.layer4[0].conv1.stride == (1, 1) and bb.layer4[1].conv2.dilation == (2, 2)
+    assert ResNet(resnet_spec(50, base_width=8)).layer4[1].conv2.dilation == (2, 2)
+
+
+def test_aspp_rates_and_low_level_projection() -> None:
+    net = DeepLabV3Plus(DeepLabSpec(backbone=resnet_spec(18, base_width=8), aspp_channels=16, decoder_channels=16))
+    dil = [b[0].dilation for b in net.aspp.branches[1:4]]
+    assert dil == [(6, 6), (12, 12), (18, 18)]
+    assert net.low_proj[0].out_channels == 48   # DeepLabV3+ default
+
+
+def test_indivisible_input_is_rejected() -> None:
+    net = DeepLabV3Plus(tiny_spec()).eval()
+    with pytest.raises(ValueError, match="divisible by the output stride 16"):
+        net(torch.rand(1, 4, 100, 96))
+    with pytest.raises(ValueError, match="channels"):
+        net(torch.rand(1, 3, 128, 96))
+
+
+def test_network_gradient_is_finite() -> None:
+    from traffictwin.models.evidential import evidential_loss
+
+    torch.manual_seed(1)
+    net = DeepLabV3Plus(tiny_spec())
+    x = torch.rand(2, 4, 64, 48)
+    y = torch.rand(2, 2, 64, 48) / 2
+    loss = evidential_loss(net(x), y)
+    loss.backward()
+    grads = [p.grad for p in net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_spec_round_trip_and_validation() -> None:
+    s = spec_from_cfg({"backbone": {"block": "bottleneck", "layers": [3, 4, 6, 3], "base_width": 64, "output_stride": 16}})
+    assert DeepLabSpec.from_dict(s.as_dict()) == s
+    with pytest.raises(ValueError, match="block"):
+        spec_from_cfg({"backbone": {"block": "dense"}})
+    with pytest.raises(ValueError, match="output_stride"):
+        spec_from_cfg({"backbone": {"output_stride": 4}})

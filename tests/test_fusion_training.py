@@ -1,0 +1,303 @@
+"""Fusion training: augmentation, data module, Lightning (fast_dev_run, overfit), MLflow round trip, loader checks."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import asdict
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from traffictwin.config import ConfigError
+from traffictwin.grid import GridSpec
+from traffictwin.io.shards import DatasetError, DatasetWriter
+from traffictwin.models.deeplab import DeepLabSpec
+from traffictwin.models.fusion_io import FusionModelError, load_fusion_model, predict_masses
+from traffictwin.models.resnet import ResNetSpec
+from traffictwin.training import common
+from traffictwin.training.fusion import (
+    DataSettings,
+    FusionDataModule,
+    FusionHParams,
+    FusionLitModule,
+    LoopSettings,
+    TrackingSettings,
+    augment,
+    evenly_spaced,
+    fit_fusion,
+)
+
+TINY = DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
+                   aspp_channels=16, low_level_channels=8, decoder_channels=16)
+GRID = GridSpec(64, 48, 1.0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_torch_thread():
+    """One intra-op thread: on the shared 2-core machine OpenMP spinning makes 2 threads ~10x slower under load."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def synthetic_pairs(n: int, h: int, w: int, seed: int) -> dict[str, np.ndarray]:
+    """Learnable toy pairs: label = free background with occupied boxes; map 1 sees the left part,
+    map 2 the right part shifted by a couple of cells (a misaligned second vehicle)."""
+    g = np.random.default_rng(seed)
+    lab = np.zeros((n, 2, h, w), np.float32)
+    lab[:, 0] = 0.8
+    for i in range(n):
+        for _ in range(3):
+            r, c = g.integers(2, h - 10), g.integers(2, w - 8)
+            lab[i, 0, r : r + 6, c : c + 4] = 0.0
+            lab[i, 1, r : r + 6, c : c + 4] = 0.9
+    m1 = lab.copy()
+    m1[:, :, :, (2 * w) // 3 :] = 0.0
+    shift = g.integers(-2, 3, size=(n, 2))
+    m2 = np.stack([np.roll(lab[i], tuple(shift[i]), axis=(1, 2)) for i in range(n)])
+    m2[:, :, :, : w // 3] = 0.0
+    return {"inputs": np.concatenate([m1, m2], 1).astype(np.float32), "label": lab,
+            "noise": np.zeros((n, 3), np.float32), "scenario": np.arange(n, dtype=np.int64)}
+
+
+def write_prealigned(root: Path, h: int = 64, w: int = 48, n: int = 8, seed: int = 0) -> Path:
+    """A small 'prealigned' dataset: two train shards and one val shard of ``n`` pairs each."""
+    wr = DatasetWriter(root, "prealigned", {"synthetic": True, "h": h, "w": w}, seed)
+    for i, split in enumerate(["train", "train", "val"]):
+        wr.add_shard(i, synthetic_pairs(n, h, w, seed + i), split=split)
+    wr.finalize()
+    return root
+
+
+# ---------------------------------------------------------------------------------------------
+# augmentation
+
+
+def test_augmentation_moves_inputs_and_label_together() -> None:
+    h, w = 64, 48
+    x = torch.zeros(16, 4, h, w)
+    y = torch.zeros(16, 2, h, w)
+    r, c = 10, 36  # a known occupied cell off-centre (front-right)
+    x[:, 1, r, c] = x[:, 3, r, c] = 1.0
+    y[:, 1, r, c] = 1.0
+    xa, ya = augment(x, y, flip=True, max_rotation_deg=20.0, generator=torch.Generator().manual_seed(0))
+    moved = 0
+    for i in range(16):
+        pos_x1 = divmod(int(xa[i, 1].argmax()), w)
+        pos_x2 = divmod(int(xa[i, 3].argmax()), w)
+        pos_y = divmod(int(ya[i, 1].argmax()), w)
+        assert pos_x1 == pos_y == pos_x2
+        assert torch.allclose(xa[i, 1], ya[i, 1]) and torch.allclose(xa[i, 3], ya[i, 1])
+        moved += pos_y != (r, c)
+        # rotation about the map centre in metric space: the distance to the centre is kept (square cells)
+        rr, cc = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+        wgt = ya[i, 1].numpy()
+        cy, cx = (wgt * rr).sum() / wgt.sum(), (wgt * cc).sum() / wgt.sum()
+        d0 = math.hypot(r + 0.5 - h / 2, c + 0.5 - w / 2)
+        assert math.hypot(cy + 0.5 - h / 2, cx + 0.5 - w / 2) == pytest.approx(d0, abs=0.6)
+    assert moved >= 12
+
+
+def test_flip_only_is_an_exact_mirror() -> None:
+    x = torch.rand(32, 4, 16, 12)
+    y = torch.rand(32, 2, 16, 12)
+    xa, ya = augment(x, y, flip=True, max_rotation_deg=0.0, generator=torch.Generator().manual_seed(1))
+    seen = set()
+    for i in range(32):
+        for dims in ((), (-1,), (-2,), (-2, -1)):
+            cand = torch.flip(x[i], dims) if dims else x[i]
+            if torch.allclose(xa[i], cand, atol=1e-5):
+                assert torch.allclose(ya[i], torch.flip(y[i], dims) if dims else y[i], atol=1e-5)
+                seen.add(dims)
+                break
+        else:
+            pytest.fail(f"sample {i} is not a mirror image of its input")
+    assert len(seen) == 4
+
+
+def test_augmented_masses_stay_on_the_simplex() -> None:
+    g = torch.Generator().manual_seed(2)
+    raw = torch.rand(8, 3, 32, 24, generator=g)
+    raw = raw / raw.sum(1, keepdim=True)
+    x = torch.cat([raw[:, :2], raw[:, 1:]], 1)
+    y = raw[:, :2].clone()
+    xa, ya = augment(x, y, generator=g)
+    for t in (xa[:, :2], xa[:, 2:], ya):
+        assert t.min() >= 0 and (t.sum(1) <= 1 + 1e-6).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# data module and Lightning
+
+
+def test_datamodule_subsets_and_grid_check(tmp_path: Path) -> None:
+    root = write_prealigned(tmp_path / "pre")
+    dm = FusionDataModule(root, DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=3), seed=5, grid=GRID)
+    dm.setup("fit")
+    assert len(dm.train_set) == 16 and len(dm.val_set) == 3
+    batches = list(dm.train_dataloader())
+    assert len(batches) == 2 and batches[0][0].shape == (4, 4, 64, 48) and batches[0][1].shape == (4, 2, 64, 48)
+    first = torch.cat([b[0] for b in batches])
+    dm2 = FusionDataModule(root, dm.settings, seed=5, grid=GRID)
+    dm2.setup("fit")
+    dl2 = dm2.train_dataloader()
+    assert torch.equal(first, torch.cat([b[0] for b in dl2]))  # seeded
+    assert not torch.equal(first, torch.cat([b[0] for b in dl2]))  # the next epoch draws afresh
+    assert evenly_spaced(10, 3).tolist() == [0, 4, 9] and evenly_spaced(5, 0).tolist() == [0, 1, 2, 3, 4]
+    bad = FusionDataModule(root, dm.settings, seed=5, grid=GridSpec(128, 96, 0.64))
+    with pytest.raises(DatasetError, match=r"\(64, 48\) cells but the grid parameter says \(128, 96\)"):
+        bad.setup("fit")
+
+
+def test_fast_dev_run(tmp_path: Path) -> None:
+    root = write_prealigned(tmp_path / "pre")
+    dm = FusionDataModule(root, DataSettings(batch_size=4), seed=0, grid=GRID)
+    module = FusionLitModule(TINY.as_dict(), asdict(FusionHParams()), meta={"seed": 0})
+    trainer = common.build_trainer(common.TrainerSettings(), max_epochs=1, fast_dev_run=True, default_root_dir=tmp_path)
+    trainer.fit(module, datamodule=dm)
+    assert trainer.state.finished
+    for k in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free"):
+        assert k in trainer.callback_metrics and math.isfinite(float(trainer.callback_metrics[k])), k
+    assert not (tmp_path / "checkpoints").exists() and not Path("checkpoints").exists()
+
+
+def test_short_overfit_loss_falls(tmp_path: Path) -> None:
+    """A few pairs, the module's own optimizer (Adam, lr 0.01) and loss: the training loss falls by > 3x."""
+    from traffictwin.models.evidential import evidential_loss
+
+    common.seed_everything(0)
+    root = write_prealigned(tmp_path / "pre", n=4)
+    module = FusionLitModule(TINY.as_dict(), asdict(FusionHParams(lr=0.01)), meta={"seed": 0})
+    dm = FusionDataModule(root, DataSettings(batch_size=4), seed=0, grid=GRID)
+    dm.setup("fit")
+    x, y = dm.train_set.tensors[0][:4], dm.train_set.tensors[1][:4]
+    opt = module.configure_optimizers()["optimizer"]
+    module.train()
+    losses = []
+    for _ in range(30):
+        loss = evidential_loss(module.net(x), y, module.hp.occupied_weight)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert min(losses[-5:]) < losses[0] / 3, losses
+
+
+def test_trainer_settings_from_cfg() -> None:
+    cfg = {"trainer": {"accelerator": "gpu", "devices": 4, "num_nodes": 2, "strategy": "ddp",
+                       "precision": "bf16-mixed", "num_workers": 8}}
+    s = common.TrainerSettings.from_cfg(cfg)
+    assert (s.accelerator, s.devices, s.num_nodes, s.strategy, s.precision, s.num_workers) == ("gpu", 4, 2, "ddp", "bf16-mixed", 8)
+    assert s.resolved_deterministic() == "warn" and common.TrainerSettings().resolved_deterministic() is True
+    with pytest.raises(ConfigError, match="'trainer.precision' must be one of"):
+        common.TrainerSettings.from_cfg({"trainer": {**cfg["trainer"], "precision": "fp8"}})
+    with pytest.raises(ConfigError, match="'trainer.num_nodes' is missing"):
+        common.TrainerSettings.from_cfg({"trainer": {k: v for k, v in cfg["trainer"].items() if k != "num_nodes"}})
+
+
+def test_global_rank_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    for v in ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK"):
+        monkeypatch.delenv(v, raising=False)
+    assert common.global_rank() == 0
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert common.global_rank() == 1
+    with common.tracked_run("x", "y", profile="ci", stage="t") as run:
+        assert run is None  # non-zero ranks do not open MLflow runs
+
+
+# ---------------------------------------------------------------------------------------------
+# a whole (tiny) run: outputs, MLflow, reload, loader checks
+
+
+def _fit(tmp_path: Path, cfg: str = "B", spec: DeepLabSpec = TINY, tracking: bool = True, epochs: int = 2):
+    root = tmp_path / "pre"
+    if not root.exists():
+        write_prealigned(root)
+    out = tmp_path / "models" / cfg
+    return fit_fusion(
+        root, spec=spec, hparams=FusionHParams(), data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
+        loop=LoopSettings(max_epochs=epochs), trainer_settings=common.TrainerSettings(), seed=3, grid=GRID, cfg_name=cfg,
+        noise={"r": 1.0, "alpha": 10.0}, ckpt_out=out / "model.ckpt", meta_out=out / "model_meta.json",
+        metrics_out=tmp_path / f"metrics_{cfg}.json", curves_out=tmp_path / f"curves_{cfg}.csv",
+        tracking=TrackingSettings(run_name=f"fusion-{cfg}", profile="ci", stage=f"train_fusion@{cfg}", params={"a.b": 1},
+                                  enabled=tracking),
+    )
+
+
+def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str) -> None:
+    res = _fit(tmp_path)
+    meta = json.loads((tmp_path / "models/B/model_meta.json").read_text())
+    assert meta["cfg"] == "B" and meta["architecture"] == TINY.as_dict() and meta["grid"] == {"rows": 64, "cols": 48, "cell": 1.0}
+    assert meta["mlflow_run_id"] == res.run_id and len(meta["data_manifest_hash"]) == 64
+    metrics = json.loads((tmp_path / "metrics_B.json").read_text())
+    for k in ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "train/loss", "val/kld_naive", "best_epoch"):
+        assert k in metrics, k
+    curves = (tmp_path / "curves_B.csv").read_text().splitlines()
+    assert curves[0].startswith("epoch,") and len(curves) == 1 + 2
+
+    client = mlflow.tracking.MlflowClient(mlflow_uri)
+    run = client.get_run(res.run_id)
+    assert run.info.run_name == "fusion-B" and run.data.tags["dvc_stage"] == "train_fusion@B"
+    assert run.data.params["a.b"] == "1" and run.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
+    exp = client.get_experiment(run.info.experiment_id)
+    assert exp.name == "fusion"
+    for name in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "lr"):
+        hist = client.get_metric_history(res.run_id, name)
+        assert [m.step for m in hist] == [0, 1], name
+    arts = [a.path for a in client.list_artifacts(res.run_id, "checkpoints")]
+    assert arts == ["checkpoints/model.ckpt"]
+
+    net = load_fusion_model(tmp_path / "models/B", expected_cfg="B", expected_architecture=TINY, expected_grid=GRID)
+    logged = mlflow.pytorch.load_model(res.model_uri)
+    x = np.random.default_rng(0).random((3, 4, 64, 48)).astype(np.float32)
+    m_a, u_a = predict_masses(net, x)
+    m_b, u_b = predict_masses(logged, x)
+    assert m_a.shape == (3, 2, 64, 48) and u_a.shape == (3, 64, 48)
+    np.testing.assert_array_equal(m_a, m_b)
+    np.testing.assert_array_equal(u_a, u_b)
+    np.testing.assert_allclose(m_a.sum(1) + u_a, 1.0, atol=1e-6)
+
+
+def test_training_is_deterministic(tmp_path: Path) -> None:
+    a = _fit(tmp_path / "a", tracking=False, epochs=1)
+    b = _fit(tmp_path / "b", tracking=False, epochs=1)
+    sa = torch.load(a.checkpoint, weights_only=True)["state_dict"]
+    sb = torch.load(b.checkpoint, weights_only=True)["state_dict"]
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert a.metrics["val/loss"] == b.metrics["val/loss"]
+
+
+def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_path: Path) -> None:
+    _fit(tmp_path, "B", tracking=False, epochs=1)
+    _fit(tmp_path, "C", spec=DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=4),
+                                          aspp_channels=8, low_level_channels=4, decoder_channels=8), tracking=False, epochs=1)
+    with pytest.raises(FusionModelError, match=r"trained for configuration 'B' \(r=1.0 m, alpha=10.0 deg\), expected configuration 'C'"):
+        load_fusion_model(tmp_path / "models/B/model.ckpt", expected_cfg="C")
+    with pytest.raises(FusionModelError, match="architecture mismatch: checkpoint has basic ResNet .* base_width=4"):
+        load_fusion_model(tmp_path / "models/C/model.ckpt", expected_architecture=TINY)
+    with pytest.raises(FusionModelError, match="trained on grid"):
+        load_fusion_model(tmp_path / "models/B/model.ckpt", expected_grid=GridSpec(128, 96, 0.64))
+    # someone copies C's checkpoint over B's: the checkpoint and model_meta.json disagree
+    shutil.copyfile(tmp_path / "models/C/model.ckpt", tmp_path / "models/B/model.ckpt")
+    with pytest.raises(FusionModelError, match="checkpoint and model_meta.json disagree on 'cfg'"):
+        load_fusion_model(tmp_path / "models/B/model.ckpt")
+    (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    with pytest.raises(FusionModelError, match="junk.ckpt: not a readable torch checkpoint"):
+        load_fusion_model(tmp_path / "junk.ckpt")
+    with pytest.raises(FusionModelError, match="not found"):
+        load_fusion_model(tmp_path / "nowhere/model.ckpt")
+
+
+def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "models" / "A"
+    with pytest.raises(DatasetError, match="dataset folder not found"):
+        fit_fusion(tmp_path / "absent", spec=TINY, hparams=FusionHParams(), data=DataSettings(batch_size=4),
+                   loop=LoopSettings(max_epochs=1), trainer_settings=common.TrainerSettings(), seed=0, grid=GRID,
+                   cfg_name="A", noise={"r": 0.0, "alpha": 0.0}, ckpt_out=out / "model.ckpt", meta_out=out / "model_meta.json")
+    assert not out.exists()
