@@ -1,0 +1,207 @@
+"""Risk evaluation: metric formulas on hand cases, baselines, the whole suite, findings text."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
+from traffictwin.evaluation.risk_baselines import GeometricParams, constant_predictions, geometric_distance, geometric_risk
+from traffictwin.evaluation.risk_metrics import (
+    PAPER, classification_metrics, evaluate, evaluate_suite, label_agreement, regression_metrics, risk_threshold,
+    risk_to_thw, roc_auc, thw_to_risk,
+)
+from traffictwin.models.dave2 import Dave2, Dave2Config
+from traffictwin.models.risk_io import load_risk_model, save_risk_model
+from traffictwin.reporting.risk_findings import findings
+from traffictwin.training.risk import RiskSource
+
+
+def test_thresholds_and_conversions() -> None:
+    assert risk_threshold(1.5) == pytest.approx(1 / 30)
+    assert risk_threshold(1.0) == pytest.approx(1 / 20)
+    assert risk_threshold(0.01) == 1.0  # clipped at 1/THW = 20
+    r = thw_to_risk(np.array([np.inf, 0.05, 0.0, 1.5, 0.02, 10.0]))
+    assert np.allclose(r, [0, 1, 1, 1 / 30, 1, 1 / 200])
+    assert np.allclose(risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10])
+    # the paper's example: risk 0.21 <-> a crash in 0.238 s
+    assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)
+
+
+def test_classification_hand_case() -> None:
+    y = np.array([0.5, 0.5, 0.01, 0.01, 0.2])
+    p = np.array([0.4, 0.02, 0.0, 0.3, 0.5])
+    m = classification_metrics(y, p, 1.5)
+    assert m["confusion"] == {"tp": 2, "fp": 1, "fn": 1, "tn": 1}
+    assert m["accuracy"] == pytest.approx(3 / 5)
+    assert m["precision"] == pytest.approx(2 / 3) and m["recall"] == pytest.approx(2 / 3)
+    assert m["balanced_accuracy"] == pytest.approx((2 / 3 + 1 / 2) / 2)
+    assert m["f1"] == pytest.approx(2 / 3)
+    assert m["roc_auc"] == pytest.approx(5 / 6)
+    from sklearn.metrics import roc_auc_score
+
+    assert m["roc_auc"] == pytest.approx(roc_auc_score(y > 1 / 30, p))
+    # at 1.0 s (risk > 0.05): 0.02 is no longer... still uncritical; 0.01 / 0.0 unchanged
+    m1 = classification_metrics(y, p, 1.0)
+    assert m1["confusion"] == {"tp": 2, "fp": 1, "fn": 1, "tn": 1}
+    # boundary: exactly the threshold is NOT critical (THW < 1.5 s is)
+    assert classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]))["confusion"]["tn"] == 1
+
+
+def test_paper_table1_reproduces_paper_accuracy() -> None:
+    c = PAPER["confusion"]
+    y = np.r_[np.full(c["tp"], 0.5), np.full(c["fn"], 0.5), np.full(c["fp"], 0.0), np.full(c["tn"], 0.0)]
+    p = np.r_[np.full(c["tp"], 0.5), np.full(c["fn"], 0.0), np.full(c["fp"], 0.5), np.full(c["tn"], 0.0)]
+    m = classification_metrics(y, p, 1.5)
+    assert m["confusion"] == c
+    assert round(100 * m["accuracy"], 2) == 72.87
+    assert round(m["confusion_pct"]["tp"], 2) == 63.16  # Table 1: 63,16 %
+
+
+def test_regression_metrics_and_auc_ties() -> None:
+    y = np.array([0.0, 0.1, 0.2, 0.4])
+    p = np.array([0.1, 0.1, 0.0, 0.4])
+    m = regression_metrics(y, p, thw_cap=10)
+    assert m["test/mse"] == pytest.approx((0.01 + 0 + 0.04 + 0) / 4)
+    assert m["test/mae"] == pytest.approx(0.3 / 4)
+    # THW: y -> [10, 0.5, 0.25, 0.125], p -> [0.5, 0.5, 10, 0.125]
+    assert m["test/thw_mae_s"] == pytest.approx((9.5 + 0 + 9.75 + 0) / 4)
+    assert roc_auc(np.array([True, False]), np.array([0.3, 0.3])) == 0.5
+    assert np.isnan(roc_auc(np.array([True, True]), np.array([0.1, 0.2])))
+    with pytest.raises(ValueError, match="differ in length"):
+        regression_metrics(y, p[:2])
+    agree = label_agreement(np.array([0.5, 0.0, 0.04]), np.array([0.5, 0.1, 0.0]))
+    assert agree["class_agreement_at_1.5s"] == pytest.approx(1 / 3)
+
+
+def test_constant_baselines_median_is_majority_class() -> None:
+    train = np.array([0.0, 0.0, 0.2, 0.3, 0.5])  # 3 of 5 critical at 1.5 s
+    c = constant_predictions(train, 4)
+    assert np.allclose(c["train_mean"], 0.2) and np.allclose(c["train_median"], 0.2)
+    y = np.array([0.5, 0.0, 0.3, 0.0])
+    m = classification_metrics(y, c["train_median"])
+    assert m["confusion"] == {"tp": 2, "fp": 2, "fn": 0, "tn": 0}
+
+
+def test_geometric_baseline_one_vehicle_at_known_distance() -> None:
+    cam = camera_intrinsics(192, 96)
+    params = GeometricParams(subject_length=4.8, subject_width=1.9, min_pixels=10)
+    depths = [4.0, 10.0, 25.0]
+    disp = np.stack([render_frame(cam, z)[0] for z in depths] + [render_frame(cam, None)[0]])
+    dist = geometric_distance(disp, cam, params)
+    expect = np.array(depths) + cam["mount_x"] - 4.8 / 2  # free distance from the front bumper
+    assert np.allclose(dist[:3], expect, atol=1e-3)
+    assert np.isinf(dist[3])  # only road: nothing in the corridor above min_height
+    speed = np.array([8.0, 8.0, 16.0, 8.0])
+    _, thw, risk = geometric_risk(disp, speed, cam, params)
+    assert np.allclose(thw[:3], expect / speed[:3], atol=1e-3)
+    assert np.allclose(risk, thw_to_risk(thw)) and risk[3] == 0
+    # a vehicle outside the corridor (3.5 m to the side) is ignored
+    side = render_frame(cam, 10.0)[0]
+    shift = int(round(cam["fx"] * 3.5 / 10.0))
+    moved = np.zeros_like(side)
+    moved[:, shift:] = side[:, :-shift]
+    ground = render_frame(cam, None)[0]
+    moved = np.where(moved > ground, moved, ground)
+    assert np.isinf(geometric_distance(moved[None], cam, params))[0]
+    with pytest.raises(ValueError, match="camera intrinsics"):
+        geometric_distance(disp, {"fx": 1.0}, params)
+    with pytest.raises(ValueError, match="intrinsics are for"):
+        geometric_distance(disp[:, :50], cam, params)
+
+
+def test_geometric_baseline_with_the_project_camera_and_sgm() -> None:
+    """Render a car with the risk-data stereo camera; GT and SGM disparity give the true free distance."""
+    from traffictwin.sim.camera import StereoCamera
+    from traffictwin.sim.scene import Boxes, Cls
+    from traffictwin.stereo.sgm import compute_disparity
+
+    cam = StereoCamera(width=320, height=160, noise_std=0.0)
+    L = 4.8
+    car = Boxes(center=[[15.0, 0.0]], size=[[4.5, 1.8, 1.5]], yaw=[0.0], cls=[int(Cls.CAR)])
+    fr = cam.render_pair((0.0, 0.0, 0.0), car)
+    expect = 15.0 - 4.5 / 2 - L / 2  # rear face of the car minus the subject's front bumper
+    params = GeometricParams(subject_length=L, subject_width=1.9, min_pixels=10)
+    d_gt = geometric_distance(fr["disp_gt"][None], cam.intrinsics(), params)[0]
+    assert d_gt == pytest.approx(expect, abs=0.05)
+    sgm = compute_disparity(fr["left"], fr["right"], num_disparities=32)
+    d_sgm = geometric_distance(sgm[None], cam.intrinsics(), params)[0]
+    assert d_sgm == pytest.approx(expect, rel=0.1)
+
+
+def _tiny_models(tmp: Path) -> dict:
+    out = {}
+    for i, (name, inputs, speed, label) in enumerate([
+        ("rgbd", ("rgb", "disp_sgm"), False, "risk_thw_paper"),
+        ("gtdisp", ("rgb", "disp_gt"), False, "risk_thw_paper"),
+        ("rgbd_speed", ("rgb", "disp_sgm"), True, "risk_thw_paper"),
+        ("rgbd_fov", ("rgb", "disp_sgm"), False, "risk_thw_fov"),
+    ]):
+        torch.manual_seed(i)
+        net = Dave2(Dave2Config(inputs=inputs, use_speed=speed))
+        save_risk_model(net, tmp / name, {"label": label, "variant": name})
+        out[name] = load_risk_model(tmp / name)
+    return out
+
+
+def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
+    write_synthetic_risk(tmp_path, n_shards=4, per_shard=8)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", tmp_path / "data" / "orb" / "orb.csv")
+    models = _tiny_models(tmp_path / "models")
+    params = GeometricParams(subject_length=4.5, subject_width=1.8)
+    metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=params)
+    test = src.split_frames("test")
+    assert sorted(pred["frame_id"]) == sorted(test["frame_id"])
+    for v, m in models.items():
+        lab = m.meta["label"]
+        e = metrics["models"][v]
+        assert e["label"] == lab
+        assert e["test/mse"] == pytest.approx(np.mean((pred[f"pred_{v}"] - pred[lab]) ** 2))
+        assert e["at_1.5s"]["confusion"]["tp"] + e["at_1.5s"]["confusion"]["fn"] == int((pred[lab] > 1 / 30).sum())
+        assert "at_1s" in e
+    # the synthetic geometry is exact up to SGM noise: the geometric baseline beats a constant by far
+    geo = metrics["region"]["predictors"]["geometric"]
+    const = metrics["region"]["predictors"]["train_median"]
+    assert geo["risk_thw_fov"]["test/mse"] < 0.5 * const["risk_thw_fov"]["test/mse"]
+    assert geo["risk_thw_fov"]["test/mse"] <= geo["risk_thw_paper"]["test/mse"]
+    assert metrics["baselines"]["train_median"]["value"] == pytest.approx(
+        float(np.median(src.split_frames("train")["risk_thw_paper"])))
+    assert metrics["n_frames"]["orb_outliers_dropped"] == src.n_orb_outliers
+    json.dumps(metrics, allow_nan=False)  # strict JSON (NaN -> null)
+    text = findings({**metrics, "main_variant": "rgbd"})
+    assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
+    assert "camera_fov" in text and "Which input matters" in text
+
+
+def test_findings_from_hand_metrics_and_missing_parts() -> None:
+    at = {"accuracy": 0.8, "balanced_accuracy": 0.75, "f1": 0.85, "roc_auc": 0.9, "critical_fraction_true": 0.6}
+    metrics = {
+        "thresholds_s": [1.5, 1.0], "main_variant": "rgbd",
+        "models": {
+            "rgbd": {"label": "risk_thw_paper", "test/mse": 0.01, "test/n": 100, "at_1.5s": at},
+            "rgb": {"label": "risk_thw_paper", "test/mse": 0.02, "test/n": 100, "at_1.5s": {**at, "accuracy": 0.7}},
+        },
+        "baselines": {"train_median": {"at_1.5s": {"accuracy": 0.6}}, "train_mean": {"test/mse": 0.04}},
+    }
+    text = findings(metrics)
+    assert "0.01000 vs the paper's 0.01470" in text
+    assert "80.00 %" in text and "72.87 %" in text and "70.77 %" in text
+    assert "20.00 points above the majority class" in text
+    assert "0.25× the training mean's" in text
+    assert "adding SGM disparity to the image lowers the MSE by 50 %" in text
+    assert findings({"models": {}}) == "- No risk network was evaluated."
+    # None (undefined metric) is shown as n/a, not crashing
+    metrics["models"]["rgbd"]["at_1.5s"] = {**at, "roc_auc": None}
+    assert "ROC-AUC n/a" in findings(metrics)
+
+
+def test_evaluate_reports_thresholds() -> None:
+    y = np.array([0.5, 0.0, 0.04, 0.06])
+    e = evaluate(y, y, (1.5, 1.0))
+    assert e["at_1.5s"]["accuracy"] == 1.0 and e["at_1s"]["accuracy"] == 1.0
+    assert e["at_1.5s"]["confusion"]["tp"] == 3 and e["at_1s"]["confusion"]["tp"] == 2

@@ -1,0 +1,110 @@
+"""Stages train_risk@<variant> and evaluate_risk on the ci profile (outputs of the ``ci_dag`` run)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _variants(repo: Path) -> list[str]:
+    return list(yaml.safe_load((repo / "params.yaml").read_text())["risk_model"]["variants"])
+
+
+def test_evaluate_risk_depends_on_every_variant() -> None:
+    """dvc.yaml lists each models/risk/<variant> of conf/ as a dependency of evaluate_risk."""
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    deps = set(dvc["evaluate_risk"]["deps"])
+    assert {f"models/risk/{v}" for v in _variants(ROOT)} <= deps
+    assert dvc["train_risk"]["foreach"] == "${risk_model.variants}"
+
+
+@pytest.mark.slow
+def test_train_risk_writes_models_and_curves(ci_dag: Path) -> None:
+    from traffictwin.models.risk_io import load_risk_model
+
+    for v in _variants(ci_dag):
+        d = ci_dag / "models" / "risk" / v
+        m = load_risk_model(d)
+        assert m.meta["variant"] == v and m.meta["label"].startswith("risk")
+        assert m.meta["n_parameters"] > 1_000_000 and m.meta["mlflow_model_uri"]
+        h = pd.read_csv(d / "history.csv")
+        assert len(h) >= 1 and {"step", "train/mse", "val/mse"} <= set(h.columns)
+        assert np.isfinite(h["val/mse"]).all()
+        assert m.meta["best_val_mse"] == pytest.approx(h["val/mse"].min())
+        plot = pd.read_csv(ci_dag / "reports" / "plots" / f"risk_training_{v}.csv")
+        assert plot.equals(h)
+        assert (ci_dag / "reports" / "timings" / f"train_risk-{v}.json").exists()
+
+
+@pytest.mark.slow
+def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import mlflow
+    import mlflow.pytorch
+
+    from traffictwin.io.shards import Dataset
+    from traffictwin.models.dave2 import pack_input, preprocess
+    from traffictwin.models.risk_io import load_risk_model
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ci_dag / 'mlflow.db'}")
+    mlflow.set_tracking_uri(f"sqlite:///{ci_dag / 'mlflow.db'}")
+    shard = Dataset(ci_dag / "data" / "risk", kind="risk").load_shard(0)
+    sgm = Dataset(ci_dag / "data" / "disparity", kind="disparity").load_shard(0)["disp_sgm"]
+    speed = torch.tensor([5.0, 15.0])
+    for v in ("rgbd", "rgbd_speed"):
+        local = load_risk_model(ci_dag / "models" / "risk" / v)
+        x = preprocess(local.cfg, shard["left"][:2], sgm[:2], shard["disp_gt"][:2])
+        with torch.no_grad():
+            ref = local.net(x, speed if local.cfg.use_speed else None)
+            remote = mlflow.pytorch.load_model(local.meta["mlflow_model_uri"]).eval()
+            got = remote(pack_input(local.cfg, x, speed))
+        assert torch.equal(got, ref), v
+    client = mlflow.tracking.MlflowClient()
+    exp = client.get_experiment_by_name("risk")
+    runs = client.search_runs([exp.experiment_id])
+    by_name = {r.info.run_name: r for r in runs}
+    for v in _variants(ci_dag):
+        r = by_name[f"risk-{v}"]
+        assert r.data.params["risk_model.variant"] == v
+        assert "val/mse" in r.data.metrics and "test/mse" in r.data.metrics  # test/* added by evaluate_risk
+        assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == f"train_risk@{v}"
+        hist = client.get_metric_history(r.info.run_id, "val/mse")
+        assert len(hist) == len(pd.read_csv(ci_dag / "models" / "risk" / v / "history.csv"))
+
+
+@pytest.mark.slow
+def test_evaluate_risk_outputs(ci_dag: Path) -> None:
+    from traffictwin.reporting.risk_findings import findings
+
+    metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
+    variants = _variants(ci_dag)
+    assert set(metrics["models"]) == set(variants)
+    assert {"train_mean", "train_median", "geometric"} <= set(metrics["baselines"])
+    for e in [*metrics["models"].values(), *metrics["baselines"].values()]:
+        assert e["test/mse"] >= 0 and e["test/mae"] >= 0 and e["test/thw_mae_s"] >= 0
+        for t in ("at_1.5s", "at_1s"):
+            c = e[t]["confusion"]
+            assert c["tp"] + c["fp"] + c["fn"] + c["tn"] == e["test/n"]
+    assert metrics["paper"]["test/mse"] == 0.0147
+    assert set(metrics["region"]["predictors"]["rgbd"]) == {"risk_thw_paper", "risk_thw_fov"}
+    pred = pd.read_csv(ci_dag / "reports" / "plots" / "risk_predictions.csv")
+    assert len(pred) == metrics["models"]["rgbd"]["test/n"]
+    assert {f"pred_{v}" for v in variants} | {"pred_geometric", "risk_thw_paper", "risk_thw_fov"} <= set(pred.columns)
+    cm = pd.read_csv(ci_dag / "reports" / "plots" / "risk_confusion.csv")
+    assert len(cm) == len(pred) and set(cm["actual"]) <= {"critical", "uncritical"}
+    assert int((cm["actual"] == "critical").sum()) == (
+        metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["tp"] + metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["fn"]
+    )
+    for f in ("risk_training_curves", "risk_scatter", "risk_examples", "risk_confusion"):
+        png = ci_dag / "reports" / "figures" / f"{f}.png"
+        assert png.stat().st_size > 5000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (ci_dag / "reports" / "timings" / "evaluate_risk.json").exists()
+    text = findings(metrics)
+    assert text.startswith("- **Paper comparison") and "camera_fov" in text
