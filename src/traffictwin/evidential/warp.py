@@ -46,10 +46,12 @@ def warp_masses(m: np.ndarray, rel_pose: np.ndarray, grid: GridSpec, interpolati
         src, warp_matrix(rel_pose, grid), (grid.cols, grid.rows),
         flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=(0.0, 0.0, 0.0, 0.0),
     )
-    out = np.clip(np.moveaxis(out, -1, 0), 0.0, 1.0)
-    s = out.sum(0, keepdims=True)
-    out = np.where(s > 1.0, out / np.maximum(s, 1.0), out)
-    return np.ascontiguousarray(out, dtype=np.float32)
+    np.clip(out, 0.0, 1.0, out=out)
+    s = out[..., 0] + out[..., 1]
+    over = s > 1.0
+    if over.any():  # float rounding only: renormalise those cells
+        out[over] /= s[over][:, None]
+    return np.ascontiguousarray(out.transpose(2, 0, 1))
 
 
 def warp_batch(m: np.ndarray, rel_poses: np.ndarray, grid: GridSpec) -> np.ndarray:
