@@ -44,12 +44,14 @@ def run_params(cfg: Any, keys: set[str]) -> dict[str, Any]:
     return out
 
 
-def stage_order(dvc_yaml: Path) -> list[str]:
-    """Stage names in dvc.yaml order (foreach stages as ``name@key``)."""
+def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
+    """Stage names in dvc.yaml order; foreach stages as ``name@key`` (``${a.b}`` resolved in ``cfg``)."""
     data = yaml.safe_load(dvc_yaml.read_text()) or {}
     order: list[str] = []
     for name, st in (data.get("stages") or {}).items():
         items = st.get("foreach") if isinstance(st, dict) else None
+        if isinstance(items, str) and items.startswith("${") and items.endswith("}") and cfg is not None:
+            items = get(cfg, items[2:-1], default=None)
         if isinstance(items, dict):
             order += [f"{name}@{k}" for k in items]
         elif isinstance(items, list):
@@ -77,7 +79,7 @@ def main() -> None:
             configurations=configurations,
             dvc_exp_name=os.environ.get("DVC_EXP_NAME", ""),
             pipeline_run=pipeline_run_id(),
-            stage_order=stage_order(ROOT / "dvc.yaml"),
+            stage_order=stage_order(ROOT / "dvc.yaml", cfg),
         )
         report = write_report(inputs)
     log = setup_logging()

@@ -470,6 +470,48 @@ def risk_tables(src: Sources) -> list[Table]:
     return tables
 
 
+def risk_training_table(src: Sources) -> Table | None:
+    """Per variant: inputs, label, parameters, training time and best validation MSE (risk.json models)."""
+    models = src.get(RISK_FILE, "models")
+    if not isinstance(models, dict) or not models:
+        return None
+    cols = [("n_parameters", "parameters", "int"), ("n_train", "train frames", "int"), ("steps", "steps", "int"),
+            ("best_step", "best step", "int"), ("best_val_mse", "best val MSE", "g4"), ("train_seconds", "train time [s]", "f1")]
+    t = Table("Risk: training of each variant (DAVE-2-like net; paper: 30 epochs, batch 10, Adam)",
+              ["variant", "inputs", "label", *[c[1] for c in cols]], anchor="risk-training")
+    main = src.get(RISK_FILE, "main_variant")
+    for v in sorted(models, key=lambda v: (v != main, v)):
+        m = models[v] if isinstance(models[v], dict) else {}
+        inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
+        t.rows.append([Cell(v), Cell(inputs or NA), Cell(str(m.get("label", NA)))]
+                      + [src.cell(RISK_FILE, f"models.{v}.{k}", f) for k, _, f in cols])
+    return t
+
+
+def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | None:
+    """Metrics files matching ``pattern`` (a regex with one group naming the column) side by side:
+    rows = keys (union, first file's order), columns = files."""
+    files = [(m.group(1), f) for f in src.metrics if (m := re.fullmatch(pattern, f))]
+    if not files:
+        return None
+    keys: list[str] = []
+    for _, f in files:
+        keys += [k for k, v in flatten_numbers(src.metrics[f]) if k not in keys]
+    t = Table(title, ["key", *[name for name, _ in files]], anchor=anchor)
+    for k in keys:
+        row = [Cell(k)]
+        for _, f in files:
+            v = src.get(f, k, ABSENT)
+            if v is ABSENT:
+                row.append(Cell(""))
+            elif isinstance(v, (str, list, bool)):
+                row.append(Cell(str(v)))
+            else:
+                row.append(src.cell(f, k, "int" if isinstance(v, int) else "g4"))
+        t.rows.append(row)
+    return t
+
+
 def risk_data_table(src: Sources) -> Table | None:
     """Frames recorded / dropped by ORB / per split, paper vs this run."""
     if src.get(RISK_FILE, "n_frames") is None:
@@ -593,40 +635,44 @@ def params_table(src: Sources) -> Table:
 
 
 # --------------------------------------------------------------------------- figures
-FigureRule = tuple[str, str, str]  # (filename regex, section, caption)
-FIGURE_RULES: list[FigureRule] = [
-    (r"fusion.*example", "fusion", "Fused maps, network vs baseline per configuration (mirrors the paper's Fig. 4)"),
-    (r"fusion.*kld", "fusion", "KLD distribution over the test set per configuration (mirrors Fig. 5)"),
-    (r"fusion.*(occ|occupied)", "fusion", "Precision / recall / Dice, occupied cells (mirrors Fig. 6)"),
-    (r"fusion.*free", "fusion", "Precision / recall / Dice, free cells (mirrors Fig. 7)"),
-    (r"fusion.*(train|loss|curve)", "fusion", "Fusion training curves"),
-    (r"(fusion|prealign|pose)", "fusion", "Fusion"),
-    (r"disparity", "risk", "SGM disparity (mirrors the risk paper's Fig. 2)"),
-    (r"orb", "risk", "ORB stereo-pair check"),
-    (r"risk.*(train|loss|curve)", "risk", "Risk training / validation error (mirrors Figs. 5 and 6)"),
-    (r"risk.*confusion", "risk", "Risk confusion matrix (mirrors Table 1)"),
-    (r"risk.*(example|scene)", "risk", "Example scenes, metric vs network (mirrors Fig. 7)"),
-    (r"(risk|stereo|camera|thw)", "risk", "Risk"),
+# The figures the stages write (file stem → section, caption), in the order the report shows them.
+KNOWN_FIGURES: list[tuple[str, str, str]] = [
+    ("fusion_data_samples", "fusion", "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)"),
+    ("fusion_qualitative", "fusion", "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)"),
+    ("fusion_kld_boxplot", "fusion", "KLD distribution over the test set per configuration and method (mirrors Fig. 5)"),
+    ("fusion_scores_occupied", "fusion", "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)"),
+    ("fusion_scores_free", "fusion", "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)"),
+    ("stereo_example", "risk", "Left image, SGM disparity and exact disparity (mirrors the risk paper's Fig. 2)"),
+    ("risk_metric_example", "risk", "Grid-map risk metric: scene and worst-time-headway region (cf. Figs. 3 and 4)"),
+    ("orb_outlier_example", "risk", "A stereo pair the ORB check flags (Sec. 3.3)"),
+    ("risk_training_curves", "risk", "Training and validation average error per variant (mirrors Figs. 5 and 6)"),
+    ("risk_confusion", "risk", "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)"),
+    ("risk_scatter", "risk", "Predicted vs true risk on the test split, with the critical threshold"),
+    ("risk_examples", "risk", "Test scenes with true and predicted risk (mirrors Fig. 7)"),
 ]
+_SECTION_PATTERNS = ((r"fusion|prealign|pose|ogm", "fusion"), (r"risk|stereo|disparity|orb|camera|thw", "risk"))
 
 
 def collect_figures(reports_dir: Path) -> dict[str, list[Figure]]:
-    """Images under ``reports/figures`` grouped into 'fusion' / 'risk' / 'other' with captions."""
+    """Images under ``reports/figures``: the known ones in :data:`KNOWN_FIGURES` order with their captions,
+    then any other image, put into 'fusion' / 'risk' by its name or into 'other'."""
     out: dict[str, list[Figure]] = {"fusion": [], "risk": [], "other": []}
     fdir = Path(reports_dir) / "figures"
     if not fdir.is_dir():
         return out
-    for p in sorted(fdir.rglob("*")):
-        if p.suffix.lower() not in IMAGE_SUFFIXES or not p.is_file():
+    files = {p.relative_to(reports_dir).as_posix(): p for p in sorted(fdir.rglob("*"))
+             if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    done: set[str] = set()
+    for stem, section, caption in KNOWN_FIGURES:
+        for rel, p in files.items():
+            if p.stem == stem and rel not in done:
+                out[section].append(Figure(rel, f"{caption} — `{rel}`"))
+                done.add(rel)
+    for rel, p in files.items():
+        if rel in done:
             continue
-        rel = p.relative_to(reports_dir).as_posix()
-        name = p.stem.lower()
-        section, caption = "other", ""
-        for pat, sec, cap in FIGURE_RULES:
-            if re.search(pat, name):
-                section, caption = sec, cap
-                break
-        out[section].append(Figure(rel, f"{caption} — `{rel}`" if caption else f"`{rel}`"))
+        section = next((sec for pat, sec in _SECTION_PATTERNS if re.search(pat, p.stem.lower())), "other")
+        out[section].append(Figure(rel, f"`{rel}`"))
     return out
 
 
@@ -724,6 +770,10 @@ def build_report(inputs: ReportInputs) -> Report:
                              "relative pose, then Dempster's rule (the paper's 'naive fusion').")
     if src.has(FUSION_FILE):
         fusion.tables.extend(fusion_tables(src))
+    tt = files_table(src, r"train_fusion_(\w+)\.json", "Fusion: training per configuration (validation split; "
+                     "`_naive` = the naive fusion on the same pairs)", "fusion-training")
+    if tt:
+        fusion.tables.append(tt)
     else:
         fusion.paragraphs.append(f"`reports/metrics/{FUSION_FILE}` is missing: the fusion evaluation has not run.")
     bullets, note = findings("fusion", root / "metrics")
@@ -736,6 +786,9 @@ def build_report(inputs: ReportInputs) -> Report:
     risk.paragraphs.append(f"Reference: {P.RISK_CITATION}.")
     if src.has(RISK_FILE):
         risk.tables.extend(risk_tables(src))
+        rt = risk_training_table(src)
+        if rt:
+            risk.tables.append(rt)
     else:
         risk.paragraphs.append(f"`reports/metrics/{RISK_FILE}` is missing: the risk evaluation has not run.")
     dt = risk_data_table(src)
@@ -754,7 +807,7 @@ def build_report(inputs: ReportInputs) -> Report:
             data.paragraphs.append(f"`reports/metrics/{file}` is missing.")
 
     appendix = Section("Appendix — every metrics file")
-    shown = {f for f, _ in DATA_FILES}
+    shown = {f for f, _ in DATA_FILES} | {f for f in src.metrics if re.fullmatch(r"train_fusion_\w+\.json", f)}
     for file in src.metrics:
         if file in shown:
             continue
