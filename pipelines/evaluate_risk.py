@@ -74,7 +74,11 @@ def main() -> None:
         raise ConfigError(f"params.yaml: '{k}.thresholds_s' must be a non-empty list of positive seconds, got {thresholds}")
     thw_cap = get(p, f"{k}.thw_cap_s", float, min=0.1)
     batch = get(p, f"{k}.batch_size", int, min=1)
-    variants = list(get(p, "risk_model.variants", dict))
+    defined = get(p, "risk_model.variants", dict)
+    variants = list(get(p, "risk_model.run_variants", list))
+    unknown = [v for v in variants if v not in defined]
+    if not variants or unknown:
+        raise ConfigError(f"params.yaml: 'risk_model.run_variants' must name variants of 'risk_model.variants' {sorted(defined)}, got {variants}")
     main_v = get(p, f"{k}.main_variant", str, choices=variants)
     primary = get(p, "risk_model.label", str, choices=LABELS)
     g = f"{k}.geometric"

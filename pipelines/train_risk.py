@@ -20,7 +20,7 @@ from traffictwin.config import ConfigError, flatten, get
 from traffictwin.io.atomic import atomic_path
 from traffictwin.models.dave2 import Dave2Config, PackedDave2, count_parameters, normalise, pack_input
 from traffictwin.models.risk_io import CKPT, save_risk_model
-from traffictwin.training.common import TrainerSettings, log_checkpoint, log_torch_model, tracked_run
+from traffictwin.training.common import TrainerSettings, global_rank, log_checkpoint, log_torch_model, tracked_run
 from traffictwin.training.risk import LABELS, RiskSource, TrainConfig, fit, prepare_split
 
 from ._common import ROOT, params, setup_logging, stage_timer
@@ -98,6 +98,8 @@ def main(argv: list[str] | None = None) -> None:
         tags = {"variant": variant, "data_manifest": source.risk.manifest_hash(), "label": label}
         with tracked_run("risk", f"risk-{variant}", profile=profile, stage=stage, tags=tags, params=run_params) as run:
             res = fit(cfg, train, val, tc, settings, mlflow_log=run is not None)
+            if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
+                return
             if out_dir.exists():
                 shutil.rmtree(out_dir)
             meta = {

@@ -15,15 +15,18 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _variants(repo: Path) -> list[str]:
-    return list(yaml.safe_load((repo / "params.yaml").read_text())["risk_model"]["variants"])
+    return list(yaml.safe_load((repo / "params.yaml").read_text())["risk_model"]["run_variants"])
 
 
-def test_evaluate_risk_depends_on_every_variant() -> None:
-    """dvc.yaml lists each models/risk/<variant> of conf/ as a dependency of evaluate_risk."""
+def test_dvc_stages_cover_the_configured_variants() -> None:
+    """train_risk runs once per run_variant (each defined in variants); evaluate_risk depends on all of them."""
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())["risk_model"]
+    assert set(params["run_variants"]) <= set(params["variants"])
+    assert {"rgbd", "rgb", "disp", "gtdisp", "rgbd_speed"} <= set(params["run_variants"])  # the default profile
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
-    deps = set(dvc["evaluate_risk"]["deps"])
-    assert {f"models/risk/{v}" for v in _variants(ROOT)} <= deps
-    assert dvc["train_risk"]["foreach"] == "${risk_model.variants}"
+    assert dvc["train_risk"]["foreach"] == "${risk_model.run_variants}"
+    assert dvc["train_risk"]["do"]["outs"] == ["models/risk/${item}"]
+    assert "models/risk" in dvc["evaluate_risk"]["deps"]
 
 
 @pytest.mark.slow
@@ -69,9 +72,10 @@ def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: 
     client = mlflow.tracking.MlflowClient()
     exp = client.get_experiment_by_name("risk")
     runs = client.search_runs([exp.experiment_id])
-    by_name = {r.info.run_name: r for r in runs}
+    by_name = {r.info.run_name: r for r in sorted(runs, key=lambda r: r.info.start_time)}  # newest wins
     for v in _variants(ci_dag):
         r = by_name[f"risk-{v}"]
+        assert r.info.run_id == load_risk_model(ci_dag / "models" / "risk" / v).meta["mlflow_run_id"]
         assert r.data.params["risk_model.variant"] == v
         assert "val/mse" in r.data.metrics and "test/mse" in r.data.metrics  # test/* added by evaluate_risk
         assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == f"train_risk@{v}"

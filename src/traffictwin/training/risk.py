@@ -447,7 +447,8 @@ def fit(
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm)
         seconds = time.perf_counter() - t0
-        best_path = getattr(ckpt, "best_model_path", "") if not fast_dev_run else ""
+        # under DDP only rank zero's checkpoint folder holds the file; only rank zero writes outputs
+        best_path = getattr(ckpt, "best_model_path", "") if not fast_dev_run and trainer.is_global_zero else ""
         best_step = -1
         if best_path:
             blob = torch.load(best_path, map_location="cpu", weights_only=False)
