@@ -109,6 +109,14 @@ def orb_metrics(df: pd.DataFrame) -> dict:
         part = df[df.split == s]
         if len(part):
             m[f"{s}/dropped_share"] = float(part.outlier.mean())
+    # sensitivity of the rule's |dy| threshold (same per-frame statistics, no re-matching)
+    for thr in (1.0, 2.0, 3.0, 5.0):
+        flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
+        m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = float(flag[~faulty].mean()) if (~faulty).any() else float("nan")
+        for f in ("delay", "vertical"):
+            sel = df.fault == f
+            if sel.any():
+                m[f"sweep/max_dy_{thr:g}_{f}_detection_rate"] = float(flag[sel].mean())
     m["none/mean_dy_median"] = float(df.mean_dy[~faulty].median()) if (~faulty).any() else float("nan")
     m["none/mean_dx_median"] = float(df.mean_dx[~faulty].median()) if (~faulty).any() else float("nan")
     return m
