@@ -92,7 +92,7 @@ def kld_boxplot(
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(handles=handles, fontsize=8, loc="upper left")
+    ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     return _save(fig, path)
 
 
@@ -121,7 +121,7 @@ def scores_plot(
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("score")
     axes[0].set_ylim(0, 1.02)
-    axes[-1].legend(fontsize=7, loc="lower left")
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle(f"Classification scores for {name} cells vs pose-noise configuration (test set)")
     return _save(fig, path)
 

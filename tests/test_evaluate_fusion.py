@@ -1,0 +1,206 @@
+"""Fusion evaluation: baselines, figures and findings (fast, synthetic) and stage evaluate_fusion on the ci DAG."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from traffictwin.evaluation.fusion_baselines import (
+    EvalSettings,
+    evaluate_prealigned,
+    evaluate_registered,
+    fuse_prealigned,
+)
+from traffictwin.evidential.dempster import dempster
+from traffictwin.grid import GridSpec
+from traffictwin.reporting.fusion_findings import fusion_findings
+
+CFGS = ("A", "B", "C", "D")
+METHODS = ("ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn")
+
+
+def random_masses(rng: np.random.Generator, n: int, h: int = 16, w: int = 12) -> np.ndarray:
+    d = rng.dirichlet([1.0, 1.0, 1.0], size=(n, h, w))
+    return np.moveaxis(d[..., :2], -1, 1).astype(np.float32)
+
+
+def png_ok(path: Path) -> None:
+    """A valid PNG with content: PNG signature, decodable, several distinct colours."""
+    import matplotlib.image as mpimg
+
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100, path
+    assert len(np.unique(img[..., :3].reshape(-1, 3).round(2), axis=0)) > 20, f"{path}: (almost) blank image"
+
+
+# -- library (fast) ---------------------------------------------------------------------------------
+def test_prealigned_baselines():
+    rng = np.random.default_rng(0)
+    m1, m2 = random_masses(rng, 3), random_masses(rng, 3)
+    inputs = np.concatenate([m1, m2], axis=1)
+    np.testing.assert_array_equal(fuse_prealigned(inputs, "ego"), m1)
+    np.testing.assert_allclose(fuse_prealigned(inputs, "naive"), dempster(m1, m2), atol=1e-6)
+    c = fuse_prealigned(np.concatenate([m1, m1], axis=1), "naive-cautious")
+    np.testing.assert_allclose(c, m1, atol=1e-5)  # idempotent
+    with pytest.raises(ValueError, match="unknown prealigned fusion method"):
+        fuse_prealigned(inputs, "bayes")
+    with pytest.raises(ValueError, match="inputs must have shape"):
+        fuse_prealigned(m1, "naive")
+
+
+def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
+    rng = np.random.default_rng(1)
+    m1, m2 = random_masses(rng, 5), random_masses(rng, 5)
+    inputs = np.concatenate([m1, m2], axis=1)
+    label = dempster(m1, m2)
+    frame, auroc = evaluate_prealigned(inputs, label, "naive", EvalSettings(batch_size=2))
+    assert len(frame) == 5 and (frame["ms"] >= 0).all()
+    np.testing.assert_allclose(frame["kld_fo"], 0, atol=1e-6)
+    assert (frame["dice_occ"].fillna(1) == 1).all() and (frame["dice_free"].fillna(1) == 1).all()
+    assert auroc.n_wrong == 0 and math.isnan(auroc.value())
+    ego, _ = evaluate_prealigned(inputs, label, "ego", EvalSettings())
+    assert (ego["kld_fo"] > 0).all()
+
+
+def test_evaluate_registered_on_synthetic_pair():
+    from test_registration import render, structured_world
+
+    from traffictwin.evaluation.fusion_metrics import kld_fo
+    from traffictwin.evaluation.registration import RegistrationParams
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.sim.scene import relative_pose
+
+    grid = GridSpec(128, 96, 0.5)
+    world, pw = structured_world(1, grid)
+    p1, p2 = np.array([2.0, -3.0, 0.2]), np.array([12.0, 4.0, 0.7])
+    m1, m2 = render(world, pw, p1, grid), render(world, pw, p2, grid)
+    true = relative_pose(p1, p2)[None]
+    noisy = true + np.array([[2.0, -1.0, np.radians(9.0)]])
+    label = dempster(m1, warp_masses(m2, true[0], grid))[None]
+    frame, _ = evaluate_registered(m1[None], m2[None], noisy, true, label, grid, RegistrationParams(), EvalSettings())
+    row = frame.iloc[0]
+    assert row["reg_accepted"] and row["reg_success"]
+    assert row["reg_trans_err_m"] < 0.25 < row["noisy_trans_err_m"]
+    naive = dempster(m1, warp_masses(m2, noisy[0], grid))[None]
+    assert row["kld_fo"] < 0.2 * kld_fo(label, naive)[0]
+
+
+def _metrics(net: dict[str, float], naive: dict[str, float]) -> dict:
+    test = {}
+    for c in CFGS:
+        base = {"kld_fo_q25": 0.1, "kld_fo_q75": 0.3, "dice_occ": 0.8, "precision_occ": 0.8, "recall_free": 0.9}
+        test[c] = {
+            "naive": {**base, "kld_fo_mean": naive[c], "kld_fo_q75": 0.1 + 2 * naive[c]},
+            "dnn": {**base, "kld_fo_mean": net[c], "dice_occ": 0.9 if net[c] < naive[c] else 0.5,
+                    "precision_occ": 0.7, "recall_free": 0.8, "u_auroc": 0.8},
+            "registered": {**base, "kld_fo_mean": (net[c] + naive[c]) / 2, "success_rate": 0.5,
+                           "residual_trans_m_median": 0.2, "noisy_trans_m_median": 1.0},
+        }
+    return {"test": test, "cross": {f"dnn-{c}": {t: {"kld_fo_mean": 0.1 if c == t else 0.2} for t in CFGS} for c in CFGS}}
+
+
+def test_findings_follow_the_numbers():
+    paper_like = fusion_findings(_metrics({"A": 0.2, "B": 0.2, "C": 0.25, "D": 0.3}, {"A": 0.0, "B": 0.4, "C": 0.6, "D": 0.8}))
+    assert "3/3 configurations (B, C, D)" in paper_like and "this reproduces" in paper_like
+    assert "Configuration A (no noise):** the network's mean KLD is 0.200 vs naive 0.000" in paper_like
+    assert "worse than" in paper_like and "between naive and the network" in paper_like
+    assert "A 0.800" in paper_like and "above chance" in paper_like
+    assert "A: dnn-A, B: dnn-B" in paper_like
+    opposite = fusion_findings(_metrics({c: 1.0 for c in CFGS}, {c: 0.1 for c in CFGS}))
+    assert "0/3 configurations (none)" in opposite and "does not reproduce" in opposite
+    assert fusion_findings({}).startswith("## Fusion findings")
+
+
+def test_figures_are_valid_pngs(tmp_path):
+    from traffictwin.reporting.fusion_figs import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
+
+    rng = np.random.default_rng(2)
+    vals = {m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)} for m in ("naive", "dnn")}
+    png_ok(kld_boxplot(vals, CFGS, ["naive", "dnn"], tmp_path / "box.png"))
+    scores = {m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS} for m in ("naive", "dnn")}
+    png_ok(scores_plot(scores, CFGS, ["naive", "dnn"], "occ", tmp_path / "occ.png"))
+    maps = random_masses(rng, 4, 64, 48)
+    png_ok(qualitative_grid({"label": list(maps), "naive": list(maps[::-1])}, CFGS, tmp_path / "q.png"))
+    rgb = masses_to_rgb(np.array([[[1.0]], [[0.0]]]))
+    np.testing.assert_array_equal(rgb[0, 0], [0, 1, 0])  # free = green
+
+
+# -- stage on the ci DAG (slow) ---------------------------------------------------------------------
+def _declared_outputs(repo: Path) -> list[Path]:
+    stage = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]["evaluate_fusion"]
+    paths = []
+    for key in ("outs", "metrics", "plots"):
+        for item in stage.get(key, []):
+            paths.append(repo / (next(iter(item)) if isinstance(item, dict) else item))
+    return paths
+
+
+@pytest.mark.slow
+def test_stage_writes_every_declared_output(ci_dag: Path):
+    outs = _declared_outputs(ci_dag)
+    assert len(outs) >= 10
+    for p in outs:
+        assert p.exists() and p.stat().st_size > 0, p
+        if p.suffix == ".png":
+            png_ok(p)
+    for name in ("fusion_kld_boxplot", "fusion_scores_occupied", "fusion_scores_free", "fusion_qualitative"):
+        assert (ci_dag / "reports" / "figures" / f"{name}.png") in outs
+
+
+@pytest.mark.slow
+def test_stage_metrics_layout_and_values(ci_dag: Path):
+    m = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
+    assert sorted(m["test"]) == list(CFGS)
+    for c in CFGS:
+        for meth in METHODS:
+            v = m["test"][c][meth]
+            for k in ("kld_fo_mean", "kld_fou_mean", "dice_occ", "precision_free", "recall_free", "u_mean", "ms_per_pair"):
+                assert v[k] is not None and math.isfinite(v[k]), (c, meth, k)
+            assert v["kld_fo_mean"] >= 0 and 0 <= v["dice_occ"] <= 1
+        assert 0 <= m["test"][c]["registered"]["success_rate"] <= 1
+        assert m["test"][c]["dnn"]["u_auroc"] is None or 0 <= m["test"][c]["dnn"]["u_auroc"] <= 1
+    # zero noise: the naive fusion is the label's construction
+    assert m["test"]["A"]["naive"]["kld_fo_mean"] < 1e-6 and m["test"]["A"]["naive"]["dice_occ"] == 1.0
+    assert sorted(m["cross"]) == [f"dnn-{c}" for c in CFGS] and all(sorted(m["cross"][k]) == list(CFGS) for k in m["cross"])
+    assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]
+    samples = pd.read_csv(ci_dag / "reports" / "fusion_eval_samples.csv")
+    n = m["n_pairs"]["per_config"]
+    assert (samples[samples.method == "naive"].groupby("config").size() == n).all()
+    assert (samples[samples.method == "registered"].groupby("config").size() == m["n_pairs"]["registered"]).all()
+    # the same pairs and noise draws for every method of a configuration
+    for c in CFGS:
+        s = samples[samples.config == c]
+        ids = {meth: sorted(g.pair_id) for meth, g in s.groupby("method") if not meth.startswith("dnn-")}
+        assert ids["naive"] == ids["dnn"] == ids["ego"]
+    findings = (ci_dag / "reports" / "fusion_findings.md").read_text()
+    assert findings == fusion_findings(m)
+
+
+@pytest.mark.slow
+def test_naive_at_configuration_A_equals_the_label_exactly(ci_dag: Path):
+    from traffictwin.io.shards import Dataset
+
+    d = Dataset(ci_dag / "data" / "prealigned" / "A", kind="prealigned").load_all("test")
+    assert np.all(d["noise"] == 0)
+    np.testing.assert_allclose(fuse_prealigned(d["inputs"], "naive"), d["label"], atol=1e-6)
+
+
+@pytest.mark.slow
+def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
+    from mlflow.tracking import MlflowClient
+
+    m = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
+    client = MlflowClient(tracking_uri=f"sqlite:///{ci_dag / 'mlflow.db'}")
+    for c in CFGS:
+        run_id = json.loads((ci_dag / "models" / "fusion" / c / "model_meta.json").read_text())["mlflow_run_id"]
+        logged = client.get_run(run_id).data.metrics
+        assert logged["test/kld_fo_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fo_mean"])
+        assert logged["test_naive/dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
+        assert f"cross_{c}/kld_fo_mean" in logged
