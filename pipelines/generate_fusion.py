@@ -13,7 +13,6 @@ import sys
 import time
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from pipelines._common import ROOT, params, setup_logging, stage_timer
@@ -76,7 +75,8 @@ def spec_from_params(cfg: Any) -> tuple[FusionDataParams, int]:
         encounters_per_scenario=get(cfg, f"{K}.encounters_per_scenario", int, min=1),
         encounter_spacing=get(cfg, f"{K}.encounter_spacing", float, min=0.0),
         t_meet=get(cfg, f"{K}.t_meet", float, min=0.0),
-        meet_distance=(float(md[0]), float(md[1])), density={k: float(v) for k, v in traffic.items()},
+        meet_distance=(float(md[0]), float(md[1])),
+        density={k: (tuple(v) if isinstance(v, (list, tuple)) else float(v)) for k, v in traffic.items()},
         templates=templates,
     )
     return p, scenarios // per_shard
@@ -144,16 +144,9 @@ def main(argv: list[str] | None = None) -> None:
             "fusion_data/scenarios": n_shards * p.scenarios_per_shard,
             "fusion_data/pairs_per_s": round(n_new / elapsed, 2) if n_new and elapsed > 0 else None,
         })
-        # figure: the first pair of shards spread over the dataset (different scenarios/templates)
-        from traffictwin.reporting.fusion_data_fig import plot_fusion_samples
+        from traffictwin.reporting.fusion_data_fig import pick_samples, plot_fusion_samples
 
-        ds = Dataset(OUT, kind="fusion")
-        picks = np.unique(np.linspace(0, len(ds.shards) - 1, n_fig).round().astype(int))
-        samples = []
-        for si in picks:
-            sh = ds.load_shard(int(si))
-            samples.append({k: sh[k][0] for k in ("map1", "map2", "label", "pose1", "pose2")}
-                           | {"template": TEMPLATES[int(sh["template"][0])], "pair_id": int(sh["pair_id"][0])})
+        samples = pick_samples(Dataset(OUT, kind="fusion"), n_fig)
         plot_fusion_samples(FIGURE, samples, p.grid, title="Fusion data: two input maps with poses and the Dempster label")
         log.info("generate_fusion: %d pairs (%s) in %.1f s", manifest["count"], manifest["split_counts"], elapsed)
 

@@ -7,6 +7,7 @@ Colour coding of a mass grid: free = green, occupied = red, unknown = grey, mixe
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,6 +24,24 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     f, o = m[0][..., None], m[1][..., None]
     u = np.clip(1.0 - f - o, 0.0, 1.0)
     return np.clip(f * FREE + o * OCC + u * UNKNOWN, 0.0, 1.0)
+
+
+def pick_samples(ds: "Any", n: int) -> list[dict[str, Any]]:
+    """The first pair of the first ``n`` scenarios of a ``data/fusion`` dataset (consecutive
+    scenarios use different road templates)."""
+    from ..sim.world import TEMPLATES
+
+    samples: list[dict[str, Any]] = []
+    for si in range(len(ds.shards)):
+        sh = ds.load_shard(si)
+        _, first = np.unique(sh["scenario"], return_index=True)
+        for i in first[: n - len(samples)]:
+            s = {k: sh[k][i] for k in ("map1", "map2", "label", "pose1", "pose2")}
+            s.update(template=TEMPLATES[int(sh["template"][i])], pair_id=int(sh["pair_id"][i]))
+            samples.append(s)
+        if len(samples) >= n:
+            break
+    return samples
 
 
 def plot_fusion_samples(
