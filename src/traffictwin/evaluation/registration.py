@@ -3,19 +3,26 @@
 Given map 1, map 2 (each in its own sensor frame) and the *noisy* relative pose of map 2's
 sensor in map 1's frame, estimate a better relative pose from the maps themselves:
 
-1. **Prealign.** Warp map 2's feature image into map 1's frame with the noisy pose.
+1. **Prealign.** Warp map 2's feature image (default: ``m_O`` — on lidar maps the free-space
+   fans are centred on each sensor and mislead the matching, occupancy is the shared structure)
+   into map 1's frame with the noisy pose.
 2. **Coarse rotation** (Fourier–Mellin): magnitude spectra of both (square-padded, Hann-windowed,
    high-pass filtered) feature images are translation invariant; in log-polar coordinates
    a rotation is a cyclic shift along the angle axis, found by phase correlation. The spectrum is
-   point symmetric, so the angle is known modulo 180°; the candidate in (−90°, 90°] is kept, and
-   the prior (0°, i.e. trust the noisy pose) is always a candidate too; optionally a small grid of
-   angles around 0 (``search_step_deg``) is added for robustness on partially overlapping maps.
-3. **Coarse translation**: for each candidate angle, rotate and phase-correlate
-   (``cv2.phaseCorrelate``); the candidate with the best masked correlation coefficient wins.
-4. **Refinement**: ``cv2.findTransformECCWithMask`` (``MOTION_EUCLIDEAN``) on the raw map 2,
-   restricted to cells known in map 1 and map 2, started from the coarse estimate.
+   point symmetric, so the angle is known modulo 180°; the candidate in [−90°, 90°) is kept, and
+   the prior (0°, i.e. trust the noisy pose) is always a candidate too. With partially
+   overlapping maps the spectrum's angle is often wrong, so a grid of angles in
+   ``±max_rot_deg`` (``search_step_deg``, default 2°) is tried as well.
+3. **Coarse translation**: for each candidate angle, rotate and phase-correlate with the shift
+   searched within ``max_trans_m`` only (:class:`BoundedPhaseCorrelator`, same convention as
+   ``cv2.phaseCorrelate`` but zero-padded and bounded: the unbounded peak often locks onto the
+   edges of the maps' known areas); the candidate with the best masked correlation wins.
+4. **Refinement**: ``cv2.findTransformECCWithMask`` (``MOTION_EUCLIDEAN``) in the prealigned
+   frame, restricted to cells known in both maps, started from the coarse estimate. (OpenCV's
+   Euclidean ECC recovers its angle with ``asin``, so it only works for |rotation| < 90°: the
+   often ~180° relative yaw of oncoming vehicles stays in the prealignment.)
 5. **Fallback**: the estimate is accepted only if its masked correlation beats the noisy pose's by
-   ``min_gain``, reaches ``min_cc`` and the correction stays within ``max_trans_m`` /
+   more than ``min_gain``, reaches ``min_cc`` and the correction stays within ``max_trans_m`` /
    ``max_rot_deg``; otherwise the noisy pose is returned (``accepted = False``).
 
 Geometry (DESIGN.md grid convention): cell (row v, col u) has its centre at
