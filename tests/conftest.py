@@ -16,10 +16,22 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-_IGNORE = shutil.ignore_patterns(
-    ".venv", ".git", "data", "models", "mlflow.db*", "mlartifacts", "mlruns", "__pycache__", ".pytest_cache",
-    "cache", "tmp", "outputs", "multirun", ".benchmarks", "incoming", "*.egg-info", ".gl", ".whl",
+_ANYWHERE = shutil.ignore_patterns(
+    ".venv", ".git", "mlflow.db*", "mlartifacts", "mlruns", "__pycache__", ".pytest_cache", "*.egg-info",
 )
+# generated or local-only folders, ignored only at the repository root (src/traffictwin/models must be copied)
+_TOP_LEVEL = {"data", "models", "outputs", "multirun", ".benchmarks", "incoming", ".gl", ".whl", ".retrain.lock"}
+_DVC_LOCAL = {"cache", "tmp"}
+
+
+def _ignore(folder: str, names: list[str]) -> set[str]:
+    here = Path(folder).resolve()
+    skip = set(_ANYWHERE(folder, names))
+    if here == ROOT:
+        skip |= _TOP_LEVEL & set(names)
+    elif here == ROOT / ".dvc":
+        skip |= _DVC_LOCAL & set(names)
+    return skip
 
 
 def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
@@ -36,7 +48,7 @@ def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
 
 def copy_repo(dest: Path) -> Path:
     """Copy the working tree (no venv, data, models, MLflow db) into ``dest`` as a fresh git+DVC repo."""
-    shutil.copytree(ROOT, dest, ignore=_IGNORE, symlinks=True)
+    shutil.copytree(ROOT, dest, ignore=_ignore, symlinks=True)
     for rel in ("reports/metrics", "reports/figures", "reports/plots", "reports/timings"):
         shutil.rmtree(dest / rel, ignore_errors=True)
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
