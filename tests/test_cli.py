@@ -239,7 +239,8 @@ def test_risk_pair_round_trip_equals_library(tmp_path, risk_dir, stereo_pair, ca
     assert res["risk"] == pytest.approx(float(p), abs=1e-6)
     assert res["orb_outlier"] == orb.outlier is False and res["orb_mean_dx"] == pytest.approx(orb.mean_dx)
     assert res["disp_median_px"] == pytest.approx(6.0, abs=1.0)
-    assert res["critical"] == (res["thw_s"] < 1.5) and res["speed_m_s"] == 12.0
+    assert res["critical"] == (res["thw_s"] is not None and res["thw_s"] < 1.5) and res["speed_m_s"] == 12.0
+    assert cli.json_safe({"a": [float("inf"), 1.0], "b": float("nan")}) == {"a": [None, 1.0], "b": None}
 
 
 def test_risk_folder_writes_csv(tmp_path, risk_dir, stereo_pair, capsys):

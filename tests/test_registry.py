@@ -185,6 +185,6 @@ def test_evaluation_without_gate_metric_is_an_error(cl):
 def test_log_appends_lines(tmp_path):
     p = tmp_path / "log.jsonl"
     reg.append_log(p, {"a": 1})
-    reg.append_log(p, {"b": np.float32(2.5)})
-    assert reg.read_log(p) == [{"a": 1}, {"b": 2.5}]
+    reg.append_log(p, {"b": np.float32(2.5), "c": [float("nan"), float("inf")]})
+    assert reg.read_log(p) == [{"a": 1}, {"b": 2.5, "c": [None, None]}]  # strict JSON: non-finite -> null
     assert math.isclose(reg.read_log(p)[1]["b"], 2.5)

@@ -22,7 +22,9 @@ Input formats
   value write ``--pose1=-3,2,0.1``).
 - Stereo pairs (``risk``): rectified 8-bit images readable by OpenCV (PNG, JPEG…) of equal size.
   A folder holds pairs named ``<id>_left.<ext>`` / ``<id>_right.<ext>``; the result is a CSV with
-  one row per ``<id>``.
+  one row per ``<id>``. JSON output writes ``thw_s``/``gap_m`` as ``null`` when no vehicle is
+  ahead (THW infinite); the CSV writes ``inf``. SGM/ORB settings come from ``risk_data.sgm`` /
+  ``risk_data.orb`` of ``--params`` (default: the project's params.yaml), as in the pipeline.
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
@@ -54,6 +56,17 @@ SIMPLEX_TOL = 1e-4
 DIVISOR = 16
 ALIASES = ("champion", "challenger")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with non-finite floats replaced by ``None`` (strict JSON; e.g. THW = inf -> null)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 class CliError(Exception):
@@ -114,7 +127,7 @@ def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
         )
     m = np.clip(m, 0.0, 1.0)
     s = m.sum(0, keepdims=True)
-    m = np.where(s > 1.0, m / s, m).astype(np.float32)
+    m = (m / np.maximum(s, 1.0)).astype(np.float32)
     cell = None
     if "cell" in data:
         c = np.asarray(data["cell"])
@@ -323,7 +336,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     summary = {"output": str(npz_path), "preview": str(png_path), "model": desc, "grid": [h, w], "cell_m": cell,
                "rel_pose": [float(v) for v in rel], "fuse_ms": round(ms, 2),
                "mean_u": float(u.mean()), "occupied_cells": int(((m[1] + u / 2) > 0.5).sum())}
-    print(json.dumps(summary, indent=2))
+    print(json.dumps(json_safe(summary), indent=2))
     return 0
 
 
@@ -442,7 +455,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
         else:
             sys.stdout.write(buf.getvalue())
     else:
-        res = {**rows[0], "model": desc, "stereo_settings": st.source}
+        res = json_safe({**rows[0], "model": desc, "stereo_settings": st.source})
         if args.output:
             write_json_atomic(args.output, res)
         print(json.dumps(res, indent=2, default=str))

@@ -14,6 +14,9 @@ Promotion protocol (:func:`decide` then :func:`apply`):
    versions: a stored figure may come from a different test set (a retrain draws new data)
    or older metric code. The test-set fingerprint (dataset manifest hash + split) is recorded
    with every decision so that the figures can be traced to the data they were measured on.
+   A champion that can no longer be evaluated on the current test set (e.g. trained for another
+   grid) gets the figure NaN and is replaced by any challenger with a finite figure; the error
+   is kept in the decision's reason.
 3. ``champion`` moves to the challenger only if it is better by more than ``margin`` on the
    configured metric (:class:`Gate`); the first version of a model becomes champion.
    ``challenger`` always points to the newest candidate. Old versions stay registered.
@@ -391,7 +394,19 @@ def append_log(path: str | Path, record: Mapping[str, Any]) -> None:
     old = path.read_text() if path.exists() else ""
     if old and not old.endswith("\n"):
         old += "\n"
-    write_text_atomic(path, old + json.dumps(dict(record), sort_keys=True, default=_json_default) + "\n")
+    line = json.dumps(_finite(dict(record)), sort_keys=True, default=_json_default, allow_nan=False)
+    write_text_atomic(path, old + line + "\n")
+
+
+def _finite(obj: Any) -> Any:
+    """Non-finite floats -> None, recursively (strict JSON lines)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    return obj
 
 
 def read_log(path: str | Path) -> list[dict[str, Any]]:
