@@ -54,7 +54,9 @@ def model_config(p, variant: str) -> tuple[Dave2Config, str]:
 
 def train_config(p) -> tuple[TrainConfig, int | None]:
     t = "risk_model.train"
-    lvb = get(p, f"{t}.limit_val_batches", (int, float), min=0)
+    lvb = get(p, f"{t}.limit_val_batches")  # int = number of batches, float = fraction (keep the type)
+    if isinstance(lvb, bool) or not isinstance(lvb, (int, float)) or lvb <= 0 or (isinstance(lvb, float) and lvb > 1):
+        raise ConfigError(f"params.yaml: '{t}.limit_val_batches' must be a batch count (int >= 1) or a fraction in (0, 1], got {lvb!r}")
     tc = TrainConfig(
         epochs=get(p, f"{t}.epochs", int, min=1),
         batch_size=get(p, f"{t}.batch_size", int, min=1),

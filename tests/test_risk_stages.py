@@ -112,3 +112,28 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     assert (ci_dag / "reports" / "timings" / "evaluate_risk.json").exists()
     text = findings(metrics)
     assert text.startswith("- **Paper comparison") and "camera_fov" in text
+
+
+def test_stage_config_is_checked() -> None:
+    """train_risk reads the variant, label and training settings with errors that name the key."""
+    from omegaconf import OmegaConf
+
+    from pipelines.train_risk import model_config, train_config
+    from traffictwin.config import ConfigError
+
+    p = OmegaConf.create(yaml.safe_load((ROOT / "params.yaml").read_text()))
+    cfg, label = model_config(p, "rgbd_fov")
+    assert cfg.inputs == ("rgb", "disp_sgm") and label == "risk_thw_fov"
+    cfg, label = model_config(p, "rgbd_speed")
+    assert cfg.use_speed and label == p.risk_model.label
+    with pytest.raises(ConfigError, match="no variant 'nope'"):
+        model_config(p, "nope")
+    p.risk_model.train.limit_val_batches = 5
+    tc, _ = train_config(p)
+    assert tc.limit_val_batches == 5 and isinstance(tc.limit_val_batches, int)
+    p.risk_model.train.limit_val_batches = 1.5
+    with pytest.raises(ConfigError, match="limit_val_batches"):
+        train_config(p)
+    p.risk_model.variants.rgbd.inputs = ["rgb", "depth"]
+    with pytest.raises(ConfigError, match="variant 'rgbd'.*unknown channel group"):
+        model_config(p, "rgbd")
