@@ -335,3 +335,10 @@ def test_console_script_exit_status(tmp_path):
                           capture_output=True, text=True, cwd=tmp_path)
     assert proc.returncode == 1 and "x.npz: file not found" in proc.stderr
     assert not any(tmp_path.iterdir())
+
+
+def test_promote_delegates_to_the_pipeline(capfd):
+    """`traffictwin promote` runs pipelines.promote in the project; an unknown model is an error naming it."""
+    assert cli.main(["promote", "--only", "traffictwin-fusion-Q", "--dry-run"]) == 1
+    err = capfd.readouterr().err
+    assert "unknown model(s) ['traffictwin-fusion-Q']" in err and "traffictwin-risk" in err
