@@ -1,0 +1,101 @@
+"""DVC experiments and MLflow: two `dvc exp run -S ...` experiments on the ci profile, one in the
+workspace and one queued (run in a temp copy under .dvc/tmp/exps), both appear in `dvc exp show`
+/ `dvc exp diff` and as MLflow runs in the repository's own database, with their artifacts beside it.
+
+Cheap on purpose: it starts from the finished ci DAG (`ci_dag`, copied so the shared fixture stays
+untouched) and re-runs a single training stage per experiment.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from conftest import run, stage_env
+from traffictwin.runs import compare_runs, format_runs
+
+STAGE = "train_risk@rgbd"
+PARAM = "risk_model.train.lr"
+
+
+def clone_dag(src: Path, dest: Path) -> Path:
+    """Copy a repo with its DVC cache, data and models; commit everything git tracks; drop its MLflow store."""
+    shutil.copytree(src, dest, symlinks=True, ignore=shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns"))
+    shutil.rmtree(dest / ".dvc" / "tmp", ignore_errors=True)
+    # no run cache: a stage restored from it would not train, hence log no MLflow run
+    shutil.rmtree(dest / ".dvc" / "cache" / "runs", ignore_errors=True)
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    subprocess.run([*git, "add", "-A"], cwd=dest, check=True)
+    subprocess.run([*git, "commit", "-q", "--allow-empty", "-m", "ci DAG done"], cwd=dest, check=True)
+    return dest
+
+
+def user_env(repo: Path) -> dict[str, str]:
+    """A user's shell: no MLFLOW_TRACKING_URI / TRAFFICTWIN_REPO_ROOT, so the default store must be found."""
+    env = stage_env(repo)
+    for var in ("MLFLOW_TRACKING_URI", "TRAFFICTWIN_REPO_ROOT", "TRAFFICTWIN_PIPELINE_RUN", "DVC_ROOT", "DVC_EXP_NAME"):
+        env.pop(var, None)
+    return env
+
+
+def _exps(show: list[dict]) -> dict[str, dict]:
+    out = {}
+    for base in show:
+        for exp in base.get("experiments") or []:
+            for rev in exp["revs"]:
+                out[rev["name"]] = rev
+    return out
+
+
+@pytest.mark.slow
+def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(ci_dag: Path, tmp_path: Path) -> None:
+    repo = clone_dag(ci_dag, tmp_path / "exp_repo")
+    env = user_env(repo)
+    head = run(["git", "rev-parse", "HEAD"], repo, env=env).stdout.strip()
+
+    run(["dvc", "exp", "run", "-n", "exp-ws", "-S", "profile=ci", "-S", f"{PARAM}=0.002", STAGE], repo, env=env)
+    run(["dvc", "exp", "run", "--queue", "-n", "exp-q", "-S", "profile=ci", "-S", f"{PARAM}=0.003", STAGE], repo, env=env)
+    run(["dvc", "exp", "run", "--run-all"], repo, env=env)
+
+    # --- DVC: both experiments, with their parameter
+    exps = _exps(json.loads(run(["dvc", "exp", "show", "--json"], repo, env=env).stdout))
+    assert {"exp-ws", "exp-q"} <= set(exps), sorted(exps)
+    for name, lr in (("exp-ws", 0.002), ("exp-q", 0.003)):
+        params = exps[name]["data"]["params"]["params.yaml"]["data"]
+        assert params["risk_model"]["train"]["lr"] == lr and params["profile"]["name"] == "ci"
+    diff = json.loads(run(["dvc", "exp", "diff", "exp-ws", "exp-q", "--json"], repo, env=env).stdout)
+    assert diff["params"]["params.yaml"][PARAM] == {"old": 0.002, "new": 0.003, "diff": pytest.approx(0.001)}
+
+    # --- MLflow: both runs in the repository's own database (the queued one ran under .dvc/tmp/exps)
+    db = repo / "mlflow.db"
+    assert db.exists()
+    assert not list((repo / ".dvc").rglob("mlflow.db"))
+    df = compare_runs("risk", uri=f"sqlite:///{db}", filter_string=f"tags.dvc_stage = '{STAGE}'")
+    exp_rows = df[df["dvc_exp_name"].isin(["exp-ws", "exp-q"])].set_index("dvc_exp_name")
+    assert sorted(exp_rows.index) == ["exp-q", "exp-ws"], df[["run_name", "dvc_exp_name"]]
+    assert exp_rows.loc["exp-ws", f"param:{PARAM}"] == "0.002"
+    assert exp_rows.loc["exp-q", f"param:{PARAM}"] == "0.003"
+    for name in ("exp-ws", "exp-q"):
+        row = exp_rows.loc[name]
+        assert row["git_commit"] == head[:8]  # the baseline commit, not the temp copy's
+        assert row["pipeline_run"].startswith(head[:8])
+        assert row["profile"] == "ci"
+    assert exp_rows.loc["exp-ws", "pipeline_run"] != exp_rows.loc["exp-q", "pipeline_run"]
+    q_run = exp_rows.loc["exp-q", "run_id"]
+
+    # artifacts (checkpoint) beside the database, not in the deleted temp copy
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{db}")
+    art = client.get_run(q_run).info.artifact_uri
+    assert art.startswith((repo / "mlartifacts").resolve().as_uri()), art
+    files = [p for p in (repo / "mlartifacts").rglob("*") if q_run in str(p) and p.is_file()]
+    assert files, "queued experiment's artifacts missing"
+
+    # the CLI-facing formatter shows both experiments
+    text = format_runs(df)
+    assert "exp-ws" in text and "exp-q" in text
