@@ -362,3 +362,54 @@ def test_paper_numbers_agree_with_risk_evaluation() -> None:
     assert PAPER["threshold_s"] == P.RISK["thw_threshold_s"].value
     assert PAPER["confusion"] == {k: v.value for k, v in P.RISK_CONFUSION.items()}
     assert PAPER["n_frames"] == P.RISK["n_effective"].value
+
+
+# --------------------------------------------------------------------------- the ci DAG's report
+def _stage_inputs(repo: Path) -> tuple[dict[str, Any], dict[str, tuple[float, float]]]:
+    """run_params and configurations exactly as the report stage derives them from the repo's params.yaml."""
+    from pipelines.report import profile_keys, run_params
+    from traffictwin.config import load_params
+
+    cfg = load_params(repo / "params.yaml")
+    confs = {k: (float(v["r"]), float(v["alpha"])) for k, v in cfg["configurations"].items()}
+    return run_params(cfg, profile_keys(repo / "conf" / "profile")), confs
+
+
+@pytest.mark.slow
+def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
+    from conftest import run
+
+    reports = ci_dag / "reports"
+    for name in ("README.md", "index.html", "results_table.md"):
+        assert (reports / name).is_file(), name
+    run_params, confs = _stage_inputs(ci_dag)
+    checked = check_report(reports, run_params, confs)
+    md = (reports / "README.md").read_text()
+    # both papers' headline tables, with numbers from the real metrics files
+    for anchor_title in ("Fusion: KLD(a) mean", "Fusion: precision / recall / Dice", "Risk: test results",
+                         "Risk: confusion matrix", "Stage wall times", "Parameters of this run"):
+        assert anchor_title in md, anchor_title
+    assert checked > 200
+    # the report knows the real files' layout: nothing it looked for is missing
+    assert "## Missing values" not in md
+    # every stage that ran recorded its time, and the report lists it
+    timed = {json.loads(p.read_text())["stage"] for p in (reports / "timings").glob("*.json")} - {"report"}
+    for stage in timed:
+        assert f"| {stage} |" in md, stage
+    # every metrics file is declared to DVC (dvc metrics show lists it) and shown in the report
+    shown = json.loads(run(["dvc", "metrics", "show", "--json"], ci_dag).stdout)
+    declared = {Path(p).name for rev in shown.values() for p in rev.get("data", {})}
+    files = {p.name for p in (reports / "metrics").glob("*.json")}
+    assert files <= declared, files - declared
+    page = (reports / "index.html").read_text()
+    for f in files:
+        assert f"metrics/{f}#" in page, f
+    # every figure is in the report
+    for p in (reports / "figures").glob("*.png"):
+        assert f"figures/{p.name}" in md, p.name
+    # dvc plots: the top-level plots (KLD box, P/R/Dice, training curves) and the confusion matrix render
+    plots = json.loads(run(["dvc", "plots", "show", "--json", "-o", str(tmp_path / "plots")], ci_dag).stdout)["data"]
+    for pid in ("fusion_kld_box", "fusion_scores_occupied", "fusion_scores_free", "fusion_training", "risk_training",
+                "reports/plots/risk_confusion.csv"):
+        assert pid in plots, pid
+        assert all(not r.get("errors") and r.get("content") for r in plots[pid]), (pid, plots[pid])
