@@ -45,6 +45,15 @@ def test_compare_runs_table(mlflow_uri: str, monkeypatch) -> None:
     lines = text.splitlines()
     assert len(lines) == 3 and "val/loss" in lines[0] and "param:loss.occupied_weight" in lines[0]
     assert a[:8] in text and b[:8] in text and "0.3" in lines[1] and "-" in lines[1]
+    assert a not in text and a in runs.format_runs(df, wide=True)  # full ids only when wide
+
+
+def test_format_runs_cuts_long_text(mlflow_uri: str) -> None:
+    _log("r1", {"data.manifest_hash": "a" * 64}, {"val/loss": 1.0})
+    _log("r2", {"data.manifest_hash": "b" * 64}, {"val/loss": 2.0})
+    df = runs.compare_runs("cmp", uri=mlflow_uri)
+    assert "b" * 12 + "…" in runs.format_runs(df) and "b" * 13 not in runs.format_runs(df)
+    assert "b" * 64 in runs.format_runs(df, wide=True)
 
 
 def test_compare_runs_errors(mlflow_uri: str) -> None:

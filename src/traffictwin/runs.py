@@ -107,8 +107,9 @@ def compare_runs(
 def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str:
     """Text table of :func:`compare_runs` output for a terminal.
 
-    Floats with ``digits`` significant digits (missing metric: ``-``); the run id shortened to
-    8 characters and empty tag columns dropped unless ``wide``.
+    Floats with ``digits`` significant digits (missing metric: ``-``). Unless ``wide``: the run id
+    shortened to 8 characters, empty tag columns dropped, text longer than 24 characters (e.g.
+    a data manifest hash) cut to 12 characters + ``…``.
     """
     if df.empty:
         return "(no finished runs)"
@@ -123,4 +124,8 @@ def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str
         if pd.api.types.is_float_dtype(out[c]):
             out[c] = out[c].map(lambda v: "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}g}")
     out = out.fillna("-")
+    if not wide:
+        for c in out.columns:
+            if out[c].dtype == object:
+                out[c] = out[c].map(lambda v: v[:12] + "…" if isinstance(v, str) and len(v) > 24 else v)
     return out.to_string(index=False)
