@@ -126,6 +126,5 @@ def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str
     out = out.fillna("-")
     if not wide:
         for c in out.columns:
-            if out[c].dtype == object:
-                out[c] = out[c].map(lambda v: v[:12] + "…" if isinstance(v, str) and len(v) > 24 else v)
+            out[c] = out[c].map(lambda v: v[:12] + "…" if isinstance(v, str) and len(v) > 24 else v)
     return out.to_string(index=False)
