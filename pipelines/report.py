@@ -44,6 +44,19 @@ def run_params(cfg: Any, keys: set[str]) -> dict[str, Any]:
     return out
 
 
+def git_dirty(root: Path) -> bool:
+    """True if src/, pipelines/, conf/ or dvc.yaml differ from HEAD (dvc.lock, params.yaml and reports/ are
+    rewritten by the pipeline itself and do not count). False outside a git checkout."""
+    import subprocess
+
+    try:
+        proc = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "src", "pipelines", "conf", "dvc.yaml"],
+                              cwd=root, capture_output=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return proc.returncode == 1
+
+
 def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
     """Stage names in dvc.yaml order; foreach stages as ``name@key`` (``${a.b}`` resolved in ``cfg``)."""
     data = yaml.safe_load(dvc_yaml.read_text()) or {}
@@ -80,6 +93,7 @@ def main() -> None:
             dvc_exp_name=os.environ.get("DVC_EXP_NAME", ""),
             pipeline_run=pipeline_run_id(),
             stage_order=stage_order(ROOT / "dvc.yaml", cfg),
+            git_dirty=git_dirty(ROOT),
         )
         report = write_report(inputs)
     log = setup_logging()

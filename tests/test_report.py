@@ -413,3 +413,35 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
                 "reports/plots/risk_confusion.csv"):
         assert pid in plots, pid
         assert all(not r.get("errors") and r.get("content") for r in plots[pid]), (pid, plots[pid])
+
+
+def test_stage_helpers(tmp_path: Path) -> None:
+    """pipelines.report: dirty check ignores pipeline-written files; stage order expands foreach; profile keys."""
+    import subprocess
+
+    from pipelines.report import git_dirty, profile_keys, run_params, stage_order
+    from omegaconf import OmegaConf
+
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "a.py").write_text("x = 1\n")
+    (tmp_path / "dvc.lock").write_text("a\n")
+    subprocess.run([*git, "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "c"], cwd=tmp_path, check=True)
+    assert not git_dirty(tmp_path)
+    (tmp_path / "dvc.lock").write_text("b\n")
+    assert not git_dirty(tmp_path)  # the pipeline rewrites dvc.lock itself
+    (tmp_path / "src" / "a.py").write_text("x = 2\n")
+    assert git_dirty(tmp_path)
+
+    (tmp_path / "dvc.yaml").write_text(
+        "stages:\n  gen: {cmd: a}\n  train:\n    foreach: ${m.vs}\n    do: {cmd: b}\n"
+        "  ev:\n    foreach: {A: 1, B: 2}\n    do: {cmd: c}\n")
+    cfg = OmegaConf.create({"m": {"vs": ["x", "y"]}, "seed": 3, "sizes": {"n": 5, "k": 2}, "data": {"seed": 9, "other": 1}})
+    assert stage_order(tmp_path / "dvc.yaml", cfg) == ["gen", "train@x", "train@y", "ev@A", "ev@B"]
+    prof = tmp_path / "profile"
+    prof.mkdir()
+    (prof / "ci.yaml").write_text("# @package _global_\ndefaults:\n  - override /trainer: gpu\nprofile: {name: ci}\nsizes: {n: 1}\n")
+    assert profile_keys(prof) == {"profile.name", "sizes.n"}
+    assert run_params(cfg, profile_keys(prof)) == {"seed": 3, "sizes.n": 5, "data.seed": 9}

@@ -143,6 +143,7 @@ class ReportInputs:
     dvc_exp_name: str = ""
     pipeline_run: str = ""
     stage_order: Sequence[str] = ()
+    git_dirty: bool = False  # code or config differed from the commit when the report ran
 
 
 # --------------------------------------------------------------------------- sources
@@ -755,6 +756,7 @@ def build_report(inputs: ReportInputs) -> Report:
     commit = inputs.git_commit or "unknown"
     run.paragraphs.append(
         f"Profile `{inputs.profile}`, seed `{inputs.seed}`, git commit `{commit}`"
+        + (" (with uncommitted changes to code or configuration)" if inputs.git_dirty else "")
         + (f", DVC experiment `{inputs.dvc_exp_name}`" if inputs.dvc_exp_name else "")
         + (f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)" if inputs.pipeline_run else "")
         + "."
