@@ -25,7 +25,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from . import paper_numbers as P
 
@@ -197,10 +197,10 @@ class Sources:
         return Cell(fmt_value(v, fmt), src=f"params#{key}", value=v, fmt=fmt)
 
 
-def paper_cell(table: str, key: str, fmt: str = "g4", *, scale: float = 1.0) -> Cell:
+def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
     """Cell with a paper's reported number (``paper_numbers.<table>[key]``)."""
     num = getattr(P, table)[key]
-    v = num.value * scale if isinstance(num.value, (int, float)) and scale != 1.0 else num.value
+    v = num.value
     fmt = "str" if isinstance(v, str) else fmt
     return Cell(fmt_value(v, fmt), src=f"paper:{table}.{key}", value=v, fmt=fmt, title=f"{num.source}: {num.unit} {num.note}".strip())
 
@@ -978,13 +978,3 @@ def write_report(inputs: ReportInputs, readme: Path | None = None, index_html: P
     write_text_atomic(index_html or root / "index.html", page)
     write_text_atomic(results_md or root / "results_table.md", res)
     return report
-
-
-def iter_number_cells(report: Report) -> Iterable[tuple[Table, Cell]]:
-    """Every cell with a source (for tests and audits)."""
-    for s in report.sections:
-        for t in s.tables:
-            for row in t.rows:
-                for c in row:
-                    if c.src:
-                        yield t, c
