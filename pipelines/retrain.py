@@ -162,7 +162,9 @@ class Snapshot:
             shutil.rmtree(self.root / sub, ignore_errors=True)
             shutil.copytree(self.tmp / sub, self.root / sub, symlinks=True)
         if self.files["dvc.lock"] is not None:
-            proc = subprocess.run(["dvc", "checkout", "--force"], cwd=self.root, capture_output=True, text=True)
+            # only the stages the previous dvc.lock knows (others never ran: nothing to restore)
+            stages = sorted((yaml.safe_load(self.files["dvc.lock"]) or {}).get("stages", {}) or {})
+            proc = subprocess.run(["dvc", "checkout", "--force", *stages], cwd=self.root, capture_output=True, text=True)
             if proc.returncode != 0:
                 problems.append(f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}")
                 log.error("restore: %s", problems[-1])
@@ -195,7 +197,7 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
         lines.append(f"- data seed `{k}`: {a} → {b}")
     if s.get("error"):
         lines += [f"- **error** in step `{s.get('failed_step')}`: {s['error']}",
-                  f"- restored: {s.get('restored')}; champions unchanged: {s.get('champions_before')}"]
+                  f"- restored: {s.get('restored')} {s.get('restore_problems') or ''}; champions: {s.get('champions_after')}"]
     changed = [p for p, h in (s.get("data_after") or {}).items() if (s.get("data_before") or {}).get(p) != h]
     if s["status"] == "succeeded":
         lines.append(f"- new data version: {len(changed)} of {len(s.get('data_after') or {})} data outputs changed "
@@ -280,10 +282,10 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
             s["failed_step"] = step
             s["error"] = f"{type(exc).__name__}: {exc}"
             log.error("retrain failed in step %s: %s", step, s["error"])
-            if not applied:
-                s["restored"] = not snap.restore(log)
-            else:
-                s["restored"] = False
+            problems = snap.restore(log) if not applied else ["the gate had started moving aliases: nothing restored"]
+            s["restored"] = not problems
+            if problems:
+                s["restore_problems"] = problems
         finally:
             s["champions_after"] = champions(cl, names, champion_alias)
             s["duration_s"] = round(time.time() - t0, 1)
