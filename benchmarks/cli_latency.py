@@ -82,7 +82,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--rows", type=int, default=None)
     ap.add_argument("--cols", type=int, default=None)
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     a = ap.parse_args(argv)
+    if a.threads:
+        torch.set_num_threads(a.threads)
     cfg = yaml.safe_load(Path(a.params).read_text())
     g = cfg.get("grid", {})
     grid = GridSpec(a.rows or int(g.get("rows", 256)), a.cols or int(g.get("cols", 176)), float(g.get("cell", 0.32)))

@@ -1,6 +1,6 @@
 """``traffictwin`` — the user-facing command (inference on your own files, registry, runs).
 
-Subcommands::
+Subcommands (global option ``--threads N`` sets torch's CPU threads)::
 
     traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model champion|challenger|PATH]
                      [--config D] [--cell M] -o OUT
@@ -536,6 +536,8 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="traffictwin", description="traffictwin: cooperative OGM fusion and stereo risk — inference, registry, runs.")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads (default: torch's choice; 1 is fastest for single items on a busy machine)")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     f = sub.add_parser("fuse", help="fuse two evidential grid maps with the fusion network",
@@ -595,6 +597,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.threads is not None:
+        if args.threads < 1:
+            parser.error(f"--threads must be >= 1, got {args.threads}")
+        import torch
+
+        torch.set_num_threads(args.threads)
     try:
         rc = args.func(args)
     except CliError as exc:
