@@ -10,14 +10,22 @@ MLflow: experiment ``fusion``, run ``fusion-<cfg>``.
 
 from __future__ import annotations
 
-import argparse
+import os
 
-from traffictwin.config import ConfigError, flatten, get
-from traffictwin.grid import GridSpec
-from traffictwin.training.common import TrainerSettings
-from traffictwin.training.fusion import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg
+# Before torch loads libgomp: idle OpenMP threads sleep instead of spinning. On a small machine
+# shared with other jobs, spinning made 2 torch threads ~3x slower than 1 thread; with passive
+# waiting they stay within ~20 % of it (and use both cores when the machine is idle). Override by
+# exporting OMP_WAIT_POLICY.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from ._common import ROOT, params, setup_logging, stage_timer
+import argparse  # noqa: E402
+
+from traffictwin.config import ConfigError, flatten, get  # noqa: E402
+from traffictwin.grid import GridSpec  # noqa: E402
+from traffictwin.training.common import TrainerSettings  # noqa: E402
+from traffictwin.training.fusion import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg  # noqa: E402
+
+from ._common import ROOT, params, setup_logging, stage_timer  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -46,6 +54,7 @@ def main(argv: list[str] | None = None) -> None:
         kl_anneal_epochs=get(p, f"{fm}.loss.kl_anneal_epochs", int, min=1),
         augment_flip=get(p, f"{fm}.augment.flip", bool),
         augment_rotation_deg=get(p, f"{fm}.augment.rotation_deg", float, min=0, max=180),
+        channels_last=get(p, f"{fm}.train.channels_last", bool),
     )
     trainer = TrainerSettings.from_cfg(p)
     data = DataSettings(

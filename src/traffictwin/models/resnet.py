@@ -13,7 +13,7 @@ ResNet-50 (the paper), ``block="basic", layers=(2, 2, 2, 2)`` ResNet-18, and a s
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Sequence
 
 import torch

@@ -21,6 +21,7 @@ Stable API (the fusion and the risk stages both use it):
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import os
 import shutil
@@ -35,6 +36,8 @@ from lightning.pytorch.callbacks import Callback
 
 from ..config import ConfigError, get
 from ..io.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 PRECISIONS = ("32-true", "32", "64-true", "16-mixed", "bf16-mixed", "bf16-true", "16-true", "transformer-engine")
 ACCELERATORS = ("cpu", "gpu", "cuda", "mps", "tpu", "auto")
@@ -109,6 +112,8 @@ def build_trainer(
 
     if settings.num_threads > 0:
         torch.set_num_threads(settings.num_threads)
+    # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by EpochHistory
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
         devices=settings.devices,
@@ -185,6 +190,8 @@ class EpochHistory(Callback):
         if trainer.optimizers:
             row["lr"] = float(trainer.optimizers[0].param_groups[0]["lr"])
         self.rows.append({"epoch": int(trainer.current_epoch), **row})
+        shown = " ".join(f"{k}={v:.4g}" for k, v in sorted(row.items()) if not k.endswith("_naive"))
+        log.info("epoch %d/%d %s", trainer.current_epoch + 1, trainer.max_epochs, shown)
         if self.mlflow_log:
             import mlflow
 

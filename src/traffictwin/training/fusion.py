@@ -202,6 +202,7 @@ class FusionHParams:
     kl_anneal_epochs: int = 10      # its weight ramps as min(1, epoch / kl_anneal_epochs)
     augment_flip: bool = True
     augment_rotation_deg: float = 20.0
+    channels_last: bool = True      # NHWC activations: ~1.2-1.5x faster convolutions on oneDNN CPUs and tensor cores
 
 
 def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLabSpec:
@@ -228,11 +229,16 @@ class FusionLitModule(L.LightningModule):
         self.spec = DeepLabSpec.from_dict(spec)
         self.hp = FusionHParams(**hparams)
         self.net = DeepLabV3Plus(self.spec)
+        if self.hp.channels_last:
+            self.net = self.net.to(memory_format=torch.channels_last)
         self._val_counts: torch.Tensor | None = None
         self._aug_gen: torch.Generator | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x)
+        return self.net(self._layout(x))
+
+    def _layout(self, x: torch.Tensor) -> torch.Tensor:
+        return x.contiguous(memory_format=torch.channels_last) if self.hp.channels_last else x
 
     def _kl_weight(self) -> float:
         if self.hp.kl_weight <= 0:
@@ -248,7 +254,7 @@ class FusionLitModule(L.LightningModule):
         if self.hp.augment_flip or self.hp.augment_rotation_deg > 0:
             x, y = augment(x, y, flip=self.hp.augment_flip, max_rotation_deg=self.hp.augment_rotation_deg,
                            generator=self._aug_gen)
-        e = self.net(x).float()
+        e = self.net(self._layout(x)).float()
         loss = evidential_loss(e, y.float(), self.hp.occupied_weight, self._kl_weight())
         self.log("train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0])
         return loss
@@ -258,7 +264,7 @@ class FusionLitModule(L.LightningModule):
 
     def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> None:
         x, y = batch
-        e = self.net(x).float()
+        e = self.net(self._layout(x)).float()
         y = y.float()
         loss = evidential_loss(e, y, self.hp.occupied_weight, 0.0)
         m, _ = evidence_to_masses(e)
@@ -428,7 +434,8 @@ def fit_fusion(
             best_module = FusionLitModule(spec.as_dict(), asdict(hparams), meta_base)
             best_module.load_state_dict(slim["state_dict"])
             example = np.zeros((1, spec.backbone.in_channels, grid.rows, grid.cols), dtype=np.float32)
-            model_uri = common.log_torch_model(best_module.net, example, name="model",
+            logged_net = best_module.net.to(memory_format=torch.contiguous_format)  # plain NCHW for serving
+            model_uri = common.log_torch_model(logged_net, example, name="model",
                                                metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash})
             meta["mlflow_model_uri"] = model_uri
             slim["traffictwin"]["mlflow_model_uri"] = model_uri

@@ -1,0 +1,132 @@
+"""Fusion network throughput on this machine (prints JSON).
+
+    python -m benchmarks.fusion_model [--threads N] [--steps 4] [--rows 256 --cols 176] [--skip-resnet50]
+
+For the default profile's network (conf/fusion_model/resnet18.yaml) and the paper's ResNet-50
+DeepLabV3+ (resnet50.yaml), both at the given grid:
+
+- ``train_samples_per_s``: forward + evidential loss + backward + Adam step, with the paper's
+  flip/rotation augmentation, at the profile's batch size (ResNet-50: ``--r50-batch``, default 8,
+  on a CPU), median step time over ``--steps`` steps after one warm-up step;
+- ``infer_ms_per_pair``: eval-mode forward at batch 1 and per pair at batch 8 (median of 3);
+- ``param_count``;
+- ``default_profile_estimate_s``: epochs x samples/epoch / samples/s for the default sizes;
+- ``paper_profile_estimate_h``: the paper profile (8,000 training pairs, ~200 epochs) at the
+  measured ResNet-50 CPU rate; GPU rates have to be measured on a GPU.
+
+Figures depend on the machine's load; the JSON reports the CPU, thread count and load average.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the train_fusion stage (see there)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import torch  # noqa: E402
+import yaml  # noqa: E402
+
+from traffictwin.models.deeplab import DeepLabV3Plus, count_parameters  # noqa: E402
+from traffictwin.models.evidential import evidential_loss  # noqa: E402
+from traffictwin.training.fusion import augment, spec_from_cfg  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for ln in fh:
+                if ln.startswith("model name"):
+                    return ln.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _load_group(name: str) -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "conf" / "fusion_model" / f"{name}.yaml").read_text())
+
+
+def measure(group: dict[str, Any], rows: int, cols: int, batch: int, steps: int) -> dict[str, Any]:
+    """Training and inference speed of the network described by a ``fusion_model`` group."""
+    torch.manual_seed(0)
+    spec = spec_from_cfg(group["architecture"])
+    net = DeepLabV3Plus(spec)
+    cl = bool(group["train"].get("channels_last", False))
+    fmt = torch.channels_last if cl else torch.contiguous_format
+    net = net.to(memory_format=fmt)
+    opt = torch.optim.Adam(net.parameters(), lr=float(group["optim"]["lr"]))
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(batch, 4, rows, cols, generator=g) / 2).contiguous(memory_format=fmt)
+    y = torch.rand(batch, 2, rows, cols, generator=g) / 2
+    net.train()
+    times = []
+    for i in range(steps + 1):
+        t = time.perf_counter()
+        xa, ya = augment(x, y, flip=True, max_rotation_deg=20.0, generator=g)
+        loss = evidential_loss(net(xa.contiguous(memory_format=fmt)), ya, 3.0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if i > 0:
+            times.append(time.perf_counter() - t)
+    step_s = statistics.median(times)
+    net.eval()
+    out: dict[str, Any] = {"param_count": count_parameters(net), "train_batch": batch, "channels_last": cl,
+                           "train_step_s": round(step_s, 4), "train_samples_per_s": round(batch / step_s, 3)}
+    with torch.no_grad():
+        for b in (1, 8):
+            xb = x[:1].expand(b, -1, -1, -1).contiguous(memory_format=fmt)
+            net(xb)
+            ts = []
+            for _ in range(3):
+                t = time.perf_counter()
+                net(xb)
+                ts.append(time.perf_counter() - t)
+            out[f"infer_ms_per_pair_batch{b}"] = round(1e3 * statistics.median(ts) / b, 2)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description="fusion network throughput (JSON)")
+    ap.add_argument("--rows", type=int, default=256)
+    ap.add_argument("--cols", type=int, default=176)
+    ap.add_argument("--steps", type=int, default=4)
+    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch default)")
+    ap.add_argument("--r50-batch", type=int, default=8)
+    ap.add_argument("--skip-resnet50", action="store_true")
+    args = ap.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    default = _load_group("resnet18")
+    res: dict[str, Any] = {
+        "machine": {"cpu": _cpu_name(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                    "torch": torch.__version__, "loadavg_1min": round(os.getloadavg()[0], 2)},
+        "grid": [args.rows, args.cols],
+    }
+    d = measure(default, args.rows, args.cols, int(default["train"]["batch_size"]), args.steps)
+    tr = default["train"]
+    n_epoch = int(tr["train_samples_per_epoch"]) or 1600
+    d["default_profile_estimate_s"] = round(int(tr["max_epochs"]) * n_epoch / d["train_samples_per_s"], 1)
+    res["default_" + default.get("name", "resnet18")] = d
+    if not args.skip_resnet50:
+        r50 = _load_group("resnet50")
+        m = measure(r50, args.rows, args.cols, args.r50_batch, max(2, args.steps // 2))
+        # paper: 10,000 pairs, 80:10:10 -> 8,000 training pairs per epoch, ~200 epochs
+        m["paper_profile_estimate_h_on_this_cpu"] = round(200 * 8000 / m["train_samples_per_s"] / 3600, 1)
+        res["paper_resnet50"] = m
+    print(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""Stage train_fusion@{A..D} on the ci profile: outputs, MLflow run + model round trip, loader checks, DVC no-op."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from conftest import run
+from traffictwin.io.shards import Dataset
+from traffictwin.models.fusion_io import FusionModelError, load_fusion_model, predict_masses
+
+CFGS = ("A", "B", "C", "D")
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_torch_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
+    for cfg in CFGS:
+        d = ci_dag / "models" / "fusion" / cfg
+        assert (d / "model.ckpt").stat().st_size > 0
+        meta = json.loads((d / "model_meta.json").read_text())
+        assert meta["cfg"] == cfg and meta["grid"] == {"rows": 128, "cols": 96, "cell": 0.64}
+        assert meta["architecture"]["backbone"]["base_width"] == 8 and meta["param_count"] > 0
+        data_hash = Dataset(ci_dag / "data" / "prealigned" / cfg, kind="prealigned").manifest_hash()
+        assert meta["data_manifest_hash"] == data_hash
+        assert meta["mlflow_run_id"] and meta["mlflow_model_uri"]
+        metrics = json.loads((ci_dag / "reports" / "metrics" / f"train_fusion_{cfg}.json").read_text())
+        for k in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "val/kld_naive"):
+            assert np.isfinite(metrics[k]), k
+        with open(ci_dag / "reports" / "plots" / f"train_fusion_{cfg}.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        assert len(rows) == metrics["epochs"] and [int(r["epoch"]) for r in rows] == list(range(len(rows)))
+        assert {"train/loss", "val/loss", "lr"} <= set(rows[0])
+        assert (ci_dag / "reports" / "timings" / f"train_fusion-{cfg}.json").exists()
+
+
+def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
+    mlflow.set_tracking_uri(f"sqlite:///{ci_dag / 'mlflow.db'}")
+    try:
+        client = mlflow.tracking.MlflowClient()
+        exp = client.get_experiment_by_name("fusion")
+        assert exp is not None
+        meta = json.loads((ci_dag / "models/fusion/B/model_meta.json").read_text())
+        runs = client.search_runs([exp.experiment_id], "attributes.run_name = 'fusion-B'")
+        assert meta["mlflow_run_id"] in {r.info.run_id for r in runs}
+        r = client.get_run(meta["mlflow_run_id"])
+        assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == "train_fusion@B"
+        assert r.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
+        assert r.data.params["configuration.r"] == "1.0" and r.data.params["fusion_model.train.max_epochs"] == "2"
+        hist = client.get_metric_history(r.info.run_id, "val/kld")
+        assert [m.step for m in hist] == list(range(len(hist))) and len(hist) >= 1
+        assert [a.path for a in client.list_artifacts(r.info.run_id, "checkpoints")] == ["checkpoints/model.ckpt"]
+
+        val = Dataset(ci_dag / "data/prealigned/B", kind="prealigned").load_all("val", keys=["inputs"])["inputs"][:3]
+        net = load_fusion_model(ci_dag / "models/fusion/B/model.ckpt", expected_cfg="B")
+        logged = mlflow.pytorch.load_model(meta["mlflow_model_uri"])
+        m_a, u_a = predict_masses(net, val)
+        m_b, u_b = predict_masses(logged, val)
+        np.testing.assert_array_equal(m_a, m_b)
+        np.testing.assert_array_equal(u_a, u_b)
+        assert m_a.shape == (len(val), 2, 128, 96)
+    finally:
+        mlflow.set_tracking_uri(None)
+
+
+def test_checkpoint_of_another_configuration_is_refused(ci_dag: Path) -> None:
+    with pytest.raises(FusionModelError, match="trained for configuration 'D' .* expected configuration 'A'"):
+        load_fusion_model(ci_dag / "models/fusion/D/model.ckpt", expected_cfg="A")
+
+
+def test_rerun_is_a_dvc_noop(ci_dag: Path) -> None:
+    out = run(["dvc", "status", *[f"train_fusion@{c}" for c in CFGS]], ci_dag).stdout
+    assert "up to date" in out.lower(), out
+
+
+def test_stage_without_data_fails_clearly_and_writes_nothing(repo_copy: Path) -> None:
+    proc = run([sys.executable, "-m", "pipelines.train_fusion", "--cfg", "A"], repo_copy, check=False)
+    assert proc.returncode != 0
+    assert "data/prealigned/A: dataset folder not found" in proc.stderr
+    assert not (repo_copy / "models" / "fusion" / "A").exists()
+    proc = run([sys.executable, "-m", "pipelines.train_fusion", "--cfg", "Z"], repo_copy, check=False)
+    assert proc.returncode != 0 and "configuration 'Z' not in 'configurations'" in proc.stderr
