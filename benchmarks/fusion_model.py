@@ -11,8 +11,10 @@ DeepLabV3+ (resnet50.yaml), both at the given grid:
 - ``infer_ms_per_pair``: eval-mode forward at batch 1 and per pair at batch 8 (median of 3);
 - ``param_count``;
 - ``default_profile_estimate_s``: epochs x samples/epoch / samples/s for the default sizes;
-- ``paper_profile_estimate_h``: the paper profile (8,000 training pairs, ~200 epochs) at the
-  measured ResNet-50 CPU rate; GPU rates have to be measured on a GPU.
+- ``fwd_gflop_per_pair``: forward FLOPs (torch's FlopCounterMode);
+- ``paper_profile_estimate_h_on_this_cpu``: the paper profile (8,000 training pairs, ~200 epochs)
+  at the measured ResNet-50 CPU rate; ``..._gpu_at_100_tflops``: the same from FLOPs (training
+  ~3x forward) at an assumed sustained 100 TFLOP/s — an estimate, not a GPU measurement.
 
 Figures depend on the machine's load; the JSON reports the CPU, thread count and load average.
 """
@@ -83,6 +85,11 @@ def measure(group: dict[str, Any], rows: int, cols: int, batch: int, steps: int)
     net.eval()
     out: dict[str, Any] = {"param_count": count_parameters(net), "train_batch": batch, "channels_last": cl,
                            "train_step_s": round(step_s, 4), "train_samples_per_s": round(batch / step_s, 3)}
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as fc, torch.no_grad():
+        net(x[:1])
+    out["fwd_gflop_per_pair"] = round(fc.get_total_flops() / 1e9, 3)
     with torch.no_grad():
         for b in (1, 8):
             xb = x[:1].expand(b, -1, -1, -1).contiguous(memory_format=fmt)
@@ -124,6 +131,8 @@ def main(argv: list[str] | None = None) -> None:
         m = measure(r50, args.rows, args.cols, args.r50_batch, max(2, args.steps // 2))
         # paper: 10,000 pairs, 80:10:10 -> 8,000 training pairs per epoch, ~200 epochs
         m["paper_profile_estimate_h_on_this_cpu"] = round(200 * 8000 / m["train_samples_per_s"] / 3600, 1)
+        # GPU: not measured here; training ~ 3x forward FLOPs, at an assumed sustained 100 TFLOP/s (bf16, H100-class)
+        m["paper_profile_estimate_h_gpu_at_100_tflops"] = round(3 * m["fwd_gflop_per_pair"] * 1e9 * 200 * 8000 / 1e14 / 3600, 2)
         res["paper_resnet50"] = m
     print(json.dumps(res, indent=2))
 

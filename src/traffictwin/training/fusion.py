@@ -288,7 +288,8 @@ class FusionLitModule(L.LightningModule):
             for k, v in dice_from_counts(c).items():
                 if suffix and not k.startswith("dice"):
                     continue
-                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0, sync_dist=False)
+                # already reduced over ranks; identical everywhere, so the (mean) sync is a no-op that silences Lightning
+                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0, sync_dist=True)
 
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
