@@ -119,3 +119,13 @@ def test_atomic_write_leaves_old_file_on_error(tmp_path: Path) -> None:
             raise RuntimeError("killed")
     assert json.loads(p.read_text()) == {"good": 1}
     assert [q.name for q in tmp_path.iterdir()] == ["out.json"]
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path: Path) -> None:
+    import os
+
+    p = tmp_path / "m.json"
+    write_json_atomic(p, {"a": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (p.stat().st_mode & 0o777) == (0o666 & ~mask)
