@@ -176,6 +176,11 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     text = findings({**metrics, "main_variant": "rgbd"})
     assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
     assert "camera_fov" in text and "Which input matters" in text
+    reg = metrics["region"]["predictors"]
+    for name, per in reg.items():  # skill = 1 - MSE / MSE(train mean) of the same label
+        for lab, e in per.items():
+            assert e["skill"] == pytest.approx(1 - e["test/mse"] / reg["train_mean"][lab]["test/mse"])
+    assert reg["train_mean"]["risk_thw_fov"]["skill"] == pytest.approx(0.0)
 
 
 def test_findings_from_hand_metrics_and_missing_parts() -> None:
@@ -194,6 +199,9 @@ def test_findings_from_hand_metrics_and_missing_parts() -> None:
     assert "20.00 points above the majority class" in text
     assert "0.25× the training mean's" in text
     assert "adding SGM disparity to the image lowers the MSE by 50 %" in text
+    metrics["models"]["rgb"]["at_1.5s"] = {**at, "accuracy": 0.6, "roc_auc": 0.5}
+    assert "rgb did not leave the constant predictor" in findings(metrics)
+    metrics["models"]["rgb"]["at_1.5s"] = {**at, "accuracy": 0.7}
     assert findings({"models": {}}) == "- No risk network was evaluated."
     # None (undefined metric) is shown as n/a, not crashing
     metrics["models"]["rgbd"]["at_1.5s"] = {**at, "roc_auc": None}

@@ -298,11 +298,18 @@ def evaluate_suite(
                     "test/mse": e["test/mse"], "test/mae": e["test/mae"], "accuracy": at["accuracy"],
                     "balanced_accuracy": at["balanced_accuracy"], "f1": at["f1"], "roc_auc": at["roc_auc"],
                 }
-        for lab in present:
-            e = ev(ys[lab], consts[lab]["train_median"])
-            region["predictors"].setdefault("train_median", {})[lab] = {
-                "test/mse": e["test/mse"], "accuracy": e[f"at_{t0:g}s"]["accuracy"],
-            }
+        for name in ("train_mean", "train_median"):
+            for lab in present:
+                e = ev(ys[lab], consts[lab][name])
+                region["predictors"].setdefault(name, {})[lab] = {
+                    "test/mse": e["test/mse"], "test/mae": e["test/mae"], "accuracy": e[f"at_{t0:g}s"]["accuracy"],
+                }
+        # skill = 1 - MSE / MSE of the training-mean predictor of the same label (R²-like; 0 = no better
+        # than a constant, 1 = perfect): comparable across labels whose spread and critical share differ
+        for name, per in region["predictors"].items():
+            for lab, e in per.items():
+                ref = region["predictors"]["train_mean"][lab]["test/mse"]
+                e["skill"] = 1.0 - e["test/mse"] / ref if ref > 0 else float("nan")
         metrics["region"] = region
     return _finite_or_none(metrics), out
 
