@@ -118,6 +118,20 @@ def test_findings_follow_the_numbers():
     assert fusion_findings({}).startswith("## Fusion findings")
 
 
+def test_findings_report_kld_b_and_explain_negative_kld_a():
+    m = _metrics({c: -0.03 for c in CFGS}, {"A": 0.0, "B": 0.2, "C": 0.25, "D": 0.3})
+    for c in CFGS:
+        m["test"][c]["dnn"].update(kld_fou_mean=1.5, u_mean=0.05)
+        m["test"][c]["naive"].update(kld_fou_mean=0.3 if c != "A" else 0.0, u_mean=0.6)
+    text = fusion_findings(m)
+    assert "KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in 0/4 configurations (none)" in text
+    assert "D 1.500 vs naive 0.300" in text and "D 0.050 vs 0.600" in text
+    assert "Negative KLD (a) (A, B, C, D)" in text
+    m["test"]["B"]["dnn"]["kld_fou_mean"] = 0.1
+    assert "lower mean in 1/4 configurations (B)" in fusion_findings(m)
+    assert "Negative KLD (a)" not in fusion_findings(_metrics({c: 0.1 for c in CFGS}, {c: 0.2 for c in CFGS}))
+
+
 def test_figures_are_valid_pngs(tmp_path):
     from traffictwin.reporting.fusion_figs import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
 

@@ -76,6 +76,30 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
             f"and free recall in {len(rec)}/{len(noisy)} noisy configurations (the paper reports both lower, from o_w = 3)."
         )
 
+    # 1b. the second KLD definition, and what a negative KLD(a) means
+    kb = "kld_fou_mean"
+    b_known = [c for c in configs if math.isfinite(_get(metrics, c, "dnn", kb)) and math.isfinite(_get(metrics, c, "naive", kb))]
+    if b_known:
+        b_wins = [c for c in b_known if _get(metrics, c, "dnn", kb) < _get(metrics, c, "naive", kb)]
+        lines.append(
+            f"- **KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in {len(b_wins)}/{len(b_known)} "
+            f"configurations ({', '.join(b_wins) or 'none'}): "
+            + ", ".join(
+                f"{c} {_fmt(_get(metrics, c, 'dnn', kb))} vs naive {_fmt(_get(metrics, c, 'naive', kb))}" for c in b_known
+            )
+            + ". Mean u of the network vs naive: "
+            + ", ".join(f"{c} {_fmt(_get(metrics, c, 'dnn', 'u_mean'))} vs {_fmt(_get(metrics, c, 'naive', 'u_mean'))}" for c in b_known)
+            + "."
+        )
+    negative = [c for c in configs if _get(metrics, c, "dnn", kld_key) < 0]
+    if negative:
+        lines.append(
+            f"- **Negative KLD (a) ({', '.join(negative)}):** KLD (a) compares the two masses (m_F, m_O) only, which do not "
+            "sum to 1, so it is not a divergence of distributions: it goes below 0 when the prediction puts more mass on "
+            "free/occupied than the label, i.e. it rewards over-confidence. A negative value is not a fusion better than "
+            "the exact one; read it together with KLD (b)."
+        )
+
     # 2. configuration A
     a = configs[0]
     ka, kn = _get(metrics, a, "dnn", kld_key), _get(metrics, a, "naive", kld_key)
