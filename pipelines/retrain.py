@@ -149,6 +149,8 @@ class Snapshot:
 
     def restore(self, log) -> list[str]:
         problems = []
+        lock_path = self.root / "dvc.lock"
+        lock_now = (yaml.safe_load(lock_path.read_text()) or {}).get("stages", {}) if lock_path.exists() else {}
         for rel, data in self.files.items():
             p = self.root / rel
             if data is None:
@@ -162,8 +164,19 @@ class Snapshot:
             shutil.rmtree(self.root / sub, ignore_errors=True)
             shutil.copytree(self.tmp / sub, self.root / sub, symlinks=True)
         if self.files["dvc.lock"] is not None:
-            # only the stages the previous dvc.lock knows (others never ran: nothing to restore)
-            stages = sorted((yaml.safe_load(self.files["dvc.lock"]) or {}).get("stages", {}) or {})
+            # only the stages this run changed (their lock entry differs from the snapshot's), that the
+            # previous dvc.lock knows (others never ran: nothing to restore) and that the current dvc.yaml
+            # still defines (a lock may keep foreach items of another profile, whose outputs are not cached here)
+            lock_then = (yaml.safe_load(self.files["dvc.lock"]) or {}).get("stages", {}) or {}
+            locked = {n for n in lock_then if lock_now.get(n) != lock_then[n]}
+            listed = subprocess.run(["dvc", "stage", "list", "--name-only"], cwd=self.root, capture_output=True, text=True)
+            if listed.returncode != 0:
+                problems.append(f"dvc stage list failed ({listed.returncode}): {listed.stderr.strip()[-800:]}")
+                log.error("restore: %s", problems[-1])
+                return problems
+            stages = sorted(locked & set(listed.stdout.split()))
+            if not stages:
+                return problems
             proc = subprocess.run(["dvc", "checkout", "--force", *stages], cwd=self.root, capture_output=True, text=True)
             if proc.returncode != 0:
                 problems.append(f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}")
