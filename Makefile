@@ -9,7 +9,7 @@ STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
 
-.PHONY: install run test params check-params bench clean-venv
+.PHONY: install run test params bench readme clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,6 +32,10 @@ test: install
 
 bench: install
 	$(PY) -m benchmarks.run
+
+# copy reports/results_table.md (written by `make run`) into README.md
+readme: install
+	$(PY) -m pipelines.readme_results
 
 clean-venv:
 	rm -rf $(VENV)
