@@ -21,13 +21,7 @@ from traffictwin.models.evidential import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_torch_thread():
-    """One intra-op thread: on the shared 2-core machine OpenMP spinning makes 2 threads ~10x slower under load."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def cell(a: float, b: float) -> torch.Tensor:

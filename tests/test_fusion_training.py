@@ -37,13 +37,7 @@ TINY = DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_
 GRID = GridSpec(64, 48, 1.0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_torch_thread():
-    """One intra-op thread: on the shared 2-core machine OpenMP spinning makes 2 threads ~10x slower under load."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def synthetic_pairs(n: int, h: int, w: int, seed: int) -> dict[str, np.ndarray]:

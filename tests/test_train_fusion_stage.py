@@ -20,12 +20,7 @@ CFGS = ("A", "B", "C", "D")
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
