@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from omegaconf import DictConfig
 
@@ -34,3 +35,20 @@ def stage_timer(stage: str) -> Iterator[None]:
     t0 = time.perf_counter()
     yield
     write_json_atomic(TIMINGS / f"{stage.replace('@', '-')}.json", {"stage": stage, "seconds": round(time.perf_counter() - t0, 2)})
+
+
+def run_stage(main: Callable[[], object], name: str) -> None:
+    """Run a stage's ``main``; bad input (config, dataset, value errors) ends with one clear line and exit 2.
+
+    Every error class of the library that means "the input is wrong" derives from ValueError
+    (ConfigError) or RuntimeError (DatasetError, model-loading errors), and names the file,
+    field or parameter itself; a traceback would only bury that line. Set
+    ``TRAFFICTWIN_TRACEBACK=1`` to see the traceback anyway.
+    """
+    try:
+        main()
+    except (ValueError, RuntimeError) as exc:
+        if os.environ.get("TRAFFICTWIN_TRACEBACK"):
+            raise
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        sys.exit(2)

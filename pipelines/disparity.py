@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer
+from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
 from traffictwin.config import get
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name, write_npz_deterministic
@@ -136,4 +136,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "disparity")

@@ -11,7 +11,7 @@ from importlib import metadata
 
 from traffictwin.io.atomic import write_json_atomic
 
-from ._common import ROOT
+from ._common import ROOT, run_stage
 
 PACKAGES = ("torch", "lightning", "mlflow", "dvc", "hydra-core", "omegaconf", "opencv-python-headless", "numpy", "pandas", "matplotlib")
 
@@ -54,4 +54,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "environment")

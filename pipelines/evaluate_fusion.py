@@ -29,7 +29,7 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 
-from ._common import ROOT, params, setup_logging, stage_timer
+from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 
 STAGE = "evaluate_fusion"
 METRICS = Path("reports/metrics/fusion.json")
@@ -385,4 +385,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "evaluate_fusion")

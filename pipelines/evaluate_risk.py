@@ -13,7 +13,6 @@ Test metrics are also logged into each variant's MLflow training run when it is 
 from __future__ import annotations
 
 import logging
-import sys
 
 import numpy as np
 import pandas as pd
@@ -26,7 +25,7 @@ from traffictwin.models.risk_io import load_risk_model
 from traffictwin.reporting import risk_figs
 from traffictwin.training.risk import LABELS, RiskSource
 
-from ._common import ROOT, params, setup_logging, stage_timer
+from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 
 METRICS = ROOT / "reports" / "metrics" / "risk.json"
 PLOTS = ROOT / "reports" / "plots"
@@ -148,8 +147,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ConfigError, ValueError, RuntimeError) as exc:
-        print(f"evaluate_risk: error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_stage(main, "evaluate_risk")

@@ -15,7 +15,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer
+from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
 from traffictwin.config import ConfigError, get
 from traffictwin.evidential.ism import IsmParams
 from traffictwin.grid import GridSpec
@@ -152,4 +152,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "generate_fusion")

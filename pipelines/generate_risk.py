@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer
+from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
 from traffictwin.config import get
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
@@ -169,4 +169,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "generate_risk")

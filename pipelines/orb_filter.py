@@ -13,7 +13,7 @@ import time
 import pandas as pd
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer
+from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
 from traffictwin.config import get
 from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.io.shards import Dataset
@@ -146,4 +146,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "orb_filter")

@@ -17,7 +17,7 @@ import time
 
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer
+from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
 from pipelines.generate_fusion import K, grid_from_params
 from traffictwin.config import ConfigError, get
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
@@ -81,4 +81,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "prealign")

@@ -19,7 +19,7 @@ from traffictwin.config import flatten, get
 from traffictwin.reporting.report import ReportInputs, write_report
 from traffictwin.tracking import git_commit, pipeline_run_id
 
-from ._common import ROOT, params, setup_logging, stage_timer
+from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 
 
 def profile_keys(conf_profile_dir: Path) -> set[str]:
@@ -101,4 +101,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "report")

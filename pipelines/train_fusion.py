@@ -25,7 +25,7 @@ from traffictwin.grid import GridSpec  # noqa: E402
 from traffictwin.training.common import TrainerSettings  # noqa: E402
 from traffictwin.training.fusion import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg  # noqa: E402
 
-from ._common import ROOT, params, setup_logging, stage_timer  # noqa: E402
+from ._common import ROOT, params, run_stage, setup_logging, stage_timer  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -92,4 +92,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_stage(main, "train_fusion")

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 
 import torch
 
@@ -23,7 +22,7 @@ from traffictwin.models.risk_io import CKPT, save_risk_model
 from traffictwin.training.common import TrainerSettings, global_rank, log_checkpoint, log_torch_model, tracked_run
 from traffictwin.training.risk import LABELS, RiskSource, TrainConfig, fit, prepare_split
 
-from ._common import ROOT, params, setup_logging, stage_timer
+from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 
 
 def model_config(p, variant: str) -> tuple[Dave2Config, str]:
@@ -136,8 +135,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ConfigError, ValueError, RuntimeError) as exc:
-        print(f"train_risk: error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_stage(main, "train_risk")

@@ -1,0 +1,32 @@
+"""Stage entry-point helpers: bad input ends with one clear line and exit 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipelines._common import run_stage
+from traffictwin.config import ConfigError
+from traffictwin.io.shards import DatasetError
+
+
+@pytest.mark.parametrize("exc", [ConfigError("params.yaml: 'x' must be >= 1, got -3"), DatasetError("data/x: manifest missing")])
+def test_bad_input_is_one_line_and_exit_2(exc: Exception, capsys, monkeypatch) -> None:
+    monkeypatch.delenv("TRAFFICTWIN_TRACEBACK", raising=False)
+
+    def main() -> None:
+        raise exc
+
+    with pytest.raises(SystemExit) as info:
+        run_stage(main, "unit_stage")
+    assert info.value.code == 2
+    assert capsys.readouterr().err == f"unit_stage: error: {exc}\n"
+
+
+def test_traceback_on_request_and_other_errors_propagate(monkeypatch) -> None:
+    monkeypatch.setenv("TRAFFICTWIN_TRACEBACK", "1")
+    with pytest.raises(ConfigError):
+        run_stage(lambda: (_ for _ in ()).throw(ConfigError("bad")), "s")
+    monkeypatch.delenv("TRAFFICTWIN_TRACEBACK")
+    with pytest.raises(KeyError):
+        run_stage(lambda: {}["missing"], "s")
+    run_stage(lambda: None, "s")  # success returns normally
