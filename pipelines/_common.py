@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import os
 import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from omegaconf import DictConfig
 
@@ -52,3 +53,40 @@ def run_stage(main: Callable[[], object], name: str) -> None:
             raise
         print(f"{name}: error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+# state of the shard workers: set once per process by :func:`map_shards`, read by a stage's work function
+WORKER_STATE: dict[str, Any] = {}
+
+
+def _set_worker_state(state: dict[str, Any]) -> None:
+    WORKER_STATE.clear()
+    WORKER_STATE.update(state)
+
+
+def map_shards(
+    work: Callable[[int], Any],
+    indices: Iterable[int],
+    *,
+    workers: int,
+    state: dict[str, Any],
+    desc: str,
+    unit: str = "shard",
+    ordered: bool = False,
+) -> Iterator[Any]:
+    """Yield ``work(i)`` for every shard index, with a progress bar.
+
+    ``workers > 1``: a fork pool of that many processes (results in completion order unless
+    ``ordered``); otherwise in this process. Either way ``state`` is in :data:`WORKER_STATE`
+    of the process that runs ``work``, so work functions take only the index (cheap to send).
+    """
+    from tqdm import tqdm
+
+    idx = list(indices)
+    if workers <= 1 or len(idx) <= 1:
+        _set_worker_state(state)
+        yield from tqdm(map(work, idx), total=len(idx), desc=desc, unit=unit)
+        return
+    with mp.get_context("fork").Pool(min(workers, len(idx)), initializer=_set_worker_state, initargs=(state,)) as pool:
+        it = pool.imap(work, idx) if ordered else pool.imap_unordered(work, idx)
+        yield from tqdm(it, total=len(idx), desc=desc, unit=unit)

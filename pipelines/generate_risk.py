@@ -7,15 +7,13 @@ reports/metrics/risk_data.json and reports/figures/risk_metric_example.png.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
+from pipelines._common import ROOT, WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
 from traffictwin.config import get
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
@@ -65,19 +63,9 @@ def spec_from_params(cfg) -> RiskDataSpec:
                         ground_res=get(cfg, f"{k}.ground_res", float, min=0.02, max=1.0))
 
 
-_SPEC: RiskDataSpec | None = None
-_SEED = 0
-_ROOT: Path = OUT
-
-
-def _init(spec: RiskDataSpec, seed: int, root: Path) -> None:
-    global _SPEC, _SEED, _ROOT
-    _SPEC, _SEED, _ROOT = spec, seed, root
-
-
 def _work(index: int) -> tuple[int, str, int, list[dict]]:
-    arrays, rows = make_shard(_SEED, index, _SPEC)
-    digest = write_npz_deterministic(_ROOT / shard_name(index), arrays)
+    arrays, rows = make_shard(WORKER_STATE["seed"], index, WORKER_STATE["spec"])
+    digest = write_npz_deterministic(WORKER_STATE["root"] / shard_name(index), arrays)
     return index, digest, len(rows), rows
 
 
@@ -96,11 +84,10 @@ def generate(cfg, out: Path = OUT) -> dict:
     recorded["grid"] = dict(get(cfg, "grid", dict))
     writer = DatasetWriter(out, "risk", recorded, seed)
     rows_by: dict[int, list[dict]] = {}
-    ctx = mp.get_context("fork")
-    with ctx.Pool(min(workers, n), initializer=_init, initargs=(spec, seed, Path(out))) if workers > 1 else _Serial(spec, seed, Path(out)) as pool:
-        for index, digest, count, rows in tqdm(pool.imap_unordered(_work, range(n)), total=n, desc="generate_risk", unit="seq"):
-            writer.record_shard(index, shard_name(index), digest, count, splits[index])
-            rows_by[index] = rows
+    state = {"spec": spec, "seed": seed, "root": Path(out)}
+    for index, digest, count, rows in map_shards(_work, range(n), workers=workers, state=state, desc="generate_risk", unit="seq"):
+        writer.record_shard(index, shard_name(index), digest, count, splits[index])
+        rows_by[index] = rows
     table = []
     fid = 0
     for index in range(n):
@@ -115,22 +102,6 @@ def generate(cfg, out: Path = OUT) -> dict:
     writer.finalize(extra={"camera": spec.camera.intrinsics(), "label": spec.label, "summary": summary})
     log.info("data/risk: %d frames, critical share %.3f", len(df), summary["all/critical_share"])
     return summary
-
-
-class _Serial:
-    """In-process stand-in for a Pool (workers = 1)."""
-
-    def __init__(self, spec, seed, root) -> None:
-        _init(spec, seed, root)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a) -> None:
-        return None
-
-    def imap_unordered(self, f, it):
-        return map(f, it)
 
 
 def summarise(df: pd.DataFrame) -> dict:

@@ -7,21 +7,19 @@ fault-free pairs, share of frames dropped; a flagged pair -> reports/figures/orb
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import time
 
 import pandas as pd
-from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
+from pipelines._common import ROOT, WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
 from traffictwin.config import get
 from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.io.shards import Dataset
+from traffictwin.risk.dataset import load_stereo_shard
 from traffictwin.stereo.orb import check_pair
 
 SRC = ROOT / "data" / "risk"
 OUT = ROOT / "data" / "orb" / "orb.csv"
-_ARGS: dict = {}
 
 
 def orb_params(cfg) -> dict:
@@ -36,24 +34,12 @@ def orb_params(cfg) -> dict:
     )
 
 
-def _init(args: dict) -> None:
-    _ARGS.clear()
-    _ARGS.update(args)
-
-
 def _work(i: int):
-    ds = Dataset(_ARGS["src"], kind="risk", verify=False)
-    sh = ds.load_shard(i)
-    name = ds.root / ds.shards[i]["name"]
-    for key in ("left", "right"):
-        if key not in sh:
-            raise ValueError(f"{name}: array '{key}' missing (has {sorted(sh)})")
-    if sh["left"].shape != sh["right"].shape:
-        raise ValueError(f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size")
+    sh = load_stereo_shard(Dataset(WORKER_STATE["src"], kind="risk", verify=False), i)
     rows, secs = [], 0.0
     for k in range(len(sh["left"])):
         t0 = time.perf_counter()
-        r = check_pair(sh["left"][k], sh["right"][k], **_ARGS["orb"])
+        r = check_pair(sh["left"][k], sh["right"][k], **WORKER_STATE["orb"])
         secs += time.perf_counter() - t0
         rows.append({"shard": i, "idx": k, **r.as_dict()})
     return rows, secs
@@ -66,18 +52,10 @@ def run(cfg) -> tuple[pd.DataFrame, dict]:
     p = orb_params(cfg)
     workers = get(cfg, "risk_data.workers", int, min=1)
     n = len(ds.shards)
-    args = {"src": str(SRC), "orb": p}
     rows, total = [], 0.0
-    pool = mp.get_context("fork").Pool(min(workers, n), initializer=_init, initargs=(args,)) if workers > 1 else None
-    try:
-        it = pool.imap(_work, range(n)) if pool else (_init(args) or map(_work, range(n)))
-        for r, secs in tqdm(it, total=n, desc="orb_filter", unit="shard"):
-            rows.extend(r)
-            total += secs
-    finally:
-        if pool:
-            pool.close()
-            pool.join()
+    for r, secs in map_shards(_work, range(n), workers=workers, state={"src": str(SRC), "orb": p}, desc="orb_filter", ordered=True):
+        rows.extend(r)
+        total += secs
     res = pd.DataFrame(rows)
     df = frames[["frame_id", "shard", "idx", "split", "fault", "speed"]].merge(res, on=["shard", "idx"], validate="one_to_one")
     df = df.sort_values("frame_id").reset_index(drop=True)

@@ -92,6 +92,9 @@ def test_generate_risk_is_deterministic_and_rejects_bad_input(repo_copy: Path):
     m2 = json.loads((repo_copy / "data" / "risk" / "manifest.json").read_text())
     assert m1 == m2  # byte-identical shards (SHA-256 in the manifest) and tables
     run([py, "-m", "pipelines.disparity"], repo_copy)
+    d1 = (repo_copy / "data" / "disparity" / "manifest.json").read_bytes()
+    run([py, "-m", "pipelines.disparity"], repo_copy)
+    assert (repo_copy / "data" / "disparity" / "manifest.json").read_bytes() == d1  # no timings in the data version
     # truncated image shard -> a clear error naming the file, nothing written
     shard = repo_copy / "data" / "risk" / m1["shards"][1]["name"]
     good = shard.read_bytes()

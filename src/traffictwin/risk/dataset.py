@@ -89,3 +89,18 @@ def make_shard(seed: int, index: int, spec: RiskDataSpec) -> tuple[dict[str, np.
         "risk": np.array([r["risk"] for r in rows], np.float32),
     }
     return arrays, rows
+
+
+def load_stereo_shard(ds: "Dataset", index: int, keys: tuple[str, ...] = ("left", "right")) -> dict[str, np.ndarray]:
+    """Shard ``index`` of a ``data/risk`` dataset, checked: every array of ``keys`` present and
+    left/right images of one size. Raises :class:`DatasetError` naming the shard file."""
+    from ..io.shards import DatasetError
+
+    sh = ds.load_shard(index)
+    name = ds.root / ds.shards[index]["name"]
+    for key in keys:
+        if key not in sh:
+            raise DatasetError(f"{name}: array '{key}' missing (has {sorted(sh)})")
+    if sh["left"].shape != sh["right"].shape:
+        raise DatasetError(f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size")
+    return sh
