@@ -3,7 +3,7 @@
     python -m benchmarks.cli_latency [--repeat 20] [--fusion-model DIR] [--risk-model DIR] [--rows R --cols C]
 
 - ``fuse`` (per pair): prealignment (SE(2) warp of map 2) and the network part
-  (:func:`traffictwin.models.fusion_io.predict_masses`, batch 1: forward + evidence → masses).
+  (:func:`traffictwin.fusion.model_io.predict_masses`, batch 1: forward + evidence → masses).
 - ``risk`` (per frame): ORB pair check, SGM disparity, and the network part
   (:meth:`RiskModel.predict`: preprocessing + forward), at batch 1 and as throughput at batch 64.
 
@@ -41,9 +41,9 @@ def _median_ms(fn: Callable[[], object], repeat: int) -> float:
 
 
 def _fusion_model(path: str | None, cfg) -> tuple[torch.nn.Module, str]:
-    from traffictwin.models.deeplab import DeepLabV3Plus
-    from traffictwin.models.fusion_io import load_fusion_model
-    from traffictwin.training.fusion import spec_from_cfg
+    from traffictwin.fusion.deeplab import DeepLabV3Plus
+    from traffictwin.fusion.model_io import load_fusion_model
+    from traffictwin.fusion.training import spec_from_cfg
 
     p = Path(path) if path else ROOT / "models" / "fusion" / "D"
     if (p / "model.ckpt").exists() or p.is_file():
@@ -53,8 +53,8 @@ def _fusion_model(path: str | None, cfg) -> tuple[torch.nn.Module, str]:
 
 
 def _risk_model(path: str | None, cfg):
-    from traffictwin.models.dave2 import Dave2, Dave2Config
-    from traffictwin.models.risk_io import RiskModel, load_risk_model
+    from traffictwin.risk.dave2 import Dave2, Dave2Config
+    from traffictwin.risk.model_io import RiskModel, load_risk_model
 
     p = Path(path) if path else ROOT / "models" / "risk" / "rgbd"
     if (p / "model.ckpt").exists() or p.is_file():
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.grid import GridSpec
-    from traffictwin.models.fusion_io import predict_masses
+    from traffictwin.fusion.model_io import predict_masses
     from traffictwin.stereo.orb import check_pair
     from traffictwin.stereo.sgm import compute_disparity
 

@@ -21,7 +21,7 @@ from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.ism import inverse_sensor_model
 from traffictwin.evidential.warp import warp_masses
 from traffictwin.grid import GridSpec
-from traffictwin.sim.fusion_pairs import FusionDataParams, generate_shard
+from traffictwin.fusion.pairs import FusionDataParams, generate_shard
 from traffictwin.sim.lidar import LidarSpec, scan
 from traffictwin.sim.scene import Boxes
 from traffictwin.sim.traffic import sample_scenario

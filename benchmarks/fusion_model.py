@@ -36,9 +36,9 @@ from typing import Any  # noqa: E402
 import torch  # noqa: E402
 import yaml  # noqa: E402
 
-from traffictwin.models.deeplab import DeepLabV3Plus, count_parameters  # noqa: E402
-from traffictwin.models.evidential import evidential_loss  # noqa: E402
-from traffictwin.training.fusion import augment, spec_from_cfg  # noqa: E402
+from traffictwin.fusion.deeplab import DeepLabV3Plus, count_parameters  # noqa: E402
+from traffictwin.fusion.losses import evidential_loss  # noqa: E402
+from traffictwin.fusion.training import augment, spec_from_cfg  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -101,7 +101,7 @@ def main() -> None:
     with stage_timer("disparity"):
         metrics = run(cfg)
         write_json_atomic(ROOT / "reports" / "metrics" / "disparity.json", metrics)
-        from traffictwin.reporting.risk_data_figs import stereo_figure
+        from traffictwin.risk.data_figures import stereo_figure
 
         ds = Dataset(SRC, kind="risk", verify=False)
         dd = Dataset(OUT, kind="disparity", verify=False)

@@ -58,7 +58,7 @@ log = logging.getLogger("traffictwin.evaluate_fusion")
 # -- settings ------------------------------------------------------------------------------------
 def settings(cfg: Any) -> dict[str, Any]:
     """Checked evaluation settings from params.yaml (``evaluation.fusion`` + grid + configurations)."""
-    from traffictwin.evaluation.registration import RegistrationParams
+    from traffictwin.fusion.registration import RegistrationParams
 
     k = "evaluation.fusion"
     all_cfgs = get(cfg, "configurations", dict)
@@ -147,7 +147,7 @@ def load_raw_pairs(pair_ids: np.ndarray, split: str) -> dict[str, np.ndarray]:
 
 # -- evaluation ----------------------------------------------------------------------------------
 def _bins(frame: pd.DataFrame, s: dict[str, Any]) -> tuple[dict[str, Any], pd.DataFrame]:
-    from traffictwin.evaluation.fusion_metrics import aggregate, pose_error_bins
+    from traffictwin.fusion.metrics import aggregate, pose_error_bins
 
     noise = frame[["noise_dx", "noise_dy", "noise_dyaw"]].to_numpy()
     tb, rb, tl, rl = pose_error_bins(noise, s["trans_bins_m"], s["rot_bins_deg"])
@@ -168,9 +168,9 @@ def _bins(frame: pd.DataFrame, s: dict[str, Any]) -> tuple[dict[str, Any], pd.Da
 
 def evaluate(s: dict[str, Any]) -> dict[str, Any]:
     """Run every method; returns the metrics dict and the frames/arrays the outputs need."""
-    from traffictwin.evaluation.fusion_baselines import EvalSettings, evaluate_predictions, evaluate_prealigned, evaluate_registered
-    from traffictwin.evaluation.fusion_metrics import aggregate
-    from traffictwin.models.fusion_io import load_fusion_model, predict_masses
+    from traffictwin.fusion.methods import EvalSettings, evaluate_predictions, evaluate_prealigned, evaluate_registered
+    from traffictwin.fusion.metrics import aggregate
+    from traffictwin.fusion.model_io import load_fusion_model, predict_masses
 
     configs, grid = s["configs"], s["grid"]
     es = EvalSettings(s["batch_size"], s["kld_eps"], s["auroc_bins"], s["success_trans_m"], s["success_rot_deg"])
@@ -248,7 +248,7 @@ def evaluate(s: dict[str, Any]) -> dict[str, Any]:
 
 
 def _summary(frame: pd.DataFrame) -> dict[str, float]:
-    from traffictwin.evaluation.fusion_metrics import aggregate
+    from traffictwin.fusion.metrics import aggregate
 
     agg = aggregate({k: frame[k].to_numpy() for k in frame.columns})
     out = {k: agg[k] for k in SUMMARY_KEYS if k in agg}
@@ -281,7 +281,7 @@ def qualitative(res: dict[str, Any], s: dict[str, Any]) -> dict[str, list[np.nda
     from traffictwin.evidential.dempster import dempster
     from traffictwin.evidential.noise import apply_pose_noise
     from traffictwin.evidential.warp import warp_masses
-    from traffictwin.models.fusion_io import predict_masses
+    from traffictwin.fusion.model_io import predict_masses
     from traffictwin.sim.scene import relative_pose
 
     i = s["qualitative_pair"]
@@ -303,8 +303,8 @@ def qualitative(res: dict[str, Any], s: dict[str, Any]) -> dict[str, list[np.nda
 
 
 def write_outputs(res: dict[str, Any], s: dict[str, Any]) -> None:
-    from traffictwin.reporting.fusion_figs import kld_boxplot, qualitative_grid, scores_plot
-    from traffictwin.reporting.fusion_findings import fusion_findings
+    from traffictwin.fusion.figures import kld_boxplot, qualitative_grid, scores_plot
+    from traffictwin.fusion.findings import fusion_findings
 
     metrics = _clean(res["metrics"])
     samples: pd.DataFrame = res["samples"]
@@ -347,7 +347,7 @@ def log_to_mlflow(metrics: dict[str, Any], s: dict[str, Any]) -> None:
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
-    from traffictwin.tracking import setup
+    from traffictwin.mlops.tracking import setup
 
     client = MlflowClient(tracking_uri=setup())
     stamp = int(time.time() * 1000)

@@ -18,12 +18,12 @@ import numpy as np
 import pandas as pd
 
 from traffictwin.config import ConfigError, get
-from traffictwin.evaluation.risk_baselines import GeometricParams
-from traffictwin.evaluation.risk_metrics import PAPER, confusion_labels, evaluate_suite, risk_threshold
+from traffictwin.risk.baselines import GeometricParams
+from traffictwin.risk.evaluation import PAPER, confusion_labels, evaluate_suite, risk_threshold
 from traffictwin.io.atomic import atomic_path, write_json_atomic
-from traffictwin.models.risk_io import load_risk_model
-from traffictwin.reporting import risk_figs
-from traffictwin.training.risk import LABELS, RiskSource
+from traffictwin.risk.model_io import load_risk_model
+from traffictwin.risk import figures as risk_figs
+from traffictwin.risk.training import LABELS, RiskSource
 
 from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 
@@ -42,7 +42,7 @@ def _log_to_mlflow(models: dict, metrics: dict, log: logging.Logger) -> None:
     try:
         from mlflow.tracking import MlflowClient
 
-        from traffictwin import tracking
+        from traffictwin.mlops import tracking
 
         client = MlflowClient(tracking_uri=tracking.tracking_uri())
         for v, m in models.items():

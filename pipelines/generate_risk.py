@@ -133,7 +133,7 @@ def main() -> None:
     with stage_timer("generate_risk"):
         summary = generate(cfg)
         write_json_atomic(ROOT / "reports" / "metrics" / "risk_data.json", summary)
-        from traffictwin.reporting.risk_data_figs import risk_metric_figure
+        from traffictwin.risk.data_figures import risk_metric_figure
 
         spec = spec_from_params(cfg)
         risk_metric_figure(data_seed(cfg), spec, ROOT / "reports" / "figures" / "risk_metric_example.png")

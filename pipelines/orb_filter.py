@@ -107,7 +107,7 @@ def main() -> None:
         with atomic_path(OUT, suffix=".csv") as tmp:
             out.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
         write_json_atomic(ROOT / "reports" / "metrics" / "orb.json", metrics)
-        from traffictwin.reporting.risk_data_figs import orb_figure
+        from traffictwin.risk.data_figures import orb_figure
 
         ds = Dataset(SRC, kind="risk", verify=False)
         frames = ds.table("frames.csv")

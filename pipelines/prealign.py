@@ -5,7 +5,7 @@ axis). The standard-normal draw of pair ``pair_id`` / draw ``d`` depends only on
 ``(seed, fusion_data.prealign.seed, pair_id, d)``, so val/test noise is fixed once per pair and
 shared (scaled) by all configurations; train shards get ``fusion_data.prealign.train_draws``
 draws per pair. Shards map 1:1 to data/fusion's shards (same index and split).
-Library: :func:`traffictwin.sim.fusion_pairs.prealign_shard`.
+Library: :func:`traffictwin.fusion.pairs.prealign_shard`.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stag
 from pipelines.generate_fusion import K, grid_from_params
 from traffictwin.config import ConfigError, get
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
-from traffictwin.sim.fusion_pairs import prealign_shard
+from traffictwin.fusion.pairs import prealign_shard
 
 SRC = ROOT / "data" / "fusion"
 

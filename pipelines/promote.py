@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from pipelines._common import ROOT, params, setup_logging
-from traffictwin import registry as reg
+from traffictwin.mlops import registry as reg
 from traffictwin.config import ConfigError, get
 
 

@@ -3,7 +3,7 @@
 Reads params.yaml for what the report shows about the run -- the profile, the seed, the
 pose-noise configurations, and the *scale* parameters (every key that any profile in
 conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) -- and
-hands them to :func:`traffictwin.reporting.report.write_report` as explicit values, together
+hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
 with the git commit and the DVC stage order (for the timing table).
 """
 
@@ -16,8 +16,8 @@ from typing import Any
 import yaml
 
 from traffictwin.config import flatten, get
-from traffictwin.reporting.report import ReportInputs, write_report
-from traffictwin.tracking import git_commit, pipeline_run_id
+from traffictwin.report.render import ReportInputs, write_report
+from traffictwin.mlops.tracking import git_commit, pipeline_run_id
 
 from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 

@@ -42,7 +42,7 @@ from typing import Any, Iterator
 import yaml
 
 from pipelines._common import ROOT, params, setup_logging
-from traffictwin import registry as reg
+from traffictwin.mlops import registry as reg
 from traffictwin.config import ConfigError, compose_config, dump_params, get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
 
@@ -230,7 +230,7 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
 def retrain(root: Path, seed: int | None = None, targets: list[str] | None = None, promote_models: bool = True) -> dict:
     """The whole flow (see module docstring) under the lock; returns the summary dict."""
     from pipelines import promote as promote_mod
-    from traffictwin.tracking import git_commit
+    from traffictwin.mlops.tracking import git_commit
 
     log = setup_logging()
     cfg = params(root / "params.yaml")

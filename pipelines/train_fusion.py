@@ -22,8 +22,8 @@ import argparse  # noqa: E402
 
 from traffictwin.config import ConfigError, flatten, get  # noqa: E402
 from traffictwin.grid import GridSpec  # noqa: E402
-from traffictwin.training.common import TrainerSettings  # noqa: E402
-from traffictwin.training.fusion import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg  # noqa: E402
+from traffictwin.trainer import TrainerSettings  # noqa: E402
+from traffictwin.fusion.training import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg  # noqa: E402
 
 from ._common import ROOT, params, run_stage, setup_logging, stage_timer  # noqa: E402
 

@@ -5,7 +5,7 @@ Usage: ``python -m pipelines.train_risk --variant rgbd``. Reads ``risk_model.*``
 Writes ``models/risk/<variant>/`` (``model.ckpt``, ``model_meta.json``, ``history.csv``) and
 ``reports/plots/risk_training_<variant>.csv`` (train/val error per validation, for ``dvc plots``).
 MLflow: experiment ``risk``, run ``risk-<variant>`` with the params once, the error curves, the
-best checkpoint and an MLflow model (single-tensor input, :class:`~traffictwin.models.dave2.PackedDave2`).
+best checkpoint and an MLflow model (single-tensor input, :class:`~traffictwin.risk.dave2.PackedDave2`).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import torch
 
 from traffictwin.config import ConfigError, flatten, get
 from traffictwin.io.atomic import atomic_path
-from traffictwin.models.dave2 import Dave2Config, PackedDave2, count_parameters, normalise, pack_input
-from traffictwin.models.risk_io import CKPT, save_risk_model
-from traffictwin.training.common import TrainerSettings, global_rank, log_checkpoint, log_torch_model, tracked_run
-from traffictwin.training.risk import LABELS, RiskSource, TrainConfig, fit, prepare_split
+from traffictwin.risk.dave2 import Dave2Config, PackedDave2, count_parameters, normalise, pack_input
+from traffictwin.risk.model_io import CKPT, save_risk_model
+from traffictwin.trainer import TrainerSettings, global_rank, log_checkpoint, log_torch_model, tracked_run
+from traffictwin.risk.training import LABELS, RiskSource, TrainConfig, fit, prepare_split
 
 from ._common import ROOT, params, setup_logging, stage_timer, run_stage
 

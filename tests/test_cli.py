@@ -14,14 +14,14 @@ import pytest
 import torch
 
 from traffictwin import cli
-from traffictwin import registry as reg
+from traffictwin.mlops import registry as reg
 from traffictwin.evidential.warp import warp_masses
 from traffictwin.grid import GridSpec
-from traffictwin.models.dave2 import Dave2, Dave2Config
-from traffictwin.models.deeplab import DeepLabSpec, DeepLabV3Plus
-from traffictwin.models.fusion_io import CKPT_FORMAT, load_fusion_model, predict_masses
-from traffictwin.models.resnet import ResNetSpec
-from traffictwin.models.risk_io import load_risk_model, save_risk_model
+from traffictwin.risk.dave2 import Dave2, Dave2Config
+from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
+from traffictwin.fusion.model_io import CKPT_FORMAT, load_fusion_model, predict_masses
+from traffictwin.fusion.resnet import ResNetSpec
+from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.sim.scene import relative_pose
 from traffictwin.stereo.orb import check_pair
 from traffictwin.stereo.sgm import compute_disparity
@@ -48,7 +48,7 @@ def _tiny_spec() -> DeepLabSpec:
 
 @pytest.fixture(scope="module")
 def fusion_dir(tmp_path_factory) -> Path:
-    """A tiny fusion network saved in the checkpoint format of traffictwin.models.fusion_io."""
+    """A tiny fusion network saved in the checkpoint format of traffictwin.fusion.model_io."""
     torch.manual_seed(0)
     spec = _tiny_spec()
     net = DeepLabV3Plus(spec).eval()

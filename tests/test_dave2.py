@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from traffictwin.models.dave2 import (
+from traffictwin.risk.dave2 import (
     Dave2, Dave2Config, PackedDave2, conv_output_shape, count_parameters, pack_input, prepare_channels, preprocess,
 )
-from traffictwin.models.risk_io import RiskModelError, load_risk_model, save_risk_model
+from traffictwin.risk.model_io import RiskModelError, load_risk_model, save_risk_model
 
 
 def _expected_params(c_in: int, flat: int, speed: bool = False) -> int:

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from traffictwin.evaluation.fusion_baselines import (
+from traffictwin.fusion.methods import (
     EvalSettings,
     evaluate_prealigned,
     evaluate_registered,
@@ -19,7 +19,7 @@ from traffictwin.evaluation.fusion_baselines import (
 )
 from traffictwin.evidential.dempster import dempster
 from traffictwin.grid import GridSpec
-from traffictwin.reporting.fusion_findings import fusion_findings
+from traffictwin.fusion.findings import fusion_findings
 
 CFGS = ("A", "B", "C", "D")
 METHODS = ("ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn")
@@ -72,8 +72,8 @@ def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
 def test_evaluate_registered_on_synthetic_pair():
     from test_registration import render, structured_world
 
-    from traffictwin.evaluation.fusion_metrics import kld_fo
-    from traffictwin.evaluation.registration import RegistrationParams
+    from traffictwin.fusion.metrics import kld_fo
+    from traffictwin.fusion.registration import RegistrationParams
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.sim.scene import relative_pose
 
@@ -133,7 +133,7 @@ def test_findings_report_kld_b_and_explain_negative_kld_a():
 
 
 def test_figures_are_valid_pngs(tmp_path):
-    from traffictwin.reporting.fusion_figs import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
+    from traffictwin.fusion.figures import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
 
     rng = np.random.default_rng(2)
     vals = {m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)} for m in ("naive", "dnn")}

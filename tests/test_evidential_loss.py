@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from traffictwin.models.evidential import (
+from traffictwin.fusion.losses import (
     confusion_counts,
     dice_from_counts,
     evidence_to_masses,
@@ -109,7 +109,7 @@ def test_kld_hand_cases() -> None:
 
 def test_torch_metrics_match_numpy_evaluation_metrics() -> None:
     """Same definitions as the fusion-eval numpy metrics (DESIGN.md 'Fusion metrics')."""
-    from traffictwin.evaluation import fusion_metrics as fm
+    from traffictwin.fusion import metrics as fm
 
     g = np.random.default_rng(0)
     raw = g.random((3, 3, 16, 12))

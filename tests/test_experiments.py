@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import run, stage_env
-from traffictwin.runs import compare_runs, format_runs
+from traffictwin.mlops.runs import compare_runs, format_runs
 
 STAGE = "train_risk@rgbd"
 PARAM = "risk_model.train.lr"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from traffictwin.evaluation.fusion_metrics import (
+from traffictwin.fusion.metrics import (
     UncertaintyAUROC,
     aggregate,
     auroc_from_hist,

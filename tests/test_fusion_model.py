@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from traffictwin.models.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
-from traffictwin.models.evidential import evidence_to_masses
-from traffictwin.models.resnet import ResNet, ResNetSpec, resnet_spec
-from traffictwin.training.fusion import spec_from_cfg
+from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.fusion.losses import evidence_to_masses
+from traffictwin.fusion.resnet import ResNet, ResNetSpec, resnet_spec
+from traffictwin.fusion.training import spec_from_cfg
 
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
@@ -91,7 +91,7 @@ def test_indivisible_input_is_rejected() -> None:
 
 
 def test_network_gradient_is_finite() -> None:
-    from traffictwin.models.evidential import evidential_loss
+    from traffictwin.fusion.losses import evidential_loss
 
     torch.manual_seed(1)
     net = DeepLabV3Plus(tiny_spec())

@@ -16,11 +16,11 @@ import torch
 from traffictwin.config import ConfigError
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import DatasetError, DatasetWriter
-from traffictwin.models.deeplab import DeepLabSpec
-from traffictwin.models.fusion_io import FusionModelError, load_fusion_model, predict_masses
-from traffictwin.models.resnet import ResNetSpec
-from traffictwin.training import common
-from traffictwin.training.fusion import (
+from traffictwin.fusion.deeplab import DeepLabSpec
+from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
+from traffictwin.fusion.resnet import ResNetSpec
+from traffictwin import trainer as common
+from traffictwin.fusion.training import (
     DataSettings,
     FusionDataModule,
     FusionHParams,
@@ -163,7 +163,7 @@ def test_fast_dev_run(tmp_path: Path) -> None:
 
 def test_short_overfit_loss_falls(tmp_path: Path) -> None:
     """A few pairs, the module's own optimizer (Adam, lr 0.01) and loss: the training loss falls by > 3x."""
-    from traffictwin.models.evidential import evidential_loss
+    from traffictwin.fusion.losses import evidential_loss
 
     common.seed_everything(0)
     root = write_prealigned(tmp_path / "pre", n=4)

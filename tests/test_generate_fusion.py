@@ -18,7 +18,7 @@ from traffictwin.evidential.noise import scale_noise, standard_normal_draws
 from traffictwin.evidential.warp import warp_masses
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.sim.fusion_pairs import FusionDataParams, generate_shard, prealign_arrays, shard_splits
+from traffictwin.fusion.pairs import FusionDataParams, generate_shard, prealign_arrays, shard_splits
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.sim.scene import relative_pose
 

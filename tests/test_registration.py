@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from traffictwin.evaluation.registration import (
+from traffictwin.fusion.registration import (
     RegistrationParams,
     metric_to_pixel,
     pixel_affine_to_pose,
@@ -116,7 +116,7 @@ def test_bad_inputs_name_the_argument():
 @pytest.mark.parametrize("noise", [(2.0, -1.5, 12.0), (-3.5, 2.5, -17.0)])
 def test_recovers_known_shift_and_rotation_of_a_generated_lidar_pair(noise):
     """The project's own generator (world, traffic, VLP-32C-like lidar, ISM) at the ci grid."""
-    from traffictwin.sim.fusion_pairs import FusionDataParams, scenario_maps
+    from traffictwin.fusion.pairs import FusionDataParams, scenario_maps
     from traffictwin.sim.lidar import LidarSpec
 
     grid = GridSpec(128, 96, 0.64)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from traffictwin import registry as reg
+from traffictwin.mlops import registry as reg
 
 NAME = "traffictwin-fusion-T"
 W_TRUE = np.array([[2.0, -1.0]], dtype=np.float32)

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from traffictwin.reporting import paper_numbers as P
-from traffictwin.reporting import report as R
+from traffictwin.report import paper_numbers as P
+from traffictwin.report import render as R
 
 NUM_RE = re.compile(r"^-?[\d,]*\.?\d+(e[+-]?\d+)?( %)?$|^\d+:\d\d(:\d\d)?$")
 
@@ -174,7 +174,7 @@ def fusion_metrics() -> dict:
 
 def risk_metrics() -> dict:
     """risk.json as evaluate_risk writes it (built with the evaluation's own metric functions)."""
-    from traffictwin.evaluation.risk_metrics import PAPER, _finite_or_none, evaluate
+    from traffictwin.risk.evaluation import PAPER, _finite_or_none, evaluate
 
     y = np.array([0.0, 0.0, 0.05, 0.2, 0.01, 0.5, 0.0, 0.04])
     p = np.array([0.01, 0.06, 0.04, 0.1, 0.0, 0.3, 0.02, 0.0])
@@ -354,7 +354,7 @@ def test_check_report_catches_a_wrong_number(reports: Path) -> None:
 
 def test_paper_numbers_agree_with_risk_evaluation() -> None:
     """evaluate_risk keeps its own copy of the paper's figures (risk_metrics.PAPER): they must agree."""
-    from traffictwin.evaluation.risk_metrics import PAPER
+    from traffictwin.risk.evaluation import PAPER
 
     assert PAPER["test/mse"] == P.RISK["test_mse"].value
     assert round(100 * PAPER["accuracy"], 2) == P.RISK["accuracy"].value

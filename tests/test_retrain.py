@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from pipelines import retrain as rt
-from traffictwin import registry as reg
+from traffictwin.mlops import registry as reg
 from traffictwin.config import ConfigError, compose_config, load_params
 
 from conftest import run, stage_env

@@ -11,15 +11,15 @@ import pytest
 import torch
 
 from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
-from traffictwin.evaluation.risk_baselines import GeometricParams, constant_predictions, geometric_distance, geometric_risk
-from traffictwin.evaluation.risk_metrics import (
+from traffictwin.risk.baselines import GeometricParams, constant_predictions, geometric_distance, geometric_risk
+from traffictwin.risk.evaluation import (
     PAPER, classification_metrics, evaluate, evaluate_suite, label_agreement, regression_metrics, risk_threshold,
     risk_to_thw, roc_auc, thw_to_risk,
 )
-from traffictwin.models.dave2 import Dave2, Dave2Config
-from traffictwin.models.risk_io import load_risk_model, save_risk_model
-from traffictwin.reporting.risk_findings import findings
-from traffictwin.training.risk import RiskSource
+from traffictwin.risk.dave2 import Dave2, Dave2Config
+from traffictwin.risk.model_io import load_risk_model, save_risk_model
+from traffictwin.risk.findings import findings
+from traffictwin.risk.training import RiskSource
 
 
 def test_thresholds_and_conversions() -> None:

@@ -31,7 +31,7 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
 
 @pytest.mark.slow
 def test_train_risk_writes_models_and_curves(ci_dag: Path) -> None:
-    from traffictwin.models.risk_io import load_risk_model
+    from traffictwin.risk.model_io import load_risk_model
 
     for v in _variants(ci_dag):
         d = ci_dag / "models" / "risk" / v
@@ -53,8 +53,8 @@ def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: 
     import mlflow.pytorch
 
     from traffictwin.io.shards import Dataset
-    from traffictwin.models.dave2 import pack_input, preprocess
-    from traffictwin.models.risk_io import load_risk_model
+    from traffictwin.risk.dave2 import pack_input, preprocess
+    from traffictwin.risk.model_io import load_risk_model
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ci_dag / 'mlflow.db'}")
     mlflow.set_tracking_uri(f"sqlite:///{ci_dag / 'mlflow.db'}")
@@ -85,7 +85,7 @@ def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: 
 
 @pytest.mark.slow
 def test_evaluate_risk_outputs(ci_dag: Path) -> None:
-    from traffictwin.reporting.risk_findings import findings
+    from traffictwin.risk.findings import findings
 
     metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
     variants = _variants(ci_dag)

@@ -16,9 +16,9 @@ import pytest
 import torch
 
 from traffictwin.io.shards import DatasetError, DatasetWriter
-from traffictwin.models.dave2 import Dave2Config
-from traffictwin.training.common import TrainerSettings
-from traffictwin.training.risk import RiskSource, TrainConfig, fit, prepare_split
+from traffictwin.risk.dave2 import Dave2Config
+from traffictwin.trainer import TrainerSettings
+from traffictwin.risk.training import RiskSource, TrainConfig, fit, prepare_split
 
 CAMERA = dict(width=96, height=48, baseline=0.16, mount_x=1.2, mount_height=1.3)
 SUBJECT_LENGTH = 4.5
@@ -176,8 +176,8 @@ def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     tr = prepare_split(src, cfg, "train", "risk_thw_fov", max_frames=16, seed=0)
     va = prepare_split(src, cfg, "val", "risk_thw_fov")
     tc = TrainConfig(epochs=40, batch_size=8, lr=1e-3, val_every_n_steps=1000, seed=0)
-    from traffictwin.models.dave2 import Dave2, normalise
-    from traffictwin.training.common import seed_everything
+    from traffictwin.risk.dave2 import Dave2, normalise
+    from traffictwin.trainer import seed_everything
 
     x = normalise(cfg, torch.from_numpy(tr.rgb), torch.from_numpy(tr.disp))
     seed_everything(tc.seed)  # fit() seeds the same way before building the net: same initial weights
@@ -204,7 +204,7 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     assert list(res.history["step"]) == list(range(2, steps_total + 1, 2))
     assert res.best_val_mse == pytest.approx(res.history["val/mse"].min())
     # the returned weights are the best checkpoint's: their val MSE equals the best one
-    from traffictwin.models.dave2 import normalise
+    from traffictwin.risk.dave2 import normalise
 
     with torch.no_grad():
         p = res.net(normalise(cfg, None, torch.from_numpy(va.disp))).numpy()

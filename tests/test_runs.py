@@ -7,7 +7,7 @@ import math
 import mlflow
 import pytest
 
-from traffictwin import runs, tracking
+from traffictwin.mlops import runs, tracking
 
 
 def _log(name: str, params: dict, metrics: dict, **tags) -> str:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import mlflow
 
-from traffictwin import tracking
+from traffictwin.mlops import tracking
 
 
 def test_default_uri_is_absolute_sqlite_at_repo_root(tmp_path: Path, monkeypatch) -> None:

@@ -14,7 +14,7 @@ import torch
 
 from conftest import run
 from traffictwin.io.shards import Dataset
-from traffictwin.models.fusion_io import FusionModelError, load_fusion_model, predict_masses
+from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
 
 CFGS = ("A", "B", "C", "D")
 pytestmark = pytest.mark.slow

@@ -187,14 +187,14 @@ def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
 
 
 def _registry_client():
-    from . import registry as reg
+    from traffictwin.mlops import registry as reg
 
     return reg.client()
 
 
 def _registered_params(name: str, alias: str) -> tuple[str, dict[str, str]]:
     """URI of ``name@alias`` (error if missing) and its training run's params."""
-    from . import registry as reg
+    from traffictwin.mlops import registry as reg
 
     cl = _registry_client()
     try:
@@ -211,7 +211,7 @@ def _registered_params(name: str, alias: str) -> tuple[str, dict[str, str]]:
 def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
     """The fusion network for ``--model`` (an alias of ``traffictwin-fusion-<config>`` or a path),
     its training grid (dict, may be empty) and a description."""
-    from . import registry as reg
+    from traffictwin.mlops import registry as reg
 
     if model in ALIASES:
         name = reg.fusion_name(config)
@@ -222,7 +222,7 @@ def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
             raise CliError(f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})") from None
         grid = {k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params}
         return net, grid, f"{name}@{model} ({uri})"
-    from .models.fusion_io import FusionModelError, load_fusion_model
+    from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
 
     p = Path(model)
     if not p.exists():
@@ -235,9 +235,9 @@ def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
 
 
 def load_risk(model: str):
-    """A :class:`~traffictwin.models.risk_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk`` or a path)."""
-    from . import registry as reg
-    from .models.risk_io import RiskModel, RiskModelError, load_risk_model
+    """A :class:`~traffictwin.risk.model_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk`` or a path)."""
+    from traffictwin.mlops import registry as reg
+    from traffictwin.risk.model_io import RiskModel, RiskModelError, load_risk_model
 
     if model in ALIASES:
         uri, _ = _registered_params(reg.RISK_NAME, model)
@@ -264,10 +264,10 @@ def fuse_arrays(net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pos
 
     Returns ``(m (2,H,W), u (H,W), m2_prealigned (2,H,W), rel_pose (3,))``, float32 masses.
     """
-    from .evidential.warp import warp_masses
-    from .grid import GridSpec
-    from .models.fusion_io import predict_masses
-    from .sim.scene import relative_pose
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.grid import GridSpec
+    from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.sim.scene import relative_pose
 
     grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
     rel = relative_pose(pose1, pose2)
@@ -294,7 +294,7 @@ def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray)
 def cmd_fuse(args: argparse.Namespace) -> int:
     import cv2
 
-    from .io.atomic import atomic_path
+    from traffictwin.io.atomic import atomic_path
 
     pose1 = parse_pose(args.pose1, "--pose1")
     pose2 = parse_pose(args.pose2, "--pose2")
@@ -355,7 +355,7 @@ def stereo_settings(params_path: str | None) -> StereoSettings:
     ``params_path`` (default: params.yaml of the project, if found), else the library defaults."""
     import yaml
 
-    from .tracking import repo_root
+    from traffictwin.mlops.tracking import repo_root
 
     path = Path(params_path) if params_path else repo_root() / "params.yaml"
     if params_path and not path.is_file():
@@ -374,8 +374,8 @@ def stereo_settings(params_path: str | None) -> StereoSettings:
 def risk_one(rmodel: Any, left: np.ndarray, right: np.ndarray, speed: float | None, st: StereoSettings,
              thw_threshold: float) -> dict[str, Any]:
     """ORB verdict, SGM disparity, predicted risk and THW verdict of one pair (see :func:`risk_verdict`)."""
-    from .stereo.orb import check_pair
-    from .stereo.sgm import compute_disparity
+    from traffictwin.stereo.orb import check_pair
+    from traffictwin.stereo.sgm import compute_disparity
 
     t0 = time.perf_counter()
     orb = check_pair(left, right, **st.orb)
@@ -414,7 +414,7 @@ def risk_verdict(risk: float, speed: float | None, thw_threshold: float = 1.5) -
 
 
 def cmd_risk(args: argparse.Namespace) -> int:
-    from .io.atomic import write_json_atomic, write_text_atomic
+    from traffictwin.io.atomic import write_json_atomic, write_text_atomic
 
     if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
         raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
@@ -467,7 +467,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
 
 def cmd_promote(args: argparse.Namespace) -> int:
     """Delegates to ``python -m pipelines.promote`` in the project (the gate reads params.yaml)."""
-    from .tracking import repo_root
+    from traffictwin.mlops.tracking import repo_root
 
     root = repo_root()
     if not (root / "pipelines" / "promote.py").exists():
@@ -482,13 +482,13 @@ def cmd_promote(args: argparse.Namespace) -> int:
 
 
 def _log_path(arg: str | None) -> Path:
-    from .tracking import repo_root
+    from traffictwin.mlops.tracking import repo_root
 
     return Path(arg) if arg else repo_root() / "reports" / "promotions.jsonl"
 
 
 def cmd_rollback(args: argparse.Namespace) -> int:
-    from . import registry as reg
+    from traffictwin.mlops import registry as reg
 
     try:
         rec = reg.rollback(_registry_client(), args.model, args.version, log_path=_log_path(args.log))
@@ -499,7 +499,7 @@ def cmd_rollback(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from . import registry as reg
+    from traffictwin.mlops import registry as reg
 
     cl = _registry_client()
     names = args.model or sorted(m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-"))
@@ -517,14 +517,14 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_runs_compare(args: argparse.Namespace) -> int:
-    from .runs import RunsError, compare_runs, format_runs
+    from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
 
     try:
         df = compare_runs(args.experiment, metrics=args.metrics, uri=args.uri)
     except RunsError as exc:
         raise CliError(str(exc)) from None
     if args.csv:
-        from .io.atomic import write_text_atomic
+        from traffictwin.io.atomic import write_text_atomic
 
         write_text_atomic(args.csv, df.to_csv(index=False))
     print(format_runs(df, wide=args.wide))

@@ -36,7 +36,7 @@ def compose_config(conf_dir: str | Path, overrides: Sequence[str] = (), config_n
 
 def dump_params(cfg: dict[str, Any], path: str | Path) -> None:
     """Write a composed config as params.yaml (atomically)."""
-    from .io.atomic import write_text_atomic
+    from traffictwin.io.atomic import write_text_atomic
 
     header = "# Generated from conf/ by `make params` (Hydra composition). Do not edit: edit conf/.\n"
     write_text_atomic(path, header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=False))

@@ -25,9 +25,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..grid import GridSpec
-from ..sim.lidar import Scan
-from ..sim.raycast import HIT_GROUND
+from traffictwin.grid import GridSpec
+from traffictwin.sim.lidar import Scan
+from traffictwin.sim.raycast import HIT_GROUND
 
 
 @dataclass(frozen=True)

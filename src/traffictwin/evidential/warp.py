@@ -14,8 +14,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..grid import GridSpec
-from ..sim.scene import se2_matrix
+from traffictwin.grid import GridSpec
+from traffictwin.sim.scene import se2_matrix
 
 
 def pixel_from_metric(grid: GridSpec) -> np.ndarray:

@@ -22,7 +22,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from .atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import atomic_path, write_json_atomic
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..grid import GridSpec
-from ..sim.camera import GroundTexture, StereoCamera
-from ..sim.driving import DrivingConfig, generate_sequence
-from .metric import CRITICAL_THW, RiskCalculator, RiskConfig
+from traffictwin.grid import GridSpec
+from traffictwin.sim.camera import GroundTexture, StereoCamera
+from traffictwin.sim.driving import DrivingConfig, generate_sequence
+from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig
 
 LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
 
@@ -94,7 +94,7 @@ def make_shard(seed: int, index: int, spec: RiskDataSpec) -> tuple[dict[str, np.
 def load_stereo_shard(ds: "Dataset", index: int, keys: tuple[str, ...] = ("left", "right")) -> dict[str, np.ndarray]:
     """Shard ``index`` of a ``data/risk`` dataset, checked: every array of ``keys`` present and
     left/right images of one size. Raises :class:`DatasetError` naming the shard file."""
-    from ..io.shards import DatasetError
+    from traffictwin.io.shards import DatasetError
 
     sh = ds.load_shard(index)
     name = ds.root / ds.shards[index]["name"]

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..grid import GridSpec
-from ..sim.scene import VEHICLE_CLASSES, Boxes
+from traffictwin.grid import GridSpec
+from traffictwin.sim.scene import VEHICLE_CLASSES, Boxes
 
 REGIONS = ("paper", "camera_fov")
 CLIP = 20.0

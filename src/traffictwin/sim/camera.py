@@ -31,7 +31,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .scene import Boxes, Cls
+from traffictwin.sim.scene import Boxes, Cls
 
 _SHIFT = 4  # fillConvexPoly fixed-point bits (1/16 px)
 

@@ -32,9 +32,9 @@ from typing import Iterator
 
 import numpy as np
 
-from .scene import Boxes, Cls
-from .traffic import SUBJECT_SIZE, Scenario, sample_scenario
-from .world import TEMPLATES, World, build_world
+from traffictwin.sim.scene import Boxes, Cls
+from traffictwin.sim.traffic import SUBJECT_SIZE, Scenario, sample_scenario
+from traffictwin.sim.world import TEMPLATES, World, build_world
 
 SITUATIONS = ("free", "follow_far", "follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in", "pedestrian")
 CLOSE = ("follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in")

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import HIT_GROUND, HIT_NOTHING
-from .scene import Boxes
+from traffictwin.sim.raycast import HIT_GROUND, HIT_NOTHING
+from traffictwin.sim.scene import Boxes
 
 #: VLP-32C elevation angles (deg), sorted ascending (Velodyne VLP-32C user manual, table 9-2)
 VLP32C_ELEVATIONS_DEG: tuple[float, ...] = (

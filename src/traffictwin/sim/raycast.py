@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import Boxes
+from traffictwin.sim.scene import Boxes
 
 HIT_GROUND = -1
 HIT_NOTHING = -2

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry as geo
-from .scene import Boxes, Cls
-from .world import World
+from traffictwin.sim import geometry as geo
+from traffictwin.sim.scene import Boxes, Cls
+from traffictwin.sim.world import World
 
 # length, width, height ranges (m)
 DIMS = {

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import geometry as geo
-from .scene import Boxes, Cls
+from traffictwin.sim import geometry as geo
+from traffictwin.sim.scene import Boxes, Cls
 
 TEMPLATES: tuple[str, ...] = (
     "cross4",        # 4-way intersection

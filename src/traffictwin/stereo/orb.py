@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from .sgm import check_pair_shapes
+from traffictwin.stereo.sgm import check_pair_shapes
 
 
 @dataclass(frozen=True)

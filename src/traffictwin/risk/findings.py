@@ -1,6 +1,6 @@
 """Findings of the risk evaluation as markdown bullets, generated from ``reports/metrics/risk.json``.
 
-:func:`findings` is called by the report stage (``traffictwin.reporting.report.findings``); every
+:func:`findings` is called by the report stage (``traffictwin.report.render.findings``); every
 number comes from the metrics dict, nothing is typed by hand. Missing entries (a variant or a
 baseline not evaluated, a metric undefined → ``None``) are skipped, never invented.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from ..evaluation.risk_metrics import PAPER
+from traffictwin.risk.evaluation import PAPER
 
 VARIANT_NAMES = {
     "rgbd": "RGB + SGM disparity (the paper's input)",

@@ -187,16 +187,16 @@ def evaluate_suite(
 ) -> tuple[dict[str, Any], "Any"]:
     """Predict every model and baseline on ``split`` of ``source`` and compute the metrics.
 
-    ``source``: :class:`traffictwin.training.risk.RiskSource`; ``models``: variant →
-    :class:`traffictwin.models.risk_io.RiskModel` (its ``meta["label"]`` is the column it is scored
+    ``source``: :class:`traffictwin.risk.training.RiskSource`; ``models``: variant →
+    :class:`traffictwin.risk.model_io.RiskModel` (its ``meta["label"]`` is the column it is scored
     against); ``geometric``: :class:`~.risk_baselines.GeometricParams` (``None`` = skip).
     Returns ``(metrics, predictions)``: the risk.json dict and a per-frame DataFrame
     (``frame_id``, labels, ``speed``, ``pred_<variant>``, ``pred_geometric``, ``geometric_distance_m``).
     """
     import pandas as pd
 
-    from ..training.risk import check_label, input_keys
-    from .risk_baselines import constant_predictions, geometric_risk
+    from traffictwin.risk.training import check_label, input_keys
+    from traffictwin.risk.baselines import constant_predictions, geometric_risk
 
     frames = source.split_frames(split)
     if len(frames) == 0:

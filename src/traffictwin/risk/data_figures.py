@@ -12,12 +12,12 @@ import cv2  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..io.atomic import atomic_path  # noqa: E402
-from ..risk.dataset import RiskDataSpec  # noqa: E402
-from ..risk.metric import RiskCalculator, RiskConfig, rasterise, swept_cells, to_subject_frame  # noqa: E402
-from ..sim.camera import GroundTexture  # noqa: E402
-from ..sim.driving import generate_sequence  # noqa: E402
-from ..stereo.orb import match_offsets  # noqa: E402
+from traffictwin.io.atomic import atomic_path  # noqa: E402
+from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
+from traffictwin.risk.metric import RiskCalculator, RiskConfig, rasterise, swept_cells, to_subject_frame  # noqa: E402
+from traffictwin.sim.camera import GroundTexture  # noqa: E402
+from traffictwin.sim.driving import generate_sequence  # noqa: E402
+from traffictwin.stereo.orb import match_offsets  # noqa: E402
 
 
 def _save(fig, path: str | Path) -> None:
@@ -60,7 +60,7 @@ def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequ
         ti = int(np.flatnonzero(calc.obstacles(fr.boxes) == r.target)[0])
         rgb[lab == ti + 1] = [1.0, 0.55, 0.0]
     L, W = spec.risk.subject_length, spec.risk.subject_width
-    from ..sim.scene import Boxes
+    from traffictwin.sim.scene import Boxes
 
     sub = rasterise(Boxes([[0.0, 0.0]], [[L, W, 1.5]], [0.0], [0]), grid, "filled") > 0
     rgb[sub] = [0.85, 0.1, 0.1]

@@ -18,8 +18,8 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from ..io.atomic import atomic_path, write_json_atomic
-from .dave2 import Dave2, Dave2Config, count_parameters, preprocess
+from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
 
 FORMAT = 1
 CKPT = "model.ckpt"

@@ -40,7 +40,7 @@ from typing import Any, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 
-from .io.atomic import write_text_atomic
+from traffictwin.io.atomic import write_text_atomic
 
 CHAMPION = "champion"
 CHALLENGER = "challenger"
@@ -137,14 +137,14 @@ class Decision:
 
 
 def client(uri: str | None = None):
-    """An ``MlflowClient`` on ``uri`` (default: :func:`traffictwin.tracking.tracking_uri`).
+    """An ``MlflowClient`` on ``uri`` (default: :func:`traffictwin.mlops.tracking.tracking_uri`).
 
     Also points the fluent API (model loading, registration) at the same URI.
     """
     import mlflow
     from mlflow import MlflowClient
 
-    from .tracking import tracking_uri
+    from traffictwin.mlops.tracking import tracking_uri
 
     uri = uri or tracking_uri()
     mlflow.set_tracking_uri(uri)
@@ -209,7 +209,7 @@ def ensure_version(cl, name: str, run_id: str, model_uri: str | None = None, tag
     try:
         cl.get_registered_model(name)
     except MlflowException:
-        cl.create_registered_model(name, description=f"traffictwin model '{name}' (promotion gate: traffictwin.registry)")
+        cl.create_registered_model(name, description=f"traffictwin model '{name}' (promotion gate: traffictwin.mlops.registry)")
     try:
         mv = mlflow.register_model(model_uri or f"runs:/{run_id}/model", name, tags={k: str(v) for k, v in (tags or {}).items()})
     except MlflowException as exc:
@@ -491,7 +491,7 @@ def _take_first(order_key: np.ndarray, k: int | None) -> np.ndarray:
 def fusion_test_set(data_root: str | Path, split: str = "test", max_pairs: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """Gate test set of a prealigned dataset: ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first
     ``max_pairs`` pairs by ``pair_id`` (a fixed selection), and its fingerprint."""
-    from .io.shards import Dataset
+    from traffictwin.io.shards import Dataset
 
     ds = Dataset(data_root, kind="prealigned")
     a = ds.load_all(split, keys=["inputs", "label", "pair_id"])
@@ -502,9 +502,9 @@ def fusion_test_set(data_root: str | Path, split: str = "test", max_pairs: int |
 
 def fusion_evaluator(inputs: np.ndarray, label: np.ndarray, batch_size: int = 8) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)``: fused masses of the model on ``inputs``, scored with
-    :mod:`traffictwin.evaluation.fusion_metrics` (the evaluate_fusion stage's code) as ``test/<name>``."""
-    from .evaluation import fusion_metrics as fm
-    from .models.fusion_io import predict_masses
+    :mod:`traffictwin.fusion.metrics` (the evaluate_fusion stage's code) as ``test/<name>``."""
+    from traffictwin.fusion import metrics as fm
+    from traffictwin.fusion.model_io import predict_masses
 
     def evaluate(uri: str) -> dict[str, float]:
         model = load_registered(uri)
@@ -516,8 +516,8 @@ def fusion_evaluator(inputs: np.ndarray, label: np.ndarray, batch_size: int = 8)
 
 
 def unwrap_risk_net(model):
-    """The :class:`~traffictwin.models.dave2.Dave2` inside an MLflow-loaded risk model."""
-    from .models.dave2 import Dave2
+    """The :class:`~traffictwin.risk.dave2.Dave2` inside an MLflow-loaded risk model."""
+    from traffictwin.risk.dave2 import Dave2
 
     for cand in (model, getattr(model, "net", None)):
         if isinstance(cand, Dave2):
@@ -531,8 +531,8 @@ def risk_test_set(
 ) -> tuple[dict[str, np.ndarray], str]:
     """Raw test frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
     ``risk*`` label column), the first ``max_frames`` by frame id, and the fingerprint."""
-    from .io.shards import sha256_file
-    from .training.risk import RiskSource
+    from traffictwin.io.shards import sha256_file
+    from traffictwin.risk.training import RiskSource
 
     src = RiskSource(risk_root, disparity_root, orb_csv)
     frames = src.split_frames(split).sort_values("frame_id", kind="stable")
@@ -565,12 +565,12 @@ def risk_evaluator(
     batch_size: int = 256,
 ) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)``: predicted risk of the model (its own preprocessing) on the raw test
-    frames, scored with :func:`traffictwin.evaluation.risk_metrics.evaluate` against ``label``.
+    frames, scored with :func:`traffictwin.risk.evaluation.evaluate` against ``label``.
 
     Returns ``test/mse``, ``test/mae``, … and ``test/accuracy`` (+ ``test/balanced_accuracy``) at the
     first threshold."""
-    from .evaluation import risk_metrics as rm
-    from .models.risk_io import RiskModel
+    from traffictwin.risk import evaluation as rm
+    from traffictwin.risk.model_io import RiskModel
 
     key = f"label:{label}"
     if key not in data:

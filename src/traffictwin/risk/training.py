@@ -12,7 +12,7 @@ Loss: MSE on the normalised risk; optimiser: Adam; validation every ``val_every_
 optimiser steps (the paper: every 10), the checkpoint with the lowest validation MSE is kept.
 
 The Trainer, seeding, best-checkpoint callback and MLflow model logging come from
-:mod:`traffictwin.training.common`. Risk-specific here: :class:`StepHistory`, which records the
+:mod:`traffictwin.trainer`. Risk-specific here: :class:`StepHistory`, which records the
 train/val error *per validation step* (the paper's Figs. 5–6 are over iterations, not epochs),
 and logs it to the active MLflow run with ``step = global step``.
 """
@@ -34,9 +34,9 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from torch.utils.data import DataLoader, TensorDataset
 
-from ..io.shards import Dataset, DatasetError
-from ..models.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
-from .common import TrainerSettings, best_checkpoint, build_trainer, seed_everything
+from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
+from traffictwin.trainer import TrainerSettings, best_checkpoint, build_trainer, seed_everything
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ class RiskSource:
         self._names = [s["name"] for s in self.risk.shards]
         counts = [int(s["count"]) for s in self.risk.shards]
         # frames.csv 'shard' is the writer's shard index; map it to the manifest position by name
-        from ..io.shards import shard_name
+        from traffictwin.io.shards import shard_name
 
         pos = {name: i for i, name in enumerate(self._names)}
         frames = frames.copy()

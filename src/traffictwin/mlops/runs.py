@@ -2,7 +2,7 @@
 
 Every training stage logs the same parameter names (the flattened config) and metric names
 (``split/name``) across runs, and every run carries the tags of
-:func:`traffictwin.tracking.base_tags` (``git_commit``, ``profile``, ``dvc_exp_name``,
+:func:`traffictwin.mlops.tracking.base_tags` (``git_commit``, ``profile``, ``dvc_exp_name``,
 ``pipeline_run`` …), so runs from different ``dvc repro`` / ``dvc exp run`` invocations line
 up column by column. :func:`compare_runs` returns that table as a DataFrame; :func:`format_runs`
 renders it as text for a terminal.
@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 import pandas as pd
 
-from . import tracking
+from traffictwin.mlops import tracking
 
 ID_COLUMNS = ("run_name", "run_id", "status", "start_time")
 TAG_COLUMNS = ("profile", "dvc_stage", "git_commit", "dvc_exp_name", "pipeline_run")
@@ -44,7 +44,7 @@ def compare_runs(
     a requested name no run has is an error). The value is the metric's last logged value.
     ``params``: parameter names to show (default: those whose value differs between the runs,
     i.e. what the compared experiments changed). ``uri``: tracking URI (default
-    :func:`traffictwin.tracking.tracking_uri`). ``filter_string``: an MLflow search filter,
+    :func:`traffictwin.mlops.tracking.tracking_uri`). ``filter_string``: an MLflow search filter,
     e.g. ``"tags.profile = 'ci'"``. Unfinished (running / failed) runs are left out unless
     ``include_unfinished``.
     """

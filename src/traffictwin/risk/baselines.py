@@ -27,7 +27,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .risk_metrics import thw_to_risk
+from traffictwin.risk.evaluation import thw_to_risk
 
 
 def constant_predictions(train_y: np.ndarray, n: int) -> dict[str, np.ndarray]:

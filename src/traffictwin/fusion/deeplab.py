@@ -5,7 +5,7 @@ atrous convs at rates 6/12/18 and image pooling, concatenated and projected by a
 Decoder: the stride-4 low-level features projected to 48 channels, the ASPP output upsampled
 x4 and concatenated, two 3x3 convs, a 1x1 classifier to ``num_outputs`` channels, bilinear
 upsampling x4 to the input size. The final activation is ReLU instead of softmax: the outputs
-are evidences ``e >= 0`` for (free, occupied) per cell (see :mod:`traffictwin.models.evidential`).
+are evidences ``e >= 0`` for (free, occupied) per cell (see :mod:`traffictwin.fusion.losses`).
 
 Input: ``(N, 4, H, W)`` float = ``[m_F1, m_O1, m_F2', m_O2']``; ``H`` and ``W`` divisible by 16.
 Output: ``(N, 2, H, W)`` evidences (channel 0 free, 1 occupied).
@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .resnet import ResNet, ResNetSpec
+from traffictwin.fusion.resnet import ResNet, ResNetSpec
 
 
 @dataclass(frozen=True)

@@ -33,13 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 
-from ..evidential.dempster import dempster
-from ..grid import GridSpec
-from ..io.atomic import atomic_path, write_json_atomic
-from ..io.shards import Dataset, DatasetError
-from ..models.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
-from ..models.fusion_io import CKPT_FORMAT
-from ..models.evidential import (
+from traffictwin.evidential.dempster import dempster
+from traffictwin.grid import GridSpec
+from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.fusion.model_io import CKPT_FORMAT
+from traffictwin.fusion.losses import (
     confusion_counts,
     dice_from_counts,
     evidence_to_masses,
@@ -47,7 +47,7 @@ from ..models.evidential import (
     kld,
     kld_full,
 )
-from . import common
+from traffictwin import trainer as common
 
 log = logging.getLogger(__name__)
 

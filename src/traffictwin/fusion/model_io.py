@@ -16,8 +16,8 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from .deeplab import DeepLabSpec, DeepLabV3Plus
-from .evidential import evidence_to_masses
+from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
+from traffictwin.fusion.losses import evidence_to_masses
 
 CKPT_FORMAT = "traffictwin-fusion/1"
 META_NAME = "model_meta.json"

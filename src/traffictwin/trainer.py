@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from ..config import ConfigError, get
-from ..io.atomic import atomic_path
+from traffictwin.config import ConfigError, get
+from traffictwin.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ def tracked_run(
     if not enabled or global_rank() != 0:
         yield None
         return
-    from ..tracking import start_run
+    from traffictwin.mlops.tracking import start_run
 
     with start_run(experiment, run_name, profile=profile, stage=stage, tags=tags, params=params) as run:
         yield run

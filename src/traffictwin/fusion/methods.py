@@ -9,7 +9,7 @@ map 1's frame, so all methods see the same noise draws:
 - ``naive-yager`` / ``naive-cautious``: the same warped maps combined with Yager's rule
   (conflict → unknown) or Denœux's normalised cautious rule (:mod:`traffictwin.evidential.rules`);
 - ``registered``: classical registration of the raw map 2 onto map 1 starting from the noisy pose
-  (:mod:`traffictwin.evaluation.registration`), map 2 warped by the estimate with the project's
+  (:mod:`traffictwin.fusion.registration`), map 2 warped by the estimate with the project's
   warp (``traffictwin.evidential.warp.warp_masses``), then Dempster.
 """
 
@@ -23,12 +23,12 @@ import numpy as np
 
 from traffictwin.grid import GridSpec
 
-from .registration import RegistrationParams, RegistrationResult, register_pair
+from traffictwin.fusion.registration import RegistrationParams, RegistrationResult, register_pair
 
 if TYPE_CHECKING:
     import pandas as pd
 
-    from .fusion_metrics import UncertaintyAUROC
+    from traffictwin.fusion.metrics import UncertaintyAUROC
 
 __all__ = [
     "PREALIGNED_METHODS", "METHODS", "fuse_prealigned", "registered_fusion", "RegisteredBatch",
@@ -154,7 +154,7 @@ def evaluate_predictions(
     """
     import pandas as pd
 
-    from .fusion_metrics import UncertaintyAUROC, per_sample_metrics
+    from traffictwin.fusion.metrics import UncertaintyAUROC, per_sample_metrics
 
     n = len(label) if n is None else n
     auroc = UncertaintyAUROC(bins=settings.auroc_bins)
@@ -196,7 +196,7 @@ def evaluate_registered(
     / ``noisy_rot_err_deg`` (of the noisy pose), ``reg_success`` (residual within
     ``success_trans_m`` and ``success_rot_deg``), ``reg_cc_noisy`` / ``reg_cc_est``.
     """
-    from .registration import pose_error
+    from traffictwin.fusion.registration import pose_error
 
     store: dict[str, RegisteredBatch] = {}
 

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ..grid import GridSpec
-from ..io.atomic import atomic_path
+from traffictwin.grid import GridSpec
+from traffictwin.io.atomic import atomic_path
 
 FREE = np.array([0.15, 0.75, 0.2])
 OCC = np.array([0.85, 0.1, 0.1])
@@ -29,7 +29,7 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
 def pick_samples(ds: "Any", n: int) -> list[dict[str, Any]]:
     """The first pair of the first ``n`` scenarios of a ``data/fusion`` dataset (consecutive
     scenarios use different road templates)."""
-    from ..sim.world import TEMPLATES
+    from traffictwin.sim.world import TEMPLATES
 
     samples: list[dict[str, Any]] = []
     for si in range(len(ds.shards)):

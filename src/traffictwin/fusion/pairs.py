@@ -20,14 +20,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..evidential.dempster import dempster
-from ..evidential.ism import IsmParams, inverse_sensor_model
-from ..evidential.warp import warp_masses
-from ..grid import GridSpec
-from .lidar import LidarSpec, scan
-from .scene import Boxes, relative_pose
-from .traffic import sample_scenario
-from .world import TEMPLATES, build_world
+from traffictwin.evidential.dempster import dempster
+from traffictwin.evidential.ism import IsmParams, inverse_sensor_model
+from traffictwin.evidential.warp import warp_masses
+from traffictwin.grid import GridSpec
+from traffictwin.sim.lidar import LidarSpec, scan
+from traffictwin.sim.scene import Boxes, relative_pose
+from traffictwin.sim.traffic import sample_scenario
+from traffictwin.sim.world import TEMPLATES, build_world
 
 SPLITS = ("train", "val", "test")
 
@@ -167,7 +167,7 @@ def write_shard(seed: int, index: int, p: FusionDataParams, path: str, compressl
     """
     import cv2
 
-    from ..io.shards import write_npz_deterministic
+    from traffictwin.io.shards import write_npz_deterministic
 
     cv2.setNumThreads(1)
     arrays = generate_shard(seed, index, p)
@@ -186,7 +186,7 @@ def prealign_arrays(
     says which draw, and the pairs are taken as ``shard[...][pair_index]`` where
     ``pair_index = np.repeat(arange(n_pairs), N // n_pairs)``.
     """
-    from ..evidential.noise import apply_pose_noise
+    from traffictwin.evidential.noise import apply_pose_noise
 
     n = len(shard["map1"])
     reps = len(noise) // max(n, 1)
@@ -219,8 +219,8 @@ def prealign_shard(
     with ``(seed, pid, d)`` scaled by ``(r, alpha_deg)``), write ``dst``; returns ``(sha256, count)``."""
     import cv2
 
-    from ..evidential.noise import scale_noise, standard_normal_draws
-    from ..io.shards import read_npz, write_npz_deterministic
+    from traffictwin.evidential.noise import scale_noise, standard_normal_draws
+    from traffictwin.io.shards import read_npz, write_npz_deterministic
 
     cv2.setNumThreads(1)
     shard = read_npz(src)

@@ -1,1 +1,0 @@
-"""traffictwin.models."""
