@@ -2,20 +2,24 @@
 
 ``conf/`` is the single source of truth; ``params.yaml`` is its resolved composition
 (written by ``make params`` and by DVC's own Hydra composition on ``dvc exp run``).
-Stages read params.yaml through :func:`load_params` and fetch every value with
-:func:`get`, which names the key and what was expected when a value is missing or wrong.
+Stages read params.yaml through :func:`load_params` and validate each group they use once, at
+stage start, against a dataclass schema with :func:`typed` (schemas live beside the code that
+uses them; bounds are declared with :func:`spec`): a wrong key, type or range fails before any
+work, naming the dotted key. :func:`get` remains for single checked lookups.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence, TypeVar
 
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
 PROFILES = ("ci", "default", "paper")
 _MISSING = object()
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
@@ -132,3 +136,71 @@ def flatten(cfg: Any, prefix: str = "", sep: str = ".") -> dict[str, Any]:
     else:
         out[prefix[: -len(sep)] if prefix else ""] = cfg
     return out
+
+
+# --------------------------------------------------------------------------- typed configuration
+def spec(default: Any = dataclasses.MISSING, *, min: float | None = None, max: float | None = None,
+         choices: Iterable[Any] | None = None, factory: Callable[[], Any] | None = None) -> Any:
+    """A dataclass field with bounds, checked by :func:`typed` (``min``/``max`` inclusive).
+
+    ``factory`` builds mutable defaults (lists, dicts, nested dataclasses).
+    """
+    meta = {"min": min, "max": max, "choices": None if choices is None else tuple(choices)}
+    if factory is not None:
+        return dataclasses.field(default_factory=factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def typed(node: Any, schema: type[T], *, key: str = "", source: str | Path = "params.yaml") -> T:
+    """Validate ``node`` (a mapping) against the dataclass ``schema`` and return an instance.
+
+    Unknown keys, missing keys and wrong types fail through OmegaConf's structured-config check;
+    bounds declared with :func:`spec` are checked afterwards on every nested field. Every failure
+    is a :class:`ConfigError` naming ``source`` and the full dotted key (``key`` prefixes it).
+    """
+    from omegaconf.errors import OmegaConfBaseException
+
+    if OmegaConf.is_config(node):
+        node = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(node, dict):
+        raise ConfigError(f"{source}: '{key or '<root>'}' must be a mapping, got {type(node).__name__}")
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), node)
+        obj = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        full = ".".join(p for p in (key, str(getattr(exc, "full_key", "") or "")) if p)
+        msg = str(exc).splitlines()[0]
+        raise ConfigError(f"{source}: '{full or key}': {msg}") from None
+    except (TypeError, ValueError) as exc:  # a schema's __post_init__ check
+        raise ConfigError(f"{source}: '{key}': {exc}") from None
+    _check_bounds(obj, key, source)
+    return obj  # type: ignore[return-value]
+
+
+def _check_bounds(obj: Any, key: str, source: str | Path) -> None:
+    if dataclasses.is_dataclass(obj):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            full = f"{key}.{f.name}" if key else f.name
+            lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
+            if value is not None and not isinstance(value, (list, dict)) and not dataclasses.is_dataclass(value):
+                if lo is not None and value < lo:
+                    raise ConfigError(f"{source}: '{full}' must be >= {lo}, got {value!r}")
+                if hi is not None and value > hi:
+                    raise ConfigError(f"{source}: '{full}' must be <= {hi}, got {value!r}")
+                if choices is not None and value not in choices:
+                    raise ConfigError(f"{source}: '{full}' must be one of {list(choices)}, got {value!r}")
+            elif isinstance(value, list):
+                for i, v in enumerate(value):
+                    if lo is not None and isinstance(v, (int, float)) and v < lo:
+                        raise ConfigError(f"{source}: '{full}[{i}]' must be >= {lo}, got {v!r}")
+                    if hi is not None and isinstance(v, (int, float)) and v > hi:
+                        raise ConfigError(f"{source}: '{full}[{i}]' must be <= {hi}, got {v!r}")
+                    if choices is not None and v not in choices:
+                        raise ConfigError(f"{source}: '{full}[{i}]' must be one of {list(choices)}, got {v!r}")
+                    _check_bounds(v, f"{full}[{i}]", source)
+            else:
+                _check_bounds(value, full, source)
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_bounds(v, f"{key}.{k}" if key else str(k), source)
