@@ -20,8 +20,8 @@ import json
 import os
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -49,7 +49,9 @@ def _fusion_model(path: str | None, cfg) -> tuple[torch.nn.Module, str]:
     if (p / "model.ckpt").exists() or p.is_file():
         return load_fusion_model(p), str(p)
     torch.manual_seed(0)
-    return DeepLabV3Plus(spec_from_cfg(cfg["fusion_model"]["architecture"])).eval(), f"random weights, architecture {cfg['fusion_model'].get('name')}"
+    return DeepLabV3Plus(
+        spec_from_cfg(cfg["fusion_model"]["architecture"])
+    ).eval(), f"random weights, architecture {cfg['fusion_model'].get('name')}"
 
 
 def _risk_model(path: str | None, cfg):
@@ -70,8 +72,8 @@ def main(argv: list[str] | None = None) -> dict:
     import yaml
 
     from traffictwin.evidential.warp import warp_masses
-    from traffictwin.grid import GridSpec
     from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.grid import GridSpec
     from traffictwin.stereo.orb import check_pair
     from traffictwin.stereo.sgm import compute_disparity
 
@@ -82,13 +84,19 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--rows", type=int, default=None)
     ap.add_argument("--cols", type=int, default=None)
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument(
+        "--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)"
+    )
     a = ap.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     cfg = yaml.safe_load(Path(a.params).read_text())
     g = cfg.get("grid", {})
-    grid = GridSpec(a.rows or int(g.get("rows", 256)), a.cols or int(g.get("cols", 176)), float(g.get("cell", 0.32)))
+    grid = GridSpec(
+        a.rows or int(g.get("rows", 256)),
+        a.cols or int(g.get("cols", 176)),
+        float(g.get("cell", 0.32)),
+    )
     rng = np.random.default_rng(0)
 
     # ---- fuse
@@ -108,8 +116,15 @@ def main(argv: list[str] | None = None) -> dict:
     rmodel, rdesc = _risk_model(a.risk_model, cfg)
     cam = (cfg.get("risk_data") or {}).get("camera", {})
     w, h = int(cam.get("width", 320)), int(cam.get("height", 160))
-    tex = cv2.GaussianBlur(cv2.resize(rng.integers(0, 256, size=(h // 4, (w + 16) // 4, 3), dtype=np.uint8),
-                                      (w + 16, h), interpolation=cv2.INTER_NEAREST), (3, 3), 0)
+    tex = cv2.GaussianBlur(
+        cv2.resize(
+            rng.integers(0, 256, size=(h // 4, (w + 16) // 4, 3), dtype=np.uint8),
+            (w + 16, h),
+            interpolation=cv2.INTER_NEAREST,
+        ),
+        (3, 3),
+        0,
+    )
     left, right = np.ascontiguousarray(tex[:, :w]), np.ascontiguousarray(tex[:, 6 : w + 6])
     sgm = dict((cfg.get("risk_data") or {}).get("sgm", {}))
     orb = dict((cfg.get("risk_data") or {}).get("orb", {}))
@@ -118,17 +133,40 @@ def main(argv: list[str] | None = None) -> dict:
     with torch.inference_mode():
         orb_ms = _median_ms(lambda: check_pair(left, right, **orb), a.repeat)
         sgm_ms = _median_ms(lambda: compute_disparity(left, right, **sgm), a.repeat)
-        model1_ms = _median_ms(lambda: rmodel.predict(left_bgr=left[None], disp_sgm=disp[None]), a.repeat)
-        model64_ms = _median_ms(lambda: rmodel.predict(left_bgr=lb, disp_sgm=db, batch_size=64), max(3, a.repeat // 4)) / 64
+        model1_ms = _median_ms(
+            lambda: rmodel.predict(left_bgr=left[None], disp_sgm=disp[None]), a.repeat
+        )
+        model64_ms = (
+            _median_ms(
+                lambda: rmodel.predict(left_bgr=lb, disp_sgm=db, batch_size=64),
+                max(3, a.repeat // 4),
+            )
+            / 64
+        )
 
     out = {
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "torch_threads": torch.get_num_threads(), "torch": torch.__version__},
-        "fuse": {"model": fdesc, "grid": [grid.rows, grid.cols], "prealign_ms": warp_ms, "model_ms_per_pair": net_ms,
-                 "total_ms_per_pair": round(warp_ms + net_ms, 3)},
-        "risk": {"model": rdesc, "image": [w, h], "orb_ms": orb_ms, "sgm_ms": sgm_ms, "model_ms_per_frame": model1_ms,
-                 "model_ms_per_frame_batch64": round(model64_ms, 3),
-                 "total_ms_per_frame": round(orb_ms + sgm_ms + model1_ms, 3)},
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+        },
+        "fuse": {
+            "model": fdesc,
+            "grid": [grid.rows, grid.cols],
+            "prealign_ms": warp_ms,
+            "model_ms_per_pair": net_ms,
+            "total_ms_per_pair": round(warp_ms + net_ms, 3),
+        },
+        "risk": {
+            "model": rdesc,
+            "image": [w, h],
+            "orb_ms": orb_ms,
+            "sgm_ms": sgm_ms,
+            "model_ms_per_frame": model1_ms,
+            "model_ms_per_frame_batch64": round(model64_ms, 3),
+            "total_ms_per_frame": round(orb_ms + sgm_ms + model1_ms, 3),
+        },
         "repeat": a.repeat,
     }
     print(json.dumps(out, indent=2))

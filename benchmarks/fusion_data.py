@@ -20,8 +20,8 @@ import numpy as np
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.ism import inverse_sensor_model
 from traffictwin.evidential.warp import warp_masses
-from traffictwin.grid import GridSpec
 from traffictwin.fusion.pairs import FusionDataParams, generate_shard
+from traffictwin.grid import GridSpec
 from traffictwin.sim.lidar import LidarSpec, scan
 from traffictwin.sim.scene import Boxes
 from traffictwin.sim.traffic import sample_scenario
@@ -38,13 +38,17 @@ def _ms(fn, repeats: int) -> float:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--scenarios", type=int, default=4, help="scenarios for the generation throughput")
+    ap.add_argument(
+        "--scenarios", type=int, default=4, help="scenarios for the generation throughput"
+    )
     ap.add_argument("--repeats", type=int, default=20)
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     grid = GridSpec(256, 176, 0.32)
     lidar = LidarSpec(azimuth_res_deg=0.2, max_range=80.0, dropout=0.02)
-    p = FusionDataParams(grid=grid, lidar=lidar, scenarios_per_shard=a.scenarios, encounters_per_scenario=4)
+    p = FusionDataParams(
+        grid=grid, lidar=lidar, scenarios_per_shard=a.scenarios, encounters_per_scenario=4
+    )
     t0 = time.perf_counter()
     arrays = generate_shard(0, 0, p)
     t_gen = time.perf_counter() - t0
@@ -58,8 +62,12 @@ def main(argv: list[str] | None = None) -> dict:
     m1, m2 = arrays["map1"][0], arrays["map2"][0]
     rel = np.array([12.0, -4.0, 0.6])
     out = {
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
-                    "load_avg_1min": os.getloadavg()[0]},
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            "load_avg_1min": os.getloadavg()[0],
+        },
         "grid": [grid.rows, grid.cols, grid.cell],
         "lidar_rays": int(s.range.size),
         "generation_pairs": int(len(arrays["map1"])),

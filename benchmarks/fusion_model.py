@@ -83,8 +83,13 @@ def measure(group: dict[str, Any], rows: int, cols: int, batch: int, steps: int)
             times.append(time.perf_counter() - t)
     step_s = statistics.median(times)
     net.eval()
-    out: dict[str, Any] = {"param_count": count_parameters(net), "train_batch": batch, "channels_last": cl,
-                           "train_step_s": round(step_s, 4), "train_samples_per_s": round(batch / step_s, 3)}
+    out: dict[str, Any] = {
+        "param_count": count_parameters(net),
+        "train_batch": batch,
+        "channels_last": cl,
+        "train_step_s": round(step_s, 4),
+        "train_samples_per_s": round(batch / step_s, 3),
+    }
     from torch.utils.flop_counter import FlopCounterMode
 
     with FlopCounterMode(display=False) as fc, torch.no_grad():
@@ -108,7 +113,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rows", type=int, default=256)
     ap.add_argument("--cols", type=int, default=176)
     ap.add_argument("--steps", type=int, default=4)
-    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch default)")
+    ap.add_argument(
+        "--threads", type=int, default=0, help="torch intra-op threads (0: torch default)"
+    )
     ap.add_argument("--r50-batch", type=int, default=8)
     ap.add_argument("--skip-resnet50", action="store_true")
     args = ap.parse_args(argv)
@@ -116,23 +123,34 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     default = _load_group("resnet18")
     res: dict[str, Any] = {
-        "machine": {"cpu": _cpu_name(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                    "torch": torch.__version__, "loadavg_1min": round(os.getloadavg()[0], 2)},
+        "machine": {
+            "cpu": _cpu_name(),
+            "cores": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "torch": torch.__version__,
+            "loadavg_1min": round(os.getloadavg()[0], 2),
+        },
         "grid": [args.rows, args.cols],
     }
     d = measure(default, args.rows, args.cols, int(default["train"]["batch_size"]), args.steps)
     tr = default["train"]
     n_epoch = int(tr["train_samples_per_epoch"]) or 1600
-    d["default_profile_estimate_s"] = round(int(tr["max_epochs"]) * n_epoch / d["train_samples_per_s"], 1)
+    d["default_profile_estimate_s"] = round(
+        int(tr["max_epochs"]) * n_epoch / d["train_samples_per_s"], 1
+    )
     res["default_" + default.get("name", "resnet18")] = d
     if not args.skip_resnet50:
         r50 = _load_group("resnet50")
         m = measure(r50, args.rows, args.cols, args.r50_batch, max(2, args.steps // 2))
         # paper: 10,000 pairs, 80:10:10 -> 8,000 training pairs per epoch, ~200 epochs
-        m["paper_profile_estimate_h_on_this_cpu"] = round(200 * 8000 / m["train_samples_per_s"] / 3600, 1)
+        m["paper_profile_estimate_h_on_this_cpu"] = round(
+            200 * 8000 / m["train_samples_per_s"] / 3600, 1
+        )
         # GPU: not measured here; training ~ 3x forward FLOPs, at an assumed sustained 100 TFLOP/s (bf16, H100-class)
-        m["paper_profile_estimate_h_gpu_at_100_tflops"] = round(3 * m["fwd_gflop_per_pair"] * 1e9 * 200 * 8000 / 1e14 / 3600, 2)
+        m["paper_profile_estimate_h_gpu_at_100_tflops"] = round(
+            3 * m["fwd_gflop_per_pair"] * 1e9 * 200 * 8000 / 1e14 / 3600, 2
+        )
         res["paper_resnet50"] = m
     print(json.dumps(res, indent=2))
 

@@ -60,11 +60,16 @@ def main(argv: list[str] | None = None) -> dict:
     n = len(frames)
     out = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cpus",
-        "resolution": f"{a.width}x{a.height}", "frames": n,
-        "render_pairs_per_s": n / t_render, "sgm_frames_per_s": n / t_sgm,
-        "orb_frames_per_s": n / t_orb, "risk_metric_frames_per_s": n / t_risk,
-        "render_ms_per_pair": 1000 * t_render / n, "sgm_ms_per_frame": 1000 * t_sgm / n,
-        "orb_ms_per_frame": 1000 * t_orb / n, "risk_metric_ms_per_frame": 1000 * t_risk / n,
+        "resolution": f"{a.width}x{a.height}",
+        "frames": n,
+        "render_pairs_per_s": n / t_render,
+        "sgm_frames_per_s": n / t_sgm,
+        "orb_frames_per_s": n / t_orb,
+        "risk_metric_frames_per_s": n / t_risk,
+        "render_ms_per_pair": 1000 * t_render / n,
+        "sgm_ms_per_frame": 1000 * t_sgm / n,
+        "orb_ms_per_frame": 1000 * t_orb / n,
+        "risk_metric_ms_per_frame": 1000 * t_risk / n,
     }
     print(json.dumps(out, indent=2))
     return out

@@ -43,7 +43,9 @@ def main(argv: list[str] | None = None) -> dict:
     results: dict = {"environment": collect(), "benchmarks": {}}
     for name in a.only:
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", f"benchmarks.{name}"], cwd=ROOT, capture_output=True, text=True)
+        proc = subprocess.run(
+            [sys.executable, "-m", f"benchmarks.{name}"], cwd=ROOT, capture_output=True, text=True
+        )
         if proc.returncode != 0:
             raise SystemExit(f"benchmark {name} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
         results["benchmarks"][name] = _last_json(proc.stdout)

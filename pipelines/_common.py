@@ -7,26 +7,29 @@ import multiprocessing as mp
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 from omegaconf import DictConfig
 
 from traffictwin.config import load_params
 from traffictwin.io.atomic import write_json_atomic
 
-ROOT = Path(__file__).resolve().parents[1]
-TIMINGS = ROOT / "reports" / "timings"
+from ._paths import PARAMS, ROOT, TIMINGS  # noqa: F401  (ROOT re-exported for stages)
 
 
 def params(path: str | Path | None = None) -> DictConfig:
     """params.yaml of the repository this stage runs in."""
-    return load_params(path or ROOT / "params.yaml")
+    return load_params(path or PARAMS)
 
 
 def setup_logging() -> logging.Logger:
-    logging.basicConfig(level=os.environ.get("TRAFFICTWIN_LOGLEVEL", "INFO"), format="%(asctime)s %(name)s %(message)s")
+    logging.basicConfig(
+        level=os.environ.get("TRAFFICTWIN_LOGLEVEL", "INFO"),
+        format="%(asctime)s %(name)s %(message)s",
+    )
     return logging.getLogger("traffictwin")
 
 
@@ -35,7 +38,10 @@ def stage_timer(stage: str) -> Iterator[None]:
     """Record the wall time of ``stage`` in reports/timings/<stage>.json (for the report)."""
     t0 = time.perf_counter()
     yield
-    write_json_atomic(TIMINGS / f"{stage.replace('@', '-')}.json", {"stage": stage, "seconds": round(time.perf_counter() - t0, 2)})
+    write_json_atomic(
+        TIMINGS / f"{stage.replace('@', '-')}.json",
+        {"stage": stage, "seconds": round(time.perf_counter() - t0, 2)},
+    )
 
 
 def run_stage(main: Callable[[], object], name: str) -> None:
@@ -87,6 +93,8 @@ def map_shards(
         _set_worker_state(state)
         yield from tqdm(map(work, idx), total=len(idx), desc=desc, unit=unit)
         return
-    with mp.get_context("fork").Pool(min(workers, len(idx)), initializer=_set_worker_state, initargs=(state,)) as pool:
+    with mp.get_context("fork").Pool(
+        min(workers, len(idx)), initializer=_set_worker_state, initargs=(state,)
+    ) as pool:
         it = pool.imap(work, idx) if ordered else pool.imap_unordered(work, idx)
         yield from tqdm(it, total=len(idx), desc=desc, unit=unit)

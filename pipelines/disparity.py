@@ -14,23 +14,35 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipelines._common import ROOT, WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
+from pipelines._common import (
+    ROOT,
+    WORKER_STATE,
+    map_shards,
+    params,
+    run_stage,
+    setup_logging,
+    stage_timer,
+)
 from traffictwin.config import get
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name, write_npz_deterministic
 from traffictwin.risk.dataset import load_stereo_shard
-from traffictwin.stereo.metrics import add_sums, disparity_errors, summarise
+from traffictwin.stereo.metrics import disparity_errors, summarise
 from traffictwin.stereo.sgm import compute_disparity, make_matcher
 
 SRC = ROOT / "data" / "risk"
 OUT = ROOT / "data" / "disparity"
 
+
 def sgm_params(cfg) -> dict:
     k = "risk_data.sgm"
     return dict(
-        num_disparities=get(cfg, f"{k}.num_disparities", int, min=16), block_size=get(cfg, f"{k}.block_size", int, min=1),
-        uniqueness_ratio=get(cfg, f"{k}.uniqueness_ratio", int, min=0), speckle_window=get(cfg, f"{k}.speckle_window", int, min=0),
-        speckle_range=get(cfg, f"{k}.speckle_range", int, min=0), gray=get(cfg, f"{k}.gray", bool),
+        num_disparities=get(cfg, f"{k}.num_disparities", int, min=16),
+        block_size=get(cfg, f"{k}.block_size", int, min=1),
+        uniqueness_ratio=get(cfg, f"{k}.uniqueness_ratio", int, min=0),
+        speckle_window=get(cfg, f"{k}.speckle_window", int, min=0),
+        speckle_range=get(cfg, f"{k}.speckle_range", int, min=0),
+        gray=get(cfg, f"{k}.gray", bool),
     )
 
 
@@ -38,7 +50,14 @@ def _work(i: int):
     ds = Dataset(WORKER_STATE["src"], kind="risk", verify=False)
     sh = load_stereo_shard(ds, i, ("left", "right", "disp_gt"))
     p = WORKER_STATE["sgm"]
-    m = make_matcher(p["num_disparities"], p["block_size"], 1 if p["gray"] else 3, p["uniqueness_ratio"], p["speckle_window"], p["speckle_range"])
+    m = make_matcher(
+        p["num_disparities"],
+        p["block_size"],
+        1 if p["gray"] else 3,
+        p["uniqueness_ratio"],
+        p["speckle_window"],
+        p["speckle_range"],
+    )
     out, per, secs = [], [], 0.0
     for k in range(len(sh["left"])):
         t0 = time.perf_counter()
@@ -46,7 +65,9 @@ def _work(i: int):
         secs += time.perf_counter() - t0
         out.append(d)
         per.append(disparity_errors(d, sh["disp_gt"][k]))
-    digest = write_npz_deterministic(Path(WORKER_STATE["out"]) / shard_name(i), {"disp_sgm": np.stack(out)})
+    digest = write_npz_deterministic(
+        Path(WORKER_STATE["out"]) / shard_name(i), {"disp_sgm": np.stack(out)}
+    )
     return i, digest, len(out), per, secs
 
 
@@ -56,12 +77,16 @@ def run(cfg, src: Path = SRC, out: Path = OUT) -> dict:
     frames = ds.table("frames.csv")
     p = sgm_params(cfg)
     workers = get(cfg, "risk_data.workers", int, min=1)
-    writer = DatasetWriter(out, "disparity", {"sgm": p, "source": ds.manifest_hash()}, ds.manifest.get("seed", 0))
+    writer = DatasetWriter(
+        out, "disparity", {"sgm": p, "source": ds.manifest_hash()}, ds.manifest.get("seed", 0)
+    )
     n = len(ds.shards)
     per_frame: dict[int, list[dict]] = {}
     total_s = 0.0
     state = {"src": str(src), "out": str(out), "sgm": p}
-    for i, digest, count, per, secs in map_shards(_work, range(n), workers=workers, state=state, desc="disparity"):
+    for i, digest, count, per, secs in map_shards(
+        _work, range(n), workers=workers, state=state, desc="disparity"
+    ):
         writer.record_shard(i, shard_name(i), digest, count, ds.shards[i].get("split"))
         per_frame[i] = per
         total_s += secs
@@ -92,7 +117,12 @@ def run(cfg, src: Path = SRC, out: Path = OUT) -> dict:
     # the manifest keeps only what the same params reproduce exactly (timings vary: metrics file only)
     accuracy = {k: v for k, v in metrics.items() if not k.endswith("ms_per_frame")}
     writer.finalize(extra={"source_manifest": ds.manifest_hash(), "metrics": accuracy})
-    log.info("disparity: bad2 %.4f density %.3f %.1f ms/frame", metrics["all/bad2"], metrics["all/density"], metrics["all/ms_per_frame"])
+    log.info(
+        "disparity: bad2 %.4f density %.3f %.1f ms/frame",
+        metrics["all/bad2"],
+        metrics["all/density"],
+        metrics["all/ms_per_frame"],
+    )
     return metrics
 
 
@@ -110,9 +140,14 @@ def main() -> None:
         row = (clean if len(clean) else frames).iloc[0]
         sh, sd = ds.load_shard(int(row.shard)), dd.load_shard(int(row.shard))
         k = int(row.idx)
-        stereo_figure(sh["left"][k], sh["right"][k], sh["disp_gt"][k], sd["disp_sgm"][k],
-                      ROOT / "reports" / "figures" / "stereo_example.png",
-                      f"frame {int(row.frame_id)} ({row.template}, {row.situation}), v = {row.speed:.1f} m/s")
+        stereo_figure(
+            sh["left"][k],
+            sh["right"][k],
+            sh["disp_gt"][k],
+            sd["disp_sgm"][k],
+            ROOT / "reports" / "figures" / "stereo_example.png",
+            f"frame {int(row.frame_id)} ({row.template}, {row.situation}), v = {row.speed:.1f} m/s",
+        )
 
 
 if __name__ == "__main__":

@@ -13,7 +13,18 @@ from traffictwin.io.atomic import write_json_atomic
 
 from ._common import ROOT, run_stage
 
-PACKAGES = ("torch", "lightning", "mlflow", "dvc", "hydra-core", "omegaconf", "opencv-python-headless", "numpy", "pandas", "matplotlib")
+PACKAGES = (
+    "torch",
+    "lightning",
+    "mlflow",
+    "dvc",
+    "hydra-core",
+    "omegaconf",
+    "opencv-python-headless",
+    "numpy",
+    "pandas",
+    "matplotlib",
+)
 
 
 def collect() -> dict:

@@ -29,7 +29,7 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 
-from ._common import ROOT, params, setup_logging, stage_timer, run_stage
+from ._common import ROOT, params, run_stage, setup_logging, stage_timer
 
 STAGE = "evaluate_fusion"
 METRICS = Path("reports/metrics/fusion.json")
@@ -45,11 +45,33 @@ FINDINGS = Path("reports/fusion_findings.md")
 
 BASELINES = ("ego", "naive", "naive-yager", "naive-cautious")
 SUMMARY_KEYS = (
-    "n", "kld_fo_mean", "kld_fo_median", "kld_fo_q25", "kld_fo_q75", "kld_fou_mean", "kld_fou_median",
-    "precision_occ", "recall_occ", "dice_occ", "precision_free", "recall_free", "dice_free",
-    "dice_occ_sample_mean", "dice_free_sample_mean", "u_mean", "u_mean_known",
+    "n",
+    "kld_fo_mean",
+    "kld_fo_median",
+    "kld_fo_q25",
+    "kld_fo_q75",
+    "kld_fou_mean",
+    "kld_fou_median",
+    "precision_occ",
+    "recall_occ",
+    "dice_occ",
+    "precision_free",
+    "recall_free",
+    "dice_free",
+    "dice_occ_sample_mean",
+    "dice_free_sample_mean",
+    "u_mean",
+    "u_mean_known",
 )
-CROSS_KEYS = ("n", "kld_fo_mean", "kld_fou_mean", "dice_occ", "dice_free", "precision_occ", "recall_occ")
+CROSS_KEYS = (
+    "n",
+    "kld_fo_mean",
+    "kld_fou_mean",
+    "dice_occ",
+    "dice_free",
+    "precision_occ",
+    "recall_occ",
+)
 BIN_KEYS = ("n", "kld_fo_mean", "kld_fo_median", "dice_occ", "dice_free")
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
@@ -65,14 +87,21 @@ def settings(cfg: Any) -> dict[str, Any]:
     configs = get(cfg, f"{k}.configs", list)
     for c in configs:
         if c not in all_cfgs:
-            raise ConfigError(f"params.yaml: '{k}.configs' names '{c}', not one of configurations {sorted(all_cfgs)}")
+            raise ConfigError(
+                f"params.yaml: '{k}.configs' names '{c}', not one of configurations {sorted(all_cfgs)}"
+            )
     if not configs:
         raise ConfigError(f"params.yaml: '{k}.configs' must list at least one configuration")
     opt_int = lambda key: get(cfg, f"{k}.{key}", (int, type(None)), min=None)  # noqa: E731
     s = {
         "configs": [str(c) for c in configs],
-        "noise": {c: (get(cfg, f"configurations.{c}.r", float, min=0.0), get(cfg, f"configurations.{c}.alpha", float, min=0.0))
-                  for c in configs},
+        "noise": {
+            c: (
+                get(cfg, f"configurations.{c}.r", float, min=0.0),
+                get(cfg, f"configurations.{c}.alpha", float, min=0.0),
+            )
+            for c in configs
+        },
         "split": get(cfg, f"{k}.split", str, choices=("train", "val", "test")),
         "max_pairs": opt_int("max_pairs"),
         "registered_max_pairs": opt_int("registered_max_pairs"),
@@ -87,7 +116,11 @@ def settings(cfg: Any) -> dict[str, Any]:
         "success_rot_deg": get(cfg, f"{k}.success_rot_deg", float, min=0.0),
         "qualitative_fraction": get(cfg, f"{k}.qualitative_fraction", float, min=0.0, max=1.0),
         "qualitative_pair": get(cfg, f"{k}.qualitative_pair", int, min=0),
-        "grid": GridSpec(get(cfg, "grid.rows", int, min=1), get(cfg, "grid.cols", int, min=1), get(cfg, "grid.cell", float, min=1e-6)),
+        "grid": GridSpec(
+            get(cfg, "grid.rows", int, min=1),
+            get(cfg, "grid.cols", int, min=1),
+            get(cfg, "grid.cell", float, min=1e-6),
+        ),
         "profile": get(cfg, "profile.name", str),
     }
     for key in ("max_pairs", "registered_max_pairs", "cross_max_pairs"):
@@ -109,7 +142,9 @@ def evenly_spaced(n: int, k: int | None) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
 
 
-def load_test_sets(configs: list[str], split: str, max_pairs: int | None) -> tuple[dict[str, dict[str, np.ndarray]], np.ndarray]:
+def load_test_sets(
+    configs: list[str], split: str, max_pairs: int | None
+) -> tuple[dict[str, dict[str, np.ndarray]], np.ndarray]:
     """Each configuration's ``split`` arrays restricted to the same pair ids: ``max_pairs`` of the
     pair ids common to all configurations, spread evenly over them (so over scenarios/templates)."""
     raw = {}
@@ -119,14 +154,21 @@ def load_test_sets(configs: list[str], split: str, max_pairs: int | None) -> tup
         for key in ("inputs", "label", "noise", "rel_pose_true", "rel_pose_noisy", "pair_id"):
             if key not in raw[c]:
                 raise DatasetError(f"{ds.root}: array '{key}' missing in split '{split}'")
-    common = np.array(sorted(set.intersection(*(set(raw[c]["pair_id"].tolist()) for c in configs))), dtype=np.int64)
+    common = np.array(
+        sorted(set.intersection(*(set(raw[c]["pair_id"].tolist()) for c in configs))),
+        dtype=np.int64,
+    )
     if not len(common):
-        raise DatasetError(f"data/prealigned/{{{','.join(configs)}}}: no pair id common to all '{split}' splits")
+        raise DatasetError(
+            f"data/prealigned/{{{','.join(configs)}}}: no pair id common to all '{split}' splits"
+        )
     chosen = common[evenly_spaced(len(common), max_pairs)]
     out = {}
     for c in configs:
         pid = raw[c]["pair_id"]
-        index = {int(pid[i]): i for i in range(len(pid) - 1, -1, -1)}  # the first draw of each pair wins
+        index = {
+            int(pid[i]): i for i in range(len(pid) - 1, -1, -1)
+        }  # the first draw of each pair wins
         idx = np.array([index[int(p)] for p in chosen], dtype=np.int64)
         out[c] = {k: v[idx] for k, v in raw[c].items()}
     return out, chosen
@@ -140,7 +182,9 @@ def load_raw_pairs(pair_ids: np.ndarray, split: str) -> dict[str, np.ndarray]:
     index = {int(p): i for i, p in enumerate(arrays["pair_id"])}
     missing = [int(p) for p in pair_ids if int(p) not in index]
     if missing:
-        raise DatasetError(f"{ds.root}: pair ids {missing[:5]} of data/prealigned missing in split '{split}' (stale data?)")
+        raise DatasetError(
+            f"{ds.root}: pair ids {missing[:5]} of data/prealigned missing in split '{split}' (stale data?)"
+        )
     idx = np.array([index[int(p)] for p in pair_ids], dtype=np.int64)
     return {k: arrays[k][idx] for k in keys}
 
@@ -168,18 +212,31 @@ def _bins(frame: pd.DataFrame, s: dict[str, Any]) -> tuple[dict[str, Any], pd.Da
 
 def evaluate(s: dict[str, Any]) -> dict[str, Any]:
     """Run every method; returns the metrics dict and the frames/arrays the outputs need."""
-    from traffictwin.fusion.methods import EvalSettings, evaluate_predictions, evaluate_prealigned, evaluate_registered
+    from traffictwin.fusion.methods import (
+        EvalSettings,
+        evaluate_prealigned,
+        evaluate_predictions,
+        evaluate_registered,
+    )
     from traffictwin.fusion.metrics import aggregate
     from traffictwin.fusion.model_io import load_fusion_model, predict_masses
 
     configs, grid = s["configs"], s["grid"]
-    es = EvalSettings(s["batch_size"], s["kld_eps"], s["auroc_bins"], s["success_trans_m"], s["success_rot_deg"])
+    es = EvalSettings(
+        s["batch_size"], s["kld_eps"], s["auroc_bins"], s["success_trans_m"], s["success_rot_deg"]
+    )
     data, pair_ids = load_test_sets(configs, s["split"], s["max_pairs"])
     n = len(pair_ids)
     reg_idx = evenly_spaced(n, s["registered_max_pairs"])
     cross_idx = evenly_spaced(n, s["cross_max_pairs"])
     raw = load_raw_pairs(pair_ids, s["split"])
-    log.info("evaluating %d pairs per configuration (%d registered, %d cross) on %s", n, len(reg_idx), len(cross_idx), configs)
+    log.info(
+        "evaluating %d pairs per configuration (%d registered, %d cross) on %s",
+        n,
+        len(reg_idx),
+        len(cross_idx),
+        configs,
+    )
 
     models = {}
     for c in configs:
@@ -189,7 +246,14 @@ def evaluate(s: dict[str, Any]) -> dict[str, Any]:
     frames: list[pd.DataFrame] = []
     metrics: dict[str, Any] = {"test": {}, "cross": {f"dnn-{c}": {} for c in configs}}
 
-    def tag(frame: pd.DataFrame, cfg: str, method: str, d: dict[str, np.ndarray], idx: np.ndarray, network: str = "") -> pd.DataFrame:
+    def tag(
+        frame: pd.DataFrame,
+        cfg: str,
+        method: str,
+        d: dict[str, np.ndarray],
+        idx: np.ndarray,
+        network: str = "",
+    ) -> pd.DataFrame:
         frame = frame.copy()
         nz = d["noise"][idx]
         frame.insert(0, "pair_id", d["pair_id"][idx])
@@ -210,16 +274,27 @@ def evaluate(s: dict[str, Any]) -> dict[str, Any]:
             frames.append(tag(f, c, meth, d, all_idx))
             metrics["test"][c][meth] = {**_summary(f), "u_auroc": au.value()}
         f, au = evaluate_registered(
-            raw["map1"][reg_idx], raw["map2"][reg_idx], d["rel_pose_noisy"][reg_idx], d["rel_pose_true"][reg_idx],
-            d["label"][reg_idx], grid, s["registration"], es,
+            raw["map1"][reg_idx],
+            raw["map2"][reg_idx],
+            d["rel_pose_noisy"][reg_idx],
+            d["rel_pose_true"][reg_idx],
+            d["label"][reg_idx],
+            grid,
+            s["registration"],
+            es,
         )
         frames.append(tag(f, c, "registered", d, reg_idx))
         metrics["test"][c]["registered"] = {
-            **_summary(f), "u_auroc": au.value(),
+            **_summary(f),
+            "u_auroc": au.value(),
             "success_rate": float(f["reg_success"].mean()),
             "accepted_rate": float(f["reg_accepted"].mean()),
-            "estimate_success_rate": float(((f["est_trans_err_m"] <= s["success_trans_m"])
-                                            & (f["est_rot_err_deg"] <= s["success_rot_deg"])).mean()),
+            "estimate_success_rate": float(
+                (
+                    (f["est_trans_err_m"] <= s["success_trans_m"])
+                    & (f["est_rot_err_deg"] <= s["success_rot_deg"])
+                ).mean()
+            ),
             "residual_trans_m_median": float(f["reg_trans_err_m"].median()),
             "residual_trans_m_mean": float(f["reg_trans_err_m"].mean()),
             "residual_rot_deg_median": float(f["reg_rot_err_deg"].median()),
@@ -229,22 +304,44 @@ def evaluate(s: dict[str, Any]) -> dict[str, Any]:
         for net in configs:
             idx = all_idx if net == c else cross_idx
             inputs, label = d["inputs"][idx], d["label"][idx]
-            predict = lambda sl, net=net, inputs=inputs: predict_masses(models[net], inputs[sl], s["batch_size"])[0]  # noqa: E731
+            predict = lambda sl, net=net, inputs=inputs: predict_masses(
+                models[net], inputs[sl], s["batch_size"]
+            )[0]  # noqa: E731
             f, au = evaluate_predictions(label, predict, es)
             frames.append(tag(f, c, "dnn" if net == c else f"dnn-{net}", d, idx, network=net))
             agg = aggregate({k: f[k].to_numpy() for k in f.columns})
-            metrics["cross"][f"dnn-{net}"][c] = {k: agg[k] for k in CROSS_KEYS} | {"u_auroc": au.value()}
+            metrics["cross"][f"dnn-{net}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
+                "u_auroc": au.value()
+            }
             if net == c:
                 metrics["test"][c]["dnn"] = {**_summary(f), "u_auroc": au.value()}
-        log.info("config %s: KLD naive %.4f, network %.4f, registered %.4f (success %.0f %%)", c,
-                 metrics["test"][c]["naive"]["kld_fo_mean"], metrics["test"][c]["dnn"]["kld_fo_mean"],
-                 metrics["test"][c]["registered"]["kld_fo_mean"], 100 * metrics["test"][c]["registered"]["success_rate"])
+        log.info(
+            "config %s: KLD naive %.4f, network %.4f, registered %.4f (success %.0f %%)",
+            c,
+            metrics["test"][c]["naive"]["kld_fo_mean"],
+            metrics["test"][c]["dnn"]["kld_fo_mean"],
+            metrics["test"][c]["registered"]["kld_fo_mean"],
+            100 * metrics["test"][c]["registered"]["success_rate"],
+        )
     samples = pd.concat(frames, ignore_index=True)
     main = samples[~samples["method"].str.startswith("dnn-")]
     metrics["bins"], bins_table = _bins(main, s)
-    metrics["runtime_ms_per_pair"] = {m: float(g["ms"].mean()) for m, g in main.groupby("method", sort=False)}
-    metrics["n_pairs"] = {"per_config": int(n), "registered": int(len(reg_idx)), "cross": int(len(cross_idx))}
-    return {"metrics": metrics, "samples": samples, "bins": bins_table, "data": data, "raw": raw, "models": models}
+    metrics["runtime_ms_per_pair"] = {
+        m: float(g["ms"].mean()) for m, g in main.groupby("method", sort=False)
+    }
+    metrics["n_pairs"] = {
+        "per_config": int(n),
+        "registered": int(len(reg_idx)),
+        "cross": int(len(cross_idx)),
+    }
+    return {
+        "metrics": metrics,
+        "samples": samples,
+        "bins": bins_table,
+        "data": data,
+        "raw": raw,
+        "models": models,
+    }
 
 
 def _summary(frame: pd.DataFrame) -> dict[str, float]:
@@ -286,14 +383,18 @@ def qualitative(res: dict[str, Any], s: dict[str, Any]) -> dict[str, list[np.nda
 
     i = s["qualitative_pair"]
     if i >= len(res["raw"]["map1"]):
-        raise ConfigError(f"params.yaml: 'evaluation.fusion.qualitative_pair' = {i} but only {len(res['raw']['map1'])} pairs are evaluated")
+        raise ConfigError(
+            f"params.yaml: 'evaluation.fusion.qualitative_pair' = {i} but only {len(res['raw']['map1'])} pairs are evaluated"
+        )
     m1, m2 = res["raw"]["map1"][i], res["raw"]["map2"][i]
     pose1, pose2 = res["raw"]["pose1"][i], res["raw"]["pose2"][i]
     k = s["qualitative_fraction"]
     rows: dict[str, list[np.ndarray]] = {"label": [], "naive": [], "network": []}
     for c in s["configs"]:
         r, alpha = s["noise"][c]
-        noisy2 = apply_pose_noise(pose2, np.array([k * r, k * r, np.radians(k * alpha)]))  # as prealign does
+        noisy2 = apply_pose_noise(
+            pose2, np.array([k * r, k * r, np.radians(k * alpha)])
+        )  # as prealign does
         warped = warp_masses(m2, relative_pose(pose1, noisy2), s["grid"])
         inputs = np.concatenate([m1, warped])[None].astype(np.float32)
         rows["label"].append(res["raw"]["label"][i])
@@ -312,29 +413,55 @@ def write_outputs(res: dict[str, Any], s: dict[str, Any]) -> None:
     methods = ["dnn", "naive", "registered", "naive-yager", "naive-cautious", "ego"]
     # plot data
     main = samples[~samples["method"].str.startswith("dnn-")]
-    _csv(main[["config", "method", "pair_id", "kld_fo", "kld_fou", "trans_err_m", "rot_err_deg"]], PLOT_KLD)
+    _csv(
+        main[["config", "method", "pair_id", "kld_fo", "kld_fou", "trans_err_m", "rot_err_deg"]],
+        PLOT_KLD,
+    )
     score_rows = []
     for c in configs:
-        row: dict[str, Any] = {"config": c, "noise_r_m": s["noise"][c][0], "noise_alpha_deg": s["noise"][c][1]}
+        row: dict[str, Any] = {
+            "config": c,
+            "noise_r_m": s["noise"][c][0],
+            "noise_alpha_deg": s["noise"][c][1],
+        }
         for m in methods:
-            for key in ("precision_occ", "recall_occ", "dice_occ", "precision_free", "recall_free", "dice_free", "kld_fo_mean"):
+            for key in (
+                "precision_occ",
+                "recall_occ",
+                "dice_occ",
+                "precision_free",
+                "recall_free",
+                "dice_free",
+                "kld_fo_mean",
+            ):
                 row[f"{m}_{key}"] = res["metrics"]["test"][c][m].get(key)
         score_rows.append(row)
     _csv(pd.DataFrame(score_rows), PLOT_SCORES)
     _csv(res["bins"], PLOT_BINS)
     _csv(samples, SAMPLES)
     # figures
-    kvals = {m: {c: main[(main.method == m) & (main.config == c)]["kld_fo"].to_numpy() for c in configs}
-             for m in ("naive", "registered", "dnn")}
-    kld_boxplot(kvals, configs, ["naive", "registered", "dnn"], ROOT / FIG_BOX,
-                title=f"KLD per configuration (test set, {metrics['n_pairs']['per_config']} pairs; registered on "
-                      f"{metrics['n_pairs']['registered']})")
+    kvals = {
+        m: {c: main[(main.method == m) & (main.config == c)]["kld_fo"].to_numpy() for c in configs}
+        for m in ("naive", "registered", "dnn")
+    }
+    kld_boxplot(
+        kvals,
+        configs,
+        ["naive", "registered", "dnn"],
+        ROOT / FIG_BOX,
+        title=f"KLD per configuration (test set, {metrics['n_pairs']['per_config']} pairs; registered on "
+        f"{metrics['n_pairs']['registered']})",
+    )
     scores = {m: {c: res["metrics"]["test"][c][m] for c in configs} for m in methods}
     scores_plot(scores, configs, methods, "occ", ROOT / FIG_OCC)
     scores_plot(scores, configs, methods, "free", ROOT / FIG_FREE)
-    qualitative_grid(qualitative(res, s), configs, ROOT / FIG_QUAL,
-                     title=f"pair {int(res['data'][configs[0]]['pair_id'][s['qualitative_pair']])}: pose error = "
-                           f"{s['qualitative_fraction']:.0%} of (r, r, α); red = m_O, green = m_F, black = unknown")
+    qualitative_grid(
+        qualitative(res, s),
+        configs,
+        ROOT / FIG_QUAL,
+        title=f"pair {int(res['data'][configs[0]]['pair_id'][s['qualitative_pair']])}: pose error = "
+        f"{s['qualitative_fraction']:.0%} of (r, r, α); red = m_O, green = m_F, black = unknown",
+    )
     write_text_atomic(ROOT / FINDINGS, fusion_findings(metrics))
     write_json_atomic(ROOT / METRICS, metrics)
 
@@ -356,7 +483,9 @@ def log_to_mlflow(metrics: dict[str, Any], s: dict[str, Any]) -> None:
         meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
         run_id = meta.get("mlflow_run_id")
         if not run_id:
-            log.warning("%s: no mlflow_run_id; fusion evaluation of %s not logged to MLflow", meta_path, c)
+            log.warning(
+                "%s: no mlflow_run_id; fusion evaluation of %s not logged to MLflow", meta_path, c
+            )
             continue
         flat: dict[str, float] = {}
         for meth, vals in metrics["test"][c].items():
@@ -367,11 +496,18 @@ def log_to_mlflow(metrics: dict[str, Any], s: dict[str, Any]) -> None:
         flat = {k: float(v) for k, v in flat.items() if v is not None and math.isfinite(float(v))}
         try:
             # log_batch on the training run: same run as mlflow.start_run(run_id=…) but leaves its status alone
-            client.log_batch(run_id, metrics=[Metric(k, v, stamp, 0) for k, v in sorted(flat.items())],
-                             tags=[RunTag("evaluated_by", STAGE)])
-            log.info("logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, c)
+            client.log_batch(
+                run_id,
+                metrics=[Metric(k, v, stamp, 0) for k, v in sorted(flat.items())],
+                tags=[RunTag("evaluated_by", STAGE)],
+            )
+            log.info(
+                "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, c
+            )
         except MlflowException as exc:
-            log.warning("MLflow run %s of %s not reachable (%s); metrics are in %s", run_id, c, exc, METRICS)
+            log.warning(
+                "MLflow run %s of %s not reachable (%s); metrics are in %s", run_id, c, exc, METRICS
+            )
 
 
 def main() -> None:

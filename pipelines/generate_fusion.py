@@ -15,13 +15,13 @@ from typing import Any
 
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
+from pipelines._common import ROOT, params, run_stage, setup_logging, stage_timer
 from traffictwin.config import ConfigError, get
 from traffictwin.evidential.ism import IsmParams
+from traffictwin.fusion.pairs import FusionDataParams, shard_splits, write_shard
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
-from traffictwin.fusion.pairs import FusionDataParams, shard_splits, write_shard
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.sim.world import TEMPLATES
 
@@ -33,7 +33,11 @@ K = "fusion_data"
 
 def grid_from_params(cfg: Any) -> GridSpec:
     """The grid (checked: positive, rows/cols divisible by 16 for the network)."""
-    g = GridSpec(get(cfg, "grid.rows", int, min=16), get(cfg, "grid.cols", int, min=16), get(cfg, "grid.cell", float, min=0.01))
+    g = GridSpec(
+        get(cfg, "grid.rows", int, min=16),
+        get(cfg, "grid.cols", int, min=16),
+        get(cfg, "grid.cell", float, min=0.01),
+    )
     try:
         g.check_divisible(16, "params.yaml: grid")
     except ValueError as exc:
@@ -61,22 +65,33 @@ def spec_from_params(cfg: Any) -> tuple[FusionDataParams, int]:
     templates = tuple(get(cfg, f"{K}.templates", list))
     bad = [t for t in templates if t not in TEMPLATES]
     if bad or not templates:
-        raise ConfigError(f"params.yaml: '{K}.templates' has unknown template name(s) {bad or '(empty)'}; expected from {list(TEMPLATES)}")
+        raise ConfigError(
+            f"params.yaml: '{K}.templates' has unknown template name(s) {bad or '(empty)'}; expected from {list(TEMPLATES)}"
+        )
     md = get(cfg, f"{K}.meet_distance", list)
     if len(md) != 2 or not 0 <= float(md[0]) < float(md[1]):
-        raise ConfigError(f"params.yaml: '{K}.meet_distance' must be [min, max] m with 0 <= min < max, got {md}")
+        raise ConfigError(
+            f"params.yaml: '{K}.meet_distance' must be [min, max] m with 0 <= min < max, got {md}"
+        )
     scenarios = get(cfg, f"{K}.scenarios", int, min=1)
     per_shard = get(cfg, f"{K}.scenarios_per_shard", int, min=1)
     if scenarios % per_shard:
-        raise ConfigError(f"params.yaml: '{K}.scenarios' ({scenarios}) must be a multiple of '{K}.scenarios_per_shard' ({per_shard})")
+        raise ConfigError(
+            f"params.yaml: '{K}.scenarios' ({scenarios}) must be a multiple of '{K}.scenarios_per_shard' ({per_shard})"
+        )
     traffic = get(cfg, f"{K}.traffic", dict)
     p = FusionDataParams(
-        grid=grid_from_params(cfg), lidar=lid, ism=ism, scenarios_per_shard=per_shard,
+        grid=grid_from_params(cfg),
+        lidar=lid,
+        ism=ism,
+        scenarios_per_shard=per_shard,
         encounters_per_scenario=get(cfg, f"{K}.encounters_per_scenario", int, min=1),
         encounter_spacing=get(cfg, f"{K}.encounter_spacing", float, min=0.0),
         t_meet=get(cfg, f"{K}.t_meet", float, min=0.0),
         meet_distance=(float(md[0]), float(md[1])),
-        density={k: (tuple(v) if isinstance(v, (list, tuple)) else float(v)) for k, v in traffic.items()},
+        density={
+            k: (tuple(v) if isinstance(v, (list, tuple)) else float(v)) for k, v in traffic.items()
+        },
         templates=templates,
     )
     return p, scenarios // per_shard
@@ -112,16 +127,30 @@ def main(argv: list[str] | None = None) -> None:
 
             unknown = sorted(set(record["fusion_data"]["traffic"]) - set(DEFAULT_DENSITY))
             if unknown:
-                raise ConfigError(f"params.yaml: '{K}.traffic' has unknown key(s) {unknown}; expected from {sorted(DEFAULT_DENSITY)}")
+                raise ConfigError(
+                    f"params.yaml: '{K}.traffic' has unknown key(s) {unknown}; expected from {sorted(DEFAULT_DENSITY)}"
+                )
         for k in ("workers", "figure"):
             record["fusion_data"].pop(k, None)  # do not change the data
         splits = shard_splits(n_shards, seed, fractions)
         writer = DatasetWriter(OUT, "fusion", params=record, seed=seed)
         todo = [i for i in range(n_shards) if not writer.has_shard(i)]
-        log.info("generate_fusion: %d shards x %d pairs (%d to do), %d workers", n_shards, p.pairs_per_shard, len(todo), workers)
+        log.info(
+            "generate_fusion: %d shards x %d pairs (%d to do), %d workers",
+            n_shards,
+            p.pairs_per_shard,
+            len(todo),
+            workers,
+        )
         t0 = time.perf_counter()
         jobs = [(seed, i, p, OUT, level) for i in todo]
-        bar = tqdm(total=n_shards, initial=n_shards - len(todo), unit="shard", desc="generate_fusion", file=sys.stderr)
+        bar = tqdm(
+            total=n_shards,
+            initial=n_shards - len(todo),
+            unit="shard",
+            desc="generate_fusion",
+            file=sys.stderr,
+        )
         if workers > 1 and len(jobs) > 1:
             with mp.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
                 for idx, digest, count in pool.imap_unordered(_work, jobs):
@@ -134,21 +163,38 @@ def main(argv: list[str] | None = None) -> None:
                 bar.update(1)
         bar.close()
         elapsed = time.perf_counter() - t0
-        manifest = writer.finalize(extra={"templates": list(p.templates), "pairs_per_shard": p.pairs_per_shard})
+        manifest = writer.finalize(
+            extra={"templates": list(p.templates), "pairs_per_shard": p.pairs_per_shard}
+        )
         n_new = len(todo) * p.pairs_per_shard
-        write_json_atomic(METRICS, {
-            "fusion_data/pairs": manifest["count"],
-            "fusion_data/train_pairs": manifest["split_counts"].get("train", 0),
-            "fusion_data/val_pairs": manifest["split_counts"].get("val", 0),
-            "fusion_data/test_pairs": manifest["split_counts"].get("test", 0),
-            "fusion_data/scenarios": n_shards * p.scenarios_per_shard,
-            "fusion_data/pairs_per_s": round(n_new / elapsed, 2) if n_new and elapsed > 0 else None,
-        })
+        write_json_atomic(
+            METRICS,
+            {
+                "fusion_data/pairs": manifest["count"],
+                "fusion_data/train_pairs": manifest["split_counts"].get("train", 0),
+                "fusion_data/val_pairs": manifest["split_counts"].get("val", 0),
+                "fusion_data/test_pairs": manifest["split_counts"].get("test", 0),
+                "fusion_data/scenarios": n_shards * p.scenarios_per_shard,
+                "fusion_data/pairs_per_s": round(n_new / elapsed, 2)
+                if n_new and elapsed > 0
+                else None,
+            },
+        )
         from traffictwin.fusion.data_figure import pick_samples, plot_fusion_samples
 
         samples = pick_samples(Dataset(OUT, kind="fusion"), n_fig)
-        plot_fusion_samples(FIGURE, samples, p.grid, title="Fusion data: two input maps with poses and the Dempster label")
-        log.info("generate_fusion: %d pairs (%s) in %.1f s", manifest["count"], manifest["split_counts"], elapsed)
+        plot_fusion_samples(
+            FIGURE,
+            samples,
+            p.grid,
+            title="Fusion data: two input maps with poses and the Dempster label",
+        )
+        log.info(
+            "generate_fusion: %d pairs (%s) in %.1f s",
+            manifest["count"],
+            manifest["split_counts"],
+            elapsed,
+        )
 
 
 if __name__ == "__main__":

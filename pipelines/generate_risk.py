@@ -10,10 +10,17 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from pipelines._common import ROOT, WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
+from pipelines._common import (
+    ROOT,
+    WORKER_STATE,
+    map_shards,
+    params,
+    run_stage,
+    setup_logging,
+    stage_timer,
+)
 from traffictwin.config import get
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
@@ -28,39 +35,58 @@ OUT = ROOT / "data" / "risk"
 
 def data_seed(cfg) -> int:
     """Dataset seed from the global seed and ``risk_data.seed``."""
-    return int(get(cfg, "seed", int, min=0)) + 1_000_003 * int(get(cfg, "risk_data.seed", int, min=0))
+    return int(get(cfg, "seed", int, min=0)) + 1_000_003 * int(
+        get(cfg, "risk_data.seed", int, min=0)
+    )
 
 
 def spec_from_params(cfg) -> RiskDataSpec:
     """Build the generation spec from params.yaml (checked access)."""
     k = "risk_data"
     cam = StereoCamera(
-        width=get(cfg, f"{k}.camera.width", int, min=16), height=get(cfg, f"{k}.camera.height", int, min=16),
+        width=get(cfg, f"{k}.camera.width", int, min=16),
+        height=get(cfg, f"{k}.camera.height", int, min=16),
         hfov_deg=get(cfg, f"{k}.camera.hfov_deg", float, min=5, max=150),
         baseline=get(cfg, f"{k}.camera.baseline", float, min=0.01),
-        mount_x=get(cfg, f"{k}.camera.mount_x", float), mount_height=get(cfg, f"{k}.camera.mount_height", float, min=0.1),
-        max_range=get(cfg, f"{k}.camera.max_range", float, min=1), noise_std=get(cfg, f"{k}.camera.noise_std", float, min=0),
+        mount_x=get(cfg, f"{k}.camera.mount_x", float),
+        mount_height=get(cfg, f"{k}.camera.mount_height", float, min=0.1),
+        max_range=get(cfg, f"{k}.camera.max_range", float, min=1),
+        noise_std=get(cfg, f"{k}.camera.noise_std", float, min=0),
     )
     vpx = get(cfg, f"{k}.faults.vertical_px", list)
     drv = DrivingConfig(
-        fps=get(cfg, f"{k}.fps", float, min=0.1), frames=get(cfg, f"{k}.frames_per_sequence", int, min=1),
-        warmup=get(cfg, f"{k}.warmup", float, min=0), max_speed=get(cfg, f"{k}.max_speed", float, min=1),
+        fps=get(cfg, f"{k}.fps", float, min=0.1),
+        frames=get(cfg, f"{k}.frames_per_sequence", int, min=1),
+        warmup=get(cfg, f"{k}.warmup", float, min=0),
+        max_speed=get(cfg, f"{k}.max_speed", float, min=1),
         critical_share=get(cfg, f"{k}.critical_share", float, min=0, max=1),
         templates=tuple(get(cfg, f"{k}.templates", list)),
         fault_delay=get(cfg, f"{k}.faults.delay_share", float, min=0, max=1),
         fault_vertical=get(cfg, f"{k}.faults.vertical_share", float, min=0, max=1),
-        delay=get(cfg, f"{k}.faults.delay_s", float, min=0), vertical_px=(float(vpx[0]), float(vpx[1])),
+        delay=get(cfg, f"{k}.faults.delay_s", float, min=0),
+        vertical_px=(float(vpx[0]), float(vpx[1])),
     )
     risk = RiskConfig(
         subject_length=get(cfg, f"{k}.metric.subject_length", float, min=0.5),
         subject_width=get(cfg, f"{k}.metric.subject_width", float, min=0.3),
-        hfov_deg=cam.hfov_deg, mount_x=cam.mount_x,
+        hfov_deg=cam.hfov_deg,
+        mount_x=cam.mount_x,
         fill=get(cfg, f"{k}.metric.fill", str, choices=("border", "filled")),
         include_pedestrians=get(cfg, f"{k}.metric.include_pedestrians", bool),
     )
-    grid = GridSpec(get(cfg, "grid.rows", int, min=8), get(cfg, "grid.cols", int, min=8), get(cfg, "grid.cell", float, min=0.01))
-    return RiskDataSpec(drv, cam, grid, risk, label=get(cfg, f"{k}.label", str, choices=LABELS),
-                        ground_res=get(cfg, f"{k}.ground_res", float, min=0.02, max=1.0))
+    grid = GridSpec(
+        get(cfg, "grid.rows", int, min=8),
+        get(cfg, "grid.cols", int, min=8),
+        get(cfg, "grid.cell", float, min=0.01),
+    )
+    return RiskDataSpec(
+        drv,
+        cam,
+        grid,
+        risk,
+        label=get(cfg, f"{k}.label", str, choices=LABELS),
+        ground_res=get(cfg, f"{k}.ground_res", float, min=0.02, max=1.0),
+    )
 
 
 def _work(index: int) -> tuple[int, str, int, list[dict]]:
@@ -77,7 +103,9 @@ def generate(cfg, out: Path = OUT) -> dict:
     n = get(cfg, "risk_data.sequences", int, min=1)
     fr = get(cfg, "risk_data.splits", list)
     if len(fr) != 3:
-        raise ValueError(f"params.yaml: 'risk_data.splits' must be 3 fractions (train, val, test), got {fr}")
+        raise ValueError(
+            f"params.yaml: 'risk_data.splits' must be 3 fractions (train, val, test), got {fr}"
+        )
     splits = assign_splits(n, seed, tuple(float(x) for x in fr))
     workers = get(cfg, "risk_data.workers", int, min=1)
     recorded = {k: v for k, v in dict(get(cfg, "risk_data", dict)).items() if k != "workers"}
@@ -85,7 +113,9 @@ def generate(cfg, out: Path = OUT) -> dict:
     writer = DatasetWriter(out, "risk", recorded, seed)
     rows_by: dict[int, list[dict]] = {}
     state = {"spec": spec, "seed": seed, "root": Path(out)}
-    for index, digest, count, rows in map_shards(_work, range(n), workers=workers, state=state, desc="generate_risk", unit="seq"):
+    for index, digest, count, rows in map_shards(
+        _work, range(n), workers=workers, state=state, desc="generate_risk", unit="seq"
+    ):
         writer.record_shard(index, shard_name(index), digest, count, splits[index])
         rows_by[index] = rows
     table = []
@@ -95,11 +125,15 @@ def generate(cfg, out: Path = OUT) -> dict:
             table.append({"frame_id": fid, "shard": index, "split": splits[index], **r})
             fid += 1
     df = pd.DataFrame(table)
-    cols = ["frame_id", "shard", "idx", "scenario", "split"] + [c for c in df.columns if c not in ("frame_id", "shard", "idx", "scenario", "split")]
+    cols = ["frame_id", "shard", "idx", "scenario", "split"] + [
+        c for c in df.columns if c not in ("frame_id", "shard", "idx", "scenario", "split")
+    ]
     df = df[cols]
     writer.add_table("frames.csv", df)
     summary = summarise(df)
-    writer.finalize(extra={"camera": spec.camera.intrinsics(), "label": spec.label, "summary": summary})
+    writer.finalize(
+        extra={"camera": spec.camera.intrinsics(), "label": spec.label, "summary": summary}
+    )
     log.info("data/risk: %d frames, critical share %.3f", len(df), summary["all/critical_share"])
     return summary
 
@@ -136,7 +170,9 @@ def main() -> None:
         from traffictwin.risk.data_figures import risk_metric_figure
 
         spec = spec_from_params(cfg)
-        risk_metric_figure(data_seed(cfg), spec, ROOT / "reports" / "figures" / "risk_metric_example.png")
+        risk_metric_figure(
+            data_seed(cfg), spec, ROOT / "reports" / "figures" / "risk_metric_example.png"
+        )
 
 
 if __name__ == "__main__":

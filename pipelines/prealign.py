@@ -17,11 +17,11 @@ import time
 
 from tqdm import tqdm
 
-from pipelines._common import ROOT, params, setup_logging, stage_timer, run_stage
+from pipelines._common import ROOT, params, run_stage, setup_logging, stage_timer
 from pipelines.generate_fusion import K, grid_from_params
 from traffictwin.config import ConfigError, get
-from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 from traffictwin.fusion.pairs import prealign_shard
+from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 
 SRC = ROOT / "data" / "fusion"
 
@@ -34,14 +34,20 @@ def _work(args: tuple) -> tuple[int, str, int]:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cfg", required=True, help="pose-noise configuration (a key of `configurations` in params.yaml)")
+    ap.add_argument(
+        "--cfg",
+        required=True,
+        help="pose-noise configuration (a key of `configurations` in params.yaml)",
+    )
     args = ap.parse_args(argv)
     log = setup_logging()
     cfg = params()
     with stage_timer(f"prealign@{args.cfg}"):
         configs = get(cfg, "configurations", dict)
         if args.cfg not in configs:
-            raise ConfigError(f"params.yaml: configuration '{args.cfg}' not in 'configurations' (has {sorted(configs)})")
+            raise ConfigError(
+                f"params.yaml: configuration '{args.cfg}' not in 'configurations' (has {sorted(configs)})"
+            )
         r = get(cfg, f"configurations.{args.cfg}.r", float, min=0)
         alpha = get(cfg, f"configurations.{args.cfg}.alpha", float, min=0, max=180)
         seed = get(cfg, "seed", int, min=0)
@@ -52,17 +58,40 @@ def main(argv: list[str] | None = None) -> None:
         grid = grid_from_params(cfg)
         src = Dataset(SRC, kind="fusion")  # verifies every shard's SHA-256
         out = ROOT / "data" / "prealigned" / args.cfg
-        record = {"configuration": {"r": r, "alpha": alpha}, "noise_seed": noise_seed, "train_draws": train_draws,
-                  "grid": get(cfg, "grid", dict), "source_manifest": src.manifest_hash()}
+        record = {
+            "configuration": {"r": r, "alpha": alpha},
+            "noise_seed": noise_seed,
+            "train_draws": train_draws,
+            "grid": get(cfg, "grid", dict),
+            "source_manifest": src.manifest_hash(),
+        }
         writer = DatasetWriter(out, "prealigned", params=record, seed=seed)
         jobs = []
         for i, sh in enumerate(src.shards):
             if writer.has_shard(i):
                 continue
             draws = train_draws if sh.get("split") == "train" else 1
-            jobs.append((i, str(SRC / sh["name"]), str(out / shard_name(i)), noise_seed, r, alpha, draws, grid, level))
+            jobs.append(
+                (
+                    i,
+                    str(SRC / sh["name"]),
+                    str(out / shard_name(i)),
+                    noise_seed,
+                    r,
+                    alpha,
+                    draws,
+                    grid,
+                    level,
+                )
+            )
         t0 = time.perf_counter()
-        bar = tqdm(total=len(src.shards), initial=len(src.shards) - len(jobs), unit="shard", desc=f"prealign@{args.cfg}", file=sys.stderr)
+        bar = tqdm(
+            total=len(src.shards),
+            initial=len(src.shards) - len(jobs),
+            unit="shard",
+            desc=f"prealign@{args.cfg}",
+            file=sys.stderr,
+        )
         done = []
         if workers > 1 and len(jobs) > 1:
             with mp.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
@@ -77,7 +106,13 @@ def main(argv: list[str] | None = None) -> None:
         for i, digest, count in done:
             writer.record_shard(i, shard_name(i), digest, count, src.shards[i].get("split"))
         m = writer.finalize(extra={"configuration": args.cfg, "source": "data/fusion"})
-        log.info("prealign@%s: %d samples %s in %.1f s", args.cfg, m["count"], m["split_counts"], time.perf_counter() - t0)
+        log.info(
+            "prealign@%s: %d samples %s in %.1f s",
+            args.cfg,
+            m["count"],
+            m["split_counts"],
+            time.perf_counter() - t0,
+        )
 
 
 if __name__ == "__main__":

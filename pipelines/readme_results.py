@@ -17,7 +17,11 @@ END = "<!-- results:end -->"
 
 def results_block(table_md: str) -> str:
     """The README block for ``table_md``: the table without its generated-file comment or link line."""
-    lines = [ln for ln in table_md.splitlines() if not ln.startswith("<!--") and not ln.startswith("Full report:")]
+    lines = [
+        ln
+        for ln in table_md.splitlines()
+        if not ln.startswith("<!--") and not ln.startswith("Full report:")
+    ]
     body = "\n".join(lines).strip().replace("](README.md)", "](reports/README.md)")
     return f"{BEGIN}\n{body}\n{END}"
 

@@ -16,10 +16,10 @@ from typing import Any
 import yaml
 
 from traffictwin.config import flatten, get
-from traffictwin.report.render import ReportInputs, write_report
 from traffictwin.mlops.tracking import git_commit, pipeline_run_id
+from traffictwin.report.render import ReportInputs, write_report
 
-from ._common import ROOT, params, setup_logging, stage_timer, run_stage
+from ._common import ROOT, params, run_stage, setup_logging, stage_timer
 
 
 def profile_keys(conf_profile_dir: Path) -> set[str]:
@@ -50,8 +50,12 @@ def git_dirty(root: Path) -> bool:
     import subprocess
 
     try:
-        proc = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "src", "pipelines", "conf", "dvc.yaml"],
-                              cwd=root, capture_output=True, timeout=30)
+        proc = subprocess.run(
+            ["git", "diff", "--quiet", "HEAD", "--", "src", "pipelines", "conf", "dvc.yaml"],
+            cwd=root,
+            capture_output=True,
+            timeout=30,
+        )
     except (OSError, subprocess.SubprocessError):
         return False
     return proc.returncode == 1
@@ -63,7 +67,12 @@ def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
     order: list[str] = []
     for name, st in (data.get("stages") or {}).items():
         items = st.get("foreach") if isinstance(st, dict) else None
-        if isinstance(items, str) and items.startswith("${") and items.endswith("}") and cfg is not None:
+        if (
+            isinstance(items, str)
+            and items.startswith("${")
+            and items.endswith("}")
+            and cfg is not None
+        ):
             items = get(cfg, items[2:-1], default=None)
         if isinstance(items, dict):
             order += [f"{name}@{k}" for k in items]
@@ -80,7 +89,10 @@ def main() -> None:
         cfg = params()
         confs = get(cfg, "configurations", dict)
         configurations = {
-            str(n): (get(cfg, f"configurations.{n}.r", float, min=0), get(cfg, f"configurations.{n}.alpha", float, min=0))
+            str(n): (
+                get(cfg, f"configurations.{n}.r", float, min=0),
+                get(cfg, f"configurations.{n}.alpha", float, min=0),
+            )
             for n in confs
         }
         inputs = ReportInputs(
@@ -97,7 +109,11 @@ def main() -> None:
         )
         report = write_report(inputs)
     log = setup_logging()
-    log.info("report: %d sections, %d missing values -> reports/README.md, reports/index.html", len(report.sections), len(report.missing))
+    log.info(
+        "report: %d sections, %d missing values -> reports/README.md, reports/index.html",
+        len(report.sections),
+        len(report.missing),
+    )
 
 
 if __name__ == "__main__":

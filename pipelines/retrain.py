@@ -35,16 +35,17 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import yaml
 
 from pipelines._common import ROOT, params, setup_logging
-from traffictwin.mlops import registry as reg
 from traffictwin.config import ConfigError, compose_config, dump_params, get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
+from traffictwin.mlops import registry as reg
 
 EXIT_LOCKED = 75  # EX_TEMPFAIL: try again later
 FAIL_ENV = "TRAFFICTWIN_RETRAIN_FAIL_AT"
@@ -69,7 +70,9 @@ def retrain_lock(path: Path) -> Iterator[None]:
         except BlockingIOError:
             fh.seek(0)
             holder = fh.read().strip() or "unknown holder"
-            raise LockBusy(f"another retraining run holds the lock {path} ({holder}); not starting a second one") from None
+            raise LockBusy(
+                f"another retraining run holds the lock {path} ({holder}); not starting a second one"
+            ) from None
         fh.seek(0)
         fh.truncate()
         fh.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
@@ -97,12 +100,16 @@ def conf_file_for(key: str, conf: Path) -> tuple[Path, str]:
     if len(parts) == 1:
         return conf / "config.yaml", key
     if len(parts) != 2:
-        raise ConfigError(f"registry.retrain.seed_keys: '{key}' must be a top-level key or <group>.<key>")
+        raise ConfigError(
+            f"registry.retrain.seed_keys: '{key}' must be a top-level key or <group>.<key>"
+        )
     group, name = parts
     defaults = yaml.safe_load((conf / "config.yaml").read_text()).get("defaults", [])
     option = next((d[group] for d in defaults if isinstance(d, dict) and group in d), None)
     if option is None:
-        raise ConfigError(f"conf/config.yaml: no defaults entry for group '{group}' (from seed key '{key}')")
+        raise ConfigError(
+            f"conf/config.yaml: no defaults entry for group '{group}' (from seed key '{key}')"
+        )
     return conf / group / f"{option}.yaml", name
 
 
@@ -112,7 +119,9 @@ def set_conf_value(path: Path, name: str, value: int) -> None:
     pat = re.compile(rf"^({re.escape(name)}:[ \t]*)(-?\d+)([ \t]*(#.*)?)$", re.M)
     hits = pat.findall(text)
     if len(hits) != 1:
-        raise ConfigError(f"{path}: expected exactly one top-level line '{name}: <integer>', found {len(hits)}")
+        raise ConfigError(
+            f"{path}: expected exactly one top-level line '{name}: <integer>', found {len(hits)}"
+        )
     write_text_atomic(path, pat.sub(lambda m: f"{m.group(1)}{value}{m.group(3)}", text))
 
 
@@ -150,7 +159,11 @@ class Snapshot:
     def restore(self, log) -> list[str]:
         problems = []
         lock_path = self.root / "dvc.lock"
-        lock_now = (yaml.safe_load(lock_path.read_text()) or {}).get("stages", {}) if lock_path.exists() else {}
+        lock_now = (
+            (yaml.safe_load(lock_path.read_text()) or {}).get("stages", {})
+            if lock_path.exists()
+            else {}
+        )
         for rel, data in self.files.items():
             p = self.root / rel
             if data is None:
@@ -169,17 +182,31 @@ class Snapshot:
             # still defines (a lock may keep foreach items of another profile, whose outputs are not cached here)
             lock_then = (yaml.safe_load(self.files["dvc.lock"]) or {}).get("stages", {}) or {}
             locked = {n for n in lock_then if lock_now.get(n) != lock_then[n]}
-            listed = subprocess.run(["dvc", "stage", "list", "--name-only"], cwd=self.root, capture_output=True, text=True)
+            listed = subprocess.run(
+                ["dvc", "stage", "list", "--name-only"],
+                cwd=self.root,
+                capture_output=True,
+                text=True,
+            )
             if listed.returncode != 0:
-                problems.append(f"dvc stage list failed ({listed.returncode}): {listed.stderr.strip()[-800:]}")
+                problems.append(
+                    f"dvc stage list failed ({listed.returncode}): {listed.stderr.strip()[-800:]}"
+                )
                 log.error("restore: %s", problems[-1])
                 return problems
             stages = sorted(locked & set(listed.stdout.split()))
             if not stages:
                 return problems
-            proc = subprocess.run(["dvc", "checkout", "--force", *stages], cwd=self.root, capture_output=True, text=True)
+            proc = subprocess.run(
+                ["dvc", "checkout", "--force", *stages],
+                cwd=self.root,
+                capture_output=True,
+                text=True,
+            )
             if proc.returncode != 0:
-                problems.append(f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}")
+                problems.append(
+                    f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}"
+                )
                 log.error("restore: %s", problems[-1])
         return problems
 
@@ -197,37 +224,58 @@ def champions(cl, names: list[str], alias: str) -> dict[str, str | None]:
 
 def model_names(cfg) -> list[str]:
     prefix = get(cfg, "registry.fusion.name_prefix", str)
-    return [reg.fusion_name(c, prefix) for c in get(cfg, "registry.fusion.configs", list)] + [get(cfg, "registry.risk.name", str)]
+    return [reg.fusion_name(c, prefix) for c in get(cfg, "registry.fusion.configs", list)] + [
+        get(cfg, "registry.risk.name", str)
+    ]
 
 
 def write_summary(base: Path, s: dict[str, Any]) -> None:
     write_json_atomic(base.with_name(base.name + ".json"), s)
     lines = [
-        f"# Retraining {s['status']}: {s['started']}", "",
+        f"# Retraining {s['status']}: {s['started']}",
+        "",
         f"- duration: {s.get('duration_s', 0):.0f} s; profile `{s.get('profile')}`; git `{str(s.get('git_commit'))[:10]}`",
     ]
     for k, (a, b) in (s.get("seeds") or {}).items():
         lines.append(f"- data seed `{k}`: {a} → {b}")
     if s.get("error"):
-        lines += [f"- **error** in step `{s.get('failed_step')}`: {s['error']}",
-                  f"- restored: {s.get('restored')} {s.get('restore_problems') or ''}; champions: {s.get('champions_after')}"]
-    changed = [p for p, h in (s.get("data_after") or {}).items() if (s.get("data_before") or {}).get(p) != h]
+        lines += [
+            f"- **error** in step `{s.get('failed_step')}`: {s['error']}",
+            f"- restored: {s.get('restored')} {s.get('restore_problems') or ''}; champions: {s.get('champions_after')}",
+        ]
+    changed = [
+        p
+        for p, h in (s.get("data_after") or {}).items()
+        if (s.get("data_before") or {}).get(p) != h
+    ]
     if s["status"] == "succeeded":
-        lines.append(f"- new data version: {len(changed)} of {len(s.get('data_after') or {})} data outputs changed "
-                     f"({', '.join(changed) or 'none'})")
+        lines.append(
+            f"- new data version: {len(changed)} of {len(s.get('data_after') or {})} data outputs changed "
+            f"({', '.join(changed) or 'none'})"
+        )
     if s.get("decisions"):
-        lines += ["", "| model | challenger | champion before | metric | challenger | champion | decision |",
-                  "| --- | --- | --- | --- | --- | --- | --- |"]
+        lines += [
+            "",
+            "| model | challenger | champion before | metric | challenger | champion | decision |",
+            "| --- | --- | --- | --- | --- | --- | --- |",
+        ]
         for d in s["decisions"]:
-            f = (lambda v: "–" if v is None else f"{v:.5g}")
-            lines.append(f"| {d['name']} | v{d['challenger_version']} | {('v' + d['champion_version']) if d['champion_version'] else '–'} "
-                         f"| {d['metric']} | {f(d['challenger_value'])} | {f(d['champion_value'])} | {d['action']} |")
+            f = lambda v: "–" if v is None else f"{v:.5g}"
+            lines.append(
+                f"| {d['name']} | v{d['challenger_version']} | {('v' + d['champion_version']) if d['champion_version'] else '–'} "
+                f"| {d['metric']} | {f(d['challenger_value'])} | {f(d['champion_value'])} | {d['action']} |"
+            )
         lines.append("")
         lines.append(f"Champions after: {s.get('champions_after')}")
     write_text_atomic(base.with_name(base.name + ".md"), "\n".join(lines) + "\n")
 
 
-def retrain(root: Path, seed: int | None = None, targets: list[str] | None = None, promote_models: bool = True) -> dict:
+def retrain(
+    root: Path,
+    seed: int | None = None,
+    targets: list[str] | None = None,
+    promote_models: bool = True,
+) -> dict:
     """The whole flow (see module docstring) under the lock; returns the summary dict."""
     from pipelines import promote as promote_mod
     from traffictwin.mlops.tracking import git_commit
@@ -241,8 +289,14 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
     champion_alias = get(cfg, "registry.aliases.champion", str)
     names = model_names(cfg)
     t0 = time.time()
-    s: dict[str, Any] = {"status": "running", "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "profile": profile,
-                         "git_commit": git_commit(root), "targets": targets or [], "data_before": data_versions(root)}
+    s: dict[str, Any] = {
+        "status": "running",
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "profile": profile,
+        "git_commit": git_commit(root),
+        "targets": targets or [],
+        "data_before": data_versions(root),
+    }
     cl = reg.client()
     s["champions_before"] = champions(cl, names, champion_alias)
     step = "snapshot"
@@ -262,7 +316,9 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
             for k, (_, new) in seeds.items():
                 got = get(composed, k, int)
                 if got != new:
-                    raise ConfigError(f"conf/: '{k}' composes to {got}, not the new seed {new} (overridden by profile '{profile}'?)")
+                    raise ConfigError(
+                        f"conf/: '{k}' composes to {got}, not the new seed {new} (overridden by profile '{profile}'?)"
+                    )
             dump_params(composed, root / "params.yaml")
             s["seeds"] = seeds
             log.info("retrain: new data seeds %s", seeds)
@@ -280,14 +336,21 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
             step = "promote"
             decisions = []
             if promote_models:
-                decisions = promote_mod.promote(root, dry_run=True)  # decide all first: nothing moves on error
+                decisions = promote_mod.promote(
+                    root, dry_run=True
+                )  # decide all first: nothing moves on error
                 _inject("before_apply")
                 step = "apply"
                 applied = True
                 log_path = root / get(cfg, "registry.log", str)
                 for d in decisions:
-                    reg.apply(cl, d, log_path=log_path, champion_alias=champion_alias,
-                              challenger_alias=get(cfg, "registry.aliases.challenger", str))
+                    reg.apply(
+                        cl,
+                        d,
+                        log_path=log_path,
+                        champion_alias=champion_alias,
+                        challenger_alias=get(cfg, "registry.aliases.challenger", str),
+                    )
             s["decisions"] = [d.to_dict() for d in decisions]
             s["status"] = "succeeded"
         except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - restore on anything
@@ -295,7 +358,11 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
             s["failed_step"] = step
             s["error"] = f"{type(exc).__name__}: {exc}"
             log.error("retrain failed in step %s: %s", step, s["error"])
-            problems = snap.restore(log) if not applied else ["the gate had started moving aliases: nothing restored"]
+            problems = (
+                snap.restore(log)
+                if not applied
+                else ["the gate had started moving aliases: nothing restored"]
+            )
             s["restored"] = not problems
             if problems:
                 s["restore_problems"] = problems
@@ -308,9 +375,21 @@ def retrain(root: Path, seed: int | None = None, targets: list[str] | None = Non
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.retrain", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seed", type=int, default=None, help="set the data seed key(s) to this value (default: old + seed_step)")
-    ap.add_argument("--targets", nargs="+", default=None, help="only `dvc repro` these stages (default: the whole DAG)")
+    ap = argparse.ArgumentParser(
+        prog="python -m pipelines.retrain", description=__doc__.split("\n\n")[0]
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="set the data seed key(s) to this value (default: old + seed_step)",
+    )
+    ap.add_argument(
+        "--targets",
+        nargs="+",
+        default=None,
+        help="only `dvc repro` these stages (default: the whole DAG)",
+    )
     ap.add_argument("--no-promote", action="store_true", help="skip the promotion gate")
     args = ap.parse_args(argv)
     try:
@@ -325,11 +404,28 @@ def main(argv: list[str] | None = None) -> int:
     except LockBusy as exc:
         print(f"retrain: {exc}", file=sys.stderr)
         return EXIT_LOCKED
-    print(json.dumps({k: s.get(k) for k in ("status", "seeds", "champions_before", "champions_after", "error",
-                                            "failed_step", "duration_s")}, default=str))
+    print(
+        json.dumps(
+            {
+                k: s.get(k)
+                for k in (
+                    "status",
+                    "seeds",
+                    "champions_before",
+                    "champions_after",
+                    "error",
+                    "failed_step",
+                    "duration_s",
+                )
+            },
+            default=str,
+        )
+    )
     if s["status"] != "succeeded":
-        print(f"retrain: error in step '{s.get('failed_step')}': {s.get('error')} (previous data and champions kept)",
-              file=sys.stderr)
+        print(
+            f"retrain: error in step '{s.get('failed_step')}': {s.get('error')} (previous data and champions kept)",
+            file=sys.stderr,
+        )
         return 1
     return 0
 

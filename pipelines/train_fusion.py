@@ -21,24 +21,44 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse  # noqa: E402
 
 from traffictwin.config import ConfigError, flatten, get  # noqa: E402
+from traffictwin.fusion.training import (
+    DataSettings,
+    FusionHParams,
+    LoopSettings,
+    TrackingSettings,
+    fit_fusion,
+    spec_from_cfg,
+)  # noqa: E402
 from traffictwin.grid import GridSpec  # noqa: E402
 from traffictwin.trainer import TrainerSettings  # noqa: E402
-from traffictwin.fusion.training import DataSettings, FusionHParams, LoopSettings, TrackingSettings, fit_fusion, spec_from_cfg  # noqa: E402
 
 from ._common import ROOT, params, run_stage, setup_logging, stage_timer  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cfg", required=True, help="pose-noise configuration (a key of `configurations` in params.yaml)")
+    ap.add_argument(
+        "--cfg",
+        required=True,
+        help="pose-noise configuration (a key of `configurations` in params.yaml)",
+    )
     args = ap.parse_args(argv)
     log = setup_logging()
     p = params()
     cfgs = get(p, "configurations", dict)
     if args.cfg not in cfgs:
-        raise ConfigError(f"params.yaml: configuration '{args.cfg}' not in 'configurations' (have {sorted(cfgs)})")
-    noise = {"r": get(p, f"configurations.{args.cfg}.r", float, min=0), "alpha": get(p, f"configurations.{args.cfg}.alpha", float, min=0)}
-    grid = GridSpec(get(p, "grid.rows", int, min=16), get(p, "grid.cols", int, min=16), get(p, "grid.cell", float, min=1e-6))
+        raise ConfigError(
+            f"params.yaml: configuration '{args.cfg}' not in 'configurations' (have {sorted(cfgs)})"
+        )
+    noise = {
+        "r": get(p, f"configurations.{args.cfg}.r", float, min=0),
+        "alpha": get(p, f"configurations.{args.cfg}.alpha", float, min=0),
+    }
+    grid = GridSpec(
+        get(p, "grid.rows", int, min=16),
+        get(p, "grid.cols", int, min=16),
+        get(p, "grid.cell", float, min=1e-6),
+    )
     fm = "fusion_model"
     try:
         spec = spec_from_cfg(get(p, f"{fm}.architecture", dict))
@@ -71,24 +91,53 @@ def main(argv: list[str] | None = None) -> None:
     )
     profile = get(p, "profile.name", str)
     stage = f"train_fusion@{args.cfg}"
-    logged = flatten({"fusion_model": get(p, fm, dict), "trainer": get(p, "trainer", dict), "grid": get(p, "grid", dict),
-                      "seed": get(p, "seed", int), "configuration": {"name": args.cfg, **noise}})
-    tracking = TrackingSettings(experiment="fusion", run_name=f"fusion-{args.cfg}", profile=profile, stage=stage, params=logged)
+    logged = flatten(
+        {
+            "fusion_model": get(p, fm, dict),
+            "trainer": get(p, "trainer", dict),
+            "grid": get(p, "grid", dict),
+            "seed": get(p, "seed", int),
+            "configuration": {"name": args.cfg, **noise},
+        }
+    )
+    tracking = TrackingSettings(
+        experiment="fusion",
+        run_name=f"fusion-{args.cfg}",
+        profile=profile,
+        stage=stage,
+        params=logged,
+    )
     out_dir = ROOT / "models" / "fusion" / args.cfg
     with stage_timer(stage):
         res = fit_fusion(
             ROOT / "data" / "prealigned" / args.cfg,
-            spec=spec, hparams=hp, data=data, loop=loop, trainer_settings=trainer, seed=get(p, "seed", int, min=0),
-            grid=grid, cfg_name=args.cfg, noise=noise,
-            ckpt_out=out_dir / "model.ckpt", meta_out=out_dir / "model_meta.json",
+            spec=spec,
+            hparams=hp,
+            data=data,
+            loop=loop,
+            trainer_settings=trainer,
+            seed=get(p, "seed", int, min=0),
+            grid=grid,
+            cfg_name=args.cfg,
+            noise=noise,
+            ckpt_out=out_dir / "model.ckpt",
+            meta_out=out_dir / "model_meta.json",
             metrics_out=ROOT / "reports" / "metrics" / f"train_fusion_{args.cfg}.json",
             curves_out=ROOT / "reports" / "plots" / f"train_fusion_{args.cfg}.csv",
             tracking=tracking,
         )
     if res is not None:
         m = res.metrics
-        log.info("%s: best epoch %s of %s, val/loss %.4f, val/kld %.4f (naive %.4f), %.1f s", stage, m["best_epoch"], m["epochs"],
-                 m.get("val/loss", float("nan")), m.get("val/kld", float("nan")), m.get("val/kld_naive", float("nan")), m["train_seconds"])
+        log.info(
+            "%s: best epoch %s of %s, val/loss %.4f, val/kld %.4f (naive %.4f), %.1f s",
+            stage,
+            m["best_epoch"],
+            m["epochs"],
+            m.get("val/loss", float("nan")),
+            m.get("val/kld", float("nan")),
+            m.get("val/kld_naive", float("nan")),
+            m["train_seconds"],
+        )
 
 
 if __name__ == "__main__":

@@ -19,19 +19,29 @@ from traffictwin.config import ConfigError, flatten, get
 from traffictwin.io.atomic import atomic_path
 from traffictwin.risk.dave2 import Dave2Config, PackedDave2, count_parameters, normalise, pack_input
 from traffictwin.risk.model_io import CKPT, save_risk_model
-from traffictwin.trainer import TrainerSettings, global_rank, log_checkpoint, log_torch_model, tracked_run
 from traffictwin.risk.training import LABELS, RiskSource, TrainConfig, fit, prepare_split
+from traffictwin.trainer import (
+    TrainerSettings,
+    global_rank,
+    log_checkpoint,
+    log_torch_model,
+    tracked_run,
+)
 
-from ._common import ROOT, params, setup_logging, stage_timer, run_stage
+from ._common import ROOT, params, run_stage, setup_logging, stage_timer
 
 
 def model_config(p, variant: str) -> tuple[Dave2Config, str]:
     """The network config and training label of ``variant`` from params."""
     variants = get(p, "risk_model.variants", dict)
     if variant not in variants:
-        raise ConfigError(f"params.yaml: 'risk_model.variants' has no variant {variant!r} (has {sorted(variants)})")
+        raise ConfigError(
+            f"params.yaml: 'risk_model.variants' has no variant {variant!r} (has {sorted(variants)})"
+        )
     k = f"risk_model.variants.{variant}"
-    label = get(p, f"{k}.label", (str, type(None)), default=None) or get(p, "risk_model.label", str, choices=LABELS)
+    label = get(p, f"{k}.label", (str, type(None)), default=None) or get(
+        p, "risk_model.label", str, choices=LABELS
+    )
     if label not in LABELS:
         raise ConfigError(f"params.yaml: '{k}.label' must be one of {list(LABELS)}, got {label!r}")
     try:
@@ -53,9 +63,18 @@ def model_config(p, variant: str) -> tuple[Dave2Config, str]:
 
 def train_config(p) -> tuple[TrainConfig, int | None]:
     t = "risk_model.train"
-    lvb = get(p, f"{t}.limit_val_batches")  # int = number of batches, float = fraction (keep the type)
-    if isinstance(lvb, bool) or not isinstance(lvb, (int, float)) or lvb <= 0 or (isinstance(lvb, float) and lvb > 1):
-        raise ConfigError(f"params.yaml: '{t}.limit_val_batches' must be a batch count (int >= 1) or a fraction in (0, 1], got {lvb!r}")
+    lvb = get(
+        p, f"{t}.limit_val_batches"
+    )  # int = number of batches, float = fraction (keep the type)
+    if (
+        isinstance(lvb, bool)
+        or not isinstance(lvb, (int, float))
+        or lvb <= 0
+        or (isinstance(lvb, float) and lvb > 1)
+    ):
+        raise ConfigError(
+            f"params.yaml: '{t}.limit_val_batches' must be a batch count (int >= 1) or a fraction in (0, 1], got {lvb!r}"
+        )
     tc = TrainConfig(
         epochs=get(p, f"{t}.epochs", int, min=1),
         batch_size=get(p, f"{t}.batch_size", int, min=1),
@@ -89,24 +108,51 @@ def main(argv: list[str] | None = None) -> None:
         source = RiskSource(ROOT / "data" / "risk", ROOT / "data" / "disparity", orb)
         train = prepare_split(source, cfg, "train", label, max_frames=max_train, seed=tc.seed)
         val = prepare_split(source, cfg, "val", label)
-        log.info("%s: %d train / %d val frames (ORB-passed), label %s", stage, len(train), len(val), label)
+        log.info(
+            "%s: %d train / %d val frames (ORB-passed), label %s",
+            stage,
+            len(train),
+            len(val),
+            label,
+        )
         run_params = {
-            **flatten({"risk_model": {k: v for k, v in get(p, "risk_model", dict).items() if k != "variants"}}),
-            "risk_model.variant": variant, "risk_model.inputs": ",".join(cfg.inputs), "risk_model.use_speed": cfg.use_speed,
-            "risk_model.effective_label": label, **flatten({"trainer": settings.as_dict()}), "seed": tc.seed,
-            "data.n_train": len(train), "data.n_val": len(val),
+            **flatten(
+                {
+                    "risk_model": {
+                        k: v for k, v in get(p, "risk_model", dict).items() if k != "variants"
+                    }
+                }
+            ),
+            "risk_model.variant": variant,
+            "risk_model.inputs": ",".join(cfg.inputs),
+            "risk_model.use_speed": cfg.use_speed,
+            "risk_model.effective_label": label,
+            **flatten({"trainer": settings.as_dict()}),
+            "seed": tc.seed,
+            "data.n_train": len(train),
+            "data.n_val": len(val),
         }
         tags = {"variant": variant, "data_manifest": source.risk.manifest_hash(), "label": label}
-        with tracked_run("risk", f"risk-{variant}", profile=profile, stage=stage, tags=tags, params=run_params) as run:
+        with tracked_run(
+            "risk", f"risk-{variant}", profile=profile, stage=stage, tags=tags, params=run_params
+        ) as run:
             res = fit(cfg, train, val, tc, settings, mlflow_log=run is not None)
             if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
                 return
             if out_dir.exists():
                 shutil.rmtree(out_dir)
             meta = {
-                "variant": variant, "label": label, "best_val_mse": res.best_val_mse, "best_step": res.best_step,
-                "steps": res.steps, "train_seconds": round(res.seconds, 2), "n_train": res.n_train, "n_val": res.n_val,
-                "data_manifest": source.risk.manifest_hash(), "profile": profile, "train": tc.__dict__,
+                "variant": variant,
+                "label": label,
+                "best_val_mse": res.best_val_mse,
+                "best_step": res.best_step,
+                "steps": res.steps,
+                "train_seconds": round(res.seconds, 2),
+                "n_train": res.n_train,
+                "n_val": res.n_val,
+                "data_manifest": source.risk.manifest_hash(),
+                "profile": profile,
+                "train": tc.__dict__,
             }
             save_risk_model(res.net, out_dir, meta)
             with atomic_path(out_dir / "history.csv", suffix=".csv") as tmp:
@@ -117,8 +163,13 @@ def main(argv: list[str] | None = None) -> None:
             if run is not None:
                 import mlflow
 
-                mlflow.log_metrics({"val/best_mse": res.best_val_mse, "train/seconds": res.seconds,
-                                    "model/n_parameters": count_parameters(res.net)})
+                mlflow.log_metrics(
+                    {
+                        "val/best_mse": res.best_val_mse,
+                        "train/seconds": res.seconds,
+                        "model/n_parameters": count_parameters(res.net),
+                    }
+                )
                 log_checkpoint(out_dir / CKPT)
                 n_ex = min(2, len(val))
                 x = normalise(
@@ -127,11 +178,19 @@ def main(argv: list[str] | None = None) -> None:
                     torch.from_numpy(val.disp[:n_ex]) if val.disp.shape[1] else None,
                 )
                 example = pack_input(cfg, x, torch.from_numpy(val.speed[:n_ex])).numpy()
-                uri = log_torch_model(PackedDave2(res.net), example, metadata={"variant": variant, "label": label})
+                uri = log_torch_model(
+                    PackedDave2(res.net), example, metadata={"variant": variant, "label": label}
+                )
                 meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
                 save_risk_model(res.net, out_dir, meta)
-        log.info("%s: best val MSE %.5f (%d params, %.1f s) -> %s", stage, res.best_val_mse,
-                 count_parameters(res.net), res.seconds, out_dir)
+        log.info(
+            "%s: best val MSE %.5f (%d params, %.1f s) -> %s",
+            stage,
+            res.best_val_mse,
+            count_parameters(res.net),
+            res.seconds,
+            out_dir,
+        )
 
 
 if __name__ == "__main__":

@@ -17,10 +17,27 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 _ANYWHERE = shutil.ignore_patterns(
-    ".venv", ".git", "mlflow.db*", "mlartifacts", "mlruns", "__pycache__", ".pytest_cache", "*.egg-info",
+    ".venv",
+    ".git",
+    "mlflow.db*",
+    "mlartifacts",
+    "mlruns",
+    "__pycache__",
+    ".pytest_cache",
+    "*.egg-info",
 )
 # generated or local-only folders, ignored only at the repository root (src/traffictwin/models must be copied)
-_TOP_LEVEL = {"data", "models", "outputs", "multirun", ".benchmarks", "incoming", ".gl", ".whl", ".retrain.lock"}
+_TOP_LEVEL = {
+    "data",
+    "models",
+    "outputs",
+    "multirun",
+    ".benchmarks",
+    "incoming",
+    ".gl",
+    ".whl",
+    ".retrain.lock",
+}
 _DVC_LOCAL = {"cache", "tmp"}
 
 
@@ -38,7 +55,7 @@ def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
     """Environment for running stages in ``repo``: venv on PATH, its own MLflow database."""
     env = dict(os.environ)
     env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
-    env["PYTHONPATH"] = str(repo)
+    env["PYTHONPATH"] = os.pathsep.join((str(repo / "src"), str(repo)))  # the copy's own library code
     env["MLFLOW_TRACKING_URI"] = f"sqlite:///{mlflow_db or repo / 'mlflow.db'}"
     env["TRAFFICTWIN_REPO_ROOT"] = str(repo)
     env["PYTHONHASHSEED"] = "0"
@@ -58,14 +75,25 @@ def copy_repo(dest: Path) -> Path:
     return dest
 
 
-def run(cmd: list[str] | str, repo: Path, check: bool = True, timeout: int = 900, **kw) -> subprocess.CompletedProcess:
+def run(
+    cmd: list[str] | str, repo: Path, check: bool = True, timeout: int = 900, **kw
+) -> subprocess.CompletedProcess:
     """Run ``cmd`` in ``repo`` with :func:`stage_env`; on failure show its output."""
     env = kw.pop("env", None) or stage_env(repo)
     proc = subprocess.run(
-        cmd, cwd=repo, env=env, capture_output=True, text=True, timeout=timeout, shell=isinstance(cmd, str), **kw
+        cmd,
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        shell=isinstance(cmd, str),
+        **kw,
     )
     if check and proc.returncode != 0:
-        raise AssertionError(f"command failed ({proc.returncode}): {cmd}\n--- stdout\n{proc.stdout[-6000:]}\n--- stderr\n{proc.stderr[-6000:]}")
+        raise AssertionError(
+            f"command failed ({proc.returncode}): {cmd}\n--- stdout\n{proc.stdout[-6000:]}\n--- stderr\n{proc.stderr[-6000:]}"
+        )
     return proc
 
 

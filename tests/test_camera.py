@@ -62,7 +62,10 @@ def test_left_right_rows_align_and_shift_by_disparity():
     assert diff.mean() < 0.5
     assert np.mean(diff <= 2) > 0.99
     # a 3-row vertical offset breaks the match: the comparison can fail
-    off = np.abs(out["left"][8 : int(cam.cy) + 1, d + 10 : -10].astype(float) - out["right"][rows, 10 : -10 - d])
+    off = np.abs(
+        out["left"][8 : int(cam.cy) + 1, d + 10 : -10].astype(float)
+        - out["right"][rows, 10 : -10 - d]
+    )
     assert off.mean() > 4 * max(diff.mean(), 0.25)
 
 
@@ -71,7 +74,7 @@ def test_vertical_misalignment_shifts_right_image_rows():
     scene = wall_at(cam, 12.0)
     base = cam.render_eye((0, 0, 0), scene, eye="right")[0]
     shifted = cam.render_eye((0, 0, 0), scene, eye="right", cy_offset=6.0)[0]
-    diff = np.abs(shifted[6 + 2 : -2].astype(float) - base[2 : -8].astype(float))
+    diff = np.abs(shifted[6 + 2 : -2].astype(float) - base[2:-8].astype(float))
     assert diff.mean() < 0.5
 
 

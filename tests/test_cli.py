@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from traffictwin import cli
-from traffictwin.mlops import registry as reg
 from traffictwin.evidential.warp import warp_masses
-from traffictwin.grid import GridSpec
-from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
 from traffictwin.fusion.model_io import CKPT_FORMAT, load_fusion_model, predict_masses
 from traffictwin.fusion.resnet import ResNetSpec
+from traffictwin.grid import GridSpec
+from traffictwin.mlops import registry as reg
+from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.sim.scene import relative_pose
 from traffictwin.stereo.orb import check_pair
@@ -32,7 +32,9 @@ POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"
 
 def _masses(seed: int, h: int = H, w: int = W) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
-    a = rng.dirichlet([1.0, 1.0, 1.0], size=(h, w)).astype(np.float32)  # (m_F, m_O, u) on the simplex
+    a = rng.dirichlet([1.0, 1.0, 1.0], size=(h, w)).astype(
+        np.float32
+    )  # (m_F, m_O, u) on the simplex
     return a[..., 0], a[..., 1]
 
 
@@ -42,8 +44,13 @@ def _save_map(path: Path, mf: np.ndarray, mo: np.ndarray, **extra) -> Path:
 
 
 def _tiny_spec() -> DeepLabSpec:
-    return DeepLabSpec(backbone=ResNetSpec(layers=(1, 1, 1, 1), base_width=8), aspp_channels=8, aspp_rates=(1, 2, 3),
-                       low_level_channels=4, decoder_channels=8)
+    return DeepLabSpec(
+        backbone=ResNetSpec(layers=(1, 1, 1, 1), base_width=8),
+        aspp_channels=8,
+        aspp_rates=(1, 2, 3),
+        low_level_channels=4,
+        decoder_channels=8,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -52,10 +59,18 @@ def fusion_dir(tmp_path_factory) -> Path:
     torch.manual_seed(0)
     spec = _tiny_spec()
     net = DeepLabV3Plus(spec).eval()
-    info = {"format": CKPT_FORMAT, "cfg": "D", "architecture": spec.as_dict(),
-            "grid": {"rows": H, "cols": W, "cell": CELL}, "data_manifest_hash": "test"}
+    info = {
+        "format": CKPT_FORMAT,
+        "cfg": "D",
+        "architecture": spec.as_dict(),
+        "grid": {"rows": H, "cols": W, "cell": CELL},
+        "data_manifest_hash": "test",
+    }
     d = tmp_path_factory.mktemp("fusion_model")
-    torch.save({"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}, "traffictwin": info}, d / "model.ckpt")
+    torch.save(
+        {"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}, "traffictwin": info},
+        d / "model.ckpt",
+    )
     (d / "model_meta.json").write_text(json.dumps(info))
     return d
 
@@ -71,7 +86,11 @@ def risk_dir(tmp_path_factory) -> Path:
 def stereo_pair() -> tuple[np.ndarray, np.ndarray]:
     """A textured rectified pair: the right image is the left shifted by 6 px (disparity 6)."""
     rng = np.random.default_rng(3)
-    tex = cv2.resize(rng.integers(0, 256, size=(40, 84, 3), dtype=np.uint8), (336, 160), interpolation=cv2.INTER_NEAREST)
+    tex = cv2.resize(
+        rng.integers(0, 256, size=(40, 84, 3), dtype=np.uint8),
+        (336, 160),
+        interpolation=cv2.INTER_NEAREST,
+    )
     tex = cv2.GaussianBlur(tex, (3, 3), 0)
     return np.ascontiguousarray(tex[:, 10:330]), np.ascontiguousarray(tex[:, 16:336])
 
@@ -88,8 +107,21 @@ def test_fuse_round_trip_equals_library(tmp_path, fusion_dir, capsys):
     mf2, mo2 = _masses(2)
     p1 = _save_map(tmp_path / "a.npz", mf1, mo1, cell=np.float64(CELL))
     p2 = _save_map(tmp_path / "b.npz", mf2, mo2)
-    rc = cli.main(["fuse", str(p1), str(p2), "--pose1", POSE1, "--pose2", POSE2, "--model", str(fusion_dir),
-                   "-o", str(tmp_path / "out")])
+    rc = cli.main(
+        [
+            "fuse",
+            str(p1),
+            str(p2),
+            "--pose1",
+            POSE1,
+            "--pose2",
+            POSE2,
+            "--model",
+            str(fusion_dir),
+            "-o",
+            str(tmp_path / "out"),
+        ]
+    )
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     out = np.load(tmp_path / "out.npz")
@@ -109,7 +141,9 @@ def test_fuse_round_trip_equals_library(tmp_path, fusion_dir, capsys):
     assert summary["grid"] == [H, W] and summary["cell_m"] == CELL
 
 
-def test_fuse_with_registry_alias_matches_path(tmp_path, fusion_dir, mlflow_uri, monkeypatch, capsys):
+def test_fuse_with_registry_alias_matches_path(
+    tmp_path, fusion_dir, mlflow_uri, monkeypatch, capsys
+):
     import mlflow
 
     monkeypatch.chdir(tmp_path)
@@ -118,23 +152,38 @@ def test_fuse_with_registry_alias_matches_path(tmp_path, fusion_dir, mlflow_uri,
     mlflow.set_experiment("fusion")
     with mlflow.start_run(run_name="fusion-D") as run:
         mlflow.log_params({"grid.rows": H, "grid.cols": W, "grid.cell": CELL})
-        mlflow.pytorch.log_model(net, name="model", serialization_format="pickle", pip_requirements=["torch"])
+        mlflow.pytorch.log_model(
+            net, name="model", serialization_format="pickle", pip_requirements=["torch"]
+        )
     mv = reg.ensure_version(cl, "traffictwin-fusion-D", run.info.run_id)
     cl.set_registered_model_alias("traffictwin-fusion-D", "champion", mv.version)
     p1 = _save_map(tmp_path / "a.npz", *_masses(4))
     p2 = _save_map(tmp_path / "b.npz", *_masses(5))
     common = ["fuse", str(p1), str(p2), "--pose1", POSE1, "--pose2", POSE2]
-    assert cli.main([*common, "--model", "champion", "--config", "D", "-o", str(tmp_path / "reg")]) == 0
-    assert cli.main([*common, "--model", str(fusion_dir), "--cell", str(CELL), "-o", str(tmp_path / "path")]) == 0
+    assert (
+        cli.main([*common, "--model", "champion", "--config", "D", "-o", str(tmp_path / "reg")])
+        == 0
+    )
+    assert (
+        cli.main(
+            [*common, "--model", str(fusion_dir), "--cell", str(CELL), "-o", str(tmp_path / "path")]
+        )
+        == 0
+    )
     a, b = np.load(tmp_path / "reg.npz"), np.load(tmp_path / "path.npz")
     np.testing.assert_allclose(a["m_occ"], b["m_occ"], atol=1e-6)
     capsys.readouterr()
     # a missing alias names the model and the alias; nothing is written
     before = _files(tmp_path)
-    assert cli.main([*common, "--model", "challenger", "--config", "D", "-o", str(tmp_path / "x")]) == 1
+    assert (
+        cli.main([*common, "--model", "challenger", "--config", "D", "-o", str(tmp_path / "x")])
+        == 1
+    )
     err = capsys.readouterr().err
     assert "traffictwin-fusion-D" in err and "challenger" in err
-    assert cli.main([*common, "--model", "champion", "--config", "A", "-o", str(tmp_path / "x")]) == 1
+    assert (
+        cli.main([*common, "--model", "champion", "--config", "A", "-o", str(tmp_path / "x")]) == 1
+    )
     assert "traffictwin-fusion-A" in capsys.readouterr().err
     assert _files(tmp_path) == before
 
@@ -156,14 +205,32 @@ def _bad_map_cases(tmp: Path) -> dict[str, tuple[Path, str]]:
         "outside_simplex": (_save_map(tmp / "ov.npz", over_f, over), "outside the simplex"),
         "negative": (_save_map(tmp / "neg.npz", mf - 0.5, mo), "outside the simplex"),
         "missing_key": (tmp / "mk.npz", "['m_free'] missing"),
-        "int_dtype": (_save_map(tmp / "int.npz", (mf > 2).astype(np.int32), (mo > 2).astype(np.int32)), "float"),
+        "int_dtype": (
+            _save_map(tmp / "int.npz", (mf > 2).astype(np.int32), (mo > 2).astype(np.int32)),
+            "float",
+        ),
         "not_npz": (tmp / "junk.npz", "not a readable .npz"),
         "size_vs_map1": (_save_map(tmp / "small.npz", *_masses(8, 16, 16)), "differs from"),
     }
 
 
-@pytest.mark.parametrize("case", ["shape3d", "shape_mismatch", "nan", "outside_simplex", "negative", "missing_key",
-                                  "int_dtype", "not_npz", "size_vs_map1", "not_divisible", "bad_pose", "missing_file"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "shape3d",
+        "shape_mismatch",
+        "nan",
+        "outside_simplex",
+        "negative",
+        "missing_key",
+        "int_dtype",
+        "not_npz",
+        "size_vs_map1",
+        "not_divisible",
+        "bad_pose",
+        "missing_file",
+    ],
+)
 def test_fuse_bad_input_errors_and_writes_nothing(tmp_path, fusion_dir, case, capsys):
     inp = tmp_path / "in"
     inp.mkdir()
@@ -182,8 +249,23 @@ def test_fuse_bad_input_errors_and_writes_nothing(tmp_path, fusion_dir, case, ca
         map2, want = cases[case]
     out = tmp_path / "out"
     out.mkdir()
-    rc = cli.main(["fuse", str(good), str(map2), "--pose1", POSE1, "--pose2", pose2, "--model", str(fusion_dir),
-                   "--cell", str(CELL), "-o", str(out / "fused")])
+    rc = cli.main(
+        [
+            "fuse",
+            str(good),
+            str(map2),
+            "--pose1",
+            POSE1,
+            "--pose2",
+            pose2,
+            "--model",
+            str(fusion_dir),
+            "--cell",
+            str(CELL),
+            "-o",
+            str(out / "fused"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 1, err
     assert want in err
@@ -193,7 +275,21 @@ def test_fuse_bad_input_errors_and_writes_nothing(tmp_path, fusion_dir, case, ca
 
 def test_fuse_cell_mismatch_with_model(tmp_path, fusion_dir, capsys):
     p = _save_map(tmp_path / "a.npz", *_masses(1), cell=np.float64(0.32))
-    rc = cli.main(["fuse", str(p), str(p), "--pose1", POSE1, "--pose2", POSE2, "--model", str(fusion_dir), "-o", str(tmp_path / "o")])
+    rc = cli.main(
+        [
+            "fuse",
+            str(p),
+            str(p),
+            "--pose1",
+            POSE1,
+            "--pose2",
+            POSE2,
+            "--model",
+            str(fusion_dir),
+            "-o",
+            str(tmp_path / "o"),
+        ]
+    )
     assert rc == 1 and "trained on 0.5 m cells" in capsys.readouterr().err
     assert not (tmp_path / "o.npz").exists()
 
@@ -210,12 +306,16 @@ def test_parse_pose_and_masses_hand_cases(tmp_path):
 
 
 def test_risk_verdict_hand_cases():
-    v = cli.risk_verdict(1 / 30, speed=10.0)           # risk 1/30 <=> THW = 1.5 s exactly: not critical
-    assert v["thw_s"] == pytest.approx(1.5) and not v["critical"] and v["gap_m"] == pytest.approx(15.0)
-    v = cli.risk_verdict(0.05, speed=None)              # THW = 1 s
+    v = cli.risk_verdict(1 / 30, speed=10.0)  # risk 1/30 <=> THW = 1.5 s exactly: not critical
+    assert (
+        v["thw_s"] == pytest.approx(1.5) and not v["critical"] and v["gap_m"] == pytest.approx(15.0)
+    )
+    v = cli.risk_verdict(0.05, speed=None)  # THW = 1 s
     assert v["thw_s"] == pytest.approx(1.0) and v["critical"] and "gap_m" not in v
-    v = cli.risk_verdict(0.0, speed=5.0)                # no vehicle ahead
-    assert v["thw_s"] == float("inf") and v["verdict"] == "uncritical" and v["gap_m"] == float("inf")
+    v = cli.risk_verdict(0.0, speed=5.0)  # no vehicle ahead
+    assert (
+        v["thw_s"] == float("inf") and v["verdict"] == "uncritical" and v["gap_m"] == float("inf")
+    )
     assert cli.risk_verdict(-0.01, None)["thw_s"] == float("inf")
 
 
@@ -227,9 +327,24 @@ def test_risk_pair_round_trip_equals_library(tmp_path, risk_dir, stereo_pair, ca
     cv2.imwrite(str(tmp_path / "f_left.png"), left)
     cv2.imwrite(str(tmp_path / "f_right.png"), right)
     params = tmp_path / "params.yaml"
-    params.write_text("risk_data:\n  sgm: {num_disparities: 32, block_size: 5}\n  orb: {max_dy: 5.0}\n")
-    rc = cli.main(["risk", str(tmp_path / "f_left.png"), str(tmp_path / "f_right.png"), "--speed", "12",
-                   "--model", str(risk_dir), "--params", str(params), "-o", str(tmp_path / "r.json")])
+    params.write_text(
+        "risk_data:\n  sgm: {num_disparities: 32, block_size: 5}\n  orb: {max_dy: 5.0}\n"
+    )
+    rc = cli.main(
+        [
+            "risk",
+            str(tmp_path / "f_left.png"),
+            str(tmp_path / "f_right.png"),
+            "--speed",
+            "12",
+            "--model",
+            str(risk_dir),
+            "--params",
+            str(params),
+            "-o",
+            str(tmp_path / "r.json"),
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert json.loads((tmp_path / "r.json").read_text())["risk"] == pytest.approx(res["risk"])
@@ -237,10 +352,18 @@ def test_risk_pair_round_trip_equals_library(tmp_path, risk_dir, stereo_pair, ca
     orb = check_pair(left, right, max_dy=5.0)
     p = load_risk_model(risk_dir).predict(left_bgr=left[None], disp_sgm=disp[None])[0]
     assert res["risk"] == pytest.approx(float(p), abs=1e-6)
-    assert res["orb_outlier"] == orb.outlier is False and res["orb_mean_dx"] == pytest.approx(orb.mean_dx)
+    assert res["orb_outlier"] == orb.outlier is False and res["orb_mean_dx"] == pytest.approx(
+        orb.mean_dx
+    )
     assert res["disp_median_px"] == pytest.approx(6.0, abs=1.0)
-    assert res["critical"] == (res["thw_s"] is not None and res["thw_s"] < 1.5) and res["speed_m_s"] == 12.0
-    assert cli.json_safe({"a": [float("inf"), 1.0], "b": float("nan")}) == {"a": [None, 1.0], "b": None}
+    assert (
+        res["critical"] == (res["thw_s"] is not None and res["thw_s"] < 1.5)
+        and res["speed_m_s"] == 12.0
+    )
+    assert cli.json_safe({"a": [float("inf"), 1.0], "b": float("nan")}) == {
+        "a": [None, 1.0],
+        "b": None,
+    }
 
 
 def test_risk_folder_writes_csv(tmp_path, risk_dir, stereo_pair, capsys):
@@ -256,12 +379,19 @@ def test_risk_folder_writes_csv(tmp_path, risk_dir, stereo_pair, capsys):
     rows = list(csv.DictReader(out.open()))
     assert [r["id"] for r in rows] == ["000", "001"]
     capsys.readouterr()
-    assert cli.main(["risk", str(d / "001_left.png"), str(d / "001_right.png"), "--model", str(risk_dir)]) == 0
+    assert (
+        cli.main(
+            ["risk", str(d / "001_left.png"), str(d / "001_right.png"), "--model", str(risk_dir)]
+        )
+        == 0
+    )
     single = json.loads(capsys.readouterr().out)
     assert float(rows[1]["risk"]) == pytest.approx(single["risk"], abs=1e-6)
 
 
-@pytest.mark.parametrize("case", ["unreadable", "size_mismatch", "missing", "unpaired", "empty_folder", "bad_speed"])
+@pytest.mark.parametrize(
+    "case", ["unreadable", "size_mismatch", "missing", "unpaired", "empty_folder", "bad_speed"]
+)
 def test_risk_bad_input_errors_and_writes_nothing(tmp_path, risk_dir, stereo_pair, case, capsys):
     left, right = stereo_pair
     d = tmp_path / "in"
@@ -300,7 +430,10 @@ def test_risk_missing_alias(tmp_path, mlflow_uri, monkeypatch, stereo_pair, caps
     left, right = stereo_pair
     cv2.imwrite(str(tmp_path / "l.png"), left)
     cv2.imwrite(str(tmp_path / "r.png"), right)
-    assert cli.main(["risk", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--model", "champion"]) == 1
+    assert (
+        cli.main(["risk", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--model", "champion"])
+        == 1
+    )
     err = capsys.readouterr().err
     assert "traffictwin-risk" in err and "champion" in err
 
@@ -312,7 +445,12 @@ def test_rollback_unknown_model_and_runs_compare(tmp_path, mlflow_uri, monkeypat
     import mlflow
 
     monkeypatch.chdir(tmp_path)
-    assert cli.main(["rollback", "--model", "traffictwin-fusion-Z", "--log", str(tmp_path / "log.jsonl")]) == 1
+    assert (
+        cli.main(
+            ["rollback", "--model", "traffictwin-fusion-Z", "--log", str(tmp_path / "log.jsonl")]
+        )
+        == 1
+    )
     assert "no registered model 'traffictwin-fusion-Z'" in capsys.readouterr().err
     assert not (tmp_path / "log.jsonl").exists()
     mlflow.set_tracking_uri(mlflow_uri)
@@ -331,8 +469,12 @@ def test_console_script_exit_status(tmp_path):
     exe = Path(sys.executable).parent / "traffictwin"
     proc = subprocess.run([str(exe), "fuse", "x.npz"], capture_output=True, text=True, cwd=tmp_path)
     assert proc.returncode == 2 and "--pose1" in proc.stderr
-    proc = subprocess.run([str(exe), "fuse", "x.npz", "y.npz", "--pose1", "0,0,0", "--pose2", "0,0,0", "-o", "o"],
-                          capture_output=True, text=True, cwd=tmp_path)
+    proc = subprocess.run(
+        [str(exe), "fuse", "x.npz", "y.npz", "--pose1", "0,0,0", "--pose2", "0,0,0", "-o", "o"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 1 and "x.npz: file not found" in proc.stderr
     assert not any(tmp_path.iterdir())
 

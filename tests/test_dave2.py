@@ -10,7 +10,14 @@ import pytest
 import torch
 
 from traffictwin.risk.dave2 import (
-    Dave2, Dave2Config, PackedDave2, conv_output_shape, count_parameters, pack_input, prepare_channels, preprocess,
+    Dave2,
+    Dave2Config,
+    PackedDave2,
+    conv_output_shape,
+    count_parameters,
+    pack_input,
+    prepare_channels,
+    preprocess,
 )
 from traffictwin.risk.model_io import RiskModelError, load_risk_model, save_risk_model
 
@@ -38,7 +45,11 @@ def test_other_resolution_and_channels_adapt_first_fc() -> None:
     cfg = Dave2Config(inputs=("rgb",), height=120, width=320)
     m = Dave2(cfg)
     c, h, w = conv_output_shape(120, 320)
-    assert (c, h, w) == (64, 8, 33)  # 120 -> 58 -> 27 -> 12 -> 10 -> 8; 320 -> 158 -> 77 -> 37 -> 35 -> 33
+    assert (c, h, w) == (
+        64,
+        8,
+        33,
+    )  # 120 -> 58 -> 27 -> 12 -> 10 -> 8; 320 -> 158 -> 77 -> 37 -> 35 -> 33
     assert m.head[0].in_features == 64 * 8 * 33
     assert count_parameters(m) == _expected_params(3, 64 * 8 * 33)
     out = m(torch.rand(2, 3, 120, 320))
@@ -99,7 +110,9 @@ def test_save_load_roundtrip_identical(tmp_path: Path) -> None:
     net = Dave2(Dave2Config(inputs=("rgb", "disp_gt"), use_speed=True))
     save_risk_model(net, tmp_path / "m", {"label": "risk_thw_paper", "variant": "x"})
     loaded = load_risk_model(tmp_path / "m")
-    assert loaded.meta["label"] == "risk_thw_paper" and loaded.meta["n_parameters"] == count_parameters(net)
+    assert loaded.meta["label"] == "risk_thw_paper" and loaded.meta[
+        "n_parameters"
+    ] == count_parameters(net)
     rng = np.random.default_rng(0)
     left = rng.integers(0, 255, (3, 80, 240, 3), dtype=np.uint8)
     gt = rng.uniform(0, 30, (3, 80, 240)).astype(np.float32)

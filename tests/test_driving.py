@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from traffictwin.sim.driving import CLOSE, CALM, DrivingConfig, generate_sequence
+from traffictwin.sim.driving import CALM, CLOSE, DrivingConfig, generate_sequence
 from traffictwin.sim.traffic import SUBJECT_SIZE
 
 CFG = DrivingConfig(frames=6, fps=4.0, warmup=2.0)
@@ -45,7 +45,9 @@ def test_critical_share_controls_situations(share, allowed):
 
 
 def test_faults_are_injected_as_configured():
-    cfg = DrivingConfig(frames=40, warmup=1.0, fault_delay=0.5, fault_vertical=0.5, vertical_px=(6.0, 9.0))
+    cfg = DrivingConfig(
+        frames=40, warmup=1.0, fault_delay=0.5, fault_vertical=0.5, vertical_px=(6.0, 9.0)
+    )
     seq = generate_sequence(3, 0, cfg)
     faults = [f.fault for f in seq.frames]
     assert set(faults) <= {"delay", "vertical"} and "delay" in faults and "vertical" in faults
@@ -56,8 +58,12 @@ def test_faults_are_injected_as_configured():
         else:
             assert f.right_cy_offset == 0.0
             if f.speed > 1.0:  # one frame (88 ms) later, the subject moved forward
-                assert np.linalg.norm(f.pose_right[:2] - f.pose[:2]) == pytest.approx(f.speed * cfg.delay, rel=0.2)
-    clean = generate_sequence(3, 0, DrivingConfig(frames=10, warmup=1.0, fault_delay=0.0, fault_vertical=0.0))
+                assert np.linalg.norm(f.pose_right[:2] - f.pose[:2]) == pytest.approx(
+                    f.speed * cfg.delay, rel=0.2
+                )
+    clean = generate_sequence(
+        3, 0, DrivingConfig(frames=10, warmup=1.0, fault_delay=0.0, fault_vertical=0.0)
+    )
     assert all(f.fault == "none" for f in clean.frames)
 
 
@@ -69,7 +75,9 @@ def test_no_agent_overlaps_the_subject():
             c, s = np.cos(f.pose[2]), np.sin(f.pose[2])
             d = b.center - f.pose[:2]
             x, y = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-            hit = (np.abs(x) < (SUBJECT_SIZE[0] + b.size[:, 0]) / 2) & (np.abs(y) < (SUBJECT_SIZE[1] + b.size[:, 1]) / 2)
+            hit = (np.abs(x) < (SUBJECT_SIZE[0] + b.size[:, 0]) / 2) & (
+                np.abs(y) < (SUBJECT_SIZE[1] + b.size[:, 1]) / 2
+            )
             assert not hit.any()
 
 

@@ -11,15 +11,15 @@ import pandas as pd
 import pytest
 import yaml
 
+from traffictwin.evidential.dempster import dempster
+from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.methods import (
     EvalSettings,
     evaluate_prealigned,
     evaluate_registered,
     fuse_prealigned,
 )
-from traffictwin.evidential.dempster import dempster
 from traffictwin.grid import GridSpec
-from traffictwin.fusion.findings import fusion_findings
 
 CFGS = ("A", "B", "C", "D")
 METHODS = ("ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn")
@@ -37,7 +37,9 @@ def png_ok(path: Path) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
     img = mpimg.imread(path)
     assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100, path
-    assert len(np.unique(img[..., :3].reshape(-1, 3).round(2), axis=0)) > 20, f"{path}: (almost) blank image"
+    assert len(np.unique(img[..., :3].reshape(-1, 3).round(2), axis=0)) > 20, (
+        f"{path}: (almost) blank image"
+    )
 
 
 # -- library (fast) ---------------------------------------------------------------------------------
@@ -72,9 +74,9 @@ def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
 def test_evaluate_registered_on_synthetic_pair():
     from test_registration import render, structured_world
 
+    from traffictwin.evidential.warp import warp_masses
     from traffictwin.fusion.metrics import kld_fo
     from traffictwin.fusion.registration import RegistrationParams
-    from traffictwin.evidential.warp import warp_masses
     from traffictwin.sim.scene import relative_pose
 
     grid = GridSpec(128, 96, 0.5)
@@ -84,7 +86,9 @@ def test_evaluate_registered_on_synthetic_pair():
     true = relative_pose(p1, p2)[None]
     noisy = true + np.array([[2.0, -1.0, np.radians(9.0)]])
     label = dempster(m1, warp_masses(m2, true[0], grid))[None]
-    frame, _ = evaluate_registered(m1[None], m2[None], noisy, true, label, grid, RegistrationParams(), EvalSettings())
+    frame, _ = evaluate_registered(
+        m1[None], m2[None], noisy, true, label, grid, RegistrationParams(), EvalSettings()
+    )
     row = frame.iloc[0]
     assert row["reg_accepted"] and row["reg_success"]
     assert row["reg_trans_err_m"] < 0.25 < row["noisy_trans_err_m"]
@@ -95,21 +99,49 @@ def test_evaluate_registered_on_synthetic_pair():
 def _metrics(net: dict[str, float], naive: dict[str, float]) -> dict:
     test = {}
     for c in CFGS:
-        base = {"kld_fo_q25": 0.1, "kld_fo_q75": 0.3, "dice_occ": 0.8, "precision_occ": 0.8, "recall_free": 0.9}
+        base = {
+            "kld_fo_q25": 0.1,
+            "kld_fo_q75": 0.3,
+            "dice_occ": 0.8,
+            "precision_occ": 0.8,
+            "recall_free": 0.9,
+        }
         test[c] = {
             "naive": {**base, "kld_fo_mean": naive[c], "kld_fo_q75": 0.1 + 2 * naive[c]},
-            "dnn": {**base, "kld_fo_mean": net[c], "dice_occ": 0.9 if net[c] < naive[c] else 0.5,
-                    "precision_occ": 0.7, "recall_free": 0.8, "u_auroc": 0.8},
-            "registered": {**base, "kld_fo_mean": (net[c] + naive[c]) / 2, "success_rate": 0.5,
-                           "residual_trans_m_median": 0.2, "noisy_trans_m_median": 1.0},
+            "dnn": {
+                **base,
+                "kld_fo_mean": net[c],
+                "dice_occ": 0.9 if net[c] < naive[c] else 0.5,
+                "precision_occ": 0.7,
+                "recall_free": 0.8,
+                "u_auroc": 0.8,
+            },
+            "registered": {
+                **base,
+                "kld_fo_mean": (net[c] + naive[c]) / 2,
+                "success_rate": 0.5,
+                "residual_trans_m_median": 0.2,
+                "noisy_trans_m_median": 1.0,
+            },
         }
-    return {"test": test, "cross": {f"dnn-{c}": {t: {"kld_fo_mean": 0.1 if c == t else 0.2} for t in CFGS} for c in CFGS}}
+    return {
+        "test": test,
+        "cross": {
+            f"dnn-{c}": {t: {"kld_fo_mean": 0.1 if c == t else 0.2} for t in CFGS} for c in CFGS
+        },
+    }
 
 
 def test_findings_follow_the_numbers():
-    paper_like = fusion_findings(_metrics({"A": 0.2, "B": 0.2, "C": 0.25, "D": 0.3}, {"A": 0.0, "B": 0.4, "C": 0.6, "D": 0.8}))
+    paper_like = fusion_findings(
+        _metrics(
+            {"A": 0.2, "B": 0.2, "C": 0.25, "D": 0.3}, {"A": 0.0, "B": 0.4, "C": 0.6, "D": 0.8}
+        )
+    )
     assert "3/3 configurations (B, C, D)" in paper_like and "this reproduces" in paper_like
-    assert "Configuration A (no noise):** the network's mean KLD is 0.200 vs naive 0.000" in paper_like
+    assert (
+        "Configuration A (no noise):** the network's mean KLD is 0.200 vs naive 0.000" in paper_like
+    )
     assert "worse than" in paper_like and "between naive and the network" in paper_like
     assert "A 0.800" in paper_like and "above chance" in paper_like
     assert "A: dnn-A, B: dnn-B" in paper_like
@@ -124,24 +156,37 @@ def test_findings_report_kld_b_and_explain_negative_kld_a():
         m["test"][c]["dnn"].update(kld_fou_mean=1.5, u_mean=0.05)
         m["test"][c]["naive"].update(kld_fou_mean=0.3 if c != "A" else 0.0, u_mean=0.6)
     text = fusion_findings(m)
-    assert "KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in 0/4 configurations (none)" in text
+    assert (
+        "KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in 0/4 configurations (none)"
+        in text
+    )
     assert "D 1.500 vs naive 0.300" in text and "D 0.050 vs 0.600" in text
     assert "Negative KLD (a) (A, B, C, D)" in text
     m["test"]["B"]["dnn"]["kld_fou_mean"] = 0.1
     assert "lower mean in 1/4 configurations (B)" in fusion_findings(m)
-    assert "Negative KLD (a)" not in fusion_findings(_metrics({c: 0.1 for c in CFGS}, {c: 0.2 for c in CFGS}))
+    assert "Negative KLD (a)" not in fusion_findings(
+        _metrics({c: 0.1 for c in CFGS}, {c: 0.2 for c in CFGS})
+    )
 
 
 def test_figures_are_valid_pngs(tmp_path):
     from traffictwin.fusion.figures import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
 
     rng = np.random.default_rng(2)
-    vals = {m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)} for m in ("naive", "dnn")}
+    vals = {
+        m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)}
+        for m in ("naive", "dnn")
+    }
     png_ok(kld_boxplot(vals, CFGS, ["naive", "dnn"], tmp_path / "box.png"))
-    scores = {m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS} for m in ("naive", "dnn")}
+    scores = {
+        m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS}
+        for m in ("naive", "dnn")
+    }
     png_ok(scores_plot(scores, CFGS, ["naive", "dnn"], "occ", tmp_path / "occ.png"))
     maps = random_masses(rng, 4, 64, 48)
-    png_ok(qualitative_grid({"label": list(maps), "naive": list(maps[::-1])}, CFGS, tmp_path / "q.png"))
+    png_ok(
+        qualitative_grid({"label": list(maps), "naive": list(maps[::-1])}, CFGS, tmp_path / "q.png")
+    )
     rgb = masses_to_rgb(np.array([[[1.0]], [[0.0]]]))
     np.testing.assert_array_equal(rgb[0, 0], [0, 1, 0])  # free = green
 
@@ -164,7 +209,12 @@ def test_stage_writes_every_declared_output(ci_dag: Path):
         assert p.exists() and p.stat().st_size > 0, p
         if p.suffix == ".png":
             png_ok(p)
-    for name in ("fusion_kld_boxplot", "fusion_scores_occupied", "fusion_scores_free", "fusion_qualitative"):
+    for name in (
+        "fusion_kld_boxplot",
+        "fusion_scores_occupied",
+        "fusion_scores_free",
+        "fusion_qualitative",
+    ):
         assert (ci_dag / "reports" / "figures" / f"{name}.png") in outs
 
 
@@ -175,23 +225,42 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
     for c in CFGS:
         for meth in METHODS:
             v = m["test"][c][meth]
-            for k in ("kld_fo_mean", "kld_fou_mean", "dice_occ", "precision_free", "recall_free", "u_mean", "ms_per_pair"):
+            for k in (
+                "kld_fo_mean",
+                "kld_fou_mean",
+                "dice_occ",
+                "precision_free",
+                "recall_free",
+                "u_mean",
+                "ms_per_pair",
+            ):
                 assert v[k] is not None and math.isfinite(v[k]), (c, meth, k)
             assert v["kld_fo_mean"] >= 0 and 0 <= v["dice_occ"] <= 1
         assert 0 <= m["test"][c]["registered"]["success_rate"] <= 1
         assert m["test"][c]["dnn"]["u_auroc"] is None or 0 <= m["test"][c]["dnn"]["u_auroc"] <= 1
     # zero noise: the naive fusion is the label's construction
-    assert m["test"]["A"]["naive"]["kld_fo_mean"] < 1e-6 and m["test"]["A"]["naive"]["dice_occ"] == 1.0
-    assert sorted(m["cross"]) == [f"dnn-{c}" for c in CFGS] and all(sorted(m["cross"][k]) == list(CFGS) for k in m["cross"])
+    assert (
+        m["test"]["A"]["naive"]["kld_fo_mean"] < 1e-6 and m["test"]["A"]["naive"]["dice_occ"] == 1.0
+    )
+    assert sorted(m["cross"]) == [f"dnn-{c}" for c in CFGS] and all(
+        sorted(m["cross"][k]) == list(CFGS) for k in m["cross"]
+    )
     assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]
     samples = pd.read_csv(ci_dag / "reports" / "fusion_eval_samples.csv")
     n = m["n_pairs"]["per_config"]
     assert (samples[samples.method == "naive"].groupby("config").size() == n).all()
-    assert (samples[samples.method == "registered"].groupby("config").size() == m["n_pairs"]["registered"]).all()
+    assert (
+        samples[samples.method == "registered"].groupby("config").size()
+        == m["n_pairs"]["registered"]
+    ).all()
     # the same pairs and noise draws for every method of a configuration
     for c in CFGS:
         s = samples[samples.config == c]
-        ids = {meth: sorted(g.pair_id) for meth, g in s.groupby("method") if not meth.startswith("dnn-")}
+        ids = {
+            meth: sorted(g.pair_id)
+            for meth, g in s.groupby("method")
+            if not meth.startswith("dnn-")
+        }
         assert ids["naive"] == ids["dnn"] == ids["ego"]
     findings = (ci_dag / "reports" / "fusion_findings.md").read_text()
     assert findings == fusion_findings(m)
@@ -213,7 +282,9 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
     m = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
     client = MlflowClient(tracking_uri=f"sqlite:///{ci_dag / 'mlflow.db'}")
     for c in CFGS:
-        run_id = json.loads((ci_dag / "models" / "fusion" / c / "model_meta.json").read_text())["mlflow_run_id"]
+        run_id = json.loads((ci_dag / "models" / "fusion" / c / "model_meta.json").read_text())[
+            "mlflow_run_id"
+        ]
         logged = client.get_run(run_id).data.metrics
         assert logged["test/kld_fo_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fo_mean"])
         assert logged["test_naive/dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])

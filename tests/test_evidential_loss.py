@@ -20,7 +20,6 @@ from traffictwin.fusion.losses import (
     pignistic_occupied,
 )
 
-
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
@@ -55,9 +54,13 @@ def test_loss_hand_computed_one_cell() -> None:
     # e = (2, 1): p = alpha/S = (0.6, 0.4), S = 5, variance terms p(1-p)/(S+1) = 0.24/6 = 0.04 each
     e = cell(2.0, 1.0)
     # y = (0.7, 0.2): (0.1)^2 + 0.04 + (0.2)^2 + 0.04 = 0.13, y_O <= 0.5 -> weight 1
-    assert math.isclose(float(evidential_loss(e, cell(0.7, 0.2), occupied_weight=3.0)), 0.13, rel_tol=1e-12)
+    assert math.isclose(
+        float(evidential_loss(e, cell(0.7, 0.2), occupied_weight=3.0)), 0.13, rel_tol=1e-12
+    )
     # y = (0.1, 0.8): (0.5)^2 + 0.04 + (0.4)^2 + 0.04 = 0.49, y_O > 0.5 -> x o_w = 3
-    assert math.isclose(float(evidential_loss(e, cell(0.1, 0.8), occupied_weight=3.0)), 1.47, rel_tol=1e-12)
+    assert math.isclose(
+        float(evidential_loss(e, cell(0.1, 0.8), occupied_weight=3.0)), 1.47, rel_tol=1e-12
+    )
 
 
 def test_occupied_weight_only_where_label_occupied() -> None:
@@ -102,7 +105,9 @@ def test_kld_hand_cases() -> None:
     y, p = cell(0.7, 0.2), cell(0.4, 0.2)
     assert float(kld(p, y)) == pytest.approx(0.7 * math.log(0.7 / 0.4))
     # (b) adds u: y_u = 0.1, p_u = 0.4
-    assert float(kld_full(p, y)) == pytest.approx(0.7 * math.log(0.7 / 0.4) + 0.1 * math.log(0.1 / 0.4))
+    assert float(kld_full(p, y)) == pytest.approx(
+        0.7 * math.log(0.7 / 0.4) + 0.1 * math.log(0.1 / 0.4)
+    )
     # clipping: label 0 vs pred 0 -> eps ln(eps/eps) = 0, no NaN
     assert float(kld(cell(0.0, 0.0), cell(0.0, 0.0))) == 0.0
 
@@ -118,8 +123,14 @@ def test_torch_metrics_match_numpy_evaluation_metrics() -> None:
     lab = raw[:, :2].astype(np.float64)
     e = g.exponential(2.0, (3, 2, 16, 12)) * (g.random((3, 1, 16, 12)) > 0.2)
     pred, _ = evidence_to_masses(e)
-    np.testing.assert_allclose(kld(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(), fm.kld_fo(lab, pred), rtol=1e-9)
-    np.testing.assert_allclose(kld_full(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(), fm.kld_fou(lab, pred), rtol=1e-9)
+    np.testing.assert_allclose(
+        kld(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(), fm.kld_fo(lab, pred), rtol=1e-9
+    )
+    np.testing.assert_allclose(
+        kld_full(torch.from_numpy(pred), torch.from_numpy(lab)).numpy(),
+        fm.kld_fou(lab, pred),
+        rtol=1e-9,
+    )
     c = fm.confusion_counts(lab, pred)
     ours = confusion_counts(torch.from_numpy(pred), torch.from_numpy(lab)).tolist()
     keys = ["tp_occ", "fp_occ", "fn_occ", "tp_free", "fp_free", "fn_free"]

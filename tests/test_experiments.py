@@ -14,8 +14,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from conftest import run, stage_env
+
 from traffictwin.mlops.runs import compare_runs, format_runs
 
 STAGE = "train_risk@rgbd"
@@ -24,20 +24,33 @@ PARAM = "risk_model.train.lr"
 
 def clone_dag(src: Path, dest: Path) -> Path:
     """Copy a repo with its DVC cache, data and models; commit everything git tracks; drop its MLflow store."""
-    shutil.copytree(src, dest, symlinks=True, ignore=shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns"))
+    shutil.copytree(
+        src,
+        dest,
+        symlinks=True,
+        ignore=shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns"),
+    )
     shutil.rmtree(dest / ".dvc" / "tmp", ignore_errors=True)
     # no run cache: a stage restored from it would not train, hence log no MLflow run
     shutil.rmtree(dest / ".dvc" / "cache" / "runs", ignore_errors=True)
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
     subprocess.run([*git, "add", "-A"], cwd=dest, check=True)
-    subprocess.run([*git, "commit", "-q", "--allow-empty", "-m", "ci DAG done"], cwd=dest, check=True)
+    subprocess.run(
+        [*git, "commit", "-q", "--allow-empty", "-m", "ci DAG done"], cwd=dest, check=True
+    )
     return dest
 
 
 def user_env(repo: Path) -> dict[str, str]:
     """A user's shell: no MLFLOW_TRACKING_URI / TRAFFICTWIN_REPO_ROOT, so the default store must be found."""
     env = stage_env(repo)
-    for var in ("MLFLOW_TRACKING_URI", "TRAFFICTWIN_REPO_ROOT", "TRAFFICTWIN_PIPELINE_RUN", "DVC_ROOT", "DVC_EXP_NAME"):
+    for var in (
+        "MLFLOW_TRACKING_URI",
+        "TRAFFICTWIN_REPO_ROOT",
+        "TRAFFICTWIN_PIPELINE_RUN",
+        "DVC_ROOT",
+        "DVC_EXP_NAME",
+    ):
         env.pop(var, None)
     return env
 
@@ -52,13 +65,35 @@ def _exps(show: list[dict]) -> dict[str, dict]:
 
 
 @pytest.mark.slow
-def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(ci_dag: Path, tmp_path: Path) -> None:
+def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
+    ci_dag: Path, tmp_path: Path
+) -> None:
     repo = clone_dag(ci_dag, tmp_path / "exp_repo")
     env = user_env(repo)
     head = run(["git", "rev-parse", "HEAD"], repo, env=env).stdout.strip()
 
-    run(["dvc", "exp", "run", "-n", "exp-ws", "-S", "profile=ci", "-S", f"{PARAM}=0.002", STAGE], repo, env=env)
-    run(["dvc", "exp", "run", "--queue", "-n", "exp-q", "-S", "profile=ci", "-S", f"{PARAM}=0.003", STAGE], repo, env=env)
+    run(
+        ["dvc", "exp", "run", "-n", "exp-ws", "-S", "profile=ci", "-S", f"{PARAM}=0.002", STAGE],
+        repo,
+        env=env,
+    )
+    run(
+        [
+            "dvc",
+            "exp",
+            "run",
+            "--queue",
+            "-n",
+            "exp-q",
+            "-S",
+            "profile=ci",
+            "-S",
+            f"{PARAM}=0.003",
+            STAGE,
+        ],
+        repo,
+        env=env,
+    )
     run(["dvc", "exp", "run", "--run-all"], repo, env=env)
 
     # --- DVC: both experiments, with their parameter
@@ -67,8 +102,14 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(ci_dag: Path, tmp
     for name, lr in (("exp-ws", 0.002), ("exp-q", 0.003)):
         params = exps[name]["data"]["params"]["params.yaml"]["data"]
         assert params["risk_model"]["train"]["lr"] == lr and params["profile"]["name"] == "ci"
-    diff = json.loads(run(["dvc", "exp", "diff", "exp-ws", "exp-q", "--json"], repo, env=env).stdout)
-    assert diff["params"]["params.yaml"][PARAM] == {"old": 0.002, "new": 0.003, "diff": pytest.approx(0.001)}
+    diff = json.loads(
+        run(["dvc", "exp", "diff", "exp-ws", "exp-q", "--json"], repo, env=env).stdout
+    )
+    assert diff["params"]["params.yaml"][PARAM] == {
+        "old": 0.002,
+        "new": 0.003,
+        "diff": pytest.approx(0.001),
+    }
 
     # --- MLflow: both runs in the repository's own database (the queued one ran under .dvc/tmp/exps)
     db = repo / "mlflow.db"

@@ -111,7 +111,9 @@ def test_uncertainty_auroc_flags_errors():
 
 
 def test_pose_error_bins():
-    noise = np.array([[0.3, 0.4, np.radians(1)], [3, 4, np.radians(-12)], [0, 0, 0], [10, 0, np.radians(30)]])
+    noise = np.array(
+        [[0.3, 0.4, np.radians(1)], [3, 4, np.radians(-12)], [0, 0, 0], [10, 0, np.radians(30)]]
+    )
     tb, rb, tl, rl = pose_error_bins(noise, [0, 1, 5], [0, 5, 15])
     np.testing.assert_array_equal(tb, [0, 2, 0, 2])  # 0.5 m, 5 m (edge -> upper bin), 0, 10
     np.testing.assert_array_equal(rb, [0, 1, 0, 2])

@@ -10,13 +10,17 @@ from traffictwin.fusion.losses import evidence_to_masses
 from traffictwin.fusion.resnet import ResNet, ResNetSpec, resnet_spec
 from traffictwin.fusion.training import spec_from_cfg
 
-
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def tiny_spec(**kw) -> DeepLabSpec:
-    return DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
-                       aspp_channels=16, low_level_channels=8, decoder_channels=16, **kw)
+    return DeepLabSpec(
+        backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
+        aspp_channels=16,
+        low_level_channels=8,
+        decoder_channels=16,
+        **kw,
+    )
 
 
 @pytest.mark.parametrize("hw", [(256, 176), (128, 96)])
@@ -33,8 +37,19 @@ def test_output_shape_equals_input_shape_and_evidence_nonnegative(hw) -> None:
 
 
 def test_default_profile_network_shape_at_paper_grid() -> None:
-    spec = spec_from_cfg({"backbone": {"block": "basic", "layers": [2, 2, 2, 2], "base_width": 16, "output_stride": 16},
-                          "aspp_channels": 64, "low_level_channels": 24, "decoder_channels": 64})
+    spec = spec_from_cfg(
+        {
+            "backbone": {
+                "block": "basic",
+                "layers": [2, 2, 2, 2],
+                "base_width": 16,
+                "output_stride": 16,
+            },
+            "aspp_channels": 64,
+            "low_level_channels": 24,
+            "decoder_channels": 64,
+        }
+    )
     net = DeepLabV3Plus(spec).eval()
     with torch.no_grad():
         e = net(torch.rand(1, 4, 256, 176))
@@ -69,17 +84,19 @@ def test_output_stride_16_dilates_last_stage() -> None:
     bb = ResNet(spec).eval()
     with torch.no_grad():
         low, high = bb(torch.rand(1, 4, 128, 96))
-    assert low.shape == (1, 8, 32, 24)          # stride 4
-    assert high.shape == (1, 64, 8, 6)          # stride 16, not 32
+    assert low.shape == (1, 8, 32, 24)  # stride 4
+    assert high.shape == (1, 64, 8, 6)  # stride 16, not 32
     assert bb.layer4[0].conv1.stride == (1, 1) and bb.layer4[1].conv2.dilation == (2, 2)
     assert ResNet(resnet_spec(50, base_width=8)).layer4[1].conv2.dilation == (2, 2)
 
 
 def test_aspp_rates_and_low_level_projection() -> None:
-    net = DeepLabV3Plus(DeepLabSpec(backbone=resnet_spec(18, base_width=8), aspp_channels=16, decoder_channels=16))
+    net = DeepLabV3Plus(
+        DeepLabSpec(backbone=resnet_spec(18, base_width=8), aspp_channels=16, decoder_channels=16)
+    )
     dil = [b[0].dilation for b in net.aspp.branches[1:4]]
     assert dil == [(6, 6), (12, 12), (18, 18)]
-    assert net.low_proj[0].out_channels == 48   # DeepLabV3+ default
+    assert net.low_proj[0].out_channels == 48  # DeepLabV3+ default
 
 
 def test_indivisible_input_is_rejected() -> None:
@@ -105,7 +122,16 @@ def test_network_gradient_is_finite() -> None:
 
 
 def test_spec_round_trip_and_validation() -> None:
-    s = spec_from_cfg({"backbone": {"block": "bottleneck", "layers": [3, 4, 6, 3], "base_width": 64, "output_stride": 16}})
+    s = spec_from_cfg(
+        {
+            "backbone": {
+                "block": "bottleneck",
+                "layers": [3, 4, 6, 3],
+                "base_width": 64,
+                "output_stride": 16,
+            }
+        }
+    )
     assert DeepLabSpec.from_dict(s.as_dict()) == s
     with pytest.raises(ValueError, match="block"):
         spec_from_cfg({"backbone": {"block": "dense"}})

@@ -13,13 +13,11 @@ import numpy as np
 import pytest
 import torch
 
+from traffictwin import trainer as common
 from traffictwin.config import ConfigError
-from traffictwin.grid import GridSpec
-from traffictwin.io.shards import DatasetError, DatasetWriter
 from traffictwin.fusion.deeplab import DeepLabSpec
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
 from traffictwin.fusion.resnet import ResNetSpec
-from traffictwin import trainer as common
 from traffictwin.fusion.training import (
     DataSettings,
     FusionDataModule,
@@ -31,9 +29,15 @@ from traffictwin.fusion.training import (
     evenly_spaced,
     fit_fusion,
 )
+from traffictwin.grid import GridSpec
+from traffictwin.io.shards import DatasetError, DatasetWriter
 
-TINY = DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
-                   aspp_channels=16, low_level_channels=8, decoder_channels=16)
+TINY = DeepLabSpec(
+    backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
+    aspp_channels=16,
+    low_level_channels=8,
+    decoder_channels=16,
+)
 GRID = GridSpec(64, 48, 1.0)
 
 
@@ -56,8 +60,12 @@ def synthetic_pairs(n: int, h: int, w: int, seed: int) -> dict[str, np.ndarray]:
     shift = g.integers(-2, 3, size=(n, 2))
     m2 = np.stack([np.roll(lab[i], tuple(shift[i]), axis=(1, 2)) for i in range(n)])
     m2[:, :, :, : w // 3] = 0.0
-    return {"inputs": np.concatenate([m1, m2], 1).astype(np.float32), "label": lab,
-            "noise": np.zeros((n, 3), np.float32), "scenario": np.arange(n, dtype=np.int64)}
+    return {
+        "inputs": np.concatenate([m1, m2], 1).astype(np.float32),
+        "label": lab,
+        "noise": np.zeros((n, 3), np.float32),
+        "scenario": np.arange(n, dtype=np.int64),
+    }
 
 
 def write_prealigned(root: Path, h: int = 64, w: int = 48, n: int = 8, seed: int = 0) -> Path:
@@ -80,7 +88,9 @@ def test_augmentation_moves_inputs_and_label_together() -> None:
     r, c = 10, 36  # a known occupied cell off-centre (front-right)
     x[:, 1, r, c] = x[:, 3, r, c] = 1.0
     y[:, 1, r, c] = 1.0
-    xa, ya = augment(x, y, flip=True, max_rotation_deg=20.0, generator=torch.Generator().manual_seed(0))
+    xa, ya = augment(
+        x, y, flip=True, max_rotation_deg=20.0, generator=torch.Generator().manual_seed(0)
+    )
     moved = 0
     for i in range(16):
         pos_x1 = divmod(int(xa[i, 1].argmax()), w)
@@ -101,7 +111,9 @@ def test_augmentation_moves_inputs_and_label_together() -> None:
 def test_flip_only_is_an_exact_mirror() -> None:
     x = torch.rand(32, 4, 16, 12)
     y = torch.rand(32, 2, 16, 12)
-    xa, ya = augment(x, y, flip=True, max_rotation_deg=0.0, generator=torch.Generator().manual_seed(1))
+    xa, ya = augment(
+        x, y, flip=True, max_rotation_deg=0.0, generator=torch.Generator().manual_seed(1)
+    )
     seen = set()
     for i in range(32):
         for dims in ((), (-1,), (-2,), (-2, -1)):
@@ -132,20 +144,37 @@ def test_augmented_masses_stay_on_the_simplex() -> None:
 
 def test_datamodule_subsets_and_grid_check(tmp_path: Path) -> None:
     root = write_prealigned(tmp_path / "pre")
-    dm = FusionDataModule(root, DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=3), seed=5, grid=GRID)
+    dm = FusionDataModule(
+        root,
+        DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=3),
+        seed=5,
+        grid=GRID,
+    )
     dm.setup("fit")
     assert len(dm.train_set) == 16 and len(dm.val_set) == 3
     batches = list(dm.train_dataloader())
-    assert len(batches) == 2 and batches[0][0].shape == (4, 4, 64, 48) and batches[0][1].shape == (4, 2, 64, 48)
+    assert (
+        len(batches) == 2
+        and batches[0][0].shape == (4, 4, 64, 48)
+        and batches[0][1].shape == (4, 2, 64, 48)
+    )
     first = torch.cat([b[0] for b in batches])
     dm2 = FusionDataModule(root, dm.settings, seed=5, grid=GRID)
     dm2.setup("fit")
     dl2 = dm2.train_dataloader()
     assert torch.equal(first, torch.cat([b[0] for b in dl2]))  # seeded
     assert not torch.equal(first, torch.cat([b[0] for b in dl2]))  # the next epoch draws afresh
-    assert evenly_spaced(10, 3).tolist() == [0, 4, 9] and evenly_spaced(5, 0).tolist() == [0, 1, 2, 3, 4]
+    assert evenly_spaced(10, 3).tolist() == [0, 4, 9] and evenly_spaced(5, 0).tolist() == [
+        0,
+        1,
+        2,
+        3,
+        4,
+    ]
     bad = FusionDataModule(root, dm.settings, seed=5, grid=GridSpec(128, 96, 0.64))
-    with pytest.raises(DatasetError, match=r"\(64, 48\) cells but the grid parameter says \(128, 96\)"):
+    with pytest.raises(
+        DatasetError, match=r"\(64, 48\) cells but the grid parameter says \(128, 96\)"
+    ):
         bad.setup("fit")
 
 
@@ -153,11 +182,15 @@ def test_fast_dev_run(tmp_path: Path) -> None:
     root = write_prealigned(tmp_path / "pre")
     dm = FusionDataModule(root, DataSettings(batch_size=4), seed=0, grid=GRID)
     module = FusionLitModule(TINY.as_dict(), asdict(FusionHParams()), meta={"seed": 0})
-    trainer = common.build_trainer(common.TrainerSettings(), max_epochs=1, fast_dev_run=True, default_root_dir=tmp_path)
+    trainer = common.build_trainer(
+        common.TrainerSettings(), max_epochs=1, fast_dev_run=True, default_root_dir=tmp_path
+    )
     trainer.fit(module, datamodule=dm)
     assert trainer.state.finished
     for k in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free"):
-        assert k in trainer.callback_metrics and math.isfinite(float(trainer.callback_metrics[k])), k
+        assert k in trainer.callback_metrics and math.isfinite(
+            float(trainer.callback_metrics[k])
+        ), k
     assert not (tmp_path / "checkpoints").exists() and not Path("checkpoints").exists()
 
 
@@ -184,15 +217,35 @@ def test_short_overfit_loss_falls(tmp_path: Path) -> None:
 
 
 def test_trainer_settings_from_cfg() -> None:
-    cfg = {"trainer": {"accelerator": "gpu", "devices": 4, "num_nodes": 2, "strategy": "ddp",
-                       "precision": "bf16-mixed", "num_workers": 8}}
+    cfg = {
+        "trainer": {
+            "accelerator": "gpu",
+            "devices": 4,
+            "num_nodes": 2,
+            "strategy": "ddp",
+            "precision": "bf16-mixed",
+            "num_workers": 8,
+        }
+    }
     s = common.TrainerSettings.from_cfg(cfg)
-    assert (s.accelerator, s.devices, s.num_nodes, s.strategy, s.precision, s.num_workers) == ("gpu", 4, 2, "ddp", "bf16-mixed", 8)
-    assert s.resolved_deterministic() == "warn" and common.TrainerSettings().resolved_deterministic() is True
+    assert (s.accelerator, s.devices, s.num_nodes, s.strategy, s.precision, s.num_workers) == (
+        "gpu",
+        4,
+        2,
+        "ddp",
+        "bf16-mixed",
+        8,
+    )
+    assert (
+        s.resolved_deterministic() == "warn"
+        and common.TrainerSettings().resolved_deterministic() is True
+    )
     with pytest.raises(ConfigError, match="'trainer.precision' must be one of"):
         common.TrainerSettings.from_cfg({"trainer": {**cfg["trainer"], "precision": "fp8"}})
     with pytest.raises(ConfigError, match="'trainer.num_nodes' is missing"):
-        common.TrainerSettings.from_cfg({"trainer": {k: v for k, v in cfg["trainer"].items() if k != "num_nodes"}})
+        common.TrainerSettings.from_cfg(
+            {"trainer": {k: v for k, v in cfg["trainer"].items() if k != "num_nodes"}}
+        )
 
 
 def test_global_rank_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -209,28 +262,58 @@ def test_global_rank_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
 # a whole (tiny) run: outputs, MLflow, reload, loader checks
 
 
-def _fit(tmp_path: Path, cfg: str = "B", spec: DeepLabSpec = TINY, tracking: bool = True, epochs: int = 2):
+def _fit(
+    tmp_path: Path, cfg: str = "B", spec: DeepLabSpec = TINY, tracking: bool = True, epochs: int = 2
+):
     root = tmp_path / "pre"
     if not root.exists():
         write_prealigned(root)
     out = tmp_path / "models" / cfg
     return fit_fusion(
-        root, spec=spec, hparams=FusionHParams(), data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
-        loop=LoopSettings(max_epochs=epochs), trainer_settings=common.TrainerSettings(), seed=3, grid=GRID, cfg_name=cfg,
-        noise={"r": 1.0, "alpha": 10.0}, ckpt_out=out / "model.ckpt", meta_out=out / "model_meta.json",
-        metrics_out=tmp_path / f"metrics_{cfg}.json", curves_out=tmp_path / f"curves_{cfg}.csv",
-        tracking=TrackingSettings(run_name=f"fusion-{cfg}", profile="ci", stage=f"train_fusion@{cfg}", params={"a.b": 1},
-                                  enabled=tracking),
+        root,
+        spec=spec,
+        hparams=FusionHParams(),
+        data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
+        loop=LoopSettings(max_epochs=epochs),
+        trainer_settings=common.TrainerSettings(),
+        seed=3,
+        grid=GRID,
+        cfg_name=cfg,
+        noise={"r": 1.0, "alpha": 10.0},
+        ckpt_out=out / "model.ckpt",
+        meta_out=out / "model_meta.json",
+        metrics_out=tmp_path / f"metrics_{cfg}.json",
+        curves_out=tmp_path / f"curves_{cfg}.csv",
+        tracking=TrackingSettings(
+            run_name=f"fusion-{cfg}",
+            profile="ci",
+            stage=f"train_fusion@{cfg}",
+            params={"a.b": 1},
+            enabled=tracking,
+        ),
     )
 
 
 def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str) -> None:
     res = _fit(tmp_path)
     meta = json.loads((tmp_path / "models/B/model_meta.json").read_text())
-    assert meta["cfg"] == "B" and meta["architecture"] == TINY.as_dict() and meta["grid"] == {"rows": 64, "cols": 48, "cell": 1.0}
+    assert (
+        meta["cfg"] == "B"
+        and meta["architecture"] == TINY.as_dict()
+        and meta["grid"] == {"rows": 64, "cols": 48, "cell": 1.0}
+    )
     assert meta["mlflow_run_id"] == res.run_id and len(meta["data_manifest_hash"]) == 64
     metrics = json.loads((tmp_path / "metrics_B.json").read_text())
-    for k in ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "train/loss", "val/kld_naive", "best_epoch"):
+    for k in (
+        "val/loss",
+        "val/kld",
+        "val/kld_full",
+        "val/dice_occ",
+        "val/dice_free",
+        "train/loss",
+        "val/kld_naive",
+        "best_epoch",
+    ):
         assert k in metrics, k
     curves = (tmp_path / "curves_B.csv").read_text().splitlines()
     assert curves[0].startswith("epoch,") and len(curves) == 1 + 2
@@ -238,16 +321,29 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
     client = mlflow.tracking.MlflowClient(mlflow_uri)
     run = client.get_run(res.run_id)
     assert run.info.run_name == "fusion-B" and run.data.tags["dvc_stage"] == "train_fusion@B"
-    assert run.data.params["a.b"] == "1" and run.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
+    assert (
+        run.data.params["a.b"] == "1"
+        and run.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
+    )
     exp = client.get_experiment(run.info.experiment_id)
     assert exp.name == "fusion"
-    for name in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "lr"):
+    for name in (
+        "train/loss",
+        "val/loss",
+        "val/kld",
+        "val/kld_full",
+        "val/dice_occ",
+        "val/dice_free",
+        "lr",
+    ):
         hist = client.get_metric_history(res.run_id, name)
         assert [m.step for m in hist] == [0, 1], name
     arts = [a.path for a in client.list_artifacts(res.run_id, "checkpoints")]
     assert arts == ["checkpoints/model.ckpt"]
 
-    net = load_fusion_model(tmp_path / "models/B", expected_cfg="B", expected_architecture=TINY, expected_grid=GRID)
+    net = load_fusion_model(
+        tmp_path / "models/B", expected_cfg="B", expected_architecture=TINY, expected_grid=GRID
+    )
     logged = mlflow.pytorch.load_model(res.model_uri)
     x = np.random.default_rng(0).random((3, 4, 64, 48)).astype(np.float32)
     m_a, u_a = predict_masses(net, x)
@@ -269,11 +365,26 @@ def test_training_is_deterministic(tmp_path: Path) -> None:
 
 def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_path: Path) -> None:
     _fit(tmp_path, "B", tracking=False, epochs=1)
-    _fit(tmp_path, "C", spec=DeepLabSpec(backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=4),
-                                          aspp_channels=8, low_level_channels=4, decoder_channels=8), tracking=False, epochs=1)
-    with pytest.raises(FusionModelError, match=r"trained for configuration 'B' \(r=1.0 m, alpha=10.0 deg\), expected configuration 'C'"):
+    _fit(
+        tmp_path,
+        "C",
+        spec=DeepLabSpec(
+            backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=4),
+            aspp_channels=8,
+            low_level_channels=4,
+            decoder_channels=8,
+        ),
+        tracking=False,
+        epochs=1,
+    )
+    with pytest.raises(
+        FusionModelError,
+        match=r"trained for configuration 'B' \(r=1.0 m, alpha=10.0 deg\), expected configuration 'C'",
+    ):
         load_fusion_model(tmp_path / "models/B/model.ckpt", expected_cfg="C")
-    with pytest.raises(FusionModelError, match="architecture mismatch: checkpoint has basic ResNet .* base_width=4"):
+    with pytest.raises(
+        FusionModelError, match="architecture mismatch: checkpoint has basic ResNet .* base_width=4"
+    ):
         load_fusion_model(tmp_path / "models/C/model.ckpt", expected_architecture=TINY)
     with pytest.raises(FusionModelError, match="trained on grid"):
         load_fusion_model(tmp_path / "models/B/model.ckpt", expected_grid=GridSpec(128, 96, 0.64))
@@ -291,7 +402,18 @@ def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_pat
 def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "models" / "A"
     with pytest.raises(DatasetError, match="dataset folder not found"):
-        fit_fusion(tmp_path / "absent", spec=TINY, hparams=FusionHParams(), data=DataSettings(batch_size=4),
-                   loop=LoopSettings(max_epochs=1), trainer_settings=common.TrainerSettings(), seed=0, grid=GRID,
-                   cfg_name="A", noise={"r": 0.0, "alpha": 0.0}, ckpt_out=out / "model.ckpt", meta_out=out / "model_meta.json")
+        fit_fusion(
+            tmp_path / "absent",
+            spec=TINY,
+            hparams=FusionHParams(),
+            data=DataSettings(batch_size=4),
+            loop=LoopSettings(max_epochs=1),
+            trainer_settings=common.TrainerSettings(),
+            seed=0,
+            grid=GRID,
+            cfg_name="A",
+            noise={"r": 0.0, "alpha": 0.0},
+            ckpt_out=out / "model.ckpt",
+            meta_out=out / "model_meta.json",
+        )
     assert not out.exists()

@@ -9,22 +9,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import run
 from omegaconf import OmegaConf
 
-from conftest import run
 from traffictwin.config import ConfigError
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.noise import scale_noise, standard_normal_draws
 from traffictwin.evidential.warp import warp_masses
+from traffictwin.fusion.pairs import FusionDataParams, generate_shard, prealign_arrays, shard_splits
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.fusion.pairs import FusionDataParams, generate_shard, prealign_arrays, shard_splits
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.sim.scene import relative_pose
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = FusionDataParams(grid=GridSpec(64, 48, 0.8), lidar=LidarSpec(azimuth_res_deg=1.0, max_range=40.0),
-                         scenarios_per_shard=1, encounters_per_scenario=1)
+SMALL = FusionDataParams(
+    grid=GridSpec(64, 48, 0.8),
+    lidar=LidarSpec(azimuth_res_deg=1.0, max_range=40.0),
+    scenarios_per_shard=1,
+    encounters_per_scenario=1,
+)
 
 
 def test_shard_pairs_and_labels():
@@ -37,8 +41,14 @@ def test_shard_pairs_and_labels():
     np.testing.assert_array_equal(a["pose1"][1], a["pose2"][0])
     for i in range(2):
         rel = relative_pose(a["pose1"][i], a["pose2"][i])
-        np.testing.assert_allclose(a["label"][i], dempster(a["map1"][i], warp_masses(a["map2"][i], rel, SMALL.grid)), atol=1e-7)
-    assert (a["map1"][:, 1] > 0).any() and (a["map1"][:, 0] > 0).any()  # both free and occupied evidence
+        np.testing.assert_allclose(
+            a["label"][i],
+            dempster(a["map1"][i], warp_masses(a["map2"][i], rel, SMALL.grid)),
+            atol=1e-7,
+        )
+    assert (a["map1"][:, 1] > 0).any() and (
+        a["map1"][:, 0] > 0
+    ).any()  # both free and occupied evidence
     # the label knows more than map 1 alone (the other vehicle saw more)
     assert (a["label"].sum(1) > 0).sum() > (a["map1"].sum(1) > 0).sum()
     b = generate_shard(5, 3, SMALL)
@@ -51,7 +61,9 @@ def test_prealign_zero_noise_is_exact_warp_and_noise_moves_it():
     z = standard_normal_draws(7, a["pair_id"])
     exact = prealign_arrays(a, scale_noise(z, 0.0, 0.0), SMALL.grid)
     for i in range(2):
-        np.testing.assert_allclose(exact["inputs"][i, 2:], warp_masses(a["map2"][i], exact["rel_pose_true"][i], SMALL.grid))
+        np.testing.assert_allclose(
+            exact["inputs"][i, 2:], warp_masses(a["map2"][i], exact["rel_pose_true"][i], SMALL.grid)
+        )
     np.testing.assert_allclose(exact["rel_pose_true"], exact["rel_pose_noisy"])
     noisy = prealign_arrays(a, scale_noise(z, 5.0, 20.0), SMALL.grid)
     assert not np.allclose(noisy["inputs"][:, 2:], exact["inputs"][:, 2:])
@@ -135,8 +147,14 @@ def test_fusion_dataset_on_ci_dag(ci_dag: Path):
     grid = GridSpec(**yaml.safe_load((ci_dag / "params.yaml").read_text())["grid"])
     assert 16 <= len(ds) <= 24
     assert set(ds.manifest["split_counts"]) == {"train", "val", "test"}
-    scen = {s: set(ds.load_all(s, ["scenario"])["scenario"].tolist()) for s in ("train", "val", "test")}
-    assert not (scen["train"] & scen["val"]) and not (scen["train"] & scen["test"]) and not (scen["val"] & scen["test"])
+    scen = {
+        s: set(ds.load_all(s, ["scenario"])["scenario"].tolist()) for s in ("train", "val", "test")
+    }
+    assert (
+        not (scen["train"] & scen["val"])
+        and not (scen["train"] & scen["test"])
+        and not (scen["val"] & scen["test"])
+    )
     sh = ds.load_shard(0)
     assert sh["map1"].shape[1:] == (2, grid.rows, grid.cols) and sh["label"].dtype == np.float32
     assert sh["pose1"].shape == (len(sh["map1"]), 3)

@@ -18,8 +18,12 @@ from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import DrivingConfig
 
-SPEC = RiskDataSpec(DrivingConfig(frames=3, warmup=1.0), StereoCamera(width=96, height=48), GridSpec(128, 96, 0.64),
-                    RiskConfig(subject_length=4.8, subject_width=1.9))
+SPEC = RiskDataSpec(
+    DrivingConfig(frames=3, warmup=1.0),
+    StereoCamera(width=96, height=48),
+    GridSpec(128, 96, 0.64),
+    RiskConfig(subject_length=4.8, subject_width=1.9),
+)
 
 
 def test_assign_splits_by_sequence():
@@ -57,8 +61,22 @@ def test_ci_dag_risk_outputs(ci_dag: Path):
     for k in ("width", "height", "fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height"):
         assert k in cam
     frames = ds.table("frames.csv")
-    need = ["frame_id", "shard", "idx", "scenario", "split", "t", "speed", "thw", "risk", "risk_thw_paper",
-            "risk_thw_fov", "risk_ttc", "risk_wttc", "fault"]
+    need = [
+        "frame_id",
+        "shard",
+        "idx",
+        "scenario",
+        "split",
+        "t",
+        "speed",
+        "thw",
+        "risk",
+        "risk_thw_paper",
+        "risk_thw_fov",
+        "risk_ttc",
+        "risk_wttc",
+        "fault",
+    ]
     assert set(need) <= set(frames.columns)
     assert frames.frame_id.is_unique and len(frames) == len(ds)
     # no scenario in two splits; every split present
@@ -75,7 +93,14 @@ def test_ci_dag_risk_outputs(ci_dag: Path):
     dj = json.loads((ci_dag / "reports" / "metrics" / "disparity.json").read_text())
     assert 0 <= dj["all/bad2"] <= 1 and dj["fault_none/bad2"] < 0.1 and 0 < dj["all/density"] <= 1
     orb = pd.read_csv(ci_dag / "data" / "orb" / "orb.csv")
-    assert list(orb.columns[:6]) == ["frame_id", "n_matches", "n_reliable", "mean_dx", "mean_dy", "outlier"]
+    assert list(orb.columns[:6]) == [
+        "frame_id",
+        "n_matches",
+        "n_reliable",
+        "mean_dx",
+        "mean_dy",
+        "outlier",
+    ]
     assert len(orb) == len(frames) and orb.outlier.dtype == bool
     oj = json.loads((ci_dag / "reports" / "metrics" / "orb.json").read_text())
     assert oj["vertical/detection_rate"] > 0.5
@@ -94,7 +119,9 @@ def test_generate_risk_is_deterministic_and_rejects_bad_input(repo_copy: Path):
     run([py, "-m", "pipelines.disparity"], repo_copy)
     d1 = (repo_copy / "data" / "disparity" / "manifest.json").read_bytes()
     run([py, "-m", "pipelines.disparity"], repo_copy)
-    assert (repo_copy / "data" / "disparity" / "manifest.json").read_bytes() == d1  # no timings in the data version
+    assert (
+        repo_copy / "data" / "disparity" / "manifest.json"
+    ).read_bytes() == d1  # no timings in the data version
     # truncated image shard -> a clear error naming the file, nothing written
     shard = repo_copy / "data" / "risk" / m1["shards"][1]["name"]
     good = shard.read_bytes()

@@ -48,13 +48,17 @@ def test_ground_ranges_in_empty_world():
 def test_wall_ahead_in_sensor_frame():
     spec = LidarSpec(azimuth_res_deg=1.0, max_range=60.0, range_noise=0.0)
     pose = np.array([100.0, 50.0, np.pi / 2])  # facing world +y
-    wall = Boxes([[100.0, 60.5]], [[40.0, 1.0, 6.0]], [0.0], [Cls.WALL])  # face at world y = 60, 10 m ahead
+    wall = Boxes(
+        [[100.0, 60.5]], [[40.0, 1.0, 6.0]], [0.0], [Cls.WALL]
+    )  # face at world y = 60, 10 m ahead
     s = scan(spec, pose, wall)
     fwd = np.abs(s.azimuth[:, 0]) < np.deg2rad(1.0)
     horiz = s.elevation == 0.0
     ray = fwd[:, None] & horiz
     assert (s.hit[ray] == 0).all()
-    np.testing.assert_allclose(s.points[ray][:, 0], 10.0, atol=1e-3)  # x forward in the sensor frame
+    np.testing.assert_allclose(
+        s.points[ray][:, 0], 10.0, atol=1e-3
+    )  # x forward in the sensor frame
 
 
 def test_sector_culling_matches_brute_force_in_a_world():
@@ -67,7 +71,9 @@ def test_sector_culling_matches_brute_force_in_a_world():
     a = s.azimuth.ravel() + pose[2]
     e = s.elevation.ravel()
     dirs = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], 1)
-    d, h = cast_rays(np.tile([pose[0], pose[1], spec.height], (len(dirs), 1)), dirs, boxes, spec.max_range)
+    d, h = cast_rays(
+        np.tile([pose[0], pose[1], spec.height], (len(dirs), 1)), dirs, boxes, spec.max_range
+    )
     np.testing.assert_array_equal(s.hit.ravel(), h)
     np.testing.assert_allclose(s.range.ravel(), d, atol=1e-4)
     assert (h >= 0).mean() > 0.1

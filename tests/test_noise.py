@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 
 from traffictwin.evidential.noise import (
-    apply_pose_noise, noise_sigmas, sample_pose_noise, scale_noise, standard_normal_draws,
+    apply_pose_noise,
+    noise_sigmas,
+    sample_pose_noise,
+    scale_noise,
+    standard_normal_draws,
 )
 
 

@@ -16,7 +16,8 @@ def pair():
     boxes = Boxes(
         [[12, 0], [20, 3.5], [8, -3.5], [30, -10], [25, 12]],
         [[4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [20, 10, 12], [15, 8, 9]],
-        [0, 0.1, 0, 0, 0.3], [Cls.CAR, Cls.CAR, Cls.CAR, Cls.BUILDING, Cls.BUILDING],
+        [0, 0.1, 0, 0, 0.3],
+        [Cls.CAR, Cls.CAR, Cls.CAR, Cls.BUILDING, Cls.BUILDING],
     )
     return cam.render_pair((0.0, 0.0, 0.0), boxes, rng=np.random.default_rng(0))
 

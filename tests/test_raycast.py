@@ -13,13 +13,20 @@ def box(cx, cy, l, w, h, yaw=0.0, z0=0.0):
 
 def test_distance_to_box_face():
     # box from x = 8 to 12, sensor at height 1 looking along +x
-    d, h = cast_rays(np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]), box(10, 0, 4, 2, 3), 50.0)
+    d, h = cast_rays(
+        np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]), box(10, 0, 4, 2, 3), 50.0
+    )
     assert d[0] == pytest.approx(8.0, abs=1e-4) and h[0] == 0
 
 
 def test_distance_to_rotated_box():
     # a square of side 2 rotated 45 deg: its corner points at the sensor at x = 10 - sqrt(2)
-    d, h = cast_rays(np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]), box(10, 0, 2, 2, 3, yaw=np.pi / 4), 50.0)
+    d, h = cast_rays(
+        np.array([[0.0, 0.0, 1.0]]),
+        np.array([[1.0, 0.0, 0.0]]),
+        box(10, 0, 2, 2, 3, yaw=np.pi / 4),
+        50.0,
+    )
     assert d[0] == pytest.approx(10 - np.sqrt(2), abs=1e-4) and h[0] == 0
 
 
@@ -48,7 +55,9 @@ def test_ground_plane_distance():
 def test_nearest_of_several_boxes_and_box_before_ground():
     boxes = Boxes.concat([box(20, 0, 2, 2, 5), box(10, 0, 2, 2, 5), box(5, 5, 1, 1, 1)])
     el = np.deg2rad(-3.0)
-    d, h = cast_rays(np.array([[0.0, 0.0, 1.9]]), np.array([[np.cos(el), 0.0, np.sin(el)]]), boxes, 100.0)
+    d, h = cast_rays(
+        np.array([[0.0, 0.0, 1.9]]), np.array([[np.cos(el), 0.0, np.sin(el)]]), boxes, 100.0
+    )
     assert h[0] == 1 and d[0] == pytest.approx(9.0 / np.cos(el), abs=1e-3)
 
 
@@ -64,7 +73,12 @@ def test_origin_inside_box_ignores_it_and_lifted_box():
 def test_chunking_gives_same_result():
     rng = np.random.default_rng(0)
     n = 40
-    boxes = Boxes(rng.uniform(-30, 30, (n, 2)), rng.uniform(0.5, 6, (n, 3)), rng.uniform(-3, 3, n), np.zeros(n))
+    boxes = Boxes(
+        rng.uniform(-30, 30, (n, 2)),
+        rng.uniform(0.5, 6, (n, 3)),
+        rng.uniform(-3, 3, n),
+        np.zeros(n),
+    )
     dirs = rng.normal(size=(500, 3))
     dirs[:, 2] = -np.abs(dirs[:, 2]) * 0.2
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from traffictwin.evidential.warp import warp_masses
 from traffictwin.fusion.registration import (
     RegistrationParams,
     metric_to_pixel,
@@ -15,7 +16,6 @@ from traffictwin.fusion.registration import (
     register_pair,
     warp_image,
 )
-from traffictwin.evidential.warp import warp_masses
 from traffictwin.grid import GridSpec
 from traffictwin.sim.scene import relative_pose, se2_matrix
 
@@ -40,17 +40,28 @@ def structured_world(seed: int, grid: GridSpec, scale: int = 3) -> tuple[np.ndar
     for _ in range(30):
         cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
         if road[cy, cx]:
-            box = cv2.boxPoints(((cx, cy), (4.5 / grid.cell, 1.9 / grid.cell), float(rng.choice([0, 90])))).astype(np.int32)
+            box = cv2.boxPoints(
+                ((cx, cy), (4.5 / grid.cell, 1.9 / grid.cell), float(rng.choice([0, 90])))
+            ).astype(np.int32)
             cv2.fillPoly(mo, [box], 0.9)
     mf = np.where(road > 0, 0.8, 0.15).astype(np.float32)
     mf[mo > 0] = 0
     return np.stack([mf, mo]), metric_to_pixel(GridSpec(h, w, grid.cell))
 
 
-def render(world: np.ndarray, pw: np.ndarray, pose: np.ndarray, grid: GridSpec, radius: float = 28.0) -> np.ndarray:
+def render(
+    world: np.ndarray, pw: np.ndarray, pose: np.ndarray, grid: GridSpec, radius: float = 28.0
+) -> np.ndarray:
     """The map a sensor at world ``pose`` sees: the world within ``radius`` (m), unknown beyond."""
     m = pw @ se2_matrix(*pose) @ np.linalg.inv(metric_to_pixel(grid))
-    out = np.stack([cv2.warpAffine(c, m[:2], (grid.cols, grid.rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP) for c in world])
+    out = np.stack(
+        [
+            cv2.warpAffine(
+                c, m[:2], (grid.cols, grid.rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            )
+            for c in world
+        ]
+    )
     x, y = grid.cell_centers()
     out[:, np.hypot(x, y) > radius] = 0
     return out
@@ -58,7 +69,9 @@ def render(world: np.ndarray, pw: np.ndarray, pose: np.ndarray, grid: GridSpec, 
 
 def test_pixel_affine_roundtrip_and_consistent_with_warp_masses():
     pose = np.array([3.2, -1.7, np.radians(14.0)])
-    np.testing.assert_allclose(pixel_affine_to_pose(pose_to_pixel_affine(pose, GRID), GRID), pose, atol=1e-9)
+    np.testing.assert_allclose(
+        pixel_affine_to_pose(pose_to_pixel_affine(pose, GRID), GRID), pose, atol=1e-9
+    )
     rng = np.random.default_rng(0)
     m = cv2.GaussianBlur(rng.random((GRID.rows, GRID.cols)).astype(np.float32), (0, 0), 3)
     masses = np.stack([0.5 * m, 0.5 * (1 - m)]).astype(np.float32)
@@ -66,7 +79,9 @@ def test_pixel_affine_roundtrip_and_consistent_with_warp_masses():
     b = warp_image(masses[1], pose_to_pixel_affine(pose, GRID), GRID.shape)
     inner = np.zeros(GRID.shape, bool)
     inner[20:-20, 20:-20] = True
-    np.testing.assert_allclose(a[inner], b[inner], atol=2e-3)  # OpenCV bilinear weights are 1/32 fixed point
+    np.testing.assert_allclose(
+        a[inner], b[inner], atol=2e-3
+    )  # OpenCV bilinear weights are 1/32 fixed point
 
 
 def test_pose_error_wraps_yaw():
@@ -120,7 +135,9 @@ def test_recovers_known_shift_and_rotation_of_a_generated_lidar_pair(noise):
     from traffictwin.sim.lidar import LidarSpec
 
     grid = GridSpec(128, 96, 0.64)
-    p = FusionDataParams(grid=grid, lidar=LidarSpec(azimuth_res_deg=0.4, max_range=50.0), encounters_per_scenario=1)
+    p = FusionDataParams(
+        grid=grid, lidar=LidarSpec(azimuth_res_deg=0.4, max_range=50.0), encounters_per_scenario=1
+    )
     sm = scenario_maps(7, 5, p)
     m1, m2 = sm["maps"][0, 0], sm["maps"][0, 1]
     true = relative_pose(sm["poses"][0, 0], sm["poses"][0, 1])
@@ -128,4 +145,7 @@ def test_recovers_known_shift_and_rotation_of_a_generated_lidar_pair(noise):
     res = register_pair(m1, m2, noisy, grid)
     t, r = pose_error(res.pose, true)
     assert res.accepted
-    assert t < grid.cell and r < 1.0, (t, r)  # within one cell and one degree (noise: ~2.5-4.3 m, 12-17°)
+    assert t < grid.cell and r < 1.0, (
+        t,
+        r,
+    )  # within one cell and one degree (noise: ~2.5-4.3 m, 12-17°)

@@ -25,7 +25,9 @@ def _log_model(weight_error: float) -> str:
         m.weight.copy_(torch.from_numpy(W_TRUE + weight_error))
     mlflow.set_experiment("fusion")
     with mlflow.start_run(run_name="fusion-T") as run:
-        mlflow.pytorch.log_model(m, name="model", serialization_format="pickle", pip_requirements=["torch"])
+        mlflow.pytorch.log_model(
+            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
+        )
     return run.info.run_id
 
 
@@ -60,10 +62,10 @@ def cl(mlflow_uri, tmp_path, monkeypatch):
 
 def test_gate_min_and_max_with_margin():
     g = reg.Gate("test/kld", "min", 0.1)
-    assert g.passes(0.5, 0.7)            # 0.2 better > 0.1
-    assert not g.passes(0.65, 0.7)       # 0.05 better <= margin
+    assert g.passes(0.5, 0.7)  # 0.2 better > 0.1
+    assert not g.passes(0.65, 0.7)  # 0.05 better <= margin
     assert not g.passes(0.6, 0.7 - 1e-12) or g.improvement(0.6, 0.7) > 0.1
-    assert not g.passes(0.8, 0.7)        # worse
+    assert not g.passes(0.8, 0.7)  # worse
     assert g.improvement(0.5, 0.7) == pytest.approx(0.2)
     h = reg.Gate("test/acc", "max", 0.0)
     assert h.passes(0.91, 0.90) and not h.passes(0.90, 0.90) and not h.passes(0.8, 0.9)
@@ -71,13 +73,15 @@ def test_gate_min_and_max_with_margin():
 
 def test_gate_nonfinite_and_first():
     g = reg.Gate("m", "min", 0.0)
-    assert g.passes(1.0, None)                 # no champion yet
-    assert not g.passes(float("nan"), 1.0)     # NaN challenger never wins
+    assert g.passes(1.0, None)  # no champion yet
+    assert not g.passes(float("nan"), 1.0)  # NaN challenger never wins
     assert not g.passes(float("inf"), None)
-    assert g.passes(1.0, float("nan"))         # broken champion figure is beaten
+    assert g.passes(1.0, float("nan"))  # broken champion figure is beaten
 
 
-@pytest.mark.parametrize("kw", [dict(margin=-0.1), dict(margin=float("nan")), dict(mode="lower"), dict(metric="")])
+@pytest.mark.parametrize(
+    "kw", [dict(margin=-0.1), dict(margin=float("nan")), dict(mode="lower"), dict(metric="")]
+)
 def test_gate_rejects_bad_config(kw):
     args = dict(metric="m", mode="min", margin=0.0) | kw
     with pytest.raises(ValueError):
@@ -115,7 +119,9 @@ def test_worse_challenger_does_not_move_champion_and_is_logged(cl, tmp_path):
     exp_cp = _evaluate(reg.version_uri(NAME, 1))["test/mse"]
     assert exp_ch > exp_cp
     rec = reg.read_log(log)[-1]
-    assert rec["challenger_value"] == pytest.approx(exp_ch) and rec["champion_value"] == pytest.approx(exp_cp)
+    assert rec["challenger_value"] == pytest.approx(exp_ch) and rec[
+        "champion_value"
+    ] == pytest.approx(exp_cp)
     assert rec["champion_version"] == "1" and rec["test_fingerprint"] == "fp-1"
     tags = cl.get_model_version(NAME, "2").tags
     assert tags["gate.decision"] == "rejected"
@@ -186,5 +192,8 @@ def test_log_appends_lines(tmp_path):
     p = tmp_path / "log.jsonl"
     reg.append_log(p, {"a": 1})
     reg.append_log(p, {"b": np.float32(2.5), "c": [float("nan"), float("inf")]})
-    assert reg.read_log(p) == [{"a": 1}, {"b": 2.5, "c": [None, None]}]  # strict JSON: non-finite -> null
+    assert reg.read_log(p) == [
+        {"a": 1},
+        {"b": 2.5, "c": [None, None]},
+    ]  # strict JSON: non-finite -> null
     assert math.isclose(reg.read_log(p)[1]["b"], 2.5)

@@ -71,14 +71,21 @@ def md_tables(md: str) -> list[list[list[str]]]:
             if cur is None:
                 cur = []
                 tables.append(cur)
-            cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+            cells = [
+                c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]
+            ]
             cur.append([re.sub(r"`([^`]*)`", r"\1", c) for c in cells])
         else:
             cur = None
     return [t[2:] for t in tables]
 
 
-def resolve(src: str, reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]) -> Any:
+def resolve(
+    src: str,
+    reports: Path,
+    run_params: dict[str, Any],
+    configurations: dict[str, tuple[float, float]],
+) -> Any:
     """The value a ``data-src`` names, read independently from its file."""
     if src.startswith("paper:"):
         ref = src.removeprefix("paper:")
@@ -99,7 +106,9 @@ def resolve(src: str, reports: Path, run_params: dict[str, Any], configurations:
     return R.lookup(data, key, R.ABSENT)
 
 
-def check_report(reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]) -> int:
+def check_report(
+    reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]
+) -> int:
     """Assert the rendered files agree with their sources; returns the number of sourced cells checked."""
     page = (reports / "index.html").read_text()
     md = (reports / "README.md").read_text()
@@ -119,23 +128,32 @@ def check_report(reports: Path, run_params: dict[str, Any], configurations: dict
                         assert got is None and text == R.NA, attrs["data-src"]
                         checked += 1
                         continue
-                    assert got == want or (isinstance(want, float) and math.isnan(want) and math.isnan(got)), attrs["data-src"]
+                    assert got == want or (
+                        isinstance(want, float) and math.isnan(want) and math.isnan(got)
+                    ), attrs["data-src"]
                     assert text == R.fmt_value(want, attrs["data-fmt"]), (attrs["data-src"], text)
                     checked += 1
                 elif "data-derived" in attrs:
                     pass  # checked per table below
                 else:
-                    assert not NUM_RE.match(text.strip()), f"number without a source: {text!r} in row {row}"
+                    assert not NUM_RE.match(text.strip()), (
+                        f"number without a source: {text!r} in row {row}"
+                    )
     # derived totals: the sum of the sourced cells above them
     for table in parser.tables:
         for row in table:
             for i, (text, attrs) in enumerate(row):
                 if attrs.get("data-derived") == "sum of the wall times above":
-                    total = sum(json.loads(r[i][1]["data-value"]) for r in table if "data-src" in r[i][1])
+                    total = sum(
+                        json.loads(r[i][1]["data-value"]) for r in table if "data-src" in r[i][1]
+                    )
                     assert json.loads(attrs["data-value"]) == pytest.approx(total)
     # the markdown tables are the same tables, cell for cell
     mt = md_tables(md)
-    ht = [[[re.sub(r"\s+", " ", t).strip() for t, _ in row] for row in table] for table in parser.tables]
+    ht = [
+        [[re.sub(r"\s+", " ", t).strip() for t, _ in row] for row in table]
+        for table in parser.tables
+    ]
     assert mt == ht
     # every image referenced exists; embedded images are those files
     for img in parser.imgs:
@@ -151,11 +169,20 @@ def check_report(reports: Path, run_params: dict[str, Any], configurations: dict
 # --------------------------------------------------------------------------- synthetic inputs
 def tiny_png() -> bytes:
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        return (
+            struct.pack(">I", len(data))
+            + kind
+            + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
 
     raw = b"\x00\xff\x00\x00" * 1  # one red pixel, filter byte 0
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 1, 1, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", 1, 1, 8, 2, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(raw))
+        + chunk(b"IEND", b"")
+    )
 
 
 def fusion_metrics() -> dict:
@@ -165,10 +192,23 @@ def fusion_metrics() -> dict:
         test[c] = {}
         for m, worse in (("dnn", 1.0), ("naive", 3.0), ("registered", 2.0)):
             kld = 0.1 + 0.05 * i * worse + (0.02 if m == "dnn" and c == "A" else 0)
-            test[c][m] = {"kld_fo_mean": kld, "kld_fo_median": 0.09 + 0.01 * i, "kld_fou_mean": 0.2 + 0.01 * i,
-                          "kld_fo_q25": 0.05, "kld_fo_q75": 0.15, "n": 12.0,
-                          **{f"{k}_{cls}": 0.9 - 0.05 * i * worse for k in ("precision", "recall", "dice") for cls in ("occ", "free")}}
-    cross = {n: {c: {"kld_fo_mean": 0.1 + 0.01 * (ord(n) + 2 * ord(c) - 195)} for c in "ABCD"} for n in "ABCD"}
+            test[c][m] = {
+                "kld_fo_mean": kld,
+                "kld_fo_median": 0.09 + 0.01 * i,
+                "kld_fou_mean": 0.2 + 0.01 * i,
+                "kld_fo_q25": 0.05,
+                "kld_fo_q75": 0.15,
+                "n": 12.0,
+                **{
+                    f"{k}_{cls}": 0.9 - 0.05 * i * worse
+                    for k in ("precision", "recall", "dice")
+                    for cls in ("occ", "free")
+                },
+            }
+    cross = {
+        n: {c: {"kld_fo_mean": 0.1 + 0.01 * (ord(n) + 2 * ord(c) - 195)} for c in "ABCD"}
+        for n in "ABCD"
+    }
     return {"test": test, "cross": cross}
 
 
@@ -180,15 +220,35 @@ def risk_metrics() -> dict:
     p = np.array([0.01, 0.06, 0.04, 0.1, 0.0, 0.3, 0.02, 0.0])
     base = np.full_like(y, 0.1)
     out = {
-        "paper": PAPER, "split": "test", "primary_label": "risk_thw_paper", "thresholds_s": [1.5, 1.0],
+        "paper": PAPER,
+        "split": "test",
+        "primary_label": "risk_thw_paper",
+        "thresholds_s": [1.5, 1.0],
         "n_frames": {"total": 100, "orb_outliers_dropped": 7, "train": 60, "val": 12, "test": 21},
-        "models": {v: {"label": "risk_thw_paper", "inputs": inputs, "speed": False, "n_parameters": 250_000 + i,
-                       "n_train": 60, "steps": 12, "best_step": 10 - i, "best_val_mse": 0.02 + i / 100, "train_seconds": 3.25,
-                       **evaluate(y, p * (1 - i / 2))}
-                   for i, (v, inputs) in enumerate((("rgbd", ["rgb", "disp_sgm"]), ("rgb", ["rgb"])))},
+        "models": {
+            v: {
+                "label": "risk_thw_paper",
+                "inputs": inputs,
+                "speed": False,
+                "n_parameters": 250_000 + i,
+                "n_train": 60,
+                "steps": 12,
+                "best_step": 10 - i,
+                "best_val_mse": 0.02 + i / 100,
+                "train_seconds": 3.25,
+                **evaluate(y, p * (1 - i / 2)),
+            }
+            for i, (v, inputs) in enumerate((("rgbd", ["rgb", "disp_sgm"]), ("rgb", ["rgb"])))
+        },
         "baselines": {"train_mean": {"label": "risk_thw_paper", "value": 0.1, **evaluate(y, base)}},
-        "region": {"predictors": {"rgbd": {"risk_thw_paper": {"test/mse": 0.01, "accuracy": 0.75},
-                                           "risk_thw_fov": {"test/mse": 0.005, "accuracy": 0.875}}}},
+        "region": {
+            "predictors": {
+                "rgbd": {
+                    "risk_thw_paper": {"test/mse": 0.01, "accuracy": 0.75},
+                    "risk_thw_fov": {"test/mse": 0.005, "accuracy": 0.875},
+                }
+            }
+        },
         "main_variant": "rgbd",
     }
     return _finite_or_none(out)
@@ -203,29 +263,72 @@ def reports(tmp_path: Path) -> Path:
     (rep / "metrics" / "fusion.json").write_text(json.dumps(fusion_metrics()))
     # NaN is what json.dumps writes for a missing precision; the report shows n/a for it
     (rep / "metrics" / "risk.json").write_text(json.dumps(risk_metrics()))
-    (rep / "metrics" / "disparity.json").write_text(json.dumps({"all/bad2": 0.071, "all/density": 0.83, "all/frames": 40,
-                                                                "none/bad2": 0.05, "delay/bad2": 0.3}))
-    (rep / "metrics" / "orb.json").write_text(json.dumps({"all/dropped_share": 0.042, "all/detection_rate": 0.9,
-                                                          "delay/detection_rate": 0.8, "none/false_alarm_rate": 0.01}))
-    (rep / "metrics" / "train_fusion_A.json").write_text(json.dumps({"val/loss": 0.25, "epochs": 3}))
-    (rep / "metrics" / "train_fusion_B.json").write_text(json.dumps({"val/loss": 0.5, "epochs": 4, "best_epoch": 2}))
+    (rep / "metrics" / "disparity.json").write_text(
+        json.dumps(
+            {
+                "all/bad2": 0.071,
+                "all/density": 0.83,
+                "all/frames": 40,
+                "none/bad2": 0.05,
+                "delay/bad2": 0.3,
+            }
+        )
+    )
+    (rep / "metrics" / "orb.json").write_text(
+        json.dumps(
+            {
+                "all/dropped_share": 0.042,
+                "all/detection_rate": 0.9,
+                "delay/detection_rate": 0.8,
+                "none/false_alarm_rate": 0.01,
+            }
+        )
+    )
+    (rep / "metrics" / "train_fusion_A.json").write_text(
+        json.dumps({"val/loss": 0.25, "epochs": 3})
+    )
+    (rep / "metrics" / "train_fusion_B.json").write_text(
+        json.dumps({"val/loss": 0.5, "epochs": 4, "best_epoch": 2})
+    )
     (rep / "metrics" / "extra.json").write_text(json.dumps({"a": {"b/c": 1.5}, "note": "text"}))
     (rep / "figures" / "fusion_kld_box.png").write_bytes(tiny_png())
     (rep / "figures" / "risk_training_curves.png").write_bytes(tiny_png())
     (rep / "figures" / "something_else.png").write_bytes(tiny_png())
     for stage, secs in (("generate_fusion", 12.5), ("train_fusion@A", 30.25), ("report", 1.0)):
-        (rep / "timings" / f"{stage.replace('@', '-')}.json").write_text(json.dumps({"stage": stage, "seconds": secs}))
-    (rep / "environment.json").write_text(json.dumps({"cpu": "Test CPU", "cpu_count": 2, "memory_gb": 23.4, "gpu": None,
-                                                      "python": "3.11.9", "packages": {"torch": "2.13.0"}}))
+        (rep / "timings" / f"{stage.replace('@', '-')}.json").write_text(
+            json.dumps({"stage": stage, "seconds": secs})
+        )
+    (rep / "environment.json").write_text(
+        json.dumps(
+            {
+                "cpu": "Test CPU",
+                "cpu_count": 2,
+                "memory_gb": 23.4,
+                "gpu": None,
+                "python": "3.11.9",
+                "packages": {"torch": "2.13.0"},
+            }
+        )
+    )
     return rep
 
 
 def make_inputs(rep: Path) -> R.ReportInputs:
     return R.ReportInputs(
-        reports_dir=rep, profile="ci", seed=7, git_commit="abc123",
-        run_params={"seed": 7, "fusion_data.n_scenarios": 4, "grid.cell": 0.64, "trainer.accelerator": "cpu"},
+        reports_dir=rep,
+        profile="ci",
+        seed=7,
+        git_commit="abc123",
+        run_params={
+            "seed": 7,
+            "fusion_data.n_scenarios": 4,
+            "grid.cell": 0.64,
+            "trainer.accelerator": "cpu",
+        },
         configurations={"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)},
-        dvc_exp_name="exp-x", pipeline_run="abc12345-0000ffff", stage_order=["generate_fusion", "train_fusion", "report"],
+        dvc_exp_name="exp-x",
+        pipeline_run="abc12345-0000ffff",
+        stage_order=["generate_fusion", "train_fusion", "report"],
     )
 
 
@@ -236,7 +339,9 @@ def test_fmt_value_hand_cases() -> None:
     assert R.fmt_value(72.87, "pct_raw") == "72.87 %"
     assert R.fmt_value(67052, "int") == "67,052"
     assert R.fmt_value(75.4, "s") == "1:15" and R.fmt_value(3725, "s") == "1:02:05"
-    assert R.fmt_value(30.25, "f1") == "30.2"  # banker's rounding of the binary value, as Python formats it
+    assert (
+        R.fmt_value(30.25, "f1") == "30.2"
+    )  # banker's rounding of the binary value, as Python formats it
     assert R.fmt_value(float("nan")) == "n/a" and R.fmt_value(None) == "n/a"
     assert R.fmt_value(float("inf")) == "inf" and R.fmt_value(True) == "true"
     with pytest.raises(ValueError, match="unknown format"):
@@ -255,7 +360,9 @@ def test_lookup_nested_and_flat_keys() -> None:
 def test_paper_numbers_consistent() -> None:
     d = P.risk_confusion_derived()
     assert d["n"] == P.RISK["n_effective"].value  # Table 1 covers the whole effective data set
-    assert round(d["accuracy_pct"], 2) == P.RISK["accuracy"].value  # 72.87 %: the table is read the right way round
+    assert (
+        round(d["accuracy_pct"], 2) == P.RISK["accuracy"].value
+    )  # 72.87 %: the table is read the right way round
     assert P.RISK_CONFUSION["tp"].value + P.RISK_CONFUSION["fn"].value == P.RISK["n_critical"].value
     assert abs(d["orb_outlier_pct"] - P.RISK["orb_outlier_pct"].value) < 0.2
     assert set(P.FUSION_KLD_WINNER) == set(P.FUSION_CONFIGURATIONS) == {"A", "B", "C", "D"}
@@ -280,17 +387,37 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert "| precision (critical) | 77.86 % | 75.00 % |" in md  # paper: 67052 / (67052 + 19069)
     cm = main["at_1.5s"]["confusion"]
     assert (cm["tp"], cm["fp"], cm["fn"], cm["tn"]) == (3, 1, 1, 3)
-    assert "| predicted critical | 67,052 | 63.16 % | 19,069 | 17.96 % | 3 | 37.50 % | 1 | 12.50 % |" in md
-    assert "| predicted uncritical | 9,737 | 9.17 % | 10,312 | 9.71 % | 1 | 12.50 % | 3 | 37.50 % |" in md
+    assert (
+        "| predicted critical | 67,052 | 63.16 % | 19,069 | 17.96 % | 3 | 37.50 % | 1 | 12.50 % |"
+        in md
+    )
+    assert (
+        "| predicted uncritical | 9,737 | 9.17 % | 10,312 | 9.71 % | 1 | 12.50 % | 3 | 37.50 % |"
+        in md
+    )
     assert "| accuracy, Wang & Kato [20] | 70.77 % |" in md
-    assert "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md and "| dropped by the ORB check | 3,982 | 7 |" in md
+    assert (
+        "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md
+        and "| dropped by the ORB check | 3,982 | 7 |" in md
+    )
     assert "| share of pairs dropped by ORB | 3.50 % | 4.20 % |" in md
-    assert "| rgbd | 0.01 | 75.00 % | 0.005 | 87.50 % |" in md  # region table: the primary (paper-region) label first
+    assert (
+        "| rgbd | 0.01 | 75.00 % | 0.005 | 87.50 % |" in md
+    )  # region table: the primary (paper-region) label first
     # derived ranking: our numbers say network < baseline for B, paper too
     anchors = [t.anchor for s in rep.sections for t in s.tables]
     kld = md_tables(md)[anchors.index("fusion-kld")]
-    assert [r[-2:] for r in kld] == [["naive lower", "naive lower"]] + [["network lower", "network lower"]] * 3
-    assert kld[1][:6] == ["B", "1", "10", "0.15", "0.25", "0.2"]  # r, alpha, then dnn / naive / registered
+    assert [r[-2:] for r in kld] == [["naive lower", "naive lower"]] + [
+        ["network lower", "network lower"]
+    ] * 3
+    assert kld[1][:6] == [
+        "B",
+        "1",
+        "10",
+        "0.15",
+        "0.25",
+        "0.2",
+    ]  # r, alpha, then dnn / naive / registered
     assert "fusion-cross" in anchors and "| A | 0.1 | 0.12 | 0.14 | 0.16 |" in md
     # the data differs: said plainly
     assert "data differs from the papers'" in md and "own simulator" in md
@@ -306,20 +433,38 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert page.count("data:image/png;base64,") == 3
     # results table for the project README
     res = (reports / "results_table.md").read_text()
-    assert "Fusion: KLD(a) mean" in res and "Risk: test results" in res and "Risk: confusion matrix" in res
+    assert (
+        "Fusion: KLD(a) mean" in res
+        and "Risk: test results" in res
+        and "Risk: confusion matrix" in res
+    )
     assert "Parameters of this run" not in res
     # appendix lists the other metrics files
-    assert "| val/loss | 0.25 | 0.5 |" in md and "| best_epoch |  | 2 |" in md  # training table, configs side by side
-    assert "| variant | inputs | label | parameters |" in md and "| rgbd | rgb+disp_sgm | risk_thw_paper | 250,000 | 60 |" in md
-    assert "reports/metrics/extra.json" in md and "| a.b/c | 1.5 |" in md and "| note | text |" in md
+    assert (
+        "| val/loss | 0.25 | 0.5 |" in md and "| best_epoch |  | 2 |" in md
+    )  # training table, configs side by side
+    assert (
+        "| variant | inputs | label | parameters |" in md
+        and "| rgbd | rgb+disp_sgm | risk_thw_paper | 250,000 | 60 |" in md
+    )
+    assert (
+        "reports/metrics/extra.json" in md and "| a.b/c | 1.5 |" in md and "| note | text |" in md
+    )
     assert rep.missing == []
 
 
 def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     rep_dir = tmp_path / "reports"
     (rep_dir / "metrics").mkdir(parents=True)
-    (rep_dir / "metrics" / "risk.json").write_text(json.dumps(
-        {"main_variant": "v", "models": {"v": {"test/mse": 0.02}}, "baselines": {"train_mean": {"test/mse": 0.03}}}))
+    (rep_dir / "metrics" / "risk.json").write_text(
+        json.dumps(
+            {
+                "main_variant": "v",
+                "models": {"v": {"test/mse": 0.02}},
+                "baselines": {"train_mean": {"test/mse": 0.03}},
+            }
+        )
+    )
     inputs = R.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
     rep = R.write_report(inputs)
     check_report(rep_dir, {}, {})
@@ -345,7 +490,10 @@ def test_check_report_catches_a_wrong_number(reports: Path) -> None:
     R.write_report(inputs)
     page = (reports / "index.html").read_text()
     check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
-    for good, bad in ((">0.15<", ">0.16<"), (">72.87 %<", ">72.88 %<")):  # a metrics value, a paper value
+    for good, bad in (
+        (">0.15<", ">0.16<"),
+        (">72.87 %<", ">72.88 %<"),
+    ):  # a metrics value, a paper value
         assert good in page
         (reports / "index.html").write_text(page.replace(good, bad, 1))
         with pytest.raises(AssertionError):
@@ -386,14 +534,22 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     checked = check_report(reports, run_params, confs)
     md = (reports / "README.md").read_text()
     # both papers' headline tables, with numbers from the real metrics files
-    for anchor_title in ("Fusion: KLD(a) mean", "Fusion: precision / recall / Dice", "Risk: test results",
-                         "Risk: confusion matrix", "Stage wall times", "Parameters of this run"):
+    for anchor_title in (
+        "Fusion: KLD(a) mean",
+        "Fusion: precision / recall / Dice",
+        "Risk: test results",
+        "Risk: confusion matrix",
+        "Stage wall times",
+        "Parameters of this run",
+    ):
         assert anchor_title in md, anchor_title
     assert checked > 200
     # the report knows the real files' layout: nothing it looked for is missing
     assert "## Missing values" not in md
     # every stage that ran recorded its time, and the report lists it
-    timed = {json.loads(p.read_text())["stage"] for p in (reports / "timings").glob("*.json")} - {"report"}
+    timed = {json.loads(p.read_text())["stage"] for p in (reports / "timings").glob("*.json")} - {
+        "report"
+    }
     for stage in timed:
         assert f"| {stage} |" in md, stage
     # every metrics file is declared to DVC (dvc metrics show lists it) and shown in the report
@@ -408,9 +564,17 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     for p in (reports / "figures").glob("*.png"):
         assert f"figures/{p.name}" in md, p.name
     # dvc plots: the top-level plots (KLD box, P/R/Dice, training curves) and the confusion matrix render
-    plots = json.loads(run(["dvc", "plots", "show", "--json", "-o", str(tmp_path / "plots")], ci_dag).stdout)["data"]
-    for pid in ("fusion_kld_box", "fusion_scores_occupied", "fusion_scores_free", "fusion_training", "risk_training",
-                "reports/plots/risk_confusion.csv"):
+    plots = json.loads(
+        run(["dvc", "plots", "show", "--json", "-o", str(tmp_path / "plots")], ci_dag).stdout
+    )["data"]
+    for pid in (
+        "fusion_kld_box",
+        "fusion_scores_occupied",
+        "fusion_scores_free",
+        "fusion_training",
+        "risk_training",
+        "reports/plots/risk_confusion.csv",
+    ):
         assert pid in plots, pid
         assert all(not r.get("errors") and r.get("content") for r in plots[pid]), (pid, plots[pid])
 
@@ -419,8 +583,9 @@ def test_stage_helpers(tmp_path: Path) -> None:
     """pipelines.report: dirty check ignores pipeline-written files; stage order expands foreach; profile keys."""
     import subprocess
 
-    from pipelines.report import git_dirty, profile_keys, run_params, stage_order
     from omegaconf import OmegaConf
+
+    from pipelines.report import git_dirty, profile_keys, run_params, stage_order
 
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
     (tmp_path / "src").mkdir()
@@ -437,11 +602,21 @@ def test_stage_helpers(tmp_path: Path) -> None:
 
     (tmp_path / "dvc.yaml").write_text(
         "stages:\n  gen: {cmd: a}\n  train:\n    foreach: ${m.vs}\n    do: {cmd: b}\n"
-        "  ev:\n    foreach: {A: 1, B: 2}\n    do: {cmd: c}\n")
-    cfg = OmegaConf.create({"m": {"vs": ["x", "y"]}, "seed": 3, "sizes": {"n": 5, "k": 2}, "data": {"seed": 9, "other": 1}})
+        "  ev:\n    foreach: {A: 1, B: 2}\n    do: {cmd: c}\n"
+    )
+    cfg = OmegaConf.create(
+        {
+            "m": {"vs": ["x", "y"]},
+            "seed": 3,
+            "sizes": {"n": 5, "k": 2},
+            "data": {"seed": 9, "other": 1},
+        }
+    )
     assert stage_order(tmp_path / "dvc.yaml", cfg) == ["gen", "train@x", "train@y", "ev@A", "ev@B"]
     prof = tmp_path / "profile"
     prof.mkdir()
-    (prof / "ci.yaml").write_text("# @package _global_\ndefaults:\n  - override /trainer: gpu\nprofile: {name: ci}\nsizes: {n: 1}\n")
+    (prof / "ci.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - override /trainer: gpu\nprofile: {name: ci}\nsizes: {n: 1}\n"
+    )
     assert profile_keys(prof) == {"profile.name", "sizes.n"}
     assert run_params(cfg, profile_keys(prof)) == {"seed": 3, "sizes.n": 5, "data.seed": 9}

@@ -10,14 +10,16 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from pipelines import retrain as rt
-from traffictwin.mlops import registry as reg
-from traffictwin.config import ConfigError, compose_config, load_params
-
 from conftest import run, stage_env
 
-MODELS = ["traffictwin-fusion-A", "traffictwin-risk"]  # the e2e test gates configuration A and the risk net only
+from pipelines import retrain as rt
+from traffictwin.config import ConfigError, compose_config, load_params
+from traffictwin.mlops import registry as reg
+
+MODELS = [
+    "traffictwin-fusion-A",
+    "traffictwin-risk",
+]  # the e2e test gates configuration A and the risk net only
 
 
 # ------------------------------------------------------------------ fast unit tests
@@ -26,7 +28,9 @@ MODELS = ["traffictwin-fusion-A", "traffictwin-risk"]  # the e2e test gates conf
 def test_lock_is_exclusive(tmp_path):
     lock = tmp_path / ".retrain.lock"
     with rt.retrain_lock(lock):
-        with pytest.raises(rt.LockBusy, match=r"another retraining run holds the lock .*\.retrain\.lock \(pid \d+"):
+        with pytest.raises(
+            rt.LockBusy, match=r"another retraining run holds the lock .*\.retrain\.lock \(pid \d+"
+        ):
             with rt.retrain_lock(lock):
                 pass
     with rt.retrain_lock(lock):  # released after the block
@@ -36,7 +40,9 @@ def test_lock_is_exclusive(tmp_path):
 def test_set_conf_value_and_conf_file_for(tmp_path):
     conf = tmp_path / "conf"
     (conf / "risk_data").mkdir(parents=True)
-    (conf / "config.yaml").write_text("defaults:\n  - _self_\n  - risk_data: base\n\nseed: 41   # global\ngrid:\n  seed: 3\n")
+    (conf / "config.yaml").write_text(
+        "defaults:\n  - _self_\n  - risk_data: base\n\nseed: 41   # global\ngrid:\n  seed: 3\n"
+    )
     (conf / "risk_data" / "base.yaml").write_text("seed: 0   # offset\nother: 1\n")
     assert rt.conf_file_for("seed", conf) == (conf / "config.yaml", "seed")
     assert rt.conf_file_for("risk_data.seed", conf) == (conf / "risk_data" / "base.yaml", "seed")
@@ -54,9 +60,23 @@ def test_set_conf_value_and_conf_file_for(tmp_path):
 
 
 def test_data_versions_reads_dvc_lock(tmp_path):
-    (tmp_path / "dvc.lock").write_text(yaml.safe_dump({"schema": "2.0", "stages": {
-        "gen": {"cmd": "x", "outs": [{"path": "data/fusion", "md5": "abc.dir"}, {"path": "reports/m.json", "md5": "1"}]},
-        "train": {"cmd": "y", "outs": [{"path": "models/fusion/A", "md5": "m"}]}}}))
+    (tmp_path / "dvc.lock").write_text(
+        yaml.safe_dump(
+            {
+                "schema": "2.0",
+                "stages": {
+                    "gen": {
+                        "cmd": "x",
+                        "outs": [
+                            {"path": "data/fusion", "md5": "abc.dir"},
+                            {"path": "reports/m.json", "md5": "1"},
+                        ],
+                    },
+                    "train": {"cmd": "y", "outs": [{"path": "models/fusion/A", "md5": "m"}]},
+                },
+            }
+        )
+    )
     assert rt.data_versions(tmp_path) == {"data/fusion": "abc.dir"}
     assert rt.data_versions(tmp_path / "nowhere") == {}
 
@@ -73,12 +93,17 @@ def test_snapshot_restores_conf_params_reports(tmp_path):
     snap = rt.Snapshot(root, snap_dir)
     (root / "conf" / "config.yaml").write_text("seed: 2\n")
     (root / "params.yaml").write_text("seed: 2\n")
-    (root / "reports" / "a.json").write_text("{\"new\": 1}")
+    (root / "reports" / "a.json").write_text('{"new": 1}')
     (root / "reports" / "b.json").write_text("{}")
     (root / "dvc.lock").write_text("schema: '2.0'\n")  # created by the failed run: removed again
     assert snap.restore(logging.getLogger("t")) == []
-    assert (root / "conf" / "config.yaml").read_text() == "seed: 1\n" and (root / "params.yaml").read_text() == "seed: 1\n"
-    assert sorted(p.name for p in (root / "reports").iterdir()) == ["a.json"] and (root / "reports" / "a.json").read_text() == "{}"
+    assert (root / "conf" / "config.yaml").read_text() == "seed: 1\n" and (
+        root / "params.yaml"
+    ).read_text() == "seed: 1\n"
+    assert (
+        sorted(p.name for p in (root / "reports").iterdir()) == ["a.json"]
+        and (root / "reports" / "a.json").read_text() == "{}"
+    )
     assert not (root / "dvc.lock").exists()
 
 
@@ -87,12 +112,19 @@ def test_snapshot_restores_conf_params_reports(tmp_path):
 
 def _champions(repo: Path) -> dict[str, str | None]:
     cl = reg.client(f"sqlite:///{repo / 'mlflow.db'}")
-    return {n: (None if (mv := reg.get_alias(cl, n, "champion")) is None else str(mv.version)) for n in MODELS}
+    return {
+        n: (None if (mv := reg.get_alias(cl, n, "champion")) is None else str(mv.version))
+        for n in MODELS
+    }
 
 
 def _cheap_copy(repo: Path) -> Path:
     """Keep the e2e test cheap: gate fusion configuration A + the risk net, repro only what they need."""
-    for name in ("promotions.jsonl", "retrain_summary.json", "retrain_summary.md"):  # start without history
+    for name in (
+        "promotions.jsonl",
+        "retrain_summary.json",
+        "retrain_summary.md",
+    ):  # start without history
         (repo / "reports" / name).unlink(missing_ok=True)
     reg_conf = repo / "conf" / "registry" / "base.yaml"
     text = reg_conf.read_text()
@@ -111,7 +143,9 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
     seed0 = load_params(repo / "params.yaml")["seed"]
 
     # 1. a retraining on the ci profile: new seed in conf/, dvc repro, first models become champions
-    proc = run([sys.executable, "-m", "pipelines.retrain", "--targets", *TARGETS], repo, timeout=1500)
+    proc = run(
+        [sys.executable, "-m", "pipelines.retrain", "--targets", *TARGETS], repo, timeout=1500
+    )
     summary = json.loads((repo / "reports" / "retrain_summary.json").read_text())
     assert summary["status"] == "succeeded", proc.stderr[-3000:]
     assert summary["seeds"] == {"seed": [seed0, seed0 + 1]}
@@ -122,7 +156,9 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
     champs = _champions(repo)
     assert all(v == "1" for v in champs.values()), champs
     log = reg.read_log(repo / "reports" / "promotions.jsonl")
-    assert sorted(r["name"] for r in log) == sorted(MODELS) and {r["action"] for r in log} == {"first"}
+    assert sorted(r["name"] for r in log) == sorted(MODELS) and {r["action"] for r in log} == {
+        "first"
+    }
     assert all(r["challenger_value"] is not None and r["test_fingerprint"] for r in log)
     md = (repo / "reports" / "retrain_summary.md").read_text()
     assert "Retraining succeeded" in md and "traffictwin-risk" in md
@@ -142,13 +178,30 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
     # 3. a failure after new data were generated restores data, params, conf; champion unchanged
     env = stage_env(repo)
     env[rt.FAIL_ENV] = "after_repro"
-    failed = run([sys.executable, "-m", "pipelines.retrain", "--targets", "generate_fusion", "generate_risk"], repo,
-                 check=False, timeout=900, env=env)
+    failed = run(
+        [
+            sys.executable,
+            "-m",
+            "pipelines.retrain",
+            "--targets",
+            "generate_fusion",
+            "generate_risk",
+        ],
+        repo,
+        check=False,
+        timeout=900,
+        env=env,
+    )
     assert failed.returncode == 1 and "injected failure at 'after_repro'" in failed.stderr
     s2 = json.loads((repo / "reports" / "retrain_summary.json").read_text())
-    assert s2["status"] == "failed" and s2["restored"] is True, (s2.get("restore_problems"), failed.stderr[-3000:])
-    assert s2["data_after"]["data/fusion"] != summary["data_after"]["data/fusion"]  # new data had been made ...
-    assert (repo / "dvc.lock").read_text() == lock_before                            # ... and were rolled back
+    assert s2["status"] == "failed" and s2["restored"] is True, (
+        s2.get("restore_problems"),
+        failed.stderr[-3000:],
+    )
+    assert (
+        s2["data_after"]["data/fusion"] != summary["data_after"]["data/fusion"]
+    )  # new data had been made ...
+    assert (repo / "dvc.lock").read_text() == lock_before  # ... and were rolled back
     assert (repo / "params.yaml").read_text() == params_before
     assert (repo / "conf" / "config.yaml").read_text() == conf_before
     status = run(["dvc", "status", "generate_fusion", "generate_risk"], repo)

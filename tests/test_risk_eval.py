@@ -6,19 +6,31 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
-
 from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
-from traffictwin.risk.baselines import GeometricParams, constant_predictions, geometric_distance, geometric_risk
-from traffictwin.risk.evaluation import (
-    PAPER, classification_metrics, evaluate, evaluate_suite, label_agreement, regression_metrics, risk_threshold,
-    risk_to_thw, roc_auc, thw_to_risk,
+
+from traffictwin.risk.baselines import (
+    GeometricParams,
+    constant_predictions,
+    geometric_distance,
+    geometric_risk,
 )
 from traffictwin.risk.dave2 import Dave2, Dave2Config
-from traffictwin.risk.model_io import load_risk_model, save_risk_model
+from traffictwin.risk.evaluation import (
+    PAPER,
+    classification_metrics,
+    evaluate,
+    evaluate_suite,
+    label_agreement,
+    regression_metrics,
+    risk_threshold,
+    risk_to_thw,
+    roc_auc,
+    thw_to_risk,
+)
 from traffictwin.risk.findings import findings
+from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.training import RiskSource
 
 
@@ -28,7 +40,9 @@ def test_thresholds_and_conversions() -> None:
     assert risk_threshold(0.01) == 1.0  # clipped at 1/THW = 20
     r = thw_to_risk(np.array([np.inf, 0.05, 0.0, 1.5, 0.02, 10.0]))
     assert np.allclose(r, [0, 1, 1, 1 / 30, 1, 1 / 200])
-    assert np.allclose(risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10])
+    assert np.allclose(
+        risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10]
+    )
     # the paper's example: risk 0.21 <-> a crash in 0.238 s
     assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)
 
@@ -50,13 +64,20 @@ def test_classification_hand_case() -> None:
     m1 = classification_metrics(y, p, 1.0)
     assert m1["confusion"] == {"tp": 2, "fp": 1, "fn": 1, "tn": 1}
     # boundary: exactly the threshold is NOT critical (THW < 1.5 s is)
-    assert classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]))["confusion"]["tn"] == 1
+    assert (
+        classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]))["confusion"]["tn"]
+        == 1
+    )
 
 
 def test_paper_table1_reproduces_paper_accuracy() -> None:
     c = PAPER["confusion"]
-    y = np.r_[np.full(c["tp"], 0.5), np.full(c["fn"], 0.5), np.full(c["fp"], 0.0), np.full(c["tn"], 0.0)]
-    p = np.r_[np.full(c["tp"], 0.5), np.full(c["fn"], 0.0), np.full(c["fp"], 0.5), np.full(c["tn"], 0.0)]
+    y = np.r_[
+        np.full(c["tp"], 0.5), np.full(c["fn"], 0.5), np.full(c["fp"], 0.0), np.full(c["tn"], 0.0)
+    ]
+    p = np.r_[
+        np.full(c["tp"], 0.5), np.full(c["fn"], 0.0), np.full(c["fp"], 0.5), np.full(c["tn"], 0.0)
+    ]
     m = classification_metrics(y, p, 1.5)
     assert m["confusion"] == c
     assert round(100 * m["accuracy"], 2) == 72.87
@@ -136,12 +157,14 @@ def test_geometric_baseline_with_the_project_camera_and_sgm() -> None:
 
 def _tiny_models(tmp: Path) -> dict:
     out = {}
-    for i, (name, inputs, speed, label) in enumerate([
-        ("rgbd", ("rgb", "disp_sgm"), False, "risk_thw_paper"),
-        ("gtdisp", ("rgb", "disp_gt"), False, "risk_thw_paper"),
-        ("rgbd_speed", ("rgb", "disp_sgm"), True, "risk_thw_paper"),
-        ("rgbd_fov", ("rgb", "disp_sgm"), False, "risk_thw_fov"),
-    ]):
+    for i, (name, inputs, speed, label) in enumerate(
+        [
+            ("rgbd", ("rgb", "disp_sgm"), False, "risk_thw_paper"),
+            ("gtdisp", ("rgb", "disp_gt"), False, "risk_thw_paper"),
+            ("rgbd_speed", ("rgb", "disp_sgm"), True, "risk_thw_paper"),
+            ("rgbd_fov", ("rgb", "disp_sgm"), False, "risk_thw_fov"),
+        ]
+    ):
         torch.manual_seed(i)
         net = Dave2(Dave2Config(inputs=inputs, use_speed=speed))
         save_risk_model(net, tmp / name, {"label": label, "variant": name})
@@ -151,7 +174,11 @@ def _tiny_models(tmp: Path) -> dict:
 
 def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     write_synthetic_risk(tmp_path, n_shards=4, per_shard=8)
-    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", tmp_path / "data" / "orb" / "orb.csv")
+    src = RiskSource(
+        tmp_path / "data" / "risk",
+        tmp_path / "data" / "disparity",
+        tmp_path / "data" / "orb" / "orb.csv",
+    )
     models = _tiny_models(tmp_path / "models")
     params = GeometricParams(subject_length=4.5, subject_width=1.8)
     metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=params)
@@ -162,7 +189,9 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
         e = metrics["models"][v]
         assert e["label"] == lab
         assert e["test/mse"] == pytest.approx(np.mean((pred[f"pred_{v}"] - pred[lab]) ** 2))
-        assert e["at_1.5s"]["confusion"]["tp"] + e["at_1.5s"]["confusion"]["fn"] == int((pred[lab] > 1 / 30).sum())
+        assert e["at_1.5s"]["confusion"]["tp"] + e["at_1.5s"]["confusion"]["fn"] == int(
+            (pred[lab] > 1 / 30).sum()
+        )
         assert "at_1s" in e
     # the synthetic geometry is exact up to SGM noise: the geometric baseline beats a constant by far
     geo = metrics["region"]["predictors"]["geometric"]
@@ -170,7 +199,8 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     assert geo["risk_thw_fov"]["test/mse"] < 0.5 * const["risk_thw_fov"]["test/mse"]
     assert geo["risk_thw_fov"]["test/mse"] <= geo["risk_thw_paper"]["test/mse"]
     assert metrics["baselines"]["train_median"]["value"] == pytest.approx(
-        float(np.median(src.split_frames("train")["risk_thw_paper"])))
+        float(np.median(src.split_frames("train")["risk_thw_paper"]))
+    )
     assert metrics["n_frames"]["orb_outliers_dropped"] == src.n_orb_outliers
     json.dumps(metrics, allow_nan=False)  # strict JSON (NaN -> null)
     text = findings({**metrics, "main_variant": "rgbd"})
@@ -179,19 +209,36 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     reg = metrics["region"]["predictors"]
     for name, per in reg.items():  # skill = 1 - MSE / MSE(train mean) of the same label
         for lab, e in per.items():
-            assert e["skill"] == pytest.approx(1 - e["test/mse"] / reg["train_mean"][lab]["test/mse"])
+            assert e["skill"] == pytest.approx(
+                1 - e["test/mse"] / reg["train_mean"][lab]["test/mse"]
+            )
     assert reg["train_mean"]["risk_thw_fov"]["skill"] == pytest.approx(0.0)
 
 
 def test_findings_from_hand_metrics_and_missing_parts() -> None:
-    at = {"accuracy": 0.8, "balanced_accuracy": 0.75, "f1": 0.85, "roc_auc": 0.9, "critical_fraction_true": 0.6}
+    at = {
+        "accuracy": 0.8,
+        "balanced_accuracy": 0.75,
+        "f1": 0.85,
+        "roc_auc": 0.9,
+        "critical_fraction_true": 0.6,
+    }
     metrics = {
-        "thresholds_s": [1.5, 1.0], "main_variant": "rgbd",
+        "thresholds_s": [1.5, 1.0],
+        "main_variant": "rgbd",
         "models": {
             "rgbd": {"label": "risk_thw_paper", "test/mse": 0.01, "test/n": 100, "at_1.5s": at},
-            "rgb": {"label": "risk_thw_paper", "test/mse": 0.02, "test/n": 100, "at_1.5s": {**at, "accuracy": 0.7}},
+            "rgb": {
+                "label": "risk_thw_paper",
+                "test/mse": 0.02,
+                "test/n": 100,
+                "at_1.5s": {**at, "accuracy": 0.7},
+            },
         },
-        "baselines": {"train_median": {"at_1.5s": {"accuracy": 0.6}}, "train_mean": {"test/mse": 0.04}},
+        "baselines": {
+            "train_median": {"at_1.5s": {"accuracy": 0.6}},
+            "train_mean": {"test/mse": 0.04},
+        },
     }
     text = findings(metrics)
     assert "0.01000 vs the paper's 0.01470" in text

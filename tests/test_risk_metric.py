@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from traffictwin.grid import GridSpec
-from traffictwin.risk.metric import RiskCalculator, RiskConfig, rasterise, region_mask, risk_from_time, to_subject_frame
+from traffictwin.risk.metric import (
+    RiskCalculator,
+    RiskConfig,
+    rasterise,
+    region_mask,
+    risk_from_time,
+    to_subject_frame,
+)
 from traffictwin.sim.scene import Boxes, Cls
 
 G = GridSpec()

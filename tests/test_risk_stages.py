@@ -22,7 +22,9 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
     """train_risk runs once per run_variant (each defined in variants); evaluate_risk depends on all of them."""
     params = yaml.safe_load((ROOT / "params.yaml").read_text())["risk_model"]
     assert set(params["run_variants"]) <= set(params["variants"])
-    assert {"rgbd", "rgb", "disp", "gtdisp", "rgbd_speed"} <= set(params["run_variants"])  # the default profile
+    assert {"rgbd", "rgb", "disp", "gtdisp", "rgbd_speed"} <= set(
+        params["run_variants"]
+    )  # the default profile
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     assert dvc["train_risk"]["foreach"] == "${risk_model.run_variants}"
     assert dvc["train_risk"]["do"]["outs"] == ["models/risk/${item}"]
@@ -48,7 +50,9 @@ def test_train_risk_writes_models_and_curves(ci_dag: Path) -> None:
 
 
 @pytest.mark.slow
-def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_mlflow_model_reloads_with_identical_outputs(
+    ci_dag: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import mlflow
     import mlflow.pytorch
 
@@ -72,12 +76,18 @@ def test_mlflow_model_reloads_with_identical_outputs(ci_dag: Path, monkeypatch: 
     client = mlflow.tracking.MlflowClient()
     exp = client.get_experiment_by_name("risk")
     runs = client.search_runs([exp.experiment_id])
-    by_name = {r.info.run_name: r for r in sorted(runs, key=lambda r: r.info.start_time)}  # newest wins
+    by_name = {
+        r.info.run_name: r for r in sorted(runs, key=lambda r: r.info.start_time)
+    }  # newest wins
     for v in _variants(ci_dag):
         r = by_name[f"risk-{v}"]
-        assert r.info.run_id == load_risk_model(ci_dag / "models" / "risk" / v).meta["mlflow_run_id"]
+        assert (
+            r.info.run_id == load_risk_model(ci_dag / "models" / "risk" / v).meta["mlflow_run_id"]
+        )
         assert r.data.params["risk_model.variant"] == v
-        assert "val/mse" in r.data.metrics and "test/mse" in r.data.metrics  # test/* added by evaluate_risk
+        assert (
+            "val/mse" in r.data.metrics and "test/mse" in r.data.metrics
+        )  # test/* added by evaluate_risk
         assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == f"train_risk@{v}"
         hist = client.get_metric_history(r.info.run_id, "val/mse")
         assert len(hist) == len(pd.read_csv(ci_dag / "models" / "risk" / v / "history.csv"))
@@ -100,11 +110,16 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     assert set(metrics["region"]["predictors"]["rgbd"]) == {"risk_thw_paper", "risk_thw_fov"}
     pred = pd.read_csv(ci_dag / "reports" / "plots" / "risk_predictions.csv")
     assert len(pred) == metrics["models"]["rgbd"]["test/n"]
-    assert {f"pred_{v}" for v in variants} | {"pred_geometric", "risk_thw_paper", "risk_thw_fov"} <= set(pred.columns)
+    assert {f"pred_{v}" for v in variants} | {
+        "pred_geometric",
+        "risk_thw_paper",
+        "risk_thw_fov",
+    } <= set(pred.columns)
     cm = pd.read_csv(ci_dag / "reports" / "plots" / "risk_confusion.csv")
     assert len(cm) == len(pred) and set(cm["actual"]) <= {"critical", "uncritical"}
     assert int((cm["actual"] == "critical").sum()) == (
-        metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["tp"] + metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["fn"]
+        metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["tp"]
+        + metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["fn"]
     )
     for f in ("risk_training_curves", "risk_scatter", "risk_examples", "risk_confusion"):
         png = ci_dag / "reports" / "figures" / f"{f}.png"

@@ -17,8 +17,8 @@ import torch
 
 from traffictwin.io.shards import DatasetError, DatasetWriter
 from traffictwin.risk.dave2 import Dave2Config
-from traffictwin.trainer import TrainerSettings
 from traffictwin.risk.training import RiskSource, TrainConfig, fit, prepare_split
+from traffictwin.trainer import TrainerSettings
 
 CAMERA = dict(width=96, height=48, baseline=0.16, mount_x=1.2, mount_height=1.3)
 SUBJECT_LENGTH = 4.5
@@ -26,15 +26,29 @@ SUBJECT_LENGTH = 4.5
 
 def camera_intrinsics(width: int = 96, height: int = 48, hfov_deg: float = 60.0) -> dict:
     fx = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
-    return dict(CAMERA, width=width, height=height, fx=fx, fy=fx, cx=width / 2.0 - 0.5, cy=height / 2.0 - 0.5)
+    return dict(
+        CAMERA,
+        width=width,
+        height=height,
+        fx=fx,
+        fy=fx,
+        cx=width / 2.0 - 0.5,
+        cy=height / 2.0 - 0.5,
+    )
 
 
-def render_frame(cam: dict, depth: float | None, half_width: float = 0.9, height_m: float = 1.5, rng=None):
+def render_frame(
+    cam: dict, depth: float | None, half_width: float = 0.9, height_m: float = 1.5, rng=None
+):
     """GT disparity (H, W) px and a BGR image of a box whose rear face is ``depth`` m ahead of the camera."""
     H, W = cam["height"], cam["width"]
     v = np.arange(H, dtype=np.float64)[:, None] * np.ones((1, W))
     u = np.ones((H, 1)) * np.arange(W, dtype=np.float64)[None, :]
-    disp = np.where(v > cam["cy"], cam["fx"] * cam["baseline"] * (v - cam["cy"]) / (cam["fy"] * cam["mount_height"]), 0.0)
+    disp = np.where(
+        v > cam["cy"],
+        cam["fx"] * cam["baseline"] * (v - cam["cy"]) / (cam["fy"] * cam["mount_height"]),
+        0.0,
+    )
     img = np.zeros((H, W, 3), np.float64)
     img[:] = (200, 170, 120)  # sky (BGR)
     img[v > cam["cy"]] = (90, 95, 100)  # road
@@ -57,8 +71,14 @@ def thw_risk(thw: np.ndarray) -> np.ndarray:
 
 
 def write_synthetic_risk(
-    repo: Path, n_shards: int = 6, per_shard: int = 12, seed: int = 0, width: int = 96, height: int = 48,
-    disp_shape: tuple[int, int] | None = None, outlier_rate: float = 0.1,
+    repo: Path,
+    n_shards: int = 6,
+    per_shard: int = 12,
+    seed: int = 0,
+    width: int = 96,
+    height: int = 48,
+    disp_shape: tuple[int, int] | None = None,
+    outlier_rate: float = 0.1,
 ) -> pd.DataFrame:
     """data/risk, data/disparity and data/orb/orb.csv under ``repo``; returns frames.csv.
 
@@ -87,15 +107,43 @@ def write_synthetic_risk(
             hidden = rng.random() < 0.2  # a vehicle beside the subject only the paper region sees
             r_paper = max(r_fov, float(thw_risk(np.array(1.0 / speed)))) if hidden else r_fov
             fid = s * per_shard + i
-            rows.append(dict(frame_id=fid, shard=s, idx=i, scenario=s, split=split, t=0.1 * i, speed=speed, thw=thw,
-                             risk=r_paper, risk_thw_paper=r_paper, risk_thw_fov=r_fov, risk_ttc=r_fov, risk_wttc=r_fov,
-                             fault="none", depth=depth if depth is not None else np.inf))
-            orb.append(dict(frame_id=fid, n_matches=100, n_reliable=50, mean_dx=5.0, mean_dy=0.1,
-                            outlier=bool(rng.random() < outlier_rate)))
+            rows.append(
+                dict(
+                    frame_id=fid,
+                    shard=s,
+                    idx=i,
+                    scenario=s,
+                    split=split,
+                    t=0.1 * i,
+                    speed=speed,
+                    thw=thw,
+                    risk=r_paper,
+                    risk_thw_paper=r_paper,
+                    risk_thw_fov=r_fov,
+                    risk_ttc=r_fov,
+                    risk_wttc=r_fov,
+                    fault="none",
+                    depth=depth if depth is not None else np.inf,
+                )
+            )
+            orb.append(
+                dict(
+                    frame_id=fid,
+                    n_matches=100,
+                    n_reliable=50,
+                    mean_dx=5.0,
+                    mean_dy=0.1,
+                    outlier=bool(rng.random() < outlier_rate),
+                )
+            )
             lefts.append(left)
             gts.append(gt)
             sgms.append(sgm)
-        rw.add_shard(s, {"left": np.stack(lefts), "right": np.stack(lefts), "disp_gt": np.stack(gts)}, split=split)
+        rw.add_shard(
+            s,
+            {"left": np.stack(lefts), "right": np.stack(lefts), "disp_gt": np.stack(gts)},
+            split=split,
+        )
         dw.add_shard(s, {"disp_sgm": np.stack(sgms)}, split=split)
     frames = pd.DataFrame(rows)
     rw.add_table("frames.csv", frames)
@@ -107,7 +155,9 @@ def write_synthetic_risk(
 
 
 def _source(repo: Path) -> RiskSource:
-    return RiskSource(repo / "data" / "risk", repo / "data" / "disparity", repo / "data" / "orb" / "orb.csv")
+    return RiskSource(
+        repo / "data" / "risk", repo / "data" / "disparity", repo / "data" / "orb" / "orb.csv"
+    )
 
 
 def test_source_drops_orb_outliers_and_keeps_splits(tmp_path: Path) -> None:
@@ -162,7 +212,15 @@ def test_fast_dev_run(tmp_path: Path) -> None:
     src = _source(tmp_path)
     cfg = Dave2Config(use_speed=True)
     tr, va = prepare_split(src, cfg, "train", "risk"), prepare_split(src, cfg, "val", "risk")
-    res = fit(cfg, tr, va, TrainConfig(batch_size=4), TrainerSettings(), fast_dev_run=True, mlflow_log=False)
+    res = fit(
+        cfg,
+        tr,
+        va,
+        TrainConfig(batch_size=4),
+        TrainerSettings(),
+        fast_dev_run=True,
+        mlflow_log=False,
+    )
     assert res.steps == 1
     x = torch.zeros(2, 4, 66, 200)
     assert torch.isfinite(res.net(x, torch.tensor([10.0, 20.0]))).all()
@@ -180,13 +238,17 @@ def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     from traffictwin.trainer import seed_everything
 
     x = normalise(cfg, torch.from_numpy(tr.rgb), torch.from_numpy(tr.disp))
-    seed_everything(tc.seed)  # fit() seeds the same way before building the net: same initial weights
+    seed_everything(
+        tc.seed
+    )  # fit() seeds the same way before building the net: same initial weights
     with torch.no_grad():
         initial = float(np.mean((Dave2(cfg)(x).numpy() - tr.y) ** 2))
     res = fit(cfg, tr, va, tc, TrainerSettings(), mlflow_log=False)
     with torch.no_grad():
         final = float(np.mean((res.net(x).numpy() - tr.y) ** 2))
-    print(f"overfit: initial train MSE {initial:.5f}, final {final:.6f}, label variance {np.var(tr.y):.5f}")
+    print(
+        f"overfit: initial train MSE {initial:.5f}, final {final:.6f}, label variance {np.var(tr.y):.5f}"
+    )
     assert final < initial / 10
     assert final < 0.2 * float(np.var(tr.y))
     assert len(res.history) >= 1 and np.isfinite(res.history["val/mse"]).all()

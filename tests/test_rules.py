@@ -12,7 +12,9 @@ def cell(f: float, o: float) -> np.ndarray:
     return np.array([f, o], dtype=np.float64).reshape(2, 1, 1)
 
 
-def random_masses(rng: np.random.Generator, shape=(5, 2, 7, 6), dogmatic_frac: float = 0.0) -> np.ndarray:
+def random_masses(
+    rng: np.random.Generator, shape=(5, 2, 7, 6), dogmatic_frac: float = 0.0
+) -> np.ndarray:
     d = rng.dirichlet([1.0, 1.0, 1.0], size=(shape[0], shape[2], shape[3]))  # (N,H,W,3) = F, O, Θ
     m = np.moveaxis(d[..., :2], -1, 1).astype(np.float32)
     return m

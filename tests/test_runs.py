@@ -11,7 +11,9 @@ from traffictwin.mlops import runs, tracking
 
 
 def _log(name: str, params: dict, metrics: dict, **tags) -> str:
-    with tracking.start_run("cmp", name, profile="ci", stage="train_fusion@A", tags=tags, params=params) as run:
+    with tracking.start_run(
+        "cmp", name, profile="ci", stage="train_fusion@A", tags=tags, params=params
+    ) as run:
         for k, v in metrics.items():
             mlflow.log_metric(k, v, step=0)
         return run.info.run_id
@@ -20,7 +22,9 @@ def _log(name: str, params: dict, metrics: dict, **tags) -> str:
 def test_compare_runs_table(mlflow_uri: str, monkeypatch) -> None:
     monkeypatch.setenv("TRAFFICTWIN_PIPELINE_RUN", "p1")
     monkeypatch.setenv("DVC_EXP_NAME", "exp-one")
-    a = _log("fusion-A", {"loss.occupied_weight": 1, "epochs": 2}, {"val/loss": 0.5, "test/kld": 0.1})
+    a = _log(
+        "fusion-A", {"loss.occupied_weight": 1, "epochs": 2}, {"val/loss": 0.5, "test/kld": 0.1}
+    )
     monkeypatch.setenv("DVC_EXP_NAME", "exp-two")
     b = _log("fusion-A", {"loss.occupied_weight": 3, "epochs": 2}, {"val/loss": 0.4})
     # a metric logged twice: the table shows the last value
@@ -72,4 +76,9 @@ def test_unfinished_runs_left_out(mlflow_uri: str) -> None:
             raise RuntimeError("boom")
     assert list(runs.compare_runs("cmp", uri=mlflow_uri)["run_name"]) == ["ok"]
     assert len(runs.compare_runs("cmp", uri=mlflow_uri, include_unfinished=True)) == 2
-    assert runs.format_runs(runs.compare_runs("cmp", uri=mlflow_uri, filter_string="tags.profile = 'paper'")) == "(no finished runs)"
+    assert (
+        runs.format_runs(
+            runs.compare_runs("cmp", uri=mlflow_uri, filter_string="tags.profile = 'paper'")
+        )
+        == "(no finished runs)"
+    )

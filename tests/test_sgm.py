@@ -19,7 +19,8 @@ def pair():
     boxes = Boxes(
         [[15, 0], [25, 3.5], [8, -3.5], [40, -10], [30, 12]],
         [[4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [20, 10, 12], [15, 8, 9]],
-        [0, 0.1, 0, 0, 0.3], [Cls.CAR, Cls.CAR, Cls.CAR, Cls.BUILDING, Cls.BUILDING],
+        [0, 0.1, 0, 0, 0.3],
+        [Cls.CAR, Cls.CAR, Cls.CAR, Cls.BUILDING, Cls.BUILDING],
     )
     return cam.render_pair((0.0, 0.0, 0.0), boxes, rng=np.random.default_rng(0))
 
@@ -64,8 +65,8 @@ def test_metric_hand_case():
     s = disparity_errors(est, gt)
     m = summarise(s)
     assert m["density"] == pytest.approx(3 / 4)
-    assert m["bad2"] == pytest.approx(1 / 3)     # only the 3 px error
-    assert m["d1"] == pytest.approx(0.0)         # 3 px is not > 3 px
+    assert m["bad2"] == pytest.approx(1 / 3)  # only the 3 px error
+    assert m["d1"] == pytest.approx(0.0)  # 3 px is not > 3 px
     assert m["epe"] == pytest.approx((0.5 + 3.0 + 1.0) / 3)
     s2 = add_sums(s, s)
     assert summarise(s2) == pytest.approx(m)

@@ -10,7 +10,13 @@ import pandas as pd
 import pytest
 
 from traffictwin.io.atomic import atomic_path, write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetError, DatasetWriter, read_npz, write_npz_deterministic
+from traffictwin.io.shards import (
+    Dataset,
+    DatasetError,
+    DatasetWriter,
+    read_npz,
+    write_npz_deterministic,
+)
 
 
 def _arrays(seed: int, n: int = 3) -> dict[str, np.ndarray]:

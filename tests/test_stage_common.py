@@ -9,7 +9,13 @@ from traffictwin.config import ConfigError
 from traffictwin.io.shards import DatasetError
 
 
-@pytest.mark.parametrize("exc", [ConfigError("params.yaml: 'x' must be >= 1, got -3"), DatasetError("data/x: manifest missing")])
+@pytest.mark.parametrize(
+    "exc",
+    [
+        ConfigError("params.yaml: 'x' must be >= 1, got -3"),
+        DatasetError("data/x: manifest missing"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_2(exc: Exception, capsys, monkeypatch) -> None:
     monkeypatch.delenv("TRAFFICTWIN_TRACEBACK", raising=False)
 
@@ -44,7 +50,12 @@ def test_map_shards_gives_every_result_with_the_state(workers: int) -> None:
 
     got = dict(map_shards(_square, range(5), workers=workers, state={"offset": 10}, desc="unit"))
     assert got == {i: i * i + 10 for i in range(5)}
-    assert [i for i, _ in map_shards(_square, range(5), workers=workers, state={"offset": 0}, desc="unit", ordered=True)] == list(range(5))
+    assert [
+        i
+        for i, _ in map_shards(
+            _square, range(5), workers=workers, state={"offset": 0}, desc="unit", ordered=True
+        )
+    ] == list(range(5))
 
 
 def _boom(i: int) -> int:

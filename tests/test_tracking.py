@@ -22,7 +22,9 @@ def test_env_overrides(monkeypatch) -> None:
 
 
 def test_run_round_trip(mlflow_uri: str) -> None:
-    with tracking.start_run("unit", "unit-run", profile="ci", stage="test", params={"a.b": 1}) as run:
+    with tracking.start_run(
+        "unit", "unit-run", profile="ci", stage="test", params={"a.b": 1}
+    ) as run:
         mlflow.log_metric("val/loss", 0.5, step=1)
         rid = run.info.run_id
     got = mlflow.get_run(rid)
@@ -57,7 +59,10 @@ def test_repo_root_precedence(tmp_path: Path, monkeypatch) -> None:
 
 def test_artifact_location_beside_sqlite(tmp_path: Path) -> None:
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    assert tracking.artifact_location("fusion", uri) == (tmp_path.resolve() / "mlartifacts" / "fusion").as_uri()
+    assert (
+        tracking.artifact_location("fusion", uri)
+        == (tmp_path.resolve() / "mlartifacts" / "fusion").as_uri()
+    )
     assert tracking.artifact_location("fusion", "http://server:5000") is None
     assert tracking.sqlite_path("postgresql://x") is None
 
@@ -74,10 +79,14 @@ def test_pipeline_run_id_shared_and_distinct(tmp_path: Path, monkeypatch) -> Non
     h1 = tracking.params_hash(p)
     assert h1 == __import__("hashlib").sha256(b"seed: 1\n").hexdigest()
     a = tracking.pipeline_run_id("0123456789abcdef", h1, "")
-    assert a == tracking.pipeline_run_id("0123456789abcdef", h1, "")  # every stage of one run agrees
+    assert a == tracking.pipeline_run_id(
+        "0123456789abcdef", h1, ""
+    )  # every stage of one run agrees
     assert a.startswith("01234567-") and len(a) == 17
     p.write_text("seed: 2\n")
-    assert tracking.pipeline_run_id("0123456789abcdef", tracking.params_hash(p), "") != a  # other params
+    assert (
+        tracking.pipeline_run_id("0123456789abcdef", tracking.params_hash(p), "") != a
+    )  # other params
     assert tracking.pipeline_run_id("0123456789abcdef", h1, "exp-1") != a  # other DVC experiment
     assert tracking.params_hash(tmp_path / "missing.yaml") == ""
     monkeypatch.setenv("TRAFFICTWIN_PIPELINE_RUN", "nightly-42")
@@ -95,7 +104,9 @@ def test_base_tags_from_dvc_env(tmp_path: Path, monkeypatch) -> None:
     assert set(tracking.TAG_KEYS) <= set(tags)
     assert tags["dvc_exp_name"] == "brisk-lark" and tags["git_commit"] == "b" * 40
     assert tags["params_hash"] == tracking.params_hash(tmp_path / "params.yaml")
-    assert tags["pipeline_run"] == tracking.pipeline_run_id("b" * 40, tags["params_hash"], "brisk-lark")
+    assert tags["pipeline_run"] == tracking.pipeline_run_id(
+        "b" * 40, tags["params_hash"], "brisk-lark"
+    )
     assert tags["data_manifest"] == "xyz"
 
 
@@ -112,7 +123,11 @@ def test_experiment_created_with_artifacts_beside_db(tmp_path: Path, monkeypatch
         rid = run.info.run_id
     exp = mlflow.get_experiment_by_name("artexp")
     assert exp.artifact_location == (db_dir.resolve() / "mlartifacts" / "artexp").as_uri()
-    assert (db_dir / "mlartifacts" / "artexp" / rid / "artifacts" / "note.txt").read_text() == "hello"
+    assert (
+        db_dir / "mlartifacts" / "artexp" / rid / "artifacts" / "note.txt"
+    ).read_text() == "hello"
     assert not any(work.iterdir())
-    with tracking.start_run("artexp", "r2", profile="ci", stage="test") as run2:  # existing experiment reused
+    with tracking.start_run(
+        "artexp", "r2", profile="ci", stage="test"
+    ) as run2:  # existing experiment reused
         assert run2.info.experiment_id == exp.experiment_id

@@ -10,11 +10,10 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import pytest
-import torch
-
 from conftest import run
-from traffictwin.io.shards import Dataset
+
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
+from traffictwin.io.shards import Dataset
 
 CFGS = ("A", "B", "C", "D")
 pytestmark = pytest.mark.slow
@@ -33,12 +32,24 @@ def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
         data_hash = Dataset(ci_dag / "data" / "prealigned" / cfg, kind="prealigned").manifest_hash()
         assert meta["data_manifest_hash"] == data_hash
         assert meta["mlflow_run_id"] and meta["mlflow_model_uri"]
-        metrics = json.loads((ci_dag / "reports" / "metrics" / f"train_fusion_{cfg}.json").read_text())
-        for k in ("train/loss", "val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free", "val/kld_naive"):
+        metrics = json.loads(
+            (ci_dag / "reports" / "metrics" / f"train_fusion_{cfg}.json").read_text()
+        )
+        for k in (
+            "train/loss",
+            "val/loss",
+            "val/kld",
+            "val/kld_full",
+            "val/dice_occ",
+            "val/dice_free",
+            "val/kld_naive",
+        ):
             assert np.isfinite(metrics[k]), k
         with open(ci_dag / "reports" / "plots" / f"train_fusion_{cfg}.csv") as fh:
             rows = list(csv.DictReader(fh))
-        assert len(rows) == metrics["epochs"] and [int(r["epoch"]) for r in rows] == list(range(len(rows)))
+        assert len(rows) == metrics["epochs"] and [int(r["epoch"]) for r in rows] == list(
+            range(len(rows))
+        )
         assert {"train/loss", "val/loss", "lr"} <= set(rows[0])
         assert (ci_dag / "reports" / "timings" / f"train_fusion-{cfg}.json").exists()
 
@@ -55,12 +66,19 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
         r = client.get_run(meta["mlflow_run_id"])
         assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == "train_fusion@B"
         assert r.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
-        assert r.data.params["configuration.r"] == "1.0" and r.data.params["fusion_model.train.max_epochs"] == "2"
+        assert (
+            r.data.params["configuration.r"] == "1.0"
+            and r.data.params["fusion_model.train.max_epochs"] == "2"
+        )
         hist = client.get_metric_history(r.info.run_id, "val/kld")
         assert [m.step for m in hist] == list(range(len(hist))) and len(hist) >= 1
-        assert [a.path for a in client.list_artifacts(r.info.run_id, "checkpoints")] == ["checkpoints/model.ckpt"]
+        assert [a.path for a in client.list_artifacts(r.info.run_id, "checkpoints")] == [
+            "checkpoints/model.ckpt"
+        ]
 
-        val = Dataset(ci_dag / "data/prealigned/B", kind="prealigned").load_all("val", keys=["inputs"])["inputs"][:3]
+        val = Dataset(ci_dag / "data/prealigned/B", kind="prealigned").load_all(
+            "val", keys=["inputs"]
+        )["inputs"][:3]
         net = load_fusion_model(ci_dag / "models/fusion/B/model.ckpt", expected_cfg="B")
         logged = mlflow.pytorch.load_model(meta["mlflow_model_uri"])
         m_a, u_a = predict_masses(net, val)
@@ -73,7 +91,9 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
 
 
 def test_checkpoint_of_another_configuration_is_refused(ci_dag: Path) -> None:
-    with pytest.raises(FusionModelError, match="trained for configuration 'D' .* expected configuration 'A'"):
+    with pytest.raises(
+        FusionModelError, match="trained for configuration 'D' .* expected configuration 'A'"
+    ):
         load_fusion_model(ci_dag / "models/fusion/D/model.ckpt", expected_cfg="A")
 
 
@@ -83,9 +103,13 @@ def test_rerun_is_a_dvc_noop(ci_dag: Path) -> None:
 
 
 def test_stage_without_data_fails_clearly_and_writes_nothing(repo_copy: Path) -> None:
-    proc = run([sys.executable, "-m", "pipelines.train_fusion", "--cfg", "A"], repo_copy, check=False)
+    proc = run(
+        [sys.executable, "-m", "pipelines.train_fusion", "--cfg", "A"], repo_copy, check=False
+    )
     assert proc.returncode != 0
     assert "data/prealigned/A: dataset folder not found" in proc.stderr
     assert not (repo_copy / "models" / "fusion" / "A").exists()
-    proc = run([sys.executable, "-m", "pipelines.train_fusion", "--cfg", "Z"], repo_copy, check=False)
+    proc = run(
+        [sys.executable, "-m", "pipelines.train_fusion", "--cfg", "Z"], repo_copy, check=False
+    )
     assert proc.returncode != 0 and "configuration 'Z' not in 'configurations'" in proc.stderr

@@ -11,7 +11,12 @@ from traffictwin.sim.world import TEMPLATES, build_world
 @pytest.mark.parametrize("template", TEMPLATES)
 def test_every_template_builds_and_keeps_roads_clear(template):
     w = build_world(template, 1)
-    assert w.template == template and len(w.lanes) >= 2 and len(w.static) > 10 and len(w.sidewalks) >= 2
+    assert (
+        w.template == template
+        and len(w.lanes) >= 2
+        and len(w.static) > 10
+        and len(w.sidewalks) >= 2
+    )
     xmin, ymin, xmax, ymax = w.bounds
     assert 250 <= max(xmax - xmin, ymax - ymin) <= 450  # about 400 m
     assert set(np.unique(w.static.cls)) <= {Cls.BUILDING, Cls.WALL, Cls.VEGETATION, Cls.POLE}

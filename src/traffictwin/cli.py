@@ -46,9 +46,10 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -80,7 +81,9 @@ def parse_pose(text: str, name: str) -> np.ndarray:
     """``"x,y,yaw"`` (m, m, rad) -> float64 (3,); errors name the option."""
     parts = [p.strip() for p in str(text).split(",")]
     if len(parts) != 3:
-        raise CliError(f"{name}: expected three comma-separated numbers x,y,yaw (m, m, rad), got {text!r}")
+        raise CliError(
+            f"{name}: expected three comma-separated numbers x,y,yaw (m, m, rad), got {text!r}"
+        )
     try:
         vals = np.array([float(p) for p in parts], dtype=np.float64)
     except ValueError:
@@ -103,7 +106,9 @@ def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
         raise CliError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
     missing = [k for k in ("m_free", "m_occ") if k not in data]
     if missing:
-        raise CliError(f"{path}: array(s) {missing} missing (has {sorted(data)}); expected m_free and m_occ, (H, W) float")
+        raise CliError(
+            f"{path}: array(s) {missing} missing (has {sorted(data)}); expected m_free and m_occ, (H, W) float"
+        )
     mf, mo = data["m_free"], data["m_occ"]
     for k, a in (("m_free", mf), ("m_occ", mo)):
         if a.ndim != 2:
@@ -115,7 +120,9 @@ def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
     for k, a in (("m_free", mf), ("m_occ", mo)):
         bad = ~np.isfinite(a)
         if bad.any():
-            raise CliError(f"{path}: '{k}' has {int(bad.sum())} NaN/inf cell(s) (first at row,col {tuple(np.argwhere(bad)[0])})")
+            raise CliError(
+                f"{path}: '{k}' has {int(bad.sum())} NaN/inf cell(s) (first at row,col {tuple(np.argwhere(bad)[0])})"
+            )
     m = np.stack([mf, mo]).astype(np.float64)
     neg = m < -SIMPLEX_TOL
     over = m.sum(0) > 1.0 + SIMPLEX_TOL
@@ -131,7 +138,11 @@ def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
     cell = None
     if "cell" in data:
         c = np.asarray(data["cell"])
-        if c.size != 1 or not np.issubdtype(c.dtype, np.number) or not (float(c) > 0 and math.isfinite(float(c))):
+        if (
+            c.size != 1
+            or not np.issubdtype(c.dtype, np.number)
+            or not (float(c) > 0 and math.isfinite(float(c)))
+        ):
             raise CliError(f"{path}: 'cell' must be one positive number (m per cell), got {c!r}")
         cell = float(c)
     return m, cell
@@ -154,7 +165,9 @@ def read_image(path: str | Path) -> np.ndarray:
     elif img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     elif img.shape[2] != 3:
-        raise CliError(f"{path}: expected a grayscale, BGR or BGRA image, got {img.shape[2]} channels")
+        raise CliError(
+            f"{path}: expected a grayscale, BGR or BGRA image, got {img.shape[2]} channels"
+        )
     return np.ascontiguousarray(img)
 
 
@@ -177,7 +190,9 @@ def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
         k = lonely[0]
         have = lefts.get(k) or rights.get(k)
         want = "_right" if k in lefts else "_left"
-        raise CliError(f"{have}: no partner image '{k}{want}.*' in {folder} ({len(lonely)} unpaired image(s))")
+        raise CliError(
+            f"{have}: no partner image '{k}{want}.*' in {folder} ({len(lonely)} unpaired image(s))"
+        )
     if not lefts:
         raise CliError(f"{folder}: no stereo pairs found (expected <id>_left.png / <id>_right.png)")
     return [(k, lefts[k], rights[k]) for k in sorted(lefts)]
@@ -219,14 +234,20 @@ def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
         try:
             net = reg.load_registered(uri)
         except Exception as exc:  # noqa: BLE001
-            raise CliError(f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})") from None
-        grid = {k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params}
+            raise CliError(
+                f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})"
+            ) from None
+        grid = {
+            k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params
+        }
         return net, grid, f"{name}@{model} ({uri})"
     from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
 
     p = Path(model)
     if not p.exists():
-        raise CliError(f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path")
+        raise CliError(
+            f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path"
+        )
     try:
         net = load_fusion_model(p)
     except FusionModelError as exc:
@@ -244,11 +265,15 @@ def load_risk(model: str):
         try:
             net = reg.unwrap_risk_net(reg.load_registered(uri))
         except Exception as exc:  # noqa: BLE001
-            raise CliError(f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})") from None
+            raise CliError(
+                f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})"
+            ) from None
         return RiskModel(net=net), f"{reg.RISK_NAME}@{model} ({uri})"
     p = Path(model)
     if not p.exists():
-        raise CliError(f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path")
+        raise CliError(
+            f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path"
+        )
     try:
         return load_risk_model(p), str(p)
     except RiskModelError as exc:
@@ -258,15 +283,16 @@ def load_risk(model: str):
 # ============================================================================ fuse
 
 
-def fuse_arrays(net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pose2: np.ndarray, cell: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def fuse_arrays(
+    net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pose2: np.ndarray, cell: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Prealign map 2 into map 1's frame by the poses, run the network.
 
     Returns ``(m (2,H,W), u (H,W), m2_prealigned (2,H,W), rel_pose (3,))``, float32 masses.
     """
     from traffictwin.evidential.warp import warp_masses
-    from traffictwin.grid import GridSpec
     from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.grid import GridSpec
     from traffictwin.sim.scene import relative_pose
 
     grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
@@ -279,6 +305,7 @@ def fuse_arrays(net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pos
 
 def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
     """BGR uint8 preview: map 1 | map 2 prealigned | fused; red = m_occ, green = m_free, blue = u."""
+
     def rgb(mm: np.ndarray, uu: np.ndarray | None = None) -> np.ndarray:
         uu = 1.0 - mm[0] - mm[1] if uu is None else uu
         bgr = np.stack([uu, mm[0], mm[1]], axis=-1)
@@ -301,10 +328,14 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     m1, c1 = load_masses(args.map1)
     m2, c2 = load_masses(args.map2)
     if m1.shape != m2.shape:
-        raise CliError(f"{args.map2}: grid size {m2.shape[1:]} differs from {args.map1}'s {m1.shape[1:]} (rows, cols)")
+        raise CliError(
+            f"{args.map2}: grid size {m2.shape[1:]} differs from {args.map1}'s {m1.shape[1:]} (rows, cols)"
+        )
     h, w = m1.shape[1:]
     if h % DIVISOR or w % DIVISOR:
-        raise CliError(f"{args.map1}: grid {h}x{w} cells: rows and cols must be divisible by {DIVISOR} (network output stride)")
+        raise CliError(
+            f"{args.map1}: grid {h}x{w} cells: rows and cols must be divisible by {DIVISOR} (network output stride)"
+        )
     if c1 is not None and c2 is not None and abs(c1 - c2) > 1e-9:
         raise CliError(f"{args.map2}: cell size {c2} m differs from {args.map1}'s {c1} m")
     if args.cell is not None and not (args.cell > 0 and math.isfinite(args.cell)):
@@ -315,11 +346,17 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     if not base.parent.exists():
         raise CliError(f"-o: output folder {base.parent} does not exist")
     net, train_grid, desc = load_fusion(args.model, args.config)
-    cell = args.cell if args.cell is not None else (c1 if c1 is not None else train_grid.get("cell"))
+    cell = (
+        args.cell if args.cell is not None else (c1 if c1 is not None else train_grid.get("cell"))
+    )
     if cell is None:
-        raise CliError("grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz")
+        raise CliError(
+            "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz"
+        )
     if "cell" in train_grid and abs(float(train_grid["cell"]) - cell) > 1e-9:
-        raise CliError(f"maps have {cell} m cells but the model ({desc}) was trained on {train_grid['cell']} m cells")
+        raise CliError(
+            f"maps have {cell} m cells but the model ({desc}) was trained on {train_grid['cell']} m cells"
+        )
     t0 = time.perf_counter()
     m, u, m2w, rel = fuse_arrays(net, m1, m2, pose1, pose2, cell)
     ms = (time.perf_counter() - t0) * 1e3
@@ -328,14 +365,30 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     if not ok:
         raise CliError("could not encode the PNG preview")
     buf = io.BytesIO()
-    np.savez_compressed(buf, m_free=m[0], m_occ=m[1], u=u, pose1=pose1, pose2=pose2, rel_pose=rel,
-                        cell=np.float64(cell))
+    np.savez_compressed(
+        buf,
+        m_free=m[0],
+        m_occ=m[1],
+        u=u,
+        pose1=pose1,
+        pose2=pose2,
+        rel_pose=rel,
+        cell=np.float64(cell),
+    )
     with atomic_path(npz_path, suffix=".npz") as t1, atomic_path(png_path, suffix=".png") as t2:
         t1.write_bytes(buf.getvalue())
         t2.write_bytes(png.tobytes())
-    summary = {"output": str(npz_path), "preview": str(png_path), "model": desc, "grid": [h, w], "cell_m": cell,
-               "rel_pose": [float(v) for v in rel], "fuse_ms": round(ms, 2),
-               "mean_u": float(u.mean()), "occupied_cells": int(((m[1] + u / 2) > 0.5).sum())}
+    summary = {
+        "output": str(npz_path),
+        "preview": str(png_path),
+        "model": desc,
+        "grid": [h, w],
+        "cell_m": cell,
+        "rel_pose": [float(v) for v in rel],
+        "fuse_ms": round(ms, 2),
+        "mean_u": float(u.mean()),
+        "occupied_cells": int(((m[1] + u / 2) > 0.5).sum()),
+    }
     print(json.dumps(json_safe(summary), indent=2))
     return 0
 
@@ -371,8 +424,14 @@ def stereo_settings(params_path: str | None) -> StereoSettings:
     return StereoSettings({}, {}, "library defaults")
 
 
-def risk_one(rmodel: Any, left: np.ndarray, right: np.ndarray, speed: float | None, st: StereoSettings,
-             thw_threshold: float) -> dict[str, Any]:
+def risk_one(
+    rmodel: Any,
+    left: np.ndarray,
+    right: np.ndarray,
+    speed: float | None,
+    st: StereoSettings,
+    thw_threshold: float,
+) -> dict[str, Any]:
     """ORB verdict, SGM disparity, predicted risk and THW verdict of one pair (see :func:`risk_verdict`)."""
     from traffictwin.stereo.orb import check_pair
     from traffictwin.stereo.sgm import compute_disparity
@@ -383,17 +442,26 @@ def risk_one(rmodel: Any, left: np.ndarray, right: np.ndarray, speed: float | No
     disp = compute_disparity(left, right, **st.sgm)
     t2 = time.perf_counter()
     sp = None if speed is None else np.array([speed], np.float32)
-    risk = float(rmodel.predict(left_bgr=left[None], disp_sgm=disp[None], disp_gt=None, speed=sp, batch_size=1)[0])
+    risk = float(
+        rmodel.predict(
+            left_bgr=left[None], disp_sgm=disp[None], disp_gt=None, speed=sp, batch_size=1
+        )[0]
+    )
     t3 = time.perf_counter()
     valid = disp >= 0
     out = {
-        "orb_outlier": bool(orb.outlier), "orb_verdict": "unreliable pair" if orb.outlier else "ok",
-        "orb_n_matches": int(orb.n_matches), "orb_n_reliable": int(orb.n_reliable),
-        "orb_mean_dx": float(orb.mean_dx), "orb_mean_dy": float(orb.mean_dy),
+        "orb_outlier": bool(orb.outlier),
+        "orb_verdict": "unreliable pair" if orb.outlier else "ok",
+        "orb_n_matches": int(orb.n_matches),
+        "orb_n_reliable": int(orb.n_reliable),
+        "orb_mean_dx": float(orb.mean_dx),
+        "orb_mean_dy": float(orb.mean_dy),
         "disp_valid_fraction": float(valid.mean()),
         "disp_median_px": float(np.median(disp[valid])) if valid.any() else float("nan"),
         **risk_verdict(risk, speed, thw_threshold),
-        "orb_ms": round((t1 - t0) * 1e3, 2), "sgm_ms": round((t2 - t1) * 1e3, 2), "model_ms": round((t3 - t2) * 1e3, 2),
+        "orb_ms": round((t1 - t0) * 1e3, 2),
+        "sgm_ms": round((t2 - t1) * 1e3, 2),
+        "model_ms": round((t3 - t2) * 1e3, 2),
     }
     return out
 
@@ -404,8 +472,11 @@ def risk_verdict(risk: float, speed: float | None, thw_threshold: float = 1.5) -
     With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
     thw = 1.0 / (20.0 * risk) if risk > 0 else math.inf
     out: dict[str, Any] = {
-        "risk": risk, "thw_s": thw, "thw_threshold_s": thw_threshold,
-        "critical": bool(thw < thw_threshold), "verdict": "critical" if thw < thw_threshold else "uncritical",
+        "risk": risk,
+        "thw_s": thw,
+        "thw_threshold_s": thw_threshold,
+        "critical": bool(thw < thw_threshold),
+        "verdict": "critical" if thw < thw_threshold else "uncritical",
     }
     if speed is not None:
         out["speed_m_s"] = float(speed)
@@ -423,17 +494,23 @@ def cmd_risk(args: argparse.Namespace) -> int:
     src = Path(args.left)
     if src.is_dir():
         if args.right is not None:
-            raise CliError(f"{src} is a folder: pass no RIGHT image (pairs are found by *_left/*_right names)")
+            raise CliError(
+                f"{src} is a folder: pass no RIGHT image (pairs are found by *_left/*_right names)"
+            )
         pairs = find_pairs(src)
     else:
         if args.right is None:
-            raise CliError(f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs")
+            raise CliError(
+                f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs"
+            )
         pairs = [(src.stem, src, Path(args.right))]
     images = []
     for pid, lp, rp in pairs:  # read + validate everything before any work or output
         left, right = read_image(lp), read_image(rp)
         if left.shape != right.shape:
-            raise CliError(f"{rp}: size {right.shape[1]}x{right.shape[0]} differs from {lp}'s {left.shape[1]}x{left.shape[0]} (W x H)")
+            raise CliError(
+                f"{rp}: size {right.shape[1]}x{right.shape[0]} differs from {lp}'s {left.shape[1]}x{left.shape[0]} (W x H)"
+            )
         images.append((pid, lp, rp, left, right))
     rmodel, desc = load_risk(args.model)
     if rmodel.cfg.use_speed and args.speed is None:
@@ -451,7 +528,9 @@ def cmd_risk(args: argparse.Namespace) -> int:
         wr.writerows(rows)
         if args.output:
             write_text_atomic(args.output, buf.getvalue())
-            print(f"{len(rows)} pair(s) -> {args.output} (model {desc}; stereo settings: {st.source})")
+            print(
+                f"{len(rows)} pair(s) -> {args.output} (model {desc}; stereo settings: {st.source})"
+            )
         else:
             sys.stdout.write(buf.getvalue())
     else:
@@ -471,7 +550,9 @@ def cmd_promote(args: argparse.Namespace) -> int:
 
     root = repo_root()
     if not (root / "pipelines" / "promote.py").exists():
-        raise CliError(f"{root}: not a traffictwin project (pipelines/promote.py missing); run inside the repository")
+        raise CliError(
+            f"{root}: not a traffictwin project (pipelines/promote.py missing); run inside the repository"
+        )
     cmd = [sys.executable, "-m", "pipelines.promote"]
     if args.only:
         cmd += ["--only", *args.only]
@@ -491,7 +572,9 @@ def cmd_rollback(args: argparse.Namespace) -> int:
     from traffictwin.mlops import registry as reg
 
     try:
-        rec = reg.rollback(_registry_client(), args.model, args.version, log_path=_log_path(args.log))
+        rec = reg.rollback(
+            _registry_client(), args.model, args.version, log_path=_log_path(args.log)
+        )
     except reg.RegistryError as exc:
         raise CliError(str(exc)) from None
     print(f"{rec['name']}: champion v{rec['from_version']} -> v{rec['to_version']}")
@@ -502,7 +585,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     from traffictwin.mlops import registry as reg
 
     cl = _registry_client()
-    names = args.model or sorted(m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-"))
+    names = args.model or sorted(
+        m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-")
+    )
     rows = reg.status(cl, names)
     if args.json:
         print(json.dumps(rows, indent=2))
@@ -511,8 +596,10 @@ def cmd_status(args: argparse.Namespace) -> int:
         print("no traffictwin models registered yet (run `traffictwin promote` after `dvc repro`)")
     for r in rows:
         ch, cd = r["champion"], r["challenger"]
-        print(f"{r['name']:28s} champion {'v' + ch['version'] if ch else '-':>5s}   challenger "
-              f"{'v' + cd['version'] if cd else '-':>5s} ({(cd or {}).get('decision') or '-'})   history {r['history']}")
+        print(
+            f"{r['name']:28s} champion {'v' + ch['version'] if ch else '-':>5s}   challenger "
+            f"{'v' + cd['version'] if cd else '-':>5s} ({(cd or {}).get('decision') or '-'})   history {r['history']}"
+        )
     return 0
 
 
@@ -535,50 +622,124 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="traffictwin", description="traffictwin: cooperative OGM fusion and stereo risk — inference, registry, runs.")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads (default: torch's choice; 1 is fastest for single items on a busy machine)")
+    ap = argparse.ArgumentParser(
+        prog="traffictwin",
+        description="traffictwin: cooperative OGM fusion and stereo risk — inference, registry, runs.",
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch CPU threads (default: torch's choice; 1 is fastest for single items on a busy machine)",
+    )
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    f = sub.add_parser("fuse", help="fuse two evidential grid maps with the fusion network",
-                       description="Prealign MAP2 into MAP1's frame by the poses and fuse them with the network.")
+    f = sub.add_parser(
+        "fuse",
+        help="fuse two evidential grid maps with the fusion network",
+        description="Prealign MAP2 into MAP1's frame by the poses and fuse them with the network.",
+    )
     f.add_argument("map1", help=".npz with m_free, m_occ (H, W) float32 masses, ego map")
     f.add_argument("map2", help=".npz of the other vehicle's map, same size")
-    f.add_argument("--pose1", required=True, help="x,y,yaw of map 1's sensor in the world (m, m, rad)")
-    f.add_argument("--pose2", required=True, help="x,y,yaw of map 2's sensor in the world (m, m, rad)")
-    f.add_argument("--model", default="champion", help="champion | challenger (registry) or a model folder/.ckpt (default champion)")
-    f.add_argument("--config", default="D", choices=("A", "B", "C", "D"),
-                   help="pose-noise configuration of the registered model traffictwin-fusion-<config> (default D)")
-    f.add_argument("--cell", type=float, default=None, help="m per cell (default: the .npz 'cell', else the model's)")
-    f.add_argument("-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png")
+    f.add_argument(
+        "--pose1", required=True, help="x,y,yaw of map 1's sensor in the world (m, m, rad)"
+    )
+    f.add_argument(
+        "--pose2", required=True, help="x,y,yaw of map 2's sensor in the world (m, m, rad)"
+    )
+    f.add_argument(
+        "--model",
+        default="champion",
+        help="champion | challenger (registry) or a model folder/.ckpt (default champion)",
+    )
+    f.add_argument(
+        "--config",
+        default="D",
+        choices=("A", "B", "C", "D"),
+        help="pose-noise configuration of the registered model traffictwin-fusion-<config> (default D)",
+    )
+    f.add_argument(
+        "--cell",
+        type=float,
+        default=None,
+        help="m per cell (default: the .npz 'cell', else the model's)",
+    )
+    f.add_argument(
+        "-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png"
+    )
     f.set_defaults(func=cmd_fuse)
 
-    r = sub.add_parser("risk", help="stereo risk: ORB check, SGM disparity, predicted risk and THW verdict",
-                       description="LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV).")
+    r = sub.add_parser(
+        "risk",
+        help="stereo risk: ORB check, SGM disparity, predicted risk and THW verdict",
+        description="LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV).",
+    )
     r.add_argument("left", help="left image, or a folder of pairs")
     r.add_argument("right", nargs="?", default=None, help="right image (omit for a folder)")
-    r.add_argument("--speed", type=float, default=None, help="subject speed (m/s): gap = THW * speed; required by speed models")
-    r.add_argument("--model", default="champion", help="champion | challenger (registry traffictwin-risk) or a model folder")
-    r.add_argument("--thw-threshold", type=float, default=1.5, help="critical if THW below this (s), default 1.5")
-    r.add_argument("--params", default=None, help="params.yaml with risk_data.sgm/orb (default: the project's, if found)")
-    r.add_argument("-o", "--output", default=None, help="write the JSON (pair) or CSV (folder) here (default: stdout)")
+    r.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help="subject speed (m/s): gap = THW * speed; required by speed models",
+    )
+    r.add_argument(
+        "--model",
+        default="champion",
+        help="champion | challenger (registry traffictwin-risk) or a model folder",
+    )
+    r.add_argument(
+        "--thw-threshold",
+        type=float,
+        default=1.5,
+        help="critical if THW below this (s), default 1.5",
+    )
+    r.add_argument(
+        "--params",
+        default=None,
+        help="params.yaml with risk_data.sgm/orb (default: the project's, if found)",
+    )
+    r.add_argument(
+        "-o",
+        "--output",
+        default=None,
+        help="write the JSON (pair) or CSV (folder) here (default: stdout)",
+    )
     r.set_defaults(func=cmd_risk)
 
-    p = sub.add_parser("promote", help="register trained models and run the champion/challenger gate")
-    p.add_argument("--only", nargs="+", metavar="NAME", help="registered model names (default: all configured)")
+    p = sub.add_parser(
+        "promote", help="register trained models and run the champion/challenger gate"
+    )
+    p.add_argument(
+        "--only", nargs="+", metavar="NAME", help="registered model names (default: all configured)"
+    )
     p.add_argument("--dry-run", action="store_true", help="evaluate and decide, change nothing")
-    p.add_argument("--force", action="store_true", help="re-evaluate challengers that were already decided")
+    p.add_argument(
+        "--force", action="store_true", help="re-evaluate challengers that were already decided"
+    )
     p.add_argument("--json", action="store_true", help="print decisions as JSON")
     p.set_defaults(func=cmd_promote)
 
-    b = sub.add_parser("rollback", help="move the champion alias back (previous champion or --version)")
-    b.add_argument("--model", required=True, help="registered model name, e.g. traffictwin-fusion-D")
-    b.add_argument("--version", default=None, help="version to make champion (default: the previous champion)")
-    b.add_argument("--log", default=None, help="decision log (default reports/promotions.jsonl of the project)")
+    b = sub.add_parser(
+        "rollback", help="move the champion alias back (previous champion or --version)"
+    )
+    b.add_argument(
+        "--model", required=True, help="registered model name, e.g. traffictwin-fusion-D"
+    )
+    b.add_argument(
+        "--version", default=None, help="version to make champion (default: the previous champion)"
+    )
+    b.add_argument(
+        "--log", default=None, help="decision log (default reports/promotions.jsonl of the project)"
+    )
     b.set_defaults(func=cmd_rollback)
 
     s = sub.add_parser("status", help="champion / challenger of the registered models")
-    s.add_argument("--model", nargs="+", default=None, help="registered model names (default: all traffictwin-*)")
+    s.add_argument(
+        "--model",
+        nargs="+",
+        default=None,
+        help="registered model names (default: all traffictwin-*)",
+    )
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_status)
 
@@ -587,7 +748,11 @@ def build_parser() -> argparse.ArgumentParser:
     c = rsub.add_parser("compare", help="compare the runs of an experiment as a table")
     c.add_argument("--experiment", required=True, help="MLflow experiment (fusion | risk | ...)")
     c.add_argument("--metrics", nargs="+", default=None, help="metric names (default: all)")
-    c.add_argument("--uri", default=None, help="tracking URI (default: MLFLOW_TRACKING_URI or the project's mlflow.db)")
+    c.add_argument(
+        "--uri",
+        default=None,
+        help="tracking URI (default: MLFLOW_TRACKING_URI or the project's mlflow.db)",
+    )
     c.add_argument("--wide", action="store_true", help="full run ids and every tag column")
     c.add_argument("--csv", default=None, help="also write the table as CSV")
     c.set_defaults(func=cmd_runs_compare)

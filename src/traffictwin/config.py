@@ -11,8 +11,9 @@ work, naming the dotted key. :func:`get` remains for single checked lookups.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence, TypeVar
+from typing import Any, TypeVar
 
 import yaml
 from omegaconf import DictConfig, OmegaConf
@@ -26,7 +27,9 @@ class ConfigError(ValueError):
     """A parameter is missing, of the wrong type or out of range."""
 
 
-def compose_config(conf_dir: str | Path, overrides: Sequence[str] = (), config_name: str = "config") -> dict[str, Any]:
+def compose_config(
+    conf_dir: str | Path, overrides: Sequence[str] = (), config_name: str = "config"
+) -> dict[str, Any]:
     """Hydra composition of ``conf_dir`` with ``overrides``, resolved to plain containers."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -42,7 +45,9 @@ def dump_params(cfg: dict[str, Any], path: str | Path) -> None:
     """Write a composed config as params.yaml (atomically)."""
     from traffictwin.io.atomic import write_text_atomic
 
-    header = "# Generated from conf/ by `make params` (Hydra composition). Do not edit: edit conf/.\n"
+    header = (
+        "# Generated from conf/ by `make params` (Hydra composition). Do not edit: edit conf/.\n"
+    )
     write_text_atomic(path, header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=False))
 
 
@@ -96,7 +101,9 @@ def get(
         ok = any(_is_type(value, t) for t in types)
         if not ok:
             names = " or ".join(t.__name__ for t in types)
-            raise ConfigError(f"{source}: '{key}' must be {names}, got {value!r} ({type(value).__name__})")
+            raise ConfigError(
+                f"{source}: '{key}' must be {names}, got {value!r} ({type(value).__name__})"
+            )
         if float in types and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
     if min is not None and value < min:
@@ -139,8 +146,14 @@ def flatten(cfg: Any, prefix: str = "", sep: str = ".") -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- typed configuration
-def spec(default: Any = dataclasses.MISSING, *, min: float | None = None, max: float | None = None,
-         choices: Iterable[Any] | None = None, factory: Callable[[], Any] | None = None) -> Any:
+def spec(
+    default: Any = dataclasses.MISSING,
+    *,
+    min: float | None = None,
+    max: float | None = None,
+    choices: Iterable[Any] | None = None,
+    factory: Callable[[], Any] | None = None,
+) -> Any:
     """A dataclass field with bounds, checked by :func:`typed` (``min``/``max`` inclusive).
 
     ``factory`` builds mutable defaults (lists, dicts, nested dataclasses).
@@ -163,7 +176,9 @@ def typed(node: Any, schema: type[T], *, key: str = "", source: str | Path = "pa
     if OmegaConf.is_config(node):
         node = OmegaConf.to_container(node, resolve=True)
     if not isinstance(node, dict):
-        raise ConfigError(f"{source}: '{key or '<root>'}' must be a mapping, got {type(node).__name__}")
+        raise ConfigError(
+            f"{source}: '{key or '<root>'}' must be a mapping, got {type(node).__name__}"
+        )
     try:
         merged = OmegaConf.merge(OmegaConf.structured(schema), node)
         obj = OmegaConf.to_object(merged)
@@ -182,14 +197,24 @@ def _check_bounds(obj: Any, key: str, source: str | Path) -> None:
         for f in dataclasses.fields(obj):
             value = getattr(obj, f.name)
             full = f"{key}.{f.name}" if key else f.name
-            lo, hi, choices = f.metadata.get("min"), f.metadata.get("max"), f.metadata.get("choices")
-            if value is not None and not isinstance(value, (list, dict)) and not dataclasses.is_dataclass(value):
+            lo, hi, choices = (
+                f.metadata.get("min"),
+                f.metadata.get("max"),
+                f.metadata.get("choices"),
+            )
+            if (
+                value is not None
+                and not isinstance(value, (list, dict))
+                and not dataclasses.is_dataclass(value)
+            ):
                 if lo is not None and value < lo:
                     raise ConfigError(f"{source}: '{full}' must be >= {lo}, got {value!r}")
                 if hi is not None and value > hi:
                     raise ConfigError(f"{source}: '{full}' must be <= {hi}, got {value!r}")
                 if choices is not None and value not in choices:
-                    raise ConfigError(f"{source}: '{full}' must be one of {list(choices)}, got {value!r}")
+                    raise ConfigError(
+                        f"{source}: '{full}' must be one of {list(choices)}, got {value!r}"
+                    )
             elif isinstance(value, list):
                 for i, v in enumerate(value):
                     if lo is not None and isinstance(v, (int, float)) and v < lo:
@@ -197,7 +222,9 @@ def _check_bounds(obj: Any, key: str, source: str | Path) -> None:
                     if hi is not None and isinstance(v, (int, float)) and v > hi:
                         raise ConfigError(f"{source}: '{full}[{i}]' must be <= {hi}, got {v!r}")
                     if choices is not None and v not in choices:
-                        raise ConfigError(f"{source}: '{full}[{i}]' must be one of {list(choices)}, got {v!r}")
+                        raise ConfigError(
+                            f"{source}: '{full}[{i}]' must be one of {list(choices)}, got {v!r}"
+                        )
                     _check_bounds(v, f"{full}[{i}]", source)
             else:
                 _check_bounds(value, full, source)

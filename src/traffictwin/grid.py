@@ -23,7 +23,9 @@ class GridSpec:
 
     def __post_init__(self) -> None:
         if self.rows <= 0 or self.cols <= 0:
-            raise ValueError(f"grid rows/cols must be positive, got rows={self.rows}, cols={self.cols}")
+            raise ValueError(
+                f"grid rows/cols must be positive, got rows={self.rows}, cols={self.cols}"
+            )
         if self.cell <= 0:
             raise ValueError(f"grid cell size must be positive (m), got cell={self.cell}")
 

@@ -25,10 +25,11 @@ import logging
 import math
 import os
 import shutil
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -39,7 +40,16 @@ from traffictwin.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("32-true", "32", "64-true", "16-mixed", "bf16-mixed", "bf16-true", "16-true", "transformer-engine")
+PRECISIONS = (
+    "32-true",
+    "32",
+    "64-true",
+    "16-mixed",
+    "bf16-mixed",
+    "bf16-true",
+    "16-true",
+    "transformer-engine",
+)
 ACCELERATORS = ("cpu", "gpu", "cuda", "mps", "tpu", "auto")
 
 
@@ -53,11 +63,15 @@ class TrainerSettings:
     strategy: str = "auto"
     precision: str = "32-true"
     num_workers: int = 0
-    deterministic: bool | str | None = None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
+    deterministic: bool | str | None = (
+        None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
+    )
     num_threads: int = 0  # torch intra-op CPU threads; 0 = torch's default (all cores)
 
     @classmethod
-    def from_cfg(cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml") -> "TrainerSettings":
+    def from_cfg(
+        cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml"
+    ) -> TrainerSettings:
         """Read the ``trainer`` group (``cfg`` is the whole params tree)."""
         p = f"{key}." if key else ""
         devices = get(cfg, p + "devices", (int, str), source=source)
@@ -69,7 +83,9 @@ class TrainerSettings:
             devices=devices,
             num_nodes=get(cfg, p + "num_nodes", int, min=1, source=source),
             strategy=get(cfg, p + "strategy", str, source=source),
-            precision=str(get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)),
+            precision=str(
+                get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)
+            ),
             num_workers=get(cfg, p + "num_workers", int, min=0, source=source),
             deterministic=det,
             num_threads=get(cfg, p + "num_threads", int, min=0, default=0, source=source),
@@ -141,21 +157,33 @@ def build_trainer(
     return L.Trainer(**kw)
 
 
-def best_checkpoint(dirpath: str | Path, monitor: str = "val/loss", mode: str = "min", filename: str = "best") -> Any:
+def best_checkpoint(
+    dirpath: str | Path, monitor: str = "val/loss", mode: str = "min", filename: str = "best"
+) -> Any:
     """ModelCheckpoint keeping only the best epoch on ``monitor`` (no 'last' file)."""
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     return ModelCheckpoint(
-        dirpath=str(dirpath), filename=filename, monitor=monitor, mode=mode, save_top_k=1,
-        save_last=False, auto_insert_metric_name=False, enable_version_counter=False,
+        dirpath=str(dirpath),
+        filename=filename,
+        monitor=monitor,
+        mode=mode,
+        save_top_k=1,
+        save_last=False,
+        auto_insert_metric_name=False,
+        enable_version_counter=False,
     )
 
 
-def early_stopping(monitor: str = "val/loss", patience: int = 30, mode: str = "min", min_delta: float = 0.0) -> Any:
+def early_stopping(
+    monitor: str = "val/loss", patience: int = 30, mode: str = "min", min_delta: float = 0.0
+) -> Any:
     """EarlyStopping on ``monitor`` (checked after each validation)."""
     from lightning.pytorch.callbacks import EarlyStopping
 
-    return EarlyStopping(monitor=monitor, patience=int(patience), mode=mode, min_delta=min_delta, check_finite=True)
+    return EarlyStopping(
+        monitor=monitor, patience=int(patience), mode=mode, min_delta=min_delta, check_finite=True
+    )
 
 
 def _to_float(v: Any) -> float | None:
@@ -240,7 +268,9 @@ def tracked_run(
         return
     from traffictwin.mlops.tracking import start_run
 
-    with start_run(experiment, run_name, profile=profile, stage=stage, tags=tags, params=params) as run:
+    with start_run(
+        experiment, run_name, profile=profile, stage=stage, tags=tags, params=params
+    ) as run:
         yield run
 
 

@@ -37,7 +37,9 @@ def _check_pair(m1: Any, m2: Any) -> None:
                 f"dempster: {name} must have the channel axis of size 2 at -3 ((2,H,W) or (N,2,H,W)), got shape {tuple(m.shape)}"
             )
     if tuple(m1.shape[-2:]) != tuple(m2.shape[-2:]):
-        raise ValueError(f"dempster: grid shapes differ: m1 {tuple(m1.shape)} vs m2 {tuple(m2.shape)}")
+        raise ValueError(
+            f"dempster: grid shapes differ: m1 {tuple(m1.shape)} vs m2 {tuple(m2.shape)}"
+        )
 
 
 def dempster(m1: Any, m2: Any, eps: float = EPS) -> Any:
@@ -82,7 +84,9 @@ def pignistic(m: Any) -> Any:
     if not _is_torch(m):
         m = np.asarray(m)
     if m.ndim < 3 or m.shape[-3] != 2:
-        raise ValueError(f"pignistic: masses must have the channel axis of size 2 at -3, got shape {tuple(m.shape)}")
+        raise ValueError(
+            f"pignistic: masses must have the channel axis of size 2 at -3, got shape {tuple(m.shape)}"
+        )
     return m[..., 1, :, :] + (1 - m[..., 0, :, :] - m[..., 1, :, :]) / 2
 
 

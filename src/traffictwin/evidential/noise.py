@@ -21,18 +21,24 @@ Z98 = 2.326  # two-sided 98 % interval half-width of N(0, 1) (the 99 % quantile)
 def noise_sigmas(r: float, alpha_deg: float) -> tuple[float, float]:
     """Per-axis standard deviations: (sigma_xy in m, sigma_yaw in rad)."""
     if r < 0 or alpha_deg < 0:
-        raise ValueError(f"pose noise: r (m) and alpha (deg) must be >= 0, got r={r}, alpha={alpha_deg}")
+        raise ValueError(
+            f"pose noise: r (m) and alpha (deg) must be >= 0, got r={r}, alpha={alpha_deg}"
+        )
     return float(r) / Z98, float(np.deg2rad(alpha_deg)) / Z98
 
 
-def standard_normal_draws(seed: int, pair_ids: np.ndarray, draw: int | np.ndarray = 0) -> np.ndarray:
+def standard_normal_draws(
+    seed: int, pair_ids: np.ndarray, draw: int | np.ndarray = 0
+) -> np.ndarray:
     """Standard-normal ``(N, 3)`` draws, row i depending only on ``(seed, pair_ids[i], draw[i])``
     (``draw`` a scalar or an array broadcastable to ``pair_ids``)."""
     pair_ids = np.asarray(pair_ids, dtype=np.int64).reshape(-1)
     draws = np.broadcast_to(np.asarray(draw, dtype=np.int64), pair_ids.shape)
     out = np.empty((len(pair_ids), 3))
     for i, (pid, d) in enumerate(zip(pair_ids, draws)):
-        out[i] = np.random.default_rng(np.random.SeedSequence([int(seed), int(pid), int(d), 7003])).standard_normal(3)
+        out[i] = np.random.default_rng(
+            np.random.SeedSequence([int(seed), int(pid), int(d), 7003])
+        ).standard_normal(3)
     return out
 
 

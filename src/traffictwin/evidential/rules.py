@@ -54,11 +54,15 @@ def check_masses(m: np.ndarray, name: str = "m") -> np.ndarray:
     """
     m = np.asarray(m)
     if m.ndim < 3 or m.shape[-3] != 2:
-        raise ValueError(f"{name}: expected masses with a channel axis of size 2 at -3 ((2,H,W) or (N,2,H,W)), got shape {m.shape}")
+        raise ValueError(
+            f"{name}: expected masses with a channel axis of size 2 at -3 ((2,H,W) or (N,2,H,W)), got shape {m.shape}"
+        )
     if not np.issubdtype(m.dtype, np.floating):
         m = m.astype(np.float32)
     if m.size and (np.nanmin(m) < -_TOL or np.nanmax(m) > 1 + _TOL):
-        raise ValueError(f"{name}: masses must lie in [0, 1], got range [{np.nanmin(m):.4g}, {np.nanmax(m):.4g}]")
+        raise ValueError(
+            f"{name}: masses must lie in [0, 1], got range [{np.nanmin(m):.4g}, {np.nanmax(m):.4g}]"
+        )
     if m.size and np.nanmax(m[..., 0, :, :] + m[..., 1, :, :]) > 1 + _TOL:
         raise ValueError(f"{name}: m_F + m_O must be <= 1 in every cell")
     if np.isnan(m).any():

@@ -21,7 +21,11 @@ from traffictwin.sim.scene import se2_matrix
 def pixel_from_metric(grid: GridSpec) -> np.ndarray:
     """3x3 matrix: sensor-frame (x, y, 1) in m -> OpenCV pixel (col, row, 1)."""
     return np.array(
-        [[0.0, -1.0 / grid.cell, grid.cols / 2 - 0.5], [-1.0 / grid.cell, 0.0, grid.rows / 2 - 0.5], [0.0, 0.0, 1.0]]
+        [
+            [0.0, -1.0 / grid.cell, grid.cols / 2 - 0.5],
+            [-1.0 / grid.cell, 0.0, grid.rows / 2 - 0.5],
+            [0.0, 0.0, 1.0],
+        ]
     )
 
 
@@ -33,18 +37,28 @@ def warp_matrix(rel_pose: np.ndarray, grid: GridSpec) -> np.ndarray:
     return M[:2]
 
 
-def warp_masses(m: np.ndarray, rel_pose: np.ndarray, grid: GridSpec, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+def warp_masses(
+    m: np.ndarray, rel_pose: np.ndarray, grid: GridSpec, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
     """Warp mass grid ``m (2, H, W)`` (map 2's frame) into map 1's frame; see module docstring."""
     m = np.asarray(m)
     if m.shape != (2, grid.rows, grid.cols):
-        raise ValueError(f"warp_masses: expected masses of shape (2, {grid.rows}, {grid.cols}), got {m.shape}")
+        raise ValueError(
+            f"warp_masses: expected masses of shape (2, {grid.rows}, {grid.cols}), got {m.shape}"
+        )
     rel_pose = np.asarray(rel_pose, dtype=np.float64).reshape(-1)
     if rel_pose.shape != (3,) or not np.all(np.isfinite(rel_pose)):
-        raise ValueError(f"warp_masses: rel_pose must be finite (x m, y m, yaw rad), got {rel_pose}")
+        raise ValueError(
+            f"warp_masses: rel_pose must be finite (x m, y m, yaw rad), got {rel_pose}"
+        )
     src = np.ascontiguousarray(np.moveaxis(m.astype(np.float32, copy=False), 0, -1))
     out = cv2.warpAffine(
-        src, warp_matrix(rel_pose, grid), (grid.cols, grid.rows),
-        flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=(0.0, 0.0, 0.0, 0.0),
+        src,
+        warp_matrix(rel_pose, grid),
+        (grid.cols, grid.rows),
+        flags=interpolation | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(0.0, 0.0, 0.0, 0.0),
     )
     np.clip(out, 0.0, 1.0, out=out)
     s = out[..., 0] + out[..., 1]
@@ -56,4 +70,8 @@ def warp_masses(m: np.ndarray, rel_pose: np.ndarray, grid: GridSpec, interpolati
 
 def warp_batch(m: np.ndarray, rel_poses: np.ndarray, grid: GridSpec) -> np.ndarray:
     """:func:`warp_masses` over ``m (N, 2, H, W)`` with ``rel_poses (N, 3)``."""
-    return np.stack([warp_masses(mi, p, grid) for mi, p in zip(m, rel_poses)]) if len(m) else np.zeros_like(m, np.float32)
+    return (
+        np.stack([warp_masses(mi, p, grid) for mi, p in zip(m, rel_poses)])
+        if len(m)
+        else np.zeros_like(m, np.float32)
+    )

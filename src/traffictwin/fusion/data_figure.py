@@ -26,7 +26,7 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     return np.clip(f * FREE + o * OCC + u * UNKNOWN, 0.0, 1.0)
 
 
-def pick_samples(ds: "Any", n: int) -> list[dict[str, Any]]:
+def pick_samples(ds: Any, n: int) -> list[dict[str, Any]]:
     """The first pair of the first ``n`` scenarios of a ``data/fusion`` dataset (consecutive
     scenarios use different road templates)."""
     from traffictwin.sim.world import TEMPLATES
@@ -45,7 +45,10 @@ def pick_samples(ds: "Any", n: int) -> list[dict[str, Any]]:
 
 
 def plot_fusion_samples(
-    path: str | Path, samples: list[dict[str, np.ndarray]], grid: GridSpec, title: str = "fusion data samples"
+    path: str | Path,
+    samples: list[dict[str, np.ndarray]],
+    grid: GridSpec,
+    title: str = "fusion data samples",
 ) -> None:
     """Write a PNG with one row per sample: map 1, map 2, label (in map 1's frame).
 
@@ -61,26 +64,48 @@ def plot_fusion_samples(
     n = len(samples)
     if n == 0:
         raise ValueError("plot_fusion_samples: no samples given")
-    ext = [-grid.width / 2, grid.width / 2, -grid.length / 2, grid.length / 2]  # y to the left: flip x axis
+    ext = [
+        -grid.width / 2,
+        grid.width / 2,
+        -grid.length / 2,
+        grid.length / 2,
+    ]  # y to the left: flip x axis
     fig, axes = plt.subplots(n, 3, figsize=(9, 4.6 * n), squeeze=False)
     for i, s in enumerate(samples):
         p1, p2 = s["pose1"], s["pose2"]
         head = f"{s.get('template', '')} pair {int(s.get('pair_id', i))}".strip()
         for j, (key, name, pose) in enumerate(
-            (("map1", "input map 1", p1), ("map2", "input map 2", p2), ("label", "label (fused, map 1's frame)", None))
+            (
+                ("map1", "input map 1", p1),
+                ("map2", "input map 2", p2),
+                ("label", "label (fused, map 1's frame)", None),
+            )
         ):
             ax = axes[i, j]
-            ax.imshow(masses_to_rgb(s[key]), extent=(ext[1], ext[0], ext[2], ext[3]), interpolation="nearest")
+            ax.imshow(
+                masses_to_rgb(s[key]),
+                extent=(ext[1], ext[0], ext[2], ext[3]),
+                interpolation="nearest",
+            )
             ax.plot(0, 0, marker=(3, 0, 0), color="k", markersize=8)
             if pose is not None:
-                ax.set_title(f"{name}\npose x={pose[0]:.1f} m, y={pose[1]:.1f} m, yaw={np.rad2deg(pose[2]):.0f} deg", fontsize=8)
+                ax.set_title(
+                    f"{name}\npose x={pose[0]:.1f} m, y={pose[1]:.1f} m, yaw={np.rad2deg(pose[2]):.0f} deg",
+                    fontsize=8,
+                )
             else:
                 ax.set_title(name, fontsize=8)
             ax.set_xlabel("y (m, left)", fontsize=7)
             ax.set_ylabel("x (m, forward)", fontsize=7)
             ax.tick_params(labelsize=6)
-        axes[i, 0].text(-0.35, 0.5, head, transform=axes[i, 0].transAxes, rotation=90, va="center", fontsize=8)
-    handles = [Patch(color=FREE, label="free"), Patch(color=OCC, label="occupied"), Patch(color=UNKNOWN, label="unknown")]
+        axes[i, 0].text(
+            -0.35, 0.5, head, transform=axes[i, 0].transAxes, rotation=90, va="center", fontsize=8
+        )
+    handles = [
+        Patch(color=FREE, label="free"),
+        Patch(color=OCC, label="occupied"),
+        Patch(color=UNKNOWN, label="unknown"),
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0.03, 0.03, 1, 0.97))

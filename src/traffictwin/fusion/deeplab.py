@@ -13,8 +13,9 @@ Output: ``(N, 2, H, W)`` evidences (channel 0 free, 1 occupied).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -47,7 +48,9 @@ class DeepLabSpec:
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"deeplab {name} must be >= 1, got {getattr(self, name)}")
         if not self.aspp_rates or any(int(r) < 1 for r in self.aspp_rates):
-            raise ValueError(f"deeplab aspp_rates must be positive integers, got {self.aspp_rates!r}")
+            raise ValueError(
+                f"deeplab aspp_rates must be positive integers, got {self.aspp_rates!r}"
+            )
         if not 0.0 <= self.aspp_dropout < 1.0:
             raise ValueError(f"deeplab aspp_dropout must be in [0, 1), got {self.aspp_dropout}")
         object.__setattr__(self, "aspp_rates", tuple(int(r) for r in self.aspp_rates))
@@ -63,7 +66,7 @@ class DeepLabSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "DeepLabSpec":
+    def from_dict(cls, d: Mapping[str, Any]) -> DeepLabSpec:
         d = dict(d)
         bb = dict(d.pop("backbone", {}))
         for k in ("layers", "dilate"):
@@ -76,7 +79,11 @@ class DeepLabSpec:
 
 def _conv_bn_relu(cin: int, cout: int, k: int, dilation: int = 1) -> nn.Sequential:
     pad = dilation * (k // 2)
-    return nn.Sequential(nn.Conv2d(cin, cout, k, padding=pad, dilation=dilation, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, k, padding=pad, dilation=dilation, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
 
 
 class ASPPPooling(nn.Module):
@@ -99,10 +106,17 @@ class ASPP(nn.Module):
 
     def __init__(self, cin: int, cout: int, rates: tuple[int, ...], dropout: float) -> None:
         super().__init__()
-        branches = [_conv_bn_relu(cin, cout, 1)] + [_conv_bn_relu(cin, cout, 3, r) for r in rates] + [ASPPPooling(cin, cout)]
+        branches = (
+            [_conv_bn_relu(cin, cout, 1)]
+            + [_conv_bn_relu(cin, cout, 3, r) for r in rates]
+            + [ASPPPooling(cin, cout)]
+        )
         self.branches = nn.ModuleList(branches)
         self.project = nn.Sequential(
-            nn.Conv2d(cout * len(branches), cout, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.Dropout(dropout)
+            nn.Conv2d(cout * len(branches), cout, 1, bias=False),
+            nn.BatchNorm2d(cout),
+            nn.ReLU(inplace=True),
+            nn.Dropout(dropout),
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -134,9 +148,13 @@ class DeepLabV3Plus(nn.Module):
         h, w = x.shape[-2:]
         os_ = self.spec.output_stride
         if h % os_ or w % os_:
-            raise ValueError(f"input height/width ({h}, {w}) must be divisible by the output stride {os_}")
+            raise ValueError(
+                f"input height/width ({h}, {w}) must be divisible by the output stride {os_}"
+            )
         if x.shape[-3] != self.spec.backbone.in_channels:
-            raise ValueError(f"input has {x.shape[-3]} channels, the network expects {self.spec.backbone.in_channels}")
+            raise ValueError(
+                f"input has {x.shape[-3]} channels, the network expects {self.spec.backbone.in_channels}"
+            )
         low, high = self.backbone(x)
         y = self.aspp(high)
         y = F.interpolate(y, size=low.shape[-2:], mode="bilinear", align_corners=False)

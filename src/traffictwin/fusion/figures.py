@@ -8,8 +8,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -80,8 +80,15 @@ def kld_boxplot(
         if not data:
             continue
         st = _style(meth)
-        bp = ax.boxplot(data, positions=pos, widths=width * 0.85, patch_artist=True, showfliers=True,
-                        flierprops={"markersize": 2, "markeredgecolor": st["color"]}, medianprops={"color": "black"})
+        bp = ax.boxplot(
+            data,
+            positions=pos,
+            widths=width * 0.85,
+            patch_artist=True,
+            showfliers=True,
+            flierprops={"markersize": 2, "markeredgecolor": st["color"]},
+            medianprops={"color": "black"},
+        )
         for b in bp["boxes"]:
             b.set_facecolor(st["color"])
             b.set_alpha(0.6)
@@ -92,7 +99,9 @@ def kld_boxplot(
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    ax.legend(
+        handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0
+    )
     return _save(fig, path)
 
 
@@ -136,8 +145,12 @@ def qualitative_grid(
     plt = _plt()
     names = list(rows)
     h, w = np.asarray(rows[names[0]][0]).shape[-2:]
-    fig, axes = plt.subplots(len(names), len(configs), figsize=(2.3 * len(configs), 2.3 * len(names) * h / w + 0.6),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(names),
+        len(configs),
+        figsize=(2.3 * len(configs), 2.3 * len(names) * h / w + 0.6),
+        squeeze=False,
+    )
     for r, name in enumerate(names):
         for c, cfg in enumerate(configs):
             ax = axes[r][c]

@@ -8,7 +8,8 @@ stage ``evaluate_fusion`` (layout: ``metrics["test"][cfg][method][metric]`` with
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 __all__ = ["fusion_findings"]
 
@@ -35,11 +36,18 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
     configs: Sequence[str] = sorted(test)
     if not configs:
         return "## Fusion findings\n\nNo configuration was evaluated.\n"
-    lines = ["## Fusion findings", "", f"KLD = mean over test pairs of `{kld_key.removesuffix('_mean')}`; Dice over label-known cells.", ""]
+    lines = [
+        "## Fusion findings",
+        "",
+        f"KLD = mean over test pairs of `{kld_key.removesuffix('_mean')}`; Dice over label-known cells.",
+        "",
+    ]
 
     # table
-    lines += ["| config | naive KLD | network KLD | registered KLD | naive Dice occ | network Dice occ | registered Dice occ |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines += [
+        "| config | naive KLD | network KLD | registered KLD | naive Dice occ | network Dice occ | registered Dice occ |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for c in configs:
         lines.append(
             f"| {c} | {_fmt(_get(metrics, c, 'naive', kld_key))} | {_fmt(_get(metrics, c, 'dnn', kld_key))} | "
@@ -50,10 +58,20 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
 
     # 1. network vs naive from the first noisy configuration on
     noisy = configs[1:]
-    wins = [c for c in noisy if _get(metrics, c, "dnn", kld_key) < _get(metrics, c, "naive", kld_key)]
-    dice_wins = [c for c in noisy if _get(metrics, c, "dnn", "dice_occ") > _get(metrics, c, "naive", "dice_occ")]
+    wins = [
+        c for c in noisy if _get(metrics, c, "dnn", kld_key) < _get(metrics, c, "naive", kld_key)
+    ]
+    dice_wins = [
+        c
+        for c in noisy
+        if _get(metrics, c, "dnn", "dice_occ") > _get(metrics, c, "naive", "dice_occ")
+    ]
     if noisy:
-        verdict = "reproduces" if len(wins) == len(noisy) else ("partly reproduces" if wins else "does not reproduce")
+        verdict = (
+            "reproduces"
+            if len(wins) == len(noisy)
+            else ("partly reproduces" if wins else "does not reproduce")
+        )
         lines.append(
             f"- **Network vs naive with pose noise ({', '.join(noisy)}):** the network has the lower mean KLD in "
             f"{len(wins)}/{len(noisy)} configurations ({', '.join(wins) or 'none'}) and the higher occupied Dice in "
@@ -61,16 +79,25 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
             f"network beats the naive fusion from configuration B on."
         )
         spread = [
-            c for c in noisy
+            c
+            for c in noisy
             if (_get(metrics, c, "dnn", "kld_fo_q75") - _get(metrics, c, "dnn", "kld_fo_q25"))
             < (_get(metrics, c, "naive", "kld_fo_q75") - _get(metrics, c, "naive", "kld_fo_q25"))
         ]
         lines.append(
             f"- **Spread:** the network's KLD interquartile range is narrower than naive's in {len(spread)}/{len(noisy)} "
-            f"noisy configurations (the paper: the network \"varies much less\")."
+            f'noisy configurations (the paper: the network "varies much less").'
         )
-        prec = [c for c in noisy if _get(metrics, c, "dnn", "precision_occ") < _get(metrics, c, "naive", "precision_occ")]
-        rec = [c for c in noisy if _get(metrics, c, "dnn", "recall_free") < _get(metrics, c, "naive", "recall_free")]
+        prec = [
+            c
+            for c in noisy
+            if _get(metrics, c, "dnn", "precision_occ") < _get(metrics, c, "naive", "precision_occ")
+        ]
+        rec = [
+            c
+            for c in noisy
+            if _get(metrics, c, "dnn", "recall_free") < _get(metrics, c, "naive", "recall_free")
+        ]
         lines.append(
             f"- **Over-estimated occupancy:** occupied precision of the network is below naive's in {len(prec)}/{len(noisy)} "
             f"and free recall in {len(rec)}/{len(noisy)} noisy configurations (the paper reports both lower, from o_w = 3)."
@@ -78,17 +105,26 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
 
     # 1b. the second KLD definition, and what a negative KLD(a) means
     kb = "kld_fou_mean"
-    b_known = [c for c in configs if math.isfinite(_get(metrics, c, "dnn", kb)) and math.isfinite(_get(metrics, c, "naive", kb))]
+    b_known = [
+        c
+        for c in configs
+        if math.isfinite(_get(metrics, c, "dnn", kb))
+        and math.isfinite(_get(metrics, c, "naive", kb))
+    ]
     if b_known:
         b_wins = [c for c in b_known if _get(metrics, c, "dnn", kb) < _get(metrics, c, "naive", kb)]
         lines.append(
             f"- **KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in {len(b_wins)}/{len(b_known)} "
             f"configurations ({', '.join(b_wins) or 'none'}): "
             + ", ".join(
-                f"{c} {_fmt(_get(metrics, c, 'dnn', kb))} vs naive {_fmt(_get(metrics, c, 'naive', kb))}" for c in b_known
+                f"{c} {_fmt(_get(metrics, c, 'dnn', kb))} vs naive {_fmt(_get(metrics, c, 'naive', kb))}"
+                for c in b_known
             )
             + ". Mean u of the network vs naive: "
-            + ", ".join(f"{c} {_fmt(_get(metrics, c, 'dnn', 'u_mean'))} vs {_fmt(_get(metrics, c, 'naive', 'u_mean'))}" for c in b_known)
+            + ", ".join(
+                f"{c} {_fmt(_get(metrics, c, 'dnn', 'u_mean'))} vs {_fmt(_get(metrics, c, 'naive', 'u_mean'))}"
+                for c in b_known
+            )
             + "."
         )
     negative = [c for c in configs if _get(metrics, c, "dnn", kld_key) < 0]
@@ -119,15 +155,22 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
         if not math.isfinite(kr):
             continue
         kn, kd = _get(metrics, c, "naive", kld_key), _get(metrics, c, "dnn", kld_key)
-        pos = "between naive and the network" if min(kn, kd) <= kr <= max(kn, kd) else (
-            "better than both" if kr < min(kn, kd) else "worse than both")
+        pos = (
+            "between naive and the network"
+            if min(kn, kd) <= kr <= max(kn, kd)
+            else ("better than both" if kr < min(kn, kd) else "worse than both")
+        )
         reg_lines.append(
             f"{c}: KLD {_fmt(kr)} ({pos}), success {_fmt(100 * _get(metrics, c, 'registered', 'success_rate'), 0)} %, "
             f"residual translation median {_fmt(_get(metrics, c, 'registered', 'residual_trans_m_median'), 2)} m "
             f"(noisy pose {_fmt(_get(metrics, c, 'registered', 'noisy_trans_m_median'), 2)} m)"
         )
     if reg_lines:
-        lines.append("- **Classical registration (Fourier–Mellin + ECC, then Dempster):** " + "; ".join(reg_lines) + ".")
+        lines.append(
+            "- **Classical registration (Fourier–Mellin + ECC, then Dempster):** "
+            + "; ".join(reg_lines)
+            + "."
+        )
 
     # 4. uncertainty
     au = {c: _get(metrics, c, "dnn", "u_auroc") for c in configs}
@@ -135,10 +178,14 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
     if finite:
         good = [c for c, v in finite.items() if v > 0.5]
         lines.append(
-            f"- **Does u flag errors?** AUROC of the network's u for wrongly classified cells: "
+            "- **Does u flag errors?** AUROC of the network's u for wrongly classified cells: "
             + ", ".join(f"{c} {_fmt(v)}" for c, v in finite.items())
             + f" — {'above' if len(good) == len(finite) else 'not always above'} chance (0.5)"
-            + (f" in {len(good)}/{len(finite)} configurations." if len(good) != len(finite) else ".")
+            + (
+                f" in {len(good)}/{len(finite)} configurations."
+                if len(good) != len(finite)
+                else "."
+            )
         )
 
     # 5. cross table
@@ -152,5 +199,7 @@ def fusion_findings(metrics: Mapping[str, Any], kld_key: str = "kld_fo_mean") ->
                 best = min(col, key=col.get)
                 own_best.append(f"{c}: {best}")
         if own_best:
-            lines.append("- **Cross table (lowest KLD network per test set):** " + ", ".join(own_best) + ".")
+            lines.append(
+                "- **Cross table (lowest KLD network per test set):** " + ", ".join(own_best) + "."
+            )
     return "\n".join(lines) + "\n"

@@ -37,12 +37,16 @@ def evidence_to_masses(e: Any) -> tuple[Any, Any]:
     """
     if isinstance(e, torch.Tensor):
         if e.shape[-3] != NUM_CLASSES:
-            raise ValueError(f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {tuple(e.shape)}")
+            raise ValueError(
+                f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {tuple(e.shape)}"
+            )
         s = (e + 1.0).sum(dim=-3, keepdim=True)
         return e / s, (NUM_CLASSES / s).squeeze(-3)
     arr = np.asarray(e)
     if arr.ndim < 3 or arr.shape[-3] != NUM_CLASSES:
-        raise ValueError(f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {arr.shape}")
+        raise ValueError(
+            f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {arr.shape}"
+        )
     if np.any(arr < 0):
         raise ValueError("evidence must be >= 0 (the network ends in a ReLU)")
     s = (arr + 1.0).sum(axis=-3, keepdims=True)
@@ -68,7 +72,9 @@ def kl_dirichlet_uniform(alpha: torch.Tensor) -> torch.Tensor:
     )
 
 
-def evidential_loss_map(e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0) -> torch.Tensor:
+def evidential_loss_map(
+    e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0
+) -> torch.Tensor:
     """Per-cell loss ``(..., H, W)`` of eqs. (6)-(7) (+ ``kl_weight`` x the KL regulariser).
 
     ``e``: evidences ``(..., 2, H, W)``; ``y``: label masses ``(..., 2, H, W)`` (free, occupied).
@@ -77,8 +83,11 @@ def evidential_loss_map(e: torch.Tensor, y: torch.Tensor, occupied_weight: float
         raise ValueError(f"evidence shape {tuple(e.shape)} != label shape {tuple(y.shape)}")
     alpha, s, p = dirichlet_params(e)
     per = ((y - p) ** 2 + p * (1.0 - p) / (s + 1.0)).sum(dim=-3)
-    w = torch.where(y[..., 1, :, :] > 0.5, torch.as_tensor(float(occupied_weight), dtype=per.dtype, device=per.device),
-                    torch.ones((), dtype=per.dtype, device=per.device))
+    w = torch.where(
+        y[..., 1, :, :] > 0.5,
+        torch.as_tensor(float(occupied_weight), dtype=per.dtype, device=per.device),
+        torch.ones((), dtype=per.dtype, device=per.device),
+    )
     loss = w * per
     if kl_weight > 0:
         alpha_t = y + (1.0 - y) * alpha
@@ -86,7 +95,9 @@ def evidential_loss_map(e: torch.Tensor, y: torch.Tensor, occupied_weight: float
     return loss
 
 
-def evidential_loss(e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0) -> torch.Tensor:
+def evidential_loss(
+    e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 3.0, kl_weight: float = 0.0
+) -> torch.Tensor:
     """Mean over cells (and batch) of :func:`evidential_loss_map`."""
     return evidential_loss_map(e, y, occupied_weight, kl_weight).mean()
 
@@ -129,10 +140,16 @@ def confusion_counts(pred_m: torch.Tensor, label_m: torch.Tensor) -> torch.Tenso
     lab_free = label_m[..., 0, :, :] > 0.5
     pred_occ = p_o > 0.5
     pred_free = p_o < 0.5
-    out = torch.stack([
-        (pred_occ & lab_occ).sum(), (pred_occ & lab_free).sum(), (~pred_occ & lab_occ).sum(),
-        (pred_free & lab_free).sum(), (pred_free & lab_occ).sum(), (~pred_free & lab_free).sum(),
-    ])
+    out = torch.stack(
+        [
+            (pred_occ & lab_occ).sum(),
+            (pred_occ & lab_free).sum(),
+            (~pred_occ & lab_occ).sum(),
+            (pred_free & lab_free).sum(),
+            (pred_free & lab_occ).sum(),
+            (~pred_free & lab_free).sum(),
+        ]
+    )
     return out.to(torch.float64)
 
 

@@ -16,14 +16,14 @@ map 1's frame, so all methods see the same noise draws:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from traffictwin.grid import GridSpec
-
 from traffictwin.fusion.registration import RegistrationParams, RegistrationResult, register_pair
+from traffictwin.grid import GridSpec
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -31,8 +31,15 @@ if TYPE_CHECKING:
     from traffictwin.fusion.metrics import UncertaintyAUROC
 
 __all__ = [
-    "PREALIGNED_METHODS", "METHODS", "fuse_prealigned", "registered_fusion", "RegisteredBatch",
-    "EvalSettings", "evaluate_predictions", "evaluate_prealigned", "evaluate_registered",
+    "PREALIGNED_METHODS",
+    "METHODS",
+    "fuse_prealigned",
+    "registered_fusion",
+    "RegisteredBatch",
+    "EvalSettings",
+    "evaluate_predictions",
+    "evaluate_prealigned",
+    "evaluate_registered",
 ]
 
 PREALIGNED_METHODS = ("ego", "naive", "naive-yager", "naive-cautious")
@@ -52,14 +59,18 @@ def _rule(method: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         from traffictwin.evidential.rules import cautious
 
         return cautious
-    raise ValueError(f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})")
+    raise ValueError(
+        f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})"
+    )
 
 
 def fuse_prealigned(inputs: np.ndarray, method: str) -> np.ndarray:
     """Fuse prealigned inputs ``(N, 4, H, W)`` = [m_F1, m_O1, m_F2', m_O2'] with ``method`` → ``(N, 2, H, W)`` float32."""
     inputs = np.asarray(inputs)
     if inputs.ndim != 4 or inputs.shape[1] != 4:
-        raise ValueError(f"fuse_prealigned: inputs must have shape (N, 4, H, W), got {inputs.shape}")
+        raise ValueError(
+            f"fuse_prealigned: inputs must have shape (N, 4, H, W), got {inputs.shape}"
+        )
     m1 = inputs[:, 0:2]
     if method == "ego":
         return np.ascontiguousarray(m1, dtype=np.float32)
@@ -111,7 +122,13 @@ def registered_fusion(
         warped = warp_masses(map2[i], r.pose, grid)
         out[i] = dempster(map1[i], warped)
         secs[i] = time.perf_counter() - t0
-        poses[i], est[i], acc[i], ccn[i], cce[i] = r.pose, r.estimate, r.accepted, r.cc_noisy, r.cc_est
+        poses[i], est[i], acc[i], ccn[i], cce[i] = (
+            r.pose,
+            r.estimate,
+            r.accepted,
+            r.cc_noisy,
+            r.cc_est,
+        )
     return RegisteredBatch(out, poses, est, acc, ccn, cce, secs)
 
 
@@ -132,7 +149,7 @@ def _batches(n: int, size: int):
         yield slice(s, min(n, s + size))
 
 
-def _rows(metrics: dict[str, np.ndarray], **cols) -> "pd.DataFrame":
+def _rows(metrics: dict[str, np.ndarray], **cols) -> pd.DataFrame:
     import pandas as pd
 
     frame = pd.DataFrame(metrics)
@@ -146,7 +163,7 @@ def evaluate_predictions(
     predict: Callable[[slice], np.ndarray],
     settings: EvalSettings,
     n: int | None = None,
-) -> tuple["pd.DataFrame", "UncertaintyAUROC"]:
+) -> tuple[pd.DataFrame, UncertaintyAUROC]:
     """Metrics of ``predict(batch_slice) → (B, 2, H, W)`` masses against ``label[batch_slice]``.
 
     Returns per-sample metrics (one row per sample, plus ``ms`` = the prediction's wall time per
@@ -164,7 +181,9 @@ def evaluate_predictions(
         pred = np.asarray(predict(sl))
         ms = 1000.0 * (time.perf_counter() - t0) / (sl.stop - sl.start)
         if pred.shape != label[sl].shape:
-            raise ValueError(f"prediction shape {pred.shape} != label shape {label[sl].shape} for samples {sl.start}:{sl.stop}")
+            raise ValueError(
+                f"prediction shape {pred.shape} != label shape {label[sl].shape} for samples {sl.start}:{sl.stop}"
+            )
         auroc.update(label[sl], pred)
         parts.append(_rows(per_sample_metrics(label[sl], pred, settings.kld_eps), ms=ms))
     return pd.concat(parts, ignore_index=True), auroc
@@ -172,10 +191,12 @@ def evaluate_predictions(
 
 def evaluate_prealigned(
     inputs: np.ndarray, label: np.ndarray, method: str, settings: EvalSettings
-) -> tuple["pd.DataFrame", "UncertaintyAUROC"]:
+) -> tuple[pd.DataFrame, UncertaintyAUROC]:
     """Per-sample metrics of a prealigned baseline (``ego`` / ``naive`` / ``naive-yager`` / ``naive-cautious``)."""
     if method not in PREALIGNED_METHODS:
-        raise ValueError(f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})")
+        raise ValueError(
+            f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})"
+        )
     return evaluate_predictions(label, lambda sl: fuse_prealigned(inputs[sl], method), settings)
 
 
@@ -188,7 +209,7 @@ def evaluate_registered(
     grid: GridSpec,
     params: RegistrationParams,
     settings: EvalSettings,
-) -> tuple["pd.DataFrame", "UncertaintyAUROC"]:
+) -> tuple[pd.DataFrame, UncertaintyAUROC]:
     """Per-sample metrics of ``registered`` plus residual pose errors and success flags.
 
     Extra columns: ``reg_accepted``, ``reg_trans_err_m`` / ``reg_rot_err_deg`` (residual error of the

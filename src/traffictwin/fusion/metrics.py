@@ -28,8 +28,8 @@ per-sample Dice). :func:`pose_error_bins` bins samples by the actual pose error 
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -127,7 +127,9 @@ def confusion_counts(label: np.ndarray, pred: np.ndarray) -> dict[str, np.ndarra
     }
 
 
-def prf(tp: np.ndarray | float, fp: np.ndarray | float, fn: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def prf(
+    tp: np.ndarray | float, fp: np.ndarray | float, fn: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Precision, recall, Dice from counts (NaN where a denominator is 0)."""
     tp, fp, fn = (np.asarray(v, dtype=np.float64) for v in (tp, fp, fn))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -137,7 +139,9 @@ def prf(tp: np.ndarray | float, fp: np.ndarray | float, fn: np.ndarray | float) 
     return precision, recall, dice
 
 
-def per_sample_metrics(label: np.ndarray, pred: np.ndarray, eps: float = EPS) -> dict[str, np.ndarray]:
+def per_sample_metrics(
+    label: np.ndarray, pred: np.ndarray, eps: float = EPS
+) -> dict[str, np.ndarray]:
     """Every per-sample metric as arrays ``(N,)``: KLDs, counts, P/R/Dice per class, mean u."""
     y, p = _pair(label, pred)
     out: dict[str, np.ndarray] = {"kld_fo": kld_fo(y, p, eps), "kld_fou": kld_fou(y, p, eps)}
@@ -152,7 +156,9 @@ def per_sample_metrics(label: np.ndarray, pred: np.ndarray, eps: float = EPS) ->
     out["u_mean"] = u.mean(axis=(1, 2))
     with np.errstate(invalid="ignore", divide="ignore"):
         out["u_mean_known"] = np.where(
-            known.sum(axis=(1, 2)) > 0, (u * known).sum(axis=(1, 2)) / np.maximum(known.sum(axis=(1, 2)), 1), np.nan
+            known.sum(axis=(1, 2)) > 0,
+            (u * known).sum(axis=(1, 2)) / np.maximum(known.sum(axis=(1, 2)), 1),
+            np.nan,
         )
     return out
 
@@ -231,7 +237,11 @@ def aggregate(samples: Mapping[str, Sequence[float] | np.ndarray]) -> dict[str, 
     for c in CLASSES:
         tp, fp, fn = (float(np.sum(samples[f"{k}_{c}"])) for k in ("tp", "fp", "fn"))
         pr, rc, dc = prf(tp, fp, fn)
-        out[f"precision_{c}"], out[f"recall_{c}"], out[f"dice_{c}"] = float(pr), float(rc), float(dc)
+        out[f"precision_{c}"], out[f"recall_{c}"], out[f"dice_{c}"] = (
+            float(pr),
+            float(rc),
+            float(dc),
+        )
         d = _finite(samples[f"dice_{c}"])
         out[f"dice_{c}_sample_mean"] = float(d.mean()) if d.size else float("nan")
     for k in ("u_mean", "u_mean_known"):
@@ -255,7 +265,9 @@ def pose_error_bins(
     re = np.asarray(list(rot_edges_deg), dtype=np.float64)
     for name, e in (("trans_edges_m", te), ("rot_edges_deg", re)):
         if e.size < 1 or e[0] != 0 or np.any(np.diff(e) <= 0):
-            raise ValueError(f"pose_error_bins: {name} must start at 0 and increase strictly, got {e.tolist()}")
+            raise ValueError(
+                f"pose_error_bins: {name} must start at 0 and increase strictly, got {e.tolist()}"
+            )
     t = np.hypot(noise[:, 0], noise[:, 1])
     r = np.degrees(np.abs(noise[:, 2]))
     tb = np.searchsorted(te, t, side="right") - 1

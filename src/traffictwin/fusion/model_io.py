@@ -10,8 +10,9 @@ architecture, grid), and fails with a message naming the file and the mismatch o
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,22 +30,30 @@ class FusionModelError(RuntimeError):
 
 def _describe_arch(a: Mapping[str, Any]) -> str:
     bb = a.get("backbone", {})
-    return (f"{bb.get('block')} ResNet layers={bb.get('layers')} base_width={bb.get('base_width')}, "
-            f"aspp={a.get('aspp_channels')}, decoder={a.get('decoder_channels')}")
+    return (
+        f"{bb.get('block')} ResNet layers={bb.get('layers')} base_width={bb.get('base_width')}, "
+        f"aspp={a.get('aspp_channels')}, decoder={a.get('decoder_channels')}"
+    )
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint dict (tensors on CPU); errors name the file."""
     path = Path(path)
     if not path.exists():
-        raise FusionModelError(f"{path}: fusion checkpoint not found (run `dvc repro train_fusion` first)")
+        raise FusionModelError(
+            f"{path}: fusion checkpoint not found (run `dvc repro train_fusion` first)"
+        )
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
-        raise FusionModelError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+        raise FusionModelError(
+            f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
+        ) from None
     info = ck.get("traffictwin") if isinstance(ck, dict) else None
     if not isinstance(info, dict) or info.get("format") != CKPT_FORMAT or "state_dict" not in ck:
-        raise FusionModelError(f"{path}: not a traffictwin fusion checkpoint (expected format '{CKPT_FORMAT}')")
+        raise FusionModelError(
+            f"{path}: not a traffictwin fusion checkpoint (expected format '{CKPT_FORMAT}')"
+        )
     return ck
 
 
@@ -88,15 +97,25 @@ def load_fusion_model(
         )
     arch = info.get("architecture")
     if expected_architecture is not None:
-        exp = expected_architecture.as_dict() if isinstance(expected_architecture, DeepLabSpec) else \
-            DeepLabSpec.from_dict(expected_architecture).as_dict()
+        exp = (
+            expected_architecture.as_dict()
+            if isinstance(expected_architecture, DeepLabSpec)
+            else DeepLabSpec.from_dict(expected_architecture).as_dict()
+        )
         if arch != exp:
             raise FusionModelError(
                 f"{path}: architecture mismatch: checkpoint has {_describe_arch(arch or {})}, expected {_describe_arch(exp)}"
             )
     if expected_grid is not None:
-        g = expected_grid if isinstance(expected_grid, Mapping) else \
-            {"rows": expected_grid.rows, "cols": expected_grid.cols, "cell": expected_grid.cell}
+        g = (
+            expected_grid
+            if isinstance(expected_grid, Mapping)
+            else {
+                "rows": expected_grid.rows,
+                "cols": expected_grid.cols,
+                "cell": expected_grid.cell,
+            }
+        )
         got = info.get("grid", {})
         if any(abs(float(got.get(k, -1)) - float(g[k])) > 1e-9 for k in ("rows", "cols", "cell")):
             raise FusionModelError(f"{path}: trained on grid {got}, expected grid {dict(g)}")
@@ -105,21 +124,27 @@ def load_fusion_model(
     except (TypeError, ValueError) as exc:
         raise FusionModelError(f"{path}: invalid architecture block ({exc})") from None
     net = DeepLabV3Plus(spec)
-    state = {k[len("net."):]: v for k, v in ck["state_dict"].items() if k.startswith("net.")}
+    state = {k[len("net.") :]: v for k, v in ck["state_dict"].items() if k.startswith("net.")}
     try:
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:
-        raise FusionModelError(f"{path}: weights do not fit the architecture {_describe_arch(arch)}: {str(exc)[:500]}") from None
+        raise FusionModelError(
+            f"{path}: weights do not fit the architecture {_describe_arch(arch)}: {str(exc)[:500]}"
+        ) from None
     net.meta = dict(info)  # type: ignore[attr-defined]
     return net.to(device).eval()
 
 
 @torch.no_grad()
-def predict_evidence(model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16) -> np.ndarray:
+def predict_evidence(
+    model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16
+) -> np.ndarray:
     """Evidences ``(N, 2, H, W)`` float32 for ``inputs (N, 4, H, W)`` float32 masses."""
     x = np.asarray(inputs)
     if x.ndim != 4 or x.shape[1] != 4:
-        raise ValueError(f"inputs must be (N, 4, H, W) = [m_F1, m_O1, m_F2', m_O2'], got shape {x.shape}")
+        raise ValueError(
+            f"inputs must be (N, 4, H, W) = [m_F1, m_O1, m_F2', m_O2'], got shape {x.shape}"
+        )
     model.eval()
     dev = next(model.parameters()).device
     out = np.empty((x.shape[0], 2, *x.shape[2:]), dtype=np.float32)
@@ -129,7 +154,9 @@ def predict_evidence(model: torch.nn.Module, inputs: np.ndarray, batch_size: int
     return out
 
 
-def predict_masses(model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def predict_masses(
+    model: torch.nn.Module, inputs: np.ndarray, batch_size: int = 16
+) -> tuple[np.ndarray, np.ndarray]:
     """Fused masses ``m (N, 2, H, W)`` (free, occupied) and uncertainty ``u (N, H, W)``, float32."""
     m, u = evidence_to_masses(predict_evidence(model, inputs, batch_size))
     return m.astype(np.float32), u.astype(np.float32)

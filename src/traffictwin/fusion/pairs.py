@@ -55,13 +55,19 @@ class FusionDataParams:
     def __post_init__(self) -> None:
         bad = [t for t in self.templates if t not in TEMPLATES]
         if bad or not self.templates:
-            raise ValueError(f"templates: unknown road template(s) {bad or '(empty list)'}; expected names from {list(TEMPLATES)}")
+            raise ValueError(
+                f"templates: unknown road template(s) {bad or '(empty list)'}; expected names from {list(TEMPLATES)}"
+            )
         if self.scenarios_per_shard < 1:
             raise ValueError(f"scenarios_per_shard must be >= 1, got {self.scenarios_per_shard}")
         if self.encounters_per_scenario < 1:
-            raise ValueError(f"encounters_per_scenario must be >= 1, got {self.encounters_per_scenario}")
+            raise ValueError(
+                f"encounters_per_scenario must be >= 1, got {self.encounters_per_scenario}"
+            )
         if not 0 <= self.meet_distance[0] < self.meet_distance[1]:
-            raise ValueError(f"meet_distance must be (min, max) m with 0 <= min < max, got {self.meet_distance}")
+            raise ValueError(
+                f"meet_distance must be (min, max) m with 0 <= min < max, got {self.meet_distance}"
+            )
 
     @property
     def pairs_per_shard(self) -> int:
@@ -73,7 +79,9 @@ def template_of(scenario: int, templates: tuple[str, ...] = TEMPLATES) -> str:
     return templates[int(scenario) % len(templates)]
 
 
-def shard_splits(n_shards: int, seed: int, fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> list[str]:
+def shard_splits(
+    n_shards: int, seed: int, fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
+) -> list[str]:
     """Split name of every shard: a seeded permutation, ``round(f * n)`` val and test shards
     (at least one each when ``n_shards >= 3``), the rest train."""
     if n_shards < 1:
@@ -83,7 +91,10 @@ def shard_splits(n_shards: int, seed: int, fractions: tuple[float, float, float]
     n_val = int(round(fractions[1] * n_shards))
     n_test = int(round(fractions[2] * n_shards))
     if n_shards >= 3:
-        n_val, n_test = max(n_val, 1 if fractions[1] > 0 else 0), max(n_test, 1 if fractions[2] > 0 else 0)
+        n_val, n_test = (
+            max(n_val, 1 if fractions[1] > 0 else 0),
+            max(n_test, 1 if fractions[2] > 0 else 0),
+        )
     perm = np.random.default_rng(np.random.SeedSequence([int(seed), 7004])).permutation(n_shards)
     out = ["train"] * n_shards
     for i in perm[:n_val]:
@@ -103,8 +114,13 @@ def scenario_maps(seed: int, scenario: int, p: FusionDataParams) -> dict[str, np
     world_seed, traffic_seed, lidar_seed = (int(x) for x in ss.generate_state(3, dtype=np.uint32))
     world = build_world(template_of(scenario, p.templates), world_seed)
     sc = sample_scenario(
-        world, traffic_seed, t_meet=p.t_meet, n_encounters=p.encounters_per_scenario,
-        encounter_spacing=p.encounter_spacing, meet_distance=tuple(p.meet_distance), **p.density,
+        world,
+        traffic_seed,
+        t_meet=p.t_meet,
+        n_encounters=p.encounters_per_scenario,
+        encounter_spacing=p.encounter_spacing,
+        meet_distance=tuple(p.meet_distance),
+        **p.density,
     )
     rng = np.random.default_rng(lidar_seed)
     E = p.encounters_per_scenario
@@ -154,13 +170,17 @@ def generate_shard(seed: int, index: int, p: FusionDataParams) -> dict[str, np.n
         persp = np.tile([0, 1], E)
         pairs["scenario"] = np.full(2 * E, j, dtype=np.int64)
         pairs["pair_id"] = (j * 1000 + 2 * enc + persp).astype(np.int64)
-        pairs["template"] = np.full(2 * E, TEMPLATES.index(template_of(j, p.templates)), dtype=np.int64)
+        pairs["template"] = np.full(
+            2 * E, TEMPLATES.index(template_of(j, p.templates)), dtype=np.int64
+        )
         pairs["time"] = np.repeat(sm["times"], 2)
         parts.append(pairs)
     return {k: np.concatenate([q[k] for q in parts]) for k in parts[0]}
 
 
-def write_shard(seed: int, index: int, p: FusionDataParams, path: str, compresslevel: int = 1) -> tuple[int, str, int]:
+def write_shard(
+    seed: int, index: int, p: FusionDataParams, path: str, compresslevel: int = 1
+) -> tuple[int, str, int]:
     """Generate shard ``index`` and write it to ``path`` (atomic, deterministic bytes).
 
     Returns ``(index, sha256, pair count)``; a top-level function so worker processes can run it.
@@ -191,7 +211,9 @@ def prealign_arrays(
     n = len(shard["map1"])
     reps = len(noise) // max(n, 1)
     if len(noise) != reps * n or reps < 1:
-        raise ValueError(f"prealign: noise has {len(noise)} rows, expected a multiple of the {n} pairs")
+        raise ValueError(
+            f"prealign: noise has {len(noise)} rows, expected a multiple of the {n} pairs"
+        )
     take = np.repeat(np.arange(n), reps)
     pose1, pose2 = shard["pose1"][take], shard["pose2"][take]
     noisy2 = apply_pose_noise(pose2, noise)
@@ -207,12 +229,21 @@ def prealign_arrays(
         "rel_pose_noisy": rel_noisy,
         "scenario": shard["scenario"][take],
         "pair_id": shard["pair_id"][take],
-        "draw": (np.zeros(len(take), np.int64) if draw is None else np.asarray(draw, dtype=np.int64)),
+        "draw": (
+            np.zeros(len(take), np.int64) if draw is None else np.asarray(draw, dtype=np.int64)
+        ),
     }
 
 
 def prealign_shard(
-    src: str, dst: str, seed: int, r: float, alpha_deg: float, draws: int, grid: GridSpec, compresslevel: int = 1
+    src: str,
+    dst: str,
+    seed: int,
+    r: float,
+    alpha_deg: float,
+    draws: int,
+    grid: GridSpec,
+    compresslevel: int = 1,
 ) -> tuple[str, int]:
     """Read fusion shard ``src`` (already verified by the caller), prealign with ``draws`` noise
     draws per pair (draw ``d`` of pair ``pid`` from :func:`~traffictwin.evidential.noise.standard_normal_draws`
@@ -225,7 +256,9 @@ def prealign_shard(
     cv2.setNumThreads(1)
     shard = read_npz(src)
     if shard["map1"].shape[-2:] != grid.shape:
-        raise ValueError(f"{src}: maps are {shard['map1'].shape[-2:]}, the grid parameter says {grid.shape}")
+        raise ValueError(
+            f"{src}: maps are {shard['map1'].shape[-2:]}, the grid parameter says {grid.shape}"
+        )
     pid = np.repeat(shard["pair_id"], draws)
     draw = np.tile(np.arange(draws), len(shard["pair_id"]))
     z = standard_normal_draws(seed, pid, draw)

@@ -68,26 +68,36 @@ class RegistrationParams:
     known_threshold: float = 0.05  # a cell is "known" where m_F + m_O > this
     blur_sigma_cells: float = 1.0  # Gaussian blur of the feature images before the coarse step
     n_angles: int = 720  # angle bins of the log-polar spectrum (0.5° each at 720)
-    search_step_deg: float = 2.0  # > 0 adds a grid of candidate angles in [−max_rot_deg, max_rot_deg]
+    search_step_deg: float = (
+        2.0  # > 0 adds a grid of candidate angles in [−max_rot_deg, max_rot_deg]
+    )
     ecc_iterations: int = 60
     ecc_eps: float = 1e-5
     ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
     min_cc: float = 0.2  # minimum masked correlation coefficient of an accepted estimate
-    min_gain: float = 0.02  # the estimate's correlation must exceed the noisy pose's by more than this
+    min_gain: float = (
+        0.02  # the estimate's correlation must exceed the noisy pose's by more than this
+    )
     max_trans_m: float = 10.0  # largest accepted correction of the translation (m)
     max_rot_deg: float = 30.0  # largest accepted correction of the yaw (deg)
     min_overlap: float = 0.05  # minimum fraction of cells known in both maps for a usable score
 
     def __post_init__(self) -> None:
         if self.feature not in FEATURES:
-            raise ValueError(f"RegistrationParams.feature must be one of {FEATURES}, got {self.feature!r}")
+            raise ValueError(
+                f"RegistrationParams.feature must be one of {FEATURES}, got {self.feature!r}"
+            )
         if self.n_angles < 36:
             raise ValueError(f"RegistrationParams.n_angles must be >= 36, got {self.n_angles}")
         if self.ecc_gauss_size < 1 or self.ecc_gauss_size % 2 == 0:
-            raise ValueError(f"RegistrationParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}")
+            raise ValueError(
+                f"RegistrationParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}"
+            )
         for name in ("ecc_iterations", "max_trans_m", "max_rot_deg"):
             if getattr(self, name) <= 0:
-                raise ValueError(f"RegistrationParams.{name} must be > 0, got {getattr(self, name)}")
+                raise ValueError(
+                    f"RegistrationParams.{name} must be > 0, got {getattr(self, name)}"
+                )
 
 
 @dataclass
@@ -114,7 +124,13 @@ class RegistrationResult:
 def metric_to_pixel(grid: GridSpec) -> np.ndarray:
     """3×3 matrix: sensor-frame (x, y, 1) in m → pixel (u = col, v = row, 1)."""
     c = grid.cell
-    return np.array([[0.0, -1.0 / c, grid.cols / 2 - 0.5], [-1.0 / c, 0.0, grid.rows / 2 - 0.5], [0.0, 0.0, 1.0]])
+    return np.array(
+        [
+            [0.0, -1.0 / c, grid.cols / 2 - 0.5],
+            [-1.0 / c, 0.0, grid.rows / 2 - 0.5],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def _se2(pose: np.ndarray) -> np.ndarray:
@@ -167,10 +183,18 @@ def known_mask(m: np.ndarray, threshold: float = 0.05) -> np.ndarray:
     return ((m[0] + m[1]) > threshold).astype(np.uint8) * 255
 
 
-def warp_image(img: np.ndarray, a: np.ndarray, shape: tuple[int, int], nearest: bool = False) -> np.ndarray:
+def warp_image(
+    img: np.ndarray, a: np.ndarray, shape: tuple[int, int], nearest: bool = False
+) -> np.ndarray:
     """Warp ``img`` forward with the 3×3 pixel transform ``a`` (src pixel → dst pixel); outside → 0."""
     flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    return cv2.warpAffine(img, np.ascontiguousarray(a[:2], dtype=np.float64), (shape[1], shape[0]), flags=flags, borderValue=0)
+    return cv2.warpAffine(
+        img,
+        np.ascontiguousarray(a[:2], dtype=np.float64),
+        (shape[1], shape[0]),
+        flags=flags,
+        borderValue=0,
+    )
 
 
 def _masked_cc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -201,10 +225,14 @@ def _log_polar_spectrum(img: np.ndarray, n_angles: int) -> np.ndarray:
     spec = np.fft.fftshift(np.abs(np.fft.fft2(img * win)))
     f = np.fft.fftshift(np.fft.fftfreq(s))
     fx, fy = np.meshgrid(f, f)
-    hp = (1.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy)) * (2.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy))
+    hp = (1.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy)) * (
+        2.0 - np.cos(np.pi * fx) * np.cos(np.pi * fy)
+    )
     mag = (np.log1p(spec) * hp).astype(np.float32)
     radius = s / 2
-    return cv2.warpPolar(mag, (s // 2, n_angles), (s / 2, s / 2), radius, cv2.WARP_POLAR_LOG | cv2.INTER_LINEAR)
+    return cv2.warpPolar(
+        mag, (s // 2, n_angles), (s / 2, s / 2), radius, cv2.WARP_POLAR_LOG | cv2.INTER_LINEAR
+    )
 
 
 def _fourier_mellin_angle(f1: np.ndarray, g2: np.ndarray, n_angles: int) -> float:
@@ -264,7 +292,9 @@ class BoundedPhaseCorrelator:
         return float(self.dx[ix] + ox), float(self.dy[iy] + oy), float(r[iy, ix])
 
 
-def phase_correlate_bounded(a: np.ndarray, b: np.ndarray, max_shift_px: float) -> tuple[float, float]:
+def phase_correlate_bounded(
+    a: np.ndarray, b: np.ndarray, max_shift_px: float
+) -> tuple[float, float]:
     """Shift ``s = (sx, sy)`` (px) with ``b(p + s) ≈ a(p)``, searched within ``|s| ≤ max_shift_px``
     (see :class:`BoundedPhaseCorrelator`)."""
     sx, sy, _ = BoundedPhaseCorrelator(a, max_shift_px).shift(b)
@@ -291,7 +321,9 @@ def register_pair(
     shape = grid.shape
     for name, m in (("map1", map1), ("map2", map2)):
         if np.shape(m) != (2, *shape):
-            raise ValueError(f"register_pair: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}")
+            raise ValueError(
+                f"register_pair: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}"
+            )
     noisy = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(3)
     f1 = feature_image(map1, params.feature)
     f2 = feature_image(map2, params.feature)
@@ -304,10 +336,18 @@ def register_pair(
     cc_noisy = _masked_cc(f1, g2, both)
     min_cells = params.min_overlap * f1.size
 
-    def result(est: np.ndarray, accepted: bool, cc_est: float, coarse: float, ecc_ok: bool) -> RegistrationResult:
+    def result(
+        est: np.ndarray, accepted: bool, cc_est: float, coarse: float, ecc_ok: bool
+    ) -> RegistrationResult:
         return RegistrationResult(
-            pose=est if accepted else noisy, accepted=accepted, cc_noisy=cc_noisy, cc_est=cc_est,
-            coarse_deg=coarse, ecc_ok=ecc_ok, seconds=time.perf_counter() - t0, estimate=est,
+            pose=est if accepted else noisy,
+            accepted=accepted,
+            cc_noisy=cc_noisy,
+            cc_est=cc_est,
+            coarse_deg=coarse,
+            ecc_ok=ecc_ok,
+            seconds=time.perf_counter() - t0,
+            estimate=est,
         )
 
     if both.sum() < min_cells:
@@ -324,7 +364,11 @@ def register_pair(
     center = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
     cands = {0.0, round(_fourier_mellin_angle(b1, b2, params.n_angles), 3)}
     if params.search_step_deg > 0:
-        cands |= set(np.round(np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3).tolist())
+        cands |= set(
+            np.round(
+                np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3
+            ).tolist()
+        )
     pc = BoundedPhaseCorrelator(b1, params.max_trans_m / grid.cell)
     best = (-2.0, np.eye(3), 0.0)  # (cc, W: map1 px → prealigned px, angle)
     size = (shape[1], shape[0])
@@ -345,7 +389,11 @@ def register_pair(
     # refine: ECC in the prealigned frame, template = map 1 (OpenCV's Euclidean ECC recovers the
     # angle with asin, so it only handles |rotation| < 90°: the large relative yaw stays in a0)
     warp = np.ascontiguousarray(wc[:2], dtype=np.float32)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(params.ecc_iterations), float(params.ecc_eps))
+    criteria = (
+        cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
+        int(params.ecc_iterations),
+        float(params.ecc_eps),
+    )
     ecc_ok = True
     try:
         _, warp = cv2.findTransformECCWithMask(

@@ -13,8 +13,8 @@ ResNet-50 (the paper), ``block="basic", layers=(2, 2, 2, 2)`` ResNet-18, and a s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import Sequence
 
 import torch
 from torch import nn
@@ -44,7 +44,9 @@ class ResNetSpec:
         if len(self.layers) != 4 or any(int(n) < 1 for n in self.layers):
             raise ValueError(f"resnet layers must be 4 positive block counts, got {self.layers!r}")
         if self.base_width < 1 or self.in_channels < 1:
-            raise ValueError(f"resnet base_width and in_channels must be >= 1, got {self.base_width}, {self.in_channels}")
+            raise ValueError(
+                f"resnet base_width and in_channels must be >= 1, got {self.base_width}, {self.in_channels}"
+            )
         if len(self.dilate) != 3:
             raise ValueError(f"resnet dilate must have 3 flags (stages 2-4), got {self.dilate!r}")
         object.__setattr__(self, "layers", tuple(int(n) for n in self.layers))
@@ -88,8 +90,15 @@ class BasicBlock(nn.Module):
 
     expansion = 1
 
-    def __init__(self, cin: int, width: int, stride: int = 1, dilation: int = 1, downsample: nn.Module | None = None,
-                 first_dilation: int = 1) -> None:
+    def __init__(
+        self,
+        cin: int,
+        width: int,
+        stride: int = 1,
+        dilation: int = 1,
+        downsample: nn.Module | None = None,
+        first_dilation: int = 1,
+    ) -> None:
         super().__init__()
         self.conv1 = conv3x3(cin, width, stride, first_dilation)
         self.bn1 = nn.BatchNorm2d(width)
@@ -114,8 +123,15 @@ class Bottleneck(nn.Module):
 
     expansion = 4
 
-    def __init__(self, cin: int, width: int, stride: int = 1, dilation: int = 1, downsample: nn.Module | None = None,
-                 first_dilation: int = 1) -> None:
+    def __init__(
+        self,
+        cin: int,
+        width: int,
+        stride: int = 1,
+        dilation: int = 1,
+        downsample: nn.Module | None = None,
+        first_dilation: int = 1,
+    ) -> None:
         super().__init__()
         self.conv1 = conv1x1(cin, width)
         self.bn1 = nn.BatchNorm2d(width)
@@ -149,23 +165,40 @@ class ResNet(nn.Module):
         self._cin = w
         self._dilation = 1
         self.layer1 = self._make_layer(block, w, spec.layers[0])
-        self.layer2 = self._make_layer(block, w * 2, spec.layers[1], stride=2, dilate=spec.dilate[0])
-        self.layer3 = self._make_layer(block, w * 4, spec.layers[2], stride=2, dilate=spec.dilate[1])
-        self.layer4 = self._make_layer(block, w * 8, spec.layers[3], stride=2, dilate=spec.dilate[2])
+        self.layer2 = self._make_layer(
+            block, w * 2, spec.layers[1], stride=2, dilate=spec.dilate[0]
+        )
+        self.layer3 = self._make_layer(
+            block, w * 4, spec.layers[2], stride=2, dilate=spec.dilate[1]
+        )
+        self.layer4 = self._make_layer(
+            block, w * 8, spec.layers[3], stride=2, dilate=spec.dilate[2]
+        )
         self._init_weights()
 
-    def _make_layer(self, block: type, width: int, blocks: int, stride: int = 1, dilate: bool = False) -> nn.Sequential:
+    def _make_layer(
+        self, block: type, width: int, blocks: int, stride: int = 1, dilate: bool = False
+    ) -> nn.Sequential:
         prev_dilation = self._dilation
         if dilate:
             self._dilation *= stride
             stride = 1
         downsample = None
         if stride != 1 or self._cin != width * block.expansion:
-            downsample = nn.Sequential(conv1x1(self._cin, width * block.expansion, stride), nn.BatchNorm2d(width * block.expansion))
-        mods = [block(self._cin, width, stride, self._dilation, downsample, first_dilation=prev_dilation)]
+            downsample = nn.Sequential(
+                conv1x1(self._cin, width * block.expansion, stride),
+                nn.BatchNorm2d(width * block.expansion),
+            )
+        mods = [
+            block(
+                self._cin, width, stride, self._dilation, downsample, first_dilation=prev_dilation
+            )
+        ]
         self._cin = width * block.expansion
         for _ in range(1, blocks):
-            mods.append(block(self._cin, width, 1, self._dilation, None, first_dilation=self._dilation))
+            mods.append(
+                block(self._cin, width, 1, self._dilation, None, first_dilation=self._dilation)
+            )
         return nn.Sequential(*mods)
 
     def _init_weights(self) -> None:
@@ -189,12 +222,27 @@ class ResNet(nn.Module):
         return low, x
 
 
-def resnet_spec(depth: int, base_width: int = 64, in_channels: int = 4,
-                dilate: Sequence[bool] = (False, False, True)) -> ResNetSpec:
+def resnet_spec(
+    depth: int,
+    base_width: int = 64,
+    in_channels: int = 4,
+    dilate: Sequence[bool] = (False, False, True),
+) -> ResNetSpec:
     """Standard depths: 18/34 (basic), 50/101/152 (bottleneck)."""
-    table = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)), 50: ("bottleneck", (3, 4, 6, 3)),
-             101: ("bottleneck", (3, 4, 23, 3)), 152: ("bottleneck", (3, 8, 36, 3))}
+    table = {
+        18: ("basic", (2, 2, 2, 2)),
+        34: ("basic", (3, 4, 6, 3)),
+        50: ("bottleneck", (3, 4, 6, 3)),
+        101: ("bottleneck", (3, 4, 23, 3)),
+        152: ("bottleneck", (3, 8, 36, 3)),
+    }
     if depth not in table:
         raise ValueError(f"resnet depth must be one of {sorted(table)}, got {depth}")
     block, layers = table[depth]
-    return ResNetSpec(block=block, layers=layers, base_width=base_width, in_channels=in_channels, dilate=tuple(dilate))
+    return ResNetSpec(
+        block=block,
+        layers=layers,
+        base_width=base_width,
+        in_channels=in_channels,
+        dilate=tuple(dilate),
+    )

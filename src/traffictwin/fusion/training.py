@@ -23,9 +23,10 @@ import logging
 import math
 import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -33,12 +34,9 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 
+from traffictwin import trainer as common
 from traffictwin.evidential.dempster import dempster
-from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import atomic_path, write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
-from traffictwin.fusion.model_io import CKPT_FORMAT
 from traffictwin.fusion.losses import (
     confusion_counts,
     dice_from_counts,
@@ -47,7 +45,10 @@ from traffictwin.fusion.losses import (
     kld,
     kld_full,
 )
-from traffictwin import trainer as common
+from traffictwin.fusion.model_io import CKPT_FORMAT
+from traffictwin.grid import GridSpec
+from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.shards import Dataset, DatasetError
 
 log = logging.getLogger(__name__)
 
@@ -58,15 +59,24 @@ VAL_METRICS = ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_
 # augmentation
 
 
-def augmentation_matrices(n: int, height: int, width: int, *, flip: bool, max_rotation_deg: float,
-                          generator: torch.Generator | None = None) -> torch.Tensor:
+def augmentation_matrices(
+    n: int,
+    height: int,
+    width: int,
+    *,
+    flip: bool,
+    max_rotation_deg: float,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """``(n, 2, 3)`` ``affine_grid`` matrices: random flips (p = 0.5 per axis) and rotation about the centre.
 
     The rotation is in metric (cell) space — cells are square — so the normalised-coordinate
     matrix is ``D^-1 R Fl D`` with ``D = diag(W/2, H/2)``.
     """
     g = generator
-    ang = (torch.rand(n, generator=g, dtype=torch.float64) * 2.0 - 1.0) * math.radians(max_rotation_deg)
+    ang = (torch.rand(n, generator=g, dtype=torch.float64) * 2.0 - 1.0) * math.radians(
+        max_rotation_deg
+    )
     if flip:
         fx = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
         fy = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
@@ -84,19 +94,30 @@ def augmentation_matrices(n: int, height: int, width: int, *, flip: bool, max_ro
     return a.float()
 
 
-def augment(inputs: torch.Tensor, label: torch.Tensor, *, flip: bool = True, max_rotation_deg: float = 20.0,
-            mode: str = "bilinear", generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def augment(
+    inputs: torch.Tensor,
+    label: torch.Tensor,
+    *,
+    flip: bool = True,
+    max_rotation_deg: float = 20.0,
+    mode: str = "bilinear",
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Apply the same random flip + rotation to ``inputs (N, C, H, W)`` and ``label (N, 2, H, W)``.
 
     Outside the rotated map the masses are (0, 0) (unknown). ``generator`` (CPU) makes the draw
     reproducible.
     """
     if inputs.shape[0] != label.shape[0] or inputs.shape[-2:] != label.shape[-2:]:
-        raise ValueError(f"inputs {tuple(inputs.shape)} and label {tuple(label.shape)} must share N, H, W")
+        raise ValueError(
+            f"inputs {tuple(inputs.shape)} and label {tuple(label.shape)} must share N, H, W"
+        )
     n, c, h, w = inputs.shape
     if not flip and max_rotation_deg <= 0:
         return inputs, label
-    theta = augmentation_matrices(n, h, w, flip=flip, max_rotation_deg=max_rotation_deg, generator=generator)
+    theta = augmentation_matrices(
+        n, h, w, flip=flip, max_rotation_deg=max_rotation_deg, generator=generator
+    )
     theta = theta.to(device=inputs.device, dtype=inputs.dtype)
     both = torch.cat([inputs, label.to(inputs.dtype)], dim=1)
     grid = F.affine_grid(theta, list(both.shape), align_corners=False)
@@ -122,7 +143,9 @@ class DataSettings:
     num_workers: int = 0
 
 
-def load_prealigned(root: str | Path, split: str, grid: GridSpec | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def load_prealigned(
+    root: str | Path, split: str, grid: GridSpec | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """``inputs (N, 4, H, W)``, ``label (N, 2, H, W)`` float32 tensors of ``split`` (checked against ``grid``)."""
     ds = Dataset(root, kind="prealigned")
     arrays = ds.load_all(split, keys=["inputs", "label"])
@@ -130,10 +153,16 @@ def load_prealigned(root: str | Path, split: str, grid: GridSpec | None = None) 
     if x.ndim != 4 or x.shape[1] != 4:
         raise DatasetError(f"{root}: array 'inputs' must be (N, 4, H, W), got {x.shape}")
     if y.shape != (x.shape[0], 2, *x.shape[2:]):
-        raise DatasetError(f"{root}: array 'label' must be (N, 2, H, W) = {(x.shape[0], 2, *x.shape[2:])}, got {y.shape}")
+        raise DatasetError(
+            f"{root}: array 'label' must be (N, 2, H, W) = {(x.shape[0], 2, *x.shape[2:])}, got {y.shape}"
+        )
     if grid is not None and tuple(x.shape[2:]) != grid.shape:
-        raise DatasetError(f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)")
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(np.ascontiguousarray(y, dtype=np.float32))
+        raise DatasetError(
+            f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)"
+        )
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(
+        np.ascontiguousarray(y, dtype=np.float32)
+    )
 
 
 def evenly_spaced(n: int, k: int) -> np.ndarray:
@@ -146,8 +175,14 @@ def evenly_spaced(n: int, k: int) -> np.ndarray:
 class FusionDataModule(L.LightningDataModule):
     """Prealigned pairs in memory; seeded per-epoch training subsets, a fixed validation subset."""
 
-    def __init__(self, root: str | Path, settings: DataSettings, seed: int, grid: GridSpec | None = None,
-                 tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        settings: DataSettings,
+        seed: int,
+        grid: GridSpec | None = None,
+        tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
+    ) -> None:
         super().__init__()
         self.root = Path(root)
         self.settings = settings
@@ -167,7 +202,9 @@ class FusionDataModule(L.LightningDataModule):
         val = TensorDataset(*self._tensors["val"])
         self.val_set = Subset(val, evenly_spaced(len(val), self.settings.val_samples).tolist())
         if len(self.train_set) < self.settings.batch_size:
-            raise DatasetError(f"{self.root}: {len(self.train_set)} training pairs < batch_size {self.settings.batch_size}")
+            raise DatasetError(
+                f"{self.root}: {len(self.train_set)} training pairs < batch_size {self.settings.batch_size}"
+            )
 
     def train_dataloader(self) -> DataLoader:
         assert self.train_set is not None
@@ -176,13 +213,24 @@ class FusionDataModule(L.LightningDataModule):
         k = n if k <= 0 else min(k, n)
         gen = torch.Generator().manual_seed(self.seed)
         sampler = RandomSampler(self.train_set, replacement=False, num_samples=k, generator=gen)
-        return DataLoader(self.train_set, batch_size=self.settings.batch_size, sampler=sampler, drop_last=True,
-                          num_workers=self.settings.num_workers, persistent_workers=self.settings.num_workers > 0)
+        return DataLoader(
+            self.train_set,
+            batch_size=self.settings.batch_size,
+            sampler=sampler,
+            drop_last=True,
+            num_workers=self.settings.num_workers,
+            persistent_workers=self.settings.num_workers > 0,
+        )
 
     def val_dataloader(self) -> DataLoader:
         assert self.val_set is not None
-        return DataLoader(self.val_set, batch_size=self.settings.batch_size, shuffle=False,
-                          num_workers=self.settings.num_workers, persistent_workers=self.settings.num_workers > 0)
+        return DataLoader(
+            self.val_set,
+            batch_size=self.settings.batch_size,
+            shuffle=False,
+            num_workers=self.settings.num_workers,
+            persistent_workers=self.settings.num_workers > 0,
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,11 +246,13 @@ class FusionHParams:
     lr_factor: float = 0.5
     lr_patience: int = 10
     occupied_weight: float = 3.0
-    kl_weight: float = 0.0          # evidential KL regulariser (Sensoy et al.); off as in the paper
-    kl_anneal_epochs: int = 10      # its weight ramps as min(1, epoch / kl_anneal_epochs)
+    kl_weight: float = 0.0  # evidential KL regulariser (Sensoy et al.); off as in the paper
+    kl_anneal_epochs: int = 10  # its weight ramps as min(1, epoch / kl_anneal_epochs)
     augment_flip: bool = True
     augment_rotation_deg: float = 20.0
-    channels_last: bool = True      # NHWC activations: ~1.2-1.5x faster convolutions on oneDNN CPUs and tensor cores
+    channels_last: bool = (
+        True  # NHWC activations: ~1.2-1.5x faster convolutions on oneDNN CPUs and tensor cores
+    )
 
 
 def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLabSpec:
@@ -214,7 +264,11 @@ def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLab
         os_ = int(bb.pop("output_stride"))
         if os_ not in (8, 16, 32):
             raise ValueError(f"backbone.output_stride must be 8, 16 or 32, got {os_}")
-        bb["dilate"] = {8: [False, True, True], 16: [False, False, True], 32: [False, False, False]}[os_]
+        bb["dilate"] = {
+            8: [False, True, True],
+            16: [False, False, True],
+            32: [False, False, False],
+        }[os_]
         if os_ == 8:
             d.setdefault("aspp_rates", [12, 24, 36])
     return DeepLabSpec.from_dict({**d, "backbone": bb})
@@ -223,9 +277,16 @@ def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLab
 class FusionLitModule(L.LightningModule):
     """LightningModule around :class:`DeepLabV3Plus` (``self.net``) with the evidential loss."""
 
-    def __init__(self, spec: Mapping[str, Any], hparams: Mapping[str, Any], meta: Mapping[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        spec: Mapping[str, Any],
+        hparams: Mapping[str, Any],
+        meta: Mapping[str, Any] | None = None,
+    ) -> None:
         super().__init__()
-        self.save_hyperparameters({"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})})
+        self.save_hyperparameters(
+            {"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})}
+        )
         self.spec = DeepLabSpec.from_dict(spec)
         self.hp = FusionHParams(**hparams)
         self.net = DeepLabV3Plus(self.spec)
@@ -249,14 +310,23 @@ class FusionLitModule(L.LightningModule):
         seed = int(self.hparams["meta"].get("seed", 0)) + 7919 * int(self.global_rank)
         self._aug_gen = torch.Generator().manual_seed(seed)
 
-    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> torch.Tensor:
+    def training_step(
+        self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int
+    ) -> torch.Tensor:
         x, y = batch
         if self.hp.augment_flip or self.hp.augment_rotation_deg > 0:
-            x, y = augment(x, y, flip=self.hp.augment_flip, max_rotation_deg=self.hp.augment_rotation_deg,
-                           generator=self._aug_gen)
+            x, y = augment(
+                x,
+                y,
+                flip=self.hp.augment_flip,
+                max_rotation_deg=self.hp.augment_rotation_deg,
+                generator=self._aug_gen,
+            )
         e = self.net(self._layout(x)).float()
         loss = evidential_loss(e, y.float(), self.hp.occupied_weight, self._kl_weight())
-        self.log("train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0])
+        self.log(
+            "train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0]
+        )
         return loss
 
     def on_validation_epoch_start(self) -> None:
@@ -270,12 +340,35 @@ class FusionLitModule(L.LightningModule):
         m, _ = evidence_to_masses(e)
         n = x.shape[0]
         self.log("val/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
-        self.log("val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
-        self.log("val/kld_full", kld_full(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        self.log(
+            "val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n
+        )
+        self.log(
+            "val/kld_full",
+            kld_full(m, y).mean(),
+            on_step=False,
+            on_epoch=True,
+            sync_dist=True,
+            batch_size=n,
+        )
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())
-        self.log("val/kld_naive", kld(naive, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
-        self.log("val/kld_full_naive", kld_full(naive, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        self.log(
+            "val/kld_naive",
+            kld(naive, y).mean(),
+            on_step=False,
+            on_epoch=True,
+            sync_dist=True,
+            batch_size=n,
+        )
+        self.log(
+            "val/kld_full_naive",
+            kld_full(naive, y).mean(),
+            on_step=False,
+            on_epoch=True,
+            sync_dist=True,
+            batch_size=n,
+        )
         assert self._val_counts is not None
         self._val_counts[:6] += confusion_counts(m, y).to(self._val_counts.device)
         self._val_counts[6:] += confusion_counts(naive, y).to(self._val_counts.device)
@@ -293,8 +386,18 @@ class FusionLitModule(L.LightningModule):
 
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
-        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=self.hp.lr_factor, patience=self.hp.lr_patience)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "monitor": "val/loss", "interval": "epoch", "frequency": 1}}
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=self.hp.lr_factor, patience=self.hp.lr_patience
+        )
+        return {
+            "optimizer": opt,
+            "lr_scheduler": {
+                "scheduler": sched,
+                "monitor": "val/loss",
+                "interval": "epoch",
+                "frequency": 1,
+            },
+        }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -337,9 +440,18 @@ class FitResult:
 def slim_checkpoint(lightning_ckpt: str | Path, extra: Mapping[str, Any]) -> dict[str, Any]:
     """A Lightning checkpoint without optimizer/loop state (``load_from_checkpoint`` still works) + ``traffictwin`` meta."""
     ck = torch.load(lightning_ckpt, map_location="cpu", weights_only=False)
-    keep = {k: ck[k] for k in ("state_dict", "epoch", "global_step", "pytorch-lightning_version") if k in ck}
-    keep["hyper_parameters"] = json.loads(json.dumps(dict(ck.get("hyper_parameters", {})), default=str))
-    keep["traffictwin"] = {"format": CKPT_FORMAT, **json.loads(json.dumps(dict(extra), default=str))}
+    keep = {
+        k: ck[k]
+        for k in ("state_dict", "epoch", "global_step", "pytorch-lightning_version")
+        if k in ck
+    }
+    keep["hyper_parameters"] = json.loads(
+        json.dumps(dict(ck.get("hyper_parameters", {})), default=str)
+    )
+    keep["traffictwin"] = {
+        "format": CKPT_FORMAT,
+        **json.loads(json.dumps(dict(extra), default=str)),
+    }
     return keep
 
 
@@ -377,24 +489,48 @@ def fit_fusion(
     manifest_hash = ds.manifest_hash()
     tracking = tracking or TrackingSettings(enabled=False)
     meta_base = {
-        "cfg": cfg_name, "noise": dict(noise), "grid": {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell},
-        "seed": int(seed), "data_manifest_hash": manifest_hash, "profile": tracking.profile,
+        "cfg": cfg_name,
+        "noise": dict(noise),
+        "grid": {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell},
+        "seed": int(seed),
+        "data_manifest_hash": manifest_hash,
+        "profile": tracking.profile,
     }
     module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
     dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
     n_params = count_parameters(module.net)
 
-    with tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work, common.tracked_run(
-        tracking.experiment, tracking.run_name, profile=tracking.profile, stage=tracking.stage,
-        tags={"data_manifest_hash": manifest_hash, "cfg": cfg_name}, params={**tracking.params, "data.manifest_hash": manifest_hash,
-                                                                          "model.param_count": n_params},
-        enabled=tracking.enabled,
-    ) as run:
+    with (
+        tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work,
+        common.tracked_run(
+            tracking.experiment,
+            tracking.run_name,
+            profile=tracking.profile,
+            stage=tracking.stage,
+            tags={"data_manifest_hash": manifest_hash, "cfg": cfg_name},
+            params={
+                **tracking.params,
+                "data.manifest_hash": manifest_hash,
+                "model.param_count": n_params,
+            },
+            enabled=tracking.enabled,
+        ) as run,
+    ):
         history = common.EpochHistory(mlflow_log=run is not None)
         ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
-        callbacks = [history, ckpt_cb, common.early_stopping("val/loss", loop.early_stopping_patience)]
-        trainer = common.build_trainer(trainer_settings, max_epochs=loop.max_epochs, callbacks=callbacks, default_root_dir=work,
-                                       gradient_clip_val=loop.gradient_clip_val, **trainer_extra)
+        callbacks = [
+            history,
+            ckpt_cb,
+            common.early_stopping("val/loss", loop.early_stopping_patience),
+        ]
+        trainer = common.build_trainer(
+            trainer_settings,
+            max_epochs=loop.max_epochs,
+            callbacks=callbacks,
+            default_root_dir=work,
+            gradient_clip_val=loop.gradient_clip_val,
+            **trainer_extra,
+        )
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm)
         train_s = time.perf_counter() - t0
@@ -404,21 +540,36 @@ def fit_fusion(
         if not best or not Path(best).exists():
             raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
         best_epoch = int(torch.load(best, map_location="cpu", weights_only=False).get("epoch", -1))
-        row = next((r for r in history.rows if r["epoch"] == best_epoch), history.rows[-1] if history.rows else {})
+        row = next(
+            (r for r in history.rows if r["epoch"] == best_epoch),
+            history.rows[-1] if history.rows else {},
+        )
         epochs_run = len(history.rows)
         n_train = len(dm.train_set) if dm.train_set is not None else 0
         k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
         samples_seen = min(k, n_train) // data.batch_size * data.batch_size * epochs_run
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
-        metrics.update({
-            "best_epoch": best_epoch, "epochs": epochs_run, "train_seconds": round(train_s, 2),
-            "train_samples_per_s": round(samples_seen / train_s, 3) if train_s > 0 else None,
-            "param_count": n_params, "train_pairs": n_train, "val_pairs": len(dm.val_set) if dm.val_set is not None else 0,
-        })
+        metrics.update(
+            {
+                "best_epoch": best_epoch,
+                "epochs": epochs_run,
+                "train_seconds": round(train_s, 2),
+                "train_samples_per_s": round(samples_seen / train_s, 3) if train_s > 0 else None,
+                "param_count": n_params,
+                "train_pairs": n_train,
+                "val_pairs": len(dm.val_set) if dm.val_set is not None else 0,
+            }
+        )
         meta = {
-            **meta_base, "format": CKPT_FORMAT, "architecture": spec.as_dict(), "param_count": n_params,
-            "hparams": asdict(hparams), "best_epoch": best_epoch, "best_val_loss": metrics.get("val/loss"),
-            "mlflow_run_id": run.info.run_id if run is not None else None, "mlflow_model_uri": None,
+            **meta_base,
+            "format": CKPT_FORMAT,
+            "architecture": spec.as_dict(),
+            "param_count": n_params,
+            "hparams": asdict(hparams),
+            "best_epoch": best_epoch,
+            "best_val_loss": metrics.get("val/loss"),
+            "mlflow_run_id": run.info.run_id if run is not None else None,
+            "mlflow_model_uri": None,
             "data_root": str(data_root),
         }
         slim = slim_checkpoint(best, meta)
@@ -426,18 +577,31 @@ def fit_fusion(
         if run is not None:
             import mlflow
 
-            mlflow.log_metrics({f"best/{k.replace('/', '_')}": float(v) for k, v in metrics.items()
-                                if isinstance(v, (int, float)) and v is not None and math.isfinite(float(v))})
+            mlflow.log_metrics(
+                {
+                    f"best/{k.replace('/', '_')}": float(v)
+                    for k, v in metrics.items()
+                    if isinstance(v, (int, float)) and v is not None and math.isfinite(float(v))
+                }
+            )
             with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
                 p = Path(art) / "model.ckpt"
                 torch.save(slim, p)
                 common.log_checkpoint(p)
             best_module = FusionLitModule(spec.as_dict(), asdict(hparams), meta_base)
             best_module.load_state_dict(slim["state_dict"])
-            example = np.zeros((1, spec.backbone.in_channels, grid.rows, grid.cols), dtype=np.float32)
-            logged_net = best_module.net.to(memory_format=torch.contiguous_format)  # plain NCHW for serving
-            model_uri = common.log_torch_model(logged_net, example, name="model",
-                                               metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash})
+            example = np.zeros(
+                (1, spec.backbone.in_channels, grid.rows, grid.cols), dtype=np.float32
+            )
+            logged_net = best_module.net.to(
+                memory_format=torch.contiguous_format
+            )  # plain NCHW for serving
+            model_uri = common.log_torch_model(
+                logged_net,
+                example,
+                name="model",
+                metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash},
+            )
             meta["mlflow_model_uri"] = model_uri
             slim["traffictwin"]["mlflow_model_uri"] = model_uri
         with atomic_path(ckpt_out, suffix=".ckpt") as tmp:

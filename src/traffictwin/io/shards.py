@@ -16,9 +16,10 @@ import hashlib
 import io
 import json
 import zipfile
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -48,18 +49,29 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def write_npz_deterministic(path: str | Path, arrays: Mapping[str, np.ndarray], compresslevel: int = 6) -> str:
+def write_npz_deterministic(
+    path: str | Path, arrays: Mapping[str, np.ndarray], compresslevel: int = 6
+) -> str:
     """Write ``arrays`` as a compressed ``.npz`` with fixed metadata, atomically; return its SHA-256."""
     path = Path(path)
     with atomic_path(path, suffix=".npz") as tmp:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as zf:
+        with zipfile.ZipFile(
+            tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel
+        ) as zf:
             for key in sorted(arrays):
                 buf = io.BytesIO()
-                np.lib.format.write_array(buf, np.ascontiguousarray(arrays[key]), allow_pickle=False)
+                np.lib.format.write_array(
+                    buf, np.ascontiguousarray(arrays[key]), allow_pickle=False
+                )
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_DATE)
                 info.compress_type = zipfile.ZIP_DEFLATED
                 info.external_attr = 0o644 << 16
-                zf.writestr(info, buf.getvalue(), compress_type=zipfile.ZIP_DEFLATED, compresslevel=compresslevel)
+                zf.writestr(
+                    info,
+                    buf.getvalue(),
+                    compress_type=zipfile.ZIP_DEFLATED,
+                    compresslevel=compresslevel,
+                )
         digest = sha256_file(tmp)
     return digest
 
@@ -105,7 +117,12 @@ class DatasetWriter:
 
     # -- resume -------------------------------------------------------------------------------
     def _identity(self) -> dict[str, Any]:
-        return {"kind": self.kind, "params": self.params, "seed": self.seed, "schema_version": SCHEMA_VERSION}
+        return {
+            "kind": self.kind,
+            "params": self.params,
+            "seed": self.seed,
+            "schema_version": SCHEMA_VERSION,
+        }
 
     def _resume_state(self) -> None:
         """Keep shards of an interrupted run with the same identity; wipe anything else."""
@@ -119,7 +136,9 @@ class DatasetWriter:
             for s in prev.get("shards", []):
                 p = self.root / s["name"]
                 if p.exists() and sha256_file(p) == s["sha256"]:
-                    self._shards[int(s["index"])] = ShardInfo(s["name"], s["sha256"], s["count"], s.get("split"))
+                    self._shards[int(s["index"])] = ShardInfo(
+                        s["name"], s["sha256"], s["count"], s.get("split")
+                    )
         # anything in the folder that is not a kept shard belongs to another run
         keep = {s.name for s in self._shards.values()}
         for p in self.root.iterdir():
@@ -133,7 +152,13 @@ class DatasetWriter:
             {
                 "identity": self._identity(),
                 "shards": [
-                    {"index": i, "name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split}
+                    {
+                        "index": i,
+                        "name": s.name,
+                        "sha256": s.sha256,
+                        "count": s.count,
+                        "split": s.split,
+                    }
                     for i, s in sorted(self._shards.items())
                 ],
             },
@@ -144,23 +169,29 @@ class DatasetWriter:
         return index in self._shards
 
     # -- writing ------------------------------------------------------------------------------
-    def add_shard(self, index: int, arrays: Mapping[str, np.ndarray], split: str | None = None) -> ShardInfo:
+    def add_shard(
+        self, index: int, arrays: Mapping[str, np.ndarray], split: str | None = None
+    ) -> ShardInfo:
         """Write shard ``index`` (all arrays share the first dimension = sample count)."""
         counts = {k: len(v) for k, v in arrays.items()}
         if len(set(counts.values())) > 1:
             raise ValueError(f"shard {index}: arrays disagree on the sample count: {counts}")
         name = shard_name(index)
         digest = write_npz_deterministic(self.root / name, arrays)
-        return self.record_shard(index, name, digest, next(iter(counts.values())) if counts else 0, split)
+        return self.record_shard(
+            index, name, digest, next(iter(counts.values())) if counts else 0, split
+        )
 
-    def record_shard(self, index: int, name: str, sha256: str, count: int, split: str | None = None) -> ShardInfo:
+    def record_shard(
+        self, index: int, name: str, sha256: str, count: int, split: str | None = None
+    ) -> ShardInfo:
         """Record a shard written elsewhere (e.g. by a worker process) under ``root/name``."""
         info = ShardInfo(name, sha256, int(count), split)
         self._shards[index] = info
         self._save_progress()
         return info
 
-    def add_table(self, name: str, frame: "Any") -> None:
+    def add_table(self, name: str, frame: Any) -> None:
         """Write a pandas DataFrame as CSV ``name`` (atomically) and list it in the manifest."""
         path = self.root / name
         with atomic_path(path, suffix=".csv") as tmp:
@@ -182,7 +213,10 @@ class DatasetWriter:
             "params": self.params,
             "count": sum(s.count for s in shards),
             "split_counts": splits,
-            "shards": [{"name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split} for s in shards],
+            "shards": [
+                {"name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split}
+                for s in shards
+            ],
             "tables": [{"name": n, "sha256": d} for n, d in sorted(self._tables.items())],
             **(dict(extra) if extra else {}),
         }
@@ -199,7 +233,9 @@ class Dataset:
         self.root = Path(root)
         mpath = self.root / MANIFEST
         if not self.root.is_dir():
-            raise DatasetError(f"{self.root}: dataset folder not found (run the stage that writes it first)")
+            raise DatasetError(
+                f"{self.root}: dataset folder not found (run the stage that writes it first)"
+            )
         if not mpath.exists():
             raise DatasetError(f"{mpath}: manifest missing (the dataset was not finalised)")
         try:
@@ -241,7 +277,9 @@ class Dataset:
         if name not in self._verified:
             got = sha256_file(p)
             if got != expected:
-                raise DatasetError(f"{p}: SHA-256 mismatch (manifest {expected[:12]}…, file {got[:12]}…): corrupt or tampered")
+                raise DatasetError(
+                    f"{p}: SHA-256 mismatch (manifest {expected[:12]}…, file {got[:12]}…): corrupt or tampered"
+                )
             self._verified.add(name)
         return p
 
@@ -263,18 +301,24 @@ class Dataset:
         for i in self.shard_indices(split):
             yield self.load_shard(i)
 
-    def load_all(self, split: str | None = None, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    def load_all(
+        self, split: str | None = None, keys: Iterable[str] | None = None
+    ) -> dict[str, np.ndarray]:
         """Concatenate every shard (of ``split``); ``keys`` limits the arrays loaded."""
         parts = list(self.iter_shards(split))
         if not parts:
-            raise DatasetError(f"{self.root}: no shards" + (f" in split '{split}'" if split else ""))
+            raise DatasetError(
+                f"{self.root}: no shards" + (f" in split '{split}'" if split else "")
+            )
         names = list(keys) if keys is not None else list(parts[0])
         for k in names:
             if k not in parts[0]:
-                raise DatasetError(f"{self.root / self.shards[0]['name']}: array '{k}' missing (has {sorted(parts[0])})")
+                raise DatasetError(
+                    f"{self.root / self.shards[0]['name']}: array '{k}' missing (has {sorted(parts[0])})"
+                )
         return {k: np.concatenate([p[k] for p in parts]) for k in names}
 
-    def table(self, name: str) -> "Any":
+    def table(self, name: str) -> Any:
         import pandas as pd
 
         entry = next((t for t in self.manifest.get("tables", []) if t["name"] == name), None)

@@ -34,9 +34,10 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -80,7 +81,11 @@ class Gate:
     def __post_init__(self) -> None:
         if self.mode not in ("min", "max"):
             raise ValueError(f"gate mode must be 'min' or 'max', got {self.mode!r}")
-        if not (isinstance(self.margin, (int, float)) and math.isfinite(self.margin) and self.margin >= 0):
+        if not (
+            isinstance(self.margin, (int, float))
+            and math.isfinite(self.margin)
+            and self.margin >= 0
+        ):
             raise ValueError(f"gate margin must be a finite number >= 0, got {self.margin!r}")
         if not self.metric:
             raise ValueError("gate metric must be a non-empty metric name")
@@ -175,7 +180,11 @@ def require_alias(cl, name: str, alias: str):
     mv = get_alias(cl, name, alias)
     if mv is None:
         known = _registered_names(cl)
-        hint = f"registered models: {', '.join(known)}" if known else "no models are registered yet (run `traffictwin promote`)"
+        hint = (
+            f"registered models: {', '.join(known)}"
+            if known
+            else "no models are registered yet (run `traffictwin promote`)"
+        )
         raise RegistryError(f"model '{name}' has no version with alias '{alias}' ({hint})")
     return mv
 
@@ -187,7 +196,9 @@ def _registered_names(cl) -> list[str]:
         return []
 
 
-def ensure_version(cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None):
+def ensure_version(
+    cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
+):
     """The model version of ``name`` registered from ``run_id``; registers it if there is none.
 
     ``model_uri``: the logged model to register (default ``runs:/<run_id>/model``).
@@ -199,7 +210,9 @@ def ensure_version(cl, name: str, run_id: str, model_uri: str | None = None, tag
     try:
         cl.get_run(run_id)
     except MlflowException:
-        raise RegistryError(f"MLflow run '{run_id}' (for model '{name}') not found at {mlflow.get_tracking_uri()}") from None
+        raise RegistryError(
+            f"MLflow run '{run_id}' (for model '{name}') not found at {mlflow.get_tracking_uri()}"
+        ) from None
     try:
         existing = cl.search_model_versions(f"name='{name}' and run_id='{run_id}'")
     except MlflowException:
@@ -209,17 +222,28 @@ def ensure_version(cl, name: str, run_id: str, model_uri: str | None = None, tag
     try:
         cl.get_registered_model(name)
     except MlflowException:
-        cl.create_registered_model(name, description=f"traffictwin model '{name}' (promotion gate: traffictwin.mlops.registry)")
+        cl.create_registered_model(
+            name,
+            description=f"traffictwin model '{name}' (promotion gate: traffictwin.mlops.registry)",
+        )
     try:
-        mv = mlflow.register_model(model_uri or f"runs:/{run_id}/model", name, tags={k: str(v) for k, v in (tags or {}).items()})
+        mv = mlflow.register_model(
+            model_uri or f"runs:/{run_id}/model",
+            name,
+            tags={k: str(v) for k, v in (tags or {}).items()},
+        )
     except MlflowException as exc:
-        raise RegistryError(f"cannot register run '{run_id}' as '{name}' from {model_uri or f'runs:/{run_id}/model'}: {exc}") from None
+        raise RegistryError(
+            f"cannot register run '{run_id}' as '{name}' from {model_uri or f'runs:/{run_id}/model'}: {exc}"
+        ) from None
     return cl.get_model_version(name, mv.version)
 
 
 def _metric(result: Mapping[str, float], metric: str, who: str) -> float:
     if metric not in result:
-        raise RegistryError(f"evaluation of {who} returned no metric '{metric}' (got {sorted(result)})")
+        raise RegistryError(
+            f"evaluation of {who} returned no metric '{metric}' (got {sorted(result)})"
+        )
     return float(result[metric])
 
 
@@ -244,28 +268,55 @@ def decide(
     """
     champ = get_alias(cl, name, champion_alias)
     common = dict(
-        name=name, challenger_version=str(challenger.version), challenger_run_id=challenger.run_id or "",
-        metric=gate.metric, mode=gate.mode, margin=float(gate.margin), test_fingerprint=test_fingerprint,
+        name=name,
+        challenger_version=str(challenger.version),
+        challenger_run_id=challenger.run_id or "",
+        metric=gate.metric,
+        mode=gate.mode,
+        margin=float(gate.margin),
+        test_fingerprint=test_fingerprint,
     )
     if champ is not None and str(champ.version) == str(challenger.version):
-        return Decision(**common, champion_version=str(champ.version), challenger_value=None, champion_value=None,
-                        action="unchanged", reason="challenger is already the champion")
+        return Decision(
+            **common,
+            champion_version=str(champ.version),
+            challenger_value=None,
+            champion_value=None,
+            action="unchanged",
+            reason="challenger is already the champion",
+        )
     tags = challenger.tags or {}
-    if (not force and "gate.decision" in tags and champ is not None
-            and tags.get("gate.champion_version") == str(champ.version)
-            and tags.get("gate.test_fingerprint", "") == test_fingerprint):
-        return Decision(**common, champion_version=str(champ.version), challenger_value=None, champion_value=None,
-                        action="unchanged",
-                        reason=f"already decided against champion v{champ.version} on this test set "
-                               f"({tags['gate.decision']})")
+    if (
+        not force
+        and "gate.decision" in tags
+        and champ is not None
+        and tags.get("gate.champion_version") == str(champ.version)
+        and tags.get("gate.test_fingerprint", "") == test_fingerprint
+    ):
+        return Decision(
+            **common,
+            champion_version=str(champ.version),
+            challenger_value=None,
+            champion_value=None,
+            action="unchanged",
+            reason=f"already decided against champion v{champ.version} on this test set "
+            f"({tags['gate.decision']})",
+        )
     ch_metrics = {k: float(v) for k, v in evaluate(version_uri(name, challenger.version)).items()}
     ch_val = _metric(ch_metrics, gate.metric, f"{name} v{challenger.version}")
     if champ is None:
         ok = math.isfinite(ch_val)
-        return Decision(**common, champion_version=None, challenger_value=ch_val, champion_value=None,
-                        action="first" if ok else "rejected",
-                        reason="no champion yet: first model becomes champion" if ok else f"{gate.metric} is not finite",
-                        challenger_metrics=ch_metrics)
+        return Decision(
+            **common,
+            champion_version=None,
+            challenger_value=ch_val,
+            champion_value=None,
+            action="first" if ok else "rejected",
+            reason="no champion yet: first model becomes champion"
+            if ok
+            else f"{gate.metric} is not finite",
+            challenger_metrics=ch_metrics,
+        )
     cp_error = ""
     try:
         cp_metrics = {k: float(v) for k, v in evaluate(version_uri(name, champ.version)).items()}
@@ -275,12 +326,25 @@ def decide(
         cp_error = f"champion v{champ.version} could not be evaluated on this test set ({type(exc).__name__}: {exc}); "
     better = gate.passes(ch_val, cp_val)
     word = "lower" if gate.mode == "min" else "higher"
-    imp = gate.improvement(ch_val, cp_val) if math.isfinite(ch_val) and math.isfinite(cp_val) else float("nan")
-    reason = (f"{cp_error}{gate.metric}: challenger {ch_val:.6g} vs champion {cp_val:.6g} ({word} is better; "
-              f"improvement {imp:.3g} {'>' if better else '<='} margin {gate.margin:g})")
-    return Decision(**common, champion_version=str(champ.version), challenger_value=ch_val, champion_value=cp_val,
-                    action="promoted" if better else "rejected", reason=reason,
-                    challenger_metrics=ch_metrics, champion_metrics=cp_metrics)
+    imp = (
+        gate.improvement(ch_val, cp_val)
+        if math.isfinite(ch_val) and math.isfinite(cp_val)
+        else float("nan")
+    )
+    reason = (
+        f"{cp_error}{gate.metric}: challenger {ch_val:.6g} vs champion {cp_val:.6g} ({word} is better; "
+        f"improvement {imp:.3g} {'>' if better else '<='} margin {gate.margin:g})"
+    )
+    return Decision(
+        **common,
+        champion_version=str(champ.version),
+        challenger_value=ch_val,
+        champion_value=cp_val,
+        action="promoted" if better else "rejected",
+        reason=reason,
+        challenger_metrics=ch_metrics,
+        champion_metrics=cp_metrics,
+    )
 
 
 def champion_history(cl, name: str) -> list[str]:
@@ -357,7 +421,10 @@ def rollback(
         cl.get_registered_model(name)
     except MlflowException:
         known = _registered_names(cl)
-        raise RegistryError(f"no registered model '{name}'" + (f" (registered: {', '.join(known)})" if known else "")) from None
+        raise RegistryError(
+            f"no registered model '{name}'"
+            + (f" (registered: {', '.join(known)})" if known else "")
+        ) from None
     current = get_alias(cl, name, champion_alias)
     cur = str(current.version) if current is not None else None
     hist = champion_history(cl, name)
@@ -365,8 +432,10 @@ def rollback(
         while hist and hist[-1] == cur:
             hist.pop()
         if not hist:
-            raise RegistryError(f"model '{name}': no previous champion to roll back to (current champion: v{cur}); "
-                                f"pass --version")
+            raise RegistryError(
+                f"model '{name}': no previous champion to roll back to (current champion: v{cur}); "
+                f"pass --version"
+            )
         target = hist[-1]
     else:
         target = str(version)
@@ -380,8 +449,12 @@ def rollback(
     now = time.time()
     cl.set_model_version_tag(name, target, "gate.rollback_from", str(cur or ""))
     record = {
-        "event": "rollback", "name": name, "from_version": cur, "to_version": target,
-        "timestamp": now, "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),
+        "event": "rollback",
+        "name": name,
+        "from_version": cur,
+        "to_version": target,
+        "timestamp": now,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),
     }
     if log_path is not None:
         append_log(log_path, record)
@@ -428,17 +501,25 @@ def _json_default(o: Any) -> Any:
     return str(o)
 
 
-def status(cl, names: Sequence[str], champion_alias: str = CHAMPION, challenger_alias: str = CHALLENGER) -> list[dict[str, Any]]:
+def status(
+    cl, names: Sequence[str], champion_alias: str = CHAMPION, challenger_alias: str = CHALLENGER
+) -> list[dict[str, Any]]:
     """Champion/challenger version and their last recorded figures for each registered model."""
     rows = []
     for n in names:
         row: dict[str, Any] = {"name": n}
         for alias in (champion_alias, challenger_alias):
             mv = get_alias(cl, n, alias)
-            row[alias] = None if mv is None else {
-                "version": str(mv.version), "run_id": mv.run_id,
-                "value": (mv.tags or {}).get("gate.challenger_value"), "decision": (mv.tags or {}).get("gate.decision"),
-            }
+            row[alias] = (
+                None
+                if mv is None
+                else {
+                    "version": str(mv.version),
+                    "run_id": mv.run_id,
+                    "value": (mv.tags or {}).get("gate.challenger_value"),
+                    "decision": (mv.tags or {}).get("gate.decision"),
+                }
+            )
         row["history"] = champion_history(cl, n)
         rows.append(row)
     return rows
@@ -470,9 +551,17 @@ def read_candidate(name: str, model_dir: str | Path) -> Candidate:
         raise RegistryError(f"{meta_path}: not valid JSON ({exc})") from None
     run_id = meta.get("mlflow_run_id") or meta.get("run_id")
     if not run_id:
-        raise RegistryError(f"{meta_path}: no MLflow run id (key 'mlflow_run_id'); was the model trained with tracking enabled?")
+        raise RegistryError(
+            f"{meta_path}: no MLflow run id (key 'mlflow_run_id'); was the model trained with tracking enabled?"
+        )
     uri = meta.get("mlflow_model_uri") or meta.get("model_uri")
-    return Candidate(name=name, run_id=str(run_id), model_uri=str(uri) if uri else None, meta_path=meta_path, meta=meta)
+    return Candidate(
+        name=name,
+        run_id=str(run_id),
+        model_uri=str(uri) if uri else None,
+        meta_path=meta_path,
+        meta=meta,
+    )
 
 
 def load_registered(uri: str):
@@ -488,7 +577,9 @@ def _take_first(order_key: np.ndarray, k: int | None) -> np.ndarray:
     return idx if k is None or k <= 0 else idx[:k]
 
 
-def fusion_test_set(data_root: str | Path, split: str = "test", max_pairs: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+def fusion_test_set(
+    data_root: str | Path, split: str = "test", max_pairs: int | None = None
+) -> tuple[np.ndarray, np.ndarray, str]:
     """Gate test set of a prealigned dataset: ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first
     ``max_pairs`` pairs by ``pair_id`` (a fixed selection), and its fingerprint."""
     from traffictwin.io.shards import Dataset
@@ -497,10 +588,16 @@ def fusion_test_set(data_root: str | Path, split: str = "test", max_pairs: int |
     a = ds.load_all(split, keys=["inputs", "label", "pair_id"])
     sel = _take_first(np.asarray(a["pair_id"]), max_pairs)
     fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}"
-    return np.ascontiguousarray(a["inputs"][sel], np.float32), np.ascontiguousarray(a["label"][sel], np.float32), fp
+    return (
+        np.ascontiguousarray(a["inputs"][sel], np.float32),
+        np.ascontiguousarray(a["label"][sel], np.float32),
+        fp,
+    )
 
 
-def fusion_evaluator(inputs: np.ndarray, label: np.ndarray, batch_size: int = 8) -> Callable[[str], dict[str, float]]:
+def fusion_evaluator(
+    inputs: np.ndarray, label: np.ndarray, batch_size: int = 8
+) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)``: fused masses of the model on ``inputs``, scored with
     :mod:`traffictwin.fusion.metrics` (the evaluate_fusion stage's code) as ``test/<name>``."""
     from traffictwin.fusion import metrics as fm
@@ -522,11 +619,16 @@ def unwrap_risk_net(model):
     for cand in (model, getattr(model, "net", None)):
         if isinstance(cand, Dave2):
             return cand
-    raise RegistryError(f"registered risk model is a {type(model).__name__}, expected a Dave2 (or a wrapper with .net)")
+    raise RegistryError(
+        f"registered risk model is a {type(model).__name__}, expected a Dave2 (or a wrapper with .net)"
+    )
 
 
 def risk_test_set(
-    risk_root: str | Path, disparity_root: str | Path, orb_csv: str | Path | None, split: str = "test",
+    risk_root: str | Path,
+    disparity_root: str | Path,
+    orb_csv: str | Path | None,
+    split: str = "test",
     max_frames: int | None = None,
 ) -> tuple[dict[str, np.ndarray], str]:
     """Raw test frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
@@ -555,13 +657,18 @@ def risk_test_set(
         if c.startswith("risk"):
             data[f"label:{c}"] = rows[c].to_numpy(np.float32)
     orb_fp = sha256_file(orb_csv)[:8] if orb_csv else "none"
-    fp = (f"risk:{src.risk.manifest_hash()[:16]}:disp:{src.disparity.manifest_hash()[:8] if src.disparity else 'none'}"
-          f":orb:{orb_fp}:{split}:{len(rows)}")
+    fp = (
+        f"risk:{src.risk.manifest_hash()[:16]}:disp:{src.disparity.manifest_hash()[:8] if src.disparity else 'none'}"
+        f":orb:{orb_fp}:{split}:{len(rows)}"
+    )
     return data, fp
 
 
 def risk_evaluator(
-    data: Mapping[str, np.ndarray], label: str, thresholds_s: Sequence[float] = (1.5, 1.0), thw_cap: float = 10.0,
+    data: Mapping[str, np.ndarray],
+    label: str,
+    thresholds_s: Sequence[float] = (1.5, 1.0),
+    thw_cap: float = 10.0,
     batch_size: int = 256,
 ) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)``: predicted risk of the model (its own preprocessing) on the raw test
@@ -580,8 +687,13 @@ def risk_evaluator(
 
     def evaluate(uri: str) -> dict[str, float]:
         rmodel = RiskModel(net=unwrap_risk_net(load_registered(uri)))
-        p = rmodel.predict(left_bgr=data["left"], disp_sgm=data["disp_sgm"], disp_gt=data["disp_gt"],
-                           speed=data["speed"], batch_size=batch_size)
+        p = rmodel.predict(
+            left_bgr=data["left"],
+            disp_sgm=data["disp_sgm"],
+            disp_gt=data["disp_gt"],
+            speed=data["speed"],
+            batch_size=batch_size,
+        )
         res = rm.evaluate(y, p, thresholds_s=tuple(thresholds_s), thw_cap=thw_cap)
         out = {k: float(v) for k, v in res.items() if isinstance(v, (int, float))}
         first = res[f"at_{float(thresholds_s[0]):g}s"]

@@ -11,7 +11,8 @@ renders it as text for a terminal.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import pandas as pd
 
@@ -55,13 +56,18 @@ def compare_runs(
     exp = client.get_experiment_by_name(experiment)
     if exp is None:
         names = sorted(e.name for e in client.search_experiments())
-        raise RunsError(f"MLflow experiment {experiment!r} not found at {uri} (experiments there: {names or 'none'})")
+        raise RunsError(
+            f"MLflow experiment {experiment!r} not found at {uri} (experiments there: {names or 'none'})"
+        )
     runs: list[Any] = []
     token = None
     while len(runs) < max_results:
         page = client.search_runs(
-            [exp.experiment_id], filter_string=filter_string, max_results=min(1000, max_results - len(runs)),
-            order_by=["attributes.start_time DESC"], page_token=token,
+            [exp.experiment_id],
+            filter_string=filter_string,
+            max_results=min(1000, max_results - len(runs)),
+            order_by=["attributes.start_time DESC"],
+            page_token=token,
         )
         runs.extend(page)
         token = page.token
@@ -76,7 +82,9 @@ def compare_runs(
     else:
         missing = [m for m in metrics if m not in all_metrics]
         if missing and runs:
-            raise RunsError(f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})")
+            raise RunsError(
+                f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})"
+            )
         metric_cols = list(metrics)
     if params is None:
         names = sorted({k for r in runs for k in r.data.params})
@@ -90,7 +98,9 @@ def compare_runs(
             "run_name": r.info.run_name,
             "run_id": r.info.run_id,
             "status": r.info.status,
-            "start_time": pd.Timestamp(r.info.start_time, unit="ms", tz="UTC") if r.info.start_time else pd.NaT,
+            "start_time": pd.Timestamp(r.info.start_time, unit="ms", tz="UTC")
+            if r.info.start_time
+            else pd.NaT,
         }
         for t in TAG_COLUMNS:
             v = r.data.tags.get(t, "")
@@ -119,10 +129,18 @@ def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str
         empty = [c for c in TAG_COLUMNS if c in out and (out[c].fillna("") == "").all()]
         out = out.drop(columns=empty)
     if "start_time" in out:
-        out["start_time"] = out["start_time"].map(lambda t: "" if pd.isna(t) else t.strftime("%Y-%m-%d %H:%M"))
+        out["start_time"] = out["start_time"].map(
+            lambda t: "" if pd.isna(t) else t.strftime("%Y-%m-%d %H:%M")
+        )
     for c in out.columns:
         if pd.api.types.is_float_dtype(out[c]):
-            out[c] = out[c].map(lambda v: "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}g}")
+            out[c] = out[c].map(
+                lambda v: (
+                    "-"
+                    if v is None or (isinstance(v, float) and math.isnan(v))
+                    else f"{v:.{digits}g}"
+                )
+            )
     out = out.fillna("-")
     if not wide:
         for c in out.columns:

@@ -33,9 +33,10 @@ from __future__ import annotations
 import hashlib
 import os
 import subprocess
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 ENV_URI = "MLFLOW_TRACKING_URI"
 ENV_REPO = "TRAFFICTWIN_REPO_ROOT"
@@ -111,7 +112,11 @@ def git_commit(root: str | Path | None = None) -> str:
         return base
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root or work_root(), capture_output=True, text=True, timeout=10
+            ["git", "rev-parse", "HEAD"],
+            cwd=root or work_root(),
+            capture_output=True,
+            text=True,
+            timeout=10,
         )
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
@@ -130,7 +135,9 @@ def params_hash(path: str | Path | None = None) -> str:
         return ""
 
 
-def pipeline_run_id(commit: str | None = None, phash: str | None = None, exp_name: str | None = None) -> str:
+def pipeline_run_id(
+    commit: str | None = None, phash: str | None = None, exp_name: str | None = None
+) -> str:
     """Id shared by all stages of one pipeline run.
 
     ``TRAFFICTWIN_PIPELINE_RUN`` if set; else ``<commit[:8]>-<h[:8]>`` where ``h`` hashes the

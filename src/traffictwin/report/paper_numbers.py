@@ -59,26 +59,36 @@ FUSION: dict[str, PaperNumber] = {
 }
 
 # Configurations A-D (Fig. 3): 98 % intervals r (m) and alpha (deg).
-FUSION_CONFIGURATIONS: dict[str, tuple[float, float]] = {"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)}
+FUSION_CONFIGURATIONS: dict[str, tuple[float, float]] = {
+    "A": (0.0, 0.0),
+    "B": (1.0, 10.0),
+    "C": (2.5, 15.0),
+    "D": (5.0, 20.0),
+}
 
 FUSION_CLAIMS: dict[str, PaperClaim] = {
     "kld_A_baseline_better": PaperClaim(
-        "Without pose noise (A) the network is, on average, worse than the naive fusion (KLD).", "Sec. V-A, Fig. 5"
+        "Without pose noise (A) the network is, on average, worse than the naive fusion (KLD).",
+        "Sec. V-A, Fig. 5",
     ),
     "kld_BCD_net_better": PaperClaim(
-        "With pose noise (B, C, D) the network's KLD is much better than the naive fusion's.", "Sec. V-A, Fig. 5"
+        "With pose noise (B, C, D) the network's KLD is much better than the naive fusion's.",
+        "Sec. V-A, Fig. 5",
     ),
     "kld_baseline_degrades_faster": PaperClaim(
-        "The naive fusion's KLD degrades much faster and stronger with growing noise.", "Sec. V-A, Fig. 5"
+        "The naive fusion's KLD degrades much faster and stronger with growing noise.",
+        "Sec. V-A, Fig. 5",
     ),
     "kld_net_less_spread": PaperClaim(
         "The network's KLD varies much less over the test set (more reliable).", "Sec. V-A, Fig. 5"
     ),
     "scores_A_baseline_better": PaperClaim(
-        "Without uncertainty all precision / recall / Dice scores are better for the naive fusion.", "Sec. V-A, Figs. 6-7"
+        "Without uncertainty all precision / recall / Dice scores are better for the naive fusion.",
+        "Sec. V-A, Figs. 6-7",
     ),
     "scores_flatter_net": PaperClaim(
-        "All scores decrease with noise; the network's curves are much flatter.", "Sec. V-A, Figs. 6-7"
+        "All scores decrease with noise; the network's curves are much flatter.",
+        "Sec. V-A, Figs. 6-7",
     ),
     "scores_net_dominant_except": PaperClaim(
         "With growing noise the network dominates most scores, except precision (occupied) and "
@@ -88,7 +98,12 @@ FUSION_CLAIMS: dict[str, PaperClaim] = {
 }
 
 # Which method the paper's Fig. 5 shows with the lower (better) KLD, per configuration.
-FUSION_KLD_WINNER: dict[str, str] = {"A": "baseline", "B": "network", "C": "network", "D": "network"}
+FUSION_KLD_WINNER: dict[str, str] = {
+    "A": "baseline",
+    "B": "network",
+    "C": "network",
+    "D": "network",
+}
 
 # --------------------------------------------------------------------------- risk (Feth et al.)
 RISK_CITATION = (
@@ -99,23 +114,34 @@ RISK_CITATION = (
 # Table 1: confusion matrix of the CNN over the whole effective data set (106,170 situations),
 # critical <=> time headway < 1.5 s. Counts; the paper prints the shares in brackets.
 RISK_CONFUSION = {
-    "tp": PaperNumber(67_052, "situations", "Table 1", "predicted critical, actually critical (63.16 %)"),
-    "fp": PaperNumber(19_069, "situations", "Table 1", "predicted critical, actually uncritical (17.96 %)"),
-    "fn": PaperNumber(9_737, "situations", "Table 1", "predicted uncritical, actually critical (9.17 %)"),
-    "tn": PaperNumber(10_312, "situations", "Table 1", "predicted uncritical, actually uncritical (9.71 %)"),
+    "tp": PaperNumber(
+        67_052, "situations", "Table 1", "predicted critical, actually critical (63.16 %)"
+    ),
+    "fp": PaperNumber(
+        19_069, "situations", "Table 1", "predicted critical, actually uncritical (17.96 %)"
+    ),
+    "fn": PaperNumber(
+        9_737, "situations", "Table 1", "predicted uncritical, actually critical (9.17 %)"
+    ),
+    "tn": PaperNumber(
+        10_312, "situations", "Table 1", "predicted uncritical, actually uncritical (9.71 %)"
+    ),
 }
 
 RISK: dict[str, PaperNumber] = {
     "test_mse": PaperNumber(0.01470, "MSE (normalised risk)", "Sec. 4", "'testing average error'"),
     "accuracy": PaperNumber(72.87, "%", "Sec. 4, Table 1", "critical vs uncritical at THW 1.5 s"),
     "wang_kato_accuracy": PaperNumber(
-        70.77, "%", "Sec. 4 (ref. [20])",
+        70.77,
+        "%",
+        "Sec. 4 (ref. [20])",
         "Wang & Kato, DICTA 2017: max accuracy of a 3-class subjective risk rating from dashcam video (another task and data)",
     ),
     "n_frames": PaperNumber(110_152, "stereo frames recorded", "Sec. 3.3, 3.5"),
     "n_effective": PaperNumber(106_170, "frames after the ORB filter", "Sec. 3.5"),
-    "orb_outlier_pct": PaperNumber(3.5, "% of pairs flagged by ORB (approx.)", "Sec. 3.3",
-                                   "1 - 106,170 / 110,152 = 3.6 %"),
+    "orb_outlier_pct": PaperNumber(
+        3.5, "% of pairs flagged by ORB (approx.)", "Sec. 3.3", "1 - 106,170 / 110,152 = 3.6 %"
+    ),
     "n_critical": PaperNumber(76_789, "critical situations", "Sec. 4"),
     "split": PaperNumber("70:10:20", "train:val:test (random)", "Sec. 3.5"),
     "epochs": PaperNumber(30, "epochs", "Sec. 3.5", "validation error rises after ~15"),

@@ -23,9 +23,10 @@ import html
 import json
 import math
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 from traffictwin.report import paper_numbers as P
 
@@ -35,7 +36,13 @@ RISK_FILE = "risk.json"
 DISPARITY_FILE = "disparity.json"
 ORB_FILE = "orb.json"
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
-_MIME = {".png": "image/png", ".svg": "image/svg+xml", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif"}
+_MIME = {
+    ".png": "image/png",
+    ".svg": "image/svg+xml",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".gif": "image/gif",
+}
 
 
 # --------------------------------------------------------------------------- formatting
@@ -89,7 +96,9 @@ class Cell:
     value: Any = None
     fmt: str | None = None
     title: str = ""  # tooltip (e.g. why a value is n/a)
-    derived: str = ""  # how a computed number was derived from sourced cells (e.g. "sum of timings")
+    derived: str = (
+        ""  # how a computed number was derived from sourced cells (e.g. "sum of timings")
+    )
 
 
 @dataclass
@@ -187,7 +196,13 @@ class Sources:
                 self.missing.append(f"metrics/{file}#{key}")
             return Cell(NA, title=f"not in reports/metrics/{file}: {key}")
         if v is None:
-            return Cell(NA, src=f"metrics/{file}#{key}", value=None, fmt=fmt, title="undefined (null in the metrics file)")
+            return Cell(
+                NA,
+                src=f"metrics/{file}#{key}",
+                value=None,
+                fmt=fmt,
+                title="undefined (null in the metrics file)",
+            )
         return Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)
 
     def param_cell(self, key: str, fmt: str = "str") -> Cell:
@@ -202,12 +217,24 @@ def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
     num = getattr(P, table)[key]
     v = num.value
     fmt = "str" if isinstance(v, str) else fmt
-    return Cell(fmt_value(v, fmt), src=f"paper:{table}.{key}", value=v, fmt=fmt, title=f"{num.source}: {num.unit} {num.note}".strip())
+    return Cell(
+        fmt_value(v, fmt),
+        src=f"paper:{table}.{key}",
+        value=v,
+        fmt=fmt,
+        title=f"{num.source}: {num.unit} {num.note}".strip(),
+    )
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
     v = P.risk_confusion_derived()[key]
-    return Cell(fmt_value(v, fmt), src=f"paper:derived.{key}", value=v, fmt=fmt, title="derived from Table 1 counts")
+    return Cell(
+        fmt_value(v, fmt),
+        src=f"paper:derived.{key}",
+        value=v,
+        fmt=fmt,
+        title="derived from Table 1 counts",
+    )
 
 
 ABSENT = object()
@@ -300,9 +327,16 @@ def _fusion_methods(src: Sources, cfgs: Sequence[str]) -> list[str]:
 def _config_cells(src: Sources, c: str) -> list[Cell]:
     conf = src.inputs.configurations or P.FUSION_CONFIGURATIONS
     r, a = conf.get(c, (float("nan"), float("nan")))
-    base = f"params#configurations.{c}" if c in src.inputs.configurations else f"paper:FUSION_CONFIGURATIONS.{c}"
-    return [Cell(c), Cell(fmt_value(r, "g4"), src=f"{base}.r", value=r, fmt="g4"),
-            Cell(fmt_value(a, "g4"), src=f"{base}.alpha", value=a, fmt="g4")]
+    base = (
+        f"params#configurations.{c}"
+        if c in src.inputs.configurations
+        else f"paper:FUSION_CONFIGURATIONS.{c}"
+    )
+    return [
+        Cell(c),
+        Cell(fmt_value(r, "g4"), src=f"{base}.r", value=r, fmt="g4"),
+        Cell(fmt_value(a, "g4"), src=f"{base}.alpha", value=a, fmt="g4"),
+    ]
 
 
 def fusion_tables(src: Sources) -> list[Table]:
@@ -312,57 +346,106 @@ def fusion_tables(src: Sources) -> list[Table]:
     labels = [FUSION_METHOD_LABELS.get(m, m) for m in methods]
     tables = []
     for metric, name, extra in (
-        ("kld_fo_mean", "KLD(a) mean", "KL(label‖pred) over (m_F, m_O), clipped to [1e-7, 1], averaged over cells "
-                                       "(the definition in the authors' public code), then averaged over test pairs."),
-        ("kld_fo_median", "KLD(a) median", "Median over test pairs (the line in the paper's Fig. 5 boxes)."),
-        ("kld_fou_mean", "KLD(b) mean", "KL over the full vector (m_F, m_O, u), averaged over cells and test pairs."),
+        (
+            "kld_fo_mean",
+            "KLD(a) mean",
+            "KL(label‖pred) over (m_F, m_O), clipped to [1e-7, 1], averaged over cells "
+            "(the definition in the authors' public code), then averaged over test pairs.",
+        ),
+        (
+            "kld_fo_median",
+            "KLD(a) median",
+            "Median over test pairs (the line in the paper's Fig. 5 boxes).",
+        ),
+        (
+            "kld_fou_mean",
+            "KLD(b) mean",
+            "KL over the full vector (m_F, m_O, u), averaged over cells and test pairs.",
+        ),
     ):
         cols = ["config", "r [m]", "α [deg]", *labels]
         head = metric == "kld_fo_mean"
         if head:
             cols += ["network vs naive (ours)", "network vs naive (paper, Fig. 5)"]
-        t = Table(f"Fusion: {name} per pose-noise configuration and method (test split; lower is better)", cols,
-                  note=extra + (" Paper column: which of the two Fig. 5 of van Kempen et al. shows lower; the paper "
-                                "prints no KLD values." if head else ""),
-                  anchor="fusion-kld" if head else f"fusion-{metric}")
+        t = Table(
+            f"Fusion: {name} per pose-noise configuration and method (test split; lower is better)",
+            cols,
+            note=extra
+            + (
+                " Paper column: which of the two Fig. 5 of van Kempen et al. shows lower; the paper "
+                "prints no KLD values."
+                if head
+                else ""
+            ),
+            anchor="fusion-kld" if head else f"fusion-{metric}",
+        )
         for c in cfgs:
             cells = [src.cell(FUSION_FILE, fusion_key(c, m, metric)) for m in methods]
             row = _config_cells(src, c) + cells
             if head:
                 n = src.get(FUSION_FILE, fusion_key(c, NET, metric))
                 b = src.get(FUSION_FILE, fusion_key(c, NAIVE, metric))
-                ok = isinstance(n, (int, float)) and isinstance(b, (int, float)) and not (math.isnan(n) or math.isnan(b))
+                ok = (
+                    isinstance(n, (int, float))
+                    and isinstance(b, (int, float))
+                    and not (math.isnan(n) or math.isnan(b))
+                )
                 row.append(Cell(("network lower" if n < b else "naive lower") if ok else NA))
                 paper = P.FUSION_KLD_WINNER.get(c)
-                row.append(Cell({"network": "network lower", "baseline": "naive lower"}.get(paper or "", NA)))
+                row.append(
+                    Cell(
+                        {"network": "network lower", "baseline": "naive lower"}.get(paper or "", NA)
+                    )
+                )
             t.rows.append(row)
         tables.append(t)
 
     scores = Table(
         "Fusion: precision / recall / Dice per class (test split, pooled over cells; higher is better)",
-        ["config", "method", "precision occ", "recall occ", "Dice occ", "precision free", "recall free", "Dice free"],
-        note=("A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (DESIGN.md; the paper's "
-              "sentence swaps the words); only label-known cells count. The paper shows these as Figs. 6 and 7 "
-              "without printed values."),
+        [
+            "config",
+            "method",
+            "precision occ",
+            "recall occ",
+            "Dice occ",
+            "precision free",
+            "recall free",
+            "Dice free",
+        ],
+        note=(
+            "A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (DESIGN.md; the paper's "
+            "sentence swaps the words); only label-known cells count. The paper shows these as Figs. 6 and 7 "
+            "without printed values."
+        ),
         anchor="fusion-scores",
     )
     for c in cfgs:
         for m, label in zip(methods, labels):
-            scores.rows.append([Cell(c), Cell(label)] + [
-                src.cell(FUSION_FILE, fusion_key(c, m, f"{k}_{cls}"))
-                for cls in ("occ", "free") for k in ("precision", "recall", "dice")
-            ])
+            scores.rows.append(
+                [Cell(c), Cell(label)]
+                + [
+                    src.cell(FUSION_FILE, fusion_key(c, m, f"{k}_{cls}"))
+                    for cls in ("occ", "free")
+                    for k in ("precision", "recall", "dice")
+                ]
+            )
     tables.append(scores)
 
     cross = lookup(src.metrics.get(FUSION_FILE), "cross")
     if isinstance(cross, dict) and cross:
         nets = sorted(cross)
         tcfgs = sorted({tc for n in nets if isinstance(cross[n], dict) for tc in cross[n]})
-        t = Table("Fusion: cross table, KLD(a) mean of the network trained on one configuration (rows) tested on "
-                  "another (columns)", ["network trained on", *[f"test {tc}" for tc in tcfgs]], anchor="fusion-cross",
-                  note="A subset of the test pairs (evaluation.fusion.cross_max_pairs).")
+        t = Table(
+            "Fusion: cross table, KLD(a) mean of the network trained on one configuration (rows) tested on "
+            "another (columns)",
+            ["network trained on", *[f"test {tc}" for tc in tcfgs]],
+            anchor="fusion-cross",
+            note="A subset of the test pairs (evaluation.fusion.cross_max_pairs).",
+        )
         for n in nets:
-            t.rows.append([Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.kld_fo_mean") for tc in tcfgs])
+            t.rows.append(
+                [Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.kld_fo_mean") for tc in tcfgs]
+            )
         tables.append(t)
     return tables
 
@@ -372,8 +455,11 @@ def fusion_tables(src: Sources) -> list[Table]:
 # test/thw_mae_s, ... and at_<t>s {accuracy, precision, recall, f1, roc_auc, confusion{tp,fp,fn,tn},
 # confusion_pct, critical_fraction_true}; main_variant; thresholds_s; n_frames{total,
 # orb_outliers_dropped, train, val, test}; region{labels, agreement, predictors[name][label]}.
-RISK_BASELINE_LABELS = {"train_mean": "baseline: train mean", "train_median": "baseline: train median",
-                        "geometric": "baseline: geometric (SGM distance / speed)"}
+RISK_BASELINE_LABELS = {
+    "train_mean": "baseline: train mean",
+    "train_median": "baseline: train median",
+    "geometric": "baseline: geometric (SGM distance / speed)",
+}
 PAPER_DASH = "—"
 
 
@@ -393,7 +479,9 @@ def risk_predictors(src: Sources) -> list[tuple[str, str, str]]:
         names = sorted(models, key=lambda v: (v != main, v))
         out += [(f"models.{v}", f"ours: {v}" + (" (main)" if v == main else ""), v) for v in names]
     if isinstance(baselines, dict):
-        out += [(f"baselines.{b}", RISK_BASELINE_LABELS.get(b, f"baseline: {b}"), b) for b in baselines]
+        out += [
+            (f"baselines.{b}", RISK_BASELINE_LABELS.get(b, f"baseline: {b}"), b) for b in baselines
+        ]
     return out
 
 
@@ -404,30 +492,61 @@ def risk_tables(src: Sources) -> list[Table]:
     t = Table(
         "Risk: test results, paper vs this run (critical ⇔ THW < 1.5 s ⇔ risk > 1/30)",
         ["metric", "paper (Feth et al.)", *[label for _, label, _ in preds], "paper source"],
-        note=("The paper's accuracy and confusion matrix are over its whole effective data set (106,170 frames), "
-              "ours over the test split; '—': the paper reports no such number. Wang & Kato (ref. [20] of the "
-              "paper) solve a different, 3-class task with subjective labels; the paper quotes their accuracy "
-              "as the related work's best."),
+        note=(
+            "The paper's accuracy and confusion matrix are over its whole effective data set (106,170 frames), "
+            "ours over the test split; '—': the paper reports no such number. Wang & Kato (ref. [20] of the "
+            "paper) solve a different, 3-class task with subjective labels; the paper quotes their accuracy "
+            "as the related work's best."
+        ),
         anchor="risk-results",
     )
     rows = [
         ("MSE (normalised risk)", paper_cell("RISK", "test_mse", "g4"), "test/mse", "g4", "Sec. 4"),
         ("MAE (normalised risk)", None, "test/mae", "g4", ""),
         ("THW abs. error [s] (capped)", None, "test/thw_mae_s", "g4", ""),
-        ("accuracy", paper_cell("RISK", "accuracy", "pct_raw"), f"{at}.accuracy", "pct", "Sec. 4, Table 1"),
+        (
+            "accuracy",
+            paper_cell("RISK", "accuracy", "pct_raw"),
+            f"{at}.accuracy",
+            "pct",
+            "Sec. 4, Table 1",
+        ),
         ("balanced accuracy", None, f"{at}.balanced_accuracy", "pct", ""),
-        ("precision (critical)", derived_paper_cell("precision_critical_pct"), f"{at}.precision", "pct", "Table 1 (derived)"),
-        ("recall (critical)", derived_paper_cell("recall_critical_pct"), f"{at}.recall", "pct", "Table 1 (derived)"),
+        (
+            "precision (critical)",
+            derived_paper_cell("precision_critical_pct"),
+            f"{at}.precision",
+            "pct",
+            "Table 1 (derived)",
+        ),
+        (
+            "recall (critical)",
+            derived_paper_cell("recall_critical_pct"),
+            f"{at}.recall",
+            "pct",
+            "Table 1 (derived)",
+        ),
         ("F1 (critical)", None, f"{at}.f1", "g4", ""),
         ("ROC-AUC (risk as score for critical)", None, f"{at}.roc_auc", "g4", ""),
-        ("critical share (actual)", derived_paper_cell("critical_share_pct"), f"{at}.critical_fraction_true", "pct",
-         "Sec. 4 (derived)"),
+        (
+            "critical share (actual)",
+            derived_paper_cell("critical_share_pct"),
+            f"{at}.critical_fraction_true",
+            "pct",
+            "Sec. 4 (derived)",
+        ),
     ]
     for label, pc, key, fmt, ref in rows:
-        t.rows.append([Cell(label), pc or Cell(PAPER_DASH)]
-                      + [src.cell(RISK_FILE, f"{pre}.{key}", fmt) for pre, _, _ in preds] + [Cell(ref)])
-    t.rows.append([Cell("accuracy, Wang & Kato [20]"), paper_cell("RISK", "wang_kato_accuracy", "pct_raw")]
-                  + [Cell(PAPER_DASH) for _ in preds] + [Cell("Sec. 4")])
+        t.rows.append(
+            [Cell(label), pc or Cell(PAPER_DASH)]
+            + [src.cell(RISK_FILE, f"{pre}.{key}", fmt) for pre, _, _ in preds]
+            + [Cell(ref)]
+        )
+    t.rows.append(
+        [Cell("accuracy, Wang & Kato [20]"), paper_cell("RISK", "wang_kato_accuracy", "pct_raw")]
+        + [Cell(PAPER_DASH) for _ in preds]
+        + [Cell("Sec. 4")]
+    )
     tables = [t]
 
     main = src.get(RISK_FILE, "main_variant")
@@ -435,38 +554,65 @@ def risk_tables(src: Sources) -> list[Table]:
         pre = f"models.{main}.{at}"
         cm = Table(
             f"Risk: confusion matrix, paper Table 1 (whole effective data set) vs this run's test split ({main})",
-            ["", "paper: actual critical", "paper: share", "paper: actual uncritical", "paper: share",
-             "ours: actual critical", "ours: share", "ours: actual uncritical", "ours: share"],
+            [
+                "",
+                "paper: actual critical",
+                "paper: share",
+                "paper: actual uncritical",
+                "paper: share",
+                "ours: actual critical",
+                "ours: share",
+                "ours: actual uncritical",
+                "ours: share",
+            ],
             anchor="risk-confusion",
             note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of all frames.",
         )
-        for label, (a, b) in (("predicted critical", ("tp", "fp")), ("predicted uncritical", ("fn", "tn"))):
-            cm.rows.append([
-                Cell(label),
-                paper_cell("RISK_CONFUSION", a, "int"), derived_paper_cell(f"share_{a}_pct"),
-                paper_cell("RISK_CONFUSION", b, "int"), derived_paper_cell(f"share_{b}_pct"),
-                src.cell(RISK_FILE, f"{pre}.confusion.{a}", "int"), src.cell(RISK_FILE, f"{pre}.confusion_pct.{a}", "pct_raw"),
-                src.cell(RISK_FILE, f"{pre}.confusion.{b}", "int"), src.cell(RISK_FILE, f"{pre}.confusion_pct.{b}", "pct_raw"),
-            ])
+        for label, (a, b) in (
+            ("predicted critical", ("tp", "fp")),
+            ("predicted uncritical", ("fn", "tn")),
+        ):
+            cm.rows.append(
+                [
+                    Cell(label),
+                    paper_cell("RISK_CONFUSION", a, "int"),
+                    derived_paper_cell(f"share_{a}_pct"),
+                    paper_cell("RISK_CONFUSION", b, "int"),
+                    derived_paper_cell(f"share_{b}_pct"),
+                    src.cell(RISK_FILE, f"{pre}.confusion.{a}", "int"),
+                    src.cell(RISK_FILE, f"{pre}.confusion_pct.{a}", "pct_raw"),
+                    src.cell(RISK_FILE, f"{pre}.confusion.{b}", "int"),
+                    src.cell(RISK_FILE, f"{pre}.confusion_pct.{b}", "pct_raw"),
+                ]
+            )
         tables.append(cm)
 
     region = src.get(RISK_FILE, "region.predictors")
     if isinstance(region, dict) and region:
         primary = src.get(RISK_FILE, "primary_label")
-        labels = sorted({lab for d in region.values() if isinstance(d, dict) for lab in d}, key=lambda x: (x != primary, x))
+        labels = sorted(
+            {lab for d in region.values() if isinstance(d, dict) for lab in d},
+            key=lambda x: (x != primary, x),
+        )
         rt = Table(
             "Risk: does the label's region explain the errors? Each predictor scored against the paper-style "
             "region label and against a label restricted to the camera's field of view",
             ["predictor", *[f"{m} vs {lab}" for lab in labels for m in ("MSE", "accuracy")]],
             anchor="risk-region",
-            note=("The paper blames its errors on the metric's region not matching the camera view (Sec. 4); "
-                  "risk_thw_paper = the paper's region, risk_thw_fov = only what the camera sees."),
+            note=(
+                "The paper blames its errors on the metric's region not matching the camera view (Sec. 4); "
+                "risk_thw_paper = the paper's region, risk_thw_fov = only what the camera sees."
+            ),
         )
         for name in region:
-            rt.rows.append([Cell(name)] + [
-                src.cell(RISK_FILE, f"region.predictors.{name}.{lab}.{k}", f)
-                for lab in labels for k, f in (("test/mse", "g4"), ("accuracy", "pct"))
-            ])
+            rt.rows.append(
+                [Cell(name)]
+                + [
+                    src.cell(RISK_FILE, f"region.predictors.{name}.{lab}.{k}", f)
+                    for lab in labels
+                    for k, f in (("test/mse", "g4"), ("accuracy", "pct"))
+                ]
+            )
         tables.append(rt)
     return tables
 
@@ -476,16 +622,27 @@ def risk_training_table(src: Sources) -> Table | None:
     models = src.get(RISK_FILE, "models")
     if not isinstance(models, dict) or not models:
         return None
-    cols = [("n_parameters", "parameters", "int"), ("n_train", "train frames", "int"), ("steps", "steps", "int"),
-            ("best_step", "best step", "int"), ("best_val_mse", "best val MSE", "g4"), ("train_seconds", "train time [s]", "f1")]
-    t = Table("Risk: training of each variant (DAVE-2-like net; paper: 30 epochs, batch 10, Adam)",
-              ["variant", "inputs", "label", *[c[1] for c in cols]], anchor="risk-training")
+    cols = [
+        ("n_parameters", "parameters", "int"),
+        ("n_train", "train frames", "int"),
+        ("steps", "steps", "int"),
+        ("best_step", "best step", "int"),
+        ("best_val_mse", "best val MSE", "g4"),
+        ("train_seconds", "train time [s]", "f1"),
+    ]
+    t = Table(
+        "Risk: training of each variant (DAVE-2-like net; paper: 30 epochs, batch 10, Adam)",
+        ["variant", "inputs", "label", *[c[1] for c in cols]],
+        anchor="risk-training",
+    )
     main = src.get(RISK_FILE, "main_variant")
     for v in sorted(models, key=lambda v: (v != main, v)):
         m = models[v] if isinstance(models[v], dict) else {}
         inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
-        t.rows.append([Cell(v), Cell(inputs or NA), Cell(str(m.get("label", NA)))]
-                      + [src.cell(RISK_FILE, f"models.{v}.{k}", f) for k, _, f in cols])
+        t.rows.append(
+            [Cell(v), Cell(inputs or NA), Cell(str(m.get("label", NA)))]
+            + [src.cell(RISK_FILE, f"models.{v}.{k}", f) for k, _, f in cols]
+        )
     return t
 
 
@@ -517,16 +674,46 @@ def risk_data_table(src: Sources) -> Table | None:
     """Frames recorded / dropped by ORB / per split, paper vs this run."""
     if src.get(RISK_FILE, "n_frames") is None:
         return None
-    t = Table("Risk: data, paper vs this run", ["quantity", "paper", "this run", "paper source"], anchor="risk-data",
-              note=f"Paper split {P.RISK['split'].value} (random frames); ours by scenario (neighbouring frames are near-duplicates).")
-    t.rows.append([Cell("stereo frames"), paper_cell("RISK", "n_frames", "int"), src.cell(RISK_FILE, "n_frames.total", "int"), Cell("Sec. 3.3")])
-    t.rows.append([Cell("dropped by the ORB check"), derived_paper_cell("n_dropped", "int"),
-                   src.cell(RISK_FILE, "n_frames.orb_outliers_dropped", "int"), Cell("Sec. 3.3, 3.5 (derived)")])
+    t = Table(
+        "Risk: data, paper vs this run",
+        ["quantity", "paper", "this run", "paper source"],
+        anchor="risk-data",
+        note=f"Paper split {P.RISK['split'].value} (random frames); ours by scenario (neighbouring frames are near-duplicates).",
+    )
+    t.rows.append(
+        [
+            Cell("stereo frames"),
+            paper_cell("RISK", "n_frames", "int"),
+            src.cell(RISK_FILE, "n_frames.total", "int"),
+            Cell("Sec. 3.3"),
+        ]
+    )
+    t.rows.append(
+        [
+            Cell("dropped by the ORB check"),
+            derived_paper_cell("n_dropped", "int"),
+            src.cell(RISK_FILE, "n_frames.orb_outliers_dropped", "int"),
+            Cell("Sec. 3.3, 3.5 (derived)"),
+        ]
+    )
     for split in ("train", "val", "test"):
-        t.rows.append([Cell(f"{split} frames"), Cell(PAPER_DASH), src.cell(RISK_FILE, f"n_frames.{split}", "int"), Cell("")])
+        t.rows.append(
+            [
+                Cell(f"{split} frames"),
+                Cell(PAPER_DASH),
+                src.cell(RISK_FILE, f"n_frames.{split}", "int"),
+                Cell(""),
+            ]
+        )
     if src.has(ORB_FILE):
-        t.rows.append([Cell("share of pairs dropped by ORB"), paper_cell("RISK", "orb_outlier_pct", "pct_raw"),
-                       src.cell(ORB_FILE, "all/dropped_share", "pct"), Cell("Sec. 3.3 ('around 3.5 %')")])
+        t.rows.append(
+            [
+                Cell("share of pairs dropped by ORB"),
+                paper_cell("RISK", "orb_outlier_pct", "pct_raw"),
+                src.cell(ORB_FILE, "all/dropped_share", "pct"),
+                Cell("Sec. 3.3 ('around 3.5 %')"),
+            ]
+        )
     return t
 
 
@@ -539,9 +726,18 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
     for key, v in flatten_numbers(data):
         if isinstance(v, (int, float)) and not isinstance(v, bool):
             fmt = "int" if isinstance(v, int) else "g4"
-            t.rows.append([Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)])
+            t.rows.append(
+                [Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)]
+            )
         else:
-            t.rows.append([Cell(key), Cell(fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v)))])
+            t.rows.append(
+                [
+                    Cell(key),
+                    Cell(
+                        fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v))
+                    ),
+                ]
+            )
     return t
 
 
@@ -562,6 +758,7 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
         g, m = k.split("/", 1)
         groups += [g] if g not in groups else []
         metrics += [m] if m not in metrics else []
+
     def cell(g: str, m: str) -> Cell:
         key = f"{g}/{m}"
         if key not in data:
@@ -582,7 +779,9 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
 
 # --------------------------------------------------------------------------- run section
 def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
-    t = Table("Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings")
+    t = Table(
+        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
+    )
     items = []
     for name, d in src.timings.items():
         if not isinstance(d, dict) or "seconds" not in d:
@@ -600,12 +799,22 @@ def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
     total = 0.0
     for stage, name, secs in sorted(items, key=key):
         total += float(secs)
-        t.rows.append([Cell(stage), Cell(fmt_value(secs, "f1"), src=f"timings/{name}#seconds", value=secs, fmt="f1"),
-                       Cell(fmt_value(secs, "s"), src=f"timings/{name}#seconds", value=secs, fmt="s")])
+        t.rows.append(
+            [
+                Cell(stage),
+                Cell(fmt_value(secs, "f1"), src=f"timings/{name}#seconds", value=secs, fmt="f1"),
+                Cell(fmt_value(secs, "s"), src=f"timings/{name}#seconds", value=secs, fmt="s"),
+            ]
+        )
     if items:
         d = "sum of the wall times above"
-        t.rows.append([Cell("total (sum)"), Cell(fmt_value(total, "f1"), value=total, fmt="f1", derived=d),
-                       Cell(fmt_value(total, "s"), value=total, fmt="s", derived=d)])
+        t.rows.append(
+            [
+                Cell("total (sum)"),
+                Cell(fmt_value(total, "f1"), value=total, fmt="f1", derived=d),
+                Cell(fmt_value(total, "s"), value=total, fmt="s", derived=d),
+            ]
+        )
     t.note = "Sum of the stages' own wall times as recorded by each stage (reports/timings); DVC overhead not included."
     return t
 
@@ -619,7 +828,12 @@ def environment_table(src: Sources) -> Table | None:
         if k in env:
             v = env[k]
             if isinstance(v, (int, float)) and not isinstance(v, bool):
-                t.rows.append([Cell(k), Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4")])
+                t.rows.append(
+                    [
+                        Cell(k),
+                        Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4"),
+                    ]
+                )
             else:
                 t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
     for pkg, ver in (env.get("packages") or {}).items():
@@ -628,8 +842,12 @@ def environment_table(src: Sources) -> Table | None:
 
 
 def params_table(src: Sources) -> Table:
-    t = Table("Parameters of this run (scale and seeds)", ["parameter", "value"], anchor="params",
-              note="The parameters the profiles override (their sizes) and every seed, from params.yaml.")
+    t = Table(
+        "Parameters of this run (scale and seeds)",
+        ["parameter", "value"],
+        anchor="params",
+        note="The parameters the profiles override (their sizes) and every seed, from params.yaml.",
+    )
     for k in sorted(src.inputs.run_params):
         t.rows.append([Cell(k), src.param_cell(k)])
     return t
@@ -638,20 +856,63 @@ def params_table(src: Sources) -> Table:
 # --------------------------------------------------------------------------- figures
 # The figures the stages write (file stem → section, caption), in the order the report shows them.
 KNOWN_FIGURES: list[tuple[str, str, str]] = [
-    ("fusion_data_samples", "fusion", "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)"),
-    ("fusion_qualitative", "fusion", "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)"),
-    ("fusion_kld_boxplot", "fusion", "KLD distribution over the test set per configuration and method (mirrors Fig. 5)"),
-    ("fusion_scores_occupied", "fusion", "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)"),
-    ("fusion_scores_free", "fusion", "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)"),
-    ("stereo_example", "risk", "Left image, SGM disparity and exact disparity (mirrors the risk paper's Fig. 2)"),
-    ("risk_metric_example", "risk", "Grid-map risk metric: scene and worst-time-headway region (cf. Figs. 3 and 4)"),
+    (
+        "fusion_data_samples",
+        "fusion",
+        "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)",
+    ),
+    (
+        "fusion_qualitative",
+        "fusion",
+        "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)",
+    ),
+    (
+        "fusion_kld_boxplot",
+        "fusion",
+        "KLD distribution over the test set per configuration and method (mirrors Fig. 5)",
+    ),
+    (
+        "fusion_scores_occupied",
+        "fusion",
+        "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
+    ),
+    (
+        "fusion_scores_free",
+        "fusion",
+        "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
+    ),
+    (
+        "stereo_example",
+        "risk",
+        "Left image, SGM disparity and exact disparity (mirrors the risk paper's Fig. 2)",
+    ),
+    (
+        "risk_metric_example",
+        "risk",
+        "Grid-map risk metric: scene and worst-time-headway region (cf. Figs. 3 and 4)",
+    ),
     ("orb_outlier_example", "risk", "A stereo pair the ORB check flags (Sec. 3.3)"),
-    ("risk_training_curves", "risk", "Training and validation average error per variant (mirrors Figs. 5 and 6)"),
-    ("risk_confusion", "risk", "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)"),
-    ("risk_scatter", "risk", "Predicted vs true risk on the test split, with the critical threshold"),
+    (
+        "risk_training_curves",
+        "risk",
+        "Training and validation average error per variant (mirrors Figs. 5 and 6)",
+    ),
+    (
+        "risk_confusion",
+        "risk",
+        "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)",
+    ),
+    (
+        "risk_scatter",
+        "risk",
+        "Predicted vs true risk on the test split, with the critical threshold",
+    ),
     ("risk_examples", "risk", "Test scenes with true and predicted risk (mirrors Fig. 7)"),
 ]
-_SECTION_PATTERNS = ((r"fusion|prealign|pose|ogm", "fusion"), (r"risk|stereo|disparity|orb|camera|thw", "risk"))
+_SECTION_PATTERNS = (
+    (r"fusion|prealign|pose|ogm", "fusion"),
+    (r"risk|stereo|disparity|orb|camera|thw", "risk"),
+)
 
 
 def collect_figures(reports_dir: Path) -> dict[str, list[Figure]]:
@@ -661,8 +922,11 @@ def collect_figures(reports_dir: Path) -> dict[str, list[Figure]]:
     fdir = Path(reports_dir) / "figures"
     if not fdir.is_dir():
         return out
-    files = {p.relative_to(reports_dir).as_posix(): p for p in sorted(fdir.rglob("*"))
-             if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    files = {
+        p.relative_to(reports_dir).as_posix(): p
+        for p in sorted(fdir.rglob("*"))
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    }
     done: set[str] = set()
     for stem, section, caption in KNOWN_FIGURES:
         for rel, p in files.items():
@@ -672,7 +936,9 @@ def collect_figures(reports_dir: Path) -> dict[str, list[Figure]]:
     for rel, p in files.items():
         if rel in done:
             continue
-        section = next((sec for pat, sec in _SECTION_PATTERNS if re.search(pat, p.stem.lower())), "other")
+        section = next(
+            (sec for pat, sec in _SECTION_PATTERNS if re.search(pat, p.stem.lower())), "other"
+        )
         out[section].append(Figure(rel, f"`{rel}`"))
     return out
 
@@ -691,7 +957,9 @@ def findings(kind: str, metrics_dir: Path) -> tuple[list[str], str]:
         if exc.name and exc.name.endswith(f"{kind}.findings"):
             return [], f"(findings generator traffictwin.{kind}.findings not available)"
         raise
-    fn: Callable[..., Any] | None = getattr(mod, "findings", None) or getattr(mod, f"{kind}_findings", None)
+    fn: Callable[..., Any] | None = getattr(mod, "findings", None) or getattr(
+        mod, f"{kind}_findings", None
+    )
     if fn is None:
         return [], f"(traffictwin.{kind}.findings has no findings() function)"
     file = metrics_dir / f"{kind}.json"
@@ -758,7 +1026,11 @@ def build_report(inputs: ReportInputs) -> Report:
         f"Profile `{inputs.profile}`, seed `{inputs.seed}`, git commit `{commit}`"
         + (" (with uncommitted changes to code or configuration)" if inputs.git_dirty else "")
         + (f", DVC experiment `{inputs.dvc_exp_name}`" if inputs.dvc_exp_name else "")
-        + (f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)" if inputs.pipeline_run else "")
+        + (
+            f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)"
+            if inputs.pipeline_run
+            else ""
+        )
         + "."
     )
     run.tables.append(params_table(src))
@@ -768,20 +1040,33 @@ def build_report(inputs: ReportInputs) -> Report:
         run.tables.append(env_t)
 
     fusion = Section("Paper 1 — cooperative evidential occupancy-grid fusion")
-    fusion.paragraphs.append(f"Reference: {P.FUSION_CITATION}. Baseline: the second map transformed by the noisy "
-                             "relative pose, then Dempster's rule (the paper's 'naive fusion').")
+    fusion.paragraphs.append(
+        f"Reference: {P.FUSION_CITATION}. Baseline: the second map transformed by the noisy "
+        "relative pose, then Dempster's rule (the paper's 'naive fusion')."
+    )
     if src.has(FUSION_FILE):
         fusion.tables.extend(fusion_tables(src))
-    tt = files_table(src, r"train_fusion_(\w+)\.json", "Fusion: training per configuration (validation split; "
-                     "`_naive` = the naive fusion on the same pairs)", "fusion-training")
+    tt = files_table(
+        src,
+        r"train_fusion_(\w+)\.json",
+        "Fusion: training per configuration (validation split; "
+        "`_naive` = the naive fusion on the same pairs)",
+        "fusion-training",
+    )
     if tt:
         fusion.tables.append(tt)
     else:
-        fusion.paragraphs.append(f"`reports/metrics/{FUSION_FILE}` is missing: the fusion evaluation has not run.")
+        fusion.paragraphs.append(
+            f"`reports/metrics/{FUSION_FILE}` is missing: the fusion evaluation has not run."
+        )
     bullets, note = findings("fusion", root / "metrics")
     fusion.bullet_groups.append(("Findings of this run", bullets or [note]))
-    fusion.bullet_groups.append(("What the paper reports (qualitatively; it prints no numbers)",
-                                 [f"{c.text} ({c.source})" for c in P.FUSION_CLAIMS.values()]))
+    fusion.bullet_groups.append(
+        (
+            "What the paper reports (qualitatively; it prints no numbers)",
+            [f"{c.text} ({c.source})" for c in P.FUSION_CLAIMS.values()],
+        )
+    )
     fusion.figures = figs["fusion"]
 
     risk = Section("Paper 2 — dynamic risk assessment from a stereo camera")
@@ -792,7 +1077,9 @@ def build_report(inputs: ReportInputs) -> Report:
         if rt:
             risk.tables.append(rt)
     else:
-        risk.paragraphs.append(f"`reports/metrics/{RISK_FILE}` is missing: the risk evaluation has not run.")
+        risk.paragraphs.append(
+            f"`reports/metrics/{RISK_FILE}` is missing: the risk evaluation has not run."
+        )
     dt = risk_data_table(src)
     if dt:
         risk.tables.append(dt)
@@ -809,7 +1096,9 @@ def build_report(inputs: ReportInputs) -> Report:
             data.paragraphs.append(f"`reports/metrics/{file}` is missing.")
 
     appendix = Section("Appendix — every metrics file")
-    shown = {f for f, _ in DATA_FILES} | {f for f in src.metrics if re.fullmatch(r"train_fusion_\w+\.json", f)}
+    shown = {f for f, _ in DATA_FILES} | {
+        f for f in src.metrics if re.fullmatch(r"train_fusion_\w+\.json", f)
+    }
     for file in src.metrics:
         if file in shown:
             continue
@@ -819,7 +1108,12 @@ def build_report(inputs: ReportInputs) -> Report:
     if figs["other"]:
         appendix.figures = figs["other"]
 
-    return Report("traffictwin — results report", intro, [run, fusion, risk, data, appendix], sorted(set(src.missing)))
+    return Report(
+        "traffictwin — results report",
+        intro,
+        [run, fusion, risk, data, appendix],
+        sorted(set(src.missing)),
+    )
 
 
 def results_tables(report: Report) -> list[Table]:
@@ -834,8 +1128,12 @@ def _md_cell(c: Cell) -> str:
 
 
 def table_markdown(t: Table) -> str:
-    lines = [f"**{t.title}**", "", "| " + " | ".join(x.replace("|", "\\|") for x in t.columns) + " |",
-             "|" + "|".join(" --- " for _ in t.columns) + "|"]
+    lines = [
+        f"**{t.title}**",
+        "",
+        "| " + " | ".join(x.replace("|", "\\|") for x in t.columns) + " |",
+        "|" + "|".join(" --- " for _ in t.columns) + "|",
+    ]
     for row in t.rows:
         lines.append("| " + " | ".join(_md_cell(c) for c in row) + " |")
     if t.note:
@@ -847,7 +1145,10 @@ def render_markdown(report: Report) -> str:
     out = [f"# {report.title}", ""]
     for p in report.intro:
         out += [p, ""]
-    out += ["Contents: " + " · ".join(f"[{s.title}](#{_slug(s.title)})" for s in report.sections), ""]
+    out += [
+        "Contents: " + " · ".join(f"[{s.title}](#{_slug(s.title)})" for s in report.sections),
+        "",
+    ]
     for s in report.sections:
         out += [f"## {s.title}", ""]
         for p in s.paragraphs:
@@ -859,7 +1160,12 @@ def render_markdown(report: Report) -> str:
         for f in s.figures:
             out += [f"![{_alt(f.caption)}]({f.path})", "", f"*{f.caption}*", ""]
     if report.missing:
-        out += ["## Missing values", "", "These metrics were looked for and not found (shown as `n/a`):", ""]
+        out += [
+            "## Missing values",
+            "",
+            "These metrics were looked for and not found (shown as `n/a`):",
+            "",
+        ]
         out += [f"- `{m}`" for m in report.missing] + [""]
     return "\n".join(out).rstrip() + "\n"
 
@@ -898,14 +1204,22 @@ def _inline(text: str) -> str:
     s = html.escape(text, quote=False)
     s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
     s = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", s)
-    s = re.sub(r"\[([^\]]+)\]\(([^)\s]+)\)", lambda m: f'<a href="{html.escape(m.group(2))}">{m.group(1)}</a>', s)
+    s = re.sub(
+        r"\[([^\]]+)\]\(([^)\s]+)\)",
+        lambda m: f'<a href="{html.escape(m.group(2))}">{m.group(1)}</a>',
+        s,
+    )
     return s
 
 
 def table_html(t: Table) -> str:
     attrs = f' id="{html.escape(t.anchor)}"' if t.anchor else ""
-    out = [f"<table{attrs}>", f"<caption>{_inline(t.title)}</caption>",
-           "<thead><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in t.columns) + "</tr></thead>", "<tbody>"]
+    out = [
+        f"<table{attrs}>",
+        f"<caption>{_inline(t.title)}</caption>",
+        "<thead><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in t.columns) + "</tr></thead>",
+        "<tbody>",
+    ]
     for row in t.rows:
         tds = []
         for c in row:
@@ -936,17 +1250,34 @@ def figure_html(f: Figure, reports_dir: Path, embed: bool = True) -> str:
         srcattr = f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
     else:
         srcattr = html.escape(f.path)
-    return (f'<figure><img src="{srcattr}" alt="{html.escape(_alt(f.caption))}" data-file="{html.escape(f.path)}"/>'
-            f"<figcaption>{_inline(f.caption)}</figcaption></figure>")
+    return (
+        f'<figure><img src="{srcattr}" alt="{html.escape(_alt(f.caption))}" data-file="{html.escape(f.path)}"/>'
+        f"<figcaption>{_inline(f.caption)}</figcaption></figure>"
+    )
 
 
 def render_html(report: Report, reports_dir: Path, embed: bool = True) -> str:
     """Self-contained HTML (figures embedded as base64 unless ``embed=False``)."""
-    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8"/>',
-           f"<title>{html.escape(report.title)}</title>", f"<style>{CSS}</style>", "</head>", "<body>",
-           f"<h1>{html.escape(report.title)}</h1>"]
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8"/>',
+        f"<title>{html.escape(report.title)}</title>",
+        f"<style>{CSS}</style>",
+        "</head>",
+        "<body>",
+        f"<h1>{html.escape(report.title)}</h1>",
+    ]
     out += [f"<p>{_inline(p)}</p>" for p in report.intro]
-    out.append("<nav><ul>" + "".join(f'<li><a href="#{_slug(s.title)}">{html.escape(s.title)}</a></li>' for s in report.sections) + "</ul></nav>")
+    out.append(
+        "<nav><ul>"
+        + "".join(
+            f'<li><a href="#{_slug(s.title)}">{html.escape(s.title)}</a></li>'
+            for s in report.sections
+        )
+        + "</ul></nav>"
+    )
     for s in report.sections:
         out.append(f'<section id="{_slug(s.title)}"><h2>{html.escape(s.title)}</h2>')
         out += [f"<p>{_inline(p)}</p>" for p in s.paragraphs]
@@ -957,15 +1288,22 @@ def render_html(report: Report, reports_dir: Path, embed: bool = True) -> str:
         out += [figure_html(f, reports_dir, embed) for f in s.figures]
         out.append("</section>")
     if report.missing:
-        out.append('<section id="missing"><h2>Missing values</h2><ul>' + "".join(
-            f"<li><code>{html.escape(m)}</code></li>" for m in report.missing) + "</ul></section>")
+        out.append(
+            '<section id="missing"><h2>Missing values</h2><ul>'
+            + "".join(f"<li><code>{html.escape(m)}</code></li>" for m in report.missing)
+            + "</ul></section>"
+        )
     out += ["</body>", "</html>"]
     return "\n".join(out) + "\n"
 
 
 # --------------------------------------------------------------------------- write
-def write_report(inputs: ReportInputs, readme: Path | None = None, index_html: Path | None = None,
-                 results_md: Path | None = None) -> Report:
+def write_report(
+    inputs: ReportInputs,
+    readme: Path | None = None,
+    index_html: Path | None = None,
+    results_md: Path | None = None,
+) -> Report:
     """Build the report and write README.md, index.html and results_table.md (atomically)."""
     from traffictwin.io.atomic import write_text_atomic
 

@@ -22,8 +22,8 @@ x = mount_x + Z, y = B/2 − X, z = mount_height − Y.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -86,12 +86,21 @@ def geometric_distance(
     if disp.ndim != 3:
         raise ValueError(f"disparity: expected (N, H, W), got shape {disp.shape}")
     n, h, w = disp.shape
-    if "width" in camera and "height" in camera and (int(camera["width"]), int(camera["height"])) != (w, h):
+    if (
+        "width" in camera
+        and "height" in camera
+        and (int(camera["width"]), int(camera["height"])) != (w, h)
+    ):
         raise ValueError(
             f"disparity is {w}×{h} px but the camera intrinsics are for {int(camera['width'])}×{int(camera['height'])}"
         )
     if n > chunk:
-        return np.concatenate([geometric_distance(disp[i : i + chunk], camera, params, chunk) for i in range(0, n, chunk)])
+        return np.concatenate(
+            [
+                geometric_distance(disp[i : i + chunk], camera, params, chunk)
+                for i in range(0, n, chunk)
+            ]
+        )
     fx, fy, cx, cy = (float(camera[k]) for k in ("fx", "fy", "cx", "cy"))
     B, mx, mh = float(camera["baseline"]), float(camera["mount_x"]), float(camera["mount_height"])
     valid = np.isfinite(disp) & (disp > 0)
@@ -105,8 +114,12 @@ def geometric_distance(
     y = B / 2.0 - X
     z = mh - Y
     keep = (
-        valid & (Z <= params.max_range) & (np.abs(y) <= params.corridor_half_width)
-        & (z >= params.min_height) & (z <= params.max_height) & (x > params.subject_length / 2.0)
+        valid
+        & (Z <= params.max_range)
+        & (np.abs(y) <= params.corridor_half_width)
+        & (z >= params.min_height)
+        & (z <= params.max_height)
+        & (x > params.subject_length / 2.0)
     )
     dx = x - params.subject_length / 2.0
     dy = np.maximum(np.abs(y) - params.subject_width / 2.0, 0.0)

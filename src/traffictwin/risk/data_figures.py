@@ -14,10 +14,15 @@ import numpy as np  # noqa: E402
 
 from traffictwin.io.atomic import atomic_path  # noqa: E402
 from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
-from traffictwin.risk.metric import RiskCalculator, RiskConfig, rasterise, swept_cells, to_subject_frame  # noqa: E402
+from traffictwin.risk.metric import (
+    RiskCalculator,
+    RiskConfig,
+    rasterise,
+    swept_cells,
+    to_subject_frame,
+)  # noqa: E402
 from traffictwin.sim.camera import GroundTexture  # noqa: E402
 from traffictwin.sim.driving import generate_sequence  # noqa: E402
-from traffictwin.stereo.orb import match_offsets  # noqa: E402
 
 
 def _save(fig, path: str | Path) -> None:
@@ -26,7 +31,9 @@ def _save(fig, path: str | Path) -> None:
     plt.close(fig)
 
 
-def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequences: int = 12) -> dict:
+def risk_metric_figure(
+    seed: int, spec: RiskDataSpec, path: str | Path, max_sequences: int = 12
+) -> dict:
     """Camera view + grid map of one frame with a vehicle ahead (paper Fig. 3): occupied border
     cells (black), cells occupied within 3 s at constant velocity (blue), the searched region
     (shaded), the subject (red), the nearest vehicle found and its distance (orange)."""
@@ -47,7 +54,9 @@ def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequ
         fr = seq.frames[0]
         chosen = (seq, fr, calc(fr.pose, fr.speed, fr.boxes))
     seq, fr, r = chosen
-    img = spec.camera.render_eye(fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res))[0]
+    img = spec.camera.render_eye(
+        fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res)
+    )[0]
     obs = fr.boxes.subset(calc.obstacles(fr.boxes))
     rel = to_subject_frame(obs, fr.pose)
     lab = rasterise(rel, grid, "border")
@@ -73,10 +82,18 @@ def risk_metric_figure(seed: int, spec: RiskDataSpec, path: str | Path, max_sequ
     ax[1].set_xlabel("y (m, + = left)")
     ax[1].set_ylabel("x (m, forward)")
     ax[1].set_title(f"THW {r.thw:.2f} s, d = {r.distance:.1f} m, risk {r.risk_thw:.3f}")
-    fig.suptitle("Risk metric calculator: grid map (black: vehicle border cells, blue: next 3 s, "
-                 "orange: nearest vehicle, red: subject)", fontsize=9)
+    fig.suptitle(
+        "Risk metric calculator: grid map (black: vehicle border cells, blue: next 3 s, "
+        "orange: nearest vehicle, red: subject)",
+        fontsize=9,
+    )
     _save(fig, path)
-    return {"thw": r.thw, "risk": r.risk_thw, "template": seq.world.template, "situation": seq.situation}
+    return {
+        "thw": r.thw,
+        "risk": r.risk_thw,
+        "template": seq.world.template,
+        "situation": seq.situation,
+    }
 
 
 def _disp_rgb(d: np.ndarray, vmax: float) -> np.ndarray:
@@ -85,7 +102,14 @@ def _disp_rgb(d: np.ndarray, vmax: float) -> np.ndarray:
     return cm
 
 
-def stereo_figure(left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.ndarray, path: str | Path, title: str = "") -> None:
+def stereo_figure(
+    left: np.ndarray,
+    right: np.ndarray,
+    gt: np.ndarray,
+    sgm: np.ndarray,
+    path: str | Path,
+    title: str = "",
+) -> None:
     """Left/right image, GT disparity and SGM disparity (yellow = near, invalid black), like Fig. 2."""
     vmax = float(np.percentile(gt[gt > 0], 99)) if (gt > 0).any() else 1.0
     fig, ax = plt.subplots(2, 2, figsize=(10, 5.2))
@@ -105,23 +129,39 @@ def stereo_figure(left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.n
     _save(fig, path)
 
 
-def orb_figure(left: np.ndarray, right: np.ndarray, path: str | Path, title: str = "", n_show: int = 40, **orb_kw) -> None:
+def orb_figure(
+    left: np.ndarray,
+    right: np.ndarray,
+    path: str | Path,
+    title: str = "",
+    n_show: int = 40,
+    **orb_kw,
+) -> None:
     """Left and right image side by side with the best ORB matches drawn (a flagged pair)."""
     import traffictwin.stereo.orb as orb
 
     gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
     gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
-    o = orb._orb(orb_kw.get("n_features", 500), orb_kw.get("fast_threshold", 12), orb_kw.get("n_levels", 4), orb_kw.get("edge_threshold", 19))
+    o = orb._orb(
+        orb_kw.get("n_features", 500),
+        orb_kw.get("fast_threshold", 12),
+        orb_kw.get("n_levels", 4),
+        orb_kw.get("edge_threshold", 19),
+    )
     kl, dl = o.detectAndCompute(gl, None)
     kr, dr = o.detectAndCompute(gr, None)
     W = left.shape[1]
     fig, ax = plt.subplots(figsize=(11, 3.4))
     ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
     if dl is not None and dr is not None:
-        ms = sorted(cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr), key=lambda m: m.distance)[:n_show]
+        ms = sorted(
+            cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr), key=lambda m: m.distance
+        )[:n_show]
         for m in ms:
             (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
-            ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
+            ax.plot(
+                [x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red"
+            )
     ax.axis("off")
     ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
     _save(fig, path)

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from traffictwin.grid import GridSpec
+from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
-from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig
 
 LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
 
@@ -36,7 +36,9 @@ class RiskDataSpec:
             raise ValueError(f"risk label must be one of {LABELS}, got {self.label!r}")
 
 
-def assign_splits(n: int, seed: int, fractions: tuple[float, float, float] = (0.7, 0.1, 0.2)) -> list[str]:
+def assign_splits(
+    n: int, seed: int, fractions: tuple[float, float, float] = (0.7, 0.1, 0.2)
+) -> list[str]:
     """Split name per sequence (train/val/test) by a seeded permutation; each split gets at least
     one sequence when ``n >= 3``."""
     if n < 1:
@@ -55,43 +57,78 @@ def assign_splits(n: int, seed: int, fractions: tuple[float, float, float] = (0.
     return [str(x) for x in out]
 
 
-def make_shard(seed: int, index: int, spec: RiskDataSpec) -> tuple[dict[str, np.ndarray], list[dict]]:
+def make_shard(
+    seed: int, index: int, spec: RiskDataSpec
+) -> tuple[dict[str, np.ndarray], list[dict]]:
     """Render sequence ``index``: arrays ``left``, ``right`` (N, H, W, 3) uint8 BGR, ``disp_gt``
     (N, H, W) float32 px, ``speed`` (N,) m/s, ``risk`` (N,) float32; plus one row per frame."""
     seq = generate_sequence(seed, index, spec.driving)
     cam = spec.camera
-    ground = GroundTexture.from_world(seq.world, res=spec.ground_res, seed=int(seq.world.seed) % 100003)
+    ground = GroundTexture.from_world(
+        seq.world, res=spec.ground_res, seed=int(seq.world.seed) % 100003
+    )
     calcs = {
         "paper": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"})),
-        "camera_fov": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "camera_fov"})),
+        "camera_fov": RiskCalculator(
+            spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "camera_fov"})
+        ),
     }
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
     left, right, disp, rows = [], [], [], []
     for k, fr in enumerate(seq.frames):
-        out = cam.render_pair(fr.pose, fr.boxes, ground, fr.pose_right, fr.boxes_right, fr.right_cy_offset, rng)
+        out = cam.render_pair(
+            fr.pose, fr.boxes, ground, fr.pose_right, fr.boxes_right, fr.right_cy_offset, rng
+        )
         left.append(out["left"])
         right.append(out["right"])
         disp.append(out["disp_gt"])
         rp = calcs["paper"](fr.pose, fr.speed, fr.boxes)
         rf = calcs["camera_fov"](fr.pose, fr.speed, fr.boxes)
-        values = {"thw_paper": rp.risk_thw, "thw_fov": rf.risk_thw, "ttc": rp.risk_ttc, "wttc": rp.risk_wttc}
+        values = {
+            "thw_paper": rp.risk_thw,
+            "thw_fov": rf.risk_thw,
+            "ttc": rp.risk_ttc,
+            "wttc": rp.risk_wttc,
+        }
         thw = rf.thw if spec.label == "thw_fov" else rp.thw
-        rows.append(dict(
-            idx=k, scenario=int(index), situation=seq.situation, template=seq.world.template, t=round(fr.t, 4),
-            speed=fr.speed, x=fr.pose[0], y=fr.pose[1], yaw=fr.pose[2], thw=thw, distance=rp.distance,
-            ttc=rp.ttc, wttc=rp.wttc, risk=values[spec.label], risk_thw_paper=rp.risk_thw, risk_thw_fov=rf.risk_thw,
-            risk_ttc=rp.risk_ttc, risk_wttc=rp.risk_wttc, critical=bool(thw < CRITICAL_THW),
-            fault=fr.fault, vertical_px=fr.right_cy_offset,
-        ))
+        rows.append(
+            dict(
+                idx=k,
+                scenario=int(index),
+                situation=seq.situation,
+                template=seq.world.template,
+                t=round(fr.t, 4),
+                speed=fr.speed,
+                x=fr.pose[0],
+                y=fr.pose[1],
+                yaw=fr.pose[2],
+                thw=thw,
+                distance=rp.distance,
+                ttc=rp.ttc,
+                wttc=rp.wttc,
+                risk=values[spec.label],
+                risk_thw_paper=rp.risk_thw,
+                risk_thw_fov=rf.risk_thw,
+                risk_ttc=rp.risk_ttc,
+                risk_wttc=rp.risk_wttc,
+                critical=bool(thw < CRITICAL_THW),
+                fault=fr.fault,
+                vertical_px=fr.right_cy_offset,
+            )
+        )
     arrays = {
-        "left": np.stack(left), "right": np.stack(right), "disp_gt": np.stack(disp).astype(np.float32),
+        "left": np.stack(left),
+        "right": np.stack(right),
+        "disp_gt": np.stack(disp).astype(np.float32),
         "speed": np.array([r["speed"] for r in rows], np.float32),
         "risk": np.array([r["risk"] for r in rows], np.float32),
     }
     return arrays, rows
 
 
-def load_stereo_shard(ds: "Dataset", index: int, keys: tuple[str, ...] = ("left", "right")) -> dict[str, np.ndarray]:
+def load_stereo_shard(
+    ds: Dataset, index: int, keys: tuple[str, ...] = ("left", "right")
+) -> dict[str, np.ndarray]:
     """Shard ``index`` of a ``data/risk`` dataset, checked: every array of ``keys`` present and
     left/right images of one size. Raises :class:`DatasetError` naming the shard file."""
     from traffictwin.io.shards import DatasetError
@@ -102,5 +139,7 @@ def load_stereo_shard(ds: "Dataset", index: int, keys: tuple[str, ...] = ("left"
         if key not in sh:
             raise DatasetError(f"{name}: array '{key}' missing (has {sorted(sh)})")
     if sh["left"].shape != sh["right"].shape:
-        raise DatasetError(f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size")
+        raise DatasetError(
+            f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size"
+        )
     return sh

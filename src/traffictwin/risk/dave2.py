@@ -20,8 +20,8 @@ never disagree.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -31,7 +31,13 @@ from torch import nn
 #: channel groups the network can be fed, with their channel counts
 CHANNELS: dict[str, int] = {"rgb": 3, "disp_sgm": 1, "disp_gt": 1}
 
-CONV_SPEC: tuple[tuple[int, int, int], ...] = ((24, 5, 2), (36, 5, 2), (48, 5, 2), (64, 3, 1), (64, 3, 1))
+CONV_SPEC: tuple[tuple[int, int, int], ...] = (
+    (24, 5, 2),
+    (36, 5, 2),
+    (48, 5, 2),
+    (64, 3, 1),
+    (64, 3, 1),
+)
 FC_SPEC: tuple[int, ...] = (1164, 100, 50, 10)
 
 
@@ -61,11 +67,15 @@ class Dave2Config:
             raise ValueError("Dave2Config.inputs: at least one input channel group is required")
         bad = [c for c in self.inputs if c not in CHANNELS]
         if bad:
-            raise ValueError(f"Dave2Config.inputs: unknown channel group(s) {bad}; expected a subset of {list(CHANNELS)}")
+            raise ValueError(
+                f"Dave2Config.inputs: unknown channel group(s) {bad}; expected a subset of {list(CHANNELS)}"
+            )
         if len(set(self.inputs)) != len(self.inputs):
             raise ValueError(f"Dave2Config.inputs: duplicate channel groups in {list(self.inputs)}")
         if self.height < 1 or self.width < 1:
-            raise ValueError(f"Dave2Config: height/width must be positive, got {self.height}×{self.width}")
+            raise ValueError(
+                f"Dave2Config: height/width must be positive, got {self.height}×{self.width}"
+            )
         if self.speed_scale <= 0 or self.disp_scale <= 0:
             raise ValueError("Dave2Config: speed_scale and disp_scale must be > 0")
         if not 0.0 <= self.dropout < 1.0:
@@ -88,7 +98,7 @@ class Dave2Config:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Dave2Config":
+    def from_dict(cls, d: dict) -> Dave2Config:
         known = set(cls.__dataclass_fields__)
         unknown = set(d) - known
         if unknown:
@@ -102,7 +112,9 @@ class Dave2Config:
         return cls(**d)
 
 
-def conv_output_shape(height: int, width: int, conv: Sequence[Sequence[int]] = CONV_SPEC) -> tuple[int, int, int]:
+def conv_output_shape(
+    height: int, width: int, conv: Sequence[Sequence[int]] = CONV_SPEC
+) -> tuple[int, int, int]:
     """(channels, height, width) after the unpadded convolution stack; error if the input is too small."""
     h, w = int(height), int(width)
     for i, (ch, k, s) in enumerate(conv):
@@ -148,7 +160,12 @@ class Dave2(nn.Module):
 
     def forward(self, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
         cfg = self.cfg
-        if x.ndim != 4 or x.shape[1] != cfg.in_channels or x.shape[2] != cfg.height or x.shape[3] != cfg.width:
+        if (
+            x.ndim != 4
+            or x.shape[1] != cfg.in_channels
+            or x.shape[2] != cfg.height
+            or x.shape[3] != cfg.width
+        ):
             raise ValueError(
                 f"Dave2 expects input (N, {cfg.in_channels}, {cfg.height}, {cfg.width}) for inputs {list(cfg.inputs)}, "
                 f"got {tuple(x.shape)}"
@@ -177,7 +194,9 @@ def _resize_stack(arr: np.ndarray, height: int, width: int) -> np.ndarray:
         return arr
     out = np.empty((arr.shape[0], height, width, *arr.shape[3:]), dtype=arr.dtype)
     for i in range(arr.shape[0]):  # per image, not per pixel: OpenCV does the pixels
-        out[i] = cv2.resize(arr[i], (width, height), interpolation=cv2.INTER_AREA).reshape(out.shape[1:])
+        out[i] = cv2.resize(arr[i], (width, height), interpolation=cv2.INTER_AREA).reshape(
+            out.shape[1:]
+        )
     return out
 
 
@@ -200,7 +219,9 @@ def prepare_channels(
     for name in cfg.inputs:
         a = raw[name]
         if a is None:
-            raise ValueError(f"input '{name}' is required by the model (inputs {list(cfg.inputs)}) but was not given")
+            raise ValueError(
+                f"input '{name}' is required by the model (inputs {list(cfg.inputs)}) but was not given"
+            )
         if name == "rgb":
             if a.ndim != 4 or a.shape[-1] != 3:
                 raise ValueError(f"left image: expected (N, H, W, 3) BGR, got shape {a.shape}")
@@ -213,7 +234,9 @@ def prepare_channels(
             shapes[name] = a.shape
     if len(set(shapes.values())) > 1:
         detail = ", ".join(f"{k} {v[1]}×{v[2]} (N={v[0]})" for k, v in shapes.items())
-        raise ValueError(f"input sizes disagree: {detail}; disparity must have the image's size and frame count")
+        raise ValueError(
+            f"input sizes disagree: {detail}; disparity must have the image's size and frame count"
+        )
     rgb = None
     if "rgb" in cfg.inputs:
         small = _resize_stack(np.ascontiguousarray(left_bgr), cfg.height, cfg.width)
@@ -231,7 +254,9 @@ def prepare_channels(
     return rgb, disp
 
 
-def normalise(cfg: Dave2Config, rgb: torch.Tensor | None, disp: torch.Tensor | None) -> torch.Tensor:
+def normalise(
+    cfg: Dave2Config, rgb: torch.Tensor | None, disp: torch.Tensor | None
+) -> torch.Tensor:
     """Network input (N, C, h, w) float32 from :func:`prepare_channels` output (as tensors).
 
     RGB: ``x / 127.5 − 1`` (DAVE-2's normalisation layer), disparity: already scaled, cast to float32.
@@ -282,7 +307,9 @@ class PackedDave2(nn.Module):
         return self.net(x)
 
 
-def pack_input(cfg: Dave2Config, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
+def pack_input(
+    cfg: Dave2Config, x: torch.Tensor, speed: torch.Tensor | None = None
+) -> torch.Tensor:
     """The :class:`PackedDave2` input: ``x`` plus, for speed models, a constant speed plane (m/s)."""
     if not cfg.use_speed:
         return x

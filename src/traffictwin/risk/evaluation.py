@@ -14,7 +14,8 @@ score for "critical".
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -66,7 +67,9 @@ def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> d
         "test/rmse": float(np.sqrt(np.mean(e**2))),
         "test/thw_mae_s": float(np.mean(np.abs(tp - ty))),
         "test/thw_median_ae_s": float(np.median(np.abs(tp - ty))),
-        "test/thw_mae_critical_s": float(np.mean(np.abs(tp - ty)[crit])) if crit.any() else float("nan"),
+        "test/thw_mae_critical_s": float(np.mean(np.abs(tp - ty)[crit]))
+        if crit.any()
+        else float("nan"),
         "test/n": int(len(y)),
     }
 
@@ -93,7 +96,9 @@ def classification_metrics(y: np.ndarray, p: np.ndarray, thw_s: float = 1.5) -> 
         "threshold_s": float(thw_s),
         "risk_threshold": float(thr),
         "confusion": {"tp": tp, "fp": fp, "fn": fn, "tn": tn},
-        "confusion_pct": {k: 100.0 * v / n for k, v in {"tp": tp, "fp": fp, "fn": fn, "tn": tn}.items()},
+        "confusion_pct": {
+            k: 100.0 * v / n for k, v in {"tp": tp, "fp": fp, "fn": fn, "tn": tn}.items()
+        },
         "accuracy": (tp + tn) / n,
         "balanced_accuracy": bal,
         "precision": prec,
@@ -129,17 +134,24 @@ def evaluate(
     return out
 
 
-def confusion_labels(y: np.ndarray, p: np.ndarray, thw_s: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+def confusion_labels(
+    y: np.ndarray, p: np.ndarray, thw_s: float = 1.5
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame class names (``critical``/``uncritical``) of actual and predicted risk."""
     thr = risk_threshold(thw_s)
     names = np.array(["uncritical", "critical"])
     return names[(np.asarray(y) > thr).astype(int)], names[(np.asarray(p) > thr).astype(int)]
 
 
-def label_agreement(a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0)) -> dict[str, Any]:
+def label_agreement(
+    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0)
+) -> dict[str, Any]:
     """How two label columns (e.g. paper vs camera_fov region) differ: MSE and class agreement."""
     a, b = _check(a, b)
-    out: dict[str, Any] = {"mse": float(np.mean((a - b) ** 2)), "fraction_equal": float(np.mean(np.isclose(a, b)))}
+    out: dict[str, Any] = {
+        "mse": float(np.mean((a - b) ** 2)),
+        "fraction_equal": float(np.mean(np.isclose(a, b))),
+    }
     for t in thresholds_s:
         thr = risk_threshold(t)
         out[f"class_agreement_at_{t:g}s"] = float(np.mean((a > thr) == (b > thr)))
@@ -164,7 +176,8 @@ def summarise_paper_comparison(metrics: Mapping[str, Any]) -> dict[str, float]:
     return {
         "mse_minus_paper": float(metrics["test/mse"]) - PAPER["test/mse"],
         "accuracy_minus_paper": float(at.get("accuracy", float("nan"))) - PAPER["accuracy"],
-        "accuracy_minus_wang_kato": float(at.get("accuracy", float("nan"))) - PAPER["wang_kato_accuracy"],
+        "accuracy_minus_wang_kato": float(at.get("accuracy", float("nan")))
+        - PAPER["wang_kato_accuracy"],
     }
 
 
@@ -184,7 +197,7 @@ def evaluate_suite(
     geometric: Any = None,
     batch_size: int = 256,
     split: str = "test",
-) -> tuple[dict[str, Any], "Any"]:
+) -> tuple[dict[str, Any], Any]:
     """Predict every model and baseline on ``split`` of ``source`` and compute the metrics.
 
     ``source``: :class:`traffictwin.risk.training.RiskSource`; ``models``: variant →
@@ -195,19 +208,24 @@ def evaluate_suite(
     """
     import pandas as pd
 
-    from traffictwin.risk.training import check_label, input_keys
     from traffictwin.risk.baselines import constant_predictions, geometric_risk
+    from traffictwin.risk.training import check_label, input_keys
 
     frames = source.split_frames(split)
     if len(frames) == 0:
         raise ValueError(f"{source.risk.root}: split '{split}' has no frames after the ORB check")
     fpath = str(source.risk.root / "frames.csv")
-    labels = [primary_label] + [c for c in region_labels if c != primary_label and c in frames.columns]
+    labels = [primary_label] + [
+        c for c in region_labels if c != primary_label and c in frames.columns
+    ]
     for m in models.values():
         lab = m.meta.get("label", primary_label)
         if lab not in labels:
             labels.append(lab)
-    keys: list[str] = sorted({k for m in models.values() for k in input_keys(m.cfg)} | ({"disp_sgm"} if geometric else set()))
+    keys: list[str] = sorted(
+        {k for m in models.values() for k in input_keys(m.cfg)}
+        | ({"disp_sgm"} if geometric else set())
+    )
     preds: dict[str, list[np.ndarray]] = {f"pred_{v}": [] for v in models}
     geo_d: list[np.ndarray] = []
     order: list[np.ndarray] = []
@@ -215,7 +233,13 @@ def evaluate_suite(
         sp = rows["speed"].to_numpy(np.float32)
         for v, m in models.items():
             preds[f"pred_{v}"].append(
-                m.predict(arr.get("left"), arr.get("disp_sgm"), arr.get("disp_gt"), speed=sp, batch_size=batch_size)
+                m.predict(
+                    arr.get("left"),
+                    arr.get("disp_sgm"),
+                    arr.get("disp_gt"),
+                    speed=sp,
+                    batch_size=batch_size,
+                )
             )
         if geometric is not None:
             d, _, r = geometric_risk(arr["disp_sgm"], sp, source.camera, geometric)
@@ -258,17 +282,34 @@ def evaluate_suite(
             "label": lab,
             "inputs": list(m.cfg.inputs),
             "speed": bool(m.cfg.use_speed),
-            **{k: m.meta[k] for k in ("n_parameters", "train_seconds", "best_val_mse", "best_step", "steps", "n_train") if k in m.meta},
+            **{
+                k: m.meta[k]
+                for k in (
+                    "n_parameters",
+                    "train_seconds",
+                    "best_val_mse",
+                    "best_step",
+                    "steps",
+                    "n_train",
+                )
+                if k in m.meta
+            },
         }
         entry.update(ev(ys[lab], out[f"pred_{v}"].to_numpy()))
         entry["vs_paper"] = summarise_paper_comparison(entry)
         metrics["models"][v] = entry
     consts = {lab: constant_predictions(check_label(train, lab, fpath), len(out)) for lab in labels}
     for name in ("train_mean", "train_median"):
-        metrics["baselines"][name] = {"label": primary_label, "value": float(consts[primary_label][name][0]),
-                                      **ev(ys[primary_label], consts[primary_label][name])}
+        metrics["baselines"][name] = {
+            "label": primary_label,
+            "value": float(consts[primary_label][name][0]),
+            **ev(ys[primary_label], consts[primary_label][name]),
+        }
     if geometric is not None:
-        metrics["baselines"]["geometric"] = {"label": primary_label, **ev(ys[primary_label], out["pred_geometric"].to_numpy())}
+        metrics["baselines"]["geometric"] = {
+            "label": primary_label,
+            **ev(ys[primary_label], out["pred_geometric"].to_numpy()),
+        }
         metrics["baselines"]["geometric"]["params"] = dict(geometric.__dict__)
     # --- the risk metric region: paper vs camera_fov --------------------------------------
     present = [c for c in region_labels if c in ys]
@@ -295,14 +336,20 @@ def evaluate_suite(
                 e = ev(ys[lab], out[col].to_numpy())
                 at = e[f"at_{t0:g}s"]
                 region["predictors"][name][lab] = {
-                    "test/mse": e["test/mse"], "test/mae": e["test/mae"], "accuracy": at["accuracy"],
-                    "balanced_accuracy": at["balanced_accuracy"], "f1": at["f1"], "roc_auc": at["roc_auc"],
+                    "test/mse": e["test/mse"],
+                    "test/mae": e["test/mae"],
+                    "accuracy": at["accuracy"],
+                    "balanced_accuracy": at["balanced_accuracy"],
+                    "f1": at["f1"],
+                    "roc_auc": at["roc_auc"],
                 }
         for name in ("train_mean", "train_median"):
             for lab in present:
                 e = ev(ys[lab], consts[lab][name])
                 region["predictors"].setdefault(name, {})[lab] = {
-                    "test/mse": e["test/mse"], "test/mae": e["test/mae"], "accuracy": e[f"at_{t0:g}s"]["accuracy"],
+                    "test/mse": e["test/mse"],
+                    "test/mae": e["test/mae"],
+                    "accuracy": e[f"at_{t0:g}s"]["accuracy"],
                 }
         # skill = 1 - MSE / MSE of the training-mean predictor of the same label (R²-like; 0 = no better
         # than a constant, 1 = perfect): comparable across labels whose spread and critical share differ

@@ -9,8 +9,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import matplotlib
 
@@ -22,13 +22,15 @@ import pandas as pd  # noqa: E402
 from traffictwin.io.atomic import atomic_path  # noqa: E402
 
 
-def _save(fig: "plt.Figure", path: str | Path) -> None:
+def _save(fig: plt.Figure, path: str | Path) -> None:
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     plt.close(fig)
 
 
-def plot_training_curves(histories: Mapping[str, pd.DataFrame], path: str | Path, paper_test_mse: float | None = None) -> None:
+def plot_training_curves(
+    histories: Mapping[str, pd.DataFrame], path: str | Path, paper_test_mse: float | None = None
+) -> None:
     """``histories``: variant → DataFrame with ``step``, ``train/mse``, ``val/mse`` (from train_risk)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for name, h in histories.items():
@@ -49,7 +51,11 @@ def plot_training_curves(histories: Mapping[str, pd.DataFrame], path: str | Path
 
 
 def plot_scatter(
-    y: np.ndarray, preds: Mapping[str, np.ndarray], path: str | Path, threshold: float, title: str = ""
+    y: np.ndarray,
+    preds: Mapping[str, np.ndarray],
+    path: str | Path,
+    threshold: float,
+    title: str = "",
 ) -> None:
     """Predicted vs true normalised risk for one or more predictors; dashed lines = critical threshold."""
     fig, axes = plt.subplots(1, len(preds), figsize=(4.2 * len(preds), 4), squeeze=False)
@@ -78,7 +84,9 @@ def plot_examples(
     fig, axes = plt.subplots(n, 2, figsize=(10, 2.8 * n), squeeze=False)
     for row, ex in zip(axes, examples):
         row[0].imshow(ex["left"][..., ::-1])
-        row[0].set_title(f"{ex.get('title', '')}: true {ex['true']:.2f}, predicted {ex['pred']:.2f}", fontsize=9)
+        row[0].set_title(
+            f"{ex.get('title', '')}: true {ex['true']:.2f}, predicted {ex['pred']:.2f}", fontsize=9
+        )
         d = np.where(ex["disp"] > 0, ex["disp"], np.nan)
         vmax = disp_max if disp_max else (float(np.nanmax(d)) if np.isfinite(d).any() else 1.0)
         im = row[1].imshow(d, cmap="viridis", vmin=0, vmax=vmax)
@@ -91,14 +99,22 @@ def plot_examples(
 
 def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = "") -> None:
     """2×2 matrix like the paper's Table 1: rows predicted (critical, uncritical), columns actual."""
-    m = np.array([[confusion["tp"], confusion["fp"]], [confusion["fn"], confusion["tn"]]], dtype=float)
+    m = np.array(
+        [[confusion["tp"], confusion["fp"]], [confusion["fn"], confusion["tn"]]], dtype=float
+    )
     n = max(m.sum(), 1.0)
     fig, ax = plt.subplots(figsize=(4.8, 4))
     ax.imshow(m / n, cmap="Blues", vmin=0, vmax=1)
     for i in range(2):
         for j in range(2):
-            ax.text(j, i, f"{int(m[i, j])}\n({100 * m[i, j] / n:.2f} %)", ha="center", va="center",
-                    color="white" if m[i, j] / n > 0.5 else "black")
+            ax.text(
+                j,
+                i,
+                f"{int(m[i, j])}\n({100 * m[i, j] / n:.2f} %)",
+                ha="center",
+                va="center",
+                color="white" if m[i, j] / n > 0.5 else "black",
+            )
     ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
     ax.set_title(title or "confusion matrix (THW 1.5 s)")

@@ -7,7 +7,8 @@ baseline not evaluated, a metric undefined → ``None``) are skipped, never inve
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from traffictwin.risk.evaluation import PAPER
 
@@ -77,26 +78,38 @@ def findings(metrics: Mapping[str, Any]) -> str:
         verdict = []
         if maj is not None and acc is not None and _g(maj, f"{at}|accuracy") is not None:
             d = acc - _g(maj, f"{at}|accuracy")
-            verdict.append(f"the network is {abs(100 * d):.2f} points {'above' if d >= 0 else 'below'} the majority class")
+            verdict.append(
+                f"the network is {abs(100 * d):.2f} points {'above' if d >= 0 else 'below'} the majority class"
+            )
         if mean is not None and mse is not None and mean.get("test/mse"):
             verdict.append(f"its MSE is {mse / mean['test/mse']:.2f}× the training mean's")
         if geo is not None and mse is not None and geo.get("test/mse") is not None:
-            verdict.append(f"{'better' if mse < geo['test/mse'] else 'worse'} than the geometric baseline in MSE")
+            verdict.append(
+                f"{'better' if mse < geo['test/mse'] else 'worse'} than the geometric baseline in MSE"
+            )
             ga, na = _g(geo, f"{at}|roc_auc"), _g(m, f"{at}|roc_auc")
             if ga is not None and na is not None:
                 verdict.append(
                     f"{'but worse' if ga > na else 'and better'} at ranking critical frames (ROC-AUC {na:.3f} vs {ga:.3f})"
                 )
-        out.append("**Baselines on the same frames:** " + "; ".join(parts) + (". So " + ", ".join(verdict) + "." if verdict else "."))
+        out.append(
+            "**Baselines on the same frames:** "
+            + "; ".join(parts)
+            + (". So " + ", ".join(verdict) + "." if verdict else ".")
+        )
     # which input matters (variants scored against the same label as the main one)
     lab = m.get("label")
-    same = {v: e for v, e in models.items() if e.get("label") == lab and e.get("test/mse") is not None}
+    same = {
+        v: e for v, e in models.items() if e.get("label") == lab and e.get("test/mse") is not None
+    }
     if len(same) > 1:
         ranked = sorted(same, key=lambda v: same[v]["test/mse"])
         rows = ", ".join(
             f"{v} {same[v]['test/mse']:.5f} / {_pct(_g(same[v], f'{at}|accuracy'))}" for v in ranked
         )
-        out.append(f"**Which input matters** (test MSE / accuracy, best first, label {lab}): {rows}.")
+        out.append(
+            f"**Which input matters** (test MSE / accuracy, best first, label {lab}): {rows}."
+        )
         cmp = []
         for a, b, what in (
             ("rgbd", "rgb", "adding SGM disparity to the image"),
@@ -108,16 +121,29 @@ def findings(metrics: Mapping[str, Any]) -> str:
                 r = same[a]["test/mse"] / same[b]["test/mse"] if same[b]["test/mse"] else None
                 if r is not None:
                     eff = "lowers" if r < 1 else "raises"
-                    cmp.append(f"{what} {eff} the MSE by {abs(1 - r) * 100:.0f} % ({same[b]['test/mse']:.5f} → {same[a]['test/mse']:.5f})")
-        flat = [v for v in ranked if _g(same[v], f"{at}|roc_auc") is not None and abs(_g(same[v], f"{at}|roc_auc") - 0.5) < 0.02]
+                    cmp.append(
+                        f"{what} {eff} the MSE by {abs(1 - r) * 100:.0f} % ({same[b]['test/mse']:.5f} → {same[a]['test/mse']:.5f})"
+                    )
+        flat = [
+            v
+            for v in ranked
+            if _g(same[v], f"{at}|roc_auc") is not None
+            and abs(_g(same[v], f"{at}|roc_auc") - 0.5) < 0.02
+        ]
         if flat:
-            cmp.append(f"{', '.join(flat)} did not leave the constant predictor in this budget (ROC-AUC ≈ 0.5)")
+            cmp.append(
+                f"{', '.join(flat)} did not leave the constant predictor in this budget (ROC-AUC ≈ 0.5)"
+            )
         if cmp:
             out.append("**Input ablation:** " + "; ".join(cmp) + ".")
     # region
     reg = metrics.get("region")
     P, F = "risk_thw_paper", "risk_thw_fov"
-    if isinstance(reg, Mapping) and P in (reg.get("labels") or {}) and F in (reg.get("labels") or {}):
+    if (
+        isinstance(reg, Mapping)
+        and P in (reg.get("labels") or {})
+        and F in (reg.get("labels") or {})
+    ):
         preds = reg.get("predictors") or {}
         txt = [
             f"the two labels give the same class on {_pct(_g(reg, f'agreement|class_agreement_at_{t:g}s'))} of the test frames "
@@ -127,8 +153,10 @@ def findings(metrics: Mapping[str, Any]) -> str:
 
         def desc(name: str, lab: str) -> str:
             e = _g(preds, f"{name}|{lab}") or {}
-            return (f"skill {_num(e.get('skill'), '.2f')}, balanced accuracy {_pct(e.get('balanced_accuracy'))}, "
-                    f"ROC-AUC {_num(e.get('roc_auc'), '.3f')}")
+            return (
+                f"skill {_num(e.get('skill'), '.2f')}, balanced accuracy {_pct(e.get('balanced_accuracy'))}, "
+                f"ROC-AUC {_num(e.get('roc_auc'), '.3f')}"
+            )
 
         own = {}
         for name, lab in ((main, (models.get(main) or {}).get("label", P)), ("rgbd_fov", F)):
@@ -136,17 +164,26 @@ def findings(metrics: Mapping[str, Any]) -> str:
                 own[lab] = _g(preds, f"{name}|{lab}|skill")
                 txt.append(f"{name} trained and scored on {lab}: {desc(name, lab)}")
         if _g(preds, f"geometric|{P}") is not None:
-            txt.append(f"the geometric baseline scores skill {_num(_g(preds, f'geometric|{F}|skill'), '.2f')} on {F} vs "
-                       f"{_num(_g(preds, f'geometric|{P}|skill'), '.2f')} on {P}")
+            txt.append(
+                f"the geometric baseline scores skill {_num(_g(preds, f'geometric|{F}|skill'), '.2f')} on {F} vs "
+                f"{_num(_g(preds, f'geometric|{P}|skill'), '.2f')} on {P}"
+            )
         if own.get(P) is not None and own.get(F) is not None:
             if own[F] > own[P]:
-                txt.append("the network explains more of the camera-visible risk than of the paper-region risk — consistent "
-                           "with the paper's explanation that critical vehicles outside the camera's view limit its accuracy")
+                txt.append(
+                    "the network explains more of the camera-visible risk than of the paper-region risk — consistent "
+                    "with the paper's explanation that critical vehicles outside the camera's view limit its accuracy"
+                )
             else:
-                txt.append("the camera-region label is not learned better than the paper-region one here, so the region "
-                           "mismatch does not explain the errors")
-        out.append("**Risk metric region (paper vs camera_fov; skill = 1 − MSE / MSE of the training mean of that label):** "
-                   + "; ".join(txt) + ".")
+                txt.append(
+                    "the camera-region label is not learned better than the paper-region one here, so the region "
+                    "mismatch does not explain the errors"
+                )
+        out.append(
+            "**Risk metric region (paper vs camera_fov; skill = 1 − MSE / MSE of the training mean of that label):** "
+            + "; ".join(txt)
+            + "."
+        )
     nf = metrics.get("n_frames")
     if isinstance(nf, Mapping) and nf.get("total"):
         out.append(

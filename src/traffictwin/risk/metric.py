@@ -100,8 +100,13 @@ def to_subject_frame(boxes: Boxes, pose: np.ndarray) -> Boxes:
     c, s = np.cos(yaw), np.sin(yaw)
     rot = np.array([[c, s], [-s, c]])
     return Boxes(
-        (boxes.center - [x, y]) @ rot.T, boxes.size, boxes.yaw - yaw, boxes.cls,
-        z0=boxes.z0, velocity=boxes.velocity @ rot.T, ids=boxes.ids,
+        (boxes.center - [x, y]) @ rot.T,
+        boxes.size,
+        boxes.yaw - yaw,
+        boxes.cls,
+        z0=boxes.z0,
+        velocity=boxes.velocity @ rot.T,
+        ids=boxes.ids,
     )
 
 
@@ -116,7 +121,9 @@ def rasterise(rel: Boxes, grid: GridSpec, fill: str = "border") -> np.ndarray:
     pts = np.clip(pts, -(1 << 24), 1 << 24).astype(np.int32)
     for k in range(len(rel)):  # loop over vehicles, not cells
         if fill == "border":
-            cv2.polylines(lab, [pts[k]], True, k + 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
+            cv2.polylines(
+                lab, [pts[k]], True, k + 1, thickness=1, lineType=cv2.LINE_8, shift=_SHIFT
+            )
         else:
             cv2.fillPoly(lab, [pts[k]], k + 1, lineType=cv2.LINE_8, shift=_SHIFT)
     return lab
@@ -193,8 +200,14 @@ class RiskCalculator:
         thw = dmin / speed if speed > 0 else np.inf
         t_ttc, t_wttc = float(np.min(ttc)), float(np.min(wttc))
         return RiskResult(
-            dmin, int(idx[kv[j]]), thw, t_ttc, t_wttc,
-            float(risk_from_time(thw)), float(risk_from_time(t_ttc)), float(risk_from_time(t_wttc)),
+            dmin,
+            int(idx[kv[j]]),
+            thw,
+            t_ttc,
+            t_wttc,
+            float(risk_from_time(thw)),
+            float(risk_from_time(t_ttc)),
+            float(risk_from_time(t_wttc)),
         )
 
 
@@ -203,6 +216,8 @@ def swept_cells(rel: Boxes, grid: GridSpec, horizon: float = 3.0, dt: float = 0.
     under constant velocity (the paper's Fig. 3 'blue' cells; for figures)."""
     out = np.zeros(grid.shape, bool)
     for t in np.arange(dt, horizon + 1e-9, dt):
-        moved = Boxes(rel.center + t * rel.velocity, rel.size, rel.yaw, rel.cls, velocity=rel.velocity)
+        moved = Boxes(
+            rel.center + t * rel.velocity, rel.size, rel.yaw, rel.cls, velocity=rel.velocity
+        )
         out |= rasterise(moved, grid, "border") > 0
     return out

@@ -11,9 +11,10 @@ frames exactly like training did.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -67,7 +68,11 @@ class RiskModel:
                 disp_sgm[sl] if disp_sgm is not None else None,
                 disp_gt[sl] if disp_gt is not None else None,
             )
-            s = torch.as_tensor(np.asarray(speed[sl], dtype=np.float32)) if self.cfg.use_speed else None
+            s = (
+                torch.as_tensor(np.asarray(speed[sl], dtype=np.float32))
+                if self.cfg.use_speed
+                else None
+            )
             out.append(self.net(x, s).float().numpy())
         return np.concatenate(out) if out else np.zeros(0, np.float32)
 
@@ -97,13 +102,19 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
     folder = p if p.is_dir() else p.parent
     ckpt = p if p.is_file() else folder / CKPT
     if not ckpt.exists():
-        raise RiskModelError(f"{ckpt}: risk model checkpoint not found (run the train_risk stage first)")
+        raise RiskModelError(
+            f"{ckpt}: risk model checkpoint not found (run the train_risk stage first)"
+        )
     try:
         blob = torch.load(ckpt, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt files
-        raise RiskModelError(f"{ckpt}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+        raise RiskModelError(
+            f"{ckpt}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
+        ) from None
     if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
-        raise RiskModelError(f"{ckpt}: expected a dict with 'config' and 'state_dict' (a traffictwin risk model)")
+        raise RiskModelError(
+            f"{ckpt}: expected a dict with 'config' and 'state_dict' (a traffictwin risk model)"
+        )
     if blob.get("format") != FORMAT:
         raise RiskModelError(f"{ckpt}: format {blob.get('format')!r}, expected {FORMAT}")
     try:
@@ -114,7 +125,9 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
     try:
         net.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
-        raise RiskModelError(f"{ckpt}: weights do not match the configured network ({exc})") from None
+        raise RiskModelError(
+            f"{ckpt}: weights do not match the configured network ({exc})"
+        ) from None
     net.eval()
     meta: dict[str, Any] = {}
     mpath = folder / META
@@ -124,5 +137,7 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
         except json.JSONDecodeError as exc:
             raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
         if meta.get("config") not in (None, cfg.to_dict()):
-            raise RiskModelError(f"{mpath}: config disagrees with {ckpt} (files from different trainings?)")
+            raise RiskModelError(
+                f"{mpath}: config disagrees with {ckpt} (files from different trainings?)"
+            )
     return RiskModel(net=net, meta=meta)

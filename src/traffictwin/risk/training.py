@@ -23,9 +23,10 @@ import logging
 import math
 import tempfile
 import time
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -59,10 +60,15 @@ class RiskSource:
     """
 
     def __init__(
-        self, risk_root: str | Path, disparity_root: str | Path | None = None, orb_csv: str | Path | None = None
+        self,
+        risk_root: str | Path,
+        disparity_root: str | Path | None = None,
+        orb_csv: str | Path | None = None,
     ) -> None:
         self.risk = Dataset(risk_root, kind="risk")
-        self.disparity = Dataset(disparity_root, kind="disparity") if disparity_root is not None else None
+        self.disparity = (
+            Dataset(disparity_root, kind="disparity") if disparity_root is not None else None
+        )
         frames = self.risk.table("frames.csv")
         fpath = self.risk.root / "frames.csv"
         missing = [c for c in _FRAME_COLS if c not in frames.columns]
@@ -78,14 +84,20 @@ class RiskSource:
         frames["_pos"] = frames["shard"].map(lambda s: pos.get(shard_name(int(s)), -1))
         bad = frames[frames["_pos"] < 0]
         if len(bad):
-            raise DatasetError(f"{fpath}: frame {bad['frame_id'].iloc[0]} refers to shard {bad['shard'].iloc[0]}, not in the manifest")
+            raise DatasetError(
+                f"{fpath}: frame {bad['frame_id'].iloc[0]} refers to shard {bad['shard'].iloc[0]}, not in the manifest"
+            )
         over = frames["idx"].to_numpy() >= np.asarray(counts)[frames["_pos"].to_numpy()]
         if over.any():
             r = frames[over].iloc[0]
-            raise DatasetError(f"{fpath}: frame {r['frame_id']} has idx {r['idx']} beyond its shard's {counts[int(r['_pos'])]} frames")
+            raise DatasetError(
+                f"{fpath}: frame {r['frame_id']} has idx {r['idx']} beyond its shard's {counts[int(r['_pos'])]} frames"
+            )
         bad_split = sorted(set(frames["split"]) - set(SPLITS))
         if bad_split:
-            raise DatasetError(f"{fpath}: unknown split value(s) {bad_split} (expected {list(SPLITS)})")
+            raise DatasetError(
+                f"{fpath}: unknown split value(s) {bad_split} (expected {list(SPLITS)})"
+            )
         if self.disparity is not None:
             dnames = [s["name"] for s in self.disparity.shards]
             dcounts = [int(s["count"]) for s in self.disparity.shards]
@@ -97,16 +109,22 @@ class RiskSource:
         if orb_csv is not None:
             orb_path = Path(orb_csv)
             if not orb_path.exists():
-                raise DatasetError(f"{orb_path}: ORB check table not found (run the stage that writes it first)")
+                raise DatasetError(
+                    f"{orb_path}: ORB check table not found (run the stage that writes it first)"
+                )
             orb = pd.read_csv(orb_path)
             for c in ("frame_id", "outlier"):
                 if c not in orb.columns:
-                    raise DatasetError(f"{orb_path}: column '{c}' missing (has {list(orb.columns)})")
+                    raise DatasetError(
+                        f"{orb_path}: column '{c}' missing (has {list(orb.columns)})"
+                    )
             outlier = orb.set_index("frame_id")["outlier"].map(_as_bool)
             flag = frames["frame_id"].map(outlier)
             if flag.isna().any():
                 fid = frames.loc[flag.isna(), "frame_id"].iloc[0]
-                raise DatasetError(f"{orb_path}: no ORB result for frame {fid} of {fpath} ({int(flag.isna().sum())} frames lack one)")
+                raise DatasetError(
+                    f"{orb_path}: no ORB result for frame {fid} of {fpath} ({int(flag.isna().sum())} frames lack one)"
+                )
             self.n_orb_outliers = int(flag.astype(bool).sum())
             frames = frames[~flag.astype(bool).to_numpy()]
         else:
@@ -119,7 +137,9 @@ class RiskSource:
         """The camera intrinsics of data/risk's manifest (``camera`` key)."""
         cam = self.risk.manifest.get("camera")
         if not isinstance(cam, dict):
-            raise DatasetError(f"{self.risk.root / 'manifest.json'}: key 'camera' (intrinsics) missing")
+            raise DatasetError(
+                f"{self.risk.root / 'manifest.json'}: key 'camera' (intrinsics) missing"
+            )
         return cam
 
     def split_frames(self, split: str) -> pd.DataFrame:
@@ -143,19 +163,27 @@ class RiskSource:
                 shard = self.risk.load_shard(int(p))
                 for k in need_risk:
                     if k not in shard:
-                        raise DatasetError(f"{self.risk.root / self._names[int(p)]}: array '{k}' missing (has {sorted(shard)})")
+                        raise DatasetError(
+                            f"{self.risk.root / self._names[int(p)]}: array '{k}' missing (has {sorted(shard)})"
+                        )
                     arrays[k] = shard[k][idx]
             if "disp_sgm" in keys:
                 if self.disparity is None:
-                    raise ValueError("RiskSource: 'disp_sgm' requested but no disparity_root was given")
+                    raise ValueError(
+                        "RiskSource: 'disp_sgm' requested but no disparity_root was given"
+                    )
                 dshard = self.disparity.load_shard(int(p))
                 if "disp_sgm" not in dshard:
-                    raise DatasetError(f"{self.disparity.root / self._names[int(p)]}: array 'disp_sgm' missing")
+                    raise DatasetError(
+                        f"{self.disparity.root / self._names[int(p)]}: array 'disp_sgm' missing"
+                    )
                 arrays["disp_sgm"] = dshard["disp_sgm"][idx]
             shapes = {k: tuple(v.shape[1:3]) for k, v in arrays.items()}
             if len(set(shapes.values())) > 1:
                 files = f"{self.risk.root / self._names[int(p)]}" + (
-                    f" / {self.disparity.root / self._names[int(p)]}" if self.disparity is not None else ""
+                    f" / {self.disparity.root / self._names[int(p)]}"
+                    if self.disparity is not None
+                    else ""
                 )
                 raise DatasetError(
                     f"{files}: image and disparity sizes disagree {shapes} (H, W); "
@@ -196,7 +224,12 @@ class RiskArrays:
         return len(self.frame_id)
 
     def tensors(self) -> TensorDataset:
-        return TensorDataset(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (self.rgb, self.disp, self.speed, self.y)))
+        return TensorDataset(
+            *(
+                torch.from_numpy(np.ascontiguousarray(a))
+                for a in (self.rgb, self.disp, self.speed, self.y)
+            )
+        )
 
 
 def check_label(frames: pd.DataFrame, label: str, source: str = "frames.csv") -> np.ndarray:
@@ -205,7 +238,9 @@ def check_label(frames: pd.DataFrame, label: str, source: str = "frames.csv") ->
         raise DatasetError(f"{source}: label column '{label}' missing (has {list(frames.columns)})")
     y = frames[label].to_numpy(dtype=np.float64)
     if not np.all(np.isfinite(y)) or (len(y) and (y.min() < 0 or y.max() > 1)):
-        raise DatasetError(f"{source}: label '{label}' must be finite and in [0, 1] (normalised risk)")
+        raise DatasetError(
+            f"{source}: label '{label}' must be finite and in [0, 1] (normalised risk)"
+        )
     return y.astype(np.float32)
 
 
@@ -220,21 +255,28 @@ def prepare_split(
     """Load ``split`` (ORB-passed frames) at the model resolution; ``max_frames`` subsamples (seeded)."""
     frames = source.split_frames(split)
     if max_frames is not None and len(frames) > max_frames:
-        keep = np.sort(np.random.default_rng(seed).choice(len(frames), size=max_frames, replace=False))
+        keep = np.sort(
+            np.random.default_rng(seed).choice(len(frames), size=max_frames, replace=False)
+        )
         frames = frames.iloc[keep].reset_index(drop=True)
     h, w = cfg.height, cfg.width
     n_disp = sum(1 for c in cfg.inputs if c != "rgb")
     rgb_parts, disp_parts, order = [], [], []
     for rows, arrays in source.iter_arrays(frames, input_keys(cfg)):
-        rgb, disp = prepare_channels(cfg, arrays.get("left"), arrays.get("disp_sgm"), arrays.get("disp_gt"))
+        rgb, disp = prepare_channels(
+            cfg, arrays.get("left"), arrays.get("disp_sgm"), arrays.get("disp_gt")
+        )
         n = len(rows)
         rgb_parts.append(rgb if rgb is not None else np.zeros((n, 0, h, w), np.uint8))
         disp_parts.append(disp if disp is not None else np.zeros((n, 0, h, w), np.float16))
         order.append(rows.index.to_numpy())
     if not order:
         return RiskArrays(
-            np.zeros(0, np.int64), np.zeros((0, 3 if "rgb" in cfg.inputs else 0, h, w), np.uint8),
-            np.zeros((0, n_disp, h, w), np.float16), np.zeros(0, np.float32), np.zeros(0, np.float32),
+            np.zeros(0, np.int64),
+            np.zeros((0, 3 if "rgb" in cfg.inputs else 0, h, w), np.uint8),
+            np.zeros((0, n_disp, h, w), np.float16),
+            np.zeros(0, np.float32),
+            np.zeros(0, np.float32),
         )
     ix = np.concatenate(order)
     frames = frames.loc[ix].reset_index(drop=True)
@@ -251,14 +293,24 @@ class RiskDataModule(L.LightningDataModule):
     """Train/val/test loaders over in-memory :class:`RiskArrays` (shuffled train, seeded)."""
 
     def __init__(
-        self, train: RiskArrays, val: RiskArrays, test: RiskArrays | None = None,
-        batch_size: int = 10, eval_batch_size: int = 256, num_workers: int = 0, seed: int = 0,
+        self,
+        train: RiskArrays,
+        val: RiskArrays,
+        test: RiskArrays | None = None,
+        batch_size: int = 10,
+        eval_batch_size: int = 256,
+        num_workers: int = 0,
+        seed: int = 0,
     ) -> None:
         super().__init__()
         if len(train) == 0:
-            raise ValueError("RiskDataModule: the training split has no frames (after the ORB check)")
+            raise ValueError(
+                "RiskDataModule: the training split has no frames (after the ORB check)"
+            )
         if len(val) == 0:
-            raise ValueError("RiskDataModule: the validation split has no frames (after the ORB check)")
+            raise ValueError(
+                "RiskDataModule: the validation split has no frames (after the ORB check)"
+            )
         self.train, self.val, self.test = train, val, test
         self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
         self.num_workers, self.seed = int(num_workers), int(seed)
@@ -267,8 +319,13 @@ class RiskDataModule(L.LightningDataModule):
         g = torch.Generator()
         g.manual_seed(self.seed)
         return DataLoader(
-            arrays.tensors(), batch_size=bs, shuffle=shuffle, generator=g if shuffle else None,
-            num_workers=self.num_workers, persistent_workers=self.num_workers > 0, drop_last=False,
+            arrays.tensors(),
+            batch_size=bs,
+            shuffle=shuffle,
+            generator=g if shuffle else None,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            drop_last=False,
         )
 
     def train_dataloader(self) -> DataLoader:
@@ -353,7 +410,9 @@ class StepHistory(Callback):
         self.rows: list[dict[str, float]] = []
         self._acc: list[float] = []
 
-    def on_train_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int) -> None:
+    def on_train_batch_end(
+        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
         loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
         if loss is not None:
             self._acc.append(float(loss.detach()))
@@ -375,7 +434,9 @@ class StepHistory(Callback):
             import mlflow
 
             if mlflow.active_run() is not None:
-                finite = {k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)}
+                finite = {
+                    k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
+                }
                 mlflow.log_metrics(finite, step=row["step"])
 
     def frame(self) -> pd.DataFrame:
@@ -429,8 +490,14 @@ def fit(
     """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode)."""
     settings = settings or TrainerSettings()
     seed_everything(tc.seed)
-    dm = RiskDataModule(train, val, batch_size=tc.batch_size, eval_batch_size=tc.eval_batch_size,
-                        num_workers=settings.num_workers, seed=tc.seed)
+    dm = RiskDataModule(
+        train,
+        val,
+        batch_size=tc.batch_size,
+        eval_batch_size=tc.eval_batch_size,
+        num_workers=settings.num_workers,
+        seed=tc.seed,
+    )
     module = RiskRegressor(cfg, lr=tc.lr, weight_decay=tc.weight_decay)
     steps_per_epoch = math.ceil(len(train) / tc.batch_size)
     total = steps_per_epoch * tc.epochs
@@ -440,26 +507,48 @@ def fit(
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
         trainer = build_trainer(
-            settings, max_epochs=tc.epochs, callbacks=[ckpt, history, *extra_callbacks], default_root_dir=tmp,
-            fast_dev_run=fast_dev_run, limit_val_batches=tc.limit_val_batches,
-            val_check_interval=interval, check_val_every_n_epoch=None,
+            settings,
+            max_epochs=tc.epochs,
+            callbacks=[ckpt, history, *extra_callbacks],
+            default_root_dir=tmp,
+            fast_dev_run=fast_dev_run,
+            limit_val_batches=tc.limit_val_batches,
+            val_check_interval=interval,
+            check_val_every_n_epoch=None,
         )
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm)
         seconds = time.perf_counter() - t0
         # under DDP only rank zero's checkpoint folder holds the file; only rank zero writes outputs
-        best_path = getattr(ckpt, "best_model_path", "") if not fast_dev_run and trainer.is_global_zero else ""
+        best_path = (
+            getattr(ckpt, "best_model_path", "")
+            if not fast_dev_run and trainer.is_global_zero
+            else ""
+        )
         best_step = -1
         if best_path:
             blob = torch.load(best_path, map_location="cpu", weights_only=False)
             module.load_state_dict(blob["state_dict"])
             best_step = int(blob.get("global_step", -1))
     hist = history.frame()
-    best_val = float(hist["val/mse"].min()) if len(hist) and hist["val/mse"].notna().any() else float("nan")
+    best_val = (
+        float(hist["val/mse"].min())
+        if len(hist) and hist["val/mse"].notna().any()
+        else float("nan")
+    )
     net = module.net.cpu().eval()
-    log.info("risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
-             list(cfg.inputs), count_parameters(net), trainer.global_step, seconds, best_val, best_step)
-    return TrainResult(net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val))
+    log.info(
+        "risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
+        list(cfg.inputs),
+        count_parameters(net),
+        trainer.global_step,
+        seconds,
+        best_val,
+        best_step,
+    )
+    return TrainResult(
+        net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
+    )
 
 
 def train_config_dict(tc: TrainConfig) -> dict[str, Any]:

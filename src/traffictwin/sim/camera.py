@@ -25,8 +25,8 @@ of its reference point (footprint centre).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -75,9 +75,18 @@ class StereoCamera:
             raise ValueError(f"camera width/height must be >= 8 px, got {self.width}x{self.height}")
         if not 5.0 <= self.hfov_deg <= 150.0:
             raise ValueError(f"camera hfov_deg must be in [5, 150] deg, got {self.hfov_deg}")
-        if self.baseline <= 0 or self.mount_height <= 0 or self.near <= 0 or self.max_range <= self.near:
-            raise ValueError("camera baseline, mount_height, near must be > 0 and max_range > near (m)")
-        object.__setattr__(self, "_fx", float((self.width / 2.0) / np.tan(np.radians(self.hfov_deg) / 2.0)))
+        if (
+            self.baseline <= 0
+            or self.mount_height <= 0
+            or self.near <= 0
+            or self.max_range <= self.near
+        ):
+            raise ValueError(
+                "camera baseline, mount_height, near must be > 0 and max_range > near (m)"
+            )
+        object.__setattr__(
+            self, "_fx", float((self.width / 2.0) / np.tan(np.radians(self.hfov_deg) / 2.0))
+        )
 
     @property
     def fx(self) -> float:
@@ -116,7 +125,9 @@ class StereoCamera:
         x, y, yaw = (float(p) for p in pose)
         lat = self.baseline / 2.0 if eye == "left" else -self.baseline / 2.0
         c, s = np.cos(yaw), np.sin(yaw)
-        return np.array([x + c * self.mount_x - s * lat, y + s * self.mount_x + c * lat, self.mount_height]), yaw
+        return np.array(
+            [x + c * self.mount_x - s * lat, y + s * self.mount_x + c * lat, self.mount_height]
+        ), yaw
 
     def rays(self, cy_offset: float = 0.0) -> np.ndarray:
         """Per-pixel ray directions in the camera frame scaled to unit depth (H, W, 3): (X/Z, Y/Z, 1)."""
@@ -130,7 +141,7 @@ class StereoCamera:
         self,
         pose: Sequence[float],
         boxes: Boxes,
-        ground: "GroundTexture | None" = None,
+        ground: GroundTexture | None = None,
         eye: str = "left",
         cy_offset: float = 0.0,
         rng: np.random.Generator | None = None,
@@ -180,8 +191,12 @@ class StereoCamera:
         img = np.empty((H, W, 3), np.float32)
         sky = ~np.isfinite(zbuf)
         if sky.any():
-            rows = np.clip((np.arange(H, dtype=np.float32) - (self.cy + cy_offset)) / H, -1, 1)[:, None]
-            sky_col = np.stack([0.95 - 0.2 * rows, 0.8 - 0.1 * rows, 0.6 + 0.1 * rows], -1) * np.ones((1, W, 1), np.float32)
+            rows = np.clip((np.arange(H, dtype=np.float32) - (self.cy + cy_offset)) / H, -1, 1)[
+                :, None
+            ]
+            sky_col = np.stack(
+                [0.95 - 0.2 * rows, 0.8 - 0.1 * rows, 0.6 + 0.1 * rows], -1
+            ) * np.ones((1, W, 1), np.float32)
             img[sky] = sky_col[sky]
         g = (face < 0) & ~sky
         b = face >= 0
@@ -197,7 +212,7 @@ class StereoCamera:
         depth = zbuf.astype(np.float32)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8), depth
 
-    def _cull(self, faces: "_Faces", centre: np.ndarray, R: np.ndarray) -> np.ndarray:
+    def _cull(self, faces: _Faces, centre: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Front-facing faces with some vertex inside the (near, max_range) depth slab and frustum."""
         if len(faces.normal) == 0:
             return np.zeros(0, bool)
@@ -212,8 +227,15 @@ class StereoCamera:
         return front & in_depth & ~left_out & ~right_out
 
     def _raster_face(
-        self, u: np.ndarray, v: np.ndarray, n_c: np.ndarray, c: float, fi: int,
-        d: np.ndarray, zbuf: np.ndarray, face: np.ndarray,
+        self,
+        u: np.ndarray,
+        v: np.ndarray,
+        n_c: np.ndarray,
+        c: float,
+        fi: int,
+        d: np.ndarray,
+        zbuf: np.ndarray,
+        face: np.ndarray,
     ) -> None:
         """Fill the projected polygon (u, v) (px) of face ``fi`` (plane n_c . X = c, camera
         frame) into the z-buffer with its exact per-pixel depth."""
@@ -240,7 +262,7 @@ class StereoCamera:
         self,
         pose: Sequence[float],
         boxes: Boxes,
-        ground: "GroundTexture | None" = None,
+        ground: GroundTexture | None = None,
         pose_right: Sequence[float] | None = None,
         boxes_right: Boxes | None = None,
         right_cy_offset: float = 0.0,
@@ -257,9 +279,17 @@ class StereoCamera:
         right, _ = self.render_eye(
             pose if pose_right is None else pose_right,
             boxes if boxes_right is None else boxes_right,
-            ground, "right", right_cy_offset, rng,
+            ground,
+            "right",
+            right_cy_offset,
+            rng,
         )
-        return {"left": left, "right": right, "depth": depth, "disp_gt": self.disparity_from_depth(depth)}
+        return {
+            "left": left,
+            "right": right,
+            "depth": depth,
+            "disp_gt": self.disparity_from_depth(depth),
+        }
 
 
 # ------------------------------------------------------------------------------------------------
@@ -275,7 +305,9 @@ def _box_faces(boxes: Boxes) -> _Faces:
     """Four side faces and the top face of every box (bottoms are never seen from above)."""
     n = len(boxes)
     if n == 0:
-        return _Faces(np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return _Faces(
+            np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        )
     cr = boxes.corners()  # (N, 4, 2) CCW
     z0 = boxes.z0[:, None]
     z1 = (boxes.z0 + boxes.size[:, 2])[:, None]
@@ -325,7 +357,9 @@ def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
 def _hash01(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray | int) -> np.ndarray:
     """Deterministic integer hash of lattice points -> [0, 1)."""
     with np.errstate(over="ignore"):
-        return _hash01_impl(np.atleast_1d(ix), np.atleast_1d(iy), np.atleast_1d(np.asarray(seed, np.int64)))
+        return _hash01_impl(
+            np.atleast_1d(ix), np.atleast_1d(iy), np.atleast_1d(np.asarray(seed, np.int64))
+        )
 
 
 def _hash01_impl(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> np.ndarray:
@@ -338,7 +372,13 @@ def _hash01_impl(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> np.ndarray
     return h.astype(np.float64) / 4294967296.0
 
 
-def value_noise(a: np.ndarray, b: np.ndarray, seed: np.ndarray | int, scales: Sequence[float], weights: Sequence[float]) -> np.ndarray:
+def value_noise(
+    a: np.ndarray,
+    b: np.ndarray,
+    seed: np.ndarray | int,
+    scales: Sequence[float],
+    weights: Sequence[float],
+) -> np.ndarray:
     """Multi-octave value noise of surface coordinates (a, b) in metres; output in [0, 1].
 
     scales: lattice spacing per octave (m); weights: their amplitudes (normalised).
@@ -374,7 +414,9 @@ def _box_colour(faces: _Faces, fidx: np.ndarray, pw: np.ndarray, boxes: Boxes) -
     b = np.where(kind == 4, ly, lz)
     seed = boxes.ids[bi] * 5 + kind + boxes.cls[bi] * 100003
     tex = value_noise(a, b, seed, (0.07, 0.22, 0.9), (0.45, 0.35, 0.2))
-    base = np.array([_CLASS_BGR.get(int(k), (0.5, 0.5, 0.5)) for k in range(8)])[np.clip(boxes.cls[bi], 0, 7)]
+    base = np.array([_CLASS_BGR.get(int(k), (0.5, 0.5, 0.5)) for k in range(8)])[
+        np.clip(boxes.cls[bi], 0, 7)
+    ]
     vehicle = np.isin(boxes.cls[bi], [int(Cls.CAR), int(Cls.TRUCK), int(Cls.MOTORCYCLE)])[:, None]
     hue = np.stack([_hash01(boxes.ids[bi], boxes.cls[bi], 17 + j) for j in range(3)], 1)
     tint = np.where(vehicle, 0.3 + 1.6 * hue, 0.8 + 0.4 * hue[:, :1])
@@ -392,19 +434,21 @@ class GroundTexture:
 
     _COL = np.array([[0.25, 0.45, 0.4], [0.36, 0.37, 0.38], [0.9, 0.92, 0.93], [0.6, 0.62, 0.65]])
 
-    def __init__(self, raster: np.ndarray, origin: Sequence[float], res: float, seed: int = 0) -> None:
+    def __init__(
+        self, raster: np.ndarray, origin: Sequence[float], res: float, seed: int = 0
+    ) -> None:
         self.raster = np.asarray(raster, np.uint8)
         self.origin = np.asarray(origin, float)
         self.res = float(res)
         self.seed = int(seed)
 
     @staticmethod
-    def plain() -> "GroundTexture":
+    def plain() -> GroundTexture:
         """Asphalt everywhere (no markings)."""
         return GroundTexture(np.ones((1, 1), np.uint8), (-1e9, -1e9), 2e9)
 
     @staticmethod
-    def from_world(world: object, res: float = 0.1, seed: int = 0) -> "GroundTexture":
+    def from_world(world: object, res: float = 0.1, seed: int = 0) -> GroundTexture:
         """Ground of a :class:`~traffictwin.sim.world.World`: roads (``half_width``), sidewalks
         (``sidewalk`` width beside them) and dashed lane-edge markings of every lane."""
         roads = list(getattr(world, "roads", []))
@@ -412,15 +456,23 @@ class GroundTexture:
 
     @staticmethod
     def from_lanes(
-        lanes: Sequence[object], sidewalks: Sequence[np.ndarray] = (), res: float = 0.1, margin: float = 20.0,
-        dash: tuple[float, float] = (3.0, 6.0), marking_width: float = 0.15, sidewalk_width: float = 2.5, seed: int = 0,
+        lanes: Sequence[object],
+        sidewalks: Sequence[np.ndarray] = (),
+        res: float = 0.1,
+        margin: float = 20.0,
+        dash: tuple[float, float] = (3.0, 6.0),
+        marking_width: float = 0.15,
+        sidewalk_width: float = 2.5,
+        seed: int = 0,
         roads: Sequence[object] = (),
-    ) -> "GroundTexture":
+    ) -> GroundTexture:
         """Rasterise lanes (objects with ``centerline`` (M, 2) m and ``width`` m) and sidewalk polylines.
 
         Lane boundaries get dashed markings (``dash`` = (on, off) m).
         """
-        pts = [np.asarray(l.centerline, float) for l in lanes] + [np.asarray(s, float) for s in sidewalks]
+        pts = [np.asarray(l.centerline, float) for l in lanes] + [
+            np.asarray(s, float) for s in sidewalks
+        ]
         pts += [np.asarray(r.centerline, float) for r in roads]
         if not pts:
             return GroundTexture.plain()
@@ -438,20 +490,47 @@ class GroundTexture:
             hw, sw = float(rd.half_width), float(getattr(rd, "sidewalk", 0.0))
             closed = bool(getattr(rd, "closed", False))
             if sw > 0:
-                cv2.polylines(ras, [to_px(cl)], closed, 3, thickness=max(1, int(round(2 * (hw + sw) / res))), shift=_SHIFT)
+                cv2.polylines(
+                    ras,
+                    [to_px(cl)],
+                    closed,
+                    3,
+                    thickness=max(1, int(round(2 * (hw + sw) / res))),
+                    shift=_SHIFT,
+                )
         for rd in roads:
             cl = np.asarray(rd.centerline, float)
-            cv2.polylines(ras, [to_px(cl)], bool(getattr(rd, "closed", False)), 1,
-                          thickness=max(1, int(round(2 * float(rd.half_width) / res))), shift=_SHIFT)
+            cv2.polylines(
+                ras,
+                [to_px(cl)],
+                bool(getattr(rd, "closed", False)),
+                1,
+                thickness=max(1, int(round(2 * float(rd.half_width) / res))),
+                shift=_SHIFT,
+            )
         for s in sidewalks:
             s = np.asarray(s, float)
             if len(s) >= 2:
-                cv2.polylines(ras, [to_px(s)], False, 3, thickness=max(1, int(round(sidewalk_width / res))), shift=_SHIFT)
+                cv2.polylines(
+                    ras,
+                    [to_px(s)],
+                    False,
+                    3,
+                    thickness=max(1, int(round(sidewalk_width / res))),
+                    shift=_SHIFT,
+                )
         for l in lanes:
             cl = np.asarray(l.centerline, float)
             if len(cl) < 2:
                 continue
-            cv2.polylines(ras, [to_px(cl)], False, 1, thickness=max(1, int(round(float(l.width) / res))), shift=_SHIFT)
+            cv2.polylines(
+                ras,
+                [to_px(cl)],
+                False,
+                1,
+                thickness=max(1, int(round(float(l.width) / res))),
+                shift=_SHIFT,
+            )
         for l in lanes:
             cl = np.asarray(l.centerline, float)
             if len(cl) < 2:
@@ -459,8 +538,14 @@ class GroundTexture:
             for side in (-1.0, 1.0):
                 edge = _offset_polyline(cl, side * float(l.width) / 2.0)
                 for seg in _dash_polyline(edge, *dash):
-                    cv2.polylines(ras, [to_px(seg)], False, 2,
-                                  thickness=max(1, int(round(marking_width / res))), shift=_SHIFT)
+                    cv2.polylines(
+                        ras,
+                        [to_px(seg)],
+                        False,
+                        2,
+                        thickness=max(1, int(round(marking_width / res))),
+                        shift=_SHIFT,
+                    )
         return GroundTexture(ras, lo, res, seed)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -492,4 +577,8 @@ def _dash_polyline(p: np.ndarray, on: float, off: float) -> list[np.ndarray]:
     q = np.stack([np.interp(ss, s, p[:, 0]), np.interp(ss, s, p[:, 1])], 1)
     dash_id = np.floor(ss / (on + off)).astype(np.int64)
     keep = (ss - dash_id * (on + off)) < on
-    return [q[keep & (dash_id == k)] for k in np.unique(dash_id[keep]) if np.sum(keep & (dash_id == k)) >= 2]
+    return [
+        q[keep & (dash_id == k)]
+        for k in np.unique(dash_id[keep])
+        if np.sum(keep & (dash_id == k)) >= 2
+    ]

@@ -27,16 +27,25 @@ Everything is deterministic for ``(seed, index)``. Units: m, s, m/s, rad.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import numpy as np
 
 from traffictwin.sim.scene import Boxes, Cls
-from traffictwin.sim.traffic import SUBJECT_SIZE, Scenario, sample_scenario
+from traffictwin.sim.traffic import SUBJECT_SIZE, sample_scenario
 from traffictwin.sim.world import TEMPLATES, World, build_world
 
-SITUATIONS = ("free", "follow_far", "follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in", "pedestrian")
+SITUATIONS = (
+    "free",
+    "follow_far",
+    "follow_close",
+    "approach_slow",
+    "approach_stopped",
+    "stop_and_go",
+    "cut_in",
+    "pedestrian",
+)
 CLOSE = ("follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in")
 CALM = ("free", "follow_far", "pedestrian")
 FAULTS = ("none", "delay", "vertical")
@@ -67,12 +76,20 @@ class DrivingConfig:
         if self.fps <= 0 or self.frames < 1 or self.sim_dt <= 0 or self.warmup < 0:
             raise ValueError("driving: fps and sim_dt must be > 0, frames >= 1, warmup >= 0")
         if not 0 <= self.critical_share <= 1:
-            raise ValueError(f"driving: critical_share must be in [0, 1], got {self.critical_share}")
-        if self.fault_delay < 0 or self.fault_vertical < 0 or self.fault_delay + self.fault_vertical > 1:
+            raise ValueError(
+                f"driving: critical_share must be in [0, 1], got {self.critical_share}"
+            )
+        if (
+            self.fault_delay < 0
+            or self.fault_vertical < 0
+            or self.fault_delay + self.fault_vertical > 1
+        ):
             raise ValueError("driving: fault_delay and fault_vertical must be >= 0 and sum to <= 1")
         bad = [t for t in self.templates if t not in TEMPLATES]
         if bad:
-            raise ValueError(f"driving: unknown templates {bad}; expected some of {list(TEMPLATES)}")
+            raise ValueError(
+                f"driving: unknown templates {bad}; expected some of {list(TEMPLATES)}"
+            )
 
 
 @dataclass
@@ -105,11 +122,22 @@ class Sequence:
 class _Track:
     """An inserted agent: arc length on the subject's lane + lateral offset over the time grid."""
 
-    def __init__(self, ident: int, cls: int, size: np.ndarray, s: np.ndarray, lat: np.ndarray) -> None:
+    def __init__(
+        self, ident: int, cls: int, size: np.ndarray, s: np.ndarray, lat: np.ndarray
+    ) -> None:
         self.ident, self.cls, self.size, self.s, self.lat = ident, cls, size, s, lat
 
 
-def _idm(v: float, v0: float, gap: float, dv: float, T: float, a: float = 2.0, b: float = 3.0, s0: float = 2.0) -> float:
+def _idm(
+    v: float,
+    v0: float,
+    gap: float,
+    dv: float,
+    T: float,
+    a: float = 2.0,
+    b: float = 3.0,
+    s0: float = 2.0,
+) -> float:
     """IDM acceleration (m/s^2) at speed v with desired speed v0, bumper gap (m), approach rate dv."""
     s_star = s0 + max(0.0, v * T + v * dv / (2.0 * np.sqrt(a * b)))
     free = 1.0 - (v / max(v0, 0.1)) ** 4
@@ -189,12 +217,21 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         T = float(rng.uniform(1.2, 1.8))
         side = float(rng.choice([-1.0, 1.0]))
         t_c = cfg.warmup + float(rng.uniform(0.0, cfg.frames / cfg.fps * 0.5))
-        cut = dict(gap=float(rng.uniform(2.0, 12.0)), v=v_init * float(rng.uniform(0.75, 1.15)),
-                   side=side * lw, t_c=t_c, dur=float(rng.uniform(1.5, 3.0)))
+        cut = dict(
+            gap=float(rng.uniform(2.0, 12.0)),
+            v=v_init * float(rng.uniform(0.75, 1.15)),
+            side=side * lw,
+            t_c=t_c,
+            dur=float(rng.uniform(1.5, 3.0)),
+        )
     elif situation == "pedestrian":
         v_des = v_init = float(rng.uniform(6.0, 14.0))
-        ped = dict(dist=float(rng.uniform(25.0, 60.0)), t0=float(rng.uniform(0.0, cfg.warmup + 1.0)),
-                   v=float(rng.uniform(1.0, 1.8)), side=float(rng.choice([-1.0, 1.0])))
+        ped = dict(
+            dist=float(rng.uniform(25.0, 60.0)),
+            t0=float(rng.uniform(0.0, cfg.warmup + 1.0)),
+            v=float(rng.uniform(1.0, 1.8)),
+            side=float(rng.choice([-1.0, 1.0])),
+        )
     v_des = min(v_des, cfg.max_speed)
 
     # scenario traffic on the subject's entry lane: removed for 'free' and when a lead is inserted
@@ -213,10 +250,19 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         sl = np.zeros(n)
         sl[0] = s_sub0 + SUBJECT_SIZE[0] + lead["gap"]
         sl[1:] = sl[0] + np.cumsum(lead["v"][:-1]) * cfg.sim_dt
-        size = np.array([float(rng.uniform(3.9, 4.9)), float(rng.uniform(1.7, 1.95)), float(rng.uniform(1.4, 1.7))])
+        size = np.array(
+            [
+                float(rng.uniform(3.9, 4.9)),
+                float(rng.uniform(1.7, 1.95)),
+                float(rng.uniform(1.4, 1.7)),
+            ]
+        )
         cls = int(Cls.CAR)
         if rng.random() < 0.2:
-            size, cls = np.array([float(rng.uniform(7.0, 11.0)), 2.5, float(rng.uniform(3.0, 3.6))]), int(Cls.TRUCK)
+            size, cls = (
+                np.array([float(rng.uniform(7.0, 11.0)), 2.5, float(rng.uniform(3.0, 3.6))]),
+                int(Cls.TRUCK),
+            )
         tracks.append(_Track(INSERTED_ID0, cls, size, sl, np.zeros(n)))
     if cut is not None:
         sc = s_sub0 + SUBJECT_SIZE[0] + cut["gap"] + np.arange(n) * cfg.sim_dt * cut["v"]
@@ -227,7 +273,9 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         # crossing the lane at arc length s_sub0 + dist, from side to side
         s_p = np.full(n, s_sub0 + ped["dist"])
         lat = ped["side"] * (lw * 1.5 - np.clip(times - ped["t0"], 0.0, None) * ped["v"])
-        tracks.append(_Track(INSERTED_ID0 + 2, int(Cls.PEDESTRIAN), np.array([0.55, 0.6, 1.75]), s_p, lat))
+        tracks.append(
+            _Track(INSERTED_ID0 + 2, int(Cls.PEDESTRIAN), np.array([0.55, 0.6, 1.75]), s_p, lat)
+        )
 
     # subject: IDM towards the nearest agent in its corridor (inserted tracks + scenario agents)
     for i in range(n - 1):
@@ -235,7 +283,11 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         pose = _pose_on(world, lane, s_sub[i])[0]
         gap, dv = np.inf, 0.0
         for tr in tracks:
-            if abs(tr.lat[i]) < (lw + tr.size[1]) / 2 - 0.3 or tr.cls == Cls.PEDESTRIAN and abs(tr.lat[i]) < lw:
+            if (
+                abs(tr.lat[i]) < (lw + tr.size[1]) / 2 - 0.3
+                or tr.cls == Cls.PEDESTRIAN
+                and abs(tr.lat[i]) < lw
+            ):
                 g = tr.s[i] - s_sub[i] - (SUBJECT_SIZE[0] + tr.size[0]) / 2
                 if g > -1.0 and g < gap:
                     vt = (tr.s[i + 1] - tr.s[i]) / cfg.sim_dt
@@ -244,7 +296,9 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         if len(ag):
             rel = _rel(pose, ag.center)
             vrel = ag.velocity @ np.array([np.cos(pose[2]), np.sin(pose[2])])
-            inc = (rel[:, 0] > 0) & (np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + ag.size[:, 1]) / 2 + 0.2)
+            inc = (rel[:, 0] > 0) & (
+                np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + ag.size[:, 1]) / 2 + 0.2
+            )
             if inc.any():
                 g = rel[inc, 0] - (SUBJECT_SIZE[0] + ag.size[inc, 0]) / 2
                 j = int(np.argmin(g))
@@ -257,7 +311,11 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
     seq = Sequence(index, world, situation)
     frame_t = cfg.warmup + np.arange(cfg.frames) / cfg.fps
     r = rng.random(cfg.frames)
-    faults = np.where(r < cfg.fault_delay, "delay", np.where(r < cfg.fault_delay + cfg.fault_vertical, "vertical", "none"))
+    faults = np.where(
+        r < cfg.fault_delay,
+        "delay",
+        np.where(r < cfg.fault_delay + cfg.fault_vertical, "vertical", "none"),
+    )
     vpx = rng.uniform(*cfg.vertical_px, cfg.frames) * rng.choice([-1.0, 1.0], cfg.frames)
 
     def state(tl: float) -> tuple[np.ndarray, float, Boxes]:
@@ -275,13 +333,20 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
                 vel = np.array([-np.sin(p[2]) * dl, np.cos(p[2]) * dl])
             else:
                 yaw = p[2] + np.arctan2(dl, max(ds, 0.1)) if ds > 0.1 else p[2]
-                vel = ds * np.array([np.cos(p[2]), np.sin(p[2])]) + dl * np.array([-np.sin(p[2]), np.cos(p[2])])
-            parts.append(Boxes(p[None, :2], tr.size[None], [yaw], [tr.cls], velocity=vel[None], ids=[tr.ident]))
+                vel = ds * np.array([np.cos(p[2]), np.sin(p[2])]) + dl * np.array(
+                    [-np.sin(p[2]), np.cos(p[2])]
+                )
+            parts.append(
+                Boxes(
+                    p[None, :2], tr.size[None], [yaw], [tr.cls], velocity=vel[None], ids=[tr.ident]
+                )
+            )
         boxes = Boxes.concat(parts)
         # never render/count an agent that overlaps the subject (no interaction model at junctions)
         rel = _rel(pose, boxes.center)
         hit = (np.abs(rel[:, 0]) < (SUBJECT_SIZE[0] + boxes.size[:, 0]) / 2 + 0.3) & (
-            np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + boxes.size[:, 1]) / 2 + 0.3)
+            np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + boxes.size[:, 1]) / 2 + 0.3
+        )
         hit &= boxes.ids < 1_000_000  # static boxes stay (the subject never enters them)
         return pose, v, boxes.subset(~hit)
 
@@ -292,12 +357,24 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
             pose_r, _, boxes_r = state(float(tl) + cfg.delay)
         else:
             pose_r, boxes_r = pose, boxes
-        seq.frames.append(Frame(float(t_start + tl), pose, v, boxes, pose_r, boxes_r,
-                                float(vpx[k]) if fault == "vertical" else 0.0, fault))
+        seq.frames.append(
+            Frame(
+                float(t_start + tl),
+                pose,
+                v,
+                boxes,
+                pose_r,
+                boxes_r,
+                float(vpx[k]) if fault == "vertical" else 0.0,
+                fault,
+            )
+        )
     return seq
 
 
-def iter_sequences(seed: int, indices: "list[int] | range", cfg: DrivingConfig) -> Iterator[Sequence]:
+def iter_sequences(
+    seed: int, indices: list[int] | range, cfg: DrivingConfig
+) -> Iterator[Sequence]:
     """Generate several sequences (see :func:`generate_sequence`)."""
     for i in indices:
         yield generate_sequence(seed, i, cfg)

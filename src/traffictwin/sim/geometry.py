@@ -23,7 +23,9 @@ def resample(points: np.ndarray, step: float) -> np.ndarray:
     return np.stack([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])], axis=1)
 
 
-def interpolate(points: np.ndarray, cum: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interpolate(
+    points: np.ndarray, cum: np.ndarray, s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Position ``(K, 2)`` and heading ``(K,)`` (rad) at arc lengths ``s`` (m, clipped to the polyline)."""
     s = np.clip(np.asarray(s, dtype=np.float64), 0.0, cum[-1])
     idx = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(cum) - 2)
@@ -49,7 +51,9 @@ def offset(points: np.ndarray, d: float) -> np.ndarray:
     return points + d * normals(points)
 
 
-def hermite(p0: np.ndarray, yaw0: float, p1: np.ndarray, yaw1: float, step: float = 1.0) -> np.ndarray:
+def hermite(
+    p0: np.ndarray, yaw0: float, p1: np.ndarray, yaw1: float, step: float = 1.0
+) -> np.ndarray:
     """Cubic Hermite curve from ``p0`` (heading ``yaw0``) to ``p1`` (heading ``yaw1``), about ``step`` m apart."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     dist = float(np.linalg.norm(p1 - p0))

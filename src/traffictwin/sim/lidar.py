@@ -24,9 +24,38 @@ from traffictwin.sim.scene import Boxes
 
 #: VLP-32C elevation angles (deg), sorted ascending (Velodyne VLP-32C user manual, table 9-2)
 VLP32C_ELEVATIONS_DEG: tuple[float, ...] = (
-    -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0,
-    -2.667, -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0,
-    1.333, 1.667, 2.333, 3.333, 4.667, 7.0, 10.333, 15.0,
+    -25.0,
+    -15.639,
+    -11.31,
+    -8.843,
+    -7.254,
+    -6.148,
+    -5.333,
+    -4.667,
+    -4.0,
+    -3.667,
+    -3.333,
+    -3.0,
+    -2.667,
+    -2.333,
+    -2.0,
+    -1.667,
+    -1.333,
+    -1.0,
+    -0.667,
+    -0.333,
+    0.0,
+    0.333,
+    0.667,
+    1.0,
+    1.333,
+    1.667,
+    2.333,
+    3.333,
+    4.667,
+    7.0,
+    10.333,
+    15.0,
 )
 
 
@@ -47,13 +76,21 @@ class LidarSpec:
 
     def __post_init__(self) -> None:
         if not 0 < self.azimuth_res_deg <= 10:
-            raise ValueError(f"LidarSpec.azimuth_res_deg must be in (0, 10] deg, got {self.azimuth_res_deg}")
+            raise ValueError(
+                f"LidarSpec.azimuth_res_deg must be in (0, 10] deg, got {self.azimuth_res_deg}"
+            )
         if abs(360.0 / self.azimuth_res_deg - round(360.0 / self.azimuth_res_deg)) > 1e-6:
-            raise ValueError(f"LidarSpec.azimuth_res_deg must divide 360 deg, got {self.azimuth_res_deg}")
+            raise ValueError(
+                f"LidarSpec.azimuth_res_deg must divide 360 deg, got {self.azimuth_res_deg}"
+            )
         if not self.max_range > self.min_range >= 0:
-            raise ValueError(f"LidarSpec: need max_range > min_range >= 0 m, got {self.max_range}, {self.min_range}")
+            raise ValueError(
+                f"LidarSpec: need max_range > min_range >= 0 m, got {self.max_range}, {self.min_range}"
+            )
         if self.range_noise < 0 or not 0 <= self.dropout < 1:
-            raise ValueError(f"LidarSpec: range_noise >= 0 m and dropout in [0, 1) required, got {self.range_noise}, {self.dropout}")
+            raise ValueError(
+                f"LidarSpec: range_noise >= 0 m and dropout in [0, 1) required, got {self.range_noise}, {self.dropout}"
+            )
         if self.height <= 0:
             raise ValueError(f"LidarSpec.height must be > 0 m, got {self.height}")
 
@@ -102,7 +139,12 @@ class Scan:
 
 
 def _cast_columns(
-    pose: np.ndarray, world_az: np.ndarray, el: np.ndarray, height: float, boxes: Boxes, max_range: float
+    pose: np.ndarray,
+    world_az: np.ndarray,
+    el: np.ndarray,
+    height: float,
+    boxes: Boxes,
+    max_range: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rays of all channels ``el (E,)`` in the columns ``world_az (A,)`` (world azimuths, rad)
     from ``(pose x, y, height)`` against ``boxes``: distance (A, E) along the ray (inf: no hit)
@@ -146,7 +188,9 @@ def _cast_columns(
     return best, np.where(np.isfinite(best), j, -1)
 
 
-def scan(spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generator | None = None) -> Scan:
+def scan(
+    spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generator | None = None
+) -> Scan:
     """Cast one revolution of ``spec`` from sensor ``pose`` (x, y, yaw; m, rad) against ``boxes`` + ground.
 
     The caller excludes the sensor's own vehicle from ``boxes`` (a box around the origin is
@@ -175,7 +219,9 @@ def scan(spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generat
         corners = sub.corners() - pose[:2]
         ang = np.arctan2(corners[..., 1], corners[..., 0]) - pose[2]
         dev = np.abs((ang - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi).max(1)
-        close = np.hypot(rel[:, 0], rel[:, 1]) <= 0.5 * np.hypot(sub.size[:, 0], sub.size[:, 1]) + 0.5
+        close = (
+            np.hypot(rel[:, 0], rel[:, 1]) <= 0.5 * np.hypot(sub.size[:, 0], sub.size[:, 1]) + 0.5
+        )
         half_span = np.where(close, np.pi, dev + 1e-3)
         sec_w = 2 * np.pi / n_sec
         # sector k covers sensor azimuths [-pi + k w, -pi + (k+1) w)
@@ -197,7 +243,9 @@ def scan(spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generat
         bsel = np.flatnonzero(overlap[k])
         if len(bsel) == 0:
             continue
-        d, h = _cast_columns(pose, az[cols] + pose[2], el, spec.height, sub.subset(bsel), spec.max_range)
+        d, h = _cast_columns(
+            pose, az[cols] + pose[2], el, spec.height, sub.subset(bsel), spec.max_range
+        )
         better = d < dist2[cols]
         dist2[cols] = np.where(better, d, dist2[cols])
         hit2[cols] = np.where(better, cand[bsel][np.maximum(h, 0)], hit2[cols])
@@ -216,5 +264,9 @@ def scan(spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generat
     hit[short] = HIT_NOTHING
     dist[short] = spec.max_range
     return Scan(
-        range=dist.reshape(n_az, n_el), hit=hit.reshape(n_az, n_el), azimuth=A, elevation=E, spec=spec,
+        range=dist.reshape(n_az, n_el),
+        hit=hit.reshape(n_az, n_el),
+        azimuth=A,
+        elevation=E,
+        spec=spec,
     )

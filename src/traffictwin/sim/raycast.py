@@ -17,15 +17,21 @@ HIT_NOTHING = -2
 _EPS = 1e-4
 
 
-def _check(origins: np.ndarray, dirs: np.ndarray, max_range: float) -> tuple[np.ndarray, np.ndarray]:
+def _check(
+    origins: np.ndarray, dirs: np.ndarray, max_range: float
+) -> tuple[np.ndarray, np.ndarray]:
     origins = np.asarray(origins, dtype=np.float64)
     dirs = np.asarray(dirs, dtype=np.float64)
     if origins.ndim != 2 or origins.shape[1] != 3:
         raise ValueError(f"cast_rays: origins must have shape (R, 3), got {origins.shape}")
     if dirs.shape != origins.shape:
-        raise ValueError(f"cast_rays: dirs must have the shape of origins {origins.shape}, got {dirs.shape}")
+        raise ValueError(
+            f"cast_rays: dirs must have the shape of origins {origins.shape}, got {dirs.shape}"
+        )
     if not np.isfinite(max_range) or max_range <= 0:
-        raise ValueError(f"cast_rays: max_range must be a positive finite distance (m), got {max_range}")
+        raise ValueError(
+            f"cast_rays: max_range must be a positive finite distance (m), got {max_range}"
+        )
     return origins, dirs
 
 

@@ -53,11 +53,17 @@ class Boxes:
         self.size = np.asarray(self.size, dtype=np.float64).reshape(n, 3)
         self.yaw = np.asarray(self.yaw, dtype=np.float64).reshape(n)
         self.cls = np.asarray(self.cls, dtype=np.int64).reshape(n)
-        self.z0 = np.zeros(n) if self.z0 is None else np.asarray(self.z0, dtype=np.float64).reshape(n)
-        self.velocity = (
-            np.zeros((n, 2)) if self.velocity is None else np.asarray(self.velocity, dtype=np.float64).reshape(n, 2)
+        self.z0 = (
+            np.zeros(n) if self.z0 is None else np.asarray(self.z0, dtype=np.float64).reshape(n)
         )
-        self.ids = np.arange(n) if self.ids is None else np.asarray(self.ids, dtype=np.int64).reshape(n)
+        self.velocity = (
+            np.zeros((n, 2))
+            if self.velocity is None
+            else np.asarray(self.velocity, dtype=np.float64).reshape(n, 2)
+        )
+        self.ids = (
+            np.arange(n) if self.ids is None else np.asarray(self.ids, dtype=np.int64).reshape(n)
+        )
         if np.any(self.size <= 0):
             raise ValueError("Boxes.size: every length, width and height must be > 0 m")
 
@@ -65,11 +71,11 @@ class Boxes:
         return len(self.center)
 
     @staticmethod
-    def empty() -> "Boxes":
+    def empty() -> Boxes:
         return Boxes(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
 
     @staticmethod
-    def concat(parts: "list[Boxes]") -> "Boxes":
+    def concat(parts: list[Boxes]) -> Boxes:
         parts = [p for p in parts if len(p)]
         if not parts:
             return Boxes.empty()
@@ -83,17 +89,28 @@ class Boxes:
             ids=np.concatenate([p.ids for p in parts]),
         )
 
-    def subset(self, mask: np.ndarray) -> "Boxes":
+    def subset(self, mask: np.ndarray) -> Boxes:
         return Boxes(
-            self.center[mask], self.size[mask], self.yaw[mask], self.cls[mask],
-            z0=self.z0[mask], velocity=self.velocity[mask], ids=self.ids[mask],
+            self.center[mask],
+            self.size[mask],
+            self.yaw[mask],
+            self.cls[mask],
+            z0=self.z0[mask],
+            velocity=self.velocity[mask],
+            ids=self.ids[mask],
         )
 
     def corners(self) -> np.ndarray:
         """Footprint corners (N, 4, 2) in the world frame, counter-clockwise (m)."""
         hl, hw = self.size[:, 0] / 2, self.size[:, 1] / 2
         local = np.stack(
-            [np.stack([hl, hw], -1), np.stack([-hl, hw], -1), np.stack([-hl, -hw], -1), np.stack([hl, -hw], -1)], 1
+            [
+                np.stack([hl, hw], -1),
+                np.stack([-hl, hw], -1),
+                np.stack([-hl, -hw], -1),
+                np.stack([hl, -hw], -1),
+            ],
+            1,
         )
         c, s = np.cos(self.yaw)[:, None], np.sin(self.yaw)[:, None]
         x = c * local[..., 0] - s * local[..., 1] + self.center[:, None, 0]

@@ -38,13 +38,13 @@ DIMS = {
 SUBJECT_SIZE = (4.8, 1.9, 1.5)  # the research vehicle (m)
 
 DEFAULT_DENSITY = dict(
-    platoon_gap=(25.0, 120.0),    # m between platoons (divided by the scenario's density factor)
-    platoon_size=(1, 5),          # vehicles per platoon (inclusive)
+    platoon_gap=(25.0, 120.0),  # m between platoons (divided by the scenario's density factor)
+    platoon_size=(1, 5),  # vehicles per platoon (inclusive)
     truck_frac=0.12,
     moto_frac=0.08,
-    parked_prob=0.55,             # probability that a parking slot is taken
-    pedestrians_per_km=40.0,      # per sidewalk km
-    density_scale=(0.5, 1.5),     # per-scenario factor on all densities
+    parked_prob=0.55,  # probability that a parking slot is taken
+    pedestrians_per_km=40.0,  # per sidewalk km
+    density_scale=(0.5, 1.5),  # per-scenario factor on all densities
 )
 
 
@@ -98,8 +98,8 @@ class Scenario:
     seed: int
     # moving vehicles (subjects first: index 0 and 1)
     veh_lane: np.ndarray
-    veh_s0: np.ndarray      # arc length at t = 0 (m)
-    veh_speed: np.ndarray   # m/s
+    veh_s0: np.ndarray  # arc length at t = 0 (m)
+    veh_speed: np.ndarray  # m/s
     veh_size: np.ndarray
     veh_cls: np.ndarray
     veh_ids: np.ndarray
@@ -107,7 +107,7 @@ class Scenario:
     # pedestrians on sidewalks
     ped_walk: np.ndarray
     ped_s0: np.ndarray
-    ped_speed: np.ndarray   # signed m/s along the sidewalk polyline
+    ped_speed: np.ndarray  # signed m/s along the sidewalk polyline
     ped_size: np.ndarray
     ped_ids: np.ndarray
     t_meet: float
@@ -127,7 +127,14 @@ class Scenario:
         lane, s = self.veh_lane[present], s[present]
         xy, yaw = self._lanes.pose(lane, s)
         v = self.veh_speed[present][:, None] * np.stack([np.cos(yaw), np.sin(yaw)], 1)
-        return Boxes(xy, self.veh_size[present], yaw, self.veh_cls[present], velocity=v, ids=self.veh_ids[present])
+        return Boxes(
+            xy,
+            self.veh_size[present],
+            yaw,
+            self.veh_cls[present],
+            velocity=v,
+            ids=self.veh_ids[present],
+        )
 
     def _pedestrians(self, t: float) -> Boxes:
         if self._walks is None or len(self.ped_ids) == 0:
@@ -141,7 +148,9 @@ class Scenario:
         yaw = np.where(sign < 0, yaw + np.pi, yaw)
         v = np.abs(self.ped_speed)[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], 1)
         n = len(self.ped_ids)
-        return Boxes(xy, self.ped_size, yaw, np.full(n, Cls.PEDESTRIAN), velocity=v, ids=self.ped_ids)
+        return Boxes(
+            xy, self.ped_size, yaw, np.full(n, Cls.PEDESTRIAN), velocity=v, ids=self.ped_ids
+        )
 
     def agents_at(self, t: float, exclude_ids: tuple[int, ...] | list[int] = ()) -> Boxes:
         """Every agent present at time ``t`` (s): subjects, moving vehicles, parked cars, pedestrians."""
@@ -166,7 +175,9 @@ class Scenario:
         return self.veh_size[k].copy()
 
 
-def _platoons(rng, world: World, lane_speed: dict[int, float], horizon: float, dens: dict, scale: float):
+def _platoons(
+    rng, world: World, lane_speed: dict[int, float], horizon: float, dens: dict, scale: float
+):
     """Moving vehicles in platoons on every entry; returns (lane, s0, speed, cls)."""
     lanes_by_entry: dict[int, list[int]] = {}
     for i, ln in enumerate(world.lanes):
@@ -182,7 +193,11 @@ def _platoons(rng, world: World, lane_speed: dict[int, float], horizon: float, d
             n = int(rng.integers(dens["platoon_size"][0], dens["platoon_size"][1] + 1))
             route = routes[int(rng.integers(len(routes)))]
             r = rng.random(n)
-            cls = np.where(r < dens["truck_frac"], Cls.TRUCK, np.where(r < dens["truck_frac"] + dens["moto_frac"], Cls.MOTORCYCLE, Cls.CAR))
+            cls = np.where(
+                r < dens["truck_frac"],
+                Cls.TRUCK,
+                np.where(r < dens["truck_frac"] + dens["moto_frac"], Cls.MOTORCYCLE, Cls.CAR),
+            )
             s = head
             for c in cls:
                 out_lane.append(route)
@@ -192,10 +207,17 @@ def _platoons(rng, world: World, lane_speed: dict[int, float], horizon: float, d
                 length = 12.0 if c == Cls.TRUCK else 5.0
                 s -= length + 2.0 + float(rng.uniform(0.8, 2.0)) * v  # 0.8..2 s time headway
             head = s - float(rng.uniform(*dens["platoon_gap"])) / scale
-    return np.array(out_lane, dtype=np.int64), np.array(out_s), np.array(out_v), np.array(out_cls, dtype=np.int64)
+    return (
+        np.array(out_lane, dtype=np.int64),
+        np.array(out_s),
+        np.array(out_v),
+        np.array(out_cls, dtype=np.int64),
+    )
 
 
-def _choose_subjects(rng, world: World, lane_speed, times: np.ndarray, meet_distance, near_center: float):
+def _choose_subjects(
+    rng, world: World, lane_speed, times: np.ndarray, meet_distance, near_center: float
+):
     """Lane, arc length at t=0 and speed of both subjects such that they meet at every time in ``times``."""
     table = _LaneTable([l.centerline for l in world.lanes])
     cand_lane, cand_s = [], []
@@ -227,8 +249,13 @@ def _choose_subjects(rng, world: World, lane_speed, times: np.ndarray, meet_dist
         ok &= ~((entries == entries[a]) & (np.abs(s_ref - s_ref[a]) < 12.0))
         if ok.any():
             b = int(rng.choice(np.flatnonzero(ok)))
-            return [(int(lane[a]), float(s_ref[a]), float(speed[a])), (int(lane[b]), float(s_ref[b]), float(speed[b]))]
-    raise RuntimeError(f"no pair of subject positions meets within {meet_distance} m in template {world.template}")
+            return [
+                (int(lane[a]), float(s_ref[a]), float(speed[a])),
+                (int(lane[b]), float(s_ref[b]), float(speed[b])),
+            ]
+    raise RuntimeError(
+        f"no pair of subject positions meets within {meet_distance} m in template {world.template}"
+    )
 
 
 def sample_scenario(
@@ -251,7 +278,9 @@ def sample_scenario(
     """
     unknown = set(density) - set(DEFAULT_DENSITY)
     if unknown:
-        raise ValueError(f"sample_scenario: unknown density parameter(s) {sorted(unknown)}; expected {sorted(DEFAULT_DENSITY)}")
+        raise ValueError(
+            f"sample_scenario: unknown density parameter(s) {sorted(unknown)}; expected {sorted(DEFAULT_DENSITY)}"
+        )
     if n_encounters < 1:
         raise ValueError(f"sample_scenario: n_encounters must be >= 1, got {n_encounters}")
     dens = {**DEFAULT_DENSITY, **density}
@@ -307,10 +336,17 @@ def sample_scenario(
                 (xy,), (yaw,) = geo.interpolate(poly, cum, np.array([s + slot / 2]))
                 if np.linalg.norm(xy - world.center) > world.junction_radius + 10.0:
                     pc.append(xy)
-                    psz.append([length, rng.uniform(*DIMS[Cls.CAR][1]), rng.uniform(*DIMS[Cls.CAR][2])])
+                    psz.append(
+                        [length, rng.uniform(*DIMS[Cls.CAR][1]), rng.uniform(*DIMS[Cls.CAR][2])]
+                    )
                     pyaw.append(yaw + yaw_off)
             s += slot
-    parked = Boxes(np.array(pc).reshape(-1, 2), np.array(psz).reshape(-1, 3), np.array(pyaw), np.full(len(pc), Cls.CAR))
+    parked = Boxes(
+        np.array(pc).reshape(-1, 2),
+        np.array(psz).reshape(-1, 3),
+        np.array(pyaw),
+        np.full(len(pc), Cls.CAR),
+    )
     # parked cars overlapping a subject at an encounter time are dropped (subjects may use a lane
     # next to the parking strip but never overlap it; this guards connectors near junctions)
     if len(parked):
@@ -326,14 +362,33 @@ def sample_scenario(
     # pedestrians
     walks = world.sidewalks
     wl = np.array([geo.cumulative_length(w)[-1] for w in walks]) if walks else np.zeros(0)
-    n_ped = int(rng.poisson(dens["pedestrians_per_km"] * scale * wl.sum() / 1000.0)) if len(wl) else 0
-    ped_walk = rng.choice(len(wl), size=n_ped, p=wl / wl.sum()).astype(np.int64) if n_ped else np.zeros(0, np.int64)
+    n_ped = (
+        int(rng.poisson(dens["pedestrians_per_km"] * scale * wl.sum() / 1000.0)) if len(wl) else 0
+    )
+    ped_walk = (
+        rng.choice(len(wl), size=n_ped, p=wl / wl.sum()).astype(np.int64)
+        if n_ped
+        else np.zeros(0, np.int64)
+    )
     ped_s0 = rng.uniform(0, 1, n_ped) * wl[ped_walk] if n_ped else np.zeros(0)
     ped_speed = rng.uniform(0.8, 1.7, n_ped) * rng.choice([-1.0, 1.0], n_ped)
     ped_size = _dims(rng, np.full(n_ped, Cls.PEDESTRIAN))
     ped_ids = next_id + np.arange(n_ped, dtype=np.int64)
     return Scenario(
-        world=world, seed=int(seed), veh_lane=veh_lane, veh_s0=veh_s0, veh_speed=veh_speed, veh_size=veh_size,
-        veh_cls=veh_cls, veh_ids=veh_ids, parked=parked, ped_walk=ped_walk, ped_s0=ped_s0, ped_speed=ped_speed,
-        ped_size=ped_size, ped_ids=ped_ids, t_meet=float(t_meet), encounter_times=times,
+        world=world,
+        seed=int(seed),
+        veh_lane=veh_lane,
+        veh_s0=veh_s0,
+        veh_speed=veh_speed,
+        veh_size=veh_size,
+        veh_cls=veh_cls,
+        veh_ids=veh_ids,
+        parked=parked,
+        ped_walk=ped_walk,
+        ped_s0=ped_s0,
+        ped_speed=ped_speed,
+        ped_size=ped_size,
+        ped_ids=ped_ids,
+        t_meet=float(t_meet),
+        encounter_times=times,
     )

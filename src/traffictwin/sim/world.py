@@ -26,22 +26,22 @@ from traffictwin.sim import geometry as geo
 from traffictwin.sim.scene import Boxes, Cls
 
 TEMPLATES: tuple[str, ...] = (
-    "cross4",        # 4-way intersection
-    "t_junction",    # T intersection
-    "y_junction",    # Y junction (acute branches)
+    "cross4",  # 4-way intersection
+    "t_junction",  # T intersection
+    "y_junction",  # Y junction (acute branches)
     "skewed_cross",  # 4-way with a skew angle of 50..70 deg
-    "five_way",      # 5 arms
-    "roundabout",    # single-lane ring, 4 arms
-    "straight",      # straight two-lane road with parking
-    "boulevard",     # straight road, 2 lanes per direction
-    "curve",         # straight - arc - straight
-    "s_curve",       # straight - left arc - right arc - straight
+    "five_way",  # 5 arms
+    "roundabout",  # single-lane ring, 4 arms
+    "straight",  # straight two-lane road with parking
+    "boulevard",  # straight road, 2 lanes per direction
+    "curve",  # straight - arc - straight
+    "s_curve",  # straight - left arc - right arc - straight
 )
 
-ARM_LENGTH = 200.0          # m, junction arms (total extent ~ 400 m)
-URBAN_SPEED = 13.9          # m/s (50 km/h)
-TURN_SPEED = 8.3            # m/s (30 km/h) for turns and the roundabout
-STATIC_ID0 = 1_000_000      # ids of static boxes start here (agents use small ids)
+ARM_LENGTH = 200.0  # m, junction arms (total extent ~ 400 m)
+URBAN_SPEED = 13.9  # m/s (50 km/h)
+TURN_SPEED = 8.3  # m/s (30 km/h) for turns and the roundabout
+STATIC_ID0 = 1_000_000  # ids of static boxes start here (agents use small ids)
 
 
 @dataclass
@@ -105,7 +105,12 @@ class World:
     def bounds(self) -> tuple[float, float, float, float]:
         """(xmin, ymin, xmax, ymax) of all road centerlines (m)."""
         pts = np.concatenate([r.centerline for r in self.roads])
-        return (float(pts[:, 0].min()), float(pts[:, 1].min()), float(pts[:, 0].max()), float(pts[:, 1].max()))
+        return (
+            float(pts[:, 0].min()),
+            float(pts[:, 1].min()),
+            float(pts[:, 0].max()),
+            float(pts[:, 1].max()),
+        )
 
     def surface_at(self, xy: np.ndarray) -> np.ndarray:
         """Surface type at world points ``xy (..., 2)``: 0 off-road, 1 road, 2 sidewalk (int8)."""
@@ -121,7 +126,9 @@ class World:
 
 # ---------------------------------------------------------------------------------------------
 def _rng(template: str, seed: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([int(seed), TEMPLATES.index(template), 7001]))
+    return np.random.default_rng(
+        np.random.SeedSequence([int(seed), TEMPLATES.index(template), 7001])
+    )
 
 
 def _check_template(template: str) -> None:
@@ -134,7 +141,13 @@ def _road_params(rng: np.random.Generator, lanes_per_dir: int | None = None) -> 
     n = int(lanes_per_dir if lanes_per_dir is not None else rng.choice([1, 1, 2]))
     parking = bool(rng.random() < 0.7)
     hw = n * lw + (2.3 if parking else 0.5)
-    return dict(lane_width=lw, lanes_per_dir=n, parking=parking, half_width=hw, sidewalk=float(rng.uniform(2.0, 4.0)))
+    return dict(
+        lane_width=lw,
+        lanes_per_dir=n,
+        parking=parking,
+        half_width=hw,
+        sidewalk=float(rng.uniform(2.0, 4.0)),
+    )
 
 
 def _junction(template: str, rng: np.random.Generator) -> tuple[list[float], bool]:
@@ -177,7 +190,16 @@ def _build_junction(template: str, rng: np.random.Generator):
         u = np.array([np.cos(a), np.sin(a)])
         r0 = ring_r if is_round else 0.0
         cl = r0 * u + np.linspace(0, ARM_LENGTH - r0, int((ARM_LENGTH - r0) / 2) + 1)[:, None] * u
-        roads.append(Road(cl, p["half_width"], p["sidewalk"], p["lanes_per_dir"], p["lane_width"], p["parking"]))
+        roads.append(
+            Road(
+                cl,
+                p["half_width"],
+                p["sidewalk"],
+                p["lanes_per_dir"],
+                p["lane_width"],
+                p["parking"],
+            )
+        )
         arm_dirs.append(u)
     if is_round:
         lw = rp[0]["lane_width"]
@@ -227,7 +249,9 @@ def _build_junction(template: str, rng: np.random.Generator):
         ri = ring_r - rp[0]["lane_width"] / 2 - 1.5
         side = 2 * ri / np.sqrt(2) * 0.98
         h = float(rng.uniform(1.0, 2.5))
-        static_extra.append(Boxes(np.zeros((2, 2)), [[side, side, h]] * 2, [0.0, np.pi / 4], [Cls.VEGETATION] * 2))
+        static_extra.append(
+            Boxes(np.zeros((2, 2)), [[side, side, h]] * 2, [0.0, np.pi / 4], [Cls.VEGETATION] * 2)
+        )
     return roads, lanes, r_stop, static_extra
 
 
@@ -243,7 +267,9 @@ def _single_road_centerline(template: str, rng: np.random.Generator) -> np.ndarr
         a = geo.arc(np.array([0.0, R]), R, -np.pi / 2, -np.pi / 2 + ang)
         p_end, yaw_end = a[-1], ang
         first = np.stack([np.linspace(-s1, 0, 50), np.zeros(50)], 1)
-        last = p_end + np.linspace(0, s1, 50)[:, None] * np.array([np.cos(yaw_end), np.sin(yaw_end)])
+        last = p_end + np.linspace(0, s1, 50)[:, None] * np.array(
+            [np.cos(yaw_end), np.sin(yaw_end)]
+        )
         cl = np.concatenate([first[:-1], a, last[1:]])
     elif template == "s_curve":
         R = float(rng.uniform(60.0, 120.0))
@@ -269,7 +295,9 @@ def _build_single(template: str, rng: np.random.Generator):
     if template == "straight":
         p["parking"], p["half_width"] = True, p["lanes_per_dir"] * p["lane_width"] + 2.3
     cl = _single_road_centerline(template, rng)
-    road = Road(cl, p["half_width"], p["sidewalk"], p["lanes_per_dir"], p["lane_width"], p["parking"])
+    road = Road(
+        cl, p["half_width"], p["sidewalk"], p["lanes_per_dir"], p["lane_width"], p["parking"]
+    )
     lanes = []
     entry = 0
     for k in range(p["lanes_per_dir"]):
@@ -307,11 +335,23 @@ def _roadside(roads: list[Road], r_clear: float, rng: np.random.Generator):
                     n = np.array([-np.sin(yaw), np.cos(yaw)]) * side
                     setback = float(rng.uniform(0.5, 5.0))
                     if kind == "building":
-                        depth, h, c = float(rng.uniform(8, 20)), float(rng.uniform(5, 22)), Cls.BUILDING
+                        depth, h, c = (
+                            float(rng.uniform(8, 20)),
+                            float(rng.uniform(5, 22)),
+                            Cls.BUILDING,
+                        )
                     elif kind == "wall":
-                        depth, h, c = float(rng.uniform(0.25, 0.5)), float(rng.uniform(1.2, 2.6)), Cls.WALL
+                        depth, h, c = (
+                            float(rng.uniform(0.25, 0.5)),
+                            float(rng.uniform(1.2, 2.6)),
+                            Cls.WALL,
+                        )
                     else:
-                        depth, h, c = float(rng.uniform(1.0, 2.5)), float(rng.uniform(1.0, 2.2)), Cls.VEGETATION
+                        depth, h, c = (
+                            float(rng.uniform(1.0, 2.5)),
+                            float(rng.uniform(1.0, 2.2)),
+                            Cls.VEGETATION,
+                        )
                     off = road.half_width + road.sidewalk + setback + depth / 2
                     centers.append(xy + off * n)
                     sizes.append([front, depth, h])
@@ -340,7 +380,12 @@ def _roadside(roads: list[Road], r_clear: float, rng: np.random.Generator):
                     classes.append(Cls.POLE)
                     near_road.append(True)
                 s += float(rng.uniform(7.0, 16.0))
-    boxes = Boxes(np.array(centers).reshape(-1, 2), np.array(sizes).reshape(-1, 3), np.array(yaws), np.array(classes))
+    boxes = Boxes(
+        np.array(centers).reshape(-1, 2),
+        np.array(sizes).reshape(-1, 3),
+        np.array(yaws),
+        np.array(classes),
+    )
     return boxes, np.array(near_road, dtype=bool), sidewalks, parking
 
 
@@ -353,7 +398,10 @@ def _reject_intruders(boxes: Boxes, near_road: np.ndarray, roads: list[Road]) ->
     local = np.stack([gu.ravel(), gv.ravel()], 1)  # 25 sample points over the footprint
     pl = local[None] * boxes.size[:, None, :2]
     c, s = np.cos(boxes.yaw)[:, None], np.sin(boxes.yaw)[:, None]
-    pts = np.stack([c * pl[..., 0] - s * pl[..., 1], s * pl[..., 0] + c * pl[..., 1]], -1) + boxes.center[:, None]
+    pts = (
+        np.stack([c * pl[..., 0] - s * pl[..., 1], s * pl[..., 0] + c * pl[..., 1]], -1)
+        + boxes.center[:, None]
+    )
     flat = pts.reshape(-1, 2)
     margin = np.full(len(flat), np.inf)
     margin_side = np.full(len(flat), np.inf)
@@ -383,6 +431,13 @@ def build_world(template: str, seed: int) -> World:
     static = Boxes.concat([cand.subset(keep), *extra])
     static.ids = STATIC_ID0 + np.arange(len(static))
     return World(
-        template=template, seed=int(seed), static=static, lanes=lanes, sidewalks=sidewalks, roads=roads,
-        parking=parking, center=np.zeros(2), junction_radius=r_clear,
+        template=template,
+        seed=int(seed),
+        static=static,
+        lanes=lanes,
+        sidewalks=sidewalks,
+        roads=roads,
+        parking=parking,
+        center=np.zeros(2),
+        junction_radius=r_clear,
     )

@@ -40,22 +40,30 @@ class OrbResult:
         return asdict(self)
 
 
-_ORB_CACHE: dict[tuple, "cv2.ORB"] = {}
+_ORB_CACHE: dict[tuple, cv2.ORB] = {}
 
 
-def _orb(n_features: int, fast_threshold: int, n_levels: int, edge_threshold: int) -> "cv2.ORB":
+def _orb(n_features: int, fast_threshold: int, n_levels: int, edge_threshold: int) -> cv2.ORB:
     key = (n_features, fast_threshold, n_levels, edge_threshold)
     if key not in _ORB_CACHE:
         _ORB_CACHE[key] = cv2.ORB.create(
-            nfeatures=n_features, scaleFactor=1.2, nlevels=n_levels, edgeThreshold=edge_threshold,
-            patchSize=edge_threshold, fastThreshold=fast_threshold,
+            nfeatures=n_features,
+            scaleFactor=1.2,
+            nlevels=n_levels,
+            edgeThreshold=edge_threshold,
+            patchSize=edge_threshold,
+            fastThreshold=fast_threshold,
         )
     return _ORB_CACHE[key]
 
 
 def match_offsets(
-    left_bgr: np.ndarray, right_bgr: np.ndarray, n_features: int = 500, fast_threshold: int = 12,
-    n_levels: int = 4, edge_threshold: int = 19,
+    left_bgr: np.ndarray,
+    right_bgr: np.ndarray,
+    n_features: int = 500,
+    fast_threshold: int = 12,
+    n_levels: int = 4,
+    edge_threshold: int = 19,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cross-checked ORB matches: (dx, dy, hamming) arrays, dx = x_L - x_R, dy = y_L - y_R (px)."""
     check_pair_shapes(left_bgr, right_bgr, "ORB check")
@@ -80,16 +88,27 @@ def match_offsets(
 
 
 def check_pair(
-    left_bgr: np.ndarray, right_bgr: np.ndarray, min_dx: float = 1.0, max_dy: float = 5.0,
-    max_hamming: float = 40.0, best_n: int = 50, min_reliable: int = 8, statistic: str = "mean",
-    n_features: int = 500, fast_threshold: int = 12, n_levels: int = 4, edge_threshold: int = 19,
+    left_bgr: np.ndarray,
+    right_bgr: np.ndarray,
+    min_dx: float = 1.0,
+    max_dy: float = 5.0,
+    max_hamming: float = 40.0,
+    best_n: int = 50,
+    min_reliable: int = 8,
+    statistic: str = "mean",
+    n_features: int = 500,
+    fast_threshold: int = 12,
+    n_levels: int = 4,
+    edge_threshold: int = 19,
 ) -> OrbResult:
     """Run the ORB pair check on a rectified BGR pair (see module docstring; thresholds in px/bits)."""
     if statistic not in ("mean", "median"):
         raise ValueError(f"orb statistic must be 'mean' or 'median', got {statistic!r}")
     if best_n < 1 or min_reliable < 1:
         raise ValueError(f"orb best_n and min_reliable must be >= 1, got {best_n}, {min_reliable}")
-    dx, dy, ham = match_offsets(left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold)
+    dx, dy, ham = match_offsets(
+        left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+    )
     keep = np.flatnonzero(ham <= max_hamming)
     keep = keep[np.argsort(ham[keep], kind="stable")][:best_n]
     n_rel = len(keep)

@@ -20,22 +20,37 @@ def check_pair_shapes(left: np.ndarray, right: np.ndarray, what: str = "stereo p
     """Raise ValueError unless ``left`` and ``right`` are uint8 images of identical shape."""
     for name, img in (("left", left), ("right", right)):
         if not isinstance(img, np.ndarray):
-            raise ValueError(f"{what}: {name} image must be a numpy array, got {type(img).__name__}")
-        if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+            raise ValueError(
+                f"{what}: {name} image must be a numpy array, got {type(img).__name__}"
+            )
+        if (
+            img.dtype != np.uint8
+            or img.ndim not in (2, 3)
+            or (img.ndim == 3 and img.shape[2] not in (1, 3))
+        ):
             raise ValueError(
                 f"{what}: {name} image must be uint8 (H, W) or (H, W, 3) BGR, got {img.dtype} {img.shape}"
             )
     if left.shape != right.shape:
-        raise ValueError(f"{what}: left and right images differ in size: {left.shape} vs {right.shape}")
+        raise ValueError(
+            f"{what}: left and right images differ in size: {left.shape} vs {right.shape}"
+        )
 
 
 def make_matcher(
-    num_disparities: int = 64, block_size: int = 5, channels: int = 3, uniqueness_ratio: int = 10,
-    speckle_window: int = 0, speckle_range: int = 2, min_disparity: int = 0,
-) -> "cv2.StereoSGBM":
+    num_disparities: int = 64,
+    block_size: int = 5,
+    channels: int = 3,
+    uniqueness_ratio: int = 10,
+    speckle_window: int = 0,
+    speckle_range: int = 2,
+    min_disparity: int = 0,
+) -> cv2.StereoSGBM:
     """A configured ``StereoSGBM`` (num_disparities: search range px, multiple of 16; block_size odd px)."""
     if num_disparities <= 0 or num_disparities % 16:
-        raise ValueError(f"sgm num_disparities must be a positive multiple of 16, got {num_disparities}")
+        raise ValueError(
+            f"sgm num_disparities must be a positive multiple of 16, got {num_disparities}"
+        )
     if block_size < 1 or block_size % 2 == 0:
         raise ValueError(f"sgm block_size must be odd and >= 1, got {block_size}")
     cn = int(channels)
@@ -54,9 +69,16 @@ def make_matcher(
 
 
 def compute_disparity(
-    left_bgr: np.ndarray, right_bgr: np.ndarray, num_disparities: int = 64, block_size: int = 5,
-    uniqueness_ratio: int = 10, speckle_window: int = 0, speckle_range: int = 2, min_disparity: int = 0,
-    gray: bool = False, matcher: "cv2.StereoSGBM | None" = None,
+    left_bgr: np.ndarray,
+    right_bgr: np.ndarray,
+    num_disparities: int = 64,
+    block_size: int = 5,
+    uniqueness_ratio: int = 10,
+    speckle_window: int = 0,
+    speckle_range: int = 2,
+    min_disparity: int = 0,
+    gray: bool = False,
+    matcher: cv2.StereoSGBM | None = None,
 ) -> np.ndarray:
     """SGM disparity of a rectified pair: float32 (H, W) px, ``-1.0`` where invalid.
 
@@ -68,7 +90,15 @@ def compute_disparity(
         left_bgr = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2GRAY)
         right_bgr = cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY)
     cn = 1 if left_bgr.ndim == 2 else left_bgr.shape[2]
-    m = matcher or make_matcher(num_disparities, block_size, cn, uniqueness_ratio, speckle_window, speckle_range, min_disparity)
+    m = matcher or make_matcher(
+        num_disparities,
+        block_size,
+        cn,
+        uniqueness_ratio,
+        speckle_window,
+        speckle_range,
+        min_disparity,
+    )
     raw = m.compute(left_bgr, right_bgr)
     disp = raw.astype(np.float32) / 16.0
     disp[raw < m.getMinDisparity() * 16] = INVALID

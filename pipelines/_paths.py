@@ -1,0 +1,65 @@
+"""Every path a stage reads or writes, derived in one place (dvc.yaml spells the same layout).
+
+Configurations (``configurations.<cfg>``) and risk variants (``risk_model.run_variants``) come
+from params.yaml; the folders below are the repository layout, which only the workflow layer
+(``pipelines/``) knows. The library receives these paths as explicit arguments.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PARAMS = ROOT / "params.yaml"
+CONF = ROOT / "conf"
+DVC_YAML = ROOT / "dvc.yaml"
+
+DATA = ROOT / "data"
+MODELS = ROOT / "models"
+REPORTS = ROOT / "reports"
+METRICS = REPORTS / "metrics"
+PLOTS = REPORTS / "plots"
+FIGURES = REPORTS / "figures"
+TIMINGS = REPORTS / "timings"
+
+# fusion
+FUSION_DATA = DATA / "fusion"
+PREALIGNED = DATA / "prealigned"
+FUSION_MODELS = MODELS / "fusion"
+
+# risk
+RISK_DATA = DATA / "risk"
+DISPARITY = DATA / "disparity"
+ORB_CSV = DATA / "orb" / "orb.csv"
+RISK_MODELS = MODELS / "risk"
+
+
+def prealigned(cfg: str) -> Path:
+    """``data/prealigned/<cfg>``: map 2 warped by the noisy pose of configuration ``cfg``."""
+    return PREALIGNED / cfg
+
+
+def fusion_model_dir(cfg: str) -> Path:
+    """``models/fusion/<cfg>``: the fusion network of configuration ``cfg`` (model.ckpt, model_meta.json)."""
+    return FUSION_MODELS / cfg
+
+
+def risk_model_dir(variant: str) -> Path:
+    """``models/risk/<variant>``: one trained risk-network variant."""
+    return RISK_MODELS / variant
+
+
+def metrics_file(name: str) -> Path:
+    """``reports/metrics/<name>.json``."""
+    return METRICS / f"{name}.json"
+
+
+def plot_file(name: str) -> Path:
+    """``reports/plots/<name>.csv``."""
+    return PLOTS / f"{name}.csv"
+
+
+def figure_file(name: str) -> Path:
+    """``reports/figures/<name>.png``."""
+    return FIGURES / f"{name}.png"
