@@ -55,7 +55,9 @@ def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
     """Environment for running stages in ``repo``: venv on PATH, its own MLflow database."""
     env = dict(os.environ)
     env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
-    env["PYTHONPATH"] = os.pathsep.join((str(repo / "src"), str(repo)))  # the copy's own library code
+    env["PYTHONPATH"] = os.pathsep.join(
+        (str(repo / "src"), str(repo))
+    )  # the copy's own library code
     env["MLFLOW_TRACKING_URI"] = f"sqlite:///{mlflow_db or repo / 'mlflow.db'}"
     env["TRAFFICTWIN_REPO_ROOT"] = str(repo)
     env["PYTHONHASHSEED"] = "0"

@@ -51,8 +51,8 @@ def dump_params(cfg: dict[str, Any], path: str | Path) -> None:
     write_text_atomic(path, header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=False))
 
 
-def load_params(path: str | Path = "params.yaml") -> DictConfig:
-    """Load params.yaml as an OmegaConf object and check the profile name."""
+def load_params(path: str | Path) -> DictConfig:
+    """Load a params file (the composed conf/, params.yaml) as OmegaConf and check the profile name."""
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"{path}: not found (run `make params` to compose it from conf/)")
