@@ -99,7 +99,8 @@ def risk_tables(src: page.Sources) -> list[Table]:
         "Risk: test results, paper vs this run (critical ⇔ THW < 1.5 s ⇔ risk > 1/30)",
         ["metric", "paper (Feth et al.)", *[label for _, label, _ in preds], "paper source"],
         note=(
-            "The paper's accuracy and confusion matrix are over its whole effective data set (106,170 frames), "
+            "The paper's accuracy and confusion matrix are over its whole effective data set "
+            f"({fmt_value(P.RISK['n_effective'].value, 'int')} frames), "
             "ours over the test split; '—': the paper reports no such number. Wang & Kato (ref. [20] of the "
             "paper) solve a different, 3-class task with subjective labels; the paper quotes their accuracy "
             "as the related work's best."
@@ -239,7 +240,8 @@ def risk_training_table(src: page.Sources) -> Table | None:
         ("train_seconds", "train time [s]", "f1"),
     ]
     t = Table(
-        "Risk: training of each variant (DAVE-2-like net; paper: 30 epochs, batch 10, Adam)",
+        "Risk: training of each variant (DAVE-2-like net; paper: "
+        f"{P.RISK['epochs'].value} epochs, batch {P.RISK['batch_size'].value}, Adam)",
         ["variant", "inputs", "label", *[c[1] for c in cols]],
         anchor="risk-training",
     )
