@@ -6,11 +6,11 @@ other numbers than the committed report, so the two cannot drift apart silently.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from traffictwin.io.atomic import write_text_atomic
+from traffictwin.report.render import RESULTS_TABLE
 
-ROOT = Path(__file__).resolve().parents[1]
+from ._paths import REPORTS, ROOT
+
 BEGIN = "<!-- results:begin (generated from reports/results_table.md by `make readme`) -->"
 END = "<!-- results:end -->"
 
@@ -37,7 +37,7 @@ def render(readme: str, table_md: str) -> str:
 
 def main() -> None:
     readme = ROOT / "README.md"
-    new = render(readme.read_text(), (ROOT / "reports" / "results_table.md").read_text())
+    new = render(readme.read_text(), (REPORTS / RESULTS_TABLE).read_text())
     write_text_atomic(readme, new)
     print("README.md: results block updated from reports/results_table.md")
 

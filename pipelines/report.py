@@ -4,22 +4,29 @@ Reads params.yaml for what the report shows about the run -- the profile, the se
 pose-noise configurations, and the *scale* parameters (every key that any profile in
 conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) -- and
 hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
-with the git commit and the DVC stage order (for the timing table).
+with the git commit, the DVC stage order (for the timing table) and the list of section
+providers -- one per problem, in the order the report shows them (a new problem adds one).
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from traffictwin.config import flatten, get
+from traffictwin.config import flatten, get, typed
+from traffictwin.fusion import report_section as fusion_report
 from traffictwin.mlops.tracking import git_commit, pipeline_run_id
-from traffictwin.report.render import ReportInputs, write_report
+from traffictwin.report.config import ReportParams
+from traffictwin.report.model import ReportInputs, SectionProvider
+from traffictwin.report.render import write_report
+from traffictwin.risk import report_section as risk_report
 
-from ._common import ROOT, params, run_stage, setup_logging, stage_timer
+from ._common import params, run_stage, setup_logging, stage_timer
+from ._paths import CONF, DVC_YAML, REPORTS, ROOT
 
 
 def profile_keys(conf_profile_dir: Path) -> set[str]:
@@ -83,31 +90,28 @@ def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
     return order
 
 
+def providers(configurations: Mapping[str, tuple[float, float]]) -> list[SectionProvider]:
+    """The problems' sections, in report order; ``configurations``: ``{name: (r m, alpha deg)}``."""
+    return [fusion_report.provider(configurations), risk_report.provider()]
+
+
 def main() -> None:
     setup_logging()
     with stage_timer("report"):
         cfg = params()
-        confs = get(cfg, "configurations", dict)
-        configurations = {
-            str(n): (
-                get(cfg, f"configurations.{n}.r", float, min=0),
-                get(cfg, f"configurations.{n}.alpha", float, min=0),
-            )
-            for n in confs
-        }
+        p = typed({k: cfg.get(k) for k in ("seed", "profile", "configurations")}, ReportParams)
         inputs = ReportInputs(
-            reports_dir=ROOT / "reports",
-            profile=get(cfg, "profile.name", str),
-            seed=get(cfg, "seed", int, min=0),
+            reports_dir=REPORTS,
+            profile=p.profile.name,
+            seed=p.seed,
             git_commit=git_commit(ROOT),
-            run_params=run_params(cfg, profile_keys(ROOT / "conf" / "profile")),
-            configurations=configurations,
+            run_params=run_params(cfg, profile_keys(CONF / "profile")),
             dvc_exp_name=os.environ.get("DVC_EXP_NAME", ""),
             pipeline_run=pipeline_run_id(),
-            stage_order=stage_order(ROOT / "dvc.yaml", cfg),
+            stage_order=stage_order(DVC_YAML, cfg),
             git_dirty=git_dirty(ROOT),
         )
-        report = write_report(inputs)
+        report = write_report(inputs, providers(p.pose_noise))
     log = setup_logging()
     log.info(
         "report: %d sections, %d missing values -> reports/README.md, reports/index.html",

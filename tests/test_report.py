@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from pipelines.report import providers
+from traffictwin.report import model as M
 from traffictwin.report import paper_numbers as P
 from traffictwin.report import render as R
 
@@ -103,7 +105,7 @@ def resolve(
             return configurations[cfg][0 if which == "r" else 1]
         return run_params[key]
     data = json.loads((reports / path).read_text())
-    return R.lookup(data, key, R.ABSENT)
+    return M.lookup(data, key, M.ABSENT)
 
 
 def check_report(
@@ -122,16 +124,16 @@ def check_report(
             for text, attrs in row:
                 if "data-src" in attrs:
                     want = resolve(attrs["data-src"], reports, run_params, configurations)
-                    assert want is not R.ABSENT, attrs["data-src"]
+                    assert want is not M.ABSENT, attrs["data-src"]
                     got = json.loads(attrs["data-value"])
                     if want is None:  # JSON null in the metrics file (the writers' NaN)
-                        assert got is None and text == R.NA, attrs["data-src"]
+                        assert got is None and text == M.NA, attrs["data-src"]
                         checked += 1
                         continue
                     assert got == want or (
                         isinstance(want, float) and math.isnan(want) and math.isnan(got)
                     ), attrs["data-src"]
-                    assert text == R.fmt_value(want, attrs["data-fmt"]), (attrs["data-src"], text)
+                    assert text == M.fmt_value(want, attrs["data-fmt"]), (attrs["data-src"], text)
                     checked += 1
                 elif "data-derived" in attrs:
                     pass  # checked per table below
@@ -142,7 +144,7 @@ def check_report(
     # derived totals: the sum of the sourced cells above them
     for table in parser.tables:
         for row in table:
-            for i, (text, attrs) in enumerate(row):
+            for i, (_text, attrs) in enumerate(row):
                 if attrs.get("data-derived") == "sum of the wall times above":
                     total = sum(
                         json.loads(r[i][1]["data-value"]) for r in table if "data-src" in r[i][1]
@@ -313,8 +315,11 @@ def reports(tmp_path: Path) -> Path:
     return rep
 
 
-def make_inputs(rep: Path) -> R.ReportInputs:
-    return R.ReportInputs(
+CONFIGURATIONS = {"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)}
+
+
+def make_inputs(rep: Path) -> M.ReportInputs:
+    return M.ReportInputs(
         reports_dir=rep,
         profile="ci",
         seed=7,
@@ -325,7 +330,6 @@ def make_inputs(rep: Path) -> R.ReportInputs:
             "grid.cell": 0.64,
             "trainer.accelerator": "cpu",
         },
-        configurations={"A": (0.0, 0.0), "B": (1.0, 10.0), "C": (2.5, 15.0), "D": (5.0, 20.0)},
         dvc_exp_name="exp-x",
         pipeline_run="abc12345-0000ffff",
         stage_order=["generate_fusion", "train_fusion", "report"],
@@ -334,27 +338,27 @@ def make_inputs(rep: Path) -> R.ReportInputs:
 
 # --------------------------------------------------------------------------- unit tests
 def test_fmt_value_hand_cases() -> None:
-    assert R.fmt_value(0.0123456) == "0.01235"
-    assert R.fmt_value(0.8125, "pct") == "81.25 %"
-    assert R.fmt_value(72.87, "pct_raw") == "72.87 %"
-    assert R.fmt_value(67052, "int") == "67,052"
-    assert R.fmt_value(75.4, "s") == "1:15" and R.fmt_value(3725, "s") == "1:02:05"
+    assert M.fmt_value(0.0123456) == "0.01235"
+    assert M.fmt_value(0.8125, "pct") == "81.25 %"
+    assert M.fmt_value(72.87, "pct_raw") == "72.87 %"
+    assert M.fmt_value(67052, "int") == "67,052"
+    assert M.fmt_value(75.4, "s") == "1:15" and M.fmt_value(3725, "s") == "1:02:05"
     assert (
-        R.fmt_value(30.25, "f1") == "30.2"
+        M.fmt_value(30.25, "f1") == "30.2"
     )  # banker's rounding of the binary value, as Python formats it
-    assert R.fmt_value(float("nan")) == "n/a" and R.fmt_value(None) == "n/a"
-    assert R.fmt_value(float("inf")) == "inf" and R.fmt_value(True) == "true"
+    assert M.fmt_value(float("nan")) == "n/a" and M.fmt_value(None) == "n/a"
+    assert M.fmt_value(float("inf")) == "inf" and M.fmt_value(True) == "true"
     with pytest.raises(ValueError, match="unknown format"):
-        R.fmt_value(1.0, "x9")
+        M.fmt_value(1.0, "x9")
 
 
 def test_lookup_nested_and_flat_keys() -> None:
     data = {"A": {"net": {"test/kld": 1.5}}, "test/mse": 2.0, "a.b": {"c": 3}, "x": {"y": {"z": 4}}}
-    assert R.lookup(data, "A.net.test/kld") == 1.5
-    assert R.lookup(data, "test/mse") == 2.0
-    assert R.lookup(data, "a.b.c") == 3  # a segment containing '.'
-    assert R.lookup(data, "x.y.z") == 4
-    assert R.lookup(data, "A.missing") is None and R.lookup(None, "A") is None
+    assert M.lookup(data, "A.net.test/kld") == 1.5
+    assert M.lookup(data, "test/mse") == 2.0
+    assert M.lookup(data, "a.b.c") == 3  # a segment containing '.'
+    assert M.lookup(data, "x.y.z") == 4
+    assert M.lookup(data, "A.missing") is None and M.lookup(None, "A") is None
 
 
 def test_paper_numbers_consistent() -> None:
@@ -370,8 +374,8 @@ def test_paper_numbers_consistent() -> None:
 
 def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     inputs = make_inputs(reports)
-    rep = R.write_report(inputs)
-    checked = check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+    rep = R.write_report(inputs, providers(CONFIGURATIONS))
+    checked = check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
     # fusion: 3 tables x 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
     assert checked >= 3 * 4 * 5 + 12 * 6 + 16 + 10 + 6 + 8
     md = (reports / "README.md").read_text()
@@ -379,7 +383,7 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     # paper numbers and ours side by side, from their sources
     risk = json.loads((reports / "metrics" / "risk.json").read_text())
     main = risk["models"]["rgbd"]
-    mse = R.fmt_value(main["test/mse"])
+    mse = M.fmt_value(main["test/mse"])
     assert f"| MSE (normalised risk) | 0.0147 | {mse} | " in md
     acc = main["at_1.5s"]["accuracy"]
     assert acc == 0.75  # hand count: y > 1/30 at 2, 3, 5, 7; p > 1/30 at 1, 2, 3, 5 -> 6 of 8 agree
@@ -465,8 +469,8 @@ def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
             }
         )
     )
-    inputs = R.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
-    rep = R.write_report(inputs)
+    inputs = M.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
+    rep = R.write_report(inputs, providers({}))
     check_report(rep_dir, {}, {})
     md = (rep_dir / "README.md").read_text()
     assert "`reports/metrics/fusion.json` is missing" in md
@@ -480,16 +484,18 @@ def test_bad_metrics_file_named(tmp_path: Path) -> None:
     (rep_dir / "metrics").mkdir(parents=True)
     (rep_dir / "metrics" / "fusion.json").write_text("{not json")
     with pytest.raises(ValueError, match="fusion.json: not readable JSON"):
-        R.write_report(R.ReportInputs(reports_dir=rep_dir, profile="ci", seed=1, git_commit="x"))
+        R.write_report(
+            M.ReportInputs(reports_dir=rep_dir, profile="ci", seed=1, git_commit="x"), providers({})
+        )
     assert not (rep_dir / "README.md").exists()
 
 
 def test_check_report_catches_a_wrong_number(reports: Path) -> None:
     """The verifier itself fails when a number in the HTML disagrees with its file."""
     inputs = make_inputs(reports)
-    R.write_report(inputs)
+    R.write_report(inputs, providers(CONFIGURATIONS))
     page = (reports / "index.html").read_text()
-    check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+    check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
     for good, bad in (
         (">0.15<", ">0.16<"),
         (">72.87 %<", ">72.88 %<"),
@@ -497,7 +503,7 @@ def test_check_report_catches_a_wrong_number(reports: Path) -> None:
         assert good in page
         (reports / "index.html").write_text(page.replace(good, bad, 1))
         with pytest.raises(AssertionError):
-            check_report(reports, dict(inputs.run_params), dict(inputs.configurations))
+            check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
 
 
 def test_paper_numbers_agree_with_risk_evaluation() -> None:

@@ -1,0 +1,291 @@
+"""The report's page model: cells that remember their source, tables, figures, sections, and
+the loaded input files (:class:`Sources`) the sections read their numbers from.
+
+Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``), stage
+timings (``reports/timings/*.json``), ``reports/environment.json``, the run's parameters (passed
+in explicitly by the stage) or :mod:`traffictwin.report.paper_numbers` (the papers' reported
+values, the only hand-typed numbers). Each table cell that holds a number remembers where it came
+from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML carries it as ``data-src`` and
+the raw value as ``data-value`` so tests can re-check every number against its file.
+
+A missing file or key gives an ``n/a`` cell (recorded in :attr:`Sources.missing`), never an
+error, so a partial pipeline still reports. Each problem (fusion, risk, ...) contributes its
+part through a :class:`SectionProvider`; this module knows none of them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from traffictwin.report import paper_numbers as P
+
+NA = "n/a"
+NEVER = r"(?!)"  # a regex that matches nothing
+
+
+# --------------------------------------------------------------------------- formatting
+def fmt_value(value: Any, fmt: str = "g4") -> str:
+    """Format one number for a table cell.
+
+    ``fmt``: ``g4`` (4 significant digits), ``f<k>`` (k decimals), ``int`` (thousands
+    separator ``,``), ``pct`` (a fraction shown as percent, 2 decimals), ``pct_raw`` (already a
+    percent, 2 decimals), ``s`` (seconds → ``m:ss`` / ``h:mm:ss``), ``str`` (as is).
+    NaN / None → ``n/a``.
+    """
+    if value is None:
+        return NA
+    if fmt == "str":
+        return str(value)
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return value
+    v = float(value)
+    if math.isnan(v):
+        return NA
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    if fmt == "g4":
+        return f"{v:.4g}"
+    if fmt == "int":
+        return f"{int(round(v)):,}"
+    if fmt == "pct":
+        return f"{100.0 * v:.2f} %"
+    if fmt == "pct_raw":
+        return f"{v:.2f} %"
+    if fmt == "s":
+        t = int(round(v))
+        h, rem = divmod(t, 3600)
+        m, s = divmod(rem, 60)
+        return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+    m = re.fullmatch(r"f(\d)", fmt)
+    if m:
+        return f"{v:.{int(m.group(1))}f}"
+    raise ValueError(f"fmt_value: unknown format {fmt!r}")
+
+
+# --------------------------------------------------------------------------- model
+@dataclass
+class Cell:
+    """One table cell. ``src`` names the file#key a number came from (None for labels/derived text)."""
+
+    text: str
+    src: str | None = None
+    value: Any = None
+    fmt: str | None = None
+    title: str = ""  # tooltip (e.g. why a value is n/a)
+    derived: str = (
+        ""  # how a computed number was derived from sourced cells (e.g. "sum of timings")
+    )
+
+
+@dataclass
+class Table:
+    title: str
+    columns: list[str]
+    rows: list[list[Cell]] = field(default_factory=list)
+    note: str = ""
+    anchor: str = ""
+    headline: bool = False  # one of the headline tables (results_table.md, the project README)
+
+
+@dataclass
+class Figure:
+    path: str  # relative to the reports folder, e.g. "figures/fusion_kld_box.png"
+    caption: str
+
+
+@dataclass
+class Section:
+    title: str
+    paragraphs: list[str] = field(default_factory=list)
+    tables: list[Table] = field(default_factory=list)
+    figures: list[Figure] = field(default_factory=list)
+    bullet_groups: list[tuple[str, list[str]]] = field(default_factory=list)  # (heading, bullets)
+
+
+@dataclass
+class Report:
+    title: str
+    intro: list[str]
+    sections: list[Section]
+    missing: list[str]
+
+
+@dataclass
+class ReportInputs:
+    """Everything the report needs, passed explicitly (the library never reads params.yaml).
+
+    ``reports_dir``: folder with ``metrics/``, ``figures/``, ``plots/``, ``timings/``,
+    ``environment.json``; the report files are written there. ``run_params``: flattened
+    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``stage_order``: DAG
+    order for the timing table. What a problem's section needs beyond these (the fusion
+    section's pose-noise configurations) its :class:`SectionProvider` carries.
+    """
+
+    reports_dir: Path
+    profile: str
+    seed: int
+    git_commit: str
+    run_params: Mapping[str, Any] = field(default_factory=dict)
+    dvc_exp_name: str = ""
+    pipeline_run: str = ""
+    stage_order: Sequence[str] = ()
+    git_dirty: bool = False  # code or config differed from the commit when the report ran
+
+
+# --------------------------------------------------------------------------- sources
+class Sources:
+    """Loaded input files with number lookup that records what was missing."""
+
+    def __init__(self, inputs: ReportInputs) -> None:
+        self.inputs = inputs
+        self.root = Path(inputs.reports_dir)
+        self.metrics: dict[str, Any] = {}
+        self.missing: list[str] = []
+        mdir = self.root / "metrics"
+        if mdir.is_dir():
+            for p in sorted(mdir.glob("*.json")):
+                self.metrics[p.name] = _read_json(p)
+        self.timings: dict[str, Any] = {}
+        tdir = self.root / "timings"
+        if tdir.is_dir():
+            for p in sorted(tdir.glob("*.json")):
+                self.timings[p.name] = _read_json(p)
+        env = self.root / "environment.json"
+        self.environment = _read_json(env) if env.exists() else None
+
+    def has(self, file: str) -> bool:
+        return file in self.metrics
+
+    def get(self, file: str, key: str, default: Any = None) -> Any:
+        """Value at dotted ``key`` in metrics ``file`` (segments may themselves contain '/' or '.')."""
+        data = self.metrics.get(file)
+        return lookup(data, key, default) if data is not None else default
+
+    def cell(self, file: str, key: str, fmt: str = "g4", *, record: bool = True) -> Cell:
+        """Number cell from metrics ``file``#``key``.
+
+        Absent key: ``n/a`` without a source, recorded in :attr:`missing`. JSON ``null`` (the
+        writers' spelling of NaN, e.g. precision with no positive prediction): ``n/a`` with its source.
+        """
+        v = self.get(file, key, ABSENT)
+        if v is ABSENT or isinstance(v, (dict, list)):
+            if record:
+                self.missing.append(f"metrics/{file}#{key}")
+            return Cell(NA, title=f"not in reports/metrics/{file}: {key}")
+        if v is None:
+            return Cell(
+                NA,
+                src=f"metrics/{file}#{key}",
+                value=None,
+                fmt=fmt,
+                title="undefined (null in the metrics file)",
+            )
+        return Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)
+
+    def param_cell(self, key: str, fmt: str = "str") -> Cell:
+        v = self.inputs.run_params.get(key)
+        if v is None:
+            return Cell(NA, title=f"parameter {key} not set in this run")
+        return Cell(fmt_value(v, fmt), src=f"params#{key}", value=v, fmt=fmt)
+
+
+def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
+    """Cell with a paper's reported number (``paper_numbers.<table>[key]``)."""
+    num = getattr(P, table)[key]
+    v = num.value
+    fmt = "str" if isinstance(v, str) else fmt
+    return Cell(
+        fmt_value(v, fmt),
+        src=f"paper:{table}.{key}",
+        value=v,
+        fmt=fmt,
+        title=f"{num.source}: {num.unit} {num.note}".strip(),
+    )
+
+
+ABSENT = object()
+
+
+def lookup(data: Any, key: str, default: Any = None) -> Any:
+    """Nested lookup of ``key`` = segments joined by '.', where a segment may contain '.' or '/'.
+
+    At each level the longest prefix of the remaining key that is a dict key wins, so
+    ``"test.A.dnn.kld_fo_mean"``, ``"models.v.at_1.5s.accuracy"`` and a flat
+    ``{"test/mse": …}`` all resolve. ``default`` when the key is absent (a JSON ``null`` is
+    present and returned as None).
+    """
+    if key == "":
+        return data
+    if not isinstance(data, dict):
+        return default
+    if key in data:
+        return data[key]
+    parts = key.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        head = ".".join(parts[:i])
+        if head in data:
+            found = lookup(data[head], ".".join(parts[i:]), ABSENT)
+            if found is not ABSENT:
+                return found
+    return default
+
+
+def flatten_numbers(data: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    """``[(dotted key, scalar)]`` for every scalar leaf (numbers, bools, strings) in JSON ``data``."""
+    out: list[tuple[str, Any]] = []
+    if isinstance(data, dict):
+        for k, v in data.items():
+            out.extend(flatten_numbers(v, f"{prefix}{k}."))
+    elif isinstance(data, list):
+        if all(not isinstance(v, (dict, list)) for v in data) and len(data) <= 12:
+            out.append((prefix[:-1], data))
+        else:
+            for i, v in enumerate(data):
+                out.extend(flatten_numbers(v, f"{prefix}{i}."))
+    else:
+        out.append((prefix[:-1], data))
+    return out
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not readable JSON ({exc})") from None
+
+
+# --------------------------------------------------------------------------- section providers
+@dataclass(frozen=True)
+class DataFile:
+    """A metrics file shown in the report's data section (as :func:`~traffictwin.report.tables.pivot_table`)."""
+
+    file: str  # name in reports/metrics, e.g. "orb.json"
+    title: str
+    required: bool = False  # say so when it is missing (an optional file is just left out)
+
+
+@dataclass(frozen=True)
+class SectionProvider:
+    """What one problem (fusion, risk; a cooperative twin later) contributes to the report.
+
+    ``section(src, figures)`` builds the problem's section from the loaded files and the figures
+    that were assigned to it. ``figures``: ``{file stem: caption}`` of the figures the problem's
+    stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
+    that claims any other image for this problem. ``data_files``: its files in the data section.
+    ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
+    appendix). The report iterates the providers in order; adding a problem adds a provider.
+    """
+
+    section: Callable[[Sources, list[Figure]], Section]
+    figures: Mapping[str, str] = field(default_factory=dict)
+    figure_pattern: str = NEVER
+    data_files: Sequence[DataFile] = ()
+    shown_files: str = NEVER

@@ -1,0 +1,200 @@
+"""Tables any section can use: metrics files as key/value grids or side by side, the run's
+stage timings, environment and parameters, and a problem's findings text as bullet points."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+from traffictwin.report.model import ABSENT, Cell, Sources, Table, flatten_numbers, fmt_value
+
+FINDINGS_HEADING = "Findings of this run"
+
+
+def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | None:
+    """Metrics files matching ``pattern`` (a regex with one group naming the column) side by side:
+    rows = keys (union, first file's order), columns = files."""
+    files = [(m.group(1), f) for f in src.metrics if (m := re.fullmatch(pattern, f))]
+    if not files:
+        return None
+    keys: list[str] = []
+    for _, f in files:
+        keys += [k for k, v in flatten_numbers(src.metrics[f]) if k not in keys]
+    t = Table(title, ["key", *[name for name, _ in files]], anchor=anchor)
+    for k in keys:
+        row = [Cell(k)]
+        for _, f in files:
+            v = src.get(f, k, ABSENT)
+            if v is ABSENT:
+                row.append(Cell(""))
+            elif isinstance(v, (str, list, bool)):
+                row.append(Cell(str(v)))
+            else:
+                row.append(src.cell(f, k, "int" if isinstance(v, int) else "g4"))
+        t.rows.append(row)
+    return t
+
+
+def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Table | None:
+    """Every scalar in metrics ``file`` as a key/value table (None if the file is absent)."""
+    data = src.metrics.get(file)
+    if data is None:
+        return None
+    t = Table(title, ["key", "value"], anchor=anchor)
+    for key, v in flatten_numbers(data):
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            fmt = "int" if isinstance(v, int) else "g4"
+            t.rows.append(
+                [Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)]
+            )
+        else:
+            t.rows.append(
+                [
+                    Cell(key),
+                    Cell(
+                        fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v))
+                    ),
+                ]
+            )
+    return t
+
+
+def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table | None:
+    """Metrics ``file`` as a grid: flat ``"<group>/<metric>"`` keys → rows = groups, columns = metrics.
+
+    Falls back to :func:`generic_table` when the keys are not of that form. None if the file is absent.
+    """
+    data = src.metrics.get(file)
+    if data is None:
+        return None
+    flat = [(k, v) for k, v in flatten_numbers(data)]
+    if not flat or not all("/" in k and "." not in k for k, _ in flat):
+        return generic_table(src, file, title, anchor)
+    groups: list[str] = []
+    metrics: list[str] = []
+    for k, _ in flat:
+        g, m = k.split("/", 1)
+        groups += [g] if g not in groups else []
+        metrics += [m] if m not in metrics else []
+
+    def cell(g: str, m: str) -> Cell:
+        key = f"{g}/{m}"
+        if key not in data:
+            return Cell("")
+        v = data[key]
+        if isinstance(v, (str, list, bool)):
+            return Cell(str(v))
+        return src.cell(file, key, "int" if isinstance(v, int) else "g4")
+
+    if len(metrics) <= len(groups):  # the narrower orientation: groups as rows
+        t = Table(title, ["group", *metrics], anchor=anchor)
+        t.rows = [[Cell(g)] + [cell(g, m) for m in metrics] for g in groups]
+    else:
+        t = Table(title, ["metric", *groups], anchor=anchor)
+        t.rows = [[Cell(m)] + [cell(g, m) for g in groups] for m in metrics]
+    return t
+
+
+def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
+    t = Table(
+        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
+    )
+    items = []
+    for name, d in src.timings.items():
+        if not isinstance(d, dict) or "seconds" not in d:
+            continue
+        stage = str(d.get("stage", name.removesuffix(".json")))
+        if stage == "report":  # written after this report; would always be one run stale
+            continue
+        items.append((stage, name, d["seconds"]))
+    rank = {s: i for i, s in enumerate(order)}
+
+    def key(it: tuple[str, str, Any]) -> tuple[int, str]:
+        base = it[0].split("@")[0]
+        return (rank.get(it[0], rank.get(base, len(rank))), it[0])
+
+    total = 0.0
+    for stage, name, secs in sorted(items, key=key):
+        total += float(secs)
+        t.rows.append(
+            [
+                Cell(stage),
+                Cell(fmt_value(secs, "f1"), src=f"timings/{name}#seconds", value=secs, fmt="f1"),
+                Cell(fmt_value(secs, "s"), src=f"timings/{name}#seconds", value=secs, fmt="s"),
+            ]
+        )
+    if items:
+        d = "sum of the wall times above"
+        t.rows.append(
+            [
+                Cell("total (sum)"),
+                Cell(fmt_value(total, "f1"), value=total, fmt="f1", derived=d),
+                Cell(fmt_value(total, "s"), value=total, fmt="s", derived=d),
+            ]
+        )
+    t.note = "Sum of the stages' own wall times as recorded by each stage (reports/timings); DVC overhead not included."
+    return t
+
+
+def environment_table(src: Sources) -> Table | None:
+    env = src.environment
+    if not isinstance(env, dict):
+        return None
+    t = Table("Machine and software of this run", ["item", "value"], anchor="environment")
+    for k in ("cpu", "cpu_count", "memory_gb", "gpu", "cuda_available", "python", "platform"):
+        if k in env:
+            v = env[k]
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                t.rows.append(
+                    [
+                        Cell(k),
+                        Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4"),
+                    ]
+                )
+            else:
+                t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
+    for pkg, ver in (env.get("packages") or {}).items():
+        t.rows.append([Cell(pkg), Cell(str(ver))])
+    return t
+
+
+def params_table(src: Sources) -> Table:
+    t = Table(
+        "Parameters of this run (scale and seeds)",
+        ["parameter", "value"],
+        anchor="params",
+        note="The parameters the profiles override (their sizes) and every seed, from params.yaml.",
+    )
+    for k in sorted(src.inputs.run_params):
+        t.rows.append([Cell(k), src.param_cell(k)])
+    return t
+
+
+# --------------------------------------------------------------------------- findings
+def findings_group(
+    src: Sources, file: str, findings: Callable[[Mapping[str, Any]], str]
+) -> tuple[str, list[str]]:
+    """``(heading, bullets)``: ``findings`` (a problem's markdown findings of metrics ``file``) as
+    bullet points, or a note that the file is missing."""
+    data = src.metrics.get(file)
+    if data is None:
+        return FINDINGS_HEADING, [f"(no {file}: findings need the evaluation metrics)"]
+    return FINDINGS_HEADING, markdown_bullets(findings(data))
+
+
+def markdown_bullets(text: str) -> list[str]:
+    """Statements of a markdown findings text: bullets and paragraph lines; headings and tables dropped
+    (the report's own tables show those numbers with their sources)."""
+    out: list[str] = []
+    for ln in text.splitlines():
+        t = ln.strip()
+        if not t or t.startswith("#") or t.startswith("|"):
+            continue
+        if t[:2] in ("- ", "* "):
+            out.append(t[2:].strip())
+        elif ln.startswith((" ", "\t")) and out:  # continuation of a bullet
+            out[-1] += " " + t
+        else:
+            out.append(t)
+    return out

@@ -1,0 +1,241 @@
+"""The report assembles what the problems' section providers give it: figures by provider, the
+data section and appendix from their declarations, findings through explicit functions, and a
+new problem is one more provider."""
+
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+
+import pytest
+
+from pipelines.report import providers
+from traffictwin.config import ConfigError, typed
+from traffictwin.fusion import report_section as fusion_report
+from traffictwin.fusion.findings import fusion_findings
+from traffictwin.report import render as R
+from traffictwin.report.config import ReportParams
+from traffictwin.report.model import DataFile, Figure, ReportInputs, Section, SectionProvider
+from traffictwin.report.tables import findings_group, markdown_bullets
+from traffictwin.risk import report_section as risk_report
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "traffictwin"
+
+
+def _reports(tmp_path: Path, metrics: dict[str, object], figures: list[str] = ()) -> Path:
+    rep = tmp_path / "reports"
+    (rep / "metrics").mkdir(parents=True)
+    (rep / "figures").mkdir()
+    for name, data in metrics.items():
+        (rep / "metrics" / name).write_text(json.dumps(data))
+    for name in figures:
+        (rep / "figures" / name).write_bytes(b"\x89PNG")
+    return rep
+
+
+def _inputs(rep: Path) -> ReportInputs:
+    return ReportInputs(reports_dir=rep, profile="ci", seed=1, git_commit="c0ffee")
+
+
+def _section(report, title: str) -> Section:
+    return next(s for s in report.sections if s.title == title)
+
+
+def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
+    rep = _reports(
+        tmp_path,
+        {},
+        [
+            "risk_examples.png",
+            "fusion_kld_boxplot.png",
+            "fusion_data_samples.png",
+            "stereo_extra.png",
+            "pose_extra.png",
+            "misc.png",
+        ],
+    )
+    (rep / "figures" / "notes.txt").write_text("not an image")
+    (figs_fusion, figs_risk), other = R.collect_figures(rep, providers({}))
+    # known figures in the provider's order with its caption, then the others its pattern claims
+    assert [(f.path, f.caption) for f in figs_fusion] == [
+        (
+            "figures/fusion_data_samples.png",
+            f"{fusion_report.FIGURES['fusion_data_samples']} — `figures/fusion_data_samples.png`",
+        ),
+        (
+            "figures/fusion_kld_boxplot.png",
+            f"{fusion_report.FIGURES['fusion_kld_boxplot']} — `figures/fusion_kld_boxplot.png`",
+        ),
+        ("figures/pose_extra.png", "`figures/pose_extra.png`"),
+    ]
+    assert [f.path for f in figs_risk] == ["figures/risk_examples.png", "figures/stereo_extra.png"]
+    assert other == [Figure("figures/misc.png", "`figures/misc.png`")]
+
+
+def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
+    """A third provider gets its section (after the others), its figures, its data file in the
+    data section and keeps the files it shows out of the appendix."""
+    seen: dict[str, object] = {}
+
+    def twin_section(src, figures: list[Figure]) -> Section:
+        seen["figures"] = [f.path for f in figures]
+        sec = Section("Twin")
+        sec.paragraphs.append(f"{src.get('twin_run_1.json', 'n')} vehicles")
+        sec.figures = figures
+        return sec
+
+    twin = SectionProvider(
+        section=twin_section,
+        figures={"twin_map": "The twin's map"},
+        figure_pattern="twin",
+        data_files=(
+            DataFile("twin_data.json", "Twin data"),
+            DataFile("twin_more.json", "More twin data", required=True),
+        ),
+        shown_files=r"twin_run_\d+\.json",
+    )
+    rep = _reports(
+        tmp_path,
+        {"twin_run_1.json": {"n": 3}, "twin_data.json": {"all/frames": 5}, "other.json": {"x": 1}},
+        ["twin_map.png", "twin_other.png"],
+    )
+    report = R.write_report(_inputs(rep), [*providers({}), twin])
+    titles = [s.title for s in report.sections]
+    assert titles == [
+        "This run",
+        fusion_report.TITLE,
+        risk_report.TITLE,
+        "Twin",
+        "Data and disparity statistics",
+        "Appendix — every metrics file",
+    ]
+    assert seen["figures"] == ["figures/twin_map.png", "figures/twin_other.png"]
+    assert _section(report, "Twin").paragraphs == ["3 vehicles"]
+    data = _section(report, "Data and disparity statistics")
+    assert [t.title for t in data.tables] == ["Twin data"]
+    assert data.tables[0].columns == ["group", "frames"]
+    assert [[c.text for c in row] for row in data.tables[0].rows] == [["all", "5"]]
+    assert "`reports/metrics/twin_more.json` is missing." in data.paragraphs
+    appendix = _section(report, "Appendix — every metrics file")
+    assert [t.title for t in appendix.tables] == ["reports/metrics/other.json"]
+    md = (rep / "README.md").read_text()
+    assert "## Twin" in md and "(figures/twin_map.png)" in md
+
+
+def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
+    """'fusion.json is missing' is said when it is, whether or not the training files are there."""
+    only_training = _reports(tmp_path / "a", {"train_fusion_A.json": {"val/loss": 0.5}})
+    sec = _section(R.build_report(_inputs(only_training), providers({})), fusion_report.TITLE)
+    assert any("`reports/metrics/fusion.json` is missing" in p for p in sec.paragraphs)
+    assert [t.anchor for t in sec.tables] == ["fusion-training"]
+    assert [[c.text for c in row] for row in sec.tables[0].rows] == [["val/loss", "0.5"]]
+    assert sec.bullet_groups[0] == (
+        "Findings of this run",
+        ["(no fusion.json: findings need the evaluation metrics)"],
+    )
+
+    metrics = {"test": {"A": {"dnn": {"kld_fo_mean": 0.25}, "naive": {"kld_fo_mean": 0.5}}}}
+    only_eval = _reports(tmp_path / "b", {"fusion.json": metrics})
+    report = R.build_report(_inputs(only_eval), providers({"A": (0.0, 0.0)}))
+    sec = _section(report, fusion_report.TITLE)
+    assert not any("is missing" in p for p in sec.paragraphs)
+    kld = next(t for t in sec.tables if t.anchor == "fusion-kld")
+    assert [c.text for c in kld.rows[0]] == [
+        "A",
+        "0",
+        "0",
+        "0.25",
+        "0.5",
+        "network lower",
+        "naive lower",
+    ]
+    assert kld.rows[0][1].src == "params#configurations.A.r"
+    # findings come from fusion.findings, as bullets
+    assert sec.bullet_groups[0] == (
+        "Findings of this run",
+        markdown_bullets(fusion_findings(metrics)),
+    )
+    assert sec.bullet_groups[0][1]
+    # the headline tables: only what the sections mark
+    assert [t.anchor for t in R.results_tables(report)] == ["fusion-kld"]
+
+
+def test_headline_tables_in_section_order(tmp_path: Path) -> None:
+    risk = {
+        "main_variant": "v",
+        "models": {"v": {"test/mse": 0.02}},
+        "baselines": {},
+    }
+    metrics = {"test": {"A": {"dnn": {"kld_fo_mean": 0.25}}}}
+    rep = _reports(tmp_path, {"fusion.json": metrics, "risk.json": risk})
+    report = R.build_report(_inputs(rep), providers({}))
+    assert [t.anchor for t in R.results_tables(report)] == [
+        "fusion-kld",
+        "risk-results",
+        "risk-confusion",
+    ]
+    res = R.render_results_markdown(report)
+    assert res.index("Fusion: KLD(a) mean") < res.index("Risk: test results")
+    assert res.endswith("Full report: [README.md](README.md).\n")
+
+
+def test_findings_group_turns_markdown_into_bullets(tmp_path: Path) -> None:
+    rep = _reports(tmp_path, {"x.json": {"a": 1}})
+    src = R.Sources(_inputs(rep))
+    got: list[object] = []
+
+    def findings(metrics):
+        got.append(metrics)
+        return "## Heading\n\n| a | b |\n- first\n  continued\n* second\nplain line\n"
+
+    assert findings_group(src, "x.json", findings) == (
+        "Findings of this run",
+        ["first continued", "second", "plain line"],
+    )
+    assert got == [{"a": 1}]
+    assert findings_group(src, "y.json", findings) == (
+        "Findings of this run",
+        ["(no y.json: findings need the evaluation metrics)"],
+    )
+
+
+def test_report_params_schema() -> None:
+    good = {
+        "seed": 3,
+        "profile": {"name": "ci"},
+        "configurations": {"A": {"r": 0, "alpha": 0}, "B": {"r": 1.0, "alpha": 10}},
+    }
+    p = typed(good, ReportParams)
+    assert p.seed == 3 and p.profile.name == "ci"
+    assert p.pose_noise == {"A": (0.0, 0.0), "B": (1.0, 10.0)}
+    for bad, key in (
+        ({**good, "seed": -1}, "'seed' must be >= 0"),
+        ({**good, "configurations": {"A": {"r": -1.0, "alpha": 0}}}, "'configurations.A.r'"),
+        ({**good, "configurations": {"A": {"r": 1.0}}}, "'configurations.A.alpha'"),
+        ({**good, "profile": {}}, "'profile.name'"),
+    ):
+        with pytest.raises(ConfigError, match=key):
+            typed(bad, ReportParams)
+
+
+def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
+    """report/ is the page kit: it imports neither a problem nor the workflow layer, loads no
+    params and spells no project path; the problems' sections import it (one-way)."""
+    for path in sorted((SRC / "report").glob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                mods = [node.module]
+                assert not {a.name for a in node.names} & {"load_params", "compose_config"}
+            elif isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                assert node.value not in ("params.yaml", "dvc.yaml", "conf", "reports"), path.name
+                continue
+            else:
+                continue
+            for mod in mods:
+                assert not mod.startswith(
+                    ("traffictwin.fusion", "traffictwin.risk", "pipelines", "importlib")
+                ), (path.name, mod)
