@@ -24,27 +24,12 @@ from traffictwin.risk.evaluation import (
     evaluate_suite,
     label_agreement,
     regression_metrics,
-    risk_threshold,
-    risk_to_thw,
     roc_auc,
-    thw_to_risk,
 )
 from traffictwin.risk.findings import findings
+from traffictwin.risk.metric import thw_to_risk
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.training import RiskSource
-
-
-def test_thresholds_and_conversions() -> None:
-    assert risk_threshold(1.5) == pytest.approx(1 / 30)
-    assert risk_threshold(1.0) == pytest.approx(1 / 20)
-    assert risk_threshold(0.01) == 1.0  # clipped at 1/THW = 20
-    r = thw_to_risk(np.array([np.inf, 0.05, 0.0, 1.5, 0.02, 10.0]))
-    assert np.allclose(r, [0, 1, 1, 1 / 30, 1, 1 / 200])
-    assert np.allclose(
-        risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10]
-    )
-    # the paper's example: risk 0.21 <-> a crash in 0.238 s
-    assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)
 
 
 def test_classification_hand_case() -> None:
@@ -207,7 +192,7 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
     assert "camera_fov" in text and "Which input matters" in text
     reg = metrics["region"]["predictors"]
-    for name, per in reg.items():  # skill = 1 - MSE / MSE(train mean) of the same label
+    for per in reg.values():  # skill = 1 - MSE / MSE(train mean) of the same label
         for lab, e in per.items():
             assert e["skill"] == pytest.approx(
                 1 - e["test/mse"] / reg["train_mean"][lab]["test/mse"]

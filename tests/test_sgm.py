@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.scene import Boxes, Cls
-from traffictwin.stereo.metrics import add_sums, disparity_errors, summarise
+from traffictwin.stereo.metrics import disparity_errors, grouped_accuracy, summarise
 from traffictwin.stereo.sgm import INVALID, compute_disparity, make_matcher
 
 BAD2_BOUND = 0.05  # stated bound: < 5 % of valid pixels off by > 2 px on a clean rendered pair
@@ -68,7 +69,12 @@ def test_metric_hand_case():
     assert m["bad2"] == pytest.approx(1 / 3)  # only the 3 px error
     assert m["d1"] == pytest.approx(0.0)  # 3 px is not > 3 px
     assert m["epe"] == pytest.approx((0.5 + 3.0 + 1.0) / 3)
-    s2 = add_sums(s, s)
-    assert summarise(s2) == pytest.approx(m)
+    # sums over frames, then ratios: two copies of the frame give the same ratios
+    two = pd.DataFrame(
+        [{"shard": 0, "idx": k, "split": "test", "fault": "none", **s} for k in range(2)]
+    )
+    g = grouped_accuracy(two)
+    assert {k.split("/")[1]: v for k, v in g.items() if k.startswith("all/")} == pytest.approx(m)
+    assert set(g) == {f"{p}/{k}" for p in ("all", "test", "fault_none") for k in m}
     with pytest.raises(ValueError, match="shape"):
         disparity_errors(est, gt[:, :3])

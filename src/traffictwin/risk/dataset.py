@@ -7,16 +7,25 @@ sequence (= scenario) by :func:`assign_splits`, never per frame.
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+import pandas as pd
 
 from traffictwin.grid import GridSpec
-from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig
+from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig, risk_threshold
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
 
+if TYPE_CHECKING:
+    from traffictwin.io.shards import Dataset
+
 LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
+#: frames.csv: these columns first, then the per-frame values of :func:`make_shard` in its order
+_LEAD = ("frame_id", "shard", "idx", "scenario", "split")
 
 
 @dataclass(frozen=True)
@@ -143,3 +152,40 @@ def load_stereo_shard(
             f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size"
         )
     return sh
+
+
+def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[str]) -> pd.DataFrame:
+    """The frames table (frames.csv): every row of :func:`make_shard` of shards ``0..n-1`` in order,
+    numbered by ``frame_id``, with its shard and the shard's split; lead columns first."""
+    table = []
+    fid = 0
+    for index in range(len(splits)):
+        for r in rows_by_shard[index]:
+            table.append({"frame_id": fid, "shard": index, "split": splits[index], **r})
+            fid += 1
+    df = pd.DataFrame(table)
+    return df[list(_LEAD) + [c for c in df.columns if c not in _LEAD]]
+
+
+def summarise_frames(df: pd.DataFrame) -> dict:
+    """Frame counts, critical share (THW < 1.5 s), fault and situation shares, per split."""
+    out: dict = {}
+    for name, part in [("all", df)] + [(s, df[df.split == s]) for s in ("train", "val", "test")]:
+        if len(part) == 0:
+            continue
+        out[f"{name}/frames"] = int(len(part))
+        out[f"{name}/sequences"] = int(part.scenario.nunique())
+        out[f"{name}/critical_share"] = float(part.critical.mean())
+        out[f"{name}/risk_mean"] = float(part.risk.mean())
+    out["all/speed_mean"] = float(df.speed.mean())
+    out["all/speed_max"] = float(df.speed.max())
+    out["all/standstill_share"] = float((df.speed < 0.5).mean())
+    for f, c in Counter(df.fault).items():
+        out[f"all/fault_share_{f}"] = float(c / len(df))
+    for s, c in Counter(df.groupby("scenario").situation.first()).items():
+        out[f"all/sequences_{s}"] = int(c)
+    for m in ("risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
+        out[f"all/{m}_mean"] = float(df[m].mean())
+        out[f"all/{m}_nonzero"] = float((df[m] > 0).mean())
+    out["all/critical_share_fov"] = float((df.risk_thw_fov > risk_threshold(CRITICAL_THW)).mean())
+    return out

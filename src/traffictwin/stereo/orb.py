@@ -17,12 +17,50 @@ flagged as outliers.
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+import pandas as pd
 
+from traffictwin.config import spec
 from traffictwin.stereo.sgm import check_pair_shapes
+
+#: the fault types of the stereo data and its splits (orb.json groups)
+FAULTS = ("delay", "vertical")
+SPLITS = ("train", "val", "test")
+#: orb.csv columns, in order
+TABLE_COLUMNS = ("frame_id", "n_matches", "n_reliable", "mean_dx", "mean_dy", "outlier", "fault")
+#: |dy| thresholds (px) of the sensitivity sweep in orb.json
+SWEEP_MAX_DY = (1.0, 2.0, 3.0, 5.0)
+
+
+@dataclass
+class OrbParams:
+    """``risk_data.orb``: detector (features, FAST threshold, pyramid levels, edge = patch size px)
+    and the rule (reliable = Hamming <= ``max_hamming`` bits, the ``best_n`` best; fewer than
+    ``min_reliable`` -> flagged; ``statistic`` of |dx|, |dy|; ``min_dx``/``max_dy`` px)."""
+
+    n_features: int = spec(min=10)
+    fast_threshold: int = spec(min=1)
+    n_levels: int = spec(min=1)
+    edge_threshold: int = spec(min=3)
+    max_hamming: float = spec(min=0)
+    best_n: int = spec(min=1)
+    min_reliable: int = spec(min=1)
+    statistic: str = spec(choices=("mean", "median"))
+    min_dx: float = spec(min=0)
+    max_dy: float = spec(min=0)
+
+    def detector(self) -> dict[str, int]:
+        """The detector's keyword arguments (for :func:`match_offsets` and the figure)."""
+        return {
+            "n_features": self.n_features,
+            "fast_threshold": self.fast_threshold,
+            "n_levels": self.n_levels,
+            "edge_threshold": self.edge_threshold,
+        }
 
 
 @dataclass(frozen=True)
@@ -118,3 +156,70 @@ def check_pair(
     mdx, mdy = float(f(np.abs(dx[keep]))), float(f(np.abs(dy[keep])))
     outlier = bool(n_rel < min_reliable or mdx < min_dx or mdy > max_dy)
     return OrbResult(len(dx), n_rel, mdx, mdy, outlier)
+
+
+def check_pairs(left: np.ndarray, right: np.ndarray, params: OrbParams) -> tuple[list[dict], float]:
+    """:func:`check_pair` on every pair of the stacks ``left``/``right``: one
+    :meth:`OrbResult.as_dict` per pair (with ``idx``) and the seconds spent (timing only)."""
+    rows, secs = [], 0.0
+    kw = asdict(params)
+    for k in range(len(left)):
+        t0 = time.perf_counter()
+        r = check_pair(left[k], right[k], **kw)
+        secs += time.perf_counter() - t0
+        rows.append({"idx": k, **r.as_dict()})
+    return rows, secs
+
+
+def orb_frames(frames: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
+    """Per-pair results (``shard``, ``idx``, :class:`OrbResult` fields) joined with the frames
+    table (``frame_id``, ``shard``, ``idx``, ``split``, ``fault``, ``speed``), by frame id."""
+    df = frames[["frame_id", "shard", "idx", "split", "fault", "speed"]].merge(
+        results, on=["shard", "idx"], validate="one_to_one"
+    )
+    return df.sort_values("frame_id").reset_index(drop=True)
+
+
+def orb_metrics(df: pd.DataFrame) -> dict:
+    """Detection rate (flagged among faulty pairs, per fault type), false-alarm rate (flagged among
+    fault-free pairs), dropped share; also split by speed (faults are invisible at standstill).
+
+    ``sweep/*``: sensitivity of the rule's |dy| threshold on the same per-pair statistics (no
+    re-matching). NOTE: the sweep flags with fixed ``n_reliable < 1`` and ``mean_dx < 1.0``, not
+    the configured ``min_reliable``/``min_dx`` (kept as is so results do not change; to be fixed).
+    """
+    m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
+    faulty = df.fault != "none"
+
+    def share(flag: pd.Series, sel: pd.Series) -> float:
+        return float(flag[sel].mean()) if sel.any() else float("nan")
+
+    m["all/false_alarm_rate"] = share(df.outlier, ~faulty)
+    if faulty.any():
+        m["all/detection_rate"] = float(df.outlier[faulty].mean())
+    for f in FAULTS:
+        sel = df.fault == f
+        m[f"all/faults_{f}"] = int(sel.sum())
+        if sel.any():
+            m[f"{f}/detection_rate"] = float(df.outlier[sel].mean())
+            mov = sel & (df.speed >= 5.0)
+            if mov.any():
+                m[f"{f}/detection_rate_speed_ge_5"] = float(df.outlier[mov].mean())
+    for s in SPLITS:
+        part = df[df.split == s]
+        if len(part):
+            m[f"{s}/dropped_share"] = float(part.outlier.mean())
+    for thr in SWEEP_MAX_DY:
+        flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
+        m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
+        for f in FAULTS:
+            sel = df.fault == f
+            if sel.any():
+                m[f"sweep/max_dy_{thr:g}_{f}_detection_rate"] = float(flag[sel].mean())
+    m["none/mean_dy_median"] = (
+        float(df.mean_dy[~faulty].median()) if (~faulty).any() else float("nan")
+    )
+    m["none/mean_dx_median"] = (
+        float(df.mean_dx[~faulty].median()) if (~faulty).any() else float("nan")
+    )
+    return m
