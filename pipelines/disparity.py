@@ -25,7 +25,8 @@ from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name, write_npz_deterministic
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import stereo_example_figure
-from traffictwin.risk.dataset import load_stereo_shard
+from traffictwin.risk.dataset import SPLITS, load_stereo_shard
+from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.metrics import (
     accuracy_table,
     disparity_errors,
@@ -64,7 +65,7 @@ def run(sgm: SgmParams, workers: int, src: Path = RISK_DATA, out: Path = DISPARI
         per_frame[i] = per
         total_s += secs
     df = accuracy_table(frames, per_frame)
-    metrics: dict = grouped_accuracy(df)
+    metrics: dict = grouped_accuracy(df, SPLITS, FAULTS)
     metrics["all/ms_per_frame"] = 1000.0 * total_s / max(len(df), 1)
     metrics["all/frames"] = int(len(df))
     writer.add_table("frames.csv", per_frame_accuracy(df))

@@ -23,7 +23,8 @@ from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.io.shards import Dataset
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import orb_example_figure
-from traffictwin.risk.dataset import load_stereo_shard
+from traffictwin.risk.dataset import SPLITS, load_stereo_shard
+from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.orb import TABLE_COLUMNS, OrbParams, check_pairs, orb_frames, orb_metrics
 
 
@@ -48,7 +49,7 @@ def run(orb: OrbParams, workers: int) -> tuple[pd.DataFrame, dict]:
         rows.extend(r)
         total += secs
     df = orb_frames(ds.table("frames.csv"), pd.DataFrame(rows))
-    metrics = orb_metrics(df)
+    metrics = orb_metrics(df, SPLITS, FAULTS)
     metrics["all/ms_per_frame"] = 1000.0 * total / max(len(df), 1)
     log.info(
         "orb: dropped %.3f, detection %.3f, false alarms %.3f",

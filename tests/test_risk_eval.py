@@ -212,9 +212,19 @@ def test_findings_from_hand_metrics_and_missing_parts() -> None:
         "thresholds_s": [1.5, 1.0],
         "main_variant": "rgbd",
         "models": {
-            "rgbd": {"label": "risk_thw_paper", "test/mse": 0.01, "test/n": 100, "at_1.5s": at},
+            # findings tells variants apart by their inputs (as evaluate_suite records them)
+            "rgbd": {
+                "label": "risk_thw_paper",
+                "inputs": ["rgb", "disp_sgm"],
+                "speed": False,
+                "test/mse": 0.01,
+                "test/n": 100,
+                "at_1.5s": at,
+            },
             "rgb": {
                 "label": "risk_thw_paper",
+                "inputs": ["rgb"],
+                "speed": False,
                 "test/mse": 0.02,
                 "test/n": 100,
                 "at_1.5s": {**at, "accuracy": 0.7},

@@ -73,7 +73,7 @@ def test_metric_hand_case():
     two = pd.DataFrame(
         [{"shard": 0, "idx": k, "split": "test", "fault": "none", **s} for k in range(2)]
     )
-    g = grouped_accuracy(two)
+    g = grouped_accuracy(two, ("train", "val", "test"), ("none", "delay", "vertical"))
     assert {k.split("/")[1]: v for k, v in g.items() if k.startswith("all/")} == pytest.approx(m)
     assert set(g) == {f"{p}/{k}" for p in ("all", "test", "fault_none") for k in m}
     with pytest.raises(ValueError, match="shape"):

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
     from traffictwin.io.shards import Dataset
 
 LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
+#: the splits, assigned per sequence (:func:`assign_splits`)
+SPLITS = ("train", "val", "test")
 #: frames.csv: these columns first, then the per-frame values of :func:`make_shard` in its order
 _LEAD = ("frame_id", "shard", "idx", "scenario", "split")
 
@@ -59,7 +61,8 @@ def assign_splits(
     if n >= 3:
         n_val, n_test = max(1, n_val), max(1, n_test)
     n_train = max(0, n - n_val - n_test)
-    names = np.array(["train"] * n_train + ["val"] * n_val + ["test"] * n_test)[:n]
+    train, val, test = SPLITS
+    names = np.array([train] * n_train + [val] * n_val + [test] * n_test)[:n]
     perm = np.random.default_rng(np.random.SeedSequence([int(seed), 4004])).permutation(n)
     out = np.empty(n, dtype=object)
     out[perm] = names
@@ -170,7 +173,7 @@ def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[st
 def summarise_frames(df: pd.DataFrame) -> dict:
     """Frame counts, critical share (THW < 1.5 s), fault and situation shares, per split."""
     out: dict = {}
-    for name, part in [("all", df)] + [(s, df[df.split == s]) for s in ("train", "val", "test")]:
+    for name, part in [("all", df)] + [(s, df[df.split == s]) for s in SPLITS]:
         if len(part) == 0:
             continue
         out[f"{name}/frames"] = int(len(part))

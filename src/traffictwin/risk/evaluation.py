@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.risk.baselines import constant_predictions, geometric_risk
+from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.metric import CRITICAL_THW, risk_threshold, risk_to_thw
 
 #: the paper's figures (sec. 4, Table 1) and the related work's best accuracy
@@ -248,7 +249,7 @@ def evaluate_suite(
         "n_frames": {
             "total": int(source.n_total),
             "orb_outliers_dropped": int(source.n_orb_outliers),
-            **{s: int((source.frames["split"] == s).sum()) for s in ("train", "val", "test")},
+            **{s: int((source.frames["split"] == s).sum()) for s in SPLITS},
         },
         "models": {},
         "baselines": {},

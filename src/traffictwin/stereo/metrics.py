@@ -15,8 +15,6 @@ import pandas as pd
 
 #: the accumulated sums of :func:`disparity_errors`
 SUM_KEYS = ("n_gt", "n_valid", "n_bad2", "n_d1", "sum_abs")
-FAULTS = ("none", "delay", "vertical")
-SPLITS = ("train", "val", "test")
 
 
 def disparity_errors(disp: np.ndarray, gt: np.ndarray) -> dict[str, float]:
@@ -60,11 +58,14 @@ def accuracy_table(
     return frames.merge(pd.DataFrame(rows), on=["shard", "idx"], how="left", validate="one_to_one")
 
 
-def grouped_accuracy(df: pd.DataFrame) -> dict[str, float]:
-    """``<group>/<density|bad2|d1|epe>`` over all frames, per split and per fault type (groups
-    without frames are left out); ``df`` from :func:`accuracy_table`."""
-    groups = [("all", df)] + [(s, df[df.split == s]) for s in SPLITS]
-    groups += [(f"fault_{f}", df[df.fault == f]) for f in FAULTS]
+def grouped_accuracy(
+    df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]
+) -> dict[str, float]:
+    """``<group>/<density|bad2|d1|epe>`` over all frames, per split (``split`` column) and per fault
+    type (``fault`` column, group ``fault_<f>``); groups without frames are left out; ``df`` from
+    :func:`accuracy_table`."""
+    groups = [("all", df)] + [(s, df[df.split == s]) for s in splits]
+    groups += [(f"fault_{f}", df[df.fault == f]) for f in faults]
     metrics: dict[str, float] = {}
     for name, part in groups:
         if len(part) == 0:

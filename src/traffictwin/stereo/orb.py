@@ -18,6 +18,7 @@ flagged as outliers.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -27,9 +28,8 @@ import pandas as pd
 from traffictwin.config import spec
 from traffictwin.stereo.sgm import check_pair_shapes
 
-#: the fault types of the stereo data and its splits (orb.json groups)
-FAULTS = ("delay", "vertical")
-SPLITS = ("train", "val", "test")
+#: the ``fault`` value of a fault-free pair
+NO_FAULT = "none"
 #: orb.csv columns, in order
 TABLE_COLUMNS = ("frame_id", "n_matches", "n_reliable", "mean_dx", "mean_dy", "outlier", "fault")
 #: |dy| thresholds (px) of the sensitivity sweep in orb.json
@@ -180,16 +180,19 @@ def orb_frames(frames: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
     return df.sort_values("frame_id").reset_index(drop=True)
 
 
-def orb_metrics(df: pd.DataFrame) -> dict:
+def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) -> dict:
     """Detection rate (flagged among faulty pairs, per fault type), false-alarm rate (flagged among
     fault-free pairs), dropped share; also split by speed (faults are invisible at standstill).
+    ``df``: :func:`orb_frames`; ``splits``/``faults``: the values of its ``split``/``fault``
+    columns to report on (``"none"`` = fault-free is never a fault group).
 
     ``sweep/*``: sensitivity of the rule's |dy| threshold on the same per-pair statistics (no
     re-matching). NOTE: the sweep flags with fixed ``n_reliable < 1`` and ``mean_dx < 1.0``, not
     the configured ``min_reliable``/``min_dx`` (kept as is so results do not change; to be fixed).
     """
     m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
-    faulty = df.fault != "none"
+    faulty = df.fault != NO_FAULT
+    faults = [f for f in faults if f != NO_FAULT]
 
     def share(flag: pd.Series, sel: pd.Series) -> float:
         return float(flag[sel].mean()) if sel.any() else float("nan")
@@ -197,7 +200,7 @@ def orb_metrics(df: pd.DataFrame) -> dict:
     m["all/false_alarm_rate"] = share(df.outlier, ~faulty)
     if faulty.any():
         m["all/detection_rate"] = float(df.outlier[faulty].mean())
-    for f in FAULTS:
+    for f in faults:
         sel = df.fault == f
         m[f"all/faults_{f}"] = int(sel.sum())
         if sel.any():
@@ -205,14 +208,14 @@ def orb_metrics(df: pd.DataFrame) -> dict:
             mov = sel & (df.speed >= 5.0)
             if mov.any():
                 m[f"{f}/detection_rate_speed_ge_5"] = float(df.outlier[mov].mean())
-    for s in SPLITS:
+    for s in splits:
         part = df[df.split == s]
         if len(part):
             m[f"{s}/dropped_share"] = float(part.outlier.mean())
     for thr in SWEEP_MAX_DY:
         flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
         m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
-        for f in FAULTS:
+        for f in faults:
             sel = df.fault == f
             if sel.any():
                 m[f"sweep/max_dy_{thr:g}_{f}_detection_rate"] = float(flag[sel].mean())
