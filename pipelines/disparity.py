@@ -11,15 +11,6 @@ from __future__ import annotations
 from dataclasses import asdict
 from pathlib import Path
 
-from pipelines._common import (
-    WORKER_STATE,
-    map_shards,
-    params,
-    run_stage,
-    setup_logging,
-    stage_timer,
-)
-from pipelines._paths import DISPARITY, RISK_DATA, figure_file, metrics_file
 from traffictwin.config import typed
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name, write_npz_deterministic
@@ -34,6 +25,9 @@ from traffictwin.stereo.metrics import (
     per_frame_accuracy,
 )
 from traffictwin.stereo.sgm import SgmParams, disparity_frames
+
+from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
+from ._paths import DISPARITY, RISK_DATA, figure_file, metrics_file
 
 
 def _work(i: int):

@@ -11,15 +11,6 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from pipelines._common import (
-    WORKER_STATE,
-    map_shards,
-    params,
-    run_stage,
-    setup_logging,
-    stage_timer,
-)
-from pipelines._paths import RISK_DATA, figure_file, metrics_file
 from traffictwin.config import get, typed
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
@@ -33,6 +24,9 @@ from traffictwin.risk.dataset import (
     make_shard,
     summarise_frames,
 )
+
+from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
+from ._paths import RISK_DATA, figure_file, metrics_file
 
 
 def read_config(cfg) -> tuple[RiskDataConfig, RiskDataSpec, int]:

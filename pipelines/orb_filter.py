@@ -9,15 +9,6 @@ from __future__ import annotations
 
 import pandas as pd
 
-from pipelines._common import (
-    WORKER_STATE,
-    map_shards,
-    params,
-    run_stage,
-    setup_logging,
-    stage_timer,
-)
-from pipelines._paths import ORB_CSV, RISK_DATA, figure_file, metrics_file
 from traffictwin.config import typed
 from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.io.shards import Dataset
@@ -26,6 +17,9 @@ from traffictwin.risk.data_figures import orb_example_figure
 from traffictwin.risk.dataset import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.orb import TABLE_COLUMNS, OrbParams, check_pairs, orb_frames, orb_metrics
+
+from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
+from ._paths import ORB_CSV, RISK_DATA, figure_file, metrics_file
 
 
 def _work(i: int):
