@@ -63,7 +63,8 @@ def test_data_spec_carries_every_setting(composed: dict) -> None:
 @pytest.mark.parametrize(
     ("dotted", "match"),
     [
-        ({"sgm.block_size": 0}, r"'risk_data\.sgm\.block_size' must be >= 1"),
+        ({"orb.n_levels": 0}, r"'risk_data\.orb\.n_levels' must be >= 1"),
+        ({"sgm.speckle_range": -1}, r"'risk_data\.sgm\.speckle_range' must be >= 0"),
         ({"orb.statistic": "max"}, r"'risk_data\.orb\.statistic' must be one of"),
         ({"camera.hfov_deg": 170.0}, r"'risk_data\.camera\.hfov_deg' must be <= 150"),
         ({"camera.lens": 1}, r"risk_data\.camera\.lens"),
@@ -133,3 +134,11 @@ def test_metric_group_alone() -> None:
             MetricParams,
             key="risk_data.metric",
         )
+
+
+def test_sgm_settings_opencv_rejects_fail_at_validation() -> None:
+    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    with pytest.raises(ConfigError, match="multiple of 16"):
+        _risk_data(cfg, **{"sgm.num_disparities": 24})
+    with pytest.raises(ConfigError, match="odd"):
+        _risk_data(cfg, **{"sgm.block_size": 4})

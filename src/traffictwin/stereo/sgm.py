@@ -33,6 +33,9 @@ class SgmParams:
     speckle_range: int = spec(min=0)
     gray: bool = spec()
 
+    def __post_init__(self) -> None:
+        self.matcher()  # make_matcher's checks (multiple of 16, odd block), before any work
+
     def matcher(self) -> cv2.StereoSGBM:
         """The configured ``StereoSGBM`` (see :func:`make_matcher`)."""
         return make_matcher(
