@@ -1,8 +1,9 @@
 """Metrics for the risk network (Feth et al., sec. 4) and the evaluation of several predictors.
 
-Risk scale (DESIGN.md "Risk metric"): ``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed
-0 → risk 0. A situation is *critical* when THW < t (paper: t = 1.5 s), i.e. when
-``risk > min(1 / t, 20) / 20`` (= 1/30 at 1.5 s, 1/20 at 1.0 s).
+Risk scale (DESIGN.md "Risk metric"; the conversions live in :mod:`traffictwin.risk.metric`):
+``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed 0 → risk 0. A situation is *critical*
+when THW < t (paper: t = 1.5 s), i.e. when ``risk > risk_threshold(t)`` (= 1/30 at 1.5 s, 1/20 at
+1.0 s).
 
 Reported per predictor against a label column: MSE and MAE of the normalised risk (the paper's
 "testing average error" is the MSE: 0.01470), the THW error in seconds (risk → THW, both capped at
@@ -32,6 +33,8 @@ PAPER = {
     "confusion": {"tp": 67052, "fp": 19069, "fn": 9737, "tn": 10312},
     "n_frames": 106170,
 }
+#: default THW thresholds (s): the paper's critical threshold first, then 1 s
+THRESHOLDS_S = (CRITICAL_THW, 1.0)
 
 
 def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> dict[str, float]:
@@ -53,7 +56,9 @@ def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> d
     }
 
 
-def classification_metrics(y: np.ndarray, p: np.ndarray, thw_s: float = 1.5) -> dict[str, Any]:
+def classification_metrics(
+    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW
+) -> dict[str, Any]:
     """Critical-vs-uncritical metrics at THW threshold ``thw_s``; the critical class is positive."""
     y, p = _check(y, p)
     thr = risk_threshold(thw_s)
@@ -104,7 +109,10 @@ def roc_auc(positive: np.ndarray, score: np.ndarray) -> float:
 
 
 def evaluate(
-    y: np.ndarray, p: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0), thw_cap: float = 10.0
+    y: np.ndarray,
+    p: np.ndarray,
+    thresholds_s: Sequence[float] = THRESHOLDS_S,
+    thw_cap: float = 10.0,
 ) -> dict[str, Any]:
     """Regression metrics plus ``at_<t>s`` classification metrics for every threshold."""
     out: dict[str, Any] = regression_metrics(y, p, thw_cap)
@@ -114,7 +122,7 @@ def evaluate(
 
 
 def confusion_labels(
-    y: np.ndarray, p: np.ndarray, thw_s: float = 1.5
+    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame class names (``critical``/``uncritical``) of actual and predicted risk."""
     thr = risk_threshold(thw_s)
@@ -123,7 +131,7 @@ def confusion_labels(
 
 
 def label_agreement(
-    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0)
+    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = THRESHOLDS_S
 ) -> dict[str, Any]:
     """How two label columns (e.g. paper vs camera_fov region) differ: MSE and class agreement."""
     a, b = _check(a, b)
@@ -151,7 +159,7 @@ def _check(y: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def summarise_paper_comparison(metrics: Mapping[str, Any]) -> dict[str, float]:
     """Differences to the paper for one predictor's metrics (positive = worse MSE / better accuracy)."""
-    at = metrics.get("at_1.5s", {})
+    at = metrics.get(f"at_{CRITICAL_THW:g}s", {})
     return {
         "mse_minus_paper": float(metrics["test/mse"]) - PAPER["test/mse"],
         "accuracy_minus_paper": float(at.get("accuracy", float("nan"))) - PAPER["accuracy"],
@@ -171,7 +179,7 @@ def evaluate_suite(
     *,
     primary_label: str,
     region_labels: Sequence[str] = ("risk_thw_paper", "risk_thw_fov"),
-    thresholds_s: Sequence[float] = (1.5, 1.0),
+    thresholds_s: Sequence[float] = THRESHOLDS_S,
     thw_cap: float = 10.0,
     geometric: Any = None,
     batch_size: int = 256,
@@ -181,7 +189,7 @@ def evaluate_suite(
 
     ``source``: :class:`traffictwin.risk.training.RiskSource`; ``models``: variant →
     :class:`traffictwin.risk.model_io.RiskModel` (its ``meta["label"]`` is the column it is scored
-    against); ``geometric``: :class:`~.risk_baselines.GeometricParams` (``None`` = skip).
+    against); ``geometric``: :class:`~traffictwin.risk.baselines.GeometricParams` (``None`` = skip).
     Returns ``(metrics, predictions)``: the risk.json dict and a per-frame DataFrame
     (``frame_id``, labels, ``speed``, ``pred_<variant>``, ``pred_geometric``, ``geometric_distance_m``).
     """
