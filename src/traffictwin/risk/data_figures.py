@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -18,7 +19,6 @@ from traffictwin.io.shards import Dataset  # noqa: E402
 from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
 from traffictwin.risk.metric import (  # noqa: E402
     RiskCalculator,
-    RiskConfig,
     rasterise,
     swept_cells,
     to_subject_frame,
@@ -26,7 +26,7 @@ from traffictwin.risk.metric import (  # noqa: E402
 from traffictwin.sim.camera import GroundTexture  # noqa: E402
 from traffictwin.sim.driving import generate_sequence  # noqa: E402
 from traffictwin.sim.scene import Boxes  # noqa: E402
-from traffictwin.stereo.orb import OrbParams, _orb  # noqa: E402
+from traffictwin.stereo.orb import OrbParams, cross_checked_matches  # noqa: E402
 
 
 def _save(fig, path: str | Path) -> None:
@@ -42,7 +42,7 @@ def risk_metric_figure(
     cells (black), cells occupied within 3 s at constant velocity (blue), the searched region
     (shaded), the subject (red), the nearest vehicle found and its distance (orange)."""
     grid = spec.grid
-    calc = RiskCalculator(grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"}))
+    calc = RiskCalculator(grid, replace(spec.risk, region="paper"))
     chosen = None
     for i in range(max_sequences):
         seq = generate_sequence(seed, i, spec.driving)
@@ -140,28 +140,13 @@ def orb_figure(
     **orb_kw,
 ) -> None:
     """Left and right image side by side with the best ORB matches drawn (a flagged pair)."""
-    gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
-    gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
-    o = _orb(
-        orb_kw.get("n_features", 500),
-        orb_kw.get("fast_threshold", 12),
-        orb_kw.get("n_levels", 4),
-        orb_kw.get("edge_threshold", 19),
-    )
-    kl, dl = o.detectAndCompute(gl, None)
-    kr, dr = o.detectAndCompute(gr, None)
+    kl, kr, matches = cross_checked_matches(left, right, **orb_kw)
     W = left.shape[1]
     fig, ax = plt.subplots(figsize=(11, 3.4))
     ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
-    if dl is not None and dr is not None:
-        ms = sorted(
-            cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr), key=lambda m: m.distance
-        )[:n_show]
-        for m in ms:
-            (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
-            ax.plot(
-                [x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red"
-            )
+    for m in sorted(matches, key=lambda m: m.distance)[:n_show]:
+        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
+        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
     ax.axis("off")
     ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
     _save(fig, path)

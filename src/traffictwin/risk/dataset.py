@@ -9,14 +9,20 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
 from traffictwin.grid import GridSpec
-from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig, risk_threshold
+from traffictwin.risk.metric import (
+    CRITICAL_THW,
+    REGIONS,
+    RiskCalculator,
+    RiskConfig,
+    risk_threshold,
+)
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
 
@@ -79,12 +85,7 @@ def make_shard(
     ground = GroundTexture.from_world(
         seq.world, res=spec.ground_res, seed=int(seq.world.seed) % 100003
     )
-    calcs = {
-        "paper": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"})),
-        "camera_fov": RiskCalculator(
-            spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "camera_fov"})
-        ),
-    }
+    calcs = {r: RiskCalculator(spec.grid, replace(spec.risk, region=r)) for r in REGIONS}
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
     left, right, disp, rows = [], [], [], []
     for k, fr in enumerate(seq.frames):

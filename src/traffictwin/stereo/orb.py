@@ -95,6 +95,28 @@ def _orb(n_features: int, fast_threshold: int, n_levels: int, edge_threshold: in
     return _ORB_CACHE[key]
 
 
+def cross_checked_matches(
+    left_bgr: np.ndarray,
+    right_bgr: np.ndarray,
+    n_features: int = 500,
+    fast_threshold: int = 12,
+    n_levels: int = 4,
+    edge_threshold: int = 19,
+) -> tuple[Sequence[cv2.KeyPoint], Sequence[cv2.KeyPoint], list[cv2.DMatch]]:
+    """ORB keypoints of both images and their brute-force Hamming matches with cross-check
+    (``queryIdx`` indexes the left keypoints, ``trainIdx`` the right ones; no matches if either
+    image has no features)."""
+    check_pair_shapes(left_bgr, right_bgr, "ORB check")
+    gl = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2GRAY) if left_bgr.ndim == 3 else left_bgr
+    gr = cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY) if right_bgr.ndim == 3 else right_bgr
+    orb = _orb(n_features, fast_threshold, n_levels, edge_threshold)
+    kl, dl = orb.detectAndCompute(gl, None)
+    kr, dr = orb.detectAndCompute(gr, None)
+    if dl is None or dr is None or len(kl) == 0 or len(kr) == 0:
+        return kl, kr, []
+    return kl, kr, list(cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr))
+
+
 def match_offsets(
     left_bgr: np.ndarray,
     right_bgr: np.ndarray,
@@ -104,16 +126,9 @@ def match_offsets(
     edge_threshold: int = 19,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cross-checked ORB matches: (dx, dy, hamming) arrays, dx = x_L - x_R, dy = y_L - y_R (px)."""
-    check_pair_shapes(left_bgr, right_bgr, "ORB check")
-    gl = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2GRAY) if left_bgr.ndim == 3 else left_bgr
-    gr = cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY) if right_bgr.ndim == 3 else right_bgr
-    orb = _orb(n_features, fast_threshold, n_levels, edge_threshold)
-    kl, dl = orb.detectAndCompute(gl, None)
-    kr, dr = orb.detectAndCompute(gr, None)
-    if dl is None or dr is None or len(kl) == 0 or len(kr) == 0:
-        z = np.zeros(0)
-        return z, z, z
-    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+    kl, kr, matches = cross_checked_matches(
+        left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+    )
     if not matches:
         z = np.zeros(0)
         return z, z, z
