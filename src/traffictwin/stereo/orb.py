@@ -118,17 +118,10 @@ def cross_checked_matches(
 
 
 def match_offsets(
-    left_bgr: np.ndarray,
-    right_bgr: np.ndarray,
-    n_features: int = 500,
-    fast_threshold: int = 12,
-    n_levels: int = 4,
-    edge_threshold: int = 19,
+    kl: Sequence[cv2.KeyPoint], kr: Sequence[cv2.KeyPoint], matches: Sequence[cv2.DMatch]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cross-checked ORB matches: (dx, dy, hamming) arrays, dx = x_L - x_R, dy = y_L - y_R (px)."""
-    kl, kr, matches = cross_checked_matches(
-        left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
-    )
+    """(dx, dy, hamming) arrays of :func:`cross_checked_matches`' output, dx = x_L - x_R,
+    dy = y_L - y_R (px)."""
     if not matches:
         z = np.zeros(0)
         return z, z, z
@@ -160,7 +153,9 @@ def check_pair(
     if best_n < 1 or min_reliable < 1:
         raise ValueError(f"orb best_n and min_reliable must be >= 1, got {best_n}, {min_reliable}")
     dx, dy, ham = match_offsets(
-        left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+        *cross_checked_matches(
+            left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+        )
     )
     keep = np.flatnonzero(ham <= max_hamming)
     keep = keep[np.argsort(ham[keep], kind="stable")][:best_n]
