@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     cam = StereoCamera(width=a.width, height=a.height)
     cfg = DrivingConfig(frames=10)
-    seqs, frames = [], []
+    frames = []
     i = 0
     while len(frames) < a.frames:
         s = generate_sequence(0, i, cfg)

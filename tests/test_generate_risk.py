@@ -13,7 +13,13 @@ import pytest
 from tests.conftest import run
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset
-from traffictwin.risk.dataset import RiskDataSpec, assign_splits, make_shard
+from traffictwin.risk.dataset import (
+    RiskDataSpec,
+    assign_splits,
+    frame_table,
+    make_shard,
+    summarise_frames,
+)
 from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import DrivingConfig
@@ -106,6 +112,22 @@ def test_ci_dag_risk_outputs(ci_dag: Path):
     assert oj["vertical/detection_rate"] > 0.5
     for f in ("risk_metric_example.png", "stereo_example.png", "orb_outlier_example.png"):
         assert (ci_dag / "reports" / "figures" / f).stat().st_size > 1000
+
+
+def test_frame_table_and_summary():
+    rows = {i: make_shard(11, i, SPEC)[1] for i in (1, 0)}  # completion order does not matter
+    df = frame_table(rows, ["train", "test"])
+    assert list(df.columns[:5]) == ["frame_id", "shard", "idx", "scenario", "split"]
+    assert df.frame_id.tolist() == list(range(6)) and df.shard.tolist() == [0, 0, 0, 1, 1, 1]
+    assert df.split.tolist() == ["train"] * 3 + ["test"] * 3
+    assert df.idx.tolist() == [0, 1, 2, 0, 1, 2] and (df.scenario == df.shard).all()
+    s = summarise_frames(df)
+    assert s["all/frames"] == 6 and s["train/frames"] == 3 and "val/frames" not in s
+    assert s["all/sequences"] == 2
+    assert s["all/critical_share"] == pytest.approx(float((df.thw < 1.5).mean()))
+    assert s["all/critical_share_fov"] == pytest.approx(float((df.risk_thw_fov > 1 / 30).mean()))
+    assert sum(v for k, v in s.items() if k.startswith("all/fault_share_")) == pytest.approx(1.0)
+    assert sum(v for k, v in s.items() if k.startswith("all/sequences_")) == 2
 
 
 @pytest.mark.slow

@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.scene import Boxes, Cls
-from traffictwin.stereo.orb import OrbResult, check_pair
+from traffictwin.stereo.orb import (
+    TABLE_COLUMNS,
+    OrbParams,
+    OrbResult,
+    check_pair,
+    check_pairs,
+    orb_frames,
+    orb_metrics,
+)
 
 
 @pytest.fixture(scope="module")
@@ -60,3 +69,85 @@ def test_bad_input_raises(pair):
         check_pair(pair["left"], pair["right"][:-2])
     with pytest.raises(ValueError, match="statistic"):
         check_pair(pair["left"], pair["right"], statistic="mode")
+
+
+ORB = OrbParams(
+    n_features=500,
+    fast_threshold=12,
+    n_levels=4,
+    edge_threshold=19,
+    max_hamming=40.0,
+    best_n=50,
+    min_reliable=8,
+    statistic="mean",
+    min_dx=1.0,
+    max_dy=5.0,
+)
+
+
+def test_check_pairs_runs_the_check_per_pair(pair):
+    shifted = np.zeros_like(pair["right"])
+    shifted[8:] = pair["right"][:-8]
+    left = np.stack([pair["left"], pair["left"]])
+    right = np.stack([pair["right"], shifted])
+    rows, secs = check_pairs(left, right, ORB)
+    assert [r["idx"] for r in rows] == [0, 1] and secs >= 0
+    assert rows[0] == {"idx": 0, **check_pair(pair["left"], pair["right"]).as_dict()}
+    assert not rows[0]["outlier"] and rows[1]["outlier"]
+    assert ORB.detector() == {
+        "n_features": 500,
+        "fast_threshold": 12,
+        "n_levels": 4,
+        "edge_threshold": 19,
+    }
+
+
+def _orb_df() -> pd.DataFrame:
+    frames = pd.DataFrame(
+        {
+            "frame_id": [3, 0, 1, 2, 4, 5],
+            "shard": [1, 0, 0, 0, 1, 1],
+            "idx": [0, 0, 1, 2, 1, 2],
+            "split": ["test", "train", "train", "train", "test", "test"],
+            "fault": ["vertical", "none", "none", "delay", "none", "vertical"],
+            "speed": [10.0, 10.0, 2.0, 8.0, 1.0, 3.0],
+        }
+    )
+    res = pd.DataFrame(
+        {
+            "shard": [0, 0, 0, 1, 1, 1],
+            "idx": [0, 1, 2, 0, 1, 2],
+            "n_matches": [60, 60, 60, 60, 0, 60],
+            "n_reliable": [40, 40, 40, 40, 0, 40],
+            "mean_dx": [8.0, 6.0, 0.5, 7.0, np.nan, 7.0],
+            "mean_dy": [0.5, 2.5, 0.4, 9.0, np.nan, 4.0],
+            "outlier": [False, False, True, True, True, False],
+        }
+    )
+    return orb_frames(frames, res)
+
+
+def test_orb_frames_joins_by_frame_id():
+    df = _orb_df()
+    assert list(df.frame_id) == [0, 1, 2, 3, 4, 5]
+    assert list(df.fault) == ["none", "none", "delay", "vertical", "none", "vertical"]
+    assert list(df.outlier) == [False, False, True, True, True, False]
+    assert set(TABLE_COLUMNS) <= set(df.columns)
+
+
+def test_orb_metrics_hand_counts():
+    m = orb_metrics(_orb_df(), ("train", "val", "test"), ("none", "delay", "vertical"))
+    assert m["all/frames"] == 6 and m["all/dropped_share"] == pytest.approx(3 / 6)
+    assert m["all/false_alarm_rate"] == pytest.approx(1 / 3)  # frame 4 of 0, 1, 4
+    assert m["all/detection_rate"] == pytest.approx(2 / 3)  # frames 2, 3 of 2, 3, 5
+    assert m["all/faults_delay"] == 1 and m["all/faults_vertical"] == 2
+    assert m["vertical/detection_rate"] == pytest.approx(1 / 2)
+    assert m["vertical/detection_rate_speed_ge_5"] == pytest.approx(1.0)  # frame 3 only
+    assert m["delay/detection_rate"] == 1.0
+    assert m["train/dropped_share"] == pytest.approx(1 / 3) and "val/dropped_share" not in m
+    assert "all/faults_none" not in m  # fault-free is not a fault group
+    # |dy| sweep on the same statistics: 2 px flags frame 1 (2.5 px) and frame 5 (4 px) too
+    assert m["sweep/max_dy_2_false_alarm_rate"] == pytest.approx(2 / 3)  # frames 1, 4
+    assert m["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1 / 2)
+    assert m["sweep/max_dy_3_vertical_detection_rate"] == pytest.approx(1.0)
+    assert m["none/mean_dy_median"] == pytest.approx(1.5)  # of 0.5, 2.5 (NaN skipped)

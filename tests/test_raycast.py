@@ -7,8 +7,8 @@ from traffictwin.sim.raycast import HIT_GROUND, HIT_NOTHING, cast_rays
 from traffictwin.sim.scene import Boxes, Cls
 
 
-def box(cx, cy, l, w, h, yaw=0.0, z0=0.0):
-    return Boxes([[cx, cy]], [[l, w, h]], [yaw], [Cls.BUILDING], z0=[z0])
+def box(cx, cy, length, w, h, yaw=0.0, z0=0.0):
+    return Boxes([[cx, cy]], [[length, w, h]], [yaw], [Cls.BUILDING], z0=[z0])
 
 
 def test_distance_to_box_face():

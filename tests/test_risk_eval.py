@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
@@ -20,31 +21,20 @@ from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.evaluation import (
     PAPER,
     classification_metrics,
+    confusion_table,
     evaluate,
     evaluate_suite,
+    example_indices,
     label_agreement,
+    main_series,
     regression_metrics,
-    risk_threshold,
-    risk_to_thw,
     roc_auc,
-    thw_to_risk,
+    tracking_metrics,
 )
 from traffictwin.risk.findings import findings
+from traffictwin.risk.metric import thw_to_risk
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.training import RiskSource
-
-
-def test_thresholds_and_conversions() -> None:
-    assert risk_threshold(1.5) == pytest.approx(1 / 30)
-    assert risk_threshold(1.0) == pytest.approx(1 / 20)
-    assert risk_threshold(0.01) == 1.0  # clipped at 1/THW = 20
-    r = thw_to_risk(np.array([np.inf, 0.05, 0.0, 1.5, 0.02, 10.0]))
-    assert np.allclose(r, [0, 1, 1, 1 / 30, 1, 1 / 200])
-    assert np.allclose(
-        risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10]
-    )
-    # the paper's example: risk 0.21 <-> a crash in 0.238 s
-    assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)
 
 
 def test_classification_hand_case() -> None:
@@ -207,7 +197,7 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
     assert "camera_fov" in text and "Which input matters" in text
     reg = metrics["region"]["predictors"]
-    for name, per in reg.items():  # skill = 1 - MSE / MSE(train mean) of the same label
+    for per in reg.values():  # skill = 1 - MSE / MSE(train mean) of the same label
         for lab, e in per.items():
             assert e["skill"] == pytest.approx(
                 1 - e["test/mse"] / reg["train_mean"][lab]["test/mse"]
@@ -227,9 +217,19 @@ def test_findings_from_hand_metrics_and_missing_parts() -> None:
         "thresholds_s": [1.5, 1.0],
         "main_variant": "rgbd",
         "models": {
-            "rgbd": {"label": "risk_thw_paper", "test/mse": 0.01, "test/n": 100, "at_1.5s": at},
+            # findings tells variants apart by their inputs (as evaluate_suite records them)
+            "rgbd": {
+                "label": "risk_thw_paper",
+                "inputs": ["rgb", "disp_sgm"],
+                "speed": False,
+                "test/mse": 0.01,
+                "test/n": 100,
+                "at_1.5s": at,
+            },
             "rgb": {
                 "label": "risk_thw_paper",
+                "inputs": ["rgb"],
+                "speed": False,
                 "test/mse": 0.02,
                 "test/n": 100,
                 "at_1.5s": {**at, "accuracy": 0.7},
@@ -260,3 +260,98 @@ def test_evaluate_reports_thresholds() -> None:
     e = evaluate(y, y, (1.5, 1.0))
     assert e["at_1.5s"]["accuracy"] == 1.0 and e["at_1s"]["accuracy"] == 1.0
     assert e["at_1.5s"]["confusion"]["tp"] == 3 and e["at_1s"]["confusion"]["tp"] == 2
+
+
+def test_example_indices_confusion_table_and_tracking_metrics() -> None:
+    y = np.array([0.5, 0.02, 0.3, 0.0])
+    p = np.array([0.45, 0.5, 0.1, 0.0])
+    # best critical frame: 0 (error 0.05); worst: 1 (error 0.48)
+    assert example_indices(y, p, 1.5) == (0, 1)
+    # the worst frame is the best critical one -> the second worst
+    assert example_indices(np.array([0.5, 0.0]), np.array([0.0, 0.0]), 1.5) == (0, 1)
+    # nothing critical -> the best frame overall
+    assert example_indices(np.array([0.0, 0.01]), np.array([0.0, 0.3]), 1.5) == (0, 1)
+    cm = confusion_table([7, 8, 9, 10], y, p, 1.5)
+    assert cm.columns.tolist() == ["frame_id", "actual", "predicted"]
+    assert cm.actual.tolist() == ["critical", "uncritical", "critical", "uncritical"]
+    assert cm.predicted.tolist() == ["critical", "critical", "critical", "uncritical"]
+    e = {**evaluate(y, p), "label": "risk_thw_paper"}
+    e["at_1.5s"]["roc_auc"] = None
+    metrics = {"thresholds_s": [1.5, 1.0], "models": {"v": e}}
+    vals = tracking_metrics(metrics, "v")
+    assert set(vals) == {
+        "test/mse",
+        "test/mae",
+        "test/thw_mae_s",
+        "test/accuracy",
+        "test/balanced_accuracy",
+        "test/f1",
+    }
+    assert vals["test/accuracy"] == e["at_1.5s"]["accuracy"]
+    pred = pd.DataFrame({"risk_thw_paper": y, "pred_v": p})
+    lab, yy, pp = main_series(metrics, pred, "v")
+    assert lab == "risk_thw_paper" and np.array_equal(yy, y) and np.array_equal(pp, p)
+
+
+def _capture(monkeypatch: pytest.MonkeyPatch, module) -> dict:
+    """Keep the figures a module saves (keyed by file name) instead of writing them."""
+    figs: dict = {}
+    monkeypatch.setattr(module, "_save", lambda fig, path: figs.__setitem__(Path(path).name, fig))
+    return figs
+
+
+def test_evaluation_figures_plot_the_predictions(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from traffictwin.risk import figures
+
+    write_synthetic_risk(tmp_path, n_shards=4, per_shard=8)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    models = {k: v for k, v in _tiny_models(tmp_path / "models").items() if k == "rgbd"}
+    geo = GeometricParams(subject_length=4.5, subject_width=1.8)
+    metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=geo)
+    hist = pd.DataFrame(
+        {"step": [1, 2, 3], "train/mse": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}
+    )
+    figs = _capture(monkeypatch, figures)
+    figures.evaluation_figures(
+        src,
+        metrics,
+        pred,
+        {"rgbd": hist},
+        "rgbd",
+        curves=tmp_path / "c.png",
+        scatter=tmp_path / "s.png",
+        confusion=tmp_path / "m.png",
+        examples=tmp_path / "e.png",
+    )
+    assert set(figs) == {"c.png", "s.png", "m.png", "e.png"}
+    # training curves: one line per variant and split, plus the paper's test MSE
+    tr, va = figs["c.png"].axes
+    (line,) = [ln for ln in tr.lines if ln.get_label() == "rgbd"]
+    assert line.get_xdata().tolist() == [1, 2, 3] and line.get_ydata().tolist() == [0.3, 0.2, 0.1]
+    assert va.get_title() == "validation average error (MSE)"
+    assert any(ln.get_label() == "paper test MSE" for ln in va.lines)
+    # scatter: network and geometric baseline, true vs predicted, threshold lines at 1/30
+    axes = figs["s.png"].axes
+    assert [a.get_title() for a in axes] == ["rgbd", "geometric"]
+    xy = axes[0].collections[0].get_offsets()
+    assert np.allclose(xy[:, 0], pred["risk_thw_paper"]) and np.allclose(
+        xy[:, 1], pred["pred_rgbd"]
+    )
+    assert np.allclose(axes[1].collections[0].get_offsets()[:, 1], pred["pred_geometric"])
+    assert axes[0].get_xlabel() == "true risk" and axes[0].get_ylabel() == "predicted risk"
+    assert any(np.allclose(ln.get_xdata(), 1 / 30) for ln in axes[0].lines)
+    # confusion matrix: the Table-1 counts of the main variant
+    c = metrics["models"]["rgbd"]["at_1.5s"]["confusion"]
+    texts = [t.get_text().split("\n")[0] for t in figs["m.png"].axes[0].texts]
+    assert texts == [str(c["tp"]), str(c["fp"]), str(c["fn"]), str(c["tn"])]
+    # examples: the best critical and the worst frame, image + disparity each
+    ex = figs["e.png"].axes
+    titles = [a.get_title() for a in ex if a.get_title().startswith(("well", "worst"))]
+    good, bad = example_indices(
+        pred["risk_thw_paper"].to_numpy(), pred["pred_rgbd"].to_numpy(), 1.5
+    )
+    assert titles[0].startswith(f"well predicted (frame {pred.frame_id[good]})")
+    assert titles[-1].startswith(f"worst prediction (frame {pred.frame_id[bad]})")
+    assert f"true {pred['risk_thw_paper'][bad]:.2f}" in titles[-1]

@@ -12,6 +12,9 @@ from traffictwin.risk.metric import (
     rasterise,
     region_mask,
     risk_from_time,
+    risk_threshold,
+    risk_to_thw,
+    thw_to_risk,
     to_subject_frame,
 )
 from traffictwin.sim.scene import Boxes, Cls
@@ -139,3 +142,16 @@ def test_bad_input_raises():
         RiskConfig(region="everywhere")
     with pytest.raises(ValueError, match="speed"):
         calc()((0, 0, 0), -1.0, Boxes.empty())
+
+
+def test_thresholds_and_conversions() -> None:
+    assert risk_threshold(1.5) == pytest.approx(1 / 30)
+    assert risk_threshold(1.0) == pytest.approx(1 / 20)
+    assert risk_threshold(0.01) == 1.0  # clipped at 1/THW = 20
+    r = thw_to_risk(np.array([np.inf, 0.05, 0.0, 1.5, 0.02, 10.0]))
+    assert np.allclose(r, [0, 1, 1, 1 / 30, 1, 1 / 200])
+    assert np.allclose(
+        risk_to_thw(np.array([0.0, 1 / 30, 1.0, 1 / 400]), cap=10), [10, 1.5, 0.05, 10]
+    )
+    # the paper's example: risk 0.21 <-> a crash in 0.238 s
+    assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)

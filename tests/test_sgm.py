@@ -3,12 +3,25 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.scene import Boxes, Cls
-from traffictwin.stereo.metrics import add_sums, disparity_errors, summarise
-from traffictwin.stereo.sgm import INVALID, compute_disparity, make_matcher
+from traffictwin.stereo.metrics import (
+    accuracy_table,
+    disparity_errors,
+    grouped_accuracy,
+    per_frame_accuracy,
+    summarise,
+)
+from traffictwin.stereo.sgm import (
+    INVALID,
+    SgmParams,
+    compute_disparity,
+    disparity_frames,
+    make_matcher,
+)
 
 BAD2_BOUND = 0.05  # stated bound: < 5 % of valid pixels off by > 2 px on a clean rendered pair
 
@@ -68,7 +81,61 @@ def test_metric_hand_case():
     assert m["bad2"] == pytest.approx(1 / 3)  # only the 3 px error
     assert m["d1"] == pytest.approx(0.0)  # 3 px is not > 3 px
     assert m["epe"] == pytest.approx((0.5 + 3.0 + 1.0) / 3)
-    s2 = add_sums(s, s)
-    assert summarise(s2) == pytest.approx(m)
+    # sums over frames, then ratios: two copies of the frame give the same ratios
+    two = pd.DataFrame(
+        [{"shard": 0, "idx": k, "split": "test", "fault": "none", **s} for k in range(2)]
+    )
+    g = grouped_accuracy(two, ("train", "val", "test"), ("none", "delay", "vertical"))
+    assert {k.split("/")[1]: v for k, v in g.items() if k.startswith("all/")} == pytest.approx(m)
+    assert set(g) == {f"{p}/{k}" for p in ("all", "test", "fault_none") for k in m}
     with pytest.raises(ValueError, match="shape"):
         disparity_errors(est, gt[:, :3])
+
+
+def test_disparity_frames_match_single_calls(pair):
+    p = SgmParams(
+        num_disparities=32,
+        block_size=5,
+        uniqueness_ratio=10,
+        speckle_window=0,
+        speckle_range=2,
+        gray=False,
+    )
+    m = p.matcher()
+    assert (m.getNumDisparities(), m.getBlockSize(), m.getP1()) == (32, 5, 8 * 3 * 25)
+    left = np.stack([pair["left"], pair["left"]])
+    right = np.stack([pair["right"], pair["right"]])
+    disp, secs = disparity_frames(left, right, p)
+    one = compute_disparity(pair["left"], pair["right"], num_disparities=32, block_size=5)
+    assert disp.shape == (2, *one.shape) and disp.dtype == np.float32 and secs >= 0
+    assert np.array_equal(disp[0], one) and np.array_equal(disp[1], one)
+    gray = disparity_frames(left[:1], right[:1], SgmParams(**{**p.__dict__, "gray": True}))[0]
+    assert np.array_equal(
+        gray[0], compute_disparity(pair["left"], pair["right"], num_disparities=32, gray=True)
+    )
+
+
+def test_accuracy_table_and_per_frame_values():
+    gt = np.array([[10.0, 10.0, 10.0, 10.0, 0.0]], np.float32)
+    good = disparity_errors(gt.copy(), gt)
+    bad = disparity_errors(np.array([[10.5, 13.0, 11.0, -1.0, 5.0]], np.float32), gt)
+    frames = pd.DataFrame(
+        {
+            "frame_id": [0, 1, 2],
+            "shard": [0, 0, 1],
+            "idx": [0, 1, 0],
+            "split": ["train", "train", "test"],
+            "fault": ["none", "vertical", "none"],
+        }
+    )
+    df = accuracy_table(frames, {1: [bad], 0: [good, bad]})
+    assert list(df.frame_id) == [0, 1, 2] and df.n_valid.tolist() == [4.0, 3.0, 3.0]
+    per = per_frame_accuracy(df)
+    assert list(per.columns) == ["frame_id", "density", "bad2", "d1", "epe"]
+    assert per.density.tolist() == pytest.approx([1.0, 0.75, 0.75])
+    assert per.bad2.tolist() == pytest.approx([0.0, 1 / 3, 1 / 3])
+    g = grouped_accuracy(df, ("train", "val", "test"), ("none", "delay", "vertical"))
+    assert g["all/density"] == pytest.approx(10 / 12)  # 10 valid of 12 GT pixels
+    assert g["fault_none/bad2"] == pytest.approx(1 / 7)  # frames 0 and 2: 1 bad of 7 valid
+    assert g["fault_vertical/epe"] == pytest.approx(4.5 / 3)
+    assert "val/density" not in g and "fault_delay/density" not in g

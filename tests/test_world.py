@@ -21,7 +21,7 @@ def test_every_template_builds_and_keeps_roads_clear(template):
     assert 250 <= max(xmax - xmin, ymax - ymin) <= 450  # about 400 m
     assert set(np.unique(w.static.cls)) <= {Cls.BUILDING, Cls.WALL, Cls.VEGETATION, Cls.POLE}
     # no occluder stands on a lane centreline (the roundabout's island is inside the ring)
-    pts = np.concatenate([l.centerline for l in w.lanes])
+    pts = np.concatenate([ln.centerline for ln in w.lanes])
     assert w.surface_at(w.static.center[w.static.cls == Cls.BUILDING]).max(initial=0) == 0
     assert w.surface_at(pts[::10]).min() == 1
     sc = sample_scenario(w, 5)

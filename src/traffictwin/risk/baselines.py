@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from traffictwin.risk.evaluation import thw_to_risk
+from traffictwin.risk.metric import thw_to_risk
 
 
 def constant_predictions(train_y: np.ndarray, n: int) -> dict[str, np.ndarray]:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -11,18 +12,21 @@ matplotlib.use("Agg")
 import cv2  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
 
 from traffictwin.io.atomic import atomic_path  # noqa: E402
+from traffictwin.io.shards import Dataset  # noqa: E402
 from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
-from traffictwin.risk.metric import (
+from traffictwin.risk.metric import (  # noqa: E402
     RiskCalculator,
-    RiskConfig,
     rasterise,
     swept_cells,
     to_subject_frame,
-)  # noqa: E402
+)
 from traffictwin.sim.camera import GroundTexture  # noqa: E402
 from traffictwin.sim.driving import generate_sequence  # noqa: E402
+from traffictwin.sim.scene import Boxes  # noqa: E402
+from traffictwin.stereo.orb import OrbParams, cross_checked_matches  # noqa: E402
 
 
 def _save(fig, path: str | Path) -> None:
@@ -38,7 +42,7 @@ def risk_metric_figure(
     cells (black), cells occupied within 3 s at constant velocity (blue), the searched region
     (shaded), the subject (red), the nearest vehicle found and its distance (orange)."""
     grid = spec.grid
-    calc = RiskCalculator(grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"}))
+    calc = RiskCalculator(grid, replace(spec.risk, region="paper"))
     chosen = None
     for i in range(max_sequences):
         seq = generate_sequence(seed, i, spec.driving)
@@ -69,8 +73,6 @@ def risk_metric_figure(
         ti = int(np.flatnonzero(calc.obstacles(fr.boxes) == r.target)[0])
         rgb[lab == ti + 1] = [1.0, 0.55, 0.0]
     L, W = spec.risk.subject_length, spec.risk.subject_width
-    from traffictwin.sim.scene import Boxes
-
     sub = rasterise(Boxes([[0.0, 0.0]], [[L, W, 1.5]], [0.0], [0]), grid, "filled") > 0
     rgb[sub] = [0.85, 0.1, 0.1]
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.6), gridspec_kw={"width_ratios": [1.6, 1]})
@@ -138,30 +140,55 @@ def orb_figure(
     **orb_kw,
 ) -> None:
     """Left and right image side by side with the best ORB matches drawn (a flagged pair)."""
-    import traffictwin.stereo.orb as orb
-
-    gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
-    gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
-    o = orb._orb(
-        orb_kw.get("n_features", 500),
-        orb_kw.get("fast_threshold", 12),
-        orb_kw.get("n_levels", 4),
-        orb_kw.get("edge_threshold", 19),
-    )
-    kl, dl = o.detectAndCompute(gl, None)
-    kr, dr = o.detectAndCompute(gr, None)
+    kl, kr, matches = cross_checked_matches(left, right, **orb_kw)
     W = left.shape[1]
     fig, ax = plt.subplots(figsize=(11, 3.4))
     ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
-    if dl is not None and dr is not None:
-        ms = sorted(
-            cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr), key=lambda m: m.distance
-        )[:n_show]
-        for m in ms:
-            (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
-            ax.plot(
-                [x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red"
-            )
+    for m in sorted(matches, key=lambda m: m.distance)[:n_show]:
+        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
+        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
     ax.axis("off")
     ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
     _save(fig, path)
+
+
+def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -> None:
+    """:func:`stereo_figure` of the first fault-free frame faster than 3 m/s (else the first frame)
+    of the risk data ``risk`` and its SGM disparity ``disparity``."""
+    frames = risk.table("frames.csv")
+    clean = frames[(frames.fault == "none") & (frames.speed > 3)]
+    row = (clean if len(clean) else frames).iloc[0]
+    sh, sd = risk.load_shard(int(row.shard)), disparity.load_shard(int(row.shard))
+    k = int(row.idx)
+    stereo_figure(
+        sh["left"][k],
+        sh["right"][k],
+        sh["disp_gt"][k],
+        sd["disp_sgm"][k],
+        path,
+        f"frame {int(row.frame_id)} ({row.template}, {row.situation}), v = {row.speed:.1f} m/s",
+    )
+
+
+def orb_example_figure(
+    risk: Dataset, orb_table: pd.DataFrame, params: OrbParams, path: str | Path
+) -> None:
+    """:func:`orb_figure` of the first flagged pair with an injected fault (else the first flagged,
+    else the first pair); ``orb_table``: the orb.csv rows of ``risk``'s frames."""
+    out = orb_table
+    flagged = out[out.outlier & (out.fault != "none")]
+    if not len(flagged):
+        flagged = out[out.outlier] if out.outlier.any() else out
+    fid = int(flagged.frame_id.iloc[0])
+    frames = risk.table("frames.csv")
+    row = frames[frames.frame_id == fid].iloc[0]
+    sh = risk.load_shard(int(row.shard))
+    o = out[out.frame_id == fid].iloc[0]
+    orb_figure(
+        sh["left"][int(row.idx)],
+        sh["right"][int(row.idx)],
+        path,
+        f"frame {fid}: fault '{row.fault}', mean |dx| {o.mean_dx:.2f} px, mean |dy| {o.mean_dy:.2f} px, "
+        f"outlier={bool(o.outlier)}",
+        **params.detector(),
+    )

@@ -7,16 +7,33 @@ sequence (= scenario) by :func:`assign_splits`, never per frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+import pandas as pd
 
 from traffictwin.grid import GridSpec
-from traffictwin.risk.metric import CRITICAL_THW, RiskCalculator, RiskConfig
+from traffictwin.risk.metric import (
+    CRITICAL_THW,
+    REGIONS,
+    RiskCalculator,
+    RiskConfig,
+    risk_threshold,
+)
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
 
+if TYPE_CHECKING:
+    from traffictwin.io.shards import Dataset
+
 LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
+#: the splits, assigned per sequence (:func:`assign_splits`)
+SPLITS = ("train", "val", "test")
+#: frames.csv: these columns first, then the per-frame values of :func:`make_shard` in its order
+_LEAD = ("frame_id", "shard", "idx", "scenario", "split")
 
 
 @dataclass(frozen=True)
@@ -50,7 +67,8 @@ def assign_splits(
     if n >= 3:
         n_val, n_test = max(1, n_val), max(1, n_test)
     n_train = max(0, n - n_val - n_test)
-    names = np.array(["train"] * n_train + ["val"] * n_val + ["test"] * n_test)[:n]
+    train, val, test = SPLITS
+    names = np.array([train] * n_train + [val] * n_val + [test] * n_test)[:n]
     perm = np.random.default_rng(np.random.SeedSequence([int(seed), 4004])).permutation(n)
     out = np.empty(n, dtype=object)
     out[perm] = names
@@ -67,12 +85,7 @@ def make_shard(
     ground = GroundTexture.from_world(
         seq.world, res=spec.ground_res, seed=int(seq.world.seed) % 100003
     )
-    calcs = {
-        "paper": RiskCalculator(spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "paper"})),
-        "camera_fov": RiskCalculator(
-            spec.grid, RiskConfig(**{**spec.risk.__dict__, "region": "camera_fov"})
-        ),
-    }
+    calcs = {r: RiskCalculator(spec.grid, replace(spec.risk, region=r)) for r in REGIONS}
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
     left, right, disp, rows = [], [], [], []
     for k, fr in enumerate(seq.frames):
@@ -143,3 +156,40 @@ def load_stereo_shard(
             f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size"
         )
     return sh
+
+
+def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[str]) -> pd.DataFrame:
+    """The frames table (frames.csv): every row of :func:`make_shard` of shards ``0..n-1`` in order,
+    numbered by ``frame_id``, with its shard and the shard's split; lead columns first."""
+    table = []
+    fid = 0
+    for index in range(len(splits)):
+        for r in rows_by_shard[index]:
+            table.append({"frame_id": fid, "shard": index, "split": splits[index], **r})
+            fid += 1
+    df = pd.DataFrame(table)
+    return df[list(_LEAD) + [c for c in df.columns if c not in _LEAD]]
+
+
+def summarise_frames(df: pd.DataFrame) -> dict:
+    """Frame counts, critical share (THW < 1.5 s), fault and situation shares, per split."""
+    out: dict = {}
+    for name, part in [("all", df)] + [(s, df[df.split == s]) for s in SPLITS]:
+        if len(part) == 0:
+            continue
+        out[f"{name}/frames"] = int(len(part))
+        out[f"{name}/sequences"] = int(part.scenario.nunique())
+        out[f"{name}/critical_share"] = float(part.critical.mean())
+        out[f"{name}/risk_mean"] = float(part.risk.mean())
+    out["all/speed_mean"] = float(df.speed.mean())
+    out["all/speed_max"] = float(df.speed.max())
+    out["all/standstill_share"] = float((df.speed < 0.5).mean())
+    for f, c in Counter(df.fault).items():
+        out[f"all/fault_share_{f}"] = float(c / len(df))
+    for s, c in Counter(df.groupby("scenario").situation.first()).items():
+        out[f"all/sequences_{s}"] = int(c)
+    for m in ("risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
+        out[f"all/{m}_mean"] = float(df[m].mean())
+        out[f"all/{m}_nonzero"] = float((df[m] > 0).mean())
+    out["all/critical_share_fov"] = float((df.risk_thw_fov > risk_threshold(CRITICAL_THW)).mean())
+    return out

@@ -1,8 +1,9 @@
 """Metrics for the risk network (Feth et al., sec. 4) and the evaluation of several predictors.
 
-Risk scale (DESIGN.md "Risk metric"): ``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed
-0 → risk 0. A situation is *critical* when THW < t (paper: t = 1.5 s), i.e. when
-``risk > min(1 / t, 20) / 20`` (= 1/30 at 1.5 s, 1/20 at 1.0 s).
+Risk scale (DESIGN.md "Risk metric"; the conversions live in :mod:`traffictwin.risk.metric`):
+``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed 0 → risk 0. A situation is *critical*
+when THW < t (paper: t = 1.5 s), i.e. when ``risk > risk_threshold(t)`` (= 1/30 at 1.5 s, 1/20 at
+1.0 s).
 
 Reported per predictor against a label column: MSE and MAE of the normalised risk (the paper's
 "testing average error" is the MSE: 0.01470), the THW error in seconds (risk → THW, both capped at
@@ -19,6 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.risk.baselines import constant_predictions, geometric_risk
+from traffictwin.risk.dataset import SPLITS
+from traffictwin.risk.metric import CRITICAL_THW, risk_threshold, risk_to_thw
+
 #: the paper's figures (sec. 4, Table 1) and the related work's best accuracy
 PAPER = {
     "test/mse": 0.01470,
@@ -28,31 +33,8 @@ PAPER = {
     "confusion": {"tp": 67052, "fp": 19069, "fn": 9737, "tn": 10312},
     "n_frames": 106170,
 }
-RISK_CLIP = 20.0  # 1/s: the upper limit of 1/THW before normalisation
-
-
-def risk_threshold(thw_s: float) -> float:
-    """Normalised risk above which a frame is critical for a THW threshold ``thw_s`` (s)."""
-    if not thw_s > 0:
-        raise ValueError(f"THW threshold must be > 0 s, got {thw_s}")
-    return min(1.0 / thw_s, RISK_CLIP) / RISK_CLIP
-
-
-def thw_to_risk(thw: np.ndarray) -> np.ndarray:
-    """Normalised risk from THW (s): ``min(1/THW, 20)/20``; inf/NaN (no vehicle) → 0, THW ≤ 0 → 1."""
-    thw = np.asarray(thw, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(thw > 0, 1.0 / thw, np.inf)
-    inv = np.where(np.isnan(thw), 0.0, inv)
-    return (np.minimum(inv, RISK_CLIP) / RISK_CLIP).astype(np.float32)
-
-
-def risk_to_thw(risk: np.ndarray, cap: float = 10.0) -> np.ndarray:
-    """THW (s) from normalised risk, capped at ``cap`` s (risk ≤ 0 — no vehicle — gives ``cap``)."""
-    r = np.asarray(risk, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        thw = np.where(r > 0, 1.0 / (RISK_CLIP * np.maximum(r, 1e-12)), np.inf)
-    return np.minimum(thw, cap)
+#: default THW thresholds (s): the paper's critical threshold first, then 1 s
+THRESHOLDS_S = (CRITICAL_THW, 1.0)
 
 
 def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> dict[str, float]:
@@ -60,7 +42,7 @@ def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> d
     y, p = _check(y, p)
     e = p - y
     ty, tp = risk_to_thw(y, thw_cap), risk_to_thw(p, thw_cap)
-    crit = y > risk_threshold(1.5)
+    crit = y > risk_threshold(CRITICAL_THW)
     return {
         "test/mse": float(np.mean(e**2)),
         "test/mae": float(np.mean(np.abs(e))),
@@ -74,7 +56,9 @@ def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> d
     }
 
 
-def classification_metrics(y: np.ndarray, p: np.ndarray, thw_s: float = 1.5) -> dict[str, Any]:
+def classification_metrics(
+    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW
+) -> dict[str, Any]:
     """Critical-vs-uncritical metrics at THW threshold ``thw_s``; the critical class is positive."""
     y, p = _check(y, p)
     thr = risk_threshold(thw_s)
@@ -125,7 +109,10 @@ def roc_auc(positive: np.ndarray, score: np.ndarray) -> float:
 
 
 def evaluate(
-    y: np.ndarray, p: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0), thw_cap: float = 10.0
+    y: np.ndarray,
+    p: np.ndarray,
+    thresholds_s: Sequence[float] = THRESHOLDS_S,
+    thw_cap: float = 10.0,
 ) -> dict[str, Any]:
     """Regression metrics plus ``at_<t>s`` classification metrics for every threshold."""
     out: dict[str, Any] = regression_metrics(y, p, thw_cap)
@@ -135,7 +122,7 @@ def evaluate(
 
 
 def confusion_labels(
-    y: np.ndarray, p: np.ndarray, thw_s: float = 1.5
+    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame class names (``critical``/``uncritical``) of actual and predicted risk."""
     thr = risk_threshold(thw_s)
@@ -144,7 +131,7 @@ def confusion_labels(
 
 
 def label_agreement(
-    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = (1.5, 1.0)
+    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = THRESHOLDS_S
 ) -> dict[str, Any]:
     """How two label columns (e.g. paper vs camera_fov region) differ: MSE and class agreement."""
     a, b = _check(a, b)
@@ -172,7 +159,7 @@ def _check(y: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def summarise_paper_comparison(metrics: Mapping[str, Any]) -> dict[str, float]:
     """Differences to the paper for one predictor's metrics (positive = worse MSE / better accuracy)."""
-    at = metrics.get("at_1.5s", {})
+    at = metrics.get(f"at_{CRITICAL_THW:g}s", {})
     return {
         "mse_minus_paper": float(metrics["test/mse"]) - PAPER["test/mse"],
         "accuracy_minus_paper": float(at.get("accuracy", float("nan"))) - PAPER["accuracy"],
@@ -192,7 +179,7 @@ def evaluate_suite(
     *,
     primary_label: str,
     region_labels: Sequence[str] = ("risk_thw_paper", "risk_thw_fov"),
-    thresholds_s: Sequence[float] = (1.5, 1.0),
+    thresholds_s: Sequence[float] = THRESHOLDS_S,
     thw_cap: float = 10.0,
     geometric: Any = None,
     batch_size: int = 256,
@@ -202,13 +189,12 @@ def evaluate_suite(
 
     ``source``: :class:`traffictwin.risk.training.RiskSource`; ``models``: variant →
     :class:`traffictwin.risk.model_io.RiskModel` (its ``meta["label"]`` is the column it is scored
-    against); ``geometric``: :class:`~.risk_baselines.GeometricParams` (``None`` = skip).
+    against); ``geometric``: :class:`~traffictwin.risk.baselines.GeometricParams` (``None`` = skip).
     Returns ``(metrics, predictions)``: the risk.json dict and a per-frame DataFrame
     (``frame_id``, labels, ``speed``, ``pred_<variant>``, ``pred_geometric``, ``geometric_distance_m``).
     """
     import pandas as pd
 
-    from traffictwin.risk.baselines import constant_predictions, geometric_risk
     from traffictwin.risk.training import check_label, input_keys
 
     frames = source.split_frames(split)
@@ -271,7 +257,7 @@ def evaluate_suite(
         "n_frames": {
             "total": int(source.n_total),
             "orb_outliers_dropped": int(source.n_orb_outliers),
-            **{s: int((source.frames["split"] == s).sum()) for s in ("train", "val", "test")},
+            **{s: int((source.frames["split"] == s).sum()) for s in SPLITS},
         },
         "models": {},
         "baselines": {},
@@ -353,12 +339,55 @@ def evaluate_suite(
                 }
         # skill = 1 - MSE / MSE of the training-mean predictor of the same label (R²-like; 0 = no better
         # than a constant, 1 = perfect): comparable across labels whose spread and critical share differ
-        for name, per in region["predictors"].items():
+        for per in region["predictors"].values():
             for lab, e in per.items():
                 ref = region["predictors"]["train_mean"][lab]["test/mse"]
                 e["skill"] = 1.0 - e["test/mse"] / ref if ref > 0 else float("nan")
         metrics["region"] = region
     return _finite_or_none(metrics), out
+
+
+def main_series(
+    metrics: Mapping[str, Any], pred: Any, variant: str
+) -> tuple[str, np.ndarray, np.ndarray]:
+    """(label, true risk, predicted risk) of ``variant`` on the test frames of ``pred``
+    (:func:`evaluate_suite`'s outputs)."""
+    label = metrics["models"][variant]["label"]
+    return label, pred[label].to_numpy(), pred[f"pred_{variant}"].to_numpy()
+
+
+def example_indices(y: np.ndarray, p: np.ndarray, thw_s: float) -> tuple[int, int]:
+    """The paper's Fig. 7 frames: the best-predicted critical frame (the best frame when none is
+    critical) and the worst-predicted frame (the second worst when that is the same frame)."""
+    err = np.abs(p - y)
+    crit = np.flatnonzero(y > risk_threshold(thw_s))
+    good = int(crit[np.argmin(err[crit])]) if len(crit) else int(np.argmin(err))
+    bad = (
+        int(np.argsort(err)[-2])
+        if int(np.argmax(err)) == good and len(err) > 1
+        else int(np.argmax(err))
+    )
+    return good, bad
+
+
+def confusion_table(frame_id: Any, y: np.ndarray, p: np.ndarray, thw_s: float) -> Any:
+    """``frame_id``, ``actual``, ``predicted`` class per frame (the ``dvc plots`` confusion data)."""
+    import pandas as pd
+
+    actual, predicted = confusion_labels(y, p, thw_s)
+    return pd.DataFrame({"frame_id": frame_id, "actual": actual, "predicted": predicted})
+
+
+def tracking_metrics(metrics: Mapping[str, Any], variant: str) -> dict[str, float]:
+    """Test metrics of ``variant`` to add to its training run: MSE, MAE, THW MAE and, at the
+    primary threshold, accuracy, balanced accuracy, F1 and ROC-AUC (undefined ones left out)."""
+    e = metrics["models"][variant]
+    vals = {k: e[k] for k in ("test/mse", "test/mae", "test/thw_mae_s") if e.get(k) is not None}
+    at = e.get(f"at_{metrics['thresholds_s'][0]:g}s", {})
+    for k in ("accuracy", "balanced_accuracy", "f1", "roc_auc"):
+        if at.get(k) is not None:
+            vals[f"test/{k}"] = at[k]
+    return vals
 
 
 def _finite_or_none(obj: Any) -> Any:

@@ -4,13 +4,15 @@
   steps, one line per variant (Figs. 5–6);
 * :func:`plot_scatter` — predicted vs true risk with the critical threshold lines;
 * :func:`plot_examples` — test frames (left image + SGM disparity) with true and predicted risk (Fig. 7);
-* :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual).
+* :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual);
+* :func:`evaluation_figures` — all four for the evaluate_risk stage.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -20,6 +22,8 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from traffictwin.io.atomic import atomic_path  # noqa: E402
+from traffictwin.risk.evaluation import PAPER, example_indices, main_series  # noqa: E402
+from traffictwin.risk.metric import risk_threshold  # noqa: E402
 
 
 def _save(fig: plt.Figure, path: str | Path) -> None:
@@ -119,3 +123,57 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = 
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
     ax.set_title(title or "confusion matrix (THW 1.5 s)")
     _save(fig, path)
+
+
+def evaluation_figures(
+    source: Any,
+    metrics: Mapping[str, Any],
+    pred: pd.DataFrame,
+    histories: Mapping[str, pd.DataFrame],
+    main_variant: str,
+    *,
+    curves: str | Path,
+    scatter: str | Path,
+    confusion: str | Path,
+    examples: str | Path,
+) -> None:
+    """The evaluation's figures from :func:`~traffictwin.risk.evaluation.evaluate_suite`'s
+    ``metrics`` and per-frame ``pred`` on ``source`` (a
+    :class:`~traffictwin.risk.training.RiskSource`): training ``curves`` of every variant
+    (``histories``), the ``scatter`` of ``main_variant`` and the geometric baseline, its
+    ``confusion`` matrix and the Fig. 7 ``examples`` (best critical / worst frame), at the
+    primary THW threshold."""
+    t0 = metrics["thresholds_s"][0]
+    main_label, y, yhat = main_series(metrics, pred, main_variant)
+    at = metrics["models"][main_variant][f"at_{t0:g}s"]
+    plot_training_curves(histories, curves, paper_test_mse=PAPER["test/mse"])
+    plot_scatter(
+        y,
+        {main_variant: yhat, "geometric": pred["pred_geometric"].to_numpy()},
+        scatter,
+        risk_threshold(t0),
+        title=f"test frames, label {main_label}",
+    )
+    plot_confusion(
+        at["confusion"],
+        confusion,
+        title=f"{main_variant}: THW {t0:g} s (accuracy {at['accuracy']:.1%})",
+    )
+    good, bad = example_indices(y, yhat, t0)
+    wanted = {str(pred.at[i, "frame_id"]): i for i in (good, bad)}
+    sel = source.frames[source.frames["frame_id"].astype(str).isin(wanted)]
+    raw = {}
+    for rows, arr in source.iter_arrays(sel, ["left", "disp_sgm"]):
+        for j, fid in enumerate(rows["frame_id"].astype(str)):
+            raw[fid] = (arr["left"][j], arr["disp_sgm"][j])
+    shown = [
+        {
+            "left": raw[f][0],
+            "disp": raw[f][1],
+            "true": float(y[i]),
+            "pred": float(yhat[i]),
+            "title": ("well predicted" if i == good else "worst prediction") + f" (frame {f})",
+        }
+        for f, i in sorted(wanted.items(), key=lambda kv: kv[1] != good)
+    ]
+    plot_examples(shown, examples)

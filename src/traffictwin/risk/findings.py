@@ -12,14 +12,16 @@ from typing import Any
 
 from traffictwin.risk.evaluation import PAPER
 
-VARIANT_NAMES = {
-    "rgbd": "RGB + SGM disparity (the paper's input)",
-    "rgb": "RGB only",
-    "disp": "SGM disparity only",
-    "gtdisp": "RGB + ground-truth disparity (perfect stereo)",
-    "rgbd_speed": "RGB + SGM disparity + speed",
-    "rgbd_fov": "RGB + SGM disparity, camera_fov label",
-}
+#: input ablations (variant a vs variant b, scored on the same label), named by what differs:
+#: (inputs of a, speed of a, inputs of b, speed of b, what a adds). Variants are found by their
+#: inputs in the metrics, never by name (the variants are ``risk_model.run_variants``).
+PAPER_INPUTS = ("rgb", "disp_sgm")
+ABLATIONS = (
+    (("rgb", "disp_sgm"), False, ("rgb",), False, "adding SGM disparity to the image"),
+    (("rgb", "disp_sgm"), False, ("disp_sgm",), False, "adding the image to the SGM disparity"),
+    (("rgb", "disp_gt"), False, ("rgb", "disp_sgm"), False, "perfect instead of SGM disparity"),
+    (("rgb", "disp_sgm"), True, ("rgb", "disp_sgm"), False, "giving the network the subject speed"),
+)
 
 
 def _g(d: Any, path: str) -> Any:
@@ -38,13 +40,27 @@ def _num(x: float | None, fmt: str = ".4f") -> str:
     return "n/a" if x is None else format(x, fmt)
 
 
+def _variant_with(models: Mapping[str, Any], inputs: tuple[str, ...], speed: bool) -> str | None:
+    """The first variant with exactly these input channel groups and speed input, if any."""
+    for v, e in models.items():
+        if tuple(e.get("inputs") or ()) == inputs and bool(e.get("speed")) == speed:
+            return v
+    return None
+
+
 def findings(metrics: Mapping[str, Any]) -> str:
     """Markdown bullet list: paper comparison, baselines, which input matters, the region effect."""
     t = (metrics.get("thresholds_s") or [PAPER["threshold_s"]])[0]
     at = f"at_{t:g}s"
     models: Mapping[str, Any] = metrics.get("models", {})
     base: Mapping[str, Any] = metrics.get("baselines", {})
-    main = metrics.get("main_variant") or ("rgbd" if "rgbd" in models else next(iter(models), None))
+    # the main variant; without one, the paper's network (RGB + SGM disparity on the primary label)
+    paper_net = _variant_with(
+        {v: e for v, e in models.items() if e.get("label") == metrics.get("primary_label")},
+        PAPER_INPUTS,
+        False,
+    )
+    main = metrics.get("main_variant") or paper_net or next(iter(models), None)
     out: list[str] = []
     if main is None:
         return "- No risk network was evaluated."
@@ -111,13 +127,9 @@ def findings(metrics: Mapping[str, Any]) -> str:
             f"**Which input matters** (test MSE / accuracy, best first, label {lab}): {rows}."
         )
         cmp = []
-        for a, b, what in (
-            ("rgbd", "rgb", "adding SGM disparity to the image"),
-            ("rgbd", "disp", "adding the image to the SGM disparity"),
-            ("gtdisp", "rgbd", "perfect instead of SGM disparity"),
-            ("rgbd_speed", "rgbd", "giving the network the subject speed"),
-        ):
-            if a in same and b in same:
+        for in_a, sp_a, in_b, sp_b, what in ABLATIONS:
+            a, b = _variant_with(same, in_a, sp_a), _variant_with(same, in_b, sp_b)
+            if a is not None and b is not None:
                 r = same[a]["test/mse"] / same[b]["test/mse"] if same[b]["test/mse"] else None
                 if r is not None:
                     eff = "lowers" if r < 1 else "raises"
@@ -159,7 +171,8 @@ def findings(metrics: Mapping[str, Any]) -> str:
             )
 
         own = {}
-        for name, lab in ((main, (models.get(main) or {}).get("label", P)), ("rgbd_fov", F)):
+        fov_net = next((v for v, e in models.items() if v != main and e.get("label") == F), None)
+        for name, lab in ((main, (models.get(main) or {}).get("label", P)), (fov_net, F)):
             if _g(preds, f"{name}|{lab}") is not None:
                 own[lab] = _g(preds, f"{name}|{lab}|skill")
                 txt.append(f"{name} trained and scored on {lab}: {desc(name, lab)}")

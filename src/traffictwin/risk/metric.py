@@ -43,8 +43,8 @@ from traffictwin.grid import GridSpec
 from traffictwin.sim.scene import VEHICLE_CLASSES, Boxes
 
 REGIONS = ("paper", "camera_fov")
-CLIP = 20.0
-CRITICAL_THW = 1.5
+CLIP = 20.0  # 1/s: the upper limit of 1/T before normalisation
+CRITICAL_THW = 1.5  # s: a frame is critical when THW is below this (the paper's threshold)
 _SHIFT = 4
 
 
@@ -55,6 +55,28 @@ def risk_from_time(t: np.ndarray | float, clip: float = CLIP) -> np.ndarray | fl
         inv = np.where(t > 0, 1.0 / np.where(t > 0, t, 1.0), np.inf)
     out = np.minimum(inv, clip) / clip
     return float(out) if out.ndim == 0 else out
+
+
+def thw_to_risk(thw: np.ndarray) -> np.ndarray:
+    """Normalised risk (float32 array) from THW (s): :func:`risk_from_time` with NaN (no vehicle) -> 0."""
+    thw = np.asarray(thw, dtype=np.float64)
+    return np.where(np.isnan(thw), 0.0, risk_from_time(thw)).astype(np.float32)
+
+
+def risk_to_thw(risk: np.ndarray | float, cap: float = 10.0) -> np.ndarray:
+    """THW (s) from normalised risk, capped at ``cap`` s (risk <= 0 — no vehicle — gives ``cap``)."""
+    r = np.asarray(risk, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        thw = np.where(r > 0, 1.0 / (CLIP * np.maximum(r, 1e-12)), np.inf)
+    return np.minimum(thw, cap)
+
+
+def risk_threshold(thw_s: float = CRITICAL_THW) -> float:
+    """Normalised risk above which a frame is critical for a THW threshold ``thw_s`` (s)
+    (``min(1/thw_s, 20) / 20``: 1/30 at the paper's 1.5 s)."""
+    if not thw_s > 0:
+        raise ValueError(f"THW threshold must be > 0 s, got {thw_s}")
+    return min(1.0 / thw_s, CLIP) / CLIP
 
 
 @dataclass(frozen=True)

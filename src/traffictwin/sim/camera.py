@@ -470,7 +470,7 @@ class GroundTexture:
 
         Lane boundaries get dashed markings (``dash`` = (on, off) m).
         """
-        pts = [np.asarray(l.centerline, float) for l in lanes] + [
+        pts = [np.asarray(ln.centerline, float) for ln in lanes] + [
             np.asarray(s, float) for s in sidewalks
         ]
         pts += [np.asarray(r.centerline, float) for r in roads]
@@ -519,8 +519,8 @@ class GroundTexture:
                     thickness=max(1, int(round(sidewalk_width / res))),
                     shift=_SHIFT,
                 )
-        for l in lanes:
-            cl = np.asarray(l.centerline, float)
+        for ln in lanes:
+            cl = np.asarray(ln.centerline, float)
             if len(cl) < 2:
                 continue
             cv2.polylines(
@@ -528,15 +528,15 @@ class GroundTexture:
                 [to_px(cl)],
                 False,
                 1,
-                thickness=max(1, int(round(float(l.width) / res))),
+                thickness=max(1, int(round(float(ln.width) / res))),
                 shift=_SHIFT,
             )
-        for l in lanes:
-            cl = np.asarray(l.centerline, float)
+        for ln in lanes:
+            cl = np.asarray(ln.centerline, float)
             if len(cl) < 2:
                 continue
             for side in (-1.0, 1.0):
-                edge = _offset_polyline(cl, side * float(l.width) / 2.0)
+                edge = _offset_polyline(cl, side * float(ln.width) / 2.0)
                 for seg in _dash_polyline(edge, *dash):
                     cv2.polylines(
                         ras,

@@ -27,7 +27,6 @@ Everything is deterministic for ``(seed, index)``. Units: m, s, m/s, rad.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,16 +35,6 @@ from traffictwin.sim.scene import Boxes, Cls
 from traffictwin.sim.traffic import SUBJECT_SIZE, sample_scenario
 from traffictwin.sim.world import TEMPLATES, World, build_world
 
-SITUATIONS = (
-    "free",
-    "follow_far",
-    "follow_close",
-    "approach_slow",
-    "approach_stopped",
-    "stop_and_go",
-    "cut_in",
-    "pedestrian",
-)
 CLOSE = ("follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in")
 CALM = ("free", "follow_far", "pedestrian")
 FAULTS = ("none", "delay", "vertical")
@@ -370,11 +359,3 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
             )
         )
     return seq
-
-
-def iter_sequences(
-    seed: int, indices: list[int] | range, cfg: DrivingConfig
-) -> Iterator[Sequence]:
-    """Generate several sequences (see :func:`generate_sequence`)."""
-    for i in indices:
-        yield generate_sequence(seed, i, cfg)

@@ -229,7 +229,7 @@ def scan(
         diff = np.abs((center_ang[None, :] - sec_mid[:, None] + np.pi) % (2 * np.pi) - np.pi)
         overlap = diff <= half_span[None, :] + sec_w / 2  # (n_sec, n_sub)
     # ground plane: the same distance for every column of a channel
-    sin_e, cos_e = np.sin(el), np.cos(el)
+    sin_e = np.sin(el)
     with np.errstate(divide="ignore"):
         t_ground = np.where(sin_e < -1e-9, -spec.height / sin_e, np.inf)
     g_hit = t_ground < spec.max_range

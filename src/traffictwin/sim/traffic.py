@@ -114,7 +114,7 @@ class Scenario:
     encounter_times: np.ndarray
 
     def __post_init__(self) -> None:
-        self._lanes = _LaneTable([l.centerline for l in self.world.lanes])
+        self._lanes = _LaneTable([ln.centerline for ln in self.world.lanes])
         self._walks = _LaneTable(self.world.sidewalks) if self.world.sidewalks else None
 
     @property
@@ -219,7 +219,7 @@ def _choose_subjects(
     rng, world: World, lane_speed, times: np.ndarray, meet_distance, near_center: float
 ):
     """Lane, arc length at t=0 and speed of both subjects such that they meet at every time in ``times``."""
-    table = _LaneTable([l.centerline for l in world.lanes])
+    table = _LaneTable([ln.centerline for ln in world.lanes])
     cand_lane, cand_s = [], []
     for i, ln in enumerate(world.lanes):
         s = np.arange(2.0, ln.length - 2.0, 2.0)
@@ -286,10 +286,10 @@ def sample_scenario(
     dens = {**DEFAULT_DENSITY, **density}
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7002]))
     scale = float(rng.uniform(*dens["density_scale"]))
-    entries = sorted({l.entry for l in world.lanes})
+    entries = sorted({ln.entry for ln in world.lanes})
     lane_speed = {}
     for e in entries:
-        limit = min(l.speed_limit for l in world.lanes if l.entry == e)
+        limit = min(ln.speed_limit for ln in world.lanes if ln.entry == e)
         lane_speed[e] = float(rng.uniform(0.65, 1.0) * limit)
     times = t_meet + (np.arange(n_encounters) - (n_encounters - 1) / 2) * encounter_spacing
     near = max(50.0, world.junction_radius + 30.0)
@@ -303,8 +303,8 @@ def sample_scenario(
     ss0 = np.array([x[1] for x in subj]) - sv * times[0]
     # drop traffic that would overlap a subject: same entry lane close in arc length (same speed
     # => forever), or closer than 8 m to a subject at any encounter time
-    table = _LaneTable([l.centerline for l in world.lanes])
-    entry_of = np.array([l.entry for l in world.lanes])
+    table = _LaneTable([ln.centerline for ln in world.lanes])
+    entry_of = np.array([ln.entry for ln in world.lanes])
     keep = np.ones(len(lane), dtype=bool)
     for k in range(2):
         same = entry_of[lane] == entry_of[sl[k]]

@@ -17,12 +17,50 @@ flagged as outliers.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+import pandas as pd
 
+from traffictwin.config import spec
 from traffictwin.stereo.sgm import check_pair_shapes
+
+#: the ``fault`` value of a fault-free pair
+NO_FAULT = "none"
+#: orb.csv columns, in order
+TABLE_COLUMNS = ("frame_id", "n_matches", "n_reliable", "mean_dx", "mean_dy", "outlier", "fault")
+#: |dy| thresholds (px) of the sensitivity sweep in orb.json
+SWEEP_MAX_DY = (1.0, 2.0, 3.0, 5.0)
+
+
+@dataclass
+class OrbParams:
+    """``risk_data.orb``: detector (features, FAST threshold, pyramid levels, edge = patch size px)
+    and the rule (reliable = Hamming <= ``max_hamming`` bits, the ``best_n`` best; fewer than
+    ``min_reliable`` -> flagged; ``statistic`` of |dx|, |dy|; ``min_dx``/``max_dy`` px)."""
+
+    n_features: int = spec(min=10)
+    fast_threshold: int = spec(min=1)
+    n_levels: int = spec(min=1)
+    edge_threshold: int = spec(min=3)
+    max_hamming: float = spec(min=0)
+    best_n: int = spec(min=1)
+    min_reliable: int = spec(min=1)
+    statistic: str = spec(choices=("mean", "median"))
+    min_dx: float = spec(min=0)
+    max_dy: float = spec(min=0)
+
+    def detector(self) -> dict[str, int]:
+        """The detector's keyword arguments (for :func:`match_offsets` and the figure)."""
+        return {
+            "n_features": self.n_features,
+            "fast_threshold": self.fast_threshold,
+            "n_levels": self.n_levels,
+            "edge_threshold": self.edge_threshold,
+        }
 
 
 @dataclass(frozen=True)
@@ -57,15 +95,17 @@ def _orb(n_features: int, fast_threshold: int, n_levels: int, edge_threshold: in
     return _ORB_CACHE[key]
 
 
-def match_offsets(
+def cross_checked_matches(
     left_bgr: np.ndarray,
     right_bgr: np.ndarray,
     n_features: int = 500,
     fast_threshold: int = 12,
     n_levels: int = 4,
     edge_threshold: int = 19,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cross-checked ORB matches: (dx, dy, hamming) arrays, dx = x_L - x_R, dy = y_L - y_R (px)."""
+) -> tuple[Sequence[cv2.KeyPoint], Sequence[cv2.KeyPoint], list[cv2.DMatch]]:
+    """ORB keypoints of both images and their brute-force Hamming matches with cross-check
+    (``queryIdx`` indexes the left keypoints, ``trainIdx`` the right ones; no matches if either
+    image has no features)."""
     check_pair_shapes(left_bgr, right_bgr, "ORB check")
     gl = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2GRAY) if left_bgr.ndim == 3 else left_bgr
     gr = cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY) if right_bgr.ndim == 3 else right_bgr
@@ -73,9 +113,15 @@ def match_offsets(
     kl, dl = orb.detectAndCompute(gl, None)
     kr, dr = orb.detectAndCompute(gr, None)
     if dl is None or dr is None or len(kl) == 0 or len(kr) == 0:
-        z = np.zeros(0)
-        return z, z, z
-    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+        return kl, kr, []
+    return kl, kr, list(cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr))
+
+
+def match_offsets(
+    kl: Sequence[cv2.KeyPoint], kr: Sequence[cv2.KeyPoint], matches: Sequence[cv2.DMatch]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dx, dy, hamming) arrays of :func:`cross_checked_matches`' output, dx = x_L - x_R,
+    dy = y_L - y_R (px)."""
     if not matches:
         z = np.zeros(0)
         return z, z, z
@@ -107,7 +153,9 @@ def check_pair(
     if best_n < 1 or min_reliable < 1:
         raise ValueError(f"orb best_n and min_reliable must be >= 1, got {best_n}, {min_reliable}")
     dx, dy, ham = match_offsets(
-        left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+        *cross_checked_matches(
+            left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
+        )
     )
     keep = np.flatnonzero(ham <= max_hamming)
     keep = keep[np.argsort(ham[keep], kind="stable")][:best_n]
@@ -118,3 +166,73 @@ def check_pair(
     mdx, mdy = float(f(np.abs(dx[keep]))), float(f(np.abs(dy[keep])))
     outlier = bool(n_rel < min_reliable or mdx < min_dx or mdy > max_dy)
     return OrbResult(len(dx), n_rel, mdx, mdy, outlier)
+
+
+def check_pairs(left: np.ndarray, right: np.ndarray, params: OrbParams) -> tuple[list[dict], float]:
+    """:func:`check_pair` on every pair of the stacks ``left``/``right``: one
+    :meth:`OrbResult.as_dict` per pair (with ``idx``) and the seconds spent (timing only)."""
+    rows, secs = [], 0.0
+    kw = asdict(params)
+    for k in range(len(left)):
+        t0 = time.perf_counter()
+        r = check_pair(left[k], right[k], **kw)
+        secs += time.perf_counter() - t0
+        rows.append({"idx": k, **r.as_dict()})
+    return rows, secs
+
+
+def orb_frames(frames: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
+    """Per-pair results (``shard``, ``idx``, :class:`OrbResult` fields) joined with the frames
+    table (``frame_id``, ``shard``, ``idx``, ``split``, ``fault``, ``speed``), by frame id."""
+    df = frames[["frame_id", "shard", "idx", "split", "fault", "speed"]].merge(
+        results, on=["shard", "idx"], validate="one_to_one"
+    )
+    return df.sort_values("frame_id").reset_index(drop=True)
+
+
+def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) -> dict:
+    """Detection rate (flagged among faulty pairs, per fault type), false-alarm rate (flagged among
+    fault-free pairs), dropped share; also split by speed (faults are invisible at standstill).
+    ``df``: :func:`orb_frames`; ``splits``/``faults``: the values of its ``split``/``fault``
+    columns to report on (``"none"`` = fault-free is never a fault group).
+
+    ``sweep/*``: sensitivity of the rule's |dy| threshold on the same per-pair statistics (no
+    re-matching). NOTE: the sweep flags with fixed ``n_reliable < 1`` and ``mean_dx < 1.0``, not
+    the configured ``min_reliable``/``min_dx`` (kept as is so results do not change; to be fixed).
+    """
+    m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
+    faulty = df.fault != NO_FAULT
+    faults = [f for f in faults if f != NO_FAULT]
+
+    def share(flag: pd.Series, sel: pd.Series) -> float:
+        return float(flag[sel].mean()) if sel.any() else float("nan")
+
+    m["all/false_alarm_rate"] = share(df.outlier, ~faulty)
+    if faulty.any():
+        m["all/detection_rate"] = float(df.outlier[faulty].mean())
+    for f in faults:
+        sel = df.fault == f
+        m[f"all/faults_{f}"] = int(sel.sum())
+        if sel.any():
+            m[f"{f}/detection_rate"] = float(df.outlier[sel].mean())
+            mov = sel & (df.speed >= 5.0)
+            if mov.any():
+                m[f"{f}/detection_rate_speed_ge_5"] = float(df.outlier[mov].mean())
+    for s in splits:
+        part = df[df.split == s]
+        if len(part):
+            m[f"{s}/dropped_share"] = float(part.outlier.mean())
+    for thr in SWEEP_MAX_DY:
+        flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
+        m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
+        for f in faults:
+            sel = df.fault == f
+            if sel.any():
+                m[f"sweep/max_dy_{thr:g}_{f}_detection_rate"] = float(flag[sel].mean())
+    m["none/mean_dy_median"] = (
+        float(df.mean_dy[~faulty].median()) if (~faulty).any() else float("nan")
+    )
+    m["none/mean_dx_median"] = (
+        float(df.mean_dx[~faulty].median()) if (~faulty).any() else float("nan")
+    )
+    return m

@@ -10,10 +10,42 @@ range, uniqueness failures) as ``-1.0``: the map is deliberately non-dense like 
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
+from traffictwin.config import spec
+
 INVALID = -1.0
+
+
+@dataclass
+class SgmParams:
+    """``risk_data.sgm``: search range (px, multiple of 16), block size (px, odd), uniqueness
+    ratio, speckle filter (window 0 = off) and whether to match on grayscale (cn = 1)."""
+
+    num_disparities: int = spec(min=16)
+    block_size: int = spec(min=1)
+    uniqueness_ratio: int = spec(min=0)
+    speckle_window: int = spec(min=0)
+    speckle_range: int = spec(min=0)
+    gray: bool = spec()
+
+    def __post_init__(self) -> None:
+        self.matcher()  # make_matcher's checks (multiple of 16, odd block), before any work
+
+    def matcher(self) -> cv2.StereoSGBM:
+        """The configured ``StereoSGBM`` (see :func:`make_matcher`)."""
+        return make_matcher(
+            self.num_disparities,
+            self.block_size,
+            1 if self.gray else 3,
+            self.uniqueness_ratio,
+            self.speckle_window,
+            self.speckle_range,
+        )
 
 
 def check_pair_shapes(left: np.ndarray, right: np.ndarray, what: str = "stereo pair") -> None:
@@ -103,3 +135,17 @@ def compute_disparity(
     disp = raw.astype(np.float32) / 16.0
     disp[raw < m.getMinDisparity() * 16] = INVALID
     return disp
+
+
+def disparity_frames(
+    left: np.ndarray, right: np.ndarray, params: SgmParams
+) -> tuple[np.ndarray, float]:
+    """SGM disparity of every pair of the stacks ``left``/``right`` (N, H, W[, 3]) with one matcher:
+    (N, H, W) float32 px (``-1.0`` invalid) and the seconds spent matching (timing only)."""
+    m = params.matcher()
+    out, secs = [], 0.0
+    for k in range(len(left)):
+        t0 = time.perf_counter()
+        out.append(compute_disparity(left[k], right[k], gray=params.gray, matcher=m))
+        secs += time.perf_counter() - t0
+    return np.stack(out), secs
