@@ -265,15 +265,14 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
 
 
 def retrain(
-    root: Path = ROOT,
     seed: int | None = None,
     targets: list[str] | None = None,
     promote_models: bool = True,
     only: set[str] | None = None,
 ) -> dict:
-    """The whole flow (see module docstring) under the lock; returns the summary dict."""
+    """The whole flow (see module docstring) in this checkout, under the lock; returns the summary dict."""
     log = setup_logging()
-    cfg = params(root / PARAMS.name)
+    cfg = params()
     rc = promote_mod.registry_config(cfg)
     profile = get(cfg, "profile.name", str)
     names = [n for n in promote_mod.model_names(cfg, rc) if not only or n in only]
@@ -282,21 +281,21 @@ def retrain(
         "status": "running",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "profile": profile,
-        "git_commit": git_commit(root),
+        "git_commit": git_commit(ROOT),
         "targets": targets or [],
-        "data_before": data_versions(root),
+        "data_before": data_versions(ROOT),
     }
     cl = reg.client()
     s["champions_before"] = champions(cl, names, rc.aliases.champion)
     step = "snapshot"
     with tempfile.TemporaryDirectory(prefix="retrain-snap-") as tmp:
-        snap = Snapshot(root, Path(tmp))
+        snap = Snapshot(ROOT, Path(tmp))
         applied = False
         try:
             step = "new_data"
             seeds = seed_overrides(cfg, rc.retrain.seed_keys, rc.retrain.seed_step, seed)
-            composed, overrides = compose_with_seeds(root / CONF.name, profile, seeds)
-            dump_params(composed, root / PARAMS.name)
+            composed, overrides = compose_with_seeds(CONF, profile, seeds)
+            dump_params(composed, PARAMS)
             s["seeds"] = seeds
             s["overrides"] = overrides
             log.info("retrain: new data seeds %s", seeds)
@@ -304,11 +303,11 @@ def retrain(
 
             step = "dvc_repro"
             t = time.time()
-            proc = subprocess.run(["dvc", "repro", *(targets or [])], cwd=root)
+            proc = subprocess.run(["dvc", "repro", *(targets or [])], cwd=ROOT)
             s["repro_s"] = round(time.time() - t, 1)
             if proc.returncode != 0:
                 raise RetrainError(f"`dvc repro` failed with status {proc.returncode}")
-            s["data_after"] = data_versions(root)
+            s["data_after"] = data_versions(ROOT)
             _inject("after_repro")
 
             step = "promote"
@@ -339,7 +338,7 @@ def retrain(
             s["champions_after"] = champions(cl, names, rc.aliases.champion)
             s["duration_s"] = round(time.time() - t0, 1)
             s["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-            write_summary(root / rc.retrain.summary, s)
+            write_summary(ROOT / rc.retrain.summary, s)
     return s
 
 
@@ -379,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with retrain_lock(ROOT / rc.retrain.lock):
             only = set(args.only) if args.only else None
-            s = retrain(ROOT, args.seed, args.targets, not args.no_promote, only)
+            s = retrain(args.seed, args.targets, not args.no_promote, only)
     except LockBusy as exc:
         print(f"retrain: {exc}", file=sys.stderr)
         return EXIT_LOCKED
