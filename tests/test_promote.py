@@ -95,6 +95,7 @@ def _weight(uri: str) -> dict[str, float]:
 
 def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
     monkeypatch.chdir(tmp_path)
+    cl = reg.client(mlflow_uri)  # also points the fluent API (model logging) at the temp store
     log = tmp_path / "promotions.jsonl"
     gate = Gate("test/w", "max", 0.1)
 
@@ -114,7 +115,6 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
     first = jobs(a=1.0, b=2.0)
     ds = promotion.promote(first, promotion.PromotionSettings(dry_run=True))
     assert [d.action for d in ds] == ["first", "first"] and not log.exists()
-    cl = reg.client(mlflow_uri)
     assert reg.get_alias(cl, "m-a", "champion") is None  # dry run: no alias moved
     ds = promotion.promote(first, settings)  # same runs: registered once
     assert [d.action for d in ds] == ["first", "first"]
