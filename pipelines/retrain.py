@@ -1,18 +1,18 @@
 """Scheduled retraining: new data batch -> `dvc repro` -> promotion gate -> summary.
 
-    python -m pipelines.retrain [--seed N] [--targets STAGE ...] [--no-promote]
+    python -m pipelines.retrain [--seed N] [--targets STAGE ...] [--only NAME ...] [--no-promote]
 
 1. **Lock.** ``fcntl.flock`` on ``registry.retrain.lock`` (default ``.retrain.lock``): a second
    retraining while one runs exits with status 75 and a message naming the lock and its holder.
 2. **New data.** Each key in ``registry.retrain.seed_keys`` (default the global ``seed``, from
-   which every dataset seed derives) is bumped by ``seed_step`` (or set to ``--seed``) *in conf/*
-   (the single source of truth: the key's line in ``conf/config.yaml`` or in the group file of
-   ``conf/<group>/``), then params.yaml is recomposed from conf/ with the current profile. The
-   new seed makes DVC regenerate the datasets: a new data version, recorded in dvc.lock (md5 of
-   every ``data/`` output) and cached by DVC (``dvc push`` sends it to a remote). Because the
-   change lives in conf/, the committed params.yaml stays equal to the composition of conf/.
+   which every dataset seed derives) is bumped by ``seed_step`` (or set to ``--seed``) as a Hydra
+   override: params.yaml is recomposed from conf/ with ``profile=<current> <key>=<new seed> …``
+   (conf/ itself is never edited; the overrides are recorded in the summary). The new seed makes
+   DVC regenerate the datasets: a new data version, recorded in dvc.lock (md5 of every ``data/``
+   output) and cached by DVC (``dvc push`` sends it to a remote).
 3. **Pipeline.** ``dvc repro`` (optionally only ``--targets``).
-4. **Gate.** :func:`pipelines.promote.promote` (register, compare with champion, move aliases).
+4. **Gate.** :func:`pipelines.promote.promote` (register, compare with champion; every decision
+   is taken before any alias moves), optionally only for the models named by ``--only``.
 5. **Summary.** ``<registry.retrain.summary>.json`` and ``.md``.
 
 Failure anywhere before the gate applies its decisions restores conf/, params.yaml, dvc.lock
@@ -29,7 +29,6 @@ import argparse
 import fcntl
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -42,9 +41,13 @@ from typing import Any
 
 import yaml
 
-from pipelines._common import ROOT, params, setup_logging
+from pipelines import promote as promote_mod
+from pipelines._common import params, setup_logging
+from pipelines._paths import CONF, PARAMS, ROOT
+from pipelines._provenance import git_commit
 from traffictwin.config import ConfigError, compose_config, dump_params, get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
+from traffictwin.mlops import promotion
 from traffictwin.mlops import registry as reg
 
 EXIT_LOCKED = 75  # EX_TEMPFAIL: try again later
@@ -87,42 +90,32 @@ def _inject(step: str) -> None:
         raise RetrainError(f"injected failure at '{step}' ({FAIL_ENV})")
 
 
-# ------------------------------------------------------------------ conf/ edit (the new data seed)
+# ------------------------------------------------------------------ the new data seed
 
 
-def conf_file_for(key: str, conf: Path) -> tuple[Path, str]:
-    """The conf/ file that defines ``key`` at its top level and the key's name in it.
-
-    ``seed`` -> (conf/config.yaml, "seed"); ``risk_data.seed`` -> (conf/risk_data/<default>.yaml, "seed")
-    where ``<default>`` is the group's option in conf/config.yaml's defaults list.
-    """
-    parts = key.split(".")
-    if len(parts) == 1:
-        return conf / "config.yaml", key
-    if len(parts) != 2:
-        raise ConfigError(
-            f"registry.retrain.seed_keys: '{key}' must be a top-level key or <group>.<key>"
-        )
-    group, name = parts
-    defaults = yaml.safe_load((conf / "config.yaml").read_text()).get("defaults", [])
-    option = next((d[group] for d in defaults if isinstance(d, dict) and group in d), None)
-    if option is None:
-        raise ConfigError(
-            f"conf/config.yaml: no defaults entry for group '{group}' (from seed key '{key}')"
-        )
-    return conf / group / f"{option}.yaml", name
+def seed_overrides(cfg, keys: list[str], step: int, seed: int | None) -> dict[str, tuple[int, int]]:
+    """``{key: (old, new)}`` for every seed key: new = ``seed`` if given, else old + ``step``."""
+    out = {}
+    for k in keys:
+        old = get(cfg, k, int)
+        out[k] = (old, seed if seed is not None else old + step)
+    return out
 
 
-def set_conf_value(path: Path, name: str, value: int) -> None:
-    """Replace the top-level ``name: <int>`` line of ``path`` (comments kept); error if not exactly one."""
-    text = path.read_text()
-    pat = re.compile(rf"^({re.escape(name)}:[ \t]*)(-?\d+)([ \t]*(#.*)?)$", re.M)
-    hits = pat.findall(text)
-    if len(hits) != 1:
-        raise ConfigError(
-            f"{path}: expected exactly one top-level line '{name}: <integer>', found {len(hits)}"
-        )
-    write_text_atomic(path, pat.sub(lambda m: f"{m.group(1)}{value}{m.group(3)}", text))
+def compose_with_seeds(
+    conf: Path, profile: str, seeds: dict[str, tuple[int, int]]
+) -> tuple[dict[str, Any], list[str]]:
+    """params composed from ``conf`` with ``profile=<profile>`` and ``<key>=<new>`` overrides, and the
+    overrides; error if a seed does not compose to its new value (e.g. fixed by the profile)."""
+    overrides = [f"profile={profile}", *(f"{k}={new}" for k, (_, new) in seeds.items())]
+    composed = compose_config(conf, overrides)
+    for k, (_, new) in seeds.items():
+        got = get(composed, k, int)
+        if got != new:
+            raise ConfigError(
+                f"conf/: '{k}' composes to {got}, not the new seed {new} (overridden by profile '{profile}'?)"
+            )
+    return composed, overrides
 
 
 def data_versions(root: Path) -> dict[str, str]:
@@ -143,7 +136,10 @@ def data_versions(root: Path) -> dict[str, str]:
 
 
 class Snapshot:
-    """Copies of conf/, params.yaml, dvc.lock and reports/ to restore after a failure."""
+    """Copies of conf/, params.yaml, dvc.lock and reports/ to restore after a failure.
+
+    (The flow itself never edits conf/; the copy makes a restore return the whole input tree.)
+    """
 
     def __init__(self, root: Path, tmp: Path) -> None:
         self.root, self.tmp = root, tmp
@@ -222,11 +218,8 @@ def champions(cl, names: list[str], alias: str) -> dict[str, str | None]:
     return out
 
 
-def model_names(cfg) -> list[str]:
-    prefix = get(cfg, "registry.fusion.name_prefix", str)
-    return [reg.fusion_name(c, prefix) for c in get(cfg, "registry.fusion.configs", list)] + [
-        get(cfg, "registry.risk.name", str)
-    ]
+def _fig(v: float | None) -> str:
+    return "–" if v is None else f"{v:.5g}"
 
 
 def write_summary(base: Path, s: dict[str, Any]) -> None:
@@ -238,6 +231,8 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
     ]
     for k, (a, b) in (s.get("seeds") or {}).items():
         lines.append(f"- data seed `{k}`: {a} → {b}")
+    if s.get("overrides"):
+        lines.append(f"- params.yaml = conf/ composed with `{' '.join(s['overrides'])}`")
     if s.get("error"):
         lines += [
             f"- **error** in step `{s.get('failed_step')}`: {s['error']}",
@@ -260,10 +255,9 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
             "| --- | --- | --- | --- | --- | --- | --- |",
         ]
         for d in s["decisions"]:
-            f = lambda v: "–" if v is None else f"{v:.5g}"
             lines.append(
                 f"| {d['name']} | v{d['challenger_version']} | {('v' + d['champion_version']) if d['champion_version'] else '–'} "
-                f"| {d['metric']} | {f(d['challenger_value'])} | {f(d['champion_value'])} | {d['action']} |"
+                f"| {d['metric']} | {_fig(d['challenger_value'])} | {_fig(d['champion_value'])} | {d['action']} |"
             )
         lines.append("")
         lines.append(f"Champions after: {s.get('champions_after')}")
@@ -271,86 +265,60 @@ def write_summary(base: Path, s: dict[str, Any]) -> None:
 
 
 def retrain(
-    root: Path,
     seed: int | None = None,
     targets: list[str] | None = None,
     promote_models: bool = True,
+    only: set[str] | None = None,
 ) -> dict:
-    """The whole flow (see module docstring) under the lock; returns the summary dict."""
-    from pipelines import promote as promote_mod
-    from traffictwin.mlops.tracking import git_commit
-
+    """The whole flow (see module docstring) in this checkout, under the lock; returns the summary dict."""
     log = setup_logging()
-    cfg = params(root / "params.yaml")
-    summary_base = root / get(cfg, "registry.retrain.summary", str)
-    keys = get(cfg, "registry.retrain.seed_keys", list)
-    step_size = get(cfg, "registry.retrain.seed_step", int, min=1)
+    cfg = params()
+    rc = promote_mod.registry_config(cfg)
     profile = get(cfg, "profile.name", str)
-    champion_alias = get(cfg, "registry.aliases.champion", str)
-    names = model_names(cfg)
+    names = [n for n in promote_mod.model_names(cfg, rc) if not only or n in only]
     t0 = time.time()
     s: dict[str, Any] = {
         "status": "running",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "profile": profile,
-        "git_commit": git_commit(root),
+        "git_commit": git_commit(ROOT),
         "targets": targets or [],
-        "data_before": data_versions(root),
+        "data_before": data_versions(ROOT),
     }
     cl = reg.client()
-    s["champions_before"] = champions(cl, names, champion_alias)
+    s["champions_before"] = champions(cl, names, rc.aliases.champion)
     step = "snapshot"
     with tempfile.TemporaryDirectory(prefix="retrain-snap-") as tmp:
-        snap = Snapshot(root, Path(tmp))
+        snap = Snapshot(ROOT, Path(tmp))
         applied = False
         try:
             step = "new_data"
-            seeds = {}
-            for k in keys:
-                old = get(cfg, k, int)
-                new = seed if seed is not None else old + step_size
-                path, name = conf_file_for(k, root / "conf")
-                set_conf_value(path, name, new)
-                seeds[k] = (old, new)
-            composed = compose_config(root / "conf", [f"profile={profile}"])
-            for k, (_, new) in seeds.items():
-                got = get(composed, k, int)
-                if got != new:
-                    raise ConfigError(
-                        f"conf/: '{k}' composes to {got}, not the new seed {new} (overridden by profile '{profile}'?)"
-                    )
-            dump_params(composed, root / "params.yaml")
+            seeds = seed_overrides(cfg, rc.retrain.seed_keys, rc.retrain.seed_step, seed)
+            composed, overrides = compose_with_seeds(CONF, profile, seeds)
+            dump_params(composed, PARAMS)
             s["seeds"] = seeds
+            s["overrides"] = overrides
             log.info("retrain: new data seeds %s", seeds)
             _inject("after_params")
 
             step = "dvc_repro"
             t = time.time()
-            proc = subprocess.run(["dvc", "repro", *(targets or [])], cwd=root)
+            proc = subprocess.run(["dvc", "repro", *(targets or [])], cwd=ROOT)
             s["repro_s"] = round(time.time() - t, 1)
             if proc.returncode != 0:
                 raise RetrainError(f"`dvc repro` failed with status {proc.returncode}")
-            s["data_after"] = data_versions(root)
+            s["data_after"] = data_versions(ROOT)
             _inject("after_repro")
 
             step = "promote"
             decisions = []
             if promote_models:
-                decisions = promote_mod.promote(
-                    root, dry_run=True
-                )  # decide all first: nothing moves on error
+                # decide all first: nothing moves on error
+                decisions = promote_mod.promote(only, dry_run=True)
                 _inject("before_apply")
                 step = "apply"
                 applied = True
-                log_path = root / get(cfg, "registry.log", str)
-                for d in decisions:
-                    reg.apply(
-                        cl,
-                        d,
-                        log_path=log_path,
-                        champion_alias=champion_alias,
-                        challenger_alias=get(cfg, "registry.aliases.challenger", str),
-                    )
+                promotion.apply_all(cl, decisions, promote_mod.settings(rc))
             s["decisions"] = [d.to_dict() for d in decisions]
             s["status"] = "succeeded"
         except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - restore on anything
@@ -367,10 +335,10 @@ def retrain(
             if problems:
                 s["restore_problems"] = problems
         finally:
-            s["champions_after"] = champions(cl, names, champion_alias)
+            s["champions_after"] = champions(cl, names, rc.aliases.champion)
             s["duration_s"] = round(time.time() - t0, 1)
             s["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-            write_summary(summary_base, s)
+            write_summary(ROOT / rc.retrain.summary, s)
     return s
 
 
@@ -390,17 +358,27 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="only `dvc repro` these stages (default: the whole DAG)",
     )
+    ap.add_argument(
+        "--only",
+        nargs="+",
+        metavar="NAME",
+        default=None,
+        help="gate only these registered models (default: every configured model)",
+    )
     ap.add_argument("--no-promote", action="store_true", help="skip the promotion gate")
     args = ap.parse_args(argv)
     try:
-        cfg = params(ROOT / "params.yaml")
-        lock = ROOT / get(cfg, "registry.retrain.lock", str)
-    except ConfigError as exc:
+        cfg = params()
+        rc = promote_mod.registry_config(cfg)
+        if args.only:
+            promotion.select(promote_mod.build_jobs(cfg, rc), args.only)  # unknown name: error now
+    except (ConfigError, reg.RegistryError) as exc:
         print(f"retrain: error: {exc}", file=sys.stderr)
         return 1
     try:
-        with retrain_lock(lock):
-            s = retrain(ROOT, args.seed, args.targets, not args.no_promote)
+        with retrain_lock(ROOT / rc.retrain.lock):
+            only = set(args.only) if args.only else None
+            s = retrain(args.seed, args.targets, not args.no_promote, only)
     except LockBusy as exc:
         print(f"retrain: {exc}", file=sys.stderr)
         return EXIT_LOCKED

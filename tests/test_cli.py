@@ -479,8 +479,83 @@ def test_console_script_exit_status(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_promote_delegates_to_the_pipeline(capfd):
-    """`traffictwin promote` runs pipelines.promote in the project; an unknown model is an error naming it."""
-    assert cli.main(["promote", "--only", "traffictwin-fusion-Q", "--dry-run"]) == 1
-    err = capfd.readouterr().err
-    assert "unknown model(s) ['traffictwin-fusion-Q']" in err and "traffictwin-risk" in err
+def test_promote_is_a_project_workflow_not_a_command(capsys):
+    """Promotion needs the project's params and data: `python -m pipelines.promote`, not the CLI."""
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["promote", "--dry-run"])
+    assert exc.value.code == 2 and "invalid choice: 'promote'" in capsys.readouterr().err
+
+
+def _log_linear(weight: float) -> str:
+    import mlflow
+
+    m = torch.nn.Linear(2, 1, bias=False)
+    with torch.no_grad():
+        m.weight.fill_(weight)
+    mlflow.set_experiment("fusion")
+    with mlflow.start_run() as run:
+        mlflow.pytorch.log_model(
+            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
+        )
+    return run.info.run_id
+
+
+def test_rollback_logs_to_the_recorded_promotion_log(tmp_path, mlflow_uri, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    cl = reg.client(mlflow_uri)
+    log = tmp_path / "reports" / "promotions.jsonl"
+    gate = reg.Gate("test/w", "max", 0.0)
+    for w in (1.0, 2.0):
+        mv = reg.ensure_version(cl, "traffictwin-fusion-X", _log_linear(w))
+        d = reg.decide(cl, "traffictwin-fusion-X", mv, lambda uri: {"test/w": float(uri[-1])}, gate)
+        reg.apply(cl, d, log_path=log)
+    assert str(reg.get_alias(cl, "traffictwin-fusion-X", "champion").version) == "2"
+    assert cli.main(["rollback", "--model", "traffictwin-fusion-X"]) == 0
+    assert "champion v2 -> v1" in capsys.readouterr().out
+    assert [r["event"] for r in reg.read_log(log)] == ["promotion", "promotion", "rollback"]
+    # the only registered fusion model is the default of --config; status lists it
+    assert cli.fusion_model_name(cl, None) == "traffictwin-fusion-X"
+    assert cli.fusion_model_name(cl, "B") == "traffictwin-fusion-B"
+    assert cli.main(["status", "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["champion"]["version"] == "1" and row["history"] == ["1"]
+
+
+def test_fusion_config_required_without_a_single_registered_model(tmp_path, mlflow_uri):
+    cl = reg.client(mlflow_uri)
+    with pytest.raises(cli.CliError, match="--config: .*no fusion model is registered"):
+        cli.fusion_model_name(cl, None)
+
+
+def test_stereo_settings_from_model_domain_then_params_file(tmp_path):
+    domain = {"camera": {"width": 320, "height": 160}, "sgm": {"num_disparities": 48}, "orb": {}}
+    params = tmp_path / "p.yaml"
+    params.write_text("risk_data:\n  sgm: {num_disparities: 32}\n  orb: {max_dy: 4.0}\n")
+    st = cli.stereo_settings(domain, str(params), "models/risk/rgbd")
+    assert st.sgm == {"num_disparities": 48} and st.orb == {}
+    assert st.source == "metadata of models/risk/rgbd"
+    st = cli.stereo_settings({"label": "risk"}, str(params))  # no sgm/orb in the domain
+    assert (st.sgm, st.orb, st.source) == ({"num_disparities": 32}, {"max_dy": 4.0}, str(params))
+    assert cli.stereo_settings(None, None).source == "library defaults"
+    with pytest.raises(cli.CliError, match="--params: .*nope.yaml not found"):
+        cli.stereo_settings(None, str(tmp_path / "nope.yaml"))
+
+
+def test_risk_uses_the_model_domain(tmp_path, stereo_pair, capsys):
+    """A model whose metadata records the SGM settings of its data: the CLI uses them."""
+    left, right = stereo_pair
+    cv2.imwrite(str(tmp_path / "f_left.png"), left)
+    cv2.imwrite(str(tmp_path / "f_right.png"), right)
+    torch.manual_seed(1)
+    d = save_risk_model(
+        Dave2(Dave2Config()).eval(),
+        tmp_path / "m",
+        {"label": "risk", "domain": {"sgm": {"num_disparities": 16, "block_size": 7}}},
+    )
+    args = ["risk", str(tmp_path / "f_left.png"), str(tmp_path / "f_right.png"), "--model", str(d)]
+    assert cli.main(args) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["stereo_settings"] == f"metadata of {d}"
+    disp = compute_disparity(left, right, num_disparities=16, block_size=7)
+    p = load_risk_model(d).predict(left_bgr=left[None], disp_sgm=disp[None])[0]
+    assert res["risk"] == pytest.approx(float(p), abs=1e-6)

@@ -1,4 +1,4 @@
-"""Scheduled retraining: lock, seed bump in conf/, restore on failure, end to end on the ci profile."""
+"""Scheduled retraining: lock, seed bump as a Hydra override, restore on failure, end to end on the ci profile."""
 
 from __future__ import annotations
 
@@ -37,26 +37,28 @@ def test_lock_is_exclusive(tmp_path):
         pass
 
 
-def test_set_conf_value_and_conf_file_for(tmp_path):
+def test_seed_overrides_compose_without_editing_conf(tmp_path):
     conf = tmp_path / "conf"
     (conf / "risk_data").mkdir(parents=True)
+    (conf / "profile").mkdir()
     (conf / "config.yaml").write_text(
-        "defaults:\n  - _self_\n  - risk_data: base\n\nseed: 41   # global\ngrid:\n  seed: 3\n"
+        "defaults:\n  - _self_\n  - risk_data: base\n  - profile: ci\n\nseed: 41   # global\ngrid:\n  seed: 3\n"
     )
     (conf / "risk_data" / "base.yaml").write_text("seed: 0   # offset\nother: 1\n")
-    assert rt.conf_file_for("seed", conf) == (conf / "config.yaml", "seed")
-    assert rt.conf_file_for("risk_data.seed", conf) == (conf / "risk_data" / "base.yaml", "seed")
-    rt.set_conf_value(conf / "config.yaml", "seed", 42)
-    text = (conf / "config.yaml").read_text()
-    assert "seed: 42   # global" in text and "  seed: 3" in text  # nested key untouched
-    rt.set_conf_value(conf / "risk_data" / "base.yaml", "seed", 7)
-    assert yaml.safe_load((conf / "risk_data" / "base.yaml").read_text()) == {"seed": 7, "other": 1}
-    with pytest.raises(ConfigError, match="exactly one top-level line 'nope: <integer>'"):
-        rt.set_conf_value(conf / "config.yaml", "nope", 1)
-    with pytest.raises(ConfigError, match="no defaults entry for group 'fusion_data'"):
-        rt.conf_file_for("fusion_data.seed", conf)
-    with pytest.raises(ConfigError, match="top-level key or <group>.<key>"):
-        rt.conf_file_for("a.b.c", conf)
+    (conf / "profile" / "ci.yaml").write_text("name: ci\n")
+    before = {p: p.read_text() for p in conf.rglob("*.yaml")}
+    cfg = compose_config(conf, ["profile=ci"])
+    seeds = rt.seed_overrides(cfg, ["seed", "risk_data.seed"], 1, None)
+    assert seeds == {"seed": (41, 42), "risk_data.seed": (0, 1)}
+    assert rt.seed_overrides(cfg, ["seed"], 1, 7) == {"seed": (41, 7)}
+    composed, overrides = rt.compose_with_seeds(conf, "ci", seeds)
+    assert overrides == ["profile=ci", "seed=42", "risk_data.seed=1"]
+    assert composed["seed"] == 42 and composed["grid"]["seed"] == 3  # nested key untouched
+    assert composed["risk_data"] == {"seed": 1, "other": 1}
+    assert composed == compose_config(conf, overrides)
+    assert {p: p.read_text() for p in conf.rglob("*.yaml")} == before  # conf/ never edited
+    with pytest.raises(ConfigError, match="key 'nope' is missing"):
+        rt.seed_overrides(cfg, ["nope"], 1, None)
 
 
 def test_data_versions_reads_dvc_lock(tmp_path):
@@ -119,18 +121,13 @@ def _champions(repo: Path) -> dict[str, str | None]:
 
 
 def _cheap_copy(repo: Path) -> Path:
-    """Keep the e2e test cheap: gate fusion configuration A + the risk net, repro only what they need."""
+    """Keep the e2e test cheap: start without history; gate (--only) and repro only what MODELS need."""
     for name in (
         "promotions.jsonl",
         "retrain_summary.json",
         "retrain_summary.md",
     ):  # start without history
         (repo / "reports" / name).unlink(missing_ok=True)
-    reg_conf = repo / "conf" / "registry" / "base.yaml"
-    text = reg_conf.read_text()
-    assert "configs: [A, B, C, D]" in text
-    reg_conf.write_text(text.replace("configs: [A, B, C, D]", "configs: [A]"))
-    run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
     return repo
 
 
@@ -143,15 +140,20 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
     seed0 = load_params(repo / "params.yaml")["seed"]
 
     # 1. a retraining on the ci profile: new seed in conf/, dvc repro, first models become champions
+    conf0 = (repo / "conf" / "config.yaml").read_text()
     proc = run(
-        [sys.executable, "-m", "pipelines.retrain", "--targets", *TARGETS], repo, timeout=1500
+        [sys.executable, "-m", "pipelines.retrain", "--targets", *TARGETS, "--only", *MODELS],
+        repo,
+        timeout=1500,
     )
     summary = json.loads((repo / "reports" / "retrain_summary.json").read_text())
     assert summary["status"] == "succeeded", proc.stderr[-3000:]
     assert summary["seeds"] == {"seed": [seed0, seed0 + 1]}
-    assert f"seed: {seed0 + 1}" in (repo / "conf" / "config.yaml").read_text()
+    assert summary["overrides"] == ["profile=ci", f"seed={seed0 + 1}"]
+    assert (repo / "conf" / "config.yaml").read_text() == conf0  # conf/ is never edited
     params = yaml.safe_load((repo / "params.yaml").read_text())
-    assert params == compose_config(repo / "conf", ["profile=ci"]) and params["seed"] == seed0 + 1
+    assert params == compose_config(repo / "conf", summary["overrides"])
+    assert params["seed"] == seed0 + 1
     assert set(summary["data_after"]) >= {"data/fusion", "data/risk"}
     champs = _champions(repo)
     assert all(v == "1" for v in champs.values()), champs

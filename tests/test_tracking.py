@@ -1,4 +1,8 @@
-"""MLflow tracking: URI resolution, tags, a round trip through a temp SQLite store."""
+"""MLflow tracking: URI resolution, tags, a round trip through a temp SQLite store.
+
+Provenance (git commit, params hash) is computed by the workflow layer (pipelines._provenance)
+and reaches the library through the environment.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,7 @@ from pathlib import Path
 
 import mlflow
 
+from pipelines import _provenance as prov
 from traffictwin.mlops import tracking
 
 
@@ -21,7 +26,10 @@ def test_env_overrides(monkeypatch) -> None:
     assert tracking.tracking_uri() == "http://mlflow.example:5000"
 
 
-def test_run_round_trip(mlflow_uri: str) -> None:
+def test_run_round_trip(mlflow_uri: str, monkeypatch) -> None:
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    for k, v in prov.provenance_env().items():  # what pipelines._common.run_stage exports
+        monkeypatch.setenv(k, v)
     with tracking.start_run(
         "unit", "unit-run", profile="ci", stage="test", params={"a.b": 1}
     ) as run:
@@ -69,14 +77,36 @@ def test_artifact_location_beside_sqlite(tmp_path: Path) -> None:
 
 def test_git_commit_prefers_dvc_baseline(monkeypatch) -> None:
     monkeypatch.setenv("DVC_EXP_BASELINE_REV", "a" * 40)
+    monkeypatch.setenv("TRAFFICTWIN_GIT_COMMIT", "c" * 40)
     assert tracking.git_commit() == "a" * 40
+    assert prov.git_commit() == "a" * 40
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV")
+    assert tracking.git_commit() == "c" * 40  # the workflow layer's commit
+    monkeypatch.delenv("TRAFFICTWIN_GIT_COMMIT")
+    assert tracking.git_commit() == ""  # no git in the library: empty when not provided
+
+
+def test_provenance_env_of_a_checkout(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    (tmp_path / "params.yaml").write_text("seed: 5\n")
+    env = prov.provenance_env(tmp_path, tmp_path / "params.yaml")
+    assert set(env) == {"TRAFFICTWIN_GIT_COMMIT", "TRAFFICTWIN_PARAMS_HASH"}
+    assert env["TRAFFICTWIN_PARAMS_HASH"] == __import__("hashlib").sha256(b"seed: 5\n").hexdigest()
+    assert env["TRAFFICTWIN_GIT_COMMIT"] == "unknown"  # not a git checkout
+    head = prov.git_commit(prov.ROOT)
+    assert len(head) == 40 or head == "unknown"
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert tracking.params_hash() == env["TRAFFICTWIN_PARAMS_HASH"]
+    monkeypatch.delenv("TRAFFICTWIN_PARAMS_HASH")
+    assert tracking.params_hash() == ""
 
 
 def test_pipeline_run_id_shared_and_distinct(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.delenv("TRAFFICTWIN_PIPELINE_RUN", raising=False)
     p = tmp_path / "params.yaml"
     p.write_text("seed: 1\n")
-    h1 = tracking.params_hash(p)
+    h1 = prov.params_hash(p)
     assert h1 == __import__("hashlib").sha256(b"seed: 1\n").hexdigest()
     a = tracking.pipeline_run_id("0123456789abcdef", h1, "")
     assert a == tracking.pipeline_run_id(
@@ -85,10 +115,10 @@ def test_pipeline_run_id_shared_and_distinct(tmp_path: Path, monkeypatch) -> Non
     assert a.startswith("01234567-") and len(a) == 17
     p.write_text("seed: 2\n")
     assert (
-        tracking.pipeline_run_id("0123456789abcdef", tracking.params_hash(p), "") != a
+        tracking.pipeline_run_id("0123456789abcdef", prov.params_hash(p), "") != a
     )  # other params
     assert tracking.pipeline_run_id("0123456789abcdef", h1, "exp-1") != a  # other DVC experiment
-    assert tracking.params_hash(tmp_path / "missing.yaml") == ""
+    assert prov.params_hash(tmp_path / "missing.yaml") == ""
     monkeypatch.setenv("TRAFFICTWIN_PIPELINE_RUN", "nightly-42")
     assert tracking.pipeline_run_id("0123456789abcdef", h1, "") == "nightly-42"
 
@@ -100,10 +130,12 @@ def test_base_tags_from_dvc_env(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("DVC_EXP_NAME", "brisk-lark")
     monkeypatch.setenv("DVC_EXP_BASELINE_REV", "b" * 40)
     monkeypatch.delenv("TRAFFICTWIN_PIPELINE_RUN", raising=False)
+    for k, v in prov.provenance_env(tmp_path, tmp_path / "params.yaml").items():
+        monkeypatch.setenv(k, v)
     tags = tracking.base_tags("ci", "train_risk", {"data_manifest": "xyz"})
     assert set(tracking.TAG_KEYS) <= set(tags)
     assert tags["dvc_exp_name"] == "brisk-lark" and tags["git_commit"] == "b" * 40
-    assert tags["params_hash"] == tracking.params_hash(tmp_path / "params.yaml")
+    assert tags["params_hash"] == prov.params_hash(tmp_path / "params.yaml")
     assert tags["pipeline_run"] == tracking.pipeline_run_id(
         "b" * 40, tags["params_hash"], "brisk-lark"
     )

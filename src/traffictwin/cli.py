@@ -3,12 +3,12 @@
 Subcommands (global option ``--threads N`` sets torch's CPU threads)::
 
     traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model champion|challenger|PATH]
-                     [--config D] [--cell M] -o OUT
-    traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model champion|challenger|PATH] [-o OUT.json]
+                     [--config CFG] [--cell M] -o OUT
+    traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model champion|challenger|PATH] [--params FILE]
+                     [-o OUT.json]
     traffictwin risk FOLDER [--speed M_S] [--model ...] [-o OUT.csv]
-    traffictwin promote [--only NAME ...] [--dry-run] [--force]
-    traffictwin rollback --model NAME [--version V]
-    traffictwin status
+    traffictwin rollback --model NAME [--version V] [--log FILE]
+    traffictwin status [--model NAME ...]
     traffictwin runs compare --experiment fusion [--metrics a b ...] [--uri URI] [--wide]
 
 Input formats
@@ -23,8 +23,17 @@ Input formats
 - Stereo pairs (``risk``): rectified 8-bit images readable by OpenCV (PNG, JPEG…) of equal size.
   A folder holds pairs named ``<id>_left.<ext>`` / ``<id>_right.<ext>``; the result is a CSV with
   one row per ``<id>``. JSON output writes ``thw_s``/``gap_m`` as ``null`` when no vehicle is
-  ahead (THW infinite); the CSV writes ``inf``. SGM/ORB settings come from ``risk_data.sgm`` /
-  ``risk_data.orb`` of ``--params`` (default: the project's params.yaml), as in the pipeline.
+  ahead (THW infinite); the CSV writes ``inf``. SGM/ORB settings are those the model's data were
+  made with: ``domain.sgm`` / ``domain.orb`` of the model's metadata (``model_meta.json`` of a
+  model folder; the logged model's metadata of a registered one), else ``risk_data.sgm`` /
+  ``risk_data.orb`` of a params file passed as ``--params FILE``, else the library defaults.
+- Registered fusion models are ``traffictwin-fusion-<CFG>``; ``--config`` names the pose-noise
+  configuration (any name; without it, the only registered fusion model).
+
+Promotion is not a command here: it needs the project's data, model folders and gate settings
+(params.yaml), so it is a workflow of the repository (``python -m pipelines.promote``, which
+calls :func:`traffictwin.mlops.promotion.promote`). This command only needs registry names:
+``status`` and ``rollback`` (which logs to the promotion log recorded on the model, or ``--log``).
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
@@ -42,8 +51,6 @@ import csv
 import io
 import json
 import math
-import os
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -207,11 +214,10 @@ def _registry_client():
     return reg.client()
 
 
-def _registered_params(name: str, alias: str) -> tuple[str, dict[str, str]]:
+def _registered_params(cl, name: str, alias: str) -> tuple[str, dict[str, str]]:
     """URI of ``name@alias`` (error if missing) and its training run's params."""
     from traffictwin.mlops import registry as reg
 
-    cl = _registry_client()
     try:
         mv = reg.require_alias(cl, name, alias)
     except reg.RegistryError as exc:
@@ -223,14 +229,30 @@ def _registered_params(name: str, alias: str) -> tuple[str, dict[str, str]]:
     return reg.version_uri(name, mv.version), params
 
 
-def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
+def fusion_model_name(cl, config: str | None) -> str:
+    """``traffictwin-fusion-<config>``; without ``config`` the only registered fusion model."""
+    from traffictwin.mlops import registry as reg
+
+    if config:
+        return reg.fusion_name(config)
+    names = reg.registered_names(cl, reg.fusion_name(""))
+    if len(names) == 1:
+        return names[0]
+    raise CliError(
+        "--config: name the pose-noise configuration of the registered fusion model "
+        + (f"(registered: {', '.join(names)})" if names else "(no fusion model is registered yet)")
+    )
+
+
+def load_fusion(model: str, config: str | None) -> tuple[Any, dict[str, Any], str]:
     """The fusion network for ``--model`` (an alias of ``traffictwin-fusion-<config>`` or a path),
     its training grid (dict, may be empty) and a description."""
     from traffictwin.mlops import registry as reg
 
     if model in ALIASES:
-        name = reg.fusion_name(config)
-        uri, params = _registered_params(name, model)
+        cl = _registry_client()
+        name = fusion_model_name(cl, config)
+        uri, params = _registered_params(cl, name, model)
         try:
             net = reg.load_registered(uri)
         except Exception as exc:  # noqa: BLE001
@@ -255,20 +277,32 @@ def load_fusion(model: str, config: str) -> tuple[Any, dict[str, Any], str]:
     return net, dict(getattr(net, "meta", {}).get("grid", {}) or {}), str(p)
 
 
+def _logged_metadata(uri: str) -> dict[str, Any]:
+    """The metadata logged with the MLflow model behind ``uri`` (empty if none or unreadable)."""
+    try:
+        import mlflow.models
+
+        return dict(mlflow.models.get_model_info(uri).metadata or {})
+    except Exception:  # noqa: BLE001 - metadata only refines the stereo settings
+        return {}
+
+
 def load_risk(model: str):
-    """A :class:`~traffictwin.risk.model_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk`` or a path)."""
+    """A :class:`~traffictwin.risk.model_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk``
+    or a path) and a description; ``RiskModel.meta`` holds the model's metadata (``domain``…)."""
     from traffictwin.mlops import registry as reg
+    from traffictwin.risk.gate_eval import unwrap_risk_net
     from traffictwin.risk.model_io import RiskModel, RiskModelError, load_risk_model
 
     if model in ALIASES:
-        uri, _ = _registered_params(reg.RISK_NAME, model)
+        uri, _ = _registered_params(_registry_client(), reg.RISK_NAME, model)
         try:
-            net = reg.unwrap_risk_net(reg.load_registered(uri))
+            net = unwrap_risk_net(reg.load_registered(uri))
         except Exception as exc:  # noqa: BLE001
             raise CliError(
                 f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})"
             ) from None
-        return RiskModel(net=net), f"{reg.RISK_NAME}@{model} ({uri})"
+        return RiskModel(net=net, meta=_logged_metadata(uri)), f"{reg.RISK_NAME}@{model} ({uri})"
     p = Path(model)
     if not p.exists():
         raise CliError(
@@ -403,22 +437,33 @@ class StereoSettings:
     source: str
 
 
-def stereo_settings(params_path: str | None) -> StereoSettings:
-    """SGM/ORB settings the risk data were made with: ``risk_data.sgm`` / ``risk_data.orb`` of
-    ``params_path`` (default: params.yaml of the project, if found), else the library defaults."""
-    import yaml
+def stereo_settings(
+    domain: Any, params_path: str | None, model_desc: str = "the model"
+) -> StereoSettings:
+    """SGM/ORB settings the risk data were made with.
 
-    from traffictwin.mlops.tracking import repo_root
+    ``domain.sgm`` / ``domain.orb`` of the model's metadata if present; else ``risk_data.sgm`` /
+    ``risk_data.orb`` of the params file ``params_path`` the user passed; else the library
+    defaults."""
+    if isinstance(domain, dict) and (
+        isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
+    ):
+        return StereoSettings(
+            dict(domain.get("sgm") or {}),
+            dict(domain.get("orb") or {}),
+            f"metadata of {model_desc}",
+        )
+    if params_path:
+        import yaml
 
-    path = Path(params_path) if params_path else repo_root() / "params.yaml"
-    if params_path and not path.is_file():
-        raise CliError(f"--params: {path} not found")
-    if path.is_file():
+        path = Path(params_path)
+        if not path.is_file():
+            raise CliError(f"--params: {path} not found")
         try:
             cfg = yaml.safe_load(path.read_text()) or {}
         except yaml.YAMLError as exc:
             raise CliError(f"{path}: not valid YAML ({exc})") from None
-        rd = cfg.get("risk_data") or {}
+        rd = cfg.get("risk_data") or {} if isinstance(cfg, dict) else {}
         if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
             return StereoSettings(dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(path))
     return StereoSettings({}, {}, "library defaults")
@@ -515,7 +560,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
     rmodel, desc = load_risk(args.model)
     if rmodel.cfg.use_speed and args.speed is None:
         raise CliError(f"the model ({desc}) uses the subject speed: pass --speed (m/s)")
-    st = stereo_settings(args.params)
+    st = stereo_settings(rmodel.meta.get("domain"), args.params, desc)
     rows = []
     for pid, lp, rp, left, right in images:
         r = risk_one(rmodel, left, right, args.speed, st, args.thw_threshold)
@@ -544,40 +589,18 @@ def cmd_risk(args: argparse.Namespace) -> int:
 # ============================================================================ registry / runs
 
 
-def cmd_promote(args: argparse.Namespace) -> int:
-    """Delegates to ``python -m pipelines.promote`` in the project (the gate reads params.yaml)."""
-    from traffictwin.mlops.tracking import repo_root
-
-    root = repo_root()
-    if not (root / "pipelines" / "promote.py").exists():
-        raise CliError(
-            f"{root}: not a traffictwin project (pipelines/promote.py missing); run inside the repository"
-        )
-    cmd = [sys.executable, "-m", "pipelines.promote"]
-    if args.only:
-        cmd += ["--only", *args.only]
-    cmd += ["--dry-run"] * args.dry_run + ["--force"] * args.force + ["--json"] * args.json
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
-    return subprocess.run(cmd, cwd=root, env=env).returncode
-
-
-def _log_path(arg: str | None) -> Path:
-    from traffictwin.mlops.tracking import repo_root
-
-    return Path(arg) if arg else repo_root() / "reports" / "promotions.jsonl"
-
-
 def cmd_rollback(args: argparse.Namespace) -> int:
     from traffictwin.mlops import registry as reg
 
+    cl = _registry_client()
+    log_path = Path(args.log) if args.log else reg.promotion_log(cl, args.model)
     try:
-        rec = reg.rollback(
-            _registry_client(), args.model, args.version, log_path=_log_path(args.log)
-        )
+        rec = reg.rollback(cl, args.model, args.version, log_path=log_path)
     except reg.RegistryError as exc:
         raise CliError(str(exc)) from None
     print(f"{rec['name']}: champion v{rec['from_version']} -> v{rec['to_version']}")
+    if log_path is None:
+        print("(no promotion log recorded for this model: pass --log FILE to log the rollback)")
     return 0
 
 
@@ -593,7 +616,10 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(json.dumps(rows, indent=2))
         return 0
     if not rows:
-        print("no traffictwin models registered yet (run `traffictwin promote` after `dvc repro`)")
+        print(
+            "no traffictwin models registered yet "
+            "(run the promotion gate after `dvc repro`: `python -m pipelines.promote`)"
+        )
     for r in rows:
         ch, cd = r["champion"], r["challenger"]
         print(
@@ -654,9 +680,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--config",
-        default="D",
-        choices=("A", "B", "C", "D"),
-        help="pose-noise configuration of the registered model traffictwin-fusion-<config> (default D)",
+        default=None,
+        help="pose-noise configuration of the registered model traffictwin-fusion-<config> "
+        "(default: the only registered fusion model)",
     )
     f.add_argument(
         "--cell",
@@ -696,7 +722,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--params",
         default=None,
-        help="params.yaml with risk_data.sgm/orb (default: the project's, if found)",
+        help="params file with risk_data.sgm/orb, used when the model's metadata has no "
+        "domain.sgm/orb (default: the library's SGM/ORB defaults)",
     )
     r.add_argument(
         "-o",
@@ -705,19 +732,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the JSON (pair) or CSV (folder) here (default: stdout)",
     )
     r.set_defaults(func=cmd_risk)
-
-    p = sub.add_parser(
-        "promote", help="register trained models and run the champion/challenger gate"
-    )
-    p.add_argument(
-        "--only", nargs="+", metavar="NAME", help="registered model names (default: all configured)"
-    )
-    p.add_argument("--dry-run", action="store_true", help="evaluate and decide, change nothing")
-    p.add_argument(
-        "--force", action="store_true", help="re-evaluate challengers that were already decided"
-    )
-    p.add_argument("--json", action="store_true", help="print decisions as JSON")
-    p.set_defaults(func=cmd_promote)
 
     b = sub.add_parser(
         "rollback", help="move the champion alias back (previous champion or --version)"
@@ -729,7 +743,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--version", default=None, help="version to make champion (default: the previous champion)"
     )
     b.add_argument(
-        "--log", default=None, help="decision log (default reports/promotions.jsonl of the project)"
+        "--log",
+        default=None,
+        help="promotion log to append to (default: the one the gate recorded on the model)",
     )
     b.set_defaults(func=cmd_rollback)
 

@@ -21,18 +21,22 @@ Where runs go
 
 How runs are tagged (:func:`base_tags`)
     ``git_commit`` (the experiment's baseline commit ``DVC_EXP_BASELINE_REV`` inside a DVC
-    experiment, else ``HEAD``), ``profile``, ``dvc_stage``, ``dvc_exp_name`` (``DVC_EXP_NAME``,
-    set by ``dvc exp run``), ``params_hash`` (SHA-256 of the params.yaml the stage runs with) and
-    ``pipeline_run``: ``TRAFFICTWIN_PIPELINE_RUN`` if set, else derived from the git commit,
-    the params hash and the DVC experiment name, so every stage of one ``dvc repro`` /
-    ``dvc exp run`` shares it and ``traffictwin runs compare`` can group by it.
+    experiment, else ``TRAFFICTWIN_GIT_COMMIT``), ``profile``, ``dvc_stage``, ``dvc_exp_name``
+    (``DVC_EXP_NAME``, set by ``dvc exp run``), ``params_hash`` (``TRAFFICTWIN_PARAMS_HASH``:
+    SHA-256 of the params.yaml the stage runs with) and ``pipeline_run``:
+    ``TRAFFICTWIN_PIPELINE_RUN`` if set, else derived from the git commit, the params hash and
+    the DVC experiment name, so every stage of one ``dvc repro`` / ``dvc exp run`` shares it and
+    ``traffictwin runs compare`` can group by it.
+
+    Provenance comes in through the environment: the workflow layer computes the commit and the
+    params hash (``pipelines/_provenance.py``) and exports them before a stage runs. This module
+    runs no git and reads no params file; a variable that is not set reads as ``""``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
-import subprocess
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -44,6 +48,8 @@ ENV_PIPELINE_RUN = "TRAFFICTWIN_PIPELINE_RUN"
 ENV_DVC_ROOT = "DVC_ROOT"
 ENV_DVC_EXP_NAME = "DVC_EXP_NAME"
 ENV_DVC_BASELINE = "DVC_EXP_BASELINE_REV"
+ENV_GIT_COMMIT = "TRAFFICTWIN_GIT_COMMIT"
+ENV_PARAMS_HASH = "TRAFFICTWIN_PARAMS_HASH"
 ARTIFACTS_DIR = "mlartifacts"
 
 TAG_KEYS = ("git_commit", "profile", "dvc_stage", "dvc_exp_name", "params_hash", "pipeline_run")
@@ -102,37 +108,22 @@ def artifact_location(experiment: str, uri: str) -> str | None:
 
 
 def git_commit(root: str | Path | None = None) -> str:
-    """The git commit runs belong to: ``DVC_EXP_BASELINE_REV`` inside a DVC experiment, else ``HEAD``.
+    """The git commit runs belong to: ``DVC_EXP_BASELINE_REV`` inside a DVC experiment (a queued
+    experiment's temp copy has its own throw-away HEAD), else ``TRAFFICTWIN_GIT_COMMIT``; ``""``
+    if neither is set.
 
-    (A queued experiment's temp copy has its own throw-away HEAD; the baseline is the commit in
-    the user's repository.) ``"unknown"`` outside a git checkout.
+    ``root`` is ignored (kept for callers that still pass the checkout; the workflow layer
+    resolves the commit of its checkout).
     """
-    base = os.environ.get(ENV_DVC_BASELINE)
-    if base:
-        return base
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=root or work_root(),
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
+    return os.environ.get(ENV_DVC_BASELINE) or os.environ.get(ENV_GIT_COMMIT, "")
 
 
-def params_hash(path: str | Path | None = None) -> str:
-    """SHA-256 (hex) of the params file's bytes (default: params.yaml of :func:`work_root`); "" if absent.
+def params_hash() -> str:
+    """SHA-256 (hex) of the params.yaml the stage runs with: ``TRAFFICTWIN_PARAMS_HASH``, ``""`` if unset.
 
     Used as an identity only: this module does not interpret the parameters.
     """
-    p = Path(path) if path else work_root() / "params.yaml"
-    try:
-        return hashlib.sha256(p.read_bytes()).hexdigest()
-    except OSError:
-        return ""
+    return os.environ.get(ENV_PARAMS_HASH, "")
 
 
 def pipeline_run_id(

@@ -1,0 +1,55 @@
+"""Promotion-gate evaluation of fusion networks: a fixed test set and an ``evaluate(model_uri)``.
+
+The gate (:mod:`traffictwin.mlops.gate`) re-evaluates challenger and champion with the same
+callable; this one scores a registered model's fused masses with :mod:`traffictwin.fusion.metrics`
+(the evaluate_fusion stage's code) on the first pairs of a prealigned split.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+
+def first_by(order_key: np.ndarray, k: int | None) -> np.ndarray:
+    """Indices of the ``k`` smallest ``order_key`` values in order (all if ``k`` is None or <= 0)."""
+    idx = np.argsort(order_key, kind="stable")
+    return idx if k is None or k <= 0 else idx[:k]
+
+
+def fusion_test_set(
+    data_root: str | Path, split: str = "test", max_pairs: int | None = None
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Gate test set of a prealigned dataset: ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first
+    ``max_pairs`` pairs by ``pair_id`` (a fixed selection), and its fingerprint."""
+    from traffictwin.io.shards import Dataset
+
+    ds = Dataset(data_root, kind="prealigned")
+    a = ds.load_all(split, keys=["inputs", "label", "pair_id"])
+    sel = first_by(np.asarray(a["pair_id"]), max_pairs)
+    fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}"
+    return (
+        np.ascontiguousarray(a["inputs"][sel], np.float32),
+        np.ascontiguousarray(a["label"][sel], np.float32),
+        fp,
+    )
+
+
+def fusion_evaluator(
+    inputs: np.ndarray, label: np.ndarray, batch_size: int = 8
+) -> Callable[[str], dict[str, float]]:
+    """``evaluate(model_uri)``: fused masses of the registered model on ``inputs``, scored with
+    :mod:`traffictwin.fusion.metrics` as ``test/<name>``."""
+    from traffictwin.fusion import metrics as fm
+    from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.mlops.registry import load_registered
+
+    def evaluate(uri: str) -> dict[str, float]:
+        model = load_registered(uri)
+        m, _ = predict_masses(model, inputs, batch_size=batch_size)
+        agg = fm.aggregate(fm.per_sample_metrics(label, m))
+        return {f"test/{k}": float(v) for k, v in agg.items()}
+
+    return evaluate

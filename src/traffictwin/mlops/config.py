@@ -1,0 +1,71 @@
+"""Typed configuration of the ``registry`` group (promotion gate and scheduled retraining).
+
+Validated once at the start of ``pipelines/promote.py`` and ``pipelines/retrain.py`` with
+``traffictwin.config.typed(cfg.registry, RegistryConfig, key="registry")``. Folders of data and
+models are not here: the workflow layer derives them (``pipelines/_paths.py``); the fusion
+configurations are the keys of ``configurations`` and the risk variant must be one of
+``risk_model.run_variants``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from traffictwin.config import spec
+from traffictwin.mlops.gate import Gate
+
+MODES = ("min", "max")
+
+
+@dataclass
+class AliasesConfig:
+    champion: str  # the version inference uses by default
+    challenger: str  # the newest registered candidate
+
+
+@dataclass
+class GateConfig:
+    """What every gate has: the test split, the evaluation batch size and the :class:`Gate`."""
+
+    split: str
+    batch_size: int = spec(min=1)
+    metric: str = spec()
+    mode: str = spec(choices=MODES)
+    margin: float = spec(min=0.0)
+
+    def gate(self) -> Gate:
+        return Gate(self.metric, self.mode, self.margin)  # type: ignore[arg-type]
+
+
+@dataclass
+class FusionGateConfig(GateConfig):
+    """Registered models ``<name_prefix>-<cfg>``, one per pose-noise configuration."""
+
+    name_prefix: str = spec()
+    max_pairs: int | None = spec()  # first K test pairs by pair_id; None = all
+
+
+@dataclass
+class RiskGateConfig(GateConfig):
+    """Registered model ``name``: the risk network of variant ``variant``."""
+
+    name: str = spec()
+    variant: str = spec()  # one of risk_model.run_variants
+    max_frames: int | None = spec()  # first K test frames by frame id; None = all
+
+
+@dataclass
+class RetrainConfig:
+    lock: str  # fcntl lock file (relative to the repository)
+    seed_keys: list[str]  # params keys bumped for a new data batch (top-level or <group>.<key>)
+    seed_step: int = spec(min=1)
+    summary: str = spec()  # base name of the .json and .md summary
+
+
+@dataclass
+class RegistryConfig:
+    aliases: AliasesConfig
+    log: str  # promotion log: one JSON line per decision / rollback
+    fusion: FusionGateConfig
+    risk: RiskGateConfig
+    retrain: RetrainConfig

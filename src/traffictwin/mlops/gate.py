@@ -1,0 +1,226 @@
+"""The champion/challenger promotion decision, apart from any registry (no MLflow here).
+
+:class:`Gate` compares two figures of one metric (``min`` or ``max`` is better) with an
+absolute ``margin``; :func:`decide` evaluates a challenger and the current champion with one
+``evaluate(model_uri)`` callable and returns a :class:`Decision`. The caller supplies what the
+registry knows (versions, the challenger's previous ``gate.*`` tags, URIs);
+:mod:`traffictwin.mlops.registry` is the MLflow adapter that looks those up and applies the
+decision. Both figures are measured by the same callable on the same test set; the test-set
+fingerprint is recorded with the decision.
+
+Rules:
+
+- no champion yet: the challenger becomes champion (``first``) if its figure is finite;
+- the challenger is already the champion, or was already decided against the same champion
+  on the same test set (its ``gate.*`` tags say so): ``unchanged`` (unless ``force``);
+- a champion that cannot be evaluated any more (e.g. trained for another grid) gets the figure
+  NaN and is beaten by any finite challenger; the error is kept in the reason;
+- otherwise the challenger is ``promoted`` only if it is better by more than ``margin``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+Action = Literal["first", "promoted", "rejected", "unchanged"]
+Evaluator = Callable[[str], Mapping[str, float]]
+
+
+class GateError(RuntimeError):
+    """The gate cannot decide (e.g. the evaluation returned no figure for the gate's metric)."""
+
+
+@dataclass(frozen=True)
+class Gate:
+    """Quality gate on one metric.
+
+    ``metric``: key in the evaluation result (e.g. ``test/kld``); ``mode``: ``min`` (lower is
+    better) or ``max``; ``margin``: absolute improvement (in the metric's units) the
+    challenger must exceed to replace the champion (``>= 0``).
+    """
+
+    metric: str
+    mode: Literal["min", "max"] = "min"
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("min", "max"):
+            raise ValueError(f"gate mode must be 'min' or 'max', got {self.mode!r}")
+        if not (
+            isinstance(self.margin, (int, float))
+            and math.isfinite(self.margin)
+            and self.margin >= 0
+        ):
+            raise ValueError(f"gate margin must be a finite number >= 0, got {self.margin!r}")
+        if not self.metric:
+            raise ValueError("gate metric must be a non-empty metric name")
+
+    def improvement(self, challenger: float, champion: float) -> float:
+        """How much better the challenger is (positive = better), in metric units."""
+        return (champion - challenger) if self.mode == "min" else (challenger - champion)
+
+    def passes(self, challenger: float, champion: float | None) -> bool:
+        """True if ``challenger`` should replace ``champion`` (``None``: no champion yet).
+
+        A non-finite challenger figure never passes; a non-finite champion figure is beaten
+        by any finite challenger.
+        """
+        if not math.isfinite(challenger):
+            return False
+        if champion is None or not math.isfinite(champion):
+            return True
+        return self.improvement(challenger, champion) > self.margin
+
+
+@dataclass
+class Decision:
+    """One gate decision (JSON-serialisable via :meth:`to_dict`)."""
+
+    name: str
+    challenger_version: str
+    challenger_run_id: str
+    champion_version: str | None
+    metric: str
+    mode: str
+    margin: float
+    challenger_value: float | None
+    champion_value: float | None
+    action: Action
+    reason: str
+    test_fingerprint: str = ""
+    challenger_metrics: dict[str, float] = field(default_factory=dict)
+    champion_metrics: dict[str, float] = field(default_factory=dict)
+    timestamp: float = field(default_factory=time.time)
+
+    @property
+    def promotes(self) -> bool:
+        return self.action in ("first", "promoted")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["event"] = "promotion"
+        d["time"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.timestamp))
+        return d
+
+
+@dataclass(frozen=True)
+class Version:
+    """What the gate needs to know of one registered model version."""
+
+    version: str
+    uri: str
+    run_id: str = ""
+    tags: Mapping[str, str] = field(default_factory=dict)
+
+
+def metric_value(result: Mapping[str, float], metric: str, who: str) -> float:
+    """``result[metric]`` as a float; :class:`GateError` naming ``who`` if it is missing."""
+    if metric not in result:
+        raise GateError(f"evaluation of {who} returned no metric '{metric}' (got {sorted(result)})")
+    return float(result[metric])
+
+
+def already_decided(challenger: Version, champion: Version | None, test_fingerprint: str) -> bool:
+    """True if the challenger's ``gate.*`` tags record a decision against this champion and test set."""
+    tags = challenger.tags
+    return (
+        "gate.decision" in tags
+        and champion is not None
+        and tags.get("gate.champion_version") == champion.version
+        and tags.get("gate.test_fingerprint", "") == test_fingerprint
+    )
+
+
+def compare(gate: Gate, challenger_value: float, champion_value: float) -> tuple[bool, str]:
+    """Whether the challenger figure beats the champion figure, and the sentence that says why."""
+    better = gate.passes(challenger_value, champion_value)
+    word = "lower" if gate.mode == "min" else "higher"
+    finite = math.isfinite(challenger_value) and math.isfinite(champion_value)
+    imp = gate.improvement(challenger_value, champion_value) if finite else float("nan")
+    return better, (
+        f"{gate.metric}: challenger {challenger_value:.6g} vs champion {champion_value:.6g} "
+        f"({word} is better; improvement {imp:.3g} {'>' if better else '<='} margin {gate.margin:g})"
+    )
+
+
+def decide(
+    name: str,
+    challenger: Version,
+    champion: Version | None,
+    evaluate: Evaluator,
+    gate: Gate,
+    *,
+    test_fingerprint: str = "",
+    force: bool = False,
+) -> Decision:
+    """Evaluate ``challenger`` (and ``champion``, if any) with ``evaluate``; decide (see the module doc).
+
+    ``evaluate(uri) -> {metric: value}`` scores one model on the fixed held-out test set; it is
+    called with each version's ``uri``. Raises :class:`GateError` if the challenger's evaluation
+    has no figure for ``gate.metric``.
+    """
+    common = dict(
+        name=name,
+        challenger_version=challenger.version,
+        challenger_run_id=challenger.run_id or "",
+        metric=gate.metric,
+        mode=gate.mode,
+        margin=float(gate.margin),
+        test_fingerprint=test_fingerprint,
+    )
+    unchanged = dict(challenger_value=None, champion_value=None, action="unchanged")
+    if champion is not None and champion.version == challenger.version:
+        return Decision(
+            **common,
+            **unchanged,
+            champion_version=champion.version,
+            reason="challenger is already the champion",
+        )
+    if not force and already_decided(challenger, champion, test_fingerprint):
+        return Decision(
+            **common,
+            **unchanged,
+            champion_version=champion.version,  # type: ignore[union-attr]
+            reason=f"already decided against champion v{champion.version} on this test set "  # type: ignore[union-attr]
+            f"({challenger.tags['gate.decision']})",
+        )
+    ch_metrics = {k: float(v) for k, v in evaluate(challenger.uri).items()}
+    ch_val = metric_value(ch_metrics, gate.metric, f"{name} v{challenger.version}")
+    if champion is None:
+        ok = math.isfinite(ch_val)
+        return Decision(
+            **common,
+            champion_version=None,
+            challenger_value=ch_val,
+            champion_value=None,
+            action="first" if ok else "rejected",
+            reason="no champion yet: first model becomes champion"
+            if ok
+            else f"{gate.metric} is not finite",
+            challenger_metrics=ch_metrics,
+        )
+    cp_error = ""
+    try:
+        cp_metrics = {k: float(v) for k, v in evaluate(champion.uri).items()}
+        cp_val = metric_value(cp_metrics, gate.metric, f"{name} v{champion.version} (champion)")
+    except Exception as exc:  # noqa: BLE001 - a champion that no longer runs on the current test set
+        cp_metrics, cp_val = {}, float("nan")
+        cp_error = (
+            f"champion v{champion.version} could not be evaluated on this test set "
+            f"({type(exc).__name__}: {exc}); "
+        )
+    better, why = compare(gate, ch_val, cp_val)
+    return Decision(
+        **common,
+        champion_version=champion.version,
+        challenger_value=ch_val,
+        champion_value=cp_val,
+        action="promoted" if better else "rejected",
+        reason=cp_error + why,
+        challenger_metrics=ch_metrics,
+        champion_metrics=cp_metrics,
+    )

@@ -1,0 +1,168 @@
+"""Promotion run: register the freshly trained models, decide every gate, then apply.
+
+The workflow (``pipelines/promote.py``) builds one :class:`GateJob` per registered model from
+params.yaml — its gate, its model folder, and a callable that loads the fixed test set and returns
+the evaluator — and calls :func:`promote` with :class:`PromotionSettings`. Here:
+
+1. every candidate's ``model_meta.json`` is read first (:func:`read_candidate`), so a missing
+   model stops the run before anything changes;
+2. each candidate is registered once (:func:`traffictwin.mlops.registry.ensure_version`) and
+   decided against its champion (:func:`traffictwin.mlops.registry.decide`);
+3. only when every decision is taken are they applied (unless ``dry_run``), so an evaluation
+   failure moves no alias.
+
+No params.yaml, no paths of the project: jobs and settings carry everything.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from traffictwin.mlops import registry as reg
+from traffictwin.mlops.gate import Decision, Evaluator, Gate
+
+log = logging.getLogger("traffictwin.promotion")
+
+
+@dataclass
+class Candidate:
+    """A newly trained model to put through the gate: its registered name and MLflow run."""
+
+    name: str
+    run_id: str
+    model_uri: str | None
+    meta_path: Path
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def read_candidate(name: str, model_dir: str | Path) -> Candidate:
+    """The candidate behind ``<model_dir>/model_meta.json`` (keys ``mlflow_run_id``/``run_id``,
+    optional ``mlflow_model_uri``/``model_uri``). Errors name the file and the missing key."""
+    meta_path = Path(model_dir) / "model_meta.json"
+    if not meta_path.exists():
+        raise reg.RegistryError(f"{meta_path}: not found (train the model first: `dvc repro`)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise reg.RegistryError(f"{meta_path}: not valid JSON ({exc})") from None
+    run_id = meta.get("mlflow_run_id") or meta.get("run_id")
+    if not run_id:
+        raise reg.RegistryError(
+            f"{meta_path}: no MLflow run id (key 'mlflow_run_id'); "
+            "was the model trained with tracking enabled?"
+        )
+    uri = meta.get("mlflow_model_uri") or meta.get("model_uri")
+    return Candidate(
+        name=name,
+        run_id=str(run_id),
+        model_uri=str(uri) if uri else None,
+        meta_path=meta_path,
+        meta=meta,
+    )
+
+
+@dataclass
+class GateJob:
+    """One registered model to gate.
+
+    ``make_evaluator(candidate) -> (evaluate, test_fingerprint)`` loads the test set lazily
+    (after every candidate was found); ``tags`` go on a newly registered version.
+    """
+
+    name: str
+    gate: Gate
+    model_dir: Path
+    make_evaluator: Callable[[Candidate], tuple[Evaluator, str]]
+    tags: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PromotionSettings:
+    """How to run the gate: aliases, decision log, and the run's switches."""
+
+    champion_alias: str = reg.CHAMPION
+    challenger_alias: str = reg.CHALLENGER
+    log_path: Path | None = None  # promotion log (JSON lines); None: no log
+    dry_run: bool = False  # decide, change nothing
+    force: bool = False  # re-evaluate challengers that were already decided
+    uri: str | None = None  # tracking/registry URI (default: traffictwin.mlops.tracking)
+
+
+def select(jobs: Sequence[GateJob], only: Iterable[str] | None) -> list[GateJob]:
+    """The jobs named in ``only`` (all if empty); an unknown name is a :class:`RegistryError`."""
+    if not only:
+        return list(jobs)
+    wanted = set(only)
+    unknown = wanted - {j.name for j in jobs}
+    if unknown:
+        raise reg.RegistryError(
+            f"--only: unknown model(s) {sorted(unknown)}; known: {[j.name for j in jobs]}"
+        )
+    return [j for j in jobs if j.name in wanted]
+
+
+def decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> list[Decision]:
+    """Register every candidate (once) and decide it against its champion; changes no alias."""
+    candidates = [read_candidate(j.name, j.model_dir) for j in jobs]
+    decisions = []
+    for job, cand in zip(jobs, candidates, strict=True):
+        t0 = time.perf_counter()
+        mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
+        evaluate, fingerprint = job.make_evaluator(cand)
+        d = reg.decide(
+            cl,
+            job.name,
+            mv,
+            evaluate,
+            job.gate,
+            test_fingerprint=fingerprint,
+            champion_alias=settings.champion_alias,
+            force=settings.force,
+        )
+        log.info(
+            "%s v%s: %s — %s (%.1f s)",
+            d.name,
+            d.challenger_version,
+            d.action,
+            d.reason,
+            time.perf_counter() - t0,
+        )
+        decisions.append(d)
+    return decisions
+
+
+def apply_all(cl, decisions: Sequence[Decision], settings: PromotionSettings) -> None:
+    """Apply decisions (tags, log line, aliases) in order."""
+    for d in decisions:
+        reg.apply(
+            cl,
+            d,
+            log_path=settings.log_path,
+            champion_alias=settings.champion_alias,
+            challenger_alias=settings.challenger_alias,
+        )
+
+
+def promote(jobs: Sequence[GateJob], settings: PromotionSettings, *, client=None) -> list[Decision]:
+    """Decide every job, then apply the decisions unless ``settings.dry_run``; returns them."""
+    cl = client if client is not None else reg.client(settings.uri)
+    decisions = decide_all(cl, jobs, settings)
+    if not settings.dry_run:
+        apply_all(cl, decisions, settings)
+    return decisions
+
+
+def format_decision(d: Decision) -> str:
+    """One line per decision for a terminal: name, version, action and both figures."""
+    fig = ""
+    if d.challenger_value is not None:
+        fig = f"  challenger {d.challenger_value:.6g}"
+        if d.champion_value is not None:
+            fig += f"  champion v{d.champion_version} {d.champion_value:.6g}"
+    return f"{d.name:28s} v{d.challenger_version:>3s}  {d.action:9s}{fig}"

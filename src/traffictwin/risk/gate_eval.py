@@ -1,0 +1,108 @@
+"""Promotion-gate evaluation of risk networks: a fixed test set and an ``evaluate(model_uri)``.
+
+The gate (:mod:`traffictwin.mlops.gate`) re-evaluates challenger and champion with the same
+callable; this one predicts with a registered model (its own preprocessing) on the raw
+ORB-passed test frames and scores with :func:`traffictwin.risk.evaluation.evaluate`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from traffictwin.mlops.gate import GateError
+
+
+def unwrap_risk_net(model):
+    """The :class:`~traffictwin.risk.dave2.Dave2` inside an MLflow-loaded risk model."""
+    from traffictwin.risk.dave2 import Dave2
+    from traffictwin.risk.model_io import RiskModelError
+
+    for cand in (model, getattr(model, "net", None)):
+        if isinstance(cand, Dave2):
+            return cand
+    raise RiskModelError(
+        f"registered risk model is a {type(model).__name__}, expected a Dave2 (or a wrapper with .net)"
+    )
+
+
+def risk_test_set(
+    risk_root: str | Path,
+    disparity_root: str | Path,
+    orb_csv: str | Path | None,
+    split: str = "test",
+    max_frames: int | None = None,
+) -> tuple[dict[str, np.ndarray], str]:
+    """Raw test frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
+    ``risk*`` label column as ``label:<column>``), the first ``max_frames`` by frame id, and the
+    fingerprint."""
+    import pandas as pd
+
+    from traffictwin.io.shards import sha256_file
+    from traffictwin.risk.training import RiskSource
+
+    src = RiskSource(risk_root, disparity_root, orb_csv)
+    frames = src.split_frames(split).sort_values("frame_id", kind="stable")
+    if max_frames:
+        frames = frames.iloc[:max_frames]
+    parts: dict[str, list[np.ndarray]] = {"left": [], "disp_sgm": [], "disp_gt": []}
+    rows_all = []
+    for rows, arrays in src.iter_arrays(frames, ["left", "disp_sgm", "disp_gt"]):
+        for k in parts:
+            parts[k].append(arrays[k])
+        rows_all.append(rows)
+    if not rows_all:
+        raise GateError(f"{risk_root}: no ORB-passed frames in split '{split}' to evaluate on")
+    rows = pd.concat(rows_all)
+    data = {k: np.concatenate(v) for k, v in parts.items()}
+    data["speed"] = rows["speed"].to_numpy(np.float32)
+    for c in rows.columns:
+        if c.startswith("risk"):
+            data[f"label:{c}"] = rows[c].to_numpy(np.float32)
+    orb_fp = sha256_file(orb_csv)[:8] if orb_csv else "none"
+    disp_fp = src.disparity.manifest_hash()[:8] if src.disparity else "none"
+    fp = f"risk:{src.risk.manifest_hash()[:16]}:disp:{disp_fp}:orb:{orb_fp}:{split}:{len(rows)}"
+    return data, fp
+
+
+def risk_evaluator(
+    data: Mapping[str, np.ndarray],
+    label: str,
+    thresholds_s: Sequence[float] = (1.5, 1.0),
+    thw_cap: float = 10.0,
+    batch_size: int = 256,
+) -> Callable[[str], dict[str, float]]:
+    """``evaluate(model_uri)``: predicted risk of the registered model on the raw test frames,
+    scored with :func:`traffictwin.risk.evaluation.evaluate` against ``label``.
+
+    Returns ``test/mse``, ``test/mae``, … and ``test/accuracy`` (+ ``test/balanced_accuracy``) at
+    the first threshold."""
+    from traffictwin.mlops.registry import load_registered
+    from traffictwin.risk import evaluation as rm
+    from traffictwin.risk.model_io import RiskModel
+
+    key = f"label:{label}"
+    if key not in data:
+        have = sorted(k[6:] for k in data if k.startswith("label:"))
+        raise GateError(f"risk label column '{label}' not in frames.csv (has {have})")
+    y = np.asarray(data[key], np.float32)
+
+    def evaluate(uri: str) -> dict[str, float]:
+        rmodel = RiskModel(net=unwrap_risk_net(load_registered(uri)))
+        p = rmodel.predict(
+            left_bgr=data["left"],
+            disp_sgm=data["disp_sgm"],
+            disp_gt=data["disp_gt"],
+            speed=data["speed"],
+            batch_size=batch_size,
+        )
+        res = rm.evaluate(y, p, thresholds_s=tuple(thresholds_s), thw_cap=thw_cap)
+        out = {k: float(v) for k, v in res.items() if isinstance(v, (int, float))}
+        first = res[f"at_{float(thresholds_s[0]):g}s"]
+        out["test/accuracy"] = float(first["accuracy"])
+        out["test/balanced_accuracy"] = float(first["balanced_accuracy"])
+        return out
+
+    return evaluate

@@ -1,0 +1,140 @@
+"""pipelines.promote (workflow) and traffictwin.mlops.promotion (library): jobs, selection, errors.
+
+The registry round trip of the gate is in test_registry.py; the pure decision in test_gate.py.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from pipelines import promote as pm
+from pipelines._paths import PARAMS
+from traffictwin.config import ConfigError, load_params
+from traffictwin.mlops import promotion
+from traffictwin.mlops import registry as reg
+from traffictwin.mlops.gate import Decision, Gate
+
+
+def test_unknown_model_is_an_error_naming_it(capfd):
+    """An unknown model is an error naming it and the known ones (before any registry access)."""
+    assert pm.main(["--only", "traffictwin-fusion-Q", "--dry-run"]) == 1
+    err = capfd.readouterr().err
+    assert "unknown model(s) ['traffictwin-fusion-Q']" in err and "traffictwin-risk" in err
+
+
+def test_jobs_follow_the_configurations_and_the_risk_variant():
+    cfg = load_params(PARAMS)
+    rc = pm.registry_config(cfg)
+    jobs = pm.build_jobs(cfg, rc)
+    cfgs = list(cfg["configurations"])
+    assert [j.name for j in jobs] == [f"{rc.fusion.name_prefix}-{c}" for c in cfgs] + [rc.risk.name]
+    assert pm.model_names(cfg, rc) == [j.name for j in jobs]
+    assert jobs[0].model_dir == pm.fusion_model_dir(cfgs[0])
+    assert jobs[0].tags == {"model_dir": f"models/fusion/{cfgs[0]}"}
+    assert jobs[-1].model_dir == pm.risk_model_dir(rc.risk.variant)
+    assert jobs[-1].gate == Gate(rc.risk.metric, rc.risk.mode, rc.risk.margin)
+    assert [j.name for j in promotion.select(jobs, {rc.risk.name})] == [rc.risk.name]
+
+
+def test_registry_group_is_validated_once():
+    cfg = load_params(PARAMS)
+    bad = cfg.copy()
+    bad.registry.risk.variant = "nope"
+    with pytest.raises(ConfigError, match="'registry.risk.variant' is 'nope'.*run_variants"):
+        pm.registry_config(bad)
+    bad = cfg.copy()
+    bad.registry.fusion.margin = -1.0
+    with pytest.raises(ConfigError, match="'registry.fusion.margin' must be >= 0"):
+        pm.registry_config(bad)
+    bad = cfg.copy()
+    bad.registry.fusion["configs"] = ["A"]  # the configurations are the keys of `configurations`
+    with pytest.raises(ConfigError, match="registry.fusion.configs"):
+        pm.registry_config(bad)
+
+
+def test_read_candidate_errors_name_the_file(tmp_path):
+    with pytest.raises(reg.RegistryError, match="model_meta.json: not found"):
+        promotion.read_candidate("m", tmp_path)
+    (tmp_path / "model_meta.json").write_text("{")
+    with pytest.raises(reg.RegistryError, match="not valid JSON"):
+        promotion.read_candidate("m", tmp_path)
+    (tmp_path / "model_meta.json").write_text(json.dumps({"label": "x"}))
+    with pytest.raises(reg.RegistryError, match="no MLflow run id .*'mlflow_run_id'"):
+        promotion.read_candidate("m", tmp_path)
+    (tmp_path / "model_meta.json").write_text(
+        json.dumps({"mlflow_run_id": "r1", "mlflow_model_uri": "models:/m-1"})
+    )
+    c = promotion.read_candidate("m", tmp_path)
+    assert (c.run_id, c.model_uri, c.meta["mlflow_run_id"]) == ("r1", "models:/m-1", "r1")
+
+
+def _trained(tmp_path, name: str, weight: float):
+    """A model folder whose model_meta.json points at a logged MLflow model."""
+    import mlflow
+
+    m = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        m.weight.fill_(weight)
+    mlflow.set_experiment("promo")
+    with mlflow.start_run() as run:
+        mlflow.pytorch.log_model(
+            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
+        )
+    d = tmp_path / name
+    d.mkdir(exist_ok=True)
+    (d / "model_meta.json").write_text(json.dumps({"mlflow_run_id": run.info.run_id}))
+    return d
+
+
+def _weight(uri: str) -> dict[str, float]:
+    return {"test/w": float(reg.load_registered(uri).weight.item())}
+
+
+def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cl = reg.client(mlflow_uri)  # also points the fluent API (model logging) at the temp store
+    log = tmp_path / "promotions.jsonl"
+    gate = Gate("test/w", "max", 0.1)
+
+    def jobs(**weights):
+        return [
+            promotion.GateJob(
+                name=f"m-{k}",
+                gate=gate,
+                model_dir=_trained(tmp_path, k, w),
+                make_evaluator=lambda cand: (_weight, f"fp:{cand.name}"),
+                tags={"model_dir": k},
+            )
+            for k, w in weights.items()
+        ]
+
+    settings = promotion.PromotionSettings(log_path=log)
+    first = jobs(a=1.0, b=2.0)
+    ds = promotion.promote(first, promotion.PromotionSettings(dry_run=True))
+    assert [d.action for d in ds] == ["first", "first"] and not log.exists()
+    assert reg.get_alias(cl, "m-a", "champion") is None  # dry run: no alias moved
+    ds = promotion.promote(first, settings)  # same runs: registered once
+    assert [d.action for d in ds] == ["first", "first"]
+    assert cl.get_model_version("m-a", "1").tags["model_dir"] == "a"
+    ds = promotion.promote(jobs(a=1.05, b=3.0), settings)
+    assert [d.action for d in ds] == ["rejected", "promoted"]
+    assert [d.test_fingerprint for d in ds] == ["fp:m-a", "fp:m-b"]
+    assert str(reg.get_alias(cl, "m-b", "champion").version) == "2"
+    assert [r["action"] for r in reg.read_log(log)] == ["first", "first", "rejected", "promoted"]
+    assert "challenger 3" in promotion.format_decision(ds[1])
+    assert "champion v1 2" in promotion.format_decision(ds[1])
+    # a missing model folder stops the run before anything is registered
+    (tmp_path / "c").mkdir()
+    missing = promotion.GateJob("m-c", gate, tmp_path / "c", lambda cand: (_weight, ""))
+    with pytest.raises(reg.RegistryError, match="model_meta.json: not found"):
+        promotion.promote([*jobs(a=5.0), missing], settings)
+    assert reg.registered_names(cl, "m-") == ["m-a", "m-b"]
+    assert len(cl.search_model_versions("name='m-a'")) == 2
+
+
+def test_format_decision_without_figures():
+    d = Decision("m", "3", "r", "2", "x", "min", 0.0, None, None, "unchanged", "already")
+    assert promotion.format_decision(d).split() == ["m", "v", "3", "unchanged"]  # v{version:>3}
