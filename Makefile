@@ -9,7 +9,7 @@ STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
 
-.PHONY: install run test test-fast lint format params bench readme clean-venv
+.PHONY: install run test test-fast lint format params promote bench readme clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -41,6 +41,10 @@ lint: install
 format: install
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
+
+# promotion gate: challenger vs champion per registered model (after `make run`)
+promote: install
+	$(PY) -m pipelines.promote
 
 bench: install
 	$(PY) -m benchmarks.run

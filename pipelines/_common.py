@@ -52,6 +52,9 @@ def run_stage(main: Callable[[], object], name: str) -> None:
     field or parameter itself; a traceback would only bury that line. Set
     ``TRAFFICTWIN_TRACEBACK=1`` to see the traceback anyway.
     """
+    from ._provenance import provenance_env
+
+    os.environ.update(provenance_env())  # git commit + params hash for the MLflow tags
     try:
         main()
     except (ValueError, RuntimeError) as exc:

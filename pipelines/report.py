@@ -19,7 +19,7 @@ import yaml
 
 from traffictwin.config import flatten, get, typed
 from traffictwin.fusion import report_section as fusion_report
-from traffictwin.mlops.tracking import git_commit, pipeline_run_id
+from traffictwin.mlops.tracking import pipeline_run_id
 from traffictwin.report.config import ReportParams
 from traffictwin.report.model import ReportInputs, SectionProvider
 from traffictwin.report.render import write_report
@@ -27,6 +27,7 @@ from traffictwin.risk import report_section as risk_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import CONF, DVC_YAML, REPORTS, ROOT
+from ._provenance import git_commit
 
 
 def profile_keys(conf_profile_dir: Path) -> set[str]:

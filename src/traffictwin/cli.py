@@ -60,6 +60,8 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
+
 SIMPLEX_TOL = 1e-4
 DIVISOR = 16
 ALIASES = ("champion", "challenger")
@@ -511,11 +513,13 @@ def risk_one(
     return out
 
 
-def risk_verdict(risk: float, speed: float | None, thw_threshold: float = 1.5) -> dict[str, Any]:
+def risk_verdict(
+    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW
+) -> dict[str, Any]:
     """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
     no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s).
     With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
-    thw = 1.0 / (20.0 * risk) if risk > 0 else math.inf
+    thw = float(risk_to_thw(np.asarray(risk), cap=math.inf))
     out: dict[str, Any] = {
         "risk": risk,
         "thw_s": thw,
@@ -716,8 +720,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--thw-threshold",
         type=float,
-        default=1.5,
-        help="critical if THW below this (s), default 1.5",
+        default=CRITICAL_THW,
+        help=f"critical if THW below this (s), default {CRITICAL_THW}",
     )
     r.add_argument(
         "--params",

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from traffictwin.mlops.gate import GateError
+from traffictwin.risk.evaluation import THRESHOLDS_S
 
 
 def unwrap_risk_net(model):
@@ -70,7 +71,7 @@ def risk_test_set(
 def risk_evaluator(
     data: Mapping[str, np.ndarray],
     label: str,
-    thresholds_s: Sequence[float] = (1.5, 1.0),
+    thresholds_s: Sequence[float] = THRESHOLDS_S,
     thw_cap: float = 10.0,
     batch_size: int = 256,
 ) -> Callable[[str], dict[str, float]]:
