@@ -12,13 +12,10 @@ import pytest
 import yaml
 
 from traffictwin.evidential.dempster import dempster
+from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
 from traffictwin.fusion.findings import fusion_findings
-from traffictwin.fusion.methods import (
-    EvalSettings,
-    evaluate_prealigned,
-    evaluate_registered,
-    fuse_prealigned,
-)
+from traffictwin.fusion.methods import METHODS as REGISTRY
+from traffictwin.fusion.methods import FusionInput, fuse
 from traffictwin.grid import GridSpec
 
 CFGS = ("A", "B", "C", "D")
@@ -28,6 +25,10 @@ METHODS = ("ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn")
 def random_masses(rng: np.random.Generator, n: int, h: int = 16, w: int = 12) -> np.ndarray:
     d = rng.dirichlet([1.0, 1.0, 1.0], size=(n, h, w))
     return np.moveaxis(d[..., :2], -1, 1).astype(np.float32)
+
+
+def fuse_prealigned(inputs: np.ndarray, method: str) -> np.ndarray:
+    return fuse(method, FusionInput(inputs=inputs)).masses
 
 
 def png_ok(path: Path) -> None:
@@ -51,10 +52,12 @@ def test_prealigned_baselines():
     np.testing.assert_allclose(fuse_prealigned(inputs, "naive"), dempster(m1, m2), atol=1e-6)
     c = fuse_prealigned(np.concatenate([m1, m1], axis=1), "naive-cautious")
     np.testing.assert_allclose(c, m1, atol=1e-5)  # idempotent
-    with pytest.raises(ValueError, match="unknown prealigned fusion method"):
+    with pytest.raises(ValueError, match="unknown fusion method"):
         fuse_prealigned(inputs, "bayes")
     with pytest.raises(ValueError, match="inputs must have shape"):
         fuse_prealigned(m1, "naive")
+    with pytest.raises(ValueError, match="needs"):
+        fuse("registered", FusionInput(inputs=inputs))
 
 
 def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
@@ -62,12 +65,13 @@ def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
     m1, m2 = random_masses(rng, 5), random_masses(rng, 5)
     inputs = np.concatenate([m1, m2], axis=1)
     label = dempster(m1, m2)
-    frame, auroc = evaluate_prealigned(inputs, label, "naive", EvalSettings(batch_size=2))
+    x = FusionInput(inputs=inputs)
+    frame, auroc = evaluate_method("naive", x, label, EvalSettings(batch_size=2))
     assert len(frame) == 5 and (frame["ms"] >= 0).all()
     np.testing.assert_allclose(frame["kld_fo"], 0, atol=1e-6)
     assert (frame["dice_occ"].fillna(1) == 1).all() and (frame["dice_free"].fillna(1) == 1).all()
     assert auroc.n_wrong == 0 and math.isnan(auroc.value())
-    ego, _ = evaluate_prealigned(inputs, label, "ego", EvalSettings())
+    ego, _ = evaluate_method("ego", x, label, EvalSettings())
     assert (ego["kld_fo"] > 0).all()
 
 
@@ -86,9 +90,15 @@ def test_evaluate_registered_on_synthetic_pair():
     true = relative_pose(p1, p2)[None]
     noisy = true + np.array([[2.0, -1.0, np.radians(9.0)]])
     label = dempster(m1, warp_masses(m2, true[0], grid))[None]
-    frame, _ = evaluate_registered(
-        m1[None], m2[None], noisy, true, label, grid, RegistrationParams(), EvalSettings()
+    x = FusionInput(
+        map1=m1[None],
+        map2=m2[None],
+        rel_pose_noisy=noisy,
+        rel_pose_true=true,
+        grid=grid,
+        registration=RegistrationParams(),
     )
+    frame, _ = evaluate_method("registered", x, label, EvalSettings())
     row = frame.iloc[0]
     assert row["reg_accepted"] and row["reg_success"]
     assert row["reg_trans_err_m"] < 0.25 < row["noisy_trans_err_m"]
@@ -169,24 +179,84 @@ def test_findings_report_kld_b_and_explain_negative_kld_a():
     )
 
 
-def test_figures_are_valid_pngs(tmp_path):
-    from traffictwin.fusion.figures import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
+def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
+    from traffictwin.fusion.figures import kld_boxplot, save_figure
 
     rng = np.random.default_rng(2)
     vals = {
         m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)}
         for m in ("naive", "dnn")
     }
-    png_ok(kld_boxplot(vals, CFGS, ["naive", "dnn"], tmp_path / "box.png"))
+    vals["naive"]["D"] = np.array([np.nan])  # no finite value: no box
+    fig = kld_boxplot(vals, CFGS, ["naive", "dnn"])
+    ax = fig.axes[0]
+    boxes = {p.get_gid(): p for p in ax.patches if p.get_gid()}
+    medians = {line.get_gid(): line for line in ax.lines if line.get_gid()}
+    assert sorted(boxes) == sorted(
+        f"{m}/{c}" for m in ("naive", "dnn") for c in CFGS if (m, c) != ("naive", "D")
+    )
+    # each box spans the quartiles of its configuration x method values
+    for gid, box in boxes.items():
+        m, c = gid.split("/")
+        y = box.get_path().vertices[:, 1]
+        q25, q75 = np.quantile(vals[m][c], [0.25, 0.75])
+        assert y.min() == pytest.approx(q25) and y.max() == pytest.approx(q75), gid
+        np.testing.assert_allclose(medians[f"{gid}/median"].get_ydata(), np.median(vals[m][c]))
+    assert ax.get_ylabel() == "KLD(label ‖ prediction)"
+    assert [t.get_text() for t in ax.get_xticklabels()] == [f"config {c}" for c in CFGS]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        REGISTRY["naive"].label,
+        REGISTRY["dnn"].label,
+    ]
+    png_ok(save_figure(fig, tmp_path / "box.png"))
+
+
+def test_scores_plot_lines_are_the_metrics(tmp_path):
+    from traffictwin.fusion.figures import save_figure, scores_plot
+
+    rng = np.random.default_rng(3)
     scores = {
         m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS}
         for m in ("naive", "dnn")
     }
-    png_ok(scores_plot(scores, CFGS, ["naive", "dnn"], "occ", tmp_path / "occ.png"))
+    fig = scores_plot(scores, CFGS, ["naive", "dnn"], "occ")
+    assert [ax.get_title() for ax in fig.axes[:3]] == [
+        "Precision (occupied cells)",
+        "Recall (occupied cells)",
+        "Dice (occupied cells)",
+    ]
+    for ax, metric in zip(fig.axes, ("precision", "recall", "dice")):
+        assert ax.get_xlabel() == "configuration"
+        assert [t.get_text() for t in ax.get_xticklabels()] == list(CFGS)
+        lines = {line.get_gid(): line for line in ax.lines}
+        assert sorted(lines) == ["dnn", "naive"]
+        for m, line in lines.items():
+            np.testing.assert_allclose(line.get_xdata(), np.arange(len(CFGS)))
+            np.testing.assert_allclose(
+                line.get_ydata(), [scores[m][c][f"{metric}_occ"] for c in CFGS]
+            )
+            assert line.get_label() == REGISTRY[m].label
+    assert fig.axes[0].get_ylabel() == "score" and fig.axes[0].get_ylim() == (0, 1.02)
+    png_ok(save_figure(fig, tmp_path / "occ.png"))
+
+
+def test_qualitative_grid_shows_each_map(tmp_path):
+    from traffictwin.fusion.figures import masses_to_rgb, qualitative_grid, save_figure
+
+    rng = np.random.default_rng(2)
     maps = random_masses(rng, 4, 64, 48)
-    png_ok(
-        qualitative_grid({"label": list(maps), "naive": list(maps[::-1])}, CFGS, tmp_path / "q.png")
-    )
+    rows = {"label": list(maps), "naive": list(maps[::-1])}
+    fig = qualitative_grid(rows, CFGS)
+    axes = np.array(fig.axes).reshape(2, len(CFGS))
+    for r, name in enumerate(rows):
+        assert axes[r][0].get_ylabel() == name
+        for c, cfg in enumerate(CFGS):
+            np.testing.assert_allclose(
+                axes[r][c].get_images()[0].get_array(), masses_to_rgb(rows[name][c])
+            )
+            if r == 0:
+                assert axes[r][c].get_title() == f"config {cfg}"
+    png_ok(save_figure(fig, tmp_path / "q.png"))
     rgb = masses_to_rgb(np.array([[[1.0]], [[0.0]]]))
     np.testing.assert_array_equal(rgb[0, 0], [0, 1, 0])  # free = green
 
