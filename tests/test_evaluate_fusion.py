@@ -106,6 +106,97 @@ def test_evaluate_registered_on_synthetic_pair():
     assert row["kld_fo"] < 0.2 * kld_fo(label, naive)[0]
 
 
+def test_registry_lists_every_method_once_with_its_inputs():
+    from traffictwin.fusion.methods import INPUTS, register
+
+    assert list(REGISTRY) == ["ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn"]
+    for name, m in REGISTRY.items():
+        assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
+    assert REGISTRY["registered"].needs == ("raw",) and REGISTRY["registered"].slow
+    assert "model" in REGISTRY["dnn"].needs
+    with pytest.raises(ValueError, match="registered twice"):
+        register("naive", "again", needs=("prealigned",))(lambda x: x.inputs[:, :2])
+    with pytest.raises(ValueError, match="unknown needs"):
+        register("x", "y", needs=("lidar",))
+
+
+def test_a_new_method_is_one_function_and_one_registration():
+    from traffictwin.fusion import methods
+
+    @methods.register("half", "map 1 with half the masses", needs=("prealigned",))
+    def _half(x):
+        return 0.5 * x.inputs[:, :2]
+
+    try:
+        rng = np.random.default_rng(5)
+        m1, m2 = random_masses(rng, 3), random_masses(rng, 3)
+        x = FusionInput(inputs=np.concatenate([m1, m2], axis=1))
+        np.testing.assert_allclose(methods.fuse("half", x).masses, 0.5 * m1)
+        frame, _ = evaluate_method("half", x, m1, EvalSettings(batch_size=2))
+        assert len(frame) == 3 and list(methods.METHODS)[-1] == "half"
+    finally:
+        methods.METHODS.pop("half")
+
+
+def test_evaluate_method_subsets_and_registered_diagnostics():
+    from traffictwin.fusion.evaluation import evenly_spaced
+
+    np.testing.assert_array_equal(evenly_spaced(10, None), np.arange(10))
+    np.testing.assert_array_equal(evenly_spaced(10, 3), [0, 4, 9])  # spread, first and last
+    np.testing.assert_array_equal(evenly_spaced(3, 5), [0, 1, 2])
+    rng = np.random.default_rng(6)
+    m1, m2 = random_masses(rng, 4), random_masses(rng, 4)
+    x = FusionInput(inputs=np.concatenate([m1, m2], axis=1))
+    sub = x.take(np.array([1, 3]))
+    assert len(sub) == 2 and sub.map1 is None
+    np.testing.assert_array_equal(sub.inputs[:, :2], m1[[1, 3]])
+    with pytest.raises(ValueError, match="prediction shape"):
+        evaluate_method("ego", x, m1[:, :, :8], EvalSettings())
+
+
+def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
+    from omegaconf import OmegaConf
+
+    from traffictwin.config import ConfigError
+    from traffictwin.fusion.config import fusion_eval_config, pose_configurations
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = OmegaConf.create(yaml.safe_load((root / "params.yaml").read_text()))
+    fc = fusion_eval_config(cfg)
+    assert fc.registration_params.feature == cfg.evaluation.fusion.registration.feature
+    assert list(pose_configurations(cfg)) == list(cfg.configurations)  # conf order
+    for key, value, match in (
+        ("configs", ["A"], "evaluation.fusion.configs"),  # removed: derived from configurations
+        ("max_pairs", 0, "evaluation.fusion.max_pairs' must be >= 1"),
+        ("split", "dev", "evaluation.fusion.split"),
+        ("registration", {"feature": "edges"}, "evaluation.fusion.registration"),
+        ("trans_bins_m", [0, -1], r"evaluation.fusion.trans_bins_m\[1\]"),
+    ):
+        bad = OmegaConf.create(OmegaConf.to_container(cfg))
+        OmegaConf.update(bad, f"evaluation.fusion.{key}", value, merge=False)
+        with pytest.raises(ConfigError, match=match):
+            fusion_eval_config(bad)
+    bad = OmegaConf.create(OmegaConf.to_container(cfg))
+    OmegaConf.update(bad, "configurations.B.alpha", -1.0, merge=False)
+    with pytest.raises(ConfigError, match="configurations.B.alpha"):
+        pose_configurations(bad)
+
+
+def test_json_clean_and_mlflow_numbers():
+    from traffictwin.fusion.evaluation import json_clean, mlflow_metrics
+
+    m = json_clean(
+        {
+            "test": {"A": {"dnn": {"k": np.float32(0.5)}, "naive": {"k": float("nan"), "n": 3}}},
+            "cross": {"dnn-A": {"A": {"k": 0.25}, "B": {"k": np.inf}}},
+            "ids": (np.int64(1), 2.0),
+        }
+    )
+    assert m["test"]["A"]["naive"]["k"] is None and m["cross"]["dnn-A"]["B"]["k"] is None
+    assert m["ids"] == [1, 2.0] and isinstance(m["ids"][0], int)
+    assert mlflow_metrics(m, "A") == {"test/k": 0.5, "test_naive/n": 3.0, "cross_A/k": 0.25}
+
+
 def _metrics(net: dict[str, float], naive: dict[str, float]) -> dict:
     test = {}
     for c in CFGS:

@@ -57,20 +57,16 @@ __all__ = [
     "mlflow_metrics",
 ]
 
+# precision / recall / Dice of both classes, pooled over samples
+CLASS_SCORE_KEYS = tuple(
+    f"{m}_{c}" for c in ("occ", "free") for m in ("precision", "recall", "dice")
+)
 SUMMARY_KEYS = (
     "n",
-    "kld_fo_mean",
-    "kld_fo_median",
-    "kld_fo_q25",
-    "kld_fo_q75",
+    *(f"kld_fo_{s}" for s in ("mean", "median", "q25", "q75")),
     "kld_fou_mean",
     "kld_fou_median",
-    "precision_occ",
-    "recall_occ",
-    "dice_occ",
-    "precision_free",
-    "recall_free",
-    "dice_free",
+    *CLASS_SCORE_KEYS,
     "dice_occ_sample_mean",
     "dice_free_sample_mean",
     "u_mean",
@@ -86,15 +82,7 @@ CROSS_KEYS = (
     "recall_occ",
 )
 BIN_KEYS = ("n", "kld_fo_mean", "kld_fo_median", "dice_occ", "dice_free")
-SCORE_KEYS = (
-    "precision_occ",
-    "recall_occ",
-    "dice_occ",
-    "precision_free",
-    "recall_free",
-    "dice_free",
-    "kld_fo_mean",
-)
+SCORE_KEYS = (*CLASS_SCORE_KEYS, "kld_fo_mean")  # the columns of fusion_scores.csv per method
 # the method order of the score plots / fusion_scores.csv and the methods of the KLD box plot
 SCORE_METHODS = ("dnn", "naive", "registered", "naive-yager", "naive-cautious", "ego")
 FIGURE_METHODS = ("naive", "registered", "dnn")

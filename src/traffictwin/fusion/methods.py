@@ -48,6 +48,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from traffictwin.evidential.dempster import dempster
+from traffictwin.evidential.rules import cautious, yager
 from traffictwin.fusion.registration import RegistrationParams, RegistrationResult, register_pair
 from traffictwin.grid import GridSpec
 
@@ -188,6 +190,10 @@ def fuse(name: str, x: FusionInput) -> Fused:
 
 
 # -- prealigned baselines --------------------------------------------------------------------------
+PREALIGNED = ("prealigned",)
+NAIVE = "map 2 warped by the noisy pose, combined with "
+
+
 def _prealigned(x: FusionInput) -> tuple[np.ndarray, np.ndarray]:
     inputs = np.asarray(x.inputs)
     if inputs.ndim != 4 or inputs.shape[1] != 4:
@@ -195,44 +201,25 @@ def _prealigned(x: FusionInput) -> tuple[np.ndarray, np.ndarray]:
     return inputs[:, 0:2], inputs[:, 2:4]
 
 
-@register("ego", "map 1 alone (no cooperation)", needs=("prealigned",), label="ego (map 1 only)")
+@register("ego", "map 1 alone (no cooperation)", needs=PREALIGNED, label="ego (map 1 only)")
 def _ego(x: FusionInput) -> np.ndarray:
     return np.ascontiguousarray(_prealigned(x)[0], dtype=np.float32)
 
 
 @register(
-    "naive",
-    "map 2 warped by the noisy pose, Dempster's rule (the paper's baseline)",
-    needs=("prealigned",),
-    label="naive (noisy pose + Dempster)",
+    "naive", NAIVE + "Dempster's rule", needs=PREALIGNED, label="naive (noisy pose + Dempster)"
 )
 def _naive(x: FusionInput) -> np.ndarray:
-    from traffictwin.evidential.dempster import dempster
-
     return dempster(*_prealigned(x))
 
 
-@register(
-    "naive-yager",
-    "map 2 warped by the noisy pose, Yager's rule (conflict -> unknown)",
-    needs=("prealigned",),
-    label="naive + Yager",
-)
+@register("naive-yager", NAIVE + "Yager's rule", needs=PREALIGNED, label="naive + Yager")
 def _naive_yager(x: FusionInput) -> np.ndarray:
-    from traffictwin.evidential.rules import yager
-
     return yager(*_prealigned(x))
 
 
-@register(
-    "naive-cautious",
-    "map 2 warped by the noisy pose, Denoeux's normalised cautious rule",
-    needs=("prealigned",),
-    label="naive + cautious",
-)
+@register("naive-cautious", NAIVE + "Denoeux's cautious rule", needs=PREALIGNED, label="naive + cautious")
 def _naive_cautious(x: FusionInput) -> np.ndarray:
-    from traffictwin.evidential.rules import cautious
-
     return cautious(*_prealigned(x))
 
 
@@ -259,7 +246,6 @@ def registered_fusion(
 ) -> RegisteredBatch:
     """Register each raw map 2 ``(N, 2, H, W)`` onto map 1 from the noisy pose ``(N, 3)``, warp,
     Dempster (``params``: default :class:`RegistrationParams`)."""
-    from traffictwin.evidential.dempster import dempster
     from traffictwin.evidential.warp import warp_masses
 
     params = RegistrationParams() if params is None else params
