@@ -218,7 +218,9 @@ def _naive_yager(x: FusionInput) -> np.ndarray:
     return yager(*_prealigned(x))
 
 
-@register("naive-cautious", NAIVE + "Denoeux's cautious rule", needs=PREALIGNED, label="naive + cautious")
+@register(
+    "naive-cautious", NAIVE + "Denoeux's cautious rule", needs=PREALIGNED, label="naive + cautious"
+)
 def _naive_cautious(x: FusionInput) -> np.ndarray:
     return cautious(*_prealigned(x))
 
