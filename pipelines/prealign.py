@@ -5,30 +5,43 @@ axis). The standard-normal draw of pair ``pair_id`` / draw ``d`` depends only on
 ``(seed, fusion_data.prealign.seed, pair_id, d)``, so val/test noise is fixed once per pair and
 shared (scaled) by all configurations; train shards get ``fusion_data.prealign.train_draws``
 draws per pair. Shards map 1:1 to data/fusion's shards (same index and split).
-Library: :func:`traffictwin.fusion.pairs.prealign_shard`.
+Library: :func:`traffictwin.fusion.pairs.prealign_shard` (one pair: :func:`~traffictwin.fusion.pairs.prealign`).
 """
 
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
-import sys
 import time
 
-from tqdm import tqdm
+from omegaconf import OmegaConf
 
-from pipelines._common import ROOT, params, run_stage, setup_logging, stage_timer
-from pipelines.generate_fusion import K, grid_from_params
+from pipelines._common import (
+    WORKER_STATE,
+    map_shards,
+    params,
+    run_stage,
+    setup_logging,
+    stage_timer,
+)
+from pipelines._paths import FUSION_DATA, prealigned
 from traffictwin.config import ConfigError, get
+from traffictwin.fusion.config import fusion_data_config, grid_config, pose_configurations
 from traffictwin.fusion.pairs import prealign_shard
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 
-SRC = ROOT / "data" / "fusion"
 
-
-def _work(args: tuple) -> tuple[int, str, int]:
-    index, src, dst, seed, r, alpha, draws, grid, level = args
-    digest, count = prealign_shard(src, dst, seed, r, alpha, draws, grid, compresslevel=level)
+def _work(index: int) -> tuple[int, str, int]:
+    s = WORKER_STATE
+    digest, count = prealign_shard(
+        str(FUSION_DATA / s["names"][index]),
+        str(s["out"] / shard_name(index)),
+        s["seed"],
+        s["r"],
+        s["alpha"],
+        s["draws"][index],
+        s["grid"],
+        compresslevel=s["level"],
+    )
     return index, digest, count
 
 
@@ -43,67 +56,43 @@ def main(argv: list[str] | None = None) -> None:
     log = setup_logging()
     cfg = params()
     with stage_timer(f"prealign@{args.cfg}"):
-        configs = get(cfg, "configurations", dict)
+        configs = pose_configurations(cfg)
         if args.cfg not in configs:
             raise ConfigError(
                 f"params.yaml: configuration '{args.cfg}' not in 'configurations' (has {sorted(configs)})"
             )
-        r = get(cfg, f"configurations.{args.cfg}.r", float, min=0)
-        alpha = get(cfg, f"configurations.{args.cfg}.alpha", float, min=0, max=180)
+        noise = configs[args.cfg]
         seed = get(cfg, "seed", int, min=0)
-        noise_seed = seed * 1009 + get(cfg, f"{K}.prealign.seed", int, min=0)
-        train_draws = get(cfg, f"{K}.prealign.train_draws", int, min=1)
-        workers = get(cfg, f"{K}.workers", int, min=1)
-        level = get(cfg, f"{K}.compresslevel", int, min=0, max=9)
-        grid = grid_from_params(cfg)
-        src = Dataset(SRC, kind="fusion")  # verifies every shard's SHA-256
-        out = ROOT / "data" / "prealigned" / args.cfg
+        fd = fusion_data_config(cfg)
+        noise_seed = seed * 1009 + fd.prealign.seed
+        grid = grid_config(cfg)
+        src = Dataset(FUSION_DATA, kind="fusion")  # verifies every shard's SHA-256
+        out = prealigned(args.cfg)
         record = {
-            "configuration": {"r": r, "alpha": alpha},
+            "configuration": {"r": noise.r, "alpha": noise.alpha},
             "noise_seed": noise_seed,
-            "train_draws": train_draws,
-            "grid": get(cfg, "grid", dict),
+            "train_draws": fd.prealign.train_draws,
+            "grid": OmegaConf.to_container(cfg["grid"], resolve=True),
             "source_manifest": src.manifest_hash(),
         }
         writer = DatasetWriter(out, "prealigned", params=record, seed=seed)
-        jobs = []
-        for i, sh in enumerate(src.shards):
-            if writer.has_shard(i):
-                continue
-            draws = train_draws if sh.get("split") == "train" else 1
-            jobs.append(
-                (
-                    i,
-                    str(SRC / sh["name"]),
-                    str(out / shard_name(i)),
-                    noise_seed,
-                    r,
-                    alpha,
-                    draws,
-                    grid,
-                    level,
-                )
-            )
+        todo = [i for i in range(len(src.shards)) if not writer.has_shard(i)]
+        state = {
+            "names": [sh["name"] for sh in src.shards],
+            "draws": [
+                fd.prealign.train_draws if sh.get("split") == "train" else 1 for sh in src.shards
+            ],
+            "out": out,
+            "seed": noise_seed,
+            "r": noise.r,
+            "alpha": noise.alpha,
+            "grid": grid,
+            "level": fd.compresslevel,
+        }
         t0 = time.perf_counter()
-        bar = tqdm(
-            total=len(src.shards),
-            initial=len(src.shards) - len(jobs),
-            unit="shard",
-            desc=f"prealign@{args.cfg}",
-            file=sys.stderr,
-        )
-        done = []
-        if workers > 1 and len(jobs) > 1:
-            with mp.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
-                for res in pool.imap_unordered(_work, jobs):
-                    done.append(res)
-                    bar.update(1)
-        else:
-            for job in jobs:
-                done.append(_work(job))
-                bar.update(1)
-        bar.close()
-        for i, digest, count in done:
+        for i, digest, count in map_shards(
+            _work, todo, workers=fd.workers, state=state, desc=f"prealign@{args.cfg}"
+        ):
             writer.record_shard(i, shard_name(i), digest, count, src.shards[i].get("split"))
         m = writer.finalize(extra={"configuration": args.cfg, "source": "data/fusion"})
         log.info(

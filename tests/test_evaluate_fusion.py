@@ -12,13 +12,10 @@ import pytest
 import yaml
 
 from traffictwin.evidential.dempster import dempster
+from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
 from traffictwin.fusion.findings import fusion_findings
-from traffictwin.fusion.methods import (
-    EvalSettings,
-    evaluate_prealigned,
-    evaluate_registered,
-    fuse_prealigned,
-)
+from traffictwin.fusion.methods import METHODS as REGISTRY
+from traffictwin.fusion.methods import FusionInput, fuse
 from traffictwin.grid import GridSpec
 
 CFGS = ("A", "B", "C", "D")
@@ -28,6 +25,10 @@ METHODS = ("ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn")
 def random_masses(rng: np.random.Generator, n: int, h: int = 16, w: int = 12) -> np.ndarray:
     d = rng.dirichlet([1.0, 1.0, 1.0], size=(n, h, w))
     return np.moveaxis(d[..., :2], -1, 1).astype(np.float32)
+
+
+def fuse_prealigned(inputs: np.ndarray, method: str) -> np.ndarray:
+    return fuse(method, FusionInput(inputs=inputs)).masses
 
 
 def png_ok(path: Path) -> None:
@@ -51,10 +52,12 @@ def test_prealigned_baselines():
     np.testing.assert_allclose(fuse_prealigned(inputs, "naive"), dempster(m1, m2), atol=1e-6)
     c = fuse_prealigned(np.concatenate([m1, m1], axis=1), "naive-cautious")
     np.testing.assert_allclose(c, m1, atol=1e-5)  # idempotent
-    with pytest.raises(ValueError, match="unknown prealigned fusion method"):
+    with pytest.raises(ValueError, match="unknown fusion method"):
         fuse_prealigned(inputs, "bayes")
     with pytest.raises(ValueError, match="inputs must have shape"):
         fuse_prealigned(m1, "naive")
+    with pytest.raises(ValueError, match="needs"):
+        fuse("registered", FusionInput(inputs=inputs))
 
 
 def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
@@ -62,12 +65,13 @@ def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
     m1, m2 = random_masses(rng, 5), random_masses(rng, 5)
     inputs = np.concatenate([m1, m2], axis=1)
     label = dempster(m1, m2)
-    frame, auroc = evaluate_prealigned(inputs, label, "naive", EvalSettings(batch_size=2))
+    x = FusionInput(inputs=inputs)
+    frame, auroc = evaluate_method("naive", x, label, EvalSettings(batch_size=2))
     assert len(frame) == 5 and (frame["ms"] >= 0).all()
     np.testing.assert_allclose(frame["kld_fo"], 0, atol=1e-6)
     assert (frame["dice_occ"].fillna(1) == 1).all() and (frame["dice_free"].fillna(1) == 1).all()
     assert auroc.n_wrong == 0 and math.isnan(auroc.value())
-    ego, _ = evaluate_prealigned(inputs, label, "ego", EvalSettings())
+    ego, _ = evaluate_method("ego", x, label, EvalSettings())
     assert (ego["kld_fo"] > 0).all()
 
 
@@ -86,14 +90,111 @@ def test_evaluate_registered_on_synthetic_pair():
     true = relative_pose(p1, p2)[None]
     noisy = true + np.array([[2.0, -1.0, np.radians(9.0)]])
     label = dempster(m1, warp_masses(m2, true[0], grid))[None]
-    frame, _ = evaluate_registered(
-        m1[None], m2[None], noisy, true, label, grid, RegistrationParams(), EvalSettings()
+    x = FusionInput(
+        map1=m1[None],
+        map2=m2[None],
+        rel_pose_noisy=noisy,
+        rel_pose_true=true,
+        grid=grid,
+        registration=RegistrationParams(),
     )
+    frame, _ = evaluate_method("registered", x, label, EvalSettings())
     row = frame.iloc[0]
     assert row["reg_accepted"] and row["reg_success"]
     assert row["reg_trans_err_m"] < 0.25 < row["noisy_trans_err_m"]
     naive = dempster(m1, warp_masses(m2, noisy[0], grid))[None]
     assert row["kld_fo"] < 0.2 * kld_fo(label, naive)[0]
+
+
+def test_registry_lists_every_method_once_with_its_inputs():
+    from traffictwin.fusion.methods import INPUTS, register
+
+    assert list(REGISTRY) == ["ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn"]
+    for name, m in REGISTRY.items():
+        assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
+    assert REGISTRY["registered"].needs == ("raw",) and REGISTRY["registered"].slow
+    assert "model" in REGISTRY["dnn"].needs
+    with pytest.raises(ValueError, match="registered twice"):
+        register("naive", "again", needs=("prealigned",))(lambda x: x.inputs[:, :2])
+    with pytest.raises(ValueError, match="unknown needs"):
+        register("x", "y", needs=("lidar",))
+
+
+def test_a_new_method_is_one_function_and_one_registration():
+    from traffictwin.fusion import methods
+
+    @methods.register("half", "map 1 with half the masses", needs=("prealigned",))
+    def _half(x):
+        return 0.5 * x.inputs[:, :2]
+
+    try:
+        rng = np.random.default_rng(5)
+        m1, m2 = random_masses(rng, 3), random_masses(rng, 3)
+        x = FusionInput(inputs=np.concatenate([m1, m2], axis=1))
+        np.testing.assert_allclose(methods.fuse("half", x).masses, 0.5 * m1)
+        frame, _ = evaluate_method("half", x, m1, EvalSettings(batch_size=2))
+        assert len(frame) == 3 and list(methods.METHODS)[-1] == "half"
+    finally:
+        methods.METHODS.pop("half")
+
+
+def test_evaluate_method_subsets_and_registered_diagnostics():
+    from traffictwin.fusion.evaluation import evenly_spaced
+
+    np.testing.assert_array_equal(evenly_spaced(10, None), np.arange(10))
+    np.testing.assert_array_equal(evenly_spaced(10, 3), [0, 4, 9])  # spread, first and last
+    np.testing.assert_array_equal(evenly_spaced(3, 5), [0, 1, 2])
+    rng = np.random.default_rng(6)
+    m1, m2 = random_masses(rng, 4), random_masses(rng, 4)
+    x = FusionInput(inputs=np.concatenate([m1, m2], axis=1))
+    sub = x.take(np.array([1, 3]))
+    assert len(sub) == 2 and sub.map1 is None
+    np.testing.assert_array_equal(sub.inputs[:, :2], m1[[1, 3]])
+    with pytest.raises(ValueError, match="prediction shape"):
+        evaluate_method("ego", x, m1[:, :, :8], EvalSettings())
+
+
+def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
+    from omegaconf import OmegaConf
+
+    from traffictwin.config import ConfigError
+    from traffictwin.fusion.config import fusion_eval_config, pose_configurations
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = OmegaConf.create(yaml.safe_load((root / "params.yaml").read_text()))
+    fc = fusion_eval_config(cfg)
+    assert fc.registration_params.feature == cfg.evaluation.fusion.registration.feature
+    assert list(pose_configurations(cfg)) == list(cfg.configurations)  # conf order
+    for key, value, match in (
+        ("configs", ["A"], "evaluation.fusion.configs"),  # removed: derived from configurations
+        ("max_pairs", 0, "evaluation.fusion.max_pairs' must be >= 1"),
+        ("split", "dev", "evaluation.fusion.split"),
+        ("registration", {"feature": "edges"}, "evaluation.fusion.registration"),
+        ("trans_bins_m", [0, -1], r"evaluation.fusion.trans_bins_m\[1\]"),
+    ):
+        bad = OmegaConf.create(OmegaConf.to_container(cfg))
+        OmegaConf.update(bad, f"evaluation.fusion.{key}", value, merge=False)
+        with pytest.raises(ConfigError, match=match):
+            fusion_eval_config(bad)
+    bad = OmegaConf.create(OmegaConf.to_container(cfg))
+    OmegaConf.update(bad, "configurations.B.alpha", -1.0, merge=False)
+    with pytest.raises(ConfigError, match="configurations.B.alpha"):
+        pose_configurations(bad)
+
+
+def test_json_clean_and_mlflow_numbers():
+    from traffictwin.fusion.evaluation import json_clean, mlflow_metrics
+
+    m = json_clean(
+        {
+            "test": {"A": {"dnn": {"k": np.float32(0.5)}, "naive": {"k": float("nan"), "n": 3}}},
+            "cross": {"dnn-A": {"A": {"k": 0.25}, "B": {"k": np.inf}}},
+            "ids": (np.int64(1), 2.0),
+        }
+    )
+    assert m["test"]["A"]["naive"]["k"] is None and m["cross"]["dnn-A"]["B"]["k"] is None
+    assert m["ids"] == [1, 2.0] and isinstance(m["ids"][0], int)
+    assert mlflow_metrics(m, "A") == {"test/k": 0.5, "test_naive/n": 3.0, "cross_A/k": 0.25}
 
 
 def _metrics(net: dict[str, float], naive: dict[str, float]) -> dict:
@@ -169,24 +270,84 @@ def test_findings_report_kld_b_and_explain_negative_kld_a():
     )
 
 
-def test_figures_are_valid_pngs(tmp_path):
-    from traffictwin.fusion.figures import kld_boxplot, masses_to_rgb, qualitative_grid, scores_plot
+def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
+    from traffictwin.fusion.figures import kld_boxplot, save_figure
 
     rng = np.random.default_rng(2)
     vals = {
         m: {c: rng.gamma(2.0, 0.1 * (i + 1), 20) for i, c in enumerate(CFGS)}
         for m in ("naive", "dnn")
     }
-    png_ok(kld_boxplot(vals, CFGS, ["naive", "dnn"], tmp_path / "box.png"))
+    vals["naive"]["D"] = np.array([np.nan])  # no finite value: no box
+    fig = kld_boxplot(vals, CFGS, ["naive", "dnn"])
+    ax = fig.axes[0]
+    boxes = {p.get_gid(): p for p in ax.patches if p.get_gid()}
+    medians = {line.get_gid(): line for line in ax.lines if line.get_gid()}
+    assert sorted(boxes) == sorted(
+        f"{m}/{c}" for m in ("naive", "dnn") for c in CFGS if (m, c) != ("naive", "D")
+    )
+    # each box spans the quartiles of its configuration x method values
+    for gid, box in boxes.items():
+        m, c = gid.split("/")
+        y = box.get_path().vertices[:, 1]
+        q25, q75 = np.quantile(vals[m][c], [0.25, 0.75])
+        assert y.min() == pytest.approx(q25) and y.max() == pytest.approx(q75), gid
+        np.testing.assert_allclose(medians[f"{gid}/median"].get_ydata(), np.median(vals[m][c]))
+    assert ax.get_ylabel() == "KLD(label ‖ prediction)"
+    assert [t.get_text() for t in ax.get_xticklabels()] == [f"config {c}" for c in CFGS]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        REGISTRY["naive"].label,
+        REGISTRY["dnn"].label,
+    ]
+    png_ok(save_figure(fig, tmp_path / "box.png"))
+
+
+def test_scores_plot_lines_are_the_metrics(tmp_path):
+    from traffictwin.fusion.figures import save_figure, scores_plot
+
+    rng = np.random.default_rng(3)
     scores = {
         m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS}
         for m in ("naive", "dnn")
     }
-    png_ok(scores_plot(scores, CFGS, ["naive", "dnn"], "occ", tmp_path / "occ.png"))
+    fig = scores_plot(scores, CFGS, ["naive", "dnn"], "occ")
+    assert [ax.get_title() for ax in fig.axes[:3]] == [
+        "Precision (occupied cells)",
+        "Recall (occupied cells)",
+        "Dice (occupied cells)",
+    ]
+    for ax, metric in zip(fig.axes, ("precision", "recall", "dice")):
+        assert ax.get_xlabel() == "configuration"
+        assert [t.get_text() for t in ax.get_xticklabels()] == list(CFGS)
+        lines = {line.get_gid(): line for line in ax.lines}
+        assert sorted(lines) == ["dnn", "naive"]
+        for m, line in lines.items():
+            np.testing.assert_allclose(line.get_xdata(), np.arange(len(CFGS)))
+            np.testing.assert_allclose(
+                line.get_ydata(), [scores[m][c][f"{metric}_occ"] for c in CFGS]
+            )
+            assert line.get_label() == REGISTRY[m].label
+    assert fig.axes[0].get_ylabel() == "score" and fig.axes[0].get_ylim() == (0, 1.02)
+    png_ok(save_figure(fig, tmp_path / "occ.png"))
+
+
+def test_qualitative_grid_shows_each_map(tmp_path):
+    from traffictwin.fusion.figures import masses_to_rgb, qualitative_grid, save_figure
+
+    rng = np.random.default_rng(2)
     maps = random_masses(rng, 4, 64, 48)
-    png_ok(
-        qualitative_grid({"label": list(maps), "naive": list(maps[::-1])}, CFGS, tmp_path / "q.png")
-    )
+    rows = {"label": list(maps), "naive": list(maps[::-1])}
+    fig = qualitative_grid(rows, CFGS)
+    axes = np.array(fig.axes).reshape(2, len(CFGS))
+    for r, name in enumerate(rows):
+        assert axes[r][0].get_ylabel() == name
+        for c, cfg in enumerate(CFGS):
+            np.testing.assert_allclose(
+                axes[r][c].get_images()[0].get_array(), masses_to_rgb(rows[name][c])
+            )
+            if r == 0:
+                assert axes[r][c].get_title() == f"config {cfg}"
+    png_ok(save_figure(fig, tmp_path / "q.png"))
     rgb = masses_to_rgb(np.array([[[1.0]], [[0.0]]]))
     np.testing.assert_array_equal(rgb[0, 0], [0, 1, 0])  # free = green
 

@@ -90,9 +90,13 @@ def _cfg(**over):
     return cfg
 
 
-def test_bad_parameters_name_the_key():
-    from pipelines.generate_fusion import spec_from_params
+def spec_from_params(cfg):
+    from traffictwin.fusion.config import fusion_data_config, grid_config
 
+    return fusion_data_config(cfg).params(grid_config(cfg))
+
+
+def test_bad_parameters_name_the_key():
     spec_from_params(_cfg())  # the committed params are valid
     with pytest.raises(ConfigError, match="fusion_data.scenarios"):
         spec_from_params(_cfg(**{"fusion_data.scenarios": -4}))
@@ -106,6 +110,46 @@ def test_bad_parameters_name_the_key():
         spec_from_params(_cfg(**{"fusion_data.scenarios": 7, "fusion_data.scenarios_per_shard": 5}))
     with pytest.raises(ValueError, match="unknown road template"):
         FusionDataParams(templates=("cross4", "spaghetti"))
+    # typed schema: unknown, missing and mistyped keys name the dotted key
+    with pytest.raises(ConfigError, match="fusion_data.lidar.beams"):
+        spec_from_params(_cfg(**{"fusion_data.lidar.beams": 32}))
+    with pytest.raises(ConfigError, match="fusion_data.splits"):
+        spec_from_params(_cfg(**{"fusion_data.splits.train": 0.5}))
+    with pytest.raises(ConfigError, match="fusion_data.traffic.*'cars'"):
+        spec_from_params(_cfg(**{"fusion_data.traffic.cars": 3}))
+    with pytest.raises(ConfigError, match="fusion_data.compresslevel"):
+        spec_from_params(_cfg(**{"fusion_data.compresslevel": "fast"}))
+
+
+def test_fusion_data_params_from_config_equal_the_explicit_ones():
+    from traffictwin.evidential.ism import IsmParams
+
+    cfg = _cfg()
+    fd = cfg["fusion_data"]
+    p = spec_from_params(cfg)
+    assert p.grid == GridSpec(cfg["grid"]["rows"], cfg["grid"]["cols"], cfg["grid"]["cell"])
+    assert p.lidar.uniform == fd["lidar"]["uniform_elevations"]
+    assert p.lidar.azimuth_res_deg == fd["lidar"]["azimuth_res_deg"]
+    assert p.ism == IsmParams(**fd["ism"])
+    assert p.templates == tuple(fd["templates"]) and p.meet_distance == tuple(fd["meet_distance"])
+    assert p.density == {k: float(v) for k, v in fd["traffic"].items()}
+    assert p.scenarios_per_shard == fd["scenarios_per_shard"]
+
+
+def test_prealign_is_the_warp_by_the_noisy_relative_pose():
+    from traffictwin.evidential.noise import apply_pose_noise
+    from traffictwin.fusion.pairs import prealign
+
+    rng = np.random.default_rng(4)
+    m2 = np.moveaxis(rng.dirichlet([1, 1, 1], size=(64, 48))[..., :2], -1, 0).astype(np.float32)
+    p1, p2 = np.array([1.0, 2.0, 0.3]), np.array([5.0, -1.0, 3.0])
+    warped, rel = prealign(m2, p1, p2, SMALL.grid)
+    np.testing.assert_array_equal(rel, relative_pose(p1, p2))
+    np.testing.assert_array_equal(warped, warp_masses(m2, rel, SMALL.grid))
+    noise = np.array([0.5, -0.2, 0.4])
+    warped, rel = prealign(m2, p1, p2, SMALL.grid, noise=noise)
+    np.testing.assert_array_equal(rel, relative_pose(p1, apply_pose_noise(p2, noise)))
+    np.testing.assert_array_equal(warped, warp_masses(m2, rel, SMALL.grid))
 
 
 @pytest.mark.slow

@@ -6,10 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from traffictwin.evidential.warp import warp_masses
+from traffictwin.evidential.warp import pixel_from_metric, warp_masses
 from traffictwin.fusion.registration import (
     RegistrationParams,
-    metric_to_pixel,
     pixel_affine_to_pose,
     pose_error,
     pose_to_pixel_affine,
@@ -46,14 +45,14 @@ def structured_world(seed: int, grid: GridSpec, scale: int = 3) -> tuple[np.ndar
             cv2.fillPoly(mo, [box], 0.9)
     mf = np.where(road > 0, 0.8, 0.15).astype(np.float32)
     mf[mo > 0] = 0
-    return np.stack([mf, mo]), metric_to_pixel(GridSpec(h, w, grid.cell))
+    return np.stack([mf, mo]), pixel_from_metric(GridSpec(h, w, grid.cell))
 
 
 def render(
     world: np.ndarray, pw: np.ndarray, pose: np.ndarray, grid: GridSpec, radius: float = 28.0
 ) -> np.ndarray:
     """The map a sensor at world ``pose`` sees: the world within ``radius`` (m), unknown beyond."""
-    m = pw @ se2_matrix(*pose) @ np.linalg.inv(metric_to_pixel(grid))
+    m = pw @ se2_matrix(*pose) @ np.linalg.inv(pixel_from_metric(grid))
     out = np.stack(
         [
             cv2.warpAffine(

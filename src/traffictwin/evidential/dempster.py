@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.evidential.masses import clean_masses
+
 EPS = 1e-7
 
 
@@ -61,17 +63,13 @@ def dempster(m1: Any, m2: Any, eps: float = EPS) -> Any:
         safe = torch.where(ok, den, torch.ones_like(den))
         mf = torch.where(ok, num_f / safe, torch.zeros_like(den))
         mo = torch.where(ok, num_o / safe, torch.zeros_like(den))
-        m = torch.stack([mf, mo], dim=-3).clamp(0.0, 1.0)
-        s = m.sum(dim=-3, keepdim=True)
-        return torch.where(s > 1, m / s.clamp_min(1.0), m)
+        return clean_masses(torch.stack([mf, mo], dim=-3))
     ok = den > eps
     safe = np.where(ok, den, 1)
     mf = np.where(ok, num_f / safe, 0)
     mo = np.where(ok, num_o / safe, 0)
     dtype = np.result_type(m1.dtype, m2.dtype)
-    m = np.clip(np.stack([mf, mo], axis=-3), 0.0, 1.0).astype(dtype, copy=False)
-    s = m.sum(axis=-3, keepdims=True)
-    return np.where(s > 1, m / np.maximum(s, 1), m).astype(dtype, copy=False)
+    return clean_masses(np.stack([mf, mo], axis=-3).astype(dtype, copy=False))
 
 
 def conflict(m1: Any, m2: Any) -> Any:

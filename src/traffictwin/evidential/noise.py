@@ -48,13 +48,6 @@ def scale_noise(z: np.ndarray, r: float, alpha_deg: float) -> np.ndarray:
     return np.asarray(z, dtype=np.float64) * np.array([s_xy, s_xy, s_yaw])
 
 
-def sample_pose_noise(rng: np.random.Generator, n: int, r: float, alpha_deg: float) -> np.ndarray:
-    """``n`` pose-noise draws (dx m, dy m, dyaw rad) from ``rng``."""
-    if n < 0:
-        raise ValueError(f"sample_pose_noise: n must be >= 0, got {n}")
-    return scale_noise(rng.standard_normal((n, 3)), r, alpha_deg)
-
-
 def apply_pose_noise(pose: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """World pose(s) ``(…, 3)`` plus noise ``(…, 3)``; yaw wrapped to [-pi, pi)."""
     out = np.asarray(pose, dtype=np.float64) + np.asarray(noise, dtype=np.float64)

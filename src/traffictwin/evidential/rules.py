@@ -41,39 +41,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["yager", "cautious", "conjunctive_weights", "check_masses"]
+from traffictwin.evidential.masses import check_masses, unknown_mass
 
-_TOL = 1e-5
-
-
-def check_masses(m: np.ndarray, name: str = "m") -> np.ndarray:
-    """Return ``m`` as a float array after checking the evidential layout.
-
-    Expected: channel axis ``-3`` of size 2, values in [0, 1] and ``m_F + m_O ≤ 1`` (tolerance
-    1e-5). Raises ``ValueError`` naming ``name`` otherwise.
-    """
-    m = np.asarray(m)
-    if m.ndim < 3 or m.shape[-3] != 2:
-        raise ValueError(
-            f"{name}: expected masses with a channel axis of size 2 at -3 ((2,H,W) or (N,2,H,W)), got shape {m.shape}"
-        )
-    if not np.issubdtype(m.dtype, np.floating):
-        m = m.astype(np.float32)
-    if m.size and (np.nanmin(m) < -_TOL or np.nanmax(m) > 1 + _TOL):
-        raise ValueError(
-            f"{name}: masses must lie in [0, 1], got range [{np.nanmin(m):.4g}, {np.nanmax(m):.4g}]"
-        )
-    if m.size and np.nanmax(m[..., 0, :, :] + m[..., 1, :, :]) > 1 + _TOL:
-        raise ValueError(f"{name}: m_F + m_O must be <= 1 in every cell")
-    if np.isnan(m).any():
-        raise ValueError(f"{name}: contains NaN")
-    return m
+__all__ = ["yager", "cautious", "conjunctive_weights"]
 
 
 def _split(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    f = m[..., 0, :, :]
-    o = m[..., 1, :, :]
-    return f, o, np.clip(1.0 - f - o, 0.0, 1.0)
+    return m[..., 0, :, :], m[..., 1, :, :], unknown_mass(m)
 
 
 def yager(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:

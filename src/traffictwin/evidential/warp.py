@@ -14,6 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from traffictwin.evidential.masses import clean_masses
 from traffictwin.grid import GridSpec
 from traffictwin.sim.scene import se2_matrix
 
@@ -60,18 +61,4 @@ def warp_masses(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=(0.0, 0.0, 0.0, 0.0),
     )
-    np.clip(out, 0.0, 1.0, out=out)
-    s = out[..., 0] + out[..., 1]
-    over = s > 1.0
-    if over.any():  # float rounding only: renormalise those cells
-        out[over] /= s[over][:, None]
-    return np.ascontiguousarray(out.transpose(2, 0, 1))
-
-
-def warp_batch(m: np.ndarray, rel_poses: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """:func:`warp_masses` over ``m (N, 2, H, W)`` with ``rel_poses (N, 3)``."""
-    return (
-        np.stack([warp_masses(mi, p, grid) for mi, p in zip(m, rel_poses)])
-        if len(m)
-        else np.zeros_like(m, np.float32)
-    )
+    return np.ascontiguousarray(clean_masses(out.transpose(2, 0, 1)))  # float rounding only

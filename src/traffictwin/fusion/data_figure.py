@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.evidential.masses import unknown_mass
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import atomic_path
 
@@ -21,8 +22,7 @@ UNKNOWN = np.array([0.5, 0.5, 0.5])
 
 def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     """``(2, H, W)`` masses -> ``(H, W, 3)`` float RGB in [0, 1]."""
-    f, o = m[0][..., None], m[1][..., None]
-    u = np.clip(1.0 - f - o, 0.0, 1.0)
+    f, o, u = m[0][..., None], m[1][..., None], unknown_mass(m)[..., None]
     return np.clip(f * FREE + o * OCC + u * UNKNOWN, 0.0, 1.0)
 
 

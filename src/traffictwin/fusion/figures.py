@@ -1,9 +1,15 @@
-"""Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg, written atomically.
+"""Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg.
+
+Each figure function returns the matplotlib ``Figure`` (so tests can check what it plots);
+:func:`save_figure` writes it atomically as PNG and closes it.
 
 - :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
 - :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
 - :func:`qualitative_grid` — label / naive / network maps per configuration (Fig. 4);
 - :func:`masses_to_rgb` — evidential map → image (red = m_O, green = m_F, black = unknown).
+
+Legend labels are the methods' ``label`` in :data:`traffictwin.fusion.methods.METHODS`; colours
+and markers are :data:`METHOD_STYLE`.
 """
 
 from __future__ import annotations
@@ -15,15 +21,22 @@ import numpy as np
 
 from traffictwin.io.atomic import atomic_path
 
-__all__ = ["masses_to_rgb", "kld_boxplot", "scores_plot", "qualitative_grid", "METHOD_STYLE"]
+__all__ = [
+    "masses_to_rgb",
+    "kld_boxplot",
+    "scores_plot",
+    "qualitative_grid",
+    "save_figure",
+    "METHOD_STYLE",
+]
 
 METHOD_STYLE: dict[str, dict] = {
-    "dnn": {"color": "#1f77b4", "label": "network (own config)", "marker": "o"},
-    "naive": {"color": "#d62728", "label": "naive (noisy pose + Dempster)", "marker": "s"},
-    "registered": {"color": "#2ca02c", "label": "registered (FM + ECC) + Dempster", "marker": "^"},
-    "naive-yager": {"color": "#ff7f0e", "label": "naive + Yager", "marker": "v"},
-    "naive-cautious": {"color": "#9467bd", "label": "naive + cautious", "marker": "D"},
-    "ego": {"color": "#7f7f7f", "label": "ego (map 1 only)", "marker": "x"},
+    "dnn": {"color": "#1f77b4", "marker": "o"},
+    "naive": {"color": "#d62728", "marker": "s"},
+    "registered": {"color": "#2ca02c", "marker": "^"},
+    "naive-yager": {"color": "#ff7f0e", "marker": "v"},
+    "naive-cautious": {"color": "#9467bd", "marker": "D"},
+    "ego": {"color": "#7f7f7f", "marker": "x"},
 }
 
 
@@ -36,7 +49,8 @@ def _plt():
     return plt
 
 
-def _save(fig, path: str | Path, dpi: int = 110) -> Path:
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Write ``fig`` as PNG to ``path`` (atomically) and close it."""
     path = Path(path)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
@@ -53,28 +67,33 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
 
 
 def _style(method: str) -> dict:
-    return METHOD_STYLE.get(method, {"color": "#17becf", "label": method, "marker": "o"})
+    from traffictwin.fusion.methods import METHODS
+
+    label = METHODS[method].label if method in METHODS else method
+    return {"color": "#17becf", "marker": "o", **METHOD_STYLE.get(method, {}), "label": label}
 
 
 def kld_boxplot(
     values: Mapping[str, Mapping[str, Sequence[float]]],
     configs: Sequence[str],
     methods: Sequence[str],
-    path: str | Path,
     ylabel: str = "KLD(label ‖ prediction)",
     title: str = "Fusion quality per configuration (test set)",
-) -> Path:
-    """Box plots: ``values[method][config]`` = per-sample KLDs; one group per configuration."""
+):
+    """Box plots: ``values[method][config]`` = per-sample KLDs; one group per configuration,
+    one box per (configuration, method) with data, labelled ``gid = "<method>/<config>"`` (its
+    median line ``"<method>/<config>/median"``)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(1.9 * len(configs) + 2, 4.2))
     width = 0.8 / max(len(methods), 1)
     handles = []
     for j, meth in enumerate(methods):
-        data, pos = [], []
+        data, pos, cfgs = [], [], []
         for i, cfg in enumerate(configs):
             v = np.asarray(values.get(meth, {}).get(cfg, []), dtype=float)
             v = v[np.isfinite(v)]
             if v.size:
+                cfgs.append(cfg)
                 data.append(v)
                 pos.append(i + (j - (len(methods) - 1) / 2) * width)
         if not data:
@@ -89,7 +108,10 @@ def kld_boxplot(
             flierprops={"markersize": 2, "markeredgecolor": st["color"]},
             medianprops={"color": "black"},
         )
-        for b in bp["boxes"]:
+        for med, cfg in zip(bp["medians"], cfgs):
+            med.set_gid(f"{meth}/{cfg}/median")
+        for b, cfg in zip(bp["boxes"], cfgs):
+            b.set_gid(f"{meth}/{cfg}")
             b.set_facecolor(st["color"])
             b.set_alpha(0.6)
         handles.append(bp["boxes"][0])
@@ -102,7 +124,7 @@ def kld_boxplot(
     ax.legend(
         handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0
     )
-    return _save(fig, path)
+    return fig
 
 
 def scores_plot(
@@ -110,9 +132,9 @@ def scores_plot(
     configs: Sequence[str],
     methods: Sequence[str],
     cls: str,
-    path: str | Path,
-) -> Path:
-    """Precision / recall / Dice vs configuration for ``cls`` ("occ" or "free"); ``scores[method][config][metric]``."""
+):
+    """Precision / recall / Dice vs configuration for ``cls`` ("occ" or "free"); ``scores[method][config][metric]``.
+    Three axes (precision, recall, Dice), one line per method (``gid`` = the method)."""
     plt = _plt()
     name = {"occ": "occupied", "free": "free"}.get(cls, cls)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), sharey=True)
@@ -122,7 +144,7 @@ def scores_plot(
             y = [scores.get(meth, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs]
             st = _style(meth)
             ls = "-" if meth in ("dnn", "naive") else "--"
-            ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"])
+            ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
         ax.set_xticks(x)
         ax.set_xticklabels(configs)
         ax.set_xlabel("configuration")
@@ -132,15 +154,14 @@ def scores_plot(
     axes[0].set_ylim(0, 1.02)
     axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle(f"Classification scores for {name} cells vs pose-noise configuration (test set)")
-    return _save(fig, path)
+    return fig
 
 
 def qualitative_grid(
     rows: Mapping[str, Sequence[np.ndarray]],
     configs: Sequence[str],
-    path: str | Path,
     title: str = "",
-) -> Path:
+):
     """Image grid: one row per entry of ``rows`` (e.g. label / naive / network), one column per config."""
     plt = _plt()
     names = list(rows)
@@ -163,4 +184,4 @@ def qualitative_grid(
                 ax.set_ylabel(name, fontsize=9)
     if title:
         fig.suptitle(title, fontsize=9)
-    return _save(fig, path)
+    return fig

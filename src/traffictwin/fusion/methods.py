@@ -1,82 +1,231 @@
-"""Rule-based fusion baselines evaluated against the network (issue #5).
+"""The fusion methods registry: every way of fusing map 2 into map 1, one function each, registered once.
 
-Every method maps one configuration's prealigned test data to fused masses ``(N, 2, H, W)`` in
-map 1's frame, so all methods see the same noise draws:
+Every method maps a batch of pairs (:class:`FusionInput`) to fused masses ``(N, 2, H, W)`` in
+map 1's frame (or a :class:`Fused` with per-pair diagnostics). Registered methods, in order:
 
 - ``ego``: map 1 alone (what a vehicle knows without cooperation);
 - ``naive``: map 2 warped by the *noisy* relative pose (the prealigned input channels 2–3), then
   Dempster's rule — the paper's baseline;
 - ``naive-yager`` / ``naive-cautious``: the same warped maps combined with Yager's rule
   (conflict → unknown) or Denœux's normalised cautious rule (:mod:`traffictwin.evidential.rules`);
-- ``registered``: classical registration of the raw map 2 onto map 1 starting from the noisy pose
-  (:mod:`traffictwin.fusion.registration`), map 2 warped by the estimate with the project's
-  warp (``traffictwin.evidential.warp.warp_masses``), then Dempster.
+- ``registered``: classical registration (Fourier–Mellin + ECC) of the raw map 2 onto map 1
+  starting from the noisy pose (:mod:`traffictwin.fusion.registration`), map 2 warped by the
+  estimate with the project's prealignment (:func:`traffictwin.fusion.pairs.prealign`'s warp),
+  then Dempster;
+- ``dnn``: the fusion network of a configuration on the prealigned inputs
+  (:func:`traffictwin.fusion.model_io.predict_masses`).
+
+Use::
+
+    from traffictwin.fusion.methods import METHODS, FusionInput, fuse
+    for name, method in METHODS.items():      # registration order; method.needs says what it uses
+        print(name, method.description, method.needs)
+    masses = fuse("naive", FusionInput(inputs=prealigned)).masses
+
+What a method uses (``needs``, a subset of :data:`INPUTS`): ``"prealigned"`` — the prealigned
+inputs ``(N, 4, H, W)`` = [m_F1, m_O1, m_F2', m_O2']; ``"raw"`` — raw ``map1``, ``map2``
+``(N, 2, H, W)`` (each in its own sensor frame), the noisy relative pose ``(N, 3)`` and the grid;
+``"model"`` — a fusion network. ``slow`` methods are evaluated on a subset of the pairs
+(``evaluation.fusion.registered_max_pairs``).
+
+Adding a method (e.g. the hybrid ``registered+network`` or a learned registration) is one
+function and one decorator::
+
+    @register("my-method", "what it does", needs=("raw", "model"), label="legend label")
+    def _my_method(x: FusionInput) -> np.ndarray | Fused: ...
+
+The evaluation (:mod:`traffictwin.fusion.evaluation`), the figures and the findings iterate
+:data:`METHODS`; a method that estimates a pose returns it in :class:`Fused` (``details``) and
+may declare ``columns`` / ``summary`` hooks for its diagnostics.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from traffictwin.evidential.dempster import dempster
+from traffictwin.evidential.rules import cautious, yager
 from traffictwin.fusion.registration import RegistrationParams, RegistrationResult, register_pair
 from traffictwin.grid import GridSpec
 
 if TYPE_CHECKING:
     import pandas as pd
 
-    from traffictwin.fusion.metrics import UncertaintyAUROC
-
 __all__ = [
-    "PREALIGNED_METHODS",
+    "INPUTS",
+    "FusionInput",
+    "Fused",
+    "FusionMethod",
     "METHODS",
-    "fuse_prealigned",
-    "registered_fusion",
+    "register",
+    "fuse",
     "RegisteredBatch",
-    "EvalSettings",
-    "evaluate_predictions",
-    "evaluate_prealigned",
-    "evaluate_registered",
+    "registered_fusion",
 ]
 
-PREALIGNED_METHODS = ("ego", "naive", "naive-yager", "naive-cautious")
-METHODS = (*PREALIGNED_METHODS, "registered")
+INPUTS = ("prealigned", "raw", "model")
 
 
-def _rule(method: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    if method == "naive":
-        from traffictwin.evidential.dempster import dempster
+@dataclass
+class FusionInput:
+    """A batch of ``N`` pairs and what the methods may use (fields a method does not need stay None).
 
-        return dempster
-    if method == "naive-yager":
-        from traffictwin.evidential.rules import yager
+    ``inputs`` (N, 4, H, W) prealigned; ``map1``, ``map2`` (N, 2, H, W) raw; ``rel_pose_noisy`` /
+    ``rel_pose_true`` (N, 3) relative pose of map 2's sensor in map 1's frame (x m, y m, yaw
+    rad; the true one only for diagnostics); ``grid``; ``model`` (a fusion network),
+    ``batch_size`` (its inference batch); ``registration`` (classical registration settings).
+    """
 
-        return yager
-    if method == "naive-cautious":
-        from traffictwin.evidential.rules import cautious
+    inputs: np.ndarray | None = None
+    map1: np.ndarray | None = None
+    map2: np.ndarray | None = None
+    rel_pose_noisy: np.ndarray | None = None
+    rel_pose_true: np.ndarray | None = None
+    grid: GridSpec | None = None
+    model: Any = None
+    batch_size: int = 8
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
 
-        return cautious
-    raise ValueError(
-        f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})"
-    )
+    _ARRAYS = ("inputs", "map1", "map2", "rel_pose_noisy", "rel_pose_true")
+
+    def __len__(self) -> int:
+        for k in self._ARRAYS:
+            v = getattr(self, k)
+            if v is not None:
+                return len(v)
+        return 0
+
+    def take(self, index: slice | np.ndarray) -> FusionInput:
+        """The same input restricted to pairs ``index`` (a slice or an index array)."""
+        arrays = {k: getattr(self, k)[index] for k in self._ARRAYS if getattr(self, k) is not None}
+        return replace(self, **arrays)
+
+    def missing(self, needs: tuple[str, ...]) -> list[str]:
+        """Fields required by ``needs`` that are None."""
+        req = {
+            "prealigned": ("inputs",),
+            "raw": ("map1", "map2", "rel_pose_noisy", "grid"),
+            "model": ("model",),
+        }
+        return [f for n in needs for f in req[n] if getattr(self, f) is None]
 
 
-def fuse_prealigned(inputs: np.ndarray, method: str) -> np.ndarray:
-    """Fuse prealigned inputs ``(N, 4, H, W)`` = [m_F1, m_O1, m_F2', m_O2'] with ``method`` → ``(N, 2, H, W)`` float32."""
-    inputs = np.asarray(inputs)
-    if inputs.ndim != 4 or inputs.shape[1] != 4:
-        raise ValueError(
-            f"fuse_prealigned: inputs must have shape (N, 4, H, W), got {inputs.shape}"
+@dataclass
+class Fused:
+    """A method's output: ``masses`` (N, 2, H, W) float32; ``seconds`` (N,) per-pair wall time
+    when the method times each pair itself (else None); ``details``: method-specific
+    diagnostics (e.g. :class:`RegisteredBatch`)."""
+
+    masses: np.ndarray
+    seconds: np.ndarray | None = None
+    details: Any = None
+
+
+@dataclass(frozen=True)
+class FusionMethod:
+    """A registered fusion method (see the module docstring).
+
+    ``columns(fused, x, settings)`` → extra per-pair columns of the evaluation's samples table;
+    ``summary(frame, settings)`` → extra aggregate metrics; both optional.
+    """
+
+    name: str
+    description: str
+    needs: tuple[str, ...]
+    fn: Callable[[FusionInput], np.ndarray | Fused]
+    label: str
+    slow: bool = False
+    columns: Callable[[Fused, FusionInput, Any], dict[str, np.ndarray]] | None = None
+    summary: Callable[[pd.DataFrame, Any], dict[str, float]] | None = None
+
+    def __call__(self, x: FusionInput) -> Fused:
+        miss = x.missing(self.needs)
+        if miss:
+            raise ValueError(
+                f"fusion method {self.name!r} needs {list(self.needs)}: {miss} not given"
+            )
+        out = self.fn(x)
+        return out if isinstance(out, Fused) else Fused(np.asarray(out, dtype=np.float32))
+
+
+METHODS: dict[str, FusionMethod] = {}
+
+
+def register(
+    name: str,
+    description: str,
+    *,
+    needs: tuple[str, ...],
+    label: str | None = None,
+    slow: bool = False,
+    columns: Callable[[Fused, FusionInput, Any], dict[str, np.ndarray]] | None = None,
+    summary: Callable[[pd.DataFrame, Any], dict[str, float]] | None = None,
+) -> Callable[[Callable[[FusionInput], np.ndarray | Fused]], Callable]:
+    """Decorator: register ``fn(x: FusionInput) -> masses | Fused`` as fusion method ``name``."""
+    bad = [n for n in needs if n not in INPUTS]
+    if bad:
+        raise ValueError(f"register({name!r}): unknown needs {bad}; expected from {INPUTS}")
+
+    def deco(fn: Callable[[FusionInput], np.ndarray | Fused]) -> Callable:
+        if name in METHODS:
+            raise ValueError(f"fusion method {name!r} is registered twice")
+        METHODS[name] = FusionMethod(
+            name, description, tuple(needs), fn, label or name, slow, columns, summary
         )
-    m1 = inputs[:, 0:2]
-    if method == "ego":
-        return np.ascontiguousarray(m1, dtype=np.float32)
-    return np.asarray(_rule(method)(m1, inputs[:, 2:4]), dtype=np.float32)
+        return fn
+
+    return deco
 
 
+def fuse(name: str, x: FusionInput) -> Fused:
+    """Run registered method ``name`` on the batch ``x``."""
+    if name not in METHODS:
+        raise ValueError(f"unknown fusion method {name!r} (expected one of {list(METHODS)})")
+    return METHODS[name](x)
+
+
+# -- prealigned baselines --------------------------------------------------------------------------
+PREALIGNED = ("prealigned",)
+NAIVE = "map 2 warped by the noisy pose, combined with "
+
+
+def _prealigned(x: FusionInput) -> tuple[np.ndarray, np.ndarray]:
+    inputs = np.asarray(x.inputs)
+    if inputs.ndim != 4 or inputs.shape[1] != 4:
+        raise ValueError(f"prealigned inputs must have shape (N, 4, H, W), got {inputs.shape}")
+    return inputs[:, 0:2], inputs[:, 2:4]
+
+
+@register("ego", "map 1 alone (no cooperation)", needs=PREALIGNED, label="ego (map 1 only)")
+def _ego(x: FusionInput) -> np.ndarray:
+    return np.ascontiguousarray(_prealigned(x)[0], dtype=np.float32)
+
+
+@register(
+    "naive", NAIVE + "Dempster's rule", needs=PREALIGNED, label="naive (noisy pose + Dempster)"
+)
+def _naive(x: FusionInput) -> np.ndarray:
+    return dempster(*_prealigned(x))
+
+
+@register("naive-yager", NAIVE + "Yager's rule", needs=PREALIGNED, label="naive + Yager")
+def _naive_yager(x: FusionInput) -> np.ndarray:
+    return yager(*_prealigned(x))
+
+
+@register(
+    "naive-cautious", NAIVE + "Denoeux's cautious rule", needs=PREALIGNED, label="naive + cautious"
+)
+def _naive_cautious(x: FusionInput) -> np.ndarray:
+    return cautious(*_prealigned(x))
+
+
+# -- registered --------------------------------------------------------------------------------------
 @dataclass
 class RegisteredBatch:
     """Output of :func:`registered_fusion`: fused masses, the poses used and per-pair diagnostics."""
@@ -95,12 +244,13 @@ def registered_fusion(
     map2: np.ndarray,
     rel_pose_noisy: np.ndarray,
     grid: GridSpec,
-    params: RegistrationParams = RegistrationParams(),
+    params: RegistrationParams | None = None,
 ) -> RegisteredBatch:
-    """Register each raw map 2 ``(N, 2, H, W)`` onto map 1 from the noisy pose ``(N, 3)``, warp, Dempster."""
-    from traffictwin.evidential.dempster import dempster
+    """Register each raw map 2 ``(N, 2, H, W)`` onto map 1 from the noisy pose ``(N, 3)``, warp,
+    Dempster (``params``: default :class:`RegistrationParams`)."""
     from traffictwin.evidential.warp import warp_masses
 
+    params = RegistrationParams() if params is None else params
     map1 = np.asarray(map1, dtype=np.float32)
     map2 = np.asarray(map2, dtype=np.float32)
     poses_in = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(-1, 3)
@@ -110,136 +260,85 @@ def registered_fusion(
             f"registered_fusion: map1 {map1.shape}, map2 {map2.shape} and rel_pose_noisy {poses_in.shape} must agree on N"
         )
     out = np.empty_like(map1)
-    poses = np.empty((n, 3))
-    est = np.empty((n, 3))
+    cols = {k: np.empty((n, 3)) for k in ("poses", "estimates")}
     acc = np.zeros(n, bool)
-    ccn = np.empty(n)
-    cce = np.empty(n)
-    secs = np.empty(n)
+    ccn, cce, secs = np.empty(n), np.empty(n), np.empty(n)
     for i in range(n):  # per pair: OpenCV registration is inherently per image
         t0 = time.perf_counter()
         r: RegistrationResult = register_pair(map1[i], map2[i], poses_in[i], grid, params)
-        warped = warp_masses(map2[i], r.pose, grid)
-        out[i] = dempster(map1[i], warped)
+        out[i] = dempster(map1[i], warp_masses(map2[i], r.pose, grid))
         secs[i] = time.perf_counter() - t0
-        poses[i], est[i], acc[i], ccn[i], cce[i] = (
-            r.pose,
-            r.estimate,
-            r.accepted,
-            r.cc_noisy,
-            r.cc_est,
-        )
-    return RegisteredBatch(out, poses, est, acc, ccn, cce, secs)
+        cols["poses"][i], cols["estimates"][i] = r.pose, r.estimate
+        acc[i], ccn[i], cce[i] = r.accepted, r.cc_noisy, r.cc_est
+    return RegisteredBatch(out, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
 
 
-# -- evaluation runner ---------------------------------------------------------------------------
-@dataclass(frozen=True)
-class EvalSettings:
-    """How per-sample metrics are computed (units in the names)."""
-
-    batch_size: int = 8
-    kld_eps: float = 1e-7
-    auroc_bins: int = 4096
-    success_trans_m: float = 0.5
-    success_rot_deg: float = 1.0
-
-
-def _batches(n: int, size: int):
-    for s in range(0, n, max(1, size)):
-        yield slice(s, min(n, s + size))
-
-
-def _rows(metrics: dict[str, np.ndarray], **cols) -> pd.DataFrame:
-    import pandas as pd
-
-    frame = pd.DataFrame(metrics)
-    for k, v in cols.items():
-        frame[k] = v
-    return frame
-
-
-def evaluate_predictions(
-    label: np.ndarray,
-    predict: Callable[[slice], np.ndarray],
-    settings: EvalSettings,
-    n: int | None = None,
-) -> tuple[pd.DataFrame, UncertaintyAUROC]:
-    """Metrics of ``predict(batch_slice) → (B, 2, H, W)`` masses against ``label[batch_slice]``.
-
-    Returns per-sample metrics (one row per sample, plus ``ms`` = the prediction's wall time per
-    pair in ms for its batch) and the streaming u-AUROC of the whole set.
-    """
-    import pandas as pd
-
-    from traffictwin.fusion.metrics import UncertaintyAUROC, per_sample_metrics
-
-    n = len(label) if n is None else n
-    auroc = UncertaintyAUROC(bins=settings.auroc_bins)
-    parts = []
-    for sl in _batches(n, settings.batch_size):
-        t0 = time.perf_counter()
-        pred = np.asarray(predict(sl))
-        ms = 1000.0 * (time.perf_counter() - t0) / (sl.stop - sl.start)
-        if pred.shape != label[sl].shape:
-            raise ValueError(
-                f"prediction shape {pred.shape} != label shape {label[sl].shape} for samples {sl.start}:{sl.stop}"
-            )
-        auroc.update(label[sl], pred)
-        parts.append(_rows(per_sample_metrics(label[sl], pred, settings.kld_eps), ms=ms))
-    return pd.concat(parts, ignore_index=True), auroc
-
-
-def evaluate_prealigned(
-    inputs: np.ndarray, label: np.ndarray, method: str, settings: EvalSettings
-) -> tuple[pd.DataFrame, UncertaintyAUROC]:
-    """Per-sample metrics of a prealigned baseline (``ego`` / ``naive`` / ``naive-yager`` / ``naive-cautious``)."""
-    if method not in PREALIGNED_METHODS:
-        raise ValueError(
-            f"unknown prealigned fusion method {method!r} (expected one of {PREALIGNED_METHODS})"
-        )
-    return evaluate_predictions(label, lambda sl: fuse_prealigned(inputs[sl], method), settings)
-
-
-def evaluate_registered(
-    map1: np.ndarray,
-    map2: np.ndarray,
-    rel_pose_noisy: np.ndarray,
-    rel_pose_true: np.ndarray,
-    label: np.ndarray,
-    grid: GridSpec,
-    params: RegistrationParams,
-    settings: EvalSettings,
-) -> tuple[pd.DataFrame, UncertaintyAUROC]:
-    """Per-sample metrics of ``registered`` plus residual pose errors and success flags.
-
-    Extra columns: ``reg_accepted``, ``reg_trans_err_m`` / ``reg_rot_err_deg`` (residual error of the
-    pose used), ``est_trans_err_m`` / ``est_rot_err_deg`` (of the raw estimate), ``noisy_trans_err_m``
-    / ``noisy_rot_err_deg`` (of the noisy pose), ``reg_success`` (residual within
-    ``success_trans_m`` and ``success_rot_deg``), ``reg_cc_noisy`` / ``reg_cc_est``.
-    """
+def _registered_columns(f: Fused, x: FusionInput, settings: Any) -> dict[str, np.ndarray]:
+    """Per-pair diagnostics: ``reg_accepted``, residual error of the pose used
+    (``reg_trans_err_m`` / ``reg_rot_err_deg``), of the raw estimate (``est_*``) and of the noisy
+    pose (``noisy_*``), ``reg_success`` (residual within ``settings.success_trans_m`` and
+    ``settings.success_rot_deg``), ``reg_cc_noisy`` / ``reg_cc_est``."""
     from traffictwin.fusion.registration import pose_error
 
-    store: dict[str, RegisteredBatch] = {}
+    b: RegisteredBatch = f.details
+    true = np.asarray(x.rel_pose_true, dtype=np.float64)
+    t, r = pose_error(b.poses, true)
+    te, re = pose_error(b.estimates, true)
+    tn, rn = pose_error(np.asarray(x.rel_pose_noisy, dtype=np.float64), true)
+    return {
+        "reg_accepted": b.accepted,
+        "reg_trans_err_m": t,
+        "reg_rot_err_deg": r,
+        "est_trans_err_m": te,
+        "est_rot_err_deg": re,
+        "noisy_trans_err_m": tn,
+        "noisy_rot_err_deg": rn,
+        "reg_success": (t <= settings.success_trans_m) & (r <= settings.success_rot_deg),
+        "reg_cc_noisy": b.cc_noisy,
+        "reg_cc_est": b.cc_est,
+    }
 
-    def predict(sl: slice) -> np.ndarray:
-        b = registered_fusion(map1[sl], map2[sl], rel_pose_noisy[sl], grid, params)
-        store[f"{sl.start}"] = b
-        return b.masses
 
-    frame, auroc = evaluate_predictions(label, predict, settings)
-    b = [store[k] for k in sorted(store, key=int)]
-    poses = np.concatenate([x.poses for x in b])
-    est = np.concatenate([x.estimates for x in b])
-    true = np.asarray(rel_pose_true, dtype=np.float64)[: len(poses)]
-    t, r = pose_error(poses, true)
-    te, re = pose_error(est, true)
-    tn, rn = pose_error(np.asarray(rel_pose_noisy, dtype=np.float64)[: len(poses)], true)
-    frame["reg_accepted"] = np.concatenate([x.accepted for x in b])
-    frame["reg_trans_err_m"], frame["reg_rot_err_deg"] = t, r
-    frame["est_trans_err_m"], frame["est_rot_err_deg"] = te, re
-    frame["noisy_trans_err_m"], frame["noisy_rot_err_deg"] = tn, rn
-    frame["reg_success"] = (t <= settings.success_trans_m) & (r <= settings.success_rot_deg)
-    frame["reg_cc_noisy"] = np.concatenate([x.cc_noisy for x in b])
-    frame["reg_cc_est"] = np.concatenate([x.cc_est for x in b])
-    frame["ms"] = 1000.0 * np.concatenate([x.seconds for x in b])
-    return frame, auroc
+def _registered_summary(f: pd.DataFrame, settings: Any) -> dict[str, float]:
+    return {
+        "success_rate": float(f["reg_success"].mean()),
+        "accepted_rate": float(f["reg_accepted"].mean()),
+        "estimate_success_rate": float(
+            (
+                (f["est_trans_err_m"] <= settings.success_trans_m)
+                & (f["est_rot_err_deg"] <= settings.success_rot_deg)
+            ).mean()
+        ),
+        "residual_trans_m_median": float(f["reg_trans_err_m"].median()),
+        "residual_trans_m_mean": float(f["reg_trans_err_m"].mean()),
+        "residual_rot_deg_median": float(f["reg_rot_err_deg"].median()),
+        "noisy_trans_m_median": float(f["noisy_trans_err_m"].median()),
+        "noisy_rot_deg_median": float(f["noisy_rot_err_deg"].median()),
+    }
+
+
+@register(
+    "registered",
+    "raw map 2 registered onto map 1 from the noisy pose (Fourier-Mellin + ECC), warped, Dempster",
+    needs=("raw",),
+    label="registered (FM + ECC) + Dempster",
+    slow=True,
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _registered(x: FusionInput) -> Fused:
+    b = registered_fusion(x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration)
+    return Fused(b.masses, seconds=b.seconds, details=b)
+
+
+# -- network ---------------------------------------------------------------------------------------
+@register(
+    "dnn",
+    "the fusion network (DeepLabV3+, evidential head) on the prealigned inputs",
+    needs=("prealigned", "model"),
+    label="network (own config)",
+)
+def _network(x: FusionInput) -> np.ndarray:
+    from traffictwin.fusion.model_io import predict_masses
+
+    return predict_masses(x.model, x.inputs, x.batch_size)[0]

@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from traffictwin.evidential.masses import unknown_mass
+
 __all__ = [
     "EPS",
     "as_batch",
@@ -73,14 +75,10 @@ def _pair(label: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return label.astype(np.float64, copy=False), pred.astype(np.float64, copy=False)
 
 
-def _unc(m: np.ndarray) -> np.ndarray:
-    return np.clip(1.0 - m[:, 0] - m[:, 1], 0.0, 1.0)
-
-
 def p_occupied(m: np.ndarray) -> np.ndarray:
     """Pignistic probability of "occupied" ``p_O = m_O + u/2`` (paper eq. 2), shape ``(N,H,W)``."""
     m = as_batch(m)
-    return m[:, 1] + 0.5 * _unc(m)
+    return m[:, 1] + 0.5 * unknown_mass(m)
 
 
 def _kl_terms(y: np.ndarray, p: np.ndarray, eps: float) -> np.ndarray:
@@ -98,8 +96,8 @@ def kld_fo(label: np.ndarray, pred: np.ndarray, eps: float = EPS) -> np.ndarray:
 def kld_fou(label: np.ndarray, pred: np.ndarray, eps: float = EPS) -> np.ndarray:
     """KLD definition (b): over the full vector (m_F, m_O, u), clipped to [eps, 1], mean over cells → ``(N,)``."""
     y, p = _pair(label, pred)
-    yy = np.concatenate([y, _unc(y)[:, None]], axis=1)
-    pp = np.concatenate([p, _unc(p)[:, None]], axis=1)
+    yy = np.concatenate([y, unknown_mass(y)[:, None]], axis=1)
+    pp = np.concatenate([p, unknown_mass(p)[:, None]], axis=1)
     return _kl_terms(yy, pp, eps).sum(axis=1).mean(axis=(1, 2))
 
 
@@ -150,7 +148,7 @@ def per_sample_metrics(
     for c in CLASSES:
         pr, rc, dc = prf(counts[f"tp_{c}"], counts[f"fp_{c}"], counts[f"fn_{c}"])
         out[f"precision_{c}"], out[f"recall_{c}"], out[f"dice_{c}"] = pr, rc, dc
-    u = _unc(p)
+    u = unknown_mass(p)
     lab_o, lab_f = label_classes(y)
     known = lab_o | lab_f
     out["u_mean"] = u.mean(axis=(1, 2))
@@ -196,7 +194,7 @@ class UncertaintyAUROC:
         po = p_occupied(p)
         right = (lab_o & (po > 0.5)) | (lab_f & (po < 0.5))
         wrong = known & ~right
-        idx = np.minimum((_unc(p) * self.bins).astype(np.int64), self.bins - 1)
+        idx = np.minimum((unknown_mass(p) * self.bins).astype(np.int64), self.bins - 1)
         self.pos += np.bincount(idx[wrong], minlength=self.bins)
         self.neg += np.bincount(idx[known & right], minlength=self.bins)
 

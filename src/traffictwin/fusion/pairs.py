@@ -142,10 +142,10 @@ def make_pairs(maps: np.ndarray, poses: np.ndarray, grid: GridSpec) -> dict[str,
     out: dict[str, list] = {"map1": [], "map2": [], "label": [], "pose1": [], "pose2": []}
     for e in range(len(maps)):
         for a, b in ((0, 1), (1, 0)):
-            rel = relative_pose(poses[e, a], poses[e, b])
+            warped, _ = prealign(maps[e, b], poses[e, a], poses[e, b], grid)
             out["map1"].append(maps[e, a])
             out["map2"].append(maps[e, b])
-            out["label"].append(dempster(maps[e, a], warp_masses(maps[e, b], rel, grid)))
+            out["label"].append(dempster(maps[e, a], warped))
             out["pose1"].append(poses[e, a])
             out["pose2"].append(poses[e, b])
     return {
@@ -197,6 +197,30 @@ def write_shard(
 
 # ---------------------------------------------------------------------------------------------
 # prealignment (paper III-C)
+def prealign(
+    map2: np.ndarray,
+    pose1: np.ndarray,
+    pose2: np.ndarray,
+    grid: GridSpec,
+    noise: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Map 2 warped into map 1's frame: *the* prealignment of the project.
+
+    ``map2 (2, H, W)`` in its sensor frame; ``pose1``, ``pose2``: world poses (x m, y m, yaw rad)
+    of the two sensors; ``noise`` (dx m, dy m, dyaw rad), if given, is added to ``pose2`` first
+    (:func:`~traffictwin.evidential.noise.apply_pose_noise`). Returns ``(warped (2, H, W)
+    float32, rel_pose (3,))`` with ``rel_pose`` the (noisy) pose of map 2's sensor in map 1's
+    frame. Used for the labels (exact poses), the prealigned data and Fig. 4 (noisy poses) and
+    by ``traffictwin fuse``.
+    """
+    from traffictwin.evidential.noise import apply_pose_noise
+
+    if noise is not None:
+        pose2 = apply_pose_noise(pose2, noise)
+    rel = relative_pose(pose1, pose2)
+    return warp_masses(map2, rel, grid), rel
+
+
 def prealign_arrays(
     shard: dict[str, np.ndarray], noise: np.ndarray, grid: GridSpec, draw: np.ndarray | None = None
 ) -> dict[str, np.ndarray]:
@@ -206,8 +230,6 @@ def prealign_arrays(
     says which draw, and the pairs are taken as ``shard[...][pair_index]`` where
     ``pair_index = np.repeat(arange(n_pairs), N // n_pairs)``.
     """
-    from traffictwin.evidential.noise import apply_pose_noise
-
     n = len(shard["map1"])
     reps = len(noise) // max(n, 1)
     if len(noise) != reps * n or reps < 1:
@@ -216,10 +238,12 @@ def prealign_arrays(
         )
     take = np.repeat(np.arange(n), reps)
     pose1, pose2 = shard["pose1"][take], shard["pose2"][take]
-    noisy2 = apply_pose_noise(pose2, noise)
     rel_true = np.stack([relative_pose(a, b) for a, b in zip(pose1, pose2)])
-    rel_noisy = np.stack([relative_pose(a, b) for a, b in zip(pose1, noisy2)])
-    warped = np.stack([warp_masses(shard["map2"][i], r, grid) for i, r in zip(take, rel_noisy)])
+    done = [
+        prealign(shard["map2"][i], pose1[k], pose2[k], grid, noise[k]) for k, i in enumerate(take)
+    ]
+    warped = np.stack([w for w, _ in done])
+    rel_noisy = np.stack([r for _, r in done])
     inputs = np.concatenate([shard["map1"][take], warped], axis=1).astype(np.float32)
     return {
         "inputs": inputs,

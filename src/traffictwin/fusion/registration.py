@@ -40,19 +40,19 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from traffictwin.evidential.warp import pixel_from_metric
 from traffictwin.grid import GridSpec
+from traffictwin.sim.scene import se2_matrix
 
 __all__ = [
     "RegistrationParams",
     "RegistrationResult",
-    "metric_to_pixel",
     "pose_to_pixel_affine",
     "pixel_affine_to_pose",
     "feature_image",
     "known_mask",
     "warp_image",
     "register_pair",
-    "phase_correlate_bounded",
     "BoundedPhaseCorrelator",
     "pose_error",
 ]
@@ -121,33 +121,15 @@ class RegistrationResult:
 
 
 # -- geometry -----------------------------------------------------------------------------------
-def metric_to_pixel(grid: GridSpec) -> np.ndarray:
-    """3×3 matrix: sensor-frame (x, y, 1) in m → pixel (u = col, v = row, 1)."""
-    c = grid.cell
-    return np.array(
-        [
-            [0.0, -1.0 / c, grid.cols / 2 - 0.5],
-            [-1.0 / c, 0.0, grid.rows / 2 - 0.5],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-
-
-def _se2(pose: np.ndarray) -> np.ndarray:
-    x, y, yaw = (float(v) for v in pose)
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
-
-
 def pose_to_pixel_affine(rel_pose: np.ndarray, grid: GridSpec) -> np.ndarray:
     """3×3 pixel transform map-2 pixel → map-1 pixel for ``rel_pose`` (x m, y m, yaw rad)."""
-    p = metric_to_pixel(grid)
-    return p @ _se2(rel_pose) @ np.linalg.inv(p)
+    p = pixel_from_metric(grid)
+    return p @ se2_matrix(*(float(v) for v in rel_pose)) @ np.linalg.inv(p)
 
 
 def pixel_affine_to_pose(a: np.ndarray, grid: GridSpec) -> np.ndarray:
     """Inverse of :func:`pose_to_pixel_affine` (the rotation part is re-orthonormalised)."""
-    p = metric_to_pixel(grid)
+    p = pixel_from_metric(grid)
     t = np.linalg.inv(p) @ np.asarray(a, dtype=np.float64) @ p
     yaw = np.arctan2(t[1, 0] - t[0, 1], t[0, 0] + t[1, 1])
     return np.array([t[0, 2], t[1, 2], yaw])
@@ -290,15 +272,6 @@ class BoundedPhaseCorrelator:
         oy = parabola(r[(iy - 1) % hh, ix], r[iy, ix], r[(iy + 1) % hh, ix])
         ox = parabola(r[iy, (ix - 1) % ww], r[iy, ix], r[iy, (ix + 1) % ww])
         return float(self.dx[ix] + ox), float(self.dy[iy] + oy), float(r[iy, ix])
-
-
-def phase_correlate_bounded(
-    a: np.ndarray, b: np.ndarray, max_shift_px: float
-) -> tuple[float, float]:
-    """Shift ``s = (sx, sy)`` (px) with ``b(p + s) ≈ a(p)``, searched within ``|s| ≤ max_shift_px``
-    (see :class:`BoundedPhaseCorrelator`)."""
-    sx, sy, _ = BoundedPhaseCorrelator(a, max_shift_px).shift(b)
-    return sx, sy
 
 
 def _rot(center: tuple[float, float], deg: float) -> np.ndarray:

@@ -1,0 +1,252 @@
+"""Typed configuration of the fusion problem: schemas of ``grid``, ``configurations``,
+``fusion_data`` and ``evaluation.fusion``, validated once at stage start with
+:func:`traffictwin.config.typed` (bounds via :func:`~traffictwin.config.spec`).
+
+- :func:`grid_config` — ``grid`` → :class:`~traffictwin.grid.GridSpec` (rows/cols divisible by 16);
+- :func:`pose_configurations` — ``configurations`` → ``{name: PoseNoise}`` in conf order (the
+  one list of pose-noise configurations);
+- :func:`fusion_data_config` — ``fusion_data`` → :class:`FusionDataConfig`;
+  :meth:`FusionDataConfig.params` → :class:`~traffictwin.fusion.pairs.FusionDataParams`;
+- :func:`fusion_eval_config` — ``evaluation.fusion`` → :class:`FusionEvalConfig`.
+
+Every failure is a :class:`~traffictwin.config.ConfigError` naming the dotted key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, dataclass
+from typing import Any
+
+from traffictwin.config import ConfigError, spec, typed
+from traffictwin.fusion.registration import RegistrationParams
+from traffictwin.grid import GridSpec
+
+__all__ = [
+    "GridConfig",
+    "PoseNoise",
+    "LidarConfig",
+    "IsmConfig",
+    "SplitsConfig",
+    "PrealignConfig",
+    "FigureConfig",
+    "FusionDataConfig",
+    "FusionEvalConfig",
+    "grid_config",
+    "pose_configurations",
+    "fusion_data_config",
+    "fusion_eval_config",
+]
+
+NETWORK_STRIDE = 16  # rows and cols of the grid must be divisible by the network's output stride
+
+
+@dataclass
+class GridConfig:
+    """``grid``: cells along x (rows) and y (cols), m per cell."""
+
+    rows: int = spec(MISSING, min=NETWORK_STRIDE)
+    cols: int = spec(MISSING, min=NETWORK_STRIDE)
+    cell: float = spec(MISSING, min=0.01)
+
+
+def grid_config(cfg: Any) -> GridSpec:
+    """The checked grid of params.yaml (positive, rows/cols divisible by 16 for the network)."""
+    g = typed(cfg["grid"], GridConfig, key="grid")
+    grid = GridSpec(g.rows, g.cols, g.cell)
+    try:
+        grid.check_divisible(NETWORK_STRIDE, "params.yaml: grid")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    return grid
+
+
+@dataclass
+class PoseNoise:
+    """``configurations.<name>``: 98 % intervals of the pose noise, ``r`` (m per axis) and ``alpha`` (deg)."""
+
+    r: float = spec(MISSING, min=0.0)
+    alpha: float = spec(MISSING, min=0.0, max=180.0)
+
+
+def pose_configurations(cfg: Any) -> dict[str, PoseNoise]:
+    """``configurations`` of params.yaml, checked, in conf order (at least one)."""
+    node = cfg["configurations"] if "configurations" in cfg else None
+    if not node:
+        raise ConfigError("params.yaml: 'configurations' must name at least one configuration")
+    return {str(k): typed(v, PoseNoise, key=f"configurations.{k}") for k, v in node.items()}
+
+
+# -- fusion_data ---------------------------------------------------------------------------------
+@dataclass
+class LidarConfig:
+    azimuth_res_deg: float = spec(MISSING, min=0.01, max=10.0)
+    max_range: float = spec(MISSING, min=2.0)
+    min_range: float = spec(MISSING, min=0.0)
+    range_noise: float = spec(MISSING, min=0.0)
+    dropout: float = spec(MISSING, min=0.0, max=0.99)
+    height: float = spec(MISSING, min=0.1)
+    uniform_elevations: bool = MISSING
+
+
+@dataclass
+class IsmConfig:
+    p_free: float = spec(MISSING, min=0.0, max=0.99)
+    p_ground: float = spec(MISSING, min=0.0, max=0.99)
+    p_occ: float = spec(MISSING, min=0.0, max=0.99)
+    margin: float = spec(MISSING, min=0.0)
+
+
+@dataclass
+class SplitsConfig:
+    train: float = spec(MISSING, min=0.0, max=1.0)
+    val: float = spec(MISSING, min=0.0, max=1.0)
+    test: float = spec(MISSING, min=0.0, max=1.0)
+
+    def __post_init__(self) -> None:
+        fr = (self.train, self.val, self.test)
+        if abs(sum(fr) - 1) > 1e-6:
+            raise ValueError(f"'fusion_data.splits' must sum to 1, got {fr}")
+
+
+@dataclass
+class PrealignConfig:
+    seed: int = spec(MISSING, min=0)
+    train_draws: int = spec(MISSING, min=1)
+
+
+@dataclass
+class FigureConfig:
+    samples: int = spec(MISSING, min=1)
+
+
+@dataclass
+class FusionDataConfig:
+    """``fusion_data`` (conf/fusion_data/base.yaml documents every key)."""
+
+    scenarios: int = spec(MISSING, min=1)
+    scenarios_per_shard: int = spec(MISSING, min=1)
+    encounters_per_scenario: int = spec(MISSING, min=1)
+    encounter_spacing: float = spec(MISSING, min=0.0)
+    t_meet: float = spec(MISSING, min=0.0)
+    meet_distance: list[float] = spec(MISSING, min=0.0)
+    templates: list[str] = spec(MISSING)
+    splits: SplitsConfig = MISSING
+    workers: int = spec(MISSING, min=1)
+    compresslevel: int = spec(MISSING, min=0, max=9)
+    traffic: dict[str, Any] = spec(MISSING)
+    lidar: LidarConfig = MISSING
+    ism: IsmConfig = MISSING
+    prealign: PrealignConfig = MISSING
+    figure: FigureConfig = MISSING
+
+    def __post_init__(self) -> None:
+        from traffictwin.sim.traffic import DEFAULT_DENSITY
+        from traffictwin.sim.world import TEMPLATES
+
+        bad = [t for t in self.templates if t not in TEMPLATES]
+        if bad or not self.templates:
+            raise ValueError(
+                f"'fusion_data.templates' has unknown template name(s) {bad or '(empty)'}; expected from {list(TEMPLATES)}"
+            )
+        md = self.meet_distance
+        if len(md) != 2 or not 0 <= md[0] < md[1]:
+            raise ValueError(
+                f"'fusion_data.meet_distance' must be [min, max] m with 0 <= min < max, got {md}"
+            )
+        if self.scenarios_per_shard >= 1 and self.scenarios % self.scenarios_per_shard:
+            raise ValueError(
+                f"'fusion_data.scenarios' ({self.scenarios}) must be a multiple of "
+                f"'fusion_data.scenarios_per_shard' ({self.scenarios_per_shard})"
+            )
+        unknown = sorted(set(self.traffic) - set(DEFAULT_DENSITY))
+        if unknown:  # the simulator's density keys: fail now, not inside a worker
+            raise ValueError(
+                f"'fusion_data.traffic' has unknown key(s) {unknown}; expected from {sorted(DEFAULT_DENSITY)}"
+            )
+
+    @property
+    def n_shards(self) -> int:
+        return self.scenarios // self.scenarios_per_shard
+
+    @property
+    def split_fractions(self) -> tuple[float, float, float]:
+        return (self.splits.train, self.splits.val, self.splits.test)
+
+    def params(self, grid: GridSpec) -> Any:
+        """The shard parameters (:class:`~traffictwin.fusion.pairs.FusionDataParams`) on ``grid``."""
+        from traffictwin.evidential.ism import IsmParams
+        from traffictwin.fusion.pairs import FusionDataParams
+        from traffictwin.sim.lidar import LidarSpec
+
+        lid, ism = self.lidar, self.ism
+        return FusionDataParams(
+            grid=grid,
+            lidar=LidarSpec(
+                azimuth_res_deg=lid.azimuth_res_deg,
+                max_range=lid.max_range,
+                min_range=lid.min_range,
+                range_noise=lid.range_noise,
+                dropout=lid.dropout,
+                height=lid.height,
+                uniform=lid.uniform_elevations,
+            ),
+            ism=IsmParams(
+                p_free=ism.p_free, p_ground=ism.p_ground, p_occ=ism.p_occ, margin=ism.margin
+            ),
+            scenarios_per_shard=self.scenarios_per_shard,
+            encounters_per_scenario=self.encounters_per_scenario,
+            encounter_spacing=self.encounter_spacing,
+            t_meet=self.t_meet,
+            meet_distance=(float(self.meet_distance[0]), float(self.meet_distance[1])),
+            density={
+                k: (tuple(v) if isinstance(v, (list, tuple)) else float(v))
+                for k, v in self.traffic.items()
+            },
+            templates=tuple(self.templates),
+        )
+
+
+def fusion_data_config(cfg: Any) -> FusionDataConfig:
+    """``fusion_data`` of params.yaml, checked."""
+    return typed(cfg["fusion_data"], FusionDataConfig, key="fusion_data")
+
+
+# -- evaluation.fusion ---------------------------------------------------------------------------
+@dataclass
+class FusionEvalConfig:
+    """``evaluation.fusion`` (conf/evaluation/base.yaml documents every key). The configurations
+    evaluated are the keys of ``configurations``."""
+
+    split: str = spec(MISSING, choices=("train", "val", "test"))
+    max_pairs: int | None = spec(MISSING, min=1)
+    registered_max_pairs: int | None = spec(MISSING, min=1)
+    cross_max_pairs: int | None = spec(MISSING, min=1)
+    batch_size: int = spec(MISSING, min=1)
+    device: str = MISSING
+    kld_eps: float = spec(MISSING, min=0.0, max=0.1)
+    auroc_bins: int = spec(MISSING, min=2)
+    trans_bins_m: list[float] = spec(MISSING, min=0.0)
+    rot_bins_deg: list[float] = spec(MISSING, min=0.0)
+    success_trans_m: float = spec(MISSING, min=0.0)
+    success_rot_deg: float = spec(MISSING, min=0.0)
+    qualitative_fraction: float = spec(MISSING, min=0.0, max=1.0)
+    qualitative_pair: int = spec(MISSING, min=0)
+    registration: dict[str, Any] = spec(
+        MISSING
+    )  # RegistrationParams fields (defaults for the rest)
+
+    def __post_init__(self) -> None:
+        self.registration_params  # noqa: B018  (checks the keys and values now)
+
+    @property
+    def registration_params(self) -> RegistrationParams:
+        """``registration`` as :class:`~traffictwin.fusion.registration.RegistrationParams`."""
+        try:
+            return RegistrationParams(**self.registration)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"'evaluation.fusion.registration': {exc}") from None
+
+
+def fusion_eval_config(cfg: Any) -> FusionEvalConfig:
+    """``evaluation.fusion`` of params.yaml, checked."""
+    return typed(cfg["evaluation"]["fusion"], FusionEvalConfig, key="evaluation.fusion")
