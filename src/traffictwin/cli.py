@@ -126,24 +126,14 @@ def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
             raise CliError(f"{path}: '{k}' must be a float array of masses, got dtype {a.dtype}")
     if mf.shape != mo.shape:
         raise CliError(f"{path}: 'm_free' {mf.shape} and 'm_occ' {mo.shape} differ in shape")
-    for k, a in (("m_free", mf), ("m_occ", mo)):
-        bad = ~np.isfinite(a)
-        if bad.any():
-            raise CliError(
-                f"{path}: '{k}' has {int(bad.sum())} NaN/inf cell(s) (first at row,col {tuple(np.argwhere(bad)[0])})"
-            )
+    from traffictwin.evidential.masses import check_masses, clean_masses
+
     m = np.stack([mf, mo]).astype(np.float64)
-    neg = m < -SIMPLEX_TOL
-    over = m.sum(0) > 1.0 + SIMPLEX_TOL
-    if neg.any() or (m > 1 + SIMPLEX_TOL).any() or over.any():
-        n_bad = int(neg.any(0).sum() + over.sum())
-        raise CliError(
-            f"{path}: masses outside the simplex at {n_bad} cell(s) (need m_free, m_occ >= 0 and m_free + m_occ <= 1; "
-            f"min mass {m.min():.4g}, max m_free + m_occ {m.sum(0).max():.4g})"
-        )
-    m = np.clip(m, 0.0, 1.0)
-    s = m.sum(0, keepdims=True)
-    m = (m / np.maximum(s, 1.0)).astype(np.float32)
+    try:
+        m = check_masses(m, f"{path}: masses (m_free, m_occ)", tol=SIMPLEX_TOL)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    m = clean_masses(m).astype(np.float32)
     cell = None
     if "cell" in data:
         c = np.asarray(data["cell"])
@@ -326,14 +316,12 @@ def fuse_arrays(
 
     Returns ``(m (2,H,W), u (H,W), m2_prealigned (2,H,W), rel_pose (3,))``, float32 masses.
     """
-    from traffictwin.evidential.warp import warp_masses
     from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.fusion.pairs import prealign
     from traffictwin.grid import GridSpec
-    from traffictwin.sim.scene import relative_pose
 
     grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
-    rel = relative_pose(pose1, pose2)
-    m2w = warp_masses(m2, rel, grid)
+    m2w, rel = prealign(m2, pose1, pose2, grid)
     x = np.concatenate([m1, m2w])[None].astype(np.float32)
     m, u = predict_masses(net, x, batch_size=1)
     return m[0], u[0], m2w, rel
