@@ -119,7 +119,12 @@ def _params_file_uses(tree: ast.Module) -> list[int]:
     error messages, e.g. ``source="params.yaml"``, and docstrings are not uses.)"""
 
     def names_params(n: ast.AST) -> bool:
-        return isinstance(n, ast.Constant) and isinstance(n.value, str) and "params.yaml" in n.value
+        # a file name, not a message that mentions the file ("params.yaml: 'grid' must be ...")
+        return (
+            isinstance(n, ast.Constant)
+            and isinstance(n.value, str)
+            and (n.value == "params.yaml" or n.value.endswith("/params.yaml"))
+        )
 
     lines = []
     for node in ast.walk(tree):

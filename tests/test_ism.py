@@ -11,7 +11,8 @@ from traffictwin.sim.scene import Boxes, Cls
 G = GridSpec(128, 96, 0.32)
 
 
-def wall_map(params=IsmParams()):
+def wall_map(params: IsmParams | None = None):
+    params = params or IsmParams()
     spec = LidarSpec(azimuth_res_deg=0.4, max_range=60.0, range_noise=0.0)
     # a 30 m wide, 4 m tall wall whose near face is 10 m ahead (+x)
     wall = Boxes([[10.5, 0.0]], [[1.0, 30.0, 4.0]], [0.0], [Cls.WALL])
