@@ -13,7 +13,11 @@ The noise is added to map 2's world pose (:func:`apply_pose_noise`).
 
 from __future__ import annotations
 
+from dataclasses import MISSING, dataclass
+
 import numpy as np
+
+from traffictwin.config import spec
 
 Z98 = 2.326  # two-sided 98 % interval half-width of N(0, 1) (the 99 % quantile)
 
@@ -53,3 +57,12 @@ def apply_pose_noise(pose: np.ndarray, noise: np.ndarray) -> np.ndarray:
     out = np.asarray(pose, dtype=np.float64) + np.asarray(noise, dtype=np.float64)
     out[..., 2] = (out[..., 2] + np.pi) % (2 * np.pi) - np.pi
     return out
+
+
+@dataclass
+class PoseNoise:
+    """A pose-noise configuration (``configurations.<name>`` of the params): the 98 % two-sided
+    intervals ``r`` (m, per axis) and ``alpha`` (deg) of :func:`noise_sigmas`."""
+
+    r: float = spec(MISSING, min=0.0)
+    alpha: float = spec(MISSING, min=0.0, max=180.0)

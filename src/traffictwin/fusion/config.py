@@ -18,6 +18,7 @@ from dataclasses import MISSING, dataclass
 from typing import Any
 
 from traffictwin.config import ConfigError, spec, typed
+from traffictwin.evidential.noise import PoseNoise
 from traffictwin.fusion.registration import RegistrationParams
 from traffictwin.grid import GridSpec
 
@@ -58,14 +59,6 @@ def grid_config(cfg: Any) -> GridSpec:
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     return grid
-
-
-@dataclass
-class PoseNoise:
-    """``configurations.<name>``: 98 % intervals of the pose noise, ``r`` (m per axis) and ``alpha`` (deg)."""
-
-    r: float = spec(MISSING, min=0.0)
-    alpha: float = spec(MISSING, min=0.0, max=180.0)
 
 
 def pose_configurations(cfg: Any) -> dict[str, PoseNoise]:

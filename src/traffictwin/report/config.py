@@ -6,14 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from traffictwin.config import spec
-
-
-@dataclass
-class PoseNoise:
-    """One pose-noise configuration (``configurations.<name>``): 98 % intervals."""
-
-    r: float = spec(min=0)  # m
-    alpha: float = spec(min=0)  # deg
+from traffictwin.evidential.noise import PoseNoise
 
 
 @dataclass
