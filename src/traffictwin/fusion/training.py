@@ -36,7 +36,12 @@ from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 
 from traffictwin import trainer as common
 from traffictwin.evidential.dempster import dempster
-from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.fusion.deeplab import (
+    DeepLabSpec,
+    DeepLabV3Plus,
+    channels_last_supported,
+    count_parameters,
+)
 from traffictwin.fusion.losses import (
     confusion_counts,
     dice_from_counts,
@@ -290,7 +295,11 @@ class FusionLitModule(L.LightningModule):
         self.spec = DeepLabSpec.from_dict(spec)
         self.hp = FusionHParams(**hparams)
         self.net = DeepLabV3Plus(self.spec)
-        if self.hp.channels_last:
+        # NHWC only where oneDNN supports every layer (see channels_last_supported)
+        self.channels_last = self.hp.channels_last and channels_last_supported(self.net)
+        if self.hp.channels_last and not self.channels_last:
+            log.warning("channels_last off: a strided 1x1 conv with < 8 input channels (oneDNN)")
+        if self.channels_last:
             self.net = self.net.to(memory_format=torch.channels_last)
         self._val_counts: torch.Tensor | None = None
         self._aug_gen: torch.Generator | None = None
@@ -299,7 +308,7 @@ class FusionLitModule(L.LightningModule):
         return self.net(self._layout(x))
 
     def _layout(self, x: torch.Tensor) -> torch.Tensor:
-        return x.contiguous(memory_format=torch.channels_last) if self.hp.channels_last else x
+        return x.contiguous(memory_format=torch.channels_last) if self.channels_last else x
 
     def _kl_weight(self) -> float:
         if self.hp.kl_weight <= 0:
