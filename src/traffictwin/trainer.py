@@ -15,7 +15,6 @@ Stable API (the fusion and the risk stages both use it):
   launcher re-runs the stage script in every rank; the other ranks get ``None``).
 - :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
   the network as an MLflow model that :func:`mlflow.pytorch.load_model` restores.
-- :func:`copy_atomic` — publish a file (e.g. the best checkpoint) under its final name atomically.
 """
 
 from __future__ import annotations
@@ -24,7 +23,6 @@ import csv
 import logging
 import math
 import os
-import shutil
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
@@ -315,11 +313,3 @@ def log_torch_model(
         metadata=dict(metadata) if metadata else None,
     )
     return info.model_uri
-
-
-def copy_atomic(src: str | Path, dest: str | Path) -> None:
-    """Copy ``src`` to ``dest`` through a temp file + rename (a reader never sees half a file)."""
-    with atomic_path(dest) as tmp:
-        shutil.copyfile(src, tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
