@@ -15,11 +15,11 @@ import shutil
 
 import torch
 
-from traffictwin.config import ConfigError, flatten, get
+from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.io.atomic import atomic_path
-from traffictwin.risk.dave2 import Dave2Config, PackedDave2, count_parameters, normalise, pack_input
+from traffictwin.risk.dave2 import PackedDave2, count_parameters, normalise, pack_input
 from traffictwin.risk.model_io import CKPT, save_risk_model
-from traffictwin.risk.training import LABELS, RiskSource, TrainConfig, fit, prepare_split
+from traffictwin.risk.training import RiskModelConfig, RiskSource, fit, prepare_split
 from traffictwin.trainer import (
     TrainerSettings,
     global_rank,
@@ -28,64 +28,23 @@ from traffictwin.trainer import (
     tracked_run,
 )
 
-from ._common import ROOT, params, run_stage, setup_logging, stage_timer
+from ._common import params, run_stage, setup_logging, stage_timer
+from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, plot_file, risk_model_dir
 
 
-def model_config(p, variant: str) -> tuple[Dave2Config, str]:
-    """The network config and training label of ``variant`` from params."""
-    variants = get(p, "risk_model.variants", dict)
-    if variant not in variants:
-        raise ConfigError(
-            f"params.yaml: 'risk_model.variants' has no variant {variant!r} (has {sorted(variants)})"
-        )
-    k = f"risk_model.variants.{variant}"
-    label = get(p, f"{k}.label", (str, type(None)), default=None) or get(
-        p, "risk_model.label", str, choices=LABELS
-    )
-    if label not in LABELS:
-        raise ConfigError(f"params.yaml: '{k}.label' must be one of {list(LABELS)}, got {label!r}")
-    try:
-        cfg = Dave2Config(
-            inputs=tuple(get(p, f"{k}.inputs", list)),
-            height=get(p, "risk_model.height", int, min=1),
-            width=get(p, "risk_model.width", int, min=1),
-            use_speed=get(p, f"{k}.speed", bool),
-            speed_scale=get(p, "risk_model.speed_scale", float, min=1e-6),
-            disp_scale=get(p, "risk_model.disp_scale", float, min=1e-6),
-            dropout=get(p, "risk_model.dropout", float, min=0.0, max=0.99),
-        )
-    except ValueError as exc:
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(f"params.yaml: risk_model / variant {variant!r}: {exc}") from None
-    return cfg, label
-
-
-def train_config(p) -> tuple[TrainConfig, int | None]:
-    t = "risk_model.train"
-    lvb = get(
-        p, f"{t}.limit_val_batches"
-    )  # int = number of batches, float = fraction (keep the type)
-    if (
-        isinstance(lvb, bool)
-        or not isinstance(lvb, (int, float))
-        or lvb <= 0
-        or (isinstance(lvb, float) and lvb > 1)
-    ):
-        raise ConfigError(
-            f"params.yaml: '{t}.limit_val_batches' must be a batch count (int >= 1) or a fraction in (0, 1], got {lvb!r}"
-        )
-    tc = TrainConfig(
-        epochs=get(p, f"{t}.epochs", int, min=1),
-        batch_size=get(p, f"{t}.batch_size", int, min=1),
-        lr=get(p, f"{t}.lr", float, min=1e-12),
-        weight_decay=get(p, f"{t}.weight_decay", float, min=0.0),
-        val_every_n_steps=get(p, f"{t}.val_every_n_steps", int, min=1),
-        limit_val_batches=lvb,
-        eval_batch_size=get(p, f"{t}.eval_batch_size", int, min=1),
-        seed=get(p, "seed", int, min=0) + get(p, f"{t}.seed_offset", int, min=0),
-    )
-    return tc, get(p, f"{t}.max_train_frames", (int, type(None)), default=None)
+def training_domain(p, model: RiskModelConfig, label: str) -> dict:
+    """What a user of the model must reproduce at inference: camera size, SGM / ORB settings, scales, label."""
+    return {
+        "camera": {
+            "width": get(p, "risk_data.camera.width", int),
+            "height": get(p, "risk_data.camera.height", int),
+        },
+        "sgm": get(p, "risk_data.sgm", dict),
+        "orb": get(p, "risk_data.orb", dict),
+        "disp_scale": model.disp_scale,
+        "speed_scale": model.speed_scale,
+        "label": label,
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -95,19 +54,29 @@ def main(argv: list[str] | None = None) -> None:
     log = setup_logging()
     p = params()
     variant = args.variant
-    cfg, label = model_config(p, variant)
-    tc, max_train = train_config(p)
-    settings = TrainerSettings.from_cfg(p)
+    source = PARAMS.name
+    model = typed(p["risk_model"], RiskModelConfig, key="risk_model", source=source)
+    if variant not in model.variants:
+        raise ConfigError(
+            f"{source}: 'risk_model.variants' has no variant {variant!r} (has {sorted(model.variants)})"
+        )
+    try:
+        cfg, label = model.variant(variant)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: risk_model / variant {variant!r}: {exc}") from None
+    tc = model.train_config(get(p, "seed", int, min=0))
+    max_train = model.train.max_train_frames
+    settings = TrainerSettings.from_cfg(p, source=source)
     profile = get(p, "profile.name", str)
     stage = f"train_risk@{variant}"
-    out_dir = ROOT / "models" / "risk" / variant
-    plot_csv = ROOT / "reports" / "plots" / f"risk_training_{variant}.csv"
+    out_dir = risk_model_dir(variant)
+    plot_csv = plot_file(f"risk_training_{variant}")
 
     with stage_timer(stage):
-        orb = ROOT / "data" / "orb" / "orb.csv" if get(p, "risk_model.orb_filter", bool) else None
-        source = RiskSource(ROOT / "data" / "risk", ROOT / "data" / "disparity", orb)
-        train = prepare_split(source, cfg, "train", label, max_frames=max_train, seed=tc.seed)
-        val = prepare_split(source, cfg, "val", label)
+        orb = ORB_CSV if model.orb_filter else None
+        data = RiskSource(RISK_DATA, DISPARITY, orb)
+        train = prepare_split(data, cfg, "train", label, max_frames=max_train, seed=tc.seed)
+        val = prepare_split(data, cfg, "val", label)
         log.info(
             "%s: %d train / %d val frames (ORB-passed), label %s",
             stage,
@@ -132,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
             "data.n_train": len(train),
             "data.n_val": len(val),
         }
-        tags = {"variant": variant, "data_manifest": source.risk.manifest_hash(), "label": label}
+        tags = {"variant": variant, "data_manifest": data.risk.manifest_hash(), "label": label}
         with tracked_run(
             "risk", f"risk-{variant}", profile=profile, stage=stage, tags=tags, params=run_params
         ) as run:
@@ -150,9 +119,10 @@ def main(argv: list[str] | None = None) -> None:
                 "train_seconds": round(res.seconds, 2),
                 "n_train": res.n_train,
                 "n_val": res.n_val,
-                "data_manifest": source.risk.manifest_hash(),
+                "data_manifest": data.risk.manifest_hash(),
                 "profile": profile,
                 "train": tc.__dict__,
+                "domain": training_domain(p, model, label),
             }
             save_risk_model(res.net, out_dir, meta)
             with atomic_path(out_dir / "history.csv", suffix=".csv") as tmp:

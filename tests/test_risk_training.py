@@ -271,3 +271,53 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     with torch.no_grad():
         p = res.net(normalise(cfg, None, torch.from_numpy(va.disp))).numpy()
     assert float(np.mean((p - va.y) ** 2)) == pytest.approx(res.best_val_mse, rel=1e-4)
+
+
+def _risk_model_node() -> dict:
+    import copy
+
+    from traffictwin.config import compose_config
+
+    root = Path(__file__).resolve().parents[1]
+    return copy.deepcopy(compose_config(root / "conf", [])["risk_model"])
+
+
+def test_risk_model_config_is_validated_once_with_full_keys() -> None:
+    from traffictwin.config import ConfigError, typed
+    from traffictwin.risk.training import RiskModelConfig
+
+    node = _risk_model_node()
+    m = typed(node, RiskModelConfig, key="risk_model")
+    for name in m.run_variants:
+        cfg, label = m.variant(name)
+        v = node["variants"][name]
+        assert cfg.inputs == tuple(v["inputs"]) and cfg.use_speed == v["speed"]
+        assert label == (v["label"] or node["label"])
+        assert (cfg.height, cfg.width, cfg.disp_scale) == (
+            node["height"],
+            node["width"],
+            node["disp_scale"],
+        )
+    tc = m.train_config(seed=5)
+    assert tc.seed == 5 + node["train"]["seed_offset"] and tc.epochs == node["train"]["epochs"]
+    bad = [
+        (("train", "limit_val_batches"), 1.5, "limit_val_batches must be a batch count"),
+        (("train", "epochs"), 0, "'risk_model.train.epochs' must be >= 1"),
+        (("label",), "nope", "'risk_model.label' must be one of"),
+        (("dropout",), 1.0, "'risk_model.dropout' must be <= 0.99"),
+        (("run_variants",), ["rgbd", "zzz"], r"run_variants \['zzz'\] are not in variants"),
+        (("variants", "rgb", "inputs"), ["rgb", "x"], r"'risk_model.variants.rgb.inputs\[1\]'"),
+        (("train", "extra"), 1, "risk_model.train.extra"),
+    ]
+    for path, value, msg in bad:
+        n = _risk_model_node()
+        d = n
+        for k in path[:-1]:
+            d = d[k]
+        d[path[-1]] = value
+        with pytest.raises(ConfigError, match=msg):
+            typed(n, RiskModelConfig, key="risk_model")
+    n = _risk_model_node()
+    del n["train"]["lr"]
+    with pytest.raises(ConfigError, match="risk_model.train.lr"):
+        typed(n, RiskModelConfig, key="risk_model")

@@ -3,8 +3,8 @@
 Stable API (the fusion and the risk stages both use it):
 
 - :class:`TrainerSettings` — the ``trainer`` config group (accelerator, devices, num_nodes,
-  strategy, precision, num_workers, optional deterministic), checked with
-  :func:`traffictwin.config.get`; :meth:`TrainerSettings.from_cfg`.
+  strategy, precision, num_workers, optional deterministic / num_threads), validated once with
+  :func:`traffictwin.config.typed` by :meth:`TrainerSettings.from_cfg`.
 - :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
 - :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
   (metrics go to MLflow through :class:`EpochHistory`, which logs one value per epoch).
@@ -25,7 +25,7 @@ import math
 import os
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from traffictwin.config import ConfigError, get
+from traffictwin.config import ConfigError, spec, typed
 from traffictwin.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -53,41 +53,39 @@ ACCELERATORS = ("cpu", "gpu", "cuda", "mps", "tpu", "auto")
 
 @dataclass(frozen=True)
 class TrainerSettings:
-    """Where and how Lightning runs: one CPU, one GPU, or DDP over ``devices`` x ``num_nodes``."""
+    """Where and how Lightning runs: one CPU, one GPU, or DDP over ``devices`` x ``num_nodes``.
 
-    accelerator: str = "cpu"
-    devices: int | str = 1
-    num_nodes: int = 1
+    Also the schema of the ``trainer`` config group (:meth:`from_cfg`); ``deterministic`` and
+    ``num_threads`` may be left out there, every other key is required.
+    """
+
+    accelerator: str = spec("cpu", choices=ACCELERATORS)
+    devices: int | str = 1  # >= 1, -1 (all) or a Lightning string ("auto", "0,1")
+    num_nodes: int = spec(1, min=1)
     strategy: str = "auto"
-    precision: str = "32-true"
-    num_workers: int = 0
+    precision: str | int = spec("32-true", choices=[*PRECISIONS, 32, 64])
+    num_workers: int = spec(0, min=0)
     deterministic: bool | str | None = (
         None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
     )
-    num_threads: int = 0  # torch intra-op CPU threads; 0 = torch's default (all cores)
+    num_threads: int = spec(0, min=0)  # torch intra-op CPU threads; 0 = torch's default
+
+    OPTIONAL = ("deterministic", "num_threads")
 
     @classmethod
-    def from_cfg(
-        cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml"
-    ) -> TrainerSettings:
-        """Read the ``trainer`` group (``cfg`` is the whole params tree)."""
-        p = f"{key}." if key else ""
-        devices = get(cfg, p + "devices", (int, str), source=source)
-        if isinstance(devices, int) and devices < 1 and devices != -1:
-            raise ConfigError(f"{source}: '{p}devices' must be >= 1 or -1, got {devices!r}")
-        det = get(cfg, p + "deterministic", (bool, str), default=None, source=source)
-        return cls(
-            accelerator=get(cfg, p + "accelerator", str, choices=ACCELERATORS, source=source),
-            devices=devices,
-            num_nodes=get(cfg, p + "num_nodes", int, min=1, source=source),
-            strategy=get(cfg, p + "strategy", str, source=source),
-            precision=str(
-                get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)
-            ),
-            num_workers=get(cfg, p + "num_workers", int, min=0, source=source),
-            deterministic=det,
-            num_threads=get(cfg, p + "num_threads", int, min=0, default=0, source=source),
-        )
+    def from_cfg(cls, cfg: Any, *, source: str | Path, key: str = "trainer") -> TrainerSettings:
+        """Validate the ``trainer`` group of ``cfg`` (the whole params tree) once; errors name ``source``."""
+        node = cfg.get(key) if isinstance(cfg, Mapping) or hasattr(cfg, "get") else None
+        if node is None:
+            raise ConfigError(f"{source}: '{key}' is missing")
+        for f in fields(cls):
+            if f.name not in cls.OPTIONAL and f.name not in node:
+                raise ConfigError(f"{source}: '{key}.{f.name}' is missing")
+        settings = typed(node, cls, key=key, source=source)
+        d = settings.devices
+        if isinstance(d, int) and d < 1 and d != -1:
+            raise ConfigError(f"{source}: '{key}.devices' must be >= 1 or -1, got {d!r}")
+        return replace(settings, precision=str(settings.precision))
 
     def resolved_deterministic(self) -> bool | str:
         if self.deterministic is not None:

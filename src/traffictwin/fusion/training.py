@@ -35,6 +35,8 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 
 from traffictwin import trainer as common
+from traffictwin.config import ConfigError
+from traffictwin.config import spec as setting
 from traffictwin.evidential.dempster import dempster
 from traffictwin.fusion.deeplab import (
     DeepLabSpec,
@@ -407,6 +409,101 @@ class FusionLitModule(L.LightningModule):
                 "frequency": 1,
             },
         }
+
+
+# ---------------------------------------------------------------------------------------------
+# the ``fusion_model`` config group (validated once by the stage with traffictwin.config.typed)
+
+
+@dataclass
+class OptimConfig:
+    """``fusion_model.optim``: Adam and the plateau decay of the learning rate."""
+
+    lr: float = setting(min=1e-9)
+    weight_decay: float = setting(min=0.0)
+    lr_factor: float = setting(min=1e-6, max=1.0)
+    lr_patience: int = setting(min=0)
+
+
+@dataclass
+class LossConfig:
+    """``fusion_model.loss``: eqs. (6)-(7) and the optional KL regulariser."""
+
+    occupied_weight: float = setting(min=1.0)
+    kl_weight: float = setting(min=0.0)
+    kl_anneal_epochs: int = setting(min=1)
+
+
+@dataclass
+class AugmentConfig:
+    """``fusion_model.augment``: random flips and rotation (paper III-D)."""
+
+    flip: bool = setting()
+    rotation_deg: float = setting(min=0.0, max=180.0)
+
+
+@dataclass
+class FusionTrainConfig:
+    """``fusion_model.train``: batches, epochs, stopping, memory format."""
+
+    batch_size: int = setting(min=2)
+    max_epochs: int = setting(min=1)
+    train_samples_per_epoch: int = setting(min=0)
+    val_samples: int = setting(min=0)
+    early_stopping_patience: int = setting(min=1)
+    gradient_clip_val: float | None = setting()
+    channels_last: bool = setting()
+
+
+@dataclass
+class FusionModelConfig:
+    """The ``fusion_model`` group: architecture (see :func:`spec_from_cfg`) and its training."""
+
+    name: str = setting()
+    architecture: dict[str, Any] = setting()
+    optim: OptimConfig = setting()
+    loss: LossConfig = setting()
+    augment: AugmentConfig = setting()
+    train: FusionTrainConfig = setting()
+
+    def deeplab_spec(self, source: str = "params.yaml", key: str = "fusion_model") -> DeepLabSpec:
+        """The network's :class:`DeepLabSpec`; an invalid architecture is a ConfigError."""
+        try:
+            return spec_from_cfg(self.architecture)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: '{key}.architecture' is invalid: {exc}") from None
+
+    def hparams(self) -> FusionHParams:
+        o, lo, a = self.optim, self.loss, self.augment
+        return FusionHParams(
+            lr=o.lr,
+            weight_decay=o.weight_decay,
+            lr_factor=o.lr_factor,
+            lr_patience=o.lr_patience,
+            occupied_weight=lo.occupied_weight,
+            kl_weight=lo.kl_weight,
+            kl_anneal_epochs=lo.kl_anneal_epochs,
+            augment_flip=a.flip,
+            augment_rotation_deg=a.rotation_deg,
+            channels_last=self.train.channels_last,
+        )
+
+    def data(self, num_workers: int) -> DataSettings:
+        t = self.train
+        return DataSettings(
+            batch_size=t.batch_size,
+            train_samples_per_epoch=t.train_samples_per_epoch,
+            val_samples=t.val_samples,
+            num_workers=num_workers,
+        )
+
+    def loop(self) -> LoopSettings:
+        t = self.train
+        return LoopSettings(
+            max_epochs=t.max_epochs,
+            early_stopping_patience=t.early_stopping_patience,
+            gradient_clip_val=t.gradient_clip_val,
+        )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -35,6 +35,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from torch.utils.data import DataLoader, TensorDataset
 
+from traffictwin.config import spec as setting
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
 from traffictwin.trainer import TrainerSettings, best_checkpoint, build_trainer, seed_everything
@@ -462,6 +463,97 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{k} must be >= 1, got {getattr(self, k)}")
         if not self.lr > 0:
             raise ValueError(f"TrainConfig.lr must be > 0, got {self.lr}")
+
+
+# the ``risk_model`` config group (validated once by the stage with traffictwin.config.typed)
+
+
+@dataclass
+class VariantConfig:
+    """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``)."""
+
+    inputs: list[str] = setting(choices=("rgb", "disp_sgm", "disp_gt"))
+    speed: bool = setting()
+    label: str | None = setting(choices=(*LABELS, None))
+
+
+@dataclass
+class RiskTrainSchema:
+    """``risk_model.train``; ``limit_val_batches``: a batch count (int >= 1) or a fraction in (0, 1]."""
+
+    epochs: int = setting(min=1)
+    batch_size: int = setting(min=1)
+    lr: float = setting(min=1e-12)
+    weight_decay: float = setting(min=0.0)
+    val_every_n_steps: int = setting(min=1)
+    limit_val_batches: Any = setting()
+    eval_batch_size: int = setting(min=1)
+    max_train_frames: int | None = setting(min=1)
+    seed_offset: int = setting(min=0)
+
+
+@dataclass
+class RiskModelConfig:
+    """The ``risk_model`` group: the network (per variant) and its training."""
+
+    orb_filter: bool = setting()
+    label: str = setting(choices=LABELS)
+    height: int = setting(min=1)
+    width: int = setting(min=1)
+    disp_scale: float = setting(min=1e-6)
+    speed_scale: float = setting(min=1e-6)
+    dropout: float = setting(min=0.0, max=0.99)
+    train: RiskTrainSchema = setting()
+    run_variants: list[str] = setting()
+    variants: dict[str, VariantConfig] = setting()
+
+    def __post_init__(self) -> None:
+        lvb = self.train.limit_val_batches
+        if (
+            isinstance(lvb, bool)
+            or not isinstance(lvb, (int, float))
+            or lvb <= 0
+            or (isinstance(lvb, float) and lvb > 1)
+        ):
+            raise ValueError(
+                "train.limit_val_batches must be a batch count (int >= 1) or a fraction in (0, 1],"
+                f" got {lvb!r}"
+            )
+        unknown = [v for v in self.run_variants if v not in self.variants]
+        if unknown:
+            raise ValueError(
+                f"run_variants {unknown} are not in variants (has {sorted(self.variants)})"
+            )
+
+    def variant(self, name: str) -> tuple[Dave2Config, str]:
+        """The network config and the training label of variant ``name``."""
+        if name not in self.variants:
+            raise KeyError(f"no variant {name!r} (has {sorted(self.variants)})")
+        v = self.variants[name]
+        cfg = Dave2Config(
+            inputs=tuple(v.inputs),
+            height=self.height,
+            width=self.width,
+            use_speed=v.speed,
+            speed_scale=self.speed_scale,
+            disp_scale=self.disp_scale,
+            dropout=self.dropout,
+        )
+        return cfg, v.label or self.label
+
+    def train_config(self, seed: int) -> TrainConfig:
+        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset``."""
+        t = self.train
+        return TrainConfig(
+            epochs=t.epochs,
+            batch_size=t.batch_size,
+            lr=t.lr,
+            weight_decay=t.weight_decay,
+            val_every_n_steps=t.val_every_n_steps,
+            limit_val_batches=t.limit_val_batches,
+            eval_batch_size=t.eval_batch_size,
+            seed=seed + t.seed_offset,
+        )
 
 
 @dataclass
