@@ -54,7 +54,7 @@ from traffictwin.fusion.losses import (
 )
 from traffictwin.fusion.model_io import CKPT_FORMAT
 from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 
 log = logging.getLogger(__name__)
@@ -543,22 +543,19 @@ class FitResult:
     model_uri: str | None = None
 
 
-def slim_checkpoint(lightning_ckpt: str | Path, extra: Mapping[str, Any]) -> dict[str, Any]:
-    """A Lightning checkpoint without optimizer/loop state (``load_from_checkpoint`` still works) + ``traffictwin`` meta."""
+def best_model_checkpoint(
+    lightning_ckpt: str | Path, architecture: Mapping[str, Any], meta: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The best epoch's Lightning checkpoint in the one model format (no optimizer/loop state)."""
     ck = torch.load(lightning_ckpt, map_location="cpu", weights_only=False)
-    keep = {
-        k: ck[k]
-        for k in ("state_dict", "epoch", "global_step", "pytorch-lightning_version")
-        if k in ck
-    }
-    keep["hyper_parameters"] = json.loads(
-        json.dumps(dict(ck.get("hyper_parameters", {})), default=str)
+    return common.model_checkpoint(
+        "fusion",
+        architecture,
+        ck["state_dict"],
+        meta,
+        epoch=int(ck.get("epoch", -1)),
+        global_step=int(ck.get("global_step", -1)),
     )
-    keep["traffictwin"] = {
-        "format": CKPT_FORMAT,
-        **json.loads(json.dumps(dict(extra), default=str)),
-    }
-    return keep
 
 
 def fit_fusion(
@@ -645,7 +642,8 @@ def fit_fusion(
         best = ckpt_cb.best_model_path
         if not best or not Path(best).exists():
             raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
-        best_epoch = int(torch.load(best, map_location="cpu", weights_only=False).get("epoch", -1))
+        slim = best_model_checkpoint(best, spec.as_dict(), {})
+        best_epoch = slim["epoch"]
         row = next(
             (r for r in history.rows if r["epoch"] == best_epoch),
             history.rows[-1] if history.rows else {},
@@ -678,7 +676,7 @@ def fit_fusion(
             "mlflow_model_uri": None,
             "data_root": str(data_root),
         }
-        slim = slim_checkpoint(best, meta)
+        slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         model_uri = None
         if run is not None:
             import mlflow
@@ -710,8 +708,7 @@ def fit_fusion(
             )
             meta["mlflow_model_uri"] = model_uri
             slim["traffictwin"]["mlflow_model_uri"] = model_uri
-        with atomic_path(ckpt_out, suffix=".ckpt") as tmp:
-            torch.save(slim, tmp)
+        common.save_model_checkpoint(ckpt_out, slim)
         if meta_out:
             write_json_atomic(meta_out, meta)
         if metrics_out:
