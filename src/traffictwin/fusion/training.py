@@ -33,6 +33,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
+from torchmetrics import MeanMetric
 
 from traffictwin import trainer as common
 from traffictwin.config import ConfigError
@@ -45,7 +46,7 @@ from traffictwin.fusion.deeplab import (
     count_parameters,
 )
 from traffictwin.fusion.losses import (
-    confusion_counts,
+    ConfusionCounts,
     dice_from_counts,
     evidence_to_masses,
     evidential_loss,
@@ -303,7 +304,12 @@ class FusionLitModule(L.LightningModule):
             log.warning("channels_last off: a strided 1x1 conv with < 8 input channels (oneDNN)")
         if self.channels_last:
             self.net = self.net.to(memory_format=torch.channels_last)
-        self._val_counts: torch.Tensor | None = None
+        # validation metrics (torchmetrics: accumulated over batches, reduced over DDP ranks)
+        self.val_means = torch.nn.ModuleDict(
+            {k: MeanMetric() for k in ("loss", "kld", "kld_full", "kld_naive", "kld_full_naive")}
+        )
+        self.val_counts = ConfusionCounts()
+        self.val_counts_naive = ConfusionCounts()
         self._aug_gen: torch.Generator | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -340,60 +346,37 @@ class FusionLitModule(L.LightningModule):
         )
         return loss
 
-    def on_validation_epoch_start(self) -> None:
-        self._val_counts = torch.zeros(12, dtype=torch.float64, device=self.device)
-
     def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> None:
         x, y = batch
         e = self.net(self._layout(x)).float()
         y = y.float()
         loss = evidential_loss(e, y, self.hp.occupied_weight, 0.0)
         m, _ = evidence_to_masses(e)
-        n = x.shape[0]
-        self.log("val/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
-        self.log(
-            "val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n
-        )
-        self.log(
-            "val/kld_full",
-            kld_full(m, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())
-        self.log(
-            "val/kld_naive",
-            kld(naive, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
-        self.log(
-            "val/kld_full_naive",
-            kld_full(naive, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
-        assert self._val_counts is not None
-        self._val_counts[:6] += confusion_counts(m, y).to(self._val_counts.device)
-        self._val_counts[6:] += confusion_counts(naive, y).to(self._val_counts.device)
+        n = x.shape[0]
+        for name, value in (
+            ("loss", loss),
+            ("kld", kld(m, y).mean()),
+            ("kld_full", kld_full(m, y).mean()),
+            ("kld_naive", kld(naive, y).mean()),
+            ("kld_full_naive", kld_full(naive, y).mean()),
+        ):
+            self.val_means[name].update(value, weight=n)
+        self.val_counts.update(m, y)
+        self.val_counts_naive.update(naive, y)
 
     def on_validation_epoch_end(self) -> None:
-        if self._val_counts is None:
-            return
-        counts = self.trainer.strategy.reduce(self._val_counts, reduce_op="sum").cpu()
-        for suffix, c in (("", counts[:6]), ("_naive", counts[6:])):
-            for k, v in dice_from_counts(c).items():
+        for name, metric in self.val_means.items():
+            self.log(f"val/{name}", metric.compute())
+            metric.reset()
+        for suffix, metric in (("", self.val_counts), ("_naive", self.val_counts_naive)):
+            counts = metric.compute().cpu()
+            metric.reset()
+            for k, v in dice_from_counts(counts).items():
                 if suffix and not k.startswith("dice"):
                     continue
-                # already reduced over ranks; identical everywhere, so the (mean) sync is a no-op that silences Lightning
-                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0, sync_dist=True)
+                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0)
 
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)

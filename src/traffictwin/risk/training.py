@@ -34,6 +34,7 @@ import pandas as pd
 import torch
 from lightning.pytorch.callbacks import Callback
 from torch.utils.data import DataLoader, TensorDataset
+from torchmetrics import SumMetric
 
 from traffictwin.config import spec as setting
 from traffictwin.io.shards import Dataset, DatasetError
@@ -354,7 +355,15 @@ class RiskRegressor(L.LightningModule):
         self.net = Dave2(cfg)
         self.cfg = cfg
         self.lr, self.weight_decay = float(lr), float(weight_decay)
-        self._sums: dict[str, list[float]] = {}
+        # per-split error sums (torchmetrics, float64; reduced over DDP ranks)
+        self.eval_sums = torch.nn.ModuleDict(
+            {
+                split: torch.nn.ModuleDict(
+                    {k: SumMetric().set_dtype(torch.float64) for k in ("se", "ae", "n")}
+                )
+                for split in ("val", "test")
+            }
+        )
 
     def forward(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         x = normalise(self.cfg, rgb if rgb.shape[1] else None, disp if disp.shape[1] else None)
@@ -372,16 +381,19 @@ class RiskRegressor(L.LightningModule):
     def _eval_step(self, batch: Sequence[torch.Tensor], prefix: str) -> None:
         rgb, disp, speed, y = batch
         err = self(rgb, disp, speed).float() - y
-        s = self._sums.setdefault(prefix, [0.0, 0.0, 0.0])
-        s[0] += float(torch.sum(err**2))
-        s[1] += float(torch.sum(err.abs()))
-        s[2] += float(len(y))
+        sums = self.eval_sums[prefix]
+        sums["se"].update(torch.sum(err**2).double())
+        sums["ae"].update(torch.sum(err.abs()).double())
+        sums["n"].update(float(len(y)))
 
     def _eval_end(self, prefix: str) -> None:
-        s = self._sums.pop(prefix, [0.0, 0.0, 0.0])
-        n = max(s[2], 1.0)
-        self.log(f"{prefix}/mse", s[0] / n, sync_dist=True)
-        self.log(f"{prefix}/mae", s[1] / n, sync_dist=True)
+        sums = self.eval_sums[prefix]
+        se, ae, n = (float(sums[k].compute()) for k in ("se", "ae", "n"))
+        for metric in sums.values():
+            metric.reset()
+        n = max(n, 1.0)
+        self.log(f"{prefix}/mse", se / n)
+        self.log(f"{prefix}/mae", ae / n)
 
     def validation_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> None:
         self._eval_step(batch, "val")
