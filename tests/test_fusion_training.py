@@ -475,3 +475,38 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
     bad["architecture"]["backbone"]["output_stride"] = 4
     with pytest.raises(ConfigError, match="'fusion_model.architecture' is invalid"):
         typed(bad, FusionModelConfig, key="fusion_model").deeplab_spec()
+
+
+def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    opt = SimpleNamespace(param_groups=[{"lr": 0.5}])
+    tr = SimpleNamespace(
+        sanity_checking=False,
+        is_global_zero=True,
+        callback_metrics={"val/loss": torch.tensor(0.25), "train/loss": 1.5, "note": 3.0},
+        optimizers=[opt],
+        current_epoch=0,
+        max_epochs=2,
+        global_step=4,
+        num_training_batches=2,
+    )
+    per_epoch = common.History(mlflow_log=False)
+    per_epoch.on_train_epoch_end(tr, None)
+    assert per_epoch.rows == [{"epoch": 0, "val/loss": 0.25, "train/loss": 1.5, "lr": 0.5}]
+    per_epoch.write_csv(tmp_path / "e.csv")
+    assert (tmp_path / "e.csv").read_text() == "epoch,lr,train/loss,val/loss\n0,0.5,1.5,0.25\n"
+    per_val = common.History(
+        "validation", metrics=("val/loss", "val/mae"), train_loss="train/mse", mlflow_log=False
+    )
+    per_epoch_only = per_val.on_train_epoch_end(tr, None)  # no row: rows come per validation
+    assert per_epoch_only is None and per_val.rows == []
+    for loss in (1.0, 2.0):
+        per_val.on_train_batch_end(tr, None, {"loss": torch.tensor(loss)}, None, 0)
+    per_val.on_validation_end(tr, None)
+    row = per_val.rows[0]
+    assert (row["step"], row["epoch"], row["train/mse"], row["val/loss"]) == (4, 2.0, 1.5, 0.25)
+    assert math.isnan(row["val/mae"])
+    assert list(per_val.frame().columns) == ["step", "epoch", "train/mse", "val/loss", "val/mae"]
+    with pytest.raises(ValueError, match="every must be"):
+        common.History("step")

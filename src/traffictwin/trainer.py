@@ -7,10 +7,10 @@ Stable API (the fusion and the risk stages both use it):
   :func:`traffictwin.config.typed` by :meth:`TrainerSettings.from_cfg`.
 - :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
 - :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
-  (metrics go to MLflow through :class:`EpochHistory`, which logs one value per epoch).
+  (metrics go to MLflow through :class:`History`, which logs one value per epoch).
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
-- :class:`EpochHistory` — collects ``split/name`` metrics and ``lr`` once per epoch, logs them
-  to the active MLflow run with ``step=epoch`` (rank zero only) and writes them as CSV.
+- :class:`History` — the metric rows (per epoch, or per validation for the risk net's
+  per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
 - :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
   launcher re-runs the stage script in every rank; the other ranks get ``None``).
 - :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
@@ -123,13 +123,13 @@ def build_trainer(
     enable_progress_bar: bool = False,
     **extra: Any,
 ) -> Any:
-    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`EpochHistory`)."""
+    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`History`)."""
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     if settings.num_threads > 0:
         torch.set_num_threads(settings.num_threads)
-    # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by EpochHistory
+    # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by History
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
@@ -195,20 +195,56 @@ def _to_float(v: Any) -> float | None:
     return f
 
 
-class EpochHistory(Callback):
-    """Per-epoch metrics: every ``callback_metrics`` name with a ``/`` plus ``lr``.
+class History(Callback):
+    """The one metric-history callback: rows for the curves CSV, logged to MLflow as they come.
 
-    One row per finished training epoch (after its validation): ``epoch`` (0-based), the
-    metrics, ``lr`` (first param group). When ``mlflow_log`` and an MLflow run is active on
-    rank zero, the row is logged with ``step=epoch``.
+    ``every="epoch"`` (fusion): one row per finished training epoch (after its validation):
+    ``epoch`` (0-based), every ``callback_metrics`` name with a ``/``, ``lr`` (first param
+    group); MLflow ``step = epoch``.
+
+    ``every="validation"`` (risk; the paper's curves are over iterations): one row per
+    validation: ``step`` (global step), ``epoch`` (fractional), ``train_loss`` = the mean
+    training loss over the steps since the previous row, and the ``metrics`` names (NaN when
+    absent); MLflow ``step = global step``.
+
+    Rows are logged to the active MLflow run (rank zero, finite values) when ``mlflow_log``.
     """
 
-    def __init__(self, mlflow_log: bool = True) -> None:
+    def __init__(
+        self,
+        every: str = "epoch",
+        *,
+        metrics: Sequence[str] = (),
+        train_loss: str = "train/loss",
+        mlflow_log: bool = True,
+    ) -> None:
+        if every not in ("epoch", "validation"):
+            raise ValueError(f"History: every must be 'epoch' or 'validation', got {every!r}")
+        self.every = every
+        self.metrics = tuple(metrics)
+        self.train_loss = train_loss
         self.mlflow_log = mlflow_log
         self.rows: list[dict[str, float]] = []
+        self._losses: list[float] = []
+
+    @property
+    def columns(self) -> list[str]:
+        """CSV columns: the step/epoch keys first, then the metric names."""
+        if self.every == "validation":
+            return ["step", "epoch", self.train_loss, *self.metrics]
+        return ["epoch", *sorted({k for r in self.rows for k in r if k != "epoch"})]
+
+    def on_train_batch_end(
+        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        if self.every != "validation":
+            return
+        loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
+        if loss is not None:
+            self._losses.append(float(loss.detach()))
 
     def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
-        if trainer.sanity_checking or not trainer.is_global_zero:
+        if self.every != "epoch" or trainer.sanity_checking or not trainer.is_global_zero:
             return
         row: dict[str, float] = {}
         for k, v in trainer.callback_metrics.items():
@@ -218,25 +254,56 @@ class EpochHistory(Callback):
                     row[k] = f
         if trainer.optimizers:
             row["lr"] = float(trainer.optimizers[0].param_groups[0]["lr"])
-        self.rows.append({"epoch": int(trainer.current_epoch), **row})
         shown = " ".join(f"{k}={v:.4g}" for k, v in sorted(row.items()) if not k.endswith("_naive"))
         log.info("epoch %d/%d %s", trainer.current_epoch + 1, trainer.max_epochs, shown)
+        self._add({"epoch": int(trainer.current_epoch), **row}, step=int(trainer.current_epoch))
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self.every != "validation" or trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        m = trainer.callback_metrics
+        row = {
+            "step": int(trainer.global_step),
+            "epoch": float(trainer.global_step) / max(1, trainer.num_training_batches),
+            self.train_loss: float(np.mean(self._losses)) if self._losses else float("nan"),
+            **{k: float(m[k]) if k in m else float("nan") for k in self.metrics},
+        }
+        self._losses = []
+        self._add(row, step=row["step"])
+
+    def _add(self, row: dict[str, float], step: int) -> None:
+        self.rows.append(row)
         if self.mlflow_log:
             import mlflow
 
             if mlflow.active_run() is not None:
-                finite = {k: v for k, v in row.items() if math.isfinite(v)}
-                mlflow.log_metrics(finite, step=int(trainer.current_epoch))
+                finite = {
+                    k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
+                }
+                mlflow.log_metrics(finite, step=step)
+
+    def frame(self) -> Any:
+        """The rows as a pandas DataFrame with :attr:`columns`."""
+        import pandas as pd
+
+        return pd.DataFrame(self.rows, columns=self.columns)
 
     def write_csv(self, path: str | Path) -> None:
-        """Write the rows as CSV (atomically); columns: epoch, then sorted metric names."""
-        cols = sorted({k for r in self.rows for k in r if k != "epoch"})
+        """Write the rows as CSV (atomically); ``%.9g`` floats, empty cells for missing values."""
+        cols = self.columns
         with atomic_path(path, suffix=".csv") as tmp:
             with open(tmp, "w", newline="") as fh:
                 w = csv.writer(fh, lineterminator="\n")
-                w.writerow(["epoch", *cols])
+                w.writerow(cols)
                 for r in self.rows:
-                    w.writerow([r["epoch"], *[("" if c not in r else f"{r[c]:.9g}") for c in cols]])
+                    w.writerow(
+                        [
+                            r[c]
+                            if isinstance(r.get(c), int)
+                            else ("" if c not in r else f"{r[c]:.9g}")
+                            for c in cols
+                        ]
+                    )
 
 
 def global_rank() -> int:

@@ -602,7 +602,7 @@ def fit_fusion(
             enabled=tracking.enabled,
         ) as run,
     ):
-        history = common.EpochHistory(mlflow_log=run is not None)
+        history = common.History(mlflow_log=run is not None)
         ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
         callbacks = [
             history,

@@ -11,10 +11,9 @@ at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 k
 Loss: MSE on the normalised risk; optimiser: Adam; validation every ``val_every_n_steps``
 optimiser steps (the paper: every 10), the checkpoint with the lowest validation MSE is kept.
 
-The Trainer, seeding, best-checkpoint callback and MLflow model logging come from
-:mod:`traffictwin.trainer`. Risk-specific here: :class:`StepHistory`, which records the
-train/val error *per validation step* (the paper's Figs. 5–6 are over iterations, not epochs),
-and logs it to the active MLflow run with ``step = global step``.
+The Trainer, seeding, best-checkpoint callback, the history callback (here one row *per
+validation*: the paper's Figs. 5–6 are over iterations, not epochs) and MLflow model logging
+come from :mod:`traffictwin.trainer`.
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ import logging
 import math
 import tempfile
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -32,14 +31,19 @@ import lightning as L
 import numpy as np
 import pandas as pd
 import torch
-from lightning.pytorch.callbacks import Callback
 from torch.utils.data import DataLoader, TensorDataset
 from torchmetrics import SumMetric
 
 from traffictwin.config import spec as setting
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
-from traffictwin.trainer import TrainerSettings, best_checkpoint, build_trainer, seed_everything
+from traffictwin.trainer import (
+    History,
+    TrainerSettings,
+    best_checkpoint,
+    build_trainer,
+    seed_everything,
+)
 
 log = logging.getLogger(__name__)
 
@@ -411,51 +415,6 @@ class RiskRegressor(L.LightningModule):
         return torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
 
 
-class StepHistory(Callback):
-    """Train/val error per validation: one row ``step, epoch, train/mse, val/mse, val/mae``.
-
-    ``train/mse`` is the mean training loss over the steps since the previous validation. Rows are
-    logged to the active MLflow run (if any) with ``step = global step``.
-    """
-
-    def __init__(self, mlflow_log: bool = True) -> None:
-        self.mlflow_log = mlflow_log
-        self.rows: list[dict[str, float]] = []
-        self._acc: list[float] = []
-
-    def on_train_batch_end(
-        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
-    ) -> None:
-        loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
-        if loss is not None:
-            self._acc.append(float(loss.detach()))
-
-    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
-        if trainer.sanity_checking or not trainer.is_global_zero:
-            return
-        m = trainer.callback_metrics
-        row = {
-            "step": int(trainer.global_step),
-            "epoch": float(trainer.global_step) / max(1, trainer.num_training_batches),
-            "train/mse": float(np.mean(self._acc)) if self._acc else float("nan"),
-            "val/mse": float(m["val/mse"]) if "val/mse" in m else float("nan"),
-            "val/mae": float(m["val/mae"]) if "val/mae" in m else float("nan"),
-        }
-        self._acc = []
-        self.rows.append(row)
-        if self.mlflow_log:
-            import mlflow
-
-            if mlflow.active_run() is not None:
-                finite = {
-                    k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
-                }
-                mlflow.log_metrics(finite, step=row["step"])
-
-    def frame(self) -> pd.DataFrame:
-        return pd.DataFrame(self.rows, columns=["step", "epoch", "train/mse", "val/mse", "val/mae"])
-
-
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings (paper sec. 3.5: Adam, batch 10, 30 epochs, validation every 10 steps)."""
@@ -607,7 +566,9 @@ def fit(
     total = steps_per_epoch * tc.epochs
     # validate at least once at the end: the interval never exceeds the run's step count
     interval = max(1, min(tc.val_every_n_steps, total))
-    history = StepHistory(mlflow_log=mlflow_log)
+    history = History(
+        "validation", metrics=("val/mse", "val/mae"), train_loss="train/mse", mlflow_log=mlflow_log
+    )
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
         trainer = build_trainer(
