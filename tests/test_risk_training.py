@@ -321,3 +321,32 @@ def test_risk_model_config_is_validated_once_with_full_keys() -> None:
     del n["train"]["lr"]
     with pytest.raises(ConfigError, match="risk_model.train.lr"):
         typed(n, RiskModelConfig, key="risk_model")
+
+
+def test_both_problems_share_one_trainer_shape() -> None:
+    from traffictwin.fusion.losses import evidential_loss
+    from traffictwin.fusion.training import FusionLitModule
+    from traffictwin.risk.training import RiskRegressor, mse_loss
+    from traffictwin.trainer import NetModule
+
+    risk = RiskRegressor(Dave2Config(), lr=1e-3)
+    spec = {
+        "backbone": {"block": "basic", "layers": [1, 1, 1, 1], "base_width": 8},
+        "aspp_channels": 8,
+        "low_level_channels": 8,
+        "decoder_channels": 8,
+    }
+    fusion = FusionLitModule(spec, {"lr": 0.02, "lr_factor": 0.25, "lr_patience": 3})
+    assert isinstance(risk, NetModule) and isinstance(fusion, NetModule)
+    assert risk.loss_fn is mse_loss and fusion.loss_fn is evidential_loss
+    opt = risk.configure_optimizers()
+    assert isinstance(opt, torch.optim.Adam) and opt.param_groups[0]["lr"] == 1e-3
+    conf = fusion.configure_optimizers()
+    sched = conf["lr_scheduler"]
+    assert conf["optimizer"].param_groups[0]["lr"] == 0.02 and sched["monitor"] == "val/loss"
+    assert (sched["scheduler"].factor, sched["scheduler"].patience) == (0.25, 3)
+    # the optimiser holds exactly the injected network's parameters
+    assert [id(p) for p in opt.param_groups[0]["params"]] == [id(p) for p in risk.net.parameters()]
+    net = torch.nn.Linear(2, 1)
+    custom = NetModule(net, torch.nn.functional.l1_loss, lr=0.1)
+    assert custom.net is net and isinstance(custom.configure_optimizers(), torch.optim.Adam)

@@ -8,6 +8,8 @@ Stable API (the fusion and the risk stages both use it):
 - :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
 - :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
   (metrics go to MLflow through :class:`History`, which logs one value per epoch).
+- :class:`NetModule` — the one trainer shape: LightningModule with an injected network and
+  loss, Adam (+ optional plateau decay); the fusion and risk modules subclass it.
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
 - :class:`History` — the metric rows (per epoch, or per validation for the risk net's
   per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
@@ -28,12 +30,13 @@ import json
 import logging
 import math
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
@@ -304,6 +307,52 @@ class History(Callback):
                             for c in cols
                         ]
                     )
+
+
+class NetModule(L.LightningModule):
+    """The one trainer shape: a LightningModule around an injected network ``net`` and loss.
+
+    ``loss(prediction, target, *args)`` -> scalar tensor. Optimiser: Adam on the network's
+    parameters (``lr``, ``weight_decay``); with ``plateau = (factor, patience)`` the learning
+    rate is reduced when ``monitor`` stops improving (checked once per epoch). Subclasses add
+    the problem's steps and metrics (torchmetrics) and log ``split/name`` values, which
+    :class:`History`, :func:`best_checkpoint` and :func:`early_stopping` read.
+    """
+
+    def __init__(
+        self,
+        net: torch.nn.Module,
+        loss: Callable[..., torch.Tensor],
+        *,
+        lr: float,
+        weight_decay: float = 0.0,
+        plateau: tuple[float, int] | None = None,
+        monitor: str = "val/loss",
+    ) -> None:
+        super().__init__()
+        self.net = net
+        self.loss_fn = loss
+        self.lr, self.weight_decay = float(lr), float(weight_decay)
+        self.plateau = plateau
+        self.monitor = monitor
+
+    def configure_optimizers(self) -> Any:
+        opt = torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        if self.plateau is None:
+            return opt
+        factor, patience = self.plateau
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=factor, patience=patience
+        )
+        return {
+            "optimizer": opt,
+            "lr_scheduler": {
+                "scheduler": sched,
+                "monitor": self.monitor,
+                "interval": "epoch",
+                "frequency": 1,
+            },
+        }
 
 
 def global_rank() -> int:

@@ -282,8 +282,8 @@ def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLab
     return DeepLabSpec.from_dict({**d, "backbone": bb})
 
 
-class FusionLitModule(L.LightningModule):
-    """LightningModule around :class:`DeepLabV3Plus` (``self.net``) with the evidential loss."""
+class FusionLitModule(common.NetModule):
+    """:class:`~traffictwin.trainer.NetModule` with :class:`DeepLabV3Plus` and the evidential loss."""
 
     def __init__(
         self,
@@ -291,13 +291,20 @@ class FusionLitModule(L.LightningModule):
         hparams: Mapping[str, Any],
         meta: Mapping[str, Any] | None = None,
     ) -> None:
-        super().__init__()
+        hp = FusionHParams(**hparams)
+        super().__init__(
+            DeepLabV3Plus(DeepLabSpec.from_dict(spec)),
+            evidential_loss,
+            lr=hp.lr,
+            weight_decay=hp.weight_decay,
+            plateau=(hp.lr_factor, hp.lr_patience),
+            monitor="val/loss",
+        )
         self.save_hyperparameters(
             {"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})}
         )
-        self.spec = DeepLabSpec.from_dict(spec)
-        self.hp = FusionHParams(**hparams)
-        self.net = DeepLabV3Plus(self.spec)
+        self.spec = self.net.spec
+        self.hp = hp
         # NHWC only where oneDNN supports every layer (see channels_last_supported)
         self.channels_last = self.hp.channels_last and channels_last_supported(self.net)
         if self.hp.channels_last and not self.channels_last:
@@ -340,7 +347,7 @@ class FusionLitModule(L.LightningModule):
                 generator=self._aug_gen,
             )
         e = self.net(self._layout(x)).float()
-        loss = evidential_loss(e, y.float(), self.hp.occupied_weight, self._kl_weight())
+        loss = self.loss_fn(e, y.float(), self.hp.occupied_weight, self._kl_weight())
         self.log(
             "train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0]
         )
@@ -350,7 +357,7 @@ class FusionLitModule(L.LightningModule):
         x, y = batch
         e = self.net(self._layout(x)).float()
         y = y.float()
-        loss = evidential_loss(e, y, self.hp.occupied_weight, 0.0)
+        loss = self.loss_fn(e, y, self.hp.occupied_weight, 0.0)
         m, _ = evidence_to_masses(e)
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())
@@ -377,21 +384,6 @@ class FusionLitModule(L.LightningModule):
                 if suffix and not k.startswith("dice"):
                     continue
                 self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0)
-
-    def configure_optimizers(self) -> Any:
-        opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
-        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            opt, mode="min", factor=self.hp.lr_factor, patience=self.hp.lr_patience
-        )
-        return {
-            "optimizer": opt,
-            "lr_scheduler": {
-                "scheduler": sched,
-                "monitor": "val/loss",
-                "interval": "epoch",
-                "frequency": 1,
-            },
-        }
 
 
 # ---------------------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
 from traffictwin.trainer import (
     History,
+    NetModule,
     TrainerSettings,
     best_checkpoint,
     build_trainer,
@@ -351,14 +352,20 @@ class RiskDataModule(L.LightningDataModule):
 # --------------------------------------------------------------------------------------------
 
 
-class RiskRegressor(L.LightningModule):
-    """Dave2 + MSE loss + Adam. Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``."""
+def mse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error on the normalised risk (computed in float32)."""
+    return torch.mean((pred.float() - target) ** 2)
+
+
+class RiskRegressor(NetModule):
+    """:class:`~traffictwin.trainer.NetModule` with Dave2 and the MSE loss (Adam, no LR schedule).
+
+    Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``.
+    """
 
     def __init__(self, cfg: Dave2Config, lr: float = 1e-4, weight_decay: float = 0.0) -> None:
-        super().__init__()
-        self.net = Dave2(cfg)
+        super().__init__(Dave2(cfg), mse_loss, lr=lr, weight_decay=weight_decay)
         self.cfg = cfg
-        self.lr, self.weight_decay = float(lr), float(weight_decay)
         # per-split error sums (torchmetrics, float64; reduced over DDP ranks)
         self.eval_sums = torch.nn.ModuleDict(
             {
@@ -376,7 +383,7 @@ class RiskRegressor(L.LightningModule):
     def training_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> torch.Tensor:
         rgb, disp, speed, y = batch
         pred = self(rgb, disp, speed)
-        loss = torch.mean((pred.float() - y) ** 2)
+        loss = self.loss_fn(pred, y)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"risk training loss is not finite at step {self.global_step}")
         self.log("train/mse", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
@@ -410,9 +417,6 @@ class RiskRegressor(L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         self._eval_end("test")
-
-    def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
 
 
 @dataclass(frozen=True)
