@@ -24,7 +24,9 @@ from traffictwin.trainer import (
     TrainerSettings,
     global_rank,
     log_checkpoint,
+    log_final_metrics,
     log_torch_model,
+    mlflow_logger,
     tracked_run,
 )
 
@@ -105,7 +107,8 @@ def main(argv: list[str] | None = None) -> None:
         with tracked_run(
             "risk", f"risk-{variant}", profile=profile, stage=stage, tags=tags, params=run_params
         ) as run:
-            res = fit(cfg, train, val, tc, settings, mlflow_log=run is not None)
+            logger = mlflow_logger(run)
+            res = fit(cfg, train, val, tc, settings, logger=logger)
             if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
                 return
             if out_dir.exists():
@@ -131,14 +134,13 @@ def main(argv: list[str] | None = None) -> None:
             with atomic_path(plot_csv, suffix=".csv") as tmp:
                 res.history.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
             if run is not None:
-                import mlflow
-
-                mlflow.log_metrics(
+                log_final_metrics(
+                    logger,
                     {
                         "val/best_mse": res.best_val_mse,
                         "train/seconds": res.seconds,
                         "model/n_parameters": count_parameters(res.net),
-                    }
+                    },
                 )
                 log_checkpoint(out_dir / CKPT)
                 n_ex = min(2, len(val))

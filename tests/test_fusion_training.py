@@ -491,14 +491,12 @@ def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
         global_step=4,
         num_training_batches=2,
     )
-    per_epoch = common.History(mlflow_log=False)
+    per_epoch = common.History()
     per_epoch.on_train_epoch_end(tr, None)
     assert per_epoch.rows == [{"epoch": 0, "val/loss": 0.25, "train/loss": 1.5, "lr": 0.5}]
     per_epoch.write_csv(tmp_path / "e.csv")
     assert (tmp_path / "e.csv").read_text() == "epoch,lr,train/loss,val/loss\n0,0.5,1.5,0.25\n"
-    per_val = common.History(
-        "validation", metrics=("val/loss", "val/mae"), train_loss="train/mse", mlflow_log=False
-    )
+    per_val = common.History("validation", metrics=("val/loss", "val/mae"), train_loss="train/mse")
     per_epoch_only = per_val.on_train_epoch_end(tr, None)  # no row: rows come per validation
     assert per_epoch_only is None and per_val.rows == []
     for loss in (1.0, 2.0):

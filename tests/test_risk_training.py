@@ -219,7 +219,6 @@ def test_fast_dev_run(tmp_path: Path) -> None:
         TrainConfig(batch_size=4),
         TrainerSettings(),
         fast_dev_run=True,
-        mlflow_log=False,
     )
     assert res.steps == 1
     x = torch.zeros(2, 4, 66, 200)
@@ -243,7 +242,7 @@ def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     )  # fit() seeds the same way before building the net: same initial weights
     with torch.no_grad():
         initial = float(np.mean((Dave2(cfg)(x).numpy() - tr.y) ** 2))
-    res = fit(cfg, tr, va, tc, TrainerSettings(), mlflow_log=False)
+    res = fit(cfg, tr, va, tc, TrainerSettings())
     with torch.no_grad():
         final = float(np.mean((res.net(x).numpy() - tr.y) ** 2))
     print(
@@ -260,7 +259,7 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     cfg = Dave2Config(inputs=("disp_sgm",))
     tr, va = prepare_split(src, cfg, "train", "risk"), prepare_split(src, cfg, "val", "risk")
     tc = TrainConfig(epochs=3, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
-    res = fit(cfg, tr, va, tc, TrainerSettings(), mlflow_log=False)
+    res = fit(cfg, tr, va, tc, TrainerSettings())
     steps_total = math.ceil(len(tr) / 5) * 3
     assert res.steps == steps_total
     assert list(res.history["step"]) == list(range(2, steps_total + 1, 2))

@@ -13,6 +13,8 @@ Stable API (the fusion and the risk stages both use it):
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
 - :class:`History` — the metric rows (per epoch, or per validation for the risk net's
   per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
+- :func:`mlflow_logger` / :func:`log_final_metrics` — Lightning's ``MLFlowLogger`` on the
+  stage's MLflow run, through which :class:`History` and the final metrics are logged.
 - :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
   launcher re-runs the stage script in every rank; the other ranks get ``None``).
 - :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
@@ -210,7 +212,8 @@ class History(Callback):
     training loss over the steps since the previous row, and the ``metrics`` names (NaN when
     absent); MLflow ``step = global step``.
 
-    Rows are logged to the active MLflow run (rank zero, finite values) when ``mlflow_log``.
+    Rows (finite values) go to ``logger`` (a Lightning logger, e.g. :func:`mlflow_logger`'s
+    ``MLFlowLogger`` on the stage's run) when given; rank zero only.
     """
 
     def __init__(
@@ -219,14 +222,14 @@ class History(Callback):
         *,
         metrics: Sequence[str] = (),
         train_loss: str = "train/loss",
-        mlflow_log: bool = True,
+        logger: Any = None,
     ) -> None:
         if every not in ("epoch", "validation"):
             raise ValueError(f"History: every must be 'epoch' or 'validation', got {every!r}")
         self.every = every
         self.metrics = tuple(metrics)
         self.train_loss = train_loss
-        self.mlflow_log = mlflow_log
+        self.logger = logger
         self.rows: list[dict[str, float]] = []
         self._losses: list[float] = []
 
@@ -276,14 +279,11 @@ class History(Callback):
 
     def _add(self, row: dict[str, float], step: int) -> None:
         self.rows.append(row)
-        if self.mlflow_log:
-            import mlflow
-
-            if mlflow.active_run() is not None:
-                finite = {
-                    k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
-                }
-                mlflow.log_metrics(finite, step=step)
+        if self.logger is not None:
+            finite = {
+                k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
+            }
+            self.logger.log_metrics(finite, step=step)
 
     def frame(self) -> Any:
         """The rows as a pandas DataFrame with :attr:`columns`."""
@@ -366,6 +366,31 @@ def global_rank() -> int:
         return local
     # world layout unknown here; any process that is not local rank 0 of node 0 is not rank zero
     return node * 1_000_000 + local
+
+
+def mlflow_logger(run: Any) -> Any:
+    """Lightning's ``MLFlowLogger`` writing into the already started MLflow ``run`` (``None`` -> ``None``).
+
+    The run's tracking URI is the active one (never Lightning's default ``./mlruns`` file store).
+    """
+    if run is None:
+        return None
+    import mlflow
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    return MLFlowLogger(run_id=run.info.run_id, tracking_uri=mlflow.get_tracking_uri())
+
+
+def log_final_metrics(logger: Any, metrics: Mapping[str, Any]) -> None:
+    """Log the finite numeric ``metrics`` once (step 0) through ``logger`` (``None``: nothing)."""
+    if logger is None:
+        return
+    finite = {
+        k: float(v)
+        for k, v in metrics.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+    }
+    logger.log_metrics(finite, step=0)
 
 
 @contextmanager

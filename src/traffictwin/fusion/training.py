@@ -594,7 +594,8 @@ def fit_fusion(
             enabled=tracking.enabled,
         ) as run,
     ):
-        history = common.History(mlflow_log=run is not None)
+        logger = common.mlflow_logger(run)
+        history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
         callbacks = [
             history,
@@ -654,14 +655,8 @@ def fit_fusion(
         slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         model_uri = None
         if run is not None:
-            import mlflow
-
-            mlflow.log_metrics(
-                {
-                    f"best/{k.replace('/', '_')}": float(v)
-                    for k, v in metrics.items()
-                    if isinstance(v, (int, float)) and v is not None and math.isfinite(float(v))
-                }
+            common.log_final_metrics(
+                logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
             )
             with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
                 p = Path(art) / "model.ckpt"

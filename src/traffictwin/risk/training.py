@@ -551,7 +551,7 @@ def fit(
     settings: TrainerSettings | None = None,
     workdir: str | Path | None = None,
     fast_dev_run: bool | int = False,
-    mlflow_log: bool = True,
+    logger: Any = None,
     extra_callbacks: Sequence[Any] = (),
 ) -> TrainResult:
     """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode)."""
@@ -571,7 +571,7 @@ def fit(
     # validate at least once at the end: the interval never exceeds the run's step count
     interval = max(1, min(tc.val_every_n_steps, total))
     history = History(
-        "validation", metrics=("val/mse", "val/mae"), train_loss="train/mse", mlflow_log=mlflow_log
+        "validation", metrics=("val/mse", "val/mae"), train_loss="train/mse", logger=logger
     )
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
