@@ -349,3 +349,48 @@ def test_both_problems_share_one_trainer_shape() -> None:
     net = torch.nn.Linear(2, 1)
     custom = NetModule(net, torch.nn.functional.l1_loss, lr=0.1)
     assert custom.net is net and isinstance(custom.configure_optimizers(), torch.optim.Adam)
+
+
+def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: str) -> None:
+    import json
+
+    import mlflow
+
+    from traffictwin.risk.model_io import load_risk_model
+    from traffictwin.risk.training import fit_risk
+    from traffictwin.trainer import TrackingSettings
+
+    write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
+    cfg = Dave2Config(inputs=("disp_sgm",))
+    tc = TrainConfig(epochs=2, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
+    out = tmp_path / "models" / "disp"
+    (out / "stale.txt").parent.mkdir(parents=True)
+    (out / "stale.txt").write_text("from an older run")
+    res = fit_risk(
+        _source(tmp_path),
+        cfg,
+        "risk",
+        tc,
+        TrainerSettings(),
+        variant="disp",
+        out_dir=out,
+        curves_out=tmp_path / "plots" / "risk_training_disp.csv",
+        tracking=TrackingSettings("risk", "risk-disp", profile="test", stage="train_risk@disp"),
+        meta={"domain": {"label": "risk"}},
+    )
+    assert res is not None and not (out / "stale.txt").exists()
+    meta = json.loads((out / "model_meta.json").read_text())
+    assert (meta["variant"], meta["label"], meta["domain"]) == ("disp", "risk", {"label": "risk"})
+    assert meta["best_val_mse"] == res.best_val_mse and meta["mlflow_model_uri"].startswith(
+        "models:/"
+    )
+    curves = (tmp_path / "plots" / "risk_training_disp.csv").read_text()
+    assert curves == (out / "history.csv").read_text()
+    assert curves.splitlines()[0] == "step,epoch,train/mse,val/mse,val/mae"
+    loaded = load_risk_model(out)
+    assert all(torch.equal(v, res.net.state_dict()[k]) for k, v in loaded.net.state_dict().items())
+    run = mlflow.get_run(meta["mlflow_run_id"])
+    assert run.data.metrics["val/best_mse"] == pytest.approx(res.best_val_mse)
+    assert run.data.params["data.n_train"] == str(res.n_train)
+    hist = mlflow.MlflowClient().get_metric_history(run.info.run_id, "val/mse")
+    assert [m.step for m in hist] == list(res.history["step"])

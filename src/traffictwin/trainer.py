@@ -34,7 +34,7 @@ import math
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -366,6 +366,18 @@ def global_rank() -> int:
         return local
     # world layout unknown here; any process that is not local rank 0 of node 0 is not rank zero
     return node * 1_000_000 + local
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """MLflow: experiment, run name, profile and stage tags, params logged once; enabled=False skips MLflow."""
+
+    experiment: str = "fusion"
+    run_name: str = "fusion"
+    profile: str = "default"
+    stage: str = "train_fusion"
+    enabled: bool = True
+    params: Mapping[str, Any] = field(default_factory=dict)
 
 
 def mlflow_logger(run: Any) -> Any:

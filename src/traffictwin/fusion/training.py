@@ -24,7 +24,7 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +57,7 @@ from traffictwin.fusion.model_io import CKPT_FORMAT
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
 
@@ -494,18 +495,6 @@ class LoopSettings:
     gradient_clip_val: float | None = None
 
 
-@dataclass(frozen=True)
-class TrackingSettings:
-    """MLflow: experiment, run name, profile and stage tags; enabled=False skips MLflow entirely."""
-
-    experiment: str = "fusion"
-    run_name: str = "fusion"
-    profile: str = "default"
-    stage: str = "train_fusion"
-    enabled: bool = True
-    params: Mapping[str, Any] = field(default_factory=dict)
-
-
 @dataclass
 class FitResult:
     """What :func:`fit_fusion` produced (paths written, best metrics, timing)."""
@@ -565,7 +554,7 @@ def fit_fusion(
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
     ds = Dataset(data_root, kind="prealigned")
     manifest_hash = ds.manifest_hash()
-    tracking = tracking or TrackingSettings(enabled=False)
+    tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
     meta_base = {
         "cfg": cfg_name,
         "noise": dict(noise),

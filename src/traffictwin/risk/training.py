@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -34,16 +35,34 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 from torchmetrics import SumMetric
 
+from traffictwin.config import flatten
 from traffictwin.config import spec as setting
+from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
+from traffictwin.risk.dave2 import (
+    Dave2,
+    Dave2Config,
+    PackedDave2,
+    count_parameters,
+    normalise,
+    pack_input,
+    prepare_channels,
+)
+from traffictwin.risk.model_io import CKPT, save_risk_model
 from traffictwin.trainer import (
     History,
     NetModule,
+    TrackingSettings,
     TrainerSettings,
     best_checkpoint,
     build_trainer,
+    global_rank,
+    log_checkpoint,
+    log_final_metrics,
+    log_torch_model,
+    mlflow_logger,
     seed_everything,
+    tracked_run,
 )
 
 log = logging.getLogger(__name__)
@@ -618,6 +637,110 @@ def fit(
     return TrainResult(
         net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
     )
+
+
+def fit_risk(
+    data: RiskSource,
+    cfg: Dave2Config,
+    label: str,
+    tc: TrainConfig,
+    settings: TrainerSettings,
+    *,
+    variant: str,
+    out_dir: str | Path,
+    curves_out: str | Path | None = None,
+    max_train_frames: int | None = None,
+    tracking: TrackingSettings | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> TrainResult | None:
+    """Train variant ``variant`` on ``data`` and publish it (rank zero; ``None`` on other ranks).
+
+    Writes ``out_dir`` (replaced): ``model.ckpt``, ``model_meta.json`` (``meta`` + training
+    facts), ``history.csv``; ``curves_out`` (the same curves, for ``dvc plots``). With
+    ``tracking`` enabled: an MLflow run with the params once, the curves, the final metrics,
+    the checkpoint and an MLflow model (:class:`PackedDave2`, single-tensor input).
+    """
+    out_dir = Path(out_dir)
+    tracking = tracking or TrackingSettings("risk", f"risk-{variant}", enabled=False)
+    train = prepare_split(data, cfg, "train", label, max_frames=max_train_frames, seed=tc.seed)
+    val = prepare_split(data, cfg, "val", label)
+    log.info(
+        "%s: %d train / %d val frames (ORB-passed), label %s",
+        tracking.stage,
+        len(train),
+        len(val),
+        label,
+    )
+    run_params = {
+        **tracking.params,
+        "risk_model.variant": variant,
+        "risk_model.inputs": ",".join(cfg.inputs),
+        "risk_model.use_speed": cfg.use_speed,
+        "risk_model.effective_label": label,
+        **flatten({"trainer": settings.as_dict()}),
+        "seed": tc.seed,
+        "data.n_train": len(train),
+        "data.n_val": len(val),
+    }
+    manifest = data.risk.manifest_hash()
+    tags = {"variant": variant, "data_manifest": manifest, "label": label}
+    with tracked_run(
+        tracking.experiment,
+        tracking.run_name,
+        profile=tracking.profile,
+        stage=tracking.stage,
+        tags=tags,
+        params=run_params,
+        enabled=tracking.enabled,
+    ) as run:
+        logger = mlflow_logger(run)
+        res = fit(cfg, train, val, tc, settings, logger=logger)
+        if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
+            return None
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        full_meta = {
+            "variant": variant,
+            "label": label,
+            "best_val_mse": res.best_val_mse,
+            "best_step": res.best_step,
+            "steps": res.steps,
+            "train_seconds": round(res.seconds, 2),
+            "n_train": res.n_train,
+            "n_val": res.n_val,
+            "data_manifest": manifest,
+            "profile": tracking.profile,
+            "train": tc.__dict__,
+            **dict(meta or {}),
+        }
+        save_risk_model(res.net, out_dir, full_meta)
+        for path in (out_dir / "history.csv", *([curves_out] if curves_out else [])):
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path, suffix=".csv") as tmp:
+                res.history.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
+        if run is not None:
+            log_final_metrics(
+                logger,
+                {
+                    "val/best_mse": res.best_val_mse,
+                    "train/seconds": res.seconds,
+                    "model/n_parameters": count_parameters(res.net),
+                },
+            )
+            log_checkpoint(out_dir / CKPT)
+            n_ex = min(2, len(val))
+            x = normalise(
+                cfg,
+                torch.from_numpy(val.rgb[:n_ex]) if "rgb" in cfg.inputs else None,
+                torch.from_numpy(val.disp[:n_ex]) if val.disp.shape[1] else None,
+            )
+            example = pack_input(cfg, x, torch.from_numpy(val.speed[:n_ex])).numpy()
+            uri = log_torch_model(
+                PackedDave2(res.net), example, metadata={"variant": variant, "label": label}
+            )
+            full_meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
+            save_risk_model(res.net, out_dir, full_meta)
+    return res
 
 
 def train_config_dict(tc: TrainConfig) -> dict[str, Any]:
