@@ -59,17 +59,18 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
-def _load_group(name: str) -> FusionModelConfig:
+def _load_group(name: str) -> tuple[FusionModelConfig, Path]:
     path = ROOT / "conf" / "fusion_model" / f"{name}.yaml"
-    return typed(yaml.safe_load(path.read_text()), FusionModelConfig, key="", source=path)
+    return typed(yaml.safe_load(path.read_text()), FusionModelConfig, key="", source=path), path
 
 
 def measure(
-    group: FusionModelConfig, rows: int, cols: int, batch: int, steps: int
+    loaded: tuple[FusionModelConfig, Path], rows: int, cols: int, batch: int, steps: int
 ) -> dict[str, Any]:
     """Training and inference speed of the network described by a ``fusion_model`` group."""
     torch.manual_seed(0)
-    net = DeepLabV3Plus(group.deeplab_spec())
+    group, path = loaded
+    net = DeepLabV3Plus(group.deeplab_spec(path, key=""))
     cl = group.train.channels_last and channels_last_supported(net)
     fmt = torch.channels_last if cl else torch.contiguous_format
     net = net.to(memory_format=fmt)
@@ -140,12 +141,13 @@ def main(argv: list[str] | None = None) -> None:
         },
         "grid": [args.rows, args.cols],
     }
-    d = measure(default, args.rows, args.cols, default.train.batch_size, args.steps)
-    n_epoch = default.train.train_samples_per_epoch or 1600
+    d = measure(default, args.rows, args.cols, default[0].train.batch_size, args.steps)
+    train = default[0].train
+    n_epoch = train.train_samples_per_epoch or 1600
     d["default_profile_estimate_s"] = round(
-        default.train.max_epochs * n_epoch / d["train_samples_per_s"], 1
+        train.max_epochs * n_epoch / d["train_samples_per_s"], 1
     )
-    res["default_" + default.name] = d
+    res["default_" + default[0].name] = d
     if not args.skip_resnet50:
         r50 = _load_group("resnet50")
         m = measure(r50, args.rows, args.cols, args.r50_batch, max(2, args.steps // 2))

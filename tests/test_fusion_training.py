@@ -459,7 +459,10 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
         3,
         n["train"]["max_epochs"],
     )
-    assert m.deeplab_spec().backbone.base_width == n["architecture"]["backbone"]["base_width"]
+    assert (
+        m.deeplab_spec("params.yaml").backbone.base_width
+        == n["architecture"]["backbone"]["base_width"]
+    )
     for group, key, value, msg in [
         ("optim", "lr_factor", 1.5, "'fusion_model.optim.lr_factor' must be <= 1.0"),
         ("train", "batch_size", 1, "'fusion_model.train.batch_size' must be >= 2"),
@@ -474,7 +477,7 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
     bad = node()
     bad["architecture"]["backbone"]["output_stride"] = 4
     with pytest.raises(ConfigError, match="'fusion_model.architecture' is invalid"):
-        typed(bad, FusionModelConfig, key="fusion_model").deeplab_spec()
+        typed(bad, FusionModelConfig, key="fusion_model").deeplab_spec("params.yaml")
 
 
 def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:

@@ -442,12 +442,13 @@ class FusionModelConfig:
     augment: AugmentConfig = setting()
     train: FusionTrainConfig = setting()
 
-    def deeplab_spec(self, source: str = "params.yaml", key: str = "fusion_model") -> DeepLabSpec:
+    def deeplab_spec(self, source: str | Path, key: str = "fusion_model") -> DeepLabSpec:
         """The network's :class:`DeepLabSpec`; an invalid architecture is a ConfigError."""
         try:
             return spec_from_cfg(self.architecture)
         except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{source}: '{key}.architecture' is invalid: {exc}") from None
+            full = f"{key}.architecture" if key else "architecture"
+            raise ConfigError(f"{source}: '{full}' is invalid: {exc}") from None
 
     def hparams(self) -> FusionHParams:
         o, lo, a = self.optim, self.loss, self.augment
