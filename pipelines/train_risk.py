@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 
 from traffictwin.config import ConfigError, flatten, get, typed
-from traffictwin.risk.dave2 import count_parameters
-from traffictwin.risk.training import RiskModelConfig, RiskSource, fit_risk
+from traffictwin.risk.dave2 import Dave2Config, count_parameters
+from traffictwin.risk.training import RiskModelConfig, RiskSource, TrainConfig, fit_risk
 from traffictwin.trainer import TrackingSettings, TrainerSettings
 
 from ._common import params, run_stage, setup_logging, stage_timer
@@ -36,6 +36,42 @@ def training_domain(p, model: RiskModelConfig, label: str) -> dict:
     }
 
 
+def risk_model(p) -> RiskModelConfig:
+    """The ``risk_model`` group, validated once."""
+    return typed(p["risk_model"], RiskModelConfig, key="risk_model", source=PARAMS.name)
+
+
+def model_config(p, variant: str) -> tuple[Dave2Config, str]:
+    """The network config and training label of ``variant``; errors name the key."""
+    return variant_config(risk_model(p), variant)
+
+
+def variant_config(model: RiskModelConfig, variant: str) -> tuple[Dave2Config, str]:
+    """``variant``'s network config and label from the validated group."""
+    if variant not in model.variants:
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_model.variants' has no variant {variant!r} (has {sorted(model.variants)})"
+        )
+    try:
+        return model.variant(variant)
+    except ValueError as exc:
+        raise ConfigError(f"{PARAMS.name}: risk_model / variant {variant!r}: {exc}") from None
+
+
+def train_config(p) -> tuple[TrainConfig, int | None]:
+    """Optimisation settings (seed = ``seed`` + ``risk_model.train.seed_offset``) and max_train_frames."""
+    return train_settings(risk_model(p), p)
+
+
+def train_settings(model: RiskModelConfig, p) -> tuple[TrainConfig, int | None]:
+    """``model``'s optimisation settings with the global seed, and max_train_frames."""
+    try:
+        tc = model.train_config(get(p, "seed", int, min=0))
+    except ValueError as exc:
+        raise ConfigError(f"{PARAMS.name}: risk_model: {exc}") from None
+    return tc, model.train.max_train_frames
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--variant", required=True)
@@ -44,16 +80,9 @@ def main(argv: list[str] | None = None) -> None:
     p = params()
     variant = args.variant
     source = PARAMS.name
-    model = typed(p["risk_model"], RiskModelConfig, key="risk_model", source=source)
-    if variant not in model.variants:
-        raise ConfigError(
-            f"{source}: 'risk_model.variants' has no variant {variant!r} (has {sorted(model.variants)})"
-        )
-    try:
-        cfg, label = model.variant(variant)
-    except ValueError as exc:
-        raise ConfigError(f"{source}: risk_model / variant {variant!r}: {exc}") from None
-    tc = model.train_config(get(p, "seed", int, min=0))
+    model = risk_model(p)
+    cfg, label = variant_config(model, variant)
+    tc, max_train = train_settings(model, p)
     settings = TrainerSettings.from_cfg(p, source=source)
     profile = get(p, "profile.name", str)
     stage = f"train_risk@{variant}"
@@ -78,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
             variant=variant,
             out_dir=out_dir,
             curves_out=plot_file(f"risk_training_{variant}"),
-            max_train_frames=model.train.max_train_frames,
+            max_train_frames=max_train,
             tracking=tracking,
             meta={"domain": training_domain(p, model, label)},
         )

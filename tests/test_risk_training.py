@@ -300,12 +300,10 @@ def test_risk_model_config_is_validated_once_with_full_keys() -> None:
     tc = m.train_config(seed=5)
     assert tc.seed == 5 + node["train"]["seed_offset"] and tc.epochs == node["train"]["epochs"]
     bad = [
-        (("train", "limit_val_batches"), 1.5, "limit_val_batches must be a batch count"),
         (("train", "epochs"), 0, "'risk_model.train.epochs' must be >= 1"),
         (("label",), "nope", "'risk_model.label' must be one of"),
         (("dropout",), 1.0, "'risk_model.dropout' must be <= 0.99"),
         (("run_variants",), ["rgbd", "zzz"], r"run_variants \['zzz'\] are not in variants"),
-        (("variants", "rgb", "inputs"), ["rgb", "x"], r"'risk_model.variants.rgb.inputs\[1\]'"),
         (("train", "extra"), 1, "risk_model.train.extra"),
     ]
     for path, value, msg in bad:
@@ -316,6 +314,16 @@ def test_risk_model_config_is_validated_once_with_full_keys() -> None:
         d[path[-1]] = value
         with pytest.raises(ConfigError, match=msg):
             typed(n, RiskModelConfig, key="risk_model")
+    n = _risk_model_node()
+    n["train"]["limit_val_batches"] = 1.5
+    with pytest.raises(ValueError, match="'train.limit_val_batches' must be a batch count"):
+        typed(n, RiskModelConfig, key="risk_model").train_config(seed=0)
+    n["train"]["limit_val_batches"] = 3
+    assert typed(n, RiskModelConfig, key="risk_model").train_config(seed=0).limit_val_batches == 3
+    n = _risk_model_node()
+    n["variants"]["rgb"]["inputs"] = ["rgb", "x"]
+    with pytest.raises(ValueError, match="unknown channel group"):
+        typed(n, RiskModelConfig, key="risk_model").variant("rgb")
     n = _risk_model_node()
     del n["train"]["lr"]
     with pytest.raises(ConfigError, match="risk_model.train.lr"):

@@ -466,7 +466,7 @@ class TrainConfig:
 class VariantConfig:
     """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``)."""
 
-    inputs: list[str] = setting(choices=("rgb", "disp_sgm", "disp_gt"))
+    inputs: list[str] = setting()  # checked by Dave2Config (rgb, disp_sgm, disp_gt)
     speed: bool = setting()
     label: str | None = setting(choices=(*LABELS, None))
 
@@ -502,17 +502,6 @@ class RiskModelConfig:
     variants: dict[str, VariantConfig] = setting()
 
     def __post_init__(self) -> None:
-        lvb = self.train.limit_val_batches
-        if (
-            isinstance(lvb, bool)
-            or not isinstance(lvb, (int, float))
-            or lvb <= 0
-            or (isinstance(lvb, float) and lvb > 1)
-        ):
-            raise ValueError(
-                "train.limit_val_batches must be a batch count (int >= 1) or a fraction in (0, 1],"
-                f" got {lvb!r}"
-            )
         unknown = [v for v in self.run_variants if v not in self.variants]
         if unknown:
             raise ValueError(
@@ -536,8 +525,23 @@ class RiskModelConfig:
         return cfg, v.label or self.label
 
     def train_config(self, seed: int) -> TrainConfig:
-        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset``."""
+        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset``.
+
+        Raises ValueError when ``train.limit_val_batches`` is neither a batch count (int >= 1)
+        nor a fraction in (0, 1].
+        """
         t = self.train
+        lvb = t.limit_val_batches
+        if (
+            isinstance(lvb, bool)
+            or not isinstance(lvb, (int, float))
+            or lvb <= 0
+            or (isinstance(lvb, float) and lvb > 1)
+        ):
+            raise ValueError(
+                "'train.limit_val_batches' must be a batch count (int >= 1) or a fraction"
+                f" in (0, 1], got {lvb!r}"
+            )
         return TrainConfig(
             epochs=t.epochs,
             batch_size=t.batch_size,
