@@ -24,7 +24,7 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -466,21 +466,16 @@ class FusionModelConfig:
         )
 
     def data(self, num_workers: int) -> DataSettings:
-        t = self.train
-        return DataSettings(
-            batch_size=t.batch_size,
-            train_samples_per_epoch=t.train_samples_per_epoch,
-            val_samples=t.val_samples,
-            num_workers=num_workers,
-        )
+        return _from_fields(DataSettings, self.train, num_workers=num_workers)
 
     def loop(self) -> LoopSettings:
-        t = self.train
-        return LoopSettings(
-            max_epochs=t.max_epochs,
-            early_stopping_patience=t.early_stopping_patience,
-            gradient_clip_val=t.gradient_clip_val,
-        )
+        return _from_fields(LoopSettings, self.train)
+
+
+def _from_fields(cls: type, source: Any, **given: Any) -> Any:
+    """``cls(**given)`` with every other field of ``cls`` taken from ``source``'s attribute of the same name."""
+    names = {f.name for f in fields(cls)} - set(given)
+    return cls(**{k: getattr(source, k) for k in names}, **given)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -542,16 +542,8 @@ class RiskModelConfig:
                 "'train.limit_val_batches' must be a batch count (int >= 1) or a fraction"
                 f" in (0, 1], got {lvb!r}"
             )
-        return TrainConfig(
-            epochs=t.epochs,
-            batch_size=t.batch_size,
-            lr=t.lr,
-            weight_decay=t.weight_decay,
-            val_every_n_steps=t.val_every_n_steps,
-            limit_val_batches=t.limit_val_batches,
-            eval_batch_size=t.eval_batch_size,
-            seed=seed + t.seed_offset,
-        )
+        same = {f.name for f in fields(TrainConfig)} - {"seed"}
+        return TrainConfig(**{k: getattr(t, k) for k in same}, seed=seed + t.seed_offset)
 
 
 @dataclass
