@@ -36,9 +36,14 @@ from typing import Any  # noqa: E402
 import torch  # noqa: E402
 import yaml  # noqa: E402
 
-from traffictwin.fusion.deeplab import DeepLabV3Plus, count_parameters  # noqa: E402
+from traffictwin.config import typed  # noqa: E402
+from traffictwin.fusion.deeplab import (  # noqa: E402
+    DeepLabV3Plus,
+    channels_last_supported,
+    count_parameters,
+)
 from traffictwin.fusion.losses import evidential_loss  # noqa: E402
-from traffictwin.fusion.training import augment, spec_from_cfg  # noqa: E402
+from traffictwin.fusion.training import FusionModelConfig, augment  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,19 +59,22 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
-def _load_group(name: str) -> dict[str, Any]:
-    return yaml.safe_load((ROOT / "conf" / "fusion_model" / f"{name}.yaml").read_text())
+def _load_group(name: str) -> tuple[FusionModelConfig, Path]:
+    path = ROOT / "conf" / "fusion_model" / f"{name}.yaml"
+    return typed(yaml.safe_load(path.read_text()), FusionModelConfig, key="", source=path), path
 
 
-def measure(group: dict[str, Any], rows: int, cols: int, batch: int, steps: int) -> dict[str, Any]:
+def measure(
+    loaded: tuple[FusionModelConfig, Path], rows: int, cols: int, batch: int, steps: int
+) -> dict[str, Any]:
     """Training and inference speed of the network described by a ``fusion_model`` group."""
     torch.manual_seed(0)
-    spec = spec_from_cfg(group["architecture"])
-    net = DeepLabV3Plus(spec)
-    cl = bool(group["train"].get("channels_last", False))
+    group, path = loaded
+    net = DeepLabV3Plus(group.deeplab_spec(path, key=""))
+    cl = group.train.channels_last and channels_last_supported(net)
     fmt = torch.channels_last if cl else torch.contiguous_format
     net = net.to(memory_format=fmt)
-    opt = torch.optim.Adam(net.parameters(), lr=float(group["optim"]["lr"]))
+    opt = torch.optim.Adam(net.parameters(), lr=group.optim.lr)
     g = torch.Generator().manual_seed(0)
     x = (torch.rand(batch, 4, rows, cols, generator=g) / 2).contiguous(memory_format=fmt)
     y = torch.rand(batch, 2, rows, cols, generator=g) / 2
@@ -133,13 +141,13 @@ def main(argv: list[str] | None = None) -> None:
         },
         "grid": [args.rows, args.cols],
     }
-    d = measure(default, args.rows, args.cols, int(default["train"]["batch_size"]), args.steps)
-    tr = default["train"]
-    n_epoch = int(tr["train_samples_per_epoch"]) or 1600
+    d = measure(default, args.rows, args.cols, default[0].train.batch_size, args.steps)
+    train = default[0].train
+    n_epoch = train.train_samples_per_epoch or 1600
     d["default_profile_estimate_s"] = round(
-        int(tr["max_epochs"]) * n_epoch / d["train_samples_per_s"], 1
+        train.max_epochs * n_epoch / d["train_samples_per_s"], 1
     )
-    res["default_" + default.get("name", "resnet18")] = d
+    res["default_" + default[0].name] = d
     if not args.skip_resnet50:
         r50 = _load_group("resnet50")
         m = measure(r50, args.rows, args.cols, args.r50_batch, max(2, args.steps // 2))

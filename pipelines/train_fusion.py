@@ -20,19 +20,23 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 
-from traffictwin.config import ConfigError, flatten, get  # noqa: E402
-from traffictwin.fusion.training import (
-    DataSettings,
-    FusionHParams,
-    LoopSettings,
+from traffictwin.config import ConfigError, flatten, get, typed  # noqa: E402
+from traffictwin.fusion.training import (  # noqa: E402
+    FusionModelConfig,
     TrackingSettings,
     fit_fusion,
-    spec_from_cfg,
-)  # noqa: E402
+)
 from traffictwin.grid import GridSpec  # noqa: E402
 from traffictwin.trainer import TrainerSettings  # noqa: E402
 
-from ._common import ROOT, params, run_stage, setup_logging, stage_timer  # noqa: E402
+from ._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from ._paths import (  # noqa: E402
+    PARAMS,
+    fusion_model_dir,
+    metrics_file,
+    plot_file,
+    prealigned,
+)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,41 +63,14 @@ def main(argv: list[str] | None = None) -> None:
         get(p, "grid.cols", int, min=16),
         get(p, "grid.cell", float, min=1e-6),
     )
-    fm = "fusion_model"
-    try:
-        spec = spec_from_cfg(get(p, f"{fm}.architecture", dict))
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"params.yaml: '{fm}.architecture' is invalid: {exc}") from None
-    hp = FusionHParams(
-        lr=get(p, f"{fm}.optim.lr", float, min=1e-9),
-        weight_decay=get(p, f"{fm}.optim.weight_decay", float, min=0),
-        lr_factor=get(p, f"{fm}.optim.lr_factor", float, min=1e-6, max=1.0),
-        lr_patience=get(p, f"{fm}.optim.lr_patience", int, min=0),
-        occupied_weight=get(p, f"{fm}.loss.occupied_weight", float, min=1.0),
-        kl_weight=get(p, f"{fm}.loss.kl_weight", float, min=0),
-        kl_anneal_epochs=get(p, f"{fm}.loss.kl_anneal_epochs", int, min=1),
-        augment_flip=get(p, f"{fm}.augment.flip", bool),
-        augment_rotation_deg=get(p, f"{fm}.augment.rotation_deg", float, min=0, max=180),
-        channels_last=get(p, f"{fm}.train.channels_last", bool),
-    )
-    trainer = TrainerSettings.from_cfg(p)
-    data = DataSettings(
-        batch_size=get(p, f"{fm}.train.batch_size", int, min=2),
-        train_samples_per_epoch=get(p, f"{fm}.train.train_samples_per_epoch", int, min=0),
-        val_samples=get(p, f"{fm}.train.val_samples", int, min=0),
-        num_workers=trainer.num_workers,
-    )
-    clip = get(p, f"{fm}.train.gradient_clip_val", (float, type(None)))
-    loop = LoopSettings(
-        max_epochs=get(p, f"{fm}.train.max_epochs", int, min=1),
-        early_stopping_patience=get(p, f"{fm}.train.early_stopping_patience", int, min=1),
-        gradient_clip_val=clip,
-    )
-    profile = get(p, "profile.name", str)
+    source = PARAMS.name
+    model_cfg = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
+    spec = model_cfg.deeplab_spec(source)
+    trainer = TrainerSettings.from_cfg(p, source=source)
     stage = f"train_fusion@{args.cfg}"
     logged = flatten(
         {
-            "fusion_model": get(p, fm, dict),
+            "fusion_model": get(p, "fusion_model", dict),
             "trainer": get(p, "trainer", dict),
             "grid": get(p, "grid", dict),
             "seed": get(p, "seed", int),
@@ -103,18 +80,18 @@ def main(argv: list[str] | None = None) -> None:
     tracking = TrackingSettings(
         experiment="fusion",
         run_name=f"fusion-{args.cfg}",
-        profile=profile,
+        profile=get(p, "profile.name", str),
         stage=stage,
         params=logged,
     )
-    out_dir = ROOT / "models" / "fusion" / args.cfg
+    out_dir = fusion_model_dir(args.cfg)
     with stage_timer(stage):
         res = fit_fusion(
-            ROOT / "data" / "prealigned" / args.cfg,
+            prealigned(args.cfg),
             spec=spec,
-            hparams=hp,
-            data=data,
-            loop=loop,
+            hparams=model_cfg.hparams(),
+            data=model_cfg.data(trainer.num_workers),
+            loop=model_cfg.loop(),
             trainer_settings=trainer,
             seed=get(p, "seed", int, min=0),
             grid=grid,
@@ -122,8 +99,8 @@ def main(argv: list[str] | None = None) -> None:
             noise=noise,
             ckpt_out=out_dir / "model.ckpt",
             meta_out=out_dir / "model_meta.json",
-            metrics_out=ROOT / "reports" / "metrics" / f"train_fusion_{args.cfg}.json",
-            curves_out=ROOT / "reports" / "plots" / f"train_fusion_{args.cfg}.csv",
+            metrics_out=metrics_file(f"train_fusion_{args.cfg}"),
+            curves_out=plot_file(f"train_fusion_{args.cfg}"),
             tracking=tracking,
         )
     if res is not None:

@@ -138,3 +138,51 @@ def test_load_errors_name_the_file(tmp_path: Path) -> None:
     (tmp_path / "ok" / "model_meta.json").write_text(json.dumps(meta))
     with pytest.raises(RiskModelError, match="config disagrees"):
         load_risk_model(tmp_path / "ok")
+
+
+def test_risk_and_fusion_models_share_one_checkpoint_format(tmp_path: Path) -> None:
+    from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
+    from traffictwin.fusion.model_io import CKPT_FORMAT, FusionModelError, load_fusion_model
+    from traffictwin.fusion.resnet import ResNetSpec
+    from traffictwin.trainer import (
+        MODEL_FORMAT,
+        model_checkpoint,
+        net_state_dict,
+        save_model_checkpoint,
+    )
+
+    assert CKPT_FORMAT == MODEL_FORMAT
+    net = Dave2(Dave2Config())
+    save_risk_model(net, tmp_path / "risk", {"label": "risk"})
+    ck = torch.load(tmp_path / "risk" / "model.ckpt", weights_only=True)
+    info = ck["traffictwin"]
+    assert (info["format"], info["problem"], info["architecture"]) == (
+        MODEL_FORMAT,
+        "risk",
+        net.cfg.to_dict(),
+    )
+    assert info["label"] == "risk"
+    own = net.state_dict()
+    assert all(torch.equal(v, own[k]) for k, v in net_state_dict(ck).items())
+    assert set(net_state_dict(ck)) == set(own)
+    # a fusion network in the same format is refused by the risk loader, and the other way round
+    spec = DeepLabSpec(
+        backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
+        aspp_channels=8,
+        low_level_channels=8,
+        decoder_channels=8,
+    )
+    fus = tmp_path / "fusion" / "model.ckpt"
+    fus.parent.mkdir()
+    save_model_checkpoint(
+        fus, model_checkpoint("fusion", spec.as_dict(), DeepLabV3Plus(spec).state_dict())
+    )
+    assert load_fusion_model(fus).spec == spec
+    with pytest.raises(RiskModelError, match="a fusion model checkpoint, expected a risk model"):
+        load_risk_model(fus)
+    with pytest.raises(FusionModelError, match="a risk model checkpoint, expected a fusion model"):
+        load_fusion_model(tmp_path / "risk" / "model.ckpt")
+    # the old risk format ({"format": 1, "config", "state_dict"}) is not a model checkpoint
+    torch.save({"format": 1, "config": net.cfg.to_dict(), "state_dict": own}, fus)
+    with pytest.raises(RiskModelError, match=f"expected format '{MODEL_FORMAT}'"):
+        load_risk_model(fus)

@@ -151,3 +151,23 @@ def test_pignistic_and_dice_hand_case() -> None:
     assert d["dice_occ"] == pytest.approx(2 / 4) and d["dice_free"] == 0.0
     assert d["precision_occ"] == 0.5 and d["recall_occ"] == 0.5
     assert math.isnan(dice_from_counts(torch.zeros(6, dtype=torch.float64))["dice_occ"])
+
+
+def test_confusion_counts_metric_sums_batches_like_the_function() -> None:
+    from traffictwin.fusion.losses import ConfusionCounts, confusion_counts
+
+    g = torch.Generator().manual_seed(3)
+    metric = ConfusionCounts()
+    total = torch.zeros(6, dtype=torch.float64)
+    for _ in range(3):
+        raw = torch.rand(2, 3, 8, 6, generator=g)
+        m = (raw / raw.sum(1, keepdim=True))[:, :2]
+        lab = torch.zeros(2, 2, 8, 6)
+        lab[:, 1, :4] = 0.9
+        lab[:, 0, 5:] = 0.8
+        metric.update(m, lab)
+        total += confusion_counts(m, lab)
+    assert metric.compute().dtype == torch.float64
+    assert torch.equal(metric.compute(), total) and total.sum() > 0
+    metric.reset()
+    assert torch.equal(metric.compute(), torch.zeros(6, dtype=torch.float64))

@@ -5,7 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.fusion.deeplab import (
+    DeepLabSpec,
+    DeepLabV3Plus,
+    channels_last_supported,
+    count_parameters,
+)
 from traffictwin.fusion.losses import evidence_to_masses
 from traffictwin.fusion.resnet import ResNet, ResNetSpec, resnet_spec
 from traffictwin.fusion.training import spec_from_cfg
@@ -137,3 +142,37 @@ def test_spec_round_trip_and_validation() -> None:
         spec_from_cfg({"backbone": {"block": "dense"}})
     with pytest.raises(ValueError, match="output_stride"):
         spec_from_cfg({"backbone": {"output_stride": 4}})
+
+
+@pytest.mark.parametrize(
+    ("block", "base_width", "ok"),
+    [("basic", 4, False), ("basic", 8, True), ("bottleneck", 2, True), ("basic", 16, True)],
+)
+def test_channels_last_is_refused_for_strided_1x1_convs_with_few_input_channels(
+    block: str, base_width: int, ok: bool
+) -> None:
+    # oneDNN 3.12 (torch 2.13 CPU) corrupts the heap in the weight gradient of a strided 1x1 NHWC conv
+    # with 2..7 input channels: layer2's projection shortcut when a basic ResNet has base_width < 8
+    spec = DeepLabSpec(
+        backbone=ResNetSpec(block=block, layers=(1, 1, 1, 1), base_width=base_width),
+        aspp_channels=8,
+        low_level_channels=4,
+        decoder_channels=8,
+    )
+    assert channels_last_supported(DeepLabV3Plus(spec)) is ok
+
+
+def test_tiny_network_trains_with_channels_last_requested() -> None:
+    from traffictwin.fusion.training import FusionLitModule
+
+    spec = DeepLabSpec(
+        backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=4),
+        aspp_channels=8,
+        low_level_channels=4,
+        decoder_channels=8,
+    )
+    module = FusionLitModule(spec.as_dict(), {"channels_last": True})
+    assert not module.channels_last
+    torch.manual_seed(0)
+    module(torch.rand(4, 4, 64, 48)).sum().backward()
+    assert all(p.grad is not None for p in module.net.parameters() if p.requires_grad)

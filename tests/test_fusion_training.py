@@ -227,7 +227,7 @@ def test_trainer_settings_from_cfg() -> None:
             "num_workers": 8,
         }
     }
-    s = common.TrainerSettings.from_cfg(cfg)
+    s = common.TrainerSettings.from_cfg(cfg, source="params.yaml")
     assert (s.accelerator, s.devices, s.num_nodes, s.strategy, s.precision, s.num_workers) == (
         "gpu",
         4,
@@ -241,11 +241,26 @@ def test_trainer_settings_from_cfg() -> None:
         and common.TrainerSettings().resolved_deterministic() is True
     )
     with pytest.raises(ConfigError, match="'trainer.precision' must be one of"):
-        common.TrainerSettings.from_cfg({"trainer": {**cfg["trainer"], "precision": "fp8"}})
+        common.TrainerSettings.from_cfg(
+            {"trainer": {**cfg["trainer"], "precision": "fp8"}}, source="params.yaml"
+        )
     with pytest.raises(ConfigError, match="'trainer.num_nodes' is missing"):
         common.TrainerSettings.from_cfg(
-            {"trainer": {k: v for k, v in cfg["trainer"].items() if k != "num_nodes"}}
+            {"trainer": {k: v for k, v in cfg["trainer"].items() if k != "num_nodes"}},
+            source="params.yaml",
         )
+    with pytest.raises(ConfigError, match="'trainer.devices' must be >= 1 or -1"):
+        common.TrainerSettings.from_cfg({"trainer": {**cfg["trainer"], "devices": 0}}, source="p")
+    with pytest.raises(ConfigError, match="params.yaml: 'trainer.num_threads' must be >= 0"):
+        common.TrainerSettings.from_cfg(
+            {"trainer": {**cfg["trainer"], "num_threads": -1}}, source="params.yaml"
+        )
+    with pytest.raises(ConfigError, match="'trainer.gpus'"):
+        common.TrainerSettings.from_cfg({"trainer": {**cfg["trainer"], "gpus": 2}}, source="p")
+    s32 = common.TrainerSettings.from_cfg(
+        {"trainer": {**cfg["trainer"], "precision": 32, "devices": "auto"}}, source="p"
+    )
+    assert (s32.precision, s32.devices, s32.num_threads) == ("32", "auto", 0)
 
 
 def test_global_rank_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -417,3 +432,82 @@ def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
             meta_out=out / "model_meta.json",
         )
     assert not out.exists()
+
+
+def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
+    import copy
+
+    from traffictwin.config import compose_config, typed
+    from traffictwin.fusion.training import FusionModelConfig
+
+    root = Path(__file__).resolve().parents[1]
+
+    def node() -> dict:
+        return copy.deepcopy(compose_config(root / "conf", [])["fusion_model"])
+
+    n = node()
+    m = typed(n, FusionModelConfig, key="fusion_model")
+    hp, data, loop = m.hparams(), m.data(num_workers=3), m.loop()
+    assert (hp.lr, hp.occupied_weight, hp.augment_rotation_deg, hp.channels_last) == (
+        n["optim"]["lr"],
+        n["loss"]["occupied_weight"],
+        n["augment"]["rotation_deg"],
+        n["train"]["channels_last"],
+    )
+    assert (data.batch_size, data.num_workers, loop.max_epochs) == (
+        n["train"]["batch_size"],
+        3,
+        n["train"]["max_epochs"],
+    )
+    assert (
+        m.deeplab_spec("params.yaml").backbone.base_width
+        == n["architecture"]["backbone"]["base_width"]
+    )
+    for group, key, value, msg in [
+        ("optim", "lr_factor", 1.5, "'fusion_model.optim.lr_factor' must be <= 1.0"),
+        ("train", "batch_size", 1, "'fusion_model.train.batch_size' must be >= 2"),
+        ("augment", "rotation_deg", 200.0, "'fusion_model.augment.rotation_deg' must be <= 180"),
+        ("loss", "occupied_weight", 0.5, "'fusion_model.loss.occupied_weight' must be >= 1.0"),
+        ("train", "typo", 1, "fusion_model.train.typo"),
+    ]:
+        bad = node()
+        bad[group][key] = value
+        with pytest.raises(ConfigError, match=msg):
+            typed(bad, FusionModelConfig, key="fusion_model")
+    bad = node()
+    bad["architecture"]["backbone"]["output_stride"] = 4
+    with pytest.raises(ConfigError, match="'fusion_model.architecture' is invalid"):
+        typed(bad, FusionModelConfig, key="fusion_model").deeplab_spec("params.yaml")
+
+
+def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    opt = SimpleNamespace(param_groups=[{"lr": 0.5}])
+    tr = SimpleNamespace(
+        sanity_checking=False,
+        is_global_zero=True,
+        callback_metrics={"val/loss": torch.tensor(0.25), "train/loss": 1.5, "note": 3.0},
+        optimizers=[opt],
+        current_epoch=0,
+        max_epochs=2,
+        global_step=4,
+        num_training_batches=2,
+    )
+    per_epoch = common.History()
+    per_epoch.on_train_epoch_end(tr, None)
+    assert per_epoch.rows == [{"epoch": 0, "val/loss": 0.25, "train/loss": 1.5, "lr": 0.5}]
+    per_epoch.write_csv(tmp_path / "e.csv")
+    assert (tmp_path / "e.csv").read_text() == "epoch,lr,train/loss,val/loss\n0,0.5,1.5,0.25\n"
+    per_val = common.History("validation", metrics=("val/loss", "val/mae"), train_loss="train/mse")
+    per_epoch_only = per_val.on_train_epoch_end(tr, None)  # no row: rows come per validation
+    assert per_epoch_only is None and per_val.rows == []
+    for loss in (1.0, 2.0):
+        per_val.on_train_batch_end(tr, None, {"loss": torch.tensor(loss)}, None, 0)
+    per_val.on_validation_end(tr, None)
+    row = per_val.rows[0]
+    assert (row["step"], row["epoch"], row["train/mse"], row["val/loss"]) == (4, 2.0, 1.5, 0.25)
+    assert math.isnan(row["val/mae"])
+    assert list(per_val.frame().columns) == ["step", "epoch", "train/mse", "val/loss", "val/mae"]
+    with pytest.raises(ValueError, match="every must be"):
+        common.History("step")

@@ -219,7 +219,6 @@ def test_fast_dev_run(tmp_path: Path) -> None:
         TrainConfig(batch_size=4),
         TrainerSettings(),
         fast_dev_run=True,
-        mlflow_log=False,
     )
     assert res.steps == 1
     x = torch.zeros(2, 4, 66, 200)
@@ -243,7 +242,7 @@ def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     )  # fit() seeds the same way before building the net: same initial weights
     with torch.no_grad():
         initial = float(np.mean((Dave2(cfg)(x).numpy() - tr.y) ** 2))
-    res = fit(cfg, tr, va, tc, TrainerSettings(), mlflow_log=False)
+    res = fit(cfg, tr, va, tc, TrainerSettings())
     with torch.no_grad():
         final = float(np.mean((res.net(x).numpy() - tr.y) ** 2))
     print(
@@ -260,7 +259,7 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     cfg = Dave2Config(inputs=("disp_sgm",))
     tr, va = prepare_split(src, cfg, "train", "risk"), prepare_split(src, cfg, "val", "risk")
     tc = TrainConfig(epochs=3, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
-    res = fit(cfg, tr, va, tc, TrainerSettings(), mlflow_log=False)
+    res = fit(cfg, tr, va, tc, TrainerSettings())
     steps_total = math.ceil(len(tr) / 5) * 3
     assert res.steps == steps_total
     assert list(res.history["step"]) == list(range(2, steps_total + 1, 2))
@@ -271,3 +270,135 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     with torch.no_grad():
         p = res.net(normalise(cfg, None, torch.from_numpy(va.disp))).numpy()
     assert float(np.mean((p - va.y) ** 2)) == pytest.approx(res.best_val_mse, rel=1e-4)
+
+
+def _risk_model_node() -> dict:
+    import copy
+
+    from traffictwin.config import compose_config
+
+    root = Path(__file__).resolve().parents[1]
+    return copy.deepcopy(compose_config(root / "conf", [])["risk_model"])
+
+
+def test_risk_model_config_is_validated_once_with_full_keys() -> None:
+    from traffictwin.config import ConfigError, typed
+    from traffictwin.risk.training import RiskModelConfig
+
+    node = _risk_model_node()
+    m = typed(node, RiskModelConfig, key="risk_model")
+    for name in m.run_variants:
+        cfg, label = m.variant(name)
+        v = node["variants"][name]
+        assert cfg.inputs == tuple(v["inputs"]) and cfg.use_speed == v["speed"]
+        assert label == (v["label"] or node["label"])
+        assert (cfg.height, cfg.width, cfg.disp_scale) == (
+            node["height"],
+            node["width"],
+            node["disp_scale"],
+        )
+    tc = m.train_config(seed=5)
+    assert tc.seed == 5 + node["train"]["seed_offset"] and tc.epochs == node["train"]["epochs"]
+    bad = [
+        (("train", "epochs"), 0, "'risk_model.train.epochs' must be >= 1"),
+        (("label",), "nope", "'risk_model.label' must be one of"),
+        (("dropout",), 1.0, "'risk_model.dropout' must be <= 0.99"),
+        (("run_variants",), ["rgbd", "zzz"], r"run_variants \['zzz'\] are not in variants"),
+        (("train", "extra"), 1, "risk_model.train.extra"),
+    ]
+    for path, value, msg in bad:
+        n = _risk_model_node()
+        d = n
+        for k in path[:-1]:
+            d = d[k]
+        d[path[-1]] = value
+        with pytest.raises(ConfigError, match=msg):
+            typed(n, RiskModelConfig, key="risk_model")
+    n = _risk_model_node()
+    n["train"]["limit_val_batches"] = 1.5
+    with pytest.raises(ValueError, match="'train.limit_val_batches' must be a batch count"):
+        typed(n, RiskModelConfig, key="risk_model").train_config(seed=0)
+    n["train"]["limit_val_batches"] = 3
+    assert typed(n, RiskModelConfig, key="risk_model").train_config(seed=0).limit_val_batches == 3
+    n = _risk_model_node()
+    n["variants"]["rgb"]["inputs"] = ["rgb", "x"]
+    with pytest.raises(ValueError, match="unknown channel group"):
+        typed(n, RiskModelConfig, key="risk_model").variant("rgb")
+    n = _risk_model_node()
+    del n["train"]["lr"]
+    with pytest.raises(ConfigError, match="risk_model.train.lr"):
+        typed(n, RiskModelConfig, key="risk_model")
+
+
+def test_both_problems_share_one_trainer_shape() -> None:
+    from traffictwin.fusion.losses import evidential_loss
+    from traffictwin.fusion.training import FusionLitModule
+    from traffictwin.risk.training import RiskRegressor, mse_loss
+    from traffictwin.trainer import NetModule
+
+    risk = RiskRegressor(Dave2Config(), lr=1e-3)
+    spec = {
+        "backbone": {"block": "basic", "layers": [1, 1, 1, 1], "base_width": 8},
+        "aspp_channels": 8,
+        "low_level_channels": 8,
+        "decoder_channels": 8,
+    }
+    fusion = FusionLitModule(spec, {"lr": 0.02, "lr_factor": 0.25, "lr_patience": 3})
+    assert isinstance(risk, NetModule) and isinstance(fusion, NetModule)
+    assert risk.loss_fn is mse_loss and fusion.loss_fn is evidential_loss
+    opt = risk.configure_optimizers()
+    assert isinstance(opt, torch.optim.Adam) and opt.param_groups[0]["lr"] == 1e-3
+    conf = fusion.configure_optimizers()
+    sched = conf["lr_scheduler"]
+    assert conf["optimizer"].param_groups[0]["lr"] == 0.02 and sched["monitor"] == "val/loss"
+    assert (sched["scheduler"].factor, sched["scheduler"].patience) == (0.25, 3)
+    # the optimiser holds exactly the injected network's parameters
+    assert [id(p) for p in opt.param_groups[0]["params"]] == [id(p) for p in risk.net.parameters()]
+    net = torch.nn.Linear(2, 1)
+    custom = NetModule(net, torch.nn.functional.l1_loss, lr=0.1)
+    assert custom.net is net and isinstance(custom.configure_optimizers(), torch.optim.Adam)
+
+
+def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: str) -> None:
+    import json
+
+    import mlflow
+
+    from traffictwin.risk.model_io import load_risk_model
+    from traffictwin.risk.training import fit_risk
+    from traffictwin.trainer import TrackingSettings
+
+    write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
+    cfg = Dave2Config(inputs=("disp_sgm",))
+    tc = TrainConfig(epochs=2, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
+    out = tmp_path / "models" / "disp"
+    (out / "stale.txt").parent.mkdir(parents=True)
+    (out / "stale.txt").write_text("from an older run")
+    res = fit_risk(
+        _source(tmp_path),
+        cfg,
+        "risk",
+        tc,
+        TrainerSettings(),
+        variant="disp",
+        out_dir=out,
+        curves_out=tmp_path / "plots" / "risk_training_disp.csv",
+        tracking=TrackingSettings("risk", "risk-disp", profile="test", stage="train_risk@disp"),
+        meta={"domain": {"label": "risk"}},
+    )
+    assert res is not None and not (out / "stale.txt").exists()
+    meta = json.loads((out / "model_meta.json").read_text())
+    assert (meta["variant"], meta["label"], meta["domain"]) == ("disp", "risk", {"label": "risk"})
+    assert meta["best_val_mse"] == res.best_val_mse and meta["mlflow_model_uri"].startswith(
+        "models:/"
+    )
+    curves = (tmp_path / "plots" / "risk_training_disp.csv").read_text()
+    assert curves == (out / "history.csv").read_text()
+    assert curves.splitlines()[0] == "step,epoch,train/mse,val/mse,val/mae"
+    loaded = load_risk_model(out)
+    assert all(torch.equal(v, res.net.state_dict()[k]) for k, v in loaded.net.state_dict().items())
+    run = mlflow.get_run(meta["mlflow_run_id"])
+    assert run.data.metrics["val/best_mse"] == pytest.approx(res.best_val_mse)
+    assert run.data.params["data.n_train"] == str(res.n_train)
+    hist = mlflow.MlflowClient().get_metric_history(run.info.run_id, "val/mse")
+    assert [m.step for m in hist] == list(res.history["step"])

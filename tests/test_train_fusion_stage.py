@@ -16,10 +16,7 @@ from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, pre
 from traffictwin.io.shards import Dataset
 
 CFGS = ("A", "B", "C", "D")
-pytestmark = pytest.mark.slow
-
-
-pytestmark = pytest.mark.usefixtures("single_torch_thread")
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_torch_thread")]
 
 
 def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:

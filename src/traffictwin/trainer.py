@@ -3,39 +3,47 @@
 Stable API (the fusion and the risk stages both use it):
 
 - :class:`TrainerSettings` — the ``trainer`` config group (accelerator, devices, num_nodes,
-  strategy, precision, num_workers, optional deterministic), checked with
-  :func:`traffictwin.config.get`; :meth:`TrainerSettings.from_cfg`.
+  strategy, precision, num_workers, optional deterministic / num_threads), validated once with
+  :func:`traffictwin.config.typed` by :meth:`TrainerSettings.from_cfg`.
 - :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
 - :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
-  (metrics go to MLflow through :class:`EpochHistory`, which logs one value per epoch).
+  (metrics go to MLflow through :class:`History`, which logs one value per epoch).
+- :class:`NetModule` — the one trainer shape: LightningModule with an injected network and
+  loss, Adam (+ optional plateau decay); the fusion and risk modules subclass it.
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
-- :class:`EpochHistory` — collects ``split/name`` metrics and ``lr`` once per epoch, logs them
-  to the active MLflow run with ``step=epoch`` (rank zero only) and writes them as CSV.
+- :class:`History` — the metric rows (per epoch, or per validation for the risk net's
+  per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
+- :func:`mlflow_logger` / :func:`log_final_metrics` — Lightning's ``MLFlowLogger`` on the
+  stage's MLflow run, through which :class:`History` and the final metrics are logged.
 - :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
   launcher re-runs the stage script in every rank; the other ranks get ``None``).
 - :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
   the network as an MLflow model that :func:`mlflow.pytorch.load_model` restores.
-- :func:`copy_atomic` — publish a file (e.g. the best checkpoint) under its final name atomically.
+- One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
+  :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
+  :func:`read_model_checkpoint` reads it back with ``weights_only=True`` and checks it, and
+  :func:`net_state_dict` gives the network's weights.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
 import os
-import shutil
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from traffictwin.config import ConfigError, get
+from traffictwin.config import ConfigError, spec, typed
 from traffictwin.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -55,41 +63,39 @@ ACCELERATORS = ("cpu", "gpu", "cuda", "mps", "tpu", "auto")
 
 @dataclass(frozen=True)
 class TrainerSettings:
-    """Where and how Lightning runs: one CPU, one GPU, or DDP over ``devices`` x ``num_nodes``."""
+    """Where and how Lightning runs: one CPU, one GPU, or DDP over ``devices`` x ``num_nodes``.
 
-    accelerator: str = "cpu"
-    devices: int | str = 1
-    num_nodes: int = 1
+    Also the schema of the ``trainer`` config group (:meth:`from_cfg`); ``deterministic`` and
+    ``num_threads`` may be left out there, every other key is required.
+    """
+
+    accelerator: str = spec("cpu", choices=ACCELERATORS)
+    devices: int | str = 1  # >= 1, -1 (all) or a Lightning string ("auto", "0,1")
+    num_nodes: int = spec(1, min=1)
     strategy: str = "auto"
-    precision: str = "32-true"
-    num_workers: int = 0
+    precision: str | int = spec("32-true", choices=[*PRECISIONS, 32, 64])
+    num_workers: int = spec(0, min=0)
     deterministic: bool | str | None = (
         None  # None: True on CPU, "warn" elsewhere (CUDA upsampling backward)
     )
-    num_threads: int = 0  # torch intra-op CPU threads; 0 = torch's default (all cores)
+    num_threads: int = spec(0, min=0)  # torch intra-op CPU threads; 0 = torch's default
+
+    OPTIONAL = ("deterministic", "num_threads")
 
     @classmethod
-    def from_cfg(
-        cls, cfg: Any, key: str = "trainer", source: str | Path = "params.yaml"
-    ) -> TrainerSettings:
-        """Read the ``trainer`` group (``cfg`` is the whole params tree)."""
-        p = f"{key}." if key else ""
-        devices = get(cfg, p + "devices", (int, str), source=source)
-        if isinstance(devices, int) and devices < 1 and devices != -1:
-            raise ConfigError(f"{source}: '{p}devices' must be >= 1 or -1, got {devices!r}")
-        det = get(cfg, p + "deterministic", (bool, str), default=None, source=source)
-        return cls(
-            accelerator=get(cfg, p + "accelerator", str, choices=ACCELERATORS, source=source),
-            devices=devices,
-            num_nodes=get(cfg, p + "num_nodes", int, min=1, source=source),
-            strategy=get(cfg, p + "strategy", str, source=source),
-            precision=str(
-                get(cfg, p + "precision", (str, int), choices=[*PRECISIONS, 32, 64], source=source)
-            ),
-            num_workers=get(cfg, p + "num_workers", int, min=0, source=source),
-            deterministic=det,
-            num_threads=get(cfg, p + "num_threads", int, min=0, default=0, source=source),
-        )
+    def from_cfg(cls, cfg: Any, *, source: str | Path, key: str = "trainer") -> TrainerSettings:
+        """Validate the ``trainer`` group of ``cfg`` (the whole params tree) once; errors name ``source``."""
+        node = cfg.get(key) if isinstance(cfg, Mapping) or hasattr(cfg, "get") else None
+        if node is None:
+            raise ConfigError(f"{source}: '{key}' is missing")
+        for f in fields(cls):
+            if f.name not in cls.OPTIONAL and f.name not in node:
+                raise ConfigError(f"{source}: '{key}.{f.name}' is missing")
+        settings = typed(node, cls, key=key, source=source)
+        d = settings.devices
+        if isinstance(d, int) and d < 1 and d != -1:
+            raise ConfigError(f"{source}: '{key}.devices' must be >= 1 or -1, got {d!r}")
+        return replace(settings, precision=str(settings.precision))
 
     def resolved_deterministic(self) -> bool | str:
         if self.deterministic is not None:
@@ -122,13 +128,13 @@ def build_trainer(
     enable_progress_bar: bool = False,
     **extra: Any,
 ) -> Any:
-    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`EpochHistory`)."""
+    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`History`)."""
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     if settings.num_threads > 0:
         torch.set_num_threads(settings.num_threads)
-    # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by EpochHistory
+    # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by History
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
@@ -194,20 +200,57 @@ def _to_float(v: Any) -> float | None:
     return f
 
 
-class EpochHistory(Callback):
-    """Per-epoch metrics: every ``callback_metrics`` name with a ``/`` plus ``lr``.
+class History(Callback):
+    """The one metric-history callback: rows for the curves CSV, logged to MLflow as they come.
 
-    One row per finished training epoch (after its validation): ``epoch`` (0-based), the
-    metrics, ``lr`` (first param group). When ``mlflow_log`` and an MLflow run is active on
-    rank zero, the row is logged with ``step=epoch``.
+    ``every="epoch"`` (fusion): one row per finished training epoch (after its validation):
+    ``epoch`` (0-based), every ``callback_metrics`` name with a ``/``, ``lr`` (first param
+    group); MLflow ``step = epoch``.
+
+    ``every="validation"`` (risk; the paper's curves are over iterations): one row per
+    validation: ``step`` (global step), ``epoch`` (fractional), ``train_loss`` = the mean
+    training loss over the steps since the previous row, and the ``metrics`` names (NaN when
+    absent); MLflow ``step = global step``.
+
+    Rows (finite values) go to ``logger`` (a Lightning logger, e.g. :func:`mlflow_logger`'s
+    ``MLFlowLogger`` on the stage's run) when given; rank zero only.
     """
 
-    def __init__(self, mlflow_log: bool = True) -> None:
-        self.mlflow_log = mlflow_log
+    def __init__(
+        self,
+        every: str = "epoch",
+        *,
+        metrics: Sequence[str] = (),
+        train_loss: str = "train/loss",
+        logger: Any = None,
+    ) -> None:
+        if every not in ("epoch", "validation"):
+            raise ValueError(f"History: every must be 'epoch' or 'validation', got {every!r}")
+        self.every = every
+        self.metrics = tuple(metrics)
+        self.train_loss = train_loss
+        self.logger = logger
         self.rows: list[dict[str, float]] = []
+        self._losses: list[float] = []
+
+    @property
+    def columns(self) -> list[str]:
+        """CSV columns: the step/epoch keys first, then the metric names."""
+        if self.every == "validation":
+            return ["step", "epoch", self.train_loss, *self.metrics]
+        return ["epoch", *sorted({k for r in self.rows for k in r if k != "epoch"})]
+
+    def on_train_batch_end(
+        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        if self.every != "validation":
+            return
+        loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
+        if loss is not None:
+            self._losses.append(float(loss.detach()))
 
     def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
-        if trainer.sanity_checking or not trainer.is_global_zero:
+        if self.every != "epoch" or trainer.sanity_checking or not trainer.is_global_zero:
             return
         row: dict[str, float] = {}
         for k, v in trainer.callback_metrics.items():
@@ -217,25 +260,99 @@ class EpochHistory(Callback):
                     row[k] = f
         if trainer.optimizers:
             row["lr"] = float(trainer.optimizers[0].param_groups[0]["lr"])
-        self.rows.append({"epoch": int(trainer.current_epoch), **row})
         shown = " ".join(f"{k}={v:.4g}" for k, v in sorted(row.items()) if not k.endswith("_naive"))
         log.info("epoch %d/%d %s", trainer.current_epoch + 1, trainer.max_epochs, shown)
-        if self.mlflow_log:
-            import mlflow
+        self._add({"epoch": int(trainer.current_epoch), **row}, step=int(trainer.current_epoch))
 
-            if mlflow.active_run() is not None:
-                finite = {k: v for k, v in row.items() if math.isfinite(v)}
-                mlflow.log_metrics(finite, step=int(trainer.current_epoch))
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self.every != "validation" or trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        m = trainer.callback_metrics
+        row = {
+            "step": int(trainer.global_step),
+            "epoch": float(trainer.global_step) / max(1, trainer.num_training_batches),
+            self.train_loss: float(np.mean(self._losses)) if self._losses else float("nan"),
+            **{k: float(m[k]) if k in m else float("nan") for k in self.metrics},
+        }
+        self._losses = []
+        self._add(row, step=row["step"])
+
+    def _add(self, row: dict[str, float], step: int) -> None:
+        self.rows.append(row)
+        if self.logger is not None:
+            finite = {
+                k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
+            }
+            self.logger.log_metrics(finite, step=step)
+
+    def frame(self) -> Any:
+        """The rows as a pandas DataFrame with :attr:`columns`."""
+        import pandas as pd
+
+        return pd.DataFrame(self.rows, columns=self.columns)
 
     def write_csv(self, path: str | Path) -> None:
-        """Write the rows as CSV (atomically); columns: epoch, then sorted metric names."""
-        cols = sorted({k for r in self.rows for k in r if k != "epoch"})
+        """Write the rows as CSV (atomically); ``%.9g`` floats, empty cells for missing values."""
+        cols = self.columns
         with atomic_path(path, suffix=".csv") as tmp:
             with open(tmp, "w", newline="") as fh:
                 w = csv.writer(fh, lineterminator="\n")
-                w.writerow(["epoch", *cols])
+                w.writerow(cols)
                 for r in self.rows:
-                    w.writerow([r["epoch"], *[("" if c not in r else f"{r[c]:.9g}") for c in cols]])
+                    w.writerow(
+                        [
+                            r[c]
+                            if isinstance(r.get(c), int)
+                            else ("" if c not in r else f"{r[c]:.9g}")
+                            for c in cols
+                        ]
+                    )
+
+
+class NetModule(L.LightningModule):
+    """The one trainer shape: a LightningModule around an injected network ``net`` and loss.
+
+    ``loss(prediction, target, *args)`` -> scalar tensor. Optimiser: Adam on the network's
+    parameters (``lr``, ``weight_decay``); with ``plateau = (factor, patience)`` the learning
+    rate is reduced when ``monitor`` stops improving (checked once per epoch). Subclasses add
+    the problem's steps and metrics (torchmetrics) and log ``split/name`` values, which
+    :class:`History`, :func:`best_checkpoint` and :func:`early_stopping` read.
+    """
+
+    def __init__(
+        self,
+        net: torch.nn.Module,
+        loss: Callable[..., torch.Tensor],
+        *,
+        lr: float,
+        weight_decay: float = 0.0,
+        plateau: tuple[float, int] | None = None,
+        monitor: str = "val/loss",
+    ) -> None:
+        super().__init__()
+        self.net = net
+        self.loss_fn = loss
+        self.lr, self.weight_decay = float(lr), float(weight_decay)
+        self.plateau = plateau
+        self.monitor = monitor
+
+    def configure_optimizers(self) -> Any:
+        opt = torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        if self.plateau is None:
+            return opt
+        factor, patience = self.plateau
+        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=factor, patience=patience
+        )
+        return {
+            "optimizer": opt,
+            "lr_scheduler": {
+                "scheduler": sched,
+                "monitor": self.monitor,
+                "interval": "epoch",
+                "frequency": 1,
+            },
+        }
 
 
 def global_rank() -> int:
@@ -249,6 +366,43 @@ def global_rank() -> int:
         return local
     # world layout unknown here; any process that is not local rank 0 of node 0 is not rank zero
     return node * 1_000_000 + local
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """MLflow: experiment, run name, profile and stage tags, params logged once; enabled=False skips MLflow."""
+
+    experiment: str = "fusion"
+    run_name: str = "fusion"
+    profile: str = "default"
+    stage: str = "train_fusion"
+    enabled: bool = True
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+
+def mlflow_logger(run: Any) -> Any:
+    """Lightning's ``MLFlowLogger`` writing into the already started MLflow ``run`` (``None`` -> ``None``).
+
+    The run's tracking URI is the active one (never Lightning's default ``./mlruns`` file store).
+    """
+    if run is None:
+        return None
+    import mlflow
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    return MLFlowLogger(run_id=run.info.run_id, tracking_uri=mlflow.get_tracking_uri())
+
+
+def log_final_metrics(logger: Any, metrics: Mapping[str, Any]) -> None:
+    """Log the finite numeric ``metrics`` once (step 0) through ``logger`` (``None``: nothing)."""
+    if logger is None:
+        return
+    finite = {
+        k: float(v)
+        for k, v in metrics.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+    }
+    logger.log_metrics(finite, step=0)
 
 
 @contextmanager
@@ -317,9 +471,76 @@ def log_torch_model(
     return info.model_uri
 
 
-def copy_atomic(src: str | Path, dest: str | Path) -> None:
-    """Copy ``src`` to ``dest`` through a temp file + rename (a reader never sees half a file)."""
-    with atomic_path(dest) as tmp:
-        shutil.copyfile(src, tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
+# ---------------------------------------------------------------------------------------------
+# the one checkpoint format of trained networks (fusion and risk)
+
+MODEL_FORMAT = "traffictwin-model/1"
+
+
+class CheckpointError(RuntimeError):
+    """A model checkpoint is missing, unreadable or not of :data:`MODEL_FORMAT`."""
+
+
+def model_checkpoint(
+    problem: str,
+    architecture: Mapping[str, Any],
+    state_dict: Mapping[str, torch.Tensor],
+    meta: Mapping[str, Any] | None = None,
+    *,
+    prefix: str = "net.",
+    **extra: Any,
+) -> dict[str, Any]:
+    """The checkpoint dict: ``state_dict`` (tensors on CPU, keys ``prefix`` + the network's own,
+    as in the LightningModule that holds the network as ``net``) and a ``traffictwin`` block
+    (``format``, ``problem``, ``architecture`` and the JSON-able ``meta``); ``extra`` top-level
+    keys (e.g. ``epoch``, ``global_step``). Loadable with ``torch.load(weights_only=True)``."""
+    info = json.loads(json.dumps(dict(meta or {}), default=str))
+    info.update(
+        format=MODEL_FORMAT,
+        problem=problem,
+        architecture=json.loads(json.dumps(dict(architecture), default=str)),
+    )
+    state = {
+        (k if k.startswith(prefix) else prefix + k): v.detach().cpu().clone()
+        for k, v in state_dict.items()
+    }
+    return {"state_dict": state, **extra, "traffictwin": info}
+
+
+def save_model_checkpoint(path: str | Path, ckpt: Mapping[str, Any]) -> Path:
+    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``."""
+    with atomic_path(path, suffix=".ckpt") as tmp:
+        torch.save(dict(ckpt), tmp)
+    return Path(path)
+
+
+def read_model_checkpoint(
+    path: str | Path,
+    problem: str | None = None,
+    error: type[Exception] = CheckpointError,
+    map_location: str | torch.device = "cpu",
+) -> dict[str, Any]:
+    """Read a checkpoint of :data:`MODEL_FORMAT` (``weights_only=True``); errors (``error``) name the file.
+
+    ``problem``: the ``traffictwin.problem`` it must have (a checkpoint without that key is
+    accepted as any problem).
+    """
+    path = Path(path)
+    try:
+        ck = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
+        raise error(
+            f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
+        ) from None
+    info = ck.get("traffictwin") if isinstance(ck, dict) else None
+    if not isinstance(info, dict) or info.get("format") != MODEL_FORMAT or "state_dict" not in ck:
+        what = f"traffictwin {problem}" if problem else "traffictwin"
+        raise error(f"{path}: not a {what} checkpoint (expected format '{MODEL_FORMAT}')")
+    if problem is not None and info.get("problem", problem) != problem:
+        raise error(f"{path}: a {info.get('problem')} model checkpoint, expected a {problem} model")
+    return ck
+
+
+def net_state_dict(ckpt: Mapping[str, Any], prefix: str = "net.") -> dict[str, torch.Tensor]:
+    """The network's weights of a checkpoint (``prefix`` removed)."""
+    return {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}

@@ -164,6 +164,27 @@ class DeepLabV3Plus(nn.Module):
         return F.relu(y)
 
 
+def channels_last_supported(model: nn.Module) -> bool:
+    """Whether ``model`` can train in NHWC (``channels_last``) memory format on a oneDNN CPU.
+
+    oneDNN 3.12 (bundled with torch 2.13 CPU wheels, AVX2 kernels) corrupts the heap or fails
+    with "could not create a primitive descriptor for the reorder primitive" in the
+    weight-gradient of a *strided 1x1* convolution in NHWC with 2..7 input channels (fewer than
+    one AVX2 vector of float32); 1 or >= 8 channels are fine. In a ResNet that is the projection
+    shortcut of ``layer2`` when ``base_width < 8`` (basic blocks) — test-sized networks only;
+    every real configuration has ``base_width >= 8``. Such networks train in NCHW.
+    """
+    for m in model.modules():
+        if (
+            isinstance(m, nn.Conv2d)
+            and m.kernel_size == (1, 1)
+            and m.stride != (1, 1)
+            and 1 < m.in_channels < 8
+        ):
+            return False
+    return True
+
+
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)

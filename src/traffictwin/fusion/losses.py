@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torchmetrics import Metric
 
 NUM_CLASSES = 2
 KLD_EPS = 1e-7
@@ -162,3 +163,19 @@ def dice_from_counts(counts: torch.Tensor) -> dict[str, float]:
         out[f"recall_{name}"] = tp / (tp + fn) if tp + fn > 0 else float("nan")
         out[f"dice_{name}"] = 2 * tp / (2 * tp + fp + fn) if 2 * tp + fp + fn > 0 else float("nan")
     return out
+
+
+class ConfusionCounts(Metric):
+    """:func:`confusion_counts` summed over batches (and DDP ranks); ``compute`` -> the 6 counts (float64)."""
+
+    full_state_update = False
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.add_state("counts", default=torch.zeros(6, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, pred_m: torch.Tensor, label_m: torch.Tensor) -> None:
+        self.counts += confusion_counts(pred_m, label_m).to(self.counts.device)
+
+    def compute(self) -> torch.Tensor:
+        return self.counts

@@ -1,8 +1,8 @@
 """Loading a trained fusion network and predicting fused masses (evaluation, CLI).
 
-``models/fusion/<cfg>/model.ckpt`` is a slim Lightning checkpoint (``state_dict`` with ``net.``
-prefixes, ``hyper_parameters``) plus a ``traffictwin`` block (format, cfg, grid, architecture,
-data manifest hash); ``model_meta.json`` beside it says the same in JSON. :func:`load_fusion_model`
+``models/fusion/<cfg>/model.ckpt`` is in the one checkpoint format of
+:mod:`traffictwin.trainer` (``state_dict`` with ``net.`` prefixes, ``epoch``, ``global_step`` and
+a ``traffictwin`` block: format, problem, architecture, cfg, grid, data manifest hash, ...); ``model_meta.json`` beside it says the same in JSON. :func:`load_fusion_model`
 checks the two agree and, when given, that they match what the caller expects (configuration,
 architecture, grid), and fails with a message naming the file and the mismatch otherwise.
 """
@@ -19,8 +19,9 @@ import torch
 
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
 from traffictwin.fusion.losses import evidence_to_masses
+from traffictwin.trainer import MODEL_FORMAT, net_state_dict, read_model_checkpoint
 
-CKPT_FORMAT = "traffictwin-fusion/1"
+CKPT_FORMAT = MODEL_FORMAT  # the one format of traffictwin.trainer, problem "fusion"
 META_NAME = "model_meta.json"
 
 
@@ -43,18 +44,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise FusionModelError(
             f"{path}: fusion checkpoint not found (run `dvc repro train_fusion` first)"
         )
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
-        raise FusionModelError(
-            f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
-        ) from None
-    info = ck.get("traffictwin") if isinstance(ck, dict) else None
-    if not isinstance(info, dict) or info.get("format") != CKPT_FORMAT or "state_dict" not in ck:
-        raise FusionModelError(
-            f"{path}: not a traffictwin fusion checkpoint (expected format '{CKPT_FORMAT}')"
-        )
-    return ck
+    return read_model_checkpoint(path, "fusion", FusionModelError)
 
 
 def load_fusion_model(
@@ -124,7 +114,7 @@ def load_fusion_model(
     except (TypeError, ValueError) as exc:
         raise FusionModelError(f"{path}: invalid architecture block ({exc})") from None
     net = DeepLabV3Plus(spec)
-    state = {k[len("net.") :]: v for k, v in ck["state_dict"].items() if k.startswith("net.")}
+    state = net_state_dict(ck)
     try:
         net.load_state_dict(state, strict=True)
     except RuntimeError as exc:

@@ -24,7 +24,7 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +33,20 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
+from torchmetrics import MeanMetric
 
 from traffictwin import trainer as common
+from traffictwin.config import ConfigError
+from traffictwin.config import spec as setting
 from traffictwin.evidential.dempster import dempster
-from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus, count_parameters
+from traffictwin.fusion.deeplab import (
+    DeepLabSpec,
+    DeepLabV3Plus,
+    channels_last_supported,
+    count_parameters,
+)
 from traffictwin.fusion.losses import (
-    confusion_counts,
+    ConfusionCounts,
     dice_from_counts,
     evidence_to_masses,
     evidential_loss,
@@ -47,8 +55,9 @@ from traffictwin.fusion.losses import (
 )
 from traffictwin.fusion.model_io import CKPT_FORMAT
 from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
 
@@ -274,8 +283,8 @@ def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLab
     return DeepLabSpec.from_dict({**d, "backbone": bb})
 
 
-class FusionLitModule(L.LightningModule):
-    """LightningModule around :class:`DeepLabV3Plus` (``self.net``) with the evidential loss."""
+class FusionLitModule(common.NetModule):
+    """:class:`~traffictwin.trainer.NetModule` with :class:`DeepLabV3Plus` and the evidential loss."""
 
     def __init__(
         self,
@@ -283,23 +292,39 @@ class FusionLitModule(L.LightningModule):
         hparams: Mapping[str, Any],
         meta: Mapping[str, Any] | None = None,
     ) -> None:
-        super().__init__()
+        hp = FusionHParams(**hparams)
+        super().__init__(
+            DeepLabV3Plus(DeepLabSpec.from_dict(spec)),
+            evidential_loss,
+            lr=hp.lr,
+            weight_decay=hp.weight_decay,
+            plateau=(hp.lr_factor, hp.lr_patience),
+            monitor="val/loss",
+        )
         self.save_hyperparameters(
             {"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})}
         )
-        self.spec = DeepLabSpec.from_dict(spec)
-        self.hp = FusionHParams(**hparams)
-        self.net = DeepLabV3Plus(self.spec)
-        if self.hp.channels_last:
+        self.spec = self.net.spec
+        self.hp = hp
+        # NHWC only where oneDNN supports every layer (see channels_last_supported)
+        self.channels_last = self.hp.channels_last and channels_last_supported(self.net)
+        if self.hp.channels_last and not self.channels_last:
+            log.warning("channels_last off: a strided 1x1 conv with < 8 input channels (oneDNN)")
+        if self.channels_last:
             self.net = self.net.to(memory_format=torch.channels_last)
-        self._val_counts: torch.Tensor | None = None
+        # validation metrics (torchmetrics: accumulated over batches, reduced over DDP ranks)
+        self.val_means = torch.nn.ModuleDict(
+            {k: MeanMetric() for k in ("loss", "kld", "kld_full", "kld_naive", "kld_full_naive")}
+        )
+        self.val_counts = ConfusionCounts()
+        self.val_counts_naive = ConfusionCounts()
         self._aug_gen: torch.Generator | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(self._layout(x))
 
     def _layout(self, x: torch.Tensor) -> torch.Tensor:
-        return x.contiguous(memory_format=torch.channels_last) if self.hp.channels_last else x
+        return x.contiguous(memory_format=torch.channels_last) if self.channels_last else x
 
     def _kl_weight(self) -> float:
         if self.hp.kl_weight <= 0:
@@ -323,81 +348,134 @@ class FusionLitModule(L.LightningModule):
                 generator=self._aug_gen,
             )
         e = self.net(self._layout(x)).float()
-        loss = evidential_loss(e, y.float(), self.hp.occupied_weight, self._kl_weight())
+        loss = self.loss_fn(e, y.float(), self.hp.occupied_weight, self._kl_weight())
         self.log(
             "train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0]
         )
         return loss
 
-    def on_validation_epoch_start(self) -> None:
-        self._val_counts = torch.zeros(12, dtype=torch.float64, device=self.device)
-
     def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> None:
         x, y = batch
         e = self.net(self._layout(x)).float()
         y = y.float()
-        loss = evidential_loss(e, y, self.hp.occupied_weight, 0.0)
+        loss = self.loss_fn(e, y, self.hp.occupied_weight, 0.0)
         m, _ = evidence_to_masses(e)
-        n = x.shape[0]
-        self.log("val/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
-        self.log(
-            "val/kld", kld(m, y).mean(), on_step=False, on_epoch=True, sync_dist=True, batch_size=n
-        )
-        self.log(
-            "val/kld_full",
-            kld_full(m, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())
-        self.log(
-            "val/kld_naive",
-            kld(naive, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
-        self.log(
-            "val/kld_full_naive",
-            kld_full(naive, y).mean(),
-            on_step=False,
-            on_epoch=True,
-            sync_dist=True,
-            batch_size=n,
-        )
-        assert self._val_counts is not None
-        self._val_counts[:6] += confusion_counts(m, y).to(self._val_counts.device)
-        self._val_counts[6:] += confusion_counts(naive, y).to(self._val_counts.device)
+        n = x.shape[0]
+        for name, value in (
+            ("loss", loss),
+            ("kld", kld(m, y).mean()),
+            ("kld_full", kld_full(m, y).mean()),
+            ("kld_naive", kld(naive, y).mean()),
+            ("kld_full_naive", kld_full(naive, y).mean()),
+        ):
+            self.val_means[name].update(value, weight=n)
+        self.val_counts.update(m, y)
+        self.val_counts_naive.update(naive, y)
 
     def on_validation_epoch_end(self) -> None:
-        if self._val_counts is None:
-            return
-        counts = self.trainer.strategy.reduce(self._val_counts, reduce_op="sum").cpu()
-        for suffix, c in (("", counts[:6]), ("_naive", counts[6:])):
-            for k, v in dice_from_counts(c).items():
+        for name, metric in self.val_means.items():
+            self.log(f"val/{name}", metric.compute())
+            metric.reset()
+        for suffix, metric in (("", self.val_counts), ("_naive", self.val_counts_naive)):
+            counts = metric.compute().cpu()
+            metric.reset()
+            for k, v in dice_from_counts(counts).items():
                 if suffix and not k.startswith("dice"):
                     continue
-                # already reduced over ranks; identical everywhere, so the (mean) sync is a no-op that silences Lightning
-                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0, sync_dist=True)
+                self.log(f"val/{k}{suffix}", float(v) if math.isfinite(v) else 0.0)
 
-    def configure_optimizers(self) -> Any:
-        opt = torch.optim.Adam(self.parameters(), lr=self.hp.lr, weight_decay=self.hp.weight_decay)
-        sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            opt, mode="min", factor=self.hp.lr_factor, patience=self.hp.lr_patience
+
+# ---------------------------------------------------------------------------------------------
+# the ``fusion_model`` config group (validated once by the stage with traffictwin.config.typed)
+
+
+@dataclass
+class OptimConfig:
+    """``fusion_model.optim``: Adam and the plateau decay of the learning rate."""
+
+    lr: float = setting(min=1e-9)
+    weight_decay: float = setting(min=0.0)
+    lr_factor: float = setting(min=1e-6, max=1.0)
+    lr_patience: int = setting(min=0)
+
+
+@dataclass
+class LossConfig:
+    """``fusion_model.loss``: eqs. (6)-(7) and the optional KL regulariser."""
+
+    occupied_weight: float = setting(min=1.0)
+    kl_weight: float = setting(min=0.0)
+    kl_anneal_epochs: int = setting(min=1)
+
+
+@dataclass
+class AugmentConfig:
+    """``fusion_model.augment``: random flips and rotation (paper III-D)."""
+
+    flip: bool = setting()
+    rotation_deg: float = setting(min=0.0, max=180.0)
+
+
+@dataclass
+class FusionTrainConfig:
+    """``fusion_model.train``: batches, epochs, stopping, memory format."""
+
+    batch_size: int = setting(min=2)
+    max_epochs: int = setting(min=1)
+    train_samples_per_epoch: int = setting(min=0)
+    val_samples: int = setting(min=0)
+    early_stopping_patience: int = setting(min=1)
+    gradient_clip_val: float | None = setting()
+    channels_last: bool = setting()
+
+
+@dataclass
+class FusionModelConfig:
+    """The ``fusion_model`` group: architecture (see :func:`spec_from_cfg`) and its training."""
+
+    name: str = setting()
+    architecture: dict[str, Any] = setting()
+    optim: OptimConfig = setting()
+    loss: LossConfig = setting()
+    augment: AugmentConfig = setting()
+    train: FusionTrainConfig = setting()
+
+    def deeplab_spec(self, source: str | Path, key: str = "fusion_model") -> DeepLabSpec:
+        """The network's :class:`DeepLabSpec`; an invalid architecture is a ConfigError."""
+        try:
+            return spec_from_cfg(self.architecture)
+        except (TypeError, ValueError) as exc:
+            full = f"{key}.architecture" if key else "architecture"
+            raise ConfigError(f"{source}: '{full}' is invalid: {exc}") from None
+
+    def hparams(self) -> FusionHParams:
+        o, lo, a = self.optim, self.loss, self.augment
+        return FusionHParams(
+            lr=o.lr,
+            weight_decay=o.weight_decay,
+            lr_factor=o.lr_factor,
+            lr_patience=o.lr_patience,
+            occupied_weight=lo.occupied_weight,
+            kl_weight=lo.kl_weight,
+            kl_anneal_epochs=lo.kl_anneal_epochs,
+            augment_flip=a.flip,
+            augment_rotation_deg=a.rotation_deg,
+            channels_last=self.train.channels_last,
         )
-        return {
-            "optimizer": opt,
-            "lr_scheduler": {
-                "scheduler": sched,
-                "monitor": "val/loss",
-                "interval": "epoch",
-                "frequency": 1,
-            },
-        }
+
+    def data(self, num_workers: int) -> DataSettings:
+        return _from_fields(DataSettings, self.train, num_workers=num_workers)
+
+    def loop(self) -> LoopSettings:
+        return _from_fields(LoopSettings, self.train)
+
+
+def _from_fields(cls: type, source: Any, **given: Any) -> Any:
+    """``cls(**given)`` with every other field of ``cls`` taken from ``source``'s attribute of the same name."""
+    names = {f.name for f in fields(cls)} - set(given)
+    return cls(**{k: getattr(source, k) for k in names}, **given)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -413,18 +491,6 @@ class LoopSettings:
     gradient_clip_val: float | None = None
 
 
-@dataclass(frozen=True)
-class TrackingSettings:
-    """MLflow: experiment, run name, profile and stage tags; enabled=False skips MLflow entirely."""
-
-    experiment: str = "fusion"
-    run_name: str = "fusion"
-    profile: str = "default"
-    stage: str = "train_fusion"
-    enabled: bool = True
-    params: Mapping[str, Any] = field(default_factory=dict)
-
-
 @dataclass
 class FitResult:
     """What :func:`fit_fusion` produced (paths written, best metrics, timing)."""
@@ -437,22 +503,19 @@ class FitResult:
     model_uri: str | None = None
 
 
-def slim_checkpoint(lightning_ckpt: str | Path, extra: Mapping[str, Any]) -> dict[str, Any]:
-    """A Lightning checkpoint without optimizer/loop state (``load_from_checkpoint`` still works) + ``traffictwin`` meta."""
+def best_model_checkpoint(
+    lightning_ckpt: str | Path, architecture: Mapping[str, Any], meta: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The best epoch's Lightning checkpoint in the one model format (no optimizer/loop state)."""
     ck = torch.load(lightning_ckpt, map_location="cpu", weights_only=False)
-    keep = {
-        k: ck[k]
-        for k in ("state_dict", "epoch", "global_step", "pytorch-lightning_version")
-        if k in ck
-    }
-    keep["hyper_parameters"] = json.loads(
-        json.dumps(dict(ck.get("hyper_parameters", {})), default=str)
+    return common.model_checkpoint(
+        "fusion",
+        architecture,
+        ck["state_dict"],
+        meta,
+        epoch=int(ck.get("epoch", -1)),
+        global_step=int(ck.get("global_step", -1)),
     )
-    keep["traffictwin"] = {
-        "format": CKPT_FORMAT,
-        **json.loads(json.dumps(dict(extra), default=str)),
-    }
-    return keep
 
 
 def fit_fusion(
@@ -487,7 +550,7 @@ def fit_fusion(
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
     ds = Dataset(data_root, kind="prealigned")
     manifest_hash = ds.manifest_hash()
-    tracking = tracking or TrackingSettings(enabled=False)
+    tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
     meta_base = {
         "cfg": cfg_name,
         "noise": dict(noise),
@@ -516,7 +579,8 @@ def fit_fusion(
             enabled=tracking.enabled,
         ) as run,
     ):
-        history = common.EpochHistory(mlflow_log=run is not None)
+        logger = common.mlflow_logger(run)
+        history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
         callbacks = [
             history,
@@ -539,7 +603,8 @@ def fit_fusion(
         best = ckpt_cb.best_model_path
         if not best or not Path(best).exists():
             raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
-        best_epoch = int(torch.load(best, map_location="cpu", weights_only=False).get("epoch", -1))
+        slim = best_model_checkpoint(best, spec.as_dict(), {})
+        best_epoch = slim["epoch"]
         row = next(
             (r for r in history.rows if r["epoch"] == best_epoch),
             history.rows[-1] if history.rows else {},
@@ -572,17 +637,11 @@ def fit_fusion(
             "mlflow_model_uri": None,
             "data_root": str(data_root),
         }
-        slim = slim_checkpoint(best, meta)
+        slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         model_uri = None
         if run is not None:
-            import mlflow
-
-            mlflow.log_metrics(
-                {
-                    f"best/{k.replace('/', '_')}": float(v)
-                    for k, v in metrics.items()
-                    if isinstance(v, (int, float)) and v is not None and math.isfinite(float(v))
-                }
+            common.log_final_metrics(
+                logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
             )
             with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
                 p = Path(art) / "model.ckpt"
@@ -604,8 +663,7 @@ def fit_fusion(
             )
             meta["mlflow_model_uri"] = model_uri
             slim["traffictwin"]["mlflow_model_uri"] = model_uri
-        with atomic_path(ckpt_out, suffix=".ckpt") as tmp:
-            torch.save(slim, tmp)
+        common.save_model_checkpoint(ckpt_out, slim)
         if meta_out:
             write_json_atomic(meta_out, meta)
         if metrics_out:

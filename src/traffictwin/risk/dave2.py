@@ -117,7 +117,7 @@ def conv_output_shape(
 ) -> tuple[int, int, int]:
     """(channels, height, width) after the unpadded convolution stack; error if the input is too small."""
     h, w = int(height), int(width)
-    for i, (ch, k, s) in enumerate(conv):
+    for i, (_ch, k, s) in enumerate(conv):
         h, w = (h - k) // s + 1, (w - k) // s + 1
         if h < 1 or w < 1:
             raise ValueError(

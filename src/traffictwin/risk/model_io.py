@@ -1,7 +1,8 @@
 """Save and load trained risk networks: ``<dir>/model.ckpt`` + ``<dir>/model_meta.json``.
 
-``model.ckpt`` is a plain ``torch.save`` dict ``{"format": 1, "config": Dave2Config.to_dict(),
-"state_dict": ...}`` loadable with ``weights_only=True`` (no pickled code). ``model_meta.json``
+``model.ckpt`` is in the one checkpoint format of :mod:`traffictwin.trainer` (problem ``risk``,
+``architecture`` = ``Dave2Config.to_dict()``, ``state_dict`` with ``net.`` prefixes), loadable
+with ``weights_only=True`` (no pickled code). ``model_meta.json``
 repeats the config and adds what a user of the model needs: the training label column, the
 variant name, parameter count, best validation error, the MLflow run/model URI (when tracked),
 the data manifest hash. :func:`load_risk_model` returns a :class:`RiskModel` that preprocesses raw
@@ -19,10 +20,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_json_atomic
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
+from traffictwin.trainer import (
+    MODEL_FORMAT,
+    model_checkpoint,
+    net_state_dict,
+    read_model_checkpoint,
+    save_model_checkpoint,
+)
 
-FORMAT = 1
 CKPT = "model.ckpt"
 META = "model_meta.json"
 
@@ -81,11 +88,11 @@ def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | N
     """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` (atomically); returns the folder."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
-    with atomic_path(out / CKPT, suffix=".ckpt") as tmp:
-        torch.save({"format": FORMAT, "config": net.cfg.to_dict(), "state_dict": state}, tmp)
+    save_model_checkpoint(
+        out / CKPT, model_checkpoint("risk", net.cfg.to_dict(), net.state_dict(), meta)
+    )
     full_meta = {
-        "format": FORMAT,
+        "format": MODEL_FORMAT,
         "architecture": "dave2",
         "config": net.cfg.to_dict(),
         "in_channels": net.cfg.in_channels,
@@ -105,25 +112,14 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
         raise RiskModelError(
             f"{ckpt}: risk model checkpoint not found (run the train_risk stage first)"
         )
+    blob = read_model_checkpoint(ckpt, "risk", RiskModelError, map_location)
     try:
-        blob = torch.load(ckpt, map_location=map_location, weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt files
-        raise RiskModelError(
-            f"{ckpt}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
-        ) from None
-    if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
-        raise RiskModelError(
-            f"{ckpt}: expected a dict with 'config' and 'state_dict' (a traffictwin risk model)"
-        )
-    if blob.get("format") != FORMAT:
-        raise RiskModelError(f"{ckpt}: format {blob.get('format')!r}, expected {FORMAT}")
-    try:
-        cfg = Dave2Config.from_dict(blob["config"])
-    except (TypeError, ValueError) as exc:
+        cfg = Dave2Config.from_dict(blob["traffictwin"]["architecture"])
+    except (TypeError, ValueError, KeyError) as exc:
         raise RiskModelError(f"{ckpt}: invalid model config ({exc})") from None
     net = Dave2(cfg)
     try:
-        net.load_state_dict(blob["state_dict"])
+        net.load_state_dict(net_state_dict(blob))
     except RuntimeError as exc:
         raise RiskModelError(
             f"{ckpt}: weights do not match the configured network ({exc})"

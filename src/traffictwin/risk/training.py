@@ -11,20 +11,20 @@ at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 k
 Loss: MSE on the normalised risk; optimiser: Adam; validation every ``val_every_n_steps``
 optimiser steps (the paper: every 10), the checkpoint with the lowest validation MSE is kept.
 
-The Trainer, seeding, best-checkpoint callback and MLflow model logging come from
-:mod:`traffictwin.trainer`. Risk-specific here: :class:`StepHistory`, which records the
-train/val error *per validation step* (the paper's Figs. 5–6 are over iterations, not epochs),
-and logs it to the active MLflow run with ``step = global step``.
+The Trainer, seeding, best-checkpoint callback, the history callback (here one row *per
+validation*: the paper's Figs. 5–6 are over iterations, not epochs) and MLflow model logging
+come from :mod:`traffictwin.trainer`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -32,12 +32,38 @@ import lightning as L
 import numpy as np
 import pandas as pd
 import torch
-from lightning.pytorch.callbacks import Callback
 from torch.utils.data import DataLoader, TensorDataset
+from torchmetrics import SumMetric
 
+from traffictwin.config import flatten
+from traffictwin.config import spec as setting
+from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, normalise, prepare_channels
-from traffictwin.trainer import TrainerSettings, best_checkpoint, build_trainer, seed_everything
+from traffictwin.risk.dave2 import (
+    Dave2,
+    Dave2Config,
+    PackedDave2,
+    count_parameters,
+    normalise,
+    pack_input,
+    prepare_channels,
+)
+from traffictwin.risk.model_io import CKPT, save_risk_model
+from traffictwin.trainer import (
+    History,
+    NetModule,
+    TrackingSettings,
+    TrainerSettings,
+    best_checkpoint,
+    build_trainer,
+    global_rank,
+    log_checkpoint,
+    log_final_metrics,
+    log_torch_model,
+    mlflow_logger,
+    seed_everything,
+    tracked_run,
+)
 
 log = logging.getLogger(__name__)
 
@@ -345,15 +371,29 @@ class RiskDataModule(L.LightningDataModule):
 # --------------------------------------------------------------------------------------------
 
 
-class RiskRegressor(L.LightningModule):
-    """Dave2 + MSE loss + Adam. Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``."""
+def mse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error on the normalised risk (computed in float32)."""
+    return torch.mean((pred.float() - target) ** 2)
+
+
+class RiskRegressor(NetModule):
+    """:class:`~traffictwin.trainer.NetModule` with Dave2 and the MSE loss (Adam, no LR schedule).
+
+    Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``.
+    """
 
     def __init__(self, cfg: Dave2Config, lr: float = 1e-4, weight_decay: float = 0.0) -> None:
-        super().__init__()
-        self.net = Dave2(cfg)
+        super().__init__(Dave2(cfg), mse_loss, lr=lr, weight_decay=weight_decay)
         self.cfg = cfg
-        self.lr, self.weight_decay = float(lr), float(weight_decay)
-        self._sums: dict[str, list[float]] = {}
+        # per-split error sums (torchmetrics, float64; reduced over DDP ranks)
+        self.eval_sums = torch.nn.ModuleDict(
+            {
+                split: torch.nn.ModuleDict(
+                    {k: SumMetric().set_dtype(torch.float64) for k in ("se", "ae", "n")}
+                )
+                for split in ("val", "test")
+            }
+        )
 
     def forward(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         x = normalise(self.cfg, rgb if rgb.shape[1] else None, disp if disp.shape[1] else None)
@@ -362,7 +402,7 @@ class RiskRegressor(L.LightningModule):
     def training_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> torch.Tensor:
         rgb, disp, speed, y = batch
         pred = self(rgb, disp, speed)
-        loss = torch.mean((pred.float() - y) ** 2)
+        loss = self.loss_fn(pred, y)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"risk training loss is not finite at step {self.global_step}")
         self.log("train/mse", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
@@ -371,16 +411,19 @@ class RiskRegressor(L.LightningModule):
     def _eval_step(self, batch: Sequence[torch.Tensor], prefix: str) -> None:
         rgb, disp, speed, y = batch
         err = self(rgb, disp, speed).float() - y
-        s = self._sums.setdefault(prefix, [0.0, 0.0, 0.0])
-        s[0] += float(torch.sum(err**2))
-        s[1] += float(torch.sum(err.abs()))
-        s[2] += float(len(y))
+        sums = self.eval_sums[prefix]
+        sums["se"].update(torch.sum(err**2).double())
+        sums["ae"].update(torch.sum(err.abs()).double())
+        sums["n"].update(float(len(y)))
 
     def _eval_end(self, prefix: str) -> None:
-        s = self._sums.pop(prefix, [0.0, 0.0, 0.0])
-        n = max(s[2], 1.0)
-        self.log(f"{prefix}/mse", s[0] / n, sync_dist=True)
-        self.log(f"{prefix}/mae", s[1] / n, sync_dist=True)
+        sums = self.eval_sums[prefix]
+        se, ae, n = (float(sums[k].compute()) for k in ("se", "ae", "n"))
+        for metric in sums.values():
+            metric.reset()
+        n = max(n, 1.0)
+        self.log(f"{prefix}/mse", se / n)
+        self.log(f"{prefix}/mae", ae / n)
 
     def validation_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> None:
         self._eval_step(batch, "val")
@@ -393,54 +436,6 @@ class RiskRegressor(L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         self._eval_end("test")
-
-    def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
-
-
-class StepHistory(Callback):
-    """Train/val error per validation: one row ``step, epoch, train/mse, val/mse, val/mae``.
-
-    ``train/mse`` is the mean training loss over the steps since the previous validation. Rows are
-    logged to the active MLflow run (if any) with ``step = global step``.
-    """
-
-    def __init__(self, mlflow_log: bool = True) -> None:
-        self.mlflow_log = mlflow_log
-        self.rows: list[dict[str, float]] = []
-        self._acc: list[float] = []
-
-    def on_train_batch_end(
-        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
-    ) -> None:
-        loss = outputs["loss"] if isinstance(outputs, Mapping) else outputs
-        if loss is not None:
-            self._acc.append(float(loss.detach()))
-
-    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
-        if trainer.sanity_checking or not trainer.is_global_zero:
-            return
-        m = trainer.callback_metrics
-        row = {
-            "step": int(trainer.global_step),
-            "epoch": float(trainer.global_step) / max(1, trainer.num_training_batches),
-            "train/mse": float(np.mean(self._acc)) if self._acc else float("nan"),
-            "val/mse": float(m["val/mse"]) if "val/mse" in m else float("nan"),
-            "val/mae": float(m["val/mae"]) if "val/mae" in m else float("nan"),
-        }
-        self._acc = []
-        self.rows.append(row)
-        if self.mlflow_log:
-            import mlflow
-
-            if mlflow.active_run() is not None:
-                finite = {
-                    k: v for k, v in row.items() if k not in ("step", "epoch") and math.isfinite(v)
-                }
-                mlflow.log_metrics(finite, step=row["step"])
-
-    def frame(self) -> pd.DataFrame:
-        return pd.DataFrame(self.rows, columns=["step", "epoch", "train/mse", "val/mse", "val/mae"])
 
 
 @dataclass(frozen=True)
@@ -464,6 +459,93 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr must be > 0, got {self.lr}")
 
 
+# the ``risk_model`` config group (validated once by the stage with traffictwin.config.typed)
+
+
+@dataclass
+class VariantConfig:
+    """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``)."""
+
+    inputs: list[str] = setting()  # checked by Dave2Config (rgb, disp_sgm, disp_gt)
+    speed: bool = setting()
+    label: str | None = setting(choices=(*LABELS, None))
+
+
+@dataclass
+class RiskTrainSchema:
+    """``risk_model.train``; ``limit_val_batches``: a batch count (int >= 1) or a fraction in (0, 1]."""
+
+    epochs: int = setting(min=1)
+    batch_size: int = setting(min=1)
+    lr: float = setting(min=1e-12)
+    weight_decay: float = setting(min=0.0)
+    val_every_n_steps: int = setting(min=1)
+    limit_val_batches: Any = setting()
+    eval_batch_size: int = setting(min=1)
+    max_train_frames: int | None = setting(min=1)
+    seed_offset: int = setting(min=0)
+
+
+@dataclass
+class RiskModelConfig:
+    """The ``risk_model`` group: the network (per variant) and its training."""
+
+    orb_filter: bool = setting()
+    label: str = setting(choices=LABELS)
+    height: int = setting(min=1)
+    width: int = setting(min=1)
+    disp_scale: float = setting(min=1e-6)
+    speed_scale: float = setting(min=1e-6)
+    dropout: float = setting(min=0.0, max=0.99)
+    train: RiskTrainSchema = setting()
+    run_variants: list[str] = setting()
+    variants: dict[str, VariantConfig] = setting()
+
+    def __post_init__(self) -> None:
+        unknown = [v for v in self.run_variants if v not in self.variants]
+        if unknown:
+            raise ValueError(
+                f"run_variants {unknown} are not in variants (has {sorted(self.variants)})"
+            )
+
+    def variant(self, name: str) -> tuple[Dave2Config, str]:
+        """The network config and the training label of variant ``name``."""
+        if name not in self.variants:
+            raise KeyError(f"no variant {name!r} (has {sorted(self.variants)})")
+        v = self.variants[name]
+        cfg = Dave2Config(
+            inputs=tuple(v.inputs),
+            height=self.height,
+            width=self.width,
+            use_speed=v.speed,
+            speed_scale=self.speed_scale,
+            disp_scale=self.disp_scale,
+            dropout=self.dropout,
+        )
+        return cfg, v.label or self.label
+
+    def train_config(self, seed: int) -> TrainConfig:
+        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset``.
+
+        Raises ValueError when ``train.limit_val_batches`` is neither a batch count (int >= 1)
+        nor a fraction in (0, 1].
+        """
+        t = self.train
+        lvb = t.limit_val_batches
+        if (
+            isinstance(lvb, bool)
+            or not isinstance(lvb, (int, float))
+            or lvb <= 0
+            or (isinstance(lvb, float) and lvb > 1)
+        ):
+            raise ValueError(
+                "'train.limit_val_batches' must be a batch count (int >= 1) or a fraction"
+                f" in (0, 1], got {lvb!r}"
+            )
+        same = {f.name for f in fields(TrainConfig)} - {"seed"}
+        return TrainConfig(**{k: getattr(t, k) for k in same}, seed=seed + t.seed_offset)
+
+
 @dataclass
 class TrainResult:
     net: Dave2
@@ -484,7 +566,7 @@ def fit(
     settings: TrainerSettings | None = None,
     workdir: str | Path | None = None,
     fast_dev_run: bool | int = False,
-    mlflow_log: bool = True,
+    logger: Any = None,
     extra_callbacks: Sequence[Any] = (),
 ) -> TrainResult:
     """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode)."""
@@ -503,7 +585,9 @@ def fit(
     total = steps_per_epoch * tc.epochs
     # validate at least once at the end: the interval never exceeds the run's step count
     interval = max(1, min(tc.val_every_n_steps, total))
-    history = StepHistory(mlflow_log=mlflow_log)
+    history = History(
+        "validation", metrics=("val/mse", "val/mae"), train_loss="train/mse", logger=logger
+    )
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
         trainer = build_trainer(
@@ -549,6 +633,110 @@ def fit(
     return TrainResult(
         net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
     )
+
+
+def fit_risk(
+    data: RiskSource,
+    cfg: Dave2Config,
+    label: str,
+    tc: TrainConfig,
+    settings: TrainerSettings,
+    *,
+    variant: str,
+    out_dir: str | Path,
+    curves_out: str | Path | None = None,
+    max_train_frames: int | None = None,
+    tracking: TrackingSettings | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> TrainResult | None:
+    """Train variant ``variant`` on ``data`` and publish it (rank zero; ``None`` on other ranks).
+
+    Writes ``out_dir`` (replaced): ``model.ckpt``, ``model_meta.json`` (``meta`` + training
+    facts), ``history.csv``; ``curves_out`` (the same curves, for ``dvc plots``). With
+    ``tracking`` enabled: an MLflow run with the params once, the curves, the final metrics,
+    the checkpoint and an MLflow model (:class:`PackedDave2`, single-tensor input).
+    """
+    out_dir = Path(out_dir)
+    tracking = tracking or TrackingSettings("risk", f"risk-{variant}", enabled=False)
+    train = prepare_split(data, cfg, "train", label, max_frames=max_train_frames, seed=tc.seed)
+    val = prepare_split(data, cfg, "val", label)
+    log.info(
+        "%s: %d train / %d val frames (ORB-passed), label %s",
+        tracking.stage,
+        len(train),
+        len(val),
+        label,
+    )
+    run_params = {
+        **tracking.params,
+        "risk_model.variant": variant,
+        "risk_model.inputs": ",".join(cfg.inputs),
+        "risk_model.use_speed": cfg.use_speed,
+        "risk_model.effective_label": label,
+        **flatten({"trainer": settings.as_dict()}),
+        "seed": tc.seed,
+        "data.n_train": len(train),
+        "data.n_val": len(val),
+    }
+    manifest = data.risk.manifest_hash()
+    tags = {"variant": variant, "data_manifest": manifest, "label": label}
+    with tracked_run(
+        tracking.experiment,
+        tracking.run_name,
+        profile=tracking.profile,
+        stage=tracking.stage,
+        tags=tags,
+        params=run_params,
+        enabled=tracking.enabled,
+    ) as run:
+        logger = mlflow_logger(run)
+        res = fit(cfg, train, val, tc, settings, logger=logger)
+        if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
+            return None
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        full_meta = {
+            "variant": variant,
+            "label": label,
+            "best_val_mse": res.best_val_mse,
+            "best_step": res.best_step,
+            "steps": res.steps,
+            "train_seconds": round(res.seconds, 2),
+            "n_train": res.n_train,
+            "n_val": res.n_val,
+            "data_manifest": manifest,
+            "profile": tracking.profile,
+            "train": tc.__dict__,
+            **dict(meta or {}),
+        }
+        save_risk_model(res.net, out_dir, full_meta)
+        for path in (out_dir / "history.csv", *([curves_out] if curves_out else [])):
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path, suffix=".csv") as tmp:
+                res.history.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
+        if run is not None:
+            log_final_metrics(
+                logger,
+                {
+                    "val/best_mse": res.best_val_mse,
+                    "train/seconds": res.seconds,
+                    "model/n_parameters": count_parameters(res.net),
+                },
+            )
+            log_checkpoint(out_dir / CKPT)
+            n_ex = min(2, len(val))
+            x = normalise(
+                cfg,
+                torch.from_numpy(val.rgb[:n_ex]) if "rgb" in cfg.inputs else None,
+                torch.from_numpy(val.disp[:n_ex]) if val.disp.shape[1] else None,
+            )
+            example = pack_input(cfg, x, torch.from_numpy(val.speed[:n_ex])).numpy()
+            uri = log_torch_model(
+                PackedDave2(res.net), example, metadata={"variant": variant, "label": label}
+            )
+            full_meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
+            save_risk_model(res.net, out_dir, full_meta)
+    return res
 
 
 def train_config_dict(tc: TrainConfig) -> dict[str, Any]:
