@@ -10,7 +10,6 @@ Library: :func:`traffictwin.fusion.pairs.prealign_shard` (one pair: :func:`~traf
 
 from __future__ import annotations
 
-import argparse
 import time
 
 from omegaconf import OmegaConf
@@ -18,14 +17,14 @@ from omegaconf import OmegaConf
 from pipelines._common import (
     WORKER_STATE,
     map_shards,
-    params,
     run_stage,
     setup_logging,
     stage_timer,
 )
+from pipelines._configuration import configuration
 from pipelines._paths import FUSION_DATA, prealigned
-from traffictwin.config import ConfigError, get
-from traffictwin.fusion.config import fusion_data_config, grid_config, pose_configurations
+from traffictwin.config import get
+from traffictwin.fusion.config import fusion_data_config, grid_config
 from traffictwin.fusion.pairs import prealign_shard
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 
@@ -46,28 +45,15 @@ def _work(index: int) -> tuple[int, str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--cfg",
-        required=True,
-        help="pose-noise configuration (a key of `configurations` in params.yaml)",
-    )
-    args = ap.parse_args(argv)
+    name, noise, cfg = configuration(argv, __doc__.splitlines()[0])
     log = setup_logging()
-    cfg = params()
-    with stage_timer(f"prealign@{args.cfg}"):
-        configs = pose_configurations(cfg)
-        if args.cfg not in configs:
-            raise ConfigError(
-                f"params.yaml: configuration '{args.cfg}' not in 'configurations' (has {sorted(configs)})"
-            )
-        noise = configs[args.cfg]
+    with stage_timer(f"prealign@{name}"):
         seed = get(cfg, "seed", int, min=0)
         fd = fusion_data_config(cfg)
         noise_seed = seed * 1009 + fd.prealign.seed
         grid = grid_config(cfg)
         src = Dataset(FUSION_DATA, kind="fusion")  # verifies every shard's SHA-256
-        out = prealigned(args.cfg)
+        out = prealigned(name)
         record = {
             "configuration": {"r": noise.r, "alpha": noise.alpha},
             "noise_seed": noise_seed,
@@ -91,13 +77,13 @@ def main(argv: list[str] | None = None) -> None:
         }
         t0 = time.perf_counter()
         for i, digest, count in map_shards(
-            _work, todo, workers=fd.workers, state=state, desc=f"prealign@{args.cfg}"
+            _work, todo, workers=fd.workers, state=state, desc=f"prealign@{name}"
         ):
             writer.record_shard(i, shard_name(i), digest, count, src.shards[i].get("split"))
-        m = writer.finalize(extra={"configuration": args.cfg, "source": "data/fusion"})
+        m = writer.finalize(extra={"configuration": name, "source": "data/fusion"})
         log.info(
             "prealign@%s: %d samples %s in %.1f s",
-            args.cfg,
+            name,
             m["count"],
             m["split_counts"],
             time.perf_counter() - t0,

@@ -34,10 +34,12 @@ from pipelines._paths import (
     risk_model_dir,
 )
 from traffictwin.config import ConfigError, get, typed
+from traffictwin.fusion.config import pose_configurations
 from traffictwin.mlops import promotion
 from traffictwin.mlops import registry as reg
 from traffictwin.mlops.config import RegistryConfig
 from traffictwin.mlops.gate import Decision
+from traffictwin.risk.config import EvalRiskConfig
 
 
 def registry_config(cfg: DictConfig) -> RegistryConfig:
@@ -54,7 +56,7 @@ def registry_config(cfg: DictConfig) -> RegistryConfig:
 
 def configurations(cfg: DictConfig) -> list[str]:
     """The pose-noise configurations (keys of ``configurations``)."""
-    return list(get(cfg, "configurations", dict))
+    return list(pose_configurations(cfg))
 
 
 def model_names(cfg: DictConfig, rc: RegistryConfig) -> list[str]:
@@ -90,8 +92,8 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
         )
     # keys of other groups the risk gate shares with the evaluate_risk stage
     default_label = get(cfg, "risk_model.label", str)
-    thresholds = get(cfg, "evaluation.risk.thresholds_s", list, default=[1.5, 1.0])
-    thw_cap = get(cfg, "evaluation.risk.thw_cap_s", float, default=10.0)
+    ev = typed(cfg["evaluation"]["risk"], EvalRiskConfig, key="evaluation.risk")
+    thresholds, thw_cap = list(ev.thresholds_s), ev.thw_cap_s
 
     def make_risk_eval(cand):
         label = cand.meta.get("label") or default_label

@@ -18,18 +18,18 @@ import os
 # exporting OMP_WAIT_POLICY.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import argparse  # noqa: E402
 
-from traffictwin.config import ConfigError, flatten, get, typed  # noqa: E402
+from traffictwin.config import flatten, get, typed  # noqa: E402
+from traffictwin.fusion.config import grid_config  # noqa: E402
 from traffictwin.fusion.training import (  # noqa: E402
     FusionModelConfig,
     TrackingSettings,
     fit_fusion,
 )
-from traffictwin.grid import GridSpec  # noqa: E402
 from traffictwin.trainer import TrainerSettings  # noqa: E402
 
-from ._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from ._common import run_stage, setup_logging, stage_timer  # noqa: E402
+from ._configuration import configuration  # noqa: E402
 from ._paths import (  # noqa: E402
     PARAMS,
     fusion_model_dir,
@@ -40,54 +40,35 @@ from ._paths import (  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--cfg",
-        required=True,
-        help="pose-noise configuration (a key of `configurations` in params.yaml)",
-    )
-    args = ap.parse_args(argv)
+    name, pose_noise, p = configuration(argv, __doc__.splitlines()[0])
     log = setup_logging()
-    p = params()
-    cfgs = get(p, "configurations", dict)
-    if args.cfg not in cfgs:
-        raise ConfigError(
-            f"params.yaml: configuration '{args.cfg}' not in 'configurations' (have {sorted(cfgs)})"
-        )
-    noise = {
-        "r": get(p, f"configurations.{args.cfg}.r", float, min=0),
-        "alpha": get(p, f"configurations.{args.cfg}.alpha", float, min=0),
-    }
-    grid = GridSpec(
-        get(p, "grid.rows", int, min=16),
-        get(p, "grid.cols", int, min=16),
-        get(p, "grid.cell", float, min=1e-6),
-    )
+    noise = {"r": pose_noise.r, "alpha": pose_noise.alpha}
+    grid = grid_config(p)
     source = PARAMS.name
     model_cfg = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
     spec = model_cfg.deeplab_spec(source)
     trainer = TrainerSettings.from_cfg(p, source=source)
-    stage = f"train_fusion@{args.cfg}"
+    stage = f"train_fusion@{name}"
     logged = flatten(
         {
             "fusion_model": get(p, "fusion_model", dict),
             "trainer": get(p, "trainer", dict),
             "grid": get(p, "grid", dict),
             "seed": get(p, "seed", int),
-            "configuration": {"name": args.cfg, **noise},
+            "configuration": {"name": name, **noise},
         }
     )
     tracking = TrackingSettings(
         experiment="fusion",
-        run_name=f"fusion-{args.cfg}",
+        run_name=f"fusion-{name}",
         profile=get(p, "profile.name", str),
         stage=stage,
         params=logged,
     )
-    out_dir = fusion_model_dir(args.cfg)
+    out_dir = fusion_model_dir(name)
     with stage_timer(stage):
         res = fit_fusion(
-            prealigned(args.cfg),
+            prealigned(name),
             spec=spec,
             hparams=model_cfg.hparams(),
             data=model_cfg.data(trainer.num_workers),
@@ -95,12 +76,12 @@ def main(argv: list[str] | None = None) -> None:
             trainer_settings=trainer,
             seed=get(p, "seed", int, min=0),
             grid=grid,
-            cfg_name=args.cfg,
+            cfg_name=name,
             noise=noise,
             ckpt_out=out_dir / "model.ckpt",
             meta_out=out_dir / "model_meta.json",
-            metrics_out=metrics_file(f"train_fusion_{args.cfg}"),
-            curves_out=plot_file(f"train_fusion_{args.cfg}"),
+            metrics_out=metrics_file(f"train_fusion_{name}"),
+            curves_out=plot_file(f"train_fusion_{name}"),
             tracking=tracking,
         )
     if res is not None:

@@ -17,6 +17,7 @@ import torch
 
 from traffictwin.io.shards import DatasetError, DatasetWriter
 from traffictwin.risk.dave2 import Dave2Config
+from traffictwin.risk.metric import risk_from_time
 from traffictwin.risk.training import RiskSource, TrainConfig, fit, prepare_split
 from traffictwin.trainer import TrainerSettings
 
@@ -66,8 +67,7 @@ def render_frame(
 
 
 def thw_risk(thw: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore"):
-        return np.minimum(np.where(thw > 0, 1 / thw, np.inf), 20) / 20
+    return risk_from_time(thw)
 
 
 def write_synthetic_risk(

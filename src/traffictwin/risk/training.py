@@ -39,6 +39,7 @@ from traffictwin.config import flatten
 from traffictwin.config import spec as setting
 from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import (
     Dave2,
     Dave2Config,
@@ -68,7 +69,6 @@ from traffictwin.trainer import (
 log = logging.getLogger(__name__)
 
 LABELS = ("risk", "risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc")
-SPLITS = ("train", "val", "test")
 _FRAME_COLS = ("frame_id", "shard", "idx", "split", "speed")
 
 
