@@ -30,9 +30,9 @@ run: install
 test: install
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-# unit tests only (no stage, DAG or training runs): under a minute
+# unit tests only (no stage, DAG, training run or MLflow database): under a minute
 test-fast: install
-	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -m "not slow and not integration" $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check .

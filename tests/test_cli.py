@@ -61,6 +61,7 @@ def fusion_dir(tmp_path_factory) -> Path:
     net = DeepLabV3Plus(spec).eval()
     info = {
         "format": CKPT_FORMAT,
+        "problem": "fusion",
         "cfg": "D",
         "architecture": spec.as_dict(),
         "grid": {"rows": H, "cols": W, "cell": CELL},
@@ -464,6 +465,7 @@ def test_rollback_unknown_model_and_runs_compare(tmp_path, mlflow_uri, monkeypat
     assert "'nope' not found" in capsys.readouterr().err
 
 
+@pytest.mark.integration
 def test_console_script_exit_status(tmp_path):
     """The installed `traffictwin` entry point: usage errors exit 2, input errors 1 with the message."""
     exe = Path(sys.executable).parent / "traffictwin"

@@ -178,6 +178,7 @@ def test_datamodule_subsets_and_grid_check(tmp_path: Path) -> None:
         bad.setup("fit")
 
 
+@pytest.mark.integration
 def test_fast_dev_run(tmp_path: Path) -> None:
     root = write_prealigned(tmp_path / "pre")
     dm = FusionDataModule(root, DataSettings(batch_size=4), seed=0, grid=GRID)
@@ -194,6 +195,7 @@ def test_fast_dev_run(tmp_path: Path) -> None:
     assert not (tmp_path / "checkpoints").exists() and not Path("checkpoints").exists()
 
 
+@pytest.mark.integration
 def test_short_overfit_loss_falls(tmp_path: Path) -> None:
     """A few pairs, the module's own optimizer (Adam, lr 0.01) and loss: the training loss falls by > 3x."""
     from traffictwin.fusion.losses import evidential_loss
@@ -309,6 +311,7 @@ def _fit(
     )
 
 
+@pytest.mark.integration
 def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str) -> None:
     res = _fit(tmp_path)
     meta = json.loads((tmp_path / "models/B/model_meta.json").read_text())
@@ -369,6 +372,7 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
     np.testing.assert_allclose(m_a.sum(1) + u_a, 1.0, atol=1e-6)
 
 
+@pytest.mark.integration
 def test_training_is_deterministic(tmp_path: Path) -> None:
     a = _fit(tmp_path / "a", tracking=False, epochs=1)
     b = _fit(tmp_path / "b", tracking=False, epochs=1)
@@ -378,6 +382,7 @@ def test_training_is_deterministic(tmp_path: Path) -> None:
     assert a.metrics["val/loss"] == b.metrics["val/loss"]
 
 
+@pytest.mark.integration
 def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_path: Path) -> None:
     _fit(tmp_path, "B", tracking=False, epochs=1)
     _fit(
@@ -480,6 +485,7 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
         typed(bad, FusionModelConfig, key="fusion_model").deeplab_spec("params.yaml")
 
 
+@pytest.mark.integration
 def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
     from types import SimpleNamespace
 

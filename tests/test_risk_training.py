@@ -207,6 +207,7 @@ def test_missing_orb_rows_and_label_column_are_errors(tmp_path: Path) -> None:
         prepare_split(_source(tmp_path), Dave2Config(), "train", "nope")
 
 
+@pytest.mark.integration
 def test_fast_dev_run(tmp_path: Path) -> None:
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=6)
     src = _source(tmp_path)
@@ -225,6 +226,7 @@ def test_fast_dev_run(tmp_path: Path) -> None:
     assert torch.isfinite(res.net(x, torch.tensor([10.0, 20.0]))).all()
 
 
+@pytest.mark.integration
 def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     """On 16 frames the training MSE must fall by a clear factor (the net can fit them)."""
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0, seed=3)
@@ -253,6 +255,7 @@ def test_overfit_few_batches_loss_falls(tmp_path: Path) -> None:
     assert len(res.history) >= 1 and np.isfinite(res.history["val/mse"]).all()
 
 
+@pytest.mark.integration
 def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
     src = _source(tmp_path)
@@ -359,6 +362,7 @@ def test_both_problems_share_one_trainer_shape() -> None:
     assert custom.net is net and isinstance(custom.configure_optimizers(), torch.optim.Adam)
 
 
+@pytest.mark.integration
 def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: str) -> None:
     import json
 
