@@ -407,25 +407,17 @@ def log_final_metrics(logger: Any, metrics: Mapping[str, Any]) -> None:
 
 @contextmanager
 def tracked_run(
-    experiment: str,
-    run_name: str,
-    *,
-    profile: str,
-    stage: str,
-    tags: Mapping[str, Any] | None = None,
-    params: Mapping[str, Any] | None = None,
-    enabled: bool = True,
+    experiment: str, run_name: str, *, enabled: bool = True, **run: Any
 ) -> Iterator[Any]:
-    """An MLflow run (project tags, params logged once) on rank zero; ``None`` elsewhere or when disabled."""
+    """:func:`traffictwin.mlops.tracking.start_run` (project tags, params logged once; ``run``
+    holds its keyword arguments) on rank zero; ``None`` elsewhere or when disabled."""
     if not enabled or global_rank() != 0:
         yield None
         return
     from traffictwin.mlops.tracking import start_run
 
-    with start_run(
-        experiment, run_name, profile=profile, stage=stage, tags=tags, params=params
-    ) as run:
-        yield run
+    with start_run(experiment, run_name, **run) as active:
+        yield active
 
 
 def log_checkpoint(path: str | Path, artifact_path: str = "checkpoints") -> None:

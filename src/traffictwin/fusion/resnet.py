@@ -85,8 +85,9 @@ def conv1x1(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, 1, stride=stride, bias=False)
 
 
-class BasicBlock(nn.Module):
-    """Two 3x3 convs with a residual connection (ResNet-18/34)."""
+class _Block(nn.Module):
+    """A residual block: ``layers(cin, width, stride, dilation, first_dilation)`` builds the
+    convolutions (in parameter-initialisation order), the shortcut is ``downsample`` or identity."""
 
     expansion = 1
 
@@ -100,21 +101,36 @@ class BasicBlock(nn.Module):
         first_dilation: int = 1,
     ) -> None:
         super().__init__()
+        self.layers(cin, width, stride, dilation, first_dilation)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = downsample
+
+    def layers(self, cin: int, width: int, stride: int, dilation: int, first_dilation: int) -> None:
+        raise NotImplementedError  # each block type defines its convolutions
+
+    def shortcut(self, x: torch.Tensor) -> torch.Tensor:
+        return x if self.downsample is None else self.downsample(x)
+
+
+class BasicBlock(_Block):
+    """Two 3x3 convs with a residual connection (ResNet-18/34)."""
+
+    expansion = 1
+
+    def layers(self, cin: int, width: int, stride: int, dilation: int, first_dilation: int) -> None:
         self.conv1 = conv3x3(cin, width, stride, first_dilation)
         self.bn1 = nn.BatchNorm2d(width)
         self.conv2 = conv3x3(width, width, 1, dilation)
         self.bn2 = nn.BatchNorm2d(width)
-        self.relu = nn.ReLU(inplace=True)
-        self.downsample = downsample
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        idt = x if self.downsample is None else self.downsample(x)
+        idt = self.shortcut(x)
         out = self.relu(self.bn1(self.conv1(x)))
         out = self.bn2(self.conv2(out))
         return self.relu(out + idt)
 
 
-class Bottleneck(nn.Module):
+class Bottleneck(_Block):
     """1x1 reduce, 3x3 (carries stride/dilation, v1.5), 1x1 expand x4, residual (ResNet-50).
 
     ``first_dilation`` is the 3x3's dilation: the previous stage's for a stage's first block
@@ -123,27 +139,16 @@ class Bottleneck(nn.Module):
 
     expansion = 4
 
-    def __init__(
-        self,
-        cin: int,
-        width: int,
-        stride: int = 1,
-        dilation: int = 1,
-        downsample: nn.Module | None = None,
-        first_dilation: int = 1,
-    ) -> None:
-        super().__init__()
+    def layers(self, cin: int, width: int, stride: int, dilation: int, first_dilation: int) -> None:
         self.conv1 = conv1x1(cin, width)
         self.bn1 = nn.BatchNorm2d(width)
         self.conv2 = conv3x3(width, width, stride, first_dilation)
         self.bn2 = nn.BatchNorm2d(width)
         self.conv3 = conv1x1(width, width * 4)
         self.bn3 = nn.BatchNorm2d(width * 4)
-        self.relu = nn.ReLU(inplace=True)
-        self.downsample = downsample
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        idt = x if self.downsample is None else self.downsample(x)
+        idt = self.shortcut(x)
         out = self.relu(self.bn1(self.conv1(x)))
         out = self.relu(self.bn2(self.conv2(out)))
         out = self.bn3(self.conv3(out))
