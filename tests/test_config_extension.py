@@ -1,7 +1,4 @@
-"""Adding a pose-noise configuration is one conf entry: the DAG picks it up from params.yaml.
-
-(The CLI and the report iterate the configurations they are given; see test_cli / test_report.)
-"""
+"""Adding a pose-noise configuration is one conf entry: the DAG, the CLI and the report pick it up."""
 
 from __future__ import annotations
 
@@ -12,9 +9,8 @@ import pytest
 import yaml
 from conftest import BIN, run
 
-pytestmark = pytest.mark.slow
 
-
+@pytest.mark.slow
 def test_extra_configuration_appears_in_every_per_configuration_stage(repo_copy: Path) -> None:
     run(
         [
@@ -39,3 +35,37 @@ def test_extra_configuration_appears_in_every_per_configuration_stage(repo_copy:
         for f in [repo_copy / rel] if rel.endswith(".yaml") else (repo_copy / rel).rglob("*.yaml"):
             text = f.read_text()
             assert "[A, B, C, D]" not in text and "- D\n" not in text, f"{f} lists configurations"
+
+
+def test_cli_and_report_take_any_configuration(tmp_path: Path) -> None:
+    """The CLI resolves ``--config E`` to its registered model; the report shows E's row, with
+    r/alpha from the params, when fusion.json has it."""
+    import json
+
+    from pipelines.report import providers
+    from traffictwin.cli import fusion_model_name
+    from traffictwin.config import typed
+    from traffictwin.fusion.report_section import fusion_tables
+    from traffictwin.report.config import ReportParams
+    from traffictwin.report.model import ReportInputs, Sources
+
+    assert fusion_model_name(None, "E") == "traffictwin-fusion-E"
+    p = typed(
+        {
+            "seed": 1,
+            "profile": {"name": "ci"},
+            "configurations": {"A": {"r": 0.0, "alpha": 0.0}, "E": {"r": 7.5, "alpha": 25.0}},
+        },
+        ReportParams,
+    )
+    assert p.pose_noise == {"A": (0.0, 0.0), "E": (7.5, 25.0)}
+    assert len(providers(p.pose_noise)) == 2
+    (tmp_path / "metrics").mkdir()
+    methods = {"naive": {"kld_fo_mean": 0.2}, "dnn": {"kld_fo_mean": 0.1}}
+    fusion = {"test": {"A": methods, "E": methods}}
+    (tmp_path / "metrics" / "fusion.json").write_text(json.dumps(fusion))
+    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
+    kld = fusion_tables(src, p.pose_noise)[0]
+    rows = {str(r[0].text if hasattr(r[0], "text") else r[0]): r for r in kld.rows}
+    assert set(rows) >= {"A", "E"}, rows
+    assert [str(getattr(c, "text", c)) for c in rows["E"][1:3]] == ["7.5", "25"]
