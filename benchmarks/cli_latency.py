@@ -40,6 +40,12 @@ def _median_ms(fn: Callable[[], object], repeat: int) -> float:
     return round(float(np.median(ts)), 3)
 
 
+def _shown(p: Path) -> str:
+    """A model path as written into reports/benchmarks.json: relative to the repository if inside it."""
+    p = p.resolve()
+    return p.relative_to(ROOT).as_posix() if p.is_relative_to(ROOT) else p.name
+
+
 def _fusion_model(path: str | None, cfg) -> tuple[torch.nn.Module, str]:
     from traffictwin.fusion.deeplab import DeepLabV3Plus
     from traffictwin.fusion.model_io import load_fusion_model
@@ -47,7 +53,7 @@ def _fusion_model(path: str | None, cfg) -> tuple[torch.nn.Module, str]:
 
     p = Path(path) if path else ROOT / "models" / "fusion" / "D"
     if (p / "model.ckpt").exists() or p.is_file():
-        return load_fusion_model(p), str(p)
+        return load_fusion_model(p), _shown(p)
     torch.manual_seed(0)
     return DeepLabV3Plus(
         spec_from_cfg(cfg["fusion_model"]["architecture"])
@@ -60,7 +66,7 @@ def _risk_model(path: str | None, cfg):
 
     p = Path(path) if path else ROOT / "models" / "risk" / "rgbd"
     if (p / "model.ckpt").exists() or p.is_file():
-        return load_risk_model(p), str(p)
+        return load_risk_model(p), _shown(p)
     rm = cfg.get("risk_model", {})
     torch.manual_seed(0)
     c = Dave2Config(height=int(rm.get("height", 66)), width=int(rm.get("width", 200)))
