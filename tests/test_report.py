@@ -569,7 +569,8 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     # every figure is in the report
     for p in (reports / "figures").glob("*.png"):
         assert f"figures/{p.name}" in md, p.name
-    # dvc plots: the top-level plots (KLD box, P/R/Dice, training curves) and the confusion matrix render
+    # dvc plots: the top-level plots (KLD box, P/R/Dice, risk training curves), every configuration's
+    # fusion training curve (a plot of its train_fusion@<cfg> stage) and the confusion matrix render
     plots = json.loads(
         run(["dvc", "plots", "show", "--json", "-o", str(tmp_path / "plots")], ci_dag).stdout
     )["data"]
@@ -577,9 +578,9 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
         "fusion_kld_box",
         "fusion_scores_occupied",
         "fusion_scores_free",
-        "fusion_training",
         "risk_training",
         "reports/plots/risk_confusion.csv",
+        *(f"reports/plots/train_fusion_{c}.csv" for c in confs),
     ):
         assert pid in plots, pid
         assert all(not r.get("errors") and r.get("content") for r in plots[pid]), (pid, plots[pid])
