@@ -86,8 +86,9 @@ def conv1x1(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
 
 
 class _Block(nn.Module):
-    """A residual block: ``layers(cin, width, stride, dilation, first_dilation)`` builds the
-    convolutions (in parameter-initialisation order), the shortcut is ``downsample`` or identity."""
+    """A residual block. Subclasses define ``layers(cin, width, stride, dilation, first_dilation)``,
+    which builds the convolutions (in parameter-initialisation order); the shortcut is
+    ``downsample`` or the identity."""
 
     expansion = 1
 
@@ -104,9 +105,6 @@ class _Block(nn.Module):
         self.layers(cin, width, stride, dilation, first_dilation)
         self.relu = nn.ReLU(inplace=True)
         self.downsample = downsample
-
-    def layers(self, cin: int, width: int, stride: int, dilation: int, first_dilation: int) -> None:
-        raise NotImplementedError  # each block type defines its convolutions
 
     def shortcut(self, x: torch.Tensor) -> torch.Tensor:
         return x if self.downsample is None else self.downsample(x)
