@@ -7,6 +7,7 @@ import ast
 from pathlib import Path
 
 import pytest
+from _imports import imported_names
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PKG = "traffictwin"
@@ -32,24 +33,14 @@ def _modules() -> dict[str, ast.Module]:
 
 def _imports(name: str, tree: ast.Module, known: set[str]) -> set[str]:
     """Every traffictwin module ``name`` imports, at module level or inside functions."""
-    is_pkg = name in {m for m in known if any(k.startswith(m + ".") for k in known)}
-    base = name.split(".") if is_pkg else name.split(".")[:-1]
+    is_pkg = any(k.startswith(name + ".") for k in known)
+    package = name if is_pkg else name.rpartition(".")[0]
     out: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            targets = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            mod = node.module or ""
-            if node.level:
-                mod = ".".join(base[: len(base) - node.level + 1] + ([mod] if mod else []))
-            targets = [f"{mod}.{a.name}" for a in node.names] + [mod]
-        else:
-            continue
-        for t in targets:
-            while t and t not in known:
-                t = t.rpartition(".")[0]
-            if t and t != name and t.startswith(PKG):
-                out.add(t)
+    for t in imported_names(tree, package):
+        while t and t not in known:
+            t = t.rpartition(".")[0]
+        if t and t != name and t.startswith(PKG):
+            out.add(t)
     return out
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _imports import imported_names
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
@@ -23,26 +24,14 @@ def _module_file(mod: str) -> Path | None:
 
 def _imports(path: Path) -> set[str]:
     """Modules of traffictwin / pipelines that ``path`` imports (anywhere in the file)."""
-    tree = ast.parse(path.read_text())
-    pkg = ".".join(
+    package = ".".join(
         path.relative_to(SRC if SRC in path.parents else ROOT).with_suffix("").parts[:-1]
     )
-    out: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            mod = node.module or ""
-            if node.level:
-                parts = pkg.split(".")
-                mod = ".".join(parts[: len(parts) - node.level + 1] + ([mod] if mod else []))
-            names = [mod] + [f"{mod}.{a.name}" for a in node.names]
-        else:
-            continue
-        for n in names:
-            if n.split(".")[0] in ("traffictwin", "pipelines") and _module_file(n):
-                out.add(n)
-    return out
+    return {
+        n
+        for n in imported_names(ast.parse(path.read_text()), package)
+        if n.split(".")[0] in ("traffictwin", "pipelines") and _module_file(n)
+    }
 
 
 def closure(module: str) -> set[Path]:
