@@ -109,7 +109,15 @@ def test_evaluate_registered_on_synthetic_pair():
 def test_registry_lists_every_method_once_with_its_inputs():
     from traffictwin.fusion.methods import INPUTS, register
 
-    assert list(REGISTRY) == ["ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn"]
+    assert list(REGISTRY) == [
+        "ego",
+        "naive",
+        "naive-yager",
+        "naive-cautious",
+        "registered",
+        "dnn",
+        "registered+network",
+    ]
     for name, m in REGISTRY.items():
         assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
     assert REGISTRY["registered"].needs == ("raw",) and REGISTRY["registered"].slow

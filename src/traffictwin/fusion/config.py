@@ -243,3 +243,54 @@ class FusionEvalConfig:
 def fusion_eval_config(cfg: Any) -> FusionEvalConfig:
     """``evaluation.fusion`` of params.yaml, checked."""
     return typed(cfg["evaluation"]["fusion"], FusionEvalConfig, key="evaluation.fusion")
+
+
+# -- fusion_variants -----------------------------------------------------------------------------
+LOSSES = ("mass", "paper", "paper_kl")  # fusion_model.loss.name (traffictwin.fusion.losses.LOSSES)
+VARIANT_METHODS = ("dnn", "registered+network")  # methods of the registry that use a network
+VARIANT_INPUTS = {"dnn": "prealigned", "registered+network": "registered"}
+
+
+@dataclass
+class FusionVariant:
+    """``fusion_variants.<name>``: a network trained beside the per-configuration ``dnn`` networks.
+
+    config: the pose-noise configuration (a key of ``configurations``) whose data it trains and is
+    evaluated on; method: the registry method that runs it (``dnn`` on the prealigned inputs,
+    ``registered+network`` on classically registered inputs, data ``data/registered/<config>``);
+    loss: ``fusion_model.loss.name`` for this network (null = the group's default).
+    """
+
+    config: str = spec(MISSING)
+    method: str = spec(MISSING, choices=VARIANT_METHODS)
+    loss: str | None = spec(None, choices=(*LOSSES, None))
+
+    @property
+    def inputs(self) -> str:
+        """The data folder family it trains on: ``prealigned`` or ``registered``."""
+        return VARIANT_INPUTS[self.method]
+
+
+def variant_row(method: str, loss: str | None, default_loss: str) -> str:
+    """The evaluation's row name of a network: ``method`` with the default loss, else ``method[loss]``."""
+    return method if loss in (None, default_loss) else f"{method}[{loss}]"
+
+
+def fusion_variants(cfg: Any) -> dict[str, FusionVariant]:
+    """``fusion_variants`` of params.yaml, checked against ``configurations`` (may be empty)."""
+    node = cfg["fusion_variants"] if "fusion_variants" in cfg else None
+    configs = pose_configurations(cfg)
+    out: dict[str, FusionVariant] = {}
+    for k, v in (node or {}).items():
+        var = typed(v, FusionVariant, key=f"fusion_variants.{k}")
+        if var.config not in configs:
+            raise ConfigError(
+                f"params.yaml: 'fusion_variants.{k}.config' = {var.config!r} is not a key of "
+                f"'configurations' (has {sorted(configs)})"
+            )
+        if str(k) in configs:
+            raise ConfigError(
+                f"params.yaml: 'fusion_variants.{k}' clashes with configuration {k!r} (models/fusion/{k})"
+            )
+        out[str(k)] = var
+    return out

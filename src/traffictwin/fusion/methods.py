@@ -13,7 +13,9 @@ map 1's frame (or a :class:`Fused` with per-pair diagnostics). Registered method
   estimate with the project's prealignment (:func:`traffictwin.fusion.pairs.prealign`'s warp),
   then Dempster;
 - ``dnn``: the fusion network of a configuration on the prealigned inputs
-  (:func:`traffictwin.fusion.model_io.predict_masses`).
+  (:func:`traffictwin.fusion.model_io.predict_masses`);
+- ``registered+network``: ``registered``'s pose estimate and warp, then a fusion network trained
+  on registered pairs (``data/registered/<cfg>``) instead of Dempster.
 
 Use::
 
@@ -231,6 +233,7 @@ class RegisteredBatch:
     """Output of :func:`registered_fusion`: fused masses, the poses used and per-pair diagnostics."""
 
     masses: np.ndarray  # (N, 2, H, W)
+    warped: np.ndarray  # (N, 2, H, W) map 2 warped into map 1's frame by ``poses``
     poses: np.ndarray  # (N, 3) relative pose used (estimate or noisy fallback)
     estimates: np.ndarray  # (N, 3) registration estimate (even when rejected)
     accepted: np.ndarray  # (N,) bool
@@ -260,17 +263,19 @@ def registered_fusion(
             f"registered_fusion: map1 {map1.shape}, map2 {map2.shape} and rel_pose_noisy {poses_in.shape} must agree on N"
         )
     out = np.empty_like(map1)
+    warped = np.empty_like(map2)
     cols = {k: np.empty((n, 3)) for k in ("poses", "estimates")}
     acc = np.zeros(n, bool)
     ccn, cce, secs = np.empty(n), np.empty(n), np.empty(n)
     for i in range(n):  # per pair: OpenCV registration is inherently per image
         t0 = time.perf_counter()
         r: RegistrationResult = register_pair(map1[i], map2[i], poses_in[i], grid, params)
-        out[i] = dempster(map1[i], warp_masses(map2[i], r.pose, grid))
+        warped[i] = warp_masses(map2[i], r.pose, grid)
+        out[i] = dempster(map1[i], warped[i])
         secs[i] = time.perf_counter() - t0
         cols["poses"][i], cols["estimates"][i] = r.pose, r.estimate
         acc[i], ccn[i], cce[i] = r.accepted, r.cc_noisy, r.cc_est
-    return RegisteredBatch(out, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
+    return RegisteredBatch(out, warped, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
 
 
 def _registered_columns(f: Fused, x: FusionInput, settings: Any) -> dict[str, np.ndarray]:
@@ -342,3 +347,25 @@ def _network(x: FusionInput) -> np.ndarray:
     from traffictwin.fusion.model_io import predict_masses
 
     return predict_masses(x.model, x.inputs, x.batch_size)[0]
+
+
+@register(
+    "registered+network",
+    "raw map 2 registered onto map 1 (Fourier-Mellin + ECC, as `registered`), warped by the "
+    "estimate, then fused by a network trained on registered pairs",
+    needs=("raw", "model"),
+    label="registered + network",
+    slow=True,
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _registered_network(x: FusionInput) -> Fused:
+    from traffictwin.fusion.model_io import predict_masses
+
+    b = registered_fusion(x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration)
+    inputs = np.concatenate([np.asarray(x.map1, dtype=np.float32), b.warped], axis=1)
+    t1 = time.perf_counter()
+    masses = predict_masses(x.model, inputs, x.batch_size)[0]
+    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
+    # registration time per pair (its Dempster step included, a few % of it) + the network's share
+    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
