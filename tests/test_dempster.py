@@ -57,6 +57,27 @@ def test_total_conflict_returns_vacuous():
     np.testing.assert_allclose(out[:, 0, :], [[0.0, 0.75], [0.0, 0.0]])
 
 
+@pytest.mark.parametrize("as_torch", [False, True])
+def test_near_total_conflict_is_stable_in_float32(as_torch):
+    # K -> 1: m1 ≈ (1, 0), m2 ≈ (0, 1) with remainders 1e-7..1e-3, in float32. Reference: the
+    # rule in float64 on the same float32 inputs. Dividing by 1 - K (the old denominator) loses
+    # about twice as much as dividing by n_F + n_O + n_Θ (the unnormalised product's sum).
+    rng = np.random.default_rng(0)
+    e = 10 ** rng.uniform(-7, -3, (4, 2000))
+    m1 = np.stack([1 - e[0] - e[1], e[1]])[:, None, :].astype(np.float32)
+    m2 = np.stack([e[2], 1 - e[2] - e[3]])[:, None, :].astype(np.float32)
+    ref = dempster(m1.astype(np.float64), m2.astype(np.float64))
+    f1, o1, f2, o2 = m1[0], m1[1], m2[0], m2[1]
+    u1, u2 = 1 - f1 - o1, 1 - f2 - o2
+    one_minus_k = 1 - (f1 * o2 + o1 * f2)
+    old = np.stack([f1 * f2 + f1 * u2 + u1 * f2, o1 * o2 + o1 * u2 + u1 * o2]) / one_minus_k
+    got = dempster(torch.from_numpy(m1), torch.from_numpy(m2)) if as_torch else dempster(m1, m2)
+    got = np.asarray(got)
+    assert got.dtype == np.float32 and (got.sum(0) <= 1 + 1e-6).all()
+    assert np.abs(got - ref).max() < 0.6 * np.abs(old - ref).max()
+    assert (old.sum(0) > 1 + 1e-6).mean() > 0.2  # the old form left the simplex in many cells
+
+
 def test_batched_float32_and_torch_agree():
     rng = np.random.default_rng(2)
     a = random_masses(rng, n=3).astype(np.float32)

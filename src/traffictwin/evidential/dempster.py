@@ -7,10 +7,15 @@ arrays and torch tensors are both accepted (the result has the input's type and 
 Dempster::
 
     K   = m_F1·m_O2 + m_O1·m_F2                         (conflict)
-    m_F = (m_F1·m_F2 + m_F1·u2 + u1·m_F2) / (1 − K)
-    m_O = (m_O1·m_O2 + m_O1·u2 + u1·m_O2) / (1 − K)
+    n_F = m_F1·m_F2 + m_F1·u2 + u1·m_F2,   n_O = m_O1·m_O2 + m_O1·u2 + u1·m_O2,   n_Θ = u1·u2
+    m_F = n_F / (1 − K),   m_O = n_O / (1 − K)
 
-**Total conflict** (``1 − K < eps``, e.g. ``(1, 0) ⊕ (0, 1)``): the rule is undefined; this
+**Numerically stable denominator.** ``1 − K`` equals ``n_F + n_O + n_Θ`` (the unnormalised
+product's masses sum to ``1 − K``); this implementation divides by that sum of non-negative terms,
+which keeps its relative precision as ``K → 1``, where ``1 − K`` cancels in float32 (e.g.
+``(1 − 1e-4, 0) ⊕ (0, 1 − 1e-4)``: ``1 − K`` = 2e-4 from two numbers near 1).
+
+**Total conflict** (``n_F + n_O + n_Θ < eps``, e.g. ``(1, 0) ⊕ (0, 1)``): the rule is undefined; this
 implementation returns the *vacuous* mass ``(0, 0)`` (``u = 1``, "nothing is known") for those
 cells — the same answer as Yager's rule in :mod:`traffictwin.evidential.rules` at ``K = 1``.
 
@@ -53,9 +58,9 @@ def dempster(m1: Any, m2: Any, eps: float = EPS) -> Any:
     f1, o1 = m1[..., 0, :, :], m1[..., 1, :, :]
     f2, o2 = m2[..., 0, :, :], m2[..., 1, :, :]
     u1, u2 = 1 - f1 - o1, 1 - f2 - o2
-    den = 1 - (f1 * o2 + o1 * f2)
     num_f = f1 * f2 + f1 * u2 + u1 * f2
     num_o = o1 * o2 + o1 * u2 + u1 * o2
+    den = num_f + num_o + u1 * u2  # = 1 - K without the cancellation of 1 - K near K = 1
     if torch_in:
         import torch
 
