@@ -26,6 +26,7 @@ TIMINGS = REPORTS / "timings"
 # fusion
 FUSION_DATA = DATA / "fusion"
 PREALIGNED = DATA / "prealigned"
+REGISTERED = DATA / "registered"
 FUSION_MODELS = MODELS / "fusion"
 
 # risk
@@ -40,8 +41,19 @@ def prealigned(cfg: str) -> Path:
     return PREALIGNED / cfg
 
 
+def registered(cfg: str) -> Path:
+    """``data/registered/<cfg>``: map 2 warped by the classical registration estimate (register@<cfg>)."""
+    return REGISTERED / cfg
+
+
+def fusion_data_dir(inputs: str, cfg: str) -> Path:
+    """``data/<inputs>/<cfg>``: the training pairs of a network (``inputs``: prealigned | registered)."""
+    return {"prealigned": prealigned, "registered": registered}[inputs](cfg)
+
+
 def fusion_model_dir(cfg: str) -> Path:
-    """``models/fusion/<cfg>``: the fusion network of configuration ``cfg`` (model.ckpt, model_meta.json)."""
+    """``models/fusion/<name>``: the fusion network of configuration (or fusion variant) ``name``
+    (model.ckpt, model_meta.json)."""
     return FUSION_MODELS / cfg
 
 

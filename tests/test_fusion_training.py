@@ -453,9 +453,10 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
     n = node()
     m = typed(n, FusionModelConfig, key="fusion_model")
     hp, data, loop = m.hparams(), m.data(num_workers=3), m.loop()
-    assert (hp.lr, hp.occupied_weight, hp.augment_rotation_deg, hp.channels_last) == (
+    assert (hp.lr, hp.loss, hp.occupied_weight, hp.augment_rotation_deg, hp.channels_last) == (
         n["optim"]["lr"],
-        n["loss"]["occupied_weight"],
+        n["loss"]["name"],
+        n["loss"][n["loss"]["name"]]["occupied_weight"],
         n["augment"]["rotation_deg"],
         n["train"]["channels_last"],
     )
@@ -472,11 +473,29 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
         ("optim", "lr_factor", 1.5, "'fusion_model.optim.lr_factor' must be <= 1.0"),
         ("train", "batch_size", 1, "'fusion_model.train.batch_size' must be >= 2"),
         ("augment", "rotation_deg", 200.0, "'fusion_model.augment.rotation_deg' must be <= 180"),
-        ("loss", "occupied_weight", 0.5, "'fusion_model.loss.occupied_weight' must be >= 1.0"),
+        ("loss", "name", "focal", "fusion_model.loss.name"),
         ("train", "typo", 1, "fusion_model.train.typo"),
     ]:
         bad = node()
         bad[group][key] = value
+        with pytest.raises(ConfigError, match=msg):
+            typed(bad, FusionModelConfig, key="fusion_model")
+    # every loss has its own block; a variant's loss picks that block
+    kl = m.hparams("paper_kl")
+    assert (kl.loss, kl.occupied_weight, kl.kl_weight) == (
+        "paper_kl",
+        n["loss"]["paper_kl"]["occupied_weight"],
+        n["loss"]["paper_kl"]["kl_weight"],
+    )
+    assert m.hparams("paper").kl_weight == 0.0
+    with pytest.raises(ConfigError, match="unknown fusion loss 'focal'"):
+        m.hparams("focal")
+    for loss, key, value, msg in [
+        ("mass", "occupied_weight", 0.5, "'fusion_model.loss.mass.occupied_weight' must be >= 1.0"),
+        ("paper_kl", "kl_weight", -1.0, "'fusion_model.loss.paper_kl.kl_weight' must be >= 0.0"),
+    ]:
+        bad = node()
+        bad["loss"][loss][key] = value
         with pytest.raises(ConfigError, match=msg):
             typed(bad, FusionModelConfig, key="fusion_model")
     bad = node()

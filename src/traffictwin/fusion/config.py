@@ -108,6 +108,15 @@ class PrealignConfig:
 
 
 @dataclass
+class RegisterConfig:
+    """``fusion_data.register``: stage register@<cfg> (training data of ``registered+network``)."""
+
+    configurations: list[str] = spec(MISSING)
+    max_train_pairs: int | None = spec(MISSING, min=1)
+    max_val_pairs: int | None = spec(MISSING, min=1)
+
+
+@dataclass
 class FigureConfig:
     samples: int = spec(MISSING, min=1)
 
@@ -130,6 +139,7 @@ class FusionDataConfig:
     lidar: LidarConfig = MISSING
     ism: IsmConfig = MISSING
     prealign: PrealignConfig = MISSING
+    register: RegisterConfig = MISSING
     figure: FigureConfig = MISSING
 
     def __post_init__(self) -> None:
@@ -247,28 +257,28 @@ def fusion_eval_config(cfg: Any) -> FusionEvalConfig:
 
 # -- fusion_variants -----------------------------------------------------------------------------
 LOSSES = ("mass", "paper", "paper_kl")  # fusion_model.loss.name (traffictwin.fusion.losses.LOSSES)
-VARIANT_METHODS = ("dnn", "registered+network")  # methods of the registry that use a network
-VARIANT_INPUTS = {"dnn": "prealigned", "registered+network": "registered"}
+INPUT_METHODS = {"prealigned": "dnn", "registered": "registered+network"}  # data family -> method
 
 
 @dataclass
 class FusionVariant:
     """``fusion_variants.<name>``: a network trained beside the per-configuration ``dnn`` networks.
 
-    config: the pose-noise configuration (a key of ``configurations``) whose data it trains and is
-    evaluated on; method: the registry method that runs it (``dnn`` on the prealigned inputs,
-    ``registered+network`` on classically registered inputs, data ``data/registered/<config>``);
-    loss: ``fusion_model.loss.name`` for this network (null = the group's default).
+    config: the pose-noise configuration (a key of ``configurations``) whose pairs it trains and
+    is evaluated on; inputs: the data it trains on, ``prealigned`` (map 2 warped by the noisy
+    pose, ``data/prealigned/<config>``; evaluated as method ``dnn``) or ``registered`` (map 2
+    warped by the classical registration estimate, ``data/registered/<config>``; method
+    ``registered+network``); loss: ``fusion_model.loss.name`` for this network (null = default).
     """
 
     config: str = spec(MISSING)
-    method: str = spec(MISSING, choices=VARIANT_METHODS)
+    inputs: str = spec(MISSING, choices=tuple(INPUT_METHODS))
     loss: str | None = spec(None, choices=(*LOSSES, None))
 
     @property
-    def inputs(self) -> str:
-        """The data folder family it trains on: ``prealigned`` or ``registered``."""
-        return VARIANT_INPUTS[self.method]
+    def method(self) -> str:
+        """The registry method that runs it: ``dnn`` or ``registered+network``."""
+        return INPUT_METHODS[self.inputs]
 
 
 def variant_row(method: str, loss: str | None, default_loss: str) -> str:
@@ -277,9 +287,11 @@ def variant_row(method: str, loss: str | None, default_loss: str) -> str:
 
 
 def fusion_variants(cfg: Any) -> dict[str, FusionVariant]:
-    """``fusion_variants`` of params.yaml, checked against ``configurations`` (may be empty)."""
+    """``fusion_variants`` of params.yaml, checked against ``configurations`` and the registered
+    configurations (``fusion_data.register.configurations``); may be empty."""
     node = cfg["fusion_variants"] if "fusion_variants" in cfg else None
     configs = pose_configurations(cfg)
+    registered = registered_configurations(cfg)
     out: dict[str, FusionVariant] = {}
     for k, v in (node or {}).items():
         var = typed(v, FusionVariant, key=f"fusion_variants.{k}")
@@ -288,9 +300,27 @@ def fusion_variants(cfg: Any) -> dict[str, FusionVariant]:
                 f"params.yaml: 'fusion_variants.{k}.config' = {var.config!r} is not a key of "
                 f"'configurations' (has {sorted(configs)})"
             )
+        if var.inputs == "registered" and var.config not in registered:
+            raise ConfigError(
+                f"params.yaml: 'fusion_variants.{k}' trains on registered pairs of {var.config!r}, "
+                f"but 'fusion_data.register.configurations' is {registered}"
+            )
         if str(k) in configs:
             raise ConfigError(
                 f"params.yaml: 'fusion_variants.{k}' clashes with configuration {k!r} (models/fusion/{k})"
             )
         out[str(k)] = var
     return out
+
+
+def registered_configurations(cfg: Any) -> list[str]:
+    """``fusion_data.register.configurations``: configurations whose pairs are also registered."""
+    configs = pose_configurations(cfg)
+    reg = typed(cfg["fusion_data"]["register"], RegisterConfig, key="fusion_data.register")
+    bad = [c for c in reg.configurations if c not in configs]
+    if bad:
+        raise ConfigError(
+            f"params.yaml: 'fusion_data.register.configurations' has {bad}, not keys of "
+            f"'configurations' (has {sorted(configs)})"
+        )
+    return list(reg.configurations)

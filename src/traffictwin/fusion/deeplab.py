@@ -7,6 +7,16 @@ x4 and concatenated, two 3x3 convs, a 1x1 classifier to ``num_outputs`` channels
 upsampling x4 to the input size. The final activation is ReLU instead of softmax: the outputs
 are evidences ``e >= 0`` for (free, occupied) per cell (see :mod:`traffictwin.fusion.losses`).
 
+Two extensions beyond the paper (both off in :class:`DeepLabSpec`'s defaults = the paper's net):
+
+- **Full-resolution refinement head** (``refine_channels > 0``): the decoder features are
+  projected to ``refine_channels`` at stride 4, upsampled x4 and concatenated with the input
+  grids (and, with ``refine_dempster``, their Dempster combination ``(m_F, m_O, u)``); a 3x3
+  conv + ReLU and two 1x1 convs then predict the evidence of every cell at stride 1, so the
+  output can copy or draw one-cell structure (walls, poles) that a stride-4 head blurs.
+- **Evidence activation** ``evidence``: ``relu`` (paper) or ``exp`` (``e = exp(min(z, 30))``):
+  masses are then a softmax of ``(z_F, z_O, log 2)``, so a mass loss never meets a dead unit.
+
 Input: ``(N, 4, H, W)`` float = ``[m_F1, m_O1, m_F2', m_O2']``; ``H`` and ``W`` divisible by 16.
 Output: ``(N, 2, H, W)`` evidences (channel 0 free, 1 occupied).
 """
@@ -23,6 +33,9 @@ from torch import nn
 
 from traffictwin.fusion.resnet import ResNet, ResNetSpec
 
+EVIDENCE_ACTIVATIONS = ("relu", "exp")
+EXP_MAX_LOGIT = 30.0  # e <= exp(30) ~ 1e13: u >= 2e-13, far below any label's resolution
+
 
 @dataclass(frozen=True)
 class DeepLabSpec:
@@ -32,7 +45,10 @@ class DeepLabSpec:
     (256 in DeepLabV3+); aspp_rates: atrous rates at output stride 16; low_level_channels:
     the decoder's projection of the stride-4 features (48); decoder_channels: the two 3x3
     decoder convs (256); num_outputs: evidence channels (2: free, occupied); aspp_dropout:
-    dropout after the ASPP projection (0.1 as in the reference implementation).
+    dropout after the ASPP projection (0.1 as in the reference implementation);
+    refine_channels: width of the stride-1 refinement head (0 = none, the paper's x4 upsampling);
+    refine_dempster: the head also sees Dempster's combination of the two input grids;
+    evidence: the output activation, ``relu`` (paper) or ``exp``.
     """
 
     backbone: ResNetSpec = field(default_factory=ResNetSpec)
@@ -42,11 +58,25 @@ class DeepLabSpec:
     decoder_channels: int = 256
     num_outputs: int = 2
     aspp_dropout: float = 0.1
+    refine_channels: int = 0
+    refine_dempster: bool = False
+    evidence: str = "relu"
 
     def __post_init__(self) -> None:
         for name in ("aspp_channels", "low_level_channels", "decoder_channels", "num_outputs"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"deeplab {name} must be >= 1, got {getattr(self, name)}")
+        if int(self.refine_channels) < 0:
+            raise ValueError(f"deeplab refine_channels must be >= 0, got {self.refine_channels}")
+        if self.refine_dempster and (self.refine_channels == 0 or self.backbone.in_channels != 4):
+            raise ValueError(
+                "deeplab refine_dempster needs refine_channels > 0 and 4 input channels "
+                "[m_F1, m_O1, m_F2', m_O2']"
+            )
+        if self.evidence not in EVIDENCE_ACTIVATIONS:
+            raise ValueError(
+                f"deeplab evidence must be one of {EVIDENCE_ACTIVATIONS}, got {self.evidence!r}"
+            )
         if not self.aspp_rates or any(int(r) < 1 for r in self.aspp_rates):
             raise ValueError(
                 f"deeplab aspp_rates must be positive integers, got {self.aspp_rates!r}"
@@ -137,12 +167,31 @@ class DeepLabV3Plus(nn.Module):
             _conv_bn_relu(spec.aspp_channels + spec.low_level_channels, spec.decoder_channels, 3),
             _conv_bn_relu(spec.decoder_channels, spec.decoder_channels, 3),
         )
-        self.classifier = nn.Conv2d(spec.decoder_channels, spec.num_outputs, 1)
-        for m in [*self.aspp.modules(), *self.low_proj.modules(), *self.decoder.modules()]:
-            if isinstance(m, nn.Conv2d):
+        r = spec.refine_channels
+        if r:
+            # stride-4 features -> r channels, upsampled; + inputs (+ Dempster) -> stride-1 head
+            self.classifier = _conv_bn_relu(spec.decoder_channels, r, 1)
+            head_in = r + bb.in_channels + (3 if spec.refine_dempster else 0)
+            self.refine = nn.Sequential(  # no BN at full resolution: ~2x cheaper on a CPU
+                nn.Conv2d(head_in, r, 3, padding=1),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(r, r, 1),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(r, spec.num_outputs, 1),
+            )
+            last = self.refine[-1]
+        else:
+            self.classifier = nn.Conv2d(spec.decoder_channels, spec.num_outputs, 1)
+            self.refine = None
+            last = self.classifier
+        heads = [*self.aspp.modules(), *self.low_proj.modules(), *self.decoder.modules()]
+        if self.refine is not None:
+            heads += [*self.classifier.modules(), *self.refine.modules()]
+        for m in heads:
+            if isinstance(m, nn.Conv2d) and m is not last:
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-        nn.init.normal_(self.classifier.weight, std=0.01)
-        nn.init.constant_(self.classifier.bias, 0.1)
+        nn.init.normal_(last.weight, std=0.01)
+        nn.init.constant_(last.bias, 0.1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]
@@ -161,7 +210,22 @@ class DeepLabV3Plus(nn.Module):
         y = self.decoder(torch.cat([y, self.low_proj(low)], dim=1))
         y = self.classifier(y)
         y = F.interpolate(y, size=(h, w), mode="bilinear", align_corners=False)
+        if self.refine is not None:
+            parts = [y, x]
+            if self.spec.refine_dempster:
+                parts.append(_dempster_features(x))
+            y = self.refine(torch.cat(parts, dim=1))
+        if self.spec.evidence == "exp":
+            return torch.exp(y.clamp(max=EXP_MAX_LOGIT))
         return F.relu(y)
+
+
+def _dempster_features(x: torch.Tensor) -> torch.Tensor:
+    """``(m_F, m_O, u)`` of Dempster's combination of the input grids ``x[:, :2]`` and ``x[:, 2:4]``."""
+    from traffictwin.evidential.dempster import dempster
+
+    m = dempster(x[:, 0:2], x[:, 2:4])
+    return torch.cat([m, (1.0 - m.sum(dim=1, keepdim=True)).clamp(0.0, 1.0)], dim=1)
 
 
 def channels_last_supported(model: nn.Module) -> bool:

@@ -12,6 +12,18 @@ averaged over cells. The KL regulariser of Sensoy et al. (2018), ``KL(Dir(alpha~
 with ``alpha~ = y + (1 - y) alpha``, is available (``kl_weight > 0``) but off by default, as in
 the paper.
 
+Losses by name (:data:`LOSSES`, ``fusion_model.loss.name``):
+
+- ``mass`` (default): the KL divergence from the label's full mass vector ``(y_F, y_O, y_u)`` to
+  the predicted ``(m_F, m_O, u)``, ``L_i = w_i * sum_k y_k (log y_k - log m_k)`` (``y`` clipped to
+  [1e-7, 1] as in the metric, ``log m`` from a log-softmax of ``(log e_F, log e_O, log 2)``, so
+  it is exact for any evidence). A proper scoring rule for the mass vector: the expected loss is
+  smallest at the label's conditional mean, so the total evidence cannot run away (eq. 7's
+  failure: as ``S`` grows it only asks for the pignistic probability, so ``u -> 0`` is rewarded).
+- ``paper``: eq. 7 exactly (no KL term).
+- ``paper_kl``: eq. 7 + ``kl_weight * min(1, epoch / kl_anneal_epochs)`` x the KL regulariser
+  (evidential deep learning's annealed recipe, as in EviLOG).
+
 Metrics (DESIGN.md "Fusion metrics"; the numpy evaluation implements the same formulas):
 ``kld`` = KL(label || pred) over ``(m_F, m_O)`` with both clipped to [1e-7, 1], summed over the
 two entries and averaged over cells; ``kld_full`` = the same over ``(m_F, m_O, u)``; a cell is
@@ -21,6 +33,7 @@ the cells whose label is known (label ``m_O > 0.5`` -> occupied, label ``m_F > 0
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -84,12 +97,7 @@ def evidential_loss_map(
         raise ValueError(f"evidence shape {tuple(e.shape)} != label shape {tuple(y.shape)}")
     alpha, s, p = dirichlet_params(e)
     per = ((y - p) ** 2 + p * (1.0 - p) / (s + 1.0)).sum(dim=-3)
-    w = torch.where(
-        y[..., 1, :, :] > 0.5,
-        torch.as_tensor(float(occupied_weight), dtype=per.dtype, device=per.device),
-        torch.ones((), dtype=per.dtype, device=per.device),
-    )
-    loss = w * per
+    loss = _occupied_weighted(per, y, occupied_weight)
     if kl_weight > 0:
         alpha_t = y + (1.0 - y) * alpha
         loss = loss + kl_weight * kl_dirichlet_uniform(alpha_t)
@@ -101,6 +109,65 @@ def evidential_loss(
 ) -> torch.Tensor:
     """Mean over cells (and batch) of :func:`evidential_loss_map`."""
     return evidential_loss_map(e, y, occupied_weight, kl_weight).mean()
+
+
+def log_masses(e: torch.Tensor) -> torch.Tensor:
+    """``log (m_F, m_O, u)`` ``(..., 3, H, W)`` of evidences ``e >= 0`` ``(..., 2, H, W)``, stable for any ``e``.
+
+    ``m_k = e_k / (e_F + e_O + 2)``, ``u = 2 / (...)`` = softmax of ``(log e_F, log e_O, log 2)``;
+    ``e = 0`` gives ``log m = log(1e-30)`` (finite).
+    """
+    log_e = torch.log(e.clamp_min(1e-30))
+    two = torch.full_like(log_e[..., :1, :, :], math.log(NUM_CLASSES))
+    return torch.log_softmax(torch.cat([log_e, two], dim=-3), dim=-3)
+
+
+def mass_loss_map(
+    e: torch.Tensor, y: torch.Tensor, occupied_weight: float = 1.0, eps: float = KLD_EPS
+) -> torch.Tensor:
+    """Per-cell ``w_i * KL(y || m)`` over the full mass vector ``(F, O, u)`` -> ``(..., H, W)``.
+
+    ``e``: evidences ``(..., 2, H, W)``; ``y``: label masses ``(..., 2, H, W)``; ``w_i = o_w`` where
+    ``y_O > 0.5`` else 1. The label is clipped to [eps, 1] (as KLD(b)); the prediction is exact.
+    """
+    if e.shape != y.shape:
+        raise ValueError(f"evidence shape {tuple(e.shape)} != label shape {tuple(y.shape)}")
+    yf = with_uncertainty(y).clamp(eps, 1.0)
+    per = (yf * (torch.log(yf) - log_masses(e))).sum(dim=-3)
+    return _occupied_weighted(per, y, occupied_weight)
+
+
+def _occupied_weighted(per: torch.Tensor, y: torch.Tensor, occupied_weight: float) -> torch.Tensor:
+    if occupied_weight == 1.0:
+        return per
+    w = torch.where(
+        y[..., 1, :, :] > 0.5,
+        torch.as_tensor(float(occupied_weight), dtype=per.dtype, device=per.device),
+        torch.ones((), dtype=per.dtype, device=per.device),
+    )
+    return w * per
+
+
+LOSSES = ("mass", "paper", "paper_kl")
+
+
+def fusion_loss(
+    name: str,
+    e: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    occupied_weight: float,
+    kl_weight: float = 0.0,
+) -> torch.Tensor:
+    """Mean over cells and batch of loss ``name`` (:data:`LOSSES`); ``kl_weight`` is the already
+    annealed regulariser weight (used by ``paper_kl`` only)."""
+    if name == "mass":
+        return mass_loss_map(e, y, occupied_weight).mean()
+    if name == "paper":
+        return evidential_loss(e, y, occupied_weight, 0.0)
+    if name == "paper_kl":
+        return evidential_loss(e, y, occupied_weight, kl_weight)
+    raise ValueError(f"unknown fusion loss {name!r}; expected one of {LOSSES}")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -68,6 +68,7 @@ __all__ = [
     "fuse",
     "RegisteredBatch",
     "registered_fusion",
+    "register_prealigned",
 ]
 
 INPUTS = ("prealigned", "raw", "model")
@@ -276,6 +277,31 @@ def registered_fusion(
         cols["poses"][i], cols["estimates"][i] = r.pose, r.estimate
         acc[i], ccn[i], cce[i] = r.accepted, r.cc_noisy, r.cc_est
     return RegisteredBatch(out, warped, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
+
+
+def register_prealigned(
+    arrays: dict[str, np.ndarray], map2: np.ndarray, grid: GridSpec, params: Any = None
+) -> dict[str, np.ndarray]:
+    """Prealigned ``arrays`` (:func:`traffictwin.fusion.pairs.prealign_arrays`) re-warped by classical registration.
+
+    ``map2 (N, 2, H, W)``: the raw map 2 of each pair (its own sensor frame). Map 2 is registered
+    onto map 1 (``arrays["inputs"][:, :2]``) from the noisy relative pose with
+    :func:`registered_fusion` (``params``: its
+    :class:`~traffictwin.fusion.registration.RegistrationParams`) and warped by the pose it uses
+    (the estimate, or the noisy pose where the estimate was rejected). Returns the same keys with
+    ``inputs[:, 2:]`` replaced, plus ``rel_pose_registered (N, 3)`` and ``reg_accepted (N,)``.
+    """
+    map1 = np.asarray(arrays["inputs"][:, :2], dtype=np.float32)
+    if np.shape(map2) != map1.shape:
+        raise ValueError(
+            f"register_prealigned: map2 {np.shape(map2)} must match map 1 {map1.shape} (N, 2, H, W)"
+        )
+    b = registered_fusion(map1, map2, arrays["rel_pose_noisy"], grid, params)
+    out = dict(arrays)
+    out["inputs"] = np.concatenate([map1, b.warped], axis=1).astype(np.float32)
+    out["rel_pose_registered"] = b.poses.astype(np.float64)
+    out["reg_accepted"] = b.accepted.astype(bool)
+    return out
 
 
 def _registered_columns(f: Fused, x: FusionInput, settings: Any) -> dict[str, np.ndarray]:

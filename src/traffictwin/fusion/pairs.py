@@ -289,3 +289,10 @@ def prealign_shard(
     arrays = prealign_arrays(shard, scale_noise(z, r, alpha_deg), grid, draw)
     digest = write_npz_deterministic(dst, arrays, compresslevel=compresslevel)
     return digest, len(arrays["inputs"])
+
+
+def evenly_spaced(n: int, k: int | None) -> np.ndarray:
+    """``k`` indices spread evenly over ``range(n)`` (all when ``k`` is None, <= 0 or >= n)."""
+    if k is None or k <= 0 or k >= n:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))

@@ -7,7 +7,9 @@
 - :class:`FusionDataModule` — the ``prealigned`` dataset's ``train``/``val`` splits held in memory;
   a seeded random subset of ``train_samples_per_epoch`` pairs per epoch (a fresh draw each epoch),
   a fixed evenly spaced subset of ``val_samples`` validation pairs.
-- :class:`FusionLitModule` — Adam, ReduceLROnPlateau on ``val/loss``, the loss of eqs. (6)-(7),
+- :class:`FusionLitModule` — Adam, ReduceLROnPlateau on the selection metric ``val/kld_full``
+  (KLD(b) over the full mass vector), the loss ``fusion_model.loss.name`` (:data:`LOSSES`: ``mass``,
+  ``paper`` = eqs. (6)-(7), ``paper_kl``),
   validation metrics ``val/loss``, ``val/kld``, ``val/kld_full``, ``val/dice_occ``, ``val/dice_free``
   (+ precision/recall), all reduced over DDP ranks; the same KLDs and Dice of the naive fusion
   (Dempster on the noisily prealigned inputs) as ``val/*_naive`` reference lines.
@@ -46,14 +48,16 @@ from traffictwin.fusion.deeplab import (
     count_parameters,
 )
 from traffictwin.fusion.losses import (
+    LOSSES,
     ConfusionCounts,
     dice_from_counts,
     evidence_to_masses,
-    evidential_loss,
+    fusion_loss,
     kld,
     kld_full,
 )
 from traffictwin.fusion.model_io import CKPT_FORMAT
+from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
@@ -62,6 +66,9 @@ from traffictwin.trainer import TrackingSettings
 log = logging.getLogger(__name__)
 
 VAL_METRICS = ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_free")
+SELECTION_METRIC = (
+    "val/kld_full"  # KLD(b): checkpoint, early stopping and LR plateau (lower is better)
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -174,13 +181,6 @@ def load_prealigned(
     )
 
 
-def evenly_spaced(n: int, k: int) -> np.ndarray:
-    """``k`` evenly spaced indices out of ``n`` (all when ``k`` is 0 or >= n)."""
-    if k <= 0 or k >= n:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
-
-
 class FusionDataModule(L.LightningDataModule):
     """Prealigned pairs in memory; seeded per-epoch training subsets, a fixed validation subset."""
 
@@ -254,8 +254,9 @@ class FusionHParams:
     weight_decay: float = 0.0
     lr_factor: float = 0.5
     lr_patience: int = 10
+    loss: str = "mass"  # LOSSES: mass | paper | paper_kl
     occupied_weight: float = 3.0
-    kl_weight: float = 0.0  # evidential KL regulariser (Sensoy et al.); off as in the paper
+    kl_weight: float = 0.0  # paper_kl's KL regulariser weight (Sensoy et al.)
     kl_anneal_epochs: int = 10  # its weight ramps as min(1, epoch / kl_anneal_epochs)
     augment_flip: bool = True
     augment_rotation_deg: float = 20.0
@@ -293,13 +294,15 @@ class FusionLitModule(common.NetModule):
         meta: Mapping[str, Any] | None = None,
     ) -> None:
         hp = FusionHParams(**hparams)
+        if hp.loss not in LOSSES:
+            raise ValueError(f"unknown fusion loss {hp.loss!r}; expected one of {LOSSES}")
         super().__init__(
             DeepLabV3Plus(DeepLabSpec.from_dict(spec)),
-            evidential_loss,
+            fusion_loss,
             lr=hp.lr,
             weight_decay=hp.weight_decay,
             plateau=(hp.lr_factor, hp.lr_patience),
-            monitor="val/loss",
+            monitor=SELECTION_METRIC,
         )
         self.save_hyperparameters(
             {"spec": dict(spec), "hparams": dict(hparams), "meta": dict(meta or {})}
@@ -327,7 +330,7 @@ class FusionLitModule(common.NetModule):
         return x.contiguous(memory_format=torch.channels_last) if self.channels_last else x
 
     def _kl_weight(self) -> float:
-        if self.hp.kl_weight <= 0:
+        if self.hp.loss != "paper_kl" or self.hp.kl_weight <= 0:
             return 0.0
         return self.hp.kl_weight * min(1.0, self.current_epoch / max(1, self.hp.kl_anneal_epochs))
 
@@ -348,7 +351,13 @@ class FusionLitModule(common.NetModule):
                 generator=self._aug_gen,
             )
         e = self.net(self._layout(x)).float()
-        loss = self.loss_fn(e, y.float(), self.hp.occupied_weight, self._kl_weight())
+        loss = self.loss_fn(
+            self.hp.loss,
+            e,
+            y.float(),
+            occupied_weight=self.hp.occupied_weight,
+            kl_weight=self._kl_weight(),
+        )
         self.log(
             "train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0]
         )
@@ -358,7 +367,7 @@ class FusionLitModule(common.NetModule):
         x, y = batch
         e = self.net(self._layout(x)).float()
         y = y.float()
-        loss = self.loss_fn(e, y, self.hp.occupied_weight, 0.0)
+        loss = self.loss_fn(self.hp.loss, e, y, occupied_weight=self.hp.occupied_weight)
         m, _ = evidence_to_masses(e)
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())
@@ -402,12 +411,37 @@ class OptimConfig:
 
 
 @dataclass
-class LossConfig:
-    """``fusion_model.loss``: eqs. (6)-(7) and the optional KL regulariser."""
+class MassLossConfig:
+    """``fusion_model.loss.mass``: o_w of the full-mass-vector KL loss."""
+
+    occupied_weight: float = setting(min=1.0)
+
+
+@dataclass
+class PaperLossConfig:
+    """``fusion_model.loss.paper``: eq. 7's occupied weight o_w."""
+
+    occupied_weight: float = setting(min=1.0)
+
+
+@dataclass
+class PaperKLLossConfig:
+    """``fusion_model.loss.paper_kl``: eq. 7 + the annealed KL regulariser."""
 
     occupied_weight: float = setting(min=1.0)
     kl_weight: float = setting(min=0.0)
     kl_anneal_epochs: int = setting(min=1)
+
+
+@dataclass
+class LossConfig:
+    """``fusion_model.loss``: ``name`` picks the loss (``mass`` | ``paper`` | ``paper_kl``); each
+    has its own block of weights (a variant with another loss uses that loss's block)."""
+
+    name: str = setting(choices=LOSSES)
+    mass: MassLossConfig = setting()
+    paper: PaperLossConfig = setting()
+    paper_kl: PaperKLLossConfig = setting()
 
 
 @dataclass
@@ -450,16 +484,22 @@ class FusionModelConfig:
             full = f"{key}.architecture" if key else "architecture"
             raise ConfigError(f"{source}: '{full}' is invalid: {exc}") from None
 
-    def hparams(self) -> FusionHParams:
-        o, lo, a = self.optim, self.loss, self.augment
+    def hparams(self, loss: str | None = None) -> FusionHParams:
+        """Optimisation and loss settings; ``loss`` overrides ``loss.name`` (a variant's loss)."""
+        o, a = self.optim, self.augment
+        name = loss or self.loss.name
+        if name not in LOSSES:
+            raise ConfigError(f"unknown fusion loss {name!r}; expected one of {LOSSES}")
+        lo = getattr(self.loss, name)
         return FusionHParams(
             lr=o.lr,
             weight_decay=o.weight_decay,
             lr_factor=o.lr_factor,
             lr_patience=o.lr_patience,
+            loss=name,
             occupied_weight=lo.occupied_weight,
-            kl_weight=lo.kl_weight,
-            kl_anneal_epochs=lo.kl_anneal_epochs,
+            kl_weight=getattr(lo, "kl_weight", 0.0),
+            kl_anneal_epochs=getattr(lo, "kl_anneal_epochs", 10),
             augment_flip=a.flip,
             augment_rotation_deg=a.rotation_deg,
             channels_last=self.train.channels_last,
@@ -484,7 +524,7 @@ def _from_fields(cls: type, source: Any, **given: Any) -> Any:
 
 @dataclass(frozen=True)
 class LoopSettings:
-    """Epochs and stopping: max_epochs; early_stopping_patience (epochs without val/loss improvement)."""
+    """Epochs and stopping: max_epochs; early_stopping_patience (epochs without val/kld_full improvement)."""
 
     max_epochs: int = 200
     early_stopping_patience: int = 30
@@ -531,6 +571,8 @@ def fit_fusion(
     cfg_name: str,
     noise: Mapping[str, float],
     ckpt_out: str | Path,
+    network: str | None = None,
+    inputs: str = "prealigned",
     meta_out: str | Path | None = None,
     metrics_out: str | Path | None = None,
     curves_out: str | Path | None = None,
@@ -539,7 +581,7 @@ def fit_fusion(
     tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
     **trainer_extra: Any,
 ) -> FitResult | None:
-    """Train on ``data_root``'s train split, select on val/loss, publish the best model.
+    """Train on ``data_root``'s train split, select on val/kld_full (KLD(b)), publish the best model.
 
     Writes (rank zero, each atomically, only after training succeeded): ``ckpt_out`` (slim
     Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, MLflow run id, data manifest
@@ -553,6 +595,9 @@ def fit_fusion(
     tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
     meta_base = {
         "cfg": cfg_name,
+        "network": network or cfg_name,
+        "inputs": inputs,
+        "loss": hparams.loss,
         "noise": dict(noise),
         "grid": {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell},
         "seed": int(seed),
@@ -570,7 +615,12 @@ def fit_fusion(
             tracking.run_name,
             profile=tracking.profile,
             stage=tracking.stage,
-            tags={"data_manifest_hash": manifest_hash, "cfg": cfg_name},
+            tags={
+                "data_manifest_hash": manifest_hash,
+                "cfg": cfg_name,
+                "network": network or cfg_name,
+                "loss": hparams.loss,
+            },
             params={
                 **tracking.params,
                 "data.manifest_hash": manifest_hash,
@@ -581,11 +631,11 @@ def fit_fusion(
     ):
         logger = common.mlflow_logger(run)
         history = common.History(logger=logger)
-        ckpt_cb = common.best_checkpoint(work, monitor="val/loss")
+        ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         callbacks = [
             history,
             ckpt_cb,
-            common.early_stopping("val/loss", loop.early_stopping_patience),
+            common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
         ]
         trainer = common.build_trainer(
             trainer_settings,
@@ -633,6 +683,8 @@ def fit_fusion(
             "hparams": asdict(hparams),
             "best_epoch": best_epoch,
             "best_val_loss": metrics.get("val/loss"),
+            "selection_metric": SELECTION_METRIC,
+            "best_val_kld_full": metrics.get(SELECTION_METRIC),
             "mlflow_run_id": run.info.run_id if run is not None else None,
             "mlflow_model_uri": None,
             "data_root": str(data_root),

@@ -1,0 +1,59 @@
+"""Learning curves of one fusion training run (matplotlib Agg; saved by the train stage).
+
+:func:`learning_curves` plots, per epoch, the validation KLD(b) (the selection metric) against the
+naive fusion's on the same validation pairs, the training and validation loss, and the
+validation Dice of occupied cells (network and naive); the best epoch is marked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from traffictwin.fusion.figures import _plt
+
+__all__ = ["learning_curves"]
+
+
+def _series(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
+    pts = [(r["epoch"], r[key]) for r in rows if key in r and r[key] is not None]
+    if not pts:
+        return np.empty(0), np.empty(0)
+    e, v = np.array(pts, dtype=np.float64).T
+    return e, v
+
+
+def learning_curves(
+    rows: Sequence[Mapping[str, float]], title: str, selection: str = "val/kld_full"
+):
+    """Figure of a run's per-epoch ``rows`` (the History callback's rows: ``epoch``, ``val/*``, ``train/loss``)."""
+    if not rows:
+        raise ValueError("learning_curves: no epochs to plot")
+    plt = _plt()
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    e, v = _series(rows, selection)
+    ax1.plot(e, v, "o-", color="#1f77b4", label="network")
+    en, vn = _series(rows, f"{selection}_naive")
+    ax1.plot(en, vn, "--", color="#d62728", label="naive (noisy pose + Dempster)")
+    if len(v):
+        b = int(np.argmin(v))
+        ax1.plot([e[b]], [v[b]], "*", ms=14, color="#ff7f0e", label=f"best epoch {int(e[b])}")
+    ax1.set(xlabel="epoch", ylabel="validation KLD(b) (nats per cell)", title="selection metric")
+    for key, style, lab in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
+        ek, vk = _series(rows, key)
+        ax2.plot(ek, vk, style, label=lab)
+    ax2.set(xlabel="epoch", ylabel="loss (per cell)", title="training loss")
+    for key, style, lab in (
+        ("val/dice_occ", "o-", "network"),
+        ("val/dice_occ_naive", "--", "naive"),
+    ):
+        ek, vk = _series(rows, key)
+        ax3.plot(ek, vk, style, label=lab)
+    ax3.set(xlabel="epoch", ylabel="validation Dice, occupied (-)", title="occupied cells")
+    for ax in (ax1, ax2, ax3):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
