@@ -171,3 +171,67 @@ def test_confusion_counts_metric_sums_batches_like_the_function() -> None:
     assert torch.equal(metric.compute(), total) and total.sum() > 0
     metric.reset()
     assert torch.equal(metric.compute(), torch.zeros(6, dtype=torch.float64))
+
+
+# ---------------------------------------------------------------------------------------------
+# the loss choice (fusion_model.loss.name)
+
+
+def test_mass_loss_hand_computed_one_cell() -> None:
+    from traffictwin.fusion.losses import mass_loss_map
+
+    # e = (3, 1): S = 6, m = (1/2, 1/6), u = 1/3; label y = (0.5, 0.25), y_u = 0.25
+    # KL = 0.5 ln(0.5/0.5) + 0.25 ln(0.25/(1/6)) + 0.25 ln(0.25/(1/3))
+    expect = 0.25 * math.log(1.5) + 0.25 * math.log(0.75)
+    assert float(mass_loss_map(cell(3, 1), cell(0.5, 0.25))) == pytest.approx(expect, rel=1e-9)
+    # o_w multiplies cells whose label is occupied only
+    assert float(mass_loss_map(cell(3, 1), cell(0.1, 0.6), occupied_weight=3.0)) == pytest.approx(
+        3.0 * float(mass_loss_map(cell(3, 1), cell(0.1, 0.6)))
+    )
+
+
+def test_mass_loss_is_zero_at_the_label_and_equals_the_kld_full_metric() -> None:
+    from traffictwin.fusion.losses import kld_full, log_masses, mass_loss_map
+
+    # the evidence whose masses equal the label: e_k = 2 y_k / y_u
+    y = torch.tensor([0.6, 0.3], dtype=torch.float64).reshape(1, 2, 1, 1)
+    e = 2 * y / 0.1
+    assert float(mass_loss_map(e, y)) == pytest.approx(0.0, abs=1e-12)
+    g = torch.Generator().manual_seed(0)
+    e = torch.rand(2, 2, 5, 4, generator=g, dtype=torch.float64) * 5
+    ya = torch.rand(2, 3, 5, 4, generator=g, dtype=torch.float64)
+    ya = (ya / ya.sum(1, keepdim=True))[:, :2]
+    m = torch.exp(log_masses(e))[:, :2]
+    assert float(mass_loss_map(e, ya).mean(dim=(-2, -1)).mean()) == pytest.approx(
+        float(kld_full(m, ya).mean()), rel=1e-6
+    )
+
+
+def test_log_masses_finite_and_gradient_alive_at_zero_and_huge_evidence() -> None:
+    from traffictwin.fusion.losses import log_masses, mass_loss_map
+
+    leaf = torch.tensor([0.0, 1e12], dtype=torch.float64, requires_grad=True)
+    e = leaf.reshape(1, 2, 1, 1)
+    lm = log_masses(e)
+    assert torch.isfinite(lm).all()
+    assert torch.allclose(torch.exp(lm).sum(-3), torch.ones(1, 1, 1, dtype=torch.float64))
+    mass_loss_map(e, cell(0.3, 0.3)).sum().backward()
+    assert torch.isfinite(leaf.grad).all() and float(leaf.grad.abs().sum()) > 0
+
+
+def test_fusion_loss_dispatches_by_name_and_rejects_unknown_names() -> None:
+    from traffictwin.fusion.losses import LOSSES, evidential_loss, fusion_loss, mass_loss_map
+
+    e, y = cell(3, 1).float(), cell(0.1, 0.6).float()
+    assert LOSSES == ("mass", "paper", "paper_kl")
+    assert float(fusion_loss("mass", e, y, occupied_weight=2.0)) == pytest.approx(
+        float(mass_loss_map(e, y, 2.0).mean())
+    )
+    assert float(fusion_loss("paper", e, y, occupied_weight=3.0, kl_weight=5.0)) == pytest.approx(
+        float(evidential_loss(e, y, 3.0, 0.0))  # eq. 7: the KL weight is ignored
+    )
+    assert float(fusion_loss("paper_kl", e, y, occupied_weight=3.0, kl_weight=0.5)) == (
+        pytest.approx(float(evidential_loss(e, y, 3.0, 0.5)))
+    )
+    with pytest.raises(ValueError, match="unknown fusion loss 'focal'"):
+        fusion_loss("focal", e, y, occupied_weight=1.0)

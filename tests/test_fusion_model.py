@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -176,3 +178,36 @@ def test_tiny_network_trains_with_channels_last_requested() -> None:
     torch.manual_seed(0)
     module(torch.rand(4, 4, 64, 48)).sum().backward()
     assert all(p.grad is not None for p in module.net.parameters() if p.requires_grad)
+
+
+def test_refinement_head_runs_at_full_resolution_and_sees_the_inputs() -> None:
+    torch.manual_seed(0)
+    net = DeepLabV3Plus(tiny_spec(refine_channels=8, refine_dempster=True, evidence="exp")).eval()
+    assert net.refine is not None and net.refine[0].in_channels == 8 + 4 + 3
+    x = torch.rand(1, 4, 64, 48) * 0.5
+    with torch.no_grad():
+        e = net(x)
+        x2 = x.clone()
+        x2[0, :, 30, 20] = torch.tensor([0.0, 0.9, 0.0, 0.9])  # one cell changed
+        d = (net(x2) - e).abs().sum(1)[0]
+    assert e.shape == (1, 2, 64, 48) and torch.all(e > 0)  # exp evidence is positive
+    # the change reaches the output at its own cell (stride 1, not only through stride-4 features)
+    assert d[30, 20] > 0 and d[30, 20] >= 0.5 * d.max()
+
+
+def test_exp_evidence_is_bounded_and_spec_checks_the_head() -> None:
+    spec = tiny_spec(evidence="exp")
+    net = DeepLabV3Plus(spec).eval()
+    with torch.no_grad():
+        net.classifier.bias.fill_(1e4)  # a huge logit
+        e = net(torch.rand(1, 4, 64, 48))
+    assert torch.isfinite(e).all() and float(e.max()) <= math.exp(30.0) * 1.0001
+    with pytest.raises(ValueError, match="evidence must be one of"):
+        tiny_spec(evidence="softmax")
+    with pytest.raises(ValueError, match="refine_dempster needs refine_channels > 0"):
+        tiny_spec(refine_dempster=True)
+    with pytest.raises(ValueError, match="refine_channels must be >= 0"):
+        tiny_spec(refine_channels=-1)
+    # the paper's network is the default: no head, ReLU evidence
+    assert (DeepLabSpec().refine_channels, DeepLabSpec().evidence) == (0, "relu")
+    assert DeepLabSpec.from_dict(tiny_spec(refine_channels=8).as_dict()).refine_channels == 8

@@ -536,3 +536,103 @@ def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
     assert list(per_val.frame().columns) == ["step", "epoch", "train/mse", "val/loss", "val/mae"]
     with pytest.raises(ValueError, match="every must be"):
         common.History("step")
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input and the fusion_variants config
+
+
+@pytest.mark.parametrize(
+    "key, channel, value, msg",
+    [
+        ("label", 1, np.nan, "NaN/inf"),
+        ("inputs", 0, -0.5, "outside the simplex"),
+        ("inputs", 3, 0.9, "outside the simplex"),  # m_F2 + m_O2 > 1 in map 2
+    ],
+)
+def test_loader_names_the_file_and_array_of_bad_masses(tmp_path: Path, key, channel, value, msg):
+    from traffictwin.fusion.training import load_prealigned
+
+    wr = DatasetWriter(tmp_path / "bad", "prealigned", {"synthetic": True}, 0)
+    arrays = synthetic_pairs(4, 64, 48, 0)
+    arrays[key][1, channel, 5, 7] = value
+    if key == "inputs" and channel == 3:
+        arrays[key][1, 2, 5, 7] = 0.5
+    wr.add_shard(0, arrays, split="train")
+    wr.finalize()
+    with pytest.raises(DatasetError, match=rf"bad: split 'train' array '{key}'.*{msg}"):
+        load_prealigned(tmp_path / "bad", "train", GRID)
+
+
+def test_fusion_variants_are_checked_against_configurations_and_registered_data() -> None:
+    from omegaconf import OmegaConf
+
+    from traffictwin.config import ConfigError
+    from traffictwin.fusion.config import fusion_variants, variant_row
+
+    base = {
+        "configurations": {"A": {"r": 0.0, "alpha": 0.0}, "D": {"r": 5.0, "alpha": 20.0}},
+        "fusion_data": {
+            "register": {"configurations": ["D"], "max_train_pairs": 8, "max_val_pairs": None}
+        },
+    }
+
+    def with_variants(v):
+        return OmegaConf.create({**base, "fusion_variants": v})
+
+    got = fusion_variants(
+        with_variants(
+            {
+                "D-paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
+                "D-reg": {"config": "D", "inputs": "registered", "loss": None},
+            }
+        )
+    )
+    assert [(v.method, v.loss) for v in got.values()] == [
+        ("dnn", "paper"),
+        ("registered+network", None),
+    ]
+    assert variant_row("dnn", "paper", "mass") == "dnn[paper]"
+    assert variant_row("registered+network", None, "mass") == "registered+network"
+    assert fusion_variants(with_variants({})) == {}
+    for bad, msg in [
+        ({"x": {"config": "Z", "inputs": "prealigned"}}, "'fusion_variants.x.config' = 'Z'"),
+        ({"x": {"config": "A", "inputs": "registered"}}, "registered pairs of 'A'"),
+        ({"x": {"config": "D", "inputs": "lidar"}}, "fusion_variants.x.inputs"),
+        ({"x": {"config": "D", "inputs": "prealigned", "loss": "l1"}}, "fusion_variants.x.loss"),
+        ({"A": {"config": "D", "inputs": "prealigned"}}, "clashes with configuration 'A'"),
+    ]:
+        with pytest.raises(ConfigError, match=msg):
+            fusion_variants(with_variants(bad))
+
+
+def test_register_prealigned_rewarps_map2_by_the_registration_pose() -> None:
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.fusion.methods import register_prealigned, registered_fusion
+
+    grid = GridSpec(64, 48, 0.5)
+    g = np.random.default_rng(0)
+    m1 = np.zeros((2, 2, 64, 48), np.float32)
+    m1[:, 0] = 0.6
+    m1[:, 0, 20:24, 10:30] = 0.0
+    m1[:, 1, 20:24, 10:30] = 0.9  # a wall
+    map2 = m1.copy()
+    noisy = np.array([[1.0, -0.5, 0.05], [0.0, 0.0, 0.0]])
+    arrays = {
+        "inputs": np.concatenate([m1, g.random(m1.shape).astype(np.float32) * 0.1], 1),
+        "label": m1.copy(),
+        "rel_pose_noisy": noisy,
+        "pair_id": np.array([1000, 1001]),
+    }
+    out = register_prealigned(arrays, map2, grid)
+    ref = registered_fusion(m1, map2, noisy, grid)
+    np.testing.assert_array_equal(out["inputs"][:, :2], m1)  # map 1 unchanged
+    np.testing.assert_allclose(out["rel_pose_registered"], ref.poses)
+    for i in range(2):
+        np.testing.assert_allclose(
+            out["inputs"][i, 2:], warp_masses(map2[i], ref.poses[i], grid), atol=1e-6
+        )
+    np.testing.assert_array_equal(out["pair_id"], arrays["pair_id"])
+    assert out["reg_accepted"].dtype == bool
+    with pytest.raises(ValueError, match="must match map 1"):
+        register_prealigned(arrays, map2[:1], grid)

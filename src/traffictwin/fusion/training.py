@@ -41,6 +41,7 @@ from traffictwin import trainer as common
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
 from traffictwin.evidential.dempster import dempster
+from traffictwin.evidential.masses import check_masses
 from traffictwin.fusion.deeplab import (
     DeepLabSpec,
     DeepLabV3Plus,
@@ -176,6 +177,11 @@ def load_prealigned(
         raise DatasetError(
             f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)"
         )
+    for key, arr in (("inputs", x[:, 0:2]), ("inputs", x[:, 2:4]), ("label", y)):
+        try:  # NaN, negative or off-simplex masses fail here, before any training
+            check_masses(arr, name=f"{root}: split '{split}' array '{key}'")
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
     return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(
         np.ascontiguousarray(y, dtype=np.float32)
     )
