@@ -393,3 +393,23 @@ def test_ci_config_is_typed():
     OmegaConf.update(cfg, "evaluation.fusion_ci.n_boot", 10, merge=False)
     with pytest.raises(ConfigError, match="evaluation.fusion_ci.n_boot"):
         ev.fusion_ci_config(cfg)
+
+
+# -- promotion gate --------------------------------------------------------------------------------
+@pytest.mark.usefixtures("single_torch_thread")
+def test_gate_evaluator_produces_the_configured_fusion_metric(monkeypatch):
+    """conf/registry's fusion gate metric (KLD(b)) is one of the numbers gate_eval computes."""
+    from traffictwin.fusion import metrics as fm
+    from traffictwin.fusion.gate_eval import fusion_evaluator
+    from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.mlops import registry
+
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    gate = params["registry"]["fusion"]
+    assert (gate["metric"], gate["mode"]) == ("test/kld_fou_mean", "min")
+    data, _, _ = _synthetic(configs=("A",), n=3)
+    net = _tiny_net(0)
+    monkeypatch.setattr(registry, "load_registered", lambda uri: net)
+    out = fusion_evaluator(data["A"]["inputs"], data["A"]["label"], batch_size=2)("models:/x/1")
+    pred, _ = predict_masses(net, data["A"]["inputs"], 2)
+    assert out[gate["metric"]] == pytest.approx(fm.kld_fou(data["A"]["label"], pred).mean())
