@@ -323,6 +323,29 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert flat["test/kld_fou_mean"] == pytest.approx(m["test"]["D"]["dnn[paper]"]["kld_fou_mean"])
     assert "test_dnn/kld_fou_mean_ci_lo" in flat and "test_registered_network/dice_occ" in flat
     assert not any(k.startswith("cross_") for k in flat)
+    # plot data and figures show the variant rows where they exist; the box plot is KLD(b)
+    from traffictwin.evidential.noise import PoseNoise
+
+    noise = {c: PoseNoise(r=float(i), alpha=float(i)) for i, c in enumerate(data)}
+    tables = ev.plot_tables(res, noise)
+    assert "dnn[paper]_kld_fou_mean" in tables["fusion_scores"].columns
+    assert pd.isna(tables["fusion_scores"].set_index("config").loc["C", "dnn[paper]_kld_fou_mean"])
+    figs = ev.figures(res, noise, grid, 0, 0.5)
+    ax = figs["fusion_kld_boxplot"].axes[0]
+    boxes = {p.get_gid(): p for p in ax.patches if p.get_gid()}
+    assert (
+        "dnn[paper]/D" in boxes and "dnn[paper]/C" not in boxes and "registered+network/C" in boxes
+    )
+    y = boxes["dnn[paper]/D"].get_path().vertices[:, 1]
+    kb = s[(s.config == "D") & (s.method == "dnn[paper]")].kld_fou
+    assert (y.min(), y.max()) == pytest.approx(tuple(np.quantile(kb, [0.25, 0.75])))
+    assert ax.get_ylabel().startswith("KLD(b)")
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "network (own config) [paper loss]" in legend and "registered + network" in legend
+    import matplotlib.pyplot as plt
+
+    for fig in figs.values():
+        plt.close(fig)
 
 
 @pytest.mark.usefixtures("single_torch_thread")
