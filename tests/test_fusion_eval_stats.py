@@ -436,3 +436,21 @@ def test_gate_evaluator_produces_the_configured_fusion_metric(monkeypatch):
     out = fusion_evaluator(data["A"]["inputs"], data["A"]["label"], batch_size=2)("models:/x/1")
     pred, _ = predict_masses(net, data["A"]["inputs"], 2)
     assert out[gate["metric"]] == pytest.approx(fm.kld_fou(data["A"]["label"], pred).mean())
+
+
+def test_learning_curve_figures_are_claimed_and_captioned():
+    import re
+
+    from traffictwin.fusion import report_section as rs
+    from traffictwin.report.model import Figure
+
+    assert re.search(rs.FIGURE_PATTERN, "train_fusion_d_paper")  # the fusion section claims them
+    figs = rs._captioned(
+        [
+            Figure("figures/train_fusion_d_paper.png", "`figures/train_fusion_d_paper.png`"),
+            Figure("figures/fusion_kld_boxplot.png", "box"),
+        ]
+    )
+    assert figs[0].caption.startswith("Learning curves of fusion network d_paper (")
+    assert figs[0].caption.endswith("`figures/train_fusion_d_paper.png`")
+    assert figs[1].caption == "box"
