@@ -454,3 +454,49 @@ def test_learning_curve_figures_are_claimed_and_captioned():
     assert figs[0].caption.startswith("Learning curves of fusion network d_paper (")
     assert figs[0].caption.endswith("`figures/train_fusion_d_paper.png`")
     assert figs[1].caption == "box"
+
+
+# -- stage: networks per row ---------------------------------------------------------------------
+def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
+    """models/fusion/<cfg> fill row dnn; each fusion_variants entry its row at its configuration;
+    fusion_model.loss.name is needed only when there are variants."""
+    from omegaconf import OmegaConf
+
+    import pipelines.evaluate_fusion as stage
+    from traffictwin.config import ConfigError
+    from traffictwin.fusion import model_io
+
+    loaded = []
+
+    def fake_load(path, **kw):
+        loaded.append((Path(path).relative_to(tmp_path).as_posix(), kw.get("expected_cfg")))
+        return Path(path).parent.name
+
+    monkeypatch.setattr(stage, "fusion_model_dir", lambda name: tmp_path / name)
+    monkeypatch.setattr(model_io, "load_fusion_model", fake_load)
+    cfg = OmegaConf.create(
+        {
+            "configurations": {"A": {"r": 0.0, "alpha": 0.0}, "D": {"r": 3.0, "alpha": 10.0}},
+            "fusion_variants": {},
+        }
+    )
+    nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")  # no fusion_model.loss needed
+    assert nets == {"dnn": {"A": "A", "D": "D"}} and runs == [("A", "A", "dnn"), ("D", "D", "dnn")]
+    assert loaded == [("A/model.ckpt", "A"), ("D/model.ckpt", "D")]
+    cfg.fusion_variants = {
+        "D_paper": {"config": "D", "method": "dnn", "loss": "paper"},
+        "D_mass_reg": {"config": "D", "method": "registered+network", "loss": None},
+    }
+    cfg.fusion_model = {"loss": {"name": "mass"}}
+    nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
+    assert nets == {
+        "dnn": {"A": "A", "D": "D"},
+        "dnn[paper]": {"D": "D_paper"},
+        "registered+network": {"D": "D_mass_reg"},
+    }
+    assert runs[2:] == [("D_paper", "D", "dnn[paper]"), ("D_mass_reg", "D", "registered+network")]
+    cfg.fusion_variants = {"D_mass": {"config": "D", "method": "dnn", "loss": "mass"}}
+    with pytest.raises(
+        ConfigError, match=r"fusion_variants.D_mass' is row 'dnn' at configuration D"
+    ):
+        stage.load_networks(cfg, ["A", "D"], None, "cpu")
