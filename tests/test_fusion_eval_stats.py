@@ -211,6 +211,11 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
     # (g) no registered+network row
     assert t["hybrid_vs_registered"]["status"] == "not evaluated"
     assert t["hybrid_vs_registered"]["per_config"]["C"]["status"] == "not evaluated"
+    # a network that never predicts occupied at A: no relative drop (not a crash, not a pass)
+    zero = dict(own)
+    zero[("A", "dnn")] = _row(pid, 0.2, tp_occ=0, fn_occ=3)
+    t0 = ev.fusion_targets(zero, metrics, CI)["dice_occ_drop_A_to_D"]["per_config"]["D"]
+    assert t0["status"] == "not evaluated" and "Dice occ at A is 0.0" in t0["why"]
     # a target at a configuration that was not evaluated (B absent) is not a pass
     del own[("A", "dnn")]
     metrics["test"].pop("A")

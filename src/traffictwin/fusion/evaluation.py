@@ -805,7 +805,9 @@ def fusion_targets(
         draws = _draws(g, ci)
         ea, ba = _pooled_dice(a.iloc[ia], "occ", codes, g, draws)
         ed, bd = _pooled_dice(d.iloc[idd], "occ", codes, g, draws)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        if not ea > 0:  # Dice(A) = 0 or undefined: no relative drop
+            return _missing(f"network Dice occ at A is {ea}: the relative drop is undefined")
+        with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice(A) = 0 drop out
             iv = _interval(1.0 - ed / ea, 1.0 - bd / ba, ci.level, g)
         return _judge(iv, 0.10, "<=")
 
@@ -836,6 +838,8 @@ def fusion_targets(
         if not dd:
             return _missing(f"rows {HYBRID} and registered not both evaluated at configuration {c}")
         k, dc = dd[HEADLINE], dd["dice_occ"]
+        if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
+            return _missing(f"no interval of the {HYBRID} − registered difference at {c}")
         ok = k["hi"] < 0 and not dc["hi"] < 0  # KLD(b) lower, shown; Dice occ not shown lower
         return {
             "value": k["estimate"],
