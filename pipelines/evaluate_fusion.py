@@ -1,16 +1,23 @@
 """Stage `evaluate_fusion`: every fusion method on every configuration's test set (paper V-A, Figs. 4–7).
 
 Reads ``data/prealigned/<cfg>`` (test split: inputs, labels and the noise drawn, the same draws
-for every method), ``data/fusion`` (raw map 2 for the `registered` baseline and Fig. 4) and
-``models/fusion/<cfg>/model.ckpt`` for every configuration of ``configurations``. Writes:
+for every method), ``data/fusion`` (raw maps for the registration methods and Fig. 4),
+``models/fusion/<cfg>/model.ckpt`` for every configuration of ``configurations`` (row ``dnn``)
+and ``models/fusion/<variant>/model.ckpt`` for every entry of ``fusion_variants`` (its row
+:func:`~traffictwin.fusion.config.variant_row`: ``dnn[<loss>]``, ``registered+network``, … at
+its configuration; ``fusion_model.loss.name`` names the default loss, read only when there are
+variants). Writes:
 
-- ``reports/metrics/fusion.json`` — aggregated metrics (DVC metrics): ``test.<cfg>.<method>.<metric>``,
-  ``cross.dnn-<net>.<cfg>.<metric>``, ``bins.{translation,rotation}.<method>.<bin>.<metric>``;
+- ``reports/metrics/fusion.json`` — aggregated metrics (DVC metrics), layout in
+  :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>`` (+ ``<metric>_ci``),
+  ``diff.<cfg>.<row>.vs_{naive,registered}.<metric>``, ``label.<cfg>``, ``targets``,
+  ``cross.dnn-<net>.<cfg>.<metric>``, ``bins.{translation,rotation}.<row>.<bin>.<metric>``;
 - ``reports/fusion_eval_samples.csv`` — one row per (test config, method, pair);
 - ``reports/plots/fusion_kld.csv``, ``fusion_scores.csv``, ``fusion_pose_bins.csv`` — DVC plot data;
 - ``reports/figures/fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png``;
 - ``reports/fusion_findings.md`` — findings computed from fusion.json;
 and logs the numbers to each network's MLflow run (``mlflow_run_id`` of its model_meta.json).
+Bootstrap intervals: ``evaluation.fusion_ci`` (n_boot, seed, level).
 Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion.methods`).
 """
 
@@ -51,8 +58,9 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
         frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
 
 
-def log_to_mlflow(metrics: dict[str, Any], configs: list[str]) -> None:
-    """Log every number to each network's own MLflow run (``mlflow_run_id`` in model_meta.json)."""
+def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[str, str, str]]) -> None:
+    """Log every number to each network's own MLflow run (``mlflow_run_id`` in model_meta.json);
+    ``runs``: ``(model folder name, configuration, evaluation row)`` per network."""
     from mlflow.entities import Metric, RunTag
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
@@ -62,8 +70,8 @@ def log_to_mlflow(metrics: dict[str, Any], configs: list[str]) -> None:
 
     client = MlflowClient(tracking_uri=setup())
     stamp = int(time.time() * 1000)
-    for c in configs:
-        meta_path = fusion_model_dir(c) / "model_meta.json"
+    for name, c, row in runs:
+        meta_path = fusion_model_dir(name) / "model_meta.json"
         meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
         run_id = meta.get("mlflow_run_id")
         if not run_id:
@@ -71,7 +79,7 @@ def log_to_mlflow(metrics: dict[str, Any], configs: list[str]) -> None:
                 "%s: no mlflow_run_id; fusion evaluation of %s not logged to MLflow", meta_path, c
             )
             continue
-        flat = mlflow_metrics(metrics, c)
+        flat = mlflow_metrics(metrics, c, row)
         try:
             # log_batch on the training run: same run as mlflow.start_run(run_id=…) but leaves its status alone
             client.log_batch(
@@ -80,41 +88,69 @@ def log_to_mlflow(metrics: dict[str, Any], configs: list[str]) -> None:
                 tags=[RunTag("evaluated_by", STAGE)],
             )
             log.info(
-                "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, c
+                "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, name
             )
         except MlflowException as exc:
             log.warning(
-                "MLflow run %s of %s not reachable (%s); metrics are in %s", run_id, c, exc, METRICS
+                "MLflow run %s of %s not reachable (%s); metrics are in %s",
+                run_id,
+                name,
+                exc,
+                METRICS,
             )
+
+
+def load_networks(
+    cfg: Any, configs: list[str], grid: Any, device: str
+) -> tuple[dict[str, dict[str, Any]], list[tuple[str, str, str]]]:
+    """``{row: {configuration: network}}`` (row ``dnn``: models/fusion/<cfg> of every configuration;
+    one row per ``fusion_variants`` entry) and the ``(model folder, configuration, row)`` list."""
+    from traffictwin.config import ConfigError, get
+    from traffictwin.fusion.config import fusion_variants, variant_row
+    from traffictwin.fusion.model_io import load_fusion_model
+
+    networks: dict[str, dict[str, Any]] = {"dnn": {}}
+    runs = []
+    for c in configs:
+        networks["dnn"][c] = load_fusion_model(
+            fusion_model_dir(c) / "model.ckpt", expected_cfg=c, expected_grid=grid, device=device
+        )
+        runs.append((c, c, "dnn"))
+    variants = fusion_variants(cfg)
+    default_loss = get(cfg, "fusion_model.loss.name", str) if variants else None
+    for name, v in variants.items():
+        row = variant_row(v.method, v.loss, default_loss)
+        if v.config in networks.setdefault(row, {}):
+            raise ConfigError(
+                f"params.yaml: 'fusion_variants.{name}' is row {row!r} at configuration {v.config}, "
+                f"which another network already fills (per-configuration dnn or another variant)"
+            )
+        networks[row][v.config] = load_fusion_model(
+            fusion_model_dir(name) / "model.ckpt", expected_grid=grid, device=device
+        )
+        runs.append((name, v.config, row))
+    return networks, runs
 
 
 def main() -> None:
     from traffictwin.fusion import evaluation as ev
     from traffictwin.fusion.figures import save_figure
     from traffictwin.fusion.findings import fusion_findings
-    from traffictwin.fusion.model_io import load_fusion_model
 
     setup_logging()
     cfg = params()
     grid = grid_config(cfg)
     noise = pose_configurations(cfg)
     fc = fusion_eval_config(cfg)
+    ci = ev.fusion_ci_config(cfg)
     configs = list(noise)
     with stage_timer(STAGE):
+        networks, runs = load_networks(cfg, configs, grid, fc.device)
         data, pair_ids = ev.load_test_sets(
-            {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs
+            {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid
         )
-        raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split)
-        models = {
-            c: load_fusion_model(
-                fusion_model_dir(c) / "model.ckpt",
-                expected_cfg=c,
-                expected_grid=grid,
-                device=fc.device,
-            )
-            for c in configs
-        }
-        res = ev.evaluate(data, raw, models, grid, fc)
+        raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
+        res = ev.evaluate(data, raw, networks, grid, fc, ci)
         metrics = ev.json_clean(res.metrics)
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))
@@ -124,7 +160,7 @@ def main() -> None:
             save_figure(fig, figure_file(name))
         write_text_atomic(FINDINGS, fusion_findings(metrics))
         write_json_atomic(METRICS, metrics)
-        log_to_mlflow(metrics, configs)
+        log_to_mlflow(metrics, runs)
 
 
 if __name__ == "__main__":

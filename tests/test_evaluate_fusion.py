@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from traffictwin.evidential.dempster import dempster
-from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
+from traffictwin.fusion.evaluation import CI_KEYS, DIFF_KEYS, TARGETS, EvalSettings, evaluate_method
 from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.methods import METHODS as REGISTRY
 from traffictwin.fusion.methods import FusionInput, fuse
@@ -195,85 +195,154 @@ def test_json_clean_and_mlflow_numbers():
 
     m = json_clean(
         {
-            "test": {"A": {"dnn": {"k": np.float32(0.5)}, "naive": {"k": float("nan"), "n": 3}}},
+            "test": {
+                "A": {
+                    "dnn": {"k": np.float32(0.5), "k_ci": {"lo": 0.4, "hi": np.float64(0.6)}},
+                    "naive": {"k": float("nan"), "n": 3},
+                    "dnn[paper]": {"k": 0.7},
+                }
+            },
             "cross": {"dnn-A": {"A": {"k": 0.25}, "B": {"k": np.inf}}},
             "ids": (np.int64(1), 2.0),
         }
     )
     assert m["test"]["A"]["naive"]["k"] is None and m["cross"]["dnn-A"]["B"]["k"] is None
     assert m["ids"] == [1, 2.0] and isinstance(m["ids"][0], int)
-    assert mlflow_metrics(m, "A") == {"test/k": 0.5, "test_naive/n": 3.0, "cross_A/k": 0.25}
+    assert mlflow_metrics(m, "A") == {
+        "test/k": 0.5,
+        "test/k_ci_lo": 0.4,
+        "test/k_ci_hi": 0.6,
+        "test_naive/n": 3.0,
+        "test_dnn_paper_/k": 0.7,
+        "cross_A/k": 0.25,
+    }
+    # a variant's own run: its row is test/, no cross table
+    assert mlflow_metrics(m, "A", "dnn[paper]") == {
+        "test_dnn/k": 0.5,
+        "test_dnn/k_ci_lo": 0.4,
+        "test_dnn/k_ci_hi": 0.6,
+        "test_naive/n": 3.0,
+        "test/k": 0.7,
+    }
 
 
-def _metrics(net: dict[str, float], naive: dict[str, float]) -> dict:
-    test = {}
+def _ci(v: float, half: float) -> dict:
+    return {"lo": v - half, "hi": v + half}
+
+
+def _metrics(net: dict[str, float], naive: dict[str, float], half: float = 0.01) -> dict:
+    """fusion.json-like metrics: KLD(b) of the network / naive per configuration, intervals of
+    half-width ``half`` around each estimate and around each network − naive difference."""
+    test, diff = {}, {}
     for c in CFGS:
-        base = {
-            "kld_fo_q25": 0.1,
-            "kld_fo_q75": 0.3,
-            "dice_occ": 0.8,
-            "precision_occ": 0.8,
-            "recall_free": 0.9,
-        }
+        base = {"kld_fou_q25": 0.1, "kld_fou_q75": 0.3, "dice_occ": 0.8, "u_mean": 0.3}
+        reg = (net[c] + naive[c]) / 2
         test[c] = {
-            "naive": {**base, "kld_fo_mean": naive[c], "kld_fo_q75": 0.1 + 2 * naive[c]},
+            "naive": {**base, "kld_fou_mean": naive[c], "kld_fou_q75": 0.1 + 2 * naive[c]},
             "dnn": {
                 **base,
-                "kld_fo_mean": net[c],
+                "kld_fou_mean": net[c],
+                "kld_fo_mean": net[c] / 2,
                 "dice_occ": 0.9 if net[c] < naive[c] else 0.5,
-                "precision_occ": 0.7,
-                "recall_free": 0.8,
                 "u_auroc": 0.8,
+                "u_auroc_ci": _ci(0.8, 0.05),
             },
             "registered": {
                 **base,
-                "kld_fo_mean": (net[c] + naive[c]) / 2,
+                "kld_fou_mean": reg,
                 "success_rate": 0.5,
                 "residual_trans_m_median": 0.2,
                 "noisy_trans_m_median": 1.0,
             },
         }
+        for row in test[c].values():
+            row.update({f"{k}_ci": _ci(row[k], half) for k in ("kld_fou_mean", "dice_occ")})
+        d = net[c] - naive[c]
+        dd = test[c]["dnn"]["dice_occ"] - 0.8
+        diff[c] = {
+            "dnn": {
+                "vs_naive": {
+                    "kld_fou_mean": {"estimate": d, **_ci(d, half)},
+                    "kld_fo_mean": {"estimate": d / 2, **_ci(d / 2, half)},
+                    "dice_occ": {"estimate": dd, **_ci(dd, half)},
+                },
+                "vs_registered": {
+                    "kld_fou_mean": {"estimate": net[c] - reg, **_ci(net[c] - reg, half)}
+                },
+            },
+            "registered": {
+                "vs_naive": {
+                    "kld_fou_mean": {"estimate": reg - naive[c], **_ci(reg - naive[c], half)}
+                }
+            },
+        }
     return {
         "test": test,
+        "diff": diff,
+        "label": {c: {"u_mean": 0.5} for c in CFGS},
+        "bootstrap": {"n_boot": 2000, "level": 0.95, "cluster": "scenario = pair_id // 1000"},
         "cross": {
-            f"dnn-{c}": {t: {"kld_fo_mean": 0.1 if c == t else 0.2} for t in CFGS} for c in CFGS
+            f"dnn-{c}": {t: {"kld_fou_mean": 0.1 if c == t else 0.2} for t in CFGS} for c in CFGS
         },
     }
 
 
-def test_findings_follow_the_numbers():
+def test_findings_claim_only_differences_whose_interval_excludes_zero():
     paper_like = fusion_findings(
         _metrics(
             {"A": 0.2, "B": 0.2, "C": 0.25, "D": 0.3}, {"A": 0.0, "B": 0.4, "C": 0.6, "D": 0.8}
         )
     )
-    assert "3/3 configurations (B, C, D)" in paper_like and "this reproduces" in paper_like
     assert (
-        "Configuration A (no noise):** the network's mean KLD is 0.200 vs naive 0.000" in paper_like
+        "lower in 3/3 configurations (B, C, D)" in paper_like
+        and "this reproduces" in paper_like.lower()
     )
-    assert "worse than" in paper_like and "between naive and the network" in paper_like
-    assert "A 0.800" in paper_like and "above chance" in paper_like
+    assert "network lower at B, C, D" in paper_like
+    assert "D -0.500 [-0.510, -0.490]" in paper_like  # the difference with its interval
+    assert "network KLD(b) 0.200 [0.190, 0.210] vs naive 0.000 [-0.010, 0.010]" in paper_like
+    assert "the network is worse than the naive fusion" in paper_like
+    assert "A 0.800 [0.750, 0.850]" in paper_like and "above 0.5) in 4/4" in paper_like
     assert "A: dnn-A, B: dnn-B" in paper_like
+    assert "network vs registered: lower" in paper_like
+    # the same estimates with wide intervals: nothing is claimed
+    noisy = fusion_findings(
+        _metrics(
+            {"A": 0.2, "B": 0.2, "C": 0.25, "D": 0.3},
+            {"A": 0.0, "B": 0.4, "C": 0.6, "D": 0.8},
+            half=1.0,
+        )
+    )
+    assert "lower in 0/3 configurations (none)" in noisy and "does not reproduce" in noisy
+    assert "no difference shown at B, C, D" in noisy
+    assert "not shown different from the naive fusion" in noisy
     opposite = fusion_findings(_metrics({c: 1.0 for c in CFGS}, {c: 0.1 for c in CFGS}))
-    assert "0/3 configurations (none)" in opposite and "does not reproduce" in opposite
+    assert "network higher at B, C, D" in opposite
     assert fusion_findings({}).startswith("## Fusion findings")
 
 
-def test_findings_report_kld_b_and_explain_negative_kld_a():
-    m = _metrics({c: -0.03 for c in CFGS}, {"A": 0.0, "B": 0.2, "C": 0.25, "D": 0.3})
+def test_findings_explain_negative_kld_a_variants_and_targets():
+    m = _metrics({c: 1.5 for c in CFGS}, {"A": 0.0, "B": 0.2, "C": 0.25, "D": 0.3})
     for c in CFGS:
-        m["test"][c]["dnn"].update(kld_fou_mean=1.5, u_mean=0.05)
-        m["test"][c]["naive"].update(kld_fou_mean=0.3 if c != "A" else 0.0, u_mean=0.6)
+        m["test"][c]["dnn"]["kld_fo_mean"] = -0.03
+    text = fusion_findings(m)
+    assert "Negative KLD(a) (A, B, C, D)" in text and "KLD(b) is the headline" in text
+    assert "Mean u, network vs label:** A 0.300 vs 0.500" in text
+    m["test"]["D"]["dnn[paper]"] = {"kld_fou_mean": 0.9, "kld_fou_mean_ci": _ci(0.9, 0.1)}
+    m["diff"]["D"]["dnn[paper]"] = {
+        "vs_naive": {"kld_fou_mean": {"estimate": 0.6, "lo": 0.5, "hi": 0.7}}
+    }
+    m["targets"] = {
+        "u_auroc": {"status": "fail"},
+        "dice_occ_at_A": {"status": "pass"},
+        "x": {"status": "not evaluated"},
+    }
     text = fusion_findings(m)
     assert (
-        "KLD (b), over the full (m_F, m_O, u):** the network has the lower mean in 0/4 configurations (none)"
+        "Row `dnn[paper]`:** D: KLD(b) 0.900 [0.800, 1.000] (vs naive: higher, vs registered: n/a)"
         in text
     )
-    assert "D 1.500 vs naive 0.300" in text and "D 0.050 vs 0.600" in text
-    assert "Negative KLD (a) (A, B, C, D)" in text
-    m["test"]["B"]["dnn"]["kld_fou_mean"] = 0.1
-    assert "lower mean in 1/4 configurations (B)" in fusion_findings(m)
-    assert "Negative KLD (a)" not in fusion_findings(
+    assert "1 pass, 1 fail, 1 not evaluated; failing: u_auroc; not evaluated: x" in text
+    assert "Negative KLD(a)" not in fusion_findings(
         _metrics({c: 0.1 for c in CFGS}, {c: 0.2 for c in CFGS})
     )
 
@@ -404,8 +473,17 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
                 "ms_per_pair",
             ):
                 assert v[k] is not None and math.isfinite(v[k]), (c, meth, k)
-            assert v["kld_fo_mean"] >= 0 and 0 <= v["dice_occ"] <= 1
+            assert v["kld_fou_mean"] >= -1e-6 and 0 <= v["dice_occ"] <= 1
+            for k in CI_KEYS:  # the interval of every headline metric (null where undefined)
+                ci = v[f"{k}_ci"]
+                assert set(ci) == {"lo", "hi"}
+                if ci["lo"] is not None and v[k] is not None:
+                    assert ci["lo"] - 1e-9 <= v[k] <= ci["hi"] + 1e-9, (c, meth, k)
+            if meth != "naive":
+                d = m["diff"][c][meth]["vs_naive"]
+                assert set(d) == set(DIFF_KEYS) and d["kld_fou_mean"]["n_pairs"] >= 1
         assert 0 <= m["test"][c]["registered"]["success_rate"] <= 1
+        assert 0 <= m["label"][c]["u_mean"] <= 1
         assert m["test"][c]["dnn"]["u_auroc"] is None or 0 <= m["test"][c]["dnn"]["u_auroc"] <= 1
     # zero noise: the naive fusion is the label's construction
     assert (
@@ -415,6 +493,10 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
         sorted(m["cross"][k]) == list(CFGS) for k in m["cross"]
     )
     assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]
+    assert set(m["targets"]) == set(TARGETS)
+    for t in m["targets"].values():
+        assert t["status"] in ("pass", "fail", "not evaluated")
+    assert m["bootstrap"]["n_boot"] >= 100
     samples = pd.read_csv(ci_dag / "reports" / "fusion_eval_samples.csv")
     n = m["n_pairs"]["per_config"]
     assert (samples[samples.method == "naive"].groupby("config").size() == n).all()
@@ -455,6 +537,10 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
             "mlflow_run_id"
         ]
         logged = client.get_run(run_id).data.metrics
+        assert logged["test/kld_fou_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fou_mean"])
+        assert logged["test/kld_fou_mean_ci_lo"] == pytest.approx(
+            m["test"][c]["dnn"]["kld_fou_mean_ci"]["lo"]
+        )
         assert logged["test/kld_fo_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fo_mean"])
         assert logged["test_naive/dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
         assert f"cross_{c}/kld_fo_mean" in logged

@@ -188,30 +188,95 @@ def tiny_png() -> bytes:
 
 
 def fusion_metrics() -> dict:
-    """Layout of evaluate_fusion's fusion.json: test[cfg][method][metric], cross[net][test cfg][metric]."""
-    test = {}
+    """Layout of evaluate_fusion's fusion.json: test[cfg][row][metric] (+ <metric>_ci {lo, hi}),
+    diff[cfg][row][vs_<base>][metric], label, targets, cross[net][test cfg][metric]; a loss
+    variant row dnn[paper] at D only."""
+    test: dict = {}
+    diff: dict = {}
     for i, c in enumerate("ABCD"):
         test[c] = {}
-        for m, worse in (("dnn", 1.0), ("naive", 3.0), ("registered", 2.0)):
+        rows = [("dnn", 1.0), ("naive", 3.0), ("registered", 2.0)]
+        if c == "D":
+            rows.append(("dnn[paper]", 1.5))
+        for m, worse in rows:
             kld = 0.1 + 0.05 * i * worse + (0.02 if m == "dnn" and c == "A" else 0)
-            test[c][m] = {
+            v = {
                 "kld_fo_mean": kld,
                 "kld_fo_median": 0.09 + 0.01 * i,
-                "kld_fou_mean": 0.2 + 0.01 * i,
+                "kld_fou_mean": kld + 0.1,
                 "kld_fo_q25": 0.05,
                 "kld_fo_q75": 0.15,
                 "n": 12.0,
+                "u_mean": 0.25,
+                "u_auroc": 0.75,
                 **{
                     f"{k}_{cls}": 0.9 - 0.05 * i * worse
                     for k in ("precision", "recall", "dice")
                     for cls in ("occ", "free")
                 },
             }
+            for k in ("kld_fou_mean", "kld_fo_mean", "dice_occ", "dice_free", "u_mean", "u_auroc"):
+                v[f"{k}_ci"] = {"lo": v[k] - 0.01, "hi": v[k] + 0.01}
+            test[c][m] = v
+        diff[c] = {}
+        for m in test[c]:
+            for b in ("naive", "registered"):
+                if m != b:
+                    diff[c].setdefault(m, {})[f"vs_{b}"] = {
+                        k: {
+                            "estimate": test[c][m][k] - test[c][b][k],
+                            "lo": test[c][m][k] - test[c][b][k] - 0.005,
+                            "hi": test[c][m][k] - test[c][b][k] + 0.005,
+                            "n_pairs": 12,
+                        }
+                        for k in ("kld_fou_mean", "kld_fo_mean", "dice_occ")
+                    }
     cross = {
-        n: {c: {"kld_fo_mean": 0.1 + 0.01 * (ord(n) + 2 * ord(c) - 195)} for c in "ABCD"}
+        n: {c: {"kld_fou_mean": 0.1 + 0.01 * (ord(n) + 2 * ord(c) - 195)} for c in "ABCD"}
         for n in "ABCD"
     }
-    return {"test": test, "cross": cross}
+    targets = {
+        "u_auroc": {
+            "description": "AUROC of the network's u for wrongly classified cells",
+            "threshold": 0.85,
+            "op": ">=",
+            "status": "fail",
+            "per_config": {
+                c: {
+                    "value": 0.75,
+                    "lo": 0.74,
+                    "hi": 0.76,
+                    "status": "fail",
+                    "ci_beyond_threshold": True,
+                }
+                for c in "ABCD"
+            },
+        },
+        "hybrid_vs_registered": {
+            "description": "registered+network vs registered",
+            "threshold": 0.0,
+            "op": "<",
+            "status": "not evaluated",
+            "per_config": {
+                c: {
+                    "value": None,
+                    "lo": None,
+                    "hi": None,
+                    "status": "not evaluated",
+                    "why": "no row",
+                }
+                for c in "CD"
+            },
+        },
+    }
+    return {
+        "test": test,
+        "diff": diff,
+        "label": {c: {"u_mean": 0.5, "u_mean_ci": {"lo": 0.45, "hi": 0.55}} for c in "ABCD"},
+        "targets": targets,
+        "bootstrap": {"n_boot": 2000, "seed": 0, "level": 0.95, "cluster": "scenario"},
+        "cross": cross,
+    }
 
 
 def risk_metrics() -> dict:
@@ -410,19 +475,33 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     )  # region table: the primary (paper-region) label first
     # derived ranking: our numbers say network < baseline for B, paper too
     anchors = [t.anchor for s in rep.sections for t in s.tables]
-    kld = md_tables(md)[anchors.index("fusion-kld")]
-    assert [r[-2:] for r in kld] == [["naive lower", "naive lower"]] + [
+    kld = md_tables(md)[anchors.index("fusion-kld")]  # the headline: KLD(b)
+    assert [r[-3:] for r in kld] == [["0.02", "[0.015, 0.025]", "naive lower"]] + [
+        [
+            f"{-0.1 * i:.1f}".rstrip("0"),
+            f"[{-0.1 * i - 0.005:.3f}, {-0.1 * i + 0.005:.3f}]",
+            "network lower",
+        ]
+        for i in (1, 2, 3)
+    ]
+    # r, alpha, then dnn / naive / registered / dnn[paper] (only at D)
+    assert kld[1][:7] == ["B", "1", "10", "0.25", "0.35", "0.3", "n/a"]
+    assert kld[3][6] == "0.425"
+    kld_a = md_tables(md)[anchors.index("fusion-kld-a")]  # for comparison with the paper
+    assert [r[-2:] for r in kld_a] == [["naive lower", "naive lower"]] + [
         ["network lower", "network lower"]
     ] * 3
-    assert kld[1][:6] == [
-        "B",
-        "1",
-        "10",
-        "0.15",
-        "0.25",
-        "0.2",
-    ]  # r, alpha, then dnn / naive / registered
+    assert kld_a[1][:6] == ["B", "1", "10", "0.15", "0.25", "0.2"]
     assert "fusion-cross" in anchors and "| A | 0.1 | 0.12 | 0.14 | 0.16 |" in md
+    assert "| u_auroc | A | 0.75 | [0.74, 0.76] | >= | 0.85 | fail | yes |" in md
+    assert "| hybrid_vs_registered | D | n/a | n/a | < | 0 | not evaluated |  |" in md
+    ablation = md_tables(md)[anchors.index("fusion-loss-ablation")]
+    assert [r[:2] for r in ablation] == [["D", "dnn"], ["D", "dnn[paper]"]]
+    assert ablation[1][2:4] == ["0.425", "[0.415, 0.435]"] and ablation[1][-3] == "0.5"
+    diffs = md_tables(md)[anchors.index("fusion-diff")]
+    b_vs_naive = next(r for r in diffs if r[:3] == ["B", "network", "naive"])
+    assert b_vs_naive[3:6] == ["-0.1", "[-0.105, -0.095]", "lower"]
+    assert ["D", "dnn[paper]", "registered"] in [r[:3] for r in diffs]
     # the data differs: said plainly
     assert "data differs from the papers'" in md and "own simulator" in md
     # run info: commit, experiment, timings in DAG order, report's own timing left out
@@ -438,7 +517,7 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     # results table for the project README
     res = (reports / "results_table.md").read_text()
     assert (
-        "Fusion: KLD(a) mean" in res
+        "Fusion: KLD(b) mean" in res
         and "Risk: test results" in res
         and "Risk: confusion matrix" in res
     )
@@ -541,7 +620,9 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     md = (reports / "README.md").read_text()
     # both papers' headline tables, with numbers from the real metrics files
     for anchor_title in (
+        "Fusion: KLD(b) mean",
         "Fusion: KLD(a) mean",
+        "Fusion: targets",
         "Fusion: precision / recall / Dice",
         "Risk: test results",
         "Risk: confusion matrix",

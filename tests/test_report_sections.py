@@ -135,7 +135,14 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
         ["(no fusion.json: findings need the evaluation metrics)"],
     )
 
-    metrics = {"test": {"A": {"dnn": {"kld_fo_mean": 0.25}, "naive": {"kld_fo_mean": 0.5}}}}
+    metrics = {
+        "test": {"A": {"dnn": {"kld_fou_mean": 0.25}, "naive": {"kld_fou_mean": 0.5}}},
+        "diff": {
+            "A": {
+                "dnn": {"vs_naive": {"kld_fou_mean": {"estimate": -0.25, "lo": -0.3, "hi": -0.2}}}
+            }
+        },
+    }
     only_eval = _reports(tmp_path / "b", {"fusion.json": metrics})
     report = R.build_report(_inputs(only_eval), providers({"A": (0.0, 0.0)}))
     sec = _section(report, fusion_report.TITLE)
@@ -147,9 +154,20 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
         "0",
         "0.25",
         "0.5",
+        "-0.25",
+        "[-0.3, -0.2]",
         "network lower",
-        "naive lower",
     ]
+    assert kld.rows[0][6].derived.endswith("fusion.json#diff.A.dnn.vs_naive.kld_fou_mean")
+    # an interval containing 0 is no finding
+    wide = json.loads(json.dumps(metrics))
+    wide["diff"]["A"]["dnn"]["vs_naive"]["kld_fou_mean"]["hi"] = 0.01
+    again = _reports(tmp_path / "c", {"fusion.json": wide})
+    sec2 = _section(
+        R.build_report(_inputs(again), providers({"A": (0.0, 0.0)})), fusion_report.TITLE
+    )
+    kld2 = next(t for t in sec2.tables if t.anchor == "fusion-kld")
+    assert kld2.rows[0][-1].text == "no difference shown"
     assert kld.rows[0][1].src == "params#configurations.A.r"
     # findings come from fusion.findings, as bullets
     assert sec.bullet_groups[0] == (
@@ -167,7 +185,7 @@ def test_headline_tables_in_section_order(tmp_path: Path) -> None:
         "models": {"v": {"test/mse": 0.02}},
         "baselines": {},
     }
-    metrics = {"test": {"A": {"dnn": {"kld_fo_mean": 0.25}}}}
+    metrics = {"test": {"A": {"dnn": {"kld_fou_mean": 0.25}}}}
     rep = _reports(tmp_path, {"fusion.json": metrics, "risk.json": risk})
     report = R.build_report(_inputs(rep), providers({}))
     assert [t.anchor for t in R.results_tables(report)] == [
@@ -176,7 +194,7 @@ def test_headline_tables_in_section_order(tmp_path: Path) -> None:
         "risk-confusion",
     ]
     res = R.render_results_markdown(report)
-    assert res.index("Fusion: KLD(a) mean") < res.index("Risk: test results")
+    assert res.index("Fusion: KLD(b) mean") < res.index("Risk: test results")
     assert res.endswith("Full report: [README.md](README.md).\n")
 
 

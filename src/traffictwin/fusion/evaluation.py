@@ -4,51 +4,92 @@ The stage ``evaluate_fusion`` reads params and paths and writes the outputs; eve
 between is here, with paths and settings as explicit arguments:
 
 - :func:`load_test_sets` / :func:`load_raw_pairs` — the same pair ids (and so the same noise
-  draws) for every configuration and method;
+  draws) for every configuration and method, masses and grid shape checked;
 - :func:`evaluate_method` — per-sample metrics of one registered method
   (:data:`traffictwin.fusion.methods.METHODS`) on a :class:`~traffictwin.fusion.methods.FusionInput`;
-- :func:`evaluate` — every method × configuration, each network on every configuration (the
-  cross table), pose-error bins: returns an :class:`Evaluation` (the ``fusion.json`` dict and the
-  samples table);
+- :func:`evaluate` — every method without a network once per configuration, every *row* of
+  networks (``networks[row][cfg]``: ``dnn`` = each configuration's own network, plus the
+  ``fusion_variants`` rows such as ``dnn[paper]`` or ``registered+network``) where it has a
+  model, the ``dnn`` networks on the other configurations (cross table), pose-error bins,
+  cluster-bootstrap intervals, paired differences and the targets: an :class:`Evaluation`;
+- :func:`row_intervals`, :func:`paired_intervals`, :func:`fusion_targets` — the statistics
+  (:mod:`traffictwin.stats`; cluster = scenario = ``pair_id // 1000``);
 - :func:`plot_tables`, :func:`figures`, :func:`qualitative_panels` — DVC plot data and figures;
 - :func:`json_clean`, :func:`mlflow_metrics` — JSON-safe metrics, the flat per-network numbers.
 
-Metrics layout: ``test.<cfg>.<method>.<metric>``, ``cross.dnn-<net>.<cfg>.<metric>``,
-``bins.{translation,rotation}.<method>.<bin>.<metric>``, ``runtime_ms_per_pair.<method>``,
-``n_pairs.{per_config,registered,cross}``.
+Metrics layout (``fusion.json``); ``<row>`` is a method name or a network row (``dnn``,
+``dnn[<loss>]``, ``registered+network``):
+
+- ``test.<cfg>.<row>.<metric>`` — point estimates (:data:`SUMMARY_KEYS`, ``u_auroc``,
+  ``ms_per_pair``, method diagnostics); the headline is ``kld_fou_mean`` (KLD(b));
+- ``test.<cfg>.<row>.<metric>_ci: {lo, hi}`` — 95 % cluster-bootstrap interval of each
+  metric of :data:`CI_KEYS`;
+- ``diff.<cfg>.<row>.vs_<base>.<metric>: {estimate, lo, hi, n_pairs}`` — paired difference
+  ``row − base`` (same pairs, same resamples) for ``base`` in :data:`DIFF_BASELINES` and the
+  metrics of :data:`DIFF_KEYS`;
+- ``label.<cfg>.u_mean`` (+ ``u_mean_ci``) — mean u of the labels over the evaluated pairs;
+- ``targets.<name>: {description, threshold, status, per_config: {<cfg>: {value, lo, hi,
+  status, ci_beyond_threshold}}}`` — the issue's targets (:func:`fusion_targets`), status
+  ``pass`` / ``fail`` / ``not evaluated``;
+- ``cross.dnn-<net>.<cfg>.<metric>``, ``bins.{translation,rotation}.<row>.<bin>.<metric>``,
+  ``runtime_ms_per_pair.<row>``, ``n_pairs.{per_config,registered,cross}``,
+  ``bootstrap.{n_boot,seed,level,cluster}``.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from traffictwin.config import spec, typed
+from traffictwin.evidential.masses import check_masses, unknown_mass
 from traffictwin.fusion.config import FusionEvalConfig, PoseNoise
 from traffictwin.fusion.methods import METHODS, FusionInput, FusionMethod
-from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate
+from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate, auroc_from_hist, prf
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.stats import (
+    Interval,
+    _resample_counts,
+    mean_ci,
+    paired_mean_difference_ci,
+    statistic_ci,
+)
 
 __all__ = [
     "EvalSettings",
+    "CIConfig",
     "Evaluation",
     "SUMMARY_KEYS",
     "CROSS_KEYS",
     "BIN_KEYS",
+    "CI_KEYS",
+    "DIFF_KEYS",
+    "DIFF_BASELINES",
     "FIGURE_METHODS",
+    "HEADLINE",
+    "SCENARIO_STRIDE",
+    "TARGETS",
+    "row_method",
+    "scenario_of",
+    "fusion_ci_config",
     "evenly_spaced",
     "load_test_sets",
     "load_raw_pairs",
     "evaluate_method",
     "evaluate",
+    "row_intervals",
+    "paired_intervals",
+    "fusion_targets",
     "pose_bins",
     "qualitative_panels",
     "plot_tables",
@@ -64,8 +105,7 @@ CLASS_SCORE_KEYS = tuple(
 SUMMARY_KEYS = (
     "n",
     *(f"kld_fo_{s}" for s in ("mean", "median", "q25", "q75")),
-    "kld_fou_mean",
-    "kld_fou_median",
+    *(f"kld_fou_{s}" for s in ("mean", "median", "q25", "q75")),
     *CLASS_SCORE_KEYS,
     "dice_occ_sample_mean",
     "dice_free_sample_mean",
@@ -81,12 +121,29 @@ CROSS_KEYS = (
     "precision_occ",
     "recall_occ",
 )
-BIN_KEYS = ("n", "kld_fo_mean", "kld_fo_median", "dice_occ", "dice_free")
-SCORE_KEYS = (*CLASS_SCORE_KEYS, "kld_fo_mean")  # the columns of fusion_scores.csv per method
+BIN_KEYS = (
+    "n",
+    "kld_fou_mean",
+    "kld_fou_median",
+    "kld_fo_mean",
+    "kld_fo_median",
+    "dice_occ",
+    "dice_free",
+)
+SCORE_KEYS = (*CLASS_SCORE_KEYS, "kld_fou_mean", "kld_fo_mean")  # fusion_scores.csv columns per row
 # the method order of the score plots / fusion_scores.csv and the methods of the KLD box plot
+# (network rows of fusion_variants are added where they exist)
 SCORE_METHODS = ("dnn", "naive", "registered", "naive-yager", "naive-cautious", "ego")
 FIGURE_METHODS = ("naive", "registered", "dnn")
 NETWORK = "dnn"  # the network method; its cross entries are "dnn-<net>"
+HEADLINE = "kld_fou_mean"  # KLD(b): KL over the full mass vector (m_F, m_O, u), mean over pairs
+SCENARIO_STRIDE = (
+    1000  # scenario = pair_id // 1000: the bootstrap cluster (pairs of a scenario correlate)
+)
+CI_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ", "dice_free", "u_mean", "u_auroc")
+DIFF_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ")
+DIFF_BASELINES = ("naive", "registered")
+HYBRID = "registered+network"
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
 
@@ -107,17 +164,45 @@ class EvalSettings:
 
 
 @dataclass
+class CIConfig:
+    """``evaluation.fusion_ci``: cluster-bootstrap intervals (conf/evaluation/base.yaml).
+
+    ``n_boot`` resamples of the scenarios (``pair_id // 1000``) drawn from ``seed``; ``level``
+    the interval's coverage (0.95 = 95 % percentile interval)."""
+
+    n_boot: int = spec(MISSING, min=100)
+    seed: int = spec(MISSING, min=0)
+    level: float = spec(MISSING, min=0.5, max=0.999)
+
+
+def fusion_ci_config(cfg: Any) -> CIConfig:
+    """``evaluation.fusion_ci`` of params.yaml, checked."""
+    return typed(cfg["evaluation"]["fusion_ci"], CIConfig, key="evaluation.fusion_ci")
+
+
+@dataclass
 class Evaluation:
     """Result of :func:`evaluate`: ``metrics`` (the fusion.json dict, before :func:`json_clean`),
-    ``samples`` (one row per configuration × method × pair), ``bins`` (pose-error bin table),
-    ``data`` / ``raw`` (the evaluated arrays per configuration / raw pairs) and ``models``."""
+    ``samples`` (one row per configuration × row × pair), ``bins`` (pose-error bin table),
+    ``data`` / ``raw`` (the evaluated arrays per configuration / raw pairs) and ``networks``
+    (``{row: {cfg: model}}``)."""
 
     metrics: dict[str, Any]
     samples: pd.DataFrame
     bins: pd.DataFrame
     data: dict[str, dict[str, np.ndarray]]
     raw: dict[str, np.ndarray]
-    models: dict[str, Any]
+    networks: Mapping[str, Mapping[str, Any]]
+
+
+def row_method(row: str) -> str:
+    """The registry method of an evaluation row: ``"dnn[paper]"`` → ``"dnn"``."""
+    return row.split("[")[0]
+
+
+def scenario_of(pair_id: np.ndarray) -> np.ndarray:
+    """Scenario of each pair, ``pair_id // 1000`` (int64): the bootstrap cluster."""
+    return np.asarray(pair_id, dtype=np.int64) // SCENARIO_STRIDE
 
 
 # -- data ----------------------------------------------------------------------------------------
@@ -128,12 +213,34 @@ def evenly_spaced(n: int, k: int | None) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
 
 
+def _check_maps(a: np.ndarray, name: str, grid: GridSpec | None, channels: int = 2) -> None:
+    """Masses ``a`` (N, channels, H, W): finite, on the simplex, on ``grid``; errors name ``name``."""
+    a = np.asarray(a)
+    if a.ndim != 4 or a.shape[1] != channels:
+        raise DatasetError(f"{name}: expected shape (N, {channels}, H, W), got {a.shape}")
+    if grid is not None and a.shape[-2:] != (grid.rows, grid.cols):
+        raise DatasetError(
+            f"{name}: grid {a.shape[-2]}x{a.shape[-1]} cells, expected {grid.rows}x{grid.cols} "
+            "(params.yaml 'grid'; stale data?)"
+        )
+    for k in range(0, channels, 2):
+        what = name if channels == 2 else f"{name} channels {k}-{k + 1}"
+        try:
+            check_masses(a[:, k : k + 2], what)
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+
+
 def load_test_sets(
-    roots: Mapping[str, str | Path], split: str, max_pairs: int | None
+    roots: Mapping[str, str | Path],
+    split: str,
+    max_pairs: int | None,
+    grid: GridSpec | None = None,
 ) -> tuple[dict[str, dict[str, np.ndarray]], np.ndarray]:
     """Each configuration's ``split`` arrays (``roots[cfg]`` = its prealigned dataset) restricted to
     the same pair ids: ``max_pairs`` of the pair ids common to all configurations, spread evenly
-    over them (so over scenarios/templates)."""
+    over them (so over scenarios/templates). ``inputs`` and ``label`` are checked (finite masses on
+    the simplex, on ``grid`` when given): :class:`DatasetError` naming the dataset and array."""
     raw = {}
     for c, root in roots.items():
         ds = Dataset(root, kind="prealigned")
@@ -141,6 +248,8 @@ def load_test_sets(
         for key in ("inputs", "label", "noise", "rel_pose_true", "rel_pose_noisy", "pair_id"):
             if key not in raw[c]:
                 raise DatasetError(f"{ds.root}: array '{key}' missing in split '{split}'")
+        _check_maps(raw[c]["inputs"], f"{ds.root}: split '{split}' array 'inputs'", grid, 4)
+        _check_maps(raw[c]["label"], f"{ds.root}: split '{split}' array 'label'", grid)
     common = np.array(
         sorted(set.intersection(*(set(raw[c]["pair_id"].tolist()) for c in roots))),
         dtype=np.int64,
@@ -152,16 +261,19 @@ def load_test_sets(
     chosen = common[evenly_spaced(len(common), max_pairs)]
     out = {}
     for c in roots:
-        pid = raw[c]["pair_id"]
-        index = {int(pid[i]): i for i in range(len(pid) - 1, -1, -1)}  # the first draw wins
-        idx = np.array([index[int(p)] for p in chosen], dtype=np.int64)
-        out[c] = {k: v[idx] for k, v in raw[c].items()}
+        pid = np.asarray(raw[c]["pair_id"], dtype=np.int64)
+        # the first draw of each pair id wins (a stable sort keeps the first)
+        order = np.argsort(pid, kind="stable")
+        first = order[np.searchsorted(pid[order], chosen)]
+        out[c] = {k: v[first] for k, v in raw[c].items()}
     return out, chosen
 
 
-def load_raw_pairs(root: str | Path, pair_ids: np.ndarray, split: str) -> dict[str, np.ndarray]:
+def load_raw_pairs(
+    root: str | Path, pair_ids: np.ndarray, split: str, grid: GridSpec | None = None
+) -> dict[str, np.ndarray]:
     """``map1``, ``map2``, ``label``, ``pose1``, ``pose2`` of the fusion dataset ``root`` for
-    ``pair_ids`` (in that order)."""
+    ``pair_ids`` (in that order); the maps are checked like :func:`load_test_sets`'s."""
     ds = Dataset(root, kind="fusion")
     keys = ("map1", "map2", "label", "pose1", "pose2", "pair_id")
     arrays = ds.load_all(split, keys=keys)
@@ -172,7 +284,10 @@ def load_raw_pairs(root: str | Path, pair_ids: np.ndarray, split: str) -> dict[s
             f"{ds.root}: pair ids {missing[:5]} of the prealigned data missing in split '{split}' (stale data?)"
         )
     idx = np.array([index[int(p)] for p in pair_ids], dtype=np.int64)
-    return {k: arrays[k][idx] for k in keys}
+    out = {k: arrays[k][idx] for k in keys}
+    for k in ("map1", "map2", "label"):
+        _check_maps(out[k], f"{ds.root}: split '{split}' array '{k}'", grid)
+    return out
 
 
 # -- one method ----------------------------------------------------------------------------------
@@ -188,12 +303,13 @@ def evaluate_method(
 
     Returns one row per pair (:func:`~traffictwin.fusion.metrics.per_sample_metrics`, ``ms`` = wall
     time per pair: the method's own per-pair timing if it has one, else its batch's time / size,
-    plus the method's diagnostic ``columns``) and the streaming u-AUROC of the whole set.
+    plus the method's diagnostic ``columns``) and the streaming u-AUROC of the whole set (with the
+    per-pair histograms of u, :meth:`~traffictwin.fusion.metrics.UncertaintyAUROC.sample_histograms`).
     """
     from traffictwin.fusion.metrics import per_sample_metrics
 
     method = METHODS[method] if isinstance(method, str) else method
-    auroc = UncertaintyAUROC(bins=settings.auroc_bins)
+    auroc = UncertaintyAUROC(bins=settings.auroc_bins, keep_samples=True)
     parts, extra, seconds = [], [], []
     for sl in _batches(len(label), settings.batch_size):
         t0 = time.perf_counter()
@@ -237,17 +353,133 @@ def _tag(
     idx: np.ndarray,
     network: str = "",
 ) -> pd.DataFrame:
-    """The samples-table rows: configuration, method, network, pair id and the noise drawn."""
+    """The samples-table rows: configuration, row (method), network, pair id, the noise drawn and
+    the label's mean u of each pair (``label_u_mean``)."""
     frame = frame.copy()
     nz = d["noise"][idx]
-    frame.insert(0, "pair_id", d["pair_id"][idx])
+    frame.insert(0, "pair_id", np.asarray(d["pair_id"][idx], dtype=np.int64))
     frame.insert(0, "network", network)
     frame.insert(0, "method", method)
     frame.insert(0, "config", cfg)
     frame["noise_dx"], frame["noise_dy"], frame["noise_dyaw"] = nz[:, 0], nz[:, 1], nz[:, 2]
     frame["trans_err_m"] = np.hypot(nz[:, 0], nz[:, 1])
     frame["rot_err_deg"] = np.degrees(np.abs(nz[:, 2]))
+    frame["label_u_mean"] = unknown_mass(np.asarray(d["label"][idx], np.float64)).mean(axis=(1, 2))
     return frame
+
+
+# -- statistics ----------------------------------------------------------------------------------
+def _codes(pair_id: np.ndarray) -> tuple[np.ndarray, int]:
+    """Dense scenario codes 0..G-1 of pairs (the order :func:`traffictwin.stats.mean_ci` uses)."""
+    _, codes = np.unique(scenario_of(pair_id), return_inverse=True)
+    codes = codes.reshape(-1)
+    return codes, int(codes.max()) + 1 if codes.size else 0
+
+
+def _draws(n_groups: int, ci: CIConfig) -> np.ndarray:
+    """(n_boot, G) resample counts of the scenarios: the same draws as ``stats.mean_ci`` (same seed)."""
+    return _resample_counts(n_groups, ci.n_boot, ci.seed)
+
+
+def _interval(estimate: float, boot: np.ndarray, level: float, n_groups: int) -> Interval:
+    """Percentile interval of the finite bootstrap values ``boot`` (NaN bounds when none)."""
+    boot = np.asarray(boot, dtype=np.float64)
+    boot = boot[np.isfinite(boot)]
+    if not boot.size:
+        return Interval(float(estimate), math.nan, math.nan, level, n_groups)
+    a = (1.0 - level) / 2.0
+    lo, hi = np.quantile(boot, [a, 1.0 - a])
+    return Interval(float(estimate), float(lo), float(hi), level, n_groups)
+
+
+def _pooled_dice(
+    frame: pd.DataFrame, cls: str, codes: np.ndarray, n_groups: int, draws: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """Pooled Dice of class ``cls`` (2TP / (2TP + FP + FN) over all pairs) and its value in each
+    resample (``draws`` @ per-scenario sums of the per-pair counts)."""
+    counts = [frame[f"{k}_{cls}"].to_numpy(np.float64) for k in ("tp", "fp", "fn")]
+    sums = [np.bincount(codes, weights=v, minlength=n_groups) for v in counts]
+    estimate = float(prf(*(v.sum() for v in counts))[2])
+    return estimate, prf(*(draws @ g for g in sums))[2]
+
+
+def _auroc_boot(
+    pos: np.ndarray,
+    neg: np.ndarray,
+    codes: np.ndarray,
+    n_groups: int,
+    draws: np.ndarray,
+    chunk: int = 256,
+) -> np.ndarray:
+    """AUROC of u in each resample from per-pair histograms ``pos``/``neg`` (N, bins): summed per
+    scenario, then ``draws`` @ those sums (``chunk`` resamples at a time to bound memory)."""
+    onehot = np.zeros((n_groups, len(codes)))
+    onehot[codes, np.arange(len(codes))] = 1.0
+    pg, ng = onehot @ np.asarray(pos, np.float64), onehot @ np.asarray(neg, np.float64)
+    out = np.empty(len(draws))
+    for s in range(0, len(draws), chunk):  # a few blocks of resamples, each vectorised
+        out[s : s + chunk] = auroc_from_hist(draws[s : s + chunk] @ pg, draws[s : s + chunk] @ ng)
+    return out
+
+
+def row_intervals(
+    frame: pd.DataFrame, pos: np.ndarray, neg: np.ndarray, ci: CIConfig
+) -> dict[str, Interval]:
+    """Cluster-bootstrap intervals of one row at one configuration, keyed by :data:`CI_KEYS`.
+
+    ``frame``: its per-pair metrics with ``pair_id``; ``pos``/``neg``: per-pair histograms of u
+    on wrong / right label-known cells (same order). KLD and u means: :func:`~traffictwin.stats.mean_ci`;
+    Dice and AUROC(u) recomputed from the resampled per-scenario sums (same draws).
+    """
+    pid = frame["pair_id"].to_numpy(np.int64)
+    groups = scenario_of(pid)
+    kw = {"n_boot": ci.n_boot, "level": ci.level, "seed": ci.seed}
+    out = {
+        "kld_fou_mean": mean_ci(frame["kld_fou"].to_numpy(), groups, **kw),
+        "kld_fo_mean": mean_ci(frame["kld_fo"].to_numpy(), groups, **kw),
+        "u_mean": mean_ci(frame["u_mean"].to_numpy(), groups, **kw),
+    }
+    codes, g = _codes(pid)
+    draws = _draws(g, ci)
+    for cls in ("occ", "free"):
+        out[f"dice_{cls}"] = _interval(*_pooled_dice(frame, cls, codes, g, draws), ci.level, g)
+    est = auroc_from_hist(np.sum(pos, axis=0), np.sum(neg, axis=0))
+    out["u_auroc"] = _interval(est, _auroc_boot(pos, neg, codes, g, draws), ci.level, g)
+    return out
+
+
+def paired_intervals(
+    a: pd.DataFrame, b: pd.DataFrame, ci: CIConfig
+) -> tuple[dict[str, Interval], int]:
+    """Paired differences ``a − b`` of :data:`DIFF_KEYS` over the pairs both rows evaluated
+    (matched by ``pair_id``), scenarios resampled together; and the number of common pairs."""
+    common, ia, ib = np.intersect1d(
+        a["pair_id"].to_numpy(np.int64), b["pair_id"].to_numpy(np.int64), return_indices=True
+    )
+    if not common.size:
+        return {}, 0
+    a, b = a.iloc[ia], b.iloc[ib]
+    groups = scenario_of(common)
+    kw = {"n_boot": ci.n_boot, "level": ci.level, "seed": ci.seed}
+    out = {
+        k: paired_mean_difference_ci(
+            a[k.removesuffix("_mean")].to_numpy(),
+            b[k.removesuffix("_mean")].to_numpy(),
+            groups,
+            **kw,
+        )
+        for k in ("kld_fou_mean", "kld_fo_mean")
+    }
+    codes, g = _codes(common)
+    draws = _draws(g, ci)
+    ea, ba = _pooled_dice(a, "occ", codes, g, draws)
+    eb, bb = _pooled_dice(b, "occ", codes, g, draws)
+    out["dice_occ"] = _interval(ea - eb, ba - bb, ci.level, g)
+    return out, int(common.size)
+
+
+def _lohi(iv: Interval) -> dict[str, float]:
+    return {"lo": iv.lo, "hi": iv.hi}
 
 
 # -- all methods ---------------------------------------------------------------------------------
@@ -274,71 +506,145 @@ def pose_bins(
     return out, pd.DataFrame(rows)
 
 
+def _check_networks(networks: Mapping[str, Mapping[str, Any]], configs: Sequence[str]) -> None:
+    if NETWORK not in networks:
+        raise ValueError(f"evaluate: networks has no '{NETWORK}' row (rows: {list(networks)})")
+    for row, nets in networks.items():
+        method = METHODS.get(row_method(row))
+        if method is None or "model" not in method.needs:
+            raise ValueError(
+                f"evaluate: network row {row!r} names no registry method that uses a model "
+                f"(expected <method>[<loss>] with method from "
+                f"{[m for m, f in METHODS.items() if 'model' in f.needs]})"
+            )
+        unknown = sorted(set(nets) - set(configs))
+        if unknown:
+            raise ValueError(
+                f"evaluate: networks[{row!r}] has configuration(s) {unknown} not in the data {list(configs)}"
+            )
+
+
 def evaluate(
     data: dict[str, dict[str, np.ndarray]],
     raw: dict[str, np.ndarray],
-    models: dict[str, Any],
+    networks: Mapping[str, Mapping[str, Any]],
     grid: GridSpec,
     cfg: FusionEvalConfig,
+    ci: CIConfig,
 ) -> Evaluation:
-    """Every registered method on every configuration of ``data`` (from :func:`load_test_sets`,
-    in configuration order), ``raw`` its raw pairs (:func:`load_raw_pairs`), ``models[cfg]``
-    each configuration's network. Slow methods run on ``cfg.registered_max_pairs`` pairs, the
-    networks on other configurations' pairs (cross table) on ``cfg.cross_max_pairs``."""
+    """Every method on every configuration of ``data`` (from :func:`load_test_sets`, in
+    configuration order), ``raw`` its raw pairs (:func:`load_raw_pairs`).
+
+    ``networks[row][cfg]``: the loaded network of evaluation row ``row`` at configuration
+    ``cfg`` — ``"dnn"`` (each configuration's own network; the only row with a cross table) and
+    the variant rows (``"dnn[paper]"``, ``"registered+network"``, …; registry method
+    :func:`row_method`). Methods without a network run once per configuration; a row runs where
+    it has a model. Slow methods run on ``cfg.registered_max_pairs`` pairs (null = all: every
+    method on the same pairs), the ``dnn`` networks on other configurations on
+    ``cfg.cross_max_pairs``. Intervals and differences: ``ci`` (see the module docstring).
+    """
     configs = list(data)
+    _check_networks(networks, configs)
     es = EvalSettings.from_config(cfg)
     n = len(next(iter(data.values()))["pair_id"])
     all_idx = np.arange(n)
     reg_idx = evenly_spaced(n, cfg.registered_max_pairs)
     cross_idx = evenly_spaced(n, cfg.cross_max_pairs)
     log.info(
-        "evaluating %d pairs per configuration (%d registered, %d cross) on %s",
+        "evaluating %d pairs per configuration (%d for slow methods, %d cross) on %s; rows %s",
         n,
         len(reg_idx),
         len(cross_idx),
         configs,
+        list(networks),
     )
     frames: list[pd.DataFrame] = []
-    metrics: dict[str, Any] = {"test": {}, "cross": {f"{NETWORK}-{c}": {} for c in configs}}
+    own: dict[tuple[str, str], pd.DataFrame] = {}  # (cfg, row) -> its per-pair frame
+    metrics: dict[str, Any] = {
+        "test": {},
+        "diff": {},
+        "label": {},
+        "cross": {f"{NETWORK}-{c}": {} for c in networks[NETWORK]},
+    }
+    kw = {"n_boot": ci.n_boot, "level": ci.level, "seed": ci.seed}
     for c in configs:
         d = data[c]
+        base = FusionInput(
+            inputs=d["inputs"],
+            map1=raw["map1"],
+            map2=raw["map2"],
+            rel_pose_noisy=d["rel_pose_noisy"],
+            rel_pose_true=d["rel_pose_true"],
+            grid=grid,
+            batch_size=cfg.batch_size,
+            registration=cfg.registration_params,
+        )
+        runs: list[tuple[str, FusionMethod, Any, str]] = [
+            (name, m, None, "") for name, m in METHODS.items() if "model" not in m.needs
+        ]
+        runs += [
+            (row, METHODS[row_method(row)], nets[c], c if row == NETWORK else row)
+            for row, nets in networks.items()
+            if c in nets
+        ]
         metrics["test"][c] = {}
-        for name, method in METHODS.items():
-            base = FusionInput(
-                inputs=d["inputs"],
-                map1=raw["map1"],
-                map2=raw["map2"],
-                rel_pose_noisy=d["rel_pose_noisy"],
-                rel_pose_true=d["rel_pose_true"],
-                grid=grid,
-                batch_size=cfg.batch_size,
-                registration=cfg.registration_params,
-            )
-            # with a model: each configuration's network on this configuration (own: all pairs)
-            nets = configs if "model" in method.needs else [None]
-            for net in nets:
-                own = net in (None, c)
-                idx = reg_idx if method.slow else (all_idx if own else cross_idx)
-                x = base.take(idx)
-                x.model = models[net] if net is not None else None
-                f, au = evaluate_method(method, x, d["label"][idx], es)
-                label = name if own else f"{name}-{net}"
-                frames.append(_tag(f, c, label, d, idx, network=net or ""))
-                if net is not None:
-                    agg = aggregate({k: f[k].to_numpy() for k in f.columns})
-                    metrics["cross"][f"{name}-{net}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
-                        "u_auroc": au.value()
-                    }
-                if own:
-                    extra = method.summary(f, es) if method.summary else {}
-                    metrics["test"][c][name] = {**_summary(f), "u_auroc": au.value(), **extra}
+        for row, method, model, net in runs:
+            idx = reg_idx if method.slow else all_idx
+            x = base.take(idx)
+            x.model = model
+            f, au = evaluate_method(method, x, d["label"][idx], es)
+            tagged = _tag(f, c, row, d, idx, network=net)
+            frames.append(tagged)
+            own[(c, row)] = tagged
+            extra = method.summary(f, es) if method.summary else {}
+            cis = row_intervals(tagged, *au.sample_histograms(), ci)
+            metrics["test"][c][row] = {
+                **_summary(f),
+                "u_auroc": au.value(),
+                **extra,
+                **{f"{k}_ci": _lohi(iv) for k, iv in cis.items()},
+            }
+            if row == NETWORK:
+                agg = aggregate({k: f[k].to_numpy() for k in f.columns})
+                metrics["cross"][f"{NETWORK}-{c}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
+                    "u_auroc": au.value()
+                }
+        # each other configuration's dnn network on this configuration's pairs (cross table)
+        for other, model in networks[NETWORK].items():
+            if other == c:
+                continue
+            x = base.take(cross_idx)
+            x.model = model
+            f, au = evaluate_method(METHODS[NETWORK], x, d["label"][cross_idx], es)
+            frames.append(_tag(f, c, f"{NETWORK}-{other}", d, cross_idx, network=other))
+            agg = aggregate({k: f[k].to_numpy() for k in f.columns})
+            metrics["cross"][f"{NETWORK}-{other}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
+                "u_auroc": au.value()
+            }
+        label_u = unknown_mass(np.asarray(d["label"], np.float64)).mean(axis=(1, 2))
+        lu = mean_ci(label_u, scenario_of(d["pair_id"]), **kw)
+        metrics["label"][c] = {"u_mean": lu.estimate, "u_mean_ci": _lohi(lu)}
+        metrics["diff"][c] = {}
+        for (cc, row), frame in own.items():
+            if cc != c:
+                continue
+            for b in DIFF_BASELINES:
+                if row == b or (c, b) not in own:
+                    continue
+                diffs, n_common = paired_intervals(frame, own[(c, b)], ci)
+                metrics["diff"][c].setdefault(row, {})[f"vs_{b}"] = {
+                    k: {"estimate": iv.estimate, "lo": iv.lo, "hi": iv.hi, "n_pairs": n_common}
+                    for k, iv in diffs.items()
+                }
         t = metrics["test"][c]
         log.info(
-            "config %s: KLD naive %.4f, network %.4f, registered %.4f (success %.0f %%)",
+            "config %s: KLD(b) naive %.4f, network %.4f [%.4f, %.4f], registered %.4f (success %.0f %%)",
             c,
-            t["naive"]["kld_fo_mean"],
-            t[NETWORK]["kld_fo_mean"],
-            t["registered"]["kld_fo_mean"],
+            t["naive"][HEADLINE],
+            t[NETWORK][HEADLINE],
+            t[NETWORK][f"{HEADLINE}_ci"]["lo"],
+            t[NETWORK][f"{HEADLINE}_ci"]["hi"],
+            t["registered"][HEADLINE],
             100 * t["registered"]["success_rate"],
         )
     samples = pd.concat(frames, ignore_index=True)
@@ -352,7 +658,206 @@ def evaluate(
         "registered": int(len(reg_idx)),
         "cross": int(len(cross_idx)),
     }
-    return Evaluation(metrics, samples, bins_table, data, raw, models)
+    metrics["bootstrap"] = {
+        "n_boot": ci.n_boot,
+        "seed": ci.seed,
+        "level": ci.level,
+        "cluster": f"scenario = pair_id // {SCENARIO_STRIDE}",
+    }
+    metrics["targets"] = fusion_targets(own, metrics, ci)
+    return Evaluation(metrics, samples, bins_table, data, raw, networks)
+
+
+# -- targets (issue 14) --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Target:
+    """One target: ``description``; ``threshold`` and the comparison ``op`` ("<=" or ">=") the
+    point estimate must meet; ``configs`` it is judged at (None = every configuration)."""
+
+    description: str
+    threshold: float
+    op: str
+    configs: tuple[str, ...] | None
+
+
+TARGETS: dict[str, Target] = {
+    "kld_ratio_vs_naive": Target(
+        "network KLD(b) / naive KLD(b) (ratio of means, paired cluster-bootstrap CI)",
+        0.3,
+        "<=",
+        ("C", "D"),
+    ),
+    "dice_occ_at_A": Target("network Dice occ at A (pooled)", 0.99, ">=", ("A",)),
+    "dice_occ_drop_A_to_D": Target(
+        "relative drop of the network's Dice occ from A to D, 1 − Dice(D)/Dice(A)",
+        0.10,
+        "<=",
+        ("D",),
+    ),
+    "dice_occ_vs_ego": Target(
+        "network Dice occ − ego-only Dice occ (paired difference)", 0.0, ">=", None
+    ),
+    "u_auroc": Target("AUROC of the network's u for wrongly classified cells", 0.85, ">=", None),
+    "u_mean_vs_label": Target(
+        "|network mean u − label mean u| (paired over pairs)", 0.10, "<=", None
+    ),
+    "hybrid_vs_registered": Target(
+        "registered+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
+        "difference's CI not wholly below 0",
+        0.0,
+        "<",
+        ("C", "D"),
+    ),
+}
+NOT_EVALUATED = "not evaluated"
+
+
+def _judge(iv: Interval, threshold: float, op: str) -> dict[str, Any]:
+    """Pass/fail of the point estimate against ``threshold``; ``ci_beyond_threshold``: the whole
+    interval lies on the side of the verdict (the verdict is not noise)."""
+    e, lo, hi = iv.estimate, iv.lo, iv.hi
+    if not math.isfinite(e):
+        return {
+            "value": e,
+            "lo": lo,
+            "hi": hi,
+            "status": NOT_EVALUATED,
+            "ci_beyond_threshold": False,
+        }
+    ok = e <= threshold if op == "<=" else e >= threshold
+    if op == "<=":
+        beyond = hi <= threshold if ok else lo > threshold
+    else:
+        beyond = lo >= threshold if ok else hi < threshold
+    return {
+        "value": e,
+        "lo": lo,
+        "hi": hi,
+        "status": "pass" if ok else "fail",
+        "ci_beyond_threshold": bool(beyond),
+    }
+
+
+def _missing(why: str) -> dict[str, Any]:
+    return {"value": None, "lo": None, "hi": None, "status": NOT_EVALUATED, "why": why}
+
+
+def _overall(per: Mapping[str, Mapping[str, Any]]) -> str:
+    st = [v["status"] for v in per.values()]
+    if not st:
+        return NOT_EVALUATED
+    if "fail" in st:
+        return "fail"
+    return NOT_EVALUATED if NOT_EVALUATED in st else "pass"
+
+
+def fusion_targets(
+    own: Mapping[tuple[str, str], pd.DataFrame], metrics: Mapping[str, Any], ci: CIConfig
+) -> dict[str, Any]:
+    """The targets of :data:`TARGETS` from the per-pair frames ``own[(cfg, row)]`` and the
+    intervals already in ``metrics`` (``test``, ``diff``). A target whose configuration or rows
+    were not evaluated is ``not evaluated`` (never ``pass``)."""
+    configs = list(metrics["test"])
+    kw = {"n_boot": ci.n_boot, "level": ci.level, "seed": ci.seed}
+    out: dict[str, Any] = {}
+
+    def frame(c: str, row: str) -> pd.DataFrame | None:
+        return own.get((c, row))
+
+    def entry(name: str, judge: Callable[[str], dict[str, Any]]) -> None:
+        t = TARGETS[name]
+        per = {c: judge(c) for c in (t.configs or configs)}
+        out[name] = {
+            "description": t.description,
+            "threshold": t.threshold,
+            "op": t.op,
+            "status": _overall(per),
+            "per_config": per,
+        }
+
+    def ratio(c: str) -> dict[str, Any]:
+        n, b = frame(c, NETWORK), frame(c, "naive")
+        if n is None or b is None:
+            return _missing(f"configuration {c} or its dnn / naive rows not evaluated")
+        _, ia, ib = np.intersect1d(n["pair_id"], b["pair_id"], return_indices=True)
+        kn, kb = n["kld_fou"].to_numpy()[ia], b["kld_fou"].to_numpy()[ib]
+        groups = scenario_of(n["pair_id"].to_numpy()[ia])
+
+        def stat(i: np.ndarray) -> float:
+            den = kb[i].mean()
+            return float(kn[i].mean() / den) if den > 0 else math.nan
+
+        return _judge(statistic_ci(stat, len(kn), groups, **kw), 0.3, "<=")
+
+    def value_ci(c: str, row: str, key: str, t: Target) -> dict[str, Any]:
+        v = metrics["test"].get(c, {}).get(row)
+        if v is None:
+            return _missing(f"row {row} not evaluated at configuration {c}")
+        b = v[f"{key}_ci"]
+        return _judge(Interval(v[key], b["lo"], b["hi"], ci.level), t.threshold, t.op)
+
+    def drop(c: str) -> dict[str, Any]:
+        a, d = frame("A", NETWORK), frame(c, NETWORK)
+        if a is None or d is None:
+            return _missing("configurations A and D both needed")
+        common, ia, idd = np.intersect1d(a["pair_id"], d["pair_id"], return_indices=True)
+        codes, g = _codes(common)
+        draws = _draws(g, ci)
+        ea, ba = _pooled_dice(a.iloc[ia], "occ", codes, g, draws)
+        ed, bd = _pooled_dice(d.iloc[idd], "occ", codes, g, draws)
+        if not ea > 0:  # Dice(A) = 0 or undefined: no relative drop
+            return _missing(f"network Dice occ at A is {ea}: the relative drop is undefined")
+        with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice(A) = 0 drop out
+            iv = _interval(1.0 - ed / ea, 1.0 - bd / ba, ci.level, g)
+        return _judge(iv, 0.10, "<=")
+
+    def vs_ego(c: str) -> dict[str, Any]:
+        n, e = frame(c, NETWORK), frame(c, "ego")
+        if n is None or e is None:
+            return _missing(f"dnn or ego not evaluated at configuration {c}")
+        diffs, _ = paired_intervals(n, e, ci)
+        return _judge(diffs["dice_occ"], 0.0, ">=")
+
+    def u_gap(c: str) -> dict[str, Any]:
+        n = frame(c, NETWORK)
+        if n is None:
+            return _missing(f"dnn not evaluated at configuration {c}")
+        d = paired_mean_difference_ci(
+            n["u_mean"].to_numpy(), n["label_u_mean"].to_numpy(), scenario_of(n["pair_id"]), **kw
+        )
+        # |difference|: the interval of |d| from the interval of d
+        lo, hi = (
+            (d.lo, d.hi) if d.lo >= 0 else (-d.hi, -d.lo) if d.hi <= 0 else (0.0, max(-d.lo, d.hi))
+        )
+        res = _judge(Interval(abs(d.estimate), lo, hi, d.level, d.n_groups), 0.10, "<=")
+        res["signed_difference"] = {"estimate": d.estimate, "lo": d.lo, "hi": d.hi}
+        return res
+
+    def hybrid(c: str) -> dict[str, Any]:
+        dd = metrics["diff"].get(c, {}).get(HYBRID, {}).get("vs_registered")
+        if not dd:
+            return _missing(f"rows {HYBRID} and registered not both evaluated at configuration {c}")
+        k, dc = dd[HEADLINE], dd["dice_occ"]
+        if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
+            return _missing(f"no interval of the {HYBRID} − registered difference at {c}")
+        ok = k["hi"] < 0 and not dc["hi"] < 0  # KLD(b) lower, shown; Dice occ not shown lower
+        return {
+            "value": k["estimate"],
+            "lo": k["lo"],
+            "hi": k["hi"],
+            "status": "pass" if ok else "fail",
+            "ci_beyond_threshold": bool(k["hi"] < 0),
+            "dice_occ_difference": {"estimate": dc["estimate"], "lo": dc["lo"], "hi": dc["hi"]},
+        }
+
+    entry("kld_ratio_vs_naive", ratio)
+    entry("dice_occ_at_A", lambda c: value_ci(c, NETWORK, "dice_occ", TARGETS["dice_occ_at_A"]))
+    entry("dice_occ_drop_A_to_D", drop)
+    entry("dice_occ_vs_ego", vs_ego)
+    entry("u_auroc", lambda c: value_ci(c, NETWORK, "u_auroc", TARGETS["u_auroc"]))
+    entry("u_mean_vs_label", u_gap)
+    entry("hybrid_vs_registered", hybrid)
+    return out
 
 
 # -- outputs -------------------------------------------------------------------------------------
@@ -400,12 +905,17 @@ def qualitative_panels(
         inputs = np.concatenate([m1, warped])[None].astype(np.float32)
         rows["label"].append(ev.raw["label"][pair])
         rows["naive"].append(np.asarray(dempster(m1, warped)))
-        rows["network"].append(predict_masses(ev.models[c], inputs, 1)[0][0])
+        rows["network"].append(predict_masses(ev.networks[NETWORK][c], inputs, 1)[0][0])
     return rows
 
 
+def _rows(ev: Evaluation, base: Sequence[str]) -> list[str]:
+    """``base`` methods plus every network row of ``ev`` not among them (variants, in order)."""
+    return [*base, *(r for r in ev.networks if r not in base)]
+
+
 def plot_tables(ev: Evaluation, noise: Mapping[str, PoseNoise]) -> dict[str, pd.DataFrame]:
-    """DVC plot data: ``fusion_kld`` (per pair), ``fusion_scores`` (per configuration and method),
+    """DVC plot data: ``fusion_kld`` (per pair), ``fusion_scores`` (per configuration and row),
     ``fusion_pose_bins`` (per bin)."""
     samples = ev.samples
     main = samples[~samples["method"].str.startswith(f"{NETWORK}-")]
@@ -416,13 +926,13 @@ def plot_tables(ev: Evaluation, noise: Mapping[str, PoseNoise]) -> dict[str, pd.
             "noise_r_m": noise[c].r,
             "noise_alpha_deg": noise[c].alpha,
         }
-        for m in SCORE_METHODS:
+        for m in _rows(ev, SCORE_METHODS):
             for key in SCORE_KEYS:
-                row[f"{m}_{key}"] = ev.metrics["test"][c][m].get(key)
+                row[f"{m}_{key}"] = ev.metrics["test"][c].get(m, {}).get(key)
         score_rows.append(row)
     return {
         "fusion_kld": main[
-            ["config", "method", "pair_id", "kld_fo", "kld_fou", "trans_err_m", "rot_err_deg"]
+            ["config", "method", "pair_id", "kld_fou", "kld_fo", "trans_err_m", "rot_err_deg"]
         ],
         "fusion_scores": pd.DataFrame(score_rows),
         "fusion_pose_bins": ev.bins,
@@ -436,29 +946,33 @@ def figures(
     pair: int,
     fraction: float,
 ) -> dict[str, Any]:
-    """The evaluation's matplotlib figures by file stem: ``fusion_kld_boxplot`` (Fig. 5),
-    ``fusion_scores_occupied`` / ``fusion_scores_free`` (Figs. 6, 7), ``fusion_qualitative`` (Fig. 4)."""
+    """The evaluation's matplotlib figures by file stem: ``fusion_kld_boxplot`` (KLD(b); cf. Fig. 5),
+    ``fusion_scores_occupied`` / ``fusion_scores_free`` (Figs. 6, 7), ``fusion_qualitative`` (Fig. 4).
+    Network rows of ``fusion_variants`` appear beside the methods where they exist."""
     from traffictwin.fusion.figures import kld_boxplot, qualitative_grid, scores_plot
 
     configs = list(ev.data)
     samples = ev.samples
     main = samples[~samples["method"].str.startswith(f"{NETWORK}-")]
     n = ev.metrics["n_pairs"]
+    box_rows = _rows(ev, FIGURE_METHODS)
     kvals = {
-        m: {c: main[(main.method == m) & (main.config == c)]["kld_fo"].to_numpy() for c in configs}
-        for m in FIGURE_METHODS
+        m: {c: main[(main.method == m) & (main.config == c)]["kld_fou"].to_numpy() for c in configs}
+        for m in box_rows
     }
-    scores = {m: {c: ev.metrics["test"][c][m] for c in configs} for m in SCORE_METHODS}
+    score_rows = _rows(ev, SCORE_METHODS)
+    scores = {m: {c: ev.metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}
+    slow = "" if n["registered"] == n["per_config"] else f"; registered on {n['registered']}"
     return {
         "fusion_kld_boxplot": kld_boxplot(
             kvals,
             configs,
-            list(FIGURE_METHODS),
-            title=f"KLD per configuration (test set, {n['per_config']} pairs; registered on "
-            f"{n['registered']})",
+            box_rows,
+            ylabel="KLD(b): KL(label ‖ prediction) over (m_F, m_O, u)",
+            title=f"KLD(b) per configuration (test set, {n['per_config']} pairs{slow})",
         ),
-        "fusion_scores_occupied": scores_plot(scores, configs, list(SCORE_METHODS), "occ"),
-        "fusion_scores_free": scores_plot(scores, configs, list(SCORE_METHODS), "free"),
+        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ"),
+        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free"),
         "fusion_qualitative": qualitative_grid(
             qualitative_panels(ev, noise, grid, pair, fraction),
             configs,
@@ -468,14 +982,33 @@ def figures(
     }
 
 
-def mlflow_metrics(metrics: Mapping[str, Any], cfg: str) -> dict[str, float]:
-    """The flat numbers of configuration ``cfg``'s network run: ``test/<k>`` (its own network),
-    ``test_<method>/<k>`` (the other methods), ``cross_<other>/<k>`` (the network on other
-    configurations); finite values only."""
-    flat: dict[str, float] = {}
+def _mlflow_key(key: str) -> str:
+    """MLflow metric names allow letters, digits, ``_ - . / `` and space: others become ``_``."""
+    return re.sub(r"[^\w\-./ ]", "_", key)
+
+
+def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> dict[str, float]:
+    """The flat numbers of the MLflow run of row ``row``'s network at configuration ``cfg``:
+    ``test/<k>`` (that network), ``test_<method>/<k>`` (the other rows), ``cross_<other>/<k>``
+    (the ``dnn`` network on other configurations; ``dnn`` only); intervals ``<k>_ci`` as
+    ``<k>_ci_lo`` / ``<k>_ci_hi``; finite values only, names MLflow-safe."""
+    flat: dict[str, Any] = {}
     for meth, vals in metrics["test"][cfg].items():
-        prefix = "test" if meth == NETWORK else f"test_{meth}"
-        flat.update({f"{prefix}/{k}": v for k, v in vals.items()})
-    for other, vals in metrics["cross"][f"{NETWORK}-{cfg}"].items():
-        flat.update({f"cross_{other}/{k}": v for k, v in vals.items()})
-    return {k: float(v) for k, v in flat.items() if v is not None and math.isfinite(float(v))}
+        prefix = "test" if meth == row else f"test_{meth}"
+        for k, v in vals.items():
+            if isinstance(v, Mapping):
+                flat.update({f"{prefix}/{k}_{kk}": vv for kk, vv in v.items()})
+            else:
+                flat[f"{prefix}/{k}"] = v
+    if row == NETWORK:
+        for other, vals in metrics["cross"].get(f"{NETWORK}-{cfg}", {}).items():
+            flat.update({f"cross_{other}/{k}": v for k, v in vals.items()})
+    out: dict[str, float] = {}
+    for k, v in flat.items():
+        if (
+            isinstance(v, (bool, int, float, np.number))
+            and v is not None
+            and math.isfinite(float(v))
+        ):
+            out[_mlflow_key(k)] = float(v)
+    return out

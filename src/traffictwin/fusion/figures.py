@@ -8,7 +8,8 @@ Each figure function returns the matplotlib ``Figure`` (so tests can check what 
 - :func:`qualitative_grid` — label / naive / network maps per configuration (Fig. 4);
 - :func:`masses_to_rgb` — evidential map → image (red = m_O, green = m_F, black = unknown).
 
-Legend labels are the methods' ``label`` in :data:`traffictwin.fusion.methods.METHODS`; colours
+Legend labels are the methods' ``label`` in :data:`traffictwin.fusion.methods.METHODS` (a network
+row ``<method>[<loss>]`` of ``fusion_variants``: the method's label + ``[<loss> loss]``); colours
 and markers are :data:`METHOD_STYLE`.
 """
 
@@ -37,6 +38,10 @@ METHOD_STYLE: dict[str, dict] = {
     "naive-yager": {"color": "#ff7f0e", "marker": "v"},
     "naive-cautious": {"color": "#9467bd", "marker": "D"},
     "ego": {"color": "#7f7f7f", "marker": "x"},
+    "registered+network": {"color": "#8c564b", "marker": "P"},
+    "dnn[paper]": {"color": "#17becf", "marker": "<"},
+    "dnn[paper_kl]": {"color": "#bcbd22", "marker": ">"},
+    "dnn[mass]": {"color": "#e377c2", "marker": "*"},
 }
 
 
@@ -66,11 +71,23 @@ def masses_to_rgb(m: np.ndarray) -> np.ndarray:
     return np.stack([m[1], m[0], np.zeros_like(m[0])], axis=-1)
 
 
-def _style(method: str) -> dict:
+def _label(row: str) -> str:
+    """Legend label of a method or network row (``dnn[paper]`` → the dnn label + ``[paper loss]``)."""
     from traffictwin.fusion.methods import METHODS
 
-    label = METHODS[method].label if method in METHODS else method
-    return {"color": "#17becf", "marker": "o", **METHOD_STYLE.get(method, {}), "label": label}
+    base, _, loss = row.partition("[")
+    if base not in METHODS:
+        return row
+    return METHODS[base].label + (f" [{loss.rstrip(']')} loss]" if loss else "")
+
+
+def _style(method: str) -> dict:
+    return {
+        "color": "#000000",
+        "marker": "o",
+        **METHOD_STYLE.get(method, {}),
+        "label": _label(method),
+    }
 
 
 def kld_boxplot(

@@ -2,7 +2,9 @@
 
 The gate (:mod:`traffictwin.mlops.gate`) re-evaluates challenger and champion with the same
 callable; this one scores a registered model's fused masses with :mod:`traffictwin.fusion.metrics`
-(the evaluate_fusion stage's code) on the first pairs of a prealigned split.
+(the evaluate_fusion stage's code) on the first pairs of a prealigned split. The gate metric
+(conf/registry ``fusion.metric``) is one of its ``test/<name>`` numbers: ``test/kld_fou_mean``
+(KLD(b), the evaluation's headline; mode min).
 """
 
 from __future__ import annotations

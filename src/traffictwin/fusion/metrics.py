@@ -46,6 +46,7 @@ __all__ = [
     "prf",
     "per_sample_metrics",
     "UncertaintyAUROC",
+    "u_error_histograms",
     "auroc_from_hist",
     "aggregate",
     "pose_error_bins",
@@ -161,24 +162,56 @@ def per_sample_metrics(
     return out
 
 
-def auroc_from_hist(pos: np.ndarray, neg: np.ndarray) -> float:
-    """AUROC = P(score_pos > score_neg) + ½ P(equal bin) from two histograms over the same bins (NaN if a class is empty)."""
+def auroc_from_hist(pos: np.ndarray, neg: np.ndarray) -> float | np.ndarray:
+    """AUROC = P(score_pos > score_neg) + ½ P(equal bin) from two histograms over the same bins.
+
+    ``pos``, ``neg``: ``(bins,)`` → a float; or ``(..., bins)`` (e.g. one histogram per bootstrap
+    resample) → an array of the leading shape. NaN where a class is empty.
+    """
     pos = np.asarray(pos, dtype=np.float64)
     neg = np.asarray(neg, dtype=np.float64)
-    n_pos, n_neg = pos.sum(), neg.sum()
-    if n_pos == 0 or n_neg == 0:
-        return float("nan")
-    neg_below = np.concatenate([[0.0], np.cumsum(neg)[:-1]])  # negatives in strictly lower bins
-    return float((pos * (neg_below + 0.5 * neg)).sum() / (n_pos * n_neg))
+    if pos.shape != neg.shape:
+        raise ValueError(f"auroc_from_hist: pos {pos.shape} and neg {neg.shape} differ")
+    n_pos, n_neg = pos.sum(axis=-1), neg.sum(axis=-1)
+    neg_below = np.cumsum(neg, axis=-1) - neg  # negatives in strictly lower bins
+    num = (pos * (neg_below + 0.5 * neg)).sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where((n_pos > 0) & (n_neg > 0), num / np.maximum(n_pos * n_neg, 1e-300), np.nan)
+    return float(out) if out.ndim == 0 else out
+
+
+def u_error_histograms(
+    label: np.ndarray, pred: np.ndarray, bins: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample histograms of ``u`` (``bins`` bins on [0, 1]) over label-known cells that are
+    wrongly (``pos``) / rightly (``neg``) classified: two int64 arrays ``(N, bins)``."""
+    y, p = _pair(label, pred)
+    lab_o, lab_f = label_classes(y)
+    known = lab_o | lab_f
+    po = p_occupied(p)
+    right = (lab_o & (po > 0.5)) | (lab_f & (po < 0.5))
+    wrong = known & ~right
+    n = y.shape[0]
+    idx = np.minimum((unknown_mass(p) * bins).astype(np.int64), bins - 1)
+    idx = np.clip(idx, 0, bins - 1) + bins * np.arange(n)[:, None, None]  # one bin range per sample
+    pos = np.bincount(idx[wrong], minlength=n * bins).reshape(n, bins)
+    neg = np.bincount(idx[known & right], minlength=n * bins).reshape(n, bins)
+    return pos, neg
 
 
 @dataclass
 class UncertaintyAUROC:
-    """Streaming AUROC of the uncertainty ``u`` as a detector of wrongly classified label-known cells."""
+    """Streaming AUROC of the uncertainty ``u`` as a detector of wrongly classified label-known cells.
+
+    With ``keep_samples`` it also keeps each sample's histograms (:meth:`sample_histograms`), the
+    input of a cluster-bootstrap interval of the AUROC.
+    """
 
     bins: int = 4096
     pos: np.ndarray = field(default=None)  # type: ignore[assignment]  # histogram of u on wrong cells
     neg: np.ndarray = field(default=None)  # type: ignore[assignment]  # histogram of u on right cells
+    keep_samples: bool = False
+    _samples: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         if self.bins < 2:
@@ -188,15 +221,23 @@ class UncertaintyAUROC:
 
     def update(self, label: np.ndarray, pred: np.ndarray) -> None:
         """Add a batch of maps (label and prediction masses)."""
-        y, p = _pair(label, pred)
-        lab_o, lab_f = label_classes(y)
-        known = lab_o | lab_f
-        po = p_occupied(p)
-        right = (lab_o & (po > 0.5)) | (lab_f & (po < 0.5))
-        wrong = known & ~right
-        idx = np.minimum((unknown_mass(p) * self.bins).astype(np.int64), self.bins - 1)
-        self.pos += np.bincount(idx[wrong], minlength=self.bins)
-        self.neg += np.bincount(idx[known & right], minlength=self.bins)
+        pos, neg = u_error_histograms(label, pred, self.bins)
+        self.pos += pos.sum(axis=0)
+        self.neg += neg.sum(axis=0)
+        if self.keep_samples:
+            self._samples.append((pos, neg))
+
+    def sample_histograms(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(pos, neg)`` per sample ``(N, bins)`` in update order (needs ``keep_samples``)."""
+        if not self.keep_samples:
+            raise ValueError("UncertaintyAUROC: per-sample histograms need keep_samples=True")
+        if not self._samples:
+            z = np.zeros((0, self.bins), np.int64)
+            return z, z.copy()
+        return (
+            np.concatenate([p for p, _ in self._samples]),
+            np.concatenate([n for _, n in self._samples]),
+        )
 
     @property
     def n_wrong(self) -> int:

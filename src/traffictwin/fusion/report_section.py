@@ -1,19 +1,31 @@
 """The fusion part of the report (van Kempen et al.): what the results section says, which
 metrics and figures it shows, and the paper's claims beside them.
 
-Reads ``fusion.json`` (stage evaluate_fusion): ``metrics["test"][cfg][method][metric]``, methods
-in :data:`FUSION_METHOD_LABELS`; ``metrics["cross"][network cfg][test cfg][metric]`` for networks
-evaluated on other configurations; ``train_fusion_<cfg>.json`` (stage train_fusion) and
-``fusion_data.json`` (stage generate_fusion). Entry point: :func:`provider`.
+Reads ``fusion.json`` (stage evaluate_fusion; layout in :mod:`traffictwin.fusion.evaluation`):
+``test.<cfg>.<row>.<metric>`` with its 95 % interval ``<metric>_ci``, rows in
+:data:`FUSION_METHOD_LABELS` plus the ``fusion_variants`` network rows (``dnn[<loss>]``, …);
+``diff.<cfg>.<row>.vs_<base>.<metric>`` (paired differences); ``label.<cfg>.u_mean``;
+``targets``; ``cross.dnn-<net>.<cfg>.<metric>``. Also ``train_fusion_<name>.json`` (stage
+train_fusion) and ``fusion_data.json`` (stage generate_fusion), and the learning-curve figures
+``figures/train_fusion_<name>.png`` that train_fusion writes (captioned here). Entry point:
+:func:`provider`.
+
+The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector); KLD(a) ``kld_fo_mean``
+is kept as a table "for comparison with the paper". An interval cell is *derived* (its
+``derived`` names the ``_ci`` key it was read from); a "lower" / "higher" verdict is shown only
+when the paired interval of the difference excludes 0.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from functools import partial
+from typing import Any
 
-from traffictwin.fusion.findings import fusion_findings
+from traffictwin.fusion.findings import fusion_findings, verdict
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup
@@ -27,7 +39,7 @@ TITLE = "Paper 1 — cooperative evidential occupancy-grid fusion"
 FIGURES: dict[str, str] = {
     "fusion_data_samples": "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)",
     "fusion_qualitative": "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)",
-    "fusion_kld_boxplot": "KLD distribution over the test set per configuration and method (mirrors Fig. 5)",
+    "fusion_kld_boxplot": "KLD(b) distribution over the test set per configuration and method (cf. Fig. 5, which shows KLD(a))",
     "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
     "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
 }
@@ -41,8 +53,17 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "naive-yager": "naive + Yager",
     "naive-cautious": "naive + cautious",
     "ego": "ego (map 1 only)",
+    "registered+network": "registered + network",
 }
-NET, NAIVE = "dnn", "naive"
+NET, NAIVE, REG = "dnn", "naive", "registered"
+HEADLINE = "kld_fou_mean"
+LEARNING_CURVE = re.compile(
+    r"train_fusion_(\w+)"
+)  # figures/train_fusion_<name>.png (stage train_fusion)
+CI_NOTE = (
+    "Brackets: 95 % cluster-bootstrap interval (scenario = pair_id // 1000 resampled; "
+    "evaluation.fusion_ci)."
+)
 
 
 def fusion_key(cfg: str, method: str, metric: str) -> str:
@@ -82,69 +103,216 @@ def _config_cells(configurations: Mapping[str, tuple[float, float]], c: str) -> 
     ]
 
 
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def _ci_cell(src: page.Sources, key: str) -> Cell:
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``), a derived cell."""
+    base = key if isinstance(src.get(FUSION_FILE, f"{key}.lo"), (int, float)) else f"{key}_ci"
+    lo, hi = _num(src.get(FUSION_FILE, f"{base}.lo")), _num(src.get(FUSION_FILE, f"{base}.hi"))
+    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+        return Cell(NA, title=f"no interval in reports/metrics/{FUSION_FILE}: {base}")
+    return Cell(
+        f"[{fmt_value(lo, 'g4')}, {fmt_value(hi, 'g4')}]",
+        value=[lo, hi],
+        derived=f"95 % cluster-bootstrap interval, metrics/{FUSION_FILE}#{base}",
+    )
+
+
+def _has(src: page.Sources, c: str, m: str) -> bool:
+    """Row ``m`` was evaluated at configuration ``c``."""
+    return isinstance(src.get(FUSION_FILE, f"test.{c}.{m}"), dict)
+
+
+def _row_cell(src: page.Sources, c: str, m: str, metric: str) -> Cell:
+    """``test.<c>.<m>.<metric>``; a row not evaluated at ``c`` (a variant elsewhere) is n/a, not missing."""
+    if not _has(src, c, m):
+        return Cell(NA, title=f"{m} not evaluated at configuration {c}")
+    return src.cell(FUSION_FILE, fusion_key(c, m, metric))
+
+
+def _diff_key(c: str, row: str, base: str, metric: str) -> str:
+    return f"diff.{c}.{row}.vs_{base}.{metric}"
+
+
+def _verdict_cell(src: page.Sources, c: str, row: str, base: str, metric: str) -> Cell:
+    d = src.get(FUSION_FILE, _diff_key(c, row, base, metric))
+    v = verdict(d if isinstance(d, dict) else None)
+    return Cell(v, title="claimed only when the paired 95 % interval excludes 0")
+
+
+def _network_rows(src: page.Sources, cfgs: Sequence[str], prefix: str = "dnn[") -> list[str]:
+    return [m for m in _fusion_methods(src, cfgs) if m.startswith(prefix)]
+
+
+def _kld_table(
+    src: page.Sources,
+    configurations: Mapping[str, tuple[float, float]],
+    cfgs: Sequence[str],
+    methods: Sequence[str],
+    metric: str,
+    title: str,
+    note: str,
+    anchor: str,
+    headline: bool,
+    paper: bool,
+) -> Table:
+    """One KLD table: config, r, α, each method's mean, the network − naive difference with its
+    interval and verdict (and, for KLD(a), the paper's Fig. 5 ranking)."""
+    labels = [FUSION_METHOD_LABELS.get(m, m) for m in methods]
+    cols = ["config", "r [m]", "α [deg]", *labels]
+    cols += ["network − naive", "95 % CI", "network vs naive (ours)"]
+    if paper:
+        cols.append("network vs naive (paper, Fig. 5)")
+    t = Table(title, cols, note=note, anchor=anchor, headline=headline)
+    for c in cfgs:
+        row = _config_cells(configurations, c)
+        row += [_row_cell(src, c, m, metric) for m in methods]
+        dk = _diff_key(c, NET, NAIVE, metric)
+        if isinstance(src.get(FUSION_FILE, dk), dict):
+            v = verdict(src.get(FUSION_FILE, dk))
+            row += [src.cell(FUSION_FILE, f"{dk}.estimate"), _ci_cell(src, dk)]
+            row.append(
+                Cell(
+                    {"lower": "network lower", "higher": "naive lower"}.get(v, v),
+                    title="claimed only when the paired 95 % interval excludes 0",
+                )
+            )
+        else:
+            row += [Cell(NA), Cell(NA), Cell(NA)]
+        if paper:
+            w = P.FUSION_KLD_WINNER.get(c)
+            row.append(
+                Cell({"network": "network lower", "baseline": "naive lower"}.get(w or "", NA))
+            )
+        t.rows.append(row)
+    return t
+
+
 def fusion_tables(
     src: page.Sources, configurations: Mapping[str, tuple[float, float]]
 ) -> list[Table]:
-    """KLD per configuration and method (+ our ranking vs the paper's Fig. 5), P/R/Dice, cross table."""
+    """KLD(b) (headline) and KLD(a) per configuration and method with the network − naive
+    difference, intervals per row, paired differences, P/R/Dice, targets, the loss ablation and
+    the cross table."""
     cfgs = _fusion_configs(src, configurations)
     methods = _fusion_methods(src, cfgs)
-    labels = [FUSION_METHOD_LABELS.get(m, m) for m in methods]
-    tables = []
-    for metric, name, extra in (
-        (
+    tables = [
+        _kld_table(
+            src,
+            configurations,
+            cfgs,
+            methods,
+            HEADLINE,
+            "Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
+            "KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
+            "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). "
+            "network − naive: paired over the same pairs; 'no difference shown' when its interval "
+            "contains 0. " + CI_NOTE,
+            "fusion-kld",
+            headline=True,
+            paper=False,
+        ),
+        _kld_table(
+            src,
+            configurations,
+            cfgs,
+            methods,
             "kld_fo_mean",
-            "KLD(a) mean",
-            "KL(label‖pred) over (m_F, m_O), clipped to [1e-7, 1], averaged over cells "
-            "(the definition in the authors' public code), then averaged over test pairs.",
+            "Fusion: KLD(a) mean per configuration and method, for comparison with the paper "
+            "(test split)",
+            "KLD(a): KL(label‖pred) over (m_F, m_O) only (the definition in the authors' public "
+            "code); the two masses do not sum to 1, so it can be negative and rewards "
+            "over-confidence. Paper column: which of the two Fig. 5 of van Kempen et al. shows "
+            "lower; the paper prints no KLD values. " + CI_NOTE,
+            "fusion-kld-a",
+            headline=False,
+            paper=True,
         ),
-        (
-            "kld_fo_median",
-            "KLD(a) median",
-            "Median over test pairs (the line in the paper's Fig. 5 boxes).",
-        ),
-        (
-            "kld_fou_mean",
-            "KLD(b) mean",
-            "KL over the full vector (m_F, m_O, u), averaged over cells and test pairs.",
-        ),
-    ):
-        cols = ["config", "r [m]", "α [deg]", *labels]
-        head = metric == "kld_fo_mean"
-        if head:
-            cols += ["network vs naive (ours)", "network vs naive (paper, Fig. 5)"]
-        t = Table(
-            f"Fusion: {name} per pose-noise configuration and method (test split; lower is better)",
-            cols,
-            note=extra
-            + (
-                " Paper column: which of the two Fig. 5 of van Kempen et al. shows lower; the paper "
-                "prints no KLD values."
-                if head
-                else ""
-            ),
-            anchor="fusion-kld" if head else f"fusion-{metric}",
-            headline=head,
+    ]
+    median = Table(
+        "Fusion: KLD(a) median per configuration and method (test split)",
+        ["config", "r [m]", "α [deg]", *[FUSION_METHOD_LABELS.get(m, m) for m in methods]],
+        note="Median over test pairs (the line in the paper's Fig. 5 boxes).",
+        anchor="fusion-kld_fo_median",
+    )
+    for c in cfgs:
+        median.rows.append(
+            _config_cells(configurations, c)
+            + [_row_cell(src, c, m, "kld_fo_median") for m in methods]
         )
-        for c in cfgs:
-            cells = [src.cell(FUSION_FILE, fusion_key(c, m, metric)) for m in methods]
-            row = _config_cells(configurations, c) + cells
-            if head:
-                n = src.get(FUSION_FILE, fusion_key(c, NET, metric))
-                b = src.get(FUSION_FILE, fusion_key(c, NAIVE, metric))
-                ok = (
-                    isinstance(n, (int, float))
-                    and isinstance(b, (int, float))
-                    and not (math.isnan(n) or math.isnan(b))
-                )
-                row.append(Cell(("network lower" if n < b else "naive lower") if ok else NA))
-                paper = P.FUSION_KLD_WINNER.get(c)
-                row.append(
-                    Cell(
-                        {"network": "network lower", "baseline": "naive lower"}.get(paper or "", NA)
-                    )
-                )
-            t.rows.append(row)
-        tables.append(t)
+    tables.append(median)
+
+    # every row's intervals
+    ci_keys = (
+        (HEADLINE, "KLD(b)"),
+        ("kld_fo_mean", "KLD(a)"),
+        ("dice_occ", "Dice occ"),
+        ("dice_free", "Dice free"),
+        ("u_mean", "mean u"),
+        ("u_auroc", "AUROC(u)"),
+    )
+    cis = Table(
+        "Fusion: estimates with 95 % intervals per configuration and method (test split)",
+        ["config", "method", *[x for _, name in ci_keys for x in (name, "95 % CI")]],
+        note="Dice pooled over pairs; AUROC(u): u as a detector of wrongly classified label-known "
+        "cells. " + CI_NOTE,
+        anchor="fusion-ci",
+    )
+    for c in cfgs:
+        for m in methods:
+            if not _has(src, c, m):
+                continue
+            row = [Cell(c), Cell(FUSION_METHOD_LABELS.get(m, m))]
+            for k, _ in ci_keys:
+                row += [
+                    src.cell(FUSION_FILE, fusion_key(c, m, k)),
+                    _ci_cell(src, fusion_key(c, m, k)),
+                ]
+            cis.rows.append(row)
+    if cis.rows and any(
+        isinstance(src.get(FUSION_FILE, fusion_key(c, m, f"{HEADLINE}_ci")), dict)
+        for c in cfgs
+        for m in methods
+    ):
+        tables.append(cis)
+
+    # paired differences against naive and registered
+    diffs = Table(
+        "Fusion: paired differences (method − baseline) on the same test pairs",
+        [
+            "config",
+            "method",
+            "baseline",
+            "Δ KLD(b)",
+            "95 % CI",
+            "KLD(b)",
+            "Δ KLD(a)",
+            "95 % CI",
+            "Δ Dice occ",
+            "95 % CI",
+            "Dice occ",
+        ],
+        note="Negative Δ KLD / positive Δ Dice favour the method. 'lower' / 'higher' only when the "
+        "interval excludes 0, else 'no difference shown'. " + CI_NOTE,
+        anchor="fusion-diff",
+    )
+    for c in cfgs:
+        for m in methods:
+            for b in (NAIVE, REG):
+                base = f"diff.{c}.{m}.vs_{b}"
+                if not isinstance(src.get(FUSION_FILE, base), dict):
+                    continue
+                row = [Cell(c), Cell(FUSION_METHOD_LABELS.get(m, m)), Cell(b)]
+                for k in (HEADLINE, "kld_fo_mean", "dice_occ"):
+                    dk = f"{base}.{k}"
+                    row += [src.cell(FUSION_FILE, f"{dk}.estimate"), _ci_cell(src, dk)]
+                    if k != "kld_fo_mean":
+                        row.append(_verdict_cell(src, c, m, b, k))
+                diffs.rows.append(row)
+    if diffs.rows:
+        tables.append(diffs)
 
     scores = Table(
         "Fusion: precision / recall / Dice per class (test split, pooled over cells; higher is better)",
@@ -154,46 +322,168 @@ def fusion_tables(
             "precision occ",
             "recall occ",
             "Dice occ",
+            "Dice occ 95 % CI",
             "precision free",
             "recall free",
             "Dice free",
+            "Dice free 95 % CI",
         ],
         note=(
             "A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (DESIGN.md; the paper's "
             "sentence swaps the words); only label-known cells count. The paper shows these as Figs. 6 and 7 "
-            "without printed values."
+            "without printed values. " + CI_NOTE
         ),
         anchor="fusion-scores",
     )
     for c in cfgs:
-        for m, label in zip(methods, labels):
-            scores.rows.append(
-                [Cell(c), Cell(label)]
-                + [
+        for m in methods:
+            if not _has(src, c, m):
+                continue
+            row = [Cell(c), Cell(FUSION_METHOD_LABELS.get(m, m))]
+            for cls in ("occ", "free"):
+                row += [
                     src.cell(FUSION_FILE, fusion_key(c, m, f"{k}_{cls}"))
-                    for cls in ("occ", "free")
                     for k in ("precision", "recall", "dice")
                 ]
-            )
+                row.append(_ci_cell(src, fusion_key(c, m, f"dice_{cls}")))
+            scores.rows.append(row)
     tables.append(scores)
+
+    targets = target_table(src)
+    if targets is not None:
+        tables.append(targets)
+    ablation = loss_ablation_table(src, cfgs)
+    if ablation is not None:
+        tables.append(ablation)
 
     cross = lookup(src.metrics.get(FUSION_FILE), "cross")
     if isinstance(cross, dict) and cross:
         nets = sorted(cross)
         tcfgs = sorted({tc for n in nets if isinstance(cross[n], dict) for tc in cross[n]})
         t = Table(
-            "Fusion: cross table, KLD(a) mean of the network trained on one configuration (rows) tested on "
-            "another (columns)",
+            "Fusion: cross table, KLD(b) mean of the network trained on one configuration (rows) "
+            "tested on another (columns)",
             ["network trained on", *[f"test {tc}" for tc in tcfgs]],
             anchor="fusion-cross",
-            note="A subset of the test pairs (evaluation.fusion.cross_max_pairs).",
+            note="Own configuration: all test pairs; others: a subset (evaluation.fusion.cross_max_pairs).",
         )
         for n in nets:
             t.rows.append(
-                [Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.kld_fo_mean") for tc in tcfgs]
+                [Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.{HEADLINE}") for tc in tcfgs]
             )
         tables.append(t)
     return tables
+
+
+def target_table(src: page.Sources) -> Table | None:
+    """The issue's targets (``targets`` of fusion.json): figure, interval, threshold, status per
+    configuration (None without a ``targets`` block)."""
+    targets = lookup(src.metrics.get(FUSION_FILE), "targets")
+    if not isinstance(targets, dict) or not targets:
+        return None
+    t = Table(
+        "Fusion: targets (test split)",
+        [
+            "target",
+            "config",
+            "value",
+            "95 % CI",
+            "needs",
+            "threshold",
+            "status",
+            "CI beyond threshold",
+        ],
+        note="Status from the point estimate against the threshold ('not evaluated' where the row or "
+        "configuration was not evaluated — never a pass); 'CI beyond threshold': the whole interval "
+        "lies on the side of the verdict. hybrid_vs_registered needs the KLD(b) difference's interval "
+        "below 0 and the Dice occ difference's not wholly below 0.",
+        anchor="fusion-targets",
+    )
+    for name, spec in targets.items():
+        per = spec.get("per_config", {}) if isinstance(spec, dict) else {}
+        for c, e in per.items():
+            key = f"targets.{name}.per_config.{c}"
+            value = (
+                src.cell(FUSION_FILE, f"{key}.value")
+                if e.get("value") is not None
+                else Cell(NA, title=e.get("why", "not evaluated"))
+            )
+            beyond = e.get("ci_beyond_threshold")
+            t.rows.append(
+                [
+                    Cell(name, title=str(spec.get("description", ""))),
+                    Cell(c),
+                    value,
+                    _ci_cell(src, key),
+                    Cell(str(spec.get("op", ""))),
+                    src.cell(FUSION_FILE, f"targets.{name}.threshold"),
+                    Cell(str(e.get("status", NA))),
+                    Cell("" if beyond is None else ("yes" if beyond else "no")),
+                ]
+            )
+    return t
+
+
+def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
+    """The network rows ``dnn`` and ``dnn[<loss>]`` side by side at the configurations where a loss
+    variant exists (None when there is none)."""
+    variants = _network_rows(src, cfgs)
+    at = [c for c in cfgs if any(_has(src, c, v) for v in variants)]
+    if not at:
+        return None
+    keys = (
+        (HEADLINE, "KLD(b)"),
+        ("kld_fo_mean", "KLD(a)"),
+        ("dice_occ", "Dice occ"),
+        ("dice_free", "Dice free"),
+        ("u_mean", "mean u"),
+    )
+    t = Table(
+        "Fusion: loss ablation, the network trained with each loss (test split)",
+        [
+            "config",
+            "network",
+            *[x for _, name in keys for x in (name, "95 % CI")],
+            "label mean u",
+            "AUROC(u)",
+            "95 % CI",
+        ],
+        note="dnn = the default loss (fusion_model.loss.name); dnn[<loss>] = the fusion_variants "
+        "networks trained with another loss on the same data. " + CI_NOTE,
+        anchor="fusion-loss-ablation",
+    )
+    for c in at:
+        for m in [NET, *variants]:
+            if not _has(src, c, m):
+                continue
+            row = [Cell(c), Cell(m)]
+            for k, _ in keys:
+                row += [
+                    src.cell(FUSION_FILE, fusion_key(c, m, k)),
+                    _ci_cell(src, fusion_key(c, m, k)),
+                ]
+            row.append(src.cell(FUSION_FILE, f"label.{c}.u_mean"))
+            row += [
+                src.cell(FUSION_FILE, fusion_key(c, m, "u_auroc")),
+                _ci_cell(src, fusion_key(c, m, "u_auroc")),
+            ]
+            t.rows.append(row)
+    return t
+
+
+def _captioned(figures: list[page.Figure]) -> list[page.Figure]:
+    """Learning-curve figures of stage train_fusion (``train_fusion_<name>.png``) get a caption."""
+    out = []
+    for f in figures:
+        m = LEARNING_CURVE.fullmatch(f.path.rsplit("/", 1)[-1].rsplit(".", 1)[0])
+        if m:
+            f = replace(
+                f,
+                caption=f"Learning curves of fusion network {m.group(1)} (training / validation "
+                f"loss and validation KLD(b) per epoch) — `{f.path}`",
+            )
+        out.append(f)
+    return out
 
 
 def section(
@@ -231,7 +521,7 @@ def section(
             [f"{c.text} ({c.source})" for c in P.FUSION_CLAIMS.values()],
         )
     )
-    sec.figures = figures
+    sec.figures = _captioned(figures)
     return sec
 
 
