@@ -482,6 +482,9 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     cfg = OmegaConf.create(
         {
             "configurations": {"A": {"r": 0.0, "alpha": 0.0}, "D": {"r": 3.0, "alpha": 10.0}},
+            "fusion_data": {
+                "register": {"configurations": ["D"], "max_train_pairs": 8, "max_val_pairs": None}
+            },
             "fusion_variants": {},
         }
     )
@@ -489,8 +492,8 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     assert nets == {"dnn": {"A": "A", "D": "D"}} and runs == [("A", "A", "dnn"), ("D", "D", "dnn")]
     assert loaded == [("A/model.ckpt", "A"), ("D/model.ckpt", "D")]
     cfg.fusion_variants = {
-        "D_paper": {"config": "D", "method": "dnn", "loss": "paper"},
-        "D_mass_reg": {"config": "D", "method": "registered+network", "loss": None},
+        "D_paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
+        "D_mass_reg": {"config": "D", "inputs": "registered", "loss": None},
     }
     cfg.fusion_model = {"loss": {"name": "mass"}}
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
@@ -500,7 +503,7 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         "registered+network": {"D": "D_mass_reg"},
     }
     assert runs[2:] == [("D_paper", "D", "dnn[paper]"), ("D_mass_reg", "D", "registered+network")]
-    cfg.fusion_variants = {"D_mass": {"config": "D", "method": "dnn", "loss": "mass"}}
+    cfg.fusion_variants = {"D_mass": {"config": "D", "inputs": "prealigned", "loss": "mass"}}
     with pytest.raises(
         ConfigError, match=r"fusion_variants.D_mass' is row 'dnn' at configuration D"
     ):
