@@ -126,7 +126,10 @@ def load_networks(
                 f"which another network already fills (per-configuration dnn or another variant)"
             )
         networks[row][v.config] = load_fusion_model(
-            fusion_model_dir(name) / "model.ckpt", expected_grid=grid, device=device
+            fusion_model_dir(name) / "model.ckpt",
+            expected_cfg=v.config,  # a variant's checkpoint records its configuration as cfg
+            expected_grid=grid,
+            device=device,
         )
         runs.append((name, v.config, row))
     return networks, runs

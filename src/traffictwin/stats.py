@@ -54,7 +54,7 @@ def _group_index(n: int, groups: np.ndarray | None) -> tuple[np.ndarray, int]:
     return codes.reshape(-1), int(codes.max()) + 1 if n else 0
 
 
-def _resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
+def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
     """(n_boot, G) how often each group is drawn in each resample (G draws with replacement)."""
     rng = np.random.default_rng(seed)
     return rng.multinomial(n_groups, np.full(n_groups, 1.0 / n_groups), size=n_boot)
@@ -82,7 +82,7 @@ def mean_ci(
     codes, g = _group_index(v.size, groups)
     sums = np.bincount(codes, weights=v, minlength=g)
     counts = np.bincount(codes, minlength=g).astype(np.float64)
-    draws = _resample_counts(g, n_boot, seed)
+    draws = resample_counts(g, n_boot, seed)
     boot = (draws @ sums) / np.maximum(draws @ counts, 1e-12)
     a = (1.0 - level) / 2.0
     lo, hi = np.quantile(boot, [a, 1.0 - a])

@@ -59,7 +59,7 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
     Interval,
-    _resample_counts,
+    resample_counts,
     mean_ci,
     paired_mean_difference_ci,
     statistic_ci,
@@ -378,7 +378,7 @@ def _codes(pair_id: np.ndarray) -> tuple[np.ndarray, int]:
 
 def _draws(n_groups: int, ci: CIConfig) -> np.ndarray:
     """(n_boot, G) resample counts of the scenarios: the same draws as ``stats.mean_ci`` (same seed)."""
-    return _resample_counts(n_groups, ci.n_boot, ci.seed)
+    return resample_counts(n_groups, ci.n_boot, ci.seed)
 
 
 def _interval(estimate: float, boot: np.ndarray, level: float, n_groups: int) -> Interval:
