@@ -59,9 +59,9 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
     Interval,
-    resample_counts,
     mean_ci,
     paired_mean_difference_ci,
+    resample_counts,
     statistic_ci,
 )
 
