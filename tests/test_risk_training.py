@@ -334,7 +334,7 @@ def test_risk_model_config_is_validated_once_with_full_keys() -> None:
 
 
 def test_both_problems_share_one_trainer_shape() -> None:
-    from traffictwin.fusion.losses import evidential_loss
+    from traffictwin.fusion.losses import fusion_loss
     from traffictwin.fusion.training import FusionLitModule
     from traffictwin.risk.training import RiskRegressor, mse_loss
     from traffictwin.trainer import NetModule
@@ -348,12 +348,12 @@ def test_both_problems_share_one_trainer_shape() -> None:
     }
     fusion = FusionLitModule(spec, {"lr": 0.02, "lr_factor": 0.25, "lr_patience": 3})
     assert isinstance(risk, NetModule) and isinstance(fusion, NetModule)
-    assert risk.loss_fn is mse_loss and fusion.loss_fn is evidential_loss
+    assert risk.loss_fn is mse_loss and fusion.loss_fn is fusion_loss
     opt = risk.configure_optimizers()
     assert isinstance(opt, torch.optim.Adam) and opt.param_groups[0]["lr"] == 1e-3
     conf = fusion.configure_optimizers()
     sched = conf["lr_scheduler"]
-    assert conf["optimizer"].param_groups[0]["lr"] == 0.02 and sched["monitor"] == "val/loss"
+    assert conf["optimizer"].param_groups[0]["lr"] == 0.02 and sched["monitor"] == "val/kld_full"
     assert (sched["scheduler"].factor, sched["scheduler"].patience) == (0.25, 3)
     # the optimiser holds exactly the injected network's parameters
     assert [id(p) for p in opt.param_groups[0]["params"]] == [id(p) for p in risk.net.parameters()]

@@ -266,7 +266,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
     targets = metrics.get("targets", {})
     if targets:
         by = {
-            s: [n for n, t in targets.items() if t.get("status") == s]
+            s: sorted(n for n, t in targets.items() if t.get("status") == s)  # key order-free
             for s in ("pass", "fail", "not evaluated")
         }
         lines.append(
