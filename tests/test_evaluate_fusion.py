@@ -342,6 +342,8 @@ def test_findings_explain_negative_kld_a_variants_and_targets():
         in text
     )
     assert "1 pass, 1 fail, 1 not evaluated; failing: u_auroc; not evaluated: x" in text
+    # the stage writes fusion.json with sorted keys: the findings must not depend on key order
+    assert fusion_findings(json.loads(json.dumps(m, sort_keys=True))) == text
     assert "Negative KLD(a)" not in fusion_findings(
         _metrics({c: 0.1 for c in CFGS}, {c: 0.2 for c in CFGS})
     )

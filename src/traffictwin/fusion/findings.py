@@ -225,7 +225,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
             for r in test.get(c, {})
             if r != NET and r.split("[")[0] in (NET, "registered+network") and r not in rows
         ]
-    for r in rows:
+    for r in sorted(rows):
         at = [c for c in configs if r in test.get(c, {})]
         parts = []
         for c in at:
@@ -266,7 +266,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
     targets = metrics.get("targets", {})
     if targets:
         by = {
-            s: sorted(n for n, t in targets.items() if t.get("status") == s)  # key order-free
+            s: [n for n, t in sorted(targets.items()) if t.get("status") == s]
             for s in ("pass", "fail", "not evaluated")
         }
         lines.append(
@@ -282,7 +282,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
     if cross:
         own_best = []
         for c in configs:
-            col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in cross}
+            col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in sorted(cross)}
             col = {n: v for n, v in col.items() if math.isfinite(v)}
             if col:
                 own_best.append(f"{c}: {min(col, key=col.get)}")
