@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from traffictwin.evidential.dempster import dempster
 from traffictwin.fusion.resnet import ResNet, ResNetSpec
 
 EVIDENCE_ACTIVATIONS = ("relu", "exp")
@@ -222,8 +223,6 @@ class DeepLabV3Plus(nn.Module):
 
 def _dempster_features(x: torch.Tensor) -> torch.Tensor:
     """``(m_F, m_O, u)`` of Dempster's combination of the input grids ``x[:, :2]`` and ``x[:, 2:4]``."""
-    from traffictwin.evidential.dempster import dempster
-
     m = dempster(x[:, 0:2], x[:, 2:4])
     return torch.cat([m, (1.0 - m.sum(dim=1, keepdim=True)).clamp(0.0, 1.0)], dim=1)
 

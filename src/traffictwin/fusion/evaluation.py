@@ -55,6 +55,7 @@ from traffictwin.evidential.masses import check_masses, unknown_mass
 from traffictwin.fusion.config import FusionEvalConfig, PoseNoise
 from traffictwin.fusion.methods import METHODS, FusionInput, FusionMethod
 from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate, auroc_from_hist, prf
+from traffictwin.fusion.pairs import evenly_spaced  # re-exported: the one pair selection
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
@@ -206,13 +207,6 @@ def scenario_of(pair_id: np.ndarray) -> np.ndarray:
 
 
 # -- data ----------------------------------------------------------------------------------------
-def evenly_spaced(n: int, k: int | None) -> np.ndarray:
-    """``k`` indices spread evenly over ``range(n)`` (all when ``k`` is None or ≥ n)."""
-    if k is None or k >= n:
-        return np.arange(n)
-    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
-
-
 def _check_maps(a: np.ndarray, name: str, grid: GridSpec | None, channels: int = 2) -> None:
     """Masses ``a`` (N, channels, H, W): finite, on the simplex, on ``grid``; errors name ``name``."""
     a = np.asarray(a)
