@@ -1,7 +1,7 @@
 """Stage generate_risk: driving sequences -> stereo frames + risk labels -> data/risk (kind "risk").
 
 One shard per driving sequence (= scenario), rendered in parallel worker processes
-(``risk_data.workers``); splits 70/10/20 by sequence. Also writes
+(``risk_data.workers``); splits 70/10/20 by sequence, stratified by the sequence's situation. Also writes
 reports/metrics/risk_data.json and reports/figures/risk_metric_example.png.
 """
 
@@ -24,6 +24,7 @@ from traffictwin.risk.dataset import (
     make_shard,
     summarise_frames,
 )
+from traffictwin.sim.driving import draw_situation
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
 from ._paths import RISK_DATA, figure_file, metrics_file
@@ -63,7 +64,8 @@ def generate(
 ) -> dict:
     """Generate the dataset into ``out``; returns the summary metrics."""
     log = setup_logging()
-    splits = assign_splits(rd.sequences, seed, rd.split_fractions())
+    situations = [draw_situation(seed, i, spec.driving.situations) for i in range(rd.sequences)]
+    splits = assign_splits(rd.sequences, seed, rd.split_fractions(), strata=situations)
     writer = DatasetWriter(out, "risk", recorded, seed)
     rows_by: dict[int, list[dict]] = {}
     state = {"spec": spec, "seed": seed, "root": Path(out)}

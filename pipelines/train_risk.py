@@ -58,15 +58,18 @@ def variant_config(model: RiskModelConfig, variant: str) -> tuple[Dave2Config, s
         raise ConfigError(f"{PARAMS.name}: risk_model / variant {variant!r}: {exc}") from None
 
 
-def train_config(p) -> tuple[TrainConfig, int | None]:
-    """Optimisation settings (seed = ``seed`` + ``risk_model.train.seed_offset``) and max_train_frames."""
-    return train_settings(risk_model(p), p)
+def train_config(p, variant: str | None = None) -> tuple[TrainConfig, int | None]:
+    """Optimisation settings (seed = ``seed`` + ``risk_model.train.seed_offset`` + the variant's
+    ``seed_offset``) and max_train_frames."""
+    return train_settings(risk_model(p), p, variant)
 
 
-def train_settings(model: RiskModelConfig, p) -> tuple[TrainConfig, int | None]:
+def train_settings(
+    model: RiskModelConfig, p, variant: str | None = None
+) -> tuple[TrainConfig, int | None]:
     """``model``'s optimisation settings with the global seed, and max_train_frames."""
     try:
-        tc = model.train_config(get(p, "seed", int, min=0))
+        tc = model.train_config(get(p, "seed", int, min=0), variant)
     except ValueError as exc:
         raise ConfigError(f"{PARAMS.name}: risk_model: {exc}") from None
     return tc, model.train.max_train_frames
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> None:
     source = PARAMS.name
     model = risk_model(p)
     cfg, label = variant_config(model, variant)
-    tc, max_train = train_settings(model, p)
+    tc, max_train = train_settings(model, p, variant)
     settings = TrainerSettings.from_cfg(p, source=source)
     profile = get(p, "profile.name", str)
     stage = f"train_risk@{variant}"
@@ -109,7 +112,11 @@ def main(argv: list[str] | None = None) -> None:
             curves_out=plot_file(f"risk_training_{variant}"),
             max_train_frames=max_train,
             tracking=tracking,
-            meta={"domain": training_domain(p, model, label)},
+            meta={
+                "domain": training_domain(p, model, label),
+                "objective": cfg.objective,
+                "replicate_of": model.variants[variant].replicate_of,
+            },
         )
         if res is not None:
             log.info(

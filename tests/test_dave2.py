@@ -64,12 +64,14 @@ def test_speed_input_changes_output_and_is_required() -> None:
     assert m.head[0].in_features == 1152 + 1
     assert count_parameters(m) == _expected_params(4, 1152, speed=True)
     x = torch.randn(2, 4, 66, 200)
-    a, b = m(x, torch.tensor([5.0, 5.0])), m(x, torch.tensor([25.0, 25.0]))
+    a, b = m.raw(x, torch.tensor([5.0, 5.0])), m.raw(x, torch.tensor([25.0, 25.0]))
     assert not torch.allclose(a, b)
     with pytest.raises(ValueError, match="use_speed=True"):
         m(x)
     packed = PackedDave2(m)
-    assert torch.equal(packed(pack_input(m.cfg, x, torch.tensor([5.0, 5.0]))), a)
+    risk = m(x, torch.tensor([5.0, 5.0]))
+    assert torch.equal(packed(pack_input(m.cfg, x, torch.tensor([5.0, 5.0]))), risk)
+    assert torch.equal(risk, torch.clamp(a[:, 0], 0.0, 1.0))  # mse: the clamped regression
 
 
 def test_bad_configs_and_inputs() -> None:

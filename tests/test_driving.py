@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from traffictwin.sim.driving import CALM, CLOSE, DrivingConfig, generate_sequence
+from traffictwin.sim.driving import (
+    SITUATIONS,
+    DrivingConfig,
+    draw_situation,
+    generate_sequence,
+)
 from traffictwin.sim.traffic import SUBJECT_SIZE
 
 CFG = DrivingConfig(frames=6, fps=4.0, warmup=2.0)
@@ -37,11 +42,30 @@ def test_frames_rate_speeds_and_kinematics():
     np.testing.assert_allclose(step, (v[:-1] + v[1:]) / 2 / CFG.fps, atol=0.6)
 
 
-@pytest.mark.parametrize("share,allowed", [(1.0, CLOSE), (0.0, CALM)])
-def test_critical_share_controls_situations(share, allowed):
-    cfg = DrivingConfig(frames=2, warmup=1.0, critical_share=share)
+@pytest.mark.parametrize("allowed", [("cut_in",), ("free", "pedestrian")])
+def test_situation_weights_control_situations(allowed):
+    weights = tuple((n, 1.0 if n in allowed else 0.0) for n in SITUATIONS)
+    cfg = DrivingConfig(frames=2, warmup=1.0, situations=weights)
     for i in range(4):
-        assert generate_sequence(2, i, cfg).situation in allowed
+        seq = generate_sequence(2, i, cfg)
+        assert seq.situation in allowed
+        assert seq.situation == draw_situation(2, i, weights)  # known before simulating
+
+
+def test_situation_draw_follows_weights():
+    weights = (("free", 3.0), ("cut_in", 1.0))
+    got = [draw_situation(0, i, weights) for i in range(2000)]
+    assert got.count("free") / len(got) == pytest.approx(0.75, abs=0.03)
+
+
+def test_frames_carry_the_lane_path_ahead():
+    seq = generate_sequence(1, 2, CFG)
+    for f in seq.frames:
+        assert f.path.shape[1] == 2 and len(f.path) > 20
+        np.testing.assert_allclose(f.path[0], f.pose[:2], atol=1e-6)  # starts at the subject
+        step = np.linalg.norm(np.diff(f.path, axis=0), axis=1)
+        np.testing.assert_allclose(step, 0.5, atol=0.05)  # 0.5 m of arc between points
+        assert 2.5 <= f.lane_width <= 4.5
 
 
 def test_faults_are_injected_as_configured():
@@ -82,7 +106,11 @@ def test_no_agent_overlaps_the_subject():
 
 
 def test_bad_config_raises():
-    with pytest.raises(ValueError, match="critical_share"):
-        DrivingConfig(critical_share=1.5)
+    with pytest.raises(ValueError, match="unknown situations"):
+        DrivingConfig(situations=(("joyride", 1.0),))
+    with pytest.raises(ValueError, match="weights"):
+        DrivingConfig(situations=(("free", 0.0),))
+    with pytest.raises(ValueError, match="parked_prob"):
+        DrivingConfig(parked_prob=(0.5, 0.2))
     with pytest.raises(ValueError, match="templates"):
         DrivingConfig(templates=("moon_base",))

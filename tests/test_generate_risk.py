@@ -42,6 +42,21 @@ def test_assign_splits_by_sequence():
         assign_splits(10, 0, (0.5, 0.5, 0.5))
 
 
+def test_assign_splits_stratified_by_situation():
+    strata = ["follow"] * 50 + ["cut_in"] * 30 + ["free"] * 20
+    s = assign_splits(100, 1, strata=strata)
+    assert (s.count("train"), s.count("val"), s.count("test")) == (70, 10, 20)
+    for name, n in (("follow", 50), ("cut_in", 30), ("free", 20)):
+        part = [sp for sp, st in zip(s, strata) if st == name]
+        # every stratum split 70/10/20 up to one sequence
+        assert abs(part.count("test") - 0.2 * n) <= 1 and abs(part.count("val") - 0.1 * n) <= 1
+    assert assign_splits(100, 1, strata=strata) == s  # deterministic
+    tiny = assign_splits(4, 0, strata=["a", "b", "c", "d"])  # strata of one: still 3 splits
+    assert set(tiny) == {"train", "val", "test"}
+    with pytest.raises(ValueError, match="one stratum per sequence"):
+        assign_splits(5, 0, strata=["a"])
+
+
 def test_make_shard_contents():
     arrays, rows = make_shard(11, 2, SPEC)
     n = len(rows)
@@ -52,9 +67,11 @@ def test_make_shard_contents():
     assert np.all(arrays["disp_gt"] >= 0)
     for r in rows:
         assert r["scenario"] == 2 and r["fault"] in ("none", "delay", "vertical")
-        for k in ("risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
+        for k in ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
             assert 0.0 <= r[k] <= 1.0
         assert r["risk_thw_fov"] <= r["risk_thw_paper"] + 1e-12  # the FOV region is a subset
+        # the headline label: corridor THW (s) -> risk, and critical below 1.5 s
+        assert r["thw"] == r["thw_corridor"] and r["risk"] == r["risk_thw_corridor"]
         assert r["critical"] == (r["thw"] < 1.5)
     again, _ = make_shard(11, 2, SPEC)
     assert all(np.array_equal(arrays[k], again[k]) for k in arrays)
@@ -77,6 +94,9 @@ def test_ci_dag_risk_outputs(ci_dag: Path):
         "speed",
         "thw",
         "risk",
+        "situation",
+        "thw_corridor",
+        "risk_thw_corridor",
         "risk_thw_paper",
         "risk_thw_fov",
         "risk_ttc",
@@ -125,7 +145,15 @@ def test_frame_table_and_summary():
     assert s["all/frames"] == 6 and s["train/frames"] == 3 and "val/frames" not in s
     assert s["all/sequences"] == 2
     assert s["all/critical_share"] == pytest.approx(float((df.thw < 1.5).mean()))
-    assert s["all/critical_share_fov"] == pytest.approx(float((df.risk_thw_fov > 1 / 30).mean()))
+    for region in ("corridor", "paper", "fov"):
+        share = float((df[f"risk_thw_{region}"] > 1 / 30).mean())
+        assert s[f"all/critical_share_{region}"] == pytest.approx(share)
+        train = df[df.split == "train"]
+        assert s[f"train/critical_share_{region}"] == pytest.approx(
+            float((train[f"risk_thw_{region}"] > 1 / 30).mean())
+        )
+    for sit, part in df.groupby("situation"):
+        assert s[f"situation/{sit}/critical_share"] == pytest.approx(float(part.critical.mean()))
     assert sum(v for k, v in s.items() if k.startswith("all/fault_share_")) == pytest.approx(1.0)
     assert sum(v for k, v in s.items() if k.startswith("all/sequences_")) == 2
 

@@ -41,7 +41,7 @@ def test_every_profile_validates(composed: dict) -> None:
 
 def test_data_spec_carries_every_setting(composed: dict) -> None:
     rd = _risk_data(composed)
-    spec = rd.data_spec(GridSpec(64, 48, 0.5))
+    spec = rd.data_spec(GridSpec(256, 48, 0.32))
     c = composed["risk_data"]
     assert (
         spec.camera.width == c["camera"]["width"]
@@ -55,7 +55,10 @@ def test_data_spec_carries_every_setting(composed: dict) -> None:
     assert spec.risk.hfov_deg == spec.camera.hfov_deg and spec.risk.mount_x == spec.camera.mount_x
     assert spec.risk.subject_length == c["metric"]["subject_length"]
     assert spec.label == c["label"] and spec.ground_res == c["ground_res"]
-    assert spec.grid.shape == (64, 48)
+    assert spec.grid.shape == (256, 48)
+    assert spec.risk.corridor_margin == c["metric"]["corridor_margin"]
+    assert dict(spec.driving.situations) == {k: float(v) for k, v in c["situations"].items()}
+    assert spec.driving.parked_prob == tuple(c["parked_prob"])
     assert rd.data_seed(7) == 7 + 1_000_003 * c["seed"]
     assert rd.split_fractions() == tuple(float(x) for x in c["splits"])
 
@@ -72,6 +75,10 @@ def test_data_spec_carries_every_setting(composed: dict) -> None:
         ({"splits": [0.5, 0.5]}, r"'splits' must be 3 fractions"),
         ({"faults.vertical_px": [4.0]}, r"'faults\.vertical_px' must be \[low, high\]"),
         ({"workers": "two"}, r"risk_data\.workers"),
+        ({"situations.joyride": 1.0}, r"'situations': unknown situation\(s\) \['joyride'\]"),
+        ({"situations.free": -1.0}, r"'situations': weights must be >= 0"),
+        ({"parked_prob": [0.9, 0.1]}, r"'parked_prob' must be \[low, high\]"),
+        ({"metric.corridor_margin": 5.0}, r"'risk_data\.metric\.corridor_margin' must be <= 3"),
     ],
 )
 def test_bad_risk_data_names_the_key(dotted: dict, match: str) -> None:
@@ -118,6 +125,8 @@ def test_metric_group_alone() -> None:
             "subject_width": 1.9,
             "fill": "border",
             "include_pedestrians": False,
+            "corridor_margin": 0.0,
+            "horizon_s": 1.5,
         },
         MetricParams,
         key="risk_data.metric",
@@ -130,6 +139,8 @@ def test_metric_group_alone() -> None:
                 "subject_width": 1.9,
                 "fill": "dots",
                 "include_pedestrians": False,
+                "corridor_margin": 0.0,
+                "horizon_s": 1.5,
             },
             MetricParams,
             key="risk_data.metric",
@@ -142,3 +153,16 @@ def test_sgm_settings_opencv_rejects_fail_at_validation() -> None:
         _risk_data(cfg, **{"sgm.num_disparities": 24})
     with pytest.raises(ConfigError, match="odd"):
         _risk_data(cfg, **{"sgm.block_size": 4})
+
+
+@pytest.mark.parametrize("max_speed,ok", [(25.0, True), (26.0, False)])
+def test_grid_must_cover_the_look_ahead(max_speed: float, ok: bool) -> None:
+    """25 m/s x 1.5 s + 2.4 m = 39.9 m fits the 256 x 0.32 m grid (40.96 m ahead); 26 m/s does not."""
+    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    rd = _risk_data(cfg, max_speed=max_speed)
+    grid = GridSpec(256, 176, 0.32)
+    if ok:
+        rd.data_spec(grid)
+    else:
+        with pytest.raises(ConfigError, match=r"'risk_data\.max_speed' 26.0 m/s .* 'grid\.rows'"):
+            rd.data_spec(grid)

@@ -106,7 +106,7 @@ def test_orb_example_shows_first_flagged_faulty_pair(tmp_path: Path, figs: dict)
 
 def test_risk_metric_figure_plots_the_chosen_frame(tmp_path: Path, figs: dict) -> None:
     spec = RiskDataSpec(
-        DrivingConfig(frames=3, warmup=1.0, critical_share=1.0),
+        DrivingConfig(frames=3, warmup=1.0, situations=(("follow_close", 1.0),)),
         StereoCamera(width=96, height=48),
         GridSpec(128, 96, 0.64),
         RiskConfig(subject_length=4.8, subject_width=1.9),

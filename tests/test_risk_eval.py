@@ -311,7 +311,7 @@ def test_evaluation_figures_plot_the_predictions(
     geo = GeometricParams(subject_length=4.5, subject_width=1.8)
     metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=geo)
     hist = pd.DataFrame(
-        {"step": [1, 2, 3], "train/mse": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}
+        {"step": [1, 2, 3], "train/loss": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}
     )
     figs = _capture(monkeypatch, figures)
     figures.evaluation_figures(

@@ -9,6 +9,8 @@ from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import (
     RiskCalculator,
     RiskConfig,
+    path_to_subject_frame,
+    project_on_path,
     rasterise,
     region_mask,
     risk_from_time,
@@ -36,7 +38,7 @@ def ahead(gap, **kw):
     return car(L / 2 + gap + 2.25, **kw)
 
 
-@pytest.mark.parametrize("region", ["paper", "camera_fov"])
+@pytest.mark.parametrize("region", ["corridor", "paper", "camera_fov"])
 def test_vehicle_20m_ahead_at_10mps(region):
     r = calc(region)((0.0, 0.0, 0.0), 10.0, ahead(20.0))
     assert r.distance == pytest.approx(20.0, abs=G.cell / 2)
@@ -155,3 +157,76 @@ def test_thresholds_and_conversions() -> None:
     )
     # the paper's example: risk 0.21 <-> a crash in 0.238 s
     assert risk_to_thw(np.array([0.21]))[0] == pytest.approx(0.238, abs=1e-3)
+
+
+# ---- corridor region -----------------------------------------------------------------------
+
+
+def test_project_on_path_hand_values():
+    path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # 10 m east, then 10 m north
+    lat, arc, tangent = project_on_path(np.array([[5.0, 1.0], [11.0, 4.0], [-2.0, 0.0]]), path)
+    np.testing.assert_allclose(lat, [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(arc, [5.0, 14.0, 0.0])
+    np.testing.assert_allclose(tangent, [[1, 0], [0, 1], [1, 0]])
+
+
+def test_path_to_subject_frame():
+    pose = (10.0, 5.0, np.pi / 2)  # facing north
+    rel = path_to_subject_frame(np.array([[10.0, 5.0], [10.0, 15.0]]), pose)
+    np.testing.assert_allclose(rel, [[0, 0], [10, 0]], atol=1e-12)
+    with pytest.raises(ValueError, match="corridor path"):
+        path_to_subject_frame(np.zeros((1, 2)), pose)
+
+
+def test_corridor_ignores_parked_car_and_next_lane_but_sees_the_lead():
+    """Lane 3.5 m: a parked car at y = -3.2 m 4 m ahead and a car in the next lane (y = 3.5 m)
+    10 m ahead count for the paper's region, not for the corridor; the lead 25 m ahead does."""
+    others = Boxes.concat([ahead(4.0, y=-3.2), ahead(10.0, y=3.5), ahead(25.0)])
+    paper = calc("paper")((0.0, 0.0, 0.0), 10.0, others)
+    corr = calc("corridor", lane_width=3.5)((0.0, 0.0, 0.0), 10.0, others)
+    # paper: straight line from the bumper corner (y = -0.9) to the car's corner (y = -2.3)
+    assert paper.target == 0 and paper.distance == pytest.approx(np.hypot(4.0, 1.4), abs=G.cell)
+    assert corr.target == 2 and corr.distance == pytest.approx(25.0, abs=G.cell / 2)
+    assert corr.thw == pytest.approx(2.5, abs=0.02)
+
+
+def test_corridor_margin_and_lane_width_from_the_frame():
+    edge = ahead(10.0, y=2.5)  # nearest edge 2.5 - 0.9 = 1.6 m from the centreline
+    c = calc("corridor")
+    # (cells of 0.32 m: the border cell's centre is within 0.16 m of the edge)
+    assert c((0.0, 0.0, 0.0), 10.0, edge, lane_width=2.6).target == -1  # half-width 1.3 m
+    assert c((0.0, 0.0, 0.0), 10.0, edge, lane_width=3.8).target == 0  # half-width 1.9 m
+    wide = calc("corridor", lane_width=2.6, corridor_margin=0.5)
+    assert wide((0.0, 0.0, 0.0), 10.0, edge).target == 0
+    with pytest.raises(ValueError, match="corridor half-width"):
+        RiskConfig(region="corridor", lane_width=2.0, corridor_margin=-1.5)
+
+
+def test_corridor_follows_a_curved_path_and_measures_along_it():
+    """A left quarter circle of radius 20 m: a car on the arc 90 deg ahead (arc length 31.4 m)
+    is in the corridor at distance 31.4 - L/2; a car straight ahead at x = 15 m (outside the
+    bend) is not."""
+    r = 20.0
+    phi = np.linspace(0.0, np.pi / 2, 400)
+    path_world = np.stack([r * np.sin(phi), r - r * np.cos(phi)], 1)
+    on_arc = car(r * np.sin(np.pi / 4), r - r * np.cos(np.pi / 4), yaw=np.pi / 4)
+    outside = ahead(10.0)
+    c = calc("corridor", lane_width=3.5)
+    got = c((0.0, 0.0, 0.0), 10.0, Boxes.concat([on_arc, outside]), path=path_world)
+    assert got.target == 0
+    # the nearest border cell is ~2.25 m (half the car) before the car's centre along the arc
+    assert got.distance == pytest.approx(r * np.pi / 4 - L / 2 - 2.25, abs=0.5)
+    straight = c((0.0, 0.0, 0.0), 10.0, Boxes.concat([on_arc, outside]))
+    assert straight.target == 1
+
+
+def test_corridor_ttc_uses_the_path_tangent():
+    # a lead 20 m ahead driving away at 4 m/s while the subject does 10 m/s: closing 6 m/s
+    r = calc("corridor")((0.0, 0.0, 0.0), 10.0, ahead(20.0, vx=4.0))
+    assert r.ttc == pytest.approx(20.0 / 6.0, abs=0.05)
+
+
+def test_corridor_region_mask_is_a_band_along_the_path():
+    m = region_mask(G, RiskConfig(subject_length=L, region="corridor", lane_width=3.5))
+    x, y = G.cell_centers()
+    np.testing.assert_array_equal(m, (np.abs(y) <= 1.75) & (x > L / 2))

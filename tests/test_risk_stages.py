@@ -41,7 +41,7 @@ def test_train_risk_writes_models_and_curves(ci_dag: Path) -> None:
         assert m.meta["variant"] == v and m.meta["label"].startswith("risk")
         assert m.meta["n_parameters"] > 1_000_000 and m.meta["mlflow_model_uri"]
         h = pd.read_csv(d / "history.csv")
-        assert len(h) >= 1 and {"step", "train/mse", "val/mse"} <= set(h.columns)
+        assert len(h) >= 1 and {"step", "train/loss", "val/mse", "val/pred_std"} <= set(h.columns)
         assert np.isfinite(h["val/mse"]).all()
         assert m.meta["best_val_mse"] == pytest.approx(h["val/mse"].min())
         plot = pd.read_csv(ci_dag / "reports" / "plots" / f"risk_training_{v}.csv")

@@ -261,7 +261,8 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
     src = _source(tmp_path)
     cfg = Dave2Config(inputs=("disp_sgm",))
     tr, va = prepare_split(src, cfg, "train", "risk"), prepare_split(src, cfg, "val", "risk")
-    tc = TrainConfig(epochs=3, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
+    # 12 steps on 20 synthetic frames: the spread guard is tested on its own below
+    tc = TrainConfig(epochs=3, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0, min_pred_std=0.0)
     res = fit(cfg, tr, va, tc, TrainerSettings())
     steps_total = math.ceil(len(tr) / 5) * 3
     assert res.steps == steps_total
@@ -374,7 +375,7 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
 
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
     cfg = Dave2Config(inputs=("disp_sgm",))
-    tc = TrainConfig(epochs=2, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0)
+    tc = TrainConfig(epochs=2, batch_size=5, lr=1e-3, val_every_n_steps=2, seed=0, min_pred_std=0.0)
     out = tmp_path / "models" / "disp"
     (out / "stale.txt").parent.mkdir(parents=True)
     (out / "stale.txt").write_text("from an older run")
@@ -398,7 +399,7 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     )
     curves = (tmp_path / "plots" / "risk_training_disp.csv").read_text()
     assert curves == (out / "history.csv").read_text()
-    assert curves.splitlines()[0] == "step,epoch,train/mse,val/mse,val/mae"
+    assert curves.splitlines()[0] == "step,epoch,train/loss,val/mse,val/mae,val/pred_std"
     loaded = load_risk_model(out)
     assert all(torch.equal(v, res.net.state_dict()[k]) for k, v in loaded.net.state_dict().items())
     run = mlflow.get_run(meta["mlflow_run_id"])
@@ -406,3 +407,98 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     assert run.data.params["data.n_train"] == str(res.n_train)
     hist = mlflow.MlflowClient().get_metric_history(run.info.run_id, "val/mse")
     assert [m.step for m in hist] == list(res.history["step"])
+
+
+# ---- collapse guard, objectives, replicates -----------------------------------------------------
+
+
+def test_check_spread_flags_a_constant_net(tmp_path: Path) -> None:
+    from traffictwin.risk.dave2 import Dave2
+    from traffictwin.risk.training import CollapsedModelError, check_spread
+
+    write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
+    cfg = Dave2Config(inputs=("disp_sgm",))
+    va = prepare_split(_source(tmp_path), cfg, "val", "risk")
+    torch.manual_seed(0)
+    net = Dave2(cfg).eval()
+    with torch.no_grad():  # last layer: no weights, bias 0.2 -> the same risk for every frame
+        net.head[-1].weight.zero_()
+        net.head[-1].bias.fill_(0.2)
+    with pytest.raises(CollapsedModelError, match=r"collapsed: .* spread by 0\.00e\+00"):
+        check_spread(net, va, cfg)
+    with torch.no_grad():  # a head that passes one feature through: the outputs differ
+        net.head[-1].weight.fill_(0.5)
+    assert check_spread(net, va, cfg, min_std=0.0) >= 0.0
+
+
+@pytest.mark.integration
+def test_collapsed_run_publishes_nothing(tmp_path: Path) -> None:
+    from traffictwin.risk.training import CollapsedModelError, fit_risk
+
+    write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
+    out = tmp_path / "models" / "disp"
+    out.mkdir(parents=True)
+    (out / "model.ckpt").write_text("the good model of an earlier run")
+    tc = TrainConfig(epochs=1, batch_size=5, val_every_n_steps=2, seed=0, min_pred_std=1e9)
+    with pytest.raises(CollapsedModelError):
+        fit_risk(
+            _source(tmp_path),
+            Dave2Config(inputs=("disp_sgm",)),
+            "risk",
+            tc,
+            TrainerSettings(),
+            variant="disp",
+            out_dir=out,
+        )
+    assert (out / "model.ckpt").read_text() == "the good model of an earlier run"
+    assert sorted(p.name for p in out.iterdir()) == ["model.ckpt"]
+
+
+def test_objective_losses_hand_values() -> None:
+    from traffictwin.risk.dave2 import raw_to_risk, risk_loss, risk_to_log_thw
+
+    y = torch.tensor([0.0, 1 / 30, 0.5])  # nothing ahead, THW 1.5 s, THW 0.1 s
+    mse = Dave2Config(objective="mse")
+    raw = torch.tensor([[0.1], [0.0], [0.5]])
+    assert float(risk_loss(mse, raw, y)) == pytest.approx((0.01 + (1 / 30) ** 2) / 3)
+    assert torch.allclose(raw_to_risk(mse, torch.tensor([[-0.2], [1.3]])), torch.tensor([0.0, 1.0]))
+
+    lt = Dave2Config(objective="log_thw", thw_cap_s=10.0)
+    target = risk_to_log_thw(lt, y)
+    assert torch.allclose(target, torch.log(torch.tensor([10.0, 1.5, 0.1])))
+    assert float(risk_loss(lt, target[:, None], y)) == pytest.approx(0.0, abs=1e-10)
+    back = raw_to_risk(lt, target[:, None])
+    assert torch.allclose(back, torch.tensor([0.0, 1 / 30, 0.5]), atol=1e-6)  # cap -> 0
+
+    cls = Dave2Config(objective="mse_bce", critical_thw_s=1.5)
+    raw2 = torch.tensor([[0.0, 0.0], [1 / 30, 0.0], [0.5, 0.0]])  # perfect regression, logit 0
+    # y = 1/30 is exactly at the threshold: not critical (THW < 1.5 s is critical)
+    assert float(risk_loss(cls, raw2, y, bce_weight=0.5)) == pytest.approx(0.5 * np.log(2))
+
+
+def test_objective_needs_matching_outputs_and_valid_name() -> None:
+    from traffictwin.risk.dave2 import Dave2
+
+    assert Dave2(Dave2Config(objective="mse_bce")).head[-1].out_features == 2
+    assert Dave2(Dave2Config(objective="log_thw")).head[-1].out_features == 1
+    with pytest.raises(ValueError, match="objective must be one of"):
+        Dave2Config(objective="hinge")
+
+
+def test_replicates_must_match_their_base_and_differ_in_seed() -> None:
+    from traffictwin.config import ConfigError, typed
+    from traffictwin.risk.training import RiskModelConfig
+
+    node = _risk_model_node()
+    m = typed(node, RiskModelConfig, key="risk_model")
+    base = m.train_config(7, "headline").seed
+    assert m.train_config(7, "headline_s1").seed == base + 1
+    assert m.train_config(7, "headline_s2").seed == base + 2
+    bad = _risk_model_node()
+    bad["variants"]["headline_s1"]["seed_offset"] = 0
+    with pytest.raises(ConfigError, match="another seed_offset"):
+        typed(bad, RiskModelConfig, key="risk_model")
+    bad = _risk_model_node()
+    bad["variants"]["headline_s1"]["speed"] = False
+    with pytest.raises(ConfigError, match=r"differs in \['speed'\]"):
+        typed(bad, RiskModelConfig, key="risk_model")

@@ -17,7 +17,7 @@ from traffictwin.risk.baselines import GeometricParams
 from traffictwin.risk.dataset import LABELS, RiskDataSpec
 from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
-from traffictwin.sim.driving import DrivingConfig
+from traffictwin.sim.driving import SITUATIONS, DrivingConfig
 from traffictwin.stereo.orb import OrbParams
 from traffictwin.stereo.sgm import SgmParams
 
@@ -56,12 +56,16 @@ class FaultParams:
 
 @dataclass
 class MetricParams:
-    """``risk_data.metric``: the subject's footprint (m), the grid fill and whether pedestrians count."""
+    """``risk_data.metric``: the subject's footprint (m), the grid fill, whether pedestrians count,
+    the corridor's margin beyond the lane on each side (m) and the THW horizon (s) that the grid
+    must cover at the top speed (a longer look-ahead than the grid holds is a config error)."""
 
     subject_length: float = spec(min=0.5)
     subject_width: float = spec(min=0.3)
     fill: str = spec(choices=("border", "filled"))
     include_pedestrians: bool = spec()
+    corridor_margin: float = spec(min=-1.0, max=3.0)
+    horizon_s: float = spec(min=0.1)
 
 
 @dataclass
@@ -74,7 +78,8 @@ class RiskDataConfig:
     fps: float = spec(min=0.1)
     warmup: float = spec(min=0)
     max_speed: float = spec(min=1)
-    critical_share: float = spec(min=0, max=1)
+    situations: dict[str, float] = spec()
+    parked_prob: list[float] = spec()
     templates: list[str] = spec()
     label: str = spec(choices=LABELS)
     splits: list[float] = spec()
@@ -91,6 +96,36 @@ class RiskDataConfig:
             raise ValueError(
                 f"'splits' must be 3 fractions (train, val, test), got {list(self.splits)}"
             )
+        unknown = [k for k in self.situations if k not in SITUATIONS]
+        if unknown:
+            raise ValueError(
+                f"'situations': unknown situation(s) {unknown}; expected some of {list(SITUATIONS)}"
+            )
+        w = [float(v) for v in self.situations.values()]
+        if not w or min(w) < 0 or sum(w) <= 0:
+            raise ValueError(
+                f"'situations': weights must be >= 0 with a positive sum, got {dict(self.situations)}"
+            )
+        if len(self.parked_prob) != 2 or not 0 <= self.parked_prob[0] <= self.parked_prob[1] <= 1:
+            raise ValueError(
+                f"'parked_prob' must be [low, high] with 0 <= low <= high <= 1, got {list(self.parked_prob)}"
+            )
+
+    def check_grid(self, grid: GridSpec) -> None:
+        """The risk grid must reach ``max_speed * metric.horizon_s`` ahead of the front bumper,
+        else the label would silently miss objects: ConfigError naming the settings."""
+        need = self.max_speed * self.metric.horizon_s + self.metric.subject_length / 2
+        reach = grid.length / 2
+        if need > reach:
+            from traffictwin.config import ConfigError
+
+            raise ConfigError(
+                f"params.yaml: 'risk_data.max_speed' {self.max_speed} m/s x "
+                f"'risk_data.metric.horizon_s' {self.metric.horizon_s} s needs the grid to reach "
+                f"{need:.1f} m ahead of the reference point, but 'grid.rows' x 'grid.cell' "
+                f"({grid.rows} x {grid.cell} m) reaches {reach:.2f} m: lower max_speed or horizon_s, "
+                f"or enlarge the grid"
+            )
 
     def data_seed(self, global_seed: int) -> int:
         """The dataset seed from the global ``seed`` and this group's ``seed`` offset."""
@@ -101,7 +136,9 @@ class RiskDataConfig:
         return a, b, c
 
     def data_spec(self, grid: GridSpec) -> RiskDataSpec:
-        """The generation spec: driving config, camera, ``grid`` and risk metric settings."""
+        """The generation spec: driving config, camera, ``grid`` and risk metric settings
+        (checks that ``grid`` covers the look-ahead, :meth:`check_grid`)."""
+        self.check_grid(grid)
         c, f, m = self.camera, self.faults, self.metric
         cam = StereoCamera(
             width=c.width,
@@ -118,7 +155,8 @@ class RiskDataConfig:
             frames=self.frames_per_sequence,
             warmup=self.warmup,
             max_speed=self.max_speed,
-            critical_share=self.critical_share,
+            situations=tuple((str(k), float(v)) for k, v in self.situations.items()),
+            parked_prob=(float(self.parked_prob[0]), float(self.parked_prob[1])),
             templates=tuple(self.templates),
             fault_delay=f.delay_share,
             fault_vertical=f.vertical_share,
@@ -132,6 +170,7 @@ class RiskDataConfig:
             mount_x=cam.mount_x,
             fill=m.fill,
             include_pedestrians=m.include_pedestrians,
+            corridor_margin=m.corridor_margin,
         )
         return RiskDataSpec(drv, cam, grid, risk, label=self.label, ground_res=self.ground_res)
 

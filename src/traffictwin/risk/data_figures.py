@@ -19,7 +19,9 @@ from traffictwin.io.shards import Dataset  # noqa: E402
 from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
 from traffictwin.risk.metric import (  # noqa: E402
     RiskCalculator,
+    path_to_subject_frame,
     rasterise,
+    region_mask,
     swept_cells,
     to_subject_frame,
 )
@@ -38,16 +40,17 @@ def _save(fig, path: str | Path) -> None:
 def risk_metric_figure(
     seed: int, spec: RiskDataSpec, path: str | Path, max_sequences: int = 12
 ) -> dict:
-    """Camera view + grid map of one frame with a vehicle ahead (paper Fig. 3): occupied border
-    cells (black), cells occupied within 3 s at constant velocity (blue), the searched region
-    (shaded), the subject (red), the nearest vehicle found and its distance (orange)."""
+    """Camera view + grid map of one frame with an object in the driving corridor (paper Fig. 3):
+    occupied border cells (black), cells occupied within 3 s at constant velocity (blue), the
+    paper's region (light grey) and the driving corridor searched by the headline label (light
+    green), the subject (red), the nearest object found and its distance (orange)."""
     grid = spec.grid
-    calc = RiskCalculator(grid, replace(spec.risk, region="paper"))
+    calc = RiskCalculator(grid, replace(spec.risk, region="corridor"))
     chosen = None
     for i in range(max_sequences):
         seq = generate_sequence(seed, i, spec.driving)
         for fr in seq.frames:
-            r = calc(fr.pose, fr.speed, fr.boxes)
+            r = calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width)
             if 0.4 < r.thw < 3.0:
                 chosen = (seq, fr, r)
                 break
@@ -56,7 +59,7 @@ def risk_metric_figure(
     if chosen is None:  # fall back to the first frame
         seq = generate_sequence(seed, 0, spec.driving)
         fr = seq.frames[0]
-        chosen = (seq, fr, calc(fr.pose, fr.speed, fr.boxes))
+        chosen = (seq, fr, calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width))
     seq, fr, r = chosen
     img = spec.camera.render_eye(
         fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res)
@@ -66,7 +69,13 @@ def risk_metric_figure(
     lab = rasterise(rel, grid, "border")
     swept = swept_cells(rel, grid) & (lab == 0)
     rgb = np.ones(grid.shape + (3,))
-    rgb[calc.region] = [0.93, 0.96, 1.0]
+    rgb[region_mask(grid, replace(spec.risk, region="paper"))] = [0.93, 0.93, 0.93]
+    corridor = region_mask(
+        grid,
+        replace(spec.risk, region="corridor", lane_width=fr.lane_width),
+        path_to_subject_frame(fr.path, fr.pose),
+    )
+    rgb[corridor] = [0.85, 0.97, 0.85]
     rgb[swept] = [0.45, 0.6, 1.0]
     rgb[lab > 0] = [0.0, 0.0, 0.0]
     if r.target >= 0:
@@ -85,8 +94,8 @@ def risk_metric_figure(
     ax[1].set_ylabel("x (m, forward)")
     ax[1].set_title(f"THW {r.thw:.2f} s, d = {r.distance:.1f} m, risk {r.risk_thw:.3f}")
     fig.suptitle(
-        "Risk metric calculator: grid map (black: vehicle border cells, blue: next 3 s, "
-        "orange: nearest vehicle, red: subject)",
+        "Risk metric calculator: grid map (black: object border cells, blue: next 3 s, "
+        "green: driving corridor, grey: paper region, orange: nearest object, red: subject)",
         fontsize=9,
     )
     _save(fig, path)

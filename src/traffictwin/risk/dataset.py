@@ -29,7 +29,10 @@ from traffictwin.sim.driving import DrivingConfig, generate_sequence
 if TYPE_CHECKING:
     from traffictwin.io.shards import Dataset
 
-LABELS = ("thw_paper", "thw_fov", "ttc", "wttc")
+#: training labels (``risk_data.label``): THW in a region (metric.REGIONS), or TTC/WTTC in the corridor
+LABELS = ("thw_corridor", "thw_paper", "thw_fov", "ttc", "wttc")
+#: the region column suffix of each region (frames.csv ``thw_<suffix>``, ``risk_thw_<suffix>``)
+REGION_COLUMN = {"corridor": "corridor", "paper": "paper", "camera_fov": "fov"}
 #: the splits, assigned per sequence (:func:`assign_splits`)
 SPLITS = ("train", "val", "test")
 #: frames.csv: these columns first, then the per-frame values of :func:`make_shard` in its order
@@ -45,7 +48,7 @@ class RiskDataSpec:
     camera: StereoCamera
     grid: GridSpec
     risk: RiskConfig
-    label: str = "thw_paper"
+    label: str = "thw_corridor"
     ground_res: float = 0.1
 
     def __post_init__(self) -> None:
@@ -54,24 +57,49 @@ class RiskDataSpec:
 
 
 def assign_splits(
-    n: int, seed: int, fractions: tuple[float, float, float] = (0.7, 0.1, 0.2)
+    n: int,
+    seed: int,
+    fractions: tuple[float, float, float] = (0.7, 0.1, 0.2),
+    strata: Sequence[str] | None = None,
 ) -> list[str]:
-    """Split name per sequence (train/val/test) by a seeded permutation; each split gets at least
-    one sequence when ``n >= 3``."""
+    """Split name per sequence (train/val/test) by a seeded permutation, stratified by ``strata``
+    (e.g. the situation of each sequence; ``None`` = one stratum): every stratum is split in the
+    given fractions rounded down, the leftover sequences going to the split furthest below its
+    share overall; each split gets at least one sequence when ``n >= 3``."""
     if n < 1:
         raise ValueError(f"need at least one sequence, got {n}")
     if abs(sum(fractions) - 1.0) > 1e-6 or min(fractions) < 0:
         raise ValueError(f"split fractions must be >= 0 and sum to 1, got {fractions}")
-    n_val = int(round(fractions[1] * n))
-    n_test = int(round(fractions[2] * n))
-    if n >= 3:
-        n_val, n_test = max(1, n_val), max(1, n_test)
-    n_train = max(0, n - n_val - n_test)
-    train, val, test = SPLITS
-    names = np.array([train] * n_train + [val] * n_val + [test] * n_test)[:n]
-    perm = np.random.default_rng(np.random.SeedSequence([int(seed), 4004])).permutation(n)
+    if strata is not None and len(strata) != n:
+        raise ValueError(f"need one stratum per sequence: {len(strata)} strata for {n} sequences")
+    frac = np.asarray(fractions, float)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 4004]))
+    keys = (
+        np.zeros(n, int)
+        if strata is None
+        else np.unique(np.asarray(strata), return_inverse=True)[1]
+    )
+    perm = rng.permutation(n)
     out = np.empty(n, dtype=object)
-    out[perm] = names
+    counts = np.zeros(3, int)  # assigned per split so far
+    for key in np.unique(keys):
+        members = perm[keys[perm] == key]  # this stratum in permuted order
+        m = len(members)
+        take = np.floor(frac * m).astype(int)
+        for _ in range(m - int(take.sum())):  # leftovers: to the split furthest below its share
+            deficit = frac * (counts.sum() + m) - (counts + take)
+            take[int(np.argmax(deficit))] += 1
+        names = np.repeat(np.array(SPLITS, dtype=object), take)
+        out[members] = names
+        counts += take
+    if n >= 3:  # every split non-empty: move one sequence from the largest split
+        for j, name in enumerate(SPLITS):
+            if counts[j] == 0:
+                big = int(np.argmax(counts))
+                i = int(np.flatnonzero(out == SPLITS[big])[-1])
+                out[i] = name
+                counts[big] -= 1
+                counts[j] += 1
     return [str(x) for x in out]
 
 
@@ -79,7 +107,10 @@ def make_shard(
     seed: int, index: int, spec: RiskDataSpec
 ) -> tuple[dict[str, np.ndarray], list[dict]]:
     """Render sequence ``index``: arrays ``left``, ``right`` (N, H, W, 3) uint8 BGR, ``disp_gt``
-    (N, H, W) float32 px, ``speed`` (N,) m/s, ``risk`` (N,) float32; plus one row per frame."""
+    (N, H, W) float32 px, ``speed`` (N,) m/s, ``risk`` (N,) float32; plus one row per frame with
+    THW (s) and risk of every region (``thw_<r>``, ``risk_thw_<r>``, r = corridor, paper, fov),
+    TTC/WTTC (s) and their risks in the corridor, and the training label's ``thw``/``risk``/
+    ``critical``."""
     seq = generate_sequence(seed, index, spec.driving)
     cam = spec.camera
     ground = GroundTexture.from_world(
@@ -95,15 +126,15 @@ def make_shard(
         left.append(out["left"])
         right.append(out["right"])
         disp.append(out["disp_gt"])
-        rp = calcs["paper"](fr.pose, fr.speed, fr.boxes)
-        rf = calcs["camera_fov"](fr.pose, fr.speed, fr.boxes)
-        values = {
-            "thw_paper": rp.risk_thw,
-            "thw_fov": rf.risk_thw,
-            "ttc": rp.risk_ttc,
-            "wttc": rp.risk_wttc,
+        res = {
+            REGION_COLUMN[r]: calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width)
+            for r, calc in calcs.items()
         }
-        thw = rf.thw if spec.label == "thw_fov" else rp.thw
+        rc = res["corridor"]
+        values = {f"thw_{c}": r.risk_thw for c, r in res.items()}
+        values.update(ttc=rc.risk_ttc, wttc=rc.risk_wttc)
+        region = spec.label[4:] if spec.label.startswith("thw_") else "corridor"
+        thw = res[region].thw
         rows.append(
             dict(
                 idx=k,
@@ -116,14 +147,14 @@ def make_shard(
                 y=fr.pose[1],
                 yaw=fr.pose[2],
                 thw=thw,
-                distance=rp.distance,
-                ttc=rp.ttc,
-                wttc=rp.wttc,
+                distance=res[region].distance,
+                **{f"thw_{c}": r.thw for c, r in res.items()},
+                ttc=rc.ttc,
+                wttc=rc.wttc,
                 risk=values[spec.label],
-                risk_thw_paper=rp.risk_thw,
-                risk_thw_fov=rf.risk_thw,
-                risk_ttc=rp.risk_ttc,
-                risk_wttc=rp.risk_wttc,
+                **{f"risk_thw_{c}": r.risk_thw for c, r in res.items()},
+                risk_ttc=rc.risk_ttc,
+                risk_wttc=rc.risk_wttc,
                 critical=bool(thw < CRITICAL_THW),
                 fault=fr.fault,
                 vertical_px=fr.right_cy_offset,
@@ -172,8 +203,10 @@ def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[st
 
 
 def summarise_frames(df: pd.DataFrame) -> dict:
-    """Frame counts, critical share (THW < 1.5 s), fault and situation shares, per split."""
+    """Frame counts, critical share (THW < 1.5 s) of the label and of every region, fault and
+    situation shares, per split."""
     out: dict = {}
+    thr = risk_threshold(CRITICAL_THW)
     for name, part in [("all", df)] + [(s, df[df.split == s]) for s in SPLITS]:
         if len(part) == 0:
             continue
@@ -181,6 +214,10 @@ def summarise_frames(df: pd.DataFrame) -> dict:
         out[f"{name}/sequences"] = int(part.scenario.nunique())
         out[f"{name}/critical_share"] = float(part.critical.mean())
         out[f"{name}/risk_mean"] = float(part.risk.mean())
+        for region in REGION_COLUMN.values():
+            col = f"risk_thw_{region}"
+            if col in part.columns:
+                out[f"{name}/critical_share_{region}"] = float((part[col] > thr).mean())
     out["all/speed_mean"] = float(df.speed.mean())
     out["all/speed_max"] = float(df.speed.max())
     out["all/standstill_share"] = float((df.speed < 0.5).mean())
@@ -188,8 +225,11 @@ def summarise_frames(df: pd.DataFrame) -> dict:
         out[f"all/fault_share_{f}"] = float(c / len(df))
     for s, c in Counter(df.groupby("scenario").situation.first()).items():
         out[f"all/sequences_{s}"] = int(c)
-    for m in ("risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
-        out[f"all/{m}_mean"] = float(df[m].mean())
-        out[f"all/{m}_nonzero"] = float((df[m] > 0).mean())
-    out["all/critical_share_fov"] = float((df.risk_thw_fov > risk_threshold(CRITICAL_THW)).mean())
+    for m in ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc"):
+        if m in df.columns:
+            out[f"all/{m}_mean"] = float(df[m].mean())
+            out[f"all/{m}_nonzero"] = float((df[m] > 0).mean())
+    if "situation" in df.columns:
+        for sit, part in df.groupby("situation"):
+            out[f"situation/{sit}/critical_share"] = float(part.critical.mean())
     return out

@@ -3,7 +3,7 @@
 Architecture (DESIGN.md "DAVE-2-like net"): five convolutions — 24, 36, 48 channels with 5×5
 kernels and stride 2, then 64, 64 channels with 3×3 kernels and stride 1 — each followed by a
 ReLU; flatten; fully connected layers 1164 → 100 → 50 → 10 → 1 with a ReLU on all but the last
-(the output is linear: a regression of the normalised risk in [0, 1]). No pooling: the input is
+(the output is linear: a regression of the normalised risk in [0, 1], or of log THW, see below). No pooling: the input is
 already subsampled (66 × 200 by default, like DAVE-2). The first fully connected layer adapts to
 the flattened size of whatever resolution is configured.
 
@@ -12,6 +12,20 @@ left image), ``disp_sgm`` (SGM disparity of the stereo pair), ``disp_gt`` (groun
 the perfect-stereo upper bound). The paper's network sees ``rgb + disp_sgm`` (4 channels). Optionally
 (``use_speed``, off in the paper) the subject speed is concatenated to the flattened features as
 one more scalar input of the fully connected head.
+
+Output (``objective``, DESIGN.md "Risk metric"): :meth:`Dave2.forward` always returns the
+normalised risk in [0, 1]; :meth:`Dave2.raw` the head's raw outputs, on which the training loss
+(:func:`risk_loss`) works:
+
+* ``mse`` (the paper): one linear output regressing the normalised risk (clamped to [0, 1] on
+  output);
+* ``log_thw``: one output regressing log THW (s), the label's THW clipped to
+  [1/20, ``thw_cap_s``] (risk 0 = nothing ahead -> the cap); risk = ``min(1/THW, 20) / 20``, 0 at
+  the cap. Errors near the 1.5 s decision threshold weigh as much as anywhere else, while the
+  MSE on the normalised risk hardly sees them (the threshold is at risk 1/30);
+* ``mse_bce``: the paper's output plus a logit of "critical" (THW < ``critical_thw_s``) trained
+  with a binary cross-entropy term (weight ``bce_weight`` in the loss): a classification head at
+  the decision threshold that shapes the shared features; the risk output is the regression.
 
 :func:`preprocess` turns raw frames (OpenCV BGR uint8 images, disparity in pixels with -1 = invalid)
 into the network's channel stack; training, evaluation and the CLI all call it, so the three can
@@ -30,6 +44,9 @@ from torch import nn
 
 #: channel groups the network can be fed, with their channel counts
 CHANNELS: dict[str, int] = {"rgb": 3, "disp_sgm": 1, "disp_gt": 1}
+#: training objectives and their number of raw outputs
+OBJECTIVES: dict[str, int] = {"mse": 1, "log_thw": 1, "mse_bce": 2}
+RISK_CLIP = 20.0  # 1/s: risk = min(1/THW, RISK_CLIP) / RISK_CLIP (traffictwin.risk.metric.CLIP)
 
 CONV_SPEC: tuple[tuple[int, int, int], ...] = (
     (24, 5, 2),
@@ -49,7 +66,10 @@ class Dave2Config:
     ``height``, ``width``: model input resolution (px);
     ``use_speed``: feed the subject speed (m/s, divided by ``speed_scale``) to the FC head;
     ``disp_scale``: disparity (px at the source resolution) that maps to 1.0 after normalisation;
-    ``dropout``: dropout probability before each hidden FC layer (0 = the paper's plain net).
+    ``dropout``: dropout probability before each hidden FC layer (0 = the paper's plain net);
+    ``objective``: what the head outputs (:data:`OBJECTIVES`, module docstring); ``thw_cap_s``:
+    the THW (s) that stands for "nothing ahead" (``log_thw``); ``critical_thw_s``: the THW
+    threshold (s) of the classification head (``mse_bce``).
     """
 
     inputs: tuple[str, ...] = ("rgb", "disp_sgm")
@@ -59,6 +79,9 @@ class Dave2Config:
     speed_scale: float = 30.0
     disp_scale: float = 64.0
     dropout: float = 0.0
+    objective: str = "mse"
+    thw_cap_s: float = 10.0
+    critical_thw_s: float = 1.5
     conv: tuple[tuple[int, int, int], ...] = field(default=CONV_SPEC)
     fc: tuple[int, ...] = field(default=FC_SPEC)
 
@@ -80,6 +103,12 @@ class Dave2Config:
             raise ValueError("Dave2Config: speed_scale and disp_scale must be > 0")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"Dave2Config.dropout must be in [0, 1), got {self.dropout}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(
+                f"Dave2Config.objective must be one of {list(OBJECTIVES)}, got {self.objective!r}"
+            )
+        if not self.thw_cap_s > 1.0 / RISK_CLIP or not self.critical_thw_s > 0:
+            raise ValueError("Dave2Config: thw_cap_s must be > 0.05 s and critical_thw_s > 0 s")
         # normalise list-ish fields (JSON round trips give lists)
         object.__setattr__(self, "inputs", tuple(self.inputs))
         object.__setattr__(self, "conv", tuple(tuple(int(v) for v in c) for c in self.conv))
@@ -155,10 +184,15 @@ class Dave2(nn.Module):
                 head.append(nn.Dropout(self.cfg.dropout))
             head += [nn.Linear(n_in, n_out), nn.ReLU(inplace=True)]
             n_in = n_out
-        head.append(nn.Linear(n_in, 1))
+        head.append(nn.Linear(n_in, OBJECTIVES[self.cfg.objective]))
         self.head = nn.Sequential(*head)
 
     def forward(self, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised risk (N,) in [0, 1] (see the module docstring)."""
+        return raw_to_risk(self.cfg, self.raw(x, speed))
+
+    def raw(self, x: torch.Tensor, speed: torch.Tensor | None = None) -> torch.Tensor:
+        """The head's raw outputs (N, k), k = :data:`OBJECTIVES` [objective]."""
         cfg = self.cfg
         if (
             x.ndim != 4
@@ -175,7 +209,42 @@ class Dave2(nn.Module):
             if speed is None:
                 raise ValueError("Dave2 was built with use_speed=True: pass speed (N,) in m/s")
             z = torch.cat([z, (speed.reshape(-1, 1).to(z.dtype) / cfg.speed_scale)], dim=1)
-        return self.head(z).squeeze(1)
+        return self.head(z)
+
+
+def raw_to_risk(cfg: Dave2Config, raw: torch.Tensor) -> torch.Tensor:
+    """Normalised risk (N,) in [0, 1] from the raw head outputs (N, k) of objective ``cfg.objective``."""
+    out = raw[:, 0].float()
+    if cfg.objective == "log_thw":
+        thw = torch.exp(out)
+        risk = torch.clamp(1.0 / (RISK_CLIP * thw), max=1.0)
+        return torch.where(thw >= cfg.thw_cap_s, torch.zeros_like(risk), risk)
+    return torch.clamp(out, 0.0, 1.0)
+
+
+def risk_to_log_thw(cfg: Dave2Config, y: torch.Tensor) -> torch.Tensor:
+    """The ``log_thw`` target: log of THW (s) = 1 / (20 y), clipped to [1/20, thw_cap_s] (y = 0 -> cap)."""
+    y = y.float()
+    thw = torch.where(y > 0, 1.0 / (RISK_CLIP * torch.clamp(y, min=1e-12)), cfg.thw_cap_s)
+    return torch.log(torch.clamp(thw, 1.0 / RISK_CLIP, cfg.thw_cap_s))
+
+
+def risk_loss(
+    cfg: Dave2Config, raw: torch.Tensor, y: torch.Tensor, bce_weight: float = 0.05
+) -> torch.Tensor:
+    """Training loss of objective ``cfg.objective`` on raw outputs (N, k) and normalised risk
+    labels y (N,): MSE on the risk (``mse``), MSE on log THW (``log_thw``), or MSE + ``bce_weight``
+    x binary cross-entropy of the critical logit against y > risk threshold (``mse_bce``)."""
+    y = y.float()
+    out = raw.float()
+    if cfg.objective == "log_thw":
+        return torch.mean((out[:, 0] - risk_to_log_thw(cfg, y)) ** 2)
+    mse = torch.mean((out[:, 0] - y) ** 2)
+    if cfg.objective == "mse_bce":
+        critical = (y > min(1.0 / cfg.critical_thw_s, RISK_CLIP) / RISK_CLIP).float()
+        bce = nn.functional.binary_cross_entropy_with_logits(out[:, 1], critical)
+        return mse + bce_weight * bce
+    return mse
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -35,12 +35,12 @@ def _save(fig: plt.Figure, path: str | Path) -> None:
 def plot_training_curves(
     histories: Mapping[str, pd.DataFrame], path: str | Path, paper_test_mse: float | None = None
 ) -> None:
-    """``histories``: variant → DataFrame with ``step``, ``train/mse``, ``val/mse`` (from train_risk)."""
+    """``histories``: variant → DataFrame with ``step``, ``train/loss`` (the objective's), ``val/mse`` (from train_risk)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for name, h in histories.items():
         if len(h) == 0:
             continue
-        axes[0].plot(h["step"], h["train/mse"], label=name, lw=1.2)
+        axes[0].plot(h["step"], h["train/loss"], label=name, lw=1.2)
         axes[1].plot(h["step"], h["val/mse"], label=name, lw=1.2)
     for ax, title in zip(axes, ("training average error (MSE)", "validation average error (MSE)")):
         ax.set_title(title)

@@ -11,6 +11,13 @@ bumper segment to the centre of one of its cells inside the *region* (the border
 holds the vehicle's near edge has its centre within half a cell of it, so the estimate is
 unbiased with a quantisation error <= cell/2 plus the line-drawing's). Regions:
 
+* ``corridor`` (the headline label; the classic time headway): the subject's driving corridor
+  ahead — cells within ``lane_width / 2 + corridor_margin`` of the path the subject will drive
+  (its lane's centreline ahead, given per frame; a straight line along +x when none is given).
+  The free distance is measured *along the path*, from the front bumper (arc length
+  ``subject_length / 2``) to the cell's projection onto it, so a parked car at the roadside or
+  a vehicle in the next lane does not count, while a lead vehicle, a car cutting in (once its
+  edge crosses into the corridor) or a pedestrian crossing the lane does.
 * ``paper``: everything ahead of the front bumper line within the grid (x > l/2). Under the
   pessimistic turn assumption the subject may steer towards any vehicle ahead, and the
   straight line is the shortest path to it: this is the worst time headway of the paper,
@@ -42,7 +49,7 @@ import numpy as np
 from traffictwin.grid import GridSpec
 from traffictwin.sim.scene import VEHICLE_CLASSES, Boxes
 
-REGIONS = ("paper", "camera_fov")
+REGIONS = ("corridor", "paper", "camera_fov")
 CLIP = 20.0  # 1/s: the upper limit of 1/T before normalisation
 CRITICAL_THW = 1.5  # s: a frame is critical when THW is below this (the paper's threshold)
 _SHIFT = 4
@@ -82,7 +89,8 @@ def risk_threshold(thw_s: float = CRITICAL_THW) -> float:
 @dataclass(frozen=True)
 class RiskConfig:
     """Subject footprint (m), region, camera geometry for ``camera_fov`` (deg, m), fill mode,
-    and whether pedestrians count as obstacles (the paper: vehicles only)."""
+    whether pedestrians count as obstacles (the paper: vehicles only), and the corridor: the lane
+    width used when a frame gives none (m) and the margin added on each side (m, may be < 0)."""
 
     subject_length: float = 4.5
     subject_width: float = 1.8
@@ -91,6 +99,8 @@ class RiskConfig:
     mount_x: float = 1.2
     fill: str = "border"
     include_pedestrians: bool = False
+    lane_width: float = 3.5
+    corridor_margin: float = 0.0
 
     def __post_init__(self) -> None:
         if self.region not in REGIONS:
@@ -99,6 +109,11 @@ class RiskConfig:
             raise ValueError(f"risk fill must be 'border' or 'filled', got {self.fill!r}")
         if self.subject_length <= 0 or self.subject_width <= 0:
             raise ValueError("risk subject_length/subject_width must be > 0 m")
+        if self.lane_width <= 0 or self.lane_width / 2 + self.corridor_margin <= 0:
+            raise ValueError(
+                f"risk corridor half-width lane_width/2 + corridor_margin must be > 0 m, got "
+                f"lane_width {self.lane_width}, corridor_margin {self.corridor_margin}"
+            )
 
 
 @dataclass(frozen=True)
@@ -132,6 +147,16 @@ def to_subject_frame(boxes: Boxes, pose: np.ndarray) -> Boxes:
     )
 
 
+def path_to_subject_frame(path: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """World path points (K, 2) expressed in the frame of the subject at ``pose`` (m, rad)."""
+    path = np.asarray(path, float)
+    if path.ndim != 2 or path.shape[1] != 2 or len(path) < 2:
+        raise ValueError(f"corridor path must be (K >= 2, 2) metres, got {path.shape}")
+    x, y, yaw = (float(p) for p in pose)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return (path - [x, y]) @ np.array([[c, -s], [s, c]])
+
+
 def rasterise(rel: Boxes, grid: GridSpec, fill: str = "border") -> np.ndarray:
     """Label map (rows, cols) int32: 0 free, k + 1 = cells of box k (subject-frame boxes)."""
     lab = np.zeros(grid.shape, np.int32)
@@ -151,12 +176,49 @@ def rasterise(rel: Boxes, grid: GridSpec, fill: str = "border") -> np.ndarray:
     return lab
 
 
-def region_mask(grid: GridSpec, cfg: RiskConfig) -> np.ndarray:
-    """Bool (rows, cols): cells in the region the metric searches (see module docstring)."""
+def straight_path(length: float, step: float = 0.5) -> np.ndarray:
+    """A straight path (K, 2) along +x from the reference point (m): the corridor without a lane."""
+    xs = np.arange(0.0, length + step / 2, step)
+    return np.stack([xs, np.zeros_like(xs)], 1)
+
+
+def project_on_path(xy: np.ndarray, path: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project points ``xy`` (M, 2) onto the polyline ``path`` (K >= 2, 2) (m).
+
+    Returns the lateral distance to the polyline (M,), the arc length of the projection from
+    ``path[0]`` (M,) and the unit tangent there (M, 2); vectorised over points and segments.
+    """
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    seg = np.hypot(ab[:, 0], ab[:, 1])
+    keep = seg > 1e-9
+    a, ab, seg = a[keep], ab[keep], seg[keep]
+    if len(seg) == 0:
+        raise ValueError("corridor path needs at least two distinct points")
+    cum = np.r_[0.0, np.cumsum(seg)[:-1]]
+    ap = xy[:, None, :] - a[None]  # (M, S, 2)
+    t = np.clip((ap[..., 0] * ab[:, 0] + ap[..., 1] * ab[:, 1]) / (seg * seg), 0.0, 1.0)
+    off = ap - t[..., None] * ab[None]
+    d2 = off[..., 0] ** 2 + off[..., 1] ** 2
+    j = np.argmin(d2, axis=1)
+    m = np.arange(len(xy))
+    tangent = ab[j] / seg[j, None]
+    return np.sqrt(d2[m, j]), cum[j] + t[m, j] * seg[j], tangent
+
+
+def region_mask(grid: GridSpec, cfg: RiskConfig, path: np.ndarray | None = None) -> np.ndarray:
+    """Bool (rows, cols): cells in the region the metric searches (see module docstring);
+    ``path`` (K, 2, subject frame, m) only for ``corridor`` (default: straight ahead)."""
     x, y = grid.cell_centers()
     ahead = x > cfg.subject_length / 2.0
     if cfg.region == "paper":
         return ahead
+    if cfg.region == "corridor":
+        if path is None:
+            path = straight_path(grid.length)
+        lat, s, _ = project_on_path(np.stack([x.ravel(), y.ravel()], 1), np.asarray(path, float))
+        inside = (lat <= cfg.lane_width / 2 + cfg.corridor_margin) & (s > cfg.subject_length / 2)
+        return inside.reshape(x.shape)
     bearing = np.arctan2(y, x - cfg.mount_x)
     return ahead & (x > cfg.mount_x) & (np.abs(bearing) <= np.radians(cfg.hfov_deg) / 2.0)
 
@@ -178,17 +240,29 @@ class RiskCalculator:
     def __init__(self, grid: GridSpec, cfg: RiskConfig) -> None:
         self.grid = grid
         self.cfg = cfg
-        self.region = region_mask(grid, cfg)
+        self.region = region_mask(grid, cfg) if cfg.region != "corridor" else None
         self.dist, self.ex, self.ey = bumper_distance(grid, cfg)
+        self.cx, self.cy = grid.cell_centers()
 
     def obstacles(self, boxes: Boxes) -> np.ndarray:
         """Indices of boxes that count as obstacles (vehicles; pedestrians if configured)."""
         classes = list(VEHICLE_CLASSES) + ([3] if self.cfg.include_pedestrians else [])
         return np.flatnonzero(np.isin(boxes.cls, classes))
 
-    def __call__(self, pose: np.ndarray, speed: float, others: Boxes) -> RiskResult:
+    def __call__(
+        self,
+        pose: np.ndarray,
+        speed: float,
+        others: Boxes,
+        path: np.ndarray | None = None,
+        lane_width: float | None = None,
+    ) -> RiskResult:
         """Risk of the subject at world ``pose`` (x, y, yaw) with ``speed`` (m/s >= 0) among
-        ``others`` (world boxes with world velocities; the subject itself must not be in it)."""
+        ``others`` (world boxes with world velocities; the subject itself must not be in it).
+
+        ``corridor`` region only: ``path`` (K, 2) = the subject's path ahead in *world*
+        coordinates starting at its reference point (default: straight ahead) and ``lane_width``
+        (m; default ``cfg.lane_width``)."""
         if not np.isfinite(speed) or speed < 0:
             raise ValueError(f"subject speed must be finite and >= 0 m/s, got {speed}")
         idx = self.obstacles(others)
@@ -198,18 +272,21 @@ class RiskCalculator:
         near = np.hypot(rel.center[:, 0], rel.center[:, 1]) < half
         idx, rel = idx[near], rel.subset(near)
         lab = rasterise(rel, self.grid, self.cfg.fill)
-        sel = (lab > 0) & self.region
+        if self.cfg.region == "corridor":
+            sel, d, ex_c, ey_c = self._corridor(lab, pose, path, lane_width)
+        else:
+            sel = (lab > 0) & self.region
+            d = self.dist[sel]
+            ex_c, ey_c = self.ex[sel], self.ey[sel]
         if not sel.any():
             return RiskResult(np.inf, -1, np.inf, np.inf, np.inf, 0.0, 0.0, 0.0)
         k = lab[sel] - 1
-        d = self.dist[sel]
         # per-vehicle nearest cell
         order = np.lexsort((d, k))
         k, d = k[order], d[order]
         first = np.r_[True, k[1:] != k[:-1]]
-        cells = np.flatnonzero(sel)[order][first]
         kv, dv = k[first], d[first]
-        ex, ey = self.ex.ravel()[cells], self.ey.ravel()[cells]
+        ex, ey = ex_c[order][first], ey_c[order][first]
         vel = rel.velocity[kv]
         closing = speed - (vel[:, 0] * ex + vel[:, 1] * ey)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -230,6 +307,33 @@ class RiskCalculator:
             float(risk_from_time(thw)),
             float(risk_from_time(t_ttc)),
             float(risk_from_time(t_wttc)),
+        )
+
+    def _corridor(
+        self, lab: np.ndarray, pose: np.ndarray, path: np.ndarray | None, lane_width: float | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Occupied cells in the corridor (bool mask), their free distance along the path (m)
+        and the path's unit tangent at their projection (subject frame), in mask order."""
+        rel_path = (
+            straight_path(self.grid.length) if path is None else path_to_subject_frame(path, pose)
+        )
+        half = (self.cfg.lane_width if lane_width is None else float(lane_width)) / 2
+        half += self.cfg.corridor_margin
+        occ = lab > 0
+        flat = np.flatnonzero(occ)
+        xs, ys = self.cx.ravel()[flat], self.cy.ravel()[flat]
+        if len(flat) == 0:
+            return occ, np.zeros(0), np.zeros(0), np.zeros(0)
+        lat, arc, tangent = project_on_path(np.stack([xs, ys], 1), rel_path)
+        inside = (lat <= half) & (arc > self.cfg.subject_length / 2)
+        sel = np.zeros(lab.size, bool)
+        sel[flat[inside]] = True
+        # mask order (row-major) = flat order, so the per-cell arrays line up with lab[sel]
+        return (
+            sel.reshape(lab.shape),
+            arc[inside] - self.cfg.subject_length / 2,
+            tangent[inside, 0],
+            tangent[inside, 1],
         )
 
 

@@ -8,8 +8,12 @@ pair check ``data/orb/orb.csv``. Only frames whose stereo pair passed the ORB ch
 :class:`RiskSource` reads and cross-checks the three inputs; :func:`prepare_split` loads one split
 at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 kB a frame at
 66×200), normalised per batch on the device by the LightningModule (:class:`RiskRegressor`).
-Loss: MSE on the normalised risk; optimiser: Adam; validation every ``val_every_n_steps``
-optimiser steps (the paper: every 10), the checkpoint with the lowest validation MSE is kept.
+Loss: the variant's objective (:func:`~traffictwin.risk.dave2.risk_loss`: the paper's MSE on the
+normalised risk, MSE on log THW, or MSE + a classification head at 1.5 s); optimiser: Adam with
+gradient-norm clipping; validation every ``val_every_n_steps`` optimiser steps (the paper: every
+10), the checkpoint with the lowest validation MSE of the predicted risk is kept. A run whose
+best checkpoint predicts one value for every validation frame (spread < :data:`MIN_PRED_STD`)
+raises :class:`CollapsedModelError`: nothing is published.
 
 The Trainer, seeding, best-checkpoint callback, the history callback (here one row *per
 validation*: the paper's Figs. 5–6 are over iterations, not epochs) and MLflow model logging
@@ -41,6 +45,7 @@ from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import (
+    OBJECTIVES,
     Dave2,
     Dave2Config,
     PackedDave2,
@@ -48,6 +53,8 @@ from traffictwin.risk.dave2 import (
     normalise,
     pack_input,
     prepare_channels,
+    raw_to_risk,
+    risk_loss,
 )
 from traffictwin.risk.model_io import CKPT, save_risk_model
 from traffictwin.trainer import (
@@ -68,7 +75,23 @@ from traffictwin.trainer import (
 
 log = logging.getLogger(__name__)
 
-LABELS = ("risk", "risk_thw_paper", "risk_thw_fov", "risk_ttc", "risk_wttc")
+LABELS = (
+    "risk",
+    "risk_thw_corridor",
+    "risk_thw_paper",
+    "risk_thw_fov",
+    "risk_ttc",
+    "risk_wttc",
+)
+#: a run whose validation predictions spread less than this (std of the normalised risk) has
+#: collapsed to a constant: it fails instead of being published (:class:`CollapsedModelError`)
+MIN_PRED_STD = 1e-3
+
+
+class CollapsedModelError(RuntimeError):
+    """The trained network predicts (nearly) one value for every validation frame."""
+
+
 _FRAME_COLS = ("frame_id", "shard", "idx", "split", "speed")
 
 
@@ -377,53 +400,69 @@ def mse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 class RiskRegressor(NetModule):
-    """:class:`~traffictwin.trainer.NetModule` with Dave2 and the MSE loss (Adam, no LR schedule).
+    """:class:`~traffictwin.trainer.NetModule` with Dave2 and its objective's loss (Adam).
 
-    Logs ``train/mse`` (per step), ``val/mse``, ``val/mae``, ``test/*``.
+    Logs ``train/loss`` (per step; the objective's loss), ``val/mse``, ``val/mae`` (of the
+    predicted normalised risk, whatever the objective), ``val/pred_std`` (spread of the
+    predictions: ~0 = collapsed), ``test/*``.
     """
 
-    def __init__(self, cfg: Dave2Config, lr: float = 1e-4, weight_decay: float = 0.0) -> None:
+    def __init__(
+        self,
+        cfg: Dave2Config,
+        lr: float = 1e-4,
+        weight_decay: float = 0.0,
+        bce_weight: float = 0.05,
+    ) -> None:
         super().__init__(Dave2(cfg), mse_loss, lr=lr, weight_decay=weight_decay)
         self.cfg = cfg
-        # per-split error sums (torchmetrics, float64; reduced over DDP ranks)
+        self.bce_weight = float(bce_weight)
+        # per-split sums (torchmetrics, float64; reduced over DDP ranks)
         self.eval_sums = torch.nn.ModuleDict(
             {
                 split: torch.nn.ModuleDict(
-                    {k: SumMetric().set_dtype(torch.float64) for k in ("se", "ae", "n")}
+                    {k: SumMetric().set_dtype(torch.float64) for k in ("se", "ae", "n", "p", "p2")}
                 )
                 for split in ("val", "test")
             }
         )
 
     def forward(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+        """Normalised risk (N,)."""
+        return raw_to_risk(self.cfg, self.raw(rgb, disp, speed))
+
+    def raw(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         x = normalise(self.cfg, rgb if rgb.shape[1] else None, disp if disp.shape[1] else None)
-        return self.net(x, speed if self.cfg.use_speed else None)
+        return self.net.raw(x, speed if self.cfg.use_speed else None)
 
     def training_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> torch.Tensor:
         rgb, disp, speed, y = batch
-        pred = self(rgb, disp, speed)
-        loss = self.loss_fn(pred, y)
+        loss = risk_loss(self.cfg, self.raw(rgb, disp, speed), y, self.bce_weight)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"risk training loss is not finite at step {self.global_step}")
-        self.log("train/mse", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
+        self.log("train/loss", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
         return loss
 
     def _eval_step(self, batch: Sequence[torch.Tensor], prefix: str) -> None:
         rgb, disp, speed, y = batch
-        err = self(rgb, disp, speed).float() - y
+        pred = self(rgb, disp, speed).double()
+        err = pred - y.double()
         sums = self.eval_sums[prefix]
-        sums["se"].update(torch.sum(err**2).double())
-        sums["ae"].update(torch.sum(err.abs()).double())
+        sums["se"].update(torch.sum(err**2))
+        sums["ae"].update(torch.sum(err.abs()))
         sums["n"].update(float(len(y)))
+        sums["p"].update(torch.sum(pred))
+        sums["p2"].update(torch.sum(pred**2))
 
     def _eval_end(self, prefix: str) -> None:
         sums = self.eval_sums[prefix]
-        se, ae, n = (float(sums[k].compute()) for k in ("se", "ae", "n"))
+        se, ae, n, p, p2 = (float(sums[k].compute()) for k in ("se", "ae", "n", "p", "p2"))
         for metric in sums.values():
             metric.reset()
         n = max(n, 1.0)
         self.log(f"{prefix}/mse", se / n)
         self.log(f"{prefix}/mae", ae / n)
+        self.log(f"{prefix}/pred_std", math.sqrt(max(p2 / n - (p / n) ** 2, 0.0)))
 
     def validation_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> None:
         self._eval_step(batch, "val")
@@ -450,6 +489,9 @@ class TrainConfig:
     limit_val_batches: int | float = 1.0
     eval_batch_size: int = 256
     seed: int = 0
+    grad_clip: float | None = None
+    bce_weight: float = 0.05
+    min_pred_std: float = MIN_PRED_STD
 
     def __post_init__(self) -> None:
         for k in ("epochs", "batch_size", "val_every_n_steps", "eval_batch_size"):
@@ -464,11 +506,26 @@ class TrainConfig:
 
 @dataclass
 class VariantConfig:
-    """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``)."""
+    """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``),
+    training objective (:data:`~traffictwin.risk.dave2.OBJECTIVES`), the seed offset added to the
+    training seed, and ``replicate_of``: the variant this one repeats with another seed (None)."""
 
     inputs: list[str] = setting()  # checked by Dave2Config (rgb, disp_sgm, disp_gt)
     speed: bool = setting()
     label: str | None = setting(choices=(*LABELS, None))
+    objective: str = setting(choices=tuple(OBJECTIVES))
+    seed_offset: int = setting(min=0)
+    replicate_of: str | None = setting()
+
+
+@dataclass
+class ObjectiveSchema:
+    """``risk_model.objective``: the THW (s) that stands for "nothing ahead" in ``log_thw``, and
+    the weight of the classification term and its THW threshold (s) in ``mse_bce``."""
+
+    thw_cap_s: float = setting(min=0.1)
+    bce_weight: float = setting(min=0.0)
+    critical_thw_s: float = setting(min=0.1)
 
 
 @dataclass
@@ -479,6 +536,8 @@ class RiskTrainSchema:
     batch_size: int = setting(min=1)
     lr: float = setting(min=1e-12)
     weight_decay: float = setting(min=0.0)
+    grad_clip: float | None = setting(min=0.0)
+    min_pred_std: float = setting(min=0.0)
     val_every_n_steps: int = setting(min=1)
     limit_val_batches: Any = setting()
     eval_batch_size: int = setting(min=1)
@@ -497,6 +556,7 @@ class RiskModelConfig:
     disp_scale: float = setting(min=1e-6)
     speed_scale: float = setting(min=1e-6)
     dropout: float = setting(min=0.0, max=0.99)
+    objective: ObjectiveSchema = setting()
     train: RiskTrainSchema = setting()
     run_variants: list[str] = setting()
     variants: dict[str, VariantConfig] = setting()
@@ -507,6 +567,23 @@ class RiskModelConfig:
             raise ValueError(
                 f"run_variants {unknown} are not in variants (has {sorted(self.variants)})"
             )
+        for name, v in self.variants.items():
+            base = v.replicate_of
+            if base is None:
+                continue
+            b = self.variants.get(base)
+            if b is None or b.replicate_of is not None:
+                raise ValueError(
+                    f"variants.{name}.replicate_of must name a variant that is not itself a "
+                    f"replicate, got {base!r}"
+                )
+            same = ("inputs", "speed", "label", "objective")
+            diff = [k for k in same if getattr(v, k) != getattr(b, k)]
+            if diff or v.seed_offset == b.seed_offset:
+                raise ValueError(
+                    f"variants.{name} replicates {base!r}: it must have the same {list(same)} "
+                    f"(differs in {diff}) and another seed_offset"
+                )
 
     def variant(self, name: str) -> tuple[Dave2Config, str]:
         """The network config and the training label of variant ``name``."""
@@ -521,11 +598,15 @@ class RiskModelConfig:
             speed_scale=self.speed_scale,
             disp_scale=self.disp_scale,
             dropout=self.dropout,
+            objective=v.objective,
+            thw_cap_s=self.objective.thw_cap_s,
+            critical_thw_s=self.objective.critical_thw_s,
         )
         return cfg, v.label or self.label
 
-    def train_config(self, seed: int) -> TrainConfig:
-        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset``.
+    def train_config(self, seed: int, variant: str | None = None) -> TrainConfig:
+        """Optimisation settings; the seed is the global ``seed`` + ``train.seed_offset`` (+ the
+        variant's ``seed_offset``).
 
         Raises ValueError when ``train.limit_val_batches`` is neither a batch count (int >= 1)
         nor a fraction in (0, 1].
@@ -542,8 +623,13 @@ class RiskModelConfig:
                 "'train.limit_val_batches' must be a batch count (int >= 1) or a fraction"
                 f" in (0, 1], got {lvb!r}"
             )
-        same = {f.name for f in fields(TrainConfig)} - {"seed"}
-        return TrainConfig(**{k: getattr(t, k) for k in same}, seed=seed + t.seed_offset)
+        same = {f.name for f in fields(TrainConfig)} - {"seed", "bce_weight"}
+        extra = self.variants[variant].seed_offset if variant is not None else 0
+        return TrainConfig(
+            **{k: getattr(t, k) for k in same},
+            seed=seed + t.seed_offset + extra,
+            bce_weight=self.objective.bce_weight,
+        )
 
 
 @dataclass
@@ -580,13 +666,16 @@ def fit(
         num_workers=settings.num_workers,
         seed=tc.seed,
     )
-    module = RiskRegressor(cfg, lr=tc.lr, weight_decay=tc.weight_decay)
+    module = RiskRegressor(cfg, lr=tc.lr, weight_decay=tc.weight_decay, bce_weight=tc.bce_weight)
     steps_per_epoch = math.ceil(len(train) / tc.batch_size)
     total = steps_per_epoch * tc.epochs
     # validate at least once at the end: the interval never exceeds the run's step count
     interval = max(1, min(tc.val_every_n_steps, total))
     history = History(
-        "validation", metrics=("val/mse", "val/mae"), train_loss="train/mse", logger=logger
+        "validation",
+        metrics=("val/mse", "val/mae", "val/pred_std"),
+        train_loss="train/loss",
+        logger=logger,
     )
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
@@ -599,6 +688,7 @@ def fit(
             limit_val_batches=tc.limit_val_batches,
             val_check_interval=interval,
             check_val_every_n_epoch=None,
+            gradient_clip_val=tc.grad_clip,
         )
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm)
@@ -621,6 +711,8 @@ def fit(
         else float("nan")
     )
     net = module.net.cpu().eval()
+    if not fast_dev_run:
+        check_spread(net, val, cfg, tc.min_pred_std)
     log.info(
         "risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
         list(cfg.inputs),
@@ -633,6 +725,33 @@ def fit(
     return TrainResult(
         net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
     )
+
+
+def check_spread(
+    net: Dave2, val: RiskArrays, cfg: Dave2Config, min_std: float = MIN_PRED_STD
+) -> float:
+    """Std of the network's predicted risk over the validation frames; raises
+    :class:`CollapsedModelError` when it is below ``min_std`` (one output for every frame)."""
+    with torch.no_grad():
+        preds = []
+        for i in range(0, len(val), 256):
+            sl = slice(i, i + 256)
+            x = normalise(
+                cfg,
+                torch.from_numpy(val.rgb[sl]) if val.rgb.shape[1] else None,
+                torch.from_numpy(val.disp[sl]) if val.disp.shape[1] else None,
+            )
+            preds.append(net(x, torch.from_numpy(val.speed[sl]) if cfg.use_speed else None))
+    p = torch.cat(preds).double() if preds else torch.zeros(0, dtype=torch.float64)
+    std = float(p.std(unbiased=False)) if len(p) else 0.0
+    if not std >= min_std:
+        raise CollapsedModelError(
+            f"risk network {list(cfg.inputs)} (speed {cfg.use_speed}, objective {cfg.objective}) "
+            f"collapsed: its predictions on the {len(p)} validation frames spread by {std:.2e} "
+            f"(std of the normalised risk, minimum {min_std:g}) — it outputs one value for every "
+            f"frame; not published (check the learning rate, initialisation and the label)"
+        )
+    return std
 
 
 def fit_risk(

@@ -7,20 +7,22 @@ this module inserts on its lane to produce a *situation*:
 
 ========================  ==============================================================
 ``free``                  no vehicle on the subject's entry lane; cruising 8-25 m/s
-``follow_far``            lead vehicle, desired time gap 1.6-3.5 s
-``follow_close``          lead vehicle, desired time gap 0.5-1.3 s
+``follow_far``            lead vehicle, desired time gap 1.4-3.5 s
+``follow_close``          lead vehicle, desired time gap 0.5-1.5 s
 ``approach_slow``         subject (12-25 m/s) closes in on a slower lead (3-10 m/s)
 ``approach_stopped``      stopped vehicle ahead (queue / red light); subject brakes to a stop
 ``stop_and_go``           both at standstill, the lead drives off, the subject follows
 ``cut_in``                a vehicle from the neighbouring lane merges in front of the subject
-``pedestrian``            a pedestrian crosses the road ahead; the subject brakes for it
+``pedestrian``            a pedestrian steps into the lane 0.8-3.5 s ahead; the subject brakes late
 ========================  ==============================================================
 
 Intersections, oncoming traffic, parked cars and pedestrians on the sidewalks come from the
-shared world and its scenario (templates are drawn per sequence). The share of sequences
-drawn from the *close* situations (``follow_close``, ``approach_*``, ``stop_and_go``,
-``cut_in``) is ``critical_share``; the measured share of critical frames (THW < 1.5 s) is
-higher because the pessimistic grid metric also counts parked and oncoming vehicles ahead.
+shared world and its scenario (templates are drawn per sequence). The situation of sequence
+``i`` is drawn from the configured weights by :func:`draw_situation`, from ``(seed, i)`` alone,
+so that splits can be stratified by situation before anything is simulated; the roadside
+parking density (the probability that a parking slot is taken) is drawn per sequence from
+``parked_prob``. Every frame carries the subject's path ahead (its lane's centreline) and lane
+width: the driving corridor of the risk label (:mod:`traffictwin.risk.metric`).
 
 Everything is deterministic for ``(seed, index)``. Units: m, s, m/s, rad.
 """
@@ -35,17 +37,38 @@ from traffictwin.sim.scene import Boxes, Cls
 from traffictwin.sim.traffic import SUBJECT_SIZE, sample_scenario
 from traffictwin.sim.world import TEMPLATES, World, build_world
 
-CLOSE = ("follow_close", "approach_slow", "approach_stopped", "stop_and_go", "cut_in")
-CALM = ("free", "follow_far", "pedestrian")
+SITUATIONS = (
+    "free",
+    "follow_far",
+    "follow_close",
+    "approach_slow",
+    "approach_stopped",
+    "stop_and_go",
+    "cut_in",
+    "pedestrian",
+)
 FAULTS = ("none", "delay", "vertical")
 INSERTED_ID0 = 900_000  # ids of vehicles this module inserts
+PATH_AHEAD = 60.0  # m of the subject's lane recorded per frame (the corridor; >= the grid's reach)
+PATH_STEP = 0.5  # m between path points
+
+
+def draw_situation(seed: int, index: int, weights: tuple[tuple[str, float], ...]) -> str:
+    """The situation of sequence ``index`` (deterministic for ``(seed, index)``), drawn with the
+    relative ``weights`` ((name, weight >= 0), ...; names from :data:`SITUATIONS`)."""
+    names = [n for n, _ in weights]
+    w = np.array([float(x) for _, x in weights])
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 3004]))
+    return str(names[int(rng.choice(len(names), p=w / w.sum()))])
 
 
 @dataclass(frozen=True)
 class DrivingConfig:
     """fps: frame rate (Hz); frames: frames per sequence; warmup: simulated seconds before the
-    first frame; sim_dt: integration step (s); max_speed (m/s); critical_share: probability of
-    a close situation; templates: world templates to draw from (empty = all);
+    first frame; sim_dt: integration step (s); max_speed (m/s); situations: relative weights
+    ((name, weight), ...) of the situations (:data:`SITUATIONS`); parked_prob: range of the
+    per-sequence probability that a parking slot is taken; templates: world templates to draw
+    from (empty = all);
     fault_delay/fault_vertical: share of frames with a delayed right image / vertical
     misalignment; delay: right-image delay (s); vertical_px: misalignment range (px)."""
 
@@ -54,7 +77,8 @@ class DrivingConfig:
     warmup: float = 3.0
     sim_dt: float = 0.05
     max_speed: float = 25.0
-    critical_share: float = 0.6
+    situations: tuple[tuple[str, float], ...] = tuple((n, 1.0) for n in SITUATIONS)
+    parked_prob: tuple[float, float] = (0.0, 0.9)
     templates: tuple[str, ...] = ()
     fault_delay: float = 0.03
     fault_vertical: float = 0.03
@@ -64,10 +88,19 @@ class DrivingConfig:
     def __post_init__(self) -> None:
         if self.fps <= 0 or self.frames < 1 or self.sim_dt <= 0 or self.warmup < 0:
             raise ValueError("driving: fps and sim_dt must be > 0, frames >= 1, warmup >= 0")
-        if not 0 <= self.critical_share <= 1:
+        unknown = [n for n, _ in self.situations if n not in SITUATIONS]
+        if unknown:
             raise ValueError(
-                f"driving: critical_share must be in [0, 1], got {self.critical_share}"
+                f"driving: unknown situations {unknown}; expected some of {list(SITUATIONS)}"
             )
+        w = [float(x) for _, x in self.situations]
+        if not w or min(w) < 0 or sum(w) <= 0:
+            raise ValueError(
+                f"driving: situation weights must be >= 0 with a positive sum, got {w}"
+            )
+        lo, hi = self.parked_prob
+        if not 0 <= lo <= hi <= 1:
+            raise ValueError(f"driving: parked_prob must be [low, high] in [0, 1], got {[lo, hi]}")
         if (
             self.fault_delay < 0
             or self.fault_vertical < 0
@@ -85,7 +118,9 @@ class DrivingConfig:
 class Frame:
     """One recorded instant: time (s), subject pose (x, y, yaw) and speed (m/s), the scene
     (static + agents, world frame) for the left image, the scene/pose for the right image
-    (differs for a ``delay`` fault), the vertical offset of the right image (px) and the fault."""
+    (differs for a ``delay`` fault), the vertical offset of the right image (px), the fault,
+    and the subject's path ahead (K, 2; world, m, from its reference point along its lane) and
+    lane width (m)."""
 
     t: float
     pose: np.ndarray
@@ -95,6 +130,8 @@ class Frame:
     boxes_right: Boxes
     right_cy_offset: float
     fault: str
+    path: np.ndarray
+    lane_width: float
 
 
 @dataclass
@@ -155,8 +192,9 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
     templates = cfg.templates or TEMPLATES
     template = str(templates[int(rng.integers(len(templates)))])
     world = build_world(template, int(rng.integers(0, 2**31 - 1)))
-    scen = sample_scenario(world, int(rng.integers(0, 2**31 - 1)))
-    situation = str(rng.choice(CLOSE if rng.random() < cfg.critical_share else CALM))
+    parked = float(rng.uniform(*cfg.parked_prob))
+    scen = sample_scenario(world, int(rng.integers(0, 2**31 - 1)), parked_prob=parked)
+    situation = draw_situation(seed, index, cfg.situations)
 
     duration = cfg.warmup + cfg.frames / cfg.fps + 0.5
     n = int(np.ceil(duration / cfg.sim_dt)) + 1
@@ -171,33 +209,38 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
     # situation parameters: subject desired speed v_des, initial speed v_init, desired gap T;
     # inserted lead: initial gap, speed profile
     T = float(rng.uniform(1.0, 1.8))
+    s0, b = 2.0, 3.0  # IDM standstill gap (m) and comfortable deceleration (m/s^2)
     v_des = float(rng.uniform(8.0, cfg.max_speed))
     v_init = v_des * float(rng.uniform(0.6, 1.0))
     lead: dict | None = None
     cut: dict | None = None
     ped: dict | None = None
     if situation == "follow_far":
-        T = float(rng.uniform(1.6, 3.5))
+        T = float(rng.uniform(1.3, 3.0))
         v_l = float(rng.uniform(6.0, cfg.max_speed - 2))
         v_des, v_init = v_l + 3.0, v_l
         lead = dict(gap=2.0 + T * v_l * float(rng.uniform(0.9, 1.2)), v=np.full(n, v_l))
     elif situation == "follow_close":
-        T = float(rng.uniform(0.5, 1.3))
+        T = float(rng.uniform(0.4, 1.2))
+        s0 = float(rng.uniform(1.0, 2.0))
         v_l = float(rng.uniform(5.0, cfg.max_speed - 2))
         v_des, v_init = v_l + 3.0, v_l
         lead = dict(gap=2.0 + T * v_l * float(rng.uniform(0.8, 1.1)), v=np.full(n, v_l))
     elif situation == "approach_slow":
         v_l = float(rng.uniform(3.0, 10.0))
         v_des = v_init = float(rng.uniform(12.0, cfg.max_speed))
-        T = float(rng.uniform(0.6, 1.2))
+        T = float(rng.uniform(0.4, 1.0))
+        b = float(rng.uniform(3.0, 6.0))
         lead = dict(gap=float(rng.uniform(25.0, 70.0)), v=np.full(n, v_l))
     elif situation == "approach_stopped":
         v_des = v_init = float(rng.uniform(8.0, 20.0))
-        T = float(rng.uniform(0.8, 1.4))
-        lead = dict(gap=float(rng.uniform(30.0, 80.0)), v=np.zeros(n))
+        T = float(rng.uniform(0.4, 1.0))
+        b = float(rng.uniform(3.0, 6.0))  # late braking
+        lead = dict(gap=float(rng.uniform(20.0, 60.0)), v=np.zeros(n))
     elif situation == "stop_and_go":
         v_init, v_des = 0.0, float(rng.uniform(8.0, 16.0))
-        T = float(rng.uniform(0.7, 1.3))
+        T = float(rng.uniform(0.4, 1.0))
+        s0 = float(rng.uniform(1.0, 2.0))
         t_go = cfg.warmup + float(rng.uniform(0.0, 2.5))
         acc = float(rng.uniform(1.0, 2.5))
         lead = dict(gap=float(rng.uniform(2.0, 4.0)), v=np.clip((times - t_go) * acc, 0.0, v_des))
@@ -215,9 +258,17 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         )
     elif situation == "pedestrian":
         v_des = v_init = float(rng.uniform(6.0, 14.0))
+        T = float(rng.uniform(0.5, 1.0))
+        b = float(
+            rng.uniform(4.0, 7.0)
+        )  # the driver reacts late, once the pedestrian is in the lane
+        # the pedestrian steps into the lane at t_enter, when the (still unbraked) subject is
+        # tau seconds away from it
+        t_enter = cfg.warmup + float(rng.uniform(-0.5, 0.8)) * cfg.frames / cfg.fps
+        tau = float(rng.uniform(0.8, 3.5))
         ped = dict(
-            dist=float(rng.uniform(25.0, 60.0)),
-            t0=float(rng.uniform(0.0, cfg.warmup + 1.0)),
+            dist=v_init * (max(t_enter, 0.0) + tau) + SUBJECT_SIZE[0] / 2,
+            t_enter=t_enter,
             v=float(rng.uniform(1.0, 1.8)),
             side=float(rng.choice([-1.0, 1.0])),
         )
@@ -261,7 +312,9 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
     if ped is not None:
         # crossing the lane at arc length s_sub0 + dist, from side to side
         s_p = np.full(n, s_sub0 + ped["dist"])
-        lat = ped["side"] * (lw * 1.5 - np.clip(times - ped["t0"], 0.0, None) * ped["v"])
+        lat = ped["side"] * np.clip(
+            lw / 2 + 0.3 - (times - ped["t_enter"]) * ped["v"], -lw * 1.5, lw * 1.5
+        )
         tracks.append(
             _Track(INSERTED_ID0 + 2, int(Cls.PEDESTRIAN), np.array([0.55, 0.6, 1.75]), s_p, lat)
         )
@@ -275,7 +328,7 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
             if (
                 abs(tr.lat[i]) < (lw + tr.size[1]) / 2 - 0.3
                 or tr.cls == Cls.PEDESTRIAN
-                and abs(tr.lat[i]) < lw
+                and abs(tr.lat[i]) < lw / 2 + 0.5
             ):
                 g = tr.s[i] - s_sub[i] - (SUBJECT_SIZE[0] + tr.size[0]) / 2
                 if g > -1.0 and g < gap:
@@ -293,7 +346,7 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
                 j = int(np.argmin(g))
                 if g[j] < gap:
                     gap, dv = float(g[j]), float(v_sub[i] - vrel[inc][j])
-        a = _idm(v_sub[i], v_des, gap, dv, T)
+        a = _idm(v_sub[i], v_des, gap, dv, T, b=b, s0=s0)
         v_sub[i + 1] = max(0.0, v_sub[i] + a * cfg.sim_dt)
         s_sub[i + 1] = s_sub[i] + 0.5 * (v_sub[i] + v_sub[i + 1]) * cfg.sim_dt
 
@@ -306,6 +359,13 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         np.where(r < cfg.fault_delay + cfg.fault_vertical, "vertical", "none"),
     )
     vpx = rng.uniform(*cfg.vertical_px, cfg.frames) * rng.choice([-1.0, 1.0], cfg.frames)
+
+    def path_ahead(tl: float) -> np.ndarray:
+        s = float(np.interp(tl, times, s_sub))
+        arc = np.arange(s, min(s + PATH_AHEAD, L) + PATH_STEP / 2, PATH_STEP)
+        if len(arc) < 2:
+            arc = np.array([s, s + PATH_STEP])
+        return _pose_on(world, lane, arc)[:, :2]
 
     def state(tl: float) -> tuple[np.ndarray, float, Boxes]:
         s = float(np.interp(tl, times, s_sub))
@@ -356,6 +416,8 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
                 boxes_r,
                 float(vpx[k]) if fault == "vertical" else 0.0,
                 fault,
+                path_ahead(float(tl)),
+                lw,
             )
         )
     return seq
