@@ -1,6 +1,6 @@
 """Stage `train_risk@<variant>`: train one DAVE-2-like risk network (Feth et al. sec. 3.5).
 
-Usage: ``python -m pipelines.train_risk --variant rgbd``. Reads ``risk_model.*``, ``trainer.*``,
+Usage: ``python -m pipelines.train_risk --variant headline``. Reads ``risk_model.*``, ``trainer.*``,
 ``seed``, ``profile.name``; data ``data/risk``, ``data/disparity``, ``data/orb/orb.csv``.
 Writes ``models/risk/<variant>/`` (``model.ckpt``, ``model_meta.json``, ``history.csv``) and
 ``reports/plots/risk_training_<variant>.csv`` (train/val error per validation, for ``dvc plots``).

@@ -18,7 +18,7 @@ from conftest import run, stage_env
 
 from traffictwin.mlops.runs import compare_runs, format_runs
 
-STAGE = "train_risk@rgbd"
+STAGE = "train_risk@headline"
 PARAM = "risk_model.train.lr"
 
 

@@ -131,7 +131,7 @@ def _cheap_copy(repo: Path) -> Path:
     return repo
 
 
-TARGETS = ["train_fusion@A", "train_risk@rgbd"]
+TARGETS = ["train_fusion@A", "train_risk@headline"]
 
 
 @pytest.mark.slow

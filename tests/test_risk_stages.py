@@ -22,7 +22,7 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
     """train_risk runs once per run_variant (each defined in variants); evaluate_risk depends on all of them."""
     params = yaml.safe_load((ROOT / "params.yaml").read_text())["risk_model"]
     assert set(params["run_variants"]) <= set(params["variants"])
-    assert {"rgbd", "rgb", "disp", "gtdisp", "rgbd_speed"} <= set(
+    assert {"headline", "headline_s1", "headline_s2", "paper", "rgbd", "gtdisp"} <= set(
         params["run_variants"]
     )  # the default profile
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
@@ -65,7 +65,7 @@ def test_mlflow_model_reloads_with_identical_outputs(
     shard = Dataset(ci_dag / "data" / "risk", kind="risk").load_shard(0)
     sgm = Dataset(ci_dag / "data" / "disparity", kind="disparity").load_shard(0)["disp_sgm"]
     speed = torch.tensor([5.0, 15.0])
-    for v in ("rgbd", "rgbd_speed"):
+    for v in ("paper", "headline"):
         local = load_risk_model(ci_dag / "models" / "risk" / v)
         x = preprocess(local.cfg, shard["left"][:2], sgm[:2], shard["disp_gt"][:2])
         with torch.no_grad():
@@ -137,10 +137,14 @@ def test_stage_config_is_checked() -> None:
     from traffictwin.config import ConfigError
 
     p = OmegaConf.create(yaml.safe_load((ROOT / "params.yaml").read_text()))
-    cfg, label = model_config(p, "rgbd_fov")
+    cfg, label = model_config(p, "fov")
     assert cfg.inputs == ("rgb", "disp_sgm") and label == "risk_thw_fov"
-    cfg, label = model_config(p, "rgbd_speed")
-    assert cfg.use_speed and label == p.risk_model.label
+    cfg, label = model_config(p, "headline")
+    assert cfg.use_speed and label == p.risk_model.label == "risk_thw_corridor"
+    cfg, label = model_config(p, "paper")
+    assert not cfg.use_speed and label == "risk_thw_paper" and cfg.objective == "mse"
+    cfg, _ = model_config(p, "headline_logthw")
+    assert cfg.objective == "log_thw" and cfg.thw_cap_s == p.risk_model.objective.thw_cap_s
     with pytest.raises(ConfigError, match="no variant 'nope'"):
         model_config(p, "nope")
     p.risk_model.train.limit_val_batches = 5
