@@ -502,3 +502,20 @@ def test_replicates_must_match_their_base_and_differ_in_seed() -> None:
     bad["variants"]["headline_s1"]["speed"] = False
     with pytest.raises(ConfigError, match=r"differs in \['speed'\]"):
         typed(bad, RiskModelConfig, key="risk_model")
+
+
+def test_learning_rate_warms_up_linearly() -> None:
+    from traffictwin.risk.training import RiskRegressor
+
+    m = RiskRegressor(Dave2Config(inputs=("disp_sgm",)), lr=1e-3, warmup_steps=4)
+    conf = m.configure_optimizers()
+    opt, sched = conf["optimizer"], conf["lr_scheduler"]["scheduler"]
+    assert conf["lr_scheduler"]["interval"] == "step"
+    lrs = []
+    for _ in range(6):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    np.testing.assert_allclose(lrs, [2.5e-4, 5e-4, 7.5e-4, 1e-3, 1e-3, 1e-3])
+    plain = RiskRegressor(Dave2Config(inputs=("disp_sgm",)), lr=1e-3).configure_optimizers()
+    assert isinstance(plain, torch.optim.Adam)

@@ -9,8 +9,8 @@ pair check ``data/orb/orb.csv``. Only frames whose stereo pair passed the ORB ch
 at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 kB a frame at
 66×200), normalised per batch on the device by the LightningModule (:class:`RiskRegressor`).
 Loss: the variant's objective (:func:`~traffictwin.risk.dave2.risk_loss`: the paper's MSE on the
-normalised risk, MSE on log THW, or MSE + a classification head at 1.5 s); optimiser: Adam with
-gradient-norm clipping; validation every ``val_every_n_steps`` optimiser steps (the paper: every
+normalised risk, MSE on log THW, or MSE + a classification head at 1.5 s); optimiser: Adam with a
+linear learning-rate warm-up over the first ``warmup_steps`` steps; validation every ``val_every_n_steps`` optimiser steps (the paper: every
 10), the checkpoint with the lowest validation MSE of the predicted risk is kept. A run whose
 best checkpoint predicts one value for every validation frame (spread < :data:`MIN_PRED_STD`)
 raises :class:`CollapsedModelError`: nothing is published.
@@ -413,10 +413,12 @@ class RiskRegressor(NetModule):
         lr: float = 1e-4,
         weight_decay: float = 0.0,
         bce_weight: float = 0.05,
+        warmup_steps: int = 0,
     ) -> None:
         super().__init__(Dave2(cfg), mse_loss, lr=lr, weight_decay=weight_decay)
         self.cfg = cfg
         self.bce_weight = float(bce_weight)
+        self.warmup_steps = int(warmup_steps)
         # per-split sums (torchmetrics, float64; reduced over DDP ranks)
         self.eval_sums = torch.nn.ModuleDict(
             {
@@ -426,6 +428,20 @@ class RiskRegressor(NetModule):
                 for split in ("val", "test")
             }
         )
+
+    def configure_optimizers(self) -> Any:
+        """Adam; with ``warmup_steps`` the learning rate rises linearly from lr / warmup_steps to
+        lr over the first steps. Adam's first updates move every weight by about lr in the
+        direction of its gradient's sign, whatever the gradient's size (so clipping does not
+        help): across the 1164 x 1152 first FC layer such a coherent step at lr 1e-3 can push every
+        ReLU of the head negative for every input — a dead head that outputs one constant (the
+        collapsed ``rgb`` run). The warm-up keeps those first steps small."""
+        opt = torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        if self.warmup_steps <= 0:
+            return opt
+        n = self.warmup_steps
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: min(1.0, (step + 1) / n))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def forward(self, rgb: torch.Tensor, disp: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         """Normalised risk (N,)."""
@@ -489,7 +505,7 @@ class TrainConfig:
     limit_val_batches: int | float = 1.0
     eval_batch_size: int = 256
     seed: int = 0
-    grad_clip: float | None = None
+    warmup_steps: int = 0
     bce_weight: float = 0.05
     min_pred_std: float = MIN_PRED_STD
 
@@ -536,7 +552,7 @@ class RiskTrainSchema:
     batch_size: int = setting(min=1)
     lr: float = setting(min=1e-12)
     weight_decay: float = setting(min=0.0)
-    grad_clip: float | None = setting(min=0.0)
+    warmup_steps: int = setting(min=0)
     min_pred_std: float = setting(min=0.0)
     val_every_n_steps: int = setting(min=1)
     limit_val_batches: Any = setting()
@@ -666,7 +682,13 @@ def fit(
         num_workers=settings.num_workers,
         seed=tc.seed,
     )
-    module = RiskRegressor(cfg, lr=tc.lr, weight_decay=tc.weight_decay, bce_weight=tc.bce_weight)
+    module = RiskRegressor(
+        cfg,
+        lr=tc.lr,
+        weight_decay=tc.weight_decay,
+        bce_weight=tc.bce_weight,
+        warmup_steps=tc.warmup_steps,
+    )
     steps_per_epoch = math.ceil(len(train) / tc.batch_size)
     total = steps_per_epoch * tc.epochs
     # validate at least once at the end: the interval never exceeds the run's step count
@@ -688,7 +710,6 @@ def fit(
             limit_val_batches=tc.limit_val_batches,
             val_check_interval=interval,
             check_val_every_n_epoch=None,
-            gradient_clip_val=tc.grad_clip,
         )
         t0 = time.perf_counter()
         trainer.fit(module, datamodule=dm)
