@@ -1,14 +1,17 @@
 """Stage `evaluate_risk`: every risk network variant and the baselines on the same test frames.
 
 Reads ``evaluation.risk.*``, ``risk_model.label``, ``risk_model.run_variants``,
+``risk_model.variants`` (``replicate_of``, ``objective``, ``seed_offset`` of each),
 ``risk_model.orb_filter``, ``risk_data.metric`` (the subject footprint), the data
 (``data/risk``, ``data/disparity``, ``data/orb/orb.csv``) and ``models/risk/<variant>/``.
-Writes ``reports/metrics/risk.json`` (test MSE/MAE, THW errors in s, Table-1 confusion matrix,
-accuracy, balanced accuracy, F1, ROC-AUC at each THW threshold, baselines, the paper-vs-camera_fov
-region comparison), ``reports/plots/risk_predictions.csv`` (per-frame predictions),
-``reports/plots/risk_confusion.csv`` (actual/predicted class per test frame of the main variant,
-for the ``dvc plots`` confusion template), and the figures ``reports/figures/risk_*.png``.
-Test metrics are also logged into each variant's MLflow training run when it is in the store.
+Writes ``reports/metrics/risk.json`` (layout: :mod:`traffictwin.risk.evaluation` — every metric
+with its sequence-bootstrap interval, the baselines speed-only / geometric SGM / geometric GT
+(oracle) / train mean / median, paired differences, seed groups, collapse flags, targets, critical
+shares per split and region, the situation breakdown), ``reports/plots/risk_predictions.csv``
+(per-frame predictions), ``reports/plots/risk_confusion.csv`` (actual/predicted class per test
+frame of the main variant, for the ``dvc plots`` confusion template), and the figures
+``reports/figures/risk_*.png``. Test metrics are also logged into each variant's MLflow training
+run when it is in the store.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.evaluation import (
     PAPER,
+    CIConfig,
     confusion_table,
     evaluate_suite,
     main_series,
@@ -85,13 +89,30 @@ def run_variants(p) -> list[str]:
     return variants
 
 
+def variant_settings(p, variants: list[str]) -> dict[str, dict]:
+    """``risk_model.variants.<v>`` of each evaluated variant as a plain dict; ``replicate_of``
+    must name a defined variant."""
+    defined = get(p, "risk_model.variants", dict)
+    out = {v: dict(defined[v] or {}) for v in variants}
+    for v, d in out.items():
+        r = d.get("replicate_of")
+        if r is not None and r not in defined:
+            raise ConfigError(
+                f"params.yaml: 'risk_model.variants.{v}.replicate_of' names no variant of "
+                f"'risk_model.variants' {sorted(defined)}: {r!r}"
+            )
+    return out
+
+
 def main() -> None:
     log = setup_logging()
     p = params()
     ev = typed(p.get("evaluation", {}).get("risk"), EvalRiskConfig, key="evaluation.risk")
+    ci = typed(ev.ci, CIConfig, key="evaluation.risk.ci")
     subject = typed(p.get("risk_data", {}).get("metric"), MetricParams, key="risk_data.metric")
     variants = run_variants(p)
     ev.check_variants(variants)
+    settings = variant_settings(p, variants)
     primary = get(p, "risk_model.label", str, choices=LABELS)
     orb_filter = get(p, "risk_model.orb_filter", bool)
     geo = ev.geometric.params(subject.subject_length, subject.subject_width)
@@ -107,6 +128,10 @@ def main() -> None:
             thw_cap=ev.thw_cap_s,
             geometric=geo,
             batch_size=ev.batch_size,
+            main_variant=ev.main_variant,
+            variants=settings,
+            ci=ci,
+            collapse_std=ev.collapse_std,
         )
         main_v, t0 = ev.main_variant, ev.thresholds_s[0]
         evaluation_figures(
@@ -119,11 +144,11 @@ def main() -> None:
             scatter=figure_file("risk_scatter"),
             confusion=figure_file("risk_confusion"),
             examples=figure_file("risk_examples"),
+            roc=figure_file("risk_roc"),
         )
         _, y, yhat = main_series(metrics, pred, main_v)
         _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))
         _write_csv(pred, plot_file("risk_predictions"))
-        metrics["main_variant"] = main_v
         write_json_atomic(METRICS, metrics)
         _log_to_mlflow(models, metrics, log)
         m = metrics["models"][main_v]
@@ -136,6 +161,13 @@ def main() -> None:
             100 * PAPER["accuracy"],
             m["test/n"],
         )
+        failed = [v for v, e in metrics["models"].items() if e.get("collapsed")]
+        if failed:
+            log.warning(
+                "evaluate_risk: collapsed model(s) %s (test prediction std < %g): reported as failed runs",
+                failed,
+                ev.collapse_std,
+            )
 
 
 if __name__ == "__main__":

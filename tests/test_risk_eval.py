@@ -29,6 +29,7 @@ from traffictwin.risk.evaluation import (
     main_series,
     regression_metrics,
     roc_auc,
+    roc_curve,
     tracking_metrics,
 )
 from traffictwin.risk.findings import findings
@@ -58,6 +59,16 @@ def test_classification_hand_case() -> None:
         classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]))["confusion"]["tn"]
         == 1
     )
+
+
+def test_undefined_classification_metrics_are_nan() -> None:
+    """Recall needs actual critical frames, specificity actual uncritical ones (NaN -> null in
+    risk.json, n/a in the report); precision without predicted critical frames is 0."""
+    m = classification_metrics(np.array([0.0, 0.01]), np.array([0.5, 0.0]))
+    assert np.isnan(m["recall"]) and np.isnan(m["f1"]) and np.isnan(m["balanced_accuracy"])
+    assert m["specificity"] == 0.5 and m["precision"] == 0.0
+    m = classification_metrics(np.array([0.5, 0.5]), np.array([0.0, 0.5]))
+    assert np.isnan(m["specificity"]) and m["recall"] == 0.5 and m["precision"] == 1.0
 
 
 def test_paper_table1_reproduces_paper_accuracy() -> None:
@@ -184,7 +195,7 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
         )
         assert "at_1s" in e
     # the synthetic geometry is exact up to SGM noise: the geometric baseline beats a constant by far
-    geo = metrics["region"]["predictors"]["geometric"]
+    geo = metrics["region"]["predictors"]["geometric_sgm"]
     const = metrics["region"]["predictors"]["train_median"]
     assert geo["risk_thw_fov"]["test/mse"] < 0.5 * const["risk_thw_fov"]["test/mse"]
     assert geo["risk_thw_fov"]["test/mse"] <= geo["risk_thw_paper"]["test/mse"]
@@ -193,9 +204,21 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     )
     assert metrics["n_frames"]["orb_outliers_dropped"] == src.n_orb_outliers
     json.dumps(metrics, allow_nan=False)  # strict JSON (NaN -> null)
-    text = findings({**metrics, "main_variant": "rgbd"})
+    assert metrics["main_variant"] == "rgbd"  # the first model when none is named
+    assert set(metrics["baselines"]) == {
+        "train_mean",
+        "train_median",
+        "speed_only",
+        "geometric_sgm",
+        "geometric_gt",
+    }
+    # the GT-disparity geometric baseline (oracle) sees the exact geometry: at least as good as SGM
+    gt = metrics["region"]["predictors"]["geometric_gt"]
+    assert gt["risk_thw_fov"]["test/mse"] <= geo["risk_thw_fov"]["test/mse"] + 1e-4
+    assert {"pred_speed_only", "pred_geometric_sgm", "pred_geometric_gt"} <= set(pred.columns)
+    text = findings(metrics)
     assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
-    assert "camera_fov" in text and "Which input matters" in text
+    assert "camera_fov" in text
     reg = metrics["region"]["predictors"]
     for per in reg.values():  # skill = 1 - MSE / MSE(train mean) of the same label
         for lab, e in per.items():
@@ -243,12 +266,8 @@ def test_findings_from_hand_metrics_and_missing_parts() -> None:
     text = findings(metrics)
     assert "0.01000 vs the paper's 0.01470" in text
     assert "80.00 %" in text and "72.87 %" in text and "70.77 %" in text
-    assert "20.00 points above the majority class" in text
-    assert "0.25× the training mean's" in text
-    assert "adding SGM disparity to the image lowers the MSE by 50 %" in text
-    metrics["models"]["rgb"]["at_1.5s"] = {**at, "accuracy": 0.6, "roc_auc": 0.5}
-    assert "rgb did not leave the constant predictor" in findings(metrics)
-    metrics["models"]["rgb"]["at_1.5s"] = {**at, "accuracy": 0.7}
+    # metrics without intervals or differences (an older risk.json): values only, no claims
+    assert "majority class (training median)" in text and "beats" not in text
     assert findings({"models": {}}) == "- No risk network was evaluated."
     # None (undefined metric) is shown as n/a, not crashing
     metrics["models"]["rgbd"]["at_1.5s"] = {**at, "roc_auc": None}
@@ -309,7 +328,9 @@ def test_evaluation_figures_plot_the_predictions(
     src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
     models = {k: v for k, v in _tiny_models(tmp_path / "models").items() if k == "rgbd"}
     geo = GeometricParams(subject_length=4.5, subject_width=1.8)
-    metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=geo)
+    metrics, pred = evaluate_suite(
+        src, models, primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0
+    )
     hist = pd.DataFrame(
         {"step": [1, 2, 3], "train/loss": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}
     )
@@ -324,22 +345,32 @@ def test_evaluation_figures_plot_the_predictions(
         scatter=tmp_path / "s.png",
         confusion=tmp_path / "m.png",
         examples=tmp_path / "e.png",
+        roc=tmp_path / "r.png",
     )
-    assert set(figs) == {"c.png", "s.png", "m.png", "e.png"}
+    assert set(figs) == {"c.png", "s.png", "m.png", "e.png", "r.png"}
     # training curves: one line per variant and split, plus the paper's test MSE
     tr, va = figs["c.png"].axes
     (line,) = [ln for ln in tr.lines if ln.get_label() == "rgbd"]
     assert line.get_xdata().tolist() == [1, 2, 3] and line.get_ydata().tolist() == [0.3, 0.2, 0.1]
     assert va.get_title() == "validation average error (MSE)"
     assert any(ln.get_label() == "paper test MSE" for ln in va.lines)
-    # scatter: network and geometric baseline, true vs predicted, threshold lines at 1/30
+    # scatter: network, speed-only and geometric SGM baselines, true vs predicted, threshold 1/30
     axes = figs["s.png"].axes
-    assert [a.get_title() for a in axes] == ["rgbd", "geometric"]
+    assert [a.get_title() for a in axes] == ["rgbd", "speed_only", "geometric_sgm"]
     xy = axes[0].collections[0].get_offsets()
     assert np.allclose(xy[:, 0], pred["risk_thw_paper"]) and np.allclose(
         xy[:, 1], pred["pred_rgbd"]
     )
-    assert np.allclose(axes[1].collections[0].get_offsets()[:, 1], pred["pred_geometric"])
+    assert np.allclose(axes[1].collections[0].get_offsets()[:, 1], pred["pred_speed_only"])
+    assert np.allclose(axes[2].collections[0].get_offsets()[:, 1], pred["pred_geometric_sgm"])
+    # ROC: the network and the three baselines (the oracle dashed) on the same critical frames
+    (roc,) = figs["r.png"].axes
+    lines = {ln.get_label().split(" (AUC")[0]: ln for ln in roc.lines}
+    assert set(lines) == {"rgbd", "speed_only", "geometric_sgm", "geometric_gt", "chance"}
+    fpr, tpr = roc_curve(pred["risk_thw_paper"] > 1 / 30, pred["pred_geometric_sgm"])
+    assert np.allclose(lines["geometric_sgm"].get_xdata(), fpr)
+    assert np.allclose(lines["geometric_sgm"].get_ydata(), tpr)
+    assert lines["geometric_gt"].get_linestyle() == "--" and lines["rgbd"].get_linestyle() == "-"
     assert axes[0].get_xlabel() == "true risk" and axes[0].get_ylabel() == "predicted risk"
     assert any(np.allclose(ln.get_xdata(), 1 / 30) for ln in axes[0].lines)
     # confusion matrix: the Table-1 counts of the main variant

@@ -100,7 +100,9 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
     variants = _variants(ci_dag)
     assert set(metrics["models"]) == set(variants)
-    assert {"train_mean", "train_median", "geometric"} <= set(metrics["baselines"])
+    assert {"train_mean", "train_median", "speed_only", "geometric_sgm", "geometric_gt"} <= set(
+        metrics["baselines"]
+    )
     for e in [*metrics["models"].values(), *metrics["baselines"].values()]:
         assert e["test/mse"] >= 0 and e["test/mae"] >= 0 and e["test/thw_mae_s"] >= 0
         for t in ("at_1.5s", "at_1s"):
@@ -111,7 +113,9 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     pred = pd.read_csv(ci_dag / "reports" / "plots" / "risk_predictions.csv")
     assert len(pred) == metrics["models"]["rgbd"]["test/n"]
     assert {f"pred_{v}" for v in variants} | {
-        "pred_geometric",
+        "pred_speed_only",
+        "pred_geometric_sgm",
+        "pred_geometric_gt",
         "risk_thw_paper",
         "risk_thw_fov",
     } <= set(pred.columns)
@@ -121,12 +125,25 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
         metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["tp"]
         + metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["fn"]
     )
-    for f in ("risk_training_curves", "risk_scatter", "risk_examples", "risk_confusion"):
+    for f in (
+        "risk_training_curves",
+        "risk_scatter",
+        "risk_examples",
+        "risk_confusion",
+        "risk_roc",
+    ):
         png = ci_dag / "reports" / "figures" / f"{f}.png"
         assert png.stat().st_size > 5000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (ci_dag / "reports" / "timings" / "evaluate_risk.json").exists()
     text = findings(metrics)
     assert text.startswith("- **Paper comparison") and "camera_fov" in text
+    # every metric with its sequence-bootstrap interval; targets and collapse flags (issue 16)
+    assert metrics["bootstrap"]["n_boot"] >= 100
+    for e in metrics["models"].values():
+        assert set(e["test/mse_ci"]) == {"lo", "hi"} and isinstance(e["collapsed"], bool)
+    assert {"balanced_accuracy", "auc_vs_speed_only", "test_mse", "spread"} <= set(
+        metrics["targets"]
+    )
 
 
 def test_stage_config_is_checked() -> None:

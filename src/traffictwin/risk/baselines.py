@@ -4,6 +4,11 @@
   training-set median. The median is also the *majority-class* predictor at every THW
   threshold at once: the median is above a threshold exactly when more than half of the
   training frames are critical at it.
+* :func:`fit_speed_only` — the risk as a monotone (non-decreasing) function of the subject speed
+  alone, fitted on the training split by isotonic regression (:class:`SpeedOnly`). It is the
+  fair floor for a network that is given the speed: whatever a network gains over it comes from
+  the image / disparity. (Every vehicle knows its speed; a label that is nearly a function of
+  speed is solved by this baseline.)
 * :func:`geometric_risk` — a non-learned stereo baseline: back-project the SGM disparity with the
   camera intrinsics, keep the points inside the subject's corridor (lateral ``|y| <=
   corridor_half_width`` in the vehicle frame, height above ground in ``[min_height, max_height]``
@@ -28,6 +33,58 @@ from dataclasses import dataclass
 import numpy as np
 
 from traffictwin.risk.metric import thw_to_risk
+
+
+@dataclass(frozen=True)
+class SpeedOnly:
+    """A fitted speed-only predictor: piecewise-linear through ``(speed_knots, risk_knots)``
+    (m/s → normalised risk), constant beyond the first / last knot."""
+
+    speed_knots: np.ndarray
+    risk_knots: np.ndarray
+
+    def predict(self, speed: np.ndarray) -> np.ndarray:
+        """Normalised risk (N,) float64 for subject speeds ``speed`` (N,) in m/s."""
+        speed = np.asarray(speed, np.float64)
+        if not np.all(np.isfinite(speed)):
+            raise ValueError("speed-only baseline: speeds must be finite (m/s)")
+        return np.interp(speed, self.speed_knots, self.risk_knots)
+
+    def critical_speed(self, threshold: float) -> float:
+        """The lowest speed (m/s) at which the prediction exceeds the risk ``threshold``
+        (``inf`` when it never does): above it the baseline calls every frame critical."""
+        above = np.flatnonzero(self.risk_knots > threshold)
+        if not above.size:
+            return float("inf")
+        i = int(above[0])
+        if i == 0:
+            return float(self.speed_knots[0])
+        s0, s1 = self.speed_knots[i - 1], self.speed_knots[i]
+        r0, r1 = self.risk_knots[i - 1], self.risk_knots[i]
+        return float(s0 + (threshold - r0) * (s1 - s0) / (r1 - r0))  # where the segment crosses it
+
+
+def fit_speed_only(train_speed: np.ndarray, train_y: np.ndarray) -> SpeedOnly:
+    """Isotonic (non-decreasing) regression of the normalised risk ``train_y`` on the subject
+    speed ``train_speed`` (m/s) over the training frames (pool-adjacent-violators, least squares).
+
+    Risk rises with speed at a fixed gap (THW = gap / speed), so the fit is constrained to be
+    monotone; it predicts the mean training risk of the speeds around each test speed.
+    """
+    from sklearn.isotonic import IsotonicRegression
+
+    x = np.asarray(train_speed, np.float64).ravel()
+    y = np.asarray(train_y, np.float64).ravel()
+    if x.shape != y.shape:
+        raise ValueError(f"speed-only baseline: {x.size} speeds but {y.size} labels")
+    if x.size == 0:
+        raise ValueError("speed-only baseline needs training frames (the training split is empty)")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError("speed-only baseline: training speeds and labels must be finite")
+    iso = IsotonicRegression(increasing=True, out_of_bounds="clip").fit(x, y)
+    return SpeedOnly(
+        np.asarray(iso.X_thresholds_, np.float64), np.asarray(iso.y_thresholds_, np.float64)
+    )
 
 
 def constant_predictions(train_y: np.ndarray, n: int) -> dict[str, np.ndarray]:

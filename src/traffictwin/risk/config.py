@@ -10,6 +10,7 @@ dotted key) and hand the library these objects. The SGM and ORB settings (``risk
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from traffictwin.config import spec
 from traffictwin.grid import GridSpec
@@ -207,13 +208,18 @@ class GeometricConfig:
 @dataclass
 class EvalRiskConfig:
     """``evaluation.risk``: THW thresholds (s; the first is the primary), the THW error cap (s),
-    the inference batch size, the variant shown in the figures and the geometric baseline."""
+    the inference batch size, the headline variant (figures, targets, comparisons), the geometric
+    baseline, the sequence bootstrap ``ci`` ({n_boot, seed, level}; checked by the stage against
+    :class:`traffictwin.risk.evaluation.CIConfig`) and ``collapse_std``: a model whose test
+    predictions have a smaller standard deviation (normalised risk) is a failed, collapsed run."""
 
     thresholds_s: list[float] = spec()
     thw_cap_s: float = spec(min=0.1)
     batch_size: int = spec(min=1)
     main_variant: str = spec()
     geometric: GeometricConfig = spec()
+    ci: dict[str, Any] = spec()
+    collapse_std: float = spec(min=0)
 
     def __post_init__(self) -> None:
         if not self.thresholds_s or any(t <= 0 for t in self.thresholds_s):

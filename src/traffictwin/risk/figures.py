@@ -5,7 +5,9 @@
 * :func:`plot_scatter` — predicted vs true risk with the critical threshold lines;
 * :func:`plot_examples` — test frames (left image + SGM disparity) with true and predicted risk (Fig. 7);
 * :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual);
-* :func:`evaluation_figures` — all four for the evaluate_risk stage.
+* :func:`plot_roc` — ROC curves of the headline network and the baselines on the same frames
+  (the oracle baseline dashed);
+* :func:`evaluation_figures` — all five for the evaluate_risk stage.
 """
 
 from __future__ import annotations
@@ -22,7 +24,13 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from traffictwin.io.atomic import atomic_path  # noqa: E402
-from traffictwin.risk.evaluation import PAPER, example_indices, main_series  # noqa: E402
+from traffictwin.risk.evaluation import (  # noqa: E402
+    ORACLES,
+    PAPER,
+    example_indices,
+    main_series,
+    roc_curve,
+)
 from traffictwin.risk.metric import risk_threshold  # noqa: E402
 
 
@@ -125,6 +133,34 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = 
     _save(fig, path)
 
 
+def plot_roc(
+    positive: np.ndarray,
+    scores: Mapping[str, np.ndarray],
+    path: str | Path,
+    title: str = "",
+    auc: Mapping[str, float | None] | None = None,
+    oracles: Sequence[str] = ORACLES,
+) -> None:
+    """ROC curves (false vs true positive rate, dimensionless) of each predictor's risk as a score
+    for ``positive`` (critical) frames; ``oracles`` dashed, the chance diagonal dotted; legend
+    entries carry ``auc`` when given."""
+    fig, ax = plt.subplots(figsize=(5.2, 4.8))
+    for name, score in scores.items():
+        fpr, tpr = roc_curve(positive, score)
+        a = (auc or {}).get(name)
+        label = f"{name} (AUC {a:.3f})" if a is not None else name
+        ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)
+    ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.01)
+    ax.set_xlabel("false positive rate (uncritical frames called critical)")
+    ax.set_ylabel("true positive rate (critical frames detected)")
+    ax.set_title(title or "ROC on the test frames")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    _save(fig, path)
+
+
 def evaluation_figures(
     source: Any,
     metrics: Mapping[str, Any],
@@ -136,24 +172,52 @@ def evaluation_figures(
     scatter: str | Path,
     confusion: str | Path,
     examples: str | Path,
+    roc: str | Path | None = None,
 ) -> None:
     """The evaluation's figures from :func:`~traffictwin.risk.evaluation.evaluate_suite`'s
     ``metrics`` and per-frame ``pred`` on ``source`` (a
     :class:`~traffictwin.risk.training.RiskSource`): training ``curves`` of every variant
-    (``histories``), the ``scatter`` of ``main_variant`` and the geometric baseline, its
-    ``confusion`` matrix and the Fig. 7 ``examples`` (best critical / worst frame), at the
-    primary THW threshold."""
+    (``histories``), the ``scatter`` of ``main_variant`` and the speed-only and geometric SGM
+    baselines, its ``confusion`` matrix, the Fig. 7 ``examples`` (best critical / worst frame)
+    and the ``roc`` curves of the headline (each seed) vs the baselines, at the primary THW
+    threshold. Baselines are shown against the primary label: the headline's when it is."""
     t0 = metrics["thresholds_s"][0]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
     at = metrics["models"][main_variant][f"at_{t0:g}s"]
+    same_label = main_label == metrics.get("primary_label", main_label)
+    base_cols = (
+        {b: f"pred_{b}" for b in ("speed_only", "geometric_sgm", "geometric_gt")}
+        if same_label
+        else {}
+    )
+    base_cols = {b: c for b, c in base_cols.items() if c in pred.columns}
     plot_training_curves(histories, curves, paper_test_mse=PAPER["test/mse"])
     plot_scatter(
         y,
-        {main_variant: yhat, "geometric": pred["pred_geometric"].to_numpy()},
+        {
+            main_variant: yhat,
+            **{b: pred[c].to_numpy() for b, c in base_cols.items() if b != "geometric_gt"},
+        },
         scatter,
         risk_threshold(t0),
         title=f"test frames, label {main_label}",
     )
+    if roc is not None:
+        group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
+        runs = [v for v in group if not metrics["models"].get(v, {}).get("collapsed")] or [
+            main_variant
+        ]
+        scores = {v: pred[f"pred_{v}"].to_numpy() for v in runs}
+        scores.update({b: pred[c].to_numpy() for b, c in base_cols.items()})
+        auc = {v: metrics["models"][v][f"at_{t0:g}s"].get("roc_auc") for v in runs}
+        auc.update({b: metrics["baselines"][b][f"at_{t0:g}s"].get("roc_auc") for b in base_cols})
+        plot_roc(
+            y > risk_threshold(t0),
+            scores,
+            roc,
+            title=f"critical (THW < {t0:g} s) on the test frames, label {main_label}",
+            auc=auc,
+        )
     plot_confusion(
         at["confusion"],
         confusion,

@@ -7,16 +7,23 @@ f1, roc_auc, confusion{tp,fp,fn,tn}, confusion_pct, critical_fraction_true}; ``m
 ``thresholds_s``; ``n_frames``{total, orb_outliers_dropped, train, val, test};
 ``region``{labels, agreement, predictors[name][label]}; plus ``orb.json`` (stage orb_filter),
 ``disparity.json`` (stage disparity) and ``risk_data.json`` (stage generate_risk) in the data
-section. Entry point: :func:`provider`.
+section. When the evaluation has intervals (``bootstrap`` in risk.json), every metric is shown with
+its 95 % sequence-bootstrap interval (``<metric>_ci``), plus the paired differences
+(``differences``), the targets, the critical share of every region per split and the situation
+breakdown. Entry point: :func:`provider`.
 """
 
 from __future__ import annotations
+
+import math
+from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, paper_cell
 from traffictwin.report.tables import findings_group
-from traffictwin.risk.findings import findings
+from traffictwin.risk.evaluation import ORACLES, SEED_MEAN
+from traffictwin.risk.findings import beats, findings
 
 RISK_FILE = "risk.json"
 ORB_FILE = "orb.json"
@@ -31,6 +38,8 @@ FIGURES: dict[str, str] = {
     "risk_confusion": "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)",
     "risk_scatter": "Predicted vs true risk on the test split, with the critical threshold",
     "risk_examples": "Test scenes with true and predicted risk (mirrors Fig. 7)",
+    "risk_roc": "ROC of the headline network (each seed) vs the speed-only, geometric SGM and "
+    "geometric GT-disparity (oracle, dashed) baselines at THW 1.5 s",
 }
 FIGURE_PATTERN = r"risk|stereo|disparity|orb|camera|thw"
 DATA_FILES = (
@@ -52,7 +61,10 @@ DATA_FILES = (
 RISK_BASELINE_LABELS = {
     "train_mean": "baseline: train mean",
     "train_median": "baseline: train median",
+    "speed_only": "baseline: speed only (isotonic fit on train)",
     "geometric": "baseline: geometric (SGM distance / speed)",
+    "geometric_sgm": "baseline: geometric (SGM distance / speed)",
+    "geometric_gt": "oracle: geometric (GT disparity / speed)",
 }
 PAPER_DASH = "—"
 
@@ -226,6 +238,270 @@ def risk_tables(src: page.Sources) -> list[Table]:
     return tables
 
 
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def _ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in format
+    ``fmt``, a derived cell; ``n/a`` when there is no interval."""
+    base = key if isinstance(src.get(RISK_FILE, f"{key}.lo"), (int, float)) else f"{key}_ci"
+    lo, hi = _num(src.get(RISK_FILE, f"{base}.lo")), _num(src.get(RISK_FILE, f"{base}.hi"))
+    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+        return Cell(NA, title=f"no interval in reports/metrics/{RISK_FILE}: {base}")
+    return Cell(
+        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
+        value=[lo, hi],
+        derived=f"95 % sequence-bootstrap interval, metrics/{RISK_FILE}#{base}",
+    )
+
+
+def _value_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
+    """``key`` when present (a JSON null → n/a with its source), else n/a without recording it
+    as missing (a metric that does not apply to this row)."""
+    if src.get(RISK_FILE, key, page.ABSENT) is page.ABSENT:
+        return Cell(NA, title=f"not applicable: {key}")
+    return src.cell(RISK_FILE, key, fmt)
+
+
+def _has_intervals(src: page.Sources) -> bool:
+    return isinstance(src.get(RISK_FILE, "bootstrap"), dict)
+
+
+def _ci_rows(src: page.Sources) -> list[tuple[str, str, str]]:
+    """``(key prefix, row name, status)``: the headline's seed mean (if any), every model (main
+    first) and every baseline."""
+    models = src.get(RISK_FILE, "models") or {}
+    groups = src.get(RISK_FILE, "groups") or {}
+    baselines = src.get(RISK_FILE, "baselines") or {}
+    main = src.get(RISK_FILE, "main_variant")
+    rows = []
+    for b in sorted(groups, key=lambda g: (g != main, g)):
+        if isinstance(groups[b], dict) and isinstance(groups[b].get("test/mse"), (int, float)):
+            n = groups[b].get("n_seeds")
+            rows.append((f"groups.{b}", f"{b} (seed mean of {n})", "seed mean"))
+    for v in sorted(models, key=lambda v: (v != main, v)):
+        e = models[v] if isinstance(models[v], dict) else {}
+        status = "collapsed: failed run" if e.get("collapsed") else ("main" if v == main else "")
+        rows.append((f"models.{v}", v, status))
+    for b in baselines:
+        rows.append(
+            (f"baselines.{b}", RISK_BASELINE_LABELS.get(b, b), "oracle" if b in ORACLES else "")
+        )
+    return rows
+
+
+def risk_ci_table(src: page.Sources) -> Table | None:
+    """Every predictor on the same test frames: MSE, balanced accuracy, recall, F1, ROC-AUC at the
+    primary threshold, each with its 95 % sequence-bootstrap interval, the prediction spread and
+    whether it beats the speed-only baseline (paired ROC-AUC interval)."""
+    if not _has_intervals(src):
+        return None
+    at = _risk_threshold_key(src)
+    metrics = [
+        ("test/mse", "MSE", "g4"),
+        (f"{at}.balanced_accuracy", "balanced accuracy", "pct"),
+        (f"{at}.recall", "recall (critical)", "pct"),
+        (f"{at}.f1", "F1", "g4"),
+        (f"{at}.roc_auc", "ROC-AUC", "g4"),
+    ]
+    cols = ["predictor", "label", "status", "prediction std"]
+    for _, name, _ in metrics:
+        cols += [name, "95 % CI"]
+    cols.append("vs speed-only (ROC-AUC)")
+    n_boot = src.get(RISK_FILE, "bootstrap.n_boot")
+    t = Table(
+        "Risk: every predictor on the same test frames, with 95 % sequence-bootstrap intervals "
+        f"(critical ⇔ THW < {at[3:-1]} s)",
+        cols,
+        anchor="risk-ci",
+        headline=True,
+        note=(
+            f"Intervals: {n_boot} resamples of the test sequences (cluster = driving sequence). "
+            "Seed mean: the metric averaged over the variant's seeds inside each resample. "
+            "Baselines are scored on the headline's label; the oracle sees perfect disparity. A "
+            "collapsed model gives one output for every frame and is a failed run. Last column: "
+            "the paired ROC-AUC difference to the speed-only baseline of the row's own label "
+            "('beats' / 'worse' only when its interval excludes 0)."
+        ),
+    )
+    for pre, name, status in _ci_rows(src):
+        key_name = pre.split(".", 1)[1]
+        if pre.startswith("groups."):
+            key_name += SEED_MEAN
+        row = [
+            Cell(name),
+            Cell(str(src.get(RISK_FILE, f"{pre}.label") or NA)),
+            Cell(status),
+            _value_cell(src, f"{pre}.pred_std"),
+        ]
+        for k, _, fmt in metrics:
+            row += [_value_cell(src, f"{pre}.{k}", fmt), _ci_cell(src, f"{pre}.{k}", fmt)]
+        d = src.get(RISK_FILE, f"differences.{key_name}|speed_only")
+        if status.startswith("collapsed"):
+            row.append(Cell("failed run"))
+        elif isinstance(d, dict):
+            v = beats(d, f"{at}|roc_auc")
+            row.append(Cell({True: "beats", False: "worse"}.get(v, "no significant difference")))
+        else:
+            row.append(Cell(""))
+        t.rows.append(row)
+    return t
+
+
+def risk_difference_table(src: page.Sources) -> Table | None:
+    """Paired differences a − b (MSE, balanced accuracy, ROC-AUC at the primary threshold) with
+    their intervals and the ROC-AUC verdict."""
+    diffs = src.get(RISK_FILE, "differences")
+    if not isinstance(diffs, dict) or not diffs:
+        return None
+    at = _risk_threshold_key(src)
+    metrics = [
+        ("test/mse", "Δ MSE", "g4"),
+        (f"{at}.balanced_accuracy", "Δ balanced accuracy", "g4"),
+        (f"{at}.roc_auc", "Δ ROC-AUC", "g4"),
+    ]
+    cols = ["a", "b", "label", "comparison"]
+    for _, name, _ in metrics:
+        cols += [name, "95 % CI"]
+    cols.append("verdict (ROC-AUC)")
+    t = Table(
+        "Risk: paired differences a − b on the same test frames (95 % sequence-bootstrap intervals)",
+        cols,
+        anchor="risk-diff",
+        note=(
+            "A difference is a finding only when its interval excludes 0; lower MSE and higher "
+            "balanced accuracy / ROC-AUC are better. Both predictors are recomputed on every "
+            "resample of the test sequences."
+        ),
+    )
+    for key, d in diffs.items():
+        if not isinstance(d, dict):
+            continue
+        pre = f"differences.{key}"
+        b = str(d.get("b"))
+        row = [
+            Cell(str(d.get("a"))),
+            Cell(b + (" (oracle)" if b in ORACLES else "")),
+            Cell(str(d.get("label"))),
+            Cell(str(d.get("kind", ""))),
+        ]
+        for k, _, fmt in metrics:
+            row += [_value_cell(src, f"{pre}.{k}.estimate", fmt), _ci_cell(src, f"{pre}.{k}")]
+        v = beats(d, f"{at}|roc_auc")
+        row.append(
+            Cell(
+                {True: "a better", False: "b better"}.get(v, "no significant difference"),
+                title="claimed only when the paired 95 % interval excludes 0",
+            )
+        )
+        t.rows.append(row)
+    return t
+
+
+def risk_targets_table(src: page.Sources) -> Table | None:
+    """The issue-16 targets: value, interval, threshold, met."""
+    targets = src.get(RISK_FILE, "targets")
+    if not isinstance(targets, dict) or not targets:
+        return None
+    t = Table(
+        "Risk: targets (default profile, test split, headline)",
+        ["target", "predictor", "value", "95 % CI", "op", "threshold", "met", "description"],
+        anchor="risk-targets",
+        headline=True,
+    )
+    for name, e in targets.items():
+        if not isinstance(e, dict):
+            continue
+        pre = f"targets.{name}"
+        t.rows.append(
+            [
+                Cell(name),
+                Cell(str(e.get("predictor", ""))),
+                _value_cell(src, f"{pre}.value"),
+                _ci_cell(src, pre),
+                Cell(str(e.get("op", ""))),
+                _value_cell(src, f"{pre}.threshold", "g4"),
+                Cell("yes" if e.get("met") else "no", title=str(e.get("why", ""))),
+                Cell(str(e.get("description", ""))),
+            ]
+        )
+    return t
+
+
+def risk_critical_share_table(src: page.Sources) -> Table | None:
+    """Critical share of every region's label per split (frames.csv, all frames)."""
+    splits = src.get(RISK_FILE, "critical_share.splits")
+    if not isinstance(splits, dict) or not splits:
+        return None
+    labels = [
+        lab
+        for lab in ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
+        if any(isinstance(e, dict) and lab in e for e in splits.values())
+    ]
+    thr = src.get(RISK_FILE, "critical_share.threshold_s")
+    t = Table(
+        f"Risk: critical share (THW < {fmt_value(thr, 'g4')} s) of every region's label per split",
+        ["split", "frames", "sequences", *labels],
+        anchor="risk-critical-share",
+        note=(
+            "All frames of frames.csv (before the ORB check). risk_thw_corridor: objects in the "
+            "subject's driving corridor (the headline label); risk_thw_paper: anything ahead under "
+            "the pessimistic-turn assumption; risk_thw_fov: the part the camera sees."
+        ),
+    )
+    for split in splits:
+        pre = f"critical_share.splits.{split}"
+        t.rows.append(
+            [
+                Cell(split),
+                _value_cell(src, f"{pre}.n_frames", "int"),
+                _value_cell(src, f"{pre}.n_sequences", "int"),
+                *[_value_cell(src, f"{pre}.{lab}", "pct") for lab in labels],
+            ]
+        )
+    return t
+
+
+def risk_situation_table(src: page.Sources) -> Table | None:
+    """The headline's recall / specificity / balanced accuracy per situation type, with the
+    speed-only baseline's balanced accuracy beside it."""
+    sit = src.get(RISK_FILE, "situations")
+    main = src.get(RISK_FILE, "main_predictor") or src.get(RISK_FILE, "main_variant")
+    if not isinstance(sit, dict) or not sit or not isinstance(main, str):
+        return None
+    cols = ["situation", "sequences", "frames", "critical share"]
+    keys = [
+        ("recall", "recall"),
+        ("specificity", "specificity"),
+        ("balanced_accuracy", "bal. acc."),
+    ]
+    for _, name in keys:
+        cols += [f"{main} {name}", "95 % CI"]
+    cols += ["speed-only bal. acc.", "95 % CI"]
+    t = Table(
+        f"Risk: {main} by situation type (primary threshold; intervals over that situation's sequences)",
+        cols,
+        anchor="risk-situations",
+        note="n/a: the situation has no critical (recall) or no uncritical (specificity) test frame.",
+    )
+    for s in sorted(sit):
+        pre = f"situations.{s}"
+        row = [
+            Cell(s),
+            _value_cell(src, f"{pre}.n_sequences", "int"),
+            _value_cell(src, f"{pre}.n_frames", "int"),
+            _value_cell(src, f"{pre}.critical_share", "pct"),
+        ]
+        for k, _ in keys:
+            p = f"{pre}.predictors.{main}.{k}"
+            row += [_value_cell(src, p, "pct"), _ci_cell(src, p, "pct")]
+        p = f"{pre}.predictors.speed_only.balanced_accuracy"
+        row += [_value_cell(src, p, "pct"), _ci_cell(src, p, "pct")]
+        t.rows.append(row)
+    return t
+
+
 def risk_training_table(src: page.Sources) -> Table | None:
     """Per variant: inputs, label, parameters, training time and best validation MSE (risk.json models)."""
     models = src.get(RISK_FILE, "models")
@@ -310,6 +586,15 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     sec.paragraphs.append(f"Reference: {P.RISK_CITATION}.")
     if src.has(RISK_FILE):
         sec.tables.extend(risk_tables(src))
+        for extra in (
+            risk_ci_table(src),
+            risk_difference_table(src),
+            risk_targets_table(src),
+            risk_critical_share_table(src),
+            risk_situation_table(src),
+        ):
+            if extra is not None:
+                sec.tables.append(extra)
         training = risk_training_table(src)
         if training:
             sec.tables.append(training)
