@@ -22,9 +22,14 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
     """train_risk runs once per run_variant (each defined in variants); evaluate_risk depends on all of them."""
     params = yaml.safe_load((ROOT / "params.yaml").read_text())["risk_model"]
     assert set(params["run_variants"]) <= set(params["variants"])
-    assert {"headline", "headline_s1", "headline_s2", "paper", "rgbd", "gtdisp"} <= set(
-        params["run_variants"]
-    )  # the default profile
+    assert {
+        "headline",
+        "headline_s1",
+        "headline_s2",
+        "headline_mse",
+        "headline_cls",
+        "paper",
+    } <= set(params["run_variants"])  # the default profile
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     assert dvc["train_risk"]["foreach"] == "${risk_model.run_variants}"
     assert dvc["train_risk"]["do"]["outs"] == ["models/risk/${item}"]
@@ -158,10 +163,11 @@ def test_stage_config_is_checked() -> None:
     assert cfg.inputs == ("rgb", "disp_sgm") and label == "risk_thw_fov"
     cfg, label = model_config(p, "headline")
     assert cfg.use_speed and label == p.risk_model.label == "risk_thw_corridor"
+    assert cfg.objective == "log_thw" and cfg.thw_cap_s == p.risk_model.objective.thw_cap_s
     cfg, label = model_config(p, "paper")
     assert not cfg.use_speed and label == "risk_thw_paper" and cfg.objective == "mse"
-    cfg, _ = model_config(p, "headline_logthw")
-    assert cfg.objective == "log_thw" and cfg.thw_cap_s == p.risk_model.objective.thw_cap_s
+    cfg, _ = model_config(p, "headline_mse")
+    assert cfg.objective == "mse" and cfg.use_speed
     with pytest.raises(ConfigError, match="no variant 'nope'"):
         model_config(p, "nope")
     p.risk_model.train.limit_val_batches = 5

@@ -399,7 +399,7 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     )
     curves = (tmp_path / "plots" / "risk_training_disp.csv").read_text()
     assert curves == (out / "history.csv").read_text()
-    assert curves.splitlines()[0] == "step,epoch,train/loss,val/mse,val/mae,val/pred_std"
+    assert curves.splitlines()[0] == "step,epoch,train/loss,val/loss,val/mse,val/mae,val/pred_std"
     loaded = load_risk_model(out)
     assert all(torch.equal(v, res.net.state_dict()[k]) for k, v in loaded.net.state_dict().items())
     run = mlflow.get_run(meta["mlflow_run_id"])

@@ -11,7 +11,8 @@ at the model resolution into compact arrays (uint8 RGB, float16 disparity: ~92 k
 Loss: the variant's objective (:func:`~traffictwin.risk.dave2.risk_loss`: the paper's MSE on the
 normalised risk, MSE on log THW, or MSE + a classification head at 1.5 s); optimiser: Adam with a
 linear learning-rate warm-up over the first ``warmup_steps`` steps; validation every ``val_every_n_steps`` optimiser steps (the paper: every
-10), the checkpoint with the lowest validation MSE of the predicted risk is kept. A run whose
+10), the checkpoint with the lowest validation loss of the objective is kept (for ``mse`` the
+validation MSE, as in the paper). A run whose
 best checkpoint predicts one value for every validation frame (spread < :data:`MIN_PRED_STD`)
 raises :class:`CollapsedModelError`: nothing is published.
 
@@ -402,9 +403,10 @@ def mse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 class RiskRegressor(NetModule):
     """:class:`~traffictwin.trainer.NetModule` with Dave2 and its objective's loss (Adam).
 
-    Logs ``train/loss`` (per step; the objective's loss), ``val/mse``, ``val/mae`` (of the
-    predicted normalised risk, whatever the objective), ``val/pred_std`` (spread of the
-    predictions: ~0 = collapsed), ``test/*``.
+    Logs ``train/loss`` (per step; the objective's loss), ``val/loss`` (the same on the
+    validation frames: selects the checkpoint), ``val/mse``, ``val/mae`` (of the predicted
+    normalised risk, whatever the objective), ``val/pred_std`` (spread of the predictions: ~0 =
+    collapsed), ``test/*``.
     """
 
     def __init__(
@@ -423,7 +425,10 @@ class RiskRegressor(NetModule):
         self.eval_sums = torch.nn.ModuleDict(
             {
                 split: torch.nn.ModuleDict(
-                    {k: SumMetric().set_dtype(torch.float64) for k in ("se", "ae", "n", "p", "p2")}
+                    {
+                        k: SumMetric().set_dtype(torch.float64)
+                        for k in ("se", "ae", "n", "p", "p2", "loss")
+                    }
                 )
                 for split in ("val", "test")
             }
@@ -461,9 +466,11 @@ class RiskRegressor(NetModule):
 
     def _eval_step(self, batch: Sequence[torch.Tensor], prefix: str) -> None:
         rgb, disp, speed, y = batch
-        pred = self(rgb, disp, speed).double()
+        raw = self.raw(rgb, disp, speed)
+        pred = raw_to_risk(self.cfg, raw).double()
         err = pred - y.double()
         sums = self.eval_sums[prefix]
+        sums["loss"].update(risk_loss(self.cfg, raw, y, self.bce_weight).double() * len(y))
         sums["se"].update(torch.sum(err**2))
         sums["ae"].update(torch.sum(err.abs()))
         sums["n"].update(float(len(y)))
@@ -472,10 +479,13 @@ class RiskRegressor(NetModule):
 
     def _eval_end(self, prefix: str) -> None:
         sums = self.eval_sums[prefix]
-        se, ae, n, p, p2 = (float(sums[k].compute()) for k in ("se", "ae", "n", "p", "p2"))
+        se, ae, n, p, p2, loss = (
+            float(sums[k].compute()) for k in ("se", "ae", "n", "p", "p2", "loss")
+        )
         for metric in sums.values():
             metric.reset()
         n = max(n, 1.0)
+        self.log(f"{prefix}/loss", loss / n)
         self.log(f"{prefix}/mse", se / n)
         self.log(f"{prefix}/mae", ae / n)
         self.log(f"{prefix}/pred_std", math.sqrt(max(p2 / n - (p / n) ** 2, 0.0)))
@@ -695,12 +705,12 @@ def fit(
     interval = max(1, min(tc.val_every_n_steps, total))
     history = History(
         "validation",
-        metrics=("val/mse", "val/mae", "val/pred_std"),
+        metrics=("val/loss", "val/mse", "val/mae", "val/pred_std"),
         train_loss="train/loss",
         logger=logger,
     )
     with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
-        ckpt = best_checkpoint(tmp, monitor="val/mse", mode="min")
+        ckpt = best_checkpoint(tmp, monitor="val/loss", mode="min")
         trainer = build_trainer(
             settings,
             max_epochs=tc.epochs,
@@ -726,9 +736,10 @@ def fit(
             module.load_state_dict(blob["state_dict"])
             best_step = int(blob.get("global_step", -1))
     hist = history.frame()
+    # the validation MSE of the kept checkpoint (the one with the lowest validation loss)
     best_val = (
-        float(hist["val/mse"].min())
-        if len(hist) and hist["val/mse"].notna().any()
+        float(hist["val/mse"][hist["val/loss"].idxmin()])
+        if len(hist) and hist["val/loss"].notna().any()
         else float("nan")
     )
     net = module.net.cpu().eval()
