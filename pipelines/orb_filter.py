@@ -43,7 +43,7 @@ def run(orb: OrbParams, workers: int) -> tuple[pd.DataFrame, dict]:
         rows.extend(r)
         total += secs
     df = orb_frames(ds.table("frames.csv"), pd.DataFrame(rows))
-    metrics = orb_metrics(df, SPLITS, FAULTS)
+    metrics = orb_metrics(df, SPLITS, FAULTS, orb.min_reliable, orb.min_dx)
     metrics["all/ms_per_frame"] = 1000.0 * total / max(len(df), 1)
     log.info(
         "orb: dropped %.3f, detection %.3f, false alarms %.3f",

@@ -136,7 +136,7 @@ def test_orb_frames_joins_by_frame_id():
 
 
 def test_orb_metrics_hand_counts():
-    m = orb_metrics(_orb_df(), ("train", "val", "test"), ("none", "delay", "vertical"))
+    m = orb_metrics(_orb_df(), ("train", "val", "test"), ("none", "delay", "vertical"), 8, 1.0)
     assert m["all/frames"] == 6 and m["all/dropped_share"] == pytest.approx(3 / 6)
     assert m["all/false_alarm_rate"] == pytest.approx(1 / 3)  # frame 4 of 0, 1, 4
     assert m["all/detection_rate"] == pytest.approx(2 / 3)  # frames 2, 3 of 2, 3, 5
@@ -151,3 +151,19 @@ def test_orb_metrics_hand_counts():
     assert m["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1 / 2)
     assert m["sweep/max_dy_3_vertical_detection_rate"] == pytest.approx(1.0)
     assert m["none/mean_dy_median"] == pytest.approx(1.5)  # of 0.5, 2.5 (NaN skipped)
+
+
+def test_sweep_uses_the_configured_min_reliable_and_min_dx():
+    df = _orb_df()
+    df.loc[df.frame_id == 0, "n_reliable"] = 5  # frame 0: clean, 5 reliable matches, dx 8, dy 0.5
+    df.loc[df.frame_id == 5, "mean_dx"] = 3.0  # frame 5: vertical fault, dy 4 px
+    faults = ("none", "delay", "vertical")
+    loose = orb_metrics(df, ("train", "val", "test"), faults, 1, 1.0)
+    strict = orb_metrics(df, ("train", "val", "test"), faults, 8, 4.0)
+    # at |dy| > 5 px: loose flags only frame 4 (no matches) of the clean frames 0, 1, 4
+    assert loose["sweep/max_dy_5_false_alarm_rate"] == pytest.approx(1 / 3)
+    # min_reliable 8 flags frame 0 (5 matches) too
+    assert strict["sweep/max_dy_5_false_alarm_rate"] == pytest.approx(2 / 3)
+    # min_dx 4 px flags frame 5 (dx 3 px) though its dy of 4 px passes
+    assert loose["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1 / 2)
+    assert strict["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1.0)

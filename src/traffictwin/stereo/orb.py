@@ -190,15 +190,20 @@ def orb_frames(frames: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
     return df.sort_values("frame_id").reset_index(drop=True)
 
 
-def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) -> dict:
+def orb_metrics(
+    df: pd.DataFrame,
+    splits: Sequence[str],
+    faults: Sequence[str],
+    min_reliable: int,
+    min_dx: float,
+) -> dict:
     """Detection rate (flagged among faulty pairs, per fault type), false-alarm rate (flagged among
     fault-free pairs), dropped share; also split by speed (faults are invisible at standstill).
     ``df``: :func:`orb_frames`; ``splits``/``faults``: the values of its ``split``/``fault``
     columns to report on (``"none"`` = fault-free is never a fault group).
 
     ``sweep/*``: sensitivity of the rule's |dy| threshold on the same per-pair statistics (no
-    re-matching). NOTE: the sweep flags with fixed ``n_reliable < 1`` and ``mean_dx < 1.0``, not
-    the configured ``min_reliable``/``min_dx`` (kept as is so results do not change; to be fixed).
+    re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px).
     """
     m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
     faulty = df.fault != NO_FAULT
@@ -223,7 +228,12 @@ def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) 
         if len(part):
             m[f"{s}/dropped_share"] = float(part.outlier.mean())
     for thr in SWEEP_MAX_DY:
-        flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
+        flag = (
+            (df.n_reliable < min_reliable)
+            | (df.mean_dx < min_dx)
+            | (df.mean_dy > thr)
+            | df.mean_dy.isna()
+        )
         m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
         for f in faults:
             sel = df.fault == f
