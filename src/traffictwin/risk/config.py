@@ -18,6 +18,7 @@ from traffictwin.risk.dataset import LABELS, RiskDataSpec
 from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import DrivingConfig
+from traffictwin.stereo.check import StereoCheckParams
 from traffictwin.stereo.orb import OrbParams
 from traffictwin.stereo.sgm import SgmParams
 
@@ -85,6 +86,7 @@ class RiskDataConfig:
     metric: MetricParams = spec()
     sgm: SgmParams = spec()
     orb: OrbParams = spec()
+    check: StereoCheckParams = spec()
 
     def __post_init__(self) -> None:
         if len(self.splits) != 3:
