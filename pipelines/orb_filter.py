@@ -1,25 +1,36 @@
-"""Stage orb_filter: the paper's ORB pair check on every stereo pair of data/risk.
+"""Stage orb_filter: the stereo pair checks on every pair of data/risk -> data/orb/orb.csv.
 
-Writes data/orb/orb.csv (frame_id, n_matches, n_reliable, mean_dx, mean_dy, outlier, fault)
-and reports/metrics/orb.json: detection rate per injected fault type, false-alarm rate on
-fault-free pairs, share of frames dropped; a flagged pair -> reports/figures/orb_outlier_example.png.
+Runs the ORB pair check (paper Sec. 3.3) on every pair and reads the SGM valid share of each
+pair from data/disparity/frames.csv (stage disparity). Writes data/orb/orb.csv (columns
+:data:`traffictwin.stereo.orb.TABLE_COLUMNS`: the ORB statistics, ``valid_share``, one flag per
+rule -- ``flag_orb_paper``, ``flag_orb``, ``flag_valid_share`` -- and ``outlier`` = the configured
+``risk_data.check.rule``, the "drop this pair" column the risk training reads) and
+reports/metrics/orb.json: for ``outlier`` the detection rate per injected fault type, the
+false-alarm rate on fault-free pairs and the share dropped; for every rule the detection /
+false-alarm table with scenario-cluster bootstrap 95 % intervals (delay faults also per subject
+speed); the |dy| and valid-share threshold sweeps. An ORB-flagged pair ->
+reports/figures/orb_outlier_example.png.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pandas as pd
 
 from traffictwin.config import typed
 from traffictwin.io.atomic import atomic_path, write_json_atomic
-from traffictwin.io.shards import Dataset
+from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import orb_example_figure
 from traffictwin.risk.dataset import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
+from traffictwin.stereo.check import RULES, StereoCheckParams, add_flags, valid_share_sweep
+from traffictwin.stereo.detection import detection_table
 from traffictwin.stereo.orb import TABLE_COLUMNS, OrbParams, check_pairs, orb_frames, orb_metrics
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
-from ._paths import ORB_CSV, RISK_DATA, figure_file, metrics_file
+from ._paths import DISPARITY, ORB_CSV, RISK_DATA, figure_file, metrics_file
 
 
 def _work(i: int):
@@ -28,25 +39,71 @@ def _work(i: int):
     return [{"shard": i, **r} for r in rows], secs
 
 
-def run(orb: OrbParams, workers: int) -> tuple[pd.DataFrame, dict]:
+def valid_shares(risk: Dataset, disparity: Path = DISPARITY) -> pd.DataFrame:
+    """``frame_id``, ``valid_share`` of every frame of ``risk`` from the disparity stage's
+    frames.csv; a clear error when data/disparity is missing, stale or lacks the column."""
+    disp = Dataset(disparity, kind="disparity", verify=False)
+    src = disp.params.get("source")
+    if src != risk.manifest_hash():
+        raise DatasetError(
+            f"{disparity / 'manifest.json'}: made from another data/risk (source {src}, "
+            f"data/risk is {risk.manifest_hash()}): run the disparity stage first"
+        )
+    table = disp.table("frames.csv")
+    if "valid_share" not in table.columns:
+        raise DatasetError(
+            f"{disparity / 'frames.csv'}: column 'valid_share' missing (has {list(table.columns)}): "
+            "rerun the disparity stage"
+        )
+    return table[["frame_id", "valid_share"]]
+
+
+def run(
+    orb: OrbParams,
+    check: StereoCheckParams,
+    workers: int,
+    src: Path = RISK_DATA,
+    disparity: Path = DISPARITY,
+) -> tuple[pd.DataFrame, dict]:
     log = setup_logging()
-    ds = Dataset(RISK_DATA, kind="risk")
+    ds = Dataset(src, kind="risk")
+    shares = valid_shares(
+        ds, disparity
+    )  # before the slow ORB pass: a stale data/disparity fails first
     rows, total = [], 0.0
     for r, secs in map_shards(
         _work,
         range(len(ds.shards)),
         workers=workers,
-        state={"src": str(RISK_DATA), "orb": orb},
+        state={"src": str(src), "orb": orb},
         desc="orb_filter",
         ordered=True,
     ):
         rows.extend(r)
         total += secs
-    df = orb_frames(ds.table("frames.csv"), pd.DataFrame(rows))
-    metrics = orb_metrics(df, SPLITS, FAULTS)
+    df = orb_frames(
+        ds.table("frames.csv"), pd.DataFrame(rows).rename(columns={"outlier": "flag_orb"})
+    )
+    df = df.merge(shares, on="frame_id", how="left", validate="one_to_one")
+    if df.valid_share.isna().any():
+        missing = df.frame_id[df.valid_share.isna()].tolist()[:5]
+        raise DatasetError(f"{disparity / 'frames.csv'}: no valid_share for frames {missing}...")
+    df = add_flags(
+        df,
+        min_dx=orb.min_dx,
+        max_dy=orb.max_dy,
+        min_valid_share=check.min_valid_share,
+        rule=check.rule,
+    )
+    metrics = orb_metrics(df, SPLITS, FAULTS, orb.min_reliable, orb.min_dx)
+    metrics.update(detection_table(df, FAULTS))
+    metrics.update(valid_share_sweep(df, FAULTS))
+    metrics["check/min_valid_share"] = float(check.min_valid_share)
+    metrics.update({f"rule_{r}/configured": int(r == check.rule) for r in RULES})
     metrics["all/ms_per_frame"] = 1000.0 * total / max(len(df), 1)
     log.info(
-        "orb: dropped %.3f, detection %.3f, false alarms %.3f",
+        "pair check (%s): dropped %.3f, detection %.3f, false alarms %.3f",
+        check.rule,
         metrics["all/dropped_share"],
         metrics.get("all/detection_rate", float("nan")),
         metrics["all/false_alarm_rate"],
@@ -57,13 +114,13 @@ def run(orb: OrbParams, workers: int) -> tuple[pd.DataFrame, dict]:
 def main() -> None:
     rd = typed(params().get("risk_data"), RiskDataConfig, key="risk_data")
     with stage_timer("orb_filter"):
-        out, metrics = run(rd.orb, rd.workers)
+        out, metrics = run(rd.orb, rd.check, rd.workers)
         with atomic_path(ORB_CSV, suffix=".csv") as tmp:
             out.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
         write_json_atomic(metrics_file("orb"), metrics)
-        orb_example_figure(
+        orb_example_figure(  # a pair the ORB check flags (the figure shows ORB matches)
             Dataset(RISK_DATA, kind="risk", verify=False),
-            out,
+            out.assign(outlier=out.flag_orb),
             rd.orb,
             figure_file("orb_outlier_example"),
         )

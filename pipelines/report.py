@@ -24,6 +24,7 @@ from traffictwin.report.config import ReportParams
 from traffictwin.report.model import ReportInputs, SectionProvider
 from traffictwin.report.render import write_report
 from traffictwin.risk import report_section as risk_report
+from traffictwin.stereo import report_section as stereo_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import CONF, DVC_YAML, REPORTS, ROOT
@@ -93,7 +94,11 @@ def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
 
 def providers(configurations: Mapping[str, tuple[float, float]]) -> list[SectionProvider]:
     """The problems' sections, in report order; ``configurations``: ``{name: (r m, alpha deg)}``."""
-    return [fusion_report.provider(configurations), risk_report.provider()]
+    return [
+        fusion_report.provider(configurations),
+        risk_report.provider(),
+        stereo_report.provider(),
+    ]
 
 
 def main() -> None:

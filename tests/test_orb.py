@@ -37,6 +37,8 @@ def test_good_pair_passes(pair):
     assert not r.outlier
     assert r.n_reliable >= 8 and r.n_matches >= r.n_reliable
     assert r.mean_dx >= 1.0 and r.mean_dy < 1.0
+    # the paper's statistics over all cross-checked matches: false matches raise mean |dy|
+    assert np.isfinite(r.all_mean_dx) and r.all_mean_dy >= r.mean_dy
 
 
 def test_vertical_shift_of_8px_fails(pair):
@@ -55,6 +57,7 @@ def test_featureless_pair_is_flagged_unverifiable():
     flat = np.full((80, 160, 3), 128, np.uint8)
     r = check_pair(flat, flat)
     assert r.outlier and r.n_reliable == 0 and np.isnan(r.mean_dx)
+    assert r.n_matches == 0 and np.isnan(r.all_mean_dx) and np.isnan(r.all_mean_dy)
 
 
 def test_reliable_filter_limits_matches(pair):
@@ -108,6 +111,7 @@ def _orb_df() -> pd.DataFrame:
             "frame_id": [3, 0, 1, 2, 4, 5],
             "shard": [1, 0, 0, 0, 1, 1],
             "idx": [0, 0, 1, 2, 1, 2],
+            "scenario": [1, 0, 0, 0, 1, 1],
             "split": ["test", "train", "train", "train", "test", "test"],
             "fault": ["vertical", "none", "none", "delay", "none", "vertical"],
             "speed": [10.0, 10.0, 2.0, 8.0, 1.0, 3.0],
@@ -132,11 +136,28 @@ def test_orb_frames_joins_by_frame_id():
     assert list(df.frame_id) == [0, 1, 2, 3, 4, 5]
     assert list(df.fault) == ["none", "none", "delay", "vertical", "none", "vertical"]
     assert list(df.outlier) == [False, False, True, True, True, False]
-    assert set(TABLE_COLUMNS) <= set(df.columns)
+    assert {
+        "frame_id",
+        "scenario",
+        "fault",
+        "n_matches",
+        "n_reliable",
+        "mean_dx",
+        "mean_dy",
+    } <= set(df.columns)
+    # orb.csv = these, the paper's all-match means, the valid share and one flag per rule
+    assert TABLE_COLUMNS[:6] == (
+        "frame_id",
+        "n_matches",
+        "n_reliable",
+        "mean_dx",
+        "mean_dy",
+        "outlier",
+    )
 
 
 def test_orb_metrics_hand_counts():
-    m = orb_metrics(_orb_df(), ("train", "val", "test"), ("none", "delay", "vertical"))
+    m = orb_metrics(_orb_df(), ("train", "val", "test"), ("none", "delay", "vertical"), 8, 1.0)
     assert m["all/frames"] == 6 and m["all/dropped_share"] == pytest.approx(3 / 6)
     assert m["all/false_alarm_rate"] == pytest.approx(1 / 3)  # frame 4 of 0, 1, 4
     assert m["all/detection_rate"] == pytest.approx(2 / 3)  # frames 2, 3 of 2, 3, 5
@@ -151,3 +172,19 @@ def test_orb_metrics_hand_counts():
     assert m["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1 / 2)
     assert m["sweep/max_dy_3_vertical_detection_rate"] == pytest.approx(1.0)
     assert m["none/mean_dy_median"] == pytest.approx(1.5)  # of 0.5, 2.5 (NaN skipped)
+
+
+def test_sweep_uses_the_configured_min_reliable_and_min_dx():
+    df = _orb_df()
+    df.loc[df.frame_id == 0, "n_reliable"] = 5  # frame 0: clean, 5 reliable matches, dx 8, dy 0.5
+    df.loc[df.frame_id == 5, "mean_dx"] = 3.0  # frame 5: vertical fault, dy 4 px
+    faults = ("none", "delay", "vertical")
+    loose = orb_metrics(df, ("train", "val", "test"), faults, 1, 1.0)
+    strict = orb_metrics(df, ("train", "val", "test"), faults, 8, 4.0)
+    # at |dy| > 5 px: loose flags only frame 4 (no matches) of the clean frames 0, 1, 4
+    assert loose["sweep/max_dy_5_false_alarm_rate"] == pytest.approx(1 / 3)
+    # min_reliable 8 flags frame 0 (5 matches) too
+    assert strict["sweep/max_dy_5_false_alarm_rate"] == pytest.approx(2 / 3)
+    # min_dx 4 px flags frame 5 (dx 3 px) though its dy of 4 px passes
+    assert loose["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1 / 2)
+    assert strict["sweep/max_dy_5_vertical_detection_rate"] == pytest.approx(1.0)

@@ -19,6 +19,7 @@ from traffictwin.report.config import ReportParams
 from traffictwin.report.model import DataFile, Figure, ReportInputs, Section, SectionProvider
 from traffictwin.report.tables import findings_group, markdown_bullets
 from traffictwin.risk import report_section as risk_report
+from traffictwin.stereo import report_section as stereo_report
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "traffictwin"
 
@@ -56,7 +57,7 @@ def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
         ],
     )
     (rep / "figures" / "notes.txt").write_text("not an image")
-    (figs_fusion, figs_risk), other = R.collect_figures(rep, providers({}))
+    (figs_fusion, figs_risk, figs_stereo), other = R.collect_figures(rep, providers({}))
     # known figures in the provider's order with its caption, then the others its pattern claims
     assert [(f.path, f.caption) for f in figs_fusion] == [
         (
@@ -70,6 +71,7 @@ def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
         ("figures/pose_extra.png", "`figures/pose_extra.png`"),
     ]
     assert [f.path for f in figs_risk] == ["figures/risk_examples.png", "figures/stereo_extra.png"]
+    assert figs_stereo == []  # the stereo section claims only its own figure (stereo_resolution)
     assert other == [Figure("figures/misc.png", "`figures/misc.png`")]
 
 
@@ -106,6 +108,7 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
         "This run",
         fusion_report.TITLE,
         risk_report.TITLE,
+        stereo_report.TITLE,
         "Twin",
         "Data and disparity statistics",
         "Appendix — every metrics file",

@@ -21,6 +21,7 @@ from traffictwin.stereo.sgm import (
     compute_disparity,
     disparity_frames,
     make_matcher,
+    valid_share,
 )
 
 BAD2_BOUND = 0.05  # stated bound: < 5 % of valid pixels off by > 2 px on a clean rendered pair
@@ -59,6 +60,8 @@ def test_penalties_follow_the_design():
     m = make_matcher(64, 5, channels=3)
     assert m.getP1() == 8 * 3 * 25 and m.getP2() == 32 * 3 * 25
     assert m.getDisp12MaxDiff() == 1 and m.getMode() == 1  # STEREO_SGBM_MODE_HH
+    # speckle filter on by default: OpenCV's documented recipe (window 50-200 px, range 1-2 px)
+    assert m.getSpeckleWindowSize() == 100 and m.getSpeckleRange() == 2
     with pytest.raises(ValueError, match="multiple of 16"):
         make_matcher(30)
     with pytest.raises(ValueError, match="odd"):
@@ -97,7 +100,7 @@ def test_disparity_frames_match_single_calls(pair):
         num_disparities=32,
         block_size=5,
         uniqueness_ratio=10,
-        speckle_window=0,
+        speckle_window=100,
         speckle_range=2,
         gray=False,
     )
@@ -139,3 +142,36 @@ def test_accuracy_table_and_per_frame_values():
     assert g["fault_none/bad2"] == pytest.approx(1 / 7)  # frames 0 and 2: 1 bad of 7 valid
     assert g["fault_vertical/epe"] == pytest.approx(4.5 / 3)
     assert "val/density" not in g and "fault_delay/density" not in g
+
+
+def test_speckle_filter_only_invalidates_and_lowers_bad2(pair):
+    off = compute_disparity(pair["left"], pair["right"], num_disparities=32, speckle_window=0)
+    on = compute_disparity(pair["left"], pair["right"], num_disparities=32)  # default: 100 px, 2 px
+    kept = on >= 0
+    assert not np.any(kept & (off < 0))  # nothing becomes valid
+    assert np.array_equal(on[kept], off[kept])  # surviving values unchanged
+    assert kept.sum() < (off >= 0).sum()  # some speckles removed on this pair
+    s_on, s_off = (summarise(disparity_errors(d, pair["disp_gt"])) for d in (on, off))
+    assert s_on["bad2"] <= s_off["bad2"]
+
+
+def test_valid_share_hand_case():
+    d = np.full((2, 8), INVALID, np.float32)
+    d[:, 3:] = 4.0  # band = min_disparity 1 + num_disparities 2 = 3 columns never count
+    d[0, 3] = INVALID
+    d[1, 5:7] = INVALID  # 3 of the 10 matchable pixels invalid
+    assert float(valid_share(d, 2, 1)) == pytest.approx(0.7)
+    d[:, :3] = 0.0  # valid values inside the band do not count either
+    assert float(valid_share(d, 2, 1)) == pytest.approx(0.7)
+    both = valid_share(np.stack([d, np.zeros_like(d)]), 2, 1)
+    assert both.shape == (2,) and both.tolist() == pytest.approx([0.7, 1.0])
+    with pytest.raises(ValueError, match="unmatched band of 8"):
+        valid_share(d, 8)
+    with pytest.raises(ValueError, match="shape"):
+        valid_share(d[0], 2)
+
+
+def test_valid_share_of_a_rendered_pair(pair):
+    d = compute_disparity(pair["left"], pair["right"], num_disparities=32)
+    assert float(valid_share(d, 32)) == pytest.approx(float((d[:, 32:] >= 0).mean()))
+    assert float(valid_share(d, 32)) > 0.8  # a clean pair

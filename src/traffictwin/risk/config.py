@@ -19,6 +19,7 @@ from traffictwin.risk.dataset import LABELS, RiskDataSpec
 from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import SITUATIONS, DrivingConfig
+from traffictwin.stereo.check import StereoCheckParams
 from traffictwin.stereo.orb import OrbParams
 from traffictwin.stereo.sgm import SgmParams
 
@@ -91,6 +92,7 @@ class RiskDataConfig:
     metric: MetricParams = spec()
     sgm: SgmParams = spec()
     orb: OrbParams = spec()
+    check: StereoCheckParams = spec()
 
     def __post_init__(self) -> None:
         if len(self.splits) != 3:

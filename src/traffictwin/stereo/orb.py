@@ -12,7 +12,8 @@ cross-checked match the false matches alone push mean |dy| of a perfect pair far
 closest, summarised by the mean (paper) or the median (``statistic``). No geometric
 (epipolar) filtering is done: that would hide exactly the faults the check looks for.
 Pairs with fewer than ``min_reliable`` reliable matches cannot be verified and are
-flagged as outliers.
+flagged as outliers. The means over *all* cross-checked matches are kept too (``all_mean_dx``,
+``all_mean_dy``): the paper's literal rule, compared in :mod:`traffictwin.stereo.check`.
 """
 
 from __future__ import annotations
@@ -30,8 +31,24 @@ from traffictwin.stereo.sgm import check_pair_shapes
 
 #: the ``fault`` value of a fault-free pair
 NO_FAULT = "none"
-#: orb.csv columns, in order
-TABLE_COLUMNS = ("frame_id", "n_matches", "n_reliable", "mean_dx", "mean_dy", "outlier", "fault")
+#: orb.csv columns, in order: the robust rule's statistics, ``outlier`` (drop the pair: the
+#: configured rule of :mod:`traffictwin.stereo.check`), the paper's all-match means, the SGM valid
+#: share, one flag per rule and the injected fault
+TABLE_COLUMNS = (
+    "frame_id",
+    "n_matches",
+    "n_reliable",
+    "mean_dx",
+    "mean_dy",
+    "outlier",
+    "all_mean_dx",
+    "all_mean_dy",
+    "valid_share",
+    "flag_orb_paper",
+    "flag_orb",
+    "flag_valid_share",
+    "fault",
+)
 #: |dy| thresholds (px) of the sensitivity sweep in orb.json
 SWEEP_MAX_DY = (1.0, 2.0, 3.0, 5.0)
 
@@ -66,13 +83,17 @@ class OrbParams:
 @dataclass(frozen=True)
 class OrbResult:
     """n_matches: cross-checked matches; n_reliable: those used; mean_dx, mean_dy: mean (or
-    median) |x_L - x_R| and |y_L - y_R| over reliable matches (px, NaN if none); outlier flag."""
+    median) |x_L - x_R| and |y_L - y_R| over reliable matches (px, NaN if none); outlier flag
+    (the robust rule); all_mean_dx, all_mean_dy: means over all cross-checked matches (px, NaN if
+    none: the paper's literal statistics)."""
 
     n_matches: int
     n_reliable: int
     mean_dx: float
     mean_dy: float
     outlier: bool
+    all_mean_dx: float = float("nan")
+    all_mean_dy: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -157,15 +178,17 @@ def check_pair(
             left_bgr, right_bgr, n_features, fast_threshold, n_levels, edge_threshold
         )
     )
+    nan = float("nan")
+    adx, ady = (float(np.abs(dx).mean()), float(np.abs(dy).mean())) if len(dx) else (nan, nan)
     keep = np.flatnonzero(ham <= max_hamming)
     keep = keep[np.argsort(ham[keep], kind="stable")][:best_n]
     n_rel = len(keep)
     if n_rel == 0:
-        return OrbResult(len(dx), 0, float("nan"), float("nan"), True)
+        return OrbResult(len(dx), 0, nan, nan, True, adx, ady)
     f = np.mean if statistic == "mean" else np.median
     mdx, mdy = float(f(np.abs(dx[keep]))), float(f(np.abs(dy[keep])))
     outlier = bool(n_rel < min_reliable or mdx < min_dx or mdy > max_dy)
-    return OrbResult(len(dx), n_rel, mdx, mdy, outlier)
+    return OrbResult(len(dx), n_rel, mdx, mdy, outlier, adx, ady)
 
 
 def check_pairs(left: np.ndarray, right: np.ndarray, params: OrbParams) -> tuple[list[dict], float]:
@@ -183,22 +206,28 @@ def check_pairs(left: np.ndarray, right: np.ndarray, params: OrbParams) -> tuple
 
 def orb_frames(frames: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
     """Per-pair results (``shard``, ``idx``, :class:`OrbResult` fields) joined with the frames
-    table (``frame_id``, ``shard``, ``idx``, ``split``, ``fault``, ``speed``), by frame id."""
-    df = frames[["frame_id", "shard", "idx", "split", "fault", "speed"]].merge(
+    table (``frame_id``, ``shard``, ``idx``, ``scenario``, ``split``, ``fault``, ``speed``), by
+    frame id."""
+    df = frames[["frame_id", "shard", "idx", "scenario", "split", "fault", "speed"]].merge(
         results, on=["shard", "idx"], validate="one_to_one"
     )
     return df.sort_values("frame_id").reset_index(drop=True)
 
 
-def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) -> dict:
-    """Detection rate (flagged among faulty pairs, per fault type), false-alarm rate (flagged among
+def orb_metrics(
+    df: pd.DataFrame,
+    splits: Sequence[str],
+    faults: Sequence[str],
+    min_reliable: int,
+    min_dx: float,
+) -> dict:
+    """Detection rate (``outlier`` among faulty pairs, per fault type), false-alarm rate (among
     fault-free pairs), dropped share; also split by speed (faults are invisible at standstill).
     ``df``: :func:`orb_frames`; ``splits``/``faults``: the values of its ``split``/``fault``
     columns to report on (``"none"`` = fault-free is never a fault group).
 
-    ``sweep/*``: sensitivity of the rule's |dy| threshold on the same per-pair statistics (no
-    re-matching). NOTE: the sweep flags with fixed ``n_reliable < 1`` and ``mean_dx < 1.0``, not
-    the configured ``min_reliable``/``min_dx`` (kept as is so results do not change; to be fixed).
+    ``sweep/*``: sensitivity of the robust ORB rule's |dy| threshold on the same per-pair
+    statistics (no re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px).
     """
     m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
     faulty = df.fault != NO_FAULT
@@ -223,7 +252,12 @@ def orb_metrics(df: pd.DataFrame, splits: Sequence[str], faults: Sequence[str]) 
         if len(part):
             m[f"{s}/dropped_share"] = float(part.outlier.mean())
     for thr in SWEEP_MAX_DY:
-        flag = (df.n_reliable < 1) | (df.mean_dx < 1.0) | (df.mean_dy > thr) | df.mean_dy.isna()
+        flag = (
+            (df.n_reliable < min_reliable)
+            | (df.mean_dx < min_dx)
+            | (df.mean_dy > thr)
+            | df.mean_dy.isna()
+        )
         m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
         for f in faults:
             sel = df.fault == f

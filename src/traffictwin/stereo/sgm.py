@@ -6,6 +6,17 @@ block size) and the left-right consistency check ``disp12MaxDiff = 1``. OpenCV r
 fixed-point int16 disparities (x16); we divide by 16 and keep every pixel OpenCV marks
 invalid (occlusions, left-right check failures, the left border without a full search
 range, uniqueness failures) as ``-1.0``: the map is deliberately non-dense like the paper's.
+
+Speckle filtering is on by default with OpenCV's documented recipe for ``StereoSGBM``
+(``speckleWindowSize`` 100 px, ``speckleRange`` 2 px: "50-200" and "1 or 2 is good enough"):
+connected blobs of fewer than 100 pixels whose disparity differs from their surroundings by
+more than 2 px are marked invalid. It only removes pixels (values elsewhere are unchanged). On
+the default data it lowers bad-2 from 2.94 % to 2.16 % of valid pixels (README, stereo
+section). OpenCV's ``stereo_match`` sample passes ``speckleRange=32`` instead (OpenCV multiplies
+it by 16 internally, so 32 lets almost every blob through: bad-2 2.82 %).
+
+:func:`valid_share` is the GT-free quality statistic of a map: the share of valid pixels in the
+columns SGM can match at all (the left ``min_disparity + num_disparities`` columns never can).
 """
 
 from __future__ import annotations
@@ -24,7 +35,8 @@ INVALID = -1.0
 @dataclass
 class SgmParams:
     """``risk_data.sgm``: search range (px, multiple of 16), block size (px, odd), uniqueness
-    ratio, speckle filter (window 0 = off) and whether to match on grayscale (cn = 1)."""
+    ratio, speckle filter (max. blob size px, 0 = off; disparity range px) and whether to match
+    on grayscale (cn = 1)."""
 
     num_disparities: int = spec(min=16)
     block_size: int = spec(min=1)
@@ -74,11 +86,12 @@ def make_matcher(
     block_size: int = 5,
     channels: int = 3,
     uniqueness_ratio: int = 10,
-    speckle_window: int = 0,
+    speckle_window: int = 100,
     speckle_range: int = 2,
     min_disparity: int = 0,
 ) -> cv2.StereoSGBM:
-    """A configured ``StereoSGBM`` (num_disparities: search range px, multiple of 16; block_size odd px)."""
+    """A configured ``StereoSGBM`` (num_disparities: search range px, multiple of 16; block_size odd
+    px; speckle_window: max. blob size px, 0 = no speckle filter; speckle_range: px)."""
     if num_disparities <= 0 or num_disparities % 16:
         raise ValueError(
             f"sgm num_disparities must be a positive multiple of 16, got {num_disparities}"
@@ -106,7 +119,7 @@ def compute_disparity(
     num_disparities: int = 64,
     block_size: int = 5,
     uniqueness_ratio: int = 10,
-    speckle_window: int = 0,
+    speckle_window: int = 100,
     speckle_range: int = 2,
     min_disparity: int = 0,
     gray: bool = False,
@@ -149,3 +162,19 @@ def disparity_frames(
         out.append(compute_disparity(left[k], right[k], gray=params.gray, matcher=m))
         secs += time.perf_counter() - t0
     return np.stack(out), secs
+
+
+def valid_share(disp: np.ndarray, num_disparities: int, min_disparity: int = 0) -> np.ndarray:
+    """Share of valid pixels (``>= 0``) of SGM maps in the columns SGM can match, i.e. without the
+    left ``min_disparity + num_disparities`` columns that OpenCV always leaves invalid.
+
+    ``disp``: (H, W) or (N, H, W) px; returns a float64 scalar array or (N,) shares in [0, 1].
+    """
+    d = np.asarray(disp)
+    band = int(min_disparity) + int(num_disparities)
+    if d.ndim not in (2, 3) or band < 0 or band >= d.shape[-1]:
+        raise ValueError(
+            f"valid_share: need (H, W) or (N, H, W) maps wider than the unmatched band of {band} "
+            f"columns, got shape {d.shape}"
+        )
+    return (d[..., band:] >= 0).mean(axis=(-2, -1))

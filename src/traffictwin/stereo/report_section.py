@@ -1,0 +1,345 @@
+"""The stereo part of the report: SGM depth accuracy by range, stereo-pair fault detection per
+rule, and the camera-resolution study.
+
+Reads ``disparity.json`` (stage disparity: ``<group>/<bin>_relerr_median|_p90|_valid_share|_gt_pixels``
+with bins like ``z0-10m``, and ``<group>/bad2|d1|density|epe``), ``orb.json`` (stage orb_filter:
+``rule_<rule>/<fault>_detection[_lo|_hi|_n]``, ``rule_<rule>/false_alarm[...]``,
+``rule_<rule>/delay_detection_v<lo>-<hi>[...]``, ``rule_<rule>/configured``,
+``sweep/min_valid_share_<t>_*``) and ``stereo_resolution.json`` (benchmarks/stereo_resolution.py:
+``w<width>/<metric>``, ``diff_w<a>_minus_w<b>/<metric>[_lo|_hi]``). A missing file or key is an
+``n/a`` cell, never an error. Entry point: :func:`provider`.
+"""
+
+from __future__ import annotations
+
+import re
+
+from traffictwin.report import model as page
+from traffictwin.report.model import NA, NEVER, Cell, Table, fmt_value
+
+DISPARITY_FILE = "disparity.json"
+ORB_FILE = "orb.json"
+RESOLUTION_FILE = "stereo_resolution.json"
+TITLE = "Stereo checks — SGM range accuracy and stereo-pair fault detection"
+
+FIGURES: dict[str, str] = {
+    "stereo_resolution": (
+        "Relative depth error of SGM vs distance at two camera widths, with the critical "
+        "distance band; SGM time per frame (benchmarks/stereo_resolution.py)"
+    ),
+}
+#: rule key in orb.json -> row label
+RULE_LABELS = {
+    "orb_paper": "ORB, paper's rule over all cross-checked matches",
+    "orb": "ORB, robust rule over reliable matches",
+    "valid_share": "SGM valid share below threshold",
+    "orb_or_valid_share": "robust ORB OR valid share",
+}
+GROUP_LABELS = {"all": "all pairs", "fault_none": "fault-free pairs", "test": "test split"}
+CI_NOTE = (
+    "Intervals: 95 % bootstrap over scenarios (driving sequences), since frames of one sequence "
+    "are correlated (traffictwin.stats)."
+)
+
+
+def _num(v: object) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def ci_cell(src: page.Sources, file: str, key: str, fmt: str = "pct") -> Cell:
+    """``[lo, hi]`` of ``<key>_lo`` / ``<key>_hi`` in ``file``: a derived cell (n/a if absent)."""
+    lo, hi = _num(src.get(file, f"{key}_lo")), _num(src.get(file, f"{key}_hi"))
+    if lo is None or hi is None:
+        return Cell(NA, title=f"no interval in reports/metrics/{file}: {key}_lo/_hi")
+    return Cell(
+        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
+        value=[lo, hi],
+        derived=f"95 % cluster-bootstrap interval, metrics/{file}#{key}_lo/_hi",
+    )
+
+
+def _bin_label(name: str) -> str:
+    """``z0-10m`` -> ``0–10 m``; ``z0p5-2m`` -> ``0.5–2 m``."""
+    lo, hi = name[1:-1].replace("p", ".").split("-", 1)
+    return f"{lo}–{hi} m"
+
+
+def range_bins(src: page.Sources, group: str = "all") -> list[str]:
+    """The range-bin names in ``disparity.json`` (e.g. ``z0-10m``), in the file's order."""
+    data = src.metrics.get(DISPARITY_FILE) or {}
+    pat = re.compile(rf"^{re.escape(group)}/(z[0-9p]+-[0-9p]+m)_relerr_median$")
+    return [m.group(1) for k in data if (m := pat.match(k))]
+
+
+def disparity_tables(src: page.Sources) -> list[Table]:
+    """SGM disparity accuracy per group, then the relative depth error per range bin."""
+    if not src.has(DISPARITY_FILE):
+        return []
+    groups = [g for g in GROUP_LABELS if src.get(DISPARITY_FILE, f"{g}/bad2") is not None]
+    cols = [  # the metrics this file has (an older stage version wrote fewer)
+        (m, label, f)
+        for m, label, f in (
+            ("bad2", "bad-2 (> 2 px)", "pct"),
+            ("d1", "D1 (> 3 px and > 5 %)", "pct"),
+            ("density", "density", "pct"),
+            ("epe", "EPE [px]", "g4"),
+        )
+        if any(src.get(DISPARITY_FILE, f"{g}/{m}") is not None for g in groups)
+    ]
+    acc = Table(
+        "SGM disparity accuracy against the exact disparity (reports/metrics/disparity.json)",
+        ["pairs", *[label for _, label, _ in cols]],
+        anchor="stereo-accuracy",
+        note="Shares of the valid pixels with a GT surface; density = valid among GT pixels.",
+    )
+    for g in groups:
+        acc.rows.append(
+            [Cell(GROUP_LABELS[g])] + [src.cell(DISPARITY_FILE, f"{g}/{m}", f) for m, _, f in cols]
+        )
+    rng = Table(
+        "SGM range error |Z − Z_gt| / Z_gt by GT distance (Z = fx·B / d; reports/metrics/disparity.json)",
+        ["pairs", "GT distance", "GT pixels", "valid share", "median", "90th percentile"],
+        anchor="stereo-range-error",
+        note=(
+            "Median and 90th percentile over the valid pixels of the bin; n/a in the 90th "
+            "percentile: more than 10 % of the valid pixels are at 0 px (infinitely far)."
+        ),
+    )
+    for g in [g for g in ("fault_none", "all") if g in groups]:
+        for b in range_bins(src, g):
+            rng.rows.append(
+                [Cell(GROUP_LABELS[g]), Cell(_bin_label(b))]
+                + [
+                    src.cell(DISPARITY_FILE, f"{g}/{b}_{m}", f)
+                    for m, f in (
+                        ("gt_pixels", "int"),
+                        ("valid_share", "pct"),
+                        ("relerr_median", "pct"),
+                        ("relerr_p90", "pct"),
+                    )
+                ]
+            )
+    tables = [acc] if acc.rows else []
+    return tables + ([rng] if rng.rows else [])
+
+
+def _speed_bins(src: page.Sources) -> list[str]:
+    data = src.metrics.get(ORB_FILE) or {}
+    pat = re.compile(r"^rule_orb/(delay_detection_v[0-9p]+-[0-9p]+)$")
+    bins = [m.group(1) for k in data if (m := pat.match(k))]
+
+    def lo(b: str) -> float:
+        return float(b.removeprefix("delay_detection_v").split("-")[0].replace("p", "."))
+
+    return sorted(bins, key=lo)
+
+
+def _speed_label(b: str) -> str:
+    lo, hi = b.removeprefix("delay_detection_v").replace("p", ".").split("-", 1)
+    return f"v {lo}–{hi} m/s"
+
+
+def fault_tables(src: page.Sources) -> list[Table]:
+    """Detection / false-alarm rates per rule with intervals, delay detection by speed, the
+    valid-share threshold sweep."""
+    if not src.has(ORB_FILE):
+        return []
+    rules = [r for r in RULE_LABELS if src.get(ORB_FILE, f"rule_{r}/false_alarm") is not None]
+    if not rules:  # an orb.json of an older stage version: the data section shows it
+        return []
+    t = Table(
+        "Stereo-pair fault detection per rule (reports/metrics/orb.json)",
+        [
+            "rule",
+            "drops pairs",
+            "delay faults detected",
+            "95 % CI",
+            "vertical shifts detected",
+            "95 % CI",
+            "false alarms (fault-free)",
+            "95 % CI",
+        ],
+        anchor="stereo-fault-detection",
+        headline=True,
+        note=(
+            "Delay: the right image from a later time (paper: one game frame, 88 ms); vertical: "
+            "the right image shifted vertically. 'drops pairs' marks the configured rule "
+            "(risk_data.check.rule), the one that sets `outlier` in data/orb/orb.csv. Valid share "
+            "= valid SGM pixels among the matchable columns; threshold "
+            "risk_data.check.min_valid_share. " + CI_NOTE
+        ),
+    )
+    for r in rules:
+        pre = f"rule_{r}/"
+        configured = src.get(ORB_FILE, f"{pre}configured")
+        row = [Cell(RULE_LABELS[r]), Cell("yes" if configured == 1 else "")]
+        for key in ("delay_detection", "vertical_detection", "false_alarm"):
+            row += [src.cell(ORB_FILE, pre + key, "pct"), ci_cell(src, ORB_FILE, pre + key)]
+        t.rows.append(row)
+    counts = Table(
+        "Stereo-pair checks: pairs evaluated (reports/metrics/orb.json)",
+        ["pairs", "count"],
+        anchor="stereo-fault-counts",
+    )
+    for key, label in (
+        ("delay_detection_n", "with a delay fault"),
+        ("vertical_detection_n", "with a vertical shift"),
+        ("false_alarm_n", "fault-free"),
+    ):
+        counts.rows.append([Cell(label), src.cell(ORB_FILE, f"rule_orb/{key}", "int")])
+    tables = [t, counts]
+    bins = _speed_bins(src)
+    if bins:
+        sp = Table(
+            "Delay faults detected by subject speed (reports/metrics/orb.json)",
+            ["rule", *[_speed_label(b) for b in bins]],
+            anchor="stereo-delay-by-speed",
+            note="A delayed right image of a standing subject differs only where others moved.",
+        )
+        sp.rows.append(
+            [Cell("delay faults (count)")]
+            + [src.cell(ORB_FILE, f"rule_orb/{b}_n", "int") for b in bins]
+        )
+        for r in rules:
+            sp.rows.append(
+                [Cell(RULE_LABELS[r])] + [src.cell(ORB_FILE, f"rule_{r}/{b}", "pct") for b in bins]
+            )
+        tables.append(sp)
+    data = src.metrics.get(ORB_FILE) or {}
+    pat = re.compile(r"^sweep/min_valid_share_([0-9p]+)_false_alarm_rate$")
+    thresholds = [m.group(1) for k in data if (m := pat.match(k))]
+    if thresholds:
+        sw = Table(
+            "Valid-share rule: threshold sweep (reports/metrics/orb.json)",
+            ["flag when valid share <", "false alarms", "delay detected", "vertical detected"],
+            anchor="stereo-valid-share-sweep",
+        )
+        for th in sorted(thresholds, key=lambda x: float(x.replace("p", "."))):
+            pre = f"sweep/min_valid_share_{th}"
+            sw.rows.append(
+                [Cell(f"threshold {th.replace('p', '.')}")]
+                + [
+                    src.cell(ORB_FILE, f"{pre}_{k}", "pct")
+                    for k in (
+                        "false_alarm_rate",
+                        "delay_detection_rate",
+                        "vertical_detection_rate",
+                    )
+                ]
+            )
+        tables.append(sw)
+    return tables
+
+
+def resolution_tables(src: page.Sources) -> list[Table]:
+    """The camera-resolution study: one column per width; the paired differences between widths."""
+    data = src.metrics.get(RESOLUTION_FILE)
+    if not isinstance(data, dict):
+        return []
+    widths = sorted({int(m.group(1)) for k in data if (m := re.match(r"^w(\d+)/", k))})
+    if not widths:
+        return []
+    t = Table(
+        "Camera resolution study: SGM range error at the critical distance and SGM cost "
+        "(reports/metrics/stereo_resolution.json, benchmarks/stereo_resolution.py)",
+        ["quantity", *[f"width {w} px" for w in widths]],
+        anchor="stereo-resolution",
+        note=(
+            "Fault-free frames of seeded driving sequences rendered at each width (height = "
+            "width / 2, same field of view and baseline); SGM search range scaled with the width. "
+            "Critical distance: the 1.5 s headway at 8–14 m/s. Objects = pixels in front of the "
+            "road plane. Times on the benchmark machine (median over frames). " + CI_NOTE
+        ),
+    )
+    lo, hi = _num(data.get("study/critical_lo_m")), _num(data.get("study/critical_hi_m"))
+    crit = f"{lo:g}–{hi:g} m" if lo is not None and hi is not None else "the critical distance"
+    rows = [
+        ("image height [px]", "height", "int", False),
+        ("SGM search range [px]", "num_disparities", "int", False),
+    ]
+    rows += [
+        (f"GT disparity at {z:g} m [px]", f"gt_disparity_px_at_{z:g}m", "f2", False)
+        for z in (lo, hi)
+        if z is not None
+    ]
+    rows += [
+        (f"objects at {crit}: median range error", "crit_obj_relerr_median", "pct", True),
+        (f"objects at {crit}: 90th percentile", "crit_obj_relerr_p90", "pct", False),
+        (f"objects at {crit}: valid share", "crit_obj_valid_share", "pct", False),
+        (f"all surfaces at {crit}: median range error", "crit_all_relerr_median", "pct", True),
+        ("0–10 m: median range error", "z0-10m_relerr_median", "pct", False),
+        ("10–30 m: median range error", "z10-30m_relerr_median", "pct", False),
+        ("30–90 m: median range error", "z30-90m_relerr_median", "pct", False),
+        ("30–90 m: 90th percentile", "z30-90m_relerr_p90", "pct", False),
+        ("SGM time per frame [ms]", "sgm_ms_median", "f1", False),
+        ("rendering time per frame [ms]", "render_ms_median", "f1", False),
+    ]
+    for label, key, fmt, with_ci in rows:
+        t.rows.append(
+            [Cell(label)] + [src.cell(RESOLUTION_FILE, f"w{w}/{key}", fmt) for w in widths]
+        )
+        if with_ci:
+            t.rows.append(
+                [Cell(f"{label}, 95 % CI")]
+                + [ci_cell(src, RESOLUTION_FILE, f"w{w}/{key}") for w in widths]
+            )
+    diffs = [
+        (k, m)
+        for k in sorted(data)
+        if (m := re.match(r"^diff_w(\d+)_minus_w(\d+)/(crit_obj|crit_all)_relerr_median$", k))
+    ]
+    if not diffs:
+        return [t]
+    d = Table(
+        "Camera resolution study: paired difference of the median range error at the critical "
+        "distance (reports/metrics/stereo_resolution.json)",
+        ["pixels", "widths", "difference", "95 % CI"],
+        anchor="stereo-resolution-difference",
+        note="The same frames at both widths, scenarios resampled together. " + CI_NOTE,
+    )
+    for k, m in diffs:
+        what = "objects" if m.group(3) == "crit_obj" else "all surfaces"
+        d.rows.append(
+            [
+                Cell(f"{what} at {crit}"),
+                Cell(f"width {m.group(1)} px − width {m.group(2)} px"),
+                src.cell(RESOLUTION_FILE, k, "pct"),
+                ci_cell(src, RESOLUTION_FILE, k),
+            ]
+        )
+    return [t, d]
+
+
+def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
+    """The stereo section: disparity and range accuracy, fault detection, resolution study."""
+    sec = page.Section(TITLE)
+    sec.paragraphs.append(
+        "SGM (OpenCV StereoSGBM, 8 paths, left-right check, speckle filter) on every stereo pair, "
+        "scored against the exact disparity; a disparity error says little at small disparities, "
+        "so the range error is shown per distance bin. Broken stereo pairs are caught by the "
+        "paper's ORB rule (Sec. 3.3), a robust variant of it, and the share of valid SGM pixels."
+    )
+    sec.tables.extend(disparity_tables(src))
+    sec.tables.extend(fault_tables(src))
+    res = resolution_tables(src)
+    sec.tables.extend(res)
+    for file, what in ((DISPARITY_FILE, "disparity"), (ORB_FILE, "orb_filter")):
+        if not src.has(file):
+            sec.paragraphs.append(f"`reports/metrics/{file}` is missing: stage {what} has not run.")
+    if not res:
+        sec.paragraphs.append(
+            f"`reports/metrics/{RESOLUTION_FILE}` is missing: run "
+            "`python -m benchmarks.stereo_resolution`."
+        )
+    sec.figures = figures
+    return sec
+
+
+def provider() -> page.SectionProvider:
+    """The stereo section's provider for the report (after the risk section)."""
+    return page.SectionProvider(
+        section=section,
+        figures=FIGURES,
+        figure_pattern=NEVER,
+        shown_files=r"stereo_resolution\.json",
+    )

@@ -1,0 +1,174 @@
+"""The stereo section of the report: range-error, fault-detection and resolution tables from the
+metrics files, every number traceable to its file, old or missing files handled."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pipelines.report import providers
+from tests.test_report import check_report
+from traffictwin.report import render as R
+from traffictwin.report.model import ReportInputs, Sources
+from traffictwin.stereo import report_section as S
+
+DISPARITY = {
+    "all/bad2": 0.0216,
+    "all/d1": 0.0155,
+    "all/density": 0.863,
+    "all/epe": 0.34,
+    "fault_none/bad2": 0.0075,
+    "fault_none/d1": 0.0047,
+    "fault_none/density": 0.884,
+    "fault_none/epe": 0.21,
+    **{
+        f"{g}/{b}_{m}": v
+        for g in ("all", "fault_none")
+        for b, base in (("z0-10m", 0.014), ("z10-30m", 0.046), ("z30-90m", 0.196))
+        for m, v in (
+            ("relerr_median", base),
+            ("relerr_p90", 3 * base),
+            ("valid_share", 0.88),
+            ("gt_pixels", 1000),
+        )
+    },
+    "fault_delay/z10-30m_relerr_p90": None,  # beyond the histogram: null
+}
+RULES = ("orb_paper", "orb", "valid_share", "orb_or_valid_share")
+ORB = {
+    "all/dropped_share": 0.059,
+    **{f"rule_{r}/configured": int(r == "orb_or_valid_share") for r in RULES},
+    **{
+        f"rule_{r}/{k}{s}": v
+        for r in RULES
+        for k in ("delay_detection", "vertical_detection", "false_alarm")
+        for s, v in (("", 0.5), ("_lo", 0.4), ("_hi", 0.6), ("_n", 10))
+    },
+    **{
+        f"rule_{r}/delay_detection_v{b}{s}": v
+        for r in RULES
+        for b in ("0-0p5", "10-15", "0p5-5")
+        for s, v in (("", 0.25), ("_lo", 0.0), ("_hi", 0.5), ("_n", 4))
+    },
+    "sweep/min_valid_share_0p75_false_alarm_rate": 0.0,
+    "sweep/min_valid_share_0p75_delay_detection_rate": 0.58,
+    "sweep/min_valid_share_0p75_vertical_detection_rate": 0.99,
+    "sweep/min_valid_share_0p8_false_alarm_rate": 0.002,
+    "sweep/min_valid_share_0p8_delay_detection_rate": 0.74,
+    "sweep/min_valid_share_0p8_vertical_detection_rate": 0.99,
+}
+RESOLUTION = {
+    "study/critical_lo_m": 12.0,
+    "study/critical_hi_m": 21.0,
+    "study/frames": 80,
+    **{
+        f"w{w}/{k}": v * (2 if w == 640 else 1)
+        for w in (320, 640)
+        for k, v in (
+            ("height", 80),
+            ("num_disparities", 16),
+            ("gt_disparity_px_at_12m", 3.7),
+            ("gt_disparity_px_at_21m", 2.1),
+            ("crit_obj_relerr_median", 0.07),
+            ("crit_obj_relerr_median_lo", 0.065),
+            ("crit_obj_relerr_median_hi", 0.075),
+            ("crit_obj_relerr_p90", 0.17),
+            ("crit_obj_valid_share", 0.44),
+            ("crit_all_relerr_median", 0.048),
+            ("crit_all_relerr_median_lo", 0.044),
+            ("crit_all_relerr_median_hi", 0.052),
+            ("z0-10m_relerr_median", 0.014),
+            ("z10-30m_relerr_median", 0.046),
+            ("z30-90m_relerr_median", 0.16),
+            ("z30-90m_relerr_p90", 0.49),
+            ("sgm_ms_median", 14.0),
+            ("render_ms_median", 67.0),
+        )
+    },
+    "diff_w640_minus_w320/crit_obj_relerr_median": -0.04,
+    "diff_w640_minus_w320/crit_obj_relerr_median_lo": -0.045,
+    "diff_w640_minus_w320/crit_obj_relerr_median_hi": -0.035,
+}
+
+
+def _reports(tmp_path: Path, metrics: dict[str, dict], figures: tuple[str, ...] = ()) -> Path:
+    rep = tmp_path / "reports"
+    (rep / "metrics").mkdir(parents=True)
+    (rep / "figures").mkdir()
+    for name, data in metrics.items():
+        (rep / "metrics" / name).write_text(json.dumps(data))
+    for name in figures:
+        (rep / "figures" / name).write_bytes(b"\x89PNG")
+    return rep
+
+
+def _inputs(rep: Path) -> ReportInputs:
+    return ReportInputs(reports_dir=rep, profile="ci", seed=1, git_commit="c0ffee")
+
+
+def _rows(table) -> list[list[str]]:
+    return [[c.text for c in row] for row in table.rows]
+
+
+def test_stereo_section_tables(tmp_path: Path) -> None:
+    rep = _reports(
+        tmp_path,
+        {"disparity.json": DISPARITY, "orb.json": ORB, "stereo_resolution.json": RESOLUTION},
+        ("stereo_resolution.png", "stereo_example.png"),
+    )
+    report = R.write_report(_inputs(rep), providers({}))
+    check_report(rep, {}, {})  # every number cell equals its file's value
+    sec = next(s for s in report.sections if s.title == S.TITLE)
+    anchors = [t.anchor for t in sec.tables]
+    assert anchors == [
+        "stereo-accuracy",
+        "stereo-range-error",
+        "stereo-fault-detection",
+        "stereo-fault-counts",
+        "stereo-delay-by-speed",
+        "stereo-valid-share-sweep",
+        "stereo-resolution",
+        "stereo-resolution-difference",
+    ]
+    acc, rng, det, _, speed, sweep, res, diff = sec.tables
+    assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
+    assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
+    assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES]
+    assert [r[1] for r in _rows(det)] == ["", "", "", "yes"]  # the configured rule drops pairs
+    assert _rows(det)[0][2:4] == ["50.00 %", "[40.00 %, 60.00 %]"]
+    assert det.rows[0][3].derived.startswith("95 % cluster-bootstrap interval")
+    # speed bins sorted by their lower edge, with the counts first
+    assert speed.columns[1:] == ["v 0–0.5 m/s", "v 0.5–5 m/s", "v 10–15 m/s"]
+    assert _rows(speed)[0] == ["delay faults (count)", "4", "4", "4"]
+    assert [r[0] for r in _rows(sweep)] == ["threshold 0.75", "threshold 0.8"]
+    assert res.columns == ["quantity", "width 320 px", "width 640 px"]
+    rows = {r[0]: r[1:] for r in _rows(res)}
+    assert rows["objects at 12–21 m: median range error"] == ["7.00 %", "14.00 %"]
+    assert rows["objects at 12–21 m: median range error, 95 % CI"] == [
+        "[6.50 %, 7.50 %]",
+        "[13.00 %, 15.00 %]",
+    ]
+    assert _rows(diff) == [
+        ["objects at 12–21 m", "width 640 px − width 320 px", "-4.00 %", "[-4.50 %, -3.50 %]"]
+    ]
+    assert [f.path for f in sec.figures] == ["figures/stereo_resolution.png"]
+    assert report.missing == []
+    appendix = next(s for s in report.sections if s.title.startswith("Appendix"))
+    titles = [t.title for t in appendix.tables]
+    assert "reports/metrics/stereo_resolution.json" not in titles  # shown in full by the section
+    assert "reports/metrics/orb.json" not in titles  # the data section shows it
+
+
+def test_stereo_section_with_missing_or_old_files(tmp_path: Path) -> None:
+    old = {"all/bad2": 0.071, "all/density": 0.83, "all/frames": 40}  # an older disparity.json
+    rep = _reports(tmp_path, {"disparity.json": old, "orb.json": {"all/dropped_share": 0.04}})
+    src = Sources(_inputs(rep))
+    sec = S.section(src, [])
+    assert [t.anchor for t in sec.tables] == ["stereo-accuracy"]
+    assert sec.tables[0].columns == ["pairs", "bad-2 (> 2 px)", "density"]
+    assert src.missing == []  # what an old file lacks is left out, not reported missing
+    assert any("stereo_resolution.json` is missing" in p for p in sec.paragraphs)
+    empty = S.section(Sources(_inputs(_reports(tmp_path / "e", {}))), [])
+    assert empty.tables == []
+    assert any("disparity.json` is missing" in p for p in empty.paragraphs)
+    assert any("orb.json` is missing" in p for p in empty.paragraphs)
