@@ -136,15 +136,16 @@ def main(argv: list[str] | None = None) -> dict:
     orb = dict((cfg.get("risk_data") or {}).get("orb", {}))
     disp = compute_disparity(left, right, **sgm)
     lb, db = np.repeat(left[None], 64, 0), np.repeat(disp[None], 64, 0)
+    sp1, sp64 = np.full(1, 10.0, np.float32), np.full(64, 10.0, np.float32)  # m/s (speed models)
     with torch.inference_mode():
         orb_ms = _median_ms(lambda: check_pair(left, right, **orb), a.repeat)
         sgm_ms = _median_ms(lambda: compute_disparity(left, right, **sgm), a.repeat)
         model1_ms = _median_ms(
-            lambda: rmodel.predict(left_bgr=left[None], disp_sgm=disp[None]), a.repeat
+            lambda: rmodel.predict(left_bgr=left[None], disp_sgm=disp[None], speed=sp1), a.repeat
         )
         model64_ms = (
             _median_ms(
-                lambda: rmodel.predict(left_bgr=lb, disp_sgm=db, batch_size=64),
+                lambda: rmodel.predict(left_bgr=lb, disp_sgm=db, speed=sp64, batch_size=64),
                 max(3, a.repeat // 4),
             )
             / 64

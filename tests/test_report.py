@@ -467,7 +467,7 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert "| accuracy, Wang & Kato [20] | 70.77 % |" in md
     assert (
         "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md
-        and "| dropped by the ORB check | 3,982 | 7 |" in md
+        and "| dropped by the stereo-pair check | 3,982 | 7 |" in md
     )
     assert "| share of pairs dropped by ORB | 3.50 % | 4.20 % |" in md
     assert (

@@ -578,7 +578,7 @@ def test_findings_never_interpret_a_collapsed_run(suite) -> None:
         if "headline_s2" in line and "Failed runs" not in line and "ROC-AUC per run" not in line:
             assert "beats" not in line.split("headline_s2")[1][:80]
     assert "oracle" in text and "Targets (issue 16" in text
-    assert "Threshold-aware objectives" in text and "headline_logthw" in text
+    assert "Training objectives" in text and "headline_logthw" in text
     assert "paper: risk_thw_paper" in text  # another label, named, not compared with the headline
     assert "by situation type" in text and "Critical share" in text
     # every claim of a difference quotes its interval; "beats" only where it excludes zero

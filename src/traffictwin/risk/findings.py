@@ -271,7 +271,8 @@ def findings(metrics: Mapping[str, Any]) -> str:
         )
     if obj_claims:
         out.append(
-            "**Threshold-aware objectives vs the headline's MSE on the normalised risk:** "
+            f"**Training objectives (paired, {main_key} − the same net trained with another "
+            "objective; the paper's is MSE on the normalised risk):** "
             + " | ".join(obj_claims)
             + "."
         )
@@ -411,7 +412,7 @@ def findings(metrics: Mapping[str, Any]) -> str:
         ns = metrics.get("n_sequences") or {}
         seq = f" in {ns.get('train')} / {ns.get('val')} / {ns.get('test')} sequences" if ns else ""
         out.append(
-            f"**Data:** {nf.get('total')} frames, {nf.get('orb_outliers_dropped', 0)} dropped by the ORB check "
+            f"**Data:** {nf.get('total')} frames, {nf.get('orb_outliers_dropped', 0)} dropped by the stereo-pair check "
             f"({_pct(nf.get('orb_outliers_dropped', 0) / nf['total'])}; paper {_pct(1 - PAPER['n_frames'] / 110152)}); "
             f"{nf.get('train')} / {nf.get('val')} / {nf.get('test')} train / val / test frames{seq} "
             "(split by scenario)."

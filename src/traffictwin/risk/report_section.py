@@ -552,7 +552,7 @@ def risk_data_table(src: page.Sources) -> Table | None:
     )
     t.rows.append(
         [
-            Cell("dropped by the ORB check"),
+            Cell("dropped by the stereo-pair check"),
             derived_paper_cell("n_dropped", "int"),
             src.cell(RISK_FILE, "n_frames.orb_outliers_dropped", "int"),
             Cell("Sec. 3.3, 3.5 (derived)"),
