@@ -114,9 +114,11 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
             c = e[t]["confusion"]
             assert c["tp"] + c["fp"] + c["fn"] + c["tn"] == e["test/n"]
     assert metrics["paper"]["test/mse"] == 0.0147
-    assert set(metrics["region"]["predictors"]["rgbd"]) == {"risk_thw_paper", "risk_thw_fov"}
+    main = metrics["main_variant"]
+    assert main == "headline" and metrics["primary_label"] == "risk_thw_corridor"
+    assert {"risk_thw_paper", "risk_thw_fov"} <= set(metrics["region"]["predictors"][main])
     pred = pd.read_csv(ci_dag / "reports" / "plots" / "risk_predictions.csv")
-    assert len(pred) == metrics["models"]["rgbd"]["test/n"]
+    assert len(pred) == metrics["models"][main]["test/n"]
     assert {f"pred_{v}" for v in variants} | {
         "pred_speed_only",
         "pred_geometric_sgm",
@@ -127,8 +129,8 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     cm = pd.read_csv(ci_dag / "reports" / "plots" / "risk_confusion.csv")
     assert len(cm) == len(pred) and set(cm["actual"]) <= {"critical", "uncritical"}
     assert int((cm["actual"] == "critical").sum()) == (
-        metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["tp"]
-        + metrics["models"]["rgbd"]["at_1.5s"]["confusion"]["fn"]
+        metrics["models"][main]["at_1.5s"]["confusion"]["tp"]
+        + metrics["models"][main]["at_1.5s"]["confusion"]["fn"]
     )
     for f in (
         "risk_training_curves",

@@ -83,7 +83,11 @@ def test_disparity_writes_depth_error_and_valid_share(data: Path, disparity_metr
     m = disparity_metrics
     for b in ("z0-10m", "z10-30m", "z30-90m"):
         assert {f"all/{b}_relerr_median", f"all/{b}_relerr_p90", f"all/{b}_valid_share"} <= set(m)
-    assert 0 <= m["all/z0-10m_relerr_median"] <= m["all/z0-10m_relerr_p90"]
+    # a valid 0 px estimate ranges to infinity: a percentile beyond the histogram is inf, written
+    # as null (the 30 % faulty pairs of this tiny set can put the 90th percentile there)
+    for part in ("all", "fault_none"):
+        med, p90 = m[f"{part}/z0-10m_relerr_median"], m[f"{part}/z0-10m_relerr_p90"]
+        assert 0 <= med and (p90 is None or med <= p90)
     assert m["all/z0-10m_gt_pixels"] > 0 and "fault_none/z0-10m_gt_pixels" in m
     json.dumps(m, allow_nan=True)  # no inf (written as null)
     assert not any(isinstance(v, float) and np.isinf(v) for v in m.values())
