@@ -42,7 +42,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     results: dict = {"environment": collect(), "benchmarks": {}}
     out = Path(a.out)
-    if set(a.only) != set(BENCHMARKS) and out.exists():  # --only: keep the other benchmarks' figures
+    if (
+        set(a.only) != set(BENCHMARKS) and out.exists()
+    ):  # --only: keep the other benchmarks' figures
         results["benchmarks"] = dict(json.loads(out.read_text()).get("benchmarks", {}))
     for name in a.only:
         t0 = time.perf_counter()
