@@ -118,6 +118,7 @@ def write_synthetic_risk(
                     speed=speed,
                     thw=thw,
                     risk=r_paper,
+                    risk_thw_corridor=r_fov,  # the object straight ahead is in the corridor
                     risk_thw_paper=r_paper,
                     risk_thw_fov=r_fov,
                     risk_ttc=r_fov,
