@@ -83,6 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     spec = model_cfg.deeplab_spec(source)
     hparams = model_cfg.hparams(loss)
     trainer = TrainerSettings.from_cfg(p, source=source)
+    trainer.check_available(source)
     stage = f"train_fusion@{name}" if name == cfg_name else f"train_fusion_variant@{name}"
     logged = flatten(
         {

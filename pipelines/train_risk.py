@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     cfg, label = variant_config(model, variant)
     tc, max_train = train_settings(model, p, variant)
     settings = TrainerSettings.from_cfg(p, source=source)
+    settings.check_available(source)
     profile = get(p, "profile.name", str)
     stage = f"train_risk@{variant}"
     out_dir = risk_model_dir(variant)

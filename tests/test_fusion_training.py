@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import mlflow
@@ -263,6 +264,27 @@ def test_trainer_settings_from_cfg() -> None:
         {"trainer": {**cfg["trainer"], "precision": 32, "devices": "auto"}}, source="p"
     )
     assert (s32.precision, s32.devices, s32.num_threads) == ("32", "auto", 0)
+
+
+def test_requested_hardware_must_exist(monkeypatch: pytest.MonkeyPatch) -> None:
+    """trainer=gpu on a machine without CUDA, or more devices than it has: one clear line."""
+    gpu = common.TrainerSettings(accelerator="gpu", devices=4, strategy="ddp")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(
+        ConfigError, match=r"p: 'trainer.accelerator' is 'gpu' but .* no CUDA device"
+    ):
+        gpu.check_available("p")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    with pytest.raises(ConfigError, match=r"'trainer.devices' is 4 but this machine has 2 CUDA"):
+        gpu.check_available("p")
+    replace(gpu, devices=2).check_available("p")  # fits
+    replace(gpu, devices="auto").check_available("p")  # Lightning decides
+    cores = os.cpu_count() or 1
+    cpu = common.TrainerSettings(accelerator="cpu", devices=cores + 1, strategy="ddp")
+    with pytest.raises(ConfigError, match=rf"'trainer.devices' is {cores + 1} CPU processes"):
+        cpu.check_available("p")
+    common.TrainerSettings().check_available("p")  # the default CPU trainer
 
 
 def test_global_rank_from_env(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -97,6 +97,30 @@ class TrainerSettings:
             raise ConfigError(f"{source}: '{key}.devices' must be >= 1 or -1, got {d!r}")
         return replace(settings, precision=str(settings.precision))
 
+    def check_available(self, source: str | Path, key: str = "trainer") -> None:
+        """The requested hardware must exist on this machine: CUDA for ``gpu``/``cuda``, at most
+        as many GPUs (or, on CPU, cores) as ``devices`` asks for. Stages call this right after
+        :meth:`from_cfg`, before any output is touched; ConfigError names the setting and what
+        is available."""
+        want = self.devices if isinstance(self.devices, int) and self.devices > 0 else None
+        if self.accelerator in ("gpu", "cuda"):
+            if not torch.cuda.is_available():
+                raise ConfigError(
+                    f"{source}: '{key}.accelerator' is {self.accelerator!r} but this machine has no "
+                    f"CUDA device (torch {torch.__version__}, torch.cuda.is_available() is False): "
+                    f"use trainer=cpu"
+                )
+            have = torch.cuda.device_count()
+            if want is not None and want > have:
+                raise ConfigError(
+                    f"{source}: '{key}.devices' is {want} but this machine has {have} CUDA device(s)"
+                )
+        elif self.accelerator == "cpu" and want is not None and want > (os.cpu_count() or 1):
+            raise ConfigError(
+                f"{source}: '{key}.devices' is {want} CPU processes but this machine has "
+                f"{os.cpu_count()} cores"
+            )
+
     def resolved_deterministic(self) -> bool | str:
         if self.deterministic is not None:
             return self.deterministic
