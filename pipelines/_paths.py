@@ -28,6 +28,7 @@ FUSION_DATA = DATA / "fusion"
 PREALIGNED = DATA / "prealigned"
 REGISTERED = DATA / "registered"
 FUSION_MODELS = MODELS / "fusion"
+REGISTRATION_MODELS = MODELS / "registration"
 
 # risk
 RISK_DATA = DATA / "risk"
@@ -55,6 +56,11 @@ def fusion_model_dir(cfg: str) -> Path:
     """``models/fusion/<name>``: the fusion network of configuration (or fusion variant) ``name``
     (model.ckpt, model_meta.json)."""
     return FUSION_MODELS / cfg
+
+
+def registration_model_dir(cfg: str) -> Path:
+    """``models/registration/<cfg>``: the learned registration of configuration ``cfg``."""
+    return REGISTRATION_MODELS / cfg
 
 
 def risk_model_dir(variant: str) -> Path:

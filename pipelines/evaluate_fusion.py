@@ -23,7 +23,13 @@ Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion
 
 from __future__ import annotations
 
-import json
+import os
+
+# Before torch loads libgomp: idle OpenMP threads sleep instead of spinning, so the per-pair times
+# in fusion.json stay meaningful on a machine shared with other jobs (see pipelines/train_fusion.py).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import json  # noqa: E402
 import logging
 import time
 from pathlib import Path
@@ -43,6 +49,7 @@ from ._paths import (
     metrics_file,
     plot_file,
     prealigned,
+    registration_model_dir,
 )
 
 STAGE = "evaluate_fusion"
@@ -58,9 +65,9 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
         frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
 
 
-def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[str, str, str]]) -> None:
+def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str]]) -> None:
     """Log every number to each network's own MLflow run (``mlflow_run_id`` in model_meta.json);
-    ``runs``: ``(model folder name, configuration, evaluation row)`` per network."""
+    ``runs``: ``(model folder, configuration, evaluation row)`` per network."""
     from mlflow.entities import Metric, RunTag
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
@@ -70,8 +77,9 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[str, str, str]]) -> 
 
     client = MlflowClient(tracking_uri=setup())
     stamp = int(time.time() * 1000)
-    for name, c, row in runs:
-        meta_path = fusion_model_dir(name) / "model_meta.json"
+    for folder, c, row in runs:
+        name = folder.name
+        meta_path = folder / "model_meta.json"
         meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
         run_id = meta.get("mlflow_run_id")
         if not run_id:
@@ -102,9 +110,11 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[str, str, str]]) -> 
 
 def load_networks(
     cfg: Any, configs: list[str], grid: Any, device: str
-) -> tuple[dict[str, dict[str, Any]], list[tuple[str, str, str]]]:
+) -> tuple[dict[str, dict[str, Any]], list[tuple[Path, str, str]]]:
     """``{row: {configuration: network}}`` (row ``dnn``: models/fusion/<cfg> of every configuration;
-    one row per ``fusion_variants`` entry) and the ``(model folder, configuration, row)`` list."""
+    one row per ``fusion_variants`` entry; row ``learned``: models/registration/<cfg> of
+    ``registration_model.configurations``; row ``learned+network``: (learned, registered+network)
+    where both exist) and the ``(model folder, configuration, row)`` list."""
     from traffictwin.config import ConfigError, get
     from traffictwin.fusion.config import fusion_variants, variant_row
     from traffictwin.fusion.model_io import load_fusion_model
@@ -115,7 +125,7 @@ def load_networks(
         networks["dnn"][c] = load_fusion_model(
             fusion_model_dir(c) / "model.ckpt", expected_cfg=c, expected_grid=grid, device=device
         )
-        runs.append((c, c, "dnn"))
+        runs.append((fusion_model_dir(c), c, "dnn"))
     variants = fusion_variants(cfg)
     default_loss = get(cfg, "fusion_model.loss.name", str) if variants else None
     for name, v in variants.items():
@@ -131,7 +141,28 @@ def load_networks(
             expected_grid=grid,
             device=device,
         )
-        runs.append((name, v.config, row))
+        runs.append((fusion_model_dir(name), v.config, row))
+    from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
+    from traffictwin.fusion.registration_training import load_registration_model
+
+    learned_cfgs = (
+        get(cfg, "registration_model.configurations", list) if "registration_model" in cfg else []
+    )
+    for c in learned_cfgs:
+        if c not in configs:
+            raise ConfigError(
+                f"params.yaml: 'registration_model.configurations' has {c!r}, not a key of 'configurations'"
+            )
+        folder = registration_model_dir(c)
+        networks.setdefault(LEARNED, {})[c] = load_registration_model(
+            folder / "model.ckpt", expected_grid=grid, expected_cfg=c
+        )
+        runs.append((folder, c, LEARNED))
+        if c in networks.get(HYBRID, {}):
+            networks.setdefault(LEARNED_NETWORK, {})[c] = (
+                networks[LEARNED][c],
+                networks[HYBRID][c],
+            )
     return networks, runs
 
 

@@ -4,7 +4,8 @@ Not a DVC stage (it changes the MLflow registry, which DVC cannot cache); run af
 
     python -m pipelines.promote [--only traffictwin-fusion-A traffictwin-risk] [--dry-run] [--force]
 
-One gate per fusion configuration (the keys of ``configurations``) and one for the risk variant
+One gate per fusion configuration (the keys of ``configurations``), one per learned registration
+(``registration_model.configurations``, registered as ``<name_prefix>-learned-<cfg>``) and one for the risk variant
 ``registry.risk.variant``; settings from the ``registry`` group (validated once), folders from
 ``pipelines/_paths.py``. The work is :func:`traffictwin.mlops.promotion.promote`: every
 candidate is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
@@ -31,6 +32,7 @@ from pipelines._paths import (
     ROOT,
     fusion_model_dir,
     prealigned,
+    registration_model_dir,
     risk_model_dir,
 )
 from traffictwin.config import ConfigError, get, typed
@@ -59,9 +61,21 @@ def configurations(cfg: DictConfig) -> list[str]:
     return list(pose_configurations(cfg))
 
 
+def registration_configurations(cfg: DictConfig) -> list[str]:
+    """Configurations with a learned registration (``registration_model.configurations``)."""
+    return list(get(cfg, "registration_model.configurations", list))
+
+
 def model_names(cfg: DictConfig, rc: RegistryConfig) -> list[str]:
-    """Registered-model names of every gate, fusion configurations first."""
-    return [reg.fusion_name(c, rc.fusion.name_prefix) for c in configurations(cfg)] + [rc.risk.name]
+    """Registered-model names of every gate: fusion configurations, learned registrations, risk."""
+    return (
+        [reg.fusion_name(c, rc.fusion.name_prefix) for c in configurations(cfg)]
+        + [
+            reg.fusion_name(f"learned-{c}", rc.fusion.name_prefix)
+            for c in registration_configurations(cfg)
+        ]
+        + [rc.risk.name]
+    )
 
 
 def _rel(path: Path) -> str:
@@ -88,6 +102,25 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 model_dir=fusion_model_dir(c),
                 make_evaluator=make_fusion_eval,
                 tags={"model_dir": _rel(fusion_model_dir(c))},
+            )
+        )
+    # the learned registrations: same gate settings as the fusion networks (metric KLD(b) of the
+    # fused map), scored on the same pairs with their noisy poses
+    from traffictwin.fusion.gate_eval import registration_evaluator, registration_test_set
+
+    for c in registration_configurations(cfg):
+
+        def make_registration_eval(cand, c=c):
+            x, y, poses, fp = registration_test_set(prealigned(c), f.split, f.max_pairs)
+            return registration_evaluator(x, y, poses, f.batch_size), fp
+
+        jobs.append(
+            promotion.GateJob(
+                name=reg.fusion_name(f"learned-{c}", f.name_prefix),
+                gate=f.gate(),
+                model_dir=registration_model_dir(c),
+                make_evaluator=make_registration_eval,
+                tags={"model_dir": _rel(registration_model_dir(c))},
             )
         )
     # keys of other groups the risk gate shares with the evaluate_risk stage

@@ -117,11 +117,15 @@ def test_registry_lists_every_method_once_with_its_inputs():
         "registered",
         "dnn",
         "registered+network",
+        "learned",
+        "learned+network",
     ]
     for name, m in REGISTRY.items():
         assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
     assert REGISTRY["registered"].needs == ("raw",) and REGISTRY["registered"].slow
     assert "model" in REGISTRY["dnn"].needs
+    assert REGISTRY["learned"].needs == ("prealigned", "pose", "model")
+    assert not REGISTRY["learned"].slow  # evaluated on every pair
     with pytest.raises(ValueError, match="registered twice"):
         register("naive", "again", needs=("prealigned",))(lambda x: x.inputs[:, :2])
     with pytest.raises(ValueError, match="unknown needs"):

@@ -489,7 +489,8 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         }
     )
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")  # no fusion_model.loss needed
-    assert nets == {"dnn": {"A": "A", "D": "D"}} and runs == [("A", "A", "dnn"), ("D", "D", "dnn")]
+    assert nets == {"dnn": {"A": "A", "D": "D"}}
+    assert runs == [(tmp_path / "A", "A", "dnn"), (tmp_path / "D", "D", "dnn")]
     assert loaded == [("A/model.ckpt", "A"), ("D/model.ckpt", "D")]
     cfg.fusion_variants = {
         "D_paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
@@ -502,7 +503,28 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         "dnn[paper]": {"D": "D_paper"},
         "registered+network": {"D": "D_mass_reg"},
     }
-    assert runs[2:] == [("D_paper", "D", "dnn[paper]"), ("D_mass_reg", "D", "registered+network")]
+    assert runs[2:] == [
+        (tmp_path / "D_paper", "D", "dnn[paper]"),
+        (tmp_path / "D_mass_reg", "D", "registered+network"),
+    ]
+    # the learned registrations: row learned, and learned+network where a registered-pairs network exists
+    from traffictwin.fusion import registration_training
+
+    monkeypatch.setattr(stage, "registration_model_dir", lambda name: tmp_path / "reg" / name)
+    monkeypatch.setattr(
+        registration_training,
+        "load_registration_model",
+        lambda path, **kw: f"reg-{kw['expected_cfg']}",
+    )
+    cfg.registration_model = {"configurations": ["A", "D"]}
+    nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
+    assert nets["learned"] == {"A": "reg-A", "D": "reg-D"}
+    assert nets["learned+network"] == {"D": ("reg-D", "D_mass_reg")}
+    assert runs[-2:] == [
+        (tmp_path / "reg" / "A", "A", "learned"),
+        (tmp_path / "reg" / "D", "D", "learned"),
+    ]
+    del cfg.registration_model
     cfg.fusion_variants = {"D_mass": {"config": "D", "inputs": "prealigned", "loss": "mass"}}
     with pytest.raises(
         ConfigError, match=r"fusion_variants.D_mass' is row 'dnn' at configuration D"

@@ -30,10 +30,19 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     rc = pm.registry_config(cfg)
     jobs = pm.build_jobs(cfg, rc)
     cfgs = list(cfg["configurations"])
-    assert [j.name for j in jobs] == [f"{rc.fusion.name_prefix}-{c}" for c in cfgs] + [rc.risk.name]
+    learned = list(cfg["registration_model"]["configurations"])
+    assert [j.name for j in jobs] == (
+        [f"{rc.fusion.name_prefix}-{c}" for c in cfgs]
+        + [f"{rc.fusion.name_prefix}-learned-{c}" for c in learned]
+        + [rc.risk.name]
+    )
     assert pm.model_names(cfg, rc) == [j.name for j in jobs]
     assert jobs[0].model_dir == pm.fusion_model_dir(cfgs[0])
     assert jobs[0].tags == {"model_dir": f"models/fusion/{cfgs[0]}"}
+    reg_job = jobs[len(cfgs)]
+    assert reg_job.model_dir == pm.registration_model_dir(learned[0])
+    assert reg_job.tags == {"model_dir": f"models/registration/{learned[0]}"}
+    assert reg_job.gate == jobs[0].gate  # the fusion gate: KLD(b) of the fused map
     assert jobs[-1].model_dir == pm.risk_model_dir(rc.risk.variant)
     assert jobs[-1].gate == Gate(rc.risk.metric, rc.risk.mode, rc.risk.margin)
     assert [j.name for j in promotion.select(jobs, {rc.risk.name})] == [rc.risk.name]

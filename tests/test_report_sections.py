@@ -260,3 +260,81 @@ def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
                 assert not mod.startswith(
                     ("traffictwin.fusion", "traffictwin.risk", "pipelines", "importlib")
                 ), (path.name, mod)
+
+
+def test_registration_tables_show_pose_errors_bins_and_the_learned_cross_table(
+    tmp_path: Path,
+) -> None:
+    from traffictwin.fusion.report_section import registration_tables
+
+    def row(success: float, p90: float) -> dict:
+        return {
+            "success_rate": success,
+            "success_rate_ci": {"lo": success - 0.05, "hi": success + 0.03},
+            "fallback_rate": 0.1,
+            "residual_trans_m_median": 0.2,
+            "residual_trans_m_p90": p90,
+            "residual_rot_deg_median": 0.3,
+            "residual_rot_deg_p90": 0.9,
+            "ms_per_pair": 12.5,
+        }
+
+    metrics = {
+        "test": {
+            "D": {
+                "registered": row(0.82, 0.6),
+                "learned": row(0.94, 0.3),
+                "naive": {"kld_fou_mean": 0.3},
+            }
+        },
+        "diff": {
+            "D": {
+                "learned": {
+                    "vs_registered": {
+                        "success_rate": {"estimate": 0.12, "lo": 0.05, "hi": 0.19, "n_pairs": 200}
+                    }
+                }
+            }
+        },
+        "bins": {
+            "rotation": {
+                "learned": {"0-2deg": {"n": 40, "success_rate": 1.0}},
+                "registered": {"0-2deg": {"n": 40, "success_rate": 0.9}},
+            },
+            "translation": {"learned": {"0-1m": {"n": 30, "success_rate": 0.5}}},
+        },
+        "cross": {
+            "learned-D": {
+                "A": {"success_rate": 0.99, "dice_occ": 0.995},
+                "D": {"success_rate": 0.94, "dice_occ": 0.97},
+            }
+        },
+    }
+    rep = _reports(tmp_path, {"fusion.json": metrics})
+    src = R.Sources(_inputs(rep))
+    table, tbins, bins, cross = registration_tables(src, {"D": (5.0, 20.0)}, ["D"])
+    assert [[c.text for c in r] for r in tbins.rows] == [
+        ["registered (FM + ECC) + Dempster", "n/a"],
+        ["learned registration + Dempster", "0.5 (30)"],
+    ]
+    texts = [[c.text for c in r] for r in table.rows]
+    assert [t[3] for t in texts] == [
+        "registered (FM + ECC) + Dempster",
+        "learned registration + Dempster",
+    ]
+    learned = texts[1]
+    assert learned[4:6] == ["0.94", "[0.89, 0.97]"] and learned[7] == "0.2" and learned[8] == "0.3"
+    assert learned[-2:] == ["0.12", "[0.05, 0.19]"] and texts[0][-2:] == ["n/a", "n/a"]
+    assert [[c.text for c in r] for r in bins.rows] == [
+        ["registered (FM + ECC) + Dempster", "0.9 (40)"],
+        ["learned registration + Dempster", "1 (40)"],
+    ]
+    assert [[c.text for c in r] for r in cross.rows] == [
+        ["learned-D", "0.990 / 0.995", "0.940 / 0.970"]
+    ]
+    assert (
+        registration_tables(
+            R.Sources(_inputs(_reports(tmp_path / "x", {"fusion.json": {"test": {}}}))), {}, ["D"]
+        )
+        == []
+    )

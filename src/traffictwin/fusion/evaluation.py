@@ -145,6 +145,9 @@ CI_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ", "dice_free", "u_mean", "u_
 DIFF_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ")
 DIFF_BASELINES = ("naive", "registered")
 HYBRID = "registered+network"
+LEARNED = "learned"  # the learned registration (+ Dempster); its cross entries are "learned-<net>"
+LEARNED_NETWORK = "learned+network"
+CROSS_ROWS = (NETWORK, LEARNED)  # rows whose networks are also run on the other configurations
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
 
@@ -439,6 +442,8 @@ def row_intervals(
         out[f"dice_{cls}"] = _interval(*_pooled_dice(frame, cls, codes, g, draws), ci.level, g)
     est = auroc_from_hist(np.sum(pos, axis=0), np.sum(neg, axis=0))
     out["u_auroc"] = _interval(est, _auroc_boot(pos, neg, codes, g, draws), ci.level, g)
+    if "reg_success" in frame:  # methods that estimate a pose
+        out["success_rate"] = mean_ci(frame["reg_success"].to_numpy(np.float64), groups, **kw)
     return out
 
 
@@ -469,6 +474,13 @@ def paired_intervals(
     ea, ba = _pooled_dice(a, "occ", codes, g, draws)
     eb, bb = _pooled_dice(b, "occ", codes, g, draws)
     out["dice_occ"] = _interval(ea - eb, ba - bb, ci.level, g)
+    if "reg_success" in a and "reg_success" in b:  # both estimate a pose: success-rate difference
+        out["success_rate"] = paired_mean_difference_ci(
+            a["reg_success"].to_numpy(np.float64),
+            b["reg_success"].to_numpy(np.float64),
+            groups,
+            **kw,
+        )
     return out, int(common.size)
 
 
@@ -496,6 +508,10 @@ def pose_bins(
                 if len(sub):
                     agg = aggregate({k: sub[k].to_numpy() for k in sub.columns})
                     out[axis][meth][lab] = {k: agg[k] for k in BIN_KEYS if k in agg}
+                    if "reg_success" in sub and sub["reg_success"].notna().all():
+                        out[axis][meth][lab]["success_rate"] = float(
+                            sub["reg_success"].astype(float).mean()
+                        )
                     rows.append({"axis": axis, "bin": lab, "method": meth, **out[axis][meth][lab]})
     return out, pd.DataFrame(rows)
 
@@ -558,7 +574,7 @@ def evaluate(
         "test": {},
         "diff": {},
         "label": {},
-        "cross": {f"{NETWORK}-{c}": {} for c in networks[NETWORK]},
+        "cross": {f"{r}-{c}": {} for r in CROSS_ROWS if r in networks for c in networks[r]},
     }
     kw = {"n_boot": ci.n_boot, "level": ci.level, "seed": ci.seed}
     for c in configs:
@@ -598,29 +614,28 @@ def evaluate(
                 **extra,
                 **{f"{k}_ci": _lohi(iv) for k, iv in cis.items()},
             }
-            if row == NETWORK:
-                agg = aggregate({k: f[k].to_numpy() for k in f.columns})
-                metrics["cross"][f"{NETWORK}-{c}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
-                    "u_auroc": au.value()
-                }
-        # each other configuration's dnn network on this configuration's pairs (cross table)
-        for other, model in networks[NETWORK].items():
-            if other == c:
-                continue
-            x = base.take(cross_idx)
-            x.model = model
-            f, au = evaluate_method(METHODS[NETWORK], x, d["label"][cross_idx], es)
-            frames.append(_tag(f, c, f"{NETWORK}-{other}", d, cross_idx, network=other))
-            agg = aggregate({k: f[k].to_numpy() for k in f.columns})
-            metrics["cross"][f"{NETWORK}-{other}"][c] = {k: agg[k] for k in CROSS_KEYS} | {
-                "u_auroc": au.value()
-            }
+            if row in CROSS_ROWS:
+                metrics["cross"][f"{row}-{c}"][c] = _cross_entry(f, au)
+        # each other configuration's network on this configuration's pairs (cross table): the
+        # fusion networks on cfg.cross_max_pairs pairs, the (fast) learned registrations on all
+        for row in (r for r in CROSS_ROWS if r in networks):
+            cidx = all_idx if row == LEARNED else cross_idx
+            for other, model in networks[row].items():
+                if other == c:
+                    continue
+                x = base.take(cidx)
+                x.model = model
+                f, au = evaluate_method(METHODS[row], x, d["label"][cidx], es)
+                tagged = _tag(f, c, f"{row}-{other}", d, cidx, network=other)
+                frames.append(tagged)
+                own[(c, f"{row}-{other}")] = tagged
+                metrics["cross"][f"{row}-{other}"][c] = _cross_entry(f, au)
         label_u = unknown_mass(np.asarray(d["label"], np.float64)).mean(axis=(1, 2))
         lu = mean_ci(label_u, scenario_of(d["pair_id"]), **kw)
         metrics["label"][c] = {"u_mean": lu.estimate, "u_mean_ci": _lohi(lu)}
         metrics["diff"][c] = {}
         for (cc, row), frame in own.items():
-            if cc != c:
+            if cc != c or _is_cross(row):
                 continue
             for b in DIFF_BASELINES:
                 if row == b or (c, b) not in own:
@@ -642,7 +657,7 @@ def evaluate(
             100 * t["registered"]["success_rate"],
         )
     samples = pd.concat(frames, ignore_index=True)
-    main = samples[~samples["method"].str.startswith(f"{NETWORK}-")]
+    main = samples[~samples["method"].map(_is_cross)]
     metrics["bins"], bins_table = pose_bins(main, cfg.trans_bins_m, cfg.rot_bins_deg)
     metrics["runtime_ms_per_pair"] = {
         m: float(g["ms"].mean()) for m, g in main.groupby("method", sort=False)
@@ -660,6 +675,19 @@ def evaluate(
     }
     metrics["targets"] = fusion_targets(own, metrics, ci)
     return Evaluation(metrics, samples, bins_table, data, raw, networks)
+
+
+def _cross_entry(f: pd.DataFrame, au: UncertaintyAUROC) -> dict[str, float]:
+    agg = aggregate({k: f[k].to_numpy() for k in f.columns})
+    out = {k: agg[k] for k in CROSS_KEYS} | {"u_auroc": au.value()}
+    if "reg_success" in f:
+        out["success_rate"] = float(f["reg_success"].mean())
+    return out
+
+
+def _is_cross(row: str) -> bool:
+    """Whether an evaluation row is another configuration's network (``dnn-B``, ``learned-D``)."""
+    return any(row.startswith(f"{r}-") for r in CROSS_ROWS)
 
 
 # -- targets (issue 14) --------------------------------------------------------------------------
@@ -703,6 +731,41 @@ TARGETS: dict[str, Target] = {
         ("C", "D"),
     ),
 }
+# issue 15: the learned registration against the classical one (same pairs, paired intervals)
+TARGETS.update(
+    {
+        "learned_success_vs_registered": Target(
+            "learned − registered registration success rate (error < 0.5 m and < 1 deg; paired)",
+            0.0,
+            ">=",
+            None,
+        ),
+        "learned_success_gain_at_D": Target(
+            "learned − registered registration success rate at D (paired)", 0.10, ">=", ("D",)
+        ),
+        "learned_kld_vs_registered": Target(
+            "learned+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
+            "difference's CI not wholly below 0",
+            0.0,
+            "<",
+            ("C", "D"),
+        ),
+        "learned_runtime_ms": Target(
+            "learned registration wall time per pair (estimate + fallback check + warp + Dempster, "
+            "batches of evaluation.fusion.batch_size on the evaluation machine), ms",
+            20.0,
+            "<=",
+            None,
+        ),
+        "learned_cross_dice_drop": Target(
+            "relative Dice occ drop of the learned registration trained on D against the one trained "
+            "on the configuration itself, 1 − Dice(learned-D)/Dice(learned-<cfg>) (same pairs)",
+            0.05,
+            "<=",
+            ("A", "B", "C"),
+        ),
+    }
+)
 NOT_EVALUATED = "not evaluated"
 
 
@@ -851,6 +914,63 @@ def fusion_targets(
     entry("u_auroc", lambda c: value_ci(c, NETWORK, "u_auroc", TARGETS["u_auroc"]))
     entry("u_mean_vs_label", u_gap)
     entry("hybrid_vs_registered", hybrid)
+
+    def learned_success(c: str, threshold: float) -> dict[str, Any]:
+        dd = (
+            metrics["diff"].get(c, {}).get(LEARNED, {}).get("vs_registered", {}).get("success_rate")
+        )
+        if not dd:
+            return _missing(
+                f"rows {LEARNED} and registered not both evaluated at configuration {c}"
+            )
+        res = _judge(Interval(dd["estimate"], dd["lo"], dd["hi"], ci.level), threshold, ">=")
+        res["n_pairs"] = dd["n_pairs"]
+        return res
+
+    def learned_kld(c: str) -> dict[str, Any]:
+        dd = metrics["diff"].get(c, {}).get(LEARNED_NETWORK, {}).get("vs_registered")
+        if not dd:
+            return _missing(
+                f"rows {LEARNED_NETWORK} and registered not both evaluated at configuration {c}"
+            )
+        k, dc = dd[HEADLINE], dd["dice_occ"]
+        ok = k["hi"] < 0 and not dc["hi"] < 0
+        return {
+            "value": k["estimate"],
+            "lo": k["lo"],
+            "hi": k["hi"],
+            "status": "pass" if ok else "fail",
+            "ci_beyond_threshold": bool(k["hi"] < 0),
+            "dice_occ_difference": {"estimate": dc["estimate"], "lo": dc["lo"], "hi": dc["hi"]},
+        }
+
+    def learned_ms(c: str) -> dict[str, Any]:
+        f = frame(c, LEARNED)
+        if f is None:
+            return _missing(f"{LEARNED} not evaluated at configuration {c}")
+        iv = mean_ci(f["ms"].to_numpy(np.float64), scenario_of(f["pair_id"]), **kw)
+        return _judge(iv, TARGETS["learned_runtime_ms"].threshold, "<=")
+
+    def learned_cross(c: str) -> dict[str, Any]:
+        own_f, d_f = frame(c, LEARNED), frame(c, f"{LEARNED}-D")
+        if own_f is None or d_f is None:
+            return _missing(f"{LEARNED} of {c} and {LEARNED}-D not both evaluated at {c}")
+        common, io, idd = np.intersect1d(own_f["pair_id"], d_f["pair_id"], return_indices=True)
+        codes, g = _codes(common)
+        draws = _draws(g, ci)
+        eo, bo = _pooled_dice(own_f.iloc[io], "occ", codes, g, draws)
+        ed, bd = _pooled_dice(d_f.iloc[idd], "occ", codes, g, draws)
+        if not eo > 0:
+            return _missing(f"{LEARNED} Dice occ at {c} is {eo}: the relative drop is undefined")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            iv = _interval(1.0 - ed / eo, 1.0 - bd / bo, ci.level, g)
+        return _judge(iv, TARGETS["learned_cross_dice_drop"].threshold, "<=")
+
+    entry("learned_success_vs_registered", lambda c: learned_success(c, 0.0))
+    entry("learned_success_gain_at_D", lambda c: learned_success(c, 0.10))
+    entry("learned_kld_vs_registered", learned_kld)
+    entry("learned_runtime_ms", learned_ms)
+    entry("learned_cross_dice_drop", learned_cross)
     return out
 
 
@@ -984,7 +1104,7 @@ def _mlflow_key(key: str) -> str:
 def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> dict[str, float]:
     """The flat numbers of the MLflow run of row ``row``'s network at configuration ``cfg``:
     ``test/<k>`` (that network), ``test_<method>/<k>`` (the other rows), ``cross_<other>/<k>``
-    (the ``dnn`` network on other configurations; ``dnn`` only); intervals ``<k>_ci`` as
+    (the network on other configurations; rows of :data:`CROSS_ROWS` only); intervals ``<k>_ci`` as
     ``<k>_ci_lo`` / ``<k>_ci_hi``; finite values only, names MLflow-safe."""
     flat: dict[str, Any] = {}
     for meth, vals in metrics["test"][cfg].items():
@@ -994,8 +1114,8 @@ def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> 
                 flat.update({f"{prefix}/{k}_{kk}": vv for kk, vv in v.items()})
             else:
                 flat[f"{prefix}/{k}"] = v
-    if row == NETWORK:
-        for other, vals in metrics["cross"].get(f"{NETWORK}-{cfg}", {}).items():
+    if row in CROSS_ROWS:
+        for other, vals in metrics["cross"].get(f"{row}-{cfg}", {}).items():
             flat.update({f"cross_{other}/{k}": v for k, v in vals.items()})
     out: dict[str, float] = {}
     for k, v in flat.items():

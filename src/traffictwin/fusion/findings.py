@@ -217,13 +217,40 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
             + "."
         )
 
-    # 5. the other network rows (loss ablation, hybrid)
+    # 4b. the learned registration against the classical one (same pairs, paired differences)
+    learned_lines = []
+    for c in configs:
+        if not math.isfinite(_get(metrics, c, "learned", "success_rate")):
+            continue
+        d = _diff(metrics, c, "learned", REG, "success_rate")
+        dt = _diff_text(d, 3) if d is not None else "n/a"
+        learned_lines.append(
+            f"{c}: success {_with_ci(metrics, c, 'learned', 'success_rate')} vs registered "
+            f"{_fmt(_get(metrics, c, REG, 'success_rate'))} (difference {dt}: "
+            f"{verdict(d)}), fallback {_fmt(100 * _get(metrics, c, 'learned', 'fallback_rate'), 0)} %, "
+            f"p90 error {_fmt(_get(metrics, c, 'learned', 'residual_trans_m_p90'), 2)} m / "
+            f"{_fmt(_get(metrics, c, 'learned', 'residual_rot_deg_p90'), 2)}° "
+            f"(registered {_fmt(_get(metrics, c, REG, 'residual_trans_m_p90'), 2)} m / "
+            f"{_fmt(_get(metrics, c, REG, 'residual_rot_deg_p90'), 2)}°), "
+            f"{_fmt(_get(metrics, c, 'learned', 'ms_per_pair'), 1)} ms per pair "
+            f"(registered {_fmt(_get(metrics, c, REG, 'ms_per_pair'), 1)} ms)"
+        )
+    if learned_lines:
+        lines.append(
+            "- **Learned registration (cost volume over rotations × shifts, then Dempster) vs classical:** "
+            + "; ".join(learned_lines)
+            + "."
+        )
+
+    # 5. the other network rows (loss ablation, hybrids)
     rows = []
     for c in configs:
         rows += [
             r
             for r in test.get(c, {})
-            if r != NET and r.split("[")[0] in (NET, "registered+network") and r not in rows
+            if r != NET
+            and r.split("[")[0] in (NET, "registered+network", "learned+network")
+            and r not in rows
         ]
     for r in sorted(rows):
         at = [c for c in configs if r in test.get(c, {})]
@@ -270,7 +297,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
             for s in ("pass", "fail", "not evaluated")
         }
         lines.append(
-            f"- **Targets (issue 14):** {len(by['pass'])} pass, {len(by['fail'])} fail, "
+            f"- **Targets (issues 14 and 15):** {len(by['pass'])} pass, {len(by['fail'])} fail, "
             f"{len(by['not evaluated'])} not evaluated"
             + (f"; failing: {', '.join(by['fail'])}" if by["fail"] else "")
             + (f"; not evaluated: {', '.join(by['not evaluated'])}" if by["not evaluated"] else "")

@@ -55,3 +55,46 @@ def fusion_evaluator(
         return {f"test/{k}": float(v) for k, v in agg.items()}
 
     return evaluate
+
+
+def registration_test_set(
+    data_root: str | Path, split: str = "test", max_pairs: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """:func:`fusion_test_set` plus the noisy relative poses ``(N, 3)`` the learned registration needs."""
+    from traffictwin.io.shards import Dataset
+
+    ds = Dataset(data_root, kind="prealigned")
+    a = ds.load_all(split, keys=["inputs", "label", "rel_pose_noisy", "pair_id"])
+    sel = first_by(np.asarray(a["pair_id"]), max_pairs)
+    fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}:poses"
+    return (
+        np.ascontiguousarray(a["inputs"][sel], np.float32),
+        np.ascontiguousarray(a["label"][sel], np.float32),
+        np.ascontiguousarray(a["rel_pose_noisy"][sel], np.float64),
+        fp,
+    )
+
+
+def registration_evaluator(
+    inputs: np.ndarray, label: np.ndarray, rel_pose_noisy: np.ndarray, batch_size: int = 8
+) -> Callable[[str], dict[str, float]]:
+    """``evaluate(model_uri)`` for a registered learned registration: its fused masses
+    (``model(inputs, rel_pose_noisy)``: estimate, fallback, warp, Dempster) scored like
+    :func:`fusion_evaluator`'s, as ``test/<name>``."""
+    import torch
+
+    from traffictwin.fusion import metrics as fm
+    from traffictwin.mlops.registry import load_registered
+
+    def evaluate(uri: str) -> dict[str, float]:
+        model = load_registered(uri)
+        parts = []
+        with torch.no_grad():
+            for s in range(0, len(inputs), batch_size):
+                x = torch.from_numpy(inputs[s : s + batch_size])
+                p = torch.from_numpy(rel_pose_noisy[s : s + batch_size])
+                parts.append(model(x, p).float().numpy())
+        agg = fm.aggregate(fm.per_sample_metrics(label, np.concatenate(parts)))
+        return {f"test/{k}": float(v) for k, v in agg.items()}
+
+    return evaluate

@@ -15,7 +15,11 @@ map 1's frame (or a :class:`Fused` with per-pair diagnostics). Registered method
 - ``dnn``: the fusion network of a configuration on the prealigned inputs
   (:func:`traffictwin.fusion.model_io.predict_masses`);
 - ``registered+network``: ``registered``'s pose estimate and warp, then a fusion network trained
-  on registered pairs (``data/registered/<cfg>``) instead of Dempster.
+  on registered pairs (``data/registered/<cfg>``) instead of Dempster;
+- ``learned``: the learned registration (:mod:`traffictwin.fusion.learned_registration`) on the
+  prealigned pair, map 2 re-warped by its (accepted) estimate, then Dempster;
+- ``learned+network``: the same estimate and warp, then the configuration's registered-pairs
+  fusion network (model = ``(registration network, fusion network)``).
 
 Use::
 
@@ -27,7 +31,7 @@ Use::
 What a method uses (``needs``, a subset of :data:`INPUTS`): ``"prealigned"`` — the prealigned
 inputs ``(N, 4, H, W)`` = [m_F1, m_O1, m_F2', m_O2']; ``"raw"`` — raw ``map1``, ``map2``
 ``(N, 2, H, W)`` (each in its own sensor frame), the noisy relative pose ``(N, 3)`` and the grid;
-``"model"`` — a fusion network. ``slow`` methods are evaluated on a subset of the pairs
+``"pose"`` — the noisy relative pose and the grid only; ``"model"`` — a trained network. ``slow`` methods are evaluated on a subset of the pairs
 (``evaluation.fusion.registered_max_pairs``).
 
 Adding a method (e.g. the hybrid ``registered+network`` or a learned registration) is one
@@ -71,7 +75,7 @@ __all__ = [
     "register_prealigned",
 ]
 
-INPUTS = ("prealigned", "raw", "model")
+INPUTS = ("prealigned", "raw", "pose", "model")
 
 
 @dataclass
@@ -113,6 +117,7 @@ class FusionInput:
         req = {
             "prealigned": ("inputs",),
             "raw": ("map1", "map2", "rel_pose_noisy", "grid"),
+            "pose": ("rel_pose_noisy", "grid"),
             "model": ("model",),
         }
         return [f for n in needs for f in req[n] if getattr(self, f) is None]
@@ -331,9 +336,14 @@ def _registered_columns(f: Fused, x: FusionInput, settings: Any) -> dict[str, np
 
 
 def _registered_summary(f: pd.DataFrame, settings: Any) -> dict[str, float]:
+    """The registration table's numbers: success rate, fallback rate (estimate rejected, noisy pose
+    kept), median / 90th percentile of the residual pose error, and the noisy pose's medians."""
     return {
         "success_rate": float(f["reg_success"].mean()),
         "accepted_rate": float(f["reg_accepted"].mean()),
+        "fallback_rate": float(1.0 - f["reg_accepted"].mean()),
+        "residual_trans_m_p90": float(f["reg_trans_err_m"].quantile(0.9)),
+        "residual_rot_deg_p90": float(f["reg_rot_err_deg"].quantile(0.9)),
         "estimate_success_rate": float(
             (
                 (f["est_trans_err_m"] <= settings.success_trans_m)
@@ -394,4 +404,83 @@ def _registered_network(x: FusionInput) -> Fused:
     masses = predict_masses(x.model, inputs, x.batch_size)[0]
     per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
     # registration time per pair (its Dempster step included, a few % of it) + the network's share
+    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+
+
+# -- learned registration ----------------------------------------------------------------------------
+def learned_registration_batch(x: FusionInput, registration: Any) -> RegisteredBatch:
+    """The learned registration of a batch (prealigned inputs, noisy poses): estimate, fallback,
+    map 2 warped by the pose used, Dempster; as a :class:`RegisteredBatch` (per-pair seconds =
+    the batch's wall time / N). Where the raw map 2 is given (``x.map2``), it is warped once from
+    its own frame by the pose used (:func:`~traffictwin.evidential.warp.warp_masses`, as
+    ``registered`` does); otherwise the prealigned map 2 is re-sampled by the correction."""
+    import torch
+
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.fusion.learned_registration import check_pair_inputs, correction_to_pose
+
+    inputs = np.ascontiguousarray(x.inputs, dtype=np.float32)
+    noisy = np.asarray(x.rel_pose_noisy, dtype=np.float64)
+    check_pair_inputs(inputs, noisy, x.grid)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        r = registration.register(torch.from_numpy(inputs), torch.from_numpy(noisy))
+    m, m_used = r["m"].double().numpy(), r["m_used"].double().numpy()
+    poses = correction_to_pose(m_used, noisy, x.grid)
+    if x.map2 is not None:
+        raw2 = np.asarray(x.map2, dtype=np.float32)
+        warped = np.stack([warp_masses(raw2[i], poses[i], x.grid) for i in range(len(raw2))])
+    else:
+        warped = r["warped"].numpy().astype(np.float32)
+    masses = dempster(inputs[:, :2], warped)
+    per_pair = (time.perf_counter() - t0) / max(1, len(inputs))
+    return RegisteredBatch(
+        masses=masses.astype(np.float32),
+        warped=warped,
+        poses=poses,
+        estimates=correction_to_pose(m, noisy, x.grid),
+        accepted=r["accepted"].numpy().astype(bool),
+        cc_noisy=r["cc_noisy"].double().numpy(),
+        cc_est=r["cc_est"].double().numpy(),
+        seconds=np.full(len(inputs), per_pair),
+    )
+
+
+@register(
+    "learned",
+    "learned registration (cost volume over rotations x shifts on learned features, fine residual) of the "
+    "prealigned map 2, re-warped by the estimate, then Dempster",
+    needs=("prealigned", "pose", "model"),
+    label="learned registration + Dempster",
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _learned(x: FusionInput) -> Fused:
+    reg = x.model[0] if isinstance(x.model, tuple) else x.model
+    b = learned_registration_batch(x, reg)
+    return Fused(b.masses, seconds=b.seconds, details=b)
+
+
+@register(
+    "learned+network",
+    "learned registration as `learned`, then the configuration's registered-pairs fusion network "
+    "instead of Dempster",
+    needs=("prealigned", "pose", "model"),
+    label="learned registration + network",
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _learned_network(x: FusionInput) -> Fused:
+    from traffictwin.fusion.model_io import predict_masses
+
+    if not (isinstance(x.model, tuple) and len(x.model) == 2):
+        raise ValueError(
+            "fusion method 'learned+network' needs model = (registration network, fusion network)"
+        )
+    reg, net = x.model
+    b = learned_registration_batch(x, reg)
+    t1 = time.perf_counter()
+    inputs = np.concatenate([np.asarray(x.inputs[:, :2], dtype=np.float32), b.warped], axis=1)
+    masses = predict_masses(net, inputs, x.batch_size)[0]
+    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
     return Fused(masses, seconds=b.seconds + per_pair_net, details=b)

@@ -43,7 +43,7 @@ FIGURES: dict[str, str] = {
     "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
     "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
 }
-FIGURE_PATTERN = r"fusion|prealign|pose|ogm"
+FIGURE_PATTERN = r"fusion|prealign|pose|ogm|registration"
 DATA_FILES = (page.DataFile("fusion_data.json", "Fusion data (reports/metrics/fusion_data.json)"),)
 
 FUSION_METHOD_LABELS: dict[str, str] = {
@@ -54,12 +54,16 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "naive-cautious": "naive + cautious",
     "ego": "ego (map 1 only)",
     "registered+network": "registered + network",
+    "learned": "learned registration + Dempster",
+    "learned+network": "learned registration + network",
 }
+POSE_ROWS = ("registered", "learned")  # rows with their own pose estimate (the hybrids reuse them)
+REGISTRATION_FILES = r"train_registration_(\w+)\.json"
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 LEARNING_CURVE = re.compile(
-    r"train_fusion_(\w+)"
-)  # figures/train_fusion_<name>.png (stage train_fusion)
+    r"train_(fusion|registration)_(\w+)"
+)  # figures/train_fusion_<name>.png (stage train_fusion), train_registration_<cfg>.png
 CI_NOTE = (
     "Brackets: 95 % cluster-bootstrap interval (scenario = pair_id // 1000 resampled; "
     "evaluation.fusion_ci)."
@@ -349,6 +353,7 @@ def fusion_tables(
             scores.rows.append(row)
     tables.append(scores)
 
+    tables.extend(registration_tables(src, configurations, cfgs))
     targets = target_table(src)
     if targets is not None:
         tables.append(targets)
@@ -373,6 +378,135 @@ def fusion_tables(
             )
         tables.append(t)
     return tables
+
+
+def registration_tables(
+    src: page.Sources, configurations: Mapping[str, tuple[float, float]], cfgs: Sequence[str]
+) -> list[Table]:
+    """The registration error table (every row that estimates a pose, per configuration), success
+    rate per bin of the drawn yaw error, and the learned registration's cross table."""
+    rows = [
+        m
+        for m in POSE_ROWS
+        if any(
+            isinstance(src.get(FUSION_FILE, fusion_key(c, m, "success_rate")), (int, float))
+            for c in cfgs
+        )
+    ]
+    if not rows:
+        return []
+    cols = (
+        ("success_rate", "success"),
+        ("fallback_rate", "fallback"),
+        ("residual_trans_m_median", "median Δt [m]"),
+        ("residual_trans_m_p90", "p90 Δt [m]"),
+        ("residual_rot_deg_median", "median Δψ [deg]"),
+        ("residual_rot_deg_p90", "p90 Δψ [deg]"),
+        ("ms_per_pair", "ms / pair"),
+    )
+    t = Table(
+        "Registration: pose error of every method that estimates a pose (test split, same pairs)",
+        [
+            "config",
+            "r [m]",
+            "α [deg]",
+            "method",
+            "success",
+            "95 % CI",
+            *[name for k, name in cols[1:]],
+            "Δ success vs registered",
+            "95 % CI",
+        ],
+        note="Error of the pose used (the estimate, or the noisy pose where the estimate was rejected: "
+        "'fallback', counted in the success rate like any other pose) against the simulator's true "
+        "relative pose; success = translation error < evaluation.fusion.success_trans_m (0.5 m) and yaw "
+        "error < success_rot_deg (1°). ms / pair: registration, warp and Dempster (learned: batches of "
+        "evaluation.fusion.batch_size). Δ: paired over the same pairs. " + CI_NOTE,
+        anchor="fusion-registration",
+        headline=True,
+    )
+    for c in cfgs:
+        for m in rows:
+            if not isinstance(src.get(FUSION_FILE, fusion_key(c, m, "success_rate")), (int, float)):
+                continue
+            row = _config_cells(configurations, c) + [Cell(FUSION_METHOD_LABELS.get(m, m))]
+            row += [
+                _row_cell(src, c, m, "success_rate"),
+                _ci_cell(src, fusion_key(c, m, "success_rate")),
+            ]
+            row += [_row_cell(src, c, m, k) for k, _ in cols[1:]]
+            dk = _diff_key(c, m, REG, "success_rate")
+            if isinstance(src.get(FUSION_FILE, dk), dict):
+                row += [src.cell(FUSION_FILE, f"{dk}.estimate"), _ci_cell(src, dk)]
+            else:
+                row += [Cell(NA), Cell(NA)]
+            t.rows.append(row)
+    out = [t]
+    for axis, what in (("translation", "translation"), ("rotation", "yaw")):
+        bins = lookup(src.metrics.get(FUSION_FILE), f"bins.{axis}")
+        if not isinstance(bins, dict):
+            continue
+        labels: list[str] = []
+        for m in rows:
+            for lab in bins.get(m, {}) if isinstance(bins.get(m), dict) else {}:
+                if lab not in labels:
+                    labels.append(lab)
+        if not labels:
+            continue
+        b = Table(
+            f"Registration: success rate per bin of the drawn {what} error (all configurations pooled)",
+            ["method", *[f"{lab} (n)" for lab in labels]],
+            note=f"Bins of the drawn pose noise's {what} (evaluation.fusion.trans_bins_m / rot_bins_deg), "
+            "as in the pose-error bins of the fusion metrics; n = pairs in the bin.",
+            anchor=f"fusion-registration-{axis}-bins",
+        )
+        for m in rows:
+            cells = [Cell(FUSION_METHOD_LABELS.get(m, m))]
+            for lab in labels:
+                key = f"bins.{axis}.{m}.{lab}"
+                if isinstance(src.get(FUSION_FILE, f"{key}.success_rate"), (int, float)):
+                    n = src.get(FUSION_FILE, f"{key}.n")
+                    cell = src.cell(FUSION_FILE, f"{key}.success_rate")
+                    count = int(n) if isinstance(n, (int, float)) else "?"
+                    cells.append(replace(cell, text=f"{cell.text} ({count})"))
+                else:
+                    cells.append(Cell(NA))
+            b.rows.append(cells)
+        out.append(b)
+    cross = lookup(src.metrics.get(FUSION_FILE), "cross")
+    learned = (
+        sorted(n for n in (cross or {}) if n.startswith("learned-"))
+        if isinstance(cross, dict)
+        else []
+    )
+    if learned:
+        tcfgs = sorted({tc for n in learned if isinstance(cross[n], dict) for tc in cross[n]})
+        x = Table(
+            "Registration: cross table of the learned registration (+ Dempster), trained on one "
+            "configuration (rows), tested on another (columns): success rate / Dice occ",
+            ["trained on", *[f"test {tc}" for tc in tcfgs]],
+            note="All test pairs of the tested configuration. Target: trained on D, at most 5 % "
+            "relative Dice occ loss against the configuration's own network (learned_cross_dice_drop).",
+            anchor="fusion-registration-cross",
+        )
+        for n in learned:
+            cells = [Cell(n)]
+            for tc in tcfgs:
+                sr = src.get(FUSION_FILE, f"cross.{n}.{tc}.success_rate")
+                dc = src.get(FUSION_FILE, f"cross.{n}.{tc}.dice_occ")
+                if isinstance(sr, (int, float)) and isinstance(dc, (int, float)):
+                    cells.append(
+                        Cell(
+                            f"{sr:.3f} / {dc:.3f}",
+                            value=[sr, dc],
+                            derived=f"metrics/{FUSION_FILE}#cross.{n}.{tc}.success_rate / .dice_occ",
+                        )
+                    )
+                else:
+                    cells.append(Cell(NA))
+            x.rows.append(cells)
+        out.append(x)
+    return out
 
 
 def target_table(src: page.Sources) -> Table | None:
@@ -476,11 +610,17 @@ def _captioned(figures: list[page.Figure]) -> list[page.Figure]:
     out = []
     for f in figures:
         m = LEARNING_CURVE.fullmatch(f.path.rsplit("/", 1)[-1].rsplit(".", 1)[0])
-        if m:
+        if m and m.group(1) == "fusion":
             f = replace(
                 f,
-                caption=f"Learning curves of fusion network {m.group(1)} (training / validation "
+                caption=f"Learning curves of fusion network {m.group(2)} (training / validation "
                 f"loss and validation KLD(b) per epoch) — `{f.path}`",
+            )
+        elif m:
+            f = replace(
+                f,
+                caption=f"Learning curves of the learned registration of configuration {m.group(2)} "
+                f"(validation success rate, mean pose errors, training / validation loss per epoch) — `{f.path}`",
             )
         out.append(f)
     return out
@@ -514,6 +654,15 @@ def section(
     )
     if training:
         sec.tables.append(training)
+    reg_training = files_table(
+        src,
+        REGISTRATION_FILES,
+        "Learned registration: training per configuration (validation split; success = error "
+        "< 0.5 m and < 1°, before the fallback check)",
+        "registration-training",
+    )
+    if reg_training:
+        sec.tables.append(reg_training)
     sec.bullet_groups.append(findings_group(src, FUSION_FILE, fusion_findings))
     sec.bullet_groups.append(
         (
@@ -532,5 +681,5 @@ def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionP
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
         data_files=DATA_FILES,
-        shown_files=TRAINING_FILES,
+        shown_files=f"(?:{TRAINING_FILES})|(?:{REGISTRATION_FILES})",
     )

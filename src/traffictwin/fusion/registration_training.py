@@ -1,0 +1,535 @@
+"""Training of the learned registration (:mod:`traffictwin.fusion.learned_registration`).
+
+- :func:`load_registration_split` — a prealigned split with the correction targets: inputs,
+  label, the true pixel sampling matrix ``M`` of map 2 and the rotation centre (noisy sensor-2
+  position, pixels);
+- :func:`perturb` — augmentation: map 2 warped by an extra random rigid motion about the rotation
+  centre (drawn from the configuration's pose-noise model scaled by ``augment_scale``), the target
+  updated to ``G⁻¹ M``; the label (map 1's frame) is unchanged;
+- :class:`RegistrationLitModule` — Adam, :func:`~traffictwin.fusion.learned_registration.registration_loss`,
+  validation metrics ``val/loss``, ``val/trans_err_m`` / ``val/rot_err_deg`` (mean), ``val/success_rate``
+  (error < 0.5 m and < 1°), ``val/trans_err_m_median``, all over the whole validation subset;
+- :func:`fit_registration` — the training run (seeding, trainer, MLflow run, best checkpoint and
+  early stopping on ``val/loss``, meta, metrics, curves), like :func:`traffictwin.fusion.training.fit_fusion`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import MISSING, asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
+from torchmetrics import CatMetric, MeanMetric
+
+from traffictwin import trainer as common
+from traffictwin.config import spec as setting
+from traffictwin.evidential.masses import check_masses
+from traffictwin.evidential.noise import noise_sigmas
+from traffictwin.fusion.learned_registration import (
+    LearnedRegistration,
+    RegistrationNetSpec,
+    correction_target,
+    registration_loss,
+    rotation_about,
+    warp_by,
+)
+from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.grid import GridSpec
+from traffictwin.io.atomic import write_json_atomic
+from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.trainer import TrackingSettings
+
+log = logging.getLogger(__name__)
+
+# checkpoint and early stopping: the validation loss. The success rate of a few hundred pairs moves
+# in steps of 0.5 % and plateaus while the pose errors still fall (ties would keep an early epoch).
+SELECTION_METRIC = "val/loss"
+PROBLEM = "registration"
+
+
+# -- config (the ``registration_model`` group, validated by the stage) --------------------------------
+@dataclass
+class RegistrationTrainConfig:
+    """``registration_model.train``."""
+
+    batch_size: int = setting(MISSING, min=2)
+    max_epochs: int = setting(MISSING, min=1)
+    train_samples_per_epoch: int = setting(MISSING, min=0)
+    val_samples: int = setting(MISSING, min=0)
+    early_stopping_patience: int = setting(MISSING, min=1)
+    lr: float = setting(MISSING, min=1e-9, max=1.0)
+    weight_decay: float = setting(MISSING, min=0.0)
+    augment_prob: float = setting(MISSING, min=0.0, max=1.0)
+    augment_scale: float = setting(MISSING, min=0.0, max=10.0)
+    map_weight: float = setting(MISSING, min=0.0)
+
+
+@dataclass
+class RegistrationModelConfig:
+    """The ``registration_model`` group: the network (:class:`RegistrationNetSpec` fields), the
+    fallback's ``min_gain``, the configurations to train (``configurations``) and the training."""
+
+    architecture: dict[str, Any] = setting(MISSING)
+    min_gain: float = setting(MISSING, min=-1.0, max=1.0)
+    configurations: list[str] = setting(MISSING)
+    train: RegistrationTrainConfig = setting(MISSING)
+
+    def net_spec(self, source: str, key: str = "registration_model") -> RegistrationNetSpec:
+        from traffictwin.config import ConfigError
+
+        try:
+            return RegistrationNetSpec.from_dict(self.architecture)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: '{key}.architecture' is invalid: {exc}") from None
+
+
+# -- data ------------------------------------------------------------------------------------------------
+def load_registration_split(
+    root: str | Path, split: str, grid: GridSpec
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``inputs (N,4,H,W)``, ``label (N,2,H,W)``, true sampling matrices ``M (N,3,3)`` and rotation
+    centres ``(N,2)`` (float32) of a prealigned ``split``; masses and poses checked, errors name the file."""
+    ds = Dataset(root, kind="prealigned")
+    a = ds.load_all(split, keys=["inputs", "label", "rel_pose_noisy", "rel_pose_true"])
+    x, y = a["inputs"], a["label"]
+    if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != grid.shape:
+        raise DatasetError(
+            f"{root}: split '{split}' array 'inputs' must be (N, 4, {grid.rows}, {grid.cols}) "
+            f"(params.yaml 'grid'), got {x.shape}"
+        )
+    for key in ("rel_pose_noisy", "rel_pose_true"):
+        p = np.asarray(a[key], dtype=np.float64)
+        if p.shape != (len(x), 3) or not np.isfinite(p).all():
+            raise DatasetError(
+                f"{root}: split '{split}' array '{key}' must be finite (N, 3) = ({len(x)}, 3) poses"
+            )
+    for key, arr in (("inputs", x[:, :2]), ("inputs", x[:, 2:]), ("label", y)):
+        try:
+            check_masses(arr, name=f"{root}: split '{split}' array '{key}'")
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+    m, c = correction_target(a["rel_pose_noisy"], a["rel_pose_true"], grid)
+    f32 = lambda v: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32))  # noqa: E731
+    return f32(x), f32(y), f32(m), f32(c)
+
+
+def perturb(
+    inputs: torch.Tensor,
+    m_true: torch.Tensor,
+    centre: torch.Tensor,
+    *,
+    sigma_px: float,
+    sigma_rad: float,
+    prob: float,
+    grid_shape: tuple[int, int],
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """With probability ``prob`` per pair, warp map 2 by a random rigid motion ``G`` about ``centre``
+    (Gaussian yaw ``sigma_rad``, shift ``sigma_px`` per axis) and return the target ``G⁻¹ M``."""
+    b = inputs.shape[0]
+    if prob <= 0 or (sigma_px <= 0 and sigma_rad <= 0):
+        return inputs, m_true
+    z = torch.randn(b, 3, generator=generator)
+    on = (torch.rand(b, generator=generator) < prob).float()
+    g = rotation_about(z[:, 2] * sigma_rad * on, centre, z[:, :2] * sigma_px * on[:, None])
+    warped = warp_by(inputs[:, 2:4], g, grid_shape).clamp(0.0, 1.0)
+    s = warped.sum(1, keepdim=True)
+    warped = torch.where(s > 1.0, warped / s.clamp_min(1e-12), warped)
+    return torch.cat([inputs[:, :2], warped], 1), torch.linalg.solve(g, m_true)
+
+
+# -- module --------------------------------------------------------------------------------------------
+class RegistrationLitModule(common.NetModule):
+    """:class:`~traffictwin.trainer.NetModule` around :class:`LearnedRegistration`."""
+
+    def __init__(
+        self,
+        spec: Mapping[str, Any],
+        grid: Mapping[str, Any],
+        hparams: Mapping[str, Any],
+        meta: Mapping[str, Any] | None = None,
+    ) -> None:
+        g = GridSpec(**dict(grid))
+        net = LearnedRegistration(
+            RegistrationNetSpec.from_dict(dict(spec)), g, hparams.get("min_gain", 0.0)
+        )
+        super().__init__(
+            net, registration_loss, lr=hparams["lr"], weight_decay=hparams.get("weight_decay", 0.0)
+        )
+        self.save_hyperparameters(
+            {
+                "spec": dict(spec),
+                "grid": dict(grid),
+                "hparams": dict(hparams),
+                "meta": dict(meta or {}),
+            }
+        )
+        self.hp = dict(hparams)
+        self.val_loss = MeanMetric()
+        self.val_trans = CatMetric()
+        self.val_rot = CatMetric()
+        self._gen: torch.Generator | None = None
+
+    def on_train_start(self) -> None:
+        seed = int(self.hparams["meta"].get("seed", 0)) + 7919 * int(self.global_rank)
+        self._gen = torch.Generator().manual_seed(seed)
+
+    def training_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> torch.Tensor:
+        x, y, m, c = batch
+        x, m = perturb(
+            x,
+            m,
+            c,
+            sigma_px=self.hp["augment_sigma_px"],
+            sigma_rad=self.hp["augment_sigma_rad"],
+            prob=self.hp["augment_prob"],
+            grid_shape=self.net.grid_shape,
+            generator=self._gen,
+        )
+        loss, parts = self.loss_fn(self.net, x, y, m, c, map_weight=self.hp["map_weight"])
+        n = x.shape[0]
+        self.log("train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        for k, v in parts.items():
+            self.log(f"train/{k}", v, on_step=False, on_epoch=True, sync_dist=True, batch_size=n)
+        return loss
+
+    def validation_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> None:
+        x, y, m, c = batch
+        loss, _ = self.loss_fn(self.net, x, y, m, c, map_weight=self.hp["map_weight"])
+        self.val_loss.update(loss, weight=x.shape[0])
+        est = self.net.estimate(x, c).m.double()
+        t, r = correction_errors(est, m.double(), c.double(), self.net.cell)
+        self.val_trans.update(t)
+        self.val_rot.update(r)
+
+    def on_validation_epoch_end(self) -> None:
+        self.log("val/loss", self.val_loss.compute())
+        t, r = self.val_trans.compute().double(), self.val_rot.compute().double()
+        for metric in (self.val_loss, self.val_trans, self.val_rot):
+            metric.reset()
+        self.log("val/trans_err_m", t.mean().float())
+        self.log("val/trans_err_m_median", t.median().float())
+        self.log("val/rot_err_deg", r.mean().float())
+        self.log("val/success_rate", ((t <= 0.5) & (r <= 1.0)).double().mean().float())
+
+
+def correction_errors(
+    m_est: torch.Tensor, m_true: torch.Tensor, centre: torch.Tensor, cell: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose errors implied by two sampling matrices: translation (m) of map 2's sensor
+    (``M⁻¹ c``) and yaw (deg)."""
+    c1 = torch.cat([centre, torch.ones_like(centre[:, :1])], 1).unsqueeze(-1)
+    pe = (torch.linalg.solve(m_est, c1)).squeeze(-1)[:, :2]
+    pt = (torch.linalg.solve(m_true, c1)).squeeze(-1)[:, :2]
+    rel = torch.linalg.solve(m_true, m_est)
+    yaw = torch.atan2(rel[:, 1, 0], rel[:, 0, 0])
+    return torch.linalg.vector_norm(pe - pt, dim=1) * cell, torch.rad2deg(yaw.abs())
+
+
+# -- a whole training run --------------------------------------------------------------------------------
+@dataclass
+class RegistrationFitResult:
+    checkpoint: Path
+    meta: dict[str, Any]
+    metrics: dict[str, Any]
+    history: list[dict[str, float]]
+
+
+def fit_registration(
+    data_root: str | Path,
+    *,
+    spec: RegistrationNetSpec,
+    train: RegistrationTrainConfig,
+    min_gain: float,
+    trainer_settings: common.TrainerSettings,
+    seed: int,
+    grid: GridSpec,
+    cfg_name: str,
+    noise: Mapping[str, float],
+    ckpt_out: str | Path,
+    meta_out: str | Path | None = None,
+    metrics_out: str | Path | None = None,
+    curves_out: str | Path | None = None,
+    tracking: TrackingSettings | None = None,
+    registered_model_name: str | None = None,
+) -> RegistrationFitResult | None:
+    """Train on ``data_root``'s train split, keep the best epoch on ``val/loss``, publish it.
+
+    Writes (rank zero, each atomically, only after training succeeded) the slim checkpoint, its
+    meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run (params, curves, the
+    checkpoint and the PyTorch model) when ``tracking`` is enabled. A non-finite validation loss
+    fails the run (nothing is published). Returns ``None`` on other DDP ranks.
+    """
+    common.seed_everything(seed)
+    ds = Dataset(data_root, kind="prealigned")
+    manifest_hash = ds.manifest_hash()
+    tensors = {s: load_registration_split(data_root, s, grid) for s in ("train", "val")}
+    if len(tensors["train"][0]) < train.batch_size:
+        raise DatasetError(
+            f"{data_root}: {len(tensors['train'][0])} training pairs < batch_size {train.batch_size}"
+        )
+    sig_xy, sig_yaw = noise_sigmas(float(noise["r"]), float(noise["alpha"]))
+    # augmentation: the configuration's own noise model, scaled; at least D-like diversity is not assumed
+    hparams = {
+        "lr": train.lr,
+        "weight_decay": train.weight_decay,
+        "min_gain": min_gain,
+        "map_weight": train.map_weight,
+        "augment_prob": train.augment_prob,
+        "augment_sigma_px": train.augment_scale * sig_xy / grid.cell,
+        "augment_sigma_rad": train.augment_scale * sig_yaw,
+    }
+    tracking = tracking or TrackingSettings(
+        "fusion", "registration", stage="train_registration", enabled=False
+    )
+    grid_d = {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell}
+    meta_base = {
+        "cfg": cfg_name,
+        "network": f"learned-{cfg_name}",
+        "method": "learned",
+        "noise": dict(noise),
+        "grid": grid_d,
+        "seed": int(seed),
+        "data_manifest_hash": manifest_hash,
+        "profile": tracking.profile,
+        "min_gain": float(min_gain),
+    }
+    module = RegistrationLitModule(asdict(spec), grid_d, hparams, meta_base)
+    n_params = sum(p.numel() for p in module.net.parameters())
+    train_set = TensorDataset(*tensors["train"])
+    val_full = TensorDataset(*tensors["val"])
+    val_set = Subset(val_full, evenly_spaced(len(val_full), train.val_samples).tolist())
+    k = train.train_samples_per_epoch
+    k = len(train_set) if k <= 0 else min(k, len(train_set))
+    sampler = RandomSampler(
+        train_set, replacement=False, num_samples=k, generator=torch.Generator().manual_seed(seed)
+    )
+    train_dl = DataLoader(train_set, batch_size=train.batch_size, sampler=sampler, drop_last=True)
+    val_dl = DataLoader(val_set, batch_size=train.batch_size, shuffle=False)
+
+    with (
+        tempfile.TemporaryDirectory(prefix="registration_ckpt_") as work,
+        common.tracked_run(
+            tracking.experiment,
+            tracking.run_name,
+            profile=tracking.profile,
+            stage=tracking.stage,
+            tags={
+                "data_manifest_hash": manifest_hash,
+                "cfg": cfg_name,
+                "network": meta_base["network"],
+                "method": "learned",
+            },
+            params={
+                **tracking.params,
+                "data.manifest_hash": manifest_hash,
+                "model.param_count": n_params,
+            },
+            enabled=tracking.enabled,
+        ) as run,
+    ):
+        logger = common.mlflow_logger(run)
+        history = common.History(logger=logger)
+        ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
+        trainer = common.build_trainer(
+            trainer_settings,
+            max_epochs=train.max_epochs,
+            callbacks=[
+                history,
+                ckpt_cb,
+                common.early_stopping(SELECTION_METRIC, train.early_stopping_patience),
+            ],
+            default_root_dir=work,
+        )
+        t0 = time.perf_counter()
+        trainer.fit(module, train_dataloaders=train_dl, val_dataloaders=val_dl)
+        train_s = time.perf_counter() - t0
+        if not trainer.is_global_zero:
+            return None
+        best = ckpt_cb.best_model_path
+        if not best or not Path(best).exists():
+            raise RuntimeError(
+                "learned registration training produced no checkpoint (no finite val/loss: NaN/inf in the data or the learning rate?)"
+            )
+        ck = torch.load(best, map_location="cpu", weights_only=False)
+        slim = common.model_checkpoint(
+            PROBLEM,
+            asdict(spec),
+            ck["state_dict"],
+            {},
+            epoch=int(ck.get("epoch", -1)),
+            global_step=int(ck.get("global_step", -1)),
+        )
+        best_epoch = slim["epoch"]
+        row = next(
+            (r for r in history.rows if r["epoch"] == best_epoch),
+            history.rows[-1] if history.rows else {},
+        )
+        if not all(
+            math.isfinite(float(row.get(k, float("nan")))) for k in ("val/loss", "val/trans_err_m")
+        ):
+            raise RuntimeError(
+                f"learned registration: best epoch {best_epoch} has non-finite validation metrics {row}"
+            )
+        metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
+        metrics.update(
+            {
+                "best_epoch": best_epoch,
+                "epochs": len(history.rows),
+                "train_seconds": round(train_s, 2),
+                "train_samples_per_s": round(
+                    k // train.batch_size * train.batch_size * len(history.rows) / train_s, 3
+                )
+                if train_s > 0
+                else None,
+                "param_count": n_params,
+                "train_pairs": len(train_set),
+                "val_pairs": len(val_set),
+            }
+        )
+        meta = {
+            **meta_base,
+            "problem": PROBLEM,
+            "architecture": asdict(spec),
+            "param_count": n_params,
+            "hparams": hparams,
+            "best_epoch": best_epoch,
+            "selection_metric": SELECTION_METRIC,
+            "best_val_loss": metrics.get("val/loss"),
+            "best_val_success_rate": metrics.get("val/success_rate"),
+            "mlflow_run_id": run.info.run_id if run is not None else None,
+            "mlflow_model_uri": None,
+            "data_root": str(data_root),
+        }
+        slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
+        if run is not None:
+            common.log_final_metrics(
+                logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
+            )
+            with tempfile.TemporaryDirectory(prefix="registration_art_") as art:
+                p = Path(art) / "model.ckpt"
+                torch.save(slim, p)
+                common.log_checkpoint(p)
+            net = LearnedRegistration(spec, grid, min_gain)
+            net.load_state_dict(common.net_state_dict(slim))
+            example = np.zeros((1, 4, grid.rows, grid.cols), dtype=np.float32)
+            uri = common.log_torch_model(
+                net.eval(),
+                example,
+                name="model",
+                registered_model_name=registered_model_name,
+                metadata={
+                    "cfg": cfg_name,
+                    "data_manifest_hash": manifest_hash,
+                    "method": "learned",
+                },
+            )
+            meta["mlflow_model_uri"] = uri
+            slim["traffictwin"]["mlflow_model_uri"] = uri
+        common.save_model_checkpoint(ckpt_out, slim)
+        if meta_out:
+            write_json_atomic(meta_out, meta)
+        if metrics_out:
+            write_json_atomic(metrics_out, metrics)
+        if curves_out:
+            history.write_csv(curves_out)
+    return RegistrationFitResult(Path(ckpt_out), meta, metrics, history.rows)
+
+
+def load_registration_model(
+    path: str | Path, *, expected_grid: GridSpec | None = None, expected_cfg: str | None = None
+) -> LearnedRegistration:
+    """A trained :class:`LearnedRegistration` (eval mode) from ``model.ckpt`` (file or folder);
+    ``model.meta`` holds its meta. Errors name the file and the mismatch."""
+    from traffictwin.fusion.model_io import FusionModelError
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.ckpt"
+    if not path.exists():
+        raise FusionModelError(
+            f"{path}: learned registration checkpoint not found (run `dvc repro train_registration` first)"
+        )
+    ck = common.read_model_checkpoint(path, PROBLEM, FusionModelError)
+    info = ck["traffictwin"]
+    meta_path = path.parent / "model_meta.json"
+    if meta_path.exists():
+        meta = json.loads(meta_path.read_text())
+        for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
+            if meta.get(key) != info.get(key):
+                raise FusionModelError(
+                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' (re-run `dvc repro train_registration@{meta.get('cfg')}`)"
+                )
+    g = GridSpec(**info["grid"])
+    if expected_grid is not None and (g.rows, g.cols, g.cell) != (
+        expected_grid.rows,
+        expected_grid.cols,
+        expected_grid.cell,
+    ):
+        raise FusionModelError(
+            f"{path}: trained on grid {info['grid']}, expected {expected_grid.rows}x{expected_grid.cols} cells of {expected_grid.cell} m"
+        )
+    if expected_cfg is not None and info.get("cfg") != expected_cfg:
+        raise FusionModelError(
+            f"{path}: trained for configuration '{info.get('cfg')}', expected '{expected_cfg}'"
+        )
+    try:
+        net = LearnedRegistration(
+            RegistrationNetSpec.from_dict(info["architecture"]), g, float(info.get("min_gain", 0.0))
+        )
+        net.load_state_dict(common.net_state_dict(ck), strict=True)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise FusionModelError(
+            f"{path}: weights do not fit the learned registration architecture ({str(exc)[:300]})"
+        ) from None
+    net.meta = dict(info)  # type: ignore[attr-defined]
+    return net.eval()
+
+
+def learning_curves(rows: list[dict[str, float]], title: str):
+    """Figure of a registration run's per-epoch rows: validation success rate, mean pose errors
+    (m, deg) and the training / validation loss; the best epoch (lowest val/loss) is marked."""
+    from traffictwin.fusion.figures import _plt
+
+    if not rows:
+        raise ValueError("learning_curves: no epochs to plot")
+
+    def series(key: str) -> tuple[np.ndarray, np.ndarray]:
+        pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
+        return tuple(np.array(pts, dtype=np.float64).T) if pts else (np.empty(0), np.empty(0))
+
+    plt = _plt()
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    e, v = series("val/success_rate")
+    ax1.plot(e, 100 * v, "o-", label="validation")
+    el, vl = series("val/loss")
+    if len(vl):
+        b = int(np.argmin(vl))
+        ax1.axvline(el[b], color="#ff7f0e", ls=":", label=f"best epoch {int(el[b])} (val loss)")
+    ax1.set(
+        xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
+    )
+    et, vt = series("val/trans_err_m")
+    ax2.plot(et, vt, "o-", label="translation (m)")
+    er, vr = series("val/rot_err_deg")
+    ax2.plot(er, vr, "s-", label="rotation (deg)")
+    ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
+    for key, style, lab in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
+        ek, vk = series(key)
+        ax3.plot(ek, vk, style, label=lab)
+    ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")
+    for ax in (ax1, ax2, ax3):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
