@@ -5,11 +5,26 @@ Shard ``i`` = scenarios ``[i*S, (i+1)*S)`` (depends only on ``(seed, i)``), gene
 not redone). Splits by shard (= by scenario). Also writes reports/figures/fusion_data_samples.png
 and reports/metrics/fusion_data.json. Library: :mod:`traffictwin.fusion.pairs`; settings:
 :func:`traffictwin.fusion.config.fusion_data_config`.
+
+Across machines (same commit and params.yaml on each)::
+
+    python -m pipelines.generate_fusion --shards 0:25     # machine 1: shards 0..24 + manifest.part-00000-00025.json
+    python -m pipelines.generate_fusion --shards 25:50    # machine 2 (default profile: 50 shards)
+    python -m pipelines.generate_fusion --merge data/fusion /incoming/m2/fusion   # on one of them
+
+``--shards`` writes no manifest.json, metrics or figure; ``--merge`` checks the parts (same
+params and seed, ranges covering every shard once, shard hashes), writes data/fusion exactly
+as one machine's run would (byte-identical), then the metrics and the figure
+(``pairs_per_s``: the parts' pairs over their summed generation seconds). Then
+``dvc commit generate_fusion`` records it as the stage's output.
 """
 
 from __future__ import annotations
 
+import argparse
+import logging
 import time
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -22,11 +37,11 @@ from pipelines._common import (
     stage_timer,
 )
 from pipelines._paths import FUSION_DATA, figure_file, metrics_file
-from traffictwin.config import get
+from traffictwin.config import ConfigError, get
 from traffictwin.fusion.config import fusion_data_config, grid_config
 from traffictwin.fusion.pairs import shard_splits, write_shard
 from traffictwin.io.atomic import write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
+from traffictwin.io.shards import Dataset, DatasetWriter, merge_parts, part_name, shard_name
 
 FIGURE = figure_file("fusion_data_samples")
 METRICS = metrics_file("fusion_data")
@@ -38,70 +53,158 @@ def _work(index: int) -> tuple[int, str, int]:
     return write_shard(s["seed"], index, s["params"], path, compresslevel=s["level"])
 
 
+def _shard_range(text: str, n_shards: int) -> tuple[int, int]:
+    """``"i:j"`` -> ``(i, j)`` with ``0 <= i < j <= n_shards``; ConfigError naming the option."""
+    try:
+        i, j = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise ConfigError(f"--shards {text}: expected i:j (shard indices, j exclusive)") from None
+    if not 0 <= i < j <= n_shards:
+        raise ConfigError(
+            f"--shards {text}: out of bounds; this profile has {n_shards} shards "
+            f"(fusion_data.scenarios / scenarios_per_shard), so 0 <= i < j <= {n_shards}"
+        )
+    return i, j
+
+
+def _args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument(
+        "--shards",
+        metavar="I:J",
+        help="generate only shards I..J-1 into data/fusion with a partial manifest "
+        "(manifest.part-I-J.json), for merging with --merge",
+    )
+    g.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="DIR",
+        help="join the parts in these folders (copies of data/fusion from --shards runs) into "
+        "data/fusion and write its manifest, metrics and figure",
+    )
+    return ap.parse_args(argv)
+
+
 def main(argv: list[str] | None = None) -> None:
+    args = _args(argv)
     log = setup_logging()
     cfg = params()
+    # validate everything before anything is written
+    seed = get(cfg, "seed", int, min=0)
+    grid = grid_config(cfg)
+    fd = fusion_data_config(cfg)
+    p, n_shards = fd.params(grid), fd.n_shards
+    record = {
+        "fusion_data": OmegaConf.to_container(cfg["fusion_data"], resolve=True),
+        "grid": OmegaConf.to_container(cfg["grid"], resolve=True),
+    }
+    for k in ("workers", "figure"):
+        record["fusion_data"].pop(k, None)  # do not change the data
+    splits = shard_splits(n_shards, seed, fd.split_fractions)
+    if args.shards is not None:
+        start, stop = _shard_range(args.shards, n_shards)
+        _generate(seed, p, fd, record, splits, range(start, stop), log, part=(start, stop))
+        return
     with stage_timer("generate_fusion"):
-        # validate everything before anything is written
-        seed = get(cfg, "seed", int, min=0)
-        grid = grid_config(cfg)
-        fd = fusion_data_config(cfg)
-        p, n_shards = fd.params(grid), fd.n_shards
-        record = {
-            "fusion_data": OmegaConf.to_container(cfg["fusion_data"], resolve=True),
-            "grid": OmegaConf.to_container(cfg["grid"], resolve=True),
-        }
-        for k in ("workers", "figure"):
-            record["fusion_data"].pop(k, None)  # do not change the data
-        splits = shard_splits(n_shards, seed, fd.split_fractions)
-        writer = DatasetWriter(FUSION_DATA, "fusion", params=record, seed=seed)
-        todo = [i for i in range(n_shards) if not writer.has_shard(i)]
-        log.info(
-            "generate_fusion: %d shards x %d pairs (%d to do), %d workers",
-            n_shards,
-            p.pairs_per_shard,
-            len(todo),
-            fd.workers,
-        )
-        t0 = time.perf_counter()
-        state = {"seed": seed, "params": p, "level": fd.compresslevel}
-        for idx, digest, count in map_shards(
-            _work, todo, workers=fd.workers, state=state, desc="generate_fusion"
-        ):
-            writer.record_shard(idx, shard_name(idx), digest, count, splits[idx])
-        elapsed = time.perf_counter() - t0
-        manifest = writer.finalize(
-            extra={"templates": list(p.templates), "pairs_per_shard": p.pairs_per_shard}
-        )
-        n_new = len(todo) * p.pairs_per_shard
-        write_json_atomic(
-            METRICS,
-            {
-                "fusion_data/pairs": manifest["count"],
-                "fusion_data/train_pairs": manifest["split_counts"].get("train", 0),
-                "fusion_data/val_pairs": manifest["split_counts"].get("val", 0),
-                "fusion_data/test_pairs": manifest["split_counts"].get("test", 0),
-                "fusion_data/scenarios": n_shards * p.scenarios_per_shard,
-                "fusion_data/pairs_per_s": round(n_new / elapsed, 2)
-                if n_new and elapsed > 0
-                else None,
-            },
-        )
-        from traffictwin.fusion.data_figure import pick_samples, plot_fusion_samples
+        if args.merge:
+            manifest, parts = merge_parts(
+                args.merge,
+                FUSION_DATA,
+                kind="fusion",
+                params=record,
+                seed=seed,
+                n_shards=n_shards,
+                splits=splits,
+            )
+            new = sum(int(pt["stats"].get("new_pairs", 0)) for pt in parts)
+            secs = sum(float(pt["stats"].get("seconds", 0.0)) for pt in parts)
+            log.info("generate_fusion: merged %d parts into %s", len(parts), FUSION_DATA)
+        else:
+            manifest, new, secs = _generate(seed, p, fd, record, splits, range(n_shards), log)
+        _publish(manifest, n_shards * p.scenarios_per_shard, new, secs, fd, p, log)
 
-        samples = pick_samples(Dataset(FUSION_DATA, kind="fusion"), fd.figure.samples)
-        plot_fusion_samples(
-            FIGURE,
-            samples,
-            p.grid,
-            title="Fusion data: two input maps with poses and the Dempster label",
-        )
-        log.info(
-            "generate_fusion: %d pairs (%s) in %.1f s",
-            manifest["count"],
-            manifest["split_counts"],
-            elapsed,
-        )
+
+def _generate(
+    seed: int,
+    p: Any,
+    fd: Any,
+    record: dict,
+    splits: list[str],
+    indices: range,
+    log: logging.Logger,
+    part: tuple[int, int] | None = None,
+) -> tuple[dict, int, float]:
+    """Write shards ``indices`` (kept ones of an interrupted identical run are not redone), then
+    the manifest — or, for ``part``, the partial manifest. Returns it, the pairs written and the
+    seconds it took."""
+    n_shards = len(splits)
+    writer = DatasetWriter(FUSION_DATA, "fusion", params=record, seed=seed)
+    todo = [i for i in indices if not writer.has_shard(i)]
+    log.info(
+        "generate_fusion: %d shards x %d pairs (%d to do), %d workers",
+        len(indices),
+        p.pairs_per_shard,
+        len(todo),
+        fd.workers,
+    )
+    t0 = time.perf_counter()
+    state = {"seed": seed, "params": p, "level": fd.compresslevel}
+    for idx, digest, count in map_shards(
+        _work, todo, workers=fd.workers, state=state, desc="generate_fusion"
+    ):
+        writer.record_shard(idx, shard_name(idx), digest, count, splits[idx])
+    elapsed = time.perf_counter() - t0
+    n_new = len(todo) * p.pairs_per_shard
+    extra = {"templates": list(p.templates), "pairs_per_shard": p.pairs_per_shard}
+    if part is None:
+        return writer.finalize(extra=extra), n_new, elapsed
+    start, stop = part
+    manifest = writer.finalize_part(
+        start, stop, n_shards, extra=extra, stats={"seconds": round(elapsed, 3), "new_pairs": n_new}
+    )
+    log.info(
+        "generate_fusion: part %d:%d of %d shards in %s (%s); copy the folder to the merging "
+        "machine and run `python -m pipelines.generate_fusion --merge <folders>`",
+        start,
+        stop,
+        n_shards,
+        FUSION_DATA,
+        part_name(start, stop),
+    )
+    return manifest, n_new, elapsed
+
+
+def _publish(
+    manifest: dict, scenarios: int, n_new: int, elapsed: float, fd: Any, p: Any, log: logging.Logger
+) -> None:
+    """The stage's metrics (``pairs_per_s``: ``n_new`` pairs over ``elapsed`` s of generation) and figure."""
+    write_json_atomic(
+        METRICS,
+        {
+            "fusion_data/pairs": manifest["count"],
+            "fusion_data/train_pairs": manifest["split_counts"].get("train", 0),
+            "fusion_data/val_pairs": manifest["split_counts"].get("val", 0),
+            "fusion_data/test_pairs": manifest["split_counts"].get("test", 0),
+            "fusion_data/scenarios": scenarios,
+            "fusion_data/pairs_per_s": round(n_new / elapsed, 2) if n_new and elapsed > 0 else None,
+        },
+    )
+    from traffictwin.fusion.data_figure import pick_samples, plot_fusion_samples
+
+    samples = pick_samples(Dataset(FUSION_DATA, kind="fusion"), fd.figure.samples)
+    plot_fusion_samples(
+        FIGURE,
+        samples,
+        p.grid,
+        title="Fusion data: two input maps with poses and the Dempster label",
+    )
+    log.info(
+        "generate_fusion: %d pairs (%s) in %.1f s",
+        manifest["count"],
+        manifest["split_counts"],
+        elapsed,
+    )
 
 
 if __name__ == "__main__":

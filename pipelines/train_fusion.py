@@ -23,6 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 import argparse  # noqa: E402
+from contextlib import nullcontext  # noqa: E402
 
 from traffictwin.config import ConfigError, flatten, get, typed  # noqa: E402
 from traffictwin.fusion.config import (  # noqa: E402
@@ -35,7 +36,7 @@ from traffictwin.fusion.training import (  # noqa: E402
     TrackingSettings,
     fit_fusion,
 )
-from traffictwin.trainer import TrainerSettings  # noqa: E402
+from traffictwin.trainer import TrainerSettings, global_rank  # noqa: E402
 
 from ._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
 from ._paths import (  # noqa: E402
@@ -103,7 +104,8 @@ def main(argv: list[str] | None = None) -> None:
         params=logged,
     )
     out_dir = fusion_model_dir(name)
-    with stage_timer(stage):
+    # under DDP the launcher re-runs this script per rank: only rank zero times the stage
+    with stage_timer(stage) if global_rank() == 0 else nullcontext():
         res = fit_fusion(
             fusion_data_dir(inputs, cfg_name),
             spec=spec,

@@ -11,11 +11,12 @@ best checkpoint and an MLflow model (single-tensor input, :class:`~traffictwin.r
 from __future__ import annotations
 
 import argparse
+from contextlib import nullcontext
 
 from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.risk.dave2 import Dave2Config, count_parameters
 from traffictwin.risk.training import RiskModelConfig, RiskSource, TrainConfig, fit_risk
-from traffictwin.trainer import TrackingSettings, TrainerSettings
+from traffictwin.trainer import TrackingSettings, TrainerSettings, global_rank
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, plot_file, risk_model_dir
@@ -101,7 +102,8 @@ def main(argv: list[str] | None = None) -> None:
             {"risk_model": {k: v for k, v in get(p, "risk_model", dict).items() if k != "variants"}}
         ),
     )
-    with stage_timer(stage):
+    # under DDP the launcher re-runs this script per rank: only rank zero times the stage
+    with stage_timer(stage) if global_rank() == 0 else nullcontext():
         res = fit_risk(
             RiskSource(RISK_DATA, DISPARITY, ORB_CSV if model.orb_filter else None),
             cfg,

@@ -10,6 +10,10 @@ Stable API (the fusion and the risk stages both use it):
   (metrics go to MLflow through :class:`History`, which logs one value per epoch).
 - :class:`NetModule` — the one trainer shape: LightningModule with an injected network and
   loss, Adam (+ optional plateau decay); the fusion and risk modules subclass it.
+- :class:`RankShardSampler` / :func:`rank_layout` — under DDP, this rank's share of a
+  sampler's indices, for the loaders the DataModules build themselves: training gets the
+  same per-epoch draw split evenly over the ranks, evaluation every sample exactly once
+  (Lightning's own DistributedSampler would repeat samples to even out the ranks).
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
 - :class:`History` — the metric rows (per epoch, or per validation for the risk net's
   per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
@@ -42,6 +46,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
+from torch.utils.data import DistributedSampler, Sampler
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.io.atomic import atomic_path
@@ -185,6 +190,82 @@ def build_trainer(
         kw["limit_val_batches"] = limit_val_batches
     kw.update(extra)
     return L.Trainer(**kw)
+
+
+def rank_layout(trainer: Any) -> tuple[int, int]:
+    """``(world_size, global_rank)`` of the Lightning trainer a DataModule is attached to;
+    ``(1, 0)`` when there is none (a DataModule used on its own)."""
+    if trainer is None:
+        return 1, 0
+    return int(trainer.world_size), int(trainer.global_rank)
+
+
+class RankShardSampler(DistributedSampler):
+    """This rank's share of ``base``'s indices under DDP.
+
+    ``base`` is iterated once per epoch on every rank; it must yield the same indices on every
+    rank (a seeded sampler: e.g. a ``RandomSampler`` with a generator of a fixed seed, which
+    then draws afresh each epoch, the same draw everywhere).
+
+    ``even=True`` (training): ``list(base)[rank::num_replicas]`` without the last
+    ``len(base) % num_replicas`` indices of the epoch's draw, so every rank gets
+    ``len(base) // num_replicas`` and all ranks run the same number of optimiser steps; an epoch
+    draws ``len(base)`` samples in all (e.g. a ``RandomSampler``'s ``num_samples``), not the
+    whole dataset per rank.
+
+    ``even=False`` (evaluation): nothing left out or repeated. The indices are cut into
+    consecutive blocks of ``block`` (the loader's batch size) dealt round-robin to the ranks, so
+    each rank evaluates exactly the batches one process would (same batch composition, same
+    float32 arithmetic) and sums reduced over the ranks differ from one process's only in the
+    order of the final additions. With fewer batches than ranks the blocks shrink to
+    ``ceil(len(base) / num_replicas)``. Ranks may run different numbers of batches (the
+    evaluation steps must not communicate per batch); every rank needs at least one index.
+
+    A :class:`~torch.utils.data.DistributedSampler`, so Lightning does not wrap it again.
+    """
+
+    def __init__(
+        self,
+        base: Sampler[int],
+        num_replicas: int,
+        rank: int,
+        *,
+        even: bool,
+        block: int = 1,
+    ) -> None:
+        n = len(base)  # type: ignore[arg-type]
+        if not 0 <= rank < num_replicas:
+            raise ValueError(f"RankShardSampler: rank {rank} not in [0, {num_replicas})")
+        if block < 1:
+            raise ValueError(f"RankShardSampler: block must be >= 1, got {block}")
+        if not even and n < num_replicas:
+            raise ValueError(
+                f"RankShardSampler: {n} evaluation sample(s) cannot be shared by {num_replicas} "
+                f"ranks (every rank needs at least one): use fewer devices or more samples"
+            )
+        super().__init__(base, num_replicas=num_replicas, rank=rank, shuffle=False)  # type: ignore[arg-type]
+        self.base = base
+        self.even = even
+        self.n = n
+        pos = np.arange(n)
+        if even:
+            self.positions = pos[: n - n % num_replicas][rank::num_replicas]
+        else:
+            if math.ceil(n / block) < num_replicas:
+                block = math.ceil(n / num_replicas)
+            self.positions = pos[(pos // block) % num_replicas == rank]
+        self.block = block
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def __iter__(self) -> Iterator[int]:
+        idx = list(self.base)
+        if len(idx) != self.n:
+            raise RuntimeError(
+                f"RankShardSampler: base sampler gave {len(idx)} indices, not {self.n}"
+            )
+        return iter([idx[p] for p in self.positions.tolist()])
 
 
 def best_checkpoint(

@@ -6,7 +6,9 @@
   "unknown" (0, 0), so every cell stays on the simplex (``m_F, m_O >= 0``, ``m_F + m_O <= 1``).
 - :class:`FusionDataModule` — the ``prealigned`` dataset's ``train``/``val`` splits held in memory;
   a seeded random subset of ``train_samples_per_epoch`` pairs per epoch (a fresh draw each epoch),
-  a fixed evenly spaced subset of ``val_samples`` validation pairs.
+  a fixed evenly spaced subset of ``val_samples`` validation pairs. Under DDP the ranks split
+  each epoch's draw (``train_samples_per_epoch`` pairs in all, not per rank) and the validation
+  pairs (each on exactly one rank): :class:`~traffictwin.trainer.RankShardSampler`.
 - :class:`FusionLitModule` — Adam, ReduceLROnPlateau on the selection metric ``val/kld_full``
   (KLD(b) over the full mass vector), the loss ``fusion_model.loss.name`` (:data:`LOSSES`: ``mass``,
   ``paper`` = eqs. (6)-(7), ``paper_kl``),
@@ -34,7 +36,14 @@ import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
+from torch.utils.data import (
+    DataLoader,
+    RandomSampler,
+    Sampler,
+    SequentialSampler,
+    Subset,
+    TensorDataset,
+)
 from torchmetrics import MeanMetric
 
 from traffictwin import trainer as common
@@ -227,7 +236,12 @@ class FusionDataModule(L.LightningDataModule):
         k = self.settings.train_samples_per_epoch
         k = n if k <= 0 else min(k, n)
         gen = torch.Generator().manual_seed(self.seed)
-        sampler = RandomSampler(self.train_set, replacement=False, num_samples=k, generator=gen)
+        sampler: Sampler[int] = RandomSampler(
+            self.train_set, replacement=False, num_samples=k, generator=gen
+        )
+        world, rank = common.rank_layout(self.trainer)
+        if world > 1:  # DDP: the same k-pair draw on every rank, k // world pairs each
+            sampler = common.RankShardSampler(sampler, world, rank, even=True)
         return DataLoader(
             self.train_set,
             batch_size=self.settings.batch_size,
@@ -239,10 +253,25 @@ class FusionDataModule(L.LightningDataModule):
 
     def val_dataloader(self) -> DataLoader:
         assert self.val_set is not None
+        world, rank = common.rank_layout(self.trainer)
+        # DDP: every validation pair on exactly one rank (no padding repeats), in the batches one
+        # process would use, so the metrics reduced over the ranks are those of one process
+        sampler = (
+            common.RankShardSampler(
+                SequentialSampler(self.val_set),
+                world,
+                rank,
+                even=False,
+                block=self.settings.batch_size,
+            )
+            if world > 1
+            else None
+        )
         return DataLoader(
             self.val_set,
             batch_size=self.settings.batch_size,
             shuffle=False,
+            sampler=sampler,
             num_workers=self.settings.num_workers,
             persistent_workers=self.settings.num_workers > 0,
         )
@@ -668,7 +697,10 @@ def fit_fusion(
         epochs_run = len(history.rows)
         n_train = len(dm.train_set) if dm.train_set is not None else 0
         k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
-        samples_seen = min(k, n_train) // data.batch_size * data.batch_size * epochs_run
+        # per epoch each of the world_size ranks trains on k // world_size pairs in full batches
+        world = int(trainer.world_size)
+        per_rank = min(k, n_train) // world // data.batch_size * data.batch_size
+        samples_seen = per_rank * world * epochs_run
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
         metrics.update(
             {

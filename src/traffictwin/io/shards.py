@@ -8,6 +8,11 @@ manifest with their SHA-256 as well.
 
 Reading verifies the manifest: schema version, kind, every shard's presence and hash.
 Errors name the file and what is wrong.
+
+A dataset can also be generated in parts on several machines: each writes a shard range and a
+partial manifest (:meth:`DatasetWriter.finalize_part`); :func:`merge_parts` checks the parts
+against each other and the expected parameters and writes the same ``manifest.json`` one machine
+would have written.
 """
 
 from __future__ import annotations
@@ -15,8 +20,9 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import shutil
 import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -202,28 +208,254 @@ class DatasetWriter:
     def finalize(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """Write ``manifest.json``; returns the manifest dict."""
         shards = [self._shards[i] for i in sorted(self._shards)]
-        splits: dict[str, int] = {}
-        for s in shards:
-            if s.split is not None:
-                splits[s.split] = splits.get(s.split, 0) + s.count
-        manifest = {
-            "schema_version": SCHEMA_VERSION,
-            "kind": self.kind,
-            "seed": self.seed,
-            "params": self.params,
-            "count": sum(s.count for s in shards),
-            "split_counts": splits,
-            "shards": [
-                {"name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split}
-                for s in shards
-            ],
-            "tables": [{"name": n, "sha256": d} for n, d in sorted(self._tables.items())],
-            **(dict(extra) if extra else {}),
-        }
+        manifest = build_manifest(
+            self.kind, self.seed, self.params, shards, sorted(self._tables.items()), extra
+        )
         write_json_atomic(self.root / MANIFEST, manifest)
         if self._progress.exists():
             self._progress.unlink()
         return manifest
+
+    def finalize_part(
+        self,
+        start: int,
+        stop: int,
+        n_shards: int,
+        extra: Mapping[str, Any] | None = None,
+        stats: Mapping[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """Write the partial manifest :func:`part_name` ``(start, stop)`` of shards
+        ``start .. stop - 1`` out of ``n_shards`` (no ``manifest.json``: the folder is one part of a
+        dataset generated on several machines; :func:`merge_parts` joins the parts). ``extra``
+        goes into the final manifest, ``stats`` (e.g. seconds) only into the part. Returns it."""
+        if not 0 <= start < stop <= n_shards:
+            raise ValueError(f"shard range {start}:{stop} is not within 0:{n_shards}")
+        if sorted(self._shards) != list(range(start, stop)):
+            raise ValueError(
+                f"{self.root}: part {start}:{stop} needs shards {start}..{stop - 1}, "
+                f"written are {sorted(self._shards)}"
+            )
+        if self._tables:
+            raise ValueError(
+                f"{self.root}: tables {sorted(self._tables)} cannot be split into parts"
+            )
+        part = {
+            **self._identity(),
+            "part": {"start": int(start), "stop": int(stop), "n_shards": int(n_shards)},
+            "shards": [
+                {"index": i, "name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split}
+                for i, s in sorted(self._shards.items())
+            ],
+            "extra": json.loads(json.dumps(dict(extra or {}), sort_keys=True, default=str)),
+            "stats": dict(stats or {}),
+        }
+        write_json_atomic(self.root / part_name(start, stop), part)
+        if self._progress.exists():
+            self._progress.unlink()
+        return part
+
+
+def build_manifest(
+    kind: str,
+    seed: int,
+    params: Mapping[str, Any],
+    shards: Sequence[ShardInfo],
+    tables: Sequence[tuple[str, str]] = (),
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``manifest.json`` dict of ``shards`` (in order) and ``tables`` (name, SHA-256)."""
+    splits: dict[str, int] = {}
+    for s in shards:
+        if s.split is not None:
+            splits[s.split] = splits.get(s.split, 0) + s.count
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "kind": kind,
+        "seed": seed,
+        "params": params,
+        "count": sum(s.count for s in shards),
+        "split_counts": splits,
+        "shards": [
+            {"name": s.name, "sha256": s.sha256, "count": s.count, "split": s.split} for s in shards
+        ],
+        "tables": [{"name": n, "sha256": d} for n, d in tables],
+        **(dict(extra) if extra else {}),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# a dataset generated in parts (shard ranges) on several machines
+
+PART_GLOB = "manifest.part-*.json"
+
+
+def part_name(start: int, stop: int) -> str:
+    """File name of the partial manifest of shards ``start .. stop - 1``."""
+    return f"manifest.part-{start:05d}-{stop:05d}.json"
+
+
+def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
+    """Dotted key of the first place where ``a`` and ``b`` differ (``None`` when equal)."""
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        for k in sorted(set(a) | set(b)):
+            sub = f"{key}.{k}" if key else str(k)
+            if k not in a or k not in b:
+                return sub
+            d = _first_difference(a[k], b[k], sub)
+            if d is not None:
+                return d
+        return None
+    return None if a == b else (key or "<root>")
+
+
+def _lookup(tree: Any, dotted: str) -> Any:
+    for k in dotted.split("."):
+        if not isinstance(tree, Mapping) or k not in tree:
+            return "<missing>"
+        tree = tree[k]
+    return tree
+
+
+def _read_part(path: Path) -> dict[str, Any]:
+    try:
+        part = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
+    for key in ("schema_version", "kind", "seed", "params", "part", "shards", "extra"):
+        if key not in part:
+            raise DatasetError(f"{path}: field '{key}' missing (not a partial manifest)")
+    for key in ("start", "stop", "n_shards"):
+        if not isinstance(part["part"].get(key), int):
+            raise DatasetError(f"{path}: field 'part.{key}' missing or not an integer")
+    return part
+
+
+def merge_parts(
+    sources: Sequence[str | Path],
+    dest: str | Path,
+    *,
+    kind: str,
+    params: Mapping[str, Any],
+    seed: int,
+    n_shards: int,
+    splits: Sequence[str] | None = None,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Join the parts in the folders ``sources`` (each with one or more :func:`part_name` files
+    and their shards) into the dataset folder ``dest``: shards copied (verified by SHA-256),
+    ``manifest.json`` written exactly as one machine's :meth:`DatasetWriter.finalize` would, and
+    every other file in ``dest`` (partial manifests, stale shards) removed. ``dest`` may be one
+    of ``sources``.
+
+    Every part must have been generated with ``kind``, ``seed`` and ``params`` (as the writer
+    records them), for ``n_shards`` shards, and (when given) shard ``i`` must be in split
+    ``splits[i]``; the parts' ranges must cover ``0 .. n_shards - 1`` exactly once. All of this
+    is checked before anything is written; :class:`DatasetError` names the part or file.
+    Returns the manifest and the parts (their ``stats`` included), in shard order.
+    """
+    params = json.loads(json.dumps(params, sort_keys=True, default=str))
+    want = {"schema_version": SCHEMA_VERSION, "kind": kind, "seed": int(seed), "params": params}
+    parts: list[tuple[Path, Path, dict[str, Any]]] = []  # (folder, part file, part)
+    for src in map(Path, sources):
+        if not src.is_dir():
+            raise DatasetError(f"{src}: folder not found (expected a part's output folder)")
+        files = sorted(src.glob(PART_GLOB))
+        if not files:
+            raise DatasetError(
+                f"{src}: no partial manifest ({PART_GLOB}); generate a part there with --shards i:j"
+            )
+        parts += [(src, f, _read_part(f)) for f in files]
+
+    extra0 = parts[0][2]["extra"]
+    for _src, f, part in parts:
+        for key in ("schema_version", "kind", "seed"):
+            if part[key] != want[key]:
+                raise DatasetError(f"{f}: {key} is {part[key]!r}, expected {want[key]!r}")
+        diff = _first_difference(part["params"], params)
+        if diff is not None:
+            raise DatasetError(
+                f"{f}: generated with other parameters: '{diff}' is "
+                f"{_lookup(part['params'], diff)!r} there, {_lookup(params, diff)!r} here"
+            )
+        if part["extra"] != extra0:
+            raise DatasetError(
+                f"{f}: manifest extras {part['extra']} differ from {parts[0][1]}'s {extra0}"
+            )
+        r = part["part"]
+        if r["n_shards"] != n_shards:
+            raise DatasetError(f"{f}: part of {r['n_shards']} shards, expected {n_shards}")
+        if not 0 <= r["start"] < r["stop"] <= n_shards:
+            raise DatasetError(
+                f"{f}: shard range {r['start']}:{r['stop']} out of bounds (0:{n_shards})"
+            )
+        listed = [s.get("index") for s in part["shards"]]
+        if listed != list(range(r["start"], r["stop"])):
+            raise DatasetError(
+                f"{f}: lists shards {listed}, expected {r['start']}..{r['stop'] - 1}"
+            )
+
+    parts.sort(key=lambda p: (p[2]["part"]["start"], p[2]["part"]["stop"]))
+    covered = 0
+    prev: Path | None = None
+    for _src, f, part in parts:
+        start, stop = part["part"]["start"], part["part"]["stop"]
+        if start < covered:
+            raise DatasetError(
+                f"{f} (shards {start}:{stop}) overlaps {prev} in shards {start}..{min(stop, covered) - 1}"
+            )
+        if start > covered:
+            raise DatasetError(
+                f"shards {covered}..{start - 1} of {n_shards} are in no part "
+                f"(parts: {', '.join(str(p[1]) for p in parts)})"
+            )
+        covered, prev = stop, f
+    if covered < n_shards:
+        raise DatasetError(
+            f"shards {covered}..{n_shards - 1} of {n_shards} are in no part "
+            f"(parts: {', '.join(str(p[1]) for p in parts)})"
+        )
+
+    infos: list[tuple[Path, ShardInfo]] = []
+    for src, f, part in parts:
+        for s in part["shards"]:
+            i = int(s["index"])
+            if s["name"] != shard_name(i):
+                raise DatasetError(
+                    f"{f}: shard {i} is named {s['name']!r}, expected {shard_name(i)!r}"
+                )
+            if splits is not None and s.get("split") != splits[i]:
+                raise DatasetError(
+                    f"{f}: shard {i} is in split {s.get('split')!r}, expected {splits[i]!r}"
+                )
+            path = src / s["name"]
+            if not path.exists():
+                raise DatasetError(f"{path}: listed in {f} but missing")
+            got = sha256_file(path)
+            if got != s["sha256"]:
+                raise DatasetError(
+                    f"{path}: SHA-256 mismatch ({f.name} {s['sha256'][:12]}…, file {got[:12]}…): "
+                    "corrupt or tampered"
+                )
+            infos.append((path, ShardInfo(s["name"], s["sha256"], int(s["count"]), s.get("split"))))
+
+    # everything checked: write dest (shards first, the manifest last, then drop the rest)
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / MANIFEST).unlink(missing_ok=True)
+    for path, info in infos:
+        target = dest / info.name
+        if target.exists() and target.resolve() == path.resolve():
+            continue
+        with atomic_path(target, suffix=".npz") as tmp:
+            shutil.copyfile(path, tmp)
+            if sha256_file(tmp) != info.sha256:
+                raise DatasetError(f"{path}: changed while it was copied to {target}")
+    manifest = build_manifest(kind, int(seed), params, [i for _, i in infos], (), extra0)
+    write_json_atomic(dest / MANIFEST, manifest)
+    keep = {MANIFEST, *(i.name for _, i in infos)}
+    for p in dest.iterdir():
+        if p.is_file() and p.name not in keep:
+            p.unlink()
+    return manifest, [p for _, _, p in parts]
 
 
 class Dataset:

@@ -37,7 +37,7 @@ import lightning as L
 import numpy as np
 import pandas as pd
 import torch
-from torch.utils.data import DataLoader, TensorDataset
+from torch.utils.data import DataLoader, SequentialSampler, TensorDataset
 from torchmetrics import SumMetric
 
 from traffictwin.config import flatten
@@ -61,6 +61,7 @@ from traffictwin.risk.model_io import CKPT, save_risk_model
 from traffictwin.trainer import (
     History,
     NetModule,
+    RankShardSampler,
     TrackingSettings,
     TrainerSettings,
     best_checkpoint,
@@ -70,6 +71,7 @@ from traffictwin.trainer import (
     log_final_metrics,
     log_torch_model,
     mlflow_logger,
+    rank_layout,
     seed_everything,
     tracked_run,
 )
@@ -368,10 +370,21 @@ class RiskDataModule(L.LightningDataModule):
     def _loader(self, arrays: RiskArrays, shuffle: bool, bs: int) -> DataLoader:
         g = torch.Generator()
         g.manual_seed(self.seed)
+        ds = arrays.tensors()
+        world, rank = rank_layout(self.trainer)
+        # DDP evaluation: every frame on exactly one rank, in one process's batches (Lightning's
+        # DistributedSampler would repeat frames to even out the ranks and bias the summed
+        # metrics); training keeps Lightning's shuffled DistributedSampler
+        sampler = (
+            RankShardSampler(SequentialSampler(ds), world, rank, even=False, block=bs)
+            if world > 1 and not shuffle
+            else None
+        )
         return DataLoader(
-            arrays.tensors(),
+            ds,
             batch_size=bs,
             shuffle=shuffle,
+            sampler=sampler,
             generator=g if shuffle else None,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
@@ -743,17 +756,19 @@ def fit(
         else float("nan")
     )
     net = module.net.cpu().eval()
-    if not fast_dev_run:
+    # other DDP ranks hold the last, not the best, weights and publish nothing
+    if not fast_dev_run and trainer.is_global_zero:
         check_spread(net, val, cfg, tc.min_pred_std)
-    log.info(
-        "risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
-        list(cfg.inputs),
-        count_parameters(net),
-        trainer.global_step,
-        seconds,
-        best_val,
-        best_step,
-    )
+    if trainer.is_global_zero:  # the other DDP ranks have no history
+        log.info(
+            "risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
+            list(cfg.inputs),
+            count_parameters(net),
+            trainer.global_step,
+            seconds,
+            best_val,
+            best_step,
+        )
     return TrainResult(
         net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
     )
