@@ -113,7 +113,7 @@ def load_networks(
 ) -> tuple[dict[str, dict[str, Any]], list[tuple[Path, str, str]]]:
     """``{row: {configuration: network}}`` (row ``dnn``: models/fusion/<cfg> of every configuration;
     one row per ``fusion_variants`` entry; row ``learned``: models/registration/<cfg> of
-    ``registration_model.configurations``; row ``learned+network``: (learned, registered+network)
+    every configuration (when params.yaml has a ``registration_model`` group); row ``learned+network``: (learned, registered+network)
     where both exist) and the ``(model folder, configuration, row)`` list."""
     from traffictwin.config import ConfigError, get
     from traffictwin.fusion.config import fusion_variants, variant_row
@@ -145,14 +145,7 @@ def load_networks(
     from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
     from traffictwin.fusion.registration_training import load_registration_model
 
-    learned_cfgs = (
-        get(cfg, "registration_model.configurations", list) if "registration_model" in cfg else []
-    )
-    for c in learned_cfgs:
-        if c not in configs:
-            raise ConfigError(
-                f"params.yaml: 'registration_model.configurations' has {c!r}, not a key of 'configurations'"
-            )
+    for c in configs if "registration_model" in cfg else []:
         folder = registration_model_dir(c)
         networks.setdefault(LEARNED, {})[c] = load_registration_model(
             folder / "model.ckpt", expected_grid=grid, expected_cfg=c

@@ -5,7 +5,7 @@ Not a DVC stage (it changes the MLflow registry, which DVC cannot cache); run af
     python -m pipelines.promote [--only traffictwin-fusion-A traffictwin-risk] [--dry-run] [--force]
 
 One gate per fusion configuration (the keys of ``configurations``), one per learned registration
-(``registration_model.configurations``, registered as ``<name_prefix>-learned-<cfg>``) and one for the risk variant
+(one per configuration, registered as ``<name_prefix>-learned-<cfg>``) and one for the risk variant
 ``registry.risk.variant``; settings from the ``registry`` group (validated once), folders from
 ``pipelines/_paths.py``. The work is :func:`traffictwin.mlops.promotion.promote`: every
 candidate is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
@@ -62,8 +62,9 @@ def configurations(cfg: DictConfig) -> list[str]:
 
 
 def registration_configurations(cfg: DictConfig) -> list[str]:
-    """Configurations with a learned registration (``registration_model.configurations``)."""
-    return list(get(cfg, "registration_model.configurations", list))
+    """Configurations with a learned registration: every one, when params.yaml has a
+    ``registration_model`` group."""
+    return configurations(cfg) if "registration_model" in cfg else []
 
 
 def model_names(cfg: DictConfig, rc: RegistryConfig) -> list[str]:

@@ -495,7 +495,7 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
     assert (
         m["test"]["A"]["naive"]["kld_fo_mean"] < 1e-6 and m["test"]["A"]["naive"]["dice_occ"] == 1.0
     )
-    assert sorted(m["cross"]) == [f"dnn-{c}" for c in CFGS] and all(
+    assert sorted(m["cross"]) == [f"{r}-{c}" for r in ("dnn", "learned") for c in CFGS] and all(
         sorted(m["cross"][k]) == list(CFGS) for k in m["cross"]
     )
     assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]

@@ -30,7 +30,7 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     rc = pm.registry_config(cfg)
     jobs = pm.build_jobs(cfg, rc)
     cfgs = list(cfg["configurations"])
-    learned = list(cfg["registration_model"]["configurations"])
+    learned = cfgs  # one learned registration per configuration
     assert [j.name for j in jobs] == (
         [f"{rc.fusion.name_prefix}-{c}" for c in cfgs]
         + [f"{rc.fusion.name_prefix}-learned-{c}" for c in learned]

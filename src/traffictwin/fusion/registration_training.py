@@ -76,11 +76,10 @@ class RegistrationTrainConfig:
 @dataclass
 class RegistrationModelConfig:
     """The ``registration_model`` group: the network (:class:`RegistrationNetSpec` fields), the
-    fallback's ``min_gain``, the configurations to train (``configurations``) and the training."""
+    fallback's ``min_gain`` and the training (one network per pose-noise configuration)."""
 
     architecture: dict[str, Any] = setting(MISSING)
     min_gain: float = setting(MISSING, min=-1.0, max=1.0)
-    configurations: list[str] = setting(MISSING)
     train: RegistrationTrainConfig = setting(MISSING)
 
     def net_spec(self, source: str, key: str = "registration_model") -> RegistrationNetSpec:

@@ -464,11 +464,17 @@ def registration_tables(
             cells = [Cell(FUSION_METHOD_LABELS.get(m, m))]
             for lab in labels:
                 key = f"bins.{axis}.{m}.{lab}"
-                if isinstance(src.get(FUSION_FILE, f"{key}.success_rate"), (int, float)):
+                sr = src.get(FUSION_FILE, f"{key}.success_rate")
+                if isinstance(sr, (int, float)):
                     n = src.get(FUSION_FILE, f"{key}.n")
-                    cell = src.cell(FUSION_FILE, f"{key}.success_rate")
                     count = int(n) if isinstance(n, (int, float)) else "?"
-                    cells.append(replace(cell, text=f"{cell.text} ({count})"))
+                    cells.append(
+                        Cell(
+                            f"{fmt_value(sr, 'g4')} ({count})",
+                            value=[sr, n],
+                            derived=f"metrics/{FUSION_FILE}#{key}.success_rate (n: .n)",
+                        )
+                    )
                 else:
                     cells.append(Cell(NA))
             b.rows.append(cells)
