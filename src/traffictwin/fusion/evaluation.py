@@ -853,20 +853,26 @@ def fusion_targets(
         b = v[f"{key}_ci"]
         return _judge(Interval(v[key], b["lo"], b["hi"], ci.level), t.threshold, t.op)
 
+    def dice_drop(
+        ref: pd.DataFrame, other: pd.DataFrame, what: str, threshold: float
+    ) -> dict[str, Any]:
+        """1 − Dice occ(other) / Dice occ(ref) on their common pairs, resampled together."""
+        common, ir, io = np.intersect1d(ref["pair_id"], other["pair_id"], return_indices=True)
+        codes, g = _codes(common)
+        draws = _draws(g, ci)
+        er, br = _pooled_dice(ref.iloc[ir], "occ", codes, g, draws)
+        eo, bo = _pooled_dice(other.iloc[io], "occ", codes, g, draws)
+        if not er > 0:  # reference Dice = 0 or undefined: no relative drop
+            return _missing(f"{what} is {er}: the relative drop is undefined")
+        with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice 0 drop out
+            iv = _interval(1.0 - eo / er, 1.0 - bo / br, ci.level, g)
+        return _judge(iv, threshold, "<=")
+
     def drop(c: str) -> dict[str, Any]:
         a, d = frame("A", NETWORK), frame(c, NETWORK)
         if a is None or d is None:
             return _missing("configurations A and D both needed")
-        common, ia, idd = np.intersect1d(a["pair_id"], d["pair_id"], return_indices=True)
-        codes, g = _codes(common)
-        draws = _draws(g, ci)
-        ea, ba = _pooled_dice(a.iloc[ia], "occ", codes, g, draws)
-        ed, bd = _pooled_dice(d.iloc[idd], "occ", codes, g, draws)
-        if not ea > 0:  # Dice(A) = 0 or undefined: no relative drop
-            return _missing(f"network Dice occ at A is {ea}: the relative drop is undefined")
-        with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice(A) = 0 drop out
-            iv = _interval(1.0 - ed / ea, 1.0 - bd / ba, ci.level, g)
-        return _judge(iv, 0.10, "<=")
+        return dice_drop(a, d, "network Dice occ at A", 0.10)
 
     def vs_ego(c: str) -> dict[str, Any]:
         n, e = frame(c, NETWORK), frame(c, "ego")
@@ -890,13 +896,14 @@ def fusion_targets(
         res["signed_difference"] = {"estimate": d.estimate, "lo": d.lo, "hi": d.hi}
         return res
 
-    def hybrid(c: str) -> dict[str, Any]:
-        dd = metrics["diff"].get(c, {}).get(HYBRID, {}).get("vs_registered")
+    def beats_registered(c: str, row: str) -> dict[str, Any]:
+        """KLD(b) of ``row`` − registered: interval wholly below 0, Dice occ difference not wholly below 0."""
+        dd = metrics["diff"].get(c, {}).get(row, {}).get("vs_registered")
         if not dd:
-            return _missing(f"rows {HYBRID} and registered not both evaluated at configuration {c}")
+            return _missing(f"rows {row} and registered not both evaluated at configuration {c}")
         k, dc = dd[HEADLINE], dd["dice_occ"]
         if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
-            return _missing(f"no interval of the {HYBRID} − registered difference at {c}")
+            return _missing(f"no interval of the {row} − registered difference at {c}")
         ok = k["hi"] < 0 and not dc["hi"] < 0  # KLD(b) lower, shown; Dice occ not shown lower
         return {
             "value": k["estimate"],
@@ -913,7 +920,7 @@ def fusion_targets(
     entry("dice_occ_vs_ego", vs_ego)
     entry("u_auroc", lambda c: value_ci(c, NETWORK, "u_auroc", TARGETS["u_auroc"]))
     entry("u_mean_vs_label", u_gap)
-    entry("hybrid_vs_registered", hybrid)
+    entry("hybrid_vs_registered", lambda c: beats_registered(c, HYBRID))
 
     def learned_success(c: str, threshold: float) -> dict[str, Any]:
         dd = (
@@ -927,23 +934,6 @@ def fusion_targets(
         res["n_pairs"] = dd["n_pairs"]
         return res
 
-    def learned_kld(c: str) -> dict[str, Any]:
-        dd = metrics["diff"].get(c, {}).get(LEARNED_NETWORK, {}).get("vs_registered")
-        if not dd:
-            return _missing(
-                f"rows {LEARNED_NETWORK} and registered not both evaluated at configuration {c}"
-            )
-        k, dc = dd[HEADLINE], dd["dice_occ"]
-        ok = k["hi"] < 0 and not dc["hi"] < 0
-        return {
-            "value": k["estimate"],
-            "lo": k["lo"],
-            "hi": k["hi"],
-            "status": "pass" if ok else "fail",
-            "ci_beyond_threshold": bool(k["hi"] < 0),
-            "dice_occ_difference": {"estimate": dc["estimate"], "lo": dc["lo"], "hi": dc["hi"]},
-        }
-
     def learned_ms(c: str) -> dict[str, Any]:
         f = frame(c, LEARNED)
         if f is None:
@@ -955,20 +945,13 @@ def fusion_targets(
         own_f, d_f = frame(c, LEARNED), frame(c, f"{LEARNED}-D")
         if own_f is None or d_f is None:
             return _missing(f"{LEARNED} of {c} and {LEARNED}-D not both evaluated at {c}")
-        common, io, idd = np.intersect1d(own_f["pair_id"], d_f["pair_id"], return_indices=True)
-        codes, g = _codes(common)
-        draws = _draws(g, ci)
-        eo, bo = _pooled_dice(own_f.iloc[io], "occ", codes, g, draws)
-        ed, bd = _pooled_dice(d_f.iloc[idd], "occ", codes, g, draws)
-        if not eo > 0:
-            return _missing(f"{LEARNED} Dice occ at {c} is {eo}: the relative drop is undefined")
-        with np.errstate(invalid="ignore", divide="ignore"):
-            iv = _interval(1.0 - ed / eo, 1.0 - bd / bo, ci.level, g)
-        return _judge(iv, TARGETS["learned_cross_dice_drop"].threshold, "<=")
+        return dice_drop(
+            own_f, d_f, f"{LEARNED} at {c}", TARGETS["learned_cross_dice_drop"].threshold
+        )
 
     entry("learned_success_vs_registered", lambda c: learned_success(c, 0.0))
     entry("learned_success_gain_at_D", lambda c: learned_success(c, 0.10))
-    entry("learned_kld_vs_registered", learned_kld)
+    entry("learned_kld_vs_registered", lambda c: beats_registered(c, LEARNED_NETWORK))
     entry("learned_runtime_ms", learned_ms)
     entry("learned_cross_dice_drop", learned_cross)
     return out

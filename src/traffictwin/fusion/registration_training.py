@@ -502,28 +502,26 @@ def learning_curves(rows: list[dict[str, float]], title: str):
     if not rows:
         raise ValueError("learning_curves: no epochs to plot")
 
-    def series(key: str) -> tuple[np.ndarray, np.ndarray]:
-        pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
-        return tuple(np.array(pts, dtype=np.float64).T) if pts else (np.empty(0), np.empty(0))
+    from traffictwin.fusion.training_figures import _series
 
     plt = _plt()
     fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
-    e, v = series("val/success_rate")
+    e, v = _series(rows, "val/success_rate")
     ax1.plot(e, 100 * v, "o-", label="validation")
-    el, vl = series("val/loss")
+    el, vl = _series(rows, "val/loss")
     if len(vl):
         b = int(np.argmin(vl))
         ax1.axvline(el[b], color="#ff7f0e", ls=":", label=f"best epoch {int(el[b])} (val loss)")
     ax1.set(
         xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
     )
-    et, vt = series("val/trans_err_m")
+    et, vt = _series(rows, "val/trans_err_m")
     ax2.plot(et, vt, "o-", label="translation (m)")
-    er, vr = series("val/rot_err_deg")
+    er, vr = _series(rows, "val/rot_err_deg")
     ax2.plot(er, vr, "s-", label="rotation (deg)")
     ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
     for key, style, lab in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
-        ek, vk = series(key)
+        ek, vk = _series(rows, key)
         ax3.plot(ek, vk, style, label=lab)
     ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")
     for ax in (ax1, ax2, ax3):
