@@ -30,6 +30,9 @@ REGISTERED = DATA / "registered"
 FUSION_MODELS = MODELS / "fusion"
 REGISTRATION_MODELS = MODELS / "registration"
 
+# twin
+TWIN_DATA = DATA / "twin"
+
 # risk
 RISK_DATA = DATA / "risk"
 DISPARITY = DATA / "disparity"

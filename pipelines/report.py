@@ -25,6 +25,7 @@ from traffictwin.report.model import ReportInputs, SectionProvider
 from traffictwin.report.render import write_report
 from traffictwin.risk import report_section as risk_report
 from traffictwin.stereo import report_section as stereo_report
+from traffictwin.twin import report_section as twin_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import CONF, DVC_YAML, REPORTS, ROOT
@@ -98,6 +99,7 @@ def providers(configurations: Mapping[str, tuple[float, float]]) -> list[Section
         fusion_report.provider(configurations),
         risk_report.provider(),
         stereo_report.provider(),
+        twin_report.provider(),
     ]
 
 

@@ -59,7 +59,7 @@ def test_cli_and_report_take_any_configuration(tmp_path: Path) -> None:
         ReportParams,
     )
     assert p.pose_noise == {"A": (0.0, 0.0), "E": (7.5, 25.0)}
-    assert len(providers(p.pose_noise)) == 3  # fusion, risk, stereo
+    assert len(providers(p.pose_noise)) == 4  # fusion, risk, stereo, twin
     (tmp_path / "metrics").mkdir()
     methods = {"naive": {"kld_fo_mean": 0.2}, "dnn": {"kld_fo_mean": 0.1}}
     fusion = {"test": {"A": methods, "E": methods}}

@@ -20,6 +20,7 @@ from traffictwin.report.model import DataFile, Figure, ReportInputs, Section, Se
 from traffictwin.report.tables import findings_group, markdown_bullets
 from traffictwin.risk import report_section as risk_report
 from traffictwin.stereo import report_section as stereo_report
+from traffictwin.twin import report_section as twin_report
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "traffictwin"
 
@@ -53,11 +54,12 @@ def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
             "fusion_data_samples.png",
             "stereo_extra.png",
             "pose_extra.png",
+            "twin_timeline.png",
             "misc.png",
         ],
     )
     (rep / "figures" / "notes.txt").write_text("not an image")
-    (figs_fusion, figs_risk, figs_stereo), other = R.collect_figures(rep, providers({}))
+    (figs_fusion, figs_risk, figs_stereo, figs_twin), other = R.collect_figures(rep, providers({}))
     # known figures in the provider's order with its caption, then the others its pattern claims
     assert [(f.path, f.caption) for f in figs_fusion] == [
         (
@@ -72,58 +74,64 @@ def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
     ]
     assert [f.path for f in figs_risk] == ["figures/risk_examples.png", "figures/stereo_extra.png"]
     assert figs_stereo == []  # the stereo section claims only its own figure (stereo_resolution)
+    assert [f.path for f in figs_twin] == ["figures/twin_timeline.png"]
     assert other == [Figure("figures/misc.png", "`figures/misc.png`")]
 
 
 def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
-    """A third provider gets its section (after the others), its figures, its data file in the
+    """One more provider (a problem beyond the four) gets its section (after the others), its figures, its data file in the
     data section and keeps the files it shows out of the appendix."""
     seen: dict[str, object] = {}
 
-    def twin_section(src, figures: list[Figure]) -> Section:
+    def fleet_section(src, figures: list[Figure]) -> Section:
         seen["figures"] = [f.path for f in figures]
-        sec = Section("Twin")
-        sec.paragraphs.append(f"{src.get('twin_run_1.json', 'n')} vehicles")
+        sec = Section("Fleet")
+        sec.paragraphs.append(f"{src.get('fleet_run_1.json', 'n')} vehicles")
         sec.figures = figures
         return sec
 
-    twin = SectionProvider(
-        section=twin_section,
-        figures={"twin_map": "The twin's map"},
-        figure_pattern="twin",
+    fleet = SectionProvider(
+        section=fleet_section,
+        figures={"fleet_map": "The fleet's map"},
+        figure_pattern="fleet",
         data_files=(
-            DataFile("twin_data.json", "Twin data"),
-            DataFile("twin_more.json", "More twin data", required=True),
+            DataFile("fleet_data.json", "Fleet data"),
+            DataFile("fleet_more.json", "More fleet data", required=True),
         ),
-        shown_files=r"twin_run_\d+\.json",
+        shown_files=r"fleet_run_\d+\.json",
     )
     rep = _reports(
         tmp_path,
-        {"twin_run_1.json": {"n": 3}, "twin_data.json": {"all/frames": 5}, "other.json": {"x": 1}},
-        ["twin_map.png", "twin_other.png"],
+        {
+            "fleet_run_1.json": {"n": 3},
+            "fleet_data.json": {"all/frames": 5},
+            "other.json": {"x": 1},
+        },
+        ["fleet_map.png", "fleet_other.png"],
     )
-    report = R.write_report(_inputs(rep), [*providers({}), twin])
+    report = R.write_report(_inputs(rep), [*providers({}), fleet])
     titles = [s.title for s in report.sections]
     assert titles == [
         "This run",
         fusion_report.TITLE,
         risk_report.TITLE,
         stereo_report.TITLE,
-        "Twin",
+        twin_report.TITLE,
+        "Fleet",
         "Data and disparity statistics",
         "Appendix — every metrics file",
     ]
-    assert seen["figures"] == ["figures/twin_map.png", "figures/twin_other.png"]
-    assert _section(report, "Twin").paragraphs == ["3 vehicles"]
+    assert seen["figures"] == ["figures/fleet_map.png", "figures/fleet_other.png"]
+    assert _section(report, "Fleet").paragraphs == ["3 vehicles"]
     data = _section(report, "Data and disparity statistics")
-    assert [t.title for t in data.tables] == ["Twin data"]
+    assert [t.title for t in data.tables] == ["Fleet data"]
     assert data.tables[0].columns == ["group", "frames"]
     assert [[c.text for c in row] for row in data.tables[0].rows] == [["all", "5"]]
-    assert "`reports/metrics/twin_more.json` is missing." in data.paragraphs
+    assert "`reports/metrics/fleet_more.json` is missing." in data.paragraphs
     appendix = _section(report, "Appendix — every metrics file")
     assert [t.title for t in appendix.tables] == ["reports/metrics/other.json"]
     md = (rep / "README.md").read_text()
-    assert "## Twin" in md and "(figures/twin_map.png)" in md
+    assert "## Fleet" in md and "(figures/fleet_map.png)" in md
 
 
 def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:

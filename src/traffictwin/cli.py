@@ -4,6 +4,8 @@ Subcommands (global option ``--threads N`` sets torch's CPU threads)::
 
     traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model champion|challenger|PATH]
                      [--config CFG] [--cell M] -o OUT
+    traffictwin twin MAP1.npz MAP2.npz [MAP3.npz ...] --pose x,y,yaw --pose ... [--method registered|learned|...]
+                     [--registration-model PATH] [--fusion-model PATH] [--strategy reference|sequential] -o OUT
     traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model champion|challenger|PATH] [--params FILE]
                      [-o OUT.json]
     traffictwin risk FOLDER [--speed M_S] [--model ...] [-o OUT.csv]
@@ -34,6 +36,10 @@ Promotion is not a command here: it needs the project's data, model folders and 
 (params.yaml), so it is a workflow of the repository (``python -m pipelines.promote``, which
 calls :func:`traffictwin.mlops.promotion.promote`). This command only needs registry names:
 ``status`` and ``rollback`` (which logs to the promotion log recorded on the model, or ``--log``).
+
+Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first map's frame),
+``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_given`` (N, 3) and ``cell``, plus
+``OUT.png`` (the twin, then each map where the twin put it; a left-out map is black).
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
@@ -417,6 +423,151 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     return 0
 
 
+# ============================================================================ twin
+
+
+def load_twin_models(
+    method: str, registration_model: str | None, fusion_model: str | None
+) -> dict[str, Any]:
+    """The models a twin method needs, from model folders/checkpoints (``--registration-model``:
+    a learned registration, ``models/registration/<cfg>``; ``--fusion-model``: a fusion network)."""
+    from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
+    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.twin.fuse import TWIN_METHODS
+
+    needs = TWIN_METHODS[method].needs
+    models: dict[str, Any] = {}
+    for need, path, opt, load in (
+        ("registration", registration_model, "--registration-model", load_registration_model),
+        ("fusion", fusion_model, "--fusion-model", load_fusion_model),
+    ):
+        if need not in needs:
+            if path is not None:
+                raise CliError(
+                    f"{opt}: method '{method}' does not use a {need} model (it would be ignored)"
+                )
+            continue
+        if path is None:
+            raise CliError(f"{opt}: method '{method}' needs a {need} model folder or .ckpt")
+        if not Path(path).exists():
+            raise CliError(f"{opt}: '{path}' does not exist")
+        try:
+            models[need] = load(Path(path))
+        except FusionModelError as exc:
+            raise CliError(str(exc)) from None
+    return models
+
+
+def twin_preview(twin: np.ndarray, contributions: list[np.ndarray]) -> np.ndarray:
+    """BGR uint8 preview: the twin | each vehicle's map where the twin put it (red = m_occ,
+    green = m_free, blue = u; black = left out)."""
+    panels = [twin, *contributions]
+    h = twin.shape[1]
+    sep = np.full((h, 4, 3), 255, np.uint8)
+    parts = []
+    for k, mm in enumerate(panels):
+        bgr = np.stack([1.0 - mm[0] - mm[1], mm[0], mm[1]], axis=-1)
+        parts += [np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)] + (
+            [sep] if k < len(panels) - 1 else []
+        )
+    img = np.concatenate(parts, axis=1)
+    scale = max(1, int(round(384 / h)))
+    return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+
+
+def cmd_twin(args: argparse.Namespace) -> int:
+    import cv2
+
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.grid import GridSpec
+    from traffictwin.io.atomic import atomic_path
+    from traffictwin.sim.scene import relative_pose
+    from traffictwin.twin.fuse import TwinInputError, build_twin
+
+    if len(args.maps) < 2:
+        raise CliError(f"maps: a twin needs at least two maps, got {len(args.maps)}")
+    poses = args.pose or []
+    if len(poses) != len(args.maps):
+        raise CliError(
+            f"--pose: give one x,y,yaw per map in the same order ({len(args.maps)} maps, {len(poses)} poses)"
+        )
+    world = [parse_pose(p, f"--pose #{k + 1} ({args.maps[k]})") for k, p in enumerate(poses)]
+    loaded = [load_masses(m) for m in args.maps]
+    ref_m, ref_c = loaded[0]
+    for path, (m, c) in zip(args.maps[1:], loaded[1:]):
+        if m.shape != ref_m.shape:
+            raise CliError(
+                f"{path}: grid size {m.shape[1:]} differs from {args.maps[0]}'s {ref_m.shape[1:]} (rows, cols)"
+            )
+        if c is not None and ref_c is not None and abs(c - ref_c) > 1e-9:
+            raise CliError(f"{path}: cell size {c} m differs from {args.maps[0]}'s {ref_c} m")
+    cells = {c for _, c in loaded if c is not None}
+    if args.cell is not None and not (args.cell > 0 and math.isfinite(args.cell)):
+        raise CliError(f"--cell: must be a positive number of metres, got {args.cell}")
+    if args.cell is not None and cells and abs(args.cell - next(iter(cells))) > 1e-9:
+        raise CliError(
+            f"--cell: {args.cell} m contradicts the maps' own cell size {next(iter(cells))} m"
+        )
+    cell = args.cell if args.cell is not None else (next(iter(cells)) if cells else None)
+    if cell is None:
+        raise CliError(
+            "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz files"
+        )
+    out = Path(args.output)
+    base = out.with_suffix("") if out.suffix == ".npz" else out
+    npz_path, png_path = base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
+    if not base.parent.exists():
+        raise CliError(f"-o: output folder {base.parent} does not exist")
+    inputs = {Path(m).resolve() for m in args.maps}
+    if npz_path.resolve() in inputs or png_path.resolve() in inputs:
+        raise CliError(f"-o: {base} would overwrite an input map")
+    models = load_twin_models(args.method, args.registration_model, args.fusion_model)
+    grid = GridSpec(rows=ref_m.shape[1], cols=ref_m.shape[2], cell=cell)
+    maps = np.stack([m for m, _ in loaded])
+    rel = np.stack([np.zeros(3)] + [relative_pose(world[0], w) for w in world[1:]])
+    try:
+        step = build_twin(maps, rel, grid, args.method, strategy=args.strategy, models=models)
+    except TwinInputError as exc:
+        raise CliError(str(exc)) from None
+    contributions = [maps[0]] + [
+        warp_masses(maps[k], step.poses[k], grid) if step.used[k] else np.zeros_like(maps[k])
+        for k in range(1, len(maps))
+    ]
+    ok, png = cv2.imencode(".png", twin_preview(step.masses, contributions))
+    if not ok:
+        raise CliError("could not encode the PNG preview")
+    u = 1.0 - step.masses[0] - step.masses[1]
+    buf = io.BytesIO()
+    np.savez_compressed(
+        buf,
+        m_free=step.masses[0],
+        m_occ=step.masses[1],
+        u=u.astype(np.float32),
+        used=step.used,
+        accepted=step.accepted,
+        rel_pose_used=step.poses,
+        rel_pose_given=rel,
+        cell=np.float64(cell),
+    )
+    with atomic_path(npz_path, suffix=".npz") as t1, atomic_path(png_path, suffix=".png") as t2:
+        t1.write_bytes(buf.getvalue())
+        t2.write_bytes(png.tobytes())
+    summary = {
+        "output": str(npz_path),
+        "preview": str(png_path),
+        "method": args.method,
+        "strategy": args.strategy,
+        "vehicles": len(maps),
+        "used": [bool(v) for v in step.used],
+        "left_out": [args.maps[k] for k in range(len(maps)) if not step.used[k]],
+        "rel_pose_used": [[float(v) for v in p] for p in step.poses],
+        "twin_ms": round(1000.0 * step.seconds, 2),
+        "occupied_cells": int((step.masses[1] >= 0.5).sum()),
+    }
+    print(json.dumps(json_safe(summary), indent=2))
+    return 0
+
+
 # ============================================================================ risk
 
 
@@ -686,6 +837,43 @@ def build_parser() -> argparse.ArgumentParser:
         "-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png"
     )
     f.set_defaults(func=cmd_fuse)
+
+    tw = sub.add_parser(
+        "twin",
+        help="fuse N vehicles' evidential grid maps into one twin in the first map's frame",
+        description="Register every map onto the first (the reference vehicle's) from the given poses and "
+        "combine them (traffictwin.twin.fuse); a map whose registration is rejected is left out and reported.",
+    )
+    tw.add_argument(
+        "maps", nargs="+", help=".npz maps (m_free, m_occ; same format as `fuse`), reference first"
+    )
+    tw.add_argument(
+        "--pose",
+        action="append",
+        help="x,y,yaw of a map's sensor in a common world frame (m, m, rad); once per map, in order",
+    )
+    tw.add_argument(
+        "--method",
+        default="registered",
+        choices=("naive", "registered", "learned", "dnn", "registered+network", "learned+network"),
+        help="pose source + combination (default registered: classical registration + Dempster, no model needed)",
+    )
+    tw.add_argument("--strategy", default="reference", choices=("reference", "sequential"))
+    tw.add_argument(
+        "--registration-model",
+        default=None,
+        help="learned registration folder/.ckpt (methods learned*)",
+    )
+    tw.add_argument(
+        "--fusion-model", default=None, help="fusion network folder/.ckpt (methods dnn, *+network)"
+    )
+    tw.add_argument(
+        "--cell", type=float, default=None, help="m per cell (default: the .npz 'cell')"
+    )
+    tw.add_argument(
+        "-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png"
+    )
+    tw.set_defaults(func=cmd_twin)
 
     r = sub.add_parser(
         "risk",

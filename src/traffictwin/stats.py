@@ -13,9 +13,11 @@ so they are deterministic for a seed.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
 
 import numpy as np
+
+from traffictwin.config import spec
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,17 @@ class Interval:
             "level": self.level,
             "n_groups": self.n_groups,
         }
+
+
+@dataclass
+class CIConfig:
+    """Bootstrap settings of an evaluation's intervals (``evaluation.fusion_ci``, ``twin.ci``):
+    ``n_boot`` resamples of the clusters drawn from ``seed``; ``level`` the interval's coverage
+    (0.95 = 95 % percentile interval)."""
+
+    n_boot: int = spec(MISSING, min=100)
+    seed: int = spec(MISSING, min=0)
+    level: float = spec(MISSING, min=0.5, max=0.999)
 
 
 def excludes_zero(ci: Interval) -> bool:

@@ -43,14 +43,14 @@ import math
 import re
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import MISSING, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from traffictwin.config import spec, typed
+from traffictwin.config import typed
 from traffictwin.evidential.masses import check_masses, unknown_mass
 from traffictwin.fusion.config import FusionEvalConfig, PoseNoise
 from traffictwin.fusion.methods import METHODS, FusionInput, FusionMethod
@@ -59,6 +59,7 @@ from traffictwin.fusion.pairs import evenly_spaced  # re-exported: the one pair 
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
+    CIConfig,
     Interval,
     mean_ci,
     paired_mean_difference_ci,
@@ -165,18 +166,6 @@ class EvalSettings:
     @classmethod
     def from_config(cls, c: FusionEvalConfig) -> EvalSettings:
         return cls(c.batch_size, c.kld_eps, c.auroc_bins, c.success_trans_m, c.success_rot_deg)
-
-
-@dataclass
-class CIConfig:
-    """``evaluation.fusion_ci``: cluster-bootstrap intervals (conf/evaluation/base.yaml).
-
-    ``n_boot`` resamples of the scenarios (``pair_id // 1000``) drawn from ``seed``; ``level``
-    the interval's coverage (0.95 = 95 % percentile interval)."""
-
-    n_boot: int = spec(MISSING, min=100)
-    seed: int = spec(MISSING, min=0)
-    level: float = spec(MISSING, min=0.5, max=0.999)
 
 
 def fusion_ci_config(cfg: Any) -> CIConfig:

@@ -347,3 +347,52 @@ def swept_cells(rel: Boxes, grid: GridSpec, horizon: float = 3.0, dt: float = 0.
         )
         out |= rasterise(moved, grid, "border") > 0
     return out
+
+
+def occupancy_distance(
+    occupied: np.ndarray,
+    grid: GridSpec,
+    cfg: RiskConfig,
+    path: np.ndarray | None = None,
+    lane_width: float | None = None,
+    self_margin: float = 0.5,
+) -> float:
+    """Free distance (m) along the corridor to the nearest occupied cell of a *grid map*.
+
+    The map-based twin of :meth:`RiskCalculator.__call__` (region ``corridor``): ``occupied`` is a
+    bool ``(rows, cols)`` map in the subject's sensor frame (subject at the grid centre, row 0
+    front; e.g. ``m_O >= 0.5`` of an evidential map); ``path`` (K, 2) the subject's path ahead in
+    that frame (default straight ahead), ``lane_width`` (m; default ``cfg.lane_width``). Cells of
+    the subject's own footprint grown by ``self_margin`` (m) are ignored (other vehicles' maps
+    show the subject itself). Returns inf when no occupied cell is in the corridor."""
+    if cfg.region != "corridor":
+        raise ValueError(f"occupancy_distance needs the corridor region, got {cfg.region!r}")
+    occupied = np.asarray(occupied, dtype=bool)
+    if occupied.shape != grid.shape:
+        raise ValueError(f"occupied map is {occupied.shape}, the grid is {grid.shape}")
+    r, c = np.nonzero(occupied)
+    if len(r) == 0:
+        return float("inf")
+    x, y = grid.rc_to_xy(r, c)
+    own = (np.abs(x) <= cfg.subject_length / 2 + self_margin) & (
+        np.abs(y) <= cfg.subject_width / 2 + self_margin
+    )
+    x, y = x[~own], y[~own]
+    if len(x) == 0:
+        return float("inf")
+    rel_path = straight_path(grid.length) if path is None else np.asarray(path, float)
+    lat, arc, _ = project_on_path(np.stack([x, y], 1), rel_path)
+    half = (cfg.lane_width if lane_width is None else float(lane_width)) / 2 + cfg.corridor_margin
+    inside = (lat <= half) & (arc > cfg.subject_length / 2)
+    if not inside.any():
+        return float("inf")
+    return float(np.min(arc[inside]) - cfg.subject_length / 2)
+
+
+def headway(distance: np.ndarray | float, speed: np.ndarray | float) -> np.ndarray:
+    """Time headway (s) = distance (m) / speed (m/s); inf where the speed is 0 or nothing is ahead."""
+    d = np.asarray(distance, dtype=np.float64)
+    v = np.asarray(speed, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where((v > 0) & np.isfinite(d), d / np.where(v > 0, v, 1.0), np.inf)
+    return out

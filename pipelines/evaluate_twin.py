@@ -1,0 +1,194 @@
+"""Stage evaluate_twin: the twin of every configuration and method, and the ego's risk from it.
+
+Reads ``data/twin`` (generate_twin), ``models/registration/<cfg>`` (methods with the learned
+registration), ``models/fusion/<cfg>`` (``dnn``) and the registered-pairs networks of
+``fusion_variants`` (``registered+network``, ``learned+network``); a method whose model a
+configuration lacks is skipped there and listed. For every configuration (keys of
+``configurations``) the same sequences and pose-noise draws are used for every method. Writes:
+
+- ``reports/metrics/twin.json`` — per configuration and method (``ego`` = the ego's own map) and
+  scenario kind: recall of critical frames, false-alarm rate, paired recall difference to ``ego``,
+  lead time (s), share of vehicles left out, update time — with sequence-bootstrap CIs
+  (:func:`traffictwin.twin.evaluation.summarise`) — and ``targets``;
+- ``reports/twin_eval_frames.csv`` — one row per (configuration, method, sequence, frame);
+- ``reports/plots/twin_timeline.csv`` — DVC plot: THW over time of the timeline sequence;
+- ``reports/figures/twin_map.png``, ``twin_timeline.png``.
+
+Library: :mod:`traffictwin.twin` (settings: ``twin`` of params.yaml).
+"""
+
+from __future__ import annotations
+
+import os
+
+# idle OpenMP threads sleep instead of spinning: the per-step times stay meaningful on a shared machine
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import logging  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import pandas as pd  # noqa: E402
+
+from pipelines._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from pipelines._paths import (  # noqa: E402
+    REPORTS,
+    TWIN_DATA,
+    figure_file,
+    fusion_model_dir,
+    metrics_file,
+    plot_file,
+    registration_model_dir,
+)
+from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations  # noqa: E402
+from traffictwin.io.atomic import atomic_path, write_json_atomic  # noqa: E402
+
+STAGE = "evaluate_twin"
+METRICS = metrics_file("twin")
+FRAMES = REPORTS / "twin_eval_frames.csv"
+TIMELINE = plot_file("twin_timeline")
+
+log = logging.getLogger("traffictwin.evaluate_twin")
+
+
+def _csv(frame: pd.DataFrame, path: Path) -> None:
+    with atomic_path(path, suffix=".csv") as tmp:
+        frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+
+
+def method_models(
+    cfg: Any, c: str, methods: list[str], grid: Any
+) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """``{method: models}`` available at configuration ``c`` and ``{skipped method: reason}``."""
+    from traffictwin.fusion.config import fusion_variants
+    from traffictwin.fusion.model_io import load_fusion_model
+    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.twin.fuse import TWIN_METHODS
+
+    hybrid = [
+        n for n, v in fusion_variants(cfg).items() if v.config == c and v.inputs == "registered"
+    ]
+    cache: dict[str, Any] = {}
+
+    def registration() -> Any:
+        if "registration" not in cache:
+            cache["registration"] = load_registration_model(
+                registration_model_dir(c) / "model.ckpt", expected_grid=grid, expected_cfg=c
+            )
+        return cache["registration"]
+
+    out: dict[str, dict[str, Any]] = {}
+    skipped: dict[str, str] = {}
+    for m in methods:
+        tm = TWIN_METHODS[m]
+        models: dict[str, Any] = {}
+        if tm.pose == "learned":
+            models["registration"] = registration()
+        if tm.combine == "network":
+            if tm.pose == "noisy":
+                folder = fusion_model_dir(c)
+            elif hybrid:
+                folder = fusion_model_dir(hybrid[0])
+            else:
+                skipped[m] = (
+                    f"no registered-pairs fusion network for configuration {c} (fusion_variants)"
+                )
+                continue
+            models["fusion"] = load_fusion_model(
+                folder / "model.ckpt", expected_cfg=c, expected_grid=grid
+            )
+        out[m] = models
+    return out, skipped
+
+
+def main() -> None:
+    from traffictwin.fusion.evaluation import json_clean
+    from traffictwin.fusion.figures import save_figure
+    from traffictwin.io.shards import Dataset
+    from traffictwin.twin import evaluation as ev
+    from traffictwin.twin.config import twin_config
+    from traffictwin.twin.figures import (
+        pick_timeline_sequence,
+        timeline_figure,
+        timeline_table,
+        twin_map_figure,
+    )
+
+    setup_logging()
+    cfg = params()
+    grid = grid_config(cfg)
+    noise = pose_configurations(cfg)
+    tc = twin_config(cfg)
+    s = tc.settings()
+    reg_params = fusion_eval_config(
+        cfg
+    ).registration_params  # the classical registration of evaluate_fusion
+    with stage_timer(STAGE):
+        ds = Dataset(TWIN_DATA, kind="twin")
+        seqs = [ds.load_shard(i) for i in ds.shard_indices()]
+        frames, summary = [], {}
+        models_by_cfg = {}
+        for c, pn in noise.items():
+            models, skipped = method_models(cfg, c, tc.methods, grid)
+            models_by_cfg[c] = models
+            methods = [m for m in tc.methods if m in models]
+            log.info(
+                "%s@%s: %d sequences, methods %s (skipped %s)",
+                STAGE,
+                c,
+                len(seqs),
+                methods,
+                skipped,
+            )
+            f = pd.concat(
+                [
+                    ev.evaluate_sequence(a, grid, (pn.r, pn.alpha), methods, models, s, reg_params)
+                    for a in seqs
+                ],
+                ignore_index=True,
+            )
+            f.insert(0, "configuration", c)
+            frames.append(f)
+            summary[c] = {
+                "noise": {"r": pn.r, "alpha": pn.alpha},
+                "methods": ev.summarise(f, methods, tc.fps, s),
+                "skipped": skipped,
+            }
+        table = pd.concat(frames, ignore_index=True)
+        metrics = {
+            "headline": tc.headline,
+            "strategy": tc.strategy,
+            "vehicles": int(table["vehicles"].iloc[0]),
+            "sequences": len(seqs),
+            "configurations": summary,
+            "targets": ev.targets(summary, tc.headline, tc.target_configuration),
+        }
+        _csv(table, FRAMES)
+        c_fig = tc.target_configuration if tc.target_configuration in noise else list(noise)[-1]
+        seq = pick_timeline_sequence(table, c_fig, tc.headline, tc.fps, tc.figure.sequence)
+        _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
+        save_figure(
+            timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw),
+            figure_file("twin_timeline"),
+        )
+        a = next(x for x in seqs if ev.scalar(x["sequence"]) == seq)
+        pn = noise[c_fig]
+        save_figure(
+            twin_map_figure(
+                a,
+                grid,
+                (pn.r, pn.alpha),
+                tc.headline,
+                models_by_cfg[c_fig].get(tc.headline),
+                s,
+                c_fig,
+                reg_params,
+            ),
+            figure_file("twin_map"),
+        )
+        write_json_atomic(METRICS, json_clean(metrics))
+        log.info("%s: targets %s", STAGE, metrics["targets"])
+
+
+if __name__ == "__main__":
+    run_stage(main, STAGE)

@@ -1,0 +1,409 @@
+"""Cooperative sequences: N lidar-equipped vehicles at a junction over time, with a hazard.
+
+One *sequence* (deterministic for ``(seed, index)``) happens at a junction of the shared world
+(:func:`traffictwin.sim.world.build_world`, templates :data:`JUNCTIONS`). Vehicle 0, the *ego*,
+turns right into the *target arm*, where a van is parked and a *hazard* waits in the ego's lane
+beside it, a few metres after the turn:
+
+* ``stopped_car``: a car stopped in the ego's lane beside the van (double-parked / waiting);
+* ``pedestrian``: a person standing at the van's side in the lane (the delivery driver), who
+  walks across the lane when the unbraked ego is ``step_in_tau`` seconds away.
+
+The *kind* of the sequence decides what the ego can see:
+
+* ``occluded``: the van is parked at the inner kerb, between the ego's line of sight (it comes
+  round the corner) and the hazard. Drawn until the ego's own lidar has no return from the
+  hazard at the critical onset (:func:`generate_cooperative_sequence`): the hazard "behind the
+  parked van" is visible only to the others;
+* ``open``: the van is parked on the far kerb, where it hides nothing; drawn the same way
+  otherwise, never selected.
+
+The other vehicles cooperate: ``oncoming`` ones drive on the target arm towards the junction
+(they see the hazard head-on), ``follower`` ones drive behind the ego in its lane; roles
+alternate (1: oncoming, 2: follower, 3: oncoming, ...). Their speed is constant; the ego turns
+at a constant speed and brakes only once the hazard is within its reaction distance — a driver
+who reacts late, so that sequences contain critical frames (time headway < 1.5 s).
+
+Every frame carries all vehicles' exact world poses and speeds, every box in the world (static +
+agents, world frame, with velocities), and the ego's path ahead (its lane's centreline) and lane
+width: the corridor of the risk label (:mod:`traffictwin.risk.metric`). Units: m, s, m/s, rad.
+Simplification (documented): vehicles do not interact, except the ego with the hazard.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from traffictwin.sim.lidar import LidarSpec, scan
+from traffictwin.sim.scene import Boxes, Cls
+from traffictwin.sim.traffic import SUBJECT_SIZE
+from traffictwin.sim.world import World, build_world
+
+KINDS = ("occluded", "open")
+HAZARDS = ("stopped_car", "pedestrian")
+JUNCTIONS = ("cross4", "t_junction")
+ROLES = ("ego", "oncoming", "follower")
+AGENT_ID0 = 800_000  # ids of the cooperating vehicles (ego = AGENT_ID0)
+VAN_ID = AGENT_ID0 + 100
+HAZARD_ID = AGENT_ID0 + 101
+CRITICAL_ONSET_S = 1.5  # s: time headway that makes a frame critical (the risk label's threshold)
+PATH_AHEAD = 60.0  # m of the ego's lane recorded per frame
+PATH_STEP = 0.5  # m between path points
+PATH_POINTS = int(round(PATH_AHEAD / PATH_STEP)) + 1
+
+
+@dataclass(frozen=True)
+class CooperativeConfig:
+    """fps (Hz) and frames per sequence; vehicles N >= 2 (ego + N - 1 cooperating); the share of
+    ``occluded`` sequences (the rest are ``open``, alternating by index) and of ``pedestrian``
+    hazards; ranges (low, high) drawn per sequence: ego turning speed (m/s), reaction distance
+    (m, bumper to hazard along the path, when the ego starts braking), braking deceleration
+    (m/s^2), time from the sequence start to the critical onset at constant speed (s), van
+    length (m), gap between the van's far end and the stopped car's rear (m), pedestrian
+    step-in time (s before the unbraked ego reaches it) and walking speed (m/s), cooperating
+    vehicles' speed (m/s) and spacing (m); van length (m) and the distance of its near end after
+    the end of the turn (m); junction templates to draw from."""
+
+    fps: float = 10.0
+    frames: int = 30
+    vehicles: int = 3
+    occluded_share: float = 0.5
+    pedestrian_share: float = 0.5
+    ego_speed: tuple[float, float] = (5.5, 8.5)
+    reaction_distance: tuple[float, float] = (3.0, 7.0)
+    deceleration: tuple[float, float] = (4.0, 7.0)
+    lead_in: tuple[float, float] = (0.6, 1.4)
+    van_length: tuple[float, float] = (6.0, 7.5)
+    hazard_after_turn: tuple[float, float] = (0.0, 2.0)
+    step_in_tau: tuple[float, float] = (0.8, 1.6)
+    walk_speed: tuple[float, float] = (1.2, 1.8)
+    other_speed: tuple[float, float] = (3.0, 7.0)
+    spacing: tuple[float, float] = (9.0, 16.0)
+    templates: tuple[str, ...] = JUNCTIONS
+    max_attempts: int = 40
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0 or self.frames < 2:
+            raise ValueError(
+                f"cooperative: fps must be > 0 Hz and frames >= 2, got {self.fps}, {self.frames}"
+            )
+        if self.vehicles < 2:
+            raise ValueError(
+                f"cooperative: vehicles must be >= 2 (ego + others), got {self.vehicles}"
+            )
+        for name in ("occluded_share", "pedestrian_share"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(
+                    f"cooperative: {name} must be in [0, 1], got {getattr(self, name)}"
+                )
+        for name in (
+            "ego_speed",
+            "reaction_distance",
+            "deceleration",
+            "lead_in",
+            "van_length",
+            "step_in_tau",
+            "walk_speed",
+            "other_speed",
+            "spacing",
+        ):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(
+                    f"cooperative: {name} must be (low, high) with 0 < low <= high, got {[lo, hi]}"
+                )
+        bad = [t for t in self.templates if t not in JUNCTIONS]
+        if bad or not self.templates:
+            raise ValueError(
+                f"cooperative: templates {bad or '(empty list)'} unknown; expected some of {list(JUNCTIONS)}"
+            )
+
+
+@dataclass
+class CoopFrame:
+    """One instant: time (s), exact world poses ``(N, 3)`` and speeds ``(N,)`` of the vehicles
+    (row 0 = ego), all boxes in the world (static + agents, world frame, world velocities), the
+    ego's path ahead ``(PATH_POINTS, 2)`` (world, m) and its lane width (m)."""
+
+    t: float
+    poses: np.ndarray
+    speeds: np.ndarray
+    boxes: Boxes
+    path: np.ndarray
+    lane_width: float
+
+
+@dataclass
+class CoopSequence:
+    """A cooperative sequence: index, world, kind (:data:`KINDS`), hazard (:data:`HAZARDS`), the
+    role of each vehicle (:data:`ROLES`), their box ids, and the frames."""
+
+    index: int
+    world: World
+    kind: str
+    hazard: str
+    roles: tuple[str, ...]
+    vehicle_ids: np.ndarray
+    frames: list[CoopFrame] = field(default_factory=list)
+    onset_frame: int = -1
+    hidden_at_onset: bool = False
+    attempts: int = 1
+
+
+def sequence_kind(index: int, occluded_share: float) -> str:
+    """Kind of sequence ``index``: ``occluded`` for a share ``occluded_share`` of the indices,
+    spread evenly (index-based, so a split by index stays balanced)."""
+    return (
+        "occluded"
+        if np.floor((index + 1) * occluded_share) > np.floor(index * occluded_share)
+        else "open"
+    )
+
+
+def _heading_change(lane_xy: np.ndarray) -> float:
+    d0, d1 = lane_xy[1] - lane_xy[0], lane_xy[-1] - lane_xy[-2]
+    return float(
+        (np.arctan2(d1[1], d1[0]) - np.arctan2(d0[1], d0[0]) + np.pi) % (2 * np.pi) - np.pi
+    )
+
+
+def _offset_from_axis(lane_xy: np.ndarray) -> float:
+    """Lateral distance (m) of a junction lane's first point from its arm's axis (through the origin)."""
+    d = lane_xy[1] - lane_xy[0]
+    h = np.arctan2(d[1], d[0])
+    p = lane_xy[0]
+    return float(abs(p[0] * np.sin(h) - p[1] * np.cos(h)))
+
+
+def right_turn_lanes(world: World) -> list[int]:
+    """Indices of the lanes that turn right (60-120 deg clockwise) from the kerb-side lane."""
+    out = []
+    for i, lane in enumerate(world.lanes):
+        turn = _heading_change(lane.centerline)
+        if -2.1 < turn < -1.05 and _offset_from_axis(lane.centerline) < 0.75 * lane.width:
+            out.append(i)
+    return out
+
+
+def _turn_span(lane_xy: np.ndarray, cum: np.ndarray) -> tuple[float, float]:
+    """Arc lengths (m) where the lane starts and ends turning (heading off by > 2 deg)."""
+    d = np.diff(lane_xy, axis=0)
+    yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    turning = np.flatnonzero(
+        (np.abs(yaw - yaw[0]) > np.deg2rad(2)) & (np.abs(yaw - yaw[-1]) > np.deg2rad(2))
+    )
+    if len(turning) == 0:
+        raise ValueError("cooperative: the ego's lane does not turn")
+    return float(cum[turning[0]]), float(cum[turning[-1] + 1])
+
+
+def _reverse_lane(world: World, ego_lane: int) -> int:
+    """The lane that drives the ego's route backwards (from the target arm into the ego's arm)."""
+    ego = world.lanes[ego_lane].centerline
+    best, best_d = -1, np.inf
+    for i, lane in enumerate(world.lanes):
+        if i == ego_lane:
+            continue
+        c = lane.centerline
+        d = np.linalg.norm(c[0] - ego[-1]) + np.linalg.norm(c[-1] - ego[0])
+        if d < best_d:
+            best, best_d = i, d
+    return best
+
+
+def _lateral(pose: np.ndarray, lat: float) -> np.ndarray:
+    """``pose`` (x, y, yaw) shifted ``lat`` m to its left."""
+    return np.array([pose[0] - np.sin(pose[2]) * lat, pose[1] + np.cos(pose[2]) * lat, pose[2]])
+
+
+def _ego_profile(
+    t: np.ndarray, s0: float, v: float, s_hazard: float, d_react: float, decel: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ego arc length (m) and speed (m/s) at times ``t``: constant ``v`` until the bumper is
+    ``d_react`` m before ``s_hazard`` (arc length of the hazard's near side minus the ego's half
+    length), then braking at ``decel`` to a stop (no earlier than 0.5 m before the hazard)."""
+    s_brake = s_hazard - d_react
+    t_brake = max(0.0, (s_brake - s0) / v)
+    stop_dist = min(v * v / (2 * decel), max(d_react - 0.5, 0.1))
+    a = v * v / (2 * stop_dist)
+    tb = np.clip(t - t_brake, 0.0, v / a)
+    s = np.where(t < t_brake, s0 + v * t, s0 + v * t_brake + v * tb - 0.5 * a * tb * tb)
+    speed = np.where(t < t_brake, v, np.maximum(v - a * tb, 0.0))
+    return s, speed
+
+
+def generate_cooperative_sequence(
+    seed: int, index: int, cfg: CooperativeConfig, lidar: LidarSpec | None = None
+) -> CoopSequence:
+    """Simulate cooperative sequence ``index`` of the dataset with ``seed`` (deterministic).
+
+    ``occluded`` sequences are what their name says: with ``lidar`` given, draws are repeated
+    (up to ``cfg.max_attempts``, from the same generator) until the ego's own lidar has no return
+    from the hazard at the *critical onset* (the first frame whose time headway to the hazard,
+    along the path at the ego's speed, is below ``CRITICAL_ONSET_S``); the sequence records
+    whether that held (``hidden_at_onset``) and the attempts it took. ``open`` sequences are never
+    selected."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
+    kind = sequence_kind(index, cfg.occluded_share)
+    seq = None
+    for attempt in range(1, cfg.max_attempts + 1):
+        seq = _draw_sequence(rng, index, kind, cfg)
+        seq.attempts = attempt
+        if kind == "open" or lidar is None:
+            return seq
+        seq.hidden_at_onset = not ego_sees_hazard(seq, lidar, seq.onset_frame)
+        if seq.hidden_at_onset:
+            return seq
+    assert seq is not None
+    return seq
+
+
+def ego_sees_hazard(seq: CoopSequence, lidar: LidarSpec, frame: int) -> bool:
+    """Whether any ray of the ego's lidar (no noise, no dropout) returns from the hazard at ``frame``."""
+    f = seq.frames[frame]
+    others = f.boxes.subset(f.boxes.ids != seq.vehicle_ids[0])
+    s = scan(lidar, f.poses[0], others, None)
+    return bool(np.any(s.hit == int(np.flatnonzero(others.ids == HAZARD_ID)[0])))
+
+
+def _draw_sequence(
+    rng: np.random.Generator, index: int, kind: str, cfg: CooperativeConfig
+) -> CoopSequence:
+    """One draw of a sequence of ``kind`` (see :func:`generate_cooperative_sequence`)."""
+    hazard = "pedestrian" if rng.random() < cfg.pedestrian_share else "stopped_car"
+    world = None
+    lanes: list[int] = []
+    for _ in range(20):  # a junction whose kerb-side lanes turn right (nearly always the first)
+        template = str(cfg.templates[int(rng.integers(len(cfg.templates)))])
+        world = build_world(template, int(rng.integers(0, 2**31 - 1)))
+        lanes = right_turn_lanes(world)
+        if lanes:
+            break
+    if not lanes or world is None:  # pragma: no cover - every junction template has right turns
+        raise RuntimeError(f"cooperative sequence {index}: no right-turn lane found")
+    ego_lane = int(lanes[int(rng.integers(len(lanes)))])
+    lane = world.lanes[ego_lane]
+    lw = float(lane.width)
+    _, turn_end = _turn_span(lane.centerline, lane.cum)
+
+    # the van at the target arm's inner kerb (occluded) or its far kerb (open), the hazard beside it
+    van_len = float(rng.uniform(*cfg.van_length))
+    van_size = np.array([van_len, float(rng.uniform(2.0, 2.3)), float(rng.uniform(2.6, 3.2))])
+    van_near = turn_end + float(rng.uniform(*cfg.hazard_after_turn))
+    van_lat = -(lw / 2 + 0.25 + van_size[1] / 2)  # inner (right-hand) kerb, beside the ego's lane
+    if kind == "open":
+        van_lat = lw * 1.5 + 0.25 + van_size[1] / 2  # far kerb, beyond the oncoming lane
+    van_pose = _lateral(lane.pose_at(np.array([van_near + van_len / 2]))[0], van_lat)
+    v_ego = float(rng.uniform(*cfg.ego_speed))
+    d_react = float(rng.uniform(*cfg.reaction_distance))
+    decel = float(rng.uniform(*cfg.deceleration))
+    half = SUBJECT_SIZE[0] / 2
+    if hazard == "stopped_car":
+        car_size = np.array([float(rng.uniform(3.9, 4.8)), float(rng.uniform(1.7, 1.9)), 1.5])
+        hazard_near = van_near + float(rng.uniform(0.5, 2.5))  # arc length of its rear
+        s_h = hazard_near + car_size[0] / 2
+    else:
+        ped_size = np.array([0.55, 0.6, float(rng.uniform(1.6, 1.9))])
+        s_h = van_near + float(rng.uniform(1.5, van_len - 1.0))
+        hazard_near = s_h - ped_size[0] / 2
+    # the sequence starts lead_in seconds (at constant speed) before the ego's bumper is 1.5 s away
+    lead_in = float(rng.uniform(*cfg.lead_in))
+    s0 = hazard_near - half - v_ego * (1.5 + lead_in)
+    times = np.arange(cfg.frames) / cfg.fps
+    s_ego, v_prof = _ego_profile(times, s0, v_ego, hazard_near - half, d_react, decel)
+
+    # the pedestrian's lateral position over time: out of the van's shadow into the lane
+    ped_lat = None
+    if hazard == "pedestrian":
+        tau = float(rng.uniform(*cfg.step_in_tau))
+        walk = float(rng.uniform(*cfg.walk_speed))
+        t_enter = (hazard_near - half - s0) / v_ego - tau  # when the unbraked ego is tau s away
+        start = -(lw / 2 - 0.1)  # in the lane beside the van (hidden behind it when occluded)
+        ped_lat = np.minimum(start + walk * np.maximum(times - t_enter, 0.0), lw * 1.5)
+
+    # cooperating vehicles
+    rev = _reverse_lane(world, ego_lane)
+    rev_lane = world.lanes[rev]
+    # arc length on the reverse lane of the point level with the hazard
+    p_h = lane.pose_at(np.array([s_h]))[0, :2]
+    d_rev = np.linalg.norm(rev_lane.centerline - p_h, axis=1)
+    s_rev_h = float(rev_lane.cum[int(np.argmin(d_rev))])
+    roles = ["ego"]
+    tracks = []  # (lane index, s(t), speed(t))
+    for k in range(1, cfg.vehicles):
+        role = "oncoming" if k % 2 == 1 else "follower"
+        rank = (k - 1) // 2  # 0 for the first of each role
+        gap = float(rng.uniform(*cfg.spacing))
+        if role == "oncoming":
+            v = float(rng.uniform(*cfg.other_speed))
+            s_start = s_rev_h - (8.0 + gap) * (rank + 1) - 4.0
+            tracks.append((rev, s_start + v * times, np.full(len(times), v)))
+        else:
+            tracks.append((ego_lane, s_ego - gap * (rank + 1) - 1.0, v_prof.copy()))
+        roles.append(role)
+
+    ids = AGENT_ID0 + np.arange(cfg.vehicles)
+    seq = CoopSequence(index, world, kind, hazard, tuple(roles), ids)
+    with np.errstate(divide="ignore"):
+        thw = np.where(v_prof > 0, (hazard_near - half - s_ego) / np.maximum(v_prof, 1e-9), np.inf)
+    critical = np.flatnonzero(thw < CRITICAL_ONSET_S)
+    seq.onset_frame = int(critical[0]) if len(critical) else 0
+    size_v = np.array(SUBJECT_SIZE)
+    for f, t in enumerate(times):
+        poses = np.zeros((cfg.vehicles, 3))
+        speeds = np.zeros(cfg.vehicles)
+        vels = np.zeros((cfg.vehicles, 2))
+        poses[0] = lane.pose_at(np.array([s_ego[f]]))[0]
+        speeds[0] = v_prof[f]
+        for k, (li, s, v) in enumerate(tracks, start=1):
+            poses[k] = world.lanes[li].pose_at(np.array([s[f]]))[0]
+            speeds[k] = v[f]
+        vels = speeds[:, None] * np.stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])], 1)
+        agents = [
+            Boxes(
+                van_pose[None, :2], van_size[None], [van_pose[2]], [int(Cls.TRUCK)], ids=[VAN_ID]
+            ),
+            Boxes(
+                poses[:, :2],
+                np.tile(size_v, (cfg.vehicles, 1)),
+                poses[:, 2],
+                np.full(cfg.vehicles, int(Cls.CAR)),
+                velocity=vels,
+                ids=ids,
+            ),
+        ]
+        if hazard == "stopped_car":
+            hp = lane.pose_at(np.array([s_h]))[0]
+            agents.append(
+                Boxes(hp[None, :2], car_size[None], [hp[2]], [int(Cls.CAR)], ids=[HAZARD_ID])
+            )
+        else:
+            hp = _lateral(lane.pose_at(np.array([s_h]))[0], float(ped_lat[f]))
+            moving = f + 1 < len(times) and ped_lat[min(f + 1, len(times) - 1)] != ped_lat[f]
+            vel = np.zeros(2)
+            if moving:
+                vel = walk * np.array([-np.sin(hp[2]), np.cos(hp[2])])
+            agents.append(
+                Boxes(
+                    hp[None, :2],
+                    ped_size[None],
+                    [hp[2] + np.pi / 2],
+                    [int(Cls.PEDESTRIAN)],
+                    velocity=vel[None],
+                    ids=[HAZARD_ID],
+                )
+            )
+        arc = np.minimum(s_ego[f] + np.arange(PATH_POINTS) * PATH_STEP, lane.length)
+        seq.frames.append(
+            CoopFrame(
+                float(t),
+                poses,
+                speeds,
+                Boxes.concat([world.static, *agents]),
+                lane.pose_at(arc)[:, :2],
+                lw,
+            )
+        )
+    return seq

@@ -1,0 +1,171 @@
+"""Figures of the twin: one twin map with each vehicle's contribution and pose uncertainty, and a
+timeline of the ego's time headway from its own map, from the twin and from the truth."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from traffictwin.evidential.warp import warp_masses
+from traffictwin.fusion.figures import _plt, masses_to_rgb
+from traffictwin.grid import GridSpec
+from traffictwin.sim.cooperative import ROLES
+from traffictwin.twin.evaluation import (
+    EGO,
+    TwinEvalSettings,
+    lead_times,
+    noisy_relative_poses,
+    scalar,
+)
+from traffictwin.twin.fuse import build_twin
+
+__all__ = ["pick_timeline_sequence", "timeline_table", "timeline_figure", "twin_map_figure"]
+
+THW_CAP = 5.0  # s: THW above this (or inf) is drawn at the cap
+
+
+def pick_timeline_sequence(
+    table: pd.DataFrame, configuration: str, method: str, fps: float, sequence: int | None = None
+) -> int:
+    """``sequence`` if given (must exist), else the occluded sequence with the largest lead time of
+    ``method`` over the ego at ``configuration`` (ties: the lowest index)."""
+    f = table[table["configuration"] == configuration]
+    if sequence is not None:
+        if sequence not in set(f["sequence"]):
+            raise ValueError(f"twin.figure.sequence: sequence {sequence} is not in data/twin")
+        return int(sequence)
+    lt = lead_times(f, method, fps)
+    occ = lt[lt["kind"] == "occluded"] if len(lt) else lt
+    if len(occ) == 0:
+        return int(f["sequence"].min())
+    return int(occ.sort_values(["lead_s", "sequence"], ascending=[False, True])["sequence"].iloc[0])
+
+
+def timeline_table(
+    table: pd.DataFrame, configuration: str, method: str, sequence: int
+) -> pd.DataFrame:
+    """Long table (time s, series, thw s capped at :data:`THW_CAP`) of one sequence: truth, ego, twin."""
+    f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
+    ego = f[f["method"] == EGO]
+    tw = f[f["method"] == method]
+    parts = [
+        pd.DataFrame({"time": ego["time"], "series": "truth", "thw": ego["thw_true"]}),
+        pd.DataFrame({"time": ego["time"], "series": "ego map", "thw": ego["thw"]}),
+        pd.DataFrame({"time": tw["time"], "series": f"twin ({method})", "thw": tw["thw"]}),
+    ]
+    out = pd.concat(parts, ignore_index=True)
+    out["thw"] = np.minimum(out["thw"].to_numpy(float), THW_CAP)
+    return out
+
+
+def timeline_figure(
+    table: pd.DataFrame, configuration: str, method: str, sequence: int, critical_thw: float
+):
+    """THW (s) over time (s) of one sequence: truth, the ego's own map and the twin; critical frames
+    (true THW < ``critical_thw``) shaded, frames where the ego's lidar sees the hazard marked."""
+    plt = _plt()
+    tt = timeline_table(table, configuration, method, sequence)
+    f = table[
+        (table["configuration"] == configuration)
+        & (table["sequence"] == sequence)
+        & (table["method"] == EGO)
+    ]
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    styles = {"truth": ("k", "-", "o"), "ego map": ("#7f7f7f", "--", "x")}
+    for name, g in tt.groupby("series", sort=False):
+        color, ls, mk = styles.get(name, ("#d62728", "-", "s"))
+        ax.plot(g["time"], g["thw"], color=color, linestyle=ls, marker=mk, ms=4, label=name)
+    dt = float(np.median(np.diff(np.sort(f["time"].unique())))) if len(f) > 1 else 0.1
+    for t in f.loc[f["critical"], "time"]:
+        ax.axvspan(t - dt / 2, t + dt / 2, color="#ffd8b0", lw=0)
+    seen = f.loc[f["ego_sees_hazard"], "time"]
+    ax.plot(
+        seen,
+        np.full(len(seen), THW_CAP * 0.97),
+        "|",
+        color="#1f77b4",
+        ms=10,
+        label="ego's lidar sees the hazard",
+    )
+    ax.axhline(critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s")
+    kind, hazard = f["kind"].iloc[0], f["hazard"].iloc[0]
+    ax.set(
+        xlabel="time (s)",
+        ylabel=f"time headway (s, capped at {THW_CAP:g})",
+        ylim=(0, THW_CAP * 1.02),
+        title=f"Sequence {sequence} ({kind}, {hazard}), configuration {configuration}: shaded = truly critical",
+    )
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    return fig
+
+
+def twin_map_figure(
+    arrays: dict[str, np.ndarray],
+    grid: GridSpec,
+    noise: tuple[float, float],
+    method: str,
+    models: dict[str, Any] | None,
+    s: TwinEvalSettings,
+    configuration: str,
+    registration: Any = None,
+):
+    """At the critical onset of one sequence: the twin (ego frame) with every vehicle's true
+    position, its noisy position with the 98 % interval of the configuration (circle of radius
+    r m) and the pose the twin used; beside it each vehicle's own map where the twin put it."""
+    plt = _plt()
+    from matplotlib.patches import Circle
+
+    t = max(0, scalar(arrays["onset_frame"]))
+    maps = arrays["maps"][t]
+    rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)[t]
+    step = build_twin(
+        maps, rel, grid, method, strategy=s.strategy, models=models, registration=registration
+    )
+    true_rel = noisy_relative_poses(arrays["poses"], np.zeros_like(arrays["noise_z"]), 0.0, 0.0)[t]
+    n = len(maps)
+    ext = [
+        -grid.width / 2,
+        grid.width / 2,
+        -grid.length / 2,
+        grid.length / 2,
+    ]  # y left..right flipped below
+    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.6))
+    roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
+
+    def show(ax, m, title):
+        ax.imshow(masses_to_rgb(m), extent=(ext[1], ext[0], ext[2], ext[3]), origin="upper")
+        ax.set(title=title, xlabel="y (m, left +)", ylabel="x (m, forward)")
+        ax.set_xlim(ext[1], ext[0])
+
+    show(axes[0], step.masses, f"twin ({method}), config {configuration}")
+    colors = plt.get_cmap("tab10")
+    for k in range(n):
+        c = colors(k)
+        tx, ty = true_rel[k, 0], true_rel[k, 1]
+        axes[0].plot(ty, tx, "o", color=c, ms=6, mfc="none", label=f"{k}: {roles[k]} (true)")
+        if k:
+            axes[0].plot(rel[k, 1], rel[k, 0], "x", color=c, ms=6)
+            axes[0].add_patch(
+                Circle((rel[k, 1], rel[k, 0]), noise[0], fill=False, color=c, ls=":", lw=1)
+            )
+            mark = "+" if step.used[k] else "s"
+            axes[0].plot(step.poses[k, 1], step.poses[k, 0], mark, color=c, ms=8)
+        contrib = maps[k] if k == 0 else warp_masses(maps[k], step.poses[k], grid)
+        used = (
+            "reference"
+            if k == 0
+            else ("used" if step.used[k] else "left out (registration rejected)")
+        )
+        show(axes[k + 1], contrib, f"vehicle {k} ({roles[k]}): {used}")
+        axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")
+    axes[0].legend(fontsize=6, loc="lower left")
+    fig.suptitle(
+        "red = m_O, green = m_F, black = unknown; o true position, x noisy position (dotted: 98 % radius r), "
+        "+ pose used",
+        fontsize=8,
+    )
+    fig.tight_layout()
+    return fig

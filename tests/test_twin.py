@@ -1,0 +1,394 @@
+"""The cooperative twin: simulator sequences, the twin's fusion, risk from a map, the evaluation, the stages."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from traffictwin.evidential.dempster import dempster
+from traffictwin.evidential.warp import warp_masses
+from traffictwin.grid import GridSpec
+from traffictwin.risk.metric import headway, occupancy_distance
+from traffictwin.sim.cooperative import (
+    HAZARD_ID,
+    CooperativeConfig,
+    ego_sees_hazard,
+    generate_cooperative_sequence,
+    sequence_kind,
+)
+from traffictwin.sim.lidar import LidarSpec
+from traffictwin.twin.data import TwinDataParams, sequence_arrays, twin_risk_config
+from traffictwin.twin.evaluation import EGO, TwinEvalSettings, lead_times, summarise, targets
+from traffictwin.twin.fuse import Twin, TwinInputError, build_twin
+
+GRID = GridSpec(rows=64, cols=48, cell=0.5)
+LIDAR = LidarSpec(azimuth_res_deg=0.8, max_range=50.0)
+CFG = CooperativeConfig(frames=6, vehicles=3)
+
+
+def _masses(rng: np.random.Generator, shape=(64, 48)) -> np.ndarray:
+    """Random masses on the simplex (2, H, W) float32 with some unknown."""
+    a = rng.dirichlet([1.0, 1.0, 1.0], size=shape)  # free, occ, unknown
+    return np.moveaxis(a[..., :2], -1, 0).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------ simulator
+def test_sequences_are_deterministic_and_alternate_kinds() -> None:
+    a = generate_cooperative_sequence(3, 4, CFG)
+    b = generate_cooperative_sequence(3, 4, CFG)
+    assert np.array_equal(
+        np.stack([f.poses for f in a.frames]), np.stack([f.poses for f in b.frames])
+    )
+    assert [sequence_kind(i, 0.5) for i in range(4)] == ["open", "occluded", "open", "occluded"]
+    assert [sequence_kind(i, 1.0) for i in range(3)] == ["occluded"] * 3
+    assert a.roles == ("ego", "oncoming", "follower") and len(a.frames) == 6
+    f = a.frames[0]
+    assert f.poses.shape == (3, 3) and f.path.shape[1] == 2
+    # every vehicle and the hazard are boxes of the scene
+    assert set(a.vehicle_ids) <= set(f.boxes.ids) and HAZARD_ID in set(f.boxes.ids)
+
+
+def test_occluded_sequences_hide_the_hazard_from_the_ego_at_the_critical_onset() -> None:
+    cfg = replace(CFG, frames=30)
+    seqs = [generate_cooperative_sequence(11, i, cfg, LIDAR) for i in (1, 3, 5)]  # occluded indices
+    assert [s.kind for s in seqs] == ["occluded"] * 3
+    assert sum(s.hidden_at_onset for s in seqs) >= 2
+    for seq in seqs:
+        assert (
+            0 < seq.onset_frame < 30
+        )  # the ego reaches a time headway < 1.5 s within the sequence
+        assert seq.hidden_at_onset == (not ego_sees_hazard(seq, LIDAR, seq.onset_frame))
+    # without a lidar nothing is selected: the first draw is kept
+    assert generate_cooperative_sequence(11, 1, cfg).attempts == 1
+
+
+def test_cooperative_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError, match="vehicles must be >= 2"):
+        CooperativeConfig(vehicles=1)
+    with pytest.raises(ValueError, match="ego_speed"):
+        CooperativeConfig(ego_speed=(5.0, 2.0))
+    with pytest.raises(ValueError, match="templates"):
+        CooperativeConfig(templates=("roundabout",))
+
+
+def test_sequence_arrays_layout() -> None:
+    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG)
+    a = sequence_arrays(5, 0, p)
+    assert a["maps"].shape == (6, 3, 2, 64, 48) and a["maps"].dtype == np.float32
+    assert np.all(a["maps"] >= 0) and np.all(a["maps"].sum(2) <= 1 + 1e-5)
+    assert a["noise_z"].shape == (6, 3, 3) and np.all(a["noise_z"][:, 0] == 0)
+    assert np.any(a["noise_z"][:, 1:] != 0)
+    assert a["path"].shape[0] == 6 and a["hazard_seen"].shape == (6, 3)
+    # the ego's path starts at its own reference point, ahead along +x at first
+    assert np.allclose(a["path"][:, 0], 0.0, atol=1e-6)
+    b = sequence_arrays(5, 0, p)
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+# ------------------------------------------------------------------------------------ risk from a map
+def test_occupancy_distance_hand_computed() -> None:
+    g = GridSpec(rows=64, cols=48, cell=0.5)
+    cfg = twin_risk_config()
+    occ = np.zeros(g.shape, bool)
+    assert occupancy_distance(occ, g, cfg) == np.inf
+    # one cell straight ahead, centre x = (32 - r - 0.5) * 0.5 ; row 8 -> x = 11.75 m, y = 0.25 m
+    occ[8, 23] = True
+    x, y = g.rc_to_xy(8, 23)
+    assert (x, y) == (11.75, 0.25)
+    assert occupancy_distance(occ, g, cfg) == pytest.approx(11.75 - cfg.subject_length / 2)
+    assert headway(11.75 - 2.4, 5.0) == pytest.approx((11.75 - 2.4) / 5.0)
+    assert headway(3.0, 0.0) == np.inf
+    # a cell beside the lane (|y| > lane_width / 2) does not count; a wider corridor counts it
+    side = np.zeros(g.shape, bool)
+    side[8, 24 - 6] = True  # y = (24 - 18 - 0.5) * 0.5 = 2.75 m
+    assert occupancy_distance(side, g, cfg) == np.inf
+    assert np.isfinite(occupancy_distance(side, g, twin_risk_config(corridor_margin=1.2)))
+    # the ego's own footprint (other vehicles' maps show it) is ignored
+    own = np.zeros(g.shape, bool)
+    own[29, 23] = True  # x = 1.25 m, inside the 4.8 m long car
+    assert occupancy_distance(own, g, cfg) == np.inf
+    # a curved path: a cell on the path's arc is found at its arc length
+    path = np.stack([np.linspace(0, 20, 81), np.zeros(81)], 1)
+    path[41:, 1] = np.linspace(0, 5, 40)  # bends left after 10 m
+    with pytest.raises(ValueError, match="corridor"):
+        occupancy_distance(occ, g, replace(cfg, region="paper"))
+    assert np.isfinite(occupancy_distance(occ, g, cfg, path=path, lane_width=3.5))
+
+
+# ------------------------------------------------------------------------------------ the twin
+def test_dempster_twin_is_independent_of_vehicle_order() -> None:
+    rng = np.random.default_rng(0)
+    maps = np.stack([_masses(rng) for _ in range(4)])
+    poses = np.array([[0, 0, 0], [2.0, -1.0, 0.1], [-3.0, 0.5, -0.2], [1.0, 4.0, 0.3]])
+    a = build_twin(maps, poses, GRID, "naive")
+    perm = [0, 3, 1, 2]
+    b = build_twin(maps[perm], poses[perm], GRID, "naive")
+    np.testing.assert_allclose(a.masses, b.masses, atol=2e-5)
+    # = Dempster's rule applied by hand, in either grouping
+    w = [warp_masses(maps[k], poses[k], GRID) for k in range(1, 4)]
+    by_hand = dempster(dempster(dempster(maps[0], w[0]), w[1]), w[2])
+    np.testing.assert_allclose(a.masses, by_hand, atol=2e-5)
+    other = dempster(maps[0], dempster(w[2], dempster(w[1], w[0])))
+    np.testing.assert_allclose(a.masses, other, atol=2e-5)
+    assert a.used.all() and a.masses.dtype == np.float32
+    # sequential and reference strategies agree for a noisy-pose method (no registration)
+    c = build_twin(maps, poses, GRID, "naive", strategy="sequential")
+    np.testing.assert_allclose(a.masses, c.masses, atol=2e-5)
+
+
+def test_a_vehicle_whose_registration_fails_is_left_out() -> None:
+    rng = np.random.default_rng(1)
+    ego = _masses(rng)
+    blank = np.zeros_like(
+        ego
+    )  # nothing known: no estimate can be accepted, the pose explains nothing
+    maps = np.stack([ego, blank, ego])
+    poses = np.zeros((3, 3))
+    step = build_twin(maps, poses, GRID, "registered")
+    assert step.used.tolist() == [True, False, True]
+    t = Twin(GRID, "registered")
+    t.update(0.0, maps, poses)
+    assert (t.left_out, t.fused) == (1, 1)
+
+
+@pytest.mark.parametrize(
+    ("maps_shape", "poses", "match"),
+    [
+        ((1, 2, 64, 48), np.zeros((1, 3)), "at least two vehicles"),
+        ((2, 2, 32, 48), np.zeros((2, 3)), "differs from the grid"),
+        ((2, 2, 64, 48), np.zeros((3, 3)), "poses: expected"),
+        (
+            (2, 2, 64, 48),
+            np.array([[0, 0, 0], [np.nan, 0, 0]]),
+            r"vehicle\(s\) \[1\] have a missing",
+        ),
+    ],
+)
+def test_bad_twin_inputs_name_the_input(maps_shape, poses, match) -> None:
+    with pytest.raises(TwinInputError, match=match):
+        build_twin(np.zeros(maps_shape, np.float32), poses, GRID, "naive")
+
+
+def test_twin_rejects_nan_masses_and_time_out_of_order() -> None:
+    maps = np.zeros((2, 2, 64, 48), np.float32)
+    bad = maps.copy()
+    bad[1, 0, 3, 3] = np.nan
+    with pytest.raises(TwinInputError, match=r"maps: vehicle\(s\) \[1\] have NaN"):
+        build_twin(bad, np.zeros((2, 3)), GRID, "naive")
+    t = Twin(GRID, "naive")
+    t.update(0.1, maps, np.zeros((2, 3)))
+    with pytest.raises(TwinInputError, match="not after the previous one"):
+        t.update(0.1, maps, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="needs the model"):
+        build_twin(maps, np.zeros((2, 3)), GRID, "learned")
+    with pytest.raises(ValueError, match="unknown"):
+        Twin(GRID, "bogus")
+
+
+# ------------------------------------------------------------------------------------ evaluation
+def _frame_table() -> pd.DataFrame:
+    """Two occluded sequences, 5 frames at 10 Hz; frames 2-4 truly critical. Sequence 0: the twin
+    flags 2-4, the ego 4 only; sequence 1: both flag 3-4; the twin also flags frame 0 of sequence 1
+    (a false alarm)."""
+    rows = []
+    flags = {
+        (0, "twin"): [0, 0, 1, 1, 1],
+        (0, EGO): [0, 0, 0, 0, 1],
+        (1, "twin"): [1, 0, 0, 1, 1],
+        (1, EGO): [0, 0, 0, 1, 1],
+    }
+    for (seq, m), fl in flags.items():
+        for t, f in enumerate(fl):
+            rows.append(
+                {
+                    "sequence": seq,
+                    "kind": "occluded",
+                    "hazard": "pedestrian",
+                    "vehicles": 3,
+                    "frame": t,
+                    "time": t / 10,
+                    "method": m,
+                    "thw": 1.0 if f else 3.0,
+                    "thw_true": 1.0 if t >= 2 else 3.0,
+                    "left_out": 0,
+                    "step_ms": 10.0,
+                }
+            )
+    f = pd.DataFrame(rows).sort_values(["sequence", "frame", "method"], kind="stable")
+    f["critical"] = f["thw_true"] < 1.5
+    f["flagged"] = f["thw"] < 1.5
+    return f
+
+
+def test_lead_times_and_summary_hand_computed() -> None:
+    f = _frame_table()
+    lt = lead_times(f, "twin", fps=10.0).set_index("sequence")
+    assert lt.loc[0, "lead_s"] == pytest.approx(0.2)  # twin at 0.2 s, ego at 0.4 s
+    assert lt.loc[1, "lead_s"] == pytest.approx(0.0)
+    s = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200))
+    occ = s["twin"]["occluded"]
+    assert occ["recall"] == pytest.approx(
+        5 / 6
+    )  # critical frames 2,3,4 x 2 sequences; missed: seq 1 frame 2
+    assert s[EGO]["occluded"]["recall"] == pytest.approx(3 / 6)
+    assert occ["recall_vs_ego"] == pytest.approx(2 / 6)
+    assert occ["false_alarm_rate"] == pytest.approx(1 / 4)  # frames 0, 1 of two sequences
+    assert occ["lead_time_s"] == pytest.approx(0.1)
+    assert occ["recall_ci"][0] <= occ["recall"] <= occ["recall_ci"][1]
+    t = targets({"D": {"methods": s}}, "twin", "D")
+    assert t["occluded_recall_ge_0.9"]["pass"] is False
+    assert t["occluded_lead_time_gt_0.5s"]["pass"] is False
+    assert t["open_false_alarms_le_0.05"]["value"] is None  # no open sequences here
+    assert targets({}, "twin", "D") == {"configuration": "D", "evaluated": False}
+
+
+# ------------------------------------------------------------------------------------ stages (ci DAG)
+@pytest.mark.slow
+def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
+    from traffictwin.io.shards import Dataset
+
+    ds = Dataset(ci_dag / "data" / "twin", kind="twin")
+    assert len(ds.shard_indices()) == 2
+    data = json.loads((ci_dag / "reports" / "metrics" / "twin_data.json").read_text())
+    assert data["twin_data/sequences"] == 2 and data["twin_data/vehicles"] == 3
+    m = json.loads((ci_dag / "reports" / "metrics" / "twin.json").read_text())
+    params = __import__("yaml").safe_load((ci_dag / "params.yaml").read_text())
+    assert list(m["configurations"]) == list(params["configurations"])
+    for c, entry in m["configurations"].items():
+        assert EGO in entry["methods"] and "naive" in entry["methods"], c
+        for kind in ("occluded", "open", "all"):
+            assert entry["methods"]["naive"][kind]["frames"] >= 6
+    frames = pd.read_csv(ci_dag / "reports" / "twin_eval_frames.csv")
+    assert set(frames["method"]) >= {EGO, "naive", "registered", "learned"}
+    # at configuration A the naive twin's poses are exact: its THW never undercuts the truth by
+    # more than the grid's quantisation (1 cell along the path) unless something else is in the corridor
+    a = frames[(frames["configuration"] == "A") & (frames["method"] == "naive")]
+    assert len(a) == 2 * params["twin"]["frames"]
+    timeline = pd.read_csv(ci_dag / "reports" / "plots" / "twin_timeline.csv")
+    assert set(timeline["series"]) >= {"truth", "ego map"} and {"time", "thw"} <= set(timeline)
+    for fig in ("twin_map", "twin_timeline"):
+        assert (ci_dag / "reports" / "figures" / f"{fig}.png").exists()
+    assert m["targets"]["configuration"] == params["twin"]["target_configuration"]
+
+
+# ------------------------------------------------------------------------------------ report and figures
+def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
+    from traffictwin.fusion.evaluation import json_clean
+    from traffictwin.report.model import ReportInputs, Sources
+    from traffictwin.twin import report_section as rs
+
+    f = _frame_table()
+    summary = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200))
+    m = {
+        "configurations": {"D": {"methods": summary}},
+        "targets": targets({"D": {"methods": summary}}, "twin", "D"),
+    }
+    (tmp_path / "metrics").mkdir()
+    (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
+    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
+    sec = rs.section(src, [])
+    occ, opn, tgt = sec.tables
+    rows = {r[1].text: r for r in occ.rows}
+    assert set(rows) == {rs.LABELS["ego"], "twin"}
+    assert rows["twin"][2].src == "metrics/twin.json#configurations.D.methods.twin.occluded.recall"
+    assert rows["twin"][2].value == pytest.approx(5 / 6)
+    assert rows["twin"][6].value == pytest.approx(0.1)  # lead time (s)
+    met = {r[0].text: r[3].text for r in tgt.rows}
+    assert met["occluded: twin flags >= 90 % of critical frames"] == "no"
+    assert len(opn.rows) == 2
+    # no metrics file: n/a cells and a hint, never an error
+    empty = rs.section(
+        Sources(ReportInputs(reports_dir=tmp_path / "none", profile="ci", seed=1, git_commit="x")),
+        [],
+    )
+    assert "missing" in empty.paragraphs[-1]
+
+
+def test_timeline_figure_plots_the_table() -> None:
+    from traffictwin.twin.figures import THW_CAP, pick_timeline_sequence, timeline_figure
+
+    f = _frame_table()
+    f.insert(0, "configuration", "D")
+    f["ego_sees_hazard"] = f["flagged"]
+    f = f.replace({"method": {"twin": "learned"}})
+    seq = pick_timeline_sequence(f, "D", "learned", 10.0)
+    assert seq == 0  # the larger lead
+    fig = timeline_figure(f, "D", "learned", seq, 1.5)
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    truth = f[(f["sequence"] == 0) & (f["method"] == EGO)]
+    np.testing.assert_allclose(lines["truth"].get_ydata(), np.minimum(truth["thw_true"], THW_CAP))
+    np.testing.assert_allclose(lines["twin (learned)"].get_ydata(), [3.0, 3.0, 1.0, 1.0, 1.0])
+    assert ax.get_xlabel() == "time (s)" and "(s" in ax.get_ylabel()
+    with pytest.raises(ValueError, match="twin.figure.sequence"):
+        pick_timeline_sequence(f, "D", "learned", 10.0, sequence=7)
+
+
+def test_twin_map_figure_shows_every_vehicle() -> None:
+    from traffictwin.twin.figures import twin_map_figure
+
+    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG)
+    a = sequence_arrays(5, 1, p)
+    fig = twin_map_figure(a, GRID, (5.0, 20.0), "naive", None, TwinEvalSettings(), "D")
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles[0].startswith("twin (naive)") and len(titles) == 4
+    assert titles[1].startswith("vehicle 0 (ego)") and "used" in titles[2]
+    assert all(ax.get_xlabel() == "y (m, left +)" for ax in fig.axes)
+
+
+# ------------------------------------------------------------------------------------ CLI
+def _write_maps(tmp_path: Path, cells=(0.5, 0.5, 0.5)) -> tuple[list[str], list[str]]:
+    a = sequence_arrays(5, 0, TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG))
+    paths, poses = [], []
+    for k in range(3):
+        p = tmp_path / f"v{k}.npz"
+        np.savez(p, m_free=a["maps"][3, k, 0], m_occ=a["maps"][3, k, 1], cell=cells[k])
+        paths.append(str(p))
+        poses.append("--pose=" + ",".join(f"{v:.6f}" for v in a["poses"][3, k]))
+    return paths, poses
+
+
+def test_cli_twin_builds_a_twin_and_refuses_bad_input(tmp_path: Path, capsys) -> None:
+    from traffictwin.cli import main
+
+    paths, poses = _write_maps(tmp_path)
+    out = tmp_path / "twin"
+    assert main(["twin", *paths, *poses, "--method", "naive", "-o", str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["vehicles"] == 3 and summary["used"] == [True, True, True]
+    with np.load(str(out) + ".npz") as z:
+        assert z["m_free"].shape == (64, 48) and z["rel_pose_used"].shape == (3, 3)
+        assert np.allclose(z["m_free"] + z["m_occ"] + z["u"], 1.0, atol=1e-5)
+    assert (tmp_path / "twin.png").exists()
+
+    def err(args: list[str]) -> str:
+        assert main(args) == 1
+        return capsys.readouterr().err
+
+    assert "at least two maps" in err(["twin", paths[0], poses[0], "-o", str(out)])
+    assert "one x,y,yaw per map" in err(["twin", *paths, *poses[:2], "-o", str(out)])
+    assert "would overwrite an input" in err(["twin", *paths, *poses, "-o", paths[1]])
+    assert "does not use a registration model" in err(
+        [
+            "twin",
+            *paths,
+            *poses,
+            "--method",
+            "naive",
+            "--registration-model",
+            paths[0],
+            "-o",
+            str(out),
+        ]
+    )
+    assert "needs a registration model" in err(
+        ["twin", *paths, *poses, "--method", "learned", "-o", str(out)]
+    )
+    (tmp_path / "bad").mkdir()
+    bad, bad_poses = _write_maps(tmp_path / "bad", cells=(0.5, 0.4, 0.5))
+    assert "cell size 0.4 m differs" in err(["twin", *bad, *bad_poses, "-o", str(out)])
