@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from _registry_models import log_linear
 
 from traffictwin import cli
 from traffictwin.evidential.warp import warp_masses
@@ -25,6 +26,7 @@ from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.sim.scene import relative_pose
 from traffictwin.stereo.orb import check_pair
 from traffictwin.stereo.sgm import compute_disparity
+from traffictwin.trainer import log_model
 
 H, W, CELL = 32, 48, 0.5
 POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"
@@ -150,12 +152,10 @@ def test_fuse_with_registry_alias_matches_path(
     monkeypatch.chdir(tmp_path)
     cl = reg.client(mlflow_uri)
     net = load_fusion_model(fusion_dir)
+    ckpt = torch.load(fusion_dir / "model.ckpt", weights_only=True)
     mlflow.set_experiment("fusion")
     with mlflow.start_run(run_name="fusion-D") as run:
-        mlflow.log_params({"grid.rows": H, "grid.cols": W, "grid.cell": CELL})
-        mlflow.pytorch.log_model(
-            net, name="model", serialization_format="pickle", pip_requirements=["torch"]
-        )
+        log_model(ckpt, ckpt["traffictwin"], net, np.zeros((1, 4, H, W), np.float32))
     mv = reg.ensure_version(cl, "traffictwin-fusion-D", run.info.run_id)
     cl.set_registered_model_alias("traffictwin-fusion-D", "champion", mv.version)
     p1 = _save_map(tmp_path / "a.npz", *_masses(4))
@@ -488,27 +488,13 @@ def test_promote_is_a_project_workflow_not_a_command(capsys):
     assert exc.value.code == 2 and "invalid choice: 'promote'" in capsys.readouterr().err
 
 
-def _log_linear(weight: float) -> str:
-    import mlflow
-
-    m = torch.nn.Linear(2, 1, bias=False)
-    with torch.no_grad():
-        m.weight.fill_(weight)
-    mlflow.set_experiment("fusion")
-    with mlflow.start_run() as run:
-        mlflow.pytorch.log_model(
-            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
-        )
-    return run.info.run_id
-
-
 def test_rollback_logs_to_the_recorded_promotion_log(tmp_path, mlflow_uri, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     cl = reg.client(mlflow_uri)
     log = tmp_path / "reports" / "promotions.jsonl"
     gate = reg.Gate("test/w", "max", 0.0)
     for w in (1.0, 2.0):
-        mv = reg.ensure_version(cl, "traffictwin-fusion-X", _log_linear(w))
+        mv = reg.ensure_version(cl, "traffictwin-fusion-X", log_linear(w))
         d = reg.decide(cl, "traffictwin-fusion-X", mv, lambda uri: {"test/w": float(uri[-1])}, gate)
         reg.apply(cl, d, log_path=log)
     assert str(reg.get_alias(cl, "traffictwin-fusion-X", "champion").version) == "2"

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
+from _registry_models import load_linear, log_linear
 
 from pipelines import promote as pm
 from pipelines._paths import PARAMS
@@ -82,24 +82,15 @@ def test_read_candidate_errors_name_the_file(tmp_path):
 
 def _trained(tmp_path, name: str, weight: float):
     """A model folder whose model_meta.json points at a logged MLflow model."""
-    import mlflow
-
-    m = torch.nn.Linear(1, 1, bias=False)
-    with torch.no_grad():
-        m.weight.fill_(weight)
-    mlflow.set_experiment("promo")
-    with mlflow.start_run() as run:
-        mlflow.pytorch.log_model(
-            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
-        )
+    run_id = log_linear(weight, in_features=1, experiment="promo")
     d = tmp_path / name
     d.mkdir(exist_ok=True)
-    (d / "model_meta.json").write_text(json.dumps({"mlflow_run_id": run.info.run_id}))
+    (d / "model_meta.json").write_text(json.dumps({"mlflow_run_id": run_id}))
     return d
 
 
 def _weight(uri: str) -> dict[str, float]:
-    return {"test/w": float(reg.load_registered(uri).weight.item())}
+    return {"test/w": float(reg.load_registered(uri, load_linear).weight.item())}
 
 
 def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):

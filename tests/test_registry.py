@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from _registry_models import load_linear, log_linear
 
 from traffictwin.mlops import registry as reg
 
@@ -21,24 +22,12 @@ Y = X @ W_TRUE.T
 
 def _log_model(weight_error: float) -> str:
     """Log a Linear(2,1) whose weights are off by ``weight_error``; returns the run id."""
-    import mlflow
-
-    m = torch.nn.Linear(2, 1, bias=False)
-    with torch.no_grad():
-        m.weight.copy_(torch.from_numpy(W_TRUE + weight_error))
-    mlflow.set_experiment("fusion")
-    with mlflow.start_run(run_name="fusion-T") as run:
-        mlflow.pytorch.log_model(
-            m, name="model", serialization_format="pickle", pip_requirements=["torch"]
-        )
-    return run.info.run_id
+    return log_linear(W_TRUE + weight_error)
 
 
 def _evaluate(uri: str) -> dict[str, float]:
     """Same metric code for both versions: MSE on the fixed test set (X, Y)."""
-    import mlflow
-
-    model = mlflow.pytorch.load_model(uri)
+    model = reg.load_registered(uri, load_linear)
     with torch.no_grad():
         pred = model(torch.from_numpy(X)).numpy()
     return {"test/mse": float(np.mean((pred - Y) ** 2)), "test/n": float(len(X))}

@@ -245,6 +245,7 @@ def fusion_model_name(cl, config: str | None) -> str:
 def load_fusion(model: str, config: str | None) -> tuple[Any, dict[str, Any], str]:
     """The fusion network for ``--model`` (an alias of ``traffictwin-fusion-<config>`` or a path),
     its training grid (dict, may be empty) and a description."""
+    from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
     from traffictwin.mlops import registry as reg
 
     if model in ALIASES:
@@ -252,16 +253,15 @@ def load_fusion(model: str, config: str | None) -> tuple[Any, dict[str, Any], st
         name = fusion_model_name(cl, config)
         uri, params = _registered_params(cl, name, model)
         try:
-            net = reg.load_registered(uri)
+            net = reg.load_registered(uri, load_fusion_model, cl=cl)
         except Exception as exc:  # noqa: BLE001
             raise CliError(
                 f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})"
             ) from None
-        grid = {
+        grid = dict(getattr(net, "meta", {}).get("grid", {}) or {}) or {
             k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params
         }
         return net, grid, f"{name}@{model} ({uri})"
-    from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
 
     p = Path(model)
     if not p.exists():
@@ -275,32 +275,22 @@ def load_fusion(model: str, config: str | None) -> tuple[Any, dict[str, Any], st
     return net, dict(getattr(net, "meta", {}).get("grid", {}) or {}), str(p)
 
 
-def _logged_metadata(uri: str) -> dict[str, Any]:
-    """The metadata logged with the MLflow model behind ``uri`` (empty if none or unreadable)."""
-    try:
-        import mlflow.models
-
-        return dict(mlflow.models.get_model_info(uri).metadata or {})
-    except Exception:  # noqa: BLE001 - metadata only refines the stereo settings
-        return {}
-
-
 def load_risk(model: str):
     """A :class:`~traffictwin.risk.model_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk``
     or a path) and a description; ``RiskModel.meta`` holds the model's metadata (``domain``…)."""
     from traffictwin.mlops import registry as reg
-    from traffictwin.risk.gate_eval import unwrap_risk_net
-    from traffictwin.risk.model_io import RiskModel, RiskModelError, load_risk_model
+    from traffictwin.risk.model_io import RiskModelError, load_risk_model
 
     if model in ALIASES:
-        uri, _ = _registered_params(_registry_client(), reg.RISK_NAME, model)
+        cl = _registry_client()
+        uri, _ = _registered_params(cl, reg.RISK_NAME, model)
         try:
-            net = unwrap_risk_net(reg.load_registered(uri))
+            rmodel = reg.load_registered(uri, load_risk_model, cl=cl)
         except Exception as exc:  # noqa: BLE001
             raise CliError(
                 f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})"
             ) from None
-        return RiskModel(net=net, meta=_logged_metadata(uri)), f"{reg.RISK_NAME}@{model} ({uri})"
+        return rmodel, f"{reg.RISK_NAME}@{model} ({uri})"
     p = Path(model)
     if not p.exists():
         raise CliError(
@@ -738,7 +728,10 @@ def cmd_rollback(args: argparse.Namespace) -> int:
     cl = _registry_client()
     log_path = Path(args.log) if args.log else reg.promotion_log(cl, args.model)
     try:
-        rec = reg.rollback(cl, args.model, args.version, log_path=log_path)
+        with reg.gate_lock(
+            reg.default_lock_path()
+        ):  # never between a gate's decision and its apply
+            rec = reg.rollback(cl, args.model, args.version, log_path=log_path)
     except reg.RegistryError as exc:
         raise CliError(str(exc)) from None
     print(f"{rec['name']}: champion v{rec['from_version']} -> v{rec['to_version']}")

@@ -21,8 +21,9 @@ Stable API (the fusion and the risk stages both use it):
   stage's MLflow run, through which :class:`History` and the final metrics are logged.
 - :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
   launcher re-runs the stage script in every rank; the other ranks get ``None``).
-- :func:`log_checkpoint` / :func:`log_torch_model` — the best checkpoint as an artifact and
-  the network as an MLflow model that :func:`mlflow.pytorch.load_model` restores.
+- :func:`log_checkpoint` / :func:`log_model` — the best checkpoint as an artifact and the
+  network as an MLflow model of weights + JSON (no pickled code, SHA-256 sealed) that
+  :func:`traffictwin.mlops.registry.load_registered` restores with the problem's loader.
 - One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
   :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
   :func:`read_model_checkpoint` reads it back with ``weights_only=True`` and checks it, and
@@ -532,7 +533,9 @@ def log_checkpoint(path: str | Path, artifact_path: str = "checkpoints") -> None
     mlflow.log_artifact(str(path), artifact_path=artifact_path)
 
 
-def log_torch_model(
+def log_model(
+    ckpt: Mapping[str, Any],
+    meta: Mapping[str, Any],
     model: torch.nn.Module,
     input_example: np.ndarray,
     *,
@@ -540,32 +543,54 @@ def log_torch_model(
     registered_model_name: str | None = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> str:
-    """Log ``model`` (moved to CPU, eval mode) as an MLflow PyTorch model; returns its model URI.
+    """Log a trained network as an MLflow model without pickled code; returns its model URI.
 
-    The signature is inferred from ``input_example`` (float32 numpy) and the model's output on it;
-    pip requirements are pinned to the running torch (no slow requirement inference). Serialised
-    with pickle (not MLflow 3's default traced 'pt2' graph, which would freeze the batch size and
-    grid shape); loading therefore needs ``traffictwin`` importable.
+    The model directory (:mod:`traffictwin.mlops.model_artifact`) holds ``ckpt`` (a checkpoint
+    of :data:`MODEL_FORMAT`, written with :func:`save_model_checkpoint`; loadable with
+    ``weights_only=True``) as ``model.ckpt`` and ``meta`` (the architecture and meta, JSON) as
+    ``model_meta.json``; the SHA-256 of every file is recorded on the logged model. The signature
+    is inferred from ``input_example`` (float32 numpy) and ``model``'s output on it (``model``
+    moved to CPU, eval mode; only run, never stored). ``registered_model_name``: also register it
+    (:func:`traffictwin.mlops.registry.ensure_version`). Load it back with
+    :func:`traffictwin.mlops.registry.load_registered` and the problem's loader.
     """
-    import mlflow
-    import mlflow.pytorch
+    import tempfile
+
     from mlflow.models import infer_signature
 
+    from traffictwin.mlops import model_artifact as art
+
+    info = ckpt.get("traffictwin") if isinstance(ckpt, Mapping) else None
+    if not isinstance(info, Mapping) or info.get("format") != MODEL_FORMAT:
+        raise CheckpointError(f"log_model: ckpt is not a '{MODEL_FORMAT}' checkpoint")
     model = model.to("cpu").eval()
     x = np.ascontiguousarray(input_example, dtype=np.float32)
     with torch.no_grad():
         y = model(torch.from_numpy(x))
-    signature = infer_signature(x, y.numpy())
-    info = mlflow.pytorch.log_model(
-        model,
-        name=name,
-        signature=signature,
-        pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "traffictwin"],
-        registered_model_name=registered_model_name,
-        serialization_format="pickle",
-        metadata=dict(metadata) if metadata else None,
-    )
-    return info.model_uri
+    signature = infer_signature(x, y.float().numpy())
+    with tempfile.TemporaryDirectory(prefix="tt-model-") as tmp:
+        ck_path = save_model_checkpoint(Path(tmp) / art.CKPT, ckpt)
+        meta_path = Path(tmp) / art.META
+        meta_path.write_text(json.dumps(dict(meta), indent=2, sort_keys=True, default=str) + "\n")
+        uri, _ = art.log_model(
+            {art.CKPT: ck_path, art.META: meta_path},
+            problem=str(info.get("problem", "")),
+            name=name,
+            signature=signature,
+            metadata=metadata,
+        )
+    if registered_model_name:
+        import mlflow
+
+        from traffictwin.mlops import registry
+
+        run = mlflow.active_run()
+        if run is None:
+            raise CheckpointError("log_model: registering needs an active MLflow run")
+        registry.ensure_version(
+            registry.client(mlflow.get_tracking_uri()), registered_model_name, run.info.run_id, uri
+        )
+    return uri
 
 
 # ---------------------------------------------------------------------------------------------

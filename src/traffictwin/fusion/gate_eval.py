@@ -5,14 +5,36 @@ callable; this one scores a registered model's fused masses with :mod:`traffictw
 (the evaluate_fusion stage's code) on the first pairs of a prealigned split. The gate metric
 (conf/registry ``fusion.metric``) is one of its ``test/<name>`` numbers: ``test/kld_fou_mean``
 (KLD(b), the evaluation's headline; mode min).
+
+Models are loaded with :func:`traffictwin.mlops.registry.load_registered` (SHA-256 checked,
+``weights_only`` checkpoints, no pickled code) and this problem's loaders. A model whose recorded
+grid or input channels (``model_meta.json``) do not fit the test set is known-incompatible
+(:func:`grid_incompatibility`): the gate records it and skips such a champion.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+
+def grid_incompatibility(meta: Mapping[str, Any], inputs_shape: Sequence[int]) -> str | None:
+    """Why a model whose ``model_meta.json`` is ``meta`` cannot run on inputs of ``inputs_shape``
+    ``(N, C, H, W)``: its grid (rows x cols cells) or its input channels differ; ``None`` if it fits."""
+    h, w = int(inputs_shape[-2]), int(inputs_shape[-1])
+    g = meta.get("grid") or {}
+    if not isinstance(g, Mapping) or (g.get("rows"), g.get("cols")) != (h, w):
+        got = f"{g.get('rows')}x{g.get('cols')}" if isinstance(g, Mapping) else repr(g)
+        return f"trained on a {got} grid, the test set is {h}x{w}"
+    arch = meta.get("architecture")
+    bb = arch.get("backbone") if isinstance(arch, Mapping) else None
+    c = bb.get("in_channels") if isinstance(bb, Mapping) else None
+    if c is not None and int(c) != int(inputs_shape[1]):
+        return f"takes {c} input channels, the test set has {inputs_shape[1]}"
+    return None
 
 
 def first_by(order_key: np.ndarray, k: int | None) -> np.ndarray:
@@ -45,11 +67,13 @@ def fusion_evaluator(
     """``evaluate(model_uri)``: fused masses of the registered model on ``inputs``, scored with
     :mod:`traffictwin.fusion.metrics` as ``test/<name>``."""
     from traffictwin.fusion import metrics as fm
-    from traffictwin.fusion.model_io import predict_masses
+    from traffictwin.fusion.model_io import load_fusion_model, predict_masses
     from traffictwin.mlops.registry import load_registered
 
     def evaluate(uri: str) -> dict[str, float]:
-        model = load_registered(uri)
+        model = load_registered(
+            uri, load_fusion_model, check=lambda meta: grid_incompatibility(meta, inputs.shape)
+        )
         m, _ = predict_masses(model, inputs, batch_size=batch_size)
         agg = fm.aggregate(fm.per_sample_metrics(label, m))
         return {f"test/{k}": float(v) for k, v in agg.items()}
@@ -84,10 +108,15 @@ def registration_evaluator(
     import torch
 
     from traffictwin.fusion import metrics as fm
+    from traffictwin.fusion.registration_training import load_registration_model
     from traffictwin.mlops.registry import load_registered
 
     def evaluate(uri: str) -> dict[str, float]:
-        model = load_registered(uri)
+        model = load_registered(
+            uri,
+            load_registration_model,
+            check=lambda meta: grid_incompatibility(meta, inputs.shape),
+        )
         parts = []
         with torch.no_grad():
             for s in range(0, len(inputs), batch_size):

@@ -421,7 +421,9 @@ def fit_registration(
             net = LearnedRegistration(spec, grid, min_gain)
             net.load_state_dict(common.net_state_dict(slim))
             example = np.zeros((1, 4, grid.rows, grid.cols), dtype=np.float32)
-            uri = common.log_torch_model(
+            uri = common.log_model(
+                slim,
+                meta,
                 net.eval(),
                 example,
                 name="model",

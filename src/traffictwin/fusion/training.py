@@ -745,7 +745,9 @@ def fit_fusion(
             logged_net = best_module.net.to(
                 memory_format=torch.contiguous_format
             )  # plain NCHW for serving
-            model_uri = common.log_torch_model(
+            model_uri = common.log_model(
+                slim,
+                meta,
                 logged_net,
                 example,
                 name="model",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -16,17 +17,29 @@ from traffictwin.mlops.gate import GateError
 from traffictwin.risk.evaluation import THRESHOLDS_S
 
 
-def unwrap_risk_net(model):
-    """The :class:`~traffictwin.risk.dave2.Dave2` inside an MLflow-loaded risk model."""
-    from traffictwin.risk.dave2 import Dave2
-    from traffictwin.risk.model_io import RiskModelError
+def config_incompatibility(meta: Mapping[str, Any]) -> str | None:
+    """Why a risk model whose ``model_meta.json`` is ``meta`` cannot be built by this version
+    (its ``config`` is missing or not a valid :class:`~traffictwin.risk.dave2.Dave2Config`);
+    ``None`` if it can. Any valid config runs on the raw test frames (they are resized to it)."""
+    from traffictwin.risk.dave2 import Dave2Config
 
-    for cand in (model, getattr(model, "net", None)):
-        if isinstance(cand, Dave2):
-            return cand
-    raise RiskModelError(
-        f"registered risk model is a {type(model).__name__}, expected a Dave2 (or a wrapper with .net)"
-    )
+    cfg = meta.get("config")
+    if not isinstance(cfg, Mapping):
+        return "its model_meta.json has no network 'config'"
+    try:
+        Dave2Config.from_dict(dict(cfg))
+    except (TypeError, ValueError, KeyError) as exc:
+        return f"its network config is not valid here ({exc})"
+    return None
+
+
+def load_registered_risk(uri: str):
+    """The :class:`~traffictwin.risk.model_io.RiskModel` behind a registry URI (SHA-256 checked,
+    ``weights_only``); its ``meta`` is the model's ``model_meta.json``."""
+    from traffictwin.mlops.registry import load_registered
+    from traffictwin.risk.model_io import load_risk_model
+
+    return load_registered(uri, load_risk_model, check=config_incompatibility)
 
 
 def risk_test_set(
@@ -80,9 +93,7 @@ def risk_evaluator(
 
     Returns ``test/mse``, ``test/mae``, … and ``test/accuracy`` (+ ``test/balanced_accuracy``) at
     the first threshold."""
-    from traffictwin.mlops.registry import load_registered
     from traffictwin.risk import evaluation as rm
-    from traffictwin.risk.model_io import RiskModel
 
     key = f"label:{label}"
     if key not in data:
@@ -91,7 +102,7 @@ def risk_evaluator(
     y = np.asarray(data[key], np.float32)
 
     def evaluate(uri: str) -> dict[str, float]:
-        rmodel = RiskModel(net=unwrap_risk_net(load_registered(uri)))
+        rmodel = load_registered_risk(uri)
         p = rmodel.predict(
             left_bgr=data["left"],
             disp_sgm=data["disp_sgm"],

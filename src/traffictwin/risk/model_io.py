@@ -84,14 +84,14 @@ class RiskModel:
         return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 
-def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | None = None) -> Path:
-    """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` (atomically); returns the folder."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    save_model_checkpoint(
-        out / CKPT, model_checkpoint("risk", net.cfg.to_dict(), net.state_dict(), meta)
-    )
-    full_meta = {
+def risk_checkpoint(net: Dave2, meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The ``model.ckpt`` content of ``net`` (:func:`traffictwin.trainer.model_checkpoint`, problem ``risk``)."""
+    return model_checkpoint("risk", net.cfg.to_dict(), net.state_dict(), meta)
+
+
+def risk_meta(net: Dave2, meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The ``model_meta.json`` content of ``net``: format, config, parameter count and ``meta``."""
+    return {
         "format": MODEL_FORMAT,
         "architecture": "dave2",
         "config": net.cfg.to_dict(),
@@ -99,7 +99,14 @@ def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | N
         "n_parameters": count_parameters(net),
         **(dict(meta) if meta else {}),
     }
-    write_json_atomic(out / META, full_meta)
+
+
+def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | None = None) -> Path:
+    """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` (atomically); returns the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_model_checkpoint(out / CKPT, risk_checkpoint(net, meta))
+    write_json_atomic(out / META, risk_meta(net, meta))
     return out
 
 

@@ -57,7 +57,7 @@ from traffictwin.risk.dave2 import (
     raw_to_risk,
     risk_loss,
 )
-from traffictwin.risk.model_io import CKPT, save_risk_model
+from traffictwin.risk.model_io import CKPT, risk_checkpoint, risk_meta, save_risk_model
 from traffictwin.trainer import (
     History,
     NetModule,
@@ -69,7 +69,7 @@ from traffictwin.trainer import (
     global_rank,
     log_checkpoint,
     log_final_metrics,
-    log_torch_model,
+    log_model,
     mlflow_logger,
     rank_layout,
     seed_everything,
@@ -820,7 +820,8 @@ def fit_risk(
     Writes ``out_dir`` (replaced): ``model.ckpt``, ``model_meta.json`` (``meta`` + training
     facts), ``history.csv``; ``curves_out`` (the same curves, for ``dvc plots``). With
     ``tracking`` enabled: an MLflow run with the params once, the curves, the final metrics,
-    the checkpoint and an MLflow model (:class:`PackedDave2`, single-tensor input).
+    the checkpoint and an MLflow model (the same ``model.ckpt`` + ``model_meta.json``, no pickled
+    code; its signature is that of :class:`PackedDave2`, one packed input tensor).
     """
     out_dir = Path(out_dir)
     tracking = tracking or TrackingSettings("risk", f"risk-{variant}", enabled=False)
@@ -897,8 +898,12 @@ def fit_risk(
                 torch.from_numpy(val.disp[:n_ex]) if val.disp.shape[1] else None,
             )
             example = pack_input(cfg, x, torch.from_numpy(val.speed[:n_ex])).numpy()
-            uri = log_torch_model(
-                PackedDave2(res.net), example, metadata={"variant": variant, "label": label}
+            uri = log_model(
+                risk_checkpoint(res.net, full_meta),
+                risk_meta(res.net, full_meta),
+                PackedDave2(res.net),
+                example,
+                metadata={"variant": variant, "label": label},
             )
             full_meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
             save_risk_model(res.net, out_dir, full_meta)

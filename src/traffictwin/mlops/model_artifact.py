@@ -1,0 +1,230 @@
+"""MLflow models without pickled code: weights + JSON, sealed by SHA-256 (issue 18).
+
+A trained network goes to MLflow as a model directory of the ``traffictwin`` flavour:
+
+- ``model.ckpt`` — the one checkpoint format of :mod:`traffictwin.trainer` (tensors and plain
+  containers only, read back with ``torch.load(weights_only=True)``);
+- ``model_meta.json`` — the architecture and meta of the model, as JSON;
+- ``MLmodel`` — MLflow's description (signature, metadata, the ``traffictwin`` flavour block:
+  format, problem, file names). There is no ``python_function`` flavour and no pickle: nothing in
+  the directory is code.
+
+:func:`log_model` writes the directory with MLflow's ``Model.log`` (so the logged model, its
+signature and the registry work as for any flavour), computes the SHA-256 of every file it wrote
+and records them as the tag :data:`SHA_TAG` on the logged model. Registration
+(:func:`traffictwin.mlops.registry.ensure_version`) checks the files against that record and
+copies it onto the registered version; loading (:func:`traffictwin.mlops.registry.load_registered`)
+checks the downloaded files against the version's record with :func:`verify` *before* anything
+reads them, so a replaced artifact file is refused before any of it is deserialised.
+
+A model logged by an older version of the project (``mlflow.pytorch``, pickled module) is
+recognised from its ``MLmodel`` file alone (YAML, read with ``yaml.safe_load``) and refused with
+:class:`LegacyModelError`; it is never unpickled.
+
+This module knows no problem (fusion, risk) and no checkpoint layout: it copies files, hashes
+them and reads JSON/YAML. Problem loaders are passed in by the caller.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from traffictwin.io.shards import sha256_file
+from traffictwin.mlops.gate import GateError, IncompatibleModelError
+
+FLAVOR = "traffictwin"
+ARTIFACT_FORMAT = "traffictwin-mlflow-model/1"
+CKPT = "model.ckpt"
+META = "model_meta.json"
+MLMODEL = "MLmodel"
+SHA_TAG = "traffictwin.sha256"
+
+
+class ModelArtifactError(GateError):
+    """A logged or registered model cannot be used (missing files, no hash record, bad format)."""
+
+
+class TamperedArtifactError(ModelArtifactError):
+    """An artifact file differs from the SHA-256 recorded for it (replaced or corrupted)."""
+
+
+class LegacyModelError(ModelArtifactError, IncompatibleModelError):
+    """A model logged as an ``mlflow.pytorch`` pickle: it is never loaded (that would run its code)."""
+
+
+def file_hashes(
+    folder: str | Path, names: list[str] | tuple[str, ...] | None = None
+) -> dict[str, str]:
+    """SHA-256 (hex) of ``names`` in ``folder`` (default: every file under it, by relative POSIX path)."""
+    folder = Path(folder)
+    if names is None:
+        names = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+    return {n: sha256_file(folder / n) for n in names}
+
+
+def encode_hashes(hashes: Mapping[str, str]) -> str:
+    """The tag value of a hash record (compact JSON, sorted keys)."""
+    return json.dumps(dict(sorted(hashes.items())), separators=(",", ":"))
+
+
+def decode_hashes(value: str | None, who: str) -> dict[str, str]:
+    """A hash record from its tag value; :class:`ModelArtifactError` naming ``who`` if unreadable."""
+    try:
+        rec = json.loads(value or "")
+    except json.JSONDecodeError:
+        rec = None
+    if (
+        not isinstance(rec, dict)
+        or not rec
+        or not all(isinstance(k, str) and isinstance(v, str) for k, v in rec.items())
+    ):
+        raise ModelArtifactError(f"{who}: the tag '{SHA_TAG}' is not a file -> SHA-256 record")
+    return rec
+
+
+def verify(folder: str | Path, expected: Mapping[str, str], who: str) -> None:
+    """Check the files of a downloaded model directory against their recorded SHA-256.
+
+    Every recorded file must exist and match, and the files this module reads (:data:`CKPT`,
+    :data:`META`, :data:`MLMODEL`) must be recorded. Raises :class:`TamperedArtifactError` (one
+    line naming ``who`` and the file) otherwise. Reads bytes only; deserialises nothing.
+    """
+    folder = Path(folder)
+    unrecorded = [n for n in (MLMODEL, META, CKPT) if n not in expected]
+    if unrecorded:
+        raise TamperedArtifactError(
+            f"{who}: no SHA-256 recorded for {', '.join(unrecorded)}; refusing to load it"
+        )
+    for name, sha in sorted(expected.items()):
+        path = folder / name
+        if ".." in Path(name).parts or not path.is_file():
+            raise TamperedArtifactError(
+                f"{who}: artifact file {name} is missing (recorded SHA-256 {sha[:12]}…); "
+                "refusing to load it"
+            )
+        got = sha256_file(path)
+        if got != sha:
+            raise TamperedArtifactError(
+                f"{who}: artifact file {name} does not match the SHA-256 recorded at registration "
+                f"(recorded {sha[:12]}…, found {got[:12]}…): it was replaced or corrupted; "
+                "refusing to load it"
+            )
+
+
+def read_flavor(folder: str | Path, who: str) -> dict[str, Any]:
+    """The ``traffictwin`` flavour block of ``<folder>/MLmodel`` (YAML only, no model code).
+
+    Raises :class:`LegacyModelError` for an ``mlflow.pytorch`` (pickled) model and
+    :class:`ModelArtifactError` for anything else that is not of this flavour.
+    """
+    import yaml
+
+    path = Path(folder) / MLMODEL
+    if not path.is_file():
+        raise ModelArtifactError(f"{who}: no {MLMODEL} file in the model artifact")
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ModelArtifactError(f"{who}: {MLMODEL} is not valid YAML ({exc})") from None
+    flavors = doc.get("flavors") or {}
+    block = flavors.get(FLAVOR)
+    if isinstance(block, dict) and block.get("format") == ARTIFACT_FORMAT:
+        return block
+    if "pytorch" in flavors:
+        raise LegacyModelError(
+            f"{who}: logged as a pickled mlflow.pytorch model (before issue 18); it is not loaded, "
+            "since unpickling runs code — re-register it: retrain the model (`dvc repro -f` of its "
+            "train stage) and run `python -m pipelines.promote`"
+        )
+    raise ModelArtifactError(
+        f"{who}: not a '{FLAVOR}' model of format '{ARTIFACT_FORMAT}' (flavours: {sorted(flavors)})"
+    )
+
+
+def read_meta(folder: str | Path, who: str) -> dict[str, Any]:
+    """The model's ``model_meta.json`` (JSON only)."""
+    path = Path(folder) / META
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ModelArtifactError(
+            f"{who}: {META} unreadable ({type(exc).__name__}: {exc})"
+        ) from None
+    if not isinstance(meta, dict):
+        raise ModelArtifactError(f"{who}: {META} is not a JSON object")
+    return meta
+
+
+def save_model(
+    path: str,
+    mlflow_model: Any,
+    *,
+    files: Mapping[str, str | Path],
+    problem: str,
+    signature: Any = None,
+    sink: dict[str, Any] | None = None,
+) -> None:
+    """MLflow flavour hook (``Model.log(flavor=this module)``): write the model directory.
+
+    ``files``: ``{CKPT: path, META: path}`` of the local checkpoint and meta JSON to copy;
+    ``sink`` receives ``hashes`` (SHA-256 of every file written, ``MLmodel`` included).
+    """
+    out = Path(path)
+    out.mkdir(parents=True, exist_ok=True)
+    missing = {CKPT, META} - set(files)
+    if missing:
+        raise ModelArtifactError(f"save_model: files {sorted(missing)} are required")
+    for name, src in files.items():
+        if Path(name).name != name or name == MLMODEL:
+            raise ModelArtifactError(f"save_model: bad artifact file name {name!r}")
+        shutil.copyfile(src, out / name)
+    if signature is not None:
+        mlflow_model.signature = signature
+    mlflow_model.add_flavor(
+        FLAVOR,
+        format=ARTIFACT_FORMAT,
+        problem=problem,
+        checkpoint=CKPT,
+        meta=META,
+        files=sorted(files),
+    )
+    mlflow_model.save(str(out / MLMODEL))
+    if sink is not None:
+        sink["hashes"] = file_hashes(out)
+
+
+def log_model(
+    files: Mapping[str, str | Path],
+    *,
+    problem: str,
+    name: str = "model",
+    signature: Any = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> tuple[str, str]:
+    """Log the model directory (see the module doc) to the active MLflow run.
+
+    Returns ``(model_uri, model_id)`` of the logged model; its tag :data:`SHA_TAG` records the
+    SHA-256 of every file in the directory.
+    """
+    import mlflow
+    from mlflow.models import Model
+
+    sink: dict[str, Any] = {}
+    info = Model.log(
+        None,
+        name=name,
+        flavor=sys.modules[__name__],
+        metadata=dict(metadata) if metadata else None,
+        files={k: str(v) for k, v in files.items()},
+        problem=problem,
+        signature=signature,
+        sink=sink,
+    )
+    model_id = info.model_id
+    mlflow.MlflowClient().set_logged_model_tags(model_id, {SHA_TAG: encode_hashes(sink["hashes"])})
+    return info.model_uri, model_id
