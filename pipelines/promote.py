@@ -11,8 +11,11 @@ One gate per fusion configuration (the keys of ``configurations``), one per lear
 candidate is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
 and it and the current ``champion`` are evaluated on the same fixed test set with the evaluation
 stages' metric code; all decisions are taken first, then applied, so an evaluation failure moves
-no alias. Exit status 0 on success (whatever the decisions), 1 on an error (message names the
-file/model/key).
+no alias. The whole run holds the registry lock (``<mlflow.db>.gate.lock``): a second gate waits
+and then decides against the champion this one left. A champion that cannot be evaluated stops
+the run with every champion kept, unless it is known-incompatible (another grid, a pickled model
+of an older version), which is recorded and skipped. Exit status 0 on success (whatever the
+decisions), 1 on an error (one line naming the file/model/key).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -161,13 +165,19 @@ def promote(
     dry_run: bool = False,
     force: bool = False,
     uri: str | None = None,
+    before_apply: Callable[[list[Decision]], None] | None = None,
 ) -> list[Decision]:
-    """Run the gate for every model of the project; returns the decisions (applied unless ``dry_run``)."""
+    """Run the gate for every model of the project; returns the decisions (applied unless ``dry_run``).
+
+    ``before_apply(decisions)``: called under the registry lock once every decision is taken.
+    """
     setup_logging()
     cfg = params()
     rc = registry_config(cfg)
     jobs = promotion.select(build_jobs(cfg, rc), only)
-    return promotion.promote(jobs, settings(rc, dry_run=dry_run, force=force, uri=uri))
+    return promotion.promote(
+        jobs, settings(rc, dry_run=dry_run, force=force, uri=uri), before_apply=before_apply
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -189,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         decisions = promote(set(args.only) if args.only else None, args.dry_run, args.force)
     except (ValueError, RuntimeError) as exc:  # ConfigError, GateError, dataset/model errors
-        print(f"promote: error: {exc}", file=sys.stderr)
+        print(f"promote: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 1
     if args.json:
         print(json.dumps([d.to_dict() for d in decisions], indent=2, default=str))

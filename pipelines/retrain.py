@@ -313,12 +313,15 @@ def retrain(
             step = "promote"
             decisions = []
             if promote_models:
-                # decide all first: nothing moves on error
-                decisions = promote_mod.promote(only, dry_run=True)
-                _inject("before_apply")
-                step = "apply"
-                applied = True
-                promotion.apply_all(cl, decisions, promote_mod.settings(rc))
+                # decide all first (under the registry lock, held until the aliases moved):
+                # nothing moves on error
+                def before_apply(_decisions) -> None:
+                    nonlocal step, applied
+                    _inject("before_apply")
+                    step = "apply"
+                    applied = True
+
+                decisions = promote_mod.promote(only, before_apply=before_apply)
             s["decisions"] = [d.to_dict() for d in decisions]
             s["status"] = "succeeded"
         except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - restore on anything

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 
 from traffictwin.mlops import gate as gm
@@ -95,11 +93,31 @@ def test_max_mode_compare():
     assert better and "improvement nan" in why
 
 
-def test_unevaluable_champion_is_replaced_and_error_kept():
-    ev, _ = _figures(m2=0.9, m1=ValueError("grid 128x88 does not fit"))
+@pytest.mark.parametrize(
+    "error", [FileNotFoundError("model.ckpt"), ValueError("boom"), GateError("no metric")]
+)
+def test_unevaluable_champion_stops_the_gate(error):
+    """A champion that fails to load or evaluate (maybe transiently) is never replaced on it."""
+    ev, calls = _figures(m2=1.67, m1=error)
+    with pytest.raises(gm.ChampionEvaluationError) as exc:
+        gm.decide("M", V2, V1, ev, G)
+    msg = str(exc.value)
+    assert "M: champion v1 could not be evaluated" in msg and "champion kept" in msg
+    assert type(error).__name__ in msg and "\n" not in msg
+    assert calls == ["m2", "m1"]
+
+
+def test_known_incompatible_champion_is_skipped_and_reason_kept():
+    ev, _ = _figures(m2=0.9, m1=gm.IncompatibleModelError("trained on a 128x88 grid,\nnot 64x48"))
     d = gm.decide("M", V2, V1, ev, G)
-    assert d.action == "promoted" and math.isnan(d.champion_value)
-    assert "champion v1 could not be evaluated" in d.reason and "128x88" in d.reason
+    assert d.action == "promoted" and d.promotes and d.champion_value is None
+    assert d.champion_version == "1" and d.challenger_value == 0.9
+    assert d.champion_incompatible == "trained on a 128x88 grid, not 64x48"  # one line
+    assert "champion v1 skipped, known-incompatible (trained on a 128x88" in d.reason
+    assert d.to_dict()["champion_incompatible"] == d.champion_incompatible
+    ev, _ = _figures(m2=float("nan"), m1=gm.IncompatibleModelError("old grid"))
+    d = gm.decide("M", V2, V1, ev, G)
+    assert d.action == "rejected" and d.champion_incompatible == "old grid"
 
 
 def test_unchanged_when_already_champion_or_already_decided():

@@ -13,8 +13,14 @@ Rules:
 - no champion yet: the challenger becomes champion (``first``) if its figure is finite;
 - the challenger is already the champion, or was already decided against the same champion
   on the same test set (its ``gate.*`` tags say so): ``unchanged`` (unless ``force``);
-- a champion that cannot be evaluated any more (e.g. trained for another grid) gets the figure
-  NaN and is beaten by any finite challenger; the error is kept in the reason;
+- a champion that cannot be evaluated stops the gate: :class:`ChampionEvaluationError` (the
+  champion is kept). A load or evaluation error may be transient (a file briefly missing, a full
+  disk), and replacing the champion on it once promoted a model 2000x worse;
+- except a champion that is *known* incompatible: the evaluator raises
+  :class:`IncompatibleModelError` (its recorded grid/architecture does not fit the current test
+  set, or it was logged in a format that is never loaded). The reason is kept in the decision
+  (``champion_incompatible``; the registry records it on the version) and the challenger is
+  judged alone, as if there were no champion (``promoted`` if its figure is finite);
 - otherwise the challenger is ``promoted`` only if it is better by more than ``margin``.
 """
 
@@ -32,6 +38,15 @@ Evaluator = Callable[[str], Mapping[str, float]]
 
 class GateError(RuntimeError):
     """The gate cannot decide (e.g. the evaluation returned no figure for the gate's metric)."""
+
+
+class IncompatibleModelError(GateError):
+    """A model version is known not to fit the current evaluation (another grid or architecture,
+    a format that is never loaded); raised by an evaluator, it lets the gate skip a champion."""
+
+
+class ChampionEvaluationError(GateError):
+    """The current champion could not be evaluated: the gate stops and the champion is kept."""
 
 
 @dataclass(frozen=True)
@@ -94,6 +109,7 @@ class Decision:
     test_fingerprint: str = ""
     challenger_metrics: dict[str, float] = field(default_factory=dict)
     champion_metrics: dict[str, float] = field(default_factory=dict)
+    champion_incompatible: str = ""  # why the champion was skipped (known-incompatible), else ""
     timestamp: float = field(default_factory=time.time)
 
     @property
@@ -203,16 +219,32 @@ def decide(
             else f"{gate.metric} is not finite",
             challenger_metrics=ch_metrics,
         )
-    cp_error = ""
     try:
         cp_metrics = {k: float(v) for k, v in evaluate(champion.uri).items()}
         cp_val = metric_value(cp_metrics, gate.metric, f"{name} v{champion.version} (champion)")
-    except Exception as exc:  # noqa: BLE001 - a champion that no longer runs on the current test set
-        cp_metrics, cp_val = {}, float("nan")
-        cp_error = (
-            f"champion v{champion.version} could not be evaluated on this test set "
-            f"({type(exc).__name__}: {exc}); "
+    except IncompatibleModelError as exc:
+        why = one_line(exc)
+        ok = math.isfinite(ch_val)
+        return Decision(
+            **common,
+            champion_version=champion.version,
+            challenger_value=ch_val,
+            champion_value=None,
+            action="promoted" if ok else "rejected",
+            reason=f"champion v{champion.version} skipped, known-incompatible ({why}); "
+            + (
+                f"challenger judged alone: {gate.metric} {ch_val:.6g} is finite"
+                if ok
+                else f"challenger {gate.metric} is not finite"
+            ),
+            challenger_metrics=ch_metrics,
+            champion_incompatible=why,
         )
+    except Exception as exc:  # noqa: BLE001 - any other failure may be transient: stop, keep the champion
+        raise ChampionEvaluationError(
+            f"{name}: champion v{champion.version} could not be evaluated "
+            f"({type(exc).__name__}: {one_line(exc)}); gate stopped, champion kept"
+        ) from exc
     better, why = compare(gate, ch_val, cp_val)
     return Decision(
         **common,
@@ -220,7 +252,13 @@ def decide(
         challenger_value=ch_val,
         champion_value=cp_val,
         action="promoted" if better else "rejected",
-        reason=cp_error + why,
+        reason=why,
         challenger_metrics=ch_metrics,
         champion_metrics=cp_metrics,
     )
+
+
+def one_line(exc: BaseException, limit: int = 600) -> str:
+    """``str(exc)`` on one line (newlines folded), at most ``limit`` characters."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"

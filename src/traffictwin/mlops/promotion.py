@@ -6,10 +6,16 @@ the evaluator — and calls :func:`promote` with :class:`PromotionSettings`. Her
 
 1. every candidate's ``model_meta.json`` is read first (:func:`read_candidate`), so a missing
    model stops the run before anything changes;
-2. each candidate is registered once (:func:`traffictwin.mlops.registry.ensure_version`) and
+2. under the registry-wide lock (:func:`traffictwin.mlops.registry.gate_lock`, held until the
+   last alias moved: a second gate waits, then decides against the champion this one left),
+   each candidate is registered once (:func:`traffictwin.mlops.registry.ensure_version`) and
    decided against its champion (:func:`traffictwin.mlops.registry.decide`);
 3. only when every decision is taken are they applied (unless ``dry_run``), so an evaluation
-   failure moves no alias.
+   failure moves no alias. A champion that cannot be evaluated stops the run
+   (:class:`traffictwin.mlops.gate.ChampionEvaluationError`) with every champion kept. If a
+   champion moved between its decision and the apply (someone changed the alias without the
+   lock), that model is decided again against the new champion; if it moves again, the run stops
+   (:class:`traffictwin.mlops.registry.ChampionChangedError`).
 
 No params.yaml, no paths of the project: jobs and settings carry everything.
 """
@@ -92,6 +98,8 @@ class PromotionSettings:
     dry_run: bool = False  # decide, change nothing
     force: bool = False  # re-evaluate challengers that were already decided
     uri: str | None = None  # tracking/registry URI (default: traffictwin.mlops.tracking)
+    lock_path: Path | None = None  # registry lock (default: registry.default_lock_path(uri))
+    lock_timeout_s: float | None = None  # wait at most this long for the lock (None: no limit)
 
 
 def select(jobs: Sequence[GateJob], only: Iterable[str] | None) -> list[GateJob]:
@@ -107,62 +115,133 @@ def select(jobs: Sequence[GateJob], only: Iterable[str] | None) -> list[GateJob]
     return [j for j in jobs if j.name in wanted]
 
 
-def decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> list[Decision]:
-    """Register every candidate (once) and decide it against its champion; changes no alias."""
+@dataclass
+class _Pending:
+    """A decided job: what is needed to decide it again."""
+
+    job: GateJob
+    version: Any  # the registered ModelVersion
+    evaluate: Evaluator
+    fingerprint: str
+    decision: Decision | None = None
+
+
+def _decide(cl, p: _Pending, settings: PromotionSettings) -> Decision:
+    t0 = time.perf_counter()
+    d = reg.decide(
+        cl,
+        p.job.name,
+        p.version,
+        p.evaluate,
+        p.job.gate,
+        test_fingerprint=p.fingerprint,
+        champion_alias=settings.champion_alias,
+        force=settings.force,
+    )
+    log.info(
+        "%s v%s: %s — %s (%.1f s)",
+        d.name,
+        d.challenger_version,
+        d.action,
+        d.reason,
+        time.perf_counter() - t0,
+    )
+    return d
+
+
+def _decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> list[_Pending]:
     candidates = [read_candidate(j.name, j.model_dir) for j in jobs]
-    decisions = []
+    pending = []
     for job, cand in zip(jobs, candidates, strict=True):
-        t0 = time.perf_counter()
         mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
         evaluate, fingerprint = job.make_evaluator(cand)
-        d = reg.decide(
-            cl,
-            job.name,
-            mv,
-            evaluate,
-            job.gate,
-            test_fingerprint=fingerprint,
-            champion_alias=settings.champion_alias,
-            force=settings.force,
-        )
-        log.info(
-            "%s v%s: %s — %s (%.1f s)",
-            d.name,
-            d.challenger_version,
-            d.action,
-            d.reason,
-            time.perf_counter() - t0,
-        )
-        decisions.append(d)
-    return decisions
+        p = _Pending(job, mv, evaluate, fingerprint)
+        p.decision = _decide(cl, p, settings)
+        pending.append(p)
+    return pending
+
+
+def decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> list[Decision]:
+    """Register every candidate (once) and decide it against its champion; changes no alias.
+
+    Call it under :func:`traffictwin.mlops.registry.gate_lock` if the decisions will be applied.
+    """
+    return _decisions(_decide_all(cl, jobs, settings))
+
+
+def _decisions(pending: Sequence[_Pending]) -> list[Decision]:
+    return [p.decision for p in pending if p.decision is not None]
+
+
+def _apply_pending(cl, pending: Sequence[_Pending], settings: PromotionSettings) -> None:
+    for p in pending:
+        try:
+            _apply_one(cl, p.decision, settings)  # type: ignore[arg-type]
+        except reg.ChampionChangedError as exc:
+            log.warning("%s; deciding again", exc)
+            p.decision = _decide(cl, p, settings)
+            _apply_one(
+                cl, p.decision, settings
+            )  # a second move: ChampionChangedError stops the run
+
+
+def _apply_one(cl, d: Decision, settings: PromotionSettings) -> None:
+    reg.apply(
+        cl,
+        d,
+        log_path=settings.log_path,
+        champion_alias=settings.champion_alias,
+        challenger_alias=settings.challenger_alias,
+    )
 
 
 def apply_all(cl, decisions: Sequence[Decision], settings: PromotionSettings) -> None:
-    """Apply decisions (tags, log line, aliases) in order."""
+    """Apply decisions (tags, log line, aliases) in order.
+
+    A decision whose champion moved since it was taken raises
+    :class:`traffictwin.mlops.registry.ChampionChangedError` (use :func:`promote`, which decides
+    such a model again).
+    """
     for d in decisions:
-        reg.apply(
-            cl,
-            d,
-            log_path=settings.log_path,
-            champion_alias=settings.champion_alias,
-            challenger_alias=settings.challenger_alias,
-        )
+        _apply_one(cl, d, settings)
 
 
-def promote(jobs: Sequence[GateJob], settings: PromotionSettings, *, client=None) -> list[Decision]:
-    """Decide every job, then apply the decisions unless ``settings.dry_run``; returns them."""
+def lock_path(settings: PromotionSettings) -> Path:
+    """The registry lock file of ``settings`` (its ``lock_path``, else next to the registry)."""
+    return Path(settings.lock_path) if settings.lock_path else reg.default_lock_path(settings.uri)
+
+
+def promote(
+    jobs: Sequence[GateJob],
+    settings: PromotionSettings,
+    *,
+    client=None,
+    before_apply: Callable[[list[Decision]], None] | None = None,
+) -> list[Decision]:
+    """Decide every job, then apply the decisions unless ``settings.dry_run``; returns them.
+
+    Holds the registry lock (:func:`lock_path`) from the first decision to the last alias move.
+    ``before_apply(decisions)`` is called between the two (e.g. a workflow's last chance to stop;
+    an exception there applies nothing).
+    """
     cl = client if client is not None else reg.client(settings.uri)
-    decisions = decide_all(cl, jobs, settings)
-    if not settings.dry_run:
-        apply_all(cl, decisions, settings)
-    return decisions
+    with reg.gate_lock(lock_path(settings), timeout_s=settings.lock_timeout_s):
+        pending = _decide_all(cl, jobs, settings)
+        if before_apply is not None:
+            before_apply(_decisions(pending))
+        if not settings.dry_run:
+            _apply_pending(cl, pending, settings)
+    return _decisions(pending)
 
 
 def format_decision(d: Decision) -> str:
-    """One line per decision for a terminal: name, version, action and both figures."""
+    """One line per decision for a terminal: name, version, action and both figures (or why the
+    champion was skipped)."""
     fig = ""
     if d.challenger_value is not None:
         fig = f"  challenger {d.challenger_value:.6g}"
         if d.champion_value is not None:
             fig += f"  champion v{d.champion_version} {d.champion_value:.6g}"
+        elif d.champion_incompatible:
+            fig += f"  champion v{d.champion_version} skipped: {d.champion_incompatible}"
     return f"{d.name:28s} v{d.challenger_version:>3s}  {d.action:9s}{fig}"

@@ -4,14 +4,28 @@ Names (DESIGN.md "Tracking"): ``traffictwin-fusion-<cfg>`` and ``traffictwin-ris
 ``champion`` and ``challenger`` (lowercase). The decision itself is pure and lives in
 :mod:`traffictwin.mlops.gate`; this module looks up what it needs in the registry and applies it:
 
-1. :func:`ensure_version` registers a trained model (its MLflow run's logged model) as a new
-   version of its registered model (a run that is already registered reuses its version, so
-   re-running promotion after a no-op ``dvc repro`` registers nothing new).
+1. :func:`ensure_version` registers a trained model (its MLflow run's logged model, of the
+   :mod:`traffictwin.mlops.model_artifact` flavour) as a new version of its registered model (a
+   run that is already registered reuses its version, so re-running promotion after a no-op
+   ``dvc repro`` registers nothing new). The artifact files are checked against the SHA-256
+   recorded when they were logged, and the record is copied onto the version as the tag
+   ``traffictwin.sha256``.
 2. :func:`decide` reads the current ``champion`` and the challenger's ``gate.*`` tags and calls
    :func:`traffictwin.mlops.gate.decide`, which re-evaluates both versions on the same test set.
-3. :func:`apply` records the decision on the challenger's version as ``gate.*`` tags and as one
-   JSON line in the promotion log, points ``challenger`` at the newest candidate and moves
+3. :func:`apply` re-reads ``champion`` and refuses (:class:`ChampionChangedError`) if it moved
+   since the decision; else it records the decision on the challenger's version as ``gate.*``
+   tags and as one JSON line in the promotion log, records a known-incompatible champion as
+   ``gate.incompatible`` on that version, points ``challenger`` at the newest candidate and moves
    ``champion`` if the decision promotes. Old versions stay registered.
+
+:func:`gate_lock` is the one registry-wide lock (``fcntl.flock`` on a file next to the SQLite
+database, :func:`default_lock_path`) that a gate holds from its decisions to its last alias move,
+and a rollback while it moves the alias: two gates run one after the other, and the second
+decides against the champion the first left.
+
+:func:`load_registered` is the only way a registered model is loaded: files checked against the
+version's SHA-256 record first, then the caller's problem loader (``weights_only`` checkpoints);
+nothing is unpickled, and a model logged as an ``mlflow.pytorch`` pickle is refused.
 
 :func:`rollback` moves ``champion`` back to the previous champion (a stack kept in the
 registered model's ``traffictwin.champion_history`` tag) or to an explicit version. The
@@ -23,25 +37,54 @@ This module takes explicit arguments only (never params.yaml).
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
+import logging
 import math
+import os
+import socket
+import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+from urllib.parse import unquote, urlparse
 
 import numpy as np
 
 from traffictwin.io.atomic import write_text_atomic
 from traffictwin.mlops import gate as _gate
-from traffictwin.mlops.gate import Decision, Evaluator, Gate, GateError
+from traffictwin.mlops import model_artifact as art
+from traffictwin.mlops.gate import (
+    ChampionEvaluationError,
+    Decision,
+    Evaluator,
+    Gate,
+    GateError,
+    IncompatibleModelError,
+)
+from traffictwin.mlops.model_artifact import (
+    LegacyModelError,
+    ModelArtifactError,
+    TamperedArtifactError,
+)
 
 __all__ = [
+    "ChampionEvaluationError",
     "Decision",
     "Gate",
     "GateError",
+    "IncompatibleModelError",
+    "LegacyModelError",
+    "ModelArtifactError",
     "RegistryError",
+    "TamperedArtifactError",
 ]  # re-exported for callers of the adapter
+
+log = logging.getLogger("traffictwin.registry")
+T = TypeVar("T")
 
 CHAMPION = "champion"
 CHALLENGER = "challenger"
@@ -54,6 +97,14 @@ RISK_NAME = "traffictwin-risk"
 
 class RegistryError(GateError):
     """A registry operation cannot be done (missing model, alias, version or run)."""
+
+
+class ChampionChangedError(RegistryError):
+    """The champion alias moved between a decision and its application."""
+
+
+class LockTimeoutError(RegistryError):
+    """The registry lock was not acquired in time."""
 
 
 def fusion_name(cfg: str, prefix: str = FUSION_PREFIX) -> str:
@@ -122,8 +173,11 @@ def ensure_version(
 ):
     """The model version of ``name`` registered from ``run_id``; registers it if there is none.
 
-    ``model_uri``: the logged model to register (default ``runs:/<run_id>/model``).
-    Raises :class:`RegistryError` if the run does not exist.
+    ``model_uri``: the logged model to register (default: the run's logged model ``model``).
+    The artifact is checked against the SHA-256 recorded when it was logged, and the record is
+    set on the version (tag ``traffictwin.sha256``; an existing version without it gets it now).
+    Raises :class:`RegistryError` if the run does not exist or its model cannot be registered
+    safely (a pickled ``mlflow.pytorch`` model, files that changed since logging).
     """
     import mlflow
     from mlflow.exceptions import MlflowException
@@ -139,7 +193,15 @@ def ensure_version(
     except MlflowException:
         existing = []
     if existing:
-        return max(existing, key=lambda v: int(v.version))
+        mv = max(existing, key=lambda v: int(v.version))
+        if art.SHA_TAG not in (mv.tags or {}):
+            model_id = _logged_model_id(mv.source)
+            record = _sealed_record(cl, model_id, f"model '{name}' v{mv.version}")
+            cl.set_model_version_tag(name, str(mv.version), art.SHA_TAG, art.encode_hashes(record))
+            mv = cl.get_model_version(name, str(mv.version))
+        return mv
+    model_id = _run_model_id(cl, run_id, model_uri)
+    record = _sealed_record(cl, model_id, f"run '{run_id}' (model '{name}')")
     try:
         cl.get_registered_model(name)
     except MlflowException:
@@ -147,25 +209,143 @@ def ensure_version(
             name,
             description=f"traffictwin model '{name}' (promotion gate: traffictwin.mlops.registry)",
         )
+    all_tags = {k: str(v) for k, v in (tags or {}).items()}
+    all_tags[art.SHA_TAG] = art.encode_hashes(record)
     try:
-        mv = mlflow.register_model(
-            model_uri or f"runs:/{run_id}/model",
-            name,
-            tags={k: str(v) for k, v in (tags or {}).items()},
-        )
+        mv = mlflow.register_model(f"models:/{model_id}", name, tags=all_tags)
     except MlflowException as exc:
         raise RegistryError(
-            f"cannot register run '{run_id}' as '{name}' from {model_uri or f'runs:/{run_id}/model'}: {exc}"
+            f"cannot register run '{run_id}' as '{name}' from models:/{model_id}: {exc}"
         ) from None
     return cl.get_model_version(name, mv.version)
 
 
-def load_registered(uri: str):
-    """Load an MLflow PyTorch model (``models:/name/version`` or ``models:/name@alias``) on CPU, eval mode."""
-    import mlflow.pytorch
+def _logged_model_id(source: str | None) -> str:
+    """The logged-model id of a version's ``source`` (``models:/m-…``); error for other sources."""
+    src = str(source or "")
+    if src.startswith("models:/") and "/" not in src[len("models:/") :]:
+        return src[len("models:/") :]
+    raise RegistryError(
+        f"model source '{src}' is not a logged model (models:/<model_id>); re-register it from "
+        "a run logged by this version of traffictwin"
+    )
 
-    model = mlflow.pytorch.load_model(uri, map_location="cpu")
-    return model.eval()
+
+def _run_model_id(cl, run_id: str, model_uri: str | None) -> str:
+    """The logged model to register: ``model_uri`` (``models:/m-…`` or ``runs:/<run>/<name>``),
+    else the run's logged model named ``model``."""
+    if model_uri and model_uri.startswith("models:/"):
+        return _logged_model_id(model_uri)
+    want = "model"
+    if model_uri and model_uri.startswith("runs:/"):
+        want = model_uri[len("runs:/") :].split("/", 1)[-1] or want
+    outputs = getattr(cl.get_run(run_id), "outputs", None)
+    ids = [o.model_id for o in (getattr(outputs, "model_outputs", None) or [])]
+    for mid in reversed(ids):
+        if cl.get_logged_model(mid).name == want:
+            return mid
+    raise RegistryError(
+        f"run '{run_id}' has no logged model '{want}' (a model logged before MLflow 3, or by "
+        "another tool?); retrain it (`dvc repro -f` of its train stage)"
+    )
+
+
+def _sealed_record(cl, model_id: str, who: str) -> dict[str, str]:
+    """The SHA-256 record of logged model ``model_id``, after checking its files against it."""
+    lm = cl.get_logged_model(model_id)
+    value = (lm.tags or {}).get(art.SHA_TAG)
+    with tempfile.TemporaryDirectory(prefix="tt-register-") as tmp:
+        folder = _download(f"models:/{model_id}", tmp)
+        if value is None:
+            art.read_flavor(folder, who)  # LegacyModelError for a pickled model
+            raise RegistryError(
+                f"{who}: logged model {model_id} has no SHA-256 record (tag '{art.SHA_TAG}'); "
+                "log it with traffictwin.trainer.log_model"
+            )
+        record = art.decode_hashes(value, who)
+        art.verify(folder, record, who)
+        art.read_flavor(folder, who)
+    return record
+
+
+def _download(uri: str, dst: str | Path) -> Path:
+    import mlflow.artifacts
+
+    return Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dst)))
+
+
+def parse_model_uri(uri: str) -> tuple[str, str | None, str | None]:
+    """``(name, version, alias)`` of ``models:/name/version`` or ``models:/name@alias``;
+    ``(model_id, None, None)`` for a logged model ``models:/m-…``."""
+    if not uri.startswith("models:/"):
+        raise RegistryError(
+            f"{uri}: expected a registry URI models:/<name>/<version>, models:/<name>@<alias> "
+            "or a logged model models:/<model_id>"
+        )
+    rest = uri[len("models:/") :].rstrip("/")
+    if "@" in rest:
+        name, alias = rest.rsplit("@", 1)
+        return name, None, alias
+    if "/" in rest:
+        name, version = rest.rsplit("/", 1)
+        return name, version, None
+    return rest, None, None
+
+
+def load_registered(
+    uri: str,
+    loader: Callable[[Path], T],
+    *,
+    check: Callable[[dict[str, Any]], str | None] | None = None,
+    cl=None,
+) -> T:
+    """Load a registered model safely and return ``loader(folder)``.
+
+    ``uri``: ``models:/name/version``, ``models:/name@alias`` or a logged model
+    ``models:/m-…``. The model directory is downloaded to a temp folder and checked, in order:
+    its files against the SHA-256 recorded on the version (on the logged model for
+    ``models:/m-…``) — :class:`TamperedArtifactError` names the model, version and file; the
+    ``traffictwin`` flavour — a pickled ``mlflow.pytorch`` model raises
+    :class:`LegacyModelError`; then ``check(meta)`` on its ``model_meta.json``: a returned reason
+    raises :class:`IncompatibleModelError`. Only then ``loader(folder)`` (a problem loader
+    reading ``model.ckpt`` with ``weights_only=True``) builds the model. The temp folder is
+    removed afterwards.
+    """
+    cl = cl if cl is not None else client()
+    name, version, alias = parse_model_uri(uri)
+    if version is None and alias is None:
+        who = f"logged model {name}"
+        source = uri
+        value = (cl.get_logged_model(name).tags or {}).get(art.SHA_TAG)
+    else:
+        from mlflow.exceptions import MlflowException
+
+        try:
+            mv = (
+                cl.get_model_version_by_alias(name, alias)
+                if alias is not None
+                else cl.get_model_version(name, version)
+            )
+        except MlflowException:
+            raise RegistryError(f"{uri}: no such registered model version") from None
+        who = f"model '{name}' v{mv.version}"
+        source = mv.source
+        value = (mv.tags or {}).get(art.SHA_TAG)
+    with tempfile.TemporaryDirectory(prefix="tt-load-") as tmp:
+        folder = _download(source, tmp)
+        if value is None:
+            art.read_flavor(folder, who)  # a pickled mlflow.pytorch model: LegacyModelError
+            raise ModelArtifactError(
+                f"{who}: no SHA-256 recorded (tag '{art.SHA_TAG}'); refusing to load it — "
+                "register it with `python -m pipelines.promote`"
+            )
+        art.verify(folder, art.decode_hashes(value, who), who)
+        art.read_flavor(folder, who)
+        if check is not None:
+            reason = check(art.read_meta(folder, who))
+            if reason:
+                raise IncompatibleModelError(f"{who}: {reason}")
+        return loader(folder)
 
 
 def _version(name: str, mv) -> _gate.Version:
@@ -237,11 +417,23 @@ def apply(
 ) -> None:
     """Record ``decision`` (tags + log line), set ``challenger``, and move ``champion`` if it promotes.
 
-    An ``unchanged`` decision changes nothing and is not logged.
+    First re-reads ``champion``: if it is no longer the version the decision was taken against,
+    nothing changes and :class:`ChampionChangedError` is raised (decide again). A champion the
+    decision skipped as known-incompatible gets the tag ``gate.incompatible`` (the reason). An
+    ``unchanged`` decision changes nothing and is not logged. Hold :func:`gate_lock` around
+    decide and apply.
     """
     if decision.action == "unchanged":
         return
     name, ver = decision.name, decision.challenger_version
+    now = get_alias(cl, name, champion_alias)
+    now_v = None if now is None else str(now.version)
+    if now_v != (decision.champion_version or None):
+        raise ChampionChangedError(
+            f"model '{name}': champion moved from "
+            f"{'v' + decision.champion_version if decision.champion_version else 'none'} to "
+            f"{'v' + now_v if now_v else 'none'} since the decision on v{ver}; nothing applied"
+        )
     tags = {
         "gate.decision": decision.action,
         "gate.metric": decision.metric,
@@ -256,6 +448,13 @@ def apply(
     }
     for k, v in tags.items():
         cl.set_model_version_tag(name, ver, k, v)
+    if decision.champion_incompatible and decision.champion_version:
+        cl.set_model_version_tag(
+            name,
+            decision.champion_version,
+            "gate.incompatible",
+            decision.champion_incompatible[:4000],
+        )
     cl.set_registered_model_alias(name, challenger_alias, ver)
     if decision.promotes:
         cl.set_registered_model_alias(name, champion_alias, ver)
@@ -332,6 +531,74 @@ def rollback(
     if log_path is not None:
         append_log(log_path, record)
     return record
+
+
+def default_lock_path(uri: str | None = None) -> Path:
+    """The registry lock file of tracking/registry ``uri`` (default: the current one).
+
+    SQLite: ``<database>.gate.lock`` beside the database; a local file store:
+    ``<root>/.gate.lock``. A server URI has no shared folder: the lock is a file in the temp
+    folder named after the URI, which serialises the gates of this machine only (pass a lock path
+    on a shared file system to cover several machines).
+    """
+    if uri is None:
+        from traffictwin.mlops.tracking import tracking_uri
+
+        uri = tracking_uri()
+    u = urlparse(uri)
+    if uri.startswith("sqlite:///"):
+        db = unquote(uri[len("sqlite:///") :]).split("?", 1)[0]
+        if db and db != ":memory:":
+            p = Path(db).resolve()
+            return p.with_name(p.name + ".gate.lock")
+    if u.scheme in ("", "file"):
+        root = Path(unquote(u.path) if u.scheme == "file" else uri)
+        return root.resolve() / ".gate.lock"
+    key = hashlib.sha256(uri.encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"traffictwin-gate-{key}.lock"
+
+
+@contextmanager
+def gate_lock(
+    path: str | Path, *, timeout_s: float | None = None, poll_s: float = 0.2
+) -> Iterator[None]:
+    """Hold the registry-wide exclusive lock (``fcntl.flock`` on ``path``) for the block.
+
+    Waits for another holder (``timeout_s`` seconds at most; ``None``: as long as it takes,
+    logging who holds it). The holder's pid, host and start time are written into the file for
+    that message. Closing the file releases the lock, also when the process dies.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fh = open(path, "a+")  # noqa: SIM115 - held open for the whole block
+    try:
+        t0 = time.monotonic()
+        told = False
+        while True:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if not told:
+                    fh.seek(0)
+                    holder = fh.read().strip() or "unknown holder"
+                    log.info("registry lock %s is held (%s); waiting", path, holder)
+                    told = True
+                if timeout_s is not None and time.monotonic() - t0 >= timeout_s:
+                    raise LockTimeoutError(
+                        f"registry lock {path} still held after {timeout_s:g} s; not deciding"
+                    ) from None
+                time.sleep(poll_s)
+        fh.seek(0)
+        fh.truncate()
+        fh.write(
+            f"pid {os.getpid()} on {socket.gethostname()} since "
+            f"{time.strftime('%Y-%m-%dT%H:%M:%S')}\n"
+        )
+        fh.flush()
+        yield
+    finally:
+        fh.close()
 
 
 def append_log(path: str | Path, record: Mapping[str, Any]) -> None:
