@@ -371,7 +371,8 @@ def decide(
     """:func:`traffictwin.mlops.gate.decide` for ``challenger`` (a ModelVersion) against ``name@champion``.
 
     Nothing in the registry changes here (see :func:`apply`). Raises :class:`RegistryError` if
-    the evaluation has no figure for the gate's metric.
+    the evaluation has no figure for the gate's metric, :class:`ChampionEvaluationError` if the
+    champion cannot be evaluated (and is not known-incompatible).
     """
     champ = get_alias(cl, name, champion_alias)
     try:
@@ -384,7 +385,7 @@ def decide(
             test_fingerprint=test_fingerprint,
             force=force,
         )
-    except RegistryError:
+    except (RegistryError, ChampionEvaluationError, IncompatibleModelError):
         raise
     except GateError as exc:
         raise RegistryError(str(exc)) from None
