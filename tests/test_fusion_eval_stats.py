@@ -437,7 +437,7 @@ def test_gate_evaluator_produces_the_configured_fusion_metric(monkeypatch):
     assert (gate["metric"], gate["mode"]) == ("test/kld_fou_mean", "min")
     data, _, _ = _synthetic(configs=("A",), n=3)
     net = _tiny_net(0)
-    monkeypatch.setattr(registry, "load_registered", lambda uri: net)
+    monkeypatch.setattr(registry, "load_registered", lambda uri, loader, **kw: net)
     out = fusion_evaluator(data["A"]["inputs"], data["A"]["label"], batch_size=2)("models:/x/1")
     pred, _ = predict_masses(net, data["A"]["inputs"], 2)
     assert out[gate["metric"]] == pytest.approx(fm.kld_fou(data["A"]["label"], pred).mean())

@@ -32,6 +32,7 @@ from traffictwin.fusion.training import (
 )
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import DatasetError, DatasetWriter
+from traffictwin.mlops.registry import load_registered
 
 TINY = DeepLabSpec(
     backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
@@ -384,7 +385,7 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
     net = load_fusion_model(
         tmp_path / "models/B", expected_cfg="B", expected_architecture=TINY, expected_grid=GRID
     )
-    logged = mlflow.pytorch.load_model(res.model_uri)
+    logged = load_registered(res.model_uri, load_fusion_model)
     x = np.random.default_rng(0).random((3, 4, 64, 48)).astype(np.float32)
     m_a, u_a = predict_masses(net, x)
     m_b, u_b = predict_masses(logged, x)

@@ -329,7 +329,14 @@ def write_registration_data(
     return root
 
 
-def fit_small(root: Path, out: Path, grid: GridSpec = GRID, **train_kw):
+def fit_small(
+    root: Path,
+    out: Path,
+    grid: GridSpec = GRID,
+    tracking=None,
+    registered_model_name: str | None = None,
+    **train_kw,
+):
     from traffictwin.fusion.registration_training import RegistrationTrainConfig, fit_registration
     from traffictwin.trainer import TrainerSettings
 
@@ -360,6 +367,8 @@ def fit_small(root: Path, out: Path, grid: GridSpec = GRID, **train_kw):
         meta_out=out / "model_meta.json",
         metrics_out=out / "metrics.json",
         curves_out=out / "curves.csv",
+        tracking=tracking,
+        registered_model_name=registered_model_name,
     )
 
 
@@ -439,10 +448,13 @@ def test_registration_gate_evaluator_scores_a_logged_model(
 ) -> None:
     """The promotion gate's evaluator loads the MLflow-logged network and scores its fused map
     (Dempster after the learned warp) with the fusion metrics, given the noisy poses."""
+    from dataclasses import asdict
+
     import mlflow
 
     from traffictwin.fusion.gate_eval import registration_evaluator
-    from traffictwin.trainer import log_torch_model
+    from traffictwin.fusion.registration_training import PROBLEM
+    from traffictwin.trainer import log_model, model_checkpoint
 
     monkeypatch.chdir(tmp_path)
     net = LearnedRegistration(RegistrationNetSpec(), GRID).eval()
@@ -450,8 +462,39 @@ def test_registration_gate_evaluator_scores_a_logged_model(
     m1 = np.stack([blobs(rng), blobs(rng)])
     inputs = np.concatenate([m1, m1], 1).astype(np.float32)  # map 2' = map 1: already aligned
     mlflow.set_experiment("fusion")
+    grid = {"rows": GRID.rows, "cols": GRID.cols, "cell": GRID.cell}
+    ckpt = model_checkpoint(PROBLEM, asdict(net.spec), net.state_dict(), {"grid": grid})
     with mlflow.start_run():
-        uri = log_torch_model(net, inputs[:1], name="model")
+        uri = log_model(ckpt, ckpt["traffictwin"], net, inputs[:1], name="model")
     out = registration_evaluator(inputs, m1, np.zeros((2, 3)), batch_size=1)(uri)
     assert out["test/n"] == 2 and math.isfinite(out["test/kld_fou_mean"])
     assert out["test/dice_occ"] > 0.99  # nothing to correct: the fallback keeps the aligned map
+
+
+def test_fit_registration_logs_and_registers_a_safe_model(
+    tmp_path: Path, mlflow_uri: str, monkeypatch
+) -> None:
+    """With tracking, the trained registration goes to MLflow as weights + JSON (no pickle) and is
+    registered sealed; the registry loader rebuilds the same network as the local checkpoint."""
+    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.mlops import model_artifact as art
+    from traffictwin.mlops import registry as reg
+    from traffictwin.trainer import TrackingSettings
+
+    monkeypatch.chdir(tmp_path)
+    cl = reg.client(mlflow_uri)
+    fit_small(
+        write_registration_data(tmp_path / "pre"),
+        tmp_path / "out",
+        tracking=TrackingSettings("fusion", "registration-D", profile="test"),
+        registered_model_name="traffictwin-fusion-learned-D",
+    )
+    meta = json.loads((tmp_path / "out" / "model_meta.json").read_text())
+    mv = cl.get_model_version("traffictwin-fusion-learned-D", "1")
+    assert mv.run_id == meta["mlflow_run_id"] and art.SHA_TAG in mv.tags
+    local = load_registration_model(tmp_path / "out")
+    for uri in (meta["mlflow_model_uri"], reg.version_uri("traffictwin-fusion-learned-D", 1)):
+        logged = reg.load_registered(uri, load_registration_model, cl=cl)
+        assert logged.meta["cfg"] == "D" and logged.meta["grid"] == local.meta["grid"]
+        for (k, a), b in zip(local.state_dict().items(), logged.state_dict().values(), strict=True):
+            assert torch.equal(a, b), k

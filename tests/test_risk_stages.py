@@ -59,10 +59,10 @@ def test_mlflow_model_reloads_with_identical_outputs(
     ci_dag: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import mlflow
-    import mlflow.pytorch
 
     from traffictwin.io.shards import Dataset
-    from traffictwin.risk.dave2 import pack_input, preprocess
+    from traffictwin.mlops.registry import load_registered
+    from traffictwin.risk.dave2 import preprocess
     from traffictwin.risk.model_io import load_risk_model
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ci_dag / 'mlflow.db'}")
@@ -75,8 +75,8 @@ def test_mlflow_model_reloads_with_identical_outputs(
         x = preprocess(local.cfg, shard["left"][:2], sgm[:2], shard["disp_gt"][:2])
         with torch.no_grad():
             ref = local.net(x, speed if local.cfg.use_speed else None)
-            remote = mlflow.pytorch.load_model(local.meta["mlflow_model_uri"]).eval()
-            got = remote(pack_input(local.cfg, x, speed))
+            remote = load_registered(local.meta["mlflow_model_uri"], load_risk_model)
+            got = remote.net(x, speed if remote.cfg.use_speed else None)
         assert torch.equal(got, ref), v
     client = mlflow.tracking.MlflowClient()
     exp = client.get_experiment_by_name("risk")

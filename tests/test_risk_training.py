@@ -398,6 +398,16 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     assert meta["best_val_mse"] == res.best_val_mse and meta["mlflow_model_uri"].startswith(
         "models:/"
     )
+    # the MLflow model is the same weights + meta, loaded without unpickling code
+    from traffictwin.mlops.registry import load_registered
+
+    logged = load_registered(meta["mlflow_model_uri"], load_risk_model)
+    local = load_risk_model(out)
+    assert logged.cfg == local.cfg and logged.meta["domain"] == {"label": "risk"}
+    for (k, a), b in zip(
+        local.net.state_dict().items(), logged.net.state_dict().values(), strict=True
+    ):
+        assert torch.equal(a, b), k
     curves = (tmp_path / "plots" / "risk_training_disp.csv").read_text()
     assert curves == (out / "history.csv").read_text()
     assert curves.splitlines()[0] == "step,epoch,train/loss,val/loss,val/mse,val/mae,val/pred_std"

@@ -14,6 +14,7 @@ from conftest import run
 
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
 from traffictwin.io.shards import Dataset
+from traffictwin.mlops.registry import load_registered
 
 CFGS = ("A", "B", "C", "D")
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_torch_thread")]
@@ -77,7 +78,7 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
             "val", keys=["inputs"]
         )["inputs"][:3]
         net = load_fusion_model(ci_dag / "models/fusion/B/model.ckpt", expected_cfg="B")
-        logged = mlflow.pytorch.load_model(meta["mlflow_model_uri"])
+        logged = load_registered(meta["mlflow_model_uri"], load_fusion_model)
         m_a, u_a = predict_masses(net, val)
         m_b, u_b = predict_masses(logged, val)
         np.testing.assert_array_equal(m_a, m_b)

@@ -255,7 +255,7 @@ def _sealed_record(cl, model_id: str, who: str) -> dict[str, str]:
     lm = cl.get_logged_model(model_id)
     value = (lm.tags or {}).get(art.SHA_TAG)
     with tempfile.TemporaryDirectory(prefix="tt-register-") as tmp:
-        folder = _download(f"models:/{model_id}", tmp)
+        folder = _download(cl, f"models:/{model_id}", tmp)
         if value is None:
             art.read_flavor(folder, who)  # LegacyModelError for a pickled model
             raise RegistryError(
@@ -268,10 +268,18 @@ def _sealed_record(cl, model_id: str, who: str) -> dict[str, str]:
     return record
 
 
-def _download(uri: str, dst: str | Path) -> Path:
+def _download(cl, source: str, dst: str | Path) -> Path:
+    """Download the model directory ``source`` (``models:/<model_id>`` or an artifact URI) with
+    ``cl``'s tracking store into ``dst``."""
     import mlflow.artifacts
 
-    return Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dst)))
+    if source.startswith("models:/"):
+        source = cl.get_logged_model(_logged_model_id(source)).artifact_location
+    return Path(
+        mlflow.artifacts.download_artifacts(
+            artifact_uri=source, dst_path=str(dst), tracking_uri=cl.tracking_uri
+        )
+    )
 
 
 def parse_model_uri(uri: str) -> tuple[str, str | None, str | None]:
@@ -309,9 +317,12 @@ def load_registered(
     :class:`LegacyModelError`; then ``check(meta)`` on its ``model_meta.json``: a returned reason
     raises :class:`IncompatibleModelError`. Only then ``loader(folder)`` (a problem loader
     reading ``model.ckpt`` with ``weights_only=True``) builds the model. The temp folder is
-    removed afterwards.
+    removed afterwards. ``cl``: the client (default: one on the fluent API's current URIs).
     """
-    cl = cl if cl is not None else client()
+    if cl is None:
+        from mlflow import MlflowClient
+
+        cl = MlflowClient()  # the fluent API's tracking and registry URIs
     name, version, alias = parse_model_uri(uri)
     if version is None and alias is None:
         who = f"logged model {name}"
@@ -332,7 +343,7 @@ def load_registered(
         source = mv.source
         value = (mv.tags or {}).get(art.SHA_TAG)
     with tempfile.TemporaryDirectory(prefix="tt-load-") as tmp:
-        folder = _download(source, tmp)
+        folder = _download(cl, source, tmp)
         if value is None:
             art.read_flavor(folder, who)  # a pickled mlflow.pytorch model: LegacyModelError
             raise ModelArtifactError(
