@@ -329,14 +329,7 @@ def write_registration_data(
     return root
 
 
-def fit_small(
-    root: Path,
-    out: Path,
-    grid: GridSpec = GRID,
-    tracking=None,
-    registered_model_name: str | None = None,
-    **train_kw,
-):
+def fit_small(root: Path, out: Path, grid: GridSpec = GRID, tracking=None, **train_kw):
     from traffictwin.fusion.registration_training import RegistrationTrainConfig, fit_registration
     from traffictwin.trainer import TrainerSettings
 
@@ -368,7 +361,6 @@ def fit_small(
         metrics_out=out / "metrics.json",
         curves_out=out / "curves.csv",
         tracking=tracking,
-        registered_model_name=registered_model_name,
     )
 
 
@@ -471,11 +463,11 @@ def test_registration_gate_evaluator_scores_a_logged_model(
     assert out["test/dice_occ"] > 0.99  # nothing to correct: the fallback keeps the aligned map
 
 
-def test_fit_registration_logs_and_registers_a_safe_model(
+def test_fit_registration_logs_a_safe_model_the_gate_can_register(
     tmp_path: Path, mlflow_uri: str, monkeypatch
 ) -> None:
-    """With tracking, the trained registration goes to MLflow as weights + JSON (no pickle) and is
-    registered sealed; the registry loader rebuilds the same network as the local checkpoint."""
+    """With tracking, the trained registration goes to MLflow as weights + JSON (no pickle); the
+    gate registers it sealed, and the registry loader rebuilds the local checkpoint's network."""
     from traffictwin.fusion.registration_training import load_registration_model
     from traffictwin.mlops import model_artifact as art
     from traffictwin.mlops import registry as reg
@@ -487,10 +479,9 @@ def test_fit_registration_logs_and_registers_a_safe_model(
         write_registration_data(tmp_path / "pre"),
         tmp_path / "out",
         tracking=TrackingSettings("fusion", "registration-D", profile="test"),
-        registered_model_name="traffictwin-fusion-learned-D",
     )
     meta = json.loads((tmp_path / "out" / "model_meta.json").read_text())
-    mv = cl.get_model_version("traffictwin-fusion-learned-D", "1")
+    mv = reg.ensure_version(cl, "traffictwin-fusion-learned-D", meta["mlflow_run_id"])
     assert mv.run_id == meta["mlflow_run_id"] and art.SHA_TAG in mv.tags
     local = load_registration_model(tmp_path / "out")
     for uri in (meta["mlflow_model_uri"], reg.version_uri("traffictwin-fusion-learned-D", 1)):

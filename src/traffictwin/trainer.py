@@ -540,7 +540,6 @@ def log_model(
     input_example: np.ndarray,
     *,
     name: str = "model",
-    registered_model_name: str | None = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> str:
     """Log a trained network as an MLflow model without pickled code; returns its model URI.
@@ -550,9 +549,9 @@ def log_model(
     ``weights_only=True``) as ``model.ckpt`` and ``meta`` (the architecture and meta, JSON) as
     ``model_meta.json``; the SHA-256 of every file is recorded on the logged model. The signature
     is inferred from ``input_example`` (float32 numpy) and ``model``'s output on it (``model``
-    moved to CPU, eval mode; only run, never stored). ``registered_model_name``: also register it
-    (:func:`traffictwin.mlops.registry.ensure_version`). Load it back with
-    :func:`traffictwin.mlops.registry.load_registered` and the problem's loader.
+    moved to CPU, eval mode; only run, never stored). Registering is the promotion gate's job
+    (:func:`traffictwin.mlops.registry.ensure_version`, outside the cached stages); load it back
+    with :func:`traffictwin.mlops.registry.load_registered` and the problem's loader.
     """
     import tempfile
 
@@ -578,17 +577,6 @@ def log_model(
             name=name,
             signature=signature,
             metadata=metadata,
-        )
-    if registered_model_name:
-        import mlflow
-
-        from traffictwin.mlops import registry
-
-        run = mlflow.active_run()
-        if run is None:
-            raise CheckpointError("log_model: registering needs an active MLflow run")
-        registry.ensure_version(
-            registry.client(mlflow.get_tracking_uri()), registered_model_name, run.info.run_id, uri
         )
     return uri
 

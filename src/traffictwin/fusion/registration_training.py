@@ -259,13 +259,13 @@ def fit_registration(
     metrics_out: str | Path | None = None,
     curves_out: str | Path | None = None,
     tracking: TrackingSettings | None = None,
-    registered_model_name: str | None = None,
 ) -> RegistrationFitResult | None:
     """Train on ``data_root``'s train split, keep the best epoch on ``val/loss``, publish it.
 
     Writes (rank zero, each atomically, only after training succeeded) the slim checkpoint, its
     meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run (params, curves, the
-    checkpoint and the PyTorch model) when ``tracking`` is enabled. A non-finite validation loss
+    checkpoint and the model as weights + JSON, :func:`traffictwin.trainer.log_model`) when
+    ``tracking`` is enabled (registering it is the promotion gate's job). A non-finite validation loss
     fails the run (nothing is published). Returns ``None`` on other DDP ranks.
     """
     common.seed_everything(seed)
@@ -427,7 +427,6 @@ def fit_registration(
                 net.eval(),
                 example,
                 name="model",
-                registered_model_name=registered_model_name,
                 metadata={
                     "cfg": cfg_name,
                     "data_manifest_hash": manifest_hash,

@@ -32,17 +32,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
+from traffictwin.mlops.errors import GateError, IncompatibleModelError
+
+__all__ = ["GateError", "IncompatibleModelError"]  # defined in errors.py, part of this API
+
 Action = Literal["first", "promoted", "rejected", "unchanged"]
 Evaluator = Callable[[str], Mapping[str, float]]
-
-
-class GateError(RuntimeError):
-    """The gate cannot decide (e.g. the evaluation returned no figure for the gate's metric)."""
-
-
-class IncompatibleModelError(GateError):
-    """A model version is known not to fit the current evaluation (another grid or architecture,
-    a format that is never loaded); raised by an evaluator, it lets the gate skip a champion."""
 
 
 class ChampionEvaluationError(GateError):

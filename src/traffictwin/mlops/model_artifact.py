@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.io.shards import sha256_file
-from traffictwin.mlops.gate import GateError, IncompatibleModelError
+from traffictwin.mlops.errors import GateError, IncompatibleModelError
 
 FLAVOR = "traffictwin"
 ARTIFACT_FORMAT = "traffictwin-mlflow-model/1"

@@ -2,7 +2,10 @@
 
 The gate (:mod:`traffictwin.mlops.gate`) re-evaluates challenger and champion with the same
 callable; this one predicts with a registered model (its own preprocessing) on the raw
-ORB-passed test frames and scores with :func:`traffictwin.risk.evaluation.evaluate`.
+ORB-passed test frames and scores with :func:`traffictwin.risk.evaluation.evaluate`. Models are
+loaded with :func:`traffictwin.mlops.registry.load_registered` (SHA-256 checked, ``weights_only``)
+and :func:`traffictwin.risk.model_io.load_risk_model`; a model whose recorded config this version
+cannot build is known-incompatible (:func:`config_incompatibility`).
 """
 
 from __future__ import annotations
