@@ -138,3 +138,32 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
 def test_format_decision_without_figures():
     d = Decision("m", "3", "r", "2", "x", "min", 0.0, None, None, "unchanged", "already")
     assert promotion.format_decision(d).split() == ["m", "v", "3", "unchanged"]  # v{version:>3}
+
+
+def test_before_apply_runs_under_the_lock_and_can_stop_the_apply(tmp_path, mlflow_uri, monkeypatch):
+    """The retraining flow's last check: called once every decision is taken, while the registry
+    lock is held; an exception there moves no alias."""
+    monkeypatch.chdir(tmp_path)
+    cl = reg.client(mlflow_uri)
+    lock = tmp_path / "gate.lock"
+    job = promotion.GateJob(
+        "m-a", Gate("test/w", "max", 0.0), _trained(tmp_path, "a", 1.0), lambda c: (_weight, "fp")
+    )
+    settings = promotion.PromotionSettings(log_path=tmp_path / "log.jsonl", lock_path=lock)
+    seen = []
+
+    def stop(decisions):
+        with pytest.raises(reg.LockTimeoutError):  # the gate holds the lock right now
+            with reg.gate_lock(lock, timeout_s=0.0):
+                pass
+        seen.append([d.action for d in decisions])
+        raise RuntimeError("injected")
+
+    with pytest.raises(RuntimeError, match="injected"):
+        promotion.promote([job], settings, before_apply=stop)
+    assert seen == [["first"]] and reg.get_alias(cl, "m-a", "champion") is None
+    assert not (tmp_path / "log.jsonl").exists()
+    ds = promotion.promote([job], settings, before_apply=seen.append)
+    assert [d.action for d in ds] == ["first"] and str(
+        reg.get_alias(cl, "m-a", "champion").version
+    ) == "1"
