@@ -124,6 +124,15 @@ def mlflow_uri(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
     return uri
 
 
+@pytest.fixture
+def cl(mlflow_uri: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """An MLflow client on the temp SQLite registry; MLflow artifacts (./mlruns) go to the temp folder."""
+    from traffictwin.mlops import registry as reg
+
+    monkeypatch.chdir(tmp_path)
+    return reg.client(mlflow_uri)
+
+
 @pytest.fixture(scope="module")
 def single_torch_thread():
     """One torch intra-op thread for a module: on the shared 2-core machine OpenMP spinning makes 2 threads far slower under load."""

@@ -43,12 +43,6 @@ def _promote(cl, run_id: str, log, **kw) -> reg.Decision:
     return d
 
 
-@pytest.fixture
-def cl(mlflow_uri, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # MLflow artifacts (./mlruns) go to the temp folder
-    return reg.client(mlflow_uri)
-
-
 # ------------------------------------------------------------------ registry
 
 
