@@ -39,7 +39,7 @@ calls :func:`traffictwin.mlops.promotion.promote`). This command only needs regi
 
 Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first map's frame),
 ``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_given`` (N, 3) and ``cell``, plus
-``OUT.png`` (the twin, then each map where the twin put it; a left-out map is black).
+``OUT.png`` (the twin, then each map where the twin put it; a left-out map is all blue: unknown).
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
@@ -323,19 +323,26 @@ def fuse_arrays(
     return m[0], u[0], m2w, rel
 
 
-def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """BGR uint8 preview: map 1 | map 2 prealigned | fused; red = m_occ, green = m_free, blue = u."""
-
-    def rgb(mm: np.ndarray, uu: np.ndarray | None = None) -> np.ndarray:
+def mass_panels(panels: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
+    """BGR uint8 image of mass maps side by side, white separators, upscaled to ~384 px tall:
+    each panel ``(masses (2, H, W), u (H, W) or None = 1 - m_free - m_occ)``; red = m_occ,
+    green = m_free, blue = u."""
+    h = panels[0][0].shape[1]
+    sep = np.full((h, 4, 3), 255, np.uint8)
+    parts = []
+    for k, (mm, uu) in enumerate(panels):
         uu = 1.0 - mm[0] - mm[1] if uu is None else uu
         bgr = np.stack([uu, mm[0], mm[1]], axis=-1)
-        return np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-    h = m.shape[1]
-    sep = np.full((h, 4, 3), 255, np.uint8)
-    img = np.concatenate([rgb(m1), sep, rgb(m2w), sep, rgb(m, u)], axis=1)
+        parts += [np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)]
+        parts += [sep] if k < len(panels) - 1 else []
+    img = np.concatenate(parts, axis=1)
     scale = max(1, int(round(384 / h)))
     return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+
+
+def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """BGR uint8 preview: map 1 | map 2 prealigned | fused (:func:`mass_panels`)."""
+    return mass_panels([(m1, None), (m2w, None), (m, u)])
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
@@ -449,20 +456,9 @@ def load_twin_models(
 
 
 def twin_preview(twin: np.ndarray, contributions: list[np.ndarray]) -> np.ndarray:
-    """BGR uint8 preview: the twin | each vehicle's map where the twin put it (red = m_occ,
-    green = m_free, blue = u; black = left out)."""
-    panels = [twin, *contributions]
-    h = twin.shape[1]
-    sep = np.full((h, 4, 3), 255, np.uint8)
-    parts = []
-    for k, mm in enumerate(panels):
-        bgr = np.stack([1.0 - mm[0] - mm[1], mm[0], mm[1]], axis=-1)
-        parts += [np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)] + (
-            [sep] if k < len(panels) - 1 else []
-        )
-    img = np.concatenate(parts, axis=1)
-    scale = max(1, int(round(384 / h)))
-    return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+    """BGR uint8 preview: the twin | each vehicle's map where the twin put it (:func:`mass_panels`;
+    a left-out map is all zeros: blue = unknown)."""
+    return mass_panels([(twin, None), *((c, None) for c in contributions)])
 
 
 def cmd_twin(args: argparse.Namespace) -> int:
