@@ -439,10 +439,6 @@ class Journal:
         self.tmp = self.path.with_name(self.path.name + ".tmp")
         self.state: dict[str, Any] = {}
 
-    @property
-    def active(self) -> bool:
-        return (self.path / "state.json").exists()
-
     def snapshot(self, root: Path) -> Snapshot:
         return Snapshot.open(root, self.path / "snapshot")
 
@@ -618,7 +614,7 @@ def retrain(
     summary = ROOT / rc.retrain.summary
     step = "recover"
     child: subprocess.Popen | None = None
-    applied = False
+    applied = began = False
     cl, names = None, []
     try:
         _recover_first(s, journal, guard, log)
@@ -650,6 +646,7 @@ def retrain(
                 "dvc_before": dvc_state(ROOT),
             },
         )
+        began = True
         step = "new_data"
         dump_params(composed, PARAMS)
         log.info("retrain: new data seeds %s", seeds)
@@ -686,6 +683,7 @@ def retrain(
                 applied = True
 
             decisions = promote_mod.promote(only, before_apply=before_apply)
+        guard.hold()  # done: a signal from now on no longer undoes the run
         s["decisions"] = [d.to_dict() for d in decisions]
         s["status"] = "succeeded"
         journal.discard()
@@ -700,12 +698,16 @@ def retrain(
         log.error("retrain %s in step %s: %s", s["status"], step, s["error"])
         if child is not None:
             s["child_stopped"] = stop_group(child.pid, log, child)
-        if step == "recover":
-            problems = (s.get("recovered") or {}).get("problems") or [s["error"]]
+        if step == "recover":  # this run had changed nothing yet
+            rec = s.get("recovered")
+            if rec is not None:
+                problems = rec.get("problems") or []
+            else:
+                problems = [] if isinstance(exc, Interrupted) else [s["error"]]
         elif applied:
             problems = ["the gate had started moving aliases: nothing restored"]
             journal.discard()
-        elif journal.active:
+        elif began:
             try:
                 before = journal.read()["dvc_before"]
                 problems = restore(ROOT, journal.snapshot(ROOT), before, log)
