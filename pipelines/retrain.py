@@ -401,22 +401,44 @@ def verify_state(root: Path, before: dict[str, Any]) -> list[str]:
     return problems
 
 
-def restore(root: Path, snap: Snapshot, before: dict[str, Any], log) -> list[str]:
-    """Files back from ``snap``, locked outputs back with ``dvc checkout --force``, then verified
-    against ``before``; returns the reasons it is not as before (empty: verified)."""
-    snap.restore_files()
-    proc = _dvc(root, "checkout", "--force")
+def _checkout_locked(root: Path, log) -> list[str]:
+    """``dvc checkout --force`` of every stage dvc.lock records and dvc.yaml defines (a lock may
+    keep foreach items of another profile, whose outputs are not cached here); folders that the
+    checkout creates for outputs it cannot restore are removed again. Returns problems."""
+    lock = root / "dvc.lock"
+    locked = (yaml.safe_load(lock.read_text()) or {}).get("stages") or {} if lock.exists() else {}
+    listed = _dvc(root, "stage", "list", "--name-only")
+    if listed.returncode != 0:
+        return [f"dvc stage list failed ({listed.returncode}): {listed.stderr.strip()[-800:]}"]
+    stages = sorted(set(locked) & set(listed.stdout.split()))
+    if not stages:
+        return []
+    outs = [str(o["path"]) for n in stages for o in (locked[n].get("outs") or [])]
+    absent = {a for p in outs for a in Path(p).parents if a.parts and not (root / a).exists()}
+    proc = _dvc(root, "checkout", "--force", *stages)
+    for d in sorted(absent, key=lambda a: len(a.parts), reverse=True):
+        try:
+            (root / d).rmdir()  # only if empty: a folder the checkout made for nothing
+        except OSError:
+            pass
     if proc.returncode != 0:  # e.g. an output that was missing before too: the verification decides
         log.warning(
             "restore: dvc checkout --force exited %d: %s",
             proc.returncode,
             proc.stderr.strip()[-800:],
         )
+        return [f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}"]
+    return []
+
+
+def restore(root: Path, snap: Snapshot, before: dict[str, Any], log) -> list[str]:
+    """Files back from ``snap``, locked outputs back with ``dvc checkout --force``, then verified
+    against ``before``; returns the reasons it is not as before (empty: verified)."""
+    snap.restore_files()
+    checkout = _checkout_locked(root, log)
     problems = verify_state(root, before)
-    if problems and proc.returncode != 0:
-        problems.insert(
-            0, f"dvc checkout --force failed ({proc.returncode}): {proc.stderr.strip()[-800:]}"
-        )
+    if problems:
+        problems = checkout + problems  # a checkout error alone is no problem if all is as before
     for p in problems:
         log.error("restore: %s", p)
     return problems

@@ -32,6 +32,11 @@ import os, pathlib, sys, time
 import yaml
 
 seed = yaml.safe_load(open("params.yaml"))["seed"]
+if sys.argv[1] in ("reg", "ev"):
+    out = pathlib.Path(sys.argv[2])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(sys.argv[1])
+    sys.exit(0)
 if sys.argv[1] == "gen":
     pathlib.Path("data/toy").mkdir(parents=True, exist_ok=True)
     pathlib.Path("data/toy/x.txt").write_text(f"data {seed}")
@@ -60,6 +65,17 @@ DVC_YAML = {
             "cmd": "python toy.py train",
             "deps": ["toy.py", "data/toy"],
             "outs": ["models/toy"],
+        },
+        # never run before the retraining: a failed `dvc checkout` must not leave their folders behind
+        "reg": {
+            "cmd": "python toy.py reg models/registration/A/model.ckpt",
+            "deps": ["models/toy"],
+            "outs": ["models/registration/A/model.ckpt"],
+        },
+        "ev": {
+            "cmd": "python toy.py ev out/ev",
+            "deps": ["models/registration"],
+            "outs": ["out/ev"],
         },
     }
 }
@@ -106,7 +122,7 @@ def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
     _sh([*git, "init", "-q"], repo)
     _sh(["dvc", "init", "-q"], repo)
-    _sh(["dvc", "repro", "-q"], repo)
+    _sh(["dvc", "repro", "-q", "train"], repo)
     _sh([*git, "add", "-A"], repo)
     _sh([*git, "commit", "-q", "-m", "toy"], repo)
     return repo
@@ -179,6 +195,9 @@ def test_failed_stage_gets_its_model_back_and_restored_is_verified(repo: Path):
     assert s["restored"] is True, s.get("restore_problems")
     # `train` failed after DVC had deleted models/toy: it is back, as are the data, dvc.lock, conf/
     assert _state(repo) == before
+    assert not (
+        repo / "models" / "registration"
+    ).exists()  # no folder of a never-run stage appeared
     assert not (repo / ".retrain.journal").exists()
     assert "previous data and champions kept" in proc.stderr
 
