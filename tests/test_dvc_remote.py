@@ -22,7 +22,8 @@ def default_remote(config: Path) -> tuple[str, Path]:
     cp = configparser.ConfigParser()
     cp.read_string(config.read_text())
     name = cp["core"]["remote"]
-    url = cp[f'remote "{name}"']["url"]
+    # DVC writes the section as ['remote "name"'] (quotes included in configparser's name)
+    url = next(cp[sec]["url"] for sec in cp.sections() if sec.strip("'") == f'remote "{name}"')
     return name, (config.parent / url).resolve()
 
 
