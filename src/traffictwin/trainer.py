@@ -576,6 +576,7 @@ def log_model(
             problem=str(info.get("problem", "")),
             name=name,
             signature=signature,
+            input_example=x,
             metadata=metadata,
         )
     return uri
