@@ -131,6 +131,10 @@ def main(argv: list[str] | None = None) -> None:
 
         title = f"{name}: {inputs} inputs of {cfg_name}, loss {hparams.loss}"
         save_figure(learning_curves(res.history, title), figure_file(f"train_fusion_{name}"))
+        if res.run_id:
+            from traffictwin.mlops.tracking import log_run_artifact
+
+            log_run_artifact(res.run_id, figure_file(f"train_fusion_{name}"), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val KLD(b) %.4f (naive %.4f), val loss %.4f, %.1f s",

@@ -108,6 +108,10 @@ def main(argv: list[str] | None = None) -> None:
             learning_curves(res.history, f"learned registration, configuration {a.cfg}"),
             figure_file(name),
         )
+        if res.run_id:
+            from traffictwin.mlops.tracking import log_run_artifact
+
+            log_run_artifact(res.run_id, figure_file(name), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val success %.2f, trans err %.2f m, rot err %.2f deg, %.1f s",

@@ -46,6 +46,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -241,6 +242,7 @@ class RegistrationFitResult:
     meta: dict[str, Any]
     metrics: dict[str, Any]
     history: list[dict[str, float]]
+    run_id: str | None = None  # the MLflow run (None: not tracked)
 
 
 def fit_registration(
@@ -323,7 +325,7 @@ def fit_registration(
             profile=tracking.profile,
             stage=tracking.stage,
             tags={
-                "data_manifest_hash": manifest_hash,
+                DATA_TAG: manifest_hash,
                 "cfg": cfg_name,
                 "network": meta_base["network"],
                 "method": "learned",
@@ -337,6 +339,8 @@ def fit_registration(
         ) as run,
     ):
         logger = common.mlflow_logger(run)
+        if run is not None:
+            log_dataset(data_root, manifest_hash)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         trainer = common.build_trainer(
@@ -442,7 +446,9 @@ def fit_registration(
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
-    return RegistrationFitResult(Path(ckpt_out), meta, metrics, history.rows)
+    return RegistrationFitResult(
+        Path(ckpt_out), meta, metrics, history.rows, run.info.run_id if run is not None else None
+    )
 
 
 def load_registration_model(

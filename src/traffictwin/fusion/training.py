@@ -71,6 +71,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -651,7 +652,7 @@ def fit_fusion(
             profile=tracking.profile,
             stage=tracking.stage,
             tags={
-                "data_manifest_hash": manifest_hash,
+                DATA_TAG: manifest_hash,
                 "cfg": cfg_name,
                 "network": network or cfg_name,
                 "loss": hparams.loss,
@@ -665,6 +666,8 @@ def fit_fusion(
         ) as run,
     ):
         logger = common.mlflow_logger(run)
+        if run is not None:
+            log_dataset(data_root, manifest_hash)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         callbacks = [

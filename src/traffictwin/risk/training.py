@@ -44,6 +44,7 @@ from traffictwin.config import flatten
 from traffictwin.config import spec as setting
 from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import (
     OBJECTIVES,
@@ -846,7 +847,7 @@ def fit_risk(
         "data.n_val": len(val),
     }
     manifest = data.risk.manifest_hash()
-    tags = {"variant": variant, "data_manifest": manifest, "label": label}
+    tags = {"variant": variant, DATA_TAG: manifest, "label": label}
     with tracked_run(
         tracking.experiment,
         tracking.run_name,
@@ -857,6 +858,10 @@ def fit_risk(
         enabled=tracking.enabled,
     ) as run:
         logger = mlflow_logger(run)
+        if run is not None:
+            log_dataset(data.risk.root, manifest)
+            if data.disparity is not None:
+                log_dataset(data.disparity.root, data.disparity.manifest_hash())
         res = fit(cfg, train, val, tc, settings, logger=logger)
         if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
             return None
@@ -891,6 +896,7 @@ def fit_risk(
                 },
             )
             log_checkpoint(out_dir / CKPT)
+            log_checkpoint(out_dir / "history.csv", artifact_path="curves")
             n_ex = min(2, len(val))
             x = normalise(
                 cfg,
