@@ -28,6 +28,7 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ from torch.utils.data import (
 )
 from torchmetrics import MeanMetric
 
+from traffictwin import resume
 from traffictwin import trainer as common
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
@@ -615,6 +617,7 @@ def fit_fusion(
     tracking: TrackingSettings | None = None,
     log_mlflow_model: bool = True,
     tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
+    resume_dir: str | Path | None = None,
     **trainer_extra: Any,
 ) -> FitResult | None:
     """Train on ``data_root``'s train split, select on val/kld_full (KLD(b)), publish the best model.
@@ -623,6 +626,11 @@ def fit_fusion(
     Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, MLflow run id, data manifest
     hash), ``metrics_out`` (best-epoch metrics + timing), ``curves_out`` (per-epoch CSV).
     Returns ``None`` on other DDP ranks.
+
+    ``resume_dir``: a folder outside the outputs where the run keeps its training state
+    (:mod:`traffictwin.resume`); a run killed before the end continues from there when run
+    again with the same arguments, data and code (same weights as without the kill); removed
+    after the outputs are written.
     """
     common.seed_everything(seed)
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
@@ -643,9 +651,30 @@ def fit_fusion(
     module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
     dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
     n_params = count_parameters(module.net)
+    resume_from, resume_state = None, {}
+    if resume_dir is not None:
+        fp = resume.fingerprint(
+            {
+                "problem": "fusion",
+                "spec": spec.as_dict(),
+                "hparams": asdict(hparams),
+                "data": asdict(data),
+                "loop": asdict(loop),
+                "trainer": trainer_settings.as_dict(),
+                "meta": meta_base,
+                "data_root": str(data_root),
+                "tensors": tensors is not None,
+                "extra": trainer_extra,
+            }
+        )
+        resume_from, resume_state = resume.prepare(resume_dir, fp, clear=common.global_rank() == 0)
+        if resume_from is not None:
+            log.info("resuming %s from %s", tracking.stage, resume_from)
 
     with (
-        tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work,
+        nullcontext(str(resume_dir))
+        if resume_dir is not None
+        else tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work,
         common.tracked_run(
             tracking.experiment,
             tracking.run_name,
@@ -663,11 +692,14 @@ def fit_fusion(
                 "model.param_count": n_params,
             },
             enabled=tracking.enabled,
+            run_id=resume_state.get("mlflow_run_id") if resume_from is not None else None,
         ) as run,
     ):
         logger = common.mlflow_logger(run)
-        if run is not None:
+        if run is not None and resume_from is None:
             log_dataset(data_root, manifest_hash)
+        if run is not None and resume_dir is not None:
+            resume.record(resume_dir, mlflow_run_id=run.info.run_id)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         callbacks = [
@@ -675,6 +707,8 @@ def fit_fusion(
             ckpt_cb,
             common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
         ]
+        if resume_dir is not None:
+            callbacks.append(resume.ResumeCheckpoint(resume_dir))
         trainer = common.build_trainer(
             trainer_settings,
             max_epochs=loop.max_epochs,
@@ -684,7 +718,7 @@ def fit_fusion(
             **trainer_extra,
         )
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm)
+        trainer.fit(module, datamodule=dm, ckpt_path=resume_from)
         train_s = time.perf_counter() - t0
         if not trainer.is_global_zero:
             return None
@@ -765,4 +799,5 @@ def fit_fusion(
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
+    resume.finish(resume_dir)
     return FitResult(Path(ckpt_out), meta, metrics, history.rows, meta["mlflow_run_id"], model_uri)

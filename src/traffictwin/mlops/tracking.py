@@ -210,13 +210,27 @@ def start_run(
     stage: str,
     tags: Mapping[str, Any] | None = None,
     params: Mapping[str, Any] | None = None,
+    run_id: str | None = None,
 ) -> Iterator[Any]:
-    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``."""
+    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``.
+
+    ``run_id``: continue that run instead (a resumed training; ignored when the store has no
+    such run in ``experiment``, e.g. another tracking URI): the same tags and params are set again.
+    """
     import mlflow
+    from mlflow.exceptions import MlflowException
 
     uri = setup()
-    ensure_experiment(experiment, uri)
-    with mlflow.start_run(run_name=run_name, tags=base_tags(profile, stage, tags)) as run:
+    exp_id = ensure_experiment(experiment, uri)
+    if run_id is not None:
+        try:
+            if mlflow.get_run(run_id).info.experiment_id != exp_id:
+                run_id = None
+        except MlflowException:
+            run_id = None
+    with mlflow.start_run(
+        run_id=run_id, run_name=None if run_id else run_name, tags=base_tags(profile, stage, tags)
+    ) as run:
         if params:
             log_params(params)
         yield run
