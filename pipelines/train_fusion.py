@@ -46,6 +46,7 @@ from ._paths import (  # noqa: E402
     fusion_model_dir,
     metrics_file,
     plot_file,
+    resume_dir,
 )
 
 
@@ -124,6 +125,7 @@ def main(argv: list[str] | None = None) -> None:
             metrics_out=metrics_file(f"train_fusion_{name}"),
             curves_out=plot_file(f"train_fusion_{name}"),
             tracking=tracking,
+            resume_dir=resume_dir(stage),
         )
     if res is not None:
         from traffictwin.fusion.figures import save_figure

@@ -34,6 +34,7 @@ from ._paths import (  # noqa: E402
     plot_file,
     prealigned,
     registration_model_dir,
+    resume_dir,
 )
 
 KEY = "registration_model"
@@ -99,6 +100,7 @@ def main(argv: list[str] | None = None) -> None:
             metrics_out=metrics_file(name),
             curves_out=plot_file(name),
             tracking=tracking,
+            resume_dir=resume_dir(stage),
         )
     if res is not None:
         from traffictwin.fusion.figures import save_figure

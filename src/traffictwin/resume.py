@@ -239,3 +239,47 @@ def _replay_loader_draws(trainer: Any) -> None:
     for dl in _train_loaders(trainer):
         if isinstance(dl, DataLoader) and not (dl.num_workers > 0 and dl.persistent_workers):
             torch.empty((), dtype=torch.int64).random_(generator=dl.generator)
+
+
+class Session:
+    """One training run's use of a resume folder (``folder=None``: no resuming, a temp folder).
+
+    ``resume_from``: the ``last.ckpt`` to pass to ``trainer.fit(ckpt_path=...)`` (``None``: start
+    afresh); :meth:`run_id`: the MLflow run to continue; :meth:`workdir`: where the best-epoch
+    checkpoint goes (the resume folder, so a resumed run still has it); :meth:`callbacks`:
+    :class:`ResumeCheckpoint`; :meth:`started` records the MLflow run; :meth:`finish` removes the
+    folder after the outputs are written.
+    """
+
+    def __init__(self, folder: str | Path | None, config: Mapping[str, Any]) -> None:
+        from traffictwin.trainer import global_rank
+
+        self.folder = Path(folder) if folder is not None else None
+        self.resume_from: Path | None = None
+        self.state: dict[str, Any] = {}
+        if self.folder is not None:
+            self.resume_from, self.state = prepare(
+                self.folder, fingerprint(config), clear=global_rank() == 0
+            )
+
+    def run_id(self) -> str | None:
+        return self.state.get("mlflow_run_id") if self.resume_from is not None else None
+
+    def workdir(self, prefix: str) -> Any:
+        """Context manager giving the checkpoint folder (the resume folder or a temp folder)."""
+        import tempfile
+        from contextlib import nullcontext
+
+        if self.folder is not None:
+            return nullcontext(str(self.folder))
+        return tempfile.TemporaryDirectory(prefix=prefix)
+
+    def callbacks(self) -> list[Any]:
+        return [ResumeCheckpoint(self.folder)] if self.folder is not None else []
+
+    def started(self, run: Any) -> None:
+        if run is not None and self.folder is not None:
+            record(self.folder, mlflow_run_id=run.info.run_id)
+
+    def finish(self) -> None:
+        finish(self.folder)

@@ -28,7 +28,6 @@ import math
 import tempfile
 import time
 from collections.abc import Mapping
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -651,30 +650,26 @@ def fit_fusion(
     module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
     dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
     n_params = count_parameters(module.net)
-    resume_from, resume_state = None, {}
-    if resume_dir is not None:
-        fp = resume.fingerprint(
-            {
-                "problem": "fusion",
-                "spec": spec.as_dict(),
-                "hparams": asdict(hparams),
-                "data": asdict(data),
-                "loop": asdict(loop),
-                "trainer": trainer_settings.as_dict(),
-                "meta": meta_base,
-                "data_root": str(data_root),
-                "tensors": tensors is not None,
-                "extra": trainer_extra,
-            }
-        )
-        resume_from, resume_state = resume.prepare(resume_dir, fp, clear=common.global_rank() == 0)
-        if resume_from is not None:
-            log.info("resuming %s from %s", tracking.stage, resume_from)
+    session = resume.Session(
+        resume_dir,
+        {
+            "problem": "fusion",
+            "spec": spec.as_dict(),
+            "hparams": asdict(hparams),
+            "data": asdict(data),
+            "loop": asdict(loop),
+            "trainer": trainer_settings.as_dict(),
+            "meta": meta_base,
+            "data_root": str(data_root),
+            "tensors": tensors is not None,
+            "extra": trainer_extra,
+        },
+    )
+    if session.resume_from is not None:
+        log.info("resuming %s from %s", tracking.stage, session.resume_from)
 
     with (
-        nullcontext(str(resume_dir))
-        if resume_dir is not None
-        else tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work,
+        session.workdir("fusion_ckpt_") as work,
         common.tracked_run(
             tracking.experiment,
             tracking.run_name,
@@ -692,14 +687,13 @@ def fit_fusion(
                 "model.param_count": n_params,
             },
             enabled=tracking.enabled,
-            run_id=resume_state.get("mlflow_run_id") if resume_from is not None else None,
+            run_id=session.run_id(),
         ) as run,
     ):
         logger = common.mlflow_logger(run)
-        if run is not None and resume_from is None:
+        if run is not None and session.resume_from is None:
             log_dataset(data_root, manifest_hash)
-        if run is not None and resume_dir is not None:
-            resume.record(resume_dir, mlflow_run_id=run.info.run_id)
+        session.started(run)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         callbacks = [
@@ -707,8 +701,7 @@ def fit_fusion(
             ckpt_cb,
             common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
         ]
-        if resume_dir is not None:
-            callbacks.append(resume.ResumeCheckpoint(resume_dir))
+        callbacks += session.callbacks()
         trainer = common.build_trainer(
             trainer_settings,
             max_epochs=loop.max_epochs,
@@ -718,7 +711,7 @@ def fit_fusion(
             **trainer_extra,
         )
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm, ckpt_path=resume_from)
+        trainer.fit(module, datamodule=dm, ckpt_path=session.resume_from)
         train_s = time.perf_counter() - t0
         if not trainer.is_global_zero:
             return None
@@ -799,5 +792,5 @@ def fit_fusion(
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
-    resume.finish(resume_dir)
+    session.finish()
     return FitResult(Path(ckpt_out), meta, metrics, history.rows, meta["mlflow_run_id"], model_uri)
