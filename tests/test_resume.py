@@ -157,3 +157,44 @@ def test_progress_bar_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> Non
     assert common.build_trainer(common.TrainerSettings(), max_epochs=1).progress_bar_callback
     t = common.build_trainer(common.TrainerSettings(), max_epochs=1, enable_progress_bar=False)
     assert t.progress_bar_callback is None
+
+
+@pytest.mark.slow
+def test_killed_risk_run_with_mid_epoch_validations_resumes_identically(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The risk trainer validates every n steps (not at epoch ends) and uses dropout: the
+    resumed run has the same curves (History rows and the loss since the last validation are
+    in the checkpoint) and the same best weights."""
+    from test_risk_training import _source, write_synthetic_risk
+
+    from traffictwin.risk.dave2 import Dave2Config
+    from traffictwin.risk.training import RiskRegressor, TrainConfig, fit, prepare_split
+
+    write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
+    src = _source(tmp_path)
+    cfg = Dave2Config(inputs=("disp_sgm",), dropout=0.3)
+    tr, va = prepare_split(src, cfg, "train", "risk"), prepare_split(src, cfg, "val", "risk")
+    tc = TrainConfig(epochs=3, batch_size=5, lr=1e-3, val_every_n_steps=3, seed=0, min_pred_std=0.0)
+    plain = fit(cfg, tr, va, tc, common.TrainerSettings())
+    steps_per_epoch = len(tr) // 5
+    assert steps_per_epoch % 3 != 0  # validations fall inside epochs
+
+    rdir = tmp_path / "resume"
+    step = RiskRegressor.training_step
+
+    def dying_step(self, batch, batch_idx):
+        if self.global_step == steps_per_epoch + 2:
+            raise Killed
+        return step(self, batch, batch_idx)
+
+    monkeypatch.setattr(RiskRegressor, "training_step", dying_step)
+    with pytest.raises(Killed):
+        fit(cfg, tr, va, tc, common.TrainerSettings(), session=resume.Session(rdir, {"k": 1}))
+    monkeypatch.setattr(RiskRegressor, "training_step", step)
+    session = resume.Session(rdir, {"k": 1})
+    assert session.resume_from == rdir / resume.LAST
+    res = fit(cfg, tr, va, tc, common.TrainerSettings(), session=session)
+    assert res.history.equals(plain.history) and res.best_step == plain.best_step
+    sa, sb = plain.net.state_dict(), res.net.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)

@@ -63,22 +63,27 @@ def pip_requirements() -> list[str]:
     return lines
 
 
+# problem -> (module, loader): looked up by name, so that logging a model (every training stage)
+# does not make the stages depend on the other problems' loaders; they run where a model is served
+LOADERS = {
+    "fusion": ("traffictwin.fusion.model_io", "load_fusion_model"),
+    "risk": ("traffictwin.risk.model_io", "load_risk_model"),
+    "registration": ("traffictwin.fusion.registration_training", "load_registration_model"),
+}
+
+
 def _network(problem: str, folder: Path) -> Any:
     """The eval-mode network of ``problem`` whose forward the signature describes."""
-    if problem == "fusion":
-        from traffictwin.fusion.model_io import load_fusion_model
+    import importlib
 
-        return load_fusion_model(folder)
-    if problem == "risk":
-        from traffictwin.risk.dave2 import PackedDave2
-        from traffictwin.risk.model_io import load_risk_model
-
-        return PackedDave2(load_risk_model(folder).net).eval()
-    if problem == "registration":
-        from traffictwin.fusion.registration_training import load_registration_model
-
-        return load_registration_model(folder)
-    raise ValueError(f"{folder}: unknown traffictwin model problem {problem!r}")
+    if problem not in LOADERS:
+        raise ValueError(f"{folder}: unknown traffictwin model problem {problem!r}")
+    module, name = LOADERS[problem]
+    model = getattr(importlib.import_module(module), name)(folder)
+    if problem == "risk":  # a RiskModel: the packed single-input network of its signature
+        packed = importlib.import_module("traffictwin.risk.dave2").PackedDave2
+        return packed(model.net).eval()
+    return model
 
 
 class TrafficTwinModel:
