@@ -22,6 +22,8 @@ METRICS = REPORTS / "metrics"
 PLOTS = REPORTS / "plots"
 FIGURES = REPORTS / "figures"
 TIMINGS = REPORTS / "timings"
+# training state of a killed training stage (traffictwin.resume); no DVC output, git-ignored
+RESUME = ROOT / ".cache" / "traffictwin" / "resume"
 
 # fusion
 FUSION_DATA = DATA / "fusion"
@@ -84,3 +86,9 @@ def plot_file(name: str) -> Path:
 def figure_file(name: str) -> Path:
     """``reports/figures/<name>.png``."""
     return FIGURES / f"{name}.png"
+
+
+def resume_dir(stage: str) -> Path:
+    """``.cache/traffictwin/resume/<stage>`` (``@`` as ``-``): where a training stage keeps its
+    ``last.ckpt`` until it finishes, so a re-run after a kill resumes (outside the DVC outputs)."""
+    return RESUME / stage.replace("@", "-")

@@ -16,7 +16,8 @@ variants). Writes:
 - ``reports/plots/fusion_kld.csv``, ``fusion_scores.csv``, ``fusion_pose_bins.csv`` — DVC plot data;
 - ``reports/figures/fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png``;
 - ``reports/fusion_findings.md`` — findings computed from fusion.json;
-and logs the numbers to each network's MLflow run (``mlflow_run_id`` of its model_meta.json).
+and logs the network's own numbers to its MLflow run (``mlflow_run_id`` of its model_meta.json),
+with every method's numbers at its configuration as the table artifact ``evaluation/test_methods.json``.
 Bootstrap intervals: ``evaluation.fusion_ci`` (n_boot, seed, level).
 Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion.methods`).
 """
@@ -56,6 +57,7 @@ STAGE = "evaluate_fusion"
 METRICS = metrics_file("fusion")
 SAMPLES = REPORTS / "fusion_eval_samples.csv"
 FINDINGS = REPORTS / "fusion_findings.md"
+METHODS_TABLE = "evaluation/test_methods.json"  # MLflow table artifact of a network's run
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
 
@@ -66,13 +68,14 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
 
 
 def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str]]) -> None:
-    """Log every number to each network's own MLflow run (``mlflow_run_id`` in model_meta.json);
-    ``runs``: ``(model folder, configuration, evaluation row)`` per network."""
+    """Log each network's numbers to its own MLflow run (``mlflow_run_id`` in model_meta.json) and
+    every method's at its configuration as the table :data:`METHODS_TABLE`; ``runs``:
+    ``(model folder, configuration, evaluation row)`` per network."""
     from mlflow.entities import Metric, RunTag
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
-    from traffictwin.fusion.evaluation import mlflow_metrics
+    from traffictwin.fusion.evaluation import methods_table, mlflow_metrics
     from traffictwin.mlops.tracking import setup
 
     client = MlflowClient(tracking_uri=setup())
@@ -95,6 +98,8 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str]]) ->
                 metrics=[Metric(k, v, stamp, 0) for k, v in sorted(flat.items())],
                 tags=[RunTag("evaluated_by", STAGE)],
             )
+            # the baselines and the other rows: one table artifact, not metrics of this run
+            client.log_table(run_id, methods_table(metrics, c), METHODS_TABLE)
             log.info(
                 "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, name
             )

@@ -35,6 +35,7 @@ from pipelines._paths import (
     RISK_DATA,
     ROOT,
     fusion_model_dir,
+    metrics_file,
     prealigned,
     registration_model_dir,
     risk_model_dir,
@@ -87,6 +88,74 @@ def _rel(path: Path) -> str:
     return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
 
 
+FUSION_CARD_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ", "dice_free", "u_auroc", "u_mean")
+RISK_CARD_KEYS = ("test/mse", "test/rmse", "test/mae", "test/thw_mae_s", "test/thw_mae_critical_s")
+SIM_LIMIT = "Trained and tested on the project's own simulator, not on real sensor data."
+
+
+def _card_metrics(name: str, path: list[str], keys: tuple[str, ...]) -> tuple[dict, str]:
+    """``keys`` (and their ``_ci``) at ``path`` of ``reports/metrics/<name>.json`` (the
+    evaluation stage's output for the model folders the candidates come from); ``{}`` if absent."""
+    f = metrics_file(name)
+    try:
+        node = json.loads(f.read_text())
+        for k in path:
+            node = node[k]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        return {}, ""
+    out = {k: node[k] for k in keys if k in node}
+    out.update({f"{k}_ci": node[f"{k}_ci"] for k in keys if f"{k}_ci" in node})
+    return out, f"{_rel(f)} (test split)"
+
+
+def fusion_card(
+    c: str, row: str, cfg: DictConfig
+) -> Callable[[promotion.Candidate], promotion.ModelCard]:
+    """The model card facts of the fusion network (``row`` ``dnn``) or learned registration
+    (``learned``) of configuration ``c``."""
+
+    def card(cand: promotion.Candidate) -> promotion.ModelCard:
+        n = cfg["configurations"][c]
+        g = cfg["grid"]
+        metrics, source = _card_metrics("fusion", ["test", c, row], FUSION_CARD_KEYS)
+        return promotion.ModelCard(
+            data=f"{_rel(prealigned(c))}: simulated cooperative pairs of lidar grids, pose noise "
+            f"r = {n['r']} m, alpha = {n['alpha']} deg (98 % intervals).",
+            metrics=metrics,
+            metrics_source=source,
+            limits=(
+                SIM_LIMIT,
+                f"Only for {g['rows']} x {g['cols']} grids of {g['cell']} m cells and pose errors "
+                f"like configuration {c}'s; larger errors are outside its training data.",
+                "KLD(b) (kld_fou_mean) is the headline; kld_fo_mean is the paper group's "
+                "formula, not a divergence.",
+            ),
+        )
+
+    return card
+
+
+def risk_card(variant: str) -> Callable[[promotion.Candidate], promotion.ModelCard]:
+    """The model card facts of risk variant ``variant``."""
+
+    def card(cand: promotion.Candidate) -> promotion.ModelCard:
+        metrics, source = _card_metrics("risk", ["models", variant], RISK_CARD_KEYS)
+        label = cand.meta.get("label", "?")
+        return promotion.ModelCard(
+            data=f"{_rel(RISK_DATA)}: simulated stereo frames that passed the ORB pair check; "
+            f"label {label}.",
+            metrics=metrics,
+            metrics_source=source,
+            limits=(
+                SIM_LIMIT,
+                "Risk is min(1/THW, 20)/20 for one region definition; frames the ORB check "
+                "rejects are outside its domain.",
+            ),
+        )
+
+    return card
+
+
 def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
     """One gate job per fusion configuration and one for the risk variant (test sets load lazily)."""
     from traffictwin.fusion.gate_eval import fusion_evaluator, fusion_test_set
@@ -107,6 +176,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 model_dir=fusion_model_dir(c),
                 make_evaluator=make_fusion_eval,
                 tags={"model_dir": _rel(fusion_model_dir(c))},
+                card=fusion_card(c, "dnn", cfg),
             )
         )
     # the learned registrations: same gate settings as the fusion networks (metric KLD(b) of the
@@ -126,6 +196,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 model_dir=registration_model_dir(c),
                 make_evaluator=make_registration_eval,
                 tags={"model_dir": _rel(registration_model_dir(c))},
+                card=fusion_card(c, "learned", cfg),
             )
         )
     # keys of other groups the risk gate shares with the evaluate_risk stage
@@ -145,6 +216,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
             model_dir=risk_model_dir(r.variant),
             make_evaluator=make_risk_eval,
             tags={"model_dir": _rel(risk_model_dir(r.variant))},
+            card=risk_card(r.variant),
         )
     )
     return jobs

@@ -46,6 +46,7 @@ from ._paths import (  # noqa: E402
     fusion_model_dir,
     metrics_file,
     plot_file,
+    resume_dir,
 )
 
 
@@ -124,6 +125,7 @@ def main(argv: list[str] | None = None) -> None:
             metrics_out=metrics_file(f"train_fusion_{name}"),
             curves_out=plot_file(f"train_fusion_{name}"),
             tracking=tracking,
+            resume_dir=resume_dir(stage),
         )
     if res is not None:
         from traffictwin.fusion.figures import save_figure
@@ -131,6 +133,10 @@ def main(argv: list[str] | None = None) -> None:
 
         title = f"{name}: {inputs} inputs of {cfg_name}, loss {hparams.loss}"
         save_figure(learning_curves(res.history, title), figure_file(f"train_fusion_{name}"))
+        if res.run_id:
+            from traffictwin.mlops.tracking import log_run_artifact
+
+            log_run_artifact(res.run_id, figure_file(f"train_fusion_{name}"), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val KLD(b) %.4f (naive %.4f), val loss %.4f, %.1f s",

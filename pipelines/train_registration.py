@@ -34,6 +34,7 @@ from ._paths import (  # noqa: E402
     plot_file,
     prealigned,
     registration_model_dir,
+    resume_dir,
 )
 
 KEY = "registration_model"
@@ -99,6 +100,7 @@ def main(argv: list[str] | None = None) -> None:
             metrics_out=metrics_file(name),
             curves_out=plot_file(name),
             tracking=tracking,
+            resume_dir=resume_dir(stage),
         )
     if res is not None:
         from traffictwin.fusion.figures import save_figure
@@ -108,6 +110,10 @@ def main(argv: list[str] | None = None) -> None:
             learning_curves(res.history, f"learned registration, configuration {a.cfg}"),
             figure_file(name),
         )
+        if res.run_id:
+            from traffictwin.mlops.tracking import log_run_artifact
+
+            log_run_artifact(res.run_id, figure_file(name), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val success %.2f, trans err %.2f m, rot err %.2f deg, %.1f s",

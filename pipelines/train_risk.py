@@ -19,7 +19,15 @@ from traffictwin.risk.training import RiskModelConfig, RiskSource, TrainConfig, 
 from traffictwin.trainer import TrackingSettings, TrainerSettings, global_rank
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, plot_file, risk_model_dir
+from ._paths import (
+    DISPARITY,
+    ORB_CSV,
+    PARAMS,
+    RISK_DATA,
+    plot_file,
+    resume_dir,
+    risk_model_dir,
+)
 
 
 def training_domain(p, model: RiskModelConfig, label: str) -> dict:
@@ -115,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
             curves_out=plot_file(f"risk_training_{variant}"),
             max_train_frames=max_train,
             tracking=tracking,
+            resume_dir=resume_dir(stage),
             meta={
                 "domain": training_domain(p, model, label),
                 "objective": cfg.objective,

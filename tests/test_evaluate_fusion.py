@@ -195,7 +195,7 @@ def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
 
 
 def test_json_clean_and_mlflow_numbers():
-    from traffictwin.fusion.evaluation import json_clean, mlflow_metrics
+    from traffictwin.fusion.evaluation import json_clean, methods_table, mlflow_metrics
 
     m = json_clean(
         {
@@ -212,22 +212,20 @@ def test_json_clean_and_mlflow_numbers():
     )
     assert m["test"]["A"]["naive"]["k"] is None and m["cross"]["dnn-A"]["B"]["k"] is None
     assert m["ids"] == [1, 2.0] and isinstance(m["ids"][0], int)
+    # a network's run gets its own numbers only; the other rows go to the methods table
     assert mlflow_metrics(m, "A") == {
         "test/k": 0.5,
         "test/k_ci_lo": 0.4,
         "test/k_ci_hi": 0.6,
-        "test_naive/n": 3.0,
-        "test_dnn_paper_/k": 0.7,
         "cross_A/k": 0.25,
     }
     # a variant's own run: its row is test/, no cross table
-    assert mlflow_metrics(m, "A", "dnn[paper]") == {
-        "test_dnn/k": 0.5,
-        "test_dnn/k_ci_lo": 0.4,
-        "test_dnn/k_ci_hi": 0.6,
-        "test_naive/n": 3.0,
-        "test/k": 0.7,
-    }
+    assert mlflow_metrics(m, "A", "dnn[paper]") == {"test/k": 0.7}
+    table = methods_table(m, "A")
+    assert list(table.columns) == ["method", "k", "k_ci_hi", "k_ci_lo", "n"]
+    assert table["method"].tolist() == ["dnn", "naive", "dnn[paper]"]
+    assert table.loc[0, "k_ci_lo"] == 0.4 and table.loc[2, "k"] == 0.7
+    assert table.loc[1, "n"] == 3 and pd.isna(table.loc[1, "k"]) and pd.isna(table.loc[2, "n"])
 
 
 def _ci(v: float, half: float) -> dict:
@@ -548,5 +546,10 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
             m["test"][c]["dnn"]["kld_fou_mean_ci"]["lo"]
         )
         assert logged["test/kld_fo_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fo_mean"])
-        assert logged["test_naive/dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
+        assert not any(k.startswith("test_") for k in logged)  # baselines: the table artifact
+        table = json.loads(
+            Path(client.download_artifacts(run_id, "evaluation/test_methods.json")).read_text()
+        )
+        rows = {r[0]: dict(zip(table["columns"], r)) for r in table["data"]}
+        assert rows["naive"]["dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
         assert f"cross_{c}/kld_fo_mean" in logged

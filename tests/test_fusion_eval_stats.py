@@ -326,7 +326,12 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     # MLflow numbers of the variant's own run: its row is `test/`, names MLflow-safe
     flat = ev.mlflow_metrics(ev.json_clean(m), "D", "dnn[paper]")
     assert flat["test/kld_fou_mean"] == pytest.approx(m["test"]["D"]["dnn[paper]"]["kld_fou_mean"])
-    assert "test_dnn/kld_fou_mean_ci_lo" in flat and "test_registered_network/dice_occ" in flat
+    assert "test/kld_fou_mean_ci_lo" in flat and not any(k.startswith("test_") for k in flat)
+    table = ev.methods_table(ev.json_clean(m), "D").set_index("method")
+    assert table.loc["dnn", "kld_fou_mean_ci_lo"] == pytest.approx(
+        m["test"]["D"]["dnn"]["kld_fou_mean_ci"]["lo"]
+    )
+    assert "registered+network" in table.index and "dice_occ" in table.columns
     assert not any(k.startswith("cross_") for k in flat)
     # plot data and figures show the variant rows where they exist; the box plot is KLD(b)
     from traffictwin.evidential.noise import PoseNoise

@@ -167,3 +167,23 @@ def test_before_apply_runs_under_the_lock_and_can_stop_the_apply(tmp_path, mlflo
     assert [d.action for d in ds] == ["first"] and str(
         reg.get_alias(cl, "m-a", "champion").version
     ) == "1"
+
+
+def test_jobs_model_cards_read_the_evaluation_metrics_with_intervals():
+    """The workflow's card facts: the evaluation stages' numbers (with CIs) for that model."""
+    from pipelines._paths import metrics_file
+
+    cfg = load_params(PARAMS)
+    rc = pm.registry_config(cfg)
+    jobs = pm.build_jobs(cfg, rc)
+    c = list(cfg["configurations"])[0]
+    cand = promotion.Candidate(jobs[0].name, "r", None, jobs[0].model_dir, {"label": "x"})
+    card = jobs[0].card(cand)
+    fusion = json.loads(metrics_file("fusion").read_text())["test"][c]["dnn"]
+    assert card.metrics["kld_fou_mean"] == fusion["kld_fou_mean"]
+    assert card.metrics["kld_fou_mean_ci"] == fusion["kld_fou_mean_ci"]
+    assert card.metrics_source == "reports/metrics/fusion.json (test split)"
+    assert f"data/prealigned/{c}" in card.data and card.limits
+    risk = jobs[-1].card(cand)
+    rm = json.loads(metrics_file("risk").read_text())["models"][rc.risk.variant]
+    assert risk.metrics["test/mse_ci"] == rm["test/mse_ci"] and "label x" in risk.data

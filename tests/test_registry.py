@@ -6,6 +6,7 @@ The pure decision (Gate, decide) is tested without MLflow in test_gate.py.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -161,3 +162,62 @@ def test_log_appends_lines(tmp_path):
         {"b": 2.5, "c": [None, None]},
     ]  # strict JSON: non-finite -> null
     assert math.isclose(reg.read_log(p)[1]["b"], 2.5)
+
+
+def test_promotion_writes_the_model_card_as_the_version_description(cl, tmp_path):
+    """The applied decision's version gets the card: data hash, metrics with CIs, gate, limits;
+    a dry run describes nothing, and re-running an already decided version keeps its card."""
+    import json
+
+    from traffictwin.mlops import promotion
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    run_id = _log_model(0.0)
+    meta = {"mlflow_run_id": run_id, "data_manifest_hash": "ab" * 32, "profile": "ci"}
+    (folder / "model_meta.json").write_text(json.dumps(meta))
+    card = promotion.ModelCard(
+        data="data/prealigned/T: simulated pairs",
+        metrics={"test/mse": 0.25, "test/mse_ci": {"lo": 0.125, "hi": 0.5}, "test/n": 64},
+        metrics_source="reports/metrics/t.json",
+        limits=("Simulated data only.",),
+    )
+    job = promotion.GateJob(NAME, GATE, folder, lambda c: (_evaluate, "fp-1"), card=lambda c: card)
+    promotion.promote([job], promotion.PromotionSettings(dry_run=True), client=cl)
+    assert not cl.get_model_version(NAME, "1").description  # dry run: no card
+    (d,) = promotion.promote([job], promotion.PromotionSettings(), client=cl)
+    text = cl.get_model_version(NAME, "1").description
+    assert text == promotion.model_card(promotion.read_candidate(NAME, folder), d, card)
+    assert f"# {NAME} v1" in text and run_id in text and "ab" * 32 in text
+    assert "data/prealigned/T: simulated pairs" in text
+    assert "| test/mse | 0.25 | [0.125, 0.5] |" in text and "| test/n | 64 | — |" in text
+    assert "Decision **first** on test/mse (min, margin 0.001)" in text
+    assert "Test set fingerprint: `fp-1`" in text and "- Simulated data only." in text
+    cl.update_model_version(NAME, "1", description="edited by hand")
+    (d2,) = promotion.promote([job], promotion.PromotionSettings(), client=cl)
+    assert d2.action == "unchanged"
+    assert cl.get_model_version(NAME, "1").description == "edited by hand"
+
+
+def test_model_card_without_workflow_facts_shows_the_gate_figures():
+    from traffictwin.mlops import promotion
+
+    cand = promotion.Candidate("m", "r1", None, Path("x"), {"data_manifest": "h" * 64})
+    d = reg.Decision(
+        "m",
+        "2",
+        "r1",
+        "1",
+        "test/mse",
+        "min",
+        0.0,
+        0.5,
+        0.75,
+        "promoted",
+        "better",
+        challenger_metrics={"test/mse": 0.5},
+    )
+    text = promotion.model_card(cand, d)
+    assert "h" * 64 in text  # the risk meta's key is read too
+    assert "From the promotion gate's fixed test set" in text and "| test/mse | 0.5 | — |" in text
+    assert "champion v1: 0.75" in text and "## Limits" not in text

@@ -155,10 +155,16 @@ def build_trainer(
     limit_val_batches: int | float | None = None,
     gradient_clip_val: float | None = None,
     num_sanity_val_steps: int = 0,
-    enable_progress_bar: bool = False,
+    enable_progress_bar: bool | None = None,
     **extra: Any,
 ) -> Any:
-    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`History`)."""
+    """A ``lightning.Trainer`` for ``settings``; no Lightning logger (see :class:`History`).
+
+    ``enable_progress_bar``: ``None`` shows Lightning's progress bar only when stderr is a
+    terminal (not in DVC or CI logs, which get :class:`History`'s one line per epoch).
+    """
+    import sys
+
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
@@ -178,7 +184,9 @@ def build_trainer(
         logger=False,
         # Lightning's implicit checkpoint callback would write into the cwd; only checkpoint when asked
         enable_checkpointing=any(isinstance(cb, ModelCheckpoint) for cb in callbacks),
-        enable_progress_bar=enable_progress_bar,
+        enable_progress_bar=sys.stderr.isatty()
+        if enable_progress_bar is None
+        else enable_progress_bar,
         enable_model_summary=False,
         num_sanity_val_steps=num_sanity_val_steps,
         default_root_dir=str(default_root_dir) if default_root_dir else None,
@@ -383,6 +391,14 @@ class History(Callback):
         self._losses = []
         self._add(row, step=row["step"])
 
+    def state_dict(self) -> dict[str, Any]:
+        """The rows so far (kept in Lightning checkpoints, so a resumed run continues them)."""
+        return {"rows": [dict(r) for r in self.rows], "losses": list(self._losses)}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.rows = [dict(r) for r in state_dict.get("rows", [])]
+        self._losses = list(state_dict.get("losses", []))
+
     def _add(self, row: dict[str, float], step: int) -> None:
         self.rows.append(row)
         if self.logger is not None:
@@ -576,6 +592,7 @@ def log_model(
             problem=str(info.get("problem", "")),
             name=name,
             signature=signature,
+            input_example=x,
             metadata=metadata,
         )
     return uri

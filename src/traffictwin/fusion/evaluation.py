@@ -15,7 +15,8 @@ between is here, with paths and settings as explicit arguments:
 - :func:`row_intervals`, :func:`paired_intervals`, :func:`fusion_targets` — the statistics
   (:mod:`traffictwin.stats`; cluster = scenario = ``pair_id // 1000``);
 - :func:`plot_tables`, :func:`figures`, :func:`qualitative_panels` — DVC plot data and figures;
-- :func:`json_clean`, :func:`mlflow_metrics` — JSON-safe metrics, the flat per-network numbers.
+- :func:`json_clean`, :func:`mlflow_metrics`, :func:`methods_table` — JSON-safe metrics, the
+  flat numbers of one network's MLflow run, every method's numbers as one table artifact.
 
 Metrics layout (``fusion.json``); ``<row>`` is a method name or a network row (``dnn``,
 ``dnn[<loss>]``, ``registered+network``):
@@ -98,6 +99,7 @@ __all__ = [
     "figures",
     "json_clean",
     "mlflow_metrics",
+    "methods_table",
 ]
 
 # precision / recall / Dice of both classes, pooled over samples
@@ -1073,19 +1075,24 @@ def _mlflow_key(key: str) -> str:
     return re.sub(r"[^\w\-./ ]", "_", key)
 
 
+def _flat_row(vals: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """One row's numbers with intervals ``<k>_ci: {lo, hi}`` as ``<k>_ci_lo`` / ``<k>_ci_hi``."""
+    flat: dict[str, Any] = {}
+    for k, v in vals.items():
+        if isinstance(v, Mapping):
+            flat.update({f"{prefix}{k}_{kk}": vv for kk, vv in v.items()})
+        else:
+            flat[f"{prefix}{k}"] = v
+    return flat
+
+
 def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> dict[str, float]:
     """The flat numbers of the MLflow run of row ``row``'s network at configuration ``cfg``:
-    ``test/<k>`` (that network), ``test_<method>/<k>`` (the other rows), ``cross_<other>/<k>``
-    (the network on other configurations; rows of :data:`CROSS_ROWS` only); intervals ``<k>_ci`` as
-    ``<k>_ci_lo`` / ``<k>_ci_hi``; finite values only, names MLflow-safe."""
-    flat: dict[str, Any] = {}
-    for meth, vals in metrics["test"][cfg].items():
-        prefix = "test" if meth == row else f"test_{meth}"
-        for k, v in vals.items():
-            if isinstance(v, Mapping):
-                flat.update({f"{prefix}/{k}_{kk}": vv for kk, vv in v.items()})
-            else:
-                flat[f"{prefix}/{k}"] = v
+    ``test/<k>`` (that network only; the other methods go to :func:`methods_table`),
+    ``cross_<other>/<k>`` (the network on other configurations; rows of :data:`CROSS_ROWS`
+    only); intervals ``<k>_ci`` as ``<k>_ci_lo`` / ``<k>_ci_hi``; finite values only, names
+    MLflow-safe."""
+    flat = _flat_row(metrics["test"][cfg].get(row, {}), "test/")
     if row in CROSS_ROWS:
         for other, vals in metrics["cross"].get(f"{row}-{cfg}", {}).items():
             flat.update({f"cross_{other}/{k}": v for k, v in vals.items()})
@@ -1098,3 +1105,13 @@ def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> 
         ):
             out[_mlflow_key(k)] = float(v)
     return out
+
+
+def methods_table(metrics: Mapping[str, Any], cfg: str) -> pd.DataFrame:
+    """Every method's and network row's test numbers at configuration ``cfg``, one row each
+    (column ``method`` first, then the metrics sorted; intervals as ``<k>_ci_lo`` / ``<k>_ci_hi``;
+    missing or non-finite values empty): the baselines' table artifact of a network's run."""
+    rows = [{"method": m, **_flat_row(vals)} for m, vals in metrics["test"][cfg].items()]
+    frame = pd.DataFrame(rows)
+    cols = ["method", *sorted(c for c in frame.columns if c != "method")]
+    return frame[cols]

@@ -30,6 +30,7 @@ import torch
 from torch.utils.data import DataLoader, RandomSampler, Subset, TensorDataset
 from torchmetrics import CatMetric, MeanMetric
 
+from traffictwin import resume
 from traffictwin import trainer as common
 from traffictwin.config import spec as setting
 from traffictwin.evidential.masses import check_masses
@@ -46,6 +47,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -241,6 +243,7 @@ class RegistrationFitResult:
     meta: dict[str, Any]
     metrics: dict[str, Any]
     history: list[dict[str, float]]
+    run_id: str | None = None  # the MLflow run (None: not tracked)
 
 
 def fit_registration(
@@ -259,6 +262,7 @@ def fit_registration(
     metrics_out: str | Path | None = None,
     curves_out: str | Path | None = None,
     tracking: TrackingSettings | None = None,
+    resume_dir: str | Path | None = None,
 ) -> RegistrationFitResult | None:
     """Train on ``data_root``'s train split, keep the best epoch on ``val/loss``, publish it.
 
@@ -266,7 +270,8 @@ def fit_registration(
     meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run (params, curves, the
     checkpoint and the model as weights + JSON, :func:`traffictwin.trainer.log_model`) when
     ``tracking`` is enabled (registering it is the promotion gate's job). A non-finite validation loss
-    fails the run (nothing is published). Returns ``None`` on other DDP ranks.
+    fails the run (nothing is published). Returns ``None`` on other DDP ranks. ``resume_dir``: as
+    for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`).
     """
     common.seed_everything(seed)
     ds = Dataset(data_root, kind="prealigned")
@@ -315,15 +320,27 @@ def fit_registration(
     train_dl = DataLoader(train_set, batch_size=train.batch_size, sampler=sampler, drop_last=True)
     val_dl = DataLoader(val_set, batch_size=train.batch_size, shuffle=False)
 
+    session = resume.Session(
+        resume_dir,
+        {
+            "problem": PROBLEM,
+            "spec": asdict(spec),
+            "train": asdict(train),
+            "min_gain": min_gain,
+            "trainer": trainer_settings.as_dict(),
+            "meta": meta_base,
+            "data_root": str(data_root),
+        },
+    )
     with (
-        tempfile.TemporaryDirectory(prefix="registration_ckpt_") as work,
+        session.workdir("registration_ckpt_") as work,
         common.tracked_run(
             tracking.experiment,
             tracking.run_name,
             profile=tracking.profile,
             stage=tracking.stage,
             tags={
-                "data_manifest_hash": manifest_hash,
+                DATA_TAG: manifest_hash,
                 "cfg": cfg_name,
                 "network": meta_base["network"],
                 "method": "learned",
@@ -334,9 +351,13 @@ def fit_registration(
                 "model.param_count": n_params,
             },
             enabled=tracking.enabled,
+            run_id=session.run_id(),
         ) as run,
     ):
         logger = common.mlflow_logger(run)
+        if run is not None and session.resume_from is None:
+            log_dataset(data_root, manifest_hash)
+        session.started(run)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         trainer = common.build_trainer(
@@ -346,11 +367,17 @@ def fit_registration(
                 history,
                 ckpt_cb,
                 common.early_stopping(SELECTION_METRIC, train.early_stopping_patience),
+                *session.callbacks(),
             ],
             default_root_dir=work,
         )
         t0 = time.perf_counter()
-        trainer.fit(module, train_dataloaders=train_dl, val_dataloaders=val_dl)
+        trainer.fit(
+            module,
+            train_dataloaders=train_dl,
+            val_dataloaders=val_dl,
+            ckpt_path=session.resume_from,
+        )
         train_s = time.perf_counter() - t0
         if not trainer.is_global_zero:
             return None
@@ -442,7 +469,10 @@ def fit_registration(
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
-    return RegistrationFitResult(Path(ckpt_out), meta, metrics, history.rows)
+    session.finish()
+    return RegistrationFitResult(
+        Path(ckpt_out), meta, metrics, history.rows, run.info.run_id if run is not None else None
+    )
 
 
 def load_registration_model(

@@ -46,6 +46,7 @@ from torch.utils.data import (
 )
 from torchmetrics import MeanMetric
 
+from traffictwin import resume
 from traffictwin import trainer as common
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
@@ -71,6 +72,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -614,6 +616,7 @@ def fit_fusion(
     tracking: TrackingSettings | None = None,
     log_mlflow_model: bool = True,
     tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
+    resume_dir: str | Path | None = None,
     **trainer_extra: Any,
 ) -> FitResult | None:
     """Train on ``data_root``'s train split, select on val/kld_full (KLD(b)), publish the best model.
@@ -622,6 +625,11 @@ def fit_fusion(
     Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, MLflow run id, data manifest
     hash), ``metrics_out`` (best-epoch metrics + timing), ``curves_out`` (per-epoch CSV).
     Returns ``None`` on other DDP ranks.
+
+    ``resume_dir``: a folder outside the outputs where the run keeps its training state
+    (:mod:`traffictwin.resume`); a run killed before the end continues from there when run
+    again with the same arguments, data and code (same weights as without the kill); removed
+    after the outputs are written.
     """
     common.seed_everything(seed)
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
@@ -642,16 +650,33 @@ def fit_fusion(
     module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
     dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
     n_params = count_parameters(module.net)
+    session = resume.Session(
+        resume_dir,
+        {
+            "problem": "fusion",
+            "spec": spec.as_dict(),
+            "hparams": asdict(hparams),
+            "data": asdict(data),
+            "loop": asdict(loop),
+            "trainer": trainer_settings.as_dict(),
+            "meta": meta_base,
+            "data_root": str(data_root),
+            "tensors": tensors is not None,
+            "extra": trainer_extra,
+        },
+    )
+    if session.resume_from is not None:
+        log.info("resuming %s from %s", tracking.stage, session.resume_from)
 
     with (
-        tempfile.TemporaryDirectory(prefix="fusion_ckpt_") as work,
+        session.workdir("fusion_ckpt_") as work,
         common.tracked_run(
             tracking.experiment,
             tracking.run_name,
             profile=tracking.profile,
             stage=tracking.stage,
             tags={
-                "data_manifest_hash": manifest_hash,
+                DATA_TAG: manifest_hash,
                 "cfg": cfg_name,
                 "network": network or cfg_name,
                 "loss": hparams.loss,
@@ -662,9 +687,13 @@ def fit_fusion(
                 "model.param_count": n_params,
             },
             enabled=tracking.enabled,
+            run_id=session.run_id(),
         ) as run,
     ):
         logger = common.mlflow_logger(run)
+        if run is not None and session.resume_from is None:
+            log_dataset(data_root, manifest_hash)
+        session.started(run)
         history = common.History(logger=logger)
         ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
         callbacks = [
@@ -672,6 +701,7 @@ def fit_fusion(
             ckpt_cb,
             common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
         ]
+        callbacks += session.callbacks()
         trainer = common.build_trainer(
             trainer_settings,
             max_epochs=loop.max_epochs,
@@ -681,7 +711,7 @@ def fit_fusion(
             **trainer_extra,
         )
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm)
+        trainer.fit(module, datamodule=dm, ckpt_path=session.resume_from)
         train_s = time.perf_counter() - t0
         if not trainer.is_global_zero:
             return None
@@ -762,4 +792,5 @@ def fit_fusion(
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
+    session.finish()
     return FitResult(Path(ckpt_out), meta, metrics, history.rows, meta["mlflow_run_id"], model_uri)

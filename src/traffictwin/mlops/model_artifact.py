@@ -5,9 +5,17 @@ A trained network goes to MLflow as a model directory of the ``traffictwin`` fla
 - ``model.ckpt`` — the one checkpoint format of :mod:`traffictwin.trainer` (tensors and plain
   containers only, read back with ``torch.load(weights_only=True)``);
 - ``model_meta.json`` — the architecture and meta of the model, as JSON;
-- ``MLmodel`` — MLflow's description (signature, metadata, the ``traffictwin`` flavour block:
-  format, problem, file names). There is no ``python_function`` flavour and no pickle: nothing in
-  the directory is code.
+- ``MLmodel`` — MLflow's description (signature, input example, metadata, the ``traffictwin``
+  flavour block: format, problem, file names) and a ``python_function`` flavour
+  (``loader_module: traffictwin.mlops.serving``, see :mod:`traffictwin.mlops.serving`);
+- ``code/traffictwin/`` — the package source the pyfunc flavour imports (MLflow puts ``code/`` on
+  ``sys.path``), so ``mlflow.pyfunc.load_model`` works where traffictwin is not installed;
+- ``requirements.txt``, ``python_env.yaml``, ``conda.yaml`` — pinned requirements without
+  ``traffictwin`` (:func:`traffictwin.mlops.serving.pip_requirements`);
+- ``input_example.json`` / ``serving_input_example.json`` — the example the signature came from.
+
+No pickle anywhere: the weights are read with ``weights_only=True`` and the only code is the
+package source, whose files are hashed with the rest.
 
 :func:`log_model` writes the directory with MLflow's ``Model.log`` (so the logged model, its
 signature and the registry work as for any flavour), computes the SHA-256 of every file it wrote
@@ -40,6 +48,7 @@ from traffictwin.mlops.errors import GateError, IncompatibleModelError
 FLAVOR = "traffictwin"
 ARTIFACT_FORMAT = "traffictwin-mlflow-model/1"
 CKPT = "model.ckpt"
+CODE = "code"  # the pyfunc flavour's code folder: code/traffictwin/ is the package source
 META = "model_meta.json"
 MLMODEL = "MLmodel"
 SHA_TAG = "traffictwin.sha256"
@@ -167,12 +176,15 @@ def save_model(
     files: Mapping[str, str | Path],
     problem: str,
     signature: Any = None,
+    input_example: Any = None,
     sink: dict[str, Any] | None = None,
 ) -> None:
     """MLflow flavour hook (``Model.log(flavor=this module)``): write the model directory.
 
     ``files``: ``{CKPT: path, META: path}`` of the local checkpoint and meta JSON to copy;
-    ``sink`` receives ``hashes`` (SHA-256 of every file written, ``MLmodel`` included).
+    ``input_example``: the float32 array the signature was inferred from (saved as MLflow's
+    input example); ``sink`` receives ``hashes`` (SHA-256 of every file written, ``MLmodel``
+    included).
     """
     out = Path(path)
     out.mkdir(parents=True, exist_ok=True)
@@ -185,6 +197,11 @@ def save_model(
         shutil.copyfile(src, out / name)
     if signature is not None:
         mlflow_model.signature = signature
+    if input_example is not None:
+        from mlflow.models.utils import _save_example
+
+        _save_example(mlflow_model, input_example, str(out))
+    _add_pyfunc(mlflow_model, out)
     mlflow_model.add_flavor(
         FLAVOR,
         format=ARTIFACT_FORMAT,
@@ -198,12 +215,54 @@ def save_model(
         sink["hashes"] = file_hashes(out)
 
 
+def _add_pyfunc(mlflow_model: Any, out: Path) -> None:
+    """The ``python_function`` flavour: the package source under ``code/``, pinned requirements
+    (``requirements.txt``, ``python_env.yaml``, ``conda.yaml``) and ``loader_module``."""
+    import mlflow.pyfunc
+    from mlflow.utils.environment import (
+        _CONDA_ENV_FILE_NAME,
+        _PYTHON_ENV_FILE_NAME,
+        _REQUIREMENTS_FILE_NAME,
+        _mlflow_conda_env,
+        _PythonEnv,
+    )
+
+    from traffictwin.mlops import serving
+
+    package = Path(__file__).resolve().parents[1]  # src/traffictwin
+    shutil.copytree(
+        package,
+        out / CODE / package.name,
+        ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo"),
+    )
+    reqs = serving.pip_requirements()
+    (out / _REQUIREMENTS_FILE_NAME).write_text("\n".join(reqs) + "\n")
+    with open(out / _CONDA_ENV_FILE_NAME, "w") as fh:
+        _yaml_dump(_mlflow_conda_env(additional_pip_deps=reqs, install_mlflow=False), fh)
+    _PythonEnv.current().to_yaml(str(out / _PYTHON_ENV_FILE_NAME))
+    mlflow.pyfunc.add_to_model(
+        mlflow_model,
+        loader_module=serving.__name__,
+        code=CODE,
+        conda_env=_CONDA_ENV_FILE_NAME,
+        python_env=_PYTHON_ENV_FILE_NAME,
+    )
+
+
+def _yaml_dump(obj: Any, fh: Any) -> None:
+    """Block-style YAML (as MLflow writes its environment files)."""
+    import yaml
+
+    yaml.safe_dump(obj, fh, default_flow_style=False, sort_keys=False)
+
+
 def log_model(
     files: Mapping[str, str | Path],
     *,
     problem: str,
     name: str = "model",
     signature: Any = None,
+    input_example: Any = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> tuple[str, str]:
     """Log the model directory (see the module doc) to the active MLflow run.
@@ -223,6 +282,7 @@ def log_model(
         files={k: str(v) for k, v in files.items()},
         problem=problem,
         signature=signature,
+        input_example=input_example,
         sink=sink,
     )
     model_id = info.model_id

@@ -17,6 +17,11 @@ the evaluator — and calls :func:`promote` with :class:`PromotionSettings`. Her
    lock), that model is decided again against the new champion; if it moves again, the run stops
    (:class:`traffictwin.mlops.registry.ChampionChangedError`).
 
+After a decision is applied, the challenger's registered version gets a model card as its
+description (:func:`model_card`: data, test metrics with their intervals, the gate's figures,
+limits); a job's :class:`ModelCard` says what the workflow knows beyond the candidate's
+``model_meta.json`` and the decision.
+
 No params.yaml, no paths of the project: jobs and settings carry everything.
 """
 
@@ -73,12 +78,30 @@ def read_candidate(name: str, model_dir: str | Path) -> Candidate:
     )
 
 
+@dataclass(frozen=True)
+class ModelCard:
+    """What a version's model card says beyond the candidate's meta and the gate decision.
+
+    ``data``: the data it was trained and tested on (one line); ``metrics``: test metrics in the
+    evaluation JSON layout (``<k>: value`` and ``<k>_ci: {lo, hi}``); ``metrics_source``: where
+    they come from (e.g. the evaluation stage's metrics file); ``limits``: known limits, one
+    sentence each.
+    """
+
+    data: str = ""
+    metrics: Mapping[str, Any] = field(default_factory=dict)
+    metrics_source: str = ""
+    limits: Sequence[str] = ()
+
+
 @dataclass
 class GateJob:
     """One registered model to gate.
 
     ``make_evaluator(candidate) -> (evaluate, test_fingerprint)`` loads the test set lazily
-    (after every candidate was found); ``tags`` go on a newly registered version.
+    (after every candidate was found); ``tags`` go on a newly registered version;
+    ``card(candidate)`` gives the :class:`ModelCard` facts for the version's description
+    (``None``: a card from the meta and the decision only).
     """
 
     name: str
@@ -86,6 +109,72 @@ class GateJob:
     model_dir: Path
     make_evaluator: Callable[[Candidate], tuple[Evaluator, str]]
     tags: Mapping[str, str] = field(default_factory=dict)
+    card: Callable[[Candidate], ModelCard] | None = None
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def model_card(cand: Candidate, decision: Decision, card: ModelCard | None = None) -> str:
+    """The Markdown description of the registered version ``decision.challenger_version``:
+    the model (problem, MLflow run, profile), its data (``card.data`` and the data manifest
+    hash of its meta), its test metrics with 95 % intervals, the promotion gate's figures on
+    the fixed test set, and its limits."""
+    card = card or ModelCard()
+    m = cand.meta
+    data_hash = m.get("data_manifest_hash") or m.get("data_manifest") or "unknown"
+    n_params = m.get("param_count") or m.get("n_parameters")
+    lines = [
+        f"# {decision.name} v{decision.challenger_version}",
+        "",
+        f"traffictwin model, MLflow run `{cand.run_id}`"
+        + (f", profile `{m['profile']}`" if m.get("profile") else "")
+        + (f", {n_params} parameters" if n_params else ""),
+        "",
+        "## Data",
+        "",
+        *([card.data, ""] if card.data else []),
+        f"Data manifest hash (SHA-256 of the training data's manifest.json): `{data_hash}`",
+        "",
+    ]
+    # the workflow's evaluation (with intervals), else the gate's own figures on its test set
+    metrics = card.metrics or decision.challenger_metrics
+    source = card.metrics_source if card.metrics else "the promotion gate's fixed test set"
+    values = {
+        k: v
+        for k, v in metrics.items()
+        if not k.endswith("_ci") and isinstance(v, (int, float)) and not isinstance(v, bool)
+    }
+    if values:
+        lines += ["## Test metrics", ""]
+        if source:
+            lines += [f"From {source}; 95 % bootstrap intervals where computed.", ""]
+        lines += ["| metric | value | 95 % CI |", "| --- | --- | --- |"]
+        for k, v in values.items():
+            ci = metrics.get(f"{k}_ci")
+            ci_s = (
+                f"[{_fmt(ci.get('lo'))}, {_fmt(ci.get('hi'))}]" if isinstance(ci, Mapping) else "—"
+            )
+            lines.append(f"| {k} | {_fmt(v)} | {ci_s} |")
+        lines.append("")
+    gate = f"{decision.metric} ({decision.mode}, margin {decision.margin:g})"
+    champ = (
+        f"; champion v{decision.champion_version}: {_fmt(decision.champion_value)}"
+        if decision.champion_value is not None
+        else ""
+    )
+    lines += [
+        "## Promotion gate",
+        "",
+        f"Decision **{decision.action}** on {gate}: this version {_fmt(decision.challenger_value)}"
+        f"{champ}. {decision.reason}",
+        f"Test set fingerprint: `{decision.test_fingerprint or 'unknown'}`",
+        "",
+    ]
+    if card.limits:
+        lines += ["## Limits", "", *[f"- {x}" for x in card.limits], ""]
+    return "\n".join(lines)
 
 
 @dataclass(frozen=True)
@@ -117,13 +206,14 @@ def select(jobs: Sequence[GateJob], only: Iterable[str] | None) -> list[GateJob]
 
 @dataclass
 class _Pending:
-    """A decided job: what is needed to decide it again."""
+    """A decided job: what is needed to decide it again (and to describe its version)."""
 
     job: GateJob
     version: Any  # the registered ModelVersion
     evaluate: Evaluator
     fingerprint: str
     decision: Decision | None = None
+    candidate: Candidate | None = None
 
 
 def _decide(cl, p: _Pending, settings: PromotionSettings) -> Decision:
@@ -155,7 +245,7 @@ def _decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> lis
     for job, cand in zip(jobs, candidates, strict=True):
         mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
         evaluate, fingerprint = job.make_evaluator(cand)
-        p = _Pending(job, mv, evaluate, fingerprint)
+        p = _Pending(job, mv, evaluate, fingerprint, candidate=cand)
         p.decision = _decide(cl, p, settings)
         pending.append(p)
     return pending
@@ -183,6 +273,19 @@ def _apply_pending(cl, pending: Sequence[_Pending], settings: PromotionSettings)
             _apply_one(
                 cl, p.decision, settings
             )  # a second move: ChampionChangedError stops the run
+        _describe(cl, p)
+
+
+def _describe(cl, p: _Pending) -> None:
+    """The model card as the description of the decided version (an ``unchanged`` decision
+    keeps the card written when it was decided)."""
+    d = p.decision
+    if d is None or p.candidate is None or d.action == "unchanged":
+        return
+    card = p.job.card(p.candidate) if p.job.card is not None else None
+    cl.update_model_version(
+        d.name, str(d.challenger_version), description=model_card(p.candidate, d, card)
+    )
 
 
 def _apply_one(cl, d: Decision, settings: PromotionSettings) -> None:

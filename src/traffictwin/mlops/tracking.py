@@ -28,6 +28,11 @@ How runs are tagged (:func:`base_tags`)
     the DVC experiment name, so every stage of one ``dvc repro`` / ``dvc exp run`` shares it and
     ``traffictwin runs compare`` can group by it.
 
+    The data version is the tag :data:`DATA_TAG` (``data_manifest_hash``: SHA-256 of the
+    dataset's ``manifest.json``, which records the SHA-256 of every shard) on every training
+    run, fusion and risk alike; :func:`log_dataset` also records the dataset folder as an
+    MLflow dataset input (``mlflow.log_input``) carrying the same hash.
+
     Provenance comes in through the environment: the workflow layer computes the commit and the
     params hash (``pipelines/_provenance.py``) and exports them before a stage runs. This module
     runs no git and reads no params file; a variable that is not set reads as ``""``.
@@ -51,6 +56,9 @@ ENV_DVC_BASELINE = "DVC_EXP_BASELINE_REV"
 ENV_GIT_COMMIT = "TRAFFICTWIN_GIT_COMMIT"
 ENV_PARAMS_HASH = "TRAFFICTWIN_PARAMS_HASH"
 ARTIFACTS_DIR = "mlartifacts"
+
+DATA_TAG = "data_manifest_hash"  # the one data-version tag name (fusion, registration, risk)
+DATASET_DIGEST_CHARS = 16  # MLflow's dataset digest column holds at most 36 characters
 
 TAG_KEYS = ("git_commit", "profile", "dvc_stage", "dvc_exp_name", "params_hash", "pipeline_run")
 
@@ -202,13 +210,27 @@ def start_run(
     stage: str,
     tags: Mapping[str, Any] | None = None,
     params: Mapping[str, Any] | None = None,
+    run_id: str | None = None,
 ) -> Iterator[Any]:
-    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``."""
+    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``.
+
+    ``run_id``: continue that run instead (a resumed training; ignored when the store has no
+    such run in ``experiment``, e.g. another tracking URI): the same tags and params are set again.
+    """
     import mlflow
+    from mlflow.exceptions import MlflowException
 
     uri = setup()
-    ensure_experiment(experiment, uri)
-    with mlflow.start_run(run_name=run_name, tags=base_tags(profile, stage, tags)) as run:
+    exp_id = ensure_experiment(experiment, uri)
+    if run_id is not None:
+        try:
+            if mlflow.get_run(run_id).info.experiment_id != exp_id:
+                run_id = None
+        except MlflowException:
+            run_id = None
+    with mlflow.start_run(
+        run_id=run_id, run_name=None if run_id else run_name, tags=base_tags(profile, stage, tags)
+    ) as run:
         if params:
             log_params(params)
         yield run
@@ -221,3 +243,43 @@ def log_params(params: Mapping[str, Any]) -> None:
     items = [(k, str(v)[:500]) for k, v in params.items()]
     for i in range(0, len(items), 100):
         mlflow.log_params(dict(items[i : i + 100]))
+
+
+def log_dataset(
+    path: str | Path,
+    manifest_hash: str,
+    *,
+    name: str | None = None,
+    context: str = "training",
+) -> None:
+    """Record the dataset folder ``path`` as an input of the active run (``mlflow.log_input``).
+
+    A metadata-only dataset (nothing is uploaded): source = the folder, digest = the first
+    :data:`DATASET_DIGEST_CHARS` characters of ``manifest_hash``, and the full hash as the input
+    tag :data:`DATA_TAG`. ``name`` defaults to the folder's last two path parts
+    (``prealigned/A``).
+    """
+    import warnings
+
+    import mlflow
+    from mlflow.data.dataset_source_registry import resolve_dataset_source
+    from mlflow.data.meta_dataset import MetaDataset
+
+    folder = Path(path).resolve()
+    with warnings.catch_warnings():  # MLflow registers the local source twice and says so
+        warnings.simplefilter("ignore", UserWarning)
+        source = resolve_dataset_source(str(folder))
+    ds = MetaDataset(
+        source,
+        name=name or "/".join(folder.parts[-2:]),
+        digest=manifest_hash[:DATASET_DIGEST_CHARS],
+    )
+    mlflow.log_input(ds, context=context, tags={DATA_TAG: manifest_hash})
+
+
+def log_run_artifact(run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
+    """Attach the file ``path`` to the (finished or running) run ``run_id`` of :func:`tracking_uri`
+    (e.g. a figure a stage drew after training)."""
+    from mlflow import MlflowClient
+
+    MlflowClient(tracking_uri=tracking_uri()).log_artifact(run_id, str(path), artifact_path)

@@ -40,10 +40,12 @@ import torch
 from torch.utils.data import DataLoader, SequentialSampler, TensorDataset
 from torchmetrics import SumMetric
 
+from traffictwin import resume
 from traffictwin.config import flatten
 from traffictwin.config import spec as setting
 from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.mlops.tracking import DATA_TAG, log_dataset
 from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import (
     OBJECTIVES,
@@ -693,8 +695,12 @@ def fit(
     fast_dev_run: bool | int = False,
     logger: Any = None,
     extra_callbacks: Sequence[Any] = (),
+    session: resume.Session | None = None,
 ) -> TrainResult:
-    """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode)."""
+    """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode).
+
+    ``session``: the run's resume folder (:class:`traffictwin.resume.Session`): checkpoints go
+    there and a killed run continues from its ``last.ckpt``."""
     settings = settings or TrainerSettings()
     seed_everything(tc.seed)
     dm = RiskDataModule(
@@ -722,12 +728,21 @@ def fit(
         train_loss="train/loss",
         logger=logger,
     )
-    with tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir) as tmp:
+    with (
+        session.workdir("risk-ckpt-")
+        if session is not None and session.folder is not None
+        else tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir)
+    ) as tmp:
         ckpt = best_checkpoint(tmp, monitor="val/loss", mode="min")
         trainer = build_trainer(
             settings,
             max_epochs=tc.epochs,
-            callbacks=[ckpt, history, *extra_callbacks],
+            callbacks=[
+                ckpt,
+                history,
+                *extra_callbacks,
+                *(session.callbacks() if session is not None else []),
+            ],
             default_root_dir=tmp,
             fast_dev_run=fast_dev_run,
             limit_val_batches=tc.limit_val_batches,
@@ -735,7 +750,11 @@ def fit(
             check_val_every_n_epoch=None,
         )
         t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm)
+        trainer.fit(
+            module,
+            datamodule=dm,
+            ckpt_path=session.resume_from if session is not None else None,
+        )
         seconds = time.perf_counter() - t0
         # under DDP only rank zero's checkpoint folder holds the file; only rank zero writes outputs
         best_path = (
@@ -814,6 +833,7 @@ def fit_risk(
     max_train_frames: int | None = None,
     tracking: TrackingSettings | None = None,
     meta: Mapping[str, Any] | None = None,
+    resume_dir: str | Path | None = None,
 ) -> TrainResult | None:
     """Train variant ``variant`` on ``data`` and publish it (rank zero; ``None`` on other ranks).
 
@@ -822,6 +842,8 @@ def fit_risk(
     ``tracking`` enabled: an MLflow run with the params once, the curves, the final metrics,
     the checkpoint and an MLflow model (the same ``model.ckpt`` + ``model_meta.json``, no pickled
     code; its signature is that of :class:`PackedDave2`, one packed input tensor).
+    ``resume_dir``: where a killed run's training state waits for the next run with the same
+    config, data and code (:mod:`traffictwin.resume`); removed after the outputs are written.
     """
     out_dir = Path(out_dir)
     tracking = tracking or TrackingSettings("risk", f"risk-{variant}", enabled=False)
@@ -846,7 +868,22 @@ def fit_risk(
         "data.n_val": len(val),
     }
     manifest = data.risk.manifest_hash()
-    tags = {"variant": variant, "data_manifest": manifest, "label": label}
+    tags = {"variant": variant, DATA_TAG: manifest, "label": label}
+    session = resume.Session(
+        resume_dir,
+        {
+            "problem": "risk",
+            "cfg": cfg.to_dict(),
+            "label": label,
+            "train": asdict(tc),
+            "trainer": settings.as_dict(),
+            "variant": variant,
+            "max_train_frames": max_train_frames,
+            "data": [manifest, data.disparity.manifest_hash() if data.disparity else None],
+            "frames": [len(train), len(val)],
+            "meta": dict(meta or {}),
+        },
+    )
     with tracked_run(
         tracking.experiment,
         tracking.run_name,
@@ -855,9 +892,15 @@ def fit_risk(
         tags=tags,
         params=run_params,
         enabled=tracking.enabled,
+        run_id=session.run_id(),
     ) as run:
         logger = mlflow_logger(run)
-        res = fit(cfg, train, val, tc, settings, logger=logger)
+        if run is not None and session.resume_from is None:
+            log_dataset(data.risk.root, manifest)
+            if data.disparity is not None:
+                log_dataset(data.disparity.root, data.disparity.manifest_hash())
+        session.started(run)
+        res = fit(cfg, train, val, tc, settings, logger=logger, session=session)
         if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
             return None
         if out_dir.exists():
@@ -891,6 +934,7 @@ def fit_risk(
                 },
             )
             log_checkpoint(out_dir / CKPT)
+            log_checkpoint(out_dir / "history.csv", artifact_path="curves")
             n_ex = min(2, len(val))
             x = normalise(
                 cfg,
@@ -907,6 +951,7 @@ def fit_risk(
             )
             full_meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
             save_risk_model(res.net, out_dir, full_meta)
+    session.finish()
     return res
 
 
