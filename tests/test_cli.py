@@ -426,8 +426,7 @@ def test_risk_bad_input_errors_and_writes_nothing(tmp_path, risk_dir, stereo_pai
     assert _files(out) == set()
 
 
-def test_risk_missing_alias(tmp_path, mlflow_uri, monkeypatch, stereo_pair, capsys):
-    monkeypatch.chdir(tmp_path)
+def test_risk_missing_alias(tmp_path, cl, stereo_pair, capsys):
     left, right = stereo_pair
     cv2.imwrite(str(tmp_path / "l.png"), left)
     cv2.imwrite(str(tmp_path / "r.png"), right)
@@ -442,10 +441,9 @@ def test_risk_missing_alias(tmp_path, mlflow_uri, monkeypatch, stereo_pair, caps
 # ------------------------------------------------------------------ registry / runs subcommands
 
 
-def test_rollback_unknown_model_and_runs_compare(tmp_path, mlflow_uri, monkeypatch, capsys):
+def test_rollback_unknown_model_and_runs_compare(tmp_path, cl, mlflow_uri, capsys):
     import mlflow
 
-    monkeypatch.chdir(tmp_path)
     assert (
         cli.main(
             ["rollback", "--model", "traffictwin-fusion-Z", "--log", str(tmp_path / "log.jsonl")]
