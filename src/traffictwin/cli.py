@@ -160,7 +160,7 @@ def _npz_png(output: str) -> tuple[Path, Path]:
 def _png_bytes(img: np.ndarray) -> bytes:
     import cv2
 
-    ok, png = cv2.imencode(".png", img)
+    ok, png = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # fast; PNG is lossless
     if not ok:
         raise CliError("could not encode the PNG preview")
     return png.tobytes()
@@ -197,16 +197,22 @@ def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray)
     return mass_panels([(m1, None), (m2w, None), (m, u)])
 
 
-def _fused_npz(res: Any, pose1: np.ndarray, pose2: np.ndarray) -> bytes:
-    return _npz_bytes(
-        m_free=res.masses[0],
-        m_occ=res.masses[1],
-        u=res.u,
-        pose1=np.asarray(pose1, np.float64),
-        pose2=np.asarray(pose2, np.float64),
-        rel_pose=res.rel_pose,
-        cell=np.float64(res.cell),
-    )
+def _write_fused(
+    outs: OutputSet, path: Path, res: Any, pose1: np.ndarray, pose2: np.ndarray
+) -> None:
+    """The fused ``.npz`` (deterministic zip, fast deflate level 1) into ``outs``' temp file of ``path``."""
+    from traffictwin.io.shards import write_npz_deterministic
+
+    arrays = {
+        "m_free": res.masses[0],
+        "m_occ": res.masses[1],
+        "u": res.u,
+        "pose1": np.asarray(pose1, np.float64),
+        "pose2": np.asarray(pose2, np.float64),
+        "rel_pose": np.asarray(res.rel_pose, np.float64),
+        "cell": np.float64(res.cell),
+    }
+    write_npz_deterministic(outs.temp_path(path), arrays, compresslevel=1)
 
 
 def _occupied(res: Any) -> int:
@@ -249,7 +255,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         (res,) = api.fuse(model, [api.FusePair(m1, m2, pose1, pose2, cell, "pair")])
         ms = (time.perf_counter() - t0) * 1e3
-        outs.write_bytes(npz_path, _fused_npz(res, pose1, pose2))
+        _write_fused(outs, npz_path, res, pose1, pose2)
         outs.write_bytes(
             png_path, _png_bytes(preview_image(m1, res.m2_prealigned, res.masses, res.u))
         )
@@ -393,7 +399,7 @@ def _fuse_many(args: argparse.Namespace) -> int:
         table = []
         for r, res in zip(rows, api.fuse(model, pairs(), batch_size=args.batch_size)):
             pose1, pose2 = r.pop("_poses")
-            outs.write_bytes(out / f"{res.id}.npz", _fused_npz(res, pose1, pose2))
+            _write_fused(outs, out / f"{res.id}.npz", res, pose1, pose2)
             if args.preview:
                 outs.write_bytes(
                     out / f"{res.id}.png",
@@ -994,6 +1000,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for k, v in HTTP_ENV.items():  # a dead registry: one line in seconds, not minutes of retries
         os.environ.setdefault(k, v)
+    # OpenMP threads that sleep instead of spinning while they wait: on a shared, busy machine
+    # spinning threads made one forward pass 30x slower (benchmarks/startup.py). Read when torch
+    # loads its OpenMP runtime, so set before any torch import; an explicit setting wins.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if args.threads is not None:
         if args.threads < 1:
             parser.error(f"--threads must be >= 1, got {args.threads}")

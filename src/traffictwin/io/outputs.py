@@ -27,13 +27,12 @@ class OutputError(ValueError):
     """An output path breaks a rule (input, existing without force, directory, bad parent)."""
 
 
-def _same(a: Path, b: Path) -> bool:
-    if a.resolve() == b.resolve():
-        return True
+def _identity(p: Path) -> tuple[int, int] | None:
     try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
+        st = p.stat()
     except OSError:
-        return False
+        return None
+    return st.st_dev, st.st_ino
 
 
 class OutputSet:
@@ -63,17 +62,18 @@ class OutputSet:
         self._made: list[Path] = []
         self._committed = False
         ins = [Path(p) for p in inputs]
+        in_paths = {i.resolve() for i in ins}
+        in_files = {ident for i in ins if (ident := _identity(i)) is not None}
         seen: set[Path] = set()
         for p in self.paths:
             rp = p.resolve()
             if rp in seen:
                 raise OutputError(f"{option}: {p} is named twice among the outputs")
             seen.add(rp)
-            for i in ins:
-                if _same(p, i):
-                    raise OutputError(
-                        f"{option}: {p} is an input of this command; refusing to overwrite it"
-                    )
+            if rp in in_paths or (p.exists() and _identity(p) in in_files):
+                raise OutputError(
+                    f"{option}: {p} is an input of this command; refusing to overwrite it"
+                )
             if p.is_dir():
                 raise OutputError(f"{option}: {p} is a directory; expected a file name")
             if p.exists() and not force:
