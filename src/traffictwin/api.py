@@ -240,6 +240,8 @@ def load_fusion(
     from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
 
     name, alias, path = _split_ref(model)
+    if name is not None and config is not None:
+        raise ApiError(f"--config: '{model}' names the registered model already; drop --config")
     if path is None:
         cl = connect(tracking_uri)
         name = name or fusion_model_name(cl, config)
@@ -251,6 +253,10 @@ def load_fusion(
             raise ApiError(str(exc)) from None
         desc = str(path)
     meta = dict(getattr(net, "meta", {}) or {})
+    if path is not None and config is not None and meta.get("cfg") != config:
+        raise ApiError(
+            f"--config: {config} but the model folder {path} was trained for configuration {meta.get('cfg')!r}"
+        )
     return FusionModel(net, meta, dict(meta.get("grid") or {}), desc)
 
 

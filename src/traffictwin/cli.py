@@ -247,6 +247,9 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         )
     if c1 is not None and c2 is not None and abs(c1 - c2) > 1e-9:
         raise CliError(f"{args.map2}: cell size {c2} m differs from {args.map1}'s {c1} m")
+    own = c1 if c1 is not None else c2
+    if args.cell is not None and own is not None and abs(args.cell - own) > 1e-9:
+        raise CliError(f"--cell: {args.cell} m contradicts the maps' own cell size {own} m")
     npz_path, png_path = _npz_png(args.output)
     with OutputSet([npz_path, png_path], inputs=[args.map1, args.map2], force=args.force) as outs:
         model = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)

@@ -493,3 +493,18 @@ def test_assess_risk_reads_images_one_batch_at_a_time(tmp_path, risk_dir, pair, 
     next(rows)
     assert len(reads) == 4  # the first batch: 2 frames x (left, right)
     assert len(list(rows)) == 5 and len(reads) == 12
+
+
+def test_inputs_the_model_would_ignore_or_contradict_are_refused(tmp_path, fusion_dir, capsys):
+    p1 = save_map(tmp_path / "a.npz", *masses(1), cell=np.float64(CELL))
+    p2 = save_map(tmp_path / "b.npz", *masses(2))
+    base = _fuse_args(p1, p2, fusion_dir, tmp_path / "o")
+    assert cli.main([*base, "--config", "A"]) == 1  # the folder was trained for D
+    _one_error_line(capsys.readouterr().err, "--config", "'D'")
+    assert cli.main([*base, "--cell", "0.32"]) == 1  # a.npz says 0.5 m
+    _one_error_line(capsys.readouterr().err, "--cell", "0.5")
+    named = [*base[:-4], "--model", "traffictwin-fusion-D@champion", "--config", "D", "-o", "x"]
+    assert cli.main(named) == 1
+    _one_error_line(capsys.readouterr().err, "--config", "drop")
+    assert cli.main([*base, "--config", "D"]) == 0  # consistent: fine
+    assert not list(tmp_path.glob("x.*"))
