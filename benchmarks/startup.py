@@ -28,22 +28,38 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.cli_load import ROOT, build_fusion_model, cli_env, load_params
+from benchmarks.cli_load import ROOT, build_fusion_model, cli_env, load_params, run_measured
 
 HEAVY = ("torch", "lightning", "mlflow", "torchmetrics", "pandas")
 
 
-def _wall(cmd: list[str], cwd: Path, ok: int | None = 0) -> float:
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, cwd=cwd, env=cli_env(), capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if ok is not None and p.returncode != ok:
-        raise RuntimeError(f"{' '.join(cmd)} exited {p.returncode}: {p.stderr[-2000:]}")
-    return wall
+def _runs(args: list[str], cwd: Path, repeat: int) -> dict:
+    """Median wall / CPU time (s) and peak RSS (MB) of ``repeat`` runs of ``traffictwin ARGS``."""
+    runs = [run_measured(args, cwd) for _ in range(repeat)]
+    return {
+        k: round(float(np.median([r[k] for r in runs])), 3)
+        for k in ("wall_s", "cpu_s", "max_rss_mb")
+    }
 
 
-def _median(xs: list[float]) -> float:
-    return round(float(np.median(xs)), 3)
+def _dead_registry(args: list[str], cwd: Path, repeat: int) -> float:
+    """Median wall time (s) of a run that must fail with exit status 1."""
+    walls = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        p = subprocess.run(
+            [sys.executable, "-m", "traffictwin.cli", *args],
+            cwd=cwd,
+            env=cli_env(),
+            capture_output=True,
+            text=True,
+        )
+        walls.append(time.perf_counter() - t0)
+        if p.returncode != 1 or len(p.stderr.strip().splitlines()) != 1:
+            raise RuntimeError(
+                f"expected one error line and exit 1, got {p.returncode}: {p.stderr[-800:]}"
+            )
+    return round(float(np.median(walls)), 3)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -51,7 +67,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
     a = ap.parse_args(argv)
-    py = [sys.executable, "-m", "traffictwin.cli"]
     res: dict = {
         "machine": {
             "cpus": os.cpu_count(),
@@ -74,7 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
             check=True,
         ).stdout.split()
         res["help"] = {
-            "wall_s": _median([_wall([*py, "--help"], t) for _ in range(a.repeat)]),
+            **_runs(["--help"], t, a.repeat),
             "heavy_imports": sorted(m for m in HEAVY if m in probe),
             "target_s": 1.0,
         }
@@ -85,7 +100,6 @@ def main(argv: list[str] | None = None) -> dict:
             d = rng.dirichlet([1.0, 1.0, 1.0], size=(grid["rows"], grid["cols"])).astype(np.float32)
             np.savez(t / f"m{k}.npz", m_free=d[..., 0], m_occ=d[..., 1], cell=grid["cell"])
         fuse = [
-            *py,
             "fuse",
             "m1.npz",
             "m2.npz",
@@ -101,16 +115,14 @@ def main(argv: list[str] | None = None) -> dict:
         ]
         res["fuse_one"] = {
             "grid": [grid["rows"], grid["cols"]],
-            "wall_s": _median([_wall(fuse, t) for _ in range(a.repeat)]),
+            **_runs(fuse, t, a.repeat),
             "target_s": 3.0,
         }
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-        dead = [*py, "status", "--tracking-uri", f"http://127.0.0.1:{port}"]
-        res["registry_unreachable"] = {
-            "wall_s": _median([_wall(dead, t, ok=1) for _ in range(a.repeat)])
-        }
+        dead = ["status", "--tracking-uri", f"http://127.0.0.1:{port}"]
+        res["registry_unreachable"] = {"wall_s": _dead_registry(dead, t, a.repeat)}
     print(json.dumps(res, indent=2))
     return res
 

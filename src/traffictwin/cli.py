@@ -521,9 +521,9 @@ def cmd_twin(args: argparse.Namespace) -> int:
         raise CliError(
             "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz files"
         )
+    models = load_twin_models(args.method, args.registration_model, args.fusion_model)
     npz_path, png_path = _npz_png(args.output)
     outs = OutputSet([npz_path, png_path], inputs=args.maps, force=args.force)
-    models = load_twin_models(args.method, args.registration_model, args.fusion_model)
     grid = GridSpec(rows=ref_m.shape[1], cols=ref_m.shape[2], cell=cell)
     maps = np.stack([m for m, _ in loaded])
     rel = np.stack([np.zeros(3)] + [relative_pose(world[0], w) for w in world[1:]])

@@ -72,7 +72,7 @@ class OutputSet:
             seen.add(rp)
             if rp in in_paths or (p.exists() and _identity(p) in in_files):
                 raise OutputError(
-                    f"{option}: {p} is an input of this command; refusing to overwrite it"
+                    f"{option}: writing {p} would overwrite an input of this command; refusing to overwrite it"
                 )
             if p.is_dir():
                 raise OutputError(f"{option}: {p} is a directory; expected a file name")
