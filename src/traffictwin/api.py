@@ -133,7 +133,7 @@ def resolve_tracking_uri(tracking_uri: str | None = None) -> str:
             f"{uri}: no MLflow database at {db} (not creating one): run the pipeline and "
             "`python -m pipelines.promote` first, or pass --tracking-uri"
         )
-    if uri.startswith("file:") or ("://" not in uri and not uri.startswith("sqlite:")):
+    if uri.startswith(("file:", "/", "./", "../")):  # a local file store
         folder = Path(uri[len("file://") :] if uri.startswith("file://") else uri)
         if not folder.is_dir():
             raise ApiError(f"{uri}: no MLflow file store at {folder} (not creating one)")

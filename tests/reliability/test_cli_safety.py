@@ -508,3 +508,24 @@ def test_inputs_the_model_would_ignore_or_contradict_are_refused(tmp_path, fusio
     _one_error_line(capsys.readouterr().err, "--config", "drop")
     assert cli.main([*base, "--config", "D"]) == 0  # consistent: fine
     assert not list(tmp_path.glob("x.*"))
+
+
+def test_resolve_tracking_uri_never_creates_a_store(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    db = tmp_path / "x.db"
+    with pytest.raises(api.ApiError, match="no MLflow database .*not creating one"):
+        api.resolve_tracking_uri(f"sqlite:///{db}")
+    with pytest.raises(api.ApiError, match="no MLflow file store"):
+        api.resolve_tracking_uri(str(tmp_path / "mlruns"))
+    assert not db.exists() and not (tmp_path / "mlruns").exists()
+    db.write_bytes(b"")
+    assert api.resolve_tracking_uri(f"sqlite:///{db}") == f"sqlite:///{db}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://example.invalid:5000")
+    assert api.resolve_tracking_uri() == "http://example.invalid:5000"  # a server: probed later
+    # inside the project without a URI: the project's database
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    monkeypatch.setenv("TRAFFICTWIN_REPO_ROOT", str(tmp_path))
+    (tmp_path / "dvc.yaml").write_text("stages: {}\n")
+    with pytest.raises(api.ApiError, match=f"no MLflow database at {tmp_path / 'mlflow.db'}"):
+        api.resolve_tracking_uri()
+    assert not (tmp_path / "mlflow.db").exists()
