@@ -18,7 +18,16 @@ from pathlib import Path
 from traffictwin.io.atomic import write_json_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS = ("fusion_data", "risk_data", "fusion_model", "registration", "twin", "cli_latency")
+BENCHMARKS = (
+    "fusion_data",
+    "risk_data",
+    "fusion_model",
+    "registration",
+    "twin",
+    "cli_latency",
+    "startup",
+    "cli_load",
+)
 
 
 def _last_json(text: str) -> dict:

@@ -18,7 +18,7 @@ PKG = "traffictwin"
 # and risk's corridor metric, so it sits one layer above them (neither may import it).
 PROBLEMS = {"fusion", "risk"}
 COMPOSITE = {"twin"}
-TOP = {"cli", "api"}
+TOP = {"cli", "api", "export"}
 
 
 def _module_name(path: Path) -> str:

@@ -12,13 +12,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from _cli_models import CELL, H, W, masses, save_fusion_model, save_map, save_risk, textured_pair
 from _registry_models import log_linear
 
 from traffictwin import cli
 from traffictwin.evidential.warp import warp_masses
-from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
-from traffictwin.fusion.model_io import CKPT_FORMAT, load_fusion_model, predict_masses
-from traffictwin.fusion.resnet import ResNetSpec
+from traffictwin.fusion.model_io import load_fusion_model, predict_masses
 from traffictwin.grid import GridSpec
 from traffictwin.mlops import registry as reg
 from traffictwin.risk.dave2 import Dave2, Dave2Config
@@ -28,74 +27,25 @@ from traffictwin.stereo.orb import check_pair
 from traffictwin.stereo.sgm import compute_disparity
 from traffictwin.trainer import log_model
 
-H, W, CELL = 32, 48, 0.5
 POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"
-
-
-def _masses(seed: int, h: int = H, w: int = W) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    a = rng.dirichlet([1.0, 1.0, 1.0], size=(h, w)).astype(
-        np.float32
-    )  # (m_F, m_O, u) on the simplex
-    return a[..., 0], a[..., 1]
-
-
-def _save_map(path: Path, mf: np.ndarray, mo: np.ndarray, **extra) -> Path:
-    np.savez(path, m_free=mf, m_occ=mo, **extra)
-    return path
-
-
-def _tiny_spec() -> DeepLabSpec:
-    return DeepLabSpec(
-        backbone=ResNetSpec(layers=(1, 1, 1, 1), base_width=8),
-        aspp_channels=8,
-        aspp_rates=(1, 2, 3),
-        low_level_channels=4,
-        decoder_channels=8,
-    )
+_masses, _save_map = masses, save_map
 
 
 @pytest.fixture(scope="module")
 def fusion_dir(tmp_path_factory) -> Path:
     """A tiny fusion network saved in the checkpoint format of traffictwin.fusion.model_io."""
-    torch.manual_seed(0)
-    spec = _tiny_spec()
-    net = DeepLabV3Plus(spec).eval()
-    info = {
-        "format": CKPT_FORMAT,
-        "problem": "fusion",
-        "cfg": "D",
-        "architecture": spec.as_dict(),
-        "grid": {"rows": H, "cols": W, "cell": CELL},
-        "data_manifest_hash": "test",
-    }
-    d = tmp_path_factory.mktemp("fusion_model")
-    torch.save(
-        {"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}, "traffictwin": info},
-        d / "model.ckpt",
-    )
-    (d / "model_meta.json").write_text(json.dumps(info))
-    return d
+    return save_fusion_model(tmp_path_factory.mktemp("fusion_model"))
 
 
 @pytest.fixture(scope="module")
 def risk_dir(tmp_path_factory) -> Path:
-    torch.manual_seed(1)
-    d = tmp_path_factory.mktemp("risk_model")
-    return save_risk_model(Dave2(Dave2Config()).eval(), d, {"label": "risk_thw_paper"})
+    return save_risk(tmp_path_factory.mktemp("risk_model"), {"label": "risk_thw_paper"})
 
 
 @pytest.fixture(scope="module")
 def stereo_pair() -> tuple[np.ndarray, np.ndarray]:
     """A textured rectified pair: the right image is the left shifted by 6 px (disparity 6)."""
-    rng = np.random.default_rng(3)
-    tex = cv2.resize(
-        rng.integers(0, 256, size=(40, 84, 3), dtype=np.uint8),
-        (336, 160),
-        interpolation=cv2.INTER_NEAREST,
-    )
-    tex = cv2.GaussianBlur(tex, (3, 3), 0)
-    return np.ascontiguousarray(tex[:, 10:330]), np.ascontiguousarray(tex[:, 16:336])
+    return textured_pair()
 
 
 def _files(folder: Path) -> set[str]:
@@ -426,8 +376,7 @@ def test_risk_bad_input_errors_and_writes_nothing(tmp_path, risk_dir, stereo_pai
     assert _files(out) == set()
 
 
-def test_risk_missing_alias(tmp_path, mlflow_uri, monkeypatch, stereo_pair, capsys):
-    monkeypatch.chdir(tmp_path)
+def test_risk_missing_alias(tmp_path, cl, stereo_pair, capsys):
     left, right = stereo_pair
     cv2.imwrite(str(tmp_path / "l.png"), left)
     cv2.imwrite(str(tmp_path / "r.png"), right)
@@ -442,10 +391,9 @@ def test_risk_missing_alias(tmp_path, mlflow_uri, monkeypatch, stereo_pair, caps
 # ------------------------------------------------------------------ registry / runs subcommands
 
 
-def test_rollback_unknown_model_and_runs_compare(tmp_path, mlflow_uri, monkeypatch, capsys):
+def test_rollback_unknown_model_and_runs_compare(tmp_path, cl, mlflow_uri, capsys):
     import mlflow
 
-    monkeypatch.chdir(tmp_path)
     assert (
         cli.main(
             ["rollback", "--model", "traffictwin-fusion-Z", "--log", str(tmp_path / "log.jsonl")]

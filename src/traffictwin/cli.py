@@ -1,53 +1,73 @@
 """``traffictwin`` — the user-facing command (inference on your own files, registry, runs).
 
-Subcommands (global option ``--threads N`` sets torch's CPU threads)::
+A thin layer over the public Python API :mod:`traffictwin.api` (models, fusion, risk) and
+:mod:`traffictwin.export`. Global options: ``--version``, ``--threads N`` (torch CPU threads).
 
-    traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model champion|challenger|PATH]
-                     [--config CFG] [--cell M] -o OUT
-    traffictwin twin MAP1.npz MAP2.npz [MAP3.npz ...] --pose x,y,yaw --pose ... [--method registered|learned|...]
-                     [--registration-model PATH] [--fusion-model PATH] [--strategy reference|sequential] -o OUT
-    traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model champion|challenger|PATH] [--params FILE]
-                     [-o OUT.json]
-    traffictwin risk FOLDER [--speed M_S] [--model ...] [-o OUT.csv]
+Subcommands::
+
+    traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model REF] [--config CFG]
+                     [--tracking-uri URI] [--cell M] -o OUT [--force]
+    traffictwin fuse --pairs LIST.csv|FOLDER [--model REF] [--batch-size 8] [--no-preview] -o OUTDIR
+    traffictwin twin MAP1.npz MAP2.npz [MAP3.npz ...] --pose x,y,yaw --pose ... [--method ...] -o OUT
+    traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model REF] [--params FILE] [--resize] [-o OUT.json]
+    traffictwin risk FOLDER [--speed M_S] [--model REF] [--batch-size 16] [-o OUT.csv]
+    traffictwin export fusion|risk --model REF [--config CFG] -o MODEL.pt
     traffictwin rollback --model NAME [--version V] [--log FILE]
     traffictwin status [--model NAME ...]
-    traffictwin runs compare --experiment fusion [--metrics a b ...] [--uri URI] [--wide]
+    traffictwin runs compare --experiment fusion [--metrics a b ...] [--tracking-uri URI] [--wide]
+
+Models (``--model REF``)
+------------------------
+A registry reference ``name@alias`` (e.g. ``traffictwin-risk@champion``) or a bare alias
+(``champion`` / ``challenger``: ``traffictwin-risk`` for risk, ``traffictwin-fusion-<--config>``
+for fusion), or the path of a model folder (``model.ckpt`` + ``model_meta.json``), which needs no
+registry at all. The registry is ``--tracking-uri``, else ``MLFLOW_TRACKING_URI``, else the
+project's ``mlflow.db`` (inside the project only); a missing database is an error, never created.
+An unreachable registry is one line within seconds (MLflow's HTTP retries are bounded:
+``MLFLOW_HTTP_REQUEST_MAX_RETRIES=0``, ``MLFLOW_HTTP_REQUEST_TIMEOUT=5`` unless set).
 
 Input formats
 -------------
 - Evidential grid map (``fuse``): a ``.npz`` with ``m_free`` and ``m_occ``, each a ``(H, W)``
-  float array (float32 preferred) of masses in the map's own sensor frame (row 0 = front/+x,
-  col 0 = left/+y, sensor at the centre), every cell with ``m_free, m_occ >= 0`` and
-  ``m_free + m_occ <= 1`` (``u = 1 - m_free - m_occ``), no NaN. Optional scalar ``cell``
-  (m per cell). H and W must be divisible by 16 (the network's output stride).
-- Poses: ``x,y,yaw`` in a common world frame, metres and **radians** (for a negative first
-  value write ``--pose1=-3,2,0.1``).
-- Stereo pairs (``risk``): rectified 8-bit images readable by OpenCV (PNG, JPEG…) of equal size.
-  A folder holds pairs named ``<id>_left.<ext>`` / ``<id>_right.<ext>``; the result is a CSV with
-  one row per ``<id>``. JSON output writes ``thw_s``/``gap_m`` as ``null`` when no vehicle is
-  ahead (THW infinite); the CSV writes ``inf``. SGM/ORB settings are those the model's data were
-  made with: ``domain.sgm`` / ``domain.orb`` of the model's metadata (``model_meta.json`` of a
-  model folder; the logged model's metadata of a registered one), else ``risk_data.sgm`` /
-  ``risk_data.orb`` of a params file passed as ``--params FILE``, else the library defaults.
-- Registered fusion models are ``traffictwin-fusion-<CFG>``; ``--config`` names the pose-noise
-  configuration (any name; without it, the only registered fusion model).
+  float array of masses in the map's own sensor frame (row 0 = front/+x, col 0 = left/+y, sensor
+  at the centre), on the simplex, no NaN. Optional scalar ``cell`` (m per cell) and ``pose``
+  (x, y, yaw of the sensor in the world; m, m, rad). The grid (rows, cols, cell) must be the
+  model's training grid.
+- Poses: ``x,y,yaw`` in a common world frame, metres and **radians** (for a negative first value
+  write ``--pose1=-3,2,0.1``).
+- ``fuse --pairs``: a CSV with columns ``map1,map2`` and optionally ``id``, ``x1,y1,yaw1,x2,y2,yaw2``
+  (else the maps' own ``pose``) and ``cell``; relative paths are relative to the CSV's folder. Or
+  a FOLDER of ``<id>_1.npz`` / ``<id>_2.npz`` maps that carry their ``pose``. Output folder:
+  ``<id>.npz`` (+ ``<id>.png`` unless ``--no-preview``) per pair and ``summary.csv``.
+- Stereo pairs (``risk``): rectified 8-bit images readable by OpenCV of equal size, the size of
+  the model's training camera (``domain.camera`` of its metadata) unless ``--resize`` (both
+  images resized to it before ORB and SGM: the disparity is then in the camera's pixel scale). A
+  folder holds pairs named ``<id>_left.<ext>`` / ``<id>_right.<ext>``; they are streamed in
+  batches (``--batch-size``) and the result is a CSV with one row per ``<id>``. SGM/ORB settings
+  are those of the model's metadata (``domain.sgm`` / ``domain.orb``), else ``risk_data.sgm`` /
+  ``risk_data.orb`` of ``--params FILE``, else the library defaults.
+- ``--speed`` (m/s) is checked against the model's training speed range (``domain.speed_range``
+  or ``domain.max_speed`` of its metadata, else ``risk_data.max_speed`` of ``--params``); a model
+  without a speed input gets a warning (the speed then only scales ``gap_m``).
 
-Promotion is not a command here: it needs the project's data, model folders and gate settings
-(params.yaml), so it is a workflow of the repository (``python -m pipelines.promote``, which
-calls :func:`traffictwin.mlops.promotion.promote`). This command only needs registry names:
-``status`` and ``rollback`` (which logs to the promotion log recorded on the model, or ``--log``).
-
-Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first map's frame),
-``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_given`` (N, 3) and ``cell``, plus
-``OUT.png`` (the twin, then each map where the twin put it; a left-out map is all blue: unknown).
+Outputs
+-------
+``risk`` clamps the risk to [0, 1]; THW and gap are ``null`` in JSON and empty in CSV when
+nothing is ahead (never ``inf``). Every command: an output that is an input, an existing output
+without ``--force``, or a directory named as output file is refused; missing parent folders are
+created; all outputs are written to temp files and renamed at the end, so nothing is
+half-written.
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
-blue = u).
+blue = u). Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first
+map's frame), ``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_given`` (N, 3) and
+``cell``, plus ``OUT.png``. Output of ``export``: a TorchScript file (:mod:`traffictwin.export`).
 
-Errors (bad shapes, masses outside the simplex or NaN, unreadable images, mismatched sizes,
-missing model alias, …) exit with status 1 and a message naming the file/argument and the
-problem; nothing is written unless every input is valid (outputs are written atomically).
+Promotion is not a command here: it needs the project's data, model folders and gate settings
+(params.yaml), so it is a workflow of the repository (``python -m pipelines.promote``).
+
+Errors exit with status 1 and one line naming the file/argument and the problem.
 """
 
 from __future__ import annotations
@@ -57,21 +77,33 @@ import csv
 import io
 import json
 import math
+import os
 import sys
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
+from traffictwin import __version__
+from traffictwin.api import (  # noqa: F401 - re-exported: the CLI's helpers live in the API
+    ALIASES,
+    DIVISOR,
+    HTTP_ENV,
+    IMAGE_EXTS,
+    ApiError,
+    ApiWarning,
+    StereoSettings,
+    fusion_model_name,
+    risk_verdict,
+    stereo_settings,
+)
+from traffictwin.io.outputs import OutputError, OutputSet
+from traffictwin.risk.metric import CRITICAL_THW
 
-SIMPLEX_TOL = 1e-4
-DIVISOR = 16
-ALIASES = ("champion", "challenger")
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
+CliError = ApiError  # one user-facing error type for the CLI and the API
 
 
 def json_safe(obj: Any) -> Any:
@@ -85,11 +117,17 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-class CliError(Exception):
-    """A user-facing error: printed as ``traffictwin <cmd>: error: <message>``, exit status 1."""
+def csv_value(v: Any) -> Any:
+    """A CSV cell: non-finite floats (THW when nothing is ahead, ...) are empty, never ``inf``."""
+    return "" if isinstance(v, float) and not math.isfinite(v) else v
 
 
-# ============================================================================ input validation
+def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """Masses ``(2, H, W)`` and optional ``cell`` of a grid ``.npz`` (:func:`traffictwin.api.load_masses`)."""
+    from traffictwin.api import load_masses as _load
+
+    m, cell, _ = _load(path)
+    return m, cell
 
 
 def parse_pose(text: str, name: str) -> np.ndarray:
@@ -108,219 +146,33 @@ def parse_pose(text: str, name: str) -> np.ndarray:
     return vals
 
 
-def load_masses(path: str | Path) -> tuple[np.ndarray, float | None]:
-    """Read and validate an evidential grid ``.npz``: returns masses ``(2, H, W)`` float32 and the
-    optional ``cell`` (m). Raises :class:`CliError` naming the file and the problem."""
-    path = Path(path)
-    if not path.is_file():
-        raise CliError(f"{path}: file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:  # noqa: BLE001 - zip/format errors of all kinds
-        raise CliError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
-    missing = [k for k in ("m_free", "m_occ") if k not in data]
-    if missing:
-        raise CliError(
-            f"{path}: array(s) {missing} missing (has {sorted(data)}); expected m_free and m_occ, (H, W) float"
-        )
-    mf, mo = data["m_free"], data["m_occ"]
-    for k, a in (("m_free", mf), ("m_occ", mo)):
-        if a.ndim != 2:
-            raise CliError(f"{path}: '{k}' must be a 2-D (H, W) grid, got shape {a.shape}")
-        if not np.issubdtype(a.dtype, np.floating):
-            raise CliError(f"{path}: '{k}' must be a float array of masses, got dtype {a.dtype}")
-    if mf.shape != mo.shape:
-        raise CliError(f"{path}: 'm_free' {mf.shape} and 'm_occ' {mo.shape} differ in shape")
-    from traffictwin.evidential.masses import check_masses, clean_masses
-
-    m = np.stack([mf, mo]).astype(np.float64)
-    try:
-        m = check_masses(m, f"{path}: masses (m_free, m_occ)", tol=SIMPLEX_TOL)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-    m = clean_masses(m).astype(np.float32)
-    cell = None
-    if "cell" in data:
-        c = np.asarray(data["cell"])
-        if (
-            c.size != 1
-            or not np.issubdtype(c.dtype, np.number)
-            or not (float(c) > 0 and math.isfinite(float(c)))
-        ):
-            raise CliError(f"{path}: 'cell' must be one positive number (m per cell), got {c!r}")
-        cell = float(c)
-    return m, cell
+def _positive_cell(cell: float | None) -> None:
+    if cell is not None and not (cell > 0 and math.isfinite(cell)):
+        raise CliError(f"--cell: must be a positive number of metres, got {cell}")
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """An 8-bit BGR image (grayscale is expanded to 3 channels); errors name the file."""
+def _npz_png(output: str) -> tuple[Path, Path]:
+    out = Path(output)
+    base = out.with_suffix("") if out.suffix == ".npz" else out
+    return base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
+
+
+def _png_bytes(img: np.ndarray) -> bytes:
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise CliError(f"{path}: image not found")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise CliError(f"{path}: not a readable image (OpenCV could not decode it)")
-    if img.dtype != np.uint8:
-        raise CliError(f"{path}: expected an 8-bit image, got {img.dtype}")
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    elif img.shape[2] != 3:
-        raise CliError(
-            f"{path}: expected a grayscale, BGR or BGRA image, got {img.shape[2]} channels"
-        )
-    return np.ascontiguousarray(img)
+    ok, png = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # fast; PNG is lossless
+    if not ok:
+        raise CliError("could not encode the PNG preview")
+    return png.tobytes()
 
 
-def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
-    """``(id, left, right)`` for every ``<id>_left.<ext>`` / ``<id>_right.<ext>`` in ``folder`` (sorted).
-
-    Errors on a folder without pairs and on a left or right image without its partner.
-    """
-    lefts, rights = {}, {}
-    for p in sorted(folder.iterdir()):
-        if not p.is_file() or p.suffix.lower() not in IMAGE_EXTS:
-            continue
-        stem = p.stem
-        if stem.endswith("_left"):
-            lefts[stem[: -len("_left")]] = p
-        elif stem.endswith("_right"):
-            rights[stem[: -len("_right")]] = p
-    lonely = sorted(set(lefts) ^ set(rights))
-    if lonely:
-        k = lonely[0]
-        have = lefts.get(k) or rights.get(k)
-        want = "_right" if k in lefts else "_left"
-        raise CliError(
-            f"{have}: no partner image '{k}{want}.*' in {folder} ({len(lonely)} unpaired image(s))"
-        )
-    if not lefts:
-        raise CliError(f"{folder}: no stereo pairs found (expected <id>_left.png / <id>_right.png)")
-    return [(k, lefts[k], rights[k]) for k in sorted(lefts)]
-
-
-# ============================================================================ models
-
-
-def _registry_client():
-    from traffictwin.mlops import registry as reg
-
-    return reg.client()
-
-
-def _registered_params(cl, name: str, alias: str) -> tuple[str, dict[str, str]]:
-    """URI of ``name@alias`` (error if missing) and its training run's params."""
-    from traffictwin.mlops import registry as reg
-
-    try:
-        mv = reg.require_alias(cl, name, alias)
-    except reg.RegistryError as exc:
-        raise CliError(str(exc)) from None
-    try:
-        params = dict(cl.get_run(mv.run_id).data.params) if mv.run_id else {}
-    except Exception:  # noqa: BLE001 - params only refine checks
-        params = {}
-    return reg.version_uri(name, mv.version), params
-
-
-def fusion_model_name(cl, config: str | None) -> str:
-    """``traffictwin-fusion-<config>``; without ``config`` the only registered fusion model."""
-    from traffictwin.mlops import registry as reg
-
-    if config:
-        return reg.fusion_name(config)
-    names = reg.registered_names(cl, reg.fusion_name(""))
-    if len(names) == 1:
-        return names[0]
-    raise CliError(
-        "--config: name the pose-noise configuration of the registered fusion model "
-        + (f"(registered: {', '.join(names)})" if names else "(no fusion model is registered yet)")
-    )
-
-
-def load_fusion(model: str, config: str | None) -> tuple[Any, dict[str, Any], str]:
-    """The fusion network for ``--model`` (an alias of ``traffictwin-fusion-<config>`` or a path),
-    its training grid (dict, may be empty) and a description."""
-    from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
-    from traffictwin.mlops import registry as reg
-
-    if model in ALIASES:
-        cl = _registry_client()
-        name = fusion_model_name(cl, config)
-        uri, params = _registered_params(cl, name, model)
-        try:
-            net = reg.load_registered(uri, load_fusion_model, cl=cl)
-        except Exception as exc:  # noqa: BLE001
-            raise CliError(
-                f"{uri}: cannot load the registered model ({type(exc).__name__}: {exc})"
-            ) from None
-        grid = dict(getattr(net, "meta", {}).get("grid", {}) or {}) or {
-            k: float(params[f"grid.{k}"]) for k in ("rows", "cols", "cell") if f"grid.{k}" in params
-        }
-        return net, grid, f"{name}@{model} ({uri})"
-
-    p = Path(model)
-    if not p.exists():
-        raise CliError(
-            f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path"
-        )
-    try:
-        net = load_fusion_model(p)
-    except FusionModelError as exc:
-        raise CliError(str(exc)) from None
-    return net, dict(getattr(net, "meta", {}).get("grid", {}) or {}), str(p)
-
-
-def load_risk(model: str):
-    """A :class:`~traffictwin.risk.model_io.RiskModel` for ``--model`` (alias of ``traffictwin-risk``
-    or a path) and a description; ``RiskModel.meta`` holds the model's metadata (``domain``…)."""
-    from traffictwin.mlops import registry as reg
-    from traffictwin.risk.model_io import RiskModelError, load_risk_model
-
-    if model in ALIASES:
-        cl = _registry_client()
-        uri, _ = _registered_params(cl, reg.RISK_NAME, model)
-        try:
-            rmodel = reg.load_registered(uri, load_risk_model, cl=cl)
-        except Exception as exc:  # noqa: BLE001
-            raise CliError(
-                f"{uri}: cannot load the registered risk model ({type(exc).__name__}: {exc})"
-            ) from None
-        return rmodel, f"{reg.RISK_NAME}@{model} ({uri})"
-    p = Path(model)
-    if not p.exists():
-        raise CliError(
-            f"--model: '{model}' is neither an alias ({', '.join(ALIASES)}) nor an existing path"
-        )
-    try:
-        return load_risk_model(p), str(p)
-    except RiskModelError as exc:
-        raise CliError(str(exc)) from None
+def _npz_bytes(**arrays: Any) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
 
 
 # ============================================================================ fuse
-
-
-def fuse_arrays(
-    net: Any, m1: np.ndarray, m2: np.ndarray, pose1: np.ndarray, pose2: np.ndarray, cell: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Prealign map 2 into map 1's frame by the poses, run the network.
-
-    Returns ``(m (2,H,W), u (H,W), m2_prealigned (2,H,W), rel_pose (3,))``, float32 masses.
-    """
-    from traffictwin.fusion.model_io import predict_masses
-    from traffictwin.fusion.pairs import prealign
-    from traffictwin.grid import GridSpec
-
-    grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
-    m2w, rel = prealign(m2, pose1, pose2, grid)
-    x = np.concatenate([m1, m2w])[None].astype(np.float32)
-    m, u = predict_masses(net, x, batch_size=1)
-    return m[0], u[0], m2w, rel
 
 
 def mass_panels(panels: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
@@ -345,15 +197,45 @@ def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray)
     return mass_panels([(m1, None), (m2w, None), (m, u)])
 
 
+def _write_fused(
+    outs: OutputSet, path: Path, res: Any, pose1: np.ndarray, pose2: np.ndarray
+) -> None:
+    """The fused ``.npz`` (deterministic zip, fast deflate level 1) into ``outs``' temp file of ``path``."""
+    from traffictwin.io.shards import write_npz_deterministic
+
+    arrays = {
+        "m_free": res.masses[0],
+        "m_occ": res.masses[1],
+        "u": res.u,
+        "pose1": np.asarray(pose1, np.float64),
+        "pose2": np.asarray(pose2, np.float64),
+        "rel_pose": np.asarray(res.rel_pose, np.float64),
+        "cell": np.float64(res.cell),
+    }
+    write_npz_deterministic(outs.temp_path(path), arrays, compresslevel=1)
+
+
+def _occupied(res: Any) -> int:
+    return int(((res.masses[1] + res.u / 2) > 0.5).sum())
+
+
 def cmd_fuse(args: argparse.Namespace) -> int:
-    import cv2
+    from traffictwin import api
 
-    from traffictwin.io.atomic import atomic_path
-
-    pose1 = parse_pose(args.pose1, "--pose1")
-    pose2 = parse_pose(args.pose2, "--pose2")
-    m1, c1 = load_masses(args.map1)
-    m2, c2 = load_masses(args.map2)
+    _positive_cell(args.cell)
+    if args.batch_size < 1:
+        raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
+    if args.pairs is not None:
+        return _fuse_many(args)
+    if args.map1 is None or args.map2 is None:
+        raise CliError("pass MAP1 MAP2 (with --pose1/--pose2) or --pairs LIST.csv|FOLDER")
+    m1, c1, p1 = api.load_masses(args.map1)
+    m2, c2, p2 = api.load_masses(args.map2)
+    pose1 = parse_pose(args.pose1, "--pose1") if args.pose1 is not None else p1
+    pose2 = parse_pose(args.pose2, "--pose2") if args.pose2 is not None else p2
+    for opt, pose, path in (("--pose1", pose1, args.map1), ("--pose2", pose2, args.map2)):
+        if pose is None:
+            raise CliError(f"{opt}: required (x,y,yaw in m, m, rad): {path} has no 'pose'")
     if m1.shape != m2.shape:
         raise CliError(
             f"{args.map2}: grid size {m2.shape[1:]} differs from {args.map1}'s {m1.shape[1:]} (rows, cols)"
@@ -365,58 +247,201 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         )
     if c1 is not None and c2 is not None and abs(c1 - c2) > 1e-9:
         raise CliError(f"{args.map2}: cell size {c2} m differs from {args.map1}'s {c1} m")
-    if args.cell is not None and not (args.cell > 0 and math.isfinite(args.cell)):
-        raise CliError(f"--cell: must be a positive number of metres, got {args.cell}")
-    out = Path(args.output)
-    base = out.with_suffix("") if out.suffix == ".npz" else out
-    npz_path, png_path = base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
-    if not base.parent.exists():
-        raise CliError(f"-o: output folder {base.parent} does not exist")
-    net, train_grid, desc = load_fusion(args.model, args.config)
-    cell = (
-        args.cell if args.cell is not None else (c1 if c1 is not None else train_grid.get("cell"))
-    )
-    if cell is None:
-        raise CliError(
-            "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz"
+    own = c1 if c1 is not None else c2
+    if args.cell is not None and own is not None and abs(args.cell - own) > 1e-9:
+        raise CliError(f"--cell: {args.cell} m contradicts the maps' own cell size {own} m")
+    npz_path, png_path = _npz_png(args.output)
+    with OutputSet([npz_path, png_path], inputs=[args.map1, args.map2], force=args.force) as outs:
+        model = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+        cell = args.cell if args.cell is not None else c1 if c1 is not None else c2
+        cell = api.check_fusion_domain(model, (h, w), cell, str(args.map1))
+        t0 = time.perf_counter()
+        (res,) = api.fuse(model, [api.FusePair(m1, m2, pose1, pose2, cell, "pair")])
+        ms = (time.perf_counter() - t0) * 1e3
+        _write_fused(outs, npz_path, res, pose1, pose2)
+        outs.write_bytes(
+            png_path, _png_bytes(preview_image(m1, res.m2_prealigned, res.masses, res.u))
         )
-    if "cell" in train_grid and abs(float(train_grid["cell"]) - cell) > 1e-9:
-        raise CliError(
-            f"maps have {cell} m cells but the model ({desc}) was trained on {train_grid['cell']} m cells"
-        )
-    t0 = time.perf_counter()
-    m, u, m2w, rel = fuse_arrays(net, m1, m2, pose1, pose2, cell)
-    ms = (time.perf_counter() - t0) * 1e3
-    preview = preview_image(m1, m2w, m, u)
-    ok, png = cv2.imencode(".png", preview)
-    if not ok:
-        raise CliError("could not encode the PNG preview")
-    buf = io.BytesIO()
-    np.savez_compressed(
-        buf,
-        m_free=m[0],
-        m_occ=m[1],
-        u=u,
-        pose1=pose1,
-        pose2=pose2,
-        rel_pose=rel,
-        cell=np.float64(cell),
-    )
-    with atomic_path(npz_path, suffix=".npz") as t1, atomic_path(png_path, suffix=".png") as t2:
-        t1.write_bytes(buf.getvalue())
-        t2.write_bytes(png.tobytes())
+        outs.commit()
     summary = {
         "output": str(npz_path),
         "preview": str(png_path),
-        "model": desc,
+        "model": model.description,
         "grid": [h, w],
-        "cell_m": cell,
-        "rel_pose": [float(v) for v in rel],
+        "cell_m": res.cell,
+        "rel_pose": [float(v) for v in res.rel_pose],
         "fuse_ms": round(ms, 2),
-        "mean_u": float(u.mean()),
-        "occupied_cells": int(((m[1] + u / 2) > 0.5).sum()),
+        "mean_u": float(res.u.mean()),
+        "occupied_cells": _occupied(res),
     }
     print(json.dumps(json_safe(summary), indent=2))
+    return 0
+
+
+_POSE_COLS = ("x1", "y1", "yaw1", "x2", "y2", "yaw2")
+
+
+def read_pair_list(source: str | Path) -> list[dict[str, Any]]:
+    """The pairs of ``fuse --pairs``: ``[{id, map1, map2, pose1|None, pose2|None, cell|None}]``
+    from a CSV list or a folder of ``<id>_1.npz`` / ``<id>_2.npz`` (module doc). Checks the
+    files exist and the ids are unique file names; reads no map."""
+    src = Path(source)
+    rows: list[dict[str, Any]] = []
+    if src.is_dir():
+        ones = {p.name[: -len("_1.npz")]: p for p in sorted(src.glob("*_1.npz"))}
+        twos = {p.name[: -len("_2.npz")]: p for p in sorted(src.glob("*_2.npz"))}
+        lonely = sorted(set(ones) ^ set(twos))
+        if lonely:
+            raise CliError(
+                f"--pairs: {src}: map '{lonely[0]}_1.npz' or '{lonely[0]}_2.npz' has no partner"
+            )
+        if not ones:
+            raise CliError(f"--pairs: {src}: no pairs found (expected <id>_1.npz / <id>_2.npz)")
+        rows = [
+            {"id": k, "map1": ones[k], "map2": twos[k], "pose1": None, "pose2": None, "cell": None}
+            for k in sorted(ones)
+        ]
+    elif src.is_file():
+        try:
+            with open(src, newline="") as fh:
+                table = list(csv.DictReader(fh))
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            raise CliError(f"--pairs: {src}: not a readable CSV ({exc})") from None
+        if not table:
+            raise CliError(
+                f"--pairs: {src}: no rows (expected columns map1,map2[,id,x1,y1,yaw1,x2,y2,yaw2,cell])"
+            )
+        cols = set(table[0])
+        if not {"map1", "map2"} <= cols:
+            raise CliError(
+                f"--pairs: {src}: columns map1 and map2 are required (has {sorted(cols)})"
+            )
+        has_pose = [c in cols for c in _POSE_COLS]
+        if any(has_pose) and not all(has_pose):
+            raise CliError(
+                f"--pairs: {src}: pose columns must be all of {', '.join(_POSE_COLS)} or none"
+            )
+        for k, r in enumerate(table, start=2):
+            try:
+                pose = [float(r[c]) for c in _POSE_COLS] if all(has_pose) else None
+                cell = float(r["cell"]) if r.get("cell") not in (None, "") else None
+            except (TypeError, ValueError):
+                raise CliError(
+                    f"--pairs: {src} line {k}: pose / cell values must be numbers"
+                ) from None
+            if pose is not None and not np.all(np.isfinite(pose)):
+                raise CliError(f"--pairs: {src} line {k}: pose values must be finite")
+            _positive_cell(cell)
+            rows.append(
+                {
+                    "id": (r.get("id") or f"{k - 1:05d}").strip(),
+                    "map1": src.parent / r["map1"],
+                    "map2": src.parent / r["map2"],
+                    "pose1": None if pose is None else np.array(pose[:3]),
+                    "pose2": None if pose is None else np.array(pose[3:]),
+                    "cell": cell,
+                }
+            )
+    else:
+        raise CliError(f"--pairs: {src}: no such list file or folder")
+    seen: set[str] = set()
+    for r in rows:
+        if not r["id"] or "/" in r["id"] or r["id"] in (".", "..") or r["id"] in seen:
+            raise CliError(
+                f"--pairs: {src}: pair id {r['id']!r} is empty, repeated or not a file name"
+            )
+        seen.add(r["id"])
+        for key in ("map1", "map2"):
+            if not Path(r[key]).is_file():
+                raise CliError(f"--pairs: {r[key]}: file not found (pair {r['id']!r})")
+    return rows
+
+
+def _fuse_many(args: argparse.Namespace) -> int:
+    from traffictwin import api
+
+    if args.map1 is not None:
+        raise CliError("--pairs: pass either MAP1 MAP2 or --pairs, not both")
+    if args.pose1 is not None or args.pose2 is not None:
+        raise CliError(
+            "--pairs: poses come from the list (x1..yaw2) or the maps' 'pose', not --pose1/--pose2"
+        )
+    rows = read_pair_list(args.pairs)
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"-o: {out} is a file; with --pairs the output is a folder")
+    names = [
+        out / f"{r['id']}{ext}"
+        for r in rows
+        for ext in ((".npz", ".png") if args.preview else (".npz",))
+    ]
+    summary_path = out / "summary.csv"
+    inputs = [Path(args.pairs)] + [r[k] for r in rows for k in ("map1", "map2")]
+    with OutputSet([*names, summary_path], inputs=inputs, force=args.force) as outs:
+        model = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+        t0 = time.perf_counter()
+
+        def pairs() -> Iterator[Any]:
+            for r in rows:
+                m1, c1, p1 = api.load_masses(r["map1"])
+                m2, c2, p2 = api.load_masses(r["map2"])
+                pose1 = r["pose1"] if r["pose1"] is not None else p1
+                pose2 = r["pose2"] if r["pose2"] is not None else p2
+                if pose1 is None or pose2 is None:
+                    raise CliError(
+                        f"--pairs: pair {r['id']!r}: no pose (list columns x1..yaw2 or 'pose' in {r['map1']} / {r['map2']})"
+                    )
+                if m1.shape != m2.shape:
+                    raise CliError(
+                        f"{r['map2']}: grid size {m2.shape[1:]} differs from {r['map1']}'s {m1.shape[1:]}"
+                    )
+                cell = args.cell if args.cell is not None else r["cell"] or c1 or c2
+                r["_poses"] = (pose1, pose2)
+                yield api.FusePair(m1, m2, pose1, pose2, cell, r["id"])
+
+        table = []
+        for r, res in zip(rows, api.fuse(model, pairs(), batch_size=args.batch_size)):
+            pose1, pose2 = r.pop("_poses")
+            _write_fused(outs, out / f"{res.id}.npz", res, pose1, pose2)
+            if args.preview:
+                outs.write_bytes(
+                    out / f"{res.id}.png",
+                    _png_bytes(preview_image(res.m1, res.m2_prealigned, res.masses, res.u)),
+                )
+            table.append(
+                {
+                    "id": res.id,
+                    "map1": str(r["map1"]),
+                    "map2": str(r["map2"]),
+                    "output": str(out / f"{res.id}.npz"),
+                    "cell_m": res.cell,
+                    "rel_x": float(res.rel_pose[0]),
+                    "rel_y": float(res.rel_pose[1]),
+                    "rel_yaw": float(res.rel_pose[2]),
+                    "mean_u": float(res.u.mean()),
+                    "occupied_cells": _occupied(res),
+                }
+            )
+        seconds = time.perf_counter() - t0
+        buf = io.StringIO()
+        wr = csv.DictWriter(buf, fieldnames=list(table[0]), lineterminator="\n")
+        wr.writeheader()
+        wr.writerows({k: csv_value(v) for k, v in row.items()} for row in table)
+        outs.write_text(summary_path, buf.getvalue())
+        outs.commit()
+    print(
+        json.dumps(
+            {
+                "pairs": len(table),
+                "output": str(out),
+                "summary": str(summary_path),
+                "model": model.description,
+                "batch_size": args.batch_size,
+                "fuse_s": round(seconds, 3),
+            },
+            indent=2,
+        )
+    )
     return 0
 
 
@@ -462,11 +487,8 @@ def twin_preview(twin: np.ndarray, contributions: list[np.ndarray]) -> np.ndarra
 
 
 def cmd_twin(args: argparse.Namespace) -> int:
-    import cv2
-
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.grid import GridSpec
-    from traffictwin.io.atomic import atomic_path
     from traffictwin.sim.scene import relative_pose
     from traffictwin.twin.fuse import TwinInputError, build_twin
 
@@ -499,15 +521,9 @@ def cmd_twin(args: argparse.Namespace) -> int:
         raise CliError(
             "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz files"
         )
-    out = Path(args.output)
-    base = out.with_suffix("") if out.suffix == ".npz" else out
-    npz_path, png_path = base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
-    if not base.parent.exists():
-        raise CliError(f"-o: output folder {base.parent} does not exist")
-    inputs = {Path(m).resolve() for m in args.maps}
-    if npz_path.resolve() in inputs or png_path.resolve() in inputs:
-        raise CliError(f"-o: {base} would overwrite an input map")
     models = load_twin_models(args.method, args.registration_model, args.fusion_model)
+    npz_path, png_path = _npz_png(args.output)
+    outs = OutputSet([npz_path, png_path], inputs=args.maps, force=args.force)
     grid = GridSpec(rows=ref_m.shape[1], cols=ref_m.shape[2], cell=cell)
     maps = np.stack([m for m, _ in loaded])
     rel = np.stack([np.zeros(3)] + [relative_pose(world[0], w) for w in world[1:]])
@@ -519,13 +535,9 @@ def cmd_twin(args: argparse.Namespace) -> int:
         warp_masses(maps[k], step.poses[k], grid) if step.used[k] else np.zeros_like(maps[k])
         for k in range(1, len(maps))
     ]
-    ok, png = cv2.imencode(".png", twin_preview(step.masses, contributions))
-    if not ok:
-        raise CliError("could not encode the PNG preview")
+    png = _png_bytes(twin_preview(step.masses, contributions))
     u = 1.0 - step.masses[0] - step.masses[1]
-    buf = io.BytesIO()
-    np.savez_compressed(
-        buf,
+    data = _npz_bytes(
         m_free=step.masses[0],
         m_occ=step.masses[1],
         u=u.astype(np.float32),
@@ -535,9 +547,10 @@ def cmd_twin(args: argparse.Namespace) -> int:
         rel_pose_given=rel,
         cell=np.float64(cell),
     )
-    with atomic_path(npz_path, suffix=".npz") as t1, atomic_path(png_path, suffix=".png") as t2:
-        t1.write_bytes(buf.getvalue())
-        t2.write_bytes(png.tobytes())
+    with outs:
+        outs.write_bytes(npz_path, data)
+        outs.write_bytes(png_path, png)
+        outs.commit()
     summary = {
         "output": str(npz_path),
         "preview": str(png_path),
@@ -557,176 +570,158 @@ def cmd_twin(args: argparse.Namespace) -> int:
 # ============================================================================ risk
 
 
-@dataclass
-class StereoSettings:
-    sgm: dict[str, Any]
-    orb: dict[str, Any]
-    source: str
+def _risk_frames(args: argparse.Namespace) -> tuple[list[Any], bool]:
+    from traffictwin import api
 
-
-def stereo_settings(
-    domain: Any, params_path: str | None, model_desc: str = "the model"
-) -> StereoSettings:
-    """SGM/ORB settings the risk data were made with.
-
-    ``domain.sgm`` / ``domain.orb`` of the model's metadata if present; else ``risk_data.sgm`` /
-    ``risk_data.orb`` of the params file ``params_path`` the user passed; else the library
-    defaults."""
-    if isinstance(domain, dict) and (
-        isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
-    ):
-        return StereoSettings(
-            dict(domain.get("sgm") or {}),
-            dict(domain.get("orb") or {}),
-            f"metadata of {model_desc}",
-        )
-    if params_path:
-        import yaml
-
-        path = Path(params_path)
-        if not path.is_file():
-            raise CliError(f"--params: {path} not found")
-        try:
-            cfg = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise CliError(f"{path}: not valid YAML ({exc})") from None
-        rd = cfg.get("risk_data") or {} if isinstance(cfg, dict) else {}
-        if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
-            return StereoSettings(dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(path))
-    return StereoSettings({}, {}, "library defaults")
-
-
-def risk_one(
-    rmodel: Any,
-    left: np.ndarray,
-    right: np.ndarray,
-    speed: float | None,
-    st: StereoSettings,
-    thw_threshold: float,
-) -> dict[str, Any]:
-    """ORB verdict, SGM disparity, predicted risk and THW verdict of one pair (see :func:`risk_verdict`)."""
-    from traffictwin.stereo.orb import check_pair
-    from traffictwin.stereo.sgm import compute_disparity
-
-    t0 = time.perf_counter()
-    orb = check_pair(left, right, **st.orb)
-    t1 = time.perf_counter()
-    disp = compute_disparity(left, right, **st.sgm)
-    t2 = time.perf_counter()
-    sp = None if speed is None else np.array([speed], np.float32)
-    risk = float(
-        rmodel.predict(
-            left_bgr=left[None], disp_sgm=disp[None], disp_gt=None, speed=sp, batch_size=1
-        )[0]
-    )
-    t3 = time.perf_counter()
-    valid = disp >= 0
-    out = {
-        "orb_outlier": bool(orb.outlier),
-        "orb_verdict": "unreliable pair" if orb.outlier else "ok",
-        "orb_n_matches": int(orb.n_matches),
-        "orb_n_reliable": int(orb.n_reliable),
-        "orb_mean_dx": float(orb.mean_dx),
-        "orb_mean_dy": float(orb.mean_dy),
-        "disp_valid_fraction": float(valid.mean()),
-        "disp_median_px": float(np.median(disp[valid])) if valid.any() else float("nan"),
-        **risk_verdict(risk, speed, thw_threshold),
-        "orb_ms": round((t1 - t0) * 1e3, 2),
-        "sgm_ms": round((t2 - t1) * 1e3, 2),
-        "model_ms": round((t3 - t2) * 1e3, 2),
-    }
-    return out
-
-
-def risk_verdict(
-    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW
-) -> dict[str, Any]:
-    """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
-    no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s).
-    With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
-    thw = float(risk_to_thw(np.asarray(risk), cap=math.inf))
-    out: dict[str, Any] = {
-        "risk": risk,
-        "thw_s": thw,
-        "thw_threshold_s": thw_threshold,
-        "critical": bool(thw < thw_threshold),
-        "verdict": "critical" if thw < thw_threshold else "uncritical",
-    }
-    if speed is not None:
-        out["speed_m_s"] = float(speed)
-        out["gap_m"] = thw * speed if math.isfinite(thw) else math.inf
-    return out
-
-
-def cmd_risk(args: argparse.Namespace) -> int:
-    from traffictwin.io.atomic import write_json_atomic, write_text_atomic
-
-    if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
-        raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
-    if not args.thw_threshold > 0:
-        raise CliError(f"--thw-threshold: must be > 0 s, got {args.thw_threshold}")
     src = Path(args.left)
     if src.is_dir():
         if args.right is not None:
             raise CliError(
                 f"{src} is a folder: pass no RIGHT image (pairs are found by *_left/*_right names)"
             )
-        pairs = find_pairs(src)
-    else:
-        if args.right is None:
-            raise CliError(
-                f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs"
-            )
-        pairs = [(src.stem, src, Path(args.right))]
-    images = []
-    for pid, lp, rp in pairs:  # read + validate everything before any work or output
-        left, right = read_image(lp), read_image(rp)
-        if left.shape != right.shape:
-            raise CliError(
-                f"{rp}: size {right.shape[1]}x{right.shape[0]} differs from {lp}'s {left.shape[1]}x{left.shape[0]} (W x H)"
-            )
-        images.append((pid, lp, rp, left, right))
-    rmodel, desc = load_risk(args.model)
-    if rmodel.cfg.use_speed and args.speed is None:
-        raise CliError(f"the model ({desc}) uses the subject speed: pass --speed (m/s)")
-    st = stereo_settings(rmodel.meta.get("domain"), args.params, desc)
-    rows = []
-    for pid, lp, rp, left, right in images:
-        r = risk_one(rmodel, left, right, args.speed, st, args.thw_threshold)
-        rows.append({"id": pid, "left": str(lp), "right": str(rp), **r})
-    if src.is_dir():
-        cols = list(rows[0])
-        buf = io.StringIO()
-        wr = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
-        wr.writeheader()
-        wr.writerows(rows)
-        if args.output:
-            write_text_atomic(args.output, buf.getvalue())
-            print(
-                f"{len(rows)} pair(s) -> {args.output} (model {desc}; stereo settings: {st.source})"
-            )
+        return api.frames_in_folder(src), True
+    if args.right is None:
+        raise CliError(
+            f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs"
+        )
+    for p in (src, Path(args.right)):
+        if not p.is_file():
+            raise CliError(f"{p}: image not found")
+    return [api.Frame(src.stem, src, Path(args.right))], False
+
+
+def cmd_risk(args: argparse.Namespace) -> int:
+    from traffictwin import api
+
+    if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
+        raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
+    if not args.thw_threshold > 0:
+        raise CliError(f"--thw-threshold: must be > 0 s, got {args.thw_threshold}")
+    if args.batch_size < 1:
+        raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
+    frames, is_folder = _risk_frames(args)
+    out = Path(args.output) if args.output else None
+    inputs = [p for f in frames for p in (f.left, f.right)] + (
+        [Path(args.params)] if args.params else []
+    )
+    outs = OutputSet([out] if out else [], inputs=inputs, force=args.force)
+    rmodel = api.load_risk(args.model, tracking_uri=args.tracking_uri)
+    for note in api.check_speed(rmodel, args.speed, args.params):
+        warnings.warn(note, ApiWarning, stacklevel=1)
+    st = api.stereo_settings(rmodel.domain, args.params, rmodel.description)
+    paths = {f.id: (str(f.left), str(f.right)) for f in frames}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ApiWarning)  # check_speed's notes: printed once above
+        rows = api.assess_risk(
+            rmodel,
+            frames,
+            speed=args.speed,
+            settings=st,
+            resize=args.resize,
+            batch_size=args.batch_size,
+            thw_threshold=args.thw_threshold,
+        )
+        with outs:
+            if not is_folder:
+                row = next(rows)
+                lp, rp = paths[row["id"]]
+                res = json_safe(
+                    {
+                        "id": row["id"],
+                        "left": lp,
+                        "right": rp,
+                        **row,
+                        "model": rmodel.description,
+                        "stereo_settings": st.source,
+                    }
+                )
+                if out:
+                    outs.write_text(out, json.dumps(res, indent=2, sort_keys=True) + "\n")
+                    outs.commit()
+                print(json.dumps(res, indent=2))
+                return 0
+            fh = outs.open(out, "w", newline="") if out else sys.stdout
+            try:
+                wr = None
+                n = 0
+                for row in rows:
+                    lp, rp = paths[row["id"]]
+                    row = {"id": row["id"], "left": lp, "right": rp, **row}
+                    if wr is None:
+                        wr = csv.DictWriter(fh, fieldnames=list(row), lineterminator="\n")
+                        wr.writeheader()
+                    wr.writerow({k: csv_value(v) for k, v in row.items()})
+                    n += 1
+            finally:
+                if out:
+                    fh.close()
+            if out:
+                outs.commit()
+                print(
+                    f"{n} pair(s) -> {out} (model {rmodel.description}; stereo settings: {st.source})"
+                )
+    return 0
+
+
+# ============================================================================ export
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from traffictwin import api
+
+    out = Path(args.output)
+    with OutputSet([out], force=args.force) as outs:
+        from traffictwin import export
+
+        if args.problem == "fusion":
+            fm = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+            if not {"rows", "cols"} <= set(fm.grid):
+                raise CliError(
+                    f"--model: {fm.description} records no training grid (rows, cols) to trace on"
+                )
+            module, meta = export.export_fusion(fm.net, fm.grid)
+            desc = fm.description
         else:
-            sys.stdout.write(buf.getvalue())
-    else:
-        res = json_safe({**rows[0], "model": desc, "stereo_settings": st.source})
-        if args.output:
-            write_json_atomic(args.output, res)
-        print(json.dumps(res, indent=2, default=str))
+            if args.config is not None:
+                raise CliError("--config: only for fusion models")
+            rm = api.load_risk(args.model, tracking_uri=args.tracking_uri)
+            module, meta = export.export_risk(rm.model)
+            desc = rm.description
+        meta["source"] = desc
+        meta["traffictwin_version"] = __version__
+        export.save(module, outs.temp_path(out), meta)
+        outs.commit()
+    print(
+        json.dumps(
+            {
+                "output": str(out),
+                "model": desc,
+                "input": meta["input"],
+                "output_layout": meta["output"],
+            },
+            indent=2,
+        )
+    )
     return 0
 
 
 # ============================================================================ registry / runs
 
 
+def _registry_client(args: argparse.Namespace):
+    from traffictwin import api
+
+    return api.connect(getattr(args, "tracking_uri", None))
+
+
 def cmd_rollback(args: argparse.Namespace) -> int:
     from traffictwin.mlops import registry as reg
 
-    cl = _registry_client()
+    cl = _registry_client(args)
     log_path = Path(args.log) if args.log else reg.promotion_log(cl, args.model)
     try:
-        with reg.gate_lock(
-            reg.default_lock_path()
-        ):  # never between a gate's decision and its apply
+        # never between a gate's decision and its apply
+        with reg.gate_lock(reg.default_lock_path(cl.tracking_uri)):
             rec = reg.rollback(cl, args.model, args.version, log_path=log_path)
     except reg.RegistryError as exc:
         raise CliError(str(exc)) from None
@@ -739,7 +734,7 @@ def cmd_rollback(args: argparse.Namespace) -> int:
 def cmd_status(args: argparse.Namespace) -> int:
     from traffictwin.mlops import registry as reg
 
-    cl = _registry_client()
+    cl = _registry_client(args)
     names = args.model or sorted(
         m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-")
     )
@@ -762,16 +757,19 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_runs_compare(args: argparse.Namespace) -> int:
+    from traffictwin import api
     from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
 
+    uri = api.resolve_tracking_uri(args.tracking_uri)
+    outs = OutputSet([args.csv] if args.csv else [], force=args.force, option="--csv")
     try:
-        df = compare_runs(args.experiment, metrics=args.metrics, uri=args.uri)
+        df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
     except RunsError as exc:
         raise CliError(str(exc)) from None
     if args.csv:
-        from traffictwin.io.atomic import write_text_atomic
-
-        write_text_atomic(args.csv, df.to_csv(index=False))
+        with outs:
+            outs.write_text(args.csv, df.to_csv(index=False))
+            outs.commit()
     print(format_runs(df, wide=args.wide))
     return 0
 
@@ -779,11 +777,38 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
 # ============================================================================ parser
 
 
+def _model_options(p: argparse.ArgumentParser, what: str, registry: str) -> None:
+    p.add_argument(
+        "--model",
+        default="champion",
+        help=f"{what}: registry reference name@alias, or champion | challenger of {registry}, "
+        "or a model folder (no registry needed); default champion",
+    )
+    _uri_option(p)
+
+
+def _uri_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--tracking-uri",
+        default=None,
+        help="MLflow tracking/registry URI (default: MLFLOW_TRACKING_URI, else the project's "
+        "mlflow.db; a missing database is never created)",
+    )
+
+
+def _output_options(p: argparse.ArgumentParser, help_text: str, required: bool = True) -> None:
+    p.add_argument("-o", "--output", required=required, default=None, help=help_text)
+    p.add_argument(
+        "--force", action="store_true", help="overwrite existing outputs (never an input)"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="traffictwin",
         description="traffictwin: cooperative OGM fusion and stereo risk — inference, registry, runs.",
     )
+    ap.add_argument("--version", action="version", version=f"traffictwin {__version__}")
     ap.add_argument(
         "--threads",
         type=int,
@@ -794,26 +819,32 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser(
         "fuse",
-        help="fuse two evidential grid maps with the fusion network",
-        description="Prealign MAP2 into MAP1's frame by the poses and fuse them with the network.",
-    )
-    f.add_argument("map1", help=".npz with m_free, m_occ (H, W) float32 masses, ego map")
-    f.add_argument("map2", help=".npz of the other vehicle's map, same size")
-    f.add_argument(
-        "--pose1", required=True, help="x,y,yaw of map 1's sensor in the world (m, m, rad)"
+        help="fuse two evidential grid maps (or many pairs) with the fusion network",
+        description="Prealign MAP2 into MAP1's frame by the poses and fuse them with the network; "
+        "--pairs fuses many pairs in one call with batched inference.",
     )
     f.add_argument(
-        "--pose2", required=True, help="x,y,yaw of map 2's sensor in the world (m, m, rad)"
+        "map1", nargs="?", default=None, help=".npz with m_free, m_occ (H, W) masses, ego map"
     )
     f.add_argument(
-        "--model",
-        default="champion",
-        help="champion | challenger (registry) or a model folder/.ckpt (default champion)",
+        "map2", nargs="?", default=None, help=".npz of the other vehicle's map, same size"
     )
+    f.add_argument(
+        "--pose1", default=None, help="x,y,yaw of map 1's sensor in the world (m, m, rad)"
+    )
+    f.add_argument(
+        "--pose2", default=None, help="x,y,yaw of map 2's sensor in the world (m, m, rad)"
+    )
+    f.add_argument(
+        "--pairs",
+        default=None,
+        help="a CSV list (map1,map2[,id,x1,y1,yaw1,x2,y2,yaw2,cell]) or a folder of <id>_1.npz/<id>_2.npz",
+    )
+    _model_options(f, "fusion model", "traffictwin-fusion-<config>")
     f.add_argument(
         "--config",
         default=None,
-        help="pose-noise configuration of the registered model traffictwin-fusion-<config> "
+        help="pose-noise configuration of a bare alias: traffictwin-fusion-<config> "
         "(default: the only registered fusion model)",
     )
     f.add_argument(
@@ -823,7 +854,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="m per cell (default: the .npz 'cell', else the model's)",
     )
     f.add_argument(
-        "-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png"
+        "--batch-size", type=int, default=8, help="pairs per forward pass with --pairs (default 8)"
+    )
+    f.add_argument(
+        "--no-preview", dest="preview", action="store_false", help="with --pairs: no PNG per pair"
+    )
+    _output_options(
+        f, "output base name: writes OUT.npz and OUT.png (with --pairs: an output folder)"
     )
     f.set_defaults(func=cmd_fuse)
 
@@ -859,15 +896,13 @@ def build_parser() -> argparse.ArgumentParser:
     tw.add_argument(
         "--cell", type=float, default=None, help="m per cell (default: the .npz 'cell')"
     )
-    tw.add_argument(
-        "-o", "--output", required=True, help="output base name: writes OUT.npz and OUT.png"
-    )
+    _output_options(tw, "output base name: writes OUT.npz and OUT.png")
     tw.set_defaults(func=cmd_twin)
 
     r = sub.add_parser(
         "risk",
         help="stereo risk: ORB check, SGM disparity, predicted risk and THW verdict",
-        description="LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV).",
+        description="LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV, streamed in batches).",
     )
     r.add_argument("left", help="left image, or a folder of pairs")
     r.add_argument("right", nargs="?", default=None, help="right image (omit for a folder)")
@@ -875,13 +910,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--speed",
         type=float,
         default=None,
-        help="subject speed (m/s): gap = THW * speed; required by speed models",
+        help="subject speed (m/s): gap = THW * speed; required by speed models, checked against the training range",
     )
-    r.add_argument(
-        "--model",
-        default="champion",
-        help="champion | challenger (registry traffictwin-risk) or a model folder",
-    )
+    _model_options(r, "risk model", "traffictwin-risk")
     r.add_argument(
         "--thw-threshold",
         type=float,
@@ -891,16 +922,34 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--params",
         default=None,
-        help="params file with risk_data.sgm/orb, used when the model's metadata has no "
-        "domain.sgm/orb (default: the library's SGM/ORB defaults)",
+        help="params file with risk_data.sgm/orb/max_speed, used when the model's metadata lacks them",
     )
     r.add_argument(
-        "-o",
-        "--output",
-        default=None,
-        help="write the JSON (pair) or CSV (folder) here (default: stdout)",
+        "--resize",
+        action="store_true",
+        help="resize images to the model's training camera size before ORB/SGM (else a size mismatch is an error)",
+    )
+    r.add_argument(
+        "--batch-size", type=int, default=16, help="frames per batch for a folder (default 16)"
+    )
+    _output_options(
+        r, "write the JSON (pair) or CSV (folder) here (default: stdout)", required=False
     )
     r.set_defaults(func=cmd_risk)
+
+    e = sub.add_parser(
+        "export",
+        help="export a fusion or risk network as TorchScript",
+        description="Trace the network on an input of its training shape and save it with torch.jit "
+        "(loads with torch.jit.load alone; see traffictwin.export for the input/output layout).",
+    )
+    e.add_argument("problem", choices=("fusion", "risk"))
+    _model_options(e, "model to export", "traffictwin-fusion-<config> / traffictwin-risk")
+    e.add_argument(
+        "--config", default=None, help="fusion: pose-noise configuration of a bare alias"
+    )
+    _output_options(e, "the TorchScript file to write (e.g. fusion.pt)")
+    e.set_defaults(func=cmd_export)
 
     b = sub.add_parser(
         "rollback", help="move the champion alias back (previous champion or --version)"
@@ -916,6 +965,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="promotion log to append to (default: the one the gate recorded on the model)",
     )
+    _uri_option(b)
     b.set_defaults(func=cmd_rollback)
 
     s = sub.add_parser("status", help="champion / challenger of the registered models")
@@ -926,6 +976,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="registered model names (default: all traffictwin-*)",
     )
     s.add_argument("--json", action="store_true")
+    _uri_option(s)
     s.set_defaults(func=cmd_status)
 
     ru = sub.add_parser("runs", help="MLflow runs")
@@ -934,12 +985,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--experiment", required=True, help="MLflow experiment (fusion | risk | ...)")
     c.add_argument("--metrics", nargs="+", default=None, help="metric names (default: all)")
     c.add_argument(
+        "--tracking-uri",
         "--uri",
+        dest="tracking_uri",
         default=None,
         help="tracking URI (default: MLFLOW_TRACKING_URI or the project's mlflow.db)",
     )
     c.add_argument("--wide", action="store_true", help="full run ids and every tag column")
     c.add_argument("--csv", default=None, help="also write the table as CSV")
+    c.add_argument("--force", action="store_true", help="overwrite an existing --csv file")
     c.set_defaults(func=cmd_runs_compare)
     return ap
 
@@ -947,19 +1001,39 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    for k, v in HTTP_ENV.items():  # a dead registry: one line in seconds, not minutes of retries
+        os.environ.setdefault(k, v)
+    # OpenMP threads that sleep instead of spinning while they wait: on a shared, busy machine
+    # spinning threads made one forward pass 30x slower (benchmarks/startup.py). Read when torch
+    # loads its OpenMP runtime, so set before any torch import; an explicit setting wins.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if args.threads is not None:
         if args.threads < 1:
             parser.error(f"--threads must be >= 1, got {args.threads}")
         import torch
 
         torch.set_num_threads(args.threads)
+    prog = f"traffictwin {args.command}"
+    show = warnings.showwarning
+
+    def one_line(message, category, filename, lineno, file=None, line=None):  # noqa: ANN001
+        if issubclass(category, ApiWarning):
+            print(f"{prog}: warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = one_line
     try:
-        rc = args.func(args)
-    except CliError as exc:
-        print(f"traffictwin {args.command}: error: {exc}", file=sys.stderr)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", ApiWarning)
+            rc = args.func(args)
+    except (ApiError, OutputError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130
+    finally:
+        warnings.showwarning = show
     return int(rc or 0)
 
 

@@ -51,6 +51,14 @@ from torch.utils.data import DistributedSampler, Sampler
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.io.atomic import atomic_path
+from traffictwin.model_format import (  # noqa: F401 - re-exported: the one checkpoint format
+    MODEL_FORMAT,
+    CheckpointError,
+    model_checkpoint,
+    net_state_dict,
+    read_model_checkpoint,
+    save_model_checkpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -596,78 +604,3 @@ def log_model(
             metadata=metadata,
         )
     return uri
-
-
-# ---------------------------------------------------------------------------------------------
-# the one checkpoint format of trained networks (fusion and risk)
-
-MODEL_FORMAT = "traffictwin-model/1"
-
-
-class CheckpointError(RuntimeError):
-    """A model checkpoint is missing, unreadable or not of :data:`MODEL_FORMAT`."""
-
-
-def model_checkpoint(
-    problem: str,
-    architecture: Mapping[str, Any],
-    state_dict: Mapping[str, torch.Tensor],
-    meta: Mapping[str, Any] | None = None,
-    *,
-    prefix: str = "net.",
-    **extra: Any,
-) -> dict[str, Any]:
-    """The checkpoint dict: ``state_dict`` (tensors on CPU, keys ``prefix`` + the network's own,
-    as in the LightningModule that holds the network as ``net``) and a ``traffictwin`` block
-    (``format``, ``problem``, ``architecture`` and the JSON-able ``meta``); ``extra`` top-level
-    keys (e.g. ``epoch``, ``global_step``). Loadable with ``torch.load(weights_only=True)``."""
-    info = json.loads(json.dumps(dict(meta or {}), default=str))
-    info.update(
-        format=MODEL_FORMAT,
-        problem=problem,
-        architecture=json.loads(json.dumps(dict(architecture), default=str)),
-    )
-    state = {
-        (k if k.startswith(prefix) else prefix + k): v.detach().cpu().clone()
-        for k, v in state_dict.items()
-    }
-    return {"state_dict": state, **extra, "traffictwin": info}
-
-
-def save_model_checkpoint(path: str | Path, ckpt: Mapping[str, Any]) -> Path:
-    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``."""
-    with atomic_path(path, suffix=".ckpt") as tmp:
-        torch.save(dict(ckpt), tmp)
-    return Path(path)
-
-
-def read_model_checkpoint(
-    path: str | Path,
-    problem: str | None = None,
-    error: type[Exception] = CheckpointError,
-    map_location: str | torch.device = "cpu",
-) -> dict[str, Any]:
-    """Read a checkpoint of :data:`MODEL_FORMAT` (``weights_only=True``); errors (``error``) name the file.
-
-    ``problem``: the ``traffictwin.problem`` it must have (a checkpoint without that key is
-    accepted as any problem).
-    """
-    path = Path(path)
-    try:
-        ck = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
-        raise error(
-            f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})"
-        ) from None
-    info = ck.get("traffictwin") if isinstance(ck, dict) else None
-    if not isinstance(info, dict) or info.get("format") != MODEL_FORMAT or "state_dict" not in ck:
-        what = f"traffictwin {problem}" if problem else "traffictwin"
-        raise error(f"{path}: not a {what} checkpoint (expected format '{MODEL_FORMAT}')")
-    if problem is not None and info.get("problem", problem) != problem:
-        raise error(f"{path}: a {info.get('problem')} model checkpoint, expected a {problem} model")
-    return ck
-
-
-def net_state_dict(ckpt: Mapping[str, Any], prefix: str = "net.") -> dict[str, torch.Tensor]:
-    """The network's weights of a checkpoint (``prefix`` removed)."""
-    return {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}

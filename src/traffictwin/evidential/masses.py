@@ -11,6 +11,8 @@ Layout (every module of the project): channel axis ``-3`` of size 2 — ``(2, H,
   clip to [0, 1] and renormalise the cells with ``m_F + m_O > 1`` onto the simplex (NumPy or
   torch, dtype kept).
 - :func:`unknown_mass` — ``u = clip(1 − m_F − m_O, 0, 1)``.
+- :func:`evidence_to_masses` — the evidential network's output ``e ≥ 0`` to masses
+  (``α = e + 1``, ``S = Σα``, ``m = e/S``, ``u = 2/S``; DESIGN.md "Evidential output").
 """
 
 from __future__ import annotations
@@ -19,8 +21,16 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TOL", "check_masses", "clean_masses", "unknown_mass"]
+__all__ = [
+    "NUM_CLASSES",
+    "TOL",
+    "check_masses",
+    "clean_masses",
+    "evidence_to_masses",
+    "unknown_mass",
+]
 
+NUM_CLASSES = 2  # free, occupied (the evidential network's output channels)
 TOL = 1e-5  # default tolerance of check_masses on the bounds of the simplex
 
 
@@ -81,3 +91,26 @@ def clean_masses(m: Any) -> Any:
 def unknown_mass(m: np.ndarray) -> np.ndarray:
     """``u = clip(1 − m_F − m_O, 0, 1)`` of masses ``(…, 2, H, W)`` → ``(…, H, W)``."""
     return np.clip(1.0 - m[..., 0, :, :] - m[..., 1, :, :], 0.0, 1.0)
+
+
+def evidence_to_masses(e: Any) -> tuple[Any, Any]:
+    """Evidences ``e >= 0`` ``(..., 2, H, W)`` -> masses ``m (..., 2, H, W)`` and uncertainty ``u (..., H, W)``.
+
+    Works on torch tensors and numpy arrays (returns the same type). ``m + u`` sums to 1 per cell.
+    """
+    if _is_torch(e):
+        if e.shape[-3] != NUM_CLASSES:
+            raise ValueError(
+                f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {tuple(e.shape)}"
+            )
+        s = (e + 1.0).sum(dim=-3, keepdim=True)
+        return e / s, (NUM_CLASSES / s).squeeze(-3)
+    arr = np.asarray(e)
+    if arr.ndim < 3 or arr.shape[-3] != NUM_CLASSES:
+        raise ValueError(
+            f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {arr.shape}"
+        )
+    if np.any(arr < 0):
+        raise ValueError("evidence must be >= 0 (the network ends in a ReLU)")
+    s = (arr + 1.0).sum(axis=-3, keepdims=True)
+    return arr / s, np.squeeze(NUM_CLASSES / s, axis=-3)

@@ -36,35 +36,15 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 import torch
 from torchmetrics import Metric
 
-NUM_CLASSES = 2
+from traffictwin.evidential.masses import (  # noqa: F401 - re-exported (its home is evidential)
+    NUM_CLASSES,
+    evidence_to_masses,
+)
+
 KLD_EPS = 1e-7
-
-
-def evidence_to_masses(e: Any) -> tuple[Any, Any]:
-    """Evidences ``e >= 0`` ``(..., 2, H, W)`` -> masses ``m (..., 2, H, W)`` and uncertainty ``u (..., H, W)``.
-
-    Works on torch tensors and numpy arrays (returns the same type). ``m + u`` sums to 1 per cell.
-    """
-    if isinstance(e, torch.Tensor):
-        if e.shape[-3] != NUM_CLASSES:
-            raise ValueError(
-                f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {tuple(e.shape)}"
-            )
-        s = (e + 1.0).sum(dim=-3, keepdim=True)
-        return e / s, (NUM_CLASSES / s).squeeze(-3)
-    arr = np.asarray(e)
-    if arr.ndim < 3 or arr.shape[-3] != NUM_CLASSES:
-        raise ValueError(
-            f"evidence must have {NUM_CLASSES} channels on axis -3, got shape {arr.shape}"
-        )
-    if np.any(arr < 0):
-        raise ValueError("evidence must be >= 0 (the network ends in a ReLU)")
-    s = (arr + 1.0).sum(axis=-3, keepdims=True)
-    return arr / s, np.squeeze(NUM_CLASSES / s, axis=-3)
 
 
 def dirichlet_params(e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

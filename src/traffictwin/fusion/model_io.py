@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from traffictwin.evidential.masses import evidence_to_masses
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
-from traffictwin.fusion.losses import evidence_to_masses
-from traffictwin.trainer import MODEL_FORMAT, net_state_dict, read_model_checkpoint
+from traffictwin.model_format import MODEL_FORMAT, net_state_dict, read_model_checkpoint
 
 CKPT_FORMAT = MODEL_FORMAT  # the one format of traffictwin.trainer, problem "fusion"
 META_NAME = "model_meta.json"

@@ -21,14 +21,14 @@ import numpy as np
 import torch
 
 from traffictwin.io.atomic import write_json_atomic
-from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
-from traffictwin.trainer import (
+from traffictwin.model_format import (
     MODEL_FORMAT,
     model_checkpoint,
     net_state_dict,
     read_model_checkpoint,
     save_model_checkpoint,
 )
+from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
 
 CKPT = "model.ckpt"
 META = "model_meta.json"

@@ -21,13 +21,16 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import pandas as pd
 
 from traffictwin.config import spec
 from traffictwin.stereo.sgm import check_pair_shapes
+
+if TYPE_CHECKING:  # pandas only in annotations: importing this module for one pair stays light
+    import pandas as pd
 
 #: the ``fault`` value of a fault-free pair
 NO_FAULT = "none"
