@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from traffictwin.cli import DIVISOR, load_masses, parse_pose, read_image
+from traffictwin.api import DIVISOR, load_masses, read_image
+from traffictwin.cli import parse_pose
 from traffictwin.config import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,7 +29,7 @@ def test_grids_fit_the_profiles_grid(profile: str, confs: dict[str, dict]) -> No
     grid = confs[profile]["grid"]
     maps = []
     for name in ("map1", "map2"):
-        m, cell = load_masses(EXAMPLES / "fuse" / profile / f"{name}.npz")  # the CLI's checks
+        m, cell, _ = load_masses(EXAMPLES / "fuse" / profile / f"{name}.npz")  # the CLI's checks
         assert m.shape == (2, grid["rows"], grid["cols"]) and m.dtype == np.float32
         assert cell == pytest.approx(grid["cell"])
         assert m.shape[1] % DIVISOR == 0 and m.shape[2] % DIVISOR == 0

@@ -11,7 +11,7 @@ A trained network goes to MLflow as a model directory of the ``traffictwin`` fla
 - ``code/traffictwin/`` — the package source the pyfunc flavour imports (MLflow puts ``code/`` on
   ``sys.path``), so ``mlflow.pyfunc.load_model`` works where traffictwin is not installed;
 - ``requirements.txt``, ``python_env.yaml``, ``conda.yaml`` — pinned requirements without
-  ``traffictwin`` (:func:`traffictwin.mlops.serving.pip_requirements`);
+  ``traffictwin`` (:func:`pip_requirements`);
 - ``input_example.json`` / ``serving_input_example.json`` — the example the signature came from.
 
 No pickle anywhere: the weights are read with ``weights_only=True`` and the only code is the
@@ -35,6 +35,7 @@ them and reads JSON/YAML. Problem loaders are passed in by the caller.
 
 from __future__ import annotations
 
+import importlib.metadata as md
 import json
 import shutil
 import sys
@@ -44,6 +45,38 @@ from typing import Any
 
 from traffictwin.io.shards import sha256_file
 from traffictwin.mlops.errors import GateError, IncompatibleModelError
+
+# the pyfunc loader module MLflow imports when it loads a logged model (by name: it imports this module)
+SERVING_MODULE = "traffictwin.mlops.serving"
+# distributions the pyfunc load imports directly (traffictwin.trainer pulls in lightning,
+# traffictwin.config omegaconf, the risk network cv2, the registration module scipy/matplotlib)
+SERVING_DISTRIBUTIONS = (
+    "mlflow",
+    "torch",
+    "numpy",
+    "lightning",
+    "torchmetrics",
+    "opencv-python-headless",
+    "opencv-python",
+    "pyyaml",
+    "omegaconf",
+    "scipy",
+    "matplotlib",
+)
+TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
+
+
+def pip_requirements() -> list[str]:
+    """``requirements.txt`` lines: the PyTorch CPU index (torch's CPU wheels live only there) and
+    every installed distribution of :data:`SERVING_DISTRIBUTIONS`, pinned ``name==version``."""
+    lines = [f"--extra-index-url {TORCH_CPU_INDEX}"]
+    for dist in SERVING_DISTRIBUTIONS:
+        try:
+            lines.append(f"{dist}=={md.version(dist)}")
+        except md.PackageNotFoundError:
+            continue
+    return lines
+
 
 FLAVOR = "traffictwin"
 ARTIFACT_FORMAT = "traffictwin-mlflow-model/1"
@@ -227,22 +260,20 @@ def _add_pyfunc(mlflow_model: Any, out: Path) -> None:
         _PythonEnv,
     )
 
-    from traffictwin.mlops import serving
-
     package = Path(__file__).resolve().parents[1]  # src/traffictwin
     shutil.copytree(
         package,
         out / CODE / package.name,
         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo"),
     )
-    reqs = serving.pip_requirements()
+    reqs = pip_requirements()
     (out / _REQUIREMENTS_FILE_NAME).write_text("\n".join(reqs) + "\n")
     with open(out / _CONDA_ENV_FILE_NAME, "w") as fh:
         _yaml_dump(_mlflow_conda_env(additional_pip_deps=reqs, install_mlflow=False), fh)
     _PythonEnv.current().to_yaml(str(out / _PYTHON_ENV_FILE_NAME))
     mlflow.pyfunc.add_to_model(
         mlflow_model,
-        loader_module=serving.__name__,
+        loader_module=SERVING_MODULE,
         code=CODE,
         conda_env=_CONDA_ENV_FILE_NAME,
         python_env=_PYTHON_ENV_FILE_NAME,

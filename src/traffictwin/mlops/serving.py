@@ -27,41 +27,10 @@ import, pinned to the versions installed where the model was logged.
 
 from __future__ import annotations
 
-import importlib.metadata as md
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-# distributions the pyfunc load imports directly (traffictwin.trainer pulls in lightning,
-# traffictwin.config omegaconf, the risk network cv2, the registration module scipy/matplotlib)
-SERVING_DISTRIBUTIONS = (
-    "mlflow",
-    "torch",
-    "numpy",
-    "lightning",
-    "torchmetrics",
-    "opencv-python-headless",
-    "opencv-python",
-    "pyyaml",
-    "omegaconf",
-    "scipy",
-    "matplotlib",
-)
-TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
-
-
-def pip_requirements() -> list[str]:
-    """``requirements.txt`` lines: the PyTorch CPU index (torch's CPU wheels live only there) and
-    every installed distribution of :data:`SERVING_DISTRIBUTIONS`, pinned ``name==version``."""
-    lines = [f"--extra-index-url {TORCH_CPU_INDEX}"]
-    for dist in SERVING_DISTRIBUTIONS:
-        try:
-            lines.append(f"{dist}=={md.version(dist)}")
-        except md.PackageNotFoundError:
-            continue
-    return lines
-
 
 # problem -> (module, loader): looked up by name, so that logging a model (every training stage)
 # does not make the stages depend on the other problems' loaders; they run where a model is served
