@@ -15,6 +15,9 @@ Stable API (the fusion and the risk stages both use it):
   same per-epoch draw split evenly over the ranks, evaluation every sample exactly once
   (Lightning's own DistributedSampler would repeat samples to even out the ranks).
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
+- :class:`FiniteGuard` — the one finite-loss guard of every trainer (:func:`build_trainer` adds
+  one when the caller gave none): a NaN/inf training loss or monitored metric stops the run with
+  :class:`TrainingDiverged` naming the stage, epoch, step, learning rate and the parameter to lower.
 - :class:`History` — the metric rows (per epoch, or per validation for the risk net's
   per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
 - :func:`mlflow_logger` / :func:`log_final_metrics` — Lightning's ``MLFlowLogger`` on the
@@ -27,7 +30,9 @@ Stable API (the fusion and the risk stages both use it):
 - One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
   :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
   :func:`read_model_checkpoint` reads it back with ``weights_only=True`` and checks it, and
-  :func:`net_state_dict` gives the network's weights.
+  :func:`net_state_dict` gives the network's weights. A model folder's ``model.ckpt`` and
+  ``model_meta.json`` are one unit: :func:`save_model_files` writes them (meta last, recording
+  the checkpoint's SHA-256) and :func:`check_model_pair` refuses a pair that does not match.
 """
 
 from __future__ import annotations
@@ -126,6 +131,35 @@ class TrainerSettings:
                 f"{source}: '{key}.devices' is {want} CPU processes but this machine has "
                 f"{os.cpu_count()} cores"
             )
+        self._check_lightning(source, key)
+
+    def _check_lightning(self, source: str | Path, key: str) -> None:
+        """Lightning must accept accelerator/devices/num_nodes/strategy/precision together on this
+        machine (e.g. ``mps`` or ``tpu`` that is not there, a device list on CPU, an unknown
+        strategy): a throw-away ``Trainer`` is built; its error becomes a ConfigError."""
+        from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+        # Lightning's startup banners -> warnings only (as in build_trainer)
+        logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
+        try:
+            L.Trainer(
+                accelerator=self.accelerator,
+                devices=self.devices,
+                num_nodes=self.num_nodes,
+                strategy=self.strategy,
+                precision=self.precision,  # type: ignore[arg-type]
+                logger=False,
+                enable_checkpointing=False,
+                enable_progress_bar=False,
+                enable_model_summary=False,
+            )
+        except (MisconfigurationException, ValueError, TypeError, ImportError, RuntimeError) as exc:
+            msg = " | ".join(ln.strip() for ln in str(exc).splitlines() if ln.strip())
+            raise ConfigError(
+                f"{source}: '{key}' (accelerator={self.accelerator!r}, devices={self.devices!r}, "
+                f"num_nodes={self.num_nodes}, strategy={self.strategy!r}, "
+                f"precision={self.precision!r}) cannot run here: {type(exc).__name__}: {msg}"
+            ) from None
 
     def resolved_deterministic(self) -> bool | str:
         if self.deterministic is not None:
@@ -166,6 +200,9 @@ def build_trainer(
         torch.set_num_threads(settings.num_threads)
     # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by History
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
+    callbacks = list(callbacks)
+    if not any(isinstance(cb, FiniteGuard) for cb in callbacks):
+        callbacks.append(FiniteGuard())
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
         devices=settings.devices,
@@ -267,6 +304,60 @@ class RankShardSampler(DistributedSampler):
                 f"RankShardSampler: base sampler gave {len(idx)} indices, not {self.n}"
             )
         return iter([idx[p] for p in self.positions.tolist()])
+
+
+class TrainingDiverged(FloatingPointError):
+    """A training loss or monitored validation metric became NaN or infinite (see :class:`FiniteGuard`)."""
+
+
+class FiniteGuard(Callback):
+    """Stop training at the first non-finite training loss (after every training batch) or
+    non-finite ``monitor`` value (after every validation), with :class:`TrainingDiverged`.
+
+    The message names ``stage``, the epoch (0-based), the global step, the value, the current
+    learning rate and ``hint`` (the setting to lower, e.g. ``fusion_model.optim.lr``), and says
+    that NaN/inf in the data have the same effect (the loaders refuse non-finite shards, so here
+    it is usually the learning rate). Read-only: it changes nothing in a run that stays finite.
+    """
+
+    def __init__(
+        self,
+        stage: str = "training",
+        *,
+        hint: str = "the learning rate",
+        monitor: str | None = None,
+    ) -> None:
+        self.stage = stage
+        self.hint = hint
+        self.monitor = monitor
+
+    def _fail(self, trainer: Any, what: str, value: float) -> None:
+        lr = None
+        if trainer.optimizers:
+            lr = trainer.optimizers[0].param_groups[0].get("lr")
+        lr_s = f", lr={float(lr):g}" if lr is not None else ""
+        raise TrainingDiverged(
+            f"{self.stage}: training diverged at epoch {int(trainer.current_epoch)}, step "
+            f"{int(trainer.global_step)}: {what} is {value}{lr_s}; lower {self.hint} "
+            f"(or check the training data for NaN/inf)"
+        )
+
+    def on_train_batch_end(
+        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
+        if loss is None:
+            return
+        v = _to_float(loss)
+        if v is not None and not math.isfinite(v):
+            self._fail(trainer, "the training loss", v)
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self.monitor is None or trainer.sanity_checking:
+            return
+        v = _to_float(trainer.callback_metrics.get(self.monitor))
+        if v is not None and not math.isfinite(v):
+            self._fail(trainer, self.monitor, v)
 
 
 def best_checkpoint(
@@ -654,3 +745,57 @@ def read_model_checkpoint(
 def net_state_dict(ckpt: Mapping[str, Any], prefix: str = "net.") -> dict[str, torch.Tensor]:
     """The network's weights of a checkpoint (``prefix`` removed)."""
     return {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
+
+
+# ---------------------------------------------------------------------------------------------
+# a model folder: model.ckpt + model_meta.json written and read as one unit
+
+CKPT_SHA_KEY = "ckpt_sha256"
+
+
+def save_model_files(
+    ckpt_path: str | Path,
+    ckpt: Mapping[str, Any],
+    meta_path: str | Path | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> str:
+    """Write a checkpoint and its metadata as one unit; returns the checkpoint's SHA-256.
+
+    Order: the old ``meta_path`` is removed first, then ``ckpt`` is written atomically
+    (:func:`save_model_checkpoint`), then ``meta`` + ``{"ckpt_sha256": <hex>}`` atomically last
+    (indented, key-sorted JSON). A kill at any point leaves either the old pair, or a checkpoint
+    without metadata, or the new pair — never a checkpoint beside another run's metadata;
+    :func:`check_model_pair` refuses a pair whose hash does not match.
+    """
+    from traffictwin.io.atomic import write_json_atomic
+    from traffictwin.io.shards import sha256_file
+
+    if meta_path is not None:
+        Path(meta_path).unlink(missing_ok=True)
+    save_model_checkpoint(ckpt_path, ckpt)
+    digest = sha256_file(ckpt_path)
+    if meta_path is not None:
+        write_json_atomic(meta_path, {**dict(meta or {}), CKPT_SHA_KEY: digest})
+    return digest
+
+
+def check_model_pair(
+    ckpt_path: str | Path,
+    meta: Mapping[str, Any] | None,
+    error: type[Exception] = CheckpointError,
+) -> None:
+    """Refuse a checkpoint whose metadata records another checkpoint's SHA-256 (``error`` names
+    the folder). Metadata without the key (models written before it existed, MLflow artifacts,
+    whose files the registry checks itself) or no metadata at all pass."""
+    if not meta or CKPT_SHA_KEY not in meta:
+        return
+    from traffictwin.io.shards import sha256_file
+
+    ckpt_path = Path(ckpt_path)
+    want, got = str(meta[CKPT_SHA_KEY]), sha256_file(ckpt_path)
+    if want != got:
+        raise error(
+            f"{ckpt_path.parent}: {ckpt_path.name} and its model_meta.json are not one pair "
+            f"(SHA-256 of {ckpt_path.name} {got[:12]}…, model_meta.json records {want[:12]}…): "
+            f"a training was interrupted or a file was replaced; re-run the training stage"
+        )
