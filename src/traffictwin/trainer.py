@@ -170,6 +170,25 @@ class TrainerSettings:
         return asdict(self)
 
 
+def check_device(device: str, source: str | Path, key: str) -> None:
+    """A torch device setting (``cpu``, ``cuda``, ``cuda:1``, ...) must name a device this machine
+    has; ConfigError naming ``key`` otherwise (stages call it before any output is touched)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(
+            f"{source}: '{key}' is not a torch device, got {device!r} ({exc})"
+        ) from None
+    if dev.type == "cuda":
+        have = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if have <= (dev.index or 0):
+            raise ConfigError(
+                f"{source}: '{key}' is {device!r} but this machine has {have} CUDA device(s): use cpu"
+            )
+    elif dev.type != "cpu":
+        raise ConfigError(f"{source}: '{key}' must be cpu or cuda[:i], got {device!r}")
+
+
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (and dataloader workers, via Lightning) for run-to-run determinism."""
     import lightning as L

@@ -271,3 +271,18 @@ def test_bad_params_end_in_one_line_before_outputs_are_touched(
     assert lines[0].startswith(f"{stage}: error: ") and named in lines[0]
     assert [p.name for p in out.iterdir()] == ["earlier.bin"]
     assert (out / "earlier.bin").read_bytes() == SENTINEL
+
+
+def test_device_settings_must_name_a_device_this_machine_has() -> None:
+    import torch
+
+    from traffictwin.trainer import check_device
+
+    check_device("cpu", "params.yaml", "evaluation.fusion.device")
+    with pytest.raises(ConfigError, match=r"'evaluation.fusion.device' is not a torch device"):
+        check_device("gpu0", "params.yaml", "evaluation.fusion.device")
+    with pytest.raises(ConfigError, match=r"must be cpu or cuda\[:i\], got 'meta'"):
+        check_device("meta", "params.yaml", "evaluation.fusion.device")
+    n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ConfigError, match=rf"is 'cuda:{n}' but this machine has {n} CUDA device"):
+        check_device(f"cuda:{n}", "params.yaml", "evaluation.fusion.device")
