@@ -44,23 +44,74 @@ def stage_timer(stage: str) -> Iterator[None]:
     )
 
 
-def run_stage(main: Callable[[], object], name: str) -> None:
-    """Run a stage's ``main``; bad input (config, dataset, value errors) ends with one clear line and exit 2.
+def error_line(exc: BaseException) -> str:
+    """``exc`` as one line: its class name and message, the message's lines joined with " | ".
 
-    Every error class of the library that means "the input is wrong" derives from ValueError
-    (ConfigError) or RuntimeError (DatasetError, model-loading errors), and names the file,
-    field or parameter itself; a traceback would only bury that line. Set
+    Library errors name the file, field or parameter themselves; foreign ones (numpy, OpenCV,
+    Lightning, OmegaConf) get at least their class, so "high - low < 0" reads as a ValueError.
+    """
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    msg = " | ".join(lines)
+    name = type(exc).__name__
+    return f"{name}: {msg}" if msg else name
+
+
+def stage_errors() -> tuple[type[BaseException], ...]:
+    """The failure types that mean "the input or the settings are wrong" (each ends a stage with
+    one line): the library's own (ValueError: ConfigError; RuntimeError: DatasetError, model
+    loading errors), file system errors, bad config keys (KeyError, OmegaConf and Hydra errors),
+    numerical blow-ups (FloatingPointError, incl. :class:`traffictwin.trainer.TrainingDiverged`),
+    Lightning's MisconfigurationException (e.g. an accelerator this machine lacks) and OpenCV's
+    ``cv2.error``. Anything else (TypeError, AttributeError, ...) is a bug and keeps its traceback."""
+    from hydra.errors import HydraException
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+    from omegaconf.errors import OmegaConfBaseException
+
+    types: list[type[BaseException]] = [
+        ValueError,
+        RuntimeError,
+        OSError,
+        KeyError,
+        FloatingPointError,
+        OmegaConfBaseException,
+        HydraException,
+        MisconfigurationException,
+    ]
+    try:
+        import cv2
+
+        types.append(cv2.error)
+    except ImportError:  # pragma: no cover - OpenCV is a dependency
+        pass
+    return tuple(types)
+
+
+def run_stage(main: Callable[[], object], name: str) -> None:
+    """Run a stage's ``main``; bad input ends with one line ``<name>: error: <class>: <message>``
+    (:func:`error_line`) and exit 2; a SIGTERM/SIGINT during a tracked MLflow run (which then
+    ends KILLED, see :func:`traffictwin.mlops.tracking.start_run`) with one line and exit
+    128 + the signal number.
+
+    The failure types caught are :func:`stage_errors`; library errors name the file, field or
+    parameter themselves and a traceback would only bury that line. Set
     ``TRAFFICTWIN_TRACEBACK=1`` to see the traceback anyway.
     """
+    from traffictwin.mlops.tracking import RunInterrupted
+
     from ._provenance import provenance_env
 
     os.environ.update(provenance_env())  # git commit + params hash for the MLflow tags
     try:
         main()
-    except (ValueError, RuntimeError) as exc:
+    except RunInterrupted as exc:
         if os.environ.get("TRAFFICTWIN_TRACEBACK"):
             raise
-        print(f"{name}: error: {exc}", file=sys.stderr)
+        print(f"{name}: interrupted: {exc}", file=sys.stderr)
+        sys.exit(128 + exc.signum)
+    except stage_errors() as exc:
+        if os.environ.get("TRAFFICTWIN_TRACEBACK"):
+            raise
+        print(f"{name}: error: {error_line(exc)}", file=sys.stderr)
         sys.exit(2)
 
 

@@ -21,4 +21,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from pipelines._common import run_stage
+
+    run_stage(main, "compose_params")  # a bad override: one line naming it, exit 2

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from traffictwin.config import typed
+from traffictwin.config import ConfigError, typed
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import (
     Dataset,
@@ -148,6 +148,10 @@ def run(
 
 def main() -> None:
     rd = typed(params().get("risk_data"), RiskDataConfig, key="risk_data")
+    try:  # before data/disparity is touched
+        rd.sgm.check_width(rd.camera.width, what="params.yaml: 'risk_data.sgm'")
+    except ValueError as exc:
+        raise ConfigError(f"{exc} ('risk_data.camera.width')") from None
     with stage_timer("disparity"):
         metrics = run(rd.sgm, rd.workers, rd.check.depth_bins_m)
         write_json_atomic(metrics_file("disparity"), metrics)

@@ -40,6 +40,7 @@ import pandas as pd
 
 from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations
 from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
+from traffictwin.trainer import check_device
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import (
@@ -174,6 +175,7 @@ def main() -> None:
     grid = grid_config(cfg)
     noise = pose_configurations(cfg)
     fc = fusion_eval_config(cfg)
+    check_device(fc.device, "params.yaml", "evaluation.fusion.device")
     ci = ev.fusion_ci_config(cfg)
     configs = list(noise)
     with stage_timer(STAGE):

@@ -42,6 +42,7 @@ from pipelines._paths import (  # noqa: E402
 )
 from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations  # noqa: E402
 from traffictwin.io.atomic import atomic_path, write_json_atomic  # noqa: E402
+from traffictwin.twin.data import INF_ARRAYS  # noqa: E402
 
 STAGE = "evaluate_twin"
 METRICS = metrics_file("twin")
@@ -124,7 +125,7 @@ def main() -> None:
         cfg
     ).registration_params  # the classical registration of evaluate_fusion
     with stage_timer(STAGE):
-        ds = Dataset(TWIN_DATA, kind="twin")
+        ds = Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS)
         seqs = [ds.load_shard(i) for i in ds.shard_indices()]
         frames, summary = [], {}
         models_by_cfg = {}

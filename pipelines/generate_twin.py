@@ -28,7 +28,7 @@ from traffictwin.fusion.config import fusion_data_config, grid_config
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 from traffictwin.twin.config import twin_config
-from traffictwin.twin.data import TwinDataParams, write_sequence
+from traffictwin.twin.data import INF_ARRAYS, TwinDataParams, write_sequence
 
 STAGE = "generate_twin"
 METRICS = metrics_file("twin_data")
@@ -126,7 +126,7 @@ def main() -> None:
         ):
             writer.record_shard(idx, shard_name(idx), digest, count)
         writer.finalize(extra={"vehicles": tc.vehicles, "fps": tc.fps})
-        metrics = data_summary(Dataset(TWIN_DATA, kind="twin"))
+        metrics = data_summary(Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS))
         write_json_atomic(METRICS, metrics)
         log.info("%s: %s", STAGE, metrics)
 

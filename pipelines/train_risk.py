@@ -84,6 +84,22 @@ def train_settings(
     return tc, model.train.max_train_frames
 
 
+def check_disparity_scale(p, cfg: Dave2Config) -> None:
+    """A network fed SGM disparity needs ``risk_data.sgm.num_disparities <= risk_model.disp_scale``:
+    SGM finds disparities up to num_disparities - 1 px and the network sees them divided by
+    disp_scale, trained for inputs in [0, 1] (ConfigError naming both settings)."""
+    if "disp_sgm" not in cfg.inputs:
+        return
+    nd = get(p, "risk_data.sgm.num_disparities", int, min=1)
+    if nd > cfg.disp_scale:
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_data.sgm.num_disparities'={nd} exceeds "
+            f"'risk_model.disp_scale'={cfg.disp_scale:g}: SGM disparities up to {nd - 1} px would "
+            f"reach {(nd - 1) / cfg.disp_scale:.2f} after normalisation (1.0 at disp_scale px); "
+            f"set risk_model.disp_scale >= num_disparities"
+        )
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--variant", required=True)
@@ -94,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     source = PARAMS.name
     model = risk_model(p)
     cfg, label = variant_config(model, variant)
+    check_disparity_scale(p, cfg)
     tc, max_train = train_settings(model, p, variant)
     settings = TrainerSettings.from_cfg(p, source=source)
     settings.check_available(source)

@@ -324,6 +324,7 @@ def write_registration_data(
                 "pair_id": np.arange(n) + 1000 * i,
             },
             split=split,
+            check=not nan_pose,  # the NaN-pose fixture: a shard with a valid hash, bad values
         )
     wr.finalize()
     return root
@@ -382,7 +383,7 @@ def test_bad_training_data_fails_naming_it_and_writes_nothing(tmp_path: Path) ->
 
     root = write_registration_data(tmp_path / "pre", nan_pose=True)
     with pytest.raises(
-        DatasetError, match=r"pre: split 'val' array 'rel_pose_noisy' must be finite"
+        DatasetError, match=r"pre/shard-00002.npz: array 'rel_pose_noisy' holds 1 NaN"
     ):
         fit_small(root, tmp_path / "out")
     assert not (tmp_path / "out").exists()

@@ -106,6 +106,8 @@ def get(
             )
         if float in types and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
+    if (min is not None or max is not None) and not _finite(value):
+        raise ConfigError(f"{source}: '{key}' must be a finite number, got {value!r}")
     if min is not None and value < min:
         raise ConfigError(f"{source}: '{key}' must be >= {min}, got {value!r}")
     if max is not None and value > max:
@@ -115,6 +117,14 @@ def get(
         if value not in allowed:
             raise ConfigError(f"{source}: '{key}' must be one of {allowed}, got {value!r}")
     return value
+
+
+def _finite(value: Any) -> bool:
+    """False for a NaN or infinite float (a bounded setting must be a number: NaN passes every
+    ``<`` comparison); True for everything else."""
+    import math
+
+    return not isinstance(value, float) or math.isfinite(value)
 
 
 def _is_type(value: Any, t: type) -> bool:
@@ -207,6 +217,8 @@ def _check_bounds(obj: Any, key: str, source: str | Path) -> None:
                 and not isinstance(value, (list, dict))
                 and not dataclasses.is_dataclass(value)
             ):
+                if (lo is not None or hi is not None) and not _finite(value):
+                    raise ConfigError(f"{source}: '{full}' must be a finite number, got {value!r}")
                 if lo is not None and value < lo:
                     raise ConfigError(f"{source}: '{full}' must be >= {lo}, got {value!r}")
                 if hi is not None and value > hi:

@@ -89,3 +89,57 @@ def read_model_checkpoint(
 def net_state_dict(ckpt: Mapping[str, Any], prefix: str = "net.") -> dict[str, torch.Tensor]:
     """The network's weights of a checkpoint (``prefix`` removed)."""
     return {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
+
+
+# ---------------------------------------------------------------------------------------------
+# a model folder: model.ckpt + model_meta.json written and read as one unit
+
+CKPT_SHA_KEY = "ckpt_sha256"
+
+
+def save_model_files(
+    ckpt_path: str | Path,
+    ckpt: Mapping[str, Any],
+    meta_path: str | Path | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> str:
+    """Write a checkpoint and its metadata as one unit; returns the checkpoint's SHA-256.
+
+    Order: the old ``meta_path`` is removed first, then ``ckpt`` is written atomically
+    (:func:`save_model_checkpoint`), then ``meta`` + ``{"ckpt_sha256": <hex>}`` atomically last
+    (indented, key-sorted JSON). A kill at any point leaves either the old pair, or a checkpoint
+    without metadata, or the new pair — never a checkpoint beside another run's metadata;
+    :func:`check_model_pair` refuses a pair whose hash does not match.
+    """
+    from traffictwin.io.atomic import write_json_atomic
+    from traffictwin.io.shards import sha256_file
+
+    if meta_path is not None:
+        Path(meta_path).unlink(missing_ok=True)
+    save_model_checkpoint(ckpt_path, ckpt)
+    digest = sha256_file(ckpt_path)
+    if meta_path is not None:
+        write_json_atomic(meta_path, {**dict(meta or {}), CKPT_SHA_KEY: digest})
+    return digest
+
+
+def check_model_pair(
+    ckpt_path: str | Path,
+    meta: Mapping[str, Any] | None,
+    error: type[Exception] = CheckpointError,
+) -> None:
+    """Refuse a checkpoint whose metadata records another checkpoint's SHA-256 (``error`` names
+    the folder). Metadata without the key (models written before it existed, MLflow artifacts,
+    whose files the registry checks itself) or no metadata at all pass."""
+    if not meta or CKPT_SHA_KEY not in meta:
+        return
+    from traffictwin.io.shards import sha256_file
+
+    ckpt_path = Path(ckpt_path)
+    want, got = str(meta[CKPT_SHA_KEY]), sha256_file(ckpt_path)
+    if want != got:
+        raise error(
+            f"{ckpt_path.parent}: {ckpt_path.name} and its model_meta.json are not one pair "
+            f"(SHA-256 of {ckpt_path.name} {got[:12]}…, model_meta.json records {want[:12]}…): "
+            f"a training was interrupted or a file was replaced; re-run the training stage"
+        )

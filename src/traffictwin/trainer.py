@@ -15,6 +15,9 @@ Stable API (the fusion and the risk stages both use it):
   same per-epoch draw split evenly over the ranks, evaluation every sample exactly once
   (Lightning's own DistributedSampler would repeat samples to even out the ranks).
 - :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
+- :class:`FiniteGuard` — the one finite-loss guard of every trainer (:func:`build_trainer` adds
+  one when the caller gave none): a NaN/inf training loss or monitored metric stops the run with
+  :class:`TrainingDiverged` naming the stage, epoch, step, learning rate and the parameter to lower.
 - :class:`History` — the metric rows (per epoch, or per validation for the risk net's
   per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
 - :func:`mlflow_logger` / :func:`log_final_metrics` — Lightning's ``MLFlowLogger`` on the
@@ -27,7 +30,9 @@ Stable API (the fusion and the risk stages both use it):
 - One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
   :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
   :func:`read_model_checkpoint` reads it back with ``weights_only=True`` and checks it, and
-  :func:`net_state_dict` gives the network's weights.
+  :func:`net_state_dict` gives the network's weights. A model folder's ``model.ckpt`` and
+  ``model_meta.json`` are one unit: :func:`save_model_files` writes them (meta last, recording
+  the checkpoint's SHA-256) and :func:`check_model_pair` refuses a pair that does not match.
 """
 
 from __future__ import annotations
@@ -52,12 +57,15 @@ from torch.utils.data import DistributedSampler, Sampler
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.io.atomic import atomic_path
 from traffictwin.model_format import (  # noqa: F401 - re-exported: the one checkpoint format
+    CKPT_SHA_KEY,
     MODEL_FORMAT,
     CheckpointError,
+    check_model_pair,
     model_checkpoint,
     net_state_dict,
     read_model_checkpoint,
     save_model_checkpoint,
+    save_model_files,
 )
 
 log = logging.getLogger(__name__)
@@ -134,6 +142,35 @@ class TrainerSettings:
                 f"{source}: '{key}.devices' is {want} CPU processes but this machine has "
                 f"{os.cpu_count()} cores"
             )
+        self._check_lightning(source, key)
+
+    def _check_lightning(self, source: str | Path, key: str) -> None:
+        """Lightning must accept accelerator/devices/num_nodes/strategy/precision together on this
+        machine (e.g. ``mps`` or ``tpu`` that is not there, a device list on CPU, an unknown
+        strategy): a throw-away ``Trainer`` is built; its error becomes a ConfigError."""
+        from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+        # Lightning's startup banners -> warnings only (as in build_trainer)
+        logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
+        try:
+            L.Trainer(
+                accelerator=self.accelerator,
+                devices=self.devices,
+                num_nodes=self.num_nodes,
+                strategy=self.strategy,
+                precision=self.precision,  # type: ignore[arg-type]
+                logger=False,
+                enable_checkpointing=False,
+                enable_progress_bar=False,
+                enable_model_summary=False,
+            )
+        except (MisconfigurationException, ValueError, TypeError, ImportError, RuntimeError) as exc:
+            msg = " | ".join(ln.strip() for ln in str(exc).splitlines() if ln.strip())
+            raise ConfigError(
+                f"{source}: '{key}' (accelerator={self.accelerator!r}, devices={self.devices!r}, "
+                f"num_nodes={self.num_nodes}, strategy={self.strategy!r}, "
+                f"precision={self.precision!r}) cannot run here: {type(exc).__name__}: {msg}"
+            ) from None
 
     def resolved_deterministic(self) -> bool | str:
         if self.deterministic is not None:
@@ -142,6 +179,25 @@ class TrainerSettings:
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def check_device(device: str, source: str | Path, key: str) -> None:
+    """A torch device setting (``cpu``, ``cuda``, ``cuda:1``, ...) must name a device this machine
+    has; ConfigError naming ``key`` otherwise (stages call it before any output is touched)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(
+            f"{source}: '{key}' is not a torch device, got {device!r} ({exc})"
+        ) from None
+    if dev.type == "cuda":
+        have = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if have <= (dev.index or 0):
+            raise ConfigError(
+                f"{source}: '{key}' is {device!r} but this machine has {have} CUDA device(s): use cpu"
+            )
+    elif dev.type != "cpu":
+        raise ConfigError(f"{source}: '{key}' must be cpu or cuda[:i], got {device!r}")
 
 
 def seed_everything(seed: int) -> None:
@@ -180,6 +236,9 @@ def build_trainer(
         torch.set_num_threads(settings.num_threads)
     # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by History
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
+    callbacks = list(callbacks)
+    if not any(isinstance(cb, FiniteGuard) for cb in callbacks):
+        callbacks.append(FiniteGuard())
     kw: dict[str, Any] = dict(
         accelerator=settings.accelerator,
         devices=settings.devices,
@@ -283,6 +342,60 @@ class RankShardSampler(DistributedSampler):
                 f"RankShardSampler: base sampler gave {len(idx)} indices, not {self.n}"
             )
         return iter([idx[p] for p in self.positions.tolist()])
+
+
+class TrainingDiverged(FloatingPointError):
+    """A training loss or monitored validation metric became NaN or infinite (see :class:`FiniteGuard`)."""
+
+
+class FiniteGuard(Callback):
+    """Stop training at the first non-finite training loss (after every training batch) or
+    non-finite ``monitor`` value (after every validation), with :class:`TrainingDiverged`.
+
+    The message names ``stage``, the epoch (0-based), the global step, the value, the current
+    learning rate and ``hint`` (the setting to lower, e.g. ``fusion_model.optim.lr``), and says
+    that NaN/inf in the data have the same effect (the loaders refuse non-finite shards, so here
+    it is usually the learning rate). Read-only: it changes nothing in a run that stays finite.
+    """
+
+    def __init__(
+        self,
+        stage: str = "training",
+        *,
+        hint: str = "the learning rate",
+        monitor: str | None = None,
+    ) -> None:
+        self.stage = stage
+        self.hint = hint
+        self.monitor = monitor
+
+    def _fail(self, trainer: Any, what: str, value: float) -> None:
+        lr = None
+        if trainer.optimizers:
+            lr = trainer.optimizers[0].param_groups[0].get("lr")
+        lr_s = f", lr={float(lr):g}" if lr is not None else ""
+        raise TrainingDiverged(
+            f"{self.stage}: training diverged at epoch {int(trainer.current_epoch)}, step "
+            f"{int(trainer.global_step)}: {what} is {value}{lr_s}; lower {self.hint} "
+            f"(or check the training data for NaN/inf)"
+        )
+
+    def on_train_batch_end(
+        self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        loss = outputs.get("loss") if isinstance(outputs, Mapping) else outputs
+        if loss is None:
+            return
+        v = _to_float(loss)
+        if v is not None and not math.isfinite(v):
+            self._fail(trainer, "the training loss", v)
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self.monitor is None or trainer.sanity_checking:
+            return
+        v = _to_float(trainer.callback_metrics.get(self.monitor))
+        if v is not None and not math.isfinite(v):
+            self._fail(trainer, self.monitor, v)
 
 
 def best_checkpoint(

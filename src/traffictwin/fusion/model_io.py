@@ -3,7 +3,7 @@
 ``models/fusion/<cfg>/model.ckpt`` is in the one checkpoint format of
 :mod:`traffictwin.trainer` (``state_dict`` with ``net.`` prefixes, ``epoch``, ``global_step`` and
 a ``traffictwin`` block: format, problem, architecture, cfg, grid, data manifest hash, ...); ``model_meta.json`` beside it says the same in JSON. :func:`load_fusion_model`
-checks the two agree and, when given, that they match what the caller expects (configuration,
+checks the two agree (the checkpoint's SHA-256 recorded in the meta, and the keys both hold) and, when given, that they match what the caller expects (configuration,
 architecture, grid), and fails with a message naming the file and the mismatch otherwise.
 """
 
@@ -19,7 +19,12 @@ import torch
 
 from traffictwin.evidential.masses import evidence_to_masses
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
-from traffictwin.model_format import MODEL_FORMAT, net_state_dict, read_model_checkpoint
+from traffictwin.model_format import (
+    MODEL_FORMAT,
+    check_model_pair,
+    net_state_dict,
+    read_model_checkpoint,
+)
 
 CKPT_FORMAT = MODEL_FORMAT  # the one format of traffictwin.trainer, problem "fusion"
 META_NAME = "model_meta.json"
@@ -72,6 +77,7 @@ def load_fusion_model(
             meta = json.loads(meta_path.read_text())
         except json.JSONDecodeError as exc:
             raise FusionModelError(f"{meta_path}: not valid JSON ({exc})") from None
+        check_model_pair(path, meta, FusionModelError)
         for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
             if meta.get(key) != info.get(key):
                 raise FusionModelError(

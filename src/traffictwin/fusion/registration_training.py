@@ -368,6 +368,9 @@ def fit_registration(
                 ckpt_cb,
                 common.early_stopping(SELECTION_METRIC, train.early_stopping_patience),
                 *session.callbacks(),
+                common.FiniteGuard(
+                    tracking.stage, hint="registration_model.train.lr", monitor=SELECTION_METRIC
+                ),
             ],
             default_root_dir=work,
         )
@@ -462,9 +465,7 @@ def fit_registration(
             )
             meta["mlflow_model_uri"] = uri
             slim["traffictwin"]["mlflow_model_uri"] = uri
-        common.save_model_checkpoint(ckpt_out, slim)
-        if meta_out:
-            write_json_atomic(meta_out, meta)
+        common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
         if curves_out:
@@ -493,7 +494,11 @@ def load_registration_model(
     info = ck["traffictwin"]
     meta_path = path.parent / "model_meta.json"
     if meta_path.exists():
-        meta = json.loads(meta_path.read_text())
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise FusionModelError(f"{meta_path}: not valid JSON ({exc})") from None
+        common.check_model_pair(path, meta, FusionModelError)
         for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
             if meta.get(key) != info.get(key):
                 raise FusionModelError(

@@ -700,6 +700,9 @@ def fit_fusion(
             history,
             ckpt_cb,
             common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
+            common.FiniteGuard(
+                tracking.stage, hint="fusion_model.optim.lr", monitor=SELECTION_METRIC
+            ),
         ]
         callbacks += session.callbacks()
         trainer = common.build_trainer(
@@ -785,9 +788,7 @@ def fit_fusion(
             )
             meta["mlflow_model_uri"] = model_uri
             slim["traffictwin"]["mlflow_model_uri"] = model_uri
-        common.save_model_checkpoint(ckpt_out, slim)
-        if meta_out:
-            write_json_atomic(meta_out, meta)
+        common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
         if curves_out:

@@ -9,6 +9,11 @@ manifest with their SHA-256 as well.
 Reading verifies the manifest: schema version, kind, every shard's presence and hash.
 Errors name the file and what is wrong.
 
+Shards hold finite numbers only (:func:`check_finite`): writers refuse float arrays with NaN or
+±inf, and readers refuse them too (a shard with a valid hash may still come from an older or
+foreign writer). Arrays where infinity is a defined value (e.g. "no object ahead" headways) are
+named in ``allow_inf`` by the writer and the reader; NaN is never data.
+
 A dataset can also be generated in parts on several machines: each writes a shard range and a
 partial manifest (:meth:`DatasetWriter.finalize_part`); :func:`merge_parts` checks the parts
 against each other and the expected parameters and writes the same ``manifest.json`` one machine
@@ -22,7 +27,7 @@ import io
 import json
 import shutil
 import zipfile
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,11 +60,44 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def check_finite(
+    arrays: Mapping[str, np.ndarray], where: str | Path, allow_inf: Collection[str] = ()
+) -> None:
+    """Raise :class:`DatasetError` naming ``where`` and the array when a float array of ``arrays``
+    holds NaN, or ±inf unless its key is in ``allow_inf``. Integer and bool arrays pass."""
+    for key in sorted(arrays):
+        a = np.asarray(arrays[key])
+        if a.dtype.kind not in "fc":
+            continue
+        ok = ~np.isnan(a) if key in allow_inf else np.isfinite(a)
+        if ok.all():
+            continue
+        bad = ~ok
+        n_nan, n_inf = int(np.isnan(a).sum()), int((bad & ~np.isnan(a)).sum())
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise DatasetError(
+            f"{where}: array '{key}' holds {n_nan} NaN and {n_inf} infinite value(s) "
+            f"(first at index {first}); shards must hold finite numbers"
+        )
+
+
 def write_npz_deterministic(
-    path: str | Path, arrays: Mapping[str, np.ndarray], compresslevel: int = 6
+    path: str | Path,
+    arrays: Mapping[str, np.ndarray],
+    compresslevel: int = 6,
+    *,
+    allow_inf: Collection[str] = (),
+    check: bool = True,
 ) -> str:
-    """Write ``arrays`` as a compressed ``.npz`` with fixed metadata, atomically; return its SHA-256."""
+    """Write ``arrays`` as a compressed ``.npz`` with fixed metadata, atomically; return its SHA-256.
+
+    Non-finite float arrays are refused before anything is written (:func:`check_finite`;
+    ``allow_inf``: keys where ±inf is a value). ``check=False`` writes them as given — only for
+    building corrupt fixtures in tests of the readers.
+    """
     path = Path(path)
+    if check:
+        check_finite(arrays, f"{path} (refusing to write)", allow_inf)
     with atomic_path(path, suffix=".npz") as tmp:
         with zipfile.ZipFile(
             tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel
@@ -82,16 +120,19 @@ def write_npz_deterministic(
     return digest
 
 
-def read_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` into memory; a clear error if it is not a readable archive."""
+def read_npz(path: str | Path, allow_inf: Collection[str] = ()) -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` into memory; a clear error if it is not a readable archive
+    or a float array holds NaN (or ±inf outside ``allow_inf``; :func:`check_finite`)."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            arrays = {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         raise DatasetError(f"{path}: not a readable .npz archive ({exc})") from None
+    check_finite(arrays, path, allow_inf)
+    return arrays
 
 
 @dataclass
@@ -176,14 +217,21 @@ class DatasetWriter:
 
     # -- writing ------------------------------------------------------------------------------
     def add_shard(
-        self, index: int, arrays: Mapping[str, np.ndarray], split: str | None = None
+        self,
+        index: int,
+        arrays: Mapping[str, np.ndarray],
+        split: str | None = None,
+        *,
+        allow_inf: Collection[str] = (),
+        check: bool = True,
     ) -> ShardInfo:
-        """Write shard ``index`` (all arrays share the first dimension = sample count)."""
+        """Write shard ``index`` (all arrays share the first dimension = sample count; finite,
+        see :func:`write_npz_deterministic` for ``allow_inf`` and ``check``)."""
         counts = {k: len(v) for k, v in arrays.items()}
         if len(set(counts.values())) > 1:
             raise ValueError(f"shard {index}: arrays disagree on the sample count: {counts}")
         name = shard_name(index)
-        digest = write_npz_deterministic(self.root / name, arrays)
+        digest = write_npz_deterministic(self.root / name, arrays, allow_inf=allow_inf, check=check)
         return self.record_shard(
             index, name, digest, next(iter(counts.values())) if counts else 0, split
         )
@@ -461,8 +509,16 @@ def merge_parts(
 class Dataset:
     """A verified, read-only view of a dataset folder."""
 
-    def __init__(self, root: str | Path, kind: str | None = None, verify: bool = True) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        kind: str | None = None,
+        verify: bool = True,
+        allow_inf: Collection[str] = (),
+    ) -> None:
+        """``allow_inf``: arrays where ±inf is a value (NaN never is; :func:`check_finite`)."""
         self.root = Path(root)
+        self.allow_inf = tuple(allow_inf)
         mpath = self.root / MANIFEST
         if not self.root.is_dir():
             raise DatasetError(
@@ -527,7 +583,7 @@ class Dataset:
 
     def load_shard(self, i: int) -> dict[str, np.ndarray]:
         s = self.shards[i]
-        return read_npz(self._check(s["name"], s["sha256"]))
+        return read_npz(self._check(s["name"], s["sha256"]), self.allow_inf)
 
     def iter_shards(self, split: str | None = None) -> Iterable[dict[str, np.ndarray]]:
         for i in self.shard_indices(split):

@@ -36,12 +36,21 @@ How runs are tagged (:func:`base_tags`)
     Provenance comes in through the environment: the workflow layer computes the commit and the
     params hash (``pipelines/_provenance.py``) and exports them before a stage runs. This module
     runs no git and reads no params file; a variable that is not set reads as ``""``.
+
+How runs end (:func:`start_run`)
+    ``FINISHED`` when the block completes, ``FAILED`` when it raises, ``KILLED`` on SIGTERM or
+    SIGINT: for the run's duration both signals raise :class:`RunInterrupted` in the main thread
+    (once; a repeated signal during the clean-up is ignored), so the stack unwinds (Lightning
+    tears its trainer down), the run is ended with that status and the previous handlers are
+    restored. A SIGKILL cannot be handled: such a run stays ``RUNNING``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import signal
+import threading
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -201,6 +210,56 @@ def base_tags(profile: str, stage: str, extra: Mapping[str, Any] | None = None) 
     return tags
 
 
+class RunInterrupted(BaseException):
+    """SIGTERM or SIGINT arrived during a tracked run (raised by the handlers of :func:`interruptible`).
+
+    A ``BaseException`` like ``KeyboardInterrupt``, so ``except Exception`` blocks let it pass;
+    ``signum`` is the signal's number (a stage exits with 128 + signum).
+    """
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(f"received {signal.Signals(self.signum).name}")
+
+
+@contextmanager
+def interruptible(
+    signals: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT),
+) -> Iterator[list[int]]:
+    """While inside, each of ``signals`` raises :class:`RunInterrupted` (the first one only; later
+    ones are noted and ignored, so clean-up is not interrupted). Yields the list of the signals
+    received. The previous handlers are restored on exit. Outside the main thread (where Python
+    cannot install handlers) nothing is installed."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        received.append(signum)
+        if len(received) == 1:
+            raise RunInterrupted(signum)
+
+    previous = {s: signal.getsignal(s) for s in signals}
+    for s in signals:
+        signal.signal(s, handler)
+    try:
+        yield received
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+def end_status(exc: BaseException | None, received: list[int] | None = None) -> str:
+    """The MLflow status a run ends with: ``FINISHED`` (no exception), ``KILLED`` (a signal was
+    received, or the exception is :class:`RunInterrupted` / ``KeyboardInterrupt``), else ``FAILED``."""
+    if exc is None:
+        return "FINISHED"
+    if received or isinstance(exc, (RunInterrupted, KeyboardInterrupt)):
+        return "KILLED"
+    return "FAILED"
+
+
 @contextmanager
 def start_run(
     experiment: str,
@@ -212,7 +271,8 @@ def start_run(
     params: Mapping[str, Any] | None = None,
     run_id: str | None = None,
 ) -> Iterator[Any]:
-    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``.
+    """Start an MLflow run in ``experiment`` with the project's tags and (once) ``params``; it
+    ends ``FINISHED``, ``FAILED`` on an exception, ``KILLED`` on SIGTERM/SIGINT (module docstring).
 
     ``run_id``: continue that run instead (a resumed training; ignored when the store has no
     such run in ``experiment``, e.g. another tracking URI): the same tags and params are set again.
@@ -228,12 +288,20 @@ def start_run(
                 run_id = None
         except MlflowException:
             run_id = None
-    with mlflow.start_run(
-        run_id=run_id, run_name=None if run_id else run_name, tags=base_tags(profile, stage, tags)
-    ) as run:
-        if params:
-            log_params(params)
-        yield run
+    with interruptible() as received:
+        run = mlflow.start_run(
+            run_id=run_id,
+            run_name=None if run_id else run_name,
+            tags=base_tags(profile, stage, tags),
+        )
+        try:
+            if params:
+                log_params(params)
+            yield run
+        except BaseException as exc:
+            mlflow.end_run(end_status(exc, received))
+            raise
+        mlflow.end_run(end_status(None))
 
 
 def log_params(params: Mapping[str, Any]) -> None:

@@ -18,7 +18,7 @@ from traffictwin.risk.baselines import GeometricParams
 from traffictwin.risk.dataset import LABELS, RiskDataSpec
 from traffictwin.risk.metric import RiskConfig
 from traffictwin.sim.camera import StereoCamera
-from traffictwin.sim.driving import SITUATIONS, DrivingConfig
+from traffictwin.sim.driving import MIN_TOP_SPEED, SITUATIONS, DrivingConfig
 from traffictwin.stereo.check import StereoCheckParams
 from traffictwin.stereo.orb import OrbParams
 from traffictwin.stereo.sgm import SgmParams
@@ -50,9 +50,10 @@ class FaultParams:
     vertical_px: list[float] = spec()
 
     def __post_init__(self) -> None:
-        if len(self.vertical_px) != 2:
+        if len(self.vertical_px) != 2 or not 0 <= self.vertical_px[0] <= self.vertical_px[1]:
             raise ValueError(
-                f"'faults.vertical_px' must be [low, high] px, got {list(self.vertical_px)}"
+                f"'faults.vertical_px' must be [low, high] px with 0 <= low <= high, "
+                f"got {list(self.vertical_px)}"
             )
 
 
@@ -79,7 +80,7 @@ class RiskDataConfig:
     frames_per_sequence: int = spec(min=1)
     fps: float = spec(min=0.1)
     warmup: float = spec(min=0)
-    max_speed: float = spec(min=1)
+    max_speed: float = spec(min=MIN_TOP_SPEED)  # the situations draw speeds from 12 m/s up to it
     situations: dict[str, float] = spec()
     parked_prob: list[float] = spec()
     templates: list[str] = spec()

@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from traffictwin.io.atomic import write_json_atomic
 from traffictwin.model_format import (
     MODEL_FORMAT,
+    check_model_pair,
     model_checkpoint,
     net_state_dict,
     read_model_checkpoint,
-    save_model_checkpoint,
+    save_model_files,
 )
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
 
@@ -102,11 +102,12 @@ def risk_meta(net: Dave2, meta: Mapping[str, Any] | None = None) -> dict[str, An
 
 
 def save_risk_model(net: Dave2, out_dir: str | Path, meta: Mapping[str, Any] | None = None) -> Path:
-    """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` (atomically); returns the folder."""
+    """Write ``model.ckpt`` and ``model_meta.json`` into ``out_dir`` as one unit
+    (:func:`traffictwin.trainer.save_model_files`: old meta removed, checkpoint, then the meta
+    with the checkpoint's SHA-256, each atomically); returns the folder."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    save_model_checkpoint(out / CKPT, risk_checkpoint(net, meta))
-    write_json_atomic(out / META, risk_meta(net, meta))
+    save_model_files(out / CKPT, risk_checkpoint(net, meta), out / META, risk_meta(net, meta))
     return out
 
 
@@ -139,6 +140,7 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
             meta = json.loads(mpath.read_text())
         except json.JSONDecodeError as exc:
             raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
+        check_model_pair(ckpt, meta, RiskModelError)
         if meta.get("config") not in (None, cfg.to_dict()):
             raise RiskModelError(
                 f"{mpath}: config disagrees with {ckpt} (files from different trainings?)"

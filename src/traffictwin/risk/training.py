@@ -61,6 +61,7 @@ from traffictwin.risk.dave2 import (
 )
 from traffictwin.risk.model_io import CKPT, risk_checkpoint, risk_meta, save_risk_model
 from traffictwin.trainer import (
+    FiniteGuard,
     History,
     NetModule,
     RankShardSampler,
@@ -166,12 +167,7 @@ class RiskSource:
                 raise DatasetError(
                     f"{orb_path}: ORB check table not found (run the stage that writes it first)"
                 )
-            orb = pd.read_csv(orb_path)
-            for c in ("frame_id", "outlier"):
-                if c not in orb.columns:
-                    raise DatasetError(
-                        f"{orb_path}: column '{c}' missing (has {list(orb.columns)})"
-                    )
+            orb = read_orb_table(orb_path)
             outlier = orb.set_index("frame_id")["outlier"].map(_as_bool)
             flag = frames["frame_id"].map(outlier)
             if flag.isna().any():
@@ -244,6 +240,48 @@ class RiskSource:
                     "disparity maps must have the left image's size"
                 )
             yield rows, arrays
+
+
+def read_orb_table(path: str | Path) -> pd.DataFrame:
+    """The ORB check table (``frame_id``, ``outlier``, ...), checked: readable CSV, both columns
+    present, ``frame_id`` integral and unique, ``outlier`` boolean. The only data file without a
+    manifest hash, so every way it can be corrupt ends in a DatasetError naming file and column."""
+    path = Path(path)
+    try:
+        orb = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as exc:
+        msg = " ".join(str(exc).split())
+        raise DatasetError(
+            f"{path}: not a readable CSV table ({type(exc).__name__}: {msg})"
+        ) from None
+    for c in ("frame_id", "outlier"):
+        if c not in orb.columns:
+            raise DatasetError(f"{path}: column '{c}' missing (has {list(orb.columns)})")
+    fid = pd.to_numeric(orb["frame_id"], errors="coerce")
+    if fid.isna().any() or not np.all(fid == np.round(fid)):
+        row = int(np.flatnonzero(fid.isna() | (fid != np.round(fid)))[0])
+        raise DatasetError(
+            f"{path}: column 'frame_id' must hold integers, row {row + 2} has "
+            f"{orb['frame_id'].iloc[row]!r}"
+        )
+    if fid.duplicated().any():
+        dup = int(fid[fid.duplicated()].iloc[0])
+        raise DatasetError(f"{path}: column 'frame_id' repeats frame {dup}")
+    orb = orb.assign(frame_id=fid.astype(np.int64))
+    bad = [v for v in orb["outlier"] if not _is_bool_like(v)]
+    if bad:
+        raise DatasetError(
+            f"{path}: column 'outlier' must hold booleans (True/False, 1/0), got {bad[0]!r}"
+        )
+    return orb
+
+
+def _is_bool_like(v: Any) -> bool:
+    if isinstance(v, (bool, np.bool_)):
+        return True
+    if isinstance(v, str):
+        return v.strip().lower() in ("true", "false", "1", "0", "yes", "no")
+    return isinstance(v, (int, np.integer, float, np.floating)) and v in (0, 1)
 
 
 def _as_bool(v: Any) -> bool:
@@ -474,8 +512,6 @@ class RiskRegressor(NetModule):
     def training_step(self, batch: Sequence[torch.Tensor], batch_idx: int) -> torch.Tensor:
         rgb, disp, speed, y = batch
         loss = risk_loss(self.cfg, self.raw(rgb, disp, speed), y, self.bce_weight)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"risk training loss is not finite at step {self.global_step}")
         self.log("train/loss", loss, on_step=True, on_epoch=False, prog_bar=True, batch_size=len(y))
         return loss
 
@@ -900,7 +936,10 @@ def fit_risk(
             if data.disparity is not None:
                 log_dataset(data.disparity.root, data.disparity.manifest_hash())
         session.started(run)
-        res = fit(cfg, train, val, tc, settings, logger=logger, session=session)
+        guard = FiniteGuard(tracking.stage, hint="risk_model.train.lr", monitor="val/loss")
+        res = fit(
+            cfg, train, val, tc, settings, logger=logger, extra_callbacks=[guard], session=session
+        )
         if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
             return None
         if out_dir.exists():

@@ -62,6 +62,11 @@ def draw_situation(seed: int, index: int, weights: tuple[tuple[str, float], ...]
     return str(names[int(rng.choice(len(names), p=w / w.sum()))])
 
 
+# the lowest top speed (m/s) the situations can be drawn with: 'approach_slow' draws the subject's
+# speed in [12, max_speed], 'follow_*' a lead in [6, max_speed - 2], others in [8, max_speed]
+MIN_TOP_SPEED = 12.0
+
+
 @dataclass(frozen=True)
 class DrivingConfig:
     """fps: frame rate (Hz); frames: frames per sequence; warmup: simulated seconds before the
@@ -88,6 +93,11 @@ class DrivingConfig:
     def __post_init__(self) -> None:
         if self.fps <= 0 or self.frames < 1 or self.sim_dt <= 0 or self.warmup < 0:
             raise ValueError("driving: fps and sim_dt must be > 0, frames >= 1, warmup >= 0")
+        if not self.max_speed >= MIN_TOP_SPEED:
+            raise ValueError(
+                f"driving: max_speed must be >= {MIN_TOP_SPEED} m/s (the situations draw speeds "
+                f"up to it from at least 12 m/s), got {self.max_speed}"
+            )
         unknown = [n for n, _ in self.situations if n not in SITUATIONS]
         if unknown:
             raise ValueError(

@@ -48,6 +48,11 @@ class SgmParams:
     def __post_init__(self) -> None:
         self.matcher()  # make_matcher's checks (multiple of 16, odd block), before any work
 
+    def check_width(self, width: int, what: str = "images") -> None:
+        """ValueError unless ``width`` px images leave room for this search range and block
+        (:func:`check_image_width`)."""
+        check_image_width(width, self.num_disparities, self.block_size, what=what)
+
     def matcher(self) -> cv2.StereoSGBM:
         """The configured ``StereoSGBM`` (see :func:`make_matcher`)."""
         return make_matcher(
@@ -78,6 +83,24 @@ def check_pair_shapes(left: np.ndarray, right: np.ndarray, what: str = "stereo p
     if left.shape != right.shape:
         raise ValueError(
             f"{what}: left and right images differ in size: {left.shape} vs {right.shape}"
+        )
+
+
+def check_image_width(
+    width: int,
+    num_disparities: int,
+    block_size: int,
+    min_disparity: int = 0,
+    what: str = "images",
+) -> None:
+    """OpenCV's StereoSGBM needs ``width - (min_disparity + num_disparities) > block_size // 2``
+    (else it refuses the pair: results would be non-deterministic); ValueError naming the sizes."""
+    need = int(min_disparity) + int(num_disparities) + int(block_size) // 2
+    if int(width) <= need:
+        raise ValueError(
+            f"{what}: num_disparities={num_disparities} and block_size={block_size} need images "
+            f"wider than min_disparity + num_disparities + block_size // 2 = {need} px "
+            f"(OpenCV StereoSGBM), got {width} px"
         )
 
 
@@ -143,6 +166,13 @@ def compute_disparity(
         speckle_window,
         speckle_range,
         min_disparity,
+    )
+    check_image_width(
+        left_bgr.shape[1],
+        m.getNumDisparities(),
+        m.getBlockSize(),
+        m.getMinDisparity(),
+        what=f"stereo pair {left_bgr.shape[1]}x{left_bgr.shape[0]}",
     )
     raw = m.compute(left_bgr, right_bgr)
     disp = raw.astype(np.float32) / 16.0

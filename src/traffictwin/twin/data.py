@@ -122,6 +122,10 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
     }
 
 
+# arrays where +inf is a value ("nothing ahead" / speed 0); every other float array is finite
+INF_ARRAYS = ("thw_true", "distance_true")
+
+
 def write_sequence(
     seed: int, index: int, p: TwinDataParams, path: str, compresslevel: int = 1
 ) -> tuple[int, str, int]:
@@ -134,5 +138,7 @@ def write_sequence(
 
     cv2.setNumThreads(1)
     arrays = sequence_arrays(seed, index, p)
-    digest = write_npz_deterministic(path, arrays, compresslevel=compresslevel)
+    digest = write_npz_deterministic(
+        path, arrays, compresslevel=compresslevel, allow_inf=INF_ARRAYS
+    )
     return index, digest, len(arrays["time"])
