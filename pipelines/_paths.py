@@ -84,3 +84,9 @@ def plot_file(name: str) -> Path:
 def figure_file(name: str) -> Path:
     """``reports/figures/<name>.png``."""
     return FIGURES / f"{name}.png"
+
+
+def run_record_file(stage: str) -> Path:
+    """``reports/timings/<stage>.json`` (``@`` written as ``-``): the run record of DVC stage ``stage``
+    (wall time, MLflow run id, throughput), committed to git but never a DVC output or dependency."""
+    return TIMINGS / f"{stage.replace('@', '-')}.json"

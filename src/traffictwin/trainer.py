@@ -618,9 +618,18 @@ def model_checkpoint(
 
 
 def save_model_checkpoint(path: str | Path, ckpt: Mapping[str, Any]) -> Path:
-    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``."""
-    with atomic_path(path, suffix=".ckpt") as tmp:
-        torch.save(dict(ckpt), tmp)
+    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``.
+
+    Serialised through a buffer, so the zip archive inside is always named ``archive`` (given a
+    file name, torch.save names it after the temp file): the same checkpoint gives the same bytes.
+    """
+    import io
+
+    from traffictwin.io.atomic import write_bytes_atomic
+
+    buf = io.BytesIO()
+    torch.save(dict(ckpt), buf)
+    write_bytes_atomic(path, buf.getvalue())
     return Path(path)
 
 
