@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from traffictwin.config import load_params
 from traffictwin.io.atomic import write_json_atomic
 
-from ._paths import PARAMS, ROOT, TIMINGS, run_record_file  # noqa: F401  (ROOT re-exported for stages)
+from ._paths import PARAMS, ROOT, run_record_file  # noqa: F401  (ROOT re-exported for stages)
 
 
 def params(path: str | Path | None = None) -> DictConfig:
