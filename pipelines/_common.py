@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import multiprocessing as mp
 import os
@@ -17,7 +19,7 @@ from omegaconf import DictConfig
 from traffictwin.config import load_params
 from traffictwin.io.atomic import write_json_atomic
 
-from ._paths import PARAMS, ROOT, TIMINGS  # noqa: F401  (ROOT re-exported for stages)
+from ._paths import PARAMS, ROOT, run_record_file  # noqa: F401  (ROOT re-exported for stages)
 
 
 def params(path: str | Path | None = None) -> DictConfig:
@@ -34,14 +36,59 @@ def setup_logging() -> logging.Logger:
 
 
 @contextmanager
-def stage_timer(stage: str) -> Iterator[None]:
-    """Record the wall time of ``stage`` in reports/timings/<stage>.json (for the report)."""
+def stage_timer(stage: str) -> Iterator[dict[str, Any]]:
+    """Time ``stage``; yields its run record, a dict the stage fills with what differs between
+    identical runs (MLflow run id and model URI, training seconds, ms per pair, ...).
+
+    On success the record is written to ``reports/timings/<stage>.json`` (:func:`run_record_file`)
+    with ``stage`` and ``seconds`` (wall time, s). Run records are committed to git but are never
+    DVC outputs or dependencies, so an identical rerun leaves ``dvc.lock`` unchanged; nothing a
+    DVC stage writes as an output may hold such values. A failed stage writes no record.
+    """
+    record: dict[str, Any] = {}
     t0 = time.perf_counter()
-    yield
+    yield record
     write_json_atomic(
-        TIMINGS / f"{stage.replace('@', '-')}.json",
-        {"stage": stage, "seconds": round(time.perf_counter() - t0, 2)},
+        run_record_file(stage),
+        {**record, "stage": stage, "seconds": round(time.perf_counter() - t0, 2)},
     )
+
+
+def training_record(res: Any, checkpoint: str | Path) -> dict[str, Any]:
+    """Run-record fields of a training stage from its fit result: ``run_id`` / ``model_uri`` (MLflow;
+    None without tracking), ``train_seconds`` (s), ``train_samples_per_s`` (where the trainer
+    reports it) and ``model_sha256`` of the published ``checkpoint``, which ties the record to
+    the model it describes (the promotion gate checks it)."""
+    seconds = getattr(res, "train_seconds", None)
+    if seconds is None:
+        seconds = getattr(res, "seconds", None)
+    out: dict[str, Any] = {
+        "run_id": getattr(res, "run_id", None),
+        "model_uri": getattr(res, "model_uri", None),
+        "train_seconds": None if seconds is None else round(float(seconds), 2),
+    }
+    if getattr(res, "samples_per_s", None) is not None:
+        out["train_samples_per_s"] = res.samples_per_s
+    with open(checkpoint, "rb") as fh:
+        out["model_sha256"] = hashlib.file_digest(fh, "sha256").hexdigest()
+    return out
+
+
+def read_run_record(stage: str) -> dict[str, Any]:
+    """The run record of ``stage`` (see :func:`stage_timer`); ``{}`` when the stage has none yet.
+
+    A record that is not a JSON object is a ValueError naming the file.
+    """
+    path = run_record_file(stage)
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: run record is not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: run record must be a JSON object, got {type(data).__name__}")
+    return data
 
 
 def error_line(exc: BaseException) -> str:

@@ -92,3 +92,9 @@ def resume_dir(stage: str) -> Path:
     """``.cache/traffictwin/resume/<stage>`` (``@`` as ``-``): where a training stage keeps its
     ``last.ckpt`` until it finishes, so a re-run after a kill resumes (outside the DVC outputs)."""
     return RESUME / stage.replace("@", "-")
+
+
+def run_record_file(stage: str) -> Path:
+    """``reports/timings/<stage>.json`` (``@`` written as ``-``): the run record of DVC stage ``stage``
+    (wall time, MLflow run id, throughput), committed to git but never a DVC output or dependency."""
+    return TIMINGS / f"{stage.replace('@', '-')}.json"

@@ -16,8 +16,11 @@ variants). Writes:
 - ``reports/plots/fusion_kld.csv``, ``fusion_scores.csv``, ``fusion_pose_bins.csv`` — DVC plot data;
 - ``reports/figures/fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png``;
 - ``reports/fusion_findings.md`` — findings computed from fusion.json;
-and logs the network's own numbers to its MLflow run (``mlflow_run_id`` of its model_meta.json),
-with every method's numbers at its configuration as the table artifact ``evaluation/test_methods.json``.
+- its run record ``reports/timings/evaluate_fusion.json`` (outside DVC) — the wall times
+  ``ms_per_pair.<cfg>.<row>``, ``runtime_ms_per_pair.<row>`` and the runtime target;
+and logs the network's own numbers to its MLflow run (``run_id`` in its training stage's run record,
+``reports/timings/<stage>.json``), with every method's numbers at its configuration as the table
+artifact ``evaluation/test_methods.json``.
 Bootstrap intervals: ``evaluation.fusion_ci`` (n_boot, seed, level).
 Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion.methods`).
 """
@@ -30,8 +33,7 @@ import os
 # in fusion.json stay meaningful on a machine shared with other jobs (see pipelines/train_fusion.py).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import json  # noqa: E402
-import logging
+import logging  # noqa: E402
 import time
 from pathlib import Path
 from typing import Any
@@ -42,7 +44,7 @@ from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_conf
 from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 from traffictwin.trainer import check_device
 
-from ._common import params, run_stage, setup_logging, stage_timer
+from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._paths import (
     FUSION_DATA,
     REPORTS,
@@ -68,10 +70,10 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
         frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
 
 
-def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str]]) -> None:
-    """Log each network's numbers to its own MLflow run (``mlflow_run_id`` in model_meta.json) and
-    every method's at its configuration as the table :data:`METHODS_TABLE`; ``runs``:
-    ``(model folder, configuration, evaluation row)`` per network."""
+def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]]) -> None:
+    """Log each network's numbers to its own MLflow run (``run_id`` in the run record of the stage
+    that trained it) and every method's at its configuration as the table :data:`METHODS_TABLE`;
+    ``runs``: ``(model folder, configuration, evaluation row, training stage)`` per network."""
     from mlflow.entities import Metric, RunTag
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
@@ -81,14 +83,15 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str]]) ->
 
     client = MlflowClient(tracking_uri=setup())
     stamp = int(time.time() * 1000)
-    for folder, c, row in runs:
+    for folder, c, row, stage in runs:
         name = folder.name
-        meta_path = folder / "model_meta.json"
-        meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
-        run_id = meta.get("mlflow_run_id")
+        run_id = read_run_record(stage).get("run_id")
         if not run_id:
             log.warning(
-                "%s: no mlflow_run_id; fusion evaluation of %s not logged to MLflow", meta_path, c
+                "%s: no MLflow run id in the run record of %s; fusion evaluation of %s not logged",
+                name,
+                stage,
+                c,
             )
             continue
         flat = mlflow_metrics(metrics, c, row)
@@ -120,7 +123,7 @@ def load_networks(
     """``{row: {configuration: network}}`` (row ``dnn``: models/fusion/<cfg> of every configuration;
     one row per ``fusion_variants`` entry; row ``learned``: models/registration/<cfg> of
     every configuration (when params.yaml has a ``registration_model`` group); row ``learned+network``: (learned, registered+network)
-    where both exist) and the ``(model folder, configuration, row)`` list."""
+    where both exist) and the ``(model folder, configuration, row, training stage)`` list."""
     from traffictwin.config import ConfigError, get
     from traffictwin.fusion.config import fusion_variants, variant_row
     from traffictwin.fusion.model_io import load_fusion_model
@@ -131,7 +134,7 @@ def load_networks(
         networks["dnn"][c] = load_fusion_model(
             fusion_model_dir(c) / "model.ckpt", expected_cfg=c, expected_grid=grid, device=device
         )
-        runs.append((fusion_model_dir(c), c, "dnn"))
+        runs.append((fusion_model_dir(c), c, "dnn", f"train_fusion@{c}"))
     variants = fusion_variants(cfg)
     default_loss = get(cfg, "fusion_model.loss.name", str) if variants else None
     for name, v in variants.items():
@@ -147,7 +150,7 @@ def load_networks(
             expected_grid=grid,
             device=device,
         )
-        runs.append((fusion_model_dir(name), v.config, row))
+        runs.append((fusion_model_dir(name), v.config, row, f"train_fusion_variant@{name}"))
     from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
     from traffictwin.fusion.registration_training import load_registration_model
 
@@ -156,7 +159,7 @@ def load_networks(
         networks.setdefault(LEARNED, {})[c] = load_registration_model(
             folder / "model.ckpt", expected_grid=grid, expected_cfg=c
         )
-        runs.append((folder, c, LEARNED))
+        runs.append((folder, c, LEARNED, f"train_registration@{c}"))
         if c in networks.get(HYBRID, {}):
             networks.setdefault(LEARNED_NETWORK, {})[c] = (
                 networks[LEARNED][c],
@@ -178,7 +181,7 @@ def main() -> None:
     check_device(fc.device, "params.yaml", "evaluation.fusion.device")
     ci = ev.fusion_ci_config(cfg)
     configs = list(noise)
-    with stage_timer(STAGE):
+    with stage_timer(STAGE) as record:
         networks, runs = load_networks(cfg, configs, grid, fc.device)
         data, pair_ids = ev.load_test_sets(
             {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid
@@ -186,6 +189,7 @@ def main() -> None:
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
         res = ev.evaluate(data, raw, networks, grid, fc, ci)
         metrics = ev.json_clean(res.metrics)
+        record.update(ev.json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))
         _csv(res.samples, SAMPLES)

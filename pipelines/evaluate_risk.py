@@ -35,7 +35,7 @@ from traffictwin.risk.figures import evaluation_figures
 from traffictwin.risk.model_io import load_risk_model
 from traffictwin.risk.training import LABELS, RiskSource
 
-from ._common import params, run_stage, setup_logging, stage_timer
+from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._paths import (
     DISPARITY,
     ORB_CSV,
@@ -55,15 +55,16 @@ def _write_csv(df: pd.DataFrame, path) -> None:
 
 
 def _log_to_mlflow(models: dict, metrics: dict, log: logging.Logger) -> None:
-    """Add test metrics to each variant's training run (skipped when the run is not in this store)."""
+    """Add test metrics to each variant's training run (its ``run_id`` in the run record of
+    ``train_risk@<variant>``; skipped when the run is not in this store)."""
     try:
         from mlflow.tracking import MlflowClient
 
         from traffictwin.mlops import tracking
 
         client = MlflowClient(tracking_uri=tracking.tracking_uri())
-        for v, m in models.items():
-            rid = m.meta.get("mlflow_run_id")
+        for v in models:
+            rid = read_run_record(f"train_risk@{v}").get("run_id")
             if not rid:
                 continue
             try:

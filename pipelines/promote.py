@@ -8,7 +8,8 @@ One gate per fusion configuration (the keys of ``configurations``), one per lear
 (one per configuration, registered as ``<name_prefix>-learned-<cfg>``) and one for the risk variant
 ``registry.risk.variant``; settings from the ``registry`` group (validated once), folders from
 ``pipelines/_paths.py``. The work is :func:`traffictwin.mlops.promotion.promote`: every
-candidate is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
+candidate (its MLflow run id from the training stage's run record, ``reports/timings/<stage>.json``)
+is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
 and it and the current ``champion`` are evaluated on the same fixed test set with the evaluation
 stages' metric code; all decisions are taken first, then applied, so an evaluation failure moves
 no alias. The whole run holds the registry lock (``<mlflow.db>.gate.lock``): a second gate waits
@@ -39,6 +40,7 @@ from pipelines._paths import (
     prealigned,
     registration_model_dir,
     risk_model_dir,
+    run_record_file,
 )
 from traffictwin.config import ConfigError, get, typed
 from traffictwin.fusion.config import pose_configurations
@@ -175,6 +177,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 gate=f.gate(),
                 model_dir=fusion_model_dir(c),
                 make_evaluator=make_fusion_eval,
+                record_path=run_record_file(f"train_fusion@{c}"),
                 tags={"model_dir": _rel(fusion_model_dir(c))},
                 card=fusion_card(c, "dnn", cfg),
             )
@@ -195,6 +198,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 gate=f.gate(),
                 model_dir=registration_model_dir(c),
                 make_evaluator=make_registration_eval,
+                record_path=run_record_file(f"train_registration@{c}"),
                 tags={"model_dir": _rel(registration_model_dir(c))},
                 card=fusion_card(c, "learned", cfg),
             )
@@ -215,6 +219,7 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
             gate=r.gate(),
             model_dir=risk_model_dir(r.variant),
             make_evaluator=make_risk_eval,
+            record_path=run_record_file(f"train_risk@{r.variant}"),
             tags={"model_dir": _rel(risk_model_dir(r.variant))},
             card=risk_card(r.variant),
         )

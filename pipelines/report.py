@@ -4,8 +4,9 @@ Reads params.yaml for what the report shows about the run -- the profile, the se
 pose-noise configurations, and the *scale* parameters (every key that any profile in
 conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) -- and
 hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
-with the git commit, the DVC stage order (for the timing table) and the list of section
-providers -- one per problem, in the order the report shows them (a new problem adds one).
+with the git commit and the list of section providers -- one per problem, in the order the
+report shows them (a new problem adds one). Also writes reports/timings/README.md, the summary
+of the stages' run records in DVC stage order (wall times etc.: not a DVC output).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from traffictwin.fusion import report_section as fusion_report
 from traffictwin.mlops.tracking import pipeline_run_id
 from traffictwin.report.config import ReportParams
 from traffictwin.report.model import ReportInputs, SectionProvider
-from traffictwin.report.render import write_report
+from traffictwin.report.render import write_report, write_timings_readme
 from traffictwin.risk import report_section as risk_report
 from traffictwin.stereo import report_section as stereo_report
 from traffictwin.twin import report_section as twin_report
@@ -120,6 +121,7 @@ def main() -> None:
             git_dirty=git_dirty(ROOT),
         )
         report = write_report(inputs, providers(p.pose_noise))
+        write_timings_readme(inputs)  # the run records' summary, outside DVC
     log = setup_logging()
     log.info(
         "report: %d sections, %d missing values -> reports/README.md, reports/index.html",

@@ -38,7 +38,7 @@ from traffictwin.fusion.training import (  # noqa: E402
 )
 from traffictwin.trainer import TrainerSettings, global_rank  # noqa: E402
 
-from ._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from ._common import params, run_stage, setup_logging, stage_timer, training_record  # noqa: E402
 from ._paths import (  # noqa: E402
     PARAMS,
     figure_file,
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     out_dir = fusion_model_dir(name)
     # under DDP the launcher re-runs this script per rank: only rank zero times the stage
-    with stage_timer(stage) if global_rank() == 0 else nullcontext():
+    with stage_timer(stage) if global_rank() == 0 else nullcontext({}) as record:
         res = fit_fusion(
             fusion_data_dir(inputs, cfg_name),
             spec=spec,
@@ -127,6 +127,8 @@ def main(argv: list[str] | None = None) -> None:
             tracking=tracking,
             resume_dir=resume_dir(stage),
         )
+        if res is not None:
+            record.update(training_record(res, out_dir / "model.ckpt"))
     if res is not None:
         from traffictwin.fusion.figures import save_figure
         from traffictwin.fusion.training_figures import learning_curves
@@ -146,7 +148,7 @@ def main(argv: list[str] | None = None) -> None:
             m.get("val/kld_full", float("nan")),
             m.get("val/kld_full_naive", float("nan")),
             m.get("val/loss", float("nan")),
-            m["train_seconds"],
+            res.train_seconds,
         )
 
 

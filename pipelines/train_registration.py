@@ -26,7 +26,7 @@ from traffictwin.fusion.registration_training import (  # noqa: E402
 )
 from traffictwin.trainer import TrackingSettings, TrainerSettings  # noqa: E402
 
-from ._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from ._common import params, run_stage, setup_logging, stage_timer, training_record  # noqa: E402
 from ._paths import (  # noqa: E402
     PARAMS,
     figure_file,
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     out = registration_model_dir(a.cfg)
     name = f"train_registration_{a.cfg}"
-    with stage_timer(stage):
+    with stage_timer(stage) as record:
         res = fit_registration(
             prealigned(a.cfg),
             spec=rc.net_spec(PARAMS.name),
@@ -102,6 +102,8 @@ def main(argv: list[str] | None = None) -> None:
             tracking=tracking,
             resume_dir=resume_dir(stage),
         )
+        if res is not None:
+            record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
         from traffictwin.fusion.figures import save_figure
         from traffictwin.fusion.registration_training import learning_curves
@@ -123,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
             m.get("val/success_rate", float("nan")),
             m.get("val/trans_err_m", float("nan")),
             m.get("val/rot_err_deg", float("nan")),
-            m["train_seconds"],
+            res.train_seconds,
         )
 
 

@@ -18,7 +18,7 @@ from traffictwin.risk.dave2 import Dave2Config, count_parameters
 from traffictwin.risk.training import RiskModelConfig, RiskSource, TrainConfig, fit_risk
 from traffictwin.trainer import TrackingSettings, TrainerSettings, global_rank
 
-from ._common import params, run_stage, setup_logging, stage_timer
+from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
     DISPARITY,
     ORB_CSV,
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
         ),
     )
     # under DDP the launcher re-runs this script per rank: only rank zero times the stage
-    with stage_timer(stage) if global_rank() == 0 else nullcontext():
+    with stage_timer(stage) if global_rank() == 0 else nullcontext({}) as record:
         res = fit_risk(
             RiskSource(RISK_DATA, DISPARITY, ORB_CSV if model.orb_filter else None),
             cfg,
@@ -148,6 +148,7 @@ def main(argv: list[str] | None = None) -> None:
             },
         )
         if res is not None:
+            record.update(training_record(res, out_dir / "model.ckpt"))
             log.info(
                 "%s: best val MSE %.5f (%d params, %.1f s) -> %s",
                 stage,

@@ -102,6 +102,16 @@ def run(
     return proc
 
 
+def run_record(repo: Path, stage: str) -> dict:
+    """The run record ``reports/timings/<stage>.json`` of ``stage`` in ``repo`` (MLflow run id,
+    model URI, timings: what stages keep out of their DVC outputs)."""
+    import json
+
+    return json.loads(
+        (repo / "reports" / "timings" / f"{stage.replace('@', '-')}.json").read_text()
+    )
+
+
 @pytest.fixture
 def repo_copy(tmp_path: Path) -> Path:
     """A fresh copy of the repository with params.yaml composed for the ``ci`` profile."""

@@ -320,7 +320,18 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert lu == pytest.approx(
         float(s[(s.config == "A") & (s.method == "naive")].label_u_mean.mean())
     )
-    assert set(m["targets"]) == set(ev.TARGETS)
+    # wall times (and the target judged on them) only in res.timings: never in fusion.json / samples
+    assert set(m["targets"]) == set(ev.TARGETS) - set(ev.TIMING_TARGETS)
+    assert set(res.timings["targets"]) == set(ev.TIMING_TARGETS)
+    assert "ms" not in s and "runtime_ms_per_pair" not in m
+    assert "ms_per_pair" not in m["test"]["D"]["dnn[paper]"]
+    assert (
+        res.timings["ms_per_pair"]["D"]["dnn[paper]"] > 0
+        and "dnn-A" not in res.timings["ms_per_pair"]["D"]
+    )
+    assert set(res.timings["runtime_ms_per_pair"]) == set(
+        s.method[~s.method.str.startswith("dnn-")]
+    )
     assert m["targets"]["hybrid_vs_registered"]["per_config"]["D"]["status"] in ("pass", "fail")
     assert m["bootstrap"]["n_boot"] == CI.n_boot
     # MLflow numbers of the variant's own run: its row is `test/`, names MLflow-safe
@@ -495,7 +506,10 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     )
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")  # no fusion_model.loss needed
     assert nets == {"dnn": {"A": "A", "D": "D"}}
-    assert runs == [(tmp_path / "A", "A", "dnn"), (tmp_path / "D", "D", "dnn")]
+    assert runs == [
+        (tmp_path / "A", "A", "dnn", "train_fusion@A"),
+        (tmp_path / "D", "D", "dnn", "train_fusion@D"),
+    ]
     assert loaded == [("A/model.ckpt", "A"), ("D/model.ckpt", "D")]
     cfg.fusion_variants = {
         "D_paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
@@ -509,8 +523,8 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         "registered+network": {"D": "D_mass_reg"},
     }
     assert runs[2:] == [
-        (tmp_path / "D_paper", "D", "dnn[paper]"),
-        (tmp_path / "D_mass_reg", "D", "registered+network"),
+        (tmp_path / "D_paper", "D", "dnn[paper]", "train_fusion_variant@D_paper"),
+        (tmp_path / "D_mass_reg", "D", "registered+network", "train_fusion_variant@D_mass_reg"),
     ]
     # the learned registrations: row learned, and learned+network where a registered-pairs network exists
     from traffictwin.fusion import registration_training
@@ -526,8 +540,8 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     assert nets["learned"] == {"A": "reg-A", "D": "reg-D"}
     assert nets["learned+network"] == {"D": ("reg-D", "D_mass_reg")}
     assert runs[-2:] == [
-        (tmp_path / "reg" / "A", "A", "learned"),
-        (tmp_path / "reg" / "D", "D", "learned"),
+        (tmp_path / "reg" / "A", "A", "learned", "train_registration@A"),
+        (tmp_path / "reg" / "D", "D", "learned", "train_registration@D"),
     ]
     del cfg.registration_model
     cfg.fusion_variants = {"D_mass": {"config": "D", "inputs": "prealigned", "loss": "mass"}}

@@ -343,7 +343,10 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
         and meta["architecture"] == TINY.as_dict()
         and meta["grid"] == {"rows": 64, "cols": 48, "cell": 1.0}
     )
-    assert meta["mlflow_run_id"] == res.run_id and len(meta["data_manifest_hash"]) == 64
+    assert len(meta["data_manifest_hash"]) == 64 and res.run_id and res.model_uri
+    # what differs between identical runs stays out of the published files (see the run record)
+    assert not {"mlflow_run_id", "mlflow_model_uri", "data_root"} & set(meta)
+    assert res.train_seconds > 0 and res.samples_per_s > 0
     metrics = json.loads((tmp_path / "metrics_B.json").read_text())
     for k in (
         "val/loss",
@@ -356,6 +359,7 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
         "best_epoch",
     ):
         assert k in metrics, k
+    assert metrics["samples_seen"] == 2 * 8 and "train_seconds" not in metrics
     curves = (tmp_path / "curves_B.csv").read_text().splitlines()
     assert curves[0].startswith("epoch,") and len(curves) == 1 + 2
 
@@ -403,6 +407,14 @@ def test_training_is_deterministic(tmp_path: Path) -> None:
     sb = torch.load(b.checkpoint, weights_only=True)["state_dict"]
     assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
     assert a.metrics["val/loss"] == b.metrics["val/loss"]
+    # every published file byte-identical (checkpoint archive, meta, metrics, curves): dvc.lock stays put
+    for rel in (
+        "models/B/model.ckpt",
+        "models/B/model_meta.json",
+        "metrics_B.json",
+        "curves_B.csv",
+    ):
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
 
 
 @pytest.mark.integration

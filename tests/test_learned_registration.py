@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from conftest import run_record
 
 from traffictwin.evidential.warp import pixel_from_metric, warp_masses
 from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
@@ -404,13 +405,16 @@ def test_train_registration_stage_and_evaluation_rows(ci_dag: Path) -> None:
     for cfg in ("A", "B", "C", "D"):
         d = ci_dag / "models" / "registration" / cfg
         meta = json.loads((d / "model_meta.json").read_text())
-        assert meta["cfg"] == cfg and meta["problem"] == "registration" and meta["mlflow_run_id"]
+        assert meta["cfg"] == cfg and meta["problem"] == "registration"
+        assert not {"mlflow_run_id", "mlflow_model_uri", "data_root"} & set(meta)
+        assert run_record(ci_dag, f"train_registration@{cfg}")["run_id"]
         net = load_registration_model(d, expected_cfg=cfg)
         assert isinstance(net, LearnedRegistration)
         metrics = json.loads(
             (ci_dag / "reports" / "metrics" / f"train_registration_{cfg}.json").read_text()
         )
         assert 0 <= metrics["val/success_rate"] <= 1 and np.isfinite(metrics["val/trans_err_m"])
+        assert metrics["samples_seen"] > 0 and "train_seconds" not in metrics
         assert (ci_dag / "reports" / "figures" / f"train_registration_{cfg}.png").exists()
     fusion = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
     for cfg in ("A", "B", "C", "D"):
@@ -420,18 +424,19 @@ def test_train_registration_stage_and_evaluation_rows(ci_dag: Path) -> None:
             "fallback_rate",
             "residual_trans_m_p90",
             "residual_rot_deg_p90",
-            "ms_per_pair",
         } <= set(row)
+        assert run_record(ci_dag, "evaluate_fusion")["ms_per_pair"][cfg]["learned"] > 0
         assert "success_rate" in fusion["diff"][cfg]["learned"]["vs_registered"]
     assert set(fusion["cross"]["learned-D"]) == {"A", "B", "C", "D"}
     assert "learned+network" in fusion["test"]["D"]  # the registered-pairs network of D as its head
     for name in (
         "learned_success_vs_registered",
         "learned_kld_vs_registered",
-        "learned_runtime_ms",
         "learned_cross_dice_drop",
     ):
         assert fusion["targets"][name]["status"] in ("pass", "fail", "not evaluated")
+    runtime = run_record(ci_dag, "evaluate_fusion")["targets"]["learned_runtime_ms"]
+    assert runtime["status"] in ("pass", "fail") and "learned_runtime_ms" not in fusion["targets"]
     with pytest.raises(Exception, match="expected 'B'"):
         load_registration_model(ci_dag / "models" / "registration" / "A", expected_cfg="B")
 
@@ -476,16 +481,15 @@ def test_fit_registration_logs_a_safe_model_the_gate_can_register(
 
     monkeypatch.chdir(tmp_path)
     cl = reg.client(mlflow_uri)
-    fit_small(
+    res = fit_small(
         write_registration_data(tmp_path / "pre"),
         tmp_path / "out",
         tracking=TrackingSettings("fusion", "registration-D", profile="test"),
     )
-    meta = json.loads((tmp_path / "out" / "model_meta.json").read_text())
-    mv = reg.ensure_version(cl, "traffictwin-fusion-learned-D", meta["mlflow_run_id"])
-    assert mv.run_id == meta["mlflow_run_id"] and art.SHA_TAG in mv.tags
+    mv = reg.ensure_version(cl, "traffictwin-fusion-learned-D", res.run_id)
+    assert mv.run_id == res.run_id and art.SHA_TAG in mv.tags
     local = load_registration_model(tmp_path / "out")
-    for uri in (meta["mlflow_model_uri"], reg.version_uri("traffictwin-fusion-learned-D", 1)):
+    for uri in (res.model_uri, reg.version_uri("traffictwin-fusion-learned-D", 1)):
         logged = reg.load_registered(uri, load_registration_model, cl=cl)
         assert logged.meta["cfg"] == "D" and logged.meta["grid"] == local.meta["grid"]
         for (k, a), b in zip(local.state_dict().items(), logged.state_dict().values(), strict=True):

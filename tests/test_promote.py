@@ -5,6 +5,7 @@ The registry round trip of the gate is in test_registry.py; the pure decision in
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import pytest
@@ -38,6 +39,10 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     )
     assert pm.model_names(cfg, rc) == [j.name for j in jobs]
     assert jobs[0].model_dir == pm.fusion_model_dir(cfgs[0])
+    # the MLflow run ids come from the training stages' run records (reports/timings, outside DVC)
+    assert jobs[0].record_path == pm.ROOT / "reports" / "timings" / f"train_fusion-{cfgs[0]}.json"
+    assert jobs[len(cfgs)].record_path.name == f"train_registration-{learned[0]}.json"
+    assert jobs[-1].record_path.name == f"train_risk-{rc.risk.variant}.json"
     assert jobs[0].tags == {"model_dir": f"models/fusion/{cfgs[0]}"}
     reg_job = jobs[len(cfgs)]
     assert reg_job.model_dir == pm.registration_model_dir(learned[0])
@@ -65,27 +70,52 @@ def test_registry_group_is_validated_once():
 
 
 def test_read_candidate_errors_name_the_file(tmp_path):
+    d, rec = tmp_path / "m", tmp_path / "train_m.json"
+    d.mkdir()
     with pytest.raises(reg.RegistryError, match="model_meta.json: not found"):
-        promotion.read_candidate("m", tmp_path)
-    (tmp_path / "model_meta.json").write_text("{")
-    with pytest.raises(reg.RegistryError, match="not valid JSON"):
-        promotion.read_candidate("m", tmp_path)
-    (tmp_path / "model_meta.json").write_text(json.dumps({"label": "x"}))
-    with pytest.raises(reg.RegistryError, match="no MLflow run id .*'mlflow_run_id'"):
-        promotion.read_candidate("m", tmp_path)
-    (tmp_path / "model_meta.json").write_text(
-        json.dumps({"mlflow_run_id": "r1", "mlflow_model_uri": "models:/m-1"})
+        promotion.read_candidate("m", d, rec)
+    (d / "model_meta.json").write_text("{")
+    with pytest.raises(reg.RegistryError, match="model_meta.json: not valid JSON"):
+        promotion.read_candidate("m", d, rec)
+    (d / "model_meta.json").write_text(json.dumps({"label": "x"}))
+    with pytest.raises(reg.RegistryError, match="train_m.json: not found .*run record"):
+        promotion.read_candidate("m", d, rec)
+    rec.write_text("[1]")
+    with pytest.raises(reg.RegistryError, match="train_m.json: run record must be a JSON object"):
+        promotion.read_candidate("m", d, rec)
+    rec.write_text(json.dumps({"stage": "train_m", "seconds": 1.0}))
+    with pytest.raises(reg.RegistryError, match="train_m.json: no MLflow run id .*'run_id'"):
+        promotion.read_candidate("m", d, rec)
+    rec.write_text(json.dumps({"run_id": "r1", "model_uri": "models:/m-1"}))
+    c = promotion.read_candidate("m", d, rec)
+    assert (c.run_id, c.model_uri, c.meta, c.record_path) == (
+        "r1",
+        "models:/m-1",
+        {"label": "x"},
+        rec,
     )
-    c = promotion.read_candidate("m", tmp_path)
-    assert (c.run_id, c.model_uri, c.meta["mlflow_run_id"]) == ("r1", "models:/m-1", "r1")
+    # the record names the checkpoint it describes: a record of another model is refused
+    (d / "model.ckpt").write_bytes(b"weights")
+    sha = hashlib.sha256(b"weights").hexdigest()
+    rec.write_text(json.dumps({"run_id": "r1", "model_sha256": sha}))
+    assert promotion.read_candidate("m", d, rec).run_id == "r1"
+    (d / "model.ckpt").write_bytes(b"other weights")
+    with pytest.raises(reg.RegistryError, match="run record of another model than .*model.ckpt"):
+        promotion.read_candidate("m", d, rec)
+
+
+def _record(model_dir):
+    """The run record of the stage that trained ``model_dir`` (beside it, as reports/timings is)."""
+    return model_dir.parent / f"{model_dir.name}.run.json"
 
 
 def _trained(tmp_path, name: str, weight: float):
-    """A model folder whose model_meta.json points at a logged MLflow model."""
+    """A model folder and its training run record, which points at a logged MLflow model."""
     run_id = log_linear(weight, in_features=1, experiment="promo")
     d = tmp_path / name
     d.mkdir(exist_ok=True)
-    (d / "model_meta.json").write_text(json.dumps({"mlflow_run_id": run_id}))
+    (d / "model_meta.json").write_text(json.dumps({}))
+    _record(d).write_text(json.dumps({"run_id": run_id}))
     return d
 
 
@@ -106,6 +136,7 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
                 gate=gate,
                 model_dir=_trained(tmp_path, k, w),
                 make_evaluator=lambda cand: (_weight, f"fp:{cand.name}"),
+                record_path=_record(tmp_path / k),
                 tags={"model_dir": k},
             )
             for k, w in weights.items()
@@ -128,7 +159,9 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
     assert "champion v1 2" in promotion.format_decision(ds[1])
     # a missing model folder stops the run before anything is registered
     (tmp_path / "c").mkdir()
-    missing = promotion.GateJob("m-c", gate, tmp_path / "c", lambda cand: (_weight, ""))
+    missing = promotion.GateJob(
+        "m-c", gate, tmp_path / "c", lambda cand: (_weight, ""), _record(tmp_path / "c")
+    )
     with pytest.raises(reg.RegistryError, match="model_meta.json: not found"):
         promotion.promote([*jobs(a=5.0), missing], settings)
     assert reg.registered_names(cl, "m-") == ["m-a", "m-b"]
@@ -147,7 +180,11 @@ def test_before_apply_runs_under_the_lock_and_can_stop_the_apply(tmp_path, mlflo
     cl = reg.client(mlflow_uri)
     lock = tmp_path / "gate.lock"
     job = promotion.GateJob(
-        "m-a", Gate("test/w", "max", 0.0), _trained(tmp_path, "a", 1.0), lambda c: (_weight, "fp")
+        "m-a",
+        Gate("test/w", "max", 0.0),
+        _trained(tmp_path, "a", 1.0),
+        lambda c: (_weight, "fp"),
+        _record(tmp_path / "a"),
     )
     settings = promotion.PromotionSettings(log_path=tmp_path / "log.jsonl", lock_path=lock)
     seen = []

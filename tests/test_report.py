@@ -302,7 +302,6 @@ def risk_metrics() -> dict:
                 "steps": 12,
                 "best_step": 10 - i,
                 "best_val_mse": 0.02 + i / 100,
-                "train_seconds": 3.25,
                 **evaluate(y, p * (1 - i / 2)),
             }
             for i, (v, inputs) in enumerate((("rgbd", ["rgb", "disp_sgm"]), ("rgb", ["rgb"])))
@@ -362,8 +361,9 @@ def reports(tmp_path: Path) -> Path:
     (rep / "figures" / "risk_training_curves.png").write_bytes(tiny_png())
     (rep / "figures" / "something_else.png").write_bytes(tiny_png())
     for stage, secs in (("generate_fusion", 12.5), ("train_fusion@A", 30.25), ("report", 1.0)):
+        extra = {"run_id": "r0a", "train_seconds": 29.5} if stage == "train_fusion@A" else {}
         (rep / "timings" / f"{stage.replace('@', '-')}.json").write_text(
-            json.dumps({"stage": stage, "seconds": secs})
+            json.dumps({"stage": stage, "seconds": secs, **extra})
         )
     (rep / "environment.json").write_text(
         json.dumps(
@@ -504,11 +504,19 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert ["D", "dnn[paper]", "registered"] in [r[:3] for r in diffs]
     # the data differs: said plainly
     assert "data differs from the papers'" in md and "own simulator" in md
-    # run info: commit, experiment, timings in DAG order, report's own timing left out
+    # run info: commit, experiment; no wall times (they differ between identical runs: the report
+    # is a DVC output) -- those are in reports/timings/README.md, in DAG order, report's own left out
     assert "abc123" in md and "exp-x" in md and "abc12345-0000ffff" in md
-    timing = next(t for s in rep.sections for t in s.tables if t.anchor == "timings")
-    assert [r[0].text for r in timing.rows] == ["generate_fusion", "train_fusion@A", "total (sum)"]
-    assert timing.rows[-1][1].text == "42.8" and timing.rows[-1][2].text == "0:43"
+    assert not any(t.anchor == "timings" for s in rep.sections for t in s.tables)
+    assert "Stage wall times" not in md and "30.25" not in md and "reports/timings/README.md" in md
+    timing = R.write_timings_readme(inputs).read_text()
+    assert md_tables(timing)[0] == [
+        ["generate_fusion", "12.5", "0:12"],  # fmt_value rounds half to even
+        ["train_fusion@A", "30.2", "0:30"],
+        ["total (sum)", "42.8", "0:43"],
+    ]
+    assert "## train_fusion@A\n\n- `run_id`: r0a\n- `train_seconds`: 29.5\n" in timing
+    assert "## generate_fusion" not in timing and "| report |" not in timing
     # NaN in a metrics file is shown as n/a
     assert "n/a" in md
     # figures grouped by paper, embedded in the HTML, referenced from the markdown
@@ -626,19 +634,20 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
         "Fusion: precision / recall / Dice",
         "Risk: test results",
         "Risk: confusion matrix",
-        "Stage wall times",
         "Parameters of this run",
     ):
         assert anchor_title in md, anchor_title
     assert checked > 200
     # the report knows the real files' layout: nothing it looked for is missing
     assert "## Missing values" not in md
-    # every stage that ran recorded its time, and the report lists it
+    # every stage that ran recorded its time; reports/timings/README.md (not the report) lists it
     timed = {json.loads(p.read_text())["stage"] for p in (reports / "timings").glob("*.json")} - {
         "report"
     }
+    timings_md = (reports / "timings" / "README.md").read_text()
+    assert "Stage wall times" not in md and "Stage wall times" in timings_md
     for stage in timed:
-        assert f"| {stage} |" in md, stage
+        assert f"| {stage} |" in timings_md, stage
     # every metrics file is declared to DVC (dvc metrics show lists it) and shown in the report
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], ci_dag).stdout)
     declared = {Path(p).name for rev in shown.values() for p in rev.get("data", {})}

@@ -284,7 +284,6 @@ def test_registration_tables_show_pose_errors_bins_and_the_learned_cross_table(
             "residual_trans_m_p90": p90,
             "residual_rot_deg_median": 0.3,
             "residual_rot_deg_p90": 0.9,
-            "ms_per_pair": 12.5,
         }
 
     metrics = {

@@ -709,7 +709,7 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     inputs = M.ReportInputs(reports_dir=rep, profile="ci", seed=0, git_commit="c0ffee")
     out = R.write_report(inputs, providers({}))
     check_report(rep, {}, {})
-    train_keys = ("n_parameters", "n_train", "steps", "best_step", "best_val_mse", "train_seconds")
+    train_keys = ("n_parameters", "n_train", "steps", "best_step", "best_val_mse")
     missing = [m for m in out.missing if "risk.json" in m and not m.endswith(train_keys)]
     assert not missing  # (the fake models have no training metadata)
     md = (rep / "README.md").read_text()

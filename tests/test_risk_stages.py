@@ -10,6 +10,9 @@ import pandas as pd
 import pytest
 import torch
 import yaml
+from conftest import run_record
+
+from traffictwin.io.shards import sha256_file
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,14 +47,17 @@ def test_train_risk_writes_models_and_curves(ci_dag: Path) -> None:
         d = ci_dag / "models" / "risk" / v
         m = load_risk_model(d)
         assert m.meta["variant"] == v and m.meta["label"].startswith("risk")
-        assert m.meta["n_parameters"] > 1_000_000 and m.meta["mlflow_model_uri"]
+        assert m.meta["n_parameters"] > 1_000_000
+        assert not {"mlflow_run_id", "mlflow_model_uri", "train_seconds"} & set(m.meta)
         h = pd.read_csv(d / "history.csv")
         assert len(h) >= 1 and {"step", "train/loss", "val/mse", "val/pred_std"} <= set(h.columns)
         assert np.isfinite(h["val/mse"]).all()
         assert m.meta["best_val_mse"] == pytest.approx(h["val/mse"].min())
         plot = pd.read_csv(ci_dag / "reports" / "plots" / f"risk_training_{v}.csv")
         assert plot.equals(h)
-        assert (ci_dag / "reports" / "timings" / f"train_risk-{v}.json").exists()
+        rec = run_record(ci_dag, f"train_risk@{v}")
+        assert rec["run_id"] and rec["model_uri"] and rec["train_seconds"] > 0
+        assert rec["model_sha256"] == sha256_file(d / "model.ckpt")
 
 
 @pytest.mark.slow
@@ -75,7 +81,8 @@ def test_mlflow_model_reloads_with_identical_outputs(
         x = preprocess(local.cfg, shard["left"][:2], sgm[:2], shard["disp_gt"][:2])
         with torch.no_grad():
             ref = local.net(x, speed if local.cfg.use_speed else None)
-            remote = load_registered(local.meta["mlflow_model_uri"], load_risk_model)
+            uri = run_record(ci_dag, f"train_risk@{v}")["model_uri"]
+            remote = load_registered(uri, load_risk_model)
             got = remote.net(x, speed if remote.cfg.use_speed else None)
         assert torch.equal(got, ref), v
     client = mlflow.tracking.MlflowClient()
@@ -86,9 +93,7 @@ def test_mlflow_model_reloads_with_identical_outputs(
     }  # newest wins
     for v in _variants(ci_dag):
         r = by_name[f"risk-{v}"]
-        assert (
-            r.info.run_id == load_risk_model(ci_dag / "models" / "risk" / v).meta["mlflow_run_id"]
-        )
+        assert r.info.run_id == run_record(ci_dag, f"train_risk@{v}")["run_id"]
         assert r.data.params["risk_model.variant"] == v
         assert (
             "val/mse" in r.data.metrics and "test/mse" in r.data.metrics

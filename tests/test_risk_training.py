@@ -395,13 +395,13 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     assert res is not None and not (out / "stale.txt").exists()
     meta = json.loads((out / "model_meta.json").read_text())
     assert (meta["variant"], meta["label"], meta["domain"]) == ("disp", "risk", {"label": "risk"})
-    assert meta["best_val_mse"] == res.best_val_mse and meta["mlflow_model_uri"].startswith(
-        "models:/"
-    )
+    assert meta["best_val_mse"] == res.best_val_mse and res.model_uri.startswith("models:/")
+    # run id, model URI and timing only in the result (the stage's run record), never in the model
+    assert not {"mlflow_run_id", "mlflow_model_uri", "train_seconds"} & set(meta)
     # the MLflow model is the same weights + meta, loaded without unpickling code
     from traffictwin.mlops.registry import load_registered
 
-    logged = load_registered(meta["mlflow_model_uri"], load_risk_model)
+    logged = load_registered(res.model_uri, load_risk_model)
     local = load_risk_model(out)
     assert logged.cfg == local.cfg and logged.meta["domain"] == {"label": "risk"}
     for (k, a), b in zip(
@@ -413,7 +413,7 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     assert curves.splitlines()[0] == "step,epoch,train/loss,val/loss,val/mse,val/mae,val/pred_std"
     loaded = load_risk_model(out)
     assert all(torch.equal(v, res.net.state_dict()[k]) for k, v in loaded.net.state_dict().items())
-    run = mlflow.get_run(meta["mlflow_run_id"])
+    run = mlflow.get_run(res.run_id)
     assert run.data.metrics["val/best_mse"] == pytest.approx(res.best_val_mse)
     assert run.data.params["data.n_train"] == str(res.n_train)
     hist = mlflow.MlflowClient().get_metric_history(run.info.run_id, "val/mse")

@@ -193,7 +193,7 @@ def sharded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         run([*GEN, *extra], repo)
         out[name] = base / name
         shutil.move(repo / "data" / "fusion", out[name])
-    out["metrics"] = json.loads((repo / "reports/metrics/fusion_data.json").read_text())
+    out["metrics_bytes"] = (repo / "reports/metrics/fusion_data.json").read_bytes()
     return out
 
 
@@ -211,11 +211,10 @@ def test_stage_parts_merge_to_one_machines_data(sharded: dict[str, Path]) -> Non
     run([*GEN, "--merge", str(sharded["m1"]), str(sharded["m2"])], repo)
     data = repo / "data" / "fusion"
     _same_folder(sharded["full"], data)  # every shard file and manifest.json
-    got = json.loads(metrics.read_text())
-    for k, v in sharded["metrics"].items():
-        if k != "fusion_data/pairs_per_s":
-            assert got[k] == v, k
-    assert got["fusion_data/pairs_per_s"] > 0
+    assert metrics.read_bytes() == sharded["metrics_bytes"]  # no timings: the same file
+    assert (
+        json.loads((repo / "reports/timings/generate_fusion.json").read_text())["pairs_per_s"] > 0
+    )
     # into the merging machine's own data/fusion (its part there, the other part copied in)
     shutil.rmtree(data)
     shutil.copytree(sharded["m2"], data)

@@ -10,7 +10,7 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import pytest
-from conftest import run
+from conftest import run, run_record
 
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
 from traffictwin.io.shards import Dataset
@@ -29,7 +29,7 @@ def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
         assert meta["architecture"]["backbone"]["base_width"] == 8 and meta["param_count"] > 0
         data_hash = Dataset(ci_dag / "data" / "prealigned" / cfg, kind="prealigned").manifest_hash()
         assert meta["data_manifest_hash"] == data_hash
-        assert meta["mlflow_run_id"] and meta["mlflow_model_uri"]
+        assert not {"mlflow_run_id", "mlflow_model_uri", "data_root"} & set(meta)
         metrics = json.loads(
             (ci_dag / "reports" / "metrics" / f"train_fusion_{cfg}.json").read_text()
         )
@@ -49,7 +49,9 @@ def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
             range(len(rows))
         )
         assert {"train/loss", "val/loss", "lr"} <= set(rows[0])
-        assert (ci_dag / "reports" / "timings" / f"train_fusion-{cfg}.json").exists()
+        assert not {"train_seconds", "train_samples_per_s"} & set(metrics)
+        rec = run_record(ci_dag, f"train_fusion@{cfg}")
+        assert rec["run_id"] and rec["model_uri"] and rec["train_seconds"] > 0
 
 
 def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
@@ -59,9 +61,10 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
         exp = client.get_experiment_by_name("fusion")
         assert exp is not None
         meta = json.loads((ci_dag / "models/fusion/B/model_meta.json").read_text())
+        rec = run_record(ci_dag, "train_fusion@B")
         runs = client.search_runs([exp.experiment_id], "attributes.run_name = 'fusion-B'")
-        assert meta["mlflow_run_id"] in {r.info.run_id for r in runs}
-        r = client.get_run(meta["mlflow_run_id"])
+        assert rec["run_id"] in {r.info.run_id for r in runs}
+        r = client.get_run(rec["run_id"])
         assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == "train_fusion@B"
         assert r.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
         assert (
@@ -78,7 +81,7 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
             "val", keys=["inputs"]
         )["inputs"][:3]
         net = load_fusion_model(ci_dag / "models/fusion/B/model.ckpt", expected_cfg="B")
-        logged = load_registered(meta["mlflow_model_uri"], load_fusion_model)
+        logged = load_registered(rec["model_uri"], load_fusion_model)
         m_a, u_a = predict_masses(net, val)
         m_b, u_b = predict_masses(logged, val)
         np.testing.assert_array_equal(m_a, m_b)

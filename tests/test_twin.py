@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import run_record
 
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.warp import warp_masses
@@ -23,7 +24,14 @@ from traffictwin.sim.cooperative import (
 )
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.twin.data import TwinDataParams, sequence_arrays, twin_risk_config
-from traffictwin.twin.evaluation import EGO, TwinEvalSettings, lead_times, summarise, targets
+from traffictwin.twin.evaluation import (
+    EGO,
+    TwinEvalSettings,
+    lead_times,
+    step_ms_medians,
+    summarise,
+    targets,
+)
 from traffictwin.twin.fuse import Twin, TwinInputError, build_twin
 
 GRID = GridSpec(rows=64, cols=48, cell=0.5)
@@ -245,6 +253,15 @@ def test_lead_times_and_summary_hand_computed() -> None:
     assert t["occluded_lead_time_gt_0.5s"]["pass"] is False
     assert t["open_false_alarms_le_0.05"]["value"] is None  # no open sequences here
     assert targets({}, "twin", "D") == {"configuration": "D", "evaluated": False}
+    assert "step_ms_median" not in occ  # wall time: the stage's run record, not twin.json
+
+
+def test_step_ms_medians_per_method_and_kind() -> None:
+    f = _frame_table()
+    twin = f["method"] == "twin"
+    f.loc[twin, "step_ms"] = np.arange(twin.sum(), dtype=float)  # 0..9 over both sequences
+    f.loc[twin & (f["sequence"] == 1), "kind"] = "open"  # sequence 1's frames: 5..9
+    assert step_ms_medians(f, ["twin"]) == {"twin": {"occluded": 2.0, "open": 7.0, "all": 4.5}}
 
 
 # ------------------------------------------------------------------------------------ stages (ci DAG)
@@ -267,7 +284,9 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     assert set(frames["method"]) >= {EGO, "naive", "registered", "learned"}
     # every frame of both sequences is evaluated for every method at every configuration
     a = frames[(frames["configuration"] == "A") & (frames["method"] == "naive")]
-    assert len(a) == 2 * params["twin"]["frames"]
+    assert len(a) == 2 * params["twin"]["frames"] and "step_ms" not in frames
+    rec = run_record(ci_dag, "evaluate_twin")
+    assert rec["step_ms_median"]["A"]["naive"]["all"] > 0
     timeline = pd.read_csv(ci_dag / "reports" / "plots" / "twin_timeline.csv")
     assert set(timeline["series"]) >= {"truth", "ego map"} and {"time", "thw"} <= set(timeline)
     for fig in ("twin_map", "twin_timeline"):

@@ -10,6 +10,7 @@ model for inference (CLI, :mod:`traffictwin.api`) imports torch but not Lightnin
 
 from __future__ import annotations
 
+import io
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -17,7 +18,7 @@ from typing import Any
 
 import torch
 
-from traffictwin.io.atomic import atomic_path
+from traffictwin.io.atomic import write_bytes_atomic
 
 MODEL_FORMAT = "traffictwin-model/1"
 
@@ -53,9 +54,14 @@ def model_checkpoint(
 
 
 def save_model_checkpoint(path: str | Path, ckpt: Mapping[str, Any]) -> Path:
-    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``."""
-    with atomic_path(path, suffix=".ckpt") as tmp:
-        torch.save(dict(ckpt), tmp)
+    """Write ``ckpt`` (see :func:`model_checkpoint`) to ``path`` atomically; returns ``path``.
+
+    Serialised through a buffer, so the zip archive inside is always named ``archive`` (given a
+    file name, torch.save names it after the temp file): the same checkpoint gives the same bytes.
+    """
+    buf = io.BytesIO()
+    torch.save(dict(ckpt), buf)
+    write_bytes_atomic(path, buf.getvalue())
     return Path(path)
 
 

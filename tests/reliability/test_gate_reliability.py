@@ -51,16 +51,23 @@ def evaluate(uri: str) -> dict[str, float]:
 
 
 def _model_dir(tmp_path, key: str, error: float, grid=None):
-    """A trained-model folder (model_meta.json -> MLflow run) whose weights are off by ``error``."""
+    """A trained-model folder (model_meta.json) and its training run record (``_record``: its
+    MLflow run) whose weights are off by ``error``."""
     run_id = log_linear(W_TRUE + error, meta={"grid": grid or GRID}, experiment="risk")
     d = tmp_path / "models" / key
     d.mkdir(parents=True)
-    (d / "model_meta.json").write_text(json.dumps({"mlflow_run_id": run_id}))
+    (d / "model_meta.json").write_text(json.dumps({"grid": grid or GRID}))
+    _record(d).write_text(json.dumps({"run_id": run_id}))
     return d
 
 
+def _record(model_dir):
+    """The run record of the stage that trained ``model_dir`` (beside it, as reports/timings is)."""
+    return model_dir.parent / f"{model_dir.name}.run.json"
+
+
 def _job(model_dir, ev=evaluate) -> promotion.GateJob:
-    return promotion.GateJob(NAME, GATE, model_dir, lambda cand: (ev, "fp"))
+    return promotion.GateJob(NAME, GATE, model_dir, lambda cand: (ev, "fp"), _record(model_dir))
 
 
 def _settings(tmp_path, **kw) -> promotion.PromotionSettings:
@@ -185,9 +192,7 @@ def test_concurrent_gates_never_leave_a_worse_champion(cl, tmp_path, better_firs
     dirs = {"good": _model_dir(tmp_path, "good", 0.02), "bad": _model_dir(tmp_path, "bad", 0.2)}
     versions = {k: str(int("1") + i + 1) for i, k in enumerate(dirs)}  # registered in this order
     for k in dirs:  # register both up front (as two trainings would have logged them)
-        reg.ensure_version(
-            cl, NAME, json.loads((dirs[k] / "model_meta.json").read_text())["mlflow_run_id"]
-        )
+        reg.ensure_version(cl, NAME, json.loads(_record(dirs[k]).read_text())["run_id"])
     order = ["good", "bad"] if better_first else ["bad", "good"]
     events: list[tuple[str, str]] = []
     second_started = threading.Event()

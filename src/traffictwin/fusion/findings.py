@@ -231,9 +231,7 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
             f"p90 error {_fmt(_get(metrics, c, 'learned', 'residual_trans_m_p90'), 2)} m / "
             f"{_fmt(_get(metrics, c, 'learned', 'residual_rot_deg_p90'), 2)}° "
             f"(registered {_fmt(_get(metrics, c, REG, 'residual_trans_m_p90'), 2)} m / "
-            f"{_fmt(_get(metrics, c, REG, 'residual_rot_deg_p90'), 2)}°), "
-            f"{_fmt(_get(metrics, c, 'learned', 'ms_per_pair'), 1)} ms per pair "
-            f"(registered {_fmt(_get(metrics, c, REG, 'ms_per_pair'), 1)} ms)"
+            f"{_fmt(_get(metrics, c, REG, 'residual_rot_deg_p90'), 2)}°)"
         )
     if learned_lines:
         lines.append(

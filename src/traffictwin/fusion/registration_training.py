@@ -243,7 +243,10 @@ class RegistrationFitResult:
     meta: dict[str, Any]
     metrics: dict[str, Any]
     history: list[dict[str, float]]
-    run_id: str | None = None  # the MLflow run (None: not tracked)
+    run_id: str | None = None
+    model_uri: str | None = None
+    train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
+    samples_per_s: float | None = None  # training pairs per second of train_seconds
 
 
 def fit_registration(
@@ -270,7 +273,8 @@ def fit_registration(
     meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run (params, curves, the
     checkpoint and the model as weights + JSON, :func:`traffictwin.trainer.log_model`) when
     ``tracking`` is enabled (registering it is the promotion gate's job). A non-finite validation loss
-    fails the run (nothing is published). Returns ``None`` on other DDP ranks. ``resume_dir``: as
+    fails the run (nothing is published). Identical runs write identical bytes: the MLflow run id,
+    model URI and training time are only in the result. Returns ``None`` on other DDP ranks. ``resume_dir``: as
     for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`).
     """
     common.seed_everything(seed)
@@ -410,16 +414,12 @@ def fit_registration(
                 f"learned registration: best epoch {best_epoch} has non-finite validation metrics {row}"
             )
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
+        samples_seen = k // train.batch_size * train.batch_size * len(history.rows)
         metrics.update(
             {
                 "best_epoch": best_epoch,
                 "epochs": len(history.rows),
-                "train_seconds": round(train_s, 2),
-                "train_samples_per_s": round(
-                    k // train.batch_size * train.batch_size * len(history.rows) / train_s, 3
-                )
-                if train_s > 0
-                else None,
+                "samples_seen": samples_seen,
                 "param_count": n_params,
                 "train_pairs": len(train_set),
                 "val_pairs": len(val_set),
@@ -435,11 +435,9 @@ def fit_registration(
             "selection_metric": SELECTION_METRIC,
             "best_val_loss": metrics.get("val/loss"),
             "best_val_success_rate": metrics.get("val/success_rate"),
-            "mlflow_run_id": run.info.run_id if run is not None else None,
-            "mlflow_model_uri": None,
-            "data_root": str(data_root),
         }
         slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
+        uri = None
         if run is not None:
             common.log_final_metrics(
                 logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
@@ -463,8 +461,6 @@ def fit_registration(
                     "method": "learned",
                 },
             )
-            meta["mlflow_model_uri"] = uri
-            slim["traffictwin"]["mlflow_model_uri"] = uri
         common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
@@ -472,7 +468,14 @@ def fit_registration(
             history.write_csv(curves_out)
     session.finish()
     return RegistrationFitResult(
-        Path(ckpt_out), meta, metrics, history.rows, run.info.run_id if run is not None else None
+        Path(ckpt_out),
+        meta,
+        metrics,
+        history.rows,
+        run.info.run_id if run is not None else None,
+        uri,
+        round(train_s, 2),
+        round(samples_seen / train_s, 3) if train_s > 0 else None,
     )
 
 

@@ -578,6 +578,8 @@ class FitResult:
     history: list[dict[str, float]]
     run_id: str | None = None
     model_uri: str | None = None
+    train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
+    samples_per_s: float | None = None  # training pairs (all ranks) per second of train_seconds
 
 
 def best_model_checkpoint(
@@ -622,8 +624,10 @@ def fit_fusion(
     """Train on ``data_root``'s train split, select on val/kld_full (KLD(b)), publish the best model.
 
     Writes (rank zero, each atomically, only after training succeeded): ``ckpt_out`` (slim
-    Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, MLflow run id, data manifest
-    hash), ``metrics_out`` (best-epoch metrics + timing), ``curves_out`` (per-epoch CSV).
+    Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, data manifest hash),
+    ``metrics_out`` (best-epoch metrics, epochs, ``samples_seen``), ``curves_out`` (per-epoch CSV):
+    identical runs write identical bytes. What differs between runs (MLflow run id and model URI,
+    training seconds and pairs per second) is only in the returned :class:`FitResult`.
     Returns ``None`` on other DDP ranks.
 
     ``resume_dir``: a folder outside the outputs where the run keeps its training state
@@ -739,8 +743,7 @@ def fit_fusion(
             {
                 "best_epoch": best_epoch,
                 "epochs": epochs_run,
-                "train_seconds": round(train_s, 2),
-                "train_samples_per_s": round(samples_seen / train_s, 3) if train_s > 0 else None,
+                "samples_seen": samples_seen,
                 "param_count": n_params,
                 "train_pairs": n_train,
                 "val_pairs": len(dm.val_set) if dm.val_set is not None else 0,
@@ -756,9 +759,6 @@ def fit_fusion(
             "best_val_loss": metrics.get("val/loss"),
             "selection_metric": SELECTION_METRIC,
             "best_val_kld_full": metrics.get(SELECTION_METRIC),
-            "mlflow_run_id": run.info.run_id if run is not None else None,
-            "mlflow_model_uri": None,
-            "data_root": str(data_root),
         }
         slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         model_uri = None
@@ -786,12 +786,19 @@ def fit_fusion(
                 name="model",
                 metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash},
             )
-            meta["mlflow_model_uri"] = model_uri
-            slim["traffictwin"]["mlflow_model_uri"] = model_uri
         common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
         if curves_out:
             history.write_csv(curves_out)
     session.finish()
-    return FitResult(Path(ckpt_out), meta, metrics, history.rows, meta["mlflow_run_id"], model_uri)
+    return FitResult(
+        Path(ckpt_out),
+        meta,
+        metrics,
+        history.rows,
+        run.info.run_id if run is not None else None,
+        model_uri,
+        round(train_s, 2),
+        round(samples_seen / train_s, 3) if train_s > 0 else None,
+    )

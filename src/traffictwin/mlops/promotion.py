@@ -4,8 +4,9 @@ The workflow (``pipelines/promote.py``) builds one :class:`GateJob` per register
 params.yaml — its gate, its model folder, and a callable that loads the fixed test set and returns
 the evaluator — and calls :func:`promote` with :class:`PromotionSettings`. Here:
 
-1. every candidate's ``model_meta.json`` is read first (:func:`read_candidate`), so a missing
-   model stops the run before anything changes;
+1. every candidate's ``model_meta.json`` and the run record of its training stage (MLflow run
+   id) are read first (:func:`read_candidate`), so a missing model stops the run before
+   anything changes;
 2. under the registry-wide lock (:func:`traffictwin.mlops.registry.gate_lock`, held until the
    last alias moved: a second gate waits, then decides against the champion this one left),
    each candidate is registered once (:func:`traffictwin.mlops.registry.ensure_version`) and
@@ -50,31 +51,62 @@ class Candidate:
     model_uri: str | None
     meta_path: Path
     meta: dict[str, Any] = field(default_factory=dict)
+    record_path: Path | None = None
 
 
-def read_candidate(name: str, model_dir: str | Path) -> Candidate:
-    """The candidate behind ``<model_dir>/model_meta.json`` (keys ``mlflow_run_id``/``run_id``,
-    optional ``mlflow_model_uri``/``model_uri``). Errors name the file and the missing key."""
-    meta_path = Path(model_dir) / "model_meta.json"
+def _read_json_object(path: Path, what: str) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise reg.RegistryError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise reg.RegistryError(f"{path}: {what} must be a JSON object")
+    return data
+
+
+def read_candidate(name: str, model_dir: str | Path, record_path: str | Path) -> Candidate:
+    """The candidate of ``<model_dir>/model_meta.json`` (the model's facts) and ``record_path``, the
+    run record of the stage that trained it (keys ``run_id``, optional ``model_uri``, and
+    ``model_sha256``, which must be the SHA-256 of ``<model_dir>/model.ckpt``). The MLflow run
+    id lives in the run record, outside the DVC-tracked model folder, so identical reruns give
+    identical model folders. Errors name the file and the missing key."""
+    model_dir, record_path = Path(model_dir), Path(record_path)
+    meta_path = model_dir / "model_meta.json"
     if not meta_path.exists():
         raise reg.RegistryError(f"{meta_path}: not found (train the model first: `dvc repro`)")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise reg.RegistryError(f"{meta_path}: not valid JSON ({exc})") from None
-    run_id = meta.get("mlflow_run_id") or meta.get("run_id")
+    meta = _read_json_object(meta_path, "model meta")
+    if not record_path.exists():
+        raise reg.RegistryError(
+            f"{record_path}: not found (the run record of the stage that trained {model_dir}; "
+            "train the model first: `dvc repro`)"
+        )
+    record = _read_json_object(record_path, "run record")
+    run_id = record.get("run_id")
     if not run_id:
         raise reg.RegistryError(
-            f"{meta_path}: no MLflow run id (key 'mlflow_run_id'); "
+            f"{record_path}: no MLflow run id (key 'run_id'); "
             "was the model trained with tracking enabled?"
         )
-    uri = meta.get("mlflow_model_uri") or meta.get("model_uri")
+    expected = record.get("model_sha256")
+    ckpt = model_dir / "model.ckpt"
+    if expected and ckpt.exists():
+        from traffictwin.io.shards import sha256_file
+
+        got = sha256_file(ckpt)
+        if got != expected:
+            raise reg.RegistryError(
+                f"{record_path}: run record of another model than {ckpt} (model_sha256 "
+                f"{str(expected)[:12]}…, the file has {got[:12]}…); re-run its training stage "
+                "(`dvc repro -f <stage>`) or restore the matching reports/timings"
+            )
+    uri = record.get("model_uri")
     return Candidate(
         name=name,
         run_id=str(run_id),
         model_uri=str(uri) if uri else None,
         meta_path=meta_path,
         meta=meta,
+        record_path=record_path,
     )
 
 
@@ -99,7 +131,8 @@ class GateJob:
     """One registered model to gate.
 
     ``make_evaluator(candidate) -> (evaluate, test_fingerprint)`` loads the test set lazily
-    (after every candidate was found); ``tags`` go on a newly registered version;
+    (after every candidate was found); ``record_path``: the run record of the stage that
+    trained ``model_dir`` (its MLflow run id); ``tags`` go on a newly registered version;
     ``card(candidate)`` gives the :class:`ModelCard` facts for the version's description
     (``None``: a card from the meta and the decision only).
     """
@@ -108,6 +141,7 @@ class GateJob:
     gate: Gate
     model_dir: Path
     make_evaluator: Callable[[Candidate], tuple[Evaluator, str]]
+    record_path: Path
     tags: Mapping[str, str] = field(default_factory=dict)
     card: Callable[[Candidate], ModelCard] | None = None
 
@@ -240,7 +274,7 @@ def _decide(cl, p: _Pending, settings: PromotionSettings) -> Decision:
 
 
 def _decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> list[_Pending]:
-    candidates = [read_candidate(j.name, j.model_dir) for j in jobs]
+    candidates = [read_candidate(j.name, j.model_dir, j.record_path) for j in jobs]
     pending = []
     for job, cand in zip(jobs, candidates, strict=True):
         mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)

@@ -96,26 +96,34 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
     return t
 
 
-def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
-    t = Table(
-        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
-    )
+def ordered_records(src: Sources, order: Sequence[str] = ()) -> list[tuple[str, str, dict]]:
+    """``[(stage, file name, record)]`` of the run records (``reports/timings/*.json`` with a
+    ``seconds`` key) in DAG ``order`` (``name@key`` stages by their base name), the report's own
+    record left out (written after the report, it would always be one run stale)."""
     items = []
     for name, d in src.timings.items():
         if not isinstance(d, dict) or "seconds" not in d:
             continue
         stage = str(d.get("stage", name.removesuffix(".json")))
-        if stage == "report":  # written after this report; would always be one run stale
+        if stage == "report":
             continue
-        items.append((stage, name, d["seconds"]))
+        items.append((stage, name, d))
     rank = {s: i for i, s in enumerate(order)}
 
     def key(it: tuple[str, str, Any]) -> tuple[int, str]:
         base = it[0].split("@")[0]
         return (rank.get(it[0], rank.get(base, len(rank))), it[0])
 
+    return sorted(items, key=key)
+
+
+def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
+    t = Table(
+        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
+    )
+    items = [(stage, name, d["seconds"]) for stage, name, d in ordered_records(src, order)]
     total = 0.0
-    for stage, name, secs in sorted(items, key=key):
+    for stage, name, secs in items:
         total += float(secs)
         t.rows.append(
             [

@@ -760,7 +760,6 @@ def evaluate_suite(
                 k: m.meta[k]
                 for k in (
                     "n_parameters",
-                    "train_seconds",
                     "best_val_mse",
                     "best_step",
                     "steps",

@@ -503,7 +503,8 @@ def risk_situation_table(src: page.Sources) -> Table | None:
 
 
 def risk_training_table(src: page.Sources) -> Table | None:
-    """Per variant: inputs, label, parameters, training time and best validation MSE (risk.json models)."""
+    """Per variant: inputs, label, parameters, steps and best validation MSE (risk.json models;
+    training times are in the run records, reports/timings)."""
     models = src.get(RISK_FILE, "models")
     if not isinstance(models, dict) or not models:
         return None
@@ -513,7 +514,6 @@ def risk_training_table(src: page.Sources) -> Table | None:
         ("steps", "steps", "int"),
         ("best_step", "best step", "int"),
         ("best_val_mse", "best val MSE", "g4"),
-        ("train_seconds", "train time [s]", "f1"),
     ]
     t = Table(
         "Risk: training of each variant (DAVE-2-like net; paper: "

@@ -719,6 +719,8 @@ class TrainResult:
     seconds: float
     n_train: int
     n_val: int
+    run_id: str | None = None  # MLflow run (set by fit_risk with tracking): for the run record only
+    model_uri: str | None = None
 
 
 def fit(
@@ -874,7 +876,9 @@ def fit_risk(
     """Train variant ``variant`` on ``data`` and publish it (rank zero; ``None`` on other ranks).
 
     Writes ``out_dir`` (replaced): ``model.ckpt``, ``model_meta.json`` (``meta`` + training
-    facts), ``history.csv``; ``curves_out`` (the same curves, for ``dvc plots``). With
+    facts), ``history.csv``; ``curves_out`` (the same curves, for ``dvc plots``): identical runs
+    write identical bytes (the MLflow run id, model URI and training seconds are only in the
+    returned :class:`TrainResult`). With
     ``tracking`` enabled: an MLflow run with the params once, the curves, the final metrics,
     the checkpoint and an MLflow model (the same ``model.ckpt`` + ``model_meta.json``, no pickled
     code; its signature is that of :class:`PackedDave2`, one packed input tensor).
@@ -950,7 +954,6 @@ def fit_risk(
             "best_val_mse": res.best_val_mse,
             "best_step": res.best_step,
             "steps": res.steps,
-            "train_seconds": round(res.seconds, 2),
             "n_train": res.n_train,
             "n_val": res.n_val,
             "data_manifest": manifest,
@@ -988,8 +991,7 @@ def fit_risk(
                 example,
                 metadata={"variant": variant, "label": label},
             )
-            full_meta.update(mlflow_run_id=run.info.run_id, mlflow_model_uri=uri)
-            save_risk_model(res.net, out_dir, full_meta)
+            res.run_id, res.model_uri = run.info.run_id, uri
     session.finish()
     return res
 

@@ -14,8 +14,11 @@ Numbers per configuration, method and scenario kind (``occluded`` / ``open`` / `
 - ``lead_time_s`` — per sequence with a critical frame: time of the ego's first flag within the
   critical episode minus the method's (a method that never flags in the episode counts as
   flagging one frame after its end), mean over sequences with its CI;
-- ``left_out_share`` — share of the other vehicles left out of the twin (registration rejected),
-  ``step_ms_median`` — median wall time of a twin update.
+- ``left_out_share`` — share of the other vehicles left out of the twin (registration rejected).
+
+The frame table's ``step_ms`` (wall time of each twin update) differs between identical runs:
+:func:`step_ms_medians` summarises it for the stage's run record, and the stage drops the column
+before writing the table.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ __all__ = [
     "map_thw",
     "evaluate_sequence",
     "summarise",
+    "step_ms_medians",
     "lead_times",
 ]
 
@@ -218,8 +222,22 @@ def summarise(
                     res["lead_time_s"], res["lead_time_s_ci"] = round(iv.estimate, 6), _ci(iv)
                 others = g["vehicles"] - 1
                 res["left_out_share"] = round(float(g["left_out"].sum() / max(others.sum(), 1)), 6)
-                res["step_ms_median"] = round(float(g["step_ms"].median()), 3)
             out[m][kind] = res
+    return out
+
+
+def step_ms_medians(frame: pd.DataFrame, methods: list[str]) -> dict[str, dict[str, float]]:
+    """Median wall time of a twin update (ms, column ``step_ms``) per method and scenario kind
+    (``occluded`` / ``open`` / ``all``) of one configuration's frame table: ``{method: {kind: ms}}``."""
+    out: dict[str, dict[str, float]] = {}
+    for m in methods:
+        g = frame[frame["method"] == m]
+        out[m] = {
+            kind: round(
+                float((g if kind == "all" else g[g["kind"] == kind])["step_ms"].median()), 3
+            )
+            for kind in (*KINDS, "all")
+        }
     return out
 
 

@@ -71,7 +71,6 @@ def occluded_table(src: page.Sources) -> Table:
         "lead time (s)",
         "95 % CI",
         "vehicles left out",
-        "ms per update (median)",
     ]
     t = Table(
         "Twin: critical frames flagged in occluded sequences",
@@ -89,7 +88,7 @@ def occluded_table(src: page.Sources) -> Table:
                 _ci(src, f"{k}.recall_ci", "pct"),
             ]
             if m == "ego":
-                row += [Cell("—")] * 6
+                row += [Cell("—")] * 5
             else:
                 row += [
                     src.cell(FILE, f"{k}.recall_vs_ego", "pct"),
@@ -97,7 +96,6 @@ def occluded_table(src: page.Sources) -> Table:
                     src.cell(FILE, f"{k}.lead_time_s", "f2"),
                     _ci(src, f"{k}.lead_time_s_ci", "f2"),
                     src.cell(FILE, f"{k}.left_out_share", "pct"),
-                    src.cell(FILE, f"{k}.step_ms_median", "f1"),
                 ]
             t.rows.append(row)
     t.note = NOTE

@@ -1,0 +1,105 @@
+"""Issue 18, defect 13: two identical `dvc repro -f` runs leave dvc.lock byte-identical.
+
+Wall times, throughput and MLflow run ids go to the run records (reports/timings, outside DVC);
+checkpoints are serialised with a fixed archive name. A copy of the ci_dag repository (data,
+models, DVC cache, its own MLflow database) is re-run with `dvc repro -f`; every hash in dvc.lock
+must stay, and no DVC output may hold one of the volatile keys.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+import yaml
+from conftest import run
+
+# keys that held timings, run ids or absolute paths in DVC outputs before (issue 18, defect 13)
+VOLATILE_KEYS = {
+    "train_seconds",
+    "train_samples_per_s",
+    "mlflow_run_id",
+    "mlflow_model_uri",
+    "data_root",
+    "ms_per_pair",
+    "runtime_ms_per_pair",
+    "learned_runtime_ms",
+    "all/ms_per_frame",
+    "step_ms_median",
+    "fusion_data/pairs_per_s",
+}
+VOLATILE_COLUMNS = {"ms", "step_ms", "seconds"}
+# the report's former timing table and columns (the report is a DVC output)
+REPORT_TIMING_HEADINGS = ("Stage wall times", "ms / pair", "train time [s]", "ms per update")
+
+
+def _keys(obj: Any) -> set[str]:
+    if isinstance(obj, dict):
+        return set(obj) | {k for v in obj.values() for k in _keys(v)}
+    if isinstance(obj, list):
+        return {k for v in obj for k in _keys(v)}
+    return set()
+
+
+def _out_files(repo: Path) -> list[Path]:
+    """Every file of every DVC output recorded in dvc.lock (entries of foreach items another
+    profile ran, kept in dvc.lock by DVC, have no files here)."""
+    lock = yaml.safe_load((repo / "dvc.lock").read_text())
+    files = []
+    for st in lock["stages"].values():
+        for out in st.get("outs", []):
+            p = repo / out["path"]
+            files += sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    return [f for f in files if f.exists()]
+
+
+@pytest.mark.slow
+def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path) -> None:
+    repo = tmp_path / "repo"
+    shutil.copytree(ci_dag, repo, symlinks=True)
+    before = (repo / "dvc.lock").read_bytes()
+    records = sorted((repo / "reports" / "timings").glob("*.json"))
+    assert records, "the stages wrote no run records"
+    run(["dvc", "repro", "-f"], repo, timeout=1800)
+    after = (repo / "dvc.lock").read_bytes()
+    if after != before:  # name the entries that moved
+        a, b = yaml.safe_load(before)["stages"], yaml.safe_load(after)["stages"]
+        moved = [
+            (stage, e["path"])
+            for stage in a
+            for kind in ("deps", "outs")
+            for e in a[stage].get(kind, [])
+            if e not in b.get(stage, {}).get(kind, [])
+        ]
+        pytest.fail(f"dvc.lock changed on an identical rerun: {moved}")
+    # the run records did change (new run ids, new times): they are where the noise went
+    rec = json.loads((repo / "reports/timings/train_fusion-A.json").read_text())
+    old = json.loads((ci_dag / "reports/timings/train_fusion-A.json").read_text())
+    assert rec["run_id"] and rec["run_id"] != old["run_id"]
+    assert rec["model_sha256"] == old["model_sha256"]  # the same weights, the same bytes
+    assert "up to date" in run(["dvc", "status"], repo).stdout.lower()
+
+
+@pytest.mark.slow
+def test_no_dvc_output_holds_a_volatile_field(ci_dag: Path) -> None:
+    files = _out_files(ci_dag)
+    assert any(f.suffix == ".ckpt" for f in files) and any(f.suffix == ".csv" for f in files)
+    for f in files:
+        if f.suffix == ".json":
+            found = _keys(json.loads(f.read_text())) & VOLATILE_KEYS
+        elif f.suffix == ".csv":
+            with open(f) as fh:
+                found = set(next(csv.reader(fh), [])) & VOLATILE_COLUMNS
+        elif f.suffix == ".ckpt":
+            found = _keys(torch.load(f, weights_only=True).get("traffictwin", {})) & VOLATILE_KEYS
+        elif f.suffix in (".md", ".html"):
+            text = f.read_text()
+            found = {k for k in REPORT_TIMING_HEADINGS if k in text}
+        else:
+            continue
+        assert not found, f"{f.relative_to(ci_dag)}: {sorted(found)}"
