@@ -29,6 +29,7 @@ from traffictwin.fusion.findings import fusion_findings, verdict
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup
+from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import files_table, findings_group
 
 FUSION_FILE = "fusion.json"
@@ -680,9 +681,41 @@ def section(
     return sec
 
 
+def headlines(
+    metrics: Mapping[str, Any], configurations: Mapping[str, tuple[float, float]]
+) -> list[Headline]:
+    """Per configuration: the configuration's network (``dnn``) on the test pairs, KL(label‖pred)
+    over ``(m_F, m_O, u)`` (nats per cell, the headline) and occupied-cell Dice, with their
+    scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice_occ``)."""
+    out: list[Headline] = []
+    for c, (r, a) in configurations.items():
+        row = lookup(metrics.get(FUSION_FILE), f"test.{c}.dnn")
+        if not isinstance(row, Mapping):
+            continue
+        where = f"configuration {c} (r = {r:g} m, α = {a:g}°), test pairs"
+        out += headline(
+            f"{c}.kld",
+            "fusion: KL(label ‖ network) over (m_F, m_O, u), nats per cell",
+            where,
+            row.get(f"{HEADLINE}"),
+            row.get(f"{HEADLINE}_ci"),
+        )
+        out += headline(
+            f"{c}.dice_occ",
+            "fusion: Dice of occupied cells, network",
+            where,
+            row.get("dice_occ"),
+            row.get("dice_occ_ci"),
+            "pct",
+        )
+    return out
+
+
 def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionProvider:
     """The fusion section's provider for the report; ``configurations`` as in :func:`section`."""
     return page.SectionProvider(
+        name="fusion",
+        headlines=partial(headlines, configurations=dict(configurations)),
         section=partial(section, configurations=dict(configurations)),
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
