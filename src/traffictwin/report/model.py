@@ -285,7 +285,8 @@ class SectionProvider:
     stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
     that claims any other image for this problem. ``data_files``: its files in the data section.
     ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
-    appendix). ``name`` and ``headlines``: the problem's few headline numbers with their
+    appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
+    new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their
     intervals (``{metrics file name: parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline`
     list), written to ``reports/summary.json`` under ``name`` and shown first in the report. The
     report iterates the providers in order; adding a problem adds a provider.
@@ -296,5 +297,6 @@ class SectionProvider:
     figure_pattern: str = NEVER
     data_files: Sequence[DataFile] = ()
     shown_files: str = NEVER
+    replaces: Mapping[str, str] = field(default_factory=dict)  # {figure stem: stem it supersedes}
     name: str = ""
     headlines: Callable[[Mapping[str, Any]], Sequence[Headline]] | None = None

@@ -48,6 +48,7 @@ INDEX_HTML = "index.html"
 RESULTS_TABLE = "results_table.md"
 SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
 TEMPLATES = Path(__file__).resolve().parent / "templates"
+FIGURE_DIRS = ("figures", "report_figures")  # the stages' figures, the report stage's own
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
 _MIME = {
     ".png": "image/png",
@@ -62,21 +63,24 @@ _MIME = {
 def collect_figures(
     reports_dir: Path, providers: Sequence[SectionProvider]
 ) -> tuple[list[list[Figure]], list[Figure]]:
-    """Images under ``reports/figures``, one list per provider plus the unclaimed ones.
+    """Images under ``reports/figures`` (the stages') and ``reports/report_figures`` (drawn by the
+    report stage), one list per provider plus the unclaimed ones.
 
     First every provider's known figures (its ``figures`` order, with their captions), then any
     other image goes to the first provider whose ``figure_pattern`` matches its name, or to the
-    unclaimed list (the appendix)."""
+    unclaimed list (the appendix). A figure that a present one ``replaces`` is left out."""
     out: list[list[Figure]] = [[] for _ in providers]
     other: list[Figure] = []
-    fdir = Path(reports_dir) / "figures"
-    if not fdir.is_dir():
-        return out, other
     files = {
         p.relative_to(reports_dir).as_posix(): p
-        for p in sorted(fdir.rglob("*"))
+        for d in FIGURE_DIRS
+        if (Path(reports_dir) / d).is_dir()
+        for p in sorted((Path(reports_dir) / d).rglob("*"))
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
     }
+    stems = {p.stem for p in files.values()}
+    superseded = {old for prov in providers for new, old in prov.replaces.items() if new in stems}
+    files = {rel: p for rel, p in files.items() if p.stem not in superseded}
     done: set[str] = set()
     for figs, prov in zip(out, providers):
         for stem, caption in prov.figures.items():
