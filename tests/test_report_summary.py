@@ -100,7 +100,7 @@ def test_problem_headlines_from_their_metrics_files() -> None:
     fusion = F.headlines({"fusion.json": FUSION}, CONFS)
     assert [(h.key, h.value, h.lo, h.hi) for h in fusion] == [
         ("A.kld", 0.01, 0.008, 0.012),
-        ("A.dice_occ", 0.99, 0.985, 0.995),
+        ("A.dice", 0.99, 0.985, 0.995),
         ("D.kld", 0.06, 0.05, 0.07),
     ]
     assert "r = 5 m, α = 20°" in fusion[-1].where
@@ -139,9 +139,9 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
                 "kld": 0.01,
                 "kld_lo": 0.008,
                 "kld_hi": 0.012,
-                "dice_occ": 0.99,
-                "dice_occ_lo": 0.985,
-                "dice_occ_hi": 0.995,
+                "dice": 0.99,
+                "dice_lo": 0.985,
+                "dice_hi": 0.995,
             },
             "D": {"kld": 0.06, "kld_lo": 0.05, "kld_hi": 0.07},
         },
@@ -182,7 +182,7 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
     order = ['<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
     assert [page.index(x) for x in order] == sorted(page.index(x) for x in order)
     assert 'data-src="summary.json#risk.auc"' in page and 'data-value="0.84"' in page
-    assert "| risk | risk: ROC-AUC of critical frames (THW < 1.5 s) |" in md
+    assert "| risk | ROC-AUC of critical frames (THW < 1.5 s) |" in md
     assert "[0.790, 0.880]" in md
     # parameters, stage times and the metrics dump: each in a closed <details>, after the results
     for title in ("This run: parameters, stage times, machine", "Appendix — every metrics file"):

@@ -700,7 +700,7 @@ def headlines(
 ) -> list[Headline]:
     """Per configuration: the configuration's network (``dnn``) on the test pairs, KL(label‖pred)
     over ``(m_F, m_O, u)`` (nats per cell, the headline) and occupied-cell Dice, with their
-    scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice_occ``)."""
+    scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice``: occupied cells)."""
     out: list[Headline] = []
     for c, (r, a) in configurations.items():
         row = lookup(metrics.get(FUSION_FILE), f"test.{c}.dnn")
@@ -709,14 +709,14 @@ def headlines(
         where = f"configuration {c} (r = {r:g} m, α = {a:g}°), test pairs"
         out += headline(
             f"{c}.kld",
-            "fusion: KL(label ‖ network) over (m_F, m_O, u), nats per cell",
+            "KL(label ‖ network) over (m_F, m_O, u), nats per cell",
             where,
             row.get(f"{HEADLINE}"),
             row.get(f"{HEADLINE}_ci"),
         )
         out += headline(
-            f"{c}.dice_occ",
-            "fusion: Dice of occupied cells, network",
+            f"{c}.dice",
+            "Dice of occupied cells, network",
             where,
             row.get("dice_occ"),
             row.get("dice_occ_ci"),

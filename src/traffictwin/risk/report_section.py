@@ -632,14 +632,14 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     where = f"main predictor {main}, test frames"
     return headline(
         "auc",
-        f"risk: ROC-AUC of critical frames (THW < {t:g} s)",
+        f"ROC-AUC of critical frames (THW < {t:g} s)",
         where,
         cls.get("roc_auc"),
         cls.get("roc_auc_ci"),
         "f3",
     ) + headline(
         "mse",
-        "risk: MSE of the normalised risk",
+        "MSE of the normalised risk",
         where,
         row.get("test/mse"),
         row.get("test/mse_ci"),

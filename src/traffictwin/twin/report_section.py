@@ -208,14 +208,14 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     where = f"{LABELS.get(method, method)} at configuration {cfg}, occluded sequences"
     return headline(
         "recall",
-        "twin: critical frames flagged",
+        "critical frames flagged",
         where,
         occ.get("recall"),
         occ.get("recall_ci"),
         "pct",
     ) + headline(
         "recall_gain",
-        "twin: gain in critical frames flagged over the ego's own map",
+        "gain in critical frames flagged over the ego's own map",
         where,
         occ.get("recall_vs_ego"),
         occ.get("recall_vs_ego_ci"),
