@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from traffictwin.report.plot_data import (
+    drop_collinear,
     fusion_scores_long,
     learning_curves,
     precision_recall_curve,
@@ -87,6 +88,15 @@ def test_precision_recall_curve_hand_case() -> None:
     assert r0.size == 0 and p0.size == 0
 
 
+def test_drop_collinear_keeps_the_corners() -> None:
+    x = np.array([0.0, 0.0, 0.0, 0.5, 1.0, 1.0])
+    y = np.array([0.0, 0.5, 1.0, 1.0, 1.0, 1.0])
+    assert drop_collinear(x, y).tolist() == [True, False, True, False, False, True]
+    assert drop_collinear(np.array([0.0, 1.0]), np.array([0.0, 1.0])).tolist() == [True, True]
+    diag = np.linspace(0, 1, 4)  # a diagonal is not a horizontal or vertical run: all kept
+    assert drop_collinear(diag, diag).all()
+
+
 def test_risk_curves_per_predictor() -> None:
     pred = pd.DataFrame(
         {
@@ -99,15 +109,12 @@ def test_risk_curves_per_predictor() -> None:
     roc, pr = risk_curves(pred, "risk_thw_corridor", 1 / 30)
     assert sorted(roc["predictor"].unique()) == ["flip (AUC 0.000)", "net (AUC 1.000)"]
     net = roc[roc["predictor"] == "net (AUC 1.000)"].sort_values("rank")
-    assert net[["fpr", "tpr"]].to_numpy().tolist() == [
-        [0.0, 0.0],
-        [0.0, 0.5],
-        [0.0, 1.0],
-        [0.5, 1.0],
-        [1.0, 1.0],
-    ]
+    # (0, 0), (0, .5), (0, 1), (.5, 1), (1, 1): the points inside the two straight runs are dropped
+    assert net[["fpr", "tpr"]].to_numpy().tolist() == [[0.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+    assert net["rank"].tolist() == [0, 2, 4]
     pnet = pr[pr["predictor"] == "net (AUC 1.000)"].sort_values("rank")
-    assert pnet["precision"].tolist() == [1.0, 1.0, 2 / 3, 0.5]
+    # recall .5, 1, 1, 1 at precision 1, 1, 2/3, 1/2: the middle of the vertical run goes
+    assert pnet["precision"].tolist() == [1.0, 1.0, 0.5]
     with pytest.raises(ValueError, match="no label column 'risk_x'"):
         risk_curves(pred, "risk_x", 1 / 30)
 

@@ -89,3 +89,16 @@ def precision_recall_curve(
     tps = np.cumsum(pos)[last]
     flagged = last + 1.0
     return tps / n_pos, tps / flagged
+
+
+def drop_collinear(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Mask of the points of the polyline ``(x, y)`` to keep: every point but those inside a
+    horizontal or vertical run (same x or same y as both neighbours), so the drawn line is the same
+    with far fewer points (ROC / PR curves step in x or in y)."""
+    x, y = np.asarray(x), np.asarray(y)
+    keep = np.ones(x.size, bool)
+    if x.size > 2:
+        inner_x = (x[1:-1] == x[:-2]) & (x[1:-1] == x[2:])
+        inner_y = (y[1:-1] == y[:-2]) & (y[1:-1] == y[2:])
+        keep[1:-1] = ~(inner_x | inner_y)
+    return keep

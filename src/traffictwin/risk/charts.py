@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from traffictwin.report.plot_data import precision_recall_curve
+from traffictwin.report.plot_data import drop_collinear, precision_recall_curve
 from traffictwin.risk.evaluation import roc_auc, roc_curve
 
 
@@ -16,7 +16,8 @@ def risk_curves(
     """ROC and precision-recall tables of critical frames (``label > risk_threshold``), one curve
     per column ``<prefix><name>`` of ``predictions`` (the predictor ``<name> (AUC x.xxx)``).
 
-    ``rank`` orders the points along a curve. Rows with a missing label or prediction are left
+    ``rank`` orders the points along a curve; points inside a horizontal or vertical run are
+    left out (:func:`~traffictwin.report.plot_data.drop_collinear`: the same line). Rows with a missing label or prediction are left
     out of that predictor's curve."""
     if label not in predictions.columns:
         raise ValueError(f"risk predictions: no label column {label!r}")
@@ -33,13 +34,22 @@ def risk_curves(
         if fpr.size == 0:
             continue
         name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p[ok]):.3f})"
+        k = drop_collinear(fpr, tpr)  # the same curve with its corner points only
         rocs.append(
-            pd.DataFrame({"predictor": name, "rank": np.arange(fpr.size), "fpr": fpr, "tpr": tpr})
+            pd.DataFrame(
+                {"predictor": name, "rank": np.arange(fpr.size)[k], "fpr": fpr[k], "tpr": tpr[k]}
+            )
         )
         rec, prec = precision_recall_curve(positive, p[ok])
+        k = drop_collinear(rec, prec)
         prs.append(
             pd.DataFrame(
-                {"predictor": name, "rank": np.arange(rec.size), "recall": rec, "precision": prec}
+                {
+                    "predictor": name,
+                    "rank": np.arange(rec.size)[k],
+                    "recall": rec[k],
+                    "precision": prec[k],
+                }
             )
         )
     roc = (
