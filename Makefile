@@ -9,7 +9,7 @@ STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
 
-.PHONY: install run test test-fast lint format params promote bench readme clean-venv
+.PHONY: install run test test-fast lint format params promote bench readme push pull clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,6 +52,15 @@ bench: install
 # copy reports/results_table.md (written by `make run`) into README.md
 readme: install
 	$(PY) -m pipelines.readme_results
+
+# DVC remote: data and models to / from the default remote of .dvc/config (a folder beside the
+# clone, ../traffictwin-dvc-store, unless `dvc remote add -d` chose another); `make pull` in a
+# fresh clone restores what `make push` sent, so no stage has to run again
+push: install
+	$(VENV)/bin/dvc push
+
+pull: install
+	$(VENV)/bin/dvc pull
 
 clean-venv:
 	rm -rf $(VENV)

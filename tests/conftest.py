@@ -37,6 +37,9 @@ _TOP_LEVEL = {
     ".gl",
     ".whl",
     ".retrain.lock",
+    ".retrain.journal",
+    ".retrain.journal.tmp",
+    "logs",
 }
 _DVC_LOCAL = {"cache", "tmp"}
 

@@ -1,0 +1,347 @@
+"""Issue 18, defects 4 and 5: a failed, interrupted or killed retraining leaves the repository as before.
+
+The flow (``python -m pipelines.retrain --no-promote``) runs for real in a toy repository: the
+project's ``pipelines/`` and ``conf/`` with a two-stage ``dvc.yaml`` (``gen`` writes the seed into
+``data/toy``, ``train`` copies it into ``models/toy``) whose ``train`` command fails, or sleeps
+after writing its pid, as ``TOY_MODE`` says. So ``dvc repro``, ``dvc checkout`` and ``dvc status``
+are the real ones, and nothing trains a network.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipelines import retrain as rt
+
+WT = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+
+TOY = """\
+import os, pathlib, sys, time
+import yaml
+
+seed = yaml.safe_load(open("params.yaml"))["seed"]
+if sys.argv[1] in ("reg", "ev"):
+    out = pathlib.Path(sys.argv[2])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(sys.argv[1])
+    sys.exit(0)
+if sys.argv[1] == "gen":
+    pathlib.Path("data/toy").mkdir(parents=True, exist_ok=True)
+    pathlib.Path("data/toy/x.txt").write_text(f"data {seed}")
+    sys.exit(0)
+mode = os.environ.get("TOY_MODE", "ok")
+if mode == "fail":
+    sys.exit(3)
+if mode == "sleep":
+    pidfile = pathlib.Path(os.environ["TOY_PIDFILE"])
+    pidfile.with_suffix(".tmp").write_text(str(os.getpid()))
+    pidfile.with_suffix(".tmp").rename(pidfile)
+    time.sleep(600)
+pathlib.Path("models/toy").mkdir(parents=True, exist_ok=True)
+pathlib.Path("models/toy/model.txt").write_text("model of " + open("data/toy/x.txt").read())
+"""
+
+DVC_YAML = {
+    "stages": {
+        "gen": {
+            "cmd": "python toy.py gen",
+            "deps": ["toy.py"],
+            "params": ["seed"],
+            "outs": ["data/toy"],
+        },
+        "train": {
+            "cmd": "python toy.py train",
+            "deps": ["toy.py", "data/toy"],
+            "outs": ["models/toy"],
+        },
+        # never run before the retraining: a failed `dvc checkout` must not leave their folders behind
+        "reg": {
+            "cmd": "python toy.py reg models/registration/A/model.ckpt",
+            "deps": ["models/toy"],
+            "outs": ["models/registration/A/model.ckpt"],
+        },
+        "ev": {
+            "cmd": "python toy.py ev out/ev",
+            "deps": ["models/registration"],
+            "outs": ["out/ev"],
+        },
+    }
+}
+
+
+def _env(repo: Path, mode: str = "ok") -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(
+        PATH=f"{BIN}{os.pathsep}{env.get('PATH', '')}",
+        PYTHONPATH=os.pathsep.join((str(repo), str(WT / "src"))),  # the toy repo's own pipelines/
+        MLFLOW_TRACKING_URI=f"sqlite:///{repo / 'mlflow.db'}",
+        PYTHONHASHSEED="0",
+        DVC_NO_ANALYTICS="1",
+        TQDM_DISABLE="1",
+        TOY_MODE=mode,
+        TOY_PIDFILE=str(repo.parent / "toy.pid"),
+    )
+    env.pop(rt.FAIL_ENV, None)
+    return env
+
+
+def _sh(cmd: list[str], repo: Path, **kw) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        cmd, cwd=repo, env=_env(repo), capture_output=True, text=True, timeout=300, **kw
+    )
+    assert proc.returncode == 0, (cmd, proc.stdout[-2000:], proc.stderr[-2000:])
+    return proc
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The toy repository after a first `dvc repro` (seed as in params.yaml, outputs cached)."""
+    repo = tmp_path_factory.mktemp("toy") / "repo"
+    repo.mkdir()
+    shutil.copytree(
+        WT / "pipelines", repo / "pipelines", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    shutil.copytree(WT / "conf", repo / "conf")
+    shutil.copy2(WT / "params.yaml", repo / "params.yaml")
+    (repo / "toy.py").write_text(TOY)
+    (repo / "dvc.yaml").write_text(yaml.safe_dump(DVC_YAML, sort_keys=False))
+    (repo / "reports").mkdir()
+    (repo / "reports" / "committed.json").write_text('{"kept": true}\n')
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    _sh([*git, "init", "-q"], repo)
+    _sh(["dvc", "init", "-q"], repo)
+    _sh(["dvc", "repro", "-q", "train"], repo)
+    _sh([*git, "add", "-A"], repo)
+    _sh([*git, "commit", "-q", "-m", "toy"], repo)
+    return repo
+
+
+@pytest.fixture
+def repo(template: Path, tmp_path: Path) -> Path:
+    dest = tmp_path / "repo"
+    shutil.copytree(template, dest, symlinks=True)
+    return dest
+
+
+def _state(repo: Path) -> dict[str, bytes]:
+    """Bytes of everything a retraining may change and must restore."""
+    files = [repo / "params.yaml", repo / "dvc.lock", *sorted((repo / "conf").rglob("*"))]
+    files += sorted((repo / "reports").rglob("committed.json"))
+    files += [repo / "data/toy/x.txt", repo / "models/toy/model.txt"]
+    return {str(p.relative_to(repo)): p.read_bytes() for p in files if p.is_file()}
+
+
+def _seed(repo: Path) -> int:
+    return yaml.safe_load((repo / "params.yaml").read_text())["seed"]
+
+
+def _summary(repo: Path) -> dict:
+    return json.loads((repo / "reports" / "retrain_summary.json").read_text())
+
+
+def _retrain(repo: Path, mode: str = "ok", **env) -> subprocess.CompletedProcess:
+    e = _env(repo, mode) | env
+    cmd = [sys.executable, "-m", "pipelines.retrain", "--no-promote"]
+    return subprocess.run(cmd, cwd=repo, env=e, capture_output=True, text=True, timeout=300)
+
+
+def _start(repo: Path, mode: str) -> subprocess.Popen:
+    """A retraining in the background, output to files (a pipe would stay open in an orphaned child)."""
+    out = open(repo.parent / "retrain.out", "w")  # noqa: SIM115 - closed with the process
+    cmd = [sys.executable, "-m", "pipelines.retrain", "--no-promote"]
+    return subprocess.Popen(
+        cmd, cwd=repo, env=_env(repo, mode), stdout=out, stderr=subprocess.STDOUT
+    )
+
+
+def _wait(pred, what: str, proc: subprocess.Popen | None = None, limit: float = 180.0) -> None:
+    """Poll ``pred`` (a hang guard, not a timing check)."""
+    deadline = time.monotonic() + limit
+    while not pred():
+        if proc is not None and proc.poll() is not None:
+            pytest.fail(f"{proc.args} exited {proc.returncode} while waiting for {what}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"gave up waiting for {what}")
+        time.sleep(0.05)
+
+
+def _running_stage(repo: Path, proc: subprocess.Popen) -> int:
+    pidfile = repo.parent / "toy.pid"
+    _wait(pidfile.exists, "the train stage to start", proc)
+    return int(pidfile.read_text())
+
+
+# ------------------------------------------------------------------ failure (defect 4)
+
+
+def test_failed_stage_gets_its_model_back_and_restored_is_verified(repo: Path):
+    before = _state(repo)
+    proc = _retrain(repo, mode="fail")
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    s = _summary(repo)
+    assert s["status"] == "failed" and s["failed_step"] == "dvc_repro"
+    assert s["restored"] is True, s.get("restore_problems")
+    # `train` failed after DVC had deleted models/toy: it is back, as are the data, dvc.lock, conf/
+    assert _state(repo) == before
+    assert not (
+        repo / "models" / "registration"
+    ).exists()  # no folder of a never-run stage appeared
+    assert not (repo / ".retrain.journal").exists()
+    assert "previous data and champions kept" in proc.stderr
+
+
+def test_restored_is_false_with_the_reason_when_the_restore_cannot_be_verified(repo: Path):
+    shutil.rmtree(repo / ".dvc" / "cache")  # nothing to check the old outputs out from
+    params0 = (repo / "params.yaml").read_bytes()
+    proc = _retrain(repo, mode="fail")
+    assert proc.returncode == 1
+    s = _summary(repo)
+    assert s["status"] == "failed" and s["restored"] is False
+    assert any("models/toy" in p for p in s["restore_problems"]), s["restore_problems"]
+    assert "NOT restored" in proc.stderr
+    assert (repo / ".retrain.journal" / "state.json").exists()  # kept: the next run retries
+    # ... and the next run does not start on a state it could not restore
+    again = _retrain(repo)
+    assert again.returncode == 1
+    s2 = _summary(repo)
+    assert s2["failed_step"] == "recover" and s2["restored"] is False
+    assert s2["recovered"]["restored"] is False
+    assert (
+        repo / "params.yaml"
+    ).read_bytes() == params0  # restored again, not bumped a second time
+    assert (repo / ".retrain.journal").exists()
+
+
+# ------------------------------------------------------------------ signals (defect 5)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
+def test_signal_stops_the_child_group_restores_and_the_next_run_works(repo: Path, sig):
+    before, seed0 = _state(repo), _seed(repo)
+    proc = _start(repo, "sleep")
+    try:
+        stage_pid = _running_stage(repo, proc)
+        assert _seed(repo) == seed0 + 1 and (repo / ".retrain.journal" / "state.json").exists()
+
+        # a second retraining meanwhile exits 75 at once and leaves the journal to its owner
+        busy = _retrain(repo)
+        assert busy.returncode == rt.EXIT_LOCKED, busy.stderr
+        assert "another retraining run holds the lock" in busy.stderr
+        assert (repo / ".retrain.journal" / "state.json").exists() and proc.poll() is None
+
+        proc.send_signal(sig)
+        assert proc.wait(timeout=300) == 128 + sig
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not rt.alive(stage_pid)  # the child's process group was stopped, not orphaned
+    s = _summary(repo)
+    assert s["status"] == "interrupted" and s["signal"] == sig.name
+    assert s["failed_step"] == "dvc_repro" and s["restored"] is True, s.get("restore_problems")
+    assert _state(repo) == before
+    assert not (repo / ".retrain.journal").exists()
+
+    nxt = _retrain(repo)
+    assert nxt.returncode == 0, nxt.stderr[-3000:]
+    assert _summary(repo)["status"] == "succeeded" and _seed(repo) == seed0 + 1
+    assert (repo / "models/toy/model.txt").read_text() == f"model of data {seed0 + 1}"
+
+
+def test_sigkill_leaves_a_journal_that_the_next_run_recovers_from(repo: Path):
+    before, seed0 = _state(repo), _seed(repo)
+    proc = _start(repo, "sleep")
+    try:
+        stage_pid = _running_stage(repo, proc)
+        proc.kill()
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    journal = json.loads((repo / ".retrain.journal" / "state.json").read_text())
+    assert journal["pid"] == proc.pid and journal["step"] == "dvc_repro"
+    assert rt.alive(stage_pid) and _seed(repo) == seed0 + 1  # orphaned child, bumped seed: as left
+
+    nxt = _retrain(repo)
+    assert nxt.returncode == 0, nxt.stderr[-3000:]
+    assert not rt.alive(stage_pid)  # the orphaned `dvc repro` group was stopped first
+    s = _summary(repo)
+    assert s["status"] == "succeeded"
+    assert s["recovered"]["pid"] == proc.pid and s["recovered"]["restored"] is True
+    assert s["recovered"]["child_stopped"] is True
+    assert s["seeds"] == {"seed": [seed0, seed0 + 1]}  # bumped from the restored params, not twice
+    assert (repo / "models/toy/model.txt").read_text() == f"model of data {seed0 + 1}"
+    assert (repo / "conf").exists() and _state(repo)["conf/config.yaml"] == before[
+        "conf/config.yaml"
+    ]
+    assert not (repo / ".retrain.journal").exists()
+
+
+def test_unfinished_journal_is_dropped_without_a_restore(repo: Path):
+    """A run killed while writing its journal had changed nothing: the half-written copy goes."""
+    tmp = repo / ".retrain.journal.tmp"
+    (tmp / "snapshot" / "conf").mkdir(parents=True)
+    journal = rt.Journal(repo / ".retrain.journal")
+    assert rt.recover(repo, journal, logging.getLogger("t")) is None
+    assert not tmp.exists()
+
+
+# ------------------------------------------------------------------ building blocks, in-process
+
+
+def test_signal_guard_raises_once_and_defers():
+    with rt.SignalGuard() as guard:
+        with pytest.raises(rt.Interrupted) as err:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(5)  # the handler raises at the next bytecode: never reached
+        assert err.value.signum == signal.SIGHUP
+    with rt.SignalGuard() as guard:
+        with pytest.raises(rt.Interrupted) as err:
+            with guard.deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGTERM)
+                noted = guard.received
+        assert (
+            noted == signal.SIGINT and err.value.signum == signal.SIGINT
+        )  # raised when the block ended
+        os.kill(os.getpid(), signal.SIGTERM)  # after it was raised once: only noted
+    with rt.SignalGuard() as guard:
+        guard.hold()
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert guard.received == signal.SIGTERM
+
+
+def test_alive_tells_a_reused_pid_from_the_journaled_process():
+    me = os.getpid()
+    start = rt.process_start(me)
+    assert rt.alive(me) and rt.alive(me, start)
+    assert not rt.alive(me, start + 1)  # same pid, other start time: another process
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    assert not rt.alive(child.pid)
+
+
+def test_stop_group_stops_every_member(tmp_path: Path):
+    pidfile = tmp_path / "grandchild"
+    script = (
+        f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)']);"
+        f"open({str(pidfile)!r}, 'w').write(str(p.pid)); time.sleep(600)"
+    )
+    leader = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    _wait(lambda: pidfile.exists() and pidfile.read_text(), "the grandchild", leader)
+    grandchild = int(pidfile.read_text())
+    assert rt.group_alive(leader.pid)
+    assert rt.stop_group(leader.pid, logging.getLogger("t"), leader) is True
+    assert leader.poll() is not None and not rt.alive(grandchild)
+    assert not rt.group_alive(leader.pid)
