@@ -29,7 +29,7 @@ from traffictwin.stereo import report_section as stereo_report
 from traffictwin.twin import report_section as twin_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import CONF, DVC_YAML, REPORTS, ROOT
+from ._paths import CONF, DVC_YAML, PLOTS, REPORTS, ROOT
 from ._provenance import git_commit
 
 
@@ -119,6 +119,9 @@ def main() -> None:
             pipeline_run=pipeline_run_id(),
             stage_order=stage_order(DVC_YAML, cfg),
             git_dirty=git_dirty(ROOT),
+        )
+        fusion_report.draw_score_figures(
+            PLOTS / "fusion_scores.csv", REPORTS / "report_figures", p.pose_noise
         )
         report = write_report(inputs, providers(p.pose_noise))
         write_timings_readme(inputs)  # the run records' summary, outside DVC

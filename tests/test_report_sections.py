@@ -112,13 +112,14 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
     report = R.write_report(_inputs(rep), [*providers({}), fleet])
     titles = [s.title for s in report.sections]
     assert titles == [
-        "This run",
+        "Headline results",
         fusion_report.TITLE,
         risk_report.TITLE,
         stereo_report.TITLE,
         twin_report.TITLE,
         "Fleet",
         "Data and disparity statistics",
+        "This run: parameters, stage times, machine",
         "Appendix — every metrics file",
     ]
     assert seen["figures"] == ["figures/fleet_map.png", "figures/fleet_other.png"]

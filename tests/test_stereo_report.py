@@ -120,17 +120,21 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
     check_report(rep, {}, {})  # every number cell equals its file's value
     sec = next(s for s in report.sections if s.title == S.TITLE)
     anchors = [t.anchor for t in sec.tables]
-    assert anchors == [
-        "stereo-accuracy",
-        "stereo-range-error",
-        "stereo-fault-detection",
-        "stereo-fault-counts",
-        "stereo-delay-by-speed",
-        "stereo-valid-share-sweep",
-        "stereo-resolution",
-        "stereo-resolution-difference",
-    ]
-    acc, rng, det, _, speed, sweep, res, diff = sec.tables
+    assert sec.shown == 1
+    assert (
+        anchors
+        == [  # the headline table first (the others under "More tables"), then report order
+            "stereo-fault-detection",
+            "stereo-accuracy",
+            "stereo-range-error",
+            "stereo-fault-counts",
+            "stereo-delay-by-speed",
+            "stereo-valid-share-sweep",
+            "stereo-resolution",
+            "stereo-resolution-difference",
+        ]
+    )
+    det, acc, rng, _, speed, sweep, res, diff = sec.tables
     assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
     assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
     assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES]

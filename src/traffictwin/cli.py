@@ -177,15 +177,15 @@ def _npz_bytes(**arrays: Any) -> bytes:
 
 def mass_panels(panels: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
     """BGR uint8 image of mass maps side by side, white separators, upscaled to ~384 px tall:
-    each panel ``(masses (2, H, W), u (H, W) or None = 1 - m_free - m_occ)``; red = m_occ,
-    green = m_free, blue = u."""
+    each panel ``(masses (2, H, W), u (H, W) or None = 1 - m_free - m_occ)``; the report's colour
+    map (:mod:`traffictwin.report.colours`: green = free, red = occupied, grey = unknown)."""
+    from traffictwin.report.colours import masses_to_bgr8
+
     h = panels[0][0].shape[1]
     sep = np.full((h, 4, 3), 255, np.uint8)
     parts = []
     for k, (mm, uu) in enumerate(panels):
-        uu = 1.0 - mm[0] - mm[1] if uu is None else uu
-        bgr = np.stack([uu, mm[0], mm[1]], axis=-1)
-        parts += [np.clip(bgr * 255.0 + 0.5, 0, 255).astype(np.uint8)]
+        parts += [masses_to_bgr8(mm, uu)]
         parts += [sep] if k < len(panels) - 1 else []
     img = np.concatenate(parts, axis=1)
     scale = max(1, int(round(384 / h)))

@@ -23,12 +23,17 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from functools import partial
+from pathlib import Path
 from typing import Any
+
+import numpy as np
+import pandas as pd
 
 from traffictwin.fusion.findings import fusion_findings, verdict
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup
+from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import files_table, findings_group
 
 FUSION_FILE = "fusion.json"
@@ -40,9 +45,19 @@ FIGURES: dict[str, str] = {
     "fusion_data_samples": "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)",
     "fusion_qualitative": "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)",
     "fusion_kld_boxplot": "KLD(b) distribution over the test set per configuration and method (cf. Fig. 5, which shows KLD(a))",
+    "fusion_scores_occupied_zoomed": "Precision / recall / Dice of occupied cells per configuration, each "
+    "panel's score axis zoomed to its data (mirrors Fig. 6; drawn by the report stage)",
+    "fusion_scores_free_zoomed": "Precision / recall / Dice of free cells per configuration, each panel's "
+    "score axis zoomed to its data (mirrors Fig. 7; drawn by the report stage)",
     "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
     "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
 }
+# figures the report stage redraws (:func:`draw_score_figures`): shown instead of evaluate_fusion's
+REPLACES = {
+    "fusion_scores_occupied_zoomed": "fusion_scores_occupied",
+    "fusion_scores_free_zoomed": "fusion_scores_free",
+}
+SCORE_METRICS = ("precision", "recall", "Dice")
 FIGURE_PATTERN = r"fusion|prealign|pose|ogm|registration"
 DATA_FILES = (page.DataFile("fusion_data.json", "Fusion data (reports/metrics/fusion_data.json)"),)
 
@@ -679,12 +694,132 @@ def section(
     return sec
 
 
+def headlines(
+    metrics: Mapping[str, Any], configurations: Mapping[str, tuple[float, float]]
+) -> list[Headline]:
+    """Per configuration: the configuration's network (``dnn``) on the test pairs, KL(label‖pred)
+    over ``(m_F, m_O, u)`` (nats per cell, the headline) and occupied-cell Dice, with their
+    scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice``: occupied cells)."""
+    out: list[Headline] = []
+    for c, (r, a) in configurations.items():
+        row = lookup(metrics.get(FUSION_FILE), f"test.{c}.dnn")
+        if not isinstance(row, Mapping):
+            continue
+        where = f"configuration {c} (r = {r:g} m, α = {a:g}°), test pairs"
+        out += headline(
+            f"{c}.kld",
+            "KL(label ‖ network) over (m_F, m_O, u), nats per cell",
+            where,
+            row.get(f"{HEADLINE}"),
+            row.get(f"{HEADLINE}_ci"),
+        )
+        out += headline(
+            f"{c}.dice",
+            "Dice of occupied cells, network",
+            where,
+            row.get("dice_occ"),
+            row.get("dice_occ_ci"),
+            "pct",
+        )
+    return out
+
+
 def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionProvider:
     """The fusion section's provider for the report; ``configurations`` as in :func:`section`."""
     return page.SectionProvider(
+        name="fusion",
+        headlines=partial(headlines, configurations=dict(configurations)),
         section=partial(section, configurations=dict(configurations)),
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
         data_files=DATA_FILES,
         shown_files=f"(?:{TRAINING_FILES})|(?:{REGISTRATION_FILES})",
+        replaces=REPLACES,
     )
+
+
+def zoomed_limits(
+    values: np.ndarray, pad: float = 0.15, min_span: float = 0.01, top: float = 1.0
+) -> tuple[float, float]:
+    """y limits around the finite ``values``: their range widened by ``pad`` of itself on each
+    side (at least ``min_span`` in all), never above ``top``; (0, top) without a finite value."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return 0.0, top
+    lo, hi = float(v.min()), float(v.max())
+    margin = max((hi - lo) * pad, (min_span - (hi - lo)) / 2, 0.0)
+    upper = min(hi + margin, top)
+    return min(lo - margin, upper - min_span), upper
+
+
+def score_figure(
+    scores: pd.DataFrame, configurations: Mapping[str, tuple[float, float]], cls: str
+) -> Any:
+    """Precision / recall / Dice of ``cls`` cells (``occupied`` / ``free``) per configuration, one
+    line per method (colours and markers of :data:`traffictwin.fusion.figures.METHOD_STYLE`), each
+    panel's y axis zoomed to its data (:func:`zoomed_limits`); x: the configurations with their
+    pose noise r (m) and α (deg). ``scores``: the long table of
+    :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
+    from traffictwin.fusion.figures import _plt, _style
+
+    plt = _plt()
+    d = scores[scores["class"] == cls]
+    cfgs = [c for c in configurations if c in set(d["config"])]
+    x = {c: i for i, c in enumerate(cfgs)}
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.9))
+    methods = sorted(set(d["method"]), key=lambda m: (m not in ("dnn", "naive"), m))
+    for ax, metric in zip(axes, SCORE_METRICS):
+        dm = d[(d["metric"] == metric) & d["config"].isin(cfgs)]
+        for meth in methods:
+            dd = dm[dm["method"] == meth]
+            if dd.empty:
+                continue
+            st = _style(meth)
+            ls = "-" if meth in ("dnn", "naive") else "--"
+            ax.plot(
+                dd["config"].map(x),
+                dd["value"],
+                ls,
+                marker=st["marker"],
+                color=st["color"],
+                label=st["label"],
+                gid=meth,
+            )
+        ax.set_ylim(*zoomed_limits(dm["value"].to_numpy()))
+        ax.set_xticks(range(len(cfgs)))
+        ax.set_xticklabels(
+            [f"{c}\nr {configurations[c][0]:g} m\nα {configurations[c][1]:g}°" for c in cfgs]
+        )
+        ax.set_xlabel("configuration (pose noise r, α)")
+        ax.set_ylabel(f"{metric} ({cls} cells)")
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    for ax in axes[1:]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95))
+    fig.suptitle(f"Classification of {cls} cells vs pose-noise configuration (test split)")
+    fig.tight_layout()
+    return fig
+
+
+def draw_score_figures(
+    wide_csv: Path, out_dir: Path, configurations: Mapping[str, tuple[float, float]]
+) -> list[Path]:
+    """The report stage's score figures: ``<out_dir>/fusion_scores_<occupied|free>_zoomed.png``
+    from evaluate_fusion's wide table ``wide_csv`` (``reports/plots/fusion_scores.csv``); none
+    when the table is absent (a partial pipeline)."""
+    from traffictwin.fusion.figures import save_figure
+    from traffictwin.report.plot_data import fusion_scores_long
+
+    if not Path(wide_csv).is_file():
+        return []
+    scores = fusion_scores_long(pd.read_csv(wide_csv))
+    out = []
+    for cls in ("occupied", "free"):
+        fig = score_figure(scores, configurations, cls)
+        out.append(save_figure(fig, Path(out_dir) / f"fusion_scores_{cls}_zoomed.png"))
+    return out

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.report import paper_numbers as P
+from traffictwin.report.summary import Headline
 
 NA = "n/a"
 NEVER = r"(?!)"  # a regex that matches nothing
@@ -108,6 +109,9 @@ class Section:
     tables: list[Table] = field(default_factory=list)
     figures: list[Figure] = field(default_factory=list)
     bullet_groups: list[tuple[str, list[str]]] = field(default_factory=list)  # (heading, bullets)
+    # tables[:shown] are shown open, the rest under "More tables" (None: all open)
+    shown: int | None = None
+    collapsed: bool = False  # the whole section in a closed <details> (appendix material)
 
 
 @dataclass
@@ -281,7 +285,11 @@ class SectionProvider:
     stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
     that claims any other image for this problem. ``data_files``: its files in the data section.
     ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
-    appendix). The report iterates the providers in order; adding a problem adds a provider.
+    appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
+    new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their
+    intervals (``{metrics file name: parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline`
+    list), written to ``reports/summary.json`` under ``name`` and shown first in the report. The
+    report iterates the providers in order; adding a problem adds a provider.
     """
 
     section: Callable[[Sources, list[Figure]], Section]
@@ -289,3 +297,6 @@ class SectionProvider:
     figure_pattern: str = NEVER
     data_files: Sequence[DataFile] = ()
     shown_files: str = NEVER
+    replaces: Mapping[str, str] = field(default_factory=dict)  # {figure stem: stem it supersedes}
+    name: str = ""
+    headlines: Callable[[Mapping[str, Any]], Sequence[Headline]] | None = None

@@ -16,10 +16,11 @@ import base64
 import html
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
-from traffictwin.io.atomic import write_text_atomic
+from traffictwin.io.atomic import write_json_atomic, write_text_atomic
 from traffictwin.report.model import (
     NA,
     Cell,
@@ -33,6 +34,7 @@ from traffictwin.report.model import (
     flatten_numbers,
     fmt_value,
 )
+from traffictwin.report.summary import Headline, summary_json
 from traffictwin.report.tables import (
     environment_table,
     generic_table,
@@ -47,6 +49,9 @@ README = "README.md"
 INDEX_HTML = "index.html"
 RESULTS_TABLE = "results_table.md"
 TIMINGS_README = "timings/README.md"  # beside the run records: not a DVC output
+SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
+TEMPLATES = Path(__file__).resolve().parent / "templates"
+FIGURE_DIRS = ("figures", "report_figures")  # the stages' figures, the report stage's own
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
 _MIME = {
     ".png": "image/png",
@@ -61,21 +66,24 @@ _MIME = {
 def collect_figures(
     reports_dir: Path, providers: Sequence[SectionProvider]
 ) -> tuple[list[list[Figure]], list[Figure]]:
-    """Images under ``reports/figures``, one list per provider plus the unclaimed ones.
+    """Images under ``reports/figures`` (the stages') and ``reports/report_figures`` (drawn by the
+    report stage), one list per provider plus the unclaimed ones.
 
     First every provider's known figures (its ``figures`` order, with their captions), then any
     other image goes to the first provider whose ``figure_pattern`` matches its name, or to the
-    unclaimed list (the appendix)."""
+    unclaimed list (the appendix). A figure that a present one ``replaces`` is left out."""
     out: list[list[Figure]] = [[] for _ in providers]
     other: list[Figure] = []
-    fdir = Path(reports_dir) / "figures"
-    if not fdir.is_dir():
-        return out, other
     files = {
         p.relative_to(reports_dir).as_posix(): p
-        for p in sorted(fdir.rglob("*"))
+        for d in FIGURE_DIRS
+        if (Path(reports_dir) / d).is_dir()
+        for p in sorted((Path(reports_dir) / d).rglob("*"))
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
     }
+    stems = {p.stem for p in files.values()}
+    superseded = {old for prov in providers for new, old in prov.replaces.items() if new in stems}
+    files = {rel: p for rel, p in files.items() if p.stem not in superseded}
     done: set[str] = set()
     for figs, prov in zip(out, providers):
         for stem, caption in prov.figures.items():
@@ -102,20 +110,7 @@ def collect_figures(
 def run_section(src: Sources) -> Section:
     """ "This run": profile, seed, commit, experiment; the parameters and machine (stage wall
     times differ between identical runs: :func:`render_timings_markdown`, outside the report)."""
-    inputs = src.inputs
-    run = Section("This run")
-    commit = inputs.git_commit or "unknown"
-    run.paragraphs.append(
-        f"Profile `{inputs.profile}`, seed `{inputs.seed}`, git commit `{commit}`"
-        + (" (with uncommitted changes to code or configuration)" if inputs.git_dirty else "")
-        + (f", DVC experiment `{inputs.dvc_exp_name}`" if inputs.dvc_exp_name else "")
-        + (
-            f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)"
-            if inputs.pipeline_run
-            else ""
-        )
-        + "."
-    )
+    run = Section("This run: parameters, machine", collapsed=True)
     run.paragraphs.append(
         "The stages' wall times, training times, throughput and MLflow run ids differ between identical "
         "runs, so they are not in this report (a DVC output) but in the run records, "
@@ -128,9 +123,25 @@ def run_section(src: Sources) -> Section:
     return run
 
 
+def provenance(inputs: ReportInputs) -> str:
+    """One sentence: profile, seed, commit (dirty?), DVC experiment, pipeline run."""
+    commit = inputs.git_commit or "unknown"
+    return (
+        f"Profile `{inputs.profile}`, seed `{inputs.seed}`, git commit `{commit}`"
+        + (" (with uncommitted changes to code or configuration)" if inputs.git_dirty else "")
+        + (f", DVC experiment `{inputs.dvc_exp_name}`" if inputs.dvc_exp_name else "")
+        + (
+            f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)"
+            if inputs.pipeline_run
+            else ""
+        )
+        + "."
+    )
+
+
 def data_section(src: Sources, providers: Sequence[SectionProvider]) -> Section:
     """Every provider's data files, as grids."""
-    data = Section("Data and disparity statistics")
+    data = Section("Data and disparity statistics", collapsed=True)
     for df in (df for prov in providers for df in prov.data_files):
         t = pivot_table(src, df.file, df.title, anchor=f"data-{Path(df.file).stem}")
         if t:
@@ -144,7 +155,7 @@ def appendix_section(
     src: Sources, providers: Sequence[SectionProvider], figures: list[Figure]
 ) -> Section:
     """Every metrics file no section shows in full, as a key/value table; unclaimed figures."""
-    appendix = Section("Appendix — every metrics file")
+    appendix = Section("Appendix — every metrics file", collapsed=True)
     shown = {df.file for prov in providers for df in prov.data_files}
     for file in src.metrics:
         if file in shown or any(re.fullmatch(prov.shown_files, file) for prov in providers):
@@ -156,24 +167,90 @@ def appendix_section(
     return appendix
 
 
-def build_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
-    """Assemble the report model from the files under ``inputs.reports_dir``: "This run", one
-    section per provider (in order), the data section and the appendix."""
+def collect_headlines(
+    metrics: Mapping[str, Any], providers: Sequence[SectionProvider]
+) -> dict[str, list[Headline]]:
+    """``{provider name: its headline numbers}`` from the loaded metrics files, in provider order."""
+    return {
+        prov.name or f"section{i}": list(prov.headlines(metrics))
+        for i, prov in enumerate(providers)
+        if prov.headlines is not None
+    }
+
+
+def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
+    """Every provider's headline numbers (those of ``reports/summary.json``) as one table; each
+    value cell's source is its key in summary.json."""
+    sec = Section("Headline results")
+    t = Table(
+        "Headline results (reports/summary.json, the DVC metrics file)",
+        ["problem", "quantity", "where", "value", "95 % CI"],
+        anchor="headline",
+        note="Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
+        "twin: driving sequences resampled). Details in the sections below.",
+    )
+    for problem, items in headlines.items():
+        for h in items:
+            path = f"{problem}.{h.key}"
+            t.rows.append(
+                [
+                    Cell(problem),
+                    Cell(h.quantity),
+                    Cell(h.where),
+                    Cell(
+                        fmt_value(h.value, h.fmt), src=f"{SUMMARY}#{path}", value=h.value, fmt=h.fmt
+                    ),
+                    Cell(
+                        f"[{fmt_value(h.lo, h.fmt)}, {fmt_value(h.hi, h.fmt)}]",
+                        value=[h.lo, h.hi],
+                        derived=f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi",
+                    ),
+                ]
+            )
+    if t.rows:
+        sec.tables.append(t)
+    else:
+        sec.paragraphs.append("No headline numbers yet (the evaluation stages have not run).")
+    return sec
+
+
+def _headline_first(sec: Section) -> Section:
+    """Headline tables first (their order kept), the others under "More tables"."""
+    if sec.shown is None and sec.tables:
+        sec.tables = sorted(sec.tables, key=lambda t: not t.headline)
+        sec.shown = max(1, sum(t.headline for t in sec.tables))
+    return sec
+
+
+def build_report(
+    inputs: ReportInputs,
+    providers: Sequence[SectionProvider],
+    headlines: Mapping[str, Sequence[Headline]] | None = None,
+) -> Report:
+    """Assemble the report model from the files under ``inputs.reports_dir``: the headline
+    numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
+    (in order, headline tables first), then -- collapsed -- the data section, "This run"
+    (parameters, stage times, machine) and the appendix."""
     src = Sources(inputs)
+    if headlines is None:
+        headlines = collect_headlines(src.metrics, providers)
     figures, other = collect_figures(src.root, providers)
     intro = [
         "Generated by the DVC stage `report` from the metrics and figures of one pipeline run; "
-        "do not edit by hand. Every number below comes from a file: `reports/metrics/*.json`, "
-        "`reports/environment.json`, the run's `params.yaml`, or — for the "
-        "papers' values — `src/traffictwin/report/paper_numbers.py` (with the section they are printed in).",
+        "do not edit by hand. Every number below comes from a file: `reports/summary.json`, "
+        "`reports/metrics/*.json`, `reports/environment.json`, the run's "
+        "`params.yaml`, or — for the papers' values — `src/traffictwin/report/paper_numbers.py` (with the "
+        "section they are printed in).",
+        provenance(inputs),
         "**The data differs from the papers'.** Both papers used commercial simulators (VTD, GTA V) at full "
         "scale; this run uses traffictwin's own simulator (synthetic road templates, ray-cast lidar, rendered "
         f"stereo camera) at the `{inputs.profile}` profile's scale. Compare trends and rankings, not absolute values.",
     ]
     sections = [
-        run_section(src),
-        *(prov.section(src, figs) for prov, figs in zip(providers, figures)),
+        headline_section(headlines),
+        *(_headline_first(prov.section(src, figs)) for prov, figs in zip(providers, figures)),
         data_section(src, providers),
+        run_section(src),
         appendix_section(src, providers, other),
     ]
     return Report("traffictwin — results report", intro, sections, sorted(set(src.missing)))
@@ -203,33 +280,35 @@ def table_markdown(t: Table) -> str:
     return "\n".join(lines)
 
 
+def _environment(html_page: bool) -> Any:
+    """The Jinja2 environment of the report templates (``templates/`` next to this module)."""
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES),
+        autoescape=html_page,
+        trim_blocks=True,
+        lstrip_blocks=True,
+        keep_trailing_newline=True,
+        undefined=jinja2.StrictUndefined,
+    )
+    env.filters.update(slug=_slug, alt=_alt, table_md=table_markdown)
+    if html_page:
+        env.filters.update(
+            inline=lambda text: jinja2.utils.markupsafe.Markup(_inline(str(text))),
+            cell_attrs=lambda c: jinja2.utils.markupsafe.Markup(_cell_attrs(c)),
+        )
+    return env
+
+
+def _tidy(text: str) -> str:
+    """At most one blank line in a row; one newline at the end."""
+    return re.sub(r"\n{3,}", "\n\n", text).strip() + "\n"
+
+
 def render_markdown(report: Report) -> str:
-    out = [f"# {report.title}", ""]
-    for p in report.intro:
-        out += [p, ""]
-    out += [
-        "Contents: " + " · ".join(f"[{s.title}](#{_slug(s.title)})" for s in report.sections),
-        "",
-    ]
-    for s in report.sections:
-        out += [f"## {s.title}", ""]
-        for p in s.paragraphs:
-            out += [p, ""]
-        for head, bullets in s.bullet_groups:
-            out += [f"### {head}", ""] + [f"- {b}" for b in bullets] + [""]
-        for t in s.tables:
-            out += [table_markdown(t), ""]
-        for f in s.figures:
-            out += [f"![{_alt(f.caption)}]({f.path})", "", f"*{f.caption}*", ""]
-    if report.missing:
-        out += [
-            "## Missing values",
-            "",
-            "These metrics were looked for and not found (shown as `n/a`):",
-            "",
-        ]
-        out += [f"- `{m}`" for m in report.missing] + [""]
-    return "\n".join(out).rstrip() + "\n"
+    """``reports/README.md`` (template ``README.md.j2``): sections in order, the appendix collapsed."""
+    return _tidy(_environment(False).get_template("README.md.j2").render(report=report))
 
 
 def render_timings_markdown(inputs: ReportInputs) -> str:
@@ -262,11 +341,9 @@ def render_timings_markdown(inputs: ReportInputs) -> str:
 
 
 def render_results_markdown(report: Report, link: str = README) -> str:
-    out = ["<!-- generated by the DVC stage `report`; do not edit -->", ""]
-    for t in results_tables(report):
-        out += [table_markdown(t), ""]
-    out.append(f"Full report: [{link}]({link}).")
-    return "\n".join(out) + "\n"
+    """``reports/results_table.md`` (template ``results_table.md.j2``): the headline tables."""
+    tpl = _environment(False).get_template("results_table.md.j2")
+    return _tidy(tpl.render(tables=results_tables(report), link=link))
 
 
 def _slug(title: str) -> str:
@@ -288,6 +365,7 @@ td.na{color:#999} caption{text-align:left;font-weight:600;margin-bottom:.3em}
 figure{margin:1em 0} figure img{max-width:100%;border:1px solid #eee}
 figcaption{font-size:.9em;color:#555} p.note{font-size:.85em;color:#555;margin-top:-1em}
 code{background:#f5f5f5;padding:0 .2em}
+details>summary{cursor:pointer} details>summary h2{display:inline} details.more{margin:.5em 0 1.5em 0}
 """
 
 
@@ -303,97 +381,48 @@ def _inline(text: str) -> str:
     return s
 
 
-def table_html(t: Table) -> str:
-    attrs = f' id="{html.escape(t.anchor)}"' if t.anchor else ""
-    out = [
-        f"<table{attrs}>",
-        f"<caption>{_inline(t.title)}</caption>",
-        "<thead><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in t.columns) + "</tr></thead>",
-        "<tbody>",
-    ]
-    for row in t.rows:
-        tds = []
-        for c in row:
-            a = []
-            if c.src:
-                a.append(f'data-src="{html.escape(c.src)}"')
-                a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
-                a.append(f'data-fmt="{html.escape(c.fmt or "")}"')
-            if c.derived:
-                a.append(f'data-derived="{html.escape(c.derived)}"')
-                a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
-            if c.title:
-                a.append(f'title="{html.escape(c.title)}"')
-            if c.text == NA:
-                a.append('class="na"')
-            tds.append(f"<td{' ' + ' '.join(a) if a else ''}>{_inline(c.text)}</td>")
-        out.append("<tr>" + "".join(tds) + "</tr>")
-    out.append("</tbody></table>")
-    if t.note:
-        out.append(f'<p class="note">{_inline(t.note)}</p>')
-    return "\n".join(out)
+def _cell_attrs(c: Cell) -> str:
+    """`` data-src=... data-value=...`` of a table cell (its source, for the tests' re-check)."""
+    a = []
+    if c.src:
+        a.append(f'data-src="{html.escape(c.src)}"')
+        a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
+        a.append(f'data-fmt="{html.escape(c.fmt or "")}"')
+    if c.derived:
+        a.append(f'data-derived="{html.escape(c.derived)}"')
+        a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
+    if c.title:
+        a.append(f'title="{html.escape(c.title)}"')
+    if c.text == NA:
+        a.append('class="na"')
+    return (" " + " ".join(a)) if a else ""
 
 
-def figure_html(f: Figure, reports_dir: Path, embed: bool = True) -> str:
+def _img_src(f: Figure, reports_dir: Path, embed: bool) -> str:
     p = Path(reports_dir) / f.path
-    if embed:
-        data = base64.b64encode(p.read_bytes()).decode("ascii")
-        srcattr = f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
-    else:
-        srcattr = html.escape(f.path)
-    return (
-        f'<figure><img src="{srcattr}" alt="{html.escape(_alt(f.caption))}" data-file="{html.escape(f.path)}"/>'
-        f"<figcaption>{_inline(f.caption)}</figcaption></figure>"
-    )
+    if not embed:
+        return f.path
+    data = base64.b64encode(p.read_bytes()).decode("ascii")
+    return f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
 
 
 def render_html(report: Report, reports_dir: Path, embed: bool = True) -> str:
-    """Self-contained HTML (figures embedded as base64 unless ``embed=False``)."""
-    out = [
-        "<!DOCTYPE html>",
-        '<html lang="en">',
-        "<head>",
-        '<meta charset="utf-8"/>',
-        f"<title>{html.escape(report.title)}</title>",
-        f"<style>{CSS}</style>",
-        "</head>",
-        "<body>",
-        f"<h1>{html.escape(report.title)}</h1>",
-    ]
-    out += [f"<p>{_inline(p)}</p>" for p in report.intro]
-    out.append(
-        "<nav><ul>"
-        + "".join(
-            f'<li><a href="#{_slug(s.title)}">{html.escape(s.title)}</a></li>'
-            for s in report.sections
-        )
-        + "</ul></nav>"
-    )
-    for s in report.sections:
-        out.append(f'<section id="{_slug(s.title)}"><h2>{html.escape(s.title)}</h2>')
-        out += [f"<p>{_inline(p)}</p>" for p in s.paragraphs]
-        for head, bullets in s.bullet_groups:
-            out.append(f"<h3>{html.escape(head)}</h3>")
-            out.append("<ul>" + "".join(f"<li>{_inline(b)}</li>" for b in bullets) + "</ul>")
-        out += [table_html(t) for t in s.tables]
-        out += [figure_html(f, reports_dir, embed) for f in s.figures]
-        out.append("</section>")
-    if report.missing:
-        out.append(
-            '<section id="missing"><h2>Missing values</h2><ul>'
-            + "".join(f"<li><code>{html.escape(m)}</code></li>" for m in report.missing)
-            + "</ul></section>"
-        )
-    out += ["</body>", "</html>"]
-    return "\n".join(out) + "\n"
+    """Self-contained HTML (template ``index.html.j2``; figures embedded as base64 unless
+    ``embed=False``): headline results first, secondary tables and the appendix sections in
+    closed ``<details>``."""
+    env = _environment(True)
+    env.filters["img_src"] = lambda f: _img_src(f, reports_dir, embed)
+    return _tidy(env.get_template("index.html.j2").render(report=report, css=CSS))
 
 
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
-    """Build the report and write README.md, index.html and results_table.md into
-    ``inputs.reports_dir`` (atomically)."""
+    """Write ``summary.json`` (the headline numbers), README.md, index.html and results_table.md
+    into ``inputs.reports_dir`` (each atomically)."""
     root = Path(inputs.reports_dir)
-    report = build_report(inputs, providers)
+    headlines = collect_headlines(Sources(inputs).metrics, providers)
+    write_json_atomic(root / SUMMARY, summary_json(headlines))
+    report = build_report(inputs, providers, headlines)
     md = render_markdown(report)
     page = render_html(report, root, embed=True)
     res = render_results_markdown(report)

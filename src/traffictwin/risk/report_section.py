@@ -16,11 +16,13 @@ breakdown. Entry point: :func:`provider`.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
-from traffictwin.report.model import NA, Cell, Table, fmt_value, paper_cell
+from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup, paper_cell
+from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.evaluation import ORACLES, SEED_MEAN
 from traffictwin.risk.findings import beats, findings
@@ -610,9 +612,45 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     return sec
 
 
+def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
+    """The main predictor (``main_variant``; its seed mean when replicates ran) on the ORB-passed
+    test frames: ROC-AUC of critical frames at the first THW threshold (``auc``) and the MSE of the
+    normalised risk (``mse``), with their sequence-bootstrap intervals."""
+    risk = metrics.get(RISK_FILE)
+    main = lookup(risk, "main_variant")
+    ts = lookup(risk, "thresholds_s")
+    if not isinstance(main, str) or not isinstance(ts, list) or not ts:
+        return []
+    row = lookup(risk, f"groups.{main}")
+    if not isinstance(row, Mapping):
+        row = lookup(risk, f"models.{main}")
+    if not isinstance(row, Mapping):
+        return []
+    t = float(ts[0])
+    cls = row.get(f"at_{t:g}s")
+    cls = cls if isinstance(cls, Mapping) else {}
+    where = f"main predictor {main}, test frames"
+    return headline(
+        "auc",
+        f"ROC-AUC of critical frames (THW < {t:g} s)",
+        where,
+        cls.get("roc_auc"),
+        cls.get("roc_auc_ci"),
+        "f3",
+    ) + headline(
+        "mse",
+        "MSE of the normalised risk",
+        where,
+        row.get("test/mse"),
+        row.get("test/mse_ci"),
+    )
+
+
 def provider() -> page.SectionProvider:
     """The risk section's provider for the report."""
     return page.SectionProvider(
+        name="risk",
+        headlines=headlines,
         section=section,
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,

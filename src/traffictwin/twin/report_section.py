@@ -9,8 +9,12 @@ cell, never an error. Entry point: :func:`provider`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value
+from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
+from traffictwin.report.summary import Headline, headline
 
 FILE = "twin.json"
 DATA_FILE = "twin_data.json"
@@ -189,9 +193,39 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     )
 
 
+def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
+    """The targets' method and configuration, occluded sequences: share of critical frames
+    flagged (``recall``) and its gain over the ego's own map (``recall_gain``), with their
+    sequence-bootstrap intervals."""
+    twin = metrics.get(FILE)
+    method = lookup(twin, "targets.method") or lookup(twin, "headline")
+    cfg = lookup(twin, "targets.configuration")
+    occ = lookup(twin, f"configurations.{cfg}.methods.{method}.occluded")
+    if not isinstance(occ, Mapping):
+        return []
+    where = f"{LABELS.get(method, method)} at configuration {cfg}, occluded sequences"
+    return headline(
+        "recall",
+        "critical frames flagged",
+        where,
+        occ.get("recall"),
+        occ.get("recall_ci"),
+        "pct",
+    ) + headline(
+        "recall_gain",
+        "gain in critical frames flagged over the ego's own map",
+        where,
+        occ.get("recall_vs_ego"),
+        occ.get("recall_vs_ego_ci"),
+        "pct",
+    )
+
+
 def provider() -> page.SectionProvider:
     """The twin section's provider for the report (after the fusion and risk sections)."""
     return page.SectionProvider(
+        name="twin",
+        headlines=headlines,
         section=section,
         figures=FIGURES,
         data_files=(DataFile(DATA_FILE, "Twin data (generate_twin)"),),

@@ -1,0 +1,77 @@
+"""Stage `plot_data`: long-format CSVs under reports/charts/ for the top-level DVC plots of dvc.yaml.
+
+Reads what earlier stages already wrote (no model, no data set): the training curves
+(reports/plots/train_fusion_*.csv, train_registration_*.csv, risk_training_*.csv), the wide fusion
+score table (reports/plots/fusion_scores.csv), the risk predictions on the test frames
+(reports/plots/risk_predictions.csv) and, from reports/metrics/risk.json, the label and the first
+THW threshold of the critical-frame curves. Writes
+``fusion_learning_curves.csv``, ``registration_learning_curves.csv``, ``risk_learning_curves.csv``,
+``fusion_scores.csv`` (traffictwin.report.plot_data), ``risk_roc.csv`` and ``risk_pr.csv``
+(traffictwin.risk.charts.risk_curves).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from traffictwin.io.atomic import write_text_atomic
+from traffictwin.report.plot_data import fusion_scores_long, learning_curves
+from traffictwin.risk.charts import risk_curves
+from traffictwin.risk.metric import risk_threshold
+
+from ._common import run_stage, setup_logging, stage_timer
+from ._paths import METRICS, PLOTS, REPORTS
+
+CHARTS = REPORTS / "charts"
+CURVES = {  # chart file -> (glob under reports/plots, prefix of the model name in the file name)
+    "fusion_learning_curves.csv": ("train_fusion_*.csv", "train_fusion_"),
+    "registration_learning_curves.csv": ("train_registration_*.csv", "train_registration_"),
+    "risk_learning_curves.csv": ("risk_training_*.csv", "risk_training_"),
+}
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    if not path.is_file():
+        raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
+    return pd.read_csv(path)
+
+
+def _write(df: pd.DataFrame, name: str) -> None:
+    write_text_atomic(CHARTS / name, df.to_csv(index=False, float_format="%.6g"))
+
+
+def main() -> None:
+    log = setup_logging()
+    with stage_timer("plot_data"):
+        CHARTS.mkdir(parents=True, exist_ok=True)
+        for out, (pattern, prefix) in CURVES.items():
+            files = sorted(PLOTS.glob(pattern))
+            if not files:
+                raise RuntimeError(
+                    f"plot_data: no {PLOTS / pattern} (run the training stages first)"
+                )
+            curves = {p.stem[len(prefix) :]: pd.read_csv(p) for p in files}
+            _write(learning_curves(curves, x="epoch"), out)
+        _write(fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv")), "fusion_scores.csv")
+        risk_file = METRICS / "risk.json"
+        if not risk_file.is_file():
+            raise RuntimeError(f"plot_data: {risk_file} is missing (run evaluate_risk first)")
+        risk = json.loads(risk_file.read_text())
+        label, ts = risk.get("primary_label"), risk.get("thresholds_s")
+        if not isinstance(label, str) or not isinstance(ts, list) or not ts:
+            raise ValueError(
+                f"plot_data: {risk_file}: expected 'primary_label' and a list 'thresholds_s'"
+            )
+        roc, pr = risk_curves(
+            _read_csv(PLOTS / "risk_predictions.csv"), label, risk_threshold(float(ts[0]))
+        )
+        _write(roc, "risk_roc.csv")
+        _write(pr, "risk_pr.csv")
+    log.info("plot_data: %d charts -> %s", len(CURVES) + 3, CHARTS)
+
+
+if __name__ == "__main__":
+    run_stage(main, "plot_data")

@@ -1,0 +1,76 @@
+"""The headline metrics file (``reports/summary.json``): the few numbers a reader compares between
+experiments, each with its 95 % interval, taken from the detailed metrics files.
+
+It is the only file DVC declares as ``metrics`` (``dvc metrics show`` / ``dvc exp show`` stay
+readable); the detailed files (``reports/metrics/*.json``) stay committed outputs. Each problem's
+:class:`~traffictwin.report.model.SectionProvider` names its headline numbers (``headlines``:
+metrics files -> :class:`Headline` list); this module knows none of them. Layout: one object per
+problem, every leaf a number (DVC shows it as one column)::
+
+    {"<problem>": {"<key>": value, "<key>_lo": lo, "<key>_hi": hi, ...}, ...}
+
+where ``<key>`` may be dotted (``"A.kld"`` -> ``{"A": {"kld": ..., "kld_lo": ..., "kld_hi": ...}}``).
+A number that a partial pipeline did not produce is left out, never invented.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class Headline:
+    """One headline number: ``key`` (dotted, within its problem), what it is, where it was
+    measured, the estimate and its 95 % interval, and the report's number format
+    (:func:`~traffictwin.report.model.fmt_value`)."""
+
+    key: str
+    quantity: str
+    where: str
+    value: float
+    lo: float
+    hi: float
+    fmt: str = "g4"
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return None if math.isnan(float(v)) else float(v)
+
+
+def interval(ci: Any) -> tuple[float, float] | None:
+    """``(lo, hi)`` from ``{"lo", "hi"}`` or ``[lo, hi]``; None if absent or not numbers."""
+    if isinstance(ci, Mapping):
+        lo, hi = _num(ci.get("lo")), _num(ci.get("hi"))
+    elif isinstance(ci, (list, tuple)) and len(ci) == 2:
+        lo, hi = _num(ci[0]), _num(ci[1])
+    else:
+        return None
+    return None if lo is None or hi is None else (lo, hi)
+
+
+def headline(
+    key: str, quantity: str, where: str, value: Any, ci: Any, fmt: str = "g4"
+) -> list[Headline]:
+    """``[Headline]`` when ``value`` is a number and ``ci`` an interval, else ``[]``."""
+    v, iv = _num(value), interval(ci)
+    if v is None or iv is None:
+        return []
+    return [Headline(key, quantity, where, v, iv[0], iv[1], fmt)]
+
+
+def summary_json(headlines: Mapping[str, Sequence[Headline]]) -> dict[str, dict[str, Any]]:
+    """``{problem: nested {key: value, key_lo: lo, key_hi: hi}}``; problems without numbers left out."""
+    out: dict[str, dict[str, Any]] = {}
+    for problem, items in headlines.items():
+        for h in items:
+            *parents, leaf = h.key.split(".")
+            node = out.setdefault(problem, {})
+            for p in parents:
+                node = node.setdefault(p, {})
+            node[leaf], node[f"{leaf}_lo"], node[f"{leaf}_hi"] = h.value, h.lo, h.hi
+    return out

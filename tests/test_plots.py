@@ -1,0 +1,221 @@
+"""DVC plots: the long-format charts of stage plot_data (hand-computed cases), the Vega-Lite
+templates and the offline page template, and -- on the ci DAG's outputs -- every plot declared in
+dvc.yaml names x and y fields that are columns of its file."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from traffictwin.report.plot_data import (
+    drop_collinear,
+    fusion_scores_long,
+    learning_curves,
+    precision_recall_curve,
+)
+from traffictwin.risk.charts import risk_curves
+
+ROOT = Path(__file__).resolve().parents[1]
+PLOTS_DIR = ROOT / ".dvc" / "plots"
+
+
+# --------------------------------------------------------------------------- plot_data
+def test_learning_curves_long_format() -> None:
+    a = pd.DataFrame({"epoch": [0, 1], "train/loss": [1.0, 0.5], "val/loss": [1.2, np.nan]})
+    b = pd.DataFrame({"epoch": [0], "train/loss": [2.0], "lr": [0.1]})  # no validation column
+    long = learning_curves({"A": a, "B": b})
+    assert list(long.columns) == ["model", "epoch", "split", "loss"]
+    rows = sorted(map(tuple, long.itertuples(index=False)))
+    # the NaN validation value of A at epoch 1 is left out
+    assert rows == [
+        ("A", 0, "train", 1.0),
+        ("A", 0, "val", 1.2),
+        ("A", 1, "train", 0.5),
+        ("B", 0, "train", 2.0),
+    ]
+    with pytest.raises(ValueError, match="'C'.*no column 'epoch'"):
+        learning_curves({"C": pd.DataFrame({"step": [1], "train/loss": [1.0]})})
+    with pytest.raises(ValueError, match="'D'.*none of the loss columns"):
+        learning_curves({"D": pd.DataFrame({"epoch": [1], "val/mse": [1.0]})})
+
+
+def test_fusion_scores_long_parses_method_names_with_underscores() -> None:
+    wide = pd.DataFrame(
+        {
+            "config": ["A", "D"],
+            "noise_r_m": [0.0, 5.0],
+            "noise_alpha_deg": [0, 20],
+            "dnn_dice_occ": [0.99, 0.9],
+            "dnn[paper_kl]_precision_free": [np.nan, 0.97],  # only evaluated at D
+            "dnn_kld_fou_mean": [0.01, 0.06],  # not a classification score
+        }
+    )
+    long = fusion_scores_long(wide)
+    assert list(long.columns) == [
+        "config",
+        "noise_r_m",
+        "noise_alpha_deg",
+        "method",
+        "class",
+        "metric",
+        "value",
+    ]
+    got = sorted((r.config, r.method, r["class"], r.metric, r.value) for _, r in long.iterrows())
+    assert got == [
+        ("A", "dnn", "occupied", "Dice", 0.99),
+        ("D", "dnn", "occupied", "Dice", 0.9),
+        ("D", "dnn[paper_kl]", "free", "precision", 0.97),
+    ]
+    with pytest.raises(ValueError, match="missing column"):
+        fusion_scores_long(wide.drop(columns="noise_r_m"))
+
+
+def test_precision_recall_curve_hand_case() -> None:
+    # scores 0.9 (pos), 0.8 (neg), 0.8 (pos), 0.1 (neg): thresholds 0.9, 0.8, 0.1
+    rec, prec = precision_recall_curve(
+        np.array([True, False, True, False]), np.array([0.9, 0.8, 0.8, 0.1])
+    )
+    assert rec.tolist() == [0.5, 1.0, 1.0]
+    assert prec.tolist() == [1.0, 2 / 3, 0.5]
+    r0, p0 = precision_recall_curve(np.zeros(3, bool), np.arange(3.0))
+    assert r0.size == 0 and p0.size == 0
+
+
+def test_drop_collinear_keeps_the_corners() -> None:
+    x = np.array([0.0, 0.0, 0.0, 0.5, 1.0, 1.0])
+    y = np.array([0.0, 0.5, 1.0, 1.0, 1.0, 1.0])
+    assert drop_collinear(x, y).tolist() == [True, False, True, False, False, True]
+    assert drop_collinear(np.array([0.0, 1.0]), np.array([0.0, 1.0])).tolist() == [True, True]
+    diag = np.linspace(0, 1, 4)  # a diagonal is not a horizontal or vertical run: all kept
+    assert drop_collinear(diag, diag).all()
+
+
+def test_risk_curves_per_predictor() -> None:
+    pred = pd.DataFrame(
+        {
+            "risk_thw_corridor": [0.0, 0.1, 0.2, 0.01],  # critical (> 1/30): rows 1 and 2
+            "pred_net": [0.0, 0.2, 0.3, 0.1],  # ranks both critical frames first: AUC 1
+            "pred_flip": [0.3, 0.1, 0.0, 0.2],  # ranks them last: AUC 0
+            "speed": [1.0, 2.0, 3.0, 4.0],  # not a prediction column
+        }
+    )
+    roc, pr = risk_curves(pred, "risk_thw_corridor", 1 / 30)
+    assert sorted(roc["predictor"].unique()) == ["flip (AUC 0.000)", "net (AUC 1.000)"]
+    net = roc[roc["predictor"] == "net (AUC 1.000)"].sort_values("rank")
+    # (0, 0), (0, .5), (0, 1), (.5, 1), (1, 1): the points inside the two straight runs are dropped
+    assert net[["fpr", "tpr"]].to_numpy().tolist() == [[0.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+    assert net["rank"].tolist() == [0, 2, 4]
+    pnet = pr[pr["predictor"] == "net (AUC 1.000)"].sort_values("rank")
+    # recall .5, 1, 1, 1 at precision 1, 1, 2/3, 1/2: the middle of the vertical run goes
+    assert pnet["precision"].tolist() == [1.0, 1.0, 0.5]
+    with pytest.raises(ValueError, match="no label column 'risk_x'"):
+        risk_curves(pred, "risk_x", 1 / 30)
+
+
+# --------------------------------------------------------------------------- templates
+def test_page_template_is_offline_and_declares_its_charset() -> None:
+    cfg = (ROOT / ".dvc" / "config").read_text()
+    m = re.search(r"^\s*html_template\s*=\s*(\S+)\s*$", cfg, re.M)
+    assert m, ".dvc/config sets no plots.html_template"
+    page = (ROOT / ".dvc" / m.group(1)).read_text(encoding="utf-8")
+    assert re.search(r'<meta charset="utf-8"\s*/?>', page, re.I)
+    assert "{plot_divs}" in page
+    # DVC fills {scripts} with CDN links: the template must not ask for them
+    assert "{scripts}" not in page
+    assert not re.search(r"<script[^>]*\bsrc\s*=\s*[\"']?https?:", page, re.I)
+    for name in ("vega 5", "vega-lite 5", "vega-embed 6"):
+        assert f"/* {name}" in page, name
+    licences = (PLOTS_DIR / "VENDOR-LICENSES.txt").read_text()
+    assert licences.count("BSD-3-Clause") >= 1 and "Redistribution and use" in licences
+
+
+def _templates() -> dict[str, dict]:
+    return {p.stem: json.loads(p.read_text()) for p in PLOTS_DIR.glob("*.json")}
+
+
+def test_templates_title_both_axes_from_the_plot_labels() -> None:
+    for name, t in _templates().items():
+        enc = t.get("encoding") or t["spec"]["encoding"]
+        assert enc["x"]["title"] == "<DVC_METRIC_X_LABEL>", name
+        assert enc["y"]["title"] == "<DVC_METRIC_Y_LABEL>", name
+        assert t["data"]["values"] == "<DVC_METRIC_DATA>", name
+
+
+def _declared_plots(dvc: dict) -> list[tuple[str, str, list[str], str | None]]:
+    """``(plot id, file, y fields, x field)`` of every plot with data in dvc.yaml (stage-level CSV
+    plots and top-level plots; images have no fields)."""
+    out = []
+    for name, st in dvc["stages"].items():
+        body = st.get("do", st)
+        for entry in body.get("plots", []):
+            path, props = (entry, {}) if isinstance(entry, str) else next(iter(entry.items()))
+            if path.endswith(".png"):
+                continue
+            props = props or {}
+            out.append((f"{name}:{path}", path, [props.get("y")], props.get("x")))
+    for entry in dvc.get("plots", []):
+        pid, props = next(iter(entry.items())) if isinstance(entry, dict) else (entry, {})
+        props = props or {}
+        y = props.get("y")
+        if isinstance(y, dict):
+            for f, fields in y.items():
+                out.append(
+                    (pid, f, fields if isinstance(fields, list) else [fields], props.get("x"))
+                )
+        else:
+            out.append((pid, pid, [y], props.get("x")))
+    return out
+
+
+def test_every_template_named_in_dvc_yaml_exists() -> None:
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    builtin = {
+        "linear",
+        "simple",
+        "scatter",
+        "smooth",
+        "confusion",
+        "confusion_normalized",
+        "bar_horizontal",
+        "bar_horizontal_sorted",
+    }
+    names = set()
+    for st in dvc["stages"].values():
+        for entry in st.get("do", st).get("plots", []):
+            if isinstance(entry, dict):
+                names.add((next(iter(entry.values())) or {}).get("template"))
+    for entry in dvc.get("plots", []):
+        names.add((next(iter(entry.values())) or {}).get("template"))
+    names.discard(None)
+    missing = names - builtin - set(_templates())
+    assert not missing, missing
+
+
+def test_every_declared_plot_has_x_and_y_columns_in_its_file(ci_dag: Path) -> None:
+    dvc = yaml.safe_load((ci_dag / "dvc.yaml").read_text())
+    plots = _declared_plots(dvc)
+    assert len(plots) >= 9
+    for pid, f, ys, x in plots:
+        paths = sorted(ci_dag.glob(f.replace("${key}", "*").replace("${item}", "*")))
+        assert paths, (pid, f, "no such file after the ci DAG")
+        for path in paths:
+            with path.open() as fh:
+                header = next(csv.reader(fh))
+            assert x and x in header, (pid, path.name, x, header)
+            for y in ys:
+                assert y and y in header, (pid, path.name, y, header)
+            rows = sum(1 for _ in path.open()) - 1
+            if path.name in ("risk_roc.csv", "risk_pr.csv"):
+                # a curve needs critical and uncritical test frames (the ci profile may have one class)
+                pred = pd.read_csv(ci_dag / "reports" / "plots" / "risk_predictions.csv")
+                critical = pred["risk_thw_corridor"] > 1 / 30
+                assert (rows > 0) == (0 < critical.sum() < len(critical)), (pid, rows)
+            else:
+                assert rows > 0, (pid, path.name, "no rows")

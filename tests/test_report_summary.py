@@ -1,0 +1,330 @@
+"""reports/summary.json (the headline numbers, the only DVC metrics file), the report's page layout
+(headline first, appendix collapsed), the report stage's zoomed score figures and the shared mass
+colour map. Synthetic inputs with hand-computed expectations."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipelines.report import providers
+from traffictwin.fusion import report_section as F
+from traffictwin.report import colours as C
+from traffictwin.report import render as R
+from traffictwin.report.model import ReportInputs
+from traffictwin.report.summary import Headline, headline, interval, summary_json
+from traffictwin.risk import report_section as RS
+from traffictwin.twin import report_section as TS
+
+CONFS = {"A": (0.0, 0.0), "D": (5.0, 20.0)}
+
+
+def _ci(lo: float, hi: float) -> dict[str, float]:
+    return {"lo": lo, "hi": hi}
+
+
+FUSION = {
+    "test": {
+        "A": {
+            "dnn": {
+                "kld_fou_mean": 0.01,
+                "kld_fou_mean_ci": _ci(0.008, 0.012),
+                "dice_occ": 0.99,
+                "dice_occ_ci": _ci(0.985, 0.995),
+            }
+        },
+        # D: Dice without an interval -> left out; KLD present
+        "D": {"dnn": {"kld_fou_mean": 0.06, "kld_fou_mean_ci": _ci(0.05, 0.07), "dice_occ": 0.9}},
+    }
+}
+RISK = {
+    "main_variant": "headline",
+    "thresholds_s": [1.5, 1.0],
+    "groups": {
+        "headline": {
+            "at_1.5s": {"roc_auc": 0.84, "roc_auc_ci": _ci(0.79, 0.88)},
+            "test/mse": 0.005,
+            "test/mse_ci": _ci(0.001, 0.01),
+        }
+    },
+    "models": {"headline": {"test/mse": 0.9, "test/mse_ci": _ci(0.8, 1.0)}},  # the group wins
+}
+TWIN = {
+    "headline": "learned",
+    "targets": {"configuration": "D", "method": "learned"},
+    "configurations": {
+        "D": {
+            "methods": {
+                "learned": {
+                    "occluded": {
+                        "recall": 0.99,
+                        "recall_ci": [0.98, 1.0],
+                        "recall_vs_ego": 0.1,
+                        "recall_vs_ego_ci": [0.06, 0.15],
+                    }
+                }
+            }
+        }
+    },
+}
+
+
+# --------------------------------------------------------------------------- summary.json
+def test_headline_needs_a_value_and_an_interval() -> None:
+    assert headline("k", "q", "w", 0.5, [0.4, 0.6]) == [Headline("k", "q", "w", 0.5, 0.4, 0.6)]
+    assert headline("k", "q", "w", 0.5, None) == []
+    assert headline("k", "q", "w", float("nan"), [0.4, 0.6]) == []
+    assert headline("k", "q", "w", None, [0.4, 0.6]) == []
+    assert headline("k", "q", "w", True, [0.4, 0.6]) == []  # a flag is not a number
+    assert interval({"lo": 1, "hi": 2}) == (1.0, 2.0) and interval([1, None]) is None
+
+
+def test_summary_json_nests_dotted_keys_with_their_interval() -> None:
+    h = {
+        "fusion": [Headline("A.kld", "q", "w", 0.1, 0.05, 0.2)],
+        "risk": [Headline("auc", "q", "w", 0.8, 0.7, 0.9)],
+        "twin": [],
+    }
+    assert summary_json(h) == {
+        "fusion": {"A": {"kld": 0.1, "kld_lo": 0.05, "kld_hi": 0.2}},
+        "risk": {"auc": 0.8, "auc_lo": 0.7, "auc_hi": 0.9},
+    }
+
+
+def test_problem_headlines_from_their_metrics_files() -> None:
+    fusion = F.headlines({"fusion.json": FUSION}, CONFS)
+    assert [(h.key, h.value, h.lo, h.hi) for h in fusion] == [
+        ("A.kld", 0.01, 0.008, 0.012),
+        ("A.dice", 0.99, 0.985, 0.995),
+        ("D.kld", 0.06, 0.05, 0.07),
+    ]
+    assert "r = 5 m, α = 20°" in fusion[-1].where
+    risk = RS.headlines({"risk.json": RISK})
+    assert [(h.key, h.value, h.lo, h.hi) for h in risk] == [
+        ("auc", 0.84, 0.79, 0.88),
+        ("mse", 0.005, 0.001, 0.01),
+    ]
+    assert "THW < 1.5 s" in risk[0].quantity
+    twin = TS.headlines({"twin.json": TWIN})
+    assert [(h.key, h.value, h.lo, h.hi) for h in twin] == [
+        ("recall", 0.99, 0.98, 1.0),
+        ("recall_gain", 0.1, 0.06, 0.15),
+    ]
+    # nothing evaluated yet: no numbers, no error
+    assert F.headlines({}, CONFS) == [] and RS.headlines({}) == [] and TS.headlines({}) == []
+
+
+@pytest.fixture
+def reports(tmp_path: Path) -> Path:
+    rep = tmp_path / "reports"
+    (rep / "metrics").mkdir(parents=True)
+    for name, data in {"fusion.json": FUSION, "risk.json": RISK, "twin.json": TWIN}.items():
+        (rep / "metrics" / name).write_text(json.dumps(data))
+    (rep / "metrics" / "extra.json").write_text(json.dumps({"x": 1.5}))
+    return rep
+
+
+def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> None:
+    inputs = ReportInputs(reports_dir=reports, profile="ci", seed=1, git_commit="c0ffee")
+    rep = R.write_report(inputs, providers(CONFS))
+    summary = json.loads((reports / "summary.json").read_text())
+    assert summary == {
+        "fusion": {
+            "A": {
+                "kld": 0.01,
+                "kld_lo": 0.008,
+                "kld_hi": 0.012,
+                "dice": 0.99,
+                "dice_lo": 0.985,
+                "dice_hi": 0.995,
+            },
+            "D": {"kld": 0.06, "kld_lo": 0.05, "kld_hi": 0.07},
+        },
+        "risk": {
+            "auc": 0.84,
+            "auc_lo": 0.79,
+            "auc_hi": 0.88,
+            "mse": 0.005,
+            "mse_lo": 0.001,
+            "mse_hi": 0.01,
+        },
+        "twin": {
+            "recall": 0.99,
+            "recall_lo": 0.98,
+            "recall_hi": 1.0,
+            "recall_gain": 0.1,
+            "recall_gain_lo": 0.06,
+            "recall_gain_hi": 0.15,
+        },
+    }
+
+    # every leaf is a number inside its interval (what `dvc metrics show` lists)
+    def leaves(d: dict, p: str = "") -> dict[str, float]:
+        out = {}
+        for k, v in d.items():
+            out.update(leaves(v, f"{p}{k}.") if isinstance(v, dict) else {f"{p}{k}": v})
+        return out
+
+    flat = leaves(summary)
+    for k, v in flat.items():
+        if not k.endswith(("_lo", "_hi")):
+            assert flat[f"{k}_lo"] <= v <= flat[f"{k}_hi"], k
+    assert len(flat) <= 45
+    # the page: headline results first, its numbers sourced from summary.json
+    assert rep.sections[0].title == "Headline results"
+    page = (reports / "index.html").read_text()
+    md = (reports / "README.md").read_text()
+    order = ['<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
+    assert [page.index(x) for x in order] == sorted(page.index(x) for x in order)
+    assert 'data-src="summary.json#risk.auc"' in page and 'data-value="0.84"' in page
+    assert "| risk | ROC-AUC of critical frames (THW < 1.5 s) |" in md
+    assert "[0.790, 0.880]" in md
+    # parameters, stage times and the metrics dump: each in a closed <details>, after the results
+    for title in ("This run: parameters, stage times, machine", "Appendix — every metrics file"):
+        m = re.search(r"<details><summary><h2>" + re.escape(title) + "</h2></summary>", page)
+        assert m, title
+        assert m.start() > page.index('<table id="headline"')
+    appendix = page[page.index("<h2>Appendix") :]
+    assert "reports/metrics/extra.json" in appendix and "</details>" in appendix
+    assert "<details" not in page[: page.index('<table id="headline"')]
+    assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in md
+    assert page.startswith("<!DOCTYPE html>") and '<meta charset="utf-8"/>' in page
+
+
+# --------------------------------------------------------------------------- zoomed score figures
+def test_zoomed_limits_hand_cases() -> None:
+    assert F.zoomed_limits(np.array([0.9, 1.0])) == pytest.approx((0.885, 1.0))  # capped at 1
+    assert F.zoomed_limits(np.array([0.5, 0.7])) == pytest.approx((0.47, 0.73))
+    lo, hi = F.zoomed_limits(np.array([0.999, 0.999, np.nan]))  # one value: the minimum span
+    assert hi == 1.0 and lo == pytest.approx(0.99)
+    assert F.zoomed_limits(np.array([np.nan])) == (0.0, 1.0)
+
+
+def _scores() -> pd.DataFrame:
+    rows = []
+    for c, r, a in (("A", 0.0, 0), ("D", 5.0, 20)):
+        for meth, v in (
+            ("dnn", 0.998 if c == "A" else 0.996),
+            ("naive", 1.0 if c == "A" else 0.97),
+        ):
+            for metric in ("precision", "recall", "Dice"):
+                rows.append((c, r, a, meth, "free", metric, v))
+                rows.append((c, r, a, meth, "occupied", metric, v - 0.2))
+    return pd.DataFrame(
+        rows,
+        columns=["config", "noise_r_m", "noise_alpha_deg", "method", "class", "metric", "value"],
+    )
+
+
+def test_score_figure_zooms_each_panel_and_labels_configurations() -> None:
+    import matplotlib.pyplot as plt
+
+    from traffictwin.fusion.figures import _style
+
+    fig = F.score_figure(_scores(), CONFS, "free")
+    try:
+        axes = fig.axes
+        assert [ax.get_ylabel() for ax in axes] == [
+            "precision (free cells)",
+            "recall (free cells)",
+            "Dice (free cells)",
+        ]
+        for ax in axes:
+            lo, hi = ax.get_ylim()
+            assert 0.9 < lo < 0.97 and hi == 1.0  # zoomed on 0.97 ... 1.0, not 0 ... 1.02
+            assert [t.get_text() for t in ax.get_xticklabels()] == [
+                "A\nr 0 m\nα 0°",
+                "D\nr 5 m\nα 20°",
+            ]
+            assert "r, α" in ax.get_xlabel()
+            lines = {ln.get_gid(): ln for ln in ax.get_lines()}
+            assert set(lines) == {"dnn", "naive"}
+            assert lines["naive"].get_ydata().tolist() == [1.0, 0.97]  # the data it was given
+        legend = fig.legends[0]
+        labels = [t.get_text() for t in legend.get_texts()]
+        assert labels == [_style(m)["label"] for m in ("dnn", "naive")]  # one entry per method
+    finally:
+        plt.close(fig)
+
+
+def test_draw_score_figures_writes_both_classes(tmp_path: Path) -> None:
+    wide = pd.DataFrame(
+        {
+            "config": ["A", "D"],
+            "noise_r_m": [0.0, 5.0],
+            "noise_alpha_deg": [0, 20],
+            "dnn_dice_occ": [0.99, 0.9],
+            "dnn_dice_free": [0.999, 0.997],
+        }
+    )
+    wide.to_csv(tmp_path / "fusion_scores.csv", index=False)
+    out = F.draw_score_figures(tmp_path / "fusion_scores.csv", tmp_path / "fig", CONFS)
+    assert [p.name for p in out] == [
+        "fusion_scores_occupied_zoomed.png",
+        "fusion_scores_free_zoomed.png",
+    ]
+    assert all(p.read_bytes()[:4] == b"\x89PNG" for p in out)
+    assert F.draw_score_figures(tmp_path / "absent.csv", tmp_path / "fig2", CONFS) == []
+
+
+def test_redrawn_figures_replace_the_stages_ones(tmp_path: Path) -> None:
+    rep = tmp_path / "reports"
+    (rep / "figures").mkdir(parents=True)
+    (rep / "report_figures").mkdir()
+    for rel in (
+        "figures/fusion_scores_free.png",
+        "figures/fusion_scores_occupied.png",
+        "report_figures/fusion_scores_free_zoomed.png",
+    ):
+        (rep / rel).write_bytes(b"\x89PNG")
+    figs, other = R.collect_figures(rep, providers(CONFS))
+    paths = [f.path for f in figs[0]]
+    # the free panel is redrawn (the stage's is left out); the occupied one is not: kept
+    assert paths == [
+        "report_figures/fusion_scores_free_zoomed.png",
+        "figures/fusion_scores_occupied.png",
+    ]
+    assert other == []
+
+
+# --------------------------------------------------------------------------- mass colours
+def test_mass_colour_map_pure_cells_and_legend() -> None:
+    m = np.zeros((2, 1, 4))
+    m[0, 0, 0] = 1.0  # free
+    m[1, 0, 1] = 1.0  # occupied
+    m[:, 0, 3] = 0.5  # split between free and occupied, u = 0
+    rgb = C.masses_to_rgb(m)
+    assert rgb.shape == (1, 4, 3)
+    np.testing.assert_allclose(rgb[0, 0], C.FREE)
+    np.testing.assert_allclose(rgb[0, 1], C.OCC)
+    np.testing.assert_allclose(rgb[0, 2], C.UNKNOWN)  # no mass: unknown
+    np.testing.assert_allclose(rgb[0, 3], (C.FREE + C.OCC) / 2)
+    bgr = C.masses_to_bgr8(m)
+    assert bgr.dtype == np.uint8 and tuple(bgr[0, 1]) == tuple(
+        np.round(C.OCC[::-1] * 255).astype(int)
+    )
+    assert [h.get_label() for h in C.legend_handles()] == [
+        "free (m_F = 1)",
+        "occupied (m_O = 1)",
+        "unknown (u = 1)",
+    ]
+    with pytest.raises(ValueError, match=r"shape \(2, H, W\)"):
+        C.masses_to_rgb(np.zeros((3, 2, 2)))
+
+
+def test_cli_preview_and_data_figure_use_the_same_colours() -> None:
+    from traffictwin.cli import mass_panels
+    from traffictwin.fusion import data_figure
+
+    m = np.zeros((2, 2, 2))
+    m[1] = 1.0  # all occupied
+    img = mass_panels([(m, None)])
+    assert tuple(img[0, 0]) == tuple(C.masses_to_bgr8(m)[0, 0])  # BGR of the shared map
+    # the data figure's constants are the shared map's (its module predates colours.py)
+    for name in ("FREE", "OCC", "UNKNOWN"):
+        np.testing.assert_array_equal(getattr(data_figure, name), getattr(C, name))
