@@ -113,7 +113,7 @@ def test_kld_hand_cases() -> None:
 
 
 def test_torch_metrics_match_numpy_evaluation_metrics() -> None:
-    """Same definitions as the fusion-eval numpy metrics (DESIGN.md 'Fusion metrics')."""
+    """Same definitions as the fusion-eval numpy metrics (docs/design.md 'Fusion metrics')."""
     from traffictwin.fusion import metrics as fm
 
     g = np.random.default_rng(0)

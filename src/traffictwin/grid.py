@@ -1,4 +1,4 @@
-"""Grid geometry shared by the fusion and risk parts (DESIGN.md "Grid").
+"""Grid geometry shared by the fusion and risk parts (docs/design.md "Grid").
 
 A grid is ``rows x cols`` cells of ``cell`` metres, the sensor at the centre.
 Array index ``[row, col]``: row 0 is the front-most (+x, vehicle forward), col 0 the

@@ -1,4 +1,4 @@
-"""Lightning + MLflow helpers shared by the fusion and risk trainers (DESIGN.md "Tracking").
+"""Lightning + MLflow helpers shared by the fusion and risk trainers (docs/design.md "Tracking").
 
 Stable API (the fusion and the risk stages both use it):
 

@@ -12,7 +12,7 @@ Layout (every module of the project): channel axis ``-3`` of size 2 — ``(2, H,
   torch, dtype kept).
 - :func:`unknown_mass` — ``u = clip(1 − m_F − m_O, 0, 1)``.
 - :func:`evidence_to_masses` — the evidential network's output ``e ≥ 0`` to masses
-  (``α = e + 1``, ``S = Σα``, ``m = e/S``, ``u = 2/S``; DESIGN.md "Evidential output").
+  (``α = e + 1``, ``S = Σα``, ``m = e/S``, ``u = 2/S``; docs/design.md "Evidential output").
 """
 
 from __future__ import annotations

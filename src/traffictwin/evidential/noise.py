@@ -1,4 +1,4 @@
-"""Pose-noise model (DESIGN.md "Pose noise", paper III-C).
+"""Pose-noise model (docs/design.md "Pose noise", paper III-C).
 
 A configuration gives ``r`` (m) and ``alpha`` (deg): the 98 % two-sided intervals of zero-mean
 Gaussians on x, y and yaw, drawn independently: ``sigma_xy = r / 2.326``,

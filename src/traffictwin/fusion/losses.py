@@ -1,4 +1,4 @@
-"""Evidential output, loss and fusion metrics in torch (paper III-A, DESIGN.md "Evidential output").
+"""Evidential output, loss and fusion metrics in torch (paper III-A, docs/design.md "Evidential output").
 
 Evidence -> masses (eqs. 3-5): ``alpha = e + 1``, ``S = sum(alpha)``, ``m = e / S``, ``u = K / S``
 with ``K = 2`` classes (free, occupied); ``m_F + m_O + u = 1``. Channel axis is ``-3``
@@ -24,7 +24,7 @@ Losses by name (:data:`LOSSES`, ``fusion_model.loss.name``):
 - ``paper_kl``: eq. 7 + ``kl_weight * min(1, epoch / kl_anneal_epochs)`` x the KL regulariser
   (evidential deep learning's annealed recipe, as in EviLOG).
 
-Metrics (DESIGN.md "Fusion metrics"; the numpy evaluation implements the same formulas):
+Metrics (docs/design.md "Fusion metrics"; the numpy evaluation implements the same formulas):
 ``kld`` = KL(label || pred) over ``(m_F, m_O)`` with both clipped to [1e-7, 1], summed over the
 two entries and averaged over cells; ``kld_full`` = the same over ``(m_F, m_O, u)``; a cell is
 predicted occupied where ``p_O = m_O + u/2 > 0.5``, free where ``p_O < 0.5``; Dice per class over

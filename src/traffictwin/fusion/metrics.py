@@ -1,4 +1,4 @@
-"""Fusion metrics (DESIGN.md "Fusion metrics"), vectorised over batches of evidential grid maps.
+"""Fusion metrics (docs/design.md "Fusion metrics"), vectorised over batches of evidential grid maps.
 
 Masses: ``(N, 2, H, W)`` (or a single ``(2, H, W)``, treated as ``N = 1``), channel 0 = ``m_F``,
 1 = ``m_O``, ``u = 1 − m_F − m_O``. ``label`` and ``pred`` share the layout.

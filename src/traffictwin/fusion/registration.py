@@ -25,7 +25,7 @@ sensor in map 1's frame, estimate a better relative pose from the maps themselve
    more than ``min_gain``, reaches ``min_cc`` and the correction stays within ``max_trans_m`` /
    ``max_rot_deg``; otherwise the noisy pose is returned (``accepted = False``).
 
-Geometry (DESIGN.md grid convention): cell (row v, col u) has its centre at
+Geometry (docs/design.md grid convention): cell (row v, col u) has its centre at
 ``x = (H/2 − v − 0.5)·cell``, ``y = (W/2 − u − 0.5)·cell``. With ``P`` the metric → pixel map and
 ``T`` the SE(2) matrix of the relative pose (map-2 frame → map-1 frame), the pixel transform
 map 2 → map 1 is ``A = P T P⁻¹``. ``P`` swaps and negates axes, so a metric yaw ``+ψ`` is a pixel

@@ -348,7 +348,7 @@ def fusion_tables(
             "Dice free 95 % CI",
         ],
         note=(
-            "A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (DESIGN.md; the paper's "
+            "A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (docs/design.md; the paper's "
             "sentence swaps the words); only label-known cells count. The paper shows these as Figs. 6 and 7 "
             "without printed values. " + CI_NOTE
         ),

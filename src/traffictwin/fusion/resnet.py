@@ -1,6 +1,6 @@
 """ResNet backbone in plain ``torch.nn`` (He et al. 2016), for DeepLabV3+.
 
-No torchvision here (DESIGN.md "Decisions"). The layout follows torchvision's ResNet v1.5
+No torchvision here (docs/design.md "Decisions"). The layout follows torchvision's ResNet v1.5
 (stride on the 3x3 conv of a bottleneck): stem = 7x7/2 conv + BN + ReLU + 3x3/2 max-pool,
 then four stages. ``replace_stride_with_dilation`` turns the stride of a stage into an atrous
 dilation (DeepLabV3+ with output stride 16 dilates the last stage; 8 the last two).

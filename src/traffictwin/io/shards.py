@@ -1,4 +1,4 @@
-"""Sharded datasets with a manifest (DESIGN.md "Data").
+"""Sharded datasets with a manifest (docs/design.md "Data").
 
 A dataset folder holds ``manifest.json`` and shards ``shard-00000.npz`` ... Each shard is a
 zip of ``.npy`` arrays written with fixed zip timestamps, so the same arrays give the

@@ -1,6 +1,6 @@
 """MLflow Model Registry adapter: versions, aliases, champion history, apply/rollback, log.
 
-Names (DESIGN.md "Tracking"): ``traffictwin-fusion-<cfg>`` and ``traffictwin-risk``; aliases
+Names (docs/design.md "Tracking"): ``traffictwin-fusion-<cfg>`` and ``traffictwin-risk``; aliases
 ``champion`` and ``challenger`` (lowercase). The decision itself is pure and lives in
 :mod:`traffictwin.mlops.gate`; this module looks up what it needs in the registry and applies it:
 

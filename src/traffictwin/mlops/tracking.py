@@ -1,4 +1,4 @@
-"""MLflow tracking: where runs go and how they are tagged (DESIGN.md "Tracking").
+"""MLflow tracking: where runs go and how they are tagged (docs/design.md "Tracking").
 
 Where runs go
     ``MLFLOW_TRACKING_URI`` if set (a server for a team; always wins), else the SQLite file

@@ -18,7 +18,7 @@
   (:mod:`traffictwin.risk.metric`), and turn it into THW with the *true* subject speed.
   It cannot tell vehicles from walls or poles, and sees only what the camera sees.
 
-Geometry (DESIGN.md, :mod:`traffictwin.sim.camera`): camera frame X right, Y down, Z forward
+Geometry (docs/design.md, :mod:`traffictwin.sim.camera`): camera frame X right, Y down, Z forward
 (m); the left optical centre is ``mount_x`` ahead of the vehicle reference point (footprint
 centre), ``baseline / 2`` to its left, ``mount_height`` above the ground. A pixel (u, v) with
 disparity d > 0 lies at Z = fx·B/d, X = (u − cx)·Z/fx, Y = (v − cy)·Z/fy; vehicle frame

@@ -1,6 +1,6 @@
 """DAVE-2-like risk network (Feth et al., sec. 3.1; Bojarski et al. 2016) and its input preprocessing.
 
-Architecture (DESIGN.md "DAVE-2-like net"): five convolutions — 24, 36, 48 channels with 5×5
+Architecture (docs/design.md "DAVE-2-like net"): five convolutions — 24, 36, 48 channels with 5×5
 kernels and stride 2, then 64, 64 channels with 3×3 kernels and stride 1 — each followed by a
 ReLU; flatten; fully connected layers 1164 → 100 → 50 → 10 → 1 with a ReLU on all but the last
 (the output is linear: a regression of the normalised risk in [0, 1], or of log THW, see below). No pooling: the input is
@@ -13,7 +13,7 @@ the perfect-stereo upper bound). The paper's network sees ``rgb + disp_sgm`` (4 
 (``use_speed``, off in the paper) the subject speed is concatenated to the flattened features as
 one more scalar input of the fully connected head.
 
-Output (``objective``, DESIGN.md "Risk metric"): :meth:`Dave2.forward` always returns the
+Output (``objective``, docs/design.md "Risk metric"): :meth:`Dave2.forward` always returns the
 normalised risk in [0, 1]; :meth:`Dave2.raw` the head's raw outputs, on which the training loss
 (:func:`risk_loss`) works:
 

@@ -1,6 +1,6 @@
 """Metrics for the risk network (Feth et al., sec. 4) and the evaluation of several predictors.
 
-Risk scale (DESIGN.md "Risk metric"; the conversions live in :mod:`traffictwin.risk.metric`):
+Risk scale (docs/design.md "Risk metric"; the conversions live in :mod:`traffictwin.risk.metric`):
 ``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed 0 → risk 0. A situation is *critical*
 when THW < t (paper: t = 1.5 s), i.e. when ``risk > risk_threshold(t)`` (= 1/30 at 1.5 s, 1/20 at
 1.0 s).
@@ -53,7 +53,7 @@ PAPER = {
 }
 #: default THW thresholds (s): the paper's critical threshold first, then 1 s
 THRESHOLDS_S = (CRITICAL_THW, 1.0)
-#: label columns of the three regions (DESIGN.md "Risk metric"), the headline corridor first
+#: label columns of the three regions (docs/design.md "Risk metric"), the headline corridor first
 REGION_LABELS = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov")
 #: metrics where lower is better (every other reported metric: higher is better)
 LOWER_IS_BETTER = (

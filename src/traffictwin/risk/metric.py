@@ -1,4 +1,4 @@
-"""Risk Metric Calculator on a grid map (paper 003 section 3.4; DESIGN.md "Risk metric").
+"""Risk Metric Calculator on a grid map (paper 003 section 3.4; docs/design.md "Risk metric").
 
 For one frame: the other vehicles are transformed into the subject's frame and drawn into
 a bird's-eye grid map (:class:`~traffictwin.grid.GridSpec`, subject reference point = footprint

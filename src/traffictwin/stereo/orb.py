@@ -1,4 +1,4 @@
-"""ORB pair check (paper 003 section 3.3, DESIGN.md "ORB pair check").
+"""ORB pair check (paper 003 section 3.3, docs/design.md "ORB pair check").
 
 ORB features in both images, brute-force Hamming matching with cross-check, then the
 paper's rule on the mean image-space offsets of the matches: a rectified pair should show
@@ -6,7 +6,7 @@ only horizontal offsets (disparities), so
 
     outlier  <=>  mean |dx| < ``min_dx`` (1 px)  or  mean |dy| > ``max_dy`` (5 px).
 
-The rule is applied over *reliable* matches only (DESIGN.md explains why: with every
+The rule is applied over *reliable* matches only (docs/design.md explains why: with every
 cross-checked match the false matches alone push mean |dy| of a perfect pair far above
 5 px): matches with Hamming distance <= ``max_hamming`` bits, of those the ``best_n``
 closest, summarised by the mean (paper) or the median (``statistic``). No geometric

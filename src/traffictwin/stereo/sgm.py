@@ -1,4 +1,4 @@
-"""Semi-global matching disparity (DESIGN.md "SGM"; paper 003 section 3.3).
+"""Semi-global matching disparity (docs/design.md "SGM"; paper 003 section 3.3).
 
 OpenCV ``StereoSGBM`` in full 8-path mode (``STEREO_SGBM_MODE_HH``) with the smoothness
 penalties ``P1 = 8 * cn * bs**2`` and ``P2 = 32 * cn * bs**2`` (cn = image channels, bs =
