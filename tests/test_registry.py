@@ -174,20 +174,24 @@ def test_promotion_writes_the_model_card_as_the_version_description(cl, tmp_path
     folder = tmp_path / "m"
     folder.mkdir()
     run_id = _log_model(0.0)
-    meta = {"mlflow_run_id": run_id, "data_manifest_hash": "ab" * 32, "profile": "ci"}
+    meta = {"data_manifest_hash": "ab" * 32, "profile": "ci"}
     (folder / "model_meta.json").write_text(json.dumps(meta))
+    record = tmp_path / "train_m.json"  # the training stage's run record holds the MLflow run id
+    record.write_text(json.dumps({"run_id": run_id}))
     card = promotion.ModelCard(
         data="data/prealigned/T: simulated pairs",
         metrics={"test/mse": 0.25, "test/mse_ci": {"lo": 0.125, "hi": 0.5}, "test/n": 64},
         metrics_source="reports/metrics/t.json",
         limits=("Simulated data only.",),
     )
-    job = promotion.GateJob(NAME, GATE, folder, lambda c: (_evaluate, "fp-1"), card=lambda c: card)
+    job = promotion.GateJob(
+        NAME, GATE, folder, lambda c: (_evaluate, "fp-1"), record, card=lambda c: card
+    )
     promotion.promote([job], promotion.PromotionSettings(dry_run=True), client=cl)
     assert not cl.get_model_version(NAME, "1").description  # dry run: no card
     (d,) = promotion.promote([job], promotion.PromotionSettings(), client=cl)
     text = cl.get_model_version(NAME, "1").description
-    assert text == promotion.model_card(promotion.read_candidate(NAME, folder), d, card)
+    assert text == promotion.model_card(promotion.read_candidate(NAME, folder, record), d, card)
     assert f"# {NAME} v1" in text and run_id in text and "ab" * 32 in text
     assert "data/prealigned/T: simulated pairs" in text
     assert "| test/mse | 0.25 | [0.125, 0.5] |" in text and "| test/n | 64 | — |" in text

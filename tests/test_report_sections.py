@@ -119,7 +119,7 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
         twin_report.TITLE,
         "Fleet",
         "Data and disparity statistics",
-        "This run: parameters, stage times, machine",
+        "This run: parameters, machine",
         "Appendix — every metrics file",
     ]
     assert seen["figures"] == ["figures/fleet_map.png", "figures/fleet_other.png"]

@@ -62,8 +62,7 @@ def _outputs(d: Path) -> tuple[dict, dict, str, dict]:
     ck = torch.load(d / "model.ckpt", weights_only=True)
     metrics = json.loads((d / "metrics.json").read_text())
     meta = json.loads((d / "model_meta.json").read_text())
-    for k in ("mlflow_run_id", "mlflow_model_uri"):
-        meta.pop(k)
+    assert "mlflow_run_id" not in meta and "mlflow_model_uri" not in meta  # run record only
     return (
         ck["state_dict"],
         {k: v for k, v in metrics.items() if k not in TIMING},

@@ -35,7 +35,9 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
     } <= set(params["run_variants"])  # the default profile
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     assert dvc["train_risk"]["foreach"] == "${risk_model.run_variants}"
-    assert dvc["train_risk"]["do"]["outs"] == ["models/risk/${item}"]
+    outs = dvc["train_risk"]["do"]["outs"]
+    assert outs[0] == "models/risk/${item}"
+    assert outs[1] == {"reports/plots/risk_training_${item}.csv": {"cache": False}}
     assert "models/risk" in dvc["evaluate_risk"]["deps"]
 
 

@@ -68,7 +68,7 @@ def test_model_directory_has_pyfunc_code_requirements_and_example(cl, tmp_path: 
     assert not list((folder / "code").rglob("*.pyc"))
     # requirements: pinned, torch with the CPU index, never traffictwin itself
     reqs = (folder / "requirements.txt").read_text().splitlines()
-    assert reqs[0] == f"--extra-index-url {serving.TORCH_CPU_INDEX}"
+    assert reqs[0] == f"--extra-index-url {art.TORCH_CPU_INDEX}"
     pinned = dict(r.split("==") for r in reqs[1:])
     assert pinned["torch"] == torch.__version__ and pinned["numpy"] == np.__version__
     assert not any("traffictwin" in r for r in reqs)
