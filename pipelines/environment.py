@@ -1,6 +1,10 @@
-"""Stage `environment`: record the software and hardware the pipeline ran on (reports/environment.json).
+"""Stage `environment`: record the software the pipeline ran with (reports/environment.json, a DVC
+output) and the machine it ran on (its run record reports/timings/environment.json, outside DVC).
 
-The report quotes it next to every timing, so figures always say which machine made them.
+The machine is a property of the run, not of the results: on a virtual machine the CPU model, the
+kernel build and the memory total can change between two identical runs (live migration, memory
+ballooning), so they go to the run record, beside the wall times, and an identical `dvc repro -f`
+leaves dvc.lock unchanged (issue 18, defect 13).
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from importlib import metadata
 
 from traffictwin.io.atomic import write_json_atomic
 
-from ._common import ROOT, run_stage
+from ._common import ROOT, run_stage, stage_timer
 
 PACKAGES = (
     "torch",
@@ -27,7 +31,12 @@ PACKAGES = (
 )
 
 
+#: keys of :func:`collect` that describe the machine (run record only)
+MACHINE_KEYS = ("platform", "cpu", "cpu_count", "memory_gb", "cuda_available", "gpu")
+
+
 def collect() -> dict:
+    """Software versions and machine facts (memory in GiB)."""
     versions = {}
     for p in PACKAGES:
         try:
@@ -61,7 +70,11 @@ def collect() -> dict:
 
 
 def main() -> None:
-    write_json_atomic(ROOT / "reports" / "environment.json", collect())
+    env = collect()
+    with stage_timer("environment") as record:
+        record.update({k: env[k] for k in MACHINE_KEYS})
+        software = {k: v for k, v in env.items() if k not in MACHINE_KEYS}
+        write_json_atomic(ROOT / "reports" / "environment.json", software)
 
 
 if __name__ == "__main__":

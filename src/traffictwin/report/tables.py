@@ -149,7 +149,13 @@ def environment_table(src: Sources) -> Table | None:
     env = src.environment
     if not isinstance(env, dict):
         return None
-    t = Table("Machine and software of this run", ["item", "value"], anchor="environment")
+    t = Table(
+        "Software of this run",
+        ["item", "value"],
+        anchor="environment",
+        note="The machine (CPU, memory, kernel) can change between identical runs of a virtual "
+        "machine: it is in the run record reports/timings/environment.json, not in this report.",
+    )
     for k in ("cpu", "cpu_count", "memory_gb", "gpu", "cuda_available", "python", "platform"):
         if k in env:
             v = env[k]
