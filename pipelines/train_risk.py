@@ -31,12 +31,14 @@ from ._paths import (
 
 
 def training_domain(p, model: RiskModelConfig, label: str) -> dict:
-    """What a user of the model must reproduce at inference: camera size, SGM / ORB settings, scales, label."""
+    """What a user of the model must reproduce at inference: camera size, SGM / ORB settings, scales,
+    label, and ``max_speed`` (m/s): the top ego speed of the training data (the CLI's speed range)."""
     return {
         "camera": {
             "width": get(p, "risk_data.camera.width", int),
             "height": get(p, "risk_data.camera.height", int),
         },
+        "max_speed": get(p, "risk_data.max_speed", float),
         "sgm": get(p, "risk_data.sgm", dict),
         "orb": get(p, "risk_data.orb", dict),
         "disp_scale": model.disp_scale,

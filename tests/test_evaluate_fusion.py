@@ -421,24 +421,28 @@ def test_scores_plot_lines_are_the_metrics(tmp_path):
 
 
 def test_qualitative_grid_shows_each_map(tmp_path):
-    from traffictwin.fusion.figures import masses_to_rgb, qualitative_grid, save_figure
+    from traffictwin.fusion.figures import save_figure
+    from traffictwin.fusion.map_figures import qualitative_grid
+    from traffictwin.report.colours import LEGEND, map_extent, masses_to_rgb
 
     rng = np.random.default_rng(2)
     maps = random_masses(rng, 4, 64, 48)
     rows = {"label": list(maps), "naive": list(maps[::-1])}
-    fig = qualitative_grid(rows, CFGS)
+    fig = qualitative_grid(rows, CFGS, cell=0.5)
     axes = np.array(fig.axes).reshape(2, len(CFGS))
     for r, name in enumerate(rows):
-        assert axes[r][0].get_ylabel() == name
+        assert axes[r][0].get_ylabel() == f"{name}\nx (m, forward)"
         for c, cfg in enumerate(CFGS):
-            np.testing.assert_allclose(
-                axes[r][c].get_images()[0].get_array(), masses_to_rgb(rows[name][c])
-            )
+            img = axes[r][c].get_images()[0]
+            # the shared colour map, in metres: 48 cols x 0.5 m wide, 64 rows x 0.5 m long
+            np.testing.assert_allclose(img.get_array(), masses_to_rgb(rows[name][c]))
+            assert img.get_extent() == list(map_extent(64, 48, 0.5)) == [12.0, -12.0, -16.0, 16.0]
             if r == 0:
                 assert axes[r][c].get_title() == f"config {cfg}"
+    assert axes[-1][0].get_xlabel() == "y (m, + = left)"
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == [label for label, _ in LEGEND]
     png_ok(save_figure(fig, tmp_path / "q.png"))
-    rgb = masses_to_rgb(np.array([[[1.0]], [[0.0]]]))
-    np.testing.assert_array_equal(rgb[0, 0], [0, 1, 0])  # free = green
 
 
 # -- stage on the ci DAG (slow) ---------------------------------------------------------------------

@@ -325,6 +325,12 @@ def test_cli_preview_and_data_figure_use_the_same_colours() -> None:
     m[1] = 1.0  # all occupied
     img = mass_panels([(m, None)])
     assert tuple(img[0, 0]) == tuple(C.masses_to_bgr8(m)[0, 0])  # BGR of the shared map
-    # the data figure's constants are the shared map's (its module predates colours.py)
-    for name in ("FREE", "OCC", "UNKNOWN"):
-        np.testing.assert_array_equal(getattr(data_figure, name), getattr(C, name))
+    # below the map: the legend strip, with a swatch of every legend colour
+    strip = img[-22:]
+    assert strip.shape == (22, img.shape[1], 3) and img.shape[0] == 2 * 192 + 22
+    for _, colour in C.LEGEND:
+        bgr = np.round(colour[::-1] * 255).astype(np.uint8)
+        assert (strip == bgr).all(axis=-1).sum() >= 100, colour
+    # the data figure draws with the shared map (no colours of its own)
+    assert data_figure.show_masses is C.show_masses
+    assert not hasattr(data_figure, "masses_to_rgb")

@@ -76,7 +76,29 @@ def test_stereo_example_shows_first_clean_moving_frame(tmp_path: Path, figs: dic
     left = ds.load_shard(1)["left"][0]
     assert np.array_equal(ax[0].images[0].get_array(), cv2.cvtColor(left, cv2.COLOR_BGR2RGB))
     assert ax[3].get_title() == "SGM disparity (black: invalid)"
-    assert ax[3].images[0].get_array().shape == (48, 96, 3)
+    # disparities in px on one scale (0 .. the GT's 99th percentile) with a colour bar each
+    gt, sgm = ds.load_shard(1)["disp_gt"][0], dd.load_shard(1)["disp_sgm"][0]
+    vmax = float(np.percentile(gt[gt > 0], 99))
+    for a, d in ((ax[2], gt), (ax[3], sgm)):
+        img = a.images[0]
+        np.testing.assert_array_equal(img.get_array().filled(np.nan), d)
+        assert img.get_clim() == (0.0, vmax) and img.colorbar.ax.get_ylabel() == "disparity (px)"
+    assert len(ax) == 6  # 4 panels + 2 colour bars
+
+
+def test_stereo_figure_masks_sky_and_invalid_disparity(figs: dict) -> None:
+    img = np.zeros((4, 6, 3), np.uint8)
+    gt = np.full((4, 6), 5.0, np.float32)
+    gt[0] = 0.0  # sky: no surface, disparity 0
+    sgm = gt.copy()
+    sgm[1, :3] = -1.0  # OpenCV's invalid disparity
+    sgm[0] = 0.0  # SGM 0 px: a valid (far) match
+    data_figures.stereo_figure(img, img, gt, sgm, "s.png")
+    ax = figs["s.png"].axes
+    gt_mask, sgm_mask = ax[2].images[0].get_array().mask, ax[3].images[0].get_array().mask
+    assert gt_mask[0].all() and not gt_mask[1:].any()
+    assert sgm_mask[1, :3].all() and sgm_mask.sum() == 3
+    assert tuple(ax[2].images[0].get_cmap().get_bad()[:3]) == (0.0, 0.0, 0.0)  # masked = black
 
 
 def test_orb_example_shows_first_flagged_faulty_pair(tmp_path: Path, figs: dict) -> None:

@@ -188,3 +188,20 @@ def test_stage_config_is_checked() -> None:
     p.risk_model.variants.rgbd.inputs = ["rgb", "depth"]
     with pytest.raises(ConfigError, match="variant 'rgbd'.*unknown channel group"):
         model_config(p, "rgbd")
+
+
+def test_training_domain_records_what_inference_must_reproduce() -> None:
+    """model_meta.json's ``domain``: camera size, SGM/ORB settings, scales, label and the top
+    speed of the training data (the CLI's speed range), all from params.yaml."""
+    from omegaconf import OmegaConf
+
+    from pipelines.train_risk import risk_model, training_domain
+
+    p = OmegaConf.create(yaml.safe_load((ROOT / "params.yaml").read_text()))
+    d = training_domain(p, risk_model(p), "risk_thw_corridor")
+    assert d["max_speed"] == p.risk_data.max_speed and isinstance(d["max_speed"], float)
+    assert d["camera"] == {"width": p.risk_data.camera.width, "height": p.risk_data.camera.height}
+    assert d["label"] == "risk_thw_corridor" and d["disp_scale"] == p.risk_model.disp_scale
+    p.risk_data.max_speed = "fast"
+    with pytest.raises(Exception, match="risk_data.max_speed"):
+        training_domain(p, risk_model(p), "risk_thw_corridor")

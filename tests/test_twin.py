@@ -356,7 +356,19 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0].startswith("twin (naive)") and len(titles) == 4
     assert titles[1].startswith("vehicle 0 (ego)") and "used" in titles[2]
-    assert all(ax.get_xlabel() == "y (m, left +)" for ax in fig.axes)
+    from traffictwin.report.colours import LEGEND, map_extent, masses_to_rgb
+
+    assert all(ax.get_xlabel() == "y (m, + = left)" for ax in fig.axes)
+    assert all(ax.get_ylabel() == "x (m, forward)" for ax in fig.axes)
+    # every map in the shared colour map, in metres, and the colour map's legend
+    ext = list(map_extent(GRID.rows, GRID.cols, GRID.cell))
+    assert all(ax.get_images()[0].get_extent() == ext for ax in fig.axes)
+    np.testing.assert_allclose(
+        fig.axes[1].get_images()[0].get_array(),
+        masses_to_rgb(a["maps"][max(0, int(a["onset_frame"])), 0]),
+    )
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == [label for label, _ in LEGEND]
 
 
 # ------------------------------------------------------------------------------------ CLI

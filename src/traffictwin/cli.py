@@ -176,10 +176,11 @@ def _npz_bytes(**arrays: Any) -> bytes:
 
 
 def mass_panels(panels: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
-    """BGR uint8 image of mass maps side by side, white separators, upscaled to ~384 px tall:
-    each panel ``(masses (2, H, W), u (H, W) or None = 1 - m_free - m_occ)``; the report's colour
-    map (:mod:`traffictwin.report.colours`: green = free, red = occupied, grey = unknown)."""
-    from traffictwin.report.colours import masses_to_bgr8
+    """BGR uint8 image of mass maps side by side, white separators, upscaled to ~384 px tall,
+    the colour map's legend below: each panel ``(masses (2, H, W), u (H, W) or None = 1 - m_free -
+    m_occ)``; the report's colour map (:mod:`traffictwin.report.colours`: green = free,
+    red = occupied, grey = unknown)."""
+    from traffictwin.report.colours import legend_strip_bgr8, masses_to_bgr8
 
     h = panels[0][0].shape[1]
     sep = np.full((h, 4, 3), 255, np.uint8)
@@ -189,7 +190,8 @@ def mass_panels(panels: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarra
         parts += [sep] if k < len(panels) - 1 else []
     img = np.concatenate(parts, axis=1)
     scale = max(1, int(round(384 / h)))
-    return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+    img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1) if scale > 1 else img
+    return np.concatenate([img, legend_strip_bgr8(img.shape[1])], axis=0)
 
 
 def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:

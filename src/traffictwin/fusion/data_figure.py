@@ -1,8 +1,6 @@
-"""Figure like the paper's Fig. 2: two input maps with their poses and the fused label.
-
-Colour coding of a mass grid: free = green, occupied = red, unknown = grey, mixed by mass:
-``RGB = m_F * green + m_O * red + u * grey``.
-"""
+"""Figure like the paper's Fig. 2: two input maps with their poses and the fused label, in the
+project's one mass colour map (:mod:`traffictwin.report.colours`: free green, occupied red,
+unknown grey, mixed by mass), axes in metres."""
 
 from __future__ import annotations
 
@@ -11,19 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.evidential.masses import unknown_mass
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import atomic_path
-
-FREE = np.array([0.15, 0.75, 0.2])
-OCC = np.array([0.85, 0.1, 0.1])
-UNKNOWN = np.array([0.5, 0.5, 0.5])
-
-
-def masses_to_rgb(m: np.ndarray) -> np.ndarray:
-    """``(2, H, W)`` masses -> ``(H, W, 3)`` float RGB in [0, 1]."""
-    f, o, u = m[0][..., None], m[1][..., None], unknown_mass(m)[..., None]
-    return np.clip(f * FREE + o * OCC + u * UNKNOWN, 0.0, 1.0)
+from traffictwin.report.colours import legend_handles, show_masses
 
 
 def pick_samples(ds: Any, n: int) -> list[dict[str, Any]]:
@@ -59,17 +47,10 @@ def plot_fusion_samples(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
 
     n = len(samples)
     if n == 0:
         raise ValueError("plot_fusion_samples: no samples given")
-    ext = [
-        -grid.width / 2,
-        grid.width / 2,
-        -grid.length / 2,
-        grid.length / 2,
-    ]  # y to the left: flip x axis
     fig, axes = plt.subplots(n, 3, figsize=(9, 4.6 * n), squeeze=False)
     for i, s in enumerate(samples):
         p1, p2 = s["pose1"], s["pose2"]
@@ -82,11 +63,7 @@ def plot_fusion_samples(
             )
         ):
             ax = axes[i, j]
-            ax.imshow(
-                masses_to_rgb(s[key]),
-                extent=(ext[1], ext[0], ext[2], ext[3]),
-                interpolation="nearest",
-            )
+            show_masses(ax, s[key], grid.cell)
             ax.plot(0, 0, marker=(3, 0, 0), color="k", markersize=8)
             if pose is not None:
                 ax.set_title(
@@ -95,18 +72,13 @@ def plot_fusion_samples(
                 )
             else:
                 ax.set_title(name, fontsize=8)
-            ax.set_xlabel("y (m, left)", fontsize=7)
-            ax.set_ylabel("x (m, forward)", fontsize=7)
+            ax.xaxis.label.set_fontsize(7)
+            ax.yaxis.label.set_fontsize(7)
             ax.tick_params(labelsize=6)
         axes[i, 0].text(
             -0.35, 0.5, head, transform=axes[i, 0].transAxes, rotation=90, va="center", fontsize=8
         )
-    handles = [
-        Patch(color=FREE, label="free"),
-        Patch(color=OCC, label="occupied"),
-        Patch(color=UNKNOWN, label="unknown"),
-    ]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8)
+    fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0.03, 0.03, 1, 0.97))
     path = Path(path)

@@ -1058,7 +1058,8 @@ def figures(
     """The evaluation's matplotlib figures by file stem: ``fusion_kld_boxplot`` (KLD(b); cf. Fig. 5),
     ``fusion_scores_occupied`` / ``fusion_scores_free`` (Figs. 6, 7), ``fusion_qualitative`` (Fig. 4).
     Network rows of ``fusion_variants`` appear beside the methods where they exist."""
-    from traffictwin.fusion.figures import kld_boxplot, qualitative_grid, scores_plot
+    from traffictwin.fusion.figures import kld_boxplot, scores_plot
+    from traffictwin.fusion.map_figures import qualitative_grid
 
     configs = list(ev.data)
     samples = ev.samples
@@ -1085,8 +1086,9 @@ def figures(
         "fusion_qualitative": qualitative_grid(
             qualitative_panels(ev, noise, grid, pair, fraction),
             configs,
+            grid.cell,
             title=f"pair {int(ev.data[configs[0]]['pair_id'][pair])}: pose error = "
-            f"{fraction:.0%} of (r, r, α); red = m_O, green = m_F, black = unknown",
+            f"{fraction:.0%} of (r, r, α)",
         ),
     }
 

@@ -5,8 +5,9 @@ Each figure function returns the matplotlib ``Figure`` (so tests can check what 
 
 - :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
 - :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
-- :func:`qualitative_grid` — label / naive / network maps per configuration (Fig. 4);
-- :func:`masses_to_rgb` — evidential map → image (red = m_O, green = m_F, black = unknown).
+
+Maps (Fig. 4) are drawn by :mod:`traffictwin.fusion.map_figures` in the project's one mass colour
+map (:mod:`traffictwin.report.colours`).
 
 Legend labels are the methods' ``label`` in :data:`traffictwin.fusion.methods.METHODS` (a network
 row ``<method>[<loss>]`` of ``fusion_variants``: the method's label + ``[<loss> loss]``); colours
@@ -23,10 +24,8 @@ import numpy as np
 from traffictwin.io.atomic import atomic_path
 
 __all__ = [
-    "masses_to_rgb",
     "kld_boxplot",
     "scores_plot",
-    "qualitative_grid",
     "save_figure",
     "METHOD_STYLE",
 ]
@@ -61,14 +60,6 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
     _plt().close(fig)
     return path
-
-
-def masses_to_rgb(m: np.ndarray) -> np.ndarray:
-    """Masses (2, H, W) → RGB float image (H, W, 3): red = m_O, green = m_F, unknown black."""
-    m = np.clip(np.asarray(m, dtype=np.float32), 0, 1)
-    if m.ndim != 3 or m.shape[0] != 2:
-        raise ValueError(f"masses_to_rgb: expected (2, H, W), got {m.shape}")
-    return np.stack([m[1], m[0], np.zeros_like(m[0])], axis=-1)
 
 
 def _label(row: str) -> str:
@@ -171,34 +162,4 @@ def scores_plot(
     axes[0].set_ylim(0, 1.02)
     axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle(f"Classification scores for {name} cells vs pose-noise configuration (test set)")
-    return fig
-
-
-def qualitative_grid(
-    rows: Mapping[str, Sequence[np.ndarray]],
-    configs: Sequence[str],
-    title: str = "",
-):
-    """Image grid: one row per entry of ``rows`` (e.g. label / naive / network), one column per config."""
-    plt = _plt()
-    names = list(rows)
-    h, w = np.asarray(rows[names[0]][0]).shape[-2:]
-    fig, axes = plt.subplots(
-        len(names),
-        len(configs),
-        figsize=(2.3 * len(configs), 2.3 * len(names) * h / w + 0.6),
-        squeeze=False,
-    )
-    for r, name in enumerate(names):
-        for c, cfg in enumerate(configs):
-            ax = axes[r][c]
-            ax.imshow(masses_to_rgb(rows[name][c]), interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(f"config {cfg}", fontsize=9)
-            if c == 0:
-                ax.set_ylabel(name, fontsize=9)
-    if title:
-        fig.suptitle(title, fontsize=9)
     return fig

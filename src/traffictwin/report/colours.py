@@ -3,7 +3,8 @@
 free = green, occupied = red, unknown = grey, mixed by mass:
 ``RGB = m_F * FREE + m_O * OCC + u * UNKNOWN`` (``u = 1 - m_F - m_O`` unless given). A pure
 free cell is green, a pure occupied cell red, an unobserved cell grey; a cell split between
-free and occupied is olive. :func:`legend_handles` gives the matching legend entries.
+free and occupied is olive. :func:`legend_handles` gives the matching legend entries and
+:func:`show_masses` draws a map on matplotlib axes in metres of the sensor frame.
 """
 
 from __future__ import annotations
@@ -32,8 +33,57 @@ def masses_to_bgr8(m: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
     return np.clip(masses_to_rgb(m, u)[..., ::-1] * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+def legend_strip_bgr8(width: int, height: int = 22) -> np.ndarray:
+    """A white BGR uint8 strip ``(height, width, 3)`` with the legend of this colour map (a swatch
+    and its label per entry, OpenCV text), for images drawn without matplotlib (CLI previews)."""
+    import cv2
+
+    strip = np.full((height, width, 3), 255, np.uint8)
+    x, pad = 4, max(2, height // 5)
+    for label, colour in LEGEND:
+        bgr = tuple(int(v) for v in np.round(colour[::-1] * 255))
+        cv2.rectangle(strip, (x, pad), (x + height - 2 * pad, height - pad), bgr, thickness=-1)
+        x += height - 2 * pad + 4
+        cv2.putText(
+            strip,
+            label,
+            (x, height - pad - 1),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
+        x += cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)[0][0] + 12
+    return strip
+
+
 def legend_handles() -> list:
     """Matplotlib patches for free / occupied / unknown in this colour map (``ax.legend(handles=...)``)."""
     from matplotlib.patches import Patch
 
     return [Patch(color=c, label=label) for label, c in LEGEND]
+
+
+def map_extent(rows: int, cols: int, cell: float) -> tuple[float, float, float, float]:
+    """``imshow`` extent (m) of a ``rows x cols`` grid of ``cell`` m with the sensor at the centre:
+    x (forward) up, y (left) to the left, as in :mod:`traffictwin.grid` (row 0 front, col 0 left)."""
+    length, width = rows * cell, cols * cell
+    return (width / 2, -width / 2, -length / 2, length / 2)
+
+
+def show_masses(ax, m: np.ndarray, cell: float, u: np.ndarray | None = None, title: str = ""):
+    """Draw masses ``(2, H, W)`` on ``ax`` in this colour map, axes in metres (``cell`` m per cell):
+    x forward (up), y left (+ to the left). Returns the ``AxesImage``."""
+    rows, cols = np.shape(m)[-2:]
+    img = ax.imshow(
+        masses_to_rgb(m, u),
+        extent=map_extent(rows, cols, cell),
+        origin="upper",
+        interpolation="nearest",
+    )
+    ax.set_xlabel("y (m, + = left)")
+    ax.set_ylabel("x (m, forward)")
+    if title:
+        ax.set_title(title)
+    return img

@@ -107,10 +107,14 @@ def risk_metric_figure(
     }
 
 
-def _disp_rgb(d: np.ndarray, vmax: float) -> np.ndarray:
-    cm = plt.get_cmap("viridis")(np.clip(d / max(vmax, 1e-6), 0, 1))[..., :3]
-    cm[d < 0] = 0.0
-    return cm
+def _show_disparity(fig, ax, d: np.ma.MaskedArray, vmax: float, title: str):
+    """Disparity (px) in viridis from 0 to ``vmax`` px (yellow = near), masked cells (invalid or
+    sky) black, with a colour bar in px."""
+    cmap = plt.get_cmap("viridis").with_extremes(bad="black")
+    img = ax.imshow(d, cmap=cmap, vmin=0.0, vmax=vmax)
+    ax.set_title(title)
+    fig.colorbar(img, ax=ax, fraction=0.046, pad=0.02, label="disparity (px)")
+    return img
 
 
 def stereo_figure(
@@ -121,20 +125,21 @@ def stereo_figure(
     path: str | Path,
     title: str = "",
 ) -> None:
-    """Left/right image, GT disparity and SGM disparity (yellow = near, invalid black), like Fig. 2."""
+    """Left/right image, GT disparity and SGM disparity (px, one colour bar each: yellow = near,
+    invalid black; colour scale 0 to the 99th percentile of the GT), like the paper's Fig. 2."""
     vmax = float(np.percentile(gt[gt > 0], 99)) if (gt > 0).any() else 1.0
-    fig, ax = plt.subplots(2, 2, figsize=(10, 5.2))
+    fig, ax = plt.subplots(2, 2, figsize=(10.8, 5.2))
     ax[0, 0].imshow(cv2.cvtColor(left, cv2.COLOR_BGR2RGB))
     ax[0, 0].set_title("left image")
     ax[0, 1].imshow(cv2.cvtColor(right, cv2.COLOR_BGR2RGB))
     ax[0, 1].set_title("right image")
-    gtv = np.where(gt > 0, gt, -1.0)
-    ax[1, 0].imshow(_disp_rgb(gtv, vmax))
-    ax[1, 0].set_title("ground-truth disparity f·B/Z (black: sky)")
-    ax[1, 1].imshow(_disp_rgb(sgm, vmax))
-    ax[1, 1].set_title("SGM disparity (black: invalid)")
+    gt_sky = np.ma.masked_less_equal(gt, 0.0)  # no surface hit: disparity 0
+    sgm_invalid = np.ma.masked_less(sgm, 0.0)  # OpenCV's invalid value is negative
+    _show_disparity(fig, ax[1, 0], gt_sky, vmax, "ground-truth disparity f·B/Z (black: sky)")
+    _show_disparity(fig, ax[1, 1], sgm_invalid, vmax, "SGM disparity (black: invalid)")
     for a in ax.ravel():
-        a.axis("off")
+        a.set_xticks([])
+        a.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=9)
     _save(fig, path)

@@ -9,8 +9,9 @@ import numpy as np
 import pandas as pd
 
 from traffictwin.evidential.warp import warp_masses
-from traffictwin.fusion.figures import _plt, masses_to_rgb
+from traffictwin.fusion.figures import _plt
 from traffictwin.grid import GridSpec
+from traffictwin.report.colours import legend_handles, show_masses
 from traffictwin.sim.cooperative import ROLES
 from traffictwin.twin.evaluation import (
     EGO,
@@ -126,19 +127,11 @@ def twin_map_figure(
     )
     true_rel = noisy_relative_poses(arrays["poses"], np.zeros_like(arrays["noise_z"]), 0.0, 0.0)[t]
     n = len(maps)
-    ext = [
-        -grid.width / 2,
-        grid.width / 2,
-        -grid.length / 2,
-        grid.length / 2,
-    ]  # y left..right flipped below
-    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.6))
+    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
     roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
 
     def show(ax, m, title):
-        ax.imshow(masses_to_rgb(m), extent=(ext[1], ext[0], ext[2], ext[3]), origin="upper")
-        ax.set(title=title, xlabel="y (m, left +)", ylabel="x (m, forward)")
-        ax.set_xlim(ext[1], ext[0])
+        show_masses(ax, m, grid.cell, title=title)
 
     show(axes[0], step.masses, f"twin ({method}), config {configuration}")
     colors = plt.get_cmap("tab10")
@@ -163,9 +156,9 @@ def twin_map_figure(
         axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")
     axes[0].legend(fontsize=6, loc="lower left")
     fig.suptitle(
-        "red = m_O, green = m_F, black = unknown; o true position, x noisy position (dotted: 98 % radius r), "
-        "+ pose used",
+        "o true position, x noisy position (dotted: 98 % radius r), + pose used",
         fontsize=8,
     )
-    fig.tight_layout()
+    fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     return fig
