@@ -27,6 +27,7 @@ BENCHMARKS = (
     "cli_latency",
     "startup",
     "cli_load",
+    "ci_dag",
 )
 
 

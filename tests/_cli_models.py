@@ -4,7 +4,9 @@
   ``model_meta.json``) trained-grid ``rows x cols`` / ``cell``;
 - :func:`save_risk` : a DAVE-2 risk model folder with the given metadata (``domain``...);
 - :func:`masses` / :func:`save_map`: random grids on the simplex as ``.npz``;
-- :func:`textured_pair`: a rectified stereo pair, the right image shifted by 6 px.
+- :func:`textured_pair`: a rectified stereo pair, the right image shifted by 6 px;
+- :func:`fuse_args`: the argument list of one ``traffictwin fuse`` call (poses :data:`POSE1`,
+  :data:`POSE2`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,27 @@ from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.model_io import save_risk_model
 
 H, W, CELL = 32, 48, 0.5
+POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"  # world x,y,yaw (m, m, rad) of the two maps
+
+
+def fuse_args(
+    map1: Path | str, map2: Path | str, model: Path | str, out: Path | str, *extra: str
+) -> list[str]:
+    """``traffictwin fuse MAP1 MAP2 --pose1 POSE1 --pose2 POSE2 --model MODEL -o OUT EXTRA...``."""
+    return [
+        "fuse",
+        str(map1),
+        str(map2),
+        "--pose1",
+        POSE1,
+        "--pose2",
+        POSE2,
+        "--model",
+        str(model),
+        "-o",
+        str(out),
+        *extra,
+    ]
 
 
 def tiny_spec() -> DeepLabSpec:

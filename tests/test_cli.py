@@ -12,7 +12,19 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from _cli_models import CELL, H, W, masses, save_fusion_model, save_map, save_risk, textured_pair
+from _cli_models import (
+    CELL,
+    POSE1,
+    POSE2,
+    H,
+    W,
+    fuse_args,
+    masses,
+    save_fusion_model,
+    save_map,
+    save_risk,
+    textured_pair,
+)
 from _registry_models import log_linear
 
 from traffictwin import cli
@@ -27,7 +39,6 @@ from traffictwin.stereo.orb import check_pair
 from traffictwin.stereo.sgm import compute_disparity
 from traffictwin.trainer import log_model
 
-POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"
 _masses, _save_map = masses, save_map
 
 
@@ -60,21 +71,7 @@ def test_fuse_round_trip_equals_library(tmp_path, fusion_dir, capsys):
     mf2, mo2 = _masses(2)
     p1 = _save_map(tmp_path / "a.npz", mf1, mo1, cell=np.float64(CELL))
     p2 = _save_map(tmp_path / "b.npz", mf2, mo2)
-    rc = cli.main(
-        [
-            "fuse",
-            str(p1),
-            str(p2),
-            "--pose1",
-            POSE1,
-            "--pose2",
-            POSE2,
-            "--model",
-            str(fusion_dir),
-            "-o",
-            str(tmp_path / "out"),
-        ]
-    )
+    rc = cli.main(fuse_args(p1, p2, fusion_dir, str(tmp_path / "out")))
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     out = np.load(tmp_path / "out.npz")
@@ -226,21 +223,7 @@ def test_fuse_bad_input_errors_and_writes_nothing(tmp_path, fusion_dir, case, ca
 
 def test_fuse_cell_mismatch_with_model(tmp_path, fusion_dir, capsys):
     p = _save_map(tmp_path / "a.npz", *_masses(1), cell=np.float64(0.32))
-    rc = cli.main(
-        [
-            "fuse",
-            str(p),
-            str(p),
-            "--pose1",
-            POSE1,
-            "--pose2",
-            POSE2,
-            "--model",
-            str(fusion_dir),
-            "-o",
-            str(tmp_path / "o"),
-        ]
-    )
+    rc = cli.main(fuse_args(p, p, fusion_dir, str(tmp_path / "o")))
     assert rc == 1 and "trained on 0.5 m cells" in capsys.readouterr().err
     assert not (tmp_path / "o.npz").exists()
 

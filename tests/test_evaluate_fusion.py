@@ -383,7 +383,8 @@ def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
         assert y.min() == pytest.approx(q25) and y.max() == pytest.approx(q75), gid
         np.testing.assert_allclose(medians[f"{gid}/median"].get_ydata(), np.median(vals[m][c]))
     assert ax.get_ylabel() == "KLD(label ‖ prediction)"
-    assert [t.get_text() for t in ax.get_xticklabels()] == [f"config {c}" for c in CFGS]
+    assert [t.get_text() for t in ax.get_xticklabels()] == list(CFGS)
+    assert ax.get_xlabel() == "configuration"
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
         REGISTRY["naive"].label,
         REGISTRY["dnn"].label,
@@ -418,6 +419,21 @@ def test_scores_plot_lines_are_the_metrics(tmp_path):
             assert line.get_label() == REGISTRY[m].label
     assert fig.axes[0].get_ylabel() == "score" and fig.axes[0].get_ylim() == (0, 1.02)
     png_ok(save_figure(fig, tmp_path / "occ.png"))
+
+
+def test_configuration_axes_carry_the_pose_noise() -> None:
+    """With the configurations' (r m, α deg), every configuration axis says what they are."""
+    from traffictwin.fusion.figures import config_label, kld_boxplot, scores_plot
+
+    noise = {"A": (0.0, 0.0), "D": (5.0, 20.0)}
+    assert config_label("D", noise) == "D\nr 5 m\nα 20°"
+    assert config_label("B", noise) == "B" and config_label("D") == "D"
+    want = ["A\nr 0 m\nα 0°", "D\nr 5 m\nα 20°"]
+    box = kld_boxplot({"dnn": {c: [0.1, 0.2] for c in noise}}, list(noise), ["dnn"], noise=noise)
+    occ = scores_plot({"dnn": {c: {} for c in noise}}, list(noise), ["dnn"], "occ", noise)
+    for ax in (box.axes[0], *occ.axes):
+        assert [t.get_text() for t in ax.get_xticklabels()] == want
+        assert ax.get_xlabel() == "configuration (pose noise r, α)"
 
 
 def test_qualitative_grid_shows_each_map(tmp_path):

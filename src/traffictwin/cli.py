@@ -200,9 +200,15 @@ def preview_image(m1: np.ndarray, m2w: np.ndarray, m: np.ndarray, u: np.ndarray)
 
 
 def _write_fused(
-    outs: OutputSet, path: Path, res: Any, pose1: np.ndarray, pose2: np.ndarray
+    outs: OutputSet,
+    path: Path,
+    res: Any,
+    pose1: np.ndarray,
+    pose2: np.ndarray,
+    preview: Path | None = None,
 ) -> None:
-    """The fused ``.npz`` (deterministic zip, fast deflate level 1) into ``outs``' temp file of ``path``."""
+    """The fused ``.npz`` (deterministic zip, fast deflate level 1) into ``outs``' temp file of
+    ``path``, and the PNG preview (:func:`preview_image`) into that of ``preview`` if given."""
     from traffictwin.io.shards import write_npz_deterministic
 
     arrays = {
@@ -215,6 +221,9 @@ def _write_fused(
         "cell": np.float64(res.cell),
     }
     write_npz_deterministic(outs.temp_path(path), arrays, compresslevel=1)
+    if preview is not None:
+        image = preview_image(res.m1, res.m2_prealigned, res.masses, res.u)
+        outs.write_bytes(preview, _png_bytes(image))
 
 
 def _occupied(res: Any) -> int:
@@ -260,10 +269,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         (res,) = api.fuse(model, [api.FusePair(m1, m2, pose1, pose2, cell, "pair")])
         ms = (time.perf_counter() - t0) * 1e3
-        _write_fused(outs, npz_path, res, pose1, pose2)
-        outs.write_bytes(
-            png_path, _png_bytes(preview_image(m1, res.m2_prealigned, res.masses, res.u))
-        )
+        _write_fused(outs, npz_path, res, pose1, pose2, png_path)
         outs.commit()
     summary = {
         "output": str(npz_path),
@@ -404,12 +410,8 @@ def _fuse_many(args: argparse.Namespace) -> int:
         table = []
         for r, res in zip(rows, api.fuse(model, pairs(), batch_size=args.batch_size)):
             pose1, pose2 = r.pop("_poses")
-            _write_fused(outs, out / f"{res.id}.npz", res, pose1, pose2)
-            if args.preview:
-                outs.write_bytes(
-                    out / f"{res.id}.png",
-                    _png_bytes(preview_image(res.m1, res.m2_prealigned, res.masses, res.u)),
-                )
+            png = out / f"{res.id}.png" if args.preview else None
+            _write_fused(outs, out / f"{res.id}.npz", res, pose1, pose2, png)
             table.append(
                 {
                     "id": res.id,

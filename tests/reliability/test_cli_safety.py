@@ -17,8 +17,11 @@ import numpy as np
 import pytest
 from _cli_models import (
     CELL,
+    POSE1,
+    POSE2,
     H,
     W,
+    fuse_args,
     masses,
     save_fusion_model,
     save_map,
@@ -32,7 +35,6 @@ from traffictwin.risk.model_io import RiskModel, load_risk_model
 from traffictwin.stereo.sgm import compute_disparity
 
 ROOT = Path(__file__).resolve().parents[2]
-POSE1, POSE2 = "1.0,2.0,0.1", "4.0,1.0,-0.05"
 
 
 @pytest.fixture(scope="module")
@@ -63,22 +65,6 @@ def _one_error_line(err: str, *needles: str) -> str:
     return lines[0]
 
 
-def _fuse_args(p1: Path, p2: Path, model: Path, out: Path | str) -> list[str]:
-    return [
-        "fuse",
-        str(p1),
-        str(p2),
-        "--pose1",
-        POSE1,
-        "--pose2",
-        POSE2,
-        "--model",
-        str(model),
-        "-o",
-        str(out),
-    ]
-
-
 # ------------------------------------------------------------------ defect 6: outputs
 
 
@@ -91,7 +77,7 @@ def test_output_naming_an_input_is_refused_and_the_input_kept(
     (tmp_path / "link.json").symlink_to(lp)  # a second name of the left image
     before = _listing(tmp_path)
     # fuse -o a  -> a.npz is map 1
-    assert cli.main(_fuse_args(p1, p2, fusion_dir, tmp_path / "a")) == 1
+    assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "a")) == 1
     _one_error_line(capsys.readouterr().err, "a.npz", "input", "refusing to overwrite")
     # risk -o LEFT.png (a PNG replaced by JSON) and through a symlink; --force does not change it
     for out in (lp, tmp_path / "link.json"):
@@ -107,10 +93,10 @@ def test_existing_output_needs_force(tmp_path, fusion_dir, capsys):
     p1 = save_map(tmp_path / "a.npz", *masses(1), cell=np.float64(CELL))
     p2 = save_map(tmp_path / "b.npz", *masses(2))
     (tmp_path / "out.png").write_bytes(b"keep me")
-    assert cli.main(_fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 1
+    assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 1
     _one_error_line(capsys.readouterr().err, "out.png exists", "--force")
     assert (tmp_path / "out.png").read_bytes() == b"keep me" and not (tmp_path / "out.npz").exists()
-    assert cli.main([*_fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 0
+    assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 0
     assert cv2.imread(str(tmp_path / "out.png")) is not None and (tmp_path / "out.npz").exists()
 
 
@@ -131,7 +117,7 @@ def test_missing_parent_folders_are_created_by_every_command(
     p2 = save_map(tmp_path / "b.npz", *masses(2))
     lp, rp = write_pair(tmp_path / "frames", "f", *pair)
     new = tmp_path / "new"
-    assert cli.main(_fuse_args(p1, p2, fusion_dir, new / "fuse" / "x" / "out")) == 0
+    assert cli.main(fuse_args(p1, p2, fusion_dir, new / "fuse" / "x" / "out")) == 0
     assert (new / "fuse" / "x" / "out.npz").is_file()
     assert (
         cli.main(
@@ -249,12 +235,12 @@ def test_fusion_grid_must_be_the_training_grid(tmp_path, fusion_dir, capsys):
     big = [
         save_map(tmp_path / f"{k}.npz", *masses(k, 2 * H, W), cell=np.float64(CELL)) for k in (1, 2)
     ]
-    assert cli.main(_fuse_args(*big, fusion_dir, tmp_path / "o")) == 1
+    assert cli.main(fuse_args(*big, fusion_dir, tmp_path / "o")) == 1
     _one_error_line(capsys.readouterr().err, f"grid {2 * H}x{W}", f"trained on {H}x{W}")
     small_cell = [
         save_map(tmp_path / f"c{k}.npz", *masses(k), cell=np.float64(0.32)) for k in (1, 2)
     ]
-    assert cli.main(_fuse_args(*small_cell, fusion_dir, tmp_path / "o")) == 1
+    assert cli.main(fuse_args(*small_cell, fusion_dir, tmp_path / "o")) == 1
     _one_error_line(capsys.readouterr().err, "trained on 0.5 m cells")
     assert not list(tmp_path.glob("o.*"))
 
@@ -498,7 +484,7 @@ def test_assess_risk_reads_images_one_batch_at_a_time(tmp_path, risk_dir, pair, 
 def test_inputs_the_model_would_ignore_or_contradict_are_refused(tmp_path, fusion_dir, capsys):
     p1 = save_map(tmp_path / "a.npz", *masses(1), cell=np.float64(CELL))
     p2 = save_map(tmp_path / "b.npz", *masses(2))
-    base = _fuse_args(p1, p2, fusion_dir, tmp_path / "o")
+    base = fuse_args(p1, p2, fusion_dir, tmp_path / "o")
     assert cli.main([*base, "--config", "A"]) == 1  # the folder was trained for D
     _one_error_line(capsys.readouterr().err, "--config", "'D'")
     assert cli.main([*base, "--cell", "0.32"]) == 1  # a.npz says 0.5 m

@@ -1073,6 +1073,7 @@ def figures(
     score_rows = _rows(ev, SCORE_METHODS)
     scores = {m: {c: ev.metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}
     slow = "" if n["registered"] == n["per_config"] else f"; registered on {n['registered']}"
+    r_alpha = {c: (noise[c].r, noise[c].alpha) for c in configs}
     return {
         "fusion_kld_boxplot": kld_boxplot(
             kvals,
@@ -1080,15 +1081,17 @@ def figures(
             box_rows,
             ylabel="KLD(b): KL(label ‖ prediction) over (m_F, m_O, u)",
             title=f"KLD(b) per configuration (test set, {n['per_config']} pairs{slow})",
+            noise=r_alpha,
         ),
-        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ"),
-        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free"),
+        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ", r_alpha),
+        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free", r_alpha),
         "fusion_qualitative": qualitative_grid(
             qualitative_panels(ev, noise, grid, pair, fraction),
             configs,
             grid.cell,
             title=f"pair {int(ev.data[configs[0]]['pair_id'][pair])}: pose error = "
             f"{fraction:.0%} of (r, r, α)",
+            noise=r_alpha,
         ),
     }
 

@@ -24,6 +24,7 @@ import numpy as np
 from traffictwin.io.atomic import atomic_path
 
 __all__ = [
+    "config_label",
     "kld_boxplot",
     "scores_plot",
     "save_figure",
@@ -62,6 +63,16 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     return path
 
 
+def config_label(name: str, noise: Mapping[str, Sequence[float]] | None = None) -> str:
+    """Tick label of configuration ``name`` with its pose noise ``noise[name] = (r m, α deg)``
+    (the 98 % intervals of the translation per axis and of the heading): ``"D\nr 5 m\nα 20°"``;
+    just ``name`` without ``noise``."""
+    if not noise or name not in noise:
+        return name
+    r, alpha = noise[name]
+    return f"{name}\nr {r:g} m\nα {alpha:g}°"
+
+
 def _label(row: str) -> str:
     """Legend label of a method or network row (``dnn[paper]`` → the dnn label + ``[paper loss]``)."""
     from traffictwin.fusion.methods import METHODS
@@ -87,10 +98,12 @@ def kld_boxplot(
     methods: Sequence[str],
     ylabel: str = "KLD(label ‖ prediction)",
     title: str = "Fusion quality per configuration (test set)",
+    noise: Mapping[str, Sequence[float]] | None = None,
 ):
     """Box plots: ``values[method][config]`` = per-sample KLDs; one group per configuration,
     one box per (configuration, method) with data, labelled ``gid = "<method>/<config>"`` (its
-    median line ``"<method>/<config>/median"``)."""
+    median line ``"<method>/<config>/median"``); ``noise[config] = (r m, α deg)`` labels the
+    configuration axis (:func:`config_label`)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(1.9 * len(configs) + 2, 4.2))
     width = 0.8 / max(len(methods), 1)
@@ -125,7 +138,8 @@ def kld_boxplot(
         handles.append(bp["boxes"][0])
         handles[-1].set_label(st["label"])
     ax.set_xticks(range(len(configs)))
-    ax.set_xticklabels([f"config {c}" for c in configs])
+    ax.set_xticklabels([config_label(c, noise) for c in configs])
+    ax.set_xlabel("configuration (pose noise r, α)" if noise else "configuration")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
@@ -140,9 +154,11 @@ def scores_plot(
     configs: Sequence[str],
     methods: Sequence[str],
     cls: str,
+    noise: Mapping[str, Sequence[float]] | None = None,
 ):
     """Precision / recall / Dice vs configuration for ``cls`` ("occ" or "free"); ``scores[method][config][metric]``.
-    Three axes (precision, recall, Dice), one line per method (``gid`` = the method)."""
+    Three axes (precision, recall, Dice), one line per method (``gid`` = the method);
+    ``noise[config] = (r m, α deg)`` labels the configuration axis (:func:`config_label`)."""
     plt = _plt()
     name = {"occ": "occupied", "free": "free"}.get(cls, cls)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), sharey=True)
@@ -154,8 +170,8 @@ def scores_plot(
             ls = "-" if meth in ("dnn", "naive") else "--"
             ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
         ax.set_xticks(x)
-        ax.set_xticklabels(configs)
-        ax.set_xlabel("configuration")
+        ax.set_xticklabels([config_label(c, noise) for c in configs])
+        ax.set_xlabel("configuration (pose noise r, α)" if noise else "configuration")
         ax.set_title(f"{metric.capitalize()} ({name} cells)")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("score")

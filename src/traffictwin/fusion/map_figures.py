@@ -22,10 +22,12 @@ def qualitative_grid(
     configs: Sequence[str],
     cell: float,
     title: str = "",
+    noise: Mapping[str, Sequence[float]] | None = None,
 ):
     """Image grid: one row per entry of ``rows`` (e.g. label / naive / network: masses (2, H, W)),
     one column per config; :func:`traffictwin.report.colours.show_masses` (axes in metres,
-    ``cell`` m per cell) and the colour map's legend below the panels."""
+    ``cell`` m per cell) and the colour map's legend below the panels; ``noise[config] = (r m,
+    α deg)`` goes into the column titles."""
     plt = _plt()
     names = list(rows)
     h, w = np.asarray(rows[names[0]][0]).shape[-2:]
@@ -42,7 +44,10 @@ def qualitative_grid(
             ax = axes[r][c]
             show_masses(ax, rows[name][c], cell)
             ax.tick_params(labelsize=7)
-            ax.set_title(f"config {cfg}" if r == 0 else "", fontsize=9)
+            head = f"config {cfg}"
+            if noise and cfg in noise:
+                head += f": r {noise[cfg][0]:g} m, α {noise[cfg][1]:g}°"
+            ax.set_title(head if r == 0 else "", fontsize=9)
             ax.set_xlabel("y (m, + = left)" if r == len(names) - 1 else "", fontsize=8)
             ax.set_ylabel(f"{name}\nx (m, forward)" if c == 0 else "", fontsize=8)
     fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8, frameon=False)

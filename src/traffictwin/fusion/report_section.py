@@ -761,7 +761,7 @@ def score_figure(
     panel's y axis zoomed to its data (:func:`zoomed_limits`); x: the configurations with their
     pose noise r (m) and α (deg). ``scores``: the long table of
     :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
-    from traffictwin.fusion.figures import _plt, _style
+    from traffictwin.fusion.figures import _plt, _style, config_label
 
     plt = _plt()
     d = scores[scores["class"] == cls]
@@ -788,9 +788,7 @@ def score_figure(
             )
         ax.set_ylim(*zoomed_limits(dm["value"].to_numpy()))
         ax.set_xticks(range(len(cfgs)))
-        ax.set_xticklabels(
-            [f"{c}\nr {configurations[c][0]:g} m\nα {configurations[c][1]:g}°" for c in cfgs]
-        )
+        ax.set_xticklabels([config_label(c, configurations) for c in cfgs])
         ax.set_xlabel("configuration (pose noise r, α)")
         ax.set_ylabel(f"{metric} ({cls} cells)")
         ax.grid(alpha=0.3)
