@@ -585,3 +585,15 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
         rows = {r[0]: dict(zip(table["columns"], r)) for r in table["data"]}
         assert rows["naive"]["dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
         assert f"cross_{c}/kld_fo_mean" in logged
+
+
+def test_every_method_has_its_own_style() -> None:
+    """Each registered fusion method (and network variant row) is drawn in a colour + marker no
+    other method uses, so no two lines of a figure look alike."""
+    from traffictwin.fusion.figures import METHOD_STYLE
+    from traffictwin.fusion.methods import METHODS
+
+    assert set(METHODS) <= set(METHOD_STYLE), sorted(set(METHODS) - set(METHOD_STYLE))
+    looks = [(st["color"].lower(), st["marker"]) for st in METHOD_STYLE.values()]
+    assert len(set(looks)) == len(looks)
+    assert len({c for c, _ in looks}) == len(looks)  # colours alone tell them apart too

@@ -42,6 +42,8 @@ METHOD_STYLE: dict[str, dict] = {
     "dnn[paper]": {"color": "#17becf", "marker": "<"},
     "dnn[paper_kl]": {"color": "#bcbd22", "marker": ">"},
     "dnn[mass]": {"color": "#e377c2", "marker": "*"},
+    "learned": {"color": "#393b79", "marker": "h"},
+    "learned+network": {"color": "#637939", "marker": "X"},
 }
 
 
