@@ -369,6 +369,16 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
     )
     (legend,) = fig.legends
     assert [t.get_text() for t in legend.get_texts()] == [label for label, _ in LEGEND]
+    # vehicle markers: one colour each, none of them a colour of the mass map
+    from matplotlib.colors import to_rgb
+
+    from traffictwin.twin.figures import VEHICLE_COLOURS
+
+    truth = [ln for ln in fig.axes[0].get_lines() if ln.get_label().endswith("(true)")]
+    colours = [to_rgb(ln.get_color()) for ln in truth]
+    assert colours == [to_rgb(c) for c in VEHICLE_COLOURS[:3]]
+    for c in colours:
+        assert all(np.abs(np.subtract(c, ref)).max() > 0.2 for _, ref in LEGEND), c
 
 
 # ------------------------------------------------------------------------------------ CLI

@@ -25,6 +25,9 @@ from traffictwin.twin.fuse import build_twin
 __all__ = ["pick_timeline_sequence", "timeline_table", "timeline_figure", "twin_map_figure"]
 
 THW_CAP = 5.0  # s: THW above this (or inf) is drawn at the cap
+# vehicle markers on the twin map: blue, orange, purple, cyan, pink, brown (none of the mass
+# colour map's green, red or grey, so a marker stays visible on free, occupied and unknown cells)
+VEHICLE_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#17becf", "#e377c2", "#8c564b")
 
 
 def pick_timeline_sequence(
@@ -134,9 +137,10 @@ def twin_map_figure(
         show_masses(ax, m, grid.cell, title=title)
 
     show(axes[0], step.masses, f"twin ({method}), config {configuration}")
-    colors = plt.get_cmap("tab10")
+    # vehicle markers in colours the mass map does not use (no green, red or grey)
+    colors = VEHICLE_COLOURS
     for k in range(n):
-        c = colors(k)
+        c = colors[k % len(colors)]
         tx, ty = true_rel[k, 0], true_rel[k, 1]
         axes[0].plot(ty, tx, "o", color=c, ms=6, mfc="none", label=f"{k}: {roles[k]} (true)")
         if k:
