@@ -1,4 +1,6 @@
-"""Stage entry-point helpers: bad input ends with one clear line and exit 2."""
+"""Stage entry-point helpers: the traceback switch and bugs that must keep their traceback, and
+``map_shards``. That every bad-input failure type ends in one line and exit 2 is
+``tests/reliability/test_stage_errors.py``."""
 
 from __future__ import annotations
 
@@ -7,25 +9,6 @@ import pytest
 from pipelines._common import run_stage
 from traffictwin.config import ConfigError
 from traffictwin.io.shards import DatasetError
-
-
-@pytest.mark.parametrize(
-    "exc",
-    [
-        ConfigError("params.yaml: 'x' must be >= 1, got -3"),
-        DatasetError("data/x: manifest missing"),
-    ],
-)
-def test_bad_input_is_one_line_and_exit_2(exc: Exception, capsys, monkeypatch) -> None:
-    monkeypatch.delenv("TRAFFICTWIN_TRACEBACK", raising=False)
-
-    def main() -> None:
-        raise exc
-
-    with pytest.raises(SystemExit) as info:
-        run_stage(main, "unit_stage")
-    assert info.value.code == 2
-    assert capsys.readouterr().err == f"unit_stage: error: {type(exc).__name__}: {exc}\n"
 
 
 def test_traceback_on_request_and_other_errors_propagate(monkeypatch) -> None:
