@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -31,7 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.cli_load import ROOT, machine_info
+
 HEAVY = ("numpy", "cv2", "torch", "lightning", "mlflow")
 
 
@@ -81,14 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--keep", help="clone into this folder (must not exist) and keep it")
     a = ap.parse_args(argv)
-    res: dict = {
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_avg_1m": round(os.getloadavg()[0], 2),
-            "platform": platform.platform(),
-        },
-        "target_s": 90.0,
-    }
+    res: dict = {"machine": machine_info(), "target_s": 90.0}
     tmp = None if a.keep else tempfile.mkdtemp(prefix="tt-ci-dag-")
     repo = Path(a.keep) if a.keep else Path(tmp) / "repo"
     try:

@@ -37,6 +37,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def machine_info() -> dict:
+    """The machine a CLI/pipeline benchmark ran on: CPUs, 1-min load average, platform, Python."""
+    return {
+        "cpus": os.cpu_count(),
+        "load_avg_1m": round(os.getloadavg()[0], 2),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+    }
+
+
 def load_params(path: Path) -> dict:
     import yaml
 
@@ -176,14 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
     a = ap.parse_args(argv)
     cfg = load_params(Path(a.params))
-    res: dict = {
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_avg_1m": round(os.getloadavg()[0], 2),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        }
-    }
+    res: dict = {"machine": machine_info()}
     with tempfile.TemporaryDirectory(prefix="tt-cli-load-") as tmp:
         t = Path(tmp)
         grid = build_fusion_model(t / "fusion", cfg)

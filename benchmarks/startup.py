@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import socket
 import subprocess
 import sys
@@ -28,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.cli_load import ROOT, build_fusion_model, cli_env, load_params, run_measured
+from benchmarks.cli_load import (
+    ROOT,
+    build_fusion_model,
+    cli_env,
+    load_params,
+    machine_info,
+    run_measured,
+)
 
 HEAVY = ("torch", "lightning", "mlflow", "torchmetrics", "pandas")
 
@@ -67,13 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
     a = ap.parse_args(argv)
-    res: dict = {
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_avg_1m": round(os.getloadavg()[0], 2),
-            "platform": platform.platform(),
-        }
-    }
+    res: dict = {"machine": machine_info()}
     with tempfile.TemporaryDirectory(prefix="tt-startup-") as tmp:
         t = Path(tmp)
         probe = subprocess.run(
