@@ -45,6 +45,7 @@ from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_ato
 from traffictwin.trainer import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
+from ._inference import pin_torch_threads
 from ._paths import (
     FUSION_DATA,
     REPORTS,
@@ -182,6 +183,7 @@ def main() -> None:
     ci = ev.fusion_ci_config(cfg)
     configs = list(noise)
     with stage_timer(STAGE) as record:
+        record["torch_threads"] = pin_torch_threads(cfg)
         networks, runs = load_networks(cfg, configs, grid, fc.device)
         data, pair_ids = ev.load_test_sets(
             {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid

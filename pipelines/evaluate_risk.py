@@ -36,6 +36,7 @@ from traffictwin.risk.model_io import load_risk_model
 from traffictwin.risk.training import LABELS, RiskSource
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
+from ._inference import pin_torch_threads
 from ._paths import (
     DISPARITY,
     ORB_CSV,
@@ -118,7 +119,8 @@ def main() -> None:
     orb_filter = get(p, "risk_model.orb_filter", bool)
     geo = ev.geometric.params(subject.subject_length, subject.subject_width)
 
-    with stage_timer("evaluate_risk"):
+    with stage_timer("evaluate_risk") as record:
+        record["torch_threads"] = pin_torch_threads(p)
         source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
         models = {v: load_risk_model(risk_model_dir(v)) for v in variants}
         metrics, pred = evaluate_suite(

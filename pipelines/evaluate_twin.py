@@ -33,6 +33,7 @@ from typing import Any  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from pipelines._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
+from pipelines._inference import pin_torch_threads  # noqa: E402
 from pipelines._paths import (  # noqa: E402
     REPORTS,
     TWIN_DATA,
@@ -127,6 +128,7 @@ def main() -> None:
         cfg
     ).registration_params  # the classical registration of evaluate_fusion
     with stage_timer(STAGE) as record:
+        record["torch_threads"] = pin_torch_threads(cfg)
         ds = Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS)
         seqs = [ds.load_shard(i) for i in ds.shard_indices()]
         frames, summary = [], {}

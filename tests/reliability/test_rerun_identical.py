@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -58,6 +59,18 @@ def _out_files(repo: Path) -> list[Path]:
     return [f for f in files if f.exists()]
 
 
+def _moved(before: bytes, after: bytes) -> list[tuple[str, str]]:
+    """(stage, path) of every dvc.lock dependency or output entry of ``before`` not in ``after``."""
+    a, b = yaml.safe_load(before)["stages"], yaml.safe_load(after)["stages"]
+    return [
+        (stage, e["path"])
+        for stage in a
+        for kind in ("deps", "outs")
+        for e in a[stage].get(kind, [])
+        if e not in b.get(stage, {}).get(kind, [])
+    ]
+
+
 @pytest.mark.slow
 def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path) -> None:
     repo = tmp_path / "repo"
@@ -67,16 +80,8 @@ def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path)
     assert records, "the stages wrote no run records"
     run(["dvc", "repro", "-f"], repo, timeout=1800)
     after = (repo / "dvc.lock").read_bytes()
-    if after != before:  # name the entries that moved
-        a, b = yaml.safe_load(before)["stages"], yaml.safe_load(after)["stages"]
-        moved = [
-            (stage, e["path"])
-            for stage in a
-            for kind in ("deps", "outs")
-            for e in a[stage].get(kind, [])
-            if e not in b.get(stage, {}).get(kind, [])
-        ]
-        pytest.fail(f"dvc.lock changed on an identical rerun: {moved}")
+    if after != before:
+        pytest.fail(f"dvc.lock changed on an identical rerun: {_moved(before, after)}")
     # the run records did change (new run ids, new times): they are where the noise went
     rec = json.loads((repo / "reports/timings/train_fusion-A.json").read_text())
     old = json.loads((ci_dag / "reports/timings/train_fusion-A.json").read_text())
@@ -103,3 +108,35 @@ def test_no_dvc_output_holds_a_volatile_field(ci_dag: Path) -> None:
         else:
             continue
         assert not found, f"{f.relative_to(ci_dag)}: {sorted(found)}"
+
+
+EVALUATION_STAGES = ("evaluate_fusion", "evaluate_twin", "evaluate_risk")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    len(os.sched_getaffinity(0)) < 2, reason="one CPU: no other CPU count to compare with"
+)
+def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: Path) -> None:
+    """The evaluation stages run their networks on ``evaluation.num_threads`` torch threads, so on
+    one CPU they write what the ci_dag run wrote on all of them (torch's default thread count
+    follows the CPU affinity, and the learned registration's and the networks' numbers moved in
+    their last digits with it)."""
+    repo = tmp_path / "repo"
+    shutil.copytree(ci_dag, repo, symlinks=True)
+    before = (repo / "dvc.lock").read_bytes()
+    one_cpu = {min(os.sched_getaffinity(0))}
+    run(
+        ["dvc", "repro", "-f", "-s", *EVALUATION_STAGES],
+        repo,
+        timeout=1800,
+        preexec_fn=lambda: os.sched_setaffinity(0, one_cpu),
+    )
+    after = (repo / "dvc.lock").read_bytes()
+    assert after == before, f"moved on one CPU: {_moved(before, after)}"
+    for stage in EVALUATION_STAGES:
+        rec = json.loads((repo / "reports" / "timings" / f"{stage}.json").read_text())
+        assert (
+            rec["torch_threads"]
+            == yaml.safe_load((repo / "params.yaml").read_text())["evaluation"]["num_threads"]
+        )
