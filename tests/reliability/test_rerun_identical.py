@@ -71,6 +71,25 @@ def _moved(before: bytes, after: bytes) -> list[tuple[str, str]]:
     ]
 
 
+def _first_differences(old_repo: Path, new_repo: Path, moved: list[tuple[str, str]]) -> str:
+    """The first differing line of each moved text output (old vs new run), so a failure shows
+    which rows and numbers moved, not only which files."""
+    lines = []
+    for _, rel in moved:
+        a, b = old_repo / rel, new_repo / rel
+        if not (a.is_file() and b.is_file()) or a.suffix not in (".csv", ".json", ".md"):
+            continue
+        old, new = a.read_text().splitlines(), b.read_text().splitlines()
+        i = next((i for i, (x, y) in enumerate(zip(old, new)) if x != y), min(len(old), len(new)))
+        head = old[0][:300] if a.suffix == ".csv" and old else ""
+        lines.append(
+            f"{rel} line {i + 1} (header: {head}):\n"
+            f"  before: {old[i][:300] if i < len(old) else '<end>'}\n"
+            f"  after:  {new[i][:300] if i < len(new) else '<end>'}"
+        )
+    return "\n".join(lines)
+
+
 @pytest.mark.slow
 def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path) -> None:
     repo = tmp_path / "repo"
@@ -81,7 +100,11 @@ def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path)
     run(["dvc", "repro", "-f"], repo, timeout=1800)
     after = (repo / "dvc.lock").read_bytes()
     if after != before:
-        pytest.fail(f"dvc.lock changed on an identical rerun: {_moved(before, after)}")
+        moved = _moved(before, after)
+        pytest.fail(
+            f"dvc.lock changed on an identical rerun: {moved}\n"
+            + _first_differences(ci_dag, repo, moved)
+        )
     # the run records did change (new run ids, new times): they are where the noise went
     rec = json.loads((repo / "reports/timings/train_fusion-A.json").read_text())
     old = json.loads((ci_dag / "reports/timings/train_fusion-A.json").read_text())
@@ -133,7 +156,9 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
         preexec_fn=lambda: os.sched_setaffinity(0, one_cpu),
     )
     after = (repo / "dvc.lock").read_bytes()
-    assert after == before, f"moved on one CPU: {_moved(before, after)}"
+    if after != before:
+        moved = _moved(before, after)
+        pytest.fail(f"moved on one CPU: {moved}\n" + _first_differences(ci_dag, repo, moved))
     for stage in EVALUATION_STAGES:
         rec = json.loads((repo / "reports" / "timings" / f"{stage}.json").read_text())
         assert (
