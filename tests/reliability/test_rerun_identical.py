@@ -12,6 +12,7 @@ import csv
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -148,13 +149,11 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     repo = tmp_path / "repo"
     shutil.copytree(ci_dag, repo, symlinks=True)
     before = (repo / "dvc.lock").read_bytes()
-    one_cpu = {min(os.sched_getaffinity(0))}
-    run(
-        ["dvc", "repro", "-f", "-s", *EVALUATION_STAGES],
-        repo,
-        timeout=1800,
-        preexec_fn=lambda: os.sched_setaffinity(0, one_cpu),
-    )
+    one_cpu = min(os.sched_getaffinity(0))
+    argv = ["dvc", "repro", "-f", "-s", *EVALUATION_STAGES]
+    # pin to one CPU in the child itself (no preexec_fn: unsafe in a process with threads), then exec dvc
+    pin = f"import os; os.sched_setaffinity(0, {{{one_cpu}}}); os.execvp('dvc', {argv!r})"
+    run([sys.executable, "-c", pin], repo, timeout=1800)
     after = (repo / "dvc.lock").read_bytes()
     if after != before:
         moved = _moved(before, after)
