@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import torch
 import yaml
-from conftest import run
+from conftest import run, run_record
 
 # keys that held timings, run ids or absolute paths in DVC outputs before (issue 18, defect 13)
 VOLATILE_KEYS = {
@@ -158,9 +158,6 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     if after != before:
         moved = _moved(before, after)
         pytest.fail(f"moved on one CPU: {moved}\n" + _first_differences(ci_dag, repo, moved))
+    pinned = yaml.safe_load((repo / "params.yaml").read_text())["evaluation"]["num_threads"]
     for stage in EVALUATION_STAGES:
-        rec = json.loads((repo / "reports" / "timings" / f"{stage}.json").read_text())
-        assert (
-            rec["torch_threads"]
-            == yaml.safe_load((repo / "params.yaml").read_text())["evaluation"]["num_threads"]
-        )
+        assert run_record(repo, stage)["torch_threads"] == pinned
