@@ -9,7 +9,7 @@ STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
 
-.PHONY: install run test test-fast lint format params promote bench readme push pull clean-venv
+.PHONY: install run test test-fast lint format params promote ablations bench readme push pull clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,11 @@ format: install
 # promotion gate: challenger vs champion per registered model (after `make run`)
 promote: install
 	$(PY) -m pipelines.promote
+
+# the comparisons the default run leaves out (conf/config.yaml `ablations`): DVC experiments in a
+# temp copy, results collected into reports/ablations/ (the report shows them); after `make run`
+ablations: install
+	$(PY) -m pipelines.ablations run
 
 bench: install
 	$(PY) -m benchmarks.run

@@ -16,30 +16,27 @@ machine's load; the JSON records the CPU, threads and the 1-min load average bef
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the train_fusion stage
+import torch
+import yaml
+from lightning.pytorch.callbacks import Callback
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import time  # noqa: E402
-from dataclasses import asdict  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import torch  # noqa: E402
-import yaml  # noqa: E402
-from lightning.pytorch.callbacks import Callback  # noqa: E402
-
-from benchmarks.fusion_model import _cpu_name  # noqa: E402
-from traffictwin.config import typed  # noqa: E402
-from traffictwin.fusion.training import (  # noqa: E402
+from benchmarks.fusion_model import _cpu_name
+from traffictwin.config import typed
+from traffictwin.fusion.training import (
     DataSettings,
     FusionDataModule,
     FusionLitModule,
     FusionModelConfig,
 )
-from traffictwin.trainer import TrainerSettings, build_trainer  # noqa: E402
+from traffictwin.trainer import TrainerSettings, build_trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 

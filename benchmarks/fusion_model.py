@@ -21,29 +21,26 @@ Figures depend on the machine's load; the JSON reports the CPU, thread count and
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Any
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the train_fusion stage (see there)
+import torch
+import yaml
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import torch  # noqa: E402
-import yaml  # noqa: E402
-
-from traffictwin.config import typed  # noqa: E402
-from traffictwin.fusion.deeplab import (  # noqa: E402
+from traffictwin.config import typed
+from traffictwin.fusion.deeplab import (
     DeepLabV3Plus,
     channels_last_supported,
     count_parameters,
 )
-from traffictwin.fusion.losses import evidential_loss  # noqa: E402
-from traffictwin.fusion.training import FusionModelConfig, augment  # noqa: E402
+from traffictwin.fusion.losses import evidential_loss
+from traffictwin.fusion.training import FusionModelConfig, augment
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,25 +17,22 @@ JSON records the CPU, torch threads and the load average, since figures depend o
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import statistics
+import time
+from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the stages
+import numpy as np
+import torch
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from benchmarks.fusion_model import _cpu_name  # noqa: E402
-from traffictwin.fusion.learned_registration import rotation_centres  # noqa: E402
-from traffictwin.fusion.methods import METHODS, FusionInput  # noqa: E402
-from traffictwin.fusion.registration_training import load_registration_model  # noqa: E402
-from traffictwin.grid import GridSpec  # noqa: E402
-from traffictwin.io.shards import Dataset  # noqa: E402
+from benchmarks.fusion_model import _cpu_name
+from traffictwin.fusion.learned_registration import rotation_centres
+from traffictwin.fusion.methods import METHODS, FusionInput
+from traffictwin.fusion.registration_training import load_registration_model
+from traffictwin.grid import GridSpec
+from traffictwin.io.shards import Dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 

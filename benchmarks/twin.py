@@ -13,19 +13,16 @@ and the load average, since figures depend on the load.
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import statistics
+from dataclasses import replace
+from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the stages
+import torch
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-from dataclasses import replace  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import torch  # noqa: E402
-
-from benchmarks.fusion_model import _cpu_name  # noqa: E402
+from benchmarks.fusion_model import _cpu_name
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("naive", "registered", "learned", "learned+network")

@@ -11,6 +11,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
@@ -35,23 +36,66 @@ def setup_logging() -> logging.Logger:
     return logging.getLogger("traffictwin")
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; ``platform`` elsewhere)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as fh:
+            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
+        if names:
+            return names[0]
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def load_average() -> list[float] | None:
+    """The machine's 1, 5 and 15 minute load averages (runnable processes), or None."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
 @contextmanager
 def stage_timer(stage: str) -> Iterator[dict[str, Any]]:
     """Time ``stage``; yields its run record, a dict the stage fills with what differs between
     identical runs (MLflow run id and model URI, training seconds, ms per pair, ...).
 
     On success the record is written to ``reports/timings/<stage>.json`` (:func:`run_record_file`)
-    with ``stage`` and ``seconds`` (wall time, s). Run records are committed to git but are never
+    with ``stage``, ``seconds`` (wall time, s), ``started`` / ``finished`` (UTC) and the machine
+    it ran on, so a wall time can be judged: ``machine.cpu`` (model), ``machine.cpu_count``, ``machine.load_start`` /
+    ``machine.load_end`` (1, 5, 15 minute load averages at start and end: a load above the core
+    count means the stage shared the machine). Run records are committed to git but are never
     DVC outputs or dependencies, so an identical rerun leaves ``dvc.lock`` unchanged; nothing a
     DVC stage writes as an output may hold such values. A failed stage writes no record.
     """
     record: dict[str, Any] = {}
+    machine = {"cpu": cpu_model(), "cpu_count": os.cpu_count(), "load_start": load_average()}
+    started = _utc_now()
     t0 = time.perf_counter()
     yield record
+    machine["load_end"] = load_average()
     write_json_atomic(
         run_record_file(stage),
-        {**record, "stage": stage, "seconds": round(time.perf_counter() - t0, 2)},
+        {
+            **record,
+            "stage": stage,
+            "seconds": round(time.perf_counter() - t0, 2),
+            "started": started,
+            "finished": _utc_now(),
+            "machine": machine,
+        },
     )
+
+
+def _utc_now() -> str:
+    """The time now, UTC, ISO 8601 to the second (the run record's ``started`` / ``finished``:
+    the wall time of a whole ``dvc repro`` is the span of its stages' records)."""
+    from datetime import datetime
+
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def training_record(res: Any, checkpoint: str | Path) -> dict[str, Any]:
@@ -69,6 +113,8 @@ def training_record(res: Any, checkpoint: str | Path) -> dict[str, Any]:
     }
     if getattr(res, "samples_per_s", None) is not None:
         out["train_samples_per_s"] = res.samples_per_s
+    if getattr(res, "precision", None) is not None:
+        out["precision"] = res.precision  # the trainer's resolved precision (bf16-mixed / 32-true)
     with open(checkpoint, "rb") as fh:
         out["model_sha256"] = hashlib.file_digest(fh, "sha256").hexdigest()
     return out

@@ -1,4 +1,4 @@
-"""``--cfg NAME`` of the per-configuration fusion stages (prealign@<cfg>, train_fusion@<cfg>)."""
+"""``--cfg NAME`` of the per-configuration fusion stages (prealign@<cfg>, register@<set>)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,13 @@ from traffictwin.fusion.config import pose_configurations
 from ._common import params
 
 
-def configuration(argv: list[str] | None, description: str) -> tuple[str, PoseNoise, DictConfig]:
-    """``--cfg NAME`` of a per-configuration stage: the name, its checked pose noise, the params."""
+def configuration(
+    argv: list[str] | None, description: str, extra: tuple[str, ...] = ()
+) -> tuple[str, PoseNoise | None, DictConfig]:
+    """``--cfg NAME`` of a per-configuration stage: the name, its checked pose noise, the params.
+
+    ``extra``: further accepted names (e.g. ``mixed``, the one model's training set), returned
+    with noise ``None``."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument(
         "--cfg",
@@ -24,8 +29,11 @@ def configuration(argv: list[str] | None, description: str) -> tuple[str, PoseNo
     name = ap.parse_args(argv).cfg
     p = params()
     configs = pose_configurations(p)
+    if name in extra:
+        return name, None, p
     if name not in configs:
+        also = f" or one of {list(extra)}" if extra else ""
         raise ConfigError(
-            f"params.yaml: configuration '{name}' not in 'configurations' (has {sorted(configs)})"
+            f"params.yaml: configuration '{name}' not in 'configurations' (has {sorted(configs)}){also}"
         )
     return name, configs[name], p

@@ -43,7 +43,8 @@ RISK_MODELS = MODELS / "risk"
 
 
 def prealigned(cfg: str) -> Path:
-    """``data/prealigned/<cfg>``: map 2 warped by the noisy pose of configuration ``cfg``."""
+    """``data/prealigned/<cfg>``: map 2 warped by the noisy pose of configuration ``cfg`` (or of
+    the training-noise mixture, ``mixed``)."""
     return PREALIGNED / cfg
 
 
@@ -57,15 +58,15 @@ def fusion_data_dir(inputs: str, cfg: str) -> Path:
     return {"prealigned": prealigned, "registered": registered}[inputs](cfg)
 
 
-def fusion_model_dir(cfg: str) -> Path:
-    """``models/fusion/<name>``: the fusion network of configuration (or fusion variant) ``name``
+def fusion_model_dir(name: str = "network") -> Path:
+    """``models/fusion/<name>``: the one fusion network (``network``) or fusion variant ``name``
     (model.ckpt, model_meta.json)."""
-    return FUSION_MODELS / cfg
+    return FUSION_MODELS / name
 
 
-def registration_model_dir(cfg: str) -> Path:
-    """``models/registration/<cfg>``: the learned registration of configuration ``cfg``."""
-    return REGISTRATION_MODELS / cfg
+def registration_model_dir() -> Path:
+    """``models/registration/learned``: the one learned registration (every noise level)."""
+    return REGISTRATION_MODELS / "learned"
 
 
 def risk_model_dir(variant: str) -> Path:

@@ -15,7 +15,7 @@ from importlib import metadata
 
 from traffictwin.io.atomic import write_json_atomic
 
-from ._common import ROOT, run_stage, stage_timer
+from ._common import ROOT, cpu_model, run_stage, stage_timer
 
 PACKAGES = (
     "torch",
@@ -43,13 +43,7 @@ def collect() -> dict:
             versions[p] = metadata.version(p)
         except metadata.PackageNotFoundError:
             versions[p] = None
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
-        cpu = names[0] if names else cpu
-    except OSError:
-        pass
+    cpu = cpu_model()
     mem_gb = None
     try:
         mem_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)

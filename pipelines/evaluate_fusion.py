@@ -2,11 +2,12 @@
 
 Reads ``data/prealigned/<cfg>`` (test split: inputs, labels and the noise drawn, the same draws
 for every method), ``data/fusion`` (raw maps for the registration methods and Fig. 4),
-``models/fusion/<cfg>/model.ckpt`` for every configuration of ``configurations`` (row ``dnn``)
-and ``models/fusion/<variant>/model.ckpt`` for every entry of ``fusion_variants`` (its row
-:func:`~traffictwin.fusion.config.variant_row`: ``dnn[<loss>]``, ``registered+network``, … at
-its configuration; ``fusion_model.loss.name`` names the default loss, read only when there are
-variants). Writes:
+``models/fusion/network/model.ckpt`` (row ``dnn``: the one network, at every configuration),
+``models/fusion/<variant>/model.ckpt`` for every entry of ``fusion_variants`` (its row
+:func:`~traffictwin.fusion.config.variant_row`: ``registered+network``, ``dnn[<loss>]`` at every
+configuration, ``dnn[per-config]`` at its own; ``fusion_model.loss.name`` names the default loss,
+read only when there are variants) and ``models/registration/learned`` (rows ``learned``,
+``learned+network``). Writes:
 
 - ``reports/metrics/fusion.json`` — aggregated metrics (DVC metrics), layout in
   :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>`` (+ ``<metric>_ci``),
@@ -27,13 +28,7 @@ Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion
 
 from __future__ import annotations
 
-import os
-
-# Before torch loads libgomp: idle OpenMP threads sleep instead of spinning, so the per-pair times
-# in fusion.json stay meaningful on a machine shared with other jobs (see pipelines/train_fusion.py).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import logging  # noqa: E402
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -61,7 +56,7 @@ STAGE = "evaluate_fusion"
 METRICS = metrics_file("fusion")
 SAMPLES = REPORTS / "fusion_eval_samples.csv"
 FINDINGS = REPORTS / "fusion_findings.md"
-METHODS_TABLE = "evaluation/test_methods.json"  # MLflow table artifact of a network's run
+METHODS_TABLE = "evaluation/test_methods_{cfg}.json"  # MLflow table artifact of a network's run
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
 
@@ -73,8 +68,9 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
 
 def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]]) -> None:
     """Log each network's numbers to its own MLflow run (``run_id`` in the run record of the stage
-    that trained it) and every method's at its configuration as the table :data:`METHODS_TABLE`;
-    ``runs``: ``(model folder, configuration, evaluation row, training stage)`` per network."""
+    that trained it) as ``test/<cfg>/<metric>`` for every configuration it was evaluated at, and
+    every method's numbers there as the table :data:`METHODS_TABLE`; ``runs``: ``(model folder,
+    configuration, evaluation row, training stage)`` per network and configuration."""
     from mlflow.entities import Metric, RunTag
     from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
@@ -95,7 +91,10 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
                 c,
             )
             continue
-        flat = mlflow_metrics(metrics, c, row)
+        flat = {
+            k.replace("test/", f"test/{c}/", 1): v
+            for k, v in mlflow_metrics(metrics, c, row).items()
+        }
         try:
             # log_batch on the training run: same run as mlflow.start_run(run_id=…) but leaves its status alone
             client.log_batch(
@@ -104,7 +103,7 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
                 tags=[RunTag("evaluated_by", STAGE)],
             )
             # the baselines and the other rows: one table artifact, not metrics of this run
-            client.log_table(run_id, methods_table(metrics, c), METHODS_TABLE)
+            client.log_table(run_id, methods_table(metrics, c), METHODS_TABLE.format(cfg=c))
             log.info(
                 "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, name
             )
@@ -120,52 +119,60 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
 
 def load_networks(
     cfg: Any, configs: list[str], grid: Any, device: str
-) -> tuple[dict[str, dict[str, Any]], list[tuple[Path, str, str]]]:
-    """``{row: {configuration: network}}`` (row ``dnn``: models/fusion/<cfg> of every configuration;
-    one row per ``fusion_variants`` entry; row ``learned``: models/registration/<cfg> of
-    every configuration (when params.yaml has a ``registration_model`` group); row ``learned+network``: (learned, registered+network)
-    where both exist) and the ``(model folder, configuration, row, training stage)`` list."""
+) -> tuple[dict[str, dict[str, Any]], list[tuple[Path, str, str, str]]]:
+    """``{row: {configuration: network}}`` and the ``(model folder, configuration, row, training
+    stage)`` list of every network's MLflow run.
+
+    Row ``dnn``: the one network (models/fusion/network) at every configuration, and the same
+    network on classically registered pairs as row ``registered+network`` (one fusion network for
+    every input); one row per ``fusion_variants`` entry (:func:`~traffictwin.fusion.config.variant_row`):
+    a variant trained on the mixed noise at every configuration, a per-configuration variant at
+    its configuration only (row ``dnn[per-config]``); row ``learned``: the one learned
+    registration (models/registration/learned, when params.yaml has a ``registration_model``
+    group) at every configuration; row ``learned+network``: (learned, the one network)."""
     from traffictwin.config import ConfigError, get
-    from traffictwin.fusion.config import fusion_variants, variant_row
+    from traffictwin.fusion.config import MIXED, fusion_variants, variant_row
     from traffictwin.fusion.model_io import load_fusion_model
 
-    networks: dict[str, dict[str, Any]] = {"dnn": {}}
-    runs = []
-    for c in configs:
-        networks["dnn"][c] = load_fusion_model(
-            fusion_model_dir(c) / "model.ckpt", expected_cfg=c, expected_grid=grid, device=device
-        )
-        runs.append((fusion_model_dir(c), c, "dnn", f"train_fusion@{c}"))
+    one = load_fusion_model(
+        fusion_model_dir() / "model.ckpt", expected_cfg=MIXED, expected_grid=grid, device=device
+    )
+    from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
+
+    networks: dict[str, dict[str, Any]] = {
+        "dnn": dict.fromkeys(configs, one),
+        HYBRID: dict.fromkeys(configs, one),  # the one network on registered pairs
+    }
+    runs = [
+        (fusion_model_dir(), c, row, "train_fusion") for row in ("dnn", HYBRID) for c in configs
+    ]
     variants = fusion_variants(cfg)
     default_loss = get(cfg, "fusion_model.loss.name", str) if variants else None
     for name, v in variants.items():
-        row = variant_row(v.method, v.loss, default_loss)
-        if v.config in networks.setdefault(row, {}):
-            raise ConfigError(
-                f"params.yaml: 'fusion_variants.{name}' is row {row!r} at configuration {v.config}, "
-                f"which another network already fills (per-configuration dnn or another variant)"
-            )
-        networks[row][v.config] = load_fusion_model(
+        row = variant_row(v.method, v.loss, default_loss, per_config=v.config != MIXED)
+        net = load_fusion_model(
             fusion_model_dir(name) / "model.ckpt",
-            expected_cfg=v.config,  # a variant's checkpoint records its configuration as cfg
+            expected_cfg=v.config,  # a variant's checkpoint records its training set as cfg
             expected_grid=grid,
             device=device,
         )
-        runs.append((fusion_model_dir(name), v.config, row, f"train_fusion_variant@{name}"))
-    from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
+        for c in configs if v.config == MIXED else [v.config]:
+            if c in networks.setdefault(row, {}):
+                raise ConfigError(
+                    f"params.yaml: 'fusion_variants.{name}' is row {row!r} at configuration {c}, "
+                    f"which another variant already fills"
+                )
+            networks[row][c] = net
+            runs.append((fusion_model_dir(name), c, row, f"train_fusion_variant@{name}"))
     from traffictwin.fusion.registration_training import load_registration_model
 
-    for c in configs if "registration_model" in cfg else []:
-        folder = registration_model_dir(c)
-        networks.setdefault(LEARNED, {})[c] = load_registration_model(
-            folder / "model.ckpt", expected_grid=grid, expected_cfg=c
-        )
-        runs.append((folder, c, LEARNED, f"train_registration@{c}"))
-        if c in networks.get(HYBRID, {}):
-            networks.setdefault(LEARNED_NETWORK, {})[c] = (
-                networks[LEARNED][c],
-                networks[HYBRID][c],
-            )
+    if "registration_model" in cfg:
+        folder = registration_model_dir()
+        reg = load_registration_model(folder / "model.ckpt", expected_grid=grid, expected_cfg=MIXED)
+        for c in configs:
+            networks.setdefault(LEARNED, {})[c] = reg
+            runs.append((folder, c, LEARNED, "train_registration"))
+            networks.setdefault(LEARNED_NETWORK, {})[c] = (reg, one)
     return networks, runs
 
 

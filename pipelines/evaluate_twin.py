@@ -1,9 +1,9 @@
 """Stage evaluate_twin: the twin of every configuration and method, and the ego's risk from it.
 
-Reads ``data/twin`` (generate_twin), ``models/registration/<cfg>`` (methods with the learned
-registration), ``models/fusion/<cfg>`` (``dnn``) and the registered-pairs networks of
-``fusion_variants`` (``registered+network``, ``learned+network``); a method whose model a
-configuration lacks is skipped there and listed. For every configuration (keys of
+Reads ``data/twin`` (generate_twin), ``models/registration/learned`` (methods with the learned
+registration), ``models/fusion/network`` (``dnn``) and the registered-pairs network of
+``fusion_variants`` (``registered+network``, ``learned+network``): one model per task, the same
+at every configuration; a method whose model is missing is skipped and listed. For every configuration (keys of
 ``configurations``) the same sequences and pose-noise draws are used for every method. Writes:
 
 - ``reports/metrics/twin.json`` — per configuration and method (``ego`` = the ego's own map) and
@@ -21,20 +21,15 @@ Library: :mod:`traffictwin.twin` (settings: ``twin`` of params.yaml).
 
 from __future__ import annotations
 
-import os
+import logging
+from pathlib import Path
+from typing import Any
 
-# idle OpenMP threads sleep instead of spinning: the per-step times stay meaningful on a shared machine
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import pandas as pd
 
-import logging  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import pandas as pd  # noqa: E402
-
-from pipelines._common import params, run_stage, setup_logging, stage_timer  # noqa: E402
-from pipelines._inference import pin_torch_threads  # noqa: E402
-from pipelines._paths import (  # noqa: E402
+from pipelines._common import params, run_stage, setup_logging, stage_timer
+from pipelines._inference import pin_torch_threads
+from pipelines._paths import (
     REPORTS,
     TWIN_DATA,
     figure_file,
@@ -43,9 +38,14 @@ from pipelines._paths import (  # noqa: E402
     plot_file,
     registration_model_dir,
 )
-from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations  # noqa: E402
-from traffictwin.io.atomic import atomic_path, write_json_atomic  # noqa: E402
-from traffictwin.twin.data import INF_ARRAYS  # noqa: E402
+from traffictwin.fusion.config import (
+    NETWORK_MODEL,
+    fusion_eval_config,
+    grid_config,
+    pose_configurations,
+)
+from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.twin.data import INF_ARRAYS
 
 STAGE = "evaluate_twin"
 METRICS = metrics_file("twin")
@@ -61,25 +61,25 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
 
 
 def method_models(
-    cfg: Any, c: str, methods: list[str], grid: Any
+    cfg: Any, c: str, methods: list[str], grid: Any, cache: dict[str, Any] | None = None
 ) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
-    """``{method: models}`` available at configuration ``c`` and ``{skipped method: reason}``."""
-    from traffictwin.fusion.config import fusion_variants
+    """``{method: models}`` available at configuration ``c`` and ``{skipped method: reason}``.
+
+    One model per task serves every configuration and every pose source: the learned
+    registration (models/registration/learned) and the one fusion network (models/fusion/network)
+    as the combination of every ``*network`` method. ``cache``: models already loaded (filled
+    here), so every configuration shares them."""
+    from traffictwin.fusion.config import MIXED
     from traffictwin.fusion.model_io import load_fusion_model
     from traffictwin.fusion.registration_training import load_registration_model
     from traffictwin.twin.fuse import TWIN_METHODS
 
-    hybrid = [
-        n for n, v in fusion_variants(cfg).items() if v.config == c and v.inputs == "registered"
-    ]
-    cache: dict[str, Any] = {}
+    cache = {} if cache is None else cache
 
-    def registration() -> Any:
-        if "registration" not in cache:
-            cache["registration"] = load_registration_model(
-                registration_model_dir(c) / "model.ckpt", expected_grid=grid, expected_cfg=c
-            )
-        return cache["registration"]
+    def load(key: str, loader: Any) -> Any:
+        if key not in cache:
+            cache[key] = loader()
+        return cache[key]
 
     out: dict[str, dict[str, Any]] = {}
     skipped: dict[str, str] = {}
@@ -87,19 +87,20 @@ def method_models(
         tm = TWIN_METHODS[m]
         models: dict[str, Any] = {}
         if tm.pose == "learned":
-            models["registration"] = registration()
-        if tm.combine == "network":
-            if tm.pose == "noisy":
-                folder = fusion_model_dir(c)
-            elif hybrid:
-                folder = fusion_model_dir(hybrid[0])
-            else:
-                skipped[m] = (
-                    f"no registered-pairs fusion network for configuration {c} (fusion_variants)"
-                )
-                continue
-            models["fusion"] = load_fusion_model(
-                folder / "model.ckpt", expected_cfg=c, expected_grid=grid
+            models["registration"] = load(
+                "registration",
+                lambda: load_registration_model(
+                    registration_model_dir() / "model.ckpt", expected_grid=grid, expected_cfg=MIXED
+                ),
+            )
+        if tm.combine == "network":  # the one fusion network, whatever the pose source
+            models["fusion"] = load(
+                "fusion",
+                lambda: load_fusion_model(
+                    fusion_model_dir(NETWORK_MODEL) / "model.ckpt",
+                    expected_cfg=MIXED,
+                    expected_grid=grid,
+                ),
             )
         out[m] = models
     return out, skipped
@@ -124,17 +125,18 @@ def main() -> None:
     noise = pose_configurations(cfg)
     tc = twin_config(cfg)
     s = tc.settings()
-    reg_params = fusion_eval_config(
-        cfg
-    ).registration_params  # the classical registration of evaluate_fusion
+    fec = fusion_eval_config(cfg)
+    reg_params = fec.registration_params  # the classical registration of evaluate_fusion
     with stage_timer(STAGE) as record:
         record["torch_threads"] = pin_torch_threads(cfg)
         ds = Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS)
         seqs = [ds.load_shard(i) for i in ds.shard_indices()]
         frames, summary = [], {}
-        models_by_cfg = {}
-        for c, pn in noise.items():
-            models, skipped = method_models(cfg, c, tc.methods, grid)
+        models_by_cfg: dict[str, Any] = {}
+        loaded: dict[str, Any] = {}
+        evaluated = {c: pn for c, pn in noise.items() if tc.configurations is None or c in tc.configurations}
+        for c, pn in evaluated.items():
+            models, skipped = method_models(cfg, c, tc.methods, grid, loaded)
             models_by_cfg[c] = models
             methods = [m for m in tc.methods if m in models]
             log.info(
@@ -147,7 +149,16 @@ def main() -> None:
             )
             f = pd.concat(
                 [
-                    ev.evaluate_sequence(a, grid, (pn.r, pn.alpha), methods, models, s, reg_params)
+                    ev.evaluate_sequence(
+                        a,
+                        grid,
+                        (pn.r, pn.alpha),
+                        methods,
+                        models,
+                        s,
+                        reg_params,
+                        fec.registration_workers,
+                    )
                     for a in seqs
                 ],
                 ignore_index=True,
@@ -171,7 +182,9 @@ def main() -> None:
             "targets": ev.targets(summary, tc.headline, tc.target_configuration),
         }
         _csv(table, FRAMES)
-        c_fig = tc.target_configuration if tc.target_configuration in noise else list(noise)[-1]
+        c_fig = (
+            tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
+        )
         seq = pick_timeline_sequence(table, c_fig, tc.headline, tc.fps, tc.figure.sequence)
         _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
         save_figure(

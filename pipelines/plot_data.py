@@ -1,7 +1,9 @@
 """Stage `plot_data`: long-format CSVs under reports/charts/ for the top-level DVC plots of dvc.yaml.
 
-Reads what earlier stages already wrote (no model, no data set): the training curves
-(reports/plots/train_fusion_*.csv, train_registration_*.csv, risk_training_*.csv), the wide fusion
+Reads what earlier stages of this run wrote (no model, no data set; only the files params.yaml
+names, never whatever else lies in the folder): the training curves
+(reports/plots/train_fusion_<network or variant>.csv, train_registration.csv,
+risk_training_<variant>.csv of ``risk_model.run_variants``), the wide fusion
 score table (reports/plots/fusion_scores.csv), the risk predictions on the test frames
 (reports/plots/risk_predictions.csv) and, from reports/metrics/risk.json, the label and the first
 THW threshold of the critical-frame curves. Writes
@@ -22,15 +24,24 @@ from traffictwin.report.plot_data import fusion_scores_long, learning_curves
 from traffictwin.risk.charts import risk_curves
 from traffictwin.risk.metric import risk_threshold
 
-from ._common import run_stage, setup_logging, stage_timer
-from ._paths import METRICS, PLOTS, REPORTS
+from ._common import params, run_stage, setup_logging, stage_timer
+from ._paths import METRICS, PLOTS, REPORTS, fusion_model_dir
 
 CHARTS = REPORTS / "charts"
-CURVES = {  # chart file -> (glob under reports/plots, prefix of the model name in the file name)
-    "fusion_learning_curves.csv": ("train_fusion_*.csv", "train_fusion_"),
-    "registration_learning_curves.csv": ("train_registration_*.csv", "train_registration_"),
-    "risk_learning_curves.csv": ("risk_training_*.csv", "risk_training_"),
-}
+
+
+def curve_files(cfg) -> dict[str, dict[str, Path]]:
+    """Chart file -> {model name: its training-curve CSV} of the models this run trains."""
+    from traffictwin.config import get
+
+    variants = cfg.get("fusion_variants") or {}
+    fusion = [fusion_model_dir().name, *(str(k) for k in variants)]
+    risk = get(cfg, "risk_model.run_variants", list)
+    return {
+        "fusion_learning_curves.csv": {n: PLOTS / f"train_fusion_{n}.csv" for n in fusion},
+        "registration_learning_curves.csv": {"learned": PLOTS / "train_registration.csv"},
+        "risk_learning_curves.csv": {v: PLOTS / f"risk_training_{v}.csv" for v in risk},
+    }
 
 
 def _read_csv(path: Path) -> pd.DataFrame:
@@ -47,13 +58,9 @@ def main() -> None:
     log = setup_logging()
     with stage_timer("plot_data"):
         CHARTS.mkdir(parents=True, exist_ok=True)
-        for out, (pattern, prefix) in CURVES.items():
-            files = sorted(PLOTS.glob(pattern))
-            if not files:
-                raise RuntimeError(
-                    f"plot_data: no {PLOTS / pattern} (run the training stages first)"
-                )
-            curves = {p.stem[len(prefix) :]: pd.read_csv(p) for p in files}
+        charts = curve_files(params())
+        for out, files in charts.items():
+            curves = {name: _read_csv(path) for name, path in files.items()}
             _write(learning_curves(curves, x="epoch"), out)
         _write(fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv")), "fusion_scores.csv")
         risk_file = METRICS / "risk.json"
@@ -70,7 +77,7 @@ def main() -> None:
         )
         _write(roc, "risk_roc.csv")
         _write(pr, "risk_pr.csv")
-    log.info("plot_data: %d charts -> %s", len(CURVES) + 3, CHARTS)
+    log.info("plot_data: %d charts -> %s", len(charts) + 3, CHARTS)
 
 
 if __name__ == "__main__":

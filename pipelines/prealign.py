@@ -1,10 +1,14 @@
 """Stage prealign@<cfg>: noisy pose of map 2 -> map 2 warped into map 1's frame -> data/prealigned/<cfg>.
 
-Pose noise per configuration ``configurations.<cfg>`` (r m, alpha deg; sigma = r / 2.326 per
-axis). The standard-normal draw of pair ``pair_id`` / draw ``d`` depends only on
+``--cfg A`` (a key of ``configurations``): pose noise of that configuration (r m, alpha deg;
+sigma = r / 2.326 per axis), the splits ``fusion_data.prealign.splits`` (val and test in the
+default run: the train split feeds only the ablation's per-configuration networks); train shards
+get ``fusion_data.prealign.train_draws`` draws per pair. ``--cfg mixed``: the one model's training set (``training_noise``), train and
+val splits only: each draw takes its noise level from the mixture
+(:func:`traffictwin.evidential.noise.noise_scales`), ``training_noise.draws`` draws per training
+pair. The standard-normal draw of pair ``pair_id`` / draw ``d`` depends only on
 ``(seed, fusion_data.prealign.seed, pair_id, d)``, so val/test noise is fixed once per pair and
-shared (scaled) by all configurations; train shards get ``fusion_data.prealign.train_draws``
-draws per pair. Shards map 1:1 to data/fusion's shards (same index and split).
+shared (scaled) by all configurations. Shards map 1:1 to data/fusion's shards (same index and split).
 Library: :func:`traffictwin.fusion.pairs.prealign_shard` (one pair: :func:`~traffictwin.fusion.pairs.prealign`).
 """
 
@@ -24,7 +28,13 @@ from pipelines._common import (
 from pipelines._configuration import configuration
 from pipelines._paths import FUSION_DATA, prealigned
 from traffictwin.config import get
-from traffictwin.fusion.config import fusion_data_config, grid_config
+from traffictwin.fusion.config import (
+    MIXED,
+    fusion_data_config,
+    grid_config,
+    pose_configurations,
+    training_noise,
+)
 from traffictwin.fusion.pairs import prealign_shard
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 
@@ -40,12 +50,13 @@ def _work(index: int) -> tuple[int, str, int]:
         s["draws"][index],
         s["grid"],
         compresslevel=s["level"],
+        mixture=s["mixture"],
     )
     return index, digest, count
 
 
 def main(argv: list[str] | None = None) -> None:
-    name, noise, cfg = configuration(argv, __doc__.splitlines()[0])
+    name, noise, cfg = configuration(argv, __doc__.splitlines()[0], extra=(MIXED,))
     log = setup_logging()
     with stage_timer(f"prealign@{name}"):
         seed = get(cfg, "seed", int, min=0)
@@ -54,24 +65,42 @@ def main(argv: list[str] | None = None) -> None:
         grid = grid_config(cfg)
         src = Dataset(FUSION_DATA, kind="fusion")  # verifies every shard's SHA-256
         out = prealigned(name)
+        if name == MIXED:
+            tn = training_noise(cfg)
+            configs = pose_configurations(cfg)
+            mixture = (tn.sigmas(configs), tn.kind)
+            train_draws, splits = tn.draws, ("train", "val")
+            described = {
+                "training_noise": {
+                    "kind": tn.kind,
+                    "configurations": {
+                        c: {"r": configs[c].r, "alpha": configs[c].alpha} for c in tn.configurations
+                    },
+                }
+            }
+            r = alpha = 0.0
+        else:
+            mixture, train_draws, splits = None, fd.prealign.train_draws, tuple(fd.prealign.splits)
+            described = {"configuration": {"r": noise.r, "alpha": noise.alpha}}
+            r, alpha = noise.r, noise.alpha
         record = {
-            "configuration": {"r": noise.r, "alpha": noise.alpha},
+            **described,
             "noise_seed": noise_seed,
-            "train_draws": fd.prealign.train_draws,
+            "train_draws": train_draws,
             "grid": OmegaConf.to_container(cfg["grid"], resolve=True),
             "source_manifest": src.manifest_hash(),
         }
         writer = DatasetWriter(out, "prealigned", params=record, seed=seed)
-        todo = [i for i in range(len(src.shards)) if not writer.has_shard(i)]
+        wanted = [i for i, sh in enumerate(src.shards) if sh.get("split") in splits]
+        todo = [i for i in wanted if not writer.has_shard(i)]
         state = {
             "names": [sh["name"] for sh in src.shards],
-            "draws": [
-                fd.prealign.train_draws if sh.get("split") == "train" else 1 for sh in src.shards
-            ],
+            "draws": [train_draws if sh.get("split") == "train" else 1 for sh in src.shards],
             "out": out,
             "seed": noise_seed,
-            "r": noise.r,
-            "alpha": noise.alpha,
+            "r": r,
+            "alpha": alpha,
+            "mixture": mixture,
             "grid": grid,
             "level": fd.compresslevel,
         }

@@ -2,16 +2,16 @@
 
 Not a DVC stage (it changes the MLflow registry, which DVC cannot cache); run after `dvc repro`:
 
-    python -m pipelines.promote [--only traffictwin-fusion-A traffictwin-risk] [--dry-run] [--force]
+    python -m pipelines.promote [--only traffictwin-fusion traffictwin-risk] [--dry-run] [--force]
 
-One gate per fusion configuration (the keys of ``configurations``), one per learned registration
-(one per configuration, registered as ``<name_prefix>-learned-<cfg>``) and one for the risk variant
-``registry.risk.variant``; settings from the ``registry`` group (validated once), folders from
-``pipelines/_paths.py``. The work is :func:`traffictwin.mlops.promotion.promote`: every
-candidate (its MLflow run id from the training stage's run record, ``reports/timings/<stage>.json``)
-is registered (once) as a version of ``<name_prefix>-<cfg>`` / ``registry.risk.name``,
-and it and the current ``champion`` are evaluated on the same fixed test set with the evaluation
-stages' metric code; all decisions are taken first, then applied, so an evaluation failure moves
+One gate per task: the one fusion network (``registry.fusion.name``, ``traffictwin-fusion``), the
+one learned registration (``registry.registration.name``, ``traffictwin-registration``) and the
+risk variant ``registry.risk.variant`` (``traffictwin-risk``); settings from the ``registry``
+group (validated once), folders from ``pipelines/_paths.py``. The work is
+:func:`traffictwin.mlops.promotion.promote`: every candidate (its MLflow run id from the training
+stage's run record, ``reports/timings/<stage>.json``) is registered (once) as a version of its
+name, and it and the current ``champion`` are evaluated on the same fixed gate set (validation
+pairs of every configuration; validation frames for risk) with the evaluation stages' metric code; all decisions are taken first, then applied, so an evaluation failure moves
 no alias. The whole run holds the registry lock (``<mlflow.db>.gate.lock``): a second gate waits
 and then decides against the champion this one left. A champion that cannot be evaluated stops
 the run with every champion kept, unless it is known-incompatible (another grid, a pickled model
@@ -43,9 +43,8 @@ from pipelines._paths import (
     run_record_file,
 )
 from traffictwin.config import ConfigError, get, typed
-from traffictwin.fusion.config import pose_configurations
+from traffictwin.fusion.config import pose_configurations, training_noise
 from traffictwin.mlops import promotion
-from traffictwin.mlops import registry as reg
 from traffictwin.mlops.config import RegistryConfig
 from traffictwin.mlops.gate import Decision
 from traffictwin.risk.config import EvalRiskConfig
@@ -64,26 +63,17 @@ def registry_config(cfg: DictConfig) -> RegistryConfig:
 
 
 def configurations(cfg: DictConfig) -> list[str]:
-    """The pose-noise configurations (keys of ``configurations``)."""
+    """The pose-noise configurations (keys of ``configurations``): the fusion gates' data."""
     return list(pose_configurations(cfg))
 
 
-def registration_configurations(cfg: DictConfig) -> list[str]:
-    """Configurations with a learned registration: every one, when params.yaml has a
-    ``registration_model`` group."""
-    return configurations(cfg) if "registration_model" in cfg else []
-
-
 def model_names(cfg: DictConfig, rc: RegistryConfig) -> list[str]:
-    """Registered-model names of every gate: fusion configurations, learned registrations, risk."""
-    return (
-        [reg.fusion_name(c, rc.fusion.name_prefix) for c in configurations(cfg)]
-        + [
-            reg.fusion_name(f"learned-{c}", rc.fusion.name_prefix)
-            for c in registration_configurations(cfg)
-        ]
-        + [rc.risk.name]
-    )
+    """Registered-model names of every gate: the fusion network, the learned registration (when
+    params.yaml has a ``registration_model`` group), risk."""
+    names = [rc.fusion.name]
+    if "registration_model" in cfg:
+        names.append(rc.registration.name)
+    return [*names, rc.risk.name]
 
 
 def _rel(path: Path) -> str:
@@ -110,25 +100,31 @@ def _card_metrics(name: str, path: list[str], keys: tuple[str, ...]) -> tuple[di
     return out, f"{_rel(f)} (test split)"
 
 
-def fusion_card(
-    c: str, row: str, cfg: DictConfig
-) -> Callable[[promotion.Candidate], promotion.ModelCard]:
-    """The model card facts of the fusion network (``row`` ``dnn``) or learned registration
-    (``learned``) of configuration ``c``."""
+def fusion_card(row: str, cfg: DictConfig) -> Callable[[promotion.Candidate], promotion.ModelCard]:
+    """The model card facts of the one fusion network (``row`` ``dnn``) or the learned
+    registration (``learned``): its test numbers at every configuration."""
 
     def card(cand: promotion.Candidate) -> promotion.ModelCard:
-        n = cfg["configurations"][c]
         g = cfg["grid"]
-        metrics, source = _card_metrics("fusion", ["test", c, row], FUSION_CARD_KEYS)
+        metrics: dict = {}
+        source = ""
+        for c in configurations(cfg):
+            m, source = _card_metrics("fusion", ["test", c, row], FUSION_CARD_KEYS)
+            metrics.update({f"{c}/{k}": v for k, v in m.items()})
+        configs = pose_configurations(cfg)
+        noise = ", ".join(
+            f"{c}: r = {configs[c].r} m, alpha = {configs[c].alpha} deg"
+            for c in training_noise(cfg).names(configs)
+        )
         return promotion.ModelCard(
-            data=f"{_rel(prealigned(c))}: simulated cooperative pairs of lidar grids, pose noise "
-            f"r = {n['r']} m, alpha = {n['alpha']} deg (98 % intervals).",
+            data=f"{_rel(prealigned('mixed'))}: simulated cooperative pairs of lidar grids, pose "
+            f"noise drawn across the configurations ({noise}; 98 % intervals).",
             metrics=metrics,
             metrics_source=source,
             limits=(
                 SIM_LIMIT,
                 f"Only for {g['rows']} x {g['cols']} grids of {g['cell']} m cells and pose errors "
-                f"like configuration {c}'s; larger errors are outside its training data.",
+                "within the training noise; larger errors are outside its training data.",
                 "KLD(b) (kld_fou_mean) is the headline; kld_fo_mean is the paper group's "
                 "formula, not a divergence.",
             ),
@@ -159,48 +155,47 @@ def risk_card(variant: str) -> Callable[[promotion.Candidate], promotion.ModelCa
 
 
 def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
-    """One gate job per fusion configuration and one for the risk variant (test sets load lazily)."""
+    """One gate job per task: fusion network, learned registration, risk variant (gate sets load lazily)."""
     from traffictwin.fusion.gate_eval import fusion_evaluator, fusion_test_set
     from traffictwin.risk.gate_eval import risk_evaluator, risk_test_set
 
-    f, r = rc.fusion, rc.risk
-    jobs = []
-    for c in configurations(cfg):
+    f, g, r = rc.fusion, rc.registration, rc.risk
+    roots = [prealigned(c) for c in configurations(cfg)]
 
-        def make_fusion_eval(cand, c=c):
-            x, y, fp = fusion_test_set(prealigned(c), f.split, f.max_pairs)
-            return fusion_evaluator(x, y, f.batch_size), fp
+    def make_fusion_eval(cand):
+        x, y, fp = fusion_test_set(roots, f.split, f.max_pairs)
+        return fusion_evaluator(x, y, f.batch_size, f.split), fp
 
-        jobs.append(
-            promotion.GateJob(
-                name=reg.fusion_name(c, f.name_prefix),
-                gate=f.gate(),
-                model_dir=fusion_model_dir(c),
-                make_evaluator=make_fusion_eval,
-                record_path=run_record_file(f"train_fusion@{c}"),
-                tags={"model_dir": _rel(fusion_model_dir(c))},
-                card=fusion_card(c, "dnn", cfg),
-            )
+    jobs = [
+        promotion.GateJob(
+            name=f.name,
+            gate=f.gate(),
+            model_dir=fusion_model_dir(),
+            make_evaluator=make_fusion_eval,
+            record_path=run_record_file("train_fusion"),
+            tags={"model_dir": _rel(fusion_model_dir())},
+            card=fusion_card("dnn", cfg),
         )
-    # the learned registrations: same gate settings as the fusion networks (metric KLD(b) of the
-    # fused map), scored on the same pairs with their noisy poses
+    ]
+    # the learned registration: scored by the KLD(b) of its Dempster-fused map, on the same kind
+    # of pairs with their noisy poses
     from traffictwin.fusion.gate_eval import registration_evaluator, registration_test_set
 
-    for c in registration_configurations(cfg):
+    if "registration_model" in cfg:
 
-        def make_registration_eval(cand, c=c):
-            x, y, poses, fp = registration_test_set(prealigned(c), f.split, f.max_pairs)
-            return registration_evaluator(x, y, poses, f.batch_size), fp
+        def make_registration_eval(cand):
+            x, y, poses, fp = registration_test_set(roots, g.split, g.max_pairs)
+            return registration_evaluator(x, y, poses, g.batch_size, g.split), fp
 
         jobs.append(
             promotion.GateJob(
-                name=reg.fusion_name(f"learned-{c}", f.name_prefix),
-                gate=f.gate(),
-                model_dir=registration_model_dir(c),
+                name=g.name,
+                gate=g.gate(),
+                model_dir=registration_model_dir(),
                 make_evaluator=make_registration_eval,
-                record_path=run_record_file(f"train_registration@{c}"),
-                tags={"model_dir": _rel(registration_model_dir(c))},
-                card=fusion_card(c, "learned", cfg),
+                record_path=run_record_file("train_registration"),
+                tags={"model_dir": _rel(registration_model_dir())},
+                card=fusion_card("learned", cfg),
             )
         )
     # keys of other groups the risk gate shares with the evaluate_risk stage
@@ -211,7 +206,8 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
     def make_risk_eval(cand):
         label = cand.meta.get("label") or default_label
         data, fp = risk_test_set(RISK_DATA, DISPARITY, ORB_CSV, r.split, r.max_frames)
-        return risk_evaluator(data, label, thresholds, thw_cap, r.batch_size), f"{fp}:{label}"
+        evaluator = risk_evaluator(data, label, thresholds, thw_cap, r.batch_size, r.split)
+        return evaluator, f"{fp}:{label}"
 
     jobs.append(
         promotion.GateJob(

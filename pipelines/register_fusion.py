@@ -1,4 +1,7 @@
-"""Stage register@<cfg>: map 2 registered onto map 1 (Fourier-Mellin + ECC) -> data/registered/<cfg>.
+"""Stage register@<set>: map 2 registered onto map 1 (Fourier-Mellin + ECC) -> data/registered/<set>.
+
+``<set>``: a training set of data/prealigned, ``mixed`` (the one model's noise mixture) or a
+configuration.
 
 Training data of the hybrid ``registered+network`` (``fusion_variants`` with ``inputs:
 registered``): the pairs of ``data/prealigned/<cfg>`` (the same noise draws), map 2 registered from
@@ -20,6 +23,7 @@ from pipelines._configuration import configuration
 from pipelines._paths import FUSION_DATA, prealigned, registered
 from traffictwin.config import ConfigError, get
 from traffictwin.fusion.config import (
+    MIXED,
     fusion_data_config,
     fusion_eval_config,
     grid_config,
@@ -52,7 +56,7 @@ def _work(index: int) -> tuple[int, str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    name, _, cfg = configuration(argv, __doc__.splitlines()[0])
+    name, _, cfg = configuration(argv, __doc__.splitlines()[0], extra=(MIXED,))
     log = setup_logging()
     if name not in registered_configurations(cfg):
         raise ConfigError(

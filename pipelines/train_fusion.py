@@ -1,45 +1,41 @@
-"""Stages `train_fusion@<cfg>` / `train_fusion_variant@<name>`: train one evidential DeepLabV3+ fusion network.
+"""Stages `train_fusion` / `train_fusion_variant@<name>`: train one evidential DeepLabV3+ fusion network.
 
-Usage: ``python -m pipelines.train_fusion --cfg B`` (the default-loss network of configuration B,
-on ``data/prealigned/B``) or ``--variant D-paper`` (``fusion_variants.D-paper``: its configuration,
-its inputs ``data/<inputs>/<config>`` and its loss). Reads params.yaml (``fusion_model``,
-``trainer``, ``grid``, ``seed``, ``configurations``, ``fusion_variants``) and writes, each
-atomically and only after training succeeded: ``models/fusion/<name>/model.ckpt`` (best on
-val/kld_full = KLD(b)), ``models/fusion/<name>/model_meta.json``,
-``reports/metrics/train_fusion_<name>.json``, ``reports/plots/train_fusion_<name>.csv`` and the
-learning curves ``reports/figures/train_fusion_<name>.png``.
+Usage: ``python -m pipelines.train_fusion`` (the one network: default loss, trained on
+``data/prealigned/mixed``, the ``training_noise`` mixture; serves every configuration;
+``models/fusion/network``) or ``--variant paper`` (``fusion_variants.paper``: its training set
+``data/<inputs>/<config>``, ``config`` = ``mixed`` or one configuration, and its loss;
+``models/fusion/paper``). Reads params.yaml (``fusion_model``, ``trainer``, ``grid``, ``seed``,
+``configurations``, ``training_noise``, ``fusion_variants``) and writes, each atomically and only
+after training succeeded: ``models/fusion/<name>/model.ckpt`` (best on val/kld_full = KLD(b)),
+``models/fusion/<name>/model_meta.json``, ``reports/metrics/train_fusion_<name>.json``,
+``reports/plots/train_fusion_<name>.csv`` and the learning curves
+``reports/figures/train_fusion_<name>.png``.
 MLflow: experiment ``fusion``, run ``fusion-<name>``.
 """
 
 from __future__ import annotations
 
-import os
+import argparse
+from contextlib import nullcontext
 
-# Before torch loads libgomp: idle OpenMP threads sleep instead of spinning. On a small machine
-# shared with other jobs, spinning made 2 torch threads ~3x slower than 1 thread; with passive
-# waiting they stay within ~20 % of it (and use both cores when the machine is idle). Override by
-# exporting OMP_WAIT_POLICY.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
-import argparse  # noqa: E402
-from contextlib import nullcontext  # noqa: E402
-
-from traffictwin.config import ConfigError, flatten, get, typed  # noqa: E402
-from traffictwin.fusion.config import (  # noqa: E402
+from traffictwin.config import ConfigError, flatten, get, typed
+from traffictwin.fusion.config import (
+    MIXED,
+    NETWORK_MODEL,
     fusion_variants,
     grid_config,
-    pose_configurations,
+    training_noise,
+    training_noise_description,
 )
-from traffictwin.fusion.training import (  # noqa: E402
+from traffictwin.fusion.training import (
     FusionModelConfig,
     TrackingSettings,
     fit_fusion,
 )
-from traffictwin.trainer import TrainerSettings, global_rank  # noqa: E402
+from traffictwin.trainer import TrainerSettings, global_rank
 
-from ._common import params, run_stage, setup_logging, stage_timer, training_record  # noqa: E402
-from ._paths import (  # noqa: E402
+from ._common import params, run_stage, setup_logging, stage_timer, training_record
+from ._paths import (
     PARAMS,
     figure_file,
     fusion_data_dir,
@@ -51,20 +47,14 @@ from ._paths import (  # noqa: E402
 
 
 def _target(argv: list[str] | None) -> tuple[str, str, str, str | None, object]:
-    """``(name, configuration, inputs, loss or None, params)`` of ``--cfg`` or ``--variant``."""
+    """``(name, training set, inputs, loss or None, params)`` of the one network or ``--variant``."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    g = ap.add_mutually_exclusive_group(required=True)
-    g.add_argument("--cfg", help="pose-noise configuration (a key of `configurations`)")
-    g.add_argument("--variant", help="a key of `fusion_variants` in params.yaml")
+    ap.add_argument("--variant", help="a key of `fusion_variants` in params.yaml")
     a = ap.parse_args(argv)
     p = params()
-    configs = pose_configurations(p)
-    if a.cfg is not None:
-        if a.cfg not in configs:
-            raise ConfigError(
-                f"params.yaml: configuration '{a.cfg}' not in 'configurations' (has {sorted(configs)})"
-            )
-        return a.cfg, a.cfg, "prealigned", None, p
+    if a.variant is None:
+        training_noise(p)  # the mixture must be valid before any work
+        return NETWORK_MODEL, MIXED, "prealigned", None, p
     variants = fusion_variants(p)
     if a.variant not in variants:
         raise ConfigError(
@@ -77,8 +67,7 @@ def _target(argv: list[str] | None) -> tuple[str, str, str, str | None, object]:
 def main(argv: list[str] | None = None) -> None:
     name, cfg_name, inputs, loss, p = _target(argv)
     log = setup_logging()
-    pose_noise = pose_configurations(p)[cfg_name]
-    noise = {"r": pose_noise.r, "alpha": pose_noise.alpha}
+    noise = training_noise_description(p, cfg_name)
     grid = grid_config(p)
     source = PARAMS.name
     model_cfg = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
@@ -86,7 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     hparams = model_cfg.hparams(loss)
     trainer = TrainerSettings.from_cfg(p, source=source)
     trainer.check_available(source)
-    stage = f"train_fusion@{name}" if name == cfg_name else f"train_fusion_variant@{name}"
+    stage = "train_fusion" if name == NETWORK_MODEL else f"train_fusion_variant@{name}"
     logged = flatten(
         {
             "fusion_model": get(p, "fusion_model", dict),
@@ -133,7 +122,8 @@ def main(argv: list[str] | None = None) -> None:
         from traffictwin.fusion.figures import save_figure
         from traffictwin.fusion.training_figures import learning_curves
 
-        title = f"{name}: {inputs} inputs of {cfg_name}, loss {hparams.loss}"
+        noise_name = "the mixed pose noise" if cfg_name == MIXED else f"configuration {cfg_name}"
+        title = f"{name}: {inputs} inputs, {noise_name}, loss {hparams.loss}"
         save_figure(learning_curves(res.history, title), figure_file(f"train_fusion_{name}"))
         if res.run_id:
             from traffictwin.mlops.tracking import log_run_artifact

@@ -1,33 +1,36 @@
-"""Stage `train_registration@<cfg>`: train the learned registration of one pose-noise configuration.
+"""Stage `train_registration`: train the one learned registration, for every pose-noise level.
 
-Usage: ``python -m pipelines.train_registration --cfg D``. Reads params.yaml
-(``registration_model``, ``trainer``, ``grid``, ``seed``, ``configurations``) and
-``data/prealigned/<cfg>`` (train / val splits with the noisy and true relative poses); writes, each
-atomically and only after training succeeded: ``models/registration/<cfg>/model.ckpt`` (best on
-val/loss), ``model_meta.json``, ``reports/metrics/train_registration_<cfg>.json``,
-``reports/plots/train_registration_<cfg>.csv`` and the learning curves
-``reports/figures/train_registration_<cfg>.png``. MLflow: experiment ``fusion``, run
-``registration-<cfg>``. Library: :mod:`traffictwin.fusion.registration_training`.
+Usage: ``python -m pipelines.train_registration``. Reads params.yaml (``registration_model``,
+``trainer``, ``grid``, ``seed``, ``configurations``, ``training_noise``) and
+``data/prealigned/mixed`` (train / val splits with the noisy and true relative poses, the
+``training_noise`` mixture); the augmentation draws from the mixture's largest configuration
+(× ``registration_model.train.augment_scale``). Writes, each atomically and only after training
+succeeded: ``models/registration/learned/model.ckpt`` (best on val/loss), ``model_meta.json``,
+``reports/metrics/train_registration.json``, ``reports/plots/train_registration.csv`` and the
+learning curves ``reports/figures/train_registration.png``. MLflow: experiment ``registration``,
+run ``registration``. Library: :mod:`traffictwin.fusion.registration_training`.
 """
 
 from __future__ import annotations
 
-import os
+import argparse
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see pipelines/train_fusion.py
-
-import argparse  # noqa: E402
-
-from traffictwin.config import ConfigError, flatten, get, typed  # noqa: E402
-from traffictwin.fusion.config import grid_config, pose_configurations  # noqa: E402
-from traffictwin.fusion.registration_training import (  # noqa: E402
+from traffictwin.config import flatten, get, typed
+from traffictwin.fusion.config import (
+    MIXED,
+    grid_config,
+    pose_configurations,
+    training_noise,
+    training_noise_description,
+)
+from traffictwin.fusion.registration_training import (
     RegistrationModelConfig,
     fit_registration,
 )
-from traffictwin.trainer import TrackingSettings, TrainerSettings  # noqa: E402
+from traffictwin.trainer import TrackingSettings, TrainerSettings
 
-from ._common import params, run_stage, setup_logging, stage_timer, training_record  # noqa: E402
-from ._paths import (  # noqa: E402
+from ._common import params, run_stage, setup_logging, stage_timer, training_record
+from ._paths import (
     PARAMS,
     figure_file,
     metrics_file,
@@ -49,27 +52,21 @@ def model_config(p) -> RegistrationModelConfig:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--cfg", required=True, help="pose-noise configuration (a key of `configurations`)"
-    )
-    a = ap.parse_args(argv)
+    ap.parse_args(argv)
     p = params()
     rc = model_config(p)
     configs = pose_configurations(p)
-    if a.cfg not in configs:
-        raise ConfigError(
-            f"params.yaml: configuration '{a.cfg}' not in 'configurations' (has {sorted(configs)})"
-        )
+    tn = training_noise(p)
     log = setup_logging()
-    noise_cfg = configs[a.cfg]
-    noise = {"r": noise_cfg.r, "alpha": noise_cfg.alpha}
+    largest = tn.largest(configs)
+    noise = training_noise_description(p, MIXED)
     grid = grid_config(p)
     trainer = TrainerSettings.from_cfg(p, source=PARAMS.name)
     trainer.check_available(PARAMS.name)
-    stage = f"train_registration@{a.cfg}"
+    stage = "train_registration"
     tracking = TrackingSettings(
-        experiment="fusion",
-        run_name=f"registration-{a.cfg}",
+        experiment="registration",
+        run_name="registration",
         profile=get(p, "profile.name", str),
         stage=stage,
         params=flatten(
@@ -78,23 +75,24 @@ def main(argv: list[str] | None = None) -> None:
                 "trainer": get(p, "trainer", dict),
                 "grid": get(p, "grid", dict),
                 "seed": get(p, "seed", int),
-                "configuration": {"name": a.cfg, **noise},
+                "training_noise": {"name": MIXED, **noise},
             }
         ),
     )
-    out = registration_model_dir(a.cfg)
-    name = f"train_registration_{a.cfg}"
+    out = registration_model_dir()
+    name = "train_registration"
     with stage_timer(stage) as record:
         res = fit_registration(
-            prealigned(a.cfg),
+            prealigned(MIXED),
             spec=rc.net_spec(PARAMS.name),
             train=rc.train,
             min_gain=rc.min_gain,
             trainer_settings=trainer,
             seed=get(p, "seed", int, min=0),
             grid=grid,
-            cfg_name=a.cfg,
+            cfg_name=MIXED,
             noise=noise,
+            augment_noise=(largest.r, largest.alpha),
             ckpt_out=out / "model.ckpt",
             meta_out=out / "model_meta.json",
             metrics_out=metrics_file(name),
@@ -109,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
         from traffictwin.fusion.registration_training import learning_curves
 
         save_figure(
-            learning_curves(res.history, f"learned registration, configuration {a.cfg}"),
+            learning_curves(res.history, "learned registration, mixed pose noise"),
             figure_file(name),
         )
         if res.run_id:

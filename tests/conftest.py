@@ -54,6 +54,33 @@ def _ignore(folder: str, names: list[str]) -> set[str]:
     return skip
 
 
+def committed(rel: str) -> str:
+    """The committed text of ``rel`` (``git show HEAD:<rel>``): what the repository shows, whatever
+    a run in this checkout left in the workspace (the Quick start leaves params.yaml, dvc.lock and
+    reports/ on the ci profile). Outside a git checkout (or for a file not yet committed): the
+    workspace file."""
+    proc = subprocess.run(
+        ["git", "show", f"HEAD:{rel}"], cwd=ROOT, capture_output=True, text=True, check=False
+    )
+    return proc.stdout if proc.returncode == 0 else (ROOT / rel).read_text()
+
+
+def committed_tree(rel: str, dest: Path) -> Path:
+    """The committed folder ``rel`` extracted under ``dest`` (``git archive HEAD``); the workspace
+    folder outside a git checkout. Returns the folder to read."""
+    proc = subprocess.run(
+        ["git", "archive", "--format=tar", "HEAD", rel], cwd=ROOT, capture_output=True, check=False
+    )
+    if proc.returncode != 0:
+        return ROOT / rel
+    import io
+    import tarfile
+
+    with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
+        tar.extractall(dest, filter="data")
+    return dest / rel
+
+
 def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:
     """Environment for running stages in ``repo``: venv on PATH, its own MLflow database."""
     env = dict(os.environ)

@@ -1,6 +1,6 @@
 """Helper of tests/test_ddp.py: ``trainer.validate`` of a trained checkpoint on 1 or N CPU ranks.
 
-    python tests/ddp_validate.py fusion --model models/fusion/A --data data/prealigned/A \
+    python tests/ddp_validate.py fusion --model models/fusion/network --data data/prealigned/mixed \
         --devices 2 --val-samples 3 --batch-size 1 --out val.json
     python tests/ddp_validate.py risk --model models/risk/headline --repo . \
         --devices 2 --val-frames 3 --batch-size 2 --out val.json

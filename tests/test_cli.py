@@ -103,15 +103,13 @@ def test_fuse_with_registry_alias_matches_path(
     mlflow.set_experiment("fusion")
     with mlflow.start_run(run_name="fusion-D") as run:
         log_model(ckpt, ckpt["traffictwin"], net, np.zeros((1, 4, H, W), np.float32))
-    mv = reg.ensure_version(cl, "traffictwin-fusion-D", run.info.run_id)
-    cl.set_registered_model_alias("traffictwin-fusion-D", "champion", mv.version)
+    mv = reg.ensure_version(cl, "traffictwin-fusion", run.info.run_id)
+    cl.set_registered_model_alias("traffictwin-fusion", "champion", mv.version)
     p1 = _save_map(tmp_path / "a.npz", *_masses(4))
     p2 = _save_map(tmp_path / "b.npz", *_masses(5))
     common = ["fuse", str(p1), str(p2), "--pose1", POSE1, "--pose2", POSE2]
-    assert (
-        cli.main([*common, "--model", "champion", "--config", "D", "-o", str(tmp_path / "reg")])
-        == 0
-    )
+    # one network per task: the bare alias is traffictwin-fusion's, no configuration to name
+    assert cli.main([*common, "--model", "champion", "-o", str(tmp_path / "reg")]) == 0
     assert (
         cli.main(
             [*common, "--model", str(fusion_dir), "--cell", str(CELL), "-o", str(tmp_path / "path")]
@@ -123,16 +121,9 @@ def test_fuse_with_registry_alias_matches_path(
     capsys.readouterr()
     # a missing alias names the model and the alias; nothing is written
     before = _files(tmp_path)
-    assert (
-        cli.main([*common, "--model", "challenger", "--config", "D", "-o", str(tmp_path / "x")])
-        == 1
-    )
+    assert cli.main([*common, "--model", "challenger", "-o", str(tmp_path / "x")]) == 1
     err = capsys.readouterr().err
-    assert "traffictwin-fusion-D" in err and "challenger" in err
-    assert (
-        cli.main([*common, "--model", "champion", "--config", "A", "-o", str(tmp_path / "x")]) == 1
-    )
-    assert "traffictwin-fusion-A" in capsys.readouterr().err
+    assert "traffictwin-fusion" in err and "challenger" in err
     assert _files(tmp_path) == before
 
 
@@ -432,18 +423,18 @@ def test_rollback_logs_to_the_recorded_promotion_log(tmp_path, mlflow_uri, monke
     assert cli.main(["rollback", "--model", "traffictwin-fusion-X"]) == 0
     assert "champion v2 -> v1" in capsys.readouterr().out
     assert [r["event"] for r in reg.read_log(log)] == ["promotion", "promotion", "rollback"]
-    # the only registered fusion model is the default of --config; status lists it
-    assert cli.fusion_model_name(cl, None) == "traffictwin-fusion-X"
-    assert cli.fusion_model_name(cl, "B") == "traffictwin-fusion-B"
+    # status lists it
     assert cli.main(["status", "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert row["champion"]["version"] == "1" and row["history"] == ["1"]
 
 
-def test_fusion_config_required_without_a_single_registered_model(tmp_path, mlflow_uri):
-    cl = reg.client(mlflow_uri)
-    with pytest.raises(cli.CliError, match="--config: .*no fusion model is registered"):
-        cli.fusion_model_name(cl, None)
+def test_bare_alias_without_a_registered_fusion_model_names_it(tmp_path, mlflow_uri, capsys):
+    p1 = _save_map(tmp_path / "a.npz", *_masses(4))
+    args = ["fuse", str(p1), str(p1), "--pose1", POSE1, "--pose2", POSE2, "--model", "champion"]
+    assert cli.main([*args, "-o", str(tmp_path / "o")]) == 1
+    assert "traffictwin-fusion" in capsys.readouterr().err
+    assert not list(tmp_path.glob("o*"))
 
 
 def test_stereo_settings_from_model_domain_then_params_file(tmp_path):

@@ -12,10 +12,14 @@ from traffictwin.config import ConfigError, compose_config, flatten, get, load_p
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_params_yaml_equals_composition_of_conf() -> None:
-    committed = yaml.safe_load((ROOT / "params.yaml").read_text())
-    composed = compose_config(ROOT / "conf")
-    assert committed == composed, "params.yaml is stale: run `make params` after editing conf/"
+def test_params_yaml_equals_composition_of_conf(tmp_path: Path) -> None:
+    """The committed params.yaml is the composition of the committed conf/ (read from git: a run
+    in this checkout, e.g. the Quick start's `dvc exp run -S profile=ci`, rewrites the workspace's)."""
+    from conftest import committed, committed_tree
+
+    params = yaml.safe_load(committed("params.yaml"))
+    composed = compose_config(committed_tree("conf", tmp_path))
+    assert params == composed, "params.yaml is stale: run `make params` after editing conf/"
 
 
 @pytest.mark.parametrize("profile", ["ci", "default", "paper"])

@@ -25,11 +25,14 @@ def test_extra_configuration_appears_in_every_per_configuration_stage(repo_copy:
     params = yaml.safe_load((repo_copy / "params.yaml").read_text())
     assert list(params["configurations"]) == ["A", "B", "C", "D", "E"]
     stages = run([str(BIN / "dvc"), "stage", "list", "--name-only"], repo_copy).stdout.split()
-    for stage in ("prealign", "train_fusion"):
-        assert {f"{stage}@{c}" for c in "ABCDE"} <= set(stages), stages
-    # evaluate_fusion reads every configuration's prealigned data and model through the folders
+    assert {f"prealign@{c}" for c in "ABCDE"} <= set(stages), stages
+    # one model per task: the one network trains on every configuration's noise (E included)
+    assert "train_fusion" in stages and "train_fusion@E" not in stages
+    tn = params["training_noise"]
+    assert tn["configurations"] is None  # null = every configuration
+    # evaluate_fusion reads every configuration's prealigned data through the folders
     dag = run([str(BIN / "dvc"), "dag", "--outs", "--md"], repo_copy).stdout
-    assert "data/prealigned/E" in dag and "models/fusion/E/model.ckpt" in dag
+    assert "data/prealigned/E" in dag and "models/fusion/network/model.ckpt" in dag
     # nothing in code, conf or dvc.yaml spells the configuration list
     for rel in ("dvc.yaml", "conf"):
         for f in [repo_copy / rel] if rel.endswith(".yaml") else (repo_copy / rel).rglob("*.yaml"):
@@ -38,18 +41,16 @@ def test_extra_configuration_appears_in_every_per_configuration_stage(repo_copy:
 
 
 def test_cli_and_report_take_any_configuration(tmp_path: Path) -> None:
-    """The CLI resolves ``--config E`` to its registered model; the report shows E's row, with
-    r/alpha from the params, when fusion.json has it."""
+    """The report shows E's row, with r/alpha from the params, when fusion.json has it (the CLI
+    needs no configuration: one network serves every pose-noise level)."""
     import json
 
     from pipelines.report import providers
-    from traffictwin.cli import fusion_model_name
     from traffictwin.config import typed
     from traffictwin.fusion.report_section import fusion_tables
     from traffictwin.report.config import ReportParams
     from traffictwin.report.model import ReportInputs, Sources
 
-    assert fusion_model_name(None, "E") == "traffictwin-fusion-E"
     p = typed(
         {
             "seed": 1,

@@ -90,14 +90,14 @@ DDP = [
     "fusion_model.train.train_samples_per_epoch=8",
     "fusion_model.train.batch_size=2",
 ]
-STAGES = ("train_fusion@A", "train_risk@headline")
+STAGES = ("train_fusion", "train_risk@headline")
 PUBLISHED = {
-    "models/fusion/A/model.ckpt",
-    "models/fusion/A/model_meta.json",
-    "reports/metrics/train_fusion_A.json",
-    "reports/plots/train_fusion_A.csv",
-    "reports/figures/train_fusion_A.png",
-    "reports/timings/train_fusion-A.json",
+    "models/fusion/network/model.ckpt",
+    "models/fusion/network/model_meta.json",
+    "reports/metrics/train_fusion_network.json",
+    "reports/plots/train_fusion_network.csv",
+    "reports/figures/train_fusion_network.png",
+    "reports/timings/train_fusion.json",
     "models/risk/headline/model.ckpt",
     "models/risk/headline/model_meta.json",
     "models/risk/headline/history.csv",
@@ -124,7 +124,7 @@ def ddp_repo(tmp_path_factory: pytest.TempPathFactory) -> dict:
     `dvc repro` with the DDP trainer; returns the copy, the files the training added and its log."""
     repo = copy_repo(tmp_path_factory.mktemp("ddp") / "repo")
     run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
-    run(["dvc", "repro", "prealign@A", "orb_filter"], repo, timeout=900)
+    run(["dvc", "repro", "prealign_mixed", "orb_filter"], repo, timeout=900)
     run([sys.executable, "-m", "pipelines.compose_params", *DDP], repo)
     before = _files(repo)
     proc = run(["dvc", "repro", *STAGES], repo, timeout=1200)
@@ -167,7 +167,7 @@ def test_ddp_stages_publish_once_from_rank_zero(ddp_repo: dict) -> None:
     assert new == PUBLISHED, f"stray: {sorted(new - PUBLISHED)}, missing: {sorted(PUBLISHED - new)}"
     log = ddp_repo["log"]
     assert "GLOBAL_RANK: 1, MEMBER: 2/2" in log, "the stages did not run on 2 ranks"
-    assert log.count("train_fusion@A: best epoch") == 1
+    assert log.count("train_fusion: best epoch") == 1
     assert log.count("train_risk@headline: best val MSE") == 1
     out = run(["dvc", "status", *STAGES], repo).stdout
     assert "up to date" in out.lower(), out
@@ -177,7 +177,7 @@ def test_ddp_stages_publish_once_from_rank_zero(ddp_repo: dict) -> None:
 def test_ddp_fusion_epoch_draws_train_samples_per_epoch_in_all(ddp_repo: dict) -> None:
     """8 pairs per epoch shared by 2 ranks in batches of 2: 2 optimiser steps per epoch."""
     repo = ddp_repo["repo"]
-    ck = torch.load(repo / "models/fusion/A/model.ckpt", weights_only=True)
+    ck = torch.load(repo / "models/fusion/network/model.ckpt", weights_only=True)
     assert ck["global_step"] == (ck["epoch"] + 1) * 8 // (2 * 2)
     assert "data_root" not in ck["traffictwin"]  # no absolute path in a DVC output
 
@@ -193,16 +193,16 @@ def test_ddp_stages_log_one_mlflow_run_each(ddp_repo: dict) -> None:
         params = dict(
             db.execute(
                 "SELECT key, value FROM params WHERE run_uuid = ?",
-                (next(r[3] for r in rows if r[1] == "fusion-A"),),
+                (next(r[3] for r in rows if r[1] == "fusion-network"),),
             ).fetchall()
         )
     assert sorted(r[:3] for r in rows) == [
-        ("fusion", "fusion-A", "FINISHED"),
+        ("fusion", "fusion-network", "FINISHED"),
         ("risk", "risk-headline", "FINISHED"),
     ]
     assert params["trainer.strategy"] == "ddp" and params["trainer.devices"] == "2"
     for record in (
-        "reports/timings/train_fusion-A.json",
+        "reports/timings/train_fusion.json",
         "reports/timings/train_risk-headline.json",
     ):
         run_id = json.loads((repo / record).read_text())["run_id"]  # the rank-zero run record
@@ -221,10 +221,10 @@ def _assert_same(single: dict, ddp: dict, n: int) -> None:
 @pytest.mark.slow
 def test_ddp_fusion_validation_equals_one_process(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
-    model = ["--model", "models/fusion/A", "--data", "data/prealigned/A"]
+    model = ["--model", "models/fusion/network", "--data", "data/prealigned/mixed"]
     # the whole validation split (4 pairs) in batches of 2: one batch per rank; then 3 pairs in
     # batches of 1: the ranks get 2 and 1 (Lightning's DistributedSampler would repeat one)
-    n_val = json.loads((repo / "data/prealigned/A/manifest.json").read_text())["split_counts"][
+    n_val = json.loads((repo / "data/prealigned/mixed/manifest.json").read_text())["split_counts"][
         "val"
     ]
     assert n_val == 4  # the ci profile's validation split
@@ -237,7 +237,7 @@ def test_ddp_fusion_validation_equals_one_process(ddp_repo: dict) -> None:
         _assert_same(single[n], _validate(repo, "fusion", 2, *model, *subset), n)
     # what the stage computed on 2 ranks during training for the kept epoch (val_samples 8 >= 4
     # pairs, batches of 2) is one process's validation of the published weights
-    stage = json.loads((repo / "reports/metrics/train_fusion_A.json").read_text())
+    stage = json.loads((repo / "reports/metrics/train_fusion_network.json").read_text())
     assert stage["val_pairs"] == n_val
     for k in ("val/loss", "val/kld", "val/kld_full", "val/dice_free", "val/dice_occ"):
         assert stage[k] == pytest.approx(single[n_val][k], **TOL), k

@@ -61,10 +61,14 @@ def test_push_then_pull_in_a_second_clone(ci_dag: Path, tmp_path: Path) -> None:
     env2 = user_env(second)
     assert not (second / "models").exists() and not (second / "data").exists()
     make(second, "pull", env2)
-    for rel in ("models/fusion/D/model.ckpt", "models/risk/headline", "data/fusion/manifest.json"):
+    for rel in (
+        "models/fusion/network/model.ckpt",
+        "models/risk/headline",
+        "data/fusion/manifest.json",
+    ):
         assert (second / rel).exists(), f"{rel} not pulled"
-    assert (second / "models/fusion/D/model.ckpt").read_bytes() == (
-        first / "models/fusion/D/model.ckpt"
+    assert (second / "models/fusion/network/model.ckpt").read_bytes() == (
+        first / "models/fusion/network/model.ckpt"
     ).read_bytes()
     status = run(["dvc", "status", "--json"], second, env=env2).stdout.strip()
     assert status in ("{}", ""), f"dvc status after pull is not clean: {status[:2000]}"

@@ -212,26 +212,25 @@ def test_json_clean_and_mlflow_numbers():
                     "dnn": {"k": np.float32(0.5), "k_ci": {"lo": 0.4, "hi": np.float64(0.6)}},
                     "naive": {"k": float("nan"), "n": 3},
                     "dnn[paper]": {"k": 0.7},
+                    "dnn[per-config]": {"k": 0.3},
                 }
             },
-            "cross": {"dnn-A": {"A": {"k": 0.25}, "B": {"k": np.inf}}},
+            "cross": {"dnn[per-config]-A": {"A": {"k": 0.25}, "B": {"k": np.inf}}},
             "ids": (np.int64(1), 2.0),
         }
     )
-    assert m["test"]["A"]["naive"]["k"] is None and m["cross"]["dnn-A"]["B"]["k"] is None
+    assert m["test"]["A"]["naive"]["k"] is None
+    assert m["cross"]["dnn[per-config]-A"]["B"]["k"] is None
     assert m["ids"] == [1, 2.0] and isinstance(m["ids"][0], int)
     # a network's run gets its own numbers only; the other rows go to the methods table
-    assert mlflow_metrics(m, "A") == {
-        "test/k": 0.5,
-        "test/k_ci_lo": 0.4,
-        "test/k_ci_hi": 0.6,
-        "cross_A/k": 0.25,
-    }
+    assert mlflow_metrics(m, "A") == {"test/k": 0.5, "test/k_ci_lo": 0.4, "test/k_ci_hi": 0.6}
     # a variant's own run: its row is test/, no cross table
     assert mlflow_metrics(m, "A", "dnn[paper]") == {"test/k": 0.7}
+    # a per-configuration network's run: its row and its cross table (on the other configurations)
+    assert mlflow_metrics(m, "A", "dnn[per-config]") == {"test/k": 0.3, "cross_A/k": 0.25}
     table = methods_table(m, "A")
     assert list(table.columns) == ["method", "k", "k_ci_hi", "k_ci_lo", "n"]
-    assert table["method"].tolist() == ["dnn", "naive", "dnn[paper]"]
+    assert table["method"].tolist() == ["dnn", "naive", "dnn[paper]", "dnn[per-config]"]
     assert table.loc[0, "k_ci_lo"] == 0.4 and table.loc[2, "k"] == 0.7
     assert table.loc[1, "n"] == 3 and pd.isna(table.loc[1, "k"]) and pd.isna(table.loc[2, "n"])
 
@@ -570,21 +569,20 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
 
     m = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
     client = MlflowClient(tracking_uri=f"sqlite:///{ci_dag / 'mlflow.db'}")
+    # the one network's run holds its numbers at every configuration, test/<cfg>/<metric>
+    run_id = run_record(ci_dag, "train_fusion")["run_id"]
+    logged = client.get_run(run_id).data.metrics
     for c in CFGS:
-        run_id = run_record(ci_dag, f"train_fusion@{c}")["run_id"]
-        logged = client.get_run(run_id).data.metrics
-        assert logged["test/kld_fou_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fou_mean"])
-        assert logged["test/kld_fou_mean_ci_lo"] == pytest.approx(
-            m["test"][c]["dnn"]["kld_fou_mean_ci"]["lo"]
-        )
-        assert logged["test/kld_fo_mean"] == pytest.approx(m["test"][c]["dnn"]["kld_fo_mean"])
-        assert not any(k.startswith("test_") for k in logged)  # baselines: the table artifact
+        dnn = m["test"][c]["dnn"]
+        assert logged[f"test/{c}/kld_fou_mean"] == pytest.approx(dnn["kld_fou_mean"])
+        assert logged[f"test/{c}/kld_fou_mean_ci_lo"] == pytest.approx(dnn["kld_fou_mean_ci"]["lo"])
+        assert logged[f"test/{c}/kld_fo_mean"] == pytest.approx(dnn["kld_fo_mean"])
         table = json.loads(
-            Path(client.download_artifacts(run_id, "evaluation/test_methods.json")).read_text()
+            Path(client.download_artifacts(run_id, f"evaluation/test_methods_{c}.json")).read_text()
         )
         rows = {r[0]: dict(zip(table["columns"], r)) for r in table["data"]}
         assert rows["naive"]["dice_occ"] == pytest.approx(m["test"][c]["naive"]["dice_occ"])
-        assert f"cross_{c}/kld_fo_mean" in logged
+    assert not any(k.startswith("test_") for k in logged)  # baselines: the table artifacts
 
 
 def test_every_method_has_its_own_style() -> None:

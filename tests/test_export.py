@@ -57,16 +57,9 @@ def test_risk_export_matches_the_eager_network(tmp_path, use_speed, capsys):
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
 
-def test_export_refuses_an_existing_file_and_a_config_for_risk(tmp_path, capsys):
+def test_export_refuses_an_existing_file(tmp_path, capsys):
     d = save_risk(tmp_path / "m")
     out = tmp_path / "risk.pt"
     out.write_bytes(b"old")
     assert cli.main(["export", "risk", "--model", str(d), "-o", str(out)]) == 1
     assert "--force" in capsys.readouterr().err and out.read_bytes() == b"old"
-    assert (
-        cli.main(
-            ["export", "risk", "--model", str(d), "--config", "D", "-o", str(tmp_path / "x.pt")]
-        )
-        == 1
-    )
-    assert "--config" in capsys.readouterr().err and not (tmp_path / "x.pt").exists()

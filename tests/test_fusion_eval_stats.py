@@ -284,23 +284,33 @@ def _synthetic(configs=("A", "C", "D"), n=6, hw=32):
 @pytest.mark.usefixtures("single_torch_thread")
 def test_evaluate_runs_each_row_where_it_has_a_network():
     data, raw, grid = _synthetic()
+    one = _tiny_net(0)
     networks = {
-        "dnn": {c: _tiny_net(i) for i, c in enumerate(data)},
+        "dnn": dict.fromkeys(data, one),  # the one network at every configuration
         "dnn[paper]": {"D": _tiny_net(7)},
         "registered+network": {"C": _tiny_net(8), "D": _tiny_net(9)},
+        "dnn[per-config]": {c: _tiny_net(i + 1) for i, c in enumerate(data)},
     }
     res = ev.evaluate(data, raw, networks, grid, _eval_config(), CI)
     m = res.metrics
     assert "dnn[paper]" in m["test"]["D"] and "dnn[paper]" not in m["test"]["C"]
     assert "registered+network" in m["test"]["C"] and "registered+network" not in m["test"]["A"]
-    # the cross table is the dnn row's only
-    assert sorted(m["cross"]) == ["dnn-A", "dnn-C", "dnn-D"]
+    # the cross table is the per-configuration networks' only (the one network is everywhere)
+    names = ["dnn[per-config]-A", "dnn[per-config]-C", "dnn[per-config]-D"]
+    assert sorted(m["cross"]) == names
     assert all(sorted(v) == ["A", "C", "D"] for v in m["cross"].values())
     s = res.samples
-    assert set(s.method) >= {"dnn[paper]", "registered+network", "dnn-A"}
+    assert set(s.method) >= {"dnn[paper]", "registered+network", "dnn[per-config]-A"}
+    # the one network is compared with each configuration's own network, pair by pair
+    for c in data:
+        d = m["diff"][c]["dnn"]["vs_dnn[per-config]"]["kld_fou_mean"]
+        assert d["lo"] <= d["estimate"] <= d["hi"] and d["n_pairs"] == 6
+    t = m["targets"]["one_vs_per_config"]
+    assert set(t["per_config"]) == {"A", "C", "D"}
+    assert t["status"] in ("pass", "fail")
     # every row of a configuration on the same pairs (registered_max_pairs null)
     for c in data:
-        main = s[(s.config == c) & ~s.method.str.startswith("dnn-")]
+        main = s[(s.config == c) & ~s.method.str.startswith("dnn[per-config]-")]
         assert main.groupby("method").pair_id.apply(sorted).map(tuple).nunique() == 1
     # intervals around every estimate, differences against naive and registered
     for c, rows in m["test"].items():
@@ -327,10 +337,10 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert "ms_per_pair" not in m["test"]["D"]["dnn[paper]"]
     assert (
         res.timings["ms_per_pair"]["D"]["dnn[paper]"] > 0
-        and "dnn-A" not in res.timings["ms_per_pair"]["D"]
+        and "dnn[per-config]-A" not in res.timings["ms_per_pair"]["D"]
     )
     assert set(res.timings["runtime_ms_per_pair"]) == set(
-        s.method[~s.method.str.startswith("dnn-")]
+        s.method[~s.method.str.startswith("dnn[per-config]-")]
     )
     assert m["targets"]["hybrid_vs_registered"]["per_config"]["D"]["status"] in ("pass", "fail")
     assert m["bootstrap"]["n_boot"] == CI.n_boot
@@ -450,7 +460,7 @@ def test_gate_evaluator_produces_the_configured_fusion_metric(monkeypatch):
 
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     gate = params["registry"]["fusion"]
-    assert (gate["metric"], gate["mode"]) == ("test/kld_fou_mean", "min")
+    assert (gate["metric"], gate["mode"], gate["split"]) == ("val/kld_fou_mean", "min", "val")
     data, _, _ = _synthetic(configs=("A",), n=3)
     net = _tiny_net(0)
     monkeypatch.setattr(registry, "load_registered", lambda uri, loader, **kw: net)
@@ -479,7 +489,8 @@ def test_learning_curve_figures_are_claimed_and_captioned():
 
 # -- stage: networks per row ---------------------------------------------------------------------
 def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
-    """models/fusion/<cfg> fill row dnn; each fusion_variants entry its row at its configuration;
+    """models/fusion/network fills row dnn at every configuration; each fusion_variants entry its
+    row (a mixed-noise variant at every configuration, a per-configuration one at its own);
     fusion_model.loss.name is needed only when there are variants."""
     from omegaconf import OmegaConf
 
@@ -493,59 +504,75 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         loaded.append((Path(path).relative_to(tmp_path).as_posix(), kw.get("expected_cfg")))
         return Path(path).parent.name
 
-    monkeypatch.setattr(stage, "fusion_model_dir", lambda name: tmp_path / name)
+    monkeypatch.setattr(stage, "fusion_model_dir", lambda name="network": tmp_path / name)
     monkeypatch.setattr(model_io, "load_fusion_model", fake_load)
     cfg = OmegaConf.create(
         {
             "configurations": {"A": {"r": 0.0, "alpha": 0.0}, "D": {"r": 3.0, "alpha": 10.0}},
             "fusion_data": {
-                "register": {"configurations": ["D"], "max_train_pairs": 8, "max_val_pairs": None}
+                "register": {
+                    "configurations": ["mixed"],
+                    "max_train_pairs": 8,
+                    "max_val_pairs": None,
+                }
             },
             "fusion_variants": {},
         }
     )
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")  # no fusion_model.loss needed
-    assert nets == {"dnn": {"A": "A", "D": "D"}}
+    assert nets == {"dnn": {"A": "network", "D": "network"}}
     assert runs == [
-        (tmp_path / "A", "A", "dnn", "train_fusion@A"),
-        (tmp_path / "D", "D", "dnn", "train_fusion@D"),
+        (tmp_path / "network", "A", "dnn", "train_fusion"),
+        (tmp_path / "network", "D", "dnn", "train_fusion"),
     ]
-    assert loaded == [("A/model.ckpt", "A"), ("D/model.ckpt", "D")]
+    assert loaded == [("network/model.ckpt", "mixed")]  # loaded once, trained on the mixture
     cfg.fusion_variants = {
-        "D_paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
-        "D_mass_reg": {"config": "D", "inputs": "registered", "loss": None},
+        "paper": {"config": "mixed", "inputs": "prealigned", "loss": "paper"},
+        "registered": {"config": "mixed", "inputs": "registered", "loss": None},
+        "D": {"config": "D", "inputs": "prealigned", "loss": None},
     }
     cfg.fusion_model = {"loss": {"name": "mass"}}
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
     assert nets == {
-        "dnn": {"A": "A", "D": "D"},
-        "dnn[paper]": {"D": "D_paper"},
-        "registered+network": {"D": "D_mass_reg"},
+        "dnn": {"A": "network", "D": "network"},
+        "dnn[paper]": {"A": "paper", "D": "paper"},
+        "registered+network": {"A": "registered", "D": "registered"},
+        "dnn[per-config]": {"D": "D"},
     }
     assert runs[2:] == [
-        (tmp_path / "D_paper", "D", "dnn[paper]", "train_fusion_variant@D_paper"),
-        (tmp_path / "D_mass_reg", "D", "registered+network", "train_fusion_variant@D_mass_reg"),
+        (tmp_path / "paper", "A", "dnn[paper]", "train_fusion_variant@paper"),
+        (tmp_path / "paper", "D", "dnn[paper]", "train_fusion_variant@paper"),
+        (tmp_path / "registered", "A", "registered+network", "train_fusion_variant@registered"),
+        (tmp_path / "registered", "D", "registered+network", "train_fusion_variant@registered"),
+        (tmp_path / "D", "D", "dnn[per-config]", "train_fusion_variant@D"),
     ]
-    # the learned registrations: row learned, and learned+network where a registered-pairs network exists
+    assert loaded[-1] == ("D/model.ckpt", "D")  # a per-configuration network records its own
+    # the learned registration: row learned everywhere, learned+network where a registered-pairs network is
     from traffictwin.fusion import registration_training
 
-    monkeypatch.setattr(stage, "registration_model_dir", lambda name: tmp_path / "reg" / name)
+    monkeypatch.setattr(stage, "registration_model_dir", lambda: tmp_path / "reg" / "learned")
     monkeypatch.setattr(
         registration_training,
         "load_registration_model",
         lambda path, **kw: f"reg-{kw['expected_cfg']}",
     )
-    cfg.registration_model = {"configurations": ["A", "D"]}
+    cfg.registration_model = {"train": {}}
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
-    assert nets["learned"] == {"A": "reg-A", "D": "reg-D"}
-    assert nets["learned+network"] == {"D": ("reg-D", "D_mass_reg")}
+    assert nets["learned"] == {"A": "reg-mixed", "D": "reg-mixed"}
+    assert nets["learned+network"] == {
+        "A": ("reg-mixed", "registered"),
+        "D": ("reg-mixed", "registered"),
+    }
     assert runs[-2:] == [
-        (tmp_path / "reg" / "A", "A", "learned", "train_registration@A"),
-        (tmp_path / "reg" / "D", "D", "learned", "train_registration@D"),
+        (tmp_path / "reg" / "learned", "A", "learned", "train_registration"),
+        (tmp_path / "reg" / "learned", "D", "learned", "train_registration"),
     ]
     del cfg.registration_model
-    cfg.fusion_variants = {"D_mass": {"config": "D", "inputs": "prealigned", "loss": "mass"}}
+    cfg.fusion_variants = {
+        "D": {"config": "D", "inputs": "prealigned", "loss": None},
+        "D2": {"config": "D", "inputs": "prealigned", "loss": "mass"},
+    }
     with pytest.raises(
-        ConfigError, match=r"fusion_variants.D_mass' is row 'dnn' at configuration D"
+        ConfigError, match=r"fusion_variants.D2' is row 'dnn\[per-config\]' at configuration D"
     ):
         stage.load_networks(cfg, ["A", "D"], None, "cpu")

@@ -434,7 +434,7 @@ def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_pat
     )
     with pytest.raises(
         FusionModelError,
-        match=r"trained for configuration 'B' \(r=1.0 m, alpha=10.0 deg\), expected configuration 'C'",
+        match=r"trained on the pose noise of 'B' \({'r': 1.0, 'alpha': 10.0}\), expected 'C'",
     ):
         load_fusion_model(tmp_path / "models/B/model.ckpt", expected_cfg="C")
     with pytest.raises(
@@ -620,24 +620,31 @@ def test_fusion_variants_are_checked_against_configurations_and_registered_data(
     got = fusion_variants(
         with_variants(
             {
-                "D-paper": {"config": "D", "inputs": "prealigned", "loss": "paper"},
+                "paper": {"config": "mixed", "inputs": "prealigned", "loss": "paper"},
                 "D-reg": {"config": "D", "inputs": "registered", "loss": None},
+                "A": {"config": "A", "inputs": "prealigned", "loss": None},
             }
         )
     )
-    assert [(v.method, v.loss) for v in got.values()] == [
-        ("dnn", "paper"),
-        ("registered+network", None),
+    assert [(v.method, v.loss, v.config) for v in got.values()] == [
+        ("dnn", "paper", "mixed"),
+        ("registered+network", None, "D"),
+        ("dnn", None, "A"),
     ]
     assert variant_row("dnn", "paper", "mass") == "dnn[paper]"
-    assert variant_row("registered+network", None, "mass") == "registered+network"
+    # a registered-pairs network of its own (the default hybrid is the one network: row registered+network)
+    assert (
+        variant_row("registered+network", None, "mass") == "registered+network[registered-trained]"
+    )
+    assert variant_row("dnn", None, "mass", per_config=True) == "dnn[per-config]"
+    assert variant_row("dnn", "paper", "mass", per_config=True) == "dnn[per-config,paper]"
     assert fusion_variants(with_variants({})) == {}
     for bad, msg in [
         ({"x": {"config": "Z", "inputs": "prealigned"}}, "'fusion_variants.x.config' = 'Z'"),
         ({"x": {"config": "A", "inputs": "registered"}}, "registered pairs of 'A'"),
         ({"x": {"config": "D", "inputs": "lidar"}}, "fusion_variants.x.inputs"),
         ({"x": {"config": "D", "inputs": "prealigned", "loss": "l1"}}, "fusion_variants.x.loss"),
-        ({"A": {"config": "D", "inputs": "prealigned"}}, "clashes with configuration 'A'"),
+        ({"network": {"config": "D", "inputs": "prealigned"}}, "clashes with the one network"),
     ]:
         with pytest.raises(ConfigError, match=msg):
             fusion_variants(with_variants(bad))

@@ -222,5 +222,13 @@ def test_prealigned_on_ci_dag(ci_dag: Path):
     np.testing.assert_allclose(b["noise"][:, :2] / 1.0, d["noise"][:, :2] / 5.0, rtol=1e-9)
     assert np.abs(d["noise"][:, :2]).max() > 0.1
     assert not np.allclose(d["inputs"][:, 2:], a["inputs"][:, 2:])
+    # the splits of fusion_data.prealign.splits (val, test), shard for shard as data/fusion's
+    want = [s["split"] for s in src.shards if s["split"] in ("val", "test")]
     for c, ds in dsets.items():
-        assert [s["split"] for s in ds.shards] == [s["split"] for s in src.shards], c
+        assert [s["split"] for s in ds.shards] == want, c
+    # the one model's training set: train and val, every draw's noise from one configuration
+    mixed = Dataset(ci_dag / "data" / "prealigned" / "mixed", kind="prealigned")
+    assert {s["split"] for s in mixed.shards} == {"train", "val"}
+    m = mixed.load_all("train", keys=["noise", "noise_sigma"])
+    assert len(m["noise"]) == 2 * sum(s["count"] for s in src.shards if s["split"] == "train")
+    assert len({tuple(r) for r in m["noise_sigma"]}) > 1  # several noise levels

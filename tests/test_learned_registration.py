@@ -402,20 +402,20 @@ def test_bad_training_data_fails_naming_it_and_writes_nothing(tmp_path: Path) ->
 def test_train_registration_stage_and_evaluation_rows(ci_dag: Path) -> None:
     from traffictwin.fusion.registration_training import load_registration_model
 
-    for cfg in ("A", "B", "C", "D"):
-        d = ci_dag / "models" / "registration" / cfg
-        meta = json.loads((d / "model_meta.json").read_text())
-        assert meta["cfg"] == cfg and meta["problem"] == "registration"
-        assert not {"mlflow_run_id", "mlflow_model_uri", "data_root"} & set(meta)
-        assert run_record(ci_dag, f"train_registration@{cfg}")["run_id"]
-        net = load_registration_model(d, expected_cfg=cfg)
-        assert isinstance(net, LearnedRegistration)
-        metrics = json.loads(
-            (ci_dag / "reports" / "metrics" / f"train_registration_{cfg}.json").read_text()
-        )
-        assert 0 <= metrics["val/success_rate"] <= 1 and np.isfinite(metrics["val/trans_err_m"])
-        assert metrics["samples_seen"] > 0 and "train_seconds" not in metrics
-        assert (ci_dag / "reports" / "figures" / f"train_registration_{cfg}.png").exists()
+    # one learned registration for every noise level, trained on the mixture
+    d = ci_dag / "models" / "registration" / "learned"
+    meta = json.loads((d / "model_meta.json").read_text())
+    assert meta["cfg"] == "mixed" and meta["problem"] == "registration"
+    assert sorted(meta["noise"]["configurations"]) == ["A", "B", "C", "D"]
+    assert not {"mlflow_run_id", "mlflow_model_uri", "data_root"} & set(meta)
+    rec = run_record(ci_dag, "train_registration")
+    assert rec["run_id"] and rec["precision"] in ("bf16-mixed", "32-true")
+    net = load_registration_model(d, expected_cfg="mixed")
+    assert isinstance(net, LearnedRegistration)
+    metrics = json.loads((ci_dag / "reports" / "metrics" / "train_registration.json").read_text())
+    assert 0 <= metrics["val/success_rate"] <= 1 and np.isfinite(metrics["val/trans_err_m"])
+    assert metrics["samples_seen"] > 0 and "train_seconds" not in metrics
+    assert (ci_dag / "reports" / "figures" / "train_registration.png").exists()
     fusion = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
     for cfg in ("A", "B", "C", "D"):
         row = fusion["test"][cfg]["learned"]
@@ -427,18 +427,19 @@ def test_train_registration_stage_and_evaluation_rows(ci_dag: Path) -> None:
         } <= set(row)
         assert run_record(ci_dag, "evaluate_fusion")["ms_per_pair"][cfg]["learned"] > 0
         assert "success_rate" in fusion["diff"][cfg]["learned"]["vs_registered"]
-    assert set(fusion["cross"]["learned-D"]) == {"A", "B", "C", "D"}
-    assert "learned+network" in fusion["test"]["D"]  # the registered-pairs network of D as its head
+    # the registered-pairs network (one, mixed noise) as its head at every configuration
+    assert all("learned+network" in fusion["test"][c] for c in ("A", "B", "C", "D"))
     for name in (
         "learned_success_vs_registered",
         "learned_kld_vs_registered",
-        "learned_cross_dice_drop",
+        "learned_success_at_D",
+        "learned_success_gain_at_D",
     ):
         assert fusion["targets"][name]["status"] in ("pass", "fail", "not evaluated")
     runtime = run_record(ci_dag, "evaluate_fusion")["targets"]["learned_runtime_ms"]
     assert runtime["status"] in ("pass", "fail") and "learned_runtime_ms" not in fusion["targets"]
     with pytest.raises(Exception, match="expected 'B'"):
-        load_registration_model(ci_dag / "models" / "registration" / "A", expected_cfg="B")
+        load_registration_model(ci_dag / "models" / "registration" / "learned", expected_cfg="B")
 
 
 def test_registration_gate_evaluator_scores_a_logged_model(
@@ -465,8 +466,9 @@ def test_registration_gate_evaluator_scores_a_logged_model(
     with mlflow.start_run():
         uri = log_model(ckpt, ckpt["traffictwin"], net, inputs[:1], name="model")
     out = registration_evaluator(inputs, m1, np.zeros((2, 3)), batch_size=1)(uri)
-    assert out["test/n"] == 2 and math.isfinite(out["test/kld_fou_mean"])
-    assert out["test/dice_occ"] > 0.99  # nothing to correct: the fallback keeps the aligned map
+    # the gate's numbers are named by its split (validation: the test split is read once)
+    assert out["val/n"] == 2 and math.isfinite(out["val/kld_fou_mean"])
+    assert out["val/dice_occ"] > 0.99  # nothing to correct: the fallback keeps the aligned map
 
 
 def test_fit_registration_logs_a_safe_model_the_gate_can_register(

@@ -5,6 +5,7 @@ import pytest
 
 from traffictwin.evidential.noise import (
     apply_pose_noise,
+    noise_scales,
     noise_sigmas,
     scale_noise,
     standard_normal_draws,
@@ -46,3 +47,35 @@ def test_draws_depend_only_on_seed_pair_and_draw():
 def test_apply_wraps_yaw():
     p = apply_pose_noise(np.array([1.0, 2.0, 3.0]), np.array([0.5, -0.5, 0.5]))
     np.testing.assert_allclose(p, [1.5, 1.5, 3.5 - 2 * np.pi])
+
+
+SIGMAS = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.1], [2.0, 2.0, 0.2], [4.0, 4.0, 0.3]])
+
+
+def test_mixture_takes_each_configuration_uniformly_and_reproducibly():
+    pid = np.arange(40_000)
+    s = noise_scales(3, pid, 0, SIGMAS, "mixture")
+    assert s.shape == (len(pid), 3)
+    # every row is one configuration's sigmas, each about a quarter of the rows
+    hit = (s[:, None, :] == SIGMAS[None]).all(-1)
+    assert (hit.sum(1) == 1).all()
+    np.testing.assert_allclose(hit.mean(0), 0.25, atol=0.01)
+    # row i depends on (seed, pair, draw) only: the same in a subset, another for another draw
+    np.testing.assert_array_equal(noise_scales(3, pid[7:9], 0, SIGMAS), s[7:9])
+    other = noise_scales(3, pid[:2000], 1, SIGMAS)
+    assert (other != s[:2000]).any(axis=1).mean() > 0.5
+    assert (noise_scales(4, pid[:2000], 0, SIGMAS) != s[:2000]).any(axis=1).mean() > 0.5
+
+
+def test_scaled_kind_is_the_largest_noise_times_a_uniform_factor():
+    s = noise_scales(0, np.arange(20_000), 0, SIGMAS[-1:], "scaled")
+    f = s / SIGMAS[-1]
+    np.testing.assert_allclose(f[:, 0], f[:, 2])  # one factor for every axis
+    assert f.min() >= 0 and f.max() <= 1 and f[:, 0].mean() == pytest.approx(0.5, abs=0.01)
+
+
+def test_mixture_rejects_an_unknown_kind_and_no_configuration():
+    with pytest.raises(ValueError, match="kind must be one of"):
+        noise_scales(0, np.arange(3), 0, SIGMAS, "gaussian")
+    with pytest.raises(ValueError, match="at least one"):
+        noise_scales(0, np.arange(3), 0, np.zeros((0, 3)))

@@ -24,30 +24,35 @@ def test_unknown_model_is_an_error_naming_it(capfd):
     assert pm.main(["--only", "traffictwin-fusion-Q", "--dry-run"]) == 1
     err = capfd.readouterr().err
     assert "unknown model(s) ['traffictwin-fusion-Q']" in err and "traffictwin-risk" in err
+    assert "traffictwin-fusion," in err or "traffictwin-fusion'" in err
 
 
 def test_jobs_follow_the_configurations_and_the_risk_variant():
     cfg = load_params(PARAMS)
     rc = pm.registry_config(cfg)
     jobs = pm.build_jobs(cfg, rc)
-    cfgs = list(cfg["configurations"])
-    learned = cfgs  # one learned registration per configuration
-    assert [j.name for j in jobs] == (
-        [f"{rc.fusion.name_prefix}-{c}" for c in cfgs]
-        + [f"{rc.fusion.name_prefix}-learned-{c}" for c in learned]
-        + [rc.risk.name]
-    )
+    # one registered model per task: no configuration in any name
+    assert [j.name for j in jobs] == [rc.fusion.name, rc.registration.name, rc.risk.name]
+    assert [j.name for j in jobs] == [
+        "traffictwin-fusion",
+        "traffictwin-registration",
+        "traffictwin-risk",
+    ]
     assert pm.model_names(cfg, rc) == [j.name for j in jobs]
-    assert jobs[0].model_dir == pm.fusion_model_dir(cfgs[0])
+    assert jobs[0].model_dir == pm.fusion_model_dir()
     # the MLflow run ids come from the training stages' run records (reports/timings, outside DVC)
-    assert jobs[0].record_path == pm.ROOT / "reports" / "timings" / f"train_fusion-{cfgs[0]}.json"
-    assert jobs[len(cfgs)].record_path.name == f"train_registration-{learned[0]}.json"
+    assert jobs[0].record_path == pm.ROOT / "reports" / "timings" / "train_fusion.json"
+    assert jobs[1].record_path.name == "train_registration.json"
     assert jobs[-1].record_path.name == f"train_risk-{rc.risk.variant}.json"
-    assert jobs[0].tags == {"model_dir": f"models/fusion/{cfgs[0]}"}
-    reg_job = jobs[len(cfgs)]
-    assert reg_job.model_dir == pm.registration_model_dir(learned[0])
-    assert reg_job.tags == {"model_dir": f"models/registration/{learned[0]}"}
-    assert reg_job.gate == jobs[0].gate  # the fusion gate: KLD(b) of the fused map
+    assert jobs[0].tags == {"model_dir": "models/fusion/network"}
+    reg_job = jobs[1]
+    assert reg_job.model_dir == pm.registration_model_dir()
+    assert reg_job.tags == {"model_dir": "models/registration/learned"}
+    assert reg_job.gate == Gate(
+        rc.registration.metric, rc.registration.mode, rc.registration.margin
+    )
+    # the gates compare on validation data: the test split is read once, by the evaluation
+    assert {rc.fusion.split, rc.registration.split, rc.risk.split} == {"val"}
     assert jobs[-1].model_dir == pm.risk_model_dir(rc.risk.variant)
     assert jobs[-1].gate == Gate(rc.risk.metric, rc.risk.mode, rc.risk.margin)
     assert [j.name for j in promotion.select(jobs, {rc.risk.name})] == [rc.risk.name]
@@ -213,14 +218,14 @@ def test_jobs_model_cards_read_the_evaluation_metrics_with_intervals():
     cfg = load_params(PARAMS)
     rc = pm.registry_config(cfg)
     jobs = pm.build_jobs(cfg, rc)
-    c = list(cfg["configurations"])[0]
     cand = promotion.Candidate(jobs[0].name, "r", None, jobs[0].model_dir, {"label": "x"})
     card = jobs[0].card(cand)
-    fusion = json.loads(metrics_file("fusion").read_text())["test"][c]["dnn"]
-    assert card.metrics["kld_fou_mean"] == fusion["kld_fou_mean"]
-    assert card.metrics["kld_fou_mean_ci"] == fusion["kld_fou_mean_ci"]
+    for c in cfg["configurations"]:  # the one network's numbers at every configuration
+        fusion = json.loads(metrics_file("fusion").read_text())["test"][c]["dnn"]
+        assert card.metrics[f"{c}/kld_fou_mean"] == fusion["kld_fou_mean"]
+        assert card.metrics[f"{c}/kld_fou_mean_ci"] == fusion["kld_fou_mean_ci"]
     assert card.metrics_source == "reports/metrics/fusion.json (test split)"
-    assert f"data/prealigned/{c}" in card.data and card.limits
+    assert "data/prealigned/mixed" in card.data and card.limits
     risk = jobs[-1].card(cand)
     rm = json.loads(metrics_file("risk").read_text())["models"][rc.risk.variant]
     assert risk.metrics["test/mse_ci"] == rm["test/mse_ci"] and "label x" in risk.data

@@ -16,10 +16,66 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_readme_results_match_the_committed_report() -> None:
-    readme = (ROOT / "README.md").read_text()
-    table = (ROOT / "reports" / "results_table.md").read_text()
+    """The committed README shows the committed report's numbers (read from git: a run in this
+    checkout, e.g. the Quick start's, rewrites the workspace's reports/)."""
+    from conftest import committed
+
+    readme = committed("README.md")
+    table = committed("reports/results_table.md")
     assert results_block(table) in readme, (
         "README.md results are stale: run `make readme` after `make run`"
+    )
+
+
+def test_readme_timings_match_the_committed_run_records() -> None:
+    """The committed README's timing table is the one `make readme` writes from the committed run
+    records (reports/timings/*.json), so the two cannot drift apart."""
+    import subprocess
+
+    from conftest import committed
+
+    from pipelines.readme_results import timings_block
+
+    names = subprocess.run(
+        ["git", "ls-tree", "--name-only", "HEAD", "reports/timings/"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    ).stdout.split()
+    if not names:  # outside a git checkout: the workspace's
+        names = [f"reports/timings/{p.name}" for p in (ROOT / "reports" / "timings").glob("*.json")]
+    records = [json.loads(committed(n)) for n in sorted(names) if n.endswith(".json")]
+    assert timings_block(records) in committed("README.md"), (
+        "README.md timings are stale: run `make readme` after `make run`"
+    )
+
+
+def test_timings_block_adds_up_the_run_records() -> None:
+    from pipelines.readme_results import T_BEGIN, T_END, timings_block
+
+    def rec(stage: str, s: float, start: str, end: str) -> dict:
+        m = {"cpu": "X", "cpu_count": 2, "load_start": [0.5, 0.4, 0.3], "load_end": [1, 1, 1]}
+        return {"stage": stage, "seconds": s, "started": start, "finished": end, "machine": m}
+
+    block = timings_block(
+        [
+            rec("generate_fusion", 60.0, "2026-01-01T10:00:00Z", "2026-01-01T10:01:00Z"),
+            rec("train_fusion", 240.0, "2026-01-01T10:01:05Z", "2026-01-01T10:05:05Z"),
+            rec("prealign@A", 6.0, "2026-01-01T10:05:10Z", "2026-01-01T10:05:16Z"),
+        ]
+    )
+    lines = block.splitlines()
+    assert lines[0] == T_BEGIN and lines[-1] == T_END
+    assert "| **5.3 min** |" in lines[3] and "X, 2 cores" in lines[3] and "0.5–0.5" in lines[3]
+    assert lines[4] == "| — the stages' own time (sum of the run records, 3 stages) | 5.1 min |"
+    assert (
+        "| — fusion data: `generate_fusion`, `prealign@*`, `prealign_mixed`, `register@*` | 1.1 min |"
+        in lines
+    )
+    assert any(
+        ln.startswith("| — fusion and registration training") and ln.endswith("| 4.0 min |")
+        for ln in lines
     )
 
 

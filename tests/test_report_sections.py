@@ -271,7 +271,7 @@ def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
                 ), (path.name, mod)
 
 
-def test_registration_tables_show_pose_errors_bins_and_the_learned_cross_table(
+def test_registration_tables_show_pose_errors_and_bins(
     tmp_path: Path,
 ) -> None:
     from traffictwin.fusion.report_section import registration_tables
@@ -311,16 +311,10 @@ def test_registration_tables_show_pose_errors_bins_and_the_learned_cross_table(
             },
             "translation": {"learned": {"0-1m": {"n": 30, "success_rate": 0.5}}},
         },
-        "cross": {
-            "learned-D": {
-                "A": {"success_rate": 0.99, "dice_occ": 0.995},
-                "D": {"success_rate": 0.94, "dice_occ": 0.97},
-            }
-        },
     }
     rep = _reports(tmp_path, {"fusion.json": metrics})
     src = R.Sources(_inputs(rep))
-    table, tbins, bins, cross = registration_tables(src, {"D": (5.0, 20.0)}, ["D"])
+    table, tbins, bins = registration_tables(src, {"D": (5.0, 20.0)}, ["D"])
     assert [[c.text for c in r] for r in tbins.rows] == [
         ["registered (FM + ECC) + Dempster", "n/a"],
         ["learned registration + Dempster", "0.5 (30)"],
@@ -337,12 +331,113 @@ def test_registration_tables_show_pose_errors_bins_and_the_learned_cross_table(
         ["registered (FM + ECC) + Dempster", "0.9 (40)"],
         ["learned registration + Dempster", "1 (40)"],
     ]
-    assert [[c.text for c in r] for r in cross.rows] == [
-        ["learned-D", "0.990 / 0.995", "0.940 / 0.970"]
-    ]
     assert (
         registration_tables(
             R.Sources(_inputs(_reports(tmp_path / "x", {"fusion.json": {"test": {}}}))), {}, ["D"]
         )
         == []
     )
+
+
+def _one_vs_own(prefix_rows: dict) -> dict:
+    ci = {"lo": 0.01, "hi": 0.03}
+    return {
+        "test": {
+            "D": {
+                "dnn": {"kld_fou_mean": 0.02, "kld_fou_mean_ci": ci},
+                "dnn[per-config]": {"kld_fou_mean": 0.025, "kld_fou_mean_ci": ci},
+            }
+        },
+        "diff": {
+            "D": {
+                "dnn": {
+                    "vs_dnn[per-config]": {
+                        "kld_fou_mean": {"estimate": -0.005, "lo": -0.008, "hi": -0.002}
+                    }
+                }
+            }
+        },
+        **prefix_rows,
+    }
+
+
+def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp_path: Path):
+    """The comparison with the per-configuration networks shows this run's numbers when it has
+    them, else the ablation experiment's collected results (reports/ablations/<name>.json)."""
+    from traffictwin.fusion.report_section import per_config_table
+
+    confs = {"D": (5.0, 20.0)}
+    rep = _reports(tmp_path / "run", {"fusion.json": _one_vs_own({})})
+    t = per_config_table(R.Sources(_inputs(rep)), confs, ["D"])
+    texts = [[c.text for c in r] for r in t.rows]
+    assert texts == [
+        [
+            "D",
+            "5",
+            "20",
+            "0.02",
+            "[0.01, 0.03]",
+            "0.025",
+            "[0.01, 0.03]",
+            "-0.005",
+            "[-0.008, -0.002]",
+        ]
+    ]
+    assert "this run" in t.note
+    # no per-config rows in this run: the ablation's file, its cells pointing there
+    rep = _reports(tmp_path / "abl", {"fusion.json": {"test": {"D": {"dnn": {}}}}})
+    (rep / "ablations").mkdir()
+    (rep / "ablations" / "fusion.json").write_text(
+        json.dumps(
+            {"experiment": "ablation-fusion", "commit": "abcdef123", "fusion": _one_vs_own({})}
+        )
+    )
+    src = R.Sources(_inputs(rep))
+    t = per_config_table(src, confs, ["D"])
+    assert (
+        t.rows[0][3].text == "0.02"
+        and t.rows[0][3].src == "ablations/fusion.json#fusion.test.D.dnn.kld_fou_mean"
+    )
+    assert "ablation-fusion" in t.note and "abcdef12" in t.note
+    # neither: no table
+    rep = _reports(tmp_path / "none", {"fusion.json": {"test": {"D": {"dnn": {}}}}})
+    assert per_config_table(R.Sources(_inputs(rep)), confs, ["D"]) is None
+
+
+def test_training_stops_say_where_each_training_ended_and_why(tmp_path: Path) -> None:
+    from traffictwin.fusion.report_section import training_stops
+
+    rep = _reports(
+        tmp_path,
+        {
+            "train_fusion_network.json": {
+                "epochs": 30,
+                "max_epochs": 36,
+                "best_epoch": 23,
+                "stopped_early": True,
+            },
+            "train_fusion_paper.json": {
+                "epochs": 36,
+                "max_epochs": 36,
+                "best_epoch": 35,
+                "stopped_early": False,
+            },
+            "train_registration.json": {
+                "epochs": 20,
+                "max_epochs": 30,
+                "best_epoch": 18,
+                "stopped_early": True,
+            },
+            "fusion.json": {},
+        },
+    )
+    lines = training_stops(R.Sources(_inputs(rep)))
+    assert lines == [
+        "Training of fusion network `network`: early stopping ended it after 30 of at most 36 epochs "
+        "(its validation metric had stopped improving); best epoch 24 of 30 (`metrics/train_fusion_network.json`).",
+        "Training of fusion network `paper`: it ran all 36 of its 36 epochs (not converged by the "
+        "early-stopping rule); best epoch 36 of 36 (in the last 20 % of the epochs run) (`metrics/train_fusion_paper.json`).",
+        "Training of the learned registration: early stopping ended it after 20 of at most 30 epochs "
+        "(its validation metric had stopped improving); best epoch 19 of 20 (in the last 20 % of the "
+        "epochs run) (`metrics/train_registration.json`).",
+    ]

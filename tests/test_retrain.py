@@ -16,9 +16,9 @@ from traffictwin.config import ConfigError, compose_config, load_params
 from traffictwin.mlops import registry as reg
 
 MODELS = [
-    "traffictwin-fusion-A",
+    "traffictwin-fusion",
     "traffictwin-risk",
-]  # the e2e test gates configuration A and the risk net only
+]  # the e2e test gates the fusion network and the risk net only
 
 
 # ------------------------------------------------------------------ fast unit tests
@@ -73,7 +73,7 @@ def test_data_versions_reads_dvc_lock(tmp_path):
                             {"path": "reports/m.json", "md5": "1"},
                         ],
                     },
-                    "train": {"cmd": "y", "outs": [{"path": "models/fusion/A", "md5": "m"}]},
+                    "train": {"cmd": "y", "outs": [{"path": "models/fusion/network", "md5": "m"}]},
                 },
             }
         )
@@ -130,7 +130,8 @@ def _cheap_copy(repo: Path) -> Path:
     return repo
 
 
-TARGETS = ["train_fusion@A", "train_risk@headline"]
+# the fusion network, its gate set (every configuration's validation pairs) and the risk net
+TARGETS = ["train_fusion", "prealign", "train_risk@headline"]
 
 
 @pytest.mark.slow

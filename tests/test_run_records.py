@@ -33,7 +33,21 @@ def test_stage_timer_writes_what_the_stage_recorded(timings: Path) -> None:
         record.update(run_id="abc", train_seconds=1.5, stage="not this", seconds=-1)
     got = json.loads((timings / "train_risk-headline.json").read_text())
     # stage and seconds are the timer's own: a stage cannot overwrite them
-    assert set(got) == {"run_id", "train_seconds", "stage", "seconds"}
+    assert set(got) == {
+        "run_id",
+        "train_seconds",
+        "stage",
+        "seconds",
+        "machine",
+        "started",
+        "finished",
+    }
+    assert got["started"] <= got["finished"] and got["started"].endswith("Z")
+    # the machine, so a wall time can be judged: CPU, cores, load average at start and end
+    assert set(got["machine"]) == {"cpu", "cpu_count", "load_start", "load_end"}
+    assert got["machine"]["cpu_count"] >= 1 and got["machine"]["cpu"]
+    for k in ("load_start", "load_end"):
+        assert got["machine"][k] is None or (len(got["machine"][k]) == 3)
     assert (got["run_id"], got["train_seconds"], got["stage"]) == (
         "abc",
         1.5,

@@ -135,3 +135,52 @@ def test_atomic_write_gives_the_usual_file_mode(tmp_path: Path) -> None:
     mask = os.umask(0)
     os.umask(mask)
     assert (p.stat().st_mode & 0o777) == (0o666 & ~mask)
+
+
+def test_load_all_in_threads_equals_one_by_one_and_checks_each_shard(tmp_path: Path) -> None:
+    w = DatasetWriter(tmp_path / "ds", "unit", {"n": 3}, seed=0)
+    for i in range(7):
+        w.add_shard(i, _arrays(i, n=2 + i % 3), split="train")
+    w.finalize()
+    ds = Dataset(tmp_path / "ds", kind="unit", verify=False)
+    seen: list[str] = []
+    got = ds.load_all("train", keys=["x", "id"], workers=2, check=lambda n, a: seen.append(n))
+    want = [_arrays(i, n=2 + i % 3) for i in range(7)]
+    np.testing.assert_array_equal(got["x"], np.concatenate([a["x"] for a in want]))
+    np.testing.assert_array_equal(got["id"], np.concatenate([a["id"] for a in want]))
+    assert sorted(seen) == [f"shard-{i:05d}.npz" for i in range(7)]  # every shard checked once
+    one = Dataset(tmp_path / "ds", kind="unit").load_all("train", keys=["x"], workers=1)
+    np.testing.assert_array_equal(one["x"], got["x"])
+    # only the keys asked for; a missing key names the shard
+    assert set(ds.load_all("train", keys=["id"])) == {"id"}
+    with pytest.raises(DatasetError, match=r"shard-00000\.npz: array\(s\) \['y'\] missing"):
+        ds.load_all("train", keys=["y"])
+
+    # a check that refuses a shard stops the load with its error
+    def refuse(name: str, a: dict) -> None:
+        if name == "shard-00004.npz":
+            raise DatasetError(f"{name}: bad masses")
+
+    with pytest.raises(DatasetError, match="shard-00004.npz: bad masses"):
+        ds.load_all("train", keys=["x"], check=refuse)
+
+
+def test_load_all_refuses_a_shard_of_another_shape_and_a_tampered_one(tmp_path: Path) -> None:
+    w = DatasetWriter(tmp_path / "ds", "unit", {"n": 3}, seed=0)
+    w.add_shard(0, _arrays(0), split="train")
+    odd = _arrays(1)
+    odd["x"] = odd["x"][:, :, :4]  # (3, 2, 4, 8): another grid
+    w.add_shard(1, odd, split="train")
+    w.finalize()
+    ds = Dataset(tmp_path / "ds", kind="unit", verify=False)
+    with pytest.raises(
+        DatasetError,
+        match=r"shard-00001\.npz: array 'x' has shape \(3, 2, 4, 8\), expected \(3, 2, 8, 8\)",
+    ):
+        ds.load_all("train", keys=["x"])
+    p = tmp_path / "ds" / "shard-00001.npz"
+    data = bytearray(p.read_bytes())
+    data[-10] ^= 0xFF
+    p.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"shard-00001\.npz.*SHA-256 mismatch"):
+        Dataset(tmp_path / "ds", kind="unit", verify=False).load_all("train", keys=["id"])

@@ -4,8 +4,8 @@ The ``traffictwin`` command is a thin layer over these functions::
 
     from traffictwin import api
 
-    fusion = api.load_fusion("traffictwin-fusion-D@champion")        # registry (name@alias)
-    fusion = api.load_fusion("models/fusion/D")                      # or a model folder
+    fusion = api.load_fusion("traffictwin-fusion@champion")          # registry (name@alias)
+    fusion = api.load_fusion("models/fusion/network")                # or a model folder
     for res in api.fuse(fusion, pairs, batch_size=8):                # batched inference
         res.masses, res.u                                           # (2, H, W), (H, W) float32
 
@@ -15,9 +15,9 @@ The ``traffictwin`` command is a thin layer over these functions::
 
 Models
     A model reference is a registry ``name@alias`` (``champion`` / ``challenger``; a bare alias
-    means ``traffictwin-risk@alias`` for risk and ``traffictwin-fusion-<config>@alias`` for
-    fusion), or the path of a model folder (``model.ckpt`` + ``model_meta.json``, as the
-    ``train_*`` stages write them). Registered models are loaded only through
+    means ``traffictwin-risk@alias`` for risk and ``traffictwin-fusion@alias`` for fusion: one
+    network serves every pose-noise level), or the path of a model folder (``model.ckpt`` +
+    ``model_meta.json``, as the ``train_*`` stages write them). Registered models are loaded only through
     :func:`traffictwin.mlops.registry.load_registered`: every file checked against the SHA-256
     sealed at registration, checkpoints read with ``weights_only=True``; nothing is unpickled.
 
@@ -165,21 +165,6 @@ def connect(tracking_uri: str | None = None):
     return cl
 
 
-def fusion_model_name(cl, config: str | None) -> str:
-    """``traffictwin-fusion-<config>``; without ``config`` the only registered fusion model."""
-    from traffictwin.mlops import registry as reg
-
-    if config:
-        return reg.fusion_name(config)
-    names = reg.registered_names(cl, reg.fusion_name(""))
-    if len(names) == 1:
-        return names[0]
-    raise ApiError(
-        "--config: name the pose-noise configuration of the registered fusion model "
-        + (f"(registered: {', '.join(names)})" if names else "(no fusion model is registered yet)")
-    )
-
-
 def _split_ref(model: str | os.PathLike) -> tuple[str | None, str | None, Path | None]:
     """``(name or None, alias, None)`` for a registry reference, ``(None, None, path)`` for a folder."""
     text = str(model)
@@ -229,23 +214,19 @@ class FusionModel:
     description: str
 
 
-def load_fusion(
-    model: str | os.PathLike,
-    *,
-    config: str | None = None,
-    tracking_uri: str | None = None,
-) -> FusionModel:
-    """Load a fusion network by registry reference (``name@alias``; a bare alias with
-    ``config``) or model folder. Raises :class:`ApiError`."""
+def load_fusion(model: str | os.PathLike, *, tracking_uri: str | None = None) -> FusionModel:
+    """Load the fusion network by registry reference (``name@alias``, or a bare alias of
+    ``traffictwin-fusion``: one network serves every pose-noise level) or model folder. Raises
+    :class:`ApiError`."""
     from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
+    from traffictwin.mlops.registry import FUSION_NAME
 
     name, alias, path = _split_ref(model)
-    if name is not None and config is not None:
-        raise ApiError(f"--config: '{model}' names the registered model already; drop --config")
     if path is None:
         cl = connect(tracking_uri)
-        name = name or fusion_model_name(cl, config)
-        net, desc = _load_registered(cl, name, alias, load_fusion_model, "fusion model")
+        net, desc = _load_registered(
+            cl, name or FUSION_NAME, alias, load_fusion_model, "fusion model"
+        )
     else:
         try:
             net = load_fusion_model(path)
@@ -253,10 +234,6 @@ def load_fusion(
             raise ApiError(str(exc)) from None
         desc = str(path)
     meta = dict(getattr(net, "meta", {}) or {})
-    if path is not None and config is not None and meta.get("cfg") != config:
-        raise ApiError(
-            f"--config: {config} but the model folder {path} was trained for configuration {meta.get('cfg')!r}"
-        )
     return FusionModel(net, meta, dict(meta.get("grid") or {}), desc)
 
 

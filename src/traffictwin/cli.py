@@ -5,13 +5,13 @@ A thin layer over the public Python API :mod:`traffictwin.api` (models, fusion, 
 
 Subcommands::
 
-    traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model REF] [--config CFG]
+    traffictwin fuse MAP1.npz MAP2.npz --pose1 x,y,yaw --pose2 x,y,yaw [--model REF]
                      [--tracking-uri URI] [--cell M] -o OUT [--force]
     traffictwin fuse --pairs LIST.csv|FOLDER [--model REF] [--batch-size 8] [--no-preview] -o OUTDIR
     traffictwin twin MAP1.npz MAP2.npz [MAP3.npz ...] --pose x,y,yaw --pose ... [--method ...] -o OUT
     traffictwin risk LEFT.png RIGHT.png [--speed M_S] [--model REF] [--params FILE] [--resize] [-o OUT.json]
     traffictwin risk FOLDER [--speed M_S] [--model REF] [--batch-size 16] [-o OUT.csv]
-    traffictwin export fusion|risk --model REF [--config CFG] -o MODEL.pt
+    traffictwin export fusion|risk --model REF -o MODEL.pt
     traffictwin rollback --model NAME [--version V] [--log FILE]
     traffictwin status [--model NAME ...]
     traffictwin runs compare --experiment fusion [--metrics a b ...] [--tracking-uri URI] [--wide]
@@ -19,8 +19,8 @@ Subcommands::
 Models (``--model REF``)
 ------------------------
 A registry reference ``name@alias`` (e.g. ``traffictwin-risk@champion``) or a bare alias
-(``champion`` / ``challenger``: ``traffictwin-risk`` for risk, ``traffictwin-fusion-<--config>``
-for fusion), or the path of a model folder (``model.ckpt`` + ``model_meta.json``), which needs no
+(``champion`` / ``challenger``: ``traffictwin-risk`` for risk, ``traffictwin-fusion`` for
+fusion: one network serves every pose-noise level), or the path of a model folder (``model.ckpt`` + ``model_meta.json``), which needs no
 registry at all. The registry is ``--tracking-uri``, else ``MLFLOW_TRACKING_URI``, else the
 project's ``mlflow.db`` (inside the project only); a missing database is an error, never created.
 An unreachable registry is one line within seconds (MLflow's HTTP retries are bounded:
@@ -96,7 +96,6 @@ from traffictwin.api import (  # noqa: F401 - re-exported: the CLI's helpers liv
     ApiError,
     ApiWarning,
     StereoSettings,
-    fusion_model_name,
     risk_verdict,
     stereo_settings,
 )
@@ -263,7 +262,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         raise CliError(f"--cell: {args.cell} m contradicts the maps' own cell size {own} m")
     npz_path, png_path = _npz_png(args.output)
     with OutputSet([npz_path, png_path], inputs=[args.map1, args.map2], force=args.force) as outs:
-        model = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+        model = api.load_fusion(args.model, tracking_uri=args.tracking_uri)
         cell = args.cell if args.cell is not None else c1 if c1 is not None else c2
         cell = api.check_fusion_domain(model, (h, w), cell, str(args.map1))
         t0 = time.perf_counter()
@@ -386,7 +385,7 @@ def _fuse_many(args: argparse.Namespace) -> int:
     summary_path = out / "summary.csv"
     inputs = [Path(args.pairs)] + [r[k] for r in rows for k in ("map1", "map2")]
     with OutputSet([*names, summary_path], inputs=inputs, force=args.force) as outs:
-        model = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+        model = api.load_fusion(args.model, tracking_uri=args.tracking_uri)
         t0 = time.perf_counter()
 
         def pairs() -> Iterator[Any]:
@@ -678,7 +677,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         from traffictwin import export
 
         if args.problem == "fusion":
-            fm = api.load_fusion(args.model, config=args.config, tracking_uri=args.tracking_uri)
+            fm = api.load_fusion(args.model, tracking_uri=args.tracking_uri)
             if not {"rows", "cols"} <= set(fm.grid):
                 raise CliError(
                     f"--model: {fm.description} records no training grid (rows, cols) to trace on"
@@ -686,8 +685,6 @@ def cmd_export(args: argparse.Namespace) -> int:
             module, meta = export.export_fusion(fm.net, fm.grid)
             desc = fm.description
         else:
-            if args.config is not None:
-                raise CliError("--config: only for fusion models")
             rm = api.load_risk(args.model, tracking_uri=args.tracking_uri)
             module, meta = export.export_risk(rm.model)
             desc = rm.description
@@ -844,13 +841,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="a CSV list (map1,map2[,id,x1,y1,yaw1,x2,y2,yaw2,cell]) or a folder of <id>_1.npz/<id>_2.npz",
     )
-    _model_options(f, "fusion model", "traffictwin-fusion-<config>")
-    f.add_argument(
-        "--config",
-        default=None,
-        help="pose-noise configuration of a bare alias: traffictwin-fusion-<config> "
-        "(default: the only registered fusion model)",
-    )
+    _model_options(f, "fusion model", "traffictwin-fusion")
     f.add_argument(
         "--cell",
         type=float,
@@ -948,19 +939,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(loads with torch.jit.load alone; see traffictwin.export for the input/output layout).",
     )
     e.add_argument("problem", choices=("fusion", "risk"))
-    _model_options(e, "model to export", "traffictwin-fusion-<config> / traffictwin-risk")
-    e.add_argument(
-        "--config", default=None, help="fusion: pose-noise configuration of a bare alias"
-    )
+    _model_options(e, "model to export", "traffictwin-fusion / traffictwin-risk")
     _output_options(e, "the TorchScript file to write (e.g. fusion.pt)")
     e.set_defaults(func=cmd_export)
 
     b = sub.add_parser(
         "rollback", help="move the champion alias back (previous champion or --version)"
     )
-    b.add_argument(
-        "--model", required=True, help="registered model name, e.g. traffictwin-fusion-D"
-    )
+    b.add_argument("--model", required=True, help="registered model name, e.g. traffictwin-fusion")
     b.add_argument(
         "--version", default=None, help="version to make champion (default: the previous champion)"
     )

@@ -52,6 +52,45 @@ def scale_noise(z: np.ndarray, r: float, alpha_deg: float) -> np.ndarray:
     return np.asarray(z, dtype=np.float64) * np.array([s_xy, s_xy, s_yaw])
 
 
+def noise_scales(
+    seed: int,
+    pair_ids: np.ndarray,
+    draw: int | np.ndarray,
+    sigmas: np.ndarray,
+    kind: str = "mixture",
+) -> np.ndarray:
+    """Per-row noise scales ``(N, 3)`` (sigma_x m, sigma_y m, sigma_yaw rad) of a training-noise
+    distribution over pose-noise configurations (docs/design.md "One model per task").
+
+    ``sigmas (K, 3)``: the per-axis sigmas of the K configurations (:func:`noise_sigmas`).
+    ``kind``: ``mixture`` — each row takes the sigmas of one configuration, chosen uniformly;
+    ``scaled`` — the largest configuration's sigmas (the last row) times ``s ~ U(0, 1)``. Row ``i``
+    depends only on ``(seed, pair_ids[i], draw[i])`` (its own random stream, independent of the
+    standard-normal direction of :func:`standard_normal_draws`), so a pair keeps its noise level
+    wherever it is generated."""
+    sigmas = np.asarray(sigmas, dtype=np.float64).reshape(-1, 3)
+    if not len(sigmas):
+        raise ValueError("noise_scales: sigmas must name at least one configuration")
+    if kind not in NOISE_KINDS:
+        raise ValueError(f"noise_scales: kind must be one of {NOISE_KINDS}, got {kind!r}")
+    pair_ids = np.asarray(pair_ids, dtype=np.int64).reshape(-1)
+    draws = np.broadcast_to(np.asarray(draw, dtype=np.int64), pair_ids.shape)
+    u = np.array(
+        [
+            np.random.default_rng(
+                np.random.SeedSequence([int(seed), int(p), int(d), 7019])
+            ).random()
+            for p, d in zip(pair_ids, draws)
+        ]
+    )
+    if kind == "mixture":
+        return sigmas[np.minimum((u * len(sigmas)).astype(np.int64), len(sigmas) - 1)]
+    return u[:, None] * sigmas[-1][None, :]
+
+
+NOISE_KINDS = ("mixture", "scaled")
+
+
 def apply_pose_noise(pose: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """World pose(s) ``(…, 3)`` plus noise ``(…, 3)``; yaw wrapped to [-pi, pi)."""
     out = np.asarray(pose, dtype=np.float64) + np.asarray(noise, dtype=np.float64)

@@ -36,6 +36,13 @@ __all__ = [
     "pose_configurations",
     "fusion_data_config",
     "fusion_eval_config",
+    "MIXED",
+    "NETWORK_MODEL",
+    "PER_CONFIG",
+    "TrainingNoise",
+    "training_noise",
+    "training_noise_description",
+    "noise_sources",
 ]
 
 NETWORK_STRIDE = 16  # rows and cols of the grid must be divisible by the network's output stride
@@ -67,6 +74,86 @@ def pose_configurations(cfg: Any) -> dict[str, PoseNoise]:
     if not node:
         raise ConfigError("params.yaml: 'configurations' must name at least one configuration")
     return {str(k): typed(v, PoseNoise, key=f"configurations.{k}") for k, v in node.items()}
+
+
+# -- training_noise: the one model's noise (docs/design.md "One model per task") -----------------
+MIXED = (
+    "mixed"  # the training set with noise drawn across the configurations: data/prealigned/mixed
+)
+
+
+@dataclass
+class TrainingNoise:
+    """``training_noise``: the pose noise the one fusion network and the one learned registration
+    train on. ``configurations``: keys of ``configurations`` (None = every configuration, so a new
+    one joins the mixture); ``kind``: ``mixture`` (each draw takes one of them, uniformly) or
+    ``scaled`` (the largest one's noise scaled by U(0, 1)); ``draws``: noise draws per training
+    pair (validation: one per pair)."""
+
+    kind: str = spec(MISSING, choices=("mixture", "scaled"))
+    configurations: list[str] | None = spec(MISSING)
+    draws: int = spec(MISSING, min=1)
+
+    def sigmas(self, configs: dict[str, PoseNoise]) -> Any:
+        """``(K, 3)`` per-axis sigmas (m, m, rad) of :attr:`configurations`, in their order."""
+        import numpy as np
+
+        from traffictwin.evidential.noise import noise_sigmas
+
+        rows = [noise_sigmas(configs[c].r, configs[c].alpha) for c in self.names(configs)]
+        if self.kind == "scaled":  # the largest configuration's noise, scaled by U(0, 1)
+            big = self.largest(configs)
+            rows = [noise_sigmas(big.r, big.alpha)]
+        return np.array([[s, s, y] for s, y in rows], dtype=np.float64)
+
+    def names(self, configs: dict[str, PoseNoise]) -> list[str]:
+        """The configurations of the mixture (every one when :attr:`configurations` is None)."""
+        return list(configs) if self.configurations is None else list(self.configurations)
+
+    def largest(self, configs: dict[str, PoseNoise]) -> PoseNoise:
+        """The configuration of the set with the largest translational noise (ties: rotation)."""
+        return max((configs[c] for c in self.names(configs)), key=lambda n: (n.r, n.alpha))
+
+
+def training_noise(cfg: Any) -> TrainingNoise:
+    """``training_noise`` of params.yaml, its configurations checked against ``configurations``."""
+    if "training_noise" not in cfg:
+        raise ConfigError("params.yaml: 'training_noise' is missing")
+    tn = typed(cfg["training_noise"], TrainingNoise, key="training_noise")
+    configs = pose_configurations(cfg)
+    if tn.configurations is None:
+        tn.configurations = list(configs)
+    bad = [c for c in tn.configurations if c not in configs]
+    if bad or not tn.configurations:
+        raise ConfigError(
+            f"params.yaml: 'training_noise.configurations' = {list(tn.configurations)} must name "
+            f"keys of 'configurations' (has {sorted(configs)})"
+        )
+    if MIXED in configs:
+        raise ConfigError(
+            f"params.yaml: configuration name {MIXED!r} is reserved for the mixed training noise"
+        )
+    return tn
+
+
+def training_noise_description(cfg: Any, source: str) -> dict[str, Any]:
+    """The noise of training set ``source`` as a model's meta records it: one configuration's
+    ``{r, alpha}`` (m, deg) or the mixture's ``{kind, configurations: {name: {r, alpha}}}``."""
+    configs = pose_configurations(cfg)
+    if source != MIXED:
+        return {"r": configs[source].r, "alpha": configs[source].alpha}
+    tn = training_noise(cfg)
+    return {
+        "kind": tn.kind,
+        "configurations": {
+            c: {"r": configs[c].r, "alpha": configs[c].alpha} for c in tn.configurations
+        },
+    }
+
+
+def noise_sources(cfg: Any) -> list[str]:
+    """Every name a training set can have: the configurations and :data:`MIXED`."""
+    return [*pose_configurations(cfg), MIXED]
 
 
 # -- fusion_data ---------------------------------------------------------------------------------
@@ -103,8 +190,20 @@ class SplitsConfig:
 
 @dataclass
 class PrealignConfig:
+    """``fusion_data.prealign``: the noise seed, training draws and the splits prealign@<cfg>
+    writes (the per-configuration train split only feeds the ablation's per-configuration
+    networks; evaluation and the promotion gate read val and test)."""
+
     seed: int = spec(MISSING, min=0)
     train_draws: int = spec(MISSING, min=1)
+    splits: list[str] = spec(MISSING)
+
+    def __post_init__(self) -> None:
+        bad = [s for s in self.splits if s not in ("train", "val", "test")]
+        if bad or not self.splits:
+            raise ValueError(
+                f"'fusion_data.prealign.splits' must name train / val / test, got {self.splits}"
+            )
 
 
 @dataclass
@@ -237,6 +336,7 @@ class FusionEvalConfig:
     registration: dict[str, Any] = spec(
         MISSING
     )  # RegistrationParams fields (defaults for the rest)
+    registration_workers: int = spec(MISSING, min=1)  # processes of the classical registration
 
     def __post_init__(self) -> None:
         self.registration_params  # noqa: B018  (checks the keys and values now)
@@ -262,13 +362,17 @@ INPUT_METHODS = {"prealigned": "dnn", "registered": "registered+network"}  # dat
 
 @dataclass
 class FusionVariant:
-    """``fusion_variants.<name>``: a network trained beside the per-configuration ``dnn`` networks.
+    """``fusion_variants.<name>``: a fusion network trained beside the one network (``train_fusion``).
 
-    config: the pose-noise configuration (a key of ``configurations``) whose pairs it trains and
-    is evaluated on; inputs: the data it trains on, ``prealigned`` (map 2 warped by the noisy
-    pose, ``data/prealigned/<config>``; evaluated as method ``dnn``) or ``registered`` (map 2
-    warped by the classical registration estimate, ``data/registered/<config>``; method
-    ``registered+network``); loss: ``fusion_model.loss.name`` for this network (null = default).
+    config: the noise of its training pairs, ``mixed`` (``training_noise``: evaluated at every
+    configuration, like the one network) or one pose-noise configuration (a key of
+    ``configurations``: a per-configuration network, evaluated at that configuration only, as the
+    paper trained them); inputs: ``prealigned`` (map 2 warped by the noisy pose,
+    ``data/prealigned/<config>``; evaluated as method ``dnn``) or ``registered`` (map 2 warped by
+    the classical registration estimate, ``data/registered/<config>``; method
+    ``registered+network``, row ``registered+network[registered-trained]``: the default hybrid is
+    the one network on registered pairs); loss: ``fusion_model.loss.name`` for this network
+    (null = default).
     """
 
     config: str = spec(MISSING)
@@ -281,9 +385,22 @@ class FusionVariant:
         return INPUT_METHODS[self.inputs]
 
 
-def variant_row(method: str, loss: str | None, default_loss: str) -> str:
-    """The evaluation's row name of a network: ``method`` with the default loss, else ``method[loss]``."""
-    return method if loss in (None, default_loss) else f"{method}[{loss}]"
+PER_CONFIG = "per-config"  # row tag of networks trained on one configuration's noise only
+REGISTERED_TRAINED = "registered-trained"  # row tag of networks trained on registered pairs
+
+
+def variant_row(method: str, loss: str | None, default_loss: str, per_config: bool = False) -> str:
+    """The evaluation's row name of a variant network: ``method[tags]`` with the tags
+    ``registered-trained`` (a ``registered+network`` variant: a network of its own, trained on
+    registered pairs; plain ``registered+network`` is the one network on registered pairs),
+    ``per-config`` (trained on one configuration's noise) and the loss (when not the default):
+    ``dnn[paper]``, ``dnn[per-config]``, ``registered+network[registered-trained]``; a
+    prealigned variant with neither tag is plain ``dnn``."""
+    tags = [REGISTERED_TRAINED] if method == INPUT_METHODS["registered"] else []
+    tags += [PER_CONFIG] if per_config else []
+    if loss not in (None, default_loss):
+        tags.append(str(loss))
+    return f"{method}[{','.join(tags)}]" if tags else method
 
 
 def fusion_variants(cfg: Any) -> dict[str, FusionVariant]:
@@ -295,32 +412,36 @@ def fusion_variants(cfg: Any) -> dict[str, FusionVariant]:
     out: dict[str, FusionVariant] = {}
     for k, v in (node or {}).items():
         var = typed(v, FusionVariant, key=f"fusion_variants.{k}")
-        if var.config not in configs:
+        if var.config not in configs and var.config != MIXED:
             raise ConfigError(
-                f"params.yaml: 'fusion_variants.{k}.config' = {var.config!r} is not a key of "
-                f"'configurations' (has {sorted(configs)})"
+                f"params.yaml: 'fusion_variants.{k}.config' = {var.config!r} is neither {MIXED!r} "
+                f"nor a key of 'configurations' (has {sorted(configs)})"
             )
         if var.inputs == "registered" and var.config not in registered:
             raise ConfigError(
                 f"params.yaml: 'fusion_variants.{k}' trains on registered pairs of {var.config!r}, "
                 f"but 'fusion_data.register.configurations' is {registered}"
             )
-        if str(k) in configs:
+        if str(k) == NETWORK_MODEL:
             raise ConfigError(
-                f"params.yaml: 'fusion_variants.{k}' clashes with configuration {k!r} (models/fusion/{k})"
+                f"params.yaml: 'fusion_variants.{k}' clashes with the one network (models/fusion/{k})"
             )
         out[str(k)] = var
     return out
 
 
+NETWORK_MODEL = "network"  # models/fusion/network: the one fusion network (stage train_fusion)
+
+
 def registered_configurations(cfg: Any) -> list[str]:
-    """``fusion_data.register.configurations``: configurations whose pairs are also registered."""
-    configs = pose_configurations(cfg)
+    """``fusion_data.register.configurations``: training sets (``mixed`` or configurations) whose
+    pairs are also registered."""
+    sources = noise_sources(cfg)
     reg = typed(cfg["fusion_data"]["register"], RegisterConfig, key="fusion_data.register")
-    bad = [c for c in reg.configurations if c not in configs]
+    bad = [c for c in reg.configurations if c not in sources]
     if bad:
         raise ConfigError(
-            f"params.yaml: 'fusion_data.register.configurations' has {bad}, not keys of "
-            f"'configurations' (has {sorted(configs)})"
+            f"params.yaml: 'fusion_data.register.configurations' has {bad}, neither {MIXED!r} nor "
+            f"keys of 'configurations' (has {sorted(pose_configurations(cfg))})"
         )
     return list(reg.configurations)

@@ -2,9 +2,10 @@
 
 The gate (:mod:`traffictwin.mlops.gate`) re-evaluates challenger and champion with the same
 callable; this one scores a registered model's fused masses with :mod:`traffictwin.fusion.metrics`
-(the evaluate_fusion stage's code) on the first pairs of a prealigned split. The gate metric
-(conf/registry ``fusion.metric``) is one of its ``test/<name>`` numbers: ``test/kld_fou_mean``
-(KLD(b), the evaluation's headline; mode min).
+(the evaluate_fusion stage's code) on the first pairs of a prealigned split of every
+configuration (the validation split: the test split is read once, by the evaluation). The gate
+metric (conf/registry ``fusion.metric``) is one of its ``<split>/<name>`` numbers:
+``val/kld_fou_mean`` (KLD(b), the evaluation's headline; mode min).
 
 Models are loaded with :func:`traffictwin.mlops.registry.load_registered` (SHA-256 checked,
 ``weights_only`` checkpoints, no pickled code) and this problem's loaders. A model whose recorded
@@ -43,29 +44,50 @@ def first_by(order_key: np.ndarray, k: int | None) -> np.ndarray:
     return idx if k is None or k <= 0 else idx[:k]
 
 
-def fusion_test_set(
-    data_root: str | Path, split: str = "test", max_pairs: int | None = None
-) -> tuple[np.ndarray, np.ndarray, str]:
-    """Gate test set of a prealigned dataset: ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first
-    ``max_pairs`` pairs by ``pair_id`` (a fixed selection), and its fingerprint."""
+def _gate_arrays(
+    data_roots: str | Path | Sequence[str | Path],
+    split: str,
+    max_pairs: int | None,
+    keys: list[str],
+) -> tuple[dict[str, np.ndarray], str]:
+    """``keys`` of the first ``max_pairs`` pairs by ``pair_id`` of ``split`` of each prealigned
+    dataset (one per pose-noise configuration), concatenated in the order given, and the
+    fingerprint of the selection."""
     from traffictwin.io.shards import Dataset
 
-    ds = Dataset(data_root, kind="prealigned")
-    a = ds.load_all(split, keys=["inputs", "label", "pair_id"])
-    sel = first_by(np.asarray(a["pair_id"]), max_pairs)
-    fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}"
+    roots = [data_roots] if isinstance(data_roots, (str, Path)) else list(data_roots)
+    parts, prints = [], []
+    for root in roots:
+        ds = Dataset(root, kind="prealigned")
+        a = ds.load_all(split, keys=[*keys, "pair_id"])
+        sel = first_by(np.asarray(a["pair_id"]), max_pairs)
+        parts.append({k: a[k][sel] for k in keys})
+        prints.append(f"{ds.manifest_hash()[:16]}:{len(sel)}")
+    out = {k: np.concatenate([p[k] for p in parts]) for k in keys}
+    return out, f"prealigned:{'+'.join(prints)}:{split}"
+
+
+def fusion_test_set(
+    data_roots: str | Path | Sequence[str | Path],
+    split: str = "val",
+    max_pairs: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Gate set of prealigned datasets (one per configuration: the one network serves them all):
+    ``inputs (N,4,H,W)``, ``label (N,2,H,W)`` of the first ``max_pairs`` pairs by ``pair_id`` of
+    each (a fixed selection), and its fingerprint."""
+    a, fp = _gate_arrays(data_roots, split, max_pairs, ["inputs", "label"])
     return (
-        np.ascontiguousarray(a["inputs"][sel], np.float32),
-        np.ascontiguousarray(a["label"][sel], np.float32),
+        np.ascontiguousarray(a["inputs"], np.float32),
+        np.ascontiguousarray(a["label"], np.float32),
         fp,
     )
 
 
 def fusion_evaluator(
-    inputs: np.ndarray, label: np.ndarray, batch_size: int = 8
+    inputs: np.ndarray, label: np.ndarray, batch_size: int = 8, split: str = "val"
 ) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)``: fused masses of the registered model on ``inputs``, scored with
-    :mod:`traffictwin.fusion.metrics` as ``test/<name>``."""
+    :mod:`traffictwin.fusion.metrics` as ``<split>/<name>``."""
     from traffictwin.fusion import metrics as fm
     from traffictwin.fusion.model_io import load_fusion_model, predict_masses
     from traffictwin.mlops.registry import load_registered
@@ -76,35 +98,36 @@ def fusion_evaluator(
         )
         m, _ = predict_masses(model, inputs, batch_size=batch_size)
         agg = fm.aggregate(fm.per_sample_metrics(label, m))
-        return {f"test/{k}": float(v) for k, v in agg.items()}
+        return {f"{split}/{k}": float(v) for k, v in agg.items()}
 
     return evaluate
 
 
 def registration_test_set(
-    data_root: str | Path, split: str = "test", max_pairs: int | None = None
+    data_roots: str | Path | Sequence[str | Path],
+    split: str = "val",
+    max_pairs: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """:func:`fusion_test_set` plus the noisy relative poses ``(N, 3)`` the learned registration needs."""
-    from traffictwin.io.shards import Dataset
-
-    ds = Dataset(data_root, kind="prealigned")
-    a = ds.load_all(split, keys=["inputs", "label", "rel_pose_noisy", "pair_id"])
-    sel = first_by(np.asarray(a["pair_id"]), max_pairs)
-    fp = f"prealigned:{ds.manifest_hash()[:16]}:{split}:{len(sel)}:poses"
+    a, fp = _gate_arrays(data_roots, split, max_pairs, ["inputs", "label", "rel_pose_noisy"])
     return (
-        np.ascontiguousarray(a["inputs"][sel], np.float32),
-        np.ascontiguousarray(a["label"][sel], np.float32),
-        np.ascontiguousarray(a["rel_pose_noisy"][sel], np.float64),
-        fp,
+        np.ascontiguousarray(a["inputs"], np.float32),
+        np.ascontiguousarray(a["label"], np.float32),
+        np.ascontiguousarray(a["rel_pose_noisy"], np.float64),
+        fp + ":poses",
     )
 
 
 def registration_evaluator(
-    inputs: np.ndarray, label: np.ndarray, rel_pose_noisy: np.ndarray, batch_size: int = 8
+    inputs: np.ndarray,
+    label: np.ndarray,
+    rel_pose_noisy: np.ndarray,
+    batch_size: int = 8,
+    split: str = "val",
 ) -> Callable[[str], dict[str, float]]:
     """``evaluate(model_uri)`` for a registered learned registration: its fused masses
     (``model(inputs, rel_pose_noisy)``: estimate, fallback, warp, Dempster) scored like
-    :func:`fusion_evaluator`'s, as ``test/<name>``."""
+    :func:`fusion_evaluator`'s, as ``<split>/<name>``."""
     import torch
 
     from traffictwin.fusion import metrics as fm
@@ -124,6 +147,6 @@ def registration_evaluator(
                 p = torch.from_numpy(rel_pose_noisy[s : s + batch_size])
                 parts.append(model(x, p).float().numpy())
         agg = fm.aggregate(fm.per_sample_metrics(label, np.concatenate(parts)))
-        return {f"test/{k}": float(v) for k, v in agg.items()}
+        return {f"{split}/{k}": float(v) for k, v in agg.items()}
 
     return evaluate

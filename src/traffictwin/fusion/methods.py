@@ -85,7 +85,11 @@ class FusionInput:
     ``inputs`` (N, 4, H, W) prealigned; ``map1``, ``map2`` (N, 2, H, W) raw; ``rel_pose_noisy`` /
     ``rel_pose_true`` (N, 3) relative pose of map 2's sensor in map 1's frame (x m, y m, yaw
     rad; the true one only for diagnostics); ``grid``; ``model`` (a fusion network),
-    ``batch_size`` (its inference batch); ``registration`` (classical registration settings).
+    ``batch_size`` (its inference batch); ``registration`` (classical registration settings);
+    ``pair_key`` (N,) ints naming each pair and ``memo`` a dict shared by every method run on
+    these pairs: a registration (classical or learned) is then computed once per pair and reused
+    by every method that uses it (``registered`` and ``registered+network``, ``learned`` and
+    ``learned+network``), its wall time still counted in each method's per-pair seconds.
     """
 
     inputs: np.ndarray | None = None
@@ -97,8 +101,10 @@ class FusionInput:
     model: Any = None
     batch_size: int = 8
     registration: RegistrationParams = field(default_factory=RegistrationParams)
+    pair_key: np.ndarray | None = None
+    memo: dict | None = None
 
-    _ARRAYS = ("inputs", "map1", "map2", "rel_pose_noisy", "rel_pose_true")
+    _ARRAYS = ("inputs", "map1", "map2", "rel_pose_noisy", "rel_pose_true", "pair_key")
 
     def __len__(self) -> int:
         for k in self._ARRAYS:
@@ -254,9 +260,13 @@ def registered_fusion(
     rel_pose_noisy: np.ndarray,
     grid: GridSpec,
     params: RegistrationParams | None = None,
+    memo: dict | None = None,
+    keys: np.ndarray | None = None,
 ) -> RegisteredBatch:
     """Register each raw map 2 ``(N, 2, H, W)`` onto map 1 from the noisy pose ``(N, 3)``, warp,
-    Dempster (``params``: default :class:`RegistrationParams`)."""
+    Dempster (``params``: default :class:`RegistrationParams`). ``memo`` with ``keys (N,)``: a
+    pair's registration is looked up there (``("registered", key)``) or computed and stored;
+    its seconds count either way."""
     from traffictwin.evidential.warp import warp_masses
 
     params = RegistrationParams() if params is None else params
@@ -275,13 +285,83 @@ def registered_fusion(
     ccn, cce, secs = np.empty(n), np.empty(n), np.empty(n)
     for i in range(n):  # per pair: OpenCV registration is inherently per image
         t0 = time.perf_counter()
-        r: RegistrationResult = register_pair(map1[i], map2[i], poses_in[i], grid, params)
+        key = ("registered", int(keys[i])) if memo is not None and keys is not None else None
+        if key is not None and key in memo:
+            r: RegistrationResult = memo[key]
+            reused = r.seconds
+        else:
+            r = register_pair(map1[i], map2[i], poses_in[i], grid, params)
+            reused = 0.0
+            if key is not None:
+                memo[key] = r
         warped[i] = warp_masses(map2[i], r.pose, grid)
         out[i] = dempster(map1[i], warped[i])
-        secs[i] = time.perf_counter() - t0
+        secs[i] = time.perf_counter() - t0 + reused
         cols["poses"][i], cols["estimates"][i] = r.pose, r.estimate
         acc[i], ccn[i], cce[i] = r.accepted, r.cc_noisy, r.cc_est
     return RegisteredBatch(out, warped, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
+
+
+_POOL_STATE: dict[str, Any] = {}  # the arrays of :func:`register_many`'s worker processes (fork)
+
+
+def _register_one(i: int) -> tuple[int, RegistrationResult]:
+    import cv2
+
+    cv2.setNumThreads(1)  # one process per core: OpenCV's own threads would compete
+    s = _POOL_STATE
+    return i, register_pair(s["map1"][i], s["map2"][i], s["poses"][i], s["grid"], s["params"])
+
+
+def register_many(
+    map1: np.ndarray,
+    map2: np.ndarray,
+    rel_pose_noisy: np.ndarray,
+    grid: GridSpec,
+    params: RegistrationParams | None = None,
+    workers: int = 1,
+) -> list[RegistrationResult]:
+    """The classical registration (:func:`register_pair`) of every pair ``(N, 2, H, W)`` from its
+    noisy pose ``(N, 3)``, in ``workers`` processes (fork; OpenCV on one thread each: the
+    per-image registration does not use two cores well). The results are the same for any number
+    of workers; each result's ``seconds`` is its own single-thread wall time."""
+    import multiprocessing as mp
+
+    params = RegistrationParams() if params is None else params
+    n = len(map1)
+    poses = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(-1, 3)
+    _POOL_STATE.update(map1=map1, map2=map2, poses=poses, grid=grid, params=params)
+    try:
+        if workers <= 1 or n <= 1:
+            return [_register_one(i)[1] for i in range(n)]
+        out: list[Any] = [None] * n
+        with mp.get_context("fork").Pool(min(workers, n)) as pool:
+            for i, r in pool.imap_unordered(_register_one, range(n), chunksize=4):
+                out[i] = r
+        return out
+    finally:
+        _POOL_STATE.clear()
+
+
+def precompute_registrations(x: FusionInput, workers: int = 1) -> None:
+    """Put the classical registration of every pair of ``x`` into ``x.memo`` (keys ``x.pair_key``)
+    with :func:`register_many`, so the methods that use it (``registered``,
+    ``registered+network``) find it computed once, on ``workers`` cores."""
+    if x.memo is None or x.pair_key is None:
+        raise ValueError("precompute_registrations: x needs memo and pair_key")
+    todo = [i for i, k in enumerate(x.pair_key) if ("registered", int(k)) not in x.memo]
+    if not todo:
+        return
+    res = register_many(
+        np.asarray(x.map1, dtype=np.float32)[todo],
+        np.asarray(x.map2, dtype=np.float32)[todo],
+        np.asarray(x.rel_pose_noisy)[todo],
+        x.grid,
+        x.registration,
+        workers,
+    )
+    for i, r in zip(todo, res):
+        x.memo[("registered", int(x.pair_key[i]))] = r
 
 
 def register_prealigned(
@@ -368,7 +448,9 @@ def _registered_summary(f: pd.DataFrame, settings: Any) -> dict[str, float]:
     summary=_registered_summary,
 )
 def _registered(x: FusionInput) -> Fused:
-    b = registered_fusion(x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration)
+    b = registered_fusion(
+        x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration, x.memo, x.pair_key
+    )
     return Fused(b.masses, seconds=b.seconds, details=b)
 
 
@@ -398,7 +480,9 @@ def _network(x: FusionInput) -> np.ndarray:
 def _registered_network(x: FusionInput) -> Fused:
     from traffictwin.fusion.model_io import predict_masses
 
-    b = registered_fusion(x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration)
+    b = registered_fusion(
+        x.map1, x.map2, x.rel_pose_noisy, x.grid, x.registration, x.memo, x.pair_key
+    )
     inputs = np.concatenate([np.asarray(x.map1, dtype=np.float32), b.warped], axis=1)
     t1 = time.perf_counter()
     masses = predict_masses(x.model, inputs, x.batch_size)[0]
@@ -413,12 +497,19 @@ def learned_registration_batch(x: FusionInput, registration: Any) -> RegisteredB
     map 2 warped by the pose used, Dempster; as a :class:`RegisteredBatch` (per-pair seconds =
     the batch's wall time / N). Where the raw map 2 is given (``x.map2``), it is warped once from
     its own frame by the pose used (:func:`~traffictwin.evidential.warp.warp_masses`, as
-    ``registered`` does); otherwise the prealigned map 2 is re-sampled by the correction."""
+    ``registered`` does); otherwise the prealigned map 2 is re-sampled by the correction.
+    With ``x.memo`` and ``x.pair_key`` the batch's result is computed once (key: the pair keys)
+    and reused, its per-pair seconds unchanged."""
     import torch
 
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.fusion.learned_registration import check_pair_inputs, correction_to_pose
 
+    key = None
+    if x.memo is not None and x.pair_key is not None:
+        key = ("learned", id(registration), tuple(int(k) for k in x.pair_key))
+        if key in x.memo:
+            return x.memo[key]
     inputs = np.ascontiguousarray(x.inputs, dtype=np.float32)
     noisy = np.asarray(x.rel_pose_noisy, dtype=np.float64)
     check_pair_inputs(inputs, noisy, x.grid)
@@ -434,7 +525,7 @@ def learned_registration_batch(x: FusionInput, registration: Any) -> RegisteredB
         warped = r["warped"].numpy().astype(np.float32)
     masses = dempster(inputs[:, :2], warped)
     per_pair = (time.perf_counter() - t0) / max(1, len(inputs))
-    return RegisteredBatch(
+    out = RegisteredBatch(
         masses=masses.astype(np.float32),
         warped=warped,
         poses=poses,
@@ -444,6 +535,9 @@ def learned_registration_batch(x: FusionInput, registration: Any) -> RegisteredB
         cc_est=r["cc_est"].double().numpy(),
         seconds=np.full(len(inputs), per_pair),
     )
+    if key is not None:
+        x.memo[key] = out
+    return out
 
 
 @register(

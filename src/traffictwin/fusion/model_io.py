@@ -83,13 +83,12 @@ def load_fusion_model(
                 raise FusionModelError(
                     f"{path}: checkpoint and {meta_path.name} disagree on '{key}' "
                     f"(checkpoint {info.get(key)!r}, meta {meta.get(key)!r}); the checkpoint was replaced by one "
-                    f"from another run — re-run `dvc repro train_fusion@{meta.get('cfg')}`"
+                    f"from another run — re-run the training stage that wrote it (`dvc repro train_fusion`)"
                 )
     if expected_cfg is not None and info.get("cfg") != expected_cfg:
-        noise = info.get("noise", {})
         raise FusionModelError(
-            f"{path}: trained for configuration '{info.get('cfg')}' (r={noise.get('r')} m, alpha={noise.get('alpha')} deg), "
-            f"expected configuration '{expected_cfg}'"
+            f"{path}: trained on the pose noise of '{info.get('cfg')}' ({info.get('noise', {})}), "
+            f"expected '{expected_cfg}'"
         )
     arch = info.get("architecture")
     if expected_architecture is not None:

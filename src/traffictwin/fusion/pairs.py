@@ -268,13 +268,19 @@ def prealign_shard(
     draws: int,
     grid: GridSpec,
     compresslevel: int = 1,
+    mixture: tuple[np.ndarray, str] | None = None,
 ) -> tuple[str, int]:
     """Read fusion shard ``src`` (already verified by the caller), prealign with ``draws`` noise
     draws per pair (draw ``d`` of pair ``pid`` from :func:`~traffictwin.evidential.noise.standard_normal_draws`
-    with ``(seed, pid, d)`` scaled by ``(r, alpha_deg)``), write ``dst``; returns ``(sha256, count)``."""
+    with ``(seed, pid, d)`` scaled by ``(r, alpha_deg)``), write ``dst``; returns ``(sha256, count)``.
+
+    ``mixture = (sigmas (K, 3), kind)``: instead of one configuration's noise, each draw is scaled
+    by :func:`~traffictwin.evidential.noise.noise_scales` (one of K configurations, or the largest
+    scaled by U(0, 1)); ``r`` and ``alpha_deg`` are then ignored. The shard also stores each row's
+    ``noise_sigma (N, 3)``."""
     import cv2
 
-    from traffictwin.evidential.noise import scale_noise, standard_normal_draws
+    from traffictwin.evidential.noise import noise_scales, scale_noise, standard_normal_draws
     from traffictwin.io.shards import read_npz, write_npz_deterministic
 
     cv2.setNumThreads(1)
@@ -286,7 +292,12 @@ def prealign_shard(
     pid = np.repeat(shard["pair_id"], draws)
     draw = np.tile(np.arange(draws), len(shard["pair_id"]))
     z = standard_normal_draws(seed, pid, draw)
-    arrays = prealign_arrays(shard, scale_noise(z, r, alpha_deg), grid, draw)
+    if mixture is None:
+        arrays = prealign_arrays(shard, scale_noise(z, r, alpha_deg), grid, draw)
+    else:
+        sig = noise_scales(seed, pid, draw, mixture[0], mixture[1])
+        arrays = prealign_arrays(shard, z * sig, grid, draw)
+        arrays["noise_sigma"] = sig
     digest = write_npz_deterministic(dst, arrays, compresslevel=compresslevel)
     return digest, len(arrays["inputs"])
 

@@ -19,7 +19,6 @@ import json
 import logging
 import math
 import tempfile
-import time
 from collections.abc import Mapping
 from dataclasses import MISSING, asdict, dataclass
 from pathlib import Path
@@ -47,7 +46,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.mlops.tracking import DATA_TAG, log_dataset
+from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -99,8 +98,18 @@ def load_registration_split(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``inputs (N,4,H,W)``, ``label (N,2,H,W)``, true sampling matrices ``M (N,3,3)`` and rotation
     centres ``(N,2)`` (float32) of a prealigned ``split``; masses and poses checked, errors name the file."""
-    ds = Dataset(root, kind="prealigned")
-    a = ds.load_all(split, keys=["inputs", "label", "rel_pose_noisy", "rel_pose_true"])
+    def masses_ok(name: str, arrays: dict[str, np.ndarray]) -> None:
+        xs = arrays["inputs"]
+        for key, arr in (("inputs", xs[:, :2]), ("inputs", xs[:, 2:]), ("label", arrays["label"])):
+            try:
+                check_masses(arr, name=f"{root}/{name}: split '{split}' array '{key}'")
+            except ValueError as exc:
+                raise DatasetError(str(exc)) from None
+
+    ds = Dataset(root, kind="prealigned", verify=False)  # each shard's hash: checked as it is read
+    a = ds.load_all(
+        split, keys=["inputs", "label", "rel_pose_noisy", "rel_pose_true"], check=masses_ok
+    )
     x, y = a["inputs"], a["label"]
     if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != grid.shape:
         raise DatasetError(
@@ -113,11 +122,6 @@ def load_registration_split(
             raise DatasetError(
                 f"{root}: split '{split}' array '{key}' must be finite (N, 3) = ({len(x)}, 3) poses"
             )
-    for key, arr in (("inputs", x[:, :2]), ("inputs", x[:, 2:]), ("label", y)):
-        try:
-            check_masses(arr, name=f"{root}: split '{split}' array '{key}'")
-        except ValueError as exc:
-            raise DatasetError(str(exc)) from None
     m, c = correction_target(a["rel_pose_noisy"], a["rel_pose_true"], grid)
     f32 = lambda v: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32))  # noqa: E731
     return f32(x), f32(y), f32(m), f32(c)
@@ -247,6 +251,7 @@ class RegistrationFitResult:
     model_uri: str | None = None
     train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
     samples_per_s: float | None = None  # training pairs per second of train_seconds
+    precision: str | None = None  # the trainer's resolved precision: run record only
 
 
 def fit_registration(
@@ -259,8 +264,9 @@ def fit_registration(
     seed: int,
     grid: GridSpec,
     cfg_name: str,
-    noise: Mapping[str, float],
+    noise: Mapping[str, Any],
     ckpt_out: str | Path,
+    augment_noise: tuple[float, float] | None = None,
     meta_out: str | Path | None = None,
     metrics_out: str | Path | None = None,
     curves_out: str | Path | None = None,
@@ -278,15 +284,17 @@ def fit_registration(
     for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`).
     """
     common.seed_everything(seed)
-    ds = Dataset(data_root, kind="prealigned")
+    ds = Dataset(data_root, kind="prealigned", verify=False)  # the loader checks every shard it reads
     manifest_hash = ds.manifest_hash()
     tensors = {s: load_registration_split(data_root, s, grid) for s in ("train", "val")}
     if len(tensors["train"][0]) < train.batch_size:
         raise DatasetError(
             f"{data_root}: {len(tensors['train'][0])} training pairs < batch_size {train.batch_size}"
         )
-    sig_xy, sig_yaw = noise_sigmas(float(noise["r"]), float(noise["alpha"]))
-    # augmentation: the configuration's own noise model, scaled; at least D-like diversity is not assumed
+    # augmentation: the noise model ``augment_noise`` = (r m, alpha deg) (default: ``noise``'s own,
+    # a single configuration), scaled by ``train.augment_scale``
+    r_aug, a_aug = augment_noise if augment_noise is not None else (noise["r"], noise["alpha"])
+    sig_xy, sig_yaw = noise_sigmas(float(r_aug), float(a_aug))
     hparams = {
         "lr": train.lr,
         "weight_decay": train.weight_decay,
@@ -302,7 +310,7 @@ def fit_registration(
     grid_d = {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell}
     meta_base = {
         "cfg": cfg_name,
-        "network": f"learned-{cfg_name}",
+        "network": "learned",
         "method": "learned",
         "noise": dict(noise),
         "grid": grid_d,
@@ -336,89 +344,60 @@ def fit_registration(
             "data_root": str(data_root),
         },
     )
-    with (
-        session.workdir("registration_ckpt_") as work,
-        common.tracked_run(
-            tracking.experiment,
-            tracking.run_name,
-            profile=tracking.profile,
-            stage=tracking.stage,
-            tags={
-                DATA_TAG: manifest_hash,
-                "cfg": cfg_name,
-                "network": meta_base["network"],
-                "method": "learned",
-            },
-            params={
-                **tracking.params,
-                "data.manifest_hash": manifest_hash,
-                "model.param_count": n_params,
-            },
-            enabled=tracking.enabled,
-            run_id=session.run_id(),
-        ) as run,
-    ):
-        logger = common.mlflow_logger(run)
-        if run is not None and session.resume_from is None:
-            log_dataset(data_root, manifest_hash)
-        session.started(run)
-        history = common.History(logger=logger)
-        ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
-        trainer = common.build_trainer(
-            trainer_settings,
-            max_epochs=train.max_epochs,
-            callbacks=[
-                history,
-                ckpt_cb,
-                common.early_stopping(SELECTION_METRIC, train.early_stopping_patience),
-                *session.callbacks(),
-                common.FiniteGuard(
-                    tracking.stage, hint="registration_model.train.lr", monitor=SELECTION_METRIC
-                ),
-            ],
-            default_root_dir=work,
-        )
-        t0 = time.perf_counter()
-        trainer.fit(
-            module,
-            train_dataloaders=train_dl,
-            val_dataloaders=val_dl,
-            ckpt_path=session.resume_from,
-        )
-        train_s = time.perf_counter() - t0
-        if not trainer.is_global_zero:
+    fit_loop = common.FitLoop(
+        monitor=SELECTION_METRIC,
+        max_epochs=train.max_epochs,
+        patience=train.early_stopping_patience,
+        hint="registration_model.train.lr",
+    )
+    with common.fit_run(
+        module,
+        settings=trainer_settings,
+        loop=fit_loop,
+        tracking=tracking,
+        session=session,
+        tags={
+            DATA_TAG: manifest_hash,
+            "cfg": cfg_name,
+            "network": meta_base["network"],
+            "method": "learned",
+        },
+        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
+        datasets=[(data_root, manifest_hash)],
+        train_dataloaders=train_dl,
+        val_dataloaders=val_dl,
+    ) as fitted:
+        if fitted is None:
             return None
-        best = ckpt_cb.best_model_path
-        if not best or not Path(best).exists():
+        if fitted.best is None:
             raise RuntimeError(
                 "learned registration training produced no checkpoint (no finite val/loss: NaN/inf in the data or the learning rate?)"
             )
-        ck = torch.load(best, map_location="cpu", weights_only=False)
         slim = common.model_checkpoint(
             PROBLEM,
             asdict(spec),
-            ck["state_dict"],
+            fitted.best["state_dict"],
             {},
-            epoch=int(ck.get("epoch", -1)),
-            global_step=int(ck.get("global_step", -1)),
+            epoch=fitted.best_epoch,
+            global_step=int(fitted.best.get("global_step", -1)),
         )
         best_epoch = slim["epoch"]
-        row = next(
-            (r for r in history.rows if r["epoch"] == best_epoch),
-            history.rows[-1] if history.rows else {},
-        )
+        row = fitted.best_row()
         if not all(
             math.isfinite(float(row.get(k, float("nan")))) for k in ("val/loss", "val/trans_err_m")
         ):
             raise RuntimeError(
                 f"learned registration: best epoch {best_epoch} has non-finite validation metrics {row}"
             )
+        epochs_run = len(fitted.history.rows)
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
-        samples_seen = k // train.batch_size * train.batch_size * len(history.rows)
+        samples_seen = k // train.batch_size * train.batch_size * epochs_run
         metrics.update(
             {
                 "best_epoch": best_epoch,
-                "epochs": len(history.rows),
+                "epochs": epochs_run,
+                "max_epochs": train.max_epochs,
+                "stopped_early": epochs_run < train.max_epochs,
                 "samples_seen": samples_seen,
                 "param_count": n_params,
                 "train_pairs": len(train_set),
@@ -438,9 +417,10 @@ def fit_registration(
         }
         slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         uri = None
+        run = fitted.run
         if run is not None:
             common.log_final_metrics(
-                logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
+                fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
             )
             with tempfile.TemporaryDirectory(prefix="registration_art_") as art:
                 p = Path(art) / "model.ckpt"
@@ -465,17 +445,18 @@ def fit_registration(
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
         if curves_out:
-            history.write_csv(curves_out)
-    session.finish()
+            fitted.history.write_csv(curves_out)
+        train_s, history_rows, precision = fitted.seconds, fitted.history.rows, fitted.precision
     return RegistrationFitResult(
         Path(ckpt_out),
         meta,
         metrics,
-        history.rows,
+        history_rows,
         run.info.run_id if run is not None else None,
         uri,
         round(train_s, 2),
         round(samples_seen / train_s, 3) if train_s > 0 else None,
+        precision,
     )
 
 
@@ -505,7 +486,7 @@ def load_registration_model(
         for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
             if meta.get(key) != info.get(key):
                 raise FusionModelError(
-                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' (re-run `dvc repro train_registration@{meta.get('cfg')}`)"
+                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' (re-run `dvc repro train_registration`)"
                 )
     g = GridSpec(**info["grid"])
     if expected_grid is not None and (g.rows, g.cols, g.cell) != (

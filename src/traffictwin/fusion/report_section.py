@@ -37,7 +37,7 @@ from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import files_table, findings_group
 
 FUSION_FILE = "fusion.json"
-TRAINING_FILES = r"train_fusion_(\w+)\.json"  # one per configuration, shown side by side
+TRAINING_FILES = r"train_fusion_(\w+)\.json"  # the one network and each variant, side by side
 TITLE = "Paper 1 — cooperative evidential occupancy-grid fusion"
 
 # The figures the fusion stages write: file stem -> caption, in the order the section shows them.
@@ -72,13 +72,14 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "learned": "learned registration + Dempster",
     "learned+network": "learned registration + network",
 }
+PER_CONFIG_ROW = "dnn[per-config]"  # the ablation's networks trained on one configuration each
 POSE_ROWS = ("registered", "learned")  # rows with their own pose estimate (the hybrids reuse them)
-REGISTRATION_FILES = r"train_registration_(\w+)\.json"
+REGISTRATION_FILES = r"train_(registration)\.json"  # the one learned registration
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 LEARNING_CURVE = re.compile(
-    r"train_(fusion|registration)_(\w+)"
-)  # figures/train_fusion_<name>.png (stage train_fusion), train_registration_<cfg>.png
+    r"train_(fusion|registration)_?(\w*)"
+)  # figures/train_fusion_<name>.png (train_fusion and its variants), train_registration.png
 CI_NOTE = (
     "Brackets: 95 % cluster-bootstrap interval (scenario = pair_id // 1000 resampled; "
     "evaluation.fusion_ci)."
@@ -375,17 +376,22 @@ def fusion_tables(
     ablation = loss_ablation_table(src, cfgs)
     if ablation is not None:
         tables.append(ablation)
+    one = per_config_table(src, configurations, cfgs)
+    if one is not None:
+        tables.append(one)
 
     cross = lookup(src.metrics.get(FUSION_FILE), "cross")
     if isinstance(cross, dict) and cross:
         nets = sorted(cross)
         tcfgs = sorted({tc for n in nets if isinstance(cross[n], dict) for tc in cross[n]})
         t = Table(
-            "Fusion: cross table, KLD(b) mean of the network trained on one configuration (rows) "
-            "tested on another (columns)",
+            "Fusion: cross table, KLD(b) mean of the per-configuration networks (the ablation) "
+            "trained on one configuration (rows) tested on another (columns)",
             ["network trained on", *[f"test {tc}" for tc in tcfgs]],
             anchor="fusion-cross",
-            note="Own configuration: all test pairs; others: a subset (evaluation.fusion.cross_max_pairs).",
+            note="Own configuration: all test pairs; others: a subset "
+            "(evaluation.fusion.cross_max_pairs). The one network (row dnn of the KLD table) is "
+            "evaluated at every configuration on all pairs.",
         )
         for n in nets:
             t.rows.append(
@@ -398,8 +404,8 @@ def fusion_tables(
 def registration_tables(
     src: page.Sources, configurations: Mapping[str, tuple[float, float]], cfgs: Sequence[str]
 ) -> list[Table]:
-    """The registration error table (every row that estimates a pose, per configuration), success
-    rate per bin of the drawn yaw error, and the learned registration's cross table."""
+    """The registration error table (every row that estimates a pose, per configuration) and the
+    success rate per bin of the drawn translation and yaw error."""
     rows = [
         m
         for m in POSE_ROWS
@@ -493,39 +499,6 @@ def registration_tables(
                     cells.append(Cell(NA))
             b.rows.append(cells)
         out.append(b)
-    cross = lookup(src.metrics.get(FUSION_FILE), "cross")
-    learned = (
-        sorted(n for n in (cross or {}) if n.startswith("learned-"))
-        if isinstance(cross, dict)
-        else []
-    )
-    if learned:
-        tcfgs = sorted({tc for n in learned if isinstance(cross[n], dict) for tc in cross[n]})
-        x = Table(
-            "Registration: cross table of the learned registration (+ Dempster), trained on one "
-            "configuration (rows), tested on another (columns): success rate / Dice occ",
-            ["trained on", *[f"test {tc}" for tc in tcfgs]],
-            note="All test pairs of the tested configuration. Target: trained on D, at most 5 % "
-            "relative Dice occ loss against the configuration's own network (learned_cross_dice_drop).",
-            anchor="fusion-registration-cross",
-        )
-        for n in learned:
-            cells = [Cell(n)]
-            for tc in tcfgs:
-                sr = src.get(FUSION_FILE, f"cross.{n}.{tc}.success_rate")
-                dc = src.get(FUSION_FILE, f"cross.{n}.{tc}.dice_occ")
-                if isinstance(sr, (int, float)) and isinstance(dc, (int, float)):
-                    cells.append(
-                        Cell(
-                            f"{sr:.3f} / {dc:.3f}",
-                            value=[sr, dc],
-                            derived=f"metrics/{FUSION_FILE}#cross.{n}.{tc}.success_rate / .dice_occ",
-                        )
-                    )
-                else:
-                    cells.append(Cell(NA))
-            x.rows.append(cells)
-        out.append(x)
     return out
 
 
@@ -581,7 +554,7 @@ def target_table(src: page.Sources) -> Table | None:
 def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
     """The network rows ``dnn`` and ``dnn[<loss>]`` side by side at the configurations where a loss
     variant exists (None when there is none)."""
-    variants = _network_rows(src, cfgs)
+    variants = [v for v in _network_rows(src, cfgs) if not v.startswith(PER_CONFIG_ROW)]
     at = [c for c in cfgs if any(_has(src, c, v) for v in variants)]
     if not at:
         return None
@@ -625,6 +598,78 @@ def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
     return t
 
 
+def _per_config_source(src: page.Sources, cfgs: Sequence[str]) -> tuple[str, str] | None:
+    """``(metrics file, key prefix)`` holding the per-configuration networks' rows: this run's
+    fusion.json, else an ablation experiment's results (``reports/ablations/<name>.json``, blocks
+    under ``fusion.``); None when neither has them."""
+    candidates = [(FUSION_FILE, "")] + [
+        (f, "fusion.") for f in sorted(src.metrics) if f.startswith("ablations/")
+    ]
+    for f, prefix in candidates:
+        if any(isinstance(src.get(f, f"{prefix}test.{c}.{PER_CONFIG_ROW}"), dict) for c in cfgs):
+            return f, prefix
+    return None
+
+
+def per_config_table(
+    src: page.Sources, configurations: Mapping[str, tuple[float, float]], cfgs: Sequence[str]
+) -> Table | None:
+    """The one network against the per-configuration networks (the ablation's ``dnn[per-config]``
+    rows): KLD(b) of both and their paired difference per configuration, from this run or from
+    the ablation experiment's collected results (None without them)."""
+    found = _per_config_source(src, cfgs)
+    if found is None:
+        return None
+    f, prefix = found
+    origin = (
+        "this run"
+        if f == FUSION_FILE
+        else f"the ablation experiment {src.get(f, 'experiment', '?')} "
+        f"(commit {str(src.get(f, 'commit', '?'))[:8]}, `{f}`; its own evaluation of both networks)"
+    )
+    t = Table(
+        "Fusion: the one network against a network per configuration (test split, same pairs)",
+        [
+            "config",
+            "r [m]",
+            "α [deg]",
+            "KLD(b) one network",
+            "95 % CI",
+            "KLD(b) own network",
+            "95 % CI",
+            "Δ one − own",
+            "95 % CI",
+        ],
+        note="dnn[per-config] = a network trained on that configuration's noise only (the paper's "
+        "setting; `make ablations`, the per_config ablation); the one network "
+        "is trained on the mixed noise of every configuration. Δ: paired over the same pairs; "
+        f"target one_vs_per_config: the interval's upper end <= +0.005. Numbers from {origin}. "
+        + CI_NOTE,
+        anchor="fusion-one-vs-per-config",
+    )
+
+    def ci(key: str) -> Cell:
+        b = src.get(f, key)
+        if not isinstance(b, dict) or not isinstance(b.get("lo"), (int, float)):
+            return Cell(NA)
+        return Cell(f"[{fmt_value(b['lo'], 'g4')}, {fmt_value(b['hi'], 'g4')}]")
+
+    for c in cfgs:
+        if not isinstance(src.get(f, f"{prefix}test.{c}.{PER_CONFIG_ROW}"), dict):
+            continue
+        row = _config_cells(configurations, c)
+        for m in (NET, PER_CONFIG_ROW):
+            k = f"{prefix}{fusion_key(c, m, HEADLINE)}"
+            row += [src.cell(f, k), ci(f"{k}_ci")]
+        dk = f"{prefix}{_diff_key(c, NET, PER_CONFIG_ROW, HEADLINE)}"
+        if isinstance(src.get(f, dk), dict):
+            row += [src.cell(f, f"{dk}.estimate"), ci(dk)]
+        else:
+            row += [Cell(NA), Cell(NA)]
+        t.rows.append(row)
+    return t
+
+
 def _captioned(figures: list[page.Figure]) -> list[page.Figure]:
     """Learning-curve figures of stage train_fusion (``train_fusion_<name>.png``) get a caption."""
     out = []
@@ -639,10 +684,41 @@ def _captioned(figures: list[page.Figure]) -> list[page.Figure]:
         elif m:
             f = replace(
                 f,
-                caption=f"Learning curves of the learned registration of configuration {m.group(2)} "
-                f"(validation success rate, mean pose errors, training / validation loss per epoch) — `{f.path}`",
+                caption="Learning curves of the learned registration (one model for every pose-noise "
+                "level; validation success rate, mean pose errors, training / validation loss per "
+                f"epoch) — `{f.path}`",
             )
         out.append(f)
+    return out
+
+
+def training_stops(src: page.Sources) -> list[str]:
+    """Where each training of this run stopped and why (its metrics file: ``epochs``,
+    ``max_epochs``, ``best_epoch``, ``stopped_early``): one sentence per model."""
+    out = []
+    for f in sorted(src.metrics):
+        m = re.fullmatch(TRAINING_FILES, f) or re.fullmatch(REGISTRATION_FILES, f)
+        data = src.metrics[f] if m else None
+        if not isinstance(data, dict) or not isinstance(data.get("epochs"), int):
+            continue
+        n, cap, best = data["epochs"], data.get("max_epochs"), data.get("best_epoch")
+        what = (
+            "the learned registration"
+            if f.startswith("train_registration")
+            else f"fusion network `{m.group(1)}`"
+        )
+        if data.get("stopped_early"):
+            why = f"early stopping ended it after {n} of at most {cap} epochs (its validation metric had stopped improving)"
+        elif cap is not None:
+            why = f"it ran all {n} of its {cap} epochs (not converged by the early-stopping rule)"
+        else:
+            why = f"it ran {n} epochs"
+        tail = ""
+        if isinstance(best, int) and best >= 0:
+            tail = f"; best epoch {best + 1} of {n}" + (
+                " (in the last 20 % of the epochs run)" if best + 1 > 0.8 * n else ""
+            )
+        out.append(f"Training of {what}: {why}{tail} (`metrics/{f}`).")
     return out
 
 
@@ -668,8 +744,9 @@ def section(
     training = files_table(
         src,
         TRAINING_FILES,
-        "Fusion: training per configuration (validation split; "
-        "`_naive` = the naive fusion on the same pairs)",
+        "Fusion: training of the one network and the variants (validation split of their own "
+        "training noise; `_naive` = the naive fusion on the same pairs; `stopped_early`: early "
+        "stopping ended the run before `max_epochs`, i.e. val KLD(b) had plateaued)",
         "fusion-training",
     )
     if training:
@@ -677,12 +754,14 @@ def section(
     reg_training = files_table(
         src,
         REGISTRATION_FILES,
-        "Learned registration: training per configuration (validation split; success = error "
-        "< 0.5 m and < 1°, before the fallback check)",
+        "Learned registration: training of the one model (validation split of the mixed noise; "
+        "success = error < 0.5 m and < 1°, before the fallback check; `stopped_early`: early "
+        "stopping ended the run, i.e. val/loss had plateaued)",
         "registration-training",
     )
     if reg_training:
         sec.tables.append(reg_training)
+    sec.paragraphs.extend(training_stops(src))
     sec.bullet_groups.append(findings_group(src, FUSION_FILE, fusion_findings))
     sec.bullet_groups.append(
         (
@@ -697,7 +776,7 @@ def section(
 def headlines(
     metrics: Mapping[str, Any], configurations: Mapping[str, tuple[float, float]]
 ) -> list[Headline]:
-    """Per configuration: the configuration's network (``dnn``) on the test pairs, KL(label‖pred)
+    """Per configuration: the one network (``dnn``) on the configuration's test pairs, KL(label‖pred)
     over ``(m_F, m_O, u)`` (nats per cell, the headline) and occupied-cell Dice, with their
     scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice``: occupied cells)."""
     out: list[Headline] = []

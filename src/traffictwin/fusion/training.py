@@ -26,7 +26,6 @@ import json
 import logging
 import math
 import tempfile
-import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -72,7 +71,7 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.mlops.tracking import DATA_TAG, log_dataset
+from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.trainer import TrackingSettings
 
 log = logging.getLogger(__name__)
@@ -174,9 +173,18 @@ class DataSettings:
 def load_prealigned(
     root: str | Path, split: str, grid: GridSpec | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``inputs (N, 4, H, W)``, ``label (N, 2, H, W)`` float32 tensors of ``split`` (checked against ``grid``)."""
-    ds = Dataset(root, kind="prealigned")
-    arrays = ds.load_all(split, keys=["inputs", "label"])
+    """``inputs (N, 4, H, W)``, ``label (N, 2, H, W)`` float32 tensors of ``split`` (checked against
+    ``grid``). Every shard read is checked against the manifest's SHA-256 and its masses (finite,
+    on the simplex) as it is loaded (:meth:`~traffictwin.io.shards.Dataset.load_all`)."""
+
+    def masses_ok(name: str, a: dict[str, np.ndarray]) -> None:
+        # NaN, negative or off-simplex masses fail here, before any training
+        for key, arr in (("inputs", a["inputs"][:, 0:2]), ("inputs", a["inputs"][:, 2:4])):
+            _check_masses(arr, f"{root}/{name}: split '{split}' array '{key}'")
+        _check_masses(a["label"], f"{root}/{name}: split '{split}' array 'label'")
+
+    ds = Dataset(root, kind="prealigned", verify=False)  # each shard's hash: checked as it is read
+    arrays = ds.load_all(split, keys=["inputs", "label"], check=masses_ok)
     x, y = arrays["inputs"], arrays["label"]
     if x.ndim != 4 or x.shape[1] != 4:
         raise DatasetError(f"{root}: array 'inputs' must be (N, 4, H, W), got {x.shape}")
@@ -188,14 +196,17 @@ def load_prealigned(
         raise DatasetError(
             f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)"
         )
-    for key, arr in (("inputs", x[:, 0:2]), ("inputs", x[:, 2:4]), ("label", y)):
-        try:  # NaN, negative or off-simplex masses fail here, before any training
-            check_masses(arr, name=f"{root}: split '{split}' array '{key}'")
-        except ValueError as exc:
-            raise DatasetError(str(exc)) from None
     return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(
         np.ascontiguousarray(y, dtype=np.float32)
     )
+
+
+def _check_masses(arr: np.ndarray, name: str) -> None:
+    """:func:`~traffictwin.evidential.masses.check_masses` as a :class:`DatasetError`."""
+    try:
+        check_masses(arr, name=name)
+    except ValueError as exc:
+        raise DatasetError(str(exc)) from None
 
 
 class FusionDataModule(L.LightningDataModule):
@@ -498,6 +509,7 @@ class FusionTrainConfig:
     train_samples_per_epoch: int = setting(min=0)
     val_samples: int = setting(min=0)
     early_stopping_patience: int = setting(min=1)
+    early_stopping_min_delta: float = setting(min=0.0)
     gradient_clip_val: float | None = setting()
     channels_last: bool = setting()
 
@@ -565,6 +577,7 @@ class LoopSettings:
 
     max_epochs: int = 200
     early_stopping_patience: int = 30
+    early_stopping_min_delta: float = 0.0  # val KLD(b) must fall by more than this to count
     gradient_clip_val: float | None = None
 
 
@@ -580,21 +593,13 @@ class FitResult:
     model_uri: str | None = None
     train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
     samples_per_s: float | None = None  # training pairs (all ranks) per second of train_seconds
+    precision: str | None = None  # the trainer's resolved precision: run record only
 
 
-def best_model_checkpoint(
-    lightning_ckpt: str | Path, architecture: Mapping[str, Any], meta: Mapping[str, Any]
-) -> dict[str, Any]:
-    """The best epoch's Lightning checkpoint in the one model format (no optimizer/loop state)."""
-    ck = torch.load(lightning_ckpt, map_location="cpu", weights_only=False)
-    return common.model_checkpoint(
-        "fusion",
-        architecture,
-        ck["state_dict"],
-        meta,
-        epoch=int(ck.get("epoch", -1)),
-        global_step=int(ck.get("global_step", -1)),
-    )
+def stopped_early(epochs_run: int, max_epochs: int) -> bool:
+    """Whether early stopping ended the run before ``max_epochs`` (the run converged on its
+    validation metric instead of running out of epochs)."""
+    return int(epochs_run) < int(max_epochs)
 
 
 def fit_fusion(
@@ -637,7 +642,7 @@ def fit_fusion(
     """
     common.seed_everything(seed)
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
-    ds = Dataset(data_root, kind="prealigned")
+    ds = Dataset(data_root, kind="prealigned", verify=False)  # the loader checks every shard it reads
     manifest_hash = ds.manifest_hash()
     tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
     meta_base = {
@@ -671,71 +676,50 @@ def fit_fusion(
     )
     if session.resume_from is not None:
         log.info("resuming %s from %s", tracking.stage, session.resume_from)
-
-    with (
-        session.workdir("fusion_ckpt_") as work,
-        common.tracked_run(
-            tracking.experiment,
-            tracking.run_name,
-            profile=tracking.profile,
-            stage=tracking.stage,
-            tags={
-                DATA_TAG: manifest_hash,
-                "cfg": cfg_name,
-                "network": network or cfg_name,
-                "loss": hparams.loss,
-            },
-            params={
-                **tracking.params,
-                "data.manifest_hash": manifest_hash,
-                "model.param_count": n_params,
-            },
-            enabled=tracking.enabled,
-            run_id=session.run_id(),
-        ) as run,
-    ):
-        logger = common.mlflow_logger(run)
-        if run is not None and session.resume_from is None:
-            log_dataset(data_root, manifest_hash)
-        session.started(run)
-        history = common.History(logger=logger)
-        ckpt_cb = common.best_checkpoint(work, monitor=SELECTION_METRIC)
-        callbacks = [
-            history,
-            ckpt_cb,
-            common.early_stopping(SELECTION_METRIC, loop.early_stopping_patience),
-            common.FiniteGuard(
-                tracking.stage, hint="fusion_model.optim.lr", monitor=SELECTION_METRIC
-            ),
-        ]
-        callbacks += session.callbacks()
-        trainer = common.build_trainer(
-            trainer_settings,
-            max_epochs=loop.max_epochs,
-            callbacks=callbacks,
-            default_root_dir=work,
-            gradient_clip_val=loop.gradient_clip_val,
-            **trainer_extra,
-        )
-        t0 = time.perf_counter()
-        trainer.fit(module, datamodule=dm, ckpt_path=session.resume_from)
-        train_s = time.perf_counter() - t0
-        if not trainer.is_global_zero:
+    fit_loop = common.FitLoop(
+        monitor=SELECTION_METRIC,
+        max_epochs=loop.max_epochs,
+        patience=loop.early_stopping_patience,
+        min_delta=loop.early_stopping_min_delta,
+        hint="fusion_model.optim.lr",
+        gradient_clip_val=loop.gradient_clip_val,
+        trainer_extra=trainer_extra,
+    )
+    with common.fit_run(
+        module,
+        settings=trainer_settings,
+        loop=fit_loop,
+        tracking=tracking,
+        session=session,
+        tags={
+            DATA_TAG: manifest_hash,
+            "cfg": cfg_name,
+            "network": network or cfg_name,
+            "loss": hparams.loss,
+        },
+        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
+        datasets=[(data_root, manifest_hash)],
+        datamodule=dm,
+    ) as fitted:
+        if fitted is None:
             return None
-        best = ckpt_cb.best_model_path
-        if not best or not Path(best).exists():
+        if fitted.best is None:
             raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
-        slim = best_model_checkpoint(best, spec.as_dict(), {})
-        best_epoch = slim["epoch"]
-        row = next(
-            (r for r in history.rows if r["epoch"] == best_epoch),
-            history.rows[-1] if history.rows else {},
+        slim = common.model_checkpoint(
+            "fusion",
+            spec.as_dict(),
+            fitted.best["state_dict"],
+            {},
+            epoch=fitted.best_epoch,
+            global_step=int(fitted.best.get("global_step", -1)),
         )
-        epochs_run = len(history.rows)
+        best_epoch = slim["epoch"]
+        row = fitted.best_row()
+        epochs_run = len(fitted.history.rows)
         n_train = len(dm.train_set) if dm.train_set is not None else 0
         k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
         # per epoch each of the world_size ranks trains on k // world_size pairs in full batches
-        world = int(trainer.world_size)
+        world = int(fitted.trainer.world_size)
         per_rank = min(k, n_train) // world // data.batch_size * data.batch_size
         samples_seen = per_rank * world * epochs_run
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
@@ -743,6 +727,8 @@ def fit_fusion(
             {
                 "best_epoch": best_epoch,
                 "epochs": epochs_run,
+                "max_epochs": loop.max_epochs,
+                "stopped_early": stopped_early(epochs_run, loop.max_epochs),
                 "samples_seen": samples_seen,
                 "param_count": n_params,
                 "train_pairs": n_train,
@@ -762,9 +748,10 @@ def fit_fusion(
         }
         slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
         model_uri = None
+        run = fitted.run
         if run is not None:
             common.log_final_metrics(
-                logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
+                fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
             )
             with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
                 p = Path(art) / "model.ckpt"
@@ -790,15 +777,18 @@ def fit_fusion(
         if metrics_out:
             write_json_atomic(metrics_out, metrics)
         if curves_out:
-            history.write_csv(curves_out)
-    session.finish()
+            fitted.history.write_csv(curves_out)
+        train_s = fitted.seconds
+        history_rows = fitted.history.rows
+        precision = fitted.precision
     return FitResult(
         Path(ckpt_out),
         meta,
         metrics,
-        history.rows,
+        history_rows,
         run.info.run_id if run is not None else None,
         model_uri,
         round(train_s, 2),
         round(samples_seen / train_s, 3) if train_s > 0 else None,
+        precision,
     )

@@ -120,13 +120,20 @@ def write_npz_deterministic(
     return digest
 
 
-def read_npz(path: str | Path, allow_inf: Collection[str] = ()) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` into memory; a clear error if it is not a readable archive
-    or a float array holds NaN (or ±inf outside ``allow_inf``; :func:`check_finite`)."""
+def read_npz(
+    path: str | Path, allow_inf: Collection[str] = (), keys: Iterable[str] | None = None
+) -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` (or only ``keys``: the others are not decompressed) into
+    memory; a clear error if it is not a readable archive, lacks a key, or a float array holds NaN
+    (or ±inf outside ``allow_inf``; :func:`check_finite`)."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+            names = list(z.files) if keys is None else list(keys)
+            missing = [k for k in names if k not in z.files]
+            if missing:
+                raise DatasetError(f"{path}: array(s) {missing} missing (has {sorted(z.files)})")
+            arrays = {k: z[k] for k in names}
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
@@ -581,30 +588,68 @@ class Dataset:
     def shard_indices(self, split: str | None = None) -> list[int]:
         return [i for i, s in enumerate(self.shards) if split is None or s.get("split") == split]
 
-    def load_shard(self, i: int) -> dict[str, np.ndarray]:
+    def load_shard(self, i: int, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """Shard ``i``'s arrays (only ``keys`` when given), its SHA-256 checked first."""
         s = self.shards[i]
-        return read_npz(self._check(s["name"], s["sha256"]), self.allow_inf)
+        return read_npz(self._check(s["name"], s["sha256"]), self.allow_inf, keys)
 
-    def iter_shards(self, split: str | None = None) -> Iterable[dict[str, np.ndarray]]:
+    def iter_shards(
+        self, split: str | None = None, keys: Iterable[str] | None = None
+    ) -> Iterable[dict[str, np.ndarray]]:
+        names = None if keys is None else list(keys)
         for i in self.shard_indices(split):
-            yield self.load_shard(i)
+            yield self.load_shard(i, names)
 
     def load_all(
-        self, split: str | None = None, keys: Iterable[str] | None = None
+        self,
+        split: str | None = None,
+        keys: Iterable[str] | None = None,
+        *,
+        check: Any = None,
+        workers: int = 2,
     ) -> dict[str, np.ndarray]:
-        """Concatenate every shard (of ``split``); ``keys`` limits the arrays loaded."""
-        parts = list(self.iter_shards(split))
-        if not parts:
+        """Every shard (of ``split``) concatenated; ``keys`` limits the arrays loaded (the others
+        are never decompressed). ``check(name, arrays)``, if given, runs on each shard's arrays as
+        it arrives (e.g. a mass check; raise to refuse the shard). Shards are read, hashed and
+        decompressed by ``workers`` threads (zlib and SHA-256 release the GIL) straight into the
+        preallocated result, which is the same for any number of workers."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        idx = self.shard_indices(split)
+        if not idx:
             raise DatasetError(
                 f"{self.root}: no shards" + (f" in split '{split}'" if split else "")
             )
-        names = list(keys) if keys is not None else list(parts[0])
-        for k in names:
-            if k not in parts[0]:
-                raise DatasetError(
-                    f"{self.root / self.shards[0]['name']}: array '{k}' missing (has {sorted(parts[0])})"
-                )
-        return {k: np.concatenate([p[k] for p in parts]) for k in names}
+        names = None if keys is None else list(keys)
+        first = self.load_shard(idx[0], names)
+        names = list(first) if names is None else names
+        counts = [len(first[names[0]])] + [int(self.shards[i]["count"]) for i in idx[1:]]
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        out = {
+            k: np.empty((int(starts[-1]), *first[k].shape[1:]), dtype=first[k].dtype) for k in names
+        }
+
+        def fill(j: int, arrays: dict[str, np.ndarray] | None = None) -> None:
+            arrays = self.load_shard(idx[j], names) if arrays is None else arrays
+            name = self.shards[idx[j]]["name"]
+            for k in names:
+                a = arrays[k]
+                if len(a) != counts[j] or a.shape[1:] != out[k].shape[1:]:
+                    raise DatasetError(
+                        f"{self.root / name}: array '{k}' has shape {a.shape}, expected "
+                        f"({counts[j]}, {', '.join(map(str, out[k].shape[1:]))}) like the other "
+                        "shards and the manifest's count"
+                    )
+                out[k][starts[j] : starts[j + 1]] = a
+            if check is not None:
+                check(name, arrays)
+
+        fill(0, first)
+        del first
+        if len(idx) > 1:
+            with ThreadPoolExecutor(max(1, min(workers, len(idx) - 1))) as pool:
+                list(pool.map(fill, range(1, len(idx))))
+        return out
 
     def table(self, name: str) -> Any:
         import pandas as pd

@@ -3,8 +3,8 @@
 Validated once at the start of ``pipelines/promote.py`` and ``pipelines/retrain.py`` with
 ``traffictwin.config.typed(cfg.registry, RegistryConfig, key="registry")``. Folders of data and
 models are not here: the workflow layer derives them (``pipelines/_paths.py``); the fusion
-configurations are the keys of ``configurations`` and the risk variant must be one of
-``risk_model.run_variants``.
+one fusion network and the one learned registration are gated on every configuration (the keys
+of ``configurations``) and the risk variant must be one of ``risk_model.run_variants``.
 """
 
 from __future__ import annotations
@@ -39,10 +39,11 @@ class GateConfig:
 
 @dataclass
 class FusionGateConfig(GateConfig):
-    """Registered models ``<name_prefix>-<cfg>``, one per pose-noise configuration."""
+    """Registered model ``name``: the one fusion network (or learned registration), gated on the
+    first ``max_pairs`` pairs (by pair id) of split ``split`` of every configuration."""
 
-    name_prefix: str = spec()
-    max_pairs: int | None = spec()  # first K test pairs by pair_id; None = all
+    name: str = spec()
+    max_pairs: int | None = spec()  # first K pairs by pair_id per configuration; None = all
 
 
 @dataclass
@@ -67,5 +68,6 @@ class RegistryConfig:
     aliases: AliasesConfig
     log: str  # promotion log: one JSON line per decision / rollback
     fusion: FusionGateConfig
+    registration: FusionGateConfig
     risk: RiskGateConfig
     retrain: RetrainConfig

@@ -1,6 +1,7 @@
 """MLflow Model Registry adapter: versions, aliases, champion history, apply/rollback, log.
 
-Names (docs/design.md "Tracking"): ``traffictwin-fusion-<cfg>`` and ``traffictwin-risk``; aliases
+Names (docs/design.md "Tracking"): ``traffictwin-fusion``, ``traffictwin-registration`` and
+``traffictwin-risk`` (one model per task); aliases
 ``champion`` and ``challenger`` (lowercase). The decision itself is pure and lives in
 :mod:`traffictwin.mlops.gate`; this module looks up what it needs in the registry and applies it:
 
@@ -91,7 +92,9 @@ CHALLENGER = "challenger"
 HISTORY_TAG = "traffictwin.champion_history"
 HISTORY_MAX = 100
 LOG_TAG = "traffictwin.promotion_log"
-FUSION_PREFIX = "traffictwin-fusion"
+# one registered model per task (conf/registry/base.yaml holds the same names)
+FUSION_NAME = "traffictwin-fusion"
+REGISTRATION_NAME = "traffictwin-registration"
 RISK_NAME = "traffictwin-risk"
 
 
@@ -105,11 +108,6 @@ class ChampionChangedError(RegistryError):
 
 class LockTimeoutError(RegistryError):
     """The registry lock was not acquired in time."""
-
-
-def fusion_name(cfg: str, prefix: str = FUSION_PREFIX) -> str:
-    """Registered-model name of fusion configuration ``cfg`` (``<prefix>-<cfg>``)."""
-    return f"{prefix}-{cfg}"
 
 
 def registered_names(cl, prefix: str = "") -> list[str]:

@@ -153,10 +153,18 @@ class Sources:
         self.root = Path(inputs.reports_dir)
         self.metrics: dict[str, Any] = {}
         self.missing: list[str] = []
+        self.paths: dict[str, str] = {}  # metrics file name -> its path under reports/
         mdir = self.root / "metrics"
         if mdir.is_dir():
             for p in sorted(mdir.glob("*.json")):
                 self.metrics[p.name] = _read_json(p)
+                self.paths[p.name] = f"metrics/{p.name}"
+        # results of the ablation experiments (pipelines/ablations.py), where they were collected
+        adir = self.root / "ablations"
+        if adir.is_dir():
+            for p in sorted(adir.glob("*.json")):
+                self.metrics[f"ablations/{p.name}"] = _read_json(p)
+                self.paths[f"ablations/{p.name}"] = f"ablations/{p.name}"
         self.timings: dict[str, Any] = {}
         tdir = self.root / "timings"
         if tdir.is_dir():
@@ -180,19 +188,20 @@ class Sources:
         writers' spelling of NaN, e.g. precision with no positive prediction): ``n/a`` with its source.
         """
         v = self.get(file, key, ABSENT)
+        path = self.paths.get(file, f"metrics/{file}")
         if v is ABSENT or isinstance(v, (dict, list)):
             if record:
-                self.missing.append(f"metrics/{file}#{key}")
-            return Cell(NA, title=f"not in reports/metrics/{file}: {key}")
+                self.missing.append(f"{path}#{key}")
+            return Cell(NA, title=f"not in reports/{path}: {key}")
         if v is None:
             return Cell(
                 NA,
-                src=f"metrics/{file}#{key}",
+                src=f"{path}#{key}",
                 value=None,
                 fmt=fmt,
                 title="undefined (null in the metrics file)",
             )
-        return Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)
+        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt)
 
     def param_cell(self, key: str, fmt: str = "str") -> Cell:
         v = self.inputs.run_params.get(key)

@@ -49,10 +49,10 @@ def risk_test_set(
     risk_root: str | Path,
     disparity_root: str | Path,
     orb_csv: str | Path | None,
-    split: str = "test",
+    split: str = "val",
     max_frames: int | None = None,
 ) -> tuple[dict[str, np.ndarray], str]:
-    """Raw test frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
+    """Raw frames of the ORB-passed split (``left``, ``disp_sgm``, ``disp_gt``, ``speed`` and every
     ``risk*`` label column as ``label:<column>``), the first ``max_frames`` by frame id, and the
     fingerprint."""
     import pandas as pd
@@ -90,12 +90,14 @@ def risk_evaluator(
     thresholds_s: Sequence[float] = THRESHOLDS_S,
     thw_cap: float = 10.0,
     batch_size: int = 256,
+    split: str = "val",
 ) -> Callable[[str], dict[str, float]]:
-    """``evaluate(model_uri)``: predicted risk of the registered model on the raw test frames,
-    scored with :func:`traffictwin.risk.evaluation.evaluate` against ``label``.
+    """``evaluate(model_uri)``: predicted risk of the registered model on the raw frames of
+    ``split`` (the gate's: validation, the test split is read once by the evaluation), scored with
+    :func:`traffictwin.risk.evaluation.evaluate` against ``label``.
 
-    Returns ``test/mse``, ``test/mae``, … and ``test/accuracy`` (+ ``test/balanced_accuracy``) at
-    the first threshold."""
+    Returns ``<split>/mse``, ``<split>/mae``, … and ``<split>/accuracy`` (+
+    ``<split>/balanced_accuracy``) at the first threshold."""
     from traffictwin.risk import evaluation as rm
 
     key = f"label:{label}"
@@ -114,10 +116,14 @@ def risk_evaluator(
             batch_size=batch_size,
         )
         res = rm.evaluate(y, p, thresholds_s=tuple(thresholds_s), thw_cap=thw_cap)
-        out = {k: float(v) for k, v in res.items() if isinstance(v, (int, float))}
+        out = {
+            k.replace("test/", f"{split}/", 1): float(v)
+            for k, v in res.items()
+            if isinstance(v, (int, float))
+        }
         first = res[f"at_{float(thresholds_s[0]):g}s"]
-        out["test/accuracy"] = float(first["accuracy"])
-        out["test/balanced_accuracy"] = float(first["balanced_accuracy"])
+        out[f"{split}/accuracy"] = float(first["accuracy"])
+        out[f"{split}/balanced_accuracy"] = float(first["balanced_accuracy"])
         return out
 
     return evaluate

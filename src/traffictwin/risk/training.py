@@ -26,9 +26,8 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-import tempfile
-import time
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -45,7 +44,7 @@ from traffictwin.config import flatten
 from traffictwin.config import spec as setting
 from traffictwin.io.atomic import atomic_path
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.mlops.tracking import DATA_TAG, log_dataset
+from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import (
     OBJECTIVES,
@@ -61,22 +60,17 @@ from traffictwin.risk.dave2 import (
 )
 from traffictwin.risk.model_io import CKPT, risk_checkpoint, risk_meta, save_risk_model
 from traffictwin.trainer import (
-    FiniteGuard,
-    History,
+    FitLoop,
     NetModule,
     RankShardSampler,
     TrackingSettings,
     TrainerSettings,
-    best_checkpoint,
-    build_trainer,
-    global_rank,
+    fit_run,
     log_checkpoint,
     log_final_metrics,
     log_model,
-    mlflow_logger,
     rank_layout,
     seed_everything,
-    tracked_run,
 )
 
 log = logging.getLogger(__name__)
@@ -721,25 +715,31 @@ class TrainResult:
     n_val: int
     run_id: str | None = None  # MLflow run (set by fit_risk with tracking): for the run record only
     model_uri: str | None = None
+    precision: str | None = None  # the trainer's resolved precision: for the run record only
 
 
-def fit(
+@contextmanager
+def fitting(
     cfg: Dave2Config,
     train: RiskArrays,
     val: RiskArrays,
     tc: TrainConfig,
     settings: TrainerSettings | None = None,
-    workdir: str | Path | None = None,
-    fast_dev_run: bool | int = False,
-    logger: Any = None,
-    extra_callbacks: Sequence[Any] = (),
+    *,
+    tracking: TrackingSettings | None = None,
     session: resume.Session | None = None,
-) -> TrainResult:
-    """Train a risk network; returns the weights of the best validation MSE (CPU, eval mode).
-
-    ``session``: the run's resume folder (:class:`traffictwin.resume.Session`): checkpoints go
-    there and a killed run continues from its ``last.ckpt``."""
+    tags: Mapping[str, Any] | None = None,
+    params: Mapping[str, Any] | None = None,
+    datasets: Sequence[tuple[str | Path, str]] = (),
+    fast_dev_run: bool | int = False,
+) -> Iterator[tuple[TrainResult, Any] | None]:
+    """Train a risk network with the one training driver (:func:`traffictwin.trainer.fit_run`);
+    yields ``(result, fitted)`` inside the still open MLflow run (``tracking``), the result's
+    network holding the weights of the best validation loss (CPU, eval mode), or ``None`` on other
+    DDP ranks. ``session``: the run's resume folder (:class:`traffictwin.resume.Session`)."""
     settings = settings or TrainerSettings()
+    tracking = tracking or TrackingSettings("risk", "risk", stage="train_risk", enabled=False)
+    session = session or resume.Session(None, {})
     seed_everything(tc.seed)
     dm = RiskDataModule(
         train,
@@ -760,75 +760,85 @@ def fit(
     total = steps_per_epoch * tc.epochs
     # validate at least once at the end: the interval never exceeds the run's step count
     interval = max(1, min(tc.val_every_n_steps, total))
-    history = History(
-        "validation",
-        metrics=("val/loss", "val/mse", "val/mae", "val/pred_std"),
-        train_loss="train/loss",
-        logger=logger,
+    loop = FitLoop(
+        monitor="val/loss",
+        max_epochs=tc.epochs,
+        hint="risk_model.train.lr",
+        history="validation",
+        history_metrics=("val/loss", "val/mse", "val/mae", "val/pred_std"),
+        trainer_extra={
+            "limit_val_batches": tc.limit_val_batches,
+            "val_check_interval": interval,
+            "check_val_every_n_epoch": None,
+        },
     )
-    with (
-        session.workdir("risk-ckpt-")
-        if session is not None and session.folder is not None
-        else tempfile.TemporaryDirectory(prefix="risk-ckpt-", dir=workdir)
-    ) as tmp:
-        ckpt = best_checkpoint(tmp, monitor="val/loss", mode="min")
-        trainer = build_trainer(
-            settings,
-            max_epochs=tc.epochs,
-            callbacks=[
-                ckpt,
-                history,
-                *extra_callbacks,
-                *(session.callbacks() if session is not None else []),
-            ],
-            default_root_dir=tmp,
-            fast_dev_run=fast_dev_run,
-            limit_val_batches=tc.limit_val_batches,
-            val_check_interval=interval,
-            check_val_every_n_epoch=None,
-        )
-        t0 = time.perf_counter()
-        trainer.fit(
-            module,
-            datamodule=dm,
-            ckpt_path=session.resume_from if session is not None else None,
-        )
-        seconds = time.perf_counter() - t0
-        # under DDP only rank zero's checkpoint folder holds the file; only rank zero writes outputs
-        best_path = (
-            getattr(ckpt, "best_model_path", "")
-            if not fast_dev_run and trainer.is_global_zero
-            else ""
-        )
+    with fit_run(
+        module,
+        settings=settings,
+        loop=loop,
+        tracking=tracking,
+        session=session,
+        tags=tags,
+        params=params,
+        datasets=datasets,
+        datamodule=dm,
+        fast_dev_run=fast_dev_run,
+    ) as fitted:
+        if fitted is None:  # DDP: another rank trained along; rank zero writes
+            yield None
+            return
         best_step = -1
-        if best_path:
-            blob = torch.load(best_path, map_location="cpu", weights_only=False)
-            module.load_state_dict(blob["state_dict"])
-            best_step = int(blob.get("global_step", -1))
-    hist = history.frame()
-    # the validation MSE of the kept checkpoint (the one with the lowest validation loss)
-    best_val = (
-        float(hist["val/mse"][hist["val/loss"].idxmin()])
-        if len(hist) and hist["val/loss"].notna().any()
-        else float("nan")
-    )
-    net = module.net.cpu().eval()
-    # other DDP ranks hold the last, not the best, weights and publish nothing
-    if not fast_dev_run and trainer.is_global_zero:
-        check_spread(net, val, cfg, tc.min_pred_std)
-    if trainer.is_global_zero:  # the other DDP ranks have no history
+        if fitted.best is not None:
+            module.load_state_dict(fitted.best["state_dict"])
+            best_step = int(fitted.best.get("global_step", -1))
+        hist = fitted.history.frame()
+        # the validation MSE of the kept checkpoint (the one with the lowest validation loss)
+        best_val = (
+            float(hist["val/mse"][hist["val/loss"].idxmin()])
+            if len(hist) and hist["val/loss"].notna().any()
+            else float("nan")
+        )
+        net = module.net.cpu().eval()
+        if not fast_dev_run:
+            check_spread(net, val, cfg, tc.min_pred_std)
         log.info(
             "risk net %s: %d params, %d steps in %.1f s, best val MSE %.5f at step %d",
             list(cfg.inputs),
             count_parameters(net),
-            trainer.global_step,
-            seconds,
+            fitted.trainer.global_step,
+            fitted.seconds,
             best_val,
             best_step,
         )
-    return TrainResult(
-        net, hist, best_val, best_step, int(trainer.global_step), seconds, len(train), len(val)
-    )
+        res = TrainResult(
+            net,
+            hist,
+            best_val,
+            best_step,
+            int(fitted.trainer.global_step),
+            fitted.seconds,
+            len(train),
+            len(val),
+            precision=fitted.precision,
+        )
+        yield res, fitted
+
+
+def fit(
+    cfg: Dave2Config,
+    train: RiskArrays,
+    val: RiskArrays,
+    tc: TrainConfig,
+    settings: TrainerSettings | None = None,
+    fast_dev_run: bool | int = False,
+    session: resume.Session | None = None,
+) -> TrainResult:
+    """Train a risk network without tracking (:func:`fitting`); returns the weights of the best
+    validation loss (CPU, eval mode). ``session``: the run's resume folder."""
+    with fitting(cfg, train, val, tc, settings, session=session, fast_dev_run=fast_dev_run) as out:
+        if out is None:
+            raise RuntimeError("risk training: fit() on a DDP rank other than zero")
+        return out[0]
 
 
 def check_spread(
@@ -924,28 +934,24 @@ def fit_risk(
             "meta": dict(meta or {}),
         },
     )
-    with tracked_run(
-        tracking.experiment,
-        tracking.run_name,
-        profile=tracking.profile,
-        stage=tracking.stage,
+    datasets = [(data.risk.root, manifest)]
+    if data.disparity is not None:
+        datasets.append((data.disparity.root, data.disparity.manifest_hash()))
+    with fitting(
+        cfg,
+        train,
+        val,
+        tc,
+        settings,
+        tracking=tracking,
+        session=session,
         tags=tags,
         params=run_params,
-        enabled=tracking.enabled,
-        run_id=session.run_id(),
-    ) as run:
-        logger = mlflow_logger(run)
-        if run is not None and session.resume_from is None:
-            log_dataset(data.risk.root, manifest)
-            if data.disparity is not None:
-                log_dataset(data.disparity.root, data.disparity.manifest_hash())
-        session.started(run)
-        guard = FiniteGuard(tracking.stage, hint="risk_model.train.lr", monitor="val/loss")
-        res = fit(
-            cfg, train, val, tc, settings, logger=logger, extra_callbacks=[guard], session=session
-        )
-        if global_rank() != 0:  # DDP: the other ranks trained along; rank zero writes
+        datasets=datasets,
+    ) as out:
+        if out is None:  # DDP: the other ranks trained along; rank zero writes
             return None
+        res, fitted = out
         if out_dir.exists():
             shutil.rmtree(out_dir)
         full_meta = {
@@ -966,9 +972,10 @@ def fit_risk(
             Path(path).parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(path, suffix=".csv") as tmp:
                 res.history.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
+        run = fitted.run
         if run is not None:
             log_final_metrics(
-                logger,
+                fitted.logger,
                 {
                     "val/best_mse": res.best_val_mse,
                     "train/seconds": res.seconds,
@@ -992,7 +999,6 @@ def fit_risk(
                 metadata={"variant": variant, "label": label},
             )
             res.run_id, res.model_uri = run.info.run_id, uri
-    session.finish()
     return res
 
 

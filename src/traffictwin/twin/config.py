@@ -48,6 +48,7 @@ class TwinConfig:
     methods: list[str] = spec(MISSING)
     headline: str = MISSING
     target_configuration: str = MISSING
+    configurations: list[str] | None = spec(MISSING)  # evaluated (None: every one)
     strategy: str = spec(MISSING, choices=("reference", "sequential"))
     occ_threshold: float = spec(MISSING, min=0.0, max=1.0)
     self_margin: float = spec(MISSING, min=0.0, max=3.0)
@@ -67,6 +68,11 @@ class TwinConfig:
         if self.headline not in self.methods:
             raise ValueError(
                 f"'twin.headline' ({self.headline!r}) must be one of 'twin.methods' {self.methods}"
+            )
+        if self.configurations is not None and self.target_configuration not in self.configurations:
+            raise ValueError(
+                f"'twin.target_configuration' ({self.target_configuration!r}) must be one of "
+                f"'twin.configurations' {self.configurations}"
             )
         bad = [t for t in self.templates if t not in JUNCTIONS]
         if bad or not self.templates:
@@ -102,5 +108,15 @@ class TwinConfig:
 
 
 def twin_config(cfg: Any) -> TwinConfig:
-    """``twin`` of params.yaml, checked (errors name the dotted key)."""
-    return typed(cfg["twin"], TwinConfig, key="twin")
+    """``twin`` of params.yaml, checked (errors name the dotted key); ``configurations`` must be
+    keys of ``configurations``."""
+    from traffictwin.config import ConfigError
+
+    tc = typed(cfg["twin"], TwinConfig, key="twin")
+    known = list(cfg["configurations"]) if "configurations" in cfg else []
+    bad = [c for c in tc.configurations or () if c not in known]
+    if bad:
+        raise ConfigError(
+            f"params.yaml: 'twin.configurations' has {bad}, not keys of 'configurations' ({known})"
+        )
+    return tc

@@ -36,7 +36,7 @@ from traffictwin.sim.scene import relative_pose
 from traffictwin.stats import Interval, excludes_zero, mean_ci, paired_mean_difference_ci
 from traffictwin.twin.config import TwinEvalSettings
 from traffictwin.twin.data import twin_risk_config
-from traffictwin.twin.fuse import Twin
+from traffictwin.twin.fuse import TWIN_METHODS, Twin
 
 __all__ = [
     "TwinEvalSettings",
@@ -95,9 +95,12 @@ def evaluate_sequence(
     models: dict[str, dict[str, Any]],
     s: TwinEvalSettings,
     registration: Any = None,
+    workers: int = 1,
 ) -> pd.DataFrame:
     """One row per (method incl. ``ego``, frame) of one sequence's arrays (:mod:`traffictwin.twin.data`)
-    at pose noise ``(r m, alpha deg)``; ``models[method]`` the models the method needs."""
+    at pose noise ``(r m, alpha deg)``; ``models[method]`` the models the method needs. With the
+    ``reference`` strategy the classical registrations of every frame are computed first, once,
+    in ``workers`` processes, and shared by the methods that use them."""
     maps = arrays["maps"]
     T, N = maps.shape[:2]
     rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)
@@ -111,6 +114,21 @@ def evaluate_sequence(
         m: Twin(grid, m, strategy=s.strategy, models=models.get(m), registration=registration)
         for m in methods
     }
+    pre: dict[int, list[Any]] = {}
+    if s.strategy == "reference" and any(TWIN_METHODS[m].pose == "registered" for m in methods):
+        from traffictwin.fusion.methods import register_many
+
+        tk = [(t, k) for t in range(T) for k in range(1, N)]
+        res = register_many(
+            np.stack([maps[t, 0] for t, _ in tk]),
+            np.stack([maps[t, k] for t, k in tk]),
+            np.stack([rel[t, k] for t, k in tk]),
+            grid,
+            registration,
+            workers,
+        )
+        for (t, _), r in zip(tk, res):
+            pre.setdefault(t, []).append(r)
     rows = []
     for t in range(T):
         v = float(arrays["speeds"][t, 0])
@@ -125,8 +143,10 @@ def evaluate_sequence(
         }
         thw = map_thw(maps[t, 0], v, arrays["path"][t], float(arrays["lane_width"][t]), grid, s)
         rows.append({**common, "method": EGO, "thw": thw, "left_out": 0, "step_ms": 0.0})
+        # each registration of this frame once, for every method using it
+        shared: dict = {"registered_results": pre[t]} if t in pre else {}
         for m in methods:
-            step = twins[m].update(float(arrays["time"][t]), maps[t], rel[t])
+            step = twins[m].update(float(arrays["time"][t]), maps[t], rel[t], shared)
             thw = map_thw(
                 step.masses, v, arrays["path"][t], float(arrays["lane_width"][t]), grid, s
             )

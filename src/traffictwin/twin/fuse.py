@@ -110,6 +110,7 @@ def _register(
     grid: GridSpec,
     models: dict[str, Any],
     registration: Any,
+    precomputed: list[Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Maps ``(M, 2, H, W)`` warped into the frame of ``ref (2, H, W)`` by the pose each method
     uses, whether each registration estimate was accepted, whether the vehicle may be fused, and
@@ -118,7 +119,9 @@ def _register(
     A registering method fuses a vehicle when its estimate was accepted, or when the given pose
     itself explains the maps (masked occupancy correlation >= ``min_cc`` of the classical
     registration: at small pose errors the estimate cannot beat the given pose, which is then
-    right); otherwise the vehicle is left out. Noisy-pose methods fuse every vehicle."""
+    right); otherwise the vehicle is left out. Noisy-pose methods fuse every vehicle.
+    ``precomputed``: the classical registration results of ``maps`` onto ``ref`` (one per map,
+    :func:`traffictwin.fusion.methods.register_many`), used instead of registering again."""
     from traffictwin.fusion.registration import RegistrationParams
 
     m = len(maps)
@@ -130,7 +133,13 @@ def _register(
     if method.pose == "registered":
         from traffictwin.fusion.methods import registered_fusion
 
-        b = registered_fusion(np.repeat(ref[None], m, 0), maps, poses, grid, registration)
+        memo = keys = None
+        if precomputed is not None:
+            memo = {("registered", i): r for i, r in enumerate(precomputed)}
+            keys = np.arange(m)
+        b = registered_fusion(
+            np.repeat(ref[None], m, 0), maps, poses, grid, registration, memo, keys
+        )
     else:
         from traffictwin.fusion.methods import FusionInput, learned_registration_batch
 
@@ -163,12 +172,20 @@ def build_twin(
     reference: int = 0,
     models: dict[str, Any] | None = None,
     registration: Any = None,
+    shared: dict | None = None,
 ) -> TwinStep:
     """Fuse ``maps (N, 2, H, W)`` (each in its own sensor frame) into the frame of vehicle
     ``reference``; ``rel_poses (N, 3)``: each vehicle's (noisy) pose in the reference's frame
     (x m, y m, yaw rad; the reference's own row is ignored). ``models``: ``{"registration": ...,
     "fusion": ...}`` as the method needs; ``registration``: classical
-    :class:`~traffictwin.fusion.registration.RegistrationParams` (default settings if None)."""
+    :class:`~traffictwin.fusion.registration.RegistrationParams` (default settings if None).
+
+    ``shared``: a dict shared by the methods built from the same maps and poses (one time step):
+    with the ``reference`` strategy each pose source (classical or learned registration) then
+    registers the maps once and every method using it reuses the result; the registration's wall
+    time still counts in each method's ``seconds``. ``shared["registered_results"]``, if given,
+    holds the classical registrations of the other vehicles onto the reference, computed
+    beforehand (in parallel over a whole sequence)."""
     if method not in TWIN_METHODS:
         raise ValueError(f"twin method {method!r} unknown; expected one of {list(TWIN_METHODS)}")
     if strategy not in STRATEGIES:
@@ -189,10 +206,21 @@ def build_twin(
     poses = np.zeros((n, 3))
     used[reference] = True
     twin = maps[reference].copy()
+    reused = 0.0
     if strategy == "reference":
-        warped, acc, ok, p = _register(
-            m, maps[reference], maps[others], poses_in[others], grid, models, registration
-        )
+        key = (m.pose, id(models.get("registration")))
+        if shared is not None and m.pose != "noisy" and key in shared:
+            warped, acc, ok, p, reused = shared[key]
+        else:
+            t1 = time.perf_counter()
+            pre = shared.get("registered_results") if shared is not None else None
+            warped, acc, ok, p = _register(
+                m, maps[reference], maps[others], poses_in[others], grid, models, registration, pre
+            )
+            if pre is not None and m.pose == "registered":  # computed beforehand: its time counts
+                reused = float(sum(r.seconds for r in pre))
+            if shared is not None and m.pose != "noisy":
+                shared[key] = (warped, acc, ok, p, time.perf_counter() - t1 + reused)
         for j, k in enumerate(others):
             accepted[k], poses[k] = acc[j], p[j]
             if ok[j]:
@@ -207,7 +235,8 @@ def build_twin(
             if ok[0]:
                 twin = _combine(m, twin, warped[0], models)
                 used[k] = True
-    return TwinStep(twin.astype(np.float32), used, accepted, poses, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0 + reused
+    return TwinStep(twin.astype(np.float32), used, accepted, poses, seconds)
 
 
 class Twin:
@@ -242,8 +271,11 @@ class Twin:
         self.left_out = 0
         self.fused = 0
 
-    def update(self, t: float, maps: np.ndarray, rel_poses: np.ndarray) -> TwinStep:
-        """Fuse the maps of time ``t`` (s) into a new twin (see :func:`build_twin`)."""
+    def update(
+        self, t: float, maps: np.ndarray, rel_poses: np.ndarray, shared: dict | None = None
+    ) -> TwinStep:
+        """Fuse the maps of time ``t`` (s) into a new twin (see :func:`build_twin`; ``shared``:
+        registrations of this time step shared with other twins built from the same maps)."""
         if not np.isfinite(t):
             raise TwinInputError(f"time: must be a finite number of seconds, got {t}")
         if self.last_time is not None and t <= self.last_time:
@@ -260,6 +292,7 @@ class Twin:
             reference=self.reference,
             models=self.models,
             registration=self.registration,
+            shared=shared,
         )
         self.last_time = float(t)
         others = len(step.used) - 1

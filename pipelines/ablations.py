@@ -1,0 +1,140 @@
+"""Ablations: the comparisons the default run leaves out to stay within its time budget, run as
+DVC experiments beside it, their results kept in ``reports/ablations/<name>.json``.
+
+Usage (``make ablations`` runs every one)::
+
+    python -m pipelines.ablations run [NAME ...]   # dvc exp run --temp per ablation, then collect
+    python -m pipelines.ablations collect [NAME ...]  # results of finished experiments only
+
+Each ablation of ``ablations`` (params.yaml, conf/config.yaml) is a named list of Hydra overrides
+(e.g. ``fusion_variants=per_config``: a network per pose-noise configuration). It
+runs as ``dvc exp run --temp -n ablation-<name> -S <override> ...``: in a temporary copy of the
+repository, so the workspace (and its committed default results) is untouched, with the data
+stages restored from DVC's run cache; the experiment keeps its own metrics. ``collect`` copies
+what the report shows from the experiment's commit — the ``test`` / ``diff`` / ``targets`` blocks
+of ``reports/metrics/fusion.json`` (key ``fusion``) and ``risk.json`` (``risk``), with the
+experiment's name, commit and overrides — into ``reports/ablations/<name>.json``; the ``report`` stage shows them beside the
+default run's numbers (a DVC dependency of it). Not a DVC stage: it runs the pipeline itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from typing import Any
+
+from traffictwin.config import ConfigError, get
+from traffictwin.io.atomic import write_json_atomic
+
+from ._common import params, setup_logging
+from ._paths import REPORTS, ROOT
+
+ABLATIONS = REPORTS / "ablations"
+PREFIX = "ablation-"
+# what the report shows of an ablation's run: the evaluation rows and differences the default
+# run does not have (its own rows stay in reports/metrics/)
+KEPT = {  # file in the experiment -> (key in reports/ablations/<name>.json, its blocks kept)
+    "reports/metrics/fusion.json": ("fusion", ("test", "diff", "targets", "cross")),
+    "reports/metrics/risk.json": ("risk", ("models", "diff", "seeds", "targets")),
+}
+
+
+def ablations(cfg: Any) -> dict[str, list[str]]:
+    """``ablations`` of params.yaml: ``{name: [Hydra override, ...]}`` (checked)."""
+    node = get(cfg, "ablations", dict)
+    out: dict[str, list[str]] = {}
+    for name, overrides in node.items():
+        if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+            raise ConfigError(
+                f"params.yaml: 'ablations.{name}' must be a list of Hydra overrides (strings)"
+            )
+        out[str(name)] = list(overrides)
+    return out
+
+
+def _git(*args: str) -> str:
+    return subprocess.run(
+        ["git", *args], cwd=ROOT, check=True, capture_output=True, text=True
+    ).stdout
+
+
+def experiment_rev(name: str) -> str | None:
+    """The commit of DVC experiment ``ablation-<name>`` (the newest of that name), or None."""
+    out = _git(
+        "for-each-ref", "--sort=-creatordate", "--format=%(objectname) %(refname)", "refs/exps"
+    )
+    for line in out.splitlines():
+        rev, ref = line.split(" ", 1)
+        if ref.rsplit("/", 1)[-1] == f"{PREFIX}{name}":
+            return rev
+    return None
+
+
+def collect(name: str, overrides: list[str]) -> dict[str, Any]:
+    """``reports/ablations/<name>.json`` from the experiment's commit; raises if it never ran."""
+    rev = experiment_rev(name)
+    if rev is None:
+        raise RuntimeError(
+            f"ablation {name!r}: no DVC experiment {PREFIX}{name} (run `python -m pipelines.ablations run {name}`)"
+        )
+    result: dict[str, Any] = {
+        "name": name,
+        "experiment": f"{PREFIX}{name}",
+        "commit": rev,
+        "baseline": _git("rev-parse", f"{rev}^").strip(),
+        "overrides": overrides,
+    }
+    for path, (short, keys) in KEPT.items():
+        try:
+            data = json.loads(_git("show", f"{rev}:{path}"))
+        except subprocess.CalledProcessError:
+            continue
+        result[short] = {k: data[k] for k in keys if k in data}
+    write_json_atomic(ABLATIONS / f"{name}.json", result)
+    return result
+
+
+def run(name: str, overrides: list[str]) -> None:
+    """``dvc exp run --temp -n ablation-<name> -S ...`` (the workspace stays as it is)."""
+    cmd = ["dvc", "exp", "run", "--temp", "-n", f"{PREFIX}{name}"]
+    for o in overrides:
+        cmd += ["-S", o]
+    subprocess.run(cmd, cwd=ROOT, check=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m pipelines.ablations", description=__doc__.split("\n\n")[0]
+    )
+    ap.add_argument("action", choices=("run", "collect"))
+    ap.add_argument("names", nargs="*", help="ablations to run (default: every one of params.yaml)")
+    a = ap.parse_args(argv)
+    log = setup_logging()
+    try:
+        todo = ablations(params())
+        unknown = sorted(set(a.names) - set(todo))
+        if unknown:
+            raise ConfigError(
+                f"unknown ablation(s) {unknown}; params.yaml 'ablations' has {sorted(todo)}"
+            )
+        for name in a.names or list(todo):
+            if a.action == "run":
+                log.info("ablation %s: dvc exp run --temp with %s", name, todo[name])
+                run(name, todo[name])
+            res = collect(name, todo[name])
+            log.info(
+                "ablation %s: %s from experiment %s",
+                name,
+                ABLATIONS / f"{name}.json",
+                res["commit"][:8],
+            )
+    except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
+        print(f"ablations: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

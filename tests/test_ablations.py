@@ -1,0 +1,90 @@
+"""Ablations (pipelines/ablations.py): named override lists in params.yaml, run as DVC experiments,
+their evaluation blocks collected into reports/ablations/<name>.json for the report."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+import pipelines.ablations as ab
+from traffictwin.config import ConfigError
+
+GIT = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+
+
+def test_ablations_are_named_override_lists() -> None:
+    cfg = OmegaConf.create({"ablations": {"fusion": ["fusion_variants=ablations", "a.b=[1,2]"]}})
+    assert ab.ablations(cfg) == {"fusion": ["fusion_variants=ablations", "a.b=[1,2]"]}
+    with pytest.raises(ConfigError, match="'ablations.x' must be a list of Hydra overrides"):
+        ab.ablations(OmegaConf.create({"ablations": {"x": "fusion_variants=ablations"}}))
+
+
+def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
+    from traffictwin.config import compose_config
+
+    cfg = compose_config(ab.ROOT / "conf", [])
+    todo = ab.ablations(cfg)
+    assert set(todo) == {"per_config", "losses", "registered", "risk"}
+    # each ablation's overrides compose (what `dvc exp run -S` will hand to Hydra)
+    for overrides in todo.values():
+        composed = compose_config(ab.ROOT / "conf", overrides)
+        assert composed != cfg
+    per = compose_config(ab.ROOT / "conf", todo["per_config"])
+    assert set(per["fusion_variants"]) == {"A", "B", "C", "D"}  # the per-configuration networks
+    assert "train" in per["fusion_data"]["prealign"]["splits"]  # ... need their train splits
+    reg = compose_config(ab.ROOT / "conf", todo["registered"])
+    assert reg["fusion_data"]["register"]["configurations"] == ["mixed"]
+
+
+def _repo(tmp_path: Path) -> Path:
+    repo = tmp_path / "repo"
+    (repo / "reports" / "metrics").mkdir(parents=True)
+    subprocess.run([*GIT, "init", "-q"], cwd=repo, check=True)
+    (repo / "reports" / "metrics" / "x.json").write_text("{}")
+    subprocess.run([*GIT, "add", "-A"], cwd=repo, check=True)
+    subprocess.run([*GIT, "commit", "-qm", "base"], cwd=repo, check=True)
+    fusion = {
+        "test": {"D": {"dnn[per-config]": {"kld_fou_mean": 0.05}}},
+        "diff": {"D": {}},
+        "targets": {"one_vs_per_config": {"status": "pass"}},
+        "n_pairs": {"per_config": 200},  # not kept: only what the report shows
+    }
+    (repo / "reports" / "metrics" / "fusion.json").write_text(json.dumps(fusion))
+    subprocess.run([*GIT, "add", "-A"], cwd=repo, check=True)
+    subprocess.run([*GIT, "commit", "-qm", "exp"], cwd=repo, check=True)
+    rev = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    # where `dvc exp run -n ablation-fusion` keeps its result
+    subprocess.run(
+        ["git", "update-ref", "refs/exps/ab/cdef/ablation-fusion", rev], cwd=repo, check=True
+    )
+    subprocess.run([*GIT, "reset", "-q", "--hard", "HEAD~1"], cwd=repo, check=True)
+    return repo
+
+
+def test_collect_copies_the_experiments_evaluation_blocks(tmp_path, monkeypatch) -> None:
+    repo = _repo(tmp_path)
+    monkeypatch.setattr(ab, "ROOT", repo)
+    monkeypatch.setattr(ab, "ABLATIONS", repo / "reports" / "ablations")
+    res = ab.collect("fusion", ["fusion_variants=ablations"])
+    saved = json.loads((repo / "reports" / "ablations" / "fusion.json").read_text())
+    assert saved == res
+    assert saved["experiment"] == "ablation-fusion" and saved["overrides"] == [
+        "fusion_variants=ablations"
+    ]
+    assert set(saved["fusion"]) == {"test", "diff", "targets"} and "risk" not in saved
+    assert saved["fusion"]["test"]["D"]["dnn[per-config]"]["kld_fou_mean"] == 0.05
+    assert len(saved["commit"]) == 40 and saved["baseline"] != saved["commit"]
+    with pytest.raises(RuntimeError, match="no DVC experiment ablation-risk"):
+        ab.collect("risk", [])
+
+
+def test_unknown_ablation_is_one_error_line(capsys) -> None:
+    assert ab.main(["collect", "nope"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ablations: error: unknown ablation(s) ['nope']") and err.count("\n") == 1
