@@ -134,7 +134,9 @@ def main() -> None:
         frames, summary = [], {}
         models_by_cfg: dict[str, Any] = {}
         loaded: dict[str, Any] = {}
-        evaluated = {c: pn for c, pn in noise.items() if tc.configurations is None or c in tc.configurations}
+        evaluated = {
+            c: pn for c, pn in noise.items() if tc.configurations is None or c in tc.configurations
+        }
         for c, pn in evaluated.items():
             models, skipped = method_models(cfg, c, tc.methods, grid, loaded)
             models_by_cfg[c] = models
@@ -147,19 +149,20 @@ def main() -> None:
                 methods,
                 skipped,
             )
+            # the classical registrations of every sequence at once: one pool of processes
+            reg = (
+                ev.classical_registrations(
+                    seqs, grid, (pn.r, pn.alpha), reg_params, fec.registration_workers
+                )
+                if ev.uses_classical(methods, s)
+                else [None] * len(seqs)
+            )
             f = pd.concat(
                 [
                     ev.evaluate_sequence(
-                        a,
-                        grid,
-                        (pn.r, pn.alpha),
-                        methods,
-                        models,
-                        s,
-                        reg_params,
-                        fec.registration_workers,
+                        a, grid, (pn.r, pn.alpha), methods, models, s, reg_params, registered=r
                     )
-                    for a in seqs
+                    for a, r in zip(seqs, reg)
                 ],
                 ignore_index=True,
             )

@@ -275,7 +275,10 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     assert data["twin_data/sequences"] == 2 and data["twin_data/vehicles"] == 3
     m = json.loads((ci_dag / "reports" / "metrics" / "twin.json").read_text())
     params = __import__("yaml").safe_load((ci_dag / "params.yaml").read_text())
-    assert list(m["configurations"]) == list(params["configurations"])
+    # the configurations of twin.configurations (D), in the order of `configurations`
+    assert list(m["configurations"]) == [
+        c for c in params["configurations"] if c in params["twin"]["configurations"]
+    ]
     for c, entry in m["configurations"].items():
         assert EGO in entry["methods"] and "naive" in entry["methods"], c
         for kind in ("occluded", "open", "all"):
@@ -283,10 +286,12 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     frames = pd.read_csv(ci_dag / "reports" / "twin_eval_frames.csv")
     assert set(frames["method"]) >= {EGO, "naive", "registered", "learned"}
     # every frame of both sequences is evaluated for every method at every configuration
-    a = frames[(frames["configuration"] == "A") & (frames["method"] == "naive")]
-    assert len(a) == 2 * params["twin"]["frames"] and "step_ms" not in frames
+    d = frames[(frames["configuration"] == "D") & (frames["method"] == "naive")]
+    assert len(d) == 2 * params["twin"]["frames"] and "step_ms" not in frames
     rec = run_record(ci_dag, "evaluate_twin")
-    assert rec["step_ms_median"]["A"]["naive"]["all"] > 0
+    assert rec["step_ms_median"]["D"]["naive"]["all"] > 0
+    # the classical registration, computed beforehand in a pool, still counts in its step time
+    assert rec["step_ms_median"]["D"]["registered"]["all"] > rec["step_ms_median"]["D"]["naive"]["all"]
     timeline = pd.read_csv(ci_dag / "reports" / "plots" / "twin_timeline.csv")
     assert set(timeline["series"]) >= {"truth", "ego map"} and {"time", "thw"} <= set(timeline)
     for fig in ("twin_map", "twin_timeline"):

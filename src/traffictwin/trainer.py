@@ -863,7 +863,9 @@ def fit_run(
         callbacks: list[Any] = [history, ckpt]
         if loop.patience is not None:
             callbacks.append(
-                early_stopping(loop.monitor, loop.patience, mode=loop.mode, min_delta=loop.min_delta)
+                early_stopping(
+                    loop.monitor, loop.patience, mode=loop.mode, min_delta=loop.min_delta
+                )
             )
         callbacks.append(FiniteGuard(tracking.stage, hint=loop.hint, monitor=loop.monitor))
         callbacks += session.callbacks()

@@ -98,6 +98,7 @@ def load_registration_split(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``inputs (N,4,H,W)``, ``label (N,2,H,W)``, true sampling matrices ``M (N,3,3)`` and rotation
     centres ``(N,2)`` (float32) of a prealigned ``split``; masses and poses checked, errors name the file."""
+
     def masses_ok(name: str, arrays: dict[str, np.ndarray]) -> None:
         xs = arrays["inputs"]
         for key, arr in (("inputs", xs[:, :2]), ("inputs", xs[:, 2:]), ("label", arrays["label"])):
@@ -284,7 +285,9 @@ def fit_registration(
     for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`).
     """
     common.seed_everything(seed)
-    ds = Dataset(data_root, kind="prealigned", verify=False)  # the loader checks every shard it reads
+    ds = Dataset(
+        data_root, kind="prealigned", verify=False
+    )  # the loader checks every shard it reads
     manifest_hash = ds.manifest_hash()
     tensors = {s: load_registration_split(data_root, s, grid) for s in ("train", "val")}
     if len(tensors["train"][0]) < train.batch_size:

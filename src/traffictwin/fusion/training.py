@@ -642,7 +642,9 @@ def fit_fusion(
     """
     common.seed_everything(seed)
     grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
-    ds = Dataset(data_root, kind="prealigned", verify=False)  # the loader checks every shard it reads
+    ds = Dataset(
+        data_root, kind="prealigned", verify=False
+    )  # the loader checks every shard it reads
     manifest_hash = ds.manifest_hash()
     tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
     meta_base = {

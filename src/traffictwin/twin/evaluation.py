@@ -96,11 +96,13 @@ def evaluate_sequence(
     s: TwinEvalSettings,
     registration: Any = None,
     workers: int = 1,
+    registered: dict[int, list[Any]] | None = None,
 ) -> pd.DataFrame:
     """One row per (method incl. ``ego``, frame) of one sequence's arrays (:mod:`traffictwin.twin.data`)
     at pose noise ``(r m, alpha deg)``; ``models[method]`` the models the method needs. With the
-    ``reference`` strategy the classical registrations of every frame are computed first, once,
-    in ``workers`` processes, and shared by the methods that use them."""
+    ``reference`` strategy the classical registrations of every frame are computed once
+    (``registered``: given, from :func:`classical_registrations`; else here, in ``workers``
+    processes) and shared by the methods that use them."""
     maps = arrays["maps"]
     T, N = maps.shape[:2]
     rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)
@@ -115,20 +117,12 @@ def evaluate_sequence(
         for m in methods
     }
     pre: dict[int, list[Any]] = {}
-    if s.strategy == "reference" and any(TWIN_METHODS[m].pose == "registered" for m in methods):
-        from traffictwin.fusion.methods import register_many
-
-        tk = [(t, k) for t in range(T) for k in range(1, N)]
-        res = register_many(
-            np.stack([maps[t, 0] for t, _ in tk]),
-            np.stack([maps[t, k] for t, k in tk]),
-            np.stack([rel[t, k] for t, k in tk]),
-            grid,
-            registration,
-            workers,
+    if uses_classical(methods, s):
+        pre = (
+            registered
+            if registered is not None
+            else classical_registrations([arrays], grid, noise, registration, workers)[0]
         )
-        for (t, _), r in zip(tk, res):
-            pre.setdefault(t, []).append(r)
     rows = []
     for t in range(T):
         v = float(arrays["speeds"][t, 0])
@@ -163,6 +157,42 @@ def evaluate_sequence(
     f["critical"] = f["thw_true"] < s.critical_thw
     f["flagged"] = f["thw"] < s.critical_thw
     return f
+
+
+def uses_classical(methods: list[str], s: TwinEvalSettings) -> bool:
+    """Whether a twin method of ``methods`` registers the maps classically onto the reference."""
+    return s.strategy == "reference" and any(TWIN_METHODS[m].pose == "registered" for m in methods)
+
+
+def classical_registrations(
+    sequences: list[dict[str, np.ndarray]],
+    grid: GridSpec,
+    noise: tuple[float, float],
+    registration: Any = None,
+    workers: int = 1,
+) -> list[dict[int, list[Any]]]:
+    """The classical registration of every other vehicle's map onto the ego's, for every frame of
+    every sequence at pose noise ``(r m, alpha deg)``: per sequence ``{frame: [result of vehicle 1,
+    2, ...]}``. All in one :func:`~traffictwin.fusion.methods.register_many` call (one pool of
+    ``workers`` processes); the results do not depend on ``workers``."""
+    from traffictwin.fusion.methods import register_many
+
+    tasks, m1, m2, poses = [], [], [], []
+    for j, arrays in enumerate(sequences):
+        maps = arrays["maps"]
+        T, N = maps.shape[:2]
+        rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)
+        for t in range(T):
+            for k in range(1, N):
+                tasks.append((j, t))
+                m1.append(maps[t, 0])
+                m2.append(maps[t, k])
+                poses.append(rel[t, k])
+    res = register_many(np.stack(m1), np.stack(m2), np.stack(poses), grid, registration, workers)
+    out: list[dict[int, list[Any]]] = [{} for _ in sequences]
+    for (j, t), r in zip(tasks, res):
+        out[j].setdefault(t, []).append(r)
+    return out
 
 
 def lead_times(frame: pd.DataFrame, method: str, fps: float) -> pd.DataFrame:
