@@ -429,7 +429,7 @@ def test_rollback_logs_to_the_recorded_promotion_log(tmp_path, mlflow_uri, monke
     assert row["champion"]["version"] == "1" and row["history"] == ["1"]
 
 
-def test_bare_alias_without_a_registered_fusion_model_names_it(tmp_path, mlflow_uri, capsys):
+def test_bare_alias_without_a_registered_fusion_model_names_it(tmp_path, cl, capsys):
     p1 = _save_map(tmp_path / "a.npz", *_masses(4))
     args = ["fuse", str(p1), str(p1), "--pose1", POSE1, "--pose2", POSE2, "--model", "champion"]
     assert cli.main([*args, "-o", str(tmp_path / "o")]) == 1

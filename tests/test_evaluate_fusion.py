@@ -521,8 +521,12 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
     assert (
         m["test"]["A"]["naive"]["kld_fo_mean"] < 1e-6 and m["test"]["A"]["naive"]["dice_occ"] == 1.0
     )
-    assert sorted(m["cross"]) == [f"{r}-{c}" for r in ("dnn", "learned") for c in CFGS] and all(
-        sorted(m["cross"][k]) == list(CFGS) for k in m["cross"]
+    # one model per task: no per-configuration networks, so no cross table on the default DAG
+    assert m["cross"] == {}
+    # the one network and its hybrids at every configuration
+    assert all(
+        {"dnn", "registered+network", "learned", "learned+network"} <= set(m["test"][c])
+        for c in CFGS
     )
     assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]
     # targets judged on wall times are in the stage's run record, not in fusion.json
@@ -547,7 +551,7 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
         ids = {
             meth: sorted(g.pair_id)
             for meth, g in s.groupby("method")
-            if not meth.startswith("dnn-")
+            if not meth.startswith("dnn[per-config]-")
         }
         assert ids["naive"] == ids["dnn"] == ids["ego"]
     findings = (ci_dag / "reports" / "fusion_findings.md").read_text()
@@ -577,6 +581,11 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
         assert logged[f"test/{c}/kld_fou_mean"] == pytest.approx(dnn["kld_fou_mean"])
         assert logged[f"test/{c}/kld_fou_mean_ci_lo"] == pytest.approx(dnn["kld_fou_mean_ci"]["lo"])
         assert logged[f"test/{c}/kld_fo_mean"] == pytest.approx(dnn["kld_fo_mean"])
+        # the same network on registered pairs: its own keys in the same run
+        hyb = m["test"][c]["registered+network"]
+        assert logged[f"test/{c}/registered+network/kld_fou_mean"] == pytest.approx(
+            hyb["kld_fou_mean"]
+        )
         table = json.loads(
             Path(client.download_artifacts(run_id, f"evaluation/test_methods_{c}.json")).read_text()
         )

@@ -520,10 +520,16 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         }
     )
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")  # no fusion_model.loss needed
-    assert nets == {"dnn": {"A": "network", "D": "network"}}
+    # the one network: row dnn, and on registered pairs row registered+network
+    assert nets == {
+        "dnn": {"A": "network", "D": "network"},
+        "registered+network": {"A": "network", "D": "network"},
+    }
     assert runs == [
         (tmp_path / "network", "A", "dnn", "train_fusion"),
         (tmp_path / "network", "D", "dnn", "train_fusion"),
+        (tmp_path / "network", "A", "registered+network", "train_fusion"),
+        (tmp_path / "network", "D", "registered+network", "train_fusion"),
     ]
     assert loaded == [("network/model.ckpt", "mixed")]  # loaded once, trained on the mixture
     cfg.fusion_variants = {
@@ -535,15 +541,26 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
     assert nets == {
         "dnn": {"A": "network", "D": "network"},
+        "registered+network": {"A": "network", "D": "network"},
         "dnn[paper]": {"A": "paper", "D": "paper"},
-        "registered+network": {"A": "registered", "D": "registered"},
+        "registered+network[registered-trained]": {"A": "registered", "D": "registered"},
         "dnn[per-config]": {"D": "D"},
     }
-    assert runs[2:] == [
+    assert runs[4:] == [
         (tmp_path / "paper", "A", "dnn[paper]", "train_fusion_variant@paper"),
         (tmp_path / "paper", "D", "dnn[paper]", "train_fusion_variant@paper"),
-        (tmp_path / "registered", "A", "registered+network", "train_fusion_variant@registered"),
-        (tmp_path / "registered", "D", "registered+network", "train_fusion_variant@registered"),
+        (
+            tmp_path / "registered",
+            "A",
+            "registered+network[registered-trained]",
+            "train_fusion_variant@registered",
+        ),
+        (
+            tmp_path / "registered",
+            "D",
+            "registered+network[registered-trained]",
+            "train_fusion_variant@registered",
+        ),
         (tmp_path / "D", "D", "dnn[per-config]", "train_fusion_variant@D"),
     ]
     assert loaded[-1] == ("D/model.ckpt", "D")  # a per-configuration network records its own
@@ -559,10 +576,8 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     cfg.registration_model = {"train": {}}
     nets, runs = stage.load_networks(cfg, ["A", "D"], None, "cpu")
     assert nets["learned"] == {"A": "reg-mixed", "D": "reg-mixed"}
-    assert nets["learned+network"] == {
-        "A": ("reg-mixed", "registered"),
-        "D": ("reg-mixed", "registered"),
-    }
+    # learned+network: the learned registration with the one network as fusion head
+    assert nets["learned+network"] == {"A": ("reg-mixed", "network"), "D": ("reg-mixed", "network")}
     assert runs[-2:] == [
         (tmp_path / "reg" / "learned", "A", "learned", "train_registration"),
         (tmp_path / "reg" / "learned", "D", "learned", "train_registration"),

@@ -177,6 +177,7 @@ def _loaders():
     return dl, torch.utils.data.DataLoader(ds, batch_size=8)
 
 
+@pytest.mark.integration
 def test_fit_run_keeps_the_best_epoch_and_stops_early(tmp_path: Path) -> None:
     L.seed_everything(0)
     train, val = _loaders()
@@ -201,6 +202,7 @@ def test_fit_run_keeps_the_best_epoch_and_stops_early(tmp_path: Path) -> None:
     assert not (tmp_path / "resume").exists()  # finished: the resume folder is gone
 
 
+@pytest.mark.integration
 def test_fit_run_keeps_the_resume_folder_when_the_caller_fails(tmp_path: Path) -> None:
     train, val = _loaders()
     loop = common.FitLoop(monitor="val/score", max_epochs=2)

@@ -18,10 +18,7 @@ from traffictwin.io.shards import Dataset
 from traffictwin.mlops.registry import load_registered
 
 # model folder -> (training stage, training set: data/<inputs>/<set>)
-MODELS = {
-    "network": ("train_fusion", "prealigned/mixed"),
-    "registered": ("train_fusion_variant@registered", "registered/mixed"),
-}
+MODELS = {"network": ("train_fusion", "prealigned/mixed")}  # no fusion_variants by default
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_torch_thread")]
 
 
@@ -66,6 +63,10 @@ def test_stage_writes_model_meta_metrics_and_curves(ci_dag: Path) -> None:
         # the run record says how it trained and on what, so its wall time can be judged
         assert rec["precision"] in ("bf16-mixed", "32-true")
         assert rec["machine"]["cpu_count"] >= 1 and len(rec["machine"]["load_start"]) == 3
+
+
+def test_no_fusion_variant_is_trained_by_default(ci_dag: Path) -> None:
+    assert sorted(p.name for p in (ci_dag / "models" / "fusion").iterdir()) == ["network"]
 
 
 def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:

@@ -291,7 +291,9 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     rec = run_record(ci_dag, "evaluate_twin")
     assert rec["step_ms_median"]["D"]["naive"]["all"] > 0
     # the classical registration, computed beforehand in a pool, still counts in its step time
-    assert rec["step_ms_median"]["D"]["registered"]["all"] > rec["step_ms_median"]["D"]["naive"]["all"]
+    assert (
+        rec["step_ms_median"]["D"]["registered"]["all"] > rec["step_ms_median"]["D"]["naive"]["all"]
+    )
     timeline = pd.read_csv(ci_dag / "reports" / "plots" / "twin_timeline.csv")
     assert set(timeline["series"]) >= {"truth", "ego map"} and {"time", "thw"} <= set(timeline)
     for fig in ("twin_map", "twin_timeline"):

@@ -84,14 +84,14 @@ def test_fusion_evaluator_calls_another_grid_incompatible(cl):
         mlflow.set_experiment("fusion")
         with mlflow.start_run() as run:
             log_model(ck, meta, net, np.zeros((1, 4, rows, 48), np.float32))
-        ids[rows] = reg.ensure_version(cl, "traffictwin-fusion-D", run.info.run_id).version
+        ids[rows] = reg.ensure_version(cl, "traffictwin-fusion", run.info.run_id).version
     rng = np.random.default_rng(0)
     x = rng.dirichlet([1, 1, 1, 1, 1], size=(2, 32, 48))[..., :4].transpose(0, 3, 1, 2)
     label = rng.dirichlet([1, 1, 1], size=(2, 32, 48))[..., :2].transpose(0, 3, 1, 2)
     ev = fusion_evaluator(x.astype(np.float32), label.astype(np.float32), batch_size=2)
-    assert np.isfinite(ev(reg.version_uri("traffictwin-fusion-D", ids[32]))["test/kld_fou_mean"])
+    assert np.isfinite(ev(reg.version_uri("traffictwin-fusion", ids[32]))["val/kld_fou_mean"])
     with pytest.raises(reg.IncompatibleModelError) as exc:
-        ev(reg.version_uri("traffictwin-fusion-D", ids[64]))
+        ev(reg.version_uri("traffictwin-fusion", ids[64]))
     assert str(exc.value) == (
-        f"model 'traffictwin-fusion-D' v{ids[64]}: trained on a 64x48 grid, the test set is 32x48"
+        f"model 'traffictwin-fusion' v{ids[64]}: trained on a 64x48 grid, the test set is 32x48"
     )

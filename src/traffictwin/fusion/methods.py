@@ -302,15 +302,19 @@ def registered_fusion(
     return RegisteredBatch(out, warped, cols["poses"], cols["estimates"], acc, ccn, cce, secs)
 
 
-_POOL_STATE: dict[str, Any] = {}  # the arrays of :func:`register_many`'s worker processes (fork)
+_POOL_STATE: dict[str, Any] = {}  # grid and settings of :func:`register_many`'s worker processes
 
 
-def _register_one(i: int) -> tuple[int, RegistrationResult]:
+def _pool_init(grid: GridSpec, params: RegistrationParams) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # one process per core: OpenCV's own threads would compete
-    s = _POOL_STATE
-    return i, register_pair(s["map1"][i], s["map2"][i], s["poses"][i], s["grid"], s["params"])
+    _POOL_STATE.update(grid=grid, params=params)
+
+
+def _register_task(task: tuple[int, np.ndarray, np.ndarray, np.ndarray]) -> tuple[int, Any]:
+    i, m1, m2, pose = task
+    return i, register_pair(m1, m2, pose, _POOL_STATE["grid"], _POOL_STATE["params"])
 
 
 def register_many(
@@ -322,25 +326,25 @@ def register_many(
     workers: int = 1,
 ) -> list[RegistrationResult]:
     """The classical registration (:func:`register_pair`) of every pair ``(N, 2, H, W)`` from its
-    noisy pose ``(N, 3)``, in ``workers`` processes (fork; OpenCV on one thread each: the
-    per-image registration does not use two cores well). The results are the same for any number
-    of workers; each result's ``seconds`` is its own single-thread wall time."""
+    noisy pose ``(N, 3)``, in ``workers`` processes (OpenCV on one thread each: the per-image
+    registration does not use two cores well). The workers come from a fork server, not a fork of
+    this process (whose torch / OpenCV / logging threads could hold a lock at the fork and
+    deadlock the child), and each task carries its own pair. The results are the same for any
+    number of workers; each result's ``seconds`` is its own single-thread wall time."""
     import multiprocessing as mp
 
     params = RegistrationParams() if params is None else params
     n = len(map1)
     poses = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(-1, 3)
-    _POOL_STATE.update(map1=map1, map2=map2, poses=poses, grid=grid, params=params)
-    try:
-        if workers <= 1 or n <= 1:
-            return [_register_one(i)[1] for i in range(n)]
-        out: list[Any] = [None] * n
-        with mp.get_context("fork").Pool(min(workers, n)) as pool:
-            for i, r in pool.imap_unordered(_register_one, range(n), chunksize=4):
-                out[i] = r
-        return out
-    finally:
-        _POOL_STATE.clear()
+    if workers <= 1 or n <= 1:
+        return [register_pair(map1[i], map2[i], poses[i], grid, params) for i in range(n)]
+    tasks = ((i, map1[i], map2[i], poses[i]) for i in range(n))
+    out: list[Any] = [None] * n
+    ctx = mp.get_context("forkserver")
+    with ctx.Pool(min(workers, n), initializer=_pool_init, initargs=(grid, params)) as pool:
+        for i, r in pool.imap_unordered(_register_task, tasks, chunksize=4):
+            out[i] = r
+    return out
 
 
 def precompute_registrations(x: FusionInput, workers: int = 1) -> None:
