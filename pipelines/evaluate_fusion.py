@@ -69,7 +69,8 @@ def _csv(frame: pd.DataFrame, path: Path) -> None:
 def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]]) -> None:
     """Log each network's numbers to its own MLflow run (``run_id`` in the run record of the stage
     that trained it) as ``test/<cfg>/<metric>`` for every configuration it was evaluated at
-    (``test/<cfg>/registered+network/<metric>`` for a network's row on registered pairs), and
+    (``test/<cfg>/registered_network/<metric>`` for a network's row on registered pairs: MLflow
+    names allow no ``+``), and
     every method's numbers there as the table :data:`METHODS_TABLE`; ``runs``: ``(model folder,
     configuration, evaluation row, training stage)`` per network and configuration."""
     from mlflow.entities import Metric, RunTag
@@ -94,11 +95,9 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
             continue
         # the one network's run holds two rows per configuration: dnn (prealigned pairs) under
         # test/<cfg>/, registered+network (the same network on registered pairs) under
-        # test/<cfg>/registered+network/
+        # test/<cfg>/registered_network/ (MLflow metric names allow no "+")
         prefix = f"test/{c}/" if not row.startswith("registered+network") else f"test/{c}/{row}/"
-        flat = {
-            k.replace("test/", prefix, 1): v for k, v in mlflow_metrics(metrics, c, row).items()
-        }
+        flat = mlflow_metrics(metrics, c, row, prefix)
         try:
             # log_batch on the training run: same run as mlflow.start_run(run_id=…) but leaves its status alone
             client.log_batch(

@@ -186,9 +186,15 @@ def single_torch_thread():
 
 # fixtures that stand for an MLflow database: tests using them are integration tests
 _INTEGRATION_FIXTURES = {"mlflow_uri", "cl"}
+# fixtures that run stages or the whole DAG in a repository copy: tests using them are slow, so
+# `make test-fast` (-m "not slow and not integration") never runs a DAG
+_SLOW_FIXTURES = {"ci_dag", "repo_copy", "ci_repo"}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
-        if _INTEGRATION_FIXTURES & set(getattr(item, "fixturenames", ())):
+        names = set(getattr(item, "fixturenames", ()))
+        if _INTEGRATION_FIXTURES & names:
             item.add_marker(pytest.mark.integration)
+        if _SLOW_FIXTURES & names:
+            item.add_marker(pytest.mark.slow)

@@ -226,6 +226,10 @@ def test_json_clean_and_mlflow_numbers():
     assert mlflow_metrics(m, "A") == {"test/k": 0.5, "test/k_ci_lo": 0.4, "test/k_ci_hi": 0.6}
     # a variant's own run: its row is test/, no cross table
     assert mlflow_metrics(m, "A", "dnn[paper]") == {"test/k": 0.7}
+    # a second row in the same run under its own prefix, made MLflow-safe (no "+", "[" or "]")
+    assert mlflow_metrics(m, "A", "dnn[paper]", "test/A/registered+network/") == {
+        "test/A/registered_network/k": 0.7
+    }
     # a per-configuration network's run: its row and its cross table (on the other configurations)
     assert mlflow_metrics(m, "A", "dnn[per-config]") == {"test/k": 0.3, "cross_A/k": 0.25}
     table = methods_table(m, "A")
@@ -583,7 +587,7 @@ def test_numbers_logged_to_each_networks_mlflow_run(ci_dag: Path):
         assert logged[f"test/{c}/kld_fo_mean"] == pytest.approx(dnn["kld_fo_mean"])
         # the same network on registered pairs: its own keys in the same run
         hyb = m["test"][c]["registered+network"]
-        assert logged[f"test/{c}/registered+network/kld_fou_mean"] == pytest.approx(
+        assert logged[f"test/{c}/registered_network/kld_fou_mean"] == pytest.approx(
             hyb["kld_fou_mean"]
         )
         table = json.loads(

@@ -199,6 +199,7 @@ def _bare_env() -> dict[str, str]:
     return env
 
 
+@pytest.mark.integration  # six CLI subprocesses (~7 s)
 def test_no_stray_mlflow_db_outside_the_project(tmp_path, pair):
     """Run in an empty folder with no URI: one clear line, nothing created."""
     work = tmp_path / "empty"

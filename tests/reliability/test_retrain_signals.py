@@ -80,6 +80,9 @@ DVC_YAML = {
     }
 }
 
+# each test runs `python -m pipelines.retrain` (and DVC) in a subprocess: process-level integration
+pytestmark = pytest.mark.integration
+
 
 def _env(repo: Path, mode: str = "ok") -> dict[str, str]:
     env = dict(os.environ)

@@ -1176,13 +1176,15 @@ def _flat_row(vals: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
-def mlflow_metrics(metrics: Mapping[str, Any], cfg: str, row: str = NETWORK) -> dict[str, float]:
+def mlflow_metrics(
+    metrics: Mapping[str, Any], cfg: str, row: str = NETWORK, prefix: str = "test/"
+) -> dict[str, float]:
     """The flat numbers of the MLflow run of row ``row``'s network at configuration ``cfg``:
-    ``test/<k>`` (that network only; the other methods go to :func:`methods_table`),
+    ``<prefix><k>`` (that network only; the other methods go to :func:`methods_table`),
     ``cross_<other>/<k>`` (the network on other configurations; rows of :data:`CROSS_ROWS`
     only); intervals ``<k>_ci`` as ``<k>_ci_lo`` / ``<k>_ci_hi``; finite values only, names
     MLflow-safe."""
-    flat = _flat_row(metrics["test"][cfg].get(row, {}), "test/")
+    flat = _flat_row(metrics["test"][cfg].get(row, {}), prefix)
     if row in CROSS_ROWS:
         for other, vals in metrics["cross"].get(f"{row}-{cfg}", {}).items():
             flat.update({f"cross_{other}/{k}": v for k, v in vals.items()})
