@@ -404,6 +404,55 @@ def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp
     assert per_config_table(R.Sources(_inputs(rep)), confs, ["D"]) is None
 
 
+def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path) -> None:
+    """A target 'not evaluated' in this run (one_vs_per_config needs the per-configuration
+    networks) shows the ablation experiment's verdict, marked as such, its cells pointing at the
+    ablation's file; the appendix links the ablation's file instead of dumping it."""
+    from traffictwin.fusion.report_section import target_table
+    from traffictwin.report.render import appendix_section
+
+    def targets(entry: dict) -> dict:
+        return {
+            "one_vs_per_config": {"op": "<=", "threshold": 0.005, "per_config": {"D": entry}},
+        }
+
+    run = {"test": {"D": {"dnn": {}}}, "targets": targets({"status": "not evaluated"})}
+    rep = _reports(tmp_path / "run", {"fusion.json": run})
+    t = target_table(R.Sources(_inputs(rep)))
+    assert [c.text for c in t.rows[0]][2:] == ["n/a", "n/a", "<=", "0.005", "not evaluated", ""]
+    (rep / "ablations").mkdir()
+    verdict = {"value": 0.0077, "lo": 0.0051, "hi": 0.0077, "status": "fail"}
+    verdict["ci_beyond_threshold"] = True
+    (rep / "ablations" / "per_config.json").write_text(
+        json.dumps(
+            {
+                "name": "per_config",
+                "experiment": "ablation-per_config",
+                "commit": "abcdef123",
+                "fusion": {"targets": targets(verdict)},
+            }
+        )
+    )
+    src = R.Sources(_inputs(rep))
+    row = target_table(src).rows[0]
+    assert [c.text for c in row][2:] == [
+        "0.0077",
+        "[0.0051, 0.0077]",
+        "<=",
+        "0.005",
+        "fail (ablation per_config)",
+        "yes",
+    ]
+    assert row[2].src == (
+        "ablations/per_config.json#fusion.targets.one_vs_per_config.per_config.D.value"
+    )
+    appendix = appendix_section(src, [], [])
+    assert not any("per_config" in tb.title for tb in appendix.tables)
+    assert any(
+        "reports/ablations/per_config.json" in p and "abcdef12" in p for p in appendix.paragraphs
+    )
+
+
 def test_training_stops_say_where_each_training_ended_and_why(tmp_path: Path) -> None:
     from traffictwin.fusion.report_section import training_stops
 

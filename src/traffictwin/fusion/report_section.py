@@ -127,16 +127,18 @@ def _num(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 
-def _ci_cell(src: page.Sources, key: str) -> Cell:
-    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``), a derived cell."""
-    base = key if isinstance(src.get(FUSION_FILE, f"{key}.lo"), (int, float)) else f"{key}_ci"
-    lo, hi = _num(src.get(FUSION_FILE, f"{base}.lo")), _num(src.get(FUSION_FILE, f"{base}.hi"))
+def _ci_cell(src: page.Sources, key: str, file: str = FUSION_FILE) -> Cell:
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
+    file ``file``, a derived cell."""
+    base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
+    path = src.paths.get(file, f"metrics/{file}")
+    lo, hi = _num(src.get(file, f"{base}.lo")), _num(src.get(file, f"{base}.hi"))
     if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
-        return Cell(NA, title=f"no interval in reports/metrics/{FUSION_FILE}: {base}")
+        return Cell(NA, title=f"no interval in reports/{path}: {base}")
     return Cell(
         f"[{fmt_value(lo, 'g4')}, {fmt_value(hi, 'g4')}]",
         value=[lo, hi],
-        derived=f"95 % cluster-bootstrap interval, metrics/{FUSION_FILE}#{base}",
+        derived=f"95 % cluster-bootstrap interval, {path}#{base}",
     )
 
 
@@ -523,15 +525,28 @@ def target_table(src: page.Sources) -> Table | None:
         note="Status from the point estimate against the threshold ('not evaluated' where the row or "
         "configuration was not evaluated — never a pass); 'CI beyond threshold': the whole interval "
         "lies on the side of the verdict. hybrid_vs_registered needs the KLD(b) difference's interval "
-        "below 0 and the Dice occ difference's not wholly below 0.",
+        "below 0 and the Dice occ difference's not wholly below 0. '(ablation <name>)': a target this "
+        "run does not evaluate, from that ablation experiment's own evaluation "
+        "(reports/ablations/<name>.json).",
         anchor="fusion-targets",
     )
+    ablations = [f for f in sorted(src.metrics) if f.startswith("ablations/")]
     for name, spec in targets.items():
         per = spec.get("per_config", {}) if isinstance(spec, dict) else {}
         for c, e in per.items():
-            key = f"targets.{name}.per_config.{c}"
+            file, key = FUSION_FILE, f"targets.{name}.per_config.{c}"
+            status = str(e.get("status", NA))
+            if e.get("value") is None:
+                # a target this run cannot evaluate (e.g. one_vs_per_config needs the per-config
+                # networks): the ablation experiment's verdict, where one was collected
+                for f in ablations:
+                    found = src.get(f, f"fusion.{key}")
+                    if isinstance(found, dict) and found.get("value") is not None:
+                        file, key, e = f, f"fusion.{key}", found
+                        status = f"{e.get('status', NA)} (ablation {src.get(f, 'name', f)})"
+                        break
             value = (
-                src.cell(FUSION_FILE, f"{key}.value")
+                src.cell(file, f"{key}.value")
                 if e.get("value") is not None
                 else Cell(NA, title=e.get("why", "not evaluated"))
             )
@@ -541,10 +556,10 @@ def target_table(src: page.Sources) -> Table | None:
                     Cell(name, title=str(spec.get("description", ""))),
                     Cell(c),
                     value,
-                    _ci_cell(src, key),
+                    _ci_cell(src, key, file),
                     Cell(str(spec.get("op", ""))),
                     src.cell(FUSION_FILE, f"targets.{name}.threshold"),
-                    Cell(str(e.get("status", NA))),
+                    Cell(status),
                     Cell("" if beyond is None else ("yes" if beyond else "no")),
                 ]
             )

@@ -160,6 +160,13 @@ def appendix_section(
     for file in src.metrics:
         if file in shown or any(re.fullmatch(prov.shown_files, file) for prov in providers):
             continue
+        if file.startswith("ablations/"):  # an experiment's own results: linked, not dumped
+            appendix.paragraphs.append(
+                f"`reports/{src.paths.get(file, file)}`: results of the ablation experiment "
+                f"{src.get(file, 'experiment', '?')} (commit {str(src.get(file, 'commit', '?'))[:8]}); "
+                "the sections above show what they compare."
+            )
+            continue
         t = generic_table(src, file, f"reports/metrics/{file}", anchor=f"m-{Path(file).stem}")
         if t:
             appendix.tables.append(t)
