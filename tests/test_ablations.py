@@ -28,7 +28,7 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
 
     cfg = compose_config(ab.ROOT / "conf", [])
     todo = ab.ablations(cfg)
-    assert set(todo) == {"per_config", "losses", "registered", "risk"}
+    assert set(todo) == {"per_config", "losses", "registered", "fp32", "risk"}
     # each ablation's overrides compose (what `dvc exp run -S` will hand to Hydra)
     for overrides in todo.values():
         composed = compose_config(ab.ROOT / "conf", overrides)
@@ -38,6 +38,7 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
     assert "train" in per["fusion_data"]["prealign"]["splits"]  # ... need their train splits
     reg = compose_config(ab.ROOT / "conf", todo["registered"])
     assert reg["fusion_data"]["register"]["configurations"] == ["mixed"]
+    assert compose_config(ab.ROOT / "conf", todo["fp32"])["trainer"]["precision"] == "32-true"
 
 
 def _repo(tmp_path: Path) -> Path:

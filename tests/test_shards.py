@@ -165,6 +165,41 @@ def test_load_all_in_threads_equals_one_by_one_and_checks_each_shard(tmp_path: P
         ds.load_all("train", keys=["x"], check=refuse)
 
 
+def test_threads_parse_npy_headers_one_at_a_time(tmp_path: Path, monkeypatch) -> None:
+    """numpy parses .npy headers with ast.literal_eval, which CPython 3.11 cannot run in two
+    threads at once (SystemError: AST constructor recursion depth mismatch): every array of a
+    threaded load is parsed under the module's lock, never two at once."""
+    import threading
+    import time
+
+    import traffictwin.io.shards as shards
+
+    class Spy:
+        def __init__(self) -> None:
+            self.lock, self.inside, self.most, self.entries = threading.Lock(), 0, 0, 0
+
+        def __enter__(self) -> None:
+            self.lock.acquire()
+            self.inside += 1
+            self.entries += 1
+            self.most = max(self.most, self.inside)
+            time.sleep(0.001)  # widen the window a second thread would need
+
+        def __exit__(self, *exc: object) -> None:
+            self.inside -= 1
+            self.lock.release()
+
+    spy = Spy()
+    monkeypatch.setattr(shards, "_NPY_PARSE_LOCK", spy)
+    w = DatasetWriter(tmp_path / "ds", "unit", {"n": 3}, seed=0)
+    for i in range(9):
+        w.add_shard(i, _arrays(i), split="train")
+    w.finalize()
+    got = Dataset(tmp_path / "ds", kind="unit").load_all("train", keys=["x", "id"], workers=4)
+    assert spy.entries == 9 * 2 and spy.most == 1  # each array of each shard, one at a time
+    np.testing.assert_array_equal(got["id"], np.concatenate([_arrays(i)["id"] for i in range(9)]))
+
+
 def test_load_all_refuses_a_shard_of_another_shape_and_a_tampered_one(tmp_path: Path) -> None:
     w = DatasetWriter(tmp_path / "ds", "unit", {"n": 3}, seed=0)
     w.add_shard(0, _arrays(0), split="train")

@@ -26,6 +26,7 @@ import hashlib
 import io
 import json
 import shutil
+import threading
 import zipfile
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -120,6 +121,22 @@ def write_npz_deterministic(
     return digest
 
 
+# numpy parses each array's .npy header with ast.literal_eval; CPython 3.11's AST constructor is
+# not safe to run in two threads at once ("SystemError: AST constructor recursion depth mismatch"),
+# so threads that read shards (Dataset.load_all) parse headers one at a time and decompress in
+# parallel
+_NPY_PARSE_LOCK = threading.Lock()
+
+
+def _read_member(z: Any, key: str) -> np.ndarray:
+    """Array ``key`` of an open ``np.load`` archive: its bytes decompressed outside the lock (zlib
+    releases the GIL), its header parsed and the array built under :data:`_NPY_PARSE_LOCK`."""
+    member = f"{key}.npy" if f"{key}.npy" in z.zip.namelist() else key
+    raw = z.zip.read(member)
+    with _NPY_PARSE_LOCK:
+        return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
+
+
 def read_npz(
     path: str | Path, allow_inf: Collection[str] = (), keys: Iterable[str] | None = None
 ) -> dict[str, np.ndarray]:
@@ -133,7 +150,7 @@ def read_npz(
             missing = [k for k in names if k not in z.files]
             if missing:
                 raise DatasetError(f"{path}: array(s) {missing} missing (has {sorted(z.files)})")
-            arrays = {k: z[k] for k in names}
+            arrays = {k: _read_member(z, k) for k in names}
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
