@@ -74,6 +74,18 @@ def risk_model_dir(variant: str) -> Path:
     return RISK_MODELS / variant
 
 
+#: ``models/risk_shipped``: the risk predictor chosen on validation (select_risk); what users get
+SHIPPED_RISK_MODEL = MODELS / "risk_shipped"
+
+
+HYBRID_MODELS = MODELS / "risk_hybrid"
+
+
+def hybrid_model_dir(run: str) -> Path:
+    """``models/risk_hybrid/<run>``: one seed of the corridor hybrid (train_risk_hybrid)."""
+    return HYBRID_MODELS / run
+
+
 def metrics_file(name: str) -> Path:
     """``reports/metrics/<name>.json``."""
     return METRICS / f"{name}.json"

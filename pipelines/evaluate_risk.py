@@ -24,7 +24,6 @@ from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import atomic_path, write_json_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.evaluation import (
-    PAPER,
     CIConfig,
     confusion_table,
     evaluate_suite,
@@ -33,6 +32,7 @@ from traffictwin.risk.evaluation import (
 )
 from traffictwin.risk.figures import evaluation_figures
 from traffictwin.risk.model_io import load_risk_model
+from traffictwin.risk.predictors import predictor_kind
 from traffictwin.risk.training import LABELS, RiskSource
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
@@ -41,13 +41,18 @@ from ._paths import (
     DISPARITY,
     ORB_CSV,
     RISK_DATA,
+    SHIPPED_RISK_MODEL,
     figure_file,
+    hybrid_model_dir,
     metrics_file,
     plot_file,
     risk_model_dir,
 )
+from .train_risk_hybrid import HOLDOUT, HYBRID, holdout_runs, hybrid_runs, hybrid_settings
 
 METRICS = metrics_file("risk")
+SELECTION = metrics_file("risk_selection")
+SHIPPED = "shipped"
 
 
 def _write_csv(df: pd.DataFrame, path) -> None:
@@ -77,6 +82,23 @@ def _log_to_mlflow(models: dict, metrics: dict, log: logging.Logger) -> None:
                 )
     except Exception as exc:
         log.warning("evaluate_risk: MLflow unavailable (%s); metrics only in %s", exc, METRICS)
+
+
+def read_selection() -> dict:
+    """``reports/metrics/risk_selection.json`` (stage ``select_risk``: the choices made on
+    validation); errors name the file."""
+    import json
+
+    if not SELECTION.exists():
+        raise FileNotFoundError(f"{SELECTION}: not found (run the select_risk stage first)")
+    try:
+        sel = json.loads(SELECTION.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{SELECTION}: not valid JSON ({exc})") from None
+    missing = [k for k in ("rules", "predictors", "shipped", "split") if k not in sel]
+    if missing:
+        raise ValueError(f"{SELECTION}: key(s) {missing} missing (re-run select_risk)")
+    return sel
 
 
 def run_variants(p) -> list[str]:
@@ -118,11 +140,38 @@ def main() -> None:
     primary = get(p, "risk_model.label", str, choices=LABELS)
     orb_filter = get(p, "risk_model.orb_filter", bool)
     geo = ev.geometric.params(subject.subject_length, subject.subject_width)
+    selection = read_selection()
 
     with stage_timer("evaluate_risk") as record:
         record["torch_threads"] = pin_torch_threads(p)
         source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
-        models = {v: load_risk_model(risk_model_dir(v)) for v in variants}
+        # the trained variants, the hybrid runs and the shipped predictor (select_risk)
+        _, seeds, holdout = hybrid_settings(p)
+        hybrids = [*hybrid_runs(seeds), *holdout_runs(seeds, holdout)]
+        names = [*variants, *hybrids, SHIPPED]
+        models = {
+            v: load_risk_model(
+                hybrid_model_dir(v)
+                if v in hybrids
+                else (SHIPPED_RISK_MODEL if v == SHIPPED else risk_model_dir(v))
+            )
+            for v in names
+        }
+        for v in names[len(variants) :]:
+            settings[v] = {
+                "replicate_of": None if v == SHIPPED else models[v].meta.get("replicate_of"),
+                "objective": models[v].meta.get("objective"),
+                "seed_offset": models[v].meta.get("seed_offset", 0),
+            }
+        rules = {
+            r: ev.geometric.params(subject.subject_length, subject.subject_width, e["half_width"])
+            for r, e in selection["rules"].items()
+        }
+        decisions = {
+            name: {float(t): d["cut"] for t, d in e["decision"].items()}
+            for name, e in selection["predictors"].items()
+        }
+        decisions[SHIPPED] = decisions[selection["shipped"]["predictor"]]
         metrics, pred = evaluate_suite(
             source,
             models,
@@ -135,7 +184,21 @@ def main() -> None:
             variants=settings,
             ci=ci,
             collapse_std=ev.collapse_std,
+            rule_params=rules,
+            decisions=decisions,
+            shipped=SHIPPED,
+            learned=selection.get("learned"),
+            holdout=(
+                {"templates": holdout, "group": HOLDOUT, "reference": HYBRID} if holdout else None
+            ),
         )
+        metrics["selection"] = {
+            "file": SELECTION.name,
+            "split": selection["split"],
+            "shipped_from": selection["shipped"]["predictor"],
+            "shipped_kind": predictor_kind(models[SHIPPED]),
+            "rules": {r: e["half_width"] for r, e in selection["rules"].items()},
+        }
         main_v, t0 = ev.main_variant, ev.thresholds_s[0]
         evaluation_figures(
             source,
@@ -156,12 +219,11 @@ def main() -> None:
         _log_to_mlflow(models, metrics, log)
         m = metrics["models"][main_v]
         log.info(
-            "evaluate_risk: %s test MSE %.5f (paper %.5f), accuracy %.2f %% (paper %.2f %%) on %d frames",
-            main_v,
-            m["test/mse"],
-            PAPER["test/mse"],
-            100 * m[f"at_{t0:g}s"]["accuracy"],
-            100 * PAPER["accuracy"],
+            "evaluate_risk: shipped %s: balanced accuracy %.3f, ROC-AUC %.3f at THW %g s on %d test frames",
+            metrics["selection"]["shipped_from"],
+            metrics["models"][SHIPPED][f"at_{t0:g}s"]["balanced_accuracy"],
+            metrics["models"][SHIPPED][f"at_{t0:g}s"]["roc_auc"],
+            t0,
             m["test/n"],
         )
         failed = [v for v, e in metrics["models"].items() if e.get("collapsed")]

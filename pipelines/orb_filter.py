@@ -25,7 +25,14 @@ from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import orb_example_figure
 from traffictwin.risk.dataset import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
-from traffictwin.stereo.check import RULES, StereoCheckParams, add_flags, valid_share_sweep
+from traffictwin.stereo.check import (
+    RULES,
+    StereoCheckParams,
+    add_flags,
+    choose_min_valid_share,
+    key_fragment,
+    valid_share_sweep,
+)
 from traffictwin.stereo.detection import detection_table
 from traffictwin.stereo.orb import TABLE_COLUMNS, OrbParams, check_pairs, orb_frames, orb_metrics
 
@@ -91,17 +98,28 @@ def run(
     if df.valid_share.isna().any():
         missing = df.frame_id[df.valid_share.isna()].tolist()[:5]
         raise DatasetError(f"{disparity / 'frames.csv'}: no valid_share for frames {missing}...")
+    chosen = None
+    min_valid_share = check.min_valid_share
+    if min_valid_share is None:  # chosen on the validation split (issue 31: no choice on test)
+        min_valid_share, chosen = choose_min_valid_share(
+            df[df["split"] == "val"], check.max_false_alarm
+        )
     df = add_flags(
         df,
         min_dx=orb.min_dx,
         max_dy=orb.max_dy,
-        min_valid_share=check.min_valid_share,
+        min_valid_share=min_valid_share,
         rule=check.rule,
     )
     metrics = orb_metrics(df, SPLITS, FAULTS, orb.min_reliable, orb.min_dx)
     metrics.update(detection_table(df, FAULTS))
     metrics.update(valid_share_sweep(df, FAULTS))
-    metrics["check/min_valid_share"] = float(check.min_valid_share)
+    metrics["check/min_valid_share"] = float(min_valid_share)
+    metrics["check/min_valid_share_chosen_on"] = "val" if chosen else "config"
+    for r in chosen or []:
+        pre = f"check/val_min_valid_share_{key_fragment(r['min_valid_share'])}"
+        metrics[f"{pre}_detection_rate"] = r["detection_rate"]
+        metrics[f"{pre}_false_alarm_rate"] = r["false_alarm_rate"]
     metrics.update({f"rule_{r}/configured": int(r == check.rule) for r in RULES})
     if record is not None:  # timings vary between identical runs: run record only
         record["ms_per_frame"] = round(1000.0 * total / max(len(df), 1), 3)

@@ -35,6 +35,7 @@ from pipelines._paths import (
     ORB_CSV,
     RISK_DATA,
     ROOT,
+    SHIPPED_RISK_MODEL,
     fusion_model_dir,
     metrics_file,
     prealigned,
@@ -49,15 +50,18 @@ from traffictwin.mlops.config import RegistryConfig
 from traffictwin.mlops.gate import Decision
 from traffictwin.risk.config import EvalRiskConfig
 
+SHIPPED = "shipped"  # registry.risk.variant: the predictor select_risk chose on validation
+
 
 def registry_config(cfg: DictConfig) -> RegistryConfig:
-    """The validated ``registry`` group; its risk variant must be one of ``risk_model.run_variants``."""
+    """The validated ``registry`` group; its risk variant must be ``shipped`` (the predictor
+    select_risk chose on validation) or one of ``risk_model.run_variants``."""
     rc = typed(get(cfg, "registry", dict), RegistryConfig, key="registry")
     variants = get(cfg, "risk_model.run_variants", list)
-    if rc.risk.variant not in variants:
+    if rc.risk.variant != SHIPPED and rc.risk.variant not in variants:
         raise ConfigError(
             f"params.yaml: 'registry.risk.variant' is '{rc.risk.variant}', "
-            f"not one of risk_model.run_variants {variants}"
+            f"not '{SHIPPED}' or one of risk_model.run_variants {variants}"
         )
     return rc
 
@@ -81,7 +85,14 @@ def _rel(path: Path) -> str:
 
 
 FUSION_CARD_KEYS = ("kld_fou_mean", "kld_fo_mean", "dice_occ", "dice_free", "u_auroc", "u_mean")
-RISK_CARD_KEYS = ("test/mse", "test/rmse", "test/mae", "test/thw_mae_s", "test/thw_mae_critical_s")
+RISK_CARD_KEYS = (
+    "test/mse",
+    "test/rmse",
+    "test/mae",
+    "test/thw_mae_s",
+    "test/thw_mae_critical_s",
+    "test/thw_median_error_critical_s",
+)
 SIM_LIMIT = "Trained and tested on the project's own simulator, not on real sensor data."
 
 
@@ -209,14 +220,16 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
         evaluator = risk_evaluator(data, label, thresholds, thw_cap, r.batch_size, r.split)
         return evaluator, f"{fp}:{label}"
 
+    shipped = r.variant == SHIPPED
+    risk_dir = SHIPPED_RISK_MODEL if shipped else risk_model_dir(r.variant)
     jobs.append(
         promotion.GateJob(
             name=r.name,
             gate=r.gate(),
-            model_dir=risk_model_dir(r.variant),
+            model_dir=risk_dir,
             make_evaluator=make_risk_eval,
-            record_path=run_record_file(f"train_risk@{r.variant}"),
-            tags={"model_dir": _rel(risk_model_dir(r.variant))},
+            record_path=run_record_file("select_risk" if shipped else f"train_risk@{r.variant}"),
+            tags={"model_dir": _rel(risk_dir)},
             card=risk_card(r.variant),
         )
     )

@@ -43,7 +43,9 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     # the MLflow run ids come from the training stages' run records (reports/timings, outside DVC)
     assert jobs[0].record_path == pm.ROOT / "reports" / "timings" / "train_fusion.json"
     assert jobs[1].record_path.name == "train_registration.json"
-    assert jobs[-1].record_path.name == f"train_risk-{rc.risk.variant}.json"
+    # the risk model users get: the predictor select_risk chose on validation
+    assert rc.risk.variant == "shipped"
+    assert jobs[-1].record_path.name == "select_risk.json"
     assert jobs[0].tags == {"model_dir": "models/fusion/network"}
     reg_job = jobs[1]
     assert reg_job.model_dir == pm.registration_model_dir()
@@ -53,7 +55,8 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     )
     # the gates compare on validation data: the test split is read once, by the evaluation
     assert {rc.fusion.split, rc.registration.split, rc.risk.split} == {"val"}
-    assert jobs[-1].model_dir == pm.risk_model_dir(rc.risk.variant)
+    assert jobs[-1].model_dir == pm.SHIPPED_RISK_MODEL
+    assert jobs[-1].tags == {"model_dir": "models/risk_shipped"}
     assert jobs[-1].gate == Gate(rc.risk.metric, rc.risk.mode, rc.risk.margin)
     assert [j.name for j in promotion.select(jobs, {rc.risk.name})] == [rc.risk.name]
 
@@ -62,7 +65,9 @@ def test_registry_group_is_validated_once():
     cfg = load_params(PARAMS)
     bad = cfg.copy()
     bad.registry.risk.variant = "nope"
-    with pytest.raises(ConfigError, match="'registry.risk.variant' is 'nope'.*run_variants"):
+    with pytest.raises(
+        ConfigError, match="'registry.risk.variant' is 'nope'.*'shipped'.*run_variants"
+    ):
         pm.registry_config(bad)
     bad = cfg.copy()
     bad.registry.fusion.margin = -1.0

@@ -47,7 +47,12 @@ RISK = {
     "thresholds_s": [1.5, 1.0],
     "groups": {
         "headline": {
-            "at_1.5s": {"roc_auc": 0.84, "roc_auc_ci": _ci(0.79, 0.88)},
+            "at_1.5s": {
+                "roc_auc": 0.84,
+                "roc_auc_ci": _ci(0.79, 0.88),
+                "balanced_accuracy": 0.8,
+                "balanced_accuracy_ci": _ci(0.75, 0.85),
+            },
             "test/mse": 0.005,
             "test/mse_ci": _ci(0.001, 0.01),
         }
@@ -107,8 +112,19 @@ def test_problem_headlines_from_their_metrics_files() -> None:
     risk = RS.headlines({"risk.json": RISK})
     assert [(h.key, h.value, h.lo, h.hi) for h in risk] == [
         ("auc", 0.84, 0.79, 0.88),
-        ("mse", 0.005, 0.001, 0.01),
+        ("balanced_accuracy", 0.8, 0.75, 0.85),
     ]
+    # the shipped predictor (chosen on validation) is the headline when there is one
+    shipped = {
+        **RISK,
+        "shipped": "shipped",
+        "models": {
+            **RISK["models"],
+            "shipped": {"at_1.5s": {"roc_auc": 0.9, "roc_auc_ci": _ci(0.85, 0.95)}},
+        },
+    }
+    [h] = RS.headlines({"risk.json": shipped})
+    assert (h.key, h.value) == ("auc", 0.9) and "shipped predictor" in h.where
     assert "THW < 1.5 s" in risk[0].quantity
     twin = TS.headlines({"twin.json": TWIN})
     assert [(h.key, h.value, h.lo, h.hi) for h in twin] == [
@@ -149,9 +165,9 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
             "auc": 0.84,
             "auc_lo": 0.79,
             "auc_hi": 0.88,
-            "mse": 0.005,
-            "mse_lo": 0.001,
-            "mse_hi": 0.01,
+            "balanced_accuracy": 0.8,
+            "balanced_accuracy_lo": 0.75,
+            "balanced_accuracy_hi": 0.85,
         },
         "twin": {
             "recall": 0.99,

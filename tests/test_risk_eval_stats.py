@@ -427,7 +427,7 @@ def test_real_models_load_and_evaluate(tmp_path: Path) -> None:
     )
     assert metrics["models"]["m"]["label"] == "risk_thw_corridor"
     assert metrics["main_variant"] == "m" and "geometric_sgm" not in metrics["baselines"]
-    assert metrics["targets"]["auc_vs_geometric_sgm"]["met"] is False
+    assert metrics["targets"]["learned_vs_rule_auc"]["met"] is False
     json.dumps(metrics, allow_nan=False)
 
 
@@ -488,7 +488,9 @@ def test_suite_layout_collapse_and_seed_mean(suite) -> None:
         "geometric_sgm",
         "geometric_gt",
     }
-    assert metrics["baselines"]["geometric_gt"]["oracle"] is True
+    # GT disparity along a straight corridor: a reference, not an oracle (the label's corridor bends)
+    gt = metrics["baselines"]["geometric_gt"]
+    assert gt["oracle"] is False and gt["uses_gt_disparity"] is True
     assert set(metrics["baselines_by_label"]) == {"risk_thw_paper"}
     train = src.split_frames("train")
     so = fit_speed_only(train["speed"], train["risk_thw_corridor"])
@@ -524,10 +526,12 @@ def test_suite_differences_targets_and_breakdowns(suite) -> None:
     assert d[f"{head}|geometric_sgm"]["at_1.5s"]["roc_auc"]["estimate"] == pytest.approx(auc - geo)
     t = metrics["targets"]
     assert set(t) == set(TARGETS)
-    assert t["balanced_accuracy"]["value"] == pytest.approx(
+    # without a shipped / learned predictor (no select_risk) the targets judge the headline
+    assert t["shipped_balanced_accuracy_1.5s"]["value"] == pytest.approx(
         metrics["groups"]["headline"]["at_1.5s"]["balanced_accuracy"]
     )
-    assert t["auc_vs_geometric_sgm"]["value"] == pytest.approx(auc - geo)
+    assert t["learned_vs_rule_auc"]["value"] == pytest.approx(auc - geo)
+    assert "test_mse" not in t  # met by a constant (issue 31): not a target
     assert t["spread"]["met"] is False and t["spread"]["collapsed"] == ["headline_s2"]
     for e in t.values():
         assert isinstance(e["met"], bool)
@@ -577,7 +581,7 @@ def test_findings_never_interpret_a_collapsed_run(suite) -> None:
     for line in text.splitlines():
         if "headline_s2" in line and "Failed runs" not in line and "ROC-AUC per run" not in line:
             assert "beats" not in line.split("headline_s2")[1][:80]
-    assert "oracle" in text and "Targets (issue 16" in text
+    assert "ground-truth disparity" in text and "oracle" not in text and "Targets (issue 31" in text
     assert "Training objectives" in text and "headline_logthw" in text
     assert "paper: risk_thw_paper" in text  # another label, named, not compared with the headline
     assert "by situation type" in text and "Critical share" in text
@@ -705,6 +709,29 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     (rep / "metrics").mkdir(parents=True)
     (rep / "figures").mkdir()
     (rep / "metrics" / "risk.json").write_text(json.dumps(metrics, allow_nan=False))
+    selection = {  # select_risk's choices on validation (layout of reports/metrics/risk_selection.json)
+        "split": "val",
+        "n_frames": 24,
+        "n_sequences": 8,
+        "thresholds_s": [1.5, 1.0],
+        "rules": {"geometric_sgm": {"half_width": 1.0}, "geometric_gt": {"half_width": 1.5}},
+        "predictors": {
+            "geometric_sgm": {
+                "kind": "geometric",
+                "group": "geometric_sgm",
+                "roc_auc": 0.94,
+                "decision": {"1.5": {"cut": 0.036, "balanced_accuracy": 0.9}},
+            },
+            "headline": {
+                "kind": "dave2",
+                "group": "headline",
+                "roc_auc": 0.8,
+                "decision": {"1.5": {"cut": 0.027, "balanced_accuracy": 0.74}},
+            },
+        },
+        "shipped": {"predictor": "geometric_sgm", "kind": "geometric"},
+    }
+    (rep / "metrics" / "risk_selection.json").write_text(json.dumps(selection))
     (rep / "figures" / "risk_roc.png").write_bytes(tiny_png())
     inputs = M.ReportInputs(reports_dir=rep, profile="ci", seed=0, git_commit="c0ffee")
     out = R.write_report(inputs, providers({}))
@@ -724,10 +751,10 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert ci[0][5] == f"[{M.fmt_value(lo)}, {M.fmt_value(hi)}]"
     dead = next(r for r in ci if r[0] == "headline_s2")
     assert dead[2] == "collapsed: failed run" and dead[-1] == "failed run"
-    oracle = next(r for r in ci if r[0].startswith("oracle"))
-    assert oracle[2] == "oracle"
+    gt = next(r for r in ci if r[0].startswith("reference: corridor rule on GT"))
+    assert gt[2] == "GT disparity"
     diff = tables[anchors.index("risk-diff")]
-    row = next(r for r in diff if r[:2] == [head, "geometric_gt (oracle)"])
+    row = next(r for r in diff if r[:2] == [head, "geometric_gt (GT disparity)"])
     d = metrics["differences"][f"{head}|geometric_gt"]["at_1.5s"]["roc_auc"]
     assert row[8] == M.fmt_value(d["estimate"])
     assert (
@@ -736,6 +763,10 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
             beats(metrics["differences"][f"{head}|geometric_gt"], "at_1.5s|roc_auc")
         ]
     )
+    sel = tables[anchors.index("risk-selection")]
+    assert [r[0] for r in sel] == ["geometric_sgm", "headline"]  # the shipped one first
+    assert sel[0][-1] == "shipped" and sel[1][-1] == "" and sel[0][3] == "0.94"
+    assert sel[1][4] == M.fmt_value(0.027, "g4") and sel[1][5] == "74.00 %"
     targets = tables[anchors.index("risk-targets")]
     assert [r[0] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[0] == "spread")[6] == "no"

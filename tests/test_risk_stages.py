@@ -107,7 +107,9 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
 
     metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
     variants = _variants(ci_dag)
-    assert set(metrics["models"]) == set(variants)
+    # the networks, the hybrid's seeds (ci: two) and the shipped predictor (select_risk)
+    assert set(metrics["models"]) == {*variants, "hybrid", "hybrid_s1", "shipped"}
+    assert metrics["groups"]["hybrid"]["n_seeds"] == 2
     assert {"train_mean", "train_median", "speed_only", "geometric_sgm", "geometric_gt"} <= set(
         metrics["baselines"]
     )
@@ -151,9 +153,46 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     assert metrics["bootstrap"]["n_boot"] >= 100
     for e in metrics["models"].values():
         assert set(e["test/mse_ci"]) == {"lo", "hi"} and isinstance(e["collapsed"], bool)
-    assert {"balanced_accuracy", "auc_vs_speed_only", "test_mse", "spread"} <= set(
-        metrics["targets"]
+    assert {
+        "shipped_balanced_accuracy_1.5s",
+        "shipped_roc_auc",
+        "learned_vs_rule_auc",
+        "auc_vs_speed_only",
+        "spread",
+    } <= set(metrics["targets"])
+    assert "test_mse" not in metrics["targets"]  # met by a constant (issue 31)
+
+
+@pytest.mark.slow
+def test_select_risk_chooses_on_validation_and_ships(ci_dag: Path) -> None:
+    """select_risk: the rules' corridors, every predictor's decision cuts and the shipped predictor,
+    all on the validation split; evaluate_risk applies them to the test split."""
+    from traffictwin.risk.model_io import load_risk_model
+
+    sel = json.loads((ci_dag / "reports" / "metrics" / "risk_selection.json").read_text())
+    metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
+    assert sel["split"] == "val"
+    params = yaml.safe_load((ci_dag / "params.yaml").read_text())
+    widths = params["evaluation"]["risk"]["geometric"]["half_widths"]
+    for r in ("geometric_sgm", "geometric_gt"):
+        assert sel["rules"][r]["half_width"] in widths
+        assert [c["half_width"] for c in sel["rules"][r]["candidates"]] == widths
+        used = metrics["baselines"][r]["params"]["corridor_half_width"]
+        assert used == sel["rules"][r]["half_width"]
+    shipped = sel["shipped"]["predictor"]
+    assert shipped in sel["shipped"]["candidates"]
+    best = max(sel["shipped"]["candidates"], key=lambda n: sel["predictors"][n]["roc_auc"])
+    assert sel["predictors"][shipped]["roc_auc"] == pytest.approx(
+        sel["predictors"][best]["roc_auc"]
     )
+    m = load_risk_model(ci_dag / "models" / "risk_shipped")
+    assert m.meta["shipped"]["predictor"] == shipped
+    cut = sel["predictors"][shipped]["decision"]["1.5"]["cut"]
+    assert metrics["models"]["shipped"]["at_1.5s"]["decision_cut"] == pytest.approx(cut)
+    assert metrics["selection"]["shipped_from"] == shipped
+    rec = run_record(ci_dag, "select_risk")
+    assert rec["run_id"] and rec["model_uri"]
+    assert rec["model_sha256"] == sha256_file(ci_dag / "models" / "risk_shipped" / "model.ckpt")
 
 
 def test_stage_config_is_checked() -> None:

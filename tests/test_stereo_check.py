@@ -185,3 +185,26 @@ def test_check_config_validates() -> None:
 def test_bad_check_config_names_the_key(dotted: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         _risk_data(**dotted)
+
+
+def test_min_valid_share_is_chosen_on_validation_within_the_false_alarm_budget() -> None:
+    """The most faults caught with at most max_false_alarm of the clean pairs flagged (by hand)."""
+    from traffictwin.stereo.check import choose_min_valid_share
+
+    df = pd.DataFrame(
+        {
+            "fault": ["none"] * 4 + ["delay"] * 4,
+            "valid_share": [0.95, 0.93, 0.88, 0.86, 0.50, 0.72, 0.78, 0.87],
+        }
+    )
+    # t=0.8: detection 3/4, false alarms 0; t=0.9: detection 4/4, false alarms 2/4
+    t, table = choose_min_valid_share(df, max_false_alarm=0.0, candidates=(0.7, 0.8, 0.9))
+    assert t == 0.8
+    rows = {r["min_valid_share"]: r for r in table}
+    assert rows[0.9]["detection_rate"] == 1.0 and rows[0.9]["false_alarm_rate"] == 0.5
+    assert rows[0.7]["detection_rate"] == 0.25
+    assert choose_min_valid_share(df, 0.5, (0.7, 0.8, 0.9))[0] == 0.9
+    # nothing within the budget: the lowest threshold
+    assert choose_min_valid_share(df, 0.0, (0.9, 0.95))[0] == 0.9
+    with pytest.raises(ValueError, match="fault-free and faulty"):
+        choose_min_valid_share(df[df.fault == "none"], 0.02)

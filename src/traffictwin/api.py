@@ -404,6 +404,19 @@ class LoadedRisk:
         d = self.model.meta.get("domain")
         return d if isinstance(d, dict) else {}
 
+    @property
+    def predictor(self) -> str:
+        """What predicts: ``dave2`` (the network), ``hybrid`` (MLP on the corridor profile) or
+        ``geometric`` (the corridor rule), and for the shipped model which candidate the
+        validation chose (``hybrid (shipped: hybrid_s1, validation ROC-AUC 0.945)``)."""
+        from traffictwin.risk.predictors import predictor_kind
+
+        kind = predictor_kind(self.model)
+        sh = self.model.meta.get("shipped")
+        if isinstance(sh, dict) and sh.get("predictor"):
+            return f"{kind} (shipped: {sh['predictor']}, validation ROC-AUC {float(sh.get('roc_auc', float('nan'))):.3f})"
+        return kind
+
 
 def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> LoadedRisk:
     """Load a risk network by registry reference (``name@alias``; a bare alias means
@@ -580,20 +593,38 @@ def check_speed(
     return notes
 
 
+def decision_cut(risk: LoadedRisk, thw_threshold: float) -> float | None:
+    """The risk above which the model calls a frame critical at ``thw_threshold`` (s), as chosen
+    on the validation split (``shipped.decision`` of a shipped predictor's metadata); ``None``
+    when none was chosen for that threshold (the verdict then compares THW with the threshold)."""
+    dec = (risk.meta.get("shipped") or {}).get("decision") or {}
+    for t, d in dec.items():
+        try:
+            if math.isclose(float(t), float(thw_threshold)) and isinstance(d, dict):
+                return float(d["cut"])
+        except (TypeError, ValueError, KeyError):
+            continue
+    return None
+
+
 def risk_verdict(
-    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW
+    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW, cut: float | None = None
 ) -> dict[str, Any]:
     """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
-    no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s).
-    With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
+    no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s), or,
+    with ``cut`` (the decision threshold chosen on validation, :func:`decision_cut`), iff
+    ``risk > cut``. With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
     thw = float(risk_to_thw(np.asarray(risk), cap=math.inf))
+    crit = bool(risk > cut) if cut is not None else bool(thw < thw_threshold)
     out: dict[str, Any] = {
         "risk": risk,
         "thw_s": thw,
         "thw_threshold_s": thw_threshold,
-        "critical": bool(thw < thw_threshold),
-        "verdict": "critical" if thw < thw_threshold else "uncritical",
+        "critical": crit,
+        "verdict": "critical" if crit else "uncritical",
     }
+    if cut is not None:
+        out["decision_cut"] = cut
     if speed is not None:
         out["speed_m_s"] = float(speed)
         out["gap_m"] = thw * speed if math.isfinite(thw) else math.inf
@@ -658,6 +689,7 @@ def assess_risk(
     for note in check_speed(risk, speed, params_path):
         warnings.warn(note, ApiWarning, stacklevel=2)
     st = settings or stereo_settings(risk.domain, params_path, risk.description)
+    cut = decision_cut(risk, thw_threshold)
     for chunk in _chunks(frames, batch_size):
         lefts, disps, rows = [], [], []
         for fr in chunk:
@@ -698,5 +730,5 @@ def assess_risk(
             )
         pred = np.clip(pred, 0.0, 1.0)  # the metric's range, always
         for row, r in zip(rows, pred):
-            row.update(risk_verdict(float(r), speed, thw_threshold), model_ms=round(ms, 2))
+            row.update(risk_verdict(float(r), speed, thw_threshold, cut), model_ms=round(ms, 2))
             yield row

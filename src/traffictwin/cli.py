@@ -635,6 +635,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
                         "right": rp,
                         **row,
                         "model": rmodel.description,
+                        "predictor": rmodel.predictor,
                         "stereo_settings": st.source,
                     }
                 )
@@ -661,7 +662,8 @@ def cmd_risk(args: argparse.Namespace) -> int:
             if out:
                 outs.commit()
                 print(
-                    f"{n} pair(s) -> {out} (model {rmodel.description}; stereo settings: {st.source})"
+                    f"{n} pair(s) -> {out} (model {rmodel.description}, predictor {rmodel.predictor}; "
+                    f"stereo settings: {st.source})"
                 )
     return 0
 
@@ -686,6 +688,12 @@ def cmd_export(args: argparse.Namespace) -> int:
             desc = fm.description
         else:
             rm = api.load_risk(args.model, tracking_uri=args.tracking_uri)
+            if not hasattr(rm.model, "net") or hasattr(rm.model, "predict_features"):
+                raise CliError(
+                    f"--model: {rm.description} is a {rm.predictor} risk predictor, not the DAVE-2 "
+                    "network; only the network exports to TorchScript (serve the predictor with "
+                    "`traffictwin risk` or the Python API)"
+                )
             module, meta = export.export_risk(rm.model)
             desc = rm.description
         meta["source"] = desc

@@ -4,7 +4,8 @@ Validated once at the start of ``pipelines/promote.py`` and ``pipelines/retrain.
 ``traffictwin.config.typed(cfg.registry, RegistryConfig, key="registry")``. Folders of data and
 models are not here: the workflow layer derives them (``pipelines/_paths.py``); the fusion
 one fusion network and the one learned registration are gated on every configuration (the keys
-of ``configurations``) and the risk variant must be one of ``risk_model.run_variants``.
+of ``configurations``) and the risk variant must be ``shipped`` (models/risk_shipped) or one of
+``risk_model.run_variants``.
 """
 
 from __future__ import annotations
@@ -51,7 +52,9 @@ class RiskGateConfig(GateConfig):
     """Registered model ``name``: the risk network of variant ``variant``."""
 
     name: str = spec()
-    variant: str = spec()  # one of risk_model.run_variants
+    variant: str = (
+        spec()
+    )  # shipped (the predictor chosen on validation) or one of risk_model.run_variants
     max_frames: int | None = spec()  # first K test frames by frame id; None = all
 
 

@@ -49,6 +49,10 @@ def _network(problem: str, folder: Path) -> Any:
         raise ValueError(f"{folder}: unknown traffictwin model problem {problem!r}")
     module, name = LOADERS[problem]
     model = getattr(importlib.import_module(module), name)(folder)
+    if problem == "risk" and (
+        not hasattr(model, "net") or hasattr(model, "predict_features")
+    ):  # the corridor rule / hybrid: input (N, 1 + H·W) = speed (m/s), SGM disparity (px)
+        return importlib.import_module("traffictwin.risk.predictors").PackedPredictor(model)
     if problem == "risk":  # a RiskModel: the packed single-input network of its signature
         packed = importlib.import_module("traffictwin.risk.dave2").PackedDave2
         return packed(model.net).eval()

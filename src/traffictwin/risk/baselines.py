@@ -27,7 +27,7 @@ x = mount_x + Z, y = B/2 − X, z = mount_height − Y.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,15 +127,13 @@ class GeometricParams:
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height")
 
 
-def geometric_distance(
-    disp: np.ndarray, camera: Mapping[str, float], params: GeometricParams, chunk: int = 32
-) -> np.ndarray:
-    """Free distance (m) from the front bumper to the robust nearest obstacle in the corridor, per frame.
-
-    ``disp``: (N, H, W) disparity in px at the camera's resolution (≤ 0 or non-finite = invalid).
-    Returns (N,) float64, ``inf`` where fewer than ``min_pixels`` valid points lie in the corridor.
-    Processed ``chunk`` frames at a time (memory).
-    """
+def _corridor_points(
+    disp: np.ndarray, camera: Mapping[str, float], params: GeometricParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel of ``disp`` (N, H, W): whether it is an obstacle point ahead (valid, within
+    ``max_range``, height in ``[min_height, max_height]``, ahead of the front bumper), its lateral
+    offset ``y`` (m, vehicle frame, left positive) and its free distance (m) from the subject's
+    front bumper segment (as the risk metric measures it)."""
     missing = [k for k in _CAMERA_KEYS if k not in camera]
     if missing:
         raise ValueError(f"camera intrinsics: key(s) {missing} missing (have {sorted(camera)})")
@@ -150,13 +148,6 @@ def geometric_distance(
     ):
         raise ValueError(
             f"disparity is {w}×{h} px but the camera intrinsics are for {int(camera['width'])}×{int(camera['height'])}"
-        )
-    if n > chunk:
-        return np.concatenate(
-            [
-                geometric_distance(disp[i : i + chunk], camera, params, chunk)
-                for i in range(0, n, chunk)
-            ]
         )
     fx, fy, cx, cy = (float(camera[k]) for k in ("fx", "fy", "cx", "cy"))
     B, mx, mh = float(camera["baseline"]), float(camera["mount_x"]), float(camera["mount_height"])
@@ -173,16 +164,106 @@ def geometric_distance(
     keep = (
         valid
         & (Z <= params.max_range)
-        & (np.abs(y) <= params.corridor_half_width)
         & (z >= params.min_height)
         & (z <= params.max_height)
         & (x > params.subject_length / 2.0)
     )
     dx = x - params.subject_length / 2.0
     dy = np.maximum(np.abs(y) - params.subject_width / 2.0, 0.0)
-    dist = np.where(keep, np.hypot(dx, dy), np.inf).reshape(n, -1)
-    k = min(params.min_pixels, dist.shape[1]) - 1
-    return np.partition(dist, k, axis=1)[:, k].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        dist = np.where(keep, np.hypot(dx, dy), np.inf)
+    return keep, np.where(keep, y, np.nan), dist
+
+
+def _robust_min(dist: np.ndarray, min_pixels: int) -> np.ndarray:
+    """The ``min_pixels``-th smallest value of each frame of ``dist`` (N, ...) (inf: fewer)."""
+    d = dist.reshape(dist.shape[0], -1)
+    k = min(min_pixels, d.shape[1]) - 1
+    return np.partition(d, k, axis=1)[:, k].astype(np.float64)
+
+
+def _in_chunks(fn, disp: np.ndarray, chunk: int) -> np.ndarray:
+    """``fn`` over ``chunk`` frames of ``disp`` (N, H, W) at a time (memory), rows concatenated."""
+    disp = np.asarray(disp, np.float32)
+    if disp.ndim != 3 or disp.shape[0] <= chunk:
+        return fn(disp)
+    return np.concatenate([fn(disp[i : i + chunk]) for i in range(0, disp.shape[0], chunk)])
+
+
+def corridor_distances(
+    disp: np.ndarray,
+    camera: Mapping[str, float],
+    params: GeometricParams,
+    half_widths: Sequence[float],
+    chunk: int = 32,
+) -> np.ndarray:
+    """Free distance (m) to the robust nearest obstacle in straight corridors of several
+    half-widths (m) at once: (N, K) float64 for ``half_widths`` (K,), ``inf`` where fewer than
+    ``min_pixels`` points lie in a corridor. ``params.corridor_half_width`` is not used.
+    One back-projection per frame serves every width (the validation tuning scores all)."""
+    hw = np.asarray(list(half_widths), np.float64)
+    if hw.ndim != 1 or hw.size == 0 or not np.all(hw > 0):
+        raise ValueError(f"corridor half-widths must be a non-empty list of metres > 0, got {hw}")
+
+    def one(d: np.ndarray) -> np.ndarray:
+        _, y, dist = _corridor_points(d, camera, params)
+        ay = np.abs(y)
+        return np.stack(
+            [_robust_min(np.where(ay <= w, dist, np.inf), params.min_pixels) for w in hw], axis=1
+        )
+
+    return _in_chunks(one, disp, chunk)
+
+
+def lateral_bin_distances(
+    disp: np.ndarray,
+    camera: Mapping[str, float],
+    params: GeometricParams,
+    edges: Sequence[float],
+    chunk: int = 32,
+) -> np.ndarray:
+    """Free distance (m) to the robust nearest obstacle in each lateral strip ``[edges[i],
+    edges[i+1])`` (m, vehicle frame, left positive): (N, len(edges) - 1) float64, ``inf`` where
+    a strip holds fewer than ``min_pixels`` points — a bird's-eye profile of what is ahead."""
+    e = np.asarray(list(edges), np.float64)
+    if e.ndim != 1 or e.size < 2 or not np.all(np.diff(e) > 0):
+        raise ValueError(f"lateral bin edges must be >= 2 increasing metres, got {e}")
+
+    def one(d: np.ndarray) -> np.ndarray:
+        _, y, dist = _corridor_points(d, camera, params)
+        b = np.digitize(np.nan_to_num(y, nan=np.inf), e) - 1  # -1 / len(e)-1: outside every strip
+        return np.stack(
+            [
+                _robust_min(np.where(b == i, dist, np.inf), params.min_pixels)
+                for i in range(e.size - 1)
+            ],
+            axis=1,
+        )
+
+    return _in_chunks(one, disp, chunk)
+
+
+def geometric_distance(
+    disp: np.ndarray, camera: Mapping[str, float], params: GeometricParams, chunk: int = 32
+) -> np.ndarray:
+    """Free distance (m) from the front bumper to the robust nearest obstacle in the corridor, per frame.
+
+    ``disp``: (N, H, W) disparity in px at the camera's resolution (≤ 0 or non-finite = invalid).
+    Returns (N,) float64, ``inf`` where fewer than ``min_pixels`` valid points lie in the corridor
+    ``|y| <= corridor_half_width``. Processed ``chunk`` frames at a time (memory).
+    """
+    return corridor_distances(disp, camera, params, [params.corridor_half_width], chunk)[:, 0]
+
+
+def thw_from_distance(dist: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """THW (s) = free distance (m) / speed (m/s); speed 0 or nothing ahead → inf."""
+    dist = np.asarray(dist, np.float64)
+    speed = np.asarray(speed, np.float64)
+    if speed.shape != dist.shape[: speed.ndim]:
+        raise ValueError(f"speed has shape {speed.shape}, expected ({len(dist)},)")
+    sp = speed.reshape(speed.shape + (1,) * (dist.ndim - speed.ndim))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sp > 0, dist / np.where(sp > 0, sp, 1.0), np.inf)
 
 
 def geometric_risk(
@@ -193,9 +274,5 @@ def geometric_risk(
     THW = distance / speed; speed 0 or nothing in the corridor → THW inf, risk 0.
     """
     dist = geometric_distance(disp, camera, params)
-    speed = np.asarray(speed, np.float64)
-    if speed.shape != dist.shape:
-        raise ValueError(f"speed has shape {speed.shape}, expected ({len(dist)},)")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        thw = np.where(speed > 0, dist / np.where(speed > 0, speed, 1.0), np.inf)
+    thw = thw_from_distance(dist, speed)
     return dist, thw, thw_to_risk(thw)

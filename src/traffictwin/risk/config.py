@@ -181,24 +181,33 @@ class RiskDataConfig:
 
 @dataclass
 class GeometricConfig:
-    """``evaluation.risk.geometric``: the corridor baseline (:class:`GeometricParams` without the
-    subject footprint, which comes from ``risk_data.metric``)."""
+    """``evaluation.risk.geometric``: the corridor rule (:class:`GeometricParams` without the
+    subject footprint, which comes from ``risk_data.metric``). ``half_widths``: the candidate
+    corridor half-widths (m); stage ``select_risk`` picks one per rule on the validation split."""
 
-    corridor_half_width: float = spec()
+    half_widths: list[float] = spec()
     min_height: float = spec()
     max_height: float = spec()
     min_pixels: int = spec()
     max_range: float = spec()
 
     def __post_init__(self) -> None:
+        if not self.half_widths or any(not w > 0 for w in self.half_widths):
+            raise ValueError(
+                f"'geometric.half_widths' must be a non-empty list of metres > 0, got {list(self.half_widths)}"
+            )
         try:  # GeometricParams' own checks, at validation time
             self.params(1.0, 1.0)
         except ValueError as exc:
             raise ValueError(f"'geometric': {exc}") from None
 
-    def params(self, subject_length: float, subject_width: float) -> GeometricParams:
+    def params(
+        self, subject_length: float, subject_width: float, half_width: float | None = None
+    ) -> GeometricParams:
+        """The rule's settings with corridor half-width ``half_width`` (m; default: the widest
+        candidate)."""
         return GeometricParams(
-            corridor_half_width=self.corridor_half_width,
+            corridor_half_width=float(max(self.half_widths) if half_width is None else half_width),
             min_height=self.min_height,
             max_height=self.max_height,
             min_pixels=self.min_pixels,

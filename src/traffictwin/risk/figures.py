@@ -6,7 +6,7 @@
 * :func:`plot_examples` — test frames (left image + SGM disparity) with true and predicted risk (Fig. 7);
 * :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual);
 * :func:`plot_roc` — ROC curves of the headline network and the baselines on the same frames
-  (the oracle baseline dashed);
+  (the GT-disparity rule dashed);
 * :func:`evaluation_figures` — all five for the evaluate_risk stage.
 """
 
@@ -25,7 +25,7 @@ import pandas as pd  # noqa: E402
 
 from traffictwin.io.atomic import atomic_path  # noqa: E402
 from traffictwin.risk.evaluation import (  # noqa: E402
-    ORACLES,
+    GT_INPUT,
     PAPER,
     example_indices,
     main_series,
@@ -139,10 +139,10 @@ def plot_roc(
     path: str | Path,
     title: str = "",
     auc: Mapping[str, float | None] | None = None,
-    oracles: Sequence[str] = ORACLES,
+    oracles: Sequence[str] = GT_INPUT,
 ) -> None:
     """ROC curves (false vs true positive rate, dimensionless) of each predictor's risk as a score
-    for ``positive`` (critical) frames; ``oracles`` dashed, the chance diagonal dotted; legend
+    for ``positive`` (critical) frames; ``oracles`` (GT-disparity inputs) dashed, the chance diagonal dotted; legend
     entries carry ``auc`` when given."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
     for name, score in scores.items():

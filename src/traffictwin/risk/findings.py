@@ -8,8 +8,8 @@ are skipped, never invented.
 Rules: a difference between two predictors is *claimed* ("X beats Y: +0.05 [0.02, 0.08]") only
 when its paired sequence-bootstrap interval excludes zero (:func:`traffictwin.stats.excludes_zero`);
 otherwise the text says "no significant difference" with the interval. A collapsed model (one
-output for every frame) is listed as a failed run and never interpreted. The geometric baseline
-on ground-truth disparity sees perfect stereo: it is labelled an *oracle* wherever it appears.
+output for every frame) is listed as a failed run and never interpreted. The corridor rule on
+ground-truth disparity sees perfect stereo but a straight corridor: a reference, not an oracle.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from traffictwin.risk.evaluation import LOWER_IS_BETTER, ORACLES, PAPER, SEED_MEAN
+from traffictwin.risk.evaluation import GT_INPUT, LOWER_IS_BETTER, PAPER, SEED_MEAN
 from traffictwin.stats import Interval, excludes_zero
 
 #: how findings name the baselines
@@ -26,8 +26,8 @@ BASELINE_NAMES = {
     "train_mean": "training-mean predictor",
     "train_median": "majority class (training median)",
     "speed_only": "speed-only baseline (isotonic fit on the training split)",
-    "geometric_sgm": "geometric baseline (SGM disparity + speed)",
-    "geometric_gt": "geometric baseline on ground-truth disparity (oracle: perfect stereo)",
+    "geometric_sgm": "corridor rule (SGM disparity + speed, corridor chosen on validation)",
+    "geometric_gt": "corridor rule on ground-truth disparity (perfect stereo, straight corridor)",
 }
 #: metrics the comparisons quote, with their names
 COMPARED = (("roc_auc", "ROC-AUC"), ("balanced_accuracy", "balanced accuracy"))
@@ -164,6 +164,46 @@ def findings(metrics: Mapping[str, Any]) -> str:
             )
         )
 
+    # 1b. the shipped predictor (chosen on validation) and the learned model vs the corridor rule
+    shipped, learned = metrics.get("shipped"), metrics.get("learned")
+    sel = metrics.get("selection") or {}
+    if shipped and isinstance(models.get(shipped), Mapping):
+        sm = models[shipped]
+        rules = sel.get("rules") or {}
+        out.append(
+            f"**Shipped predictor** (what `traffictwin risk` and the registered risk model serve): "
+            f"{sel.get('shipped_from', shipped)} ({sel.get('shipped_kind', '?')}), chosen on the "
+            f"validation split by ROC-AUC among the network runs, the hybrid runs and the corridor "
+            f"rule (corridor half-widths chosen on validation: SGM {rules.get('geometric_sgm', 'n/a')} m, "
+            f"GT {rules.get('geometric_gt', 'n/a')} m). On the test split: balanced accuracy "
+            f"{_with_ci(sm, f'{at}|balanced_accuracy', pct=True)} at THW {t:g} s and "
+            f"{_with_ci(sm, 'at_1s|balanced_accuracy', pct=True)} at 1 s, ROC-AUC "
+            f"{_with_ci(sm, f'{at}|roc_auc')}, median |THW error| on critical frames "
+            f"{_with_ci(sm, 'test/thw_median_error_critical_s', '.3f')} s."
+        )
+    if learned:
+        d = diffs.get(f"{learned}|geometric_sgm")
+        if d is not None:
+            verdict = beats(d, f"{at}|roc_auc")
+            plain = {
+                True: "the learned model beats the corridor rule",
+                False: "geometry wins: the corridor rule beats the learned model",
+                None: "the learned model does not beat the corridor rule (no significant difference)",
+            }[verdict]
+            holm = ((metrics.get("comparisons") or {}).get("secondary_holm") or {}).get(
+                "p_adjusted"
+            ) or {}
+            held = sum(1 for v in holm.values() if v < 0.05)
+            out.append(
+                f"**Learning vs geometry** (the primary comparison: {learned}, seeds and sequences "
+                f"resampled, against the validation-tuned SGM corridor rule): {plain}; "
+                + "; ".join(
+                    claim(d, f"{at}|{k}", name, learned, "geometric_sgm") for k, name in COMPARED
+                )
+                + f". Every other paired difference is secondary: {held} of {len(holm)} keep "
+                "p < 0.05 after Holm's correction (risk.json `comparisons`)."
+            )
+
     # 2. failed runs
     if collapsed:
         out.append(
@@ -187,7 +227,7 @@ def findings(metrics: Mapping[str, Any]) -> str:
             f"(seed sd {_num(_f(sd.get(f'{at}.roc_auc')), '.3f')}); balanced accuracy seed mean "
             f"{_with_ci(head, f'{at}|balanced_accuracy', pct=True)} (seed sd "
             f"{_pct(_f(sd.get(f'{at}.balanced_accuracy')))}). Intervals resample the sequences once "
-            "and average the seeds inside each resample."
+            "and draw the seeds with replacement inside each resample (seed variation is in the interval)."
         )
 
     # 4. baselines and the headline against them
@@ -211,7 +251,7 @@ def findings(metrics: Mapping[str, Any]) -> str:
                 d = diffs.get(f"{main_key}|{b}")
                 if d is None:
                     continue
-                nb = b + (" (oracle)" if b in ORACLES else "")
+                nb = b + (" (GT disparity)" if b in GT_INPUT else "")
                 claims += [claim(d, f"{at}|{k}", name, main_key, nb) for k, name in COMPARED[:1]]
                 claims.append(claim(d, "test/mse", "MSE", main_key, nb))
         out.append(
@@ -404,7 +444,7 @@ def findings(metrics: Mapping[str, Any]) -> str:
                 f"{'met' if e.get('met') else 'missed'}{why}"
             )
         n_met = sum(bool(e.get("met")) for e in targets.values())
-        out.append(f"**Targets (issue 16; {n_met}/{len(targets)} met):** " + "; ".join(rows) + ".")
+        out.append(f"**Targets (issue 31; {n_met}/{len(targets)} met):** " + "; ".join(rows) + ".")
 
     # 11. data
     nf = metrics.get("n_frames")

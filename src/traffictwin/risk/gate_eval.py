@@ -97,7 +97,7 @@ def risk_evaluator(
     :func:`traffictwin.risk.evaluation.evaluate` against ``label``.
 
     Returns ``<split>/mse``, ``<split>/mae``, … and ``<split>/accuracy`` (+
-    ``<split>/balanced_accuracy``) at the first threshold."""
+    ``<split>/balanced_accuracy``, ``<split>/roc_auc``) at the first threshold."""
     from traffictwin.risk import evaluation as rm
 
     key = f"label:{label}"
@@ -124,6 +124,7 @@ def risk_evaluator(
         first = res[f"at_{float(thresholds_s[0]):g}s"]
         out[f"{split}/accuracy"] = float(first["accuracy"])
         out[f"{split}/balanced_accuracy"] = float(first["balanced_accuracy"])
+        out[f"{split}/roc_auc"] = float(first["roc_auc"])
         return out
 
     return evaluate

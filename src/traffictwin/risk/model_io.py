@@ -121,6 +121,9 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
             f"{ckpt}: risk model checkpoint not found (run the train_risk stage first)"
         )
     blob = read_model_checkpoint(ckpt, "risk", RiskModelError, map_location)
+    arch = blob["traffictwin"].get("architecture")
+    if isinstance(arch, dict) and arch.get("kind") in ("hybrid", "geometric"):
+        return _load_predictor(folder, ckpt, blob, arch)
     try:
         cfg = Dave2Config.from_dict(blob["traffictwin"]["architecture"])
     except (TypeError, ValueError, KeyError) as exc:
@@ -146,3 +149,45 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
                 f"{mpath}: config disagrees with {ckpt} (files from different trainings?)"
             )
     return RiskModel(net=net, meta=meta)
+
+
+def _read_meta(folder: Path, ckpt: Path) -> dict[str, Any]:
+    mpath = folder / META
+    if not mpath.exists():
+        return {}
+    try:
+        meta = json.loads(mpath.read_text())
+    except json.JSONDecodeError as exc:
+        raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
+    check_model_pair(ckpt, meta, RiskModelError)
+    return meta
+
+
+def _load_predictor(folder: Path, ckpt: Path, blob: Mapping[str, Any], arch: Mapping[str, Any]):
+    """A corridor rule or hybrid (:mod:`traffictwin.risk.predictors`) from its checkpoint."""
+    from traffictwin.risk.predictors import build_predictor
+
+    meta = _read_meta(folder, ckpt)
+    try:
+        return build_predictor(arch, net_state_dict(blob), meta)
+    except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+        raise RiskModelError(f"{ckpt}: invalid {arch.get('kind')} risk predictor ({exc})") from None
+
+
+def save_predictor(model: Any, out_dir: str | Path, meta: Mapping[str, Any] | None = None) -> Path:
+    """Write a corridor rule or hybrid (``model.architecture()``, its weights if any) as
+    ``model.ckpt`` + ``model_meta.json``, like :func:`save_risk_model`; returns the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    arch = model.architecture()
+    state = model.net.state_dict() if getattr(model, "net", None) is not None else {}
+    info = {
+        "format": MODEL_FORMAT,
+        "architecture": arch["kind"],
+        "config": arch,
+        **dict(meta or {}),
+    }
+    if state:
+        info["n_parameters"] = int(sum(p.numel() for p in model.net.parameters()))
+    save_model_files(out / CKPT, model_checkpoint("risk", arch, state, meta), out / META, info)
+    return out

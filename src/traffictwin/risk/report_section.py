@@ -24,7 +24,7 @@ from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup, paper_cell
 from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import findings_group
-from traffictwin.risk.evaluation import ORACLES, SEED_MEAN
+from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats, findings
 
 RISK_FILE = "risk.json"
@@ -40,8 +40,8 @@ FIGURES: dict[str, str] = {
     "risk_confusion": "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)",
     "risk_scatter": "Predicted vs true risk on the test split, with the critical threshold",
     "risk_examples": "Test scenes with true and predicted risk (mirrors Fig. 7)",
-    "risk_roc": "ROC of the headline network (each seed) vs the speed-only, geometric SGM and "
-    "geometric GT-disparity (oracle, dashed) baselines at THW 1.5 s",
+    "risk_roc": "ROC of the headline network (each seed) vs the speed-only baseline and the "
+    "corridor rule on SGM and on GT disparity (dashed), corridors chosen on validation, at THW 1.5 s",
 }
 FIGURE_PATTERN = r"risk|stereo|disparity|orb|camera|thw"
 DATA_FILES = (
@@ -64,9 +64,9 @@ RISK_BASELINE_LABELS = {
     "train_mean": "baseline: train mean",
     "train_median": "baseline: train median",
     "speed_only": "baseline: speed only (isotonic fit on train)",
-    "geometric": "baseline: geometric (SGM distance / speed)",
-    "geometric_sgm": "baseline: geometric (SGM distance / speed)",
-    "geometric_gt": "oracle: geometric (GT disparity / speed)",
+    "geometric": "baseline: corridor rule (SGM distance / speed)",
+    "geometric_sgm": "baseline: corridor rule (SGM distance / speed, corridor chosen on validation)",
+    "geometric_gt": "reference: corridor rule on GT disparity (corridor chosen on validation)",
 }
 PAPER_DASH = "—"
 
@@ -288,7 +288,11 @@ def _ci_rows(src: page.Sources) -> list[tuple[str, str, str]]:
         rows.append((f"models.{v}", v, status))
     for b in baselines:
         rows.append(
-            (f"baselines.{b}", RISK_BASELINE_LABELS.get(b, b), "oracle" if b in ORACLES else "")
+            (
+                f"baselines.{b}",
+                RISK_BASELINE_LABELS.get(b, b),
+                "GT disparity" if b in GT_INPUT else "",
+            )
         )
     return rows
 
@@ -321,7 +325,9 @@ def risk_ci_table(src: page.Sources) -> Table | None:
         note=(
             f"Intervals: {n_boot} resamples of the test sequences (cluster = driving sequence). "
             "Seed mean: the metric averaged over the variant's seeds inside each resample. "
-            "Baselines are scored on the headline's label; the oracle sees perfect disparity. A "
+            "Baselines are scored on the headline's label; the GT-disparity rule sees perfect stereo (a "
+            "reference, not an oracle: its straight band is not the label's curved corridor). Decision "
+            "thresholds and corridors were chosen on the validation split (reports/metrics/risk_selection.json). A "
             "collapsed model gives one output for every frame and is a failed run. Last column: "
             "the paired ROC-AUC difference to the speed-only baseline of the row's own label "
             "('beats' / 'worse' only when its interval excludes 0)."
@@ -384,7 +390,7 @@ def risk_difference_table(src: page.Sources) -> Table | None:
         b = str(d.get("b"))
         row = [
             Cell(str(d.get("a"))),
-            Cell(b + (" (oracle)" if b in ORACLES else "")),
+            Cell(b + (" (GT disparity)" if b in GT_INPUT else "")),
             Cell(str(d.get("label"))),
             Cell(str(d.get("kind", ""))),
         ]
@@ -402,12 +408,12 @@ def risk_difference_table(src: page.Sources) -> Table | None:
 
 
 def risk_targets_table(src: page.Sources) -> Table | None:
-    """The issue-16 targets: value, interval, threshold, met."""
+    """The issue-31 targets: value, interval, threshold, met."""
     targets = src.get(RISK_FILE, "targets")
     if not isinstance(targets, dict) or not targets:
         return None
     t = Table(
-        "Risk: targets (default profile, test split, headline)",
+        "Risk: targets (default profile, test split: the shipped predictor, and the learned model vs the corridor rule)",
         ["target", "predictor", "value", "95 % CI", "op", "threshold", "met", "description"],
         anchor="risk-targets",
         headline=True,
@@ -429,6 +435,62 @@ def risk_targets_table(src: page.Sources) -> Table | None:
             ]
         )
     return t
+
+
+SELECTION_FILE = "risk_selection.json"
+
+
+def _sel_cell(src: page.Sources, key: str, fmt: str) -> Cell:
+    """``key`` of the selection file with its source; n/a (not recorded as missing) when absent."""
+    if src.get(SELECTION_FILE, key, page.ABSENT) is page.ABSENT:
+        return Cell(NA, title=f"not applicable: {key}")
+    return src.cell(SELECTION_FILE, key, fmt)
+
+
+def risk_selection_table(src: page.Sources) -> Table | None:
+    """Every choice made on the validation split (select_risk): each candidate's validation
+    ROC-AUC and decision cut, the corridor rules' half-widths, the shipped predictor."""
+    preds = src.get(SELECTION_FILE, "predictors")
+    if not isinstance(preds, dict) or not preds:
+        return None
+    shipped = src.get(SELECTION_FILE, "shipped.predictor")
+    ts = src.get(SELECTION_FILE, "thresholds_s") or []
+    cols = ["predictor", "kind", "group", "validation ROC-AUC"]
+    for t in ts:
+        cols += [f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s"]
+    cols.append("role")
+    tab = Table(
+        "Risk: choices made on the validation split (the test split is read once, afterwards)",
+        cols,
+        anchor="risk-selection",
+        headline=True,
+        note=(
+            f"{src.get(SELECTION_FILE, 'n_frames')} validation frames in "
+            f"{src.get(SELECTION_FILE, 'n_sequences')} sequences. Corridor half-width of the rule "
+            f"on SGM disparity: {src.get(SELECTION_FILE, 'rules.geometric_sgm.half_width')} m, on GT "
+            f"disparity: {src.get(SELECTION_FILE, 'rules.geometric_gt.half_width')} m (the highest "
+            "validation ROC-AUC among evaluation.risk.geometric.half_widths). Each predictor's "
+            "decision cut maximises its validation balanced accuracy. Shipped: the highest "
+            "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: the simpler)."
+        ),
+    )
+    for name in sorted(preds, key=lambda n: (n != shipped, n)):
+        pre = f"predictors.{name}"
+        row = [
+            Cell(name),
+            Cell(str(src.get(SELECTION_FILE, f"{pre}.kind") or "")),
+            Cell(str(src.get(SELECTION_FILE, f"{pre}.group") or "")),
+            _sel_cell(src, f"{pre}.roc_auc", "g4"),
+        ]
+        for t in ts:
+            d = f"{pre}.decision.{t:g}"
+            row += [
+                _sel_cell(src, f"{d}.cut", "g4"),
+                _sel_cell(src, f"{d}.balanced_accuracy", "pct"),
+            ]
+        row.append(Cell("shipped" if name == shipped else ""))
+        tab.rows.append(row)
+    return tab
 
 
 def risk_critical_share_table(src: page.Sources) -> Table | None:
@@ -469,7 +531,11 @@ def risk_situation_table(src: page.Sources) -> Table | None:
     """The headline's recall / specificity / balanced accuracy per situation type, with the
     speed-only baseline's balanced accuracy beside it."""
     sit = src.get(RISK_FILE, "situations")
-    main = src.get(RISK_FILE, "main_predictor") or src.get(RISK_FILE, "main_variant")
+    main = (
+        src.get(RISK_FILE, "shipped")
+        or src.get(RISK_FILE, "main_predictor")
+        or src.get(RISK_FILE, "main_variant")
+    )
     if not isinstance(sit, dict) or not sit or not isinstance(main, str):
         return None
     cols = ["situation", "sequences", "frames", "critical share"]
@@ -589,6 +655,7 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     if src.has(RISK_FILE):
         sec.tables.extend(risk_tables(src))
         for extra in (
+            risk_selection_table(src),
             risk_ci_table(src),
             risk_difference_table(src),
             risk_targets_table(src),
@@ -613,15 +680,22 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
 
 
 def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
-    """The main predictor (``main_variant``; its seed mean when replicates ran) on the ORB-passed
-    test frames: ROC-AUC of critical frames at the first THW threshold (``auc``) and the MSE of the
-    normalised risk (``mse``), with their sequence-bootstrap intervals."""
+    """The shipped predictor (``shipped``: what users get, chosen on validation; else the main
+    variant, its seed mean when replicates ran) on the ORB-passed test frames: ROC-AUC of critical
+    frames at the first THW threshold (``auc``) and the balanced accuracy there
+    (``balanced_accuracy``, at its validation-chosen decision cut), with their sequence-bootstrap
+    intervals. (The MSE is no headline: a constant meets it, issue 31.)"""
     risk = metrics.get(RISK_FILE)
     main = lookup(risk, "main_variant")
     ts = lookup(risk, "thresholds_s")
     if not isinstance(main, str) or not isinstance(ts, list) or not ts:
         return []
-    row = lookup(risk, f"groups.{main}")
+    shipped = lookup(risk, "shipped")
+    row = lookup(risk, f"models.{shipped}") if isinstance(shipped, str) else None
+    who = f"shipped predictor ({lookup(risk, 'selection.shipped_from') or shipped})"
+    if not isinstance(row, Mapping):
+        row = lookup(risk, f"groups.{main}")
+        who = f"main predictor {main}"
     if not isinstance(row, Mapping):
         row = lookup(risk, f"models.{main}")
     if not isinstance(row, Mapping):
@@ -629,7 +703,7 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     t = float(ts[0])
     cls = row.get(f"at_{t:g}s")
     cls = cls if isinstance(cls, Mapping) else {}
-    where = f"main predictor {main}, test frames"
+    where = f"{who}, test frames"
     return headline(
         "auc",
         f"ROC-AUC of critical frames (THW < {t:g} s)",
@@ -638,11 +712,12 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
         cls.get("roc_auc_ci"),
         "f3",
     ) + headline(
-        "mse",
-        "MSE of the normalised risk",
+        "balanced_accuracy",
+        f"balanced accuracy of critical frames (THW < {t:g} s)",
         where,
-        row.get("test/mse"),
-        row.get("test/mse_ci"),
+        cls.get("balanced_accuracy"),
+        cls.get("balanced_accuracy_ci"),
+        "f3",
     )
 
 

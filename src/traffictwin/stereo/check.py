@@ -41,12 +41,15 @@ SWEEP_MIN_VALID_SHARE = (0.7, 0.75, 0.8, 0.85, 0.9)
 @dataclass
 class StereoCheckParams:
     """``risk_data.check``: which rule drops a pair (``rule``: a key of :data:`RULES`), the
-    valid-share threshold (fraction of matchable pixels) and the range bins of the depth-error
-    metric (``depth_bins_m``: increasing distances, m)."""
+    valid-share threshold (fraction of matchable pixels; ``None``: chosen on the validation split
+    by :func:`choose_min_valid_share` among :data:`SWEEP_MIN_VALID_SHARE`, the most faults caught
+    with at most ``max_false_alarm`` of the fault-free pairs dropped) and the range bins of the
+    depth-error metric (``depth_bins_m``: increasing distances, m)."""
 
     rule: str = spec(choices=tuple(RULES))
-    min_valid_share: float = spec(min=0.0, max=1.0)
+    min_valid_share: float | None = spec(min=0.0, max=1.0)  # None: chosen on validation
     depth_bins_m: list[float] = spec(min=0.0)
+    max_false_alarm: float = spec(0.02, min=0.0, max=1.0)  # of the validation choice
 
     def __post_init__(self) -> None:  # rule and min_valid_share: checked by their spec bounds
         e = np.asarray(self.depth_bins_m, float)
@@ -124,3 +127,40 @@ def valid_share_sweep(
             if f != NO_FAULT and sel.any():
                 out[f"{pre}_{f}_detection_rate"] = float(flag[sel].mean())
     return out
+
+
+def choose_min_valid_share(
+    df: pd.DataFrame,
+    max_false_alarm: float,
+    candidates: Sequence[float] = SWEEP_MIN_VALID_SHARE,
+) -> tuple[float, list[dict[str, float]]]:
+    """The valid-share threshold with the highest detection rate of the injected faults among
+    those whose false-alarm rate on the fault-free pairs is at most ``max_false_alarm`` (a
+    Neyman–Pearson choice on ``df``, the validation split's pairs: ``fault``, ``valid_share``);
+    ties: the lower threshold (fewer dropped pairs); none within the budget: the lowest
+    threshold. Returns the threshold and every candidate's rates. ValueError without both
+    fault-free and faulty pairs."""
+    if not len(candidates):
+        raise ValueError("choose_min_valid_share: no candidate thresholds")
+    clean = (df["fault"] == NO_FAULT).to_numpy()
+    if clean.all() or not clean.any():
+        raise ValueError(
+            "choose_min_valid_share: the validation split needs fault-free and faulty pairs "
+            f"({int(clean.sum())} fault-free of {len(df)})"
+        )
+    vs = df["valid_share"].to_numpy(np.float64)
+    table = []
+    for t in sorted(float(c) for c in candidates):
+        flag = vs < t
+        table.append(
+            {
+                "min_valid_share": t,
+                "detection_rate": float(flag[~clean].mean()),
+                "false_alarm_rate": float(flag[clean].mean()),
+            }
+        )
+    ok = [r for r in table if r["false_alarm_rate"] <= max_false_alarm]
+    if not ok:
+        return table[0]["min_valid_share"], table
+    best = max(ok, key=lambda r: (round(r["detection_rate"], 12), -r["min_valid_share"]))
+    return best["min_valid_share"], table

@@ -1,0 +1,153 @@
+"""Stage `train_risk_hybrid`: the corridor hybrid risk predictor, one run per seed.
+
+Reads ``risk_hybrid.*`` (features and training), ``evaluation.risk.geometric`` (the corridor
+point filter shared with the rule), ``risk_data.metric`` (subject footprint), ``risk_model.label``
+and ``risk_model.orb_filter``, ``seed``; data ``data/risk``, ``data/disparity``,
+``data/orb/orb.csv``. Writes ``models/risk_hybrid/hybrid`` (first seed) and ``models/risk_hybrid/hybrid_s<k>``
+(``model.ckpt``, ``model_meta.json``, ``history.csv``): the training split fits, the validation
+loss is recorded per epoch (nothing is chosen on it here; stage ``select_risk`` compares
+predictors on validation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import pandas as pd
+
+from traffictwin.config import ConfigError, get, typed
+from traffictwin.io.atomic import atomic_path
+from traffictwin.risk.config import EvalRiskConfig, MetricParams
+from traffictwin.risk.metric import risk_to_thw
+from traffictwin.risk.model_io import save_predictor
+from traffictwin.risk.predictors import (
+    HybridConfig,
+    HybridRiskModel,
+    fit_hybrid,
+    source_features,
+)
+from traffictwin.risk.training import LABELS, RiskSource, check_label
+
+from ._common import params, run_stage, setup_logging, stage_timer
+from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, hybrid_model_dir
+
+HYBRID = "hybrid"
+HOLDOUT = "hybrid_holdout"
+_CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
+
+
+def hybrid_runs(seeds: list[int], base: str = HYBRID) -> dict[str, int]:
+    """Run name → seed: ``<base>`` for the first seed, ``<base>_s<k>`` for the k-th after it."""
+    return {(base if i == 0 else f"{base}_s{i}"): int(s) for i, s in enumerate(seeds)}
+
+
+def holdout_runs(seeds: list[int], templates: list[str]) -> dict[str, int]:
+    """The runs trained without the held-out road templates (none when no template is held out)."""
+    return hybrid_runs(seeds, HOLDOUT) if templates else {}
+
+
+def hybrid_settings(p) -> tuple[HybridConfig, list[int], list[str]]:
+    """``risk_hybrid``: the feature / training config, the seeds and the held-out road templates;
+    errors name the key."""
+    node = dict(get(p, "risk_hybrid", dict))
+    seeds = node.pop("seeds", None)
+    holdout = node.pop("holdout_templates", None)
+    if not isinstance(seeds, list) or not seeds or len(set(seeds)) != len(seeds):
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_hybrid.seeds' must be a non-empty list of distinct integers, got {seeds!r}"
+        )
+    if not isinstance(holdout, list) or not all(isinstance(t, str) for t in holdout):
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_hybrid.holdout_templates' must be a list of road template names, got {holdout!r}"
+        )
+    known = {f.name for f in fields(HybridConfig)}
+    unknown = sorted(set(node) - known)
+    if unknown:
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_hybrid' has unknown key(s) {unknown} (known: {sorted(known)})"
+        )
+    try:
+        return HybridConfig.from_dict(node), [int(s) for s in seeds], list(holdout)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{PARAMS.name}: 'risk_hybrid': {exc}") from None
+
+
+def main() -> None:
+    log = setup_logging()
+    p = params()
+    cfg, seeds, holdout = hybrid_settings(p)
+    ev = typed(p.get("evaluation", {}).get("risk"), EvalRiskConfig, key="evaluation.risk")
+    subject = typed(p.get("risk_data", {}).get("metric"), MetricParams, key="risk_data.metric")
+    geo = ev.geometric.params(subject.subject_length, subject.subject_width)
+    label = get(p, "risk_model.label", str, choices=LABELS)
+    orb_filter = get(p, "risk_model.orb_filter", bool)
+    base_seed = get(p, "seed", int, min=0)
+
+    with stage_timer("train_risk_hybrid") as record:
+        source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
+        camera = {k: float(source.camera[k]) for k in _CAMERA_KEYS}
+        fpath = str(source.risk.root / "frames.csv")
+        have = set(source.frames["template"]) if "template" in source.frames else set()
+        unknown = sorted(set(holdout) - have)
+        if unknown:
+            raise ConfigError(
+                f"{PARAMS.name}: 'risk_hybrid.holdout_templates' {unknown} are not road templates "
+                f"of {fpath} (has {sorted(have)})"
+            )
+        data = {}
+        for split in ("train", "val"):
+            x, rows = source_features(source, source.split_frames(split), camera, geo, cfg)
+            thw = risk_to_thw(check_label(rows, label, fpath), cfg.thw_cap_s)
+            seen = ~rows["template"].isin(holdout).to_numpy() if holdout else np.ones(len(x), bool)
+            data[split] = (x, thw, seen)
+        if len(data["train"][0]) == 0:
+            raise ValueError(f"{fpath}: the training split has no frames (after the ORB check)")
+        runs = [(n, s, None) for n, s in hybrid_runs(seeds).items()]
+        runs += [(n, s, holdout) for n, s in holdout_runs(seeds, holdout).items()]
+        for name, seed, held in runs:
+            xt, tt, seen_t = data["train"]
+            xv, tv, seen_v = data["val"]
+            if held:  # without the held-out templates (training and validation loss alike)
+                xt, tt, xv, tv = xt[seen_t], tt[seen_t], xv[seen_v], tv[seen_v]
+            net, history = fit_hybrid(xt, tt, cfg, base_seed + seed, xv, tv)
+            base = HOLDOUT if held else HYBRID
+            meta = {
+                "variant": name,
+                "label": label,
+                "objective": "log_thw",
+                "seed_offset": int(seed),
+                "replicate_of": None if name == base else base,
+                "holdout_templates": list(held or []),
+                "n_train": int(len(xt)),
+                "n_val": int(len(xv)),
+                "final_val_loss": history[-1].get("val_loss"),
+                "domain": {
+                    "camera": {"width": int(camera["width"]), "height": int(camera["height"])},
+                    "max_speed": get(p, "risk_data.max_speed", float),
+                    "sgm": get(p, "risk_data.sgm", dict),
+                    "orb": get(p, "risk_data.orb", dict),
+                    "label": label,
+                },
+            }
+            out = hybrid_model_dir(name)
+            save_predictor(HybridRiskModel(net, cfg, geo, camera), out, meta)
+            with atomic_path(out / "history.csv", suffix=".csv") as tmp:
+                pd.DataFrame(history).to_csv(
+                    tmp, index=False, float_format="%.6g", lineterminator="\n"
+                )
+            log.info(
+                "train_risk_hybrid: %s (seed %d%s): final train loss %.4f, val loss %.4f -> %s",
+                name,
+                base_seed + seed,
+                f", without {held}" if held else "",
+                history[-1]["train_loss"],
+                history[-1].get("val_loss", np.nan),
+                out,
+            )
+        record["runs"] = [r[0] for r in runs]
+        record["n_train"] = int(len(data["train"][0]))
+
+
+if __name__ == "__main__":
+    run_stage(main, "train_risk_hybrid")

@@ -1,0 +1,377 @@
+"""Issue 31: choices on validation (decision cuts, corridor widths, the shipped predictor), the
+corridor rule / hybrid as predictors, seeds in the intervals, the median THW error."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_risk_eval_stats import write_sequences
+from test_risk_training import SUBJECT_LENGTH, camera_intrinsics
+
+from traffictwin.risk.baselines import (
+    GeometricParams,
+    corridor_distances,
+    geometric_distance,
+    lateral_bin_distances,
+    thw_from_distance,
+)
+from traffictwin.risk.evaluation import (
+    TARGETS,
+    CIConfig,
+    ClusterBootstrap,
+    bootstrap_scores,
+    classification_metrics,
+    evaluate_suite,
+    mean_of_scores,
+    seed_draws,
+    weighted_median_stat,
+)
+from traffictwin.risk.model_io import RiskModelError, load_risk_model, save_predictor
+from traffictwin.risk.predictors import (
+    GeometricRiskModel,
+    HybridConfig,
+    HybridRiskModel,
+    corridor_features,
+    fit_hybrid,
+    log_thw_target,
+)
+from traffictwin.risk.selection import balanced_accuracy, best_cut, choose, tune_half_width
+from traffictwin.risk.training import RiskSource
+
+CAM = camera_intrinsics(96, 48)
+
+
+def _wall(depth_m: float, lateral: tuple[float, float], h: int = 48, w: int = 96) -> np.ndarray:
+    """Disparity (1, H, W) of a vertical wall ``depth_m`` ahead of the camera spanning lateral
+    offsets ``lateral`` (m, vehicle frame, left +) over every row at obstacle height."""
+    fx, cx, b = CAM["fx"], CAM["cx"], CAM["baseline"]
+    d = np.full((1, h, w), -1.0, np.float32)
+    u = np.arange(w)
+    y = b / 2 - (u - cx) * depth_m / fx  # lateral offset of each column at that depth
+    cols = (y >= lateral[0]) & (y <= lateral[1])
+    d[0][:, cols] = fx * b / depth_m
+    return d
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_corridor_distances_one_pass_equals_the_single_band_rule() -> None:
+    p = GeometricParams(
+        min_height=-10.0, max_height=10.0, min_pixels=3, subject_length=SUBJECT_LENGTH
+    )
+    disp = np.concatenate([_wall(10.0, (0.6, 1.4)), _wall(20.0, (-0.3, 0.3))])
+    d = corridor_distances(disp, CAM, p, [0.5, 1.0, 2.0])
+    for k, w in enumerate([0.5, 1.0, 2.0]):
+        single = geometric_distance(
+            disp, CAM, GeometricParams(**{**p.__dict__, "corridor_half_width": w})
+        )
+        np.testing.assert_allclose(d[:, k], single)
+    # frame 0: the wall at 0.6..1.4 m to the left is outside the 0.5 m band, inside 1.0 and 2.0
+    assert np.isinf(d[0, 0]) and np.isfinite(d[0, 1])
+    # the free distance from the bumper: depth + mount_x - length/2 (the wall reaches the corridor
+    # 0.6 m to the side; the bumper's half-width 0.9 m covers it: no lateral gap)
+    assert d[0, 1] == pytest.approx(10.0 + CAM["mount_x"] - SUBJECT_LENGTH / 2, abs=0.05)
+    # frame 1: straight ahead, every band sees it
+    assert np.all(np.isfinite(d[1]))
+    with pytest.raises(ValueError, match="half-widths"):
+        corridor_distances(disp, CAM, p, [])
+
+
+def test_lateral_bins_put_an_obstacle_in_its_strip() -> None:
+    p = GeometricParams(
+        min_height=-10.0, max_height=10.0, min_pixels=3, subject_length=SUBJECT_LENGTH
+    )
+    d = lateral_bin_distances(_wall(12.0, (1.1, 1.4)), CAM, p, [-2.0, -1.0, 0.0, 1.0, 2.0])
+    assert d.shape == (1, 4)
+    assert np.isinf(d[0, :3]).all() and np.isfinite(d[0, 3])  # only the 1..2 m (left) strip
+    with pytest.raises(ValueError, match="increasing"):
+        lateral_bin_distances(_wall(12.0, (1.1, 1.4)), CAM, p, [1.0, 0.0])
+
+
+def test_thw_from_distance_broadcasts_and_handles_standstill() -> None:
+    t = thw_from_distance(np.array([[10.0, np.inf], [5.0, 2.0]]), np.array([5.0, 0.0]))
+    assert t[0, 0] == pytest.approx(2.0) and np.isinf(t[0, 1]) and np.isinf(t[1]).all()
+
+
+# --------------------------------------------------------------------------- selection
+
+
+def test_best_cut_maximises_balanced_accuracy_by_hand() -> None:
+    pos = np.array([1, 1, 0, 0, 0], bool)
+    score = np.array([0.9, 0.4, 0.5, 0.1, 0.2])
+    # cut between 0.4 and 0.2 (0.3): TPR 1, TNR 2/3 -> 0.8333; cut 0.45: TPR 1/2, TNR 2/3 -> 0.583;
+    # cut 0.7: TPR 1/2, TNR 1 -> 0.75
+    cut, ba = best_cut(pos, score, default=1 / 30)
+    assert cut == pytest.approx(0.3) and ba == pytest.approx((1 + 2 / 3) / 2)
+    assert balanced_accuracy(pos, score > cut) == pytest.approx(ba)
+    # one class only: the default, BA undefined
+    c, b = best_cut(np.zeros(3, bool), np.array([0.1, 0.2, 0.3]), default=0.05)
+    assert c == 0.05 and np.isnan(b)
+    with pytest.raises(ValueError, match="finite"):
+        best_cut(pos, np.array([0.1, np.nan, 0.2, 0.3, 0.4]), 0.05)
+
+
+def test_best_cut_tie_goes_to_the_cut_nearest_the_label_threshold() -> None:
+    pos = np.array([1, 0], bool)
+    cut, ba = best_cut(pos, np.array([0.9, 0.1]), default=0.8)
+    assert ba == 1.0 and cut == pytest.approx(0.5)  # the only perfect cut lies between them
+
+
+def test_tune_half_width_picks_the_best_validation_auc() -> None:
+    speed = np.full(4, 10.0)
+    pos = np.array([1, 1, 0, 0], bool)
+    # band 0: ranks the frames wrong; band 1: perfectly
+    d = np.array([[40.0, 5.0], [40.0, 6.0], [5.0, 60.0], [6.0, np.inf]])
+    w, table = tune_half_width(d, speed, pos, [0.5, 1.0], threshold_s=1.5)
+    assert w == 1.0
+    assert table[0]["roc_auc"] == pytest.approx(0.0) and table[1]["roc_auc"] == pytest.approx(1.0)
+    assert table[1]["balanced_accuracy"] == pytest.approx(1.0)  # THW 0.5 / 0.6 s < 1.5 s
+
+
+def test_choose_prefers_auc_then_the_simpler_kind() -> None:
+    c = {
+        "net": {"roc_auc": 0.90, "kind": "dave2"},
+        "hyb": {"roc_auc": 0.95, "kind": "hybrid"},
+        "rule": {"roc_auc": 0.95, "kind": "geometric"},
+    }
+    assert choose(c) == "rule"
+    c["hyb"]["roc_auc"] = 0.951
+    assert choose(c) == "hyb"
+    with pytest.raises(ValueError):
+        choose({})
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def test_decision_cut_changes_only_the_classification() -> None:
+    y = np.array([0.1, 0.05, 0.0, 0.0])  # critical at 1.5 s: risk > 1/30 -> frames 0, 1
+    p = np.array([0.03, 0.02, 0.01, 0.0])  # squeezed predictions: nothing above 1/30
+    base = classification_metrics(y, p, 1.5)
+    assert base["recall"] == 0.0 and base["decision_cut"] == pytest.approx(1 / 30)
+    cut = classification_metrics(y, p, 1.5, cut=0.015)
+    assert cut["recall"] == 1.0 and cut["specificity"] == 1.0 and cut["roc_auc"] == base["roc_auc"]
+    plan = ClusterBootstrap(np.arange(4), n_boot=50, seed=0)
+    sc = bootstrap_scores(y, p, plan, (1.5,), cuts={1.5: 0.015})
+    assert sc["at_1.5s|balanced_accuracy"][0] == pytest.approx(1.0)
+
+
+def test_weighted_median_stat_matches_numpy_and_resamples() -> None:
+    v = np.array([3.0, 1.0, 2.0, 10.0, 0.5])
+    mask = np.array([1, 1, 1, 1, 0], bool)
+    plan = ClusterBootstrap(np.array([0, 0, 1, 2, 2]), n_boot=200, seed=1)
+    est, boot = weighted_median_stat(v, mask, plan)
+    assert est == pytest.approx(np.median(v[mask]))
+    # each resample's value is one of the masked values (a lower weighted median)
+    assert set(np.unique(boot)) <= set(v[mask])
+    # a resample drawing only sequence 2 (value 10): median 10
+    only = ClusterBootstrap(np.array([0, 0, 1, 2, 2]), n_boot=1, seed=0)
+    only.draws = np.array([[0.0, 0.0, 3.0]])
+    assert weighted_median_stat(v, mask, only)[1][0] == 10.0
+
+
+def test_seed_resampling_widens_the_seed_mean_interval() -> None:
+    plan = ClusterBootstrap(np.arange(20), n_boot=500, seed=0)
+    rng = np.random.default_rng(0)
+    runs = [{"m": (mu, mu + rng.normal(0, 0.01, 500))} for mu in (0.6, 0.7, 0.8)]
+    plain = mean_of_scores(runs)["m"]
+    crossed = mean_of_scores(runs, seed_draws(3, plan))["m"]
+    assert plain[0] == crossed[0] == pytest.approx(0.7)
+    assert np.std(crossed[1]) > 3 * np.std(plain[1])  # seed-to-seed spread is in the interval
+    d = seed_draws(3, plan)
+    assert d.shape == (500, 3) and np.all(d.sum(axis=1) == 3)
+    np.testing.assert_array_equal(d, seed_draws(3, plan))  # deterministic
+
+
+def test_test_mse_is_no_target() -> None:
+    assert "test_mse" not in TARGETS
+    assert {"shipped_balanced_accuracy_1.5s", "learned_vs_rule_auc"} <= set(TARGETS)
+
+
+# --------------------------------------------------------------------------- predictors
+
+
+def test_rule_and_hybrid_round_trip_through_the_model_folder(tmp_path: Path) -> None:
+    p = GeometricParams(corridor_half_width=1.0, min_height=-10, max_height=10, min_pixels=3)
+    rule = GeometricRiskModel(
+        p, {**{k: float(v) for k, v in CAM.items()}, "width": 96.0, "height": 48.0}
+    )
+    disp = np.concatenate([_wall(8.0, (-0.5, 0.5)), _wall(8.0, (1.5, 2.0))])
+    speed = np.array([10.0, 10.0])
+    r = rule.predict(disp_sgm=disp, speed=speed)
+    assert r[0] > 0 and r[1] == 0  # the wall beside the 1 m corridor is no obstacle
+    save_predictor(rule, tmp_path / "rule", {"label": "risk_thw_corridor"})
+    back = load_risk_model(tmp_path / "rule")
+    np.testing.assert_allclose(back.predict(disp_sgm=disp, speed=speed), r)
+    assert back.meta["label"] == "risk_thw_corridor" and back.cfg.use_speed
+
+    cfg = HybridConfig(half_widths=(0.5, 1.0), bin_edges=(-1.0, 0.0, 1.0), epochs=3, hidden=8)
+    x = corridor_features(disp, speed, rule.camera, p, cfg)
+    assert x.shape == (2, cfg.n_features) and np.all(np.isfinite(x))
+    assert x[0, 0] == pytest.approx(10.0 / cfg.speed_scale)
+    net, hist = fit_hybrid(np.repeat(x, 8, 0), np.repeat([0.8, np.inf], 8), cfg, seed=3)
+    net2, _ = fit_hybrid(np.repeat(x, 8, 0), np.repeat([0.8, np.inf], 8), cfg, seed=3)
+    for a, b in zip(net.state_dict().values(), net2.state_dict().values()):
+        assert torch_equal(a, b)  # deterministic for a seed
+    assert len(hist) == 3 and np.isfinite(hist[-1]["train_loss"])
+    hyb = HybridRiskModel(net, cfg, p, rule.camera, {"label": "risk_thw_corridor"})
+    save_predictor(hyb, tmp_path / "hyb")
+    hb = load_risk_model(tmp_path / "hyb")
+    np.testing.assert_allclose(
+        hb.predict(disp_sgm=disp, speed=speed), hyb.predict(disp_sgm=disp, speed=speed)
+    )
+    # a replaced checkpoint is refused (the meta records the checkpoint's hash)
+    (tmp_path / "hyb" / "model.ckpt").write_bytes((tmp_path / "rule" / "model.ckpt").read_bytes())
+    with pytest.raises(RiskModelError, match="not one pair"):
+        load_risk_model(tmp_path / "hyb")
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return bool(torch.equal(a, b))
+
+
+def test_log_thw_target_caps_nothing_ahead() -> None:
+    t = log_thw_target(np.array([np.inf, np.nan, 0.01, 2.0]), cap=10.0)
+    np.testing.assert_allclose(np.exp(t), [10.0, 10.0, 0.05, 2.0], rtol=1e-6)
+
+
+def test_fit_hybrid_refuses_bad_features() -> None:
+    cfg = HybridConfig(half_widths=(1.0,), bin_edges=(-1.0, 1.0), epochs=1)
+    with pytest.raises(ValueError, match="expected"):
+        fit_hybrid(np.zeros((4, 2), np.float32), np.ones(4), cfg, 0)
+    with pytest.raises(ValueError, match="'epochs'"):
+        HybridConfig(epochs=0)
+
+
+# --------------------------------------------------------------------------- the suite
+
+
+def test_suite_applies_validation_choices(tmp_path: Path) -> None:
+    """The rule's tuned corridor, every predictor's decision cut and the shipped predictor reach
+    the test metrics; the shipped one is judged by the targets."""
+    write_sequences(tmp_path, n_shards=4, per_shard=18)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    geo = GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8)
+    cam = {
+        k: float(v)
+        for k, v in src.camera.items()
+        if k in ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
+    }
+    narrow = GeometricParams(**{**geo.__dict__, "corridor_half_width": 0.75})
+    rule = GeometricRiskModel(narrow, cam, {"label": "risk_thw_corridor"})
+    metrics, pred = evaluate_suite(
+        src,
+        {"shipped": rule},
+        primary_label="risk_thw_corridor",
+        geometric=geo,
+        ci=CIConfig(100, 0, 0.95),
+        rule_params={"geometric_sgm": narrow},
+        decisions={"shipped": {1.5: 0.02, 1.0: 0.04}},
+        shipped="shipped",
+    )
+    json.dumps(metrics, allow_nan=False)
+    # the shipped rule = the SGM baseline with the same corridor
+    np.testing.assert_allclose(pred["pred_shipped"], pred["pred_geometric_sgm"], rtol=1e-6)
+    assert metrics["baselines"]["geometric_sgm"]["params"]["corridor_half_width"] == 0.75
+    assert metrics["baselines"]["geometric_gt"]["params"]["corridor_half_width"] == 2.0
+    m = metrics["models"]["shipped"]
+    assert m["at_1.5s"]["decision_cut"] == pytest.approx(0.02)
+    y = pred["risk_thw_corridor"].to_numpy()
+    p = pred["pred_shipped"].to_numpy()
+    want = classification_metrics(y, p, 1.5, cut=0.02)["balanced_accuracy"]
+    assert m["at_1.5s"]["balanced_accuracy"] == pytest.approx(want)
+    t = metrics["targets"]
+    assert t["shipped_balanced_accuracy_1.5s"]["predictor"] == "shipped"
+    assert t["shipped_balanced_accuracy_1.5s"]["value"] == pytest.approx(want)
+    assert metrics["decisions"]["shipped"]["1.5"] == 0.02
+    crit = y > 1 / 30
+    from traffictwin.risk.metric import risk_to_thw
+
+    med = float(np.median(np.abs(risk_to_thw(p) - risk_to_thw(y))[crit]))
+    assert m["test/thw_median_error_critical_s"] == pytest.approx(med)
+
+
+def test_holm_adjusts_by_hand_and_bootstrap_p() -> None:
+    from traffictwin.risk.evaluation import bootstrap_p, holm
+
+    adj = holm({"a": 0.01, "b": 0.04, "c": 0.03, "d": float("nan")})
+    # sorted 0.01, 0.03, 0.04 of m = 3: 0.03, max(0.03, 0.06) = 0.06, max(0.06, 0.04) = 0.06
+    assert adj == pytest.approx({"a": 0.03, "c": 0.06, "b": 0.06})
+    assert bootstrap_p(np.array([1.0, 2.0, 3.0, -1.0])) == pytest.approx(0.5)
+    assert bootstrap_p(np.array([1.0, 2.0])) == 0.0 and np.isnan(bootstrap_p(np.array([np.nan])))
+
+
+def test_holdout_block_measures_unseen_templates(tmp_path: Path) -> None:
+    """Runs trained without some road templates, scored on those templates' test frames, against
+    the reference trained on every template (here: the same predictions, so the gap is the
+    template subset's own difficulty)."""
+    import pandas as pd
+
+    write_sequences(tmp_path, n_shards=4, per_shard=18)
+    f = tmp_path / "data" / "risk" / "frames.csv"
+    frames = pd.read_csv(f)
+    frames["template"] = np.where(frames["scenario"] % 2 == 0, "roundabout", "straight")
+    frames.to_csv(f, index=False)
+    from traffictwin.io.shards import sha256_file
+
+    man = tmp_path / "data" / "risk" / "manifest.json"
+    m = json.loads(man.read_text())
+    m["tables"] = [{"name": "frames.csv", "sha256": sha256_file(f)}]
+    man.write_text(json.dumps(m))
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    geo = GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8)
+    keys = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
+    cam = {k: float(src.camera[k]) for k in keys}
+    rule = {
+        name: GeometricRiskModel(GeometricParams(**{**geo.__dict__, "corridor_half_width": w}), cam)
+        for name, w in (("ref", 1.0), ("ref_s1", 1.25), ("held", 1.0), ("held_s1", 1.25))
+    }
+    metrics, pred = evaluate_suite(
+        src,
+        rule,
+        primary_label="risk_thw_corridor",
+        geometric=geo,
+        main_variant="ref",
+        variants={"ref_s1": {"replicate_of": "ref"}, "held_s1": {"replicate_of": "held"}},
+        ci=CIConfig(100, 0, 0.95),
+        holdout={"templates": ["roundabout"], "group": "held", "reference": "ref"},
+    )
+    ho = metrics["holdout"]
+    mask = (pred["template"] == "roundabout").to_numpy()
+    assert ho["n_frames"] == int(mask.sum()) and ho["templates"] == ["roundabout"]
+    y = pred["risk_thw_corridor"].to_numpy()
+    ba = np.mean(
+        [
+            classification_metrics(y[mask], pred[f"pred_{v}"].to_numpy()[mask], 1.5)[
+                "balanced_accuracy"
+            ]
+            for v in ("held", "held_s1")
+        ]
+    )
+    assert ho["heldout"]["balanced_accuracy"] == pytest.approx(ba)
+    std = metrics["groups"]["ref"]["at_1.5s"]["balanced_accuracy"]
+    assert ho["drop"]["balanced_accuracy"]["estimate"] == pytest.approx(std - ba)
+    t = metrics["targets"]["holdout_balanced_accuracy_drop"]
+    assert t["value"] == pytest.approx(std - ba) and t["met"] == (std - ba <= 0.05)
+    assert "comparisons" in metrics and all(
+        0.0 <= v <= 1.0 for v in metrics["comparisons"]["secondary_holm"]["p_adjusted"].values()
+    )
+
+
+def test_shipped_verdict_uses_the_validation_cut() -> None:
+    from traffictwin.api import LoadedRisk, decision_cut, risk_verdict
+
+    class _M:
+        meta = {"shipped": {"decision": {"1.5": {"cut": 0.02}}}}
+
+    lr = LoadedRisk(_M(), "x")
+    assert decision_cut(lr, 1.5) == 0.02 and decision_cut(lr, 1.0) is None
+    v = risk_verdict(0.025, 10.0, 1.5, 0.02)  # THW 2 s > 1.5 s, but the risk is above the cut
+    assert v["critical"] and v["decision_cut"] == 0.02 and v["thw_s"] == pytest.approx(2.0)
+    assert not risk_verdict(0.025, 10.0, 1.5)["critical"]
