@@ -8,9 +8,13 @@ at every configuration; a method whose model is missing is skipped and listed. F
 
 - ``reports/metrics/twin.json`` — per configuration and method (``ego`` = the ego's own map) and
   scenario kind: recall of critical frames, false-alarm rate, paired recall difference to ``ego``,
-  lead time (s), share of vehicles left out — with sequence-bootstrap CIs
-  (:func:`traffictwin.twin.evaluation.summarise`) — and ``targets``;
-- ``reports/twin_eval_frames.csv`` — one row per (configuration, method, sequence, frame);
+  per critical episode the lead time from the first warning within ``twin.horizon_s`` (median,
+  mean, paired vs ``ego`` and ``naive``), the share warned before the onset, false alarms (no
+  episode within the horizon) per frame and per minute, share of vehicles left out — with
+  sequence-bootstrap CIs (:func:`traffictwin.twin.evaluation.summarise`); ``pose_bias``: the same
+  for the kinds ``twin.bias_kinds`` under the persistent pose bias; and ``targets``;
+- ``reports/twin_eval_frames.csv`` — one row per (configuration, noise model, method, sequence,
+  frame);
 - ``reports/plots/twin_timeline.csv`` — DVC plot: THW over time of the timeline sequence;
 - ``reports/figures/twin_map.png``, ``twin_timeline.png``;
 - its run record ``reports/timings/evaluate_twin.json`` (outside DVC): ``step_ms_median`` (median
@@ -106,6 +110,59 @@ def method_models(
     return out, skipped
 
 
+def _pose_bias_frames(
+    seqs: list[dict[str, Any]],
+    tc: Any,
+    s: Any,
+    grid: Any,
+    pn: Any,
+    methods: list[str],
+    models: dict[str, Any],
+    reg_params: Any,
+    fec: Any,
+    ego_rows: pd.DataFrame,
+) -> pd.DataFrame:
+    """The frame table of the sequences of ``twin.bias_kinds`` under the persistent pose bias
+    (:func:`traffictwin.twin.noise.pose_noise_z`, ``twin.bias_share``), the same methods; the
+    ``ego`` rows (independent of the other vehicles' pose noise) are ``ego_rows`` of the
+    per-frame-noise pass, not computed again."""
+    from traffictwin.sim.cooperative import KINDS
+    from traffictwin.twin import evaluation as ev
+    from traffictwin.twin.noise import pose_noise_z
+
+    picked = [
+        {**a, "noise_z": pose_noise_z(a["noise_z"], a["bias_z"], "bias", tc.bias_share)}
+        for a in seqs
+        if KINDS[ev.scalar(a["kind"])] in tc.bias_kinds
+    ]
+    if not picked:
+        raise ValueError(f"'twin.bias_kinds' {list(tc.bias_kinds)}: no sequence of these kinds")
+    reg = (
+        ev.classical_registrations(
+            picked, grid, (pn.r, pn.alpha), reg_params, fec.registration_workers
+        )
+        if ev.uses_classical(methods, s)
+        else [None] * len(picked)
+    )
+    ids = {ev.scalar(a["sequence"]) for a in picked}
+    twin_rows = [
+        ev.evaluate_sequence(
+            a,
+            grid,
+            (pn.r, pn.alpha),
+            methods,
+            models,
+            s,
+            reg_params,
+            registered=r,
+            include_ego=False,
+        )
+        for a, r in zip(picked, reg)
+    ]
+    f = pd.concat([ego_rows[ego_rows["sequence"].isin(ids)], *twin_rows], ignore_index=True)
+    return f.sort_values(["sequence", "frame"], kind="stable", ignore_index=True)
+
+
 def main() -> None:
     from traffictwin.fusion.evaluation import json_clean
     from traffictwin.fusion.figures import save_figure
@@ -167,6 +224,7 @@ def main() -> None:
                 ignore_index=True,
             )
             f.insert(0, "configuration", c)
+            f.insert(1, "noise", "frame")
             frames.append(f)
             summary[c] = {
                 "noise": {"r": pn.r, "alpha": pn.alpha},
@@ -175,6 +233,19 @@ def main() -> None:
             }
             # wall times differ between identical runs: run record only
             record.setdefault("step_ms_median", {})[c] = json_clean(ev.step_ms_medians(f, methods))
+            if tc.bias_kinds:  # the same sequences' kinds under a persistent (per-sequence) bias
+                ego_rows = f[f["method"] == ev.EGO].drop(columns=["configuration", "noise"])
+                fb = _pose_bias_frames(
+                    seqs, tc, s, grid, pn, methods, models, reg_params, fec, ego_rows
+                )
+                fb.insert(0, "configuration", c)
+                fb.insert(1, "noise", "bias")
+                frames.append(fb)
+                summary[c]["pose_bias"] = {
+                    "bias_share": tc.bias_share,
+                    "kinds": list(tc.bias_kinds),
+                    "methods": ev.summarise(fb, methods, tc.fps, s),
+                }
         table = pd.concat(frames, ignore_index=True).drop(columns="step_ms")
         metrics = {
             "headline": tc.headline,
@@ -185,6 +256,7 @@ def main() -> None:
             "targets": ev.targets(summary, tc.headline, tc.target_configuration),
         }
         _csv(table, FRAMES)
+        table = table[table["noise"] == "frame"]  # the figures: per-frame noise
         c_fig = (
             tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
         )

@@ -41,14 +41,28 @@ def _work(index: int) -> tuple[int, str, int]:
     )
 
 
-def data_summary(ds: Dataset) -> dict[str, float | int]:
+def hidden_before_onset_s(seen_ego: np.ndarray, onset: int, fps: float) -> float:
+    """How long (s) the hazard was hidden from the ego up to the onset frame: the run of frames
+    ending at ``onset`` in which the ego's (noisy) lidar has no return from it, times 1/fps."""
+    seen = np.asarray(seen_ego, bool)[: onset + 1][::-1]
+    run = int(np.argmax(seen)) if seen.any() else len(seen)
+    return run / fps
+
+
+def data_summary(ds: Dataset, fps: float, hidden_s: float) -> dict[str, float | int | None]:
     """The metrics of a twin dataset: sequences per kind and hazard, critical frames, how often the
-    hazard was hidden from the ego at the critical onset (occluded sequences), draws it took."""
+    hazard was hidden from the ego at the critical onset (occluded sequences), draws it took, and
+    — verified on the data's own (noisy) scans — how long it stayed hidden up to the onset
+    (median, share hidden >= ``hidden_s``) and the share seen by another vehicle meanwhile."""
     from traffictwin.sim.cooperative import HAZARDS, KINDS
 
     rows = []
     for i in ds.shard_indices():
         a = ds.load_shard(i)
+        onset = int(a["onset_frame"].reshape(-1)[0])
+        seen = a["hazard_seen"]
+        hid = hidden_before_onset_s(seen[:, 0], onset, fps)
+        first = max(0, onset - int(round(hidden_s * fps)))
         rows.append(
             (
                 KINDS[int(a["kind"].reshape(-1)[0])],
@@ -58,10 +72,12 @@ def data_summary(ds: Dataset) -> dict[str, float | int]:
                 int((a["thw_true"] < 1.5).sum()),
                 len(a["time"]),
                 int(a["maps"].shape[1]),
+                hid,
+                bool(seen[first : onset + 1, 1:].any()),
             )
         )
     occ = [r for r in rows if r[0] == "occluded"]
-    out: dict[str, float | int] = {
+    out: dict[str, float | int | None] = {
         "twin_data/sequences": len(rows),
         "twin_data/occluded": len(occ),
         "twin_data/open": len(rows) - len(occ),
@@ -77,6 +93,24 @@ def data_summary(ds: Dataset) -> dict[str, float | int]:
         else None,
         "twin_data/occluded_mean_draws": round(float(np.mean([r[3] for r in occ])), 3)
         if occ
+        else None,
+        "twin_data/occluded_hidden_before_onset_s_median": round(
+            float(np.median([r[7] for r in occ])), 3
+        )
+        if occ
+        else None,
+        "twin_data/occluded_hidden_ge_hidden_s_share": round(
+            float(np.mean([r[7] >= hidden_s - 1e-9 for r in occ])), 4
+        )
+        if occ
+        else None,
+        "twin_data/occluded_others_see_share": round(float(np.mean([r[8] for r in occ])), 4)
+        if occ
+        else None,
+        "twin_data/open_hidden_before_onset_s_median": round(
+            float(np.median([r[7] for r in rows if r[0] == "open"])), 3
+        )
+        if len(occ) < len(rows)
         else None,
     }
     return out
@@ -95,6 +129,7 @@ def main() -> None:
         ism=fd.ism,
         scenario=tc.scenario(),
         corridor_margin=tc.corridor_margin,
+        predict=tc.predict(),
     )
     record = {
         "grid": OmegaConf.to_container(cfg["grid"], resolve=True),
@@ -110,7 +145,12 @@ def main() -> None:
                 "occluded_share",
                 "pedestrian_share",
                 "templates",
+                "lead_in",
+                "hidden_s",
                 "corridor_margin",
+                "horizon_s",
+                "ttc_warn_s",
+                "ttc_step_s",
             )
         },
     }
@@ -126,7 +166,9 @@ def main() -> None:
         ):
             writer.record_shard(idx, shard_name(idx), digest, count)
         writer.finalize(extra={"vehicles": tc.vehicles, "fps": tc.fps})
-        metrics = data_summary(Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS))
+        metrics = data_summary(
+            Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS), tc.fps, tc.hidden_s
+        )
         write_json_atomic(METRICS, metrics)
         log.info("%s: %s", STAGE, metrics)
 

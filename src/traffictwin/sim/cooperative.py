@@ -64,7 +64,9 @@ class CooperativeConfig:
     length (m), gap between the van's far end and the stopped car's rear (m), pedestrian
     step-in time (s before the unbraked ego reaches it) and walking speed (m/s), cooperating
     vehicles' speed (m/s) and spacing (m); van length (m) and the distance of its near end after
-    the end of the turn (m); junction templates to draw from."""
+    the end of the turn (m); junction templates to draw from; ``hidden_s`` (s): in ``occluded``
+    sequences the hazard must stay hidden from the ego over the ``hidden_s`` seconds up to the
+    critical onset and be seen by another vehicle in that window (0: hidden at the onset only)."""
 
     fps: float = 10.0
     frames: int = 30
@@ -83,6 +85,7 @@ class CooperativeConfig:
     spacing: tuple[float, float] = (9.0, 16.0)
     templates: tuple[str, ...] = JUNCTIONS
     max_attempts: int = 40
+    hidden_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.fps <= 0 or self.frames < 2:
@@ -114,6 +117,11 @@ class CooperativeConfig:
                 raise ValueError(
                     f"cooperative: {name} must be (low, high) with 0 < low <= high, got {[lo, hi]}"
                 )
+        if self.hidden_s < 0 or self.hidden_s >= self.frames / self.fps:
+            raise ValueError(
+                f"cooperative: hidden_s must be >= 0 s and shorter than the sequence "
+                f"({self.frames / self.fps:g} s), got {self.hidden_s}"
+            )
         bad = [t for t in self.templates if t not in JUNCTIONS]
         if bad or not self.templates:
             raise ValueError(
@@ -150,6 +158,7 @@ class CoopSequence:
     onset_frame: int = -1
     hidden_at_onset: bool = False
     attempts: int = 1
+    hidden_window: bool = False
 
 
 def sequence_kind(index: int, occluded_share: float) -> str:
@@ -242,9 +251,11 @@ def generate_cooperative_sequence(
     ``occluded`` sequences are what their name says: with ``lidar`` given, draws are repeated
     (up to ``cfg.max_attempts``, from the same generator) until the ego's own lidar has no return
     from the hazard at the *critical onset* (the first frame whose time headway to the hazard,
-    along the path at the ego's speed, is below ``CRITICAL_ONSET_S``); the sequence records
-    whether that held (``hidden_at_onset``) and the attempts it took. ``open`` sequences are never
-    selected."""
+    along the path at the ego's speed, is below ``CRITICAL_ONSET_S``) and, with ``cfg.hidden_s >
+    0``, at no frame of the ``hidden_s`` seconds before it, while another vehicle's lidar returns
+    from it at some frame of that window (noiseless scans); the sequence records whether that
+    held (``hidden_at_onset``, ``hidden_window``) and the attempts it took. ``open`` sequences are
+    never selected."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
     kind = sequence_kind(index, cfg.occluded_share)
     seq = None
@@ -254,18 +265,42 @@ def generate_cooperative_sequence(
         if kind == "open" or lidar is None:
             return seq
         seq.hidden_at_onset = not ego_sees_hazard(seq, lidar, seq.onset_frame)
-        if seq.hidden_at_onset:
+        if seq.hidden_at_onset and cfg.hidden_s <= 0:
             return seq
+        if seq.hidden_at_onset:
+            seq.hidden_window = hidden_before_onset(seq, lidar, cfg.hidden_s, cfg.fps)
+            if seq.hidden_window:
+                return seq
     assert seq is not None
     return seq
 
 
 def ego_sees_hazard(seq: CoopSequence, lidar: LidarSpec, frame: int) -> bool:
     """Whether any ray of the ego's lidar (no noise, no dropout) returns from the hazard at ``frame``."""
+    return vehicle_sees_hazard(seq, lidar, frame, 0)
+
+
+def vehicle_sees_hazard(seq: CoopSequence, lidar: LidarSpec, frame: int, k: int) -> bool:
+    """Whether any ray of vehicle ``k``'s lidar (no noise, no dropout) returns from the hazard at ``frame``."""
     f = seq.frames[frame]
-    others = f.boxes.subset(f.boxes.ids != seq.vehicle_ids[0])
-    s = scan(lidar, f.poses[0], others, None)
+    others = f.boxes.subset(f.boxes.ids != seq.vehicle_ids[k])
+    s = scan(lidar, f.poses[k], others, None)
     return bool(np.any(s.hit == int(np.flatnonzero(others.ids == HAZARD_ID)[0])))
+
+
+def hidden_before_onset(seq: CoopSequence, lidar: LidarSpec, hidden_s: float, fps: float) -> bool:
+    """Whether the hazard is hidden from the ego at every frame of the ``hidden_s`` seconds up to
+    the critical onset (the window must lie inside the sequence) and seen by another vehicle at
+    some frame of that window (noiseless scans)."""
+    first = seq.onset_frame - int(round(hidden_s * fps))
+    if first < 0:
+        return False
+    window = range(seq.onset_frame, first - 1, -1)
+    if any(ego_sees_hazard(seq, lidar, f) for f in window):
+        return False
+    return any(
+        vehicle_sees_hazard(seq, lidar, f, k) for f in window for k in range(1, len(seq.roles))
+    )
 
 
 def _draw_sequence(

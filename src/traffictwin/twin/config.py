@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass
+from dataclasses import MISSING, dataclass, field
 from typing import Any
 
 from traffictwin.config import spec, typed
 from traffictwin.stats import CIConfig
+from traffictwin.twin.predict import PredictSettings
 
 __all__ = ["TwinEvalSettings", "TwinFigureConfig", "TwinConfig", "twin_config"]
 
@@ -14,13 +15,17 @@ __all__ = ["TwinEvalSettings", "TwinFigureConfig", "TwinConfig", "twin_config"]
 @dataclass(frozen=True)
 class TwinEvalSettings:
     """Occupied-cell threshold on m_O, the ego's footprint margin (m), the critical THW (s), the
-    corridor margin (m), strategy, bootstrap resamples / seed / level."""
+    corridor margin (m), strategy, the warning horizon (s: a warning up to this long before a
+    critical episode is an early warning of it, one with no episode within it a false alarm),
+    bootstrap resamples / seed / level."""
 
     occ_threshold: float = 0.5
     self_margin: float = 0.5
     critical_thw: float = 1.5
     corridor_margin: float = 0.0
     strategy: str = "reference"
+    horizon_s: float = 2.0
+    predict: PredictSettings = field(default_factory=PredictSettings)  # TTC (predictive warnings)
     n_boot: int = 2000
     seed: int = 0
     level: float = 0.95
@@ -42,6 +47,8 @@ class TwinConfig:
     occluded_share: float = spec(MISSING, min=0.0, max=1.0)
     pedestrian_share: float = spec(MISSING, min=0.0, max=1.0)
     templates: list[str] = spec(MISSING)
+    lead_in: list[float] = spec(MISSING)  # (low, high) s from the sequence start to the onset
+    hidden_s: float = spec(MISSING, min=0.0, max=10.0)
     workers: int = spec(MISSING, min=1)
     compresslevel: int = spec(MISSING, min=0, max=9)
     corridor_margin: float = spec(MISSING, min=-1.0, max=3.0)
@@ -53,6 +60,14 @@ class TwinConfig:
     occ_threshold: float = spec(MISSING, min=0.0, max=1.0)
     self_margin: float = spec(MISSING, min=0.0, max=3.0)
     critical_thw: float = spec(MISSING, min=0.1, max=10.0)
+    horizon_s: float = spec(MISSING, min=0.0, max=10.0)
+    ttc_warn_s: float = spec(MISSING, min=0.1, max=10.0)
+    ttc_step_s: float = spec(MISSING, min=0.01, max=1.0)
+    motion_min_speed: float = spec(MISSING, min=0.0, max=10.0)
+    motion_max_speed: float = spec(MISSING, min=0.1, max=60.0)
+    motion_max_extent: float = spec(MISSING, min=0.5, max=50.0)
+    bias_share: float = spec(MISSING, min=0.0, max=1.0)
+    bias_kinds: list[str] = spec(MISSING)  # kinds evaluated under the persistent bias ([] = none)
     ci: CIConfig = MISSING
     figure: TwinFigureConfig = MISSING
 
@@ -79,6 +94,32 @@ class TwinConfig:
             raise ValueError(
                 f"'twin.templates' has unknown junction(s) {bad or '(empty)'}; expected from {list(JUNCTIONS)}"
             )
+        from traffictwin.sim.cooperative import KINDS
+
+        bad = [k for k in self.bias_kinds if k not in KINDS]
+        if bad:
+            raise ValueError(
+                f"'twin.bias_kinds' has unknown kind(s) {bad}; expected from {list(KINDS)}"
+            )
+        if self.motion_min_speed >= self.motion_max_speed:
+            raise ValueError(
+                f"'twin.motion_min_speed' ({self.motion_min_speed}) must be below "
+                f"'twin.motion_max_speed' ({self.motion_max_speed}) m/s"
+            )
+        if self.ttc_warn_s > self.horizon_s:
+            raise ValueError(
+                f"'twin.ttc_warn_s' ({self.ttc_warn_s} s) must not exceed 'twin.horizon_s' "
+                f"({self.horizon_s} s): the time to conflict is computed up to the horizon"
+            )
+        if len(self.lead_in) != 2 or not 0 < self.lead_in[0] <= self.lead_in[1]:
+            raise ValueError(
+                f"'twin.lead_in' must be [low, high] s with 0 < low <= high, got {list(self.lead_in)}"
+            )
+        if self.hidden_s >= self.frames / self.fps:
+            raise ValueError(
+                f"'twin.hidden_s' ({self.hidden_s} s) must be shorter than a sequence "
+                f"('twin.frames' / 'twin.fps' = {self.frames / self.fps:g} s)"
+            )
 
     def scenario(self) -> Any:
         """The simulator's :class:`~traffictwin.sim.cooperative.CooperativeConfig`."""
@@ -91,6 +132,19 @@ class TwinConfig:
             occluded_share=self.occluded_share,
             pedestrian_share=self.pedestrian_share,
             templates=tuple(self.templates),
+            lead_in=(float(self.lead_in[0]), float(self.lead_in[1])),
+            hidden_s=self.hidden_s,
+        )
+
+    def predict(self) -> PredictSettings:
+        """The predictive measure's :class:`~traffictwin.twin.predict.PredictSettings`."""
+        return PredictSettings(
+            min_speed=self.motion_min_speed,
+            max_speed=self.motion_max_speed,
+            max_extent=self.motion_max_extent,
+            step_s=self.ttc_step_s,
+            horizon_s=self.horizon_s,
+            warn_s=self.ttc_warn_s,
         )
 
     def settings(self) -> Any:
@@ -101,6 +155,8 @@ class TwinConfig:
             critical_thw=self.critical_thw,
             corridor_margin=self.corridor_margin,
             strategy=self.strategy,
+            horizon_s=self.horizon_s,
+            predict=self.predict(),
             n_boot=self.ci.n_boot,
             seed=self.ci.seed,
             level=self.ci.level,

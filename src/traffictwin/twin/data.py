@@ -11,13 +11,20 @@ sequence one ``.npz`` with (T frames, N vehicles):
 - ``noise_z (T, N, 3)`` standard-normal pose-noise draws of vehicle k at frame t (row 0 = ego:
   zeros), from ``(seed, sequence, k, t)``; a configuration scales them
   (:func:`traffictwin.evidential.noise.scale_noise`) and adds them to the vehicle's world pose;
+- ``bias_z (N, 3)`` standard-normal draws of vehicle k's persistent (per-sequence, GNSS-like)
+  pose bias (row 0 = ego: zeros), from ``(seed, sequence, k)``; the evaluation's ``bias`` noise
+  model mixes them with ``noise_z`` (:func:`traffictwin.twin.noise.pose_noise_z`);
 - ``path (T, K, 2)`` the ego's path ahead in its own frame (m), ``lane_width (T,)`` m;
 - ``thw_true (T,)`` ego's time headway (s) on the simulator's boxes (corridor region, vehicles
   and pedestrians; :class:`traffictwin.risk.metric.RiskCalculator`), ``distance_true (T,)`` m;
+- ``ttc_true (T,)`` the ego's time to conflict (s, inf: none within the horizon) on the
+  simulator's boxes with their true velocities (:mod:`traffictwin.twin.predict`);
 - ``hazard_seen (T, N)`` bool — whether vehicle k's lidar returned from the hazard at frame t;
 - ``time (T,)`` s; scalars ``sequence``, ``kind`` (index into :data:`KINDS`), ``hazard`` (index
   into :data:`HAZARDS`), ``template`` (index into the world templates), ``onset_frame``,
-  ``hidden_at_onset``, ``attempts``.
+  ``hidden_at_onset``, ``hidden_window`` (the occluded sequence's hazard hidden from the ego
+  over ``scenario.hidden_s`` before the onset and seen by another vehicle, noiseless scans),
+  ``attempts``.
 """
 
 from __future__ import annotations
@@ -40,8 +47,18 @@ from traffictwin.sim.cooperative import (
 from traffictwin.sim.lidar import LidarSpec, scan
 from traffictwin.sim.traffic import SUBJECT_SIZE
 from traffictwin.sim.world import TEMPLATES
+from traffictwin.twin.predict import PredictSettings, box_points, time_to_conflict
 
-__all__ = ["TwinDataParams", "twin_risk_config", "sequence_arrays", "write_sequence", "noise_draws"]
+__all__ = [
+    "TwinDataParams",
+    "twin_risk_config",
+    "sequence_arrays",
+    "write_sequence",
+    "noise_draws",
+    "bias_draws",
+]
+
+BIAS_DRAW = 1_000_000  # draw index of the persistent bias (frame draws use 0..T-1)
 
 
 @dataclass(frozen=True)
@@ -54,6 +71,7 @@ class TwinDataParams:
     ism: IsmParams = IsmParams()
     scenario: CooperativeConfig = field(default_factory=CooperativeConfig)
     corridor_margin: float = 0.0
+    predict: PredictSettings = field(default_factory=PredictSettings)
 
 
 def twin_risk_config(corridor_margin: float = 0.0) -> RiskConfig:
@@ -77,6 +95,16 @@ def noise_draws(seed: int, sequence: int, frames: int, vehicles: int) -> np.ndar
     return z
 
 
+def bias_draws(seed: int, sequence: int, vehicles: int) -> np.ndarray:
+    """Standard-normal persistent pose-bias draws ``(vehicles, 3)`` of one sequence (ego row zero):
+    vehicle k's depends only on ``(seed, sequence, k)`` and differs from every frame draw."""
+    z = np.zeros((vehicles, 3))
+    if vehicles > 1:
+        pid = int(sequence) * 100 + np.arange(1, vehicles, dtype=np.int64)
+        z[1:] = standard_normal_draws(seed, pid, BIAS_DRAW)
+    return z
+
+
 def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.ndarray]:
     """Arrays of sequence ``index`` (see the module docstring)."""
     if index < 0:
@@ -89,6 +117,7 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
     maps = np.zeros((T, N, 2, g.rows, g.cols), np.float32)
     seen = np.zeros((T, N), bool)
     thw = np.zeros(T)
+    ttc = np.zeros(T)
     dist = np.zeros(T)
     paths = np.zeros((T, len(seq.frames[0].path), 2))
     for t, f in enumerate(seq.frames):
@@ -101,15 +130,28 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
         r = calc(f.poses[0], float(f.speeds[0]), ego_others, path=f.path, lane_width=f.lane_width)
         thw[t], dist[t] = r.thw, r.distance
         paths[t] = path_to_subject_frame(f.path, f.poses[0])
+        xy, vel = box_points(ego_others.corners(), ego_others.velocity, f.poses[0])
+        ttc[t] = time_to_conflict(
+            xy,
+            vel,
+            paths[t],
+            f.lane_width,
+            float(f.speeds[0]),
+            SUBJECT_SIZE[0],
+            p.predict,
+            p.corridor_margin,
+        )
     return {
         "maps": maps,
         "poses": np.stack([f.poses for f in seq.frames]).astype(np.float64),
         "speeds": np.stack([f.speeds for f in seq.frames]).astype(np.float64),
         "noise_z": noise_draws(seed, index, T, N),
+        "bias_z": bias_draws(seed, index, N),
         "path": paths,
         "lane_width": np.array([f.lane_width for f in seq.frames], dtype=np.float64),
         "thw_true": thw,
         "distance_true": dist,
+        "ttc_true": ttc,
         "hazard_seen": seen,
         "time": np.array([f.t for f in seq.frames], dtype=np.float64),
         "sequence": np.array(index, dtype=np.int64),
@@ -118,12 +160,13 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
         "template": np.array(TEMPLATES.index(seq.world.template), dtype=np.int64),
         "onset_frame": np.array(seq.onset_frame, dtype=np.int64),
         "hidden_at_onset": np.array(seq.hidden_at_onset, dtype=bool),
+        "hidden_window": np.array(seq.hidden_window, dtype=bool),
         "attempts": np.array(seq.attempts, dtype=np.int64),
     }
 
 
 # arrays where +inf is a value ("nothing ahead" / speed 0); every other float array is finite
-INF_ARRAYS = ("thw_true", "distance_true")
+INF_ARRAYS = ("thw_true", "distance_true", "ttc_true")
 
 
 def write_sequence(

@@ -50,7 +50,8 @@ def pick_timeline_sequence(
 def timeline_table(
     table: pd.DataFrame, configuration: str, method: str, sequence: int
 ) -> pd.DataFrame:
-    """Long table (time s, series, thw s capped at :data:`THW_CAP`) of one sequence: truth, ego, twin."""
+    """Long table (time s, series, thw s capped at :data:`THW_CAP`) of one sequence: truth, ego,
+    twin, and the twin's time to conflict (series ``... TTC``, column ``thw``) where the table has it."""
     f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
     ego = f[f["method"] == EGO]
     tw = f[f["method"] == method]
@@ -59,6 +60,10 @@ def timeline_table(
         pd.DataFrame({"time": ego["time"], "series": "ego map", "thw": ego["thw"]}),
         pd.DataFrame({"time": tw["time"], "series": f"twin ({method})", "thw": tw["thw"]}),
     ]
+    if "ttc" in tw:  # the predictive measure read from the same twin (time to conflict, s)
+        parts.append(
+            pd.DataFrame({"time": tw["time"], "series": f"twin ({method}) TTC", "thw": tw["ttc"]})
+        )
     out = pd.concat(parts, ignore_index=True)
     out["thw"] = np.minimum(out["thw"].to_numpy(float), THW_CAP)
     return out
@@ -79,7 +84,8 @@ def timeline_figure(
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     styles = {"truth": ("k", "-", "o"), "ego map": ("#7f7f7f", "--", "x")}
     for name, g in tt.groupby("series", sort=False):
-        color, ls, mk = styles.get(name, ("#d62728", "-", "s"))
+        default = ("#9467bd", ":", "^") if str(name).endswith("TTC") else ("#d62728", "-", "s")
+        color, ls, mk = styles.get(name, default)
         ax.plot(g["time"], g["thw"], color=color, linestyle=ls, marker=mk, ms=4, label=name)
     dt = float(np.median(np.diff(np.sort(f["time"].unique())))) if len(f) > 1 else 0.1
     for t in f.loc[f["critical"], "time"]:
@@ -93,11 +99,13 @@ def timeline_figure(
         ms=10,
         label="ego's lidar sees the hazard",
     )
-    ax.axhline(critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s")
+    ax.axhline(
+        critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s (warning)"
+    )
     kind, hazard = f["kind"].iloc[0], f["hazard"].iloc[0]
     ax.set(
         xlabel="time (s)",
-        ylabel=f"time headway (s, capped at {THW_CAP:g})",
+        ylabel=f"time headway / time to conflict (s, capped at {THW_CAP:g})",
         ylim=(0, THW_CAP * 1.02),
         title=f"Sequence {sequence} ({kind}, {hazard}), configuration {configuration}: shaded = truly critical",
     )

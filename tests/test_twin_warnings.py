@@ -1,0 +1,155 @@
+"""Issue 32: warnings against critical episodes (lead from the first warning, false alarms by
+horizon), the persistent pose bias, hidden scenarios — hand-computed cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from traffictwin.twin.alerts import (
+    alarm_events,
+    critical_episodes,
+    episode_table,
+    false_alarm_frames,
+)
+from traffictwin.twin.evaluation import EGO, TwinEvalSettings, summarise, targets
+from traffictwin.twin.noise import pose_noise_z
+
+
+def test_false_alarm_frames_by_horizon() -> None:
+    t = np.arange(8) * 0.5  # 0 .. 3.5 s
+    crit = np.array([0, 0, 0, 0, 1, 1, 0, 0], bool)  # episode 2.0-2.5 s
+    flag = np.array([1, 1, 0, 0, 1, 0, 1, 0], bool)
+    # h = 1 s: t = 0 (next critical 2.0 s) and 0.5 (1.5 s) false; 2.0 in the episode; 3.0 after it
+    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.0), [1, 1, 0, 0, 0, 0, 1, 0])
+    # h = 1.5 s: t = 0.5 s is 1.5 s before the onset -> an early warning, not a false alarm
+    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.5), [1, 0, 0, 0, 0, 0, 1, 0])
+    # no episode: every warning is a false alarm
+    assert false_alarm_frames(t, np.zeros(8, bool), flag, 9.0).sum() == 4
+    np.testing.assert_array_equal(alarm_events(np.array([1, 1, 0, 1, 0], bool)), [1, 0, 0, 1, 0])
+    with pytest.raises(ValueError, match="horizon_s"):
+        false_alarm_frames(t, crit, flag, -1.0)
+
+
+def test_critical_episodes_and_episode_table() -> None:
+    assert critical_episodes(np.array([0, 1, 1, 0, 1], bool)) == [(1, 2), (4, 4)]
+    assert critical_episodes(np.zeros(3, bool)) == []
+    rows = []
+    for seq, flags in ((0, [0, 1, 0, 0, 1, 1]), (1, [0, 0, 0, 0, 0, 0])):
+        for i, fl in enumerate(flags):
+            rows.append(
+                {
+                    "sequence": seq,
+                    "kind": "occluded",
+                    "hazard": "pedestrian",
+                    "method": "m",
+                    "frame": i,
+                    "time": i / 10,
+                    "critical": 3 <= i <= 4,
+                    "flagged": bool(fl),
+                }
+            )
+    f = pd.DataFrame(rows)
+    ep = episode_table(f, "m", fps=10.0, horizon_s=0.2).set_index("sequence")
+    # seq 0: onset 0.3 s, a warning at 0.1 s (0.2 s before: counts) -> lead 0.2 s, before onset
+    assert ep.loc[0, "lead_s"] == pytest.approx(0.2) and ep.loc[0, "before_onset"]
+    assert ep.loc[0, "horizon_covered"]
+    # seq 1: never warned -> one frame after the end (0.5 s): lead 0.3 - 0.5 = -0.2 s
+    assert ep.loc[1, "lead_s"] == pytest.approx(-0.2) and not ep.loc[1, "warned"]
+    # a horizon of 0.1 s misses the 0.1 s warning: first warning at 0.4 s, lead -0.1 s
+    ep = episode_table(f, "m", fps=10.0, horizon_s=0.1).set_index("sequence")
+    assert ep.loc[0, "lead_s"] == pytest.approx(-0.1) and not ep.loc[0, "before_onset"]
+
+
+def test_pose_noise_models() -> None:
+    z = np.zeros((4, 3, 3))
+    z[:, 1] = [[1.0, 0, 0], [-1.0, 0, 0], [0.5, 0, 0], [0, 0, 0]]
+    b = np.zeros((3, 3))
+    b[1] = [2.0, 0.0, 1.0]
+    np.testing.assert_array_equal(pose_noise_z(z, b, "frame"), z)
+    out = pose_noise_z(z, b, "bias", bias_share=0.64)  # sqrt 0.8 * bias + sqrt 0.36 = 0.6 * z
+    np.testing.assert_allclose(out[0, 1], [0.8 * 2 + 0.6, 0, 0.8])
+    np.testing.assert_allclose(out[3, 1], [1.6, 0, 0.8])  # the bias persists
+    assert np.all(out[:, 0] == 0)  # the ego knows its frame
+    np.testing.assert_allclose(pose_noise_z(z, b, "bias", 1.0)[2, 1], b[1])
+    with pytest.raises(ValueError, match="unknown"):
+        pose_noise_z(z, b, "gnss")
+    with pytest.raises(ValueError, match="bias_share"):
+        pose_noise_z(z, b, "bias", 1.5)
+    with pytest.raises(ValueError, match="bias_z"):
+        pose_noise_z(z, None, "bias")
+
+
+def test_bias_draws_persist_and_differ_from_frame_draws() -> None:
+    from traffictwin.twin.data import bias_draws, noise_draws
+
+    b = bias_draws(3, 7, 3)
+    assert b.shape == (3, 3) and np.all(b[0] == 0) and np.all(b[1:] != 0)
+    assert np.array_equal(b, bias_draws(3, 7, 3))
+    assert not np.any(np.isclose(noise_draws(3, 7, 5, 3)[:, 1:], b[None, 1:]))
+
+
+def test_hidden_before_onset_hand_computed() -> None:
+    from pipelines.generate_twin import hidden_before_onset_s
+
+    seen = np.array([1, 1, 0, 0, 0, 1, 1], bool)
+    assert hidden_before_onset_s(seen, 4, 10.0) == pytest.approx(0.3)  # frames 2, 3, 4
+    assert hidden_before_onset_s(seen, 5, 10.0) == 0.0  # seen at the onset
+    assert hidden_before_onset_s(np.zeros(5, bool), 4, 10.0) == pytest.approx(0.5)
+
+
+def _table() -> pd.DataFrame:
+    """Two open sequences (no episode), 10 frames at 10 Hz: naive warns 3 frames of sequence 0,
+    the twin 1; and one occluded sequence where both warn at the onset."""
+    rows = []
+    for seq, kind, fl in (
+        (
+            0,
+            "open",
+            {"naive": [0, 1, 1, 1, 0, 0, 0, 0, 0, 0], "twin": [0, 1, 0, 0, 0, 0, 0, 0, 0, 0]},
+        ),
+        (1, "open", {"naive": [0] * 10, "twin": [0] * 10}),
+        (2, "occluded", {"naive": [0] * 5 + [1] * 5, "twin": [0] * 5 + [1] * 5}),
+    ):
+        fl[EGO] = [0] * 10
+        for m, flags in fl.items():
+            for i, x in enumerate(flags):
+                rows.append(
+                    {
+                        "sequence": seq,
+                        "kind": kind,
+                        "hazard": "pedestrian",
+                        "vehicles": 3,
+                        "method": m,
+                        "frame": i,
+                        "time": i / 10,
+                        "thw": 1.0 if x else 3.0,
+                        "thw_true": 1.0 if kind == "occluded" and i >= 5 else 3.0,
+                        "left_out": 0,
+                    }
+                )
+    f = pd.DataFrame(rows)
+    f["critical"] = f["thw_true"] < 1.5
+    f["flagged"] = f["thw"] < 1.5
+    return f
+
+
+def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
+    s = summarise(_table(), ["naive", "twin"], 10.0, TwinEvalSettings(n_boot=200))
+    opn = s["twin"]["open"]
+    assert opn["false_alarm_share"] == pytest.approx(1 / 20)
+    # one run of false alarms in 20 frames = 2 s of driving -> 30 per minute
+    assert opn["false_alarms_per_min"] == pytest.approx(30.0)
+    assert s["naive"]["open"]["false_alarms_per_min"] == pytest.approx(30.0)  # one run of 3
+    assert opn["false_alarm_share_vs_naive"] == pytest.approx(1 / 20 - 3 / 20)
+    assert s[EGO]["occluded"]["lead_s_median"] == pytest.approx(-0.5)  # never: 0.5 - 1.0
+    assert s["twin"]["occluded"]["lead_vs_ego_s_median"] == pytest.approx(0.5)
+    assert s["twin"]["occluded"]["by_hazard"]["pedestrian"]["episodes"] == 1
+    t = targets({"D": {"methods": s, "pose_bias": {"methods": s}}}, "twin", "D")
+    assert t["open_false_alarms_le_0.05_frame_noise"]["met"] is True
+    assert t["open_false_alarms_le_0.05_pose_bias"]["value"] == pytest.approx(0.05)
+    assert t["occluded_warned_before_onset_ge_0.95"]["met"] is False  # warned at the onset
+    assert t["predictive_warns_earlier_than_thw"]["met"] is None
+    nob = targets({"D": {"methods": s}}, "twin", "D")
+    assert nob["open_false_alarms_le_0.05_pose_bias"]["met"] is None  # not evaluated
