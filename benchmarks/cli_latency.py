@@ -5,9 +5,11 @@
 - ``fuse`` (per pair): prealignment (SE(2) warp of map 2) and the network part
   (:func:`traffictwin.fusion.model_io.predict_masses`, batch 1: forward + evidence → masses).
 - ``risk`` (per frame): ORB pair check, SGM disparity, and the network part
-  (:meth:`RiskModel.predict`: preprocessing + forward), at batch 1 and as throughput at batch 64.
+  (``predict`` of the network, hybrid or rule: preprocessing + forward), at batch 1 and as
+  throughput at batch 64.
 
-Models: the given folders, else ``models/fusion/D`` / ``models/risk/headline`` if trained, else
+Models: the given folders, else ``models/fusion/D`` / ``models/risk_shipped`` (the predictor
+users get; else ``models/risk/headline``) if trained, else
 networks built from params.yaml's architecture with random weights (latency does not depend on
 the weights). Grid: ``--rows/--cols`` or params.yaml's grid. Medians over ``--repeat`` runs after
 two warm-up runs; ``torch`` uses its default intra-op thread count (reported).
@@ -64,7 +66,11 @@ def _risk_model(path: str | None, cfg):
     from traffictwin.risk.dave2 import Dave2, Dave2Config
     from traffictwin.risk.model_io import RiskModel, load_risk_model
 
-    p = Path(path) if path else ROOT / "models" / "risk" / "headline"
+    shipped = ROOT / "models" / "risk_shipped"  # what `traffictwin risk` serves (select_risk)
+    default = (
+        shipped if (shipped / "model.ckpt").exists() else ROOT / "models" / "risk" / "headline"
+    )
+    p = Path(path) if path else default
     if (p / "model.ckpt").exists() or p.is_file():
         return load_risk_model(p), _shown(p)
     rm = cfg.get("risk_model", {})

@@ -33,8 +33,9 @@ TIMING_GROUPS = (
         ("generate_risk", "disparity", "orb_filter"),
     ),
     (
-        "risk training and evaluation: `train_risk@*`, `evaluate_risk`",
-        ("train_risk", "evaluate_risk"),
+        "risk training, selection and evaluation: `train_risk@*`, `train_risk_hybrid`, "
+        "`select_risk`, `evaluate_risk`",
+        ("train_risk", "train_risk_hybrid", "select_risk", "evaluate_risk"),
     ),
     ("report: `environment`, `plot_data`, `report`", ("environment", "plot_data", "report")),
 )
