@@ -84,6 +84,11 @@ def _log_to_mlflow(models: dict, metrics: dict, log: logging.Logger) -> None:
         log.warning("evaluate_risk: MLflow unavailable (%s); metrics only in %s", exc, METRICS)
 
 
+def _fmt3(x) -> str:
+    """A metric for the log: 3 decimals, or n/a (undefined: JSON null)."""
+    return "n/a" if x is None else f"{float(x):.3f}"
+
+
 def read_selection() -> dict:
     """``reports/metrics/risk_selection.json`` (stage ``select_risk``: the choices made on
     validation); errors name the file."""
@@ -218,11 +223,12 @@ def main() -> None:
         write_json_atomic(METRICS, metrics)
         _log_to_mlflow(models, metrics, log)
         m = metrics["models"][main_v]
+        sh = metrics["models"][SHIPPED][f"at_{t0:g}s"]
         log.info(
-            "evaluate_risk: shipped %s: balanced accuracy %.3f, ROC-AUC %.3f at THW %g s on %d test frames",
+            "evaluate_risk: shipped %s: balanced accuracy %s, ROC-AUC %s at THW %g s on %d test frames",
             metrics["selection"]["shipped_from"],
-            metrics["models"][SHIPPED][f"at_{t0:g}s"]["balanced_accuracy"],
-            metrics["models"][SHIPPED][f"at_{t0:g}s"]["roc_auc"],
+            _fmt3(sh.get("balanced_accuracy")),
+            _fmt3(sh.get("roc_auc")),
             t0,
             m["test/n"],
         )

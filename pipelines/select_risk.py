@@ -244,7 +244,9 @@ def main() -> None:
         candidates = {
             n: sel["predictors"][n]
             for n in [*(r for g in learned for r in sel["groups"][g]["runs"]), "geometric_sgm"]
-            if not sel["predictors"][n]["collapsed"]
+            # a collapsed learned run is a failed run; the rule is no trained model (a constant
+            # output only says the validation frames had nothing in its corridor)
+            if n in RULES or not sel["predictors"][n]["collapsed"]
         }
         shipped = choose(candidates)
         c = sel["predictors"][shipped]

@@ -182,8 +182,9 @@ def test_select_risk_chooses_on_validation_and_ships(ci_dag: Path) -> None:
     shipped = sel["shipped"]["predictor"]
     assert shipped in sel["shipped"]["candidates"]
     best = max(sel["shipped"]["candidates"], key=lambda n: sel["predictors"][n]["roc_auc"])
+    # (the ci profile's few validation frames may hold one class only: every AUC undefined)
     assert sel["predictors"][shipped]["roc_auc"] == pytest.approx(
-        sel["predictors"][best]["roc_auc"]
+        sel["predictors"][best]["roc_auc"], nan_ok=True
     )
     m = load_risk_model(ci_dag / "models" / "risk_shipped")
     assert m.meta["shipped"]["predictor"] == shipped
