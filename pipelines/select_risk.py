@@ -28,6 +28,7 @@ from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
 from traffictwin.model_format import CKPT_SHA_KEY
 from traffictwin.risk.baselines import corridor_distances, fit_speed_only, thw_from_distance
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
+from traffictwin.risk.evaluation import _finite_or_none
 from traffictwin.risk.metric import risk_threshold, thw_to_risk
 from traffictwin.risk.model_io import CKPT, META, load_risk_model, save_predictor
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
@@ -79,7 +80,7 @@ def track_shipped(p, sel: dict, folder) -> dict:
     metrics = {
         f"val/{name}/roc_auc": e["roc_auc"]
         for name, e in sel["predictors"].items()
-        if np.isfinite(e["roc_auc"])
+        if e["roc_auc"] is not None and np.isfinite(e["roc_auc"])
     }
     for r, e in sel["rules"].items():
         metrics[f"val/{r}/half_width_m"] = e["half_width"]
@@ -181,7 +182,10 @@ def main() -> None:
             w, table = tune_half_width(d, speed, y > risk_threshold(t0), half_widths, t0)
             k = half_widths.index(w)
             score[r] = thw_to_risk(thw_from_distance(d[:, k], speed)).astype(np.float64)
-            sel["rules"][r] = {"half_width": w, "candidates": table}
+            sel["rules"][r] = {  # keyed by width, "1p25" for 1.25 m (dotted report keys)
+                "half_width": w,
+                "candidates": {f"{c['half_width']:g}".replace(".", "p"): c for c in table},
+            }
 
         def kind_of(name: str) -> str:
             if name in RULES:
@@ -282,6 +286,7 @@ def main() -> None:
                 out,
                 extra,
             )
+        sel = _finite_or_none(sel)  # undefined figures (one class on validation) as null
         write_json_atomic(SELECTION, sel)
         record["shipped"] = shipped
         record.update(track_shipped(p, sel, out))

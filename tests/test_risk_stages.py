@@ -176,7 +176,7 @@ def test_select_risk_chooses_on_validation_and_ships(ci_dag: Path) -> None:
     widths = params["evaluation"]["risk"]["geometric"]["half_widths"]
     for r in ("geometric_sgm", "geometric_gt"):
         assert sel["rules"][r]["half_width"] in widths
-        assert [c["half_width"] for c in sel["rules"][r]["candidates"]] == widths
+        assert [c["half_width"] for c in sel["rules"][r]["candidates"].values()] == widths
         used = metrics["baselines"][r]["params"]["corridor_half_width"]
         assert used == sel["rules"][r]["half_width"]
     shipped = sel["shipped"]["predictor"]

@@ -595,7 +595,7 @@ def risk_training_table(src: page.Sources) -> Table | None:
         inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
         t.rows.append(
             [Cell(v), Cell(inputs or NA), Cell(str(m.get("label", NA)))]
-            + [src.cell(RISK_FILE, f"models.{v}.{k}", f) for k, _, f in cols]
+            + [_value_cell(src, f"models.{v}.{k}", f) for k, _, f in cols]
         )
     return t
 
