@@ -133,17 +133,23 @@ def variant_settings(p, variants: list[str]) -> dict[str, dict]:
     return out
 
 
-def main() -> None:
-    log = setup_logging()
-    p = params()
+def risk_stage_settings(p):
+    """What select_risk and evaluate_risk both read, validated once: ``evaluation.risk``, the
+    subject footprint, the run variants and their settings, the primary label, the ORB filter."""
     ev = typed(p.get("evaluation", {}).get("risk"), EvalRiskConfig, key="evaluation.risk")
-    ci = typed(ev.ci, CIConfig, key="evaluation.risk.ci")
     subject = typed(p.get("risk_data", {}).get("metric"), MetricParams, key="risk_data.metric")
     variants = run_variants(p)
     ev.check_variants(variants)
     settings = variant_settings(p, variants)
     primary = get(p, "risk_model.label", str, choices=LABELS)
-    orb_filter = get(p, "risk_model.orb_filter", bool)
+    return ev, subject, variants, settings, primary, get(p, "risk_model.orb_filter", bool)
+
+
+def main() -> None:
+    log = setup_logging()
+    p = params()
+    ev, subject, variants, settings, primary, orb_filter = risk_stage_settings(p)
+    ci = typed(ev.ci, CIConfig, key="evaluation.risk.ci")
     geo = ev.geometric.params(subject.subject_length, subject.subject_width)
     selection = read_selection()
 

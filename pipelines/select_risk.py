@@ -23,17 +23,16 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from traffictwin.config import get, typed
+from traffictwin.config import get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
 from traffictwin.model_format import CKPT_SHA_KEY
 from traffictwin.risk.baselines import corridor_distances, fit_speed_only, thw_from_distance
-from traffictwin.risk.config import EvalRiskConfig, MetricParams
-from traffictwin.risk.evaluation import _finite_or_none
+from traffictwin.risk.evaluation import finite_or_none
 from traffictwin.risk.metric import risk_threshold, thw_to_risk
 from traffictwin.risk.model_io import CKPT, META, load_risk_model, save_predictor
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
 from traffictwin.risk.selection import best_cut, choose, roc_auc, tune_half_width
-from traffictwin.risk.training import LABELS, RiskSource, check_label, input_keys
+from traffictwin.risk.training import RiskSource, check_label, input_keys
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import (
@@ -45,7 +44,7 @@ from ._paths import (
     metrics_file,
     risk_model_dir,
 )
-from .evaluate_risk import run_variants, variant_settings
+from .evaluate_risk import risk_stage_settings
 from .train_risk_hybrid import holdout_runs, hybrid_runs, hybrid_settings
 
 SHIPPED = "shipped"
@@ -114,13 +113,7 @@ def track_shipped(p, sel: dict, folder) -> dict:
 def main() -> None:
     log = setup_logging()
     p = params()
-    ev = typed(p.get("evaluation", {}).get("risk"), EvalRiskConfig, key="evaluation.risk")
-    subject = typed(p.get("risk_data", {}).get("metric"), MetricParams, key="risk_data.metric")
-    variants = run_variants(p)
-    ev.check_variants(variants)
-    settings = variant_settings(p, variants)
-    primary = get(p, "risk_model.label", str, choices=LABELS)
-    orb_filter = get(p, "risk_model.orb_filter", bool)
+    ev, subject, variants, settings, primary, orb_filter = risk_stage_settings(p)
     _, seeds, holdout = hybrid_settings(p)
     held_runs = holdout_runs(seeds, holdout)
     t0 = ev.thresholds_s[0]
@@ -286,7 +279,7 @@ def main() -> None:
                 out,
                 extra,
             )
-        sel = _finite_or_none(sel)  # undefined figures (one class on validation) as null
+        sel = finite_or_none(sel)  # undefined figures (one class on validation) as null
         write_json_atomic(SELECTION, sel)
         record["shipped"] = shipped
         record.update(track_shipped(p, sel, out))

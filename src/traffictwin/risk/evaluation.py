@@ -1077,7 +1077,7 @@ def evaluate_suite(
 
     spreads = {v: spread_stat(out[f"pred_{v}"].to_numpy(), plan) for v in models}
     metrics["targets"] = _targets(metrics, scores, plan, main_key, main_lab, spreads, collapse_std)
-    return _finite_or_none(metrics), out
+    return finite_or_none(metrics), out
 
 
 def _region_block(
@@ -1434,12 +1434,12 @@ def tracking_metrics(metrics: Mapping[str, Any], variant: str) -> dict[str, floa
     return vals
 
 
-def _finite_or_none(obj: Any) -> Any:
+def finite_or_none(obj: Any) -> Any:
     """JSON-safe: NaN/inf floats → None (strict JSON has no NaN), recursively."""
     if isinstance(obj, Mapping):
-        return {k: _finite_or_none(v) for k, v in obj.items()}
+        return {k: finite_or_none(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite_or_none(v) for v in obj]
+        return [finite_or_none(v) for v in obj]
     if isinstance(obj, (float, np.floating)):
         f = float(obj)
         return f if np.isfinite(f) else None

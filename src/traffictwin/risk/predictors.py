@@ -18,6 +18,7 @@ dispatches on the checkpoint's ``architecture.kind``).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -58,14 +59,15 @@ def _camera_dict(camera: Mapping[str, Any]) -> dict[str, float]:
     return {k: float(camera[k]) for k in keys}
 
 
-class _SgmPredictor:
+class _SgmPredictor(ABC):
     """``predict`` with the signature of :meth:`traffictwin.risk.model_io.RiskModel.predict`
     for a predictor of SGM disparity and speed (subclasses give :meth:`risk`)."""
 
     name = "risk predictor"
 
+    @abstractmethod
     def risk(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """Normalised risk (N,) from SGM disparity (N, H, W) px and speed (N,) m/s."""
 
     def predict(
         self,
@@ -320,6 +322,24 @@ class PackedPredictor(nn.Module):
             )
         disp = a[:, 1:].reshape(-1, self.h, self.w)
         return torch.from_numpy(self.model.predict(disp_sgm=disp, speed=a[:, 0]))
+
+
+def architecture_problem(architecture: Mapping[str, Any]) -> str | None:
+    """Why a rule / hybrid ``architecture`` (a checkpoint's or ``model_meta.json``'s ``config``)
+    cannot be built by this version; ``None`` if it can (no weights needed)."""
+    try:
+        kind = architecture.get("kind")
+        if kind == "geometric":
+            GeometricParams(**architecture["params"])
+        elif kind == "hybrid":
+            HybridConfig.from_dict(architecture["features"])
+            GeometricParams(**architecture["geometric"])
+        else:
+            return f"unknown risk predictor kind {kind!r} (expected one of {KINDS})"
+        _camera_dict(architecture["camera"])
+    except (TypeError, ValueError, KeyError) as exc:
+        return f"its {architecture.get('kind')} predictor config is not valid here ({exc})"
+    return None
 
 
 def build_predictor(architecture: Mapping[str, Any], state: Mapping[str, torch.Tensor], meta: dict):
