@@ -375,3 +375,16 @@ def test_shipped_verdict_uses_the_validation_cut() -> None:
     v = risk_verdict(0.025, 10.0, 1.5, 0.02)  # THW 2 s > 1.5 s, but the risk is above the cut
     assert v["critical"] and v["decision_cut"] == 0.02 and v["thw_s"] == pytest.approx(2.0)
     assert not risk_verdict(0.025, 10.0, 1.5)["critical"]
+
+
+def test_registry_check_accepts_rule_and_hybrid_configs() -> None:
+    """The promotion gate's config check builds the rule / hybrid config, not a DAVE-2 one."""
+    from traffictwin.risk.gate_eval import config_incompatibility
+
+    cam = {**{k: float(v) for k, v in CAM.items()}, "width": 96.0, "height": 48.0}
+    rule = GeometricRiskModel(GeometricParams(), cam)
+    assert config_incompatibility({"config": rule.architecture()}) is None
+    bad = {**rule.architecture(), "params": {"corridor_half_width": -1.0}}
+    assert "not valid here" in config_incompatibility({"config": bad})
+    hybrid_without_features = {"config": {"kind": "hybrid", "camera": cam}}
+    assert "not valid here" in config_incompatibility(hybrid_without_features)

@@ -22,13 +22,18 @@ from traffictwin.risk.evaluation import THRESHOLDS_S
 
 def config_incompatibility(meta: Mapping[str, Any]) -> str | None:
     """Why a risk model whose ``model_meta.json`` is ``meta`` cannot be built by this version
-    (its ``config`` is missing or not a valid :class:`~traffictwin.risk.dave2.Dave2Config`);
+    (its ``config`` is missing or not a valid :class:`~traffictwin.risk.dave2.Dave2Config`, or
+    for a corridor rule / hybrid not a valid architecture);
     ``None`` if it can. Any valid config runs on the raw test frames (they are resized to it)."""
     from traffictwin.risk.dave2 import Dave2Config
 
     cfg = meta.get("config")
     if not isinstance(cfg, Mapping):
         return "its model_meta.json has no network 'config'"
+    if cfg.get("kind") in ("hybrid", "geometric"):  # the corridor hybrid / rule (risk.predictors)
+        from traffictwin.risk.predictors import architecture_problem
+
+        return architecture_problem(cfg)
     try:
         Dave2Config.from_dict(dict(cfg))
     except (TypeError, ValueError, KeyError) as exc:
