@@ -96,6 +96,11 @@ def test_existing_output_needs_force(tmp_path, fusion_dir, capsys):
     assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 1
     _one_error_line(capsys.readouterr().err, "out.png exists", "--force")
     assert (tmp_path / "out.png").read_bytes() == b"keep me" and not (tmp_path / "out.npz").exists()
+    # --force replaces only a previous output of this kind (issue 35): not a text file named .png
+    assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 1
+    _one_error_line(capsys.readouterr().err, "out.png exists and is not a previous .png output")
+    assert (tmp_path / "out.png").read_bytes() == b"keep me"
+    cv2.imwrite(str(tmp_path / "out.png"), np.zeros((4, 4, 3), np.uint8))  # an earlier preview
     assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 0
     assert cv2.imread(str(tmp_path / "out.png")) is not None and (tmp_path / "out.npz").exists()
 

@@ -4,7 +4,13 @@ The rules every ``traffictwin`` command follows (issue 18, defect 6):
 
 - an output never replaces an input (compared by resolved path and, for existing files, by
   ``os.path.samefile``, so a symlink or a second path to the same file is caught too);
-- an existing output is refused unless ``force`` (``--force``);
+- an existing output is refused unless ``force`` (``--force``), and ``force`` overwrites only a
+  file of the kind this output is (by content: a ``.npz``/``.pt`` zip archive, a PNG, a JSON
+  document, a text/CSV file), i.e. a previous output of the same command (issue 35, item 1);
+- a path the project keeps is never an output, ``force`` or not: a file inside a model folder
+  (a folder holding ``model.ckpt`` or ``model_meta.json``), a SQLite database (the MLflow store),
+  anything under ``mlruns/``, ``mlartifacts/``, ``.git/`` or ``.dvc/``, and ``dvc.lock``,
+  ``dvc.yaml``, ``params.yaml``, ``*.dvc``;
 - an output path that is a directory is refused;
 - missing parent folders are created (for every command alike), and removed again if the command
   fails before its outputs are committed;
@@ -25,6 +31,77 @@ from types import TracebackType
 
 class OutputError(ValueError):
     """An output path breaks a rule (input, existing without force, directory, bad parent)."""
+
+
+MODEL_FILES = ("model.ckpt", "model_meta.json")
+PROJECT_FILES = ("dvc.lock", "dvc.yaml", "params.yaml", ".dvcignore")
+STORE_FOLDERS = (".git", ".dvc", "mlruns", "mlartifacts")
+_SQLITE = b"SQLite format 3\x00"
+_ZIP = b"PK\x03\x04"
+_PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _head(p: Path, n: int = 16) -> bytes:
+    try:
+        with open(p, "rb") as fh:
+            return fh.read(n)
+    except OSError:
+        return b""
+
+
+def protected_reason(path: str | os.PathLike) -> str | None:
+    """Why ``path`` may never be a command's output (a model, the MLflow store, a DVC/Git file),
+    or ``None``."""
+    p = Path(path)
+    rp = p.resolve()
+    if rp.name in MODEL_FILES or any((rp.parent / m).exists() for m in MODEL_FILES):
+        return f"{rp.parent} is a model folder (it holds {' / '.join(MODEL_FILES)})"
+    hit = next((part for part in rp.parts[:-1] if part in STORE_FOLDERS), None)
+    if hit is not None:
+        return f"it lies inside a {hit}/ store"
+    if rp.name in PROJECT_FILES or rp.suffix == ".dvc":
+        return f"{rp.name} is a file of the DVC pipeline"
+    if p.is_file() and _head(p) == _SQLITE:
+        return "it is a SQLite database (e.g. the MLflow tracking/registry store)"
+    return None
+
+
+def _kind_of(p: Path) -> str:
+    """The content kind of an existing file: ``zip``, ``png``, ``json``, ``text`` or ``binary``."""
+    head = _head(p, 4096)
+    if head.startswith(_ZIP):
+        return "zip"
+    if head.startswith(_PNG):
+        return "png"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        # a cut in the middle of a multi-byte character at the end of the read block is still text
+        try:
+            text = head[:-3].decode("utf-8")
+        except UnicodeDecodeError:
+            return "binary"
+    if "\x00" in text:
+        return "binary"
+    return "json" if text.lstrip()[:1] in ("{", "[") else "text"
+
+
+_EXPECTED_KIND = {
+    ".npz": ("zip",),
+    ".pt": ("zip",),
+    ".png": ("png",),
+    ".json": ("json",),
+    ".csv": ("text",),
+}
+
+
+def _same_kind(p: Path) -> bool:
+    """May ``--force`` replace the existing file ``p``: is its content what this output will be?"""
+    want = _EXPECTED_KIND.get(p.suffix.lower())
+    kind = _kind_of(p)
+    if want is None:  # an output named freely (e.g. a CSV without suffix): text only
+        return kind in ("text", "json")
+    return kind in want
 
 
 def _identity(p: Path) -> tuple[int, int] | None:
@@ -76,8 +153,17 @@ class OutputSet:
                 )
             if p.is_dir():
                 raise OutputError(f"{option}: {p} is a directory; expected a file name")
+            why = protected_reason(p)
+            if why is not None:
+                raise OutputError(f"{option}: refusing to write {p}: {why}; choose another path")
             if p.exists() and not force:
                 raise OutputError(f"{option}: {p} exists; pass --force to overwrite it")
+            if p.exists() and not _same_kind(p):
+                raise OutputError(
+                    f"{option}: {p} exists and is not a previous {p.suffix or 'text'} output "
+                    f"(its content is {_kind_of(p)}); --force overwrites only a previous output "
+                    "of this kind; choose another path"
+                )
             for parent in (p.parent, *p.parent.parents):
                 if parent.exists():
                     if not parent.is_dir():
