@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import torch
 from traffictwin.fusion.deeplab import DeepLabSpec, DeepLabV3Plus
 from traffictwin.fusion.model_io import CKPT_FORMAT
 from traffictwin.fusion.resnet import ResNetSpec
+from traffictwin.model_format import save_model_files
 from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.model_io import save_risk_model
 
@@ -75,11 +75,12 @@ def save_fusion_model(
         "data_manifest_hash": "test",
     }
     folder.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}, "traffictwin": info},
+    save_model_files(  # the sealed pair, as the training stage writes it
         folder / "model.ckpt",
+        {"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}, "traffictwin": info},
+        folder / "model_meta.json",
+        info,
     )
-    (folder / "model_meta.json").write_text(json.dumps(info))
     return folder
 
 

@@ -138,7 +138,7 @@ def test_load_errors_name_the_file(tmp_path: Path) -> None:
     meta = json.loads((tmp_path / "ok" / "model_meta.json").read_text())
     meta["config"]["height"] = 99
     (tmp_path / "ok" / "model_meta.json").write_text(json.dumps(meta))
-    with pytest.raises(RiskModelError, match="config disagrees"):
+    with pytest.raises(RiskModelError, match="'config' differs"):
         load_risk_model(tmp_path / "ok")
 
 
@@ -150,7 +150,7 @@ def test_risk_and_fusion_models_share_one_checkpoint_format(tmp_path: Path) -> N
         MODEL_FORMAT,
         model_checkpoint,
         net_state_dict,
-        save_model_checkpoint,
+        save_model_files,
     )
 
     assert CKPT_FORMAT == MODEL_FORMAT
@@ -176,9 +176,8 @@ def test_risk_and_fusion_models_share_one_checkpoint_format(tmp_path: Path) -> N
     )
     fus = tmp_path / "fusion" / "model.ckpt"
     fus.parent.mkdir()
-    save_model_checkpoint(
-        fus, model_checkpoint("fusion", spec.as_dict(), DeepLabV3Plus(spec).state_dict())
-    )
+    ck = model_checkpoint("fusion", spec.as_dict(), DeepLabV3Plus(spec).state_dict())
+    save_model_files(fus, ck, fus.parent / "model_meta.json", ck["traffictwin"])
     assert load_fusion_model(fus).spec == spec
     with pytest.raises(RiskModelError, match="a fusion model checkpoint, expected a risk model"):
         load_risk_model(fus)

@@ -129,23 +129,77 @@ def save_model_files(
     return digest
 
 
+def read_model_meta(
+    meta_path: str | Path, error: type[Exception] = CheckpointError
+) -> dict[str, Any]:
+    """``model_meta.json`` as a dict; a missing, non-UTF-8, invalid or non-object file is an
+    ``error`` that names it (the meta is half of the model's seal: a model without it is refused)."""
+    meta_path = Path(meta_path)
+    try:
+        text = meta_path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise error(
+            f"{meta_path}: missing; a model folder needs model.ckpt and its model_meta.json "
+            "(written together by the training stage; re-run it)"
+        ) from None
+    except UnicodeDecodeError:
+        raise error(f"{meta_path}: not UTF-8 text; expected the model's JSON metadata") from None
+    except OSError as exc:
+        raise error(f"{meta_path}: unreadable ({exc.strerror or exc})") from None
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{meta_path}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise error(
+            f"{meta_path}: expected a JSON object of model metadata, got {type(meta).__name__}"
+        )
+    return meta
+
+
+def _json_value(v: Any) -> Any:
+    return json.loads(json.dumps(v, default=str))
+
+
 def check_model_pair(
     ckpt_path: str | Path,
     meta: Mapping[str, Any] | None,
     error: type[Exception] = CheckpointError,
+    info: Mapping[str, Any] | None = None,
+    sealed: tuple[str, ...] = (),
 ) -> None:
-    """Refuse a checkpoint whose metadata records another checkpoint's SHA-256 (``error`` names
-    the folder). Metadata without the key (models written before it existed, MLflow artifacts,
-    whose files the registry checks itself) or no metadata at all pass."""
-    if not meta or CKPT_SHA_KEY not in meta:
-        return
+    """The seal of a model folder: ``meta`` (``model_meta.json``) must record the SHA-256 of
+    ``ckpt_path`` (a missing meta or key is a refusal, not a skip), and every ``sealed`` key the
+    loader trusts must equal the checkpoint's own copy in ``info`` (its ``traffictwin`` block,
+    covered by that hash): an edited or deleted ``domain`` in the JSON is refused. ``error``
+    names the folder. MLflow artifacts carry the key too (:func:`traffictwin.trainer.log_model`)."""
+    ckpt_path = Path(ckpt_path)
+    meta_name = "model_meta.json"
+    if meta is None:
+        raise error(
+            f"{ckpt_path.parent}: no {meta_name} beside {ckpt_path.name}; re-run the training stage"
+        )
+    if CKPT_SHA_KEY not in meta:
+        raise error(
+            f"{ckpt_path.parent / meta_name}: no '{CKPT_SHA_KEY}' (the checkpoint's seal); the "
+            "file was replaced or edited — re-run the training stage that wrote the model"
+        )
     from traffictwin.io.shards import sha256_file
 
-    ckpt_path = Path(ckpt_path)
     want, got = str(meta[CKPT_SHA_KEY]), sha256_file(ckpt_path)
     if want != got:
         raise error(
-            f"{ckpt_path.parent}: {ckpt_path.name} and its model_meta.json are not one pair "
-            f"(SHA-256 of {ckpt_path.name} {got[:12]}…, model_meta.json records {want[:12]}…): "
+            f"{ckpt_path.parent}: {ckpt_path.name} and its {meta_name} are not one pair "
+            f"(SHA-256 of {ckpt_path.name} {got[:12]}…, {meta_name} records {want[:12]}…): "
             f"a training was interrupted or a file was replaced; re-run the training stage"
         )
+    for key in sealed:
+        if info is None or key not in info:
+            continue
+        if key not in meta or _json_value(meta[key]) != _json_value(info[key]):
+            raise error(
+                f"{ckpt_path.parent / meta_name}: '{key}' "
+                f"{'is missing' if key not in meta else 'differs from the checkpoint'} "
+                f"(checkpoint {_json_value(info[key])!r}); the metadata was edited — re-run the "
+                "training stage that wrote the model"
+            )

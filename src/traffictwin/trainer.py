@@ -65,6 +65,7 @@ from traffictwin.model_format import (  # noqa: F401 - re-exported: the one chec
     model_checkpoint,
     net_state_dict,
     read_model_checkpoint,
+    read_model_meta,
     save_model_checkpoint,
     save_model_files,
 )
@@ -741,7 +742,10 @@ def log_model(
     with tempfile.TemporaryDirectory(prefix="tt-model-") as tmp:
         ck_path = save_model_checkpoint(Path(tmp) / art.CKPT, ckpt)
         meta_path = Path(tmp) / art.META
-        meta_path.write_text(json.dumps(dict(meta), indent=2, sort_keys=True, default=str) + "\n")
+        from traffictwin.io.shards import sha256_file
+
+        sealed = {**dict(meta), CKPT_SHA_KEY: sha256_file(ck_path)}  # the pair's seal, as on disk
+        meta_path.write_text(json.dumps(sealed, indent=2, sort_keys=True, default=str) + "\n")
         uri, _ = art.log_model(
             {art.CKPT: ck_path, art.META: meta_path},
             problem=str(info.get("problem", "")),

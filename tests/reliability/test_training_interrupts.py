@@ -189,8 +189,11 @@ def test_save_model_files_records_the_checkpoint_hash_last(tmp_path: Path) -> No
         match=rf"^{tmp_path / 'm'}: model.ckpt and its model_meta.json are not one pair",
     ):
         check_model_pair(ck, written)
-    check_model_pair(ck, {"cfg": "B"})  # meta without the key (older models, MLflow artifacts)
-    check_model_pair(ck, None)
+    # a meta without the key, or no meta: refused too (issue 35: the seal cannot be peeled off)
+    with pytest.raises(CheckpointError, match="no 'ckpt_sha256'"):
+        check_model_pair(ck, {"cfg": "B"})
+    with pytest.raises(CheckpointError, match="no model_meta.json beside model.ckpt"):
+        check_model_pair(ck, None)
     save_model_files(tmp_path / "only.ckpt", _ckpt(1.0))  # no meta: the checkpoint alone
 
 

@@ -9,7 +9,6 @@ architecture, grid), and fails with a message naming the file and the mismatch o
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,11 @@ from traffictwin.model_format import (
     check_model_pair,
     net_state_dict,
     read_model_checkpoint,
+    read_model_meta,
 )
+
+# meta keys the loaders trust, sealed against the checkpoint's own copy (check_model_pair)
+SEALED_META = ("cfg", "architecture", "grid", "data_manifest_hash", "noise", "inputs")
 
 CKPT_FORMAT = MODEL_FORMAT  # the one format of traffictwin.trainer, problem "fusion"
 META_NAME = "model_meta.json"
@@ -71,20 +74,8 @@ def load_fusion_model(
         path = path / "model.ckpt"
     ck = read_checkpoint(path)
     info = ck["traffictwin"]
-    meta_path = path.parent / META_NAME
-    if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise FusionModelError(f"{meta_path}: not valid JSON ({exc})") from None
-        check_model_pair(path, meta, FusionModelError)
-        for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
-            if meta.get(key) != info.get(key):
-                raise FusionModelError(
-                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' "
-                    f"(checkpoint {info.get(key)!r}, meta {meta.get(key)!r}); the checkpoint was replaced by one "
-                    f"from another run — re-run the training stage that wrote it (`dvc repro train_fusion`)"
-                )
+    meta = read_model_meta(path.parent / META_NAME, FusionModelError)
+    check_model_pair(path, meta, FusionModelError, info, SEALED_META)
     if expected_cfg is not None and info.get("cfg") != expected_cfg:
         raise FusionModelError(
             f"{path}: trained on the pose noise of '{info.get('cfg')}' ({info.get('noise', {})}), "

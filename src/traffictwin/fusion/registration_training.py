@@ -468,7 +468,7 @@ def load_registration_model(
 ) -> LearnedRegistration:
     """A trained :class:`LearnedRegistration` (eval mode) from ``model.ckpt`` (file or folder);
     ``model.meta`` holds its meta. Errors name the file and the mismatch."""
-    from traffictwin.fusion.model_io import FusionModelError
+    from traffictwin.fusion.model_io import SEALED_META, FusionModelError
 
     path = Path(path)
     if path.is_dir():
@@ -479,18 +479,10 @@ def load_registration_model(
         )
     ck = common.read_model_checkpoint(path, PROBLEM, FusionModelError)
     info = ck["traffictwin"]
-    meta_path = path.parent / "model_meta.json"
-    if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise FusionModelError(f"{meta_path}: not valid JSON ({exc})") from None
-        common.check_model_pair(path, meta, FusionModelError)
-        for key in ("cfg", "architecture", "grid", "data_manifest_hash"):
-            if meta.get(key) != info.get(key):
-                raise FusionModelError(
-                    f"{path}: checkpoint and {meta_path.name} disagree on '{key}' (re-run `dvc repro train_registration`)"
-                )
+    meta = common.read_model_meta(path.parent / "model_meta.json", FusionModelError)
+    common.check_model_pair(
+        path, meta, FusionModelError, info, (*SEALED_META, "method", "min_gain")
+    )
     g = GridSpec(**info["grid"])
     if expected_grid is not None and (g.rows, g.cols, g.cell) != (
         expected_grid.rows,

@@ -26,12 +26,18 @@ from traffictwin.model_format import (
     model_checkpoint,
     net_state_dict,
     read_model_checkpoint,
+    read_model_meta,
     save_model_files,
 )
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
 
 CKPT = "model.ckpt"
 META = "model_meta.json"
+
+
+# meta keys the loaders and the API trust (stereo domain, label, objective), sealed against the
+# checkpoint's own copy (check_model_pair); the meta's ``config`` is the checkpoint's architecture
+SEALED_META = ("domain", "label", "objective")
 
 
 class RiskModelError(RuntimeError):
@@ -136,30 +142,22 @@ def load_risk_model(path: str | Path, map_location: str | torch.device = "cpu") 
             f"{ckpt}: weights do not match the configured network ({exc})"
         ) from None
     net.eval()
-    meta: dict[str, Any] = {}
-    mpath = folder / META
-    if mpath.exists():
-        try:
-            meta = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
-        check_model_pair(ckpt, meta, RiskModelError)
-        if meta.get("config") not in (None, cfg.to_dict()):
-            raise RiskModelError(
-                f"{mpath}: config disagrees with {ckpt} (files from different trainings?)"
-            )
+    meta = _read_meta(folder, ckpt, blob)
     return RiskModel(net=net, meta=meta)
 
 
-def _read_meta(folder: Path, ckpt: Path) -> dict[str, Any]:
+def _read_meta(folder: Path, ckpt: Path, blob: Mapping[str, Any]) -> dict[str, Any]:
+    """``model_meta.json`` checked against the checkpoint (:func:`check_model_pair`): the hash,
+    the sealed keys, and ``config`` equal to the checkpoint's architecture."""
     mpath = folder / META
-    if not mpath.exists():
-        return {}
-    try:
-        meta = json.loads(mpath.read_text())
-    except json.JSONDecodeError as exc:
-        raise RiskModelError(f"{mpath}: not valid JSON ({exc})") from None
-    check_model_pair(ckpt, meta, RiskModelError)
+    meta = read_model_meta(mpath, RiskModelError)
+    info = blob["traffictwin"]
+    check_model_pair(ckpt, meta, RiskModelError, info, SEALED_META)
+    if "config" in meta and json.loads(json.dumps(meta["config"])) != info.get("architecture"):
+        raise RiskModelError(
+            f"{mpath}: 'config' differs from the architecture in {ckpt.name} (files from different "
+            "trainings, or the metadata was edited); re-run the training stage"
+        )
     return meta
 
 
@@ -167,7 +165,7 @@ def _load_predictor(folder: Path, ckpt: Path, blob: Mapping[str, Any], arch: Map
     """A corridor rule or hybrid (:mod:`traffictwin.risk.predictors`) from its checkpoint."""
     from traffictwin.risk.predictors import build_predictor
 
-    meta = _read_meta(folder, ckpt)
+    meta = _read_meta(folder, ckpt, blob)
     try:
         return build_predictor(arch, net_state_dict(blob), meta)
     except (TypeError, ValueError, KeyError, RuntimeError) as exc:
