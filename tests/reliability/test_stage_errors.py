@@ -286,3 +286,19 @@ def test_device_settings_must_name_a_device_this_machine_has() -> None:
     n = torch.cuda.device_count() if torch.cuda.is_available() else 0
     with pytest.raises(ConfigError, match=rf"is 'cuda:{n}' but this machine has {n} CUDA device"):
         check_device(f"cuda:{n}", "params.yaml", "evaluation.fusion.device")
+
+
+def test_lidar_ranges_are_named_by_their_dotted_keys() -> None:
+    """Issue 35, defect 19: ``fusion_data.lidar.min_range`` above max_range failed with ``LidarSpec: need
+    max_range > min_range`` and no parameter named."""
+    from conftest import committed
+
+    from traffictwin.fusion.config import fusion_data_config
+
+    cfg = yaml.safe_load(committed("params.yaml"))
+    fusion_data_config(cfg)  # the committed values pass
+    cfg["fusion_data"]["lidar"]["min_range"] = 90.0
+    with pytest.raises(
+        ValueError, match=r"'fusion_data\.lidar\.min_range' \(90\.0 m\) must be below"
+    ):
+        fusion_data_config(cfg)

@@ -245,6 +245,16 @@ class FusionDataConfig:
         from traffictwin.sim.traffic import DEFAULT_DENSITY
         from traffictwin.sim.world import TEMPLATES
 
+        lid = self.lidar
+        if not lid.max_range > lid.min_range:
+            raise ValueError(
+                f"'fusion_data.lidar.min_range' ({lid.min_range} m) must be below "
+                f"'fusion_data.lidar.max_range' ({lid.max_range} m)"
+            )
+        if abs(360.0 / lid.azimuth_res_deg - round(360.0 / lid.azimuth_res_deg)) > 1e-6:
+            raise ValueError(
+                f"'fusion_data.lidar.azimuth_res_deg' must divide 360 deg, got {lid.azimuth_res_deg}"
+            )
         bad = [t for t in self.templates if t not in TEMPLATES]
         if bad or not self.templates:
             raise ValueError(
