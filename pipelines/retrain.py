@@ -528,12 +528,28 @@ def recover(root: Path, journal: Journal, log) -> dict[str, Any] | None:
         journal.discard()
         return rec
     problems = restore(root, journal.snapshot(root), st["dvc_before"], log)
+    if st.get("registry_before"):
+        try:
+            rec["orphans"] = retire_orphans(reg.client(), st["registry_before"], log)
+        except Exception as exc:  # noqa: BLE001 - reported; the files are restored either way
+            problems.append(f"orphan versions not retired: {type(exc).__name__}: {exc}")
     rec["restored"] = not problems
     if problems:
         rec["problems"] = problems
     else:
         journal.discard()
     return rec
+
+
+def retire_orphans(cl, before: dict[str, int], log) -> list[str]:
+    """Versions an interrupted gate registered for outputs now rolled back: deleted (or tagged
+    orphan where an alias points at one) so the registry holds no version of undone data."""
+    done = reg.retire_versions_after(
+        cl, before, "registered by an interrupted retraining whose outputs were rolled back"
+    )
+    for d in done:
+        log.warning("restore: %s", d)
+    return done
 
 
 # ------------------------------------------------------------------ main flow
@@ -691,7 +707,9 @@ def retrain(
         _inject("after_repro")
 
         step = "promote"
-        journal.update(step=step)
+        if cl is not None:  # versions above these that an interrupted gate registers are orphans
+            s["registry_before"] = reg.latest_versions(cl, names)
+        journal.update(step=step, registry_before=s.get("registry_before"))
         decisions = []
         if promote_models:
             # decide all first (under the registry lock, held until the aliases moved):
@@ -735,6 +753,8 @@ def retrain(
                 problems = restore(ROOT, journal.snapshot(ROOT), before, log)
             except Exception as err:  # noqa: BLE001 - reported, the journal is kept
                 problems = [f"restore failed: {type(err).__name__}: {err}"]
+            if cl is not None and s.get("registry_before"):
+                s["orphans"] = retire_orphans(cl, s["registry_before"], log)
             if not problems:
                 journal.discard()  # else kept: the next run retries the restore
         else:

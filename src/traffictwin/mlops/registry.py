@@ -166,6 +166,45 @@ def _registered_names(cl) -> list[str]:
         return []
 
 
+ORPHAN_TAG = "traffictwin.orphan"
+
+
+def latest_versions(cl, names: Sequence[str]) -> dict[str, int]:
+    """The highest version number of each registered model in ``names`` (0: none yet)."""
+    from mlflow.exceptions import MlflowException
+
+    out: dict[str, int] = {}
+    for n in names:
+        try:
+            vs = cl.search_model_versions(f"name='{n}'")
+        except MlflowException:
+            vs = []
+        out[n] = max((int(v.version) for v in vs), default=0)
+    return out
+
+
+def retire_versions_after(cl, before: Mapping[str, int], reason: str) -> list[str]:
+    """Versions registered after ``before`` (:func:`latest_versions` of an interrupted promotion):
+    deleted when no alias points at them, else tagged :data:`ORPHAN_TAG` with ``reason``. Their
+    files belong to outputs that were rolled back. Returns ``name vN`` of each, with what was done."""
+    done: list[str] = []
+    for name, last in before.items():
+        newer = [
+            mv for mv in cl.search_model_versions(f"name='{name}'") if int(mv.version) > int(last)
+        ]
+        for mv in sorted(newer, key=lambda m: int(m.version)):
+            full = cl.get_model_version(name, mv.version)
+            if getattr(full, "aliases", None):
+                cl.set_model_version_tag(name, mv.version, ORPHAN_TAG, reason)
+                done.append(f"{name} v{mv.version} tagged orphan (aliases {list(full.aliases)})")
+            else:
+                cl.delete_model_version(name, mv.version)
+                done.append(f"{name} v{mv.version} deleted")
+        if int(last) == 0 and newer and not cl.search_model_versions(f"name='{name}'"):
+            cl.delete_registered_model(name)  # created by the interrupted promotion, now empty
+    return done
+
+
 def ensure_version(
     cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
 ):
