@@ -106,7 +106,7 @@ def providers(configurations: Mapping[str, tuple[float, float]]) -> list[Section
 
 def main() -> None:
     setup_logging()
-    with stage_timer("report"):
+    with stage_timer("report") as record:
         cfg = params()
         p = typed({k: cfg.get(k) for k in ("seed", "profile", "configurations")}, ReportParams)
         inputs = ReportInputs(
@@ -124,6 +124,12 @@ def main() -> None:
             PLOTS / "fusion_scores.csv", REPORTS / "report_figures", p.pose_noise
         )
         report = write_report(inputs, providers(p.pose_noise))
+        record.update(  # what differs between identical reruns: the run record, not the report
+            git_commit=inputs.git_commit,
+            git_dirty=inputs.git_dirty,
+            dvc_exp_name=inputs.dvc_exp_name or None,
+            pipeline_run=inputs.pipeline_run,
+        )
         write_timings_readme(inputs)  # the run records' summary, outside DVC
     log = setup_logging()
     log.info(

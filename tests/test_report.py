@@ -504,9 +504,9 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert ["D", "dnn[paper]", "registered"] in [r[:3] for r in diffs]
     # the data differs: said plainly
     assert "data differs from the papers'" in md and "own simulator" in md
-    # run info: commit, experiment; no wall times (they differ between identical runs: the report
-    # is a DVC output) -- those are in reports/timings/README.md, in DAG order, report's own left out
-    assert "abc123" in md and "exp-x" in md and "abc12345-0000ffff" in md
+    # no commit, experiment, pipeline run or wall times (they differ between identical runs: the
+    # report is a DVC output) -- those are in the run records and reports/timings/README.md
+    assert "abc123" not in md and "exp-x" not in md and "abc12345-0000ffff" not in md
     assert not any(t.anchor == "timings" for s in rep.sections for t in s.tables)
     assert "Stage wall times" not in md and "30.25" not in md and "reports/timings/README.md" in md
     timing = R.write_timings_readme(inputs).read_text()
@@ -732,3 +732,27 @@ def test_stage_helpers(tmp_path: Path) -> None:
     )
     assert profile_keys(prof) == {"profile.name", "sizes.n"}
     assert run_params(cfg, profile_keys(prof)) == {"seed": 3, "sizes.n": 5, "data.seed": 9}
+
+
+def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(reports: Path) -> None:
+    """Issue 35, defect 22: after ``dvc exp run``, ``dvc repro -f`` re-rendered the report with
+    a new pipeline run id and the experiment's name, so ``dvc.lock`` changed. Those values go to
+    the report stage's run record; the report is the same bytes for any of them."""
+    from dataclasses import replace
+
+    inputs = make_inputs(reports)
+    R.write_report(inputs, providers(CONFIGURATIONS))
+    first = {n: (reports / n).read_bytes() for n in ("README.md", "index.html")}
+    other = replace(
+        inputs,
+        git_commit="fedcba987654",
+        git_dirty=True,
+        dvc_exp_name="weepy-main",
+        pipeline_run="fedcba98-11112222",
+    )
+    R.write_report(other, providers(CONFIGURATIONS))
+    for name, data in first.items():
+        assert (reports / name).read_bytes() == data, name
+    md = first["README.md"].decode()
+    assert "weepy-main" not in md and "exp-x" not in md and "abc12345" not in md
+    assert "reports/timings/report.json" in md

@@ -124,18 +124,13 @@ def run_section(src: Sources) -> Section:
 
 
 def provenance(inputs: ReportInputs) -> str:
-    """One sentence: profile, seed, commit (dirty?), DVC experiment, pipeline run."""
-    commit = inputs.git_commit or "unknown"
+    """One sentence: profile and seed. The git commit, DVC experiment and pipeline run of a
+    rendering differ between identical reruns, so they go to the report stage's run record
+    (``reports/timings/report.json``), never into this DVC output (issue 35, defect 22)."""
     return (
-        f"Profile `{inputs.profile}`, seed `{inputs.seed}`, git commit `{commit}`"
-        + (" (with uncommitted changes to code or configuration)" if inputs.git_dirty else "")
-        + (f", DVC experiment `{inputs.dvc_exp_name}`" if inputs.dvc_exp_name else "")
-        + (
-            f", pipeline run `{inputs.pipeline_run}` (MLflow tag `pipeline_run`)"
-            if inputs.pipeline_run
-            else ""
-        )
-        + "."
+        f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
+        "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "
+        "`reports/timings/report.json`."
     )
 
 
