@@ -447,7 +447,7 @@ def test_stereo_settings_from_model_domain_then_params_file(tmp_path):
     st = cli.stereo_settings({"label": "risk"}, str(params))  # no sgm/orb in the domain
     assert (st.sgm, st.orb, st.source) == ({"num_disparities": 32}, {"max_dy": 4.0}, str(params))
     assert cli.stereo_settings(None, None).source == "library defaults"
-    with pytest.raises(cli.CliError, match="--params: .*nope.yaml not found"):
+    with pytest.raises(cli.CliError, match="params_path: .*nope.yaml not found"):
         cli.stereo_settings(None, str(tmp_path / "nope.yaml"))
 
 

@@ -69,12 +69,19 @@ __all__ = [
     "ALIASES",
     "ApiError",
     "ApiWarning",
+    "InputFileError",
+    "InputValueError",
+    "ModelDomainError",
     "Frame",
     "FusePair",
     "FuseResult",
     "FusionModel",
     "LoadedRisk",
     "assess_risk",
+    "check_cell",
+    "check_mass_grids",
+    "check_pose",
+    "check_speed_value",
     "connect",
     "frames_in_folder",
     "fuse",
@@ -95,11 +102,25 @@ HTTP_ENV = {
     "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0",
     "MLFLOW_HTTP_REQUEST_TIMEOUT": "5",
     "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "0",
+    # no "Downloading artifacts" bar before a load's one-line result or error (issue 35, defect 20)
+    "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false",
 }
 
 
 class ApiError(ValueError):
     """A user-facing error in one line naming the file / argument / model and what was expected."""
+
+
+class InputFileError(ApiError):
+    """An input file or folder is missing, unreadable or not of the expected format."""
+
+
+class InputValueError(ApiError):
+    """An argument's value (masses, pose, cell, speed, image array, threshold) is invalid."""
+
+
+class ModelDomainError(ApiError):
+    """An input outside what the model was trained on (grid, cell, camera, speed)."""
 
 
 class ApiWarning(UserWarning):
@@ -240,52 +261,109 @@ def load_fusion(model: str | os.PathLike, *, tracking_uri: str | None = None) ->
 def load_masses(path: str | os.PathLike) -> tuple[np.ndarray, float | None, np.ndarray | None]:
     """Read and validate an evidential grid ``.npz``: masses ``(2, H, W)`` float32, the optional
     ``cell`` (m) and the optional sensor ``pose`` (x m, y m, yaw rad). Raises :class:`ApiError`."""
-    from traffictwin.evidential.masses import check_masses, clean_masses
+    from traffictwin.io.limits import InputError, check_grid_cells, npz_headers
 
     path = Path(path)
     if not path.is_file():
-        raise ApiError(f"{path}: file not found")
+        raise InputFileError(f"{path}: file not found")
+    keys = ("m_free", "m_occ", "cell", "pose")  # the arrays read; no other one is decompressed
+    try:  # zip and sizes from the .npy headers, before any array is decompressed
+        heads = npz_headers(path, keys)
+    except InputError as exc:
+        raise InputFileError(f"{exc}; expected arrays m_free and m_occ, (H, W) float") from None
+    try:
+        for k in heads:
+            check_grid_cells(heads[k].shape, f"{path}: array '{k}'")
+    except InputError as exc:
+        raise InputValueError(str(exc)) from None
     try:
         with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
+            data = {k: z[k] for k in heads}
+            names = sorted(z.files)
     except Exception as exc:  # noqa: BLE001 - zip/format errors of all kinds
-        raise ApiError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+        raise InputFileError(
+            f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})"
+        ) from None
     missing = [k for k in ("m_free", "m_occ") if k not in data]
     if missing:
-        raise ApiError(
-            f"{path}: array(s) {missing} missing (has {sorted(data)}); expected m_free and m_occ, (H, W) float"
+        raise InputFileError(
+            f"{path}: array(s) {missing} missing (has {names}); expected m_free and m_occ, (H, W) float"
         )
     mf, mo = data["m_free"], data["m_occ"]
     for k, a in (("m_free", mf), ("m_occ", mo)):
         if a.ndim != 2:
-            raise ApiError(f"{path}: '{k}' must be a 2-D (H, W) grid, got shape {a.shape}")
+            raise InputValueError(f"{path}: '{k}' must be a 2-D (H, W) grid, got shape {a.shape}")
         if not np.issubdtype(a.dtype, np.floating):
-            raise ApiError(f"{path}: '{k}' must be a float array of masses, got dtype {a.dtype}")
+            raise InputValueError(
+                f"{path}: '{k}' must be a float array of masses, got dtype {a.dtype}"
+            )
     if mf.shape != mo.shape:
-        raise ApiError(f"{path}: 'm_free' {mf.shape} and 'm_occ' {mo.shape} differ in shape")
-    m = np.stack([mf, mo]).astype(np.float64)
-    try:
-        m = check_masses(m, f"{path}: masses (m_free, m_occ)", tol=SIMPLEX_TOL)
-    except ValueError as exc:
-        raise ApiError(str(exc)) from None
-    m = clean_masses(m).astype(np.float32)
-    cell = None
-    if "cell" in data:
-        c = np.asarray(data["cell"])
-        if (
-            c.size != 1
-            or not np.issubdtype(c.dtype, np.number)
-            or not (float(c) > 0 and math.isfinite(float(c)))
-        ):
-            raise ApiError(f"{path}: 'cell' must be one positive number (m per cell), got {c!r}")
-        cell = float(c)
-    pose = None
-    if "pose" in data:
-        pz = np.asarray(data["pose"])
-        if pz.shape != (3,) or not np.issubdtype(pz.dtype, np.number) or not np.isfinite(pz).all():
-            raise ApiError(f"{path}: 'pose' must be 3 finite numbers x, y, yaw (m, m, rad)")
-        pose = pz.astype(np.float64)
+        raise InputValueError(f"{path}: 'm_free' {mf.shape} and 'm_occ' {mo.shape} differ in shape")
+    m = check_mass_grids(np.stack([mf, mo]), str(path))  # the one validator of the API
+    cell = check_cell(data["cell"], str(path)) if "cell" in data else None
+    pose = check_pose(data["pose"], f"{path}: 'pose'") if "pose" in data else None
     return m, cell, pose
+
+
+def _is_real(a: np.ndarray) -> bool:
+    return np.issubdtype(a.dtype, np.floating) or (
+        np.issubdtype(a.dtype, np.integer) and a.dtype != np.bool_
+    )
+
+
+def check_pose(value: Any, who: str) -> np.ndarray:
+    """A world pose as float64 ``(3,)`` = x (m), y (m), yaw (rad): three finite real numbers
+    (a complex pose is refused, never cast); :class:`InputValueError` naming ``who``."""
+    try:
+        a = np.asarray(value)
+    except Exception:  # noqa: BLE001 - ragged lists and other non-arrays
+        a = np.asarray(None)
+    if a.shape != (3,) or not _is_real(a) or not np.isfinite(a).all():
+        got = f"shape {a.shape}, dtype {a.dtype}" if a.dtype != object else type(value).__name__
+        raise InputValueError(
+            f"{who}: expected 3 finite real numbers x, y, yaw (m, m, rad), got {got}"
+        )
+    return a.astype(np.float64)
+
+
+def check_cell(value: Any, who: str) -> float | None:
+    """A cell size (m): ``None`` or one finite positive real number; :class:`InputValueError`."""
+    if value is None:
+        return None
+    a = np.asarray(value)
+    if a.size != 1 or not _is_real(a) or not (math.isfinite(float(a)) and float(a) > 0):
+        raise InputValueError(
+            f"{who}: 'cell' must be one positive real number (m per cell), got {value!r}"
+        )
+    return float(a)
+
+
+def check_mass_grids(m: Any, who: str) -> np.ndarray:
+    """Masses ``(2, H, W)`` (free, occupied) of a real float dtype, finite, on the simplex
+    within :data:`SIMPLEX_TOL` (then cleaned onto it); float32. :class:`InputValueError`."""
+    from traffictwin.evidential.masses import check_masses, clean_masses
+
+    a = np.asarray(m)
+    if a.ndim != 3 or a.shape[0] != 2:
+        raise InputValueError(f"{who}: masses must be (2, H, W) (free, occupied), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise InputValueError(f"{who}: masses must be a real float array, got dtype {a.dtype}")
+    try:
+        checked = check_masses(a.astype(np.float64), f"{who}: masses (free, occupied)", SIMPLEX_TOL)
+    except ValueError as exc:
+        raise InputValueError(str(exc)) from None
+    return clean_masses(checked).astype(np.float32)
+
+
+def check_speed_value(speed: Any, who: str = "speed") -> float | None:
+    """``None`` or one finite real speed >= 0 (m/s); :class:`InputValueError` naming ``who``."""
+    if speed is None:
+        return None
+    if isinstance(speed, (bool, np.bool_)) or not isinstance(speed, (int, float, np.number)):
+        raise InputValueError(f"{who}: expected a number of m/s, got {type(speed).__name__}")
+    if not (math.isfinite(float(speed)) and float(speed) >= 0):
+        raise InputValueError(f"{who}: must be a finite speed >= 0 m/s, got {speed}")
+    return float(speed)
 
 
 @dataclass
@@ -322,12 +400,12 @@ def check_fusion_domain(
     ``who`` unless the grid matches the model's training grid (rows, cols, cell)."""
     h, w = shape
     if h % DIVISOR or w % DIVISOR:
-        raise ApiError(
+        raise ModelDomainError(
             f"{who}: grid {h}x{w} cells: rows and cols must be divisible by {DIVISOR} (network output stride)"
         )
     g = model.grid
     if "rows" in g and "cols" in g and (int(g["rows"]), int(g["cols"])) != (h, w):
-        raise ApiError(
+        raise ModelDomainError(
             f"{who}: grid {h}x{w} cells (rows x cols) but the model ({model.description}) was "
             f"trained on {int(g['rows'])}x{int(g['cols'])}"
         )
@@ -338,7 +416,7 @@ def check_fusion_domain(
             f"{who}: grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz"
         )
     if "cell" in g and abs(float(g["cell"]) - cell) > 1e-9:
-        raise ApiError(
+        raise ModelDomainError(
             f"{who}: maps have {cell} m cells but the model ({model.description}) was trained on {g['cell']} m cells"
         )
     return float(cell)
@@ -371,18 +449,21 @@ def fuse(
     for chunk in _chunks(pairs, batch_size):
         xs, prep = [], []
         for p in chunk:
-            if p.m1.shape != p.m2.shape or p.m1.ndim != 3 or p.m1.shape[0] != 2:
-                raise ApiError(
-                    f"pair {p.id!r}: maps must both be (2, H, W), got {p.m1.shape} and {p.m2.shape}"
+            who = f"pair {p.id!r}"
+            m1, m2 = check_mass_grids(p.m1, f"{who} m1"), check_mass_grids(p.m2, f"{who} m2")
+            if m1.shape != m2.shape:
+                raise InputValueError(
+                    f"{who}: maps must both be (2, H, W) of one size, got {m1.shape} and {m2.shape}"
                 )
-            cell = check_fusion_domain(model, p.m1.shape[1:], p.cell, f"pair {p.id!r}")
-            grid = GridSpec(rows=p.m1.shape[1], cols=p.m1.shape[2], cell=cell)
-            m2w, rel = prealign(p.m2, np.asarray(p.pose1, float), np.asarray(p.pose2, float), grid)
-            xs.append(np.concatenate([p.m1, m2w]).astype(np.float32))
+            pose1, pose2 = check_pose(p.pose1, f"{who} pose1"), check_pose(p.pose2, f"{who} pose2")
+            cell = check_fusion_domain(model, m1.shape[1:], check_cell(p.cell, who), who)
+            grid = GridSpec(rows=m1.shape[1], cols=m1.shape[2], cell=cell)
+            m2w, rel = prealign(m2, pose1, pose2, grid)
+            xs.append(np.concatenate([m1, m2w]).astype(np.float32))
             prep.append((p, m2w, rel, cell))
         m, u = predict_masses(model.net, np.stack(xs), batch_size=batch_size)
         for k, (p, m2w, rel, cell) in enumerate(prep):
-            yield FuseResult(p.id, m[k], u[k], m2w, rel, cell, p.m1)
+            yield FuseResult(p.id, m[k], u[k], m2w, rel, cell, xs[k][:2])
 
 
 # ============================================================================ risk
@@ -418,6 +499,81 @@ class LoadedRisk:
         return kind
 
 
+def _settings_problem(values: Any, func: Any, skip: tuple[str, ...]) -> str | None:
+    """Why ``values`` are not keyword settings of ``func`` (unknown key or a value whose type
+    is not its default's), or None."""
+    import inspect
+
+    if not isinstance(values, dict):
+        return f"expected a mapping of settings, got {type(values).__name__}"
+    params = {
+        k: p.default
+        for k, p in inspect.signature(func).parameters.items()
+        if k not in skip and p.default is not inspect.Parameter.empty
+    }
+    for k, v in values.items():
+        if k not in params:
+            return f"unknown setting {k!r} (expected from {sorted(params)})"
+        d = params[k]
+        ok = (
+            isinstance(v, bool)
+            if isinstance(d, bool)
+            else isinstance(v, str)
+            if isinstance(d, str)
+            else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if isinstance(d, (int, float))
+            else True
+        )
+        if not ok:
+            return f"setting {k!r} = {v!r} is not a {type(d).__name__}"
+    return None
+
+
+def check_risk_domain(domain: Any, who: str) -> None:
+    """Validate a risk model's ``domain`` metadata before it is used: ``speed_range`` two finite
+    numbers lo < hi (m/s), ``max_speed`` a finite number > 0 (m/s), ``camera`` positive integer
+    ``width`` / ``height`` (px), ``sgm`` / ``orb`` keyword settings of the SGM matcher and the
+    ORB check. :class:`ModelDomainError` naming ``who`` and the key."""
+    from traffictwin.stereo.orb import check_pair
+    from traffictwin.stereo.sgm import compute_disparity
+
+    if domain is None:
+        return
+    if not isinstance(domain, dict):
+        raise ModelDomainError(f"{who}: 'domain' must be a mapping, got {type(domain).__name__}")
+
+    def num(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    rng = domain.get("speed_range")
+    if rng is not None and not (
+        isinstance(rng, (list, tuple)) and len(rng) == 2 and all(map(num, rng)) and rng[0] < rng[1]
+    ):
+        raise ModelDomainError(
+            f"{who}: 'domain.speed_range' must be [lo, hi] m/s with lo < hi, got {rng!r}"
+        )
+    ms = domain.get("max_speed")
+    if ms is not None and not (num(ms) and ms > 0):
+        raise ModelDomainError(f"{who}: 'domain.max_speed' must be a number > 0 m/s, got {ms!r}")
+    cam = domain.get("camera")
+    if cam is not None:
+        if not isinstance(cam, dict):
+            raise ModelDomainError(
+                f"{who}: 'domain.camera' must be a mapping (width, height px), got {cam!r}"
+            )
+        for k in ("width", "height"):
+            v = cam.get(k)
+            if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+                raise ModelDomainError(
+                    f"{who}: 'domain.camera.{k}' must be a positive integer (px), got {v!r}"
+                )
+    for key, func in (("sgm", compute_disparity), ("orb", check_pair)):
+        if domain.get(key) is not None:
+            why = _settings_problem(domain[key], func, ("left_bgr", "right_bgr", "matcher"))
+            if why:
+                raise ModelDomainError(f"{who}: 'domain.{key}': {why}")
+
+
 def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> LoadedRisk:
     """Load a risk network by registry reference (``name@alias``; a bare alias means
     ``traffictwin-risk``) or model folder. Raises :class:`ApiError`."""
@@ -428,34 +584,32 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
     if path is None:
         cl = connect(tracking_uri)
         rm, desc = _load_registered(cl, name or RISK_NAME, alias, load_risk_model, "risk model")
-        return LoadedRisk(rm, desc)
-    try:
-        return LoadedRisk(load_risk_model(path), str(path))
-    except RiskModelError as exc:
-        raise ApiError(str(exc)) from None
+    else:
+        try:
+            rm, desc = load_risk_model(path), str(path)
+        except RiskModelError as exc:
+            raise ApiError(str(exc)) from None
+    check_risk_domain((rm.meta or {}).get("domain"), desc)
+    return LoadedRisk(rm, desc)
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
-    """An 8-bit BGR image (grayscale is expanded to 3 channels); errors name the file."""
+    """An 8-bit BGR image (grayscale is expanded to 3 channels, :func:`as_bgr`); errors name the file."""
     import cv2
+
+    from traffictwin.io.limits import InputError, check_image_size
 
     path = Path(path)
     if not path.is_file():
-        raise ApiError(f"{path}: image not found")
+        raise InputFileError(f"{path}: image not found")
+    try:  # format and size from the header, before a pixel is decoded
+        check_image_size(path)
+    except InputError as exc:
+        raise InputFileError(str(exc)) from None
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise ApiError(f"{path}: not a readable image (OpenCV could not decode it)")
-    if img.dtype != np.uint8:
-        raise ApiError(f"{path}: expected an 8-bit image, got {img.dtype}")
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    elif img.shape[2] != 3:
-        raise ApiError(
-            f"{path}: expected a grayscale, BGR or BGRA image, got {img.shape[2]} channels"
-        )
-    return np.ascontiguousarray(img)
+        raise InputFileError(f"{path}: not a readable image (OpenCV could not decode it)")
+    return as_bgr(img, str(path))
 
 
 @dataclass
@@ -473,6 +627,11 @@ def frames_in_folder(folder: str | os.PathLike) -> list[Frame]:
     (sorted by id; nothing decoded). Errors on a folder without pairs and on an image without
     its partner."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(
+            f"{folder}: {'not a folder' if folder.exists() else 'folder not found'} "
+            "(expected a folder of <id>_left.png / <id>_right.png pairs)"
+        )
     lefts, rights = {}, {}
     for p in sorted(folder.iterdir()):
         if not p.is_file() or p.suffix.lower() not in IMAGE_EXTS:
@@ -508,11 +667,15 @@ def _params_risk_data(params_path: str | os.PathLike) -> dict[str, Any]:
 
     path = Path(params_path)
     if not path.is_file():
-        raise ApiError(f"--params: {path} not found")
+        raise InputFileError(f"params_path: {path} not found (expected a params.yaml)")
     try:
-        cfg = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ApiError(f"{path}: not valid YAML ({_first_line(exc)})") from None
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path}: not valid YAML ({_first_line(exc)})") from None
+    if not isinstance(cfg, dict):
+        raise InputFileError(
+            f"{path}: expected a YAML mapping of parameters, got {type(cfg).__name__}"
+        )
     rd = cfg.get("risk_data") if isinstance(cfg, dict) else None
     return rd if isinstance(rd, dict) else {}
 
@@ -522,7 +685,9 @@ def stereo_settings(
 ) -> StereoSettings:
     """SGM/ORB settings the risk data were made with: ``domain.sgm`` / ``domain.orb`` of the
     model's metadata if present; else ``risk_data.sgm`` / ``risk_data.orb`` of the params file
-    ``params_path``; else the library defaults."""
+    ``params_path``; else the library defaults. A given ``params_path`` is always read and
+    checked (a missing or invalid file is an error, never ignored)."""
+    rd_given = _params_risk_data(params_path) if params_path else None
     if isinstance(domain, dict) and (
         isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
     ):
@@ -531,8 +696,8 @@ def stereo_settings(
             dict(domain.get("orb") or {}),
             f"metadata of {model_desc}",
         )
-    if params_path:
-        rd = _params_risk_data(params_path)
+    if rd_given is not None:
+        rd = rd_given
         if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
             return StereoSettings(
                 dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(params_path)
@@ -566,29 +731,30 @@ def check_speed(
     without speed input; a speed model without a recorded range)."""
     cfg = risk.model.cfg
     notes: list[str] = []
+    speed = check_speed_value(speed)
+    if params_path:
+        _params_risk_data(params_path)  # a given params file is read and checked, never ignored
     if speed is None:
         if cfg.use_speed:
-            raise ApiError(
-                f"the model ({risk.description}) uses the subject speed: pass --speed (m/s)"
+            raise InputValueError(
+                f"speed: the model ({risk.description}) uses the subject speed; give it (m/s)"
             )
         return notes
-    if not (math.isfinite(speed) and speed >= 0):
-        raise ApiError(f"--speed: must be a finite speed >= 0 m/s, got {speed}")
     rng = speed_range(risk, params_path)
     if rng is not None and cfg.use_speed:
         lo, hi, src = rng
         if not lo <= speed <= hi:
-            raise ApiError(
-                f"--speed: {speed:g} m/s is outside the model's training range [{lo:g}, {hi:g}] m/s ({src})"
+            raise ModelDomainError(
+                f"speed: {speed:g} m/s is outside the model's training range [{lo:g}, {hi:g}] m/s ({src})"
             )
     if not cfg.use_speed:
         notes.append(
-            f"--speed: the model ({risk.description}) has no speed input; the speed only scales gap_m"
+            f"speed: the model ({risk.description}) has no speed input; the speed only scales gap_m"
         )
     elif rng is None:
         notes.append(
-            f"--speed: the model ({risk.description}) records no training speed range; "
-            "pass --params with risk_data.max_speed to check it"
+            f"speed: the model ({risk.description}) records no training speed range; "
+            "give a params file with risk_data.max_speed to check it"
         )
     return notes
 
@@ -631,14 +797,46 @@ def risk_verdict(
     return out
 
 
+MIN_IMAGE_PX = 32  # the smallest image side (px) SGM and the ORB check can work on
+MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
+MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
+
+
+def as_bgr(img: Any, who: str) -> np.ndarray:
+    """An 8-bit BGR ``(H, W, 3)`` image from an 8-bit grayscale ``(H, W)``, ``(H, W, 1)``, BGR or
+    BGRA array; :class:`InputValueError` naming ``who`` otherwise (dtype, shape, too small)."""
+    import cv2
+
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        raise InputValueError(f"{who}: expected an 8-bit (uint8) image, got dtype {a.dtype}")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim == 2:
+        a = cv2.cvtColor(a, cv2.COLOR_GRAY2BGR)
+    elif a.ndim == 3 and a.shape[2] == 4:
+        a = cv2.cvtColor(a, cv2.COLOR_BGRA2BGR)
+    elif a.ndim != 3 or a.shape[2] != 3:
+        raise InputValueError(
+            f"{who}: expected a grayscale (H, W), BGR (H, W, 3) or BGRA (H, W, 4) image, got shape {a.shape}"
+        )
+    if min(a.shape[:2]) < MIN_IMAGE_PX:
+        raise InputValueError(
+            f"{who}: image {a.shape[1]}x{a.shape[0]} px (W x H) is smaller than {MIN_IMAGE_PX} px "
+            "on a side; stereo matching needs a real camera image"
+        )
+    return np.ascontiguousarray(a)
+
+
 def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray, np.ndarray]:
     import cv2
 
-    left = fr.left if isinstance(fr.left, np.ndarray) else read_image(fr.left)
-    right = fr.right if isinstance(fr.right, np.ndarray) else read_image(fr.right)
     ln, rn = (
-        str(x) if not isinstance(x, np.ndarray) else f"frame {fr.id!r}" for x in (fr.left, fr.right)
+        str(x) if not isinstance(x, np.ndarray) else f"frame {fr.id!r} {side}"
+        for x, side in ((fr.left, "left"), (fr.right, "right"))
     )
+    left = as_bgr(fr.left if isinstance(fr.left, np.ndarray) else read_image(fr.left), ln)
+    right = as_bgr(fr.right if isinstance(fr.right, np.ndarray) else read_image(fr.right), rn)
     if left.shape != right.shape:
         raise ApiError(
             f"{rn}: size {right.shape[1]}x{right.shape[0]} differs from {ln}'s "
@@ -649,14 +847,35 @@ def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray
         cw, ch = int(cam["width"]), int(cam["height"])
         if (left.shape[1], left.shape[0]) != (cw, ch):
             if not resize:
-                raise ApiError(
+                raise ModelDomainError(
                     f"{ln}: image size {left.shape[1]}x{left.shape[0]} differs from the model's "
-                    f"training camera {cw}x{ch} (W x H, domain.camera of {risk.description}); pass "
-                    "--resize to resize both images to it (disparity then in the camera's pixel scale)"
+                    f"training camera {cw}x{ch} (W x H, domain.camera of {risk.description}); "
+                    "resize=True (--resize) resizes both images to it (disparity then in the "
+                    "camera's pixel scale)"
+                )
+            up = max(cw / left.shape[1], ch / left.shape[0])
+            if up > MAX_UPSCALE:
+                raise ModelDomainError(
+                    f"{ln}: image {left.shape[1]}x{left.shape[0]} px would be enlarged {up:.1f}x "
+                    f"to the training camera {cw}x{ch}; resizing enlarges at most "
+                    f"{MAX_UPSCALE:g}x (a smaller image holds too little detail for stereo matching)"
                 )
             left = cv2.resize(left, (cw, ch), interpolation=cv2.INTER_AREA)
             right = cv2.resize(right, (cw, ch), interpolation=cv2.INTER_AREA)
     return left, right
+
+
+def check_thw_threshold(thw_threshold: Any, who: str = "thw_threshold") -> float:
+    """A THW threshold (s): a finite number in (0, :data:`MAX_THW_THRESHOLD_S`]."""
+    try:
+        t = float(thw_threshold)
+    except (TypeError, ValueError):
+        raise InputValueError(f"{who}: expected seconds, got {thw_threshold!r}") from None
+    if not (math.isfinite(t) and 0 < t <= MAX_THW_THRESHOLD_S):
+        raise InputValueError(
+            f"{who}: must be a time headway in (0, {MAX_THW_THRESHOLD_S:g}] s, got {thw_threshold}"
+        )
+    return t
 
 
 def assess_risk(
@@ -683,9 +902,8 @@ def assess_risk(
     from traffictwin.stereo.sgm import compute_disparity
 
     if batch_size < 1:
-        raise ApiError(f"batch_size must be >= 1, got {batch_size}")
-    if not thw_threshold > 0:
-        raise ApiError(f"--thw-threshold: must be > 0 s, got {thw_threshold}")
+        raise InputValueError(f"batch_size: must be >= 1, got {batch_size}")
+    check_thw_threshold(thw_threshold)
     for note in check_speed(risk, speed, params_path):
         warnings.warn(note, ApiWarning, stacklevel=2)
     st = settings or stereo_settings(risk.domain, params_path, risk.description)

@@ -105,6 +105,26 @@ from traffictwin.risk.metric import CRITICAL_THW
 CliError = ApiError  # one user-facing error type for the CLI and the API
 
 
+#: the API's argument names and the CLI options that set them: API errors start with the argument
+API_OPTIONS = {
+    "speed": "--speed",
+    "params_path": "--params",
+    "thw_threshold": "--thw-threshold",
+    "batch_size": "--batch-size",
+}
+
+
+def _in_cli_terms(message: str) -> str:
+    """An API error message with its leading argument name replaced by the CLI option."""
+    head, sep, rest = message.partition(":")
+    return f"{API_OPTIONS[head]}{sep}{rest}" if sep and head in API_OPTIONS else message
+
+
+def _first_line(exc: BaseException, limit: int = 300) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else repr(exc))[:limit]
+
+
 def json_safe(obj: Any) -> Any:
     """``obj`` with non-finite floats replaced by ``None`` (strict JSON; e.g. THW = inf -> null)."""
     if isinstance(obj, dict):
@@ -288,6 +308,17 @@ def cmd_fuse(args: argparse.Namespace) -> int:
 _POSE_COLS = ("x1", "y1", "yaw1", "x2", "y2", "yaw2")
 
 
+def _number(text: str | None) -> bool:
+    """Whether a CSV field is empty/absent (allowed for optional columns) or a real number."""
+    if text is None or not text.strip():
+        return True
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def read_pair_list(source: str | Path) -> list[dict[str, Any]]:
     """The pairs of ``fuse --pairs``: ``[{id, map1, map2, pose1|None, pose2|None, cell|None}]``
     from a CSV list or a folder of ``<id>_1.npz`` / ``<id>_2.npz`` (module doc). Checks the
@@ -328,14 +359,26 @@ def read_pair_list(source: str | Path) -> list[dict[str, Any]]:
             raise CliError(
                 f"--pairs: {src}: pose columns must be all of {', '.join(_POSE_COLS)} or none"
             )
+        header = list(table[0])
         for k, r in enumerate(table, start=2):
-            try:
-                pose = [float(r[c]) for c in _POSE_COLS] if all(has_pose) else None
-                cell = float(r["cell"]) if r.get("cell") not in (None, "") else None
-            except (TypeError, ValueError):
+            if None in r or any(v is None for v in r.values()):
+                n = len([v for v in r.values() if v is not None]) + len(r.get(None) or [])
                 raise CliError(
-                    f"--pairs: {src} line {k}: pose / cell values must be numbers"
-                ) from None
+                    f"--pairs: {src} line {k}: {n} field(s), but the header has {len(header)} "
+                    f"({','.join(header)})"
+                )
+            empty = [c for c in ("map1", "map2") if not r[c].strip()]
+            if empty:
+                raise CliError(f"--pairs: {src} line {k}: column {empty[0]} is empty (a .npz file)")
+            pose_cols = _POSE_COLS if all(has_pose) else ()
+            bad = [c for c in pose_cols if not (r[c].strip() and _number(r[c]))]
+            bad += [] if _number(r.get("cell")) else ["cell"]
+            if bad:
+                raise CliError(
+                    f"--pairs: {src} line {k}: column {bad[0]} = {r[bad[0]]!r} is not a number"
+                )
+            pose = [float(r[c]) for c in _POSE_COLS] if all(has_pose) else None
+            cell = float(r["cell"]) if r.get("cell") not in (None, "") else None
             if pose is not None and not np.all(np.isfinite(pose)):
                 raise CliError(f"--pairs: {src} line {k}: pose values must be finite")
             _positive_cell(cell)
@@ -525,6 +568,18 @@ def cmd_twin(args: argparse.Namespace) -> int:
             "grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz files"
         )
     models = load_twin_models(args.method, args.registration_model, args.fusion_model)
+    from traffictwin import api
+
+    for need, net in models.items():  # the networks run only on the grid they were trained on
+        meta = dict(getattr(net, "meta", {}) or {})
+        opt = "--fusion-model" if need == "fusion" else "--registration-model"
+        desc = f"{opt} {args.fusion_model if need == 'fusion' else args.registration_model}"
+        api.check_fusion_domain(
+            api.FusionModel(net, meta, dict(meta.get("grid") or {}), desc),
+            tuple(ref_m.shape[1:]),
+            cell,
+            str(args.maps[0]),
+        )
     npz_path, png_path = _npz_png(args.output)
     outs = OutputSet([npz_path, png_path], inputs=args.maps, force=args.force)
     grid = GridSpec(rows=ref_m.shape[1], cols=ref_m.shape[2], cell=cell)
@@ -598,8 +653,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
 
     if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
         raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
-    if not args.thw_threshold > 0:
-        raise CliError(f"--thw-threshold: must be > 0 s, got {args.thw_threshold}")
+    api.check_thw_threshold(args.thw_threshold, "--thw-threshold")
     if args.batch_size < 1:
         raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
     frames, is_folder = _risk_frames(args)
@@ -769,8 +823,8 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
     from traffictwin import api
     from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
 
-    uri = api.resolve_tracking_uri(args.tracking_uri)
     outs = OutputSet([args.csv] if args.csv else [], force=args.force, option="--csv")
+    uri = api.resolve_tracking_uri(args.tracking_uri)
     try:
         df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
     except RunsError as exc:
@@ -1026,7 +1080,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             warnings.simplefilter("always", ApiWarning)
             rc = args.func(args)
     except (ApiError, OutputError) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {_in_cli_terms(str(exc))}", file=sys.stderr)
+        return 1
+    except OSError as exc:  # read-only folder, full disk, ...: the file and the reason, one line
+        where = exc.filename or "an output or input file"
+        print(f"{prog}: error: {where}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except (ValueError, TypeError) as exc:  # bad input the checks above did not name
+        if os.environ.get("TRAFFICTWIN_DEBUG"):
+            raise
+        print(
+            f"{prog}: error: {type(exc).__name__}: {_first_line(exc)} "
+            "(set TRAFFICTWIN_DEBUG=1 for the traceback)",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         return 130

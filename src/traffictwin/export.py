@@ -91,8 +91,15 @@ def export_risk(rmodel: Any) -> tuple[torch.jit.ScriptModule, dict]:
 
 
 def save(module: torch.jit.ScriptModule, path: str | Path, meta: dict[str, Any]) -> None:
-    """Write the TorchScript file with ``meta`` as its extra file :data:`META_FILE`."""
-    torch.jit.save(module, str(path), _extra_files={META_FILE: json.dumps(meta, default=str)})
+    """Write the TorchScript file with ``meta`` as its extra file :data:`META_FILE`.
+
+    Serialised in memory first, then written with Python's file API: a full disk is an
+    ``OSError`` the caller can report (``torch.jit.save`` to a path aborts the process there)."""
+    import io
+
+    buf = io.BytesIO()
+    torch.jit.save(module, buf, _extra_files={META_FILE: json.dumps(meta, default=str)})
+    Path(path).write_bytes(buf.getvalue())
 
 
 def load(path: str | Path) -> tuple[torch.jit.ScriptModule, dict[str, Any]]:

@@ -7,7 +7,13 @@ are written atomically. Tables (poses, risk values, flags) are CSV files listed 
 manifest with their SHA-256 as well.
 
 Reading verifies the manifest: schema version, kind, every shard's presence and hash.
-Errors name the file and what is wrong.
+Errors name the file and what is wrong. A shard or table name of the manifest must be a
+relative path inside the dataset folder (:func:`check_member_name`: not absolute, no ``..``, no
+folder that resolves outside it); anything else is refused before a file is opened. The last
+component may be a symbolic link (DVC's ``symlink`` cache type links files into its cache).
+:meth:`Dataset.load_all` compares every shard's array shapes (all dimensions but the first),
+read from the ``.npy`` headers before any array is decompressed, with those of the dataset's
+other shards, and names the shard that differs.
 
 Shards hold finite numbers only (:func:`check_finite`): writers refuse float arrays with NaN or
 ±inf, and readers refuse them too (a shard with a valid hash may still come from an older or
@@ -26,7 +32,6 @@ import hashlib
 import io
 import json
 import shutil
-import threading
 import zipfile
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -36,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.limits import NPY_HEADER_LOCK, InputError, npz_headers
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -48,6 +54,35 @@ class DatasetError(RuntimeError):
 
 def shard_name(index: int) -> str:
     return f"shard-{index:05d}.npz"
+
+
+def check_member_name(root: str | Path, name: Any, where: str | Path) -> Path:
+    """The path of the manifest entry ``name`` inside the dataset folder ``root``.
+
+    :class:`DatasetError` naming ``where`` (the manifest) and the name, before anything is
+    opened, unless ``name`` is a non-empty relative path without ``..`` whose folders stay inside
+    ``root`` once symbolic links are resolved (the file itself may be a link, as DVC makes them).
+    """
+    root = Path(root)
+    bad = not isinstance(name, str) or not name or "\0" in name
+    if not bad:
+        parts = name.replace("\\", "/").split("/")
+        bad = (
+            name.startswith(("/", "\\"))
+            or Path(name).is_absolute()
+            or (len(name) > 1 and name[1] == ":")  # a Windows drive
+            or any(part in ("..", "") for part in parts)
+        )
+    if not bad:
+        top = root.resolve()
+        parent = (root / name).parent.resolve()
+        bad = parent != top and top not in parent.parents
+    if bad:
+        raise DatasetError(
+            f"{where}: entry name {name!r} is not a relative path inside the dataset folder "
+            f"{root} (absolute, '..' or outside it); refusing to open it"
+        )
+    return root / name
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -125,7 +160,7 @@ def write_npz_deterministic(
 # not safe to run in two threads at once ("SystemError: AST constructor recursion depth mismatch"),
 # so threads that read shards (Dataset.load_all) parse headers one at a time and decompress in
 # parallel
-_NPY_PARSE_LOCK = threading.Lock()
+_NPY_PARSE_LOCK = NPY_HEADER_LOCK  # the package's one lock (io.limits reads headers under it)
 
 
 def _read_member(z: Any, key: str) -> np.ndarray:
@@ -205,7 +240,10 @@ class DatasetWriter:
                 prev = None
         if prev is not None and prev.get("identity") == self._identity():
             for s in prev.get("shards", []):
-                p = self.root / s["name"]
+                try:
+                    p = check_member_name(self.root, s.get("name"), self._progress)
+                except DatasetError:
+                    continue  # never a file outside the folder: that shard is written anew
                 if p.exists() and sha256_file(p) == s["sha256"]:
                     self._shards[int(s["index"])] = ShardInfo(
                         s["name"], s["sha256"], s["count"], s.get("split")
@@ -563,6 +601,10 @@ class Dataset:
             )
         if kind is not None and self.manifest["kind"] != kind:
             raise DatasetError(f"{mpath}: kind '{self.manifest['kind']}' (expected '{kind}')")
+        for entry in [*self.manifest["shards"], *(self.manifest.get("tables") or [])]:
+            if not isinstance(entry, dict) or "name" not in entry or "sha256" not in entry:
+                raise DatasetError(f"{mpath}: entry {entry!r} lacks 'name' or 'sha256'")
+            check_member_name(self.root, entry["name"], mpath)  # before any file is opened
         self._verified: set[str] = set()
         if verify:
             self.verify()
@@ -583,7 +625,7 @@ class Dataset:
         return sha256_file(self.root / MANIFEST)
 
     def _check(self, name: str, expected: str) -> Path:
-        p = self.root / name
+        p = check_member_name(self.root, name, self.root / MANIFEST)
         if not p.exists():
             raise DatasetError(f"{p}: listed in {self.root / MANIFEST} but missing")
         if name not in self._verified:
@@ -617,6 +659,56 @@ class Dataset:
         for i in self.shard_indices(split):
             yield self.load_shard(i, names)
 
+    def _header_shapes(self, keys: list[str] | None) -> dict[int, dict[str, tuple[int, ...]]]:
+        """Array shapes of every shard (index -> key -> shape) from its ``.npy`` headers, nothing
+        decompressed; shards whose headers cannot be read are left out (loading them names why)."""
+        out: dict[int, dict[str, tuple[int, ...]]] = {}
+        for i, s in enumerate(self.shards):
+            try:  # each header parsed under NPY_HEADER_LOCK (see _NPY_PARSE_LOCK)
+                heads = npz_headers(self.root / s["name"], keys)
+            except InputError:
+                continue
+            out[i] = {k: h.shape for k, h in heads.items() if h.shape}
+        return out
+
+    def check_shapes(self, idx: Iterable[int], keys: Iterable[str] | None = None) -> None:
+        """:class:`DatasetError` naming the first shard of ``idx`` whose array (of ``keys``; all
+        when ``None``) differs in its dimensions but the first from most of the dataset's shards
+        (ties: the earliest shard's shape), or whose first dimension is not the manifest's
+        ``count``. Read from the ``.npy`` headers of every shard, before any array is
+        decompressed; a differing shard's SHA-256 is checked first, so a tampered one is named
+        as such."""
+        names = None if keys is None else list(keys)
+        shapes = self._header_shapes(names)
+        ref: dict[str, tuple[tuple[int, ...], list[int]]] = {}  # key -> (trailing dims, shards)
+        for k in sorted({k for sh in shapes.values() for k in sh}):
+            votes: dict[tuple[int, ...], list[int]] = {}
+            for i, sh in shapes.items():  # in manifest order: the first shape wins a tie
+                if k in sh:
+                    votes.setdefault(sh[k][1:], []).append(i)
+            trail, having = max(votes.items(), key=lambda kv: len(kv[1]))
+            ref[k] = (trail, having)
+        for i in idx:
+            entry = self.shards[i]
+            path = self.root / entry["name"]
+            count = entry.get("count")
+            for k, shape in sorted(shapes.get(i, {}).items()):
+                trail, having = ref[k]
+                if shape[1:] != trail:
+                    self._check(entry["name"], entry["sha256"])
+                    want = ", ".join(map(str, (shape[0], *trail)))
+                    raise DatasetError(
+                        f"{path}: array '{k}' has shape {shape}, expected ({want}) like "
+                        f"{len(having)} of the dataset's {len(shapes)} shards (e.g. "
+                        f"{self.shards[having[0]]['name']}); all dimensions but the first must agree"
+                    )
+                if isinstance(count, int) and shape[0] != count:
+                    self._check(entry["name"], entry["sha256"])
+                    raise DatasetError(
+                        f"{path}: array '{k}' has shape {shape}: {shape[0]} samples, but "
+                        f"{self.root / MANIFEST} lists {count} for this shard"
+                    )
+
     def load_all(
         self,
         split: str | None = None,
@@ -627,7 +719,9 @@ class Dataset:
     ) -> dict[str, np.ndarray]:
         """Every shard (of ``split``) concatenated; ``keys`` limits the arrays loaded (the others
         are never decompressed). ``check(name, arrays)``, if given, runs on each shard's arrays as
-        it arrives (e.g. a mass check; raise to refuse the shard). Shards are read, hashed and
+        it arrives (e.g. a mass check; raise to refuse the shard). Every shard's array shapes
+        are checked against the dataset's other shards first (:meth:`check_shapes`, headers
+        only), so a shard of another grid or image size is named. Shards are read, hashed and
         decompressed by ``workers`` threads (zlib and SHA-256 release the GIL) straight into the
         preallocated result, which is the same for any number of workers."""
         from concurrent.futures import ThreadPoolExecutor
@@ -638,6 +732,7 @@ class Dataset:
                 f"{self.root}: no shards" + (f" in split '{split}'" if split else "")
             )
         names = None if keys is None else list(keys)
+        self.check_shapes(idx, names)  # from the headers: a differing shard named, none decoded
         first = self.load_shard(idx[0], names)
         names = list(first) if names is None else names
         counts = [len(first[names[0]])] + [int(self.shards[i]["count"]) for i in idx[1:]]
