@@ -385,7 +385,9 @@ def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
         q25, q75 = np.quantile(vals[m][c], [0.25, 0.75])
         assert y.min() == pytest.approx(q25) and y.max() == pytest.approx(q75), gid
         np.testing.assert_allclose(medians[f"{gid}/median"].get_ydata(), np.median(vals[m][c]))
-    assert ax.get_ylabel() == "KLD(label ‖ prediction)"
+    # the quantity, its unit and the (symmetric) log scale: KLD >= 0, rows decades apart
+    assert ax.get_ylabel().startswith("KLD(label ‖ prediction)\n(nats per cell; log scale")
+    assert ax.get_yscale() == "symlog" and ax.get_ylim()[0] == 0
     assert [t.get_text() for t in ax.get_xticklabels()] == list(CFGS)
     assert ax.get_xlabel() == "configuration"
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
@@ -426,7 +428,13 @@ def test_scores_plot_lines_are_the_metrics(tmp_path):
 
 def test_configuration_axes_carry_the_pose_noise() -> None:
     """With the configurations' (r m, α deg), every configuration axis says what they are."""
-    from traffictwin.fusion.figures import config_label, kld_boxplot, scores_plot
+    from traffictwin.fusion.figures import (
+        CONFIG_AXIS,
+        CONFIG_NOTE,
+        config_label,
+        kld_boxplot,
+        scores_plot,
+    )
 
     noise = {"A": (0.0, 0.0), "D": (5.0, 20.0)}
     assert config_label("D", noise) == "D\nr 5 m\nα 20°"
@@ -436,7 +444,11 @@ def test_configuration_axes_carry_the_pose_noise() -> None:
     occ = scores_plot({"dnn": {c: {} for c in noise}}, list(noise), ["dnn"], "occ", noise)
     for ax in (box.axes[0], *occ.axes):
         assert [t.get_text() for t in ax.get_xticklabels()] == want
-        assert ax.get_xlabel() == "configuration (pose noise r, α)"
+        assert ax.get_xlabel().startswith(CONFIG_AXIS)
+    # what r and α mean, in plain words: once per figure (axis label / title)
+    assert box.axes[0].get_xlabel() == f"{CONFIG_AXIS}\n{CONFIG_NOTE}"
+    assert CONFIG_NOTE in occ.get_suptitle() and "98 %" in CONFIG_NOTE
+    assert "noisy poses" in CONFIG_NOTE and "r (m)" in CONFIG_NOTE and "α (°)" in CONFIG_NOTE
 
 
 def test_qualitative_grid_shows_each_map(tmp_path):

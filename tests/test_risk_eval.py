@@ -335,6 +335,7 @@ def test_evaluation_figures_plot_the_predictions(
         {"step": [1, 2, 3], "train/loss": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}
     )
     figs = _capture(monkeypatch, figures)
+    metrics["models"]["rgbd"]["objective"] = "log_thw"  # the curves follow the run's objective
     figures.evaluation_figures(
         src,
         metrics,
@@ -348,11 +349,14 @@ def test_evaluation_figures_plot_the_predictions(
         roc=tmp_path / "r.png",
     )
     assert set(figs) == {"c.png", "s.png", "m.png", "e.png", "r.png"}
-    # training curves: one line per variant and split, plus the paper's test MSE
+    # training curves: the objective's loss (log THW: no paper MSE there), then the validation
+    # MSE of the normalised risk with the paper's test MSE
     tr, va = figs["c.png"].axes
     (line,) = [ln for ln in tr.lines if ln.get_label() == "rgbd"]
     assert line.get_xdata().tolist() == [1, 2, 3] and line.get_ydata().tolist() == [0.3, 0.2, 0.1]
-    assert va.get_title() == "validation average error (MSE)"
+    assert tr.get_ylabel() == figures.OBJECTIVE_LOSS["log_thw"]
+    assert not any(ln.get_label() == "paper test MSE" for ln in tr.lines)
+    assert va.get_title() == "validation MSE of normalised risk (every run)"
     assert any(ln.get_label() == "paper test MSE" for ln in va.lines)
     # scatter: network, speed-only and geometric SGM baselines, true vs predicted, threshold 1/30
     axes = figs["s.png"].axes

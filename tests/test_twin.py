@@ -399,6 +399,9 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0].startswith("twin (naive)") and len(titles) == 4
     assert titles[1].startswith("vehicle 0 (ego)") and "used" in titles[2]
+    # the dotted circle in plain words: the configuration's pose error bound, in metres
+    head = fig.get_suptitle()
+    assert "pose error bound r = 5 m" in head and "98 % of the noisy" in head
     from traffictwin.report.colours import LEGEND, map_extent, masses_to_rgb
 
     assert all(ax.get_xlabel() == "y (m, + = left)" for ax in fig.axes)

@@ -709,7 +709,9 @@ def _captioned(figures: list[page.Figure]) -> list[page.Figure]:
 
 def training_stops(src: page.Sources) -> list[str]:
     """Where each training of this run stopped and why (its metrics file: ``epochs``,
-    ``max_epochs``, ``best_epoch``, ``stopped_early``): one sentence per model."""
+    ``max_epochs``, ``best_epoch``, ``stopped_early``): one sentence per model. The files'
+    ``best_epoch`` is 0-based (Lightning's epoch); the sentences count from 1, like the training
+    logs ("best epoch k of n": the k-th of the n epochs run; :class:`traffictwin.trainer.History`)."""
     out = []
     for f in sorted(src.metrics):
         m = re.fullmatch(TRAINING_FILES, f) or re.fullmatch(REGISTRATION_FILES, f)
@@ -855,7 +857,7 @@ def score_figure(
     panel's y axis zoomed to its data (:func:`zoomed_limits`); x: the configurations with their
     pose noise r (m) and α (deg). ``scores``: the long table of
     :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
-    from traffictwin.fusion.figures import _plt, _style, config_label
+    from traffictwin.fusion.figures import CONFIG_AXIS, CONFIG_NOTE, _plt, _style, config_label
 
     plt = _plt()
     d = scores[scores["class"] == cls]
@@ -883,7 +885,7 @@ def score_figure(
         ax.set_ylim(*zoomed_limits(dm["value"].to_numpy()))
         ax.set_xticks(range(len(cfgs)))
         ax.set_xticklabels([config_label(c, configurations) for c in cfgs])
-        ax.set_xlabel("configuration (pose noise r, α)")
+        ax.set_xlabel(CONFIG_AXIS, fontsize=9)
         ax.set_ylabel(f"{metric} ({cls} cells)")
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
@@ -893,7 +895,10 @@ def score_figure(
                 handles.append(h)
                 labels.append(lab)
     fig.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95))
-    fig.suptitle(f"Classification of {cls} cells vs pose-noise configuration (test split)")
+    fig.suptitle(
+        f"Classification of {cls} cells vs pose-noise configuration (test split)\n{CONFIG_NOTE}",
+        fontsize=11,
+    )
     fig.tight_layout()
     return fig
 

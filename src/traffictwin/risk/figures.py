@@ -1,12 +1,13 @@
 """Figures of the risk network (matplotlib, Agg): the paper's Figs. 5–7 and Table 1 as images.
 
-* :func:`plot_training_curves` — train (left) and validation (right) average error over training
-  steps, one line per variant (Figs. 5–6);
+* :func:`plot_training_curves` — training and validation loss over training steps, one panel
+  per training objective (each in its own units), then every variant's validation MSE of the
+  normalised risk (Figs. 5–6);
 * :func:`plot_scatter` — predicted vs true risk with the critical threshold lines;
 * :func:`plot_examples` — test frames (left image + SGM disparity) with true and predicted risk (Fig. 7);
 * :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual);
 * :func:`plot_roc` — ROC curves of the headline network and the baselines on the same frames
-  (the GT-disparity rule dashed);
+  (the GT-disparity rule dashed; a split without critical or uncritical frames says so);
 * :func:`evaluation_figures` — all five for the evaluate_risk stage.
 """
 
@@ -40,25 +41,105 @@ def _save(fig: plt.Figure, path: str | Path) -> None:
     plt.close(fig)
 
 
+#: y-axis name of each training objective's loss (:data:`traffictwin.risk.dave2.OBJECTIVES`):
+#: ``train/loss`` and ``val/loss`` are in these units; ``val/mse`` is always the MSE of the
+#: normalised risk (dimensionless, in [0, 1]), whatever the objective.
+OBJECTIVE_LOSS: dict[str, str] = {
+    "mse": "loss: MSE of normalised risk (dimensionless)",
+    "log_thw": "loss: MSE of log THW ((log s)²)",
+    "mse_bce": "loss: MSE of normalised risk + weighted cross-entropy of 'critical' (dimensionless)",
+}
+#: plain-language name of each objective (panel titles)
+OBJECTIVE_NAME: dict[str, str] = {
+    "mse": "objective mse (the paper's: MSE of normalised risk)",
+    "log_thw": "objective log_thw (MSE of log time headway)",
+    "mse_bce": "objective mse_bce (MSE + critical/uncritical head)",
+}
+VAL_MSE_LABEL = "MSE of normalised risk (dimensionless)"
+
+
+def _say_empty(ax: plt.Axes, text: str) -> None:
+    """An empty chart says why, centred in its axes (``gid`` ``"empty"``), instead of drawing nothing."""
+    ax.text(
+        0.5,
+        0.5,
+        text,
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        wrap=True,
+        fontsize=10,
+        color="0.25",
+        gid="empty",
+    )
+
+
 def plot_training_curves(
-    histories: Mapping[str, pd.DataFrame], path: str | Path, paper_test_mse: float | None = None
+    histories: Mapping[str, pd.DataFrame],
+    path: str | Path,
+    paper_test_mse: float | None = None,
+    objectives: Mapping[str, str | None] | None = None,
 ) -> None:
-    """``histories``: variant → DataFrame with ``step``, ``train/loss`` (the objective's), ``val/mse`` (from train_risk)."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for name, h in histories.items():
-        if len(h) == 0:
-            continue
-        axes[0].plot(h["step"], h["train/loss"], label=name, lw=1.2)
-        axes[1].plot(h["step"], h["val/mse"], label=name, lw=1.2)
-    for ax, title in zip(axes, ("training average error (MSE)", "validation average error (MSE)")):
-        ax.set_title(title)
-        ax.set_xlabel("training step")
-        ax.set_yscale("log")
-        ax.grid(alpha=0.3)
-        if paper_test_mse is not None:
+    """``histories``: variant → DataFrame with ``step``, ``train/loss`` and (optional) ``val/loss``
+    (the variant's objective's loss) and ``val/mse`` (MSE of the normalised risk, from
+    train_risk); ``objectives``: variant → its training objective (``mse`` where missing, the
+    evaluation's default).
+
+    One panel per objective present (its training loss solid, validation loss dashed, y axis
+    named after that objective: :data:`OBJECTIVE_LOSS`), then one panel of every run's
+    validation MSE of the normalised risk, comparable across objectives. The paper's test MSE
+    (``paper_test_mse``, an MSE of normalised risk) is drawn only on panels in those units: the
+    ``mse`` objective's and the validation MSE. A run keeps its colour in every panel."""
+    objectives = objectives or {}
+    runs = {n: h for n, h in histories.items() if len(h)}
+    obj_of = {n: str(objectives.get(n) or "mse") for n in runs}
+    order = [o for o in OBJECTIVE_LOSS if o in obj_of.values()]
+    order += sorted({o for o in obj_of.values() if o not in OBJECTIVE_LOSS})
+    colour = {n: f"C{i % 10}" for i, n in enumerate(histories)}
+    n_panels = len(order) + 1
+    fig, axes = plt.subplots(1, n_panels, figsize=(5.5 * n_panels, 4), squeeze=False)
+    axes = axes[0]
+    for ax, obj in zip(axes, order):
+        for name in (n for n in runs if obj_of[n] == obj):
+            h = runs[name]
+            ax.plot(h["step"], h["train/loss"], color=colour[name], lw=1.2, label=name)
+            if "val/loss" in h.columns:
+                ax.plot(
+                    h["step"],
+                    h["val/loss"],
+                    color=colour[name],
+                    lw=1.2,
+                    ls="--",
+                    label=f"{name} (validation)",
+                )
+        ax.set_title(
+            f"{OBJECTIVE_NAME.get(obj, f'objective {obj}')}\n"
+            "training loss (solid), validation loss (dashed)",
+            fontsize=10,
+        )
+        ax.set_ylabel(OBJECTIVE_LOSS.get(obj, f"loss of objective {obj}"))
+        if obj == "mse" and paper_test_mse is not None:
             ax.axhline(paper_test_mse, color="k", ls=":", lw=1, label="paper test MSE")
-    axes[0].set_ylabel("MSE (normalised risk)")
-    axes[1].legend(fontsize=8)
+    val = axes[-1]
+    for name, h in runs.items():
+        if "val/mse" in h.columns:
+            val.plot(h["step"], h["val/mse"], color=colour[name], lw=1.2, label=name)
+    val.set_title("validation MSE of normalised risk (every run)", fontsize=10)
+    val.set_ylabel(VAL_MSE_LABEL)
+    if paper_test_mse is not None and val.lines:
+        val.axhline(paper_test_mse, color="k", ls=":", lw=1, label="paper test MSE")
+    for ax in axes:
+        ax.set_xlabel("training step")
+        if ax.lines:
+            ax.set_yscale("log")
+            shown = [ln for ln in ax.lines if not ln.get_label().endswith(" (validation)")]
+            ax.legend(handles=shown, fontsize=8)
+        ax.grid(alpha=0.3)
+    if not runs:
+        _say_empty(val, "no training history to draw")
+    elif not any("val/mse" in h.columns for h in runs.values()):
+        _say_empty(val, "no validation MSE in the training histories")
+    fig.tight_layout()
     _save(fig, path)
 
 
@@ -140,24 +221,40 @@ def plot_roc(
     title: str = "",
     auc: Mapping[str, float | None] | None = None,
     oracles: Sequence[str] = GT_INPUT,
+    frames: str = "the test split",
 ) -> None:
     """ROC curves (false vs true positive rate, dimensionless) of each predictor's risk as a score
     for ``positive`` (critical) frames; ``oracles`` (GT-disparity inputs) dashed, the chance diagonal dotted; legend
-    entries carry ``auc`` when given."""
+    entries carry ``auc`` when given. Without critical or without uncritical frames (e.g. a small
+    test split) the ROC is undefined: the axes say so (naming ``frames``) and draw no curve."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
-    for name, score in scores.items():
-        fpr, tpr = roc_curve(positive, score)
-        a = (auc or {}).get(name)
-        label = f"{name} (AUC {a:.3f})" if a is not None else name
-        ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)
-    ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
+    pos = np.asarray(positive, bool).ravel()
+    n_pos, n_neg = int(pos.sum()), int((~pos).sum())
+    if n_pos == 0 or n_neg == 0 or not scores:
+        if not scores:
+            why = "no predictor to draw"
+        elif pos.size == 0:
+            why = f"no frames in {frames}: ROC undefined"
+        else:
+            missing, other = (
+                ("critical", "uncritical") if n_pos == 0 else ("uncritical", "critical")
+            )
+            why = f"no {missing} frames in {frames}\n(all {pos.size} are {other}): ROC undefined"
+        _say_empty(ax, why)
+    else:
+        for name, score in scores.items():
+            fpr, tpr = roc_curve(pos, score)
+            a = (auc or {}).get(name)
+            label = f"{name} (AUC {a:.3f})" if a is not None else name
+            ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)
+        ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
+        ax.legend(fontsize=8, loc="lower right")
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1.01)
     ax.set_xlabel("false positive rate (uncritical frames called critical)")
     ax.set_ylabel("true positive rate (critical frames detected)")
     ax.set_title(title or "ROC on the test frames")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
     _save(fig, path)
 
 
@@ -191,7 +288,12 @@ def evaluation_figures(
         else {}
     )
     base_cols = {b: c for b, c in base_cols.items() if c in pred.columns}
-    plot_training_curves(histories, curves, paper_test_mse=PAPER["test/mse"])
+    plot_training_curves(
+        histories,
+        curves,
+        paper_test_mse=PAPER["test/mse"],
+        objectives={v: metrics["models"].get(v, {}).get("objective") for v in histories},
+    )
     plot_scatter(
         y,
         {

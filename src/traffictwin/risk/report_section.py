@@ -36,7 +36,7 @@ FIGURES: dict[str, str] = {
     "stereo_example": "Left image, SGM disparity and exact disparity (mirrors the risk paper's Fig. 2)",
     "risk_metric_example": "Grid-map risk metric: scene and worst-time-headway region (cf. Figs. 3 and 4)",
     "orb_outlier_example": "A stereo pair the ORB check flags (Sec. 3.3)",
-    "risk_training_curves": "Training and validation average error per variant (mirrors Figs. 5 and 6)",
+    "risk_training_curves": "Training and validation loss per variant, one panel per training objective, and every variant's validation MSE of the normalised risk (mirrors Figs. 5 and 6)",
     "risk_confusion": "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)",
     "risk_scatter": "Predicted vs true risk on the test split, with the critical threshold",
     "risk_examples": "Test scenes with true and predicted risk (mirrors Fig. 7)",

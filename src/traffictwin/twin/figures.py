@@ -125,8 +125,8 @@ def twin_map_figure(
     registration: Any = None,
 ):
     """At the critical onset of one sequence: the twin (ego frame) with every vehicle's true
-    position, its noisy position with the 98 % interval of the configuration (circle of radius
-    r m) and the pose the twin used; beside it each vehicle's own map where the twin put it."""
+    position, its noisy position with the configuration's pose error bound (circle of radius
+    r m: 98 % of the noisy positions are off by less than r per axis) and the pose the twin used; beside it each vehicle's own map where the twin put it."""
     plt = _plt()
     from matplotlib.patches import Circle
 
@@ -168,7 +168,9 @@ def twin_map_figure(
         axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")
     axes[0].legend(fontsize=6, loc="lower left")
     fig.suptitle(
-        "o true position, x noisy position (dotted: 98 % radius r), + pose used",
+        "o true position, x noisy position, + pose the twin used; dotted circle: pose error "
+        f"bound r = {noise[0]:g} m around the noisy position\n(per axis: 98 % of the noisy "
+        "positions are off by less than r in x, and 98 % by less than r in y)",
         fontsize=8,
     )
     fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8, frameon=False)
