@@ -112,6 +112,7 @@ def main() -> None:
         inputs = ReportInputs(
             reports_dir=REPORTS,
             profile=p.profile.name,
+            banner=p.profile.banner,
             seed=p.seed,
             git_commit=git_commit(ROOT),
             run_params=run_params(cfg, profile_keys(CONF / "profile")),

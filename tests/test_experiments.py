@@ -140,3 +140,43 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
     # the CLI-facing formatter shows both experiments
     text = format_runs(df)
     assert "exp-ws" in text and "exp-q" in text
+
+
+@pytest.mark.slow
+def test_the_documented_training_experiments_show_what_changed(
+    ci_dag: Path, tmp_path: Path
+) -> None:
+    """Issue 33: two training-only experiments (the docs' example: the fusion network's learning
+    rate on the ci profile) differ in the training's DVC metrics (`dvc exp diff`) and draw two
+    distinguishable learning curves with their revisions (`dvc plots diff`)."""
+    repo = clone_dag(ci_dag, tmp_path / "exp_repo")
+    env = user_env(repo)
+    for name, lr in (("lr-low", "0.002"), ("lr-high", "0.02")):
+        cmd = ["dvc", "exp", "run", "-n", name, "-S", "profile=ci"]
+        run([*cmd, "-S", f"fusion_model.optim.lr={lr}", "train_fusion"], repo, env=env)
+    metrics_file = "reports/metrics/train_fusion_network.json"
+    diff = json.loads(
+        run(["dvc", "exp", "diff", "lr-low", "lr-high", "--json"], repo, env=env).stdout
+    )
+    changed = diff["metrics"][metrics_file]
+    assert "val/loss" in changed and changed["val/loss"]["diff"] != 0, changed
+    shown = _exps(json.loads(run(["dvc", "exp", "show", "--json"], repo, env=env).stdout))
+    vals = [
+        shown[n]["data"]["metrics"][metrics_file]["data"]["val/loss"] for n in ("lr-low", "lr-high")
+    ]
+    assert vals[0] != vals[1]
+    curves = "reports/plots/train_fusion_network.csv"
+    plots = json.loads(
+        run(
+            ["dvc", "plots", "diff", "lr-low", "lr-high", "--json", "--targets", curves],
+            repo,
+            env=env,
+        ).stdout
+    )
+    (entry,) = plots["data"][curves]
+    assert entry["revisions"] == ["lr-low", "lr-high"]  # the revisions name the curves
+    rows = entry["content"]["data"]["values"]
+    by_rev = {
+        rev: [float(r["val/loss"]) for r in rows if r["rev"] == rev] for rev in entry["revisions"]
+    }
+    assert by_rev["lr-low"] and by_rev["lr-low"] != by_rev["lr-high"]

@@ -756,3 +756,38 @@ def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(report
     md = first["README.md"].decode()
     assert "weepy-main" not in md and "exp-x" not in md and "abc12345" not in md
     assert "reports/timings/report.json" in md
+
+
+def test_smoke_profile_banner_on_report_summary_and_plot_titles(reports: Path) -> None:
+    repo = Path(__file__).resolve().parents[1]
+    """Issue 33: on the ci profile the report, summary.json (the DVC metrics file) and every plot
+    title say it is a smoke run; on the default profile nothing does."""
+    from dataclasses import replace
+
+    import yaml
+
+    ci = yaml.safe_load((repo / "conf" / "profile" / "ci.yaml").read_text())["profile"]["banner"]
+    assert "smoke run" in ci and "not results" in ci
+    for prof in ("default", "paper"):
+        conf = yaml.safe_load((repo / "conf" / "profile" / f"{prof}.yaml").read_text())
+        assert conf["profile"]["banner"] == ""
+    R.write_report(replace(make_inputs(reports), banner=ci), providers(CONFIGURATIONS))
+    md = (reports / "README.md").read_text()
+    first = md.split("\n\n")[1]  # the paragraph after the title
+    assert first == "**ci profile: a smoke run; numbers are not results.**", first
+    assert "smoke run" in (reports / "index.html").read_text()
+    summary = json.loads((reports / "summary.json").read_text())
+    assert summary["run"] == {"note": "ci profile: a smoke run; numbers are not results"}
+    R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    assert "smoke run" not in (reports / "README.md").read_text()
+    assert "run" not in json.loads((reports / "summary.json").read_text())
+    dvc = yaml.safe_load((repo / "dvc.yaml").read_text())
+    titles = [p[k]["title"] for p in dvc["plots"] for k in p if "title" in (p[k] or {})]
+    for st in dvc["stages"].values():
+        body = st.get("do", st)
+        for p in body.get("plots", []):
+            for props in p.values() if isinstance(p, dict) else ():
+                if isinstance(props, dict) and "title" in props:
+                    titles.append(props["title"])
+    assert len(titles) >= 10
+    assert all(t.endswith("${profile.banner}") for t in titles), titles

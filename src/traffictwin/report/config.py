@@ -12,6 +12,7 @@ from traffictwin.evidential.noise import PoseNoise
 @dataclass
 class Profile:
     name: str
+    banner: str = ""  # "ci profile: a smoke run; ..." on a smoke profile, shown first everywhere
 
 
 @dataclass

@@ -142,6 +142,7 @@ class ReportInputs:
     pipeline_run: str = ""
     stage_order: Sequence[str] = ()
     git_dirty: bool = False  # code or config differed from the commit when the report ran
+    banner: str = ""  # profile.banner: a smoke run's warning, first in the report and summary.json
 
 
 # --------------------------------------------------------------------------- sources

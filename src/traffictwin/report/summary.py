@@ -63,9 +63,13 @@ def headline(
     return [Headline(key, quantity, where, v, iv[0], iv[1], fmt)]
 
 
-def summary_json(headlines: Mapping[str, Sequence[Headline]]) -> dict[str, dict[str, Any]]:
-    """``{problem: nested {key: value, key_lo: lo, key_hi: hi}}``; problems without numbers left out."""
-    out: dict[str, dict[str, Any]] = {}
+def summary_json(
+    headlines: Mapping[str, Sequence[Headline]], banner: str = ""
+) -> dict[str, dict[str, Any]]:
+    """``{problem: nested {key: value, key_lo: lo, key_hi: hi}}``; problems without numbers left
+    out. A smoke profile's ``banner`` goes first as ``{"run": {"note": banner}}``, so
+    ``dvc metrics show`` says the numbers are not results."""
+    out: dict[str, dict[str, Any]] = {"run": {"note": banner.strip("() ")}} if banner else {}
     for problem, items in headlines.items():
         for h in items:
             *parents, leaf = h.key.split(".")
