@@ -204,13 +204,28 @@ def _split_ref(model: str | os.PathLike) -> tuple[str | None, str | None, Path |
     )
 
 
-def _load_registered(cl, name: str, alias: str, loader, what: str):
+def _load_registered(cl, name: str, alias: str, loader, what: str, family: str | None = None):
+    """Load ``name@alias`` with ``loader``. ``family``: the registry name of this problem
+    (``traffictwin-fusion``...): a name outside it is refused before anything is downloaded,
+    and the hint of a missing alias lists only the registered models this loader can load."""
     from traffictwin.mlops import registry as reg
 
-    try:
-        mv = reg.require_alias(cl, name, alias)
-    except reg.RegistryError as exc:
-        raise ApiError(str(exc)) from None
+    def loadable(n: str) -> bool:
+        return family is None or n == family or n.startswith(f"{family}-")
+
+    if not loadable(name):
+        raise ApiError(
+            f"--model: '{name}@{alias}' is not a {what}; {what}s are registered as '{family}'"
+        )
+    mv = reg.get_alias(cl, name, alias)
+    if mv is None:
+        known = [n for n in reg._registered_names(cl) if loadable(n)]
+        hint = (
+            f"registered {what}s: {', '.join(known)}"
+            if known
+            else f"no {what} is registered yet (run the promotion gate: `make promote`)"
+        )
+        raise ApiError(f"model '{name}' has no version with alias '{alias}' ({hint})")
     uri = reg.version_uri(name, mv.version)
     try:
         return reg.load_registered(uri, loader, cl=cl), f"{name}@{alias} ({uri})"
@@ -246,7 +261,7 @@ def load_fusion(model: str | os.PathLike, *, tracking_uri: str | None = None) ->
     if path is None:
         cl = connect(tracking_uri)
         net, desc = _load_registered(
-            cl, name or FUSION_NAME, alias, load_fusion_model, "fusion model"
+            cl, name or FUSION_NAME, alias, load_fusion_model, "fusion model", FUSION_NAME
         )
     else:
         try:
@@ -583,7 +598,9 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
     name, alias, path = _split_ref(model)
     if path is None:
         cl = connect(tracking_uri)
-        rm, desc = _load_registered(cl, name or RISK_NAME, alias, load_risk_model, "risk model")
+        rm, desc = _load_registered(
+            cl, name or RISK_NAME, alias, load_risk_model, "risk model", RISK_NAME
+        )
     else:
         try:
             rm, desc = load_risk_model(path), str(path)

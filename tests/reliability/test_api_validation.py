@@ -302,3 +302,24 @@ def test_risk_domain_metadata_is_validated_before_use(tmp_path, domain, needle):
     rdir = save_risk(tmp_path / "m", {"label": "risk", "domain": domain})
     with pytest.raises(api.ModelDomainError, match=needle.replace("[", r"\[").replace("]", r"\]")):
         api.load_risk(rdir)
+
+
+def test_registry_errors_suggest_only_loadable_names(cl, mlflow_uri):
+    """Issue 33: a bare ``--model champion`` for ``fuse`` suggested registration models, which
+    then failed after downloading 112 files."""
+    from _registry_models import log_linear
+
+    from traffictwin.mlops import registry as reg
+
+    mv = reg.ensure_version(cl, "traffictwin-registration", log_linear(1.0))
+    cl.set_registered_model_alias("traffictwin-registration", "champion", mv.version)
+    with pytest.raises(api.ApiError, match="no fusion model is registered yet") as exc:
+        api.load_fusion("champion", tracking_uri=mlflow_uri)
+    assert "traffictwin-registration" not in str(exc.value)
+    with pytest.raises(
+        api.ApiError, match="is not a fusion model; fusion models are registered as"
+    ):
+        api.load_fusion("traffictwin-registration@champion", tracking_uri=mlflow_uri)
+    reg.ensure_version(cl, "traffictwin-fusion-D", log_linear(2.0))  # a per-configuration name
+    with pytest.raises(api.ApiError, match=r"registered fusion models: traffictwin-fusion-D\)"):
+        api.load_fusion("champion", tracking_uri=mlflow_uri)

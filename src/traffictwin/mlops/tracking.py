@@ -171,16 +171,34 @@ def setup(root: str | Path | None = None) -> str:
     return uri
 
 
+#: what each MLflow experiment holds: its description in the MLflow UI (``mlflow.note.content``)
+EXPERIMENT_DESCRIPTIONS = {
+    "fusion": "Evidential grid fusion networks (DeepLabV3+ on two prealigned maps), one run per "
+    "training stage (train_fusion, its variants); evaluate_fusion adds test/... metrics.",
+    "registration": "Learned map registration (relative pose of map 2 to map 1), one run per "
+    "train_registration.",
+    "risk": "Risk predictors from stereo: DAVE-2 networks per variant and seed (train_risk), the "
+    "shipped predictor chosen on validation (select_risk, run risk-shipped).",
+}
+NOTE_TAG = "mlflow.note.content"  # the MLflow UI's description of an experiment or run
+
+
 def ensure_experiment(name: str, uri: str | None = None) -> str:
-    """Id of experiment ``name``, creating it (artifacts beside a SQLite db) if missing; makes it active."""
+    """Id of experiment ``name``, creating it (artifacts beside a SQLite db, its description from
+    :data:`EXPERIMENT_DESCRIPTIONS`) if missing; makes it active."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
     uri = uri or mlflow.get_tracking_uri()
     exp = mlflow.get_experiment_by_name(name)
+    desc = EXPERIMENT_DESCRIPTIONS.get(name)
     if exp is None:
         try:
-            exp_id = mlflow.create_experiment(name, artifact_location=artifact_location(name, uri))
+            exp_id = mlflow.create_experiment(
+                name,
+                artifact_location=artifact_location(name, uri),
+                tags={NOTE_TAG: desc} if desc else None,
+            )
         except MlflowException:  # created concurrently by another stage
             exp = mlflow.get_experiment_by_name(name)
             if exp is None:
@@ -188,6 +206,8 @@ def ensure_experiment(name: str, uri: str | None = None) -> str:
             exp_id = exp.experiment_id
     else:
         exp_id = exp.experiment_id
+        if desc and (exp.tags or {}).get(NOTE_TAG) != desc:
+            mlflow.MlflowClient(uri).set_experiment_tag(exp_id, NOTE_TAG, desc)
     mlflow.set_experiment(experiment_id=exp_id)
     return exp_id
 
@@ -289,10 +309,11 @@ def start_run(
         except MlflowException:
             run_id = None
     with interruptible() as received:
+        note = f"DVC stage `{stage}` on the `{profile}` profile"
         run = mlflow.start_run(
             run_id=run_id,
             run_name=None if run_id else run_name,
-            tags=base_tags(profile, stage, tags),
+            tags={NOTE_TAG: note, **base_tags(profile, stage, tags)},
         )
         try:
             if params:
