@@ -16,13 +16,16 @@ no alias. The whole run holds the registry lock (``<mlflow.db>.gate.lock``): a s
 and then decides against the champion this one left. A champion that cannot be evaluated stops
 the run with every champion kept, unless it is known-incompatible (another grid, a pickled model
 of an older version), which is recorded and skipped. Exit status 0 on success (whatever the
-decisions), 1 on an error (one line naming the file/model/key).
+decisions), 1 on an error (one line naming the file/model/key). It prints one row per model:
+name, version, decision (champion / challenger / rejected), the gate metric with both figures,
+and why (:func:`traffictwin.mlops.promotion.format_table`); ``--json`` prints the decisions.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -282,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--json", action="store_true", help="print the decisions as JSON")
     args = ap.parse_args(argv)
+    # no "Downloading artifacts" bar per model checked (as the CLI: traffictwin.api.HTTP_ENV)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     try:
         decisions = promote(set(args.only) if args.only else None, args.dry_run, args.force)
     except (ValueError, RuntimeError) as exc:  # ConfigError, GateError, dataset/model errors
@@ -290,8 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps([d.to_dict() for d in decisions], indent=2, default=str))
     else:
-        for d in decisions:
-            print(promotion.format_decision(d))
+        print(promotion.format_table(decisions, dry_run=args.dry_run))
     return 0
 
 

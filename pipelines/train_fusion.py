@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> None:
         log.info(
             "%s: best epoch %s of %s, val KLD(b) %.4f (naive %.4f), val loss %.4f, %.1f s",
             stage,
-            m["best_epoch"],
+            m["best_epoch"] + 1,  # logs count epochs from 1; best_epoch is stored 0-based
             m["epochs"],
             m.get("val/kld_full", float("nan")),
             m.get("val/kld_full_naive", float("nan")),

@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
         log.info(
             "%s: best epoch %s of %s, val success %.2f, trans err %.2f m, rot err %.2f deg, %.1f s",
             stage,
-            m["best_epoch"],
+            m["best_epoch"] + 1,  # logs count epochs from 1; best_epoch is stored 0-based
             m["epochs"],
             m.get("val/success_rate", float("nan")),
             m.get("val/trans_err_m", float("nan")),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 
 import pytest
 from _registry_models import load_linear, log_linear
@@ -133,7 +134,7 @@ def _weight(uri: str) -> dict[str, float]:
     return {"test/w": float(reg.load_registered(uri, load_linear).weight.item())}
 
 
-def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
+def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch, capfd):
     monkeypatch.chdir(tmp_path)
     cl = reg.client(mlflow_uri)  # also points the fluent API (model logging) at the temp store
     log = tmp_path / "promotions.jsonl"
@@ -154,14 +155,46 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch):
 
     settings = promotion.PromotionSettings(log_path=log)
     first = jobs(a=1.0, b=2.0)
+    capfd.readouterr()
     ds = promotion.promote(first, promotion.PromotionSettings(dry_run=True))
+    # registering a new model says nothing on stderr (mlflow.register_model printed "Registered
+    # model 'm-a' already exists" for every version); the versions link back from the logged model
+    assert "already exists" not in capfd.readouterr().err
+    mv = cl.get_model_version("m-a", "1")
+    lm = cl.get_logged_model(mv.source.removeprefix("models:/"))
+    assert json.loads(lm.tags["mlflow.modelVersions"]) == [{"name": "m-a", "version": 1}]
+    assert mv.run_id == json.loads(_record(tmp_path / "a").read_text())["run_id"]
     assert [d.action for d in ds] == ["first", "first"] and not log.exists()
     assert reg.get_alias(cl, "m-a", "champion") is None  # dry run: no alias moved
     ds = promotion.promote(first, settings)  # same runs: registered once
     assert [d.action for d in ds] == ["first", "first"]
     assert cl.get_model_version("m-a", "1").tags["model_dir"] == "a"
     ds = promotion.promote(jobs(a=1.05, b=3.0), settings)
+    assert "already exists" not in capfd.readouterr().err
     assert [d.action for d in ds] == ["rejected", "promoted"]
+    header, *rows = promotion.format_table(ds).splitlines()
+    assert header.split() == list(promotion.TABLE_COLUMNS)
+    assert [re.split(r"\s{2,}", r) for r in rows] == [
+        [
+            "m-a",
+            "v2",
+            "rejected",
+            "test/w (higher is better)",
+            "1.05",
+            "1 (v1)",
+            "only 0.05 better than champion v1 (margin 0.1)",
+        ],
+        # promoted: the champion now (the old column said "challenger" here)
+        [
+            "m-b",
+            "v2",
+            "champion",
+            "test/w (higher is better)",
+            "3",
+            "2 (v1)",
+            "1 better than champion v1 (margin 0.1)",
+        ],
+    ]
     assert [d.test_fingerprint for d in ds] == ["fp:m-a", "fp:m-b"]
     assert str(reg.get_alias(cl, "m-b", "champion").version) == "2"
     assert [r["action"] for r in reg.read_log(log)] == ["first", "first", "rejected", "promoted"]
@@ -234,3 +267,74 @@ def test_jobs_model_cards_read_the_evaluation_metrics_with_intervals():
     risk = jobs[-1].card(cand)
     rm = json.loads(metrics_file("risk").read_text())["models"][rc.risk.variant]
     assert risk.metrics["test/mse_ci"] == rm["test/mse_ci"] and "label x" in risk.data
+
+
+def _decision(action, version="2", champion="1", ch=0.30, cp=0.31, **kw):
+    return Decision("m", version, "r", champion, "val/kld", "min", 0.005, ch, cp, action, "", **kw)
+
+
+def test_table_says_where_each_version_stands_and_why():
+    """The printed table: a header, one row per model; the decision is the version's place after
+    the gate (a promoted version is the champion, not a "challenger"), the why a few words."""
+    from traffictwin.mlops.gate import outcome, short_reason
+
+    cases = [
+        (_decision("first", champion=None, cp=None), "champion", "no champion yet"),
+        (_decision("promoted", ch=0.29), "champion", "0.02 better than champion v1 (margin 0.005)"),
+        (_decision("rejected", ch=0.308), "rejected", "only 0.002 better than champion v1"),
+        (_decision("rejected", ch=0.32), "rejected", "0.01 worse than champion v1"),
+        (_decision("rejected", ch=float("nan")), "rejected", "val/kld is not finite"),
+        (_decision("unchanged", version="1", ch=None, cp=None), "champion", "already the champion"),
+        (
+            _decision("unchanged", ch=None, cp=None, earlier="rejected"),
+            "rejected",
+            "decided before against champion v1 (rejected)",
+        ),
+        (  # an earlier promotion that a rollback undid: still the challenger
+            _decision("unchanged", ch=None, cp=None, earlier="promoted"),
+            "challenger",
+            "decided before against champion v1 (promoted)",
+        ),
+        (
+            _decision("promoted", cp=None, champion_incompatible="trained on grid 64x48 " * 9),
+            "champion",
+            "champion v1 skipped, incompatible: trained on grid 64x48 trained",
+        ),
+    ]
+    for d, where, why in cases:
+        assert outcome(d) == where, d
+        assert short_reason(d).startswith(why), (short_reason(d), why)
+        assert len(short_reason(d)) < 100
+    text = promotion.format_table([d for d, _, _ in cases], dry_run=True)
+    lines = text.splitlines()
+    assert lines[0].split() == [
+        "model",
+        "version",
+        "decision",
+        "metric",
+        "value",
+        "champion",
+        "why",
+    ]
+    assert len(lines) == 1 + len(cases) + 1 and lines[-1].startswith("dry run: nothing applied")
+    # columns line up: every row's decision starts where the header's does
+    col = lines[0].index("decision")
+    assert all(ln[col:].split()[0] in ("champion", "challenger", "rejected") for ln in lines[1:-1])
+    cells = [re.split(r"\s{2,}", ln) for ln in lines[1:-1]]  # cells are 2+ spaces apart
+    assert cells[1][3:6] == ["val/kld (lower is better)", "0.29", "0.31 (v1)"]
+    assert cells[0][4:6] == ["0.3", "—"]  # no champion yet
+    assert "skipped (v1)" in lines[-2]
+    # unchanged decisions are not logged, so the log records keep their keys
+    assert "earlier" not in _decision("rejected").to_dict()
+    assert _decision("unchanged", earlier="rejected").to_dict()["earlier"] == "rejected"
+
+
+def test_main_prints_the_table(monkeypatch, capsys):
+    ds = [_decision("promoted", ch=0.29), _decision("rejected", ch=0.32)]
+    monkeypatch.setattr(pm, "promote", lambda *a, **k: ds)
+    assert pm.main([]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split()[:3] == ["model", "version", "decision"] and len(out) == 3
+    assert out[1].split()[2] == "champion" and out[2].split()[2] == "rejected"
+    assert pm.main(["--json"]) == 0
+    assert [d["action"] for d in json.loads(capsys.readouterr().out)] == ["promoted", "rejected"]

@@ -9,7 +9,9 @@ A training function given a *resume folder* (outside every DVC output; the workf
   state the next epoch draws from: torch / numpy / python global RNGs and each
   ``torch.Generator`` of the LightningModule (augmentation) and of the training DataLoader
   (sampler order);
-- the best-epoch checkpoint (``best.ckpt``: the training function's ModelCheckpoint folder);
+- the best-epoch checkpoint (``best/best.ckpt``: the ModelCheckpoint folder of
+  :func:`traffictwin.trainer.fit_run`, a subfolder that only the run writes: absent when a run
+  starts afresh, so Lightning finds it empty, and restored with the rest when it resumes);
 - ``resume.json`` — the fingerprint of everything that determines the run (config, data
   manifest hash, the library's source) and the MLflow run id.
 
@@ -177,7 +179,11 @@ class ResumeCheckpoint(Callback):
         tmp = self.folder / f".{LAST}.tmp"
         self._saving = True
         try:
-            trainer.save_checkpoint(tmp)
+            # the full training state (optimiser, schedulers, callbacks, loops), said explicitly:
+            # left unset, Lightning logs "`weights_only` was not set, defaulting to `False`" at
+            # every epoch. (The flag chooses what is *saved*; the file holds tensors and plain
+            # containers only and is read back with torch.load(weights_only=True): fit_run.)
+            trainer.save_checkpoint(tmp, weights_only=False)
         finally:
             self._saving = False
         if trainer.is_global_zero:
@@ -245,8 +251,9 @@ class Session:
     """One training run's use of a resume folder (``folder=None``: no resuming, a temp folder).
 
     ``resume_from``: the ``last.ckpt`` to pass to ``trainer.fit(ckpt_path=...)`` (``None``: start
-    afresh); :meth:`run_id`: the MLflow run to continue; :meth:`workdir`: where the best-epoch
-    checkpoint goes (the resume folder, so a resumed run still has it); :meth:`callbacks`:
+    afresh); :meth:`run_id`: the MLflow run to continue; :meth:`workdir`: the run's working
+    folder, where ``fit_run`` keeps the best-epoch checkpoint (in its ``best/`` subfolder; the
+    resume folder, so a resumed run still has it); :meth:`callbacks`:
     :class:`ResumeCheckpoint`; :meth:`started` records the MLflow run; :meth:`finish` removes the
     folder after the outputs are written.
     """

@@ -387,7 +387,8 @@ class FiniteGuard(Callback):
     """Stop training at the first non-finite training loss (after every training batch) or
     non-finite ``monitor`` value (after every validation), with :class:`TrainingDiverged`.
 
-    The message names ``stage``, the epoch (0-based), the global step, the value, the current
+    The message names ``stage``, the epoch (1-based, as every log line counts them: see
+    :class:`History`), the global step, the value, the current
     learning rate and ``hint`` (the setting to lower, e.g. ``fusion_model.optim.lr``), and says
     that NaN/inf in the data have the same effect (the loaders refuse non-finite shards, so here
     it is usually the learning rate). Read-only: it changes nothing in a run that stays finite.
@@ -410,7 +411,7 @@ class FiniteGuard(Callback):
             lr = trainer.optimizers[0].param_groups[0].get("lr")
         lr_s = f", lr={float(lr):g}" if lr is not None else ""
         raise TrainingDiverged(
-            f"{self.stage}: training diverged at epoch {int(trainer.current_epoch)}, step "
+            f"{self.stage}: training diverged at epoch {int(trainer.current_epoch) + 1}, step "
             f"{int(trainer.global_step)}: {what} is {value}{lr_s}; lower {self.hint} "
             f"(or check the training data for NaN/inf)"
         )
@@ -475,7 +476,13 @@ class History(Callback):
 
     ``every="epoch"`` (fusion): one row per finished training epoch (after its validation):
     ``epoch`` (0-based), every ``callback_metrics`` name with a ``/``, ``lr`` (first param
-    group); MLflow ``step = epoch``.
+    group); MLflow ``step = epoch``; and one log line ``epoch k/N ...``.
+
+    Epoch numbers, the one convention: *stored* epochs are Lightning's 0-based
+    ``current_epoch`` (the rows' and the curves CSV's ``epoch``, MLflow steps, a checkpoint's
+    ``epoch``, the ``best_epoch`` of metrics and model meta files); every *human-readable* line
+    (this log line, :class:`FiniteGuard`'s message, the report's sentences on where training
+    stopped) counts from 1, i.e. says stored epoch + 1, "epoch k/N" meaning the k-th of N.
 
     ``every="validation"`` (risk; the paper's curves are over iterations): one row per
     validation: ``step`` (global step), ``epoch`` (fractional), ``train_loss`` = the mean
@@ -803,6 +810,8 @@ class Fitted:
 
     @property
     def best_epoch(self) -> int:
+        """The best checkpoint's epoch, 0-based (Lightning's; -1 when there is none): a log line
+        says ``best_epoch + 1`` (see :class:`History`)."""
         return int(self.best.get("epoch", -1)) if self.best else -1
 
     def best_row(self) -> dict[str, float]:
@@ -811,6 +820,39 @@ class Fitted:
         return next(
             (r for r in rows if r.get("epoch") == self.best_epoch), rows[-1] if rows else {}
         )
+
+
+BEST_DIR = "best"  # fit_run's folder for the best epoch's checkpoint, inside its work folder
+
+# Lightning 2.6's CombinedLoader builds a torch.utils._pytree.LeafSpec() for every loader it
+# wraps (lightning/pytorch/utilities/_pytree.py), which torch >= 2.9 deprecates with a
+# FutureWarning at each fit (Lightning-AI/pytorch-lightning#21326). No Trainer or loader setting
+# avoids it (a single loader, a list or a dict all end in a LeafSpec), and nothing of ours calls
+# it: :func:`_quiet_fit` ignores exactly this warning from exactly that module, during the fit.
+_LEAFSPEC_MESSAGE = r"`isinstance\(treespec, LeafSpec\)` is deprecated"
+_LEAFSPEC_MODULE = r"lightning\.pytorch\.utilities\._pytree"
+
+
+@contextmanager
+def _quiet_fit(resumed_best_dir: str | Path | None = None) -> Iterator[None]:
+    """Around ``trainer.fit``: ignore Lightning's ``LeafSpec`` FutureWarning (above); when the
+    run resumes, also ModelCheckpoint's "Checkpoint directory ... exists and is not empty" for
+    ``resumed_best_dir``, which then holds, by design, the best checkpoint the interrupted run
+    wrote (its bookkeeping is restored from ``last.ckpt``). Other warnings pass as they are."""
+    import re
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message=_LEAFSPEC_MESSAGE, category=FutureWarning, module=_LEAFSPEC_MODULE
+        )
+        if resumed_best_dir is not None:
+            warnings.filterwarnings(
+                "ignore",
+                message=rf"Checkpoint directory {re.escape(str(resumed_best_dir))} exists and is not empty",
+                category=UserWarning,
+            )
+        yield
 
 
 @contextmanager
@@ -863,7 +905,11 @@ def fit_run(
                 log_dataset(root, digest)
         session.started(run)
         history = History(loop.history, metrics=loop.history_metrics, logger=logger)
-        ckpt = best_checkpoint(work, monitor=loop.monitor, mode=loop.mode)
+        # the best epoch's checkpoint in a folder of its own, which only this run writes: absent when
+        # the run starts afresh (Session.workdir is new or just emptied, the resume folder already
+        # holds resume.json), kept with the resume state when it resumes
+        best_dir = Path(work) / BEST_DIR
+        ckpt = best_checkpoint(best_dir, monitor=loop.monitor, mode=loop.mode)
         callbacks: list[Any] = [history, ckpt]
         if loop.patience is not None:
             callbacks.append(
@@ -883,13 +929,17 @@ def fit_run(
             **dict(loop.trainer_extra),
         )
         t0 = time.perf_counter()
-        trainer.fit(
-            module,
-            datamodule=datamodule,
-            train_dataloaders=train_dataloaders,
-            val_dataloaders=val_dataloaders,
-            ckpt_path=session.resume_from,
-        )
+        # ckpt.dirpath: the folder as Lightning names it in the warning (its realpath)
+        with _quiet_fit(ckpt.dirpath if session.resume_from is not None else None):
+            trainer.fit(
+                module,
+                datamodule=datamodule,
+                train_dataloaders=train_dataloaders,
+                val_dataloaders=val_dataloaders,
+                ckpt_path=session.resume_from,
+                # last.ckpt holds tensors and plain containers only: read without unpickling code
+                weights_only=True,
+            )
         seconds = time.perf_counter() - t0
         if not trainer.is_global_zero:
             yield None
@@ -897,7 +947,8 @@ def fit_run(
         path = getattr(ckpt, "best_model_path", "") if not fast_dev_run else ""
         best = None
         if path and Path(path).exists():
-            # our own Lightning checkpoint of this run (optimizer state etc.): not a foreign file
-            best = torch.load(path, map_location="cpu", weights_only=False)
+            # this run's own Lightning checkpoint (weights, optimiser state, loops: tensors and
+            # plain containers), read like every other checkpoint without unpickling code
+            best = torch.load(path, map_location="cpu", weights_only=True)
         yield Fitted(best, history, trainer, run, logger, seconds, str(settings.precision))
     session.finish()

@@ -52,7 +52,8 @@ def test_finite_guard_names_stage_epoch_step_lr_and_setting(bad: float) -> None:
     with pytest.raises(TrainingDiverged) as info:
         guard.on_train_batch_end(_fake_trainer(), None, {"loss": torch.tensor(bad)}, None, 0)
     msg = str(info.value)
-    assert msg.startswith("train_fusion@B: training diverged at epoch 3, step 17: ")
+    # Lightning's current_epoch 3 is the 4th epoch: messages count epochs from 1, like the logs
+    assert msg.startswith("train_fusion@B: training diverged at epoch 4, step 17: ")
     assert f"the training loss is {bad}" in msg and "lr=0.5" in msg
     assert "lower fusion_model.optim.lr" in msg
     assert isinstance(info.value, FloatingPointError)  # run_stage's one-line class
@@ -102,7 +103,7 @@ def test_build_trainer_adds_a_guard_and_an_infinite_lr_stops_the_run() -> None:
     assert sum(isinstance(cb, FiniteGuard) for cb in trainer.callbacks) == 1
     L.seed_everything(0, verbose=False)
     module = Mod(_Tiny(), torch.nn.functional.mse_loss, lr=float("inf"))
-    with pytest.raises(TrainingDiverged, match=r"epoch 0, step [12]: .* lr=inf"):
+    with pytest.raises(TrainingDiverged, match=r"epoch 1, step [12]: .* lr=inf"):
         trainer.fit(module, train_dataloaders=dl)
     # a guard given by the caller is not doubled
     own = FiniteGuard("mine")

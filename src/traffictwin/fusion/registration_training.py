@@ -282,7 +282,8 @@ def fit_registration(
     ``tracking`` is enabled (registering it is the promotion gate's job). A non-finite validation loss
     fails the run (nothing is published). Identical runs write identical bytes: the MLflow run id,
     model URI and training time are only in the result. Returns ``None`` on other DDP ranks. ``resume_dir``: as
-    for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`).
+    for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`). ``best_epoch``
+    is 0-based in the files, 1-based in messages (:class:`traffictwin.trainer.History`).
     """
     common.seed_everything(seed)
     ds = Dataset(
@@ -390,7 +391,8 @@ def fit_registration(
             math.isfinite(float(row.get(k, float("nan")))) for k in ("val/loss", "val/trans_err_m")
         ):
             raise RuntimeError(
-                f"learned registration: best epoch {best_epoch} has non-finite validation metrics {row}"
+                f"learned registration: best epoch {best_epoch + 1} (1-based) has non-finite "
+                f"validation metrics {row}"
             )
         epochs_run = len(fitted.history.rows)
         metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}

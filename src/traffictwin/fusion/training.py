@@ -633,6 +633,9 @@ def fit_fusion(
     ``metrics_out`` (best-epoch metrics, epochs, ``samples_seen``), ``curves_out`` (per-epoch CSV):
     identical runs write identical bytes. What differs between runs (MLflow run id and model URI,
     training seconds and pairs per second) is only in the returned :class:`FitResult`.
+    ``best_epoch`` (metrics, meta, the checkpoint's ``epoch``) and the curves' ``epoch`` are
+    0-based, Lightning's count; human-readable lines say ``best_epoch + 1`` of ``epochs``
+    (:class:`traffictwin.trainer.History`).
     Returns ``None`` on other DDP ranks.
 
     ``resume_dir``: a folder outside the outputs where the run keeps its training state

@@ -22,6 +22,9 @@ Rules:
   (``champion_incompatible``; the registry records it on the version) and the challenger is
   judged alone, as if there were no champion (``promoted`` if its figure is finite);
 - otherwise the challenger is ``promoted`` only if it is better by more than ``margin``.
+
+For people, :func:`outcome` says where a decision leaves the version (``champion``,
+``challenger`` or ``rejected``) and :func:`short_reason` why, in a few words.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from traffictwin.mlops.errors import GateError, IncompatibleModelError
 __all__ = ["GateError", "IncompatibleModelError"]  # defined in errors.py, part of this API
 
 Action = Literal["first", "promoted", "rejected", "unchanged"]
+Outcome = Literal["champion", "challenger", "rejected"]
 Evaluator = Callable[[str], Mapping[str, float]]
 
 
@@ -106,6 +110,7 @@ class Decision:
     champion_metrics: dict[str, float] = field(default_factory=dict)
     champion_incompatible: str = ""  # why the champion was skipped (known-incompatible), else ""
     timestamp: float = field(default_factory=time.time)
+    earlier: str = ""  # unchanged as already decided: that earlier decision's action, else ""
 
     @property
     def promotes(self) -> bool:
@@ -113,6 +118,8 @@ class Decision:
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
+        if not d["earlier"]:
+            del d["earlier"]  # the log's records (never unchanged) keep their keys
         d["event"] = "promotion"
         d["time"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.timestamp))
         return d
@@ -198,6 +205,7 @@ def decide(
             champion_version=champion.version,  # type: ignore[union-attr]
             reason=f"already decided against champion v{champion.version} on this test set "  # type: ignore[union-attr]
             f"({challenger.tags['gate.decision']})",
+            earlier=str(challenger.tags["gate.decision"]),
         )
     ch_metrics = {k: float(v) for k, v in evaluate(challenger.uri).items()}
     ch_val = metric_value(ch_metrics, gate.metric, f"{name} v{challenger.version}")
@@ -257,3 +265,49 @@ def one_line(exc: BaseException, limit: int = 600) -> str:
     """``str(exc)`` on one line (newlines folded), at most ``limit`` characters."""
     text = " ".join(str(exc).split())
     return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def outcome(d: Decision) -> Outcome:
+    """Where ``d`` leaves its version: ``champion`` (it became the champion, or already was),
+    ``rejected`` (the champion stays: the version was not better by more than the margin, or its
+    figure is not finite; also when an earlier run decided so against the same champion on the
+    same test set), ``challenger`` (not judged now and not the champion: an earlier decision no
+    longer describes the registry, e.g. after a rollback)."""
+    if d.promotes:
+        return "champion"
+    if d.action == "rejected":
+        return "rejected"
+    if d.champion_version is not None and d.champion_version == d.challenger_version:
+        return "champion"
+    return "rejected" if d.earlier == "rejected" else "challenger"
+
+
+def short_reason(d: Decision, limit: int = 60) -> str:
+    """Why, in a few words (the full sentence is ``d.reason``): the gate metric's difference to
+    the champion and the margin, "no champion yet", or why nothing was compared."""
+    champ = f"champion v{d.champion_version}"
+    if d.action == "unchanged":
+        if d.champion_version == d.challenger_version:
+            return "already the champion"
+        return f"decided before against {champ}" + (f" ({d.earlier})" if d.earlier else "")
+    ch = d.challenger_value
+    if ch is None or not math.isfinite(ch):
+        return f"{d.metric} is not finite"
+    if d.champion_incompatible:
+        why = d.champion_incompatible
+        why = why if len(why) <= limit else why[: limit - 1] + "…"
+        return f"{champ} skipped, incompatible: {why}"
+    if d.champion_version is None or d.champion_value is None:
+        return "no champion yet"
+    cp = d.champion_value
+    if not math.isfinite(cp):
+        return f"{champ}'s {d.metric} is not finite"
+    imp = (cp - ch) if d.mode == "min" else (ch - cp)
+    margin = f"margin {d.margin:g}"
+    if d.promotes:
+        return f"{imp:.3g} better than {champ} ({margin})"
+    if imp > 0:
+        return f"only {imp:.3g} better than {champ} ({margin})"
+    if imp == 0:
+        return f"same as {champ}"
+    return f"{-imp:.3g} worse than {champ}"

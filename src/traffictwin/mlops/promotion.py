@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.mlops import registry as reg
-from traffictwin.mlops.gate import Decision, Evaluator, Gate
+from traffictwin.mlops.gate import Decision, Evaluator, Gate, outcome, short_reason
 
 log = logging.getLogger("traffictwin.promotion")
 
@@ -382,3 +382,55 @@ def format_decision(d: Decision) -> str:
         elif d.champion_incompatible:
             fig += f"  champion v{d.champion_version} skipped: {d.champion_incompatible}"
     return f"{d.name:28s} v{d.challenger_version:>3s}  {d.action:9s}{fig}"
+
+
+TABLE_COLUMNS = ("model", "version", "decision", "metric", "value", "champion", "why")
+
+
+def _value(v: float | None) -> str:
+    return "—" if v is None else f"{v:.6g}"
+
+
+def table_rows(decisions: Sequence[Decision]) -> list[tuple[str, ...]]:
+    """One row of :data:`TABLE_COLUMNS` per decision: model name, version, decision
+    (:func:`traffictwin.mlops.gate.outcome`: ``champion`` / ``challenger`` / ``rejected``), the
+    gate metric compared (and which way is better), this version's and the champion's figure on
+    the gate set ("—" when not evaluated), and the short reason
+    (:func:`traffictwin.mlops.gate.short_reason`)."""
+    rows = []
+    for d in decisions:
+        better = "lower" if d.mode == "min" else "higher"
+        champ = "—"
+        if d.champion_value is not None:
+            champ = f"{_value(d.champion_value)} (v{d.champion_version})"
+        elif d.champion_version is not None and d.champion_incompatible:
+            champ = f"skipped (v{d.champion_version})"
+        rows.append(
+            (
+                d.name,
+                f"v{d.challenger_version}",
+                outcome(d),
+                f"{d.metric} ({better} is better)",
+                _value(d.challenger_value),
+                champ,
+                short_reason(d),
+            )
+        )
+    return rows
+
+
+def format_table(decisions: Sequence[Decision], *, dry_run: bool = False) -> str:
+    """The decisions as a table for a terminal: a header (:data:`TABLE_COLUMNS`) and one row per
+    model (:func:`table_rows`), columns padded to their widest cell; after a dry run a last line
+    says that nothing was applied."""
+    rows = [TABLE_COLUMNS, *table_rows(decisions)]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(TABLE_COLUMNS) - 1)]
+    lines = [
+        "  ".join([*(c.ljust(w) for c, w in zip(r[:-1], widths, strict=True)), r[-1]]).rstrip()
+        for r in rows
+    ]
+    if not decisions:
+        lines.append("(no model to gate)")
+    if dry_run:
+        lines.append("dry run: nothing applied (no alias moved, no decision recorded)")
+    return "\n".join(lines)
