@@ -161,6 +161,7 @@ def mlflow_uri(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
     """A temp SQLite MLflow backend, exported as MLFLOW_TRACKING_URI."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.setenv("TRAFFICTWIN_MODEL_CACHE", str(tmp_path / "model_cache"))  # per test
     return uri
 
 

@@ -228,7 +228,7 @@ def _load_registered(cl, name: str, alias: str, loader, what: str, family: str |
         raise ApiError(f"model '{name}' has no version with alias '{alias}' ({hint})")
     uri = reg.version_uri(name, mv.version)
     try:
-        return reg.load_registered(uri, loader, cl=cl), f"{name}@{alias} ({uri})"
+        return reg.load_registered(uri, loader, cl=cl, cache=True), f"{name}@{alias} ({uri})"
     except reg.GateError as exc:  # tampered, legacy pickle, missing files, ...
         raise ApiError(_first_line(exc, 400)) from None
     except Exception as exc:  # noqa: BLE001

@@ -200,9 +200,34 @@ def test_cli_risk_refuses_a_tampered_registered_model(cl, tmp_path, capsys, monk
     assert ok["risk"] == json.loads((tmp_path / "path.json").read_text())["risk"]
     marker = tmp_path / "pwned"
     write_malicious_pickle(artifact_dir(cl, reg.RISK_NAME, mv.version) / art.CKPT, marker)
+    # the CLI's verified copy (issue 33) holds exactly the recorded files: served, nothing unpickled
+    assert cli.main([*args, "-o", str(tmp_path / "cached.json")]) == 0 and not marker.exists()
+    import shutil
+
+    shutil.rmtree(reg.model_cache_root())  # cold: the store's tampered file is refused
     capsys.readouterr()
     assert cli.main([*args, "-o", str(tmp_path / "bad.json")]) == 1
     err = capsys.readouterr().err.strip()
     assert "traffictwin-risk' v1: artifact file model.ckpt does not match" in err
     assert len(err.splitlines()) == 1 and not marker.exists(), err
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_a_registry_load_reuses_its_verified_copy_and_drops_an_altered_one(cl):
+    """Issue 33: interactive registry loads cost about a folder load: the second load reads the
+    verified copy kept by the first (no download); a copy altered since is dropped and downloaded
+    again; the promotion gate's loads never use the cache."""
+    from unittest import mock
+
+    mv = _registered(cl, 0.25)
+    uri = reg.version_uri(NAME, mv.version)
+    assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
+    (kept,) = [p for p in reg.model_cache_root().iterdir() if not p.name.startswith(".")]
+    with mock.patch.object(reg, "_download", side_effect=AssertionError("downloaded again")):
+        assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
+    write_malicious_pickle(kept / art.CKPT, kept / "pwned")  # the cache altered on disk
+    assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
+    # the gate (no cache) always reads the store
+    with mock.patch.object(reg, "_cached_copy", side_effect=AssertionError("cache used")):
+        assert reg.load_registered(uri, load_linear, cl=cl).weight.sum().item() == 0.5
+    assert not (kept / "pwned").exists()

@@ -215,9 +215,17 @@ def ensure_version(
     set on the version (tag ``traffictwin.sha256``; an existing version without it gets it now).
     Raises :class:`RegistryError` if the run does not exist or its model cannot be registered
     safely (a pickled ``mlflow.pytorch`` model, files that changed since logging).
+
+    The registered model is created here when absent and the version with
+    ``MlflowClient.create_model_version``, not ``mlflow.register_model``: that one tries to create
+    the registered model every time and prints "Registered model '<name>' already exists" to
+    stderr for each version. What it adds beyond the version, the logged model's
+    ``mlflow.modelVersions`` tag (the UI's link from the logged model), is set here too. One log
+    line per model created and per version registered.
     """
     import mlflow
     from mlflow.exceptions import MlflowException
+    from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
     try:
         cl.get_run(run_id)
@@ -246,14 +254,27 @@ def ensure_version(
             name,
             description=f"traffictwin model '{name}' (promotion gate: traffictwin.mlops.registry)",
         )
+        log.info("registered model '%s' created", name)
     all_tags = {k: str(v) for k, v in (tags or {}).items()}
     all_tags[art.SHA_TAG] = art.encode_hashes(record)
     try:
-        mv = mlflow.register_model(f"models:/{model_id}", name, tags=all_tags)
+        # the run id comes from the logged model (as mlflow.register_model leaves it)
+        mv = cl.create_model_version(name, f"models:/{model_id}", tags=all_tags, model_id=model_id)
     except MlflowException as exc:
         raise RegistryError(
             f"cannot register run '{run_id}' as '{name}' from models:/{model_id}: {exc}"
         ) from None
+    try:
+        linked = json.loads(
+            (cl.get_logged_model(model_id).tags or {}).get(MLFLOW_MODEL_VERSIONS, "[]")
+        )
+        linked = [*linked, {"name": mv.name, "version": mv.version}]
+        cl.set_logged_model_tags(model_id, {MLFLOW_MODEL_VERSIONS: json.dumps(linked)})
+    except (MlflowException, ValueError, TypeError) as exc:  # only the UI's back link is missing
+        log.warning(
+            "model '%s' v%s: logged model %s not linked back (%s)", name, mv.version, model_id, exc
+        )
+    log.info("model '%s': version %s registered from run %s", name, mv.version, run_id)
     return cl.get_model_version(name, mv.version)
 
 
@@ -343,6 +364,7 @@ def load_registered(
     *,
     check: Callable[[dict[str, Any]], str | None] | None = None,
     cl=None,
+    cache: bool = False,
 ) -> T:
     """Load a registered model safely and return ``loader(folder)``.
 
@@ -354,7 +376,11 @@ def load_registered(
     :class:`LegacyModelError`; then ``check(meta)`` on its ``model_meta.json``: a returned reason
     raises :class:`IncompatibleModelError`. Only then ``loader(folder)`` (a problem loader
     reading ``model.ckpt`` with ``weights_only=True``) builds the model. The temp folder is
-    removed afterwards. ``cl``: the client (default: one on the fluent API's current URIs).
+    removed afterwards. ``cache`` (the CLI and API's interactive loads): a verified copy is kept
+    under :func:`model_cache_root`, keyed by the SHA-256 record, and used (re-verified against
+    the record) instead of a new download, so a registry load costs about what a folder load
+    costs; the promotion gate never uses it (it checks the store itself). ``cl``: the client
+    (default: one on the fluent API's current URIs).
     """
     if cl is None:
         from mlflow import MlflowClient
@@ -379,6 +405,9 @@ def load_registered(
         who = f"model '{name}' v{mv.version}"
         source = mv.source
         value = (mv.tags or {}).get(art.SHA_TAG)
+    cached = _cached_copy(value, who) if cache else None
+    if cached is not None:  # a verified copy of exactly the recorded files: no download
+        return _checked_load(cached, who, check, loader)
     with tempfile.TemporaryDirectory(prefix="tt-load-") as tmp:
         folder = _download(cl, source, tmp)
         if value is None:
@@ -388,12 +417,74 @@ def load_registered(
                 "register it with `python -m pipelines.promote`"
             )
         art.verify(folder, art.decode_hashes(value, who), who)
-        art.read_flavor(folder, who)
-        if check is not None:
-            reason = check(art.read_meta(folder, who))
-            if reason:
-                raise IncompatibleModelError(f"{who}: {reason}")
-        return loader(folder)
+        model = _checked_load(folder, who, check, loader)
+        if cache:
+            _keep_copy(folder, value)
+        return model
+
+
+#: where verified registry downloads are kept (``TRAFFICTWIN_MODEL_CACHE``; ``off``: no cache)
+CACHE_ENV = "TRAFFICTWIN_MODEL_CACHE"
+
+
+def model_cache_root() -> Path | None:
+    """The folder of verified model copies (default ``~/.cache/traffictwin/models``), or None."""
+    v = os.environ.get(CACHE_ENV)
+    if v is not None and v.strip().lower() in ("", "off", "0", "false", "none"):
+        return None
+    if v:
+        return Path(v)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "traffictwin" / "models"
+
+
+def _cache_key(value: str) -> str:
+    return hashlib.sha256(value.encode()).hexdigest()[:32]
+
+
+def _cached_copy(value: str | None, who: str) -> Path | None:
+    """The cached copy of the files recorded in ``value`` (the version's SHA-256 record), checked
+    against the record now; None when there is none or it no longer matches (then removed)."""
+    root = model_cache_root()
+    if value is None or root is None:
+        return None
+    folder = root / _cache_key(value)
+    if not folder.is_dir():
+        return None
+    try:
+        art.verify(folder, art.decode_hashes(value, who), who)
+    except Exception:  # noqa: BLE001 - an altered cache entry is dropped and downloaded again
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    return folder
+
+
+def _keep_copy(folder: Path, value: str) -> None:
+    """Keep a verified download for the next load (best effort: a full disk only costs speed)."""
+    import shutil
+
+    root = model_cache_root()
+    if root is None:
+        return
+    dest = root / _cache_key(value)
+    tmp = root / f".{dest.name}.{os.getpid()}.tmp"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(folder, tmp)
+        os.replace(tmp, dest)
+    except OSError:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _checked_load(folder: Path, who: str, check, loader):
+    art.read_flavor(folder, who)
+    if check is not None:
+        reason = check(art.read_meta(folder, who))
+        if reason:
+            raise IncompatibleModelError(f"{who}: {reason}")
+    return loader(folder)
 
 
 def _version(name: str, mv) -> _gate.Version:
