@@ -8,14 +8,23 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
+# an extra package index for torch's CPU wheel on a machine whose pip cannot find it otherwise:
+#   make install TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# empty (the default): pip's own configuration alone (docs/installation.md)
+TORCH_INDEX ?=
+# arguments of `make retrain` (python -m pipelines.retrain --help), e.g. RETRAIN_ARGS="--seed 7"
+RETRAIN_ARGS ?=
+# what `make reset` restores to the last commit (tracked files) and cleans (untracked, under reports/)
+RESET_PATHS := params.yaml dvc.lock reports
 
-.PHONY: install run test test-fast lint format params promote ablations bench readme push pull clean-venv
+.PHONY: install run test test-fast lint format params promote retrain reset ablations bench readme docs push pull clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	# torch==2.13.0 is the local CPU wheel (pip's find-links); requirements.lock pins the rest
-	$(PY) -m pip install -q -c requirements.lock -e '.[test]'
+	# torch==2.13.0 is the CPU wheel: from pip's configuration (find-links) or TORCH_INDEX;
+	# requirements.lock pins the rest
+	$(PY) -m pip install -q -c requirements.lock $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -e '.[test]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -30,7 +39,7 @@ run: install
 test: install
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-# unit tests only (no stage, DAG, training run or MLflow database): under a minute
+# unit tests only (no stage, DAG, training run or MLflow database); how many: docs/testing.md
 test-fast: install
 	$(PY) -m pytest -m "not slow and not integration" $(PYTEST_ARGS)
 
@@ -46,6 +55,27 @@ format: install
 promote: install
 	$(PY) -m pipelines.promote
 
+# the scheduled retraining job, once, now: new data seed -> dvc repro -> promotion gate ->
+# reports/retrain_summary.{json,md} (docs/registry.md)
+retrain: install
+	$(PY) -m pipelines.retrain $(RETRAIN_ARGS)
+
+# the committed workspace again after a run you do not want to keep (the Quick start's ci run):
+# tracked files of $(RESET_PATHS) back to the last commit, in the workspace and in git's index
+# (DVC's autostage stages dvc.lock), untracked files under reports/ removed, then data/ and
+# models/ as dvc.lock says. Nothing else is touched (conf/, mlflow.db, outputs/, your files).
+reset: install
+	@echo "make reset: restoring $(RESET_PATHS) to the last commit (workspace and index)"
+	git restore --source=HEAD --staged --worktree -- $(RESET_PATHS)
+	@echo "make reset: removing untracked run outputs under reports/"
+	git clean -f -d -x -- reports/
+	@echo "make reset: data/ and models/ as dvc.lock says (dvc checkout)"
+	@$(VENV)/bin/dvc checkout || echo "make reset: dvc checkout could not restore every output" \
+	  "(above): what is not in the DVC cache is rebuilt by make run, or fetched by make pull"
+	@st=$$(git status --short -- $(RESET_PATHS)); \
+	  if [ -z "$$st" ]; then echo "make reset: done; $(RESET_PATHS) are as committed"; \
+	  else echo "make reset: done; still differing from the last commit:"; echo "$$st"; fi
+
 # the comparisons the default run leaves out (conf/config.yaml `ablations`): DVC experiments in a
 # temp copy, results collected into reports/ablations/ (the report shows them); after `make run`
 ablations: install
@@ -54,9 +84,16 @@ ablations: install
 bench: install
 	$(PY) -m benchmarks.run
 
-# copy reports/results_table.md (written by `make run`) into README.md
+# the results in reports/ (written by `make run` and `make bench`) into README.md,
+# docs/results.md and docs/benchmarks.md; commit them together
 readme: install
 	$(PY) -m pipelines.readme_results
+
+# every generated block of README.md and docs/: the results (make readme), the CLI reference
+# (docs/cli.md) and the test counts (docs/testing.md); tests/test_readme.py and tests/test_docs.py
+# fail when one is stale
+docs: readme
+	$(PY) -m pipelines.docs_reference
 
 # DVC remote: data and models to / from the default remote of .dvc/config (a folder beside the
 # clone, ../traffictwin-dvc-store, unless `dvc remote add -d` chose another); `make pull` in a

@@ -774,6 +774,6 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert [r[0] for r in shares] == ["train", "val", "test", "all"]
     sit = tables[anchors.index("risk-situations")]
     assert [r[0] for r in sit] == sorted(SITUATIONS)
-    res = (rep / "results_table.md").read_text()  # the headline tables go to the README
+    res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
     assert "Risk: every predictor on the same test frames" in res and "Risk: targets" in res
     assert "figures/risk_roc.png" in md
