@@ -610,19 +610,27 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
     return LoadedRisk(rm, desc)
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """An 8-bit BGR image (grayscale is expanded to 3 channels, :func:`as_bgr`); errors name the file."""
-    import cv2
-
+def check_image_file(path: str | os.PathLike) -> tuple[int, int]:
+    """``(width, height)`` (px) of an image file from its header alone: :class:`InputFileError`
+    when it is missing, not a supported format or larger than the pixel limit. Cheap (nothing is
+    decoded): the CLI checks every input this way before it loads a model."""
     from traffictwin.io.limits import InputError, check_image_size
 
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: image not found")
     try:  # format and size from the header, before a pixel is decoded
-        check_image_size(path)
+        return check_image_size(path)
     except InputError as exc:
         raise InputFileError(str(exc)) from None
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """An 8-bit BGR image (grayscale is expanded to 3 channels, :func:`as_bgr`); errors name the file."""
+    import cv2
+
+    path = Path(path)
+    check_image_file(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputFileError(f"{path}: not a readable image (OpenCV could not decode it)")

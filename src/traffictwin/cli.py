@@ -706,6 +706,9 @@ def cmd_risk(args: argparse.Namespace) -> int:
         [Path(args.params)] if args.params else []
     )
     outs = OutputSet([out] if out else [], inputs=inputs, force=args.force)
+    for f in frames:  # every image's header before the model (and torch) loads: a huge or
+        for p in (f.left, f.right):  # broken image is refused in a fraction of a second
+            api.check_image_file(p)
     rmodel = api.load_risk(args.model, tracking_uri=args.tracking_uri)
     for note in api.check_speed(rmodel, args.speed, args.params):
         warnings.warn(note, ApiWarning, stacklevel=1)
@@ -906,7 +909,10 @@ def _uri_option(p: argparse.ArgumentParser) -> None:
 def _output_options(p: argparse.ArgumentParser, help_text: str, required: bool = True) -> None:
     p.add_argument("-o", "--output", required=required, default=None, help=help_text)
     p.add_argument(
-        "--force", action="store_true", help="overwrite existing outputs (never an input)"
+        "--force",
+        action="store_true",
+        help="overwrite a previous output of this kind (never an input, a model folder, the "
+        "MLflow store or a DVC file)",
     )
 
 
@@ -1089,7 +1095,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--wide", action="store_true", help="full run ids and every tag column")
     c.add_argument("--csv", default=None, help="also write the table as CSV")
-    c.add_argument("--force", action="store_true", help="overwrite an existing --csv file")
+    c.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite a previous --csv table (never the MLflow store or a DVC file)",
+    )
     c.set_defaults(func=cmd_runs_compare)
     return ap
 

@@ -270,4 +270,7 @@ def test_cli_refuses_huge_inputs_with_one_line_and_little_memory(big, tmp_path):
     # inputs cost (the fuse refusal does not even import torch)
     assert fuse_big["rss_mb"] < fuse_small["rss_mb"] + 100, (fuse_big, fuse_small)
     assert risk_big["rss_mb"] < risk_small["rss_mb"] + 100, (risk_big, risk_small)
+    # the target: refused with < 200 MB (every image header is checked before the model,
+    # and torch, load)
+    assert fuse_big["rss_mb"] < 200 and risk_big["rss_mb"] < 200, (fuse_big, risk_big)
     assert not (tmp_path / "o.npz").exists()

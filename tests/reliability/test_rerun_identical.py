@@ -161,3 +161,25 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     pinned = yaml.safe_load((repo / "params.yaml").read_text())["evaluation"]["num_threads"]
     for stage in EVALUATION_STAGES:
         assert run_record(repo, stage)["torch_threads"] == pinned
+
+
+@pytest.mark.slow
+def test_report_rendered_inside_an_experiment_leaves_dvc_lock_unchanged(
+    ci_dag: Path, tmp_path: Path
+) -> None:
+    """Issue 35, defect 22: after ``dvc exp run -S profile=ci``, ``dvc repro -f`` changed
+    dvc.lock because the report carried the experiment's name and pipeline run id. The report
+    rendered under an experiment's environment is now the same bytes as outside one."""
+    from conftest import stage_env
+
+    repo = tmp_path / "repo"
+    shutil.copytree(ci_dag, repo, symlinks=True)
+    before = (repo / "dvc.lock").read_bytes()
+    env = stage_env(repo) | {"DVC_EXP_NAME": "weepy-main", "TRAFFICTWIN_PIPELINE_RUN": "other-id"}
+    run(["dvc", "repro", "-f", "-s", "report"], repo, env=env, timeout=900)
+    assert _moved(before, (repo / "dvc.lock").read_bytes()) == []
+    record = json.loads((repo / "reports/timings/report.json").read_text())
+    assert record["dvc_exp_name"] == "weepy-main"  # the volatile values went to the run record
+    assert record["pipeline_run"] == "other-id"
+    run(["dvc", "repro", "-f", "-s", "report"], repo, timeout=900)  # and back outside
+    assert (repo / "dvc.lock").read_bytes() == before
