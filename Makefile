@@ -39,9 +39,10 @@ run: install
 test: install
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-# unit tests only (no stage, DAG, training run or MLflow database); how many: docs/testing.md
+# unit tests only (no stage, DAG, training run or MLflow database), on every core (pytest-xdist;
+# `make test` runs serially); how many: docs/testing.md
 test-fast: install
-	$(PY) -m pytest -m "not slow and not integration" $(PYTEST_ARGS)
+	$(PY) -m pytest -n auto -m "not slow and not integration" $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -143,6 +143,7 @@ def test_make_test_fast_uses_the_documented_marker_expression() -> None:
     assert f'-m "{D.FAST}"' in (ROOT / "Makefile").read_text()
 
 
+@pytest.mark.integration  # a pytest collection in a subprocess (~20 s)
 def test_test_counts_match_a_fresh_collection() -> None:
     """docs/testing.md says how many tests `make test` and `make test-fast` run: the counts of a
     fresh `pytest --collect-only` (one collection; nothing runs)."""

@@ -247,7 +247,7 @@ def test_the_docs_pages_ci_blocks_are_collected() -> None:
     assert cmds[0] == "source .venv/bin/activate" and cmds[1].startswith(
         "dvc exp run -S profile=ci"
     )
-    assert any(c.startswith("dvc exp run -n ow3") for c in cmds)
+    assert any(c.startswith("dvc exp run -n lr-high") for c in cmds)
 
 
 @pytest.mark.parametrize("page", DOC_PAGES)
