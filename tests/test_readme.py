@@ -311,4 +311,4 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     proc = run(["bash", "-c", script], repo, env=user_env(repo), timeout=1500)
     assert (repo / "outputs/fused.npz").is_file() and (repo / "outputs/fused.png").is_file()
     assert '"verdict"' in proc.stdout  # traffictwin risk printed its JSON
-    assert "ow3" in proc.stdout and (repo / "plots_cmp").is_dir()
+    assert "lr-high" in proc.stdout and (repo / "plots_cmp").is_dir()

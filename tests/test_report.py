@@ -648,13 +648,19 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     assert "Stage wall times" not in md and "Stage wall times" in timings_md
     for stage in timed:
         assert f"| {stage} |" in timings_md, stage
-    # the headline numbers are the only DVC metrics (readable `dvc metrics show`); every detailed
+    # the DVC metrics: the headline numbers and the two trainings' validation numbers (what
+    # `dvc exp diff` compares between training-only experiments, issue 33); every detailed
     # metrics file is an output shown in the report
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], ci_dag).stdout)
     declared = {p for rev in shown.values() for p in rev.get("data", {})}
-    assert declared == {"reports/summary.json"}, declared
+    assert declared == {
+        "reports/summary.json",
+        "reports/metrics/train_fusion_network.json",
+        "reports/metrics/train_registration.json",
+    }, declared
     summary = json.loads((reports / "summary.json").read_text())
-    assert set(summary) == {"fusion", "risk", "twin"}
+    assert set(summary) == {"run", "fusion", "risk", "twin"}  # run.note: the ci smoke banner
+    assert summary["run"]["note"] == "ci profile: a smoke run; numbers are not results"
     assert set(summary["fusion"]) == set(confs)
     table = run(["dvc", "metrics", "show"], ci_dag).stdout
     assert len(table.splitlines()) <= 40, table
