@@ -260,10 +260,12 @@ def main() -> None:
         c_fig = (
             tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
         )
-        seq = pick_timeline_sequence(table, c_fig, tc.headline, tc.fps, tc.figure.sequence)
+        seq = pick_timeline_sequence(
+            table, c_fig, tc.headline, tc.fps, tc.figure.sequence, s.horizon_s
+        )
         _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
         save_figure(
-            timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw),
+            timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw, s.warn_thw),
             figure_file("twin_timeline"),
         )
         a = next(x for x in seqs if ev.scalar(x["sequence"]) == seq)

@@ -150,6 +150,7 @@ def main() -> None:
                 "corridor_margin",
                 "horizon_s",
                 "ttc_warn_s",
+                "reaction_s",
                 "ttc_step_s",
             )
         },

@@ -378,10 +378,22 @@ def test_timeline_figure_plots_the_table() -> None:
     f["ego_sees_hazard"] = f["flagged"]
     f = f.replace({"method": {"twin": "learned"}})
     seq = pick_timeline_sequence(f, "D", "learned", 10.0)
-    assert seq == 0  # the larger lead
-    fig = timeline_figure(f, "D", "learned", seq, 1.5)
+    assert (
+        seq == 0
+    )  # leads 0.2 / 0.0 s (inside the episode): both 0.1 s off the median, lowest index
+    # warnings from 0.2 s before the onset count: leads 0.2 s (sequence 0: twin 0.2, ego 0.4),
+    # 0.3 s (sequence 1: twin 0.0, ego 0.3) and 0.4 s (sequence 2: twin 0.0, ego 0.4) -> the
+    # median one is sequence 1 (the largest lead would be sequence 2)
+    g = f[f["sequence"] == 1].assign(sequence=2)
+    g.loc[g["method"] == "learned", "flagged"] = True
+    g.loc[g["method"] == EGO, "flagged"] = [False, False, False, False, True]
+    three = pd.concat([f, g])
+    assert pick_timeline_sequence(three, "D", "learned", 10.0, horizon_s=0.2) == 1
+    fig = timeline_figure(f, "D", "learned", seq, 1.5, 2.5)
     ax = fig.axes[0]
     lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    assert set(lines["critical: THW < 1.5 s"].get_ydata()) == {1.5}
+    assert set(lines["warning: THW < 2.5 s"].get_ydata()) == {2.5}
     truth = f[(f["sequence"] == 0) & (f["method"] == EGO)]
     np.testing.assert_allclose(lines["truth"].get_ydata(), np.minimum(truth["thw_true"], THW_CAP))
     np.testing.assert_allclose(lines["twin (learned)"].get_ydata(), [3.0, 3.0, 1.0, 1.0, 1.0])

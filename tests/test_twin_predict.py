@@ -50,6 +50,23 @@ def test_blob_entering_ahead_of_the_ego_conflicts_when_reached():
     assert far == np.inf
 
 
+def test_a_follower_is_no_forward_conflict_when_the_ego_turns():
+    # the ego turns right: its path bends from +x to -y (quarter circle of radius 8 m); a vehicle
+    # 9 m behind, beside the path's start, drives straight on (+x, 7 m/s) at the ego's speed:
+    # extrapolated it would cross the bent corridor ahead of the ego (x = 8 m, y <= -8 m is the
+    # path after the bend; the straight line y = -8 meets it at 2.4 s), but it follows the ego
+    a = np.linspace(0.0, np.pi / 2, 40)
+    bend = np.stack([8.0 * np.sin(a), -8.0 + 8.0 * np.cos(a)], 1)
+    after = np.stack([np.full(40, 8.0), -8.0 - np.linspace(0.5, 40.0, 40)], 1)
+    path = np.concatenate([bend, after])
+    p = PredictSettings(step_s=0.1, horizon_s=3.0, warn_s=2.5)
+    behind = time_to_conflict([[-9.0, -8.0]], [[7.0, 0.0]], path, 3.5, 7.0, L, p)
+    assert behind == np.inf
+    # the same straight-line motion from ahead of the ego's rear still conflicts
+    ahead = time_to_conflict([[-1.0, -8.0]], [[7.0, 0.0]], path, 3.5, 7.0, L, p)
+    assert np.isfinite(ahead)
+
+
 def test_stopped_ego_and_empty_input():
     assert time_to_conflict([[5.0, 0.0]], [[0.0, 0.0]], PATH, 3.5, 0.0, L, P) == np.inf
     assert time_to_conflict(np.zeros((0, 2)), np.zeros((0, 2)), PATH, 3.5, 5.0, L, P) == np.inf

@@ -153,3 +153,57 @@ def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
     assert t["predictive_warns_earlier_than_thw"]["met"] is None
     nob = targets({"D": {"methods": s}}, "twin", "D")
     assert nob["open_false_alarms_le_0.05_pose_bias"]["met"] is None  # not evaluated
+
+
+def _twin_cfg(**twin: object):
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "twin" / "base.yaml")
+    cfg = OmegaConf.merge(cfg, OmegaConf.create(twin))
+    return OmegaConf.create({"twin": cfg, "configurations": {"D": {"r": 5.0, "alpha": 20.0}}})
+
+
+def test_a_map_warns_a_reaction_time_before_the_critical_threshold() -> None:
+    from traffictwin.twin.config import twin_config
+
+    tc = twin_config(_twin_cfg(reaction_s=1.0, critical_thw=1.5, ttc_warn_s=1.5, horizon_s=2.0))
+    s = tc.settings()
+    assert s.critical_thw == 1.5 and s.warn_thw == pytest.approx(2.5)
+    # the TTC warns below 1.5 + 1.0 s and is computed that far (beyond the 2 s horizon)
+    assert s.predict.warn_s == pytest.approx(2.5) and s.predict.horizon_s == pytest.approx(2.5)
+    s0 = twin_config(_twin_cfg(reaction_s=0.0)).settings()
+    assert s0.warn_thw == s0.critical_thw and s0.predict.horizon_s == pytest.approx(2.0)
+    with pytest.raises(ValueError, match=r"'twin.reaction_s' \(2.5 s\) must not exceed"):
+        twin_config(_twin_cfg(reaction_s=2.5, horizon_s=2.0))
+
+
+def test_a_reaction_time_turns_a_warning_at_the_onset_into_an_early_one() -> None:
+    """A map that sees a static hazard from the start (THW falling 0.1 s per 0.1 s frame): with
+    the warning at the critical level it warns at the onset (lead 0); a reaction time of 0.5 s
+    warns 5 frames before it (lead 0.5 s) and is no false alarm (the episode follows within the
+    2 s horizon)."""
+    t = np.arange(30) / 10
+    thw = 3.0 - t  # truth = the map's estimate
+    rows = [
+        {
+            "sequence": 0,
+            "kind": "occluded",
+            "hazard": "pedestrian",
+            "method": "twin",
+            "time": x,
+            "frame": i,
+            "thw": y,
+            "thw_true": y,
+        }
+        for i, (x, y) in enumerate(zip(t, thw))
+    ]
+    f = pd.DataFrame(rows)
+    f["critical"] = f["thw_true"] < 1.5
+    for warn, lead in ((1.5, 0.0), (2.0, 0.5)):
+        f["flagged"] = f["thw"] < warn
+        ep = episode_table(f, "twin", 10.0, 2.0)
+        assert ep["lead_s"].iloc[0] == pytest.approx(lead)
+        assert ep["before_onset"].iloc[0] == (lead > 0)
+        assert not false_alarm_frames(t, f["critical"], f["flagged"], 2.0).any()

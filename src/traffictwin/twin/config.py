@@ -15,13 +15,15 @@ __all__ = ["TwinEvalSettings", "TwinFigureConfig", "TwinConfig", "twin_config"]
 @dataclass(frozen=True)
 class TwinEvalSettings:
     """Occupied-cell threshold on m_O, the ego's footprint margin (m), the critical THW (s), the
-    corridor margin (m), strategy, the warning horizon (s: a warning up to this long before a
-    critical episode is an early warning of it, one with no episode within it a false alarm),
-    bootstrap resamples / seed / level."""
+    THW below which a map warns (s: ``critical_thw`` + the reaction time), the corridor margin (m),
+    strategy, the warning horizon (s: a warning up to this long before a critical episode is an
+    early warning of it, one with no episode within it a false alarm), bootstrap resamples / seed
+    / level."""
 
     occ_threshold: float = 0.5
     self_margin: float = 0.5
     critical_thw: float = 1.5
+    warn_thw: float = 1.5
     corridor_margin: float = 0.0
     strategy: str = "reference"
     horizon_s: float = 2.0
@@ -62,6 +64,8 @@ class TwinConfig:
     critical_thw: float = spec(MISSING, min=0.1, max=10.0)
     horizon_s: float = spec(MISSING, min=0.0, max=10.0)
     ttc_warn_s: float = spec(MISSING, min=0.1, max=10.0)
+    # s: a warning comes this long before the critical threshold (a driver's reaction time)
+    reaction_s: float = spec(MISSING, min=0.0, max=5.0)
     ttc_step_s: float = spec(MISSING, min=0.01, max=1.0)
     motion_min_speed: float = spec(MISSING, min=0.0, max=10.0)
     motion_max_speed: float = spec(MISSING, min=0.1, max=60.0)
@@ -106,10 +110,10 @@ class TwinConfig:
                 f"'twin.motion_min_speed' ({self.motion_min_speed}) must be below "
                 f"'twin.motion_max_speed' ({self.motion_max_speed}) m/s"
             )
-        if self.ttc_warn_s > self.horizon_s:
+        if self.reaction_s > self.horizon_s:
             raise ValueError(
-                f"'twin.ttc_warn_s' ({self.ttc_warn_s} s) must not exceed 'twin.horizon_s' "
-                f"({self.horizon_s} s): the time to conflict is computed up to the horizon"
+                f"'twin.reaction_s' ({self.reaction_s} s) must not exceed 'twin.horizon_s' "
+                f"({self.horizon_s} s): a warning that early would count as a false alarm"
             )
         if len(self.lead_in) != 2 or not 0 < self.lead_in[0] <= self.lead_in[1]:
             raise ValueError(
@@ -137,14 +141,16 @@ class TwinConfig:
         )
 
     def predict(self) -> PredictSettings:
-        """The predictive measure's :class:`~traffictwin.twin.predict.PredictSettings`."""
+        """The predictive measure's :class:`~traffictwin.twin.predict.PredictSettings`: a map warns
+        when its TTC is below ``ttc_warn_s + reaction_s``, computed up to that or ``horizon_s``."""
+        warn_s = self.ttc_warn_s + self.reaction_s
         return PredictSettings(
             min_speed=self.motion_min_speed,
             max_speed=self.motion_max_speed,
             max_extent=self.motion_max_extent,
             step_s=self.ttc_step_s,
-            horizon_s=self.horizon_s,
-            warn_s=self.ttc_warn_s,
+            horizon_s=max(self.horizon_s, warn_s),
+            warn_s=warn_s,
         )
 
     def settings(self) -> Any:
@@ -153,6 +159,7 @@ class TwinConfig:
             occ_threshold=self.occ_threshold,
             self_margin=self.self_margin,
             critical_thw=self.critical_thw,
+            warn_thw=self.critical_thw + self.reaction_s,
             corridor_margin=self.corridor_margin,
             strategy=self.strategy,
             horizon_s=self.horizon_s,

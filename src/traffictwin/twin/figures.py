@@ -31,20 +31,27 @@ VEHICLE_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#17becf", "#e377c2", "#8c56
 
 
 def pick_timeline_sequence(
-    table: pd.DataFrame, configuration: str, method: str, fps: float, sequence: int | None = None
+    table: pd.DataFrame,
+    configuration: str,
+    method: str,
+    fps: float,
+    sequence: int | None = None,
+    horizon_s: float = 0.0,
 ) -> int:
-    """``sequence`` if given (must exist), else the occluded sequence with the largest lead time of
-    ``method`` over the ego at ``configuration`` (ties: the lowest index)."""
+    """``sequence`` if given (must exist), else a typical occluded sequence: the one whose lead time
+    of ``method`` over the ego at ``configuration`` (warnings from ``horizon_s`` s before the onset)
+    is closest to the median lead (ties: the lowest index)."""
     f = table[table["configuration"] == configuration]
     if sequence is not None:
         if sequence not in set(f["sequence"]):
             raise ValueError(f"twin.figure.sequence: sequence {sequence} is not in data/twin")
         return int(sequence)
-    lt = lead_times(f, method, fps)
+    lt = lead_times(f, method, fps, horizon_s)
     occ = lt[lt["kind"] == "occluded"] if len(lt) else lt
     if len(occ) == 0:
         return int(f["sequence"].min())
-    return int(occ.sort_values(["lead_s", "sequence"], ascending=[False, True])["sequence"].iloc[0])
+    off = (occ["lead_s"] - float(occ["lead_s"].median())).abs().round(9)
+    return int(occ.assign(off=off).sort_values(["off", "sequence"])["sequence"].iloc[0])
 
 
 def timeline_table(
@@ -70,10 +77,16 @@ def timeline_table(
 
 
 def timeline_figure(
-    table: pd.DataFrame, configuration: str, method: str, sequence: int, critical_thw: float
+    table: pd.DataFrame,
+    configuration: str,
+    method: str,
+    sequence: int,
+    critical_thw: float,
+    warn_thw: float,
 ):
     """THW (s) over time (s) of one sequence: truth, the ego's own map and the twin; critical frames
-    (true THW < ``critical_thw``) shaded, frames where the ego's lidar sees the hazard marked."""
+    (true THW < ``critical_thw``) shaded, the warning level ``warn_thw`` (s) drawn, frames where the
+    ego's lidar sees the hazard marked."""
     plt = _plt()
     tt = timeline_table(table, configuration, method, sequence)
     f = table[
@@ -99,9 +112,9 @@ def timeline_figure(
         ms=10,
         label="ego's lidar sees the hazard",
     )
-    ax.axhline(
-        critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s (warning)"
-    )
+    ax.axhline(critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s")
+    if warn_thw != critical_thw:
+        ax.axhline(warn_thw, color="#2ca02c", lw=1, ls="--", label=f"warning: THW < {warn_thw:g} s")
     kind, hazard = f["kind"].iloc[0], f["hazard"].iloc[0]
     ax.set(
         xlabel="time (s)",

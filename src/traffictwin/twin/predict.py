@@ -18,12 +18,14 @@ predicts where the occupied cells go:
    ``tau = 0, step_s, ..., horizon_s``; a predicted position in the ego's corridor (lateral
    distance to the path <= lane width / 2 + margin) ahead of the ego's front (gap ``g`` = arc
    length - half the ego's length > 0) is a conflict at ``max(tau, g / v_ego)`` — when the ego,
-   driving on at its speed, reaches it (the object entered the corridor by ``tau``). TTC is the
+   driving on at its speed, reaches it (the object entered the corridor by ``tau``). Points
+   behind the ego's rear are not extrapolated: a follower's straight line cuts through the
+   corridor of a turning ego (a constant false conflict, found in the open sequences' truth). TTC is the
    earliest conflict ``<= horizon_s`` (inf: none; ego speed 0: none). At ``tau = 0`` the
    candidates are the THW's (same corridor, same cells), so TTC <= THW whenever THW <= horizon:
    a static map gives TTC = THW, a cell predicted to enter the corridor ahead gives an earlier TTC.
 
-A map *warns predictively* when TTC < ``ttc_warn_s``. The true counterpart (``ttc_true`` of the
+A map *warns predictively* when TTC < ``warn_s`` (``twin.ttc_warn_s`` + ``twin.reaction_s``). The true counterpart (``ttc_true`` of the
 twin data, :func:`box_points`) applies :func:`time_to_conflict` to points on the simulator's boxes
 with their true velocities. Units: m, s, m/s. Vectorised NumPy / OpenCV, no per-cell loops.
 """
@@ -149,7 +151,9 @@ def time_to_conflict(
     if len(xy) == 0 or not speed > 0:
         return float("inf")
     tau = np.arange(0.0, p.horizon_s + 1e-9, p.step_s)
-    moving = np.any(vel != 0, axis=1)
+    # a point behind the ego's rear (a vehicle following it) is no forward conflict: extrapolated
+    # in a straight line it would cut through the corridor of an ego that turns
+    moving = np.any(vel != 0, axis=1) & (xy[:, 0] >= -subject_length / 2)
     # static points need tau = 0 only: their position does not change
     q0 = xy
     q1 = (xy[moving][None] + tau[1:, None, None] * vel[moving][None]).reshape(-1, 2)

@@ -21,8 +21,10 @@ DATA_FILE = "twin_data.json"
 TITLE = "Cooperative twin — risk from N vehicles' fused maps"
 FIGURES: dict[str, str] = {
     "twin_timeline": (
-        "Time headway of the ego over one occluded sequence at the target configuration: from its "
-        "own map, from the twin and the truth; shaded = truly critical (THW < 1.5 s), ticks = "
+        "Time headway of the ego over a typical occluded sequence (the twin's lead over the ego "
+        "closest to the median) at the target configuration: from its "
+        "own map, from the twin and the truth; shaded = truly critical (THW < 1.5 s), dashed = the "
+        "warning level (1.5 s + twin.reaction_s), ticks = "
         "frames in which the ego's own lidar returns from the hazard"
     ),
     "twin_map": (
@@ -42,7 +44,8 @@ LABELS = {
 NOTE = (
     "Frames are critical when the true time headway (corridor, vehicles and pedestrians, simulator "
     "boxes) is below 1.5 s; a map warns (flags a frame) when the headway read from its occupied "
-    "cells (m_O >= twin.occ_threshold, the ego's footprint ignored) is below 1.5 s. Lead: per "
+    "cells (m_O >= twin.occ_threshold, the ego's footprint ignored) is below 1.5 s + "
+    "twin.reaction_s (1 s: a warning leaves the driver a reaction time before the episode). Lead: per "
     "critical episode, onset minus the first warning from twin.horizon_s before the onset (never "
     "= one frame after the episode); 'lead over ego' pairs it with the ego map's on the same "
     "episode (median). Intervals: 95 % bootstrap over sequences (traffictwin.stats)."
@@ -233,14 +236,14 @@ def predictive_table(src: page.Sources) -> Table:
                     ]
                 )
     t.note = (
-        "Time to conflict (traffictwin.twin.predict): the motion of the occupied components from "
-        "optical flow between consecutive maps of the same source (ego motion compensated), "
-        "extrapolated at constant velocity up to twin.horizon_s; the earliest time a predicted "
-        "occupied cell is in the ego's swept corridor. A map warns predictively when it is below "
-        "twin.ttc_warn_s; lead and false alarms as for THW, against the same critical episodes "
-        "(true THW < 1.5 s), paired with the THW warnings of the same maps. 'True-TTC frames "
-        "warned': share of the frames whose TTC on the simulator's boxes and velocities is below "
-        "twin.ttc_warn_s. Intervals: 95 % bootstrap over sequences."
+        "Time to conflict (traffictwin.twin.predict): the motion of the occupied components "
+        "tracked between consecutive maps of the same source (ego motion compensated), "
+        "extrapolated at constant velocity (points behind the ego excluded); the earliest time a "
+        "predicted occupied cell is in the ego's swept corridor. A map warns predictively when it "
+        "is below twin.ttc_warn_s + twin.reaction_s; lead and false alarms as for THW, against the "
+        "same critical episodes (true THW < 1.5 s), paired with the THW warnings of the same maps. "
+        "'True-TTC frames warned': share of the frames whose TTC on the simulator's boxes and "
+        "velocities is below that threshold. Intervals: 95 % bootstrap over sequences."
     )
     return t
 
