@@ -89,7 +89,7 @@ def test_evaluate_registered_on_synthetic_pair():
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.fusion.metrics import kld_fo
     from traffictwin.fusion.registration import RegistrationParams
-    from traffictwin.sim.scene import relative_pose
+    from traffictwin.geometry import relative_pose
 
     grid = GridSpec(128, 96, 0.5)
     world, pw = structured_world(1, grid)

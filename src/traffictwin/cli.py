@@ -578,8 +578,8 @@ def twin_preview(twin: np.ndarray, contributions: list[np.ndarray]) -> np.ndarra
 
 def cmd_twin(args: argparse.Namespace) -> int:
     from traffictwin.evidential.warp import warp_masses
+    from traffictwin.geometry import relative_pose
     from traffictwin.grid import GridSpec
-    from traffictwin.sim.scene import relative_pose
     from traffictwin.twin.fuse import TwinInputError, build_twin
 
     if len(args.maps) < 2:
