@@ -37,6 +37,7 @@ import pandas as pd
 
 from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations
 from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
+from traffictwin.io.jsonio import json_clean
 from traffictwin.trainer import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
@@ -200,8 +201,8 @@ def main() -> None:
         )
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
         res = ev.evaluate(data, raw, networks, grid, fc, ci)
-        metrics = ev.json_clean(res.metrics)
-        record.update(ev.json_clean(res.timings))  # wall times: run record only
+        metrics = json_clean(res.metrics)
+        record.update(json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))
         _csv(res.samples, SAMPLES)

@@ -203,7 +203,8 @@ def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
 
 
 def test_json_clean_and_mlflow_numbers():
-    from traffictwin.fusion.evaluation import json_clean, methods_table, mlflow_metrics
+    from traffictwin.fusion.evaluation import methods_table, mlflow_metrics
+    from traffictwin.io.jsonio import json_clean
 
     m = json_clean(
         {

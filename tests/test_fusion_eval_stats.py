@@ -15,6 +15,7 @@ import yaml
 from traffictwin.fusion import evaluation as ev
 from traffictwin.fusion.metrics import UncertaintyAUROC, auroc_from_hist, u_error_histograms
 from traffictwin.grid import GridSpec
+from traffictwin.io.jsonio import json_clean
 from traffictwin.io.shards import DatasetError, DatasetWriter
 
 CI = ev.CIConfig(n_boot=400, seed=0, level=0.95)
@@ -345,10 +346,10 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert m["targets"]["hybrid_vs_registered"]["per_config"]["D"]["status"] in ("pass", "fail")
     assert m["bootstrap"]["n_boot"] == CI.n_boot
     # MLflow numbers of the variant's own run: its row is `test/`, names MLflow-safe
-    flat = ev.mlflow_metrics(ev.json_clean(m), "D", "dnn[paper]")
+    flat = ev.mlflow_metrics(json_clean(m), "D", "dnn[paper]")
     assert flat["test/kld_fou_mean"] == pytest.approx(m["test"]["D"]["dnn[paper]"]["kld_fou_mean"])
     assert "test/kld_fou_mean_ci_lo" in flat and not any(k.startswith("test_") for k in flat)
-    table = ev.methods_table(ev.json_clean(m), "D").set_index("method")
+    table = ev.methods_table(json_clean(m), "D").set_index("method")
     assert table.loc["dnn", "kld_fou_mean_ci_lo"] == pytest.approx(
         m["test"]["D"]["dnn"]["kld_fou_mean_ci"]["lo"]
     )

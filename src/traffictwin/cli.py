@@ -99,6 +99,7 @@ from traffictwin.api import (  # noqa: F401 - re-exported: the CLI's helpers liv
     risk_verdict,
     stereo_settings,
 )
+from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputError, OutputSet
 from traffictwin.risk.metric import CRITICAL_THW
 
@@ -123,17 +124,6 @@ def _in_cli_terms(message: str) -> str:
 def _first_line(exc: BaseException, limit: int = 300) -> str:
     text = str(exc).strip().splitlines()
     return (text[0] if text else repr(exc))[:limit]
-
-
-def json_safe(obj: Any) -> Any:
-    """``obj`` with non-finite floats replaced by ``None`` (strict JSON; e.g. THW = inf -> null)."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def csv_value(v: Any) -> Any:
@@ -335,7 +325,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         "mean_u": float(res.u.mean()),
         "occupied_cells": _occupied(res),
     }
-    print(json.dumps(json_safe(summary), indent=2))
+    print(json.dumps(json_clean(summary), indent=2))
     return 0
 
 
@@ -665,7 +655,7 @@ def cmd_twin(args: argparse.Namespace) -> int:
         "twin_ms": round(1000.0 * step.seconds, 2),
         "occupied_cells": int((step.masses[1] >= 0.5).sum()),
     }
-    print(json.dumps(json_safe(summary), indent=2))
+    print(json.dumps(json_clean(summary), indent=2))
     return 0
 
 
@@ -729,7 +719,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
             if not is_folder:
                 row = next(rows)
                 lp, rp = paths[row["id"]]
-                res = json_safe(
+                res = json_clean(
                     {
                         "id": row["id"],
                         "left": lp,

@@ -16,8 +16,8 @@ between is here, with paths and settings as explicit arguments:
 - :func:`row_intervals`, :func:`paired_intervals`, :func:`fusion_targets` — the statistics
   (:mod:`traffictwin.stats`; cluster = scenario = ``pair_id // 1000``);
 - :func:`plot_tables`, :func:`figures`, :func:`qualitative_panels` — DVC plot data and figures;
-- :func:`json_clean`, :func:`mlflow_metrics`, :func:`methods_table` — JSON-safe metrics, the
-  flat numbers of one network's MLflow run, every method's numbers as one table artifact.
+- :func:`mlflow_metrics`, :func:`methods_table` — the flat numbers of one network's MLflow run,
+  every method's numbers as one table artifact (JSON-safe values: :mod:`traffictwin.io.jsonio`).
 
 Metrics layout (``fusion.json``); ``<row>`` is a method name or a network row (``dnn``,
 ``dnn[<loss>]``, ``registered+network``):
@@ -69,6 +69,7 @@ from traffictwin.fusion.methods import (
 from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate, auroc_from_hist, prf
 from traffictwin.fusion.pairs import evenly_spaced  # re-exported: the one pair selection
 from traffictwin.grid import GridSpec
+from traffictwin.io.jsonio import json_clean  # re-exported for pipelines/evaluate_twin.py
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
     CIConfig,
@@ -1033,21 +1034,7 @@ def fusion_targets(
     return out
 
 
-# -- outputs -------------------------------------------------------------------------------------
-def json_clean(obj: Any) -> Any:
-    """JSON-safe: NaN/inf → None (DVC and json both choke on NaN), numpy scalars → Python."""
-    if isinstance(obj, dict):
-        return {str(k): json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_clean(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
+# -- outputs (JSON-safe values: traffictwin.io.jsonio.json_clean) -------------------------------
 def qualitative_panels(
     ev: Evaluation,
     noise: Mapping[str, PoseNoise],
