@@ -364,7 +364,8 @@ def test_findings_explain_negative_kld_a_variants_and_targets():
 
 
 def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
-    from traffictwin.fusion.figures import kld_boxplot, save_figure
+    from traffictwin.fusion.figures import kld_boxplot
+    from traffictwin.io.atomic import save_figure
 
     rng = np.random.default_rng(2)
     vals = {
@@ -399,7 +400,8 @@ def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
 
 
 def test_scores_plot_lines_are_the_metrics(tmp_path):
-    from traffictwin.fusion.figures import save_figure, scores_plot
+    from traffictwin.fusion.figures import scores_plot
+    from traffictwin.io.atomic import save_figure
 
     rng = np.random.default_rng(3)
     scores = {
@@ -453,8 +455,8 @@ def test_configuration_axes_carry_the_pose_noise() -> None:
 
 
 def test_qualitative_grid_shows_each_map(tmp_path):
-    from traffictwin.fusion.figures import save_figure
     from traffictwin.fusion.map_figures import qualitative_grid
+    from traffictwin.io.atomic import save_figure
     from traffictwin.report.colours import LEGEND, map_extent, masses_to_rgb
 
     rng = np.random.default_rng(2)
