@@ -102,6 +102,7 @@ from traffictwin.api import (  # noqa: F401 - re-exported: the CLI's helpers liv
 from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputError, OutputSet
 from traffictwin.risk.metric import CRITICAL_THW
+from traffictwin.threads import passive_omp_wait, pin_threads
 
 CliError = ApiError  # one user-facing error type for the CLI and the API
 
@@ -1099,16 +1100,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for k, v in HTTP_ENV.items():  # a dead registry: one line in seconds, not minutes of retries
         os.environ.setdefault(k, v)
-    # OpenMP threads that sleep instead of spinning while they wait: on a shared, busy machine
-    # spinning threads made one forward pass 30x slower (benchmarks/startup.py). Read when torch
-    # loads its OpenMP runtime, so set before any torch import; an explicit setting wins.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # OpenMP threads that sleep instead of spinning while they wait (benchmarks/startup.py); set
+    # before any torch import; an explicit setting wins
+    passive_omp_wait()
     if args.threads is not None:
         if args.threads < 1:
             parser.error(f"--threads must be >= 1, got {args.threads}")
-        import torch
-
-        torch.set_num_threads(args.threads)
+        pin_threads(args.threads)
     prog = f"traffictwin {args.command}"
     show = warnings.showwarning
 
