@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from traffictwin.threads import pin_threads
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -101,7 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     a = ap.parse_args(argv)
     if a.threads:
-        torch.set_num_threads(a.threads)
+        pin_threads(a.threads)
     cfg = yaml.safe_load(Path(a.params).read_text())
     g = cfg.get("grid", {})
     grid = GridSpec(

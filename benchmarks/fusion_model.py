@@ -41,6 +41,7 @@ from traffictwin.fusion.deeplab import (
 )
 from traffictwin.fusion.losses import evidential_loss
 from traffictwin.fusion.training import FusionModelConfig, augment
+from traffictwin.threads import pin_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--skip-resnet50", action="store_true")
     args = ap.parse_args(argv)
     if args.threads > 0:
-        torch.set_num_threads(args.threads)
+        pin_threads(args.threads)
     default = _load_group("resnet18")
     res: dict[str, Any] = {
         "machine": {

@@ -33,6 +33,7 @@ from traffictwin.fusion.methods import METHODS, FusionInput
 from traffictwin.fusion.registration_training import load_registration_model
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset
+from traffictwin.threads import pin_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     a = ap.parse_args(argv)
     if a.threads > 0:
-        torch.set_num_threads(a.threads)
+        pin_threads(a.threads)
     pre = Dataset(ROOT / "data" / "prealigned" / a.cfg, kind="prealigned").load_all("test")
     n = min(a.pairs, len(pre["pair_id"]))
     net = load_registration_model(ROOT / "models" / "registration" / a.cfg)

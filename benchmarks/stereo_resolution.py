@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import save_figure, write_json_atomic
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
 from traffictwin.stats import statistic_ci
@@ -177,9 +177,7 @@ def figure(results: list[dict], path: Path) -> None:
     bx.set_title("SGM cost")
     bx.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110, bbox_inches=None)
 
 
 def main(argv: list[str] | None = None) -> dict:

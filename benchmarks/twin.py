@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.fusion_model import _cpu_name
+from traffictwin.threads import pin_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("naive", "registered", "learned", "learned+network")
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     a = ap.parse_args(argv)
     if a.threads > 0:
-        torch.set_num_threads(a.threads)
+        pin_threads(a.threads)
     from pipelines._common import params
     from pipelines.evaluate_twin import method_models
     from traffictwin.fusion.config import (

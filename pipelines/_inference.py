@@ -17,10 +17,9 @@ THREADS_KEY = "evaluation.num_threads"
 def pin_torch_threads(cfg: Any) -> int:
     """Set torch's intra-op CPU threads to ``evaluation.num_threads`` (an int ≥ 1) of ``cfg``;
     returns it (for the stage's run record: the wall times it records depend on it)."""
-    import torch
-
     from traffictwin.config import get
+    from traffictwin.threads import pin_threads
 
     n = get(cfg, THREADS_KEY, int, min=1)
-    torch.set_num_threads(n)
+    pin_threads(n)
     return n

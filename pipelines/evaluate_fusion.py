@@ -36,7 +36,12 @@ from typing import Any
 import pandas as pd
 
 from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations
-from traffictwin.io.atomic import atomic_path, write_json_atomic, write_text_atomic
+from traffictwin.io.atomic import (
+    write_csv_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
+from traffictwin.io.jsonio import json_clean
 from traffictwin.trainer import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
@@ -62,8 +67,7 @@ log = logging.getLogger("traffictwin.evaluate_fusion")
 
 
 def _csv(frame: pd.DataFrame, path: Path) -> None:
-    with atomic_path(path, suffix=".csv") as tmp:
-        frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+    write_csv_atomic(path, frame, float_format="%.6g", lineterminator="\n")
 
 
 def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]]) -> None:
@@ -181,8 +185,8 @@ def load_networks(
 
 def main() -> None:
     from traffictwin.fusion import evaluation as ev
-    from traffictwin.fusion.figures import save_figure
     from traffictwin.fusion.findings import fusion_findings
+    from traffictwin.io.atomic import save_figure
 
     setup_logging()
     cfg = params()
@@ -200,8 +204,8 @@ def main() -> None:
         )
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
         res = ev.evaluate(data, raw, networks, grid, fc, ci)
-        metrics = ev.json_clean(res.metrics)
-        record.update(ev.json_clean(res.timings))  # wall times: run record only
+        metrics = json_clean(res.metrics)
+        record.update(json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))
         _csv(res.samples, SAMPLES)

@@ -21,7 +21,7 @@ import logging
 import pandas as pd
 
 from traffictwin.config import ConfigError, get, typed
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.evaluation import (
     CIConfig,
@@ -56,8 +56,7 @@ SHIPPED = "shipped"
 
 
 def _write_csv(df: pd.DataFrame, path) -> None:
-    with atomic_path(path, suffix=".csv") as tmp:
-        df.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+    write_csv_atomic(path, df, float_format="%.6g", lineterminator="\n")
 
 
 def _log_to_mlflow(models: dict, metrics: dict, log: logging.Logger) -> None:

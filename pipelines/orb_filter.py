@@ -19,7 +19,7 @@ from pathlib import Path
 import pandas as pd
 
 from traffictwin.config import typed
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import orb_example_figure
@@ -137,8 +137,7 @@ def main() -> None:
     rd = typed(params().get("risk_data"), RiskDataConfig, key="risk_data")
     with stage_timer("orb_filter") as record:
         out, metrics = run(rd.orb, rd.check, rd.workers, record=record)
-        with atomic_path(ORB_CSV, suffix=".csv") as tmp:
-            out.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+        write_csv_atomic(ORB_CSV, out, float_format="%.6g", lineterminator="\n")
         write_json_atomic(metrics_file("orb"), metrics)
         orb_example_figure(  # a pair the ORB check flags (the figure shows ORB matches)
             Dataset(RISK_DATA, kind="risk", verify=False),

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from traffictwin.io.atomic import write_text_atomic
+from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.report.plot_data import fusion_scores_long, learning_curves
 from traffictwin.risk.charts import risk_curves
 from traffictwin.risk.metric import risk_threshold
@@ -51,7 +51,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
 
 
 def _write(df: pd.DataFrame, name: str) -> None:
-    write_text_atomic(CHARTS / name, df.to_csv(index=False, float_format="%.6g"))
+    write_csv_atomic(CHARTS / name, df, float_format="%.6g")  # "\n": os.linesep on POSIX
 
 
 def main() -> None:

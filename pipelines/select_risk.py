@@ -25,9 +25,9 @@ import pandas as pd
 
 from traffictwin.config import get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
+from traffictwin.io.jsonio import json_clean
 from traffictwin.model_format import CKPT_SHA_KEY
 from traffictwin.risk.baselines import corridor_distances, fit_speed_only, thw_from_distance
-from traffictwin.risk.evaluation import finite_or_none
 from traffictwin.risk.metric import risk_threshold, thw_to_risk
 from traffictwin.risk.model_io import CKPT, META, load_risk_model, save_predictor
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
@@ -279,7 +279,7 @@ def main() -> None:
                 out,
                 extra,
             )
-        sel = finite_or_none(sel)  # undefined figures (one class on validation) as null
+        sel = json_clean(sel)  # undefined figures (one class on validation) as null
         write_json_atomic(SELECTION, sel)
         record["shipped"] = shipped
         record.update(track_shipped(p, sel, out))

@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out_dir / "model.ckpt"))
     if res is not None:
-        from traffictwin.fusion.figures import save_figure
         from traffictwin.fusion.training_figures import learning_curves
+        from traffictwin.io.atomic import save_figure
 
         noise_name = "the mixed pose noise" if cfg_name == MIXED else f"configuration {cfg_name}"
         title = f"{name}: {inputs} inputs, {noise_name}, loss {hparams.loss}"

@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
-        from traffictwin.fusion.figures import save_figure
         from traffictwin.fusion.registration_training import learning_curves
+        from traffictwin.io.atomic import save_figure
 
         save_figure(
             learning_curves(res.history, "learned registration, mixed pose noise"),

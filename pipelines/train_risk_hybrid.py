@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from traffictwin.config import ConfigError, get, typed
-from traffictwin.io.atomic import atomic_path
+from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.metric import risk_to_thw
 from traffictwin.risk.model_io import save_predictor
@@ -132,10 +132,12 @@ def main() -> None:
             }
             out = hybrid_model_dir(name)
             save_predictor(HybridRiskModel(net, cfg, geo, camera), out, meta)
-            with atomic_path(out / "history.csv", suffix=".csv") as tmp:
-                pd.DataFrame(history).to_csv(
-                    tmp, index=False, float_format="%.6g", lineterminator="\n"
-                )
+            write_csv_atomic(
+                out / "history.csv",
+                pd.DataFrame(history),
+                float_format="%.6g",
+                lineterminator="\n",
+            )
             log.info(
                 "train_risk_hybrid: %s (seed %d%s): final train loss %.4f, val loss %.4f -> %s",
                 name,

@@ -110,6 +110,30 @@ def test_layers_point_one_way() -> None:
     assert not bad, "\n".join(sorted(bad))
 
 
+# modules below sim/ and evidential/ (pose maths, scan data): they import nothing of the package
+LEAVES = ("traffictwin.geometry", "traffictwin.scan")
+
+
+def test_evidential_never_imports_sim() -> None:
+    """Pose maths and scan data live below both (``geometry.py``, ``scan.py``), so the
+    evidential maths work on any source of scans and poses, not only the simulator's."""
+    bad = sorted(
+        f"{mod} imports {d}"
+        for mod, deps in _graph().items()
+        if _room(mod) == "evidential"
+        for d in deps
+        if _room(d) == "sim"
+    )
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize("leaf", LEAVES)
+def test_leaf_modules_import_nothing_of_the_package(leaf: str) -> None:
+    graph = _graph()
+    assert leaf in graph, f"{leaf} not found"
+    assert graph[leaf] == set(), f"{leaf} imports {sorted(graph[leaf])}"
+
+
 def _params_file_uses(tree: ast.Module) -> list[int]:
     """Lines where a string naming params.yaml is opened or used as a path: an argument of a call,
     an operand of ``/``, or the default of a parameter whose name says it is a path. (Labels in

@@ -89,7 +89,7 @@ def test_evaluate_registered_on_synthetic_pair():
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.fusion.metrics import kld_fo
     from traffictwin.fusion.registration import RegistrationParams
-    from traffictwin.sim.scene import relative_pose
+    from traffictwin.geometry import relative_pose
 
     grid = GridSpec(128, 96, 0.5)
     world, pw = structured_world(1, grid)
@@ -203,7 +203,8 @@ def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
 
 
 def test_json_clean_and_mlflow_numbers():
-    from traffictwin.fusion.evaluation import json_clean, methods_table, mlflow_metrics
+    from traffictwin.fusion.evaluation import methods_table, mlflow_metrics
+    from traffictwin.io.jsonio import json_clean
 
     m = json_clean(
         {
@@ -363,7 +364,8 @@ def test_findings_explain_negative_kld_a_variants_and_targets():
 
 
 def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
-    from traffictwin.fusion.figures import kld_boxplot, save_figure
+    from traffictwin.fusion.figures import kld_boxplot
+    from traffictwin.io.atomic import save_figure
 
     rng = np.random.default_rng(2)
     vals = {
@@ -398,7 +400,8 @@ def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
 
 
 def test_scores_plot_lines_are_the_metrics(tmp_path):
-    from traffictwin.fusion.figures import save_figure, scores_plot
+    from traffictwin.fusion.figures import scores_plot
+    from traffictwin.io.atomic import save_figure
 
     rng = np.random.default_rng(3)
     scores = {
@@ -452,8 +455,8 @@ def test_configuration_axes_carry_the_pose_noise() -> None:
 
 
 def test_qualitative_grid_shows_each_map(tmp_path):
-    from traffictwin.fusion.figures import save_figure
     from traffictwin.fusion.map_figures import qualitative_grid
+    from traffictwin.io.atomic import save_figure
     from traffictwin.report.colours import LEGEND, map_extent, masses_to_rgb
 
     rng = np.random.default_rng(2)

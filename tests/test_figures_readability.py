@@ -24,7 +24,9 @@ def captured(monkeypatch: pytest.MonkeyPatch) -> dict:
     from traffictwin.risk import figures
 
     figs: dict = {}
-    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.__setitem__(Path(path).name, fig))
+    monkeypatch.setattr(
+        figures, "save_figure", lambda fig, path, **_: figs.__setitem__(Path(path).name, fig)
+    )
     yield figs
     for fig in figs.values():
         plt.close(fig)

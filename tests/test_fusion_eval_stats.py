@@ -15,6 +15,7 @@ import yaml
 from traffictwin.fusion import evaluation as ev
 from traffictwin.fusion.metrics import UncertaintyAUROC, auroc_from_hist, u_error_histograms
 from traffictwin.grid import GridSpec
+from traffictwin.io.jsonio import json_clean
 from traffictwin.io.shards import DatasetError, DatasetWriter
 
 CI = ev.CIConfig(n_boot=400, seed=0, level=0.95)
@@ -224,6 +225,87 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
     assert t2["dice_occ_drop_A_to_D"]["status"] == "not evaluated"
 
 
+def _target_inputs() -> tuple[dict, dict]:
+    """Per-pair frames and metrics where every target has a value (see the hand cases above)."""
+    pid = np.array([1000, 1001, 2000, 2001, 3000])
+    own = {}
+    for c in ("A", "C", "D"):
+        own[(c, "naive")] = _row(pid, [1.0, 2.0, 1.0, 2.0, 1.0])
+        own[(c, "dnn")] = _row(pid, [0.2, 0.4, 0.2, 0.4, 0.2], fp_occ=1 if c == "D" else 0, u=0.55)
+        own[(c, "ego")] = _row(pid, 1.0, fp_occ=2)
+    own[("D", ev.LEARNED)] = frame(pid, ms=np.full(5, 10.0), reg_success=np.ones(5))
+    metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
+    for (c, row), f in own.items():
+        if row == ev.LEARNED:
+            metrics["test"][c][row] = {}
+            continue
+        iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
+        metrics["test"][c][row] = {k: iv[k].estimate for k in ev.CI_KEYS} | {
+            f"{k}_ci": ev._lohi(iv[k]) for k in ev.CI_KEYS
+        }
+    vs_reg = {
+        ev.HEADLINE: {"estimate": -0.1, "lo": -0.2, "hi": -0.05},
+        "dice_occ": {"estimate": 0.0, "lo": -0.01, "hi": 0.01},
+    }
+    for c in ("C", "D"):
+        metrics["diff"][c] = {
+            ev.NETWORK: {
+                "vs_registered": vs_reg,
+                f"vs_{ev.PER_CONFIG_NETWORK}": {
+                    ev.HEADLINE: {"estimate": 0.001, "lo": -0.001, "hi": 0.003}
+                },
+            },
+            ev.HYBRID: {"vs_registered": vs_reg},
+            ev.LEARNED_NETWORK: {"vs_registered": vs_reg},
+        }
+    metrics["diff"]["D"][ev.LEARNED] = {
+        "vs_registered": {
+            "success_rate": {"estimate": 0.2, "lo": 0.1, "hi": 0.3, "n_pairs": 5},
+        }
+    }
+    return own, metrics
+
+
+# target -> (configuration judged, a threshold that turns its pass into a fail)
+FLIPS = {
+    "kld_ratio_vs_naive": ("C", 0.1),  # ratio 0.2
+    "network_vs_registered": ("C", -0.1),  # upper end -0.05
+    "hybrid_vs_registered": ("D", -0.1),
+    "learned_kld_vs_registered": ("D", -0.1),
+    "one_vs_per_config": ("D", 0.001),  # upper end 0.003
+    "dice_occ_at_A": ("A", 1.01),  # Dice 1
+    "dice_occ_drop_A_to_D": ("D", 0.01),  # drop 1/21
+    "dice_occ_vs_ego": ("A", 0.5),  # 1 - 20/22
+    "u_mean_vs_label": ("D", 0.01),  # |0.55 - 0.5|
+    "learned_success_vs_registered": ("D", 0.25),  # gain 0.2
+    "learned_success_gain_at_D": ("D", 0.25),
+    "learned_success_at_D": ("D", 1.01),  # rate 1
+    "learned_runtime_ms": ("D", 5.0),  # 10 ms
+}
+
+
+def test_every_verdict_reads_its_threshold_from_the_table(monkeypatch: pytest.MonkeyPatch):
+    own, metrics = _target_inputs()
+    base = ev.fusion_targets(own, metrics, CI)
+    # u_auroc has no value here (no wrong-cell histograms); every other target is flipped below
+    assert set(FLIPS) == set(ev.TARGETS) - {"u_auroc"}
+    for name, (c, threshold) in FLIPS.items():
+        assert base[name]["per_config"][c]["status"] == "pass", name
+        table = dict(ev.TARGETS)
+        table[name] = dataclasses.replace(ev.TARGETS[name], threshold=threshold)
+        monkeypatch.setattr(ev, "TARGETS", table)
+        t = ev.fusion_targets(own, metrics, CI)[name]
+        assert t["threshold"] == threshold and t["per_config"][c]["status"] == "fail", name
+        monkeypatch.undo()
+    # u_auroc: the table's threshold decides a value read from metrics
+    metrics["test"]["D"]["dnn"] |= {"u_auroc": 0.9, "u_auroc_ci": {"lo": 0.8, "hi": 0.95}}
+    assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "pass"
+    table = dict(ev.TARGETS)
+    table["u_auroc"] = dataclasses.replace(ev.TARGETS["u_auroc"], threshold=0.95)
+    monkeypatch.setattr(ev, "TARGETS", table)
+    assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "fail"
+
+
 # -- evaluate with networks per row ------------------------------------------------------------------
 def _random_masses(rng, n, h, w):
     d = rng.dirichlet([1.0, 1.0, 1.0], size=(n, h, w))
@@ -345,10 +427,10 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert m["targets"]["hybrid_vs_registered"]["per_config"]["D"]["status"] in ("pass", "fail")
     assert m["bootstrap"]["n_boot"] == CI.n_boot
     # MLflow numbers of the variant's own run: its row is `test/`, names MLflow-safe
-    flat = ev.mlflow_metrics(ev.json_clean(m), "D", "dnn[paper]")
+    flat = ev.mlflow_metrics(json_clean(m), "D", "dnn[paper]")
     assert flat["test/kld_fou_mean"] == pytest.approx(m["test"]["D"]["dnn[paper]"]["kld_fou_mean"])
     assert "test/kld_fou_mean_ci_lo" in flat and not any(k.startswith("test_") for k in flat)
-    table = ev.methods_table(ev.json_clean(m), "D").set_index("method")
+    table = ev.methods_table(json_clean(m), "D").set_index("method")
     assert table.loc["dnn", "kld_fou_mean_ci_lo"] == pytest.approx(
         m["test"]["D"]["dnn"]["kld_fou_mean_ci"]["lo"]
     )

@@ -17,10 +17,10 @@ from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.noise import scale_noise, standard_normal_draws
 from traffictwin.evidential.warp import warp_masses
 from traffictwin.fusion.pairs import FusionDataParams, generate_shard, prealign_arrays, shard_splits
+from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.sim.lidar import LidarSpec
-from traffictwin.sim.scene import relative_pose
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = FusionDataParams(

@@ -15,8 +15,8 @@ from traffictwin.fusion.registration import (
     register_pair,
     warp_image,
 )
+from traffictwin.geometry import relative_pose, se2_matrix
 from traffictwin.grid import GridSpec
-from traffictwin.sim.scene import relative_pose, se2_matrix
 
 GRID = GridSpec(128, 96, 0.5)
 

@@ -281,7 +281,8 @@ def fusion_metrics() -> dict:
 
 def risk_metrics() -> dict:
     """risk.json as evaluate_risk writes it (built with the evaluation's own metric functions)."""
-    from traffictwin.risk.evaluation import PAPER, evaluate, finite_or_none
+    from traffictwin.io.jsonio import json_clean
+    from traffictwin.risk.evaluation import PAPER, evaluate
 
     y = np.array([0.0, 0.0, 0.05, 0.2, 0.01, 0.5, 0.0, 0.04])
     p = np.array([0.01, 0.06, 0.04, 0.1, 0.0, 0.3, 0.02, 0.0])
@@ -317,7 +318,7 @@ def risk_metrics() -> dict:
         },
         "main_variant": "rgbd",
     }
-    return finite_or_none(out)
+    return json_clean(out)
 
 
 @pytest.fixture

@@ -26,7 +26,7 @@ def figs(monkeypatch: pytest.MonkeyPatch) -> dict:
     """The figures data_figures saves, by file name, instead of files."""
     out: dict = {}
     monkeypatch.setattr(
-        data_figures, "_save", lambda fig, path: out.__setitem__(Path(path).name, fig)
+        data_figures, "save_figure", lambda fig, path, **_: out.__setitem__(Path(path).name, fig)
     )
     return out
 

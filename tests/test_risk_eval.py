@@ -315,7 +315,9 @@ def test_example_indices_confusion_table_and_tracking_metrics() -> None:
 def _capture(monkeypatch: pytest.MonkeyPatch, module) -> dict:
     """Keep the figures a module saves (keyed by file name) instead of writing them."""
     figs: dict = {}
-    monkeypatch.setattr(module, "_save", lambda fig, path: figs.__setitem__(Path(path).name, fig))
+    monkeypatch.setattr(
+        module, "save_figure", lambda fig, path, **_: figs.__setitem__(Path(path).name, fig)
+    )
     return figs
 
 

@@ -296,7 +296,9 @@ def test_plot_roc_draws_each_predictor(tmp_path: Path, monkeypatch: pytest.Monke
     from traffictwin.risk import figures
 
     figs: dict = {}
-    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.__setitem__(Path(path).name, fig))
+    monkeypatch.setattr(
+        figures, "save_figure", lambda fig, path, **_: figs.__setitem__(Path(path).name, fig)
+    )
     pos = np.array([1, 0, 1, 0], bool)
     scores = {"net": np.array([0.9, 0.5, 0.5, 0.1]), "geometric_gt": np.array([0.1, 0.9, 0.5, 0.2])}
     figures.plot_roc(pos, scores, tmp_path / "r.png", auc={"net": 0.875, "geometric_gt": None})

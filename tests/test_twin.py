@@ -338,7 +338,7 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
 
 # ------------------------------------------------------------------------------------ report and figures
 def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
-    from traffictwin.fusion.evaluation import json_clean
+    from traffictwin.io.jsonio import json_clean
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
 

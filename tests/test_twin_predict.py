@@ -233,7 +233,7 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
 def test_report_section_shows_the_predictive_table(tmp_path):
     import json
 
-    from traffictwin.fusion.evaluation import json_clean
+    from traffictwin.io.jsonio import json_clean
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
     from traffictwin.twin.evaluation import TwinEvalSettings, summarise, targets

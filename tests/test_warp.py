@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from traffictwin.evidential.warp import warp_masses
+from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
-from traffictwin.sim.scene import relative_pose
 
 G = GridSpec(64, 48, 0.5)
 

@@ -99,8 +99,10 @@ from traffictwin.api import (  # noqa: F401 - re-exported: the CLI's helpers liv
     risk_verdict,
     stereo_settings,
 )
+from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputError, OutputSet
 from traffictwin.risk.metric import CRITICAL_THW
+from traffictwin.threads import passive_omp_wait, pin_threads
 
 CliError = ApiError  # one user-facing error type for the CLI and the API
 
@@ -123,17 +125,6 @@ def _in_cli_terms(message: str) -> str:
 def _first_line(exc: BaseException, limit: int = 300) -> str:
     text = str(exc).strip().splitlines()
     return (text[0] if text else repr(exc))[:limit]
-
-
-def json_safe(obj: Any) -> Any:
-    """``obj`` with non-finite floats replaced by ``None`` (strict JSON; e.g. THW = inf -> null)."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def csv_value(v: Any) -> Any:
@@ -335,7 +326,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         "mean_u": float(res.u.mean()),
         "occupied_cells": _occupied(res),
     }
-    print(json.dumps(json_safe(summary), indent=2))
+    print(json.dumps(json_clean(summary), indent=2))
     return 0
 
 
@@ -578,8 +569,8 @@ def twin_preview(twin: np.ndarray, contributions: list[np.ndarray]) -> np.ndarra
 
 def cmd_twin(args: argparse.Namespace) -> int:
     from traffictwin.evidential.warp import warp_masses
+    from traffictwin.geometry import relative_pose
     from traffictwin.grid import GridSpec
-    from traffictwin.sim.scene import relative_pose
     from traffictwin.twin.fuse import TwinInputError, build_twin
 
     if len(args.maps) < 2:
@@ -665,7 +656,7 @@ def cmd_twin(args: argparse.Namespace) -> int:
         "twin_ms": round(1000.0 * step.seconds, 2),
         "occupied_cells": int((step.masses[1] >= 0.5).sum()),
     }
-    print(json.dumps(json_safe(summary), indent=2))
+    print(json.dumps(json_clean(summary), indent=2))
     return 0
 
 
@@ -729,7 +720,7 @@ def cmd_risk(args: argparse.Namespace) -> int:
             if not is_folder:
                 row = next(rows)
                 lp, rp = paths[row["id"]]
-                res = json_safe(
+                res = json_clean(
                     {
                         "id": row["id"],
                         "left": lp,
@@ -1109,16 +1100,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for k, v in HTTP_ENV.items():  # a dead registry: one line in seconds, not minutes of retries
         os.environ.setdefault(k, v)
-    # OpenMP threads that sleep instead of spinning while they wait: on a shared, busy machine
-    # spinning threads made one forward pass 30x slower (benchmarks/startup.py). Read when torch
-    # loads its OpenMP runtime, so set before any torch import; an explicit setting wins.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # OpenMP threads that sleep instead of spinning while they wait (benchmarks/startup.py); set
+    # before any torch import; an explicit setting wins
+    passive_omp_wait()
     if args.threads is not None:
         if args.threads < 1:
             parser.error(f"--threads must be >= 1, got {args.threads}")
-        import torch
-
-        torch.set_num_threads(args.threads)
+        pin_threads(args.threads)
     prog = f"traffictwin {args.command}"
     show = warnings.showwarning
 

@@ -69,6 +69,7 @@ from traffictwin.model_format import (  # noqa: F401 - re-exported: the one chec
     save_model_checkpoint,
     save_model_files,
 )
+from traffictwin.threads import pin_threads
 
 log = logging.getLogger(__name__)
 
@@ -268,7 +269,7 @@ def build_trainer(
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     if settings.num_threads > 0:
-        torch.set_num_threads(settings.num_threads)
+        pin_threads(settings.num_threads)
     # Lightning's startup banners ("GPU available", logger tips) -> warnings only; epochs are logged by History
     logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)
     callbacks = list(callbacks)

@@ -26,8 +26,7 @@ from functools import lru_cache
 import numpy as np
 
 from traffictwin.grid import GridSpec
-from traffictwin.sim.lidar import Scan
-from traffictwin.sim.raycast import HIT_GROUND
+from traffictwin.scan import HIT_GROUND, Scan
 
 
 @dataclass(frozen=True)

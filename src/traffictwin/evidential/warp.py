@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from traffictwin.evidential.masses import clean_masses
+from traffictwin.geometry import se2_matrix
 from traffictwin.grid import GridSpec
-from traffictwin.sim.scene import se2_matrix
 
 
 def pixel_from_metric(grid: GridSpec) -> np.ndarray:

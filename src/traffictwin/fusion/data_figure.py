@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import atomic_path
+from traffictwin.io.atomic import save_figure
 from traffictwin.report.colours import legend_handles, show_masses
 
 
@@ -81,7 +81,4 @@ def plot_fusion_samples(
     fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0.03, 0.03, 1, 0.97))
-    path = Path(path)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=90, format="png", metadata={"Software": None})
-    plt.close(fig)
+    save_figure(fig, path, dpi=90, bbox_inches=None, metadata={"Software": None})

@@ -16,8 +16,8 @@ between is here, with paths and settings as explicit arguments:
 - :func:`row_intervals`, :func:`paired_intervals`, :func:`fusion_targets` — the statistics
   (:mod:`traffictwin.stats`; cluster = scenario = ``pair_id // 1000``);
 - :func:`plot_tables`, :func:`figures`, :func:`qualitative_panels` — DVC plot data and figures;
-- :func:`json_clean`, :func:`mlflow_metrics`, :func:`methods_table` — JSON-safe metrics, the
-  flat numbers of one network's MLflow run, every method's numbers as one table artifact.
+- :func:`mlflow_metrics`, :func:`methods_table` — the flat numbers of one network's MLflow run,
+  every method's numbers as one table artifact (JSON-safe values: :mod:`traffictwin.io.jsonio`).
 
 Metrics layout (``fusion.json``); ``<row>`` is a method name or a network row (``dnn``,
 ``dnn[<loss>]``, ``registered+network``):
@@ -69,6 +69,7 @@ from traffictwin.fusion.methods import (
 from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate, auroc_from_hist, prf
 from traffictwin.fusion.pairs import evenly_spaced  # re-exported: the one pair selection
 from traffictwin.grid import GridSpec
+from traffictwin.io.jsonio import json_clean  # re-exported for pipelines/evaluate_twin.py
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
     CIConfig,
@@ -821,6 +822,8 @@ NOT_EVALUATED = "not evaluated"
 def _judge(iv: Interval, threshold: float, op: str) -> dict[str, Any]:
     """Pass/fail of the point estimate against ``threshold``; ``ci_beyond_threshold``: the whole
     interval lies on the side of the verdict (the verdict is not noise)."""
+    if op not in ("<=", ">="):
+        raise ValueError(f"_judge: op must be '<=' or '>=', got {op!r}")
     e, lo, hi = iv.estimate, iv.lo, iv.hi
     if not math.isfinite(e):
         return {
@@ -903,9 +906,7 @@ def fusion_targets(
         b = v[f"{key}_ci"]
         return _judge(Interval(v[key], b["lo"], b["hi"], ci.level), t.threshold, t.op)
 
-    def dice_drop(
-        ref: pd.DataFrame, other: pd.DataFrame, what: str, threshold: float
-    ) -> dict[str, Any]:
+    def dice_drop(ref: pd.DataFrame, other: pd.DataFrame, what: str, t: Target) -> dict[str, Any]:
         """1 − Dice occ(other) / Dice occ(ref) on their common pairs, resampled together."""
         common, ir, io = np.intersect1d(ref["pair_id"], other["pair_id"], return_indices=True)
         codes, g = _codes(common)
@@ -916,13 +917,13 @@ def fusion_targets(
             return _missing(f"{what} is {er}: the relative drop is undefined")
         with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice 0 drop out
             iv = _interval(1.0 - eo / er, 1.0 - bo / br, ci.level, g)
-        return _judge(iv, threshold, "<=")
+        return _judge(iv, t.threshold, t.op)
 
     def drop(c: str) -> dict[str, Any]:
         a, d = frame("A", NETWORK), frame(c, NETWORK)
         if a is None or d is None:
             return _missing("configurations A and D both needed")
-        return dice_drop(a, d, "network Dice occ at A", TARGETS["dice_occ_drop_A_to_D"].threshold)
+        return dice_drop(a, d, "network Dice occ at A", TARGETS["dice_occ_drop_A_to_D"])
 
     def vs_ego(c: str) -> dict[str, Any]:
         n, e = frame(c, NETWORK), frame(c, "ego")
@@ -948,21 +949,28 @@ def fusion_targets(
         res["signed_difference"] = {"estimate": d.estimate, "lo": d.lo, "hi": d.hi}
         return res
 
-    def beats_registered(c: str, row: str) -> dict[str, Any]:
-        """KLD(b) of ``row`` − registered: interval wholly below 0, Dice occ difference not wholly below 0."""
+    def beats_registered(c: str, row: str, name: str) -> dict[str, Any]:
+        """KLD(b) of ``row`` − registered: interval wholly below target ``name``'s threshold (op
+        ``<``), Dice occ difference not wholly below 0 (not shown worse)."""
+        t = TARGETS[name]
+        if t.op != "<":
+            raise ValueError(
+                f"target {name}: op must be '<' (the interval's upper end), got {t.op!r}"
+            )
         dd = metrics["diff"].get(c, {}).get(row, {}).get("vs_registered")
         if not dd:
             return _missing(f"rows {row} and registered not both evaluated at configuration {c}")
         k, dc = dd[HEADLINE], dd["dice_occ"]
         if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
             return _missing(f"no interval of the {row} − registered difference at {c}")
-        ok = k["hi"] < 0 and not dc["hi"] < 0  # KLD(b) lower, shown; Dice occ not shown lower
+        below = k["hi"] < t.threshold  # KLD(b) lower, shown
+        ok = below and not dc["hi"] < 0  # and Dice occ not shown lower
         return {
             "value": k["estimate"],
             "lo": k["lo"],
             "hi": k["hi"],
             "status": "pass" if ok else "fail",
-            "ci_beyond_threshold": bool(k["hi"] < 0),
+            "ci_beyond_threshold": bool(below),
             "dice_occ_difference": {"estimate": dc["estimate"], "lo": dc["lo"], "hi": dc["hi"]},
         }
 
@@ -972,8 +980,8 @@ def fusion_targets(
     entry("dice_occ_vs_ego", vs_ego)
     entry("u_auroc", lambda c: value_ci(c, NETWORK, "u_auroc", TARGETS["u_auroc"]))
     entry("u_mean_vs_label", u_gap)
-    entry("hybrid_vs_registered", lambda c: beats_registered(c, HYBRID))
-    entry("network_vs_registered", lambda c: beats_registered(c, NETWORK))
+    entry("hybrid_vs_registered", lambda c: beats_registered(c, HYBRID, "hybrid_vs_registered"))
+    entry("network_vs_registered", lambda c: beats_registered(c, NETWORK, "network_vs_registered"))
 
     def one_vs_per_config(c: str) -> dict[str, Any]:
         dd = metrics["diff"].get(c, {}).get(NETWORK, {}).get(f"vs_{PER_CONFIG_NETWORK}")
@@ -1020,7 +1028,8 @@ def fusion_targets(
         if f is None:
             return _missing(f"{LEARNED} not evaluated at configuration {c}")
         iv = mean_ci(f["ms"].to_numpy(np.float64), scenario_of(f["pair_id"]), **kw)
-        return _judge(iv, TARGETS["learned_runtime_ms"].threshold, "<=")
+        t = TARGETS["learned_runtime_ms"]
+        return _judge(iv, t.threshold, t.op)
 
     entry(
         "learned_success_vs_registered",
@@ -1028,26 +1037,15 @@ def fusion_targets(
     )
     entry("learned_success_gain_at_D", lambda c: learned_success(c, "learned_success_gain_at_D"))
     entry("learned_success_at_D", learned_rate)
-    entry("learned_kld_vs_registered", lambda c: beats_registered(c, LEARNED_NETWORK))
+    entry(
+        "learned_kld_vs_registered",
+        lambda c: beats_registered(c, LEARNED_NETWORK, "learned_kld_vs_registered"),
+    )
     entry("learned_runtime_ms", learned_ms)
     return out
 
 
-# -- outputs -------------------------------------------------------------------------------------
-def json_clean(obj: Any) -> Any:
-    """JSON-safe: NaN/inf → None (DVC and json both choke on NaN), numpy scalars → Python."""
-    if isinstance(obj, dict):
-        return {str(k): json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_clean(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
+# -- outputs (JSON-safe values: traffictwin.io.jsonio.json_clean) -------------------------------
 def qualitative_panels(
     ev: Evaluation,
     noise: Mapping[str, PoseNoise],

@@ -1,7 +1,8 @@
 """Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg.
 
 Each figure function returns the matplotlib ``Figure`` (so tests can check what it plots);
-:func:`save_figure` writes it atomically as PNG and closes it.
+:func:`traffictwin.io.atomic.save_figure` writes it atomically as PNG and closes it (re-exported
+here as :func:`save_figure`).
 
 - :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
 - :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
@@ -17,11 +18,10 @@ and markers are :data:`METHOD_STYLE`.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 
-from traffictwin.io.atomic import atomic_path
+from traffictwin.io.atomic import save_figure  # re-exported for pipelines/evaluate_twin.py
 
 __all__ = [
     "CONFIG_AXIS",
@@ -56,15 +56,6 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Write ``fig`` as PNG to ``path`` (atomically) and close it."""
-    path = Path(path)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
-    _plt().close(fig)
-    return path
 
 
 def config_label(name: str, noise: Mapping[str, Sequence[float]] | None = None) -> str:

@@ -65,8 +65,8 @@ from torch import nn
 
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.warp import pixel_from_metric
+from traffictwin.geometry import se2_matrix
 from traffictwin.grid import GridSpec
-from traffictwin.sim.scene import se2_matrix
 
 __all__ = [
     "RegistrationNetSpec",

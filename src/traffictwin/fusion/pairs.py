@@ -23,9 +23,10 @@ import numpy as np
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.ism import IsmParams, inverse_sensor_model
 from traffictwin.evidential.warp import warp_masses
+from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
 from traffictwin.sim.lidar import LidarSpec, scan
-from traffictwin.sim.scene import Boxes, relative_pose
+from traffictwin.sim.scene import Boxes
 from traffictwin.sim.traffic import sample_scenario
 from traffictwin.sim.world import TEMPLATES, build_world
 

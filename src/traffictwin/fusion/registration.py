@@ -41,8 +41,8 @@ import cv2
 import numpy as np
 
 from traffictwin.evidential.warp import pixel_from_metric
+from traffictwin.geometry import se2_matrix
 from traffictwin.grid import GridSpec
-from traffictwin.sim.scene import se2_matrix
 
 __all__ = [
     "RegistrationParams",

@@ -909,7 +909,7 @@ def draw_score_figures(
     """The report stage's score figures: ``<out_dir>/fusion_scores_<occupied|free>_zoomed.png``
     from evaluate_fusion's wide table ``wide_csv`` (``reports/plots/fusion_scores.csv``); none
     when the table is absent (a partial pipeline)."""
-    from traffictwin.fusion.figures import save_figure
+    from traffictwin.io.atomic import save_figure
     from traffictwin.report.plot_data import fusion_scores_long
 
     if not Path(wide_csv).is_file():

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import atomic_path, write_csv_atomic, write_json_atomic
 from traffictwin.io.limits import NPY_HEADER_LOCK, InputError, npz_headers
 
 SCHEMA_VERSION = 1
@@ -309,11 +309,8 @@ class DatasetWriter:
 
     def add_table(self, name: str, frame: Any) -> None:
         """Write a pandas DataFrame as CSV ``name`` (atomically) and list it in the manifest."""
-        path = self.root / name
-        with atomic_path(path, suffix=".csv") as tmp:
-            frame.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
-            digest = sha256_file(tmp)
-        self._tables[name] = digest
+        path = write_csv_atomic(self.root / name, frame, float_format="%.9g", lineterminator="\n")
+        self._tables[name] = sha256_file(path)
 
     def finalize(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """Write ``manifest.json``; returns the manifest dict."""

@@ -42,7 +42,6 @@ import fcntl
 import hashlib
 import json
 import logging
-import math
 import os
 import socket
 import tempfile
@@ -56,6 +55,7 @@ from urllib.parse import unquote, urlparse
 import numpy as np
 
 from traffictwin.io.atomic import write_text_atomic
+from traffictwin.io.jsonio import json_clean
 from traffictwin.mlops import gate as _gate
 from traffictwin.mlops import model_artifact as art
 from traffictwin.mlops.gate import (
@@ -747,19 +747,10 @@ def append_log(path: str | Path, record: Mapping[str, Any]) -> None:
     old = path.read_text() if path.exists() else ""
     if old and not old.endswith("\n"):
         old += "\n"
-    line = json.dumps(_finite(dict(record)), sort_keys=True, default=_json_default, allow_nan=False)
+    line = json.dumps(
+        json_clean(dict(record)), sort_keys=True, default=_json_default, allow_nan=False
+    )
     write_text_atomic(path, old + line + "\n")
-
-
-def _finite(obj: Any) -> Any:
-    """Non-finite floats -> None, recursively (strict JSON lines)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    return obj
 
 
 def read_log(path: str | Path) -> list[dict[str, Any]]:

@@ -14,7 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from traffictwin.io.atomic import atomic_path  # noqa: E402
+from traffictwin.io.atomic import save_figure  # noqa: E402
 from traffictwin.io.shards import Dataset  # noqa: E402
 from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
 from traffictwin.risk.metric import (  # noqa: E402
@@ -29,12 +29,6 @@ from traffictwin.sim.camera import GroundTexture  # noqa: E402
 from traffictwin.sim.driving import generate_sequence  # noqa: E402
 from traffictwin.sim.scene import Boxes  # noqa: E402
 from traffictwin.stereo.orb import OrbParams, cross_checked_matches  # noqa: E402
-
-
-def _save(fig, path: str | Path) -> None:
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
 
 
 def risk_metric_figure(
@@ -98,7 +92,7 @@ def risk_metric_figure(
         "green: driving corridor, grey: paper region, orange: nearest object, red: subject)",
         fontsize=9,
     )
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
     return {
         "thw": r.thw,
         "risk": r.risk_thw,
@@ -142,7 +136,7 @@ def stereo_figure(
         a.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def orb_figure(
@@ -163,7 +157,7 @@ def orb_figure(
         ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
     ax.axis("off")
     ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -> None:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.config import spec
+from traffictwin.io.jsonio import json_clean
 from traffictwin.risk.baselines import constant_predictions, fit_speed_only, geometric_risk
 from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.metric import CRITICAL_THW, risk_threshold, risk_to_thw
@@ -1077,7 +1078,7 @@ def evaluate_suite(
 
     spreads = {v: spread_stat(out[f"pred_{v}"].to_numpy(), plan) for v in models}
     metrics["targets"] = _targets(metrics, scores, plan, main_key, main_lab, spreads, collapse_std)
-    return finite_or_none(metrics), out
+    return json_clean(metrics), out
 
 
 def _region_block(
@@ -1432,17 +1433,3 @@ def tracking_metrics(metrics: Mapping[str, Any], variant: str) -> dict[str, floa
         if at.get(k) is not None:
             vals[f"test/{k}"] = at[k]
     return vals
-
-
-def finite_or_none(obj: Any) -> Any:
-    """JSON-safe: NaN/inf floats → None (strict JSON has no NaN), recursively."""
-    if isinstance(obj, Mapping):
-        return {k: finite_or_none(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite_or_none(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if np.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj

@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from traffictwin.io.atomic import atomic_path  # noqa: E402
+from traffictwin.io.atomic import save_figure  # noqa: E402
 from traffictwin.risk.evaluation import (  # noqa: E402
     GT_INPUT,
     PAPER,
@@ -33,13 +33,6 @@ from traffictwin.risk.evaluation import (  # noqa: E402
     roc_curve,
 )
 from traffictwin.risk.metric import risk_threshold  # noqa: E402
-
-
-def _save(fig: plt.Figure, path: str | Path) -> None:
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-
 
 #: y-axis name of each training objective's loss (:data:`traffictwin.risk.dave2.OBJECTIVES`):
 #: ``train/loss`` and ``val/loss`` are in these units; ``val/mse`` is always the MSE of the
@@ -140,7 +133,7 @@ def plot_training_curves(
     elif not any("val/mse" in h.columns for h in runs.values()):
         _say_empty(val, "no validation MSE in the training histories")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_scatter(
@@ -166,7 +159,7 @@ def plot_scatter(
         ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_examples(
@@ -187,7 +180,7 @@ def plot_examples(
         fig.colorbar(im, ax=row[1], fraction=0.025)
         for ax in row:
             ax.axis("off")
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = "") -> None:
@@ -211,7 +204,7 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = 
     ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
     ax.set_title(title or "confusion matrix (THW 1.5 s)")
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_roc(
@@ -255,7 +248,7 @@ def plot_roc(
     ax.set_ylabel("true positive rate (critical frames detected)")
     ax.set_title(title or "ROC on the test frames")
     ax.grid(alpha=0.3)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def evaluation_figures(

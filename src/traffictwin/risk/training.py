@@ -42,7 +42,7 @@ from torchmetrics import SumMetric
 from traffictwin import resume
 from traffictwin.config import flatten
 from traffictwin.config import spec as setting
-from traffictwin.io.atomic import atomic_path
+from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.risk.dataset import SPLITS
@@ -969,9 +969,7 @@ def fit_risk(
         }
         save_risk_model(res.net, out_dir, full_meta)
         for path in (out_dir / "history.csv", *([curves_out] if curves_out else [])):
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            with atomic_path(path, suffix=".csv") as tmp:
-                res.history.to_csv(tmp, index=False, float_format="%.9g", lineterminator="\n")
+            write_csv_atomic(path, res.history, float_format="%.9g", lineterminator="\n")
         run = fitted.run
         if run is not None:
             log_final_metrics(

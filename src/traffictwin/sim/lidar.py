@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from traffictwin.sim.raycast import HIT_GROUND, HIT_NOTHING
+from traffictwin.scan import HIT_GROUND, HIT_NOTHING, Scan
 from traffictwin.sim.scene import Boxes
 
 #: VLP-32C elevation angles (deg), sorted ascending (Velodyne VLP-32C user manual, table 9-2)
@@ -109,33 +109,6 @@ class LidarSpec:
     def azimuths(self) -> np.ndarray:
         """Column azimuths (rad) in the sensor frame, 0 = forward, counter-clockwise, in [-pi, pi)."""
         return -np.pi + (np.arange(self.n_azimuth) + 0.5) * (2 * np.pi / self.n_azimuth)
-
-
-@dataclass
-class Scan:
-    """One revolution: arrays of shape ``(n_azimuth, 32)`` (column-major in azimuth).
-
-    ``range`` (m along the ray; ``max_range`` for no return), ``hit`` (box index in the boxes
-    given to :func:`scan`, -1 ground, -2 nothing), ``azimuth`` / ``elevation`` (rad, sensor frame).
-    """
-
-    range: np.ndarray
-    hit: np.ndarray
-    azimuth: np.ndarray
-    elevation: np.ndarray
-    spec: LidarSpec
-
-    @property
-    def points(self) -> np.ndarray:
-        """Sensor-frame points (n_azimuth, 32, 3) (m; z above the ground under the sensor)."""
-        r, a, e = self.range, self.azimuth, self.elevation
-        ch = r * np.cos(e)
-        return np.stack([ch * np.cos(a), ch * np.sin(a), self.spec.height + r * np.sin(e)], -1)
-
-    @property
-    def horizontal(self) -> np.ndarray:
-        """Horizontal distance (m) of every return from the sensor."""
-        return self.range * np.cos(self.elevation)
 
 
 def _cast_columns(

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+# the hit codes live with the scan data (traffictwin.scan); re-exported here
+from traffictwin.scan import HIT_GROUND as HIT_GROUND
+from traffictwin.scan import HIT_NOTHING as HIT_NOTHING
 from traffictwin.sim.scene import Boxes
 
-HIT_GROUND = -1
-HIT_NOTHING = -2
 _EPS = 1e-4
 
 

@@ -12,6 +12,10 @@ from enum import IntEnum
 
 import numpy as np
 
+# pose maths live in traffictwin.geometry (below sim/ and evidential/); re-exported here
+from traffictwin.geometry import relative_pose as relative_pose
+from traffictwin.geometry import se2_matrix as se2_matrix
+
 
 class Cls(IntEnum):
     """Class label of a box."""
@@ -116,15 +120,3 @@ class Boxes:
         x = c * local[..., 0] - s * local[..., 1] + self.center[:, None, 0]
         y = s * local[..., 0] + c * local[..., 1] + self.center[:, None, 1]
         return np.stack([x, y], -1)
-
-
-def se2_matrix(x: float, y: float, yaw: float) -> np.ndarray:
-    """3x3 homogeneous matrix of the SE(2) pose (x, y in m, yaw in rad): local -> world."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
-
-
-def relative_pose(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
-    """Pose of ``pose_to`` expressed in the frame of ``pose_from``; both (x, y, yaw) world (m, rad)."""
-    m = np.linalg.inv(se2_matrix(*pose_from)) @ se2_matrix(*pose_to)
-    return np.array([m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0])])
