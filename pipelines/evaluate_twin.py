@@ -48,7 +48,7 @@ from traffictwin.fusion.config import (
     grid_config,
     pose_configurations,
 )
-from traffictwin.io.atomic import atomic_path, write_json_atomic
+from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.twin.data import INF_ARRAYS
 
 STAGE = "evaluate_twin"
@@ -60,8 +60,7 @@ log = logging.getLogger("traffictwin.evaluate_twin")
 
 
 def _csv(frame: pd.DataFrame, path: Path) -> None:
-    with atomic_path(path, suffix=".csv") as tmp:
-        frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+    write_csv_atomic(path, frame, float_format="%.6g")
 
 
 def method_models(
@@ -164,8 +163,8 @@ def _pose_bias_frames(
 
 
 def main() -> None:
-    from traffictwin.fusion.evaluation import json_clean
-    from traffictwin.fusion.figures import save_figure
+    from traffictwin.io.atomic import save_figure
+    from traffictwin.io.jsonio import json_clean
     from traffictwin.io.shards import Dataset
     from traffictwin.twin import evaluation as ev
     from traffictwin.twin.config import twin_config

@@ -69,7 +69,6 @@ from traffictwin.fusion.methods import (
 from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate, auroc_from_hist, prf
 from traffictwin.fusion.pairs import evenly_spaced  # re-exported: the one pair selection
 from traffictwin.grid import GridSpec
-from traffictwin.io.jsonio import json_clean  # re-exported for pipelines/evaluate_twin.py
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.stats import (
     CIConfig,
@@ -109,7 +108,6 @@ __all__ = [
     "qualitative_panels",
     "plot_tables",
     "figures",
-    "json_clean",
     "mlflow_metrics",
     "methods_table",
 ]

@@ -1,8 +1,7 @@
 """Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg.
 
 Each figure function returns the matplotlib ``Figure`` (so tests can check what it plots);
-:func:`traffictwin.io.atomic.save_figure` writes it atomically as PNG and closes it (re-exported
-here as :func:`save_figure`).
+:func:`traffictwin.io.atomic.save_figure` writes it atomically as PNG and closes it.
 
 - :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
 - :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
@@ -21,15 +20,12 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from traffictwin.io.atomic import save_figure  # re-exported for pipelines/evaluate_twin.py
-
 __all__ = [
     "CONFIG_AXIS",
     "CONFIG_NOTE",
     "config_label",
     "kld_boxplot",
     "scores_plot",
-    "save_figure",
     "METHOD_STYLE",
 ]
 

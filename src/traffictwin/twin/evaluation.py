@@ -36,10 +36,10 @@ import numpy as np
 import pandas as pd
 
 from traffictwin.evidential.noise import apply_pose_noise, scale_noise
+from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import headway, occupancy_distance
 from traffictwin.sim.cooperative import HAZARDS, KINDS
-from traffictwin.sim.scene import relative_pose
 from traffictwin.stats import (
     Interval,
     excludes_zero,

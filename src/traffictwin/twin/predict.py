@@ -38,9 +38,9 @@ import cv2
 import numpy as np
 
 from traffictwin.evidential.warp import warp_masses
+from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import project_on_path
-from traffictwin.sim.scene import relative_pose
 
 __all__ = ["PredictSettings", "cell_velocities", "time_to_conflict", "map_ttc", "box_points"]
 
