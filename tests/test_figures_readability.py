@@ -264,8 +264,10 @@ def test_previews_title_their_panels(monkeypatch: pytest.MonkeyPatch) -> None:
 
     seen: list = []
     real = cli.mass_panels
-    monkeypatch.setattr(
-        cli, "mass_panels", lambda panels, titles=None: seen.append(titles) or real(panels, titles)
+    monkeypatch.setattr(  # where the previews look it up (traffictwin.cli is a package)
+        cli.previews,
+        "mass_panels",
+        lambda panels, titles=None: seen.append(titles) or real(panels, titles),
     )
     m = _masses(occ=1.0)
     u = 1.0 - m[0] - m[1]

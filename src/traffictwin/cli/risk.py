@@ -1,0 +1,178 @@
+"""``traffictwin risk``: the stereo risk of one LEFT RIGHT pair (JSON) or of a FOLDER of pairs
+(CSV, streamed in batches): ORB check, SGM disparity, predicted risk and the THW verdict."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from traffictwin.api import ApiWarning, StereoSettings
+from traffictwin.io.jsonio import json_clean
+from traffictwin.io.outputs import OutputSet
+from traffictwin.risk.metric import CRITICAL_THW
+
+from .common import CliError, add_arguments, arg, csv_value, model_options, output_options
+
+HELP = "stereo risk: ORB check, SGM disparity, predicted risk and THW verdict"
+DESCRIPTION = "LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV, streamed in batches)."
+ARGUMENTS = [
+    arg("left", help="left image, or a folder of pairs"),
+    arg("right", nargs="?", default=None, help="right image (omit for a folder)"),
+    arg(
+        "--speed",
+        type=float,
+        default=None,
+        help="subject speed (m/s): gap = THW * speed; required by speed models, checked against the training range",
+    ),
+    *model_options("risk model", "traffictwin-risk"),
+    arg(
+        "--thw-threshold",
+        type=float,
+        default=CRITICAL_THW,
+        help=f"critical if THW below this (s), default {CRITICAL_THW}",
+    ),
+    arg(
+        "--params",
+        default=None,
+        help="params file with risk_data.sgm/orb/max_speed, used when the model's metadata lacks them",
+    ),
+    arg(
+        "--resize",
+        action="store_true",
+        help="resize images to the model's training camera size before ORB/SGM (else a size mismatch is an error)",
+    ),
+    arg("--batch-size", type=int, default=16, help="frames per batch for a folder (default 16)"),
+    *output_options("write the JSON (pair) or CSV (folder) here (default: stdout)", required=False),
+]
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("risk", help=HELP, description=DESCRIPTION)
+    add_arguments(p, ARGUMENTS)
+    p.set_defaults(func=cmd_risk)
+
+
+def _risk_frames(args: argparse.Namespace) -> tuple[list[Any], bool]:
+    from traffictwin import api
+
+    src = Path(args.left)
+    if src.is_dir():
+        if args.right is not None:
+            raise CliError(
+                f"{src} is a folder: pass no RIGHT image (pairs are found by *_left/*_right names)"
+            )
+        return api.frames_in_folder(src), True
+    if args.right is None:
+        raise CliError(
+            f"{src}: pass LEFT and RIGHT images, or a folder of <id>_left/<id>_right pairs"
+        )
+    for p in (src, Path(args.right)):
+        if not p.is_file():
+            raise CliError(f"{p}: image not found")
+    return [api.Frame(src.stem, src, Path(args.right))], False
+
+
+def cmd_risk(args: argparse.Namespace) -> int:
+    from traffictwin import api
+
+    if args.speed is not None and not (math.isfinite(args.speed) and args.speed >= 0):
+        raise CliError(f"--speed: must be a finite speed >= 0 m/s, got {args.speed}")
+    api.check_thw_threshold(args.thw_threshold, "--thw-threshold")
+    if args.batch_size < 1:
+        raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
+    frames, is_folder = _risk_frames(args)
+    out = Path(args.output) if args.output else None
+    inputs = [p for f in frames for p in (f.left, f.right)] + (
+        [Path(args.params)] if args.params else []
+    )
+    outs = OutputSet([out] if out else [], inputs=inputs, force=args.force)
+    for f in frames:  # every image's header before the model (and torch) loads: a huge or
+        for p in (f.left, f.right):  # broken image is refused in a fraction of a second
+            api.check_image_file(p)
+    rmodel = api.load_risk(args.model, tracking_uri=args.tracking_uri)
+    for note in api.check_speed(rmodel, args.speed, args.params):
+        warnings.warn(note, ApiWarning, stacklevel=1)
+    st = api.stereo_settings(rmodel.domain, args.params, rmodel.description)
+    paths = {f.id: (str(f.left), str(f.right)) for f in frames}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ApiWarning)  # check_speed's notes: printed once above
+        rows = api.assess_risk(
+            rmodel,
+            frames,
+            speed=args.speed,
+            settings=st,
+            resize=args.resize,
+            batch_size=args.batch_size,
+            thw_threshold=args.thw_threshold,
+        )
+        with outs:
+            write = _write_folder if is_folder else _write_pair
+            write(outs, out, rows, paths, rmodel, st)
+    return 0
+
+
+def _write_pair(
+    outs: OutputSet,
+    out: Path | None,
+    rows: Iterator[dict[str, Any]],
+    paths: dict[str, tuple[str, str]],
+    rmodel: Any,
+    st: StereoSettings,
+) -> None:
+    """One pair: its JSON on stdout, and into ``out`` if given."""
+    row = next(rows)
+    lp, rp = paths[row["id"]]
+    res = json_clean(
+        {
+            "id": row["id"],
+            "left": lp,
+            "right": rp,
+            **row,
+            "model": rmodel.description,
+            "predictor": rmodel.predictor,
+            "stereo_settings": st.source,
+        }
+    )
+    if out:
+        outs.write_text(out, json.dumps(res, indent=2, sort_keys=True) + "\n")
+        outs.commit()
+    print(json.dumps(res, indent=2))
+
+
+def _write_folder(
+    outs: OutputSet,
+    out: Path | None,
+    rows: Iterator[dict[str, Any]],
+    paths: dict[str, tuple[str, str]],
+    rmodel: Any,
+    st: StereoSettings,
+) -> None:
+    """A folder of pairs: one CSV row per pair as each batch comes, into ``out`` or stdout."""
+    fh = outs.open(out, "w", newline="") if out else sys.stdout
+    try:
+        wr = None
+        n = 0
+        for row in rows:
+            lp, rp = paths[row["id"]]
+            row = {"id": row["id"], "left": lp, "right": rp, **row}
+            if wr is None:
+                wr = csv.DictWriter(fh, fieldnames=list(row), lineterminator="\n")
+                wr.writeheader()
+            wr.writerow({k: csv_value(v) for k, v in row.items()})
+            n += 1
+    finally:
+        if out:
+            fh.close()
+    if out:
+        outs.commit()
+        print(
+            f"{n} pair(s) -> {out} (model {rmodel.description}, predictor {rmodel.predictor}; "
+            f"stereo settings: {st.source})"
+        )

@@ -1,0 +1,54 @@
+"""``traffictwin runs compare``: the MLflow runs of an experiment as a table (and a CSV)."""
+
+from __future__ import annotations
+
+import argparse
+
+from traffictwin.io.outputs import OutputSet
+
+from .common import CliError, add_arguments, arg
+
+COMPARE_ARGUMENTS = [
+    arg("--experiment", required=True, help="MLflow experiment (fusion | risk | ...)"),
+    arg("--metrics", nargs="+", default=None, help="metric names (default: all)"),
+    arg(
+        "--tracking-uri",
+        "--uri",
+        dest="tracking_uri",
+        default=None,
+        help="tracking URI (default: MLFLOW_TRACKING_URI or the project's mlflow.db)",
+    ),
+    arg("--wide", action="store_true", help="full run ids and every tag column"),
+    arg("--csv", default=None, help="also write the table as CSV"),
+    arg(
+        "--force",
+        action="store_true",
+        help="overwrite a previous --csv table (never the MLflow store or a DVC file)",
+    ),
+]
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    ru = sub.add_parser("runs", help="MLflow runs")
+    rsub = ru.add_subparsers(dest="runs_command", required=True, metavar="SUBCOMMAND")
+    c = rsub.add_parser("compare", help="compare the runs of an experiment as a table")
+    add_arguments(c, COMPARE_ARGUMENTS)
+    c.set_defaults(func=cmd_runs_compare)
+
+
+def cmd_runs_compare(args: argparse.Namespace) -> int:
+    from traffictwin import api
+    from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
+
+    outs = OutputSet([args.csv] if args.csv else [], force=args.force, option="--csv")
+    uri = api.resolve_tracking_uri(args.tracking_uri)
+    try:
+        df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
+    except RunsError as exc:
+        raise CliError(str(exc)) from None
+    if args.csv:
+        with outs:
+            outs.write_text(args.csv, df.to_csv(index=False))
+            outs.commit()
+    print(format_runs(df, wide=args.wide))
+    return 0
