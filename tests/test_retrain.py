@@ -11,9 +11,12 @@ import pytest
 import yaml
 from conftest import run, stage_env
 
+from pipelines import _checkout as ck
 from pipelines import retrain as rt
 from traffictwin.config import ConfigError, compose_config, load_params
 from traffictwin.mlops import registry as reg
+from traffictwin.mlops.config import compose_with_seeds, seed_overrides
+from traffictwin.mlops.journal import LockBusy, Snapshot, exclusive_lock
 
 MODELS = [
     "traffictwin-fusion",
@@ -26,13 +29,13 @@ MODELS = [
 
 def test_lock_is_exclusive(tmp_path):
     lock = tmp_path / ".retrain.lock"
-    with rt.retrain_lock(lock):
+    with exclusive_lock(lock, "retraining run"):
         with pytest.raises(
-            rt.LockBusy, match=r"another retraining run holds the lock .*\.retrain\.lock \(pid \d+"
+            LockBusy, match=r"another retraining run holds the lock .*\.retrain\.lock \(pid \d+"
         ):
-            with rt.retrain_lock(lock):
+            with exclusive_lock(lock, "retraining run"):
                 pass
-    with rt.retrain_lock(lock):  # released after the block
+    with exclusive_lock(lock, "retraining run"):  # released after the block
         pass
 
 
@@ -47,17 +50,17 @@ def test_seed_overrides_compose_without_editing_conf(tmp_path):
     (conf / "profile" / "ci.yaml").write_text("name: ci\n")
     before = {p: p.read_text() for p in conf.rglob("*.yaml")}
     cfg = compose_config(conf, ["profile=ci"])
-    seeds = rt.seed_overrides(cfg, ["seed", "risk_data.seed"], 1, None)
+    seeds = seed_overrides(cfg, ["seed", "risk_data.seed"], 1, None)
     assert seeds == {"seed": (41, 42), "risk_data.seed": (0, 1)}
-    assert rt.seed_overrides(cfg, ["seed"], 1, 7) == {"seed": (41, 7)}
-    composed, overrides = rt.compose_with_seeds(conf, "ci", seeds)
+    assert seed_overrides(cfg, ["seed"], 1, 7) == {"seed": (41, 7)}
+    composed, overrides = compose_with_seeds(conf, "ci", seeds)
     assert overrides == ["profile=ci", "seed=42", "risk_data.seed=1"]
     assert composed["seed"] == 42 and composed["grid"]["seed"] == 3  # nested key untouched
     assert composed["risk_data"] == {"seed": 1, "other": 1}
     assert composed == compose_config(conf, overrides)
     assert {p: p.read_text() for p in conf.rglob("*.yaml")} == before  # conf/ never edited
     with pytest.raises(ConfigError, match="key 'nope' is missing"):
-        rt.seed_overrides(cfg, ["nope"], 1, None)
+        seed_overrides(cfg, ["nope"], 1, None)
 
 
 def test_data_versions_reads_dvc_lock(tmp_path):
@@ -78,8 +81,8 @@ def test_data_versions_reads_dvc_lock(tmp_path):
             }
         )
     )
-    assert rt.data_versions(tmp_path) == {"data/fusion": "abc.dir"}
-    assert rt.data_versions(tmp_path / "nowhere") == {}
+    assert ck.data_versions(tmp_path) == {"data/fusion": "abc.dir"}
+    assert ck.data_versions(tmp_path / "nowhere") == {}
 
 
 def test_snapshot_restores_conf_params_reports(tmp_path):
@@ -91,7 +94,7 @@ def test_snapshot_restores_conf_params_reports(tmp_path):
     (root / "reports" / "a.json").write_text("{}")
     snap_dir = tmp_path / "snap"
     snap_dir.mkdir()
-    snap = rt.Snapshot(root, snap_dir)
+    snap = Snapshot(root, snap_dir, ck.RESTORED)
     (root / "conf" / "config.yaml").write_text("seed: 2\n")
     (root / "params.yaml").write_text("seed: 2\n")
     (root / "reports" / "a.json").write_text('{"new": 1}')

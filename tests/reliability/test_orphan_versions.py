@@ -9,7 +9,7 @@ import logging
 import pytest
 from _registry_models import log_linear
 
-from pipelines import retrain as rt
+from pipelines import _checkout as ck
 from traffictwin.mlops import registry as reg
 
 NAME = "traffictwin-orphans"
@@ -26,7 +26,7 @@ def test_versions_after_the_snapshot_are_deleted_or_tagged(cl):
     reg.ensure_version(cl, NAME, log_linear(3.0))  # v3: an alias already points at it
     cl.set_registered_model_alias(NAME, "challenger", "3")
     reg.ensure_version(cl, "traffictwin-never-registered", log_linear(4.0))
-    done = rt.retire_orphans(cl, before, logging.getLogger("test"))
+    done = ck.retire_orphans(cl, before, logging.getLogger("test"))
     assert f"{NAME} v2 deleted" in done
     assert any(d.startswith(f"{NAME} v3 tagged orphan") for d in done), done
     left = {int(mv.version) for mv in cl.search_model_versions(f"name='{NAME}'")}
@@ -36,4 +36,4 @@ def test_versions_after_the_snapshot_are_deleted_or_tagged(cl):
     assert str(cl.get_model_version_by_alias(NAME, "champion").version) == "1"  # the champion kept
     # a model the interrupted run registered first is removed entirely
     assert "traffictwin-never-registered" not in reg.registered_names(cl)
-    assert rt.retire_orphans(cl, reg.latest_versions(cl, [NAME]), logging.getLogger("t")) == []
+    assert ck.retire_orphans(cl, reg.latest_versions(cl, [NAME]), logging.getLogger("t")) == []

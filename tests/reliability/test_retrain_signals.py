@@ -5,6 +5,11 @@ project's ``pipelines/`` and ``conf/`` with a two-stage ``dvc.yaml`` (``gen`` wr
 ``data/toy``, ``train`` copies it into ``models/toy``) whose ``train`` command fails, or sleeps
 after writing its pid, as ``TOY_MODE`` says. So ``dvc repro``, ``dvc checkout`` and ``dvc status``
 are the real ones, and nothing trains a network.
+
+Time limits and stopping the process tree are the scheduler's (``pipelines/schedules/``): these
+tests stand in for it, running the retraining in its own process group (as ``timeout`` does; a
+systemd unit's cgroup) and signalling that group. ``test_retrain_schedules.py`` checks that the
+schedules do so.
 """
 
 from __future__ import annotations
@@ -22,7 +27,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from pipelines import _checkout as ck
 from pipelines import retrain as rt
+from traffictwin.mlops.journal import Journal
 
 WT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -161,12 +168,35 @@ def _retrain(repo: Path, mode: str = "ok", **env) -> subprocess.CompletedProcess
 
 
 def _start(repo: Path, mode: str) -> subprocess.Popen:
-    """A retraining in the background, output to files (a pipe would stay open in an orphaned child)."""
+    """A retraining in the background in its own process group, as the scheduler runs it; output
+    to files (a pipe would stay open in an orphaned child)."""
     out = open(repo.parent / "retrain.out", "w")  # noqa: SIM115 - closed with the process
     cmd = [sys.executable, "-m", "pipelines.retrain", "--no-promote"]
     return subprocess.Popen(
-        cmd, cwd=repo, env=_env(repo, mode), stdout=out, stderr=subprocess.STDOUT
+        cmd,
+        cwd=repo,
+        env=_env(repo, mode),
+        stdout=out,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
     )
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie counts as gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] not in "ZXx"
+
+
+def _kill_group(pgid: int, sig: int) -> None:
+    """What the scheduler does on a timeout or stop: signal the run's whole process group."""
+    try:
+        os.killpg(pgid, sig)
+    except ProcessLookupError:
+        pass
 
 
 def _wait(pred, what: str, proc: subprocess.Popen | None = None, limit: float = 180.0) -> None:
@@ -231,7 +261,9 @@ def test_restored_is_false_with_the_reason_when_the_restore_cannot_be_verified(r
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM])
-def test_signal_stops_the_child_group_restores_and_the_next_run_works(repo: Path, sig):
+def test_signal_to_the_group_restores_and_the_next_run_works(repo: Path, sig):
+    """The scheduler's stop (systemd KillMode=control-group, `timeout`) signals every process of
+    the run: `dvc repro` and its stage end, the retraining restores and writes its summary."""
     before, seed0 = _state(repo), _seed(repo)
     proc = _start(repo, "sleep")
     try:
@@ -244,12 +276,12 @@ def test_signal_stops_the_child_group_restores_and_the_next_run_works(repo: Path
         assert "another retraining run holds the lock" in busy.stderr
         assert (repo / ".retrain.journal" / "state.json").exists() and proc.poll() is None
 
-        proc.send_signal(sig)
+        _kill_group(proc.pid, sig)
         assert proc.wait(timeout=300) == 128 + sig
     finally:
         if proc.poll() is None:
-            proc.kill()
-    assert not rt.alive(stage_pid)  # the child's process group was stopped, not orphaned
+            _kill_group(proc.pid, signal.SIGKILL)
+    assert not _alive(stage_pid)  # the stage stayed in the group the scheduler signals
     s = _summary(repo)
     assert s["status"] == "interrupted" and s["signal"] == sig.name
     assert s["failed_step"] == "dvc_repro" and s["restored"] is True, s.get("restore_problems")
@@ -263,26 +295,32 @@ def test_signal_stops_the_child_group_restores_and_the_next_run_works(repo: Path
 
 
 def test_sigkill_leaves_a_journal_that_the_next_run_recovers_from(repo: Path):
+    """SIGKILL of the retraining alone leaves its `dvc repro` running, which keeps the inherited
+    lock: the next run exits 75 and touches nothing. Once the scheduler has killed the rest of the
+    group (systemd's final SIGKILL to the cgroup, `timeout --kill-after`), the next run recovers."""
     before, seed0 = _state(repo), _seed(repo)
     proc = _start(repo, "sleep")
     try:
         stage_pid = _running_stage(repo, proc)
         proc.kill()
         proc.wait(timeout=60)
+        journal = json.loads((repo / ".retrain.journal" / "state.json").read_text())
+        assert journal["pid"] == proc.pid and journal["step"] == "dvc_repro"
+        assert _alive(stage_pid) and _seed(repo) == seed0 + 1  # as the killed run left them
+
+        busy = _retrain(repo)  # its `dvc repro` still holds the lock: no restore under it
+        assert busy.returncode == rt.EXIT_LOCKED, busy.stderr[-3000:]
+        assert "another retraining run holds the lock" in busy.stderr
+        assert _seed(repo) == seed0 + 1 and (repo / ".retrain.journal" / "state.json").exists()
     finally:
-        if proc.poll() is None:
-            proc.kill()
-    journal = json.loads((repo / ".retrain.journal" / "state.json").read_text())
-    assert journal["pid"] == proc.pid and journal["step"] == "dvc_repro"
-    assert rt.alive(stage_pid) and _seed(repo) == seed0 + 1  # orphaned child, bumped seed: as left
+        _kill_group(proc.pid, signal.SIGKILL)
+    _wait(lambda: not _alive(stage_pid), "the killed group to go")
 
     nxt = _retrain(repo)
     assert nxt.returncode == 0, nxt.stderr[-3000:]
-    assert not rt.alive(stage_pid)  # the orphaned `dvc repro` group was stopped first
     s = _summary(repo)
     assert s["status"] == "succeeded"
     assert s["recovered"]["pid"] == proc.pid and s["recovered"]["restored"] is True
-    assert s["recovered"]["child_stopped"] is True
     assert s["seeds"] == {"seed": [seed0, seed0 + 1]}  # bumped from the restored params, not twice
     assert (repo / "models/toy/model.txt").read_text() == f"model of data {seed0 + 1}"
     assert (repo / "conf").exists() and _state(repo)["conf/config.yaml"] == before[
@@ -295,56 +333,23 @@ def test_unfinished_journal_is_dropped_without_a_restore(repo: Path):
     """A run killed while writing its journal had changed nothing: the half-written copy goes."""
     tmp = repo / ".retrain.journal.tmp"
     (tmp / "snapshot" / "conf").mkdir(parents=True)
-    journal = rt.Journal(repo / ".retrain.journal")
-    assert rt.recover(repo, journal, logging.getLogger("t")) is None
+    journal = Journal(repo / ".retrain.journal")
+    assert ck.recover(repo, journal, logging.getLogger("t")) is None
     assert not tmp.exists()
 
 
 # ------------------------------------------------------------------ building blocks, in-process
 
 
-def test_signal_guard_raises_once_and_defers():
-    with rt.SignalGuard() as guard:
+def test_signals_raise_once_then_are_only_noted():
+    with rt.Signals() as guard:
         with pytest.raises(rt.Interrupted) as err:
             os.kill(os.getpid(), signal.SIGHUP)
             time.sleep(5)  # the handler raises at the next bytecode: never reached
         assert err.value.signum == signal.SIGHUP
-    with rt.SignalGuard() as guard:
-        with pytest.raises(rt.Interrupted) as err:
-            with guard.deferred():
-                os.kill(os.getpid(), signal.SIGINT)
-                os.kill(os.getpid(), signal.SIGTERM)
-                noted = guard.received
-        assert (
-            noted == signal.SIGINT and err.value.signum == signal.SIGINT
-        )  # raised when the block ended
         os.kill(os.getpid(), signal.SIGTERM)  # after it was raised once: only noted
-    with rt.SignalGuard() as guard:
-        guard.hold()
+        assert guard.received == signal.SIGHUP
+    with rt.Signals() as guard:
+        guard.hold()  # the gate moves aliases: a signal must not cut it short
         os.kill(os.getpid(), signal.SIGTERM)
         assert guard.received == signal.SIGTERM
-
-
-def test_alive_tells_a_reused_pid_from_the_journaled_process():
-    me = os.getpid()
-    start = rt.process_start(me)
-    assert rt.alive(me) and rt.alive(me, start)
-    assert not rt.alive(me, start + 1)  # same pid, other start time: another process
-    child = subprocess.Popen([sys.executable, "-c", "pass"])
-    child.wait()
-    assert not rt.alive(child.pid)
-
-
-def test_stop_group_stops_every_member(tmp_path: Path):
-    pidfile = tmp_path / "grandchild"
-    script = (
-        f"import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)']);"
-        f"open({str(pidfile)!r}, 'w').write(str(p.pid)); time.sleep(600)"
-    )
-    leader = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
-    _wait(lambda: pidfile.exists() and pidfile.read_text(), "the grandchild", leader)
-    grandchild = int(pidfile.read_text())
-    assert rt.group_alive(leader.pid)
-    assert rt.stop_group(leader.pid, logging.getLogger("t"), leader) is True
-    assert leader.poll() is not None and not rt.alive(grandchild)
-    assert not rt.group_alive(leader.pid)

@@ -160,12 +160,11 @@ def test_cron_log_is_outside_reports():
         assert "pipelines.retrain" in ln
 
 
-def test_systemd_unit_logs_outside_reports_and_lets_retrain_stop_its_child():
+def test_systemd_unit_logs_outside_reports():
     unit = (SCHEDULES / "traffictwin-retrain.service").read_text()
     settings = dict(
         ln.split("=", 1) for ln in unit.splitlines() if "=" in ln and not ln.startswith("#")
     )
     for key in ("StandardOutput", "StandardError"):
         assert "reports" not in settings.get(key, "journal")
-    # SIGTERM to pipelines.retrain alone: it stops the dvc repro group and restores before exiting
-    assert settings["KillMode"] == "mixed"
+    # how the unit stops the run (KillMode=control-group): tests/test_retrain_schedules.py

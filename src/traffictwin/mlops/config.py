@@ -5,14 +5,17 @@ Validated once at the start of ``pipelines/promote.py`` and ``pipelines/retrain.
 models are not here: the workflow layer derives them (``pipelines/_paths.py``); the fusion
 one fusion network and the one learned registration are gated on every configuration (the keys
 of ``configurations``) and the risk variant must be ``shipped`` (models/risk_shipped) or one of
-``risk_model.run_variants``.
+``risk_model.run_variants``. :func:`seed_overrides` and :func:`compose_with_seeds` are the
+retraining's new data batch: its seed keys moved on, as Hydra overrides of conf/.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-from traffictwin.config import spec
+from traffictwin.config import ConfigError, compose_config, get, spec
 from traffictwin.mlops.gate import Gate
 
 MODES = ("min", "max")
@@ -74,3 +77,24 @@ class RegistryConfig:
     registration: FusionGateConfig
     risk: RiskGateConfig
     retrain: RetrainConfig
+
+
+def seed_overrides(cfg, keys: list[str], step: int, seed: int | None) -> dict[str, tuple[int, int]]:
+    """``{key: (old, new)}`` for every seed key: new = ``seed`` if given, else old + ``step``."""
+    olds = {k: get(cfg, k, int) for k in keys}
+    return {k: (old, seed if seed is not None else old + step) for k, old in olds.items()}
+
+
+def compose_with_seeds(
+    conf: Path, profile: str, seeds: dict[str, tuple[int, int]]
+) -> tuple[dict[str, Any], list[str]]:
+    """params composed from ``conf`` with ``profile=<profile>`` and ``<key>=<new>`` overrides, and the
+    overrides; error if a seed does not compose to its new value (e.g. fixed by the profile)."""
+    overrides = [f"profile={profile}", *(f"{k}={new}" for k, (_, new) in seeds.items())]
+    composed = compose_config(conf, overrides)
+    for k, (_, new) in seeds.items():
+        if (got := get(composed, k, int)) != new:
+            raise ConfigError(
+                f"conf/: '{k}' composes to {got}, not the new seed {new} (overridden by profile '{profile}'?)"
+            )
+    return composed, overrides
