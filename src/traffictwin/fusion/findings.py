@@ -7,18 +7,31 @@ with its ``<metric>_ci``, ``diff.<cfg>.<row>.vs_<base>.<metric>``, ``label.<cfg>
 The headline metric is KLD(b) ``kld_fou_mean`` (KL over the full mass vector). A difference
 between two methods is *claimed* only when its paired 95 % cluster-bootstrap interval excludes
 zero; otherwise the text says "no difference shown". Estimates are quoted with their intervals.
+
+This module computes what the findings say (:class:`FusionFindings`: formatted numbers with
+their intervals, verdicts, lists of configurations); the sentences are in the template
+``templates/findings.md.j2`` next to it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
 
-__all__ = ["fusion_findings", "verdict"]
+from traffictwin.report.prose import render_prose
+
+__all__ = ["FusionFindings", "fusion_findings", "fusion_findings_record", "verdict"]
 
 HEADLINE = "kld_fou_mean"
 NET, NAIVE, REG, EGO = "dnn", "naive", "registered", "ego"
+TEMPLATES = Path(__file__).parent / "templates"
+VERDICTS = ("lower", "higher", "no difference shown", "n/a")
+
+#: configurations grouped by the verdict of a paired difference (keys: :data:`VERDICTS`)
+Groups = dict[str, list[str]]
 
 
 def _num(v: Any) -> float:
@@ -79,169 +92,189 @@ def _diff_text(d: Mapping[str, Any] | None, digits: int = 3) -> str:
 
 def _claims(
     metrics: Mapping[str, Any], cfgs: Sequence[str], row: str, base: str, key: str
-) -> dict[str, list[str]]:
+) -> Groups:
     """Configurations grouped by the verdict of ``row − base`` on ``key``."""
-    out: dict[str, list[str]] = {"lower": [], "higher": [], "no difference shown": [], "n/a": []}
+    out: Groups = {v: [] for v in VERDICTS}
     for c in cfgs:
         out[verdict(_diff(metrics, c, row, base, key))].append(c)
     return out
 
 
-def _claim_sentence(groups: Mapping[str, list[str]], low: str, high: str) -> str:
-    parts = []
-    if groups["lower"]:
-        parts.append(f"{low} at {', '.join(groups['lower'])}")
-    if groups["higher"]:
-        parts.append(f"{high} at {', '.join(groups['higher'])}")
-    if groups["no difference shown"]:
-        parts.append(f"no difference shown at {', '.join(groups['no difference shown'])}")
-    if groups["n/a"]:
-        parts.append(f"no interval at {', '.join(groups['n/a'])}")
-    return "; ".join(parts) or "nothing evaluated"
+class TableRow(NamedTuple):
+    """One configuration's row of the findings table (KLD(b) and occupied Dice with intervals)."""
+
+    config: str
+    naive: str
+    net: str
+    registered: str
+    net_minus_naive: str
+    naive_dice: str
+    net_dice: str
+    registered_dice: str
 
 
-def fusion_findings(metrics: Mapping[str, Any]) -> str:
-    """Markdown findings from the ``fusion.json`` dict (see module docstring)."""
-    test = metrics.get("test", {})
-    configs: Sequence[str] = sorted(test)
-    if not configs:
-        return "## Fusion findings\n\nNo configuration was evaluated.\n"
-    boot = metrics.get("bootstrap", {})
-    level = _num(boot.get("level", 0.95))
-    lines = [
-        "## Fusion findings",
-        "",
-        "KLD(b) = mean over test pairs of KL(label ‖ prediction) over the full mass vector "
-        "(m_F, m_O, u) — the headline; KLD(a) over (m_F, m_O) only is kept for comparison with the "
-        f"paper. Dice over label-known cells, pooled. Brackets: {_fmt(100 * level, 0)} % cluster-"
-        f"bootstrap intervals ({boot.get('cluster', 'scenario')}, {boot.get('n_boot', '?')} "
-        "resamples); a difference is claimed only when its paired interval excludes 0, otherwise "
-        '"no difference shown".',
-        "",
-        "| config | naive KLD(b) | network KLD(b) | registered KLD(b) | network − naive KLD(b) "
-        "| naive Dice occ | network Dice occ | registered Dice occ |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    for c in configs:
-        lines.append(
-            f"| {c} | {_with_ci(metrics, c, NAIVE, HEADLINE)} | {_with_ci(metrics, c, NET, HEADLINE)} | "
-            f"{_with_ci(metrics, c, REG, HEADLINE)} | "
-            f"{_diff_text(_diff(metrics, c, NET, NAIVE, HEADLINE))} | "
-            f"{_with_ci(metrics, c, NAIVE, 'dice_occ')} | {_with_ci(metrics, c, NET, 'dice_occ')} | "
-            f"{_with_ci(metrics, c, REG, 'dice_occ')} |"
-        )
-    lines.append("")
+class ConfigA(NamedTuple):
+    """Configuration A (no noise): network vs naive."""
 
-    # 1. network vs naive from the first noisy configuration on
-    noisy = configs[1:]
-    if noisy:
-        k = _claims(metrics, noisy, NET, NAIVE, HEADLINE)
-        dc = _claims(metrics, noisy, NET, NAIVE, "dice_occ")
-        wins = k["lower"]
-        verdict_text = (
-            "reproduces"
-            if len(wins) == len(noisy)
-            else ("partly reproduces" if wins else "does not reproduce")
-        )
-        lines.append(
-            f"- **Network vs naive with pose noise ({', '.join(noisy)}), KLD(b):** the network is "
-            f"lower in {len(wins)}/{len(noisy)} configurations ({', '.join(wins) or 'none'}): "
-            f"{_claim_sentence(k, 'network lower', 'network higher')}. Differences network − naive: "
-            + ", ".join(f"{c} {_diff_text(_diff(metrics, c, NET, NAIVE, HEADLINE))}" for c in noisy)
-            + f". This {verdict_text} the paper's finding that the network beats the naive fusion "
-            "from configuration B on."
-        )
-        lines.append(
-            f"- **Occupied Dice, network vs naive:** "
-            f"{_claim_sentence(dc, 'network lower', 'network higher')}."
-        )
-        spread = [
-            c
-            for c in noisy
-            if (_get(metrics, c, NET, "kld_fou_q75") - _get(metrics, c, NET, "kld_fou_q25"))
-            < (_get(metrics, c, NAIVE, "kld_fou_q75") - _get(metrics, c, NAIVE, "kld_fou_q25"))
-        ]
-        lines.append(
-            f"- **Spread (point estimates, no interval):** the network's KLD(b) interquartile range "
-            f"is narrower than naive's in {len(spread)}/{len(noisy)} noisy configurations (the "
-            'paper: the network "varies much less").'
-        )
+    config: str
+    verdict: str  #: of network − naive KLD(b)
+    net: str
+    naive: str
+    net_dice: str
+    naive_dice: str
 
-    # 2. KLD(a), for comparison with the paper
-    ka = _claims(metrics, configs, NET, NAIVE, "kld_fo_mean")
-    lines.append(
-        "- **KLD(a) over (m_F, m_O), for comparison with the paper:** network vs naive: "
-        f"{_claim_sentence(ka, 'network lower', 'network higher')}; network "
-        + ", ".join(f"{c} {_with_ci(metrics, c, NET, 'kld_fo_mean')}" for c in configs)
-        + "."
+
+class Registered(NamedTuple):
+    """The classical registration at one configuration."""
+
+    config: str
+    kld: str
+    vs_naive: str  #: verdict of registered − naive KLD(b)
+    net_vs_registered: str  #: verdict of network − registered KLD(b)
+    success_pct: str
+    residual_m: str  #: median residual translation
+    noisy_m: str  #: median translation error of the noisy pose
+
+
+class Learned(NamedTuple):
+    """The learned registration against the classical one at one configuration."""
+
+    config: str
+    success: str
+    registered_success: str
+    diff: str  #: learned − registered success rate
+    verdict: str
+    fallback_pct: str
+    trans_p90: str
+    rot_p90: str
+    registered_trans_p90: str
+    registered_rot_p90: str
+
+
+class RowAt(NamedTuple):
+    """Another network row (loss ablation, hybrid) at one configuration."""
+
+    config: str
+    kld: str
+    vs_naive: str
+    vs_registered: str
+    dice: str
+    dice_vs_registered: str
+    u_mean: str
+
+
+@dataclass(frozen=True)
+class NoisyFindings:
+    """Network vs naive from the first noisy configuration on."""
+
+    configs: list[str]
+    kld: Groups  #: verdicts of network − naive on KLD(b)
+    dice: Groups  #: ... on occupied Dice
+    diffs: list[tuple[str, str]]  #: (config, network − naive KLD(b) with interval)
+    narrower: int  #: configurations where the network's KLD(b) IQR is narrower than naive's
+
+
+@dataclass(frozen=True)
+class FusionFindings:
+    """Everything the fusion findings state, computed from ``fusion.json``; lists hold one
+    tuple per configuration (or row), numbers are formatted with their intervals."""
+
+    configs: list[str]
+    level: str = ""  #: bootstrap level in percent
+    cluster: Any = None
+    n_boot: Any = None
+    table: list[TableRow] = field(default_factory=list)
+    noisy: NoisyFindings | None = None
+    kld_a: Groups = field(default_factory=dict)
+    kld_a_net: list[tuple[str, str]] = field(default_factory=list)
+    negative: list[str] = field(default_factory=list)  #: configs with a negative KLD(a)
+    config_a: ConfigA | None = None
+    registered: list[Registered] = field(default_factory=list)
+    learned: list[Learned] = field(default_factory=list)
+    rows: list[tuple[str, list[RowAt]]] = field(default_factory=list)
+    u_auroc: list[tuple[str, str]] = field(default_factory=list)
+    u_above: list[str] = field(default_factory=list)  #: configs whose AUROC interval is above 0.5
+    u_mean: list[tuple[str, str, str]] | None = None  #: (cfg, network, label); None: no label
+    targets: Groups | None = None  #: target names by status (pass / fail / not evaluated)
+    cross_best: list[tuple[str, str]] = field(default_factory=list)
+
+
+def _table_row(m: Mapping[str, Any], c: str) -> TableRow:
+    return TableRow(
+        c,
+        _with_ci(m, c, NAIVE, HEADLINE),
+        _with_ci(m, c, NET, HEADLINE),
+        _with_ci(m, c, REG, HEADLINE),
+        _diff_text(_diff(m, c, NET, NAIVE, HEADLINE)),
+        _with_ci(m, c, NAIVE, "dice_occ"),
+        _with_ci(m, c, NET, "dice_occ"),
+        _with_ci(m, c, REG, "dice_occ"),
     )
-    negative = [c for c in configs if _get(metrics, c, NET, "kld_fo_mean") < 0]
-    if negative:
-        lines.append(
-            f"- **Negative KLD(a) ({', '.join(negative)}):** KLD(a) compares the two masses (m_F, m_O) "
-            "only, which do not sum to 1, so it is not a divergence of distributions: it goes below 0 "
-            "when the prediction puts more mass on free/occupied than the label, i.e. it rewards "
-            "over-confidence. This is why KLD(b) is the headline."
-        )
 
-    # 3. configuration A (no noise)
-    a = configs[0]
-    if math.isfinite(_get(metrics, a, NET, HEADLINE)):
-        v = verdict(_diff(metrics, a, NET, NAIVE, HEADLINE))
-        word = {"higher": "worse than", "lower": "better than"}.get(v, "not shown different from")
-        lines.append(
-            f"- **Configuration {a} (no noise):** network KLD(b) {_with_ci(metrics, a, NET, HEADLINE)} "
-            f"vs naive {_with_ci(metrics, a, NAIVE, HEADLINE)}: the network is {word} the naive "
-            "fusion, which at zero noise equals the label construction; occupied Dice "
-            f"{_with_ci(metrics, a, NET, 'dice_occ')} vs {_with_ci(metrics, a, NAIVE, 'dice_occ')}."
-        )
 
-    # 4. registration and the network against it
-    reg_lines = []
-    for c in configs:
-        if not math.isfinite(_get(metrics, c, REG, HEADLINE)):
-            continue
-        vs_naive = verdict(_diff(metrics, c, REG, NAIVE, HEADLINE))
-        net_vs_reg = verdict(_diff(metrics, c, NET, REG, HEADLINE))
-        reg_lines.append(
-            f"{c}: KLD(b) {_with_ci(metrics, c, REG, HEADLINE)} (vs naive: {vs_naive}; network vs "
-            f"registered: {net_vs_reg}), success "
-            f"{_fmt(100 * _get(metrics, c, REG, 'success_rate'), 0)} %, residual translation median "
-            f"{_fmt(_get(metrics, c, REG, 'residual_trans_m_median'), 2)} m (noisy pose "
-            f"{_fmt(_get(metrics, c, REG, 'noisy_trans_m_median'), 2)} m)"
-        )
-    if reg_lines:
-        lines.append(
-            "- **Classical registration (Fourier–Mellin + ECC, then Dempster):** "
-            + "; ".join(reg_lines)
-            + "."
-        )
+def _iqr(m: Mapping[str, Any], c: str, row: str) -> float:
+    return _get(m, c, row, "kld_fou_q75") - _get(m, c, row, "kld_fou_q25")
 
-    # 4b. the learned registration against the classical one (same pairs, paired differences)
-    learned_lines = []
-    for c in configs:
-        if not math.isfinite(_get(metrics, c, "learned", "success_rate")):
-            continue
-        d = _diff(metrics, c, "learned", REG, "success_rate")
-        dt = _diff_text(d, 3) if d is not None else "n/a"
-        learned_lines.append(
-            f"{c}: success {_with_ci(metrics, c, 'learned', 'success_rate')} vs registered "
-            f"{_fmt(_get(metrics, c, REG, 'success_rate'))} (difference {dt}: "
-            f"{verdict(d)}), fallback {_fmt(100 * _get(metrics, c, 'learned', 'fallback_rate'), 0)} %, "
-            f"p90 error {_fmt(_get(metrics, c, 'learned', 'residual_trans_m_p90'), 2)} m / "
-            f"{_fmt(_get(metrics, c, 'learned', 'residual_rot_deg_p90'), 2)}° "
-            f"(registered {_fmt(_get(metrics, c, REG, 'residual_trans_m_p90'), 2)} m / "
-            f"{_fmt(_get(metrics, c, REG, 'residual_rot_deg_p90'), 2)}°)"
-        )
-    if learned_lines:
-        lines.append(
-            "- **Learned registration (cost volume over rotations × shifts, then Dempster) vs classical:** "
-            + "; ".join(learned_lines)
-            + "."
-        )
 
-    # 5. the other network rows (loss ablation, hybrids)
-    rows = []
+def _noisy(m: Mapping[str, Any], noisy: list[str]) -> NoisyFindings | None:
+    if not noisy:
+        return None
+    return NoisyFindings(
+        configs=noisy,
+        kld=_claims(m, noisy, NET, NAIVE, HEADLINE),
+        dice=_claims(m, noisy, NET, NAIVE, "dice_occ"),
+        diffs=[(c, _diff_text(_diff(m, c, NET, NAIVE, HEADLINE))) for c in noisy],
+        narrower=sum(_iqr(m, c, NET) < _iqr(m, c, NAIVE) for c in noisy),
+    )
+
+
+def _config_a(m: Mapping[str, Any], a: str) -> ConfigA | None:
+    if not math.isfinite(_get(m, a, NET, HEADLINE)):
+        return None
+    v = verdict(_diff(m, a, NET, NAIVE, HEADLINE))
+    return ConfigA(
+        a,
+        v,
+        _with_ci(m, a, NET, HEADLINE),
+        _with_ci(m, a, NAIVE, HEADLINE),
+        _with_ci(m, a, NET, "dice_occ"),
+        _with_ci(m, a, NAIVE, "dice_occ"),
+    )
+
+
+def _registered(m: Mapping[str, Any], c: str) -> Registered:
+    return Registered(
+        c,
+        _with_ci(m, c, REG, HEADLINE),
+        verdict(_diff(m, c, REG, NAIVE, HEADLINE)),
+        verdict(_diff(m, c, NET, REG, HEADLINE)),
+        _fmt(100 * _get(m, c, REG, "success_rate"), 0),
+        _fmt(_get(m, c, REG, "residual_trans_m_median"), 2),
+        _fmt(_get(m, c, REG, "noisy_trans_m_median"), 2),
+    )
+
+
+def _learned(m: Mapping[str, Any], c: str) -> Learned:
+    d = _diff(m, c, "learned", REG, "success_rate")
+    return Learned(
+        c,
+        _with_ci(m, c, "learned", "success_rate"),
+        _fmt(_get(m, c, REG, "success_rate")),
+        _diff_text(d, 3),
+        verdict(d),
+        _fmt(100 * _get(m, c, "learned", "fallback_rate"), 0),
+        _fmt(_get(m, c, "learned", "residual_trans_m_p90"), 2),
+        _fmt(_get(m, c, "learned", "residual_rot_deg_p90"), 2),
+        _fmt(_get(m, c, REG, "residual_trans_m_p90"), 2),
+        _fmt(_get(m, c, REG, "residual_rot_deg_p90"), 2),
+    )
+
+
+def _network_rows(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, list[RowAt]]]:
+    """The other network rows (loss ablation, hybrids): per row, per configuration it has, KLD(b)
+    (vs naive, vs registered), occupied Dice (vs registered), mean u."""
+    test = m.get("test", {})
+    rows: list[str] = []
     for c in configs:
         rows += [
             r
@@ -250,71 +283,96 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
             and r.split("[")[0] in (NET, "registered+network", "learned+network")
             and r not in rows
         ]
-    for r in sorted(rows):
-        at = [c for c in configs if r in test.get(c, {})]
-        parts = []
-        for c in at:
-            parts.append(
-                f"{c}: KLD(b) {_with_ci(metrics, c, r, HEADLINE)} (vs naive: "
-                f"{verdict(_diff(metrics, c, r, NAIVE, HEADLINE))}, vs registered: "
-                f"{verdict(_diff(metrics, c, r, REG, HEADLINE))}), Dice occ "
-                f"{_with_ci(metrics, c, r, 'dice_occ')} (vs registered: "
-                f"{verdict(_diff(metrics, c, r, REG, 'dice_occ'))}), mean u "
-                f"{_with_ci(metrics, c, r, 'u_mean')}"
-            )
-        lines.append(f"- **Row `{r}`:** " + "; ".join(parts) + ".")
-
-    # 6. uncertainty
-    au = {c: _get(metrics, c, NET, "u_auroc") for c in configs}
-    finite = [c for c, v in au.items() if math.isfinite(v)]
-    if finite:
-        above = [c for c in finite if _num((test[c][NET].get("u_auroc_ci") or {}).get("lo")) > 0.5]
-        lines.append(
-            "- **Does u flag errors?** AUROC of the network's u for wrongly classified cells: "
-            + ", ".join(f"{c} {_with_ci(metrics, c, NET, 'u_auroc')}" for c in finite)
-            + f"; above chance (interval above 0.5) in {len(above)}/{len(finite)} configurations"
-            + (f" ({', '.join(above)})." if above else ".")
-        )
-    label = metrics.get("label", {})
-    if label:
-        lines.append(
-            "- **Mean u, network vs label:** "
-            + ", ".join(
-                f"{c} {_with_ci(metrics, c, NET, 'u_mean')} vs "
-                f"{_fmt(_num(label.get(c, {}).get('u_mean')))}"
+    return [
+        (
+            r,
+            [
+                RowAt(
+                    c,
+                    _with_ci(m, c, r, HEADLINE),
+                    verdict(_diff(m, c, r, NAIVE, HEADLINE)),
+                    verdict(_diff(m, c, r, REG, HEADLINE)),
+                    _with_ci(m, c, r, "dice_occ"),
+                    verdict(_diff(m, c, r, REG, "dice_occ")),
+                    _with_ci(m, c, r, "u_mean"),
+                )
                 for c in configs
-            )
-            + "."
+                if r in test.get(c, {})
+            ],
         )
+        for r in sorted(rows)
+    ]
 
-    # 7. targets
+
+def _cross_best(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, str]]:
+    """(config, the network with the lowest KLD(b) on its test set) from the cross table."""
+    cross = m.get("cross", {})
+    out = []
+    for c in configs:
+        col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in sorted(cross)}
+        col = {n: v for n, v in col.items() if math.isfinite(v)}
+        if col:
+            out.append((c, min(col, key=col.__getitem__)))
+    return out
+
+
+def _uncertainty(m: Mapping[str, Any], configs: list[str]) -> dict[str, Any]:
+    test, label = m.get("test", {}), m.get("label", {})
+    finite = [c for c in configs if math.isfinite(_get(m, c, NET, "u_auroc"))]
+    return {
+        "u_auroc": [(c, _with_ci(m, c, NET, "u_auroc")) for c in finite],
+        "u_above": [
+            c for c in finite if _num((test[c][NET].get("u_auroc_ci") or {}).get("lo")) > 0.5
+        ],
+        "u_mean": [
+            (c, _with_ci(m, c, NET, "u_mean"), _fmt(_num(label.get(c, {}).get("u_mean"))))
+            for c in configs
+        ]
+        if label
+        else None,
+    }
+
+
+def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
+    """What the findings of the ``fusion.json`` dict state (see module docstring)."""
+    configs: list[str] = sorted(metrics.get("test", {}))
+    if not configs:
+        return FusionFindings(configs=[])
+    boot = metrics.get("bootstrap", {})
     targets = metrics.get("targets", {})
-    if targets:
-        by = {
+    return FusionFindings(
+        configs=configs,
+        level=_fmt(100 * _num(boot.get("level", 0.95)), 0),
+        cluster=boot.get("cluster", "scenario"),
+        n_boot=boot.get("n_boot", "?"),
+        table=[_table_row(metrics, c) for c in configs],
+        noisy=_noisy(metrics, configs[1:]),
+        kld_a=_claims(metrics, configs, NET, NAIVE, "kld_fo_mean"),
+        kld_a_net=[(c, _with_ci(metrics, c, NET, "kld_fo_mean")) for c in configs],
+        negative=[c for c in configs if _get(metrics, c, NET, "kld_fo_mean") < 0],
+        config_a=_config_a(metrics, configs[0]),
+        registered=[
+            _registered(metrics, c)
+            for c in configs
+            if math.isfinite(_get(metrics, c, REG, HEADLINE))
+        ],
+        learned=[
+            _learned(metrics, c)
+            for c in configs
+            if math.isfinite(_get(metrics, c, "learned", "success_rate"))
+        ],
+        rows=_network_rows(metrics, configs),
+        **_uncertainty(metrics, configs),
+        targets={
             s: [n for n, t in sorted(targets.items()) if t.get("status") == s]
             for s in ("pass", "fail", "not evaluated")
         }
-        lines.append(
-            f"- **Targets (issues 14 and 15):** {len(by['pass'])} pass, {len(by['fail'])} fail, "
-            f"{len(by['not evaluated'])} not evaluated"
-            + (f"; failing: {', '.join(by['fail'])}" if by["fail"] else "")
-            + (f"; not evaluated: {', '.join(by['not evaluated'])}" if by["not evaluated"] else "")
-            + "."
-        )
+        if targets
+        else None,
+        cross_best=_cross_best(metrics, configs),
+    )
 
-    # 8. cross table
-    cross = metrics.get("cross", {})
-    if cross:
-        own_best = []
-        for c in configs:
-            col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in sorted(cross)}
-            col = {n: v for n, v in col.items() if math.isfinite(v)}
-            if col:
-                own_best.append(f"{c}: {min(col, key=col.get)}")
-        if own_best:
-            lines.append(
-                "- **Cross table (lowest KLD(b) network per test set; point estimates on a subset):** "
-                + ", ".join(own_best)
-                + "."
-            )
-    return "\n".join(lines) + "\n"
+
+def fusion_findings(metrics: Mapping[str, Any]) -> str:
+    """Markdown findings from the ``fusion.json`` dict (see module docstring)."""
+    return render_prose(TEMPLATES, "findings.md.j2", f=fusion_findings_record(metrics))

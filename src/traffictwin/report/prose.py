@@ -1,0 +1,51 @@
+"""Prose templates: the sentences of a problem's findings, kept in Jinja templates that the
+problem's package owns (``traffictwin/<problem>/templates/``), filled from a typed record the
+problem computes from its metrics (numbers, verdicts, flags; no sentences).
+
+The page kit knows no problem: it only loads a folder of templates with the settings findings
+need. Markdown, not HTML (no escaping); a missing field is an error (``StrictUndefined``).
+Long sentences are wrapped in the template source and joined again by the ``oneline`` filter
+(a line break and the indentation around it become one space), so a bullet is one line of
+Markdown however its template is laid out.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+__all__ = ["oneline", "render_prose", "template_macro"]
+
+
+def oneline(text: str) -> str:
+    """``text`` without its surrounding blank space, each line break (with the spaces and tabs
+    around it) replaced by one space."""
+    return re.sub(r"[ \t]*\n\s*", " ", str(text).strip())
+
+
+@cache
+def _environment(folder: str) -> Any:
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(folder),
+        autoescape=False,
+        trim_blocks=True,
+        lstrip_blocks=True,
+        keep_trailing_newline=True,
+        undefined=jinja2.StrictUndefined,
+    )
+    env.filters["oneline"] = oneline
+    return env
+
+
+def render_prose(folder: Path, name: str, **context: Any) -> str:
+    """Template ``name`` of ``folder`` rendered with ``context``."""
+    return str(_environment(str(folder)).get_template(name).render(**context))
+
+
+def template_macro(folder: Path, name: str, macro: str) -> Any:
+    """Macro ``macro`` of template ``name`` in ``folder``, callable from Python (returns text)."""
+    return getattr(_environment(str(folder)).get_template(name).module, macro)
