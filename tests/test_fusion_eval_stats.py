@@ -181,13 +181,20 @@ def _row(pid, kld_fou, tp_occ=10, fp_occ=0, fn_occ=0, u=0.5, label_u=0.5):
     )
 
 
-def test_targets_by_hand_and_not_evaluated_when_absent():
+def _hand_rows() -> tuple[np.ndarray, dict]:
+    """Five pairs of three scenarios at A, C, D: naive, dnn (better; a false occupied cell at D)
+    and the ego's own map, per (configuration, method)."""
     pid = np.array([1000, 1001, 2000, 2001, 3000])
     own = {}
     for c in ("A", "C", "D"):
         own[(c, "naive")] = _row(pid, [1.0, 2.0, 1.0, 2.0, 1.0])
         own[(c, "dnn")] = _row(pid, [0.2, 0.4, 0.2, 0.4, 0.2], fp_occ=1 if c == "D" else 0, u=0.55)
         own[(c, "ego")] = _row(pid, 1.0, fp_occ=2)
+    return pid, own
+
+
+def test_targets_by_hand_and_not_evaluated_when_absent():
+    pid, own = _hand_rows()
     metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
     for (c, row), f in own.items():
         iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
@@ -227,12 +234,7 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
 
 def _target_inputs() -> tuple[dict, dict]:
     """Per-pair frames and metrics where every target has a value (see the hand cases above)."""
-    pid = np.array([1000, 1001, 2000, 2001, 3000])
-    own = {}
-    for c in ("A", "C", "D"):
-        own[(c, "naive")] = _row(pid, [1.0, 2.0, 1.0, 2.0, 1.0])
-        own[(c, "dnn")] = _row(pid, [0.2, 0.4, 0.2, 0.4, 0.2], fp_occ=1 if c == "D" else 0, u=0.55)
-        own[(c, "ego")] = _row(pid, 1.0, fp_occ=2)
+    pid, own = _hand_rows()
     own[("D", ev.LEARNED)] = frame(pid, ms=np.full(5, 10.0), reg_success=np.ones(5))
     metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
     for (c, row), f in own.items():

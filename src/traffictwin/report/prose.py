@@ -16,7 +16,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-__all__ = ["oneline", "render_prose", "template_macro"]
+__all__ = ["oneline", "template_environment", "render_prose", "template_macro"]
 
 
 def oneline(text: str) -> str:
@@ -25,18 +25,24 @@ def oneline(text: str) -> str:
     return re.sub(r"[ \t]*\n\s*", " ", str(text).strip())
 
 
-@cache
-def _environment(folder: str) -> Any:
+def template_environment(folder: str | Path, *, autoescape: bool = False) -> Any:
+    """The project's Jinja2 settings over the templates of ``folder``: block tags take no line of
+    their own, a trailing newline is kept, a missing field is an error; HTML escaping on request."""
     import jinja2
 
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(folder),
-        autoescape=False,
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(folder)),
+        autoescape=autoescape,
         trim_blocks=True,
         lstrip_blocks=True,
         keep_trailing_newline=True,
         undefined=jinja2.StrictUndefined,
     )
+
+
+@cache
+def _environment(folder: str) -> Any:
+    env = template_environment(folder)
     env.filters["oneline"] = oneline
     return env
 

@@ -34,6 +34,7 @@ from traffictwin.report.model import (
     flatten_numbers,
     fmt_value,
 )
+from traffictwin.report.prose import template_environment
 from traffictwin.report.summary import Headline, summary_json
 from traffictwin.report.tables import (
     environment_table,
@@ -287,14 +288,7 @@ def _environment(html_page: bool) -> Any:
     """The Jinja2 environment of the report templates (``templates/`` next to this module)."""
     import jinja2
 
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(TEMPLATES),
-        autoescape=html_page,
-        trim_blocks=True,
-        lstrip_blocks=True,
-        keep_trailing_newline=True,
-        undefined=jinja2.StrictUndefined,
-    )
+    env = template_environment(TEMPLATES, autoescape=html_page)
     env.filters.update(slug=_slug, alt=_alt, table_md=table_markdown)
     if html_page:
         env.filters.update(
