@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -228,6 +230,10 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     assert (f.loc[within, "ttc"] <= f.loc[within, "thw"] + 1e-9).all()
     g = evaluate_sequence(a, grid, (0.5, 1.0), ["naive"], {}, s, include_ego=False)
     assert EGO not in set(g["method"]) and len(g) == len(f) // 2
+    # a map warns a reaction time before the critical level; the label stays at the critical level
+    r = evaluate_sequence(a, grid, (0.5, 1.0), ["naive"], {}, replace(s, reaction_s=1.0))
+    assert (r["flagged"] == (r["thw"] < s.critical_thw + 1.0)).all()
+    assert (r["critical"] == (r["thw_true"] < s.critical_thw)).all()
 
 
 def test_report_section_shows_the_predictive_table(tmp_path):

@@ -15,7 +15,7 @@ __all__ = ["TwinEvalSettings", "TwinFigureConfig", "TwinConfig", "twin_config"]
 @dataclass(frozen=True)
 class TwinEvalSettings:
     """Occupied-cell threshold on m_O, the ego's footprint margin (m), the critical THW (s), the
-    THW below which a map warns (s: ``critical_thw`` + the reaction time), the corridor margin (m),
+    reaction time (s: a map warns below ``critical_thw + reaction_s``), the corridor margin (m),
     strategy, the warning horizon (s: a warning up to this long before a critical episode is an
     early warning of it, one with no episode within it a false alarm), bootstrap resamples / seed
     / level."""
@@ -23,7 +23,7 @@ class TwinEvalSettings:
     occ_threshold: float = 0.5
     self_margin: float = 0.5
     critical_thw: float = 1.5
-    warn_thw: float = 1.5
+    reaction_s: float = 0.0
     corridor_margin: float = 0.0
     strategy: str = "reference"
     horizon_s: float = 2.0
@@ -31,6 +31,11 @@ class TwinEvalSettings:
     n_boot: int = 2000
     seed: int = 0
     level: float = 0.95
+
+    @property
+    def warn_thw(self) -> float:
+        """THW (s) below which a map warns: ``critical_thw + reaction_s``."""
+        return self.critical_thw + self.reaction_s
 
 
 @dataclass
@@ -159,7 +164,7 @@ class TwinConfig:
             occ_threshold=self.occ_threshold,
             self_margin=self.self_margin,
             critical_thw=self.critical_thw,
-            warn_thw=self.critical_thw + self.reaction_s,
+            reaction_s=self.reaction_s,
             corridor_margin=self.corridor_margin,
             strategy=self.strategy,
             horizon_s=self.horizon_s,
