@@ -11,7 +11,7 @@ at every configuration; a method whose model is missing is skipped and listed. F
   per critical episode the lead time from the first warning within ``twin.horizon_s`` (median,
   mean, paired vs ``ego`` and ``naive``), the share warned before the onset, false alarms (no
   episode within the horizon) per frame and per minute, share of vehicles left out — with
-  sequence-bootstrap CIs (:func:`traffictwin.twin.evaluation.summarise`); ``pose_bias``: the same
+  sequence-bootstrap CIs (:func:`traffictwin.twin.summary.summarise`); ``pose_bias``: the same
   for the kinds ``twin.bias_kinds`` under the persistent pose bias; and ``targets``;
 - ``reports/twin_eval_frames.csv`` — one row per (configuration, noise model, method, sequence,
   frame);
@@ -26,6 +26,7 @@ Library: :mod:`traffictwin.twin` (settings: ``twin`` of params.yaml).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,16 +110,61 @@ def method_models(
     return out, skipped
 
 
-def _pose_bias_frames(
+@dataclass(frozen=True)
+class _Pass:
+    """What every evaluation pass shares: the grid, the twin's evaluation settings, the classical
+    registration's parameters (evaluate_fusion's) and its worker processes."""
+
+    grid: Any
+    settings: Any
+    reg_params: Any
+    workers: int
+
+
+def _frame_table(
+    run: _Pass,
     seqs: list[dict[str, Any]],
-    tc: Any,
-    s: Any,
-    grid: Any,
     pn: Any,
     methods: list[str],
     models: dict[str, Any],
-    reg_params: Any,
-    fec: Any,
+    include_ego: bool = True,
+) -> pd.DataFrame:
+    """The frame table of ``seqs`` at pose noise ``pn``: the classical registrations of every
+    sequence at once (one pool of processes), then every sequence's twin and risk."""
+    from traffictwin.twin import evaluation as ev
+
+    noise = (pn.r, pn.alpha)
+    reg = (
+        ev.classical_registrations(seqs, run.grid, noise, run.reg_params, run.workers)
+        if ev.uses_classical(methods, run.settings)
+        else [None] * len(seqs)
+    )
+    return pd.concat(
+        [
+            ev.evaluate_sequence(
+                a,
+                run.grid,
+                noise,
+                methods,
+                models,
+                run.settings,
+                run.reg_params,
+                registered=r,
+                include_ego=include_ego,
+            )
+            for a, r in zip(seqs, reg)
+        ],
+        ignore_index=True,
+    )
+
+
+def _pose_bias_frames(
+    run: _Pass,
+    seqs: list[dict[str, Any]],
+    tc: Any,
+    pn: Any,
+    methods: list[str],
+    models: dict[str, Any],
     ego_rows: pd.DataFrame,
 ) -> pd.DataFrame:
     """The frame table of the sequences of ``twin.bias_kinds`` under the persistent pose bias
@@ -136,38 +182,61 @@ def _pose_bias_frames(
     ]
     if not picked:
         raise ValueError(f"'twin.bias_kinds' {list(tc.bias_kinds)}: no sequence of these kinds")
-    reg = (
-        ev.classical_registrations(
-            picked, grid, (pn.r, pn.alpha), reg_params, fec.registration_workers
-        )
-        if ev.uses_classical(methods, s)
-        else [None] * len(picked)
-    )
     ids = {ev.scalar(a["sequence"]) for a in picked}
-    twin_rows = [
-        ev.evaluate_sequence(
-            a,
-            grid,
-            (pn.r, pn.alpha),
-            methods,
-            models,
-            s,
-            reg_params,
-            registered=r,
-            include_ego=False,
-        )
-        for a, r in zip(picked, reg)
-    ]
-    f = pd.concat([ego_rows[ego_rows["sequence"].isin(ids)], *twin_rows], ignore_index=True)
+    twin_rows = _frame_table(run, picked, pn, methods, models, include_ego=False)
+    f = pd.concat([ego_rows[ego_rows["sequence"].isin(ids)], twin_rows], ignore_index=True)
     return f.sort_values(["sequence", "frame"], kind="stable", ignore_index=True)
 
 
-def main() -> None:
+def _evaluate_configuration(
+    run: _Pass,
+    seqs: list[dict[str, Any]],
+    tc: Any,
+    c: str,
+    pn: Any,
+    methods: list[str],
+    models: dict[str, Any],
+) -> tuple[list[pd.DataFrame], dict[str, Any]]:
+    """Configuration ``c``'s frame tables (per-frame noise and, for ``twin.bias_kinds``, the
+    persistent bias) and its summary entry of twin.json."""
+    from traffictwin.twin.evaluation import EGO
+    from traffictwin.twin.summary import summarise
+
+    f = _frame_table(run, seqs, pn, methods, models)
+    f.insert(0, "configuration", c)
+    f.insert(1, "noise", "frame")
+    entry: dict[str, Any] = {
+        "noise": {"r": pn.r, "alpha": pn.alpha},
+        "methods": summarise(f, methods, tc.fps, run.settings),
+    }
+    frames = [f]
+    if tc.bias_kinds:  # the same sequences' kinds under a persistent (per-sequence) bias
+        ego_rows = f[f["method"] == EGO].drop(columns=["configuration", "noise"])
+        fb = _pose_bias_frames(run, seqs, tc, pn, methods, models, ego_rows)
+        fb.insert(0, "configuration", c)
+        fb.insert(1, "noise", "bias")
+        frames.append(fb)
+        entry["pose_bias"] = {
+            "bias_share": tc.bias_share,
+            "kinds": list(tc.bias_kinds),
+            "methods": summarise(fb, methods, tc.fps, run.settings),
+        }
+    return frames, entry
+
+
+def _figures(
+    run: _Pass,
+    table: pd.DataFrame,
+    seqs: list[dict[str, Any]],
+    tc: Any,
+    c_fig: str,
+    pn: Any,
+    model: Any,
+) -> None:
+    """The timeline (a typical occluded sequence) and the twin map at its onset, configuration
+    ``c_fig``, per-frame noise."""
     from traffictwin.io.atomic import save_figure
-    from traffictwin.io.jsonio import json_clean
-    from traffictwin.io.shards import Dataset
-    from traffictwin.twin import evaluation as ev
-    from traffictwin.twin.config import twin_config
+    from traffictwin.twin.evaluation import scalar
     from traffictwin.twin.figures import (
         pick_timeline_sequence,
         timeline_figure,
@@ -175,26 +244,44 @@ def main() -> None:
         twin_map_figure,
     )
 
+    s = run.settings
+    table = table[table["noise"] == "frame"]
+    seq = pick_timeline_sequence(table, c_fig, tc.headline, tc.fps, tc.figure.sequence, s.horizon_s)
+    _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
+    save_figure(
+        timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw, s.warn_thw),
+        figure_file("twin_timeline"),
+    )
+    a = next(x for x in seqs if scalar(x["sequence"]) == seq)
+    noise = (pn.r, pn.alpha)
+    fig = twin_map_figure(a, run.grid, noise, tc.headline, model, s, c_fig, run.reg_params)
+    save_figure(fig, figure_file("twin_map"))
+
+
+def main() -> None:
+    from traffictwin.io.jsonio import json_clean
+    from traffictwin.io.shards import Dataset
+    from traffictwin.twin.config import twin_config
+    from traffictwin.twin.summary import step_ms_medians
+    from traffictwin.twin.targets import targets
+
     setup_logging()
     cfg = params()
-    grid = grid_config(cfg)
     noise = pose_configurations(cfg)
     tc = twin_config(cfg)
-    s = tc.settings()
     fec = fusion_eval_config(cfg)
-    reg_params = fec.registration_params  # the classical registration of evaluate_fusion
+    # the classical registration of evaluate_fusion
+    run = _Pass(grid_config(cfg), tc.settings(), fec.registration_params, fec.registration_workers)
     with stage_timer(STAGE) as record:
         record["torch_threads"] = pin_torch_threads(cfg)
         ds = Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS)
         seqs = [ds.load_shard(i) for i in ds.shard_indices()]
-        frames, summary = [], {}
-        models_by_cfg: dict[str, Any] = {}
-        loaded: dict[str, Any] = {}
+        frames, summary, models_by_cfg, loaded = [], {}, {}, {}
         evaluated = {
             c: pn for c, pn in noise.items() if tc.configurations is None or c in tc.configurations
         }
         for c, pn in evaluated.items():
-            models, skipped = method_models(cfg, c, tc.methods, grid, loaded)
+            models, skipped = method_models(cfg, c, tc.methods, run.grid, loaded)
             models_by_cfg[c] = models
             methods = [m for m in tc.methods if m in models]
             log.info(
@@ -205,46 +292,11 @@ def main() -> None:
                 methods,
                 skipped,
             )
-            # the classical registrations of every sequence at once: one pool of processes
-            reg = (
-                ev.classical_registrations(
-                    seqs, grid, (pn.r, pn.alpha), reg_params, fec.registration_workers
-                )
-                if ev.uses_classical(methods, s)
-                else [None] * len(seqs)
-            )
-            f = pd.concat(
-                [
-                    ev.evaluate_sequence(
-                        a, grid, (pn.r, pn.alpha), methods, models, s, reg_params, registered=r
-                    )
-                    for a, r in zip(seqs, reg)
-                ],
-                ignore_index=True,
-            )
-            f.insert(0, "configuration", c)
-            f.insert(1, "noise", "frame")
-            frames.append(f)
-            summary[c] = {
-                "noise": {"r": pn.r, "alpha": pn.alpha},
-                "methods": ev.summarise(f, methods, tc.fps, s),
-                "skipped": skipped,
-            }
+            fs, summary[c] = _evaluate_configuration(run, seqs, tc, c, pn, methods, models)
+            summary[c]["skipped"] = skipped
             # wall times differ between identical runs: run record only
-            record.setdefault("step_ms_median", {})[c] = json_clean(ev.step_ms_medians(f, methods))
-            if tc.bias_kinds:  # the same sequences' kinds under a persistent (per-sequence) bias
-                ego_rows = f[f["method"] == ev.EGO].drop(columns=["configuration", "noise"])
-                fb = _pose_bias_frames(
-                    seqs, tc, s, grid, pn, methods, models, reg_params, fec, ego_rows
-                )
-                fb.insert(0, "configuration", c)
-                fb.insert(1, "noise", "bias")
-                frames.append(fb)
-                summary[c]["pose_bias"] = {
-                    "bias_share": tc.bias_share,
-                    "kinds": list(tc.bias_kinds),
-                    "methods": ev.summarise(fb, methods, tc.fps, s),
-                }
+            record.setdefault("step_ms_median", {})[c] = json_clean(step_ms_medians(fs[0], methods))
+            frames += fs
         table = pd.concat(frames, ignore_index=True).drop(columns="step_ms")
         metrics = {
             "headline": tc.headline,
@@ -252,36 +304,14 @@ def main() -> None:
             "vehicles": int(table["vehicles"].iloc[0]),
             "sequences": len(seqs),
             "configurations": summary,
-            "targets": ev.targets(summary, tc.headline, tc.target_configuration),
+            "targets": targets(summary, tc.headline, tc.target_configuration),
         }
         _csv(table, FRAMES)
-        table = table[table["noise"] == "frame"]  # the figures: per-frame noise
         c_fig = (
             tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
         )
-        seq = pick_timeline_sequence(
-            table, c_fig, tc.headline, tc.fps, tc.figure.sequence, s.horizon_s
-        )
-        _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
-        save_figure(
-            timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw, s.warn_thw),
-            figure_file("twin_timeline"),
-        )
-        a = next(x for x in seqs if ev.scalar(x["sequence"]) == seq)
-        pn = noise[c_fig]
-        save_figure(
-            twin_map_figure(
-                a,
-                grid,
-                (pn.r, pn.alpha),
-                tc.headline,
-                models_by_cfg[c_fig].get(tc.headline),
-                s,
-                c_fig,
-                reg_params,
-            ),
-            figure_file("twin_map"),
-        )
+        model = models_by_cfg[c_fig].get(tc.headline)
+        _figures(run, table, seqs, tc, c_fig, noise[c_fig], model)
         write_json_atomic(METRICS, json_clean(metrics))
         log.info("%s: targets %s", STAGE, metrics["targets"])
 

@@ -83,6 +83,7 @@ def data_summary(ds: Dataset, fps: float, hidden_s: float) -> dict[str, float | 
         "twin_data/open": len(rows) - len(occ),
         "twin_data/pedestrian": sum(r[1] == "pedestrian" for r in rows),
         "twin_data/stopped_car": sum(r[1] == "stopped_car" for r in rows),
+        "twin_data/emerging_car": sum(r[1] == "emerging_car" for r in rows),
         "twin_data/frames": sum(r[5] for r in rows),
         "twin_data/vehicles": rows[0][6] if rows else 0,
         "twin_data/critical_frame_share": round(
@@ -144,6 +145,7 @@ def main() -> None:
                 "vehicles",
                 "occluded_share",
                 "pedestrian_share",
+                "emerging_car_share",
                 "templates",
                 "lead_in",
                 "hidden_s",

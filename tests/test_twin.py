@@ -24,15 +24,10 @@ from traffictwin.sim.cooperative import (
 )
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.twin.data import TwinDataParams, sequence_arrays, twin_risk_config
-from traffictwin.twin.evaluation import (
-    EGO,
-    TwinEvalSettings,
-    lead_times,
-    step_ms_medians,
-    summarise,
-    targets,
-)
+from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.fuse import Twin, TwinInputError, build_twin
+from traffictwin.twin.summary import lead_times, step_ms_medians, summarise
+from traffictwin.twin.targets import targets
 
 GRID = GridSpec(rows=64, cols=48, cell=0.5)
 LIDAR = LidarSpec(azimuth_res_deg=0.8, max_range=50.0)
@@ -352,7 +347,16 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
     src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
     sec = rs.section(src, [])
-    occ, opn, pred, tgt = sec.tables
+    occ, opn, hz, pred, tgt = sec.tables
+    # each hazard kind separately: the table reads by_hazard of the same summary
+    assert hz.anchor == "twin-hazards"
+    hz_rows = {(r[1].text, r[2].text, r[3].text): r for r in hz.rows}
+    key = ("occluded", rs.HAZARD_LABELS["pedestrian"], "twin")
+    assert key in hz_rows
+    by = summary["twin"]["occluded"]["by_hazard"]["pedestrian"]
+    assert hz_rows[key][4].value == by["episodes"]
+    assert hz_rows[key][5].value == pytest.approx(by["lead_vs_ego_s_median"])
+    assert hz_rows[("occluded", rs.HAZARD_LABELS["pedestrian"], rs.LABELS["ego"])][5].text == "—"
     assert pred.anchor == "twin-predictive" and all(r[3].text == "n/a" for r in pred.rows)
     rows = {r[1].text: r for r in occ.rows}
     assert set(rows) == {rs.LABELS["ego"], "twin"}

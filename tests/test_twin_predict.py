@@ -191,7 +191,9 @@ def _pred_table():
 
 
 def test_predictive_warnings_paired_with_thw_and_targets():
-    from traffictwin.twin.evaluation import TwinEvalSettings, summarise, targets
+    from traffictwin.twin.evaluation import TwinEvalSettings
+    from traffictwin.twin.summary import summarise
+    from traffictwin.twin.targets import targets
 
     s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=200))
     occ = s["twin"]["occluded"]["predictive"]
@@ -242,7 +244,9 @@ def test_report_section_shows_the_predictive_table(tmp_path):
     from traffictwin.io.jsonio import json_clean
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
-    from traffictwin.twin.evaluation import TwinEvalSettings, summarise, targets
+    from traffictwin.twin.evaluation import TwinEvalSettings
+    from traffictwin.twin.summary import summarise
+    from traffictwin.twin.targets import targets
 
     s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=100))
     m = {

@@ -13,8 +13,10 @@ from traffictwin.twin.alerts import (
     episode_table,
     false_alarm_frames,
 )
-from traffictwin.twin.evaluation import EGO, TwinEvalSettings, summarise, targets
+from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.noise import pose_noise_z
+from traffictwin.twin.summary import summarise
+from traffictwin.twin.targets import targets
 
 
 def test_false_alarm_frames_by_horizon() -> None:

@@ -36,13 +36,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from traffictwin.sim.coop_layout import HazardTrack, ScenarioLayout, ego_profile, lateral
+from traffictwin.sim.emerging_car import draw_emerging_car, straight_lanes
 from traffictwin.sim.lidar import LidarSpec, scan
 from traffictwin.sim.scene import Boxes, Cls
 from traffictwin.sim.traffic import SUBJECT_SIZE
 from traffictwin.sim.world import World, build_world
 
 KINDS = ("occluded", "open")
-HAZARDS = ("stopped_car", "pedestrian")
+HAZARDS = ("stopped_car", "pedestrian", "emerging_car")
 JUNCTIONS = ("cross4", "t_junction")
 ROLES = ("ego", "oncoming", "follower")
 AGENT_ID0 = 800_000  # ids of the cooperating vehicles (ego = AGENT_ID0)
@@ -73,6 +75,7 @@ class CooperativeConfig:
     vehicles: int = 3
     occluded_share: float = 0.5
     pedestrian_share: float = 0.5
+    emerging_car_share: float = 0.0
     ego_speed: tuple[float, float] = (5.5, 8.5)
     reaction_distance: tuple[float, float] = (3.0, 7.0)
     deceleration: tuple[float, float] = (4.0, 7.0)
@@ -81,6 +84,8 @@ class CooperativeConfig:
     hazard_after_turn: tuple[float, float] = (0.0, 2.0)
     step_in_tau: tuple[float, float] = (0.8, 1.6)
     walk_speed: tuple[float, float] = (1.2, 1.8)
+    emerge_speed: tuple[float, float] = (2.0, 3.5)
+    emerge_tau: tuple[float, float] = (0.6, 1.2)
     other_speed: tuple[float, float] = (3.0, 7.0)
     spacing: tuple[float, float] = (9.0, 16.0)
     templates: tuple[str, ...] = JUNCTIONS
@@ -96,7 +101,7 @@ class CooperativeConfig:
             raise ValueError(
                 f"cooperative: vehicles must be >= 2 (ego + others), got {self.vehicles}"
             )
-        for name in ("occluded_share", "pedestrian_share"):
+        for name in ("occluded_share", "pedestrian_share", "emerging_car_share"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(
                     f"cooperative: {name} must be in [0, 1], got {getattr(self, name)}"
@@ -109,6 +114,8 @@ class CooperativeConfig:
             "van_length",
             "step_in_tau",
             "walk_speed",
+            "emerge_speed",
+            "emerge_tau",
             "other_speed",
             "spacing",
         ):
@@ -117,6 +124,11 @@ class CooperativeConfig:
                 raise ValueError(
                     f"cooperative: {name} must be (low, high) with 0 < low <= high, got {[lo, hi]}"
                 )
+        if self.pedestrian_share + self.emerging_car_share > 1.0:
+            raise ValueError(
+                "cooperative: pedestrian_share + emerging_car_share must be <= 1 (the rest are "
+                f"stopped cars), got {self.pedestrian_share} + {self.emerging_car_share}"
+            )
         if self.hidden_s < 0 or self.hidden_s >= self.frames / self.fps:
             raise ValueError(
                 f"cooperative: hidden_s must be >= 0 s and shorter than the sequence "
@@ -222,27 +234,6 @@ def _reverse_lane(world: World, ego_lane: int) -> int:
     return best
 
 
-def _lateral(pose: np.ndarray, lat: float) -> np.ndarray:
-    """``pose`` (x, y, yaw) shifted ``lat`` m to its left."""
-    return np.array([pose[0] - np.sin(pose[2]) * lat, pose[1] + np.cos(pose[2]) * lat, pose[2]])
-
-
-def _ego_profile(
-    t: np.ndarray, s0: float, v: float, s_hazard: float, d_react: float, decel: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Ego arc length (m) and speed (m/s) at times ``t``: constant ``v`` until the bumper is
-    ``d_react`` m before ``s_hazard`` (arc length of the hazard's near side minus the ego's half
-    length), then braking at ``decel`` to a stop (no earlier than 0.5 m before the hazard)."""
-    s_brake = s_hazard - d_react
-    t_brake = max(0.0, (s_brake - s0) / v)
-    stop_dist = min(v * v / (2 * decel), max(d_react - 0.5, 0.1))
-    a = v * v / (2 * stop_dist)
-    tb = np.clip(t - t_brake, 0.0, v / a)
-    s = np.where(t < t_brake, s0 + v * t, s0 + v * t_brake + v * tb - 0.5 * a * tb * tb)
-    speed = np.where(t < t_brake, v, np.maximum(v - a * tb, 0.0))
-    return s, speed
-
-
 def generate_cooperative_sequence(
     seed: int, index: int, cfg: CooperativeConfig, lidar: LidarSpec | None = None
 ) -> CoopSequence:
@@ -258,9 +249,10 @@ def generate_cooperative_sequence(
     never selected."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 5005]))
     kind = sequence_kind(index, cfg.occluded_share)
+    hazard = sequence_hazard(index, cfg)
     seq = None
     for attempt in range(1, cfg.max_attempts + 1):
-        seq = _draw_sequence(rng, index, kind, cfg)
+        seq = _draw_sequence(rng, index, kind, hazard, cfg)
         seq.attempts = attempt
         if kind == "open" or lidar is None:
             return seq
@@ -303,34 +295,80 @@ def hidden_before_onset(seq: CoopSequence, lidar: LidarSpec, hidden_s: float, fp
     )
 
 
+GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0  # low-discrepancy step of the hazard assignment
+
+
+def sequence_hazard(index: int, cfg: CooperativeConfig) -> str:
+    """Hazard (:data:`HAZARDS`) of sequence ``index``: fixed by the index, not redrawn with the
+    scenario, so the shares hold among the sequences kept (an occluded draw that fails to hide
+    its hazard is redrawn with the same hazard). The ``r``-th sequence of its kind gets the
+    position ``r * GOLDEN mod 1`` (a low-discrepancy sequence: every prefix of a kind is split
+    as evenly as it can be): ``pedestrian`` below ``cfg.pedestrian_share``, ``emerging_car``
+    below that plus ``cfg.emerging_car_share``, ``stopped_car`` above."""
+    kind = sequence_kind(index, cfg.occluded_share)
+    rank = sum(sequence_kind(j, cfg.occluded_share) == kind for j in range(index))
+    u = (rank * GOLDEN) % 1.0
+    if u < cfg.pedestrian_share:
+        return "pedestrian"
+    if u < cfg.pedestrian_share + cfg.emerging_car_share:
+        return "emerging_car"
+    return "stopped_car"
+
+
 def _draw_sequence(
-    rng: np.random.Generator, index: int, kind: str, cfg: CooperativeConfig
+    rng: np.random.Generator, index: int, kind: str, hazard: str, cfg: CooperativeConfig
 ) -> CoopSequence:
-    """One draw of a sequence of ``kind`` (see :func:`generate_cooperative_sequence`)."""
-    hazard = "pedestrian" if rng.random() < cfg.pedestrian_share else "stopped_car"
-    world = None
-    lanes: list[int] = []
-    for _ in range(20):  # a junction whose kerb-side lanes turn right (nearly always the first)
-        template = str(cfg.templates[int(rng.integers(len(cfg.templates)))])
+    """One draw of a sequence of ``kind`` and ``hazard`` (see :func:`generate_cooperative_sequence`)."""
+    times = np.arange(cfg.frames) / cfg.fps
+    if hazard == "emerging_car":
+        world, lanes = draw_world(rng, index, cfg.templates, straight_lanes)
+        ego_lane = int(lanes[int(rng.integers(len(lanes)))])
+        layout = draw_emerging_car(rng, world, ego_lane, kind, cfg, times)
+    else:
+        layout = _van_layout(rng, index, kind, hazard, cfg, times)
+    roles, tracks = _cooperators(rng, layout, cfg, times)
+    return _assemble(index, kind, hazard, layout, roles, tracks, times)
+
+
+def draw_world(
+    rng: np.random.Generator, index: int, templates: tuple[str, ...], routes
+) -> tuple[World, list]:
+    """A junction world from ``templates`` with at least one route ``routes(world)`` (a list;
+    nearly always the first draw works) and that list."""
+    for _ in range(20):
+        template = str(templates[int(rng.integers(len(templates)))])
         world = build_world(template, int(rng.integers(0, 2**31 - 1)))
-        lanes = right_turn_lanes(world)
-        if lanes:
-            break
-    if not lanes or world is None:  # pragma: no cover - every junction template has right turns
-        raise RuntimeError(f"cooperative sequence {index}: no right-turn lane found")
+        found = routes(world)
+        if found:
+            return world, found
+    raise RuntimeError(  # pragma: no cover - every junction template has the routes
+        f"cooperative sequence {index}: no junction with a suitable route in {list(templates)}"
+    )
+
+
+def _van_layout(
+    rng: np.random.Generator,
+    index: int,
+    kind: str,
+    hazard: str,
+    cfg: CooperativeConfig,
+    times: np.ndarray,
+) -> ScenarioLayout:
+    """The ego turns right; a van at the target arm's inner kerb (occluded) or its far kerb
+    (open), the hazard (stopped car or pedestrian) beside it in the ego's lane."""
+    world, lanes = draw_world(rng, index, cfg.templates, right_turn_lanes)
     ego_lane = int(lanes[int(rng.integers(len(lanes)))])
     lane = world.lanes[ego_lane]
     lw = float(lane.width)
     _, turn_end = _turn_span(lane.centerline, lane.cum)
 
-    # the van at the target arm's inner kerb (occluded) or its far kerb (open), the hazard beside it
     van_len = float(rng.uniform(*cfg.van_length))
     van_size = np.array([van_len, float(rng.uniform(2.0, 2.3)), float(rng.uniform(2.6, 3.2))])
     van_near = turn_end + float(rng.uniform(*cfg.hazard_after_turn))
     van_lat = -(lw / 2 + 0.25 + van_size[1] / 2)  # inner (right-hand) kerb, beside the ego's lane
     if kind == "open":
         van_lat = lw * 1.5 + 0.25 + van_size[1] / 2  # far kerb, beyond the oncoming lane
-    van_pose = _lateral(lane.pose_at(np.array([van_near + van_len / 2]))[0], van_lat)
+    van_pose = lateral(lane.pose_at(np.array([van_near + van_len / 2]))[0], van_lat)
     v_ego = float(rng.uniform(*cfg.ego_speed))
     d_react = float(rng.uniform(*cfg.reaction_distance))
     decel = float(rng.uniform(*cfg.deceleration))
@@ -346,27 +384,42 @@ def _draw_sequence(
     # the sequence starts lead_in seconds (at constant speed) before the ego's bumper is 1.5 s away
     lead_in = float(rng.uniform(*cfg.lead_in))
     s0 = hazard_near - half - v_ego * (1.5 + lead_in)
-    times = np.arange(cfg.frames) / cfg.fps
-    s_ego, v_prof = _ego_profile(times, s0, v_ego, hazard_near - half, d_react, decel)
-
-    # the pedestrian's lateral position over time: out of the van's shadow into the lane
-    ped_lat = None
-    if hazard == "pedestrian":
+    s_ego, v_prof = ego_profile(times, s0, v_ego, hazard_near - half, d_react, decel)
+    hp = lane.pose_at(np.array([s_h]))[0]
+    if hazard == "stopped_car":
+        track = HazardTrack(
+            np.tile(hp, (len(times), 1)), np.zeros((len(times), 2)), car_size, int(Cls.CAR)
+        )
+    else:  # out of the van's shadow into the lane, when the unbraked ego is tau s away
         tau = float(rng.uniform(*cfg.step_in_tau))
         walk = float(rng.uniform(*cfg.walk_speed))
-        t_enter = (hazard_near - half - s0) / v_ego - tau  # when the unbraked ego is tau s away
+        t_enter = (hazard_near - half - s0) / v_ego - tau
         start = -(lw / 2 - 0.1)  # in the lane beside the van (hidden behind it when occluded)
         ped_lat = np.minimum(start + walk * np.maximum(times - t_enter, 0.0), lw * 1.5)
+        poses = np.stack([lateral(hp, float(lat)) for lat in ped_lat])
+        moving = np.r_[ped_lat[1:] != ped_lat[:-1], False]
+        across = walk * np.array([-np.sin(hp[2]), np.cos(hp[2])])
+        velocity = np.where(moving[:, None], across[None], 0.0)
+        poses[:, 2] += np.pi / 2
+        track = HazardTrack(poses, velocity, ped_size, int(Cls.PEDESTRIAN))
+    return ScenarioLayout(
+        world, ego_lane, van_pose, van_size, track, s_ego, v_prof, hazard_near - half, hp[:2]
+    )
 
-    # cooperating vehicles
+
+def _cooperators(
+    rng: np.random.Generator, layout: ScenarioLayout, cfg: CooperativeConfig, times: np.ndarray
+) -> tuple[list[str], list[tuple[int, np.ndarray, np.ndarray]]]:
+    """Roles (ego first) and tracks ``(lane index, s(t) m, speed(t) m/s)`` of the cooperating
+    vehicles: ``oncoming`` ones on the ego's route driven backwards, placed from the point level
+    with the hazard, ``follower`` ones behind the ego in its lane."""
+    world, ego_lane = layout.world, layout.ego_lane
     rev = _reverse_lane(world, ego_lane)
     rev_lane = world.lanes[rev]
-    # arc length on the reverse lane of the point level with the hazard
-    p_h = lane.pose_at(np.array([s_h]))[0, :2]
-    d_rev = np.linalg.norm(rev_lane.centerline - p_h, axis=1)
+    d_rev = np.linalg.norm(rev_lane.centerline - layout.hazard_point, axis=1)
     s_rev_h = float(rev_lane.cum[int(np.argmin(d_rev))])
     roles = ["ego"]
-    tracks = []  # (lane index, s(t), speed(t))
+    tracks = []
     for k in range(1, cfg.vehicles):
         role = "oncoming" if k % 2 == 1 else "follower"
         rank = (k - 1) // 2  # 0 for the first of each role
@@ -376,69 +429,72 @@ def _draw_sequence(
             s_start = s_rev_h - (8.0 + gap) * (rank + 1) - 4.0
             tracks.append((rev, s_start + v * times, np.full(len(times), v)))
         else:
-            tracks.append((ego_lane, s_ego - gap * (rank + 1) - 1.0, v_prof.copy()))
+            tracks.append((ego_lane, layout.s_ego - gap * (rank + 1) - 1.0, layout.v_ego.copy()))
         roles.append(role)
+    return roles, tracks
 
-    ids = AGENT_ID0 + np.arange(cfg.vehicles)
+
+def _assemble(
+    index: int,
+    kind: str,
+    hazard: str,
+    layout: ScenarioLayout,
+    roles: list[str],
+    tracks: list[tuple[int, np.ndarray, np.ndarray]],
+    times: np.ndarray,
+) -> CoopSequence:
+    """The frames of a drawn scenario: vehicle poses and speeds, every box, the ego's path."""
+    world, lane = layout.world, layout.world.lanes[layout.ego_lane]
+    n = len(roles)
+    ids = AGENT_ID0 + np.arange(n)
     seq = CoopSequence(index, world, kind, hazard, tuple(roles), ids)
+    v_prof, s_ego, track = layout.v_ego, layout.s_ego, layout.hazard
     with np.errstate(divide="ignore"):
-        thw = np.where(v_prof > 0, (hazard_near - half - s_ego) / np.maximum(v_prof, 1e-9), np.inf)
+        thw = np.where(v_prof > 0, (layout.s_stop - s_ego) / np.maximum(v_prof, 1e-9), np.inf)
     critical = np.flatnonzero(thw < CRITICAL_ONSET_S)
     seq.onset_frame = int(critical[0]) if len(critical) else 0
     size_v = np.array(SUBJECT_SIZE)
+    van = Boxes(
+        layout.van_pose[None, :2],
+        layout.van_size[None],
+        [layout.van_pose[2]],
+        [int(Cls.TRUCK)],
+        ids=[VAN_ID],
+    )
     for f, t in enumerate(times):
-        poses = np.zeros((cfg.vehicles, 3))
-        speeds = np.zeros(cfg.vehicles)
-        vels = np.zeros((cfg.vehicles, 2))
+        poses = np.zeros((n, 3))
+        speeds = np.zeros(n)
         poses[0] = lane.pose_at(np.array([s_ego[f]]))[0]
         speeds[0] = v_prof[f]
         for k, (li, s, v) in enumerate(tracks, start=1):
             poses[k] = world.lanes[li].pose_at(np.array([s[f]]))[0]
             speeds[k] = v[f]
         vels = speeds[:, None] * np.stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])], 1)
-        agents = [
-            Boxes(
-                van_pose[None, :2], van_size[None], [van_pose[2]], [int(Cls.TRUCK)], ids=[VAN_ID]
-            ),
-            Boxes(
-                poses[:, :2],
-                np.tile(size_v, (cfg.vehicles, 1)),
-                poses[:, 2],
-                np.full(cfg.vehicles, int(Cls.CAR)),
-                velocity=vels,
-                ids=ids,
-            ),
-        ]
-        if hazard == "stopped_car":
-            hp = lane.pose_at(np.array([s_h]))[0]
-            agents.append(
-                Boxes(hp[None, :2], car_size[None], [hp[2]], [int(Cls.CAR)], ids=[HAZARD_ID])
-            )
-        else:
-            hp = _lateral(lane.pose_at(np.array([s_h]))[0], float(ped_lat[f]))
-            moving = f + 1 < len(times) and ped_lat[min(f + 1, len(times) - 1)] != ped_lat[f]
-            vel = np.zeros(2)
-            if moving:
-                vel = walk * np.array([-np.sin(hp[2]), np.cos(hp[2])])
-            agents.append(
-                Boxes(
-                    hp[None, :2],
-                    ped_size[None],
-                    [hp[2] + np.pi / 2],
-                    [int(Cls.PEDESTRIAN)],
-                    velocity=vel[None],
-                    ids=[HAZARD_ID],
-                )
-            )
+        vehicles = Boxes(
+            poses[:, :2],
+            np.tile(size_v, (n, 1)),
+            poses[:, 2],
+            np.full(n, int(Cls.CAR)),
+            velocity=vels,
+            ids=ids,
+        )
+        hazard_box = Boxes(
+            track.poses[f, None, :2],
+            track.size[None],
+            [track.poses[f, 2]],
+            [track.cls],
+            velocity=track.velocity[f, None],
+            ids=[HAZARD_ID],
+        )
         arc = np.minimum(s_ego[f] + np.arange(PATH_POINTS) * PATH_STEP, lane.length)
         seq.frames.append(
             CoopFrame(
                 float(t),
                 poses,
                 speeds,
-                Boxes.concat([world.static, *agents]),
+                Boxes.concat([world.static, van, vehicles, hazard_box]),
                 lane.pose_at(arc)[:, :2],
-                lw,
+                float(lane.width),
             )
         )
     return seq

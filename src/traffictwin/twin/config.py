@@ -53,6 +53,7 @@ class TwinConfig:
     vehicles: int = spec(MISSING, min=2, max=16)
     occluded_share: float = spec(MISSING, min=0.0, max=1.0)
     pedestrian_share: float = spec(MISSING, min=0.0, max=1.0)
+    emerging_car_share: float = spec(MISSING, min=0.0, max=1.0)
     templates: list[str] = spec(MISSING)
     lead_in: list[float] = spec(MISSING)  # (low, high) s from the sequence start to the onset
     hidden_s: float = spec(MISSING, min=0.0, max=10.0)
@@ -120,6 +121,11 @@ class TwinConfig:
                 f"'twin.reaction_s' ({self.reaction_s} s) must not exceed 'twin.horizon_s' "
                 f"({self.horizon_s} s): a warning that early would count as a false alarm"
             )
+        if self.pedestrian_share + self.emerging_car_share > 1.0:
+            raise ValueError(
+                f"'twin.pedestrian_share' + 'twin.emerging_car_share' must be <= 1 (the rest are "
+                f"stopped cars), got {self.pedestrian_share} + {self.emerging_car_share}"
+            )
         if len(self.lead_in) != 2 or not 0 < self.lead_in[0] <= self.lead_in[1]:
             raise ValueError(
                 f"'twin.lead_in' must be [low, high] s with 0 < low <= high, got {list(self.lead_in)}"
@@ -140,6 +146,7 @@ class TwinConfig:
             vehicles=self.vehicles,
             occluded_share=self.occluded_share,
             pedestrian_share=self.pedestrian_share,
+            emerging_car_share=self.emerging_car_share,
             templates=tuple(self.templates),
             lead_in=(float(self.lead_in[0]), float(self.lead_in[1])),
             hidden_s=self.hidden_s,

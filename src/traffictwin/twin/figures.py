@@ -13,14 +13,9 @@ from traffictwin.fusion.figures import _plt
 from traffictwin.grid import GridSpec
 from traffictwin.report.colours import legend_handles, show_masses
 from traffictwin.sim.cooperative import ROLES
-from traffictwin.twin.evaluation import (
-    EGO,
-    TwinEvalSettings,
-    lead_times,
-    noisy_relative_poses,
-    scalar,
-)
+from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_poses, scalar
 from traffictwin.twin.fuse import build_twin
+from traffictwin.twin.summary import lead_times
 
 __all__ = ["pick_timeline_sequence", "timeline_table", "timeline_figure", "twin_map_figure"]
 
