@@ -1,9 +1,15 @@
 """dvc.yaml lists, for every stage, the library code the stage's script runs: a change to any
-module a stage imports (directly or through other modules) re-runs that stage."""
+module a stage imports (directly or through other modules) re-runs that stage.
+
+A dep is a module file or a package folder (``src/traffictwin/<package>``: DVC hashes a folder as a
+whole, so it covers every file under it); never a whole tree (``src/traffictwin``, ``pipelines``),
+which would re-run every stage on any change. No code dep is stale: a listed module is imported, a
+listed folder holds a module the stage imports."""
 
 from __future__ import annotations
 
 import ast
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -34,7 +40,8 @@ def _imports(path: Path) -> set[str]:
     }
 
 
-def closure(module: str) -> set[Path]:
+@cache
+def closure(module: str) -> frozenset[Path]:
     """Files of every traffictwin/pipelines module ``module`` needs, transitively."""
     seen: set[str] = set()
     todo = [module]
@@ -49,7 +56,7 @@ def closure(module: str) -> set[Path]:
             parts = m.split(".")  # importing a.b.c runs a/__init__ and a/b/__init__ too
             todo += [".".join(parts[:i]) for i in range(1, len(parts))]
     files = {_module_file(m) for m in seen}
-    return {f for f in files if f is not None and not _only_docs(f)}
+    return frozenset(f for f in files if f is not None and not _only_docs(f))
 
 
 def _only_docs(f: Path) -> bool:
@@ -67,6 +74,7 @@ def _only_docs(f: Path) -> bool:
     )
 
 
+@cache
 def _stages() -> dict[str, dict]:
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     return {name: (s["do"] if "do" in s else s) for name, s in stages.items()}
@@ -77,12 +85,59 @@ def _covered(f: Path, deps: list[str]) -> bool:
     return any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps)
 
 
+def _deps(s: dict) -> list[str]:
+    return [d if isinstance(d, str) else next(iter(d)) for d in s.get("deps", [])]
+
+
+def _module(s: dict) -> str:
+    return s["cmd"].split("python -m ")[1].split()[0]
+
+
+def _missing(module: str, deps: list[str]) -> list[str]:
+    """Files of ``module``'s import closure that no dep in ``deps`` covers."""
+    return sorted(f.relative_to(ROOT).as_posix() for f in closure(module) if not _covered(f, deps))
+
+
+def _code(dep: str) -> bool:
+    return dep.split("/")[0] in ("src", "pipelines")
+
+
 @pytest.mark.parametrize("stage", sorted(_stages()))
 def test_stage_deps_cover_the_code_it_imports(stage: str) -> None:
     s = _stages()[stage]
-    module = s["cmd"].split("python -m ")[1].split()[0]
-    deps = [d if isinstance(d, str) else next(iter(d)) for d in s.get("deps", [])]
-    missing = sorted(
-        f.relative_to(ROOT).as_posix() for f in closure(module) if not _covered(f, deps)
-    )
+    missing = _missing(_module(s), _deps(s))
     assert not missing, f"dvc.yaml stage {stage} lacks deps: {missing}"
+
+
+@pytest.mark.parametrize("stage", sorted(_stages()))
+def test_stage_code_deps_are_modules_or_package_folders_it_imports(stage: str) -> None:
+    s = _stages()[stage]
+    needed = {f.relative_to(ROOT).as_posix() for f in closure(_module(s))}
+    for dep in filter(_code, _deps(s)):
+        path = ROOT / dep
+        assert path.exists(), f"dvc.yaml stage {stage}: {dep} does not exist"
+        if path.is_dir():
+            parts = Path(dep).parts
+            assert len(parts) == 3 and parts[:2] == ("src", "traffictwin"), (
+                f"dvc.yaml stage {stage}: {dep} is not a package folder src/traffictwin/<package>"
+            )
+            assert any(n.startswith(dep.rstrip("/") + "/") for n in needed), (
+                f"dvc.yaml stage {stage}: imports nothing of {dep}"
+            )
+        else:
+            assert dep in needed, f"dvc.yaml stage {stage}: does not import {dep} (stale dep)"
+
+
+def test_a_module_no_dep_covers_is_reported() -> None:
+    """The check fails when a stage imports a module its deps do not cover (a folder covers its
+    files, a sibling file does not)."""
+    s = _stages()["train_risk"]
+    deps = _deps(s)
+    assert _missing(_module(s), deps) == []
+    dropped = [d for d in deps if d != "src/traffictwin/risk/dave2.py"]
+    assert _missing(_module(s), dropped) == ["src/traffictwin/risk/dave2.py"]
+    as_folder = [d for d in dropped if not d.startswith("src/traffictwin/risk/")]
+    assert _missing(_module(s), [*as_folder, "src/traffictwin/risk"]) == []
+    assert "src/traffictwin/risk/dave2.py" in _missing(
+        _module(s), [*as_folder, "src/traffictwin/ri"]
+    )

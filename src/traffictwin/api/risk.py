@@ -1,0 +1,419 @@
+"""Risk through the API: load a risk model and check its training domain (camera px, speed range
+m/s, SGM / ORB settings), THW verdicts (s) and the streamed assessment of stereo frames."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import warnings
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
+
+from .errors import ApiError, ApiWarning, InputFileError, InputValueError, ModelDomainError
+from .images import Frame, as_bgr, read_image
+from .inputs import _chunks, check_speed_value
+from .registry import _first_line, _load_registered, _split_ref, connect
+
+MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
+MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
+
+
+@dataclass
+class LoadedRisk:
+    """A :class:`~traffictwin.risk.model_io.RiskModel` and a description of where it came from."""
+
+    model: Any
+    description: str
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        return self.model.meta
+
+    @property
+    def domain(self) -> dict[str, Any]:
+        d = self.model.meta.get("domain")
+        return d if isinstance(d, dict) else {}
+
+    @property
+    def predictor(self) -> str:
+        """What predicts: ``dave2`` (the network), ``hybrid`` (MLP on the corridor profile) or
+        ``geometric`` (the corridor rule), and for the shipped model which candidate the
+        validation chose (``hybrid (shipped: hybrid_s1, validation ROC-AUC 0.945)``)."""
+        from traffictwin.risk.predictors import predictor_kind
+
+        kind = predictor_kind(self.model)
+        sh = self.model.meta.get("shipped")
+        if isinstance(sh, dict) and sh.get("predictor"):
+            return f"{kind} (shipped: {sh['predictor']}, validation ROC-AUC {float(sh.get('roc_auc', float('nan'))):.3f})"
+        return kind
+
+
+def _settings_problem(values: Any, func: Any, skip: tuple[str, ...]) -> str | None:
+    """Why ``values`` are not keyword settings of ``func`` (unknown key or a value whose type
+    is not its default's), or None."""
+    import inspect
+
+    if not isinstance(values, dict):
+        return f"expected a mapping of settings, got {type(values).__name__}"
+    params = {
+        k: p.default
+        for k, p in inspect.signature(func).parameters.items()
+        if k not in skip and p.default is not inspect.Parameter.empty
+    }
+    for k, v in values.items():
+        if k not in params:
+            return f"unknown setting {k!r} (expected from {sorted(params)})"
+        d = params[k]
+        ok = (
+            isinstance(v, bool)
+            if isinstance(d, bool)
+            else isinstance(v, str)
+            if isinstance(d, str)
+            else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if isinstance(d, (int, float))
+            else True
+        )
+        if not ok:
+            return f"setting {k!r} = {v!r} is not a {type(d).__name__}"
+    return None
+
+
+def check_risk_domain(domain: Any, who: str) -> None:
+    """Validate a risk model's ``domain`` metadata before it is used: ``speed_range`` two finite
+    numbers lo < hi (m/s), ``max_speed`` a finite number > 0 (m/s), ``camera`` positive integer
+    ``width`` / ``height`` (px), ``sgm`` / ``orb`` keyword settings of the SGM matcher and the
+    ORB check. :class:`ModelDomainError` naming ``who`` and the key."""
+    from traffictwin.stereo.orb import check_pair
+    from traffictwin.stereo.sgm import compute_disparity
+
+    if domain is None:
+        return
+    if not isinstance(domain, dict):
+        raise ModelDomainError(f"{who}: 'domain' must be a mapping, got {type(domain).__name__}")
+
+    def num(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    rng = domain.get("speed_range")
+    if rng is not None and not (
+        isinstance(rng, (list, tuple)) and len(rng) == 2 and all(map(num, rng)) and rng[0] < rng[1]
+    ):
+        raise ModelDomainError(
+            f"{who}: 'domain.speed_range' must be [lo, hi] m/s with lo < hi, got {rng!r}"
+        )
+    ms = domain.get("max_speed")
+    if ms is not None and not (num(ms) and ms > 0):
+        raise ModelDomainError(f"{who}: 'domain.max_speed' must be a number > 0 m/s, got {ms!r}")
+    cam = domain.get("camera")
+    if cam is not None:
+        if not isinstance(cam, dict):
+            raise ModelDomainError(
+                f"{who}: 'domain.camera' must be a mapping (width, height px), got {cam!r}"
+            )
+        for k in ("width", "height"):
+            v = cam.get(k)
+            if v is not None and not (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+                raise ModelDomainError(
+                    f"{who}: 'domain.camera.{k}' must be a positive integer (px), got {v!r}"
+                )
+    for key, func in (("sgm", compute_disparity), ("orb", check_pair)):
+        if domain.get(key) is not None:
+            why = _settings_problem(domain[key], func, ("left_bgr", "right_bgr", "matcher"))
+            if why:
+                raise ModelDomainError(f"{who}: 'domain.{key}': {why}")
+
+
+def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> LoadedRisk:
+    """Load a risk network by registry reference (``name@alias``; a bare alias means
+    ``traffictwin-risk``) or model folder. Raises :class:`ApiError`."""
+    from traffictwin.mlops.registry import RISK_NAME
+    from traffictwin.risk.model_io import RiskModelError, load_risk_model
+
+    name, alias, path = _split_ref(model)
+    if path is None:
+        cl = connect(tracking_uri)
+        rm, desc = _load_registered(
+            cl, name or RISK_NAME, alias, load_risk_model, "risk model", RISK_NAME
+        )
+    else:
+        try:
+            rm, desc = load_risk_model(path), str(path)
+        except RiskModelError as exc:
+            raise ApiError(str(exc)) from None
+    check_risk_domain((rm.meta or {}).get("domain"), desc)
+    return LoadedRisk(rm, desc)
+
+
+@dataclass
+class StereoSettings:
+    """SGM / ORB keyword settings and where they came from."""
+
+    sgm: dict[str, Any]
+    orb: dict[str, Any]
+    source: str
+
+
+def _params_risk_data(params_path: str | os.PathLike) -> dict[str, Any]:
+    import yaml
+
+    path = Path(params_path)
+    if not path.is_file():
+        raise InputFileError(f"params_path: {path} not found (expected a params.yaml)")
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path}: not valid YAML ({_first_line(exc)})") from None
+    if not isinstance(cfg, dict):
+        raise InputFileError(
+            f"{path}: expected a YAML mapping of parameters, got {type(cfg).__name__}"
+        )
+    rd = cfg.get("risk_data") if isinstance(cfg, dict) else None
+    return rd if isinstance(rd, dict) else {}
+
+
+def stereo_settings(
+    domain: Any, params_path: str | os.PathLike | None, model_desc: str = "the model"
+) -> StereoSettings:
+    """SGM/ORB settings the risk data were made with: ``domain.sgm`` / ``domain.orb`` of the
+    model's metadata if present; else ``risk_data.sgm`` / ``risk_data.orb`` of the params file
+    ``params_path``; else the library defaults. A given ``params_path`` is always read and
+    checked (a missing or invalid file is an error, never ignored)."""
+    rd_given = _params_risk_data(params_path) if params_path else None
+    if isinstance(domain, dict) and (
+        isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
+    ):
+        return StereoSettings(
+            dict(domain.get("sgm") or {}),
+            dict(domain.get("orb") or {}),
+            f"metadata of {model_desc}",
+        )
+    if rd_given is not None:
+        rd = rd_given
+        if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
+            return StereoSettings(
+                dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(params_path)
+            )
+    return StereoSettings({}, {}, "library defaults")
+
+
+def speed_range(
+    risk: LoadedRisk, params_path: str | os.PathLike | None = None
+) -> tuple[float, float, str] | None:
+    """``(lo, hi, source)`` in m/s of the speeds the model was trained on, or ``None`` if unknown
+    (the order of sources: :mod:`traffictwin.api`, Training domain)."""
+    d = risk.domain
+    rng = d.get("speed_range")
+    if isinstance(rng, (list, tuple)) and len(rng) == 2:
+        return float(rng[0]), float(rng[1]), f"domain.speed_range of {risk.description}"
+    if isinstance(d.get("max_speed"), (int, float)):
+        return 0.0, float(d["max_speed"]), f"domain.max_speed of {risk.description}"
+    if params_path:
+        rd = _params_risk_data(params_path)
+        if isinstance(rd.get("max_speed"), (int, float)):
+            return 0.0, float(rd["max_speed"]), f"risk_data.max_speed of {params_path}"
+    return None
+
+
+def check_speed(
+    risk: LoadedRisk, speed: float | None, params_path: str | os.PathLike | None = None
+) -> list[str]:
+    """Check ``speed`` (m/s) against the model: :class:`ApiError` when it is missing for a speed
+    model, not finite, negative or outside the training range; returns warnings (a model
+    without speed input; a speed model without a recorded range)."""
+    cfg = risk.model.cfg
+    notes: list[str] = []
+    speed = check_speed_value(speed)
+    if params_path:
+        _params_risk_data(params_path)  # a given params file is read and checked, never ignored
+    if speed is None:
+        if cfg.use_speed:
+            raise InputValueError(
+                f"speed: the model ({risk.description}) uses the subject speed; give it (m/s)"
+            )
+        return notes
+    rng = speed_range(risk, params_path)
+    if rng is not None and cfg.use_speed:
+        lo, hi, src = rng
+        if not lo <= speed <= hi:
+            raise ModelDomainError(
+                f"speed: {speed:g} m/s is outside the model's training range [{lo:g}, {hi:g}] m/s ({src})"
+            )
+    if not cfg.use_speed:
+        notes.append(
+            f"speed: the model ({risk.description}) has no speed input; the speed only scales gap_m"
+        )
+    elif rng is None:
+        notes.append(
+            f"speed: the model ({risk.description}) records no training speed range; "
+            "give a params file with risk_data.max_speed to check it"
+        )
+    return notes
+
+
+def decision_cut(risk: LoadedRisk, thw_threshold: float) -> float | None:
+    """The risk above which the model calls a frame critical at ``thw_threshold`` (s), as chosen
+    on the validation split (``shipped.decision`` of a shipped predictor's metadata); ``None``
+    when none was chosen for that threshold (the verdict then compares THW with the threshold)."""
+    dec = (risk.meta.get("shipped") or {}).get("decision") or {}
+    for t, d in dec.items():
+        try:
+            if math.isclose(float(t), float(thw_threshold)) and isinstance(d, dict):
+                return float(d["cut"])
+        except (TypeError, ValueError, KeyError):
+            continue
+    return None
+
+
+def risk_verdict(
+    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW, cut: float | None = None
+) -> dict[str, Any]:
+    """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
+    no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s), or,
+    with ``cut`` (the decision threshold chosen on validation, :func:`decision_cut`), iff
+    ``risk > cut``. With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
+    thw = float(risk_to_thw(np.asarray(risk), cap=math.inf))
+    crit = bool(risk > cut) if cut is not None else bool(thw < thw_threshold)
+    out: dict[str, Any] = {
+        "risk": risk,
+        "thw_s": thw,
+        "thw_threshold_s": thw_threshold,
+        "critical": crit,
+        "verdict": "critical" if crit else "uncritical",
+    }
+    if cut is not None:
+        out["decision_cut"] = cut
+    if speed is not None:
+        out["speed_m_s"] = float(speed)
+        out["gap_m"] = thw * speed if math.isfinite(thw) else math.inf
+    return out
+
+
+def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+
+    ln, rn = (
+        str(x) if not isinstance(x, np.ndarray) else f"frame {fr.id!r} {side}"
+        for x, side in ((fr.left, "left"), (fr.right, "right"))
+    )
+    left = as_bgr(fr.left if isinstance(fr.left, np.ndarray) else read_image(fr.left), ln)
+    right = as_bgr(fr.right if isinstance(fr.right, np.ndarray) else read_image(fr.right), rn)
+    if left.shape != right.shape:
+        raise ApiError(
+            f"{rn}: size {right.shape[1]}x{right.shape[0]} differs from {ln}'s "
+            f"{left.shape[1]}x{left.shape[0]} (W x H)"
+        )
+    cam = risk.domain.get("camera")
+    if isinstance(cam, dict) and "width" in cam and "height" in cam:
+        cw, ch = int(cam["width"]), int(cam["height"])
+        if (left.shape[1], left.shape[0]) != (cw, ch):
+            if not resize:
+                raise ModelDomainError(
+                    f"{ln}: image size {left.shape[1]}x{left.shape[0]} differs from the model's "
+                    f"training camera {cw}x{ch} (W x H, domain.camera of {risk.description}); "
+                    "resize=True (--resize) resizes both images to it (disparity then in the "
+                    "camera's pixel scale)"
+                )
+            up = max(cw / left.shape[1], ch / left.shape[0])
+            if up > MAX_UPSCALE:
+                raise ModelDomainError(
+                    f"{ln}: image {left.shape[1]}x{left.shape[0]} px would be enlarged {up:.1f}x "
+                    f"to the training camera {cw}x{ch}; resizing enlarges at most "
+                    f"{MAX_UPSCALE:g}x (a smaller image holds too little detail for stereo matching)"
+                )
+            left = cv2.resize(left, (cw, ch), interpolation=cv2.INTER_AREA)
+            right = cv2.resize(right, (cw, ch), interpolation=cv2.INTER_AREA)
+    return left, right
+
+
+def check_thw_threshold(thw_threshold: Any, who: str = "thw_threshold") -> float:
+    """A THW threshold (s): a finite number in (0, :data:`MAX_THW_THRESHOLD_S`]."""
+    try:
+        t = float(thw_threshold)
+    except (TypeError, ValueError):
+        raise InputValueError(f"{who}: expected seconds, got {thw_threshold!r}") from None
+    if not (math.isfinite(t) and 0 < t <= MAX_THW_THRESHOLD_S):
+        raise InputValueError(
+            f"{who}: must be a time headway in (0, {MAX_THW_THRESHOLD_S:g}] s, got {thw_threshold}"
+        )
+    return t
+
+
+def assess_risk(
+    risk: LoadedRisk,
+    frames: Iterable[Frame],
+    *,
+    speed: float | None = None,
+    settings: StereoSettings | None = None,
+    params_path: str | os.PathLike | None = None,
+    resize: bool = False,
+    batch_size: int = 16,
+    thw_threshold: float = CRITICAL_THW,
+) -> Iterator[dict[str, Any]]:
+    """Stream risk rows for ``frames``: ORB pair check, SGM disparity and the network's risk,
+    ``batch_size`` frames at a time (images are read when their batch comes, so memory is
+    bounded by one batch, not by the number of frames). One dict per frame (``id``, ORB
+    statistics, disparity summary, ``risk`` in [0, 1], THW verdict, per-frame timings).
+
+    ``speed`` (m/s) is checked by :func:`check_speed` (its warnings are issued as
+    :class:`ApiWarning`); ``settings`` default to :func:`stereo_settings` of the model's domain and
+    ``params_path``.
+    """
+    from traffictwin.stereo.orb import check_pair
+    from traffictwin.stereo.sgm import compute_disparity
+
+    if batch_size < 1:
+        raise InputValueError(f"batch_size: must be >= 1, got {batch_size}")
+    check_thw_threshold(thw_threshold)
+    for note in check_speed(risk, speed, params_path):
+        warnings.warn(note, ApiWarning, stacklevel=2)
+    st = settings or stereo_settings(risk.domain, params_path, risk.description)
+    cut = decision_cut(risk, thw_threshold)
+    for chunk in _chunks(frames, batch_size):
+        lefts, disps, rows = [], [], []
+        for fr in chunk:
+            left, right = _frame_images(fr, risk, resize)
+            t0 = time.perf_counter()
+            orb = check_pair(left, right, **st.orb)
+            t1 = time.perf_counter()
+            disp = compute_disparity(left, right, **st.sgm)
+            t2 = time.perf_counter()
+            valid = disp >= 0
+            lefts.append(left)
+            disps.append(disp)
+            rows.append(
+                {
+                    "id": fr.id,
+                    "orb_outlier": bool(orb.outlier),
+                    "orb_verdict": "unreliable pair" if orb.outlier else "ok",
+                    "orb_n_matches": int(orb.n_matches),
+                    "orb_n_reliable": int(orb.n_reliable),
+                    "orb_mean_dx": float(orb.mean_dx),
+                    "orb_mean_dy": float(orb.mean_dy),
+                    "disp_valid_fraction": float(valid.mean()),
+                    "disp_median_px": float(np.median(disp[valid])) if valid.any() else math.nan,
+                    "orb_ms": round((t1 - t0) * 1e3, 2),
+                    "sgm_ms": round((t2 - t1) * 1e3, 2),
+                }
+            )
+        t0 = time.perf_counter()
+        sp = None if speed is None else np.full(len(chunk), speed, np.float32)
+        pred = risk.model.predict(
+            left_bgr=np.stack(lefts), disp_sgm=np.stack(disps), speed=sp, batch_size=batch_size
+        )
+        ms = (time.perf_counter() - t0) * 1e3 / len(chunk)
+        bad = [row["id"] for row, r in zip(rows, pred) if not np.isfinite(r)]
+        if bad:
+            raise ApiError(
+                f"the model ({risk.description}) predicted a non-finite risk for frame {bad[0]!r}"
+            )
+        pred = np.clip(pred, 0.0, 1.0)  # the metric's range, always
+        for row, r in zip(rows, pred):
+            row.update(risk_verdict(float(r), speed, thw_threshold, cut), model_ms=round(ms, 2))
+            yield row
