@@ -17,6 +17,7 @@ run when it is in the store.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import pandas as pd
 
@@ -25,6 +26,8 @@ from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.evaluation import (
     CIConfig,
+    Holdout,
+    SuiteSettings,
     confusion_table,
     evaluate_suite,
     main_series,
@@ -144,64 +147,118 @@ def risk_stage_settings(p):
     return ev, subject, variants, settings, primary, get(p, "risk_model.orb_filter", bool)
 
 
+def suite_settings(ev, subject, primary: str, variants: dict, selection: dict, holdout: list):
+    """The suite's settings from ``evaluation.risk`` (``ev``), the subject footprint, the primary
+    label, the variants' settings, the choices made on validation and the held-out templates."""
+    ci = typed(ev.ci, CIConfig, key="evaluation.risk.ci")
+    length, width = subject.subject_length, subject.subject_width
+    rules = {
+        r: ev.geometric.params(length, width, e["half_width"])
+        for r, e in selection["rules"].items()
+    }
+    decisions = {
+        name: {float(t): d["cut"] for t, d in e["decision"].items()}
+        for name, e in selection["predictors"].items()
+    }
+    decisions[SHIPPED] = decisions[selection["shipped"]["predictor"]]
+    return SuiteSettings(
+        primary_label=primary,
+        thresholds_s=tuple(ev.thresholds_s),
+        thw_cap=ev.thw_cap_s,
+        geometric=ev.geometric.params(length, width),
+        batch_size=ev.batch_size,
+        main_variant=ev.main_variant,
+        variants=variants,
+        ci=ci,
+        collapse_std=ev.collapse_std,
+        rule_params=rules,
+        decisions=decisions,
+        shipped=SHIPPED,
+        learned=selection.get("learned"),
+        holdout=Holdout(tuple(holdout), HOLDOUT, HYBRID) if holdout else None,
+    )
+
+
+def load_models(variants: list[str], hybrids: list[str]) -> dict:
+    """The trained variants, the hybrid runs and the shipped predictor (select_risk)."""
+
+    def model_dir(v: str):
+        if v in hybrids:
+            return hybrid_model_dir(v)
+        return SHIPPED_RISK_MODEL if v == SHIPPED else risk_model_dir(v)
+
+    return {v: load_risk_model(model_dir(v)) for v in [*variants, *hybrids, SHIPPED]}
+
+
+def loaded_settings(models: dict, variants: list[str]) -> dict[str, dict]:
+    """Variant settings of the runs that are no ``risk_model`` variant, from their metadata."""
+    return {
+        v: {
+            "replicate_of": None if v == SHIPPED else m.meta.get("replicate_of"),
+            "objective": m.meta.get("objective"),
+            "seed_offset": m.meta.get("seed_offset", 0),
+        }
+        for v, m in models.items()
+        if v not in variants
+    }
+
+
+def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str], ev) -> None:
+    """The figures, the confusion and prediction tables and risk.json."""
+    main_v, t0 = ev.main_variant, ev.thresholds_s[0]
+    evaluation_figures(
+        source,
+        metrics,
+        pred,
+        {v: pd.read_csv(risk_model_dir(v) / "history.csv") for v in variants},
+        main_v,
+        curves=figure_file("risk_training_curves"),
+        scatter=figure_file("risk_scatter"),
+        confusion=figure_file("risk_confusion"),
+        examples=figure_file("risk_examples"),
+        roc=figure_file("risk_roc"),
+    )
+    _, y, yhat = main_series(metrics, pred, main_v)
+    _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))
+    _write_csv(pred, plot_file("risk_predictions"))
+    write_json_atomic(METRICS, metrics)
+
+
+def _log_summary(log: logging.Logger, metrics: dict, ev) -> None:
+    """The shipped predictor's headline numbers, and the collapsed models (if any)."""
+    t0 = ev.thresholds_s[0]
+    sh = metrics["models"][SHIPPED][f"at_{t0:g}s"]
+    log.info(
+        "evaluate_risk: shipped %s: balanced accuracy %s, ROC-AUC %s at THW %g s on %d test frames",
+        metrics["selection"]["shipped_from"],
+        _fmt3(sh.get("balanced_accuracy")),
+        _fmt3(sh.get("roc_auc")),
+        t0,
+        metrics["models"][ev.main_variant]["test/n"],
+    )
+    failed = [v for v, e in metrics["models"].items() if e.get("collapsed")]
+    if failed:
+        log.warning(
+            "evaluate_risk: collapsed model(s) %s (test prediction std < %g): reported as failed runs",
+            failed,
+            ev.collapse_std,
+        )
+
+
 def main() -> None:
     log = setup_logging()
     p = params()
     ev, subject, variants, settings, primary, orb_filter = risk_stage_settings(p)
-    ci = typed(ev.ci, CIConfig, key="evaluation.risk.ci")
-    geo = ev.geometric.params(subject.subject_length, subject.subject_width)
     selection = read_selection()
-
+    _, seeds, holdout = hybrid_settings(p)
+    suite = suite_settings(ev, subject, primary, settings, selection, holdout)
     with stage_timer("evaluate_risk") as record:
         record["torch_threads"] = pin_torch_threads(p)
         source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
-        # the trained variants, the hybrid runs and the shipped predictor (select_risk)
-        _, seeds, holdout = hybrid_settings(p)
         hybrids = [*hybrid_runs(seeds), *holdout_runs(seeds, holdout)]
-        names = [*variants, *hybrids, SHIPPED]
-        models = {
-            v: load_risk_model(
-                hybrid_model_dir(v)
-                if v in hybrids
-                else (SHIPPED_RISK_MODEL if v == SHIPPED else risk_model_dir(v))
-            )
-            for v in names
-        }
-        for v in names[len(variants) :]:
-            settings[v] = {
-                "replicate_of": None if v == SHIPPED else models[v].meta.get("replicate_of"),
-                "objective": models[v].meta.get("objective"),
-                "seed_offset": models[v].meta.get("seed_offset", 0),
-            }
-        rules = {
-            r: ev.geometric.params(subject.subject_length, subject.subject_width, e["half_width"])
-            for r, e in selection["rules"].items()
-        }
-        decisions = {
-            name: {float(t): d["cut"] for t, d in e["decision"].items()}
-            for name, e in selection["predictors"].items()
-        }
-        decisions[SHIPPED] = decisions[selection["shipped"]["predictor"]]
-        metrics, pred = evaluate_suite(
-            source,
-            models,
-            primary_label=primary,
-            thresholds_s=ev.thresholds_s,
-            thw_cap=ev.thw_cap_s,
-            geometric=geo,
-            batch_size=ev.batch_size,
-            main_variant=ev.main_variant,
-            variants=settings,
-            ci=ci,
-            collapse_std=ev.collapse_std,
-            rule_params=rules,
-            decisions=decisions,
-            shipped=SHIPPED,
-            learned=selection.get("learned"),
-            holdout=(
-                {"templates": holdout, "group": HOLDOUT, "reference": HYBRID} if holdout else None
-            ),
-        )
+        models = load_models(variants, hybrids)
+        suite = replace(suite, variants={**settings, **loaded_settings(models, variants)})
+        metrics, pred = evaluate_suite(source, models, suite)
         metrics["selection"] = {
             "file": SELECTION.name,
             "split": selection["split"],
@@ -209,41 +266,9 @@ def main() -> None:
             "shipped_kind": predictor_kind(models[SHIPPED]),
             "rules": {r: e["half_width"] for r, e in selection["rules"].items()},
         }
-        main_v, t0 = ev.main_variant, ev.thresholds_s[0]
-        evaluation_figures(
-            source,
-            metrics,
-            pred,
-            {v: pd.read_csv(risk_model_dir(v) / "history.csv") for v in variants},
-            main_v,
-            curves=figure_file("risk_training_curves"),
-            scatter=figure_file("risk_scatter"),
-            confusion=figure_file("risk_confusion"),
-            examples=figure_file("risk_examples"),
-            roc=figure_file("risk_roc"),
-        )
-        _, y, yhat = main_series(metrics, pred, main_v)
-        _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))
-        _write_csv(pred, plot_file("risk_predictions"))
-        write_json_atomic(METRICS, metrics)
+        write_outputs(source, metrics, pred, variants, ev)
         _log_to_mlflow(models, metrics, log)
-        m = metrics["models"][main_v]
-        sh = metrics["models"][SHIPPED][f"at_{t0:g}s"]
-        log.info(
-            "evaluate_risk: shipped %s: balanced accuracy %s, ROC-AUC %s at THW %g s on %d test frames",
-            metrics["selection"]["shipped_from"],
-            _fmt3(sh.get("balanced_accuracy")),
-            _fmt3(sh.get("roc_auc")),
-            t0,
-            m["test/n"],
-        )
-        failed = [v for v, e in metrics["models"].items() if e.get("collapsed")]
-        if failed:
-            log.warning(
-                "evaluate_risk: collapsed model(s) %s (test prediction std < %g): reported as failed runs",
-                failed,
-                ev.collapse_std,
-            )
+        _log_summary(log, metrics, ev)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from traffictwin.risk.baselines import (
 from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.evaluation import (
     PAPER,
+    SuiteSettings,
     classification_metrics,
     confusion_table,
     evaluate,
@@ -182,7 +183,9 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     )
     models = _tiny_models(tmp_path / "models")
     params = GeometricParams(subject_length=4.5, subject_width=1.8)
-    metrics, pred = evaluate_suite(src, models, primary_label="risk_thw_paper", geometric=params)
+    metrics, pred = evaluate_suite(
+        src, models, SuiteSettings(primary_label="risk_thw_paper", geometric=params)
+    )
     test = src.split_frames("test")
     assert sorted(pred["frame_id"]) == sorted(test["frame_id"])
     for v, m in models.items():
@@ -331,7 +334,7 @@ def test_evaluation_figures_plot_the_predictions(
     models = {k: v for k, v in _tiny_models(tmp_path / "models").items() if k == "rgbd"}
     geo = GeometricParams(subject_length=4.5, subject_width=1.8)
     metrics, pred = evaluate_suite(
-        src, models, primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0
+        src, models, SuiteSettings(primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0)
     )
     hist = pd.DataFrame(
         {"step": [1, 2, 3], "train/loss": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}

@@ -21,8 +21,8 @@ from traffictwin.risk.evaluation import (
     TARGETS,
     CIConfig,
     ClusterBootstrap,
+    SuiteSettings,
     Target,
-    _variant_groups,
     bootstrap_scores,
     critical_shares,
     difference_of_scores,
@@ -33,6 +33,7 @@ from traffictwin.risk.evaluation import (
     roc_auc,
     roc_curve,
     spread_stat,
+    variant_groups,
 )
 from traffictwin.risk.findings import beats, claim, findings
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
@@ -223,16 +224,16 @@ def test_judge_hand_cases() -> None:
 def test_variant_groups_follow_replicate_of() -> None:
     names = ["headline", "rgbd", "headline_s1", "headline_s2", "paper"]
     rep = {"headline_s1": "headline", "headline_s2": "headline_s1"}  # a chain resolves to the root
-    g = _variant_groups(names, rep)
+    g = variant_groups(names, rep)
     assert g == {
         "headline": ["headline", "headline_s1", "headline_s2"],
         "rgbd": ["rgbd"],
         "paper": ["paper"],
     }
     # replicates of a variant that is not evaluated form its group
-    assert _variant_groups(["a_s1", "a_s2"], {"a_s1": "a", "a_s2": "a"}) == {"a": ["a_s1", "a_s2"]}
+    assert variant_groups(["a_s1", "a_s2"], {"a_s1": "a", "a_s2": "a"}) == {"a": ["a_s1", "a_s2"]}
     with pytest.raises(ValueError, match="cycle"):
-        _variant_groups(["a", "b"], {"a": "b", "b": "a"})
+        variant_groups(["a", "b"], {"a": "b", "b": "a"})
 
 
 def test_critical_shares_by_hand() -> None:
@@ -423,9 +424,9 @@ def test_real_models_load_and_evaluate(tmp_path: Path) -> None:
     metrics, _ = evaluate_suite(
         src,
         {"m": load_risk_model(tmp_path / "m")},
-        primary_label="risk_thw_corridor",
-        ci=CIConfig(100, 0, 0.95),
-        collapse_std=1e-3,
+        SuiteSettings(
+            primary_label="risk_thw_corridor", ci=CIConfig(100, 0, 0.95), collapse_std=1e-3
+        ),
     )
     assert metrics["models"]["m"]["label"] == "risk_thw_corridor"
     assert metrics["main_variant"] == "m" and "geometric_sgm" not in metrics["baselines"]
@@ -445,9 +446,7 @@ def suite(tmp_path_factory: pytest.TempPathFactory):
     tmp = tmp_path_factory.mktemp("suite")
     write_sequences(tmp)
     src = RiskSource(tmp / "data" / "risk", tmp / "data" / "disparity", None)
-    metrics, pred = evaluate_suite(
-        src,
-        _models(),
+    settings = SuiteSettings(
         primary_label="risk_thw_corridor",
         geometric=GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8),
         main_variant="headline",
@@ -455,6 +454,7 @@ def suite(tmp_path_factory: pytest.TempPathFactory):
         ci=CIConfig(300, 0, 0.95),
         collapse_std=1e-3,
     )
+    metrics, pred = evaluate_suite(src, _models(), settings)
     return src, metrics, pred
 
 

@@ -22,6 +22,8 @@ from traffictwin.risk.evaluation import (
     TARGETS,
     CIConfig,
     ClusterBootstrap,
+    Holdout,
+    SuiteSettings,
     bootstrap_scores,
     classification_metrics,
     evaluate_suite,
@@ -265,9 +267,7 @@ def test_suite_applies_validation_choices(tmp_path: Path) -> None:
     }
     narrow = GeometricParams(**{**geo.__dict__, "corridor_half_width": 0.75})
     rule = GeometricRiskModel(narrow, cam, {"label": "risk_thw_corridor"})
-    metrics, pred = evaluate_suite(
-        src,
-        {"shipped": rule},
+    settings = SuiteSettings(
         primary_label="risk_thw_corridor",
         geometric=geo,
         ci=CIConfig(100, 0, 0.95),
@@ -275,6 +275,7 @@ def test_suite_applies_validation_choices(tmp_path: Path) -> None:
         decisions={"shipped": {1.5: 0.02, 1.0: 0.04}},
         shipped="shipped",
     )
+    metrics, pred = evaluate_suite(src, {"shipped": rule}, settings)
     json.dumps(metrics, allow_nan=False)
     # the shipped rule = the SGM baseline with the same corridor
     np.testing.assert_allclose(pred["pred_shipped"], pred["pred_geometric_sgm"], rtol=1e-6)
@@ -332,16 +333,15 @@ def test_holdout_block_measures_unseen_templates(tmp_path: Path) -> None:
         name: GeometricRiskModel(GeometricParams(**{**geo.__dict__, "corridor_half_width": w}), cam)
         for name, w in (("ref", 1.0), ("ref_s1", 1.25), ("held", 1.0), ("held_s1", 1.25))
     }
-    metrics, pred = evaluate_suite(
-        src,
-        rule,
+    settings = SuiteSettings(
         primary_label="risk_thw_corridor",
         geometric=geo,
         main_variant="ref",
         variants={"ref_s1": {"replicate_of": "ref"}, "held_s1": {"replicate_of": "held"}},
         ci=CIConfig(100, 0, 0.95),
-        holdout={"templates": ["roundabout"], "group": "held", "reference": "ref"},
+        holdout=Holdout(("roundabout",), group="held", reference="ref"),
     )
+    metrics, pred = evaluate_suite(src, rule, settings)
     ho = metrics["holdout"]
     mask = (pred["template"] == "roundabout").to_numpy()
     assert ho["n_frames"] == int(mask.sum()) and ho["templates"] == ["roundabout"]

@@ -1,0 +1,226 @@
+"""The targets of issue 16 (default profile, test split, headline) and how they are judged:
+the shipped predictor's own scores and the learned group's paired differences to the rules."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from traffictwin.risk.evaluation.bootstrap import ClusterBootstrap, Stat
+from traffictwin.risk.evaluation.scorer import Roles, Scorer
+from traffictwin.stats import Interval
+
+
+@dataclass(frozen=True)
+class Target:
+    """A target of issue 16 (default profile, test split, headline): ``op`` compares the value
+    (or, with ``ci_required``, the whole interval) with ``threshold``."""
+
+    description: str
+    threshold: float
+    op: str
+    ci_required: bool = False
+
+
+TARGETS: dict[str, Target] = {
+    # the predictor users get (models/risk/shipped, chosen on validation), issue 31
+    "shipped_balanced_accuracy_1.5s": Target(
+        "balanced accuracy of the shipped predictor at THW 1.5 s", 0.95, ">="
+    ),
+    "shipped_balanced_accuracy_1s": Target(
+        "balanced accuracy of the shipped predictor at THW 1.0 s", 0.90, ">="
+    ),
+    "shipped_roc_auc": Target("ROC-AUC of the shipped predictor at THW 1.5 s", 0.97, ">="),
+    "shipped_recall_pedestrian": Target(
+        "recall of the shipped predictor at THW 1.5 s, pedestrian situations", 0.85, ">="
+    ),
+    "shipped_recall_cut_in": Target(
+        "recall of the shipped predictor at THW 1.5 s, cut-in situations", 0.85, ">="
+    ),
+    "shipped_thw_median_error_critical_s": Target(
+        "median |THW error| (s) of the shipped predictor on truly critical frames (THW < 1.5 s)",
+        0.2,
+        "<=",
+    ),
+    # the learned model (best group on validation, seeds resampled) vs the validation-tuned rule
+    "learned_vs_rule_auc": Target(
+        "ROC-AUC learned − SGM corridor rule (paired, seeds × sequences): interval wholly above 0",
+        0.0,
+        ">",
+        True,
+    ),
+    "learned_vs_rule_balanced_accuracy": Target(
+        "balanced accuracy learned − SGM corridor rule (paired, seeds × sequences): interval wholly above 0",
+        0.0,
+        ">",
+        True,
+    ),
+    "auc_vs_speed_only": Target(
+        "ROC-AUC learned − speed-only baseline (paired): interval wholly above 0", 0.0, ">", True
+    ),
+    "holdout_balanced_accuracy_drop": Target(
+        "balanced accuracy drop: the hybrid on the standard test split − the hybrid trained without "
+        "the held-out road templates on their test frames",
+        0.05,
+        "<=",
+    ),
+    "spread": Target(
+        "smallest standard deviation of a trained variant's test predictions (no collapsed model)",
+        math.nan,
+        ">=",
+    ),
+}
+
+
+def judge(iv: Interval, target: Target, threshold: float | None = None) -> dict[str, Any]:
+    """``value``, ``lo``, ``hi``, ``met`` (the estimate — or, for ``ci_required``, the lower /
+    upper bound — on the target's side) and ``ci_beyond_threshold`` (the whole interval there)."""
+    thr = target.threshold if threshold is None else threshold
+    e, lo, hi = iv.estimate, iv.lo, iv.hi
+    out: dict[str, Any] = {"value": e, "lo": lo, "hi": hi, "threshold": thr, "op": target.op}
+    if not math.isfinite(e):
+        return {**out, "met": False, "ci_beyond_threshold": False, "why": "undefined"}
+    side = {
+        ">=": lambda v: v >= thr,
+        ">": lambda v: v > thr,
+        "<=": lambda v: v <= thr,
+        "<": lambda v: v < thr,
+    }[target.op]
+    bound = lo if target.op in (">=", ">") else hi
+    beyond = math.isfinite(bound) and side(bound)
+    met = beyond if target.ci_required else side(e)
+    return {**out, "met": bool(met), "ci_beyond_threshold": bool(beyond)}
+
+
+class _Verdicts:
+    """The judged targets, in order (``out``), on the intervals of ``plan``."""
+
+    def __init__(self, plan: ClusterBootstrap) -> None:
+        self.plan = plan
+        self.out: dict[str, Any] = {}
+
+    def put(
+        self,
+        name: str,
+        stat: Stat | Interval,
+        predictor: str,
+        threshold: float | None = None,
+        **extra: Any,
+    ) -> None:
+        """Judge target ``name`` on ``stat`` (a statistic or an interval) of ``predictor``."""
+        t = TARGETS[name]
+        iv = stat if isinstance(stat, Interval) else self.plan.interval(stat)
+        self.out[name] = {
+            "description": t.description,
+            "predictor": predictor,
+            **judge(iv, t, threshold),
+            **extra,
+        }
+
+    def missing(self, name: str, why: str) -> None:
+        """Target ``name`` could not be evaluated (not met)."""
+        self.out[name] = {"description": TARGETS[name].description, "met": False, "why": why}
+
+
+def _shipped(v: _Verdicts, scorer: Scorer, shipped: str, label: str) -> None:
+    """The shipped predictor's balanced accuracy, ROC-AUC and THW error on ``label``."""
+    thresholds = [float(t) for t in scorer.settings.thresholds_s]
+    sh = scorer.scores(shipped, label)
+    for t, key in ((1.5, "shipped_balanced_accuracy_1.5s"), (1.0, "shipped_balanced_accuracy_1s")):
+        if any(math.isclose(t, x) for x in thresholds):
+            v.put(key, sh[f"at_{t:g}s|balanced_accuracy"], shipped, threshold_s=t)
+        else:
+            v.missing(key, f"THW threshold {t:g} s not evaluated (evaluation.risk.thresholds_s)")
+    t0 = thresholds[0]
+    v.put("shipped_roc_auc", sh[f"at_{t0:g}s|roc_auc"], shipped, threshold_s=t0)
+    v.put("shipped_thw_median_error_critical_s", sh["test/thw_median_error_critical_s"], shipped)
+
+
+def _situational(v: _Verdicts, sits: Mapping[str, Any], shipped: str, t0: float) -> None:
+    """The shipped predictor's recall in pedestrian and cut-in situations (``sits``: the
+    situation breakdown)."""
+    for sit, key in (
+        ("pedestrian", "shipped_recall_pedestrian"),
+        ("cut_in", "shipped_recall_cut_in"),
+    ):
+        e = (sits.get(sit) or {}).get("predictors", {}).get(shipped)
+        if not e:
+            v.missing(key, f"no '{sit}' frames in the test split")
+            continue
+        ci = e.get("recall_ci") or {}
+        iv = Interval(e["recall"], ci.get("lo", math.nan), ci.get("hi", math.nan), v.plan.level)
+        v.put(key, iv, shipped, threshold_s=t0, n_sequences=sits[sit]["n_sequences"])
+
+
+def _learned(v: _Verdicts, scorer: Scorer, learned: str, label: str) -> None:
+    """The learned group's paired differences to the SGM rule and the speed-only baseline."""
+    at = f"at_{scorer.settings.t0:g}s|"
+    ls = scorer.scores(learned, label)
+    for name, base, metric in (
+        ("learned_vs_rule_auc", "geometric_sgm", "roc_auc"),
+        ("learned_vs_rule_balanced_accuracy", "geometric_sgm", "balanced_accuracy"),
+        ("auc_vs_speed_only", "speed_only", "roc_auc"),
+    ):
+        try:
+            b = scorer.scores(base, label)
+        except KeyError:
+            v.missing(name, f"{base} not evaluated")
+            continue
+        diff = (ls[at + metric][0] - b[at + metric][0], ls[at + metric][1] - b[at + metric][1])
+        v.put(name, diff, learned, baseline=base)
+
+
+def _holdout(v: _Verdicts, ho: Mapping[str, Any]) -> None:
+    """The balanced-accuracy drop on unseen road templates (``ho``: the holdout block)."""
+    drop = (ho.get("drop") or {}).get("balanced_accuracy")
+    if drop:
+        v.put(
+            "holdout_balanced_accuracy_drop",
+            Interval(drop["estimate"], drop["lo"], drop["hi"], v.plan.level),
+            str(ho.get("group")),
+            templates=ho.get("templates"),
+            n_sequences=ho.get("n_sequences"),
+        )
+    else:
+        v.missing(
+            "holdout_balanced_accuracy_drop",
+            ho.get("why") or "no held-out road templates (risk_hybrid.holdout_templates)",
+        )
+
+
+def targets(
+    scorer: Scorer,
+    roles: Roles,
+    spreads: Mapping[str, Stat],
+    situations: Mapping[str, Any] | None = None,
+    holdout: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The targets of :data:`TARGETS`: the shipped predictor's (default the headline) and the
+    learned group's against the rule (default the headline), on the headline's label;
+    ``spreads``: each model's prediction spread; ``situations`` / ``holdout``: those blocks of
+    risk.json (``None``: not evaluated)."""
+    shipped = roles.shipped or roles.main_key
+    learned = roles.learned or roles.main_key
+    v = _Verdicts(scorer.plan)
+    _shipped(v, scorer, shipped, roles.main_label)
+    _situational(v, situations or {}, shipped, float(scorer.settings.t0))
+    _learned(v, scorer, learned, roles.main_label)
+    _holdout(v, holdout or {})
+    collapse_std = scorer.settings.collapse_std
+    worst = min(spreads, key=lambda m: spreads[m][0])
+    v.put(
+        "spread",
+        spreads[worst],
+        worst,
+        collapse_std,
+        variant=worst,
+        collapsed=sorted(m for m, st in spreads.items() if st[0] < collapse_std),
+    )
+    for key, who in ((shipped, "shipped"), (learned, "learned")):
+        if scorer.groups.collapsed.get(key):  # a single run that collapsed
+            for name, e in v.out.items():
+                if name != "spread" and e.get("predictor") == key:
+                    e.update(met=False, why=f"the {who} predictor ({key}) collapsed")
+    return v.out
