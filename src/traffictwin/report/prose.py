@@ -5,8 +5,8 @@ problem computes from its metrics (numbers, verdicts, flags; no sentences).
 The page kit knows no problem: it only loads a folder of templates with the settings findings
 need. Markdown, not HTML (no escaping); a missing field is an error (``StrictUndefined``).
 Long sentences are wrapped in the template source and joined again by the ``oneline`` filter
-(a line break and the indentation around it become one space), so a bullet is one line of
-Markdown however its template is laid out.
+(a line break and the indentation around it become one space; before a line that starts with
+``.``, ``,`` or ``;`` nothing), so a bullet is one line of Markdown however its template is laid out.
 """
 
 from __future__ import annotations
@@ -20,9 +20,11 @@ __all__ = ["oneline", "template_environment", "render_prose", "template_macro"]
 
 
 def oneline(text: str) -> str:
-    """``text`` without its surrounding blank space, each line break (with the spaces and tabs
-    around it) replaced by one space."""
-    return re.sub(r"[ \t]*\n\s*", " ", str(text).strip())
+    """``text`` without its surrounding blank space, each line break (with the blank space around
+    it) replaced by one space, or by nothing where the next line starts with ``.``, ``,`` or ``;``
+    (a list's last item ends its line; the full stop after it follows on the next)."""
+    text = re.sub(r"\s*\n\s*(?=[.,;])", "", str(text).strip())
+    return re.sub(r"[ \t]*\n\s*", " ", text)
 
 
 def template_environment(folder: str | Path, *, autoescape: bool = False) -> Any:

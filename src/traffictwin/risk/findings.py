@@ -1,6 +1,6 @@
 """Findings of the risk evaluation as markdown bullets, generated from ``reports/metrics/risk.json``.
 
-:func:`findings` is called by the report stage (``traffictwin.report.render.findings``); every
+:func:`findings` is called by the report stage (``traffictwin.risk.report_section``); every
 number comes from the metrics dict (layout: :mod:`traffictwin.risk.evaluation`), nothing is typed
 by hand. Missing entries (a variant or a baseline not evaluated, a metric undefined → ``None``)
 are skipped, never invented.
@@ -10,17 +10,25 @@ when its paired sequence-bootstrap interval excludes zero (:func:`traffictwin.st
 otherwise the text says "no significant difference" with the interval. A collapsed model (one
 output for every frame) is listed as a failed run and never interpreted. The corridor rule on
 ground-truth disparity sees perfect stereo but a straight corridor: a reference, not an oracle.
+
+This module computes what the findings state (:class:`RiskFindings`: numbers formatted with their
+intervals, verdicts, flags, names); the sentences are in ``templates/findings.md.j2`` (one bullet
+per block) and ``templates/claim.md.j2`` (one comparison) next to it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
 
+from traffictwin.report.prose import render_prose, template_macro
 from traffictwin.risk.evaluation import GT_INPUT, LOWER_IS_BETTER, PAPER, SEED_MEAN
 from traffictwin.stats import Interval, excludes_zero
 
+TEMPLATES = Path(__file__).parent / "templates"
 #: how findings name the baselines
 BASELINE_NAMES = {
     "train_mean": "training-mean predictor",
@@ -29,6 +37,8 @@ BASELINE_NAMES = {
     "geometric_sgm": "corridor rule (SGM disparity + speed, corridor chosen on validation)",
     "geometric_gt": "corridor rule on ground-truth disparity (perfect stereo, straight corridor)",
 }
+#: baselines the headline is compared with, in the order the findings list them
+SHOWN_BASELINES = ("speed_only", "geometric_sgm", "geometric_gt", "train_median")
 #: metrics the comparisons quote, with their names
 COMPARED = (("roc_auc", "ROC-AUC"), ("balanced_accuracy", "balanced accuracy"))
 REGIONS = {
@@ -36,6 +46,7 @@ REGIONS = {
     "risk_thw_paper": "paper",
     "risk_thw_fov": "camera_fov",
 }
+P_LABEL, F_LABEL = "risk_thw_paper", "risk_thw_fov"
 
 
 def _g(d: Any, path: str) -> Any:
@@ -84,17 +95,8 @@ def _signed(x: float) -> str:
     return f"{x:+.3f}".replace("-", "−")
 
 
-def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> str:
-    """One comparison sentence for the paired difference ``a − b`` of ``metric`` (``at_…|roc_auc``
-    or ``test/mse``): a claim when its interval excludes zero, else "no significant difference"."""
-    iv = _interval(_g(diff, metric))
-    if iv is None:
-        return f"{a} vs {b} in {name}: no interval"
-    text = f"{_signed(iv.estimate)} [{_signed(iv.lo)}, {_signed(iv.hi)}]"
-    if not excludes_zero(iv):
-        return f"{a} vs {b}: no significant difference in {name} ({a} − {b} = {text})"
-    better = (iv.estimate < 0) == (metric.split("|")[-1] in LOWER_IS_BETTER)
-    return f"{a} {'beats' if better else 'is worse than'} {b} in {name}: {text}"
+def _diff_text(iv: Interval | None) -> str | None:
+    return None if iv is None else f"{_signed(iv.estimate)} [{_signed(iv.lo)}, {_signed(iv.hi)}]"
 
 
 def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
@@ -106,355 +108,608 @@ def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
     return (iv.estimate < 0) == (metric.split("|")[-1] in LOWER_IS_BETTER)
 
 
-def _describe(e: Mapping[str, Any]) -> str:
-    inputs = "+".join(e.get("inputs") or []) or "?"
-    parts = [inputs + (" + speed" if e.get("speed") else ", no speed")]
-    if e.get("label"):
-        parts.append(f"label {e['label']}")
-    if e.get("objective") and e.get("objective") != "mse":
-        parts.append(f"objective {e['objective']}")
-    return ", ".join(parts)
+class Claim(NamedTuple):
+    """The paired difference ``a − b`` of one metric (template macro ``claim``)."""
+
+    a: str
+    b: str
+    name: str  #: the metric's name
+    diff: str | None  #: estimate [lo, hi]; None: no interval
+    better: bool | None  #: a better / worse than b; None: the interval does not exclude zero
+
+
+def claim_record(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> Claim:
+    """:class:`Claim` for the paired difference ``a − b`` of ``metric`` (``at_…|roc_auc`` or
+    ``test/mse``)."""
+    return Claim(a, b, name, _diff_text(_interval(_g(diff, metric))), beats(diff, metric))
+
+
+def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> str:
+    """One comparison sentence for the paired difference ``a − b`` of ``metric`` (``at_…|roc_auc``
+    or ``test/mse``): a claim when its interval excludes zero, else "no significant difference"."""
+    sentence = template_macro(TEMPLATES, "claim.md.j2", "claim")
+    return str(sentence(claim_record(diff, metric, name, a, b)))
+
+
+class Variant(NamedTuple):
+    """What a variant is (template macro ``describe``): inputs, speed, label, objective."""
+
+    inputs: str
+    speed: bool
+    label: Any
+    objective: Any  #: shown unless it is the default (MSE)
+
+
+def _variant(e: Mapping[str, Any]) -> Variant:
+    obj = e.get("objective")
+    return Variant(
+        "+".join(e.get("inputs") or []) or "?",
+        bool(e.get("speed")),
+        e.get("label"),
+        obj if obj and obj != "mse" else None,
+    )
+
+
+@dataclass(frozen=True)
+class _Run:
+    """What every part of the findings reads: the metrics, the threshold, the headline."""
+
+    metrics: Mapping[str, Any]
+    t: float  #: the THW threshold the findings quote (s)
+    models: Mapping[str, Any]
+    base: Mapping[str, Any]
+    diffs: Mapping[str, Any]
+    groups: Mapping[str, Any]
+    main: str  #: the headline variant
+    main_key: str  #: its predictor (the seed mean where there is one)
+    collapsed: frozenset[str]
+
+    @property
+    def at(self) -> str:
+        return f"at_{self.t:g}s"
+
+    @property
+    def head(self) -> Any:
+        """The headline's seed group (or None)."""
+        return self.groups.get(self.main) if self.main_key.endswith(SEED_MEAN) else None
+
+
+@dataclass(frozen=True)
+class Paper:
+    """The headline against the paper's numbers."""
+
+    main: str
+    n_test: Any
+    label: Any
+    mse: str
+    paper_mse: str
+    ratio: str  #: test MSE / the paper's
+    below: bool  #: test MSE below the paper's
+    accuracy: str
+    paper_accuracy: str
+    wang_kato_accuracy: str
+    balanced: str
+    f1: str
+    roc: str
+    seeds: tuple[Any, str, str] | None  #: (n seeds, seed-mean MSE, seed-mean accuracy)
+    critical: str
+    paper_critical: str
+    collapsed: bool
+
+
+def _paper(r: _Run) -> Paper | None:
+    m, at, head = r.models[r.main], r.at, r.head
+    mse = _f(m.get("test/mse"))
+    if mse is None:
+        return None
+    hm = head if isinstance(head, Mapping) else m  # the headline's figures (seed mean if any)
+    return Paper(
+        main=r.main,
+        n_test=m.get("test/n"),
+        label=m.get("label"),
+        mse=_with_ci(m, "test/mse", ".5f"),
+        paper_mse=f"{PAPER['test/mse']:.5f}",
+        ratio=f"{mse / PAPER['test/mse']:.2f}",
+        below=mse < PAPER["test/mse"],
+        accuracy=_with_ci(m, f"{at}|accuracy", pct=True),
+        paper_accuracy=_pct(PAPER["accuracy"]),
+        wang_kato_accuracy=_pct(PAPER["wang_kato_accuracy"]),
+        balanced=_with_ci(m, f"{at}|balanced_accuracy", pct=True),
+        f1=_with_ci(m, f"{at}|f1"),
+        roc=_with_ci(m, f"{at}|roc_auc"),
+        seeds=(
+            head.get("n_seeds"),
+            _with_ci(hm, "test/mse", ".5f"),
+            _with_ci(hm, f"{at}|accuracy", pct=True),
+        )
+        if head
+        else None,
+        critical=_pct(_f(_g(m, f"{at}|critical_fraction_true"))),
+        paper_critical=_pct(76789 / PAPER["n_frames"]),
+        collapsed=r.main in r.collapsed,
+    )
+
+
+@dataclass(frozen=True)
+class Shipped:
+    """The shipped predictor (chosen on validation) on the test split."""
+
+    name: Any
+    kind: Any
+    sgm_half_width: Any
+    gt_half_width: Any
+    balanced: str
+    balanced_1s: str
+    roc: str
+    thw_error: str
+
+
+def _shipped(r: _Run) -> Shipped | None:
+    shipped = r.metrics.get("shipped")
+    if not shipped or not isinstance(r.models.get(shipped), Mapping):
+        return None
+    sm, sel, at = r.models[shipped], r.metrics.get("selection") or {}, r.at
+    rules = sel.get("rules") or {}
+    return Shipped(
+        name=sel.get("shipped_from", shipped),
+        kind=sel.get("shipped_kind", "?"),
+        sgm_half_width=rules.get("geometric_sgm", "n/a"),
+        gt_half_width=rules.get("geometric_gt", "n/a"),
+        balanced=_with_ci(sm, f"{at}|balanced_accuracy", pct=True),
+        balanced_1s=_with_ci(sm, "at_1s|balanced_accuracy", pct=True),
+        roc=_with_ci(sm, f"{at}|roc_auc"),
+        thw_error=_with_ci(sm, "test/thw_median_error_critical_s", ".3f"),
+    )
+
+
+@dataclass(frozen=True)
+class Learning:
+    """The primary comparison: the learned model against the SGM corridor rule."""
+
+    learned: str
+    better: bool | None
+    claims: list[Claim]
+    held: int  #: secondary differences with Holm-adjusted p < 0.05
+    n_secondary: int
+
+
+def _learning(r: _Run) -> Learning | None:
+    learned = r.metrics.get("learned")
+    d = r.diffs.get(f"{learned}|geometric_sgm") if learned else None
+    if d is None:
+        return None
+    comparisons = r.metrics.get("comparisons") or {}
+    holm = (comparisons.get("secondary_holm") or {}).get("p_adjusted") or {}
+    return Learning(
+        learned=learned,
+        better=beats(d, f"{r.at}|roc_auc"),
+        claims=[
+            claim_record(d, f"{r.at}|{k}", name, learned, "geometric_sgm") for k, name in COMPARED
+        ],
+        held=sum(1 for v in holm.values() if v < 0.05),
+        n_secondary=len(holm),
+    )
+
+
+@dataclass(frozen=True)
+class Seeds:
+    """The headline's seeds: ROC-AUC per run, seed means and seed sd."""
+
+    main: str
+    per_run: list[tuple[str, str]]
+    roc: str
+    roc_sd: str
+    balanced: str
+    balanced_sd: str
+
+
+def _seeds(r: _Run) -> Seeds | None:
+    head, at = r.head, r.at
+    if not head:
+        return None
+    sd = head.get("seed_sd") or {}
+    return Seeds(
+        main=r.main,
+        per_run=[
+            (v, _num(_f(_g(r.models.get(v), f"{at}|roc_auc")), ".3f"))
+            for v in head.get("members", [])
+        ],
+        roc=_with_ci(head, f"{at}|roc_auc"),
+        roc_sd=_num(_f(sd.get(f"{at}.roc_auc")), ".3f"),
+        balanced=_with_ci(head, f"{at}|balanced_accuracy", pct=True),
+        balanced_sd=_pct(_f(sd.get(f"{at}.balanced_accuracy"))),
+    )
+
+
+class Baseline(NamedTuple):
+    name: str
+    roc: str
+    balanced: str
+    mse: str
+
+
+@dataclass(frozen=True)
+class Baselines:
+    """The baselines on the headline's frames and the headline against them."""
+
+    scores: list[Baseline]
+    critical_speed: str | None  #: the speed-only baseline's critical speed (m/s)
+    claims: list[Claim]
+
+
+def _baselines(r: _Run) -> Baselines | None:
+    at = r.at
+    scores = [
+        Baseline(
+            BASELINE_NAMES[b],
+            _with_ci(e, f"{at}|roc_auc"),
+            _with_ci(e, f"{at}|balanced_accuracy", pct=True),
+            _with_ci(e, "test/mse", ".5f"),
+        )
+        for b in SHOWN_BASELINES
+        if isinstance(e := r.base.get(b), Mapping)
+    ]
+    vmin = _f((r.base.get("speed_only") or {}).get(f"critical_speed_at_{r.t:g}s"))
+    if not scores and vmin is None:
+        return None
+    claims = []
+    for b in SHOWN_BASELINES if r.main_key not in r.collapsed else ():
+        d = r.diffs.get(f"{r.main_key}|{b}")
+        if d is None:
+            continue
+        nb = b + (" (GT disparity)" if b in GT_INPUT else "")
+        claims += [claim_record(d, f"{at}|{k}", name, r.main_key, nb) for k, name in COMPARED[:1]]
+        claims.append(claim_record(d, "test/mse", "MSE", r.main_key, nb))
+    return Baselines(scores, None if vmin is None else f"{vmin:.1f}", claims)
+
+
+class SpeedRow(NamedTuple):
+    """A variant against the speed-only baseline of its own label."""
+
+    name: str
+    variant: Variant | None  #: None: a failed run (collapsed), not compared
+    better: bool | None
+    diff: str | None  #: ΔROC-AUC estimate [lo, hi]
+
+
+def _vs_speed(r: _Run) -> list[SpeedRow]:
+    rows = []
+    for v in sorted(r.models):
+        if v in r.collapsed:
+            rows.append(SpeedRow(v, None, None, None))
+            continue
+        d = r.diffs.get(f"{v}|speed_only")
+        if d is not None:
+            iv = _interval(_g(d, f"{r.at}|roc_auc"))
+            rows.append(
+                SpeedRow(v, _variant(r.models[v]), beats(d, f"{r.at}|roc_auc"), _diff_text(iv))
+            )
+    return rows
+
+
+def _vs_speed_groups(r: _Run) -> list[Claim]:
+    return [
+        claim_record(d, f"{r.at}|roc_auc", "ROC-AUC", f"{b} (seed mean)", "speed_only")
+        for b in sorted(r.groups)
+        if (d := r.diffs.get(f"{b}{SEED_MEAN}|speed_only")) is not None
+    ]
+
+
+class VariantClaims(NamedTuple):
+    """The headline against another variant (or objective) of its label."""
+
+    other: str
+    variant: Variant
+    claims: list[Claim]
+
+
+def _variant_claims(r: _Run, kind: str) -> list[VariantClaims]:
+    """The headline − each other ``kind`` ("variant" / "objective") on the headline's label."""
+    out = []
+    for _, d in sorted(r.diffs.items()):
+        if d.get("a") != r.main_key or d.get("kind") != kind:
+            continue
+        b = str(d.get("b"))
+        bv = b.removesuffix(SEED_MEAN)
+        if bv in r.collapsed or r.main_key in r.collapsed:
+            continue
+        claims = [claim_record(d, f"{r.at}|{mk}", name, r.main_key, b) for mk, name in COMPARED]
+        claims.append(claim_record(d, "test/mse", "MSE", r.main_key, b))
+        out.append(VariantClaims(b, _variant(r.models.get(bv, {})), claims))
+    return out
+
+
+def _other_label(r: _Run) -> list[tuple[str, Any]]:
+    """(variant, its label) of the variants trained on another label than the headline's."""
+    label = r.models[r.main].get("label")
+    return [
+        (v, r.models[v].get("label"))
+        for v in sorted(
+            v
+            for v, e in r.models.items()
+            if e.get("label") != label and v not in r.collapsed and e.get("group", v) == v
+        )
+    ]
+
+
+@dataclass(frozen=True)
+class CriticalShare:
+    """Critical share per region, train / val / test."""
+
+    threshold: str
+    regions: list[tuple[str, list[str]]]
+
+
+def _critical(r: _Run) -> CriticalShare | None:
+    cs = r.metrics.get("critical_share") or {}
+    splits = cs.get("splits") or {}
+    labs = [lab for lab in REGIONS if any(lab in s for s in splits.values())]
+    if not labs:
+        return None
+    return CriticalShare(
+        _num(_f(cs.get("threshold_s")), "g"),
+        [
+            (
+                REGIONS[lab],
+                [_pct(_f((splits.get(s) or {}).get(lab))) for s in ("train", "val", "test")],
+            )
+            for lab in labs
+        ],
+    )
+
+
+class RegionNet(NamedTuple):
+    name: str
+    label: str
+    skill: str
+    balanced: str
+    roc: str
+
+
+@dataclass(frozen=True)
+class Region:
+    """The risk metric region: the paper's against the camera's field of view."""
+
+    paper: str  #: the two labels' names
+    fov: str
+    agreement: str
+    critical_paper: str
+    critical_fov: str
+    nets: list[RegionNet]
+    sgm_skill: tuple[str, str] | None  #: the SGM corridor rule's skill on (fov, paper)
+    fov_net: str | None
+    paper_net: str | None
+    skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi]
+    skill_verdict: str  #: "higher" / "lower" / "none" (the interval covers zero)
+
+
+def _region_nets(r: _Run, reg: Mapping[str, Any]) -> tuple[Any, Any, Any]:
+    """(the camera-region network, the paper-region network, their paired skill difference)."""
+
+    def first(label: str) -> str | None:
+        ok = (v for v, e in sorted(r.models.items()) if e.get("label") == label)
+        return next((v for v in ok if v not in r.collapsed), None)
+
+    fov_net = first(F_LABEL)
+    sd = next(
+        (
+            d
+            for d in (reg.get("skill_differences") or {}).values()
+            if d.get("label_a") == F_LABEL and d.get("label_b") == P_LABEL and d.get("a") == fov_net
+        ),
+        None,
+    )
+    return fov_net, (sd or {}).get("b") or first(P_LABEL), sd
+
+
+def _region(r: _Run) -> Region | None:
+    reg, t = r.metrics.get("region"), r.t
+    labels = (reg or {}).get("labels") or {} if isinstance(reg, Mapping) else {}
+    if P_LABEL not in labels or F_LABEL not in labels:
+        return None
+    preds = reg.get("predictors") or {}
+    agree = (reg.get("agreement") or {}).get(f"{P_LABEL}|{F_LABEL}") or (reg.get("agreement") or {})
+    fov_net, paper_net, sd = _region_nets(r, reg)
+    iv = _interval(sd)
+    sgm = lambda lab: _with_ci(_g(preds, f"geometric_sgm|{lab}"), "skill", ".2f")  # noqa: E731
+    return Region(
+        paper=P_LABEL,
+        fov=F_LABEL,
+        agreement=_with_ci(agree, f"class_agreement_at_{t:g}s", pct=True),
+        critical_paper=_pct(_f(_g(labels, f"{P_LABEL}|critical_fraction_at_{t:g}s"))),
+        critical_fov=_pct(_f(_g(labels, f"{F_LABEL}|critical_fraction_at_{t:g}s"))),
+        nets=[
+            RegionNet(
+                name,
+                lab,
+                _with_ci(e, "skill", ".2f"),
+                _with_ci(e, "balanced_accuracy", pct=True),
+                _with_ci(e, "roc_auc"),
+            )
+            for name, lab in ((paper_net, P_LABEL), (fov_net, F_LABEL))
+            if name is not None and (e := _g(preds, f"{name}|{lab}")) is not None
+        ],
+        sgm_skill=(sgm(F_LABEL), sgm(P_LABEL))
+        if _g(preds, f"geometric_sgm|{P_LABEL}") is not None
+        else None,
+        fov_net=fov_net,
+        paper_net=paper_net,
+        skill_diff=_diff_text(iv),
+        skill_verdict="none"
+        if iv is None or not excludes_zero(iv)
+        else ("higher" if iv.estimate > 0 else "lower"),
+    )
+
+
+class Situation(NamedTuple):
+    """The headline (and the speed-only baseline) on one situation type."""
+
+    name: str
+    n_sequences: Any
+    critical: str
+    recall: str
+    specificity: str
+    speed_recall: str
+    speed_specificity: str
+
+
+def _situations(r: _Run) -> list[Situation]:
+    out = []
+    for s, e in sorted((r.metrics.get("situations") or {}).items()):
+        p = _g(e, f"predictors|{r.main_key}") or {}
+        sp = _g(e, "predictors|speed_only") or {}
+        out.append(
+            Situation(
+                s,
+                e.get("n_sequences"),
+                _pct(_f(e.get("critical_share"))),
+                _with_ci(p, "recall", pct=True),
+                _with_ci(p, "specificity", pct=True),
+                _pct(_f(sp.get("recall"))),
+                _pct(_f(sp.get("specificity"))),
+            )
+        )
+    return out
+
+
+class Target(NamedTuple):
+    """One target of issue 31: the value (with its interval) against the threshold."""
+
+    name: str
+    predictor: Any  #: shown when set
+    value: str
+    lo: str | None
+    hi: str | None
+    op: Any
+    threshold: str
+    met: bool
+    why: Any  #: shown when set
+
+
+def _targets(r: _Run) -> list[Target]:
+    out = []
+    for name, e in (r.metrics.get("targets") or {}).items():
+        lo, hi = _f(e.get("lo")), _f(e.get("hi"))
+        both = lo is not None and hi is not None
+        out.append(
+            Target(
+                name,
+                e.get("predictor") or None,
+                _num(_f(e.get("value")), ".4g"),
+                f"{lo:.4g}" if both else None,
+                f"{hi:.4g}" if both else None,
+                e.get("op", ""),
+                _num(_f(e.get("threshold")), "g"),
+                bool(e.get("met")),
+                e.get("why") or None,
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class Data:
+    """Frames (and the stereo-pair check's drops) and sequences per split."""
+
+    total: Any
+    dropped: Any
+    dropped_share: str
+    paper_dropped_share: str
+    frames: tuple[Any, Any, Any]  #: train / val / test
+    sequences: tuple[Any, Any, Any] | None
+
+
+def _data(r: _Run) -> Data | None:
+    nf = r.metrics.get("n_frames")
+    if not (isinstance(nf, Mapping) and nf.get("total")):
+        return None
+    ns = r.metrics.get("n_sequences") or {}
+    return Data(
+        total=nf.get("total"),
+        dropped=nf.get("orb_outliers_dropped", 0),
+        dropped_share=_pct(nf.get("orb_outliers_dropped", 0) / nf["total"]),
+        paper_dropped_share=_pct(1 - PAPER["n_frames"] / 110152),
+        frames=(nf.get("train"), nf.get("val"), nf.get("test")),
+        sequences=(ns.get("train"), ns.get("val"), ns.get("test")) if ns else None,
+    )
+
+
+@dataclass(frozen=True)
+class RiskFindings:
+    """Everything the risk findings state, computed from ``risk.json`` (template
+    ``templates/findings.md.j2``); a part is None / empty where its metrics are missing."""
+
+    main: str | None  #: the headline variant; None: no risk network was evaluated
+    main_key: str = ""
+    threshold: str = ""  #: the THW threshold (s)
+    collapse_std: str = ""
+    collapsed: list[tuple[str, str]] = field(default_factory=list)  #: (run, prediction std)
+    paper: Paper | None = None
+    shipped: Shipped | None = None
+    learning: Learning | None = None
+    seeds: Seeds | None = None
+    baselines: Baselines | None = None
+    vs_speed: list[SpeedRow] = field(default_factory=list)
+    vs_speed_groups: list[Claim] = field(default_factory=list)
+    variants: list[VariantClaims] = field(default_factory=list)
+    objectives: list[VariantClaims] = field(default_factory=list)
+    other_label: list[tuple[str, Any]] = field(default_factory=list)
+    critical_share: CriticalShare | None = None
+    region: Region | None = None
+    situations: list[Situation] = field(default_factory=list)
+    targets: list[Target] = field(default_factory=list)
+    data: Data | None = None
+
+
+def _run(metrics: Mapping[str, Any]) -> _Run | None:
+    models: Mapping[str, Any] = metrics.get("models", {})
+    main = metrics.get("main_variant") or next(iter(models), None)
+    if main is None or main not in models:
+        return None
+    return _Run(
+        metrics=metrics,
+        t=(metrics.get("thresholds_s") or [PAPER["threshold_s"]])[0],
+        models=models,
+        base=metrics.get("baselines", {}),
+        diffs=metrics.get("differences", {}) or {},
+        groups=metrics.get("groups", {}) or {},
+        main=main,
+        main_key=metrics.get("main_predictor") or main,
+        collapsed=frozenset(v for v, e in models.items() if e.get("collapsed")),
+    )
+
+
+def findings_record(metrics: Mapping[str, Any]) -> RiskFindings:
+    """What the findings of the ``risk.json`` dict state (see module docstring)."""
+    r = _run(metrics)
+    if r is None:
+        return RiskFindings(main=None)
+    return RiskFindings(
+        main=r.main,
+        main_key=r.main_key,
+        threshold=f"{r.t:g}",
+        collapse_std=_num(_f(metrics.get("collapse_std")), "g"),
+        collapsed=[(v, _num(_f(r.models[v].get("pred_std")), ".2g")) for v in sorted(r.collapsed)],
+        paper=_paper(r),
+        shipped=_shipped(r),
+        learning=_learning(r),
+        seeds=_seeds(r),
+        baselines=_baselines(r),
+        vs_speed=_vs_speed(r),
+        vs_speed_groups=_vs_speed_groups(r),
+        variants=_variant_claims(r, "variant"),
+        objectives=_variant_claims(r, "objective"),
+        other_label=_other_label(r),
+        critical_share=_critical(r),
+        region=_region(r),
+        situations=_situations(r),
+        targets=_targets(r),
+        data=_data(r),
+    )
 
 
 def findings(metrics: Mapping[str, Any]) -> str:
     """Markdown bullet list: paper comparison, failed runs, seeds, baselines and paired
     comparisons (claims only where the CI excludes zero), critical shares, the region effect,
     situations, targets, data."""
-    t = (metrics.get("thresholds_s") or [PAPER["threshold_s"]])[0]
-    at = f"at_{t:g}s"
-    models: Mapping[str, Any] = metrics.get("models", {})
-    base: Mapping[str, Any] = metrics.get("baselines", {})
-    diffs: Mapping[str, Any] = metrics.get("differences", {}) or {}
-    groups: Mapping[str, Any] = metrics.get("groups", {}) or {}
-    main = metrics.get("main_variant") or next(iter(models), None)
-    if main is None or main not in models:
-        return "- No risk network was evaluated."
-    collapsed = {v for v, e in models.items() if e.get("collapsed")}
-    main_key = metrics.get("main_predictor") or main
-    m = models[main]
-    head = groups.get(main) if main_key.endswith(SEED_MEAN) else None
-    hm = head if isinstance(head, Mapping) else m  # the headline's figures (seed mean if any)
-    out: list[str] = []
-
-    # 1. the paper's numbers
-    mse = _f(m.get("test/mse"))
-    if mse is not None:
-        rel = "below" if mse < PAPER["test/mse"] else "above"
-        seeds = (
-            f" (seed mean over {head.get('n_seeds')} seeds: MSE {_with_ci(hm, 'test/mse', '.5f')}, "
-            f"accuracy {_with_ci(hm, f'{at}|accuracy', pct=True)})"
-            if head
-            else ""
-        )
-        out.append(
-            f"**Paper comparison ({main}, {m.get('test/n')} test frames, label {m.get('label')}).** "
-            f"Test MSE {_with_ci(m, 'test/mse', '.5f')} vs the paper's {PAPER['test/mse']:.5f} "
-            f"({mse / PAPER['test/mse']:.2f}× — {rel}); accuracy at THW {t:g} s "
-            f"{_with_ci(m, f'{at}|accuracy', pct=True)} vs the paper's {_pct(PAPER['accuracy'])} and "
-            f"Wang & Kato's {_pct(PAPER['wang_kato_accuracy'])}; balanced accuracy "
-            f"{_with_ci(m, f'{at}|balanced_accuracy', pct=True)}, F1 {_with_ci(m, f'{at}|f1')}, "
-            f"ROC-AUC {_with_ci(m, f'{at}|roc_auc')}{seeds}. Critical share of the test frames "
-            f"{_pct(_f(_g(m, f'{at}|critical_fraction_true')))} (the paper's data set: "
-            f"{_pct(76789 / PAPER['n_frames'])}), so raw accuracies are only comparable with the "
-            "majority baseline beside them."
-            + (
-                f" **{main} collapsed**: the numbers above are those of a constant output."
-                if main in collapsed
-                else ""
-            )
-        )
-
-    # 1b. the shipped predictor (chosen on validation) and the learned model vs the corridor rule
-    shipped, learned = metrics.get("shipped"), metrics.get("learned")
-    sel = metrics.get("selection") or {}
-    if shipped and isinstance(models.get(shipped), Mapping):
-        sm = models[shipped]
-        rules = sel.get("rules") or {}
-        out.append(
-            f"**Shipped predictor** (what `traffictwin risk` and the registered risk model serve): "
-            f"{sel.get('shipped_from', shipped)} ({sel.get('shipped_kind', '?')}), chosen on the "
-            f"validation split by ROC-AUC among the network runs, the hybrid runs and the corridor "
-            f"rule (corridor half-widths chosen on validation: SGM {rules.get('geometric_sgm', 'n/a')} m, "
-            f"GT {rules.get('geometric_gt', 'n/a')} m). On the test split: balanced accuracy "
-            f"{_with_ci(sm, f'{at}|balanced_accuracy', pct=True)} at THW {t:g} s and "
-            f"{_with_ci(sm, 'at_1s|balanced_accuracy', pct=True)} at 1 s, ROC-AUC "
-            f"{_with_ci(sm, f'{at}|roc_auc')}, median |THW error| on critical frames "
-            f"{_with_ci(sm, 'test/thw_median_error_critical_s', '.3f')} s."
-        )
-    if learned:
-        d = diffs.get(f"{learned}|geometric_sgm")
-        if d is not None:
-            verdict = beats(d, f"{at}|roc_auc")
-            plain = {
-                True: "the learned model beats the corridor rule",
-                False: "geometry wins: the corridor rule beats the learned model",
-                None: "the learned model does not beat the corridor rule (no significant difference)",
-            }[verdict]
-            holm = ((metrics.get("comparisons") or {}).get("secondary_holm") or {}).get(
-                "p_adjusted"
-            ) or {}
-            held = sum(1 for v in holm.values() if v < 0.05)
-            out.append(
-                f"**Learning vs geometry** (the primary comparison: {learned}, seeds and sequences "
-                f"resampled, against the validation-tuned SGM corridor rule): {plain}; "
-                + "; ".join(
-                    claim(d, f"{at}|{k}", name, learned, "geometric_sgm") for k, name in COMPARED
-                )
-                + f". Every other paired difference is secondary: {held} of {len(holm)} keep "
-                "p < 0.05 after Holm's correction (risk.json `comparisons`)."
-            )
-
-    # 2. failed runs
-    if collapsed:
-        out.append(
-            "**Failed runs (collapsed: one output for every test frame, prediction std < "
-            f"{_num(_f(metrics.get('collapse_std')), 'g')}):** "
-            + ", ".join(
-                f"{v} (std {_num(_f(models[v].get('pred_std')), '.2g')})" for v in sorted(collapsed)
-            )
-            + ". They are not interpreted and take no part in seed means."
-        )
-
-    # 3. seeds of the headline
-    if head:
-        sd = head.get("seed_sd") or {}
-        per = ", ".join(
-            f"{v} {_num(_f(_g(models.get(v), f'{at}|roc_auc')), '.3f')}"
-            for v in head.get("members", [])
-        )
-        out.append(
-            f"**Seeds ({main}):** ROC-AUC per run {per}; seed mean {_with_ci(head, f'{at}|roc_auc')} "
-            f"(seed sd {_num(_f(sd.get(f'{at}.roc_auc')), '.3f')}); balanced accuracy seed mean "
-            f"{_with_ci(head, f'{at}|balanced_accuracy', pct=True)} (seed sd "
-            f"{_pct(_f(sd.get(f'{at}.balanced_accuracy')))}). Intervals resample the sequences once "
-            "and draw the seeds with replacement inside each resample (seed variation is in the interval)."
-        )
-
-    # 4. baselines and the headline against them
-    parts = []
-    for b in ("speed_only", "geometric_sgm", "geometric_gt", "train_median"):
-        e = base.get(b)
-        if not isinstance(e, Mapping):
-            continue
-        parts.append(
-            f"{BASELINE_NAMES[b]}: ROC-AUC {_with_ci(e, f'{at}|roc_auc')}, balanced accuracy "
-            f"{_with_ci(e, f'{at}|balanced_accuracy', pct=True)}, MSE {_with_ci(e, 'test/mse', '.5f')}"
-        )
-    speed = base.get("speed_only") or {}
-    vmin = _f(speed.get(f"critical_speed_at_{t:g}s"))
-    if vmin is not None:
-        parts.append(f"the speed-only baseline calls every frame above {vmin:.1f} m/s critical")
-    if parts:
-        claims = []
-        if main_key not in collapsed:
-            for b in ("speed_only", "geometric_sgm", "geometric_gt", "train_median"):
-                d = diffs.get(f"{main_key}|{b}")
-                if d is None:
-                    continue
-                nb = b + (" (GT disparity)" if b in GT_INPUT else "")
-                claims += [claim(d, f"{at}|{k}", name, main_key, nb) for k, name in COMPARED[:1]]
-                claims.append(claim(d, "test/mse", "MSE", main_key, nb))
-        out.append(
-            "**Baselines on the same frames (scored on the headline's label):** "
-            + "; ".join(parts)
-            + "."
-            + (" " + "; ".join(claims) + "." if claims else "")
-        )
-
-    # 5. every variant vs the speed-only baseline on its own label
-    rows = []
-    for v in sorted(models):
-        e = models[v]
-        if v in collapsed:
-            rows.append(f"{v}: failed run (collapsed), not compared")
-            continue
-        d = diffs.get(f"{v}|speed_only")
-        if d is None:
-            continue
-        verdict = beats(d, f"{at}|roc_auc")
-        word = {True: "beats it", False: "is worse", None: "no significant difference"}[verdict]
-        iv = _interval(_g(d, f"{at}|roc_auc"))
-        rows.append(
-            f"{v} ({_describe(e)}): {word} (ΔROC-AUC "
-            + (f"{_signed(iv.estimate)} [{_signed(iv.lo)}, {_signed(iv.hi)}]" if iv else "n/a")
-            + ")"
-        )
-    for b in sorted(groups):
-        d = diffs.get(f"{b}{SEED_MEAN}|speed_only")
-        if d is not None:
-            rows.append(claim(d, f"{at}|roc_auc", "ROC-AUC", f"{b} (seed mean)", "speed_only"))
-    if rows:
-        out.append(
-            "**Does each variant beat the speed-only baseline?** (paired ROC-AUC difference, "
-            "speed-only fitted on the variant's own label): " + "; ".join(rows) + "."
-        )
-
-    # 6. the headline vs the other variants (same label); threshold-aware objectives
-    var_claims, obj_claims = [], []
-    for _, d in sorted(diffs.items()):
-        if d.get("a") != main_key or d.get("kind") not in ("variant", "objective"):
-            continue
-        b = str(d.get("b"))
-        bv = b.removesuffix(SEED_MEAN)
-        if bv in collapsed or main_key in collapsed:
-            continue
-        e = models.get(bv, {})
-        sents = [claim(d, f"{at}|{mk}", name, main_key, b) for mk, name in COMPARED]
-        sents.append(claim(d, "test/mse", "MSE", main_key, b))
-        text = f"{b} ({_describe(e)}): " + "; ".join(sents)
-        (obj_claims if d.get("kind") == "objective" else var_claims).append(text)
-    if var_claims:
-        out.append(
-            f"**Headline vs the other variants on its label (paired, {main_key} − other):** "
-            + " | ".join(var_claims)
-            + "."
-        )
-    if obj_claims:
-        out.append(
-            f"**Training objectives (paired, {main_key} − the same net trained with another "
-            "objective; the paper's is MSE on the normalised risk):** "
-            + " | ".join(obj_claims)
-            + "."
-        )
-    other = sorted(
-        v
-        for v, e in models.items()
-        if e.get("label") != m.get("label") and v not in collapsed and e.get("group", v) == v
-    )
-    if other:
-        out.append(
-            "**Variants on another label** ("
-            + ", ".join(f"{v}: {models[v].get('label')}" for v in other)
-            + ") solve another task; they are compared only with the speed-only baseline of their "
-            "own label (above), never with the headline directly."
-        )
-
-    # 7. critical shares of every region per split
-    cs = metrics.get("critical_share") or {}
-    splits = cs.get("splits") or {}
-    if splits:
-        labs = [lab for lab in REGIONS if any(lab in s for s in splits.values())]
-        rows = [
-            f"{REGIONS[lab]} "
-            + " / ".join(_pct(_f((splits.get(s) or {}).get(lab))) for s in ("train", "val", "test"))
-            for lab in labs
-        ]
-        if rows:
-            out.append(
-                f"**Critical share (THW < {_num(_f(cs.get('threshold_s')), 'g')} s) per region, "
-                "train / val / test (all frames):** " + "; ".join(rows) + "."
-            )
-
-    # 8. the risk metric region (paper vs camera_fov), the paper's explanation of its errors
-    reg = metrics.get("region")
-    P, F = "risk_thw_paper", "risk_thw_fov"
-    labels = (reg or {}).get("labels") or {} if isinstance(reg, Mapping) else {}
-    if P in labels and F in labels:
-        preds = reg.get("predictors") or {}
-        agree = (reg.get("agreement") or {}).get(f"{P}|{F}") or (reg.get("agreement") or {})
-        txt = [
-            f"the two labels give the same class on {_with_ci(agree, f'class_agreement_at_{t:g}s', pct=True)} "
-            f"of the test frames (critical share {_pct(_f(_g(labels, f'{P}|critical_fraction_at_{t:g}s')))} "
-            f"with the paper's region, {_pct(_f(_g(labels, f'{F}|critical_fraction_at_{t:g}s')))} with the camera's)"
-        ]
-
-        def desc(name: str, lab: str) -> str:
-            e = _g(preds, f"{name}|{lab}") or {}
-            return (
-                f"skill {_with_ci(e, 'skill', '.2f')}, balanced accuracy "
-                f"{_with_ci(e, 'balanced_accuracy', pct=True)}, ROC-AUC {_with_ci(e, 'roc_auc')}"
-            )
-
-        fov_net = next(
-            (v for v, e in sorted(models.items()) if e.get("label") == F and v not in collapsed),
-            None,
-        )
-        sd = next(
-            (
-                d
-                for d in (reg.get("skill_differences") or {}).values()
-                if d.get("label_a") == F and d.get("label_b") == P and d.get("a") == fov_net
-            ),
-            None,
-        )
-        paper_net = (sd or {}).get("b") or next(
-            (v for v, e in sorted(models.items()) if e.get("label") == P and v not in collapsed),
-            None,
-        )
-        for name, lab in ((paper_net, P), (fov_net, F)):
-            if name is not None and _g(preds, f"{name}|{lab}") is not None:
-                txt.append(f"{name} trained and scored on {lab}: {desc(name, lab)}")
-        if _g(preds, f"geometric_sgm|{P}") is not None:
-            txt.append(
-                f"the geometric SGM baseline scores skill {_with_ci(_g(preds, f'geometric_sgm|{F}'), 'skill', '.2f')} "
-                f"on {F} vs {_with_ci(_g(preds, f'geometric_sgm|{P}'), 'skill', '.2f')} on {P}"
-            )
-        iv = _interval(sd)
-        if iv is not None:
-            diff = f"{_signed(iv.estimate)} [{_signed(iv.lo)}, {_signed(iv.hi)}]"
-            if excludes_zero(iv) and iv.estimate > 0:
-                txt.append(
-                    f"{fov_net} − {paper_net} skill {diff} (paired): the network explains more of the "
-                    "camera-visible risk than of the paper-region risk — consistent with the paper's "
-                    "explanation that critical vehicles outside the camera's view limit its accuracy"
-                )
-            elif excludes_zero(iv):
-                txt.append(
-                    f"{fov_net} − {paper_net} skill {diff} (paired): the camera-region label is learned "
-                    "worse, so the region mismatch does not explain the errors"
-                )
-            else:
-                txt.append(
-                    f"{fov_net} − {paper_net} skill {diff} (paired): no significant difference, so this "
-                    "run does not show that the region mismatch explains the errors"
-                )
-        out.append(
-            "**Risk metric region (paper vs camera_fov; skill = 1 − MSE / MSE of the training mean "
-            "of that label):** " + "; ".join(txt) + "."
-        )
-
-    # 9. the headline by situation type
-    sit = metrics.get("situations") or {}
-    if sit:
-        rows = []
-        for s, e in sorted(sit.items()):
-            p = _g(e, f"predictors|{main_key}") or {}
-            sp = _g(e, "predictors|speed_only") or {}
-            rows.append(
-                f"{s} ({e.get('n_sequences')} seq., {_pct(_f(e.get('critical_share')))} critical): "
-                f"recall {_with_ci(p, 'recall', pct=True)}, specificity {_with_ci(p, 'specificity', pct=True)}"
-                f" (speed-only {_pct(_f(sp.get('recall')))} / {_pct(_f(sp.get('specificity')))})"
-            )
-        out.append(
-            f"**{main_key} by situation type** (recall / specificity at THW {t:g} s; intervals over the "
-            "situation's sequences, wide where it has few): " + "; ".join(rows) + "."
-        )
-
-    # 10. targets
-    targets = metrics.get("targets") or {}
-    if targets:
-        rows = []
-        for name, e in targets.items():
-            v, lo, hi = _f(e.get("value")), _f(e.get("lo")), _f(e.get("hi"))
-            ci = f" [{lo:.4g}, {hi:.4g}]" if lo is not None and hi is not None else ""
-            why = f" ({e['why']})" if e.get("why") else ""
-            who = f" ({e['predictor']})" if e.get("predictor") else ""
-            rows.append(
-                f"{name}{who} {_num(v, '.4g')}{ci} {e.get('op', '')} {_num(_f(e.get('threshold')), 'g')}: "
-                f"{'met' if e.get('met') else 'missed'}{why}"
-            )
-        n_met = sum(bool(e.get("met")) for e in targets.values())
-        out.append(f"**Targets (issue 31; {n_met}/{len(targets)} met):** " + "; ".join(rows) + ".")
-
-    # 11. data
-    nf = metrics.get("n_frames")
-    if isinstance(nf, Mapping) and nf.get("total"):
-        ns = metrics.get("n_sequences") or {}
-        seq = f" in {ns.get('train')} / {ns.get('val')} / {ns.get('test')} sequences" if ns else ""
-        out.append(
-            f"**Data:** {nf.get('total')} frames, {nf.get('orb_outliers_dropped', 0)} dropped by the stereo-pair check "
-            f"({_pct(nf.get('orb_outliers_dropped', 0) / nf['total'])}; paper {_pct(1 - PAPER['n_frames'] / 110152)}); "
-            f"{nf.get('train')} / {nf.get('val')} / {nf.get('test')} train / val / test frames{seq} "
-            "(split by scenario)."
-        )
-    return "\n".join(f"- {s}" for s in out)
+    return render_prose(TEMPLATES, "findings.md.j2", f=findings_record(metrics)).rstrip("\n")
