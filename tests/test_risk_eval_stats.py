@@ -35,7 +35,8 @@ from traffictwin.risk.evaluation import (
     spread_stat,
     variant_groups,
 )
-from traffictwin.risk.findings import beats, claim, findings
+from traffictwin.risk.findings import claim, findings
+from traffictwin.risk.findings_values import beats
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.training import RiskSource
 from traffictwin.stats import Interval, mean_ci, resample_counts

@@ -25,7 +25,8 @@ from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup, paper_c
 from traffictwin.report.summary import Headline, headline
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
-from traffictwin.risk.findings import beats, findings
+from traffictwin.risk.findings import findings
+from traffictwin.risk.findings_values import beats
 
 RISK_FILE = "risk.json"
 ORB_FILE = "orb.json"
