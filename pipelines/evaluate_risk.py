@@ -33,7 +33,7 @@ from traffictwin.risk.evaluation import (
     main_series,
     tracking_metrics,
 )
-from traffictwin.risk.figures import evaluation_figures
+from traffictwin.risk.figures import EvaluationFigurePaths, evaluation_figures
 from traffictwin.risk.model_io import load_risk_model
 from traffictwin.risk.predictors import predictor_kind
 from traffictwin.risk.training import LABELS, RiskSource
@@ -212,11 +212,13 @@ def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str]
         pred,
         {v: pd.read_csv(risk_model_dir(v) / "history.csv") for v in variants},
         main_v,
-        curves=figure_file("risk_training_curves"),
-        scatter=figure_file("risk_scatter"),
-        confusion=figure_file("risk_confusion"),
-        examples=figure_file("risk_examples"),
-        roc=figure_file("risk_roc"),
+        EvaluationFigurePaths(
+            curves=figure_file("risk_training_curves"),
+            scatter=figure_file("risk_scatter"),
+            confusion=figure_file("risk_confusion"),
+            examples=figure_file("risk_examples"),
+            roc=figure_file("risk_roc"),
+        ),
     )
     _, y, yhat = main_series(metrics, pred, main_v)
     _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))

@@ -347,11 +347,13 @@ def test_evaluation_figures_plot_the_predictions(
         pred,
         {"rgbd": hist},
         "rgbd",
-        curves=tmp_path / "c.png",
-        scatter=tmp_path / "s.png",
-        confusion=tmp_path / "m.png",
-        examples=tmp_path / "e.png",
-        roc=tmp_path / "r.png",
+        figures.EvaluationFigurePaths(
+            curves=tmp_path / "c.png",
+            scatter=tmp_path / "s.png",
+            confusion=tmp_path / "m.png",
+            examples=tmp_path / "e.png",
+            roc=tmp_path / "r.png",
+        ),
     )
     assert set(figs) == {"c.png", "s.png", "m.png", "e.png", "r.png"}
     # training curves: the objective's loss (log THW: no paper MSE there), then the validation

@@ -8,12 +8,13 @@
 * :func:`plot_confusion` — the 2×2 confusion matrix laid out as Table 1 (rows predicted, cols actual);
 * :func:`plot_roc` — ROC curves of the headline network and the baselines on the same frames
   (the GT-disparity rule dashed; a split without critical or uncritical frames says so);
-* :func:`evaluation_figures` — all five for the evaluate_risk stage.
+* :func:`evaluation_figures` — all five for the evaluate_risk stage (paths: :class:`EvaluationFigurePaths`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -251,26 +252,71 @@ def plot_roc(
     save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
+@dataclass(frozen=True)
+class EvaluationFigurePaths:
+    """Where :func:`evaluation_figures` writes each figure (PNG); no ROC figure when ``roc`` is None."""
+
+    curves: str | Path
+    scatter: str | Path
+    confusion: str | Path
+    examples: str | Path
+    roc: str | Path | None = None
+
+
+def _roc_scores(
+    metrics: Mapping[str, Any], pred: pd.DataFrame, main_variant: str, base_cols: Mapping[str, str]
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """(scores, test ROC-AUC) at the primary threshold of the headline's runs (each seed, the
+    collapsed ones left out unless all are) and of the baselines in ``base_cols``."""
+    at = f"at_{metrics['thresholds_s'][0]:g}s"
+    group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
+    runs = [v for v in group if not metrics["models"].get(v, {}).get("collapsed")] or [main_variant]
+    scores = {v: pred[f"pred_{v}"].to_numpy() for v in runs}
+    scores.update({b: pred[c].to_numpy() for b, c in base_cols.items()})
+    auc = {v: metrics["models"][v][at].get("roc_auc") for v in runs}
+    auc.update({b: metrics["baselines"][b][at].get("roc_auc") for b in base_cols})
+    return scores, auc
+
+
+def _examples(
+    source: Any, pred: pd.DataFrame, y: np.ndarray, yhat: np.ndarray, t0: float
+) -> list[dict]:
+    """The Fig. 7 examples (:func:`plot_examples`): the best-predicted critical frame, then the
+    worst-predicted frame (:func:`~traffictwin.risk.evaluation.example_indices`, THW ``t0`` s)."""
+    good, bad = example_indices(y, yhat, t0)
+    wanted = {str(pred.at[i, "frame_id"]): i for i in (good, bad)}
+    sel = source.frames[source.frames["frame_id"].astype(str).isin(wanted)]
+    raw = {}
+    for rows, arr in source.iter_arrays(sel, ["left", "disp_sgm"]):
+        for j, fid in enumerate(rows["frame_id"].astype(str)):
+            raw[fid] = (arr["left"][j], arr["disp_sgm"][j])
+    return [
+        {
+            "left": raw[f][0],
+            "disp": raw[f][1],
+            "true": float(y[i]),
+            "pred": float(yhat[i]),
+            "title": ("well predicted" if i == good else "worst prediction") + f" (frame {f})",
+        }
+        for f, i in sorted(wanted.items(), key=lambda kv: kv[1] != good)
+    ]
+
+
 def evaluation_figures(
     source: Any,
     metrics: Mapping[str, Any],
     pred: pd.DataFrame,
     histories: Mapping[str, pd.DataFrame],
     main_variant: str,
-    *,
-    curves: str | Path,
-    scatter: str | Path,
-    confusion: str | Path,
-    examples: str | Path,
-    roc: str | Path | None = None,
+    paths: EvaluationFigurePaths,
 ) -> None:
     """The evaluation's figures from :func:`~traffictwin.risk.evaluation.evaluate_suite`'s
     ``metrics`` and per-frame ``pred`` on ``source`` (a
-    :class:`~traffictwin.risk.training.RiskSource`): training ``curves`` of every variant
-    (``histories``), the ``scatter`` of ``main_variant`` and the speed-only and geometric SGM
-    baselines, its ``confusion`` matrix, the Fig. 7 ``examples`` (best critical / worst frame)
-    and the ``roc`` curves of the headline (each seed) vs the baselines, at the primary THW
-    threshold. Baselines are shown against the primary label: the headline's when it is."""
+    :class:`~traffictwin.risk.training.RiskSource`), written to ``paths``: training ``curves`` of
+    every variant (``histories``), the ``scatter`` of ``main_variant`` and the speed-only and
+    geometric SGM baselines, its ``confusion`` matrix, the Fig. 7 ``examples`` (best critical /
+    worst frame) and the ``roc`` curves of the headline (each seed) vs the baselines, at the
+    primary THW threshold. Baselines are shown against the primary label: the headline's when it is."""
     t0 = metrics["thresholds_s"][0]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
     at = metrics["models"][main_variant][f"at_{t0:g}s"]
@@ -283,7 +329,7 @@ def evaluation_figures(
     base_cols = {b: c for b, c in base_cols.items() if c in pred.columns}
     plot_training_curves(
         histories,
-        curves,
+        paths.curves,
         paper_test_mse=PAPER["test/mse"],
         objectives={v: metrics["models"].get(v, {}).get("objective") for v in histories},
     )
@@ -293,46 +339,22 @@ def evaluation_figures(
             main_variant: yhat,
             **{b: pred[c].to_numpy() for b, c in base_cols.items() if b != "geometric_gt"},
         },
-        scatter,
+        paths.scatter,
         risk_threshold(t0),
         title=f"test frames, label {main_label}",
     )
-    if roc is not None:
-        group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
-        runs = [v for v in group if not metrics["models"].get(v, {}).get("collapsed")] or [
-            main_variant
-        ]
-        scores = {v: pred[f"pred_{v}"].to_numpy() for v in runs}
-        scores.update({b: pred[c].to_numpy() for b, c in base_cols.items()})
-        auc = {v: metrics["models"][v][f"at_{t0:g}s"].get("roc_auc") for v in runs}
-        auc.update({b: metrics["baselines"][b][f"at_{t0:g}s"].get("roc_auc") for b in base_cols})
+    if paths.roc is not None:
+        scores, auc = _roc_scores(metrics, pred, main_variant, base_cols)
         plot_roc(
             y > risk_threshold(t0),
             scores,
-            roc,
+            paths.roc,
             title=f"critical (THW < {t0:g} s) on the test frames, label {main_label}",
             auc=auc,
         )
     plot_confusion(
         at["confusion"],
-        confusion,
+        paths.confusion,
         title=f"{main_variant}: THW {t0:g} s (accuracy {at['accuracy']:.1%})",
     )
-    good, bad = example_indices(y, yhat, t0)
-    wanted = {str(pred.at[i, "frame_id"]): i for i in (good, bad)}
-    sel = source.frames[source.frames["frame_id"].astype(str).isin(wanted)]
-    raw = {}
-    for rows, arr in source.iter_arrays(sel, ["left", "disp_sgm"]):
-        for j, fid in enumerate(rows["frame_id"].astype(str)):
-            raw[fid] = (arr["left"][j], arr["disp_sgm"][j])
-    shown = [
-        {
-            "left": raw[f][0],
-            "disp": raw[f][1],
-            "true": float(y[i]),
-            "pred": float(yhat[i]),
-            "title": ("well predicted" if i == good else "worst prediction") + f" (frame {f})",
-        }
-        for f, i in sorted(wanted.items(), key=lambda kv: kv[1] != good)
-    ]
-    plot_examples(shown, examples)
+    plot_examples(_examples(source, pred, y, yhat, t0), paths.examples)
