@@ -388,3 +388,57 @@ def test_registry_check_accepts_rule_and_hybrid_configs() -> None:
     assert "not valid here" in config_incompatibility({"config": bad})
     hybrid_without_features = {"config": {"kind": "hybrid", "camera": cam}}
     assert "not valid here" in config_incompatibility(hybrid_without_features)
+
+
+def test_select_on_validation_ships_the_rule_when_every_run_collapsed(tmp_path: Path) -> None:
+    """select_risk's library part: validation figures of the networks on the primary label, both
+    rules and the speed-only baseline; collapsed runs are no candidates, so the rule ships at its
+    chosen half-width; the JSON layout is risk_selection.json's."""
+    from test_risk_eval import _tiny_models
+    from test_risk_training import write_synthetic_risk
+
+    from traffictwin.risk.config import EvalRiskConfig, GeometricConfig, MetricParams
+    from traffictwin.risk.selection_suite import (
+        SelectionSetup,
+        select_on_validation,
+        shipped_rule,
+    )
+
+    write_synthetic_risk(tmp_path, n_shards=4, per_shard=8)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    models = _tiny_models(tmp_path / "models")
+    geo = GeometricConfig(
+        half_widths=[1.0, 1.5], min_height=0.3, max_height=2.5, min_pixels=10, max_range=80.0
+    )
+    ev = EvalRiskConfig(
+        thresholds_s=[1.5, 1.0],
+        thw_cap_s=10.0,
+        batch_size=8,
+        main_variant="rgbd",
+        geometric=geo,
+        ci={},
+        collapse_std=1.0,  # every network run counts as collapsed
+    )
+    subject = MetricParams(4.5, 1.8, "border", False, 0.0, 3.0)
+    setup = SelectionSetup(ev, subject, "risk_thw_paper", {}, (), ())
+    sel = select_on_validation(src, models, setup)
+    val = src.split_frames("val")
+    assert sel.n_frames == len(val) and sel.label == "risk_thw_paper"
+    assert "rgbd_fov" not in sel.predictors  # another label
+    assert {"rgbd", "gtdisp", "rgbd_speed", "geometric_sgm", "geometric_gt", "speed_only"} == set(
+        sel.predictors
+    )
+    assert all(sel.predictors[v].collapsed for v in ("rgbd", "gtdisp", "rgbd_speed"))
+    assert sel.learned == "rgbd" and sel.shipped.candidates == ["geometric_sgm"]
+    assert sel.shipped.predictor == "geometric_sgm" and sel.shipped.kind == "geometric"
+    rule = shipped_rule(sel, setup, src.camera)
+    assert rule.params.corridor_half_width == sel.rules["geometric_sgm"].half_width
+    js = sel.to_json()
+    assert js["split"] == "val" and set(js["predictors"]["rgbd"]["decision"]) == {"1.5", "1"}
+    assert set(js["rules"]["geometric_gt"]["candidates"]) == {"1", "1p5"}
+    assert js["groups"]["rgbd"] == {
+        "runs": ["rgbd"],
+        "kind": "dave2",
+        "roc_auc_mean": js["predictors"]["rgbd"]["roc_auc"],  # one run (None: one class)
+    }
+    json.dumps(js, allow_nan=False)  # strict JSON
