@@ -55,6 +55,11 @@ def _ci_rows(src: page.Sources) -> list[tuple[str, str, str]]:
     return rows
 
 
+def _with_ci_columns(first: list[str], metrics: list[tuple[str, str, str]], last: str) -> list[str]:
+    """``first``, then each metric's name (``(key, name, format)``) and its "95 % CI", then ``last``."""
+    return [*first, *(c for _, name, _ in metrics for c in (name, "95 % CI")), last]
+
+
 def risk_ci_table(src: page.Sources) -> Table | None:
     """Every predictor on the same test frames: MSE, balanced accuracy, recall, F1, ROC-AUC at the
     primary threshold, each with its 95 % sequence-bootstrap interval, the prediction spread and
@@ -69,10 +74,9 @@ def risk_ci_table(src: page.Sources) -> Table | None:
         (f"{at}.f1", "F1", "g4"),
         (f"{at}.roc_auc", "ROC-AUC", "g4"),
     ]
-    cols = ["predictor", "label", "status", "prediction std"]
-    for _, name, _ in metrics:
-        cols += [name, "95 % CI"]
-    cols.append("vs speed-only (ROC-AUC)")
+    cols = _with_ci_columns(
+        ["predictor", "label", "status", "prediction std"], metrics, "vs speed-only (ROC-AUC)"
+    )
     n_boot = src.get(RISK_FILE, "bootstrap.n_boot")
     t = Table(
         "Risk: every predictor on the same test frames, with 95 % sequence-bootstrap intervals "
@@ -127,10 +131,7 @@ def risk_difference_table(src: page.Sources) -> Table | None:
         (f"{at}.balanced_accuracy", "Δ balanced accuracy", "g4"),
         (f"{at}.roc_auc", "Δ ROC-AUC", "g4"),
     ]
-    cols = ["a", "b", "label", "comparison"]
-    for _, name, _ in metrics:
-        cols += [name, "95 % CI"]
-    cols.append("verdict (ROC-AUC)")
+    cols = _with_ci_columns(["a", "b", "label", "comparison"], metrics, "verdict (ROC-AUC)")
     t = Table(
         "Risk: paired differences a − b on the same test frames (95 % sequence-bootstrap intervals)",
         cols,
