@@ -13,6 +13,8 @@ import pytest
 import yaml
 
 from traffictwin.fusion import evaluation as ev
+from traffictwin.fusion.evaluation.intervals import lohi, scenario_draws
+from traffictwin.fusion.evaluation.targets import judge
 from traffictwin.fusion.metrics import UncertaintyAUROC, auroc_from_hist, u_error_histograms
 from traffictwin.grid import GridSpec
 from traffictwin.io.jsonio import json_clean
@@ -120,7 +122,7 @@ def test_row_intervals_dice_boot_matches_a_direct_resample():
     # the same draws, one resample at a time
     scen = pid // 1000
     groups = np.unique(scen)
-    draws = ev._draws(len(groups), CI)
+    draws = scenario_draws(len(groups), CI)
     codes = np.searchsorted(groups, scen)
     w = draws[:, codes]  # (n_boot, n) weight of each pair in each resample
     tp, fp, fn = (w @ cnt[f"{k}_occ"] for k in ("tp", "fp", "fn"))
@@ -155,13 +157,13 @@ def test_paired_intervals_align_pairs_and_share_resamples():
 def test_judge_pass_fail_and_whether_the_ci_is_beyond_the_threshold():
     from traffictwin.stats import Interval
 
-    assert ev._judge(Interval(0.2, 0.1, 0.25), 0.3, "<=")["status"] == "pass"
-    assert ev._judge(Interval(0.2, 0.1, 0.25), 0.3, "<=")["ci_beyond_threshold"]
-    assert not ev._judge(Interval(0.2, 0.1, 0.35), 0.3, "<=")["ci_beyond_threshold"]
-    r = ev._judge(Interval(0.8, 0.7, 0.9), 0.85, ">=")
-    assert r["status"] == "fail" and not r["ci_beyond_threshold"]
-    assert ev._judge(Interval(0.8, 0.7, 0.84), 0.85, ">=")["ci_beyond_threshold"]
-    assert ev._judge(Interval(math.nan, 0, 1), 0.3, "<=")["status"] == "not evaluated"
+    assert judge(Interval(0.2, 0.1, 0.25), 0.3, "<=").status == "pass"
+    assert judge(Interval(0.2, 0.1, 0.25), 0.3, "<=").ci_beyond_threshold
+    assert not judge(Interval(0.2, 0.1, 0.35), 0.3, "<=").ci_beyond_threshold
+    r = judge(Interval(0.8, 0.7, 0.9), 0.85, ">=")
+    assert r.status == "fail" and not r.ci_beyond_threshold
+    assert judge(Interval(0.8, 0.7, 0.84), 0.85, ">=").ci_beyond_threshold
+    assert judge(Interval(math.nan, 0, 1), 0.3, "<=").status == "not evaluated"
 
 
 def _row(pid, kld_fou, tp_occ=10, fp_occ=0, fn_occ=0, u=0.5, label_u=0.5):
@@ -199,7 +201,7 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
     for (c, row), f in own.items():
         iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
         metrics["test"][c][row] = {k: iv[k].estimate for k in ev.CI_KEYS} | {
-            f"{k}_ci": ev._lohi(iv[k]) for k in ev.CI_KEYS
+            f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS
         }
     t = ev.fusion_targets(own, metrics, CI)
     assert set(t) == set(ev.TARGETS)
@@ -243,7 +245,7 @@ def _target_inputs() -> tuple[dict, dict]:
             continue
         iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
         metrics["test"][c][row] = {k: iv[k].estimate for k in ev.CI_KEYS} | {
-            f"{k}_ci": ev._lohi(iv[k]) for k in ev.CI_KEYS
+            f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS
         }
     vs_reg = {
         ev.HEADLINE: {"estimate": -0.1, "lo": -0.2, "hi": -0.05},
@@ -293,18 +295,16 @@ def test_every_verdict_reads_its_threshold_from_the_table(monkeypatch: pytest.Mo
     assert set(FLIPS) == set(ev.TARGETS) - {"u_auroc"}
     for name, (c, threshold) in FLIPS.items():
         assert base[name]["per_config"][c]["status"] == "pass", name
-        table = dict(ev.TARGETS)
-        table[name] = dataclasses.replace(ev.TARGETS[name], threshold=threshold)
-        monkeypatch.setattr(ev, "TARGETS", table)
+        changed = dataclasses.replace(ev.TARGETS[name], threshold=threshold)
+        monkeypatch.setitem(ev.TARGETS, name, changed)
         t = ev.fusion_targets(own, metrics, CI)[name]
         assert t["threshold"] == threshold and t["per_config"][c]["status"] == "fail", name
         monkeypatch.undo()
     # u_auroc: the table's threshold decides a value read from metrics
     metrics["test"]["D"]["dnn"] |= {"u_auroc": 0.9, "u_auroc_ci": {"lo": 0.8, "hi": 0.95}}
     assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "pass"
-    table = dict(ev.TARGETS)
-    table["u_auroc"] = dataclasses.replace(ev.TARGETS["u_auroc"], threshold=0.95)
-    monkeypatch.setattr(ev, "TARGETS", table)
+    changed = dataclasses.replace(ev.TARGETS["u_auroc"], threshold=0.95)
+    monkeypatch.setitem(ev.TARGETS, "u_auroc", changed)
     assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "fail"
 
 

@@ -274,7 +274,7 @@ def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
 def test_registration_tables_show_pose_errors_and_bins(
     tmp_path: Path,
 ) -> None:
-    from traffictwin.fusion.report_section import registration_tables
+    from traffictwin.fusion.report_section.pose_tables import registration_tables
 
     def row(success: float, p90: float) -> dict:
         return {
@@ -364,7 +364,7 @@ def _one_vs_own(prefix_rows: dict) -> dict:
 def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp_path: Path):
     """The comparison with the per-configuration networks shows this run's numbers when it has
     them, else the ablation experiment's collected results (reports/ablations/<name>.json)."""
-    from traffictwin.fusion.report_section import per_config_table
+    from traffictwin.fusion.report_section.target_tables import per_config_table
 
     confs = {"D": (5.0, 20.0)}
     rep = _reports(tmp_path / "run", {"fusion.json": _one_vs_own({})})
@@ -408,7 +408,7 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
     """A target 'not evaluated' in this run (one_vs_per_config needs the per-configuration
     networks) shows the ablation experiment's verdict, marked as such, its cells pointing at the
     ablation's file; the appendix links the ablation's file instead of dumping it."""
-    from traffictwin.fusion.report_section import target_table
+    from traffictwin.fusion.report_section.target_tables import target_table
     from traffictwin.report.render import appendix_section
 
     def targets(entry: dict) -> dict:

@@ -14,6 +14,7 @@ import pytest
 
 from pipelines.report import providers
 from traffictwin.fusion import report_section as F
+from traffictwin.fusion.report_section import score_figures as SF
 from traffictwin.report import colours as C
 from traffictwin.report import render as R
 from traffictwin.report.model import ReportInputs
@@ -214,11 +215,11 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
 
 # --------------------------------------------------------------------------- zoomed score figures
 def test_zoomed_limits_hand_cases() -> None:
-    assert F.zoomed_limits(np.array([0.9, 1.0])) == pytest.approx((0.885, 1.0))  # capped at 1
-    assert F.zoomed_limits(np.array([0.5, 0.7])) == pytest.approx((0.47, 0.73))
-    lo, hi = F.zoomed_limits(np.array([0.999, 0.999, np.nan]))  # one value: the minimum span
+    assert SF.zoomed_limits(np.array([0.9, 1.0])) == pytest.approx((0.885, 1.0))  # capped at 1
+    assert SF.zoomed_limits(np.array([0.5, 0.7])) == pytest.approx((0.47, 0.73))
+    lo, hi = SF.zoomed_limits(np.array([0.999, 0.999, np.nan]))  # one value: the minimum span
     assert hi == 1.0 and lo == pytest.approx(0.99)
-    assert F.zoomed_limits(np.array([np.nan])) == (0.0, 1.0)
+    assert SF.zoomed_limits(np.array([np.nan])) == (0.0, 1.0)
 
 
 def _scores() -> pd.DataFrame:
@@ -242,7 +243,7 @@ def test_score_figure_zooms_each_panel_and_labels_configurations() -> None:
 
     from traffictwin.fusion.figures import _style
 
-    fig = F.score_figure(_scores(), CONFS, "free")
+    fig = SF.score_figure(_scores(), CONFS, "free")
     try:
         axes = fig.axes
         assert [ax.get_ylabel() for ax in axes] == [

@@ -138,24 +138,7 @@ def kld_boxplot(
         if not data:
             continue
         drawn += data
-        st = _style(meth)
-        bp = ax.boxplot(
-            data,
-            positions=pos,
-            widths=width * 0.85,
-            patch_artist=True,
-            showfliers=True,
-            flierprops={"markersize": 2, "markeredgecolor": st["color"]},
-            medianprops={"color": "black"},
-        )
-        for med, cfg in zip(bp["medians"], cfgs):
-            med.set_gid(f"{meth}/{cfg}/median")
-        for b, cfg in zip(bp["boxes"], cfgs):
-            b.set_gid(f"{meth}/{cfg}")
-            b.set_facecolor(st["color"])
-            b.set_alpha(0.6)
-        handles.append(bp["boxes"][0])
-        handles[-1].set_label(st["label"])
+        handles.append(_method_boxes(ax, meth, data, pos, cfgs, width))
     ax.set_xticks(range(len(configs)))
     ax.set_xticklabels([config_label(c, noise) for c in configs])
     ax.set_xlabel(f"{CONFIG_AXIS}\n{CONFIG_NOTE}" if noise else "configuration")
@@ -168,6 +151,38 @@ def kld_boxplot(
         ax.set_ylabel(f"{ylabel} ({unit})")
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
+    _box_legend(ax, handles)
+    return fig
+
+
+def _method_boxes(
+    ax, meth: str, data: list[np.ndarray], pos: list[float], cfgs: list[str], width: float
+):
+    """One method's boxes at positions ``pos`` (one per configuration of ``cfgs`` with data),
+    ``gid`` = ``"<method>/<config>"`` (median ``"…/median"``); returns the legend handle."""
+    st = _style(meth)
+    bp = ax.boxplot(
+        data,
+        positions=pos,
+        widths=width * 0.85,
+        patch_artist=True,
+        showfliers=True,
+        flierprops={"markersize": 2, "markeredgecolor": st["color"]},
+        medianprops={"color": "black"},
+    )
+    for med, cfg in zip(bp["medians"], cfgs):
+        med.set_gid(f"{meth}/{cfg}/median")
+    for b, cfg in zip(bp["boxes"], cfgs):
+        b.set_gid(f"{meth}/{cfg}")
+        b.set_facecolor(st["color"])
+        b.set_alpha(0.6)
+    handle = bp["boxes"][0]
+    handle.set_label(st["label"])
+    return handle
+
+
+def _box_legend(ax, handles: list) -> None:
+    """The methods' legend right of the axes, or a note that there was nothing to draw."""
     if handles:
         ax.legend(
             handles=handles,
@@ -187,7 +202,6 @@ def kld_boxplot(
             color="0.25",
             gid="empty",
         )
-    return fig
 
 
 def scores_plot(

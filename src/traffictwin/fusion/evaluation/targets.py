@@ -1,0 +1,398 @@
+"""The issue's targets of the fusion evaluation (issues 14 and 15): each target's figure with its
+cluster-bootstrap interval, judged per configuration (:class:`Verdict`), from the per-pair frames
+and the intervals already computed (:class:`TargetInputs`). Status ``pass`` / ``fail`` /
+``not evaluated`` (a target whose configuration or rows were not evaluated: never ``pass``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from traffictwin.fusion.evaluation.intervals import (
+    ci_kwargs,
+    paired_intervals,
+    percentile_interval,
+    pooled_dice,
+    scenario_codes,
+    scenario_draws,
+)
+from traffictwin.fusion.evaluation.keys import (
+    HEADLINE,
+    HYBRID,
+    LEARNED,
+    LEARNED_NETWORK,
+    NETWORK,
+    PER_CONFIG_NETWORK,
+    scenario_of,
+)
+from traffictwin.stats import (
+    CIConfig,
+    Interval,
+    mean_ci,
+    paired_mean_difference_ci,
+    statistic_ci,
+)
+
+
+@dataclass(frozen=True)
+class Target:
+    """One target: ``description``; ``threshold`` and the comparison ``op`` ("<=" or ">=") the
+    point estimate must meet; ``configs`` it is judged at (None = every configuration);
+    ``min_lo``: where set, the interval's lower end must also reach it."""
+
+    description: str
+    threshold: float
+    op: str
+    configs: tuple[str, ...] | None
+    min_lo: float | None = None
+
+
+TARGETS: dict[str, Target] = {
+    "kld_ratio_vs_naive": Target(
+        "network KLD(b) / naive KLD(b) (ratio of means, paired cluster-bootstrap CI)",
+        0.3,
+        "<=",
+        ("C", "D"),
+    ),
+    "network_vs_registered": Target(
+        "network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ difference's CI "
+        "not wholly below 0 (the plain network beats classical registration)",
+        0.0,
+        "<",
+        ("C", "D"),
+    ),
+    "one_vs_per_config": Target(
+        "the one network − the configuration's own network (dnn[per-config], the ablation) "
+        "KLD(b), paired: upper CI bound",
+        0.005,
+        "<=",
+        None,
+    ),
+    "dice_occ_at_A": Target("network Dice occ at A (pooled)", 0.99, ">=", ("A",)),
+    "dice_occ_drop_A_to_D": Target(
+        "relative drop of the network's Dice occ from A to D, 1 − Dice(D)/Dice(A)",
+        0.10,
+        "<=",
+        ("D",),
+    ),
+    "dice_occ_vs_ego": Target(
+        "network Dice occ − ego-only Dice occ (paired difference)", 0.0, ">=", None
+    ),
+    "u_auroc": Target("AUROC of the network's u for wrongly classified cells", 0.85, ">=", None),
+    "u_mean_vs_label": Target(
+        "|network mean u − label mean u| (paired over pairs)", 0.10, "<=", None
+    ),
+    "hybrid_vs_registered": Target(
+        "registered+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
+        "difference's CI not wholly below 0",
+        0.0,
+        "<",
+        ("C", "D"),
+    ),
+}
+# issue 15: the learned registration against the classical one (same pairs, paired intervals)
+TARGETS.update(
+    {
+        "learned_success_vs_registered": Target(
+            "learned − registered registration success rate (error < 0.5 m and < 1 deg; paired)",
+            0.0,
+            ">=",
+            None,
+        ),
+        "learned_success_gain_at_D": Target(
+            "learned − registered registration success rate at D (paired): estimate >= 0.10 and "
+            "the CI's lower end >= 0.05",
+            0.10,
+            ">=",
+            ("D",),
+            min_lo=0.05,
+        ),
+        "learned_success_at_D": Target(
+            "learned registration success rate at D (error < 0.5 m and < 1 deg)", 0.95, ">=", ("D",)
+        ),
+        "learned_kld_vs_registered": Target(
+            "learned+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
+            "difference's CI not wholly below 0",
+            0.0,
+            "<",
+            ("C", "D"),
+        ),
+        "learned_runtime_ms": Target(
+            "learned registration wall time per pair (estimate + fallback check + warp + Dempster, "
+            "batches of evaluation.fusion.batch_size on the evaluation machine), ms",
+            20.0,
+            "<=",
+            None,
+        ),
+    }
+)
+# targets judged on wall times: they differ between identical runs, so not in fusion.json
+# (Evaluation.timings -> the stage's run record; the benchmark benchmarks/registration.py measures it)
+TIMING_TARGETS = ("learned_runtime_ms",)
+NOT_EVALUATED = "not evaluated"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One target at one configuration: the figure judged (``value``) and its interval
+    ``[lo, hi]``, the ``status``; ``ci_beyond_threshold``: the whole interval lies on the side of
+    the verdict (None: nothing was judged); ``why`` a target is not evaluated; ``extra``: further
+    numbers the target reports (e.g. the signed difference)."""
+
+    value: float | None
+    lo: float | None
+    hi: float | None
+    status: str
+    ci_beyond_threshold: bool | None = None
+    why: str | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def with_extra(self, **extra: Any) -> Verdict:
+        return replace(self, extra={**self.extra, **extra})
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fusion.json entry: ``value, lo, hi, status`` (+ ``ci_beyond_threshold``, ``why``,
+        the extras)."""
+        out: dict[str, Any] = {"value": self.value, "lo": self.lo, "hi": self.hi}
+        out["status"] = self.status
+        if self.ci_beyond_threshold is not None:
+            out["ci_beyond_threshold"] = self.ci_beyond_threshold
+        if self.why is not None:
+            out["why"] = self.why
+        return out | dict(self.extra)
+
+
+def judge(iv: Interval, threshold: float, op: str) -> Verdict:
+    """Pass/fail of the point estimate against ``threshold``; ``ci_beyond_threshold``: the whole
+    interval lies on the side of the verdict (the verdict is not noise)."""
+    if op not in ("<=", ">="):
+        raise ValueError(f"judge: op must be '<=' or '>=', got {op!r}")
+    e, lo, hi = iv.estimate, iv.lo, iv.hi
+    if not math.isfinite(e):
+        return Verdict(e, lo, hi, NOT_EVALUATED, False)
+    ok = e <= threshold if op == "<=" else e >= threshold
+    if op == "<=":
+        beyond = hi <= threshold if ok else lo > threshold
+    else:
+        beyond = lo >= threshold if ok else hi < threshold
+    return Verdict(e, lo, hi, "pass" if ok else "fail", bool(beyond))
+
+
+def _judge_target(iv: Interval, name: str) -> Verdict:
+    t = TARGETS[name]
+    return judge(iv, t.threshold, t.op)
+
+
+def missing(why: str) -> Verdict:
+    """A target that could not be evaluated, and why."""
+    return Verdict(None, None, None, NOT_EVALUATED, why=why)
+
+
+def _overall(per: Mapping[str, Verdict]) -> str:
+    st = [v.status for v in per.values()]
+    if not st:
+        return NOT_EVALUATED
+    if "fail" in st:
+        return "fail"
+    return NOT_EVALUATED if NOT_EVALUATED in st else "pass"
+
+
+@dataclass(frozen=True)
+class TargetInputs:
+    """What the targets are judged on: the per-pair frames ``frames[(cfg, row)]``, the ``test``
+    and ``diff`` blocks of fusion.json and the bootstrap settings ``ci``."""
+
+    frames: Mapping[tuple[str, str], pd.DataFrame]
+    test: Mapping[str, Any]
+    diff: Mapping[str, Any]
+    ci: CIConfig
+
+    def frame(self, c: str, row: str) -> pd.DataFrame | None:
+        return self.frames.get((c, row))
+
+    def numbers(self, c: str, row: str) -> Mapping[str, Any] | None:
+        """``test.<c>.<row>`` (None where the row was not evaluated at ``c``)."""
+        return self.test.get(c, {}).get(row)
+
+    def paired(self, c: str, row: str, base: str) -> Mapping[str, Any] | None:
+        """``diff.<c>.<row>.vs_<base>`` (None or empty where not both were evaluated)."""
+        return self.diff.get(c, {}).get(row, {}).get(f"vs_{base}")
+
+
+def _ratio(ti: TargetInputs, c: str) -> Verdict:
+    """Network KLD(b) / naive KLD(b), ratio of means on the common pairs."""
+    n, b = ti.frame(c, NETWORK), ti.frame(c, "naive")
+    if n is None or b is None:
+        return missing(f"configuration {c} or its dnn / naive rows not evaluated")
+    _, ia, ib = np.intersect1d(n["pair_id"], b["pair_id"], return_indices=True)
+    kn, kb = n["kld_fou"].to_numpy()[ia], b["kld_fou"].to_numpy()[ib]
+    groups = scenario_of(n["pair_id"].to_numpy()[ia])
+
+    def stat(i: np.ndarray) -> float:
+        den = kb[i].mean()
+        return float(kn[i].mean() / den) if den > 0 else math.nan
+
+    iv = statistic_ci(stat, len(kn), groups, **ci_kwargs(ti.ci))
+    return _judge_target(iv, "kld_ratio_vs_naive")
+
+
+def _value_ci(ti: TargetInputs, c: str, key: str, name: str) -> Verdict:
+    """The network's ``key`` at ``c`` with its interval, as fusion.json has them."""
+    v = ti.numbers(c, NETWORK)
+    if v is None:
+        return missing(f"row {NETWORK} not evaluated at configuration {c}")
+    b = v[f"{key}_ci"]
+    return _judge_target(Interval(v[key], b["lo"], b["hi"], ti.ci.level), name)
+
+
+def _dice_drop(ti: TargetInputs, c: str) -> Verdict:
+    """1 − Dice occ(network at c) / Dice occ(network at A) on their common pairs, resampled
+    together."""
+    ref, other = ti.frame("A", NETWORK), ti.frame(c, NETWORK)
+    if ref is None or other is None:
+        return missing("configurations A and D both needed")
+    common, ir, io = np.intersect1d(ref["pair_id"], other["pair_id"], return_indices=True)
+    codes, g = scenario_codes(common)
+    draws = scenario_draws(g, ti.ci)
+    er, br = pooled_dice(ref.iloc[ir], "occ", codes, g, draws)
+    eo, bo = pooled_dice(other.iloc[io], "occ", codes, g, draws)
+    if not er > 0:  # reference Dice = 0 or undefined: no relative drop
+        return missing(f"network Dice occ at A is {er}: the relative drop is undefined")
+    with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice 0 drop out
+        iv = percentile_interval(1.0 - eo / er, 1.0 - bo / br, ti.ci.level, g)
+    return _judge_target(iv, "dice_occ_drop_A_to_D")
+
+
+def _vs_ego(ti: TargetInputs, c: str) -> Verdict:
+    n, e = ti.frame(c, NETWORK), ti.frame(c, "ego")
+    if n is None or e is None:
+        return missing(f"dnn or ego not evaluated at configuration {c}")
+    diffs, _ = paired_intervals(n, e, ti.ci)
+    return _judge_target(diffs["dice_occ"], "dice_occ_vs_ego")
+
+
+def _u_gap(ti: TargetInputs, c: str) -> Verdict:
+    """|network mean u − label mean u|, paired over the pairs."""
+    n = ti.frame(c, NETWORK)
+    if n is None:
+        return missing(f"dnn not evaluated at configuration {c}")
+    d = paired_mean_difference_ci(
+        n["u_mean"].to_numpy(),
+        n["label_u_mean"].to_numpy(),
+        scenario_of(n["pair_id"]),
+        **ci_kwargs(ti.ci),
+    )
+    # |difference|: the interval of |d| from the interval of d
+    lo, hi = (d.lo, d.hi) if d.lo >= 0 else (-d.hi, -d.lo) if d.hi <= 0 else (0.0, max(-d.lo, d.hi))
+    res = _judge_target(Interval(abs(d.estimate), lo, hi, d.level, d.n_groups), "u_mean_vs_label")
+    return res.with_extra(signed_difference={"estimate": d.estimate, "lo": d.lo, "hi": d.hi})
+
+
+def _beats_registered(ti: TargetInputs, c: str, row: str, name: str) -> Verdict:
+    """KLD(b) of ``row`` − registered: interval wholly below target ``name``'s threshold (op
+    ``<``), Dice occ difference not wholly below 0 (not shown worse)."""
+    t = TARGETS[name]
+    if t.op != "<":
+        raise ValueError(f"target {name}: op must be '<' (the interval's upper end), got {t.op!r}")
+    dd = ti.paired(c, row, "registered")
+    if not dd:
+        return missing(f"rows {row} and registered not both evaluated at configuration {c}")
+    k, dc = dd[HEADLINE], dd["dice_occ"]
+    if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
+        return missing(f"no interval of the {row} − registered difference at {c}")
+    below = k["hi"] < t.threshold  # KLD(b) lower, shown
+    ok = below and not dc["hi"] < 0  # and Dice occ not shown lower
+    return Verdict(
+        k["estimate"], k["lo"], k["hi"], "pass" if ok else "fail", bool(below)
+    ).with_extra(dice_occ_difference={"estimate": dc["estimate"], "lo": dc["lo"], "hi": dc["hi"]})
+
+
+def _one_vs_per_config(ti: TargetInputs, c: str) -> Verdict:
+    dd = ti.paired(c, NETWORK, PER_CONFIG_NETWORK)
+    if not dd:
+        return missing(
+            f"no {PER_CONFIG_NETWORK} network at configuration {c} (the ablation "
+            "`make ablations` (ablation per_config) trains them)"
+        )
+    k = dd[HEADLINE]
+    # judged on the interval's upper bound: the one network is not shown worse by more
+    res = _judge_target(Interval(k["hi"], k["lo"], k["hi"], ti.ci.level), "one_vs_per_config")
+    return res.with_extra(difference={"estimate": k["estimate"], "lo": k["lo"], "hi": k["hi"]})
+
+
+def _learned_success(ti: TargetInputs, c: str, name: str) -> Verdict:
+    """Learned − registered registration success rate (paired), with ``min_lo`` where set."""
+    dd = (ti.paired(c, LEARNED, "registered") or {}).get("success_rate")
+    if not dd:
+        return missing(f"rows {LEARNED} and registered not both evaluated at configuration {c}")
+    t = TARGETS[name]
+    res = judge(Interval(dd["estimate"], dd["lo"], dd["hi"], ti.ci.level), t.threshold, t.op)
+    if t.min_lo is not None and res.status == "pass" and not dd["lo"] >= t.min_lo:
+        res = replace(
+            res, status="fail"
+        )  # the gain is not shown: its interval reaches below min_lo
+    return res.with_extra(n_pairs=dd["n_pairs"])
+
+
+def _learned_mean(ti: TargetInputs, c: str, column: str, name: str) -> Verdict:
+    """Mean of the learned registration's per-pair ``column`` (success, wall time) at ``c``."""
+    f = ti.frame(c, LEARNED)
+    if f is None or (column == "reg_success" and ti.numbers(c, LEARNED) is None):
+        return missing(f"{LEARNED} not evaluated at configuration {c}")
+    iv = mean_ci(f[column].to_numpy(np.float64), scenario_of(f["pair_id"]), **ci_kwargs(ti.ci))
+    return _judge_target(iv, name)
+
+
+# every target's judge at one configuration, in the order of fusion.json's ``targets``
+JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
+    "kld_ratio_vs_naive": _ratio,
+    "dice_occ_at_A": lambda ti, c: _value_ci(ti, c, "dice_occ", "dice_occ_at_A"),
+    "dice_occ_drop_A_to_D": _dice_drop,
+    "dice_occ_vs_ego": _vs_ego,
+    "u_auroc": lambda ti, c: _value_ci(ti, c, "u_auroc", "u_auroc"),
+    "u_mean_vs_label": _u_gap,
+    "hybrid_vs_registered": lambda ti, c: _beats_registered(ti, c, HYBRID, "hybrid_vs_registered"),
+    "network_vs_registered": lambda ti, c: _beats_registered(
+        ti, c, NETWORK, "network_vs_registered"
+    ),
+    "one_vs_per_config": _one_vs_per_config,
+    "learned_success_vs_registered": lambda ti, c: _learned_success(
+        ti, c, "learned_success_vs_registered"
+    ),
+    "learned_success_gain_at_D": lambda ti, c: _learned_success(ti, c, "learned_success_gain_at_D"),
+    "learned_success_at_D": lambda ti, c: _learned_mean(
+        ti, c, "reg_success", "learned_success_at_D"
+    ),
+    "learned_kld_vs_registered": lambda ti, c: _beats_registered(
+        ti, c, LEARNED_NETWORK, "learned_kld_vs_registered"
+    ),
+    "learned_runtime_ms": lambda ti, c: _learned_mean(ti, c, "ms", "learned_runtime_ms"),
+}
+
+
+def fusion_targets(
+    own: Mapping[tuple[str, str], pd.DataFrame], metrics: Mapping[str, Any], ci: CIConfig
+) -> dict[str, Any]:
+    """The targets of :data:`TARGETS` from the per-pair frames ``own[(cfg, row)]`` and the
+    intervals already in ``metrics`` (``test``, ``diff``): ``{name: {description, threshold, op,
+    status, per_config: {cfg: verdict}}}``. A target whose configuration or rows were not
+    evaluated is ``not evaluated`` (never ``pass``)."""
+    ti = TargetInputs(own, metrics["test"], metrics["diff"], ci)
+    configs = list(metrics["test"])
+    out: dict[str, Any] = {}
+    for name, judge_at in JUDGES.items():
+        t = TARGETS[name]
+        per = {c: judge_at(ti, c) for c in (t.configs or configs)}
+        out[name] = {
+            "description": t.description,
+            "threshold": t.threshold,
+            "op": t.op,
+            "status": _overall(per),
+            "per_config": {c: v.as_dict() for c, v in per.items()},
+        }
+    return out

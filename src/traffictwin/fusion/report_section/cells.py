@@ -1,0 +1,135 @@
+"""The fusion section's shared vocabulary: where its numbers are (``fusion.json`` keys), the rows'
+labels, and the cells every table is built of (a number, its 95 % interval, a paired verdict)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from traffictwin.fusion.findings import verdict
+from traffictwin.report import model as page
+from traffictwin.report import paper_numbers as P
+from traffictwin.report.model import NA, Cell, fmt_value, lookup
+
+FUSION_FILE = "fusion.json"
+FUSION_METHOD_LABELS: dict[str, str] = {
+    "dnn": "network",
+    "naive": "naive (noisy pose + Dempster)",
+    "registered": "registered (FM + ECC) + Dempster",
+    "naive-yager": "naive + Yager",
+    "naive-cautious": "naive + cautious",
+    "ego": "ego (map 1 only)",
+    "registered+network": "registered + network",
+    "learned": "learned registration + Dempster",
+    "learned+network": "learned registration + network",
+}
+PER_CONFIG_ROW = "dnn[per-config]"  # the ablation's networks trained on one configuration each
+POSE_ROWS = ("registered", "learned")  # rows with their own pose estimate (the hybrids reuse them)
+NET, NAIVE, REG = "dnn", "naive", "registered"
+HEADLINE = "kld_fou_mean"
+CI_NOTE = (
+    "Brackets: 95 % cluster-bootstrap interval (scenario = pair_id // 1000 resampled; "
+    "evaluation.fusion_ci)."
+)
+Configurations = Mapping[str, tuple[float, float]]  # {name: (r m, alpha deg)}
+
+
+def fusion_key(cfg: str, method: str, metric: str) -> str:
+    """Key of ``metric`` for configuration ``cfg`` and ``method`` in fusion.json."""
+    return f"test.{cfg}.{method}.{metric}"
+
+
+def diff_key(c: str, row: str, base: str, metric: str) -> str:
+    """Key of the paired difference ``row − base`` of ``metric`` at configuration ``c``."""
+    return f"diff.{c}.{row}.vs_{base}.{metric}"
+
+
+def label(m: str) -> str:
+    """The table label of an evaluation row (the row itself where it has none)."""
+    return FUSION_METHOD_LABELS.get(m, m)
+
+
+def fusion_configs(src: page.Sources, configurations: Configurations) -> list[str]:
+    """The evaluated configurations: this run's (or the paper's) order, then any others."""
+    test = lookup(src.metrics.get(FUSION_FILE), "test")
+    present = sorted(test) if isinstance(test, dict) else []
+    wanted = list(configurations) or list(P.FUSION_CONFIGURATIONS)
+    return [c for c in wanted if c in present] + [c for c in present if c not in wanted]
+
+
+def fusion_methods(src: page.Sources, cfgs: Sequence[str]) -> list[str]:
+    """Every evaluated row, in the order of :data:`FUSION_METHOD_LABELS`, then by name."""
+    found: list[str] = []
+    for c in cfgs:
+        d = lookup(src.metrics.get(FUSION_FILE), f"test.{c}")
+        if isinstance(d, dict):
+            found += [m for m in d if m not in found]
+    order = list(FUSION_METHOD_LABELS)
+    return sorted(found, key=lambda m: (order.index(m) if m in order else len(order), m))
+
+
+def network_rows(src: page.Sources, cfgs: Sequence[str], prefix: str = "dnn[") -> list[str]:
+    return [m for m in fusion_methods(src, cfgs) if m.startswith(prefix)]
+
+
+def config_cells(configurations: Configurations, c: str) -> list[Cell]:
+    """Configuration, r [m], α [deg] (this run's, else the paper's)."""
+    conf = configurations or P.FUSION_CONFIGURATIONS
+    r, a = conf.get(c, (float("nan"), float("nan")))
+    base = (
+        f"params#configurations.{c}" if c in configurations else f"paper:FUSION_CONFIGURATIONS.{c}"
+    )
+    return [
+        Cell(c),
+        Cell(fmt_value(r, "g4"), src=f"{base}.r", value=r, fmt="g4"),
+        Cell(fmt_value(a, "g4"), src=f"{base}.alpha", value=a, fmt="g4"),
+    ]
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def ci_cell(src: page.Sources, key: str, file: str = FUSION_FILE) -> Cell:
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
+    file ``file``, a derived cell."""
+    base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
+    path = src.paths.get(file, f"metrics/{file}")
+    lo, hi = _num(src.get(file, f"{base}.lo")), _num(src.get(file, f"{base}.hi"))
+    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+        return Cell(NA, title=f"no interval in reports/{path}: {base}")
+    return Cell(
+        f"[{fmt_value(lo, 'g4')}, {fmt_value(hi, 'g4')}]",
+        value=[lo, hi],
+        derived=f"95 % cluster-bootstrap interval, {path}#{base}",
+    )
+
+
+def value_ci_cells(src: page.Sources, key: str) -> list[Cell]:
+    """The number at fusion.json ``key`` and its interval ``<key>_ci``."""
+    return [src.cell(FUSION_FILE, key), ci_cell(src, key)]
+
+
+def estimate_ci_cells(src: page.Sources, dk: str) -> list[Cell]:
+    """A paired difference at fusion.json ``dk``: its estimate and interval."""
+    return [src.cell(FUSION_FILE, f"{dk}.estimate"), ci_cell(src, dk)]
+
+
+def has_row(src: page.Sources, c: str, m: str) -> bool:
+    """Row ``m`` was evaluated at configuration ``c``."""
+    return isinstance(src.get(FUSION_FILE, f"test.{c}.{m}"), dict)
+
+
+def row_cell(src: page.Sources, c: str, m: str, metric: str) -> Cell:
+    """``test.<c>.<m>.<metric>``; a row not evaluated at ``c`` (a variant elsewhere) is n/a, not missing."""
+    if not has_row(src, c, m):
+        return Cell(NA, title=f"{m} not evaluated at configuration {c}")
+    return src.cell(FUSION_FILE, fusion_key(c, m, metric))
+
+
+def verdict_cell(src: page.Sources, c: str, row: str, base: str, metric: str) -> Cell:
+    """ "lower" / "higher" / "no difference shown" of the paired difference ``row − base``."""
+    d = src.get(FUSION_FILE, diff_key(c, row, base, metric))
+    v = verdict(d if isinstance(d, dict) else None)
+    return Cell(v, title="claimed only when the paired 95 % interval excludes 0")

@@ -1,0 +1,295 @@
+"""The fusion section's tables of every method per configuration: KLD(b) (headline) and KLD(a),
+the KLD(a) median, every row's intervals, paired differences against naive and registered,
+precision / recall / Dice and the cross table; :func:`fusion_tables` adds the registration,
+target and ablation tables (:mod:`.pose_tables`, :mod:`.target_tables`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from traffictwin.fusion.findings import verdict
+from traffictwin.fusion.report_section.cells import (
+    CI_NOTE,
+    FUSION_FILE,
+    HEADLINE,
+    NAIVE,
+    NET,
+    REG,
+    Configurations,
+    ci_cell,
+    config_cells,
+    diff_key,
+    estimate_ci_cells,
+    fusion_configs,
+    fusion_key,
+    fusion_methods,
+    has_row,
+    label,
+    row_cell,
+    value_ci_cells,
+    verdict_cell,
+)
+from traffictwin.fusion.report_section.pose_tables import registration_tables
+from traffictwin.fusion.report_section.target_tables import (
+    loss_ablation_table,
+    per_config_table,
+    target_table,
+)
+from traffictwin.report import model as page
+from traffictwin.report import paper_numbers as P
+from traffictwin.report.model import NA, Cell, Table, lookup
+
+
+@dataclass(frozen=True)
+class KldTable:
+    """One KLD table: the ``metric`` per method, the network − naive difference; ``paper``: with
+    the paper's Fig. 5 ranking."""
+
+    metric: str
+    title: str
+    note: str
+    anchor: str
+    headline: bool
+    paper: bool
+
+
+KLD_TABLES = (
+    KldTable(
+        HEADLINE,
+        "Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
+        "KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
+        "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). "
+        "network − naive: paired over the same pairs; 'no difference shown' when its interval "
+        "contains 0. " + CI_NOTE,
+        "fusion-kld",
+        headline=True,
+        paper=False,
+    ),
+    KldTable(
+        "kld_fo_mean",
+        "Fusion: KLD(a) mean per configuration and method, for comparison with the paper "
+        "(test split)",
+        "KLD(a): KL(label‖pred) over (m_F, m_O) only (the definition in the authors' public "
+        "code); the two masses do not sum to 1, so it can be negative and rewards "
+        "over-confidence. Paper column: which of the two Fig. 5 of van Kempen et al. shows "
+        "lower; the paper prints no KLD values. " + CI_NOTE,
+        "fusion-kld-a",
+        headline=False,
+        paper=True,
+    ),
+)
+# every row's intervals: (metric key, column name)
+CI_COLUMNS = (
+    (HEADLINE, "KLD(b)"),
+    ("kld_fo_mean", "KLD(a)"),
+    ("dice_occ", "Dice occ"),
+    ("dice_free", "Dice free"),
+    ("u_mean", "mean u"),
+    ("u_auroc", "AUROC(u)"),
+)
+DIFF_COLUMNS = [
+    "config",
+    "method",
+    "baseline",
+    "Δ KLD(b)",
+    "95 % CI",
+    "KLD(b)",
+    "Δ KLD(a)",
+    "95 % CI",
+    "Δ Dice occ",
+    "95 % CI",
+    "Dice occ",
+]
+SCORE_COLUMNS = [
+    "config",
+    "method",
+    "precision occ",
+    "recall occ",
+    "Dice occ",
+    "Dice occ 95 % CI",
+    "precision free",
+    "recall free",
+    "Dice free",
+    "Dice free 95 % CI",
+]
+
+
+def _network_vs_naive(src: page.Sources, c: str, metric: str) -> list[Cell]:
+    """Network − naive of ``metric`` at ``c``: estimate, interval, verdict (n/a without it)."""
+    dk = diff_key(c, NET, NAIVE, metric)
+    if not isinstance(src.get(FUSION_FILE, dk), dict):
+        return [Cell(NA), Cell(NA), Cell(NA)]
+    v = verdict(src.get(FUSION_FILE, dk))
+    return [
+        *estimate_ci_cells(src, dk),
+        Cell(
+            {"lower": "network lower", "higher": "naive lower"}.get(v, v),
+            title="claimed only when the paired 95 % interval excludes 0",
+        ),
+    ]
+
+
+def _kld_table(
+    src: page.Sources,
+    configurations: Configurations,
+    cfgs: Sequence[str],
+    methods: Sequence[str],
+    spec: KldTable,
+) -> Table:
+    """One KLD table: config, r, α, each method's mean, the network − naive difference with its
+    interval and verdict (and, for KLD(a), the paper's Fig. 5 ranking)."""
+    cols = ["config", "r [m]", "α [deg]", *[label(m) for m in methods]]
+    cols += ["network − naive", "95 % CI", "network vs naive (ours)"]
+    if spec.paper:
+        cols.append("network vs naive (paper, Fig. 5)")
+    t = Table(spec.title, cols, note=spec.note, anchor=spec.anchor, headline=spec.headline)
+    for c in cfgs:
+        row = config_cells(configurations, c)
+        row += [row_cell(src, c, m, spec.metric) for m in methods]
+        row += _network_vs_naive(src, c, spec.metric)
+        if spec.paper:
+            w = P.FUSION_KLD_WINNER.get(c)
+            row.append(
+                Cell({"network": "network lower", "baseline": "naive lower"}.get(w or "", NA))
+            )
+        t.rows.append(row)
+    return t
+
+
+def _median_table(
+    src: page.Sources, configurations: Configurations, cfgs: Sequence[str], methods: Sequence[str]
+) -> Table:
+    median = Table(
+        "Fusion: KLD(a) median per configuration and method (test split)",
+        ["config", "r [m]", "α [deg]", *[label(m) for m in methods]],
+        note="Median over test pairs (the line in the paper's Fig. 5 boxes).",
+        anchor="fusion-kld_fo_median",
+    )
+    for c in cfgs:
+        median.rows.append(
+            config_cells(configurations, c)
+            + [row_cell(src, c, m, "kld_fo_median") for m in methods]
+        )
+    return median
+
+
+def _ci_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> Table | None:
+    """Every row's estimates with intervals (None when fusion.json has no interval)."""
+    cis = Table(
+        "Fusion: estimates with 95 % intervals per configuration and method (test split)",
+        ["config", "method", *[x for _, name in CI_COLUMNS for x in (name, "95 % CI")]],
+        note="Dice pooled over pairs; AUROC(u): u as a detector of wrongly classified label-known "
+        "cells. " + CI_NOTE,
+        anchor="fusion-ci",
+    )
+    for c in cfgs:
+        for m in methods:
+            if has_row(src, c, m):
+                row = [Cell(c), Cell(label(m))]
+                for k, _ in CI_COLUMNS:
+                    row += value_ci_cells(src, fusion_key(c, m, k))
+                cis.rows.append(row)
+    has_ci = any(
+        isinstance(src.get(FUSION_FILE, fusion_key(c, m, f"{HEADLINE}_ci")), dict)
+        for c in cfgs
+        for m in methods
+    )
+    return cis if cis.rows and has_ci else None
+
+
+def _diff_row(src: page.Sources, c: str, m: str, b: str) -> list[Cell]:
+    base = f"diff.{c}.{m}.vs_{b}"
+    row = [Cell(c), Cell(label(m)), Cell(b)]
+    for k in (HEADLINE, "kld_fo_mean", "dice_occ"):
+        row += estimate_ci_cells(src, f"{base}.{k}")
+        if k != "kld_fo_mean":
+            row.append(verdict_cell(src, c, m, b, k))
+    return row
+
+
+def _diff_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> Table | None:
+    """Paired differences against naive and registered (None without any)."""
+    diffs = Table(
+        "Fusion: paired differences (method − baseline) on the same test pairs",
+        DIFF_COLUMNS,
+        note="Negative Δ KLD / positive Δ Dice favour the method. 'lower' / 'higher' only when the "
+        "interval excludes 0, else 'no difference shown'. " + CI_NOTE,
+        anchor="fusion-diff",
+    )
+    for c in cfgs:
+        for m in methods:
+            for b in (NAIVE, REG):
+                if isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict):
+                    diffs.rows.append(_diff_row(src, c, m, b))
+    return diffs if diffs.rows else None
+
+
+def _score_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> Table:
+    scores = Table(
+        "Fusion: precision / recall / Dice per class (test split, pooled over cells; higher is better)",
+        SCORE_COLUMNS,
+        note=(
+            "A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (docs/design.md; the paper's "
+            "sentence swaps the words); only label-known cells count. The paper shows these as Figs. 6 and 7 "
+            "without printed values. " + CI_NOTE
+        ),
+        anchor="fusion-scores",
+    )
+    for c in cfgs:
+        for m in methods:
+            if not has_row(src, c, m):
+                continue
+            row = [Cell(c), Cell(label(m))]
+            for cls in ("occ", "free"):
+                row += [
+                    src.cell(FUSION_FILE, fusion_key(c, m, f"{k}_{cls}"))
+                    for k in ("precision", "recall", "dice")
+                ]
+                row.append(ci_cell(src, fusion_key(c, m, f"dice_{cls}")))
+            scores.rows.append(row)
+    return scores
+
+
+def _cross_table(src: page.Sources) -> Table | None:
+    """KLD(b) of each per-configuration network on the other configurations (None without any)."""
+    cross = lookup(src.metrics.get(FUSION_FILE), "cross")
+    if not isinstance(cross, dict) or not cross:
+        return None
+    nets = sorted(cross)
+    tcfgs = sorted({tc for n in nets if isinstance(cross[n], dict) for tc in cross[n]})
+    t = Table(
+        "Fusion: cross table, KLD(b) mean of the per-configuration networks (the ablation) "
+        "trained on one configuration (rows) tested on another (columns)",
+        ["network trained on", *[f"test {tc}" for tc in tcfgs]],
+        anchor="fusion-cross",
+        note="Own configuration: all test pairs; others: a subset "
+        "(evaluation.fusion.cross_max_pairs). The one network (row dnn of the KLD table) is "
+        "evaluated at every configuration on all pairs.",
+    )
+    for n in nets:
+        t.rows.append(
+            [Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.{HEADLINE}") for tc in tcfgs]
+        )
+    return t
+
+
+def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Table]:
+    """KLD(b) (headline) and KLD(a) per configuration and method with the network − naive
+    difference, intervals per row, paired differences, P/R/Dice, targets, the loss ablation and
+    the cross table."""
+    cfgs = fusion_configs(src, configurations)
+    methods = fusion_methods(src, cfgs)
+    tables = [_kld_table(src, configurations, cfgs, methods, spec) for spec in KLD_TABLES]
+    tables.append(_median_table(src, configurations, cfgs, methods))
+    optional = (_ci_table(src, cfgs, methods), _diff_table(src, cfgs, methods))
+    tables += [t for t in optional if t is not None]
+    tables.append(_score_table(src, cfgs, methods))
+    tables.extend(registration_tables(src, configurations, cfgs))
+    optional = (
+        target_table(src),
+        loss_ablation_table(src, cfgs),
+        per_config_table(src, configurations, cfgs),
+        _cross_table(src),
+    )
+    return tables + [t for t in optional if t is not None]
