@@ -42,7 +42,8 @@ from traffictwin.config import ConfigError, get
 from traffictwin.fusion.config import fusion_data_config, grid_config
 from traffictwin.fusion.pairs import shard_splits, write_shard
 from traffictwin.io.atomic import write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetWriter, merge_parts, part_name, shard_name
+from traffictwin.io.shard_parts import merge_parts
+from traffictwin.io.shards import Dataset, DatasetWriter, part_name, shard_name
 
 FIGURE = figure_file("fusion_data_samples")
 METRICS = metrics_file("fusion_data")

@@ -383,123 +383,137 @@ def _machine(b: Mapping) -> str:
     return ", ".join(parts)
 
 
+def _bench_fusion_data(b: Mapping) -> tuple[str, str]:
+    return (
+        "fusion data generation (1 core; world, traffic, 2 lidar scans + 2 ISMs per "
+        "encounter, warps, Dempster)",
+        f"{b['generation_pairs_per_s_1core']:.1f} pairs/s",
+    )
+
+
+def _bench_fusion_steps(b: Mapping) -> tuple[str, str]:
+    g = b["grid"]
+    return (
+        f"lidar scan ({b['lidar_rays']} rays) / ISM / Dempster / SE(2) warp of a "
+        f"{g[0]}×{g[1]} grid",
+        f"{_ms(b['lidar_scan_ms'])} / {_ms(b['ism_ms'])} / {_ms(b['dempster_ms'])} / "
+        f"{_ms(b['warp_ms'])} ms",
+    )
+
+
+def _bench_risk_data(b: Mapping) -> tuple[str, str]:
+    return (
+        f"stereo rendering {b['resolution']} / SGM / ORB check / risk metric",
+        f"{b['render_pairs_per_s']:.1f} pairs/s / {b['sgm_frames_per_s']:.0f} / "
+        f"{b['orb_frames_per_s']:.0f} / {b['risk_metric_frames_per_s']:.0f} frames/s",
+    )
+
+
+def _bench_net(key: str, title: str) -> Callable[[Mapping], tuple[str, str]]:
+    """The row maker of the fusion network ``key`` of the ``fusion_model`` benchmark."""
+
+    def make(b: Mapping) -> tuple[str, str]:
+        n = b[key]
+        return (
+            f"{title}, {n['param_count']:,} params: training at batch {n['train_batch']} / "
+            "inference at batch 1 / at batch 8",
+            f"{n['train_samples_per_s']:.3g} samples/s / {_ms(n['infer_ms_per_pair_batch1'])} / "
+            f"{_ms(n['infer_ms_per_pair_batch8'])} ms per pair",
+        )
+
+    return make
+
+
+def _bench_paper_estimate(b: Mapping) -> tuple[str, str]:
+    n = b["paper_resnet50"]
+    return (
+        "paper profile fusion training (10,000 pairs, 200 epochs), estimated from the "
+        "measured step time and from FLOPs",
+        f"~{n['paper_profile_estimate_h_on_this_cpu']:.0f} h on this CPU; "
+        f"~{n['paper_profile_estimate_h_gpu_at_100_tflops']:.1f} h at 100 TFLOP/s "
+        "(not measured: no GPU)",
+    )
+
+
+def _bench_registration(b: Mapping) -> tuple[str, str]:
+    ms = b["learned_ms_per_pair"]
+    return (
+        f"registration per pair at configuration {b['cfg']} ({b['pairs']} test pairs): learned "
+        "(estimate + fallback check + warp + Dempster) at batch 1 / batch 8 / the estimate "
+        "alone; classical FM + ECC + warp + Dempster",
+        f"{_ms(ms['batch_1'])} / {_ms(ms['batch_8'])} / {_ms(b['learned_estimate_ms_per_pair'])} "
+        f"ms; {_ms(b['registered_ms_per_pair'])} ms",
+    )
+
+
+def _bench_twin(b: Mapping) -> tuple[str, str]:
+    per = b["ms_per_step"]
+    ns = sorted({int(n) for m in per.values() for n in m})
+    methods = [m for m in ("naive", "learned", "learned+network", "registered") if m in per]
+    figs = "; ".join(
+        f"{m}: " + " / ".join(_ms(per[m][str(n)]) if str(n) in per[m] else "n/a" for n in ns)
+        for m in methods
+    )
+    return (
+        f"twin update per step at configuration {b['cfg']} ({b['strategy']} strategy) for "
+        f"N = {' / '.join(str(n) for n in ns)} vehicles",
+        f"{figs} ms",
+    )
+
+
+def _bench_cli(b: Mapping) -> tuple[str, str]:
+    f, r = b["fuse"], b["risk"]
+    return (
+        f"`traffictwin fuse` per pair ({f['grid'][0]}×{f['grid'][1]}, {f['model']}): prealign + "
+        f"model; `traffictwin risk` per frame ({r['image'][0]}×{r['image'][1]}, "
+        f"`{r['model']}`): ORB + SGM + model",
+        f"{_ms(f['prealign_ms'])} + {_ms(f['model_ms_per_pair'])} = "
+        f"{_ms(f['total_ms_per_pair'])} ms; {_ms(r['orb_ms'])} + {_ms(r['sgm_ms'])} + "
+        f"{_ms(r['model_ms_per_frame'])} = {_ms(r['total_ms_per_frame'])} ms",
+    )
+
+
+def _bench_ci_dag(b: Mapping) -> tuple[str, str]:
+    return (
+        f"`ci` profile, whole DAG (`dvc repro` after `-S profile=ci`, in a clone of commit "
+        f"{b.get('commit', '?')}; the Quick start)",
+        f"{b['wall_s']:.0f} s wall: {b['stages']} stage processes, {b['in_stage_s']:.0f} s "
+        f"inside the stages, {b['outside_stage_s']:.0f} s process start, imports and DVC; "
+        f"nothing to do: {b['noop_s']:.0f} s",
+    )
+
+
+#: (benchmark in reports/benchmarks.json, its row's maker: b -> (what, figure)), in table order
+BENCH_ROWS: tuple[tuple[str, Callable[[Mapping], tuple[str, str]]], ...] = (
+    ("fusion_data", _bench_fusion_data),
+    ("fusion_data", _bench_fusion_steps),
+    ("risk_data", _bench_risk_data),
+    (
+        "fusion_model",
+        _bench_net("default_resnet18-w16", "default fusion net (narrow ResNet-18 DeepLabV3+)"),
+    ),
+    ("fusion_model", _bench_net("paper_resnet50", "paper fusion net (ResNet-50 DeepLabV3+)")),
+    ("fusion_model", _bench_paper_estimate),
+    ("registration", _bench_registration),
+    ("twin", _bench_twin),
+    ("cli_latency", _bench_cli),
+    ("ci_dag", _bench_ci_dag),
+)
+
+
 def _bench_rows(bench: Mapping) -> list[tuple[str, str, str]]:
     """``(what, figure, machine)`` per benchmark figure in ``bench`` (``benchmarks`` of
     reports/benchmarks.json); a benchmark that did not run, or lacks a key, gives no row."""
     rows: list[tuple[str, str, str]] = []
-
-    def add(name: str, make: Callable[[Mapping], tuple[str, str]]) -> None:
+    for name, make in BENCH_ROWS:
         b = bench.get(name)
         if not isinstance(b, Mapping):
-            return
+            continue
         try:
             what, fig = make(b)
         except (KeyError, TypeError, ValueError):
-            return
+            continue
         rows.append((f"{what} (`{name}`)", fig, _machine(b)))
-
-    def fusion_data(b: Mapping) -> tuple[str, str]:
-        return (
-            "fusion data generation (1 core; world, traffic, 2 lidar scans + 2 ISMs per "
-            "encounter, warps, Dempster)",
-            f"{b['generation_pairs_per_s_1core']:.1f} pairs/s",
-        )
-
-    def fusion_steps(b: Mapping) -> tuple[str, str]:
-        g = b["grid"]
-        return (
-            f"lidar scan ({b['lidar_rays']} rays) / ISM / Dempster / SE(2) warp of a "
-            f"{g[0]}×{g[1]} grid",
-            f"{_ms(b['lidar_scan_ms'])} / {_ms(b['ism_ms'])} / {_ms(b['dempster_ms'])} / "
-            f"{_ms(b['warp_ms'])} ms",
-        )
-
-    def risk_data(b: Mapping) -> tuple[str, str]:
-        return (
-            f"stereo rendering {b['resolution']} / SGM / ORB check / risk metric",
-            f"{b['render_pairs_per_s']:.1f} pairs/s / {b['sgm_frames_per_s']:.0f} / "
-            f"{b['orb_frames_per_s']:.0f} / {b['risk_metric_frames_per_s']:.0f} frames/s",
-        )
-
-    def net(key: str, title: str) -> Callable[[Mapping], tuple[str, str]]:
-        def make(b: Mapping) -> tuple[str, str]:
-            n = b[key]
-            return (
-                f"{title}, {n['param_count']:,} params: training at batch {n['train_batch']} / "
-                "inference at batch 1 / at batch 8",
-                f"{n['train_samples_per_s']:.3g} samples/s / {_ms(n['infer_ms_per_pair_batch1'])} / "
-                f"{_ms(n['infer_ms_per_pair_batch8'])} ms per pair",
-            )
-
-        return make
-
-    def paper_estimate(b: Mapping) -> tuple[str, str]:
-        n = b["paper_resnet50"]
-        return (
-            "paper profile fusion training (10,000 pairs, 200 epochs), estimated from the "
-            "measured step time and from FLOPs",
-            f"~{n['paper_profile_estimate_h_on_this_cpu']:.0f} h on this CPU; "
-            f"~{n['paper_profile_estimate_h_gpu_at_100_tflops']:.1f} h at 100 TFLOP/s "
-            "(not measured: no GPU)",
-        )
-
-    def registration(b: Mapping) -> tuple[str, str]:
-        ms = b["learned_ms_per_pair"]
-        return (
-            f"registration per pair at configuration {b['cfg']} ({b['pairs']} test pairs): learned "
-            "(estimate + fallback check + warp + Dempster) at batch 1 / batch 8 / the estimate "
-            "alone; classical FM + ECC + warp + Dempster",
-            f"{_ms(ms['batch_1'])} / {_ms(ms['batch_8'])} / {_ms(b['learned_estimate_ms_per_pair'])} "
-            f"ms; {_ms(b['registered_ms_per_pair'])} ms",
-        )
-
-    def twin(b: Mapping) -> tuple[str, str]:
-        per = b["ms_per_step"]
-        ns = sorted({int(n) for m in per.values() for n in m})
-        methods = [m for m in ("naive", "learned", "learned+network", "registered") if m in per]
-        figs = "; ".join(
-            f"{m}: " + " / ".join(_ms(per[m][str(n)]) if str(n) in per[m] else "n/a" for n in ns)
-            for m in methods
-        )
-        return (
-            f"twin update per step at configuration {b['cfg']} ({b['strategy']} strategy) for "
-            f"N = {' / '.join(str(n) for n in ns)} vehicles",
-            f"{figs} ms",
-        )
-
-    def cli(b: Mapping) -> tuple[str, str]:
-        f, r = b["fuse"], b["risk"]
-        return (
-            f"`traffictwin fuse` per pair ({f['grid'][0]}×{f['grid'][1]}, {f['model']}): prealign + "
-            f"model; `traffictwin risk` per frame ({r['image'][0]}×{r['image'][1]}, "
-            f"`{r['model']}`): ORB + SGM + model",
-            f"{_ms(f['prealign_ms'])} + {_ms(f['model_ms_per_pair'])} = "
-            f"{_ms(f['total_ms_per_pair'])} ms; {_ms(r['orb_ms'])} + {_ms(r['sgm_ms'])} + "
-            f"{_ms(r['model_ms_per_frame'])} = {_ms(r['total_ms_per_frame'])} ms",
-        )
-
-    def ci_dag(b: Mapping) -> tuple[str, str]:
-        return (
-            f"`ci` profile, whole DAG (`dvc repro` after `-S profile=ci`, in a clone of commit "
-            f"{b.get('commit', '?')}; the Quick start)",
-            f"{b['wall_s']:.0f} s wall: {b['stages']} stage processes, {b['in_stage_s']:.0f} s "
-            f"inside the stages, {b['outside_stage_s']:.0f} s process start, imports and DVC; "
-            f"nothing to do: {b['noop_s']:.0f} s",
-        )
-
-    add("fusion_data", fusion_data)
-    add("fusion_data", fusion_steps)
-    add("risk_data", risk_data)
-    add(
-        "fusion_model",
-        net("default_resnet18-w16", "default fusion net (narrow ResNet-18 DeepLabV3+)"),
-    )
-    add("fusion_model", net("paper_resnet50", "paper fusion net (ResNet-50 DeepLabV3+)"))
-    add("fusion_model", paper_estimate)
-    add("registration", registration)
-    add("twin", twin)
-    add("cli_latency", cli)
-    add("ci_dag", ci_dag)
     return rows
 
 

@@ -2,7 +2,7 @@
 machine's run; overlapping, missing, out-of-bounds or mismatched parts fail with one line naming
 the part or file, before anything is written.
 
-Unit tests of :func:`traffictwin.io.shards.merge_parts` on tiny synthetic shards (fast); stage
+Unit tests of :func:`traffictwin.io.shard_parts.merge_parts` on tiny synthetic shards (fast); stage
 tests of ``python -m pipelines.generate_fusion --shards i:j`` / ``--merge`` on the ci profile
 (``slow``: ~12 stage runs of a few seconds each).
 """
@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from conftest import copy_repo, run
 
+from traffictwin.io.shard_parts import merge_parts
 from traffictwin.io.shards import (
     MANIFEST,
     Dataset,
     DatasetError,
     DatasetWriter,
-    merge_parts,
     part_name,
 )
 

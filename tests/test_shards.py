@@ -172,7 +172,7 @@ def test_threads_parse_npy_headers_one_at_a_time(tmp_path: Path, monkeypatch) ->
     import threading
     import time
 
-    import traffictwin.io.shards as shards
+    import traffictwin.io.npz as npz
 
     class Spy:
         def __init__(self) -> None:
@@ -190,7 +190,7 @@ def test_threads_parse_npy_headers_one_at_a_time(tmp_path: Path, monkeypatch) ->
             self.lock.release()
 
     spy = Spy()
-    monkeypatch.setattr(shards, "_NPY_PARSE_LOCK", spy)
+    monkeypatch.setattr(npz, "_NPY_PARSE_LOCK", spy)
     w = DatasetWriter(tmp_path / "ds", "unit", {"n": 3}, seed=0)
     for i in range(9):
         w.add_shard(i, _arrays(i), split="train")

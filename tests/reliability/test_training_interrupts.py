@@ -13,15 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from traffictwin.io.shards import (
-    Dataset,
-    DatasetError,
-    DatasetWriter,
-    check_finite,
-    read_npz,
-    sha256_file,
-    write_npz_deterministic,
-)
+from traffictwin.io.npz import check_finite, read_npz, sha256_file, write_npz_deterministic
+from traffictwin.io.shards import Dataset, DatasetError, DatasetWriter
 from traffictwin.trainer import (
     CKPT_SHA_KEY,
     CheckpointError,

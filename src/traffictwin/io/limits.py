@@ -47,7 +47,7 @@ IMAGE_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "PBM/PGM/PPM")
 _MAX_NPY_HEADER = 10_000  # bytes, numpy's own default bound for a .npy header
 #: numpy parses a .npy header with ast.literal_eval, which CPython 3.11 cannot run in two threads
 #: at once ("SystemError: AST constructor recursion depth mismatch"): every header parse of the
-#: package holds this lock (:mod:`traffictwin.io.shards` uses it for its threaded loads too)
+#: package holds this lock (:mod:`traffictwin.io.npz` uses it for the threaded shard loads too)
 NPY_HEADER_LOCK = threading.Lock()
 
 

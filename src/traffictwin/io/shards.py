@@ -2,7 +2,7 @@
 
 A dataset folder holds ``manifest.json`` and shards ``shard-00000.npz`` ... Each shard is a
 zip of ``.npy`` arrays written with fixed zip timestamps, so the same arrays give the
-same bytes (deterministic generation is testable by hashing). Shards and the manifest
+same bytes (deterministic generation is testable by hashing; :mod:`traffictwin.io.npz`). Shards and the manifest
 are written atomically. Tables (poses, risk values, flags) are CSV files listed in the
 manifest with their SHA-256 as well.
 
@@ -15,24 +15,20 @@ component may be a symbolic link (DVC's ``symlink`` cache type links files into 
 read from the ``.npy`` headers before any array is decompressed, with those of the dataset's
 other shards, and names the shard that differs.
 
-Shards hold finite numbers only (:func:`check_finite`): writers refuse float arrays with NaN or
+Shards hold finite numbers only (:func:`~traffictwin.io.npz.check_finite`): writers refuse float arrays with NaN or
 ±inf, and readers refuse them too (a shard with a valid hash may still come from an older or
 foreign writer). Arrays where infinity is a defined value (e.g. "no object ahead" headways) are
 named in ``allow_inf`` by the writer and the reader; NaN is never data.
 
 A dataset can also be generated in parts on several machines: each writes a shard range and a
-partial manifest (:meth:`DatasetWriter.finalize_part`); :func:`merge_parts` checks the parts
+partial manifest (:meth:`DatasetWriter.finalize_part`); :func:`traffictwin.io.shard_parts.merge_parts` checks the parts
 against each other and the expected parameters and writes the same ``manifest.json`` one machine
 would have written.
 """
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
-import shutil
-import zipfile
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,16 +36,12 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.io.atomic import atomic_path, write_csv_atomic, write_json_atomic
-from traffictwin.io.limits import NPY_HEADER_LOCK, InputError, npz_headers
+from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
+from traffictwin.io.limits import InputError, npz_headers
+from traffictwin.io.npz import DatasetError, read_npz, sha256_file, write_npz_deterministic
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-
-
-class DatasetError(RuntimeError):
-    """A dataset folder, manifest, shard or table is missing, corrupt or of the wrong kind."""
 
 
 def shard_name(index: int) -> str:
@@ -83,115 +75,6 @@ def check_member_name(root: str | Path, name: Any, where: str | Path) -> Path:
             f"{root} (absolute, '..' or outside it); refusing to open it"
         )
     return root / name
-
-
-def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while True:
-            b = fh.read(chunk)
-            if not b:
-                break
-            h.update(b)
-    return h.hexdigest()
-
-
-def check_finite(
-    arrays: Mapping[str, np.ndarray], where: str | Path, allow_inf: Collection[str] = ()
-) -> None:
-    """Raise :class:`DatasetError` naming ``where`` and the array when a float array of ``arrays``
-    holds NaN, or ±inf unless its key is in ``allow_inf``. Integer and bool arrays pass."""
-    for key in sorted(arrays):
-        a = np.asarray(arrays[key])
-        if a.dtype.kind not in "fc":
-            continue
-        ok = ~np.isnan(a) if key in allow_inf else np.isfinite(a)
-        if ok.all():
-            continue
-        bad = ~ok
-        n_nan, n_inf = int(np.isnan(a).sum()), int((bad & ~np.isnan(a)).sum())
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise DatasetError(
-            f"{where}: array '{key}' holds {n_nan} NaN and {n_inf} infinite value(s) "
-            f"(first at index {first}); shards must hold finite numbers"
-        )
-
-
-def write_npz_deterministic(
-    path: str | Path,
-    arrays: Mapping[str, np.ndarray],
-    compresslevel: int = 6,
-    *,
-    allow_inf: Collection[str] = (),
-    check: bool = True,
-) -> str:
-    """Write ``arrays`` as a compressed ``.npz`` with fixed metadata, atomically; return its SHA-256.
-
-    Non-finite float arrays are refused before anything is written (:func:`check_finite`;
-    ``allow_inf``: keys where ±inf is a value). ``check=False`` writes them as given — only for
-    building corrupt fixtures in tests of the readers.
-    """
-    path = Path(path)
-    if check:
-        check_finite(arrays, f"{path} (refusing to write)", allow_inf)
-    with atomic_path(path, suffix=".npz") as tmp:
-        with zipfile.ZipFile(
-            tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel
-        ) as zf:
-            for key in sorted(arrays):
-                buf = io.BytesIO()
-                np.lib.format.write_array(
-                    buf, np.ascontiguousarray(arrays[key]), allow_pickle=False
-                )
-                info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_DATE)
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                zf.writestr(
-                    info,
-                    buf.getvalue(),
-                    compress_type=zipfile.ZIP_DEFLATED,
-                    compresslevel=compresslevel,
-                )
-        digest = sha256_file(tmp)
-    return digest
-
-
-# numpy parses each array's .npy header with ast.literal_eval; CPython 3.11's AST constructor is
-# not safe to run in two threads at once ("SystemError: AST constructor recursion depth mismatch"),
-# so threads that read shards (Dataset.load_all) parse headers one at a time and decompress in
-# parallel
-_NPY_PARSE_LOCK = NPY_HEADER_LOCK  # the package's one lock (io.limits reads headers under it)
-
-
-def _read_member(z: Any, key: str) -> np.ndarray:
-    """Array ``key`` of an open ``np.load`` archive: its bytes decompressed outside the lock (zlib
-    releases the GIL), its header parsed and the array built under :data:`_NPY_PARSE_LOCK`."""
-    member = f"{key}.npy" if f"{key}.npy" in z.zip.namelist() else key
-    raw = z.zip.read(member)
-    with _NPY_PARSE_LOCK:
-        return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
-
-
-def read_npz(
-    path: str | Path, allow_inf: Collection[str] = (), keys: Iterable[str] | None = None
-) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` (or only ``keys``: the others are not decompressed) into
-    memory; a clear error if it is not a readable archive, lacks a key, or a float array holds NaN
-    (or ±inf outside ``allow_inf``; :func:`check_finite`)."""
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            names = list(z.files) if keys is None else list(keys)
-            missing = [k for k in names if k not in z.files]
-            if missing:
-                raise DatasetError(f"{path}: array(s) {missing} missing (has {sorted(z.files)})")
-            arrays = {k: _read_member(z, k) for k in names}
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise DatasetError(f"{path}: not a readable .npz archive ({exc})") from None
-    check_finite(arrays, path, allow_inf)
-    return arrays
 
 
 @dataclass
@@ -391,7 +274,8 @@ def build_manifest(
 
 
 # ---------------------------------------------------------------------------------------------
-# a dataset generated in parts (shard ranges) on several machines
+# a dataset generated in parts (shard ranges) on several machines: the writer's side (the
+# merge is traffictwin.io.shard_parts.merge_parts)
 
 PART_GLOB = "manifest.part-*.json"
 
@@ -399,170 +283,6 @@ PART_GLOB = "manifest.part-*.json"
 def part_name(start: int, stop: int) -> str:
     """File name of the partial manifest of shards ``start .. stop - 1``."""
     return f"manifest.part-{start:05d}-{stop:05d}.json"
-
-
-def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
-    """Dotted key of the first place where ``a`` and ``b`` differ (``None`` when equal)."""
-    if isinstance(a, Mapping) and isinstance(b, Mapping):
-        for k in sorted(set(a) | set(b)):
-            sub = f"{key}.{k}" if key else str(k)
-            if k not in a or k not in b:
-                return sub
-            d = _first_difference(a[k], b[k], sub)
-            if d is not None:
-                return d
-        return None
-    return None if a == b else (key or "<root>")
-
-
-def _lookup(tree: Any, dotted: str) -> Any:
-    for k in dotted.split("."):
-        if not isinstance(tree, Mapping) or k not in tree:
-            return "<missing>"
-        tree = tree[k]
-    return tree
-
-
-def _read_part(path: Path) -> dict[str, Any]:
-    try:
-        part = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
-    for key in ("schema_version", "kind", "seed", "params", "part", "shards", "extra"):
-        if key not in part:
-            raise DatasetError(f"{path}: field '{key}' missing (not a partial manifest)")
-    for key in ("start", "stop", "n_shards"):
-        if not isinstance(part["part"].get(key), int):
-            raise DatasetError(f"{path}: field 'part.{key}' missing or not an integer")
-    return part
-
-
-def merge_parts(
-    sources: Sequence[str | Path],
-    dest: str | Path,
-    *,
-    kind: str,
-    params: Mapping[str, Any],
-    seed: int,
-    n_shards: int,
-    splits: Sequence[str] | None = None,
-) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Join the parts in the folders ``sources`` (each with one or more :func:`part_name` files
-    and their shards) into the dataset folder ``dest``: shards copied (verified by SHA-256),
-    ``manifest.json`` written exactly as one machine's :meth:`DatasetWriter.finalize` would, and
-    every other file in ``dest`` (partial manifests, stale shards) removed. ``dest`` may be one
-    of ``sources``.
-
-    Every part must have been generated with ``kind``, ``seed`` and ``params`` (as the writer
-    records them), for ``n_shards`` shards, and (when given) shard ``i`` must be in split
-    ``splits[i]``; the parts' ranges must cover ``0 .. n_shards - 1`` exactly once. All of this
-    is checked before anything is written; :class:`DatasetError` names the part or file.
-    Returns the manifest and the parts (their ``stats`` included), in shard order.
-    """
-    params = json.loads(json.dumps(params, sort_keys=True, default=str))
-    want = {"schema_version": SCHEMA_VERSION, "kind": kind, "seed": int(seed), "params": params}
-    parts: list[tuple[Path, Path, dict[str, Any]]] = []  # (folder, part file, part)
-    for src in map(Path, sources):
-        if not src.is_dir():
-            raise DatasetError(f"{src}: folder not found (expected a part's output folder)")
-        files = sorted(src.glob(PART_GLOB))
-        if not files:
-            raise DatasetError(
-                f"{src}: no partial manifest ({PART_GLOB}); generate a part there with --shards i:j"
-            )
-        parts += [(src, f, _read_part(f)) for f in files]
-
-    extra0 = parts[0][2]["extra"]
-    for _src, f, part in parts:
-        for key in ("schema_version", "kind", "seed"):
-            if part[key] != want[key]:
-                raise DatasetError(f"{f}: {key} is {part[key]!r}, expected {want[key]!r}")
-        diff = _first_difference(part["params"], params)
-        if diff is not None:
-            raise DatasetError(
-                f"{f}: generated with other parameters: '{diff}' is "
-                f"{_lookup(part['params'], diff)!r} there, {_lookup(params, diff)!r} here"
-            )
-        if part["extra"] != extra0:
-            raise DatasetError(
-                f"{f}: manifest extras {part['extra']} differ from {parts[0][1]}'s {extra0}"
-            )
-        r = part["part"]
-        if r["n_shards"] != n_shards:
-            raise DatasetError(f"{f}: part of {r['n_shards']} shards, expected {n_shards}")
-        if not 0 <= r["start"] < r["stop"] <= n_shards:
-            raise DatasetError(
-                f"{f}: shard range {r['start']}:{r['stop']} out of bounds (0:{n_shards})"
-            )
-        listed = [s.get("index") for s in part["shards"]]
-        if listed != list(range(r["start"], r["stop"])):
-            raise DatasetError(
-                f"{f}: lists shards {listed}, expected {r['start']}..{r['stop'] - 1}"
-            )
-
-    parts.sort(key=lambda p: (p[2]["part"]["start"], p[2]["part"]["stop"]))
-    covered = 0
-    prev: Path | None = None
-    for _src, f, part in parts:
-        start, stop = part["part"]["start"], part["part"]["stop"]
-        if start < covered:
-            raise DatasetError(
-                f"{f} (shards {start}:{stop}) overlaps {prev} in shards {start}..{min(stop, covered) - 1}"
-            )
-        if start > covered:
-            raise DatasetError(
-                f"shards {covered}..{start - 1} of {n_shards} are in no part "
-                f"(parts: {', '.join(str(p[1]) for p in parts)})"
-            )
-        covered, prev = stop, f
-    if covered < n_shards:
-        raise DatasetError(
-            f"shards {covered}..{n_shards - 1} of {n_shards} are in no part "
-            f"(parts: {', '.join(str(p[1]) for p in parts)})"
-        )
-
-    infos: list[tuple[Path, ShardInfo]] = []
-    for src, f, part in parts:
-        for s in part["shards"]:
-            i = int(s["index"])
-            if s["name"] != shard_name(i):
-                raise DatasetError(
-                    f"{f}: shard {i} is named {s['name']!r}, expected {shard_name(i)!r}"
-                )
-            if splits is not None and s.get("split") != splits[i]:
-                raise DatasetError(
-                    f"{f}: shard {i} is in split {s.get('split')!r}, expected {splits[i]!r}"
-                )
-            path = src / s["name"]
-            if not path.exists():
-                raise DatasetError(f"{path}: listed in {f} but missing")
-            got = sha256_file(path)
-            if got != s["sha256"]:
-                raise DatasetError(
-                    f"{path}: SHA-256 mismatch ({f.name} {s['sha256'][:12]}…, file {got[:12]}…): "
-                    "corrupt or tampered"
-                )
-            infos.append((path, ShardInfo(s["name"], s["sha256"], int(s["count"]), s.get("split"))))
-
-    # everything checked: write dest (shards first, the manifest last, then drop the rest)
-    dest = Path(dest)
-    dest.mkdir(parents=True, exist_ok=True)
-    (dest / MANIFEST).unlink(missing_ok=True)
-    for path, info in infos:
-        target = dest / info.name
-        if target.exists() and target.resolve() == path.resolve():
-            continue
-        with atomic_path(target, suffix=".npz") as tmp:
-            shutil.copyfile(path, tmp)
-            if sha256_file(tmp) != info.sha256:
-                raise DatasetError(f"{path}: changed while it was copied to {target}")
-    manifest = build_manifest(kind, int(seed), params, [i for _, i in infos], (), extra0)
-    write_json_atomic(dest / MANIFEST, manifest)
-    keep = {MANIFEST, *(i.name for _, i in infos)}
-    for p in dest.iterdir():
-        if p.is_file() and p.name not in keep:
-            p.unlink()
-    return manifest, [p for _, _, p in parts]
 
 
 class Dataset:
@@ -575,7 +295,7 @@ class Dataset:
         verify: bool = True,
         allow_inf: Collection[str] = (),
     ) -> None:
-        """``allow_inf``: arrays where ±inf is a value (NaN never is; :func:`check_finite`)."""
+        """``allow_inf``: arrays where ±inf is a value (NaN never is; :func:`~traffictwin.io.npz.check_finite`)."""
         self.root = Path(root)
         self.allow_inf = tuple(allow_inf)
         mpath = self.root / MANIFEST
@@ -661,7 +381,7 @@ class Dataset:
         decompressed; shards whose headers cannot be read are left out (loading them names why)."""
         out: dict[int, dict[str, tuple[int, ...]]] = {}
         for i, s in enumerate(self.shards):
-            try:  # each header parsed under NPY_HEADER_LOCK (see _NPY_PARSE_LOCK)
+            try:  # each header parsed under NPY_HEADER_LOCK (see traffictwin.io.npz._NPY_PARSE_LOCK)
                 heads = npz_headers(self.root / s["name"], keys)
             except InputError:
                 continue

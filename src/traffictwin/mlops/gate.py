@@ -165,6 +165,93 @@ def compare(gate: Gate, challenger_value: float, champion_value: float) -> tuple
     )
 
 
+def _unchanged(
+    common: dict[str, Any],
+    challenger: Version,
+    champion: Version | None,
+    test_fingerprint: str,
+    force: bool,
+) -> Decision | None:
+    """The ``unchanged`` decision when there is nothing to decide (the challenger is the
+    champion, or was decided against it on this test set and not ``force``), else None."""
+    unchanged = dict(challenger_value=None, champion_value=None, action="unchanged")
+    if champion is not None and champion.version == challenger.version:
+        return Decision(
+            **common,
+            **unchanged,
+            champion_version=champion.version,
+            reason="challenger is already the champion",
+        )
+    if not force and already_decided(challenger, champion, test_fingerprint):
+        return Decision(
+            **common,
+            **unchanged,
+            champion_version=champion.version,  # type: ignore[union-attr]
+            reason=f"already decided against champion v{champion.version} on this test set "  # type: ignore[union-attr]
+            f"({challenger.tags['gate.decision']})",
+            earlier=str(challenger.tags["gate.decision"]),
+        )
+    return None
+
+
+def _judged_alone(
+    common: dict[str, Any],
+    gate: Gate,
+    champion: Version | None,
+    ch_val: float,
+    ch_metrics: dict[str, float],
+    incompatible: str = "",
+) -> Decision:
+    """The challenger judged on its own figure (finite or not): there is no champion yet
+    (``first``), or the champion is known-incompatible for the reason ``incompatible``."""
+    ok = math.isfinite(ch_val)
+    if champion is None:
+        return Decision(
+            **common,
+            champion_version=None,
+            challenger_value=ch_val,
+            champion_value=None,
+            action="first" if ok else "rejected",
+            reason="no champion yet: first model becomes champion"
+            if ok
+            else f"{gate.metric} is not finite",
+            challenger_metrics=ch_metrics,
+        )
+    return Decision(
+        **common,
+        champion_version=champion.version,
+        challenger_value=ch_val,
+        champion_value=None,
+        action="promoted" if ok else "rejected",
+        reason=f"champion v{champion.version} skipped, known-incompatible ({incompatible}); "
+        + (
+            f"challenger judged alone: {gate.metric} {ch_val:.6g} is finite"
+            if ok
+            else f"challenger {gate.metric} is not finite"
+        ),
+        challenger_metrics=ch_metrics,
+        champion_incompatible=incompatible,
+    )
+
+
+def _champion_figures(
+    name: str, champion: Version, evaluate: Evaluator, gate: Gate
+) -> tuple[dict[str, float], float]:
+    """The champion's metrics and its figure for ``gate.metric``. :class:`IncompatibleModelError`
+    passes through; any other failure may be transient: :class:`ChampionEvaluationError`."""
+    try:
+        cp_metrics = {k: float(v) for k, v in evaluate(champion.uri).items()}
+        cp_val = metric_value(cp_metrics, gate.metric, f"{name} v{champion.version} (champion)")
+    except IncompatibleModelError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any other failure may be transient: stop, keep the champion
+        raise ChampionEvaluationError(
+            f"{name}: champion v{champion.version} could not be evaluated "
+            f"({type(exc).__name__}: {one_line(exc)}); gate stopped, champion kept"
+        ) from exc
+    return cp_metrics, cp_val
+
+
 def decide(
     name: str,
     challenger: Version,
@@ -190,64 +277,17 @@ def decide(
         margin=float(gate.margin),
         test_fingerprint=test_fingerprint,
     )
-    unchanged = dict(challenger_value=None, champion_value=None, action="unchanged")
-    if champion is not None and champion.version == challenger.version:
-        return Decision(
-            **common,
-            **unchanged,
-            champion_version=champion.version,
-            reason="challenger is already the champion",
-        )
-    if not force and already_decided(challenger, champion, test_fingerprint):
-        return Decision(
-            **common,
-            **unchanged,
-            champion_version=champion.version,  # type: ignore[union-attr]
-            reason=f"already decided against champion v{champion.version} on this test set "  # type: ignore[union-attr]
-            f"({challenger.tags['gate.decision']})",
-            earlier=str(challenger.tags["gate.decision"]),
-        )
+    same = _unchanged(common, challenger, champion, test_fingerprint, force)
+    if same is not None:
+        return same
     ch_metrics = {k: float(v) for k, v in evaluate(challenger.uri).items()}
     ch_val = metric_value(ch_metrics, gate.metric, f"{name} v{challenger.version}")
     if champion is None:
-        ok = math.isfinite(ch_val)
-        return Decision(
-            **common,
-            champion_version=None,
-            challenger_value=ch_val,
-            champion_value=None,
-            action="first" if ok else "rejected",
-            reason="no champion yet: first model becomes champion"
-            if ok
-            else f"{gate.metric} is not finite",
-            challenger_metrics=ch_metrics,
-        )
+        return _judged_alone(common, gate, None, ch_val, ch_metrics)
     try:
-        cp_metrics = {k: float(v) for k, v in evaluate(champion.uri).items()}
-        cp_val = metric_value(cp_metrics, gate.metric, f"{name} v{champion.version} (champion)")
+        cp_metrics, cp_val = _champion_figures(name, champion, evaluate, gate)
     except IncompatibleModelError as exc:
-        why = one_line(exc)
-        ok = math.isfinite(ch_val)
-        return Decision(
-            **common,
-            champion_version=champion.version,
-            challenger_value=ch_val,
-            champion_value=None,
-            action="promoted" if ok else "rejected",
-            reason=f"champion v{champion.version} skipped, known-incompatible ({why}); "
-            + (
-                f"challenger judged alone: {gate.metric} {ch_val:.6g} is finite"
-                if ok
-                else f"challenger {gate.metric} is not finite"
-            ),
-            challenger_metrics=ch_metrics,
-            champion_incompatible=why,
-        )
-    except Exception as exc:  # noqa: BLE001 - any other failure may be transient: stop, keep the champion
-        raise ChampionEvaluationError(
-            f"{name}: champion v{champion.version} could not be evaluated "
-            f"({type(exc).__name__}: {one_line(exc)}); gate stopped, champion kept"
-        ) from exc
+        return _judged_alone(common, gate, champion, ch_val, ch_metrics, one_line(exc))
     better, why = compare(gate, ch_val, cp_val)
     return Decision(
         **common,

@@ -59,11 +59,28 @@ def compare_runs(
         raise RunsError(
             f"MLflow experiment {experiment!r} not found at {uri} (experiments there: {names or 'none'})"
         )
+    runs = _search_runs(client, exp.experiment_id, filter_string, max_results)
+    if not include_unfinished:
+        runs = [r for r in runs if r.info.status == "FINISHED"]
+    metric_cols = _metric_columns(runs, metrics, experiment)
+    if params is None:
+        names = sorted({k for r in runs for k in r.data.params})
+        param_cols = [k for k in names if len({r.data.params.get(k) for r in runs}) > 1]
+    else:
+        param_cols = list(params)
+    rows = [_run_row(r, param_cols, metric_cols) for r in runs]
+    columns = [*ID_COLUMNS, *TAG_COLUMNS, *(f"param:{p}" for p in param_cols), *metric_cols]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def _search_runs(client: Any, experiment_id: str, filter_string: str, max_results: int) -> list:
+    """Up to ``max_results`` runs of the experiment matching ``filter_string``, newest first
+    (MLflow's pages of at most 1000 runs followed)."""
     runs: list[Any] = []
     token = None
     while len(runs) < max_results:
         page = client.search_runs(
-            [exp.experiment_id],
+            [experiment_id],
             filter_string=filter_string,
             max_results=min(1000, max_results - len(runs)),
             order_by=["attributes.start_time DESC"],
@@ -73,45 +90,42 @@ def compare_runs(
         token = page.token
         if not token:
             break
-    if not include_unfinished:
-        runs = [r for r in runs if r.info.status == "FINISHED"]
+    return runs
 
+
+def _metric_columns(runs: list, metrics: Sequence[str] | None, experiment: str) -> list[str]:
+    """``metrics`` (each logged by some run, unless there are no runs), or every logged metric
+    name, sorted."""
     all_metrics = sorted({k for r in runs for k in r.data.metrics})
     if metrics is None:
-        metric_cols = all_metrics
-    else:
-        missing = [m for m in metrics if m not in all_metrics]
-        if missing and runs:
-            raise RunsError(
-                f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})"
-            )
-        metric_cols = list(metrics)
-    if params is None:
-        names = sorted({k for r in runs for k in r.data.params})
-        param_cols = [k for k in names if len({r.data.params.get(k) for r in runs}) > 1]
-    else:
-        param_cols = list(params)
+        return all_metrics
+    missing = [m for m in metrics if m not in all_metrics]
+    if missing and runs:
+        raise RunsError(
+            f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})"
+        )
+    return list(metrics)
 
-    rows = []
-    for r in runs:
-        row: dict[str, Any] = {
-            "run_name": r.info.run_name,
-            "run_id": r.info.run_id,
-            "status": r.info.status,
-            "start_time": pd.Timestamp(r.info.start_time, unit="ms", tz="UTC")
-            if r.info.start_time
-            else pd.NaT,
-        }
-        for t in TAG_COLUMNS:
-            v = r.data.tags.get(t, "")
-            row[t] = v[:8] if t == "git_commit" else v
-        for p in param_cols:
-            row[f"param:{p}"] = r.data.params.get(p)
-        for m in metric_cols:
-            row[m] = r.data.metrics.get(m, math.nan)
-        rows.append(row)
-    columns = [*ID_COLUMNS, *TAG_COLUMNS, *(f"param:{p}" for p in param_cols), *metric_cols]
-    return pd.DataFrame(rows, columns=columns)
+
+def _run_row(r: Any, param_cols: list[str], metric_cols: list[str]) -> dict[str, Any]:
+    """One run's row: ids, start time (UTC), tags (commit shortened to 8 characters), the
+    parameters and the metrics' last values (NaN where the run has none)."""
+    row: dict[str, Any] = {
+        "run_name": r.info.run_name,
+        "run_id": r.info.run_id,
+        "status": r.info.status,
+        "start_time": pd.Timestamp(r.info.start_time, unit="ms", tz="UTC")
+        if r.info.start_time
+        else pd.NaT,
+    }
+    for t in TAG_COLUMNS:
+        v = r.data.tags.get(t, "")
+        row[t] = v[:8] if t == "git_commit" else v
+    for p in param_cols:
+        row[f"param:{p}"] = r.data.params.get(p)
+    for m in metric_cols:
+        row[m] = r.data.metrics.get(m, math.nan)
+    return row
 
 
 def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str:

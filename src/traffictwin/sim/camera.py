@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -425,6 +426,38 @@ def _box_colour(faces: _Faces, fidx: np.ndarray, pw: np.ndarray, boxes: Boxes) -
     return np.clip(col, 0, 1)
 
 
+@dataclass(frozen=True)
+class GroundStyle:
+    """Ground raster layout: margin around the drawn lines (m), lane-edge dashes (on, off) (m),
+    marking width (m) and the width of sidewalk polylines (m)."""
+
+    margin: float = 20.0
+    dash: tuple[float, float] = (3.0, 6.0)
+    marking_width: float = 0.15
+    sidewalk_width: float = 2.5
+
+
+class _Canvas:
+    """A uint8 surface-type raster (row = y, col = x) covering ``[lo, hi]`` (m) at ``res`` m/px."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, res: float) -> None:
+        self.lo, self.res = lo, res
+        Wr, Hr = int(np.ceil((hi[0] - lo[0]) / res)), int(np.ceil((hi[1] - lo[1]) / res))
+        self.raster = np.zeros((Hr, Wr), np.uint8)
+
+    def line(self, poly: Any, closed: bool, value: int, width: float) -> None:
+        """Draw polyline ``poly`` (M, 2; m) ``width`` m wide (at least 1 px) with ``value``."""
+        px = np.round((np.asarray(poly, float) - self.lo) / self.res * (1 << _SHIFT))
+        cv2.polylines(
+            self.raster,
+            [px.astype(np.int32)],
+            closed,
+            value,
+            thickness=max(1, int(round(width / self.res))),
+            shift=_SHIFT,
+        )
+
+
 class GroundTexture:
     """Ground colour as a function of the world point: a raster of surface types + noise.
 
@@ -459,17 +492,17 @@ class GroundTexture:
         lanes: Sequence[object],
         sidewalks: Sequence[np.ndarray] = (),
         res: float = 0.1,
-        margin: float = 20.0,
-        dash: tuple[float, float] = (3.0, 6.0),
-        marking_width: float = 0.15,
-        sidewalk_width: float = 2.5,
         seed: int = 0,
         roads: Sequence[object] = (),
+        style: GroundStyle | None = None,
     ) -> GroundTexture:
-        """Rasterise lanes (objects with ``centerline`` (M, 2) m and ``width`` m) and sidewalk polylines.
+        """Rasterise lanes (objects with ``centerline`` (M, 2) m and ``width`` m), sidewalk
+        polylines and roads (``centerline``, ``half_width`` m, optional ``sidewalk`` m and
+        ``closed``) at ``res`` m/px; ``style``: margin and marking sizes (:class:`GroundStyle`).
 
-        Lane boundaries get dashed markings (``dash`` = (on, off) m).
+        Lane boundaries get dashed markings (``style.dash`` = (on, off) m).
         """
+        style = style or GroundStyle()
         pts = [np.asarray(ln.centerline, float) for ln in lanes] + [
             np.asarray(s, float) for s in sidewalks
         ]
@@ -477,76 +510,29 @@ class GroundTexture:
         if not pts:
             return GroundTexture.plain()
         allp = np.concatenate(pts)
-        lo = allp.min(0) - margin
-        hi = allp.max(0) + margin
-        Wr, Hr = int(np.ceil((hi[0] - lo[0]) / res)), int(np.ceil((hi[1] - lo[1]) / res))
-        ras = np.zeros((Hr, Wr), np.uint8)  # row = y, col = x
-
-        def to_px(p: np.ndarray) -> np.ndarray:
-            return np.round((p - lo) / res * (1 << _SHIFT)).astype(np.int32)
-
+        canvas = _Canvas(allp.min(0) - style.margin, allp.max(0) + style.margin, res)
         for rd in roads:  # sidewalk band first, then the drivable surface over it
-            cl = np.asarray(rd.centerline, float)
             hw, sw = float(rd.half_width), float(getattr(rd, "sidewalk", 0.0))
-            closed = bool(getattr(rd, "closed", False))
             if sw > 0:
-                cv2.polylines(
-                    ras,
-                    [to_px(cl)],
-                    closed,
-                    3,
-                    thickness=max(1, int(round(2 * (hw + sw) / res))),
-                    shift=_SHIFT,
-                )
+                canvas.line(rd.centerline, bool(getattr(rd, "closed", False)), 3, 2 * (hw + sw))
         for rd in roads:
-            cl = np.asarray(rd.centerline, float)
-            cv2.polylines(
-                ras,
-                [to_px(cl)],
-                bool(getattr(rd, "closed", False)),
-                1,
-                thickness=max(1, int(round(2 * float(rd.half_width) / res))),
-                shift=_SHIFT,
-            )
+            closed = bool(getattr(rd, "closed", False))
+            canvas.line(rd.centerline, closed, 1, 2 * float(rd.half_width))
         for s in sidewalks:
-            s = np.asarray(s, float)
             if len(s) >= 2:
-                cv2.polylines(
-                    ras,
-                    [to_px(s)],
-                    False,
-                    3,
-                    thickness=max(1, int(round(sidewalk_width / res))),
-                    shift=_SHIFT,
-                )
-        for ln in lanes:
-            cl = np.asarray(ln.centerline, float)
-            if len(cl) < 2:
-                continue
-            cv2.polylines(
-                ras,
-                [to_px(cl)],
-                False,
-                1,
-                thickness=max(1, int(round(float(ln.width) / res))),
-                shift=_SHIFT,
-            )
-        for ln in lanes:
-            cl = np.asarray(ln.centerline, float)
+                canvas.line(s, False, 3, style.sidewalk_width)
+        lines = [np.asarray(ln.centerline, float) for ln in lanes]
+        for ln, cl in zip(lanes, lines):
+            if len(cl) >= 2:
+                canvas.line(cl, False, 1, float(ln.width))
+        for ln, cl in zip(lanes, lines):
             if len(cl) < 2:
                 continue
             for side in (-1.0, 1.0):
                 edge = _offset_polyline(cl, side * float(ln.width) / 2.0)
-                for seg in _dash_polyline(edge, *dash):
-                    cv2.polylines(
-                        ras,
-                        [to_px(seg)],
-                        False,
-                        2,
-                        thickness=max(1, int(round(marking_width / res))),
-                        shift=_SHIFT,
-                    )
-        return GroundTexture(ras, lo, res, seed)
+                for seg in _dash_polyline(edge, *style.dash):
+                    canvas.line(seg, False, 2, style.marking_width)
+        return GroundTexture(canvas.raster, canvas.lo, res, seed)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Colour (P, 3) in [0, 1] at world points (x, y) (m)."""

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from traffictwin.sim.scene import Boxes, Cls
-from traffictwin.sim.traffic import SUBJECT_SIZE, sample_scenario
+from traffictwin.sim.traffic import SUBJECT_SIZE, Scenario, sample_scenario
 from traffictwin.sim.world import TEMPLATES, World, build_world
 
 SITUATIONS = (
@@ -196,9 +196,41 @@ def _rel(pose: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], 1)
 
 
-def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
-    """Simulate sequence ``index`` of the dataset with ``seed`` (deterministic for the pair)."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 3003]))
+@dataclass
+class _Course:
+    """Where and when the subject drives: its world, scenario traffic, lane (index, length L m,
+    width lw m), start arc length s0 (m), simulation time grid (s) and scenario start time (s)."""
+
+    world: World
+    scen: Scenario
+    lane: int
+    L: float
+    lw: float
+    s0: float
+    times: np.ndarray
+    t_start: float
+
+
+@dataclass
+class _Plan:
+    """The situation's parameters: IDM desired time gap T (s), standstill gap s0 (m),
+    comfortable deceleration b (m/s^2), desired and initial speed (m/s), and the inserted lead,
+    cut-in vehicle or pedestrian (None when the situation has none)."""
+
+    T: float
+    s0: float
+    b: float
+    v_des: float
+    v_init: float
+    lead: dict | None = None
+    cut: dict | None = None
+    ped: dict | None = None
+
+
+def _draw_course(
+    seed: int, index: int, cfg: DrivingConfig, rng: np.random.Generator
+) -> tuple[_Course, str]:
+    """The world, its traffic, the subject's lane and start, and the situation of the sequence."""
     templates = cfg.templates or TEMPLATES
     template = str(templates[int(rng.integers(len(templates)))])
     world = build_world(template, int(rng.integers(0, 2**31 - 1)))
@@ -215,91 +247,112 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
     lw = float(world.lanes[lane].width)
     ahead_needed = cfg.max_speed * duration + 60.0
     s_sub0 = float(rng.uniform(10.0, max(12.0, L - ahead_needed)))
+    return _Course(world, scen, lane, L, lw, s_sub0, times, t_start), situation
 
-    # situation parameters: subject desired speed v_des, initial speed v_init, desired gap T;
-    # inserted lead: initial gap, speed profile
-    T = float(rng.uniform(1.0, 1.8))
-    s0, b = 2.0, 3.0  # IDM standstill gap (m) and comfortable deceleration (m/s^2)
-    v_des = float(rng.uniform(8.0, cfg.max_speed))
-    v_init = v_des * float(rng.uniform(0.6, 1.0))
-    lead: dict | None = None
-    cut: dict | None = None
-    ped: dict | None = None
+
+def _lead_plan(
+    situation: str, plan: _Plan, rng: np.random.Generator, cfg: DrivingConfig, times: np.ndarray
+) -> None:
+    """Fill ``plan`` for a situation with an inserted lead vehicle (speed profile ``v``, m/s)."""
+    n = len(times)
     if situation == "follow_far":
-        T = float(rng.uniform(1.3, 3.0))
+        plan.T = float(rng.uniform(1.3, 3.0))
         v_l = float(rng.uniform(6.0, cfg.max_speed - 2))
-        v_des, v_init = v_l + 3.0, v_l
-        lead = dict(gap=2.0 + T * v_l * float(rng.uniform(0.9, 1.2)), v=np.full(n, v_l))
+        plan.v_des, plan.v_init = v_l + 3.0, v_l
+        plan.lead = dict(gap=2.0 + plan.T * v_l * float(rng.uniform(0.9, 1.2)), v=np.full(n, v_l))
     elif situation == "follow_close":
-        T = float(rng.uniform(0.4, 1.2))
-        s0 = float(rng.uniform(1.0, 2.0))
+        plan.T = float(rng.uniform(0.4, 1.2))
+        plan.s0 = float(rng.uniform(1.0, 2.0))
         v_l = float(rng.uniform(5.0, cfg.max_speed - 2))
-        v_des, v_init = v_l + 3.0, v_l
-        lead = dict(gap=2.0 + T * v_l * float(rng.uniform(0.8, 1.1)), v=np.full(n, v_l))
+        plan.v_des, plan.v_init = v_l + 3.0, v_l
+        plan.lead = dict(gap=2.0 + plan.T * v_l * float(rng.uniform(0.8, 1.1)), v=np.full(n, v_l))
     elif situation == "approach_slow":
         v_l = float(rng.uniform(3.0, 10.0))
-        v_des = v_init = float(rng.uniform(12.0, cfg.max_speed))
-        T = float(rng.uniform(0.4, 1.0))
-        b = float(rng.uniform(3.0, 6.0))
-        lead = dict(gap=float(rng.uniform(25.0, 70.0)), v=np.full(n, v_l))
+        plan.v_des = plan.v_init = float(rng.uniform(12.0, cfg.max_speed))
+        plan.T = float(rng.uniform(0.4, 1.0))
+        plan.b = float(rng.uniform(3.0, 6.0))
+        plan.lead = dict(gap=float(rng.uniform(25.0, 70.0)), v=np.full(n, v_l))
     elif situation == "approach_stopped":
-        v_des = v_init = float(rng.uniform(8.0, 20.0))
-        T = float(rng.uniform(0.4, 1.0))
-        b = float(rng.uniform(3.0, 6.0))  # late braking
-        lead = dict(gap=float(rng.uniform(20.0, 60.0)), v=np.zeros(n))
+        plan.v_des = plan.v_init = float(rng.uniform(8.0, 20.0))
+        plan.T = float(rng.uniform(0.4, 1.0))
+        plan.b = float(rng.uniform(3.0, 6.0))  # late braking
+        plan.lead = dict(gap=float(rng.uniform(20.0, 60.0)), v=np.zeros(n))
     elif situation == "stop_and_go":
-        v_init, v_des = 0.0, float(rng.uniform(8.0, 16.0))
-        T = float(rng.uniform(0.4, 1.0))
-        s0 = float(rng.uniform(1.0, 2.0))
+        plan.v_init, plan.v_des = 0.0, float(rng.uniform(8.0, 16.0))
+        plan.T = float(rng.uniform(0.4, 1.0))
+        plan.s0 = float(rng.uniform(1.0, 2.0))
         t_go = cfg.warmup + float(rng.uniform(0.0, 2.5))
         acc = float(rng.uniform(1.0, 2.5))
-        lead = dict(gap=float(rng.uniform(2.0, 4.0)), v=np.clip((times - t_go) * acc, 0.0, v_des))
-    elif situation == "cut_in":
-        v_des = v_init = float(rng.uniform(8.0, cfg.max_speed))
-        T = float(rng.uniform(1.2, 1.8))
+        plan.lead = dict(
+            gap=float(rng.uniform(2.0, 4.0)), v=np.clip((times - t_go) * acc, 0.0, plan.v_des)
+        )
+
+
+def _draw_plan(
+    situation: str, rng: np.random.Generator, cfg: DrivingConfig, times: np.ndarray, lw: float
+) -> _Plan:
+    """The situation's IDM parameters, speeds and inserted agents (see the module docstring)."""
+    T = float(rng.uniform(1.0, 1.8))
+    v_des = float(rng.uniform(8.0, cfg.max_speed))
+    v_init = v_des * float(rng.uniform(0.6, 1.0))
+    plan = _Plan(T=T, s0=2.0, b=3.0, v_des=v_des, v_init=v_init)
+    if situation == "cut_in":
+        plan.v_des = plan.v_init = float(rng.uniform(8.0, cfg.max_speed))
+        plan.T = float(rng.uniform(1.2, 1.8))
         side = float(rng.choice([-1.0, 1.0]))
         t_c = cfg.warmup + float(rng.uniform(0.0, cfg.frames / cfg.fps * 0.5))
-        cut = dict(
+        plan.cut = dict(
             gap=float(rng.uniform(2.0, 12.0)),
-            v=v_init * float(rng.uniform(0.75, 1.15)),
+            v=plan.v_init * float(rng.uniform(0.75, 1.15)),
             side=side * lw,
             t_c=t_c,
             dur=float(rng.uniform(1.5, 3.0)),
         )
     elif situation == "pedestrian":
-        v_des = v_init = float(rng.uniform(6.0, 14.0))
-        T = float(rng.uniform(0.5, 1.0))
-        b = float(
-            rng.uniform(4.0, 7.0)
-        )  # the driver reacts late, once the pedestrian is in the lane
+        plan.v_des = plan.v_init = float(rng.uniform(6.0, 14.0))
+        plan.T = float(rng.uniform(0.5, 1.0))
+        # the driver reacts late, once the pedestrian is in the lane
+        plan.b = float(rng.uniform(4.0, 7.0))
         # the pedestrian steps into the lane at t_enter, when the (still unbraked) subject is
         # tau seconds away from it
         t_enter = cfg.warmup + float(rng.uniform(-0.5, 0.8)) * cfg.frames / cfg.fps
         tau = float(rng.uniform(0.8, 3.5))
-        ped = dict(
-            dist=v_init * (max(t_enter, 0.0) + tau) + SUBJECT_SIZE[0] / 2,
+        plan.ped = dict(
+            dist=plan.v_init * (max(t_enter, 0.0) + tau) + SUBJECT_SIZE[0] / 2,
             t_enter=t_enter,
             v=float(rng.uniform(1.0, 1.8)),
             side=float(rng.choice([-1.0, 1.0])),
         )
-    v_des = min(v_des, cfg.max_speed)
+    else:
+        _lead_plan(situation, plan, rng, cfg, times)
+    plan.v_des = min(plan.v_des, cfg.max_speed)
+    return plan
 
-    # scenario traffic on the subject's entry lane: removed for 'free' and when a lead is inserted
-    entry = world.lanes[lane].entry
+
+def _dropped_ids(course: _Course, situation: str, plan: _Plan) -> tuple[int, ...]:
+    """Scenario vehicles on the subject's entry lane: removed for 'free' and when a lead or
+    cut-in vehicle is inserted (none otherwise)."""
+    world, scen = course.world, course.scen
+    entry = world.lanes[course.lane].entry
     drop_ids: set[int] = set()
-    if situation == "free" or lead is not None or cut is not None:
+    if situation == "free" or plan.lead is not None or plan.cut is not None:
         for k in range(len(scen.veh_ids)):
             if world.lanes[int(scen.veh_lane[k])].entry == entry:
                 drop_ids.add(int(scen.veh_ids[k]))
+    return tuple(drop_ids)
 
+
+def _inserted_tracks(
+    course: _Course, plan: _Plan, rng: np.random.Generator, cfg: DrivingConfig
+) -> list[_Track]:
+    """The inserted lead (car or truck), cut-in car and crossing pedestrian on the time grid."""
+    times, s_sub0, lw = course.times, course.s0, course.lw
+    n = len(times)
     tracks: list[_Track] = []
-    s_sub = np.zeros(n)
-    v_sub = np.zeros(n)
-    s_sub[0], v_sub[0] = s_sub0, v_init
-    if lead is not None:
+    if plan.lead is not None:
         sl = np.zeros(n)
-        sl[0] = s_sub0 + SUBJECT_SIZE[0] + lead["gap"]
-        sl[1:] = sl[0] + np.cumsum(lead["v"][:-1]) * cfg.sim_dt
+        sl[0] = s_sub0 + SUBJECT_SIZE[0] + plan.lead["gap"]
+        sl[1:] = sl[0] + np.cumsum(plan.lead["v"][:-1]) * cfg.sim_dt
         size = np.array(
             [
                 float(rng.uniform(3.9, 4.9)),
@@ -314,6 +367,7 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
                 int(Cls.TRUCK),
             )
         tracks.append(_Track(INSERTED_ID0, cls, size, sl, np.zeros(n)))
+    cut, ped = plan.cut, plan.ped
     if cut is not None:
         sc = s_sub0 + SUBJECT_SIZE[0] + cut["gap"] + np.arange(n) * cfg.sim_dt * cut["v"]
         u = np.clip((times - cut["t_c"]) / cut["dur"], 0.0, 1.0)
@@ -328,78 +382,114 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         tracks.append(
             _Track(INSERTED_ID0 + 2, int(Cls.PEDESTRIAN), np.array([0.55, 0.6, 1.75]), s_p, lat)
         )
+    return tracks
 
-    # subject: IDM towards the nearest agent in its corridor (inserted tracks + scenario agents)
+
+def _nearest_ahead(
+    course: _Course,
+    tracks: list[_Track],
+    drop_ids: tuple[int, ...],
+    i: int,
+    s_i: float,
+    v_i: float,
+    dt: float,
+) -> tuple[float, float]:
+    """Bumper gap (m, inf if none) and approach rate (m/s) to the nearest agent in the subject's
+    corridor at grid step ``i`` (subject at arc length ``s_i`` m with speed ``v_i`` m/s)."""
+    lw = course.lw
+    pose = _pose_on(course.world, course.lane, s_i)[0]
+    gap, dv = np.inf, 0.0
+    for tr in tracks:
+        if (
+            abs(tr.lat[i]) < (lw + tr.size[1]) / 2 - 0.3
+            or tr.cls == Cls.PEDESTRIAN
+            and abs(tr.lat[i]) < lw / 2 + 0.5
+        ):
+            g = tr.s[i] - s_i - (SUBJECT_SIZE[0] + tr.size[0]) / 2
+            if g > -1.0 and g < gap:
+                vt = (tr.s[i + 1] - tr.s[i]) / dt
+                gap, dv = g, v_i - vt
+    ag = course.scen.agents_at(course.t_start + course.times[i], exclude_ids=drop_ids)
+    if len(ag):
+        rel = _rel(pose, ag.center)
+        vrel = ag.velocity @ np.array([np.cos(pose[2]), np.sin(pose[2])])
+        inc = (rel[:, 0] > 0) & (np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + ag.size[:, 1]) / 2 + 0.2)
+        if inc.any():
+            g = rel[inc, 0] - (SUBJECT_SIZE[0] + ag.size[inc, 0]) / 2
+            j = int(np.argmin(g))
+            if g[j] < gap:
+                gap, dv = float(g[j]), float(v_i - vrel[inc][j])
+    return gap, dv
+
+
+def _drive_subject(
+    course: _Course,
+    plan: _Plan,
+    tracks: list[_Track],
+    drop_ids: tuple[int, ...],
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length (m) and speed (m/s) of the subject over the time grid: IDM towards the nearest
+    agent in its corridor (inserted tracks + scenario agents)."""
+    n = len(course.times)
+    s_sub = np.zeros(n)
+    v_sub = np.zeros(n)
+    s_sub[0], v_sub[0] = course.s0, plan.v_init
     for i in range(n - 1):
-        t = t_start + times[i]
-        pose = _pose_on(world, lane, s_sub[i])[0]
-        gap, dv = np.inf, 0.0
-        for tr in tracks:
-            if (
-                abs(tr.lat[i]) < (lw + tr.size[1]) / 2 - 0.3
-                or tr.cls == Cls.PEDESTRIAN
-                and abs(tr.lat[i]) < lw / 2 + 0.5
-            ):
-                g = tr.s[i] - s_sub[i] - (SUBJECT_SIZE[0] + tr.size[0]) / 2
-                if g > -1.0 and g < gap:
-                    vt = (tr.s[i + 1] - tr.s[i]) / cfg.sim_dt
-                    gap, dv = g, v_sub[i] - vt
-        ag = scen.agents_at(t, exclude_ids=tuple(drop_ids))
-        if len(ag):
-            rel = _rel(pose, ag.center)
-            vrel = ag.velocity @ np.array([np.cos(pose[2]), np.sin(pose[2])])
-            inc = (rel[:, 0] > 0) & (
-                np.abs(rel[:, 1]) < (SUBJECT_SIZE[1] + ag.size[:, 1]) / 2 + 0.2
-            )
-            if inc.any():
-                g = rel[inc, 0] - (SUBJECT_SIZE[0] + ag.size[inc, 0]) / 2
-                j = int(np.argmin(g))
-                if g[j] < gap:
-                    gap, dv = float(g[j]), float(v_sub[i] - vrel[inc][j])
-        a = _idm(v_sub[i], v_des, gap, dv, T, b=b, s0=s0)
-        v_sub[i + 1] = max(0.0, v_sub[i] + a * cfg.sim_dt)
-        s_sub[i + 1] = s_sub[i] + 0.5 * (v_sub[i] + v_sub[i + 1]) * cfg.sim_dt
+        gap, dv = _nearest_ahead(course, tracks, drop_ids, i, s_sub[i], v_sub[i], dt)
+        a = _idm(v_sub[i], plan.v_des, gap, dv, plan.T, b=plan.b, s0=plan.s0)
+        v_sub[i + 1] = max(0.0, v_sub[i] + a * dt)
+        s_sub[i + 1] = s_sub[i] + 0.5 * (v_sub[i] + v_sub[i + 1]) * dt
+    return s_sub, v_sub
 
-    seq = Sequence(index, world, situation)
-    frame_t = cfg.warmup + np.arange(cfg.frames) / cfg.fps
-    r = rng.random(cfg.frames)
-    faults = np.where(
-        r < cfg.fault_delay,
-        "delay",
-        np.where(r < cfg.fault_delay + cfg.fault_vertical, "vertical", "none"),
-    )
-    vpx = rng.uniform(*cfg.vertical_px, cfg.frames) * rng.choice([-1.0, 1.0], cfg.frames)
 
-    def path_ahead(tl: float) -> np.ndarray:
-        s = float(np.interp(tl, times, s_sub))
-        arc = np.arange(s, min(s + PATH_AHEAD, L) + PATH_STEP / 2, PATH_STEP)
+@dataclass
+class _Replay:
+    """The simulated sequence, read at any time ``tl`` (s after its start) by interpolation."""
+
+    course: _Course
+    tracks: list[_Track]
+    drop_ids: tuple[int, ...]
+    s_sub: np.ndarray
+    v_sub: np.ndarray
+
+    def path_ahead(self, tl: float) -> np.ndarray:
+        """The subject's lane centreline ahead (K, 2; world, m), :data:`PATH_AHEAD` m long."""
+        c = self.course
+        s = float(np.interp(tl, c.times, self.s_sub))
+        arc = np.arange(s, min(s + PATH_AHEAD, c.L) + PATH_STEP / 2, PATH_STEP)
         if len(arc) < 2:
             arc = np.array([s, s + PATH_STEP])
-        return _pose_on(world, lane, arc)[:, :2]
+        return _pose_on(c.world, c.lane, arc)[:, :2]
 
-    def state(tl: float) -> tuple[np.ndarray, float, Boxes]:
-        s = float(np.interp(tl, times, s_sub))
-        v = float(np.interp(tl, times, v_sub))
-        pose = _pose_on(world, lane, s)[0]
-        parts = [world.static, scen.agents_at(t_start + tl, exclude_ids=tuple(drop_ids))]
-        for tr in tracks:
-            ss, la = float(np.interp(tl, times, tr.s)), float(np.interp(tl, times, tr.lat))
-            p = _pose_on(world, lane, ss, la)[0]
-            ds = (float(np.interp(tl + 0.05, times, tr.s)) - ss) / 0.05
-            dl = (float(np.interp(tl + 0.05, times, tr.lat)) - la) / 0.05
-            if tr.cls == Cls.PEDESTRIAN:
-                yaw = p[2] - np.pi / 2 * np.sign(la if la != 0 else 1.0)
-                vel = np.array([-np.sin(p[2]) * dl, np.cos(p[2]) * dl])
-            else:
-                yaw = p[2] + np.arctan2(dl, max(ds, 0.1)) if ds > 0.1 else p[2]
-                vel = ds * np.array([np.cos(p[2]), np.sin(p[2])]) + dl * np.array(
-                    [-np.sin(p[2]), np.cos(p[2])]
-                )
-            parts.append(
-                Boxes(
-                    p[None, :2], tr.size[None], [yaw], [tr.cls], velocity=vel[None], ids=[tr.ident]
-                )
+    def _track_box(self, tr: _Track, tl: float) -> Boxes:
+        """Inserted agent ``tr`` at ``tl`` as a box, heading and velocity from its motion."""
+        c = self.course
+        times = c.times
+        ss, la = float(np.interp(tl, times, tr.s)), float(np.interp(tl, times, tr.lat))
+        p = _pose_on(c.world, c.lane, ss, la)[0]
+        ds = (float(np.interp(tl + 0.05, times, tr.s)) - ss) / 0.05
+        dl = (float(np.interp(tl + 0.05, times, tr.lat)) - la) / 0.05
+        if tr.cls == Cls.PEDESTRIAN:
+            yaw = p[2] - np.pi / 2 * np.sign(la if la != 0 else 1.0)
+            vel = np.array([-np.sin(p[2]) * dl, np.cos(p[2]) * dl])
+        else:
+            yaw = p[2] + np.arctan2(dl, max(ds, 0.1)) if ds > 0.1 else p[2]
+            vel = ds * np.array([np.cos(p[2]), np.sin(p[2])]) + dl * np.array(
+                [-np.sin(p[2]), np.cos(p[2])]
             )
+        return Boxes(
+            p[None, :2], tr.size[None], [yaw], [tr.cls], velocity=vel[None], ids=[tr.ident]
+        )
+
+    def state(self, tl: float) -> tuple[np.ndarray, float, Boxes]:
+        """Subject pose (x, y, yaw) and speed (m/s) and every box (static + agents) at ``tl``."""
+        c = self.course
+        s = float(np.interp(tl, c.times, self.s_sub))
+        v = float(np.interp(tl, c.times, self.v_sub))
+        pose = _pose_on(c.world, c.lane, s)[0]
+        parts = [c.world.static, c.scen.agents_at(c.t_start + tl, exclude_ids=self.drop_ids)]
+        parts += [self._track_box(tr, tl) for tr in self.tracks]
         boxes = Boxes.concat(parts)
         # never render/count an agent that overlaps the subject (no interaction model at junctions)
         rel = _rel(pose, boxes.center)
@@ -409,16 +499,28 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
         hit &= boxes.ids < 1_000_000  # static boxes stay (the subject never enters them)
         return pose, v, boxes.subset(~hit)
 
+
+def _record_frames(replay: _Replay, rng: np.random.Generator, cfg: DrivingConfig) -> list[Frame]:
+    """The ``cfg.frames`` recorded frames after the warm-up, with their drawn stereo faults."""
+    frame_t = cfg.warmup + np.arange(cfg.frames) / cfg.fps
+    r = rng.random(cfg.frames)
+    faults = np.where(
+        r < cfg.fault_delay,
+        "delay",
+        np.where(r < cfg.fault_delay + cfg.fault_vertical, "vertical", "none"),
+    )
+    vpx = rng.uniform(*cfg.vertical_px, cfg.frames) * rng.choice([-1.0, 1.0], cfg.frames)
+    frames = []
     for k, tl in enumerate(frame_t):
-        pose, v, boxes = state(float(tl))
+        pose, v, boxes = replay.state(float(tl))
         fault = str(faults[k])
         if fault == "delay":
-            pose_r, _, boxes_r = state(float(tl) + cfg.delay)
+            pose_r, _, boxes_r = replay.state(float(tl) + cfg.delay)
         else:
             pose_r, boxes_r = pose, boxes
-        seq.frames.append(
+        frames.append(
             Frame(
-                float(t_start + tl),
+                float(replay.course.t_start + tl),
                 pose,
                 v,
                 boxes,
@@ -426,8 +528,22 @@ def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
                 boxes_r,
                 float(vpx[k]) if fault == "vertical" else 0.0,
                 fault,
-                path_ahead(float(tl)),
-                lw,
+                replay.path_ahead(float(tl)),
+                replay.course.lw,
             )
         )
+    return frames
+
+
+def generate_sequence(seed: int, index: int, cfg: DrivingConfig) -> Sequence:
+    """Simulate sequence ``index`` of the dataset with ``seed`` (deterministic for the pair)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 3003]))
+    course, situation = _draw_course(seed, index, cfg, rng)
+    plan = _draw_plan(situation, rng, cfg, course.times, course.lw)
+    drop_ids = _dropped_ids(course, situation, plan)
+    tracks = _inserted_tracks(course, plan, rng, cfg)
+    s_sub, v_sub = _drive_subject(course, plan, tracks, drop_ids, cfg.sim_dt)
+    replay = _Replay(course, tracks, drop_ids, s_sub, v_sub)
+    seq = Sequence(index, course.world, situation)
+    seq.frames = _record_frames(replay, rng, cfg)
     return seq

@@ -161,6 +161,63 @@ def _cast_columns(
     return best, np.where(np.isfinite(best), j, -1)
 
 
+def _candidates(spec: LidarSpec, pose: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Indices of the boxes whose footprint circle reaches within ``max_range`` of the sensor."""
+    if not len(boxes):
+        return np.zeros(0, dtype=np.int64)
+    rad = 0.5 * np.hypot(boxes.size[:, 0], boxes.size[:, 1])
+    rel = boxes.center - pose[:2]
+    dc = np.hypot(rel[:, 0], rel[:, 1])
+    return np.flatnonzero(dc - rad <= spec.max_range)
+
+
+def _sector_overlap(sub: Boxes, pose: np.ndarray, n_sec: int) -> np.ndarray:
+    """(n_sec, len(sub)) mask: box j's angular footprint, seen from the sensor, overlaps sector k
+    (sector k covers sensor azimuths ``[-pi + k w, -pi + (k+1) w)``, w = 2 pi / n_sec rad);
+    a box around the sensor overlaps every sector."""
+    rel = sub.center - pose[:2]
+    center_ang = np.arctan2(rel[:, 1], rel[:, 0]) - pose[2]
+    corners = sub.corners() - pose[:2]
+    ang = np.arctan2(corners[..., 1], corners[..., 0]) - pose[2]
+    dev = np.abs((ang - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi).max(1)
+    close = np.hypot(rel[:, 0], rel[:, 1]) <= 0.5 * np.hypot(sub.size[:, 0], sub.size[:, 1]) + 0.5
+    half_span = np.where(close, np.pi, dev + 1e-3)
+    sec_w = 2 * np.pi / n_sec
+    sec_mid = -np.pi + (np.arange(n_sec) + 0.5) * sec_w
+    diff = np.abs((center_ang[None, :] - sec_mid[:, None] + np.pi) % (2 * np.pi) - np.pi)
+    return diff <= half_span[None, :] + sec_w / 2
+
+
+def _ground(spec: LidarSpec, el: np.ndarray, n_az: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (n_az, E; m, ``max_range`` for no return) and hit code of the ground plane: the
+    same for every column of a channel."""
+    sin_e = np.sin(el)
+    with np.errstate(divide="ignore"):
+        t_ground = np.where(sin_e < -1e-9, -spec.height / sin_e, np.inf)
+    g_hit = t_ground < spec.max_range
+    dist = np.where(g_hit, t_ground, spec.max_range)[None].repeat(n_az, 0)
+    hit = np.where(g_hit, HIT_GROUND, HIT_NOTHING)[None].repeat(n_az, 0).astype(np.int64)
+    return dist, hit
+
+
+def _add_noise(
+    spec: LidarSpec, dist: np.ndarray, hit: np.ndarray, rng: np.random.Generator | None
+) -> None:
+    """Range noise (m) on returns and per-ray dropout, drawn from ``rng`` (in place), then every
+    return outside ``[min_range, max_range]`` becomes no return."""
+    if rng is not None:
+        if spec.range_noise > 0:
+            ret = hit != HIT_NOTHING
+            dist[ret] = dist[ret] + rng.normal(0.0, spec.range_noise, int(ret.sum()))
+        if spec.dropout > 0:
+            drop = rng.random(len(dist)) < spec.dropout
+            hit[drop] = HIT_NOTHING
+            dist[drop] = spec.max_range
+    short = (dist < spec.min_range) | (dist > spec.max_range)
+    hit[short] = HIT_NOTHING
+    dist[short] = spec.max_range
+
+
 def scan(
     spec: LidarSpec, pose: np.ndarray, boxes: Boxes, rng: np.random.Generator | None = None
 ) -> Scan:
@@ -175,67 +232,28 @@ def scan(
     n_az, n_el = len(az), len(el)
     A, E = np.meshgrid(az, el, indexing="ij")  # (n_az, n_el)
 
-    # candidate boxes within range, with their angular footprint seen from the sensor
-    if len(boxes):
-        rad = 0.5 * np.hypot(boxes.size[:, 0], boxes.size[:, 1])
-        rel = boxes.center - pose[:2]
-        dc = np.hypot(rel[:, 0], rel[:, 1])
-        cand = np.flatnonzero(dc - rad <= spec.max_range)
-    else:
-        cand = np.zeros(0, dtype=np.int64)
+    cand = _candidates(spec, pose, boxes)
     sub = boxes.subset(cand) if len(cand) else Boxes.empty()
     n_sec = max(1, min(spec.sectors, n_az))
     sec_of_col = (np.arange(n_az) * n_sec) // n_az
+    dist2, hit2 = _ground(spec, el, n_az)
     if len(sub):
-        rel = sub.center - pose[:2]
-        center_ang = np.arctan2(rel[:, 1], rel[:, 0]) - pose[2]
-        corners = sub.corners() - pose[:2]
-        ang = np.arctan2(corners[..., 1], corners[..., 0]) - pose[2]
-        dev = np.abs((ang - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi).max(1)
-        close = (
-            np.hypot(rel[:, 0], rel[:, 1]) <= 0.5 * np.hypot(sub.size[:, 0], sub.size[:, 1]) + 0.5
-        )
-        half_span = np.where(close, np.pi, dev + 1e-3)
-        sec_w = 2 * np.pi / n_sec
-        # sector k covers sensor azimuths [-pi + k w, -pi + (k+1) w)
-        sec_mid = -np.pi + (np.arange(n_sec) + 0.5) * sec_w
-        diff = np.abs((center_ang[None, :] - sec_mid[:, None] + np.pi) % (2 * np.pi) - np.pi)
-        overlap = diff <= half_span[None, :] + sec_w / 2  # (n_sec, n_sub)
-    # ground plane: the same distance for every column of a channel
-    sin_e = np.sin(el)
-    with np.errstate(divide="ignore"):
-        t_ground = np.where(sin_e < -1e-9, -spec.height / sin_e, np.inf)
-    g_hit = t_ground < spec.max_range
-    dist2 = np.where(g_hit, t_ground, spec.max_range)[None].repeat(n_az, 0)
-    hit2 = np.where(g_hit, HIT_GROUND, HIT_NOTHING)[None].repeat(n_az, 0).astype(np.int64)
-    bounds = np.searchsorted(sec_of_col, np.arange(n_sec + 1))
-    for k in range(n_sec):
-        cols = np.arange(bounds[k], bounds[k + 1])
-        if len(cols) == 0 or not len(sub):
-            continue
-        bsel = np.flatnonzero(overlap[k])
-        if len(bsel) == 0:
-            continue
-        d, h = _cast_columns(
-            pose, az[cols] + pose[2], el, spec.height, sub.subset(bsel), spec.max_range
-        )
-        better = d < dist2[cols]
-        dist2[cols] = np.where(better, d, dist2[cols])
-        hit2[cols] = np.where(better, cand[bsel][np.maximum(h, 0)], hit2[cols])
+        overlap = _sector_overlap(sub, pose, n_sec)
+        bounds = np.searchsorted(sec_of_col, np.arange(n_sec + 1))
+        for k in range(n_sec):
+            cols = np.arange(bounds[k], bounds[k + 1])
+            bsel = np.flatnonzero(overlap[k])
+            if len(cols) == 0 or len(bsel) == 0:
+                continue
+            d, h = _cast_columns(
+                pose, az[cols] + pose[2], el, spec.height, sub.subset(bsel), spec.max_range
+            )
+            better = d < dist2[cols]
+            dist2[cols] = np.where(better, d, dist2[cols])
+            hit2[cols] = np.where(better, cand[bsel][np.maximum(h, 0)], hit2[cols])
     dist = dist2.reshape(-1)
     hit = hit2.reshape(-1)
-
-    if rng is not None:
-        if spec.range_noise > 0:
-            ret = hit != HIT_NOTHING
-            dist[ret] = dist[ret] + rng.normal(0.0, spec.range_noise, int(ret.sum()))
-        if spec.dropout > 0:
-            drop = rng.random(len(dist)) < spec.dropout
-            hit[drop] = HIT_NOTHING
-            dist[drop] = spec.max_range
-    short = (dist < spec.min_range) | (dist > spec.max_range)
-    hit[short] = HIT_NOTHING
-    dist[short] = spec.max_range
+    _add_noise(spec, dist, hit, rng)
     return Scan(
         range=dist.reshape(n_az, n_el),
         hit=hit.reshape(n_az, n_el),

@@ -258,6 +258,127 @@ def _choose_subjects(
     )
 
 
+def _check_density(density: dict[str, float], n_encounters: int) -> dict:
+    """:data:`DEFAULT_DENSITY` with the overrides; ValueError for unknown keys or no encounter."""
+    unknown = set(density) - set(DEFAULT_DENSITY)
+    if unknown:
+        raise ValueError(
+            f"sample_scenario: unknown density parameter(s) {sorted(unknown)}; expected {sorted(DEFAULT_DENSITY)}"
+        )
+    if n_encounters < 1:
+        raise ValueError(f"sample_scenario: n_encounters must be >= 1, got {n_encounters}")
+    return {**DEFAULT_DENSITY, **density}
+
+
+def _lane_speeds(rng: np.random.Generator, world: World) -> dict[int, float]:
+    """One speed (m/s) per entry: 65-100 % of the lowest speed limit of its lanes."""
+    entries = sorted({ln.entry for ln in world.lanes})
+    lane_speed = {}
+    for e in entries:
+        limit = min(ln.speed_limit for ln in world.lanes if ln.entry == e)
+        lane_speed[e] = float(rng.uniform(0.65, 1.0) * limit)
+    return lane_speed
+
+
+@dataclass(frozen=True)
+class _Subjects:
+    """Both subjects' lanes (2,), arc lengths at t = 0 (2,; m) and speeds (2,; m/s)."""
+
+    lane: np.ndarray
+    s0: np.ndarray
+    speed: np.ndarray
+
+    def xy(self, table: _LaneTable, k: int, t: float) -> np.ndarray:
+        """World xy (1, 2) of subject ``k`` at time ``t`` (s)."""
+        return table.pose(self.lane[k : k + 1], self.s0[k : k + 1] + self.speed[k] * t)[0]
+
+
+def _clear_of_subjects(
+    table: _LaneTable,
+    entry_of: np.ndarray,
+    subj: _Subjects,
+    times: np.ndarray,
+    traffic: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Mask of the traffic (lane, s0, speed, size) that never overlaps a subject: not on a
+    subject's entry lane close in arc length (same speed => forever), and never closer than
+    8 m to a subject at an encounter time."""
+    lane, s0, v, size = traffic
+    keep = np.ones(len(lane), dtype=bool)
+    for k in range(2):
+        same = entry_of[lane] == entry_of[subj.lane[k]]
+        keep &= ~(same & (np.abs(s0 - subj.s0[k]) < (size[:, 0] + SUBJECT_SIZE[0]) / 2 + 3.0))
+        for t in times:
+            s = s0 + v * t
+            xy, _ = table.pose(lane, s)
+            sxy = subj.xy(table, k, t)
+            present = (s >= 0) & (s <= table.lengths[lane])
+            keep &= ~(present & (np.linalg.norm(xy - sxy, axis=1) < 8.0))
+    return keep
+
+
+def _parked_cars(rng: np.random.Generator, world: World, dens: dict, scale: float) -> Boxes:
+    """Cars in the parking strips, each slot taken with probability ``parked_prob * scale``, none
+    within ``junction_radius + 10 m`` of the centre."""
+    pc, psz, pyaw = [], [], []
+    for poly, yaw_off in world.parking:
+        cum = geo.cumulative_length(poly)
+        s = float(rng.uniform(0, 4))
+        while s < cum[-1] - 3:
+            length = float(rng.uniform(*DIMS[Cls.CAR][0]))
+            slot = length + float(rng.uniform(0.8, 2.5))
+            if rng.random() < min(1.0, dens["parked_prob"] * scale):
+                (xy,), (yaw,) = geo.interpolate(poly, cum, np.array([s + slot / 2]))
+                if np.linalg.norm(xy - world.center) > world.junction_radius + 10.0:
+                    pc.append(xy)
+                    psz.append(
+                        [length, rng.uniform(*DIMS[Cls.CAR][1]), rng.uniform(*DIMS[Cls.CAR][2])]
+                    )
+                    pyaw.append(yaw + yaw_off)
+            s += slot
+    return Boxes(
+        np.array(pc).reshape(-1, 2),
+        np.array(psz).reshape(-1, 3),
+        np.array(pyaw),
+        np.full(len(pc), Cls.CAR),
+    )
+
+
+def _parked_clear_of_subjects(
+    parked: Boxes, table: _LaneTable, subj: _Subjects, times: np.ndarray
+) -> Boxes:
+    """Parked cars overlapping a subject at an encounter time are dropped (subjects may use a
+    lane next to the parking strip but never overlap it; this guards connectors near junctions)."""
+    if not len(parked):
+        return parked
+    keep = np.ones(len(parked), dtype=bool)
+    for k in range(2):
+        for t in times:
+            keep &= np.linalg.norm(parked.center - subj.xy(table, k, t), axis=1) > 6.0
+    return parked.subset(keep)
+
+
+def _walkers(
+    rng: np.random.Generator, world: World, dens: dict, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pedestrians on the sidewalks (Poisson count per km): walk index, arc length at t = 0 (m),
+    signed speed (m/s) and size (m)."""
+    walks = world.sidewalks
+    wl = np.array([geo.cumulative_length(w)[-1] for w in walks]) if walks else np.zeros(0)
+    n_ped = (
+        int(rng.poisson(dens["pedestrians_per_km"] * scale * wl.sum() / 1000.0)) if len(wl) else 0
+    )
+    ped_walk = (
+        rng.choice(len(wl), size=n_ped, p=wl / wl.sum()).astype(np.int64)
+        if n_ped
+        else np.zeros(0, np.int64)
+    )
+    ped_s0 = rng.uniform(0, 1, n_ped) * wl[ped_walk] if n_ped else np.zeros(0)
+    ped_speed = rng.uniform(0.8, 1.7, n_ped) * rng.choice([-1.0, 1.0], n_ped)
+    ped_size = _dims(rng, np.full(n_ped, Cls.PEDESTRIAN))
+    return ped_walk, ped_s0, ped_speed, ped_size
+
+
 def sample_scenario(
     world: World,
     seed: int,
@@ -276,119 +397,49 @@ def sample_scenario(
     ``horizon`` (s): vehicles are seeded so that traffic flows over ``[0, horizon]``.
     ``density``: overrides of :data:`DEFAULT_DENSITY` (unknown keys raise ``ValueError``).
     """
-    unknown = set(density) - set(DEFAULT_DENSITY)
-    if unknown:
-        raise ValueError(
-            f"sample_scenario: unknown density parameter(s) {sorted(unknown)}; expected {sorted(DEFAULT_DENSITY)}"
-        )
-    if n_encounters < 1:
-        raise ValueError(f"sample_scenario: n_encounters must be >= 1, got {n_encounters}")
-    dens = {**DEFAULT_DENSITY, **density}
+    dens = _check_density(density, n_encounters)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7002]))
     scale = float(rng.uniform(*dens["density_scale"]))
-    entries = sorted({ln.entry for ln in world.lanes})
-    lane_speed = {}
-    for e in entries:
-        limit = min(ln.speed_limit for ln in world.lanes if ln.entry == e)
-        lane_speed[e] = float(rng.uniform(0.65, 1.0) * limit)
+    lane_speed = _lane_speeds(rng, world)
     times = t_meet + (np.arange(n_encounters) - (n_encounters - 1) / 2) * encounter_spacing
     near = max(50.0, world.junction_radius + 30.0)
-    subj = _choose_subjects(rng, world, lane_speed, times, meet_distance, near)
+    chosen = _choose_subjects(rng, world, lane_speed, times, meet_distance, near)
 
     lane, s0, v, cls = _platoons(rng, world, lane_speed, horizon, dens, scale)
     size = _dims(rng, cls)
     # subjects as vehicles 0 and 1 (s0 at t = 0)
-    sl = np.array([x[0] for x in subj])
-    sv = np.array([x[2] for x in subj])
-    ss0 = np.array([x[1] for x in subj]) - sv * times[0]
-    # drop traffic that would overlap a subject: same entry lane close in arc length (same speed
-    # => forever), or closer than 8 m to a subject at any encounter time
+    sv = np.array([x[2] for x in chosen])
+    subj = _Subjects(
+        np.array([x[0] for x in chosen]), np.array([x[1] for x in chosen]) - sv * times[0], sv
+    )
     table = _LaneTable([ln.centerline for ln in world.lanes])
     entry_of = np.array([ln.entry for ln in world.lanes])
-    keep = np.ones(len(lane), dtype=bool)
-    for k in range(2):
-        same = entry_of[lane] == entry_of[sl[k]]
-        keep &= ~(same & (np.abs(s0 - ss0[k]) < (size[:, 0] + SUBJECT_SIZE[0]) / 2 + 3.0))
-        for t in times:
-            s = s0 + v * t
-            xy, _ = table.pose(lane, s)
-            sxy, _ = table.pose(sl[k : k + 1], ss0[k : k + 1] + sv[k] * t)
-            present = (s >= 0) & (s <= table.lengths[lane])
-            keep &= ~(present & (np.linalg.norm(xy - sxy, axis=1) < 8.0))
+    keep = _clear_of_subjects(table, entry_of, subj, times, (lane, s0, v, size))
     lane, s0, v, cls, size = lane[keep], s0[keep], v[keep], cls[keep], size[keep]
-    veh_lane = np.concatenate([sl, lane]).astype(np.int64)
-    veh_s0 = np.concatenate([ss0, s0])
-    veh_speed = np.concatenate([sv, v])
-    veh_cls = np.concatenate([[Cls.CAR, Cls.CAR], cls]).astype(np.int64)
-    veh_size = np.concatenate([np.array([SUBJECT_SIZE, SUBJECT_SIZE]), size]).reshape(-1, 3)
+    veh_lane = np.concatenate([subj.lane, lane]).astype(np.int64)
     veh_ids = np.arange(len(veh_lane), dtype=np.int64)
     next_id = len(veh_lane)
 
-    # parked cars
-    pc, psz, pyaw = [], [], []
-    for poly, yaw_off in world.parking:
-        cum = geo.cumulative_length(poly)
-        s = float(rng.uniform(0, 4))
-        while s < cum[-1] - 3:
-            length = float(rng.uniform(*DIMS[Cls.CAR][0]))
-            slot = length + float(rng.uniform(0.8, 2.5))
-            if rng.random() < min(1.0, dens["parked_prob"] * scale):
-                (xy,), (yaw,) = geo.interpolate(poly, cum, np.array([s + slot / 2]))
-                if np.linalg.norm(xy - world.center) > world.junction_radius + 10.0:
-                    pc.append(xy)
-                    psz.append(
-                        [length, rng.uniform(*DIMS[Cls.CAR][1]), rng.uniform(*DIMS[Cls.CAR][2])]
-                    )
-                    pyaw.append(yaw + yaw_off)
-            s += slot
-    parked = Boxes(
-        np.array(pc).reshape(-1, 2),
-        np.array(psz).reshape(-1, 3),
-        np.array(pyaw),
-        np.full(len(pc), Cls.CAR),
-    )
-    # parked cars overlapping a subject at an encounter time are dropped (subjects may use a lane
-    # next to the parking strip but never overlap it; this guards connectors near junctions)
-    if len(parked):
-        keep = np.ones(len(parked), dtype=bool)
-        for k in range(2):
-            for t in times:
-                sxy, _ = table.pose(sl[k : k + 1], ss0[k : k + 1] + sv[k] * t)
-                keep &= np.linalg.norm(parked.center - sxy, axis=1) > 6.0
-        parked = parked.subset(keep)
+    parked = _parked_clear_of_subjects(_parked_cars(rng, world, dens, scale), table, subj, times)
     parked.ids = next_id + np.arange(len(parked))
     next_id += len(parked)
 
-    # pedestrians
-    walks = world.sidewalks
-    wl = np.array([geo.cumulative_length(w)[-1] for w in walks]) if walks else np.zeros(0)
-    n_ped = (
-        int(rng.poisson(dens["pedestrians_per_km"] * scale * wl.sum() / 1000.0)) if len(wl) else 0
-    )
-    ped_walk = (
-        rng.choice(len(wl), size=n_ped, p=wl / wl.sum()).astype(np.int64)
-        if n_ped
-        else np.zeros(0, np.int64)
-    )
-    ped_s0 = rng.uniform(0, 1, n_ped) * wl[ped_walk] if n_ped else np.zeros(0)
-    ped_speed = rng.uniform(0.8, 1.7, n_ped) * rng.choice([-1.0, 1.0], n_ped)
-    ped_size = _dims(rng, np.full(n_ped, Cls.PEDESTRIAN))
-    ped_ids = next_id + np.arange(n_ped, dtype=np.int64)
+    ped_walk, ped_s0, ped_speed, ped_size = _walkers(rng, world, dens, scale)
     return Scenario(
         world=world,
         seed=int(seed),
         veh_lane=veh_lane,
-        veh_s0=veh_s0,
-        veh_speed=veh_speed,
-        veh_size=veh_size,
-        veh_cls=veh_cls,
+        veh_s0=np.concatenate([subj.s0, s0]),
+        veh_speed=np.concatenate([subj.speed, v]),
+        veh_size=np.concatenate([np.array([SUBJECT_SIZE, SUBJECT_SIZE]), size]).reshape(-1, 3),
+        veh_cls=np.concatenate([[Cls.CAR, Cls.CAR], cls]).astype(np.int64),
         veh_ids=veh_ids,
         parked=parked,
         ped_walk=ped_walk,
         ped_s0=ped_s0,
         ped_speed=ped_speed,
         ped_size=ped_size,
-        ped_ids=ped_ids,
+        ped_ids=next_id + np.arange(len(ped_walk), dtype=np.int64),
         t_meet=float(t_meet),
         encounter_times=times,
     )

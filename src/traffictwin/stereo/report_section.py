@@ -147,6 +147,14 @@ def fault_tables(src: page.Sources) -> list[Table]:
     rules = [r for r in RULE_LABELS if src.get(ORB_FILE, f"rule_{r}/false_alarm") is not None]
     if not rules:  # an orb.json of an older stage version: the data section shows it
         return []
+    tables = [_detection_table(src, rules), _pair_counts_table(src)]
+    by_speed = _delay_by_speed_table(src, rules)
+    sweep = _valid_share_sweep_table(src)
+    return tables + [t for t in (by_speed, sweep) if t is not None]
+
+
+def _detection_table(src: page.Sources, rules: list[str]) -> Table:
+    """Delay / vertical-shift detection and false-alarm rates (%) per rule, with intervals."""
     t = Table(
         "Stereo-pair fault detection per rule (reports/metrics/orb.json)",
         [
@@ -176,6 +184,11 @@ def fault_tables(src: page.Sources) -> list[Table]:
         for key in ("delay_detection", "vertical_detection", "false_alarm"):
             row += [src.cell(ORB_FILE, pre + key, "pct"), ci_cell(src, ORB_FILE, pre + key)]
         t.rows.append(row)
+    return t
+
+
+def _pair_counts_table(src: page.Sources) -> Table:
+    """How many pairs each rate is over (with a delay fault, a vertical shift, fault-free)."""
     counts = Table(
         "Stereo-pair checks: pairs evaluated (reports/metrics/orb.json)",
         ["pairs", "count"],
@@ -187,48 +200,52 @@ def fault_tables(src: page.Sources) -> list[Table]:
         ("false_alarm_n", "fault-free"),
     ):
         counts.rows.append([Cell(label), src.cell(ORB_FILE, f"rule_orb/{key}", "int")])
-    tables = [t, counts]
+    return counts
+
+
+def _delay_by_speed_table(src: page.Sources, rules: list[str]) -> Table | None:
+    """Delay-fault detection (%) per rule and subject-speed bin (None without speed bins)."""
     bins = _speed_bins(src)
-    if bins:
-        sp = Table(
-            "Delay faults detected by subject speed (reports/metrics/orb.json)",
-            ["rule", *[_speed_label(b) for b in bins]],
-            anchor="stereo-delay-by-speed",
-            note="A delayed right image of a standing subject differs only where others moved.",
-        )
+    if not bins:
+        return None
+    sp = Table(
+        "Delay faults detected by subject speed (reports/metrics/orb.json)",
+        ["rule", *[_speed_label(b) for b in bins]],
+        anchor="stereo-delay-by-speed",
+        note="A delayed right image of a standing subject differs only where others moved.",
+    )
+    sp.rows.append(
+        [Cell("delay faults (count)")]
+        + [src.cell(ORB_FILE, f"rule_orb/{b}_n", "int") for b in bins]
+    )
+    for r in rules:
         sp.rows.append(
-            [Cell("delay faults (count)")]
-            + [src.cell(ORB_FILE, f"rule_orb/{b}_n", "int") for b in bins]
+            [Cell(RULE_LABELS[r])] + [src.cell(ORB_FILE, f"rule_{r}/{b}", "pct") for b in bins]
         )
-        for r in rules:
-            sp.rows.append(
-                [Cell(RULE_LABELS[r])] + [src.cell(ORB_FILE, f"rule_{r}/{b}", "pct") for b in bins]
-            )
-        tables.append(sp)
+    return sp
+
+
+def _valid_share_sweep_table(src: page.Sources) -> Table | None:
+    """False-alarm and detection rates (%) of the valid-share rule per threshold (None without
+    a sweep)."""
     data = src.metrics.get(ORB_FILE) or {}
     pat = re.compile(r"^sweep/min_valid_share_([0-9p]+)_false_alarm_rate$")
     thresholds = [m.group(1) for k in data if (m := pat.match(k))]
-    if thresholds:
-        sw = Table(
-            "Valid-share rule: threshold sweep (reports/metrics/orb.json)",
-            ["flag when valid share <", "false alarms", "delay detected", "vertical detected"],
-            anchor="stereo-valid-share-sweep",
+    if not thresholds:
+        return None
+    sw = Table(
+        "Valid-share rule: threshold sweep (reports/metrics/orb.json)",
+        ["flag when valid share <", "false alarms", "delay detected", "vertical detected"],
+        anchor="stereo-valid-share-sweep",
+    )
+    rates = ("false_alarm_rate", "delay_detection_rate", "vertical_detection_rate")
+    for th in sorted(thresholds, key=lambda x: float(x.replace("p", "."))):
+        pre = f"sweep/min_valid_share_{th}"
+        sw.rows.append(
+            [Cell(f"threshold {th.replace('p', '.')}")]
+            + [src.cell(ORB_FILE, f"{pre}_{k}", "pct") for k in rates]
         )
-        for th in sorted(thresholds, key=lambda x: float(x.replace("p", "."))):
-            pre = f"sweep/min_valid_share_{th}"
-            sw.rows.append(
-                [Cell(f"threshold {th.replace('p', '.')}")]
-                + [
-                    src.cell(ORB_FILE, f"{pre}_{k}", "pct")
-                    for k in (
-                        "false_alarm_rate",
-                        "delay_detection_rate",
-                        "vertical_detection_rate",
-                    )
-                ]
-            )
-        tables.append(sw)
-    return tables
+    return sw
 
 
 def resolution_tables(src: page.Sources) -> list[Table]:
