@@ -27,12 +27,9 @@ from traffictwin.fusion.config import (
     training_noise,
     training_noise_description,
 )
-from traffictwin.fusion.training import (
-    FusionModelConfig,
-    TrackingSettings,
-    fit_fusion,
-)
-from traffictwin.trainer import TrainerSettings, global_rank
+from traffictwin.fusion.training import FusionModelConfig, FusionSettings, fit_fusion
+from traffictwin.fusion.training_data import TrainingSet
+from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings, global_rank
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -97,22 +94,24 @@ def main(argv: list[str] | None = None) -> None:
     # under DDP the launcher re-runs this script per rank: only rank zero times the stage
     with stage_timer(stage) if global_rank() == 0 else nullcontext({}) as record:
         res = fit_fusion(
-            fusion_data_dir(inputs, cfg_name),
-            spec=spec,
-            hparams=hparams,
-            data=model_cfg.data(trainer.num_workers),
-            loop=model_cfg.loop(),
+            TrainingSet(
+                fusion_data_dir(inputs, cfg_name),
+                cfg_name,
+                noise,
+                grid,
+                get(p, "seed", int, min=0),
+                inputs,
+            ),
+            model=FusionSettings(
+                spec, hparams, model_cfg.data(trainer.num_workers), model_cfg.loop(), name
+            ),
             trainer_settings=trainer,
-            seed=get(p, "seed", int, min=0),
-            grid=grid,
-            cfg_name=cfg_name,
-            network=name,
-            inputs=inputs,
-            noise=noise,
-            ckpt_out=out_dir / "model.ckpt",
-            meta_out=out_dir / "model_meta.json",
-            metrics_out=metrics_file(f"train_fusion_{name}"),
-            curves_out=plot_file(f"train_fusion_{name}"),
+            outputs=ModelOutputs(
+                out_dir / "model.ckpt",
+                out_dir / "model_meta.json",
+                metrics_file(f"train_fusion_{name}"),
+                plot_file(f"train_fusion_{name}"),
+            ),
             tracking=tracking,
             resume_dir=resume_dir(stage),
         )

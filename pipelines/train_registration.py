@@ -25,9 +25,11 @@ from traffictwin.fusion.config import (
 )
 from traffictwin.fusion.registration_training import (
     RegistrationModelConfig,
+    RegistrationSettings,
     fit_registration,
 )
-from traffictwin.trainer import TrackingSettings, TrainerSettings
+from traffictwin.fusion.training_data import TrainingSet
+from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -83,20 +85,14 @@ def main(argv: list[str] | None = None) -> None:
     name = "train_registration"
     with stage_timer(stage) as record:
         res = fit_registration(
-            prealigned(MIXED),
-            spec=rc.net_spec(PARAMS.name),
-            train=rc.train,
-            min_gain=rc.min_gain,
+            TrainingSet(prealigned(MIXED), MIXED, noise, grid, get(p, "seed", int, min=0)),
+            model=RegistrationSettings(
+                rc.net_spec(PARAMS.name), rc.train, rc.min_gain, (largest.r, largest.alpha)
+            ),
             trainer_settings=trainer,
-            seed=get(p, "seed", int, min=0),
-            grid=grid,
-            cfg_name=MIXED,
-            noise=noise,
-            augment_noise=(largest.r, largest.alpha),
-            ckpt_out=out / "model.ckpt",
-            meta_out=out / "model_meta.json",
-            metrics_out=metrics_file(name),
-            curves_out=plot_file(name),
+            outputs=ModelOutputs(
+                out / "model.ckpt", out / "model_meta.json", metrics_file(name), plot_file(name)
+            ),
             tracking=tracking,
             resume_dir=resume_dir(stage),
         )

@@ -15,7 +15,13 @@ from contextlib import nullcontext
 
 from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.risk.dave2 import Dave2Config, count_parameters
-from traffictwin.risk.training import RiskModelConfig, RiskSource, TrainConfig, fit_risk
+from traffictwin.risk.training import (
+    RiskModelConfig,
+    RiskSource,
+    RiskVariant,
+    TrainConfig,
+    fit_risk,
+)
 from traffictwin.trainer import TrackingSettings, TrainerSettings, global_rank
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
@@ -133,21 +139,23 @@ def main(argv: list[str] | None = None) -> None:
     with stage_timer(stage) if global_rank() == 0 else nullcontext({}) as record:
         res = fit_risk(
             RiskSource(RISK_DATA, DISPARITY, ORB_CSV if model.orb_filter else None),
-            cfg,
-            label,
-            tc,
+            RiskVariant(
+                variant,
+                cfg,
+                label,
+                tc,
+                max_train,
+                meta={
+                    "domain": training_domain(p, model, label),
+                    "objective": cfg.objective,
+                    "replicate_of": model.variants[variant].replicate_of,
+                },
+            ),
             settings,
-            variant=variant,
             out_dir=out_dir,
             curves_out=plot_file(f"risk_training_{variant}"),
-            max_train_frames=max_train,
             tracking=tracking,
             resume_dir=resume_dir(stage),
-            meta={
-                "domain": training_domain(p, model, label),
-                "objective": cfg.objective,
-                "replicate_of": model.variants[variant].replicate_of,
-            },
         )
         if res is not None:
             record.update(training_record(res, out_dir / "model.ckpt"))

@@ -18,21 +18,24 @@ from traffictwin import trainer as common
 from traffictwin.config import ConfigError
 from traffictwin.fusion.deeplab import DeepLabSpec
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
+from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.fusion.resnet import ResNetSpec
 from traffictwin.fusion.training import (
     DataSettings,
     FusionDataModule,
     FusionHParams,
     FusionLitModule,
+    FusionSettings,
     LoopSettings,
     TrackingSettings,
     augment,
-    evenly_spaced,
     fit_fusion,
 )
+from traffictwin.fusion.training_data import TrainingSet
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import DatasetError, DatasetWriter
 from traffictwin.mlops.registry import load_registered
+from traffictwin.trainer import ModelOutputs
 
 TINY = DeepLabSpec(
     backbone=ResNetSpec(block="basic", layers=(1, 1, 1, 1), base_width=8),
@@ -310,20 +313,20 @@ def _fit(
         write_prealigned(root)
     out = tmp_path / "models" / cfg
     return fit_fusion(
-        root,
-        spec=spec,
-        hparams=FusionHParams(),
-        data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
-        loop=LoopSettings(max_epochs=epochs),
+        TrainingSet(root, cfg, {"r": 1.0, "alpha": 10.0}, GRID, 3),
+        model=FusionSettings(
+            spec,
+            FusionHParams(),
+            DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
+            LoopSettings(max_epochs=epochs),
+        ),
         trainer_settings=common.TrainerSettings(),
-        seed=3,
-        grid=GRID,
-        cfg_name=cfg,
-        noise={"r": 1.0, "alpha": 10.0},
-        ckpt_out=out / "model.ckpt",
-        meta_out=out / "model_meta.json",
-        metrics_out=tmp_path / f"metrics_{cfg}.json",
-        curves_out=tmp_path / f"curves_{cfg}.csv",
+        outputs=ModelOutputs(
+            out / "model.ckpt",
+            out / "model_meta.json",
+            tmp_path / f"metrics_{cfg}.json",
+            tmp_path / f"curves_{cfg}.csv",
+        ),
         tracking=TrackingSettings(
             run_name=f"fusion-{cfg}",
             profile="ci",
@@ -460,18 +463,12 @@ def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "models" / "A"
     with pytest.raises(DatasetError, match="dataset folder not found"):
         fit_fusion(
-            tmp_path / "absent",
-            spec=TINY,
-            hparams=FusionHParams(),
-            data=DataSettings(batch_size=4),
-            loop=LoopSettings(max_epochs=1),
+            TrainingSet(tmp_path / "absent", "A", {"r": 0.0, "alpha": 0.0}, GRID, 0),
+            model=FusionSettings(
+                TINY, FusionHParams(), DataSettings(batch_size=4), LoopSettings(max_epochs=1)
+            ),
             trainer_settings=common.TrainerSettings(),
-            seed=0,
-            grid=GRID,
-            cfg_name="A",
-            noise={"r": 0.0, "alpha": 0.0},
-            ckpt_out=out / "model.ckpt",
-            meta_out=out / "model_meta.json",
+            outputs=ModelOutputs(out / "model.ckpt", out / "model_meta.json"),
         )
     assert not out.exists()
 
@@ -588,7 +585,7 @@ def test_history_rows_per_epoch_or_per_validation(tmp_path: Path) -> None:
     ],
 )
 def test_loader_names_the_file_and_array_of_bad_masses(tmp_path: Path, key, channel, value, msg):
-    from traffictwin.fusion.training import load_prealigned
+    from traffictwin.fusion.training_data import load_prealigned
 
     wr = DatasetWriter(tmp_path / "bad", "prealigned", {"synthetic": True}, 0)
     arrays = synthetic_pairs(4, 64, 48, 0)

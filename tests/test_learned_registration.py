@@ -332,8 +332,13 @@ def write_registration_data(
 
 
 def fit_small(root: Path, out: Path, grid: GridSpec = GRID, tracking=None, **train_kw):
-    from traffictwin.fusion.registration_training import RegistrationTrainConfig, fit_registration
-    from traffictwin.trainer import TrainerSettings
+    from traffictwin.fusion.registration_training import (
+        RegistrationSettings,
+        RegistrationTrainConfig,
+        fit_registration,
+    )
+    from traffictwin.fusion.training_data import TrainingSet
+    from traffictwin.trainer import ModelOutputs, TrainerSettings
 
     kw = dict(
         batch_size=4,
@@ -349,19 +354,12 @@ def fit_small(root: Path, out: Path, grid: GridSpec = GRID, tracking=None, **tra
     )
     kw.update(train_kw)
     return fit_registration(
-        root,
-        spec=RegistrationNetSpec(),
-        train=RegistrationTrainConfig(**kw),
-        min_gain=0.0,
+        TrainingSet(root, "D", {"r": 2.0, "alpha": 10.0}, grid, 3),
+        model=RegistrationSettings(RegistrationNetSpec(), RegistrationTrainConfig(**kw), 0.0),
         trainer_settings=TrainerSettings(num_threads=1),
-        seed=3,
-        grid=grid,
-        cfg_name="D",
-        noise={"r": 2.0, "alpha": 10.0},
-        ckpt_out=out / "model.ckpt",
-        meta_out=out / "model_meta.json",
-        metrics_out=out / "metrics.json",
-        curves_out=out / "curves.csv",
+        outputs=ModelOutputs(
+            out / "model.ckpt", out / "model_meta.json", out / "metrics.json", out / "curves.csv"
+        ),
         tracking=tracking,
     )
 

@@ -186,12 +186,11 @@ def test_fit_run_keeps_the_best_epoch_and_stops_early(tmp_path: Path) -> None:
     session = resume.Session(tmp_path / "resume", {"k": 1})
     with common.fit_run(
         _Toy(),
+        (train, val),
         settings=common.TrainerSettings(precision="32-true"),
         loop=loop,
         tracking=tracking,
         session=session,
-        train_dataloaders=train,
-        val_dataloaders=val,
     ) as fitted:
         assert fitted is not None and fitted.run is None
         assert fitted.best_epoch == 2  # the lowest score of the script
@@ -210,12 +209,11 @@ def test_fit_run_keeps_the_resume_folder_when_the_caller_fails(tmp_path: Path) -
     with pytest.raises(RuntimeError, match="publishing failed"):
         with common.fit_run(
             _Toy(),
+            (train, val),
             settings=common.TrainerSettings(precision="32-true"),
             loop=loop,
             tracking=tracking,
             session=resume.Session(tmp_path / "resume", {"k": 2}),
-            train_dataloaders=train,
-            val_dataloaders=val,
         ):
             raise RuntimeError("publishing failed")
     assert (tmp_path / "resume").exists()  # the next run resumes from there

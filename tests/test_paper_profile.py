@@ -96,7 +96,13 @@ def test_paper_risk_nets_take_one_step_on_cpu(paper: dict, tmp_path: Path) -> No
 @pytest.mark.slow
 def test_paper_learned_registration_takes_one_step_on_cpu(paper: dict, tmp_path: Path) -> None:
     from tests.test_learned_registration import write_registration_data
-    from traffictwin.fusion.registration_training import RegistrationModelConfig, fit_registration
+    from traffictwin.fusion.registration_training import (
+        RegistrationModelConfig,
+        RegistrationSettings,
+        fit_registration,
+    )
+    from traffictwin.fusion.training_data import TrainingSet
+    from traffictwin.trainer import ModelOutputs
 
     rc = typed(paper["registration_model"], RegistrationModelConfig, key="registration_model")
     assert rc.train.batch_size == 32 and rc.train.train_samples_per_epoch == 0  # whole epochs
@@ -104,15 +110,13 @@ def test_paper_learned_registration_takes_one_step_on_cpu(paper: dict, tmp_path:
     grid = GridSpec(int(g["rows"]), int(g["cols"]), float(g["cell"]))
     root = write_registration_data(tmp_path / "pre", grid=grid, n=4)
     res = fit_registration(
-        root,
-        spec=rc.net_spec("paper profile"),
-        train=replace(rc.train, batch_size=4, max_epochs=1, train_samples_per_epoch=4),
-        min_gain=rc.min_gain,
+        TrainingSet(root, "D", {"r": 5.0, "alpha": 20.0}, grid, 0),
+        model=RegistrationSettings(
+            rc.net_spec("paper profile"),
+            replace(rc.train, batch_size=4, max_epochs=1, train_samples_per_epoch=4),
+            rc.min_gain,
+        ),
         trainer_settings=common.TrainerSettings(),
-        seed=0,
-        grid=grid,
-        cfg_name="D",
-        noise={"r": 5.0, "alpha": 20.0},
-        ckpt_out=tmp_path / "out" / "model.ckpt",
+        outputs=ModelOutputs(tmp_path / "out" / "model.ckpt"),
     )
     assert res.metrics["epochs"] == 1 and torch.isfinite(torch.tensor(res.metrics["train/loss"]))

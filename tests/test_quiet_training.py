@@ -26,10 +26,14 @@ from traffictwin.fusion.training import (
     DataSettings,
     FusionHParams,
     FusionLitModule,
+    FusionSettings,
     LoopSettings,
     TrackingSettings,
     fit_fusion,
 )
+from traffictwin.fusion.training_data import TrainingSet
+from traffictwin.trainer import ModelOutputs
+from traffictwin.trainer.fit import _quiet_fit
 
 pytestmark = [pytest.mark.usefixtures("single_torch_thread"), pytest.mark.integration]
 
@@ -52,20 +56,17 @@ def _fit(tmp_path: Path, out: str, resume_dir: Path | None):
         write_prealigned(root)
     d = tmp_path / out
     return fit_fusion(
-        root,
-        spec=TINY,
-        hparams=FusionHParams(lr=0.01),
-        data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
-        loop=LoopSettings(max_epochs=2),
+        TrainingSet(root, "B", {"r": 1.0, "alpha": 10.0}, GRID, 3),
+        model=FusionSettings(
+            TINY,
+            FusionHParams(lr=0.01),
+            DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
+            LoopSettings(max_epochs=2),
+        ),
         trainer_settings=common.TrainerSettings(),
-        seed=3,
-        grid=GRID,
-        cfg_name="B",
-        noise={"r": 1.0, "alpha": 10.0},
-        ckpt_out=d / "model.ckpt",
-        meta_out=d / "model_meta.json",
-        metrics_out=d / "metrics.json",
-        curves_out=d / "curves.csv",
+        outputs=ModelOutputs(
+            d / "model.ckpt", d / "model_meta.json", d / "metrics.json", d / "curves.csv"
+        ),
         tracking=TrackingSettings(
             run_name="fusion-B", profile="ci", stage="train_fusion@B", enabled=False
         ),
@@ -156,7 +157,7 @@ def test_other_warnings_still_pass() -> None:
     """The training's filters are exact: a warning of ours, or another of Lightning's, is shown."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        with common._quiet_fit(Path("/some/run/best")):
+        with _quiet_fit(Path("/some/run/best")):
             warnings.warn("something else is deprecated", FutureWarning, stacklevel=1)
             warnings.warn(
                 "Checkpoint directory /another/folder exists and is not empty.",

@@ -16,10 +16,13 @@ from traffictwin.fusion.training import (
     DataSettings,
     FusionHParams,
     FusionLitModule,
+    FusionSettings,
     LoopSettings,
     TrackingSettings,
     fit_fusion,
 )
+from traffictwin.fusion.training_data import TrainingSet
+from traffictwin.trainer import ModelOutputs
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
@@ -36,21 +39,17 @@ def _fit(tmp_path: Path, out: str, resume_dir: Path | None, tracking: bool = Fal
         write_prealigned(root)
     d = tmp_path / out
     return fit_fusion(
-        root,
-        spec=TINY,
-        # patience 0: the plateau scheduler halves the LR during the run, so its state matters
-        hparams=FusionHParams(lr=0.01, lr_patience=0, lr_factor=0.5),
-        data=DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
-        loop=LoopSettings(max_epochs=4),
+        TrainingSet(root, "B", {"r": 1.0, "alpha": 10.0}, GRID, 3),
+        model=FusionSettings(
+            TINY,
+            FusionHParams(lr=0.01, lr_patience=0, lr_factor=0.5),
+            DataSettings(batch_size=4, train_samples_per_epoch=8, val_samples=4),
+            LoopSettings(max_epochs=4),
+        ),
         trainer_settings=common.TrainerSettings(),
-        seed=3,
-        grid=GRID,
-        cfg_name="B",
-        noise={"r": 1.0, "alpha": 10.0},
-        ckpt_out=d / "model.ckpt",
-        meta_out=d / "model_meta.json",
-        metrics_out=d / "metrics.json",
-        curves_out=d / "curves.csv",
+        outputs=ModelOutputs(
+            d / "model.ckpt", d / "model_meta.json", d / "metrics.json", d / "curves.csv"
+        ),
         tracking=TrackingSettings(
             run_name="fusion-B", profile="ci", stage="train_fusion@B", enabled=tracking
         ),

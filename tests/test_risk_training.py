@@ -371,7 +371,7 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     import mlflow
 
     from traffictwin.risk.model_io import load_risk_model
-    from traffictwin.risk.training import fit_risk
+    from traffictwin.risk.training import RiskVariant, fit_risk
     from traffictwin.trainer import TrackingSettings
 
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
@@ -382,15 +382,11 @@ def test_fit_risk_publishes_model_meta_and_curves(tmp_path: Path, mlflow_uri: st
     (out / "stale.txt").write_text("from an older run")
     res = fit_risk(
         _source(tmp_path),
-        cfg,
-        "risk",
-        tc,
+        RiskVariant("disp", cfg, "risk", tc, meta={"domain": {"label": "risk"}}),
         TrainerSettings(),
-        variant="disp",
         out_dir=out,
         curves_out=tmp_path / "plots" / "risk_training_disp.csv",
         tracking=TrackingSettings("risk", "risk-disp", profile="test", stage="train_risk@disp"),
-        meta={"domain": {"label": "risk"}},
     )
     assert res is not None and not (out / "stale.txt").exists()
     meta = json.loads((out / "model_meta.json").read_text())
@@ -444,7 +440,7 @@ def test_check_spread_flags_a_constant_net(tmp_path: Path) -> None:
 
 @pytest.mark.integration
 def test_collapsed_run_publishes_nothing(tmp_path: Path) -> None:
-    from traffictwin.risk.training import CollapsedModelError, fit_risk
+    from traffictwin.risk.training import CollapsedModelError, RiskVariant, fit_risk
 
     write_synthetic_risk(tmp_path, n_shards=3, per_shard=10, outlier_rate=0.0)
     out = tmp_path / "models" / "disp"
@@ -454,11 +450,8 @@ def test_collapsed_run_publishes_nothing(tmp_path: Path) -> None:
     with pytest.raises(CollapsedModelError):
         fit_risk(
             _source(tmp_path),
-            Dave2Config(inputs=("disp_sgm",)),
-            "risk",
-            tc,
+            RiskVariant("disp", Dave2Config(inputs=("disp_sgm",)), "risk", tc),
             TrainerSettings(),
-            variant="disp",
             out_dir=out,
         )
     assert (out / "model.ckpt").read_text() == "the good model of an earlier run"

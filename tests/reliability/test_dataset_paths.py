@@ -177,8 +177,8 @@ def test_a_tampered_wrong_shape_shard_is_named_as_tampered(tmp_path):
 
 
 def test_training_data_loader_names_the_shard(tmp_path):
-    """What train_fusion reads: :func:`traffictwin.fusion.training.load_prealigned`."""
-    from traffictwin.fusion.training import load_prealigned
+    """What train_fusion reads: :func:`traffictwin.fusion.training_data.load_prealigned`."""
+    from traffictwin.fusion.training_data import load_prealigned
 
     root = _dataset(tmp_path / "D", sizes=(16, 16, 16, 32))
     x, y = load_prealigned(root, "train")

@@ -9,8 +9,10 @@
 - :class:`RegistrationLitModule` — Adam, :func:`~traffictwin.fusion.learned_registration.registration_loss`,
   validation metrics ``val/loss``, ``val/trans_err_m`` / ``val/rot_err_deg`` (mean), ``val/success_rate``
   (error < 0.5 m and < 1°), ``val/trans_err_m_median``, all over the whole validation subset;
-- :func:`fit_registration` — the training run (seeding, trainer, MLflow run, best checkpoint and
-  early stopping on ``val/loss``, meta, metrics, curves), like :func:`traffictwin.fusion.training.fit_fusion`.
+- :func:`fit_registration` — the training run of a :class:`RegistrationSettings` on a
+  :class:`~traffictwin.fusion.training_data.TrainingSet` (seeding, trainer, MLflow run, best
+  checkpoint and early stopping on ``val/loss``, meta, metrics, curves), like
+  :func:`traffictwin.fusion.training.fit_fusion`.
 """
 
 from __future__ import annotations
@@ -18,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import tempfile
 from collections.abc import Mapping
 from dataclasses import MISSING, asdict, dataclass
 from pathlib import Path
@@ -43,11 +44,11 @@ from traffictwin.fusion.learned_registration import (
     warp_by,
 )
 from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.fusion.training_data import TrainingSet
 from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.mlops.tracking import DATA_TAG
-from traffictwin.trainer import TrackingSettings
+from traffictwin.trainer import FitResult, ModelOutputs, TrackingSettings
 
 log = logging.getLogger(__name__)
 
@@ -242,227 +243,211 @@ def correction_errors(
 
 
 # -- a whole training run --------------------------------------------------------------------------------
-@dataclass
-class RegistrationFitResult:
-    checkpoint: Path
-    meta: dict[str, Any]
-    metrics: dict[str, Any]
-    history: list[dict[str, float]]
-    run_id: str | None = None
-    model_uri: str | None = None
-    train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
-    samples_per_s: float | None = None  # training pairs per second of train_seconds
-    precision: str | None = None  # the trainer's resolved precision: run record only
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """How the learned registration trains: the network ``spec``, its ``train`` settings, the
+    fallback's ``min_gain`` and the pose-noise model ``augment_noise`` = (r m, alpha deg) the
+    augmentation draws from (None: the training set's own ``noise``), scaled by
+    ``train.augment_scale``."""
+
+    spec: RegistrationNetSpec
+    train: RegistrationTrainConfig
+    min_gain: float = 0.0
+    augment_noise: tuple[float, float] | None = None
 
 
 def fit_registration(
-    data_root: str | Path,
+    pairs: TrainingSet,
     *,
-    spec: RegistrationNetSpec,
-    train: RegistrationTrainConfig,
-    min_gain: float,
+    model: RegistrationSettings,
     trainer_settings: common.TrainerSettings,
-    seed: int,
-    grid: GridSpec,
-    cfg_name: str,
-    noise: Mapping[str, Any],
-    ckpt_out: str | Path,
-    augment_noise: tuple[float, float] | None = None,
-    meta_out: str | Path | None = None,
-    metrics_out: str | Path | None = None,
-    curves_out: str | Path | None = None,
+    outputs: ModelOutputs,
     tracking: TrackingSettings | None = None,
     resume_dir: str | Path | None = None,
-) -> RegistrationFitResult | None:
-    """Train on ``data_root``'s train split, keep the best epoch on ``val/loss``, publish it.
+) -> FitResult | None:
+    """Train on ``pairs``' train split, keep the best epoch on ``val/loss``, publish it.
 
-    Writes (rank zero, each atomically, only after training succeeded) the slim checkpoint, its
-    meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run (params, curves, the
-    checkpoint and the model as weights + JSON, :func:`traffictwin.trainer.log_model`) when
-    ``tracking`` is enabled (registering it is the promotion gate's job). A non-finite validation loss
-    fails the run (nothing is published). Identical runs write identical bytes: the MLflow run id,
-    model URI and training time are only in the result. Returns ``None`` on other DDP ranks. ``resume_dir``: as
-    for :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`). ``best_epoch``
+    Writes ``outputs`` (rank zero, each atomically, only after training succeeded): the slim
+    checkpoint, its meta, the best-epoch metrics and the per-epoch curves; logs an MLflow run
+    (params, curves, the checkpoint and the model as weights + JSON,
+    :func:`traffictwin.trainer.log_model`) when ``tracking`` is enabled (registering it is the
+    promotion gate's job). A non-finite validation loss fails the run (nothing is published).
+    Identical runs write identical bytes: the MLflow run id, model URI and training time are only
+    in the result. Returns ``None`` on other DDP ranks. ``resume_dir``: as for
+    :func:`traffictwin.fusion.training.fit_fusion` (:mod:`traffictwin.resume`). ``best_epoch``
     is 0-based in the files, 1-based in messages (:class:`traffictwin.trainer.History`).
     """
-    common.seed_everything(seed)
-    ds = Dataset(
-        data_root, kind="prealigned", verify=False
-    )  # the loader checks every shard it reads
-    manifest_hash = ds.manifest_hash()
-    tensors = {s: load_registration_split(data_root, s, grid) for s in ("train", "val")}
-    if len(tensors["train"][0]) < train.batch_size:
-        raise DatasetError(
-            f"{data_root}: {len(tensors['train'][0])} training pairs < batch_size {train.batch_size}"
-        )
-    # augmentation: the noise model ``augment_noise`` = (r m, alpha deg) (default: ``noise``'s own,
-    # a single configuration), scaled by ``train.augment_scale``
-    r_aug, a_aug = augment_noise if augment_noise is not None else (noise["r"], noise["alpha"])
-    sig_xy, sig_yaw = noise_sigmas(float(r_aug), float(a_aug))
-    hparams = {
-        "lr": train.lr,
-        "weight_decay": train.weight_decay,
-        "min_gain": min_gain,
-        "map_weight": train.map_weight,
-        "augment_prob": train.augment_prob,
-        "augment_sigma_px": train.augment_scale * sig_xy / grid.cell,
-        "augment_sigma_rad": train.augment_scale * sig_yaw,
-    }
+    common.seed_everything(pairs.seed)
+    manifest_hash = pairs.manifest_hash()
+    train_dl, val_dl = _loaders(pairs, model.train)
     tracking = tracking or TrackingSettings(
         "fusion", "registration", stage="train_registration", enabled=False
     )
-    grid_d = {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell}
-    meta_base = {
-        "cfg": cfg_name,
+    meta_base = _meta_base(pairs, model, manifest_hash, tracking.profile)
+    hparams = _hparams(model, pairs)
+    module = RegistrationLitModule(asdict(model.spec), pairs.grid_dict(), hparams, meta_base)
+    n_params = _param_count(module)
+    session = resume.Session(
+        resume_dir,
+        {
+            "problem": PROBLEM,
+            "spec": asdict(model.spec),
+            "train": asdict(model.train),
+            "min_gain": model.min_gain,
+            "trainer": trainer_settings.as_dict(),
+            "meta": meta_base,
+            "data_root": str(pairs.root),
+        },
+    )
+    record = common.RunRecord(
+        tags={
+            DATA_TAG: manifest_hash,
+            "cfg": pairs.cfg_name,
+            "network": "learned",
+            "method": "learned",
+        },
+        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
+        datasets=[(pairs.root, manifest_hash)],
+    )
+    loop = common.FitLoop(
+        monitor=SELECTION_METRIC,
+        max_epochs=model.train.max_epochs,
+        patience=model.train.early_stopping_patience,
+        hint="registration_model.train.lr",
+    )
+    with common.fit_run(
+        module,
+        (train_dl, val_dl),
+        settings=trainer_settings,
+        loop=loop,
+        tracking=tracking,
+        session=session,
+        record=record,
+    ) as fitted:
+        if fitted is None:
+            return None
+        return _publish(fitted, pairs, model, module, (train_dl, val_dl), meta_base, outputs)
+
+
+def _meta_base(
+    pairs: TrainingSet, model: RegistrationSettings, manifest_hash: str, profile: str
+) -> dict[str, Any]:
+    """The provenance the learned registration records (module hyperparameters and model meta)."""
+    return {
+        "cfg": pairs.cfg_name,
         "network": "learned",
         "method": "learned",
-        "noise": dict(noise),
-        "grid": grid_d,
-        "seed": int(seed),
+        "noise": dict(pairs.noise),
+        "grid": pairs.grid_dict(),
+        "seed": int(pairs.seed),
         "data_manifest_hash": manifest_hash,
-        "profile": tracking.profile,
-        "min_gain": float(min_gain),
+        "profile": profile,
+        "min_gain": float(model.min_gain),
     }
-    module = RegistrationLitModule(asdict(spec), grid_d, hparams, meta_base)
-    n_params = sum(p.numel() for p in module.net.parameters())
+
+
+def _param_count(module: RegistrationLitModule) -> int:
+    return sum(p.numel() for p in module.net.parameters())
+
+
+def _loaders(pairs: TrainingSet, train: RegistrationTrainConfig) -> tuple[DataLoader, DataLoader]:
+    """The training loader (a seeded draw of ``train_samples_per_epoch`` pairs per epoch, full
+    batches) and the validation loader (``val_samples`` evenly spaced pairs)."""
+    tensors = {s: load_registration_split(pairs.root, s, pairs.grid) for s in ("train", "val")}
+    if len(tensors["train"][0]) < train.batch_size:
+        raise DatasetError(
+            f"{pairs.root}: {len(tensors['train'][0])} training pairs < batch_size {train.batch_size}"
+        )
     train_set = TensorDataset(*tensors["train"])
     val_full = TensorDataset(*tensors["val"])
     val_set = Subset(val_full, evenly_spaced(len(val_full), train.val_samples).tolist())
     k = train.train_samples_per_epoch
     k = len(train_set) if k <= 0 else min(k, len(train_set))
-    sampler = RandomSampler(
-        train_set, replacement=False, num_samples=k, generator=torch.Generator().manual_seed(seed)
-    )
+    gen = torch.Generator().manual_seed(pairs.seed)
+    sampler = RandomSampler(train_set, replacement=False, num_samples=k, generator=gen)
     train_dl = DataLoader(train_set, batch_size=train.batch_size, sampler=sampler, drop_last=True)
-    val_dl = DataLoader(val_set, batch_size=train.batch_size, shuffle=False)
+    return train_dl, DataLoader(val_set, batch_size=train.batch_size, shuffle=False)
 
-    session = resume.Session(
-        resume_dir,
-        {
-            "problem": PROBLEM,
-            "spec": asdict(spec),
-            "train": asdict(train),
-            "min_gain": min_gain,
-            "trainer": trainer_settings.as_dict(),
-            "meta": meta_base,
-            "data_root": str(data_root),
-        },
+
+def _hparams(model: RegistrationSettings, pairs: TrainingSet) -> dict[str, Any]:
+    """The module's hyperparameters; the augmentation's sigmas (px, rad) from the noise model
+    ``model.augment_noise`` (default: ``pairs.noise``, a single configuration) scaled by
+    ``train.augment_scale``."""
+    train = model.train
+    noise = pairs.noise
+    r_aug, a_aug = (
+        model.augment_noise if model.augment_noise is not None else (noise["r"], noise["alpha"])
     )
-    fit_loop = common.FitLoop(
-        monitor=SELECTION_METRIC,
-        max_epochs=train.max_epochs,
-        patience=train.early_stopping_patience,
-        hint="registration_model.train.lr",
+    sig_xy, sig_yaw = noise_sigmas(float(r_aug), float(a_aug))
+    return {
+        "lr": train.lr,
+        "weight_decay": train.weight_decay,
+        "min_gain": model.min_gain,
+        "map_weight": train.map_weight,
+        "augment_prob": train.augment_prob,
+        "augment_sigma_px": train.augment_scale * sig_xy / pairs.grid.cell,
+        "augment_sigma_rad": train.augment_scale * sig_yaw,
+    }
+
+
+def _publish(
+    fitted: common.Fitted,
+    pairs: TrainingSet,
+    model: RegistrationSettings,
+    module: RegistrationLitModule,
+    loaders: tuple[DataLoader, DataLoader],
+    meta_base: dict[str, Any],
+    outputs: ModelOutputs,
+) -> FitResult:
+    """The best epoch as the learned registration: checks, MLflow model (with tracking), files."""
+    if fitted.best is None:
+        raise RuntimeError(
+            "learned registration training produced no checkpoint (no finite val/loss: NaN/inf in the data or the learning rate?)"
+        )
+    slim = fitted.model_checkpoint(PROBLEM, asdict(model.spec))
+    row = fitted.best_row()
+    if not all(
+        math.isfinite(float(row.get(k, float("nan")))) for k in ("val/loss", "val/trans_err_m")
+    ):
+        raise RuntimeError(
+            f"learned registration: best epoch {slim['epoch'] + 1} (1-based) has non-finite "
+            f"validation metrics {row}"
+        )
+    train, (train_dl, val_dl) = model.train, loaders
+    k = len(train_dl.sampler)  # type: ignore[arg-type]
+    metrics = common.fit_metrics(
+        fitted,
+        train.max_epochs,
+        samples_seen=k // train.batch_size * train.batch_size * len(fitted.history.rows),
+        param_count=_param_count(module),
+        train_pairs=len(train_dl.dataset),  # type: ignore[arg-type]
+        val_pairs=len(val_dl.dataset),  # type: ignore[arg-type]
     )
-    with common.fit_run(
-        module,
-        settings=trainer_settings,
-        loop=fit_loop,
-        tracking=tracking,
-        session=session,
-        tags={
-            DATA_TAG: manifest_hash,
-            "cfg": cfg_name,
-            "network": meta_base["network"],
+    meta = {
+        **meta_base,
+        "problem": PROBLEM,
+        "architecture": asdict(model.spec),
+        "param_count": _param_count(module),
+        "hparams": dict(module.hp),
+        "best_epoch": slim["epoch"],
+        "selection_metric": SELECTION_METRIC,
+        "best_val_loss": metrics.get("val/loss"),
+        "best_val_success_rate": metrics.get("val/success_rate"),
+    }
+    slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
+    uri = None
+    if fitted.run is not None:
+        net = LearnedRegistration(model.spec, pairs.grid, model.min_gain)
+        net.load_state_dict(common.net_state_dict(slim))
+        example = np.zeros((1, 4, pairs.grid.rows, pairs.grid.cols), dtype=np.float32)
+        metadata = {
+            "cfg": pairs.cfg_name,
+            "data_manifest_hash": meta["data_manifest_hash"],
             "method": "learned",
-        },
-        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
-        datasets=[(data_root, manifest_hash)],
-        train_dataloaders=train_dl,
-        val_dataloaders=val_dl,
-    ) as fitted:
-        if fitted is None:
-            return None
-        if fitted.best is None:
-            raise RuntimeError(
-                "learned registration training produced no checkpoint (no finite val/loss: NaN/inf in the data or the learning rate?)"
-            )
-        slim = common.model_checkpoint(
-            PROBLEM,
-            asdict(spec),
-            fitted.best["state_dict"],
-            {},
-            epoch=fitted.best_epoch,
-            global_step=int(fitted.best.get("global_step", -1)),
-        )
-        best_epoch = slim["epoch"]
-        row = fitted.best_row()
-        if not all(
-            math.isfinite(float(row.get(k, float("nan")))) for k in ("val/loss", "val/trans_err_m")
-        ):
-            raise RuntimeError(
-                f"learned registration: best epoch {best_epoch + 1} (1-based) has non-finite "
-                f"validation metrics {row}"
-            )
-        epochs_run = len(fitted.history.rows)
-        metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
-        samples_seen = k // train.batch_size * train.batch_size * epochs_run
-        metrics.update(
-            {
-                "best_epoch": best_epoch,
-                "epochs": epochs_run,
-                "max_epochs": train.max_epochs,
-                "stopped_early": epochs_run < train.max_epochs,
-                "samples_seen": samples_seen,
-                "param_count": n_params,
-                "train_pairs": len(train_set),
-                "val_pairs": len(val_set),
-            }
-        )
-        meta = {
-            **meta_base,
-            "problem": PROBLEM,
-            "architecture": asdict(spec),
-            "param_count": n_params,
-            "hparams": hparams,
-            "best_epoch": best_epoch,
-            "selection_metric": SELECTION_METRIC,
-            "best_val_loss": metrics.get("val/loss"),
-            "best_val_success_rate": metrics.get("val/success_rate"),
         }
-        slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
-        uri = None
-        run = fitted.run
-        if run is not None:
-            common.log_final_metrics(
-                fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
-            )
-            with tempfile.TemporaryDirectory(prefix="registration_art_") as art:
-                p = Path(art) / "model.ckpt"
-                torch.save(slim, p)
-                common.log_checkpoint(p)
-            net = LearnedRegistration(spec, grid, min_gain)
-            net.load_state_dict(common.net_state_dict(slim))
-            example = np.zeros((1, 4, grid.rows, grid.cols), dtype=np.float32)
-            uri = common.log_model(
-                slim,
-                meta,
-                net.eval(),
-                example,
-                name="model",
-                metadata={
-                    "cfg": cfg_name,
-                    "data_manifest_hash": manifest_hash,
-                    "method": "learned",
-                },
-            )
-        common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
-        if metrics_out:
-            write_json_atomic(metrics_out, metrics)
-        if curves_out:
-            fitted.history.write_csv(curves_out)
-        train_s, history_rows, precision = fitted.seconds, fitted.history.rows, fitted.precision
-    return RegistrationFitResult(
-        Path(ckpt_out),
-        meta,
-        metrics,
-        history_rows,
-        run.info.run_id if run is not None else None,
-        uri,
-        round(train_s, 2),
-        round(samples_seen / train_s, 3) if train_s > 0 else None,
-        precision,
-    )
+        uri = common.log_fitted_model(fitted, slim, meta, metrics, net.eval(), example, metadata)
+    common.publish(fitted, outputs, slim, meta, metrics)
+    return common.fit_result(fitted, outputs, meta, metrics, uri)
 
 
 def load_registration_model(

@@ -1,14 +1,7 @@
 """Training of the evidential DeepLabV3+ registration-and-fusion network (paper III, IV).
 
-- :func:`augment` — random horizontal/vertical flips and a random rotation in
-  ``[-max_rotation_deg, max_rotation_deg]`` applied with one ``grid_sample`` to inputs and
-  label together (paper III-D). Bilinear sampling with zero padding mixes masses convexly with
-  "unknown" (0, 0), so every cell stays on the simplex (``m_F, m_O >= 0``, ``m_F + m_O <= 1``).
-- :class:`FusionDataModule` — the ``prealigned`` dataset's ``train``/``val`` splits held in memory;
-  a seeded random subset of ``train_samples_per_epoch`` pairs per epoch (a fresh draw each epoch),
-  a fixed evenly spaced subset of ``val_samples`` validation pairs. Under DDP the ranks split
-  each epoch's draw (``train_samples_per_epoch`` pairs in all, not per rank) and the validation
-  pairs (each on exactly one rank): :class:`~traffictwin.trainer.RankShardSampler`.
+- The data (:class:`TrainingSet`, :class:`FusionDataModule`, :func:`augment`):
+  :mod:`traffictwin.fusion.training_data`.
 - :class:`FusionLitModule` — Adam, ReduceLROnPlateau on the selection metric ``val/kld_full``
   (KLD(b) over the full mass vector), the loss ``fusion_model.loss.name`` (:data:`LOSSES`: ``mass``,
   ``paper`` = eqs. (6)-(7), ``paper_kl``),
@@ -16,8 +9,8 @@
   (+ precision/recall), all reduced over DDP ranks; the same KLDs and Dice of the naive fusion
   (Dempster on the noisily prealigned inputs) as ``val/*_naive`` reference lines.
 - :func:`fit_fusion` — the whole training run (seeding, trainer, callbacks, optional MLflow run,
-  slim best checkpoint published atomically, meta, metrics, curves); the stage
-  ``pipelines/train_fusion.py`` only reads params and calls it.
+  slim best checkpoint published atomically, meta, metrics, curves) of a :class:`FusionSettings`
+  on a :class:`TrainingSet`; the stage ``pipelines/train_fusion.py`` only reads params and calls it.
 """
 
 from __future__ import annotations
@@ -25,24 +18,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-import tempfile
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
-import torch.nn.functional as F
-from torch.utils.data import (
-    DataLoader,
-    RandomSampler,
-    Sampler,
-    SequentialSampler,
-    Subset,
-    TensorDataset,
-)
 from torchmetrics import MeanMetric
 
 from traffictwin import resume
@@ -50,7 +32,6 @@ from traffictwin import trainer as common
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
 from traffictwin.evidential.dempster import dempster
-from traffictwin.evidential.masses import check_masses
 from traffictwin.fusion.deeplab import (
     DeepLabSpec,
     DeepLabV3Plus,
@@ -67,12 +48,14 @@ from traffictwin.fusion.losses import (
     kld_full,
 )
 from traffictwin.fusion.model_io import CKPT_FORMAT
-from traffictwin.fusion.pairs import evenly_spaced
-from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.fusion.training_data import (
+    DataSettings,
+    FusionDataModule,
+    TrainingSet,
+    augment,
+)
 from traffictwin.mlops.tracking import DATA_TAG
-from traffictwin.trainer import TrackingSettings
+from traffictwin.trainer import FitResult, ModelOutputs, TrackingSettings
 
 log = logging.getLogger(__name__)
 
@@ -80,214 +63,6 @@ VAL_METRICS = ("val/loss", "val/kld", "val/kld_full", "val/dice_occ", "val/dice_
 SELECTION_METRIC = (
     "val/kld_full"  # KLD(b): checkpoint, early stopping and LR plateau (lower is better)
 )
-
-
-# ---------------------------------------------------------------------------------------------
-# augmentation
-
-
-def augmentation_matrices(
-    n: int,
-    height: int,
-    width: int,
-    *,
-    flip: bool,
-    max_rotation_deg: float,
-    generator: torch.Generator | None = None,
-) -> torch.Tensor:
-    """``(n, 2, 3)`` ``affine_grid`` matrices: random flips (p = 0.5 per axis) and rotation about the centre.
-
-    The rotation is in metric (cell) space — cells are square — so the normalised-coordinate
-    matrix is ``D^-1 R Fl D`` with ``D = diag(W/2, H/2)``.
-    """
-    g = generator
-    ang = (torch.rand(n, generator=g, dtype=torch.float64) * 2.0 - 1.0) * math.radians(
-        max_rotation_deg
-    )
-    if flip:
-        fx = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
-        fy = torch.where(torch.rand(n, generator=g) < 0.5, -1.0, 1.0).double()
-    else:
-        fx = torch.ones(n, dtype=torch.float64)
-        fy = torch.ones(n, dtype=torch.float64)
-    c, s = torch.cos(ang), torch.sin(ang)
-    sx, sy = width / 2.0, height / 2.0
-    a = torch.zeros(n, 2, 3, dtype=torch.float64)
-    # [x_in; y_in]_pix = R @ diag(fx, fy) @ [x_out; y_out]_pix, then normalised
-    a[:, 0, 0] = c * fx
-    a[:, 0, 1] = -s * fy * sy / sx
-    a[:, 1, 0] = s * fx * sx / sy
-    a[:, 1, 1] = c * fy
-    return a.float()
-
-
-def augment(
-    inputs: torch.Tensor,
-    label: torch.Tensor,
-    *,
-    flip: bool = True,
-    max_rotation_deg: float = 20.0,
-    mode: str = "bilinear",
-    generator: torch.Generator | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Apply the same random flip + rotation to ``inputs (N, C, H, W)`` and ``label (N, 2, H, W)``.
-
-    Outside the rotated map the masses are (0, 0) (unknown). ``generator`` (CPU) makes the draw
-    reproducible.
-    """
-    if inputs.shape[0] != label.shape[0] or inputs.shape[-2:] != label.shape[-2:]:
-        raise ValueError(
-            f"inputs {tuple(inputs.shape)} and label {tuple(label.shape)} must share N, H, W"
-        )
-    n, c, h, w = inputs.shape
-    if not flip and max_rotation_deg <= 0:
-        return inputs, label
-    theta = augmentation_matrices(
-        n, h, w, flip=flip, max_rotation_deg=max_rotation_deg, generator=generator
-    )
-    theta = theta.to(device=inputs.device, dtype=inputs.dtype)
-    both = torch.cat([inputs, label.to(inputs.dtype)], dim=1)
-    grid = F.affine_grid(theta, list(both.shape), align_corners=False)
-    out = F.grid_sample(both, grid, mode=mode, padding_mode="zeros", align_corners=False)
-    return out[:, :c], out[:, c:].to(label.dtype)
-
-
-# ---------------------------------------------------------------------------------------------
-# data
-
-
-@dataclass(frozen=True)
-class DataSettings:
-    """How the prealigned dataset feeds training.
-
-    batch_size: pairs per step; train_samples_per_epoch: pairs drawn (without replacement) per
-    epoch, 0 = all; val_samples: fixed validation pairs, 0 = all; num_workers: loader workers.
-    """
-
-    batch_size: int = 8
-    train_samples_per_epoch: int = 0
-    val_samples: int = 0
-    num_workers: int = 0
-
-
-def load_prealigned(
-    root: str | Path, split: str, grid: GridSpec | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``inputs (N, 4, H, W)``, ``label (N, 2, H, W)`` float32 tensors of ``split`` (checked against
-    ``grid``). Every shard read is checked against the manifest's SHA-256 and its masses (finite,
-    on the simplex) as it is loaded (:meth:`~traffictwin.io.shards.Dataset.load_all`)."""
-
-    def masses_ok(name: str, a: dict[str, np.ndarray]) -> None:
-        # NaN, negative or off-simplex masses fail here, before any training
-        for key, arr in (("inputs", a["inputs"][:, 0:2]), ("inputs", a["inputs"][:, 2:4])):
-            _check_masses(arr, f"{root}/{name}: split '{split}' array '{key}'")
-        _check_masses(a["label"], f"{root}/{name}: split '{split}' array 'label'")
-
-    ds = Dataset(root, kind="prealigned", verify=False)  # each shard's hash: checked as it is read
-    arrays = ds.load_all(split, keys=["inputs", "label"], check=masses_ok)
-    x, y = arrays["inputs"], arrays["label"]
-    if x.ndim != 4 or x.shape[1] != 4:
-        raise DatasetError(f"{root}: array 'inputs' must be (N, 4, H, W), got {x.shape}")
-    if y.shape != (x.shape[0], 2, *x.shape[2:]):
-        raise DatasetError(
-            f"{root}: array 'label' must be (N, 2, H, W) = {(x.shape[0], 2, *x.shape[2:])}, got {y.shape}"
-        )
-    if grid is not None and tuple(x.shape[2:]) != grid.shape:
-        raise DatasetError(
-            f"{root}: maps are {tuple(x.shape[2:])} cells but the grid parameter says {grid.shape} (rows, cols)"
-        )
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)), torch.from_numpy(
-        np.ascontiguousarray(y, dtype=np.float32)
-    )
-
-
-def _check_masses(arr: np.ndarray, name: str) -> None:
-    """:func:`~traffictwin.evidential.masses.check_masses` as a :class:`DatasetError`."""
-    try:
-        check_masses(arr, name=name)
-    except ValueError as exc:
-        raise DatasetError(str(exc)) from None
-
-
-class FusionDataModule(L.LightningDataModule):
-    """Prealigned pairs in memory; seeded per-epoch training subsets, a fixed validation subset."""
-
-    def __init__(
-        self,
-        root: str | Path,
-        settings: DataSettings,
-        seed: int,
-        grid: GridSpec | None = None,
-        tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
-    ) -> None:
-        super().__init__()
-        self.root = Path(root)
-        self.settings = settings
-        self.seed = int(seed)
-        self.grid = grid
-        self._tensors = dict(tensors) if tensors else {}
-        self.train_set: TensorDataset | None = None
-        self.val_set: Subset | TensorDataset | None = None
-
-    def setup(self, stage: str | None = None) -> None:
-        if self.train_set is not None:
-            return
-        for split in ("train", "val"):
-            if split not in self._tensors:
-                self._tensors[split] = load_prealigned(self.root, split, self.grid)
-        self.train_set = TensorDataset(*self._tensors["train"])
-        val = TensorDataset(*self._tensors["val"])
-        self.val_set = Subset(val, evenly_spaced(len(val), self.settings.val_samples).tolist())
-        if len(self.train_set) < self.settings.batch_size:
-            raise DatasetError(
-                f"{self.root}: {len(self.train_set)} training pairs < batch_size {self.settings.batch_size}"
-            )
-
-    def train_dataloader(self) -> DataLoader:
-        assert self.train_set is not None
-        n = len(self.train_set)
-        k = self.settings.train_samples_per_epoch
-        k = n if k <= 0 else min(k, n)
-        gen = torch.Generator().manual_seed(self.seed)
-        sampler: Sampler[int] = RandomSampler(
-            self.train_set, replacement=False, num_samples=k, generator=gen
-        )
-        world, rank = common.rank_layout(self.trainer)
-        if world > 1:  # DDP: the same k-pair draw on every rank, k // world pairs each
-            sampler = common.RankShardSampler(sampler, world, rank, even=True)
-        return DataLoader(
-            self.train_set,
-            batch_size=self.settings.batch_size,
-            sampler=sampler,
-            drop_last=True,
-            num_workers=self.settings.num_workers,
-            persistent_workers=self.settings.num_workers > 0,
-        )
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val_set is not None
-        world, rank = common.rank_layout(self.trainer)
-        # DDP: every validation pair on exactly one rank (no padding repeats), in the batches one
-        # process would use, so the metrics reduced over the ranks are those of one process
-        sampler = (
-            common.RankShardSampler(
-                SequentialSampler(self.val_set),
-                world,
-                rank,
-                even=False,
-                block=self.settings.batch_size,
-            )
-            if world > 1
-            else None
-        )
-        return DataLoader(
-            self.val_set,
-            batch_size=self.settings.batch_size,
-            shuffle=False,
-            sampler=sampler,
-            num_workers=self.settings.num_workers,
-            persistent_workers=self.settings.num_workers > 0,
-        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -581,88 +356,54 @@ class LoopSettings:
     gradient_clip_val: float | None = None
 
 
-@dataclass
-class FitResult:
-    """What :func:`fit_fusion` produced (paths written, best metrics, timing)."""
+@dataclass(frozen=True)
+class FusionSettings:
+    """How the fusion network trains: its ``spec`` and ``hparams``, the ``data`` and ``loop``
+    settings and the model's ``network`` name (None: the configuration's name)."""
 
-    checkpoint: Path
-    meta: dict[str, Any]
-    metrics: dict[str, Any]
-    history: list[dict[str, float]]
-    run_id: str | None = None
-    model_uri: str | None = None
-    train_seconds: float = 0.0  # wall time of trainer.fit (s): for the stage's run record only
-    samples_per_s: float | None = None  # training pairs (all ranks) per second of train_seconds
-    precision: str | None = None  # the trainer's resolved precision: run record only
-
-
-def stopped_early(epochs_run: int, max_epochs: int) -> bool:
-    """Whether early stopping ended the run before ``max_epochs`` (the run converged on its
-    validation metric instead of running out of epochs)."""
-    return int(epochs_run) < int(max_epochs)
+    spec: DeepLabSpec
+    hparams: FusionHParams = FusionHParams()
+    data: DataSettings = DataSettings()
+    loop: LoopSettings = LoopSettings()
+    network: str | None = None
 
 
 def fit_fusion(
-    data_root: str | Path,
+    pairs: TrainingSet,
     *,
-    spec: DeepLabSpec,
-    hparams: FusionHParams,
-    data: DataSettings,
-    loop: LoopSettings,
+    model: FusionSettings,
     trainer_settings: common.TrainerSettings,
-    seed: int,
-    grid: GridSpec,
-    cfg_name: str,
-    noise: Mapping[str, float],
-    ckpt_out: str | Path,
-    network: str | None = None,
-    inputs: str = "prealigned",
-    meta_out: str | Path | None = None,
-    metrics_out: str | Path | None = None,
-    curves_out: str | Path | None = None,
+    outputs: ModelOutputs,
     tracking: TrackingSettings | None = None,
-    log_mlflow_model: bool = True,
     tensors: Mapping[str, tuple[torch.Tensor, torch.Tensor]] | None = None,
     resume_dir: str | Path | None = None,
     **trainer_extra: Any,
 ) -> FitResult | None:
-    """Train on ``data_root``'s train split, select on val/kld_full (KLD(b)), publish the best model.
+    """Train on ``pairs``' train split, select on val/kld_full (KLD(b)), publish the best model.
 
-    Writes (rank zero, each atomically, only after training succeeded): ``ckpt_out`` (slim
-    Lightning checkpoint), ``meta_out`` (architecture, grid, cfg, data manifest hash),
-    ``metrics_out`` (best-epoch metrics, epochs, ``samples_seen``), ``curves_out`` (per-epoch CSV):
+    Writes ``outputs`` (rank zero, each atomically, only after training succeeded): the slim
+    Lightning checkpoint, its meta (architecture, grid, cfg, data manifest hash), the best-epoch
+    metrics (epochs, ``samples_seen``) and the per-epoch curves CSV:
     identical runs write identical bytes. What differs between runs (MLflow run id and model URI,
     training seconds and pairs per second) is only in the returned :class:`FitResult`.
     ``best_epoch`` (metrics, meta, the checkpoint's ``epoch``) and the curves' ``epoch`` are
     0-based, Lightning's count; human-readable lines say ``best_epoch + 1`` of ``epochs``
     (:class:`traffictwin.trainer.History`).
-    Returns ``None`` on other DDP ranks.
+    Returns ``None`` on other DDP ranks. ``tensors``: the splits already in memory (tests).
 
     ``resume_dir``: a folder outside the outputs where the run keeps its training state
     (:mod:`traffictwin.resume`); a run killed before the end continues from there when run
     again with the same arguments, data and code (same weights as without the kill); removed
     after the outputs are written.
     """
-    common.seed_everything(seed)
-    grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
-    ds = Dataset(
-        data_root, kind="prealigned", verify=False
-    )  # the loader checks every shard it reads
-    manifest_hash = ds.manifest_hash()
+    common.seed_everything(pairs.seed)
+    spec, hparams = model.spec, model.hparams
+    pairs.grid.check_divisible(spec.output_stride, name="grid (fusion network input)")
+    manifest_hash = pairs.manifest_hash()
     tracking = tracking or TrackingSettings("fusion", "fusion", stage="train_fusion", enabled=False)
-    meta_base = {
-        "cfg": cfg_name,
-        "network": network or cfg_name,
-        "inputs": inputs,
-        "loss": hparams.loss,
-        "noise": dict(noise),
-        "grid": {"rows": grid.rows, "cols": grid.cols, "cell": grid.cell},
-        "seed": int(seed),
-        "data_manifest_hash": manifest_hash,
-        "profile": tracking.profile,
-    }
+    meta_base = _meta_base(pairs, model, manifest_hash, tracking.profile)
     module = FusionLitModule(spec.as_dict(), asdict(hparams), meta=meta_base)
-    dm = FusionDataModule(data_root, data, seed, grid, tensors=tensors)
+    dm = FusionDataModule(pairs.root, model.data, pairs.seed, pairs.grid, tensors=tensors)
     n_params = count_parameters(module.net)
     session = resume.Session(
         resume_dir,
@@ -670,18 +411,62 @@ def fit_fusion(
             "problem": "fusion",
             "spec": spec.as_dict(),
             "hparams": asdict(hparams),
-            "data": asdict(data),
-            "loop": asdict(loop),
+            "data": asdict(model.data),
+            "loop": asdict(model.loop),
             "trainer": trainer_settings.as_dict(),
             "meta": meta_base,
-            "data_root": str(data_root),
+            "data_root": str(pairs.root),
             "tensors": tensors is not None,
             "extra": trainer_extra,
         },
     )
     if session.resume_from is not None:
         log.info("resuming %s from %s", tracking.stage, session.resume_from)
-    fit_loop = common.FitLoop(
+    record = common.RunRecord(
+        tags={
+            DATA_TAG: manifest_hash,
+            "cfg": pairs.cfg_name,
+            "network": meta_base["network"],
+            "loss": hparams.loss,
+        },
+        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
+        datasets=[(pairs.root, manifest_hash)],
+    )
+    loop = _fit_loop(model.loop, trainer_extra)
+    with common.fit_run(
+        module,
+        dm,
+        settings=trainer_settings,
+        loop=loop,
+        tracking=tracking,
+        session=session,
+        record=record,
+    ) as fitted:
+        if fitted is None:
+            return None
+        return _publish(fitted, pairs, model, dm, meta_base, outputs, n_params)
+
+
+def _meta_base(
+    pairs: TrainingSet, model: FusionSettings, manifest_hash: str, profile: str
+) -> dict[str, Any]:
+    """The provenance every fusion model records (module hyperparameters and model meta)."""
+    return {
+        "cfg": pairs.cfg_name,
+        "network": model.network or pairs.cfg_name,
+        "inputs": pairs.inputs,
+        "loss": model.hparams.loss,
+        "noise": dict(pairs.noise),
+        "grid": pairs.grid_dict(),
+        "seed": int(pairs.seed),
+        "data_manifest_hash": manifest_hash,
+        "profile": profile,
+    }
+
+
+def _fit_loop(loop: LoopSettings, trainer_extra: Mapping[str, Any]) -> common.FitLoop:
+    """The driver's loop: select, stop early and decay the learning rate on KLD(b)."""
+    return common.FitLoop(
         monitor=SELECTION_METRIC,
         max_epochs=loop.max_epochs,
         patience=loop.early_stopping_patience,
@@ -690,110 +475,60 @@ def fit_fusion(
         gradient_clip_val=loop.gradient_clip_val,
         trainer_extra=trainer_extra,
     )
-    with common.fit_run(
-        module,
-        settings=trainer_settings,
-        loop=fit_loop,
-        tracking=tracking,
-        session=session,
-        tags={
-            DATA_TAG: manifest_hash,
-            "cfg": cfg_name,
-            "network": network or cfg_name,
-            "loss": hparams.loss,
-        },
-        params={"data.manifest_hash": manifest_hash, "model.param_count": n_params},
-        datasets=[(data_root, manifest_hash)],
-        datamodule=dm,
-    ) as fitted:
-        if fitted is None:
-            return None
-        if fitted.best is None:
-            raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
-        slim = common.model_checkpoint(
-            "fusion",
-            spec.as_dict(),
-            fitted.best["state_dict"],
-            {},
-            epoch=fitted.best_epoch,
-            global_step=int(fitted.best.get("global_step", -1)),
-        )
-        best_epoch = slim["epoch"]
-        row = fitted.best_row()
-        epochs_run = len(fitted.history.rows)
-        n_train = len(dm.train_set) if dm.train_set is not None else 0
-        k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
-        # per epoch each of the world_size ranks trains on k // world_size pairs in full batches
-        world = int(fitted.trainer.world_size)
-        per_rank = min(k, n_train) // world // data.batch_size * data.batch_size
-        samples_seen = per_rank * world * epochs_run
-        metrics: dict[str, Any] = {key: row[key] for key in sorted(row) if "/" in key}
-        metrics.update(
-            {
-                "best_epoch": best_epoch,
-                "epochs": epochs_run,
-                "max_epochs": loop.max_epochs,
-                "stopped_early": stopped_early(epochs_run, loop.max_epochs),
-                "samples_seen": samples_seen,
-                "param_count": n_params,
-                "train_pairs": n_train,
-                "val_pairs": len(dm.val_set) if dm.val_set is not None else 0,
-            }
-        )
-        meta = {
-            **meta_base,
-            "format": CKPT_FORMAT,
-            "architecture": spec.as_dict(),
-            "param_count": n_params,
-            "hparams": asdict(hparams),
-            "best_epoch": best_epoch,
-            "best_val_loss": metrics.get("val/loss"),
-            "selection_metric": SELECTION_METRIC,
-            "best_val_kld_full": metrics.get(SELECTION_METRIC),
-        }
-        slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
-        model_uri = None
-        run = fitted.run
-        if run is not None:
-            common.log_final_metrics(
-                fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
-            )
-            with tempfile.TemporaryDirectory(prefix="fusion_art_") as art:
-                p = Path(art) / "model.ckpt"
-                torch.save(slim, p)
-                common.log_checkpoint(p)
-            best_module = FusionLitModule(spec.as_dict(), asdict(hparams), meta_base)
-            best_module.load_state_dict(slim["state_dict"])
-            example = np.zeros(
-                (1, spec.backbone.in_channels, grid.rows, grid.cols), dtype=np.float32
-            )
-            logged_net = best_module.net.to(
-                memory_format=torch.contiguous_format
-            )  # plain NCHW for serving
-            model_uri = common.log_model(
-                slim,
-                meta,
-                logged_net,
-                example,
-                name="model",
-                metadata={"cfg": cfg_name, "data_manifest_hash": manifest_hash},
-            )
-        common.save_model_files(ckpt_out, slim, meta_out, meta)  # one unit: meta last
-        if metrics_out:
-            write_json_atomic(metrics_out, metrics)
-        if curves_out:
-            fitted.history.write_csv(curves_out)
-        train_s = fitted.seconds
-        history_rows = fitted.history.rows
-        precision = fitted.precision
-    return FitResult(
-        Path(ckpt_out),
-        meta,
-        metrics,
-        history_rows,
-        run.info.run_id if run is not None else None,
-        model_uri,
-        round(train_s, 2),
-        round(samples_seen / train_s, 3) if train_s > 0 else None,
-        precision,
+
+
+def _samples_seen(fitted: common.Fitted, data: DataSettings, n_train: int) -> int:
+    """Training pairs of the whole run: per epoch each of the world_size ranks trains on
+    k // world_size pairs (k = the epoch's draw) in full batches."""
+    k = data.train_samples_per_epoch if data.train_samples_per_epoch > 0 else n_train
+    world = int(fitted.trainer.world_size)
+    per_rank = min(k, n_train) // world // data.batch_size * data.batch_size
+    return per_rank * world * len(fitted.history.rows)
+
+
+def _publish(
+    fitted: common.Fitted,
+    pairs: TrainingSet,
+    model: FusionSettings,
+    dm: FusionDataModule,
+    meta_base: dict[str, Any],
+    outputs: ModelOutputs,
+    n_params: int,
+) -> FitResult:
+    """The best epoch as the fusion model: MLflow model (with tracking), files, result."""
+    if fitted.best is None:
+        raise RuntimeError("training produced no checkpoint (no validation epoch finished?)")
+    spec, hparams = model.spec, model.hparams
+    slim = fitted.model_checkpoint("fusion", spec.as_dict())
+    n_train = len(dm.train_set) if dm.train_set is not None else 0
+    metrics = common.fit_metrics(
+        fitted,
+        model.loop.max_epochs,
+        samples_seen=_samples_seen(fitted, model.data, n_train),
+        param_count=n_params,
+        train_pairs=n_train,
+        val_pairs=len(dm.val_set) if dm.val_set is not None else 0,
     )
+    meta = {
+        **meta_base,
+        "format": CKPT_FORMAT,
+        "architecture": spec.as_dict(),
+        "param_count": n_params,
+        "hparams": asdict(hparams),
+        "best_epoch": slim["epoch"],
+        "best_val_loss": metrics.get("val/loss"),
+        "selection_metric": SELECTION_METRIC,
+        "best_val_kld_full": metrics.get(SELECTION_METRIC),
+    }
+    slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
+    model_uri = None
+    if fitted.run is not None:
+        best_module = FusionLitModule(spec.as_dict(), asdict(hparams), meta_base)
+        best_module.load_state_dict(slim["state_dict"])
+        net = best_module.net.to(memory_format=torch.contiguous_format)  # plain NCHW for serving
+        g = pairs.grid
+        example = np.zeros((1, spec.backbone.in_channels, g.rows, g.cols), dtype=np.float32)
+        metadata = {"cfg": pairs.cfg_name, "data_manifest_hash": meta_base["data_manifest_hash"]}
+        model_uri = common.log_fitted_model(fitted, slim, meta, metrics, net, example, metadata)
+    common.publish(fitted, outputs, slim, meta, metrics)
+    return common.fit_result(fitted, outputs, meta, metrics, model_uri)

@@ -1,0 +1,100 @@
+"""Lightning + MLflow helpers shared by the fusion and risk trainers (docs/design.md "Tracking").
+
+Stable API (the fusion and the risk stages both use it), re-exported here from the modules
+:mod:`~traffictwin.trainer.settings` (where Lightning runs), :mod:`~traffictwin.trainer.sampling`
+(DDP shares), :mod:`~traffictwin.trainer.callbacks`, :mod:`~traffictwin.trainer.tracking`
+(MLflow), :mod:`~traffictwin.trainer.fit` (the driver) and :mod:`~traffictwin.trainer.publish`
+(model files and result):
+
+- :class:`TrainerSettings` — the ``trainer`` config group (accelerator, devices, num_nodes,
+  strategy, precision, num_workers, optional deterministic / num_threads), validated once with
+  :func:`traffictwin.config.typed` by :meth:`TrainerSettings.from_cfg`.
+- :func:`seed_everything` — seeds python/numpy/torch (and dataloader workers).
+- :func:`build_trainer` — a ``lightning.Trainer`` from the settings, with no Lightning logger
+  (metrics go to MLflow through :class:`History`, which logs one value per epoch).
+- :class:`NetModule` — the one trainer shape: LightningModule with an injected network and
+  loss, Adam (+ optional plateau decay); the fusion and risk modules subclass it.
+- :class:`RankShardSampler` / :func:`rank_layout` — under DDP, this rank's share of a
+  sampler's indices, for the loaders the DataModules build themselves: training gets the
+  same per-epoch draw split evenly over the ranks, evaluation every sample exactly once
+  (Lightning's own DistributedSampler would repeat samples to even out the ranks).
+- :func:`best_checkpoint` / :func:`early_stopping` — callbacks on a monitored metric.
+- :class:`FiniteGuard` — the one finite-loss guard of every trainer (:func:`build_trainer` adds
+  one when the caller gave none): a NaN/inf training loss or monitored metric stops the run with
+  :class:`TrainingDiverged` naming the stage, epoch, step, learning rate and the parameter to lower.
+- :class:`History` — the metric rows (per epoch, or per validation for the risk net's
+  per-iteration curves), logged to the active MLflow run (rank zero only), written as CSV.
+- :func:`mlflow_logger` / :func:`log_final_metrics` — Lightning's ``MLFlowLogger`` on the
+  stage's MLflow run, through which :class:`History` and the final metrics are logged.
+- :func:`global_rank` / :func:`tracked_run` — an MLflow run on rank zero only (under DDP the
+  launcher re-runs the stage script in every rank; the other ranks get ``None``).
+- :func:`log_checkpoint` / :func:`log_model` — the best checkpoint as an artifact and the
+  network as an MLflow model of weights + JSON (no pickled code, SHA-256 sealed) that
+  :func:`traffictwin.mlops.registry.load_registered` restores with the problem's loader.
+- :func:`fit_run` — the one training driver (:class:`FitLoop`, :class:`RunRecord`, yields
+  :class:`Fitted`); :class:`ModelOutputs`, :func:`fit_metrics`, :func:`log_fitted_model`,
+  :func:`publish` and :class:`FitResult` — publishing the best epoch of a run.
+- One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
+  :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
+  :func:`read_model_checkpoint` reads it back with ``weights_only=True`` and checks it, and
+  :func:`net_state_dict` gives the network's weights. A model folder's ``model.ckpt`` and
+  ``model_meta.json`` are one unit: :func:`save_model_files` writes them (meta last, recording
+  the checkpoint's SHA-256) and :func:`check_model_pair` refuses a pair that does not match.
+"""
+
+from traffictwin.model_format import (  # noqa: F401 - re-exported: the one checkpoint format
+    CKPT_SHA_KEY,
+    MODEL_FORMAT,
+    CheckpointError,
+    check_model_pair,
+    model_checkpoint,
+    net_state_dict,
+    read_model_checkpoint,
+    read_model_meta,
+    save_model_checkpoint,
+    save_model_files,
+)
+from traffictwin.trainer.callbacks import (  # noqa: F401
+    FiniteGuard,
+    History,
+    TrainingDiverged,
+    best_checkpoint,
+    early_stopping,
+)
+from traffictwin.trainer.fit import (  # noqa: F401
+    BEST_DIR,
+    FitLoop,
+    Fitted,
+    NetModule,
+    RunRecord,
+    fit_run,
+)
+from traffictwin.trainer.publish import (  # noqa: F401
+    FitResult,
+    ModelOutputs,
+    fit_metrics,
+    fit_result,
+    log_fitted_model,
+    publish,
+    stopped_early,
+)
+from traffictwin.trainer.sampling import RankShardSampler, rank_layout  # noqa: F401
+from traffictwin.trainer.settings import (  # noqa: F401
+    ACCELERATORS,
+    PRECISIONS,
+    TrainerSettings,
+    build_trainer,
+    check_device,
+    native_bf16_cpu,
+    resolve_precision,
+    seed_everything,
+)
+from traffictwin.trainer.tracking import (  # noqa: F401
+    TrackingSettings,
+    global_rank,
+    log_checkpoint,
+    log_final_metrics,
+    log_model,
+    mlflow_logger,
+    tracked_run,
+)
