@@ -133,25 +133,17 @@ def _frame_table(
     sequence at once (one pool of processes), then every sequence's twin and risk."""
     from traffictwin.twin import evaluation as ev
 
-    noise = (pn.r, pn.alpha)
+    tp = ev.TwinPass(
+        run.grid, (pn.r, pn.alpha), methods, models, run.settings, run.reg_params, run.workers
+    )
     reg = (
-        ev.classical_registrations(seqs, run.grid, noise, run.reg_params, run.workers)
+        ev.classical_registrations(seqs, run.grid, tp.noise, run.reg_params, run.workers)
         if ev.uses_classical(methods, run.settings)
         else [None] * len(seqs)
     )
     return pd.concat(
         [
-            ev.evaluate_sequence(
-                a,
-                run.grid,
-                noise,
-                methods,
-                models,
-                run.settings,
-                run.reg_params,
-                registered=r,
-                include_ego=include_ego,
-            )
+            ev.evaluate_sequence(a, tp, registered=r, include_ego=include_ego)
             for a, r in zip(seqs, reg)
         ],
         ignore_index=True,

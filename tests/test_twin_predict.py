@@ -9,6 +9,7 @@ import pytest
 
 from traffictwin.grid import GridSpec
 from traffictwin.twin.predict import (
+    MapReading,
     PredictSettings,
     box_points,
     cell_velocities,
@@ -137,7 +138,7 @@ def test_map_ttc_static_map_equals_thw_and_moving_blob_earlier():
     path = np.stack([np.linspace(0.0, 20.0, 41), np.zeros(41)], 1)
     m = _blob(grid, 10.0, 3.5)  # beside the corridor (lane 3.5 m)
     zero = np.zeros((grid.rows, grid.cols, 2), np.float32)
-    args = (path, 3.5, 5.0, grid, 0.5, 0.5, L, 1.8, P)
+    args = (path, 3.5, 5.0, MapReading(grid, 0.5, 0.5, L, 1.8), P)
     assert map_ttc(m, zero, *args) == np.inf
     vel = zero.copy()
     vel[m[1] >= 0.5] = (0.0, -1.5)  # walking into the lane
@@ -214,7 +215,7 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     from traffictwin.sim.cooperative import CooperativeConfig
     from traffictwin.sim.lidar import LidarSpec
     from traffictwin.twin.data import TwinDataParams, sequence_arrays
-    from traffictwin.twin.evaluation import EGO, TwinEvalSettings, evaluate_sequence
+    from traffictwin.twin.evaluation import EGO, TwinEvalSettings, TwinPass, evaluate_sequence
 
     grid = GridSpec(rows=64, cols=48, cell=0.5)
     p = TwinDataParams(
@@ -225,15 +226,15 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     a = sequence_arrays(5, 0, p)
     assert a["ttc_true"].shape == (6,)
     s = TwinEvalSettings(n_boot=50)
-    f = evaluate_sequence(a, grid, (0.5, 1.0), ["naive"], {}, s)
+    f = evaluate_sequence(a, TwinPass(grid, (0.5, 1.0), ["naive"], {}, s))
     assert {"ttc", "ttc_true", "flagged_ttc"} <= set(f.columns)
     # TTC <= THW wherever the THW is within the horizon (the same cells at tau = 0)
     within = f["thw"] <= s.predict.horizon_s
     assert (f.loc[within, "ttc"] <= f.loc[within, "thw"] + 1e-9).all()
-    g = evaluate_sequence(a, grid, (0.5, 1.0), ["naive"], {}, s, include_ego=False)
+    g = evaluate_sequence(a, TwinPass(grid, (0.5, 1.0), ["naive"], {}, s), include_ego=False)
     assert EGO not in set(g["method"]) and len(g) == len(f) // 2
     # a map warns a reaction time before the critical level; the label stays at the critical level
-    r = evaluate_sequence(a, grid, (0.5, 1.0), ["naive"], {}, replace(s, reaction_s=1.0))
+    r = evaluate_sequence(a, TwinPass(grid, (0.5, 1.0), ["naive"], {}, replace(s, reaction_s=1.0)))
     assert (r["flagged"] == (r["thw"] < s.critical_thw + 1.0)).all()
     assert (r["critical"] == (r["thw_true"] < s.critical_thw)).all()
 

@@ -15,6 +15,7 @@ The aggregation over sequences (recall, lead times, false alarms, with CIs) is
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -28,12 +29,13 @@ from traffictwin.sim.cooperative import HAZARDS, KINDS
 from traffictwin.twin.config import TwinEvalSettings
 from traffictwin.twin.data import twin_risk_config
 from traffictwin.twin.fuse import TWIN_METHODS, Twin
-from traffictwin.twin.predict import cell_velocities, map_ttc
+from traffictwin.twin.predict import MapReading, cell_velocities, map_ttc
 
 __all__ = [
     "TwinEvalSettings",
     "noisy_relative_poses",
     "map_thw",
+    "TwinPass",
     "evaluate_sequence",
     "predictive_frame",
     "classical_registrations",
@@ -80,11 +82,20 @@ def map_thw(
     return float(headway(d, speed))
 
 
+def map_reading(grid: GridSpec, s: TwinEvalSettings) -> MapReading:
+    """How the twin's risk measures read a map: ``s``'s threshold and margins, the ego's footprint
+    of the risk label."""
+    rc = twin_risk_config(s.corridor_margin)
+    return MapReading(
+        grid, s.occ_threshold, s.self_margin, rc.subject_length, rc.subject_width, s.corridor_margin
+    )
+
+
 def ttc_reader(grid: GridSpec, s: TwinEvalSettings, fps: float) -> Any:
     """A callable ``(prev_masses | None, masses, ego_prev, ego_now, speed, path, lane_width) ->
     TTC (s)``: the predictive measure (:mod:`traffictwin.twin.predict`) of one map given the
     previous map of the same source, ``1/fps`` s earlier."""
-    rc = twin_risk_config(s.corridor_margin)
+    reading = map_reading(grid, s)
 
     def read(
         prev: np.ndarray | None,
@@ -98,48 +109,57 @@ def ttc_reader(grid: GridSpec, s: TwinEvalSettings, fps: float) -> Any:
         vel = cell_velocities(
             prev, masses, ego_prev, ego_now, 1.0 / fps, grid, s.occ_threshold, s.predict
         )
-        return map_ttc(
-            masses,
-            vel,
-            path,
-            lane_width,
-            speed,
-            grid,
-            s.occ_threshold,
-            s.self_margin,
-            rc.subject_length,
-            rc.subject_width,
-            s.predict,
-            s.corridor_margin,
-        )
+        return map_ttc(masses, vel, path, lane_width, speed, reading, s.predict)
 
     return read
 
 
+@dataclass(frozen=True)
+class TwinPass:
+    """One evaluation pass over sequences: the ``grid``, the pose ``noise`` (r m, alpha deg), the
+    twin ``methods`` and ``models[method]`` (the models each needs), the evaluation ``settings``,
+    the classical ``registration``'s parameters and its ``workers`` processes."""
+
+    grid: GridSpec
+    noise: tuple[float, float]
+    methods: list[str]
+    models: dict[str, dict[str, Any]]
+    settings: TwinEvalSettings
+    registration: Any = None
+    workers: int = 1
+
+
+def _frame_common(arrays: dict[str, np.ndarray], t: int, ttc_true: np.ndarray) -> dict[str, Any]:
+    """The columns of frame ``t`` every method's row shares."""
+    return {
+        "frame": t,
+        "time": float(arrays["time"][t]),
+        "speed": float(arrays["speeds"][t, 0]),
+        "thw_true": float(arrays["thw_true"][t]),
+        "ttc_true": float(ttc_true[t]),
+        "ego_sees_hazard": bool(arrays["hazard_seen"][t, 0]),
+        "others_see_hazard": bool(arrays["hazard_seen"][t, 1:].any()),
+    }
+
+
 def evaluate_sequence(
     arrays: dict[str, np.ndarray],
-    grid: GridSpec,
-    noise: tuple[float, float],
-    methods: list[str],
-    models: dict[str, dict[str, Any]],
-    s: TwinEvalSettings,
-    registration: Any = None,
-    workers: int = 1,
+    run: TwinPass,
     registered: dict[int, list[Any]] | None = None,
     include_ego: bool = True,
 ) -> pd.DataFrame:
     """One row per (method incl. ``ego``, frame) of one sequence's arrays (:mod:`traffictwin.twin.data`)
-    at pose noise ``(r m, alpha deg)``; ``models[method]`` the models the method needs. Columns
-    ``thw`` and ``ttc`` (s): the map's time headway and its time to conflict with the motion
-    predicted from the previous frame's map of the same method (:func:`ttc_reader`; at the
-    first frame: no motion), ``ttc_true`` the simulator's. ``include_ego=False``: no ``ego`` rows
-    (they do not depend on the pose noise: a second noise model reuses the first one's). With the
-    ``reference`` strategy the classical registrations of every frame are computed once
-    (``registered``: given, from :func:`classical_registrations`; else here, in ``workers``
-    processes) and shared by the methods that use them."""
+    in the pass ``run``. Columns ``thw`` and ``ttc`` (s): the map's time headway and its time to
+    conflict with the motion predicted from the previous frame's map of the same method
+    (:func:`ttc_reader`; at the first frame: no motion), ``ttc_true`` the simulator's.
+    ``include_ego=False``: no ``ego`` rows (they do not depend on the pose noise: a second noise
+    model reuses the first one's). With the ``reference`` strategy the classical registrations of
+    every frame are computed once (``registered``: given, from :func:`classical_registrations`;
+    else here) and shared by the methods that use them."""
+    s, grid, methods = run.settings, run.grid, run.methods
     maps = arrays["maps"]
     T, N = maps.shape[:2]
-    rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)
+    rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *run.noise)
     base = {
         "sequence": scalar(arrays["sequence"]),
         "kind": KINDS[scalar(arrays["kind"])],
@@ -147,7 +167,9 @@ def evaluate_sequence(
         "vehicles": N,
     }
     twins = {
-        m: Twin(grid, m, strategy=s.strategy, models=models.get(m), registration=registration)
+        m: Twin(
+            grid, m, strategy=s.strategy, models=run.models.get(m), registration=run.registration
+        )
         for m in methods
     }
     pre: dict[int, list[Any]] = {}
@@ -155,7 +177,9 @@ def evaluate_sequence(
         pre = (
             registered
             if registered is not None
-            else classical_registrations([arrays], grid, noise, registration, workers)[0]
+            else classical_registrations([arrays], grid, run.noise, run.registration, run.workers)[
+                0
+            ]
         )
     fps = 1.0 / float(np.median(np.diff(arrays["time"]))) if T > 1 else 1.0
     read_ttc = ttc_reader(grid, s, fps)
@@ -163,45 +187,31 @@ def evaluate_sequence(
     ttc_true = arrays["ttc_true"] if "ttc_true" in arrays else np.full(T, np.nan)
     prev: dict[str, np.ndarray | None] = dict.fromkeys([EGO, *methods])
     rows = []
-    for t in range(T):
-        v = float(arrays["speeds"][t, 0])
-        path, lw = arrays["path"][t], float(arrays["lane_width"][t])
-        ep = ego_pose[max(t - 1, 0)]
 
-        frame_args = (ep, ego_pose[t], v, path, lw)
-        common = {
-            **base,
-            "frame": t,
-            "time": float(arrays["time"][t]),
-            "speed": v,
-            "thw_true": float(arrays["thw_true"][t]),
-            "ttc_true": float(ttc_true[t]),
-            "ego_sees_hazard": bool(arrays["hazard_seen"][t, 0]),
-            "others_see_hazard": bool(arrays["hazard_seen"][t, 1:].any()),
-        }
+    def risk_row(m: str, masses: np.ndarray, t: int, common: dict[str, Any], **extra: Any) -> dict:
+        v, path, lw = common["speed"], arrays["path"][t], float(arrays["lane_width"][t])
+        thw = map_thw(masses, v, path, lw, grid, s)
+        ttc = read_ttc(prev[m], masses, ego_pose[max(t - 1, 0)], ego_pose[t], v, path, lw)
+        prev[m] = masses
+        return {**common, "method": m, "thw": thw, "ttc": ttc, **extra}
+
+    for t in range(T):
+        common = {**base, **_frame_common(arrays, t, ttc_true)}
         if include_ego:
-            thw = map_thw(maps[t, 0], v, path, lw, grid, s)
-            ttc = read_ttc(prev[EGO], maps[t, 0], *frame_args)
-            prev[EGO] = maps[t, 0]
-            rows.append(
-                {**common, "method": EGO, "thw": thw, "ttc": ttc, "left_out": 0, "step_ms": 0.0}
-            )
+            rows.append(risk_row(EGO, maps[t, 0], t, common, left_out=0, step_ms=0.0))
         # each registration of this frame once, for every method using it
         shared: dict = {"registered_results": pre[t]} if t in pre else {}
         for m in methods:
             step = twins[m].update(float(arrays["time"][t]), maps[t], rel[t], shared)
-            thw = map_thw(step.masses, v, path, lw, grid, s)
-            ttc = read_ttc(prev[m], step.masses, *frame_args)
-            prev[m] = step.masses
             rows.append(
-                {
-                    **common,
-                    "method": m,
-                    "thw": thw,
-                    "ttc": ttc,
-                    "left_out": int(N - step.used.sum()),
-                    "step_ms": 1000.0 * step.seconds,
-                }
+                risk_row(
+                    m,
+                    step.masses,
+                    t,
+                    common,
+                    left_out=int(N - step.used.sum()),
+                    step_ms=1000.0 * step.seconds,
+                )
             )
     f = pd.DataFrame(rows)
     f["critical"] = f["thw_true"] < s.critical_thw

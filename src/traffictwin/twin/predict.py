@@ -42,7 +42,14 @@ from traffictwin.geometry import relative_pose
 from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import project_on_path
 
-__all__ = ["PredictSettings", "cell_velocities", "time_to_conflict", "map_ttc", "box_points"]
+__all__ = [
+    "PredictSettings",
+    "MapReading",
+    "cell_velocities",
+    "time_to_conflict",
+    "map_ttc",
+    "box_points",
+]
 
 
 @dataclass(frozen=True)
@@ -182,33 +189,50 @@ def time_to_conflict(
     return ttc if ttc <= p.horizon_s + 1e-9 else float("inf")
 
 
+@dataclass(frozen=True)
+class MapReading:
+    """How a risk measure reads an evidential map in the ego's frame: its ``grid``, the cells
+    with ``m_O >= occ_threshold`` are obstacles, the ego's footprint (``subject_length`` x
+    ``subject_width`` m) grown by ``self_margin`` m is ignored, and the corridor is the lane plus
+    ``corridor_margin`` m on each side."""
+
+    grid: GridSpec
+    occ_threshold: float
+    self_margin: float
+    subject_length: float
+    subject_width: float
+    corridor_margin: float = 0.0
+
+
 def map_ttc(
     masses: np.ndarray,
     vel: np.ndarray,
     path: np.ndarray,
     lane_width: float,
     speed: float,
-    grid: GridSpec,
-    occ_threshold: float,
-    self_margin: float,
-    subject_length: float,
-    subject_width: float,
+    reading: MapReading,
     p: PredictSettings,
-    corridor_margin: float = 0.0,
 ) -> float:
     """TTC (s) read from a map ``(2, H, W)`` in the ego's frame with the cell velocities ``vel
     (H, W, 2)`` of :func:`cell_velocities` (the ego's footprint grown by ``self_margin`` m ignored,
     as the THW does)."""
-    r, c = np.nonzero(np.asarray(masses[1]) >= occ_threshold)
+    r, c = np.nonzero(np.asarray(masses[1]) >= reading.occ_threshold)
     if len(r) == 0:
         return float("inf")
-    x, y = grid.rc_to_xy(r, c)
-    own = (np.abs(x) <= subject_length / 2 + self_margin) & (
-        np.abs(y) <= subject_width / 2 + self_margin
+    x, y = reading.grid.rc_to_xy(r, c)
+    own = (np.abs(x) <= reading.subject_length / 2 + reading.self_margin) & (
+        np.abs(y) <= reading.subject_width / 2 + reading.self_margin
     )
     xy = np.stack([x[~own], y[~own]], 1)
     return time_to_conflict(
-        xy, vel[r[~own], c[~own]], path, lane_width, speed, subject_length, p, corridor_margin
+        xy,
+        vel[r[~own], c[~own]],
+        path,
+        lane_width,
+        speed,
+        reading.subject_length,
+        p,
+        reading.corridor_margin,
     )
 
 
