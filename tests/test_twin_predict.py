@@ -196,19 +196,20 @@ def test_predictive_warnings_paired_with_thw_and_targets():
     from traffictwin.twin.summary import summarise
     from traffictwin.twin.targets import targets
 
-    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=200))
+    # h = 0.3 s: frames 0-6 of the 1 s open sequence are judged (7-9: window past its end)
+    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.3))
     occ = s["twin"]["occluded"]["predictive"]
     assert occ["lead_s_median"] == pytest.approx(0.3)  # TTC warns at 0.2 s, onset 0.5 s
     assert occ["lead_vs_thw_s_mean"] == pytest.approx(0.3)  # THW warns at the onset
     opn = s["twin"]["open"]["predictive"]
-    assert opn["false_alarm_share"] == pytest.approx(0.1)
-    assert opn["false_alarm_share_vs_thw"] == pytest.approx(0.1)
+    assert opn["false_alarm_share"] == pytest.approx(1 / 7)
+    assert opn["false_alarm_share_vs_thw"] == pytest.approx(1 / 7)
     assert occ["ttc_true_recall"] == pytest.approx(1.0)
     assert occ["ttc_true_false_alarm_rate"] == pytest.approx(3 / 5)
     t = targets({"D": {"methods": s}}, "twin", "D")
     assert t["predictive_warns_earlier_than_thw"]["value"] == pytest.approx(0.3)
-    assert t["predictive_no_more_false_alarms"]["value"] == pytest.approx(0.1)
-    assert t["predictive_no_more_false_alarms"]["met"] is False  # one sequence: CI [0.1, 0.1]
+    assert t["predictive_no_more_false_alarms"]["value"] == pytest.approx(1 / 7)
+    assert t["predictive_no_more_false_alarms"]["met"] is False  # one sequence: CI [1/7, 1/7]
 
 
 def test_evaluate_sequence_reads_ttc_beside_thw():
@@ -249,7 +250,7 @@ def test_report_section_shows_the_predictive_table(tmp_path):
     from traffictwin.twin.summary import summarise
     from traffictwin.twin.targets import targets
 
-    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=100))
+    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=100, horizon_s=0.3))
     m = {
         "configurations": {"D": {"methods": s}},
         "targets": targets({"D": {"methods": s}}, "twin", "D"),

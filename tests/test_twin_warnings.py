@@ -12,6 +12,7 @@ from traffictwin.twin.alerts import (
     critical_episodes,
     episode_table,
     false_alarm_frames,
+    judged_frames,
 )
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.noise import pose_noise_z
@@ -23,15 +24,48 @@ def test_false_alarm_frames_by_horizon() -> None:
     t = np.arange(8) * 0.5  # 0 .. 3.5 s
     crit = np.array([0, 0, 0, 0, 1, 1, 0, 0], bool)  # episode 2.0-2.5 s
     flag = np.array([1, 1, 0, 0, 1, 0, 1, 0], bool)
-    # h = 1 s: t = 0 (next critical 2.0 s) and 0.5 (1.5 s) false; 2.0 in the episode; 3.0 after it
-    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.0), [1, 1, 0, 0, 0, 0, 1, 0])
+    # h = 1 s: t = 0 (next critical 2.0 s) and 0.5 (1.5 s) false; 2.0 in the episode; 3.0 after
+    # it, but its window (3.0-4.0 s) runs past the last frame (3.5 s): not judged
+    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.0), [1, 1, 0, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(judged_frames(t, crit, 1.0), [1, 1, 1, 1, 1, 1, 0, 0])
+    # h = 0.5 s: the window of t = 3.0 s ends at the last frame: judged, a false alarm
+    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 0.5), [1, 1, 0, 0, 0, 0, 1, 0])
     # h = 1.5 s: t = 0.5 s is 1.5 s before the onset -> an early warning, not a false alarm
-    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.5), [1, 0, 0, 0, 0, 0, 1, 0])
-    # no episode: every warning is a false alarm
-    assert false_alarm_frames(t, np.zeros(8, bool), flag, 9.0).sum() == 4
+    np.testing.assert_array_equal(false_alarm_frames(t, crit, flag, 1.5), [1, 0, 0, 0, 0, 0, 0, 0])
+    # no episode: every judged warning is a false alarm (h = 0.4 s: up to t = 3.1 s judged)
+    assert false_alarm_frames(t, np.zeros(8, bool), flag, 0.4).sum() == 4
+    # ... and a horizon longer than the sequence judges nothing without an episode
+    assert not judged_frames(t, np.zeros(8, bool), 9.0).any()
     np.testing.assert_array_equal(alarm_events(np.array([1, 1, 0, 1, 0], bool)), [1, 0, 0, 1, 0])
     with pytest.raises(ValueError, match="horizon_s"):
         false_alarm_frames(t, crit, flag, -1.0)
+
+
+def test_censored_warnings_are_not_false_alarms_in_the_summary() -> None:
+    # one open sequence, 10 frames at 10 Hz, no episode; the map warns at frames 2 and 8. With
+    # h = 0.3 s frames 7-9 are not judged (their window runs past 0.9 s): frame 8's warning may
+    # announce an episode after the recording, so one false alarm in 7 judged frames
+    rows = [
+        {
+            "sequence": 0,
+            "kind": "open",
+            "hazard": "pedestrian",
+            "vehicles": 3,
+            "method": m,
+            "frame": i,
+            "time": i / 10,
+            "critical": False,
+            "flagged": m == "twin" and i in (2, 8),
+            "left_out": 0,
+        }
+        for m in (EGO, "twin")
+        for i in range(10)
+    ]
+    s = summarise(pd.DataFrame(rows), ["twin"], 10.0, TwinEvalSettings(n_boot=50, horizon_s=0.3))
+    opn = s["twin"]["open"]
+    assert opn["false_alarm_share"] == pytest.approx(1 / 7)
+    assert opn["driving_min"] == pytest.approx(7 / 10 / 60, abs=1e-4)
+    assert opn["false_alarm_share_vs_ego"] == pytest.approx(1 / 7)
 
 
 def test_critical_episodes_and_episode_table() -> None:
@@ -138,7 +172,8 @@ def _table() -> pd.DataFrame:
 
 
 def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
-    s = summarise(_table(), ["naive", "twin"], 10.0, TwinEvalSettings(n_boot=200))
+    # h = 0: every frame of these 1 s sequences is judged (a 2 s horizon would judge none)
+    s = summarise(_table(), ["naive", "twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.0))
     opn = s["twin"]["open"]
     assert opn["false_alarm_share"] == pytest.approx(1 / 20)
     # one run of false alarms in 20 frames = 2 s of driving -> 30 per minute

@@ -11,11 +11,16 @@ its last frame ``t1``. With the horizon ``h`` (s, ``twin.horizon_s``):
 - the episode's *lead time* is ``t0 - tw`` (s; > 0: warned before the onset, 0: at the onset,
   < 0: late); it is *warned before its onset* when ``tw < t0``;
 - a warning is a *false alarm* when no critical frame lies within ``[t, t + h]`` (no episode
-  under way or starting within the horizon).
+  under way or starting within the horizon) and that window ends by the sequence's last frame;
+- a frame is *judged* when its outcome is known: a critical frame lies within ``[t, t + h]`` or
+  the window ends by the last frame. A warning in the last ``h`` seconds with no critical frame
+  up to the end is right-censored — the episode it announces may start after the recording —
+  and counts neither as an early warning nor as a false alarm; false-alarm shares and rates are
+  over the judged frames.
 
 With ``h = 0`` the lead time of a method over the ego's own map is the one the evaluation used
-before issue 32 (the first flag inside the episode). Units: s; rates per minute of driving
-(every frame of the sequences counted, 1/fps s each).
+before issue 32 (the first flag inside the episode). Units: s; rates per minute of judged
+driving (1/fps s per judged frame).
 """
 
 from __future__ import annotations
@@ -23,26 +28,49 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["false_alarm_frames", "critical_episodes", "episode_table", "alarm_events"]
+__all__ = [
+    "judged_frames",
+    "false_alarm_frames",
+    "critical_episodes",
+    "episode_table",
+    "alarm_events",
+]
 
 EPS = 1e-6
+
+
+def _next_critical_gap(time: np.ndarray, critical: np.ndarray, horizon_s: float) -> np.ndarray:
+    """Per frame: the time (s) from it to the first critical frame at or after it (inf: none)."""
+    if horizon_s < 0:
+        raise ValueError(f"horizon_s must be >= 0 s, got {horizon_s}")
+    t = np.asarray(time, dtype=np.float64)
+    crit_t = t[np.asarray(critical, bool)]
+    if crit_t.size == 0:
+        return np.full(t.shape, np.inf)
+    i = np.searchsorted(crit_t, t - EPS)  # the first critical frame at or after t
+    nxt = np.where(i < crit_t.size, crit_t[np.minimum(i, crit_t.size - 1)], np.inf)
+    return nxt - t
+
+
+def judged_frames(time: np.ndarray, critical: np.ndarray, horizon_s: float) -> np.ndarray:
+    """Per frame of one sequence (``time`` increasing, s): whether its outcome is known — a
+    critical frame within ``[t, t + horizon_s]``, or that window ends by the last frame.
+    ``(T,)`` bool."""
+    t = np.asarray(time, dtype=np.float64)
+    gap = _next_critical_gap(t, critical, horizon_s)
+    if t.size == 0:
+        return np.zeros(0, bool)
+    return (gap <= horizon_s + EPS) | (t + horizon_s <= t[-1] + EPS)
 
 
 def false_alarm_frames(
     time: np.ndarray, critical: np.ndarray, flagged: np.ndarray, horizon_s: float
 ) -> np.ndarray:
-    """Per frame of one sequence (``time`` increasing, s): flagged with no critical frame within
-    ``[t, t + horizon_s]``. ``(T,)`` bool."""
-    if horizon_s < 0:
-        raise ValueError(f"horizon_s must be >= 0 s, got {horizon_s}")
-    t = np.asarray(time, dtype=np.float64)
-    crit_t = t[np.asarray(critical, bool)]
-    flagged = np.asarray(flagged, bool)
-    if crit_t.size == 0:
-        return flagged.copy()
-    i = np.searchsorted(crit_t, t - EPS)  # the first critical frame at or after t
-    nxt = np.where(i < crit_t.size, crit_t[np.minimum(i, crit_t.size - 1)], np.inf)
-    return flagged & (nxt - t > horizon_s + EPS)
+    """Per frame of one sequence (``time`` increasing, s): flagged and judged
+    (:func:`judged_frames`) with no critical frame within ``[t, t + horizon_s]``. ``(T,)`` bool."""
+    gap = _next_critical_gap(time, critical, horizon_s)
+    judged = judged_frames(time, critical, horizon_s)
+    return np.asarray(flagged, bool) & (gap > horizon_s + EPS) & judged
 
 
 def alarm_events(false_alarm: np.ndarray) -> np.ndarray:

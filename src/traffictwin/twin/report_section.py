@@ -147,8 +147,10 @@ def open_table(src: page.Sources) -> Table:
                 ]
             )
     t.note = (
-        "False alarms: warnings with no critical frame within twin.horizon_s, as a share of all "
-        "frames and as runs per minute of driving; 'under pose bias': each vehicle's pose error "
+        "False alarms: warnings with no critical frame within twin.horizon_s, as a share of the "
+        "judged frames and as runs per minute of judged driving (a warning in a sequence's last "
+        "twin.horizon_s with no critical frame up to its end is right-censored: what it announces "
+        "may start after the recording, so it is not judged); 'under pose bias': each vehicle's pose error "
         "persists over the sequence (twin.bias_share of its variance) besides per-frame jitter. "
         "Intervals: 95 % bootstrap over sequences (traffictwin.stats)."
     )

@@ -34,7 +34,7 @@ from traffictwin.stats import (
     paired_mean_difference_ci,
     statistic_ci,
 )
-from traffictwin.twin.alerts import alarm_events, episode_table, false_alarm_frames
+from traffictwin.twin.alerts import alarm_events, episode_table, false_alarm_frames, judged_frames
 from traffictwin.twin.config import TwinEvalSettings
 from traffictwin.twin.evaluation import EGO, NAIVE, TTC, predictive_frame
 
@@ -88,17 +88,19 @@ def lead_times(
 
 
 def add_false_alarms(frame: pd.DataFrame, horizon_s: float) -> pd.DataFrame:
-    """``frame`` with columns ``false_alarm`` (a warning with no critical frame within
-    ``horizon_s``, :func:`traffictwin.twin.alerts.false_alarm_frames`) and ``alarm_event`` (the
-    first frame of a run of false alarms), per method and sequence."""
+    """``frame`` with columns ``judged`` (the frame's outcome is known within ``horizon_s``,
+    :func:`traffictwin.twin.alerts.judged_frames`), ``false_alarm`` (a judged warning with no
+    critical frame within ``horizon_s``, :func:`traffictwin.twin.alerts.false_alarm_frames`) and
+    ``alarm_event`` (the first frame of a run of false alarms), per method and sequence."""
     f = frame.copy()
+    f["judged"] = False
     f["false_alarm"] = False
     f["alarm_event"] = False
     for _, idx in f.groupby(["method", "sequence"], sort=False).groups.items():
         g = f.loc[idx].sort_values("frame")
-        fa = false_alarm_frames(
-            g["time"].to_numpy(), g["critical"].to_numpy(), g["flagged"].to_numpy(), horizon_s
-        )
+        t, crit = g["time"].to_numpy(), g["critical"].to_numpy()
+        fa = false_alarm_frames(t, crit, g["flagged"].to_numpy(), horizon_s)
+        f.loc[g.index, "judged"] = judged_frames(t, crit, horizon_s)
         f.loc[g.index, "false_alarm"] = fa
         f.loc[g.index, "alarm_event"] = alarm_events(fa)
     return f
@@ -119,8 +121,9 @@ def warning_metrics(
     """Episode and false-alarm metrics of method ``m`` on the frame table ``f`` (one scenario kind;
     columns ``false_alarm``, ``alarm_event`` of :func:`add_false_alarms`), with sequence-bootstrap
     CIs: ``episodes``; ``lead_s_median`` / ``lead_s_mean`` (onset - first warning, s);
-    ``warned_before_onset_share``; ``false_alarm_share`` (of all frames) and
-    ``false_alarms_per_min`` (runs of false alarms per minute of driving); per baseline ``b`` in
+    ``warned_before_onset_share``; ``false_alarm_share`` (of the judged frames: right-censored
+    warnings at the end of a sequence are not judged) and ``false_alarms_per_min`` (runs of false
+    alarms per minute of judged driving, ``driving_min``); per baseline ``b`` in
     ``baselines`` (other than ``m``): ``lead_vs_<b>_s_median`` / ``_mean`` (paired, same
     episodes) and ``false_alarm_share_vs_<b>`` (paired, same frames)."""
     boot = dict(n_boot=s.n_boot, seed=s.seed, level=s.level)
@@ -145,6 +148,7 @@ def warning_metrics(
         put("warned_before_onset_share", mean_ci(ep["before_onset"].to_numpy(float), grp, **boot))
         out["horizon_covered_share"] = round(float(ep["horizon_covered"].mean()), 6)
     g = f[f["method"] == m].sort_values(["sequence", "frame"], kind="stable")
+    g = g[g["judged"]] if "judged" in g else g
     if len(g):
         grp = g["sequence"].to_numpy()
         put("false_alarm_share", mean_ci(g["false_alarm"].to_numpy(float), grp, **boot))
@@ -162,6 +166,7 @@ def warning_metrics(
             put(f"lead_vs_{b}_s_median", _median_ci(d, grp, boot))
             put(f"lead_vs_{b}_s_mean", mean_ci(d, grp, **boot))
         gb = f[f["method"] == b].sort_values(["sequence", "frame"], kind="stable")
+        gb = gb[gb["judged"]] if "judged" in gb else gb  # the same frames: judged by the truth
         if len(g) and len(gb) == len(g):
             put(
                 f"false_alarm_share_vs_{b}",
