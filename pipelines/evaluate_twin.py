@@ -234,6 +234,7 @@ def _figures(
         timeline_figure,
         timeline_table,
         twin_map_figure,
+        twin_snapshot,
     )
 
     s = run.settings
@@ -246,7 +247,8 @@ def _figures(
     )
     a = next(x for x in seqs if scalar(x["sequence"]) == seq)
     noise = (pn.r, pn.alpha)
-    fig = twin_map_figure(a, run.grid, noise, tc.headline, model, s, c_fig, run.reg_params)
+    snap = twin_snapshot(a, run.grid, noise, tc.headline, model, s, run.reg_params)
+    fig = twin_map_figure(snap, run.grid, noise[0], tc.headline, c_fig)
     save_figure(fig, figure_file("twin_map"))
 
 

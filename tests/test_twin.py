@@ -407,11 +407,13 @@ def test_timeline_figure_plots_the_table() -> None:
 
 
 def test_twin_map_figure_shows_every_vehicle() -> None:
-    from traffictwin.twin.figures import twin_map_figure
+    from traffictwin.twin.figures import twin_map_figure, twin_snapshot
 
     p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG)
     a = sequence_arrays(5, 1, p)
-    fig = twin_map_figure(a, GRID, (5.0, 20.0), "naive", None, TwinEvalSettings(), "D")
+    snap = twin_snapshot(a, GRID, (5.0, 20.0), "naive", None, TwinEvalSettings())
+    assert snap.contributions.shape == a["maps"].shape[1:]
+    fig = twin_map_figure(snap, GRID, 5.0, "naive", "D")
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0].startswith("twin (naive)") and len(titles) == 4
     assert titles[1].startswith("vehicle 0 (ego)") and "used" in titles[2]

@@ -3,6 +3,7 @@ timeline of the ego's time headway from its own map, from the twin and from the 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -17,7 +18,14 @@ from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_po
 from traffictwin.twin.fuse import build_twin
 from traffictwin.twin.summary import lead_times
 
-__all__ = ["pick_timeline_sequence", "timeline_table", "timeline_figure", "twin_map_figure"]
+__all__ = [
+    "pick_timeline_sequence",
+    "timeline_table",
+    "timeline_figure",
+    "TwinSnapshot",
+    "twin_snapshot",
+    "twin_map_figure",
+]
 
 THW_CAP = 5.0  # s: THW above this (or inf) is drawn at the cap
 # vehicle markers on the twin map: blue, orange, purple, cyan, pink, brown (none of the mass
@@ -122,22 +130,31 @@ def timeline_figure(
     return fig
 
 
-def twin_map_figure(
+@dataclass(frozen=True)
+class TwinSnapshot:
+    """The twin at one frame of a sequence, what :func:`twin_map_figure` draws: the frame index,
+    every vehicle's noisy ``rel (N, 3)`` and true ``true_rel (N, 3)`` pose in the ego's frame
+    (x m, y m, yaw rad), the twin step (fused masses, the poses it used, which vehicles) and each
+    vehicle's map where the twin put it, ``contributions (N, 2, H, W)``."""
+
+    frame: int
+    rel: np.ndarray
+    true_rel: np.ndarray
+    step: Any
+    contributions: np.ndarray
+
+
+def twin_snapshot(
     arrays: dict[str, np.ndarray],
     grid: GridSpec,
     noise: tuple[float, float],
     method: str,
     models: dict[str, Any] | None,
     s: TwinEvalSettings,
-    configuration: str,
     registration: Any = None,
-):
-    """At the critical onset of one sequence: the twin (ego frame) with every vehicle's true
-    position, its noisy position with the configuration's pose error bound (circle of radius
-    r m: 98 % of the noisy positions are off by less than r per axis) and the pose the twin used; beside it each vehicle's own map where the twin put it."""
-    plt = _plt()
-    from matplotlib.patches import Circle
-
+) -> TwinSnapshot:
+    """The twin of ``method`` at the critical onset of one sequence at pose noise ``(r m, alpha
+    deg)``, with each vehicle's map warped where the twin put it."""
     t = max(0, scalar(arrays["onset_frame"]))
     maps = arrays["maps"][t]
     rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)[t]
@@ -145,7 +162,24 @@ def twin_map_figure(
         maps, rel, grid, method, strategy=s.strategy, models=models, registration=registration
     )
     true_rel = noisy_relative_poses(arrays["poses"], np.zeros_like(arrays["noise_z"]), 0.0, 0.0)[t]
-    n = len(maps)
+    contributions = np.stack(
+        [maps[0]] + [warp_masses(maps[k], step.poses[k], grid) for k in range(1, len(maps))]
+    )
+    return TwinSnapshot(t, rel, true_rel, step, contributions)
+
+
+def twin_map_figure(
+    snap: TwinSnapshot, grid: GridSpec, radius: float, method: str, configuration: str
+):
+    """The twin of ``snap`` (ego frame) with every vehicle's true position, its noisy position
+    with the configuration's pose error bound (circle of ``radius`` r m: 98 % of the noisy
+    positions are off by less than r per axis) and the pose the twin used; beside it each
+    vehicle's own map where the twin put it. Draws only."""
+    plt = _plt()
+    from matplotlib.patches import Circle
+
+    step, rel, true_rel = snap.step, snap.rel, snap.true_rel
+    n = len(snap.contributions)
     fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
     roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
 
@@ -162,22 +196,21 @@ def twin_map_figure(
         if k:
             axes[0].plot(rel[k, 1], rel[k, 0], "x", color=c, ms=6)
             axes[0].add_patch(
-                Circle((rel[k, 1], rel[k, 0]), noise[0], fill=False, color=c, ls=":", lw=1)
+                Circle((rel[k, 1], rel[k, 0]), radius, fill=False, color=c, ls=":", lw=1)
             )
             mark = "+" if step.used[k] else "s"
             axes[0].plot(step.poses[k, 1], step.poses[k, 0], mark, color=c, ms=8)
-        contrib = maps[k] if k == 0 else warp_masses(maps[k], step.poses[k], grid)
         used = (
             "reference"
             if k == 0
             else ("used" if step.used[k] else "left out (registration rejected)")
         )
-        show(axes[k + 1], contrib, f"vehicle {k} ({roles[k]}): {used}")
+        show(axes[k + 1], snap.contributions[k], f"vehicle {k} ({roles[k]}): {used}")
         axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")
     axes[0].legend(fontsize=6, loc="lower left")
     fig.suptitle(
         "o true position, x noisy position, + pose the twin used; dotted circle: pose error "
-        f"bound r = {noise[0]:g} m around the noisy position\n(per axis: 98 % of the noisy "
+        f"bound r = {radius:g} m around the noisy position\n(per axis: 98 % of the noisy "
         "positions are off by less than r in x, and 98 % by less than r in y)",
         fontsize=8,
     )
