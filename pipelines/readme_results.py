@@ -171,9 +171,10 @@ def _wall_row(records: list[dict]) -> str | None:
         else ""
     )
     later = ""
-    if len(parts) > 1:
-        names = ", ".join(f"`{r['stage']}`" for s in parts[1:] for r in s)
-        later = f", without the pause before {names}, re-run on its own later"
+    if len(parts) > 1:  # the run is the session with the most stages; the others ran apart
+        main = max(range(len(parts)), key=lambda i: len(parts[i]))
+        names = ", ".join(f"`{r['stage']}`" for i, s in enumerate(parts) if i != main for r in s)
+        later = f", without the pauses around {names}, run on its own at another time"
     return (
         f"| `make run`: the whole default DAG, wall (first stage start to last stage end{later}; "
         f"{where}{load}) | **{_minutes(span)}** |"

@@ -102,8 +102,13 @@ def test_timings_block_adds_up_the_run_records() -> None:
     # a stage re-run on its own an hour later: its time counts, the pause before it does not
     later = rec("report", 30.0, "2026-01-01T11:00:00Z", "2026-01-01T11:00:30Z")
     row = R.timings_block([*records, later]).splitlines()[3]
-    assert "| **5.8 min** |" in row and "`report`, re-run on its own later" in row
+    assert "| **5.8 min** |" in row
+    assert "without the pauses around `report`, run on its own at another time" in row
     assert [len(s) for s in R.sessions([*records, later])] == [3, 1]
+    # a quick stage run an hour before the rest (dvc skipped it this time): named, not the rest
+    early = rec("environment", 0.1, "2026-01-01T08:00:00Z", "2026-01-01T08:00:00Z")
+    row = R.timings_block([early, *records]).splitlines()[3]
+    assert "around `environment`, run on its own" in row and "generate_fusion" not in row
 
 
 def test_headline_block_reads_the_metrics_files() -> None:
