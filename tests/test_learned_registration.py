@@ -18,16 +18,15 @@ from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
 from traffictwin.fusion.learned_registration import (
     LearnedRegistration,
     RegistrationNetSpec,
-    _soft_target,
     check_pair_inputs,
     correction_target,
     correction_to_pose,
-    registration_loss,
     rotation_about,
     rotation_centres,
     warp_by,
 )
 from traffictwin.fusion.methods import METHODS, FusionInput
+from traffictwin.fusion.registration_loss import registration_loss, soft_target
 from traffictwin.fusion.registration_training import correction_errors, learning_curves, perturb
 from traffictwin.grid import GridSpec
 
@@ -170,7 +169,7 @@ def test_soft_target_is_a_distribution_peaked_at_the_truth() -> None:
         centre,
         torch.tensor([[8.0, -4.0]], dtype=torch.float64),
     )
-    t = _soft_target(angles, 3, 4, m, centre, math.radians(1.0), 2.0)
+    t = soft_target(angles, 3, 4, m, centre, math.radians(1.0), 2.0)
     assert t.shape == (1, 5, 7, 7) and abs(float(t.sum()) - 1) < 1e-9
     k, dy, dx = np.unravel_index(int(t.argmax()), t.shape[1:])
     assert k == 3  # +2°

@@ -278,6 +278,79 @@ def _rot(center: tuple[float, float], deg: float) -> np.ndarray:
     return np.vstack([cv2.getRotationMatrix2D(center, deg, 1.0), [0.0, 0.0, 1.0]])
 
 
+def _coarse_alignment(
+    f1: np.ndarray,
+    g2: np.ndarray,
+    k1: np.ndarray,
+    kg2: np.ndarray,
+    grid: GridSpec,
+    params: RegistrationParams,
+) -> tuple[np.ndarray, float]:
+    """The coarse step of :func:`register_pair`: Fourier–Mellin rotation (+ prior 0, + optional
+    grid of angles), phase-correlation translation; the best ``(W: map1 px → prealigned px (3, 3),
+    angle deg)`` by masked correlation of the (blurred) features ``f1`` and prealigned ``g2``."""
+    shape = grid.shape
+    if params.blur_sigma_cells > 0:
+        b1 = cv2.GaussianBlur(f1, (0, 0), params.blur_sigma_cells)
+        b2 = cv2.GaussianBlur(g2, (0, 0), params.blur_sigma_cells)
+    else:
+        b1, b2 = f1, g2
+    b1 = b1 * (k1 > 0)
+    b2 = b2 * (kg2 > 0)
+    center = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
+    cands = {0.0, round(_fourier_mellin_angle(b1, b2, params.n_angles), 3)}
+    if params.search_step_deg > 0:
+        cands |= set(
+            np.round(
+                np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3
+            ).tolist()
+        )
+    pc = BoundedPhaseCorrelator(b1, params.max_trans_m / grid.cell)
+    best = (-2.0, np.eye(3), 0.0)  # (cc, W: map1 px → prealigned px, angle)
+    size = (shape[1], shape[0])
+    for ang in sorted(cands):
+        if abs(ang) > params.max_rot_deg:
+            continue
+        r = _rot(center, ang)  # g2r(p) = g2(R p)
+        g2r = cv2.warpAffine(b2, r[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        sx, sy, _ = pc.shift(g2r)
+        w = r @ np.array([[1.0, 0.0, sx], [0.0, 1.0, sy], [0.0, 0.0, 1.0]])  # g2(W p) ≈ f1(p)
+        warped = cv2.warpAffine(b2, w[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        kw = cv2.warpAffine(kg2, w[:2], size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+        cc = _masked_cc(b1, warped, (k1 > 0) & (kw > 0))
+        if cc > best[0]:
+            best = (cc, w, ang)
+    _, wc, coarse = best
+    return wc, coarse
+
+
+def _refine_ecc(
+    f1: np.ndarray,
+    g2: np.ndarray,
+    k1: np.ndarray,
+    kg2: np.ndarray,
+    wc: np.ndarray,
+    params: RegistrationParams,
+) -> tuple[np.ndarray, bool]:
+    """The refinement of :func:`register_pair`: ECC in the prealigned frame from the coarse ``wc``,
+    template = map 1 (OpenCV's Euclidean ECC recovers the angle with asin, so it only handles
+    |rotation| < 90°: the large relative yaw stays in the prior). ``(W (3, 3), converged)``; the
+    coarse estimate when ECC fails."""
+    warp = np.ascontiguousarray(wc[:2], dtype=np.float32)
+    criteria = (
+        cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
+        int(params.ecc_iterations),
+        float(params.ecc_eps),
+    )
+    try:
+        _, warp = cv2.findTransformECCWithMask(
+            f1, g2, k1, kg2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
+        )
+    except cv2.error:
+        return wc, False  # keep the coarse estimate
+    return np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]]), True
+
+
 def register_pair(
     map1: np.ndarray,
     map2: np.ndarray,
@@ -326,55 +399,8 @@ def register_pair(
     if both.sum() < min_cells:
         return result(noisy.copy(), False, cc_noisy, 0.0, False)
 
-    # coarse: Fourier–Mellin rotation (+ prior 0, + optional grid), phase-correlation translation
-    if params.blur_sigma_cells > 0:
-        b1 = cv2.GaussianBlur(f1, (0, 0), params.blur_sigma_cells)
-        b2 = cv2.GaussianBlur(g2, (0, 0), params.blur_sigma_cells)
-    else:
-        b1, b2 = f1, g2
-    b1 = b1 * (k1 > 0)
-    b2 = b2 * (kg2 > 0)
-    center = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
-    cands = {0.0, round(_fourier_mellin_angle(b1, b2, params.n_angles), 3)}
-    if params.search_step_deg > 0:
-        cands |= set(
-            np.round(
-                np.arange(-params.max_rot_deg, params.max_rot_deg + 1e-9, params.search_step_deg), 3
-            ).tolist()
-        )
-    pc = BoundedPhaseCorrelator(b1, params.max_trans_m / grid.cell)
-    best = (-2.0, np.eye(3), 0.0)  # (cc, W: map1 px → prealigned px, angle)
-    size = (shape[1], shape[0])
-    for ang in sorted(cands):
-        if abs(ang) > params.max_rot_deg:
-            continue
-        r = _rot(center, ang)  # g2r(p) = g2(R p)
-        g2r = cv2.warpAffine(b2, r[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        sx, sy, _ = pc.shift(g2r)
-        w = r @ np.array([[1.0, 0.0, sx], [0.0, 1.0, sy], [0.0, 0.0, 1.0]])  # g2(W p) ≈ f1(p)
-        warped = cv2.warpAffine(b2, w[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        kw = cv2.warpAffine(kg2, w[:2], size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        cc = _masked_cc(b1, warped, (k1 > 0) & (kw > 0))
-        if cc > best[0]:
-            best = (cc, w, ang)
-    _, wc, coarse = best
-
-    # refine: ECC in the prealigned frame, template = map 1 (OpenCV's Euclidean ECC recovers the
-    # angle with asin, so it only handles |rotation| < 90°: the large relative yaw stays in a0)
-    warp = np.ascontiguousarray(wc[:2], dtype=np.float32)
-    criteria = (
-        cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
-        int(params.ecc_iterations),
-        float(params.ecc_eps),
-    )
-    ecc_ok = True
-    try:
-        _, warp = cv2.findTransformECCWithMask(
-            f1, g2, k1, kg2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
-        )
-        wc = np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]])
-    except cv2.error:
-        ecc_ok = False  # keep the coarse estimate
+    wc, coarse = _coarse_alignment(f1, g2, k1, kg2, grid, params)
+    wc, ecc_ok = _refine_ecc(f1, g2, k1, kg2, wc, params)
     w_total = np.linalg.inv(a0) @ wc  # map1 px → map2 px
     a_est = np.linalg.inv(w_total)  # map2 px → map1 px
     est = pixel_affine_to_pose(a_est, grid)

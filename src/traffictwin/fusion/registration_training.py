@@ -6,7 +6,7 @@
 - :func:`perturb` — augmentation: map 2 warped by an extra random rigid motion about the rotation
   centre (drawn from the configuration's pose-noise model scaled by ``augment_scale``), the target
   updated to ``G⁻¹ M``; the label (map 1's frame) is unchanged;
-- :class:`RegistrationLitModule` — Adam, :func:`~traffictwin.fusion.learned_registration.registration_loss`,
+- :class:`RegistrationLitModule` — Adam, :func:`~traffictwin.fusion.registration_loss.registration_loss`,
   validation metrics ``val/loss``, ``val/trans_err_m`` / ``val/rot_err_deg`` (mean), ``val/success_rate``
   (error < 0.5 m and < 1°), ``val/trans_err_m_median``, all over the whole validation subset;
 - :func:`fit_registration` — the training run of a :class:`RegistrationSettings` on a
@@ -39,11 +39,11 @@ from traffictwin.fusion.learned_registration import (
     LearnedRegistration,
     RegistrationNetSpec,
     correction_target,
-    registration_loss,
     rotation_about,
     warp_by,
 )
 from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.fusion.registration_loss import registration_loss
 from traffictwin.fusion.training_data import TrainingSet
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError
