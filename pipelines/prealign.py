@@ -35,22 +35,19 @@ from traffictwin.fusion.config import (
     pose_configurations,
     training_noise,
 )
-from traffictwin.fusion.pairs import prealign_shard
+from traffictwin.fusion.pairs import ShardNoise, prealign_shard
 from traffictwin.io.shards import Dataset, DatasetWriter, shard_name
 
 
 def _work(index: int) -> tuple[int, str, int]:
     s = WORKER_STATE
+    noise = ShardNoise(s["seed"], s["draws"][index], s["r"], s["alpha"], s["mixture"])
     digest, count = prealign_shard(
         str(FUSION_DATA / s["names"][index]),
         str(s["out"] / shard_name(index)),
-        s["seed"],
-        s["r"],
-        s["alpha"],
-        s["draws"][index],
+        noise,
         s["grid"],
         compresslevel=s["level"],
-        mixture=s["mixture"],
     )
     return index, digest, count
 

@@ -77,7 +77,7 @@ def test_scaled_kind_uses_the_largest_configuration_and_meta_describes_the_mixtu
 
 def test_prealign_shard_draws_each_rows_noise_level_from_the_mixture(tmp_path: Path) -> None:
     from traffictwin.evidential.dempster import dempster
-    from traffictwin.fusion.pairs import prealign_shard
+    from traffictwin.fusion.pairs import ShardNoise, prealign_shard
     from traffictwin.io.shards import read_npz, write_npz_deterministic
 
     rng = np.random.default_rng(0)
@@ -97,9 +97,8 @@ def test_prealign_shard_draws_each_rows_noise_level_from_the_mixture(tmp_path: P
     write_npz_deterministic(tmp_path / "src.npz", shard)
     sig = training_noise(_cfg()).sigmas(_noise())
     out = tmp_path / "dst.npz"
-    digest, count = prealign_shard(
-        str(tmp_path / "src.npz"), str(out), 7, 0.0, 0.0, 2, grid, mixture=(sig, "mixture")
-    )
+    noise = ShardNoise(seed=7, draws=2, mixture=(sig, "mixture"))
+    digest, count = prealign_shard(str(tmp_path / "src.npz"), str(out), noise, grid)
     a = read_npz(out)
     assert count == 2 * n and len(a["noise"]) == 2 * n
     # each row's noise = its standard-normal direction x one configuration's sigmas (stored)
@@ -109,9 +108,7 @@ def test_prealign_shard_draws_each_rows_noise_level_from_the_mixture(tmp_path: P
     assert (a["noise"][a["noise_sigma"][:, 0] == 0] == 0).all()  # A: exactly noise-free
     # deterministic: the same bytes again
     again = tmp_path / "again.npz"
-    assert prealign_shard(
-        str(tmp_path / "src.npz"), str(again), 7, 0.0, 0.0, 2, grid, mixture=(sig, "mixture")
-    ) == (digest, count)
+    assert prealign_shard(str(tmp_path / "src.npz"), str(again), noise, grid) == (digest, count)
 
 
 # -- precision ------------------------------------------------------------------------------------

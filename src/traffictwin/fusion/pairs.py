@@ -260,25 +260,26 @@ def prealign_arrays(
     }
 
 
-def prealign_shard(
-    src: str,
-    dst: str,
-    seed: int,
-    r: float,
-    alpha_deg: float,
-    draws: int,
-    grid: GridSpec,
-    compresslevel: int = 1,
-    mixture: tuple[np.ndarray, str] | None = None,
-) -> tuple[str, int]:
-    """Read fusion shard ``src`` (already verified by the caller), prealign with ``draws`` noise
-    draws per pair (draw ``d`` of pair ``pid`` from :func:`~traffictwin.evidential.noise.standard_normal_draws`
-    with ``(seed, pid, d)`` scaled by ``(r, alpha_deg)``), write ``dst``; returns ``(sha256, count)``.
+@dataclass(frozen=True)
+class ShardNoise:
+    """The pose noise a prealigned shard draws: ``draws`` draws per pair from ``seed`` (draw ``d``
+    of pair ``pid``: :func:`~traffictwin.evidential.noise.standard_normal_draws` with ``(seed,
+    pid, d)``), scaled by ``(r m, alpha_deg)`` or, with ``mixture = (sigmas (K, 3), kind)``, by
+    :func:`~traffictwin.evidential.noise.noise_scales` (``r`` and ``alpha_deg`` then ignored)."""
 
-    ``mixture = (sigmas (K, 3), kind)``: instead of one configuration's noise, each draw is scaled
-    by :func:`~traffictwin.evidential.noise.noise_scales` (one of K configurations, or the largest
-    scaled by U(0, 1)); ``r`` and ``alpha_deg`` are then ignored. The shard also stores each row's
-    ``noise_sigma (N, 3)``."""
+    seed: int
+    draws: int
+    r: float = 0.0
+    alpha_deg: float = 0.0
+    mixture: tuple[np.ndarray, str] | None = None
+
+
+def prealign_shard(
+    src: str, dst: str, noise: ShardNoise, grid: GridSpec, compresslevel: int = 1
+) -> tuple[str, int]:
+    """Read fusion shard ``src`` (already verified by the caller), prealign it with ``noise``'s
+    draws (:class:`ShardNoise`), write ``dst``; returns ``(sha256, count)``. With a mixture, the
+    shard also stores each row's ``noise_sigma (N, 3)``."""
     import cv2
 
     from traffictwin.evidential.noise import noise_scales, scale_noise, standard_normal_draws
@@ -290,13 +291,13 @@ def prealign_shard(
         raise ValueError(
             f"{src}: maps are {shard['map1'].shape[-2:]}, the grid parameter says {grid.shape}"
         )
-    pid = np.repeat(shard["pair_id"], draws)
-    draw = np.tile(np.arange(draws), len(shard["pair_id"]))
-    z = standard_normal_draws(seed, pid, draw)
-    if mixture is None:
-        arrays = prealign_arrays(shard, scale_noise(z, r, alpha_deg), grid, draw)
+    pid = np.repeat(shard["pair_id"], noise.draws)
+    draw = np.tile(np.arange(noise.draws), len(shard["pair_id"]))
+    z = standard_normal_draws(noise.seed, pid, draw)
+    if noise.mixture is None:
+        arrays = prealign_arrays(shard, scale_noise(z, noise.r, noise.alpha_deg), grid, draw)
     else:
-        sig = noise_scales(seed, pid, draw, mixture[0], mixture[1])
+        sig = noise_scales(noise.seed, pid, draw, noise.mixture[0], noise.mixture[1])
         arrays = prealign_arrays(shard, z * sig, grid, draw)
         arrays["noise_sigma"] = sig
     digest = write_npz_deterministic(dst, arrays, compresslevel=compresslevel)
