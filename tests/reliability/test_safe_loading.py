@@ -223,11 +223,17 @@ def test_a_registry_load_reuses_its_verified_copy_and_drops_an_altered_one(cl):
     uri = reg.version_uri(NAME, mv.version)
     assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
     (kept,) = [p for p in reg.model_cache_root().iterdir() if not p.name.startswith(".")]
-    with mock.patch.object(reg, "_download", side_effect=AssertionError("downloaded again")):
+    from traffictwin.mlops import registry_loading  # where load_registered looks them up
+
+    with mock.patch.object(
+        registry_loading, "_download", side_effect=AssertionError("downloaded again")
+    ):
         assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
     write_malicious_pickle(kept / art.CKPT, kept / "pwned")  # the cache altered on disk
     assert reg.load_registered(uri, load_linear, cl=cl, cache=True).weight.sum().item() == 0.5
     # the gate (no cache) always reads the store
-    with mock.patch.object(reg, "_cached_copy", side_effect=AssertionError("cache used")):
+    with mock.patch.object(
+        registry_loading, "_cached_copy", side_effect=AssertionError("cache used")
+    ):
         assert reg.load_registered(uri, load_linear, cl=cl).weight.sum().item() == 0.5
     assert not (kept / "pwned").exists()
