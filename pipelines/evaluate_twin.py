@@ -192,7 +192,7 @@ def _evaluate_configuration(
     """Configuration ``c``'s frame tables (per-frame noise and, for ``twin.bias_kinds``, the
     persistent bias) and its summary entry of twin.json."""
     from traffictwin.twin.evaluation import EGO
-    from traffictwin.twin.summary import summarise
+    from traffictwin.twin.summary import always_warning_reference, summarise
 
     f = _frame_table(run, seqs, pn, methods, models)
     f.insert(0, "configuration", c)
@@ -200,6 +200,7 @@ def _evaluate_configuration(
     entry: dict[str, Any] = {
         "noise": {"r": pn.r, "alpha": pn.alpha},
         "methods": summarise(f, methods, tc.fps, run.settings),
+        "always_warns": always_warning_reference(f, methods, tc.fps, run.settings),
     }
     frames = [f]
     if tc.bias_kinds:  # the same sequences' kinds under a persistent (per-sequence) bias

@@ -16,7 +16,7 @@ from traffictwin.twin.alerts import (
 )
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.noise import pose_noise_z
-from traffictwin.twin.summary import summarise
+from traffictwin.twin.summary import always_warning_reference, summarise
 from traffictwin.twin.targets import targets
 
 
@@ -190,6 +190,52 @@ def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
     assert t["predictive_warns_earlier_than_thw"]["met"] is None
     nob = targets({"D": {"methods": s}}, "twin", "D")
     assert nob["open_false_alarms_le_0.05_pose_bias"]["met"] is None  # not evaluated
+
+
+def test_a_warning_at_every_frame_reaches_the_most_lead_the_horizon_allows() -> None:
+    # the occluded sequence's episode starts at 0.5 s; with h = 0.3 s a constant warning's first
+    # warning is at 0.2 s (lead 0.3 s = h), the twin's and naive's at the onset (lead 0)
+    st = TwinEvalSettings(n_boot=200, horizon_s=0.3)
+    ref = always_warning_reference(_table(), ["naive", "twin"], 10.0, st)
+    occ = ref["occluded"]
+    assert occ["episodes"] == 1
+    assert occ["lead_s_median"] == pytest.approx(0.3)
+    assert occ["warned_before_onset_share"] == 1.0
+    assert occ["lead_vs_naive_s_mean"] == pytest.approx(0.3)
+    assert occ["lead_vs_ego_s_median"] == pytest.approx(0.3 - (0.5 - 1.0))  # ego never warns
+    # open: every judged frame is a false alarm (frames 0-6 of each 10-frame sequence judged)
+    assert ref["open"]["false_alarm_share"] == pytest.approx(1.0)
+    assert ref["open"]["false_alarms_per_min"] == pytest.approx(60.0 * 10.0 / 7)
+    s = summarise(_table(), ["naive", "twin"], 10.0, st)
+    t = targets({"D": {"methods": s, "always_warns": ref}}, "twin", "D")
+    reg = t["registration_lead_above_naive"]
+    assert reg["value"] == pytest.approx(0.0)  # the twin and naive both warn at the onset
+    assert reg["always_warns_value"] == pytest.approx(0.3)
+    assert reg["met"] is False
+
+
+def test_the_report_shows_the_constant_warning_beside_the_methods(tmp_path) -> None:
+    import json
+
+    from traffictwin.io.jsonio import json_clean
+    from traffictwin.report.model import ReportInputs, Sources
+    from traffictwin.twin import report_section as rs
+
+    st = TwinEvalSettings(n_boot=200, horizon_s=0.3)
+    s = summarise(_table(), ["naive", "twin"], 10.0, st)
+    ref = always_warning_reference(_table(), ["naive", "twin"], 10.0, st)
+    entry = {"methods": s, "always_warns": ref}
+    m = {"configurations": {"D": entry}, "targets": targets({"D": entry}, "twin", "D")}
+    (tmp_path / "metrics").mkdir()
+    (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
+    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
+    occ, opn, _, _, tgt = rs.section(src, []).tables
+    row = next(r for r in occ.rows if r[1].text == rs.ALWAYS_LABEL)
+    assert row[6].value == pytest.approx(0.8)  # median lead over the ego map: 0.3 - (-0.5)
+    assert row[8].value == 1.0  # warned before the onset
+    row = next(r for r in opn.rows if r[1].text == rs.ALWAYS_LABEL)
+    assert row[4].value == pytest.approx(1.0)  # every judged open frame a false alarm
+    assert "is met by a constant" in tgt.note and "0.30 s" in tgt.note
 
 
 def _twin_cfg(**twin: object):

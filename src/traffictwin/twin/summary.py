@@ -44,8 +44,11 @@ __all__ = [
     "warning_metrics",
     "summarise",
     "predictive_metrics",
+    "always_warning_reference",
     "step_ms_medians",
 ]
+
+ALWAYS = "always"  # the reference warner: warns at every frame (a constant, not a method)
 
 
 def lead_times(
@@ -273,6 +276,27 @@ def predictive_metrics(f: pd.DataFrame, m: str, fps: float, s: TwinEvalSettings)
             )
             out[key], out[f"{key}_ci"] = round(iv.estimate, 6), _ci(iv)
     return out
+
+
+def always_warning_reference(
+    frame: pd.DataFrame, methods: list[str], fps: float, s: TwinEvalSettings
+) -> dict[str, Any]:
+    """What a constant warning scores: a reference that warns at every frame (``always``, built
+    on the ego's rows, so the same frames and episodes), per scenario kind (``occluded`` /
+    ``open`` / ``all``): :func:`warning_metrics` paired with the ego's own map and every method of
+    ``methods``. Its lead is the most the lead-time definition allows (``horizon_s``, less where a
+    sequence starts within it): a method's lead shows what it sees only beside its false alarms."""
+    e = frame[frame["method"] == EGO]
+    a = e.assign(method=ALWAYS, flagged=True)
+    keep = frame[frame["method"].isin(methods)]
+    f = add_false_alarms(pd.concat([e, keep, a], ignore_index=True), s.horizon_s)
+    baselines = (EGO, *methods)
+    return {
+        kind: warning_metrics(
+            f if kind == "all" else f[f["kind"] == kind], ALWAYS, fps, s, baselines
+        )
+        for kind in (*KINDS, "all")
+    }
 
 
 def step_ms_medians(frame: pd.DataFrame, methods: list[str]) -> dict[str, dict[str, float]]:

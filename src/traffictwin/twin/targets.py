@@ -43,7 +43,8 @@ def targets(summary: dict[str, Any], headline: str, configuration: str) -> dict[
         return out
     out.update(_warning_targets(occ, opn, bias))
     if headline != NAIVE:
-        out.update(_registration_targets(occ, opn, bias))
+        always = (entry.get("always_warns") or {}).get("occluded", {})
+        out.update(_registration_targets(occ, opn, bias, always))
     pall = entry["methods"].get(headline, {}).get("all", {}).get("predictive", {})
     out.update(_predictive_targets(pall, opn.get("predictive", {})))
     return out
@@ -96,11 +97,21 @@ def _warning_targets(occ: dict, opn: dict, bias: dict) -> dict[str, Any]:
     return out
 
 
-def _registration_targets(occ: dict, opn: dict, bias: dict) -> dict[str, Any]:
-    """The headline against the naive twin: mean lead (occluded), false alarms (open)."""
+def _registration_targets(occ: dict, opn: dict, bias: dict, always: dict) -> dict[str, Any]:
+    """The headline against the naive twin: mean lead (occluded), false alarms (open). Beside the
+    lead, what a constant warning (``always``, :func:`traffictwin.twin.summary.always_warning_reference`)
+    scores on the same comparison: the lead rewards warning more often."""
     ci = occ.get(f"lead_vs_{NAIVE}_s_mean_ci")
     out = {
-        "registration_lead_above_naive": _entry(occ.get(f"lead_vs_{NAIVE}_s_mean"), ci, _above0(ci))
+        "registration_lead_above_naive": _entry(
+            occ.get(f"lead_vs_{NAIVE}_s_mean"),
+            ci,
+            _above0(ci),
+            always_warns_value=always.get(f"lead_vs_{NAIVE}_s_mean"),
+            always_warns_ci=always.get(f"lead_vs_{NAIVE}_s_mean_ci"),
+            note="occluded, per critical episode: the headline's lead minus the naive twin's "
+            "(mean, s; CI above 0 = met); always_warns_*: the same for a warning at every frame",
+        )
     }
     ci = opn.get(f"false_alarm_share_vs_{NAIVE}_ci")
     out["registration_false_alarms_below_naive_frame_noise"] = _entry(
