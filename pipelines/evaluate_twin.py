@@ -13,8 +13,11 @@ at every configuration; a method whose model is missing is skipped and listed. F
   episode within the horizon) per frame and per minute, share of vehicles left out — with
   sequence-bootstrap CIs (:func:`traffictwin.twin.summary.summarise`); ``pose_bias``: the same
   for the kinds ``twin.bias_kinds`` under the persistent pose bias; and ``targets``;
+  ``predictive_rule``: the predictive warning's level and confirmation, chosen on the
+  ``validation`` split (:mod:`traffictwin.twin.predictive_rule`) before any test sequence is
+  evaluated, with every candidate's figures; ``vehicles``: every other vehicle's risk;
 - ``reports/twin_eval_frames.csv`` — one row per (configuration, noise model, method, sequence,
-  frame);
+  frame) of the ``test`` split; ``reports/twin_vehicle_frames.csv`` — the other vehicles' rows;
 - ``reports/plots/twin_timeline.csv`` — DVC plot: THW over time of the timeline sequence;
 - ``reports/figures/twin_map.png``, ``twin_timeline.png``;
 - its run record ``reports/timings/evaluate_twin.json`` (outside DVC): ``step_ms_median`` (median
@@ -51,10 +54,13 @@ from traffictwin.fusion.config import (
 )
 from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.twin.data import INF_ARRAYS
+from traffictwin.twin.data import TEST_SPLIT as TEST
+from traffictwin.twin.data import VALIDATION_SPLIT as VALIDATION
 
 STAGE = "evaluate_twin"
 METRICS = metrics_file("twin")
 FRAMES = REPORTS / "twin_eval_frames.csv"
+VEHICLE_FRAMES = REPORTS / "twin_vehicle_frames.csv"
 TIMELINE = plot_file("twin_timeline")
 
 log = logging.getLogger("traffictwin.evaluate_twin")
@@ -113,12 +119,47 @@ def method_models(
 @dataclass(frozen=True)
 class _Pass:
     """What every evaluation pass shares: the grid, the twin's evaluation settings, the classical
-    registration's parameters (evaluate_fusion's) and its worker processes."""
+    registration's parameters (evaluate_fusion's), its worker processes and the predictive rule
+    (:class:`~traffictwin.twin.predictive_rule.PredictiveRule`)."""
 
     grid: Any
     settings: Any
     reg_params: Any
     workers: int
+    rule: Any = None
+
+
+def _choose_predictive_rule(
+    run: _Pass, validation: list[dict[str, Any]], tc: Any, pn: Any, models: dict[str, Any]
+) -> tuple[_Pass, dict[str, Any]]:
+    """The pass with the predictive rule chosen on the ``validation`` sequences (the headline
+    twin at the target configuration's noise ``pn``, per-frame noise; its ``models``), and the
+    twin.json entry: every candidate's figures and the one selected. No validation sequence (or
+    no model for the headline): the configured level, unconfirmed."""
+    from dataclasses import asdict, replace
+
+    from traffictwin.twin.rule_choice import candidate_rules, choose_rule
+
+    candidates = candidate_rules(
+        tc.ttc_warn_s, tc.ttc_warn_candidates, tc.ttc_confirm_candidates, tc.reaction_s
+    )
+    entry: dict[str, Any] = {
+        "validation_sequences": len(validation),
+        "configuration": tc.target_configuration,
+        "method": tc.headline,
+        "criterion": "of the candidates whose predictive warning leads THW's (mean, all kinds, "
+        "> 0 s), the fewest false alarms beyond THW's (open); ties: the earlier warning",
+        "candidates": {},
+    }
+    rule = candidates[0]
+    if validation and tc.headline in models:
+        f, _ = _frame_table(run, validation, pn, [tc.headline], models, include_ego=False)
+        rule, rows = choose_rule(f, tc.headline, candidates, tc.fps, run.settings)
+        entry["candidates"] = {c.key: r for c, r in zip(candidates, rows)}
+    entry["selected"] = asdict(rule)
+    predict = replace(run.settings.predict, warn_s=rule.warn_s)
+    log.info("%s: predictive rule %s (validation: %d sequences)", STAGE, rule, len(validation))
+    return replace(run, settings=replace(run.settings, predict=predict), rule=rule), entry
 
 
 def _frame_table(
@@ -128,9 +169,11 @@ def _frame_table(
     methods: list[str],
     models: dict[str, Any],
     include_ego: bool = True,
-) -> pd.DataFrame:
-    """The frame table of ``seqs`` at pose noise ``pn``: the classical registrations of every
-    sequence at once (one pool of processes), then every sequence's twin and risk."""
+    vehicles: bool = False,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The ego's frame table of ``seqs`` at pose noise ``pn`` and (``vehicles``) every other
+    vehicle's: the classical registrations of every sequence at once (one pool of processes),
+    then every sequence's twin and risk."""
     from traffictwin.twin import evaluation as ev
 
     tp = ev.TwinPass(
@@ -141,12 +184,12 @@ def _frame_table(
         if ev.uses_classical(methods, run.settings)
         else [None] * len(seqs)
     )
-    return pd.concat(
-        [
-            ev.evaluate_sequence(a, tp, registered=r, include_ego=include_ego)
-            for a, r in zip(seqs, reg)
-        ],
-        ignore_index=True,
+    tables = [
+        ev.evaluate_sequence_tables(a, tp, r, include_ego, vehicles) for a, r in zip(seqs, reg)
+    ]
+    return (
+        pd.concat([t.frames for t in tables], ignore_index=True),
+        pd.concat([t.vehicles for t in tables], ignore_index=True),
     )
 
 
@@ -175,7 +218,7 @@ def _pose_bias_frames(
     if not picked:
         raise ValueError(f"'twin.bias_kinds' {list(tc.bias_kinds)}: no sequence of these kinds")
     ids = {ev.scalar(a["sequence"]) for a in picked}
-    twin_rows = _frame_table(run, picked, pn, methods, models, include_ego=False)
+    twin_rows, _ = _frame_table(run, picked, pn, methods, models, include_ego=False)
     f = pd.concat([ego_rows[ego_rows["sequence"].isin(ids)], twin_rows], ignore_index=True)
     return f.sort_values(["sequence", "frame"], kind="stable", ignore_index=True)
 
@@ -188,24 +231,36 @@ def _evaluate_configuration(
     pn: Any,
     methods: list[str],
     models: dict[str, Any],
-) -> tuple[list[pd.DataFrame], dict[str, Any]]:
+) -> tuple[list[pd.DataFrame], pd.DataFrame, dict[str, Any]]:
     """Configuration ``c``'s frame tables (per-frame noise and, for ``twin.bias_kinds``, the
-    persistent bias) and its summary entry of twin.json."""
+    persistent bias), every other vehicle's frame table (per-frame noise) and its summary entry
+    of twin.json."""
     from traffictwin.twin.evaluation import EGO
-    from traffictwin.twin.summary import always_warning_reference, summarise
+    from traffictwin.twin.predictive_rule import apply_rule
+    from traffictwin.twin.summary import (
+        OWN,
+        always_warning_reference,
+        summarise,
+        vehicle_summaries,
+    )
 
-    f = _frame_table(run, seqs, pn, methods, models)
+    f, v = _frame_table(run, seqs, pn, methods, models, vehicles=True)
+    f = apply_rule(f, run.rule)
     f.insert(0, "configuration", c)
     f.insert(1, "noise", "frame")
     entry: dict[str, Any] = {
         "noise": {"r": pn.r, "alpha": pn.alpha},
         "methods": summarise(f, methods, tc.fps, run.settings),
         "always_warns": always_warning_reference(f, methods, tc.fps, run.settings),
+        "vehicles": vehicle_summaries(v, methods, tc.fps, run.settings),
     }
+    if len(v):
+        v.insert(0, "configuration", c)
+        v["method"] = v["method"].replace(EGO, OWN)  # the vehicle's own map
     frames = [f]
     if tc.bias_kinds:  # the same sequences' kinds under a persistent (per-sequence) bias
         ego_rows = f[f["method"] == EGO].drop(columns=["configuration", "noise"])
-        fb = _pose_bias_frames(run, seqs, tc, pn, methods, models, ego_rows)
+        fb = apply_rule(_pose_bias_frames(run, seqs, tc, pn, methods, models, ego_rows), run.rule)
         fb.insert(0, "configuration", c)
         fb.insert(1, "noise", "bias")
         frames.append(fb)
@@ -214,7 +269,7 @@ def _evaluate_configuration(
             "kinds": list(tc.bias_kinds),
             "methods": summarise(fb, methods, tc.fps, run.settings),
         }
-    return frames, entry
+    return frames, v, entry
 
 
 def _figures(
@@ -270,11 +325,19 @@ def main() -> None:
     with stage_timer(STAGE) as record:
         record["torch_threads"] = pin_torch_threads(cfg)
         ds = Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS)
-        seqs = [ds.load_shard(i) for i in ds.shard_indices()]
-        frames, summary, models_by_cfg, loaded = [], {}, {}, {}
+        seqs = [ds.load_shard(i) for i in ds.shard_indices(TEST)]
+        validation = [ds.load_shard(i) for i in ds.shard_indices(VALIDATION)]
+        frames, vehicle_frames, summary, models_by_cfg, loaded = [], [], {}, {}, {}
         evaluated = {
             c: pn for c, pn in noise.items() if tc.configurations is None or c in tc.configurations
         }
+        c_rule = tc.target_configuration if tc.target_configuration in evaluated else None
+        rule_models = (
+            method_models(cfg, c_rule, [tc.headline], run.grid, loaded)[0] if c_rule else {}
+        )
+        run, rule_entry = _choose_predictive_rule(
+            run, validation if c_rule else [], tc, noise.get(c_rule), rule_models
+        )
         for c, pn in evaluated.items():
             models, skipped = method_models(cfg, c, tc.methods, run.grid, loaded)
             models_by_cfg[c] = models
@@ -287,7 +350,8 @@ def main() -> None:
                 methods,
                 skipped,
             )
-            fs, summary[c] = _evaluate_configuration(run, seqs, tc, c, pn, methods, models)
+            fs, vs, summary[c] = _evaluate_configuration(run, seqs, tc, c, pn, methods, models)
+            vehicle_frames.append(vs)
             summary[c]["skipped"] = skipped
             # wall times differ between identical runs: run record only
             record.setdefault("step_ms_median", {})[c] = json_clean(step_ms_medians(fs[0], methods))
@@ -299,9 +363,11 @@ def main() -> None:
             "vehicles": int(table["vehicles"].iloc[0]),
             "sequences": len(seqs),
             "configurations": summary,
+            "predictive_rule": rule_entry,
             "targets": targets(summary, tc.headline, tc.target_configuration),
         }
         _csv(table, FRAMES)
+        _csv(pd.concat(vehicle_frames, ignore_index=True), VEHICLE_FRAMES)
         c_fig = (
             tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
         )

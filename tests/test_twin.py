@@ -274,9 +274,15 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     from traffictwin.io.shards import Dataset
 
     ds = Dataset(ci_dag / "data" / "twin", kind="twin")
-    assert len(ds.shard_indices()) == 2
+    assert len(ds.shard_indices("test")) == 2 and len(ds.shard_indices("validation")) == 2
     data = json.loads((ci_dag / "reports" / "metrics" / "twin_data.json").read_text())
     assert data["twin_data/sequences"] == 2 and data["twin_data/vehicles"] == 3
+    # every sequence holds one hazard of HAZARDS; the hazards present are the ones reported
+    from traffictwin.sim.cooperative import HAZARDS
+
+    assert sum(data[f"twin_data/{h}"] for h in HAZARDS) == 2
+    assert 0 <= data["twin_data/follower_critical_frame_share"] <= 1
+    assert data["twin_data/validation_sequences"] == 2
     m = json.loads((ci_dag / "reports" / "metrics" / "twin.json").read_text())
     params = __import__("yaml").safe_load((ci_dag / "params.yaml").read_text())
     # the configurations of twin.configurations (D), in the order of `configurations`
@@ -301,6 +307,25 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     assert pb["bias_share"] == params["twin"]["bias_share"]
     assert pb["methods"]["naive"]["open"]["false_alarm_share"] is not None
     occ = m["configurations"]["D"]["methods"]["naive"]["occluded"]
+    ref = m["configurations"]["D"]["always_warns"]["occluded"]
+    assert ref["episodes"] == occ["episodes"] and ref["lead_s_mean"] >= occ["lead_s_mean"]
+    assert "always_warns_value" in m["targets"]["registration_lead_above_naive"]
+    naive = m["configurations"]["D"]["methods"]["naive"]
+    reported = set(naive["occluded"]["by_hazard"]) | set(naive["open"]["by_hazard"])
+    assert reported == {h for h in HAZARDS if data[f"twin_data/{h}"]}
+    # the predictive rule, chosen on the 2 validation sequences (never evaluated: ids 2 and 3)
+    pr = m["predictive_rule"]
+    assert pr["validation_sequences"] == 2 and len(pr["candidates"]) >= 2
+    assert sum(c["selected"] for c in pr["candidates"].values()) == 1
+    assert set(frames["sequence"]) == {0, 1}
+    # every other vehicle's risk (issue 32 item 5): its own map and its view of each twin
+    veh = m["configurations"]["D"]["vehicles"]
+    assert {k: e["role"] for k, e in veh.items()} == {"1": "oncoming", "2": "follower"}
+    assert set(veh["2"]["methods"]) >= {"own", "naive", "learned"}
+    vf = pd.read_csv(ci_dag / "reports" / "twin_vehicle_frames.csv")
+    assert set(vf["method"]) == {"own"} | set(frames["method"]) - {EGO}
+    n_cfg = len(m["configurations"])
+    assert len(vf) == n_cfg * 2 * params["twin"]["frames"] * 2 * len(set(frames["method"]))
     assert occ["episodes"] >= 1 and occ["lead_vs_ego_s_median"] is not None
     data_hidden = data["twin_data/occluded_hidden_before_onset_s_median"]
     assert data_hidden is not None and data_hidden >= 0
@@ -347,7 +372,7 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
     src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
     sec = rs.section(src, [])
-    occ, opn, hz, pred, tgt = sec.tables
+    occ, opn, hz, pred, veh, tgt = sec.tables
     # each hazard kind separately: the table reads by_hazard of the same summary
     assert hz.anchor == "twin-hazards"
     hz_rows = {(r[1].text, r[2].text, r[3].text): r for r in hz.rows}
@@ -366,6 +391,7 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     met = {r[0].text: r[3].text for r in tgt.rows}
     assert met["occluded: twin flags >= 90 % of critical frames"] == "no"
     assert len(opn.rows) == 2
+    assert veh.anchor == "twin-vehicles" and veh.rows == []  # no per-vehicle summary given
     # no metrics file: n/a cells and a hint, never an error
     empty = rs.section(
         Sources(ReportInputs(reports_dir=tmp_path / "none", profile="ci", seed=1, git_commit="x")),

@@ -41,7 +41,7 @@ from traffictwin.sim.emerging_car import draw_emerging_car, straight_lanes
 from traffictwin.sim.lidar import LidarSpec, scan
 from traffictwin.sim.scene import Boxes, Cls
 from traffictwin.sim.traffic import SUBJECT_SIZE
-from traffictwin.sim.world import World, build_world
+from traffictwin.sim.world import Lane, World, build_world
 
 KINDS = ("occluded", "open")
 HAZARDS = ("stopped_car", "pedestrian", "emerging_car")
@@ -145,7 +145,9 @@ class CooperativeConfig:
 class CoopFrame:
     """One instant: time (s), exact world poses ``(N, 3)`` and speeds ``(N,)`` of the vehicles
     (row 0 = ego), all boxes in the world (static + agents, world frame, world velocities), the
-    ego's path ahead ``(PATH_POINTS, 2)`` (world, m) and its lane width (m)."""
+    ego's path ahead ``(PATH_POINTS, 2)`` (world, m) and its lane width (m); every vehicle's path
+    ahead ``vehicle_paths (N, PATH_POINTS, 2)`` (world, m; row 0 = ``path``) and lane widths
+    ``vehicle_lane_widths (N,)`` m."""
 
     t: float
     poses: np.ndarray
@@ -153,6 +155,8 @@ class CoopFrame:
     boxes: Boxes
     path: np.ndarray
     lane_width: float
+    vehicle_paths: np.ndarray | None = None
+    vehicle_lane_widths: np.ndarray | None = None
 
 
 @dataclass
@@ -407,6 +411,13 @@ def _van_layout(
     )
 
 
+def cooperator_role(k: int) -> str:
+    """The role of vehicle ``k >= 1`` (:data:`ROLES`): odd ones oncoming, even ones following."""
+    if k < 1:
+        raise ValueError(f"vehicle {k}: cooperators are numbered from 1 (0 is the ego)")
+    return "oncoming" if k % 2 == 1 else "follower"
+
+
 def _cooperators(
     rng: np.random.Generator, layout: ScenarioLayout, cfg: CooperativeConfig, times: np.ndarray
 ) -> tuple[list[str], list[tuple[int, np.ndarray, np.ndarray]]]:
@@ -421,7 +432,7 @@ def _cooperators(
     roles = ["ego"]
     tracks = []
     for k in range(1, cfg.vehicles):
-        role = "oncoming" if k % 2 == 1 else "follower"
+        role = cooperator_role(k)
         rank = (k - 1) // 2  # 0 for the first of each role
         gap = float(rng.uniform(*cfg.spacing))
         if role == "oncoming":
@@ -443,7 +454,7 @@ def _assemble(
     tracks: list[tuple[int, np.ndarray, np.ndarray]],
     times: np.ndarray,
 ) -> CoopSequence:
-    """The frames of a drawn scenario: vehicle poses and speeds, every box, the ego's path."""
+    """The frames of a drawn scenario: vehicle poses and speeds, every box, every vehicle's path."""
     world, lane = layout.world, layout.world.lanes[layout.ego_lane]
     n = len(roles)
     ids = AGENT_ID0 + np.arange(n)
@@ -486,15 +497,25 @@ def _assemble(
             velocity=track.velocity[f, None],
             ids=[HAZARD_ID],
         )
-        arc = np.minimum(s_ego[f] + np.arange(PATH_POINTS) * PATH_STEP, lane.length)
+        on_lane = [(layout.ego_lane, s_ego[f])] + [(li, s[f]) for li, s, _ in tracks]
+        paths = np.stack([_path_ahead(world.lanes[li], float(at)) for li, at in on_lane])
         seq.frames.append(
             CoopFrame(
                 float(t),
                 poses,
                 speeds,
                 Boxes.concat([world.static, van, vehicles, hazard_box]),
-                lane.pose_at(arc)[:, :2],
+                paths[0],
                 float(lane.width),
+                paths,
+                np.array([world.lanes[li].width for li, _ in on_lane], dtype=np.float64),
             )
         )
     return seq
+
+
+def _path_ahead(lane: Lane, at: float) -> np.ndarray:
+    """``PATH_POINTS`` world points (m) of ``lane``'s centreline from arc length ``at`` on, every
+    ``PATH_STEP`` m (held at the lane's end)."""
+    arc = np.minimum(at + np.arange(PATH_POINTS) * PATH_STEP, lane.length)
+    return lane.pose_at(arc)[:, :2]

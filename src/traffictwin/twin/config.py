@@ -48,6 +48,9 @@ class TwinConfig:
     """``twin``: the cooperative sequences (stage generate_twin) and the twin's evaluation (evaluate_twin)."""
 
     sequences: int = spec(MISSING, min=2)
+    # sequences of the validation split (indices after the evaluated ones): the predictive rule is
+    # chosen on them (0: no choice, the configured level unconfirmed)
+    validation_sequences: int = spec(MISSING, min=0)
     frames: int = spec(MISSING, min=2)
     fps: float = spec(MISSING, min=0.1)
     vehicles: int = spec(MISSING, min=2, max=16)
@@ -70,6 +73,8 @@ class TwinConfig:
     critical_thw: float = spec(MISSING, min=0.1, max=10.0)
     horizon_s: float = spec(MISSING, min=0.0, max=10.0)
     ttc_warn_s: float = spec(MISSING, min=0.1, max=10.0)
+    ttc_warn_candidates: list[float] = spec(MISSING)  # s, each <= ttc_warn_s (chosen on validation)
+    ttc_confirm_candidates: list[int] = spec(MISSING)  # consecutive frames (chosen on validation)
     # s: a warning comes this long before the critical threshold (a driver's reaction time)
     reaction_s: float = spec(MISSING, min=0.0, max=5.0)
     ttc_step_s: float = spec(MISSING, min=0.01, max=1.0)
@@ -129,6 +134,17 @@ class TwinConfig:
         if len(self.lead_in) != 2 or not 0 < self.lead_in[0] <= self.lead_in[1]:
             raise ValueError(
                 f"'twin.lead_in' must be [low, high] s with 0 < low <= high, got {list(self.lead_in)}"
+            )
+        bad = [w for w in self.ttc_warn_candidates if not 0 < w <= self.ttc_warn_s]
+        if bad or not self.ttc_warn_candidates:
+            raise ValueError(
+                f"'twin.ttc_warn_candidates' must be levels in (0, 'twin.ttc_warn_s' = "
+                f"{self.ttc_warn_s}] s (the TTC is computed up to that), got {list(self.ttc_warn_candidates)}"
+            )
+        if not self.ttc_confirm_candidates or min(self.ttc_confirm_candidates) < 1:
+            raise ValueError(
+                f"'twin.ttc_confirm_candidates' must be frame counts >= 1, got "
+                f"{list(self.ttc_confirm_candidates)}"
             )
         if self.hidden_s >= self.frames / self.fps:
             raise ValueError(

@@ -17,6 +17,9 @@ sequence one ``.npz`` with (T frames, N vehicles):
 - ``path (T, K, 2)`` the ego's path ahead in its own frame (m), ``lane_width (T,)`` m;
 - ``thw_true (T,)`` ego's time headway (s) on the simulator's boxes (corridor region, vehicles
   and pedestrians; :class:`traffictwin.risk.metric.RiskCalculator`), ``distance_true (T,)`` m;
+- ``vehicle_path (T, N, K, 2)`` every vehicle's path ahead in its own frame (m; row 0 = ``path``),
+  ``vehicle_lane_width (T, N)`` m, ``vehicle_thw_true (T, N)`` every vehicle's time headway (s)
+  on the simulator's boxes, the same metric as the ego's (row 0 = ``thw_true``);
 - ``ttc_true (T,)`` the ego's time to conflict (s, inf: none within the horizon) on the
   simulator's boxes with their true velocities (:mod:`traffictwin.twin.predict`);
 - ``hazard_seen (T, N)`` bool — whether vehicle k's lidar returned from the hazard at frame t;
@@ -56,8 +59,14 @@ __all__ = [
     "write_sequence",
     "noise_draws",
     "bias_draws",
+    "TEST_SPLIT",
+    "VALIDATION_SPLIT",
 ]
 
+TEST_SPLIT, VALIDATION_SPLIT = (
+    "test",
+    "validation",
+)  # evaluated / only to choose the predictive rule
 BIAS_DRAW = 1_000_000  # draw index of the persistent bias (frame draws use 0..T-1)
 
 
@@ -120,6 +129,8 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
     ttc = np.zeros(T)
     dist = np.zeros(T)
     paths = np.zeros((T, len(seq.frames[0].path), 2))
+    v_paths = np.zeros((T, N, len(seq.frames[0].path), 2))
+    v_thw = np.zeros((T, N))
     for t, f in enumerate(seq.frames):
         for k in range(N):
             others = f.boxes.subset(f.boxes.ids != seq.vehicle_ids[k])
@@ -130,6 +141,14 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
         r = calc(f.poses[0], float(f.speeds[0]), ego_others, path=f.path, lane_width=f.lane_width)
         thw[t], dist[t] = r.thw, r.distance
         paths[t] = path_to_subject_frame(f.path, f.poses[0])
+        v_thw[t, 0], v_paths[t, 0] = r.thw, paths[t]
+        for k in range(1, N):
+            others = f.boxes.subset(f.boxes.ids != seq.vehicle_ids[k])
+            path_k, lw_k = f.vehicle_paths[k], float(f.vehicle_lane_widths[k])
+            v_thw[t, k] = calc(
+                f.poses[k], float(f.speeds[k]), others, path=path_k, lane_width=lw_k
+            ).thw
+            v_paths[t, k] = path_to_subject_frame(path_k, f.poses[k])
         xy, vel = box_points(ego_others.corners(), ego_others.velocity, f.poses[0])
         ttc[t] = time_to_conflict(
             xy,
@@ -151,6 +170,9 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
         "lane_width": np.array([f.lane_width for f in seq.frames], dtype=np.float64),
         "thw_true": thw,
         "distance_true": dist,
+        "vehicle_path": v_paths,
+        "vehicle_lane_width": np.stack([f.vehicle_lane_widths for f in seq.frames]),
+        "vehicle_thw_true": v_thw,
         "ttc_true": ttc,
         "hazard_seen": seen,
         "time": np.array([f.t for f in seq.frames], dtype=np.float64),
@@ -166,7 +188,7 @@ def sequence_arrays(seed: int, index: int, p: TwinDataParams) -> dict[str, np.nd
 
 
 # arrays where +inf is a value ("nothing ahead" / speed 0); every other float array is finite
-INF_ARRAYS = ("thw_true", "distance_true", "ttc_true")
+INF_ARRAYS = ("thw_true", "distance_true", "ttc_true", "vehicle_thw_true")
 
 
 def write_sequence(

@@ -30,6 +30,7 @@ from traffictwin.twin.config import TwinEvalSettings
 from traffictwin.twin.data import twin_risk_config
 from traffictwin.twin.fuse import TWIN_METHODS, Twin
 from traffictwin.twin.predict import MapReading, cell_velocities, map_ttc
+from traffictwin.twin.vehicle_view import vehicle_view
 
 __all__ = [
     "TwinEvalSettings",
@@ -37,6 +38,8 @@ __all__ = [
     "map_thw",
     "TwinPass",
     "evaluate_sequence",
+    "SequenceTables",
+    "evaluate_sequence_tables",
     "predictive_frame",
     "classical_registrations",
 ]
@@ -142,12 +145,94 @@ def _frame_common(arrays: dict[str, np.ndarray], t: int, ttc_true: np.ndarray) -
     }
 
 
+@dataclass(frozen=True)
+class SequenceTables:
+    """One sequence's frame tables: ``frames`` (the ego's risk, :func:`evaluate_sequence`) and
+    ``vehicles`` (every other vehicle's, :func:`evaluate_sequence_tables`; empty when not asked
+    for or when the data hold no ``vehicle_*`` arrays)."""
+
+    frames: pd.DataFrame
+    vehicles: pd.DataFrame
+
+
+class _VehicleRisk:
+    """The other vehicles' rows of one sequence (:func:`evaluate_sequence_tables`, ``vehicles``):
+    each vehicle's THW from its own map and from its view of each twin, along its own path."""
+
+    def __init__(
+        self, arrays: dict[str, np.ndarray], run: TwinPass, base: dict[str, Any], on: bool
+    ) -> None:
+        self.a, self.run, self.base = arrays, run, base
+        n = arrays["maps"].shape[1]
+        self.others = range(1, n) if on and "vehicle_thw_true" in arrays else range(0)
+        self.rows: list[dict[str, Any]] = []
+
+    def _add(self, t: int, k: int, method: str, masses: np.ndarray, left_out: int) -> None:
+        a = self.a
+        v, lw = float(a["speeds"][t, k]), float(a["vehicle_lane_width"][t, k])
+        thw = map_thw(masses, v, a["vehicle_path"][t, k], lw, self.run.grid, self.run.settings)
+        self.rows.append(
+            {
+                **self.base,
+                "vehicle": k,
+                "frame": t,
+                "time": float(a["time"][t]),
+                "speed": v,
+                "thw_true": float(a["vehicle_thw_true"][t, k]),
+                "sees_hazard": bool(a["hazard_seen"][t, k]),
+                "method": method,
+                "thw": thw,
+                "left_out": left_out,
+            }
+        )
+
+    def own_maps(self, t: int) -> None:
+        for k in self.others:
+            self._add(t, k, EGO, self.a["maps"][t, k], 0)
+
+    def twin(self, t: int, method: str, step: Any) -> None:
+        maps, n = self.a["maps"][t], self.a["maps"].shape[1]
+        for k in self.others:
+            view = vehicle_view(maps, step.poses, step.used, k, self.run.grid)
+            self._add(t, k, method, view, int(n - step.used.sum()))
+
+    def table(self) -> pd.DataFrame:
+        v = pd.DataFrame(self.rows)
+        if len(v):
+            v["critical"] = v["thw_true"] < self.run.settings.critical_thw
+            v["flagged"] = v["thw"] < self.run.settings.warn_thw
+        return v
+
+
+def _registrations(
+    arrays: dict[str, np.ndarray], run: TwinPass, registered: dict[int, list[Any]] | None
+) -> dict[int, list[Any]]:
+    """The classical registrations of every frame of one sequence, where a method uses them:
+    ``registered`` when given, else computed here."""
+    if not uses_classical(run.methods, run.settings):
+        return {}
+    if registered is not None:
+        return registered
+    return classical_registrations([arrays], run.grid, run.noise, run.registration, run.workers)[0]
+
+
 def evaluate_sequence(
     arrays: dict[str, np.ndarray],
     run: TwinPass,
     registered: dict[int, list[Any]] | None = None,
     include_ego: bool = True,
 ) -> pd.DataFrame:
+    """The ego's frame table of one sequence (:func:`evaluate_sequence_tables`, ``frames``)."""
+    return evaluate_sequence_tables(arrays, run, registered, include_ego).frames
+
+
+def evaluate_sequence_tables(
+    arrays: dict[str, np.ndarray],
+    run: TwinPass,
+    registered: dict[int, list[Any]] | None = None,
+    include_ego: bool = True,
+    vehicles: bool = False,
+) -> SequenceTables:
     """One row per (method incl. ``ego``, frame) of one sequence's arrays (:mod:`traffictwin.twin.data`)
     in the pass ``run``. Columns ``thw`` and ``ttc`` (s): the map's time headway and its time to
     conflict with the motion predicted from the previous frame's map of the same method
@@ -155,7 +240,12 @@ def evaluate_sequence(
     ``include_ego=False``: no ``ego`` rows (they do not depend on the pose noise: a second noise
     model reuses the first one's). With the ``reference`` strategy the classical registrations of
     every frame are computed once (``registered``: given, from :func:`classical_registrations`;
-    else here) and shared by the methods that use them."""
+    else here) and shared by the methods that use them.
+
+    ``vehicles=True`` (and ``vehicle_*`` arrays in the data): also the table ``vehicles``, one row
+    per (other vehicle ``k``, method incl. ``ego`` = the vehicle's own map, frame): ``thw`` read
+    from :func:`traffictwin.twin.vehicle_view.vehicle_view` of the method's twin along ``k``'s
+    path, ``thw_true`` ``k``'s truth, ``critical`` / ``flagged`` as for the ego (THW only)."""
     s, grid, methods = run.settings, run.grid, run.methods
     maps = arrays["maps"]
     T, N = maps.shape[:2]
@@ -172,21 +262,14 @@ def evaluate_sequence(
         )
         for m in methods
     }
-    pre: dict[int, list[Any]] = {}
-    if uses_classical(methods, s):
-        pre = (
-            registered
-            if registered is not None
-            else classical_registrations([arrays], grid, run.noise, run.registration, run.workers)[
-                0
-            ]
-        )
+    pre = _registrations(arrays, run, registered)
     fps = 1.0 / float(np.median(np.diff(arrays["time"]))) if T > 1 else 1.0
     read_ttc = ttc_reader(grid, s, fps)
     ego_pose = arrays["poses"][:, 0]
     ttc_true = arrays["ttc_true"] if "ttc_true" in arrays else np.full(T, np.nan)
     prev: dict[str, np.ndarray | None] = dict.fromkeys([EGO, *methods])
     rows = []
+    others = _VehicleRisk(arrays, run, base, vehicles)
 
     def risk_row(m: str, masses: np.ndarray, t: int, common: dict[str, Any], **extra: Any) -> dict:
         v, path, lw = common["speed"], arrays["path"][t], float(arrays["lane_width"][t])
@@ -199,25 +282,19 @@ def evaluate_sequence(
         common = {**base, **_frame_common(arrays, t, ttc_true)}
         if include_ego:
             rows.append(risk_row(EGO, maps[t, 0], t, common, left_out=0, step_ms=0.0))
+        others.own_maps(t)
         # each registration of this frame once, for every method using it
         shared: dict = {"registered_results": pre[t]} if t in pre else {}
         for m in methods:
             step = twins[m].update(float(arrays["time"][t]), maps[t], rel[t], shared)
-            rows.append(
-                risk_row(
-                    m,
-                    step.masses,
-                    t,
-                    common,
-                    left_out=int(N - step.used.sum()),
-                    step_ms=1000.0 * step.seconds,
-                )
-            )
+            others.twin(t, m, step)
+            left_out, ms = int(N - step.used.sum()), 1000.0 * step.seconds
+            rows.append(risk_row(m, step.masses, t, common, left_out=left_out, step_ms=ms))
     f = pd.DataFrame(rows)
     f["critical"] = f["thw_true"] < s.critical_thw
     f["flagged"] = f["thw"] < s.warn_thw
     f["flagged_ttc"] = f["ttc"] < s.predict.warn_s
-    return f
+    return SequenceTables(f, others.table())
 
 
 def predictive_frame(frame: pd.DataFrame) -> pd.DataFrame:

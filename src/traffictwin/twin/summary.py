@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from traffictwin.sim.cooperative import KINDS
+from traffictwin.sim.cooperative import KINDS, cooperator_role
 from traffictwin.stats import (
     Interval,
     excludes_zero,
@@ -45,6 +45,8 @@ __all__ = [
     "summarise",
     "predictive_metrics",
     "always_warning_reference",
+    "vehicle_summaries",
+    "OWN",
     "step_ms_medians",
 ]
 
@@ -297,6 +299,35 @@ def always_warning_reference(
         )
         for kind in (*KINDS, "all")
     }
+
+
+OWN = "own"  # the key of a vehicle's own map in :func:`vehicle_summaries`
+
+
+def vehicle_summaries(
+    vehicles: pd.DataFrame, methods: list[str], fps: float, s: TwinEvalSettings
+) -> dict[str, Any]:
+    """Risk for every other vehicle (the ``vehicles`` frame table of
+    :func:`traffictwin.twin.evaluation.evaluate_sequence_tables`): per vehicle ``k`` (key
+    ``str(k)``) its ``role`` and, per map it reads — ``own`` (its own map) and every twin method —
+    and scenario kind, :func:`summarise`'s numbers (THW warnings; the twin paired with the own
+    map in ``*_vs_ego*``) without the per-hazard split."""
+    out: dict[str, Any] = {}
+    if vehicles.empty:
+        return out
+    for k, g in vehicles.groupby("vehicle", sort=True):
+        res = summarise(g.drop(columns=["vehicle"]).reset_index(drop=True), methods, fps, s)
+        out[str(int(k))] = {
+            "role": cooperator_role(int(k)),
+            "methods": {
+                (OWN if m == EGO else m): {
+                    kind: {key: v for key, v in r.items() if key != "by_hazard"}
+                    for kind, r in kinds.items()
+                }
+                for m, kinds in res.items()
+            },
+        }
+    return out
 
 
 def step_ms_medians(frame: pd.DataFrame, methods: list[str]) -> dict[str, dict[str, float]]:
