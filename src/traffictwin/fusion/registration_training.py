@@ -315,18 +315,17 @@ def fit_registration(
         patience=model.train.early_stopping_patience,
         hint="registration_model.train.lr",
     )
-    with common.fit_run(
+    loaders = (train_dl, val_dl)
+    return common.fit_and_publish(
         module,
-        (train_dl, val_dl),
+        loaders,
         settings=trainer_settings,
         loop=loop,
         tracking=tracking,
         session=session,
         record=record,
-    ) as fitted:
-        if fitted is None:
-            return None
-        return _publish(fitted, pairs, model, module, (train_dl, val_dl), meta_base, outputs)
+        publish=lambda fitted: _publish(fitted, pairs, model, module, loaders, meta_base, outputs),
+    )
 
 
 def _meta_base(
