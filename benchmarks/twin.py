@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> dict:
     from traffictwin.twin.config import twin_config
     from traffictwin.twin.data import TwinDataParams, sequence_arrays
     from traffictwin.twin.evaluation import noisy_relative_poses, ttc_reader
-    from traffictwin.twin.fuse import Twin
+    from traffictwin.twin.fuse import Twin, TwinOptions
 
     cfg = params(ROOT / "params.yaml")
     grid = grid_config(cfg)
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
         for n in a.vehicles:
             times, twin_t, ttc_t = [], [], []
             for _ in range(a.repeats):
-                twin = Twin(grid, m, models=mod, registration=reg, strategy=tc.strategy)
+                twin = Twin(grid, TwinOptions(m, tc.strategy, models=mod, registration=reg))
                 prev = twin.update(0.0, arrays["maps"][0, :n], rel[0, :n]).masses  # warm-up
                 for t in range(1, a.frames + 1):
                     step = twin.update(float(t), arrays["maps"][t, :n], rel[t, :n])

@@ -269,9 +269,9 @@ def test_twin_registers_each_frame_once_for_every_method_using_the_pose(monkeypa
     poses = np.zeros((3, 3))
     grid = GridSpec(32, 32, 0.5)
     shared: dict = {}
-    a = tf.build_twin(maps, poses, grid, "registered", shared=shared)
-    b = tf.build_twin(maps, poses, grid, "naive", shared=shared)
-    c = tf.build_twin(maps, poses, grid, "registered", shared=shared)
+    a = tf.build_twin(maps, poses, grid, tf.TwinOptions("registered"), shared=shared)
+    b = tf.build_twin(maps, poses, grid, tf.TwinOptions("naive"), shared=shared)
+    c = tf.build_twin(maps, poses, grid, tf.TwinOptions("registered"), shared=shared)
     assert calls == ["registered", "noisy"]  # the second registered twin reused the first's
     np.testing.assert_array_equal(a.masses, c.masses)
     assert c.seconds >= shared[("registered", id(None))][-1]  # its registration time counted

@@ -25,7 +25,7 @@ from traffictwin.sim.cooperative import (
 from traffictwin.sim.lidar import LidarSpec
 from traffictwin.twin.data import TwinDataParams, sequence_arrays, twin_risk_config
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings
-from traffictwin.twin.fuse import Twin, TwinInputError, build_twin
+from traffictwin.twin.fuse import Twin, TwinInputError, TwinOptions, build_twin
 from traffictwin.twin.summary import lead_times, step_ms_medians, summarise
 from traffictwin.twin.targets import targets
 
@@ -128,9 +128,9 @@ def test_dempster_twin_is_independent_of_vehicle_order() -> None:
     rng = np.random.default_rng(0)
     maps = np.stack([_masses(rng) for _ in range(4)])
     poses = np.array([[0, 0, 0], [2.0, -1.0, 0.1], [-3.0, 0.5, -0.2], [1.0, 4.0, 0.3]])
-    a = build_twin(maps, poses, GRID, "naive")
+    a = build_twin(maps, poses, GRID, TwinOptions("naive"))
     perm = [0, 3, 1, 2]
-    b = build_twin(maps[perm], poses[perm], GRID, "naive")
+    b = build_twin(maps[perm], poses[perm], GRID, TwinOptions("naive"))
     np.testing.assert_allclose(a.masses, b.masses, atol=2e-5)
     # = Dempster's rule applied by hand, in either grouping
     w = [warp_masses(maps[k], poses[k], GRID) for k in range(1, 4)]
@@ -140,7 +140,7 @@ def test_dempster_twin_is_independent_of_vehicle_order() -> None:
     np.testing.assert_allclose(a.masses, other, atol=2e-5)
     assert a.used.all() and a.masses.dtype == np.float32
     # sequential and reference strategies agree for a noisy-pose method (no registration)
-    c = build_twin(maps, poses, GRID, "naive", strategy="sequential")
+    c = build_twin(maps, poses, GRID, TwinOptions("naive", strategy="sequential"))
     np.testing.assert_allclose(a.masses, c.masses, atol=2e-5)
 
 
@@ -152,9 +152,9 @@ def test_a_vehicle_whose_registration_fails_is_left_out() -> None:
     )  # nothing known: no estimate can be accepted, the pose explains nothing
     maps = np.stack([ego, blank, ego])
     poses = np.zeros((3, 3))
-    step = build_twin(maps, poses, GRID, "registered")
+    step = build_twin(maps, poses, GRID, TwinOptions("registered"))
     assert step.used.tolist() == [True, False, True]
-    t = Twin(GRID, "registered")
+    t = Twin(GRID, TwinOptions("registered"))
     t.update(0.0, maps, poses)
     assert (t.left_out, t.fused) == (1, 1)
 
@@ -174,7 +174,7 @@ def test_a_vehicle_whose_registration_fails_is_left_out() -> None:
 )
 def test_bad_twin_inputs_name_the_input(maps_shape, poses, match) -> None:
     with pytest.raises(TwinInputError, match=match):
-        build_twin(np.zeros(maps_shape, np.float32), poses, GRID, "naive")
+        build_twin(np.zeros(maps_shape, np.float32), poses, GRID, TwinOptions("naive"))
 
 
 def test_twin_rejects_nan_masses_and_time_out_of_order() -> None:
@@ -182,15 +182,15 @@ def test_twin_rejects_nan_masses_and_time_out_of_order() -> None:
     bad = maps.copy()
     bad[1, 0, 3, 3] = np.nan
     with pytest.raises(TwinInputError, match=r"maps: vehicle\(s\) \[1\] have NaN"):
-        build_twin(bad, np.zeros((2, 3)), GRID, "naive")
-    t = Twin(GRID, "naive")
+        build_twin(bad, np.zeros((2, 3)), GRID, TwinOptions("naive"))
+    t = Twin(GRID, TwinOptions("naive"))
     t.update(0.1, maps, np.zeros((2, 3)))
     with pytest.raises(TwinInputError, match="not after the previous one"):
         t.update(0.1, maps, np.zeros((2, 3)))
     with pytest.raises(ValueError, match="needs the model"):
-        build_twin(maps, np.zeros((2, 3)), GRID, "learned")
+        build_twin(maps, np.zeros((2, 3)), GRID, TwinOptions("learned"))
     with pytest.raises(ValueError, match="unknown"):
-        Twin(GRID, "bogus")
+        TwinOptions("bogus")
 
 
 # ------------------------------------------------------------------------------------ evaluation

@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import ApiError, InputFileError, InputValueError, ModelDomainError
 from .inputs import _chunks, check_cell, check_mass_grids, check_pose
-from .registry import _load_registered, _split_ref, connect
+from .registry import _load_model
 
 DIVISOR = 16  # the fusion network's output stride: grid rows and cols must be multiples
 
@@ -35,18 +35,9 @@ def load_fusion(model: str | os.PathLike, *, tracking_uri: str | None = None) ->
     from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
     from traffictwin.mlops.registry import FUSION_NAME
 
-    name, alias, path = _split_ref(model)
-    if path is None:
-        cl = connect(tracking_uri)
-        net, desc = _load_registered(
-            cl, name or FUSION_NAME, alias, load_fusion_model, "fusion model", FUSION_NAME
-        )
-    else:
-        try:
-            net = load_fusion_model(path)
-        except FusionModelError as exc:
-            raise ApiError(str(exc)) from None
-        desc = str(path)
+    net, desc = _load_model(
+        model, load_fusion_model, FusionModelError, "fusion model", FUSION_NAME, tracking_uri
+    )
     meta = dict(getattr(net, "meta", {}) or {})
     return FusionModel(net, meta, dict(meta.get("grid") or {}), desc)
 

@@ -95,6 +95,26 @@ def _split_ref(model: str | os.PathLike) -> tuple[str | None, str | None, Path |
     )
 
 
+def _load_model(
+    model: str | os.PathLike,
+    loader,
+    model_error: type[Exception],
+    what: str,
+    family: str,
+    tracking_uri: str | None,
+):
+    """``(model, description)`` of ``model``: a registry reference (``name@alias``; a bare alias
+    of ``family``) loaded by :func:`_load_registered`, or a model folder read by ``loader``
+    (its ``model_error`` becomes an :class:`ApiError`)."""
+    name, alias, path = _split_ref(model)
+    if path is None:
+        return _load_registered(connect(tracking_uri), name or family, alias, loader, what, family)
+    try:
+        return loader(path), str(path)
+    except model_error as exc:
+        raise ApiError(str(exc)) from None
+
+
 def _load_registered(cl, name: str, alias: str, loader, what: str, family: str | None = None):
     """Load ``name@alias`` with ``loader``. ``family``: the registry name of this problem
     (``traffictwin-fusion``...): a name outside it is refused before anything is downloaded,

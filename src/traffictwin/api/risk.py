@@ -19,7 +19,7 @@ from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
 from .errors import ApiError, ApiWarning, InputFileError, InputValueError, ModelDomainError
 from .images import Frame, as_bgr, read_image
 from .inputs import _chunks, check_speed_value
-from .registry import _first_line, _load_registered, _split_ref, connect
+from .registry import _first_line, _load_model
 
 MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
 MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
@@ -136,17 +136,9 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
     from traffictwin.mlops.registry import RISK_NAME
     from traffictwin.risk.model_io import RiskModelError, load_risk_model
 
-    name, alias, path = _split_ref(model)
-    if path is None:
-        cl = connect(tracking_uri)
-        rm, desc = _load_registered(
-            cl, name or RISK_NAME, alias, load_risk_model, "risk model", RISK_NAME
-        )
-    else:
-        try:
-            rm, desc = load_risk_model(path), str(path)
-        except RiskModelError as exc:
-            raise ApiError(str(exc)) from None
+    rm, desc = _load_model(
+        model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
+    )
     check_risk_domain((rm.meta or {}).get("domain"), desc)
     return LoadedRisk(rm, desc)
 

@@ -10,6 +10,7 @@ import math
 import sys
 import warnings
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -113,66 +114,62 @@ def cmd_risk(args: argparse.Namespace) -> int:
             thw_threshold=args.thw_threshold,
         )
         with outs:
-            write = _write_folder if is_folder else _write_pair
-            write(outs, out, rows, paths, rmodel, st)
+            dest = _RiskOutput(outs, out, paths, rmodel, st)
+            (dest.folder if is_folder else dest.pair)(rows)
     return 0
 
 
-def _write_pair(
-    outs: OutputSet,
-    out: Path | None,
-    rows: Iterator[dict[str, Any]],
-    paths: dict[str, tuple[str, str]],
-    rmodel: Any,
-    st: StereoSettings,
-) -> None:
-    """One pair: its JSON on stdout, and into ``out`` if given."""
-    row = next(rows)
-    lp, rp = paths[row["id"]]
-    res = json_clean(
-        {
-            "id": row["id"],
-            "left": lp,
-            "right": rp,
-            **row,
-            "model": rmodel.description,
-            "predictor": rmodel.predictor,
-            "stereo_settings": st.source,
-        }
-    )
-    if out:
-        outs.write_text(out, json.dumps(res, indent=2, sort_keys=True) + "\n")
-        outs.commit()
-    print(json.dumps(res, indent=2))
+@dataclass(frozen=True)
+class _RiskOutput:
+    """Where and how ``traffictwin risk`` writes its rows: ``outs`` (``out``, None = stdout),
+    each frame's image ``paths`` by id, the model and the stereo settings the rows came from."""
 
+    outs: OutputSet
+    out: Path | None
+    paths: dict[str, tuple[str, str]]
+    rmodel: Any
+    st: StereoSettings
 
-def _write_folder(
-    outs: OutputSet,
-    out: Path | None,
-    rows: Iterator[dict[str, Any]],
-    paths: dict[str, tuple[str, str]],
-    rmodel: Any,
-    st: StereoSettings,
-) -> None:
-    """A folder of pairs: one CSV row per pair as each batch comes, into ``out`` or stdout."""
-    fh = outs.open(out, "w", newline="") if out else sys.stdout
-    try:
-        wr = None
-        n = 0
-        for row in rows:
-            lp, rp = paths[row["id"]]
-            row = {"id": row["id"], "left": lp, "right": rp, **row}
-            if wr is None:
-                wr = csv.DictWriter(fh, fieldnames=list(row), lineterminator="\n")
-                wr.writeheader()
-            wr.writerow({k: csv_value(v) for k, v in row.items()})
-            n += 1
-    finally:
-        if out:
-            fh.close()
-    if out:
-        outs.commit()
-        print(
-            f"{n} pair(s) -> {out} (model {rmodel.description}, predictor {rmodel.predictor}; "
-            f"stereo settings: {st.source})"
+    def labelled(self, row: dict[str, Any]) -> dict[str, Any]:
+        """``row`` after its id and its left / right image paths."""
+        lp, rp = self.paths[row["id"]]
+        return {"id": row["id"], "left": lp, "right": rp, **row}
+
+    def pair(self, rows: Iterator[dict[str, Any]]) -> None:
+        """One pair: its JSON on stdout, and into ``out`` if given."""
+        res = json_clean(
+            {
+                **self.labelled(next(rows)),
+                "model": self.rmodel.description,
+                "predictor": self.rmodel.predictor,
+                "stereo_settings": self.st.source,
+            }
         )
+        if self.out:
+            self.outs.write_text(self.out, json.dumps(res, indent=2, sort_keys=True) + "\n")
+            self.outs.commit()
+        print(json.dumps(res, indent=2))
+
+    def folder(self, rows: Iterator[dict[str, Any]]) -> None:
+        """A folder of pairs: one CSV row per pair as each batch comes, into ``out`` or stdout."""
+        out = self.out
+        fh = self.outs.open(out, "w", newline="") if out else sys.stdout
+        try:
+            wr = None
+            n = 0
+            for row in rows:
+                row = self.labelled(row)
+                if wr is None:
+                    wr = csv.DictWriter(fh, fieldnames=list(row), lineterminator="\n")
+                    wr.writeheader()
+                wr.writerow({k: csv_value(v) for k, v in row.items()})
+                n += 1
+        finally:
+            if out:
+                fh.close()
+        if out:
+            self.outs.commit()
+            print(
+                f"{n} pair(s) -> {out} (model {self.rmodel.description}, "
+                f"predictor {self.rmodel.predictor}; stereo settings: {self.st.source})"
+            )

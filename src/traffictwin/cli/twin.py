@@ -155,7 +155,7 @@ def cmd_twin(args: argparse.Namespace) -> int:
     from traffictwin.evidential.warp import warp_masses
     from traffictwin.geometry import relative_pose
     from traffictwin.grid import GridSpec
-    from traffictwin.twin.fuse import TwinInputError, build_twin
+    from traffictwin.twin.fuse import TwinInputError, TwinOptions, build_twin
 
     world, maps, cell = _read_maps(args)
     models = load_twin_models(args.method, args.registration_model, args.fusion_model)
@@ -165,7 +165,8 @@ def cmd_twin(args: argparse.Namespace) -> int:
     grid = GridSpec(rows=maps.shape[2], cols=maps.shape[3], cell=cell)
     rel = np.stack([np.zeros(3)] + [relative_pose(world[0], w) for w in world[1:]])
     try:
-        step = build_twin(maps, rel, grid, args.method, strategy=args.strategy, models=models)
+        options = TwinOptions(args.method, strategy=args.strategy, models=models)
+        step = build_twin(maps, rel, grid, options)
     except TwinInputError as exc:
         raise CliError(str(exc)) from None
     contributions = [maps[0]] + [

@@ -315,18 +315,17 @@ def fit_registration(
         patience=model.train.early_stopping_patience,
         hint="registration_model.train.lr",
     )
-    with common.fit_run(
+    loaders = (train_dl, val_dl)
+    return common.fit_and_publish(
         module,
-        (train_dl, val_dl),
+        loaders,
         settings=trainer_settings,
         loop=loop,
         tracking=tracking,
         session=session,
         record=record,
-    ) as fitted:
-        if fitted is None:
-            return None
-        return _publish(fitted, pairs, model, module, (train_dl, val_dl), meta_base, outputs)
+        publish=lambda fitted: _publish(fitted, pairs, model, module, loaders, meta_base, outputs),
+    )
 
 
 def _meta_base(
@@ -504,7 +503,7 @@ def learning_curves(rows: list[dict[str, float]], title: str):
     if not rows:
         raise ValueError("learning_curves: no epochs to plot")
 
-    from traffictwin.fusion.training_figures import _series
+    from traffictwin.fusion.training_figures import LOSS_LINES, _series, finish_figure, plot_series
 
     plt = _plt()
     fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
@@ -517,18 +516,12 @@ def learning_curves(rows: list[dict[str, float]], title: str):
     ax1.set(
         xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
     )
-    et, vt = _series(rows, "val/trans_err_m")
-    ax2.plot(et, vt, "o-", label="translation (m)")
-    er, vr = _series(rows, "val/rot_err_deg")
-    ax2.plot(er, vr, "s-", label="rotation (deg)")
+    pose_lines = (
+        ("val/trans_err_m", "o-", "translation (m)"),
+        ("val/rot_err_deg", "s-", "rotation (deg)"),
+    )
+    plot_series(ax2, rows, pose_lines)
     ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
-    for key, style, lab in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
-        ek, vk = _series(rows, key)
-        ax3.plot(ek, vk, style, label=lab)
+    plot_series(ax3, rows, LOSS_LINES)
     ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")
-    for ax in (ax1, ax2, ax3):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    return fig
+    return finish_figure(fig, (ax1, ax2, ax3), title)

@@ -433,7 +433,7 @@ def fit_fusion(
         datasets=[(pairs.root, manifest_hash)],
     )
     loop = _fit_loop(model.loop, trainer_extra)
-    with common.fit_run(
+    return common.fit_and_publish(
         module,
         dm,
         settings=trainer_settings,
@@ -441,10 +441,8 @@ def fit_fusion(
         tracking=tracking,
         session=session,
         record=record,
-    ) as fitted:
-        if fitted is None:
-            return None
-        return _publish(fitted, pairs, model, dm, meta_base, outputs, n_params)
+        publish=lambda fitted: _publish(fitted, pairs, model, dm, meta_base, outputs, n_params),
+    )
 
 
 def _meta_base(

@@ -13,7 +13,10 @@ import numpy as np
 
 from traffictwin.fusion.figures import _plt
 
-__all__ = ["learning_curves"]
+__all__ = ["LOSS_LINES", "finish_figure", "learning_curves", "plot_series"]
+
+# the training and validation loss per epoch: (History key, line style, legend label)
+LOSS_LINES = (("train/loss", "o-", "train"), ("val/loss", "s-", "validation"))
 
 
 def _series(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -22,6 +25,23 @@ def _series(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, 
         return np.empty(0), np.empty(0)
     e, v = np.array(pts, dtype=np.float64).T
     return e, v
+
+
+def plot_series(ax, rows: Sequence[Mapping[str, float]], lines: Sequence[tuple[str, str, str]]):
+    """One line per ``(key, style, label)`` of ``lines``: ``rows``' values of ``key`` per epoch."""
+    for key, style, lab in lines:
+        ek, vk = _series(rows, key)
+        ax.plot(ek, vk, style, label=lab)
+
+
+def finish_figure(fig, axes, title: str):
+    """Grid and legend on every axis of ``axes``, ``title`` over the figure; returns ``fig``."""
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
 
 
 def learning_curves(
@@ -40,20 +60,10 @@ def learning_curves(
         b = int(np.argmin(v))
         ax1.plot([e[b]], [v[b]], "*", ms=14, color="#ff7f0e", label=f"best epoch {int(e[b])}")
     ax1.set(xlabel="epoch", ylabel="validation KLD(b) (nats per cell)", title="selection metric")
-    for key, style, lab in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
-        ek, vk = _series(rows, key)
-        ax2.plot(ek, vk, style, label=lab)
+    plot_series(ax2, rows, LOSS_LINES)
     ax2.set(xlabel="epoch", ylabel="loss (per cell)", title="training loss")
-    for key, style, lab in (
-        ("val/dice_occ", "o-", "network"),
-        ("val/dice_occ_naive", "--", "naive"),
-    ):
-        ek, vk = _series(rows, key)
-        ax3.plot(ek, vk, style, label=lab)
+    plot_series(
+        ax3, rows, (("val/dice_occ", "o-", "network"), ("val/dice_occ_naive", "--", "naive"))
+    )
     ax3.set(xlabel="epoch", ylabel="validation Dice, occupied (-)", title="occupied cells")
-    for ax in (ax1, ax2, ax3):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    return fig
+    return finish_figure(fig, (ax1, ax2, ax3), title)

@@ -211,6 +211,27 @@ class Sources:
         return Cell(fmt_value(v, fmt), src=f"params#{key}", value=v, fmt=fmt)
 
 
+def json_number(v: Any) -> float | None:
+    """``v`` as a float when it is a JSON number (not a bool), else None."""
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
+    ``file``, in format ``fmt``: a derived cell, "95 % ``bootstrap`` interval"
+    (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a NaN bound)."""
+    base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
+    path = src.paths.get(file, f"metrics/{file}")
+    lo, hi = json_number(src.get(file, f"{base}.lo")), json_number(src.get(file, f"{base}.hi"))
+    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+        return Cell(NA, title=f"no interval in reports/{path}: {base}")
+    return Cell(
+        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
+        value=[lo, hi],
+        derived=f"95 % {bootstrap} interval, {path}#{base}",
+    )
+
+
 def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
     """Cell with a paper's reported number (``paper_numbers.<table>[key]``)."""
     num = getattr(P, table)[key]

@@ -30,6 +30,7 @@ from traffictwin.model_format import (
     save_model_files,
 )
 from traffictwin.risk.dave2 import Dave2, Dave2Config, count_parameters, preprocess
+from traffictwin.risk.predictor import RiskFrames, RiskPredictor
 
 CKPT = "model.ckpt"
 META = "model_meta.json"
@@ -45,7 +46,7 @@ class RiskModelError(RuntimeError):
 
 
 @dataclass
-class RiskModel:
+class RiskModel(RiskPredictor):
     """A trained network plus its metadata; :meth:`predict` works on raw frames."""
 
     net: Dave2
@@ -56,33 +57,20 @@ class RiskModel:
         return self.net.cfg
 
     @torch.no_grad()
-    def predict(
-        self,
-        left_bgr: np.ndarray | None = None,
-        disp_sgm: np.ndarray | None = None,
-        disp_gt: np.ndarray | None = None,
-        speed: np.ndarray | None = None,
-        batch_size: int = 256,
-    ) -> np.ndarray:
-        """Predicted normalised risk (N,) float32 for raw frames (see :func:`~.dave2.prepare_channels`).
-
-        ``speed``: (N,) subject speed in m/s, required when the model uses it.
-        """
+    def predict_frames(self, frames: RiskFrames, batch_size: int) -> np.ndarray:
+        """The network's risk of ``frames`` (see :func:`~.dave2.prepare_channels`); ``speed`` is
+        required when the model uses it."""
         self.net.eval()
-        n = next(len(a) for a in (left_bgr, disp_sgm, disp_gt) if a is not None)
-        if self.cfg.use_speed and speed is None:
+        images = (frames.left_bgr, frames.disp_sgm, frames.disp_gt)
+        n = next(len(a) for a in images if a is not None)
+        if self.cfg.use_speed and frames.speed is None:
             raise ValueError("this risk model uses the subject speed: pass speed (N,) in m/s")
         out = []
         for i in range(0, n, batch_size):
             sl = slice(i, i + batch_size)
-            x = preprocess(
-                self.cfg,
-                left_bgr[sl] if left_bgr is not None else None,
-                disp_sgm[sl] if disp_sgm is not None else None,
-                disp_gt[sl] if disp_gt is not None else None,
-            )
+            x = preprocess(self.cfg, *(a[sl] if a is not None else None for a in images))
             s = (
-                torch.as_tensor(np.asarray(speed[sl], dtype=np.float32))
+                torch.as_tensor(np.asarray(frames.speed[sl], dtype=np.float32))
                 if self.cfg.use_speed
                 else None
             )

@@ -18,7 +18,7 @@ dispatches on the checkpoint's ``architecture.kind``).
 from __future__ import annotations
 
 import math
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -35,6 +35,7 @@ from traffictwin.risk.baselines import (
     thw_from_distance,
 )
 from traffictwin.risk.metric import thw_to_risk
+from traffictwin.risk.predictor import RiskFrames, RiskPredictor
 
 KINDS = ("dave2", "hybrid", "geometric")
 
@@ -59,9 +60,9 @@ def _camera_dict(camera: Mapping[str, Any]) -> dict[str, float]:
     return {k: float(camera[k]) for k in keys}
 
 
-class _SgmPredictor(ABC):
-    """``predict`` with the signature of :meth:`traffictwin.risk.model_io.RiskModel.predict`
-    for a predictor of SGM disparity and speed (subclasses give :meth:`risk`)."""
+class _SgmPredictor(RiskPredictor):
+    """A :class:`~traffictwin.risk.predictor.RiskPredictor` of SGM disparity and speed
+    (subclasses give :meth:`risk`)."""
 
     name = "risk predictor"
 
@@ -69,18 +70,13 @@ class _SgmPredictor(ABC):
     def risk(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """Normalised risk (N,) from SGM disparity (N, H, W) px and speed (N,) m/s."""
 
-    def predict(
-        self,
-        left_bgr: np.ndarray | None = None,
-        disp_sgm: np.ndarray | None = None,
-        disp_gt: np.ndarray | None = None,
-        speed: np.ndarray | None = None,
-        batch_size: int = 256,
-    ) -> np.ndarray:
+    def predict_frames(self, frames: RiskFrames, batch_size: int) -> np.ndarray:
         """Normalised risk (N,) float32 from SGM disparity (N, H, W) px and speed (N,) m/s."""
-        if disp_sgm is None or speed is None:
+        if frames.disp_sgm is None or frames.speed is None:
             raise ValueError(f"the {self.name} needs the SGM disparity and the speed (m/s)")
-        return np.asarray(self.risk(disp_sgm, np.asarray(speed, np.float64)), np.float32)
+        return np.asarray(
+            self.risk(frames.disp_sgm, np.asarray(frames.speed, np.float64)), np.float32
+        )
 
 
 # --------------------------------------------------------------------------------------------

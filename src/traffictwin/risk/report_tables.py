@@ -11,12 +11,11 @@ The interval tables are in :mod:`traffictwin.risk.report_intervals`.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
-from traffictwin.report.model import NA, Cell, Table, fmt_value, paper_cell
+from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
 
 RISK_FILE = "risk.json"
 ORB_FILE = "orb.json"
@@ -220,22 +219,11 @@ def risk_tables(src: page.Sources) -> list[Table]:
     return tables
 
 
-def _num(v: Any) -> float | None:
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
 def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
-    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in format
-    ``fmt``, a derived cell; ``n/a`` when there is no interval."""
-    base = key if isinstance(src.get(RISK_FILE, f"{key}.lo"), (int, float)) else f"{key}_ci"
-    lo, hi = _num(src.get(RISK_FILE, f"{base}.lo")), _num(src.get(RISK_FILE, f"{base}.hi"))
-    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
-        return Cell(NA, title=f"no interval in reports/metrics/{RISK_FILE}: {base}")
-    return Cell(
-        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
-        value=[lo, hi],
-        derived=f"95 % sequence-bootstrap interval, metrics/{RISK_FILE}#{base}",
-    )
+    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in risk.json,
+    in format ``fmt``: the sequence-bootstrap interval cell
+    (:func:`~traffictwin.report.model.interval_cell`)."""
+    return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
 
 
 def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FILE) -> Cell:

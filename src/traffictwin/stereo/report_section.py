@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, NEVER, Cell, Table, fmt_value
+from traffictwin.report.model import NA, NEVER, Cell, Table, fmt_value, json_number
 
 DISPARITY_FILE = "disparity.json"
 ORB_FILE = "orb.json"
@@ -42,13 +42,9 @@ CI_NOTE = (
 )
 
 
-def _num(v: object) -> float | None:
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
 def ci_cell(src: page.Sources, file: str, key: str, fmt: str = "pct") -> Cell:
     """``[lo, hi]`` of ``<key>_lo`` / ``<key>_hi`` in ``file``: a derived cell (n/a if absent)."""
-    lo, hi = _num(src.get(file, f"{key}_lo")), _num(src.get(file, f"{key}_hi"))
+    lo, hi = json_number(src.get(file, f"{key}_lo")), json_number(src.get(file, f"{key}_hi"))
     if lo is None or hi is None:
         return Cell(NA, title=f"no interval in reports/metrics/{file}: {key}_lo/_hi")
     return Cell(
@@ -268,7 +264,10 @@ def resolution_tables(src: page.Sources) -> list[Table]:
             "road plane. Times on the benchmark machine (median over frames). " + CI_NOTE
         ),
     )
-    lo, hi = _num(data.get("study/critical_lo_m")), _num(data.get("study/critical_hi_m"))
+    lo, hi = (
+        json_number(data.get("study/critical_lo_m")),
+        json_number(data.get("study/critical_hi_m")),
+    )
     crit = f"{lo:g}–{hi:g} m" if lo is not None and hi is not None else "the critical distance"
     rows = [
         ("image height [px]", "height", "int", False),

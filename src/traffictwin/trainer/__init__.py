@@ -32,7 +32,7 @@ Stable API (the fusion and the risk stages both use it), re-exported here from t
   network as an MLflow model of weights + JSON (no pickled code, SHA-256 sealed) that
   :func:`traffictwin.mlops.registry.load_registered` restores with the problem's loader.
 - :func:`fit_run` — the one training driver (:class:`FitLoop`, :class:`RunRecord`, yields
-  :class:`Fitted`); :class:`ModelOutputs`, :func:`fit_metrics`, :func:`log_fitted_model`,
+  :class:`Fitted`; :func:`fit_and_publish` publishes it inside the run); :class:`ModelOutputs`, :func:`fit_metrics`, :func:`log_fitted_model`,
   :func:`publish` and :class:`FitResult` — publishing the best epoch of a run.
 - One checkpoint format for every trained network (:data:`MODEL_FORMAT`):
   :func:`model_checkpoint` builds it, :func:`save_model_checkpoint` writes it atomically,
@@ -67,6 +67,7 @@ from traffictwin.trainer.fit import (  # noqa: F401
     Fitted,
     NetModule,
     RunRecord,
+    fit_and_publish,
     fit_run,
 )
 from traffictwin.trainer.publish import (  # noqa: F401

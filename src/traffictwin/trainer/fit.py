@@ -1,4 +1,5 @@
-"""The one training driver (:func:`fit_run`) and the one trainer shape (:class:`NetModule`):
+"""The one training driver (:func:`fit_run`; :func:`fit_and_publish` for a problem that
+publishes its model right after) and the one trainer shape (:class:`NetModule`):
 how a run loops and stops (:class:`FitLoop`), what it records in MLflow (:class:`RunRecord`)
 and what it trained (:class:`Fitted`)."""
 
@@ -9,7 +10,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import lightning as L
 import torch
@@ -259,6 +260,17 @@ def fit_run(
         best = _read_best(ckpt, fast_dev_run)
         yield Fitted(best, history, trainer, run, logger, seconds, str(settings.precision))
     session.finish()
+
+
+T = TypeVar("T")
+
+
+def fit_and_publish(*args: Any, publish: Callable[[Fitted], T], **kwargs: Any) -> T | None:
+    """:func:`fit_run` with these arguments, then ``publish(fitted)`` inside the still open MLflow
+    run (the problem writes its model files and MLflow model there): its result, or None on
+    other DDP ranks."""
+    with fit_run(*args, **kwargs) as fitted:
+        return None if fitted is None else publish(fitted)
 
 
 def _stop_callbacks(loop: FitLoop, stage: str) -> list[Any]:

@@ -28,7 +28,7 @@ from traffictwin.risk.metric import headway, occupancy_distance
 from traffictwin.sim.cooperative import HAZARDS, KINDS
 from traffictwin.twin.config import TwinEvalSettings
 from traffictwin.twin.data import twin_risk_config
-from traffictwin.twin.fuse import TWIN_METHODS, Twin
+from traffictwin.twin.fuse import TWIN_METHODS, Twin, TwinOptions
 from traffictwin.twin.predict import MapReading, cell_velocities, map_ttc
 from traffictwin.twin.vehicle_view import vehicle_view
 
@@ -258,7 +258,10 @@ def evaluate_sequence_tables(
     }
     twins = {
         m: Twin(
-            grid, m, strategy=s.strategy, models=run.models.get(m), registration=run.registration
+            grid,
+            TwinOptions(
+                m, strategy=s.strategy, models=run.models.get(m), registration=run.registration
+            ),
         )
         for m in methods
     }

@@ -15,7 +15,7 @@ from traffictwin.grid import GridSpec
 from traffictwin.report.colours import legend_handles, show_masses
 from traffictwin.sim.cooperative import ROLES
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_poses, scalar
-from traffictwin.twin.fuse import build_twin
+from traffictwin.twin.fuse import TwinOptions, build_twin
 from traffictwin.twin.summary import lead_times
 
 __all__ = [
@@ -158,9 +158,8 @@ def twin_snapshot(
     t = max(0, scalar(arrays["onset_frame"]))
     maps = arrays["maps"][t]
     rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)[t]
-    step = build_twin(
-        maps, rel, grid, method, strategy=s.strategy, models=models, registration=registration
-    )
+    options = TwinOptions(method, strategy=s.strategy, models=models, registration=registration)
+    step = build_twin(maps, rel, grid, options)
     true_rel = noisy_relative_poses(arrays["poses"], np.zeros_like(arrays["noise_z"]), 0.0, 0.0)[t]
     contributions = np.stack(
         [maps[0]] + [warp_masses(maps[k], step.poses[k], grid) for k in range(1, len(maps))]

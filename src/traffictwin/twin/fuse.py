@@ -46,6 +46,7 @@ __all__ = [
     "TwinMethod",
     "TwinStep",
     "TwinInputError",
+    "TwinOptions",
     "build_twin",
     "check_twin_inputs",
 ]
@@ -69,6 +70,31 @@ class TwinStep:
     accepted: np.ndarray
     poses: np.ndarray
     seconds: float
+
+
+@dataclass(frozen=True)
+class TwinOptions:
+    """How a twin is built: the twin ``method`` (:data:`TWIN_METHODS`), the ``strategy``
+    (:data:`STRATEGIES`), the ``reference`` vehicle's index, the ``models`` the method needs
+    (``{"registration": ..., "fusion": ...}``) and the classical ``registration``
+    (:class:`~traffictwin.fusion.registration.RegistrationParams`; default settings if None).
+    An unknown method or strategy is a ValueError here."""
+
+    method: str = "learned"
+    strategy: str = "reference"
+    reference: int = 0
+    models: dict[str, Any] | None = None
+    registration: Any = None
+
+    def __post_init__(self) -> None:
+        if self.method not in TWIN_METHODS:
+            raise ValueError(
+                f"twin method {self.method!r} unknown; expected one of {list(TWIN_METHODS)}"
+            )
+        if self.strategy not in STRATEGIES:
+            raise ValueError(
+                f"twin strategy {self.strategy!r} unknown; expected one of {list(STRATEGIES)}"
+            )
 
 
 def check_twin_inputs(
@@ -166,19 +192,13 @@ def build_twin(
     maps: np.ndarray,
     rel_poses: np.ndarray,
     grid: GridSpec,
-    method: str = "learned",
-    *,
-    strategy: str = "reference",
-    reference: int = 0,
-    models: dict[str, Any] | None = None,
-    registration: Any = None,
+    options: TwinOptions = TwinOptions(),
     shared: dict | None = None,
 ) -> TwinStep:
     """Fuse ``maps (N, 2, H, W)`` (each in its own sensor frame) into the frame of vehicle
-    ``reference``; ``rel_poses (N, 3)``: each vehicle's (noisy) pose in the reference's frame
-    (x m, y m, yaw rad; the reference's own row is ignored). ``models``: ``{"registration": ...,
-    "fusion": ...}`` as the method needs; ``registration``: classical
-    :class:`~traffictwin.fusion.registration.RegistrationParams` (default settings if None).
+    ``options.reference``; ``rel_poses (N, 3)``: each vehicle's (noisy) pose in the reference's
+    frame (x m, y m, yaw rad; the reference's own row is ignored); ``options``: the method, its
+    models and the rest (:class:`TwinOptions`).
 
     ``shared``: a dict shared by the methods built from the same maps and poses (one time step):
     with the ``reference`` strategy each pose source (classical or learned registration) then
@@ -186,12 +206,10 @@ def build_twin(
     time still counts in each method's ``seconds``. ``shared["registered_results"]``, if given,
     holds the classical registrations of the other vehicles onto the reference, computed
     beforehand (in parallel over a whole sequence)."""
-    if method not in TWIN_METHODS:
-        raise ValueError(f"twin method {method!r} unknown; expected one of {list(TWIN_METHODS)}")
-    if strategy not in STRATEGIES:
-        raise ValueError(f"twin strategy {strategy!r} unknown; expected one of {list(STRATEGIES)}")
+    method, strategy, reference = options.method, options.strategy, options.reference
+    registration = options.registration
     m = TWIN_METHODS[method]
-    models = dict(models or {})
+    models = dict(options.models or {})
     missing = [n for n in m.needs if models.get(n) is None]
     if missing:
         raise ValueError(f"twin method {method!r} needs the model(s) {missing}")
@@ -240,33 +258,15 @@ def build_twin(
 
 
 class Twin:
-    """The twin over time: :func:`build_twin` at every time step, with its settings fixed.
+    """The twin over time: :func:`build_twin` at every time step, with its ``options`` fixed.
 
     ``update(t, maps, rel_poses)`` takes the time stamp (s; strictly increasing — an update out of
     order is an error naming it), the N maps and their poses in the reference frame; it returns
     the step and counts the vehicles left out (``left_out``: registration rejected) and fused
     (``fused``) over all updates."""
 
-    def __init__(
-        self,
-        grid: GridSpec,
-        method: str = "learned",
-        *,
-        strategy: str = "reference",
-        reference: int = 0,
-        models: dict[str, Any] | None = None,
-        registration: Any = None,
-    ) -> None:
-        if method not in TWIN_METHODS:
-            raise ValueError(
-                f"twin method {method!r} unknown; expected one of {list(TWIN_METHODS)}"
-            )
-        if strategy not in STRATEGIES:
-            raise ValueError(
-                f"twin strategy {strategy!r} unknown; expected one of {list(STRATEGIES)}"
-            )
-        self.grid, self.method, self.strategy, self.reference = grid, method, strategy, reference
-        self.models, self.registration = models, registration
+    def __init__(self, grid: GridSpec, options: TwinOptions = TwinOptions()) -> None:
+        self.grid, self.options = grid, options
         self.last_time: float | None = None
         self.left_out = 0
         self.fused = 0
@@ -283,17 +283,7 @@ class Twin:
                 f"time: step at t = {t:g} s is not after the previous one (t = {self.last_time:g} s); "
                 "time steps must be strictly increasing"
             )
-        step = build_twin(
-            maps,
-            rel_poses,
-            self.grid,
-            self.method,
-            strategy=self.strategy,
-            reference=self.reference,
-            models=self.models,
-            registration=self.registration,
-            shared=shared,
-        )
+        step = build_twin(maps, rel_poses, self.grid, self.options, shared)
         self.last_time = float(t)
         others = len(step.used) - 1
         self.fused += int(step.used.sum()) - 1

@@ -3,14 +3,12 @@ labels, and the cells every table is built of (a number, its 95 % interval, a pa
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 from traffictwin.fusion.findings import verdict
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
-from traffictwin.report.model import NA, Cell, fmt_value, lookup
+from traffictwin.report.model import NA, Cell, fmt_value, interval_cell, lookup
 
 FUSION_FILE = "fusion.json"
 FUSION_METHOD_LABELS: dict[str, str] = {
@@ -87,23 +85,10 @@ def config_cells(configurations: Configurations, c: str) -> list[Cell]:
     ]
 
 
-def _num(v: Any) -> float | None:
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-
-
 def ci_cell(src: page.Sources, key: str, file: str = FUSION_FILE) -> Cell:
     """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
-    file ``file``, a derived cell."""
-    base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
-    path = src.paths.get(file, f"metrics/{file}")
-    lo, hi = _num(src.get(file, f"{base}.lo")), _num(src.get(file, f"{base}.hi"))
-    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
-        return Cell(NA, title=f"no interval in reports/{path}: {base}")
-    return Cell(
-        f"[{fmt_value(lo, 'g4')}, {fmt_value(hi, 'g4')}]",
-        value=[lo, hi],
-        derived=f"95 % cluster-bootstrap interval, {path}#{base}",
-    )
+    file ``file``: the cluster-bootstrap interval cell (:func:`~traffictwin.report.model.interval_cell`)."""
+    return interval_cell(src, file, key, "cluster-bootstrap")
 
 
 def value_ci_cells(src: page.Sources, key: str) -> list[Cell]:

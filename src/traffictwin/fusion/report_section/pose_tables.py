@@ -11,13 +11,13 @@ from traffictwin.fusion.report_section.cells import (
     POSE_ROWS,
     REG,
     Configurations,
-    ci_cell,
     config_cells,
     diff_key,
     estimate_ci_cells,
     fusion_key,
     label,
     row_cell,
+    value_ci_cells,
 )
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup
@@ -47,7 +47,7 @@ def _registration_row(
     src: page.Sources, configurations: Configurations, c: str, m: str
 ) -> list[Cell]:
     row = config_cells(configurations, c) + [Cell(label(m))]
-    row += [row_cell(src, c, m, "success_rate"), ci_cell(src, fusion_key(c, m, "success_rate"))]
+    row += value_ci_cells(src, fusion_key(c, m, "success_rate"))  # evaluated: _has_success
     row += [row_cell(src, c, m, k) for k, _ in POSE_COLUMNS]
     dk = diff_key(c, m, REG, "success_rate")
     if isinstance(src.get(FUSION_FILE, dk), dict):
