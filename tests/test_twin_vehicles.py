@@ -18,7 +18,7 @@ from traffictwin.twin.evaluation import (
     evaluate_sequence_tables,
     map_thw,
 )
-from traffictwin.twin.fuse import build_twin
+from traffictwin.twin.fuse import TwinOptions, build_twin
 from traffictwin.twin.summary import vehicle_summaries
 from traffictwin.twin.vehicle_view import vehicle_view
 
@@ -70,7 +70,7 @@ def test_the_reference_s_view_is_the_twin_itself() -> None:
     a = rng.dirichlet([1.0, 1.0, 1.0], size=(3, *GRID.shape))
     maps = np.moveaxis(a[..., :2], -1, 1).astype(np.float32)
     poses = np.array([[0, 0, 0], [2.0, -1.0, 0.1], [-3.0, 0.5, -0.2]])
-    step = build_twin(maps, poses, GRID, "naive")
+    step = build_twin(maps, poses, GRID, TwinOptions("naive"))
     view = vehicle_view(maps, step.poses, step.used, 0, GRID)
     np.testing.assert_allclose(view, step.masses, atol=2e-5)
 
