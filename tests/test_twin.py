@@ -372,7 +372,10 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
     src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
     sec = rs.section(src, [])
-    occ, opn, hz, pred, veh, tgt = sec.tables
+    tables = {t.anchor: t for t in sec.tables}
+    occ, opn, hz = tables["twin-occluded"], tables["twin-open"], tables["twin-hazards"]
+    pred, veh, tgt = tables["twin-predictive"], tables["twin-vehicles"], tables["twin-targets"]
+    assert tables["twin-predictive-rule"].rows == []  # no rule chosen in this summary
     # each hazard kind separately: the table reads by_hazard of the same summary
     assert hz.anchor == "twin-hazards"
     hz_rows = {(r[1].text, r[2].text, r[3].text): r for r in hz.rows}
