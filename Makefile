@@ -33,8 +33,10 @@ install: $(STAMP)
 params: install
 	$(PY) -m pipelines.compose_params
 
+# after the run, dvc.lock keeps only the stages dvc.yaml still defines (DVC never drops a removed one)
 run: install
 	$(VENV)/bin/dvc repro
+	$(PY) -m pipelines.stage_deps prune-lock
 
 test: install
 	$(PY) -m pytest $(PYTEST_ARGS)

@@ -148,9 +148,35 @@ def repo_copy(tmp_path: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def ci_dag(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The whole DAG run once with `dvc repro` on the ci profile; returns the repo copy."""
-    repo = copy_repo(tmp_path_factory.mktemp("ci_dag") / "repo")
+def ci_dag(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
+    """The whole DAG run once with `dvc repro` on the ci profile; returns the repo copy.
+
+    Under pytest-xdist every worker gets the same copy: the first to ask builds it under a file
+    lock in the run's shared temp folder, the others wait for it (a failed build fails them too)."""
+    if worker_id == "master":  # not under xdist
+        return _build_ci_dag(tmp_path_factory.mktemp("ci_dag") / "repo")
+    from filelock import FileLock
+
+    shared = tmp_path_factory.getbasetemp().parent / "ci_dag"
+    shared.mkdir(exist_ok=True)
+    failed = shared / "FAILED"
+    with FileLock(str(shared / "build.lock")):
+        if failed.exists():
+            raise AssertionError(f"the shared ci DAG failed to build: {failed.read_text()[-3000:]}")
+        repo = shared / "repo"
+        if not (shared / "DONE").exists():
+            shutil.rmtree(repo, ignore_errors=True)
+            try:
+                _build_ci_dag(repo)
+            except BaseException as exc:
+                failed.write_text(str(exc))
+                raise
+            (shared / "DONE").touch()
+    return repo
+
+
+def _build_ci_dag(repo: Path) -> Path:
+    copy_repo(repo)
     run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
     run(["dvc", "repro"], repo, timeout=1800)
     return repo

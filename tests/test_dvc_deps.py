@@ -1,143 +1,114 @@
-"""dvc.yaml lists, for every stage, the library code the stage's script runs: a change to any
-module a stage imports (directly or through other modules) re-runs that stage.
-
-A dep is a module file or a package folder (``src/traffictwin/<package>``: DVC hashes a folder as a
-whole, so it covers every file under it); never a whole tree (``src/traffictwin``, ``pipelines``),
-which would re-run every stage on any change. No code dep is stale: a listed module is imported, a
-listed folder holds a module the stage imports."""
+"""dvc.yaml lists, for every stage, exactly the code files its script imports (directly or through
+other modules), one file each: a change to a module re-runs the stages that import it, and only
+those. ``python -m pipelines.stage_deps write`` computes the lists; these tests keep them from
+drifting, and keep dvc.lock free of stages dvc.yaml no longer has."""
 
 from __future__ import annotations
 
-import ast
-from functools import cache
 from pathlib import Path
 
 import pytest
 import yaml
-from _imports import imported_names
+
+from pipelines import stage_deps
 
 ROOT = Path(__file__).resolve().parents[1]
-SRC = ROOT / "src"
 
 
-def _module_file(mod: str) -> Path | None:
-    base = (SRC if mod.startswith("traffictwin") else ROOT) / mod.replace(".", "/")
-    for p in (base.with_suffix(".py"), base / "__init__.py"):
-        if p.exists():
-            return p
-    return None
-
-
-def _imports(path: Path) -> set[str]:
-    """Modules of traffictwin / pipelines that ``path`` imports (anywhere in the file)."""
-    package = ".".join(
-        path.relative_to(SRC if SRC in path.parents else ROOT).with_suffix("").parts[:-1]
-    )
-    return {
-        n
-        for n in imported_names(ast.parse(path.read_text()), package)
-        if n.split(".")[0] in ("traffictwin", "pipelines") and _module_file(n)
-    }
-
-
-@cache
-def closure(module: str) -> frozenset[Path]:
-    """Files of every traffictwin/pipelines module ``module`` needs, transitively."""
-    seen: set[str] = set()
-    todo = [module]
-    while todo:
-        m = todo.pop()
-        if m in seen:
-            continue
-        seen.add(m)
-        f = _module_file(m)
-        if f is not None:
-            todo += sorted(_imports(f) - seen)
-            parts = m.split(".")  # importing a.b.c runs a/__init__ and a/b/__init__ too
-            todo += [".".join(parts[:i]) for i in range(1, len(parts))]
-    files = {_module_file(m) for m in seen}
-    return frozenset(f for f in files if f is not None and not _only_docs(f))
-
-
-def _only_docs(f: Path) -> bool:
-    """A package ``__init__`` with nothing but a docstring and ``__version__`` runs no stage code."""
-    if f.name != "__init__.py":
-        return False
-    body = ast.parse(f.read_text()).body
-    return all(
-        (isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant))
-        or (
-            isinstance(n, ast.Assign)
-            and [getattr(t, "id", "") for t in n.targets] == ["__version__"]
-        )
-        for n in body
-    )
-
-
-@cache
 def _stages() -> dict[str, dict]:
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     return {name: (s["do"] if "do" in s else s) for name, s in stages.items()}
 
 
-def _covered(f: Path, deps: list[str]) -> bool:
-    rel = f.relative_to(ROOT).as_posix()
-    return any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps)
-
-
 def _deps(s: dict) -> list[str]:
-    return [d if isinstance(d, str) else next(iter(d)) for d in s.get("deps", [])]
+    return [stage_deps.dep_path(d) for d in s.get("deps", [])]
 
 
-def _module(s: dict) -> str:
-    return s["cmd"].split("python -m ")[1].split()[0]
-
-
-def _missing(module: str, deps: list[str]) -> list[str]:
-    """Files of ``module``'s import closure that no dep in ``deps`` covers."""
-    return sorted(f.relative_to(ROOT).as_posix() for f in closure(module) if not _covered(f, deps))
-
-
-def _code(dep: str) -> bool:
-    return dep.split("/")[0] in ("src", "pipelines")
-
-
-@pytest.mark.parametrize("stage", sorted(_stages()))
-def test_stage_deps_cover_the_code_it_imports(stage: str) -> None:
-    s = _stages()[stage]
-    missing = _missing(_module(s), _deps(s))
-    assert not missing, f"dvc.yaml stage {stage} lacks deps: {missing}"
-
-
-@pytest.mark.parametrize("stage", sorted(_stages()))
-def test_stage_code_deps_are_modules_or_package_folders_it_imports(stage: str) -> None:
-    s = _stages()[stage]
-    needed = {f.relative_to(ROOT).as_posix() for f in closure(_module(s))}
-    for dep in filter(_code, _deps(s)):
-        path = ROOT / dep
-        assert path.exists(), f"dvc.yaml stage {stage}: {dep} does not exist"
-        if path.is_dir():
-            parts = Path(dep).parts
-            assert len(parts) == 3 and parts[:2] == ("src", "traffictwin"), (
-                f"dvc.yaml stage {stage}: {dep} is not a package folder src/traffictwin/<package>"
-            )
-            assert any(n.startswith(dep.rstrip("/") + "/") for n in needed), (
-                f"dvc.yaml stage {stage}: imports nothing of {dep}"
-            )
-        else:
-            assert dep in needed, f"dvc.yaml stage {stage}: does not import {dep} (stale dep)"
-
-
-def test_a_module_no_dep_covers_is_reported() -> None:
-    """The check fails when a stage imports a module its deps do not cover (a folder covers its
-    files, a sibling file does not)."""
-    s = _stages()["train_risk"]
-    deps = _deps(s)
-    assert _missing(_module(s), deps) == []
-    dropped = [d for d in deps if d != "src/traffictwin/risk/dave2.py"]
-    assert _missing(_module(s), dropped) == ["src/traffictwin/risk/dave2.py"]
-    as_folder = [d for d in dropped if not d.startswith("src/traffictwin/risk/")]
-    assert _missing(_module(s), [*as_folder, "src/traffictwin/risk"]) == []
-    assert "src/traffictwin/risk/dave2.py" in _missing(
-        _module(s), [*as_folder, "src/traffictwin/ri"]
+def test_every_stage_lists_exactly_the_code_it_imports() -> None:
+    diff = stage_deps.differences(ROOT / "dvc.yaml")
+    assert not diff, (
+        f"dvc.yaml code deps differ from the imports (stage: (missing, stale)): {diff}; "
+        "run `python -m pipelines.stage_deps write`"
     )
+
+
+@pytest.mark.parametrize("stage", sorted(_stages()))
+def test_code_deps_are_files_never_folders(stage: str) -> None:
+    for dep in filter(stage_deps.is_code, _deps(_stages()[stage])):
+        assert (ROOT / dep).is_file(), f"dvc.yaml stage {stage}: {dep} is not a file"
+
+
+def test_a_dropped_or_stale_dep_is_reported(tmp_path: Path) -> None:
+    """The check names a module a stage imports but does not list, and a listed one it does not
+    import; rewriting restores the list."""
+    doc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    deps = doc["stages"]["train_risk"]["do"]["deps"]
+    assert "src/traffictwin/risk/dave2.py" in deps
+    deps.remove("src/traffictwin/risk/dave2.py")
+    deps.append("src/traffictwin/fusion/deeplab.py")
+    broken = tmp_path / "dvc.yaml"
+    broken.write_text(yaml.safe_dump(doc, sort_keys=False))
+    (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
+    diff = stage_deps.differences(broken, root=ROOT)
+    assert diff == {
+        "train_risk": (["src/traffictwin/risk/dave2.py"], ["src/traffictwin/fusion/deeplab.py"])
+    }
+    assert stage_deps.write(broken, root=ROOT) == ["train_risk"]
+    assert stage_deps.differences(broken, root=ROOT) == {}
+    # data deps survive the rewrite, after the code
+    rewritten = yaml.safe_load(broken.read_text())["stages"]["train_risk"]["do"]["deps"]
+    assert [d for d in rewritten if not stage_deps.is_code(d)] == [
+        d for d in deps if not stage_deps.is_code(d)
+    ]
+
+
+def test_closure_follows_imports_inside_functions_and_parent_packages(tmp_path: Path) -> None:
+    pkg = tmp_path / "src" / "traffictwin"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text('"""docs only."""\n__version__ = "1"\n')
+    (pkg / "sub" / "__init__.py").write_text("from . import b\n")
+    (pkg / "sub" / "a.py").write_text("def f():\n    from traffictwin import c\n")
+    (pkg / "sub" / "b.py").write_text("")
+    (pkg / "c.py").write_text("")
+    (pkg / "unused.py").write_text("")
+    files = stage_deps.closure("traffictwin.sub.a", tmp_path)
+    got = sorted(p.relative_to(tmp_path).as_posix() for p in files)
+    assert got == [  # the docs-only traffictwin/__init__ runs nothing: left out
+        "src/traffictwin/c.py",
+        "src/traffictwin/sub/__init__.py",
+        "src/traffictwin/sub/a.py",
+        "src/traffictwin/sub/b.py",
+    ]
+
+
+def test_report_code_retrains_and_regenerates_nothing() -> None:
+    """Editing the report's page kit or a report section re-runs only the stages that render the
+    report: no data, training or evaluation stage imports them."""
+    report_only = ("src/traffictwin/report/", "report_section", "report_tables", "findings_")
+    kit = ("src/traffictwin/report/colours.py", "src/traffictwin/report/prose.py")
+    for name, s in _stages().items():
+        if name in ("report", "plot_data"):
+            continue
+        hits = [
+            d
+            for d in _deps(s)
+            if any(k in d for k in report_only) and d not in kit  # figure colours, finding prose
+        ]
+        assert not hits, f"stage {name} depends on report code {hits}"
+
+
+def test_dvc_lock_holds_only_todays_stages() -> None:
+    stale = stage_deps.stale_lock_stages(ROOT / "dvc.yaml", ROOT / "dvc.lock")
+    assert not stale, f"dvc.lock has stages dvc.yaml no longer defines: {stale}"
+
+
+def test_prune_lock_removes_only_stale_stages(tmp_path: Path) -> None:
+    for name in ("dvc.yaml", "params.yaml", "dvc.lock"):
+        (tmp_path / name).write_text((ROOT / name).read_text())
+    lock = yaml.safe_load((tmp_path / "dvc.lock").read_text())
+    kept = dict(lock["stages"])
+    lock["stages"]["train_fusion@Z"] = {"cmd": "python -m pipelines.train_fusion"}
+    (tmp_path / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
+    assert stage_deps.prune_lock(tmp_path / "dvc.yaml", tmp_path / "dvc.lock") == ["train_fusion@Z"]
+    assert yaml.safe_load((tmp_path / "dvc.lock").read_text())["stages"] == kept
+    assert stage_deps.prune_lock(tmp_path / "dvc.yaml", tmp_path / "dvc.lock") == []

@@ -1,0 +1,275 @@
+"""Each DVC stage's code deps, computed from the imports of its script (not a DVC stage).
+
+A stage re-runs when a file it imports changes, and only then: its ``deps`` in dvc.yaml list every
+file of ``pipelines/`` and ``src/traffictwin/`` in the import closure of its ``python -m`` module
+(imports anywhere in a file, module level or inside functions, read with ``ast``), one file each,
+never a folder. Data, model and config deps (any other path) are kept as written.
+
+    python -m pipelines.stage_deps check        # exit 1 and list the stages whose deps differ
+    python -m pipelines.stage_deps write        # rewrite the code deps of dvc.yaml in place
+    python -m pipelines.stage_deps prune-lock   # drop dvc.lock entries of stages dvc.yaml no longer has
+
+``make run`` prunes the lock after ``dvc repro``; tests/test_dvc_deps.py runs the check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import io
+import re
+import sys
+from collections.abc import Iterable, Mapping
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from ruamel.yaml import YAML
+from ruamel.yaml.comments import CommentedSeq
+
+from pipelines._paths import DVC_YAML, ROOT
+
+SRC = ROOT / "src"
+DVC_LOCK = ROOT / "dvc.lock"
+CODE_ROOTS = ("src", "pipelines")
+
+
+def imported_names(tree: ast.Module, package: str) -> set[str]:
+    """Every name ``tree`` imports anywhere (module level or inside functions), absolute and
+    dotted: ``import a.b`` gives ``a.b``; ``from a import b`` gives ``a`` and ``a.b`` (``b`` may be
+    a module or an attribute). Relative imports are resolved against ``package``, the dotted
+    package the file lives in."""
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            mod = node.module or ""
+            if node.level:
+                parts = package.split(".") if package else []
+                mod = ".".join(parts[: len(parts) - node.level + 1] + ([mod] if mod else []))
+            out.add(mod)
+            out.update(f"{mod}.{a.name}" for a in node.names)
+    return out
+
+
+def module_file(mod: str, root: Path = ROOT) -> Path | None:
+    """The file of module ``mod`` (``traffictwin.*`` under ``src/``, ``pipelines.*`` at the root)."""
+    base = (root / "src" if mod.startswith("traffictwin") else root) / mod.replace(".", "/")
+    for p in (base.with_suffix(".py"), base / "__init__.py"):
+        if p.is_file():
+            return p
+    return None
+
+
+def _imports(path: Path, root: Path) -> set[str]:
+    """Modules of traffictwin / pipelines that ``path`` imports (anywhere in the file)."""
+    src = root / "src"
+    rel = path.relative_to(src if src in path.parents else root).with_suffix("")
+    package = ".".join(rel.parts[:-1])
+    return {
+        n
+        for n in imported_names(ast.parse(path.read_text()), package)
+        if n.split(".")[0] in ("traffictwin", "pipelines") and module_file(n, root)
+    }
+
+
+def _only_docs(f: Path) -> bool:
+    """A package ``__init__`` with nothing but a docstring and ``__version__`` runs no stage code."""
+    if f.name != "__init__.py":
+        return False
+    body = ast.parse(f.read_text()).body
+    return all(
+        (isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant))
+        or (
+            isinstance(n, ast.Assign)
+            and [getattr(t, "id", "") for t in n.targets] == ["__version__"]
+        )
+        for n in body
+    )
+
+
+@cache
+def closure(module: str, root: Path = ROOT) -> frozenset[Path]:
+    """Files of every traffictwin/pipelines module ``module`` needs, transitively (package
+    ``__init__`` files that hold only a docstring are left out: they run no stage code)."""
+    seen: set[str] = set()
+    todo = [module]
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        f = module_file(m, root)
+        if f is not None:
+            todo += sorted(_imports(f, root) - seen)
+            parts = m.split(".")  # importing a.b.c runs a/__init__ and a/b/__init__ too
+            todo += [".".join(parts[:i]) for i in range(1, len(parts))]
+    files = {module_file(m, root) for m in seen}
+    return frozenset(f for f in files if f is not None and not _only_docs(f))
+
+
+def is_code(dep: str) -> bool:
+    """Whether a dvc.yaml dep is code (a path under ``src/`` or ``pipelines/``)."""
+    return dep.split("/")[0] in CODE_ROOTS
+
+
+def dep_path(dep: str | Mapping[str, Any]) -> str:
+    """The path of a dvc.yaml dep entry (a string, or a one-key mapping with options)."""
+    return dep if isinstance(dep, str) else next(iter(dep))
+
+
+def stage_module(stage: Mapping[str, Any]) -> str:
+    """The ``python -m`` module a stage's ``cmd`` runs."""
+    return str(stage["cmd"]).split("python -m ")[1].split()[0]
+
+
+def code_deps(module: str, root: Path = ROOT) -> list[str]:
+    """The code deps of a stage running ``module``: its script first, then every other file of
+    the import closure, sorted (``pipelines/`` before ``src/``)."""
+    script = module_file(module, root)
+    files = sorted(p.relative_to(root).as_posix() for p in closure(module, root) if p != script)
+    return ([script.relative_to(root).as_posix()] if script else []) + files
+
+
+def wanted_deps(stage: Mapping[str, Any], root: Path = ROOT) -> list[str]:
+    """A stage's deps as they should read: code deps from the imports, then its other deps."""
+    others = [d for d in stage.get("deps", []) if not is_code(dep_path(d))]
+    return code_deps(stage_module(stage), root) + others
+
+
+def _load(path: Path) -> tuple[YAML, Any]:
+    yaml = YAML()  # round trip: comments, anchors and flow style are kept
+    yaml.width = 118
+    yaml.indent(mapping=2, sequence=4, offset=2)
+    yaml.preserve_quotes = True
+    return yaml, yaml.load(path.read_text())
+
+
+def _stage_bodies(doc: Mapping[str, Any]) -> dict[str, Any]:
+    """dvc.yaml's stages by name (a ``foreach`` stage by its template's name: its ``do`` body)."""
+    return {name: (s["do"] if "do" in s else s) for name, s in doc["stages"].items()}
+
+
+def differences(
+    dvc_yaml: Path = DVC_YAML, root: Path | None = None
+) -> dict[str, tuple[list[str], list[str]]]:
+    """Stages whose deps are not what the imports say: name -> (missing, stale). ``root``: the
+    repository whose code the stages run (default: the folder of ``dvc_yaml``)."""
+    _, doc = _load(dvc_yaml)
+    root = root or dvc_yaml.resolve().parent
+    out: dict[str, tuple[list[str], list[str]]] = {}
+    for name, body in _stage_bodies(doc).items():
+        have = [dep_path(d) for d in body.get("deps", [])]
+        want = wanted_deps(body, root)
+        missing = [d for d in want if d not in have]
+        stale = [d for d in have if d not in want]
+        if missing or stale:
+            out[name] = (missing, stale)
+    return out
+
+
+def write(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
+    """Rewrite the code deps of every stage in ``dvc_yaml``; returns the names of the stages changed.
+
+    The file is replaced atomically; a stage's non-code deps keep their order after the code.
+    ``root``: the repository whose code the stages run (default: the folder of ``dvc_yaml``)."""
+    yaml, doc = _load(dvc_yaml)
+    root = root or dvc_yaml.resolve().parent
+    changed: list[str] = []
+    done: set[int] = set()  # a YAML anchor shared by two stages is one list: rewrite it once
+    for name, body in _stage_bodies(doc).items():
+        deps = body.get("deps")
+        if deps is None or id(deps) in done:
+            continue
+        done.add(id(deps))
+        want = wanted_deps(body, root)
+        if [dep_path(d) for d in deps] == want:
+            continue
+        keep = {dep_path(d): d for d in deps if not is_code(dep_path(d))}
+        new = [keep.get(d, d) for d in want]
+        if isinstance(deps, CommentedSeq):
+            deps[:] = new
+            deps.fa.set_block_style()
+        else:
+            body["deps"] = new
+        changed.append(name)
+    if changed:
+        buf = io.StringIO()
+        yaml.dump(doc, buf)
+        text = re.sub(
+            r"[ \t]+$", "", buf.getvalue(), flags=re.MULTILINE
+        )  # ruamel's flow-list breaks
+        tmp = dvc_yaml.with_name(f".{dvc_yaml.name}.tmp")
+        tmp.write_text(text)
+        tmp.replace(dvc_yaml)
+    return changed
+
+
+def expanded_stage_names(doc: Mapping[str, Any], params: Mapping[str, Any]) -> set[str]:
+    """Names of every stage dvc.yaml defines, ``foreach`` stages expanded as DVC names them
+    (``name@key`` for a mapping, ``name@item`` for a list), the foreach values from ``params``."""
+    names: set[str] = set()
+    for name, s in doc["stages"].items():
+        if "foreach" not in s:
+            names.add(name)
+            continue
+        ref = str(s["foreach"])
+        if ref.startswith("${") and ref.endswith("}"):
+            value: Any = params
+            for key in ref[2:-1].split("."):
+                value = value[key]
+        else:
+            value = s["foreach"]
+        keys: Iterable[Any] = value.keys() if isinstance(value, Mapping) else value
+        names.update(f"{name}@{k}" for k in keys)
+    return names
+
+
+def stale_lock_stages(dvc_yaml: Path = DVC_YAML, dvc_lock: Path = DVC_LOCK) -> list[str]:
+    """Stages dvc.lock records that dvc.yaml (with params.yaml's foreach values) no longer has."""
+    _, doc = _load(dvc_yaml)
+    _, params = _load(dvc_yaml.with_name("params.yaml"))
+    _, lock = _load(dvc_lock)
+    current = expanded_stage_names(doc, params)
+    return sorted(n for n in (lock.get("stages") or {}) if n not in current)
+
+
+def prune_lock(dvc_yaml: Path = DVC_YAML, dvc_lock: Path = DVC_LOCK) -> list[str]:
+    """Remove the stale stages from ``dvc_lock`` (atomic replace); returns their names."""
+    stale = stale_lock_stages(dvc_yaml, dvc_lock)
+    if stale:
+        yaml, lock = _load(dvc_lock)
+        yaml.width = 4096  # DVC writes the lock: keep its lines and indentation as they are
+        yaml.indent(mapping=2, sequence=2, offset=0)
+        for n in stale:
+            del lock["stages"][n]
+        tmp = dvc_lock.with_name(f".{dvc_lock.name}.tmp")
+        with tmp.open("w") as f:
+            yaml.dump(lock, f)
+        tmp.replace(dvc_lock)
+    return stale
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipelines.stage_deps", description=__doc__)
+    parser.add_argument("action", choices=["check", "write", "prune-lock"])
+    args = parser.parse_args(argv)
+    if args.action == "check":
+        diff = differences()
+        for name, (missing, stale) in diff.items():
+            print(f"dvc.yaml stage {name}: missing {missing}, stale {stale}", file=sys.stderr)
+        if diff:
+            print("run `python -m pipelines.stage_deps write`", file=sys.stderr)
+        return 1 if diff else 0
+    if args.action == "write":
+        changed = write()
+        print(f"dvc.yaml: code deps rewritten for {len(changed)} stage(s) {changed}")
+        return 0
+    pruned = prune_lock()
+    print(f"dvc.lock: {len(pruned)} stale stage(s) removed {pruned}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
