@@ -7,7 +7,8 @@ import ast
 from pathlib import Path
 
 import pytest
-from _imports import imported_names
+
+from pipelines.stage_deps import imported_names
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PKG = "traffictwin"
