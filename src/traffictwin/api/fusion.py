@@ -142,6 +142,7 @@ def check_fusion_domain(
 ) -> float:
     """The cell size to use for a grid of ``shape`` (rows, cols); :class:`ApiError` naming
     ``who`` unless the grid matches the model's training grid (rows, cols, cell)."""
+    check_instance(model, FusionModel, "model", "a FusionModel (api.load_fusion)")
     h, w = shape
     if h % DIVISOR or w % DIVISOR:
         raise ModelDomainError(
