@@ -351,6 +351,8 @@ def _api_calls(fusion, rm):
         ),
         (lambda: api.load_risk(42), "model: expected a registry reference"),
         (lambda: api.load_risk("x", tracking_uri=5), "tracking_uri: expected a string or None"),
+        (lambda: api.resolve_tracking_uri(b"sqlite:///x.db"), "tracking_uri: expected a string"),
+        (lambda: api.connect(3), "tracking_uri: expected a string or None"),
         (
             lambda: api.fuse(fusion, [], batch_size=2.5),
             "batch_size: expected an integer >= 1, got 2.5",
