@@ -235,3 +235,24 @@ def test_pair_list_nan_cell_is_blamed_on_the_list_not_on_cell_option(tmp_path, f
     line, _ = _err_line(capsys, "pairs.csv line 2: column cell = 'nan' must be a positive number")
     assert "--cell" not in line
     assert not (tmp_path / "out").exists()
+
+
+def test_orb_sweep_at_the_configured_threshold_counts_swapped_pairs():
+    import pandas as pd
+
+    from traffictwin.stereo.orb import orb_metrics
+
+    df = pd.DataFrame(
+        {
+            "n_reliable": [50, 50],
+            "mean_dx": [6.0, 6.0],
+            "mean_dy": [0.1, 0.1],
+            "swapped": [False, True],
+            "outlier": [False, True],
+            "fault": ["none", "none"],
+            "split": ["test", "test"],
+            "speed": [8.0, 8.0],
+        }
+    )
+    m = orb_metrics(df, ["test"], ["none"], min_reliable=8, min_dx=1.0)
+    assert m["sweep/max_dy_5_false_alarm_rate"] == m["all/false_alarm_rate"] == 0.5

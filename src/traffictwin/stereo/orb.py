@@ -253,7 +253,8 @@ def orb_metrics(
     columns to report on (``"none"`` = fault-free is never a fault group).
 
     ``sweep/*``: sensitivity of the robust ORB rule's |dy| threshold on the same per-pair
-    statistics (no re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px).
+    statistics (no re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px)
+    and the swap rule (``swapped``, where ``df`` has it).
     """
     m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
     faulty = df.fault != NO_FAULT
@@ -283,6 +284,7 @@ def orb_metrics(
             | (df.mean_dx < min_dx)
             | (df.mean_dy > thr)
             | df.mean_dy.isna()
+            | (df["swapped"].astype(bool) if "swapped" in df else False)  # the swap rule
         )
         m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
         for f in faults:
