@@ -158,7 +158,7 @@ def check_fusion_domain(
         cell = float(g["cell"]) if "cell" in g else None
     if cell is None:
         raise ApiError(
-            f"{who}: grid cell size unknown: pass --cell (m per cell) or store 'cell' in the .npz"
+            f"{who}: grid cell size unknown: give the pair's cell (m per cell; --cell in the CLI) or store 'cell' in the .npz"
         )
     if "cell" in g and abs(float(g["cell"]) - cell) > 1e-9:
         raise ModelDomainError(
