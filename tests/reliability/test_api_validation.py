@@ -323,3 +323,127 @@ def test_registry_errors_suggest_only_loadable_names(cl, mlflow_uri):
     reg.ensure_version(cl, "traffictwin-fusion-D", log_linear(2.0))  # a per-configuration name
     with pytest.raises(api.ApiError, match=r"registered fusion models: traffictwin-fusion-D\)"):
         api.load_fusion("champion", tracking_uri=mlflow_uri)
+
+
+# ------------------------------------------------------------------ every argument, an ApiError
+
+
+def _api_calls(fusion, rm):
+    left, right = textured_pair()
+    frame = api.Frame("a", left, right)
+    return [
+        (
+            lambda: api.Frame("a", [1, 2], right),
+            "frame 'a' left: expected an image path or a uint8 array, got list",
+        ),
+        (
+            lambda: api.Frame("a", left, None),
+            "frame 'a' right: expected an image path or a uint8 array, got NoneType",
+        ),
+        (lambda: api.Frame(7, left, right), "Frame id: expected a string, got int"),
+        (lambda: api.read_image(123), "path: expected a file path (str or os.PathLike), got int"),
+        (lambda: api.check_image_file(None), "path: expected a file path"),
+        (lambda: api.frames_in_folder(3.5), "folder: expected a file path"),
+        (lambda: api.load_masses(b"x.npz"), "path: expected a file path"),
+        (
+            lambda: api.load_fusion(None),
+            "model: expected a registry reference name@alias or a model folder path",
+        ),
+        (lambda: api.load_risk(42), "model: expected a registry reference"),
+        (lambda: api.load_risk("x", tracking_uri=5), "tracking_uri: expected a string or None"),
+        (lambda: api.resolve_tracking_uri(b"sqlite:///x.db"), "tracking_uri: expected a string"),
+        (lambda: api.connect(3), "tracking_uri: expected a string or None"),
+        (
+            lambda: api.fuse(fusion, [], batch_size=2.5),
+            "batch_size: expected an integer >= 1, got 2.5",
+        ),
+        (
+            lambda: api.fuse(fusion, [], batch_size=True),
+            "batch_size: expected an integer >= 1, got True",
+        ),
+        (lambda: api.fuse(fusion, [], batch_size=0), "batch_size: must be >= 1, got 0"),
+        (lambda: api.fuse(fusion, None), "pairs: expected an iterable of api.FusePair"),
+        (lambda: list(api.fuse(fusion, [(1, 2, 3, 4)])), "pairs[0]: expected api.FusePair"),
+        (lambda: api.fuse("model", []), "model: expected a FusionModel"),
+        (lambda: api.FusePair(*np.zeros((4, 1)), id=3), "FusePair id: expected a string, got int"),
+        (
+            lambda: api.assess_risk(rm, [frame], speed=8.0, batch_size=1.5),
+            "batch_size: expected an integer >= 1, got 1.5",
+        ),
+        (
+            lambda: api.assess_risk(rm, [frame], speed=8.0, resize=1),
+            "resize: expected True or False, got 1",
+        ),
+        (
+            lambda: api.assess_risk(rm, [frame], speed=8.0, settings={}),
+            "settings: expected api.StereoSettings or None, got dict",
+        ),
+        (
+            lambda: api.assess_risk(rm, [frame], speed=8.0, thw_threshold=True),
+            "thw_threshold: expected a number of seconds, got True",
+        ),
+        (
+            lambda: api.assess_risk(rm, frame, speed=8.0),
+            "frames: expected an iterable of api.Frame",
+        ),
+        (
+            lambda: list(api.assess_risk(rm, [(left, right)], speed=8.0)),
+            "frames[0]: expected api.Frame(id, left, right), got tuple",
+        ),
+        (lambda: api.assess_risk(None, [frame]), "risk: expected a LoadedRisk"),
+        (
+            lambda: api.assess_risk(rm, [frame], speed=True),
+            "speed: expected a number of m/s, got bool",
+        ),
+        (
+            lambda: api.StereoSettings({"nope": 1}, {}, "x"),
+            "StereoSettings.sgm: unknown setting 'nope'",
+        ),
+        (
+            lambda: api.StereoSettings({}, {"min_dx": "1"}, "x"),
+            "StereoSettings.orb: setting 'min_dx' = '1' is not a float",
+        ),
+        (
+            lambda: api.StereoSettings({}, [], "x"),
+            "StereoSettings.orb: expected a mapping of settings, got list",
+        ),
+        (lambda: api.stereo_settings(None, 5), "params_path: expected a file path"),
+        (lambda: api.speed_range("risk"), "risk: expected a LoadedRisk"),
+        (lambda: api.check_speed(rm, 8.0, params_path=[]), "params_path: expected a file path"),
+        (
+            lambda: api.decision_cut(rm, False),
+            "thw_threshold: expected a number of seconds, got False",
+        ),
+        (lambda: api.risk_verdict(True, None), "risk: expected a number in [0, 1], got True"),
+        (lambda: api.risk_verdict(0.5, None, cut="0.3"), "cut: expected a risk in [0, 1] or None"),
+        (
+            lambda: api.check_fusion_domain(None, (32, 48), 0.5, "x"),
+            "model: expected a FusionModel",
+        ),
+    ]
+
+
+def test_every_public_api_function_raises_its_own_errors(fusion, risk_dir):
+    rm = api.load_risk(risk_dir)
+    for call, needle in _api_calls(fusion, rm):
+        with pytest.raises(api.InputValueError) as exc:
+            call()
+        assert needle in str(exc.value), (needle, str(exc.value))
+
+
+def test_assess_risk_batch_size_is_never_rounded_into_buffering_the_stream(risk_dir):
+    rm = api.load_risk(risk_dir)
+    left, right = textured_pair()
+    taken = []
+
+    def frames():
+        for k in range(3):
+            taken.append(k)
+            yield api.Frame(str(k), left, right)
+
+    with pytest.raises(api.InputValueError, match="batch_size"):
+        api.assess_risk(rm, frames(), speed=8.0, batch_size=1.5)
+    assert taken == []  # refused at the call, before a frame is read
+    rows = api.assess_risk(rm, frames(), speed=8.0, batch_size=1)
+    next(rows)
+    assert taken == [0]  # one frame per batch: the stream is not buffered

@@ -41,6 +41,17 @@ Training domain (issue 18, defect 7): inputs outside what the model was trained 
     without a speed input warns that ``speed`` only scales ``gap_m``. The predicted risk is
     clamped to [0, 1].
 
+Verdict
+    A pair that fails the ORB pair check (no reliable match: uniform or textureless images; no
+    disparity; a vertical offset; swapped cameras: the median signed disparity of the reliable
+    matches is negative) has no verdict: ``verdict`` is ``"unknown"`` (:data:`UNKNOWN`),
+    ``critical`` ``None`` and ``verdict_reason`` names the failed rule; never "uncritical".
+
+Arguments
+    Every public function checks its arguments at the call and raises an :class:`ApiError`
+    subclass naming the argument and what was expected (a bool is not a number, 2.5 is not a
+    batch size); :func:`fuse` and :func:`assess_risk` check their items as they come.
+
 THW
     Rows carry ``thw_s`` (s) and ``gap_m`` (m) as Python floats, ``inf`` when nothing is ahead
     (risk 0). The CLI writes them as ``null`` in JSON and as an empty field in CSV (one rule for
@@ -64,6 +75,7 @@ from .fusion import (  # noqa: F401 - the ones not in __all__ are used as api.<n
     FuseResult,
     FusionModel,
     check_fusion_domain,
+    check_relative_pose,
     fuse,
     load_fusion,
     load_masses,
@@ -80,6 +92,7 @@ from .images import (  # noqa: F401 - the ones not in __all__ are used as api.<n
 from .inputs import (  # noqa: F401 - the ones not in __all__ are used as api.<name>
     SIMPLEX_TOL,
     check_cell,
+    check_count,
     check_mass_grids,
     check_pose,
     check_speed_value,
@@ -88,6 +101,7 @@ from .registry import ALIASES, HTTP_ENV, connect, resolve_tracking_uri  # noqa: 
 from .risk import (  # noqa: F401 - the ones not in __all__ are used as api.<name>
     MAX_THW_THRESHOLD_S,
     MAX_UPSCALE,
+    UNKNOWN,
     LoadedRisk,
     StereoSettings,
     assess_risk,

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ApiError, InputFileError, InputValueError
+from .inputs import check_path
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
 MIN_IMAGE_PX = 32  # the smallest image side (px) SGM and the ORB check can work on
@@ -22,7 +23,7 @@ def check_image_file(path: str | os.PathLike) -> tuple[int, int]:
     decoded): the CLI checks every input this way before it loads a model."""
     from traffictwin.io.limits import InputError, check_image_size
 
-    path = Path(path)
+    path = Path(check_path(path, "path"))
     if not path.is_file():
         raise InputFileError(f"{path}: image not found")
     try:  # format and size from the header, before a pixel is decoded
@@ -35,7 +36,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     """An 8-bit BGR image (grayscale is expanded to 3 channels, :func:`as_bgr`); errors name the file."""
     import cv2
 
-    path = Path(path)
+    path = Path(check_path(path, "path"))
     check_image_file(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -52,12 +53,22 @@ class Frame:
     left: str | os.PathLike | np.ndarray
     right: str | os.PathLike | np.ndarray
 
+    def __post_init__(self) -> None:
+        """:class:`InputValueError` naming the field unless ``id`` is a string and each image a
+        path or an array (the array's dtype and shape are checked when it is used)."""
+        if not isinstance(self.id, str):
+            raise InputValueError(f"Frame id: expected a string, got {type(self.id).__name__}")
+        for side in ("left", "right"):
+            v = getattr(self, side)
+            if not isinstance(v, np.ndarray):
+                check_path(v, f"frame {self.id!r} {side}", "an image path or a uint8 array")
+
 
 def frames_in_folder(folder: str | os.PathLike) -> list[Frame]:
     """A :class:`Frame` for every ``<id>_left.<ext>`` / ``<id>_right.<ext>`` in ``folder``
     (sorted by id; nothing decoded). Errors on a folder without pairs and on an image without
     its partner."""
-    folder = Path(folder)
+    folder = Path(check_path(folder, "folder"))
     if not folder.is_dir():
         raise InputFileError(
             f"{folder}: {'not a folder' if folder.exists() else 'folder not found'} "

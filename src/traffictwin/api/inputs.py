@@ -4,6 +4,7 @@ mass grids (free, occupied) and speeds (m/s); and batching of lazily consumed in
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -73,6 +74,66 @@ def check_speed_value(speed: Any, who: str = "speed") -> float | None:
     if not (math.isfinite(float(speed)) and float(speed) >= 0):
         raise InputValueError(f"{who}: must be a finite speed >= 0 m/s, got {speed}")
     return float(speed)
+
+
+def check_count(value: Any, who: str, minimum: int = 1) -> int:
+    """An integer count >= ``minimum`` (a bool or a float such as 2.5 is refused, never rounded);
+    :class:`InputValueError` naming ``who``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputValueError(f"{who}: expected an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise InputValueError(f"{who}: must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def check_flag(value: Any, who: str) -> bool:
+    """A boolean (True / False, not 0 / 1 or a string); :class:`InputValueError` naming ``who``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputValueError(f"{who}: expected True or False, got {value!r}")
+    return bool(value)
+
+
+def check_path(
+    value: Any, who: str, expected: str = "a file path (str or os.PathLike)"
+) -> str | os.PathLike:
+    """A file or folder path (``str`` or ``os.PathLike``, not empty); :class:`InputValueError`
+    naming ``who`` and ``expected``."""
+    if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
+        got = repr(value) if isinstance(value, str) else type(value).__name__
+        raise InputValueError(f"{who}: expected {expected}, got {got}")
+    return value
+
+
+def check_optional_text(value: Any, who: str) -> str | None:
+    """``None`` or a non-empty string; :class:`InputValueError` naming ``who``."""
+    if value is not None and not (isinstance(value, str) and value):
+        raise InputValueError(f"{who}: expected a string or None, got {value!r}")
+    return value
+
+
+def check_instance(value: Any, cls: type, who: str, expected: str) -> Any:
+    """``value`` if it is a ``cls``; :class:`InputValueError` naming ``who`` and ``expected``."""
+    if not isinstance(value, cls):
+        raise InputValueError(f"{who}: expected {expected}, got {type(value).__name__}")
+    return value
+
+
+def checked_items(items: Any, cls: type, who: str, expected: str) -> Iterator[Any]:
+    """The items of the iterable ``items`` (consumed lazily), each checked to be a ``cls``:
+    :class:`InputValueError` naming ``who``, the item's position and ``expected`` (a
+    non-iterable ``items`` at once, a wrong item when it comes)."""
+    if isinstance(items, (str, bytes, cls)) or not isinstance(items, Iterable):
+        raise InputValueError(
+            f"{who}: expected an iterable of {expected}, got {type(items).__name__}"
+        )
+
+    def typed() -> Iterator[Any]:
+        for k, it in enumerate(items):
+            if not isinstance(it, cls):
+                raise InputValueError(f"{who}[{k}]: expected {expected}, got {type(it).__name__}")
+            yield it
+
+    return typed()
 
 
 def _chunks(items: Iterable[Any], n: int) -> Iterator[list[Any]]:

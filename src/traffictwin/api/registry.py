@@ -29,6 +29,9 @@ def resolve_tracking_uri(tracking_uri: str | None = None) -> str:
     """
     from traffictwin.mlops.tracking import ENV_URI, repo_root, sqlite_path
 
+    from .inputs import check_optional_text
+
+    check_optional_text(tracking_uri, "tracking_uri")
     uri = tracking_uri or os.environ.get(ENV_URI)
     if not uri:
         root = repo_root()

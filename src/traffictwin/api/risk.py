@@ -18,11 +18,21 @@ from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
 
 from .errors import ApiError, ApiWarning, InputFileError, InputValueError, ModelDomainError
 from .images import Frame, as_bgr, read_image
-from .inputs import _chunks, check_speed_value
+from .inputs import (
+    _chunks,
+    check_count,
+    check_flag,
+    check_instance,
+    check_optional_text,
+    check_path,
+    check_speed_value,
+    checked_items,
+)
 from .registry import _first_line, _load_model
 
 MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
 MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
+UNKNOWN = "unknown"  # the verdict of a pair that failed the stereo pair check
 
 
 @dataclass
@@ -136,6 +146,8 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
     from traffictwin.mlops.registry import RISK_NAME
     from traffictwin.risk.model_io import RiskModelError, load_risk_model
 
+    check_path(model, "model", "a registry reference name@alias or a model folder path")
+    check_optional_text(tracking_uri, "tracking_uri")
     rm, desc = _load_model(
         model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
     )
@@ -151,11 +163,27 @@ class StereoSettings:
     orb: dict[str, Any]
     source: str
 
+    def __post_init__(self) -> None:
+        """:class:`InputValueError` naming the field unless ``sgm`` / ``orb`` are keyword
+        settings of the SGM matcher / the ORB check (known keys, values of their defaults'
+        types) and ``source`` a string."""
+        from traffictwin.stereo.orb import check_pair
+        from traffictwin.stereo.sgm import compute_disparity
+
+        for key, func in (("sgm", compute_disparity), ("orb", check_pair)):
+            why = _settings_problem(getattr(self, key), func, ("left_bgr", "right_bgr", "matcher"))
+            if why:
+                raise InputValueError(f"StereoSettings.{key}: {why}")
+        if not isinstance(self.source, str):
+            raise InputValueError(
+                f"StereoSettings.source: expected a string, got {type(self.source).__name__}"
+            )
+
 
 def _params_risk_data(params_path: str | os.PathLike) -> dict[str, Any]:
     import yaml
 
-    path = Path(params_path)
+    path = Path(check_path(params_path, "params_path"))
     if not path.is_file():
         raise InputFileError(f"params_path: {path} not found (expected a params.yaml)")
     try:
@@ -177,7 +205,7 @@ def stereo_settings(
     model's metadata if present; else ``risk_data.sgm`` / ``risk_data.orb`` of the params file
     ``params_path``; else the library defaults. A given ``params_path`` is always read and
     checked (a missing or invalid file is an error, never ignored)."""
-    rd_given = _params_risk_data(params_path) if params_path else None
+    rd_given = _params_risk_data(params_path) if params_path is not None else None
     if isinstance(domain, dict) and (
         isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
     ):
@@ -200,17 +228,24 @@ def speed_range(
 ) -> tuple[float, float, str] | None:
     """``(lo, hi, source)`` in m/s of the speeds the model was trained on, or ``None`` if unknown
     (the order of sources: :mod:`traffictwin.api`, Training domain)."""
+    check_instance(risk, LoadedRisk, "risk", "a LoadedRisk (api.load_risk)")
     d = risk.domain
     rng = d.get("speed_range")
     if isinstance(rng, (list, tuple)) and len(rng) == 2:
         return float(rng[0]), float(rng[1]), f"domain.speed_range of {risk.description}"
     if isinstance(d.get("max_speed"), (int, float)):
         return 0.0, float(d["max_speed"]), f"domain.max_speed of {risk.description}"
-    if params_path:
+    if params_path is not None:
         rd = _params_risk_data(params_path)
         if isinstance(rd.get("max_speed"), (int, float)):
             return 0.0, float(rd["max_speed"]), f"risk_data.max_speed of {params_path}"
     return None
+
+
+def _num(x: float) -> str:
+    """``x`` short (``%g``) where that is exact, else with every digit (25.000001, not 25)."""
+    short = f"{x:g}"
+    return short if float(short) == x else repr(float(x))
 
 
 def check_speed(
@@ -222,7 +257,7 @@ def check_speed(
     cfg = risk.model.cfg
     notes: list[str] = []
     speed = check_speed_value(speed)
-    if params_path:
+    if params_path is not None:
         _params_risk_data(params_path)  # a given params file is read and checked, never ignored
     if speed is None:
         if cfg.use_speed:
@@ -235,7 +270,8 @@ def check_speed(
         lo, hi, src = rng
         if not lo <= speed <= hi:
             raise ModelDomainError(
-                f"speed: {speed:g} m/s is outside the model's training range [{lo:g}, {hi:g}] m/s ({src})"
+                f"speed: {_num(speed)} m/s is outside the model's training range "
+                f"[{_num(lo)}, {_num(hi)}] m/s ({src})"
             )
     if not cfg.use_speed:
         notes.append(
@@ -253,6 +289,8 @@ def decision_cut(risk: LoadedRisk, thw_threshold: float) -> float | None:
     """The risk above which the model calls a frame critical at ``thw_threshold`` (s), as chosen
     on the validation split (``shipped.decision`` of a shipped predictor's metadata); ``None``
     when none was chosen for that threshold (the verdict then compares THW with the threshold)."""
+    check_instance(risk, LoadedRisk, "risk", "a LoadedRisk (api.load_risk)")
+    thw_threshold = check_thw_threshold(thw_threshold)
     dec = (risk.meta.get("shipped") or {}).get("decision") or {}
     for t, d in dec.items():
         try:
@@ -264,12 +302,31 @@ def decision_cut(risk: LoadedRisk, thw_threshold: float) -> float | None:
 
 
 def risk_verdict(
-    risk: float, speed: float | None, thw_threshold: float = CRITICAL_THW, cut: float | None = None
+    risk: float,
+    speed: float | None,
+    thw_threshold: float = CRITICAL_THW,
+    cut: float | None = None,
+    unreliable: str = "",
 ) -> dict[str, Any]:
     """THW from the normalised risk (``risk = min(1/THW, 20)/20`` ⇒ ``THW = 1/(20 risk)``; risk <= 0:
     no vehicle ahead, THW = inf) and the verdict ``critical`` iff THW < ``thw_threshold`` (s), or,
     with ``cut`` (the decision threshold chosen on validation, :func:`decision_cut`), iff
-    ``risk > cut``. With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added."""
+    ``risk > cut``. With ``speed`` (m/s) the implied free distance ``THW * speed`` (m) is added.
+
+    ``unreliable``: why the stereo pair failed its check (:func:`traffictwin.stereo.orb.check_pair`'s
+    ``reason``; "" = it passed). An unreliable pair has no verdict: ``verdict`` is ``"unknown"``,
+    ``critical`` ``None`` and ``verdict_reason`` says why (risk and THW are what the model computed
+    from images that cannot be trusted, never a verdict)."""
+    if isinstance(risk, (bool, np.bool_)) or not isinstance(risk, (int, float, np.number)):
+        raise InputValueError(f"risk: expected a number in [0, 1], got {risk!r}")
+    speed = check_speed_value(speed)
+    thw_threshold = check_thw_threshold(thw_threshold)
+    if cut is not None and (
+        isinstance(cut, (bool, np.bool_)) or not isinstance(cut, (int, float, np.number))
+    ):
+        raise InputValueError(f"cut: expected a risk in [0, 1] or None, got {cut!r}")
+    if not isinstance(unreliable, str):
+        raise InputValueError(f"unreliable: expected a string, got {type(unreliable).__name__}")
     thw = float(risk_to_thw(np.asarray(risk), cap=math.inf))
     crit = bool(risk > cut) if cut is not None else bool(thw < thw_threshold)
     out: dict[str, Any] = {
@@ -278,7 +335,14 @@ def risk_verdict(
         "thw_threshold_s": thw_threshold,
         "critical": crit,
         "verdict": "critical" if crit else "uncritical",
+        "verdict_reason": "",
     }
+    if unreliable:
+        out.update(
+            critical=None,
+            verdict=UNKNOWN,
+            verdict_reason=f"the stereo pair failed its check ({unreliable})",
+        )
     if cut is not None:
         out["decision_cut"] = cut
     if speed is not None:
@@ -325,11 +389,12 @@ def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray
 
 
 def check_thw_threshold(thw_threshold: Any, who: str = "thw_threshold") -> float:
-    """A THW threshold (s): a finite number in (0, :data:`MAX_THW_THRESHOLD_S`]."""
-    try:
-        t = float(thw_threshold)
-    except (TypeError, ValueError):
-        raise InputValueError(f"{who}: expected seconds, got {thw_threshold!r}") from None
+    """A THW threshold (s): a finite number in (0, :data:`MAX_THW_THRESHOLD_S`] (not a bool)."""
+    if isinstance(thw_threshold, (bool, np.bool_)) or not isinstance(
+        thw_threshold, (int, float, np.integer, np.floating)
+    ):
+        raise InputValueError(f"{who}: expected a number of seconds, got {thw_threshold!r}")
+    t = float(thw_threshold)
     if not (math.isfinite(t) and 0 < t <= MAX_THW_THRESHOLD_S):
         raise InputValueError(
             f"{who}: must be a time headway in (0, {MAX_THW_THRESHOLD_S:g}] s, got {thw_threshold}"
@@ -353,22 +418,48 @@ def assess_risk(
     bounded by one batch, not by the number of frames). One dict per frame (``id``, ORB
     statistics, disparity summary, ``risk`` in [0, 1], THW verdict, per-frame timings).
 
-    ``speed`` (m/s) is checked by :func:`check_speed` (its warnings are issued as
-    :class:`ApiWarning`); ``settings`` default to :func:`stereo_settings` of the model's domain and
-    ``params_path``.
-    """
-    from traffictwin.stereo.orb import check_pair
-    from traffictwin.stereo.sgm import compute_disparity
+    A pair that fails the ORB check (``orb_verdict`` "unreliable pair", ``orb_reason``: uniform
+    images, no disparity, a vertical offset, swapped cameras) gets ``verdict`` "unknown",
+    ``critical`` None and the reason in ``verdict_reason`` (:func:`risk_verdict`), never
+    "uncritical" or "critical".
 
-    if batch_size < 1:
-        raise InputValueError(f"batch_size: must be >= 1, got {batch_size}")
+    The arguments are checked at the call (:class:`InputValueError` naming the argument); the
+    frames when their batch comes. ``speed`` (m/s) is checked by :func:`check_speed` (its
+    warnings are issued as :class:`ApiWarning`); ``settings`` default to :func:`stereo_settings`
+    of the model's domain and ``params_path``.
+    """
+    check_instance(risk, LoadedRisk, "risk", "a LoadedRisk (api.load_risk)")
+    items = checked_items(frames, Frame, "frames", "api.Frame(id, left, right)")
+    batch_size = check_count(batch_size, "batch_size")
+    check_flag(resize, "resize")
+    if settings is not None:
+        check_instance(settings, StereoSettings, "settings", "api.StereoSettings or None")
     check_thw_threshold(thw_threshold)
     for note in check_speed(risk, speed, params_path):
         warnings.warn(note, ApiWarning, stacklevel=2)
     st = settings or stereo_settings(risk.domain, params_path, risk.description)
     cut = decision_cut(risk, thw_threshold)
+    return _assess(
+        risk, items, check_speed_value(speed), st, resize, batch_size, thw_threshold, cut
+    )
+
+
+def _assess(
+    risk: LoadedRisk,
+    frames: Iterable[Frame],
+    speed: float | None,
+    st: StereoSettings,
+    resize: bool,
+    batch_size: int,
+    thw_threshold: float,
+    cut: float | None,
+) -> Iterator[dict[str, Any]]:
+    """The rows of :func:`assess_risk` (arguments checked)."""
+    from traffictwin.stereo.orb import check_pair
+    from traffictwin.stereo.sgm import compute_disparity
+
     for chunk in _chunks(frames, batch_size):
-        lefts, disps, rows = [], [], []
+        lefts, disps, rows, reasons = [], [], [], []
         for fr in chunk:
             left, right = _frame_images(fr, risk, resize)
             t0 = time.perf_counter()
@@ -379,15 +470,18 @@ def assess_risk(
             valid = disp >= 0
             lefts.append(left)
             disps.append(disp)
+            reasons.append(orb.reason if orb.outlier else "")
             rows.append(
                 {
                     "id": fr.id,
                     "orb_outlier": bool(orb.outlier),
                     "orb_verdict": "unreliable pair" if orb.outlier else "ok",
+                    "orb_reason": orb.reason,
                     "orb_n_matches": int(orb.n_matches),
                     "orb_n_reliable": int(orb.n_reliable),
                     "orb_mean_dx": float(orb.mean_dx),
                     "orb_mean_dy": float(orb.mean_dy),
+                    "orb_median_dx": float(orb.median_dx),
                     "disp_valid_fraction": float(valid.mean()),
                     "disp_median_px": float(np.median(disp[valid])) if valid.any() else math.nan,
                     "orb_ms": round((t1 - t0) * 1e3, 2),
@@ -406,6 +500,8 @@ def assess_risk(
                 f"the model ({risk.description}) predicted a non-finite risk for frame {bad[0]!r}"
             )
         pred = np.clip(pred, 0.0, 1.0)  # the metric's range, always
-        for row, r in zip(rows, pred):
-            row.update(risk_verdict(float(r), speed, thw_threshold, cut), model_ms=round(ms, 2))
+        for row, r, why in zip(rows, pred, reasons):
+            row.update(
+                risk_verdict(float(r), speed, thw_threshold, cut, why), model_ms=round(ms, 2)
+            )
             yield row

@@ -7,14 +7,16 @@ import argparse
 import csv
 import io
 import json
+import sys
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from traffictwin.api import DIVISOR
+from traffictwin.api import DIVISOR, ApiWarning
 from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputSet
 
@@ -130,6 +132,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         raise CliError(
             f"{args.map1}: grid {h}x{w} cells: rows and cols must be divisible by {DIVISOR} (network output stride)"
         )
+    api.check_relative_pose(pose1, pose2, "--pose1, --pose2")
     if c1 is not None and c2 is not None and abs(c1 - c2) > 1e-9:
         raise CliError(f"{args.map2}: cell size {c2} m differs from {args.map1}'s {c1} m")
     own = c1 if c1 is not None else c2
@@ -141,7 +144,9 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         cell = args.cell if args.cell is not None else c1 if c1 is not None else c2
         cell = api.check_fusion_domain(model, (h, w), cell, str(args.map1))
         t0 = time.perf_counter()
-        (res,) = api.fuse(model, [api.FusePair(m1, m2, pose1, pose2, cell, "pair")])
+        with warnings.catch_warnings():  # the API's warning names a pair id; this one the files
+            warnings.simplefilter("ignore", ApiWarning)
+            (res,) = api.fuse(model, [api.FusePair(m1, m2, pose1, pose2, cell, "pair")])
         ms = (time.perf_counter() - t0) * 1e3
         _write_fused(outs, npz_path, res, pose1, pose2, png_path)
         outs.commit()
@@ -155,7 +160,15 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         "fuse_ms": round(ms, 2),
         "mean_u": float(res.u.mean()),
         "occupied_cells": _occupied(res),
+        "overlap": res.overlap,
     }
+    if not res.overlap:
+        print(
+            f"traffictwin fuse: warning: {args.map2} does not overlap {args.map1}'s grid at "
+            f"--pose1/--pose2 (map 2 at x {res.rel_pose[0]:.6g} m, y {res.rel_pose[1]:.6g} m in "
+            "map 1's frame): the output is map 1 alone",
+            file=sys.stderr,
+        )
     print(json.dumps(json_clean(summary), indent=2))
     return 0
 
@@ -260,7 +273,10 @@ def _csv_pair(
     cell = float(r["cell"]) if r.get("cell") not in (None, "") else None
     if pose is not None and not np.all(np.isfinite(pose)):
         raise CliError(f"--pairs: {src} line {k}: pose values must be finite")
-    positive_cell(cell)
+    if cell is not None and not (cell > 0 and np.isfinite(cell)):
+        raise CliError(
+            f"--pairs: {src} line {k}: column cell = {r['cell']!r} must be a positive number of metres"
+        )
     return {
         "id": (r.get("id") or f"{k - 1:05d}").strip(),
         "map1": src.parent / r["map1"],

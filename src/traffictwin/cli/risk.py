@@ -21,8 +21,16 @@ from traffictwin.risk.metric import CRITICAL_THW
 
 from .common import CliError, add_arguments, arg, csv_value, model_options, output_options
 
+#: exit status when some pair failed the stereo pair check (its verdict is "unknown")
+EXIT_UNKNOWN = 3
+
 HELP = "stereo risk: ORB check, SGM disparity, predicted risk and THW verdict"
-DESCRIPTION = "LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV, streamed in batches)."
+DESCRIPTION = (
+    "LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV, streamed in "
+    "batches). A pair that fails the ORB check gets verdict 'unknown' with the reason. Exit "
+    f"status: 0 every pair has a verdict, {EXIT_UNKNOWN} some pair's verdict is unknown (the "
+    "output is written), 1 an error, 130 interrupted."
+)
 ARGUMENTS = [
     arg("left", help="left image, or a folder of pairs"),
     arg("right", nargs="?", default=None, help="right image (omit for a folder)"),
@@ -115,7 +123,15 @@ def cmd_risk(args: argparse.Namespace) -> int:
         )
         with outs:
             dest = _RiskOutput(outs, out, paths, rmodel, st)
-            (dest.folder if is_folder else dest.pair)(rows)
+            unknown = (dest.folder if is_folder else dest.pair)(rows)
+    if unknown:
+        first, n = unknown[0], len(unknown)
+        more = f" (and {n - 1} more pair(s))" if n > 1 else ""
+        print(
+            f"traffictwin risk: warning: no verdict for {first[0]}{more}: {first[1]}",
+            file=sys.stderr,
+        )
+        return EXIT_UNKNOWN
     return 0
 
 
@@ -135,11 +151,13 @@ class _RiskOutput:
         lp, rp = self.paths[row["id"]]
         return {"id": row["id"], "left": lp, "right": rp, **row}
 
-    def pair(self, rows: Iterator[dict[str, Any]]) -> None:
-        """One pair: its JSON on stdout, and into ``out`` if given."""
+    def pair(self, rows: Iterator[dict[str, Any]]) -> list[tuple[str, str]]:
+        """One pair: its JSON on stdout, and into ``out`` if given; ``[(left image, why)]`` if
+        its verdict is unknown, else ``[]``."""
+        row = next(rows)
         res = json_clean(
             {
-                **self.labelled(next(rows)),
+                **self.labelled(row),
                 "model": self.rmodel.description,
                 "predictor": self.rmodel.predictor,
                 "stereo_settings": self.st.source,
@@ -149,16 +167,20 @@ class _RiskOutput:
             self.outs.write_text(self.out, json.dumps(res, indent=2, sort_keys=True) + "\n")
             self.outs.commit()
         print(json.dumps(res, indent=2))
+        return _unknown(self.labelled(row))
 
-    def folder(self, rows: Iterator[dict[str, Any]]) -> None:
-        """A folder of pairs: one CSV row per pair as each batch comes, into ``out`` or stdout."""
+    def folder(self, rows: Iterator[dict[str, Any]]) -> list[tuple[str, str]]:
+        """A folder of pairs: one CSV row per pair as each batch comes, into ``out`` or stdout;
+        ``[(left image, why)]`` of the pairs whose verdict is unknown."""
         out = self.out
         fh = self.outs.open(out, "w", newline="") if out else sys.stdout
+        unknown: list[tuple[str, str]] = []
         try:
             wr = None
             n = 0
             for row in rows:
                 row = self.labelled(row)
+                unknown += _unknown(row)
                 if wr is None:
                     wr = csv.DictWriter(fh, fieldnames=list(row), lineterminator="\n")
                     wr.writeheader()
@@ -171,5 +193,14 @@ class _RiskOutput:
             self.outs.commit()
             print(
                 f"{n} pair(s) -> {out} (model {self.rmodel.description}, "
-                f"predictor {self.rmodel.predictor}; stereo settings: {self.st.source})"
+                f"predictor {self.rmodel.predictor}; stereo settings: {self.st.source}; "
+                f"{len(unknown)} without a verdict)"
             )
+        return unknown
+
+
+def _unknown(row: dict[str, Any]) -> list[tuple[str, str]]:
+    """``[(left image, why)]`` when ``row``'s verdict is unknown (the pair failed its check)."""
+    from traffictwin.api.risk import UNKNOWN
+
+    return [(row["left"], row["verdict_reason"])] if row["verdict"] == UNKNOWN else []

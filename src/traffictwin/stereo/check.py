@@ -4,7 +4,8 @@ Per pair three flags (each True = "this pair looks broken"):
 
 - ``flag_orb_paper``: the paper's literal rule (Sec. 3.3) over *all* cross-checked ORB matches:
   mean |dx| < ``min_dx`` or mean |dy| > ``max_dy`` (px); no matches -> flagged.
-- ``flag_orb``: the same rule over the reliable matches only (:mod:`traffictwin.stereo.orb`).
+- ``flag_orb``: the same rule over the reliable matches only, plus swapped cameras (median
+  signed disparity <= -``min_dx``; :mod:`traffictwin.stereo.orb`).
 - ``flag_valid_share``: the SGM map of the pair has a valid share (:func:`~traffictwin.stereo.sgm.valid_share`)
   below ``min_valid_share``. A delayed right image breaks the left-right check wherever the
   scene moved between the two exposures, a vertical shift breaks matching everywhere; a clean

@@ -4,7 +4,8 @@ ORB features in both images, brute-force Hamming matching with cross-check, then
 paper's rule on the mean image-space offsets of the matches: a rectified pair should show
 only horizontal offsets (disparities), so
 
-    outlier  <=>  mean |dx| < ``min_dx`` (1 px)  or  mean |dy| > ``max_dy`` (5 px).
+    outlier  <=>  mean |dx| < ``min_dx`` (1 px)  or  mean |dy| > ``max_dy`` (5 px)
+                  (or the cameras are swapped: median signed dx <= -``min_dx``, below).
 
 The rule is applied over *reliable* matches only (docs/design.md explains why: with every
 cross-checked match the false matches alone push mean |dy| of a perfect pair far above
@@ -12,7 +13,12 @@ cross-checked match the false matches alone push mean |dy| of a perfect pair far
 closest, summarised by the mean (paper) or the median (``statistic``). No geometric
 (epipolar) filtering is done: that would hide exactly the faults the check looks for.
 Pairs with fewer than ``min_reliable`` reliable matches cannot be verified and are
-flagged as outliers. The means over *all* cross-checked matches are kept too (``all_mean_dx``,
+flagged as outliers (uniform or textureless images yield none). The rule on |dx| cannot tell a
+pair whose cameras are swapped from a good one, so the sign is checked too: in a rectified
+left/right pair a point's x in the left image is >= its x in the right one, so the median signed
+dx = x_L - x_R of the reliable matches is >= 0; a median at or below ``-min_dx`` (px: a disparity
+of at least ``min_dx`` in the wrong direction) flags the pair as ``swapped``. The means over
+*all* cross-checked matches are kept too (``all_mean_dx``,
 ``all_mean_dy``): the paper's literal rule, compared in :mod:`traffictwin.stereo.check`.
 """
 
@@ -87,8 +93,10 @@ class OrbParams:
 class OrbResult:
     """n_matches: cross-checked matches; n_reliable: those used; mean_dx, mean_dy: mean (or
     median) |x_L - x_R| and |y_L - y_R| over reliable matches (px, NaN if none); outlier flag
-    (the robust rule); all_mean_dx, all_mean_dy: means over all cross-checked matches (px, NaN if
-    none: the paper's literal statistics)."""
+    (the robust rule, swapped cameras included); all_mean_dx, all_mean_dy: means over all
+    cross-checked matches (px, NaN if none: the paper's literal statistics); median_dx: median
+    signed x_L - x_R over reliable matches (px, NaN if none); swapped: that median is at or
+    below ``-min_dx``; reason: why the pair is an outlier, in one phrase ("" when it is not)."""
 
     n_matches: int
     n_reliable: int
@@ -97,6 +105,9 @@ class OrbResult:
     outlier: bool
     all_mean_dx: float = float("nan")
     all_mean_dy: float = float("nan")
+    median_dx: float = float("nan")
+    swapped: bool = False
+    reason: str = ""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -187,11 +198,23 @@ def check_pair(
     keep = keep[np.argsort(ham[keep], kind="stable")][:best_n]
     n_rel = len(keep)
     if n_rel == 0:
-        return OrbResult(len(dx), 0, nan, nan, True, adx, ady)
+        why = f"no reliable ORB match ({len(dx)} cross-checked): uniform or textureless images"
+        return OrbResult(len(dx), 0, nan, nan, True, adx, ady, reason=why)
     f = np.mean if statistic == "mean" else np.median
     mdx, mdy = float(f(np.abs(dx[keep]))), float(f(np.abs(dy[keep])))
-    outlier = bool(n_rel < min_reliable or mdx < min_dx or mdy > max_dy)
-    return OrbResult(len(dx), n_rel, mdx, mdy, outlier, adx, ady)
+    sdx = float(np.median(dx[keep]))
+    swapped = bool(n_rel >= min_reliable and sdx < 0 and sdx <= -min_dx)
+    reasons = (
+        (
+            n_rel < min_reliable,
+            f"{n_rel} reliable ORB matches < {min_reliable}: too little texture",
+        ),
+        (mdx < min_dx, f"{statistic} |dx| {mdx:.2f} px < {min_dx:g} px: no disparity"),
+        (mdy > max_dy, f"{statistic} |dy| {mdy:.2f} px > {max_dy:g} px: not rectified"),
+        (swapped, f"median dx {sdx:.2f} px <= -{min_dx:g} px: left and right images swapped"),
+    )
+    why = "; ".join(text for hit, text in reasons if hit)
+    return OrbResult(len(dx), n_rel, mdx, mdy, bool(why), adx, ady, sdx, swapped, why)
 
 
 def check_pairs(left: np.ndarray, right: np.ndarray, params: OrbParams) -> tuple[list[dict], float]:
@@ -230,7 +253,8 @@ def orb_metrics(
     columns to report on (``"none"`` = fault-free is never a fault group).
 
     ``sweep/*``: sensitivity of the robust ORB rule's |dy| threshold on the same per-pair
-    statistics (no re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px).
+    statistics (no re-matching), with the configured ``min_reliable`` (matches) and ``min_dx`` (px)
+    and the swap rule (``swapped``, where ``df`` has it).
     """
     m: dict = {"all/frames": int(len(df)), "all/dropped_share": float(df.outlier.mean())}
     faulty = df.fault != NO_FAULT
@@ -260,6 +284,7 @@ def orb_metrics(
             | (df.mean_dx < min_dx)
             | (df.mean_dy > thr)
             | df.mean_dy.isna()
+            | (df["swapped"].astype(bool) if "swapped" in df else False)  # the swap rule
         )
         m[f"sweep/max_dy_{thr:g}_false_alarm_rate"] = share(flag, ~faulty)
         for f in faults:
