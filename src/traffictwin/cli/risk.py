@@ -93,7 +93,8 @@ def cmd_risk(args: argparse.Namespace) -> int:
     inputs = [p for f in frames for p in (f.left, f.right)] + (
         [Path(args.params)] if args.params else []
     )
-    outs = OutputSet([out] if out else [], inputs=inputs, force=args.force)
+    kind = "risk-csv" if is_folder else "risk-json"
+    outs = OutputSet([out] if out else [], kinds=kind, inputs=inputs, force=args.force)
     for f in frames:  # every image's header before the model (and torch) loads: a huge or
         for p in (f.left, f.right):  # broken image is refused in a fraction of a second
             api.check_image_file(p)
