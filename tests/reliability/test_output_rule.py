@@ -96,7 +96,7 @@ def repo(tmp_path) -> Path:
         "    do:\n"
         "      cmd: y\n"
         '      outs: ["models/${item}/table.csv"]\n'
-        "      metrics: [\"reports/m_${item}.csv\"]\n"
+        '      metrics: ["reports/m_${item}.csv"]\n'
     )
     (r / "raw.dvc").write_text("outs:\n- path: raw\n")
     for rel in (
@@ -337,3 +337,16 @@ def test_pair_list_with_a_byte_order_mark(tmp_path, maps, fusion_dir, capsys):
     )
     assert rc == 0, capsys.readouterr().err
     assert (tmp_path / "o" / "p.npz").is_file() and (tmp_path / "o" / "summary.csv").is_file()
+
+
+def test_an_empty_output_name_is_one_line_for_every_command(tmp_path, fusion_dir, risk_dir, capsys):
+    """``-o ""`` / ``--csv ""``: one line naming the option, never stdout or the current folder."""
+    lp, rp = write_pair(tmp_path / "in", "f", *textured_pair())
+    for argv in (
+        ["export", "fusion", "--model", str(fusion_dir), "-o", ""],
+        ["runs", "compare", "--experiment", "x", "--csv", ""],
+        ["risk", str(lp), str(rp), "--model", str(risk_dir), "-o", ""],
+    ):
+        assert cli.main(argv) == 1
+        _one_line(capsys.readouterr().err, "the output path is empty")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]

@@ -89,6 +89,8 @@ def cmd_risk(args: argparse.Namespace) -> int:
     if args.batch_size < 1:
         raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
     frames, is_folder = _risk_frames(args)
+    if args.output == "":
+        raise CliError("-o: the output path is empty; expected a file name (or no -o: stdout)")
     out = Path(args.output) if args.output else None
     inputs = [p for f in frames for p in (f.left, f.right)] + (
         [Path(args.params)] if args.params else []

@@ -41,14 +41,14 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
     from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
 
     outs = OutputSet(
-        [args.csv] if args.csv else [], kinds="runs-csv", force=args.force, option="--csv"
+        [] if args.csv is None else [args.csv], kinds="runs-csv", force=args.force, option="--csv"
     )
     uri = api.resolve_tracking_uri(args.tracking_uri)
     try:
         df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
     except RunsError as exc:
         raise CliError(str(exc)) from None
-    if args.csv:
+    if args.csv is not None:
         with outs:
             outs.write_text(args.csv, df.to_csv(index=False))
             outs.commit()
