@@ -140,3 +140,22 @@ def test_a_writers_temp_file_never_enters_a_dvc_hash(tmp_path):
         changed = dvc("status")
     assert "up to date" in status, status
     assert "changed deps" in changed, changed
+
+
+def test_registration_pool_workers_leave_ctrl_c_to_the_parent():
+    """``evaluate_fusion``'s registration pool (a fork server's workers): the worker set-up
+    ignores SIGINT, so Ctrl-C prints no traceback per worker (the parent ends the pool)."""
+    import cv2
+
+    from traffictwin.fusion.methods import _POOL_STATE, _pool_init
+    from traffictwin.fusion.registration import RegistrationParams
+    from traffictwin.grid import GridSpec
+
+    before, threads = signal.getsignal(signal.SIGINT), cv2.getNumThreads()
+    try:
+        _pool_init(GridSpec(rows=8, cols=8, cell=0.5), RegistrationParams())
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+        cv2.setNumThreads(threads)
+        _POOL_STATE.clear()
