@@ -350,3 +350,17 @@ def test_an_empty_output_name_is_one_line_for_every_command(tmp_path, fusion_dir
         assert cli.main(argv) == 1
         _one_line(capsys.readouterr().err, "the output path is empty")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
+def test_a_link_to_the_mlflow_store_is_still_the_store(tmp_path):
+    """``protected_reason`` (shared with the registry commands' log checks) follows a link."""
+    import sqlite3
+
+    from traffictwin.io.outputs import protected_reason
+
+    con = sqlite3.connect(tmp_path / "mlflow.db")
+    con.execute("create table t (a)")
+    con.commit()
+    con.close()
+    (tmp_path / "log.jsonl").symlink_to(tmp_path / "mlflow.db")
+    assert "SQLite database" in protected_reason(tmp_path / "log.jsonl")

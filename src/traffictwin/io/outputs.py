@@ -114,7 +114,10 @@ def check_regular_file(path: str | os.PathLike, what: str = "") -> Path:
 
 
 def _head(p: Path, n: int = 16) -> bytes:
-    if special_file_reason(p) is not None:  # never open a FIFO or device to sniff it
+    try:
+        if not stat.S_ISREG(os.stat(p).st_mode):  # never open a FIFO or device to sniff it
+            return b""
+    except OSError:
         return b""
     try:
         with open(p, "rb") as fh:
