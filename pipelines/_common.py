@@ -183,7 +183,7 @@ def run_stage(main: Callable[[], object], name: str) -> None:
     """Run a stage's ``main``; bad input ends with one line ``<name>: error: <class>: <message>``
     (:func:`error_line`) and exit 2; a SIGTERM/SIGINT during a tracked MLflow run (which then
     ends KILLED, see :func:`traffictwin.mlops.tracking.start_run`) with one line and exit
-    128 + the signal number.
+    128 + the signal number; Ctrl-C elsewhere (``KeyboardInterrupt``) with one line and 130.
 
     The failure types caught are :func:`stage_errors`; library errors name the file, field or
     parameter themselves and a traceback would only bury that line. Set
@@ -201,6 +201,11 @@ def run_stage(main: Callable[[], object], name: str) -> None:
             raise
         print(f"{name}: interrupted: {exc}", file=sys.stderr)
         sys.exit(128 + exc.signum)
+    except KeyboardInterrupt:
+        if os.environ.get("TRAFFICTWIN_TRACEBACK"):
+            raise
+        print(f"{name}: interrupted (Ctrl-C)", file=sys.stderr)
+        sys.exit(130)
     except stage_errors() as exc:
         if os.environ.get("TRAFFICTWIN_TRACEBACK"):
             raise
@@ -213,6 +218,13 @@ WORKER_STATE: dict[str, Any] = {}
 
 
 def _set_worker_state(state: dict[str, Any]) -> None:
+    """A pool worker's set-up: ``state`` into :data:`WORKER_STATE`; Ctrl-C (SIGINT, sent to the
+    whole process group) is ignored, so the parent alone handles it and terminates the pool
+    (no traceback per worker)."""
+    import signal
+
+    if mp.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     WORKER_STATE.clear()
     WORKER_STATE.update(state)
 

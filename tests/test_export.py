@@ -62,4 +62,6 @@ def test_export_refuses_an_existing_file(tmp_path, capsys):
     out = tmp_path / "risk.pt"
     out.write_bytes(b"old")
     assert cli.main(["export", "risk", "--model", str(d), "-o", str(out)]) == 1
-    assert "--force" in capsys.readouterr().err and out.read_bytes() == b"old"
+    err = capsys.readouterr().err  # no previous export: --force would not replace it either
+    assert "not a previous .pt output" in err and "--force" not in err
+    assert out.read_bytes() == b"old"

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from traffictwin.io.atomic import write_bytes_atomic
+from traffictwin.io.outputs import check_regular_file
 
 MODEL_FORMAT = "traffictwin-model/1"
 
@@ -77,6 +78,7 @@ def read_model_checkpoint(
     accepted as any problem).
     """
     path = Path(path)
+    _regular(path, "a torch checkpoint", error)
     try:
         ck = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # noqa: BLE001 — any unpickling failure means the file is unusable
@@ -90,6 +92,14 @@ def read_model_checkpoint(
     if problem is not None and info.get("problem", problem) != problem:
         raise error(f"{path}: a {info.get('problem')} model checkpoint, expected a {problem} model")
     return ck
+
+
+def _regular(path: Path, what: str, error: type[Exception]) -> None:
+    """``path`` is a regular file (stat before open: a FIFO never blocks), else ``error``."""
+    try:
+        check_regular_file(path, what)
+    except OSError as exc:
+        raise error(f"{path}: {exc.strerror or exc}") from None
 
 
 def net_state_dict(ckpt: Mapping[str, Any], prefix: str = "net.") -> dict[str, torch.Tensor]:
@@ -136,6 +146,7 @@ def read_model_meta(
     ``error`` that names it (the meta is half of the model's seal: a model without it is refused)."""
     meta_path = Path(meta_path)
     try:
+        check_regular_file(meta_path, "the model's JSON metadata")  # a FIFO would block
         text = meta_path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise error(
@@ -186,6 +197,7 @@ def check_model_pair(
         )
     from traffictwin.io.shards import sha256_file
 
+    _regular(ckpt_path, "a torch checkpoint", error)
     want, got = str(meta[CKPT_SHA_KEY]), sha256_file(ckpt_path)
     if want != got:
         raise error(

@@ -93,14 +93,25 @@ def test_existing_output_needs_force(tmp_path, fusion_dir, capsys):
     p1 = save_map(tmp_path / "a.npz", *masses(1), cell=np.float64(CELL))
     p2 = save_map(tmp_path / "b.npz", *masses(2))
     (tmp_path / "out.png").write_bytes(b"keep me")
+    # a file that is no previous output: refused, and --force is not offered (it would not help)
     assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 1
-    _one_error_line(capsys.readouterr().err, "out.png exists", "--force")
+    line = _one_error_line(capsys.readouterr().err, "out.png exists and is not a previous .png")
+    assert "--force" not in line
     assert (tmp_path / "out.png").read_bytes() == b"keep me" and not (tmp_path / "out.npz").exists()
-    # --force replaces only a previous output of this kind (issue 35): not a text file named .png
     assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 1
     _one_error_line(capsys.readouterr().err, "out.png exists and is not a previous .png output")
     assert (tmp_path / "out.png").read_bytes() == b"keep me"
-    cv2.imwrite(str(tmp_path / "out.png"), np.zeros((4, 4, 3), np.uint8))  # an earlier preview
+    # a PNG that no traffictwin command wrote (no preview marker) is not replaced either
+    cv2.imwrite(str(tmp_path / "out.png"), np.zeros((4, 4, 3), np.uint8))
+    foreign = (tmp_path / "out.png").read_bytes()
+    assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 1
+    _one_error_line(capsys.readouterr().err, "not a previous .png output", "its content is png")
+    assert (tmp_path / "out.png").read_bytes() == foreign
+    # a previous output of the command: "pass --force", and --force replaces it
+    (tmp_path / "out.png").unlink()
+    assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 0
+    assert cli.main(fuse_args(p1, p2, fusion_dir, tmp_path / "out")) == 1
+    _one_error_line(capsys.readouterr().err, "out.npz exists (a fused grid", "pass --force")
     assert cli.main([*fuse_args(p1, p2, fusion_dir, tmp_path / "out"), "--force"]) == 0
     assert cv2.imread(str(tmp_path / "out.png")) is not None and (tmp_path / "out.npz").exists()
 

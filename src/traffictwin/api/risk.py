@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.io.outputs import check_regular_file
 from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
 
 from .errors import ApiError, ApiWarning, InputFileError, InputValueError, ModelDomainError
@@ -184,8 +185,12 @@ def _params_risk_data(params_path: str | os.PathLike) -> dict[str, Any]:
     import yaml
 
     path = Path(check_path(params_path, "params_path"))
-    if not path.is_file():
-        raise InputFileError(f"params_path: {path} not found (expected a params.yaml)")
+    try:
+        check_regular_file(path, "a params.yaml")  # stat before open: a FIFO never blocks
+    except FileNotFoundError:
+        raise InputFileError(f"params_path: {path} not found (expected a params.yaml)") from None
+    except OSError as exc:
+        raise InputFileError(f"params_path: {path} {exc.strerror or exc}") from None
     try:
         cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as exc:

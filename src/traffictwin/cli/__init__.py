@@ -53,10 +53,13 @@ Input formats
 Outputs
 -------
 ``risk`` clamps the risk to [0, 1]; THW and gap are ``null`` in JSON and empty in CSV when
-nothing is ahead (never ``inf``). Every command: an output that is an input, an existing output
-without ``--force``, or a directory named as output file is refused; missing parent folders are
-created; all outputs are written to temp files and renamed at the end, so nothing is
-half-written.
+nothing is ahead (never ``inf``). Every command (:mod:`traffictwin.io.outputs`): an output
+that is an input, a path the project keeps (model folder, MLflow store, ``src/``, ``conf/``,
+``tests/``, a DVC output or DVC file), a link, device or FIFO, an existing output without
+``--force``, or a directory named as output file is refused; ``--force`` replaces only a
+previous output of the command's own kind, recognised by content; missing parent folders are
+created; all outputs are written to temp files and moved onto their names at the end (new names
+exclusively), so nothing is half-written and of two writers of one new output one wins.
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
 the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
@@ -67,7 +70,8 @@ map's frame), ``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_gi
 Promotion is not a command here: it needs the project's data, model folders and gate settings
 (params.yaml), so it is a workflow of the repository (``python -m pipelines.promote``).
 
-Errors exit with status 1 and one line naming the file/argument and the problem.
+Errors exit with status 1 and one line naming the file/argument and the problem; Ctrl-C exits
+with one line and status 130.
 
 Layout: one module per subcommand, each holding its option table, its parser and its handler
 (``fuse``, ``twin``, ``risk``, ``export``, ``registry``: rollback and status, ``runs``);

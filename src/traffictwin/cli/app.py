@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Sequence
 
 from traffictwin import __version__
@@ -43,6 +44,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``traffictwin``; its exit status (Ctrl-C anywhere: one line and 130, no traceback)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("traffictwin: interrupted (Ctrl-C)", file=sys.stderr)
+        return 130
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     for k, v in HTTP_ENV.items():  # a dead registry: one line in seconds, not minutes of retries

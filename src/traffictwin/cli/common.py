@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.api import ApiError, ApiWarning
-from traffictwin.io.outputs import OutputError
+from traffictwin.io.outputs import OutputError, mark_png
 
 CliError = ApiError  # one user-facing error type for the CLI and the API
 
@@ -81,20 +81,30 @@ def positive_cell(cell: float | None) -> None:
         raise CliError(f"--cell: must be a positive number of metres, got {cell}")
 
 
-def npz_png(output: str) -> tuple[Path, Path]:
-    """``OUT.npz`` and ``OUT.png`` of an output base name (with or without ``.npz``)."""
+def npz_png(output: str, option: str = "-o") -> tuple[Path, Path]:
+    """``OUT.npz`` and ``OUT.png`` of an output base name (with or without ``.npz``); an empty
+    name, or one that names a folder (``dir/`` or an existing folder), is a :data:`CliError`."""
+    if not output:
+        raise CliError(f"{option}: the output name is empty; expected a base name such as out")
+    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+        raise CliError(
+            f"{option}: {output} is a folder; expected a base name for OUT.npz and OUT.png "
+            f"(e.g. {Path(output) / 'out'})"
+        )
     out = Path(output)
     base = out.with_suffix("") if out.suffix == ".npz" else out
     return base.with_name(base.name + ".npz"), base.with_name(base.name + ".png")
 
 
 def png_bytes(img: np.ndarray) -> bytes:
+    """``img`` as a PNG preview, marked as a ``traffictwin`` preview (:func:`mark_png`: so that
+    ``--force`` replaces it, and no other PNG)."""
     import cv2
 
     ok, png = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # fast; PNG is lossless
     if not ok:
         raise CliError("could not encode the PNG preview")
-    return png.tobytes()
+    return mark_png(png.tobytes())
 
 
 def npz_bytes(**arrays: Any) -> bytes:
@@ -151,8 +161,9 @@ def output_options(help_text: str, required: bool = True) -> list[Row]:
         arg(
             "--force",
             action="store_true",
-            help="overwrite a previous output of this kind (never an input, a model folder, the "
-            "MLflow store or a DVC file)",
+            help="replace a previous output of this command's kind (never an input, a model "
+            "folder, the MLflow store, a DVC file or output, src/ conf/ tests/ of a repository, "
+            "a link, device or FIFO)",
         ),
     ]
 
@@ -162,7 +173,8 @@ def output_options(help_text: str, required: bool = True) -> list[Row]:
 
 def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
     """``func(args)``'s exit status; API warnings as one line each on stderr, and every error the
-    user can cause as one line ``traffictwin CMD: error: ...`` and status 1 (130 on Ctrl-C)."""
+    user can cause as one line ``traffictwin CMD: error: ...`` and status 1; Ctrl-C is one line
+    ``traffictwin CMD: interrupted ...`` and status 130 (unfinished outputs are discarded)."""
     prog = f"traffictwin {args.command}"
     show = warnings.showwarning
 
@@ -194,6 +206,7 @@ def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namesp
         )
         return 1
     except KeyboardInterrupt:
+        print(f"{prog}: interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     finally:
         warnings.showwarning = show

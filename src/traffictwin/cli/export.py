@@ -34,7 +34,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from traffictwin import api
 
     out = Path(args.output)
-    with OutputSet([out], force=args.force) as outs:
+    with OutputSet([args.output], kinds="export", force=args.force) as outs:  # "" is refused
         from traffictwin import export
 
         if args.problem == "fusion":

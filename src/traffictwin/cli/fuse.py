@@ -231,7 +231,7 @@ def _pairs_in_folder(src: Path) -> list[dict[str, Any]]:
 
 def _pairs_in_csv(src: Path) -> list[dict[str, Any]]:
     try:
-        with open(src, newline="") as fh:
+        with open(src, newline="", encoding="utf-8-sig") as fh:  # a byte-order mark is no column
             table = list(csv.DictReader(fh))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise CliError(f"--pairs: {src}: not a readable CSV ({exc})") from None
@@ -300,6 +300,8 @@ def _fuse_many(args: argparse.Namespace) -> int:
             "--pairs: poses come from the list (x1..yaw2) or the maps' 'pose', not --pose1/--pose2"
         )
     rows = read_pair_list(args.pairs)
+    if not args.output:
+        raise CliError("-o: the output folder name is empty; expected a folder")
     out = Path(args.output)
     if out.exists() and not out.is_dir():
         raise CliError(f"-o: {out} is a file; with --pairs the output is a folder")
@@ -310,7 +312,8 @@ def _fuse_many(args: argparse.Namespace) -> int:
     ]
     summary_path = out / "summary.csv"
     inputs = [Path(args.pairs)] + [r[k] for r in rows for k in ("map1", "map2")]
-    with OutputSet([*names, summary_path], inputs=inputs, force=args.force) as outs:
+    kinds = [None] * len(names) + ["fuse-summary"]  # by suffix; the summary table
+    with OutputSet([*names, summary_path], kinds=kinds, inputs=inputs, force=args.force) as outs:
         model = api.load_fusion(args.model, tracking_uri=args.tracking_uri)
         t0 = time.perf_counter()
         table = []

@@ -97,11 +97,14 @@ def cmd_risk(args: argparse.Namespace) -> int:
     if args.batch_size < 1:
         raise CliError(f"--batch-size: must be >= 1, got {args.batch_size}")
     frames, is_folder = _risk_frames(args)
+    if args.output == "":
+        raise CliError("-o: the output path is empty; expected a file name (or no -o: stdout)")
     out = Path(args.output) if args.output else None
     inputs = [p for f in frames for p in (f.left, f.right)] + (
         [Path(args.params)] if args.params else []
     )
-    outs = OutputSet([out] if out else [], inputs=inputs, force=args.force)
+    kind = "risk-csv" if is_folder else "risk-json"
+    outs = OutputSet([out] if out else [], kinds=kind, inputs=inputs, force=args.force)
     for f in frames:  # every image's header before the model (and torch) loads: a huge or
         for p in (f.left, f.right):  # broken image is refused in a fraction of a second
             api.check_image_file(p)

@@ -23,7 +23,7 @@ COMPARE_ARGUMENTS = [
     arg(
         "--force",
         action="store_true",
-        help="overwrite a previous --csv table (never the MLflow store or a DVC file)",
+        help="replace a previous --csv table of this command (never any other file)",
     ),
 ]
 
@@ -40,13 +40,15 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
     from traffictwin import api
     from traffictwin.mlops.runs import RunsError, compare_runs, format_runs
 
-    outs = OutputSet([args.csv] if args.csv else [], force=args.force, option="--csv")
+    outs = OutputSet(
+        [] if args.csv is None else [args.csv], kinds="runs-csv", force=args.force, option="--csv"
+    )
     uri = api.resolve_tracking_uri(args.tracking_uri)
     try:
         df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
     except RunsError as exc:
         raise CliError(str(exc)) from None
-    if args.csv:
+    if args.csv is not None:
         with outs:
             outs.write_text(args.csv, df.to_csv(index=False))
             outs.commit()

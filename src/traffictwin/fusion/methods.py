@@ -306,7 +306,11 @@ _POOL_STATE: dict[str, Any] = {}  # grid and settings of :func:`register_many`'s
 
 
 def _pool_init(grid: GridSpec, params: RegistrationParams) -> None:
+    import signal
+
     import cv2
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends the pool
 
     cv2.setNumThreads(1)  # one process per core: OpenCV's own threads would compete
     _POOL_STATE.update(grid=grid, params=params)
