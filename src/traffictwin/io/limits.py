@@ -54,6 +54,10 @@ GRID_ITEM_BYTES = 16
 MAX_ARRAY_BYTES = GRID_ITEM_BYTES * MAX_GRID_CELLS
 #: dtype kinds an array of a ``.npz`` may hold: bool, integers, floats, complex numbers
 NUMERIC_KINDS = "biufc"
+#: weights of one network a model folder or config may describe (the paper's ResNet-50
+#: DeepLabV3+ has ~40 M, the DAVE-2 net at 320 x 160 px ~27 M): architecture values are read from
+#: model meta and params, and a typo (``base_width: 4096``) would otherwise reach the allocator
+MAX_MODEL_PARAMETERS = 250_000_000
 ENV_MAX_GRID_CELLS = "TRAFFICTWIN_MAX_GRID_CELLS"
 ENV_MAX_ARRAY_BYTES = "TRAFFICTWIN_MAX_ARRAY_BYTES"
 ENV_MAX_IMAGE_PIXELS = "TRAFFICTWIN_MAX_IMAGE_PIXELS"
@@ -148,6 +152,23 @@ def check_grid_cells(shape: Iterable[int], what: str) -> None:
         raise InputTooLargeError(
             f"{what} has shape {'x'.join(map(str, shape))} = {cells:,} cells, more than the limit "
             f"{_limit_text(limit, MAX_GRID_CELLS, ENV_MAX_GRID_CELLS)}"
+        )
+
+
+def check_at_most(owner: str, name: str, value: float, bound: float) -> None:
+    """``ValueError`` naming ``owner.name``, its value and the bound when ``value > bound`` (an
+    architecture value read from model meta or params)."""
+    if value > bound:
+        raise ValueError(f"{owner}.{name} is {value}, more than its bound {bound}")
+
+
+def check_parameter_budget(owner: str, parameters: int, fields: str) -> None:
+    """``ValueError`` when an architecture's estimated weight count exceeds
+    :data:`MAX_MODEL_PARAMETERS`, naming the fields that set it."""
+    if parameters > MAX_MODEL_PARAMETERS:
+        raise ValueError(
+            f"{owner}: {fields} make ~{parameters:,} weights, more than the bound "
+            f"{MAX_MODEL_PARAMETERS:,}"
         )
 
 
