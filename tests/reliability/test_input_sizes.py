@@ -274,3 +274,74 @@ def test_cli_refuses_huge_inputs_with_one_line_and_little_memory(big, tmp_path):
     # and torch, load)
     assert fuse_big["rss_mb"] < 200 and risk_big["rss_mb"] < 200, (fuse_big, risk_big)
     assert not (tmp_path / "o.npz").exists()
+
+
+# ------------------------------------------------------------------ byte sizes, not element counts
+
+
+def write_crafted_npz(path: Path, descr: str, shape: tuple[int, ...], data: int = 64) -> Path:
+    """An ``.npz`` whose ``m_free`` / ``m_occ`` headers announce ``descr`` x ``shape`` but whose
+    members hold only ``data`` zero bytes after the header (what a crafted file may declare)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for key in ("m_free", "m_occ"):
+            with zf.open(f"{key}.npy", "w") as fh:
+                header = {"descr": descr, "fortran_order": False, "shape": shape}
+                np.lib.format.write_array_header_1_0(fh, header)
+                fh.write(bytes(data))
+    return path
+
+
+def test_load_masses_refuses_a_wide_dtype_before_allocating(tmp_path, no_decoding):
+    # three elements pass the cell limit; each announces 400 MB (before: 1.2 GB allocated and
+    # 7.7 s before the dtype was refused)
+    path = write_crafted_npz(tmp_path / "wide.npz", "|S400000000", (3,))
+    peak, err = _peak_traced(lambda: api.load_masses(path))
+    assert isinstance(err, api.ApiError), err
+    _one_line(err, str(path), "'m_free'", "'|S400000000'", "not numbers")
+    assert peak < 5 * MB, peak
+
+
+@pytest.mark.parametrize(
+    ("descr", "shape", "needle"),
+    [
+        ("<f4", (-3, 4), "negative shape"),
+        ("<f4", (2**40, 2**40), "announces"),  # 2**80 elements: no int64 overflow
+        ("<f4", (100, 100), "the archive member holds 64"),  # header and data disagree
+        ("|V400000000", (3,), "not numbers"),
+        ("<U100000000", (3,), "not numbers"),
+    ],
+)
+def test_npz_headers_refuse_what_the_header_cannot_honour(tmp_path, descr, shape, needle):
+    path = write_crafted_npz(tmp_path / "c.npz", descr, shape)
+    peak, err = _peak_traced(lambda: limits.npz_headers(path))
+    assert isinstance(err, limits.InputError), err
+    _one_line(err, str(path), "'m_free'", needle)
+    assert peak < 5 * MB, peak
+
+
+def test_the_byte_limit_counts_itemsize_times_elements(monkeypatch):
+    heads = limits.npz_headers(EXAMPLE_MAP1)
+    assert heads["m_free"].nbytes == heads["m_free"].size * heads["m_free"].dtype.itemsize
+    monkeypatch.setenv(limits.ENV_MAX_ARRAY_BYTES, str(heads["m_free"].nbytes - 1))
+    with pytest.raises(limits.InputTooLargeError, match="from TRAFFICTWIN_MAX_ARRAY_BYTES"):
+        limits.npz_headers(EXAMPLE_MAP1)
+    with pytest.raises(api.ApiError, match=r"'m_free' of shape 128x96 .* announces 49,152 bytes"):
+        api.load_masses(EXAMPLE_MAP1)
+    assert limits.npz_headers(EXAMPLE_MAP1, max_bytes=None)  # dataset shards: no byte limit
+    monkeypatch.delenv(limits.ENV_MAX_ARRAY_BYTES)
+    monkeypatch.setenv(limits.ENV_MAX_GRID_CELLS, "100")  # the byte limit follows the grid limit
+    assert limits.max_array_bytes() == 100 * limits.GRID_ITEM_BYTES
+
+
+def test_read_npz_checks_headers_before_decompressing(tmp_path):
+    from traffictwin.io.npz import DatasetError, read_npz
+
+    path = write_crafted_npz(tmp_path / "shard.npz", "|S400000000", (3,))
+    peak, err = _peak_traced(lambda: read_npz(path))
+    assert isinstance(err, DatasetError), err
+    _one_line(err, str(path), "not numbers")
+    assert peak < 5 * MB, peak
+    path = write_crafted_npz(tmp_path / "short.npz", "<f8", (1000, 1000))
+    peak, err = _peak_traced(lambda: read_npz(path))
+    assert isinstance(err, DatasetError) and "announces 8,000,000 bytes" in str(err), err
+    assert peak < 5 * MB, peak

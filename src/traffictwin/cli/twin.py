@@ -111,6 +111,14 @@ def _read_maps(args: argparse.Namespace) -> tuple[list[np.ndarray], np.ndarray, 
         )
     world = [parse_pose(p, f"--pose #{k + 1} ({args.maps[k]})") for k, p in enumerate(poses)]
     loaded = [load_masses(m) for m in args.maps]
+    from traffictwin.fusion.config import NETWORK_STRIDE
+
+    for path, (m, _) in zip(args.maps, loaded):  # before any registration, warp or preview
+        if min(m.shape[1:]) < NETWORK_STRIDE:
+            raise CliError(
+                f"{path}: grid of {m.shape[1]}x{m.shape[2]} cells (rows x cols); a twin's maps need "
+                f"at least {NETWORK_STRIDE} cells along each side"
+            )
     ref_m, ref_c = loaded[0]
     for path, (m, c) in zip(args.maps[1:], loaded[1:]):
         if m.shape != ref_m.shape:

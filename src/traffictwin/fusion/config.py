@@ -46,14 +46,21 @@ __all__ = [
 ]
 
 NETWORK_STRIDE = 16  # rows and cols of the grid must be divisible by the network's output stride
+#: most cells along each side of the grid (the paper's is 256 x 176; a pair of 1024 x 1024 maps
+#: is 16 MB, its shard of pairs and the network's activations grow with it). Sizes that allocate
+#: (grid sides, scenario and encounter counts) are bounded here, so a typo fails at config time
+#: instead of in the allocator minutes in
+MAX_GRID_SIDE = 1024
+MAX_SCENARIOS = 100_000  # fusion_data.scenarios (paper: 625)
+MAX_ENCOUNTERS = 1_000  # fusion_data.encounters_per_scenario and scenarios_per_shard (paper: 8, 5)
 
 
 @dataclass
 class GridConfig:
     """``grid``: cells along x (rows) and y (cols), m per cell."""
 
-    rows: int = spec(MISSING, min=NETWORK_STRIDE)
-    cols: int = spec(MISSING, min=NETWORK_STRIDE)
+    rows: int = spec(MISSING, min=NETWORK_STRIDE, max=MAX_GRID_SIDE)
+    cols: int = spec(MISSING, min=NETWORK_STRIDE, max=MAX_GRID_SIDE)
     cell: float = spec(MISSING, min=0.01)
 
 
@@ -224,9 +231,9 @@ class FigureConfig:
 class FusionDataConfig:
     """``fusion_data`` (conf/fusion_data/base.yaml documents every key)."""
 
-    scenarios: int = spec(MISSING, min=1)
-    scenarios_per_shard: int = spec(MISSING, min=1)
-    encounters_per_scenario: int = spec(MISSING, min=1)
+    scenarios: int = spec(MISSING, min=1, max=MAX_SCENARIOS)
+    scenarios_per_shard: int = spec(MISSING, min=1, max=MAX_ENCOUNTERS)
+    encounters_per_scenario: int = spec(MISSING, min=1, max=MAX_ENCOUNTERS)
     encounter_spacing: float = spec(MISSING, min=0.0)
     t_meet: float = spec(MISSING, min=0.0)
     meet_distance: list[float] = spec(MISSING, min=0.0)

@@ -35,6 +35,11 @@ from traffictwin.evidential.dempster import dempster
 from traffictwin.fusion.resnet import ResNet, ResNetSpec
 
 EVIDENCE_ACTIVATIONS = ("relu", "exp")
+#: bounds of the head's widths and rates (the paper's: ASPP 256, decoder 256, low-level 48)
+MAX_CHANNELS = 2048
+MAX_OUTPUTS = 64
+MAX_RATE = 256
+MAX_RATES = 8
 EXP_MAX_LOGIT = 30.0  # e <= exp(30) ~ 1e13: u >= 2e-13, far below any label's resolution
 
 
@@ -85,6 +90,50 @@ class DeepLabSpec:
         if not 0.0 <= self.aspp_dropout < 1.0:
             raise ValueError(f"deeplab aspp_dropout must be in [0, 1), got {self.aspp_dropout}")
         object.__setattr__(self, "aspp_rates", tuple(int(r) for r in self.aspp_rates))
+        self._check_bounds()
+
+    def _check_bounds(self) -> None:
+        """Every width, count and rate at most its bound, and the whole network at most
+        :data:`~traffictwin.io.limits.MAX_MODEL_PARAMETERS` weights (estimated from the convs:
+        the paper's ResNet-50 head ~40 M), before any layer is built."""
+        from traffictwin.io.limits import check_at_most, check_parameter_budget
+
+        for name in ("aspp_channels", "low_level_channels", "decoder_channels", "refine_channels"):
+            check_at_most("deeplab", name, int(getattr(self, name)), MAX_CHANNELS)
+        check_at_most("deeplab", "num_outputs", int(self.num_outputs), MAX_OUTPUTS)
+        check_at_most("deeplab", "len(aspp_rates)", len(self.aspp_rates), MAX_RATES)
+        check_at_most("deeplab", "aspp_rates", max(self.aspp_rates), MAX_RATE)
+        check_parameter_budget(
+            "deeplab",
+            self.parameter_estimate(),
+            "backbone.block/layers/base_width and the head's widths",
+        )
+
+    def parameter_estimate(self) -> int:
+        """Conv weights of the network (no biases or norms; within a few % of the real count)."""
+        b = self.backbone
+        e, w = b.expansion, int(b.base_width)
+        n = b.in_channels * w * 49  # stem
+        cin = w
+        for i, blocks in enumerate(b.layers):
+            wi = w * 2**i
+            out = wi * e
+            for j in range(blocks):
+                c = cin if j == 0 else out
+                if b.block == "bottleneck":
+                    n += c * wi + wi * wi * 9 + wi * out
+                else:
+                    n += c * wi * 9 + wi * wi * 9
+                if j == 0 and c != out:
+                    n += c * out  # projection shortcut
+            cin = out
+        a, k = int(self.aspp_channels), len(self.aspp_rates)
+        n += cin * a * (2 + 9 * k) + (k + 2) * a * a  # ASPP branches, pooling, projection
+        lo, d = int(self.low_level_channels), int(self.decoder_channels)
+        n += b.low_level_channels * lo + (a + lo) * d * 9 + d * d * 9 + d * int(self.num_outputs)
+        r = int(self.refine_channels)
+        n += (b.in_channels + int(self.num_outputs) + 2) * r * 9 + r * r * 9 if r else 0
+        return int(n)
 
     @property
     def output_stride(self) -> int:

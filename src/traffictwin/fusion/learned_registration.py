@@ -220,6 +220,22 @@ class RegistrationNetSpec:
                 raise ValueError(
                     f"RegistrationNetSpec.{k} must be 1, 2, 4 or 8, got {getattr(self, k)}"
                 )
+        from traffictwin.io.limits import check_at_most
+
+        # architecture values come from model meta: bounded before any layer or search grid is built
+        for k in ("coarse_channels", "coarse_width", "fine_channels", "fine_width"):
+            check_at_most("RegistrationNetSpec", k, getattr(self, k), 1024)
+        for k in ("max_rot_deg", "fine_max_rot_deg"):
+            check_at_most("RegistrationNetSpec", k, getattr(self, k), 180.0)
+        check_at_most("RegistrationNetSpec", "max_shift_m", self.max_shift_m, 100.0)
+        check_at_most("RegistrationNetSpec", "fine_max_shift_px", self.fine_max_shift_px, 64)
+        check_at_most("RegistrationNetSpec", "fine_iterations", self.fine_iterations, 16)
+        for top, step in (
+            ("max_rot_deg", "rot_step_deg"),
+            ("fine_max_rot_deg", "fine_rot_step_deg"),
+        ):
+            n = 2 * getattr(self, top) / getattr(self, step) + 1
+            check_at_most("RegistrationNetSpec", f"{top} / {step} (candidate angles)", n, 3601)
 
     def angles(self, fine: bool = False) -> np.ndarray:
         """Candidate angles (deg) of the coarse or fine grid."""

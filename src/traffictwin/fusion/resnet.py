@@ -20,6 +20,11 @@ import torch
 from torch import nn
 
 BLOCKS = ("basic", "bottleneck")
+#: bounds of the architecture values (model meta is read from files): ResNet-152 has 36 blocks
+#: in a stage, the paper's ResNet-50 a base width of 64
+MAX_BLOCKS_PER_STAGE = 64
+MAX_BASE_WIDTH = 256
+MAX_IN_CHANNELS = 64
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,12 @@ class ResNetSpec:
             )
         if len(self.dilate) != 3:
             raise ValueError(f"resnet dilate must have 3 flags (stages 2-4), got {self.dilate!r}")
+        from traffictwin.io.limits import check_at_most
+
+        check_at_most("resnet", "base_width", self.base_width, MAX_BASE_WIDTH)
+        check_at_most("resnet", "in_channels", self.in_channels, MAX_IN_CHANNELS)
+        for i, n in enumerate(self.layers):
+            check_at_most("resnet", f"layers[{i}]", int(n), MAX_BLOCKS_PER_STAGE)
         object.__setattr__(self, "layers", tuple(int(n) for n in self.layers))
         object.__setattr__(self, "dilate", tuple(bool(d) for d in self.dilate))
 

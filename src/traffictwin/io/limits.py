@@ -15,6 +15,13 @@ reading a file. The readers here look only at headers:
 Limits (module defaults, overridable per process by environment variables, read at each call):
 
 - :data:`MAX_GRID_CELLS` (``TRAFFICTWIN_MAX_GRID_CELLS``): elements of one grid array, 4096 × 4096;
+- :data:`MAX_ARRAY_BYTES` (``TRAFFICTWIN_MAX_ARRAY_BYTES``): bytes (dtype itemsize × elements) of
+  one array of an input ``.npz``; unset, 16 bytes (complex128, the widest element a grid may
+  have) × the grid limit, 256 MiB by default: the element
+  count alone says nothing of the cost (a 1 MB file whose header says ``|S400000000``, shape (3,),
+  announces 1.2 GB). :func:`npz_headers` also refuses arrays that do not hold numbers (strings,
+  raw bytes, records, Python objects), negative dimensions, and members whose size in the zip
+  directory differs from what their header announces;
 - :data:`MAX_IMAGE_PIXELS` (``TRAFFICTWIN_MAX_IMAGE_PIXELS``): pixels (width × height) of one
   image, 4096 × 4096.
 
@@ -25,6 +32,7 @@ for one over a limit; both are :class:`InputError` (a ``ValueError``).
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import threading
@@ -40,7 +48,18 @@ import numpy as np
 MAX_GRID_CELLS = 4096 * 4096
 #: pixels (width × height) of one image, 4096 × 4096
 MAX_IMAGE_PIXELS = 4096 * 4096
+#: bytes of one element of the widest grid (complex128): the byte limit is this × the cell limit
+GRID_ITEM_BYTES = 16
+#: bytes of one array of an input ``.npz`` (a complex128 grid of :data:`MAX_GRID_CELLS` cells)
+MAX_ARRAY_BYTES = GRID_ITEM_BYTES * MAX_GRID_CELLS
+#: dtype kinds an array of a ``.npz`` may hold: bool, integers, floats, complex numbers
+NUMERIC_KINDS = "biufc"
+#: weights of one network a model folder or config may describe (the paper's ResNet-50
+#: DeepLabV3+ has ~40 M, the DAVE-2 net at 320 x 160 px ~27 M): architecture values are read from
+#: model meta and params, and a typo (``base_width: 4096``) would otherwise reach the allocator
+MAX_MODEL_PARAMETERS = 250_000_000
 ENV_MAX_GRID_CELLS = "TRAFFICTWIN_MAX_GRID_CELLS"
+ENV_MAX_ARRAY_BYTES = "TRAFFICTWIN_MAX_ARRAY_BYTES"
 ENV_MAX_IMAGE_PIXELS = "TRAFFICTWIN_MAX_IMAGE_PIXELS"
 NPY_MAGIC = b"\x93NUMPY"
 IMAGE_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "PBM/PGM/PPM")
@@ -60,19 +79,28 @@ class InputFormatError(InputError):
 
 
 class InputTooLargeError(InputError):
-    """A file whose header announces more cells / pixels than the limit."""
+    """A file whose header announces more cells / pixels / bytes than the limit."""
+
+
+#: ``max_bytes`` default of :func:`npz_headers`: :func:`max_array_bytes` at call time
+_DEFAULT_LIMIT = -1
 
 
 @dataclass(frozen=True)
 class ArrayHeader:
-    """What an ``.npy`` header says: ``shape``, ``dtype`` and the element count ``size``."""
+    """What an ``.npy`` header says: ``shape``, ``dtype``, the element count ``size`` and the
+    bytes of its data ``nbytes`` (itemsize × size; Python integers, no overflow)."""
 
     shape: tuple[int, ...]
     dtype: np.dtype
 
     @property
     def size(self) -> int:
-        return int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
+        return math.prod(self.shape)
+
+    @property
+    def nbytes(self) -> int:
+        return self.dtype.itemsize * self.size
 
 
 def _env_limit(name: str, default: int, unit: str) -> int:
@@ -91,6 +119,12 @@ def _env_limit(name: str, default: int, unit: str) -> int:
 def max_grid_cells() -> int:
     """The grid limit (cells): ``TRAFFICTWIN_MAX_GRID_CELLS`` or :data:`MAX_GRID_CELLS`."""
     return _env_limit(ENV_MAX_GRID_CELLS, MAX_GRID_CELLS, "cells")
+
+
+def max_array_bytes() -> int:
+    """The array limit (bytes): ``TRAFFICTWIN_MAX_ARRAY_BYTES``, or :data:`GRID_ITEM_BYTES` ×
+    :func:`max_grid_cells` (:data:`MAX_ARRAY_BYTES` by default)."""
+    return _env_limit(ENV_MAX_ARRAY_BYTES, GRID_ITEM_BYTES * max_grid_cells(), "bytes")
 
 
 def max_image_pixels() -> int:
@@ -121,6 +155,23 @@ def check_grid_cells(shape: Iterable[int], what: str) -> None:
         )
 
 
+def check_at_most(owner: str, name: str, value: float, bound: float) -> None:
+    """``ValueError`` naming ``owner.name``, its value and the bound when ``value > bound`` (an
+    architecture value read from model meta or params)."""
+    if value > bound:
+        raise ValueError(f"{owner}.{name} is {value}, more than its bound {bound}")
+
+
+def check_parameter_budget(owner: str, parameters: int, fields: str) -> None:
+    """``ValueError`` when an architecture's estimated weight count exceeds
+    :data:`MAX_MODEL_PARAMETERS`, naming the fields that set it."""
+    if parameters > MAX_MODEL_PARAMETERS:
+        raise ValueError(
+            f"{owner}: {fields} make ~{parameters:,} weights, more than the bound "
+            f"{MAX_MODEL_PARAMETERS:,}"
+        )
+
+
 # ============================================================================ .npz
 
 
@@ -141,18 +192,51 @@ def _read_npy_header(fh: BinaryIO, where: str) -> ArrayHeader:
     return ArrayHeader(tuple(int(s) for s in shape), np.dtype(dtype))
 
 
+def _check_array(head: ArrayHeader, what: str, limit: int | None) -> None:
+    """Refuse, from its header, an array that holds no numbers, has a negative dimension or
+    announces more than ``limit`` bytes (``None``: no byte limit)."""
+    if head.dtype.hasobject:
+        raise InputFormatError(f"{what} holds Python objects (pickled data, never loaded)")
+    if head.dtype.kind not in NUMERIC_KINDS or head.dtype.subdtype is not None:
+        raise InputFormatError(
+            f"{what} has dtype {head.dtype.str!r}, not numbers (expected bool, integer, float "
+            "or complex elements)"
+        )
+    if any(s < 0 for s in head.shape):
+        raise InputFormatError(f"{what}: its header announces a negative shape {head.shape}")
+    if limit is not None and head.nbytes > limit:
+        shape = "x".join(map(str, head.shape)) or "()"
+        raise InputTooLargeError(
+            f"{what} of shape {shape} and dtype {head.dtype.str!r} announces {head.nbytes:,} "
+            f"bytes, more than the limit {limit:,} ("
+            + (
+                f"from {ENV_MAX_ARRAY_BYTES})"
+                if os.environ.get(ENV_MAX_ARRAY_BYTES, "").strip()
+                else f"{GRID_ITEM_BYTES} bytes x the grid limit; set {ENV_MAX_ARRAY_BYTES} to "
+                "change it)"
+            )
+        )
+
+
 def npz_headers(
-    path: str | os.PathLike, keys: Iterable[str] | None = None
+    path: str | os.PathLike,
+    keys: Iterable[str] | None = None,
+    *,
+    max_bytes: int | None = _DEFAULT_LIMIT,
 ) -> dict[str, ArrayHeader]:
     """Shape and dtype of the arrays of the ``.npz`` at ``path`` (only ``keys`` when given; the
     key of member ``name.npy`` is ``name``), read from the ``.npy`` headers: no array data is
     decompressed. Members that are not ``.npy`` files are left out.
 
     Raises :class:`InputFormatError` when the file is not a zip archive (text, a bare ``.npy``
-    renamed ``.npz``, ...), a header is unreadable, or an array holds Python objects (pickled
-    data, never loaded).
+    renamed ``.npz``, ...), a header is unreadable, an array holds no numbers (Python objects,
+    strings, raw bytes, records), has a negative dimension, or its member's size in the zip
+    directory is not the header's length plus itemsize × elements; :class:`InputTooLargeError`
+    when an array announces more than ``max_bytes`` bytes (default :func:`max_array_bytes`;
+    ``None``: no byte limit, for dataset shards whose size the config bounds).
     """
     p = Path(path)
+    limit = max_array_bytes() if max_bytes == _DEFAULT_LIMIT else max_bytes
     wanted = None if keys is None else set(keys)
     out: dict[str, ArrayHeader] = {}
     try:
@@ -179,9 +263,13 @@ def npz_headers(
                         continue
                     with zf.open(info) as member:
                         head = _read_npy_header(member, f"{p}: array '{key}'")
-                    if head.dtype.hasobject:
+                        header_len = member.tell()
+                    _check_array(head, f"{p}: array '{key}'", limit)
+                    if info.file_size != header_len + head.nbytes:
                         raise InputFormatError(
-                            f"{p}: array '{key}' holds Python objects (pickled data, never loaded)"
+                            f"{p}: array '{key}': its header announces {head.nbytes:,} bytes of "
+                            f"data, the archive member holds {info.file_size - header_len:,} "
+                            "(a corrupt or crafted file)"
                         )
                     out[key] = head
     except InputFormatError:

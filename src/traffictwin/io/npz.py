@@ -3,7 +3,9 @@
 :func:`write_npz_deterministic` writes a zip of ``.npy`` arrays with fixed zip timestamps,
 atomically, so the same arrays give the same bytes; :func:`read_npz` reads one back. Both refuse
 float arrays with NaN or ±inf (:func:`check_finite`) unless the key is named in ``allow_inf``
-(arrays where infinity is a defined value); NaN is never data.
+(arrays where infinity is a defined value); NaN is never data. :func:`read_npz` reads every
+array's ``.npy`` header first (:func:`traffictwin.io.limits.npz_headers`) and refuses arrays that
+hold no numbers or whose data differs from what the header announces, before allocating anything.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.io.atomic import atomic_path
-from traffictwin.io.limits import NPY_HEADER_LOCK
+from traffictwin.io.limits import NPY_HEADER_LOCK, InputError, npz_headers
 
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
@@ -115,12 +117,28 @@ def _read_member(z: Any, key: str) -> np.ndarray:
 
 
 def read_npz(
-    path: str | Path, allow_inf: Collection[str] = (), keys: Iterable[str] | None = None
+    path: str | Path,
+    allow_inf: Collection[str] = (),
+    keys: Iterable[str] | None = None,
+    *,
+    max_bytes: int | None = None,
 ) -> dict[str, np.ndarray]:
     """Read every array of an ``.npz`` (or only ``keys``: the others are not decompressed) into
     memory; a clear error if it is not a readable archive, lacks a key, or a float array holds NaN
-    (or ±inf outside ``allow_inf``; :func:`check_finite`)."""
+    (or ±inf outside ``allow_inf``; :func:`check_finite`).
+
+    Before any array is decompressed, each one's ``.npy`` header is checked
+    (:func:`traffictwin.io.limits.npz_headers`): numbers only, data of exactly itemsize × elements
+    bytes, at most ``max_bytes`` bytes per array (``None``, the default for dataset shards: no
+    limit beyond what the zip directory declares; their sizes follow from the bounded config)."""
     path = Path(path)
+    keys = None if keys is None else list(keys)
+    if not path.exists():
+        raise DatasetError(f"{path}: file not found")
+    try:
+        npz_headers(path, keys, max_bytes=max_bytes)
+    except InputError as exc:
+        raise DatasetError(str(exc)) from None
     try:
         with np.load(path, allow_pickle=False) as z:
             names = list(z.files) if keys is None else list(keys)

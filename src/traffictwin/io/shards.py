@@ -382,7 +382,7 @@ class Dataset:
         out: dict[int, dict[str, tuple[int, ...]]] = {}
         for i, s in enumerate(self.shards):
             try:  # each header parsed under NPY_HEADER_LOCK (see traffictwin.io.npz._NPY_PARSE_LOCK)
-                heads = npz_headers(self.root / s["name"], keys)
+                heads = npz_headers(self.root / s["name"], keys, max_bytes=None)
             except InputError:
                 continue
             out[i] = {k: h.shape for k, h in heads.items() if h.shape}

@@ -23,14 +23,20 @@ from traffictwin.stereo.check import StereoCheckParams
 from traffictwin.stereo.orb import OrbParams
 from traffictwin.stereo.sgm import SgmParams
 
+#: most pixels along each side of the camera image (paper: 320 x 160; images beyond the CLI's
+#: 4096 x 4096 read limit could not be assessed anyway)
+MAX_IMAGE_SIDE = 4096
+MAX_SEQUENCES = 1_000_000  # risk_data.sequences (paper: 13,769)
+MAX_FRAMES_PER_SEQUENCE = 1_000  # risk_data.frames_per_sequence (paper: 8)
+
 
 @dataclass
 class CameraParams:
     """``risk_data.camera``: image size (px), field of view (deg), baseline and mount (m), range (m),
     sensor noise (DN)."""
 
-    width: int = spec(min=16)
-    height: int = spec(min=16)
+    width: int = spec(min=16, max=MAX_IMAGE_SIDE)
+    height: int = spec(min=16, max=MAX_IMAGE_SIDE)
     hfov_deg: float = spec(min=5, max=150)
     baseline: float = spec(min=0.01)
     mount_x: float = spec()
@@ -76,8 +82,8 @@ class RiskDataConfig:
     """``risk_data``: the driving sequences, stereo camera, faults, risk metric, SGM and ORB check."""
 
     seed: int = spec(min=0)
-    sequences: int = spec(min=1)
-    frames_per_sequence: int = spec(min=1)
+    sequences: int = spec(min=1, max=MAX_SEQUENCES)
+    frames_per_sequence: int = spec(min=1, max=MAX_FRAMES_PER_SEQUENCE)
     fps: float = spec(min=0.1)
     warmup: float = spec(min=0)
     max_speed: float = spec(min=MIN_TOP_SPEED)  # the situations draw speeds from 12 m/s up to it

@@ -57,6 +57,13 @@ CONV_SPEC: tuple[tuple[int, int, int], ...] = (
 )
 FC_SPEC: tuple[int, ...] = (1164, 100, 50, 10)
 
+#: bounds of the architecture values (the paper: 66 x 200 px input, convs of <= 64 channels)
+MAX_INPUT_SIDE = 4096
+MAX_LAYERS = 16
+MAX_CONV_CHANNELS = 2048
+MAX_KERNEL = 15
+MAX_FC_WIDTH = 65536
+
 
 @dataclass(frozen=True)
 class Dave2Config:
@@ -113,7 +120,46 @@ class Dave2Config:
         object.__setattr__(self, "inputs", tuple(self.inputs))
         object.__setattr__(self, "conv", tuple(tuple(int(v) for v in c) for c in self.conv))
         object.__setattr__(self, "fc", tuple(int(v) for v in self.fc))
+        self._check_bounds()
         conv_output_shape(self.height, self.width, self.conv)  # raises when the input is too small
+        from traffictwin.io.limits import check_parameter_budget
+
+        check_parameter_budget(
+            "Dave2Config", self.parameter_estimate(), "height/width, conv and fc"
+        )
+
+    def _check_bounds(self) -> None:
+        """Architecture values (read from model meta) at most their bounds, before any layer is
+        built: the paper's net is 5 convs of <= 64 channels and FC 1164-100-50-10."""
+        from traffictwin.io.limits import check_at_most
+
+        check_at_most("Dave2Config", "height", self.height, MAX_INPUT_SIDE)
+        check_at_most("Dave2Config", "width", self.width, MAX_INPUT_SIDE)
+        check_at_most("Dave2Config", "len(conv)", len(self.conv), MAX_LAYERS)
+        check_at_most("Dave2Config", "len(fc)", len(self.fc), MAX_LAYERS)
+        for i, c in enumerate(self.conv):
+            if len(c) != 3 or min(c) < 1:
+                raise ValueError(
+                    f"Dave2Config.conv[{i}] must be (channels, kernel, stride) >= 1, got {list(c)}"
+                )
+            check_at_most("Dave2Config", f"conv[{i}] channels", c[0], MAX_CONV_CHANNELS)
+            check_at_most("Dave2Config", f"conv[{i}] kernel", c[1], MAX_KERNEL)
+            check_at_most("Dave2Config", f"conv[{i}] stride", c[2], MAX_KERNEL)
+        for i, n in enumerate(self.fc):
+            if n < 1:
+                raise ValueError(f"Dave2Config.fc[{i}] must be >= 1, got {n}")
+            check_at_most("Dave2Config", f"fc[{i}]", n, MAX_FC_WIDTH)
+
+    def parameter_estimate(self) -> int:
+        """Weights of the network (convs and FC layers, no biases)."""
+        n, cin = 0, self.in_channels
+        for ch, k, _s in self.conv:
+            n, cin = n + cin * ch * k * k, ch
+        c, h, w = conv_output_shape(self.height, self.width, self.conv)
+        width = c * h * w + int(self.use_speed)
+        for out in self.fc:
+            n, width = n + width * out, out
+        return int(n)
 
     @property
     def in_channels(self) -> int:

@@ -47,11 +47,11 @@ class TwinFigureConfig:
 class TwinConfig:
     """``twin``: the cooperative sequences (stage generate_twin) and the twin's evaluation (evaluate_twin)."""
 
-    sequences: int = spec(MISSING, min=2)
+    sequences: int = spec(MISSING, min=2, max=100_000)  # paper: 200 (each one a shard)
     # sequences of the validation split (indices after the evaluated ones): the predictive rule is
     # chosen on them (0: no choice, the configured level unconfirmed)
-    validation_sequences: int = spec(MISSING, min=0)
-    frames: int = spec(MISSING, min=2)
+    validation_sequences: int = spec(MISSING, min=0, max=100_000)
+    frames: int = spec(MISSING, min=2, max=10_000)  # paper: 50 (a shard holds every frame's maps)
     fps: float = spec(MISSING, min=0.1)
     vehicles: int = spec(MISSING, min=2, max=16)
     occluded_share: float = spec(MISSING, min=0.0, max=1.0)

@@ -1,0 +1,157 @@
+"""Stage `check_params`: validate the whole of params.yaml before DVC touches any other stage.
+
+Usage: ``python -m pipelines.check_params``. DVC removes a stage's outputs before it runs the
+stage's command, and ``cache: false`` outputs (metrics, plots) cannot be checked out again: a
+rejected value found by the stage itself comes too late. This stage runs first: it depends on
+params.yaml as a whole and on the validation code, runs every stage's parameter checks (the same
+functions the stages call at start, :data:`CHECKS`) and writes ``data/params_ok.json``, whose
+content is only the schema version, so it does not change when a parameter does: every other
+stage lists it as a dependency, DVC re-runs none of them for it, and a rejected value stops
+``dvc repro`` / ``dvc exp run`` here, one line on stderr and exit 2, with every other stage's
+outputs in place. params.yaml is read, never written (see docs/experiments.md for getting the
+previous value back).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from traffictwin.io.atomic import write_json_atomic
+
+from ._common import params, run_stage
+from ._paths import ROOT
+
+#: the output every other stage depends on
+OUTPUT = ROOT / "data" / "params_ok.json"
+#: bumped when the output's content changes shape (never with the parameters)
+SCHEMA_VERSION = 1
+
+
+def _fusion(p: Any) -> None:
+    from traffictwin.config import get
+    from traffictwin.fusion.config import (
+        fusion_data_config,
+        fusion_eval_config,
+        fusion_variants,
+        grid_config,
+        pose_configurations,
+        registered_configurations,
+        training_noise,
+    )
+    from traffictwin.fusion.evaluation.keys import fusion_ci_config
+
+    get(p, "seed", int, min=0)
+    grid_config(p)  # generate_fusion, prealign, train_*, evaluate_*, generate_twin
+    pose_configurations(p)
+    training_noise(p)
+    fusion_data_config(p).params(grid_config(p))
+    fusion_eval_config(p)
+    fusion_ci_config(p)
+    registered_configurations(p)
+    fusion_variants(p)
+
+
+def _fusion_model(p: Any) -> None:
+    from traffictwin.config import typed
+    from traffictwin.fusion.config import fusion_variants
+    from traffictwin.fusion.training import FusionModelConfig
+
+    source = "params.yaml"
+    model = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
+    model.deeplab_spec(source)  # train_fusion: the architecture, bounded
+    model.hparams(None)
+    for v in fusion_variants(p).values():
+        model.hparams(v.loss)
+
+
+def _trainer(p: Any) -> None:
+    from traffictwin.trainer import TrainerSettings
+
+    # values only: whether this machine has the accelerator is the training stages' own check
+    # (the paper profile's data stages run on a machine without a GPU)
+    TrainerSettings.from_cfg(p, source="params.yaml")
+
+
+def _registration(p: Any) -> None:
+    from .train_registration import model_config
+
+    model_config(p)
+
+
+def _risk(p: Any) -> None:
+    from .evaluate_risk import risk_stage_settings
+    from .generate_risk import read_config
+    from .train_risk import check_disparity_scale, risk_model, train_settings, variant_config
+    from .train_risk_hybrid import hybrid_settings
+
+    rd, _, _ = read_config(p)  # generate_risk
+    rd.sgm.check_width(rd.camera.width, what="params.yaml: 'risk_data.sgm'")  # disparity
+    model = risk_model(p)
+    for variant in model.variants:  # train_risk@<variant>
+        cfg, _ = variant_config(model, variant)
+        check_disparity_scale(p, cfg)
+        train_settings(model, p, variant)
+    hybrid_settings(p)  # train_risk_hybrid
+    risk_stage_settings(p)  # select_risk, evaluate_risk
+
+
+def _twin(p: Any) -> None:
+    from traffictwin.twin.config import twin_config
+
+    twin_config(p).settings()
+
+
+def _report(p: Any) -> None:
+    from traffictwin.config import typed
+    from traffictwin.report.config import ReportParams
+
+    from .ablations import ablations
+    from .promote import registry_config
+
+    typed({k: p.get(k) for k in ("seed", "profile", "configurations")}, ReportParams)
+    ablations(p)
+    registry_config(p)
+
+
+#: (what, check) in DAG order: each check calls the validators its stages call at start
+CHECKS: tuple[tuple[str, Callable[[Any], None]], ...] = (
+    ("fusion data and evaluation", _fusion),
+    ("fusion model", _fusion_model),
+    ("trainer", _trainer),
+    ("registration model", _registration),
+    ("risk data and models", _risk),
+    ("twin", _twin),
+    ("report, ablations and registry", _report),
+)
+
+
+def check(p: Any) -> list[str]:
+    """Run every check of :data:`CHECKS` on the loaded params ``p``; the first failure raises
+    a :class:`~traffictwin.config.ConfigError` naming the key (a library check's ``ValueError``
+    keeps its message). Returns the checks' names."""
+    from traffictwin.config import ConfigError
+
+    for name, fn in CHECKS:
+        try:
+            fn(p)
+        except ConfigError:
+            raise
+        except KeyError as exc:
+            raise ConfigError(f"params.yaml: key {exc} is missing ({name})") from None
+        except (TypeError, ValueError) as exc:  # a library check that names its own setting
+            raise ConfigError(str(exc)) from None
+    return [name for name, _ in CHECKS]
+
+
+def main(argv: list[str] | None = None, output: Path = OUTPUT) -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
+    check(params())
+    write_json_atomic(output, {"params": "params.yaml", "schema_version": SCHEMA_VERSION})
+
+
+if __name__ == "__main__":
+    run_stage(main, "check_params")

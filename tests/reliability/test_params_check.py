@@ -1,0 +1,201 @@
+"""Experiments that lose nothing: ``pipelines.check_params`` validates the whole of params.yaml
+with the stages' own checks before DVC removes any stage's outputs, and sizes that allocate are
+bounded in the config schema.
+
+Before: ``dvc exp run -S profile=ci -S fusion_model.train.batch_size=-3 train_fusion`` printed the
+right one-line error, but only after DVC had removed ``models/fusion/network`` and
+``reports/metrics/train_fusion_network.json`` (a ``cache: false`` output cannot be checked out
+again); ``-S grid.rows=4096 -S grid.cols=4096 generate_fusion`` ran 86 s into ``std::bad_alloc``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import committed
+
+from pipelines import check_params
+from pipelines._common import run_stage
+from traffictwin.config import ConfigError, compose_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def good() -> dict:
+    return yaml.safe_load(committed("params.yaml"))
+
+
+def _with(params: dict, dotted: str, value) -> dict:
+    out = copy.deepcopy(params)
+    node = out
+    *head, last = dotted.split(".")
+    for k in head:
+        node = node[k]
+    node[last] = value
+    return out
+
+
+def test_every_profile_passes_every_check(good) -> None:
+    assert check_params.check(good) == [name for name, _ in check_params.CHECKS]
+    for profile in ("ci", "paper"):  # paper: ResNet-50, 256 x 176, 10,000 pairs, 110k frames
+        check_params.check(compose_config(ROOT / "conf", [f"profile={profile}"]))
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "named"),
+    [
+        (
+            "fusion_model.train.batch_size",
+            -3,
+            "'fusion_model.train.batch_size' must be >= 2, got -3",
+        ),
+        ("grid.rows", 4096, "'grid.rows' must be <= 1024, got 4096"),
+        ("grid.cols", 4096, "'grid.cols' must be <= 1024, got 4096"),
+        ("fusion_data.scenarios", 10**9, "'fusion_data.scenarios' must be <= 100000"),
+        ("fusion_data.encounters_per_scenario", 10**6, "'fusion_data.encounters_per_scenario'"),
+        ("risk_data.camera.width", 100_000, "'risk_data.camera.width' must be <= 4096"),
+        ("risk_data.frames_per_sequence", 10**6, "'risk_data.frames_per_sequence' must be <="),
+        ("twin.frames", 10**6, "'twin.frames' must be <= 10000"),
+        ("risk_data.sgm.num_disparities", 512, "'risk_data.sgm': num_disparities=512"),
+        ("fusion_model.optim.lr", float("inf"), "'fusion_model.optim.lr' must be a finite number"),
+        ("fusion_model.architecture.backbone.base_width", 4096, "base_width"),
+    ],
+)
+def test_a_rejected_value_names_its_key_and_bound(good, key, value, named) -> None:
+    with pytest.raises(ConfigError) as info:
+        check_params.check(_with(good, key, value))
+    line = str(info.value)
+    assert "\n" not in line and named in line, line
+    assert str(value) in line.replace(",", "") or key.endswith("lr"), line
+
+
+def test_the_output_does_not_change_with_the_parameters(good, tmp_path, monkeypatch) -> None:
+    out = tmp_path / "params_ok.json"
+    written = []
+    for params in (good, _with(good, "fusion_model.optim.lr", 0.123), _with(good, "seed", 7)):
+        monkeypatch.setattr(check_params, "params", lambda p=params: p)
+        check_params.main([], output=out)
+        written.append(out.read_bytes())
+    assert written[0] == written[1] == written[2]
+    assert json.loads(written[0]) == {
+        "params": "params.yaml",
+        "schema_version": check_params.SCHEMA_VERSION,
+    }
+
+
+def test_a_rejected_value_is_one_line_exit_2_and_nothing_written(
+    good, tmp_path, monkeypatch, capsys
+) -> None:
+    monkeypatch.delenv("TRAFFICTWIN_TRACEBACK", raising=False)
+    out = tmp_path / "params_ok.json"
+    bad = _with(good, "fusion_model.train.batch_size", -3)
+    monkeypatch.setattr(check_params, "params", lambda: bad)
+    with pytest.raises(SystemExit) as info:
+        run_stage(lambda: check_params.main([], output=out), "check_params")
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("check_params: error: ConfigError: "), err
+    assert "'fusion_model.train.batch_size' must be >= 2, got -3" in err
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# the DVC behaviour the stage relies on (DVC 3): a failing first stage keeps the others' outputs;
+# an unchanged output re-runs nothing downstream; what `dvc exp run` does with params.yaml
+
+
+def _dvc_repo(dest: Path) -> Path:
+    """A tiny git + DVC repo: ``check`` (the real check_params stage run on this repo's
+    params.yaml) and ``down``, which depends on its output and one parameter."""
+    dest.mkdir()
+    (dest / "params.yaml").write_text(committed("params.yaml"))
+    (dest / "down.py").write_text(
+        "import yaml\n"
+        "p = yaml.safe_load(open('params.yaml'))\n"
+        "open('down.txt', 'w').write(str(p['fusion_model']['train']['batch_size']))\n"
+        "open('runs.log', 'a').write('down\\n')\n"
+    )
+    check = (
+        "import sys; from pathlib import Path; import pipelines.check_params as c; "
+        "from pipelines._common import params, run_stage; "
+        "c.params = lambda: params(Path('params.yaml')); "
+        "run_stage(lambda: c.main([], output=Path('params_ok.json')), 'check_params')"
+    )
+    (dest / "dvc.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "stages": {
+                    "check_params": {
+                        "cmd": f'{sys.executable} -c "{check}"',
+                        "deps": ["params.yaml"],
+                        "outs": ["params_ok.json"],
+                    },
+                    "down": {
+                        "cmd": f"{sys.executable} down.py",
+                        "deps": ["down.py", "params_ok.json"],
+                        "params": ["fusion_model.train.batch_size"],
+                        "outs": [{"down.txt": {"cache": False}}],
+                    },
+                }
+            }
+        )
+    )
+    (dest / ".gitignore").write_text("runs.log\n")
+    env = {
+        "PYTHONPATH": f"{ROOT / 'src'}:{ROOT}",
+        "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin",
+    }
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    for cmd in (
+        [*git, "init", "-q"],
+        ["dvc", "init", "-q"],
+        ["dvc", "repro", "-q"],
+        [*git, "add", "-A"],
+        [*git, "commit", "-q", "-m", "start"],
+    ):
+        subprocess.run(cmd, cwd=dest, env=env, check=True, capture_output=True, timeout=300)
+    return dest
+
+
+def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {
+        "PYTHONPATH": f"{ROOT / 'src'}:{ROOT}",
+        "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin",
+    }
+    return subprocess.run(
+        ["dvc", *args], cwd=repo, env=env, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.mark.slow  # three dvc runs of the real check (~1 min on 2 cores)
+def test_dvc_stops_at_the_check_and_keeps_every_other_output(tmp_path) -> None:
+    repo = _dvc_repo(tmp_path / "repo")
+    before = (repo / "down.txt").read_text()
+    # (a) a rejected value: the check fails, `down` keeps its output (a cache: false output)
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    good = (repo / "params.yaml").read_text()
+    (repo / "params.yaml").write_text(
+        yaml.safe_dump(_with(params, "fusion_model.train.batch_size", -3), sort_keys=False)
+    )
+    proc = _dvc(repo, "repro", "down")
+    assert proc.returncode != 0
+    assert "check_params: error: ConfigError: params.yaml: 'fusion_model.train.batch_size'" in (
+        proc.stderr + proc.stdout
+    )
+    assert (repo / "down.txt").read_text() == before
+    assert (repo / "runs.log").read_text() == "down\n"
+    assert "batch_size: -3" in (repo / "params.yaml").read_text()  # the check never writes it
+    # (b) back to a valid value that `down` does not read: the check re-runs, writes the same
+    # output, and `down` is not re-run
+    (repo / "params.yaml").write_text(good.replace("seed: ", "seed: 1", 1))
+    proc = _dvc(repo, "repro", "down")
+    assert proc.returncode == 0, proc.stderr
+    assert "Stage 'down' didn't change, skipping" in proc.stdout, proc.stdout
+    assert (repo / "runs.log").read_text() == "down\n"
