@@ -4,12 +4,13 @@ Every model :func:`traffictwin.trainer.log_model` logs is one directory with two
 
 - ``traffictwin`` — the project's own loader (:func:`traffictwin.mlops.registry.load_registered`:
   SHA-256 check, then the problem loader);
-- ``python_function`` — ``loader_module: traffictwin.mlops.serving`` with ``code: code``: the
-  directory carries the ``traffictwin`` package source under ``code/traffictwin`` (MLflow puts
-  ``code/`` on ``sys.path`` before it imports this module), so ``mlflow.pyfunc.load_model`` and
-  ``mlflow models serve`` work in an environment that has only the pinned requirements of
-  ``requirements.txt`` (torch from the PyTorch CPU index, numpy, lightning, ...; never
-  ``traffictwin``, which no package index has).
+- ``python_function`` — ``loader_module: traffictwin.mlops.serving`` and no ``code`` folder: the
+  directory carries no executable code, so ``mlflow.pyfunc.load_model`` and ``mlflow models
+  serve`` import this module from the *installed* ``traffictwin`` (serve with
+  ``--env-manager local`` in the project's environment). :func:`_load_pyfunc` refuses a model
+  logged by another ``major.minor`` of traffictwin before it reads the weights. ``requirements.txt``
+  pins torch (from the PyTorch CPU index), numpy, lightning, ...; never ``traffictwin``, which no
+  package index has.
 
 Nothing is pickled: :func:`_load_pyfunc` reads ``model.ckpt`` with ``weights_only=True`` and
 ``model_meta.json`` through the problem's loader, exactly as the project's own loader does.
@@ -345,6 +346,8 @@ def _load_pyfunc(path: str) -> TrafficTwinModel:
     from traffictwin.mlops import model_artifact as art
 
     folder = Path(path)
-    problem = str(art.read_flavor(folder, str(folder)).get("problem", ""))
+    block = art.read_flavor(folder, str(folder))
+    art.check_installed_version(block, str(folder))
+    problem = str(block.get("problem", ""))
     net, meta = _load(problem, folder)
     return TrafficTwinModel(net, problem, meta)
