@@ -50,6 +50,7 @@ from traffictwin.mlops import registry as reg
 from traffictwin.mlops.config import compose_with_seeds, seed_overrides
 from traffictwin.mlops.journal import Journal, LockBusy, exclusive_lock
 from traffictwin.mlops.retrain_summary import summary_markdown
+from traffictwin.mlops.uris import mask_secrets
 
 EXIT_LOCKED = 75  # EX_TEMPFAIL: try again later
 FAIL_ENV = "TRAFFICTWIN_RETRAIN_FAIL_AT"
@@ -269,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.only:
             promotion.select(promote_mod.build_jobs(cfg, rc), args.only)  # unknown name: error now
     except (ConfigError, reg.RegistryError) as exc:
-        print(f"retrain: error: {exc}", file=sys.stderr)
+        print(f"retrain: error: {mask_secrets(str(exc))}", file=sys.stderr)
         return 1
     only = set(args.only) if args.only else None
     try:
@@ -286,7 +287,9 @@ def main(argv: list[str] | None = None) -> int:
         kept = "previous data and champions kept" if s.get("restored") else "NOT restored: "
         kept += "; ".join(s.get("restore_problems") or [])
         print(
-            f"retrain: {s['status']} in step '{s.get('failed_step')}': {s.get('error')} ({kept})",
+            mask_secrets(
+                f"retrain: {s['status']} in step '{s.get('failed_step')}': {s.get('error')} ({kept})"
+            ),
             file=sys.stderr,
         )
     if s.get("signal"):

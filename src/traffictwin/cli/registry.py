@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from traffictwin.mlops.uris import mask_secrets
+
 from .common import CliError, add_arguments, arg, uri_option
 
 ROLLBACK_ARGUMENTS = [
@@ -47,7 +49,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def _registry_client(args: argparse.Namespace):
     from traffictwin import api
 
-    return api.connect(getattr(args, "tracking_uri", None))
+    try:
+        return api.connect(getattr(args, "tracking_uri", None))
+    except Exception as exc:  # noqa: BLE001 - one masked line (the URI's password never printed)
+        raise CliError(mask_secrets(" ".join(str(exc).split()))) from None
 
 
 def cmd_rollback(args: argparse.Namespace) -> int:

@@ -1,0 +1,78 @@
+"""Registry references and messages: a local folder never shadows a registry reference, and a
+password (or token) in a tracking URI never reaches a message."""
+
+from __future__ import annotations
+
+import pytest
+
+from traffictwin import cli
+from traffictwin.mlops import registry as reg
+from traffictwin.mlops.uris import mask_secrets, mask_uri
+
+
+@pytest.mark.parametrize(
+    "text, name, alias",
+    [
+        ("traffictwin-risk@champion", "traffictwin-risk", "champion"),
+        ("models:/traffictwin-risk@challenger", "traffictwin-risk", "challenger"),
+        ("champion", None, "champion"),
+    ],
+)
+def test_a_reference_resolves_against_the_registry_even_beside_a_folder_of_its_name(
+    tmp_path, monkeypatch, text, name, alias
+):
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / text.removeprefix("models:/")
+    folder.mkdir(parents=True)
+    (folder / "model_meta.json").write_text("{}")
+    assert reg.split_model_reference(text) == (name, alias, None)
+    # the folder is reached as a path, with a directory part
+    assert reg.split_model_reference(f"./{text.removeprefix('models:/')}") == (
+        None,
+        None,
+        folder.relative_to(tmp_path),
+    )
+    assert folder.is_dir()  # untouched
+
+
+def test_a_path_is_a_path_and_a_bad_reference_is_one_line(tmp_path):
+    d = tmp_path / "m"
+    d.mkdir()
+    assert reg.split_model_reference(d) == (None, None, d)
+    for text, needle in [
+        (str(tmp_path / "missing"), "neither a registry reference"),
+        ("@champion", "not a registry reference"),
+        ("traffictwin-risk@", "not a registry reference"),
+    ]:
+        with pytest.raises(reg.RegistryError) as info:
+            reg.split_model_reference(text)
+        assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "uri, secret",
+    [
+        ("postgresql://u:secret@127.0.0.1:9/x", "secret"),
+        ("mysql+pymysql://user:p%40ss@db.example/mlflow", "p%40ss"),
+        ("https://mlflow.example/api?token=tok123&x=1", "tok123"),
+        ("http://a:b@c@127.0.0.1:9", "b@c"),
+    ],
+)
+def test_secrets_in_uris_are_masked(uri, secret):
+    masked = mask_uri(uri)
+    assert secret not in masked and "***" in masked
+    assert (
+        mask_secrets(f"{uri}: model registry unreachable")
+        == f"{masked}: model registry unreachable"
+    )
+    assert mask_uri("sqlite:////tmp/a@b/mlflow.db") == "sqlite:////tmp/a@b/mlflow.db"
+
+
+@pytest.mark.parametrize("command", [["status"], ["rollback", "--model", "traffictwin-fusion"]])
+def test_registry_commands_never_print_the_password(capsys, command):
+    uri = "postgresql://u:secret@127.0.0.1:9/x"
+    assert cli.main([*command, "--tracking-uri", uri]) == 1
+    out, err = capsys.readouterr()
+    assert "secret" not in out + err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "postgresql://u:***@127.0.0.1:9/x" in lines[0], lines
