@@ -135,6 +135,22 @@ class LegacyModelError(ModelArtifactError, IncompatibleModelError):
     """A model logged as an ``mlflow.pytorch`` pickle: it is never loaded (that would run its code)."""
 
 
+#: the request params a served model takes (name, MLflow type; :mod:`traffictwin.mlops.serving`)
+SERVING_PARAMS = (("max_batch", "long"),)
+
+
+def with_serving_params(signature: Any) -> Any:
+    """``signature`` with a params schema of :data:`SERVING_PARAMS` (default None: the server's
+    limit), so MLflow passes a request's params to ``predict`` instead of dropping them."""
+    from mlflow.models import ModelSignature
+    from mlflow.types.schema import ParamSchema, ParamSpec
+
+    if getattr(signature, "params", None) is not None:
+        return signature
+    params = ParamSchema([ParamSpec(n, t, None) for n, t in SERVING_PARAMS])
+    return ModelSignature(inputs=signature.inputs, outputs=signature.outputs, params=params)
+
+
 def file_hashes(
     folder: str | Path, names: list[str] | tuple[str, ...] | None = None
 ) -> dict[str, str]:
@@ -265,7 +281,7 @@ def save_model(
             raise ModelArtifactError(f"save_model: bad artifact file name {name!r}")
         shutil.copyfile(src, out / name)
     if signature is not None:
-        mlflow_model.signature = signature
+        mlflow_model.signature = with_serving_params(signature)
     if input_example is not None:
         from mlflow.models.utils import _save_example
 

@@ -30,10 +30,13 @@ checks the input before the network runs and refuses it with an ``MlflowExceptio
 ``INVALID_PARAMETER_VALUE`` (``mlflow models serve`` answers HTTP 400 with the one-line reason):
 
 - at most :func:`max_batch` samples (:data:`MAX_BATCH`; the environment variable
-  ``TRAFFICTWIN_SERVE_MAX_BATCH`` of the server sets it, a request's ``max_batch`` param can
-  only lower it), each of the model's shape (fusion / registration: the training grid of its
+  ``TRAFFICTWIN_SERVE_MAX_BATCH`` of the server sets it, a request's ``"params": {"max_batch":
+  n}`` can only lower it: the logged signature declares that one param, so MLflow passes it on
+  and refuses a non-integer or a bool with HTTP 400; MLflow drops any other param with a log
+  line before the model sees it), each of the model's shape (fusion / registration: the training grid of its
   metadata; risk: the network's or the predictor's input);
-- finite numbers only (a value beyond float32 counts as infinite);
+- numbers only, never bools (``true`` / ``false``), finite (a value beyond float32 counts as
+  infinite);
 - plausible values: masses in [0, 1] with m_F + m_O <= 1 (within :data:`MASS_TOL`); normalised
   DAVE-2 channels within ±:data:`CHANNEL_BOUND`; a speed plane constant per sample and within
   the model's training speed range (``domain.speed_range`` / ``domain.max_speed`` of its
@@ -178,7 +181,7 @@ class TrafficTwinModel:
             a = np.asarray(model_input)
         except (TypeError, ValueError) as exc:
             raise _refuse(f"{who}: not a numeric array ({type(exc).__name__})") from None
-        if a.dtype.kind not in "biuf":
+        if a.dtype.kind not in "iuf":  # never bools as numbers
             raise _refuse(f"{who}: expected a float32 array, got dtype {a.dtype}")
         if a.ndim < 2 or a.shape[0] < 1:
             raise _refuse(
