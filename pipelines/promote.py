@@ -293,6 +293,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, RuntimeError) as exc:  # ConfigError, GateError, dataset/model errors
         print(f"promote: error: {mask_secrets(' '.join(str(exc).split()))}", file=sys.stderr)
         return 1
+    except Exception as exc:  # noqa: BLE001 - the store itself (SQLAlchemy, OSError): one line
+        first = (str(exc).strip().splitlines() or [""])[0][:300]
+        print(f"promote: error: {type(exc).__name__}: {mask_secrets(first)}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps([d.to_dict() for d in decisions], indent=2, default=str))
     else:

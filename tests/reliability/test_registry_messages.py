@@ -3,6 +3,9 @@ password (or token) in a tracking URI never reaches a message."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from traffictwin import cli
@@ -76,3 +79,67 @@ def test_registry_commands_never_print_the_password(capsys, command):
     assert "secret" not in out + err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "postgresql://u:***@127.0.0.1:9/x" in lines[0], lines
+
+
+def test_a_model_file_is_refused_with_its_folder_named(tmp_path):
+    meta = tmp_path / "m" / "model_meta.json"
+    meta.parent.mkdir()
+    meta.write_text("{}")
+    with pytest.raises(reg.RegistryError) as info:
+        reg.split_model_reference(meta)
+    msg = str(info.value)
+    assert f"pass the model folder that holds it ({meta.parent})" in msg
+    assert "weights_only" not in msg
+
+
+# ------------------------------------------------------------------ one line instead of a traceback
+
+
+def test_promote_on_a_file_that_is_not_a_database_is_one_line(tmp_path, monkeypatch, capsys):
+    from pipelines import promote as pm
+
+    db = tmp_path / "r.db"
+    db.write_bytes(np.random.default_rng(0).bytes(4096))
+    before = db.read_bytes()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+    monkeypatch.setattr(pm, "build_jobs", lambda cfg, rc: [])
+    assert pm.main(["--dry-run"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"promote: error: {db}: not an MLflow database (not a SQLite file) — check "
+        "MLFLOW_TRACKING_URI / --tracking-uri"
+    ]
+    assert db.read_bytes() == before
+
+
+def test_read_only_sqlite_uri_is_accepted_for_status(cl, mlflow_uri, capsys):
+    from mlflow.exceptions import MlflowException
+
+    cl.create_registered_model("traffictwin-ro")
+    db = Path(mlflow_uri.removeprefix("sqlite:///"))
+    before = db.read_bytes()
+    ro = f"{mlflow_uri}?mode=ro"
+    assert cli.main(["status", "--tracking-uri", ro]) == 0
+    assert "traffictwin-ro" in capsys.readouterr().out
+    assert db.read_bytes() == before
+    with pytest.raises(MlflowException, match="readonly"):  # really read-only
+        reg.client(ro).create_registered_model("traffictwin-w")
+
+
+def test_status_of_an_unknown_model_exits_1_with_one_line(cl, mlflow_uri, capsys):
+    cl.create_registered_model("traffictwin-fusion")
+    assert cli.main(["status", "--model", "nope", "--tracking-uri", mlflow_uri]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err.strip().splitlines() == [
+        "traffictwin status: error: --model: no registered model 'nope' "
+        "(registered: traffictwin-fusion)"
+    ]
+
+
+def test_gate_says_which_figure_is_missing_instead_of_nan():
+    from traffictwin.mlops.gate import Gate, compare
+
+    better, why = compare(Gate("test/mse", "min", 0.01), float("nan"), 0.5)
+    assert not better and "nan >" not in why and "improvement nan" not in why
+    assert "no finite figure for the challenger" in why

@@ -137,9 +137,14 @@ def client(uri: str | None = None):
     import mlflow
     from mlflow import MlflowClient
 
-    from traffictwin.mlops.tracking import tracking_uri
+    from traffictwin.mlops.tracking import check_sqlite_store, sqlalchemy_uri, tracking_uri
 
     uri = uri or tracking_uri()
+    try:
+        check_sqlite_store(uri)
+    except ValueError as exc:
+        raise RegistryError(str(exc)) from None
+    uri = sqlalchemy_uri(uri)  # ?mode=ro: read-only, as asked
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     return MlflowClient(tracking_uri=uri, registry_uri=uri)

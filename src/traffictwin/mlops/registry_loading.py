@@ -54,8 +54,8 @@ def split_model_reference(
     holds: a bare alias (``champion``: the caller's family), ``name@alias`` (no ``/``) and
     ``models:/name@alias``. Everything else is a path, and a path is only a path: a folder whose
     name looks like a reference is passed with a directory part (``./traffictwin-risk@champion``,
-    ``./champion``). Raises :class:`RegistryError` for a reference with an empty name or alias
-    and for a path that does not exist.
+    ``./champion``). Raises :class:`RegistryError` for a reference with an empty name or alias,
+    a path that does not exist, and a file (``model_meta.json``: pass its folder).
     """
     text = os.fspath(model)
     if isinstance(text, bytes):
@@ -78,6 +78,11 @@ def split_model_reference(
         raise RegistryError(
             f"--model: '{text}' is neither a registry reference (name@alias, or "
             f"{' / '.join(aliases)}) nor an existing model folder"
+        )
+    if not p.is_dir():
+        raise RegistryError(
+            f"--model: '{text}' is a file; pass the model folder that holds it"
+            + (f" ({p.parent})" if p.name in ("model_meta.json", "model.ckpt") else "")
         )
     return None, None, p
 
