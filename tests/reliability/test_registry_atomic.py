@@ -141,3 +141,11 @@ def test_dry_run_registers_nothing_and_writes_no_file(cl, tmp_path, monkeypatch,
     assert str(reg.get_alias(cl, NAME, "champion").version) == champ
     assert log.read_bytes() == log_before
     assert np.isfinite(_w(reg.version_uri(NAME, champ))["test/w"])
+
+
+def test_dry_run_creates_no_database(tmp_path, monkeypatch):
+    db = tmp_path / "none.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+    with pytest.raises(reg.RegistryError, match="no MLflow database"):
+        promotion.promote([], promotion.PromotionSettings(dry_run=True))
+    assert not db.exists()

@@ -371,6 +371,14 @@ def promote(
     """
     if settings.log_path is not None and not settings.dry_run:
         reg.check_log_path(settings.log_path, "promotion log")  # before anything changes
+    if settings.dry_run and client is None:
+        from traffictwin.mlops.tracking import sqlite_path, tracking_uri
+
+        db = sqlite_path(settings.uri or tracking_uri())
+        if db is not None and not db.exists():
+            raise reg.RegistryError(
+                f"{db}: no MLflow database (a dry run creates none); run the pipeline first"
+            )
     cl = client if client is not None else reg.client(settings.uri)
     if settings.dry_run:  # registers nothing, moves nothing, writes no file (not even the lock)
         pending = _decide_all(cl, jobs, settings)
