@@ -58,13 +58,22 @@ def _bad_logs(tmp_path):
         "fifo": (fifo, "is a FIFO"),
         "symlink": (link, "is a symlink"),
         "not_jsonl": (tmp_path / "notes.txt", "is not a promotion log"),
-        "no_folder": (tmp_path / "nope" / "log.jsonl", "does not exist"),
+        "under_a_file": (tmp_path / "notes.txt" / "log.jsonl", "is not a folder"),
     }
 
 
 @pytest.mark.parametrize(
     "case",
-    ["model_meta", "in_model", "database", "folder", "fifo", "symlink", "not_jsonl", "no_folder"],
+    [
+        "model_meta",
+        "in_model",
+        "database",
+        "folder",
+        "fifo",
+        "symlink",
+        "not_jsonl",
+        "under_a_file",
+    ],
 )
 def test_rollback_with_a_bad_log_moves_nothing(cl, tmp_path, capsys, case):
     log = tmp_path / "promotions.jsonl"

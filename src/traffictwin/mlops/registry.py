@@ -390,7 +390,8 @@ def check_log_path(path: str | Path, who: str = "--log") -> Path:
     Refused: a path that exists and is not a regular file (folder, FIFO, device, socket,
     symlink), a SQLite database (the registry's own ``mlflow.db``), a file in a model folder
     (one holding ``model_meta.json``, ``model.ckpt`` or ``MLmodel``), an existing file that is
-    not JSON lines, a folder that does not exist or cannot be written. Only ``lstat``, 16 bytes
+    not JSON lines, a path whose folder (or, if missing, nearest existing folder above it) is
+    not a writable folder. Only ``lstat``, 16 bytes
     and (for an existing log) its lines are read: a FIFO is never opened.
     """
     import os
@@ -399,7 +400,7 @@ def check_log_path(path: str | Path, who: str = "--log") -> Path:
     p = Path(path)
     try:
         st = os.lstat(p)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):
         st = None
     except OSError as exc:
         raise RegistryError(f"{who} {p}: cannot be examined ({exc.strerror})") from None
@@ -423,9 +424,12 @@ def check_log_path(path: str | Path, who: str = "--log") -> Path:
             f"{who} {p}: lies in a model folder ({', '.join(hits) or p.name} there); a promotion "
             "log must not be written into a model: pass a file such as reports/promotions.jsonl"
         )
-    if not parent.is_dir():
-        raise RegistryError(f"{who} {p}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK) or (st is not None and not os.access(p, os.W_OK)):
+    base = parent  # the folder is created if missing: its nearest existing ancestor must do
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise RegistryError(f"{who} {p}: {base} is not a folder")
+    if not os.access(base, os.W_OK) or (st is not None and not os.access(p, os.W_OK)):
         raise RegistryError(f"{who} {p}: not writable")
     if st is not None and st.st_size:
         with open(p, "rb") as fh:
