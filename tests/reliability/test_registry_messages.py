@@ -112,18 +112,21 @@ def test_promote_on_a_file_that_is_not_a_database_is_one_line(tmp_path, monkeypa
     assert db.read_bytes() == before
 
 
-def test_read_only_sqlite_uri_is_accepted_for_status(cl, mlflow_uri, capsys):
+def test_read_only_sqlite_uri_opens_the_registry_read_only(cl, mlflow_uri):
     from mlflow.exceptions import MlflowException
+
+    from traffictwin.mlops.stores import sqlite_path
 
     cl.create_registered_model("traffictwin-ro")
     db = Path(mlflow_uri.removeprefix("sqlite:///"))
     before = db.read_bytes()
     ro = f"{mlflow_uri}?mode=ro"
-    assert cli.main(["status", "--tracking-uri", ro]) == 0
-    assert "traffictwin-ro" in capsys.readouterr().out
-    assert db.read_bytes() == before
+    assert sqlite_path(ro) == db
+    ro_client = reg.client(ro)
+    assert reg.registered_names(ro_client) == ["traffictwin-ro"]
     with pytest.raises(MlflowException, match="readonly"):  # really read-only
-        reg.client(ro).create_registered_model("traffictwin-w")
+        ro_client.create_registered_model("traffictwin-w")
+    assert db.read_bytes() == before
 
 
 def test_status_of_an_unknown_model_exits_1_with_one_line(cl, mlflow_uri, capsys):

@@ -372,7 +372,8 @@ def promote(
     if settings.log_path is not None and not settings.dry_run:
         reg.check_log_path(settings.log_path, "promotion log")  # before anything changes
     if settings.dry_run and client is None:
-        from traffictwin.mlops.tracking import sqlite_path, tracking_uri
+        from traffictwin.mlops.stores import sqlite_path
+        from traffictwin.mlops.tracking import tracking_uri
 
         db = sqlite_path(settings.uri or tracking_uri())
         if db is not None and not db.exists():

@@ -85,6 +85,7 @@ from traffictwin.mlops.registry_versions import (
     planned_version,
     retire_versions_after,
 )
+from traffictwin.mlops.stores import SQLITE_MAGIC
 
 __all__ = [
     "CACHE_ENV",
@@ -137,7 +138,8 @@ def client(uri: str | None = None):
     import mlflow
     from mlflow import MlflowClient
 
-    from traffictwin.mlops.tracking import check_sqlite_store, sqlalchemy_uri, tracking_uri
+    from traffictwin.mlops.stores import check_sqlite_store, sqlalchemy_uri
+    from traffictwin.mlops.tracking import tracking_uri
 
     uri = uri or tracking_uri()
     try:
@@ -377,8 +379,6 @@ def rollback(
     return record
 
 
-#: the first bytes of every SQLite database file
-SQLITE_MAGIC = b"SQLite format 3\x00"
 #: files that mark a folder as a model folder (a log written there would sit in the model)
 MODEL_FILES = ("model_meta.json", "model.ckpt", "MLmodel")
 
