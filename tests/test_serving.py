@@ -1,4 +1,4 @@
-"""Logged models as MLflow pyfunc models served by the installed traffictwin (issue 17, item 7).
+"""Logged models as MLflow pyfunc models served by the installed traffictwin.
 
 A small risk network (DAVE-2 with the speed input, random seeded weights) is logged with
 :func:`traffictwin.trainer.log_model` to a temp SQLite store, then loaded with
