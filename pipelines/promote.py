@@ -51,6 +51,7 @@ from traffictwin.fusion.config import pose_configurations, training_noise
 from traffictwin.mlops import promotion
 from traffictwin.mlops.config import RegistryConfig
 from traffictwin.mlops.gate import Decision
+from traffictwin.mlops.uris import mask_secrets
 from traffictwin.risk.config import EvalRiskConfig
 
 SHIPPED = "shipped"  # registry.risk.variant: the predictor select_risk chose on validation
@@ -290,7 +291,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         decisions = promote(set(args.only) if args.only else None, args.dry_run, args.force)
     except (ValueError, RuntimeError) as exc:  # ConfigError, GateError, dataset/model errors
-        print(f"promote: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        print(f"promote: error: {mask_secrets(' '.join(str(exc).split()))}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - the store itself (SQLAlchemy, OSError): one line
+        first = (str(exc).strip().splitlines() or [""])[0][:300]
+        print(f"promote: error: {type(exc).__name__}: {mask_secrets(first)}", file=sys.stderr)
         return 1
     if args.json:
         print(json.dumps([d.to_dict() for d in decisions], indent=2, default=str))

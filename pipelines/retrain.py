@@ -9,6 +9,8 @@
    params.yaml, dvc.lock, reports/, the ``dvc status``, the seeds, the step.
 4. **New data**: each ``registry.retrain.seed_keys`` bumped by ``seed_step`` (or ``--seed``) as a
    Hydra override; params.yaml recomposed from conf/ (never edited); ``dvc repro [--targets]``.
+   ``--targets`` whose stages and upstream stages consume no seed key (e.g. ``environment``) are
+   refused before anything is written (exit 1, one line): a new seed would retrain nothing.
 5. **Gate**: :func:`pipelines.promote.promote` (``--only``; ``--no-promote`` skips it).
 6. **Summary** ``<registry.retrain.summary>.{json,md}`` on every exit path of a run holding the
    lock: ``succeeded``, ``failed`` or ``interrupted``.
@@ -36,6 +38,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from pipelines import promote as promote_mod
@@ -50,6 +53,7 @@ from traffictwin.mlops import registry as reg
 from traffictwin.mlops.config import compose_with_seeds, seed_overrides
 from traffictwin.mlops.journal import Journal, LockBusy, exclusive_lock
 from traffictwin.mlops.retrain_summary import summary_markdown
+from traffictwin.mlops.uris import mask_secrets
 
 EXIT_LOCKED = 75  # EX_TEMPFAIL: try again later
 FAIL_ENV = "TRAFFICTWIN_RETRAIN_FAIL_AT"
@@ -212,6 +216,35 @@ def _undo(run: _Run, exc: BaseException) -> None:
         s["restore_problems"] = problems
 
 
+def seedless_targets(root, targets: list[str], seed_keys: list[str]) -> list[str]:
+    """The ``targets`` whose stage and upstream stages (DVC's own graph) consume none of
+    ``seed_keys``: a new data seed would not change what ``dvc repro`` of them makes. A key is
+    consumed by a stage whose ``params`` list it, a group above it or a key below it."""
+    from dvc.dependency.param import ParamsDependency
+    from dvc.repo import Repo
+
+    def consumes(param: str) -> bool:
+        return any(
+            param == k or k.startswith(f"{param}.") or param.startswith(f"{k}.") for k in seed_keys
+        )
+
+    out = []
+    with Repo(str(root)) as repo:
+        for t in targets:
+            ref = t if ":" in t else f"{Path(root) / 'dvc.yaml'}:{t}"  # not the cwd's
+            stages = repo.stage.collect(ref, with_deps=True)
+            params = {
+                p
+                for st in stages
+                for d in st.deps
+                if isinstance(d, ParamsDependency)
+                for p in d.params
+            }
+            if not any(consumes(p) for p in params):
+                out.append(t)
+    return out
+
+
 def retrain(
     seed: int | None = None,
     targets: list[str] | None = None,
@@ -268,8 +301,19 @@ def main(argv: list[str] | None = None) -> int:
         rc = promote_mod.registry_config(cfg)
         if args.only:
             promotion.select(promote_mod.build_jobs(cfg, rc), args.only)  # unknown name: error now
+        if args.targets:  # refuse before the seed is written (nothing changed yet)
+            keys = list(rc.retrain.seed_keys)
+            idle = seedless_targets(ROOT, args.targets, keys)
+            if idle:
+                raise ConfigError(
+                    f"--targets {' '.join(idle)}: neither the stage nor any stage it depends on "
+                    f"consumes the data seed key(s) {', '.join(keys)} "
+                    "(registry.retrain.seed_keys), so a new seed would retrain nothing; nothing "
+                    "changed — name a stage that depends on the data (e.g. train_fusion) or drop "
+                    "--targets"
+                )
     except (ConfigError, reg.RegistryError) as exc:
-        print(f"retrain: error: {exc}", file=sys.stderr)
+        print(f"retrain: error: {mask_secrets(str(exc))}", file=sys.stderr)
         return 1
     only = set(args.only) if args.only else None
     try:
@@ -286,7 +330,9 @@ def main(argv: list[str] | None = None) -> int:
         kept = "previous data and champions kept" if s.get("restored") else "NOT restored: "
         kept += "; ".join(s.get("restore_problems") or [])
         print(
-            f"retrain: {s['status']} in step '{s.get('failed_step')}': {s.get('error')} ({kept})",
+            mask_secrets(
+                f"retrain: {s['status']} in step '{s.get('failed_step')}': {s.get('error')} ({kept})"
+            ),
             file=sys.stderr,
         )
     if s.get("signal"):

@@ -157,6 +157,9 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch, cap
     first = jobs(a=1.0, b=2.0)
     capfd.readouterr()
     ds = promotion.promote(first, promotion.PromotionSettings(dry_run=True))
+    assert [d.action for d in ds] == ["first", "first"] and not log.exists()
+    assert reg.registered_names(cl) == []  # dry run: nothing registered, no alias moved
+    ds = promotion.promote(first, settings)
     # registering a new model says nothing on stderr (mlflow.register_model printed "Registered
     # model 'm-a' already exists" for every version); the versions link back from the logged model
     assert "already exists" not in capfd.readouterr().err
@@ -164,10 +167,10 @@ def test_promote_decides_all_then_applies(tmp_path, mlflow_uri, monkeypatch, cap
     lm = cl.get_logged_model(mv.source.removeprefix("models:/"))
     assert json.loads(lm.tags["mlflow.modelVersions"]) == [{"name": "m-a", "version": 1}]
     assert mv.run_id == json.loads(_record(tmp_path / "a").read_text())["run_id"]
-    assert [d.action for d in ds] == ["first", "first"] and not log.exists()
-    assert reg.get_alias(cl, "m-a", "champion") is None  # dry run: no alias moved
-    ds = promotion.promote(first, settings)  # same runs: registered once
     assert [d.action for d in ds] == ["first", "first"]
+    ds = promotion.promote(first, promotion.PromotionSettings(dry_run=True))  # same runs
+    assert [d.challenger_version for d in ds] == ["1", "1"]  # known as their versions
+    assert len(cl.search_model_versions("name='m-a'")) == 1
     assert cl.get_model_version("m-a", "1").tags["model_dir"] == "a"
     ds = promotion.promote(jobs(a=1.05, b=3.0), settings)
     assert "already exists" not in capfd.readouterr().err

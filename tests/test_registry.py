@@ -188,7 +188,7 @@ def test_promotion_writes_the_model_card_as_the_version_description(cl, tmp_path
         NAME, GATE, folder, lambda c: (_evaluate, "fp-1"), record, card=lambda c: card
     )
     promotion.promote([job], promotion.PromotionSettings(dry_run=True), client=cl)
-    assert not cl.get_model_version(NAME, "1").description  # dry run: no card
+    assert not cl.search_model_versions(f"name='{NAME}'")  # dry run: nothing registered
     (d,) = promotion.promote([job], promotion.PromotionSettings(), client=cl)
     text = cl.get_model_version(NAME, "1").description
     assert text == promotion.model_card(promotion.read_candidate(NAME, folder, record), d, card)

@@ -1,10 +1,10 @@
-"""Logged models as MLflow pyfunc models that load where traffictwin is not installed (issue 17, item 7).
+"""Logged models as MLflow pyfunc models served by the installed traffictwin.
 
 A small risk network (DAVE-2 with the speed input, random seeded weights) is logged with
 :func:`traffictwin.trainer.log_model` to a temp SQLite store, then loaded with
-``mlflow.pyfunc.load_model`` in a fresh interpreter whose ``sys.path`` holds only the standard
-library and the venv's site-packages *without* processing ``.pth`` files (``python -S``), so the
-editable install of traffictwin is not importable there: the model must bring its own code.
+``mlflow.pyfunc.load_model`` in a fresh interpreter: the model carries no code, so the pyfunc
+imports the installed package; an interpreter without it (``python -S``: no ``.pth`` file, no
+editable install) cannot load the model and says that ``traffictwin`` is missing.
 """
 
 from __future__ import annotations
@@ -60,12 +60,12 @@ def test_model_directory_has_pyfunc_code_requirements_and_example(cl, tmp_path: 
     mlmodel = yaml.safe_load((folder / "MLmodel").read_text())
     pyfunc = mlmodel["flavors"]["python_function"]
     assert pyfunc["loader_module"] == "traffictwin.mlops.serving"
-    assert pyfunc["code"] == "code"
+    assert "code" not in pyfunc  # no executable code: the installed package serves it
+    assert mlmodel["flavors"]["traffictwin"][art.VERSION_KEY] == art.installed_version()
     assert mlmodel["flavors"]["traffictwin"]["problem"] == "risk"
     assert "pickled_model" not in json.dumps(mlmodel) and "python_model" not in pyfunc
-    # the package source, without byte code
-    assert (folder / "code" / "traffictwin" / "mlops" / "serving.py").is_file()
-    assert not list((folder / "code").rglob("*.pyc"))
+    assert not (folder / "code").exists()
+    assert not [p for p in folder.rglob("*") if p.suffix in (".py", ".pyc", ".pth", ".so")]
     # requirements: pinned, torch with the CPU index, never traffictwin itself
     reqs = (folder / "requirements.txt").read_text().splitlines()
     assert reqs[0] == f"--extra-index-url {art.TORCH_CPU_INDEX}"
@@ -75,20 +75,20 @@ def test_model_directory_has_pyfunc_code_requirements_and_example(cl, tmp_path: 
     # the input example is the logged array
     ex = json.loads((folder / mlmodel["saved_input_example_info"]["artifact_path"]).read_text())
     np.testing.assert_array_equal(np.asarray(ex, np.float32), example)
-    # every file the flavour wrote is sealed by the SHA-256 record, the code included (MLflow
+    # every file the flavour wrote is sealed by the SHA-256 record (MLflow
     # adds two descriptive files after the flavour's save_model hook returns)
     lm = cl.get_logged_model(uri.removeprefix("models:/"))
     record = art.decode_hashes(lm.tags[art.SHA_TAG], "t")
     files = {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()}
     assert set(record) <= files
     assert files - set(record) <= {"registered_model_meta", "serving_input_example.json"}
-    assert "code/traffictwin/mlops/serving.py" in record and "requirements.txt" in record
+    assert "requirements.txt" in record
     art.verify(folder, record, "t")
 
 
-def _clean_python_script(uri: str, x_path: Path, y_path: Path) -> str:
+def _python_script(uri: str, x_path: Path, y_path: Path, clean: bool) -> str:
     site = sysconfig.get_paths()["purelib"]
-    return textwrap.dedent(
+    head = (
         f"""
         import sys
         sys.path.append({site!r})  # the venv's packages, but no .pth file (no editable install)
@@ -98,6 +98,12 @@ def _clean_python_script(uri: str, x_path: Path, y_path: Path) -> str:
             pass
         else:
             raise SystemExit("traffictwin is importable in the clean interpreter: " + traffictwin.__file__)
+        """
+        if clean
+        else ""
+    )
+    return textwrap.dedent(head) + textwrap.dedent(
+        f"""
         import numpy as np
         import mlflow
         mlflow.set_tracking_uri({os.environ["MLFLOW_TRACKING_URI"]!r})
@@ -109,27 +115,38 @@ def _clean_python_script(uri: str, x_path: Path, y_path: Path) -> str:
     )
 
 
-def test_pyfunc_loads_in_a_clean_interpreter_and_predicts_like_the_eager_model(
+def test_pyfunc_loads_the_installed_package_and_predicts_like_the_eager_model(
     cl, tmp_path: Path
 ) -> None:
     uri, example, eager = _logged_risk_model(tmp_path)
     x_path, y_path = tmp_path / "x.npy", tmp_path / "y.npy"
     np.save(x_path, example)
-    work = tmp_path / "clean"
+    work = tmp_path / "w"
     work.mkdir()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}
     proc = subprocess.run(
-        [sys.executable, "-S", "-c", _clean_python_script(uri, x_path, y_path)],
+        [sys.executable, "-c", _python_script(uri, x_path, y_path, clean=False)],
         cwd=work,
-        env=env,
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-2000:]
     src = proc.stdout.split("traffictwin from", 1)[1].strip().splitlines()[0]
-    assert "/code/traffictwin/" in src and not src.startswith(str(Path(art.__file__).parents[2]))
+    assert src == str(Path(serving.__file__).parents[1] / "__init__.py")  # the installed source
     np.testing.assert_array_equal(np.load(y_path), eager)
+
+    # without the package the model cannot load: it brings no code of its own
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}
+    proc = subprocess.run(
+        [sys.executable, "-S", "-c", _python_script(uri, x_path, y_path, clean=True)],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode != 0
+    assert "No module named 'traffictwin'" in proc.stderr, proc.stderr[-2000:]
 
 
 def test_unknown_problem_is_refused_with_the_folder_named(tmp_path: Path) -> None:

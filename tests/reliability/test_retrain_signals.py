@@ -353,3 +353,29 @@ def test_signals_raise_once_then_are_only_noted():
         guard.hold()  # the gate moves aliases: a signal must not cut it short
         os.kill(os.getpid(), signal.SIGTERM)
         assert guard.received == signal.SIGTERM
+
+
+def test_targets_that_consume_no_seed_are_refused_before_anything_changes(repo: Path) -> None:
+    """`--targets environment` once wrote a new seed into params.yaml and reported success with
+    the data unchanged."""
+    doc = yaml.safe_load((repo / "dvc.yaml").read_text())
+    doc["stages"]["environment"] = {
+        "cmd": "python toy.py ev out/environment",
+        "deps": ["toy.py"],
+        "outs": ["out/environment"],
+    }
+    (repo / "dvc.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    before, seed = _state(repo), _seed(repo)
+    e = _env(repo)
+    cmd = [sys.executable, "-m", "pipelines.retrain", "--no-promote", "--targets", "environment"]
+    proc = subprocess.run(cmd, cwd=repo, env=e, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
+    err = [ln for ln in proc.stderr.splitlines() if ln.startswith("retrain:")]
+    assert len(err) == 1 and "--targets environment: neither the stage nor" in err[0], proc.stderr
+    assert "consumes the data seed key(s) seed" in err[0]
+    assert _state(repo) == before and _seed(repo) == seed
+    assert not (repo / "out" / "environment").exists()
+    assert not (repo / "reports" / "retrain_summary.json").exists()
+    # a target downstream of the seeded stage passes the check
+    assert rt.seedless_targets(repo, ["train", "environment"], ["seed"]) == ["environment"]
+    assert rt.seedless_targets(repo, ["gen"], ["seed.sub"]) == []

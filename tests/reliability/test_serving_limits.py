@@ -185,9 +185,11 @@ def test_a_non_finite_output_is_never_returned():
 # ------------------------------------------------------------------ through MLflow's scoring server
 
 
-def _post(app, payload: dict) -> tuple[int, dict]:
-    """POST ``payload`` as JSON to ``/invocations`` of the ASGI ``app``; (status, JSON body)."""
-    body = json.dumps(payload).encode()  # NaN is written as the literal NaN, as clients do
+def _post(app, payload: dict | bytes) -> tuple[int, dict]:
+    """POST ``payload`` as JSON (or raw bytes) to ``/invocations`` of the ASGI ``app``; (status,
+    JSON body)."""
+    # NaN is written as the literal NaN, as clients do
+    body = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
     sent: list[dict] = []
 
     async def call() -> None:
@@ -280,3 +282,65 @@ def test_scoring_server_answers_400_to_nan_speed_and_batch(served, monkeypatch):
         assert status == 400, (case, status, body)
         assert body["error_code"] == "INVALID_PARAMETER_VALUE", (case, body)
         assert needle in body["message"] and "risk model input" in body["message"], (case, body)
+
+
+# ------------------------------------------------------------------ params, bools, bounds before parsing
+
+
+def test_request_params_max_batch_is_honoured_and_checked(served):
+    x = _risk_input(2).tolist()
+    status, body = _post(served, {"inputs": x, "params": {"max_batch": 1}})
+    assert status == 400 and "batch of 2 samples, more than the limit of 1" in body["message"]
+    status, body = _post(served, {"inputs": x, "params": {"max_batch": 2}})
+    assert status == 200 and len(body["predictions"]) == 2
+    for bad in (True, 1.5, "3"):
+        status, body = _post(served, {"inputs": x, "params": {"max_batch": bad}})
+        assert status == 400, (bad, body)
+        assert "max_batch" in body["message"], (bad, body)
+
+
+def test_bools_are_not_numbers(risk_model, served):
+    from traffictwin.mlops import serving_app
+
+    x = _risk_input(1) > 0
+    _refused(risk_model, x, "expected a float32 array, got dtype bool")
+    # MLflow's own server casts them to 1.0 / 0.0 by the signature before predict (documented);
+    # the bounded app refuses them before parsing
+    x = _risk_input(1).tolist()
+    x[0][0][0][0] = True
+    status, body = _post(serving_app.bounded(served, 1 << 20), {"inputs": x})
+    assert status == 400 and "true/false" in body["message"], body
+
+
+def test_bounded_app_refuses_size_and_nesting_before_parsing(served, monkeypatch):
+    import json as _json
+
+    from traffictwin.mlops import serving_app
+
+    calls = []
+
+    async def spy(scope, receive, send):
+        calls.append(scope["path"])
+        await served(scope, receive, send)
+
+    ok = {"inputs": _risk_input(2).tolist()}
+    limit = len(_json.dumps(ok).encode()) + 10
+    app = serving_app.bounded(spy, limit)
+    status, body = _post(app, ok)
+    assert status == 200 and len(body["predictions"]) == 2 and calls == ["/invocations"]
+
+    status, body = _post(app, {"inputs": _risk_input(3).tolist()})  # bigger than the limit
+    assert status == 413 and f"more than the limit of {limit}" in body["message"], body
+    deep = b'{"inputs": ' + b"[" * 3000 + b"1" + b"]" * 3000 + b"}"
+    status, body = _post(serving_app.bounded(spy, 1 << 20), deep)
+    assert status == 400 and "nested 3001 levels deep" in body["message"], body
+    assert "\n" not in body["message"]
+    assert calls == ["/invocations"]  # neither reached MLflow's parser
+
+    # the limit follows the signature: max_batch samples of 5 x 8 x 8 values
+    monkeypatch.setenv(serving.ENV_MAX_BATCH, "2")
+    assert serving_app.max_request_bytes(320) == 2 * 320 * 16 + (1 << 20)
+    monkeypatch.setenv(serving_app.ENV_MAX_BYTES, "true")
+    with pytest.raises(ValueError, match="TRAFFICTWIN_SERVE_MAX_BYTES"):
+        serving_app.max_request_bytes(320)
+    assert serving_app.nesting_depth(b'{"a": [[1], [2]]}') == 3

@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from traffictwin.mlops.uris import mask_secrets
+
 from .common import CliError, add_arguments, arg, uri_option
 
 ROLLBACK_ARGUMENTS = [
@@ -47,7 +49,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def _registry_client(args: argparse.Namespace):
     from traffictwin import api
 
-    return api.connect(getattr(args, "tracking_uri", None))
+    try:
+        return api.connect(getattr(args, "tracking_uri", None))
+    except Exception as exc:  # noqa: BLE001 - one masked line (the URI's password never printed)
+        raise CliError(mask_secrets(" ".join(str(exc).split()))) from None
 
 
 def cmd_rollback(args: argparse.Namespace) -> int:
@@ -60,7 +65,7 @@ def cmd_rollback(args: argparse.Namespace) -> int:
         with reg.gate_lock(reg.default_lock_path(cl.tracking_uri)):
             rec = reg.rollback(cl, args.model, args.version, log_path=log_path)
     except reg.RegistryError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(mask_secrets(str(exc))) from None
     print(f"{rec['name']}: champion v{rec['from_version']} -> v{rec['to_version']}")
     if log_path is None:
         print("(no promotion log recorded for this model: pass --log FILE to log the rollback)")
@@ -74,6 +79,14 @@ def cmd_status(args: argparse.Namespace) -> int:
     names = args.model or sorted(
         m.name for m in cl.search_registered_models() if m.name.startswith("traffictwin-")
     )
+    if args.model:
+        known = set(reg.registered_names(cl))
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise CliError(
+                f"--model: no registered model {', '.join(repr(n) for n in unknown)} "
+                f"(registered: {', '.join(sorted(known)) or 'none'})"
+            )
     rows = reg.status(cl, names)
     if args.json:
         print(json.dumps(rows, indent=2))

@@ -158,7 +158,18 @@ def compare(gate: Gate, challenger_value: float, champion_value: float) -> tuple
     better = gate.passes(challenger_value, champion_value)
     word = "lower" if gate.mode == "min" else "higher"
     finite = math.isfinite(challenger_value) and math.isfinite(champion_value)
-    imp = gate.improvement(challenger_value, champion_value) if finite else float("nan")
+    if not finite:
+        missing = [
+            who
+            for who, v in (("challenger", challenger_value), ("champion", champion_value))
+            if not math.isfinite(v)
+        ]
+        return better, (
+            f"{gate.metric}: challenger {challenger_value:.6g} vs champion {champion_value:.6g} "
+            f"(no finite figure for the {' and the '.join(missing)}: nothing to compare, so "
+            f"{'it passes' if better else 'it does not pass'} the margin {gate.margin:g})"
+        )
+    imp = gate.improvement(challenger_value, champion_value)
     return better, (
         f"{gate.metric}: challenger {challenger_value:.6g} vs champion {champion_value:.6g} "
         f"({word} is better; improvement {imp:.3g} {'>' if better else '<='} margin {gate.margin:g})"

@@ -8,14 +8,21 @@ A trained network goes to MLflow as a model directory of the ``traffictwin`` fla
 - ``MLmodel`` — MLflow's description (signature, input example, metadata, the ``traffictwin``
   flavour block: format, problem, file names) and a ``python_function`` flavour
   (``loader_module: traffictwin.mlops.serving``, see :mod:`traffictwin.mlops.serving`);
-- ``code/traffictwin/`` — the package source the pyfunc flavour imports (MLflow puts ``code/`` on
-  ``sys.path``), so ``mlflow.pyfunc.load_model`` works where traffictwin is not installed;
+- no executable code: the pyfunc flavour names ``loader_module: traffictwin.mlops.serving`` and
+  no ``code`` folder, so ``mlflow.pyfunc.load_model`` and ``mlflow models serve`` import the
+  *installed* ``traffictwin`` (of a compatible version: :data:`VERSION_KEY` of the flavour block,
+  checked by :func:`check_installed_version` before the model is built). Nothing a writer of the
+  artifact store appends to the artifact is ever imported;
 - ``requirements.txt``, ``python_env.yaml``, ``conda.yaml`` — pinned requirements without
-  ``traffictwin`` (:func:`pip_requirements`);
+  ``traffictwin`` (:func:`pip_requirements`; no package index holds the project, and a name
+  looked up on a public index could be anyone's), so serve from an environment where the
+  project is installed (``--env-manager local``);
 - ``input_example.json`` / ``serving_input_example.json`` — the example the signature came from.
 
-No pickle anywhere: the weights are read with ``weights_only=True`` and the only code is the
-package source, whose files are hashed with the rest.
+No pickle and no code anywhere: the weights are read with ``weights_only=True``. A model logged by
+an earlier version of the project carries the package source under ``code/``, which MLflow's own
+loader would put on ``sys.path``: re-log it (retrain, ``python -m pipelines.promote``); the
+project's loader (:func:`traffictwin.mlops.registry.load_registered`) never imports it.
 
 :func:`log_model` writes the directory with MLflow's ``Model.log`` (so the logged model, its
 signature and the registry work as for any flavour), computes the SHA-256 of every file it wrote
@@ -66,6 +73,34 @@ SERVING_DISTRIBUTIONS = (
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 
 
+def installed_version() -> str:
+    """The version of the installed ``traffictwin`` distribution ("unknown" if not installed)."""
+    try:
+        return md.version("traffictwin")
+    except md.PackageNotFoundError:
+        return "unknown"
+
+
+def _release(version: str) -> tuple[str, ...]:
+    """The compatibility key of a version: ``major.minor`` (``0.x``: the minor is the major)."""
+    return tuple(version.split(".")[:2])
+
+
+def check_installed_version(block: Mapping[str, Any], who: str) -> None:
+    """Refuse a model logged by an incompatible ``traffictwin`` (another ``major.minor`` than the
+    installed one): :class:`IncompatibleModelError` naming both versions. A model without the
+    record (logged before it was kept) is accepted: its checkpoint format is checked on load."""
+    logged = block.get(VERSION_KEY)
+    if logged is None:
+        return
+    have = installed_version()
+    if not isinstance(logged, str) or _release(logged) != _release(have):
+        raise IncompatibleModelError(
+            f"{who}: logged by traffictwin {logged}, the installed traffictwin is {have}; "
+            f"install traffictwin {'.'.join(_release(str(logged)))}.x to load it"
+        )
+
+
 def pip_requirements() -> list[str]:
     """``requirements.txt`` lines: the PyTorch CPU index (torch's CPU wheels live only there) and
     every installed distribution of :data:`SERVING_DISTRIBUTIONS`, pinned ``name==version``."""
@@ -81,7 +116,8 @@ def pip_requirements() -> list[str]:
 FLAVOR = "traffictwin"
 ARTIFACT_FORMAT = "traffictwin-mlflow-model/1"
 CKPT = "model.ckpt"
-CODE = "code"  # the pyfunc flavour's code folder: code/traffictwin/ is the package source
+#: the flavour block's record of the traffictwin version that logged the model
+VERSION_KEY = "traffictwin_version"
 META = "model_meta.json"
 MLMODEL = "MLmodel"
 SHA_TAG = "traffictwin.sha256"
@@ -97,6 +133,22 @@ class TamperedArtifactError(ModelArtifactError):
 
 class LegacyModelError(ModelArtifactError, IncompatibleModelError):
     """A model logged as an ``mlflow.pytorch`` pickle: it is never loaded (that would run its code)."""
+
+
+#: the request params a served model takes (name, MLflow type; :mod:`traffictwin.mlops.serving`)
+SERVING_PARAMS = (("max_batch", "long"),)
+
+
+def with_serving_params(signature: Any) -> Any:
+    """``signature`` with a params schema of :data:`SERVING_PARAMS` (default None: the server's
+    limit), so MLflow passes a request's params to ``predict`` instead of dropping them."""
+    from mlflow.models import ModelSignature
+    from mlflow.types.schema import ParamSchema, ParamSpec
+
+    if getattr(signature, "params", None) is not None:
+        return signature
+    params = ParamSchema([ParamSpec(n, t, None) for n, t in SERVING_PARAMS])
+    return ModelSignature(inputs=signature.inputs, outputs=signature.outputs, params=params)
 
 
 def file_hashes(
@@ -229,7 +281,7 @@ def save_model(
             raise ModelArtifactError(f"save_model: bad artifact file name {name!r}")
         shutil.copyfile(src, out / name)
     if signature is not None:
-        mlflow_model.signature = signature
+        mlflow_model.signature = with_serving_params(signature)
     if input_example is not None:
         from mlflow.models.utils import _save_example
 
@@ -242,6 +294,7 @@ def save_model(
         checkpoint=CKPT,
         meta=META,
         files=sorted(files),
+        **{VERSION_KEY: installed_version()},
     )
     mlflow_model.save(str(out / MLMODEL))
     if sink is not None:
@@ -249,8 +302,8 @@ def save_model(
 
 
 def _add_pyfunc(mlflow_model: Any, out: Path) -> None:
-    """The ``python_function`` flavour: the package source under ``code/``, pinned requirements
-    (``requirements.txt``, ``python_env.yaml``, ``conda.yaml``) and ``loader_module``."""
+    """The ``python_function`` flavour: ``loader_module`` (the installed package), no code
+    folder, pinned requirements (``requirements.txt``, ``python_env.yaml``, ``conda.yaml``)."""
     import mlflow.pyfunc
     from mlflow.utils.environment import (
         _CONDA_ENV_FILE_NAME,
@@ -260,12 +313,6 @@ def _add_pyfunc(mlflow_model: Any, out: Path) -> None:
         _PythonEnv,
     )
 
-    package = Path(__file__).resolve().parents[1]  # src/traffictwin
-    shutil.copytree(
-        package,
-        out / CODE / package.name,
-        ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo"),
-    )
     reqs = pip_requirements()
     (out / _REQUIREMENTS_FILE_NAME).write_text("\n".join(reqs) + "\n")
     with open(out / _CONDA_ENV_FILE_NAME, "w") as fh:
@@ -274,7 +321,7 @@ def _add_pyfunc(mlflow_model: Any, out: Path) -> None:
     mlflow.pyfunc.add_to_model(
         mlflow_model,
         loader_module=SERVING_MODULE,
-        code=CODE,
+        code=None,  # never: the installed package is the served code
         conda_env=_CONDA_ENV_FILE_NAME,
         python_env=_PYTHON_ENV_FILE_NAME,
     )

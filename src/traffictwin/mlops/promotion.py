@@ -277,7 +277,10 @@ def _decide_all(cl, jobs: Sequence[GateJob], settings: PromotionSettings) -> lis
     candidates = [read_candidate(j.name, j.model_dir, j.record_path) for j in jobs]
     pending = []
     for job, cand in zip(jobs, candidates, strict=True):
-        mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
+        if settings.dry_run:  # the version it would be: registered already, or planned
+            mv = reg.planned_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
+        else:
+            mv = reg.ensure_version(cl, job.name, cand.run_id, cand.model_uri, tags=job.tags)
         evaluate, fingerprint = job.make_evaluator(cand)
         p = _Pending(job, mv, evaluate, fingerprint, candidate=cand)
         p.decision = _decide(cl, p, settings)
@@ -357,11 +360,32 @@ def promote(
 ) -> list[Decision]:
     """Decide every job, then apply the decisions unless ``settings.dry_run``; returns them.
 
+    The promotion log is checked first (:func:`traffictwin.mlops.registry.check_log_path`). A dry
+    run registers no version (a candidate not yet registered is evaluated from its logged model,
+    :func:`traffictwin.mlops.registry.planned_version`), moves no alias, records no tag and
+    writes no file (no lock file either: it changes nothing another gate could race with).
+
     Holds the registry lock (:func:`lock_path`) from the first decision to the last alias move.
     ``before_apply(decisions)`` is called between the two (e.g. a workflow's last chance to stop;
     an exception there applies nothing).
     """
+    if settings.log_path is not None and not settings.dry_run:
+        reg.check_log_path(settings.log_path, "promotion log")  # before anything changes
+    if settings.dry_run and client is None:
+        from traffictwin.mlops.stores import sqlite_path
+        from traffictwin.mlops.tracking import tracking_uri
+
+        db = sqlite_path(settings.uri or tracking_uri())
+        if db is not None and not db.exists():
+            raise reg.RegistryError(
+                f"{db}: no MLflow database (a dry run creates none); run the pipeline first"
+            )
     cl = client if client is not None else reg.client(settings.uri)
+    if settings.dry_run:  # registers nothing, moves nothing, writes no file (not even the lock)
+        pending = _decide_all(cl, jobs, settings)
+        if before_apply is not None:
+            before_apply(_decisions(pending))
+        return _decisions(pending)
     with reg.gate_lock(lock_path(settings), timeout_s=settings.lock_timeout_s):
         pending = _decide_all(cl, jobs, settings)
         if before_apply is not None:
@@ -432,5 +456,8 @@ def format_table(decisions: Sequence[Decision], *, dry_run: bool = False) -> str
     if not decisions:
         lines.append("(no model to gate)")
     if dry_run:
-        lines.append("dry run: nothing applied (no alias moved, no decision recorded)")
+        lines.append(
+            "dry run: nothing applied (nothing registered, no alias moved, no decision recorded; "
+            "v(new): a candidate not yet registered)"
+        )
     return "\n".join(lines)

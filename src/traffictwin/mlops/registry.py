@@ -74,14 +74,18 @@ from traffictwin.mlops.registry_loading import (
     load_registered,
     model_cache_root,
     parse_model_uri,
+    split_model_reference,
 )
 from traffictwin.mlops.registry_lock import default_lock_path, gate_lock
 from traffictwin.mlops.registry_versions import (
     ORPHAN_TAG,
+    PlannedVersion,
     ensure_version,
     latest_versions,
+    planned_version,
     retire_versions_after,
 )
+from traffictwin.mlops.stores import SQLITE_MAGIC
 
 __all__ = [
     "CACHE_ENV",
@@ -95,6 +99,7 @@ __all__ = [
     "LegacyModelError",
     "LockTimeoutError",
     "ModelArtifactError",
+    "PlannedVersion",
     "RegistryError",
     "TamperedArtifactError",
     "default_lock_path",
@@ -104,7 +109,9 @@ __all__ = [
     "load_registered",
     "model_cache_root",
     "parse_model_uri",
+    "planned_version",
     "retire_versions_after",
+    "split_model_reference",
 ]  # defined in the adapter's other modules (errors, registry_*), re-exported for its callers
 
 CHAMPION = "champion"
@@ -131,9 +138,15 @@ def client(uri: str | None = None):
     import mlflow
     from mlflow import MlflowClient
 
+    from traffictwin.mlops.stores import check_sqlite_store, sqlalchemy_uri
     from traffictwin.mlops.tracking import tracking_uri
 
     uri = uri or tracking_uri()
+    try:
+        check_sqlite_store(uri)
+    except ValueError as exc:
+        raise RegistryError(str(exc)) from None
+    uri = sqlalchemy_uri(uri)  # ?mode=ro: read-only, as asked
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     return MlflowClient(tracking_uri=uri, registry_uri=uri)
@@ -175,9 +188,10 @@ def _registered_names(cl) -> list[str]:
 
 
 def _version(name: str, mv) -> _gate.Version:
+    planned = isinstance(mv, PlannedVersion)  # a dry run's unregistered candidate
     return _gate.Version(
         version=str(mv.version),
-        uri=version_uri(name, mv.version),
+        uri=mv.uri if planned else version_uri(name, mv.version),
         run_id=mv.run_id or "",
         tags=dict(mv.tags or {}),
     )
@@ -252,6 +266,8 @@ def apply(
     """
     if decision.action == "unchanged":
         return
+    if log_path is not None:
+        log_path = check_log_path(log_path, "promotion log")
     name, ver = decision.name, decision.challenger_version
     now = get_alias(cl, name, champion_alias)
     now_v = None if now is None else str(now.version)
@@ -312,10 +328,13 @@ def rollback(
 
     Without ``version`` the current champion is popped off the history stack, so repeated
     rollbacks walk further back. Returns the logged record. Raises :class:`RegistryError` if the
-    model, version or a previous champion does not exist.
+    model, version or a previous champion does not exist, or ``log_path`` is no promotion log
+    (:func:`check_log_path`) — always before the alias moves: a refused rollback changes nothing.
     """
     from mlflow.exceptions import MlflowException
 
+    if log_path is not None:
+        log_path = check_log_path(log_path)
     try:
         cl.get_registered_model(name)
     except MlflowException:
@@ -360,6 +379,75 @@ def rollback(
     return record
 
 
+#: files that mark a folder as a model folder (a log written there would sit in the model)
+MODEL_FILES = ("model_meta.json", "model.ckpt", "MLmodel")
+
+
+def check_log_path(path: str | Path, who: str = "--log") -> Path:
+    """``path`` as a promotion log that :func:`append_log` may write, checked before any alias
+    moves; :class:`RegistryError` (one line naming ``who`` and the path) otherwise.
+
+    Refused: a path that exists and is not a regular file (folder, FIFO, device, socket,
+    symlink), a SQLite database (the registry's own ``mlflow.db``), a file in a model folder
+    (one holding ``model_meta.json``, ``model.ckpt`` or ``MLmodel``), an existing file that is
+    not JSON lines, a path whose folder (or, if missing, nearest existing folder above it) is
+    not a writable folder. Only ``lstat``, 16 bytes
+    and (for an existing log) its lines are read: a FIFO is never opened.
+    """
+    import os
+    import stat
+
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except (FileNotFoundError, NotADirectoryError):
+        st = None
+    except OSError as exc:
+        raise RegistryError(f"{who} {p}: cannot be examined ({exc.strerror})") from None
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        kind = (
+            "a symlink"
+            if stat.S_ISLNK(st.st_mode)
+            else "a folder"
+            if stat.S_ISDIR(st.st_mode)
+            else "a FIFO"
+            if stat.S_ISFIFO(st.st_mode)
+            else "a device, socket or other special file"
+        )
+        raise RegistryError(
+            f"{who} {p}: is {kind}; expected a promotion log file (JSON lines) or a new file name"
+        )
+    parent = p.absolute().parent
+    hits = [n for n in MODEL_FILES if (parent / n).exists()]
+    if p.name in MODEL_FILES or hits:
+        raise RegistryError(
+            f"{who} {p}: lies in a model folder ({', '.join(hits) or p.name} there); a promotion "
+            "log must not be written into a model: pass a file such as reports/promotions.jsonl"
+        )
+    base = parent  # the folder is created if missing: its nearest existing ancestor must do
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise RegistryError(f"{who} {p}: {base} is not a folder")
+    if not os.access(base, os.W_OK) or (st is not None and not os.access(p, os.W_OK)):
+        raise RegistryError(f"{who} {p}: not writable")
+    if st is not None and st.st_size:
+        with open(p, "rb") as fh:
+            head = fh.read(len(SQLITE_MAGIC))
+        if head == SQLITE_MAGIC:
+            raise RegistryError(
+                f"{who} {p}: is a SQLite database (the registry?); expected a promotion log file"
+            )
+        try:
+            read_log(p)
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, a non-object line
+            raise RegistryError(
+                f"{who} {p}: exists and is not a promotion log (JSON lines: {type(exc).__name__}); "
+                "pass another file"
+            ) from None
+    return p
+
+
 def append_log(path: str | Path, record: Mapping[str, Any]) -> None:
     """Append one JSON line to ``path`` (the whole file is rewritten atomically)."""
     path = Path(path)
@@ -377,7 +465,10 @@ def read_log(path: str | Path) -> list[dict[str, Any]]:
     path = Path(path)
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    if not all(isinstance(r, dict) for r in records):
+        raise ValueError(f"{path}: a line is not a JSON object")
+    return records
 
 
 def _json_default(o: Any) -> Any:

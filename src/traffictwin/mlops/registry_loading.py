@@ -41,6 +41,52 @@ def parse_model_uri(uri: str) -> tuple[str, str | None, str | None]:
     return rest, None, None
 
 
+#: aliases a bare ``--model`` value stands for (``champion`` = ``<family>@champion``)
+REFERENCE_ALIASES = ("champion", "challenger")
+
+
+def split_model_reference(
+    model: str | os.PathLike, aliases: tuple[str, ...] = REFERENCE_ALIASES
+) -> tuple[str | None, str | None, Path | None]:
+    """``(name, alias, None)`` for a registry reference, ``(None, None, path)`` for a folder.
+
+    Registry references resolve only against the registry, whatever the working directory
+    holds: a bare alias (``champion``: the caller's family), ``name@alias`` (no ``/``) and
+    ``models:/name@alias``. Everything else is a path, and a path is only a path: a folder whose
+    name looks like a reference is passed with a directory part (``./traffictwin-risk@champion``,
+    ``./champion``). Raises :class:`RegistryError` for a reference with an empty name or alias,
+    a path that does not exist, and a file (``model_meta.json``: pass its folder).
+    """
+    text = os.fspath(model)
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    if text in aliases:
+        return None, text, None
+    ref = text[len("models:/") :] if text.startswith("models:/") else None
+    if ref is None and "@" in text and "/" not in text and os.sep not in text:
+        ref = text
+    if ref is not None:
+        name, _, alias = ref.rpartition("@")
+        if not name or not alias or "/" in ref:
+            raise RegistryError(
+                f"--model: '{text}' is not a registry reference name@alias (a model folder with "
+                f"such a name: pass ./{text})"
+            )
+        return name, alias, None
+    p = Path(text)
+    if not p.exists():
+        raise RegistryError(
+            f"--model: '{text}' is neither a registry reference (name@alias, or "
+            f"{' / '.join(aliases)}) nor an existing model folder"
+        )
+    if not p.is_dir():
+        raise RegistryError(
+            f"--model: '{text}' is a file; pass the model folder that holds it"
+            + (f" ({p.parent})" if p.name in ("model_meta.json", "model.ckpt") else "")
+        )
+    return None, None, p
+
+
 def load_registered(
     uri: str,
     loader: Callable[[Path], T],

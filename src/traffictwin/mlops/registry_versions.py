@@ -15,11 +15,13 @@ import json
 import logging
 import tempfile
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from traffictwin.mlops import model_artifact as art
 from traffictwin.mlops.errors import RegistryError
+from traffictwin.mlops.uris import mask_uri
 
 log = logging.getLogger("traffictwin.registry")
 
@@ -62,6 +64,46 @@ def retire_versions_after(cl, before: Mapping[str, int], reason: str) -> list[st
     return done
 
 
+@dataclass(frozen=True)
+class PlannedVersion:
+    """A candidate that a dry run would register: not in the registry; ``uri`` is its logged
+    model (``models:/<model_id>``, loaded with its own SHA-256 record)."""
+
+    name: str
+    run_id: str
+    uri: str
+    tags: Mapping[str, str] = field(default_factory=dict)
+    version: str = "(new)"
+
+
+def planned_version(
+    cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
+):
+    """What :func:`ensure_version` would return, without changing the registry: the version
+    registered from ``run_id`` if there is one, else a :class:`PlannedVersion` of the run's
+    logged model, its files checked against their SHA-256 record (read only)."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    try:
+        cl.get_run(run_id)
+    except MlflowException:
+        raise RegistryError(
+            f"MLflow run '{run_id}' (for model '{name}') not found at {mask_uri(mlflow.get_tracking_uri())}"
+        ) from None
+    try:
+        existing = cl.search_model_versions(f"name='{name}' and run_id='{run_id}'")
+    except MlflowException:
+        existing = []
+    if existing:
+        return max(existing, key=lambda v: int(v.version))
+    model_id = _run_model_id(cl, run_id, model_uri)
+    _sealed_record(cl, model_id, f"run '{run_id}' (model '{name}')")
+    return PlannedVersion(
+        name, run_id, f"models:/{model_id}", {k: str(v) for k, v in (tags or {}).items()}
+    )
+
+
 def ensure_version(
     cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
 ):
@@ -88,7 +130,7 @@ def ensure_version(
         cl.get_run(run_id)
     except MlflowException:
         raise RegistryError(
-            f"MLflow run '{run_id}' (for model '{name}') not found at {mlflow.get_tracking_uri()}"
+            f"MLflow run '{run_id}' (for model '{name}') not found at {mask_uri(mlflow.get_tracking_uri())}"
         ) from None
     try:
         existing = cl.search_model_versions(f"name='{name}' and run_id='{run_id}'")

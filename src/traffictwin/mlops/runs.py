@@ -17,6 +17,7 @@ from typing import Any
 import pandas as pd
 
 from traffictwin.mlops import tracking
+from traffictwin.mlops.uris import mask_uri
 
 ID_COLUMNS = ("run_name", "run_id", "status", "start_time")
 TAG_COLUMNS = ("profile", "dvc_stage", "git_commit", "dvc_exp_name", "pipeline_run")
@@ -57,7 +58,7 @@ def compare_runs(
     if exp is None:
         names = sorted(e.name for e in client.search_experiments())
         raise RunsError(
-            f"MLflow experiment {experiment!r} not found at {uri} (experiments there: {names or 'none'})"
+            f"MLflow experiment {experiment!r} not found at {mask_uri(uri)} (experiments there: {names or 'none'})"
         )
     runs = _search_runs(client, exp.experiment_id, filter_string, max_results)
     if not include_unfinished:

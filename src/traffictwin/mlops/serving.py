@@ -4,12 +4,13 @@ Every model :func:`traffictwin.trainer.log_model` logs is one directory with two
 
 - ``traffictwin`` — the project's own loader (:func:`traffictwin.mlops.registry.load_registered`:
   SHA-256 check, then the problem loader);
-- ``python_function`` — ``loader_module: traffictwin.mlops.serving`` with ``code: code``: the
-  directory carries the ``traffictwin`` package source under ``code/traffictwin`` (MLflow puts
-  ``code/`` on ``sys.path`` before it imports this module), so ``mlflow.pyfunc.load_model`` and
-  ``mlflow models serve`` work in an environment that has only the pinned requirements of
-  ``requirements.txt`` (torch from the PyTorch CPU index, numpy, lightning, ...; never
-  ``traffictwin``, which no package index has).
+- ``python_function`` — ``loader_module: traffictwin.mlops.serving`` and no ``code`` folder: the
+  directory carries no executable code, so ``mlflow.pyfunc.load_model`` and ``mlflow models
+  serve`` import this module from the *installed* ``traffictwin`` (serve with
+  ``--env-manager local`` in the project's environment). :func:`_load_pyfunc` refuses a model
+  logged by another ``major.minor`` of traffictwin before it reads the weights. ``requirements.txt``
+  pins torch (from the PyTorch CPU index), numpy, lightning, ...; never ``traffictwin``, which no
+  package index has.
 
 Nothing is pickled: :func:`_load_pyfunc` reads ``model.ckpt`` with ``weights_only=True`` and
 ``model_meta.json`` through the problem's loader, exactly as the project's own loader does.
@@ -29,10 +30,13 @@ checks the input before the network runs and refuses it with an ``MlflowExceptio
 ``INVALID_PARAMETER_VALUE`` (``mlflow models serve`` answers HTTP 400 with the one-line reason):
 
 - at most :func:`max_batch` samples (:data:`MAX_BATCH`; the environment variable
-  ``TRAFFICTWIN_SERVE_MAX_BATCH`` of the server sets it, a request's ``max_batch`` param can
-  only lower it), each of the model's shape (fusion / registration: the training grid of its
+  ``TRAFFICTWIN_SERVE_MAX_BATCH`` of the server sets it, a request's ``"params": {"max_batch":
+  n}`` can only lower it: the logged signature declares that one param, so MLflow passes it on
+  and refuses a non-integer or a bool with HTTP 400; MLflow drops any other param with a log
+  line before the model sees it), each of the model's shape (fusion / registration: the training grid of its
   metadata; risk: the network's or the predictor's input);
-- finite numbers only (a value beyond float32 counts as infinite);
+- numbers only, never bools (``true`` / ``false``), finite (a value beyond float32 counts as
+  infinite);
 - plausible values: masses in [0, 1] with m_F + m_O <= 1 (within :data:`MASS_TOL`); normalised
   DAVE-2 channels within ±:data:`CHANNEL_BOUND`; a speed plane constant per sample and within
   the model's training speed range (``domain.speed_range`` / ``domain.max_speed`` of its
@@ -177,7 +181,7 @@ class TrafficTwinModel:
             a = np.asarray(model_input)
         except (TypeError, ValueError) as exc:
             raise _refuse(f"{who}: not a numeric array ({type(exc).__name__})") from None
-        if a.dtype.kind not in "biuf":
+        if a.dtype.kind not in "iuf":  # never bools as numbers
             raise _refuse(f"{who}: expected a float32 array, got dtype {a.dtype}")
         if a.ndim < 2 or a.shape[0] < 1:
             raise _refuse(
@@ -345,6 +349,8 @@ def _load_pyfunc(path: str) -> TrafficTwinModel:
     from traffictwin.mlops import model_artifact as art
 
     folder = Path(path)
-    problem = str(art.read_flavor(folder, str(folder)).get("problem", ""))
+    block = art.read_flavor(folder, str(folder))
+    art.check_installed_version(block, str(folder))
+    problem = str(block.get("problem", ""))
     net, meta = _load(problem, folder)
     return TrafficTwinModel(net, problem, meta)
