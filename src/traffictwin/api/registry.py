@@ -27,7 +27,8 @@ def resolve_tracking_uri(tracking_uri: str | None = None) -> str:
     Raises :class:`ApiError` when no URI is given outside the project, or when a SQLite
     database (or a local file store) does not exist.
     """
-    from traffictwin.mlops.tracking import ENV_URI, repo_root, sqlite_path
+    from traffictwin.mlops.stores import sqlite_path
+    from traffictwin.mlops.tracking import ENV_URI, repo_root
 
     from .inputs import check_optional_text
 
@@ -68,6 +69,7 @@ def connect(tracking_uri: str | None = None):
     unreadable database), so a missing model is never confused with a missing registry.
     """
     from traffictwin.mlops import registry as reg
+    from traffictwin.mlops.uris import mask_uri
 
     uri = resolve_tracking_uri(tracking_uri)
     try:
@@ -75,27 +77,22 @@ def connect(tracking_uri: str | None = None):
         cl.search_registered_models(max_results=1)
     except Exception as exc:  # noqa: BLE001 - any failure of the probe means "unreachable"
         raise ApiError(
-            f"{uri}: model registry unreachable ({type(exc).__name__}: {_first_line(exc)})"
+            f"{mask_uri(uri)}: model registry unreachable ({type(exc).__name__}: {_first_line(exc)})"
         ) from None
     return cl
 
 
 def _split_ref(model: str | os.PathLike) -> tuple[str | None, str | None, Path | None]:
-    """``(name or None, alias, None)`` for a registry reference, ``(None, None, path)`` for a folder."""
-    text = str(model)
-    if text in ALIASES:
-        return None, text, None
-    p = Path(text)
-    if p.exists():
-        return None, None, p
-    if "@" in text and "/" not in text:
-        name, alias = text.rsplit("@", 1)
-        if name and alias:
-            return name, alias, None
-    raise ApiError(
-        f"--model: '{text}' is neither a registry reference (name@alias, or {' / '.join(ALIASES)}) "
-        "nor an existing model folder"
-    )
+    """``(name or None, alias, None)`` for a registry reference, ``(None, None, path)`` for a
+    folder (:func:`traffictwin.mlops.registry_loading.split_model_reference`: a reference
+    resolves only against the registry, a path is only a path)."""
+    from traffictwin.mlops.errors import RegistryError
+    from traffictwin.mlops.registry_loading import split_model_reference
+
+    try:
+        return split_model_reference(model, ALIASES)
+    except RegistryError as exc:
+        raise ApiError(str(exc)) from None
 
 
 def _load_model(
