@@ -327,12 +327,13 @@ def _ship(
     groups: Mapping[str, GroupChoice],
     main_group: str,
     rule: RuleChoice,
+    reason: str | None,
 ) -> tuple[str | None, ShippedChoice]:
     """(the learned group that competes, the shipped predictor): the main variant's group or the
     hybrid (higher mean AUC), its runs and the SGM rule; collapsed learned runs are failed runs
     (the rule is no trained model: a constant output only says nothing was in its corridor).
-    Without a finite validation AUC among them (too few critical frames to rank), the SGM rule
-    ``rule`` ships at its prior width with a note saying so."""
+    With ``reason`` (why validation cannot rank: :func:`too_few`) or without a finite validation
+    AUC among them, the SGM rule ``rule`` ships at its width (the prior) with a note saying so."""
     learned = [g for g in (main_group, HYBRID_GROUP) if g in groups]
     best = max(learned, key=lambda g: groups[g].roc_auc_mean) if learned else None
     candidates = {
@@ -341,11 +342,12 @@ def _ship(
         if n in RULES or not predictors[n].collapsed
     }
     note = None
-    if rule.note is not None or not any(np.isfinite(c.roc_auc) for c in candidates.values()):
+    if reason is not None or not any(np.isfinite(c.roc_auc) for c in candidates.values()):
         shipped = "geometric_sgm"
-        note = (rule.note or "no candidate has a validation ROC-AUC") + (
-            f"; shipped the corridor rule on SGM disparity at {rule.half_width:g} m "
-            "without a validation choice"
+        width = "the label's corridor half-width" if rule.note else "its validation half-width"
+        note = (
+            f"{reason or 'no candidate has a validation ROC-AUC'}: the corridor rule at "
+            f"{width} {rule.half_width:g} m, not chosen on validation"
         )
     else:
         shipped = choose({n: {"roc_auc": c.roc_auc, "kind": c.kind} for n, c in candidates.items()})
@@ -367,10 +369,14 @@ def select_on_validation(
     predictors = _predictors(val, models, setup)
     groups = _groups(predictors, models)
     main_group = (setup.settings.get(ev.main_variant) or {}).get("replicate_of")
-    learned, shipped = _ship(
-        predictors, groups, main_group or ev.main_variant, rules["geometric_sgm"]
-    )
     t0 = ev.thresholds_s[0]
+    learned, shipped = _ship(
+        predictors,
+        groups,
+        main_group or ev.main_variant,
+        rules["geometric_sgm"],
+        too_few(val.y > risk_threshold(t0)),
+    )
     return Selection(
         n_frames=int(len(val.rows)),
         n_sequences=int(val.rows["scenario"].nunique()),
