@@ -72,9 +72,8 @@ reset: install
 	git restore --source=HEAD --staged --worktree -- $(RESET_PATHS)
 	@echo "make reset: removing untracked run outputs under reports/"
 	git clean -f -d -x -- reports/
-	@echo "make reset: data/ and models/ as dvc.lock says (dvc checkout)"
-	@$(VENV)/bin/dvc checkout || echo "make reset: dvc checkout could not restore every output" \
-	  "(above): what is not in the DVC cache is rebuilt by make run, or fetched by make pull"
+	@echo "make reset: data/ and models/ as dvc.lock says, from the DVC cache (dvc checkout --allow-missing)"
+	@$(PY) -m pipelines.reset
 	@st=$$(git status --short -- $(RESET_PATHS)); \
 	  if [ -z "$$st" ]; then echo "make reset: done; $(RESET_PATHS) are as committed"; \
 	  else echo "make reset: done; still differing from the last commit:"; echo "$$st"; fi

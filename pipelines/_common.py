@@ -29,6 +29,10 @@ def params(path: str | Path | None = None) -> DictConfig:
 
 
 def setup_logging() -> logging.Logger:
+    """The stage's logger; piped (``dvc repro | tee``, CI), MLflow draws no artifact progress
+    bars (``MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR=false`` unless set), as tqdm draws none."""
+    if not (sys.stderr is not None and sys.stderr.isatty()):
+        os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     logging.basicConfig(
         level=os.environ.get("TRAFFICTWIN_LOGLEVEL", "INFO"),
         format="%(asctime)s %(name)s %(message)s",
@@ -250,10 +254,22 @@ def map_shards(
     idx = list(indices)
     if workers <= 1 or len(idx) <= 1:
         _set_worker_state(state)
-        yield from tqdm(map(work, idx), total=len(idx), desc=desc, unit=unit)
+        yield from tqdm(
+            map(work, idx),
+            total=len(idx),
+            desc=desc,
+            unit=unit,
+            disable=True if os.environ.get("TQDM_DISABLE") else None,
+        )
         return
     with mp.get_context("fork").Pool(
         min(workers, len(idx)), initializer=_set_worker_state, initargs=(state,)
     ) as pool:
         it = pool.imap(work, idx) if ordered else pool.imap_unordered(work, idx)
-        yield from tqdm(it, total=len(idx), desc=desc, unit=unit)
+        yield from tqdm(
+            it,
+            total=len(idx),
+            desc=desc,
+            unit=unit,
+            disable=True if os.environ.get("TQDM_DISABLE") else None,
+        )

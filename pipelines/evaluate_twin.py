@@ -374,7 +374,17 @@ def main() -> None:
         model = models_by_cfg[c_fig].get(tc.headline)
         _figures(run, table, seqs, tc, c_fig, noise[c_fig], model)
         write_json_atomic(METRICS, json_clean(metrics))
-        log.info("%s: targets %s", STAGE, metrics["targets"])
+        tg = metrics["targets"]
+        checked = [v for v in tg.values() if isinstance(v, dict) and "met" in v]
+        log.info(  # one line; every target with its interval is in METRICS
+            "%s: twin %s at %s, %d of %d targets met -> %s",
+            STAGE,
+            tg.get("method"),
+            tg.get("configuration"),
+            sum(bool(v["met"]) for v in checked),
+            len(checked),
+            METRICS,
+        )
 
 
 if __name__ == "__main__":

@@ -196,7 +196,14 @@ def main() -> None:
             Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS), tc.fps, tc.hidden_s
         )
         write_json_atomic(METRICS, metrics)
-        log.info("%s: %s", STAGE, metrics)
+        log.info(  # one line; every figure is in METRICS
+            "%s: %d sequences, %d frames, critical frame share %.3f -> %s",
+            STAGE,
+            metrics["twin_data/sequences"],
+            metrics["twin_data/frames"],
+            metrics["twin_data/critical_frame_share"],
+            METRICS,
+        )
 
 
 if __name__ == "__main__":

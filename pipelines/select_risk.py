@@ -13,6 +13,10 @@ it picks
 * the predictor to ship (highest ROC-AUC at the primary threshold among the runs of the main
   network variant, the hybrid runs and the SGM rule; a tie goes to the simpler),
 
+unless the validation frames hold fewer than 5 critical or uncritical frames: then nothing is
+chosen on them (a NaN score never ships), the rules take the label's corridor half-width and the
+SGM rule ships, and both records carry a ``note`` saying why,
+
 and writes ``models/risk_shipped/`` (that predictor's ``model.ckpt`` + ``model_meta.json``, which
 records what it is and why; the registry's risk model and ``traffictwin risk`` serve it) and
 ``reports/metrics/risk_selection.json`` (every candidate's validation figures and the choices;
@@ -95,6 +99,7 @@ def track_shipped(p, sel: dict, folder) -> dict:
             "shipped.predictor": sh["predictor"],
             "shipped.kind": sh["kind"],
             "criterion": sel["criterion"],
+            **({"shipped.note": sh["note"]} if sh.get("note") else {}),
             **{f"rules.{r}.half_width": e["half_width"] for r, e in sel["rules"].items()},
         },
     ) as run:
@@ -153,13 +158,14 @@ def main() -> None:
         write_json_atomic(SELECTION, sel)
         record["shipped"] = selection.shipped.predictor
         record.update(track_shipped(p, sel, SHIPPED_RISK_MODEL))
+        sh = selection.shipped
         log.info(
-            "select_risk: rules SGM %.2f m, GT %.2f m; shipped %s (%s, validation ROC-AUC %.3f) -> %s",
+            "select_risk: rules SGM %.2f m, GT %.2f m; shipped %s (%s, %s) -> %s",
             selection.rules["geometric_sgm"].half_width,
             selection.rules["geometric_gt"].half_width,
-            selection.shipped.predictor,
-            selection.shipped.kind,
-            selection.shipped.roc_auc,
+            sh.predictor,
+            sh.kind,
+            sh.note or f"validation ROC-AUC {sh.roc_auc:.3f}",
             SHIPPED_RISK_MODEL,
         )
 

@@ -85,3 +85,20 @@ def test_regenerating_gives_identical_files(tmp_path: Path) -> None:
     assert sorted(p.relative_to(tmp_path) for p in written) == committed
     for rel in committed:
         assert (tmp_path / rel).read_bytes() == (EXAMPLES / rel).read_bytes(), f"{rel} differs"
+
+
+@pytest.mark.slow
+def test_quick_start_risk_verdict_matches_the_example(ci_dag: Path) -> None:
+    """The Quick start's `traffictwin risk` on the sample pair, with the ci DAG's shipped
+    predictor: the verdict the example's own labels give (a critical cut-in), and a predictor
+    description without a NaN validation score (the ci validation split is too small to rank
+    predictors, so the shipped rule says so)."""
+    from traffictwin.api import Frame, assess_risk, load_risk
+
+    meta = json.loads((EXAMPLES / "risk" / "000.json").read_text())
+    risk = load_risk(ci_dag / "models" / "risk_shipped")
+    pair = Frame("000", EXAMPLES / "risk" / "000_left.png", EXAMPLES / "risk" / "000_right.png")
+    (row,) = assess_risk(risk, [pair], speed=meta["speed_m_s"])
+    assert row["critical"] is meta["critical"]
+    assert row["thw_s"] < 1.5
+    assert "nan" not in risk.predictor

@@ -40,7 +40,13 @@ from traffictwin.risk.predictors import (
     fit_hybrid,
     log_thw_target,
 )
-from traffictwin.risk.selection import balanced_accuracy, best_cut, choose, tune_half_width
+from traffictwin.risk.selection import (
+    balanced_accuracy,
+    best_cut,
+    choose,
+    too_few,
+    tune_half_width,
+)
 from traffictwin.risk.training import RiskSource
 
 CAM = camera_intrinsics(96, 48)
@@ -128,7 +134,7 @@ def test_tune_half_width_picks_the_best_validation_auc() -> None:
     pos = np.array([1, 1, 0, 0], bool)
     # band 0: ranks the frames wrong; band 1: perfectly
     d = np.array([[40.0, 5.0], [40.0, 6.0], [5.0, 60.0], [6.0, np.inf]])
-    w, table = tune_half_width(d, speed, pos, [0.5, 1.0], threshold_s=1.5)
+    w, table = tune_half_width(d, speed, pos, [0.5, 1.0], threshold_s=1.5, min_class=2)
     assert w == 1.0
     assert table[0]["roc_auc"] == pytest.approx(0.0) and table[1]["roc_auc"] == pytest.approx(1.0)
     assert table[1]["balanced_accuracy"] == pytest.approx(1.0)  # THW 0.5 / 0.6 s < 1.5 s
@@ -145,6 +151,28 @@ def test_choose_prefers_auc_then_the_simpler_kind() -> None:
     assert choose(c) == "hyb"
     with pytest.raises(ValueError):
         choose({})
+
+
+def test_choose_never_picks_a_nan_score() -> None:
+    c = {"rule": {"roc_auc": float("nan"), "kind": "geometric"}, "net": {"roc_auc": 0.6}}
+    assert choose(c) == "net"
+    with pytest.raises(ValueError, match="finite"):
+        choose({"rule": {"roc_auc": float("nan"), "kind": "geometric"}})
+
+
+def test_tune_half_width_falls_back_to_the_prior_with_too_few_positives() -> None:
+    """Validation that cannot rank the bands (one critical frame) keeps the prior width, not
+    the narrowest band."""
+    speed = np.full(12, 10.0)
+    pos = np.zeros(12, bool)
+    pos[0] = True
+    d = np.tile([40.0, 5.0], (12, 1))
+    assert too_few(pos) == "not enough validation positives (n=1 critical of 12 frames, 5 needed)"
+    assert too_few(~pos).startswith("not enough validation negatives (n=1")
+    w, table = tune_half_width(d, speed, pos, [0.5, 1.0], threshold_s=1.5, prior=1.75)
+    assert w == 1.75 and len(table) == 2
+    with pytest.raises(ValueError, match="not enough validation positives"):
+        tune_half_width(d, speed, pos, [0.5, 1.0], threshold_s=1.5)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -442,3 +470,60 @@ def test_select_on_validation_ships_the_rule_when_every_run_collapsed(tmp_path: 
         "roc_auc_mean": js["predictors"]["rgbd"]["roc_auc"],  # one run (None: one class)
     }
     json.dumps(js, allow_nan=False)  # strict JSON
+
+
+def test_select_on_validation_without_positives_ships_the_rule_at_the_label_corridor(
+    tmp_path: Path,
+) -> None:
+    """No critical validation frame (a THW threshold no frame reaches): nothing is chosen on
+    validation, no NaN score decides; the rules take the label's corridor half-width, the SGM rule
+    ships at it with the label's own cut, and the records and the model description say why."""
+    from test_risk_eval import _tiny_models
+    from test_risk_training import write_synthetic_risk
+
+    from traffictwin.api import LoadedRisk
+    from traffictwin.risk.config import EvalRiskConfig, GeometricConfig, MetricParams
+    from traffictwin.risk.metric import risk_threshold
+    from traffictwin.risk.selection_suite import (
+        SelectionSetup,
+        label_half_width,
+        select_on_validation,
+        shipped_rule,
+    )
+
+    write_synthetic_risk(tmp_path, n_shards=4, per_shard=8)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    models = _tiny_models(tmp_path / "models")
+    geo = GeometricConfig(
+        half_widths=[0.5, 1.0], min_height=0.3, max_height=2.5, min_pixels=10, max_range=80.0
+    )
+    ev = EvalRiskConfig(
+        thresholds_s=[0.01],  # no frame is this close: no positive on validation
+        thw_cap_s=10.0,
+        batch_size=8,
+        main_variant="rgbd",
+        geometric=geo,
+        ci={},
+        collapse_std=0.0,  # the networks compete
+    )
+    subject = MetricParams(4.5, 1.8, "border", False, 0.25, 3.0)
+    setup = SelectionSetup(ev, subject, "risk_thw_paper", {}, (), ())
+    sel = select_on_validation(src, models, setup)
+    assert label_half_width(subject) == 2.0  # 3.5 m lane / 2 + 0.25 m margin
+    for r in ("geometric_sgm", "geometric_gt"):
+        assert sel.rules[r].half_width == 2.0
+        assert sel.rules[r].note.startswith("not enough validation positives (n=0 critical of")
+    sh = sel.shipped
+    assert sh.predictor == "geometric_sgm" and sh.kind == "geometric"
+    assert sh.note.startswith("not enough validation positives (n=0") and "2 m" in sh.note
+    assert sh.decision["0.01"].cut == risk_threshold(0.01)
+    assert shipped_rule(sel, setup, src.camera).params.corridor_half_width == 2.0
+    js = sel.to_json()
+    json.dumps(js, allow_nan=False)
+    assert js["shipped"]["note"] == sh.note and js["rules"]["geometric_sgm"]["note"]
+
+    class _Meta:
+        meta = {"shipped": js["shipped"], "kind": "geometric"}
+
+    described = LoadedRisk(_Meta(), "x").predictor
+    assert "not enough validation positives" in described and "nan" not in described

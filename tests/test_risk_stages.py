@@ -177,17 +177,21 @@ def test_select_risk_chooses_on_validation_and_ships(ci_dag: Path) -> None:
     params = yaml.safe_load((ci_dag / "params.yaml").read_text())
     widths = params["evaluation"]["risk"]["geometric"]["half_widths"]
     for r in ("geometric_sgm", "geometric_gt"):
-        assert sel["rules"][r]["half_width"] in widths
-        assert [c["half_width"] for c in sel["rules"][r]["candidates"].values()] == widths
+        rule = sel["rules"][r]
+        if rule["note"]:  # too few critical validation frames to choose on: the label's corridor
+            assert rule["note"].startswith("not enough validation") and rule["half_width"] == 1.75
+        else:
+            assert rule["half_width"] in widths
+        assert [c["half_width"] for c in rule["candidates"].values()] == widths
         used = metrics["baselines"][r]["params"]["corridor_half_width"]
-        assert used == sel["rules"][r]["half_width"]
+        assert used == rule["half_width"]
     shipped = sel["shipped"]["predictor"]
     assert shipped in sel["shipped"]["candidates"]
-    best = max(sel["shipped"]["candidates"], key=lambda n: sel["predictors"][n]["roc_auc"])
-    # (the ci profile's few validation frames may hold one class only: every AUC undefined)
-    assert sel["predictors"][shipped]["roc_auc"] == pytest.approx(
-        sel["predictors"][best]["roc_auc"], nan_ok=True
-    )
+    if sel["shipped"]["note"]:  # the ci profile's 4 validation frames: nothing chosen on them
+        assert shipped == "geometric_sgm" and sel["shipped"]["roc_auc"] is None
+    else:
+        best = max(sel["shipped"]["candidates"], key=lambda n: sel["predictors"][n]["roc_auc"])
+        assert sel["predictors"][shipped]["roc_auc"] == sel["predictors"][best]["roc_auc"]
     m = load_risk_model(ci_dag / "models" / "risk_shipped")
     assert m.meta["shipped"]["predictor"] == shipped
     cut = sel["predictors"][shipped]["decision"]["1.5"]["cut"]

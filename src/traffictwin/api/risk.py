@@ -62,6 +62,8 @@ class LoadedRisk:
         kind = predictor_kind(self.model)
         sh = self.model.meta.get("shipped")
         if isinstance(sh, dict) and sh.get("predictor"):
+            if sh.get("note"):  # not chosen on validation: say why
+                return f"{kind} (shipped: {sh['predictor']}, {sh['note']})"
             return f"{kind} (shipped: {sh['predictor']}, validation ROC-AUC {float(sh.get('roc_auc', float('nan'))):.3f})"
         return kind
 

@@ -203,6 +203,7 @@ def risk_selection_table(src: page.Sources) -> Table | None:
     if not isinstance(preds, dict) or not preds:
         return None
     shipped = src.get(SELECTION_FILE, "shipped.predictor")
+    fallback = src.get(SELECTION_FILE, "shipped.note")  # nothing chosen on validation: why
     ts = src.get(SELECTION_FILE, "thresholds_s") or []
     cols = ["predictor", "kind", "group", "validation ROC-AUC"]
     for t in ts:
@@ -221,6 +222,7 @@ def risk_selection_table(src: page.Sources) -> Table | None:
             "validation ROC-AUC among evaluation.risk.geometric.half_widths). Each predictor's "
             "decision cut maximises its validation balanced accuracy. Shipped: the highest "
             "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: the simpler)."
+            + (f" Not so here: {fallback}." if fallback else "")
         ),
     )
     for name in sorted(preds, key=lambda n: (n != shipped, n)):

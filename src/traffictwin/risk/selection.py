@@ -6,6 +6,9 @@
   validation ROC-AUC (ties: the higher balanced accuracy at the rule's own cut, then the narrower).
 * :func:`choose` — the predictor to ship: the highest validation ROC-AUC at the primary
   threshold among the candidates; a tie goes to the simpler one (rule, then hybrid, then network).
+* :func:`too_few` — why the validation labels cannot rank candidates at all (fewer than
+  :data:`MIN_CLASS_FRAMES` critical or uncritical frames): no choice is then made on validation,
+  each falls back to its documented prior (a NaN score never decides what ships).
 """
 
 from __future__ import annotations
@@ -20,6 +23,27 @@ from traffictwin.risk.metric import risk_threshold, thw_to_risk
 
 #: tie-break order of :func:`choose` (simplest first)
 SIMPLICITY = ("geometric", "hybrid", "dave2")
+#: fewest critical and fewest uncritical validation frames that can rank candidates
+MIN_CLASS_FRAMES = 5
+
+
+def too_few(positive: np.ndarray, min_class: int = MIN_CLASS_FRAMES) -> str | None:
+    """Why the validation labels ``positive`` (critical frames) cannot rank candidates: fewer
+    than ``min_class`` critical or uncritical frames; None when they can."""
+    pos = np.asarray(positive, bool).reshape(-1)
+    n_pos = int(pos.sum())
+    n_neg = int(pos.size - n_pos)
+    if n_pos < min_class:
+        return (
+            f"not enough validation positives (n={n_pos} critical of {pos.size} frames, "
+            f"{min_class} needed)"
+        )
+    if n_neg < min_class:
+        return (
+            f"not enough validation negatives (n={n_neg} uncritical of {pos.size} frames, "
+            f"{min_class} needed)"
+        )
+    return None
 
 
 def roc_auc(positive: np.ndarray, score: np.ndarray) -> float:
@@ -67,11 +91,17 @@ def tune_half_width(
     positive: np.ndarray,
     half_widths: Sequence[float],
     threshold_s: float,
+    prior: float | None = None,
+    min_class: int = MIN_CLASS_FRAMES,
 ) -> tuple[float, list[dict[str, float]]]:
     """The corridor half-width (m) of the rule with free distances ``distances`` (N, K) m for
     ``half_widths`` (K,) and speeds (N,) m/s, scored for ``positive`` (critical at
     ``threshold_s``): highest ROC-AUC, then balanced accuracy at the rule's own cut (THW <
-    ``threshold_s``), then the narrower band. Returns the width and the table of every candidate."""
+    ``threshold_s``), then the narrower band. Returns the width and the table of every candidate.
+
+    With too few critical or uncritical frames to rank (:func:`too_few`) the width is ``prior``
+    (m; the label's own corridor half-width), which need not be a candidate; without a prior
+    that is a ValueError."""
     d = np.asarray(distances, np.float64)
     hw = [float(w) for w in half_widths]
     if d.ndim != 2 or d.shape[1] != len(hw):
@@ -86,6 +116,11 @@ def tune_half_width(
         }
         for k, w in enumerate(hw)
     ]
+    reason = too_few(positive, min_class)
+    if reason is not None:
+        if prior is None:
+            raise ValueError(f"tune_half_width: {reason} and no prior half-width")
+        return float(prior), table
 
     def key(r: dict[str, float]) -> tuple[float, float, float]:
         auc, ba = r["roc_auc"], r["balanced_accuracy"]
@@ -100,15 +135,21 @@ def tune_half_width(
 
 def choose(candidates: Mapping[str, Mapping[str, Any]]) -> str:
     """The candidate (name → ``{"roc_auc": validation AUC, "kind": dave2|hybrid|geometric}``)
-    with the highest validation ROC-AUC; ties go to the simpler kind (:data:`SIMPLICITY`)."""
+    with the highest validation ROC-AUC; ties go to the simpler kind (:data:`SIMPLICITY`).
+    Candidates without a finite AUC are never chosen; none with one is a ValueError."""
     if not candidates:
         raise ValueError("choose: no candidate predictors")
+    scored = {n: c for n, c in candidates.items() if np.isfinite(float(c["roc_auc"]))}
+    if not scored:
+        raise ValueError(
+            f"choose: no candidate has a finite validation ROC-AUC ({sorted(candidates)})"
+        )
 
     def key(name: str) -> tuple[float, int]:
         c = candidates[name]
         auc = float(c["roc_auc"])
         kind = str(c.get("kind", "dave2"))
         rank = SIMPLICITY.index(kind) if kind in SIMPLICITY else len(SIMPLICITY)
-        return (round(auc, 12) if np.isfinite(auc) else -1.0, -rank)
+        return (round(auc, 12), -rank)
 
-    return max(candidates, key=key)
+    return max(scored, key=key)

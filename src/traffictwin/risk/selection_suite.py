@@ -10,6 +10,12 @@
   primary threshold among the runs of the main network variant, the hybrid runs and the SGM rule;
   a tie goes to the simpler).
 
+When the validation frames hold too few critical or uncritical frames to rank candidates
+(:func:`~traffictwin.risk.selection.too_few`: fewer than
+:data:`~traffictwin.risk.selection.MIN_CLASS_FRAMES` of either), nothing is chosen on them:
+each rule takes the label's own corridor half-width (:func:`label_half_width`), the decision
+cuts are the label's thresholds, and the SGM rule ships; the records say why (``note``).
+
 The result is a :class:`Selection` (``to_json``: the layout of
 ``reports/metrics/risk_selection.json``); the test split is never read here.
 """
@@ -26,9 +32,9 @@ import pandas as pd
 from traffictwin.io.jsonio import json_clean
 from traffictwin.risk.baselines import corridor_distances, fit_speed_only, thw_from_distance
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
-from traffictwin.risk.metric import risk_threshold, thw_to_risk
+from traffictwin.risk.metric import RiskConfig, risk_threshold, thw_to_risk
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
-from traffictwin.risk.selection import best_cut, choose, roc_auc, tune_half_width
+from traffictwin.risk.selection import best_cut, choose, roc_auc, too_few, tune_half_width
 from traffictwin.risk.training import RiskSource, check_label, input_keys
 
 #: the corridor rules and the disparity each reads
@@ -59,7 +65,8 @@ class ValidationScores:
     y: np.ndarray  #: the primary label (normalised risk)
     speed: np.ndarray  #: m/s
     scores: dict[str, np.ndarray]  #: predictor → normalised risk score
-    distances: dict[str, np.ndarray]  #: rule → (N, K) free distances (m), one per half-width
+    distances: dict[str, np.ndarray]  #: rule → (N, K) free distances (m), one per width of
+    #: :func:`_rule_widths` (the candidates, then the prior)
 
 
 @dataclass(frozen=True)
@@ -68,12 +75,14 @@ class RuleChoice:
 
     half_width: float
     candidates: list[dict[str, float]]  #: :func:`tune_half_width`'s table
+    note: str | None = None  #: why the width is the prior, not a validation choice
 
     def to_json(self) -> dict[str, Any]:
         """Candidates keyed by width, ``"1p25"`` for 1.25 m (dotted report keys)."""
         return {
             "half_width": self.half_width,
             "candidates": {f"{c['half_width']:g}".replace(".", "p"): c for c in self.candidates},
+            "note": self.note,
         }
 
 
@@ -116,6 +125,7 @@ class ShippedChoice:
     roc_auc: float
     candidates: list[str]
     decision: dict[str, Decision]
+    note: str | None = None  #: why it is the prior (SGM rule at the label's corridor), not chosen
 
 
 @dataclass(frozen=True)
@@ -154,6 +164,20 @@ class Selection:
         )
 
 
+def label_half_width(subject: MetricParams) -> float:
+    """The risk label's own corridor half-width (m): half the nominal lane width
+    (:class:`~traffictwin.risk.metric.RiskConfig`'s ``lane_width``, 3.5 m; the simulated lanes
+    are 3.2-3.7 m) plus ``risk_data.metric.corridor_margin``. The prior of the rules' width."""
+    return float(RiskConfig.lane_width / 2 + subject.corridor_margin)
+
+
+def _rule_widths(setup: SelectionSetup) -> list[float]:
+    """The candidate half-widths (m), then the prior when it is no candidate."""
+    widths = [float(w) for w in setup.ev.geometric.half_widths]
+    prior = label_half_width(setup.subject)
+    return widths if prior in widths else [*widths, prior]
+
+
 def on_label(models: Mapping[str, Any], label: str) -> dict[str, Any]:
     """The models trained on ``label`` (a model without one in its meta counts as ``label``)."""
     return {v: m for v, m in models.items() if str(m.meta.get("label") or label) == label}
@@ -170,7 +194,7 @@ def validation_scores(
         raise ValueError(f"{fpath}: the validation split has no frames (after the ORB check)")
     keys = sorted({k for m in models.values() for k in input_keys(m.cfg)} | set(RULES.values()))
     geo = ev.geometric.params(setup.subject.subject_length, setup.subject.subject_width)
-    half_widths = [float(w) for w in ev.geometric.half_widths]
+    half_widths = _rule_widths(setup)
     camera = source.camera
     preds: dict[str, list[np.ndarray]] = {v: [] for v in models}
     dists: dict[str, list[np.ndarray]] = {r: [] for r in RULES}
@@ -194,16 +218,24 @@ def validation_scores(
 
 
 def _tune_rules(val: ValidationScores, setup: SelectionSetup) -> dict[str, RuleChoice]:
-    """Each rule's half-width; its score at that width joins ``val.scores``."""
+    """Each rule's half-width (the prior when validation cannot rank); its score at that width
+    joins ``val.scores``."""
     t0 = setup.ev.thresholds_s[0]
     half_widths = [float(w) for w in setup.ev.geometric.half_widths]
+    widths = _rule_widths(setup)
+    prior = label_half_width(setup.subject)
+    positive = val.y > risk_threshold(t0)
+    reason = too_few(positive)
+    note = None if reason is None else f"{reason}: the label's corridor half-width {prior:g} m"
     rules = {}
     for r in RULES:
         d = val.distances[r]
-        w, table = tune_half_width(d, val.speed, val.y > risk_threshold(t0), half_widths, t0)
-        k = half_widths.index(w)
+        w, table = tune_half_width(
+            d[:, : len(half_widths)], val.speed, positive, half_widths, t0, prior=prior
+        )
+        k = widths.index(w)
         val.scores[r] = thw_to_risk(thw_from_distance(d[:, k], val.speed)).astype(np.float64)
-        rules[r] = RuleChoice(w, table)
+        rules[r] = RuleChoice(w, table, note)
     return rules
 
 
@@ -222,11 +254,16 @@ def _speed_only(source: RiskSource, val: ValidationScores, primary: str) -> None
 def _predictor(
     s: np.ndarray, y: np.ndarray, kind: str, group: str, ev: EvalRiskConfig
 ) -> PredictorChoice:
-    """Scores ``s`` against the label ``y`` (both on the frames the predictor is tuned on)."""
+    """Scores ``s`` against the label ``y`` (both on the frames the predictor is tuned on); a
+    threshold with too few frames of either class keeps the label's own cut."""
     spread = float(np.std(s))
     decision = {}
     for t in ev.thresholds_s:
-        cut, ba = best_cut(y > risk_threshold(t), s, risk_threshold(t))
+        pos = y > risk_threshold(t)
+        if too_few(pos) is None:
+            cut, ba = best_cut(pos, s, risk_threshold(t))
+        else:
+            cut, ba = risk_threshold(t), float("nan")
         decision[f"{t:g}"] = Decision(cut, ba)
     return PredictorChoice(
         kind=kind,
@@ -286,11 +323,17 @@ def _groups(
 
 
 def _ship(
-    predictors: Mapping[str, PredictorChoice], groups: Mapping[str, GroupChoice], main_group: str
+    predictors: Mapping[str, PredictorChoice],
+    groups: Mapping[str, GroupChoice],
+    main_group: str,
+    rule: RuleChoice,
+    reason: str | None,
 ) -> tuple[str | None, ShippedChoice]:
     """(the learned group that competes, the shipped predictor): the main variant's group or the
     hybrid (higher mean AUC), its runs and the SGM rule; collapsed learned runs are failed runs
-    (the rule is no trained model: a constant output only says nothing was in its corridor)."""
+    (the rule is no trained model: a constant output only says nothing was in its corridor).
+    With ``reason`` (why validation cannot rank: :func:`too_few`) or without a finite validation
+    AUC among them, the SGM rule ``rule`` ships at its width (the prior) with a note saying so."""
     learned = [g for g in (main_group, HYBRID_GROUP) if g in groups]
     best = max(learned, key=lambda g: groups[g].roc_auc_mean) if learned else None
     candidates = {
@@ -298,9 +341,18 @@ def _ship(
         for n in [*(r for g in learned for r in groups[g].runs), "geometric_sgm"]
         if n in RULES or not predictors[n].collapsed
     }
-    shipped = choose({n: {"roc_auc": c.roc_auc, "kind": c.kind} for n, c in candidates.items()})
+    note = None
+    if reason is not None or not any(np.isfinite(c.roc_auc) for c in candidates.values()):
+        shipped = "geometric_sgm"
+        width = "the label's corridor half-width" if rule.note else "its validation half-width"
+        note = (
+            f"{reason or 'no candidate has a validation ROC-AUC'}: the corridor rule at "
+            f"{width} {rule.half_width:g} m, not chosen on validation"
+        )
+    else:
+        shipped = choose({n: {"roc_auc": c.roc_auc, "kind": c.kind} for n, c in candidates.items()})
     c = predictors[shipped]
-    return best, ShippedChoice(shipped, c.kind, c.roc_auc, sorted(candidates), c.decision)
+    return best, ShippedChoice(shipped, c.kind, c.roc_auc, sorted(candidates), c.decision, note)
 
 
 def select_on_validation(
@@ -317,8 +369,14 @@ def select_on_validation(
     predictors = _predictors(val, models, setup)
     groups = _groups(predictors, models)
     main_group = (setup.settings.get(ev.main_variant) or {}).get("replicate_of")
-    learned, shipped = _ship(predictors, groups, main_group or ev.main_variant)
     t0 = ev.thresholds_s[0]
+    learned, shipped = _ship(
+        predictors,
+        groups,
+        main_group or ev.main_variant,
+        rules["geometric_sgm"],
+        too_few(val.y > risk_threshold(t0)),
+    )
     return Selection(
         n_frames=int(len(val.rows)),
         n_sequences=int(val.rows["scenario"].nunique()),
