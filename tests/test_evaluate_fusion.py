@@ -127,6 +127,8 @@ def test_registry_lists_every_method_once_with_its_inputs():
         "registered+network",
         "learned",
         "learned+network",
+        "learned-refined",
+        "learned-refined+network",
     ]
     for name, m in REGISTRY.items():
         assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
@@ -134,6 +136,8 @@ def test_registry_lists_every_method_once_with_its_inputs():
     assert "model" in REGISTRY["dnn"].needs
     assert REGISTRY["learned"].needs == ("prealigned", "pose", "model")
     assert not REGISTRY["learned"].slow  # evaluated on every pair
+    assert REGISTRY["learned-refined"].needs == ("prealigned", "raw", "model")
+    assert not REGISTRY["learned-refined"].slow  # on the same pairs as `learned`
     with pytest.raises(ValueError, match="registered twice"):
         register("naive", "again", needs=("prealigned",))(lambda x: x.inputs[:, :2])
     with pytest.raises(ValueError, match="unknown needs"):
@@ -184,12 +188,16 @@ def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
     cfg = OmegaConf.create(yaml.safe_load((root / "params.yaml").read_text()))
     fc = fusion_eval_config(cfg)
     assert fc.registration_params.feature == cfg.evaluation.fusion.registration.feature
+    assert fc.refinement_params.ecc_levels == cfg.evaluation.fusion.refinement.ecc_levels
     assert list(pose_configurations(cfg)) == list(cfg.configurations)  # conf order
     for key, value, match in (
         ("configs", ["A"], "evaluation.fusion.configs"),  # removed: derived from configurations
         ("max_pairs", 0, "evaluation.fusion.max_pairs' must be >= 1"),
         ("split", "dev", "evaluation.fusion.split"),
         ("registration", {"feature": "edges"}, "evaluation.fusion.registration"),
+        ("refinement", {"ecc_levels": 0}, "evaluation.fusion.refinement"),
+        ("validation.split", "test", "must differ from the evaluated split"),
+        ("validation.refinement_grid", {"ecc_levels": []}, "non-empty list"),
         ("trans_bins_m", [0, -1], r"evaluation.fusion.trans_bins_m\[1\]"),
     ):
         bad = OmegaConf.create(OmegaConf.to_container(cfg))

@@ -89,3 +89,98 @@ def test_register_pair_accepts_a_pyramid_and_checks_its_settings():
         RefinementParams(ecc_levels=0)
     with pytest.raises(ValueError, match="map1"):
         refine_pose(np.zeros((2, 4, 4)), m2, true, GRID)
+
+
+class _CoarseStub:
+    """A stand-in learned registration that returns the noisy pose (identity correction)."""
+
+    def register(self, inputs, noisy):  # noqa: ANN001, ANN201 - the LearnedRegistration interface
+        import torch
+
+        n = len(inputs)
+        eye = torch.eye(3, dtype=torch.float64).expand(n, 3, 3).clone()
+        return {
+            "m": eye,
+            "m_used": eye,
+            "accepted": torch.ones(n, dtype=torch.bool),
+            "cc_noisy": torch.zeros(n),
+            "cc_est": torch.zeros(n),
+            "warped": inputs[:, 2:],
+        }
+
+
+def test_refined_methods_are_registered_and_finish_the_coarse_pose():
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.fusion.evaluation import EvalSettings, evaluate_method
+    from traffictwin.fusion.methods import METHODS, FusionInput
+
+    pairs = [_pair(1), _pair(3)]
+    map1 = np.stack([p[0] for p in pairs])
+    map2 = np.stack([p[1] for p in pairs])
+    true = np.stack([p[2] for p in pairs])
+    noisy = true + np.array([[0.8, -0.6, np.radians(3.0)], [-0.7, 0.7, np.radians(-2.5)]])
+    pre = np.stack([warp_masses(map2[i], noisy[i], GRID) for i in range(2)])
+    x = FusionInput(
+        inputs=np.concatenate([map1, pre], 1).astype(np.float32),
+        map1=map1,
+        map2=map2,
+        rel_pose_noisy=noisy,
+        rel_pose_true=true,
+        grid=GRID,
+        model=_CoarseStub(),
+        refinement=RefinementParams(max_trans_m=2.0, max_rot_deg=5.0),
+        pair_key=np.arange(2),
+        memo={},
+    )
+    assert "raw" in METHODS["learned-refined"].needs and "model" in METHODS["learned-refined"].needs
+    coarse, _ = evaluate_method(METHODS["learned"], x, map1, EvalSettings())
+    refined, _ = evaluate_method(METHODS["learned-refined"], x, map1, EvalSettings())
+    assert not coarse["reg_success"].any()  # the stub's pose is ~1 m / 3 deg off
+    assert refined["reg_success"].all() and refined["reg_accepted"].all()
+    assert (refined["reg_trans_err_m"] < 0.25).all() and (refined["ms"] > 0).all()
+    s = METHODS["learned-refined"].summary(refined, EvalSettings())
+    assert s["success_rate"] == 1.0 and s["fallback_rate"] == 0.0
+    # computed once per pair and shared through memo
+    assert sum(1 for k in x.memo if k[0] == "learned-refined") == 1
+    with pytest.raises(ValueError, match="model = \\(registration network, fusion network\\)"):
+        METHODS["learned-refined+network"](x)
+    with pytest.raises(ValueError, match="map1"):
+        METHODS["learned-refined"](FusionInput(inputs=x.inputs, model=x.model, grid=GRID))
+
+
+def test_settings_are_chosen_by_validation_success():
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.fusion.methods import FusionInput, parameter_grid, validation_success
+
+    m1, m2, true = _pair(1)
+    noisy = true + np.array([0.8, -0.6, np.radians(3.0)])
+    x = FusionInput(
+        inputs=np.concatenate([m1, warp_masses(m2, noisy, GRID)])[None].astype(np.float32),
+        map1=m1[None],
+        map2=m2[None],
+        rel_pose_noisy=noisy[None],
+        rel_pose_true=true[None],
+        grid=GRID,
+        pair_key=np.arange(1),
+        memo={},
+    )
+    cands = parameter_grid(
+        RefinementParams(max_rot_deg=5.0), {"max_trans_m": [0.3, 2.0], "ecc_levels": [1, 2]}
+    )
+    assert [(c.max_trans_m, c.ecc_levels) for c in cands] == [
+        (0.3, 1),
+        (0.3, 2),
+        (2.0, 1),
+        (2.0, 2),
+    ]
+    rates = validation_success("learned-refined", [x], cands, 0.5, 1.0, registration=_CoarseStub())
+    np.testing.assert_array_equal(
+        rates, [0.0, 0.0, 1.0, 1.0]
+    )  # the 0.3 m bound keeps the bad start
+    assert int(np.argmax(rates)) == 2  # ties: the earlier (cheaper) candidate
+    reg = parameter_grid(RegistrationParams(), {"ecc_levels": [1, 2]})
+    np.testing.assert_array_equal(validation_success("registered", [x], reg, 0.5, 1.0), [1.0, 1.0])
+    with pytest.raises(ValueError, match="not fields of RefinementParams"):
+        parameter_grid(RefinementParams(), {"levels": [1]})
+    with pytest.raises(ValueError, match="needs the learned registration"):
+        validation_success("learned-refined", [x], cands, 0.5, 1.0)

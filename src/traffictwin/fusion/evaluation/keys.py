@@ -63,6 +63,8 @@ ROW_BASELINES = {NETWORK: (PER_CONFIG_NETWORK,)}
 HYBRID = "registered+network"
 LEARNED = "learned"  # the one learned registration (+ Dempster)
 LEARNED_NETWORK = "learned+network"
+LEARNED_REFINED = "learned-refined"  # the learned registration refined by ECC (+ Dempster)
+LEARNED_REFINED_NETWORK = "learned-refined+network"
 # rows whose networks (one per configuration) are also run on the other configurations: cross
 # entries "<row>-<net>"
 CROSS_ROWS = (PER_CONFIG_NETWORK,)

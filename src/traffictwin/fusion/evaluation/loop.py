@@ -162,6 +162,7 @@ def _config_input(ctx: _Context, d: Mapping[str, np.ndarray]) -> FusionInput:
         grid=ctx.grid,
         batch_size=ctx.cfg.batch_size,
         registration=ctx.cfg.registration_params,
+        refinement=ctx.cfg.refinement_params,
         pair_key=np.arange(len(ctx.pairs.every)),
         memo={},  # each registration once per pair, shared by the methods that use it
     )

@@ -21,9 +21,11 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "registered+network": "registered + network",
     "learned": "learned registration + Dempster",
     "learned+network": "learned registration + network",
+    "learned-refined": "learned registration + ECC + Dempster",
+    "learned-refined+network": "learned registration + ECC + network",
 }
 PER_CONFIG_ROW = "dnn[per-config]"  # the ablation's networks trained on one configuration each
-POSE_ROWS = ("registered", "learned")  # rows with their own pose estimate (the hybrids reuse them)
+POSE_ROWS = ("registered", "learned", "learned-refined")  # rows with their own pose estimate (the hybrids reuse them)
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 CI_NOTE = (
