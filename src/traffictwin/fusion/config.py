@@ -337,6 +337,8 @@ class FusionEvalConfig:
     device: str = MISSING
     kld_eps: float = spec(MISSING, min=0.0, max=0.1)
     auroc_bins: int = spec(MISSING, min=2)
+    auroc_min_wrong: int = spec(MISSING, min=1)  # AUROC(u) withheld below this many wrong cells
+    auroc_min_pairs: int = spec(MISSING, min=1)  # ... or wrong cells in fewer pairs than this
     trans_bins_m: list[float] = spec(MISSING, min=0.0)
     rot_bins_deg: list[float] = spec(MISSING, min=0.0)
     success_trans_m: float = spec(MISSING, min=0.0)

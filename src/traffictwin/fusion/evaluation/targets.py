@@ -250,6 +250,21 @@ def _value_ci(ti: TargetInputs, c: str, key: str, name: str) -> Verdict:
     return _judge_target(Interval(v[key], b["lo"], b["hi"], ti.ci.level), name)
 
 
+TOO_FEW_WRONG = "too few wrong cells"  # the verdict's reason where AUROC(u) is withheld
+
+
+def _auroc(ti: TargetInputs, c: str) -> Verdict:
+    """The network's AUROC(u) at ``c``; not evaluated (":data:`TOO_FEW_WRONG`", with the counts)
+    where too few wrong cells stand behind it (``u_auroc_enough`` false)."""
+    v = ti.numbers(c, NETWORK)
+    if v is not None and not v.get("u_auroc_enough", True):
+        return missing(
+            f"{TOO_FEW_WRONG}: {v.get('u_auroc_n_wrong')} wrong cells in "
+            f"{v.get('u_auroc_pairs_wrong')} pairs at {c}"
+        )
+    return _value_ci(ti, c, "u_auroc", "u_auroc")
+
+
 def _dice_drop(ti: TargetInputs, c: str) -> Verdict:
     """1 − Dice occ(network at c) / Dice occ(network at A) on their common pairs, resampled
     together."""
@@ -354,7 +369,7 @@ JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
     "dice_occ_at_A": lambda ti, c: _value_ci(ti, c, "dice_occ", "dice_occ_at_A"),
     "dice_occ_drop_A_to_D": _dice_drop,
     "dice_occ_vs_ego": _vs_ego,
-    "u_auroc": lambda ti, c: _value_ci(ti, c, "u_auroc", "u_auroc"),
+    "u_auroc": _auroc,
     "u_mean_vs_label": _u_gap,
     "hybrid_vs_registered": lambda ti, c: _beats_registered(ti, c, HYBRID, "hybrid_vs_registered"),
     "network_vs_registered": lambda ti, c: _beats_registered(

@@ -25,7 +25,11 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "learned-refined+network": "learned registration + ECC + network",
 }
 PER_CONFIG_ROW = "dnn[per-config]"  # the ablation's networks trained on one configuration each
-POSE_ROWS = ("registered", "learned", "learned-refined")  # rows with their own pose estimate (the hybrids reuse them)
+POSE_ROWS = (
+    "registered",
+    "learned",
+    "learned-refined",
+)  # rows with their own pose estimate (the hybrids reuse them)
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 CI_NOTE = (
