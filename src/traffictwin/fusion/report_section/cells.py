@@ -102,6 +102,42 @@ def value_ci_cells(src: page.Sources, key: str) -> list[Cell]:
     return [src.cell(FUSION_FILE, key), ci_cell(src, key)]
 
 
+TOO_FEW_WRONG = "too few wrong cells"
+AUROC_COLUMNS = ("AUROC(u)", "95 % CI", "wrong / right cells")
+AUROC_NOTE = (
+    "AUROC(u): u as a detector of wrongly classified label-known cells, with the wrong and right "
+    "cells behind it; 'too few wrong cells' where fewer than evaluation.fusion.auroc_min_wrong "
+    "wrong cells, or wrong cells in fewer than auroc_min_pairs pairs, stand behind it (an AUROC "
+    "of a handful of cells says nothing about u). "
+)
+
+
+def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
+    """Row ``m``'s AUROC(u) at ``c``: value, interval and the cells behind it
+    (:data:`AUROC_COLUMNS`); "too few wrong cells" instead of a number where fusion.json withholds it."""
+    base = fusion_key(c, m, "u_auroc")
+    wrong = src.get(FUSION_FILE, f"{base}_n_wrong")
+    right = src.get(FUSION_FILE, f"{base}_n_right")
+    pairs = src.get(FUSION_FILE, f"{base}_pairs_wrong")
+    if isinstance(wrong, (int, float)) and isinstance(right, (int, float)):
+        where = f" in {int(pairs)} pairs" if isinstance(pairs, (int, float)) else ""
+        counts = Cell(
+            f"{int(wrong):,}{where} / {int(right):,}",
+            src=f"{FUSION_FILE}#{base}_n_wrong",
+            value=int(wrong),
+            title="wrong cells (pairs with any) / right cells, label-known cells only",
+        )
+    else:
+        counts = Cell(NA, title="fusion.json has no cell counts (an older run)")
+    if src.get(FUSION_FILE, f"{base}_enough") is False:
+        return [
+            Cell(TOO_FEW_WRONG, title="AUROC(u) withheld: too few wrong cells behind it"),
+            Cell(NA),
+            counts,
+        ]
+    return [*value_ci_cells(src, base), counts]
+
+
 def estimate_ci_cells(src: page.Sources, dk: str) -> list[Cell]:
     """A paired difference at fusion.json ``dk``: its estimate and interval."""
     return [src.cell(FUSION_FILE, f"{dk}.estimate"), ci_cell(src, dk)]
