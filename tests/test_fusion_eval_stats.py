@@ -238,9 +238,10 @@ def _target_inputs() -> tuple[dict, dict]:
     """Per-pair frames and metrics where every target has a value (see the hand cases above)."""
     pid, own = _hand_rows()
     own[("D", ev.LEARNED)] = frame(pid, ms=np.full(5, 10.0), reg_success=np.ones(5))
+    own[("D", ev.LEARNED_REFINED)] = frame(pid, ms=np.full(5, 30.0), reg_success=np.ones(5))
     metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
     for (c, row), f in own.items():
-        if row == ev.LEARNED:
+        if row in (ev.LEARNED, ev.LEARNED_REFINED):
             metrics["test"][c][row] = {}
             continue
         iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
@@ -267,6 +268,11 @@ def _target_inputs() -> tuple[dict, dict]:
             "success_rate": {"estimate": 0.2, "lo": 0.1, "hi": 0.3, "n_pairs": 5},
         }
     }
+    metrics["diff"]["D"][ev.LEARNED_REFINED] = {
+        "vs_registered": {
+            "success_rate": {"estimate": 0.15, "lo": 0.07, "hi": 0.25, "n_pairs": 5},
+        }
+    }
     return own, metrics
 
 
@@ -285,6 +291,8 @@ FLIPS = {
     "learned_success_gain_at_D": ("D", 0.25),
     "learned_success_at_D": ("D", 1.01),  # rate 1
     "learned_runtime_ms": ("D", 5.0),  # 10 ms
+    "refined_success_gain_at_D": ("D", 0.2),  # gain 0.15
+    "refined_success_at_D": ("D", 1.01),  # rate 1
 }
 
 
