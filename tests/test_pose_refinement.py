@@ -184,3 +184,64 @@ def test_settings_are_chosen_by_validation_success():
         parameter_grid(RefinementParams(), {"levels": [1]})
     with pytest.raises(ValueError, match="needs the learned registration"):
         validation_success("learned-refined", [x], cands, 0.5, 1.0)
+
+
+def test_evaluate_fusion_chooses_settings_on_validation_pairs(monkeypatch: pytest.MonkeyPatch):
+    import dataclasses
+    from pathlib import Path
+
+    import yaml
+    from omegaconf import OmegaConf
+
+    from pipelines.evaluate_fusion import choose_on_validation
+    from traffictwin.evidential.warp import warp_masses
+    from traffictwin.fusion import evaluation as ev
+    from traffictwin.fusion.config import fusion_eval_config
+    from traffictwin.io.npz import DatasetError
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = OmegaConf.create(yaml.safe_load((root / "params.yaml").read_text()))
+    fc = dataclasses.replace(
+        fusion_eval_config(cfg),
+        refinement={**fusion_eval_config(cfg).refinement, "max_rot_deg": 5.0},
+        validation={
+            "split": "val",
+            "max_pairs": 1,
+            "registration_grid": {"ecc_levels": [1]},
+            "refinement_grid": {"max_trans_m": [0.3, 2.0]},
+        },
+    )
+    m1, m2, true = _pair(1)
+    noisy = true + np.array([0.8, -0.6, np.radians(3.0)])
+    seen = []
+
+    def load_sets(roots, split, max_pairs, grid):
+        seen.append(split)
+        d = {
+            "inputs": np.concatenate([m1, warp_masses(m2, noisy, GRID)])[None].astype(np.float32),
+            "rel_pose_noisy": noisy[None],
+            "rel_pose_true": true[None],
+        }
+        return {c: d for c in roots}, np.array([1000])
+
+    monkeypatch.setattr(ev, "load_test_sets", load_sets)
+    monkeypatch.setattr(
+        ev, "load_raw_pairs", lambda root, pid, split, grid: {"map1": m1[None], "map2": m2[None]}
+    )
+    out, record = choose_on_validation(fc, ["D"], GRID, {ev.LEARNED: {"D": _CoarseStub()}})
+    assert seen == ["val"]  # never the evaluated (test) split
+    assert out.refinement_params.max_trans_m == 2.0  # the 0.3 m bound keeps the bad start
+    assert record["refinement"]["success_rate"] == [0.0, 1.0]
+    assert record["refinement"]["chosen"] == {"max_trans_m": 2.0}
+    assert record["registration"]["chosen"] == {"ecc_levels": 1}
+    assert record["n_pairs_per_config"] == 1 and record["split"] == "val"
+    # without a learned registration only the classical settings are searched
+    _, record = choose_on_validation(fc, ["D"], GRID, {})
+    assert "refinement" not in record and "registration" in record
+
+    def no_pairs(*a, **k):
+        raise DatasetError("data/prealigned/D: no split 'val'")
+
+    monkeypatch.setattr(ev, "load_test_sets", no_pairs)
+    same, record = choose_on_validation(fc, ["D"], GRID, {})
+    assert same is fc and "no split 'val'" in record["skipped"]
