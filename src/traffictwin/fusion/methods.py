@@ -733,17 +733,25 @@ def validation_success(
         raise ValueError(
             "validation_success: 'learned-refined' needs the learned registration network"
         )
+    true = np.concatenate([np.asarray(x.rel_pose_true, dtype=np.float64) for x in inputs])
     rates = np.empty(len(candidates))
     for j, params in enumerate(candidates):
-        hits = []
-        for x in inputs:
-            if kind == "registered":
-                res = register_many(x.map1, x.map2, x.rel_pose_noisy, x.grid, params, workers)
-                poses = np.stack([r.pose for r in res])
-            else:
+        if kind == "registered":  # every input's pairs in one pool of workers
+            res = register_many(
+                np.concatenate([x.map1 for x in inputs]),
+                np.concatenate([x.map2 for x in inputs]),
+                np.concatenate([x.rel_pose_noisy for x in inputs]),
+                inputs[0].grid,
+                params,
+                workers,
+            )
+            poses = np.stack([r.pose for r in res])
+        else:
+            for x in inputs:
                 x.refinement = params
-                poses = refined_registration_batch(x, registration).poses
-            t, r = pose_error(poses, np.asarray(x.rel_pose_true, dtype=np.float64))
-            hits.append((t <= success_trans_m) & (r <= success_rot_deg))
-        rates[j] = float(np.concatenate(hits).mean())
+            poses = np.concatenate(
+                [refined_registration_batch(x, registration).poses for x in inputs]
+            )
+        t, r = pose_error(poses, true)
+        rates[j] = float(((t <= success_trans_m) & (r <= success_rot_deg)).mean())
     return rates
