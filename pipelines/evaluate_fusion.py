@@ -7,10 +7,13 @@ for every method), ``data/fusion`` (raw maps for the registration methods and Fi
 :func:`~traffictwin.fusion.config.variant_row`: ``registered+network``, ``dnn[<loss>]`` at every
 configuration, ``dnn[per-config]`` at its own; ``fusion_model.loss.name`` names the default loss,
 read only when there are variants) and ``models/registration/learned`` (rows ``learned``,
-``learned+network``). Writes:
+``learned+network``, ``learned-refined``, ``learned-refined+network``), and the ``val`` split of
+``data/prealigned/<cfg>`` / ``data/fusion`` (``evaluation.fusion.validation``). Writes:
 
 - ``reports/metrics/fusion.json`` — aggregated metrics (DVC metrics), layout in
   :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>`` (+ ``<metric>_ci``),
+  ``validation`` (the registration and refinement settings chosen on validation pairs before the
+  test pass: :func:`choose_on_validation`),
   ``diff.<cfg>.<row>.vs_{naive,registered}.<metric>``, ``label.<cfg>``, ``targets``,
   ``cross.dnn-<net>.<cfg>.<metric>``, ``bins.{translation,rotation}.<row>.<bin>.<metric>``;
 - ``reports/fusion_eval_samples.csv`` — one row per (test config, method, pair);
@@ -144,7 +147,13 @@ def load_networks(
     one = load_fusion_model(
         fusion_model_dir() / "model.ckpt", expected_cfg=MIXED, expected_grid=grid, device=device
     )
-    from traffictwin.fusion.evaluation import HYBRID, LEARNED, LEARNED_NETWORK
+    from traffictwin.fusion.evaluation import (
+        HYBRID,
+        LEARNED,
+        LEARNED_NETWORK,
+        LEARNED_REFINED,
+        LEARNED_REFINED_NETWORK,
+    )
 
     networks: dict[str, dict[str, Any]] = {
         "dnn": dict.fromkeys(configs, one),
@@ -180,7 +189,90 @@ def load_networks(
             networks.setdefault(LEARNED, {})[c] = reg
             runs.append((folder, c, LEARNED, "train_registration"))
             networks.setdefault(LEARNED_NETWORK, {})[c] = (reg, one)
+            networks.setdefault(LEARNED_REFINED, {})[c] = reg
+            networks.setdefault(LEARNED_REFINED_NETWORK, {})[c] = (reg, one)
     return networks, runs
+
+
+def choose_on_validation(
+    fc: Any, configs: list[str], grid: Any, networks: dict[str, dict[str, Any]]
+) -> tuple[Any, dict[str, Any]]:
+    """Choose the classical registration's and the learned pose refinement's settings on the
+    validation pairs (``evaluation.fusion.validation``: ``max_pairs`` per configuration of
+    ``split``, never the evaluated one): every candidate of each grid
+    (:func:`~traffictwin.fusion.methods.parameter_grid`) scored by its registration success rate
+    pooled over the configurations, the highest wins (ties: the earlier candidate). Returns ``fc``
+    with the chosen ``registration`` / ``refinement`` and the record for fusion.json's
+    ``validation`` block. The refinement is chosen only where the learned registration is
+    evaluated; without validation pairs the configured settings stay (recorded as skipped)."""
+    from dataclasses import asdict, replace
+
+    import numpy as np
+
+    from traffictwin.fusion import evaluation as ev
+    from traffictwin.fusion.methods import FusionInput, parameter_grid, validation_success
+    from traffictwin.io.npz import DatasetError
+
+    v = fc.validation
+    record: dict[str, Any] = {"split": v["split"], "rule": "highest success rate; ties: earlier"}
+    try:
+        data, pair_ids = ev.load_test_sets(
+            {c: prealigned(c) for c in configs}, v["split"], v["max_pairs"], grid
+        )
+        raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, v["split"], grid)
+    except DatasetError as exc:
+        log.warning("no validation pairs (%s): the configured registration settings stay", exc)
+        record["skipped"] = str(exc)
+        return fc, record
+    record["n_pairs_per_config"] = int(len(pair_ids))
+    inputs = [
+        FusionInput(
+            inputs=data[c]["inputs"],
+            map1=raw["map1"],
+            map2=raw["map2"],
+            rel_pose_noisy=data[c]["rel_pose_noisy"],
+            rel_pose_true=data[c]["rel_pose_true"],
+            grid=grid,
+            batch_size=fc.batch_size,
+            pair_key=np.arange(len(pair_ids)),
+            memo={},
+        )
+        for c in configs
+    ]
+    reg_model = next(iter(networks.get(ev.LEARNED, {}).values()), None)
+    searches = [("registration", "registered", fc.registration_params, None)]
+    if reg_model is not None:
+        searches.append(("refinement", "learned-refined", fc.refinement_params, reg_model))
+    chosen: dict[str, dict[str, Any]] = {}
+    for key, kind, base, model in searches:
+        grid_spec = dict(v[f"{key}_grid"] or {})
+        cands = parameter_grid(base, grid_spec)
+        rates = validation_success(
+            kind,
+            inputs,
+            cands,
+            fc.success_trans_m,
+            fc.success_rot_deg,
+            registration=model,
+            workers=fc.registration_workers,
+        )
+        best = int(np.argmax(rates))  # the first of equal maxima
+        chosen[key] = asdict(cands[best])
+        record[key] = {
+            "candidates": [{f: getattr(p, f) for f in grid_spec} for p in cands],
+            "success_rate": [float(r) for r in rates],
+            "chosen": {f: getattr(cands[best], f) for f in grid_spec},
+        }
+        log.info(
+            "validation (%d pairs x %d configurations): %s %s, success %.3f (candidates %s)",
+            len(pair_ids),
+            len(configs),
+            key,
+            record[key]["chosen"],
+            rates[best],
+            np.round(rates, 3).tolist(),
+        )
+    return replace(fc, **chosen), record
 
 
 def main() -> None:
@@ -199,12 +291,13 @@ def main() -> None:
     with stage_timer(STAGE) as record:
         record["torch_threads"] = pin_torch_threads(cfg)
         networks, runs = load_networks(cfg, configs, grid, fc.device)
+        fc, chosen = choose_on_validation(fc, configs, grid, networks)
         data, pair_ids = ev.load_test_sets(
             {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid
         )
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
         res = ev.evaluate(data, raw, networks, grid, fc, ci)
-        metrics = json_clean(res.metrics)
+        metrics = json_clean({**res.metrics, "validation": chosen})
         record.update(json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))

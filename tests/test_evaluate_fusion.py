@@ -127,6 +127,8 @@ def test_registry_lists_every_method_once_with_its_inputs():
         "registered+network",
         "learned",
         "learned+network",
+        "learned-refined",
+        "learned-refined+network",
     ]
     for name, m in REGISTRY.items():
         assert m.name == name and m.description and m.label and set(m.needs) <= set(INPUTS)
@@ -134,6 +136,8 @@ def test_registry_lists_every_method_once_with_its_inputs():
     assert "model" in REGISTRY["dnn"].needs
     assert REGISTRY["learned"].needs == ("prealigned", "pose", "model")
     assert not REGISTRY["learned"].slow  # evaluated on every pair
+    assert REGISTRY["learned-refined"].needs == ("prealigned", "raw", "model")
+    assert not REGISTRY["learned-refined"].slow  # on the same pairs as `learned`
     with pytest.raises(ValueError, match="registered twice"):
         register("naive", "again", needs=("prealigned",))(lambda x: x.inputs[:, :2])
     with pytest.raises(ValueError, match="unknown needs"):
@@ -184,12 +188,16 @@ def test_eval_config_is_typed_and_the_configurations_come_from_configurations():
     cfg = OmegaConf.create(yaml.safe_load((root / "params.yaml").read_text()))
     fc = fusion_eval_config(cfg)
     assert fc.registration_params.feature == cfg.evaluation.fusion.registration.feature
+    assert fc.refinement_params.ecc_levels == cfg.evaluation.fusion.refinement.ecc_levels
     assert list(pose_configurations(cfg)) == list(cfg.configurations)  # conf order
     for key, value, match in (
         ("configs", ["A"], "evaluation.fusion.configs"),  # removed: derived from configurations
         ("max_pairs", 0, "evaluation.fusion.max_pairs' must be >= 1"),
         ("split", "dev", "evaluation.fusion.split"),
         ("registration", {"feature": "edges"}, "evaluation.fusion.registration"),
+        ("refinement", {"ecc_levels": 0}, "evaluation.fusion.refinement"),
+        ("validation.split", "test", "must differ from the evaluated split"),
+        ("validation.refinement_grid", {"ecc_levels": []}, "non-empty list"),
         ("trans_bins_m", [0, -1], r"evaluation.fusion.trans_bins_m\[1\]"),
     ):
         bad = OmegaConf.create(OmegaConf.to_container(cfg))
@@ -623,3 +631,36 @@ def test_every_method_has_its_own_style() -> None:
     looks = [(st["color"].lower(), st["marker"]) for st in METHOD_STYLE.values()]
     assert len(set(looks)) == len(looks)
     assert len({c for c, _ in looks}) == len(looks)  # colours alone tell them apart too
+
+
+def test_findings_give_the_cells_behind_auroc_and_say_too_few_instead():
+    m = _metrics({"A": 0.01, "B": 0.2, "C": 0.25, "D": 0.3}, {c: 0.5 for c in CFGS})
+    counts = {"u_auroc_n_wrong": 1234, "u_auroc_n_right": 567890, "u_auroc_pairs_wrong": 150}
+    for c in ("B", "C", "D"):
+        m["test"][c]["dnn"].update(counts, u_auroc_enough=True)
+    m["test"]["A"]["dnn"].update(
+        u_auroc=float("nan"),
+        u_auroc_ci=_ci(float("nan"), 0.0),
+        u_auroc_enough=False,
+        u_auroc_n_wrong=37,
+        u_auroc_n_right=600000,
+        u_auroc_pairs_wrong=4,
+    )
+    # learned registration refined by ECC: its own success line against classical
+    for c in CFGS:
+        m["test"][c]["learned-refined"] = {
+            "success_rate": 0.96,
+            "success_rate_ci": _ci(0.96, 0.02),
+            "fallback_rate": 0.1,
+            "residual_trans_m_p90": 0.3,
+            "residual_rot_deg_p90": 0.4,
+        }
+        m["diff"][c]["learned-refined"] = {
+            "vs_registered": {"success_rate": {"estimate": 0.14, **_ci(0.14, 0.04)}}
+        }
+    text = fusion_findings(m)
+    assert "B 0.800 [0.750, 0.850] (1,234 wrong cells in 150 pairs, 567,890 right)" in text
+    assert "above 0.5) in 3/3 configurations" in text
+    assert "Too few wrong cells" in text and "A (37 wrong cells in 4 pairs, 600,000 right)" in text
+    assert "A nan" not in text and "A 0.800" not in text
+    assert "Learned registration refined by ECC" in text and "success 0.960 [0.940, 0.980]" in text

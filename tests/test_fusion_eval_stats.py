@@ -238,9 +238,10 @@ def _target_inputs() -> tuple[dict, dict]:
     """Per-pair frames and metrics where every target has a value (see the hand cases above)."""
     pid, own = _hand_rows()
     own[("D", ev.LEARNED)] = frame(pid, ms=np.full(5, 10.0), reg_success=np.ones(5))
+    own[("D", ev.LEARNED_REFINED)] = frame(pid, ms=np.full(5, 30.0), reg_success=np.ones(5))
     metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
     for (c, row), f in own.items():
-        if row == ev.LEARNED:
+        if row in (ev.LEARNED, ev.LEARNED_REFINED):
             metrics["test"][c][row] = {}
             continue
         iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
@@ -267,6 +268,11 @@ def _target_inputs() -> tuple[dict, dict]:
             "success_rate": {"estimate": 0.2, "lo": 0.1, "hi": 0.3, "n_pairs": 5},
         }
     }
+    metrics["diff"]["D"][ev.LEARNED_REFINED] = {
+        "vs_registered": {
+            "success_rate": {"estimate": 0.15, "lo": 0.07, "hi": 0.25, "n_pairs": 5},
+        }
+    }
     return own, metrics
 
 
@@ -285,6 +291,8 @@ FLIPS = {
     "learned_success_gain_at_D": ("D", 0.25),
     "learned_success_at_D": ("D", 1.01),  # rate 1
     "learned_runtime_ms": ("D", 5.0),  # 10 ms
+    "refined_success_gain_at_D": ("D", 0.2),  # gain 0.15
+    "refined_success_at_D": ("D", 1.01),  # rate 1
 }
 
 
@@ -675,3 +683,58 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
         ConfigError, match=r"fusion_variants.D2' is row 'dnn\[per-config\]' at configuration D"
     ):
         stage.load_networks(cfg, ["A", "D"], None, "cpu")
+
+
+def test_auroc_with_counts_by_hand_and_too_few_wrong_cells():
+    from traffictwin.fusion.metrics import auroc_with_counts
+
+    # two pairs, 4 bins of u: wrong cells at bins 2, 2 | 3; right cells at bins 0, 1 | 2
+    pos = np.array([[0, 0, 2, 0], [0, 0, 0, 1]])
+    neg = np.array([[1, 1, 0, 0], [0, 0, 1, 0]])
+    # each wrong cell in bin 2 beats 2 right cells and ties 1 (2.5); the one in bin 3 beats 3
+    r = auroc_with_counts(pos, neg, min_wrong=3, min_pairs=2)
+    assert r["u_auroc"] == pytest.approx((2.5 + 2.5 + 3) / 9)
+    assert (r["u_auroc_n_wrong"], r["u_auroc_n_right"], r["u_auroc_pairs_wrong"]) == (3, 3, 2)
+    assert r["u_auroc_enough"] is True
+    # too few wrong cells, or wrong cells in too few pairs: counts kept, no number
+    for kw in ({"min_wrong": 4, "min_pairs": 2}, {"min_wrong": 3, "min_pairs": 3}):
+        r = auroc_with_counts(pos, neg, **kw)
+        assert not r["u_auroc_enough"] and math.isnan(r["u_auroc"]) and r["u_auroc_n_wrong"] == 3
+    # no right cell: undefined
+    assert not auroc_with_counts(pos, 0 * neg, 1, 1)["u_auroc_enough"]
+    with pytest.raises(ValueError, match="differ"):
+        auroc_with_counts(pos, neg[:, :3])
+
+
+def test_the_auroc_target_says_too_few_wrong_cells():
+    pid, own = _hand_rows()
+    metrics = {"test": {c: {} for c in ("A", "C", "D")}, "diff": {}}
+    for (c, row), f in own.items():
+        iv = ev.row_intervals(f, np.zeros((5, 4)), np.zeros((5, 4)), CI)
+        metrics["test"][c][row] = (
+            {k: iv[k].estimate for k in ev.CI_KEYS}
+            | {f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS}
+            | {"u_auroc_enough": False, "u_auroc_n_wrong": 12, "u_auroc_pairs_wrong": 3}
+        )
+    v = ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]
+    assert v["status"] == "not evaluated"
+    assert "too few wrong cells: 12 wrong cells in 3 pairs" in v["why"]
+
+
+@pytest.mark.usefixtures("single_torch_thread")
+def test_evaluate_reports_the_cells_behind_each_auroc():
+    data, raw, grid = _synthetic(configs=("A",), n=6)
+    nets = {"dnn": {"A": _tiny_net(0)}}
+    fc = dataclasses.replace(_eval_config(), auroc_min_wrong=1, auroc_min_pairs=1)
+    m = ev.evaluate(data, raw, nets, grid, fc, CI).metrics["test"]["A"]
+    naive, dnn = m["naive"], m["dnn"]
+    # naive = Dempster of the inputs = the label: no wrong cell, so no AUROC
+    assert naive["u_auroc_n_wrong"] == 0 and not naive["u_auroc_enough"]
+    assert math.isnan(naive["u_auroc"]) and math.isnan(naive["u_auroc_ci"]["lo"])
+    # an untrained network is wrong somewhere: counts and a number
+    assert dnn["u_auroc_n_wrong"] > 0 and dnn["u_auroc_n_right"] > 0 and dnn["u_auroc_enough"]
+    assert 0 <= dnn["u_auroc"] <= 1
+    fc = dataclasses.replace(fc, auroc_min_wrong=dnn["u_auroc_n_wrong"] + 1)
+    again = ev.evaluate(data, raw, nets, grid, fc, CI).metrics["test"]["A"]["dnn"]
+    assert not again["u_auroc_enough"] and math.isnan(again["u_auroc"])
+    assert again["u_auroc_n_wrong"] == dnn["u_auroc_n_wrong"]

@@ -490,3 +490,44 @@ def test_training_stops_say_where_each_training_ended_and_why(tmp_path: Path) ->
         "(its validation metric had stopped improving); best epoch 19 of 20 (in the last 20 % of the "
         "epochs run) (`metrics/train_registration.json`).",
     ]
+
+
+def test_auroc_cells_give_the_cells_behind_it_or_too_few_wrong_cells(tmp_path: Path) -> None:
+    from traffictwin.fusion.report_section.method_tables import _ci_table
+
+    ci = {"lo": 0.1, "hi": 0.2}
+    base = {"kld_fou_mean": 0.15, "kld_fou_mean_ci": ci}
+    metrics = {
+        "test": {
+            "A": {
+                "dnn": {
+                    **base,
+                    "u_auroc": None,  # NaN in fusion.json after json_clean
+                    "u_auroc_enough": False,
+                    "u_auroc_n_wrong": 37,
+                    "u_auroc_n_right": 600000,
+                    "u_auroc_pairs_wrong": 4,
+                }
+            },
+            "D": {
+                "dnn": {
+                    **base,
+                    "u_auroc": 0.86,
+                    "u_auroc_ci": {"lo": 0.84, "hi": 0.88},
+                    "u_auroc_enough": True,
+                    "u_auroc_n_wrong": 12345,
+                    "u_auroc_n_right": 987654,
+                    "u_auroc_pairs_wrong": 190,
+                },
+                "naive": base,  # an older run: no counts
+            },
+        }
+    }
+    rep = _reports(tmp_path, {"fusion.json": metrics})
+    t = _ci_table(R.Sources(_inputs(rep)), ["A", "D"], ["dnn", "naive"])
+    assert t.columns[-3:] == ["AUROC(u)", "95 % CI", "wrong / right cells"]
+    rows = {(r[0].text, r[1].text): [c.text for c in r[-3:]] for r in t.rows}
+    assert rows[("A", "network")] == ["too few wrong cells", "n/a", "37 in 4 pairs / 600,000"]
+    assert rows[("D", "network")] == ["0.86", "[0.84, 0.88]", "12,345 in 190 pairs / 987,654"]
+    assert rows[("D", "naive (noisy pose + Dempster)")][-1] == "n/a"
+    assert "too few wrong cells" in t.note and "auroc_min_wrong" in t.note

@@ -19,7 +19,7 @@ from typing import Any
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.evidential.noise import PoseNoise
-from traffictwin.fusion.registration import RegistrationParams
+from traffictwin.fusion.registration import RefinementParams, RegistrationParams
 from traffictwin.grid import GridSpec
 
 __all__ = [
@@ -344,6 +344,8 @@ class FusionEvalConfig:
     device: str = MISSING
     kld_eps: float = spec(MISSING, min=0.0, max=0.1)
     auroc_bins: int = spec(MISSING, min=2)
+    auroc_min_wrong: int = spec(MISSING, min=1)  # AUROC(u) withheld below this many wrong cells
+    auroc_min_pairs: int = spec(MISSING, min=1)  # ... or wrong cells in fewer pairs than this
     trans_bins_m: list[float] = spec(MISSING, min=0.0)
     rot_bins_deg: list[float] = spec(MISSING, min=0.0)
     success_trans_m: float = spec(MISSING, min=0.0)
@@ -354,9 +356,47 @@ class FusionEvalConfig:
         MISSING
     )  # RegistrationParams fields (defaults for the rest)
     registration_workers: int = spec(MISSING, min=1)  # processes of the classical registration
+    refinement: dict[str, Any] = spec(
+        MISSING
+    )  # RefinementParams fields: the ECC refinement of the learned registration's pose
+    validation: dict[str, Any] = spec(
+        MISSING
+    )  # split, max_pairs, registration_grid, refinement_grid: settings chosen before the test pass
 
     def __post_init__(self) -> None:
         self.registration_params  # noqa: B018  (checks the keys and values now)
+        self.refinement_params  # noqa: B018
+        v = self.validation
+        need = {"split", "max_pairs", "registration_grid", "refinement_grid"}
+        if set(v) != need:
+            raise ValueError(
+                f"'evaluation.fusion.validation' must have exactly the keys {sorted(need)}, got {sorted(v)}"
+            )
+        if v["split"] == self.split:
+            raise ValueError(
+                f"'evaluation.fusion.validation.split' must differ from the evaluated split "
+                f"'{self.split}' (settings are chosen on other pairs than they are judged on)"
+            )
+        if v["max_pairs"] is not None and int(v["max_pairs"]) < 1:
+            raise ValueError(
+                f"'evaluation.fusion.validation.max_pairs' must be >= 1 or null, got {v['max_pairs']}"
+            )
+        for k in ("registration_grid", "refinement_grid"):
+            bad = {
+                f: c for f, c in (v[k] or {}).items() if not isinstance(c, (list, tuple)) or not c
+            }
+            if bad:
+                raise ValueError(
+                    f"'evaluation.fusion.validation.{k}': each field needs a non-empty list of candidates, got {bad}"
+                )
+
+    @property
+    def refinement_params(self) -> RefinementParams:
+        """``refinement`` as :class:`~traffictwin.fusion.registration.RefinementParams`."""
+        try:
+            return RefinementParams(**self.refinement)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"'evaluation.fusion.refinement': {exc}") from None
 
     @property
     def registration_params(self) -> RegistrationParams:

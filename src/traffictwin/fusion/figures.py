@@ -42,6 +42,8 @@ METHOD_STYLE: dict[str, dict] = {
     "dnn[mass]": {"color": "#e377c2", "marker": "*"},
     "learned": {"color": "#393b79", "marker": "h"},
     "learned+network": {"color": "#637939", "marker": "X"},
+    "learned-refined": {"color": "#5254a3", "marker": "H"},
+    "learned-refined+network": {"color": "#8ca252", "marker": "p"},
 }
 
 

@@ -191,8 +191,10 @@ class FusionFindings:
     config_a: ConfigA | None = None
     registered: list[Registered] = field(default_factory=list)
     learned: list[Learned] = field(default_factory=list)
+    refined: list[Learned] = field(default_factory=list)  #: learned + ECC refinement vs classical
     rows: list[tuple[str, list[RowAt]]] = field(default_factory=list)
-    u_auroc: list[tuple[str, str]] = field(default_factory=list)
+    u_auroc: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, "AUROC [CI] (counts)")
+    u_too_few: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, counts): withheld
     u_above: list[str] = field(default_factory=list)  #: configs whose AUROC interval is above 0.5
     u_mean: list[tuple[str, str, str]] | None = None  #: (cfg, network, label); None: no label
     targets: Groups | None = None  #: target names by status (pass / fail / not evaluated)
@@ -254,17 +256,17 @@ def _registered(m: Mapping[str, Any], c: str) -> Registered:
     )
 
 
-def _learned(m: Mapping[str, Any], c: str) -> Learned:
-    d = _diff(m, c, "learned", REG, "success_rate")
+def _learned(m: Mapping[str, Any], c: str, row: str = "learned") -> Learned:
+    d = _diff(m, c, row, REG, "success_rate")
     return Learned(
         c,
-        _with_ci(m, c, "learned", "success_rate"),
+        _with_ci(m, c, row, "success_rate"),
         _fmt(_get(m, c, REG, "success_rate")),
         _diff_text(d, 3),
         verdict(d),
-        _fmt(100 * _get(m, c, "learned", "fallback_rate"), 0),
-        _fmt(_get(m, c, "learned", "residual_trans_m_p90"), 2),
-        _fmt(_get(m, c, "learned", "residual_rot_deg_p90"), 2),
+        _fmt(100 * _get(m, c, row, "fallback_rate"), 0),
+        _fmt(_get(m, c, row, "residual_trans_m_p90"), 2),
+        _fmt(_get(m, c, row, "residual_rot_deg_p90"), 2),
         _fmt(_get(m, c, REG, "residual_trans_m_p90"), 2),
         _fmt(_get(m, c, REG, "residual_rot_deg_p90"), 2),
     )
@@ -280,7 +282,8 @@ def _network_rows(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, l
             r
             for r in test.get(c, {})
             if r != NET
-            and r.split("[")[0] in (NET, "registered+network", "learned+network")
+            and r.split("[")[0]
+            in (NET, "registered+network", "learned+network", "learned-refined+network")
             and r not in rows
         ]
     return [
@@ -316,11 +319,37 @@ def _cross_best(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, str
     return out
 
 
+def auroc_counts_text(row: Mapping[str, Any]) -> str:
+    """The cells behind a row's AUROC(u): ``"12,345 wrong cells in 150 pairs, 1,234,567 right"``
+    (`` in N pairs`` where the pairs are counted); empty where fusion.json has no counts."""
+    wrong, right = row.get("u_auroc_n_wrong"), row.get("u_auroc_n_right")
+    if wrong is None or right is None:
+        return ""
+    pairs = row.get("u_auroc_pairs_wrong")
+    where = f" in {int(pairs)} pairs" if pairs is not None else ""
+    return f"{int(wrong):,} wrong cells{where}, {int(right):,} right"
+
+
+def auroc_withheld(row: Mapping[str, Any]) -> bool:
+    """Whether fusion.json withholds a row's AUROC(u) for too few wrong cells."""
+    return row.get("u_auroc_enough") is False
+
+
 def _uncertainty(m: Mapping[str, Any], configs: list[str]) -> dict[str, Any]:
     test, label = m.get("test", {}), m.get("label", {})
     finite = [c for c in configs if math.isfinite(_get(m, c, NET, "u_auroc"))]
+
+    def counts(c: str) -> str:
+        text = auroc_counts_text(test[c][NET])
+        return f" ({text})" if text else ""
+
     return {
-        "u_auroc": [(c, _with_ci(m, c, NET, "u_auroc")) for c in finite],
+        "u_auroc": [(c, _with_ci(m, c, NET, "u_auroc") + counts(c)) for c in finite],
+        "u_too_few": [
+            (c, auroc_counts_text(test[c][NET]))
+            for c in configs
+            if NET in test.get(c, {}) and auroc_withheld(test[c][NET])
+        ],
         "u_above": [
             c for c in finite if _num((test[c][NET].get("u_auroc_ci") or {}).get("lo")) > 0.5
         ],
@@ -360,6 +389,11 @@ def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
             _learned(metrics, c)
             for c in configs
             if math.isfinite(_get(metrics, c, "learned", "success_rate"))
+        ],
+        refined=[
+            _learned(metrics, c, "learned-refined")
+            for c in configs
+            if math.isfinite(_get(metrics, c, "learned-refined", "success_rate"))
         ],
         rows=_network_rows(metrics, configs),
         **_uncertainty(metrics, configs),

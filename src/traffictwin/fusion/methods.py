@@ -19,7 +19,11 @@ map 1's frame (or a :class:`Fused` with per-pair diagnostics). Registered method
 - ``learned``: the learned registration (:mod:`traffictwin.fusion.learned_registration`) on the
   prealigned pair, map 2 re-warped by its (accepted) estimate, then Dempster;
 - ``learned+network``: the same estimate and warp, then the configuration's registered-pairs
-  fusion network (model = ``(registration network, fusion network)``).
+  fusion network (model = ``(registration network, fusion network)``);
+- ``learned-refined``: the learned estimate refined by ECC on the raw maps
+  (:func:`traffictwin.fusion.registration.refine_pose`, the classical method's ECC, coarse to fine;
+  the learned pose kept where ECC fails or moves it beyond the bound), map 2 warped by it, Dempster;
+- ``learned-refined+network``: the same refined pose and warp, then the fusion network.
 
 Use::
 
@@ -56,7 +60,13 @@ import numpy as np
 
 from traffictwin.evidential.dempster import dempster
 from traffictwin.evidential.rules import cautious, yager
-from traffictwin.fusion.registration import RegistrationParams, RegistrationResult, register_pair
+from traffictwin.fusion.registration import (
+    RefinementParams,
+    RegistrationParams,
+    RegistrationResult,
+    refine_pose,
+    register_pair,
+)
 from traffictwin.grid import GridSpec
 
 if TYPE_CHECKING:
@@ -73,6 +83,9 @@ __all__ = [
     "RegisteredBatch",
     "registered_fusion",
     "register_prealigned",
+    "refined_registration_batch",
+    "parameter_grid",
+    "validation_success",
 ]
 
 INPUTS = ("prealigned", "raw", "pose", "model")
@@ -86,6 +99,7 @@ class FusionInput:
     ``rel_pose_true`` (N, 3) relative pose of map 2's sensor in map 1's frame (x m, y m, yaw
     rad; the true one only for diagnostics); ``grid``; ``model`` (a fusion network),
     ``batch_size`` (its inference batch); ``registration`` (classical registration settings);
+    ``refinement`` (the ECC refinement of the learned estimate, ``learned-refined``);
     ``pair_key`` (N,) ints naming each pair and ``memo`` a dict shared by every method run on
     these pairs: a registration (classical or learned) is then computed once per pair and reused
     by every method that uses it (``registered`` and ``registered+network``, ``learned`` and
@@ -101,6 +115,7 @@ class FusionInput:
     model: Any = None
     batch_size: int = 8
     registration: RegistrationParams = field(default_factory=RegistrationParams)
+    refinement: RefinementParams = field(default_factory=RefinementParams)
     pair_key: np.ndarray | None = None
     memo: dict | None = None
 
@@ -586,3 +601,161 @@ def _learned_network(x: FusionInput) -> Fused:
     masses = predict_masses(net, inputs, x.batch_size)[0]
     per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
     return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+
+
+# -- learned registration + ECC refinement -------------------------------------------------------------
+def refined_registration_batch(x: FusionInput, registration: Any) -> RegisteredBatch:
+    """The learned registration's pose (:func:`learned_registration_batch`, computed once and
+    shared with ``learned``) refined per pair by :func:`~traffictwin.fusion.registration.refine_pose`
+    on the raw maps (``x.refinement``), map 2 warped from its own frame by the refined pose,
+    Dempster. ``accepted``: the refinement was kept (else the learned pose is used); ``estimates``:
+    the refined estimates (even where rejected); ``cc_noisy`` / ``cc_est``: masked correlation
+    under the learned pose / the refined one. Per-pair seconds = learned share + own refinement."""
+    from traffictwin.evidential.warp import warp_masses
+
+    key = None
+    if x.memo is not None and x.pair_key is not None:
+        key = (
+            "learned-refined",
+            id(registration),
+            x.refinement,
+            tuple(int(k) for k in x.pair_key),
+        )
+        if key in x.memo:
+            return x.memo[key]
+    coarse = learned_registration_batch(x, registration)
+    map1 = np.asarray(x.map1, dtype=np.float32)  # raw (its own frame): ECC's template
+    fused1 = np.asarray(x.inputs[:, :2], dtype=np.float32)  # map 1 as `learned` fuses it
+    map2 = np.asarray(x.map2, dtype=np.float32)
+    n = len(map1)
+    if map2.shape != map1.shape or len(coarse.poses) != n:
+        raise ValueError(
+            f"learned-refined: raw map1 {map1.shape} and map2 {map2.shape} must match the "
+            f"{len(coarse.poses)} prealigned pairs"
+        )
+    out = np.empty_like(map1)
+    warped = np.empty_like(map2)
+    poses, estimates = np.empty((n, 3)), np.empty((n, 3))
+    acc = np.zeros(n, bool)
+    ccs, cce, secs = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(n):  # per pair: OpenCV's ECC is per image
+        t0 = time.perf_counter()
+        r = refine_pose(map1[i], map2[i], coarse.poses[i], x.grid, x.refinement)
+        warped[i] = warp_masses(map2[i], r.pose, x.grid)
+        out[i] = dempster(fused1[i], warped[i])
+        secs[i] = time.perf_counter() - t0 + coarse.seconds[i]
+        poses[i], estimates[i] = r.pose, r.estimate
+        acc[i], ccs[i], cce[i] = r.accepted, r.cc_start, r.cc_est
+    b = RegisteredBatch(out, warped, poses, estimates, acc, ccs, cce, secs)
+    if key is not None:
+        x.memo[key] = b
+    return b
+
+
+@register(
+    "learned-refined",
+    "learned registration as `learned`, its pose refined by ECC on the raw maps (coarse to fine, "
+    "bounded; the learned pose kept where ECC fails), map 2 re-warped, then Dempster",
+    needs=("prealigned", "raw", "model"),
+    label="learned registration + ECC + Dempster",
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _learned_refined(x: FusionInput) -> Fused:
+    reg = x.model[0] if isinstance(x.model, tuple) else x.model
+    b = refined_registration_batch(x, reg)
+    return Fused(b.masses, seconds=b.seconds, details=b)
+
+
+@register(
+    "learned-refined+network",
+    "learned registration refined by ECC as `learned-refined`, then the fusion network instead of "
+    "Dempster",
+    needs=("prealigned", "raw", "model"),
+    label="learned registration + ECC + network",
+    columns=_registered_columns,
+    summary=_registered_summary,
+)
+def _learned_refined_network(x: FusionInput) -> Fused:
+    from traffictwin.fusion.model_io import predict_masses
+
+    if not (isinstance(x.model, tuple) and len(x.model) == 2):
+        raise ValueError(
+            "fusion method 'learned-refined+network' needs model = (registration network, fusion network)"
+        )
+    reg, net = x.model
+    b = refined_registration_batch(x, reg)
+    t1 = time.perf_counter()
+    inputs = np.concatenate([np.asarray(x.inputs[:, :2], dtype=np.float32), b.warped], axis=1)
+    masses = predict_masses(net, inputs, x.batch_size)[0]
+    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
+    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+
+
+# -- choosing registration settings on validation pairs -----------------------------------------------
+def parameter_grid(base: Any, grid: dict[str, list[Any]]) -> list[Any]:
+    """Every combination of ``grid`` (field → candidate values, in order: the first value of each
+    field varies slowest) applied to the frozen settings dataclass ``base``
+    (:class:`RegistrationParams`, :class:`RefinementParams`); ``[base]`` for an empty grid."""
+    import itertools
+
+    fields = set(getattr(base, "__dataclass_fields__", {}))
+    bad = sorted(set(grid) - fields)
+    if bad:
+        raise ValueError(
+            f"parameter_grid: {bad} are not fields of {type(base).__name__} (has {sorted(fields)})"
+        )
+    keys = list(grid)
+    return [
+        replace(base, **dict(zip(keys, values)))
+        for values in itertools.product(*(list(grid[k]) for k in keys))
+    ]
+
+
+def validation_success(
+    kind: str,
+    inputs: list[FusionInput],
+    candidates: list[Any],
+    success_trans_m: float,
+    success_rot_deg: float,
+    registration: Any = None,
+    workers: int = 1,
+) -> np.ndarray:
+    """Registration success rate (residual ≤ ``success_trans_m`` and ≤ ``success_rot_deg``,
+    pooled over every pair of ``inputs``) of each candidate setting: ``kind`` ``"registered"``
+    (candidates :class:`RegistrationParams`, :func:`register_many` on ``workers`` cores) or
+    ``"learned-refined"`` (candidates :class:`RefinementParams` refining the learned network
+    ``registration``'s pose, computed once per input and shared). Each input needs raw maps and
+    ``rel_pose_true``. Returns ``(len(candidates),)`` rates."""
+    from traffictwin.fusion.registration import pose_error
+
+    if kind not in ("registered", "learned-refined"):
+        raise ValueError(
+            f"validation_success: kind must be 'registered' or 'learned-refined', got {kind!r}"
+        )
+    if kind == "learned-refined" and registration is None:
+        raise ValueError(
+            "validation_success: 'learned-refined' needs the learned registration network"
+        )
+    true = np.concatenate([np.asarray(x.rel_pose_true, dtype=np.float64) for x in inputs])
+    rates = np.empty(len(candidates))
+    for j, params in enumerate(candidates):
+        if kind == "registered":  # every input's pairs in one pool of workers
+            res = register_many(
+                np.concatenate([x.map1 for x in inputs]),
+                np.concatenate([x.map2 for x in inputs]),
+                np.concatenate([x.rel_pose_noisy for x in inputs]),
+                inputs[0].grid,
+                params,
+                workers,
+            )
+            poses = np.stack([r.pose for r in res])
+        else:
+            for x in inputs:
+                x.refinement = params
+            poses = np.concatenate(
+                [refined_registration_batch(x, registration).poses for x in inputs]
+            )
+        t, r = pose_error(poses, true)
+        rates[j] = float(((t <= success_trans_m) & (r <= success_rot_deg)).mean())
+    return rates

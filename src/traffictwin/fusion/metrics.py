@@ -48,6 +48,9 @@ __all__ = [
     "UncertaintyAUROC",
     "u_error_histograms",
     "auroc_from_hist",
+    "auroc_with_counts",
+    "AUROC_MIN_WRONG",
+    "AUROC_MIN_PAIRS",
     "aggregate",
     "pose_error_bins",
     "COUNT_KEYS",
@@ -178,6 +181,44 @@ def auroc_from_hist(pos: np.ndarray, neg: np.ndarray) -> float | np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where((n_pos > 0) & (n_neg > 0), num / np.maximum(n_pos * n_neg, 1e-300), np.nan)
     return float(out) if out.ndim == 0 else out
+
+
+AUROC_MIN_WRONG = 100  # fewer wrong cells than this: AUROC(u) is not reported (too few wrong cells)
+AUROC_MIN_PAIRS = (
+    10  # ... nor with wrong cells in fewer pairs than this (one pair's errors are one event)
+)
+
+
+def auroc_with_counts(
+    pos: np.ndarray,
+    neg: np.ndarray,
+    min_wrong: int = AUROC_MIN_WRONG,
+    min_pairs: int = AUROC_MIN_PAIRS,
+) -> dict[str, float | int | bool]:
+    """AUROC of u as a detector of wrong cells, with the counts behind it.
+
+    ``pos`` / ``neg``: per-pair histograms of u on wrongly / rightly classified label-known cells
+    ``(N, bins)`` (:func:`u_error_histograms`). Returns ``u_auroc`` (NaN unless ``u_auroc_enough``),
+    ``u_auroc_n_wrong`` / ``u_auroc_n_right`` (cells), ``u_auroc_pairs_wrong`` (pairs with at
+    least one wrong cell) and ``u_auroc_enough``: at least ``min_wrong`` wrong cells in at least
+    ``min_pairs`` pairs, and at least one right cell. Below that an AUROC ranks a handful of
+    cells (often of one or two pairs) and says nothing about the uncertainty: it is withheld.
+    """
+    pos = np.atleast_2d(np.asarray(pos, dtype=np.int64))
+    neg = np.atleast_2d(np.asarray(neg, dtype=np.int64))
+    if pos.shape != neg.shape:
+        raise ValueError(f"auroc_with_counts: pos {pos.shape} and neg {neg.shape} differ")
+    n_wrong, n_right = int(pos.sum()), int(neg.sum())
+    pairs = int((pos.sum(axis=1) > 0).sum())
+    enough = n_wrong >= min_wrong and pairs >= min_pairs and n_right > 0
+    value = auroc_from_hist(pos.sum(axis=0), neg.sum(axis=0)) if enough else float("nan")
+    return {
+        "u_auroc": float(value),
+        "u_auroc_n_wrong": n_wrong,
+        "u_auroc_n_right": n_right,
+        "u_auroc_pairs_wrong": pairs,
+        "u_auroc_enough": bool(enough),
+    }
 
 
 def u_error_histograms(

@@ -53,6 +53,10 @@ __all__ = [
     "known_mask",
     "warp_image",
     "register_pair",
+    "ecc_align",
+    "RefinementParams",
+    "RefinementResult",
+    "refine_pose",
     "BoundedPhaseCorrelator",
     "pose_error",
 ]
@@ -74,6 +78,7 @@ class RegistrationParams:
     ecc_iterations: int = 60
     ecc_eps: float = 1e-5
     ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
+    ecc_levels: int = 1  # ECC pyramid levels (1 = full resolution only; each further level halves)
     min_cc: float = 0.2  # minimum masked correlation coefficient of an accepted estimate
     min_gain: float = (
         0.02  # the estimate's correlation must exceed the noisy pose's by more than this
@@ -93,7 +98,7 @@ class RegistrationParams:
             raise ValueError(
                 f"RegistrationParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}"
             )
-        for name in ("ecc_iterations", "max_trans_m", "max_rot_deg"):
+        for name in ("ecc_iterations", "ecc_levels", "max_trans_m", "max_rot_deg"):
             if getattr(self, name) <= 0:
                 raise ValueError(
                     f"RegistrationParams.{name} must be > 0, got {getattr(self, name)}"
@@ -324,31 +329,63 @@ def _coarse_alignment(
     return wc, coarse
 
 
-def _refine_ecc(
+def _pyramid_scale(level: int) -> np.ndarray:
+    """3×3 map full-resolution pixel → pixel of pyramid ``level`` (``cv2.INTER_AREA`` halvings:
+    cell centres at integers, ``p_l = (p + ½)/2^l − ½``)."""
+    s = 2.0**level
+    return np.array([[1 / s, 0.0, 0.5 / s - 0.5], [0.0, 1 / s, 0.5 / s - 0.5], [0.0, 0.0, 1.0]])
+
+
+def ecc_align(
     f1: np.ndarray,
     g2: np.ndarray,
     k1: np.ndarray,
     kg2: np.ndarray,
-    wc: np.ndarray,
-    params: RegistrationParams,
+    w0: np.ndarray,
+    iterations: int,
+    eps: float,
+    gauss_size: int,
+    levels: int = 1,
 ) -> tuple[np.ndarray, bool]:
-    """The refinement of :func:`register_pair`: ECC in the prealigned frame from the coarse ``wc``,
-    template = map 1 (OpenCV's Euclidean ECC recovers the angle with asin, so it only handles
-    |rotation| < 90°: the large relative yaw stays in the prior). ``(W (3, 3), converged)``; the
-    coarse estimate when ECC fails."""
-    warp = np.ascontiguousarray(wc[:2], dtype=np.float32)
-    criteria = (
-        cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
-        int(params.ecc_iterations),
-        float(params.ecc_eps),
-    )
-    try:
-        _, warp = cv2.findTransformECCWithMask(
-            f1, g2, k1, kg2, warp, cv2.MOTION_EUCLIDEAN, criteria, int(params.ecc_gauss_size)
-        )
-    except cv2.error:
-        return wc, False  # keep the coarse estimate
-    return np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]]), True
+    """ECC alignment (``cv2.findTransformECCWithMask``, ``MOTION_EUCLIDEAN``) of image ``g2``
+    onto the template ``f1`` (float32 (H, W); masks ``k1``/``kg2`` uint8, 255 = known), started
+    from ``w0`` (3×3, template pixel → ``g2`` pixel: ``g2(W p) ≈ f1(p)``).
+
+    ``levels`` > 1: coarse to fine over an image pyramid (each level halves the resolution; the
+    estimate of a level starts the next). A level where ECC fails keeps the estimate it was
+    given. Returns ``(W (3, 3), converged at full resolution)``; ``w0`` when ECC fails there.
+    (OpenCV's Euclidean ECC recovers its angle with ``asin``: |rotation| < 90° only.)
+    """
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(iterations), float(eps))
+    w = np.asarray(w0, dtype=np.float64)
+    h, wd = f1.shape
+    ok = False
+    for level in range(int(levels) - 1, -1, -1):
+        if level > 0:
+            size = (max(8, wd >> level), max(8, h >> level))
+            imgs = [cv2.resize(a, size, interpolation=cv2.INTER_AREA) for a in (f1, g2)]
+            masks = [cv2.resize(a, size, interpolation=cv2.INTER_NEAREST) for a in (k1, kg2)]
+        else:
+            imgs, masks = [f1, g2], [k1, kg2]
+        s = _pyramid_scale(level)
+        wl = np.ascontiguousarray((s @ w @ np.linalg.inv(s))[:2], dtype=np.float32)
+        try:
+            _, wl = cv2.findTransformECCWithMask(
+                imgs[0],
+                imgs[1],
+                masks[0],
+                masks[1],
+                wl,
+                cv2.MOTION_EUCLIDEAN,
+                criteria,
+                int(gauss_size),
+            )
+        except cv2.error:
+            ok = False  # keep the estimate this level was given
+            continue
+        w = np.linalg.inv(s) @ np.vstack([wl.astype(np.float64), [0.0, 0.0, 1.0]]) @ s
+        ok = level == 0
+    return w, ok
 
 
 def register_pair(
@@ -400,7 +437,17 @@ def register_pair(
         return result(noisy.copy(), False, cc_noisy, 0.0, False)
 
     wc, coarse = _coarse_alignment(f1, g2, k1, kg2, grid, params)
-    wc, ecc_ok = _refine_ecc(f1, g2, k1, kg2, wc, params)
+    wc, ecc_ok = ecc_align(
+        f1,
+        g2,
+        k1,
+        kg2,
+        wc,
+        params.ecc_iterations,
+        params.ecc_eps,
+        params.ecc_gauss_size,
+        params.ecc_levels,
+    )
     w_total = np.linalg.inv(a0) @ wc  # map1 px → map2 px
     a_est = np.linalg.inv(w_total)  # map2 px → map1 px
     est = pixel_affine_to_pose(a_est, grid)
@@ -416,3 +463,132 @@ def register_pair(
         and dr <= params.max_rot_deg
     )
     return result(est, ok, cc_est, coarse, ecc_ok)
+
+
+# -- refinement of a given pose ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class RefinementParams:
+    """Settings of :func:`refine_pose` (units in the names: m, deg, cells).
+
+    The fallback bound (``max_trans_m``, ``max_rot_deg``) is how far the refinement may move the
+    pose it starts from: set it from the starting estimate's expected error (a refinement that
+    moves further has left the basin it was started in).
+    """
+
+    feature: str = "occ"  # as RegistrationParams.feature
+    known_threshold: float = 0.05  # a cell is "known" where m_F + m_O > this
+    ecc_iterations: int = 60
+    ecc_eps: float = 1e-5
+    ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
+    ecc_levels: int = 1  # pyramid levels (1 = full resolution only; each further level halves)
+    max_trans_m: float = 1.0  # largest accepted move of the translation from the start (m)
+    max_rot_deg: float = 3.0  # largest accepted move of the yaw from the start (deg)
+    min_gain: float = (
+        0.0  # the refined masked correlation must exceed the start's by more than this
+    )
+    min_overlap: float = 0.05  # minimum fraction of cells known in both maps
+
+    def __post_init__(self) -> None:
+        if self.feature not in FEATURES:
+            raise ValueError(
+                f"RefinementParams.feature must be one of {FEATURES}, got {self.feature!r}"
+            )
+        if self.ecc_gauss_size < 1 or self.ecc_gauss_size % 2 == 0:
+            raise ValueError(
+                f"RefinementParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}"
+            )
+        for name in ("ecc_iterations", "ecc_levels", "max_trans_m", "max_rot_deg"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"RefinementParams.{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class RefinementResult:
+    """Outcome of :func:`refine_pose`: ``pose`` (x m, y m, yaw rad) used — the refined estimate if
+    accepted, else the start; ``estimate`` the (possibly rejected) refined pose; ``ecc_ok`` ECC
+    converged at full resolution; ``cc_start`` / ``cc_est`` masked correlation of the feature
+    images under the start / the estimate; ``seconds`` wall time."""
+
+    pose: np.ndarray
+    accepted: bool
+    ecc_ok: bool
+    cc_start: float
+    cc_est: float
+    seconds: float
+    estimate: np.ndarray
+
+
+def refine_pose(
+    map1: np.ndarray,
+    map2: np.ndarray,
+    rel_pose: np.ndarray,
+    grid: GridSpec,
+    params: RefinementParams = RefinementParams(),
+) -> RefinementResult:
+    """Refine a relative pose estimate (e.g. the learned registration's) by ECC on the maps.
+
+    ``map1``, ``map2``: masses (2, H, W), each in its own sensor frame; ``rel_pose``: the starting
+    estimate of map 2's sensor in map 1's frame (x m, y m, yaw rad). Map 2's feature image is
+    warped by it, :func:`ecc_align` (the classical registration's refinement, coarse to fine over
+    ``params.ecc_levels``) aligns it to map 1's from the identity. Fallback to the start when ECC
+    does not converge, the refined pose moves more than ``max_trans_m`` / ``max_rot_deg`` from it,
+    or its masked correlation does not beat the start's by more than ``min_gain``.
+    """
+    t0 = time.perf_counter()
+    shape = grid.shape
+    for name, m in (("map1", map1), ("map2", map2)):
+        if np.shape(m) != (2, *shape):
+            raise ValueError(
+                f"refine_pose: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}"
+            )
+    start = np.asarray(rel_pose, dtype=np.float64).reshape(3)
+    f1 = feature_image(map1, params.feature)
+    f2 = feature_image(map2, params.feature)
+    k1 = known_mask(map1, params.known_threshold)
+    k2 = known_mask(map2, params.known_threshold)
+    min_cells = params.min_overlap * f1.size
+    a0 = pose_to_pixel_affine(start, grid)  # map2 px → map1 px
+    g2 = warp_image(f2, a0, shape)
+    kg2 = warp_image(k2, a0, shape, nearest=True)
+    both = (k1 > 0) & (kg2 > 0)
+    cc_start = _masked_cc(f1, g2, both) if both.sum() >= min_cells else -1.0
+
+    def result(est: np.ndarray, ok: bool, ecc_ok: bool, cc_est: float) -> RefinementResult:
+        return RefinementResult(
+            pose=est if ok else start.copy(),
+            accepted=ok,
+            ecc_ok=ecc_ok,
+            cc_start=cc_start,
+            cc_est=cc_est,
+            seconds=time.perf_counter() - t0,
+            estimate=est,
+        )
+
+    if both.sum() < min_cells:
+        return result(start.copy(), False, False, cc_start)
+    w, ecc_ok = ecc_align(
+        f1,
+        g2,
+        k1,
+        kg2,
+        np.eye(3),
+        params.ecc_iterations,
+        params.ecc_eps,
+        params.ecc_gauss_size,
+        params.ecc_levels,
+    )
+    if not ecc_ok:
+        return result(start.copy(), False, False, cc_start)
+    a_est = np.linalg.inv(np.linalg.inv(a0) @ w)  # map2 px → map1 px
+    est = pixel_affine_to_pose(a_est, grid)
+    g_est = warp_image(f2, a_est, shape)
+    k_est = warp_image(k2, a_est, shape, nearest=True)
+    both_est = (k1 > 0) & (k_est > 0)
+    cc_est = _masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    dt, dr = pose_error(est, start)
+    ok = bool(
+        dt <= params.max_trans_m
+        and dr <= params.max_rot_deg
+        and cc_est > cc_start + params.min_gain
+    )
+    return result(est, ok, True, cc_est)

@@ -63,6 +63,8 @@ ROW_BASELINES = {NETWORK: (PER_CONFIG_NETWORK,)}
 HYBRID = "registered+network"
 LEARNED = "learned"  # the one learned registration (+ Dempster)
 LEARNED_NETWORK = "learned+network"
+LEARNED_REFINED = "learned-refined"  # the learned registration refined by ECC (+ Dempster)
+LEARNED_REFINED_NETWORK = "learned-refined+network"
 # rows whose networks (one per configuration) are also run on the other configurations: cross
 # entries "<row>-<net>"
 CROSS_ROWS = (PER_CONFIG_NETWORK,)
@@ -77,10 +79,20 @@ class EvalSettings:
     auroc_bins: int = 4096
     success_trans_m: float = 0.5
     success_rot_deg: float = 1.0
+    auroc_min_wrong: int = 100  # AUROC(u) withheld below this many wrong cells ...
+    auroc_min_pairs: int = 10  # ... or with wrong cells in fewer pairs than this
 
     @classmethod
     def from_config(cls, c: FusionEvalConfig) -> EvalSettings:
-        return cls(c.batch_size, c.kld_eps, c.auroc_bins, c.success_trans_m, c.success_rot_deg)
+        return cls(
+            c.batch_size,
+            c.kld_eps,
+            c.auroc_bins,
+            c.success_trans_m,
+            c.success_rot_deg,
+            c.auroc_min_wrong,
+            c.auroc_min_pairs,
+        )
 
 
 def fusion_ci_config(cfg: Any) -> CIConfig:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -46,6 +46,7 @@ from traffictwin.fusion.methods import (
     FusionMethod,
     precompute_registrations,
 )
+from traffictwin.fusion.metrics import auroc_with_counts
 from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.grid import GridSpec
 from traffictwin.stats import CIConfig, mean_ci
@@ -162,6 +163,7 @@ def _config_input(ctx: _Context, d: Mapping[str, np.ndarray]) -> FusionInput:
         grid=ctx.grid,
         batch_size=ctx.cfg.batch_size,
         registration=ctx.cfg.registration_params,
+        refinement=ctx.cfg.refinement_params,
         pair_key=np.arange(len(ctx.pairs.every)),
         memo={},  # each registration once per pair, shared by the methods that use it
     )
@@ -195,10 +197,17 @@ def _evaluate_rows(ctx: _Context, acc: _Collected, c: str, d: Mapping[str, np.nd
         tagged = tag_samples(f, c, run.row, d, idx, network=run.network)
         acc.add(c, run.row, tagged)
         extra = run.method.summary(f, ctx.settings) if run.method.summary else {}
-        cis = row_intervals(tagged, *au.sample_histograms(), ctx.ci)
+        hists = au.sample_histograms()
+        cis = row_intervals(tagged, *hists, ctx.ci)
+        counted = auroc_with_counts(
+            *hists, ctx.settings.auroc_min_wrong, ctx.settings.auroc_min_pairs
+        )
+        if not counted["u_auroc_enough"]:  # too few wrong cells: no number, no interval
+            nan = float("nan")
+            cis["u_auroc"] = replace(cis["u_auroc"], estimate=nan, lo=nan, hi=nan)
         acc.test[c][run.row] = {
             **summary(f),
-            "u_auroc": au.value(),
+            **counted,
             **extra,
             **{f"{k}_ci": lohi(iv) for k, iv in cis.items()},
         }

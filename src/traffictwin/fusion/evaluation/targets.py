@@ -26,6 +26,7 @@ from traffictwin.fusion.evaluation.keys import (
     HYBRID,
     LEARNED,
     LEARNED_NETWORK,
+    LEARNED_REFINED,
     NETWORK,
     PER_CONFIG_NETWORK,
     scenario_of,
@@ -128,6 +129,25 @@ TARGETS.update(
             20.0,
             "<=",
             None,
+        ),
+    }
+)
+# the learned registration finished by ECC (learned-refined) against the classical one
+TARGETS.update(
+    {
+        "refined_success_gain_at_D": Target(
+            "learned-refined − registered registration success rate at D (paired): estimate >= "
+            "0.10 and the CI's lower end >= 0.05",
+            0.10,
+            ">=",
+            ("D",),
+            min_lo=0.05,
+        ),
+        "refined_success_at_D": Target(
+            "learned registration refined by ECC: success rate at D (error < 0.5 m and < 1 deg)",
+            0.95,
+            ">=",
+            ("D",),
         ),
     }
 )
@@ -250,6 +270,21 @@ def _value_ci(ti: TargetInputs, c: str, key: str, name: str) -> Verdict:
     return _judge_target(Interval(v[key], b["lo"], b["hi"], ti.ci.level), name)
 
 
+TOO_FEW_WRONG = "too few wrong cells"  # the verdict's reason where AUROC(u) is withheld
+
+
+def _auroc(ti: TargetInputs, c: str) -> Verdict:
+    """The network's AUROC(u) at ``c``; not evaluated (":data:`TOO_FEW_WRONG`", with the counts)
+    where too few wrong cells stand behind it (``u_auroc_enough`` false)."""
+    v = ti.numbers(c, NETWORK)
+    if v is not None and not v.get("u_auroc_enough", True):
+        return missing(
+            f"{TOO_FEW_WRONG}: {v.get('u_auroc_n_wrong')} wrong cells in "
+            f"{v.get('u_auroc_pairs_wrong')} pairs at {c}"
+        )
+    return _value_ci(ti, c, "u_auroc", "u_auroc")
+
+
 def _dice_drop(ti: TargetInputs, c: str) -> Verdict:
     """1 − Dice occ(network at c) / Dice occ(network at A) on their common pairs, resampled
     together."""
@@ -325,11 +360,11 @@ def _one_vs_per_config(ti: TargetInputs, c: str) -> Verdict:
     return res.with_extra(difference={"estimate": k["estimate"], "lo": k["lo"], "hi": k["hi"]})
 
 
-def _learned_success(ti: TargetInputs, c: str, name: str) -> Verdict:
-    """Learned − registered registration success rate (paired), with ``min_lo`` where set."""
-    dd = (ti.paired(c, LEARNED, "registered") or {}).get("success_rate")
+def _learned_success(ti: TargetInputs, c: str, name: str, row: str = LEARNED) -> Verdict:
+    """``row`` − registered registration success rate (paired), with ``min_lo`` where set."""
+    dd = (ti.paired(c, row, "registered") or {}).get("success_rate")
     if not dd:
-        return missing(f"rows {LEARNED} and registered not both evaluated at configuration {c}")
+        return missing(f"rows {row} and registered not both evaluated at configuration {c}")
     t = TARGETS[name]
     res = judge(Interval(dd["estimate"], dd["lo"], dd["hi"], ti.ci.level), t.threshold, t.op)
     if t.min_lo is not None and res.status == "pass" and not dd["lo"] >= t.min_lo:
@@ -339,11 +374,11 @@ def _learned_success(ti: TargetInputs, c: str, name: str) -> Verdict:
     return res.with_extra(n_pairs=dd["n_pairs"])
 
 
-def _learned_mean(ti: TargetInputs, c: str, column: str, name: str) -> Verdict:
-    """Mean of the learned registration's per-pair ``column`` (success, wall time) at ``c``."""
-    f = ti.frame(c, LEARNED)
-    if f is None or (column == "reg_success" and ti.numbers(c, LEARNED) is None):
-        return missing(f"{LEARNED} not evaluated at configuration {c}")
+def _learned_mean(ti: TargetInputs, c: str, column: str, name: str, row: str = LEARNED) -> Verdict:
+    """Mean of a registration row's per-pair ``column`` (success, wall time) at ``c``."""
+    f = ti.frame(c, row)
+    if f is None or (column == "reg_success" and ti.numbers(c, row) is None):
+        return missing(f"{row} not evaluated at configuration {c}")
     iv = mean_ci(f[column].to_numpy(np.float64), scenario_of(f["pair_id"]), **ci_kwargs(ti.ci))
     return _judge_target(iv, name)
 
@@ -354,7 +389,7 @@ JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
     "dice_occ_at_A": lambda ti, c: _value_ci(ti, c, "dice_occ", "dice_occ_at_A"),
     "dice_occ_drop_A_to_D": _dice_drop,
     "dice_occ_vs_ego": _vs_ego,
-    "u_auroc": lambda ti, c: _value_ci(ti, c, "u_auroc", "u_auroc"),
+    "u_auroc": _auroc,
     "u_mean_vs_label": _u_gap,
     "hybrid_vs_registered": lambda ti, c: _beats_registered(ti, c, HYBRID, "hybrid_vs_registered"),
     "network_vs_registered": lambda ti, c: _beats_registered(
@@ -372,6 +407,12 @@ JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
         ti, c, LEARNED_NETWORK, "learned_kld_vs_registered"
     ),
     "learned_runtime_ms": lambda ti, c: _learned_mean(ti, c, "ms", "learned_runtime_ms"),
+    "refined_success_gain_at_D": lambda ti, c: _learned_success(
+        ti, c, "refined_success_gain_at_D", LEARNED_REFINED
+    ),
+    "refined_success_at_D": lambda ti, c: _learned_mean(
+        ti, c, "reg_success", "refined_success_at_D", LEARNED_REFINED
+    ),
 }
 
 

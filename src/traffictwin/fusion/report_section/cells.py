@@ -21,9 +21,15 @@ FUSION_METHOD_LABELS: dict[str, str] = {
     "registered+network": "registered + network",
     "learned": "learned registration + Dempster",
     "learned+network": "learned registration + network",
+    "learned-refined": "learned registration + ECC + Dempster",
+    "learned-refined+network": "learned registration + ECC + network",
 }
 PER_CONFIG_ROW = "dnn[per-config]"  # the ablation's networks trained on one configuration each
-POSE_ROWS = ("registered", "learned")  # rows with their own pose estimate (the hybrids reuse them)
+POSE_ROWS = (
+    "registered",
+    "learned",
+    "learned-refined",
+)  # rows with their own pose estimate (the hybrids reuse them)
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 CI_NOTE = (
@@ -94,6 +100,42 @@ def ci_cell(src: page.Sources, key: str, file: str = FUSION_FILE) -> Cell:
 def value_ci_cells(src: page.Sources, key: str) -> list[Cell]:
     """The number at fusion.json ``key`` and its interval ``<key>_ci``."""
     return [src.cell(FUSION_FILE, key), ci_cell(src, key)]
+
+
+TOO_FEW_WRONG = "too few wrong cells"
+AUROC_COLUMNS = ("AUROC(u)", "95 % CI", "wrong / right cells")
+AUROC_NOTE = (
+    "AUROC(u): u as a detector of wrongly classified label-known cells, with the wrong and right "
+    "cells behind it; 'too few wrong cells' where fewer than evaluation.fusion.auroc_min_wrong "
+    "wrong cells, or wrong cells in fewer than auroc_min_pairs pairs, stand behind it (an AUROC "
+    "of a handful of cells says nothing about u). "
+)
+
+
+def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
+    """Row ``m``'s AUROC(u) at ``c``: value, interval and the cells behind it
+    (:data:`AUROC_COLUMNS`); "too few wrong cells" instead of a number where fusion.json withholds it."""
+    base = fusion_key(c, m, "u_auroc")
+    wrong = src.get(FUSION_FILE, f"{base}_n_wrong")
+    right = src.get(FUSION_FILE, f"{base}_n_right")
+    pairs = src.get(FUSION_FILE, f"{base}_pairs_wrong")
+    if isinstance(wrong, (int, float)) and isinstance(right, (int, float)):
+        where = f" in {int(pairs)} pairs" if isinstance(pairs, (int, float)) else ""
+        counts = Cell(
+            f"{int(wrong):,}{where} / {int(right):,}",
+            src=f"{FUSION_FILE}#{base}_n_wrong",
+            value=int(wrong),
+            title="wrong cells (pairs with any) / right cells, label-known cells only",
+        )
+    else:
+        counts = Cell(NA, title="fusion.json has no cell counts (an older run)")
+    if src.get(FUSION_FILE, f"{base}_enough") is False:
+        return [
+            Cell(TOO_FEW_WRONG, title="AUROC(u) withheld: too few wrong cells behind it"),
+            Cell(NA),
+            counts,
+        ]
+    return [*value_ci_cells(src, base), counts]
 
 
 def estimate_ci_cells(src: page.Sources, dk: str) -> list[Cell]:

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 from traffictwin.fusion.findings import verdict
 from traffictwin.fusion.report_section.cells import (
+    AUROC_COLUMNS,
+    AUROC_NOTE,
     CI_NOTE,
     FUSION_FILE,
     HEADLINE,
@@ -17,6 +19,7 @@ from traffictwin.fusion.report_section.cells import (
     NET,
     REG,
     Configurations,
+    auroc_cells,
     ci_cell,
     config_cells,
     diff_key,
@@ -86,7 +89,6 @@ CI_COLUMNS = (
     ("dice_occ", "Dice occ"),
     ("dice_free", "Dice free"),
     ("u_mean", "mean u"),
-    ("u_auroc", "AUROC(u)"),
 )
 DIFF_COLUMNS = [
     "config",
@@ -178,9 +180,13 @@ def _ci_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) ->
     """Every row's estimates with intervals (None when fusion.json has no interval)."""
     cis = Table(
         "Fusion: estimates with 95 % intervals per configuration and method (test split)",
-        ["config", "method", *[x for _, name in CI_COLUMNS for x in (name, "95 % CI")]],
-        note="Dice pooled over pairs; AUROC(u): u as a detector of wrongly classified label-known "
-        "cells. " + CI_NOTE,
+        [
+            "config",
+            "method",
+            *[x for _, name in CI_COLUMNS for x in (name, "95 % CI")],
+            *AUROC_COLUMNS,
+        ],
+        note="Dice pooled over pairs. " + AUROC_NOTE + CI_NOTE,
         anchor="fusion-ci",
     )
     for c in cfgs:
@@ -189,6 +195,7 @@ def _ci_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) ->
                 row = [Cell(c), Cell(label(m))]
                 for k, _ in CI_COLUMNS:
                     row += value_ci_cells(src, fusion_key(c, m, k))
+                row += auroc_cells(src, c, m)
                 cis.rows.append(row)
     has_ci = any(
         isinstance(src.get(FUSION_FILE, fusion_key(c, m, f"{HEADLINE}_ci")), dict)

@@ -8,12 +8,15 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from traffictwin.fusion.report_section.cells import (
+    AUROC_COLUMNS,
+    AUROC_NOTE,
     CI_NOTE,
     FUSION_FILE,
     HEADLINE,
     NET,
     PER_CONFIG_ROW,
     Configurations,
+    auroc_cells,
     ci_cell,
     config_cells,
     diff_key,
@@ -118,11 +121,10 @@ def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
             "network",
             *[x for _, name in ABLATION_COLUMNS for x in (name, "95 % CI")],
             "label mean u",
-            "AUROC(u)",
-            "95 % CI",
+            *AUROC_COLUMNS,
         ],
         note="dnn = the default loss (fusion_model.loss.name); dnn[<loss>] = the fusion_variants "
-        "networks trained with another loss on the same data. " + CI_NOTE,
+        "networks trained with another loss on the same data. " + AUROC_NOTE + CI_NOTE,
         anchor="fusion-loss-ablation",
     )
     for c in at:
@@ -133,7 +135,7 @@ def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
             for k, _ in ABLATION_COLUMNS:
                 row += value_ci_cells(src, fusion_key(c, m, k))
             row.append(src.cell(FUSION_FILE, f"label.{c}.u_mean"))
-            row += value_ci_cells(src, fusion_key(c, m, "u_auroc"))
+            row += auroc_cells(src, c, m)
             t.rows.append(row)
     return t
 
