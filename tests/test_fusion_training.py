@@ -706,3 +706,16 @@ def test_register_prealigned_rewarps_map2_by_the_registration_pose() -> None:
     assert out["reg_accepted"].dtype == bool
     with pytest.raises(ValueError, match="must match map 1"):
         register_prealigned(arrays, map2[:1], grid)
+
+
+@pytest.mark.parametrize("profile", ["default", "paper"])
+def test_early_stopping_cannot_stop_with_the_best_epoch_in_the_last_fifth(profile: str) -> None:
+    # with min_delta 0 early stopping counts the same improvements as the checkpoint selection, so
+    # a run it ends has run best + 1 + patience epochs; patience >= max_epochs / 5 then keeps the
+    # best epoch out of the last fifth of any run that stops early
+    from traffictwin.config import compose_config
+
+    cfg = compose_config(Path(__file__).resolve().parents[1] / "conf", [f"profile={profile}"])
+    t = cfg["fusion_model"]["train"]
+    assert t["early_stopping_min_delta"] == 0.0
+    assert 5 * t["early_stopping_patience"] >= t["max_epochs"]
