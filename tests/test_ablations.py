@@ -28,7 +28,7 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
 
     cfg = compose_config(ab.ROOT / "conf", [])
     todo = ab.ablations(cfg)
-    assert set(todo) == {"per_config", "losses", "registered", "fp32", "risk"}
+    assert set(todo) == {"per_config", "losses", "registered", "plain_network", "fp32", "risk"}
     # each ablation's overrides compose (what `dvc exp run -S` will hand to Hydra)
     for overrides in todo.values():
         composed = compose_config(ab.ROOT / "conf", overrides)
@@ -39,6 +39,10 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
     reg = compose_config(ab.ROOT / "conf", todo["registered"])
     assert reg["fusion_data"]["register"]["configurations"] == ["mixed"]
     assert compose_config(ab.ROOT / "conf", todo["fp32"])["trainer"]["precision"] == "32-true"
+    # the paper's plain network against the default residual head on Dempster's combination
+    assert cfg["fusion_model"]["architecture"]["residual"] == "dempster"
+    plain = compose_config(ab.ROOT / "conf", todo["plain_network"])
+    assert plain["fusion_model"]["architecture"]["residual"] == "none"
 
 
 def _repo(tmp_path: Path) -> Path:

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from traffictwin.fusion.deeplab import (
+    RESIDUAL_EPS,
     DeepLabSpec,
     DeepLabV3Plus,
     channels_last_supported,
@@ -18,6 +19,10 @@ from traffictwin.fusion.resnet import ResNet, ResNetSpec, resnet_spec
 from traffictwin.fusion.training import spec_from_cfg
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
+
+# the residual head floors Dempster's masses and u at RESIDUAL_EPS before their logs: its
+# untrained output equals Dempster's to about twice the floor
+FLOOR_TOL = 2 * RESIDUAL_EPS
 
 
 def tiny_spec(**kw) -> DeepLabSpec:
@@ -211,3 +216,118 @@ def test_exp_evidence_is_bounded_and_spec_checks_the_head() -> None:
     # the paper's network is the default: no head, ReLU evidence
     assert (DeepLabSpec().refine_channels, DeepLabSpec().evidence) == (0, "relu")
     assert DeepLabSpec.from_dict(tiny_spec(refine_channels=8).as_dict()).refine_channels == 8
+
+
+# ---------------------------------------------------------------------------------------------
+# the residual head on Dempster's combination
+
+
+def _masses(n: int, h: int, w: int, gen: torch.Generator) -> torch.Tensor:
+    """Random valid masses (m_F, m_O, u) >= 0 summing to 1, as (n, 2, h, w)."""
+    p = torch.rand(n, 3, h, w, generator=gen) ** 3  # skewed: many near-certain cells
+    p = p / p.sum(1, keepdim=True)
+    return p[:, :2]
+
+
+def test_zero_initialised_residual_head_equals_dempster_before_training() -> None:
+    from traffictwin.evidential.dempster import dempster
+
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(3)
+    x = torch.cat([_masses(2, 64, 48, gen), _masses(2, 64, 48, gen)], dim=1)
+    # hand-computed cells (batch 0): agreeing maps, one side vacuous (u = 1), total conflict K = 1,
+    # near-total conflict, both vacuous
+    cells = {
+        (10, 10): (
+            [0.7, 0.1],
+            [0.6, 0.2],
+            [0.7 * 0.6 + 0.7 * 0.2 + 0.2 * 0.6, 0.1 * 0.2 + 0.1 * 0.2 + 0.2 * 0.2],
+        ),
+        (11, 10): ([0.0, 0.0], [0.3, 0.5], [0.3, 0.5]),
+        (12, 10): ([1.0, 0.0], [0.0, 1.0], [0.0, 0.0]),
+        (13, 10): ([0.999, 0.0], [0.0, 0.999], [0.999 * 0.001 / (2 * 0.999 * 0.001 + 1e-6)] * 2),
+        (14, 10): ([0.0, 0.0], [0.0, 0.0], [0.0, 0.0]),
+    }
+    for (i, j), (a, b, _) in cells.items():
+        x[0, :, i, j] = torch.tensor([*a, *b])
+    for spec in (
+        tiny_spec(evidence="exp", residual="dempster"),  # stride-4 head + x4 upsampling
+        tiny_spec(refine_channels=8, refine_dempster=True, evidence="exp", residual="dempster"),
+    ):
+        net = DeepLabV3Plus(spec).train()  # BN in train mode: the correction is still exactly 0
+        with torch.no_grad():
+            m, u = evidence_to_masses(net(x))
+        expected = dempster(x[:, :2], x[:, 2:])
+        assert torch.allclose(m, expected, atol=FLOOR_TOL)
+        assert torch.allclose(u, 1 - expected.sum(1), atol=FLOOR_TOL)
+        k_agree = 0.7 * 0.2 + 0.1 * 0.6  # agreeing cell's conflict: its masses are renormalised
+        for (i, j), (_, _, want) in cells.items():
+            want = torch.tensor(want)
+            if (i, j) == (10, 10):
+                want = want / (1 - k_agree)
+            assert torch.allclose(m[0, :, i, j], want, atol=FLOOR_TOL), (
+                (i, j),
+                m[0, :, i, j],
+                want,
+            )
+        assert abs(float(u[0, 12, 10]) - 1.0) < FLOOR_TOL  # total conflict: vacuous, as dempster()
+
+
+def test_residual_correction_receives_gradients_and_moves_the_output() -> None:
+    from traffictwin.fusion.losses import fusion_loss
+
+    torch.manual_seed(1)
+    net = DeepLabV3Plus(tiny_spec(refine_channels=8, evidence="exp", residual="dempster"))
+    gen = torch.Generator().manual_seed(4)
+    x = torch.cat([_masses(2, 64, 48, gen), _masses(2, 64, 48, gen)], dim=1)
+    y = _masses(2, 64, 48, gen)
+    before = net(x).detach()
+    fusion_loss("mass", net(x), y, occupied_weight=1.0).backward()
+    last = net.refine[-1]
+    assert float(last.weight.grad.abs().sum()) > 0 and float(last.bias.grad.abs().sum()) > 0
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+    opt = torch.optim.SGD(net.parameters(), lr=0.1)
+    opt.step()
+    assert not torch.allclose(net(x).detach(), before)
+
+
+def test_residual_spec_validation_round_trip_and_plain_ablation() -> None:
+    with pytest.raises(ValueError, match="residual must be one of"):
+        tiny_spec(evidence="exp", residual="gate")
+    with pytest.raises(ValueError, match="residual 'dempster' needs evidence 'exp'"):
+        tiny_spec(residual="dempster")  # ReLU evidence
+    s = tiny_spec(refine_channels=8, evidence="exp", residual="dempster")
+    assert s.as_dict()["residual"] == "dempster"
+    assert DeepLabSpec.from_dict(s.as_dict()) == s
+    # a model folder written before the option existed has no key: the plain network
+    old = s.as_dict()
+    del old["residual"]
+    assert DeepLabSpec.from_dict(old).residual == "none"
+    # the ablation flag builds the plain network: its last conv is not zero and its output is not Dempster's
+    torch.manual_seed(0)
+    plain = DeepLabV3Plus(tiny_spec(refine_channels=8, evidence="exp", residual="none"))
+    assert float(plain.refine[-1].weight.abs().sum()) > 0
+    assert DeepLabSpec().residual == "none"  # the paper's network is the spec default
+
+
+@pytest.mark.parametrize("profile", ["ci", "default", "paper"])
+def test_every_profile_builds_the_residual_network(profile: str) -> None:
+    from pathlib import Path
+
+    from traffictwin.config import compose_config, typed
+    from traffictwin.fusion.training import FusionModelConfig
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = compose_config(root / "conf", [f"profile={profile}"])
+    model_cfg = typed(cfg["fusion_model"], FusionModelConfig, key="fusion_model", source="conf")
+    spec = model_cfg.deeplab_spec("conf")
+    assert (spec.residual, spec.evidence) == ("dempster", "exp")
+    if profile == "ci":  # small enough to run here: it starts as Dempster's rule
+        from traffictwin.evidential.dempster import dempster
+
+        net = DeepLabV3Plus(spec).eval()
+        gen = torch.Generator().manual_seed(5)
+        x = torch.cat([_masses(1, 128, 96, gen), _masses(1, 128, 96, gen)], dim=1)
+        with torch.no_grad():
+            m, _ = evidence_to_masses(net(x))
+        assert torch.allclose(m, dempster(x[:, :2], x[:, 2:]), atol=FLOOR_TOL)

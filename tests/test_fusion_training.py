@@ -459,6 +459,35 @@ def test_loader_rejects_other_configuration_architecture_or_swapped_file(tmp_pat
         load_fusion_model(tmp_path / "nowhere/model.ckpt")
 
 
+@pytest.mark.integration
+def test_residual_option_round_trips_and_old_models_load_as_the_plain_network(
+    tmp_path: Path,
+) -> None:
+    from traffictwin.io.shards import sha256_file
+    from traffictwin.model_format import CKPT_SHA_KEY
+
+    residual = replace(TINY, refine_channels=4, evidence="exp", residual="dempster")
+    _fit(tmp_path, "B", spec=residual, tracking=False, epochs=1)
+    meta = json.loads((tmp_path / "models/B/model_meta.json").read_text())
+    assert meta["architecture"]["residual"] == "dempster"
+    net = load_fusion_model(tmp_path / "models/B", expected_architecture=residual)
+    assert net.spec == residual
+    # a model folder from before the option: no 'residual' key in the checkpoint nor its meta
+    _fit(tmp_path, "C", tracking=False, epochs=1)
+    ckpt, meta_path = tmp_path / "models/C/model.ckpt", tmp_path / "models/C/model_meta.json"
+    blob = torch.load(ckpt, weights_only=False)
+    del blob["traffictwin"]["architecture"]["residual"]
+    torch.save(blob, ckpt)
+    meta = json.loads(meta_path.read_text())
+    del meta["architecture"]["residual"]
+    meta[CKPT_SHA_KEY] = sha256_file(ckpt)
+    meta_path.write_text(json.dumps(meta))
+    old = load_fusion_model(tmp_path / "models/C", expected_architecture=TINY)
+    assert old.spec.residual == "none" and old.spec == TINY
+    with pytest.raises(FusionModelError, match="architecture mismatch: .*residual=none"):
+        load_fusion_model(tmp_path / "models/C", expected_architecture=residual)
+
+
 def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "models" / "A"
     with pytest.raises(DatasetError, match="dataset folder not found"):
@@ -677,3 +706,16 @@ def test_register_prealigned_rewarps_map2_by_the_registration_pose() -> None:
     assert out["reg_accepted"].dtype == bool
     with pytest.raises(ValueError, match="must match map 1"):
         register_prealigned(arrays, map2[:1], grid)
+
+
+@pytest.mark.parametrize("profile", ["default", "paper"])
+def test_early_stopping_cannot_stop_with_the_best_epoch_in_the_last_fifth(profile: str) -> None:
+    # with min_delta 0 early stopping counts the same improvements as the checkpoint selection, so
+    # a run it ends has run best + 1 + patience epochs; patience >= max_epochs / 5 then keeps the
+    # best epoch out of the last fifth of any run that stops early
+    from traffictwin.config import compose_config
+
+    cfg = compose_config(Path(__file__).resolve().parents[1] / "conf", [f"profile={profile}"])
+    t = cfg["fusion_model"]["train"]
+    assert t["early_stopping_min_delta"] == 0.0
+    assert 5 * t["early_stopping_patience"] >= t["max_epochs"]

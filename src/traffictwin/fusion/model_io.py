@@ -41,7 +41,8 @@ def _describe_arch(a: Mapping[str, Any]) -> str:
     bb = a.get("backbone", {})
     return (
         f"{bb.get('block')} ResNet layers={bb.get('layers')} base_width={bb.get('base_width')}, "
-        f"aspp={a.get('aspp_channels')}, decoder={a.get('decoder_channels')}"
+        f"aspp={a.get('aspp_channels')}, decoder={a.get('decoder_channels')}, "
+        f"residual={a.get('residual', 'none')}"
     )
 
 
@@ -82,15 +83,19 @@ def load_fusion_model(
             f"expected '{expected_cfg}'"
         )
     arch = info.get("architecture")
+    try:  # a model written before an option existed has no key for it: the option's default
+        spec = DeepLabSpec.from_dict(arch)
+    except (TypeError, ValueError) as exc:
+        raise FusionModelError(f"{path}: invalid architecture block ({exc})") from None
     if expected_architecture is not None:
         exp = (
             expected_architecture.as_dict()
             if isinstance(expected_architecture, DeepLabSpec)
             else DeepLabSpec.from_dict(expected_architecture).as_dict()
         )
-        if arch != exp:
+        if spec.as_dict() != exp:
             raise FusionModelError(
-                f"{path}: architecture mismatch: checkpoint has {_describe_arch(arch or {})}, expected {_describe_arch(exp)}"
+                f"{path}: architecture mismatch: checkpoint has {_describe_arch(spec.as_dict())}, expected {_describe_arch(exp)}"
             )
     if expected_grid is not None:
         g = (
@@ -105,10 +110,6 @@ def load_fusion_model(
         got = info.get("grid", {})
         if any(abs(float(got.get(k, -1)) - float(g[k])) > 1e-9 for k in ("rows", "cols", "cell")):
             raise FusionModelError(f"{path}: trained on grid {got}, expected grid {dict(g)}")
-    try:
-        spec = DeepLabSpec.from_dict(arch)
-    except (TypeError, ValueError) as exc:
-        raise FusionModelError(f"{path}: invalid architecture block ({exc})") from None
     net = DeepLabV3Plus(spec)
     state = net_state_dict(ck)
     try:
