@@ -498,7 +498,8 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert "| hybrid_vs_registered | D | n/a | n/a | < | 0 | not evaluated |  |" in md
     ablation = md_tables(md)[anchors.index("fusion-loss-ablation")]
     assert [r[:2] for r in ablation] == [["D", "dnn"], ["D", "dnn[paper]"]]
-    assert ablation[1][2:4] == ["0.425", "[0.415, 0.435]"] and ablation[1][-3] == "0.5"
+    # label mean u, then the AUROC(u) cells: value, CI, wrong / right cells
+    assert ablation[1][2:4] == ["0.425", "[0.415, 0.435]"] and ablation[1][-4] == "0.5"
     diffs = md_tables(md)[anchors.index("fusion-diff")]
     b_vs_naive = next(r for r in diffs if r[:3] == ["B", "network", "naive"])
     assert b_vs_naive[3:6] == ["-0.1", "[-0.105, -0.095]", "lower"]
