@@ -29,7 +29,8 @@ def test_logged_model_is_weights_and_json_with_a_hash_record(cl):
     mv = _registered(cl, 0.5)
     folder = artifact_dir(cl, NAME, mv.version)
     names = {p.name for p in folder.iterdir()}
-    assert {art.MLMODEL, art.CKPT, art.META} <= names  # + the pyfunc packaging (requirements; no code)
+    # + the pyfunc packaging (requirements; no code)
+    assert {art.MLMODEL, art.CKPT, art.META} <= names
     assert not {n for n in names if n.endswith((".pkl", ".pickle", ".pth"))}, names
     record = json.loads(mv.tags[art.SHA_TAG])
     assert record == art.file_hashes(folder)  # every file, as recorded at logging
