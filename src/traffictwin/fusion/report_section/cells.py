@@ -123,7 +123,7 @@ def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
         where = f" in {int(pairs)} pairs" if isinstance(pairs, (int, float)) else ""
         counts = Cell(
             f"{int(wrong):,}{where} / {int(right):,}",
-            src=f"{FUSION_FILE}#{base}_n_wrong",
+            src=f"{src.paths.get(FUSION_FILE, f'metrics/{FUSION_FILE}')}#{base}_n_wrong",
             value=int(wrong),
             title="wrong cells (pairs with any) / right cells, label-known cells only",
         )
