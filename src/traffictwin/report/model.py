@@ -259,6 +259,11 @@ def lookup(data: Any, key: str, default: Any = None) -> Any:
     """
     if key == "":
         return data
+    if isinstance(data, list):  # a list level: the segment is its index ("candidates.0.x")
+        head, _, rest = key.partition(".")
+        if head.isdigit() and int(head) < len(data):
+            return lookup(data[int(head)], rest, default)
+        return default
     if not isinstance(data, dict):
         return default
     if key in data:

@@ -121,11 +121,12 @@ def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
     pairs = src.get(FUSION_FILE, f"{base}_pairs_wrong")
     if isinstance(wrong, (int, float)) and isinstance(right, (int, float)):
         where = f" in {int(pairs)} pairs" if isinstance(pairs, (int, float)) else ""
-        counts = Cell(
-            f"{int(wrong):,}{where} / {int(right):,}",
-            src=f"{src.paths.get(FUSION_FILE, f'metrics/{FUSION_FILE}')}#{base}_n_wrong",
-            value=int(wrong),
-            title="wrong cells (pairs with any) / right cells, label-known cells only",
+        counts = (
+            Cell(  # composite text: no single source value (fusion.json <base>_n_wrong/_n_right)
+                f"{int(wrong):,}{where} / {int(right):,}",
+                title=f"wrong cells (pairs with any) / right cells, label-known cells only "
+                f"(fusion.json {base}_n_wrong, _n_right, _pairs_wrong)",
+            )
         )
     else:
         counts = Cell(NA, title="fusion.json has no cell counts (an older run)")
