@@ -578,6 +578,25 @@ def _learned(x: FusionInput) -> Fused:
     return Fused(b.masses, seconds=b.seconds, details=b)
 
 
+def _network_on_registered(x: FusionInput, method: str, register: Any) -> Fused:
+    """The fusion network on the raw pair and map 2 warped by ``register(x, registration)``
+    (a :class:`RegisteredBatch` maker); ``x.model`` = (registration network, fusion network).
+    Per-pair seconds = the registration's + the network's share."""
+    from traffictwin.fusion.model_io import predict_masses
+
+    if not (isinstance(x.model, tuple) and len(x.model) == 2):
+        raise ValueError(
+            f"fusion method {method!r} needs model = (registration network, fusion network)"
+        )
+    reg, net = x.model
+    b = register(x, reg)
+    t1 = time.perf_counter()
+    inputs = np.concatenate([np.asarray(x.inputs[:, :2], dtype=np.float32), b.warped], axis=1)
+    masses = predict_masses(net, inputs, x.batch_size)[0]
+    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
+    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+
+
 @register(
     "learned+network",
     "learned registration as `learned`, then the configuration's registered-pairs fusion network "
@@ -588,19 +607,7 @@ def _learned(x: FusionInput) -> Fused:
     summary=_registered_summary,
 )
 def _learned_network(x: FusionInput) -> Fused:
-    from traffictwin.fusion.model_io import predict_masses
-
-    if not (isinstance(x.model, tuple) and len(x.model) == 2):
-        raise ValueError(
-            "fusion method 'learned+network' needs model = (registration network, fusion network)"
-        )
-    reg, net = x.model
-    b = learned_registration_batch(x, reg)
-    t1 = time.perf_counter()
-    inputs = np.concatenate([np.asarray(x.inputs[:, :2], dtype=np.float32), b.warped], axis=1)
-    masses = predict_masses(net, inputs, x.batch_size)[0]
-    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
-    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+    return _network_on_registered(x, "learned+network", learned_registration_batch)
 
 
 # -- learned registration + ECC refinement -------------------------------------------------------------
@@ -677,19 +684,7 @@ def _learned_refined(x: FusionInput) -> Fused:
     summary=_registered_summary,
 )
 def _learned_refined_network(x: FusionInput) -> Fused:
-    from traffictwin.fusion.model_io import predict_masses
-
-    if not (isinstance(x.model, tuple) and len(x.model) == 2):
-        raise ValueError(
-            "fusion method 'learned-refined+network' needs model = (registration network, fusion network)"
-        )
-    reg, net = x.model
-    b = refined_registration_batch(x, reg)
-    t1 = time.perf_counter()
-    inputs = np.concatenate([np.asarray(x.inputs[:, :2], dtype=np.float32), b.warped], axis=1)
-    masses = predict_masses(net, inputs, x.batch_size)[0]
-    per_pair_net = (time.perf_counter() - t1) / max(1, len(inputs))
-    return Fused(masses, seconds=b.seconds + per_pair_net, details=b)
+    return _network_on_registered(x, "learned-refined+network", refined_registration_batch)
 
 
 # -- choosing registration settings on validation pairs -----------------------------------------------

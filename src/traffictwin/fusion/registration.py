@@ -388,6 +388,47 @@ def ecc_align(
     return w, ok
 
 
+@dataclass
+class _PairFeatures:
+    """Both maps' feature images and known masks, map 2's warped into map 1's pixels by a pose."""
+
+    f1: np.ndarray
+    f2: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+    a0: np.ndarray  # map2 px → map1 px under the pose
+    g2: np.ndarray  # map 2's feature image under a0
+    kg2: np.ndarray  # map 2's known mask under a0
+    both: np.ndarray  # cells known in map 1 and in warped map 2
+
+
+def _pair_features(
+    what: str,
+    map1: np.ndarray,
+    map2: np.ndarray,
+    pose: np.ndarray,
+    grid: GridSpec,
+    feature: str,
+    known_threshold: float,
+) -> _PairFeatures:
+    """Shape check (ValueError naming ``what``), feature images, known masks and map 2 warped by
+    ``pose`` (x m, y m, yaw rad): the shared start of :func:`register_pair` and :func:`refine_pose`."""
+    shape = grid.shape
+    for name, m in (("map1", map1), ("map2", map2)):
+        if np.shape(m) != (2, *shape):
+            raise ValueError(
+                f"{what}: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}"
+            )
+    f1 = feature_image(map1, feature)
+    f2 = feature_image(map2, feature)
+    k1 = known_mask(map1, known_threshold)
+    k2 = known_mask(map2, known_threshold)
+    a0 = pose_to_pixel_affine(pose, grid)
+    g2 = warp_image(f2, a0, shape)
+    kg2 = warp_image(k2, a0, shape, nearest=True)
+    return _PairFeatures(f1, f2, k1, k2, a0, g2, kg2, (k1 > 0) & (kg2 > 0))
+
+
 def register_pair(
     map1: np.ndarray,
     map2: np.ndarray,
@@ -402,20 +443,11 @@ def register_pair(
     """
     t0 = time.perf_counter()
     shape = grid.shape
-    for name, m in (("map1", map1), ("map2", map2)):
-        if np.shape(m) != (2, *shape):
-            raise ValueError(
-                f"register_pair: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}"
-            )
     noisy = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(3)
-    f1 = feature_image(map1, params.feature)
-    f2 = feature_image(map2, params.feature)
-    k1 = known_mask(map1, params.known_threshold)
-    k2 = known_mask(map2, params.known_threshold)
-    a0 = pose_to_pixel_affine(noisy, grid)  # map2 px → map1 px
-    g2 = warp_image(f2, a0, shape)
-    kg2 = warp_image(k2, a0, shape, nearest=True)
-    both = (k1 > 0) & (kg2 > 0)
+    pf = _pair_features(
+        "register_pair", map1, map2, noisy, grid, params.feature, params.known_threshold
+    )
+    f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
     cc_noisy = _masked_cc(f1, g2, both)
     min_cells = params.min_overlap * f1.size
 
@@ -536,21 +568,12 @@ def refine_pose(
     """
     t0 = time.perf_counter()
     shape = grid.shape
-    for name, m in (("map1", map1), ("map2", map2)):
-        if np.shape(m) != (2, *shape):
-            raise ValueError(
-                f"refine_pose: {name} must have shape (2, {shape[0]}, {shape[1]}), got {np.shape(m)}"
-            )
     start = np.asarray(rel_pose, dtype=np.float64).reshape(3)
-    f1 = feature_image(map1, params.feature)
-    f2 = feature_image(map2, params.feature)
-    k1 = known_mask(map1, params.known_threshold)
-    k2 = known_mask(map2, params.known_threshold)
+    pf = _pair_features(
+        "refine_pose", map1, map2, start, grid, params.feature, params.known_threshold
+    )
+    f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
     min_cells = params.min_overlap * f1.size
-    a0 = pose_to_pixel_affine(start, grid)  # map2 px → map1 px
-    g2 = warp_image(f2, a0, shape)
-    kg2 = warp_image(k2, a0, shape, nearest=True)
-    both = (k1 > 0) & (kg2 > 0)
     cc_start = _masked_cc(f1, g2, both) if both.sum() >= min_cells else -1.0
 
     def result(est: np.ndarray, ok: bool, ecc_ok: bool, cc_est: float) -> RefinementResult:

@@ -76,12 +76,9 @@ class PlannedVersion:
     version: str = "(new)"
 
 
-def planned_version(
-    cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
-):
-    """What :func:`ensure_version` would return, without changing the registry: the version
-    registered from ``run_id`` if there is one, else a :class:`PlannedVersion` of the run's
-    logged model, its files checked against their SHA-256 record (read only)."""
+def _versions_of_run(cl, name: str, run_id: str) -> list:
+    """The versions of ``name`` registered from ``run_id`` (empty if none or the model is absent);
+    RegistryError naming the run and the (masked) tracking URI if the run does not exist."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
@@ -92,9 +89,18 @@ def planned_version(
             f"MLflow run '{run_id}' (for model '{name}') not found at {mask_uri(mlflow.get_tracking_uri())}"
         ) from None
     try:
-        existing = cl.search_model_versions(f"name='{name}' and run_id='{run_id}'")
+        return list(cl.search_model_versions(f"name='{name}' and run_id='{run_id}'"))
     except MlflowException:
-        existing = []
+        return []
+
+
+def planned_version(
+    cl, name: str, run_id: str, model_uri: str | None = None, tags: Mapping[str, Any] | None = None
+):
+    """What :func:`ensure_version` would return, without changing the registry: the version
+    registered from ``run_id`` if there is one, else a :class:`PlannedVersion` of the run's
+    logged model, its files checked against their SHA-256 record (read only)."""
+    existing = _versions_of_run(cl, name, run_id)
     if existing:
         return max(existing, key=lambda v: int(v.version))
     model_id = _run_model_id(cl, run_id, model_uri)
@@ -122,20 +128,10 @@ def ensure_version(
     ``mlflow.modelVersions`` tag (the UI's link from the logged model), is set here too. One log
     line per model created and per version registered.
     """
-    import mlflow
     from mlflow.exceptions import MlflowException
     from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
-    try:
-        cl.get_run(run_id)
-    except MlflowException:
-        raise RegistryError(
-            f"MLflow run '{run_id}' (for model '{name}') not found at {mask_uri(mlflow.get_tracking_uri())}"
-        ) from None
-    try:
-        existing = cl.search_model_versions(f"name='{name}' and run_id='{run_id}'")
-    except MlflowException:
-        existing = []
+    existing = _versions_of_run(cl, name, run_id)
     if existing:
         mv = max(existing, key=lambda v: int(v.version))
         if art.SHA_TAG not in (mv.tags or {}):
