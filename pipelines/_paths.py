@@ -38,6 +38,7 @@ TWIN_DATA = DATA / "twin"
 # risk
 RISK_DATA = DATA / "risk"
 DISPARITY = DATA / "disparity"
+STEREO_LEARNED = DATA / "stereo_learned"
 ORB_CSV = DATA / "orb" / "orb.csv"
 RISK_MODELS = MODELS / "risk"
 

@@ -45,6 +45,7 @@ from ._paths import (
     ORB_CSV,
     RISK_DATA,
     SHIPPED_RISK_MODEL,
+    STEREO_LEARNED,
     figure_file,
     hybrid_model_dir,
     metrics_file,
@@ -256,7 +257,9 @@ def main() -> None:
     suite = suite_settings(ev, subject, primary, settings, selection, holdout)
     with stage_timer("evaluate_risk") as record:
         record["torch_threads"] = pin_torch_threads(p)
-        source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
+        source = RiskSource(
+            RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None, learned_root=STEREO_LEARNED
+        )
         hybrids = [*hybrid_runs(seeds), *holdout_runs(seeds, holdout)]
         models = load_models(variants, hybrids)
         suite = replace(suite, variants={**settings, **loaded_settings(models, variants)})

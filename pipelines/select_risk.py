@@ -49,6 +49,7 @@ from ._paths import (
     ORB_CSV,
     RISK_DATA,
     SHIPPED_RISK_MODEL,
+    STEREO_LEARNED,
     hybrid_model_dir,
     metrics_file,
     risk_model_dir,
@@ -147,7 +148,9 @@ def main() -> None:
     setup = SelectionSetup(ev, subject, primary, settings, held_runs, holdout)
 
     with stage_timer("select_risk") as record:
-        source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
+        source = RiskSource(
+            RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None, learned_root=STEREO_LEARNED
+        )
         models = {v: load_risk_model(risk_model_dir(v)) for v in variants}
         models.update(
             {h: load_risk_model(hybrid_model_dir(h)) for h in [*hybrid_runs(seeds), *held_runs]}

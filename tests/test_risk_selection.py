@@ -527,3 +527,74 @@ def test_select_on_validation_without_positives_ships_the_rule_at_the_label_corr
 
     described = LoadedRisk(_Meta(), "x").predictor
     assert "not enough validation positives" in described and "nan" not in described
+
+
+def _learned_copy_of_gt(repo: Path) -> Path:
+    """data/stereo_learned aligned 1:1 with data/risk whose ``disp_learned`` is the exact
+    disparity (so the rule on it must equal the GT rule)."""
+    from traffictwin.io.shards import Dataset, DatasetWriter
+
+    risk = Dataset(repo / "data" / "risk", kind="risk")
+    w = DatasetWriter(repo / "data" / "stereo_learned", "stereo_learned", {"synthetic": True}, 0)
+    for i, sh in enumerate(risk.shards):
+        gt = risk.load_shard(i)["disp_gt"]
+        w.add_shard(
+            int(sh["name"].split("-")[1].split(".")[0]), {"disp_learned": gt}, split=sh["split"]
+        )
+    w.finalize()
+    return repo / "data" / "stereo_learned"
+
+
+def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
+    tmp_path: Path,
+) -> None:
+    """With data/stereo_learned the corridor rule also runs on the learned stereo network's
+    disparity: tuned on validation like the others, evaluated on test beside them with its paired
+    difference to the SGM rule; it is no shipping candidate (the CLI computes SGM). Without the
+    dataset it is absent, and asking the source for it names what is missing."""
+    from traffictwin.risk.config import EvalRiskConfig, GeometricConfig, MetricParams
+    from traffictwin.risk.selection_suite import SelectionSetup, select_on_validation
+
+    write_sequences(tmp_path, n_shards=5, per_shard=18)
+    learned = _learned_copy_of_gt(tmp_path)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None, learned)
+    assert src.disparity_keys == {"disp_gt", "disp_sgm", "disp_learned"}
+    geo = GeometricConfig(
+        half_widths=[1.0, 2.0], min_height=0.3, max_height=2.5, min_pixels=10, max_range=80.0
+    )
+    ev = EvalRiskConfig(
+        thresholds_s=[1.5, 1.0],
+        thw_cap_s=10.0,
+        batch_size=8,
+        main_variant="x",
+        geometric=geo,
+        ci={},
+        collapse_std=1e-3,
+    )
+    subject = MetricParams(SUBJECT_LENGTH, 1.8, "border", False, 0.0, 3.0)
+    sel = select_on_validation(
+        src, {}, SelectionSetup(ev, subject, "risk_thw_corridor", {}, (), ())
+    )
+    assert set(sel.rules) == {"geometric_sgm", "geometric_gt", "geometric_learned"}
+    # the learned disparity is the exact one here: same validation table as the GT rule
+    assert sel.rules["geometric_learned"].candidates == sel.rules["geometric_gt"].candidates
+    assert "geometric_learned" not in sel.shipped.candidates
+
+    settings = SuiteSettings(
+        primary_label="risk_thw_corridor",
+        geometric=GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8),
+        ci=CIConfig(100, 0, 0.95),
+    )
+    rule = GeometricRiskModel(settings.geometric, src.camera, {"label": "risk_thw_corridor"})
+    metrics, pred = evaluate_suite(src, {"shipped": rule}, settings)
+    np.testing.assert_allclose(pred["pred_geometric_learned"], pred["pred_geometric_gt"])
+    b = metrics["baselines"]
+    assert b["geometric_learned"]["at_1.5s"] == b["geometric_gt"]["at_1.5s"]
+    d = metrics["differences"]["geometric_learned|geometric_sgm"]
+    assert d["kind"] == "disparity_source" and d["n_frames"] == len(src.split_frames("test"))
+
+    plain = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    _, pred_plain = evaluate_suite(plain, {"shipped": rule}, settings)
+    assert "pred_geometric_learned" not in pred_plain
+    with pytest.raises(ValueError, match="'disp_learned' requested but no stereo_learned"):
+        next(plain.iter_arrays(plain.split_frames("test"), ["disp_learned"]))

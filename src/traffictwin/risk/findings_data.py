@@ -37,6 +37,7 @@ BASELINE_NAMES = {
     "train_median": "majority class (training median)",
     "speed_only": "speed-only baseline (isotonic fit on the training split)",
     "geometric_sgm": "corridor rule (SGM disparity + speed, corridor chosen on validation)",
+    "geometric_learned": "corridor rule on the learned stereo network's disparity (corridor chosen on validation)",
     "geometric_gt": "corridor rule on ground-truth disparity (perfect stereo, straight corridor)",
 }
 #: baselines the headline is compared with, in the order the findings list them

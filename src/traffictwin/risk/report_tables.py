@@ -26,6 +26,7 @@ RISK_BASELINE_LABELS = {
     "speed_only": "baseline: speed only (isotonic fit on train)",
     "geometric": "baseline: corridor rule (SGM distance / speed)",
     "geometric_sgm": "baseline: corridor rule (SGM distance / speed, corridor chosen on validation)",
+    "geometric_learned": "corridor rule on the learned stereo network's disparity (corridor chosen on validation)",
     "geometric_gt": "reference: corridor rule on GT disparity (corridor chosen on validation)",
 }
 PAPER_DASH = "—"

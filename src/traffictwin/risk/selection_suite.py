@@ -37,8 +37,14 @@ from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
 from traffictwin.risk.selection import best_cut, choose, roc_auc, too_few, tune_half_width
 from traffictwin.risk.training import RiskSource, check_label, input_keys
 
-#: the corridor rules and the disparity each reads
-RULES = {"geometric_sgm": "disp_sgm", "geometric_gt": "disp_gt"}
+#: the corridor rules and the disparity each reads (a rule runs where its source has the disparity:
+#: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); only the SGM rule
+#: ships (``traffictwin risk`` computes SGM disparity; the learned one is evaluated beside it)
+RULES = {
+    "geometric_sgm": "disp_sgm",
+    "geometric_gt": "disp_gt",
+    "geometric_learned": "disp_learned",
+}
 #: the camera intrinsics a shipped corridor rule keeps
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
 #: the learned group the main variant's runs compete with for shipping
@@ -192,19 +198,20 @@ def validation_scores(
     fpath = str(source.risk.root / "frames.csv")
     if len(frames) == 0:
         raise ValueError(f"{fpath}: the validation split has no frames (after the ORB check)")
-    keys = sorted({k for m in models.values() for k in input_keys(m.cfg)} | set(RULES.values()))
+    rules = {r: k for r, k in RULES.items() if k in source.disparity_keys}
+    keys = sorted({k for m in models.values() for k in input_keys(m.cfg)} | set(rules.values()))
     geo = ev.geometric.params(setup.subject.subject_length, setup.subject.subject_width)
     half_widths = _rule_widths(setup)
     camera = source.camera
     preds: dict[str, list[np.ndarray]] = {v: [] for v in models}
-    dists: dict[str, list[np.ndarray]] = {r: [] for r in RULES}
+    dists: dict[str, list[np.ndarray]] = {r: [] for r in rules}
     order = []
     for rows, arr in source.iter_arrays(frames, keys):
         sp = rows["speed"].to_numpy(np.float64).astype(np.float32)
         for v, m in models.items():
             images = (arr.get("left"), arr.get("disp_sgm"), arr.get("disp_gt"))
             preds[v].append(m.predict(*images, speed=sp, batch_size=ev.batch_size))
-        for r, k in RULES.items():
+        for r, k in rules.items():
             dists[r].append(corridor_distances(arr[k], camera, geo, half_widths))
         order.append(rows)
     rows = pd.concat(order)
@@ -228,7 +235,7 @@ def _tune_rules(val: ValidationScores, setup: SelectionSetup) -> dict[str, RuleC
     reason = too_few(positive)
     note = None if reason is None else f"{reason}: the label's corridor half-width {prior:g} m"
     rules = {}
-    for r in RULES:
+    for r in val.distances:
         d = val.distances[r]
         w, table = tune_half_width(
             d[:, : len(half_widths)], val.speed, positive, half_widths, t0, prior=prior

@@ -3,7 +3,9 @@
 :class:`RiskArrays`) and the loaders over them (:class:`RiskDataModule`).
 
 Data: ``data/risk`` (kind "risk": ``left``/``right`` BGR images, ``disp_gt``, ``frames.csv``),
-``data/disparity`` (kind "disparity": ``disp_sgm`` shards aligned 1:1 with data/risk) and the ORB
+``data/disparity`` (kind "disparity": ``disp_sgm`` shards aligned 1:1 with data/risk), optionally
+``data/stereo_learned`` (kind "stereo_learned": the learned stereo network's ``disp_learned``,
+aligned the same way) and the ORB
 pair check ``data/orb/orb.csv``. Only frames whose stereo pair passed the ORB check
 (``outlier == False``) are used, in the train/val/test splits of ``frames.csv`` (by scenario).
 Arrays: uint8 RGB, float16 disparity (~92 kB a frame at 66×200), normalised per batch on the
@@ -29,6 +31,8 @@ from traffictwin.risk.dave2 import Dave2Config, prepare_channels
 from traffictwin.trainer import RankShardSampler, rank_layout
 
 _FRAME_COLS = ("frame_id", "shard", "idx", "split", "speed")
+#: the disparity arrays read from a dataset beside data/risk: array name → dataset kind
+SIDE_DISPARITIES = {"disp_sgm": "disparity", "disp_learned": "stereo_learned"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -40,8 +44,9 @@ class RiskSource:
     """The risk frames that passed the ORB check, with their images and disparities.
 
     ``risk_root``: data/risk; ``disparity_root``: data/disparity (``None`` if no model input or
-    baseline needs SGM disparity); ``orb_csv``: data/orb/orb.csv (``None`` = keep every frame).
-    Raises :class:`DatasetError` naming the file and the problem when the three disagree.
+    baseline needs SGM disparity); ``orb_csv``: data/orb/orb.csv (``None`` = keep every frame);
+    ``learned_root``: data/stereo_learned (the learned stereo network's disparity; ``None``: not
+    read). Raises :class:`DatasetError` naming the file and the problem when they disagree.
     """
 
     def __init__(
@@ -49,11 +54,23 @@ class RiskSource:
         risk_root: str | Path,
         disparity_root: str | Path | None = None,
         orb_csv: str | Path | None = None,
+        learned_root: str | Path | None = None,
     ) -> None:
         self.risk = Dataset(risk_root, kind="risk")
         self.disparity = (
             Dataset(disparity_root, kind="disparity") if disparity_root is not None else None
         )
+        self.learned = (
+            Dataset(learned_root, kind=SIDE_DISPARITIES["disp_learned"])
+            if learned_root is not None
+            else None
+        )
+        #: array name → the dataset beside data/risk it is read from
+        self._side = {
+            k: d
+            for k, d in (("disp_sgm", self.disparity), ("disp_learned", self.learned))
+            if d is not None
+        }
         frames = self.risk.table("frames.csv")
         fpath = self.risk.root / "frames.csv"
         missing = [c for c in _FRAME_COLS if c not in frames.columns]
@@ -83,12 +100,12 @@ class RiskSource:
             raise DatasetError(
                 f"{fpath}: unknown split value(s) {bad_split} (expected {list(SPLITS)})"
             )
-        if self.disparity is not None:
-            dnames = [s["name"] for s in self.disparity.shards]
-            dcounts = [int(s["count"]) for s in self.disparity.shards]
+        for side in self._side.values():
+            dnames = [s["name"] for s in side.shards]
+            dcounts = [int(s["count"]) for s in side.shards]
             if dnames != self._names or dcounts != counts:
                 raise DatasetError(
-                    f"{self.disparity.root / 'manifest.json'}: shards/counts {list(zip(dnames, dcounts))[:3]}… do not match "
+                    f"{side.root / 'manifest.json'}: shards/counts {list(zip(dnames, dcounts))[:3]}… do not match "
                     f"{self.risk.root / 'manifest.json'} {list(zip(self._names, counts))[:3]}… (must be aligned 1:1)"
                 )
         if orb_csv is not None:
@@ -113,6 +130,11 @@ class RiskSource:
         self.frames = frames.sort_values(["_pos", "idx"]).reset_index(drop=True)
 
     @property
+    def disparity_keys(self) -> set[str]:
+        """The disparity arrays this source can read: ``disp_gt`` and each given side dataset's."""
+        return {"disp_gt", *self._side}
+
+    @property
     def camera(self) -> dict[str, float]:
         """The camera intrinsics of data/risk's manifest (``camera`` key)."""
         cam = self.risk.manifest.get("camera")
@@ -130,7 +152,8 @@ class RiskSource:
     def iter_arrays(
         self, frames: pd.DataFrame, keys: Sequence[str]
     ) -> Iterator[tuple[pd.DataFrame, dict[str, np.ndarray]]]:
-        """Per shard: the rows of ``frames`` in it and their arrays ``keys`` (left, right, disp_gt, disp_sgm).
+        """Per shard: the rows of ``frames`` in it and their arrays ``keys`` (left, right, disp_gt,
+        disp_sgm, disp_learned).
 
         Checks that every array of a frame has the image's height and width.
         """
@@ -138,7 +161,7 @@ class RiskSource:
         for p, rows in frames.groupby("_pos", sort=True):
             idx = rows["idx"].to_numpy()
             arrays: dict[str, np.ndarray] = {}
-            need_risk = [k for k in keys if k != "disp_sgm"]
+            need_risk = [k for k in keys if k not in SIDE_DISPARITIES]
             if need_risk:
                 shard = self.risk.load_shard(int(p))
                 for k in need_risk:
@@ -147,23 +170,20 @@ class RiskSource:
                             f"{self.risk.root / self._names[int(p)]}: array '{k}' missing (has {sorted(shard)})"
                         )
                     arrays[k] = shard[k][idx]
-            if "disp_sgm" in keys:
-                if self.disparity is None:
+            for k in (k for k in keys if k in SIDE_DISPARITIES):
+                side = self._side.get(k)
+                if side is None:
                     raise ValueError(
-                        "RiskSource: 'disp_sgm' requested but no disparity_root was given"
+                        f"RiskSource: {k!r} requested but no {SIDE_DISPARITIES[k]} dataset was given"
                     )
-                dshard = self.disparity.load_shard(int(p))
-                if "disp_sgm" not in dshard:
-                    raise DatasetError(
-                        f"{self.disparity.root / self._names[int(p)]}: array 'disp_sgm' missing"
-                    )
-                arrays["disp_sgm"] = dshard["disp_sgm"][idx]
+                dshard = side.load_shard(int(p))
+                if k not in dshard:
+                    raise DatasetError(f"{side.root / self._names[int(p)]}: array {k!r} missing")
+                arrays[k] = dshard[k][idx]
             shapes = {k: tuple(v.shape[1:3]) for k, v in arrays.items()}
             if len(set(shapes.values())) > 1:
-                files = f"{self.risk.root / self._names[int(p)]}" + (
-                    f" / {self.disparity.root / self._names[int(p)]}"
-                    if self.disparity is not None
-                    else ""
+                files = " / ".join(
+                    str(d.root / self._names[int(p)]) for d in (self.risk, *self._side.values())
                 )
                 raise DatasetError(
                     f"{files}: image and disparity sizes disagree {shapes} (H, W); "

@@ -97,9 +97,10 @@ def _run_predictors(
     (``<rule>``: risk, ``<rule>_distance_m``: distance ahead, m) on them."""
     from traffictwin.risk.training import input_keys
 
+    have = getattr(source, "disparity_keys", {"disp_sgm", "disp_gt"})
+    rules = [(n, k) for n, k in RULE_INPUTS if k in have] if settings.geometric else []
     keys: list[str] = sorted(
-        {k for m in models.values() for k in input_keys(m.cfg)}
-        | ({"disp_sgm", "disp_gt"} if settings.geometric else set())
+        {k for m in models.values() for k in input_keys(m.cfg)} | {k for _, k in rules}
     )
     preds: dict[str, list[np.ndarray]] = {v: [] for v in models}
     extra: dict[str, list[np.ndarray]] = {}
@@ -109,7 +110,7 @@ def _run_predictors(
         for v, p in _predict_models(models, arr, sp, settings.batch_size).items():
             preds[v].append(p)
         if settings.geometric is not None:
-            for name, k in RULE_INPUTS:
+            for name, k in rules:
                 d, _, r = geometric_risk(arr[k], sp, source.camera, settings.rule(name))
                 extra.setdefault(f"{name}_distance_m", []).append(d)
                 extra.setdefault(name, []).append(r)

@@ -12,10 +12,23 @@ from traffictwin.risk.evaluation.scoring import THRESHOLDS_S
 
 #: label columns of the three regions (docs/design.md "Risk metric"), the headline corridor first
 REGION_LABELS = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov")
-#: baselines, in report order; ``geometric_gt``: the corridor rule on ground-truth disparity
-BASELINES = ("train_mean", "train_median", "speed_only", "geometric_sgm", "geometric_gt")
-#: the corridor rules among the baselines and the disparity each reads
-RULE_INPUTS = (("geometric_sgm", "disp_sgm"), ("geometric_gt", "disp_gt"))
+#: baselines, in report order; ``geometric_learned``: the corridor rule on the learned stereo
+#: network's disparity; ``geometric_gt``: the corridor rule on ground-truth disparity
+BASELINES = (
+    "train_mean",
+    "train_median",
+    "speed_only",
+    "geometric_sgm",
+    "geometric_learned",
+    "geometric_gt",
+)
+#: the corridor rules among the baselines and the disparity each reads (a rule runs where the
+#: source has its disparity)
+RULE_INPUTS = (
+    ("geometric_sgm", "disp_sgm"),
+    ("geometric_learned", "disp_learned"),
+    ("geometric_gt", "disp_gt"),
+)
 #: predictors fed ground-truth disparity (not available at inference): a reference, not an oracle —
 #: the corridor rule's straight band is not the true (curved) corridor of the label
 GT_INPUT = ("geometric_gt",)

@@ -193,6 +193,9 @@ def _differences(scorer: Scorer, roles: Roles, objective: Mapping[str, str]) -> 
     for bname in ("geometric_sgm", "geometric_gt", "train_median"):
         if bname in base_main:
             diff.compare(roles.main_key, bname, roles.main_label, "vs_baseline")
+    if "geometric_sgm" in base_primary and "geometric_learned" in base_primary:
+        # the same corridor rule on the learned stereo network's disparity vs on SGM's
+        diff.compare("geometric_learned", "geometric_sgm", primary, "disparity_source")
     if "geometric_sgm" in base_primary:
         for key, kind in ((roles.learned, "learned_vs_rule"), (roles.shipped, "shipped_vs_rule")):
             if key and key != roles.main_key and f"{key}|geometric_sgm" not in diff.out:
