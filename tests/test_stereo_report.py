@@ -176,3 +176,72 @@ def test_stereo_section_with_missing_or_old_files(tmp_path: Path) -> None:
     assert empty.tables == []
     assert any("disparity.json` is missing" in p for p in empty.paragraphs)
     assert any("orb.json` is missing" in p for p in empty.paragraphs)
+
+
+def _stereo_json() -> dict:
+    """A stereo.json as stage stereo_learned writes it (values made up, intervals around them)."""
+    out: dict = {"test/frames": 40, "test/sequences": 10}
+    for source, scale in (("sgm", 1.0), ("learned", 0.5)):
+        for mask in ("common", "own"):
+            for _, key, _ in S.STEREO_ROWS:
+                v = (0.9 if key == "density" else 0.05 if "relerr" in key else 0.3) * scale
+                out[f"{source}/{mask}/{key}"] = v
+                out[f"{source}/{mask}/{key}_lo"], out[f"{source}/{mask}/{key}_hi"] = (
+                    v * 0.9,
+                    v * 1.1,
+                )
+    for mask in ("common", "own"):
+        for key in ("epe", "crit_obj_relerr_median"):
+            k = f"diff_learned_minus_sgm/{mask}/{key}"
+            out[k], out[k + "_lo"], out[k + "_hi"] = -0.1, -0.15, -0.05
+    out["targets"] = {
+        "learned_crit_obj_relerr_median": {
+            "description": "learned stereo: median range error on critical-distance objects",
+            "value": 0.025,
+            "value_lo": 0.02,
+            "value_hi": 0.03,
+            "op": "<=",
+            "threshold": 0.035,
+            "met": True,
+            "format": "pct",
+        }
+    }
+    return out
+
+
+def test_learned_stereo_tables_show_both_sources_their_difference_and_targets(
+    tmp_path: Path,
+) -> None:
+    """stereo.json: per mask a table SGM | CI | learned | CI (every number its file's), the paired
+    differences and the targets; without the file the section says which stage has not run."""
+    rep = _reports(
+        tmp_path,
+        {"disparity.json": DISPARITY, "orb.json": ORB, "stereo.json": _stereo_json()},
+        ("stereo_learned_example.png",),
+    )
+    report = R.write_report(_inputs(rep), providers({}))
+    check_report(rep, {}, {})
+    sec = next(s for s in report.sections if s.title == S.TITLE)
+    by = {t.anchor: t for t in sec.tables}
+    common = _rows(by["stereo-learned-common"])
+    assert common[0] == [
+        "end-point error [px]",
+        "0.300",
+        "[0.270, 0.330]",
+        "0.150",
+        "[0.135, 0.165]",
+    ]
+    assert "density (share of GT pixels with an estimate)" not in [r[0] for r in common]
+    own = _rows(by["stereo-learned-own"])
+    assert ["density (share of GT pixels with an estimate)", "90.00 %"] == own[3][:2]
+    diff = _rows(by["stereo-learned-difference"])
+    assert diff[0][2:] == ["-0.100", "[-0.150, -0.050]"]
+    tgt = _rows(by["stereo-learned-targets"])
+    assert tgt[0][:3] == ["learned_crit_obj_relerr_median", "2.50 %", "[2.00 %, 3.00 %]"]
+    assert any("figures/stereo_learned_example.png" in f.path for f in sec.figures)
+
+    none = _reports(tmp_path / "none", {"disparity.json": DISPARITY, "orb.json": ORB}, ())
+    report = R.write_report(_inputs(none), providers({}))
+    sec = next(s for s in report.sections if s.title == S.TITLE)
+    assert not any(t.anchor.startswith("stereo-learned") for t in sec.tables)
+    assert any("stereo.json` is missing: stage stereo_learned" in p for p in sec.paragraphs)

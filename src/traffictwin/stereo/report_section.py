@@ -6,7 +6,9 @@ with bins like ``z0-10m``, and ``<group>/bad2|d1|density|epe``), ``orb.json`` (s
 ``rule_<rule>/<fault>_detection[_lo|_hi|_n]``, ``rule_<rule>/false_alarm[...]``,
 ``rule_<rule>/delay_detection_v<lo>-<hi>[...]``, ``rule_<rule>/configured``,
 ``sweep/min_valid_share_<t>_*``) and ``stereo_resolution.json`` (benchmarks/stereo_resolution.py:
-``w<width>/<metric>``, ``diff_w<a>_minus_w<b>/<metric>[_lo|_hi]``). A missing file or key is an
+``w<width>/<metric>``, ``diff_w<a>_minus_w<b>/<metric>[_lo|_hi]``) and ``stereo.json`` (stage
+stereo_learned: ``<sgm|learned>/<common|own>/<metric>[_lo|_hi]``,
+``diff_learned_minus_sgm/<mask>/<metric>[_lo|_hi]``, ``targets``). A missing file or key is an
 ``n/a`` cell, never an error. Entry point: :func:`provider`.
 """
 
@@ -20,9 +22,14 @@ from traffictwin.report.model import NA, NEVER, Cell, Table, fmt_value, json_num
 DISPARITY_FILE = "disparity.json"
 ORB_FILE = "orb.json"
 RESOLUTION_FILE = "stereo_resolution.json"
-TITLE = "Stereo checks — SGM range accuracy and stereo-pair fault detection"
+STEREO_FILE = "stereo.json"
+TITLE = "Stereo — SGM and the learned stereo network's range accuracy, stereo-pair fault detection"
 
 FIGURES: dict[str, str] = {
+    "stereo_learned_example": (
+        "Test frames: left image | exact disparity | SGM | learned stereo network | the learned "
+        "network's absolute error (px; black = no estimate)"
+    ),
     "stereo_resolution": (
         "Relative depth error of SGM vs distance at two camera widths, with the critical "
         "distance band; SGM time per frame (benchmarks/stereo_resolution.py)"
@@ -326,6 +333,108 @@ def resolution_tables(src: page.Sources) -> list[Table]:
     return [t, d]
 
 
+#: rows of the learned-stereo comparison: (label, metric key, format)
+STEREO_ROWS = (
+    ("end-point error [px]", "epe", "f3"),
+    ("bad-1 (> 1 px)", "bad1", "pct"),
+    ("bad-2 (> 2 px)", "bad2", "pct"),
+    ("density (share of GT pixels with an estimate)", "density", "pct"),
+    ("0–10 m: median range error", "z0-10m_relerr_median", "pct"),
+    ("10–30 m: median range error", "z10-30m_relerr_median", "pct"),
+    ("30–90 m: median range error", "z30-90m_relerr_median", "pct"),
+    ("30–90 m: 90th percentile", "z30-90m_relerr_p90", "pct"),
+    ("objects at the critical distances: median range error", "crit_obj_relerr_median", "pct"),
+    ("objects at the critical distances: 90th percentile", "crit_obj_relerr_p90", "pct"),
+)
+MASK_LABELS = {
+    "common": "pixels both sources estimate",
+    "own": "each source's own estimated pixels",
+}
+
+
+def learned_tables(src: page.Sources) -> list[Table]:
+    """SGM vs the learned stereo network on the test split (both masks), their paired
+    differences and the targets of the learned stereo."""
+    if not src.has(STEREO_FILE):
+        return []
+    out = []
+    for mask, what in MASK_LABELS.items():
+        t = Table(
+            f"Learned stereo network vs SGM, fault-free test frames, {what} "
+            "(reports/metrics/stereo.json)",
+            ["quantity", "SGM", "SGM 95 % CI", "learned", "learned 95 % CI"],
+            anchor=f"stereo-learned-{mask}",
+            note=(
+                "Relative range error |Z − Z_gt| / Z_gt; critical distances: objects (pixels in "
+                "front of the road plane) at 12–21 m, the 1.5 s headway at 8–14 m/s. " + CI_NOTE
+            ),
+        )
+        for label, key, fmt in STEREO_ROWS:
+            if mask == "common" and key == "density":
+                continue  # the common mask's density is the same for both by construction
+            t.rows.append(
+                [Cell(label)]
+                + [
+                    c
+                    for source in ("sgm", "learned")
+                    for c in (
+                        src.cell(STEREO_FILE, f"{source}/{mask}/{key}", fmt),
+                        ci_cell(src, STEREO_FILE, f"{source}/{mask}/{key}", fmt),
+                    )
+                ]
+            )
+        out.append(t)
+    d = Table(
+        "Learned stereo network − SGM, paired on the same test frames (reports/metrics/stereo.json)",
+        ["pixels", "quantity", "difference", "95 % CI"],
+        anchor="stereo-learned-difference",
+        note="Sequences resampled together for both sources. " + CI_NOTE,
+    )
+    for mask, what in MASK_LABELS.items():
+        for label, key, fmt in (
+            ("end-point error [px]", "epe", "f3"),
+            ("critical objects: median range error", "crit_obj_relerr_median", "pct"),
+        ):
+            k = f"diff_learned_minus_sgm/{mask}/{key}"
+            d.rows.append(
+                [
+                    Cell(what),
+                    Cell(label),
+                    src.cell(STEREO_FILE, k, fmt),
+                    ci_cell(src, STEREO_FILE, k, fmt),
+                ]
+            )
+    out.append(d)
+    targets = src.get(STEREO_FILE, "targets")
+    if isinstance(targets, dict) and targets:
+        tt = Table(
+            "Learned stereo: targets (default profile, fault-free test frames)",
+            ["target", "value", "95 % CI", "op", "threshold", "met", "description"],
+            anchor="stereo-learned-targets",
+            note=(
+                "met: the point estimate against the threshold; a difference target is met only "
+                "when its whole interval lies on the target's side. " + CI_NOTE
+            ),
+        )
+        for name in targets:
+            fmt = str(src.get(STEREO_FILE, f"targets.{name}.format") or "g4")
+            tt.rows.append(
+                [
+                    Cell(name),
+                    src.cell(STEREO_FILE, f"targets.{name}.value", fmt),
+                    ci_cell(src, STEREO_FILE, f"targets.{name}.value", fmt)
+                    if src.get(STEREO_FILE, f"targets.{name}.value_lo") is not None
+                    else Cell(NA),
+                    src.cell(STEREO_FILE, f"targets.{name}.op"),
+                    src.cell(STEREO_FILE, f"targets.{name}.threshold", fmt),
+                    src.cell(STEREO_FILE, f"targets.{name}.met"),
+                    src.cell(STEREO_FILE, f"targets.{name}.description"),
+                ]
+            )
+        out.append(tt)
+    return out
+
+
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     """The stereo section: disparity and range accuracy, fault detection, resolution study."""
     sec = page.Section(TITLE)
@@ -333,13 +442,22 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
         "SGM (OpenCV StereoSGBM, 8 paths, left-right check, speckle filter) on every stereo pair, "
         "scored against the exact disparity; a disparity error says little at small disparities, "
         "so the range error is shown per distance bin. Broken stereo pairs are caught by the "
-        "paper's ORB rule (Sec. 3.3), a robust variant of it, and the share of valid SGM pixels."
+        "paper's ORB rule (Sec. 3.3), a robust variant of it, and the share of valid SGM pixels. "
+        "A learned stereo network (cost volume, soft-argmin, edge-aware refinement; stage "
+        "train_stereo, trained on the training sequences' exact disparity) is scored beside SGM "
+        "on the same test frames (stage stereo_learned); its pixels whose disparity distribution "
+        "is wider than a threshold chosen on validation count as 'no estimate'."
     )
     sec.tables.extend(disparity_tables(src))
+    sec.tables.extend(learned_tables(src))
     sec.tables.extend(fault_tables(src))
     res = resolution_tables(src)
     sec.tables.extend(res)
-    for file, what in ((DISPARITY_FILE, "disparity"), (ORB_FILE, "orb_filter")):
+    for file, what in (
+        (DISPARITY_FILE, "disparity"),
+        (STEREO_FILE, "stereo_learned"),
+        (ORB_FILE, "orb_filter"),
+    ):
         if not src.has(file):
             sec.paragraphs.append(f"`reports/metrics/{file}` is missing: stage {what} has not run.")
     if not res:
@@ -357,5 +475,5 @@ def provider() -> page.SectionProvider:
         section=section,
         figures=FIGURES,
         figure_pattern=NEVER,
-        shown_files=r"stereo_resolution\.json",
+        shown_files=r"stereo_resolution\.json|stereo\.json",
     )
