@@ -84,7 +84,7 @@ def _risk(p: Any) -> None:
     from .evaluate_risk import risk_stage_settings
     from .generate_risk import read_config
     from .train_risk import check_disparity_scale, risk_model, train_settings, variant_config
-    from .train_risk_hybrid import hybrid_settings
+    from .train_risk_hybrid import hybrid_settings, learned_disparity
 
     rd, _, _ = read_config(p)  # generate_risk
     rd.sgm.check_width(rd.camera.width, what="params.yaml: 'risk_data.sgm'")  # disparity
@@ -94,6 +94,7 @@ def _risk(p: Any) -> None:
         check_disparity_scale(p, cfg)
         train_settings(model, p, variant)
     hybrid_settings(p)  # train_risk_hybrid
+    learned_disparity(p)
     risk_stage_settings(p)  # select_risk, evaluate_risk
 
 

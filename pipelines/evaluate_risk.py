@@ -52,7 +52,15 @@ from ._paths import (
     plot_file,
     risk_model_dir,
 )
-from .train_risk_hybrid import HOLDOUT, HYBRID, holdout_runs, hybrid_runs, hybrid_settings
+from .train_risk_hybrid import (
+    HOLDOUT,
+    HYBRID,
+    holdout_runs,
+    hybrid_runs,
+    hybrid_settings,
+    learned_disparity,
+    learned_runs,
+)
 
 METRICS = metrics_file("risk")
 SELECTION = metrics_file("risk_selection")
@@ -260,7 +268,11 @@ def main() -> None:
         source = RiskSource(
             RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None, learned_root=STEREO_LEARNED
         )
-        hybrids = [*hybrid_runs(seeds), *holdout_runs(seeds, holdout)]
+        hybrids = [
+            *hybrid_runs(seeds),
+            *holdout_runs(seeds, holdout),
+            *learned_runs(seeds, learned_disparity(p)),
+        ]
         models = load_models(variants, hybrids)
         suite = replace(suite, variants={**settings, **loaded_settings(models, variants)})
         metrics, pred = evaluate_suite(source, models, suite)

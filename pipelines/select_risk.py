@@ -55,7 +55,13 @@ from ._paths import (
     risk_model_dir,
 )
 from .evaluate_risk import risk_stage_settings
-from .train_risk_hybrid import holdout_runs, hybrid_runs, hybrid_settings
+from .train_risk_hybrid import (
+    holdout_runs,
+    hybrid_runs,
+    hybrid_settings,
+    learned_disparity,
+    learned_runs,
+)
 
 SHIPPED = "shipped"
 SELECTION = metrics_file("risk_selection")
@@ -145,6 +151,7 @@ def main() -> None:
     ev, subject, variants, settings, primary, orb_filter = risk_stage_settings(p)
     _, seeds, holdout = hybrid_settings(p)
     held_runs = holdout_runs(seeds, holdout)
+    on_learned = learned_runs(seeds, learned_disparity(p))
     setup = SelectionSetup(ev, subject, primary, settings, held_runs, holdout)
 
     with stage_timer("select_risk") as record:
@@ -153,7 +160,10 @@ def main() -> None:
         )
         models = {v: load_risk_model(risk_model_dir(v)) for v in variants}
         models.update(
-            {h: load_risk_model(hybrid_model_dir(h)) for h in [*hybrid_runs(seeds), *held_runs]}
+            {
+                h: load_risk_model(hybrid_model_dir(h))
+                for h in [*hybrid_runs(seeds), *held_runs, *on_learned]
+            }
         )
         selection = select_on_validation(source, models, setup)
         _publish_shipped(selection, setup, models, source, seeds)

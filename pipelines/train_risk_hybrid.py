@@ -3,15 +3,17 @@
 Reads ``risk_hybrid.*`` (features and training), ``evaluation.risk.geometric`` (the corridor
 point filter shared with the rule), ``risk_data.metric`` (subject footprint), ``risk_model.label``
 and ``risk_model.orb_filter``, ``seed``; data ``data/risk``, ``data/disparity``,
-``data/orb/orb.csv``. Writes ``models/risk_hybrid/hybrid`` (first seed) and ``models/risk_hybrid/hybrid_s<k>``
-(``model.ckpt``, ``model_meta.json``, ``history.csv``): the training split fits, the validation
-loss is recorded per epoch (nothing is chosen on it here; stage ``select_risk`` compares
-predictors on validation).
+``data/stereo_learned``, ``data/orb/orb.csv``. Writes ``models/risk_hybrid/hybrid`` (first seed) and
+``models/risk_hybrid/hybrid_s<k>`` (``model.ckpt``, ``model_meta.json``, ``history.csv``): the
+training split fits, the validation loss is recorded per epoch (nothing is chosen on it here;
+stage ``select_risk`` compares predictors on validation). With ``risk_hybrid.learned_disparity``
+the same hybrid is also trained on the learned stereo network's disparity, one run per seed
+(``hybrid_learned``, ``hybrid_learned_s<k>``): evaluated beside the others, never served.
 """
 
 from __future__ import annotations
 
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 import pandas as pd
@@ -24,16 +26,18 @@ from traffictwin.risk.model_io import save_predictor
 from traffictwin.risk.predictors import (
     HybridConfig,
     HybridRiskModel,
+    PredictorInputs,
     fit_hybrid,
     source_features,
 )
 from traffictwin.risk.training import LABELS, RiskSource, check_label
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, hybrid_model_dir
+from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, STEREO_LEARNED, hybrid_model_dir
 
 HYBRID = "hybrid"
 HOLDOUT = "hybrid_holdout"
+LEARNED = "hybrid_learned"
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
 
 
@@ -47,10 +51,21 @@ def holdout_runs(seeds: list[int], templates: list[str]) -> dict[str, int]:
     return hybrid_runs(seeds, HOLDOUT) if templates else {}
 
 
+def learned_runs(seeds: list[int], learned: bool) -> dict[str, int]:
+    """The runs on the learned stereo network's disparity (none unless ``learned``)."""
+    return hybrid_runs(seeds, LEARNED) if learned else {}
+
+
 def hybrid_settings(p) -> tuple[HybridConfig, list[int], list[str]]:
     """``risk_hybrid``: the feature / training config, the seeds and the held-out road templates;
-    errors name the key."""
+    errors name the key (``learned_disparity``: :func:`learned_disparity`)."""
     node = dict(get(p, "risk_hybrid", dict))
+    node.pop("learned_disparity", None)
+    if "disparity" in node:
+        raise ConfigError(
+            f"{PARAMS.name}: 'risk_hybrid.disparity' is not a setting (the served hybrid reads SGM "
+            "disparity); 'risk_hybrid.learned_disparity: true' adds runs on the learned disparity"
+        )
     seeds = node.pop("seeds", None)
     holdout = node.pop("holdout_templates", None)
     if not isinstance(seeds, list) or not seeds or len(set(seeds)) != len(seeds):
@@ -73,6 +88,12 @@ def hybrid_settings(p) -> tuple[HybridConfig, list[int], list[str]]:
         raise ConfigError(f"{PARAMS.name}: 'risk_hybrid': {exc}") from None
 
 
+def learned_disparity(p) -> bool:
+    """``risk_hybrid.learned_disparity``: also train the hybrid on the learned stereo network's
+    disparity (data/stereo_learned)."""
+    return get(p, "risk_hybrid.learned_disparity", bool)
+
+
 def main() -> None:
     log = setup_logging()
     p = params()
@@ -83,9 +104,15 @@ def main() -> None:
     label = get(p, "risk_model.label", str, choices=LABELS)
     orb_filter = get(p, "risk_model.orb_filter", bool)
     base_seed = get(p, "seed", int, min=0)
+    learned = learned_disparity(p)
 
     with stage_timer("train_risk_hybrid") as record:
-        source = RiskSource(RISK_DATA, DISPARITY, ORB_CSV if orb_filter else None)
+        source = RiskSource(
+            RISK_DATA,
+            DISPARITY,
+            ORB_CSV if orb_filter else None,
+            learned_root=STEREO_LEARNED if learned else None,
+        )
         camera = {k: float(source.camera[k]) for k in _CAMERA_KEYS}
         fpath = str(source.risk.root / "frames.csv")
         have = set(source.frames["template"]) if "template" in source.frames else set()
@@ -95,23 +122,35 @@ def main() -> None:
                 f"{PARAMS.name}: 'risk_hybrid.holdout_templates' {unknown} are not road templates "
                 f"of {fpath} (has {sorted(have)})"
             )
-        data = {}
-        for split in ("train", "val"):
-            x, rows = source_features(source, source.split_frames(split), camera, geo, cfg)
-            thw = risk_to_thw(check_label(rows, label, fpath), cfg.thw_cap_s)
-            seen = ~rows["template"].isin(holdout).to_numpy() if holdout else np.ones(len(x), bool)
-            data[split] = (x, thw, seen)
-        if len(data["train"][0]) == 0:
+        configs = {"disp_sgm": cfg}
+        if learned:
+            configs["disp_learned"] = replace(cfg, disparity="disp_learned")
+        data: dict[str, dict[str, tuple]] = {}
+        for disparity, c in configs.items():
+            data[disparity] = {}
+            for split in ("train", "val"):
+                x, rows = source_features(source, source.split_frames(split), camera, geo, c)
+                thw = risk_to_thw(check_label(rows, label, fpath), c.thw_cap_s)
+                seen = (
+                    ~rows["template"].isin(holdout).to_numpy() if holdout else np.ones(len(x), bool)
+                )
+                data[disparity][split] = (x, thw, seen)
+        if len(data["disp_sgm"]["train"][0]) == 0:
             raise ValueError(f"{fpath}: the training split has no frames (after the ORB check)")
-        runs = [(n, s, None) for n, s in hybrid_runs(seeds).items()]
-        runs += [(n, s, holdout) for n, s in holdout_runs(seeds, holdout).items()]
-        for name, seed, held in runs:
-            xt, tt, seen_t = data["train"]
-            xv, tv, seen_v = data["val"]
+        runs = [(n, s, None, HYBRID, "disp_sgm") for n, s in hybrid_runs(seeds).items()]
+        runs += [
+            (n, s, holdout, HOLDOUT, "disp_sgm") for n, s in holdout_runs(seeds, holdout).items()
+        ]
+        runs += [
+            (n, s, None, LEARNED, "disp_learned") for n, s in learned_runs(seeds, learned).items()
+        ]
+        for name, seed, held, base, disparity in runs:
+            c = configs[disparity]
+            xt, tt, seen_t = data[disparity]["train"]
+            xv, tv, seen_v = data[disparity]["val"]
             if held:  # without the held-out templates (training and validation loss alike)
                 xt, tt, xv, tv = xt[seen_t], tt[seen_t], xv[seen_v], tv[seen_v]
-            net, history = fit_hybrid(xt, tt, cfg, base_seed + seed, xv, tv)
-            base = HOLDOUT if held else HYBRID
+            net, history = fit_hybrid(xt, tt, c, base_seed + seed, xv, tv)
             meta = {
                 "variant": name,
                 "label": label,
@@ -119,6 +158,7 @@ def main() -> None:
                 "seed_offset": int(seed),
                 "replicate_of": None if name == base else base,
                 "holdout_templates": list(held or []),
+                "disparity": disparity,
                 "n_train": int(len(xt)),
                 "n_val": int(len(xv)),
                 "final_val_loss": history[-1].get("val_loss"),
@@ -131,7 +171,8 @@ def main() -> None:
                 },
             }
             out = hybrid_model_dir(name)
-            save_predictor(HybridRiskModel(net, cfg, geo, camera), out, meta)
+            model = HybridRiskModel(net, c, geo, camera, cfg=PredictorInputs(inputs=(disparity,)))
+            save_predictor(model, out, meta)
             write_csv_atomic(
                 out / "history.csv",
                 pd.DataFrame(history),
@@ -148,7 +189,7 @@ def main() -> None:
                 out,
             )
         record["runs"] = [r[0] for r in runs]
-        record["n_train"] = int(len(data["train"][0]))
+        record["n_train"] = int(len(data["disp_sgm"]["train"][0]))
 
 
 if __name__ == "__main__":

@@ -598,3 +598,66 @@ def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
     assert "pred_geometric_learned" not in pred_plain
     with pytest.raises(ValueError, match="'disp_learned' requested but no stereo_learned"):
         next(plain.iter_arrays(plain.split_frames("test"), ["disp_learned"]))
+
+
+def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_is_not_served(
+    tmp_path: Path,
+) -> None:
+    """A hybrid with ``disparity: disp_learned`` takes its features from data/stereo_learned in
+    training, validation and test alike, gets its paired difference to the SGM rule, and the API
+    refuses to serve it (traffictwin risk computes SGM disparity)."""
+    from traffictwin.api import ApiError
+    from traffictwin.api.risk import load_risk
+    from traffictwin.risk.predictors import HybridRiskModel, PredictorInputs, source_features
+
+    with pytest.raises(ValueError, match="'disparity' must be one of"):
+        HybridConfig(disparity="disp_gt")
+    write_sequences(tmp_path, n_shards=5, per_shard=18)
+    learned = _learned_copy_of_gt(tmp_path)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None, learned)
+    geo = GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8)
+    cfg = HybridConfig(half_widths=(1.0,), bin_edges=(-1.0, 1.0), epochs=2, hidden=4)
+    cfg_l = HybridConfig.from_dict({**cfg.to_dict(), "disparity": "disp_learned"})
+    train = src.split_frames("train")
+    x_sgm, _ = source_features(src, train, src.camera, geo, cfg)
+    x_l, rows = source_features(src, train, src.camera, geo, cfg_l)
+    x_gt = corridor_features_of(src, rows, "disp_gt", geo, cfg)
+    np.testing.assert_array_equal(x_l, x_gt)  # the learned source here is the exact disparity
+    assert not np.array_equal(x_l, x_sgm)
+
+    net, _ = fit_hybrid(x_l, np.full(len(x_l), 3.0), cfg_l, 0)
+    model = HybridRiskModel(
+        net,
+        cfg_l,
+        geo,
+        src.camera,
+        {"label": "risk_thw_corridor"},
+        PredictorInputs(("disp_learned",)),
+    )
+    settings = SuiteSettings(
+        primary_label="risk_thw_corridor", geometric=geo, ci=CIConfig(50, 0, 0.95)
+    )
+    rule = GeometricRiskModel(geo, src.camera, {"label": "risk_thw_corridor"})
+    metrics, pred = evaluate_suite(src, {"shipped": rule, "hybrid_learned": model}, settings)
+    test = src.split_frames("test")
+    want = model.predict_features(corridor_features_of(src, test, "disp_learned", geo, cfg_l))
+    np.testing.assert_allclose(np.sort(pred["pred_hybrid_learned"]), np.sort(want), rtol=1e-6)
+    assert metrics["differences"]["hybrid_learned|geometric_sgm"]["kind"] == "disparity_source"
+
+    save_predictor(model, tmp_path / "models" / "hybrid_learned", {"label": "risk_thw_corridor"})
+    back = load_risk_model(tmp_path / "models" / "hybrid_learned")
+    assert back.config.disparity == "disp_learned" and back.cfg.inputs == ("disp_learned",)
+    with pytest.raises(ApiError, match="learned stereo network's disparity"):
+        load_risk(tmp_path / "models" / "hybrid_learned")
+
+
+def corridor_features_of(src, frames, key: str, geo, cfg) -> np.ndarray:
+    """The hybrid features of ``frames`` computed from the source's array ``key`` directly."""
+    from traffictwin.risk.predictors import corridor_features
+
+    return np.concatenate(
+        [
+            corridor_features(arr[key], rows["speed"].to_numpy(np.float64), src.camera, geo, cfg)
+            for rows, arr in src.iter_arrays(frames, [key])
+        ]
+    )

@@ -155,6 +155,13 @@ def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> L
         model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
     )
     check_risk_domain((rm.meta or {}).get("domain"), desc)
+    inputs = tuple(getattr(getattr(rm, "cfg", None), "inputs", ()) or ())
+    if "disp_learned" in inputs:
+        raise ModelDomainError(
+            f"{desc}: reads the learned stereo network's disparity ('disp_learned'), which "
+            "traffictwin risk does not compute (it computes SGM disparity); use a model that "
+            "reads 'disp_sgm', e.g. the shipped one"
+        )
     return LoadedRisk(rm, desc)
 
 

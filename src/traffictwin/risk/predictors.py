@@ -41,6 +41,9 @@ KINDS = ("dave2", "hybrid", "geometric")
 
 #: the frame inputs of a predictor that sees the SGM disparity and the speed
 _SGM_INPUTS = ("disp_sgm",)
+#: the disparities a hybrid can read: SGM's, or the learned stereo network's (data/stereo_learned;
+#: evaluated, not served: ``traffictwin risk`` computes SGM disparity)
+HYBRID_DISPARITIES = ("disp_sgm", "disp_learned")
 
 
 @dataclass(frozen=True)
@@ -111,7 +114,8 @@ class HybridConfig:
     ``bin_edges``: lateral strips (m, left positive); ``max_distance``: distances beyond are
     "nothing" (m); ``speed_scale``: m/s → input; ``hidden``: MLP width (two hidden layers);
     ``epochs``/``batch_size``/``lr``/``weight_decay``: AdamW; ``huber_delta``: Huber loss on
-    log THW (log s); ``thw_cap_s``: the THW that stands for "nothing ahead" (s)."""
+    log THW (log s); ``thw_cap_s``: the THW that stands for "nothing ahead" (s); ``disparity``:
+    the disparity the features are read from (one of :data:`HYBRID_DISPARITIES`)."""
 
     half_widths: tuple[float, ...] = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
     bin_edges: tuple[float, ...] = (-2.5, -1.5, -1.0, -0.5, 0.5, 1.0, 1.5, 2.5)
@@ -124,8 +128,13 @@ class HybridConfig:
     weight_decay: float = 1e-3
     huber_delta: float = 0.5
     thw_cap_s: float = 10.0
+    disparity: str = "disp_sgm"
 
     def __post_init__(self) -> None:
+        if self.disparity not in HYBRID_DISPARITIES:
+            raise ValueError(
+                f"'disparity' must be one of {list(HYBRID_DISPARITIES)}, got {self.disparity!r}"
+            )
         if not self.half_widths or any(w <= 0 for w in self.half_widths):
             raise ValueError(f"'half_widths' must be metres > 0, got {list(self.half_widths)}")
         e = list(self.bin_edges)
@@ -357,6 +366,7 @@ def build_predictor(architecture: Mapping[str, Any], state: Mapping[str, torch.T
             GeometricParams(**architecture["geometric"]),
             _camera_dict(architecture["camera"]),
             meta,
+            PredictorInputs(inputs=(cfg.disparity,)),
         )
     raise ValueError(f"unknown risk predictor kind {kind!r} (expected one of {KINDS})")
 
@@ -385,14 +395,15 @@ def source_features(
     cfg: HybridConfig,
 ) -> tuple[np.ndarray, Any]:
     """Hybrid features of ``frames`` (rows of a :class:`~traffictwin.risk.training.RiskSource`)
-    and the frames in the order of the features (shard by shard)."""
+    from the disparity ``cfg.disparity`` names, and the frames in the order of the features
+    (shard by shard)."""
     import pandas as pd
 
     feats, order = [], []
-    for rows, arr in source.iter_arrays(frames, ["disp_sgm"]):
+    for rows, arr in source.iter_arrays(frames, [cfg.disparity]):
         feats.append(
             corridor_features(
-                arr["disp_sgm"], rows["speed"].to_numpy(np.float64), camera, geometric, cfg
+                arr[cfg.disparity], rows["speed"].to_numpy(np.float64), camera, geometric, cfg
             )
         )
         order.append(rows)

@@ -209,6 +209,9 @@ def validation_scores(
     for rows, arr in source.iter_arrays(frames, keys):
         sp = rows["speed"].to_numpy(np.float64).astype(np.float32)
         for v, m in models.items():
+            if hasattr(m, "predict_features"):  # a hybrid, on the disparity it was trained on
+                preds[v].append(m.predict_features(m.features(arr[m.config.disparity], sp)))
+                continue
             images = (arr.get("left"), arr.get("disp_sgm"), arr.get("disp_gt"))
             preds[v].append(m.predict(*images, speed=sp, batch_size=ev.batch_size))
         for r, k in rules.items():

@@ -77,7 +77,7 @@ def _predict_models(
         if hasattr(m, "predict_features"):
             fk = (m.config, m.geometric, tuple(sorted(m.camera.items())))
             if fk not in shared:
-                shared[fk] = m.features(arr["disp_sgm"], sp)
+                shared[fk] = m.features(arr[m.config.disparity], sp)
             out[v] = m.predict_features(shared[fk])
             continue
         out[v] = m.predict(

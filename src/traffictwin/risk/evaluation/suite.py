@@ -4,7 +4,7 @@ break down, judge the targets — and readers of its outputs."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import Any
 
 import numpy as np
@@ -174,11 +174,18 @@ class _Differences:
         }
 
 
-def _differences(scorer: Scorer, roles: Roles, objective: Mapping[str, str]) -> dict[str, Any]:
+def _differences(
+    scorer: Scorer,
+    roles: Roles,
+    objective: Mapping[str, str],
+    on_learned_disparity: Collection[str] = (),
+) -> dict[str, Any]:
     """Every run and seed group vs the speed-only baseline on its label; the headline vs the
     baselines; the learned group and the shipped model vs the SGM rule (the primary comparisons,
-    issue 31); the headline vs every other variant on its label (``objective``: run → its
-    training objective, telling an objective comparison from a variant one)."""
+    issue 31); the rule and the predictors ``on_learned_disparity`` (their seed groups once) on
+    the learned stereo network's disparity vs the SGM rule; the headline vs every other variant
+    on its label (``objective``: run → its training objective, telling an objective comparison
+    from a variant one)."""
     groups, label_of, primary = scorer.groups, scorer.pred.label_of, scorer.settings.primary_label
     base_main, base_primary = (
         scorer.pred.baselines[roles.main_label],
@@ -196,6 +203,14 @@ def _differences(scorer: Scorer, roles: Roles, objective: Mapping[str, str]) -> 
     if "geometric_sgm" in base_primary and "geometric_learned" in base_primary:
         # the same corridor rule on the learned stereo network's disparity vs on SGM's
         diff.compare("geometric_learned", "geometric_sgm", primary, "disparity_source")
+    if "geometric_sgm" in base_primary:
+        # predictors reading the learned stereo network's disparity (seed groups once) vs the rule
+        for v in label_of:
+            if v not in on_learned_disparity:
+                continue
+            key = groups.predictor(v)
+            if label_of[v] == primary and f"{key}|geometric_sgm" not in diff.out:
+                diff.compare(key, "geometric_sgm", primary, "disparity_source")
     if "geometric_sgm" in base_primary:
         for key, kind in ((roles.learned, "learned_vs_rule"), (roles.shipped, "shipped_vs_rule")):
             if key and key != roles.main_key and f"{key}|geometric_sgm" not in diff.out:
@@ -289,7 +304,12 @@ def evaluate_suite(
     metrics["groups"] = _group_entries(scorer)
     metrics["baselines"], metrics["baselines_by_label"] = _baseline_entries(scorer)
     objective = {v: e["objective"] for v, e in metrics["models"].items()}
-    metrics["differences"] = _differences(scorer, roles, objective)
+    on_learned = [
+        v
+        for v, m in models.items()
+        if "disp_learned" in getattr(getattr(m, "cfg", None), "inputs", ())
+    ]
+    metrics["differences"] = _differences(scorer, roles, objective, on_learned)
     metrics["comparisons"] = _comparisons(metrics["differences"], settings.t0)
     metrics.update(_breakdowns(source, models, scorer, roles))
     spreads = {v: spread_stat(pred.table[f"pred_{v}"].to_numpy(), plan) for v in models}
