@@ -176,9 +176,9 @@ class _Differences:
 
 def _differences(scorer: Scorer, roles: Roles, objective: Mapping[str, str]) -> dict[str, Any]:
     """Every run and seed group vs the speed-only baseline on its label; the headline vs the
-    baselines; the learned group and the shipped model vs the SGM rule (the primary comparisons,
-    issue 31); the headline vs every other variant on its label (``objective``: run → its
-    training objective, telling an objective comparison from a variant one)."""
+    baselines; the learned group and the shipped model vs the SGM rule (the primary comparisons);
+    the headline vs every other variant on its label (``objective``: run → its training
+    objective, telling an objective comparison from a variant one)."""
     groups, label_of, primary = scorer.groups, scorer.pred.label_of, scorer.settings.primary_label
     base_main, base_primary = (
         scorer.pred.baselines[roles.main_label],
