@@ -11,8 +11,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 # what the rule covers: folders (every tracked file under them) and single files
-ROOTS = ("src", "pipelines", "conf", "docs", "tests", "benchmarks", ".github")
-FILES = ("README.md", "params.yaml", "dvc.yaml")
+ROOTS = ("src", "pipelines", "conf", "docs", "tests", "benchmarks", "examples", ".github")
+FILES = ("README.md", "params.yaml", "dvc.yaml", "Makefile")
 # built from pieces so that this file does not match itself
 _WORD = "iss" + "ue"
 _DEFECT = "def" + "ect"
