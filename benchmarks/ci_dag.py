@@ -1,4 +1,4 @@
-"""Wall time of the whole DAG on the ``ci`` profile, and where it goes (issue 17, item 6; prints JSON).
+"""Wall time of the whole DAG on the ``ci`` profile, and where it goes (prints JSON).
 
     python -m benchmarks.ci_dag [--keep DIR]
 
@@ -14,7 +14,7 @@ its own MLflow database, as the README's Quick start does. Reports:
 - ``imports_s``: wall time of ``python -c "import X"`` for the heavy packages a stage may load;
 - ``noop_s``: a second ``dvc repro`` with nothing to do.
 
-Target (issue 17): <= 90 s wall on the 2-core machine.
+Target: <= 90 s wall on the 2-core machine.
 """
 
 from __future__ import annotations

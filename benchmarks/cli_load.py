@@ -1,4 +1,4 @@
-"""Load figures of the `traffictwin` CLI (issue 18, defect 12; prints JSON).
+"""Load figures of the `traffictwin` CLI with many inputs per call (prints JSON).
 
     python -m benchmarks.cli_load [--pairs 200] [--frames 800] [--batch-size 8] [--risk-batch 16]
 
@@ -13,7 +13,7 @@ stereo pairs of the camera size. Then runs, each as one CLI process:
   and max RSS;
 - ``traffictwin risk FOLDER`` (frames streamed in batches): wall time and max RSS.
 
-Targets (issue 18): 200 pairs <= 15 s on the 2-core machine; 800 frames with max RSS <= 400 MB.
+Targets: 200 pairs <= 15 s on the 2-core machine; 800 frames with max RSS <= 400 MB.
 Wall times include the process start (imports) and, for ``risk``, ORB + SGM on every frame;
 ``cpu_s`` (user + system CPU seconds of the process) is given beside them because on a shared
 machine the wall time mostly measures the other tenants.

@@ -6,7 +6,7 @@ On the first ``--pairs`` test pairs of ``data/prealigned/<cfg>`` (and their raw 
 ``data/fusion``), with the trained ``models/registration/<cfg>`` (run ``dvc repro`` first):
 
 - ``learned_ms_per_pair``: the registry method ``learned`` (estimate, fallback check, warp of
-  the raw map 2 by the pose used, Dempster) at batch 1 and batch 8 — the figure the issue-15 target
+  the raw map 2 by the pose used, Dempster) at batch 1 and batch 8 — the figure the latency target
   (≤ 20 ms per pair) is about; ``learned_estimate_ms_per_pair``: the network's estimate alone;
 - ``registered_ms_per_pair``: the classical ``registered`` method (Fourier–Mellin + ECC, warp,
   Dempster), one pair at a time as it always runs.

@@ -1,4 +1,4 @@
-"""Start-up time of the `traffictwin` command (issue 17, item 6; prints JSON).
+"""Start-up time of the `traffictwin` command (prints JSON).
 
     python -m benchmarks.startup [--repeat 5]
 
@@ -10,7 +10,7 @@
 - ``registry_unreachable``: wall time until ``traffictwin status --tracking-uri http://127.0.0.1:<closed
   port>`` gives up with its one-line error (bounded MLflow retries).
 
-Targets (issue 17): ``--help`` <= 1 s, ``fuse`` on one pair <= 3 s on the 2-core machine.
+Targets: ``--help`` <= 1 s, ``fuse`` on one pair <= 3 s on the 2-core machine.
 """
 
 from __future__ import annotations

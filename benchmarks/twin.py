@@ -10,7 +10,7 @@ whose models exist (``models/registration/<cfg>``, the registered-pairs network 
 median ms per step over ``--frames`` frames x ``--repeats`` passes (after one warm-up step). Each
 step includes the predictive hazard measure (:mod:`traffictwin.twin.predict`: optical flow between
 the previous and the new twin, ego-motion compensated, and the time to conflict; its own median
-``ttc_ms``, and ``ms_per_step_without_ttc``). The issue-19/32 target: 3 vehicles <= 100 ms per
+``ttc_ms``, and ``ms_per_step_without_ttc``). The twin's target: 3 vehicles <= 100 ms per
 step (10 Hz), motion estimation included. The JSON records the CPU, torch threads
 and the load average, since figures depend on the load.
 """

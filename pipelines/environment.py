@@ -4,7 +4,7 @@ output) and the machine it ran on (its run record reports/timings/environment.js
 The machine is a property of the run, not of the results: on a virtual machine the CPU model, the
 kernel build and the memory total can change between two identical runs (live migration, memory
 ballooning), so they go to the run record, beside the wall times, and an identical `dvc repro -f`
-leaves dvc.lock unchanged (issue 18, defect 13).
+leaves dvc.lock unchanged.
 """
 
 from __future__ import annotations

@@ -100,7 +100,7 @@ def run(
         raise DatasetError(f"{disparity / 'frames.csv'}: no valid_share for frames {missing}...")
     chosen = None
     min_valid_share = check.min_valid_share
-    if min_valid_share is None:  # chosen on the validation split (issue 31: no choice on test)
+    if min_valid_share is None:  # chosen on the validation split (none on test)
         min_valid_share, chosen = choose_min_valid_share(
             df[df["split"] == "val"], check.max_false_alarm
         )

@@ -363,7 +363,9 @@ def test_findings_explain_negative_kld_a_variants_and_targets():
         "Row `dnn[paper]`:** D: KLD(b) 0.900 [0.800, 1.000] (vs naive: higher, vs registered: n/a)"
         in text
     )
-    assert "1 pass, 1 fail, 1 not evaluated; failing: u_auroc; not evaluated: x" in text
+    assert (
+        "**Targets:** 1 pass, 1 fail, 1 not evaluated; failing: u_auroc; not evaluated: x" in text
+    )
     # the stage writes fusion.json with sorted keys: the findings must not depend on key order
     assert fusion_findings(json.loads(json.dumps(m, sort_keys=True))) == text
     assert "Negative KLD(a)" not in fusion_findings(

@@ -146,7 +146,7 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
 def test_the_documented_training_experiments_show_what_changed(
     ci_dag: Path, tmp_path: Path
 ) -> None:
-    """Issue 33: two training-only experiments (the docs' example: the fusion network's learning
+    """Two training-only experiments (the docs' example: the fusion network's learning
     rate on the ci profile) differ in the training's DVC metrics (`dvc exp diff`) and draw two
     distinguishable learning curves with their revisions (`dvc plots diff`)."""
     repo = clone_dag(ci_dag, tmp_path / "exp_repo")

@@ -1,4 +1,4 @@
-"""Learned registration (issue 15): geometry, search, loss, fallback, bad input (fast, synthetic) and
+"""Learned registration: geometry, search, loss, fallback, bad input (fast, synthetic) and
 stage train_registration@<cfg> + its evaluation rows on the ci DAG."""
 
 from __future__ import annotations

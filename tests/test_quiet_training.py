@@ -1,4 +1,4 @@
-"""A training's log says what happened and nothing else (issue "A newcomer's second hour", item 5).
+"""A training's log says what happened and nothing else.
 
 Every training used to print, on a fresh clone too: Lightning's "Checkpoint directory ... exists
 and is not empty" (the best checkpoint went into the resume folder, which already held

@@ -651,7 +651,7 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     for stage in timed:
         assert f"| {stage} |" in timings_md, stage
     # the DVC metrics: the headline numbers and the two trainings' validation numbers (what
-    # `dvc exp diff` compares between training-only experiments, issue 33); every detailed
+    # `dvc exp diff` compares between training-only experiments); every detailed
     # metrics file is an output shown in the report
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], ci_dag).stdout)
     declared = {p for rev in shown.values() for p in rev.get("data", {})}
@@ -743,7 +743,7 @@ def test_stage_helpers(tmp_path: Path) -> None:
 
 
 def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(reports: Path) -> None:
-    """Issue 35, defect 22: after ``dvc exp run``, ``dvc repro -f`` re-rendered the report with
+    """After ``dvc exp run``, ``dvc repro -f`` re-rendered the report with
     a new pipeline run id and the experiment's name, so ``dvc.lock`` changed. Those values go to
     the report stage's run record; the report is the same bytes for any of them."""
     from dataclasses import replace
@@ -768,7 +768,7 @@ def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(report
 
 def test_smoke_profile_banner_on_report_summary_and_plot_titles(reports: Path) -> None:
     repo = Path(__file__).resolve().parents[1]
-    """Issue 33: on the ci profile the report, summary.json (the DVC metrics file) and every plot
+    """On the ci profile the report, summary.json (the DVC metrics file) and every plot
     title say it is a smoke run; on the default profile nothing does."""
     from dataclasses import replace
 

@@ -1,4 +1,4 @@
-"""Resuming a killed training run (issue 17, item 9): same weights, curves and metrics as a run
+"""Resuming a killed training run: same weights, curves and metrics as a run
 that was never killed; a changed config starts afresh; the resume folder goes after success."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 31: choices on validation (decision cuts, corridor widths, the shipped predictor), the
+"""Choices on validation (decision cuts, corridor widths, the shipped predictor), the
 corridor rule / hybrid as predictors, seeds in the intervals, the median THW error."""
 
 from __future__ import annotations

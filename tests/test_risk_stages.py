@@ -32,7 +32,7 @@ def test_dvc_stages_cover_the_configured_variants() -> None:
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     assert dvc["train_risk"]["foreach"] == "${risk_model.run_variants}"
     assert dvc["train_risk"]["do"]["outs"] == ["models/risk/${item}"]
-    # the learning curve is a stage plot: `dvc plots diff` shows it per revision (issue 33)
+    # the learning curve is a stage plot: `dvc plots diff` shows it per revision
     (curve,) = dvc["train_risk"]["do"]["plots"]
     props = curve["reports/plots/risk_training_${item}.csv"]
     assert props["cache"] is False and (props["x"], props["y"]) == ("step", "val/loss")
@@ -151,7 +151,7 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
     assert (ci_dag / "reports" / "timings" / "evaluate_risk.json").exists()
     text = findings(metrics)
     assert text.startswith("- **Paper comparison") and "camera_fov" in text
-    # every metric with its sequence-bootstrap interval; targets and collapse flags (issue 16)
+    # every metric with its sequence-bootstrap interval; targets and collapse flags
     assert metrics["bootstrap"]["n_boot"] >= 100
     for e in metrics["models"].values():
         assert set(e["test/mse_ci"]) == {"lo", "hi"} and isinstance(e["collapsed"], bool)
@@ -162,7 +162,7 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
         "auc_vs_speed_only",
         "spread",
     } <= set(metrics["targets"])
-    assert "test_mse" not in metrics["targets"]  # met by a constant (issue 31)
+    assert "test_mse" not in metrics["targets"]  # met by a constant
 
 
 @pytest.mark.slow

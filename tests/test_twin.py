@@ -251,7 +251,7 @@ def test_lead_times_and_summary_hand_computed() -> None:
     assert occ["recall_ci"][0] <= occ["recall"] <= occ["recall_ci"][1]
     short = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.1))
     assert short["twin"]["occluded"]["false_alarm_share"] == pytest.approx(1 / 10)
-    assert short["twin"]["occluded"]["lead_vs_ego_s_mean"] == pytest.approx(0.1)  # = issue 19's
+    assert short["twin"]["occluded"]["lead_vs_ego_s_mean"] == pytest.approx(0.1)  # = the target's
     t = targets({"D": {"methods": s}}, "twin", "D")
     assert t["occluded_recall_ge_0.9"]["met"] is False
     assert t["occluded_median_lead_vs_ego_ge_0.8s"]["met"] is False
@@ -299,7 +299,7 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     d = frames[(frames["configuration"] == "D") & (frames["method"] == "naive")]
     per_frame = d[d["noise"] == "frame"]
     assert len(per_frame) == 2 * params["twin"]["frames"] and "step_ms" not in frames
-    # the kinds of twin.bias_kinds again under the persistent pose bias (issue 32)
+    # the kinds of twin.bias_kinds again under the persistent pose bias
     bias = d[d["noise"] == "bias"]
     assert set(bias["kind"]) == set(params["twin"]["bias_kinds"])
     assert len(bias) == params["twin"]["frames"] * len(params["twin"]["bias_kinds"])
@@ -318,7 +318,7 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     assert pr["validation_sequences"] == 2 and len(pr["candidates"]) >= 2
     assert sum(c["selected"] for c in pr["candidates"].values()) == 1
     assert set(frames["sequence"]) == {0, 1}
-    # every other vehicle's risk (issue 32 item 5): its own map and its view of each twin
+    # every other vehicle's risk: its own map and its view of each twin
     veh = m["configurations"]["D"]["vehicles"]
     assert {k: e["role"] for k, e in veh.items()} == {"1": "oncoming", "2": "follower"}
     assert set(veh["2"]["methods"]) >= {"own", "naive", "learned"}
@@ -347,7 +347,7 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
         "predictive_no_more_false_alarms",
     ):
         assert {"value", "ci", "met"} <= set(m["targets"][key]), key
-    # the predictive measure (issue 32 item 2) beside the THW, on the same frames
+    # the predictive measure beside the THW, on the same frames
     assert {"ttc", "ttc_true", "flagged_ttc"} <= set(frames)
     assert "lead_vs_thw_s_mean" in m["configurations"]["D"]["methods"]["naive"]["all"]["predictive"]
     from traffictwin.twin.data import INF_ARRAYS

@@ -1,4 +1,4 @@
-"""Risk for every vehicle (issue 32 item 5): each vehicle's view of the twin, its path and truth."""
+"""Risk for every vehicle: each vehicle's view of the twin, its path and truth."""
 
 from __future__ import annotations
 

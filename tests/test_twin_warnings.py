@@ -1,4 +1,4 @@
-"""Issue 32: warnings against critical episodes (lead from the first warning, false alarms by
+"""Warnings against critical episodes (lead from the first warning, false alarms by
 horizon), the persistent pose bias, hidden scenarios — hand-computed cases."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""TorchScript export of the two networks (issue 17, item 10; ``traffictwin export``).
+"""TorchScript export of the two networks (``traffictwin export``).
 
 The exported file runs with ``torch.jit.load`` alone (no traffictwin, Lightning or MLflow):
 

@@ -1,4 +1,4 @@
-"""Resuming a killed training run where it stopped, bit for bit (issue 17, item 9).
+"""Resuming a killed training run where it stopped, bit for bit.
 
 A training function given a *resume folder* (outside every DVC output; the workflow passes
 ``.cache/traffictwin/resume/<stage>``) keeps there:

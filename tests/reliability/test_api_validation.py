@@ -1,4 +1,4 @@
-"""Issue 35, defects 10-15 and 18: the Python API raises its own errors (``ApiError``
+"""The Python API raises its own errors (``ApiError``
 subclasses, in API terms) and applies the CLI's mass, pose, cell and grid checks; the CLI turns
 the remaining bad inputs (twin grids, pair lists, params files, thresholds) into one line."""
 
@@ -53,7 +53,7 @@ def _one_line(capsys, *needles: str) -> str:
     return err[0]
 
 
-# ------------------------------------------------------------------ defect 14: api.fuse checks
+# ------------------------------------------------------------------ api.fuse checks
 
 
 def test_api_fuse_accepts_valid_masses(fusion):
@@ -89,7 +89,7 @@ def test_api_fuse_refuses_a_grid_the_model_was_not_trained_on(fusion):
         list(api.fuse(fusion, [_pair(cell=0.25)]))
 
 
-# ------------------------------------------------------------------ defect 13: complex in a map
+# ------------------------------------------------------------------ complex in a map
 
 
 def test_complex_pose_or_cell_in_a_map_file_is_refused(tmp_path):
@@ -101,7 +101,7 @@ def test_complex_pose_or_cell_in_a_map_file_is_refused(tmp_path):
         api.load_masses(q)
 
 
-# ------------------------------------------------------------------ defect 11: ApiError, API terms
+# ------------------------------------------------------------------ ApiError, API terms
 
 
 def test_api_errors_are_api_errors_in_api_terms(tmp_path, risk_dir):
@@ -128,7 +128,7 @@ def test_api_errors_are_api_errors_in_api_terms(tmp_path, risk_dir):
         assert issubclass(exc, api.ApiError)
 
 
-# ------------------------------------------------------------------ defect 15: the CLI's risk
+# ------------------------------------------------------------------ the CLI's risk
 
 
 def test_params_file_given_is_never_ignored(tmp_path, risk_dir, capsys):
@@ -163,7 +163,7 @@ def test_tiny_images_are_refused_even_with_resize(tmp_path, capsys):
     _one_line(capsys, "enlarged 5.0x", "at most 4x")
 
 
-# ------------------------------------------------------------------ defects 10, 12: the twin
+# ------------------------------------------------------------------ the twin
 
 
 def _twin_args(maps: list[Path], out: Path, *extra: str) -> list[str]:
@@ -188,7 +188,7 @@ def test_twin_refuses_a_grid_its_networks_were_not_trained_on(tmp_path, capsys):
     assert not list(tmp_path.glob("o.*"))
 
 
-# ------------------------------------------------------------------ defect 18: pair lists
+# ------------------------------------------------------------------ pair lists
 
 
 @pytest.mark.parametrize(
@@ -236,7 +236,7 @@ def test_pair_list_pose_column_that_is_not_a_number_is_named(tmp_path, capsys):
     _one_line(capsys, "line 2: column y2 = 'north' is not a number")
 
 
-# ------------------------------------------------------------------ defect 8: OSError, one line
+# ------------------------------------------------------------------ OSError, one line
 
 
 def test_read_only_output_folder_is_one_line(tmp_path, monkeypatch, capsys):
@@ -297,7 +297,7 @@ def test_oserror_from_a_full_disk_is_one_line_and_leaves_no_temp_file(
     ],
 )
 def test_risk_domain_metadata_is_validated_before_use(tmp_path, domain, needle):
-    """Defect 9: ``speed_range=["a","b"]``, an unknown ``domain.sgm`` key or a 4x2 camera gave
+    """``speed_range=["a","b"]``, an unknown ``domain.sgm`` key or a 4x2 camera gave
     ``ValueError`` / ``TypeError`` tracebacks when used."""
     rdir = save_risk(tmp_path / "m", {"label": "risk", "domain": domain})
     with pytest.raises(api.ModelDomainError, match=needle.replace("[", r"\[").replace("]", r"\]")):
@@ -305,7 +305,7 @@ def test_risk_domain_metadata_is_validated_before_use(tmp_path, domain, needle):
 
 
 def test_registry_errors_suggest_only_loadable_names(cl, mlflow_uri):
-    """Issue 33: a bare ``--model champion`` for ``fuse`` suggested registration models, which
+    """A bare ``--model champion`` for ``fuse`` suggested registration models, which
     then failed after downloading 112 files."""
     from _registry_models import log_linear
 

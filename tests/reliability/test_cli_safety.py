@@ -1,4 +1,4 @@
-"""Issue 18, defects 6, 7, 10 and 12: the CLI never destroys a file, refuses inputs outside the
+"""The CLI never destroys a file, refuses inputs outside the
 model's training domain, fails fast and clearly without a registry, and handles many inputs in
 one call (batched fusion, streamed risk) with the same results as one at a time."""
 
@@ -65,7 +65,7 @@ def _one_error_line(err: str, *needles: str) -> str:
     return lines[0]
 
 
-# ------------------------------------------------------------------ defect 6: outputs
+# ------------------------------------------------------------------ outputs
 
 
 def test_output_naming_an_input_is_refused_and_the_input_kept(
@@ -180,7 +180,7 @@ def test_a_failing_command_leaves_no_file_and_no_created_folder(tmp_path, risk_d
     assert not (tmp_path / "deep").exists()
 
 
-# ------------------------------------------------------------------ defect 10: registry
+# ------------------------------------------------------------------ registry
 
 
 def _free_port() -> int:
@@ -245,7 +245,7 @@ def test_no_stray_mlflow_db_outside_the_project(tmp_path, pair):
         assert list(work.iterdir()) == [], (args, list(work.iterdir()))
 
 
-# ------------------------------------------------------------------ defect 7: training domain
+# ------------------------------------------------------------------ training domain
 
 
 def test_fusion_grid_must_be_the_training_grid(tmp_path, fusion_dir, capsys):
@@ -348,7 +348,7 @@ def test_risk_clamped_and_thw_has_one_encoding(tmp_path, risk_dir, pair, raw, mo
     capsys.readouterr()
 
 
-# ------------------------------------------------------------------ defect 12: many inputs per call
+# ------------------------------------------------------------------ many inputs per call
 
 
 def test_fuse_pairs_batched_equals_one_by_one(tmp_path, fusion_dir, capsys):

@@ -1,4 +1,4 @@
-"""Issue "Reliability, round two", defects 6 and 17: a manifest's shard and table names stay inside
+"""A manifest's shard and table names stay inside
 the dataset folder, and a shard of the wrong shape is named.
 
 Before: a manifest shard name ``../../../etc/passwd`` was opened and hashed (only the SHA-256
@@ -51,7 +51,7 @@ def _one_line(exc: BaseException, *needles: str) -> str:
     return text
 
 
-# ------------------------------------------------------------------ defect 6: names stay inside
+# ------------------------------------------------------------------ names stay inside
 
 
 @pytest.mark.parametrize(
@@ -136,7 +136,7 @@ def test_resume_never_touches_a_file_outside_the_folder(tmp_path):
     assert victim.read_bytes() == b"keep me"
 
 
-# ------------------------------------------------------------------ defect 17: shapes named
+# ------------------------------------------------------------------ shapes named
 
 
 @pytest.mark.parametrize("wrong", [0, 2, 3])

@@ -1,4 +1,4 @@
-"""Issue 18, defects 2 and 3: the promotion gate never leaves a worse champion.
+"""The promotion gate never leaves a worse champion.
 
 - A champion that cannot be evaluated (a transient load error, a replaced file) stops the gate:
   error, champion kept, nothing applied. Only a champion known to be incompatible (recorded
@@ -164,7 +164,7 @@ def test_known_incompatible_champion_is_recorded_and_skipped(cl, tmp_path):
 
 
 def test_legacy_pickled_champion_is_known_incompatible(cl, tmp_path):
-    """A champion registered as an mlflow.pytorch pickle before issue 18 is never loaded; the
+    """A champion registered as an mlflow.pytorch pickle (older version) is never loaded; the
     gate records why and judges the challenger alone."""
     import mlflow
 

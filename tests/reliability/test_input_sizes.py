@@ -1,4 +1,4 @@
-"""Issue "Reliability, round two", defects 7 and 16: input sizes are read from file headers and
+"""Input sizes are read from file headers and
 refused before anything is decoded; a file that is not a ``.npz`` archive gets one clear line.
 
 Before: a 500 KB ``.npz`` of two 8000 x 8000 grids cost 5.6 GB of memory and 12 s before
@@ -152,7 +152,7 @@ def test_image_size_from_the_header_of_every_format_read(tmp_path, ext, params):
     assert api.read_image(path).shape == (37, 53, 3)
 
 
-# ------------------------------------------------------------------ defect 7: refused before decoding
+# ------------------------------------------------------------------ refused before decoding
 
 
 def test_load_masses_refuses_a_huge_grid_before_decoding(big, no_decoding):
@@ -187,7 +187,7 @@ def test_limits_follow_the_environment(monkeypatch):
         api.read_image(EXAMPLE_LEFT)
 
 
-# ------------------------------------------------------------------ defect 16: not a .npz
+# ------------------------------------------------------------------ not a .npz
 
 
 def test_text_and_a_renamed_npy_are_one_clear_line(tmp_path):
@@ -270,7 +270,7 @@ def test_cli_refuses_huge_inputs_with_one_line_and_little_memory(big, tmp_path):
     # inputs cost (the fuse refusal does not even import torch)
     assert fuse_big["rss_mb"] < fuse_small["rss_mb"] + 100, (fuse_big, fuse_small)
     assert risk_big["rss_mb"] < risk_small["rss_mb"] + 100, (risk_big, risk_small)
-    # the issue's target: refused with < 200 MB (every image header is checked before the model,
+    # the target: refused with < 200 MB (every image header is checked before the model,
     # and torch, load)
     assert fuse_big["rss_mb"] < 200 and risk_big["rss_mb"] < 200, (fuse_big, risk_big)
     assert not (tmp_path / "o.npz").exists()

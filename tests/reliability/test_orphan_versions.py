@@ -1,4 +1,4 @@
-"""Issue 35, defect 21: a retraining interrupted during promotion restores its files but left a
+"""A retraining interrupted during promotion restores its files but left a
 registered version with no alias and no gate tags, whose files belong to rolled-back data. The
 restore now retires every version registered after the snapshot of the registry."""
 

@@ -1,4 +1,4 @@
-"""Issue 35, defects 1-4 and 9: no command writes into a model folder, the MLflow store or a DVC
+"""No command writes into a model folder, the MLflow store or a DVC
 file (``--force`` or not), ``--force`` replaces only a previous output of the same kind, and a
 model folder's seal (checkpoint hash + the metadata the loader trusts) cannot be peeled off."""
 
@@ -48,11 +48,11 @@ def maps(tmp_path) -> tuple[Path, Path]:
     return save_map(tmp_path / "m1.npz", *masses(1)), save_map(tmp_path / "m2.npz", *masses(2))
 
 
-# ------------------------------------------------------------------ defects 1-3: outputs
+# ------------------------------------------------------------------ outputs
 
 
 def test_export_into_the_model_folder_is_refused_and_the_model_still_loads(fusion_dir, capsys):
-    """Defect 1: ``export fusion --model D -o D/model.ckpt --force`` replaced the checkpoint."""
+    """``export fusion --model D -o D/model.ckpt --force`` replaced the checkpoint."""
     before = _listing(fusion_dir)
     out = fusion_dir / "model.ckpt"
     assert (
@@ -69,7 +69,7 @@ def test_export_into_the_model_folder_is_refused_and_the_model_still_loads(fusio
 
 
 def test_risk_result_never_replaces_the_model_metadata(tmp_path, risk_dir, capsys):
-    """Defect 2: ``risk ... -o <model>/model_meta.json --force`` turned the meta into a result."""
+    """``risk ... -o <model>/model_meta.json --force`` turned the meta into a result."""
     lp, rp = write_stereo_pair(tmp_path / "pair", "f", *textured_pair())
     before = _listing(risk_dir)
     meta = risk_dir / "model_meta.json"
@@ -83,7 +83,7 @@ def test_risk_result_never_replaces_the_model_metadata(tmp_path, risk_dir, capsy
 
 
 def test_runs_compare_never_overwrites_the_store_or_the_lock(tmp_path, capsys):
-    """Defect 3: ``runs compare --csv mlflow.db --force`` overwrote the registry database."""
+    """``runs compare --csv mlflow.db --force`` overwrote the registry database."""
     db = tmp_path / "mlflow.db"
     with sqlite3.connect(db) as con:
         con.execute("create table registered_models (name text)")
@@ -133,7 +133,7 @@ def test_force_replaces_only_a_previous_output_of_the_same_kind(tmp_path, fusion
     assert (tmp_path / "f.npz").read_bytes() == first
 
 
-# ------------------------------------------------------------------ defect 4 and 9: the seal
+# ------------------------------------------------------------------ the seal
 
 
 def _flip_a_bit(path: Path) -> None:
@@ -154,7 +154,7 @@ def _edit_meta(folder: Path, **changes) -> None:
 
 
 def test_tampered_checkpoint_with_its_hash_deleted_is_refused(fusion_dir, maps, tmp_path, capsys):
-    """Defect 4: flip a bit of model.ckpt and delete ckpt_sha256: fuse exited 0."""
+    """Flip a bit of model.ckpt and delete ckpt_sha256: fuse exited 0."""
     _flip_a_bit(fusion_dir / "model.ckpt")
     _edit_meta(fusion_dir, ckpt_sha256=None)
     with pytest.raises(FusionModelError, match="no 'ckpt_sha256'"):
@@ -174,7 +174,7 @@ def test_a_model_without_its_metadata_is_refused(fusion_dir, risk_dir):
 
 
 def test_edited_domain_in_the_metadata_is_refused(risk_dir, tmp_path, capsys):
-    """Defect 4: setting domain.max_speed to 1e9 in the JSON let --speed 5000 through."""
+    """Setting domain.max_speed to 1e9 in the JSON let --speed 5000 through."""
     _edit_meta(risk_dir, domain={**DOMAIN, "max_speed": 1e9, "speed_range": [0.0, 1e9]})
     with pytest.raises(RiskModelError, match="'domain' differs from the checkpoint"):
         load_risk_model(risk_dir)
@@ -207,7 +207,7 @@ def test_edited_grid_of_a_fusion_model_is_refused(fusion_dir):
     ],
 )
 def test_malformed_metadata_is_one_line(risk_dir, fusion_dir, tmp_path, content, needle, capsys):
-    """Defect 9: ``model_meta.json`` that is ``[]``, ``null``, a string or non-UTF-8 gave an
+    """``model_meta.json`` that is ``[]``, ``null``, a string or non-UTF-8 gave an
     ``AttributeError`` / ``UnicodeDecodeError`` traceback."""
     for folder in (risk_dir, fusion_dir):
         (folder / "model_meta.json").write_bytes(content)
@@ -241,7 +241,7 @@ def test_logged_artifacts_carry_the_seal(cl):
 def test_failing_registry_load_is_one_line_without_a_progress_bar(
     tmp_path, mlflow_uri, monkeypatch, capsys
 ):
-    """Defect 20: a failing registry load printed ``Downloading artifacts: 0/112`` before its
+    """A failing registry load printed ``Downloading artifacts: 0/112`` before its
     one-line error."""
     import mlflow
     import torch

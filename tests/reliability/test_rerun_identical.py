@@ -1,4 +1,4 @@
-"""Issue 18, defect 13: two identical `dvc repro -f` runs leave dvc.lock byte-identical.
+"""Two identical `dvc repro -f` runs leave dvc.lock byte-identical.
 
 Wall times, throughput and MLflow run ids go to the run records (reports/timings, outside DVC);
 checkpoints are serialised with a fixed archive name. A copy of the ci_dag repository (data,
@@ -21,7 +21,7 @@ import torch
 import yaml
 from conftest import run, run_record
 
-# keys that held timings, run ids or absolute paths in DVC outputs before (issue 18, defect 13)
+# keys that held timings, run ids or absolute paths in DVC outputs before
 VOLATILE_KEYS = {
     "train_seconds",
     "train_samples_per_s",
@@ -167,7 +167,7 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
 def test_report_rendered_inside_an_experiment_leaves_dvc_lock_unchanged(
     ci_dag: Path, tmp_path: Path
 ) -> None:
-    """Issue 35, defect 22: after ``dvc exp run -S profile=ci``, ``dvc repro -f`` changed
+    """After ``dvc exp run -S profile=ci``, ``dvc repro -f`` changed
     dvc.lock because the report carried the experiment's name and pipeline run id. The report
     rendered under an experiment's environment is now the same bytes as outside one."""
     from conftest import stage_env

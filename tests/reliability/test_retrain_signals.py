@@ -1,4 +1,4 @@
-"""Issue 18, defects 4 and 5: a failed, interrupted or killed retraining leaves the repository as before.
+"""A failed, interrupted or killed retraining leaves the repository as before.
 
 The flow (``python -m pipelines.retrain --no-promote``) runs for real in a toy repository: the
 project's ``pipelines/`` and ``conf/`` with a two-stage ``dvc.yaml`` (``gen`` writes the seed into
@@ -216,7 +216,7 @@ def _running_stage(repo: Path, proc: subprocess.Popen) -> int:
     return int(pidfile.read_text())
 
 
-# ------------------------------------------------------------------ failure (defect 4)
+# ------------------------------------------------------------------ failure
 
 
 def test_failed_stage_gets_its_model_back_and_restored_is_verified(repo: Path):
@@ -257,7 +257,7 @@ def test_restored_is_false_with_the_reason_when_the_restore_cannot_be_verified(r
     assert (repo / ".retrain.journal").exists()
 
 
-# ------------------------------------------------------------------ signals (defect 5)
+# ------------------------------------------------------------------ signals
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM])

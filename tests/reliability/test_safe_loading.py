@@ -1,4 +1,4 @@
-"""Issue 18, defect 1: loading a registered model must never run code from its artifact.
+"""Loading a registered model must never run code from its artifact.
 
 Models are logged as weights + JSON (traffictwin flavour) with the SHA-256 of every file recorded
 at logging and on the registered version; a replaced file is refused before anything reads it,
@@ -201,7 +201,7 @@ def test_cli_risk_refuses_a_tampered_registered_model(cl, tmp_path, capsys, monk
     assert ok["risk"] == json.loads((tmp_path / "path.json").read_text())["risk"]
     marker = tmp_path / "pwned"
     write_malicious_pickle(artifact_dir(cl, reg.RISK_NAME, mv.version) / art.CKPT, marker)
-    # the CLI's verified copy (issue 33) holds exactly the recorded files: served, nothing unpickled
+    # the CLI's verified copy holds exactly the recorded files: served, nothing unpickled
     assert cli.main([*args, "-o", str(tmp_path / "cached.json")]) == 0 and not marker.exists()
     import shutil
 
@@ -215,7 +215,7 @@ def test_cli_risk_refuses_a_tampered_registered_model(cl, tmp_path, capsys, monk
 
 
 def test_a_registry_load_reuses_its_verified_copy_and_drops_an_altered_one(cl):
-    """Issue 33: interactive registry loads cost about a folder load: the second load reads the
+    """Interactive registry loads cost about a folder load: the second load reads the
     verified copy kept by the first (no download); a copy altered since is dropped and downloaded
     again; the promotion gate's loads never use the cache."""
     from unittest import mock

@@ -1,4 +1,4 @@
-"""Issue "Reliability, round two", defect 5: the pyfunc model behind ``mlflow models serve``
+"""The pyfunc model behind ``mlflow models serve``
 refuses NaN, implausible values and oversized batches (HTTP 400 with a one-line reason) and never
 answers NaN.
 

@@ -1,5 +1,5 @@
 """Every stage error is one line naming the parameter or file, with exit 2, and nothing is written
-before the parameters are checked (issue 18, defect 9)."""
+before the parameters are checked."""
 
 from __future__ import annotations
 
@@ -289,7 +289,7 @@ def test_device_settings_must_name_a_device_this_machine_has() -> None:
 
 
 def test_lidar_ranges_are_named_by_their_dotted_keys() -> None:
-    """Issue 35, defect 19: ``fusion_data.lidar.min_range`` above max_range failed with ``LidarSpec: need
+    """``fusion_data.lidar.min_range`` above max_range failed with ``LidarSpec: need
     max_range > min_range`` and no parameter named."""
     from conftest import committed
 

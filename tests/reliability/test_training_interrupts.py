@@ -1,5 +1,5 @@
 """Trainers stop on NaN/inf, shards hold finite numbers, a model folder is one unit, and MLflow
-runs end FAILED / KILLED when a stage fails or is interrupted (issue 18, defects 5 and 8)."""
+runs end FAILED / KILLED when a stage fails or is interrupted."""
 
 from __future__ import annotations
 
@@ -183,7 +183,7 @@ def test_save_model_files_records_the_checkpoint_hash_last(tmp_path: Path) -> No
         match=rf"^{tmp_path / 'm'}: model.ckpt and its model_meta.json are not one pair",
     ):
         check_model_pair(ck, written)
-    # a meta without the key, or no meta: refused too (issue 35: the seal cannot be peeled off)
+    # a meta without the key, or no meta: refused too (the seal cannot be peeled off)
     with pytest.raises(CheckpointError, match="no 'ckpt_sha256'"):
         check_model_pair(ck, {"cfg": "B"})
     with pytest.raises(CheckpointError, match="no model_meta.json beside model.ckpt"):

@@ -1,4 +1,4 @@
-"""Issue 18, defect 11: CI workflows never paste untrusted text into a shell; least privilege.
+"""CI workflows never paste untrusted text into a shell; least privilege.
 
 Also the schedules: their logs stay outside reports/ (a failed retraining restores reports/).
 """

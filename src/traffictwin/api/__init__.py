@@ -29,7 +29,7 @@ Registry
     one line ("unreachable"), not "no model registered"; the CLI bounds MLflow's HTTP retries
     and timeout (:data:`HTTP_ENV`) so that takes seconds, not minutes.
 
-Training domain (issue 18, defect 7): inputs outside what the model was trained on are refused
+Training domain: inputs outside what the model was trained on are refused
     with the reason. Fusion: the grid's rows, columns and cell size must equal the model's
     training grid (``grid`` of its metadata). Risk: images must have the training camera's size
     (``domain.camera``) unless ``resize=True``, which resizes both images to it *before* ORB and

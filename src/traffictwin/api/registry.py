@@ -16,7 +16,7 @@ HTTP_ENV = {
     "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0",
     "MLFLOW_HTTP_REQUEST_TIMEOUT": "5",
     "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "0",
-    # no "Downloading artifacts" bar before a load's one-line result or error (issue 35, defect 20)
+    # no "Downloading artifacts" bar before a load's one-line result or error
     "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false",
 }
 

@@ -1,4 +1,4 @@
-"""Learned registration: a network that finds map 2's pose correction itself (issue 15).
+"""Learned registration: a network that finds map 2's pose correction itself.
 
 Why this design. The plain fusion network sees two prealigned maps and has no mechanism to
 search over shifts and rotations, so it never registers them. Classical registration

@@ -1,5 +1,4 @@
-"""Input sizes read from file headers, checked before anything is decoded (defects 7 and 16 of
-the issue "Reliability, round two").
+"""Input sizes read from file headers, checked before anything is decoded.
 
 A 500 KB ``.npz`` can hold an 8000 × 8000 grid (5.6 GB of memory once decoded and stacked), a
 770 KB PNG a 16000 × 16000 image (2.6 GB): the compressed size says nothing about the cost of

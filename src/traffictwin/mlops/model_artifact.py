@@ -1,4 +1,4 @@
-"""MLflow models without pickled code: weights + JSON, sealed by SHA-256 (issue 18).
+"""MLflow models without pickled code: weights + JSON, sealed by SHA-256.
 
 A trained network goes to MLflow as a model directory of the ``traffictwin`` flavour:
 
@@ -231,7 +231,7 @@ def read_flavor(folder: str | Path, who: str) -> dict[str, Any]:
         return block
     if "pytorch" in flavors:
         raise LegacyModelError(
-            f"{who}: logged as a pickled mlflow.pytorch model (before issue 18); it is not loaded, "
+            f"{who}: logged as a pickled mlflow.pytorch model (older version); it is not loaded, "
             "since unpickling runs code — re-register it: retrain the model (`dvc repro -f` of its "
             "train stage) and run `python -m pipelines.promote`"
         )

@@ -1,4 +1,4 @@
-"""The ``python_function`` (pyfunc) side of a logged traffictwin model (issue 17, item 7).
+"""The ``python_function`` (pyfunc) side of a logged traffictwin model.
 
 Every model :func:`traffictwin.trainer.log_model` logs is one directory with two flavours:
 
@@ -25,7 +25,7 @@ it) and returns the network's raw output as float32 numpy:
 The requirement list (:func:`pip_requirements`) is what this module and the problem loaders
 import, pinned to the versions installed where the model was logged.
 
-Input checks (defect 5 of the issue "Reliability, round two"): :meth:`TrafficTwinModel.predict`
+Input checks: :meth:`TrafficTwinModel.predict`
 checks the input before the network runs and refuses it with an ``MlflowException`` of
 ``INVALID_PARAMETER_VALUE`` (``mlflow models serve`` answers HTTP 400 with the one-line reason):
 

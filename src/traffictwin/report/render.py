@@ -127,7 +127,7 @@ def run_section(src: Sources) -> Section:
 def provenance(inputs: ReportInputs) -> str:
     """One sentence: profile and seed. The git commit, DVC experiment and pipeline run of a
     rendering differ between identical reruns, so they go to the report stage's run record
-    (``reports/timings/report.json``), never into this DVC output (issue 35, defect 22)."""
+    (``reports/timings/report.json``), never into this DVC output."""
     return (
         f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
         "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "

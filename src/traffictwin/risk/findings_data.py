@@ -473,7 +473,7 @@ def _situations(r: FindingsRun) -> list[Situation]:
 
 
 class Target(NamedTuple):
-    """One target of issue 31: the value (with its interval) against the threshold."""
+    """One risk target: the value (with its interval) against the threshold."""
 
     name: str
     predictor: Any  #: shown when set

@@ -167,7 +167,7 @@ def risk_difference_table(src: page.Sources) -> Table | None:
 
 
 def risk_targets_table(src: page.Sources) -> Table | None:
-    """The issue-31 targets: value, interval, threshold, met."""
+    """The risk targets: value, interval, threshold, met."""
     targets = src.get(RISK_FILE, "targets")
     if not isinstance(targets, dict) or not targets:
         return None

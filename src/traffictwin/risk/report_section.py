@@ -106,7 +106,7 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     variant, its seed mean when replicates ran) on the ORB-passed test frames: ROC-AUC of critical
     frames at the first THW threshold (``auc``) and the balanced accuracy there
     (``balanced_accuracy``, at its validation-chosen decision cut) and the accuracy (``accuracy``),
-    with their sequence-bootstrap intervals. (The MSE is no headline: a constant meets it, issue 31.)"""
+    with their sequence-bootstrap intervals. (The MSE is no headline: a constant meets it.)"""
     risk = metrics.get(RISK_FILE)
     main = lookup(risk, "main_variant")
     ts = lookup(risk, "thresholds_s")

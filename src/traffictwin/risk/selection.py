@@ -1,4 +1,4 @@
-"""Choices made on the validation split (issue 31: the test split is read once, for the report).
+"""Choices made on the validation split (none on test: the test split is read once, for the report).
 
 * :func:`best_cut` — the decision threshold of a predictor's risk score that maximises the
   balanced accuracy of "critical" (THW below a threshold) on validation frames.

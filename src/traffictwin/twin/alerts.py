@@ -19,7 +19,7 @@ its last frame ``t1``. With the horizon ``h`` (s, ``twin.horizon_s``):
   over the judged frames.
 
 With ``h = 0`` the lead time of a method over the ego's own map is the one the evaluation used
-before issue 32 (the first flag inside the episode). Units: s; rates per minute of judged
+at first (the first flag inside the episode). Units: s; rates per minute of judged
 driving (1/fps s per judged frame).
 """
 

@@ -10,7 +10,7 @@ driver time to react comes before the episode (at constant speed, ``reaction_s``
 for a map that sees the hazard); ``reaction_s = 0`` warns at the critical threshold itself.
 
 The aggregation over sequences (recall, lead times, false alarms, with CIs) is
-:mod:`traffictwin.twin.summary`; the issue's targets on it are :mod:`traffictwin.twin.targets`.
+:mod:`traffictwin.twin.summary`; the targets on it are :mod:`traffictwin.twin.targets`.
 """
 
 from __future__ import annotations

@@ -238,7 +238,7 @@ def hazard_table(src: page.Sources) -> Table:
                         ]
                     )
     t.note = (
-        "The issue's targets are on all occluded / open sequences (tables above); this splits them "
+        "The targets are on all occluded / open sequences (tables above); this splits them "
         "by what hides: about half the sequences of each kind per hazard (twin_data.json), so the "
         "intervals are wider. " + NOTE
     )

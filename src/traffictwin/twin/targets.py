@@ -1,4 +1,4 @@
-"""The issue's targets (issues 19 and 32) on the twin's summary: value, CI and whether met."""
+"""The targets on the twin's summary: value, CI and whether met."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ def _entry(value: Any, ci: Any, met: bool | None, **extra: Any) -> dict[str, Any
 
 
 def targets(summary: dict[str, Any], headline: str, configuration: str) -> dict[str, Any]:
-    """The issue's targets at ``configuration`` for the ``headline`` twin (value, CI, met):
+    """The targets at ``configuration`` for the ``headline`` twin (value, CI, met):
 
-    - occluded: recall >= 0.9 and above the ego's own map (CI excluding 0) (issue 19);
+    - occluded: recall >= 0.9 and above the ego's own map (CI excluding 0);
     - occluded: median lead over the ego's own map (paired per episode) >= 0.8 s with its CI
       wholly above 0; >= 95 % of critical episodes warned before their onset;
     - open: false alarms (warnings with no critical frame within the horizon) <= 5 % of frames,

@@ -34,7 +34,7 @@ Metrics layout (``fusion.json``); ``<row>`` is a method name or a network row (`
   metrics of :data:`DIFF_KEYS`;
 - ``label.<cfg>.u_mean`` (+ ``u_mean_ci``) — mean u of the labels over the evaluated pairs;
 - ``targets.<name>: {description, threshold, status, per_config: {<cfg>: {value, lo, hi,
-  status, ci_beyond_threshold}}}`` — the issue's targets (:func:`fusion_targets`), status
+  status, ci_beyond_threshold}}}`` — the targets (:func:`fusion_targets`), status
   ``pass`` / ``fail`` / ``not evaluated``;
 - ``cross.dnn[per-config]-<net>.<cfg>.<metric>`` (with the ablation),
   ``bins.{translation,rotation}.<row>.<bin>.<metric>``,

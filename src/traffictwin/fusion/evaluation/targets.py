@@ -1,4 +1,4 @@
-"""The issue's targets of the fusion evaluation (issues 14 and 15): each target's figure with its
+"""The fusion evaluation's targets (network and registration): each target's figure with its
 cluster-bootstrap interval, judged per configuration (:class:`Verdict`), from the per-pair frames
 and the intervals already computed (:class:`TargetInputs`). Status ``pass`` / ``fail`` /
 ``not evaluated`` (a target whose configuration or rows were not evaluated: never ``pass``)."""
@@ -96,7 +96,7 @@ TARGETS: dict[str, Target] = {
         ("C", "D"),
     ),
 }
-# issue 15: the learned registration against the classical one (same pairs, paired intervals)
+# the learned registration against the classical one (same pairs, paired intervals)
 TARGETS.update(
     {
         "learned_success_vs_registered": Target(

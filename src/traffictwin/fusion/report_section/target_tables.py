@@ -1,4 +1,4 @@
-"""The fusion section's target and ablation tables: the issue's targets per configuration, the
+"""The fusion section's target and ablation tables: the targets per configuration, the
 loss ablation (``dnn`` beside ``dnn[<loss>]``) and the one network against the per-configuration
 networks (this run's, or an ablation experiment's collected results)."""
 
@@ -80,7 +80,7 @@ def _target_row(
 
 
 def target_table(src: page.Sources) -> Table | None:
-    """The issue's targets (``targets`` of fusion.json): figure, interval, threshold, status per
+    """The targets (``targets`` of fusion.json): figure, interval, threshold, status per
     configuration (None without a ``targets`` block)."""
     targets = lookup(src.metrics.get(FUSION_FILE), "targets")
     if not isinstance(targets, dict) or not targets:

@@ -6,7 +6,7 @@ MSE / MAE, THW errors, confusion matrix, accuracy, balanced accuracy, ROC-AUC), 
 :mod:`.settings` (:class:`SuiteSettings`, the predictor and label names), :mod:`.predictions`
 (every predictor's per-frame risk), :mod:`.scorer` (seed groups, collapse, the shared scorer),
 :mod:`.breakdowns` (critical shares, regions, situations, unseen templates), :mod:`.targets`
-(issue 16's targets) and :mod:`.suite` (:func:`evaluate_suite`: the whole evaluation, whose dict
+(the targets) and :mod:`.suite` (:func:`evaluate_suite`: the whole evaluation, whose dict
 is ``reports/metrics/risk.json``).
 
 Statistics: every reported metric carries a sequence-level bootstrap interval (the test frames of

@@ -181,11 +181,11 @@ def _differences(
     on_learned_disparity: Collection[str] = (),
 ) -> dict[str, Any]:
     """Every run and seed group vs the speed-only baseline on its label; the headline vs the
-    baselines; the learned group and the shipped model vs the SGM rule (the primary comparisons,
-    issue 31); the rule and the predictors ``on_learned_disparity`` (their seed groups once) on
-    the learned stereo network's disparity vs the SGM rule; the headline vs every other variant
-    on its label (``objective``: run → its training objective, telling an objective comparison
-    from a variant one)."""
+    baselines; the learned group and the shipped model vs the SGM rule (the primary comparisons);
+    the rule and the predictors ``on_learned_disparity`` (their seed groups once) on the learned
+    stereo network's disparity vs the SGM rule; the headline vs every other variant on its label
+    (``objective``: run → its training objective, telling an objective comparison from a variant
+    one)."""
     groups, label_of, primary = scorer.groups, scorer.pred.label_of, scorer.settings.primary_label
     base_main, base_primary = (
         scorer.pred.baselines[roles.main_label],

@@ -1,4 +1,4 @@
-"""The targets of issue 16 (default profile, test split, headline) and how they are judged:
+"""The risk targets (default profile, test split, headline) and how they are judged:
 the shipped predictor's own scores and the learned group's paired differences to the rules."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from traffictwin.stats import Interval
 
 @dataclass(frozen=True)
 class Target:
-    """A target of issue 16 (default profile, test split, headline): ``op`` compares the value
+    """A risk target (default profile, test split, headline): ``op`` compares the value
     (or, with ``ci_required``, the whole interval) with ``threshold``."""
 
     description: str
@@ -25,7 +25,7 @@ class Target:
 
 
 TARGETS: dict[str, Target] = {
-    # the predictor users get (models/risk/shipped, chosen on validation), issue 31
+    # the predictor users get (models/risk/shipped, chosen on validation)
     "shipped_balanced_accuracy_1.5s": Target(
         "balanced accuracy of the shipped predictor at THW 1.5 s", 0.95, ">="
     ),
