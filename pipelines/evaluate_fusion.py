@@ -280,9 +280,9 @@ def choose_on_validation(
     return replace(fc, **chosen), record
 
 
-#: the summary's best-epoch validation figures: key -> the network meta's field (train_fusion)
+#: the summary's best-epoch validation figures: key -> the network meta's field (train_fusion);
+#: not val/loss: under the default loss it is val/kld_full again (train_fusion_network.json has it)
 SUMMARY_VAL = {
-    "val/loss": "best_val_loss",
     "val/kld_full": "best_val_kld_full",
     "val/dice_occ": "best_val_dice_occ",
 }
@@ -293,7 +293,7 @@ SUMMARY_TEST = ("kld_fou_mean", "dice_occ")
 def summary(metrics: dict[str, Any], meta: dict[str, Any], configs: list[str]) -> dict[str, float]:
     """The handful of numbers a person compares between experiments, flat ``split/name`` keys
     with MLflow's names for the same numbers: the one network's best-epoch validation figures
-    (its model meta: ``val/loss``, ``val/kld_full``, ``val/dice_occ``) and its test KLD(b)
+    (its model meta: ``val/kld_full``, ``val/dice_occ``) and its test KLD(b)
     (nats per cell) and occupied Dice at the last (noisiest) configuration
     (``test/D/kld_fou_mean``, ``test/D/dice_occ``). A number that is missing or not finite is
     left out."""

@@ -52,7 +52,6 @@ def test_fusion_summary_is_best_epoch_validation_and_the_noisiest_test() -> None
     }
     got = evaluate_fusion.summary(metrics, meta, ["A", "D"])
     assert got == {
-        "val/loss": 0.9,
         "val/kld_full": 0.8,
         "val/dice_occ": 0.7,
         "test/D/kld_fou_mean": 0.4,  # the name the evaluation logs to the network's MLflow run
