@@ -1,7 +1,9 @@
 """Provenance of a pipeline run, computed by the workflow layer and handed to the library.
 
 :func:`provenance_env` returns the git commit of the checkout and the SHA-256 of its
-params.yaml as environment variables (``TRAFFICTWIN_GIT_COMMIT``, ``TRAFFICTWIN_PARAMS_HASH``);
+params.yaml as environment variables (``TRAFFICTWIN_GIT_COMMIT``, ``TRAFFICTWIN_PARAMS_HASH``)
+and what the params.yaml the stage runs with changes against the committed one
+(``TRAFFICTWIN_PARAMS_OVERRIDES``: a DVC experiment's ``-S`` overrides, as JSON);
 ``pipelines._common.run_stage`` exports them before a stage runs, and
 :mod:`traffictwin.mlops.tracking` tags every MLflow run with them (the library itself runs no
 git and reads no params.yaml).
@@ -10,11 +12,20 @@ git and reads no params.yaml).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import subprocess
 from pathlib import Path
 
-from traffictwin.mlops.tracking import ENV_DVC_BASELINE, ENV_GIT_COMMIT, ENV_PARAMS_HASH
+import yaml
+
+from traffictwin.config import flatten
+from traffictwin.mlops.tracking import (
+    ENV_DVC_BASELINE,
+    ENV_GIT_COMMIT,
+    ENV_PARAMS_HASH,
+    ENV_PARAMS_OVERRIDES,
+)
 
 from ._paths import PARAMS, ROOT
 
@@ -47,7 +58,67 @@ def params_hash(path: str | Path = PARAMS) -> str:
         return ""
 
 
+def params_overrides(
+    root: str | Path = ROOT, params: str | Path = PARAMS, commit: str | None = None
+) -> dict[str, list[str]]:
+    """``{"a.b": [committed, now]}`` for every flattened key whose value in the params file
+    differs from the same file at git ``commit`` (default :func:`git_commit`: the DVC
+    experiment's baseline), values as text (``None`` where a side lacks the key); ``{}`` when
+    either side cannot be read (no git checkout, the file not committed). Another profile is
+    one entry ``profile`` (the dozens of keys a profile sets are not listed): the rest is
+    compared with ``root``'s conf/ composed with the new profile."""
+    commit = git_commit(root) if commit is None else commit
+    path = Path(params)
+    try:
+        rel = path.resolve().relative_to(Path(root).resolve()).as_posix()
+        now = yaml.safe_load(path.read_text(encoding="utf-8"))
+        out = subprocess.run(
+            ["git", "show", f"{commit}:{rel}"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        if out.returncode != 0:
+            return {}
+        committed = yaml.safe_load(out.stdout)
+    except (OSError, ValueError, subprocess.SubprocessError, yaml.YAMLError):
+        return {}
+    if not isinstance(now, dict) or not isinstance(committed, dict):
+        return {}
+    out: dict[str, list[str | None]] = {}
+    old_profile = (committed.get("profile") or {}).get("name")
+    new_profile = (now.get("profile") or {}).get("name")
+    if old_profile != new_profile and (Path(root) / "conf").is_dir():
+        # another profile (`-S profile=ci`): one override `profile`, and against the committed
+        # conf/ composed with that profile only what else was changed
+        from traffictwin.config import compose_config
+
+        try:
+            committed = compose_config(Path(root) / "conf", [f"profile={new_profile}"])
+        except Exception:  # noqa: BLE001 - an unknown profile: the plain diff below
+            pass
+        else:
+            out["profile"] = [str(old_profile), str(new_profile)]
+    a, b = flatten(committed), flatten(now)
+    out.update(
+        {
+            k: [None if k not in a else str(a[k]), None if k not in b else str(b[k])]
+            for k in sorted(set(a) | set(b))
+            if a.get(k, ...) != b.get(k, ...)
+        }
+    )
+    return out
+
+
 def provenance_env(root: str | Path = ROOT, params: str | Path = PARAMS) -> dict[str, str]:
-    """``{TRAFFICTWIN_GIT_COMMIT: <commit>, TRAFFICTWIN_PARAMS_HASH: <sha256>}`` of the checkout
-    ``root`` and its params file, to export before a stage runs (``os.environ.update(...)``)."""
-    return {ENV_GIT_COMMIT: git_commit(root), ENV_PARAMS_HASH: params_hash(params)}
+    """``{TRAFFICTWIN_GIT_COMMIT: <commit>, TRAFFICTWIN_PARAMS_HASH: <sha256>,
+    TRAFFICTWIN_PARAMS_OVERRIDES: <JSON of params_overrides>}`` of the checkout ``root`` and its
+    params file, to export before a stage runs (``os.environ.update(...)``)."""
+    commit = git_commit(root)
+    overrides = params_overrides(root, params, commit)
+    return {
+        ENV_GIT_COMMIT: commit,
+        ENV_PARAMS_HASH: params_hash(params),
+        ENV_PARAMS_OVERRIDES: json.dumps(overrides, sort_keys=True),
+    }

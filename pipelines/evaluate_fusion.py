@@ -10,7 +10,9 @@ read only when there are variants) and ``models/registration/learned`` (rows ``l
 ``learned+network``, ``learned-refined``, ``learned-refined+network``), and the ``val`` split of
 ``data/prealigned/<cfg>`` / ``data/fusion`` (``evaluation.fusion.validation``). Writes:
 
-- ``reports/metrics/fusion.json`` — aggregated metrics (DVC metrics), layout in
+- ``reports/metrics/summary_fusion.json`` — the DVC metrics file (:func:`summary`): the one
+  network's best-epoch validation and headline test figures, flat ``split/name`` keys as in MLflow;
+- ``reports/metrics/fusion.json`` — aggregated metrics (an output, not a DVC metrics file), layout in
   :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>`` (+ ``<metric>_ci``),
   ``validation`` (the registration and refinement settings chosen on validation pairs before the
   test pass: :func:`choose_on_validation`),
@@ -31,7 +33,9 @@ Library: :mod:`traffictwin.fusion.evaluation` (methods: :mod:`traffictwin.fusion
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -62,6 +66,7 @@ from ._paths import (
 
 STAGE = "evaluate_fusion"
 METRICS = metrics_file("fusion")
+SUMMARY = metrics_file("summary_fusion")  # the DVC metrics file: what `dvc exp show` compares
 SAMPLES = REPORTS / "fusion_eval_samples.csv"
 FINDINGS = REPORTS / "fusion_findings.md"
 METHODS_TABLE = "evaluation/test_methods_{cfg}.json"  # MLflow table artifact of a network's run
@@ -275,6 +280,35 @@ def choose_on_validation(
     return replace(fc, **chosen), record
 
 
+#: the summary's best-epoch validation figures: key -> the network meta's field (train_fusion);
+#: not val/loss: under the default loss it is val/kld_full again (train_fusion_network.json has it)
+SUMMARY_VAL = {
+    "val/kld_full": "best_val_kld_full",
+    "val/dice_occ": "best_val_dice_occ",
+}
+#: the summary's test figures of the one network (row ``dnn``), at the hardest configuration
+SUMMARY_TEST = ("kld_fou_mean", "dice_occ")
+
+
+def summary(metrics: dict[str, Any], meta: dict[str, Any], configs: list[str]) -> dict[str, float]:
+    """The handful of numbers a person compares between experiments, flat ``split/name`` keys
+    with MLflow's names for the same numbers: the one network's best-epoch validation figures
+    (its model meta: ``val/kld_full``, ``val/dice_occ``) and its test KLD(b)
+    (nats per cell) and occupied Dice at the last (noisiest) configuration
+    (``test/D/kld_fou_mean``, ``test/D/dice_occ``). A number that is missing or not finite is
+    left out."""
+    out: dict[str, Any] = {k: meta.get(field) for k, field in SUMMARY_VAL.items()}
+    if configs:
+        c = configs[-1]
+        row = metrics.get("test", {}).get(c, {}).get("dnn", {})
+        out.update({f"test/{c}/{name}": row.get(name) for name in SUMMARY_TEST})
+    return {
+        k: float(v)
+        for k, v in out.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    }
+
+
 def main() -> None:
     from traffictwin.fusion import evaluation as ev
     from traffictwin.fusion.findings import fusion_findings
@@ -307,6 +341,8 @@ def main() -> None:
             save_figure(fig, figure_file(name))
         write_text_atomic(FINDINGS, fusion_findings(metrics))
         write_json_atomic(METRICS, metrics)
+        meta = json.loads((fusion_model_dir() / "model_meta.json").read_text(encoding="utf-8"))
+        write_json_atomic(SUMMARY, summary(metrics, meta, configs))
         log_to_mlflow(metrics, runs)
 
 

@@ -4,7 +4,9 @@ Reads ``evaluation.risk.*``, ``risk_model.label``, ``risk_model.run_variants``,
 ``risk_model.variants`` (``replicate_of``, ``objective``, ``seed_offset`` of each),
 ``risk_model.orb_filter``, ``risk_data.metric`` (the subject footprint), the data
 (``data/risk``, ``data/disparity``, ``data/orb/orb.csv``) and ``models/risk/<variant>/``.
-Writes ``reports/metrics/risk.json`` (layout: :mod:`traffictwin.risk.evaluation` — every metric
+Writes ``reports/metrics/summary_risk.json`` (the DVC metrics file, :func:`summary`: the shipped
+predictor's validation and test headline figures, flat ``split/name`` keys),
+``reports/metrics/risk.json`` (layout: :mod:`traffictwin.risk.evaluation` — every metric
 with its sequence-bootstrap interval, the baselines speed-only / geometric SGM / geometric GT
 (oracle) / train mean / median, paired differences, seed groups, collapse flags, targets, critical
 shares per split and region, the situation breakdown), ``reports/plots/risk_predictions.csv``
@@ -17,6 +19,7 @@ run when it is in the store.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 
 import pandas as pd
@@ -64,6 +67,7 @@ from .train_risk_hybrid import (
 
 METRICS = metrics_file("risk")
 SELECTION = metrics_file("risk_selection")
+SUMMARY = metrics_file("summary_risk")  # the DVC metrics file: what `dvc exp show` compares
 SHIPPED = "shipped"
 
 
@@ -235,6 +239,30 @@ def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str]
     write_json_atomic(METRICS, metrics)
 
 
+def summary(metrics: dict, selection: dict, threshold_s: float) -> dict[str, float]:
+    """The handful of numbers a person compares between experiments, flat ``split/name`` keys:
+    the shipped predictor's validation ROC-AUC and balanced accuracy (where select_risk chose it:
+    ``val/roc_auc``, ``val/balanced_accuracy``) and its test ROC-AUC, balanced accuracy and
+    accuracy of critical frames (THW < ``threshold_s``, the first threshold). A number that is
+    missing or not finite (ROC-AUC of one-class frames) is left out."""
+    t = f"{threshold_s:g}"
+    shipped = selection.get("shipped") or {}
+    val_cut = (shipped.get("decision") or {}).get(t) or {}
+    test = ((metrics.get("models") or {}).get(SHIPPED) or {}).get(f"at_{t}s") or {}
+    out = {
+        "val/roc_auc": shipped.get("roc_auc"),
+        "val/balanced_accuracy": val_cut.get("balanced_accuracy"),
+        "test/roc_auc": test.get("roc_auc"),
+        "test/balanced_accuracy": test.get("balanced_accuracy"),
+        "test/accuracy": test.get("accuracy"),
+    }
+    return {
+        k: float(v)
+        for k, v in out.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    }
+
+
 def _log_summary(log: logging.Logger, metrics: dict, ev) -> None:
     """The shipped predictor's headline numbers, and the collapsed models (if any)."""
     t0 = ev.thresholds_s[0]
@@ -284,6 +312,7 @@ def main() -> None:
             "rules": {r: e["half_width"] for r, e in selection["rules"].items()},
         }
         write_outputs(source, metrics, pred, variants, ev)
+        write_json_atomic(SUMMARY, summary(metrics, selection, ev.thresholds_s[0]))
         _log_to_mlflow(models, metrics, log)
         _log_summary(log, metrics, ev)
 

@@ -146,25 +146,45 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
 def test_the_documented_training_experiments_show_what_changed(
     ci_dag: Path, tmp_path: Path
 ) -> None:
-    """Two training-only experiments (the docs' example: the fusion network's learning
-    rate on the ci profile) differ in the training's DVC metrics (`dvc exp diff`) and draw two
-    distinguishable learning curves with their revisions (`dvc plots diff`)."""
+    """The docs' two experiments (the fusion network's learning rate on the ci profile, up to
+    evaluate_fusion): `dvc exp show --only-changed` (as the docs run it) fits in 120 columns and shows the changed
+    parameter and the summary metrics it moved; `dvc exp diff` compares only the summary; `dvc
+    plots diff` draws two learning curves named by the experiments; MLflow's run is named after
+    the experiment and its override and holds the same numbers as DVC's summary."""
     repo = clone_dag(ci_dag, tmp_path / "exp_repo")
     env = user_env(repo)
     for name, lr in (("lr-low", "0.002"), ("lr-high", "0.02")):
         cmd = ["dvc", "exp", "run", "-n", name, "-S", "profile=ci"]
-        run([*cmd, "-S", f"fusion_model.optim.lr={lr}", "train_fusion"], repo, env=env)
-    metrics_file = "reports/metrics/train_fusion_network.json"
+        run([*cmd, "-S", f"fusion_model.optim.lr={lr}", "evaluate_fusion"], repo, env=env)
+    summary = "reports/metrics/summary_fusion.json"
     diff = json.loads(
         run(["dvc", "exp", "diff", "lr-low", "lr-high", "--json"], repo, env=env).stdout
     )
-    changed = diff["metrics"][metrics_file]
-    assert "val/loss" in changed and changed["val/loss"]["diff"] != 0, changed
+    assert set(diff["metrics"]) == {summary}, sorted(diff["metrics"])
+    changed = diff["metrics"][summary]
+    assert "val/kld_full" in changed and changed["val/kld_full"]["diff"] != 0, changed
+    # the docs' table: without the Created and params.yaml (check_params' file dependency) columns
+    cmd = ["dvc", "exp", "show", "--only-changed", "--drop", "Created|^params.yaml$"]
+    table = run(cmd, repo, env=env).stdout
+    width = max(len(line) for line in table.splitlines())
+    assert width <= 120, table
+    assert "fusion_model.optim.lr" in table and "val/kld_full" in table, table
+    assert "lr-low" in table and "lr-high" in table and "0.002" in table, table
     shown = _exps(json.loads(run(["dvc", "exp", "show", "--json"], repo, env=env).stdout))
-    vals = [
-        shown[n]["data"]["metrics"][metrics_file]["data"]["val/loss"] for n in ("lr-low", "lr-high")
-    ]
-    assert vals[0] != vals[1]
+    vals = {n: shown[n]["data"]["metrics"][summary]["data"] for n in ("lr-low", "lr-high")}
+    assert vals["lr-low"]["val/kld_full"] != vals["lr-high"]["val/kld_full"]
+
+    # MLflow: the same numbers under the same names, in a run named by the experiment
+    df = compare_runs(
+        "fusion",
+        uri=f"sqlite:///{repo / 'mlflow.db'}",
+        filter_string="tags.dvc_stage = 'train_fusion'",
+    )
+    row = df[df["dvc_exp_name"] == "lr-low"].iloc[0]
+    assert row["run_name"] == "fusion-network [lr-low: fusion_model.optim.lr=0.002]"
+    for key in ("val/kld_full", "val/dice_occ", "test/D/kld_fou_mean", "test/D/dice_occ"):
+        assert row[key] == vals["lr-low"][key], key
+
     curves = "reports/plots/train_fusion_network.csv"
     plots = json.loads(
         run(

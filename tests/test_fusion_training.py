@@ -382,10 +382,19 @@ def test_fit_logs_mlflow_and_reloads_identically(tmp_path: Path, mlflow_uri: str
         "val/kld_full",
         "val/dice_occ",
         "val/dice_free",
-        "lr",
     ):
+        # the per-epoch history (steps 0, 1), then the best epoch's value once more at the last
+        # step: the run's value, equal to the DVC metrics file's
         hist = client.get_metric_history(res.run_id, name)
-        assert [m.step for m in hist] == [0, 1], name
+        assert [m.step for m in hist] == [0, 1, 1], name
+        assert hist[-1].value == hist[metrics["best_epoch"]].value == metrics[name], name
+    assert [m.step for m in client.get_metric_history(res.run_id, "lr")] == [0, 1]
+    # MLflow's and DVC's numbers for the same run and metric are equal
+    mlflow_values = run.data.metrics
+    for name, value in metrics.items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            assert mlflow_values[name] == value, name
+    assert not any(k.startswith("best/") for k in mlflow_values)
     arts = [a.path for a in client.list_artifacts(res.run_id, "checkpoints")]
     assert arts == ["checkpoints/model.ckpt"]
 

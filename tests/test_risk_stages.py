@@ -88,11 +88,12 @@ def test_mlflow_model_reloads_with_identical_outputs(
     client = mlflow.tracking.MlflowClient()
     exp = client.get_experiment_by_name("risk")
     runs = client.search_runs([exp.experiment_id])
-    by_name = {
-        r.info.run_name: r for r in sorted(runs, key=lambda r: r.info.start_time)
+    by_stage = {
+        r.data.tags["dvc_stage"]: r for r in sorted(runs, key=lambda r: r.info.start_time)
     }  # newest wins
     for v in _variants(ci_dag):
-        r = by_name[f"risk-{v}"]
+        r = by_stage[f"train_risk@{v}"]
+        assert r.info.run_name.startswith(f"risk-{v}")
         assert r.info.run_id == run_record(ci_dag, f"train_risk@{v}")["run_id"]
         assert r.data.params["risk_model.variant"] == v
         assert (

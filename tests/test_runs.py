@@ -82,3 +82,49 @@ def test_unfinished_runs_left_out(mlflow_uri: str) -> None:
         )
         == "(no finished runs)"
     )
+
+
+def test_compare_runs_reads_the_names_users_see(mlflow_uri: str) -> None:
+    """`test/kld_fou_mean` is logged per configuration (`test/<cfg>/kld_fou_mean`): with a
+    configuration it picks that one, without it one column per configuration."""
+    _log(
+        "fusion-network",
+        {},
+        {"test/A/kld_fou_mean": 0.1, "test/D/kld_fou_mean": 0.4, "val/kld_full": 0.9},
+    )
+    df = runs.compare_runs(
+        "cmp", metrics=["test/kld_fou_mean", "val/kld_full"], uri=mlflow_uri, configuration="D"
+    )
+    assert [c for c in df.columns if "/" in c] == ["test/D/kld_fou_mean", "val/kld_full"]
+    assert df["test/D/kld_fou_mean"].item() == 0.4
+    every = runs.compare_runs("cmp", metrics=["test/kld_fou_mean"], uri=mlflow_uri)
+    assert [c for c in every.columns if "/" in c] == ["test/A/kld_fou_mean", "test/D/kld_fou_mean"]
+    full = runs.compare_runs("cmp", metrics=["test/D/kld_fou_mean"], uri=mlflow_uri)
+    assert [c for c in full.columns if "/" in c] == ["test/D/kld_fou_mean"]
+
+
+def test_unknown_metric_error_is_one_short_line_with_close_matches(mlflow_uri: str) -> None:
+    many = {f"test/{c}/registered_network/kld_fou_mean_ci_{s}": 1.0 for c in "ABCD" for s in "lh"}
+    _log("r", {}, {**many, "test/D/kld_fou_mean": 0.4, "val/kld_full": 0.9})
+    with pytest.raises(runs.RunsError) as err:
+        runs.compare_runs("cmp", metrics=["test/kld_fu_mean"], uri=mlflow_uri, configuration="D")
+    msg = str(err.value)
+    assert "\n" not in msg and len(msg) < 300, msg
+    assert "'test/kld_fu_mean'" in msg and "test/D/kld_fou_mean" in msg
+    with pytest.raises(runs.RunsError) as err:
+        runs.compare_runs("cmp", metrics=["val/kld_ful"], uri=mlflow_uri)
+    assert "val/kld_full" in str(err.value) and len(str(err.value)) < 300
+    with pytest.raises(runs.RunsError, match="no close match"):
+        runs.compare_runs("cmp", metrics=["zzz"], uri=mlflow_uri)
+
+
+def test_runs_compare_cli_configuration_and_short_error(mlflow_uri: str, capsys) -> None:
+    from traffictwin.cli import main
+
+    _log("fusion-network", {}, {"test/D/kld_fou_mean": 0.4, "val/kld_full": 0.9})
+    argv = ["runs", "compare", "--experiment", "cmp", "--tracking-uri", mlflow_uri]
+    assert main([*argv, "--metrics", "test/kld_fou_mean", "--configuration", "D"]) == 0
+    assert "test/D/kld_fou_mean" in capsys.readouterr().out
+    code = main([*argv, "--metrics", "test/kld_fou_mea"])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and "\n" not in err and len(err) < 300 and "test/D/kld_fou_mean" in err

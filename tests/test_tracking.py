@@ -91,7 +91,12 @@ def test_provenance_env_of_a_checkout(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
     (tmp_path / "params.yaml").write_text("seed: 5\n")
     env = prov.provenance_env(tmp_path, tmp_path / "params.yaml")
-    assert set(env) == {"TRAFFICTWIN_GIT_COMMIT", "TRAFFICTWIN_PARAMS_HASH"}
+    assert set(env) == {
+        "TRAFFICTWIN_GIT_COMMIT",
+        "TRAFFICTWIN_PARAMS_HASH",
+        "TRAFFICTWIN_PARAMS_OVERRIDES",
+    }
+    assert env["TRAFFICTWIN_PARAMS_OVERRIDES"] == "{}"  # nothing committed to differ from
     assert env["TRAFFICTWIN_PARAMS_HASH"] == __import__("hashlib").sha256(b"seed: 5\n").hexdigest()
     assert env["TRAFFICTWIN_GIT_COMMIT"] == "unknown"  # not a git checkout
     head = prov.git_commit(prov.ROOT)
@@ -225,3 +230,95 @@ def test_ci_dag_training_runs_carry_data_inputs_figures_and_pyfunc_models(ci_dag
                 arts = [a.path for a in client.list_artifacts(run.info.run_id, "figures")]
                 assert len(arts) == 1 and arts[0].endswith(".png"), stage
     assert {"train_fusion", "train_risk"} <= seen
+
+
+def test_params_overrides_against_the_committed_file(tmp_path: Path, monkeypatch) -> None:
+    """What a DVC experiment's `-S` changed: the params file against the same file at the commit."""
+    import subprocess
+
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    params = tmp_path / "params.yaml"
+    params.write_text("seed: 1\nfusion_model:\n  optim: {lr: 0.001, wd: 0.0}\n")
+    subprocess.run([*git, "add", "params.yaml"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "p"], cwd=tmp_path, check=True)
+    assert prov.params_overrides(tmp_path, params) == {}
+    params.write_text("seed: 1\nfusion_model:\n  optim: {lr: 0.002, wd: 0.0}\nnew: x\n")
+    assert prov.params_overrides(tmp_path, params) == {
+        "fusion_model.optim.lr": ["0.001", "0.002"],
+        "new": [None, "x"],
+    }
+    env = prov.provenance_env(tmp_path, params)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert tracking.params_overrides()["fusion_model.optim.lr"] == ["0.001", "0.002"]
+
+
+def test_run_name_and_description_carry_the_experiment_and_its_overrides(
+    mlflow_uri: str, monkeypatch
+) -> None:
+    import json
+
+    monkeypatch.setenv("DVC_EXP_NAME", "lr-low")
+    changed = {"fusion_model.optim.lr": ["0.001", "0.002"], "risk_model.train.lr": ["1", "2"]}
+    monkeypatch.setenv("TRAFFICTWIN_PARAMS_OVERRIDES", json.dumps(changed))
+    params = {"fusion_model.optim.lr": 0.002, "seed": 1}
+    with tracking.start_run(
+        "fusion", "fusion-network", profile="ci", stage="train_fusion", params=params
+    ) as run:
+        rid = run.info.run_id
+    got = mlflow.get_run(rid)
+    # only the override this run's params hold (the risk one belongs to other runs)
+    assert got.info.run_name == "fusion-network [lr-low: fusion_model.optim.lr=0.002]"
+    note = got.data.tags["mlflow.note.content"]
+    assert "`train_fusion`" in note and "`lr-low`" in note and "(was 0.001)" in note
+    many = {f"k{i}": ["0", str(i)] for i in range(5)}
+    monkeypatch.setenv("TRAFFICTWIN_PARAMS_OVERRIDES", json.dumps(many))
+    name, note = tracking.run_label("risk-headline", "train_risk@headline", "ci", {"seed": 1})
+    assert name == "risk-headline [lr-low: k0=0, k1=1, k2=2 +2 more]" and "`k4` = 4" in note
+    monkeypatch.delenv("DVC_EXP_NAME")
+    monkeypatch.delenv("TRAFFICTWIN_PARAMS_OVERRIDES")
+    assert tracking.run_label("registration", "s", "ci")[0] == "registration"  # a committed run
+
+
+def test_the_project_leaves_no_empty_default_experiment(mlflow_uri: str) -> None:
+    """MLflow gives every new store an experiment `Default` (id 0); the project marks it deleted
+    while it is empty, so the UI opens on the project's experiments."""
+    with tracking.start_run("fusion", "r", profile="ci", stage="s"):
+        pass
+    client = mlflow.MlflowClient(mlflow_uri)
+    assert [e.name for e in client.search_experiments()] == ["fusion"]
+    assert client.get_experiment("0").lifecycle_stage == "deleted"
+    with tracking.start_run("risk", "r", profile="ci", stage="s"):  # a later run: no error
+        pass
+    assert sorted(e.name for e in client.search_experiments()) == ["fusion", "risk"]
+    assert tracking.retire_empty_default("http://server:5000") is False  # a server: left alone
+
+
+def test_another_profile_is_one_override(tmp_path: Path, monkeypatch) -> None:
+    """`-S profile=ci -S fusion_model.optim.lr=...` against a committed default: `profile` and
+    the learning rate, not the dozens of keys the ci profile sets."""
+    import shutil
+    import subprocess
+
+    from traffictwin.config import compose_config, dump_params
+
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    shutil.copytree(prov.ROOT / "conf", tmp_path / "conf")
+    params = tmp_path / "params.yaml"
+    dump_params(compose_config(tmp_path / "conf"), params)
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "p"], cwd=tmp_path, check=True)
+    ci = compose_config(tmp_path / "conf", ["profile=ci", "fusion_model.optim.lr=0.002"])
+    dump_params(ci, params)
+    got = prov.params_overrides(tmp_path, params)
+    assert got == {
+        "profile": ["default", "ci"],
+        "fusion_model.optim.lr": [
+            str(compose_config(tmp_path / "conf", ["profile=ci"])["fusion_model"]["optim"]["lr"]),
+            "0.002",
+        ],
+    }

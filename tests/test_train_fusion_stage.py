@@ -77,9 +77,11 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
         assert exp is not None
         meta = json.loads((ci_dag / "models/fusion/network/model_meta.json").read_text())
         rec = run_record(ci_dag, "train_fusion")
-        runs = client.search_runs([exp.experiment_id], "attributes.run_name = 'fusion-network'")
+        runs = client.search_runs([exp.experiment_id], "tags.dvc_stage = 'train_fusion'")
         assert rec["run_id"] in {r.info.run_id for r in runs}
         r = client.get_run(rec["run_id"])
+        # the ci DAG runs params.yaml composed with profile=ci against the committed default
+        assert r.info.run_name == "fusion-network [profile=ci]"
         assert r.data.tags["profile"] == "ci" and r.data.tags["dvc_stage"] == "train_fusion"
         assert r.data.params["data.manifest_hash"] == meta["data_manifest_hash"]
         assert (
@@ -87,8 +89,12 @@ def test_mlflow_run_and_logged_model_reload_identically(ci_dag: Path) -> None:
             and r.data.params["configuration.configurations.D.r"] == "5.0"
             and r.data.params["fusion_model.train.max_epochs"] == "2"
         )
+        # per epoch, then the best epoch's value again at the last step (the run's value)
         hist = client.get_metric_history(r.info.run_id, "val/kld")
-        assert [m.step for m in hist] == list(range(len(hist))) and len(hist) >= 1
+        steps = [m.step for m in hist]
+        assert steps == [*range(len(hist) - 1), len(hist) - 2] and len(hist) >= 2
+        dvc = json.loads((ci_dag / "reports/metrics/train_fusion_network.json").read_text())
+        assert r.data.metrics["val/kld"] == dvc["val/kld"]
         assert [a.path for a in client.list_artifacts(r.info.run_id, "checkpoints")] == [
             "checkpoints/model.ckpt"
         ]

@@ -10,7 +10,18 @@ from .common import CliError, add_arguments, arg
 
 COMPARE_ARGUMENTS = [
     arg("--experiment", required=True, help="MLflow experiment (fusion | risk | ...)"),
-    arg("--metrics", nargs="+", default=None, help="metric names (default: all)"),
+    arg(
+        "--metrics",
+        nargs="+",
+        default=None,
+        help="metric names, e.g. val/kld_full test/kld_fou_mean (default: all)",
+    ),
+    arg(
+        "--configuration",
+        default=None,
+        help="pick a per-configuration metric: test/kld_fou_mean means test/<CONFIGURATION>/kld_fou_mean "
+        "(default: one column per configuration)",
+    ),
     arg(
         "--tracking-uri",
         "--uri",
@@ -45,7 +56,9 @@ def cmd_runs_compare(args: argparse.Namespace) -> int:
     )
     uri = api.resolve_tracking_uri(args.tracking_uri)
     try:
-        df = compare_runs(args.experiment, metrics=args.metrics, uri=uri)
+        df = compare_runs(
+            args.experiment, metrics=args.metrics, uri=uri, configuration=args.configuration
+        )
     except RunsError as exc:
         raise CliError(str(exc)) from None
     if args.csv is not None:

@@ -517,6 +517,7 @@ def _publish(
         "best_val_loss": metrics.get("val/loss"),
         "selection_metric": SELECTION_METRIC,
         "best_val_kld_full": metrics.get(SELECTION_METRIC),
+        "best_val_dice_occ": metrics.get("val/dice_occ"),
     }
     slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
     model_uri = None

@@ -10,6 +10,7 @@ renders it as text for a terminal.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -36,14 +37,18 @@ def compare_runs(
     filter_string: str = "",
     include_unfinished: bool = False,
     max_results: int = 5000,
+    configuration: str | None = None,
 ) -> pd.DataFrame:
     """One row per run of ``experiment`` (newest first), columns::
 
         run_name, run_id, status, start_time (UTC), profile, dvc_stage, git_commit (8 chars),
         dvc_exp_name, pipeline_run, param:<name>..., <metric>...
 
-    ``metrics``: metric names to show (default: every metric logged by any of the runs, sorted;
-    a requested name no run has is an error). The value is the metric's last logged value.
+    ``metrics``: metric names to show (default: every metric logged by any of the runs, sorted),
+    read by :func:`resolve_metrics`: a logged name as is, a per-configuration name without its
+    configuration (``test/kld_fou_mean`` for ``test/<cfg>/kld_fou_mean``) with ``configuration``
+    (e.g. ``"D"``) or, without it, as one column per configuration; a name no run has is an error
+    naming up to 5 close matches. The value is the metric's last logged value.
     ``params``: parameter names to show (default: those whose value differs between the runs,
     i.e. what the compared experiments changed). ``uri``: tracking URI (default
     :func:`traffictwin.mlops.tracking.tracking_uri`). ``filter_string``: an MLflow search filter,
@@ -63,7 +68,7 @@ def compare_runs(
     runs = _search_runs(client, exp.experiment_id, filter_string, max_results)
     if not include_unfinished:
         runs = [r for r in runs if r.info.status == "FINISHED"]
-    metric_cols = _metric_columns(runs, metrics, experiment)
+    metric_cols = _metric_columns(runs, metrics, experiment, configuration)
     if params is None:
         names = sorted({k for r in runs for k in r.data.params})
         param_cols = [k for k in names if len({r.data.params.get(k) for r in runs}) > 1]
@@ -94,18 +99,92 @@ def _search_runs(client: Any, experiment_id: str, filter_string: str, max_result
     return runs
 
 
-def _metric_columns(runs: list, metrics: Sequence[str] | None, experiment: str) -> list[str]:
-    """``metrics`` (each logged by some run, unless there are no runs), or every logged metric
-    name, sorted."""
+def _metric_columns(
+    runs: list, metrics: Sequence[str] | None, experiment: str, configuration: str | None
+) -> list[str]:
+    """:func:`resolve_metrics` of ``metrics`` against every metric the runs logged (all of them,
+    sorted, when ``metrics`` is None; ``metrics`` as given when there are no runs)."""
     all_metrics = sorted({k for r in runs for k in r.data.metrics})
     if metrics is None:
         return all_metrics
-    missing = [m for m in metrics if m not in all_metrics]
-    if missing and runs:
-        raise RunsError(
-            f"metric(s) {missing} not logged by any run of {experiment!r} (available: {all_metrics})"
-        )
-    return list(metrics)
+    if not runs:
+        return list(metrics)
+    return resolve_metrics(metrics, all_metrics, configuration=configuration, experiment=experiment)
+
+
+#: the longest error message :func:`resolve_metrics` raises (characters; one line)
+MAX_ERROR_CHARS = 300
+
+
+def resolve_metrics(
+    requested: Sequence[str],
+    available: Sequence[str],
+    *,
+    configuration: str | None = None,
+    experiment: str = "",
+) -> list[str]:
+    """The logged metric names for the names a user typed, in order.
+
+    A name in ``available`` stays as it is. Otherwise ``split/name`` is read as the
+    per-configuration ``split/<configuration>/name`` (the evaluation logs ``test/D/kld_fou_mean``):
+    with ``configuration`` that one name, without it one name per configuration that has it
+    (sorted). A name that matches nothing raises :class:`RunsError`: one line of at most
+    :data:`MAX_ERROR_CHARS` characters naming up to 5 close matches (:mod:`difflib`).
+    """
+    have = set(available)
+    out: list[str] = []
+    for name in requested:
+        if name in have:
+            out.append(name)
+            continue
+        split, _, rest = name.partition("/")
+        if rest:
+            if configuration is not None:
+                found = (
+                    [f"{split}/{configuration}/{rest}"]
+                    if f"{split}/{configuration}/{rest}" in have
+                    else []
+                )
+            else:
+                found = sorted(
+                    a
+                    for a in available
+                    if a.count("/") == name.count("/") + 1
+                    and a.startswith(f"{split}/")
+                    and a.endswith(f"/{rest}")
+                )
+            if found:
+                out.extend(found)
+                continue
+        raise RunsError(_unknown_metric(name, available, configuration, experiment))
+    return out
+
+
+def _unknown_metric(
+    name: str, available: Sequence[str], configuration: str | None, experiment: str
+) -> str:
+    """One line (at most :data:`MAX_ERROR_CHARS` characters): the unknown ``name`` and up to 5
+    close matches among ``available`` (also matched with ``configuration`` put in)."""
+    split, _, rest = name.partition("/")
+    probes = [name] + ([f"{split}/{configuration}/{rest}"] if configuration and rest else [])
+    close: list[str] = []
+    for probe in probes:
+        for m in difflib.get_close_matches(probe, available, n=5, cutoff=0.6):
+            if m not in close:
+                close.append(m)
+    where = f" of {experiment!r}" if experiment else ""
+    cfg = f" (configuration {configuration!r})" if configuration else ""
+    head = f"metric {name!r}{cfg} not logged by any run{where}"
+    tail = f"; {len(available)} names in all (omit --metrics to list them)"
+    shown: list[str] = []
+    for m in close[:5]:
+        candidate = f"{head}; close matches: {', '.join([*shown, m])}{tail}"
+        if len(candidate) > MAX_ERROR_CHARS:
+            break
+        shown.append(m)
+    if shown:
+        return f"{head}; close matches: {', '.join(shown)}{tail}"
+    return f"{head}; no close match{tail}"[:MAX_ERROR_CHARS]
 
 
 def _run_row(r: Any, param_cols: list[str], metric_cols: list[str]) -> dict[str, Any]:

@@ -33,8 +33,14 @@ How runs are tagged (:func:`base_tags`)
     run, fusion and risk alike; :func:`log_dataset` also records the dataset folder as an
     MLflow dataset input (``mlflow.log_input``) carrying the same hash.
 
-    Provenance comes in through the environment: the workflow layer computes the commit and the
-    params hash (``pipelines/_provenance.py``) and exports them before a stage runs. This module
+    Run names and descriptions (:func:`run_label`) say what the run is: the stage's name, the DVC
+    experiment's name and the parameters that differ from the committed params.yaml
+    (``TRAFFICTWIN_PARAMS_OVERRIDES``, JSON ``{key: [committed, now]}``), e.g.
+    ``fusion-network [lr-low: fusion_model.optim.lr=0.002]``.
+
+    Provenance comes in through the environment: the workflow layer computes the commit, the
+    params hash and the overrides (``pipelines/_provenance.py``) and exports them before a stage
+    runs. This module
     runs no git and reads no params file; a variable that is not set reads as ``""``.
 
 How runs end (:func:`start_run`)
@@ -64,6 +70,9 @@ ENV_DVC_EXP_NAME = "DVC_EXP_NAME"
 ENV_DVC_BASELINE = "DVC_EXP_BASELINE_REV"
 ENV_GIT_COMMIT = "TRAFFICTWIN_GIT_COMMIT"
 ENV_PARAMS_HASH = "TRAFFICTWIN_PARAMS_HASH"
+ENV_PARAMS_OVERRIDES = "TRAFFICTWIN_PARAMS_OVERRIDES"
+#: how many overrides a run's name lists (the rest: "+N more"; the description lists them all)
+NAME_OVERRIDES = 3
 ARTIFACTS_DIR = "mlartifacts"
 
 DATA_TAG = "data_manifest_hash"  # the one data-version tag name (fusion, registration, risk)
@@ -143,6 +152,49 @@ def params_hash() -> str:
     return os.environ.get(ENV_PARAMS_HASH, "")
 
 
+def params_overrides() -> dict[str, list[str | None]]:
+    """``{key: [committed, now]}`` from ``TRAFFICTWIN_PARAMS_OVERRIDES`` (``{}`` if unset or not JSON)."""
+    import json
+
+    try:
+        data = json.loads(os.environ.get(ENV_PARAMS_OVERRIDES, "") or "{}")
+    except ValueError:
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def run_label(
+    run_name: str,
+    stage: str,
+    profile: str,
+    params: Mapping[str, Any] | None = None,
+) -> tuple[str, str]:
+    """``(name, description)`` of a run: ``run_name`` plus, in brackets, the DVC experiment's
+    name (``DVC_EXP_NAME``) and up to :data:`NAME_OVERRIDES` of the parameters that differ
+    from the committed params.yaml (:func:`params_overrides`; only those among the run's
+    ``params`` when it logs any of them; another profile is the one override ``profile``); the
+    description names the stage, the profile, the
+    experiment and every override with its committed value."""
+    exp = os.environ.get(ENV_DVC_EXP_NAME, "")
+    changed = params_overrides()
+    if params and any(k in params for k in changed):
+        changed = {k: v for k, v in changed.items() if k in params or k == "profile"}
+    pairs = [f"{k}={v[1]}" for k, v in changed.items()]
+    shown = ", ".join(pairs[:NAME_OVERRIDES])
+    if len(pairs) > NAME_OVERRIDES:
+        shown += f" +{len(pairs) - NAME_OVERRIDES} more"
+    inner = ": ".join(x for x in (exp, shown) if x)
+    name = f"{run_name} [{inner}]" if inner else run_name
+    note = f"DVC stage `{stage}` on the `{profile}` profile"
+    if exp:
+        note += f", DVC experiment `{exp}`"
+    if changed:
+        note += "; changed from the committed params.yaml: " + ", ".join(
+            f"`{k}` = {v[1]} (was {v[0]})" for k, v in changed.items()
+        )
+    return name, note
+
+
 def pipeline_run_id(
     commit: str | None = None, phash: str | None = None, exp_name: str | None = None
 ) -> str:
@@ -209,7 +261,33 @@ def ensure_experiment(name: str, uri: str | None = None) -> str:
         if desc and (exp.tags or {}).get(NOTE_TAG) != desc:
             mlflow.MlflowClient(uri).set_experiment_tag(exp_id, NOTE_TAG, desc)
     mlflow.set_experiment(experiment_id=exp_id)
+    retire_empty_default(uri)
     return exp_id
+
+
+def retire_empty_default(uri: str) -> bool:
+    """Mark MLflow's ``Default`` experiment (id 0, which every new SQLite store gets from MLflow
+    itself) deleted while it holds no run, so the UI opens on the project's experiments; only on
+    a local SQLite store (a server's experiments are not this project's to tidy). Deleted, it is
+    not created again (``mlflow gc`` would purge it; MLflow then creates it anew). Returns
+    whether it was deleted now."""
+    from mlflow.entities import ViewType
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    if sqlite_path(uri) is None:
+        return False
+    client = MlflowClient(uri)
+    try:
+        default = client.get_experiment("0")
+    except MlflowException:
+        return False
+    if default.name != "Default" or default.lifecycle_stage != "active":
+        return False
+    if client.search_runs(["0"], max_results=1, run_view_type=ViewType.ALL):
+        return False
+    client.delete_experiment("0")
+    return True
 
 
 def base_tags(profile: str, stage: str, extra: Mapping[str, Any] | None = None) -> dict[str, str]:
@@ -309,10 +387,10 @@ def start_run(
         except MlflowException:
             run_id = None
     with interruptible() as received:
-        note = f"DVC stage `{stage}` on the `{profile}` profile"
+        name, note = run_label(run_name, stage, profile, params)
         run = mlflow.start_run(
             run_id=run_id,
-            run_name=None if run_id else run_name,
+            run_name=None if run_id else name,
             tags={NOTE_TAG: note, **base_tags(profile, stage, tags)},
         )
         try:

@@ -70,6 +70,25 @@ def fit_metrics(fitted: Fitted, max_epochs: int, **facts: Any) -> dict[str, Any]
     return metrics
 
 
+def last_step(fitted: Fitted) -> int:
+    """The MLflow step of the history's last row (its ``step``, else its ``epoch``; 0 without rows)."""
+    rows = fitted.history.rows
+    if not rows:
+        return 0
+    return int(rows[-1].get("step", rows[-1].get("epoch", 0)))
+
+
+def log_summary_metrics(fitted: Fitted, metrics: Mapping[str, Any]) -> None:
+    """The best epoch's ``metrics`` (:func:`fit_metrics`, what the DVC metrics file holds) as the
+    run's values under the same names: each ``split/name`` logged once more at the history's
+    :func:`last_step`, so MLflow's value of ``val/kld_full`` (its latest) is the best epoch's, as
+    in ``dvc exp show``, while the per-epoch history before it stays; the facts (``best_epoch``,
+    ``epochs``, ...) at step 0."""
+    split = {k: v for k, v in metrics.items() if "/" in k}
+    log_final_metrics(fitted.logger, split, step=last_step(fitted))
+    log_final_metrics(fitted.logger, {k: v for k, v in metrics.items() if k not in split})
+
+
 def log_fitted_model(
     fitted: Fitted,
     slim: Mapping[str, Any],
@@ -79,9 +98,10 @@ def log_fitted_model(
     example: np.ndarray,
     metadata: Mapping[str, Any],
 ) -> str:
-    """Into the fitted run's MLflow run: ``metrics`` as ``best/*`` values, the slim checkpoint as
-    an artifact and ``net`` as an MLflow model (:func:`log_model`); returns the model URI."""
-    log_final_metrics(fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()})
+    """Into the fitted run's MLflow run: ``metrics`` (:func:`log_summary_metrics`), the slim
+    checkpoint as an artifact and ``net`` as an MLflow model (:func:`log_model`); returns the
+    model URI."""
+    log_summary_metrics(fitted, metrics)
     problem = str(slim["traffictwin"].get("problem", "model"))
     with tempfile.TemporaryDirectory(prefix=f"{problem}_art_") as art:
         p = Path(art) / "model.ckpt"

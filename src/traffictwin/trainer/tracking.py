@@ -61,8 +61,8 @@ def mlflow_logger(run: Any) -> Any:
     return MLFlowLogger(run_id=run.info.run_id, tracking_uri=mlflow.get_tracking_uri())
 
 
-def log_final_metrics(logger: Any, metrics: Mapping[str, Any]) -> None:
-    """Log the finite numeric ``metrics`` once (step 0) through ``logger`` (``None``: nothing)."""
+def log_final_metrics(logger: Any, metrics: Mapping[str, Any], step: int = 0) -> None:
+    """Log the finite numeric ``metrics`` once (at ``step``) through ``logger`` (``None``: nothing)."""
     if logger is None:
         return
     finite = {
@@ -70,7 +70,7 @@ def log_final_metrics(logger: Any, metrics: Mapping[str, Any]) -> None:
         for k, v in metrics.items()
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
     }
-    logger.log_metrics(finite, step=0)
+    logger.log_metrics(finite, step=step)
 
 
 @contextmanager
