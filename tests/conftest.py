@@ -10,6 +10,8 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -137,6 +139,63 @@ def run_record(repo: Path, stage: str) -> dict:
     return json.loads(
         (repo / "reports" / "timings" / f"{stage.replace('@', '-')}.json").read_text()
     )
+
+
+def copy_dag(src: Path, dest: Path, *, mlflow: bool = True) -> Path:
+    """Copy a finished DAG repository (data, models, DVC cache, git history) to ``dest``.
+
+    Its ``.dvc/tmp`` (DVC's repo lock, rwlock and experiment queue) stays behind: a DVC command
+    running in ``src`` meanwhile (another xdist worker's ``dvc status`` in the shared ``ci_dag``)
+    creates and deletes files there, which would break or poison the copy. ``mlflow=False``
+    leaves the MLflow store (``mlflow.db*``, ``mlartifacts``, ``mlruns``) behind too."""
+    src = src.resolve()
+    skip_mlflow = shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns")
+
+    def ignore(folder: str, names: list[str]) -> set[str]:
+        skip = {"tmp"} & set(names) if Path(folder).resolve() == src / ".dvc" else set()
+        return skip if mlflow else skip | set(skip_mlflow(folder, names))
+
+    shutil.copytree(src, dest, symlinks=True, ignore=ignore)
+    return dest
+
+
+@contextmanager
+def mlflow_uris_kept() -> Iterator[None]:
+    """Restore MLflow's process-wide tracking and registry URIs, and the environment variables
+    that ``mlflow.set_tracking_uri`` / ``set_registry_uri`` export, to what they were on entry."""
+    env = {k: os.environ.get(k) for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI")}
+    uris = (None, None)
+    if "mlflow" in sys.modules:
+        from mlflow.tracking._model_registry import utils as registry_utils
+        from mlflow.tracking._tracking_service import utils as tracking_utils
+
+        uris = (tracking_utils._tracking_uri, registry_utils._registry_uri)
+    try:
+        yield
+    finally:
+        if "mlflow" in sys.modules:
+            import mlflow
+            from mlflow.tracking._model_registry import utils as registry_utils
+            from mlflow.tracking._tracking_service import utils as tracking_utils
+
+            if tracking_utils._tracking_uri != uris[0]:
+                mlflow.set_tracking_uri(uris[0])
+            registry_utils._registry_uri = uris[1]
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@pytest.fixture(autouse=True)
+def _mlflow_uris_restored() -> Iterator[None]:
+    """Every test leaves MLflow's URIs as it found them (:func:`mlflow_uris_kept`): a test that
+    points MLflow at the shared ``ci_dag`` store would otherwise send the next test's runs there
+    (the next in its worker: under pytest-xdist any test), and ``ci_dag``'s readers would see a
+    run that no stage logged."""
+    with mlflow_uris_kept():
+        yield
 
 
 @pytest.fixture

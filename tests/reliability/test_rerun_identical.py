@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,7 @@ from typing import Any
 import pytest
 import torch
 import yaml
-from conftest import run, run_record
+from conftest import copy_dag, run, run_record
 
 # keys that held timings, run ids or absolute paths in DVC outputs before (issue 18, defect 13)
 VOLATILE_KEYS = {
@@ -94,7 +93,7 @@ def _first_differences(old_repo: Path, new_repo: Path, moved: list[tuple[str, st
 @pytest.mark.slow
 def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path) -> None:
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     records = sorted((repo / "reports" / "timings").glob("*.json"))
     assert records, "the stages wrote no run records"
@@ -147,7 +146,7 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     follows the CPU affinity, and the learned registration's and the networks' numbers moved in
     their last digits with it)."""
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     one_cpu = min(os.sched_getaffinity(0))
     argv = ["dvc", "repro", "-f", "-s", *EVALUATION_STAGES]
@@ -173,7 +172,7 @@ def test_report_rendered_inside_an_experiment_leaves_dvc_lock_unchanged(
     from conftest import stage_env
 
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     env = stage_env(repo) | {"DVC_EXP_NAME": "weepy-main", "TRAFFICTWIN_PIPELINE_RUN": "other-id"}
     run(["dvc", "repro", "-f", "-s", "report"], repo, env=env, timeout=900)
