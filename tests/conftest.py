@@ -131,6 +131,62 @@ def run(
     return proc
 
 
+@contextmanager
+def pipelines_of(repo: Path) -> Iterator[None]:
+    """Inside the block ``import pipelines.<stage>`` imports ``repo``'s stage scripts (their
+    ROOT, params.yaml and output folders are ``repo``'s), with ``TRAFFICTWIN_REPO_ROOT`` set to
+    ``repo``; afterwards this process's own ``pipelines`` modules, ``sys.path`` and environment
+    (which a stage's ``run_stage`` extends) are back."""
+
+    def loaded() -> dict:
+        return {k: m for k, m in sys.modules.items() if k.split(".")[0] == "pipelines"}
+
+    own, path, env = loaded(), list(sys.path), dict(os.environ)
+    for k in own:
+        del sys.modules[k]
+    sys.path.insert(0, str(repo))
+    os.environ["TRAFFICTWIN_REPO_ROOT"] = str(repo)
+    try:
+        yield
+    finally:
+        for k in loaded():
+            del sys.modules[k]
+        sys.modules.update(own)
+        sys.path[:] = path
+        os.environ.clear()
+        os.environ.update(env)
+
+
+def stage_in_process(
+    repo: Path, stage: str, args: list[str] | tuple[str, ...] = ()
+) -> tuple[int, str]:
+    """``python -m pipelines.<stage> *args`` of ``repo`` run in this process, the way its
+    ``__main__`` runs it (``run_stage(main, <stage>)``): (exit status, what it wrote to stderr).
+
+    For argument and parameter checks, which end before a stage's work begins: no interpreter
+    start and torch / Lightning / MLflow imports per check. The stage's log records go to
+    pytest's log capture (``caplog``), not to the returned stderr."""
+    import contextlib
+    import importlib
+    import io
+
+    err = io.StringIO()
+    with pipelines_of(repo):
+        module = importlib.import_module(f"pipelines.{stage}")
+        common = importlib.import_module("pipelines._common")
+        argv = sys.argv
+        sys.argv = [f"pipelines.{stage}", *args]
+        try:
+            with contextlib.redirect_stderr(err):
+                common.run_stage(module.main, stage)
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        finally:
+            sys.argv = argv
+    return code, err.getvalue()
+
+
 def run_record(repo: Path, stage: str) -> dict:
     """The run record ``reports/timings/<stage>.json`` of ``stage`` in ``repo`` (MLflow run id,
     model URI, timings: what stages keep out of their DVC outputs)."""
