@@ -202,8 +202,9 @@ def copy_dag(src: Path, dest: Path, *, mlflow: bool = True) -> Path:
 
     Its ``.dvc/tmp`` (DVC's repo lock, rwlock and experiment queue) stays behind: a DVC command
     running in ``src`` meanwhile (another xdist worker's ``dvc status`` in the shared ``ci_dag``)
-    creates and deletes files there, which would break or poison the copy. ``mlflow=False``
-    leaves the MLflow store (``mlflow.db*``, ``mlartifacts``, ``mlruns``) behind too."""
+    creates and deletes files there, which would break or poison the copy. The copied MLflow
+    store's paths point into the copy (its artifacts stay its own); ``mlflow=False`` leaves the
+    store (``mlflow.db*``, ``mlartifacts``, ``mlruns``) behind."""
     src = src.resolve()
     skip_mlflow = shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns")
 
@@ -212,7 +213,30 @@ def copy_dag(src: Path, dest: Path, *, mlflow: bool = True) -> Path:
         return skip if mlflow else skip | set(skip_mlflow(folder, names))
 
     shutil.copytree(src, dest, symlinks=True, ignore=ignore)
+    if mlflow and (dest / "mlflow.db").is_file():
+        _repoint_mlflow_store(dest / "mlflow.db", src, dest.resolve())
     return dest
+
+
+def _repoint_mlflow_store(db: Path, src: Path, dest: Path) -> None:
+    """Rewrite every ``src/...`` path the copied SQLite MLflow store ``db`` holds (experiments'
+    artifact locations, runs' artifact URIs, model sources) to ``dest/...``: a stage run in the
+    copy then writes its artifacts beside the copy's store, not into ``src``'s (which other
+    tests read at the same time)."""
+    import sqlite3
+
+    old, new = f"{src}/", f"{dest}/"
+    with sqlite3.connect(db) as con:
+        tables = [r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+        for table in tables:
+            for col in con.execute(f'PRAGMA table_info("{table}")').fetchall():
+                if "CHAR" in col[2].upper() or "TEXT" in col[2].upper():
+                    con.execute(
+                        f'UPDATE "{table}" SET "{col[1]}" = replace("{col[1]}", ?, ?) '
+                        f'WHERE instr("{col[1]}", ?) > 0',
+                        (old, new, old),
+                    )
+    con.close()
 
 
 @contextmanager
