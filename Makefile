@@ -38,13 +38,14 @@ run: install
 	$(VENV)/bin/dvc repro
 	$(PY) -m pipelines.stage_deps prune-lock
 
-# the whole suite, serially (tests that run stages or experiments in the shared ci DAG copy write
-# into it: under pytest-xdist two of them collide), the 25 slowest tests listed so they stay visible
+# the whole suite on every core (pytest-xdist; the ci DAG fixture is built once and shared by the
+# workers; tests marked with one xdist_group run on one worker: docs/testing.md), the 25 slowest
+# tests listed so they stay visible
 test: install
-	$(PY) -m pytest --durations=25 $(PYTEST_ARGS)
+	$(PY) -m pytest -n auto --dist loadgroup --durations=25 $(PYTEST_ARGS)
 
-# unit tests only (no stage, DAG, training run or MLflow database), on every core (pytest-xdist;
-# `make test` runs serially); how many: docs/testing.md
+# unit tests only (no stage, DAG, training run or MLflow database), on every core (pytest-xdist);
+# how many: docs/testing.md
 test-fast: install
 	$(PY) -m pytest -n auto -m "not slow and not integration" $(PYTEST_ARGS)
 

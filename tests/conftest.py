@@ -10,6 +10,8 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -129,6 +131,62 @@ def run(
     return proc
 
 
+@contextmanager
+def pipelines_of(repo: Path) -> Iterator[None]:
+    """Inside the block ``import pipelines.<stage>`` imports ``repo``'s stage scripts (their
+    ROOT, params.yaml and output folders are ``repo``'s), with ``TRAFFICTWIN_REPO_ROOT`` set to
+    ``repo``; afterwards this process's own ``pipelines`` modules, ``sys.path`` and environment
+    (which a stage's ``run_stage`` extends) are back."""
+
+    def loaded() -> dict:
+        return {k: m for k, m in sys.modules.items() if k.split(".")[0] == "pipelines"}
+
+    own, path, env = loaded(), list(sys.path), dict(os.environ)
+    for k in own:
+        del sys.modules[k]
+    sys.path.insert(0, str(repo))
+    os.environ["TRAFFICTWIN_REPO_ROOT"] = str(repo)
+    try:
+        yield
+    finally:
+        for k in loaded():
+            del sys.modules[k]
+        sys.modules.update(own)
+        sys.path[:] = path
+        os.environ.clear()
+        os.environ.update(env)
+
+
+def stage_in_process(
+    repo: Path, stage: str, args: list[str] | tuple[str, ...] = ()
+) -> tuple[int, str]:
+    """``python -m pipelines.<stage> *args`` of ``repo`` run in this process, the way its
+    ``__main__`` runs it (``run_stage(main, <stage>)``): (exit status, what it wrote to stderr).
+
+    For argument and parameter checks, which end before a stage's work begins: no interpreter
+    start and torch / Lightning / MLflow imports per check. The stage's log records go to
+    pytest's log capture (``caplog``), not to the returned stderr."""
+    import contextlib
+    import importlib
+    import io
+
+    err = io.StringIO()
+    with pipelines_of(repo):
+        module = importlib.import_module(f"pipelines.{stage}")
+        common = importlib.import_module("pipelines._common")
+        argv = sys.argv
+        sys.argv = [f"pipelines.{stage}", *args]
+        try:
+            with contextlib.redirect_stderr(err):
+                common.run_stage(module.main, stage)
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        finally:
+            sys.argv = argv
+    return code, err.getvalue()
+
+
 def run_record(repo: Path, stage: str) -> dict:
     """The run record ``reports/timings/<stage>.json`` of ``stage`` in ``repo`` (MLflow run id,
     model URI, timings: what stages keep out of their DVC outputs)."""
@@ -137,6 +195,87 @@ def run_record(repo: Path, stage: str) -> dict:
     return json.loads(
         (repo / "reports" / "timings" / f"{stage.replace('@', '-')}.json").read_text()
     )
+
+
+def copy_dag(src: Path, dest: Path, *, mlflow: bool = True) -> Path:
+    """Copy a finished DAG repository (data, models, DVC cache, git history) to ``dest``.
+
+    Its ``.dvc/tmp`` (DVC's repo lock, rwlock and experiment queue) stays behind: a DVC command
+    running in ``src`` meanwhile (another xdist worker's ``dvc status`` in the shared ``ci_dag``)
+    creates and deletes files there, which would break or poison the copy. The copied MLflow
+    store's paths point into the copy (its artifacts stay its own); ``mlflow=False`` leaves the
+    store (``mlflow.db*``, ``mlartifacts``, ``mlruns``) behind."""
+    src = src.resolve()
+    skip_mlflow = shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns")
+
+    def ignore(folder: str, names: list[str]) -> set[str]:
+        skip = {"tmp"} & set(names) if Path(folder).resolve() == src / ".dvc" else set()
+        return skip if mlflow else skip | set(skip_mlflow(folder, names))
+
+    shutil.copytree(src, dest, symlinks=True, ignore=ignore)
+    if mlflow and (dest / "mlflow.db").is_file():
+        _repoint_mlflow_store(dest / "mlflow.db", src, dest.resolve())
+    return dest
+
+
+def _repoint_mlflow_store(db: Path, src: Path, dest: Path) -> None:
+    """Rewrite every ``src/...`` path the copied SQLite MLflow store ``db`` holds (experiments'
+    artifact locations, runs' artifact URIs, model sources) to ``dest/...``: a stage run in the
+    copy then writes its artifacts beside the copy's store, not into ``src``'s (which other
+    tests read at the same time)."""
+    import sqlite3
+
+    old, new = f"{src}/", f"{dest}/"
+    with sqlite3.connect(db) as con:
+        tables = [r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+        for table in tables:
+            for col in con.execute(f'PRAGMA table_info("{table}")').fetchall():
+                if "CHAR" in col[2].upper() or "TEXT" in col[2].upper():
+                    con.execute(
+                        f'UPDATE "{table}" SET "{col[1]}" = replace("{col[1]}", ?, ?) '
+                        f'WHERE instr("{col[1]}", ?) > 0',
+                        (old, new, old),
+                    )
+    con.close()
+
+
+@contextmanager
+def mlflow_uris_kept() -> Iterator[None]:
+    """Restore MLflow's process-wide tracking and registry URIs, and the environment variables
+    that ``mlflow.set_tracking_uri`` / ``set_registry_uri`` export, to what they were on entry."""
+    env = {k: os.environ.get(k) for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI")}
+    uris = (None, None)
+    if "mlflow" in sys.modules:
+        from mlflow.tracking._model_registry import utils as registry_utils
+        from mlflow.tracking._tracking_service import utils as tracking_utils
+
+        uris = (tracking_utils._tracking_uri, registry_utils._registry_uri)
+    try:
+        yield
+    finally:
+        if "mlflow" in sys.modules:
+            import mlflow
+            from mlflow.tracking._model_registry import utils as registry_utils
+            from mlflow.tracking._tracking_service import utils as tracking_utils
+
+            if tracking_utils._tracking_uri != uris[0]:
+                mlflow.set_tracking_uri(uris[0])
+            registry_utils._registry_uri = uris[1]
+        for k, v in env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@pytest.fixture(autouse=True)
+def _mlflow_uris_restored() -> Iterator[None]:
+    """Every test leaves MLflow's URIs as it found them (:func:`mlflow_uris_kept`): a test that
+    points MLflow at the shared ``ci_dag`` store would otherwise send the next test's runs there
+    (the next in its worker: under pytest-xdist any test), and ``ci_dag``'s readers would see a
+    run that no stage logged."""
+    with mlflow_uris_kept():
+        yield
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import run, stage_env
+from conftest import copy_dag, run, stage_env
 
 from traffictwin.mlops.runs import compare_runs, format_runs
 
@@ -24,13 +24,7 @@ PARAM = "risk_model.train.lr"
 
 def clone_dag(src: Path, dest: Path) -> Path:
     """Copy a repo with its DVC cache, data and models; commit everything git tracks; drop its MLflow store."""
-    shutil.copytree(
-        src,
-        dest,
-        symlinks=True,
-        ignore=shutil.ignore_patterns("mlflow.db*", "mlartifacts", "mlruns"),
-    )
-    shutil.rmtree(dest / ".dvc" / "tmp", ignore_errors=True)
+    copy_dag(src, dest, mlflow=False)
     # no run cache: a stage restored from it would not train, hence log no MLflow run
     shutil.rmtree(dest / ".dvc" / "cache" / "runs", ignore_errors=True)
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]

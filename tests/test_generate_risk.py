@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tests.conftest import run
+from tests.conftest import run, stage_in_process
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset
 from traffictwin.risk.dataset import (
@@ -177,10 +177,11 @@ def test_generate_risk_is_deterministic_and_rejects_bad_input(repo_copy: Path):
     good = shard.read_bytes()
     shard.write_bytes(good[: len(good) // 2])
     before = (repo_copy / "reports" / "metrics" / "disparity.json").read_bytes()
-    p = run([py, "-m", "pipelines.disparity"], repo_copy, check=False)
-    assert p.returncode != 0 and shard.name in p.stderr and "SHA-256" in p.stderr
-    p = run([py, "-m", "pipelines.orb_filter"], repo_copy, check=False)
-    assert p.returncode != 0 and shard.name in p.stderr
+    # the failures in this process (the stage's main under run_stage): no interpreter start each
+    code, err = stage_in_process(repo_copy, "disparity")
+    assert code != 0 and shard.name in err and "SHA-256" in err
+    code, err = stage_in_process(repo_copy, "orb_filter")
+    assert code != 0 and shard.name in err
     assert (repo_copy / "reports" / "metrics" / "disparity.json").read_bytes() == before
     shard.write_bytes(good)
     # mismatched left/right sizes inside a (validly hashed) shard -> a clear error
@@ -200,5 +201,5 @@ def test_generate_risk_is_deterministic_and_rejects_bad_input(repo_copy: Path):
 
     shutil.rmtree(repo_copy / "data" / "risk")
     (repo_copy / "data" / "risk_bad").rename(repo_copy / "data" / "risk")
-    p = run([py, "-m", "pipelines.disparity"], repo_copy, check=False)
-    assert p.returncode != 0 and "differ in size" in p.stderr and "shard-00000.npz" in p.stderr
+    code, err = stage_in_process(repo_copy, "disparity")
+    assert code != 0 and "differ in size" in err and "shard-00000.npz" in err

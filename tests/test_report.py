@@ -619,6 +619,7 @@ def _stage_inputs(repo: Path) -> tuple[dict[str, Any], dict[str, tuple[float, fl
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ci_dag_dvc")  # DVC commands in the shared ci DAG: one at a time
 def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     from conftest import run
 

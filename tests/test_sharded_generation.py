@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import copy_repo, run
+from conftest import copy_repo, run, stage_in_process
 
 from traffictwin.io.shard_parts import merge_parts
 from traffictwin.io.shards import (
@@ -224,11 +224,12 @@ def test_stage_parts_merge_to_one_machines_data(sharded: dict[str, Path]) -> Non
 
 
 def _fails(repo: Path, args: list[str], *expected: str) -> None:
-    """The stage exits 2 with one line naming the problem and leaves no data/fusion."""
-    proc = run([*GEN, *args], repo, check=False)
-    assert proc.returncode == 2, proc.stderr[-2000:]
-    line = proc.stderr.strip().splitlines()[-1]
-    assert line.startswith("generate_fusion: error: "), proc.stderr[-2000:]
+    """The stage exits 2 with one line naming the problem and leaves no data/fusion (run in this
+    process: ``tests/reliability/test_stage_errors.py`` checks the exit status of a stage process)."""
+    code, err = stage_in_process(repo, "generate_fusion", args)
+    assert code == 2, err[-2000:]
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("generate_fusion: error: "), err[-2000:]
     for e in expected:
         assert e in line, (e, line)
     assert not (repo / "data" / "fusion").exists()

@@ -122,6 +122,7 @@ def test_checkpoint_of_another_training_noise_is_refused(ci_dag: Path) -> None:
         load_fusion_model(ci_dag / "models/fusion/network/model.ckpt", expected_cfg="A")
 
 
+@pytest.mark.xdist_group("ci_dag_dvc")  # DVC commands in the shared ci DAG: one at a time
 def test_rerun_is_a_dvc_noop(ci_dag: Path) -> None:
     out = run(["dvc", "status", "train_fusion", "train_fusion_variant"], ci_dag).stdout
     assert "up to date" in out.lower(), out

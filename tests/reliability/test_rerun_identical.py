@@ -1,9 +1,12 @@
-"""Two identical `dvc repro -f` runs leave dvc.lock byte-identical.
+"""An identical re-run of a stage leaves dvc.lock byte-identical.
 
 Wall times, throughput and MLflow run ids go to the run records (reports/timings, outside DVC);
 checkpoints are serialised with a fixed archive name. A copy of the ci_dag repository (data,
-models, DVC cache, its own MLflow database) is re-run with `dvc repro -f`; every hash in dvc.lock
-must stay, and no DVC output may hold one of the volatile keys.
+models, DVC cache, its own MLflow database) re-runs representative stages with
+`dvc repro -f -s`: a data stage, a training, an evaluation and the report (each stage writes its
+outputs through the same writers, so these stand for the rest; re-running the whole DAG cost five
+minutes); every hash in dvc.lock must stay, and no DVC output of the whole DAG may hold one of the
+volatile keys.
 """
 
 from __future__ import annotations
@@ -11,7 +14,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,7 +21,7 @@ from typing import Any
 import pytest
 import torch
 import yaml
-from conftest import run, run_record
+from conftest import copy_dag, run, run_record
 
 # keys that held timings, run ids or absolute paths in DVC outputs before
 VOLATILE_KEYS = {
@@ -91,14 +93,20 @@ def _first_differences(old_repo: Path, new_repo: Path, moved: list[tuple[str, st
     return "\n".join(lines)
 
 
+# a data stage, a training, an evaluation and the report: one of each kind of writer
+RERUN_STAGES = ("generate_fusion", "train_fusion", "evaluate_risk", "report")
+
+
 @pytest.mark.slow
 def test_identical_rerun_leaves_dvc_lock_unchanged(ci_dag: Path, tmp_path: Path) -> None:
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     records = sorted((repo / "reports" / "timings").glob("*.json"))
     assert records, "the stages wrote no run records"
-    run(["dvc", "repro", "-f"], repo, timeout=1800)
+    run(["dvc", "repro", "-f", "-s", *RERUN_STAGES], repo, timeout=1800)
+    for stage in RERUN_STAGES:  # each did run again (a new run record)
+        assert run_record(repo, stage)["started"] != run_record(ci_dag, stage)["started"], stage
     after = (repo / "dvc.lock").read_bytes()
     if after != before:
         moved = _moved(before, after)
@@ -135,6 +143,9 @@ def test_no_dvc_output_holds_a_volatile_field(ci_dag: Path) -> None:
 
 
 EVALUATION_STAGES = ("evaluate_fusion", "evaluate_twin", "evaluate_risk")
+# the evaluation re-run on one CPU: the cheapest of them (every one pins its threads the same way,
+# through evaluation.num_threads; the ci DAG's run records show that each did)
+PINNED_STAGE = "evaluate_risk"
 
 
 @pytest.mark.slow
@@ -146,11 +157,14 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     one CPU they write what the ci_dag run wrote on all of them (torch's default thread count
     follows the CPU affinity, and the learned registration's and the networks' numbers moved in
     their last digits with it)."""
+    pinned = yaml.safe_load((ci_dag / "params.yaml").read_text())["evaluation"]["num_threads"]
+    for stage in EVALUATION_STAGES:
+        assert run_record(ci_dag, stage)["torch_threads"] == pinned, stage
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     one_cpu = min(os.sched_getaffinity(0))
-    argv = ["dvc", "repro", "-f", "-s", *EVALUATION_STAGES]
+    argv = ["dvc", "repro", "-f", "-s", PINNED_STAGE]
     # pin to one CPU in the child itself (no preexec_fn: unsafe in a process with threads), then exec dvc
     pin = f"import os; os.sched_setaffinity(0, {{{one_cpu}}}); os.execvp('dvc', {argv!r})"
     run([sys.executable, "-c", pin], repo, timeout=1800)
@@ -158,9 +172,9 @@ def test_evaluation_numbers_do_not_follow_the_cpu_count(ci_dag: Path, tmp_path: 
     if after != before:
         moved = _moved(before, after)
         pytest.fail(f"moved on one CPU: {moved}\n" + _first_differences(ci_dag, repo, moved))
-    pinned = yaml.safe_load((repo / "params.yaml").read_text())["evaluation"]["num_threads"]
-    for stage in EVALUATION_STAGES:
-        assert run_record(repo, stage)["torch_threads"] == pinned
+    record = run_record(repo, PINNED_STAGE)
+    assert record["started"] != run_record(ci_dag, PINNED_STAGE)["started"]  # it did run again
+    assert record["torch_threads"] == pinned
 
 
 @pytest.mark.slow
@@ -173,7 +187,7 @@ def test_report_rendered_inside_an_experiment_leaves_dvc_lock_unchanged(
     from conftest import stage_env
 
     repo = tmp_path / "repo"
-    shutil.copytree(ci_dag, repo, symlinks=True)
+    copy_dag(ci_dag, repo)
     before = (repo / "dvc.lock").read_bytes()
     env = stage_env(repo) | {"DVC_EXP_NAME": "weepy-main", "TRAFFICTWIN_PIPELINE_RUN": "other-id"}
     run(["dvc", "repro", "-f", "-s", "report"], repo, env=env, timeout=900)

@@ -3,8 +3,12 @@ before the parameters are checked."""
 
 from __future__ import annotations
 
+import logging
+import shutil
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -196,81 +200,118 @@ def _set(params: dict, dotted: str, value) -> None:
 
 
 SENTINEL = b"an output of an earlier run\n"
+BAD_PARAMS = [
+    (
+        "generate_risk",
+        [],
+        {"risk_data.max_speed": 3.0},
+        "'risk_data.max_speed' must be >= 12.0",
+        "data/risk",
+    ),
+    (
+        "disparity",
+        [],
+        {"risk_data.sgm.num_disparities": 512},
+        "'risk_data.sgm': num_disparities=512",
+        "data/disparity",
+    ),
+    (
+        "train_risk",
+        ["--variant", "headline"],
+        {"risk_data.sgm.num_disparities": 64},
+        "'risk_data.sgm.num_disparities'=64 exceeds 'risk_model.disp_scale'",
+        "models/risk/headline",
+    ),
+    (
+        "train_fusion",
+        [],
+        {"fusion_model.optim.lr": float("inf")},
+        "'fusion_model.optim.lr' must be a finite number",
+        "models/fusion/network",
+    ),
+    (
+        "train_fusion",
+        [],
+        {"trainer.accelerator": "mps"},
+        "'trainer' (accelerator='mps'",
+        "models/fusion/network",
+    ),
+    (
+        "train_fusion",
+        [],
+        {"fusion_model.optim.bogus": 1},
+        "'fusion_model.optim.bogus'",
+        "models/fusion/network",
+    ),
+]
+BAD_PARAMS_IDS = ["max_speed", "sgm_width", "disp_scale", "lr_inf", "accelerator", "unknown_key"]
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize(
-    "stage, args, overrides, named, output",
-    [
-        (
-            "generate_risk",
-            [],
-            {"risk_data.max_speed": 3.0},
-            "'risk_data.max_speed' must be >= 12.0",
-            "data/risk",
-        ),
-        (
-            "disparity",
-            [],
-            {"risk_data.sgm.num_disparities": 512},
-            "'risk_data.sgm': num_disparities=512",
-            "data/disparity",
-        ),
-        (
-            "train_risk",
-            ["--variant", "headline"],
-            {"risk_data.sgm.num_disparities": 64},
-            "'risk_data.sgm.num_disparities'=64 exceeds 'risk_model.disp_scale'",
-            "models/risk/headline",
-        ),
-        (
-            "train_fusion",
-            [],
-            {"fusion_model.optim.lr": float("inf")},
-            "'fusion_model.optim.lr' must be a finite number",
-            "models/fusion/network",
-        ),
-        (
-            "train_fusion",
-            [],
-            {"trainer.accelerator": "mps"},
-            "'trainer' (accelerator='mps'",
-            "models/fusion/network",
-        ),
-        (
-            "train_fusion",
-            [],
-            {"fusion_model.optim.bogus": 1},
-            "'fusion_model.optim.bogus'",
-            "models/fusion/network",
-        ),
-    ],
-    ids=["max_speed", "sgm_width", "disp_scale", "lr_inf", "accelerator", "unknown_key"],
-)
-def test_bad_params_end_in_one_line_before_outputs_are_touched(
-    ci_repo: Path, stage: str, args: list[str], overrides: dict, named: str, output: str
-) -> None:
-    from conftest import run
-
-    pfile = ci_repo / "params.yaml"
+@contextmanager
+def _bad_params(repo: Path, overrides: dict, output: str) -> Iterator[Path]:
+    """``repo``'s params.yaml with ``overrides`` and a file of an earlier run in ``output``
+    (yielded) for the block; the good params.yaml afterwards."""
+    pfile = repo / "params.yaml"
     good = pfile.read_text()
     params = yaml.safe_load(good)
     for k, v in overrides.items():
         _set(params, k, v)
-    out = ci_repo / output
+    out = repo / output
     out.mkdir(parents=True, exist_ok=True)
     (out / "earlier.bin").write_bytes(SENTINEL)
     try:
         pfile.write_text(yaml.safe_dump(params, sort_keys=False))
-        proc = run([sys.executable, "-m", f"pipelines.{stage}", *args], ci_repo, check=False)
+        yield out
     finally:
         pfile.write_text(good)
+        shutil.rmtree(out)
+
+
+def _untouched(out: Path) -> None:
+    assert [p.name for p in out.iterdir()] == ["earlier.bin"]
+    assert (out / "earlier.bin").read_bytes() == SENTINEL
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stage, args, overrides, named, output", BAD_PARAMS, ids=BAD_PARAMS_IDS)
+def test_bad_params_end_in_one_line_before_outputs_are_touched(
+    ci_repo: Path,
+    stage: str,
+    args: list[str],
+    overrides: dict,
+    named: str,
+    output: str,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """In this process (the stage's ``main`` under ``run_stage``); the process boundary is
+    checked once below."""
+    from conftest import stage_in_process
+
+    caplog.set_level(logging.INFO)  # what `python -m` would print: setup_logging's level
+    with _bad_params(ci_repo, overrides, output) as out:
+        code, err = stage_in_process(ci_repo, stage, args)
+        _untouched(out)
+    assert code == 2, err[-3000:]
+    lines = err.splitlines()
+    assert len(lines) == 1, err[-3000:]
+    assert lines[0].startswith(f"{stage}: error: ") and named in lines[0]
+    # nothing logged before the error line
+    assert caplog.records == [], [(r.name, r.getMessage()) for r in caplog.records]
+
+
+@pytest.mark.slow
+def test_a_stage_process_with_bad_params_exits_2_with_one_stderr_line(ci_repo: Path) -> None:
+    """The exit-code contract across the process boundary (``python -m pipelines.<stage>``)."""
+    from conftest import run
+
+    stage, args, overrides, named, output = BAD_PARAMS[0]
+    with _bad_params(ci_repo, overrides, output) as out:
+        proc = run([sys.executable, "-m", f"pipelines.{stage}", *args], ci_repo, check=False)
+        _untouched(out)
     assert proc.returncode == 2, proc.stderr[-3000:]
     lines = proc.stderr.splitlines()
     assert len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith(f"{stage}: error: ") and named in lines[0]
-    assert [p.name for p in out.iterdir()] == ["earlier.bin"]
-    assert (out / "earlier.bin").read_bytes() == SENTINEL
 
 
 def test_device_settings_must_name_a_device_this_machine_has() -> None:
