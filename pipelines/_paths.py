@@ -38,8 +38,9 @@ TWIN_DATA = DATA / "twin"
 # risk
 RISK_DATA = DATA / "risk"
 DISPARITY = DATA / "disparity"
-STEREO_LEARNED = DATA / "stereo_learned"
 ORB_CSV = DATA / "orb" / "orb.csv"
+STEREO_LEARNED = DATA / "stereo_learned"
+STEREO_MODEL = MODELS / "stereo" / "learned"
 RISK_MODELS = MODELS / "risk"
 
 
