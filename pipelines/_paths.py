@@ -39,6 +39,8 @@ TWIN_DATA = DATA / "twin"
 RISK_DATA = DATA / "risk"
 DISPARITY = DATA / "disparity"
 ORB_CSV = DATA / "orb" / "orb.csv"
+STEREO_LEARNED = DATA / "stereo_learned"
+STEREO_MODEL = MODELS / "stereo" / "learned"
 RISK_MODELS = MODELS / "risk"
 
 
