@@ -9,7 +9,9 @@ params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
 - ``data/stereo_learned`` (kind ``stereo_learned``): shards aligned 1:1 with data/risk (same index,
   split, frame order): ``disp_learned`` (N, H, W) float32 px, -1 where the spread exceeds the
   threshold calibrated on validation (the model meta's ``spread_threshold_px``), and
-  ``disp_learned_spread`` (N, H, W) float32 px;
+  ``disp_learned_spread`` (N, H, W) float32 px. A ``base: sgm`` model refines data/disparity's
+  ``disp_sgm`` (its input): ``disp_learned`` is -1 exactly where SGM is, and the spread holds the
+  |residual| added to SGM (px, 0 where SGM is invalid; the threshold keeps every SGM pixel);
 - ``reports/metrics/stereo.json``: on the fault-free test frames, for ``sgm`` and ``learned``, on the
   pixels with ground truth that both sources mark valid (``common``) and on each source's own valid
   pixels (``own``, with its ``density`` among the ground-truth pixels): EPE, bad-1, bad-2, the
@@ -210,8 +212,9 @@ def run(
     keep: list[tuple[int, np.ndarray]] = []
     for i, info in enumerate(ds.shards):
         sh = load_stereo_shard(ds, i, ("left", "right", "disp_gt"))
+        d_in = sgm.load_shard(i)["disp_sgm"] if net.spec.base == "sgm" else None
         t0 = time.perf_counter()
-        disp, spread = predict(net, sh["left"], sh["right"], batch_size)
+        disp, spread = predict(net, sh["left"], sh["right"], batch_size, sgm=d_in)
         seconds += time.perf_counter() - t0
         n_frames += len(disp)
         disp = np.where(spread <= thr, disp, -1.0).astype(np.float32)

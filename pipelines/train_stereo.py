@@ -1,8 +1,9 @@
 """Stage `train_stereo`: train the learned stereo network on data/risk's exact disparity.
 
 Usage: ``python -m pipelines.train_stereo``. Reads params.yaml (``stereo_model``, ``trainer``,
-``seed``) and ``data/risk`` (fault-free train pairs as random crops, fault-free validation pairs
-whole). Writes, each atomically and only after training succeeded:
+``seed``), ``data/risk`` (fault-free train pairs as random crops, fault-free validation pairs
+whole) and, for ``architecture.base: sgm`` (the refiner of SGM), ``data/disparity``'s SGM of the
+same frames (full-frame SGM, cropped like the images). Writes, each atomically and only after training succeeded:
 ``models/stereo/learned/model.ckpt`` (best on val/epe), ``model_meta.json`` (with the spread
 threshold calibrated on validation), ``reports/metrics/train_stereo.json``,
 ``reports/plots/train_stereo.csv`` and the learning curves ``reports/figures/train_stereo.png``.
@@ -20,6 +21,7 @@ from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
+    DISPARITY,
     PARAMS,
     RISK_DATA,
     STEREO_MODEL,
@@ -48,6 +50,8 @@ def main(argv: list[str] | None = None) -> None:
     spec = mc.net_spec(PARAMS.name)
     if not (RISK_DATA / "manifest.json").exists():
         raise DatasetError(f"{RISK_DATA}: no manifest.json (run `dvc repro generate_risk` first)")
+    if spec.base == "sgm" and not (DISPARITY / "manifest.json").exists():
+        raise DatasetError(f"{DISPARITY}: no manifest.json (run `dvc repro disparity` first)")
     log = setup_logging()
     trainer = TrainerSettings.from_cfg(p, source=PARAMS.name)
     trainer.check_available(PARAMS.name)
@@ -67,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     out = STEREO_MODEL
     with stage_timer(STAGE) as record:
         res = fit_stereo(
-            StereoData(RISK_DATA, get(p, "seed", int, min=0)),
+            StereoData(RISK_DATA, get(p, "seed", int, min=0), DISPARITY),
             spec=spec,
             train=mc.train,
             trainer_settings=trainer,

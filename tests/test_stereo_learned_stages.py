@@ -171,3 +171,39 @@ def test_train_stereo_rejects_a_crop_narrower_than_the_disparity_range() -> None
     p["stereo_model"]["architecture"]["stride"] = 3
     with pytest.raises(ConfigError, match="stereo_model.architecture"):
         train_stereo.model_config(p)
+
+
+def test_sgm_mode_trains_on_data_disparity_and_keeps_sgm_validity(
+    data: Path, tmp_path: Path
+) -> None:
+    spec = StereoNetSpec(
+        base="sgm", refine_channels=4, refine_dilations=(1,), refine_stride=1, max_residual_px=1.0
+    )
+    model = tmp_path / "model"
+    outputs = ModelOutputs(model / "model.ckpt", model / "model_meta.json", tmp_path / "m.json")
+    settings = TrainerSettings(accelerator="cpu", devices=1, precision="32-true")
+    with pytest.raises(DatasetError, match="data/disparity"):
+        fit_stereo(
+            StereoData(data / "risk", 0),
+            spec=spec,
+            train=TRAIN,
+            trainer_settings=settings,
+            outputs=outputs,
+        )
+    assert not model.exists()
+    fit_stereo(
+        StereoData(data / "risk", 0, data / "disparity"),
+        spec=spec,
+        train=TRAIN,
+        trainer_settings=settings,
+        outputs=outputs,
+    )
+    meta = json.loads((model / "model_meta.json").read_text())
+    assert meta["architecture"]["base"] == "sgm" and meta["spread_threshold_px"] == 1.0
+    m = stage.run(model, data / "risk", data / "disparity", tmp_path / "out", n_boot=20)
+    out, sgm = Dataset(tmp_path / "out", kind="stereo_learned"), Dataset(data / "disparity")
+    for i in range(len(out.shards)):
+        d, s = out.load_shard(i)["disp_learned"], sgm.load_shard(i)["disp_sgm"]
+        assert np.array_equal(d < 0, s < 0)  # density = SGM's
+        assert np.abs(d - s)[s >= 0].max() <= 1.0 + 1e-5  # the bounded residual
+    assert m["learned/own/density"] == pytest.approx(m["sgm/own/density"])

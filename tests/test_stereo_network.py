@@ -88,14 +88,14 @@ def test_loss_hand_case() -> None:
 
 def test_tiny_network_overfits_a_shifted_texture() -> None:
     torch.manual_seed(0)
-    h, w, d = 16, 64, 6.0
+    h, w, d = 8, 48, 6.0
     tex = torch.nn.functional.avg_pool2d(torch.rand(1, 3, h, w + 8), 3, 1, 1)
     left, right = tex[..., :w], tex[..., int(d) : int(d) + w]  # left(x) = right(x - d)
     gt = torch.full((1, 1, h, w), d)
     gt[..., : int(d) + 1] = 0.0  # no match at the left border
     net = StereoNet(TINY)
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
-    for _ in range(250):
+    for _ in range(150):
         loss, _ = stereo_loss(net(left, right), gt, max_disparity=16)
         opt.zero_grad()
         loss.backward()
@@ -136,9 +136,83 @@ def test_calibrate_spread_threshold_keeps_the_density_and_tables_the_deciles() -
         ({"feature_channels": 10}, "multiple of groups"),
         ({"refine_dilations": ()}, "refine_dilations"),
         ({"stride": 1, "refine_stride": 2}, "refine_stride"),
+        ({"base": "sad"}, "base must be one of"),
+        ({"max_residual_px": 0.0}, "max_residual_px"),
     ],
 )
 def test_spec_bounds(change: dict, match: str) -> None:
     base = {**TINY.as_dict(), **change}
     with pytest.raises(ValueError, match=match):
         StereoNetSpec.from_dict(base)
+
+
+SGM_TINY = StereoNetSpec(
+    base="sgm", refine_channels=8, refine_dilations=(1, 2), refine_stride=1, max_residual_px=1.0
+)
+
+
+def _sgm_pair(h: int = 16, w: int = 48, d: float = 5.0, bias: float = 0.3):
+    """A texture shifted by ``d`` px, its exact disparity and an "SGM" of ``d + bias`` with an
+    invalid (-1) left border and a few invalid holes."""
+    torch.manual_seed(0)
+    tex = torch.nn.functional.avg_pool2d(torch.rand(1, 3, h, w + 8), 3, 1, 1)
+    left, right = tex[..., :w], tex[..., int(d) : int(d) + w]
+    gt = torch.full((1, 1, h, w), d)
+    gt[..., : int(d) + 1] = 0.0
+    sgm = gt + bias
+    sgm[..., : int(d) + 1] = -1.0
+    sgm[..., 4:6, 20:24] = -1.0
+    return left, right, gt, sgm
+
+
+def test_untrained_sgm_mode_returns_sgm_exactly() -> None:
+    left, right, _, sgm = _sgm_pair()
+    net = StereoNet(SGM_TINY).eval()
+    with torch.no_grad():
+        out = net(left, right, sgm)
+    assert torch.equal(out["disparity"], sgm)  # valid pixels unchanged, invalid stay -1
+    assert torch.all(out["spread"] == 0)
+    d, s = predict(
+        net,
+        (left[0].permute(1, 2, 0).numpy()[None] * 255).astype(np.uint8),
+        (right[0].permute(1, 2, 0).numpy()[None] * 255).astype(np.uint8),
+        sgm=sgm[:, 0].numpy(),
+    )
+    assert np.array_equal(d, sgm[:, 0].numpy()) and np.all(s == 0)
+    with pytest.raises(ValueError, match="SGM disparity"):
+        net(left, right)
+
+
+def test_sgm_mode_residual_is_bounded_and_invalid_pixels_stay_invalid() -> None:
+    left, right, _, sgm = _sgm_pair()
+    net = StereoNet(SGM_TINY).eval()
+    torch.nn.init.constant_(net.refine_out.bias, 50.0)  # a saturated residual
+    with torch.no_grad():
+        out = net(left, right, sgm)
+    valid = sgm >= 0
+    res = out["disparity"][valid] - sgm[valid]
+    assert res.max().item() <= 1.0 + 1e-5 and res.max().item() > 0.99
+    assert torch.all(out["disparity"][~valid] == -1.0)
+    assert torch.all(out["spread"] <= 1.0 + 1e-5)
+
+
+def test_tiny_sgm_refiner_removes_a_subpixel_bias() -> None:
+    left, right, gt, sgm = _sgm_pair(bias=0.3)
+    net = StereoNet(SGM_TINY)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    m = (gt > 0) & (sgm >= 0)
+
+    def epe() -> float:
+        with torch.no_grad():
+            return (net(left, right, sgm)["disparity"] - gt).abs()[m].mean().item()
+
+    assert epe() == pytest.approx(0.3, abs=1e-5)
+    for _ in range(40):
+        loss, _ = stereo_loss(
+            net(left, right, sgm), torch.where(sgm >= 0, gt, 0.0), max_disparity=16
+        )
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    net.eval()
+    assert epe() < 0.1

@@ -20,6 +20,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+BASES = ("cost_volume", "sgm")
+
 
 @dataclass(frozen=True)
 class StereoNetSpec:
@@ -34,9 +36,22 @@ class StereoNetSpec:
     refine_channels: int = 16
     refine_dilations: tuple[int, ...] = (1, 2, 4, 1)
     refine_stride: int = 2  # the refinement runs at 1/refine_stride resolution (1 or 2)
+    # "cost_volume": the whole matcher above; "sgm": only the refinement, on an SGM disparity input,
+    # adding a residual bounded by max_residual_px (px) on SGM's valid pixels
+    base: str = "cost_volume"
+    max_residual_px: float = 1.5
 
     def __post_init__(self) -> None:
         from traffictwin.io.limits import check_at_most
+
+        if self.base not in BASES:
+            raise ValueError(f"StereoNetSpec.base must be one of {list(BASES)}, got {self.base!r}")
+        if not isinstance(self.max_residual_px, (int, float)) or not (
+            0.0 < float(self.max_residual_px) <= 8.0
+        ):
+            raise ValueError(
+                f"StereoNetSpec.max_residual_px must be in (0, 8] px, got {self.max_residual_px!r}"
+            )
 
         if self.stride not in (1, 2, 4):
             raise ValueError(f"StereoNetSpec.stride must be 1, 2 or 4, got {self.stride}")
@@ -147,6 +162,16 @@ class StereoNet(nn.Module):
     def __init__(self, spec: StereoNetSpec) -> None:
         super().__init__()
         self.spec = spec
+        r = spec.refine_channels
+        if (
+            spec.base == "sgm"
+        ):  # the refinement alone: [left, SGM disparity, validity, left - warped]
+            self.refine_in = _conv(3 + 1 + 1 + 3, r)
+            self.refine = nn.Sequential(*[_Res(r, d) for d in spec.refine_dilations])
+            self.refine_out = nn.Conv2d(r, 1, 3, padding=1)
+            nn.init.zeros_(self.refine_out.weight)  # untrained: exactly the SGM disparity
+            nn.init.zeros_(self.refine_out.bias)
+            return
         c = spec.feature_channels
         layers: list[nn.Module] = [_conv(3, c, stride=min(spec.stride, 2))]
         if spec.stride == 4:
@@ -186,11 +211,47 @@ class StereoNet(nn.Module):
         win = win.flip(-2).permute(0, 1, 2, 4, 3, 5)  # (b, g, c/g, n, h, w), level d
         return (fl.unsqueeze(3) * win).mean(2)
 
-    def forward(self, left: torch.Tensor, right: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(
+        self, left: torch.Tensor, right: torch.Tensor, sgm: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
+        """``sgm`` (B, 1, H, W) px, -1 (any negative) = invalid: required in ``base: sgm`` mode."""
         # float32 throughout, whatever the trainer's autocast: bf16's 8-bit mantissa resolves a
         # 30 px disparity to 0.125 px, far coarser than the sub-pixel accuracy this net is for
         with torch.autocast(left.device.type, enabled=False):
+            if self.spec.base == "sgm":
+                if sgm is None:
+                    raise ValueError("StereoNet (base: sgm) needs the SGM disparity input")
+                return self._refine_sgm(left.float(), right.float(), sgm.float())
             return self._forward(left.float(), right.float())
+
+    def _refine_sgm(
+        self, left: torch.Tensor, right: torch.Tensor, sgm: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """SGM + ``tanh(residual) * max_residual_px`` on SGM's valid pixels, -1 elsewhere;
+        ``spread`` = |residual| px (0 where SGM is invalid); ``coarse`` = SGM (invalid -> 0)."""
+        if sgm.shape[-2:] != left.shape[-2:] or sgm.shape[1] != 1:
+            raise ValueError(
+                f"StereoNet: SGM disparity {tuple(sgm.shape)} must be (B, 1) x the image size "
+                f"{tuple(left.shape[-2:])}"
+            )
+        valid = sgm >= 0
+        d0 = torch.where(valid, sgm, torch.zeros_like(sgm))
+        rs = self.spec.refine_stride
+        if rs > 1:
+            lo, ro = F.avg_pool2d(left, rs), F.avg_pool2d(right, rs)
+            dr = F.avg_pool2d(d0, rs) / rs
+            vr = F.avg_pool2d(valid.float(), rs)
+        else:
+            lo, ro, dr, vr = left, right, d0, valid.float()
+        err = lo - warp_right(ro, dr)
+        x = torch.cat([lo - 0.5, dr * (rs / self.spec.max_disparity), vr, err], 1)
+        raw = self.refine_out(self.refine(self.refine_in(x)))
+        if rs > 1:
+            raw = F.interpolate(raw, size=left.shape[-2:], mode="bilinear", align_corners=False)
+        res = torch.tanh(raw) * float(self.spec.max_residual_px)
+        res = torch.where(valid, res, torch.zeros_like(res))
+        out = torch.where(valid, (d0 + res).clamp_min(0.0), torch.full_like(d0, -1.0))
+        return {"disparity": out, "coarse": d0, "spread": res.abs()}
 
     def _forward(self, left: torch.Tensor, right: torch.Tensor) -> dict[str, torch.Tensor]:
         s = self.spec.stride
@@ -261,6 +322,7 @@ def to_input(images: Any) -> torch.Tensor:
 
 
 __all__ = [
+    "BASES",
     "StereoNet",
     "StereoNetSpec",
     "param_count",

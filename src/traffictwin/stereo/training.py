@@ -107,12 +107,17 @@ def evenly_spaced_index(n: int, k: int) -> np.ndarray:
 
 
 def load_pairs(
-    root: str | Path, split: str, limit: int = 0, fault_free: bool = True
+    root: str | Path,
+    split: str,
+    limit: int = 0,
+    fault_free: bool = True,
+    disparity: str | Path | None = None,
 ) -> dict[str, np.ndarray]:
     """``left``/``right`` (N, H, W, 3) BGR uint8 and ``disp_gt`` (N, H, W) float32 px of the
     ``split`` frames of ``data/risk`` at ``root`` (only fault-free pairs when ``fault_free``: a
-    faulty pair's images do not match its exact disparity), ``limit`` evenly spaced (0 = all).
-    Errors name the folder."""
+    faulty pair's images do not match its exact disparity), ``limit`` evenly spaced (0 = all);
+    with ``disparity`` (a ``data/disparity`` folder aligned 1:1 with ``root``) also ``disp_sgm``
+    (N, H, W) float32 px, -1 invalid: SGM of the full frames. Errors name the folder."""
     from traffictwin.risk.dataset import load_stereo_shard
 
     ds = Dataset(root, kind="risk", verify=False)
@@ -124,17 +129,29 @@ def load_pairs(
     if len(sel) == 0:
         raise DatasetError(f"{root}: no fault-free '{split}' frames to train / validate on")
     parts: dict[str, list[np.ndarray]] = {"left": [], "right": [], "disp_gt": []}
+    sgm = None
+    if disparity is not None:
+        sgm = Dataset(disparity, kind="disparity", verify=False)
+        if sgm.params.get("source") != ds.manifest_hash():
+            raise DatasetError(
+                f"{Path(disparity) / 'manifest.json'}: made from another data/risk (source "
+                f"{sgm.params.get('source')}, {root} is {ds.manifest_hash()}): run the disparity stage"
+            )
+        parts["disp_sgm"] = []
     for shard, g in sel.groupby("shard", sort=True):
         sh = load_stereo_shard(ds, int(shard), ("left", "right", "disp_gt"))
         idx = g.idx.to_numpy()
-        for k in parts:
+        for k in ("left", "right", "disp_gt"):
             parts[k].append(np.asarray(sh[k])[idx])
+        if sgm is not None:
+            parts["disp_sgm"].append(np.asarray(sgm.load_shard(int(shard))["disp_sgm"])[idx])
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
 class CropSet(TorchDataset):
-    """Random ``(crop_h, crop_w)`` crops of the pairs: (left, right, disp_gt) tensors (3, h, w)
-    float [0, 1] RGB and (1, h, w) px; offsets drawn from ``generator``."""
+    """Random ``(crop_h, crop_w)`` crops of the pairs: (left, right, disp_gt[, disp_sgm]) tensors
+    (3, h, w) float [0, 1] RGB and (1, h, w) px (SGM cropped from the full-frame SGM, so its left
+    border is SGM's, not the crop's); offsets drawn from a generator seeded by ``seed``."""
 
     def __init__(self, pairs: dict[str, np.ndarray], crop_h: int, crop_w: int, seed: int) -> None:
         n, h, w = pairs["disp_gt"].shape
@@ -146,21 +163,27 @@ class CropSet(TorchDataset):
     def __len__(self) -> int:
         return len(self.p["disp_gt"])
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, ...]:
         _, h, w = self.p["disp_gt"].shape
         y = int(torch.randint(0, h - self.ch + 1, (1,), generator=self.gen))
         x = int(torch.randint(0, w - self.cw + 1, (1,), generator=self.gen))
         sl = (i, slice(y, y + self.ch), slice(x, x + self.cw))
         lr = to_input(np.stack([self.p["left"][sl], self.p["right"][sl]]))
         d = torch.from_numpy(np.ascontiguousarray(self.p["disp_gt"][sl], np.float32))[None]
-        return lr[0], lr[1], d
+        if "disp_sgm" not in self.p:
+            return lr[0], lr[1], d
+        sg = torch.from_numpy(np.ascontiguousarray(self.p["disp_sgm"][sl], np.float32))[None]
+        return lr[0], lr[1], d, sg
 
 
 def full_frames(pairs: dict[str, np.ndarray]) -> TensorDataset:
     """Whole frames as tensors (left, right, disp_gt) like :class:`CropSet`'s."""
     lr_l, lr_r = to_input(pairs["left"]), to_input(pairs["right"])
     d = torch.from_numpy(np.ascontiguousarray(pairs["disp_gt"], np.float32))[:, None]
-    return TensorDataset(lr_l, lr_r, d)
+    if "disp_sgm" not in pairs:
+        return TensorDataset(lr_l, lr_r, d)
+    sg = torch.from_numpy(np.ascontiguousarray(pairs["disp_sgm"], np.float32))[:, None]
+    return TensorDataset(lr_l, lr_r, d, sg)
 
 
 # -- module -------------------------------------------------------------------------------------------
@@ -198,9 +221,20 @@ class StereoLitModule(common.NetModule):
             coarse_weight=self.hp["coarse_weight"],
         )
 
+    def _run(self, batch) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The network's output and the ground truth it is scored on (in ``base: sgm`` mode only
+        SGM's valid pixels: the others stay invalid, whatever the network says)."""
+        left, right, gt = batch[:3]
+        sgm = batch[3] if len(batch) > 3 else None
+        out = self.net(left, right, sgm)
+        if sgm is not None:
+            gt = torch.where(sgm >= 0, gt, torch.zeros_like(gt))
+        return out, gt
+
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
-        left, right, gt = batch
-        loss, parts = self._loss(self.net(left, right), gt)
+        left = batch[0]
+        out, gt = self._run(batch)
+        loss, parts = self._loss(out, gt)
         n = left.shape[0]
         self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=n)
         for k, v in parts.items():
@@ -208,8 +242,8 @@ class StereoLitModule(common.NetModule):
         return loss
 
     def validation_step(self, batch, batch_idx: int) -> None:
-        left, right, gt = batch
-        out = self.net(left, right)
+        left = batch[0]
+        out, gt = self._run(batch)
         loss, _ = self._loss(out, gt)
         self.val_loss.update(loss, weight=left.shape[0])
         valid = (gt > 0) & (gt < self.max_d)
@@ -232,15 +266,25 @@ class StereoLitModule(common.NetModule):
 # -- inference and calibration -------------------------------------------------------------------------
 @torch.no_grad()
 def predict(
-    net: StereoNet, left: np.ndarray, right: np.ndarray, batch_size: int = 8
+    net: StereoNet,
+    left: np.ndarray,
+    right: np.ndarray,
+    batch_size: int = 8,
+    sgm: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Disparity and spread (N, H, W) float32 px of BGR uint8 pairs (N, H, W, 3), in batches;
-    image sides are padded (edge) to a multiple of the network's stride and cropped back."""
+    image sides are padded (edge) to a multiple of the network's stride and cropped back. In
+    ``base: sgm`` mode ``sgm`` (N, H, W) px (-1 invalid) is the input refined (padded with -1)."""
     if left.shape != right.shape or left.ndim != 4:
         raise ValueError(f"left {left.shape} and right {right.shape} must be equal (N, H, W, 3)")
     net.eval()
     n, h, w, _ = left.shape
-    s = net.spec.stride
+    if net.spec.base == "sgm" and (sgm is None or sgm.shape != (n, h, w)):
+        raise ValueError(
+            f"predict: base 'sgm' needs the SGM disparity (N, H, W) = {(n, h, w)}, got "
+            f"{None if sgm is None else sgm.shape}"
+        )
+    s = net.spec.stride if net.spec.base == "cost_volume" else net.spec.refine_stride
     ph, pw = (-h) % s, (-w) % s
     disp = np.empty((n, h, w), np.float32)
     spread = np.empty((n, h, w), np.float32)
@@ -249,7 +293,14 @@ def predict(
         if ph or pw:
             lt = torch.nn.functional.pad(lt, (0, pw, 0, ph), mode="replicate")
             rt = torch.nn.functional.pad(rt, (0, pw, 0, ph), mode="replicate")
-        out = net(lt, rt)
+        st = None
+        if net.spec.base == "sgm":
+            st = torch.from_numpy(np.ascontiguousarray(sgm[a : a + batch_size], np.float32))[
+                :, None
+            ]
+            if ph or pw:
+                st = torch.nn.functional.pad(st, (0, pw, 0, ph), value=-1.0)
+        out = net(lt, rt, st)
         disp[a : a + batch_size] = out["disparity"][:, 0, :h, :w].numpy()
         spread[a : a + batch_size] = out["spread"][:, 0, :h, :w].numpy()
     return disp, spread
@@ -288,10 +339,12 @@ def calibrate_spread(
 # -- a whole training run -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class StereoData:
-    """The training data: a ``data/risk`` folder and the seed."""
+    """The training data: a ``data/risk`` folder, the seed and (``base: sgm`` mode) the
+    ``data/disparity`` folder made from it."""
 
     root: Path
     seed: int
+    disparity: Path | None = None
 
     def manifest_hash(self) -> str:
         return Dataset(self.root, kind="risk", verify=False).manifest_hash()
@@ -314,8 +367,11 @@ def fit_stereo(
 
     common.seed_everything(data.seed)
     digest = data.manifest_hash()
-    tr = load_pairs(data.root, "train", train.max_train_frames)
-    va = load_pairs(data.root, "val", train.val_frames)
+    if spec.base == "sgm" and data.disparity is None:
+        raise DatasetError(f"{data.root}: base 'sgm' trains on data/disparity: none given")
+    dsgm = data.disparity if spec.base == "sgm" else None
+    tr = load_pairs(data.root, "train", train.max_train_frames, disparity=dsgm)
+    va = load_pairs(data.root, "val", train.val_frames, disparity=dsgm)
     image_size = list(tr["disp_gt"].shape[1:])
     if tr["disp_gt"].shape[2] < train.crop_width or tr["disp_gt"].shape[1] < train.crop_height:
         raise DatasetError(
@@ -392,10 +448,13 @@ def _publish(
         raise RuntimeError(f"stereo: best epoch has a non-finite {SELECTION_METRIC}: {row}")
     net = StereoNet(spec)
     net.load_state_dict(common.net_state_dict(slim))
-    disp, spread = predict(net, val["left"], val["right"])
-    thr, table = calibrate_spread(
-        disp, spread, val["disp_gt"], train.valid_density, spec.max_disparity
-    )
+    disp, spread = predict(net, val["left"], val["right"], sgm=val.get("disp_sgm"))
+    gt = val["disp_gt"]
+    if spec.base == "sgm":  # valid = SGM's valid: the spread (|residual|) table is information only
+        gt = np.where(val["disp_sgm"] >= 0, gt, 0.0)
+    thr, table = calibrate_spread(disp, spread, gt, train.valid_density, spec.max_disparity)
+    if spec.base == "sgm":
+        thr = float(spec.max_residual_px)  # |residual| <= max_residual_px: keeps every SGM pixel
     metrics = common.fit_metrics(
         fitted,
         train.max_epochs,
