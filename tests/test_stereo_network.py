@@ -86,6 +86,7 @@ def test_loss_hand_case() -> None:
     assert parts["coarse"].item() == 0.0 and loss.item() == pytest.approx(parts["fine"].item())
 
 
+@pytest.mark.integration  # trains a network (make test runs it, test-fast does not)
 def test_tiny_network_overfits_a_shifted_texture() -> None:
     torch.manual_seed(0)
     h, w, d = 8, 48, 6.0
@@ -196,6 +197,7 @@ def test_sgm_mode_residual_is_bounded_and_invalid_pixels_stay_invalid() -> None:
     assert torch.all(out["spread"] <= 1.0 + 1e-5)
 
 
+@pytest.mark.integration  # trains a network (make test runs it, test-fast does not)
 def test_tiny_sgm_refiner_removes_a_subpixel_bias() -> None:
     left, right, gt, sgm = _sgm_pair(bias=0.3)
     net = StereoNet(SGM_TINY)
