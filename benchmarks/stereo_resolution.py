@@ -36,28 +36,19 @@ from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
 from traffictwin.stats import statistic_ci
 from traffictwin.stereo.metrics import (
+    CRITICAL_M,
     RANGE_EDGES_M,
     depth_error_counts,
     depth_error_summary,
     histogram_quantile,
+    object_mask,
     range_bin_names,
 )
 from traffictwin.stereo.sgm import compute_disparity, make_matcher
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the 1.5 s headway at 8-14 m/s (m)
-CRITICAL_M = (12.0, 21.0)
 #: distance bins of the figure's error curve (m)
 CURVE_EDGES_M = np.arange(2.0, 62.0, 2.0)
-
-
-def object_mask(depth: np.ndarray, cam: StereoCamera) -> np.ndarray:
-    """Pixels of objects (boxes), not road surface or sky: finite depth clearly in front of the
-    ground plane ``Z = h * fy / (v - cy)`` of that row (the camera has no pitch)."""
-    v = np.arange(depth.shape[-2], dtype=np.float64)[:, None]
-    with np.errstate(divide="ignore"):
-        ground = np.where(v > cam.cy, cam.mount_height * cam.fy / (v - cam.cy), np.inf)
-    return np.isfinite(depth) & (depth < 0.97 * ground)
 
 
 def frames(n: int, seed: int) -> list[tuple]:
@@ -92,7 +83,7 @@ def measure(width: int, nd320: int, items: list[tuple], seed: int) -> dict:
         d = compute_disparity(p["left"], p["right"], matcher=m)
         sgm_ms.append(1e3 * (time.perf_counter() - t0))
         gt = p["disp_gt"]
-        obj = object_mask(p["depth"], cam)
+        obj = object_mask(p["depth"], cam.cy, cam.fy, cam.mount_height)
         crit_obj.append(depth_error_counts(d[obj], gt[obj], fx_b, CRITICAL_M))
         crit_all.append(depth_error_counts(d, gt, fx_b, CRITICAL_M))
         c = depth_error_counts(d, gt, fx_b, RANGE_EDGES_M)

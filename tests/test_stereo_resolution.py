@@ -1,4 +1,5 @@
-"""benchmarks/stereo_resolution.py: the object mask and a tiny end-to-end run."""
+"""The object mask (traffictwin.stereo.metrics, used by benchmarks/stereo_resolution.py and the
+stereo_learned stage) and a tiny end-to-end run of the benchmark."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from benchmarks import stereo_resolution as B
 from traffictwin.sim.camera import StereoCamera
+from traffictwin.stereo.metrics import object_mask
 
 
 def test_object_mask_separates_objects_from_road_and_sky() -> None:
@@ -20,7 +22,7 @@ def test_object_mask_separates_objects_from_road_and_sky() -> None:
     depth[20, 10] = 0.5 * ground[4]  # a box in front of the road
     depth[5, 3] = 30.0  # a building above the horizon
     depth[25, 40] = 0.99 * ground[9]  # road within 3 %: still road
-    mask = B.object_mask(depth, cam)
+    mask = object_mask(depth, cam.cy, cam.fy, cam.mount_height)
     assert mask[20, 10] and mask[5, 3]
     assert not mask[25, 40] and not mask[0, 0]  # road, sky
     assert mask.sum() == 2

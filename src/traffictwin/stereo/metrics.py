@@ -96,6 +96,20 @@ def per_frame_accuracy(df: pd.DataFrame) -> pd.DataFrame:
 
 
 # --------------------------------------------------------------------------- depth error by range
+#: the critical distances (m): the 1.5 s time headway at urban speeds of 8-14 m/s
+CRITICAL_M = (12.0, 21.0)
+
+
+def object_mask(depth: np.ndarray, cy: float, fy: float, mount_height: float) -> np.ndarray:
+    """Pixels of objects (boxes), not road surface or sky: finite depth (m) clearly in front of the
+    ground plane ``Z = mount_height * fy / (v - cy)`` of that row (a camera without pitch;
+    ``cy``, ``fy`` px, ``mount_height`` m). ``depth`` (..., H, W)."""
+    v = np.arange(depth.shape[-2], dtype=np.float64)[:, None]
+    with np.errstate(divide="ignore"):
+        ground = np.where(v > cy, mount_height * fy / (v - cy), np.inf)
+    return np.isfinite(depth) & (depth < 0.97 * ground)
+
+
 #: default range bins of the relative depth error (m): near, urban critical distances, far
 RANGE_EDGES_M = (0.0, 10.0, 30.0, 90.0)
 #: histogram edges of the relative depth error |Z - Z_gt| / Z_gt: 0.05 % steps up to 100 %, then

@@ -1,0 +1,105 @@
+"""Stage `train_stereo`: train the learned stereo network on data/risk's exact disparity.
+
+Usage: ``python -m pipelines.train_stereo``. Reads params.yaml (``stereo_model``, ``trainer``,
+``seed``), ``data/risk`` (fault-free train pairs as random crops, fault-free validation pairs
+whole) and, for ``architecture.base: sgm`` (the refiner of SGM), ``data/disparity``'s SGM of the
+same frames (full-frame SGM, cropped like the images). Writes, each atomically and only after training succeeded:
+``models/stereo/learned/model.ckpt`` (best on val/epe), ``model_meta.json`` (with the spread
+threshold calibrated on validation), ``reports/metrics/train_stereo.json``,
+``reports/plots/train_stereo.csv`` and the learning curves ``reports/figures/train_stereo.png``.
+MLflow: experiment ``stereo``, run ``stereo``. Library: :mod:`traffictwin.stereo.training`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from traffictwin.config import flatten, get, typed
+from traffictwin.io.shards import DatasetError
+from traffictwin.stereo.training import StereoData, StereoModelConfig, fit_stereo
+from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
+
+from ._common import params, run_stage, setup_logging, stage_timer, training_record
+from ._paths import (
+    DISPARITY,
+    PARAMS,
+    RISK_DATA,
+    STEREO_MODEL,
+    figure_file,
+    metrics_file,
+    plot_file,
+    resume_dir,
+)
+
+KEY = "stereo_model"
+STAGE = "train_stereo"
+
+
+def model_config(p) -> StereoModelConfig:
+    """The validated ``stereo_model`` group (its architecture builds, the crop fits it)."""
+    mc = typed(get(p, KEY, dict), StereoModelConfig, key=KEY, source=PARAMS.name)
+    mc.net_spec(PARAMS.name)
+    return mc
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.parse_args(argv)
+    p = params()
+    mc = model_config(p)
+    spec = mc.net_spec(PARAMS.name)
+    if not (RISK_DATA / "manifest.json").exists():
+        raise DatasetError(f"{RISK_DATA}: no manifest.json (run `dvc repro generate_risk` first)")
+    if spec.base == "sgm" and not (DISPARITY / "manifest.json").exists():
+        raise DatasetError(f"{DISPARITY}: no manifest.json (run `dvc repro disparity` first)")
+    log = setup_logging()
+    trainer = TrainerSettings.from_cfg(p, source=PARAMS.name)
+    trainer.check_available(PARAMS.name)
+    tracking = TrackingSettings(
+        experiment="stereo",
+        run_name="stereo",
+        profile=get(p, "profile.name", str),
+        stage=STAGE,
+        params=flatten(
+            {
+                KEY: get(p, KEY, dict),
+                "trainer": get(p, "trainer", dict),
+                "seed": get(p, "seed", int),
+            }
+        ),
+    )
+    out = STEREO_MODEL
+    with stage_timer(STAGE) as record:
+        res = fit_stereo(
+            StereoData(RISK_DATA, get(p, "seed", int, min=0), DISPARITY),
+            spec=spec,
+            train=mc.train,
+            trainer_settings=trainer,
+            outputs=ModelOutputs(
+                out / "model.ckpt", out / "model_meta.json", metrics_file(STAGE), plot_file(STAGE)
+            ),
+            tracking=tracking,
+            resume_dir=resume_dir(STAGE),
+        )
+        if res is not None:
+            record.update(training_record(res, out / "model.ckpt"))
+    if res is not None:
+        from traffictwin.io.atomic import save_figure
+        from traffictwin.stereo.figures import learning_curves
+
+        save_figure(learning_curves(res.history, "learned stereo network"), figure_file(STAGE))
+        m = res.metrics
+        log.info(
+            "%s: best epoch %s of %s, val EPE %.3f px, bad-1 %.3f, spread threshold %.2f px, %.1f s",
+            STAGE,
+            m["best_epoch"] + 1,
+            m["epochs"],
+            m.get("val/epe", float("nan")),
+            m.get("val/bad1", float("nan")),
+            m["spread_threshold_px"],
+            res.train_seconds,
+        )
+
+
+if __name__ == "__main__":
+    run_stage(main, STAGE)

@@ -1,0 +1,81 @@
+"""Figures of the learned stereo network: learning curves and test-frame examples."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+
+def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
+    """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
+    epoch (lowest val/epe) is marked."""
+    from traffictwin.fusion.figures import _plt
+    from traffictwin.fusion.training_figures import LOSS_LINES, _series, finish_figure, plot_series
+
+    if not rows:
+        raise ValueError("learning_curves: no epochs to plot")
+    plt = _plt()
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    e, v = _series(rows, "val/epe")
+    ax1.plot(e, v, "o-", label="validation")
+    if len(v):
+        b = int(np.argmin(v))
+        ax1.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}")
+    ax1.set(xlabel="epoch", ylabel="end-point error (px)", title="validation EPE")
+    e, v = _series(rows, "val/bad1")
+    ax2.plot(e, 100 * v, "s-", label="validation")
+    ax2.set(xlabel="epoch", ylabel="pixels with error > 1 px (%)", title="validation bad-1")
+    plot_series(ax3, rows, LOSS_LINES)
+    ax3.set(xlabel="epoch", ylabel="loss (-)", title="loss")
+    return finish_figure(fig, (ax1, ax2, ax3), title)
+
+
+def example_figure(
+    left: np.ndarray,
+    exact: np.ndarray,
+    sgm: np.ndarray,
+    learned: np.ndarray,
+    vmax: float,
+):
+    """Rows of frames, columns left | exact | SGM | learned | |learned - exact| (px, colour bars);
+    invalid (< 0) disparities and pixels without ground truth are shown blank."""
+    from traffictwin.fusion.figures import _plt
+
+    plt = _plt()
+    n = len(left)
+    fig, axes = plt.subplots(n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False)
+    titles = (
+        "left image",
+        "exact disparity (px)",
+        "SGM (px)",
+        "learned (px)",
+        "|learned - exact| (px)",
+    )
+    for i in range(n):
+        g = np.where(exact[i] > 0, exact[i], np.nan)
+        err = np.where((exact[i] > 0) & (learned[i] >= 0), np.abs(learned[i] - exact[i]), np.nan)
+        maps = (
+            None,
+            g,
+            np.where(sgm[i] >= 0, sgm[i], np.nan),
+            np.where(learned[i] >= 0, learned[i], np.nan),
+            err,
+        )
+        for j, ax in enumerate(axes[i]):
+            if j == 0:
+                ax.imshow(left[i][..., ::-1])
+            else:
+                im = ax.imshow(
+                    maps[j],
+                    cmap="magma" if j == 4 else "viridis",
+                    vmin=0,
+                    vmax=2.0 if j == 4 else vmax,
+                )
+                fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(titles[j], fontsize=9)
+    fig.tight_layout()
+    return fig

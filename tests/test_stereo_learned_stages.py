@@ -1,0 +1,209 @@
+"""Stages train_stereo and stereo_learned on a tiny rendered data set: the model files, the
+aligned data/stereo_learned shards, the test metrics, and bad inputs refused before anything is
+written."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipelines import disparity as disparity_stage
+from pipelines import stereo_learned as stage
+from pipelines import train_stereo
+from traffictwin.config import ConfigError
+from traffictwin.grid import GridSpec
+from traffictwin.io.shards import Dataset, DatasetError, DatasetWriter
+from traffictwin.risk.dataset import RiskDataSpec, assign_splits, frame_table, make_shard
+from traffictwin.risk.metric import RiskConfig
+from traffictwin.sim.camera import StereoCamera
+from traffictwin.sim.driving import DrivingConfig
+from traffictwin.stereo.network import StereoNetSpec
+from traffictwin.stereo.sgm import SgmParams
+from traffictwin.stereo.training import (
+    StereoData,
+    StereoModelError,
+    StereoTrainConfig,
+    fit_stereo,
+    load_stereo_model,
+)
+from traffictwin.trainer import ModelOutputs, TrainerSettings
+
+SPEC = RiskDataSpec(
+    DrivingConfig(frames=3, warmup=1.0, fault_delay=0.0, fault_vertical=0.0),
+    StereoCamera(width=128, height=64),
+    GridSpec(128, 96, 0.64),
+    RiskConfig(subject_length=4.8, subject_width=1.9),
+)
+SGM = SgmParams(16, 5, 10, 100, 2, False)
+NET = StereoNetSpec(
+    max_disparity=32,
+    stride=4,
+    feature_channels=8,
+    aggregation_channels=4,
+    aggregation_layers=1,
+    refine_channels=8,
+    refine_dilations=(1, 2),
+)
+TRAIN = StereoTrainConfig(
+    batch_size=2,
+    crop_height=32,
+    crop_width=64,
+    max_epochs=2,
+    steps_per_epoch=2,
+    max_train_frames=0,
+    val_frames=2,
+    early_stopping_patience=2,
+    lr=1e-3,
+    weight_decay=0.0,
+    rel_weight=1.0,
+    coarse_weight=0.5,
+    valid_density=0.8,
+)
+
+
+def _risk(root: Path, seed: int = 3, n: int = 5) -> Path:
+    splits = assign_splits(n, seed)
+    w = DatasetWriter(root, "risk", {"seed": seed}, seed)
+    rows = {}
+    for i in range(n):
+        arrays, rows[i] = make_shard(seed, i, SPEC)
+        w.add_shard(i, arrays, split=splits[i])
+    w.add_table("frames.csv", frame_table(rows, splits))
+    w.finalize(extra={"camera": SPEC.camera.intrinsics()})
+    return root
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("stereo_learned")
+    _risk(root / "risk")
+    disparity_stage.run(SGM, 1, [0.0, 10.0, 30.0, 90.0], src=root / "risk", out=root / "disparity")
+    settings = TrainerSettings(accelerator="cpu", devices=1, precision="32-true")
+    model = root / "model"
+    fit_stereo(
+        StereoData(root / "risk", 0),
+        spec=NET,
+        train=TRAIN,
+        trainer_settings=settings,
+        outputs=ModelOutputs(model / "model.ckpt", model / "model_meta.json", root / "m.json"),
+    )
+    return root
+
+
+def test_train_writes_a_sealed_model_with_its_spread_threshold(data: Path) -> None:
+    meta = json.loads((data / "model" / "model_meta.json").read_text())
+    assert meta["spread_threshold_px"] > 0 and meta["valid_density"] == 0.8
+    m = json.loads((data / "m.json").read_text())
+    assert {"val/epe", "val/bad1", "spread_threshold_px", "calibration/spread_decile9/epe"} <= set(
+        m
+    )
+    net = load_stereo_model(data / "model")
+    assert net.meta["spread_threshold_px"] == meta["spread_threshold_px"]
+    # an edited threshold in the JSON is refused (the checkpoint's sealed copy differs)
+    edited = data / "edited"
+    edited.mkdir()
+    (edited / "model.ckpt").write_bytes((data / "model" / "model.ckpt").read_bytes())
+    (edited / "model_meta.json").write_text(json.dumps({**meta, "spread_threshold_px": 99.0}))
+    with pytest.raises(StereoModelError):
+        load_stereo_model(edited)
+    with pytest.raises(StereoModelError, match="not found"):
+        load_stereo_model(data / "nowhere")
+
+
+def test_stereo_learned_writes_aligned_shards_and_test_metrics(data: Path) -> None:
+    fig = data / "example.png"
+    m = stage.run(
+        data / "model", data / "risk", data / "disparity", data / "out", n_boot=20, figure=fig
+    )
+    risk, out = Dataset(data / "risk", kind="risk"), Dataset(data / "out", kind="stereo_learned")
+    assert len(out.shards) == len(risk.shards)
+    thr = json.loads((data / "model" / "model_meta.json").read_text())["spread_threshold_px"]
+    for a, b in zip(risk.shards, out.shards):
+        assert (a["count"], a["split"]) == (b["count"], b["split"])
+    sh, src = out.load_shard(0), risk.load_shard(0)
+    assert set(sh) == {"disp_learned", "disp_learned_spread"}
+    assert (
+        sh["disp_learned"].dtype == np.float32 and sh["disp_learned"].shape == src["disp_gt"].shape
+    )
+    invalid = sh["disp_learned_spread"] > thr
+    assert (sh["disp_learned"][invalid] == -1).all() and (sh["disp_learned"][~invalid] >= 0).all()
+    for source in ("sgm", "learned"):
+        for mask in ("common", "own"):
+            for k in (
+                "epe",
+                "bad1",
+                "bad2",
+                "density",
+                "z10-30m_relerr_median",
+                "crit_obj_relerr_p90",
+            ):
+                assert f"{source}/{mask}/{k}" in m and f"{source}/{mask}/{k}_lo" in m
+    assert m["sgm/common/density"] == pytest.approx(m["learned/common/density"])
+    assert "diff_learned_minus_sgm/common/epe_hi" in m and m["test/frames"] > 0
+    json.dumps(m, allow_nan=False)
+    assert fig.stat().st_size > 1000
+
+
+def test_stereo_learned_refuses_bad_inputs_and_writes_nothing(data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(DatasetError, match="no manifest.json"):
+        stage.run(data / "model", tmp_path / "no_risk", data / "disparity", out, n_boot=20)
+    other = _risk(tmp_path / "other_risk", seed=4, n=1)
+    with pytest.raises(DatasetError, match="made from another data/risk"):
+        stage.run(data / "model", other, data / "disparity", out, n_boot=20)
+    with pytest.raises(StereoModelError):
+        stage.run(tmp_path / "no_model", data / "risk", data / "disparity", out, n_boot=20)
+    assert not out.exists()
+
+
+def test_train_stereo_rejects_a_crop_narrower_than_the_disparity_range() -> None:
+    p = {
+        "stereo_model": {
+            "architecture": NET.as_dict(),
+            "train": {**vars(TRAIN), "crop_width": 32},
+        }
+    }
+    with pytest.raises(ConfigError, match="crop_width.*must exceed.*max_disparity"):
+        train_stereo.model_config(p)
+    p["stereo_model"]["architecture"]["stride"] = 3
+    with pytest.raises(ConfigError, match="stereo_model.architecture"):
+        train_stereo.model_config(p)
+
+
+def test_sgm_mode_trains_on_data_disparity_and_keeps_sgm_validity(
+    data: Path, tmp_path: Path
+) -> None:
+    spec = StereoNetSpec(
+        base="sgm", refine_channels=4, refine_dilations=(1,), refine_stride=1, max_residual_px=1.0
+    )
+    model = tmp_path / "model"
+    outputs = ModelOutputs(model / "model.ckpt", model / "model_meta.json", tmp_path / "m.json")
+    settings = TrainerSettings(accelerator="cpu", devices=1, precision="32-true")
+    with pytest.raises(DatasetError, match="data/disparity"):
+        fit_stereo(
+            StereoData(data / "risk", 0),
+            spec=spec,
+            train=TRAIN,
+            trainer_settings=settings,
+            outputs=outputs,
+        )
+    assert not model.exists()
+    fit_stereo(
+        StereoData(data / "risk", 0, data / "disparity"),
+        spec=spec,
+        train=TRAIN,
+        trainer_settings=settings,
+        outputs=outputs,
+    )
+    meta = json.loads((model / "model_meta.json").read_text())
+    assert meta["architecture"]["base"] == "sgm" and meta["spread_threshold_px"] == 1.0
+    m = stage.run(model, data / "risk", data / "disparity", tmp_path / "out", n_boot=20)
+    out, sgm = Dataset(tmp_path / "out", kind="stereo_learned"), Dataset(data / "disparity")
+    for i in range(len(out.shards)):
+        d, s = out.load_shard(i)["disp_learned"], sgm.load_shard(i)["disp_sgm"]
+        assert np.array_equal(d < 0, s < 0)  # density = SGM's
+        assert np.abs(d - s)[s >= 0].max() <= 1.0 + 1e-5  # the bounded residual
+    assert m["learned/own/density"] == pytest.approx(m["sgm/own/density"])
