@@ -12,7 +12,7 @@ params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
   ``disp_learned_spread`` (N, H, W) float32 px. A ``base: sgm`` model refines data/disparity's
   ``disp_sgm`` (its input): ``disp_learned`` is -1 exactly where SGM is, and the spread holds the
   |residual| added to SGM (px, 0 where SGM is invalid; the threshold keeps every SGM pixel);
-- ``reports/metrics/stereo.json``: on the fault-free test frames, for ``sgm`` and ``learned``, on the
+- ``reports/metrics/stereo.json``: the learned stereo's ``targets`` (:mod:`traffictwin.stereo.targets`) and, on the fault-free test frames, for ``sgm`` and ``learned``, on the
   pixels with ground truth that both sources mark valid (``common``) and on each source's own valid
   pixels (``own``, with its ``density`` among the ground-truth pixels): EPE, bad-1, bad-2, the
   relative range error |Z - Z_gt| / Z_gt (median, p90) per distance band (0-10, 10-30, 30-90 m)
@@ -49,6 +49,7 @@ from traffictwin.stereo.metrics import (
     object_mask,
     range_bin_names,
 )
+from traffictwin.stereo.targets import stereo_targets
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, RISK_DATA, STEREO_LEARNED, STEREO_MODEL, figure_file, metrics_file
@@ -182,7 +183,7 @@ def run(
 ) -> dict[str, float]:
     """The network on every pair of ``src`` into ``out``; returns the test metrics. Nothing is
     written when an input is missing or inconsistent."""
-    from traffictwin.stereo.training import load_stereo_model, predict
+    from traffictwin.risk.stereo_training import load_stereo_model, predict
     from traffictwin.threads import pin_threads
 
     log = setup_logging()
@@ -241,6 +242,7 @@ def run(
     metrics = {
         k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()
     }
+    metrics["targets"] = stereo_targets(metrics)
     ms = 1000.0 * seconds / max(n_frames, 1)
     if record is not None:  # timings vary between identical runs: run record only
         record["ms_per_frame"] = round(ms, 3)

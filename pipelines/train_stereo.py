@@ -7,7 +7,7 @@ same frames (full-frame SGM, cropped like the images). Writes, each atomically a
 ``models/stereo/learned/model.ckpt`` (best on val/epe), ``model_meta.json`` (with the spread
 threshold calibrated on validation), ``reports/metrics/train_stereo.json``,
 ``reports/plots/train_stereo.csv`` and the learning curves ``reports/figures/train_stereo.png``.
-MLflow: experiment ``stereo``, run ``stereo``. Library: :mod:`traffictwin.stereo.training`.
+MLflow: experiment ``stereo``, run ``stereo``. Library: :mod:`traffictwin.risk.stereo_training`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import argparse
 
 from traffictwin.config import flatten, get, typed
 from traffictwin.io.shards import DatasetError
-from traffictwin.stereo.training import StereoData, StereoModelConfig, fit_stereo
+from traffictwin.risk.stereo_training import StereoData, StereoModelConfig, fit_stereo
 from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record

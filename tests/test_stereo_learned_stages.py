@@ -18,17 +18,17 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset, DatasetError, DatasetWriter
 from traffictwin.risk.dataset import RiskDataSpec, assign_splits, frame_table, make_shard
 from traffictwin.risk.metric import RiskConfig
-from traffictwin.sim.camera import StereoCamera
-from traffictwin.sim.driving import DrivingConfig
-from traffictwin.stereo.network import StereoNetSpec
-from traffictwin.stereo.sgm import SgmParams
-from traffictwin.stereo.training import (
+from traffictwin.risk.stereo_training import (
     StereoData,
     StereoModelError,
     StereoTrainConfig,
     fit_stereo,
     load_stereo_model,
 )
+from traffictwin.sim.camera import StereoCamera
+from traffictwin.sim.driving import DrivingConfig
+from traffictwin.stereo.network import StereoNetSpec
+from traffictwin.stereo.sgm import SgmParams
 from traffictwin.trainer import ModelOutputs, TrainerSettings
 
 SPEC = RiskDataSpec(

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from traffictwin.risk.stereo_training import calibrate_spread, predict
 from traffictwin.stereo.network import (
     StereoNet,
     StereoNetSpec,
@@ -15,7 +16,6 @@ from traffictwin.stereo.network import (
     to_input,
     warp_right,
 )
-from traffictwin.stereo.training import calibrate_spread, predict
 
 TINY = StereoNetSpec(
     max_disparity=16,

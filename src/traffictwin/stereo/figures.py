@@ -7,28 +7,47 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 
+def _plt():
+    """matplotlib.pyplot on the Agg backend (no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _per_epoch(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(epochs, values) of the rows that have ``key``."""
+    pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
+    return tuple(np.array(pts, dtype=np.float64).T) if pts else (np.empty(0), np.empty(0))
+
+
 def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
     """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
     epoch (lowest val/epe) is marked."""
-    from traffictwin.fusion.figures import _plt
-    from traffictwin.fusion.training_figures import LOSS_LINES, _series, finish_figure, plot_series
-
     if not rows:
         raise ValueError("learning_curves: no epochs to plot")
     plt = _plt()
     fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
-    e, v = _series(rows, "val/epe")
+    e, v = _per_epoch(rows, "val/epe")
     ax1.plot(e, v, "o-", label="validation")
     if len(v):
         b = int(np.argmin(v))
         ax1.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}")
     ax1.set(xlabel="epoch", ylabel="end-point error (px)", title="validation EPE")
-    e, v = _series(rows, "val/bad1")
+    e, v = _per_epoch(rows, "val/bad1")
     ax2.plot(e, 100 * v, "s-", label="validation")
     ax2.set(xlabel="epoch", ylabel="pixels with error > 1 px (%)", title="validation bad-1")
-    plot_series(ax3, rows, LOSS_LINES)
+    for key, style, label in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
+        ax3.plot(*_per_epoch(rows, key), style, label=label)
     ax3.set(xlabel="epoch", ylabel="loss (-)", title="loss")
-    return finish_figure(fig, (ax1, ax2, ax3), title)
+    for ax in (ax1, ax2, ax3):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
 
 
 def example_figure(
@@ -40,8 +59,6 @@ def example_figure(
 ):
     """Rows of frames, columns left | exact | SGM | learned | |learned - exact| (px, colour bars);
     invalid (< 0) disparities and pixels without ground truth are shown blank."""
-    from traffictwin.fusion.figures import _plt
-
     plt = _plt()
     n = len(left)
     fig, axes = plt.subplots(n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False)

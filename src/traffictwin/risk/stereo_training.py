@@ -1,4 +1,4 @@
-"""Training of the learned stereo network (:mod:`traffictwin.stereo.network`) on data/risk.
+"""Training of the learned stereo network (:mod:`traffictwin.stereo.network`) on the risk data's rendered pairs and exact disparity (lives with the risk problem: it reads data/risk).
 
 - :func:`load_pairs` — the fault-free stereo pairs of one split of a ``data/risk`` dataset (left,
   right BGR uint8, exact disparity px), evenly spaced up to a count;
