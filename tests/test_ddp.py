@@ -190,13 +190,17 @@ def test_ddp_stages_log_one_mlflow_run_each(ddp_repo: dict) -> None:
             "SELECT e.name, r.name, r.status, r.run_uuid FROM runs r "
             "JOIN experiments e ON e.experiment_id = r.experiment_id"
         ).fetchall()
+    # a run's name: the stage's run name, then in brackets what differs from the committed
+    # params.yaml (here the DDP trainer)
+    base = {r[3]: r[1].split(" [")[0] for r in rows}
+    with sqlite3.connect(repo / "mlflow.db") as db:
         params = dict(
             db.execute(
                 "SELECT key, value FROM params WHERE run_uuid = ?",
-                (next(r[3] for r in rows if r[1] == "fusion-network"),),
+                (next(u for u, n in base.items() if n == "fusion-network"),),
             ).fetchall()
         )
-    assert sorted(r[:3] for r in rows) == [
+    assert sorted((r[0], base[r[3]], r[2]) for r in rows) == [
         ("fusion", "fusion-network", "FINISHED"),
         ("risk", "risk-headline", "FINISHED"),
     ]

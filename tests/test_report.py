@@ -651,15 +651,14 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     assert "Stage wall times" not in md and "Stage wall times" in timings_md
     for stage in timed:
         assert f"| {stage} |" in timings_md, stage
-    # the DVC metrics: the headline numbers and the two trainings' validation numbers (what
-    # `dvc exp diff` compares between training-only experiments); every detailed
-    # metrics file is an output shown in the report
+    # the DVC metrics: the two summaries (each problem's headline test numbers and its training's
+    # best-epoch validation numbers, what `dvc exp show` compares); every detailed metrics file
+    # is an output shown in the report
     shown = json.loads(run(["dvc", "metrics", "show", "--json"], ci_dag).stdout)
     declared = {p for rev in shown.values() for p in rev.get("data", {})}
     assert declared == {
-        "reports/summary.json",
-        "reports/metrics/train_fusion_network.json",
-        "reports/metrics/train_registration.json",
+        "reports/metrics/summary_fusion.json",
+        "reports/metrics/summary_risk.json",
     }, declared
     summary = json.loads((reports / "summary.json").read_text())
     assert set(summary) == {"run", "fusion", "risk", "twin"}  # run.note: the ci smoke banner

@@ -110,8 +110,16 @@ def test_evaluate_risk_outputs(ci_dag: Path) -> None:
 
     metrics = json.loads((ci_dag / "reports" / "metrics" / "risk.json").read_text())
     variants = _variants(ci_dag)
-    # the networks, the hybrid's seeds (ci: two) and the shipped predictor (select_risk)
-    assert set(metrics["models"]) == {*variants, "hybrid", "hybrid_s1", "shipped"}
+    # the networks, the hybrid's seeds (ci: two) on SGM and on the learned stereo network's
+    # disparity, and the shipped predictor (select_risk)
+    assert set(metrics["models"]) == {
+        *variants,
+        "hybrid",
+        "hybrid_s1",
+        "hybrid_learned",
+        "hybrid_learned_s1",
+        "shipped",
+    }
     assert metrics["groups"]["hybrid"]["n_seeds"] == 2
     assert {"train_mean", "train_median", "speed_only", "geometric_sgm", "geometric_gt"} <= set(
         metrics["baselines"]
