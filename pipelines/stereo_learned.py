@@ -1,8 +1,8 @@
 """Stage stereo_learned: the learned stereo network on every pair of data/risk -> data/stereo_learned,
 and the stereo evaluation of SGM and the learned network on the test split.
 
-Usage: ``python -m pipelines.stereo_learned``. Reads ``models/stereo/learned`` (sealed,
-weights-only), ``data/risk``, ``data/disparity`` (SGM, must be made from the same data/risk) and
+Usage: ``python -m pipelines.stereo_learned``. Reads ``models/stereo/learned`` and
+``models/stereo/holdout`` (sealed, weights-only), ``data/risk``, ``data/disparity`` (SGM, must be made from the same data/risk) and
 params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
 ``evaluation.stereo.n_boot``. Writes, each atomically:
 
@@ -18,7 +18,10 @@ params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
   relative range error |Z - Z_gt| / Z_gt (median, p90) per distance band (0-10, 10-30, 30-90 m)
   and on the object pixels at the critical distances (12-21 m), each with a sequence-bootstrap
   95 % interval; paired differences learned - SGM (EPE, critical-object median) with intervals;
-  ``learned/ms_per_frame`` (batch inference, this CPU) goes to the run record;
+  ``learned/ms_per_frame`` (batch inference, this CPU) goes to the run record; ``generalisation``:
+  the same figures for SGM, the full network and ``models/stereo/holdout`` (trained without its
+  meta's ``holdout_templates``) on those templates' fault-free test frames, with the paired
+  differences holdout − learned and holdout − SGM;
 - ``reports/figures/stereo_learned_example.png``: left | exact | SGM | learned | error for test frames.
 """
 
@@ -52,7 +55,15 @@ from traffictwin.stereo.metrics import (
 from traffictwin.stereo.targets import stereo_targets
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, RISK_DATA, STEREO_LEARNED, STEREO_MODEL, figure_file, metrics_file
+from ._paths import (
+    DISPARITY,
+    RISK_DATA,
+    STEREO_HOLDOUT_MODEL,
+    STEREO_LEARNED,
+    STEREO_MODEL,
+    figure_file,
+    metrics_file,
+)
 
 STAGE = "stereo_learned"
 SOURCES = ("sgm", "learned")
@@ -112,11 +123,16 @@ def _stats(s: dict[str, np.ndarray], w: np.ndarray) -> dict[str, float]:
 
 
 def evaluate(
-    sums: dict[str, dict[str, np.ndarray]], sequences: np.ndarray, n_boot: int, seed: int = 0
+    sums: dict[str, dict[str, np.ndarray]],
+    sequences: np.ndarray,
+    n_boot: int,
+    seed: int = 0,
+    pairs: tuple[tuple[str, str], ...] = (("learned", "sgm"),),
 ) -> dict[str, float]:
-    """``<source>/<mask>/<metric>`` with ``_lo`` / ``_hi`` (sequence-bootstrap 95 % interval) and
-    the paired ``diff_learned_minus_sgm/<mask>/{epe,crit_obj_relerr_median}``; ``sums`` per frame
-    (:func:`frame_sums`), ``sequences`` the frame's sequence (the bootstrap cluster)."""
+    """``<source>/<mask>/<metric>`` with ``_lo`` / ``_hi`` (sequence-bootstrap 95 % interval) and,
+    for each ``(a, b)`` of ``pairs``, the paired ``diff_<a>_minus_<b>/<mask>/{epe,
+    crit_obj_relerr_median}``; ``sums`` per frame (:func:`frame_sums`), ``sequences`` the frame's
+    sequence (the bootstrap cluster)."""
     codes, inv = np.unique(sequences, return_inverse=True)
     g = len(codes)
     per_seq = {  # frames summed per sequence: a resample weights the sequences by their counts
@@ -139,8 +155,8 @@ def evaluate(
             )
             out[f"{key}/{metric}"] = est
             out[f"{key}/{metric}_lo"], out[f"{key}/{metric}_hi"] = ci.lo, ci.hi
-    for mask in MASKS:
-        a, b = per_seq[f"learned/{mask}"], per_seq[f"sgm/{mask}"]
+    for (first, second), mask in ((p, m) for p in pairs for m in MASKS):
+        a, b = per_seq[f"{first}/{mask}"], per_seq[f"{second}/{mask}"]
         for metric in ("epe", "crit_obj_relerr_median"):
             ci = statistic_ci(
                 lambda idx, m=metric, a=a, b=b: (
@@ -150,7 +166,7 @@ def evaluate(
                 n_boot=n_boot,
                 seed=seed,
             )
-            key = f"diff_learned_minus_sgm/{mask}/{metric}"
+            key = f"diff_{first}_minus_{second}/{mask}/{metric}"
             out[key], out[key + "_lo"], out[key + "_hi"] = ci.estimate, ci.lo, ci.hi
     return out
 
@@ -180,9 +196,12 @@ def run(
     batch_size: int = 8,
     figure: Path | None = None,
     record: dict | None = None,
-) -> dict[str, float]:
+    holdout_model: Path | None = None,
+) -> dict[str, Any]:
     """The network on every pair of ``src`` into ``out``; returns the test metrics. Nothing is
-    written when an input is missing or inconsistent."""
+    written when an input is missing or inconsistent. ``holdout_model``: the network trained
+    without some road templates (its meta's ``holdout_templates``), scored with the full one and
+    SGM on those templates' fault-free test frames (``generalisation``)."""
     from traffictwin.risk.stereo_training import load_stereo_model, predict
     from traffictwin.threads import pin_threads
 
@@ -190,6 +209,10 @@ def run(
     if not (Path(src) / "manifest.json").exists():
         raise DatasetError(f"{src}: no manifest.json (run `dvc repro generate_risk` first)")
     net = load_stereo_model(model)
+    held_net = load_stereo_model(holdout_model) if holdout_model is not None else None
+    held = [str(t) for t in (held_net.meta.get("holdout_templates") or [])] if held_net else []  # type: ignore[attr-defined]
+    if held_net is not None and not held:
+        raise DatasetError(f"{holdout_model}: model_meta.json names no held-out road templates")
     ds = Dataset(src, kind="risk")  # verifies every shard's SHA-256
     sgm = check_disparity(ds, disparity)
     cam = ds.manifest.get("camera") or {}
@@ -211,6 +234,8 @@ def run(
     acc: list[dict[str, dict[str, Any]]] = []
     seqs: list[np.ndarray] = []
     keep: list[tuple[int, np.ndarray]] = []
+    gen_acc: list[dict[str, dict[str, Any]]] = []  # the held-out templates' test frames
+    gen_seqs: list[np.ndarray] = []
     for i, info in enumerate(ds.shards):
         sh = load_stereo_shard(ds, i, ("left", "right", "disp_gt"))
         d_in = sgm.load_shard(i)["disp_sgm"] if net.spec.base == "sgm" else None
@@ -234,15 +259,33 @@ def run(
             acc.append(frame_sums({"sgm": d_sgm, "learned": disp[sel]}, gt, fx_b, obj))
             seqs.append(rows.scenario.to_numpy()[sel])
             keep.append((i, np.flatnonzero(sel)))
+            unseen = rows.template.astype(str).isin(held).to_numpy()[sel] if held else None
+            if unseen is not None and unseen.any():
+                d_h, spread_h = predict(
+                    held_net,
+                    sh["left"][sel][unseen],
+                    sh["right"][sel][unseen],
+                    batch_size,
+                    sgm=d_sgm[unseen] if held_net.spec.base == "sgm" else None,  # type: ignore[union-attr]
+                )
+                thr_h = float(held_net.meta["spread_threshold_px"])  # type: ignore[union-attr]
+                d_h = np.where(spread_h <= thr_h, d_h, -1.0).astype(np.float32)
+                gen_acc.append(
+                    frame_sums(
+                        {"sgm": d_sgm[unseen], "learned": disp[sel][unseen], "holdout": d_h},
+                        gt[unseen],
+                        fx_b,
+                        obj[unseen],
+                    )
+                )
+                gen_seqs.append(rows.scenario.to_numpy()[sel][unseen])
     if not acc:
         raise DatasetError(f"{src}: no fault-free test frames to evaluate on")
-    sums = {k: {f: np.concatenate([a[k][f] for a in acc]) for f in acc[0][k]} for k in acc[0]}
-    metrics = evaluate(sums, np.concatenate(seqs), n_boot)
+    metrics: dict[str, Any] = _finite(evaluate(_stack(acc), np.concatenate(seqs), n_boot))
     metrics["learned/spread_threshold_px"] = thr
-    metrics = {
-        k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()
-    }
     metrics["targets"] = stereo_targets(metrics)
+    if held_net is not None:
+        metrics["generalisation"] = generalisation(held, gen_acc, gen_seqs, n_boot)
     ms = 1000.0 * seconds / max(n_frames, 1)
     if record is not None:  # timings vary between identical runs: run record only
         record["ms_per_frame"] = round(ms, 3)
@@ -261,6 +304,34 @@ def run(
         ms,
     )
     return metrics
+
+
+def _stack(acc: list[dict[str, dict[str, Any]]]) -> dict[str, dict[str, np.ndarray]]:
+    """Per-shard :func:`frame_sums` joined frame-wise."""
+    return {k: {f: np.concatenate([a[k][f] for a in acc]) for f in acc[0][k]} for k in acc[0]}
+
+
+def _finite(metrics: dict[str, Any]) -> dict[str, Any]:
+    """NaN / inf -> ``None`` (JSON null)."""
+    return {
+        k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()
+    }
+
+
+def generalisation(
+    templates: list[str],
+    acc: list[dict[str, dict[str, Any]]],
+    sequences: list[np.ndarray],
+    n_boot: int,
+) -> dict[str, Any]:
+    """SGM, the full network (``learned``) and the one trained without ``templates``
+    (``holdout``) on those templates' fault-free test frames (:func:`evaluate`, with the paired
+    differences holdout − learned and holdout − SGM); ``why`` instead when there are none."""
+    out: dict[str, Any] = {"templates": list(templates)}
+    if not acc:
+        return {**out, "why": "no fault-free test frame of the held-out road templates"}
+    pairs = (("holdout", "learned"), ("holdout", "sgm"))
+    return {**out, **_finite(evaluate(_stack(acc), np.concatenate(sequences), n_boot, pairs=pairs))}
 
 
 def _sha(model: Path) -> str:
@@ -300,6 +371,7 @@ def main() -> None:
             n_boot=n_boot,
             figure=figure_file("stereo_learned_example"),
             record=record,
+            holdout_model=STEREO_HOLDOUT_MODEL,
         )
         write_json_atomic(metrics_file("stereo"), metrics)
 

@@ -8,13 +8,19 @@ same frames (full-frame SGM, cropped like the images). Writes, each atomically a
 threshold calibrated on validation), ``reports/metrics/train_stereo.json``,
 ``reports/plots/train_stereo.csv`` and the learning curves ``reports/figures/train_stereo.png``.
 MLflow: experiment ``stereo``, run ``stereo``. Library: :mod:`traffictwin.risk.stereo_training`.
+
+``--holdout`` (stage ``train_stereo_holdout``): the same network and training without the frames
+of ``stereo_model.holdout_templates`` (training and validation alike) -> ``models/stereo/holdout``,
+``reports/metrics/train_stereo_holdout.json`` and ``reports/plots/train_stereo_holdout.csv``
+(MLflow run ``stereo-holdout``): the generalisation model stereo_learned scores on the test
+frames of those templates.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from traffictwin.config import flatten, get, typed
+from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.io.shards import DatasetError
 from traffictwin.risk.stereo_training import StereoData, StereoModelConfig, fit_stereo
 from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
@@ -24,6 +30,7 @@ from ._paths import (
     DISPARITY,
     PARAMS,
     RISK_DATA,
+    STEREO_HOLDOUT_MODEL,
     STEREO_MODEL,
     figure_file,
     metrics_file,
@@ -33,6 +40,7 @@ from ._paths import (
 
 KEY = "stereo_model"
 STAGE = "train_stereo"
+HOLDOUT_STAGE = "train_stereo_holdout"
 
 
 def model_config(p) -> StereoModelConfig:
@@ -44,10 +52,22 @@ def model_config(p) -> StereoModelConfig:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.parse_args(argv)
+    ap.add_argument(
+        "--holdout",
+        action="store_true",
+        help="train without stereo_model.holdout_templates -> models/stereo/holdout",
+    )
+    args = ap.parse_args(argv)
     p = params()
     mc = model_config(p)
     spec = mc.net_spec(PARAMS.name)
+    held = tuple(mc.holdout_templates) if args.holdout else ()
+    if args.holdout and not held:
+        raise ConfigError(
+            f"{PARAMS.name}: 'stereo_model.holdout_templates' is empty: the generalisation model "
+            "needs at least one road template to leave out"
+        )
+    stage, out = (HOLDOUT_STAGE, STEREO_HOLDOUT_MODEL) if args.holdout else (STAGE, STEREO_MODEL)
     if not (RISK_DATA / "manifest.json").exists():
         raise DatasetError(f"{RISK_DATA}: no manifest.json (run `dvc repro generate_risk` first)")
     if spec.base == "sgm" and not (DISPARITY / "manifest.json").exists():
@@ -57,9 +77,9 @@ def main(argv: list[str] | None = None) -> None:
     trainer.check_available(PARAMS.name)
     tracking = TrackingSettings(
         experiment="stereo",
-        run_name="stereo",
+        run_name="stereo-holdout" if args.holdout else "stereo",
         profile=get(p, "profile.name", str),
-        stage=STAGE,
+        stage=stage,
         params=flatten(
             {
                 KEY: get(p, KEY, dict),
@@ -68,30 +88,30 @@ def main(argv: list[str] | None = None) -> None:
             }
         ),
     )
-    out = STEREO_MODEL
-    with stage_timer(STAGE) as record:
+    with stage_timer(stage) as record:
         res = fit_stereo(
-            StereoData(RISK_DATA, get(p, "seed", int, min=0), DISPARITY),
+            StereoData(RISK_DATA, get(p, "seed", int, min=0), DISPARITY, held),
             spec=spec,
             train=mc.train,
             trainer_settings=trainer,
             outputs=ModelOutputs(
-                out / "model.ckpt", out / "model_meta.json", metrics_file(STAGE), plot_file(STAGE)
+                out / "model.ckpt", out / "model_meta.json", metrics_file(stage), plot_file(stage)
             ),
             tracking=tracking,
-            resume_dir=resume_dir(STAGE),
+            resume_dir=resume_dir(stage),
         )
         if res is not None:
             record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
-        from traffictwin.io.atomic import save_figure
-        from traffictwin.stereo.figures import learning_curves
+        if not args.holdout:  # the learning curves of the model that ships
+            from traffictwin.io.atomic import save_figure
+            from traffictwin.stereo.figures import learning_curves
 
-        save_figure(learning_curves(res.history, "learned stereo network"), figure_file(STAGE))
+            save_figure(learning_curves(res.history, "learned stereo network"), figure_file(STAGE))
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val EPE %.3f px, bad-1 %.3f, spread threshold %.2f px, %.1f s",
-            STAGE,
+            stage,
             m["best_epoch"] + 1,
             m["epochs"],
             m.get("val/epe", float("nan")),
@@ -102,4 +122,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_stage(main, STAGE)
+    import sys
+
+    run_stage(main, HOLDOUT_STAGE if "--holdout" in sys.argv[1:] else STAGE)

@@ -23,6 +23,7 @@ from traffictwin.risk.stereo_training import (
     StereoModelError,
     StereoTrainConfig,
     fit_stereo,
+    load_pairs,
     load_stereo_model,
 )
 from traffictwin.sim.camera import StereoCamera
@@ -164,6 +165,7 @@ def test_train_stereo_rejects_a_crop_narrower_than_the_disparity_range() -> None
         "stereo_model": {
             "architecture": NET.as_dict(),
             "train": {**vars(TRAIN), "crop_width": 32},
+            "holdout_templates": [],
         }
     }
     with pytest.raises(ConfigError, match="crop_width.*must exceed.*max_disparity"):
@@ -207,3 +209,84 @@ def test_sgm_mode_trains_on_data_disparity_and_keeps_sgm_validity(
         assert np.array_equal(d < 0, s < 0)  # density = SGM's
         assert np.abs(d - s)[s >= 0].max() <= 1.0 + 1e-5  # the bounded residual
     assert m["learned/own/density"] == pytest.approx(m["sgm/own/density"])
+
+
+def test_generalisation_model_never_sees_its_templates_and_is_scored_on_them(
+    data: Path, tmp_path: Path
+) -> None:
+    """A model trained without the test sequences' road templates: its training and validation
+    frames hold none of them, and stereo_learned scores it beside the full model and SGM on
+    exactly those templates' fault-free test frames, with paired differences."""
+    import pandas as pd
+
+    frames = pd.read_csv(data / "risk" / "frames.csv")
+    held = sorted(set(frames[frames.split == "test"].template.astype(str)))
+    seen = frames[~frames.template.astype(str).isin(held) & (frames.fault == "none")]
+    assert held and {"train", "val"} <= set(seen.split), "the tiny data set must keep both splits"
+    tr = load_pairs(data / "risk", "train", exclude_templates=tuple(held))
+    assert len(tr["left"]) == int((seen.split == "train").sum())
+    with pytest.raises(DatasetError, match="no fault-free 'test' frames"):
+        load_pairs(data / "risk", "test", exclude_templates=tuple(held))
+    model = tmp_path / "holdout"
+    fit_stereo(
+        StereoData(data / "risk", 0, exclude_templates=tuple(held)),
+        spec=NET,
+        train=TRAIN,
+        trainer_settings=TrainerSettings(accelerator="cpu", devices=1, precision="32-true"),
+        outputs=ModelOutputs(model / "model.ckpt", model / "model_meta.json", tmp_path / "m.json"),
+    )
+    assert json.loads((model / "model_meta.json").read_text())["holdout_templates"] == held
+    assert json.loads((tmp_path / "m.json").read_text())["train_frames"] == len(tr["left"])
+    m = stage.run(
+        data / "model",
+        data / "risk",
+        data / "disparity",
+        tmp_path / "out",
+        n_boot=20,
+        holdout_model=model,
+    )
+    g = m["generalisation"]
+    test = frames[(frames.split == "test") & (frames.fault == "none")]
+    assert g["templates"] == held and g["test/frames"] == len(test)
+    assert g["test/sequences"] == test.scenario.nunique()
+    for source in ("sgm", "learned", "holdout"):
+        assert f"{source}/own/crit_obj_relerr_median" in g and f"{source}/own/epe_lo" in g
+    # the full model and SGM on those frames are the whole test split's figures here (every test
+    # frame is of a held-out template), so they equal the main block's
+    assert g["learned/own/epe"] == pytest.approx(m["learned/own/epe"])
+    assert g["sgm/common/epe"] != g["holdout/common/epe"]
+    d = g["diff_holdout_minus_learned/common/epe"]
+    assert d == pytest.approx(g["holdout/common/epe"] - g["learned/common/epe"])
+    assert g["diff_holdout_minus_sgm/own/crit_obj_relerr_median_lo"] is not None or (
+        g["holdout/own/crit_obj_relerr_median"] is None
+    )
+    json.dumps(m, allow_nan=False)
+    # a model without held-out templates is refused for this role; no frames of them: a reason
+    with pytest.raises(DatasetError, match="names no held-out road templates"):
+        stage.run(
+            data / "model",
+            data / "risk",
+            data / "disparity",
+            tmp_path / "out2",
+            n_boot=20,
+            holdout_model=data / "model",
+        )
+    assert not (tmp_path / "out2").exists()
+    assert stage.generalisation(["nowhere"], [], [], 20) == {
+        "templates": ["nowhere"],
+        "why": "no fault-free test frame of the held-out road templates",
+    }
+
+
+def test_train_stereo_holdout_needs_a_template(monkeypatch: pytest.MonkeyPatch) -> None:
+    p = {
+        "seed": 0,
+        "stereo_model": {
+            "architecture": NET.as_dict(),
+            "train": vars(TRAIN),
+            "holdout_templates": [],
+        },
+    }
+    monkeypatch.setattr(train_stereo, "params", lambda: p)
+    with pytest.raises(ConfigError, match="'stereo_model.holdout_templates' is empty"):
+        train_stereo.main(["--holdout"])

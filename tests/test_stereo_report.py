@@ -245,3 +245,75 @@ def test_learned_stereo_tables_show_both_sources_their_difference_and_targets(
     sec = next(s for s in report.sections if s.title == S.TITLE)
     assert not any(t.anchor.startswith("stereo-learned") for t in sec.tables)
     assert any("stereo.json` is missing: stage stereo_learned" in p for p in sec.paragraphs)
+
+
+def test_generalisation_tables_show_the_three_sources_and_the_paired_differences(
+    tmp_path: Path,
+) -> None:
+    """stereo.json's ``generalisation``: SGM | full network | without the templates (each with its
+    interval) on the held-out templates' frames, then the paired differences; a block without
+    frames shows its reason instead of numbers."""
+    g: dict = {"templates": ["roundabout", "s_curve"], "test/frames": 12, "test/sequences": 3}
+    for source, v in (("sgm", 0.3), ("learned", 0.2), ("holdout", 0.25)):
+        for mask in ("common", "own"):
+            for _, key, _ in S.GENERALISATION_ROWS:
+                g[f"{source}/{mask}/{key}"] = v
+                g[f"{source}/{mask}/{key}_lo"], g[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
+    for other, d in (("learned", 0.05), ("sgm", -0.05)):
+        for mask in ("common", "own"):
+            for key in ("epe", "crit_obj_relerr_median"):
+                k = f"diff_holdout_minus_{other}/{mask}/{key}"
+                g[k], g[k + "_lo"], g[k + "_hi"] = d, d - 0.02, d + 0.02
+    rep = _reports(
+        tmp_path,
+        {
+            "disparity.json": DISPARITY,
+            "orb.json": ORB,
+            "stereo.json": {**_stereo_json(), "generalisation": g},
+        },
+        ("stereo_learned_example.png",),
+    )
+    report = R.write_report(_inputs(rep), providers({}))
+    check_report(rep, {}, {})
+    sec = next(s for s in report.sections if s.title == S.TITLE)
+    by = {t.anchor: t for t in sec.tables}
+    t = by["stereo-generalisation"]
+    assert "roundabout, s_curve" in t.title and "12 frames of 3 sequences" in t.note
+    assert _rows(t)[0] == [
+        "end-point error [px]",
+        "0.300",
+        "[0.290, 0.310]",
+        "0.200",
+        "[0.190, 0.210]",
+        "0.250",
+        "[0.240, 0.260]",
+    ]
+    diff = _rows(by["stereo-generalisation-difference"])
+    assert diff[0] == [
+        "without − full network",
+        "pixels both sources estimate",
+        "end-point error [px]",
+        "0.050",
+        "[0.030, 0.070]",
+    ]
+    assert diff[-1][0] == "without − SGM" and diff[-1][3:] == ["-5.00 %", "[-7.00 %, -3.00 %]"]
+
+    why = {
+        "templates": ["roundabout"],
+        "why": "no fault-free test frame of the held-out road templates",
+    }
+    rep = _reports(
+        tmp_path / "why",
+        {
+            "disparity.json": DISPARITY,
+            "orb.json": ORB,
+            "stereo.json": {**_stereo_json(), "generalisation": why},
+        },
+        ("stereo_learned_example.png",),
+    )
+    sec = next(
+        s for s in R.write_report(_inputs(rep), providers({})).sections if s.title == S.TITLE
+    )
+    rows = _rows(next(t for t in sec.tables if t.anchor == "stereo-generalisation"))
+    assert rows == [["not measured", why["why"]]]
+    assert "stereo-generalisation-difference" not in {t.anchor for t in sec.tables}

@@ -74,6 +74,8 @@ class StereoModelConfig:
 
     architecture: dict[str, Any] = setting(MISSING)
     train: StereoTrainConfig = setting(MISSING)
+    #: road templates the generalisation model never sees (stage train_stereo_holdout)
+    holdout_templates: list[str] = setting(MISSING)
 
     def net_spec(self, source: str, key: str = "stereo_model") -> StereoNetSpec:
         """The validated architecture; the training crop must be wider than ``max_disparity``."""
@@ -112,12 +114,14 @@ def load_pairs(
     limit: int = 0,
     fault_free: bool = True,
     disparity: str | Path | None = None,
+    exclude_templates: tuple[str, ...] = (),
 ) -> dict[str, np.ndarray]:
     """``left``/``right`` (N, H, W, 3) BGR uint8 and ``disp_gt`` (N, H, W) float32 px of the
     ``split`` frames of ``data/risk`` at ``root`` (only fault-free pairs when ``fault_free``: a
     faulty pair's images do not match its exact disparity), ``limit`` evenly spaced (0 = all);
     with ``disparity`` (a ``data/disparity`` folder aligned 1:1 with ``root``) also ``disp_sgm``
-    (N, H, W) float32 px, -1 invalid: SGM of the full frames. Errors name the folder."""
+    (N, H, W) float32 px, -1 invalid: SGM of the full frames. ``exclude_templates``: road
+    templates whose frames are left out (a generalisation run). Errors name the folder."""
     from traffictwin.risk.dataset import load_stereo_shard
 
     ds = Dataset(root, kind="risk", verify=False)
@@ -125,6 +129,13 @@ def load_pairs(
     sel = frames[frames.split == split]
     if fault_free and "fault" in sel.columns:
         sel = sel[sel.fault == "none"]
+    if exclude_templates:
+        if "template" not in sel.columns:
+            raise DatasetError(
+                f"{Path(root) / 'frames.csv'}: no 'template' column to leave out the road "
+                f"templates {list(exclude_templates)}"
+            )
+        sel = sel[~sel.template.astype(str).isin(list(exclude_templates))]
     sel = sel.sort_values(["shard", "idx"]).iloc[evenly_spaced_index(len(sel), limit)]
     if len(sel) == 0:
         raise DatasetError(f"{root}: no fault-free '{split}' frames to train / validate on")
@@ -345,6 +356,8 @@ class StereoData:
     root: Path
     seed: int
     disparity: Path | None = None
+    #: road templates left out of training and validation (the generalisation model)
+    exclude_templates: tuple[str, ...] = ()
 
     def manifest_hash(self) -> str:
         return Dataset(self.root, kind="risk", verify=False).manifest_hash()
@@ -370,8 +383,11 @@ def fit_stereo(
     if spec.base == "sgm" and data.disparity is None:
         raise DatasetError(f"{data.root}: base 'sgm' trains on data/disparity: none given")
     dsgm = data.disparity if spec.base == "sgm" else None
-    tr = load_pairs(data.root, "train", train.max_train_frames, disparity=dsgm)
-    va = load_pairs(data.root, "val", train.val_frames, disparity=dsgm)
+    held = tuple(data.exclude_templates)
+    tr = load_pairs(
+        data.root, "train", train.max_train_frames, disparity=dsgm, exclude_templates=held
+    )
+    va = load_pairs(data.root, "val", train.val_frames, disparity=dsgm, exclude_templates=held)
     image_size = list(tr["disp_gt"].shape[1:])
     if tr["disp_gt"].shape[2] < train.crop_width or tr["disp_gt"].shape[1] < train.crop_height:
         raise DatasetError(
@@ -397,6 +413,7 @@ def fit_stereo(
         "seed": int(data.seed),
         "profile": tracking.profile if tracking else "default",
         "image_size": image_size,
+        "holdout_templates": list(held),
     }
     module = StereoLitModule(spec.as_dict(), hparams, meta_base)
     tracking = tracking or TrackingSettings("stereo", "stereo", stage="train_stereo", enabled=False)

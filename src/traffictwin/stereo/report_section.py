@@ -405,6 +405,7 @@ def learned_tables(src: page.Sources) -> list[Table]:
                 ]
             )
     out.append(d)
+    out.extend(generalisation_tables(src))
     targets = src.get(STEREO_FILE, "targets")
     if isinstance(targets, dict) and targets:
         tt = Table(
@@ -433,6 +434,79 @@ def learned_tables(src: page.Sources) -> list[Table]:
             )
         out.append(tt)
     return out
+
+
+#: the generalisation table's rows: (label, metric key, format), on each source's own pixels
+GENERALISATION_ROWS = (
+    ("end-point error [px]", "epe", "f3"),
+    ("bad-1 (> 1 px)", "bad1", "pct"),
+    ("objects at the critical distances: median range error", "crit_obj_relerr_median", "pct"),
+    ("objects at the critical distances: 90th percentile", "crit_obj_relerr_p90", "pct"),
+)
+GENERALISATION_SOURCES = {"sgm": "SGM", "learned": "full network", "holdout": "without them"}
+
+
+def generalisation_tables(src: page.Sources) -> list[Table]:
+    """The network trained without some road templates beside the full one and SGM on those
+    templates' test frames (``stereo.json`` ``generalisation``), with the paired differences."""
+    g = src.get(STEREO_FILE, "generalisation")
+    if not isinstance(g, dict):
+        return []
+    names = ", ".join(str(t) for t in g.get("templates") or [])
+    title = (
+        f"Learned stereo on unseen road templates ({names}): fault-free test frames of those "
+        "templates, each source's own estimated pixels (reports/metrics/stereo.json)"
+    )
+    if g.get("why"):
+        t = Table(title, ["quantity", "value"], anchor="stereo-generalisation")
+        t.rows.append([Cell("not measured"), Cell(str(g["why"]))])
+        return [t]
+    t = Table(
+        title,
+        ["quantity"] + [h for v in GENERALISATION_SOURCES.values() for h in (v, f"{v} 95 % CI")],
+        anchor="stereo-generalisation",
+        note=(
+            "'without them': the same network and training without these templates' frames "
+            "(stage train_stereo_holdout); 'full network': the model that is evaluated above. "
+            f"{g.get('test/frames')} frames of {g.get('test/sequences')} sequences. " + CI_NOTE
+        ),
+    )
+    for label, key, fmt in GENERALISATION_ROWS:
+        t.rows.append(
+            [Cell(label)]
+            + [
+                c
+                for source in GENERALISATION_SOURCES
+                for c in (
+                    src.cell(STEREO_FILE, f"generalisation.{source}/own/{key}", fmt),
+                    ci_cell(src, STEREO_FILE, f"generalisation.{source}/own/{key}", fmt),
+                )
+            ]
+        )
+    d = Table(
+        f"Learned stereo without the templates {names} − with them, and − SGM, paired on the "
+        "same frames (reports/metrics/stereo.json)",
+        ["difference", "pixels", "quantity", "value", "95 % CI"],
+        anchor="stereo-generalisation-difference",
+        note="A positive difference: the network that never saw the templates is worse. " + CI_NOTE,
+    )
+    for other, what in (("learned", "without − full network"), ("sgm", "without − SGM")):
+        for mask, pixels in MASK_LABELS.items():
+            for label, key, fmt in (
+                ("end-point error [px]", "epe", "f3"),
+                ("critical objects: median range error", "crit_obj_relerr_median", "pct"),
+            ):
+                k = f"generalisation.diff_holdout_minus_{other}/{mask}/{key}"
+                d.rows.append(
+                    [
+                        Cell(what),
+                        Cell(pixels),
+                        Cell(label),
+                        src.cell(STEREO_FILE, k, fmt),
+                        ci_cell(src, STEREO_FILE, k, fmt),
+                    ]
+                )
+    return [t, d]
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
