@@ -43,7 +43,6 @@ from traffictwin.io.shards import (
     write_npz_deterministic,
 )
 from traffictwin.risk.dataset import load_stereo_shard
-from traffictwin.stats import statistic_ci
 from traffictwin.stereo.metrics import (
     CRITICAL_M,
     RANGE_EDGES_M,
@@ -122,6 +121,24 @@ def _stats(s: dict[str, np.ndarray], w: np.ndarray) -> dict[str, float]:
     return out
 
 
+def _resample_weights(g: int, n_boot: int, seed: int) -> np.ndarray:
+    """(n_boot, g) how often each sequence is drawn in each resample: the resamples
+    :func:`traffictwin.stats.statistic_ci` draws for ``g`` clusters from ``seed``."""
+    rng = np.random.default_rng(seed)
+    return np.stack([np.bincount(rng.integers(0, g, size=g), minlength=g) for _ in range(n_boot)])
+
+
+def _interval(est: float, boot: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """``(estimate, lo, hi)``: the percentile interval of the finite resample values (NaN without
+    any), as :func:`traffictwin.stats.statistic_ci` computes it."""
+    boot = boot[np.isfinite(boot)]
+    if boot.size == 0:
+        return est, float("nan"), float("nan")
+    a = (1.0 - level) / 2.0
+    lo, hi = np.quantile(boot, [a, 1.0 - a])
+    return est, float(lo), float(hi)
+
+
 def evaluate(
     sums: dict[str, dict[str, np.ndarray]],
     sequences: np.ndarray,
@@ -132,43 +149,39 @@ def evaluate(
     """``<source>/<mask>/<metric>`` with ``_lo`` / ``_hi`` (sequence-bootstrap 95 % interval) and,
     for each ``(a, b)`` of ``pairs``, the paired ``diff_<a>_minus_<b>/<mask>/{epe,
     crit_obj_relerr_median}``; ``sums`` per frame (:func:`frame_sums`), ``sequences`` the frame's
-    sequence (the bootstrap cluster)."""
+    sequence (the bootstrap cluster). Every metric and difference reads the same resamples, each
+    computed once (:func:`_stats` of all metrics per resample)."""
     codes, inv = np.unique(sequences, return_inverse=True)
     g = len(codes)
     per_seq = {  # frames summed per sequence: a resample weights the sequences by their counts
         k: {f: np.stack([v[f][inv == j].sum(0) for j in range(g)]) for f in v}
         for k, v in sums.items()
     }
-
-    def weights(idx: np.ndarray) -> np.ndarray:
-        return np.bincount(idx, minlength=g).astype(np.float64)
-
+    weights = _resample_weights(g, n_boot, seed).astype(np.float64)
+    full = {k: _stats(s, np.ones(g)) for k, s in per_seq.items()}
+    boot = {  # key -> metric -> (n_boot,) values
+        k: {m: np.array(v) for m, v in _columns([_stats(s, w) for w in weights]).items()}
+        for k, s in per_seq.items()
+    }
     out: dict[str, float] = {"test/frames": int(len(sequences)), "test/sequences": g}
-    for key, s in per_seq.items():
-        full = _stats(s, np.ones(g))
-        for metric, est in full.items():
-            ci = statistic_ci(
-                lambda idx, s=s, m=metric: _stats(s, weights(idx))[m],
-                g,
-                n_boot=n_boot,
-                seed=seed,
-            )
+    for key in per_seq:
+        for metric, est in full[key].items():
+            _, lo, hi = _interval(est, boot[key][metric])
             out[f"{key}/{metric}"] = est
-            out[f"{key}/{metric}_lo"], out[f"{key}/{metric}_hi"] = ci.lo, ci.hi
+            out[f"{key}/{metric}_lo"], out[f"{key}/{metric}_hi"] = lo, hi
     for (first, second), mask in ((p, m) for p in pairs for m in MASKS):
-        a, b = per_seq[f"{first}/{mask}"], per_seq[f"{second}/{mask}"]
+        a, b = f"{first}/{mask}", f"{second}/{mask}"
         for metric in ("epe", "crit_obj_relerr_median"):
-            ci = statistic_ci(
-                lambda idx, m=metric, a=a, b=b: (
-                    _stats(a, weights(idx))[m] - _stats(b, weights(idx))[m]
-                ),
-                g,
-                n_boot=n_boot,
-                seed=seed,
-            )
             key = f"diff_{first}_minus_{second}/{mask}/{metric}"
-            out[key], out[key + "_lo"], out[key + "_hi"] = ci.estimate, ci.lo, ci.hi
+            out[key], out[key + "_lo"], out[key + "_hi"] = _interval(
+                full[a][metric] - full[b][metric], boot[a][metric] - boot[b][metric]
+            )
     return out
+
+
+def _columns(rows: list[dict[str, float]]) -> dict[str, list[float]]:
+    """A list of equal-keyed dicts as one list per key."""
+    return {k: [r[k] for r in rows] for k in rows[0]}
 
 
 def check_disparity(risk: Dataset, disparity: Path) -> Dataset:

@@ -290,3 +290,59 @@ def test_train_stereo_holdout_needs_a_template(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(train_stereo, "params", lambda: p)
     with pytest.raises(ConfigError, match="'stereo_model.holdout_templates' is empty"):
         train_stereo.main(["--holdout"])
+
+
+def test_evaluate_reads_every_metric_from_the_same_resamples_as_statistic_ci() -> None:
+    """One pass of resamples for all metrics gives exactly the intervals that one
+    statistic_ci call per metric gives (same seed, same clusters)."""
+    from traffictwin.stats import statistic_ci
+    from traffictwin.stereo.metrics import ERROR_EDGES
+
+    rng = np.random.default_rng(5)
+    n, e = 30, len(ERROR_EDGES)
+    sequences = rng.integers(0, 7, size=n)
+
+    def sums(scale: float) -> dict[str, np.ndarray]:
+        n_gt = rng.integers(50, 100, size=n)
+        cnt = rng.integers(10, 50, size=n)
+        return {
+            "n_gt": n_gt,
+            "n": cnt,
+            "abs": rng.random(n) * cnt * scale,
+            "bad1": rng.integers(0, 10, size=n),
+            "bad2": rng.integers(0, 5, size=n),
+            "bands": rng.integers(0, 3, size=(n, 3, e)),
+            "crit": rng.integers(0, 3, size=(n, e)),
+        }
+
+    s = {f"{src}/{m}": sums(k) for k, src in ((1.0, "sgm"), (0.5, "learned")) for m in stage.MASKS}
+    got = stage.evaluate(s, sequences, n_boot=50, seed=3)
+    codes, inv = np.unique(sequences, return_inverse=True)
+    g = len(codes)
+    per = {
+        k: {f: np.stack([v[f][inv == j].sum(0) for j in range(g)]) for f in v} for k, v in s.items()
+    }
+
+    def w(idx: np.ndarray) -> np.ndarray:
+        return np.bincount(idx, minlength=g).astype(np.float64)
+
+    for key, metric in (("learned/own", "epe"), ("sgm/common", "crit_obj_relerr_p90")):
+        ci = statistic_ci(
+            lambda i, k=key, m=metric: stage._stats(per[k], w(i))[m], g, n_boot=50, seed=3
+        )
+        assert (got[f"{key}/{metric}"], got[f"{key}/{metric}_lo"], got[f"{key}/{metric}_hi"]) == (
+            ci.estimate,
+            ci.lo,
+            ci.hi,
+        )
+    ci = statistic_ci(
+        lambda i: (
+            stage._stats(per["learned/own"], w(i))["epe"]
+            - stage._stats(per["sgm/own"], w(i))["epe"]
+        ),
+        g,
+        n_boot=50,
+        seed=3,
+    )
+    k = "diff_learned_minus_sgm/own/epe"
+    assert (got[k], got[k + "_lo"], got[k + "_hi"]) == (ci.estimate, ci.lo, ci.hi)
