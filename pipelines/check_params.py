@@ -98,6 +98,14 @@ def _risk(p: Any) -> None:
     risk_stage_settings(p)  # select_risk, evaluate_risk
 
 
+def _stereo(p: Any) -> None:
+    from .sgm_variants import variant_settings
+    from .train_stereo import model_config
+
+    variant_settings(p)  # sgm_variants
+    model_config(p)  # train_stereo, train_stereo_holdout
+
+
 def _twin(p: Any) -> None:
     from traffictwin.twin.config import twin_config
 
@@ -123,6 +131,7 @@ CHECKS: tuple[tuple[str, Callable[[Any], None]], ...] = (
     ("trainer", _trainer),
     ("registration model", _registration),
     ("risk data and models", _risk),
+    ("stereo variants and network", _stereo),
     ("twin", _twin),
     ("report, ablations and registry", _report),
 )

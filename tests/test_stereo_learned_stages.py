@@ -28,6 +28,7 @@ from traffictwin.risk.stereo_training import (
 )
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import DrivingConfig
+from traffictwin.stereo import evaluation as E
 from traffictwin.stereo.network import StereoNetSpec
 from traffictwin.stereo.sgm import SgmParams
 from traffictwin.trainer import ModelOutputs, TrainerSettings
@@ -313,10 +314,12 @@ def test_evaluate_reads_every_metric_from_the_same_resamples_as_statistic_ci() -
             "bad2": rng.integers(0, 5, size=n),
             "bands": rng.integers(0, 3, size=(n, 3, e)),
             "crit": rng.integers(0, 3, size=(n, e)),
+            "crit_n_gt": rng.integers(20, 40, size=n),
+            "crit_n": rng.integers(0, 20, size=n),
         }
 
-    s = {f"{src}/{m}": sums(k) for k, src in ((1.0, "sgm"), (0.5, "learned")) for m in stage.MASKS}
-    got = stage.evaluate(s, sequences, n_boot=50, seed=3)
+    s = {f"{src}/{m}": sums(k) for k, src in ((1.0, "sgm"), (0.5, "learned")) for m in E.MASKS}
+    got = E.evaluate(s, sequences, n_boot=50, seed=3)
     codes, inv = np.unique(sequences, return_inverse=True)
     g = len(codes)
     per = {
@@ -328,7 +331,7 @@ def test_evaluate_reads_every_metric_from_the_same_resamples_as_statistic_ci() -
 
     for key, metric in (("learned/own", "epe"), ("sgm/common", "crit_obj_relerr_p90")):
         ci = statistic_ci(
-            lambda i, k=key, m=metric: stage._stats(per[k], w(i))[m], g, n_boot=50, seed=3
+            lambda i, k=key, m=metric: E.statistics(per[k], w(i))[m], g, n_boot=50, seed=3
         )
         assert (got[f"{key}/{metric}"], got[f"{key}/{metric}_lo"], got[f"{key}/{metric}_hi"]) == (
             ci.estimate,
@@ -337,8 +340,8 @@ def test_evaluate_reads_every_metric_from_the_same_resamples_as_statistic_ci() -
         )
     ci = statistic_ci(
         lambda i: (
-            stage._stats(per["learned/own"], w(i))["epe"]
-            - stage._stats(per["sgm/own"], w(i))["epe"]
+            E.statistics(per["learned/own"], w(i))["epe"]
+            - E.statistics(per["sgm/own"], w(i))["epe"]
         ),
         g,
         n_boot=50,

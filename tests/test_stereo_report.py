@@ -317,3 +317,91 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
     rows = _rows(next(t for t in sec.tables if t.anchor == "stereo-generalisation"))
     assert rows == [["not measured", why["why"]]]
     assert "stereo-generalisation-difference" not in {t.anchor for t in sec.tables}
+
+
+def _variants_json(chosen: str) -> dict:
+    """An sgm_variants.json as the stage writes it (made-up figures)."""
+    figs = {}
+    for i, n in enumerate(["bs5-ur10-sw100-colour", "bs3-ur10-sw100-colour", "bs7-ur5-sw0-grey"]):
+        figs[n] = {
+            "settings": {"block_size": int(n[2])},
+            "epe": 0.2 + 0.01 * i,
+            "bad1": 0.02,
+            "density": 0.9,
+            "crit_obj_relerr_median": 0.07 - 0.01 * i,
+            "crit_obj_relerr_p90": 0.17,
+            "crit_obj_density": 0.8 - 0.1 * (i == 2),
+        }
+    out: dict = {
+        "validation": {"frames": 160, "variants": figs},
+        "choice": {
+            "chosen": chosen,
+            "configured": "bs5-ur10-sw100-colour",
+            "is_configured": chosen == "bs5-ur10-sw100-colour",
+            "rule": "lowest validation crit_obj_relerr_median among the 2 of 3 variants ...",
+        },
+    }
+    if chosen == "bs5-ur10-sw100-colour":
+        out["test"] = {"why": "the chosen variant is the configured matcher"}
+        return out
+    t: dict = {"test/frames": 700, "test/sequences": 100}
+    for source, v in (("configured", 0.22), ("chosen", 0.21)):
+        for mask in ("common", "own"):
+            for _, key, _ in S.GENERALISATION_ROWS:
+                t[f"{source}/{mask}/{key}"] = v
+                t[f"{source}/{mask}/{key}_lo"], t[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
+    for mask in ("common", "own"):
+        for key in ("epe", "crit_obj_relerr_median"):
+            k = f"diff_chosen_minus_configured/{mask}/{key}"
+            t[k], t[k + "_lo"], t[k + "_hi"] = -0.01, -0.02, 0.0
+    out["test"] = t
+    return out
+
+
+def test_sgm_variant_tables_show_the_configured_the_chosen_and_the_test_comparison(
+    tmp_path: Path,
+) -> None:
+    """sgm_variants.json: the configured matcher first, the chosen one, the others by the
+    criterion with the ones below the density guard marked; the test comparison when a variant
+    won, only its reason when the configured matcher did; the file is not dumped again."""
+    rep = _reports(
+        tmp_path,
+        {
+            "disparity.json": DISPARITY,
+            "orb.json": ORB,
+            "sgm_variants.json": _variants_json("bs3-ur10-sw100-colour"),
+        },
+        (),
+    )
+    report = R.write_report(_inputs(rep), providers({}))
+    check_report(rep, {}, {})
+    sec = next(s for s in report.sections if s.title == S.TITLE)
+    by = {t.anchor: t for t in sec.tables}
+    rows = _rows(by["stereo-sgm-variants"])
+    assert [r[:2] for r in rows] == [
+        ["bs5-ur10-sw100-colour", "configured"],
+        ["bs3-ur10-sw100-colour", "chosen"],
+        ["bs7-ur5-sw0-grey", "below the density guard"],
+    ]
+    assert rows[0][2:] == ["0.200", "2.00 %", "90.00 %", "7.00 %", "17.00 %", "80.00 %"]
+    cmp = _rows(by["stereo-sgm-chosen"])
+    assert cmp[0] == ["end-point error [px]", "0.220", "[0.210, 0.230]", "0.210", "[0.200, 0.220]"]
+    assert cmp[-2][3:] == ["-0.010", "[-0.020, 0.000]"]
+    assert "sgm_variants.json" not in (rep / "README.md").read_text().split("## Appendix")[-1]
+
+    rep = _reports(
+        tmp_path / "kept",
+        {
+            "disparity.json": DISPARITY,
+            "orb.json": ORB,
+            "sgm_variants.json": _variants_json("bs5-ur10-sw100-colour"),
+        },
+        (),
+    )
+    sec = next(
+        s for s in R.write_report(_inputs(rep), providers({})).sections if s.title == S.TITLE
+    )
+    t = next(t for t in sec.tables if t.anchor == "stereo-sgm-variants")
+    assert _rows(t)[0][:2] == ["bs5-ur10-sw100-colour", "configured and chosen"]
+    assert "the chosen variant is the configured matcher" in t.note
+    assert "stereo-sgm-chosen" not in {t.anchor for t in sec.tables}

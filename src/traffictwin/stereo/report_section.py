@@ -345,6 +345,7 @@ STEREO_ROWS = (
     ("30–90 m: 90th percentile", "z30-90m_relerr_p90", "pct"),
     ("objects at the critical distances: median range error", "crit_obj_relerr_median", "pct"),
     ("objects at the critical distances: 90th percentile", "crit_obj_relerr_p90", "pct"),
+    ("objects at the critical distances: share estimated", "crit_obj_density", "pct"),
 )
 MASK_LABELS = {
     "common": "pixels both sources estimate",
@@ -436,6 +437,121 @@ def learned_tables(src: page.Sources) -> list[Table]:
     return out
 
 
+VARIANTS_FILE = "sgm_variants.json"
+#: the SGM variants table's columns: (header, figure key, format)
+VARIANT_COLUMNS = (
+    ("EPE [px]", "epe", "f3"),
+    ("bad-1", "bad1", "pct"),
+    ("density", "density", "pct"),
+    ("critical objects: median range error", "crit_obj_relerr_median", "pct"),
+    ("critical objects: p90", "crit_obj_relerr_p90", "pct"),
+    ("critical objects: share estimated", "crit_obj_density", "pct"),
+)
+#: how many variants the table lists beyond the configured and the chosen one
+VARIANTS_SHOWN = 6
+
+
+def variant_tables(src: page.Sources) -> list[Table]:
+    """SGM variants on validation (the configured matcher, the chosen one and the best others by
+    the rule's criterion) and the chosen one against the configured matcher on test
+    (``sgm_variants.json``)."""
+    figs = src.get(VARIANTS_FILE, "validation.variants")
+    if not isinstance(figs, dict) or not figs:
+        return []
+    chosen = str(src.get(VARIANTS_FILE, "choice.chosen"))
+    configured = str(src.get(VARIANTS_FILE, "choice.configured"))
+    guard = figs.get(configured, {}).get("crit_obj_density")
+
+    def crit(name: str) -> float:
+        v = figs[name].get("crit_obj_relerr_median")
+        return float(v) if isinstance(v, (int, float)) else float("inf")
+
+    others = sorted((n for n in figs if n not in (chosen, configured)), key=crit)
+    names = [configured] + ([chosen] if chosen != configured else []) + others[:VARIANTS_SHOWN]
+    t = Table(
+        f"SGM variants on {src.get(VARIANTS_FILE, 'validation.frames')} fault-free validation "
+        f"frames, each variant's own estimated pixels ({len(figs)} scored; "
+        "reports/metrics/sgm_variants.json)",
+        ["variant", "role"] + [h for h, _, _ in VARIANT_COLUMNS],
+        anchor="stereo-sgm-variants",
+        note=(
+            f"Rule, fixed before scoring: {src.get(VARIANTS_FILE, 'choice.rule')}. Variant names: "
+            "block size (bs, px), uniqueness ratio (ur, %), speckle window (sw, px; 0 = off), colour "
+            "or grey matching; the search range is the configured one. The listed others are the "
+            "best by the criterion; 'below the density guard' ones could not be chosen."
+        ),
+    )
+    for n in names:
+        role = (
+            "configured and chosen"
+            if n == chosen == configured
+            else "configured"
+            if n == configured
+            else "chosen"
+            if n == chosen
+            else "below the density guard"
+            if isinstance(guard, (int, float))
+            and isinstance(figs[n].get("crit_obj_density"), (int, float))
+            and figs[n]["crit_obj_density"] < guard
+            else ""
+        )
+        t.rows.append(
+            [Cell(n), Cell(role)]
+            + [
+                src.cell(VARIANTS_FILE, f"validation.variants.{n}.{k}", fmt)
+                for _, k, fmt in VARIANT_COLUMNS
+            ]
+        )
+    out = [t]
+    why = src.get(VARIANTS_FILE, "test.why")
+    if why:
+        t.note += f" Test split: {why}."
+        return out
+    c = Table(
+        f"SGM: the chosen variant ({chosen}) vs the configured matcher ({configured}) on the "
+        "fault-free test frames, each one's own estimated pixels (reports/metrics/sgm_variants.json)",
+        ["quantity", "configured", "configured 95 % CI", "chosen", "chosen 95 % CI"],
+        anchor="stereo-sgm-chosen",
+        note=(
+            f"{src.get(VARIANTS_FILE, 'test.test/frames')} frames of "
+            f"{src.get(VARIANTS_FILE, 'test.test/sequences')} sequences; the paired differences "
+            "(chosen − configured, same frames, pixels both estimate) in the last rows. " + CI_NOTE
+        ),
+    )
+    for label, key, fmt in GENERALISATION_ROWS:
+        c.rows.append(
+            [Cell(label)]
+            + [
+                x
+                for source in ("configured", "chosen")
+                for x in (
+                    src.cell(VARIANTS_FILE, f"test.{source}/own/{key}", fmt),
+                    ci_cell(src, VARIANTS_FILE, f"test.{source}/own/{key}", fmt),
+                )
+            ]
+        )
+    for label, key, fmt in (
+        ("chosen − configured: end-point error [px]", "epe", "f3"),
+        (
+            "chosen − configured: critical objects median range error",
+            "crit_obj_relerr_median",
+            "pct",
+        ),
+    ):
+        k = f"test.diff_chosen_minus_configured/common/{key}"
+        c.rows.append(
+            [
+                Cell(label),
+                Cell(""),
+                Cell(""),
+                src.cell(VARIANTS_FILE, k, fmt),
+                ci_cell(src, VARIANTS_FILE, k, fmt),
+            ]
+        )
+    out.append(c)
+    return out
+
+
 #: the generalisation table's rows: (label, metric key, format), on each source's own pixels
 GENERALISATION_ROWS = (
     ("end-point error [px]", "epe", "f3"),
@@ -524,12 +640,14 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     )
     sec.tables.extend(disparity_tables(src))
     sec.tables.extend(learned_tables(src))
+    sec.tables.extend(variant_tables(src))
     sec.tables.extend(fault_tables(src))
     res = resolution_tables(src)
     sec.tables.extend(res)
     for file, what in (
         (DISPARITY_FILE, "disparity"),
         (STEREO_FILE, "stereo_learned"),
+        (VARIANTS_FILE, "sgm_variants"),
         (ORB_FILE, "orb_filter"),
     ):
         if not src.has(file):
@@ -549,5 +667,5 @@ def provider() -> page.SectionProvider:
         section=section,
         figures=FIGURES,
         figure_pattern=NEVER,
-        shown_files=r"stereo_resolution\.json|stereo\.json",
+        shown_files=r"stereo_resolution\.json|stereo\.json|sgm_variants\.json",
     )
