@@ -130,12 +130,17 @@ def test_a_writers_temp_file_never_enters_a_dvc_hash(tmp_path):
     dvc("init", "-q")
     dvc("repro", "-q")
     target = repo / "figs" / "b.png"
+    lock = (repo / "dvc.lock").read_bytes()
     with atomic_path(target) as tmp, OutputSet([repo / "figs" / "c.png"]) as outs:
         outs.write_bytes(repo / "figs" / "c.png", b"x")
         tmp.write_bytes(b"half")
+        (repo / "figs" / ".x.png.tmp").touch()  # as `touch reports/figures/.x.png.tmp`
         temps = sorted(p.name for p in (repo / "figs").iterdir() if p.name.endswith(".tmp"))
-        assert len(temps) == 2, temps
+        assert len(temps) == 3, temps
         status = dvc("status")
+        repro = dvc("repro")
+        assert "didn't change, skipping" in repro, repro
+        assert (repo / "dvc.lock").read_bytes() == lock
         # without the ignore rule the same temp files change the folder's hash
         (repo / ".dvcignore").write_text("")
         changed = dvc("status")
