@@ -151,6 +151,7 @@ def test_read_only_sqlite_uri_opens_the_registry_read_only(cl, mlflow_uri):
     assert reg.registered_names(ro_client) == ["traffictwin-ro"]
     with pytest.raises(MlflowException, match="readonly"):  # really read-only
         ro_client.create_registered_model("traffictwin-w")
+    assert cli.main(["status", "--tracking-uri", ro]) == 0  # the CLI takes it too
     assert db.read_bytes() == before
 
 
