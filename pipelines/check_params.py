@@ -8,17 +8,23 @@ functions the stages call at start, :data:`CHECKS`) and writes ``data/params_ok.
 content is only the schema version, so it does not change when a parameter does: every other
 stage lists it as a dependency, DVC re-runs none of them for it, and a rejected value stops
 ``dvc repro`` / ``dvc exp run`` here, one line on stderr and exit 2, with every other stage's
-outputs in place. params.yaml is read, never written (see docs/experiments.md for getting the
-previous value back).
+outputs in place. A rejected params.yaml is not left behind either (``dvc exp run -S`` writes it
+before any stage runs, and DVC does not undo that): :func:`restore_accepted` puts back the
+parameters of the last successful check (the values dvc.lock records for this stage), keeping
+the rejected file under ``.cache/traffictwin/params/`` (docs/experiments.md).
 """
 
 from __future__ import annotations
 
+import re
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from traffictwin.io.atomic import write_json_atomic
+import yaml
+
+from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
 
 from ._common import params, run_stage
 from ._paths import ROOT
@@ -27,6 +33,9 @@ from ._paths import ROOT
 OUTPUT = ROOT / "data" / "params_ok.json"
 #: bumped when the output's content changes shape (never with the parameters)
 SCHEMA_VERSION = 1
+#: the last accepted and the last rejected params.yaml (relative to the repository; git-ignored,
+#: no DVC output): what a rejection restores from, and where the rejected file is kept
+KEPT = Path(".cache") / "traffictwin" / "params"
 
 
 def _fusion(p: Any) -> None:
@@ -155,11 +164,103 @@ def check(p: Any) -> list[str]:
     return [name for name, _ in CHECKS]
 
 
-def main(argv: list[str] | None = None, output: Path = OUTPUT) -> None:
+class _Yaml12Loader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads YAML 1.2 floats without a dot (``1e-07``, as DVC
+    writes them into dvc.lock) as floats, so the lock's values compare with params.yaml's."""
+
+
+_Yaml12Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
+def _load(text: str | bytes) -> Any:
+    try:
+        return yaml.load(text, Loader=_Yaml12Loader)  # noqa: S506 (a safe loader)
+    except yaml.YAMLError:
+        return None
+
+
+def accepted_params(root: Path) -> dict[str, Any] | None:
+    """The parameters the last successful check accepted: this stage's params record in
+    ``root/dvc.lock`` (every key of params.yaml), or None without one."""
+    lock = root / "dvc.lock"
+    if not lock.is_file():
+        return None
+    doc = _load(lock.read_bytes())
+    try:
+        record = doc["stages"]["check_params"]["params"]["params.yaml"]
+    except (KeyError, TypeError):
+        return None
+    return record if isinstance(record, dict) and record else None
+
+
+def _committed(root: Path) -> bytes | None:
+    """``git show HEAD:params.yaml`` of ``root``, or None (no git, no commit, no such file)."""
+    try:
+        proc = subprocess.run(
+            ["git", "show", "HEAD:./params.yaml"], cwd=root, capture_output=True, timeout=30
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return proc.stdout if proc.returncode == 0 else None
+
+
+def restore_accepted(root: Path) -> str:
+    """After a rejection: put params.yaml of ``root`` back to the parameters of the last
+    successful check, byte for byte, and keep the rejected file; returns the clause for the
+    error line (what happened to params.yaml).
+
+    The accepted values are dvc.lock's record of this stage (so a checkout of another commit
+    restores that commit's parameters, never a stale copy); the bytes come from the copy the
+    last successful check kept (``KEPT/accepted.yaml``) or the committed params.yaml, whichever
+    holds exactly those values. Without such a file params.yaml is left as it is."""
+    path = root / "params.yaml"
+    accepted = accepted_params(root)
+    rejected = path.read_bytes() if path.is_file() else None
+    manual = "`git checkout params.yaml` restores the committed parameters"
+    if accepted is None or rejected is None:
+        return (
+            f"params.yaml keeps the rejected value (no accepted parameters in dvc.lock; {manual})"
+        )
+    if _load(rejected) == accepted:  # the values the last check accepted: nothing to undo
+        return "params.yaml is unchanged since the last accepted check"
+    kept = root / KEPT
+    for text in (_read(kept / "accepted.yaml"), _committed(root)):
+        if text is not None and _load(text) == accepted:
+            write_bytes_atomic(kept / "rejected.yaml", rejected)
+            write_bytes_atomic(path, text)
+            return (
+                "params.yaml restored to the parameters the last check accepted (dvc.lock); "
+                f"the rejected file is kept as {KEPT / 'rejected.yaml'}"
+            )
+    return f"params.yaml keeps the rejected value (no copy of dvc.lock's accepted parameters; {manual})"
+
+
+def _read(path: Path) -> bytes | None:
+    try:
+        return path.read_bytes() if path.is_file() else None
+    except OSError:
+        return None
+
+
+def main(argv: list[str] | None = None, output: Path = OUTPUT, root: Path = ROOT) -> None:
+    """Check ``root/params.yaml``; on success write ``output`` and keep a copy of the accepted
+    file, on a rejection restore the last accepted one (:func:`restore_accepted`) and raise the
+    check's :class:`~traffictwin.config.ConfigError` with what happened to params.yaml."""
     import argparse
 
+    from traffictwin.config import ConfigError
+
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
-    check(params())
+    path = root / "params.yaml"
+    try:
+        check(params(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}; {restore_accepted(root)}") from None
+    write_bytes_atomic(root / KEPT / "accepted.yaml", path.read_bytes())
     write_json_atomic(output, {"params": "params.yaml", "schema_version": SCHEMA_VERSION})
 
 

@@ -364,3 +364,16 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.integration)
         if _SLOW_FIXTURES & names:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    """Every test under ``tests/reliability/`` runs under a time limit (``tests/_time_limit.py``):
+    a hang fails that test with the limit named."""
+    from _time_limit import limit_for, time_limit
+
+    if "reliability" not in item.path.relative_to(ROOT).parts:
+        return (yield)
+    seconds = limit_for({m.name for m in item.iter_markers()})
+    with time_limit(seconds, what=item.nodeid):
+        return (yield)

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -129,17 +130,79 @@ def test_a_writers_temp_file_never_enters_a_dvc_hash(tmp_path):
     dvc("init", "-q")
     dvc("repro", "-q")
     target = repo / "figs" / "b.png"
+    lock = (repo / "dvc.lock").read_bytes()
     with atomic_path(target) as tmp, OutputSet([repo / "figs" / "c.png"]) as outs:
         outs.write_bytes(repo / "figs" / "c.png", b"x")
         tmp.write_bytes(b"half")
+        (repo / "figs" / ".x.png.tmp").touch()  # as `touch reports/figures/.x.png.tmp`
         temps = sorted(p.name for p in (repo / "figs").iterdir() if p.name.endswith(".tmp"))
-        assert len(temps) == 2, temps
+        assert len(temps) == 3, temps
         status = dvc("status")
+        repro = dvc("repro")
+        assert "didn't change, skipping" in repro, repro
+        assert (repo / "dvc.lock").read_bytes() == lock
         # without the ignore rule the same temp files change the folder's hash
         (repo / ".dvcignore").write_text("")
         changed = dvc("status")
     assert "up to date" in status, status
     assert "changed deps" in changed, changed
+
+
+REGISTRATION_STAGE = textwrap.dedent(
+    """
+    import numpy as np
+    from pipelines._common import run_stage
+    from traffictwin.fusion.methods import register_many
+    from traffictwin.grid import GridSpec
+
+    def main():
+        rng = np.random.default_rng(0)
+        n = 400  # minutes of work on two workers: Ctrl-C comes while they are busy
+        m = rng.uniform(0, 0.5, (n, 2, 2, 96, 96)).astype(np.float32)
+        poses = rng.normal(0, 1, (n, 3))
+        print("pool", flush=True)
+        register_many(m[:, 0], m[:, 1], poses, GridSpec(rows=96, cols=96, cell=0.5), workers=2)
+
+    if __name__ == "__main__":
+        run_stage(main, "evaluate_fusion")
+    """
+)
+
+
+def test_ctrl_c_during_evaluate_fusions_registration_pool_is_one_line_and_130(tmp_path):
+    """evaluate_fusion's classical registration pool (fork-server workers): SIGINT to the whole
+    process group while both workers are busy ends the stage with one line and 130, no
+    traceback from the parent, the fork server or any worker."""
+    import psutil
+
+    script = tmp_path / "stage.py"
+    script.write_text(REGISTRATION_STAGE)
+    proc = subprocess.Popen(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert "pool" in proc.stdout.readline()
+        parent = psutil.Process(proc.pid)
+        for _ in range(600):  # the fork server and its two workers, then a moment of work
+            if len(parent.children(recursive=True)) >= 3:
+                break
+            time.sleep(0.1)
+        time.sleep(2.0)
+        assert len(parent.children(recursive=True)) >= 3
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=30)
+    assert proc.returncode == 130, err
+    assert _lines(err) == ["evaluate_fusion: interrupted (Ctrl-C)"], err
 
 
 def test_registration_pool_workers_leave_ctrl_c_to_the_parent():

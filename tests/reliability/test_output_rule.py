@@ -297,6 +297,43 @@ def test_two_writers_of_one_new_output_one_wins(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["race.npz", "race.png"]
 
 
+def test_two_fuse_commands_onto_one_new_output_one_wins(tmp_path, maps, fusion_dir):
+    """``fuse -o race`` twice at once, without ``--force``: whatever the timing (both checked
+    while the name was free, or the second after the first committed), one exits 0 and the other
+    1 with one line naming the output; the winner's two files stay, no temp file."""
+    argv = [[*fuse_args(*maps, fusion_dir, tmp_path / "race")] for _ in range(2)]
+    argv[1][argv[1].index("--pose2") + 1] = "3.0,0.5,0.0"  # a different result
+    env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "traffictwin.cli", *a],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        for a in argv
+    ]
+    results = []
+    for p in procs:
+        try:
+            _, err = p.communicate(timeout=TIMEOUT)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        results.append((p.returncode, err))
+    assert sorted(rc for rc, _ in results) == [0, 1], results
+    (err,) = [e for rc, e in results if rc == 1]
+    line = _one_line(err, "race.")
+    assert "exists" in line or "created by another command while this one ran" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("race", ".race"))) == [
+        "race.npz",
+        "race.png",
+    ]
+    with np.load(tmp_path / "race.npz") as z:
+        assert np.isfinite(z["m_free"]).all()
+
+
 def test_a_writer_that_loses_half_way_removes_what_it_made(tmp_path):
     """B made ``x.npz`` first, A ``x.png``: B fails on the PNG and takes its ``x.npz`` back."""
     npz, png = tmp_path / "x.npz", tmp_path / "x.png"

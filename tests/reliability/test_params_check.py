@@ -1,17 +1,20 @@
 """Experiments that lose nothing: ``pipelines.check_params`` validates the whole of params.yaml
-with the stages' own checks before DVC removes any stage's outputs, and sizes that allocate are
-bounded in the config schema.
+with the stages' own checks before DVC removes any stage's outputs, a rejected value is not left
+in params.yaml (the last accepted file is put back, the rejected one kept aside), and sizes that
+allocate are bounded in the config schema.
 
 Before: ``dvc exp run -S profile=ci -S fusion_model.train.batch_size=-3 train_fusion`` printed the
 right one-line error, but only after DVC had removed ``models/fusion/network`` and
 ``reports/metrics/train_fusion_network.json`` (a ``cache: false`` output cannot be checked out
-again); ``-S grid.rows=4096 -S grid.cols=4096 generate_fusion`` ran 86 s into ``std::bad_alloc``.
+again), and params.yaml kept the rejected value; ``-S grid.rows=4096 -S grid.cols=4096 generate_fusion`` ran 86 s into ``std::bad_alloc``.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -76,12 +79,29 @@ def test_a_rejected_value_names_its_key_and_bound(good, key, value, named) -> No
     assert str(value) in line.replace(",", "") or key.endswith("lr"), line
 
 
-def test_the_output_does_not_change_with_the_parameters(good, tmp_path, monkeypatch) -> None:
+def _root(tmp_path: Path, text: str, accepted: dict | None = None) -> Path:
+    """A repository root with ``params.yaml`` = ``text`` and a dvc.lock whose check_params
+    record holds ``accepted`` (written as DVC writes floats: ``1e-07``, no dot)."""
+    root = tmp_path / "root"
+    root.mkdir(exist_ok=True)
+    (root / "params.yaml").write_text(text)
+    if accepted is not None:
+        lock = yaml.safe_dump(
+            {"schema": "2.0", "stages": {"check_params": {"params": {"params.yaml": accepted}}}}
+        )
+        (root / "dvc.lock").write_text(re.sub(r"(\d)\.0e", r"\1e", lock))
+    return root
+
+
+def _dump(params: dict) -> str:
+    return yaml.safe_dump(params, sort_keys=False)
+
+
+def test_the_output_does_not_change_with_the_parameters(good, tmp_path) -> None:
     out = tmp_path / "params_ok.json"
     written = []
     for params in (good, _with(good, "fusion_model.optim.lr", 0.123), _with(good, "seed", 7)):
-        monkeypatch.setattr(check_params, "params", lambda p=params: p)
-        check_params.main([], output=out)
+        check_params.main([], output=out, root=_root(tmp_path, _dump(params)))
         written.append(out.read_bytes())
     assert written[0] == written[1] == written[2]
     assert json.loads(written[0]) == {
@@ -90,20 +110,75 @@ def test_the_output_does_not_change_with_the_parameters(good, tmp_path, monkeypa
     }
 
 
-def test_a_rejected_value_is_one_line_exit_2_and_nothing_written(
-    good, tmp_path, monkeypatch, capsys
-) -> None:
+def _rejected(root: Path, out: Path, monkeypatch, capsys) -> str:
+    """Run the stage on ``root``: exit 2, one stderr line (returned), no output written."""
     monkeypatch.delenv("TRAFFICTWIN_TRACEBACK", raising=False)
-    out = tmp_path / "params_ok.json"
-    bad = _with(good, "fusion_model.train.batch_size", -3)
-    monkeypatch.setattr(check_params, "params", lambda: bad)
     with pytest.raises(SystemExit) as info:
-        run_stage(lambda: check_params.main([], output=out), "check_params")
+        run_stage(lambda: check_params.main([], output=out, root=root), "check_params")
     assert info.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("check_params: error: ConfigError: "), err
-    assert "'fusion_model.train.batch_size' must be >= 2, got -3" in err
     assert not out.exists()
+    return err.strip()
+
+
+def test_a_rejected_value_is_one_line_exit_2_and_params_yaml_restored(
+    good, tmp_path, monkeypatch, capsys
+) -> None:
+    """The accepted file (kept by the last successful check, dvc.lock records its values) is put
+    back byte for byte; the rejected one is kept, never lost."""
+    accepted = committed("params.yaml")  # with its header comment: restored byte for byte
+    root = _root(tmp_path, accepted, good)
+    check_params.main([], output=tmp_path / "first.json", root=root)
+    bad = _dump(_with(good, "fusion_model.train.batch_size", -3))
+    (root / "params.yaml").write_text(bad)
+    out = tmp_path / "params_ok.json"
+    line = _rejected(root, out, monkeypatch, capsys)
+    assert "'fusion_model.train.batch_size' must be >= 2, got -3" in line
+    assert "params.yaml restored to the parameters the last check accepted" in line
+    assert (root / "params.yaml").read_text() == accepted
+    assert (root / check_params.KEPT / "rejected.yaml").read_text() == bad
+    # the restored file passes: the next run writes the output again
+    check_params.main([], output=out, root=root)
+    assert out.is_file()
+
+
+def test_a_stale_kept_copy_is_never_restored(good, tmp_path, monkeypatch, capsys) -> None:
+    """dvc.lock's values decide: after a checkout of other parameters the copy kept from before
+    is not theirs, and without git there is no other source: params.yaml stays, and says so."""
+    root = _root(tmp_path, _dump(good), good)
+    check_params.main([], output=tmp_path / "first.json", root=root)  # keeps the seed-20... copy
+    other = _with(good, "seed", 7)
+    (root / "dvc.lock").unlink()
+    root = _root(tmp_path, _dump(other), other)  # a checkout: other params, their lock
+    bad = _dump(_with(other, "grid.rows", 4096))
+    (root / "params.yaml").write_text(bad)
+    line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
+    assert "'grid.rows' must be <= 1024, got 4096" in line
+    assert "params.yaml keeps the rejected value" in line and "git checkout params.yaml" in line
+    assert (root / "params.yaml").read_text() == bad
+    assert not (root / check_params.KEPT / "rejected.yaml").exists()
+
+
+def test_without_a_lock_record_params_yaml_is_left_and_the_line_says_so(
+    good, tmp_path, monkeypatch, capsys
+) -> None:
+    bad = _dump(_with(good, "fusion_model.train.batch_size", -3))
+    root = _root(tmp_path, bad)
+    line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
+    assert "params.yaml keeps the rejected value (no accepted parameters in dvc.lock" in line
+    assert (root / "params.yaml").read_text() == bad
+
+
+def test_dvc_lock_floats_read_as_params_yaml_floats() -> None:
+    """DVC writes ``1e-07`` (YAML 1.2); PyYAML alone would read a string and never match."""
+    assert yaml.safe_load("a: 1e-07")["a"] == "1e-07"
+    assert check_params._load("a: 1e-07\nb: 1.0e-07\nc: '1e-07'\nd: 3") == {
+        "a": 1e-07,
+        "b": 1e-07,
+        "c": "1e-07",
+        "d": 3,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -122,11 +197,12 @@ def _dvc_repo(dest: Path) -> Path:
         "open('down.txt', 'w').write(str(p['fusion_model']['train']['batch_size']))\n"
         "open('runs.log', 'a').write('down\\n')\n"
     )
+    shutil.copytree(ROOT / "conf", dest / "conf")  # for DVC's Hydra composition (exp run -S)
     check = (
-        "import sys; from pathlib import Path; import pipelines.check_params as c; "
-        "from pipelines._common import params, run_stage; "
-        "c.params = lambda: params(Path('params.yaml')); "
-        "run_stage(lambda: c.main([], output=Path('params_ok.json')), 'check_params')"
+        "from pathlib import Path; import pipelines.check_params as c; "
+        "from pipelines._common import run_stage; "
+        "run_stage(lambda: c.main([], output=Path('params_ok.json'), root=Path.cwd()), "
+        "'check_params')"
     )
     (dest / "dvc.yaml").write_text(
         yaml.safe_dump(
@@ -134,7 +210,7 @@ def _dvc_repo(dest: Path) -> Path:
                 "stages": {
                     "check_params": {
                         "cmd": f'{sys.executable} -c "{check}"',
-                        "deps": ["params.yaml"],
+                        "params": [{"params.yaml": None}],  # every key, as the real stage
                         "outs": ["params_ok.json"],
                     },
                     "down": {
@@ -147,7 +223,7 @@ def _dvc_repo(dest: Path) -> Path:
             }
         )
     )
-    (dest / ".gitignore").write_text("runs.log\n")
+    (dest / ".gitignore").write_text("runs.log\n/.cache/\n")
     env = {
         "PYTHONPATH": f"{ROOT / 'src'}:{ROOT}",
         "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin",
@@ -156,6 +232,7 @@ def _dvc_repo(dest: Path) -> Path:
     for cmd in (
         [*git, "init", "-q"],
         ["dvc", "init", "-q"],
+        ["dvc", "config", "hydra.enabled", "true"],
         ["dvc", "repro", "-q"],
         [*git, "add", "-A"],
         [*git, "commit", "-q", "-m", "start"],
@@ -174,26 +251,41 @@ def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.slow  # three dvc runs of the real check (~1 min on 2 cores)
+def _git_status(repo: Path) -> str:
+    return subprocess.run(
+        ["git", "status", "--porcelain"], cwd=repo, capture_output=True, text=True, timeout=60
+    ).stdout
+
+
+@pytest.mark.slow  # four dvc runs of the real check (~1.5 min on 2 cores)
 def test_dvc_stops_at_the_check_and_keeps_every_other_output(tmp_path) -> None:
     repo = _dvc_repo(tmp_path / "repo")
     before = (repo / "down.txt").read_text()
-    # (a) a rejected value: the check fails, `down` keeps its output (a cache: false output)
-    params = yaml.safe_load((repo / "params.yaml").read_text())
     good = (repo / "params.yaml").read_text()
-    (repo / "params.yaml").write_text(
-        yaml.safe_dump(_with(params, "fusion_model.train.batch_size", -3), sort_keys=False)
-    )
-    proc = _dvc(repo, "repro", "down")
+    params = yaml.safe_load(good)
+    # (a) `dvc exp run -S` of a rejected value (DVC composes conf/ and writes params.yaml before
+    # any stage runs): the check fails, `down` keeps its output (a cache: false output), and
+    # params.yaml is the accepted file again: the workspace is as before
+    proc = _dvc(repo, "exp", "run", "-S", "fusion_model.train.batch_size=-3", "down")
     assert proc.returncode != 0
-    assert "check_params: error: ConfigError: params.yaml: 'fusion_model.train.batch_size'" in (
-        proc.stderr + proc.stdout
-    )
+    out = proc.stderr + proc.stdout
+    assert "check_params: error: ConfigError: params.yaml: 'fusion_model.train.batch_size'" in out
+    assert "params.yaml restored to the parameters the last check accepted" in out
+    assert (repo / "params.yaml").read_text() == good
+    assert _git_status(repo) == ""
     assert (repo / "down.txt").read_text() == before
     assert (repo / "runs.log").read_text() == "down\n"
-    assert "batch_size: -3" in (repo / "params.yaml").read_text()  # the check never writes it
-    # (b) back to a valid value that `down` does not read: the check re-runs, writes the same
-    # output, and `down` is not re-run
+    # (b) the same value written by hand, then `dvc repro`: the same, the edit kept aside
+    bad = yaml.safe_dump(_with(params, "fusion_model.train.batch_size", -3), sort_keys=False)
+    (repo / "params.yaml").write_text(bad)
+    proc = _dvc(repo, "repro", "down")
+    assert proc.returncode != 0 and "params.yaml restored" in proc.stderr + proc.stdout
+    assert (repo / "params.yaml").read_text() == good
+    assert (repo / ".cache/traffictwin/params/rejected.yaml").read_text() == bad
+    assert (repo / "down.txt").read_text() == before
+    assert (repo / "runs.log").read_text() == "down\n"
+    # (c) a valid value that `down` does not read: the check re-runs, writes the same output,
+    # and `down` is not re-run
     (repo / "params.yaml").write_text(good.replace("seed: ", "seed: 1", 1))
     proc = _dvc(repo, "repro", "down")
     assert proc.returncode == 0, proc.stderr

@@ -38,6 +38,31 @@ def test_a_reference_resolves_against_the_registry_even_beside_a_folder_of_its_n
     assert folder.is_dir()  # untouched
 
 
+def test_cli_never_loads_a_folder_named_like_the_reference(tmp_path, monkeypatch, capsys):
+    """``risk --model traffictwin-risk@champion`` beside a folder of that name holding another
+    model: the registry is asked (here: none, one line, exit 1) and the folder is not loaded;
+    ``./traffictwin-risk@champion`` is the folder, reported as that path."""
+    import json
+
+    from _cli_models import save_risk, textured_pair, write_pair
+
+    monkeypatch.chdir(tmp_path)
+    folder = save_risk(tmp_path / "traffictwin-risk@champion")
+    lp, rp = write_pair(tmp_path / "in", "f", *textured_pair())
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    db = tmp_path / "none.db"
+    argv = ["risk", str(lp), str(rp), "--model", "traffictwin-risk@champion"]
+    assert cli.main([*argv, "--tracking-uri", f"sqlite:///{db}"]) == 1
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert out == "" and len(lines) == 1 and "no MLflow database" in lines[0], lines
+    assert not db.exists()
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert cli.main(["risk", str(lp), str(rp), "--model", "./traffictwin-risk@champion"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["model"] == "./traffictwin-risk@champion", res["model"]  # a path, read as one
+
+
 def test_a_path_is_a_path_and_a_bad_reference_is_one_line(tmp_path):
     d = tmp_path / "m"
     d.mkdir()
@@ -126,6 +151,7 @@ def test_read_only_sqlite_uri_opens_the_registry_read_only(cl, mlflow_uri):
     assert reg.registered_names(ro_client) == ["traffictwin-ro"]
     with pytest.raises(MlflowException, match="readonly"):  # really read-only
         ro_client.create_registered_model("traffictwin-w")
+    assert cli.main(["status", "--tracking-uri", ro]) == 0  # the CLI takes it too
     assert db.read_bytes() == before
 
 

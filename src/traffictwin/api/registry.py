@@ -110,9 +110,15 @@ def _load_model(
     if path is None:
         return _load_registered(connect(tracking_uri), name or family, alias, loader, what, family)
     try:
-        return loader(path), str(path)
+        return loader(path), _folder_description(path)
     except model_error as exc:
         raise ApiError(str(exc)) from None
+
+
+def _folder_description(path: Path) -> str:
+    """How a model folder is reported: the path with a directory part, so a folder named like a
+    registry reference (``./traffictwin-risk@champion``) never reads as that reference."""
+    return str(path) if path.is_absolute() or path.parent != Path(".") else f".{os.sep}{path}"
 
 
 def _load_registered(cl, name: str, alias: str, loader, what: str, family: str | None = None):
