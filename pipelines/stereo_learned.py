@@ -47,15 +47,8 @@ from traffictwin.stereo.evaluation import critical_objects, evaluate, frame_sums
 from traffictwin.stereo.targets import stereo_targets
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import (
-    DISPARITY,
-    RISK_DATA,
-    STEREO_HOLDOUT_MODEL,
-    STEREO_LEARNED,
-    STEREO_MODEL,
-    figure_file,
-    metrics_file,
-)
+from ._paths import DISPARITY, RISK_DATA, STEREO_LEARNED, STEREO_MODEL, figure_file, metrics_file
+from .train_stereo import STEREO_HOLDOUT_MODEL
 
 STAGE = "stereo_learned"
 

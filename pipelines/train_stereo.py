@@ -30,7 +30,6 @@ from ._paths import (
     DISPARITY,
     PARAMS,
     RISK_DATA,
-    STEREO_HOLDOUT_MODEL,
     STEREO_MODEL,
     figure_file,
     metrics_file,
@@ -41,6 +40,9 @@ from ._paths import (
 KEY = "stereo_model"
 STAGE = "train_stereo"
 HOLDOUT_STAGE = "train_stereo_holdout"
+#: the same network trained without the held-out road templates (generalisation); defined here,
+#: not in _paths (every stage imports _paths: a new path there would re-run the whole DAG)
+STEREO_HOLDOUT_MODEL = STEREO_MODEL.parent / "holdout"
 
 
 def model_config(p) -> StereoModelConfig:
