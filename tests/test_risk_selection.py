@@ -32,10 +32,12 @@ from traffictwin.risk.evaluation import (
     weighted_median_stat,
 )
 from traffictwin.risk.model_io import RiskModelError, load_risk_model, save_predictor
+from traffictwin.risk.predictor import RiskFrames
 from traffictwin.risk.predictors import (
     GeometricRiskModel,
     HybridConfig,
     HybridRiskModel,
+    PredictorInputs,
     corridor_features,
     fit_hybrid,
     log_thw_target,
@@ -258,6 +260,46 @@ def test_rule_and_hybrid_round_trip_through_the_model_folder(tmp_path: Path) -> 
     (tmp_path / "hyb" / "model.ckpt").write_bytes((tmp_path / "rule" / "model.ckpt").read_bytes())
     with pytest.raises(RiskModelError, match="not one pair"):
         load_risk_model(tmp_path / "hyb")
+
+
+def test_predictors_read_the_disparity_they_name_from_frames_given_by_key(tmp_path: Path) -> None:
+    """Callers hand every disparity by key; each predictor takes its own (a rule built for the
+    learned disparity keeps that key through its model folder), and hybrids of one feature setting
+    share one corridor profile per frames object."""
+    p = GeometricParams(corridor_half_width=1.0, min_height=-10, max_height=10, min_pixels=3)
+    cam = {**{k: float(v) for k, v in CAM.items()}, "width": 96.0, "height": 48.0}
+    near, none = _wall(8.0, (-0.5, 0.5)), _wall(8.0, (1.5, 2.0))
+    speed = np.array([10.0])
+    frames = RiskFrames(disparity={"disp_sgm": none, "disp_learned": near}, speed=speed)
+    sgm_rule = GeometricRiskModel(p, cam)
+    learned_rule = GeometricRiskModel(p, cam, cfg=PredictorInputs(("disp_learned",)))
+    assert sgm_rule.predict_frames(frames, 8)[0] == 0
+    assert learned_rule.predict_frames(frames, 8)[0] > 0
+    assert "disparity" not in sgm_rule.architecture()  # SGM's rule keeps its checkpoint layout
+    save_predictor(learned_rule, tmp_path / "rule")
+    back = load_risk_model(tmp_path / "rule")
+    assert back.cfg.inputs == ("disp_learned",)
+    assert back.predict(disparity={"disp_learned": near}, speed=speed)[0] > 0
+    with pytest.raises(
+        ValueError, match="reads the disparity 'disp_learned'.*given: \\['disp_sgm'\\]"
+    ):
+        back.predict(disp_sgm=near, speed=speed)
+
+    cfg = HybridConfig(half_widths=(0.5, 1.0), bin_edges=(-1.0, 0.0, 1.0), epochs=2, hidden=8)
+    x = corridor_features(np.concatenate([near, none]), np.array([10.0, 10.0]), cam, p, cfg)
+    hybrids = [
+        HybridRiskModel(fit_hybrid(x, np.array([0.8, np.inf]), cfg, seed=s)[0], cfg, p, cam)
+        for s in (0, 1)
+    ]
+    two = RiskFrames(
+        disparity={"disp_sgm": np.concatenate([near, none])}, speed=np.array([10.0, 10.0])
+    )
+    preds = [h.predict_frames(two, 8) for h in hybrids]
+    assert len(two.derived) == 1  # one profile for both seeds
+    for h, pr in zip(hybrids, preds):
+        np.testing.assert_array_equal(pr, h.predict_features(x))
+    with pytest.raises(ValueError, match="unknown key"):
+        RiskFrames(disparity={"disp_mono": near})
 
 
 def torch_equal(a, b) -> bool:
