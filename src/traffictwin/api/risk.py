@@ -30,18 +30,29 @@ from .inputs import (
     checked_items,
 )
 from .registry import _first_line, _load_model
+from .stereo import LoadedStereo, check_stereo_size
 
 MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
 MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
 UNKNOWN = "unknown"  # the verdict of a pair that failed the stereo pair check
+#: where a risk model folder that reads the learned disparity packages its stereo network
+PACKAGED_STEREO = "stereo"
 
 
 @dataclass
 class LoadedRisk:
-    """A :class:`~traffictwin.risk.model_io.RiskModel` and a description of where it came from."""
+    """A :class:`~traffictwin.risk.model_io.RiskModel` (or corridor rule / hybrid), a
+    description of where it came from and, for a model that reads the learned stereo network's
+    disparity, that network (``stereo``)."""
 
     model: Any
     description: str
+    stereo: LoadedStereo | None = None
+
+    @property
+    def disparity_key(self) -> str:
+        """The disparity the model reads (``disp_sgm`` or ``disp_learned``)."""
+        return _disparity_input(self.model)
 
     @property
     def meta(self) -> dict[str, Any]:
@@ -143,26 +154,61 @@ def check_risk_domain(domain: Any, who: str) -> None:
                 raise ModelDomainError(f"{who}: 'domain.{key}': {why}")
 
 
-def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> LoadedRisk:
-    """Load a risk network by registry reference (``name@alias``; a bare alias means
-    ``traffictwin-risk``) or model folder. Raises :class:`ApiError`."""
+def _disparity_input(model: Any) -> str:
+    """The disparity key a risk model reads (its ``cfg.inputs``; ``disp_sgm`` when none)."""
+    inputs = tuple(getattr(getattr(model, "cfg", None), "inputs", ()) or ())
+    return next((k for k in inputs if k.startswith("disp_")), "disp_sgm")
+
+
+def load_risk(
+    model: str | os.PathLike,
+    *,
+    tracking_uri: str | None = None,
+    stereo_model: str | os.PathLike | None = None,
+) -> LoadedRisk:
+    """Load a risk model by registry reference (``name@alias``; a bare alias means
+    ``traffictwin-risk``) or model folder. A model that reads the learned stereo network's
+    disparity (``disp_learned``) gets that network: ``stereo_model`` (its folder), else the
+    folder :data:`PACKAGED_STEREO` inside the risk model's folder. Raises :class:`ApiError`."""
     from traffictwin.mlops.registry import RISK_NAME
     from traffictwin.risk.model_io import RiskModelError, load_risk_model
 
+    from .stereo import SOURCE_KEYS, load_stereo
+
     check_path(model, "model", "a registry reference name@alias or a model folder path")
     check_optional_text(tracking_uri, "tracking_uri")
+    if stereo_model is not None:
+        check_path(stereo_model, "stereo_model", "a learned stereo model folder")
     rm, desc = _load_model(
         model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
     )
     check_risk_domain((rm.meta or {}).get("domain"), desc)
-    inputs = tuple(getattr(getattr(rm, "cfg", None), "inputs", ()) or ())
-    if "disp_learned" in inputs:
+    key = _disparity_input(rm)
+    if key != SOURCE_KEYS["learned"]:
+        if stereo_model is not None:
+            raise InputValueError(
+                f"stereo_model: {desc} reads the disparity {key!r}, not the learned stereo "
+                "network's ('disp_learned'); give no stereo model"
+            )
+        return LoadedRisk(rm, desc)
+    folder = Path(model) if Path(model).is_dir() else None
+    packaged = folder / PACKAGED_STEREO if folder is not None else None
+    if stereo_model is None and packaged is not None and packaged.is_dir():
+        stereo_model = packaged
+    if stereo_model is None:
         raise ModelDomainError(
-            f"{desc}: reads the learned stereo network's disparity ('disp_learned'), which "
-            "traffictwin risk does not compute (it computes SGM disparity); use a model that "
-            "reads 'disp_sgm', e.g. the shipped one"
+            f"{desc}: reads the learned stereo network's disparity ('disp_learned'); give that "
+            "network's folder (stereo_model=..., --stereo-model models/stereo/learned)"
         )
-    return LoadedRisk(rm, desc)
+    stereo = load_stereo(stereo_model)
+    if stereo.net is None:
+        raise InputValueError(
+            f"stereo_model: {desc} reads the learned stereo network's disparity; 'sgm' is not it"
+        )
+    cam = ((rm.meta or {}).get("domain") or {}).get("camera") or {}
+    if {"width", "height"} <= set(cam):
+        check_stereo_size(stereo, int(cam["width"]), int(cam["height"]), desc)
+    return LoadedRisk(rm, desc, stereo)
 
 
 @dataclass
@@ -366,6 +412,17 @@ def risk_verdict(
 
 
 def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The BGR images of ``fr``, checked against the risk model's camera (:func:`_pair_images`)."""
+    cam = risk.domain.get("camera")
+    return _pair_images(fr, cam if isinstance(cam, dict) else None, risk.description, resize)
+
+
+def _pair_images(
+    fr: Frame, cam: dict[str, Any] | None, description: str, resize: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The BGR images of ``fr`` (read if paths): equal sizes, and the size of the training
+    camera ``cam`` (``width`` / ``height`` px of ``description``'s domain) unless ``resize``
+    resizes both to it (at most :data:`MAX_UPSCALE` x enlarged). Errors name the image."""
     import cv2
 
     ln, rn = (
@@ -379,14 +436,13 @@ def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray
             f"{rn}: size {right.shape[1]}x{right.shape[0]} differs from {ln}'s "
             f"{left.shape[1]}x{left.shape[0]} (W x H)"
         )
-    cam = risk.domain.get("camera")
     if isinstance(cam, dict) and "width" in cam and "height" in cam:
         cw, ch = int(cam["width"]), int(cam["height"])
         if (left.shape[1], left.shape[0]) != (cw, ch):
             if not resize:
                 raise ModelDomainError(
                     f"{ln}: image size {left.shape[1]}x{left.shape[0]} differs from the model's "
-                    f"training camera {cw}x{ch} (W x H, domain.camera of {risk.description}); "
+                    f"training camera {cw}x{ch} (W x H, domain.camera of {description}); "
                     "resize=True (--resize) resizes both images to it (disparity then in the "
                     "camera's pixel scale)"
                 )
@@ -400,6 +456,21 @@ def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray
             left = cv2.resize(left, (cw, ch), interpolation=cv2.INTER_AREA)
             right = cv2.resize(right, (cw, ch), interpolation=cv2.INTER_AREA)
     return left, right
+
+
+def orb_fields(orb: Any) -> dict[str, Any]:
+    """The pair check's result as row fields (``orb_outlier``, ``orb_verdict``, ``orb_reason``,
+    match counts, mean / median offsets px) of :func:`traffictwin.stereo.orb.check_pair`'s ``orb``."""
+    return {
+        "orb_outlier": bool(orb.outlier),
+        "orb_verdict": "unreliable pair" if orb.outlier else "ok",
+        "orb_reason": orb.reason,
+        "orb_n_matches": int(orb.n_matches),
+        "orb_n_reliable": int(orb.n_reliable),
+        "orb_mean_dx": float(orb.mean_dx),
+        "orb_mean_dy": float(orb.mean_dy),
+        "orb_median_dx": float(orb.median_dx),
+    }
 
 
 def check_thw_threshold(thw_threshold: Any, who: str = "thw_threshold") -> float:
@@ -472,8 +543,11 @@ def _assess(
     from traffictwin.stereo.orb import check_pair
     from traffictwin.stereo.sgm import compute_disparity
 
+    from .stereo import disparities
+
+    key = risk.disparity_key
     for chunk in _chunks(frames, batch_size):
-        lefts, disps, rows, reasons = [], [], [], []
+        lefts, rights, disps, rows, reasons = [], [], [], [], []
         for fr in chunk:
             left, right = _frame_images(fr, risk, resize)
             t0 = time.perf_counter()
@@ -481,32 +555,31 @@ def _assess(
             t1 = time.perf_counter()
             disp = compute_disparity(left, right, **st.sgm)
             t2 = time.perf_counter()
-            valid = disp >= 0
             lefts.append(left)
+            rights.append(right)
             disps.append(disp)
             reasons.append(orb.reason if orb.outlier else "")
             rows.append(
                 {
                     "id": fr.id,
-                    "orb_outlier": bool(orb.outlier),
-                    "orb_verdict": "unreliable pair" if orb.outlier else "ok",
-                    "orb_reason": orb.reason,
-                    "orb_n_matches": int(orb.n_matches),
-                    "orb_n_reliable": int(orb.n_reliable),
-                    "orb_mean_dx": float(orb.mean_dx),
-                    "orb_mean_dy": float(orb.mean_dy),
-                    "orb_median_dx": float(orb.median_dx),
-                    "disp_valid_fraction": float(valid.mean()),
-                    "disp_median_px": float(np.median(disp[valid])) if valid.any() else math.nan,
+                    **orb_fields(orb),
+                    "disp_valid_fraction": math.nan,  # of the disparity the model reads, below
+                    "disp_median_px": math.nan,
                     "orb_ms": round((t1 - t0) * 1e3, 2),
                     "sgm_ms": round((t2 - t1) * 1e3, 2),
                 }
             )
+        left_n = np.stack(lefts)
+        disp, _, net_ms = disparities(risk.stereo, left_n, np.stack(rights), np.stack(disps))
+        for row, d in zip(rows, disp[key]):
+            valid = d >= 0
+            row["disp_valid_fraction"] = float(valid.mean())
+            row["disp_median_px"] = float(np.median(d[valid])) if valid.any() else math.nan
+            if risk.stereo is not None:
+                row.update(disp_source=key, stereo_net_ms=round(net_ms, 2))
         t0 = time.perf_counter()
         sp = None if speed is None else np.full(len(chunk), speed, np.float32)
-        pred = risk.model.predict(
-            left_bgr=np.stack(lefts), disp_sgm=np.stack(disps), speed=sp, batch_size=batch_size
-        )
+        pred = risk.model.predict(left_bgr=left_n, speed=sp, batch_size=batch_size, disparity=disp)
         ms = (time.perf_counter() - t0) * 1e3 / len(chunk)
         bad = [row["id"] for row, r in zip(rows, pred) if not np.isfinite(r)]
         if bad:

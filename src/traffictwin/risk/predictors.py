@@ -41,8 +41,8 @@ KINDS = ("dave2", "hybrid", "geometric")
 
 #: the frame inputs of a predictor that sees the SGM disparity and the speed
 _SGM_INPUTS = ("disp_sgm",)
-#: the disparities a hybrid can read: SGM's, or the learned stereo network's (data/stereo_learned;
-#: evaluated, not served: ``traffictwin risk`` computes SGM disparity)
+#: the disparities a rule or hybrid can read: SGM's, or the learned stereo network's
+#: (data/stereo_learned; ``traffictwin risk`` computes whichever the model reads)
 HYBRID_DISPARITIES = ("disp_sgm", "disp_learned")
 
 

@@ -39,8 +39,8 @@ from traffictwin.risk.selection import best_cut, choose, roc_auc, too_few, tune_
 from traffictwin.risk.training import RiskSource, check_label, input_keys
 
 #: the corridor rules and the disparity each reads (a rule runs where its source has the disparity:
-#: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); only the SGM rule
-#: ships (``traffictwin risk`` computes SGM disparity; the learned one is evaluated beside it)
+#: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); of the rules only
+#: the SGM rule competes for shipping (the learned one is evaluated beside it)
 RULES = {
     "geometric_sgm": "disp_sgm",
     "geometric_gt": "disp_gt",
