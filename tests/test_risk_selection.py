@@ -703,3 +703,43 @@ def corridor_features_of(src, frames, key: str, geo, cfg) -> np.ndarray:
             for rows, arr in src.iter_arrays(frames, [key])
         ]
     )
+
+
+def test_the_shipped_model_is_logged_with_its_served_signature_and_a_validation_example(
+    tmp_path: Path, mlflow_uri: str, monkeypatch
+) -> None:
+    """Every registered model carries a signature and an input example: the shipped rule's is
+    what its pyfunc serves (speed, then its disparity), filled from a validation frame, and the
+    served model answers the example with the rule's own risk."""
+    import mlflow
+
+    from pipelines import select_risk
+    from traffictwin.mlops import serving
+    from traffictwin.risk.predictors import PackedPredictor
+    from traffictwin.risk.training import RiskSource
+
+    monkeypatch.chdir(tmp_path)
+    write_sequences(tmp_path, n_shards=4, per_shard=6)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    cam = {k: float(v) for k, v in src.camera.items() if k in CAM or k in ("width", "height")}
+    rule = GeometricRiskModel(GeometricParams(corridor_half_width=1.0), cam)
+    folder = save_predictor(rule, tmp_path / "shipped", {"label": "risk_thw_corridor"})
+    signature, x = select_risk.serving_signature(folder, src)
+    first = src.split_frames("val").iloc[:1]
+    _, arr = next(iter(src.iter_arrays(first, ["disp_sgm"])))
+    assert x.shape == (1, 1 + 48 * 96) and x[0, 0] == pytest.approx(first["speed"].iloc[0])
+    np.testing.assert_array_equal(x[0, 1:], arr["disp_sgm"][0].ravel())
+    assert tuple(signature.inputs.to_dict()[0]["tensor-spec"]["shape"]) == (-1, 1 + 48 * 96)
+    served = serving.TrafficTwinModel(PackedPredictor(load_risk_model(folder)), "risk")
+    want = rule.predict(disp_sgm=arr["disp_sgm"], speed=first["speed"].to_numpy())
+    np.testing.assert_allclose(served.predict(x), want)
+
+    sel = {
+        "shipped": {"predictor": "geometric_sgm", "kind": "geometric"},
+        "predictors": {},
+        "rules": {"geometric_sgm": {"half_width": 1.0}},
+        "criterion": "ROC-AUC",
+    }
+    rec = select_risk.track_shipped({"profile": {"name": "test"}}, sel, folder, src)
+    info = mlflow.models.get_model_info(rec["model_uri"])
+    assert info.signature is not None and info.saved_input_example_info is not None

@@ -363,6 +363,26 @@ def _rule_disparity(architecture: Mapping[str, Any]) -> str:
     return str(key)
 
 
+def packed_for_serving(model: Any, frames: RiskFrames) -> tuple[nn.Module, np.ndarray]:
+    """The single-input module the MLflow pyfunc flavour serves for a risk ``model`` (the rule /
+    hybrid: :class:`PackedPredictor`; the network: :class:`~traffictwin.risk.dave2.PackedDave2`)
+    and its input (float32) for ``frames``: the input example a signature is inferred from."""
+    if isinstance(model, _DisparityPredictor):
+        if frames.speed is None:
+            raise ValueError(f"the {model.name}'s served input starts with the speed (m/s)")
+        disp = frames.disp(model.disparity_key, model.name)
+        speed = np.asarray(frames.speed, np.float32).reshape(-1, 1)
+        x = np.concatenate([speed, disp.reshape(len(disp), -1).astype(np.float32)], axis=1)
+        return PackedPredictor(model), np.ascontiguousarray(x)
+    from traffictwin.risk.dave2 import PackedDave2, pack_input, preprocess
+
+    cfg = model.cfg
+    d = frames.disparity
+    x = preprocess(cfg, frames.left_bgr, d.get("disp_sgm"), d.get("disp_gt"))
+    sp = torch.as_tensor(np.asarray(frames.speed, np.float32)) if cfg.use_speed else None
+    return PackedDave2(model.net).eval(), pack_input(cfg, x, sp).numpy()
+
+
 def architecture_problem(architecture: Mapping[str, Any]) -> str | None:
     """Why a rule / hybrid ``architecture`` (a checkpoint's or ``model_meta.json``'s ``config``)
     cannot be built by this version; ``None`` if it can (no weights needed)."""
