@@ -642,12 +642,13 @@ def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
         next(plain.iter_arrays(plain.split_frames("test"), ["disp_learned"]))
 
 
-def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_is_not_served(
+def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_needs_its_network_to_serve(
     tmp_path: Path,
 ) -> None:
     """A hybrid with ``disparity: disp_learned`` takes its features from data/stereo_learned in
     training, validation and test alike, gets its paired difference to the SGM rule, and the API
-    refuses to serve it (traffictwin risk computes SGM disparity)."""
+    serves it only with the learned stereo network that computes that disparity (none given or
+    packaged here: refused, saying how to give it)."""
     from traffictwin.api import ApiError
     from traffictwin.api.risk import load_risk
     from traffictwin.risk.predictors import HybridRiskModel, PredictorInputs, source_features
@@ -689,7 +690,7 @@ def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_is_not_served(
     save_predictor(model, tmp_path / "models" / "hybrid_learned", {"label": "risk_thw_corridor"})
     back = load_risk_model(tmp_path / "models" / "hybrid_learned")
     assert back.config.disparity == "disp_learned" and back.cfg.inputs == ("disp_learned",)
-    with pytest.raises(ApiError, match="learned stereo network's disparity"):
+    with pytest.raises(ApiError, match="learned stereo network's disparity.*--stereo-model"):
         load_risk(tmp_path / "models" / "hybrid_learned")
 
 

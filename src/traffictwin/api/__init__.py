@@ -60,6 +60,7 @@ THW
 Modules: :mod:`~traffictwin.api.errors` (the error classes), :mod:`~traffictwin.api.registry`
 (tracking URI, model references), :mod:`~traffictwin.api.inputs` (poses, cells, masses, speeds),
 :mod:`~traffictwin.api.fusion`, :mod:`~traffictwin.api.images` (stereo image files),
+:mod:`~traffictwin.api.pairs` (a pair's images, SGM / ORB settings and check fields),
 :mod:`~traffictwin.api.risk`, :mod:`~traffictwin.api.stereo` (disparity of a pair: SGM or the learned
 stereo network); every name is used as ``api.<name>``.
 

@@ -146,7 +146,7 @@ def disparity_of_pair(
     from traffictwin.stereo.sgm import compute_disparity
 
     from .images import Frame
-    from .risk import StereoSettings, _pair_images, orb_fields, stereo_settings
+    from .pairs import StereoSettings, _pair_images, orb_fields, stereo_settings
 
     if not isinstance(stereo, LoadedStereo):
         raise InputValueError(
