@@ -93,6 +93,15 @@ def test_trained_stereo_network_is_logged_registered_gated_and_served(
     for (k, a), b in zip(local.state_dict().items(), logged.state_dict().values(), strict=True):
         assert torch.equal(a, b), k
 
+    # users load it by reference through the same sealed path (API and CLI)
+    from traffictwin import api
+
+    cl.set_registered_model_alias(reg.STEREO_NAME, "champion", mv.version)
+    by_ref = api.load_stereo("traffictwin-stereo@champion", tracking_uri=mlflow_uri)
+    assert "traffictwin-stereo@champion" in by_ref.description and by_ref.source == "learned"
+    with pytest.raises(api.ApiError, match="is not a stereo model"):
+        api.load_stereo("traffictwin-risk@champion", tracking_uri=mlflow_uri)
+
     # the gate's score of the registered version is the local network's on the same pairs
     data, fp = stereo_test_set(tmp_path / "risk", tmp_path / "disp", "val", 2)
     assert fp.startswith("stereo:") and fp.endswith(":val:2")

@@ -155,7 +155,7 @@ def load_risk(
     check_path(model, "model", "a registry reference name@alias or a model folder path")
     check_optional_text(tracking_uri, "tracking_uri")
     if stereo_model is not None:
-        check_path(stereo_model, "stereo_model", "a learned stereo model folder")
+        check_path(stereo_model, "stereo_model", "a learned stereo model folder or reference")
     rm, desc = _load_model(
         model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
     )
@@ -177,7 +177,7 @@ def load_risk(
             f"{desc}: reads the learned stereo network's disparity ('disp_learned'); give that "
             "network's folder (stereo_model=..., --stereo-model models/stereo/learned)"
         )
-    stereo = load_stereo(stereo_model)
+    stereo = load_stereo(stereo_model, tracking_uri=tracking_uri)
     if stereo.net is None:
         raise InputValueError(
             f"stereo_model: {desc} reads the learned stereo network's disparity; 'sgm' is not it"

@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -49,26 +48,33 @@ class LoadedStereo:
         return None
 
 
-def load_stereo(model: str | os.PathLike = SGM) -> LoadedStereo:
-    """The disparity source ``model``: ``"sgm"`` (OpenCV SGM), or the folder of a learned stereo
-    network (``model.ckpt`` + ``model_meta.json`` as ``train_stereo`` writes it; checked against
-    the meta's sealed hash, read weights-only). Raises :class:`ApiError` naming the file."""
+def load_stereo(model: str | os.PathLike = SGM, *, tracking_uri: str | None = None) -> LoadedStereo:
+    """The disparity source ``model``: ``"sgm"`` (OpenCV SGM), a registry reference of the
+    learned stereo network (``traffictwin-stereo@champion``; a bare alias means
+    ``traffictwin-stereo``), or its folder (``model.ckpt`` + ``model_meta.json`` as
+    ``train_stereo`` writes it). Either way the files are checked against their sealed SHA-256
+    and read weights-only. Raises :class:`ApiError` naming the file or model."""
+    from traffictwin.mlops.registry import STEREO_NAME
     from traffictwin.risk.stereo_training import StereoModelError, load_stereo_model
 
-    check_path(model, "model", f"'{SGM}' or a stereo model folder")
+    from .inputs import check_optional_text
+    from .registry import _load_model, _split_ref
+
+    check_path(model, "model", f"'{SGM}', a registry reference name@alias or a stereo model folder")
+    check_optional_text(tracking_uri, "tracking_uri")
     if str(model) == SGM:
         return LoadedStereo(None, "SGM (OpenCV StereoSGBM)")
-    path = Path(model)
-    if not path.exists():
+    path = _split_ref(model)[2]
+    if path is not None and not path.exists():
         raise ApiError(
-            f"{path}: stereo model not found (expected '{SGM}' or a folder with model.ckpt and "
-            "model_meta.json, e.g. models/stereo/learned)"
+            f"{path}: stereo model not found (expected '{SGM}', a registry reference such as "
+            f"{STEREO_NAME}@champion, or a folder with model.ckpt and model_meta.json, e.g. "
+            "models/stereo/learned)"
         )
-    try:
-        net = load_stereo_model(path)
-    except StereoModelError as exc:
-        raise ApiError(str(exc)) from None
-    return LoadedStereo(net, f"learned stereo network {path}")
+    net, desc = _load_model(
+        model, load_stereo_model, StereoModelError, "stereo model", STEREO_NAME, tracking_uri
+    )
+    return LoadedStereo(net, f"learned stereo network {desc}")
 
 
 def check_stereo_size(stereo: LoadedStereo, width: int, height: int, who: str) -> None:

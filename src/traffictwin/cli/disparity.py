@@ -14,7 +14,7 @@ import numpy as np
 from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputSet
 
-from .common import CliError, add_arguments, arg, output_options
+from .common import CliError, add_arguments, arg, output_options, uri_option
 
 #: exit status when the pair failed the stereo pair check (the maps are written, not trusted)
 EXIT_UNRELIABLE = 3
@@ -33,9 +33,11 @@ ARGUMENTS = [
     arg(
         "--model",
         default="sgm",
-        help="'sgm' (OpenCV SGM, the default) or the learned stereo network's folder "
+        help="'sgm' (OpenCV SGM, the default), the learned stereo network's registry reference "
+        "(traffictwin-stereo@champion, or champion | challenger) or its folder "
         "(e.g. models/stereo/learned)",
     ),
+    *uri_option(),
     arg(
         "--params",
         default=None,
@@ -63,12 +65,12 @@ def cmd_disparity(args: argparse.Namespace) -> int:
         raise CliError(f"-o: {out} must end in .npz (the disparity and confidence arrays)")
     left, right = Path(args.left), Path(args.right)
     inputs = [left, right] + [Path(p) for p in (args.params,) if p]
-    if args.model != api.stereo.SGM:
+    if args.model != api.stereo.SGM and Path(args.model).exists():
         inputs.append(Path(args.model))
     outs = OutputSet([out], kinds="disparity", inputs=inputs, force=args.force)
     for p in (left, right):  # headers before the network (and torch) loads
         api.check_image_file(p)
-    stereo = api.load_stereo(args.model)
+    stereo = api.load_stereo(args.model, tracking_uri=args.tracking_uri)
     res = api.disparity_of_pair(stereo, left, right, params_path=args.params)
     with outs:
         arrays = {"disparity": res.disparity, "confidence": res.confidence}

@@ -44,8 +44,9 @@ ARGUMENTS = [
     arg(
         "--stereo-model",
         default=None,
-        help="the learned stereo network's folder (e.g. models/stereo/learned), for a risk model "
-        "that reads its disparity (disp_learned) and does not package it in its folder's stereo/",
+        help="the learned stereo network's folder (e.g. models/stereo/learned) or registry "
+        "reference (traffictwin-stereo@champion), for a risk model that reads its disparity "
+        "(disp_learned) and does not package it in its folder's stereo/",
     ),
     arg(
         "--thw-threshold",
