@@ -5,8 +5,9 @@ Not a DVC stage (it changes the MLflow registry, which DVC cannot cache); run af
     python -m pipelines.promote [--only traffictwin-fusion traffictwin-risk] [--dry-run] [--force]
 
 One gate per task: the one fusion network (``registry.fusion.name``, ``traffictwin-fusion``), the
-one learned registration (``registry.registration.name``, ``traffictwin-registration``) and the
-risk variant ``registry.risk.variant`` (``traffictwin-risk``); settings from the ``registry``
+one learned registration (``registry.registration.name``, ``traffictwin-registration``), the
+learned stereo network (``registry.stereo.name``, ``traffictwin-stereo``, when params.yaml has a
+``stereo_model`` group) and the risk variant ``registry.risk.variant`` (``traffictwin-risk``); settings from the ``registry``
 group (validated once), folders from ``pipelines/_paths.py``. The work is
 :func:`traffictwin.mlops.promotion.promote`: every candidate (its MLflow run id from the training
 stage's run record, ``reports/timings/<stage>.json``) is registered (once) as a version of its
@@ -39,6 +40,7 @@ from pipelines._paths import (
     RISK_DATA,
     ROOT,
     SHIPPED_RISK_MODEL,
+    STEREO_MODEL,
     fusion_model_dir,
     metrics_file,
     prealigned,
@@ -77,10 +79,13 @@ def configurations(cfg: DictConfig) -> list[str]:
 
 def model_names(cfg: DictConfig, rc: RegistryConfig) -> list[str]:
     """Registered-model names of every gate: the fusion network, the learned registration (when
-    params.yaml has a ``registration_model`` group), risk."""
+    params.yaml has a ``registration_model`` group), the learned stereo network (a
+    ``stereo_model`` group), risk."""
     names = [rc.fusion.name]
     if "registration_model" in cfg:
         names.append(rc.registration.name)
+    if "stereo_model" in cfg:
+        names.append(rc.stereo.name)
     return [*names, rc.risk.name]
 
 
@@ -169,6 +174,35 @@ def risk_card(variant: str) -> Callable[[promotion.Candidate], promotion.ModelCa
     return card
 
 
+STEREO_CARD_KEYS = ("epe", "bad1", "bad2", "crit_obj_relerr_median", "crit_obj_relerr_p90")
+
+
+def stereo_card(cand: promotion.Candidate) -> promotion.ModelCard:
+    """The model card facts of the learned stereo network: its test numbers on its own valid
+    pixels (reports/metrics/stereo.json)."""
+    metrics, source = _card_metrics(
+        "stereo", [], tuple(f"learned/own/{k}" for k in STEREO_CARD_KEYS)
+    )
+    size = cand.meta.get("image_size") or ["?", "?"]
+    return promotion.ModelCard(
+        data=f"{_rel(RISK_DATA)}: fault-free simulated stereo pairs with their exact disparity"
+        + (
+            f", refining {_rel(DISPARITY)}'s SGM"
+            if cand.meta.get("architecture", {}).get("base") == "sgm"
+            else ""
+        )
+        + ".",
+        metrics=metrics,
+        metrics_source=source,
+        limits=(
+            SIM_LIMIT,
+            f"Only for rectified pairs of {size[1]} x {size[0]} px from the training camera "
+            "(disparity in that camera's pixel scale); pairs the ORB check rejects are outside "
+            "its domain.",
+        ),
+    )
+
+
 def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
     """One gate job per task: fusion network, learned registration, risk variant (gate sets load lazily)."""
     from traffictwin.fusion.gate_eval import fusion_evaluator, fusion_test_set
@@ -211,6 +245,30 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 record_path=run_record_file("train_registration"),
                 tags={"model_dir": _rel(registration_model_dir())},
                 card=fusion_card("learned", cfg),
+            )
+        )
+    # the learned stereo network: end-point error on the gate split's fault-free pairs
+    if "stereo_model" in cfg:
+        from traffictwin.risk.stereo_gate import stereo_evaluator, stereo_test_set
+
+        s = rc.stereo
+        base = get(cfg, "stereo_model.architecture.base", str)
+
+        def make_stereo_eval(cand):
+            data, fp = stereo_test_set(
+                RISK_DATA, DISPARITY if base == "sgm" else None, s.split, s.max_frames
+            )
+            return stereo_evaluator(data, s.batch_size, s.split), fp
+
+        jobs.append(
+            promotion.GateJob(
+                name=s.name,
+                gate=s.gate(),
+                model_dir=STEREO_MODEL,
+                make_evaluator=make_stereo_eval,
+                record_path=run_record_file("train_stereo"),
+                tags={"model_dir": _rel(STEREO_MODEL)},
+                card=stereo_card,
             )
         )
     # keys of other groups the risk gate shares with the evaluate_risk stage

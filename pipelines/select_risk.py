@@ -81,13 +81,40 @@ def _copy_model(src_dir, out_dir, extra_meta: dict) -> None:
     write_json_atomic(out_dir / META, {**meta, **extra_meta})
 
 
-def track_shipped(p, sel: dict, folder) -> dict:
+def serving_signature(folder, source: RiskSource) -> tuple[object, np.ndarray]:
+    """The MLflow signature and input example of the risk model in ``folder``: what its pyfunc
+    serves (:func:`~traffictwin.risk.predictors.packed_for_serving`) for the first validation
+    frame of ``source``, and the served output on it."""
+    import torch
+    from mlflow.models import infer_signature
+
+    from traffictwin.risk.predictor import RiskFrames
+    from traffictwin.risk.predictors import packed_for_serving
+    from traffictwin.risk.training import input_keys
+
+    model = load_risk_model(folder)
+    frames = source.split_frames("val").iloc[:1]
+    if len(frames) == 0:
+        frames = source.frames.iloc[:1]
+    rows, arr = next(iter(source.iter_arrays(frames, input_keys(model.cfg))))
+    module, x = packed_for_serving(
+        model, RiskFrames.of_arrays(arr, rows["speed"].to_numpy(np.float32))
+    )
+    with torch.no_grad():
+        y = module(torch.from_numpy(x)).float().numpy()
+    return infer_signature(x, y), x
+
+
+def track_shipped(p, sel: dict, folder, source: RiskSource | None = None) -> dict:
     """An MLflow run ``risk-shipped`` (experiment ``risk``) with the validation figures and the
-    shipped predictor logged as a model (the registry's ``traffictwin-risk`` registers it); the
-    run-record fields ``run_id``, ``model_uri``, ``model_sha256``."""
+    shipped predictor logged as a model (the registry's ``traffictwin-risk`` registers it) with
+    its signature and a validation frame as input example (:func:`serving_signature`, given
+    ``source``); the run-record fields ``run_id``, ``model_uri``, ``model_sha256``."""
     from traffictwin.io.shards import sha256_file
     from traffictwin.mlops import model_artifact as art
     from traffictwin.mlops import tracking
+
+    signature, example = serving_signature(folder, source) if source is not None else (None, None)
 
     sh = sel["shipped"]
     metrics = {
@@ -116,6 +143,8 @@ def track_shipped(p, sel: dict, folder) -> dict:
         uri, _ = art.log_model(
             {art.CKPT: folder / CKPT, art.META: folder / META},
             problem="risk",
+            signature=signature,
+            input_example=example,
             metadata={"variant": SHIPPED, "predictor": sh["predictor"], "kind": sh["kind"]},
         )
         return {
@@ -170,7 +199,7 @@ def main() -> None:
         sel = selection.to_json()
         write_json_atomic(SELECTION, sel)
         record["shipped"] = selection.shipped.predictor
-        record.update(track_shipped(p, sel, SHIPPED_RISK_MODEL))
+        record.update(track_shipped(p, sel, SHIPPED_RISK_MODEL, source))
         sh = selection.shipped
         log.info(
             "select_risk: rules SGM %.2f m, GT %.2f m; shipped %s (%s, %s) -> %s",

@@ -33,10 +33,12 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
     rc = pm.registry_config(cfg)
     jobs = pm.build_jobs(cfg, rc)
     # one registered model per task: no configuration in any name
-    assert [j.name for j in jobs] == [rc.fusion.name, rc.registration.name, rc.risk.name]
+    names = [rc.fusion.name, rc.registration.name, rc.stereo.name, rc.risk.name]
+    assert [j.name for j in jobs] == names
     assert [j.name for j in jobs] == [
         "traffictwin-fusion",
         "traffictwin-registration",
+        "traffictwin-stereo",
         "traffictwin-risk",
     ]
     assert pm.model_names(cfg, rc) == [j.name for j in jobs]
@@ -55,7 +57,7 @@ def test_jobs_follow_the_configurations_and_the_risk_variant():
         rc.registration.metric, rc.registration.mode, rc.registration.margin
     )
     # the gates compare on validation data: the test split is read once, by the evaluation
-    assert {rc.fusion.split, rc.registration.split, rc.risk.split} == {"val"}
+    assert {rc.fusion.split, rc.registration.split, rc.stereo.split, rc.risk.split} == {"val"}
     assert jobs[-1].model_dir == pm.SHIPPED_RISK_MODEL
     assert jobs[-1].tags == {"model_dir": "models/risk_shipped"}
     assert jobs[-1].gate == Gate(rc.risk.metric, rc.risk.mode, rc.risk.margin)

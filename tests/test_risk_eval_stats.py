@@ -39,6 +39,7 @@ from traffictwin.risk.evaluation import (
 from traffictwin.risk.findings import claim, findings
 from traffictwin.risk.findings_values import beats
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
+from traffictwin.risk.predictor import RiskPredictor
 from traffictwin.risk.training import RiskSource
 from traffictwin.stats import Interval, mean_ci, resample_counts
 
@@ -376,9 +377,10 @@ def write_sequences(repo: Path, n_shards: int = 5, per_shard: int = 24, seq_len:
     dw.finalize()
 
 
-class FakeModel:
-    """A risk model stand-in (``cfg``, ``meta``, ``predict``): the geometric risk of the disparity
-    it is given plus seeded noise, clipped to [0, 1]; ``noise=None``: one output for every frame."""
+class FakeModel(RiskPredictor):
+    """A risk model stand-in (``cfg``, ``meta``, ``predict_frames``): the geometric risk of the
+    disparity it reads plus seeded noise, clipped to [0, 1]; ``noise=None``: one output for every
+    frame."""
 
     def __init__(self, inputs, speed, meta, noise: float | None, seed: int) -> None:
         self.cfg = Dave2Config(inputs=inputs, use_speed=speed)
@@ -386,13 +388,14 @@ class FakeModel:
         self.noise, self.rng = noise, np.random.default_rng(seed)
         self.geo = GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8)
 
-    def predict(self, left_bgr, disp_sgm, disp_gt, speed=None, batch_size=256) -> np.ndarray:
+    def predict_frames(self, frames, batch_size) -> np.ndarray:
         from traffictwin.risk.baselines import geometric_risk
 
         if self.noise is None:
-            return np.full(len(left_bgr), 0.1, np.float32)
-        disp = disp_sgm if "disp_sgm" in self.cfg.inputs else disp_gt
-        v = speed if self.cfg.use_speed else np.full(len(disp), 12.0, np.float32)
+            return np.full(len(frames.left_bgr), 0.1, np.float32)
+        key = "disp_sgm" if "disp_sgm" in self.cfg.inputs else "disp_gt"
+        disp = frames.disp(key, "fake model")
+        v = frames.speed if self.cfg.use_speed else np.full(len(disp), 12.0, np.float32)
         _, _, r = geometric_risk(disp, v, camera_intrinsics(96, 48), self.geo)
         return np.clip(r + self.rng.normal(0, self.noise, r.shape), 0, 1).astype(np.float32)
 

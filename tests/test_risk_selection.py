@@ -32,10 +32,12 @@ from traffictwin.risk.evaluation import (
     weighted_median_stat,
 )
 from traffictwin.risk.model_io import RiskModelError, load_risk_model, save_predictor
+from traffictwin.risk.predictor import RiskFrames
 from traffictwin.risk.predictors import (
     GeometricRiskModel,
     HybridConfig,
     HybridRiskModel,
+    PredictorInputs,
     corridor_features,
     fit_hybrid,
     log_thw_target,
@@ -258,6 +260,46 @@ def test_rule_and_hybrid_round_trip_through_the_model_folder(tmp_path: Path) -> 
     (tmp_path / "hyb" / "model.ckpt").write_bytes((tmp_path / "rule" / "model.ckpt").read_bytes())
     with pytest.raises(RiskModelError, match="not one pair"):
         load_risk_model(tmp_path / "hyb")
+
+
+def test_predictors_read_the_disparity_they_name_from_frames_given_by_key(tmp_path: Path) -> None:
+    """Callers hand every disparity by key; each predictor takes its own (a rule built for the
+    learned disparity keeps that key through its model folder), and hybrids of one feature setting
+    share one corridor profile per frames object."""
+    p = GeometricParams(corridor_half_width=1.0, min_height=-10, max_height=10, min_pixels=3)
+    cam = {**{k: float(v) for k, v in CAM.items()}, "width": 96.0, "height": 48.0}
+    near, none = _wall(8.0, (-0.5, 0.5)), _wall(8.0, (1.5, 2.0))
+    speed = np.array([10.0])
+    frames = RiskFrames(disparity={"disp_sgm": none, "disp_learned": near}, speed=speed)
+    sgm_rule = GeometricRiskModel(p, cam)
+    learned_rule = GeometricRiskModel(p, cam, cfg=PredictorInputs(("disp_learned",)))
+    assert sgm_rule.predict_frames(frames, 8)[0] == 0
+    assert learned_rule.predict_frames(frames, 8)[0] > 0
+    assert "disparity" not in sgm_rule.architecture()  # SGM's rule keeps its checkpoint layout
+    save_predictor(learned_rule, tmp_path / "rule")
+    back = load_risk_model(tmp_path / "rule")
+    assert back.cfg.inputs == ("disp_learned",)
+    assert back.predict(disparity={"disp_learned": near}, speed=speed)[0] > 0
+    with pytest.raises(
+        ValueError, match="reads the disparity 'disp_learned'.*given: \\['disp_sgm'\\]"
+    ):
+        back.predict(disp_sgm=near, speed=speed)
+
+    cfg = HybridConfig(half_widths=(0.5, 1.0), bin_edges=(-1.0, 0.0, 1.0), epochs=2, hidden=8)
+    x = corridor_features(np.concatenate([near, none]), np.array([10.0, 10.0]), cam, p, cfg)
+    hybrids = [
+        HybridRiskModel(fit_hybrid(x, np.array([0.8, np.inf]), cfg, seed=s)[0], cfg, p, cam)
+        for s in (0, 1)
+    ]
+    two = RiskFrames(
+        disparity={"disp_sgm": np.concatenate([near, none])}, speed=np.array([10.0, 10.0])
+    )
+    preds = [h.predict_frames(two, 8) for h in hybrids]
+    assert len(two.derived) == 1  # one profile for both seeds
+    for h, pr in zip(hybrids, preds):
+        np.testing.assert_array_equal(pr, h.predict_features(x))
+    with pytest.raises(ValueError, match="unknown key"):
+        RiskFrames(disparity={"disp_mono": near})
 
 
 def torch_equal(a, b) -> bool:
@@ -600,12 +642,13 @@ def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
         next(plain.iter_arrays(plain.split_frames("test"), ["disp_learned"]))
 
 
-def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_is_not_served(
+def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_needs_its_network_to_serve(
     tmp_path: Path,
 ) -> None:
     """A hybrid with ``disparity: disp_learned`` takes its features from data/stereo_learned in
     training, validation and test alike, gets its paired difference to the SGM rule, and the API
-    refuses to serve it (traffictwin risk computes SGM disparity)."""
+    serves it only with the learned stereo network that computes that disparity (none given or
+    packaged here: refused, saying how to give it)."""
     from traffictwin.api import ApiError
     from traffictwin.api.risk import load_risk
     from traffictwin.risk.predictors import HybridRiskModel, PredictorInputs, source_features
@@ -647,7 +690,7 @@ def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_is_not_served(
     save_predictor(model, tmp_path / "models" / "hybrid_learned", {"label": "risk_thw_corridor"})
     back = load_risk_model(tmp_path / "models" / "hybrid_learned")
     assert back.config.disparity == "disp_learned" and back.cfg.inputs == ("disp_learned",)
-    with pytest.raises(ApiError, match="learned stereo network's disparity"):
+    with pytest.raises(ApiError, match="learned stereo network's disparity.*--stereo-model"):
         load_risk(tmp_path / "models" / "hybrid_learned")
 
 
@@ -661,3 +704,43 @@ def corridor_features_of(src, frames, key: str, geo, cfg) -> np.ndarray:
             for rows, arr in src.iter_arrays(frames, [key])
         ]
     )
+
+
+def test_the_shipped_model_is_logged_with_its_served_signature_and_a_validation_example(
+    tmp_path: Path, mlflow_uri: str, monkeypatch
+) -> None:
+    """Every registered model carries a signature and an input example: the shipped rule's is
+    what its pyfunc serves (speed, then its disparity), filled from a validation frame, and the
+    served model answers the example with the rule's own risk."""
+    import mlflow
+
+    from pipelines import select_risk
+    from traffictwin.mlops import serving
+    from traffictwin.risk.predictors import PackedPredictor
+    from traffictwin.risk.training import RiskSource
+
+    monkeypatch.chdir(tmp_path)
+    write_sequences(tmp_path, n_shards=4, per_shard=6)
+    src = RiskSource(tmp_path / "data" / "risk", tmp_path / "data" / "disparity", None)
+    cam = {k: float(v) for k, v in src.camera.items() if k in CAM or k in ("width", "height")}
+    rule = GeometricRiskModel(GeometricParams(corridor_half_width=1.0), cam)
+    folder = save_predictor(rule, tmp_path / "shipped", {"label": "risk_thw_corridor"})
+    signature, x = select_risk.serving_signature(folder, src)
+    first = src.split_frames("val").iloc[:1]
+    _, arr = next(iter(src.iter_arrays(first, ["disp_sgm"])))
+    assert x.shape == (1, 1 + 48 * 96) and x[0, 0] == pytest.approx(first["speed"].iloc[0])
+    np.testing.assert_array_equal(x[0, 1:], arr["disp_sgm"][0].ravel())
+    assert tuple(signature.inputs.to_dict()[0]["tensor-spec"]["shape"]) == (-1, 1 + 48 * 96)
+    served = serving.TrafficTwinModel(PackedPredictor(load_risk_model(folder)), "risk")
+    want = rule.predict(disp_sgm=arr["disp_sgm"], speed=first["speed"].to_numpy())
+    np.testing.assert_allclose(served.predict(x), want)
+
+    sel = {
+        "shipped": {"predictor": "geometric_sgm", "kind": "geometric"},
+        "predictors": {},
+        "rules": {"geometric_sgm": {"half_width": 1.0}},
+        "criterion": "ROC-AUC",
+    }
+    rec = select_risk.track_shipped({"profile": {"name": "test"}}, sel, folder, src)
+    info = mlflow.models.get_model_info(rec["model_uri"])
+    assert info.signature is not None and info.saved_input_example_info is not None

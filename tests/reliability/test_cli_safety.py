@@ -490,8 +490,8 @@ def test_assess_risk_reads_images_one_batch_at_a_time(tmp_path, risk_dir, pair, 
     ahead more than one batch)."""
     frames = [api.Frame(str(k), *write_pair(tmp_path, f"{k}", *pair)) for k in range(6)]
     reads: list[str] = []
-    real = api.read_image  # patched where assess_risk looks it up (traffictwin.api.risk)
-    monkeypatch.setattr(api.risk, "read_image", lambda p: reads.append(str(p)) or real(p))
+    real = api.read_image  # patched where assess_risk's pair reader looks it up (api.pairs)
+    monkeypatch.setattr(api.pairs, "read_image", lambda p: reads.append(str(p)) or real(p))
     rows = api.assess_risk(api.load_risk(risk_dir), frames, batch_size=2)
     next(rows)
     assert len(reads) == 4  # the first batch: 2 frames x (left, right)

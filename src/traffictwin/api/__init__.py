@@ -60,7 +60,9 @@ THW
 Modules: :mod:`~traffictwin.api.errors` (the error classes), :mod:`~traffictwin.api.registry`
 (tracking URI, model references), :mod:`~traffictwin.api.inputs` (poses, cells, masses, speeds),
 :mod:`~traffictwin.api.fusion`, :mod:`~traffictwin.api.images` (stereo image files),
-:mod:`~traffictwin.api.risk`; every name is used as ``api.<name>``.
+:mod:`~traffictwin.api.pairs` (a pair's images, SGM / ORB settings and check fields),
+:mod:`~traffictwin.api.risk`, :mod:`~traffictwin.api.stereo` (disparity of a pair: SGM or the learned
+stereo network); every name is used as ``api.<name>``.
 
 This package imports only NumPy at import time; torch, OpenCV and MLflow are imported by the
 functions that need them (``traffictwin --help`` stays fast).
@@ -101,6 +103,7 @@ from .registry import ALIASES, HTTP_ENV, connect, resolve_tracking_uri  # noqa: 
 from .risk import (  # noqa: F401 - the ones not in __all__ are used as api.<name>
     MAX_THW_THRESHOLD_S,
     MAX_UPSCALE,
+    PACKAGED_STEREO,
     UNKNOWN,
     LoadedRisk,
     StereoSettings,
@@ -113,6 +116,13 @@ from .risk import (  # noqa: F401 - the ones not in __all__ are used as api.<nam
     risk_verdict,
     speed_range,
     stereo_settings,
+)
+from .stereo import (  # noqa: F401 - the ones not in __all__ are used as api.<name>
+    SOURCE_KEYS,
+    DisparityResult,
+    LoadedStereo,
+    disparity_of_pair,
+    load_stereo,
 )
 
 __all__ = [
@@ -127,17 +137,20 @@ __all__ = [
     "FuseResult",
     "FusionModel",
     "LoadedRisk",
+    "LoadedStereo",
     "assess_risk",
     "check_cell",
     "check_mass_grids",
     "check_pose",
     "check_speed_value",
     "connect",
+    "disparity_of_pair",
     "frames_in_folder",
     "fuse",
     "load_fusion",
     "load_masses",
     "load_risk",
+    "load_stereo",
     "read_image",
     "resolve_tracking_uri",
 ]

@@ -14,11 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.io.outputs import check_regular_file
 from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
 
-from .errors import ApiError, ApiWarning, InputFileError, InputValueError, ModelDomainError
-from .images import Frame, as_bgr, read_image
+from .errors import ApiError, ApiWarning, InputValueError, ModelDomainError
+from .images import Frame
 from .inputs import (
     _chunks,
     check_count,
@@ -29,19 +28,38 @@ from .inputs import (
     check_speed_value,
     checked_items,
 )
-from .registry import _first_line, _load_model
+from .pairs import (  # noqa: F401 - StereoSettings and stereo_settings are used as api.<name>
+    MAX_UPSCALE,
+    StereoSettings,
+    _pair_images,
+    _params_risk_data,
+    _settings_problem,
+    orb_fields,
+    stereo_settings,
+)
+from .registry import _load_model
+from .stereo import LoadedStereo, check_stereo_size
 
-MAX_UPSCALE = 4.0  # resize=True enlarges an image at most this much (per axis) to the camera
 MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
 UNKNOWN = "unknown"  # the verdict of a pair that failed the stereo pair check
+#: where a risk model folder that reads the learned disparity packages its stereo network
+PACKAGED_STEREO = "stereo"
 
 
 @dataclass
 class LoadedRisk:
-    """A :class:`~traffictwin.risk.model_io.RiskModel` and a description of where it came from."""
+    """A :class:`~traffictwin.risk.model_io.RiskModel` (or corridor rule / hybrid), a
+    description of where it came from and, for a model that reads the learned stereo network's
+    disparity, that network (``stereo``)."""
 
     model: Any
     description: str
+    stereo: LoadedStereo | None = None
+
+    @property
+    def disparity_key(self) -> str:
+        """The disparity the model reads (``disp_sgm`` or ``disp_learned``)."""
+        return _disparity_input(self.model)
 
     @property
     def meta(self) -> dict[str, Any]:
@@ -66,36 +84,6 @@ class LoadedRisk:
                 return f"{kind} (shipped: {sh['predictor']}, {sh['note']})"
             return f"{kind} (shipped: {sh['predictor']}, validation ROC-AUC {float(sh.get('roc_auc', float('nan'))):.3f})"
         return kind
-
-
-def _settings_problem(values: Any, func: Any, skip: tuple[str, ...]) -> str | None:
-    """Why ``values`` are not keyword settings of ``func`` (unknown key or a value whose type
-    is not its default's), or None."""
-    import inspect
-
-    if not isinstance(values, dict):
-        return f"expected a mapping of settings, got {type(values).__name__}"
-    params = {
-        k: p.default
-        for k, p in inspect.signature(func).parameters.items()
-        if k not in skip and p.default is not inspect.Parameter.empty
-    }
-    for k, v in values.items():
-        if k not in params:
-            return f"unknown setting {k!r} (expected from {sorted(params)})"
-        d = params[k]
-        ok = (
-            isinstance(v, bool)
-            if isinstance(d, bool)
-            else isinstance(v, str)
-            if isinstance(d, str)
-            else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            if isinstance(d, (int, float))
-            else True
-        )
-        if not ok:
-            return f"setting {k!r} = {v!r} is not a {type(d).__name__}"
-    return None
 
 
 def check_risk_domain(domain: Any, who: str) -> None:
@@ -143,98 +131,61 @@ def check_risk_domain(domain: Any, who: str) -> None:
                 raise ModelDomainError(f"{who}: 'domain.{key}': {why}")
 
 
-def load_risk(model: str | os.PathLike, *, tracking_uri: str | None = None) -> LoadedRisk:
-    """Load a risk network by registry reference (``name@alias``; a bare alias means
-    ``traffictwin-risk``) or model folder. Raises :class:`ApiError`."""
+def _disparity_input(model: Any) -> str:
+    """The disparity key a risk model reads (its ``cfg.inputs``; ``disp_sgm`` when none)."""
+    inputs = tuple(getattr(getattr(model, "cfg", None), "inputs", ()) or ())
+    return next((k for k in inputs if k.startswith("disp_")), "disp_sgm")
+
+
+def load_risk(
+    model: str | os.PathLike,
+    *,
+    tracking_uri: str | None = None,
+    stereo_model: str | os.PathLike | None = None,
+) -> LoadedRisk:
+    """Load a risk model by registry reference (``name@alias``; a bare alias means
+    ``traffictwin-risk``) or model folder. A model that reads the learned stereo network's
+    disparity (``disp_learned``) gets that network: ``stereo_model`` (its folder), else the
+    folder :data:`PACKAGED_STEREO` inside the risk model's folder. Raises :class:`ApiError`."""
     from traffictwin.mlops.registry import RISK_NAME
     from traffictwin.risk.model_io import RiskModelError, load_risk_model
 
+    from .stereo import SOURCE_KEYS, load_stereo
+
     check_path(model, "model", "a registry reference name@alias or a model folder path")
     check_optional_text(tracking_uri, "tracking_uri")
+    if stereo_model is not None:
+        check_path(stereo_model, "stereo_model", "a learned stereo model folder or reference")
     rm, desc = _load_model(
         model, load_risk_model, RiskModelError, "risk model", RISK_NAME, tracking_uri
     )
     check_risk_domain((rm.meta or {}).get("domain"), desc)
-    inputs = tuple(getattr(getattr(rm, "cfg", None), "inputs", ()) or ())
-    if "disp_learned" in inputs:
-        raise ModelDomainError(
-            f"{desc}: reads the learned stereo network's disparity ('disp_learned'), which "
-            "traffictwin risk does not compute (it computes SGM disparity); use a model that "
-            "reads 'disp_sgm', e.g. the shipped one"
-        )
-    return LoadedRisk(rm, desc)
-
-
-@dataclass
-class StereoSettings:
-    """SGM / ORB keyword settings and where they came from."""
-
-    sgm: dict[str, Any]
-    orb: dict[str, Any]
-    source: str
-
-    def __post_init__(self) -> None:
-        """:class:`InputValueError` naming the field unless ``sgm`` / ``orb`` are keyword
-        settings of the SGM matcher / the ORB check (known keys, values of their defaults'
-        types) and ``source`` a string."""
-        from traffictwin.stereo.orb import check_pair
-        from traffictwin.stereo.sgm import compute_disparity
-
-        for key, func in (("sgm", compute_disparity), ("orb", check_pair)):
-            why = _settings_problem(getattr(self, key), func, ("left_bgr", "right_bgr", "matcher"))
-            if why:
-                raise InputValueError(f"StereoSettings.{key}: {why}")
-        if not isinstance(self.source, str):
+    key = _disparity_input(rm)
+    if key != SOURCE_KEYS["learned"]:
+        if stereo_model is not None:
             raise InputValueError(
-                f"StereoSettings.source: expected a string, got {type(self.source).__name__}"
+                f"stereo_model: {desc} reads the disparity {key!r}, not the learned stereo "
+                "network's ('disp_learned'); give no stereo model"
             )
-
-
-def _params_risk_data(params_path: str | os.PathLike) -> dict[str, Any]:
-    import yaml
-
-    path = Path(check_path(params_path, "params_path"))
-    try:
-        check_regular_file(path, "a params.yaml")  # stat before open: a FIFO never blocks
-    except FileNotFoundError:
-        raise InputFileError(f"params_path: {path} not found (expected a params.yaml)") from None
-    except OSError as exc:
-        raise InputFileError(f"params_path: {path} {exc.strerror or exc}") from None
-    try:
-        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"{path}: not valid YAML ({_first_line(exc)})") from None
-    if not isinstance(cfg, dict):
-        raise InputFileError(
-            f"{path}: expected a YAML mapping of parameters, got {type(cfg).__name__}"
+        return LoadedRisk(rm, desc)
+    folder = Path(model) if Path(model).is_dir() else None
+    packaged = folder / PACKAGED_STEREO if folder is not None else None
+    if stereo_model is None and packaged is not None and packaged.is_dir():
+        stereo_model = packaged
+    if stereo_model is None:
+        raise ModelDomainError(
+            f"{desc}: reads the learned stereo network's disparity ('disp_learned'); give that "
+            "network's folder (stereo_model=..., --stereo-model models/stereo/learned)"
         )
-    rd = cfg.get("risk_data") if isinstance(cfg, dict) else None
-    return rd if isinstance(rd, dict) else {}
-
-
-def stereo_settings(
-    domain: Any, params_path: str | os.PathLike | None, model_desc: str = "the model"
-) -> StereoSettings:
-    """SGM/ORB settings the risk data were made with: ``domain.sgm`` / ``domain.orb`` of the
-    model's metadata if present; else ``risk_data.sgm`` / ``risk_data.orb`` of the params file
-    ``params_path``; else the library defaults. A given ``params_path`` is always read and
-    checked (a missing or invalid file is an error, never ignored)."""
-    rd_given = _params_risk_data(params_path) if params_path is not None else None
-    if isinstance(domain, dict) and (
-        isinstance(domain.get("sgm"), dict) or isinstance(domain.get("orb"), dict)
-    ):
-        return StereoSettings(
-            dict(domain.get("sgm") or {}),
-            dict(domain.get("orb") or {}),
-            f"metadata of {model_desc}",
+    stereo = load_stereo(stereo_model, tracking_uri=tracking_uri)
+    if stereo.net is None:
+        raise InputValueError(
+            f"stereo_model: {desc} reads the learned stereo network's disparity; 'sgm' is not it"
         )
-    if rd_given is not None:
-        rd = rd_given
-        if isinstance(rd.get("sgm"), dict) or isinstance(rd.get("orb"), dict):
-            return StereoSettings(
-                dict(rd.get("sgm") or {}), dict(rd.get("orb") or {}), str(params_path)
-            )
-    return StereoSettings({}, {}, "library defaults")
+    cam = ((rm.meta or {}).get("domain") or {}).get("camera") or {}
+    if {"width", "height"} <= set(cam):
+        check_stereo_size(stereo, int(cam["width"]), int(cam["height"]), desc)
+    return LoadedRisk(rm, desc, stereo)
 
 
 def speed_range(
@@ -366,40 +317,9 @@ def risk_verdict(
 
 
 def _frame_images(fr: Frame, risk: LoadedRisk, resize: bool) -> tuple[np.ndarray, np.ndarray]:
-    import cv2
-
-    ln, rn = (
-        str(x) if not isinstance(x, np.ndarray) else f"frame {fr.id!r} {side}"
-        for x, side in ((fr.left, "left"), (fr.right, "right"))
-    )
-    left = as_bgr(fr.left if isinstance(fr.left, np.ndarray) else read_image(fr.left), ln)
-    right = as_bgr(fr.right if isinstance(fr.right, np.ndarray) else read_image(fr.right), rn)
-    if left.shape != right.shape:
-        raise ApiError(
-            f"{rn}: size {right.shape[1]}x{right.shape[0]} differs from {ln}'s "
-            f"{left.shape[1]}x{left.shape[0]} (W x H)"
-        )
+    """The BGR images of ``fr``, checked against the risk model's camera (:func:`_pair_images`)."""
     cam = risk.domain.get("camera")
-    if isinstance(cam, dict) and "width" in cam and "height" in cam:
-        cw, ch = int(cam["width"]), int(cam["height"])
-        if (left.shape[1], left.shape[0]) != (cw, ch):
-            if not resize:
-                raise ModelDomainError(
-                    f"{ln}: image size {left.shape[1]}x{left.shape[0]} differs from the model's "
-                    f"training camera {cw}x{ch} (W x H, domain.camera of {risk.description}); "
-                    "resize=True (--resize) resizes both images to it (disparity then in the "
-                    "camera's pixel scale)"
-                )
-            up = max(cw / left.shape[1], ch / left.shape[0])
-            if up > MAX_UPSCALE:
-                raise ModelDomainError(
-                    f"{ln}: image {left.shape[1]}x{left.shape[0]} px would be enlarged {up:.1f}x "
-                    f"to the training camera {cw}x{ch}; resizing enlarges at most "
-                    f"{MAX_UPSCALE:g}x (a smaller image holds too little detail for stereo matching)"
-                )
-            left = cv2.resize(left, (cw, ch), interpolation=cv2.INTER_AREA)
-            right = cv2.resize(right, (cw, ch), interpolation=cv2.INTER_AREA)
-    return left, right
+    return _pair_images(fr, cam if isinstance(cam, dict) else None, risk.description, resize)
 
 
 def check_thw_threshold(thw_threshold: Any, who: str = "thw_threshold") -> float:
@@ -472,8 +392,11 @@ def _assess(
     from traffictwin.stereo.orb import check_pair
     from traffictwin.stereo.sgm import compute_disparity
 
+    from .stereo import disparities
+
+    key = risk.disparity_key
     for chunk in _chunks(frames, batch_size):
-        lefts, disps, rows, reasons = [], [], [], []
+        lefts, rights, disps, rows, reasons = [], [], [], [], []
         for fr in chunk:
             left, right = _frame_images(fr, risk, resize)
             t0 = time.perf_counter()
@@ -481,32 +404,31 @@ def _assess(
             t1 = time.perf_counter()
             disp = compute_disparity(left, right, **st.sgm)
             t2 = time.perf_counter()
-            valid = disp >= 0
             lefts.append(left)
+            rights.append(right)
             disps.append(disp)
             reasons.append(orb.reason if orb.outlier else "")
             rows.append(
                 {
                     "id": fr.id,
-                    "orb_outlier": bool(orb.outlier),
-                    "orb_verdict": "unreliable pair" if orb.outlier else "ok",
-                    "orb_reason": orb.reason,
-                    "orb_n_matches": int(orb.n_matches),
-                    "orb_n_reliable": int(orb.n_reliable),
-                    "orb_mean_dx": float(orb.mean_dx),
-                    "orb_mean_dy": float(orb.mean_dy),
-                    "orb_median_dx": float(orb.median_dx),
-                    "disp_valid_fraction": float(valid.mean()),
-                    "disp_median_px": float(np.median(disp[valid])) if valid.any() else math.nan,
+                    **orb_fields(orb),
+                    "disp_valid_fraction": math.nan,  # of the disparity the model reads, below
+                    "disp_median_px": math.nan,
                     "orb_ms": round((t1 - t0) * 1e3, 2),
                     "sgm_ms": round((t2 - t1) * 1e3, 2),
                 }
             )
+        left_n = np.stack(lefts)
+        disp, _, net_ms = disparities(risk.stereo, left_n, np.stack(rights), np.stack(disps))
+        for row, d in zip(rows, disp[key]):
+            valid = d >= 0
+            row["disp_valid_fraction"] = float(valid.mean())
+            row["disp_median_px"] = float(np.median(d[valid])) if valid.any() else math.nan
+            if risk.stereo is not None:
+                row.update(disp_source=key, stereo_net_ms=round(net_ms, 2))
         t0 = time.perf_counter()
         sp = None if speed is None else np.full(len(chunk), speed, np.float32)
-        pred = risk.model.predict(
-            left_bgr=np.stack(lefts), disp_sgm=np.stack(disps), speed=sp, batch_size=batch_size
-        )
+        pred = risk.model.predict(left_bgr=left_n, speed=sp, batch_size=batch_size, disparity=disp)
         ms = (time.perf_counter() - t0) * 1e3 / len(chunk)
         bad = [row["id"] for row, r in zip(rows, pred) if not np.isfinite(r)]
         if bad:

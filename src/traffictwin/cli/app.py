@@ -14,6 +14,7 @@ from traffictwin.api import HTTP_ENV
 from traffictwin.threads import passive_omp_wait, pin_threads
 
 from .common import run_command
+from .disparity import add_parsers as add_disparity
 from .export import add_parsers as add_export
 from .fuse import add_parsers as add_fuse
 from .registry import add_parsers as add_registry
@@ -22,7 +23,7 @@ from .runs import add_parsers as add_runs
 from .twin import add_parsers as add_twin
 
 #: each subcommand module's parser builder, in the order of ``traffictwin --help``
-COMMANDS = (add_fuse, add_twin, add_risk, add_export, add_registry, add_runs)
+COMMANDS = (add_fuse, add_twin, add_risk, add_disparity, add_export, add_registry, add_runs)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -24,7 +24,7 @@ from .common import CliError, add_arguments, arg, csv_value, model_options, outp
 #: exit status when some pair failed the stereo pair check (its verdict is "unknown")
 EXIT_UNKNOWN = 3
 
-HELP = "stereo risk: ORB check, SGM disparity, predicted risk and THW verdict"
+HELP = "stereo risk: ORB check, disparity (SGM, or the learned network the model reads), risk and THW verdict"
 DESCRIPTION = (
     "LEFT RIGHT images, or a FOLDER of <id>_left.png/<id>_right.png pairs (-> CSV, streamed in "
     "batches). A pair that fails the ORB check gets verdict 'unknown' with the reason. Exit "
@@ -41,6 +41,13 @@ ARGUMENTS = [
         help="subject speed (m/s): gap = THW * speed; required by speed models, checked against the training range",
     ),
     *model_options("risk model", "traffictwin-risk"),
+    arg(
+        "--stereo-model",
+        default=None,
+        help="the learned stereo network's folder (e.g. models/stereo/learned) or registry "
+        "reference (traffictwin-stereo@champion), for a risk model that reads its disparity "
+        "(disp_learned) and does not package it in its folder's stereo/",
+    ),
     arg(
         "--thw-threshold",
         type=float,
@@ -100,15 +107,17 @@ def cmd_risk(args: argparse.Namespace) -> int:
     if args.output == "":
         raise CliError("-o: the output path is empty; expected a file name (or no -o: stdout)")
     out = Path(args.output) if args.output else None
-    inputs = [p for f in frames for p in (f.left, f.right)] + (
-        [Path(args.params)] if args.params else []
-    )
+    inputs = [p for f in frames for p in (f.left, f.right)] + [
+        Path(p) for p in (args.params, args.stereo_model) if p
+    ]
     kind = "risk-csv" if is_folder else "risk-json"
     outs = OutputSet([out] if out else [], kinds=kind, inputs=inputs, force=args.force)
     for f in frames:  # every image's header before the model (and torch) loads: a huge or
         for p in (f.left, f.right):  # broken image is refused in a fraction of a second
             api.check_image_file(p)
-    rmodel = api.load_risk(args.model, tracking_uri=args.tracking_uri)
+    rmodel = api.load_risk(
+        args.model, tracking_uri=args.tracking_uri, stereo_model=args.stereo_model
+    )
     for note in api.check_speed(rmodel, args.speed, args.params):
         warnings.warn(note, ApiWarning, stacklevel=1)
     st = api.stereo_settings(rmodel.domain, args.params, rmodel.description)
@@ -164,6 +173,11 @@ class _RiskOutput:
                 "model": self.rmodel.description,
                 "predictor": self.rmodel.predictor,
                 "stereo_settings": self.st.source,
+                **(
+                    {"stereo_model": self.rmodel.stereo.description}
+                    if self.rmodel.stereo is not None
+                    else {}
+                ),
             }
         )
         if self.out:

@@ -256,6 +256,15 @@ def _is_grid(p: Path) -> bool:
     )
 
 
+def _is_disparity(p: Path) -> bool:
+    names = _zip_members(p)
+    return (
+        bool(names)
+        and all(n.endswith(".npy") for n in names)
+        and {"disparity.npy", "confidence.npy"} <= set(names)
+    )
+
+
 def _is_preview(p: Path) -> bool:
     head = _head(p, 256)
     return head.startswith(_PNG) and b"tEXt" + PNG_MARK in head
@@ -288,6 +297,7 @@ def _csv_header(*columns: str) -> Callable[[Path], bool]:
 KINDS: dict[str, tuple[str, Callable[[Path], bool]]] = {
     "grid": ("a fused grid .npz of traffictwin fuse / twin", _is_grid),
     "preview": ("a preview PNG of traffictwin fuse / twin", _is_preview),
+    "disparity": ("a disparity .npz of traffictwin disparity", _is_disparity),
     "export": ("a TorchScript file of traffictwin export", _is_export),
     "risk-json": ("a result JSON of traffictwin risk", _is_risk_json),
     "risk-csv": ("a result CSV of traffictwin risk FOLDER", _csv_header("id", "left", "right")),

@@ -4,7 +4,7 @@ Validated once at the start of ``pipelines/promote.py`` and ``pipelines/retrain.
 ``traffictwin.config.typed(cfg.registry, RegistryConfig, key="registry")``. Folders of data and
 models are not here: the workflow layer derives them (``pipelines/_paths.py``); the fusion
 one fusion network and the one learned registration are gated on every configuration (the keys
-of ``configurations``) and the risk variant must be ``shipped`` (models/risk_shipped) or one of
+of ``configurations``), the learned stereo network on validation pairs, and the risk variant must be ``shipped`` (models/risk_shipped) or one of
 ``risk_model.run_variants``. :func:`seed_overrides` and :func:`compose_with_seeds` are the
 retraining's new data batch: its seed keys moved on, as Hydra overrides of conf/.
 """
@@ -62,6 +62,15 @@ class RiskGateConfig(GateConfig):
 
 
 @dataclass
+class StereoGateConfig(GateConfig):
+    """Registered model ``name``: the learned stereo network, gated on ``max_frames`` evenly
+    spaced fault-free pairs of split ``split`` (None = all)."""
+
+    name: str = spec()
+    max_frames: int | None = spec()
+
+
+@dataclass
 class RetrainConfig:
     lock: str  # fcntl lock file (relative to the repository)
     seed_keys: list[str]  # params keys bumped for a new data batch (top-level or <group>.<key>)
@@ -76,6 +85,7 @@ class RegistryConfig:
     fusion: FusionGateConfig
     registration: FusionGateConfig
     risk: RiskGateConfig
+    stereo: StereoGateConfig
     retrain: RetrainConfig
 
 

@@ -123,6 +123,7 @@ LOG_TAG = "traffictwin.promotion_log"
 FUSION_NAME = "traffictwin-fusion"
 REGISTRATION_NAME = "traffictwin-registration"
 RISK_NAME = "traffictwin-risk"
+STEREO_NAME = "traffictwin-stereo"
 
 
 def registered_names(cl, prefix: str = "") -> list[str]:

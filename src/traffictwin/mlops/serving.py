@@ -20,7 +20,10 @@ it) and returns the network's raw output as float32 numpy:
 - ``fusion``: ``(N, 4, H, W)`` prealigned masses -> ``(N, 2, H, W)`` evidence (free, occupied);
 - ``risk``: ``(N, C[+1], h, w)`` normalised channels (+ a speed plane in m/s for speed models,
   :func:`traffictwin.risk.dave2.pack_input`) -> ``(N,)`` normalised risk;
-- ``registration``: ``(N, 4, H, W)`` -> the learned registration network's output.
+- ``registration``: ``(N, 4, H, W)`` -> the learned registration network's output;
+- ``stereo``: ``(N, 6[+1], H, W)`` left and right B, G, R planes (0-255) [+ SGM's disparity
+  plane, px, for a network that refines SGM] -> ``(N, 2, H, W)`` disparity (px, -1 invalid) and
+  spread (px) (:class:`traffictwin.risk.stereo_training.PackedStereo`).
 
 The requirement list (:func:`pip_requirements`) is what this module and the problem loaders
 import, pinned to the versions installed where the model was logged.
@@ -40,7 +43,8 @@ checks the input before the network runs and refuses it with an ``MlflowExceptio
 - plausible values: masses in [0, 1] with m_F + m_O <= 1 (within :data:`MASS_TOL`); normalised
   DAVE-2 channels within ±:data:`CHANNEL_BOUND`; a speed plane constant per sample and within
   the model's training speed range (``domain.speed_range`` / ``domain.max_speed`` of its
-  metadata, else [0, :data:`MAX_SPEED`] m/s); SGM disparity in [-1, image width] px.
+  metadata, else [0, :data:`MAX_SPEED`] m/s); SGM disparity in [-1, image width] px; image
+  planes in [0, 255] of the stereo network's training size (``image_size`` of its metadata).
 
 An output with NaN or ±inf is never returned (HTTP 500, ``INTERNAL_ERROR``): JSON has no NaN.
 """
@@ -60,6 +64,7 @@ LOADERS = {
     "fusion": ("traffictwin.fusion.model_io", "load_fusion_model"),
     "risk": ("traffictwin.risk.model_io", "load_risk_model"),
     "registration": ("traffictwin.fusion.registration_training", "load_registration_model"),
+    "stereo": ("traffictwin.risk.stereo_training", "load_stereo_model"),
 }
 #: most samples one request may carry (``TRAFFICTWIN_SERVE_MAX_BATCH`` overrides it)
 MAX_BATCH = 64
@@ -129,6 +134,9 @@ def _load(problem: str, folder: Path) -> tuple[Any, dict[str, Any]]:
     ):  # the corridor rule / hybrid: input (N, 1 + H·W) = speed (m/s), SGM disparity (px)
         packed = importlib.import_module("traffictwin.risk.predictors").PackedPredictor
         return packed(model), meta
+    if problem == "stereo":  # the network and its calibrated spread threshold, one input
+        packed = importlib.import_module("traffictwin.risk.stereo_training").PackedStereo
+        return packed(model, float(meta["spread_threshold_px"])).eval(), meta
     if problem == "risk":  # a RiskModel: the packed single-input network of its signature
         packed = importlib.import_module("traffictwin.risk.dave2").PackedDave2
         return packed(model.net).eval(), meta
@@ -206,6 +214,8 @@ class TrafficTwinModel:
             self._check_masses(x)
         elif self.problem == "risk":
             self._check_risk(x)
+        elif self.problem == "stereo":
+            self._check_stereo(x)
         return x
 
     # -- shapes ---------------------------------------------------------------------------------
@@ -241,6 +251,18 @@ class TrafficTwinModel:
                 check_grid_cells(got[2:], who)
             except InputError as exc:
                 raise _refuse(str(exc)) from None
+            return
+        if self.problem == "stereo":
+            c = int(getattr(self.net, "channels", 6))
+            size = self.meta.get("image_size")
+            hw = tuple(int(v) for v in size) if isinstance(size, (list, tuple)) else None
+            if len(got) != 4 or got[1] != c or (hw is not None and got[2:] != hw):
+                sgm = " + SGM disparity (px)" if c == 7 else ""
+                dims = f"{hw[0]}, {hw[1]}" if hw else "H, W"
+                raise _refuse(
+                    f"{who}: expected shape (N, {c}, {dims}) = N x left B, G, R + right B, G, R "
+                    f"(0-255){sgm} x the training images' height x width px, got {got}"
+                )
             return
         if self.problem != "risk":
             return
@@ -279,6 +301,27 @@ class TrafficTwinModel:
                 f"{float(m.min()):.4g}, max m_F + m_O {float(total.max()):.4g}); expected "
                 f"m_F, m_O >= 0 and m_F + m_O <= 1 within {MASS_TOL:g}"
             )
+
+    def _check_stereo(self, x: np.ndarray) -> None:
+        img = x[:, :6]
+        bad = (img < 0) | (img > 255)
+        if bad.any():
+            i, c, r, col = _first(bad)
+            raise _refuse(
+                f"{self._who}: image plane {c} holds {float(img[i, c, r, col]):g} at sample {i}, "
+                f"row {r}, col {col} ({int(bad.sum())} value(s) refused); expected 8-bit "
+                "B, G, R values in [0, 255]"
+            )
+        if x.shape[1] == 7:
+            d = x[:, 6]
+            bad = (d < INVALID_DISPARITY) | (d > x.shape[3])
+            if bad.any():
+                i, r, col = _first(bad)
+                raise _refuse(
+                    f"{self._who}: SGM disparity {float(d[i, r, col]):g} px at sample {i}, row "
+                    f"{r}, col {col} ({int(bad.sum())} value(s) refused); expected values in "
+                    f"[{INVALID_DISPARITY:g}, {x.shape[3]}] px ({INVALID_DISPARITY:g} = invalid)"
+                )
 
     def _speed_range(self) -> tuple[float, float, str]:
         d = self.meta.get("domain")

@@ -61,7 +61,9 @@ class RiskModel(RiskPredictor):
         """The network's risk of ``frames`` (see :func:`~.dave2.prepare_channels`); ``speed`` is
         required when the model uses it."""
         self.net.eval()
-        images = (frames.left_bgr, frames.disp_sgm, frames.disp_gt)
+        images = (frames.left_bgr, *(frames.disparity.get(k) for k in ("disp_sgm", "disp_gt")))
+        if all(a is None for a in images):
+            raise ValueError(f"the risk network reads {list(self.cfg.inputs)}: none was given")
         n = next(len(a) for a in images if a is not None)
         if self.cfg.use_speed and frames.speed is None:
             raise ValueError("this risk model uses the subject speed: pass speed (N,) in m/s")

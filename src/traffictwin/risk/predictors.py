@@ -1,7 +1,7 @@
 """Risk predictors that are not the DAVE-2 network: the corridor rule and the corridor hybrid.
 
-Both take what the network takes at inference (the SGM disparity at the camera's resolution and
-the subject speed, m/s) and return the normalised risk (``min(1/THW, 20)/20``), so the CLI, the
+Both take what the network takes at inference (a disparity map at the camera's resolution: SGM's
+unless the predictor names another in ``cfg.inputs``, and the subject speed, m/s) and return the normalised risk (``min(1/THW, 20)/20``), so the CLI, the
 API, the registry and the evaluation use them through the same ``predict`` as
 :class:`traffictwin.risk.model_io.RiskModel` (:func:`traffictwin.risk.model_io.load_risk_model`
 dispatches on the checkpoint's ``architecture.kind``).
@@ -41,8 +41,8 @@ KINDS = ("dave2", "hybrid", "geometric")
 
 #: the frame inputs of a predictor that sees the SGM disparity and the speed
 _SGM_INPUTS = ("disp_sgm",)
-#: the disparities a hybrid can read: SGM's, or the learned stereo network's (data/stereo_learned;
-#: evaluated, not served: ``traffictwin risk`` computes SGM disparity)
+#: the disparities a rule or hybrid can read: SGM's, or the learned stereo network's
+#: (data/stereo_learned; ``traffictwin risk`` computes whichever the model reads)
 HYBRID_DISPARITIES = ("disp_sgm", "disp_learned")
 
 
@@ -63,23 +63,33 @@ def _camera_dict(camera: Mapping[str, Any]) -> dict[str, float]:
     return {k: float(camera[k]) for k in keys}
 
 
-class _SgmPredictor(RiskPredictor):
-    """A :class:`~traffictwin.risk.predictor.RiskPredictor` of SGM disparity and speed
-    (subclasses give :meth:`risk`)."""
+class _DisparityPredictor(RiskPredictor):
+    """A :class:`~traffictwin.risk.predictor.RiskPredictor` of one disparity map and the speed:
+    it reads the disparity its ``cfg.inputs`` names (``disp_sgm`` unless built for another);
+    subclasses give :meth:`risk`."""
 
     name = "risk predictor"
+    cfg: PredictorInputs
+
+    @property
+    def disparity_key(self) -> str:
+        """The disparity this predictor reads (one of :data:`HYBRID_DISPARITIES`)."""
+        return self.cfg.inputs[0]
 
     @abstractmethod
-    def risk(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """Normalised risk (N,) from SGM disparity (N, H, W) px and speed (N,) m/s."""
+    def risk(self, disp: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """Normalised risk (N,) from its disparity (N, H, W) px and speed (N,) m/s."""
+
+    def risk_of(self, frames: RiskFrames) -> np.ndarray:
+        """:meth:`risk` of ``frames`` (its disparity and the speed, checked)."""
+        if frames.speed is None:
+            raise ValueError(f"the {self.name} needs the speed (m/s)")
+        disp = frames.disp(self.disparity_key, self.name)
+        return self.risk(disp, np.asarray(frames.speed, np.float64))
 
     def predict_frames(self, frames: RiskFrames, batch_size: int) -> np.ndarray:
-        """Normalised risk (N,) float32 from SGM disparity (N, H, W) px and speed (N,) m/s."""
-        if frames.disp_sgm is None or frames.speed is None:
-            raise ValueError(f"the {self.name} needs the SGM disparity and the speed (m/s)")
-        return np.asarray(
-            self.risk(frames.disp_sgm, np.asarray(frames.speed, np.float64)), np.float32
-        )
+        """Normalised risk (N,) float32 from its disparity (N, H, W) px and speed (N,) m/s."""
+        return np.asarray(self.risk_of(frames), np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -87,7 +97,7 @@ class _SgmPredictor(RiskPredictor):
 
 
 @dataclass
-class GeometricRiskModel(_SgmPredictor):
+class GeometricRiskModel(_DisparityPredictor):
     """The corridor rule as a predictor: ``params`` (corridor half-width etc., m) and the camera
     intrinsics the disparity comes with (px, m)."""
 
@@ -98,10 +108,13 @@ class GeometricRiskModel(_SgmPredictor):
     name = "corridor rule"
 
     def architecture(self) -> dict[str, Any]:
-        return {"kind": "geometric", "params": asdict(self.params), "camera": self.camera}
+        arch = {"kind": "geometric", "params": asdict(self.params), "camera": self.camera}
+        if self.disparity_key != _SGM_INPUTS[0]:  # SGM's rule keeps the layout it always had
+            arch["disparity"] = self.disparity_key
+        return arch
 
-    def risk(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        return geometric_risk(disp_sgm, speed, self.camera, self.params)[2]
+    def risk(self, disp: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        return geometric_risk(disp, speed, self.camera, self.params)[2]
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,7 +289,7 @@ def fit_hybrid(
 
 
 @dataclass
-class HybridRiskModel(_SgmPredictor):
+class HybridRiskModel(_DisparityPredictor):
     """A trained :class:`HybridNet` with its feature settings, the corridor point filter
     (``geometric``; its half-width is unused) and the camera intrinsics."""
 
@@ -296,8 +309,9 @@ class HybridRiskModel(_SgmPredictor):
             "camera": self.camera,
         }
 
-    def features(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        return corridor_features(disp_sgm, speed, self.camera, self.geometric, self.config)
+    def features(self, disp: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """(N, F) :func:`corridor_features` of its disparity (N, H, W) px and speed (N,) m/s."""
+        return corridor_features(disp, speed, self.camera, self.geometric, self.config)
 
     @torch.no_grad()
     def predict_features(self, x: np.ndarray) -> np.ndarray:
@@ -305,14 +319,24 @@ class HybridRiskModel(_SgmPredictor):
         log_thw = self.net(torch.from_numpy(np.asarray(x, np.float32).copy())).numpy()
         return thw_to_risk(np.exp(log_thw.astype(np.float64)))
 
-    def risk(self, disp_sgm: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        return self.predict_features(self.features(disp_sgm, speed))
+    def risk(self, disp: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        return self.predict_features(self.features(disp, speed))
+
+    def predict_frames(self, frames: RiskFrames, batch_size: int) -> np.ndarray:
+        """Normalised risk (N,) float32; the corridor profile is computed once per feature
+        setting for ``frames`` (hybrids of several seeds share it)."""
+        if frames.speed is None:
+            raise ValueError(f"the {self.name} needs the speed (m/s)")
+        disp = frames.disp(self.disparity_key, self.name)
+        key = ("corridor_features", self.config, self.geometric, tuple(sorted(self.camera.items())))
+        x = frames.memo(key, lambda: self.features(disp, np.asarray(frames.speed, np.float64)))
+        return np.asarray(self.predict_features(x), np.float32)
 
 
 class PackedPredictor(nn.Module):
     """The rule / hybrid as a single-input module for the MLflow pyfunc flavour: input (N, 1 + H·W)
-    float32 = the speed (m/s) then the SGM disparity (px, row-major, the camera's H×W); output
-    (N,) normalised risk."""
+    float32 = the speed (m/s) then the disparity the predictor reads (px, row-major, the camera's
+    H×W; SGM's unless its ``disparity_key`` says otherwise); output (N,) normalised risk."""
 
     def __init__(self, model: Any) -> None:
         super().__init__()
@@ -326,7 +350,37 @@ class PackedPredictor(nn.Module):
                 f"packed risk input must be (N, 1 + {self.h}×{self.w}) = speed + disparity, got {a.shape}"
             )
         disp = a[:, 1:].reshape(-1, self.h, self.w)
-        return torch.from_numpy(self.model.predict(disp_sgm=disp, speed=a[:, 0]))
+        frames = RiskFrames(disparity={self.model.disparity_key: disp}, speed=a[:, 0])
+        return torch.from_numpy(self.model.predict_frames(frames, len(a)))
+
+
+def _rule_disparity(architecture: Mapping[str, Any]) -> str:
+    """The disparity a corridor rule's ``architecture`` reads (``disp_sgm`` when it names none);
+    ``ValueError`` unless one of :data:`HYBRID_DISPARITIES`."""
+    key = architecture.get("disparity", _SGM_INPUTS[0])
+    if key not in HYBRID_DISPARITIES:
+        raise ValueError(f"'disparity' must be one of {list(HYBRID_DISPARITIES)}, got {key!r}")
+    return str(key)
+
+
+def packed_for_serving(model: Any, frames: RiskFrames) -> tuple[nn.Module, np.ndarray]:
+    """The single-input module the MLflow pyfunc flavour serves for a risk ``model`` (the rule /
+    hybrid: :class:`PackedPredictor`; the network: :class:`~traffictwin.risk.dave2.PackedDave2`)
+    and its input (float32) for ``frames``: the input example a signature is inferred from."""
+    if isinstance(model, _DisparityPredictor):
+        if frames.speed is None:
+            raise ValueError(f"the {model.name}'s served input starts with the speed (m/s)")
+        disp = frames.disp(model.disparity_key, model.name)
+        speed = np.asarray(frames.speed, np.float32).reshape(-1, 1)
+        x = np.concatenate([speed, disp.reshape(len(disp), -1).astype(np.float32)], axis=1)
+        return PackedPredictor(model), np.ascontiguousarray(x)
+    from traffictwin.risk.dave2 import PackedDave2, pack_input, preprocess
+
+    cfg = model.cfg
+    d = frames.disparity
+    x = preprocess(cfg, frames.left_bgr, d.get("disp_sgm"), d.get("disp_gt"))
+    sp = torch.as_tensor(np.asarray(frames.speed, np.float32)) if cfg.use_speed else None
+    return PackedDave2(model.net).eval(), pack_input(cfg, x, sp).numpy()
 
 
 def architecture_problem(architecture: Mapping[str, Any]) -> str | None:
@@ -336,6 +390,7 @@ def architecture_problem(architecture: Mapping[str, Any]) -> str | None:
         kind = architecture.get("kind")
         if kind == "geometric":
             GeometricParams(**architecture["params"])
+            PredictorInputs(inputs=(_rule_disparity(architecture),))
         elif kind == "hybrid":
             HybridConfig.from_dict(architecture["features"])
             GeometricParams(**architecture["geometric"])
@@ -353,7 +408,10 @@ def build_predictor(architecture: Mapping[str, Any], state: Mapping[str, torch.T
     kind = architecture.get("kind")
     if kind == "geometric":
         return GeometricRiskModel(
-            GeometricParams(**architecture["params"]), _camera_dict(architecture["camera"]), meta
+            GeometricParams(**architecture["params"]),
+            _camera_dict(architecture["camera"]),
+            meta,
+            PredictorInputs(inputs=(_rule_disparity(architecture),)),
         )
     if kind == "hybrid":
         cfg = HybridConfig.from_dict(architecture["features"])

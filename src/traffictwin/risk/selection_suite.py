@@ -33,13 +33,14 @@ from traffictwin.io.jsonio import json_clean
 from traffictwin.risk.baselines import corridor_distances, fit_speed_only, thw_from_distance
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.metric import RiskConfig, risk_threshold, thw_to_risk
+from traffictwin.risk.predictor import RiskFrames
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
 from traffictwin.risk.selection import best_cut, choose, roc_auc, too_few, tune_half_width
 from traffictwin.risk.training import RiskSource, check_label, input_keys
 
 #: the corridor rules and the disparity each reads (a rule runs where its source has the disparity:
-#: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); only the SGM rule
-#: ships (``traffictwin risk`` computes SGM disparity; the learned one is evaluated beside it)
+#: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); of the rules only
+#: the SGM rule competes for shipping (the learned one is evaluated beside it)
 RULES = {
     "geometric_sgm": "disp_sgm",
     "geometric_gt": "disp_gt",
@@ -208,12 +209,9 @@ def validation_scores(
     order = []
     for rows, arr in source.iter_arrays(frames, keys):
         sp = rows["speed"].to_numpy(np.float64).astype(np.float32)
+        frames = RiskFrames.of_arrays(arr, sp)  # each model reads the disparity it names
         for v, m in models.items():
-            if hasattr(m, "predict_features"):  # a hybrid, on the disparity it was trained on
-                preds[v].append(m.predict_features(m.features(arr[m.config.disparity], sp)))
-                continue
-            images = (arr.get("left"), arr.get("disp_sgm"), arr.get("disp_gt"))
-            preds[v].append(m.predict(*images, speed=sp, batch_size=ev.batch_size))
+            preds[v].append(m.predict_frames(frames, ev.batch_size))
         for r, k in rules.items():
             dists[r].append(corridor_distances(arr[k], camera, geo, half_widths))
         order.append(rows)

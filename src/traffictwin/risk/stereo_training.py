@@ -10,7 +10,9 @@
 - :func:`calibrate_spread` — EPE / bad-1 per decile of the predicted spread on validation and the
   spread threshold that keeps ``valid_density`` of the ground-truth pixels;
 - :func:`fit_stereo` — the run (seeding, trainer driver, MLflow experiment ``stereo``, early
-  stopping on ``val/epe``, calibration, model files); :func:`load_stereo_model` — the sealed,
+  stopping on ``val/epe``, calibration, model files, and with tracking the MLflow model of
+  :class:`PackedStereo` with its signature and a validation pair as input example, which the
+  promotion gate registers as ``traffictwin-stereo``); :func:`load_stereo_model` — the sealed,
   weights-only loader.
 """
 
@@ -317,6 +319,43 @@ def predict(
     return disp, spread
 
 
+class PackedStereo(torch.nn.Module):
+    """The network as one-input module for the MLflow pyfunc flavour: input (N, 6[+1], H, W)
+    float32 = the left then the right image's B, G, R planes (0-255) and, for a ``base: sgm``
+    network, SGM's disparity plane (px, -1 invalid); output (N, 2, H, W) = the disparity (px,
+    -1 where the spread exceeds ``threshold`` px, as :func:`predict` + the ``stereo_learned``
+    stage) and the spread (px)."""
+
+    def __init__(self, net: StereoNet, threshold: float) -> None:
+        super().__init__()
+        self.net = net
+        self.threshold = float(threshold)
+        self.channels = 7 if net.spec.base == "sgm" else 6
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or x.shape[1] != self.channels:
+            raise ValueError(
+                f"packed stereo input must be (N, {self.channels}, H, W) = left BGR, right BGR"
+                f"{', SGM disparity' if self.channels == 7 else ''}, got {tuple(x.shape)}"
+            )
+        left = x[:, 0:3].flip(1) / 255.0  # BGR -> RGB in [0, 1], as to_input
+        right = x[:, 3:6].flip(1) / 255.0
+        sgm = x[:, 6:7] if self.channels == 7 else None
+        out = self.net(left, right, sgm)
+        disp, spread = out["disparity"], out["spread"]
+        disp = torch.where(spread <= self.threshold, disp, torch.full_like(disp, -1.0))
+        return torch.cat([disp, spread], dim=1)
+
+
+def pack_pairs(left: np.ndarray, right: np.ndarray, sgm: np.ndarray | None = None) -> np.ndarray:
+    """The :class:`PackedStereo` input (N, 6[+1], H, W) float32 of BGR uint8 pairs (N, H, W, 3)
+    and, for a ``base: sgm`` network, their SGM disparity (N, H, W) px."""
+    planes = [np.moveaxis(np.asarray(a, np.float32), -1, 1) for a in (left, right)]
+    if sgm is not None:
+        planes.append(np.asarray(sgm, np.float32)[:, None])
+    return np.ascontiguousarray(np.concatenate(planes, axis=1))
+
+
 def calibrate_spread(
     disp: np.ndarray, spread: np.ndarray, gt: np.ndarray, valid_density: float, max_disparity: float
 ) -> tuple[float, dict[str, float]]:
@@ -494,12 +533,21 @@ def _publish(
         "valid_density": train.valid_density,
     }
     slim["traffictwin"].update(json.loads(json.dumps(meta, default=str)))
+    uri = None
     if fitted.run is not None:
         common.log_final_metrics(
             fitted.logger, {f"best/{k.replace('/', '_')}": v for k, v in metrics.items()}
         )
+        example = pack_pairs(val["left"][:1], val["right"][:1], _first(val.get("disp_sgm")))
+        metadata = {"data_manifest_hash": meta["data_manifest_hash"], "base": spec.base}
+        packed = PackedStereo(net.eval(), thr)
+        uri = common.log_fitted_model(fitted, slim, meta, metrics, packed, example, metadata)
     common.publish(fitted, outputs, slim, meta, metrics)
-    return common.fit_result(fitted, outputs, meta, metrics, None)
+    return common.fit_result(fitted, outputs, meta, metrics, uri)
+
+
+def _first(a: np.ndarray | None) -> np.ndarray | None:
+    return None if a is None else a[:1]
 
 
 def load_stereo_model(path: str | Path) -> StereoNet:

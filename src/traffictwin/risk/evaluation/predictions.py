@@ -16,6 +16,7 @@ import numpy as np
 from traffictwin.risk.baselines import constant_predictions, fit_speed_only, geometric_risk
 from traffictwin.risk.evaluation.settings import RULE_INPUTS, SuiteSettings
 from traffictwin.risk.metric import risk_threshold
+from traffictwin.risk.predictor import RiskFrames
 
 #: per-frame columns of frames.csv copied into the prediction table (when present)
 FRAME_COLUMNS = ("scenario", "situation", "template", "t", "speed", "thw")
@@ -70,24 +71,10 @@ def _label_columns(
 def _predict_models(
     models: Mapping[str, Any], arr: Mapping[str, np.ndarray], sp: np.ndarray, batch_size: int
 ) -> dict[str, np.ndarray]:
-    """Every model's risk on one shard (hybrid features computed once per feature setting)."""
-    shared: dict[Any, np.ndarray] = {}
-    out: dict[str, np.ndarray] = {}
-    for v, m in models.items():
-        if hasattr(m, "predict_features"):
-            fk = (m.config, m.geometric, tuple(sorted(m.camera.items())))
-            if fk not in shared:
-                shared[fk] = m.features(arr[m.config.disparity], sp)
-            out[v] = m.predict_features(shared[fk])
-            continue
-        out[v] = m.predict(
-            arr.get("left"),
-            arr.get("disp_sgm"),
-            arr.get("disp_gt"),
-            speed=sp,
-            batch_size=batch_size,
-        )
-    return out
+    """Every model's risk on one shard's arrays ``arr`` (each reads the disparity it names;
+    what several compute alike, e.g. the hybrids' corridor profile, is computed once)."""
+    frames = RiskFrames.of_arrays(arr, sp)
+    return {v: m.predict_frames(frames, batch_size) for v, m in models.items()}
 
 
 def _run_predictors(
@@ -97,7 +84,7 @@ def _run_predictors(
     (``<rule>``: risk, ``<rule>_distance_m``: distance ahead, m) on them."""
     from traffictwin.risk.training import input_keys
 
-    have = getattr(source, "disparity_keys", {"disp_sgm", "disp_gt"})
+    have = source.disparity_keys
     rules = [(n, k) for n, k in RULE_INPUTS if k in have] if settings.geometric else []
     keys: list[str] = sorted(
         {k for m in models.values() for k in input_keys(m.cfg)} | {k for _, k in rules}
