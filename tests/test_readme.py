@@ -96,9 +96,18 @@ def test_timings_block_adds_up_the_run_records() -> None:
         ln.startswith("| — fusion and registration training") and ln.endswith("| 4.0 min |")
         for ln in lines
     )
-    # the README's short table: the same first two rows
+    # the README's short table: the same first two rows, the longest stages, the budget
     short = R.run_time_block(records).splitlines()
     assert short[0] == R.TS_BEGIN and short[-1] == R.TS_END and short[3:5] == lines[3:5]
+    assert short[5] == (
+        "| — the 3 longest stages: `train_fusion` 4.0, `generate_fusion` 1.0, `prealign@A` 0.1 "
+        "min | 5.1 min |"
+    )
+    assert short[6] == (
+        "| the budget of `make run` on a 2-core machine | 25 min (the run above: within it) |"
+    )
+    slow = [rec("train_fusion", 1800.0, "2026-01-01T10:00:00Z", "2026-01-01T10:30:00Z")]
+    assert "(the run above: 5.0 min over it)" in R.run_time_block(slow)
     # a stage re-run on its own an hour later: its time counts, the pause before it does not
     later = rec("report", 30.0, "2026-01-01T11:00:00Z", "2026-01-01T11:00:30Z")
     row = R.timings_block([*records, later]).splitlines()[3]
