@@ -312,12 +312,13 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     """Follow the ```` ```bash ci ```` blocks of the README and of every docs page
     (:func:`documented_ci_blocks`), in order, in one shell, in a clone of the finished ci DAG (so
     its `dvc exp run -S profile=ci` finds every stage up to date instead of running the DAG a
-    second time). `make install` is not run: the tests' own venv stands in for `.venv`, which must
-    not be reinstalled from a temp copy."""
+    second time), with the MLflow runs the Quick start's DAG logged (`runs compare` reads them).
+    `make install` is not run: the tests' own venv stands in for `.venv`, which must not be
+    reinstalled from a temp copy."""
     from conftest import run
     from test_experiments import clone_dag, user_env
 
-    repo = clone_dag(ci_dag, tmp_path / "readme_repo")
+    repo = clone_dag(ci_dag, tmp_path / "readme_repo", mlflow=True)
     (repo / ".venv").symlink_to(Path(sys.prefix), target_is_directory=True)
     blocks = [body for _, body in documented_ci_blocks(repo)]
     assert len(blocks) >= 3, "the Quick start and a quick experiment should be tagged ci"
@@ -326,3 +327,6 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     assert (repo / "outputs/fused.npz").is_file() and (repo / "outputs/fused.png").is_file()
     assert '"verdict"' in proc.stdout  # traffictwin risk printed its JSON
     assert "lr-high" in proc.stdout and (repo / "plots_cmp").is_dir()
+    # runs compare: the fusion runs named by the experiments, and the risk runs
+    assert "fusion-network [lr-high: fusion_model.optim.lr=0.02]" in proc.stdout
+    assert "risk-headline" in proc.stdout
