@@ -94,6 +94,7 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
 
     client = MlflowClient(tracking_uri=setup())
     stamp = int(time.time() * 1000)
+    logged: dict[str, int] = {}  # metrics logged per network (one summary line at the end)
     for folder, c, row, stage in runs:
         name = folder.name
         run_id = read_run_record(stage).get("run_id")
@@ -119,9 +120,7 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
             )
             # the baselines and the other rows: one table artifact, not metrics of this run
             client.log_table(run_id, methods_table(metrics, c), METHODS_TABLE.format(cfg=c))
-            log.info(
-                "logged %d fusion evaluation metrics to MLflow run %s (%s)", len(flat), run_id, name
-            )
+            logged[f"{name} {run_id[:8]}"] = logged.get(f"{name} {run_id[:8]}", 0) + len(flat)
         except MlflowException as exc:
             log.warning(
                 "MLflow run %s of %s not reachable (%s); metrics are in %s",
@@ -130,6 +129,9 @@ def log_to_mlflow(metrics: dict[str, Any], runs: list[tuple[Path, str, str, str]
                 exc,
                 METRICS,
             )
+    if logged:
+        per_run = ", ".join(f"{n} metrics to {run}" for run, n in logged.items())
+        log.info("logged the fusion evaluation to MLflow: %s", per_run)
 
 
 def load_networks(

@@ -47,6 +47,11 @@ TS_END = "<!-- run-time:end -->"
 B_BEGIN = "<!-- benchmarks:begin (generated from reports/benchmarks.json by `make readme`) -->"
 B_END = "<!-- benchmarks:end -->"
 
+#: the wall time (min) `make run` (the default DAG) should take on a 2-core machine
+RUN_BUDGET_MIN = 25.0
+#: how many of the longest stages the README's run-time table names
+LONGEST_SHOWN = 3
+
 #: a pause longer than this between one stage's end and the next one's start is not part of the run
 #: (a stage re-run on its own later, e.g. `dvc repro report` after a fix)
 GAP_S = 300.0
@@ -151,16 +156,25 @@ def sessions(records: list[dict]) -> list[list[dict]]:
     return out
 
 
-def _wall_row(records: list[dict]) -> str | None:
-    """The table row of the run's wall time: the sum of the sessions' spans (first stage start to
-    last stage end of each), the machine and its load; None without timed records."""
+def wall_seconds(records: list[dict]) -> float | None:
+    """The run's wall time (s): the sum of the sessions' spans (first stage start to last stage
+    end of each, :func:`sessions`); None without timed records."""
     parts = sessions(records)
     if not parts:
         return None
-    span = sum(
+    return sum(
         (max(_t(r["finished"]) for r in s) - min(_t(r["started"]) for r in s)).total_seconds()
         for s in parts
     )
+
+
+def _wall_row(records: list[dict]) -> str | None:
+    """The table row of the run's wall time (:func:`wall_seconds`), the machine and its load;
+    None without timed records."""
+    parts = sessions(records)
+    span = wall_seconds(records)
+    if span is None:
+        return None
     timed = [r for s in parts for r in s]
     machines = {(r["machine"]["cpu"], r["machine"]["cpu_count"]) for r in timed if "machine" in r}
     loads = [r["machine"]["load_start"][0] for r in timed if r.get("machine", {}).get("load_start")]
@@ -210,9 +224,26 @@ def timings_block(records: list[dict]) -> str:
 
 
 def run_time_block(records: list[dict]) -> str:
-    """The README's two-row timing table: the default run's wall time and the stages' own time."""
+    """The README's timing table: the default run's wall time, the stages' own time, the
+    :data:`LONGEST_SHOWN` longest stages, and the run against :data:`RUN_BUDGET_MIN`."""
     wall = _wall_row(records)
     rows = ([wall] if wall else []) + [_sum_row(records)]
+    timed = sorted(
+        (r for r in records if float(r.get("seconds", 0.0)) > 0),
+        key=lambda r: -float(r["seconds"]),
+    )[:LONGEST_SHOWN]
+    if timed:
+        names = ", ".join(f"`{r['stage']}` {float(r['seconds']) / 60:.1f}" for r in timed)
+        total = sum(float(r["seconds"]) for r in timed)
+        rows.append(f"| — the {len(timed)} longest stages: {names} min | {_minutes(total)} |")
+    span = wall_seconds(records)
+    if span is not None:
+        over = span / 60 - RUN_BUDGET_MIN
+        verdict = f"{over:.1f} min over it" if over > 0 else "within it"
+        rows.append(
+            f"| the budget of `make run` on a 2-core machine | {RUN_BUDGET_MIN:g} min "
+            f"(the run above: {verdict}) |"
+        )
     return "\n".join([TS_BEGIN, "| what | time |", "| --- | --- |", *rows, TS_END])
 
 

@@ -314,10 +314,26 @@ def ci_dag(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
     return repo
 
 
+def ci_dag_log(repo: Path) -> Path:
+    """The log of the ``ci_dag`` build's ``dvc repro`` (stdout and stderr in order, as a pipe gets
+    them), kept beside the repository (outside it: no DVC or git command sees it)."""
+    return repo.parent / "dvc_repro.log"
+
+
 def _build_ci_dag(repo: Path) -> Path:
     copy_repo(repo)
     run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
-    run(["dvc", "repro"], repo, timeout=1800)
+    env = stage_env(repo)
+    env.pop(
+        "TQDM_DISABLE", None
+    )  # a user's piped run: the stages must keep a pipe quiet themselves
+    log = ci_dag_log(repo)
+    with log.open("w") as out:
+        proc = subprocess.run(
+            ["dvc", "repro"], cwd=repo, env=env, stdout=out, stderr=subprocess.STDOUT, timeout=1800
+        )
+    if proc.returncode != 0:
+        raise AssertionError(f"dvc repro failed ({proc.returncode}):\n{log.read_text()[-6000:]}")
     return repo
 
 

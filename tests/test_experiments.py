@@ -22,9 +22,10 @@ STAGE = "train_risk@headline"
 PARAM = "risk_model.train.lr"
 
 
-def clone_dag(src: Path, dest: Path) -> Path:
-    """Copy a repo with its DVC cache, data and models; commit everything git tracks; drop its MLflow store."""
-    copy_dag(src, dest, mlflow=False)
+def clone_dag(src: Path, dest: Path, *, mlflow: bool = False) -> Path:
+    """Copy a repo with its DVC cache, data and models; commit everything git tracks; its MLflow
+    store only with ``mlflow`` (the runs a user has after the Quick start)."""
+    copy_dag(src, dest, mlflow=mlflow)
     # no run cache: a stage restored from it would not train, hence log no MLflow run
     shutil.rmtree(dest / ".dvc" / "cache" / "runs", ignore_errors=True)
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]

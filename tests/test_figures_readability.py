@@ -267,13 +267,13 @@ def test_previews_title_their_panels(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(  # where the previews look it up (traffictwin.cli is a package)
         cli.previews,
         "mass_panels",
-        lambda panels, titles=None: seen.append(titles) or real(panels, titles),
+        lambda panels, titles=None, **kw: seen.append(titles) or real(panels, titles, **kw),
     )
     m = _masses(occ=1.0)
     u = 1.0 - m[0] - m[1]
     img = cli.preview_image(m, m, m, u)
     assert seen[-1] == ["map 1", "map 2 in map 1's frame", "fused (grey = uncertainty u)"]
-    assert img.shape[0] == 24 + 32 * 12 + 22
+    assert img.shape[0] == 24 + 32 * 12 + 22  # no axes without a cell size; one legend row
     img = cli.twin_preview(m, [m, m, np.zeros_like(m)])
     assert seen[-1] == [
         "twin (the maps fused)",
@@ -284,3 +284,42 @@ def test_previews_title_their_panels(monkeypatch: pytest.MonkeyPatch) -> None:
     assert img.shape[1] == 4 * 24 * 12 + 3 * 4 * 12
     # the titles are plain ASCII: OpenCV's Hershey font draws nothing else
     assert all(t.isascii() for titles in seen for t in titles)
+
+
+def test_fuse_preview_has_metre_axes_the_ego_and_a_legend_for_every_colour() -> None:
+    """The Quick start's `fuse` picture read without the docs: ticks in metres of map 1's frame
+    (under each panel and left of them), map 1's vehicle marked at the grid's centre in every
+    panel, and a legend that names the mixed colours (which a tiny model's blur is made of) and
+    the marker, besides the three pure colours."""
+    from traffictwin.cli import preview_image
+    from traffictwin.cli.previews import AXIS_H, AXIS_W, EGO_BGR, LEGEND_H
+    from traffictwin.report.colours import legend_strip_bgr8
+
+    m = np.zeros((2, 128, 96), np.float32)  # the ci grid (0.64 m cells): all unknown
+    m[:, 8:20, 8:20] = 0.5  # an olive patch: half free, half occupied
+    u = 1.0 - m[0] - m[1]
+    plain = preview_image(m, m, m, u)
+    img = preview_image(m, m, m, u, cell=0.64)
+    scale = 3  # 384 / 128
+    h, w = 128 * scale, 96 * scale
+    assert img.shape[1] == AXIS_W + plain.shape[1]
+    assert img.shape[0] == 24 + h + AXIS_H + (plain.shape[0] - 24 - h)
+    dark = (img < 100).all(axis=-1)
+    # y ticks under the panels, x ticks left of them: drawn text and tick marks
+    assert dark[24 + h : 24 + h + AXIS_H, AXIS_W : AXIS_W + w].any()
+    assert dark[24 : 24 + h, :AXIS_W].any()
+    assert not dark[24 : 24 + h, AXIS_W : AXIS_W + w].any()  # nothing dark over the map
+    # the ego marker (blue, a colour no mass takes) at the centre of each panel
+    blue = np.all(np.abs(img.astype(int) - EGO_BGR) < 40, axis=-1)
+    for k in range(3):
+        cx = AXIS_W + k * (w + 4 * scale) + w // 2
+        assert blue[24 + h // 2 - 3 : 24 + h // 2 + 4, cx - 3 : cx + 4].any(), k
+    assert not blue[24 : 24 + h, AXIS_W : AXIS_W + w // 3].any()  # only there
+    # the legend: more than the three pure colours (the mixtures' swatch and the ego's)
+    legend = img[24 + h + AXIS_H :]
+    assert legend.shape[0] in (LEGEND_H, 2 * LEGEND_H)
+    assert blue[24 + h + AXIS_H :].any()
+    olive = np.array([0.5 * 0.15 + 0.5 * 0.85, 0.5 * 0.75 + 0.5 * 0.1, 0.5 * 0.2 + 0.5 * 0.1])
+    olive_bgr = np.round(olive[::-1] * 255).astype(int)
+    assert np.any(np.all(np.abs(legend.astype(int) - olive_bgr) < 12, axis=-1))
+    assert not np.array_equal(legend[:LEGEND_H], legend_strip_bgr8(legend.shape[1]))

@@ -96,9 +96,18 @@ def test_timings_block_adds_up_the_run_records() -> None:
         ln.startswith("| — fusion and registration training") and ln.endswith("| 4.0 min |")
         for ln in lines
     )
-    # the README's short table: the same first two rows
+    # the README's short table: the same first two rows, the longest stages, the budget
     short = R.run_time_block(records).splitlines()
     assert short[0] == R.TS_BEGIN and short[-1] == R.TS_END and short[3:5] == lines[3:5]
+    assert short[5] == (
+        "| — the 3 longest stages: `train_fusion` 4.0, `generate_fusion` 1.0, `prealign@A` 0.1 "
+        "min | 5.1 min |"
+    )
+    assert short[6] == (
+        "| the budget of `make run` on a 2-core machine | 25 min (the run above: within it) |"
+    )
+    slow = [rec("train_fusion", 1800.0, "2026-01-01T10:00:00Z", "2026-01-01T10:30:00Z")]
+    assert "(the run above: 5.0 min over it)" in R.run_time_block(slow)
     # a stage re-run on its own an hour later: its time counts, the pause before it does not
     later = rec("report", 30.0, "2026-01-01T11:00:00Z", "2026-01-01T11:00:30Z")
     row = R.timings_block([*records, later]).splitlines()[3]
@@ -303,12 +312,13 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     """Follow the ```` ```bash ci ```` blocks of the README and of every docs page
     (:func:`documented_ci_blocks`), in order, in one shell, in a clone of the finished ci DAG (so
     its `dvc exp run -S profile=ci` finds every stage up to date instead of running the DAG a
-    second time). `make install` is not run: the tests' own venv stands in for `.venv`, which must
-    not be reinstalled from a temp copy."""
+    second time), with the MLflow runs the Quick start's DAG logged (`runs compare` reads them).
+    `make install` is not run: the tests' own venv stands in for `.venv`, which must not be
+    reinstalled from a temp copy."""
     from conftest import run
     from test_experiments import clone_dag, user_env
 
-    repo = clone_dag(ci_dag, tmp_path / "readme_repo")
+    repo = clone_dag(ci_dag, tmp_path / "readme_repo", mlflow=True)
     (repo / ".venv").symlink_to(Path(sys.prefix), target_is_directory=True)
     blocks = [body for _, body in documented_ci_blocks(repo)]
     assert len(blocks) >= 3, "the Quick start and a quick experiment should be tagged ci"
@@ -317,3 +327,6 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     assert (repo / "outputs/fused.npz").is_file() and (repo / "outputs/fused.png").is_file()
     assert '"verdict"' in proc.stdout  # traffictwin risk printed its JSON
     assert "lr-high" in proc.stdout and (repo / "plots_cmp").is_dir()
+    # runs compare: the fusion runs named by the experiments, and the risk runs
+    assert "fusion-network [lr-high: fusion_model.optim.lr=0.02]" in proc.stdout
+    assert "risk-headline" in proc.stdout

@@ -58,6 +58,11 @@ def test_format_runs_cuts_long_text(mlflow_uri: str) -> None:
     df = runs.compare_runs("cmp", uri=mlflow_uri)
     assert "b" * 12 + "…" in runs.format_runs(df) and "b" * 13 not in runs.format_runs(df)
     assert "b" * 64 in runs.format_runs(df, wide=True)
+    # a run's name is never cut: it names the experiment and its overrides
+    name = "fusion-network [lr-low: fusion_model.optim.lr=0.002]"
+    _log(name, {"data.manifest_hash": "c" * 64}, {"val/loss": 3.0})
+    text = runs.format_runs(runs.compare_runs("cmp", uri=mlflow_uri))
+    assert name in text and "c" * 13 not in text
 
 
 def test_compare_runs_errors(mlflow_uri: str) -> None:

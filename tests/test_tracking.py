@@ -296,6 +296,22 @@ def test_the_project_leaves_no_empty_default_experiment(mlflow_uri: str) -> None
     assert tracking.retire_empty_default("http://server:5000") is False  # a server: left alone
 
 
+def test_experiments_open_on_the_runs_table(mlflow_uri: str) -> None:
+    """The project's experiments say they hold model training (MLflow's experiment-kind tag), so
+    the UI opens on the runs table instead of its GenAI overview; an experiment created without
+    the tag (an older store) gets it on the next run."""
+    client = mlflow.MlflowClient(mlflow_uri)
+    old = client.create_experiment("registration")
+    with tracking.start_run("fusion", "r", profile="ci", stage="s"):
+        pass
+    with tracking.start_run("registration", "r", profile="ci", stage="s"):
+        pass
+    for exp in client.search_experiments():
+        assert exp.tags.get("mlflow.experimentKind") == "custom_model_development", exp.name
+        assert exp.tags.get("mlflow.note.content"), exp.name
+    assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+
+
 def test_another_profile_is_one_override(tmp_path: Path, monkeypatch) -> None:
     """`-S profile=ci -S fusion_model.optim.lr=...` against a committed default: `profile` and
     the learning rate, not the dozens of keys the ci profile sets."""

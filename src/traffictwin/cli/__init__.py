@@ -62,8 +62,8 @@ created; all outputs are written to temp files and moved onto their names at the
 exclusively), so nothing is half-written and of two writers of one new output one wins.
 
 Output of ``fuse``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (float32, map 1's frame) and
-the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (red = m_occ, green = m_free,
-blue = u). Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first
+the poses used, plus ``OUT.png``: map 1, map 2 prealigned, fused (green = m_free, red = m_occ,
+grey = u; axes in metres of map 1's frame, map 1's vehicle a blue triangle). Output of ``twin``: ``OUT.npz`` with ``m_free``, ``m_occ``, ``u`` (the twin, first
 map's frame), ``used`` / ``accepted`` per map, ``rel_pose_used`` / ``rel_pose_given`` (N, 3) and
 ``cell``, plus ``OUT.png``. Output of ``export``: a TorchScript file (:mod:`traffictwin.export`).
 

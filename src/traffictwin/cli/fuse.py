@@ -95,7 +95,7 @@ def _write_fused(
     }
     write_npz_deterministic(outs.temp_path(path), arrays, compresslevel=1)
     if preview is not None:
-        image = preview_image(res.m1, res.m2_prealigned, res.masses, res.u)
+        image = preview_image(res.m1, res.m2_prealigned, res.masses, res.u, cell=res.cell)
         outs.write_bytes(preview, png_bytes(image))
 
 

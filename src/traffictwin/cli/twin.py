@@ -181,7 +181,7 @@ def cmd_twin(args: argparse.Namespace) -> int:
         warp_masses(maps[k], step.poses[k], grid) if step.used[k] else np.zeros_like(maps[k])
         for k in range(1, len(maps))
     ]
-    png = png_bytes(twin_preview(step.masses, contributions))
+    png = png_bytes(twin_preview(step.masses, contributions, cell=cell))
     u = 1.0 - step.masses[0] - step.masses[1]
     data = npz_bytes(
         m_free=step.masses[0],

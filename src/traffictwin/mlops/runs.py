@@ -213,7 +213,8 @@ def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str
 
     Floats with ``digits`` significant digits (missing metric: ``-``). Unless ``wide``: the run id
     shortened to 8 characters, empty tag columns dropped, text longer than 24 characters (e.g.
-    a data manifest hash) cut to 12 characters + ``…``.
+    a data manifest hash) cut to 12 characters + ``…``, except the run's name: it says what the
+    experiment changed (``fusion-network [lr-low: fusion_model.optim.lr=0.002]``).
     """
     if df.empty:
         return "(no finished runs)"
@@ -237,6 +238,6 @@ def format_runs(df: pd.DataFrame, *, digits: int = 4, wide: bool = False) -> str
             )
     out = out.fillna("-")
     if not wide:
-        for c in out.columns:
+        for c in out.columns.drop("run_name", errors="ignore"):
             out[c] = out[c].map(lambda v: v[:12] + "…" if isinstance(v, str) and len(v) > 24 else v)
     return out.to_string(index=False)

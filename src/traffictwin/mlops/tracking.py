@@ -233,23 +233,26 @@ EXPERIMENT_DESCRIPTIONS = {
     "shipped predictor chosen on validation (select_risk, run risk-shipped).",
 }
 NOTE_TAG = "mlflow.note.content"  # the MLflow UI's description of an experiment or run
+#: the experiment tag by which the MLflow UI (3.x) picks an experiment's first page: without it
+#: the UI may open on its GenAI overview; model training opens on the runs table
+KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
 
 
 def ensure_experiment(name: str, uri: str | None = None) -> str:
     """Id of experiment ``name``, creating it (artifacts beside a SQLite db, its description from
-    :data:`EXPERIMENT_DESCRIPTIONS`) if missing; makes it active."""
+    :data:`EXPERIMENT_DESCRIPTIONS`, :data:`KIND_TAG` = model training, so the UI opens on the
+    runs table) if missing; makes it active."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
     uri = uri or mlflow.get_tracking_uri()
     exp = mlflow.get_experiment_by_name(name)
     desc = EXPERIMENT_DESCRIPTIONS.get(name)
+    tags = {KIND_TAG: KIND, **({NOTE_TAG: desc} if desc else {})}
     if exp is None:
         try:
             exp_id = mlflow.create_experiment(
-                name,
-                artifact_location=artifact_location(name, uri),
-                tags={NOTE_TAG: desc} if desc else None,
+                name, artifact_location=artifact_location(name, uri), tags=tags
             )
         except MlflowException:  # created concurrently by another stage
             exp = mlflow.get_experiment_by_name(name)
@@ -258,8 +261,9 @@ def ensure_experiment(name: str, uri: str | None = None) -> str:
             exp_id = exp.experiment_id
     else:
         exp_id = exp.experiment_id
-        if desc and (exp.tags or {}).get(NOTE_TAG) != desc:
-            mlflow.MlflowClient(uri).set_experiment_tag(exp_id, NOTE_TAG, desc)
+        for key, value in tags.items():
+            if (exp.tags or {}).get(key) != value:
+                mlflow.MlflowClient(uri).set_experiment_tag(exp_id, key, value)
     mlflow.set_experiment(experiment_id=exp_id)
     retire_empty_default(uri)
     return exp_id
