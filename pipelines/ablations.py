@@ -96,11 +96,15 @@ def collect(name: str, overrides: list[str]) -> dict[str, Any]:
     return result
 
 
-def run(name: str, overrides: list[str]) -> None:
-    """``dvc exp run --temp -n ablation-<name> -S ...`` (the workspace stays as it is)."""
+def run(name: str, overrides: list[str], until: str | None = None) -> None:
+    """``dvc exp run --temp -n ablation-<name> -S ... [until]`` (the workspace stays as it is);
+    ``until``: a stage of dvc.yaml — only it and what it depends on run (e.g. ``evaluate_fusion``
+    for the fusion seed replicates, which leaves out the twin and the report)."""
     cmd = ["dvc", "exp", "run", "--temp", "-n", f"{PREFIX}{name}"]
     for o in overrides:
         cmd += ["-S", o]
+    if until:
+        cmd.append(until)
     subprocess.run(cmd, cwd=ROOT, check=True)
 
 
@@ -110,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("action", choices=("run", "collect"))
     ap.add_argument("names", nargs="*", help="ablations to run (default: every one of params.yaml)")
+    ap.add_argument(
+        "--until",
+        metavar="STAGE",
+        help="run only this stage of dvc.yaml and what it depends on (default: the whole pipeline)",
+    )
     a = ap.parse_args(argv)
     log = setup_logging()
     try:
@@ -122,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in a.names or list(todo):
             if a.action == "run":
                 log.info("ablation %s: dvc exp run --temp with %s", name, todo[name])
-                run(name, todo[name])
+                run(name, todo[name], a.until)
             res = collect(name, todo[name])
             log.info(
                 "ablation %s: %s from experiment %s",

@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
                 cfg_name,
                 noise,
                 grid,
-                get(p, "seed", int, min=0),
+                get(p, "seed", int, min=0) + model_cfg.train.seed_offset,
                 inputs,
             ),
             model=FusionSettings(

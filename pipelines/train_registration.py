@@ -85,7 +85,13 @@ def main(argv: list[str] | None = None) -> None:
     name = "train_registration"
     with stage_timer(stage) as record:
         res = fit_registration(
-            TrainingSet(prealigned(MIXED), MIXED, noise, grid, get(p, "seed", int, min=0)),
+            TrainingSet(
+                prealigned(MIXED),
+                MIXED,
+                noise,
+                grid,
+                get(p, "seed", int, min=0) + rc.train.seed_offset,
+            ),
             model=RegistrationSettings(
                 rc.net_spec(PARAMS.name), rc.train, rc.min_gain, (largest.r, largest.alpha)
             ),

@@ -28,7 +28,16 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
 
     cfg = compose_config(ab.ROOT / "conf", [])
     todo = ab.ablations(cfg)
-    assert set(todo) == {"per_config", "losses", "registered", "plain_network", "fp32", "risk"}
+    assert set(todo) == {
+        "per_config",
+        "losses",
+        "registered",
+        "plain_network",
+        "seeds_1",
+        "seeds_2",
+        "fp32",
+        "risk",
+    }
     # each ablation's overrides compose (what `dvc exp run -S` will hand to Hydra)
     for overrides in todo.values():
         composed = compose_config(ab.ROOT / "conf", overrides)
@@ -43,6 +52,14 @@ def test_the_project_defines_the_fusion_and_risk_ablations() -> None:
     assert cfg["fusion_model"]["architecture"]["residual"] == "dempster"
     plain = compose_config(ab.ROOT / "conf", todo["plain_network"])
     assert plain["fusion_model"]["architecture"]["residual"] == "none"
+    # the seed replicates change the two trainings' seeds and nothing else (same data)
+    for k in (1, 2):
+        rep = compose_config(ab.ROOT / "conf", todo[f"seeds_{k}"])
+        assert rep["fusion_model"]["train"]["seed_offset"] == k
+        assert rep["registration_model"]["train"]["seed_offset"] == k
+        rep["fusion_model"]["train"]["seed_offset"] = 0
+        rep["registration_model"]["train"]["seed_offset"] = 0
+        assert rep == cfg
 
 
 def _repo(tmp_path: Path) -> Path:
@@ -93,3 +110,26 @@ def test_unknown_ablation_is_one_error_line(capsys) -> None:
     assert ab.main(["collect", "nope"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("ablations: error: unknown ablation(s) ['nope']") and err.count("\n") == 1
+
+
+def test_run_hands_the_overrides_and_the_last_stage_to_dvc_exp_run(monkeypatch) -> None:
+    calls: list[list[str]] = []
+    monkeypatch.setattr(ab.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    ab.run("seeds_1", ["fusion_model.train.seed_offset=1", "a.b=2"], until="evaluate_fusion")
+    ab.run("fp32", ["trainer.precision=32-true"])
+    assert calls == [
+        [
+            "dvc",
+            "exp",
+            "run",
+            "--temp",
+            "-n",
+            "ablation-seeds_1",
+            "-S",
+            "fusion_model.train.seed_offset=1",
+            "-S",
+            "a.b=2",
+            "evaluate_fusion",
+        ],
+        ["dvc", "exp", "run", "--temp", "-n", "ablation-fp32", "-S", "trainer.precision=32-true"],
+    ]

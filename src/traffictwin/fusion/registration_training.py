@@ -73,6 +73,8 @@ class RegistrationTrainConfig:
     augment_prob: float = setting(MISSING, min=0.0, max=1.0)
     augment_scale: float = setting(MISSING, min=0.0, max=10.0)
     map_weight: float = setting(MISSING, min=0.0)
+    # added to the run's ``seed`` for this training only (the seed replicates use 1, 2, ...)
+    seed_offset: int = setting(0, min=0)
 
 
 @dataclass

@@ -287,6 +287,9 @@ class FusionTrainConfig:
     early_stopping_min_delta: float = setting(min=0.0)
     gradient_clip_val: float | None = setting()
     channels_last: bool = setting()
+    # added to the run's ``seed`` for this training only (initialisation, noise draws, batch
+    # order); the data stays the same: the seed replicates of the fusion claims use 1, 2, ...
+    seed_offset: int = setting(0, min=0)
 
 
 @dataclass
