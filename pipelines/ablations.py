@@ -5,6 +5,7 @@ Usage (``make ablations`` runs every one)::
 
     python -m pipelines.ablations run [NAME ...]   # dvc exp run --temp per ablation, then collect
     python -m pipelines.ablations collect [NAME ...]  # results of finished experiments only
+    python -m pipelines.ablations run seeds_1 seeds_2 --until evaluate_fusion  # up to one stage
 
 Each ablation of ``ablations`` (params.yaml, conf/config.yaml) is a named list of Hydra overrides
 (e.g. ``fusion_variants=per_config``: a network per pose-noise configuration). It
@@ -14,7 +15,10 @@ stages restored from DVC's run cache; the experiment keeps its own metrics. ``co
 what the report shows from the experiment's commit — the ``test`` / ``diff`` / ``targets`` blocks
 of ``reports/metrics/fusion.json`` (key ``fusion``) and ``risk.json`` (``risk``), with the
 experiment's name, commit and overrides — into ``reports/ablations/<name>.json``; the ``report`` stage shows them beside the
-default run's numbers (a DVC dependency of it). Not a DVC stage: it runs the pipeline itself.
+default run's numbers (a DVC dependency of it). The seed replicates (``seeds_<k>``: the fusion
+network's and the learned registration's training seed + k) are also compared with the default run
+pair by pair: ``reports/ablations/fusion_seeds.json`` (:func:`collect_fusion_seeds`). Not a DVC
+stage: it runs the pipeline itself.
 """
 
 from __future__ import annotations
@@ -33,6 +37,11 @@ from ._paths import REPORTS, ROOT
 
 ABLATIONS = REPORTS / "ablations"
 PREFIX = "ablation-"
+# the seed replicates of the fusion claims: ablations named seeds_<k> (training seed + k), compared
+# with the default run on evaluate_fusion's per-pair samples (the report reads the result)
+SEED_PREFIX = "seeds_"
+FUSION_SEEDS = ABLATIONS / "fusion_seeds.json"
+FUSION_SAMPLES = "reports/fusion_eval_samples.csv"
 # what the report shows of an ablation's run: the evaluation rows and differences the default
 # run does not have (its own rows stay in reports/metrics/)
 KEPT = {  # file in the experiment -> (key in reports/ablations/<name>.json, its blocks kept)
@@ -96,6 +105,51 @@ def collect(name: str, overrides: list[str]) -> dict[str, Any]:
     return result
 
 
+def _samples_at(rev: str) -> Any:
+    """evaluate_fusion's per-pair samples as committed at ``rev`` (a pandas DataFrame)."""
+    import io
+
+    import pandas as pd
+
+    try:
+        return pd.read_csv(io.StringIO(_git("show", f"{rev}:{FUSION_SAMPLES}")))
+    except subprocess.CalledProcessError as exc:
+        raise RuntimeError(
+            f"commit {rev[:8]} has no {FUSION_SAMPLES} (did evaluate_fusion run?)"
+        ) from exc
+
+
+def collect_fusion_seeds(names: list[str], cfg: Any) -> dict[str, Any]:
+    """``reports/ablations/fusion_seeds.json``: the default run (the experiments' baseline commit)
+    and the seed experiments ``names`` on the same test pairs, every fusion row and claim with its
+    seeds × scenarios interval (:func:`traffictwin.fusion.evaluation.seeds.seed_replicates`)."""
+    from traffictwin.fusion.config import pose_configurations
+    from traffictwin.fusion.evaluation.keys import fusion_ci_config
+    from traffictwin.fusion.evaluation.seeds import seed_replicates
+
+    revs = {}
+    for name in names:
+        rev = experiment_rev(name)
+        if rev is None:
+            raise RuntimeError(
+                f"seed replicate {name!r}: no DVC experiment {PREFIX}{name} "
+                f"(run `python -m pipelines.ablations run {name} --until evaluate_fusion`)"
+            )
+        revs[name] = rev
+    bases = {n: _git("rev-parse", f"{r}^").strip() for n, r in revs.items()}
+    if len(set(bases.values())) != 1:
+        raise RuntimeError(
+            "seed replicates from different baseline commits "
+            f"({', '.join(f'{n}: {b[:8]}' for n, b in bases.items())}): re-run them on one commit"
+        )
+    base = next(iter(bases.values()))
+    runs = {"default": _samples_at(base), **{n: _samples_at(r) for n, r in revs.items()}}
+    result = seed_replicates(runs, fusion_ci_config(cfg), list(pose_configurations(cfg)))
+    result["commits"] = {"default": base, **revs}
+    write_json_atomic(FUSION_SEEDS, result)
+    return result
+
+
 def run(name: str, overrides: list[str], until: str | None = None) -> None:
     """``dvc exp run --temp -n ablation-<name> -S ... [until]`` (the workspace stays as it is);
     ``until``: a stage of dvc.yaml — only it and what it depends on run (e.g. ``evaluate_fusion``
@@ -138,6 +192,18 @@ def main(argv: list[str] | None = None) -> int:
                 name,
                 ABLATIONS / f"{name}.json",
                 res["commit"][:8],
+            )
+        seeds = sorted(n for n in (a.names or list(todo)) if n.startswith(SEED_PREFIX))
+        if seeds:
+            res = collect_fusion_seeds(seeds, params())
+            every = [e for m in res["findings"].values() for c in m.values() for e in c.values()]
+            held = sum(e["holds"] for e in every)
+            log.info(
+                "seed replicates %s: %s (%d/%d fusion findings keep their verdict with seeds)",
+                ", ".join(res["seeds"]),
+                FUSION_SEEDS,
+                held,
+                len(every),
             )
     except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
         print(f"ablations: error: {' '.join(str(exc).split())}", file=sys.stderr)

@@ -133,3 +133,47 @@ def test_run_hands_the_overrides_and_the_last_stage_to_dvc_exp_run(monkeypatch) 
         ],
         ["dvc", "exp", "run", "--temp", "-n", "ablation-fp32", "-S", "trainer.precision=32-true"],
     ]
+
+
+def test_seed_replicates_are_collected_against_their_baseline_run(tmp_path, monkeypatch) -> None:
+    from tests.test_fusion_seeds import _samples
+
+    repo = tmp_path / "repo"
+    (repo / "reports").mkdir(parents=True)
+    subprocess.run([*GIT, "init", "-q"], cwd=repo, check=True)
+    csv = repo / ab.FUSION_SAMPLES
+
+    def commit(frame, msg: str) -> str:
+        frame.to_csv(csv, index=False)
+        subprocess.run([*GIT, "add", "-A"], cwd=repo, check=True)
+        subprocess.run([*GIT, "commit", "-qm", msg], cwd=repo, check=True)
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
+        ).stdout.strip()
+
+    base = commit(_samples(), "default run")
+    for k in (1, 2):  # each experiment: a child commit of the baseline with its own samples
+        rev = commit(_samples(shift=-0.01 * k), f"seed {k}")
+        subprocess.run(
+            ["git", "update-ref", f"refs/exps/ab/cd/ablation-seeds_{k}", rev], cwd=repo, check=True
+        )
+        subprocess.run([*GIT, "reset", "-q", "--hard", base], cwd=repo, check=True)
+    monkeypatch.setattr(ab, "ROOT", repo)
+    monkeypatch.setattr(ab, "ABLATIONS", repo / "reports" / "ablations")
+    monkeypatch.setattr(ab, "FUSION_SEEDS", repo / "reports" / "ablations" / "fusion_seeds.json")
+    cfg = OmegaConf.create(
+        {
+            "configurations": {"B": {"r": 1.0, "alpha": 10.0}, "D": {"r": 5.0, "alpha": 20.0}},
+            "evaluation": {"fusion_ci": {"n_boot": 500, "seed": 0, "level": 0.95}},
+        }
+    )
+    res = ab.collect_fusion_seeds(["seeds_1", "seeds_2"], cfg)
+    saved = json.loads((repo / "reports" / "ablations" / "fusion_seeds.json").read_text())
+    assert saved == json.loads(json.dumps(res))
+    assert saved["seeds"] == ["default", "seeds_1", "seeds_2"]
+    assert saved["commits"]["default"] == base and saved["n_boot"] == 500
+    per_seed = saved["rows"]["D"]["dnn"]["kld_fou_mean"]["per_seed"]
+    assert per_seed[1] - per_seed[0] == pytest.approx(-0.01)
+    assert per_seed[2] - per_seed[0] == pytest.approx(-0.02)
+    with pytest.raises(RuntimeError, match="no DVC experiment ablation-seeds_3"):
+        ab.collect_fusion_seeds(["seeds_3"], cfg)

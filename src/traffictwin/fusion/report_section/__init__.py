@@ -9,7 +9,8 @@ Reads ``fusion.json`` (stage evaluate_fusion; layout in :mod:`traffictwin.fusion
 train_fusion) and ``fusion_data.json`` (stage generate_fusion), and the learning-curve figures
 ``figures/train_fusion_<name>.png`` that train_fusion writes (captioned here). Entry point:
 :func:`provider`. Tables: :mod:`.method_tables` (every method), :mod:`.pose_tables`
-(registration), :mod:`.target_tables` (targets, ablations), built of the cells of :mod:`.cells`;
+(registration), :mod:`.target_tables` (targets, ablations), :mod:`.seed_tables` (the seed
+replicates, ``ablations/fusion_seeds.json``), built of the cells of :mod:`.cells`;
 the report stage's zoomed score figures: :mod:`.score_figures`.
 
 The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector); KLD(a) ``kld_fo_mean``
@@ -30,6 +31,11 @@ from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE
 from traffictwin.fusion.report_section.method_tables import fusion_tables
 from traffictwin.fusion.report_section.score_figures import draw_score_figures
+from traffictwin.fusion.report_section.seed_tables import (
+    seed_findings,
+    seed_row_table,
+    single_seed_note,
+)
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import lookup
@@ -169,6 +175,19 @@ def section(
         sec.tables.append(reg_training)
     sec.paragraphs.extend(training_stops(src))
     sec.bullet_groups.append(findings_group(src, FUSION_FILE, fusion_findings))
+    note = single_seed_note(src)
+    if note:
+        sec.paragraphs.append(note)
+    else:
+        sec.bullet_groups.append(
+            (
+                "Seed replicates: the findings with training seeds in their intervals",
+                seed_findings(src),
+            )
+        )
+        seeds_table = seed_row_table(src)
+        if seeds_table:
+            sec.tables.append(seeds_table)
     sec.bullet_groups.append(
         (
             "What the paper reports (qualitatively; it prints no numbers)",
