@@ -136,11 +136,15 @@ def collect_fusion_seeds(names: list[str], cfg: Any) -> dict[str, Any]:
                 f"(run `python -m pipelines.ablations run {name} --until evaluate_fusion`)"
             )
         revs[name] = rev
+    # each experiment's baseline commit holds the default run it is compared with: the same
+    # default samples in every baseline (commits may differ in code the evaluation never reads)
     bases = {n: _git("rev-parse", f"{r}^").strip() for n, r in revs.items()}
-    if len(set(bases.values())) != 1:
+    texts = {n: _git("show", f"{b}:{FUSION_SAMPLES}") for n, b in bases.items()}
+    if len(set(texts.values())) != 1:
         raise RuntimeError(
-            "seed replicates from different baseline commits "
-            f"({', '.join(f'{n}: {b[:8]}' for n, b in bases.items())}): re-run them on one commit"
+            f"seed replicates on different default runs: {FUSION_SAMPLES} differs between their "
+            f"baseline commits ({', '.join(f'{n}: {b[:8]}' for n, b in bases.items())}); "
+            "re-run them on one default run"
         )
     base = next(iter(bases.values()))
     runs = {"default": _samples_at(base), **{n: _samples_at(r) for n, r in revs.items()}}

@@ -177,3 +177,12 @@ def test_seed_replicates_are_collected_against_their_baseline_run(tmp_path, monk
     assert per_seed[2] - per_seed[0] == pytest.approx(-0.02)
     with pytest.raises(RuntimeError, match="no DVC experiment ablation-seeds_3"):
         ab.collect_fusion_seeds(["seeds_3"], cfg)
+    # a replicate whose baseline holds another default run is refused
+    other = commit(_samples(shift=0.5), "another default run")
+    rev = commit(_samples(shift=-0.03), "seed 3")
+    subprocess.run(
+        ["git", "update-ref", "refs/exps/ab/cd/ablation-seeds_3", rev], cwd=repo, check=True
+    )
+    assert other != base
+    with pytest.raises(RuntimeError, match="seed replicates on different default runs"):
+        ab.collect_fusion_seeds(["seeds_1", "seeds_3"], cfg)
