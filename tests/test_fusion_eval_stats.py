@@ -273,6 +273,15 @@ def _target_inputs() -> tuple[dict, dict]:
             "success_rate": {"estimate": 0.15, "lo": 0.07, "hi": 0.25, "n_pairs": 5},
         }
     }
+    # the network at A and learned + network at D, read as fusion.json has them
+    metrics["test"]["A"][ev.NETWORK] |= {
+        ev.HEADLINE: 0.001,
+        f"{ev.HEADLINE}_ci": {"lo": 0.0008, "hi": 0.0012},
+    }
+    metrics["test"]["D"][ev.LEARNED_NETWORK] = {
+        ev.HEADLINE: 0.008,
+        f"{ev.HEADLINE}_ci": {"lo": 0.007, "hi": 0.011},
+    }
     return own, metrics
 
 
@@ -283,7 +292,9 @@ FLIPS = {
     "hybrid_vs_registered": ("D", -0.1),
     "learned_kld_vs_registered": ("D", -0.1),
     "one_vs_per_config": ("D", 0.001),  # upper end 0.003
+    "kld_at_A": ("A", 0.0005),  # KLD(b) 0.001
     "dice_occ_at_A": ("A", 1.01),  # Dice 1
+    "learned_network_kld_at_D": ("D", 0.005),  # KLD(b) 0.008
     "dice_occ_drop_A_to_D": ("D", 0.01),  # drop 1/21
     "dice_occ_vs_ego": ("A", 0.5),  # 1 - 20/22
     "u_mean_vs_label": ("D", 0.01),  # |0.55 - 0.5|
