@@ -106,8 +106,10 @@ SIM_LIMIT = "Trained and tested on the project's own simulator, not on real sens
 
 
 def _card_metrics(name: str, path: list[str], keys: tuple[str, ...]) -> tuple[dict, str]:
-    """``keys`` (and their ``_ci``) at ``path`` of ``reports/metrics/<name>.json`` (the
-    evaluation stage's output for the model folders the candidates come from); ``{}`` if absent."""
+    """``keys`` (and their intervals as ``<key>_ci`` {lo, hi}: a ``<key>_ci`` mapping, or the flat
+    ``<key>_lo`` / ``<key>_hi`` of stereo.json) at ``path`` of ``reports/metrics/<name>.json``
+    (the evaluation stage's output for the model folders the candidates come from); ``{}`` if
+    absent."""
     f = metrics_file(name)
     try:
         node = json.loads(f.read_text())
@@ -117,6 +119,13 @@ def _card_metrics(name: str, path: list[str], keys: tuple[str, ...]) -> tuple[di
         return {}, ""
     out = {k: node[k] for k in keys if k in node}
     out.update({f"{k}_ci": node[f"{k}_ci"] for k in keys if f"{k}_ci" in node})
+    out.update(
+        {
+            f"{k}_ci": {"lo": node[f"{k}_lo"], "hi": node[f"{k}_hi"]}
+            for k in keys
+            if f"{k}_lo" in node and f"{k}_hi" in node
+        }
+    )
     return out, f"{_rel(f)} (test split)"
 
 

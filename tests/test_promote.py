@@ -343,3 +343,31 @@ def test_main_prints_the_table(monkeypatch, capsys):
     assert out[1].split()[2] == "champion" and out[2].split()[2] == "rejected"
     assert pm.main(["--json"]) == 0
     assert [d["action"] for d in json.loads(capsys.readouterr().out)] == ["promoted", "rejected"]
+
+
+def test_stereo_card_reads_the_flat_intervals_of_stereo_json(tmp_path, monkeypatch):
+    """stereo.json stores an interval as ``<key>_lo`` / ``<key>_hi``: the card shows it."""
+    (tmp_path / "stereo.json").write_text(
+        json.dumps(
+            {
+                "learned/own/epe": 0.2,
+                "learned/own/epe_lo": 0.19,
+                "learned/own/epe_hi": 0.21,
+                "learned/own/bad1": 0.03,
+            }
+        )
+    )
+    monkeypatch.setattr(pm, "metrics_file", lambda name: tmp_path / f"{name}.json")
+    metrics, _ = pm._card_metrics("stereo", [], ("learned/own/epe", "learned/own/bad1"))
+    assert metrics == {
+        "learned/own/epe": 0.2,
+        "learned/own/bad1": 0.03,
+        "learned/own/epe_ci": {"lo": 0.19, "hi": 0.21},
+    }
+    text = promotion.model_card(
+        promotion.Candidate("traffictwin-stereo", "r", None, tmp_path, {}),
+        _decision("promote"),
+        promotion.ModelCard(metrics=metrics, metrics_source="stereo.json"),
+    )
+    assert "| learned/own/epe | 0.2 | [0.19, 0.21] |" in text
+    assert "| learned/own/bad1 | 0.03 | — |" in text
