@@ -25,10 +25,13 @@ records what it is and why; the registry's risk model and ``traffictwin risk`` s
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Collection
 from dataclasses import asdict
 
 import numpy as np
 
+from traffictwin.api.risk import PACKAGED_STEREO
 from traffictwin.config import get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
 from traffictwin.model_format import CKPT_SHA_KEY
@@ -50,6 +53,7 @@ from ._paths import (
     RISK_DATA,
     SHIPPED_RISK_MODEL,
     STEREO_LEARNED,
+    STEREO_MODEL,
     hybrid_model_dir,
     metrics_file,
     risk_model_dir,
@@ -154,9 +158,13 @@ def track_shipped(p, sel: dict, folder, source: RiskSource | None = None) -> dic
         }
 
 
-def _publish_shipped(sel: Selection, setup: SelectionSetup, models, source, seeds) -> None:
+def _publish_shipped(
+    sel: Selection, setup: SelectionSetup, models, source, seeds, learned: Collection[str] = ()
+) -> None:
     """``models/risk_shipped/``: the shipped predictor's ``model.ckpt`` + ``model_meta.json``
-    (what it is and why): the rule saved at its half-width, else the trained run's folder copied."""
+    (what it is and why): the rule saved at its half-width, else the trained run's folder copied;
+    a run of ``learned`` (the hybrid on the learned stereo network's disparity) with that
+    network in ``stereo/``."""
     shipped = sel.shipped.predictor
     extra = {"shipped": asdict(sel.shipped), "variant": SHIPPED, "label": setup.primary}
     if shipped in RULES:
@@ -167,11 +175,18 @@ def _publish_shipped(sel: Selection, setup: SelectionSetup, models, source, seed
             {**extra, "objective": "rule", "domain": any_model.meta.get("domain", {})},
         )
     else:
+        hybrids = [*hybrid_runs(seeds), *learned]
         _copy_model(
-            hybrid_model_dir(shipped) if shipped in hybrid_runs(seeds) else risk_model_dir(shipped),
+            hybrid_model_dir(shipped) if shipped in hybrids else risk_model_dir(shipped),
             SHIPPED_RISK_MODEL,
             extra,
         )
+    # a shipped predictor that reads the learned stereo network's disparity carries that network
+    # (api.load_risk finds it in the folder's PACKAGED_STEREO); any other ships without one
+    packaged = SHIPPED_RISK_MODEL / PACKAGED_STEREO
+    shutil.rmtree(packaged, ignore_errors=True)
+    if shipped in learned:
+        _copy_model(STEREO_MODEL, packaged, {})
 
 
 def main() -> None:
@@ -195,7 +210,7 @@ def main() -> None:
             }
         )
         selection = select_on_validation(source, models, setup)
-        _publish_shipped(selection, setup, models, source, seeds)
+        _publish_shipped(selection, setup, models, source, seeds, on_learned)
         sel = selection.to_json()
         write_json_atomic(SELECTION, sel)
         record["shipped"] = selection.shipped.predictor

@@ -744,3 +744,80 @@ def test_the_shipped_model_is_logged_with_its_served_signature_and_a_validation_
     rec = select_risk.track_shipped({"profile": {"name": "test"}}, sel, folder, src)
     info = mlflow.models.get_model_info(rec["model_uri"])
     assert info.signature is not None and info.saved_input_example_info is not None
+
+
+def test_hybrid_on_the_learned_disparity_competes_for_shipping() -> None:
+    """Its runs are shipping candidates beside the learned group and the SGM rule (and win with
+    the highest validation AUC); the group that competes as 'learned' stays the main / hybrid one,
+    and a collapsed run never ships."""
+    from traffictwin.risk.selection_suite import (
+        LEARNED_DISPARITY_GROUP,
+        GroupChoice,
+        PredictorChoice,
+        RuleChoice,
+        _ship,
+    )
+
+    def pc(kind: str, group: str, auc: float, collapsed: bool = False) -> PredictorChoice:
+        return PredictorChoice(kind, group, 0.05, collapsed, auc, 100, {})
+
+    predictors = {
+        "geometric_sgm": pc("geometric", "geometric_sgm", 0.90),
+        "hybrid": pc("hybrid", "hybrid", 0.93),
+        "hybrid_s1": pc("hybrid", "hybrid", 0.92),
+        "hybrid_learned": pc("hybrid", LEARNED_DISPARITY_GROUP, 0.95),
+        "hybrid_learned_s1": pc("hybrid", LEARNED_DISPARITY_GROUP, 0.97, collapsed=True),
+    }
+    groups = {
+        "hybrid": GroupChoice(["hybrid", "hybrid_s1"], "hybrid", 0.925),
+        LEARNED_DISPARITY_GROUP: GroupChoice(
+            ["hybrid_learned", "hybrid_learned_s1"], "hybrid", 0.96
+        ),
+    }
+    rule = RuleChoice(1.0, [])
+    best, shipped = _ship(predictors, groups, "headline", rule, None)
+    assert best == "hybrid"  # the group compared with the rule in the findings is unchanged
+    assert shipped.predictor == "hybrid_learned"
+    assert shipped.candidates == ["geometric_sgm", "hybrid", "hybrid_learned", "hybrid_s1"]
+    # without the learned-disparity runs the SGM hybrid ships, as before
+    del groups[LEARNED_DISPARITY_GROUP]
+    assert _ship(predictors, groups, "headline", rule, None)[1].predictor == "hybrid"
+
+
+def test_a_shipped_learned_disparity_hybrid_carries_its_stereo_network(tmp_path, monkeypatch):
+    import types
+
+    import pipelines.select_risk as sr
+    from traffictwin.api.risk import PACKAGED_STEREO
+
+    def folder(name: str, sha: str) -> Path:
+        d = tmp_path / name
+        d.mkdir(parents=True)
+        (d / "model.ckpt").write_bytes(name.encode())
+        (d / "model_meta.json").write_text(json.dumps({"ckpt_sha256": sha, "what": name}))
+        return d
+
+    stereo = folder("stereo_learned", "s")
+    folder("hybrids/hybrid_learned", "h")
+    folder("hybrids/hybrid", "g")
+    shipped = tmp_path / "risk_shipped"
+    monkeypatch.setattr(sr, "STEREO_MODEL", stereo)
+    monkeypatch.setattr(sr, "SHIPPED_RISK_MODEL", shipped)
+    monkeypatch.setattr(sr, "hybrid_model_dir", lambda n: tmp_path / "hybrids" / n)
+
+    def publish(name: str) -> None:
+        sel = types.SimpleNamespace(shipped=types.SimpleNamespace(predictor=name))
+        monkeypatch.setattr(sr, "asdict", lambda s: {"predictor": s.predictor})
+        setup = types.SimpleNamespace(primary="risk")
+        sr._publish_shipped(sel, setup, {}, None, [1, 2], learned=["hybrid_learned"])
+
+    publish("hybrid_learned")
+    assert (shipped / "model.ckpt").read_bytes() == b"hybrids/hybrid_learned"
+    assert (shipped / PACKAGED_STEREO / "model.ckpt").read_bytes() == b"stereo_learned"
+    assert json.loads((shipped / "model_meta.json").read_text())["shipped"] == {
+        "predictor": "hybrid_learned"
+    }
+    # the next selection ships the SGM hybrid: no stereo network is left behind
+    publish("hybrid")
+    assert (shipped / "model.ckpt").read_bytes() == b"hybrids/hybrid"
+    assert not (shipped / PACKAGED_STEREO).exists()

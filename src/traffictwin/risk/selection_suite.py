@@ -50,6 +50,9 @@ RULES = {
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "baseline", "mount_x", "mount_height", "width", "height")
 #: the learned group the main variant's runs compete with for shipping
 HYBRID_GROUP = "hybrid"
+#: the hybrid trained on the learned stereo network's disparity: its runs compete for shipping too
+#: (a shipped one carries that network: traffictwin risk computes the disparity it reads)
+LEARNED_DISPARITY_GROUP = "hybrid_learned"
 
 
 @dataclass(frozen=True)
@@ -338,15 +341,17 @@ def _ship(
     reason: str | None,
 ) -> tuple[str | None, ShippedChoice]:
     """(the learned group that competes, the shipped predictor): the main variant's group or the
-    hybrid (higher mean AUC), its runs and the SGM rule; collapsed learned runs are failed runs
+    hybrid (higher mean AUC), its runs, the runs of the hybrid on the learned stereo network's
+    disparity (:data:`LEARNED_DISPARITY_GROUP`) and the SGM rule; collapsed learned runs are failed runs
     (the rule is no trained model: a constant output only says nothing was in its corridor).
     With ``reason`` (why validation cannot rank: :func:`too_few`) or without a finite validation
     AUC among them, the SGM rule ``rule`` ships at its width (the prior) with a note saying so."""
     learned = [g for g in (main_group, HYBRID_GROUP) if g in groups]
     best = max(learned, key=lambda g: groups[g].roc_auc_mean) if learned else None
+    competing = [*learned, *(g for g in (LEARNED_DISPARITY_GROUP,) if g in groups)]
     candidates = {
         n: predictors[n]
-        for n in [*(r for g in learned for r in groups[g].runs), "geometric_sgm"]
+        for n in [*(r for g in competing for r in groups[g].runs), "geometric_sgm"]
         if n in RULES or not predictors[n].collapsed
     }
     note = None
