@@ -10,15 +10,19 @@ stage lists it as a dependency, DVC re-runs none of them for it, and a rejected 
 ``dvc repro`` / ``dvc exp run`` here, one line on stderr and exit 2, with every other stage's
 outputs in place. A rejected params.yaml is not left behind either (``dvc exp run -S`` writes it
 before any stage runs, and DVC does not undo that): :func:`restore_accepted` puts back the
-parameters of the last successful check (the values dvc.lock records for this stage), keeping
-the rejected file under ``.cache/traffictwin/params/`` (docs/experiments.md).
+params.yaml of the last successful check (the file whose md5 dvc.lock records for this stage's
+``params.yaml`` dependency), keeping the rejected file under ``.cache/traffictwin/params/``
+(docs/experiments.md). params.yaml is a file dependency, not a params dependency of every key:
+dvc.lock records four lines for it instead of the whole file.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
 import subprocess
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -183,18 +187,47 @@ def _load(text: str | bytes) -> Any:
         return None
 
 
-def accepted_params(root: Path) -> dict[str, Any] | None:
-    """The parameters the last successful check accepted: this stage's params record in
-    ``root/dvc.lock`` (every key of params.yaml), or None without one."""
+@dataclass(frozen=True)
+class Accepted:
+    """dvc.lock's record of the params.yaml the last successful check accepted: the md5 of its
+    ``params.yaml`` dependency (``md5``; ``dos2unix``: a DVC 2 record without ``hash: md5``,
+    hashed with CRLF read as LF), or, in a lock written while the stage listed every key of
+    params.yaml as params, those values (``values``)."""
+
+    md5: str | None = None
+    dos2unix: bool = False
+    values: dict[str, Any] | None = None
+
+    def holds(self, data: bytes) -> bool:
+        """Whether the params.yaml bytes ``data`` are the accepted file (same md5; for an old
+        values record: the same values)."""
+        if self.md5 is not None:
+            hashed = data.replace(b"\r\n", b"\n") if self.dos2unix else data
+            return hashlib.md5(hashed, usedforsecurity=False).hexdigest() == self.md5
+        return self.values is not None and _load(data) == self.values
+
+
+def accepted_params(root: Path) -> Accepted | None:
+    """What the last successful check accepted, from this stage's record in ``root/dvc.lock``:
+    the md5 of its ``params.yaml`` dependency, else (a lock of the earlier format) its params
+    record of every key; None without either."""
     lock = root / "dvc.lock"
     if not lock.is_file():
         return None
-    doc = _load(lock.read_bytes())
     try:
-        record = doc["stages"]["check_params"]["params"]["params.yaml"]
+        stage = _load(lock.read_bytes())["stages"]["check_params"]
     except (KeyError, TypeError):
         return None
-    return record if isinstance(record, dict) and record else None
+    if not isinstance(stage, dict):
+        return None
+    for dep in stage.get("deps") or []:
+        if isinstance(dep, dict) and dep.get("path") == "params.yaml":
+            md5 = dep.get("md5")
+            if isinstance(md5, str) and md5:
+                return Accepted(md5=md5, dos2unix=dep.get("hash") != "md5")
+    params = stage.get("params")
+    record = params.get("params.yaml") if isinstance(params, dict) else None
+    return Accepted(values=record) if isinstance(record, dict) and record else None
 
 
 def _committed(root: Path) -> bytes | None:
@@ -209,14 +242,15 @@ def _committed(root: Path) -> bytes | None:
 
 
 def restore_accepted(root: Path) -> str:
-    """After a rejection: put params.yaml of ``root`` back to the parameters of the last
-    successful check, byte for byte, and keep the rejected file; returns the clause for the
-    error line (what happened to params.yaml).
+    """After a rejection: put params.yaml of ``root`` back to the file of the last successful
+    check, byte for byte, and keep the rejected file; returns the clause for the error line
+    (what happened to params.yaml).
 
-    The accepted values are dvc.lock's record of this stage (so a checkout of another commit
-    restores that commit's parameters, never a stale copy); the bytes come from the copy the
-    last successful check kept (``KEPT/accepted.yaml``) or the committed params.yaml, whichever
-    holds exactly those values. Without such a file params.yaml is left as it is."""
+    The accepted file is the one dvc.lock records for this stage (its md5, so a checkout of
+    another commit restores that commit's parameters, never a stale copy; an older lock's
+    values record works too); the bytes come from the copy the last successful check kept
+    (``KEPT/accepted.yaml``) or the committed params.yaml, whichever is that file (written
+    atomically). Without such a file params.yaml is left as it is."""
     path = root / "params.yaml"
     accepted = accepted_params(root)
     rejected = path.read_bytes() if path.is_file() else None
@@ -225,11 +259,11 @@ def restore_accepted(root: Path) -> str:
         return (
             f"params.yaml keeps the rejected value (no accepted parameters in dvc.lock; {manual})"
         )
-    if _load(rejected) == accepted:  # the values the last check accepted: nothing to undo
+    if accepted.holds(rejected):  # the file the last check accepted: nothing to undo
         return "params.yaml is unchanged since the last accepted check"
     kept = root / KEPT
     for text in (_read(kept / "accepted.yaml"), _committed(root)):
-        if text is not None and _load(text) == accepted:
+        if text is not None and accepted.holds(text):
             write_bytes_atomic(kept / "rejected.yaml", rejected)
             write_bytes_atomic(path, text)
             return (

@@ -12,6 +12,7 @@ again), and params.yaml kept the rejected value; ``-S grid.rows=4096 -S grid.col
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import re
 import shutil
@@ -79,17 +80,36 @@ def test_a_rejected_value_names_its_key_and_bound(good, key, value, named) -> No
     assert str(value) in line.replace(",", "") or key.endswith("lr"), line
 
 
-def _root(tmp_path: Path, text: str, accepted: dict | None = None) -> Path:
+#: the two forms of dvc.lock's record of the accepted params.yaml: the md5 of the stage's
+#: ``params.yaml`` file dependency, and (locks of earlier commits) every key as params
+RECORDS = ("md5", "values")
+
+
+def _lock(accepted: str, record: str = "md5") -> str:
+    """dvc.lock text whose check_params stage records the params.yaml ``accepted`` as DVC 3
+    writes it: a ``params.yaml`` dep (``record="md5"``: path, hash, md5, size, after a code
+    dep) or every key as params (``"values"``, floats as DVC writes them: ``1e-07``, no dot)."""
+    stage: dict = {"cmd": "python -m pipelines.check_params"}
+    if record == "md5":
+        data = accepted.encode()
+        code = {"path": "pipelines/check_params.py", "hash": "md5", "md5": "0" * 32, "size": 1}
+        dep = {"path": "params.yaml", "hash": "md5", "md5": hashlib.md5(data).hexdigest()}
+        stage["deps"] = [code, {**dep, "size": len(data)}]
+    else:
+        stage["params"] = {"params.yaml": yaml.safe_load(accepted)}
+    stage["outs"] = [{"path": "data/params_ok.json", "hash": "md5", "md5": "1" * 32, "size": 53}]
+    lock = yaml.safe_dump({"schema": "2.0", "stages": {"check_params": stage}}, sort_keys=False)
+    return re.sub(r"(\d)\.0e", r"\1e", lock)
+
+
+def _root(tmp_path: Path, text: str, accepted: str | None = None, record: str = "md5") -> Path:
     """A repository root with ``params.yaml`` = ``text`` and a dvc.lock whose check_params
-    record holds ``accepted`` (written as DVC writes floats: ``1e-07``, no dot)."""
+    record is of the params.yaml ``accepted`` (:func:`_lock`)."""
     root = tmp_path / "root"
     root.mkdir(exist_ok=True)
     (root / "params.yaml").write_text(text)
     if accepted is not None:
-        lock = yaml.safe_dump(
-            {"schema": "2.0", "stages": {"check_params": {"params": {"params.yaml": accepted}}}}
-        )
-        (root / "dvc.lock").write_text(re.sub(r"(\d)\.0e", r"\1e", lock))
+        (root / "dvc.lock").write_text(_lock(accepted, record))
     return root
 
 
@@ -122,13 +142,14 @@ def _rejected(root: Path, out: Path, monkeypatch, capsys) -> str:
     return err.strip()
 
 
+@pytest.mark.parametrize("record", RECORDS)
 def test_a_rejected_value_is_one_line_exit_2_and_params_yaml_restored(
-    good, tmp_path, monkeypatch, capsys
+    good, tmp_path, monkeypatch, capsys, record
 ) -> None:
-    """The accepted file (kept by the last successful check, dvc.lock records its values) is put
-    back byte for byte; the rejected one is kept, never lost."""
+    """The accepted file (kept by the last successful check, dvc.lock records its md5, or its
+    values in an older lock) is put back byte for byte; the rejected one is kept, never lost."""
     accepted = committed("params.yaml")  # with its header comment: restored byte for byte
-    root = _root(tmp_path, accepted, good)
+    root = _root(tmp_path, accepted, accepted, record)
     check_params.main([], output=tmp_path / "first.json", root=root)
     bad = _dump(_with(good, "fusion_model.train.batch_size", -3))
     (root / "params.yaml").write_text(bad)
@@ -143,15 +164,16 @@ def test_a_rejected_value_is_one_line_exit_2_and_params_yaml_restored(
     assert out.is_file()
 
 
-def test_a_stale_kept_copy_is_never_restored(good, tmp_path, monkeypatch, capsys) -> None:
-    """dvc.lock's values decide: after a checkout of other parameters the copy kept from before
+@pytest.mark.parametrize("record", RECORDS)
+def test_a_stale_kept_copy_is_never_restored(good, tmp_path, monkeypatch, capsys, record) -> None:
+    """dvc.lock's record decides: after a checkout of other parameters the copy kept from before
     is not theirs, and without git there is no other source: params.yaml stays, and says so."""
-    root = _root(tmp_path, _dump(good), good)
+    root = _root(tmp_path, _dump(good), _dump(good), record)
     check_params.main([], output=tmp_path / "first.json", root=root)  # keeps the seed-20... copy
-    other = _with(good, "seed", 7)
+    other = _dump(_with(good, "seed", 7))
     (root / "dvc.lock").unlink()
-    root = _root(tmp_path, _dump(other), other)  # a checkout: other params, their lock
-    bad = _dump(_with(other, "grid.rows", 4096))
+    root = _root(tmp_path, other, other, record)  # a checkout: other params, their lock
+    bad = _dump(_with(yaml.safe_load(other), "grid.rows", 4096))
     (root / "params.yaml").write_text(bad)
     line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
     assert "'grid.rows' must be <= 1024, got 4096" in line
@@ -168,6 +190,81 @@ def test_without_a_lock_record_params_yaml_is_left_and_the_line_says_so(
     line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
     assert "params.yaml keeps the rejected value (no accepted parameters in dvc.lock" in line
     assert (root / "params.yaml").read_text() == bad
+
+
+@pytest.mark.parametrize("record", RECORDS)
+def test_the_committed_file_is_restored_when_it_is_the_accepted_one(
+    good, tmp_path, monkeypatch, capsys, record
+) -> None:
+    """No kept copy (a fresh clone): the committed params.yaml is restored when dvc.lock's record
+    is of it; a kept copy of other parameters is passed over."""
+    accepted = committed("params.yaml")
+    root = _root(tmp_path, accepted, accepted, record)
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    for cmd in ([*git, "init", "-q"], [*git, "add", "params.yaml"], [*git, "commit", "-qm", "p"]):
+        subprocess.run(cmd, cwd=root, check=True, capture_output=True, timeout=60)
+    stale = _dump(_with(good, "seed", 7))
+    (root / check_params.KEPT).mkdir(parents=True)
+    (root / check_params.KEPT / "accepted.yaml").write_text(stale)
+    bad = _dump(_with(good, "twin.frames", 10**6))
+    (root / "params.yaml").write_text(bad)
+    line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
+    assert "params.yaml restored to the parameters the last check accepted" in line, line
+    assert (root / "params.yaml").read_text() == accepted
+    assert (root / check_params.KEPT / "rejected.yaml").read_text() == bad
+    assert (root / check_params.KEPT / "accepted.yaml").read_text() == stale
+
+
+@pytest.mark.parametrize("record", RECORDS)
+def test_an_accepted_file_that_fails_now_is_left_and_the_line_says_so(
+    good, tmp_path, monkeypatch, capsys, record
+) -> None:
+    """A file dvc.lock records as accepted that the (newer) checks reject: nothing to put back."""
+    bad = _dump(_with(good, "grid.rows", 4096))
+    root = _root(tmp_path, bad, bad, record)
+    line = _rejected(root, tmp_path / "o.json", monkeypatch, capsys)
+    assert "params.yaml is unchanged since the last accepted check" in line, line
+    assert (root / "params.yaml").read_text() == bad
+    assert not (root / check_params.KEPT / "rejected.yaml").exists()
+
+
+def test_the_lock_record_is_the_md5_of_the_params_yaml_dep(good, tmp_path) -> None:
+    """The md5 record wins over an old values record, matches bytes (not values), and a DVC 2
+    record (no ``hash: md5``) hashes CRLF line ends as LF, as DVC does."""
+    text = _dump(good)
+    root = _root(tmp_path, text, text)
+    accepted = check_params.accepted_params(root)
+    assert accepted == check_params.Accepted(md5=hashlib.md5(text.encode()).hexdigest())
+    assert accepted.holds(text.encode())
+    assert not accepted.holds(text.encode() + b"# a comment\n")  # same values, other bytes
+    lock = yaml.safe_load(_lock(text))
+    lock["stages"]["check_params"]["params"] = {"params.yaml": _with(good, "seed", 7)}
+    (root / "dvc.lock").write_text(yaml.safe_dump(lock))
+    assert check_params.accepted_params(root) == accepted
+    del lock["stages"]["check_params"]["deps"][1]["hash"]  # as DVC 2 wrote it
+    (root / "dvc.lock").write_text(yaml.safe_dump(lock))
+    legacy = check_params.accepted_params(root)
+    assert legacy is not None and legacy.dos2unix
+    assert legacy.holds(text.replace("\n", "\r\n").encode())
+    assert not accepted.holds(text.replace("\n", "\r\n").encode())
+    del lock["stages"]["check_params"]["deps"]  # only the old values record left
+    (root / "dvc.lock").write_text(yaml.safe_dump(lock))
+    old = check_params.accepted_params(root)
+    assert old == check_params.Accepted(values=_with(good, "seed", 7))
+    assert old.holds(_dump(_with(good, "seed", 7)).encode()) and not old.holds(text.encode())
+    del lock["stages"]["check_params"]["params"]
+    (root / "dvc.lock").write_text(yaml.safe_dump(lock))
+    assert check_params.accepted_params(root) is None
+
+
+def test_check_params_and_report_depend_on_params_yaml_as_a_file() -> None:
+    """The two stages that read all of params.yaml list it as one file dependency (four lines
+    of dvc.lock), never as params of every key (all of params.yaml, once per stage)."""
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    for name in ("check_params", "report"):
+        assert "params.yaml" in stages[name]["deps"], name
+        assert "params.yaml" not in stages[name].get("params", []), name
+        assert {"params.yaml": None} not in stages[name].get("params", []), name
 
 
 def test_dvc_lock_floats_read_as_params_yaml_floats() -> None:
@@ -210,7 +307,7 @@ def _dvc_repo(dest: Path) -> Path:
                 "stages": {
                     "check_params": {
                         "cmd": f'{sys.executable} -c "{check}"',
-                        "params": [{"params.yaml": None}],  # every key, as the real stage
+                        "deps": ["params.yaml"],  # the whole file, as the real stage
                         "outs": ["params_ok.json"],
                     },
                     "down": {
@@ -260,6 +357,8 @@ def _git_status(repo: Path) -> str:
 @pytest.mark.slow  # four dvc runs of the real check (~1.5 min on 2 cores)
 def test_dvc_stops_at_the_check_and_keeps_every_other_output(tmp_path) -> None:
     repo = _dvc_repo(tmp_path / "repo")
+    accepted = check_params.accepted_params(repo)  # DVC's own lock record: the file's md5
+    assert accepted is not None and accepted.md5 is not None and not accepted.dos2unix
     before = (repo / "down.txt").read_text()
     good = (repo / "params.yaml").read_text()
     params = yaml.safe_load(good)
