@@ -1,12 +1,15 @@
 """Latency of the `traffictwin` inference paths on this CPU (prints JSON).
 
-    python -m benchmarks.cli_latency [--repeat 20] [--fusion-model DIR] [--risk-model DIR] [--rows R --cols C]
+    python -m benchmarks.cli_latency [--repeat 20] [--fusion-model DIR] [--risk-model DIR] [--stereo-model DIR] [--rows R --cols C]
 
 - ``fuse`` (per pair): prealignment (SE(2) warp of map 2) and the network part
   (:func:`traffictwin.fusion.model_io.predict_masses`, batch 1: forward + evidence → masses).
 - ``risk`` (per frame): ORB pair check, SGM disparity, and the network part
   (``predict`` of the network, hybrid or rule: preprocessing + forward), at batch 1 and as
-  throughput at batch 64.
+  throughput at batch 64; with the learned stereo network (``--stereo-model``, else
+  ``models/stereo/learned`` if trained), also its disparity per frame on SGM's map
+  (:func:`traffictwin.risk.stereo_inference.learned_disparity`, batch 1) and the chain ORB + SGM +
+  learned stereo + model.
 
 Models: the given folders, else ``models/fusion/D`` / ``models/risk_shipped`` (the predictor
 users get; else ``models/risk/headline``) if trained, else
@@ -81,6 +84,27 @@ def _risk_model(path: str | None, cfg):
     return RiskModel(net=Dave2(c).eval()), "random weights, DAVE-2 rgb+disp_sgm"
 
 
+def _stereo_timing(path: str | None, left, right, disp, repeat: int) -> dict | None:
+    """The learned stereo network's disparity per frame (ms, batch 1, refining SGM's ``disp``)
+    on the pair, or None without a trained network (or one of another image size)."""
+    from traffictwin.risk.stereo_inference import learned_disparity
+    from traffictwin.risk.stereo_training import load_stereo_model
+
+    p = Path(path) if path else ROOT / "models" / "stereo" / "learned"
+    if not (p / "model.ckpt").exists():
+        return None
+    net = load_stereo_model(p)
+    h, w = left.shape[:2]
+    if list(net.meta.get("image_size") or [h, w]) != [h, w]:
+        return None
+    with torch.inference_mode():
+        ms = _median_ms(
+            lambda: learned_disparity(net, left[None], right[None], sgm=disp[None], batch_size=1),
+            repeat,
+        )
+    return {"model": _shown(p), "stereo_ms_per_frame": ms}
+
+
 def main(argv: list[str] | None = None) -> dict:
     import cv2
     import yaml
@@ -97,6 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--risk-model", default=None)
     ap.add_argument("--rows", type=int, default=None)
     ap.add_argument("--cols", type=int, default=None)
+    ap.add_argument("--stereo-model", default=None)
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
     ap.add_argument(
         "--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)"
@@ -159,6 +184,7 @@ def main(argv: list[str] | None = None) -> dict:
             / 64
         )
 
+    stereo = _stereo_timing(a.stereo_model, left, right, disp, a.repeat)
     out = {
         "machine": {
             "cpu": platform.processor() or platform.machine(),
@@ -184,6 +210,12 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "repeat": a.repeat,
     }
+    if stereo is not None:
+        out["risk"]["learned_stereo"] = stereo | {
+            "total_ms_per_frame": round(
+                orb_ms + sgm_ms + stereo["stereo_ms_per_frame"] + model1_ms, 3
+            )
+        }
     print(json.dumps(out, indent=2))
     return out
 

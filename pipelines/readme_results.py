@@ -495,14 +495,24 @@ def _bench_twin(b: Mapping) -> tuple[str, str]:
 
 def _bench_cli(b: Mapping) -> tuple[str, str]:
     f, r = b["fuse"], b["risk"]
-    return (
+    what = (
         f"`traffictwin fuse` per pair ({f['grid'][0]}×{f['grid'][1]}, {f['model']}): prealign + "
         f"model; `traffictwin risk` per frame ({r['image'][0]}×{r['image'][1]}, "
-        f"`{r['model']}`): ORB + SGM + model",
+        f"`{r['model']}`): ORB + SGM + model"
+    )
+    figs = (
         f"{_ms(f['prealign_ms'])} + {_ms(f['model_ms_per_pair'])} = "
         f"{_ms(f['total_ms_per_pair'])} ms; {_ms(r['orb_ms'])} + {_ms(r['sgm_ms'])} + "
-        f"{_ms(r['model_ms_per_frame'])} = {_ms(r['total_ms_per_frame'])} ms",
+        f"{_ms(r['model_ms_per_frame'])} = {_ms(r['total_ms_per_frame'])} ms"
     )
+    ls = r.get("learned_stereo")
+    if ls:
+        what += f"; with the learned stereo network (`{ls['model']}`): ORB + SGM + network + model"
+        figs += (
+            f"; {_ms(r['orb_ms'])} + {_ms(r['sgm_ms'])} + {_ms(ls['stereo_ms_per_frame'])} + "
+            f"{_ms(r['model_ms_per_frame'])} = {_ms(ls['total_ms_per_frame'])} ms"
+        )
+    return what, figs
 
 
 def _bench_ci_dag(b: Mapping) -> tuple[str, str]:
