@@ -292,3 +292,18 @@ def test_risk_on_another_models_app_is_404_in_one_line():
     assert status == 404, got
     msg = got["message"]
     assert "\n" not in msg and "/risk" in msg and "a fusion model" in msg and "risk model" in msg
+
+
+def test_a_stereo_model_is_passed_to_the_api_loader(served, monkeypatch):
+    """``TRAFFICTWIN_SERVE_STEREO_MODEL`` reaches :func:`traffictwin.api.load_risk` as
+    ``stereo_model``: the ci rule reads SGM's disparity, so giving one makes ``/risk`` answer 404
+    with the loader's reason (and ``/invocations`` would still serve)."""
+    from traffictwin.api import serving as pair_serving
+
+    monkeypatch.setenv(pair_serving.ENV_STEREO_MODEL, str(ROOT / "examples"))
+    status, got = pair_serving.pair_route(URI).answer(pair_request())
+    assert status == 404, got
+    assert "stereo_model" in got["message"] and "disp_sgm" in got["message"], got
+    monkeypatch.delenv(pair_serving.ENV_STEREO_MODEL)
+    status, got = pair_serving.pair_route(URI).answer(pair_request())
+    assert status == 200 and got["verdict"] == "critical", got

@@ -16,6 +16,7 @@ import binascii
 import json
 import logging
 import math
+import os
 import threading
 import warnings
 from typing import Any
@@ -41,6 +42,9 @@ RISK_FIELDS = {
     "right_png": "the right camera's image, the same way",
     "speed_mps": "the subject vehicle's speed (m/s): a finite number >= 0",
 }
+#: the learned stereo network for a risk model that reads its disparity and is served by registry
+#: reference (the CLI's ``--stereo-model``: a folder or a reference); unset: none
+ENV_STEREO_MODEL = "TRAFFICTWIN_SERVE_STEREO_MODEL"
 #: the id of the pair in the answer (the CLI's is the left image's file stem)
 PAIR_ID = "pair"
 
@@ -56,9 +60,11 @@ def _error(status: int, message: str, code: str = "INVALID_PARAMETER_VALUE") -> 
 def pair_route(model_uri: str) -> Route:
     """The ``/risk`` :class:`~traffictwin.mlops.serving_app.Route` of the risk model at
     ``model_uri``; a :func:`~traffictwin.mlops.serving_app.not_here` route (HTTP 404, the
-    reason) when :func:`load_risk` cannot load it."""
+    reason) when :func:`load_risk` cannot load it (with ``$TRAFFICTWIN_SERVE_STEREO_MODEL`` as
+    its ``stereo_model``)."""
+    stereo = os.environ.get(ENV_STEREO_MODEL, "").strip() or None
     try:
-        risk = load_risk(model_uri)
+        risk = load_risk(model_uri, stereo_model=stereo)
     except ApiError as exc:
         why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         log.warning("%s: not served: %s", RISK_PATH, why)

@@ -28,10 +28,9 @@ each with MLflow's error body ``{"error_code": "INVALID_PARAMETER_VALUE", "messa
 
 For a risk model it adds ``POST /risk`` (:data:`RISK_PATH`): the risk of one stereo pair as a
 user has it, two PNG files, answered with the JSON of ``traffictwin risk LEFT RIGHT --speed S``
-(:func:`traffictwin.api.serving.pair_route`, looked up through :data:`ROUTES`: the API's own
-chain, :func:`traffictwin.api.assess_risk`, on the model
-loaded by :func:`traffictwin.api.load_risk`). Its request
-(:data:`traffictwin.api.serving.RISK_FIELDS`)::
+by :func:`traffictwin.api.serving.pair_route` (looked up through :data:`ROUTES`): the API's own
+chain, :func:`traffictwin.api.assess_risk`, on the model loaded by
+:func:`traffictwin.api.load_risk`. Its request (:data:`traffictwin.api.serving.RISK_FIELDS`)::
 
     {"left_png": "<base64 of the left PNG>", "right_png": "<base64 of the right PNG>",
      "speed_mps": 8.725}
@@ -292,6 +291,8 @@ def build(model_uri: str) -> App:
     import mlflow.pyfunc
     from mlflow.pyfunc import scoring_server
 
+    # no "Downloading artifacts" bar in the server's log (as the CLI: traffictwin.api.HTTP_ENV)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     model = mlflow.pyfunc.load_model(model_uri)
     limit = max_request_bytes(values_per_sample(model))
     routes = model_routes(model_uri, model_problem(model), limit)
