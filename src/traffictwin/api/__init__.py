@@ -62,7 +62,8 @@ Modules: :mod:`~traffictwin.api.errors` (the error classes), :mod:`~traffictwin.
 :mod:`~traffictwin.api.fusion`, :mod:`~traffictwin.api.images` (stereo image files),
 :mod:`~traffictwin.api.pairs` (a pair's images, SGM / ORB settings and check fields),
 :mod:`~traffictwin.api.risk`, :mod:`~traffictwin.api.stereo` (disparity of a pair: SGM or the learned
-stereo network); every name is used as ``api.<name>``.
+stereo network), :mod:`~traffictwin.api.serving` (the serving app's ``POST /risk``, not imported
+here); every name is used as ``api.<name>``.
 
 This package imports only NumPy at import time; torch, OpenCV and MLflow are imported by the
 functions that need them (``traffictwin --help`` stays fast).
@@ -107,6 +108,7 @@ from .risk import (  # noqa: F401 - the ones not in __all__ are used as api.<nam
     UNKNOWN,
     LoadedRisk,
     StereoSettings,
+    answered_by,
     assess_risk,
     check_risk_domain,
     check_speed,
@@ -138,6 +140,7 @@ __all__ = [
     "FusionModel",
     "LoadedRisk",
     "LoadedStereo",
+    "answered_by",
     "assess_risk",
     "check_cell",
     "check_mass_grids",

@@ -15,6 +15,7 @@ from .inputs import check_path
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
 MIN_IMAGE_PX = 32  # the smallest image side (px) SGM and the ORB check can work on
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
 
 
 def check_image_file(path: str | os.PathLike) -> tuple[int, int]:
@@ -42,6 +43,40 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if img is None:
         raise InputFileError(f"{path}: not a readable image (OpenCV could not decode it)")
     return as_bgr(img, str(path))
+
+
+def decode_png(data: bytes, who: str) -> np.ndarray:
+    """An 8-bit BGR image (:func:`as_bgr`) from the bytes of a PNG file (``who`` names them in
+    errors): :class:`InputValueError` when they are not a PNG, its header says more pixels than
+    the pixel limit (checked before a pixel is decoded), or OpenCV cannot decode them."""
+    import io
+
+    import cv2
+
+    from traffictwin.io.limits import _png_size, max_image_pixels
+
+    if not isinstance(data, (bytes, bytearray)):
+        raise InputValueError(f"{who}: expected the bytes of a PNG file, got {type(data).__name__}")
+    if not data.startswith(PNG_SIGNATURE):
+        raise InputValueError(
+            f"{who}: not a PNG ({len(data)} bytes without the PNG signature); expected a PNG "
+            "file's bytes"
+        )
+    try:
+        w, h = _png_size(io.BytesIO(data))
+    except ValueError as exc:
+        raise InputValueError(f"{who}: not a readable PNG ({exc})") from None
+    if w * h > max_image_pixels():
+        raise InputValueError(
+            f"{who}: PNG of {w}x{h} px (W x H), more than the limit of {max_image_pixels():,} "
+            "pixels"
+        )
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputValueError(
+            f"{who}: not a decodable PNG (OpenCV could not decode its {len(data)} bytes)"
+        )
+    return as_bgr(img, who)
 
 
 @dataclass

@@ -86,6 +86,23 @@ class LoadedRisk:
         return kind
 
 
+def answered_by(risk: LoadedRisk, settings: StereoSettings) -> dict[str, Any]:
+    """What answers a pair, as fields of ``traffictwin risk``'s JSON (and the serving app's
+    ``/risk``): ``model`` (where it came from), ``predictor`` (:attr:`LoadedRisk.predictor`),
+    ``stereo_settings`` (where the SGM / ORB settings came from) and, for a model that reads
+    the learned stereo network's disparity, ``stereo_model``."""
+    check_instance(risk, LoadedRisk, "risk", "a LoadedRisk (api.load_risk)")
+    check_instance(settings, StereoSettings, "settings", "api.StereoSettings")
+    out: dict[str, Any] = {
+        "model": risk.description,
+        "predictor": risk.predictor,
+        "stereo_settings": settings.source,
+    }
+    if risk.stereo is not None:
+        out["stereo_model"] = risk.stereo.description
+    return out
+
+
 def check_risk_domain(domain: Any, who: str) -> None:
     """Validate a risk model's ``domain`` metadata before it is used: ``speed_range`` two finite
     numbers lo < hi (m/s), ``max_speed`` a finite number > 0 (m/s), ``camera`` positive integer

@@ -167,19 +167,9 @@ class _RiskOutput:
         """One pair: its JSON on stdout, and into ``out`` if given; ``[(left image, why)]`` if
         its verdict is unknown, else ``[]``."""
         row = next(rows)
-        res = json_clean(
-            {
-                **self.labelled(row),
-                "model": self.rmodel.description,
-                "predictor": self.rmodel.predictor,
-                "stereo_settings": self.st.source,
-                **(
-                    {"stereo_model": self.rmodel.stereo.description}
-                    if self.rmodel.stereo is not None
-                    else {}
-                ),
-            }
-        )
+        from traffictwin.api import answered_by
+
+        res = json_clean({**self.labelled(row), **answered_by(self.rmodel, self.st)})
         if self.out:
             self.outs.write_text(self.out, json.dumps(res, indent=2, sort_keys=True) + "\n")
             self.outs.commit()
