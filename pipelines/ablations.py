@@ -105,18 +105,23 @@ def collect(name: str, overrides: list[str]) -> dict[str, Any]:
     return result
 
 
-def _samples_at(rev: str) -> Any:
-    """evaluate_fusion's per-pair samples as committed at ``rev`` (a pandas DataFrame)."""
-    import io
-
-    import pandas as pd
-
+def _samples_text(rev: str) -> str:
+    """evaluate_fusion's per-pair samples (CSV text) as committed at ``rev``."""
     try:
-        return pd.read_csv(io.StringIO(_git("show", f"{rev}:{FUSION_SAMPLES}")))
+        return _git("show", f"{rev}:{FUSION_SAMPLES}")
     except subprocess.CalledProcessError as exc:
         raise RuntimeError(
             f"commit {rev[:8]} has no {FUSION_SAMPLES} (did evaluate_fusion run?)"
         ) from exc
+
+
+def _frame(text: str) -> Any:
+    """A samples CSV text as a pandas DataFrame."""
+    import io
+
+    import pandas as pd
+
+    return pd.read_csv(io.StringIO(text))
 
 
 def collect_fusion_seeds(names: list[str], cfg: Any) -> dict[str, Any]:
@@ -139,7 +144,7 @@ def collect_fusion_seeds(names: list[str], cfg: Any) -> dict[str, Any]:
     # each experiment's baseline commit holds the default run it is compared with: the same
     # default samples in every baseline (commits may differ in code the evaluation never reads)
     bases = {n: _git("rev-parse", f"{r}^").strip() for n, r in revs.items()}
-    texts = {n: _git("show", f"{b}:{FUSION_SAMPLES}") for n, b in bases.items()}
+    texts = {n: _samples_text(b) for n, b in bases.items()}
     if len(set(texts.values())) != 1:
         raise RuntimeError(
             f"seed replicates on different default runs: {FUSION_SAMPLES} differs between their "
@@ -147,7 +152,10 @@ def collect_fusion_seeds(names: list[str], cfg: Any) -> dict[str, Any]:
             "re-run them on one default run"
         )
     base = next(iter(bases.values()))
-    runs = {"default": _samples_at(base), **{n: _samples_at(r) for n, r in revs.items()}}
+    runs = {
+        "default": _frame(texts[names[0]]),
+        **{n: _frame(_samples_text(r)) for n, r in revs.items()},
+    }
     result = seed_replicates(runs, fusion_ci_config(cfg), list(pose_configurations(cfg)))
     result["commits"] = {"default": base, **revs}
     write_json_atomic(FUSION_SEEDS, result)

@@ -12,7 +12,6 @@ pair's camera intrinsics, logged as ``select_risk`` logs it and registered as
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import json
 from collections.abc import Iterator
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _asgi import asgi_call
 
 from traffictwin import api, cli
 from traffictwin.config import compose_config
@@ -115,47 +115,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[object, P
             mp.undo()
 
 
-def call(app, path: str, body: bytes, method: str = "POST") -> tuple[int, dict]:
-    """``method`` ``body`` to ``path`` of the ASGI ``app`` in-process; (status, JSON body)."""
-    sent: list[dict] = []
-
-    async def run() -> None:
-        delivered = False
-
-        async def receive() -> dict:
-            nonlocal delivered
-            if not delivered:
-                delivered = True
-                return {"type": "http.request", "body": body, "more_body": False}
-            await asyncio.Event().wait()  # the client never disconnects
-            return {"type": "http.disconnect"}
-
-        async def send(message: dict) -> None:
-            sent.append(message)
-
-        scope = {
-            "type": "http",
-            "asgi": {"version": "3.0"},
-            "http_version": "1.1",
-            "method": method,
-            "scheme": "http",
-            "path": path,
-            "raw_path": path.encode(),
-            "query_string": b"",
-            "root_path": "",
-            "headers": [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-            ],
-            "client": ("127.0.0.1", 12345),
-            "server": ("127.0.0.1", 5001),
-        }
-        await app(scope, receive, send)
-
-    asyncio.run(run())
-    status = next(m["status"] for m in sent if m["type"] == "http.response.start")
-    text = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
-    return status, json.loads(text)  # strict JSON: no NaN / Infinity in an answer
+call = asgi_call  # (status, JSON body) of a request to the app
 
 
 def b64(path_or_bytes: Path | bytes) -> str:

@@ -10,13 +10,13 @@ directory and served in-process through MLflow's scoring server app (ASGI, no so
 
 from __future__ import annotations
 
-import asyncio
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from _asgi import asgi_call
 from _cli_models import save_fusion_model
 
 from traffictwin.mlops import serving
@@ -190,45 +190,7 @@ def _post(app, payload: dict | bytes) -> tuple[int, dict]:
     JSON body)."""
     # NaN is written as the literal NaN, as clients do
     body = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
-    sent: list[dict] = []
-
-    async def call() -> None:
-        delivered = False
-
-        async def receive() -> dict:
-            nonlocal delivered
-            if not delivered:
-                delivered = True
-                return {"type": "http.request", "body": body, "more_body": False}
-            await asyncio.Event().wait()  # the client never disconnects
-            return {"type": "http.disconnect"}
-
-        async def send(message: dict) -> None:
-            sent.append(message)
-
-        scope = {
-            "type": "http",
-            "asgi": {"version": "3.0"},
-            "http_version": "1.1",
-            "method": "POST",
-            "scheme": "http",
-            "path": "/invocations",
-            "raw_path": b"/invocations",
-            "query_string": b"",
-            "root_path": "",
-            "headers": [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-            ],
-            "client": ("127.0.0.1", 12345),
-            "server": ("127.0.0.1", 5000),
-        }
-        await app(scope, receive, send)
-
-    asyncio.run(call())
-    status = next(m["status"] for m in sent if m["type"] == "http.response.start")
-    text = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
-    return status, json.loads(text)  # strict JSON: a NaN answer would not parse as the test wants
+    return asgi_call(app, "/invocations", body)
 
 
 @pytest.fixture(scope="module")
