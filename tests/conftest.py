@@ -373,6 +373,25 @@ _INTEGRATION_FIXTURES = {"mlflow_uri", "cl"}
 _SLOW_FIXTURES = {"ci_dag", "repo_copy", "ci_repo"}
 
 
+# the longest tests (minutes each on 2 cores): started first among their kind so that none is
+# left to run alone at the end of a parallel run (`make test`'s --durations list shows them)
+_LONGEST = (
+    "tests/test_readme.py::test_readme_ci_blocks_run_as_written",
+    "tests/test_retrain.py::test_retrain_end_to_end_lock_and_failure_restore",
+    "tests/reliability/test_rerun_identical.py::",
+    "tests/test_experiments.py::",
+)
+
+
+def _run_order(item: pytest.Item) -> tuple[bool, int]:
+    """Sort key: tests that wait for the shared ``ci_dag`` last, so that under pytest-xdist the
+    other workers run everything else while one builds it; the longest tests first of each kind,
+    in the order of :data:`_LONGEST`."""
+    waits = "ci_dag" in getattr(item, "fixturenames", ())
+    rank = next((i for i, p in enumerate(_LONGEST) if item.nodeid.startswith(p)), len(_LONGEST))
+    return waits, rank
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
@@ -380,6 +399,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.integration)
         if _SLOW_FIXTURES & names:
             item.add_marker(pytest.mark.slow)
+    items.sort(key=_run_order)  # stable: collection order within each kind
 
 
 @pytest.hookimpl(wrapper=True)

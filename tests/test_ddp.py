@@ -161,6 +161,7 @@ def _validate(repo: Path, problem: str, devices: int, *args: str) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp_repo")  # one worker builds the module's repo once
 def test_ddp_stages_publish_once_from_rank_zero(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
     new = {f for f in ddp_repo["new"] if not f.endswith(".gitignore")} - {"mlflow.db"}
@@ -174,6 +175,7 @@ def test_ddp_stages_publish_once_from_rank_zero(ddp_repo: dict) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp_repo")  # one worker builds the module's repo once
 def test_ddp_fusion_epoch_draws_train_samples_per_epoch_in_all(ddp_repo: dict) -> None:
     """8 pairs per epoch shared by 2 ranks in batches of 2: 2 optimiser steps per epoch."""
     repo = ddp_repo["repo"]
@@ -183,6 +185,7 @@ def test_ddp_fusion_epoch_draws_train_samples_per_epoch_in_all(ddp_repo: dict) -
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp_repo")  # one worker builds the module's repo once
 def test_ddp_stages_log_one_mlflow_run_each(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
     with sqlite3.connect(repo / "mlflow.db") as db:
@@ -223,6 +226,7 @@ def _assert_same(single: dict, ddp: dict, n: int) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp_repo")  # one worker builds the module's repo once
 def test_ddp_fusion_validation_equals_one_process(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
     model = ["--model", "models/fusion/network", "--data", "data/prealigned/mixed"]
@@ -248,6 +252,7 @@ def test_ddp_fusion_validation_equals_one_process(ddp_repo: dict) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ddp_repo")  # one worker builds the module's repo once
 def test_ddp_risk_validation_equals_one_process(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
     model = ["--model", "models/risk/headline", "--repo", "."]

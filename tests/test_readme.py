@@ -312,11 +312,12 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     """Follow the ```` ```bash ci ```` blocks of the README and of every docs page
     (:func:`documented_ci_blocks`), in order, in one shell, in a clone of the finished ci DAG (so
     its `dvc exp run -S profile=ci` finds every stage up to date instead of running the DAG a
-    second time), with the MLflow runs the Quick start's DAG logged (`runs compare` reads them).
+    second time), with the MLflow runs the Quick start's DAG logged (`runs compare` reads them);
+    then checks what the docs' experiments show (test_experiments.check_documented_experiments).
     `make install` is not run: the tests' own venv stands in for `.venv`, which must not be
     reinstalled from a temp copy."""
     from conftest import run
-    from test_experiments import clone_dag, user_env
+    from test_experiments import check_documented_experiments, clone_dag, user_env
 
     repo = clone_dag(ci_dag, tmp_path / "readme_repo", mlflow=True)
     (repo / ".venv").symlink_to(Path(sys.prefix), target_is_directory=True)
@@ -330,3 +331,5 @@ def test_readme_ci_blocks_run_as_written(ci_dag: Path, tmp_path: Path) -> None:
     # runs compare: the fusion runs named by the experiments, and the risk runs
     assert "fusion-network [lr-high: fusion_model.optim.lr=0.02]" in proc.stdout
     assert "risk-headline" in proc.stdout
+    # the docs' two learning-rate experiments, as DVC and MLflow show them
+    check_documented_experiments(repo, user_env(repo))
