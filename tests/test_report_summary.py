@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _report_pages import all_html, page_md
 
 from pipelines.report import providers
 from traffictwin.fusion import report_section as F
@@ -192,11 +193,12 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
         if not k.endswith(("_lo", "_hi")):
             assert flat[f"{k}_lo"] <= v <= flat[f"{k}_hi"], k
     assert len(flat) <= 45
-    # the page: headline results first, its numbers sourced from summary.json
-    assert rep.sections[0].title == "Headline results"
-    page = (reports / "index.html").read_text()
+    # the index: the papers' verdicts, then headline results, its numbers sourced from summary.json
+    assert [s.title for s in rep.sections[:2]] == [R.VERDICTS_TITLE, "Headline results"]
+    assert rep.sections[0].page == rep.sections[1].page == ""  # both on the index
+    page = all_html(reports)  # the index, then every page in reading order
     md = (reports / "README.md").read_text()
-    order = ['<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
+    order = ['<table id="verdicts"', '<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
     assert [page.index(x) for x in order] == sorted(page.index(x) for x in order)
     assert 'data-src="summary.json#risk.auc"' in page and 'data-value="0.84"' in page
     assert "| risk | ROC-AUC of critical frames (THW < 1.5 s) |" in md
@@ -209,7 +211,9 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
     appendix = page[page.index("<h2>Appendix") :]
     assert "reports/metrics/extra.json" in appendix and "</details>" in appendix
     assert "<details" not in page[: page.index('<table id="headline"')]
-    assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in md
+    assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in page_md(
+        reports, "appendix"
+    )
     assert page.startswith("<!DOCTYPE html>") and '<meta charset="utf-8"/>' in page
 
 

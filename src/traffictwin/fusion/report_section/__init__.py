@@ -29,6 +29,7 @@ from typing import Any
 
 from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE
+from traffictwin.fusion.report_section.claims import fusion_claims
 from traffictwin.fusion.report_section.method_tables import fusion_tables
 from traffictwin.fusion.report_section.score_figures import draw_score_figures
 from traffictwin.fusion.report_section.seed_tables import (
@@ -46,6 +47,7 @@ __all__ = [
     "FIGURES",
     "TITLE",
     "draw_score_figures",
+    "fusion_claims",
     "fusion_tables",
     "headlines",
     "provider",
@@ -233,6 +235,7 @@ def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionP
     return page.SectionProvider(
         name="fusion",
         headlines=partial(headlines, configurations=dict(configurations)),
+        claims=fusion_claims,
         section=partial(section, configurations=dict(configurations)),
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
