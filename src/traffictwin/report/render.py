@@ -196,10 +196,22 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
     sec = Section("Headline results")
     t = Table(
         "Headline results (reports/summary.json, the DVC metrics file)",
-        ["problem", "quantity", "where", "value", "95 % CI"],
+        [
+            "problem",
+            "quantity",
+            "where",
+            "value",
+            "95 % CI",
+            "strongest baseline",
+            "its value",
+            "95 % CI",
+        ],
         anchor="headline",
         note="Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
-        "twin: driving sequences resampled). Details on the pages listed below.",
+        "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
+        "model on the same quantity and frames (fusion: fusion rules without a network or learned "
+        "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
+        "other maps). Details on the pages listed below.",
     )
     for problem, items in headlines.items():
         for h in items:
@@ -217,6 +229,7 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
                         value=[h.lo, h.hi],
                         derived=f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi",
                     ),
+                    *_baseline_cells(h),
                 ]
             )
     if t.rows:
@@ -267,6 +280,23 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
         )
     sec.tables.append(t)
     return sec
+
+
+def _baseline_cells(h: Headline) -> list[Cell]:
+    """The headline row's baseline cells: name, value (sourced from its metrics file), interval."""
+    b = h.baseline
+    if b is None:
+        return [Cell("—"), Cell("—"), Cell("—")]
+    ci = (
+        Cell(
+            f"[{fmt_value(b.lo, h.fmt)}, {fmt_value(b.hi, h.fmt)}]",
+            value=[b.lo, b.hi],
+            derived=f"95 % bootstrap interval of {b.src}",
+        )
+        if b.lo is not None and b.hi is not None
+        else Cell(NA, title=f"no interval beside {b.src}")
+    )
+    return [Cell(b.name), Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt), ci]
 
 
 def _headline_first(sec: Section) -> Section:

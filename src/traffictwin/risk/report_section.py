@@ -27,7 +27,7 @@ from traffictwin.report.claims import (
     pct,
 )
 from traffictwin.report.model import lookup
-from traffictwin.report.summary import Headline, headline
+from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
 from traffictwin.risk.report_intervals import (
@@ -133,9 +133,14 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     if not isinstance(row, Mapping):
         return []
     t = float(ts[0])
-    cls = row.get(f"at_{t:g}s")
+    at = f"at_{t:g}s"
+    cls = row.get(at)
     cls = cls if isinstance(cls, Mapping) else {}
     where = f"{who}, test frames"
+
+    def base(key: str) -> Baseline | None:
+        return _baseline(risk, shipped, at, key)
+
     return (
         headline(
             "auc",
@@ -144,6 +149,7 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
             cls.get("roc_auc"),
             cls.get("roc_auc_ci"),
             "f3",
+            base("roc_auc"),
         )
         + headline(
             "balanced_accuracy",
@@ -152,6 +158,7 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
             cls.get("balanced_accuracy"),
             cls.get("balanced_accuracy_ci"),
             "f3",
+            base("balanced_accuracy"),
         )
         + headline(  # defined even when the test frames hold one class only (the paper's metric)
             "accuracy",
@@ -160,7 +167,32 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
             cls.get("accuracy"),
             cls.get("accuracy_ci"),
             "f3",
+            base("accuracy"),
         )
+    )
+
+
+def _baseline(risk: Any, shipped: Any, at: str, key: str) -> Baseline | None:
+    """The best of ``risk.json``'s ``baselines`` on ``<at>.<key>`` (higher is better) on the same
+    test frames: no oracle, none on exact (GT) disparity, not the shipped predictor itself (when
+    select_risk shipped a rule)."""
+    rows = lookup(risk, "baselines")
+    if not isinstance(rows, Mapping):
+        return None
+    return strongest(
+        {
+            name: (
+                lookup(row, f"{at}.{key}"),
+                lookup(row, f"{at}.{key}_ci"),
+                f"metrics/{RISK_FILE}#baselines.{name}.{at}.{key}",
+            )
+            for name, row in rows.items()
+            if isinstance(row, Mapping)
+            and not row.get("oracle")
+            and not row.get("uses_gt_disparity")
+            and name != shipped
+        },
+        higher_better=True,
     )
 
 
