@@ -608,8 +608,9 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
             assert f"### {head}\n" in md, head
         others = [p for p in pages if p != sec.page]  # each section on exactly one page
         assert all(f"## {sec.title}\n" not in page_md(reports, o) for o in others), sec.title
-    # the smaller index: no page inlines an image
+    # the smaller index: no page inlines an image; the style sheet is not HTML-escaped
     assert all("data:image" not in p.read_text() for p in page_files(reports, html=True))
+    assert "details>summary{cursor:pointer}" in html and "&gt;" not in html.split("</style>")[0]
 
 
 def test_link_checker_finds_a_broken_link_and_a_missing_anchor(reports: Path) -> None:
