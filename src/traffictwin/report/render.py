@@ -261,7 +261,7 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
         v: sum(c.verdict == v for c in claims) for v in (REPRODUCED, NOT_REPRODUCED, NOT_COMPARABLE)
     }
     sec.paragraphs.append(
-        f"{len(claims)} claims of the two papers: "
+        f"{len(claims)} claims of the papers: "
         + ", ".join(f"{n} {v}" for v, n in counts.items())
         + ". Reproduced: each 95 % interval lies on the side the paper claims (a difference is a "
         "finding only when its interval excludes 0; a number the paper prints is met when our "
