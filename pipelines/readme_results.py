@@ -121,13 +121,20 @@ TWIN_TARGETS = (
 # ------------------------------------------------------------------ blocks
 def results_block(table_md: str, reports_link: str = "../reports/README.md") -> str:
     """The results page's block for ``table_md``: the table without its generated-file comment or
-    link line; links to the report point at ``reports_link`` (relative to docs/)."""
+    link line; links to the report point at ``reports_link`` (relative to docs/), links to its
+    pages (``pages/<name>.md``) at the same pages beside it."""
     lines = [
         ln
         for ln in table_md.splitlines()
         if not ln.startswith("<!--") and not ln.startswith("Full report:")
     ]
-    body = "\n".join(lines).strip().replace("](README.md)", f"]({reports_link})")
+    reports = reports_link.rsplit("/", 1)[0]
+    body = (
+        "\n".join(lines)
+        .strip()
+        .replace("](README.md)", f"]({reports_link})")
+        .replace("](pages/", f"]({reports}/pages/")
+    )
     return f"{BEGIN}\n{body}\n{END}"
 
 

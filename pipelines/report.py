@@ -1,4 +1,5 @@
-"""Stage `report` (last in the DAG): reports/README.md, reports/index.html, reports/results_table.md.
+"""Stage `report` (last in the DAG): the index reports/README.md and reports/index.html, one page per
+section under reports/pages/ (.md and .html), reports/results_table.md.
 
 Reads params.yaml for what the report shows about the run -- the profile, the seed, the
 pose-noise configurations, and the *scale* parameters (every key that any profile in
@@ -134,7 +135,7 @@ def main() -> None:
         write_timings_readme(inputs)  # the run records' summary, outside DVC
     log = setup_logging()
     log.info(
-        "report: %d sections, %d missing values -> reports/README.md, reports/index.html",
+        "report: %d sections, %d missing values -> reports/README.md, reports/index.html, reports/pages/",
         len(report.sections),
         len(report.missing),
     )

@@ -195,6 +195,9 @@ def test_render_replaces_only_the_block() -> None:
     block = R.results_block(table)
     assert R.render("docs/results.md", text, [block]) == f"intro\n{block}\noutro\n"
     assert block == f"{R.BEGIN}\n| a |\n| --- |\n| 1 |\n{R.END}"
+    # a link to a page of the report points at that page from docs/
+    paged = R.results_block("| [fusion](pages/fusion.md#x) |\n")
+    assert paged == f"{R.BEGIN}\n| [fusion](../reports/pages/fusion.md#x) |\n{R.END}"
     with pytest.raises(ValueError, match="docs/results.md: markers missing"):
         R.render("docs/results.md", "no markers", [block])
 

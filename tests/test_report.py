@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _report_pages import all_html, all_md, broken_links, page_files, page_md
 
 from pipelines.report import providers
 from traffictwin.report import model as M
@@ -111,9 +112,26 @@ def resolve(
 def check_report(
     reports: Path, run_params: dict[str, Any], configurations: dict[str, tuple[float, float]]
 ) -> int:
-    """Assert the rendered files agree with their sources; returns the number of sourced cells checked."""
-    page = (reports / "index.html").read_text()
-    md = (reports / "README.md").read_text()
+    """Assert the rendered files -- the index and every page, Markdown and HTML -- agree with their
+    sources and their links resolve; returns the number of sourced cells checked."""
+    assert broken_links(reports) == []
+    mds, htmls = page_files(reports), page_files(reports, html=True)
+    assert [p.stem for p in mds[1:]] == [p.stem for p in htmls[1:]] and len(mds) > 1
+    return sum(
+        check_page(reports, md.read_text(), html.read_text(), run_params, configurations)
+        for md, html in zip(mds, htmls)
+    )
+
+
+def check_page(
+    reports: Path,
+    md: str,
+    page: str,
+    run_params: dict[str, Any],
+    configurations: dict[str, tuple[float, float]],
+) -> int:
+    """Assert one page (its Markdown ``md`` and HTML ``page``) agrees with its sources; returns the
+    number of sourced cells checked."""
     # well-formed: parses as XML once the doctype is dropped
     ET.fromstring(page.replace("<!DOCTYPE html>", "", 1))
     parser = _Tables()
@@ -157,14 +175,16 @@ def check_report(
         for table in parser.tables
     ]
     assert mt == ht
-    # every image referenced exists; embedded images are those files
+    # every image referenced exists (the sources relative to the page: broken_links);
+    # embedded images are those files
     for img in parser.imgs:
         f = reports / img["data-file"]
         assert f.is_file(), f
+        assert img["src"].endswith(img["data-file"]) or img["src"].startswith("data:")
         if img["src"].startswith("data:"):
             assert base64.b64decode(img["src"].split(",", 1)[1]) == f.read_bytes()
     for ref in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md):
-        assert (reports / ref).is_file(), ref
+        assert (reports / ref.removeprefix("../")).is_file(), ref
     return checked
 
 
@@ -444,8 +464,8 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     checked = check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
     # fusion: 3 tables x 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
     assert checked >= 3 * 4 * 5 + 12 * 6 + 16 + 10 + 6 + 8
-    md = (reports / "README.md").read_text()
-    page = (reports / "index.html").read_text()
+    md = all_md(reports)  # the index and every page, in reading order
+    page = all_html(reports)
     # paper numbers and ours side by side, from their sources
     risk = json.loads((reports / "metrics" / "risk.json").read_text())
     main = risk["models"]["rgbd"]
@@ -504,13 +524,15 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     b_vs_naive = next(r for r in diffs if r[:3] == ["B", "network", "naive"])
     assert b_vs_naive[3:6] == ["-0.1", "[-0.105, -0.095]", "lower"]
     assert ["D", "dnn[paper]", "registered"] in [r[:3] for r in diffs]
-    # the data differs: said plainly
-    assert "data differs from the papers'" in md and "own simulator" in md
+    # the data differs: said plainly, on the index
+    index = (reports / "README.md").read_text()
+    assert "data differs from the papers'" in index and "own simulator" in index
     # no commit, experiment, pipeline run or wall times (they differ between identical runs: the
     # report is a DVC output) -- those are in the run records and reports/timings/README.md
     assert "abc123" not in md and "exp-x" not in md and "abc12345-0000ffff" not in md
     assert not any(t.anchor == "timings" for s in rep.sections for t in s.tables)
-    assert "Stage wall times" not in md and "30.25" not in md and "reports/timings/README.md" in md
+    assert "Stage wall times" not in md and "30.25" not in md
+    assert "reports/timings/README.md" in page_md(reports, "run")
     timing = R.write_timings_readme(inputs).read_text()
     assert md_tables(timing)[0] == [
         ["generate_fusion", "12.5", "0:12"],  # fmt_value rounds half to even
@@ -521,9 +543,11 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert "## generate_fusion" not in timing and "| report |" not in timing
     # NaN in a metrics file is shown as n/a
     assert "n/a" in md
-    # figures grouped by paper, embedded in the HTML, referenced from the markdown
-    assert "![" in md and "(figures/fusion_kld_box.png)" in md
-    assert page.count("data:image/png;base64,") == 3
+    # figures grouped by paper, referenced as files from the HTML and the markdown of their page
+    fusion = page_md(reports, "fusion")
+    assert "![" in fusion and "(../figures/fusion_kld_box.png)" in fusion
+    assert page.count("data:image/png;base64,") == 0
+    assert page.count('src="../figures/') == 3 and "![" not in index
     # results table for the project README
     res = (reports / "results_table.md").read_text()
     assert (
@@ -546,6 +570,80 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     assert rep.missing == []
 
 
+def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path) -> None:
+    """The index (README.md, index.html) holds the verdict table, the headline table and the list
+    of pages -- no section body; every other section lands on its own page, whole: its tables,
+    figures and findings there and nowhere else."""
+    rep = R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    index, html = (reports / "README.md").read_text(), (reports / "index.html").read_text()
+    heads = re.findall(r"^## (.+)$", index, flags=re.M)
+    assert heads == [R.VERDICTS_TITLE, "Headline results", "Pages"]
+    assert [t.anchor for s in rep.sections if not s.page for t in s.tables] == [
+        "verdicts",
+        "headline",
+    ]
+    assert "![" not in index and "<details" not in index and "### " not in index
+    assert re.findall(r'<table id="([^"]+)"', html) == ["verdicts", "headline"]
+    assert "<img" not in html and "<details" not in html
+    # the verdict table within the first 40 lines, every claim with a computed verdict
+    first = "\n".join(index.splitlines()[:40])
+    verdicts = md_tables(first)[0]
+    assert len(verdicts) == len(P.FUSION_CLAIMS) + 4  # fusion's claims, the risk paper's four
+    assert {r[-1] for r in verdicts} <= {"reproduced", "not reproduced", "not comparable"}
+    # the list of pages: one per section with a page, in reading order, each page there
+    pages = [p.stem for p in page_files(reports)[1:]]
+    assert pages == list(dict.fromkeys(s.page for s in rep.sections if s.page))
+    assert pages == ["fusion", "risk", "stereo", "twin", "data", "run", "appendix"]
+    for sec in rep.sections:
+        if not sec.page:
+            continue
+        md = page_md(reports, sec.page)
+        assert f"## {sec.title}\n" in md, sec.title
+        assert f"## {sec.title}\n" not in index
+        for t in sec.tables:
+            assert f"**{t.title}**" in md and f"**{t.title}**" not in index, t.title
+        for f in sec.figures:
+            assert f"](../{f.path})" in md, f.path
+        for head, _ in sec.bullet_groups:
+            assert f"### {head}\n" in md, head
+        others = [p for p in pages if p != sec.page]  # each section on exactly one page
+        assert all(f"## {sec.title}\n" not in page_md(reports, o) for o in others), sec.title
+    # the smaller index: no page inlines an image; the style sheet is not HTML-escaped
+    assert all("data:image" not in p.read_text() for p in page_files(reports, html=True))
+    assert "details>summary{cursor:pointer}" in html and "&gt;" not in html.split("</style>")[0]
+
+
+def test_link_checker_finds_a_broken_link_and_a_missing_anchor(reports: Path) -> None:
+    """Every relative link and image of every page resolves (file, and anchor on the target
+    page); the checker names a missing figure, a missing page and an anchor not on its page."""
+    R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    assert broken_links(reports) == []
+    fusion = reports / R.PAGES / "fusion.md"
+    text = fusion.read_text()
+    assert "(../figures/fusion_kld_box.png)" in text and "](risk.md)" in text
+    fusion.write_text(text + "\n[x](risk.md#no-such-heading)\n")
+    (reports / "figures" / "fusion_kld_box.png").unlink()
+    (reports / R.PAGES / "run.html").unlink()
+    bad = broken_links(reports)
+    assert any(b.startswith("pages/fusion.md: ../figures/fusion_kld_box.png") for b in bad), bad
+    assert any(b.startswith("pages/fusion.html: ../figures/fusion_kld_box.png") for b in bad), bad
+    assert "pages/fusion.md: risk.md#no-such-heading (no anchor #no-such-heading)" in bad
+    assert any(b.startswith("index.html: pages/run.html (no file") for b in bad), bad
+    # an anchor present on the target page passes: the twin section's heading
+    ok = R._slug("Cooperative twin — risk from N vehicles' fused maps")
+    fusion.write_text(text + f"\n[y](twin.md#{ok})\n")
+    assert not any("twin.md#" in b for b in broken_links(reports))
+
+
+def test_a_page_left_from_an_earlier_rendering_is_removed(reports: Path) -> None:
+    """reports/pages is the stage's output: a page no section renders any more goes."""
+    (reports / R.PAGES).mkdir()
+    (reports / R.PAGES / "old.md").write_text("# old\n")
+    R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    assert not (reports / R.PAGES / "old.md").exists()
+    assert (reports / R.PAGES / "fusion.md").is_file()
+
+
 def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     rep_dir = tmp_path / "reports"
     (rep_dir / "metrics").mkdir(parents=True)
@@ -561,8 +659,8 @@ def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     inputs = M.ReportInputs(reports_dir=rep_dir, profile="default", seed=1, git_commit="c0ffee")
     rep = R.write_report(inputs, providers({}))
     check_report(rep_dir, {}, {})
-    md = (rep_dir / "README.md").read_text()
-    assert "`reports/metrics/fusion.json` is missing" in md
+    md = all_md(rep_dir)
+    assert "`reports/metrics/fusion.json` is missing" in page_md(rep_dir, "fusion")
     assert "metrics/risk.json#models.v.at_1.5s.accuracy" in rep.missing  # named, shown as n/a
     assert "| MSE (normalised risk) | 0.0147 | 0.02 | 0.03 | Sec. 4 |" in md
     assert "| accuracy | 72.87 % | n/a | n/a |" in md
@@ -583,16 +681,18 @@ def test_check_report_catches_a_wrong_number(reports: Path) -> None:
     """The verifier itself fails when a number in the HTML disagrees with its file."""
     inputs = make_inputs(reports)
     R.write_report(inputs, providers(CONFIGURATIONS))
-    page = (reports / "index.html").read_text()
     check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
-    for good, bad in (
-        (">0.15<", ">0.16<"),
-        (">72.87 %<", ">72.88 %<"),
-    ):  # a metrics value, a paper value
+    for name, good, bad in (
+        ("fusion", ">0.15<", ">0.16<"),
+        ("risk", ">72.87 %<", ">72.88 %<"),
+    ):  # a metrics value, a paper value, each on its page
+        html = reports / R.PAGES / f"{name}.html"
+        page = html.read_text()
         assert good in page
-        (reports / "index.html").write_text(page.replace(good, bad, 1))
+        html.write_text(page.replace(good, bad, 1))
         with pytest.raises(AssertionError):
             check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
+        html.write_text(page)
 
 
 def test_paper_numbers_agree_with_risk_evaluation() -> None:
@@ -627,8 +727,8 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     for name in ("README.md", "index.html", "results_table.md"):
         assert (reports / name).is_file(), name
     run_params, confs = _stage_inputs(ci_dag)
-    checked = check_report(reports, run_params, confs)
-    md = (reports / "README.md").read_text()
+    checked = check_report(reports, run_params, confs)  # every page, and every link resolves
+    md = all_md(reports)  # the index and every page
     # both papers' headline tables, with numbers from the real metrics files
     for anchor_title in (
         "Fusion: KLD(b) mean",
@@ -666,7 +766,7 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     assert set(summary["fusion"]) == set(confs)
     table = run(["dvc", "metrics", "show"], ci_dag).stdout
     assert len(table.splitlines()) <= 40, table
-    page = (reports / "index.html").read_text()
+    page = all_html(reports)
     files = {p.name for p in (reports / "metrics").glob("*.json")}
     for f in files:
         assert f"metrics/{f}#" in page, f
@@ -750,7 +850,9 @@ def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(report
 
     inputs = make_inputs(reports)
     R.write_report(inputs, providers(CONFIGURATIONS))
-    first = {n: (reports / n).read_bytes() for n in ("README.md", "index.html")}
+    files = [*page_files(reports), *page_files(reports, html=True)]
+    first = {p.relative_to(reports).as_posix(): p.read_bytes() for p in files}
+    assert len(first) > 2
     other = replace(
         inputs,
         git_commit="fedcba987654",
@@ -780,7 +882,7 @@ def test_smoke_profile_banner_on_report_summary_and_plot_titles(reports: Path) -
         conf = yaml.safe_load((repo / "conf" / "profile" / f"{prof}.yaml").read_text())
         assert conf["profile"]["banner"] == ""
     R.write_report(replace(make_inputs(reports), banner=ci), providers(CONFIGURATIONS))
-    md = (reports / "README.md").read_text()
+    md = (reports / "README.md").read_text()  # the index: the banner on the first screen
     first = md.split("\n\n")[1]  # the paragraph after the title
     assert first == "**ci profile: a smoke run; numbers are not results.**", first
     assert "smoke run" in (reports / "index.html").read_text()

@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import pytest
+from _report_pages import page_md
 
 from pipelines.report import providers
 from traffictwin.config import ConfigError, typed
@@ -112,6 +113,7 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
     report = R.write_report(_inputs(rep), [*providers({}), fleet])
     titles = [s.title for s in report.sections]
     assert titles == [
+        R.VERDICTS_TITLE,
         "Headline results",
         fusion_report.TITLE,
         risk_report.TITLE,
@@ -131,8 +133,10 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
     assert "`reports/metrics/fleet_more.json` is missing." in data.paragraphs
     appendix = _section(report, "Appendix — every metrics file")
     assert [t.title for t in appendix.tables] == ["reports/metrics/other.json"]
-    md = (rep / "README.md").read_text()
-    assert "## Fleet" in md and "(figures/fleet_map.png)" in md
+    assert _section(report, "Fleet").page == "fleet"  # a provider's page is its name
+    md = page_md(rep, "fleet")
+    assert "## Fleet" in md and "(../figures/fleet_map.png)" in md
+    assert "## Fleet" not in (rep / "README.md").read_text()  # the index only links it
 
 
 def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _report_pages import all_html, page_md
 
 from pipelines.report import providers
 from traffictwin.fusion import report_section as F
@@ -18,7 +19,14 @@ from traffictwin.fusion.report_section import score_figures as SF
 from traffictwin.report import colours as C
 from traffictwin.report import render as R
 from traffictwin.report.model import ReportInputs
-from traffictwin.report.summary import Headline, headline, interval, summary_json
+from traffictwin.report.summary import (
+    Baseline,
+    Headline,
+    headline,
+    interval,
+    strongest,
+    summary_json,
+)
 from traffictwin.risk import report_section as RS
 from traffictwin.twin import report_section as TS
 
@@ -136,6 +144,76 @@ def test_problem_headlines_from_their_metrics_files() -> None:
     assert F.headlines({}, CONFS) == [] and RS.headlines({}) == [] and TS.headlines({}) == []
 
 
+def test_strongest_baseline_beside_each_headline() -> None:
+    """The best baseline on the same quantity and frames: fusion rules without a network (lower
+    KLD, higher Dice), risk baselines but the oracle and the rule on exact disparity, the twin's
+    other maps; its value sourced from its metrics file, its interval beside it."""
+    assert strongest({}, higher_better=True) is None
+    got = strongest(
+        {"a": (0.5, None, "f#a"), "b": (0.7, [0.6, 0.8], "f#b"), "c": (None, None, "f#c")},
+        higher_better=True,
+    )
+    assert got == Baseline("b", 0.7, 0.6, 0.8, "f#b")
+    assert strongest({"a": (0.5, None, "f#a"), "b": (0.7, None, "f#b")}, higher_better=False) == (
+        Baseline("a", 0.5, None, None, "f#a")
+    )
+    a = FUSION["test"]["A"]
+    fusion = {
+        "test": {
+            "A": {
+                **a,
+                "naive": {"kld_fou_mean": 0.0, "kld_fou_mean_ci": _ci(0.0, 0.0), "dice_occ": 0.97},
+                "registered": {"kld_fou_mean": 0.002, "dice_occ": 0.98},
+                "learned": {"kld_fou_mean": -1.0, "dice_occ": 1.0},  # learned: no baseline
+            }
+        }
+    }
+    kld, dice = F.headlines({"fusion.json": fusion}, {"A": (0.0, 0.0)})
+    assert kld.baseline == Baseline(
+        "naive (noisy pose + Dempster)",
+        0.0,
+        0.0,
+        0.0,
+        "metrics/fusion.json#test.A.naive.kld_fou_mean",
+    )
+    assert dice.baseline is not None and dice.baseline.name == "registered (FM + ECC) + Dempster"
+    assert (dice.baseline.value, dice.baseline.lo) == (0.98, None)
+    at = {"roc_auc": 0.7, "roc_auc_ci": _ci(0.6, 0.8)}
+    risk = {
+        **RISK,
+        "baselines": {
+            "geometric_gt": {"uses_gt_disparity": True, "at_1.5s": {"roc_auc": 0.99}},
+            "oracle": {"oracle": True, "at_1.5s": {"roc_auc": 1.0}},
+            "speed_only": {"at_1.5s": at},
+            "train_mean": {"at_1.5s": {"roc_auc": 0.5}},
+        },
+    }
+    auc, bacc = RS.headlines({"risk.json": risk})
+    assert auc.baseline == Baseline(
+        "speed_only", 0.7, 0.6, 0.8, "metrics/risk.json#baselines.speed_only.at_1.5s.roc_auc"
+    )
+    assert bacc.baseline is None  # no baseline has the number
+    methods = TWIN["configurations"]["D"]["methods"]
+    twin = {
+        **TWIN,
+        "configurations": {
+            "D": {
+                "methods": {
+                    **methods,
+                    "ego": {"occluded": {"recall": 0.8, "recall_ci": [0.7, 0.9]}},
+                    "naive": {"occluded": {"recall": 0.9, "recall_ci": [0.85, 0.95]}},
+                }
+            }
+        },
+    }
+    recall, gain = TS.headlines({"twin.json": twin})
+    assert recall.baseline is not None and recall.baseline.value == 0.9
+    assert recall.baseline.src == "metrics/twin.json#configurations.D.methods.naive.occluded.recall"
+    assert gain.baseline is None
+    # summary.json stays the headline numbers only
+    assert summary_json({"risk": [auc]}) == {"risk": {"auc": 0.84, "auc_lo": 0.79, "auc_hi": 0.88}}
+
+
 @pytest.fixture
 def reports(tmp_path: Path) -> Path:
     rep = tmp_path / "reports"
@@ -192,11 +270,12 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
         if not k.endswith(("_lo", "_hi")):
             assert flat[f"{k}_lo"] <= v <= flat[f"{k}_hi"], k
     assert len(flat) <= 45
-    # the page: headline results first, its numbers sourced from summary.json
-    assert rep.sections[0].title == "Headline results"
-    page = (reports / "index.html").read_text()
+    # the index: the papers' verdicts, then headline results, its numbers sourced from summary.json
+    assert [s.title for s in rep.sections[:2]] == [R.VERDICTS_TITLE, "Headline results"]
+    assert rep.sections[0].page == rep.sections[1].page == ""  # both on the index
+    page = all_html(reports)  # the index, then every page in reading order
     md = (reports / "README.md").read_text()
-    order = ['<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
+    order = ['<table id="verdicts"', '<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
     assert [page.index(x) for x in order] == sorted(page.index(x) for x in order)
     assert 'data-src="summary.json#risk.auc"' in page and 'data-value="0.84"' in page
     assert "| risk | ROC-AUC of critical frames (THW < 1.5 s) |" in md
@@ -209,7 +288,9 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
     appendix = page[page.index("<h2>Appendix") :]
     assert "reports/metrics/extra.json" in appendix and "</details>" in appendix
     assert "<details" not in page[: page.index('<table id="headline"')]
-    assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in md
+    assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in page_md(
+        reports, "appendix"
+    )
     assert page.startswith("<!DOCTYPE html>") and '<meta charset="utf-8"/>' in page
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from _report_pages import all_md, page_md
 from test_risk_training import SUBJECT_LENGTH, camera_intrinsics, render_frame, thw_risk
 
 from traffictwin.io.shards import DatasetWriter
@@ -747,7 +748,7 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     train_keys = ("n_parameters", "n_train", "steps", "best_step", "best_val_mse")
     missing = [m for m in out.missing if "risk.json" in m and not m.endswith(train_keys)]
     assert not missing  # (the fake models have no training metadata)
-    md = (rep / "README.md").read_text()
+    md = all_md(rep)  # the index and every page, in the order of out.sections
     anchors = [t.anchor for s in out.sections for t in s.tables]
     tables = md_tables(md)
     ci = tables[anchors.index("risk-ci")]
@@ -784,4 +785,4 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert [r[0] for r in sit] == sorted(SITUATIONS)
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
     assert "Risk: every predictor on the same test frames" in res and "Risk: targets" in res
-    assert "figures/risk_roc.png" in md
+    assert "(../figures/risk_roc.png)" in page_md(rep, "risk")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from _report_pages import page_md
+
 from pipelines.report import providers
 from tests.test_report import check_report
 from traffictwin.report import render as R
@@ -387,7 +389,7 @@ def test_sgm_variant_tables_show_the_configured_the_chosen_and_the_test_comparis
     cmp = _rows(by["stereo-sgm-chosen"])
     assert cmp[0] == ["end-point error [px]", "0.220", "[0.210, 0.230]", "0.210", "[0.200, 0.220]"]
     assert cmp[-2][3:] == ["-0.010", "[-0.020, 0.000]"]
-    assert "sgm_variants.json" not in (rep / "README.md").read_text().split("## Appendix")[-1]
+    assert "sgm_variants.json" not in page_md(rep, "appendix").split("## Appendix")[-1]
 
     rep = _reports(
         tmp_path / "kept",

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.report import paper_numbers as P
+from traffictwin.report.claims import ClaimCheck
 from traffictwin.report.summary import Headline
 
 NA = "n/a"
@@ -112,14 +113,32 @@ class Section:
     # tables[:shown] are shown open, the rest under "More tables" (None: all open)
     shown: int | None = None
     collapsed: bool = False  # the whole section in a closed <details> (appendix material)
+    page: str = ""  # the page that holds it: "" the index, else reports/pages/<page>.md / .html
 
 
 @dataclass
 class Report:
     title: str
     intro: list[str]
-    sections: list[Section]
+    sections: list[Section]  # every section in reading order, each naming its page
     missing: list[str]
+
+
+@dataclass
+class Page:
+    """One file of the report: the index (``name`` ``""``: ``reports/README.md`` /
+    ``index.html``) or ``reports/pages/<name>.md`` / ``.html``. ``root``: the path from the page's
+    folder to the reports folder (``""`` or ``"../"``), for figures and links; ``links``:
+    ``(title, page name)`` of the other pages (the index's list); ``missing``: the metrics keys
+    looked for and not found (on the page that lists them)."""
+
+    name: str
+    title: str
+    intro: list[str]
+    sections: list[Section]
+    root: str = ""
+    links: list[tuple[str, str]] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -324,8 +343,10 @@ class SectionProvider:
     appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
     new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their
     intervals (``{metrics file name: parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline`
-    list), written to ``reports/summary.json`` under ``name`` and shown first in the report. The
-    report iterates the providers in order; adding a problem adds a provider.
+    list), written to ``reports/summary.json`` under ``name`` and shown first in the report;
+    ``name`` is also its page (``reports/pages/<name>.md``). ``claims``: the paper's claims with
+    this run's verdicts (same input -> :class:`~traffictwin.report.claims.ClaimCheck` list), the
+    report's first table. The report iterates the providers in order; adding a problem adds a provider.
     """
 
     section: Callable[[Sources, list[Figure]], Section]
@@ -336,3 +357,4 @@ class SectionProvider:
     replaces: Mapping[str, str] = field(default_factory=dict)  # {figure stem: stem it supersedes}
     name: str = ""
     headlines: Callable[[Mapping[str, Any]], Sequence[Headline]] | None = None
+    claims: Callable[[Mapping[str, Any]], Sequence[ClaimCheck]] | None = None

@@ -1,11 +1,15 @@
-"""The pipeline's report: ``reports/README.md`` (GitHub), ``reports/index.html`` (self-contained)
-and ``reports/results_table.md`` (the headline tables, included by the project README).
+"""The pipeline's report: a short index ``reports/README.md`` / ``reports/index.html`` (does this
+run reproduce the papers, the headline numbers, links to the pages), one page per section under
+``reports/pages/`` (``<name>.md`` for GitHub, ``<name>.html`` with the figures referenced as
+files), and ``reports/results_table.md`` (the headline tables, included by the project README).
 
-This module only assembles: the page skeleton (intro, "This run", data section, appendix), the
-figures found under ``reports/figures``, and the Markdown / HTML writers. Each problem's results
-section comes from its :class:`~traffictwin.report.model.SectionProvider`
-(``traffictwin.fusion.report_section``, ``traffictwin.risk.report_section``), passed in by the
-caller in the order the report shows them. The page model and the sources of every number:
+This module only assembles: the page skeleton (intro, the verdict table, "This run", data
+section, appendix), the figures found under ``reports/figures``, the split into pages and the
+Markdown / HTML writers (one Jinja template per format renders every page). Each problem's
+results section, its headline numbers and its paper's claims come from its
+:class:`~traffictwin.report.model.SectionProvider` (``traffictwin.fusion.report_section``,
+``traffictwin.risk.report_section``, ...), passed in by the caller in the order the report shows
+them; a provider's page is its ``name``. The page model and the sources of every number:
 :mod:`traffictwin.report.model`. Anything in ``reports/metrics`` that no section shows appears in
 the appendix.
 """
@@ -17,14 +21,18 @@ import html
 import json
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from traffictwin.io.atomic import write_json_atomic, write_text_atomic
+from traffictwin.report.claims import NOT_COMPARABLE, NOT_REPRODUCED, REPRODUCED, ClaimCheck
 from traffictwin.report.model import (
     NA,
     Cell,
     Figure,
+    Page,
     Report,
     ReportInputs,
     Section,
@@ -48,6 +56,7 @@ from traffictwin.report.tables import (
 # The files this module writes into the reports folder.
 README = "README.md"
 INDEX_HTML = "index.html"
+PAGES = "pages"  # reports/pages/<name>.md and .html: one page per section
 RESULTS_TABLE = "results_table.md"
 TIMINGS_README = "timings/README.md"  # beside the run records: not a DVC output
 SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
@@ -187,10 +196,22 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
     sec = Section("Headline results")
     t = Table(
         "Headline results (reports/summary.json, the DVC metrics file)",
-        ["problem", "quantity", "where", "value", "95 % CI"],
+        [
+            "problem",
+            "quantity",
+            "where",
+            "value",
+            "95 % CI",
+            "strongest baseline",
+            "its value",
+            "95 % CI",
+        ],
         anchor="headline",
         note="Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
-        "twin: driving sequences resampled). Details in the sections below.",
+        "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
+        "model on the same quantity and frames (fusion: fusion rules without a network or learned "
+        "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
+        "other maps). Details on the pages listed below.",
     )
     for problem, items in headlines.items():
         for h in items:
@@ -208,6 +229,7 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
                         value=[h.lo, h.hi],
                         derived=f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi",
                     ),
+                    *_baseline_cells(h),
                 ]
             )
     if t.rows:
@@ -215,6 +237,66 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
     else:
         sec.paragraphs.append("No headline numbers yet (the evaluation stages have not run).")
     return sec
+
+
+def collect_claims(
+    metrics: Mapping[str, Any], providers: Sequence[SectionProvider]
+) -> list[ClaimCheck]:
+    """Every provider's paper claims with this run's verdicts, in provider order."""
+    return [c for prov in providers if prov.claims is not None for c in prov.claims(metrics)]
+
+
+VERDICTS_TITLE = "Does this run reproduce the papers?"
+
+
+def claims_section(claims: Sequence[ClaimCheck]) -> Section:
+    """The verdict table: one row per claim of a paper (its text and where the paper makes it),
+    this run's numbers with their 95 % intervals and the verdict computed from them
+    (:mod:`traffictwin.report.claims`), then a count of the verdicts."""
+    sec = Section(VERDICTS_TITLE)
+    if not claims:
+        sec.paragraphs.append("No claim could be checked yet (the evaluation stages have not run).")
+        return sec
+    counts = {
+        v: sum(c.verdict == v for c in claims) for v in (REPRODUCED, NOT_REPRODUCED, NOT_COMPARABLE)
+    }
+    sec.paragraphs.append(
+        f"{len(claims)} claims of the papers: "
+        + ", ".join(f"{n} {v}" for v, n in counts.items())
+        + ". Reproduced: each 95 % interval lies on the side the paper claims (a difference is a "
+        "finding only when its interval excludes 0; a number the paper prints is met when our "
+        "interval reaches it); not comparable: no interval in this run's metrics."
+    )
+    t = Table(
+        "Paper claims against this run",
+        ["paper", "claim", "where (paper)", "this run (95 % CI)", "verdict"],
+        anchor="verdicts",
+        note="Our data is the project's own simulator at this profile's scale, not the papers': "
+        "the verdicts compare trends and rankings. Details on each paper's page.",
+    )
+    for c in claims:
+        t.rows.append(
+            [Cell(c.paper), Cell(c.claim), Cell(c.where), Cell(c.measured), Cell(c.verdict)]
+        )
+    sec.tables.append(t)
+    return sec
+
+
+def _baseline_cells(h: Headline) -> list[Cell]:
+    """The headline row's baseline cells: name, value (sourced from its metrics file), interval."""
+    b = h.baseline
+    if b is None:
+        return [Cell("—"), Cell("—"), Cell("—")]
+    ci = (
+        Cell(
+            f"[{fmt_value(b.lo, h.fmt)}, {fmt_value(b.hi, h.fmt)}]",
+            value=[b.lo, b.hi],
+            derived=f"95 % bootstrap interval of {b.src}",
+        )
+        if b.lo is not None and b.hi is not None
+        else Cell(NA, title=f"no interval beside {b.src}")
+    )
+    return [Cell(b.name), Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt), ci]
 
 
 def _headline_first(sec: Section) -> Section:
@@ -240,24 +322,60 @@ def build_report(
     figures, other = collect_figures(src.root, providers)
     intro = [
         *([f"**{inputs.banner.strip('() ')}.**"] if inputs.banner else []),
-        "Generated by the DVC stage `report` from the metrics and figures of one pipeline run; "
-        "do not edit by hand. Every number below comes from a file: `reports/summary.json`, "
-        "`reports/metrics/*.json`, `reports/environment.json`, the run's "
-        "`params.yaml`, or — for the papers' values — `src/traffictwin/report/paper_numbers.py` (with the "
-        "section they are printed in).",
         provenance(inputs),
         "**The data differs from the papers'.** Both papers used commercial simulators (VTD, GTA V) at full "
         "scale; this run uses traffictwin's own simulator (synthetic road templates, ray-cast lidar, rendered "
         f"stereo camera) at the `{inputs.profile}` profile's scale. Compare trends and rankings, not absolute values.",
     ]
+    head = headline_section(headlines)
+    head.paragraphs.insert(
+        0,
+        "Generated by the DVC stage `report` from the metrics and figures of one pipeline run; "
+        "do not edit by hand. Every number in the report comes from a file: `reports/summary.json`, "
+        "`reports/metrics/*.json`, `reports/environment.json`, the run's "
+        "`params.yaml`, or — for the papers' values — `src/traffictwin/report/paper_numbers.py` (with the "
+        "section they are printed in).",
+    )
+    problems = [_headline_first(prov.section(src, figs)) for prov, figs in zip(providers, figures)]
     sections = [
-        headline_section(headlines),
-        *(_headline_first(prov.section(src, figs)) for prov, figs in zip(providers, figures)),
-        data_section(src, providers),
-        run_section(src),
-        appendix_section(src, providers, other),
+        claims_section(collect_claims(src.metrics, providers)),
+        head,
+        *(  # a problem's page: its provider's name, else its title's slug
+            replace(sec, page=prov.name or _slug(sec.title))
+            for prov, sec in zip(providers, problems)
+        ),
+        replace(data_section(src, providers), page="data"),
+        replace(run_section(src), page="run"),
+        replace(appendix_section(src, providers, other), page="appendix"),
     ]
     return Report("traffictwin — results report", intro, sections, sorted(set(src.missing)))
+
+
+def report_pages(report: Report) -> list[Page]:
+    """The report split into its files: the index (the sections without a page: the verdict and
+    headline tables, then the list of pages) and one page per page name, in reading order; the
+    missing values on the last page (the appendix)."""
+    names = list(dict.fromkeys(s.page for s in report.sections if s.page))
+    index = Page(
+        "",
+        report.title,
+        report.intro,
+        [s for s in report.sections if not s.page],
+        links=[(next(s.title for s in report.sections if s.page == n), n) for n in names],
+    )
+    out = [index]
+    for n in names:
+        secs = [s for s in report.sections if s.page == n]
+        out.append(Page(n, secs[0].title, [], secs, root="../", links=index.links))
+    out[-1].missing = list(report.missing)
+    return out
+
+
+def page_file(page: Page, html_page: bool) -> str:
+    """The page's file, relative to the reports folder (``README.md``, ``pages/fusion.html``, ...)."""
+    if not page.name:
+        return INDEX_HTML if html_page else README
+    return f"{PAGES}/{page.name}.{'html' if html_page else 'md'}"
 
 
 def results_tables(report: Report) -> list[Table]:
@@ -303,9 +421,14 @@ def _tidy(text: str) -> str:
     return re.sub(r"\n{3,}", "\n\n", text).strip() + "\n"
 
 
-def render_markdown(report: Report) -> str:
-    """``reports/README.md`` (template ``README.md.j2``): sections in order, the appendix collapsed."""
-    return _tidy(_environment(False).get_template("README.md.j2").render(report=report))
+def render_markdown(report: Report) -> dict[str, str]:
+    """``{file relative to reports/: Markdown}`` of every page (template ``page.md.j2``): the index
+    ``README.md`` and ``pages/<name>.md``, sections in order, the appendix material collapsed."""
+    tpl = _environment(False).get_template("page.md.j2")
+    return {
+        page_file(p, False): _tidy(tpl.render(report=report, page=p, index=README, ext="md"))
+        for p in report_pages(report)
+    }
 
 
 def render_timings_markdown(inputs: ReportInputs) -> str:
@@ -395,36 +518,49 @@ def _cell_attrs(c: Cell) -> str:
     return (" " + " ".join(a)) if a else ""
 
 
-def _img_src(f: Figure, reports_dir: Path, embed: bool) -> str:
+def _img_src(f: Figure, root: str = "", *, reports_dir: Path, embed: bool) -> str:
+    """``root`` + the figure's path (``root``: from the page's folder to the reports folder), or
+    the image inlined as a ``data:`` URL when ``embed``."""
     p = Path(reports_dir) / f.path
     if not embed:
-        return f.path
+        return root + f.path
     data = base64.b64encode(p.read_bytes()).decode("ascii")
     return f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
 
 
-def render_html(report: Report, reports_dir: Path, embed: bool = True) -> str:
-    """Self-contained HTML (template ``index.html.j2``; figures embedded as base64 unless
-    ``embed=False``): headline results first, secondary tables and the appendix sections in
-    closed ``<details>``."""
+def render_html(report: Report, reports_dir: Path, embed: bool = False) -> dict[str, str]:
+    """``{file relative to reports/: HTML}`` of every page (template ``page.html.j2``): the index
+    ``index.html`` and ``pages/<name>.html``; figures referenced by their relative path (inlined
+    as base64 only with ``embed``); secondary tables and the appendix sections in closed
+    ``<details>``."""
     env = _environment(True)
-    env.filters["img_src"] = lambda f: _img_src(f, reports_dir, embed)
-    return _tidy(env.get_template("index.html.j2").render(report=report, css=CSS))
+    env.filters["img_src"] = partial(_img_src, reports_dir=reports_dir, embed=embed)
+    tpl = env.get_template("page.html.j2")
+    out = {}
+    for p in report_pages(report):
+        out[page_file(p, True)] = _tidy(
+            tpl.render(report=report, page=p, index=INDEX_HTML, ext="html", css=CSS)
+        )
+    return out
 
 
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
-    """Write ``summary.json`` (the headline numbers), README.md, index.html and results_table.md
-    into ``inputs.reports_dir`` (each atomically)."""
+    """Write ``summary.json`` (the headline numbers), the index README.md and index.html, the
+    pages ``pages/<name>.md`` / ``.html`` (a page left from an earlier rendering is removed) and
+    results_table.md into ``inputs.reports_dir`` (each atomically)."""
     root = Path(inputs.reports_dir)
     headlines = collect_headlines(Sources(inputs).metrics, providers)
     write_json_atomic(root / SUMMARY, summary_json(headlines, inputs.banner))
     report = build_report(inputs, providers, headlines)
-    md = render_markdown(report)
-    page = render_html(report, root, embed=True)
+    files = {**render_markdown(report), **render_html(report, root)}
     res = render_results_markdown(report)
-    write_text_atomic(root / README, md)
-    write_text_atomic(root / INDEX_HTML, page)
+    for rel, text in files.items():
+        write_text_atomic(root / rel, text)
+    pages = root / PAGES
+    for old in sorted(pages.glob("*")) if pages.is_dir() else ():
+        if old.is_file() and f"{PAGES}/{old.name}" not in files:
+            old.unlink()
     write_text_atomic(root / RESULTS_TABLE, res)
     return report
 

@@ -1,5 +1,6 @@
 """The headline metrics file (``reports/summary.json``): the few numbers a reader compares between
-experiments, each with its 95 % interval, taken from the detailed metrics files.
+experiments, each with its 95 % interval, taken from the detailed metrics files. The report's
+headline table shows the strongest baseline beside each (:class:`Baseline`; not in the file).
 
 It is the only file DVC declares as ``metrics`` (``dvc metrics show`` / ``dvc exp show`` stay
 readable); the detailed files (``reports/metrics/*.json``) stay committed outputs. Each problem's
@@ -22,10 +23,24 @@ from typing import Any
 
 
 @dataclass(frozen=True)
+class Baseline:
+    """The strongest baseline beside a headline number (the report's headline table only, not
+    ``summary.json``): its name, estimate and 95 % interval (None when it has none) on the same
+    quantity and frames, and ``src``, the metrics file and key it was read from
+    (``metrics/risk.json#baselines.speed_only.at_1.5s.roc_auc``)."""
+
+    name: str
+    value: float
+    lo: float | None
+    hi: float | None
+    src: str
+
+
+@dataclass(frozen=True)
 class Headline:
     """One headline number: ``key`` (dotted, within its problem), what it is, where it was
-    measured, the estimate and its 95 % interval, and the report's number format
-    (:func:`~traffictwin.report.model.fmt_value`)."""
+    measured, the estimate and its 95 % interval, the report's number format
+    (:func:`~traffictwin.report.model.fmt_value`) and the strongest baseline beside it (if any)."""
 
     key: str
     quantity: str
@@ -34,6 +49,7 @@ class Headline:
     lo: float
     hi: float
     fmt: str = "g4"
+    baseline: Baseline | None = None
 
 
 def _num(v: Any) -> float | None:
@@ -54,13 +70,37 @@ def interval(ci: Any) -> tuple[float, float] | None:
 
 
 def headline(
-    key: str, quantity: str, where: str, value: Any, ci: Any, fmt: str = "g4"
+    key: str,
+    quantity: str,
+    where: str,
+    value: Any,
+    ci: Any,
+    fmt: str = "g4",
+    baseline: Baseline | None = None,
 ) -> list[Headline]:
     """``[Headline]`` when ``value`` is a number and ``ci`` an interval, else ``[]``."""
     v, iv = _num(value), interval(ci)
     if v is None or iv is None:
         return []
-    return [Headline(key, quantity, where, v, iv[0], iv[1], fmt)]
+    return [Headline(key, quantity, where, v, iv[0], iv[1], fmt, baseline)]
+
+
+def strongest(
+    candidates: Mapping[str, tuple[Any, Any, str]], *, higher_better: bool
+) -> Baseline | None:
+    """The best of ``candidates`` (``{name: (value, interval, src)}``, the interval as for
+    :func:`interval`, ``src`` the metrics file#key of the value), as a :class:`Baseline`; None
+    when no candidate has a number. Ties go to the first candidate."""
+    best: Baseline | None = None
+    for name, (value, ci, src) in candidates.items():
+        v = _num(value)
+        if v is None or (
+            best is not None and not (v > best.value if higher_better else v < best.value)
+        ):
+            continue
+        iv = interval(ci)
+        best = Baseline(name, v, iv[0] if iv else None, iv[1] if iv else None, src)
+    return best
 
 
 def summary_json(

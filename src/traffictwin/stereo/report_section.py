@@ -664,6 +664,7 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
 def provider() -> page.SectionProvider:
     """The stereo section's provider for the report (after the risk section)."""
     return page.SectionProvider(
+        name="stereo",  # its page, reports/pages/stereo.md (no headline numbers)
         section=section,
         figures=FIGURES,
         figure_pattern=NEVER,

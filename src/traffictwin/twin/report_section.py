@@ -14,7 +14,7 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
-from traffictwin.report.summary import Headline, headline
+from traffictwin.report.summary import Headline, headline, strongest
 
 FILE = "twin.json"
 DATA_FILE = "twin_data.json"
@@ -511,6 +511,19 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     if not isinstance(occ, Mapping):
         return []
     where = f"{LABELS.get(method, method)} at configuration {cfg}, occluded sequences"
+    others = lookup(twin, f"configurations.{cfg}.methods")
+    base = strongest(
+        {
+            LABELS.get(m, m): (
+                lookup(row, "occluded.recall"),
+                lookup(row, "occluded.recall_ci"),
+                f"metrics/{FILE}#configurations.{cfg}.methods.{m}.occluded.recall",
+            )
+            for m, row in (others.items() if isinstance(others, Mapping) else ())
+            if m != method
+        },
+        higher_better=True,
+    )
     return headline(
         "recall",
         "critical frames flagged",
@@ -518,6 +531,7 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
         occ.get("recall"),
         occ.get("recall_ci"),
         "pct",
+        base,
     ) + headline(
         "recall_gain",
         "gain in critical frames flagged over the ego's own map",

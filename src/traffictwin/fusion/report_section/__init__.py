@@ -28,7 +28,8 @@ from functools import partial
 from typing import Any
 
 from traffictwin.fusion.findings import fusion_findings
-from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE
+from traffictwin.fusion.report_section.cells import FUSION_FILE, FUSION_METHOD_LABELS, HEADLINE
+from traffictwin.fusion.report_section.claims import fusion_claims
 from traffictwin.fusion.report_section.method_tables import fusion_tables
 from traffictwin.fusion.report_section.score_figures import draw_score_figures
 from traffictwin.fusion.report_section.seed_tables import (
@@ -39,13 +40,14 @@ from traffictwin.fusion.report_section.seed_tables import (
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import lookup
-from traffictwin.report.summary import Headline, headline
+from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import files_table, findings_group
 
 __all__ = [
     "FIGURES",
     "TITLE",
     "draw_score_figures",
+    "fusion_claims",
     "fusion_tables",
     "headlines",
     "provider",
@@ -216,6 +218,7 @@ def headlines(
             where,
             row.get(f"{HEADLINE}"),
             row.get(f"{HEADLINE}_ci"),
+            baseline=_baseline(metrics, c, HEADLINE, higher_better=False),
         )
         out += headline(
             f"{c}.dice",
@@ -224,8 +227,31 @@ def headlines(
             row.get("dice_occ"),
             row.get("dice_occ_ci"),
             "pct",
+            baseline=_baseline(metrics, c, "dice_occ", higher_better=True),
         )
     return out
+
+
+# the fusion rules without a network or a learned registration: the baselines of the headline
+BASELINE_ROWS = ("naive", "naive-yager", "naive-cautious", "registered", "ego")
+
+
+def _baseline(
+    metrics: Mapping[str, Any], c: str, key: str, *, higher_better: bool
+) -> Baseline | None:
+    """The best of :data:`BASELINE_ROWS` on ``key`` at configuration ``c`` (test pairs)."""
+    rows = {
+        FUSION_METHOD_LABELS.get(r, r): lookup(metrics.get(FUSION_FILE), f"test.{c}.{r}")
+        for r in BASELINE_ROWS
+    }
+    return strongest(
+        {
+            label: (row.get(key), row.get(f"{key}_ci"), f"metrics/{FUSION_FILE}#test.{c}.{r}.{key}")
+            for (label, row), r in zip(rows.items(), BASELINE_ROWS)
+            if isinstance(row, Mapping)
+        },
+        higher_better=higher_better,
+    )
 
 
 def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionProvider:
@@ -233,6 +259,7 @@ def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionP
     return page.SectionProvider(
         name="fusion",
         headlines=partial(headlines, configurations=dict(configurations)),
+        claims=fusion_claims,
         section=partial(section, configurations=dict(configurations)),
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,

@@ -1,0 +1,143 @@
+"""The fusion paper's claims (:data:`traffictwin.report.paper_numbers.FUSION_CLAIMS`) against this
+run's ``fusion.json``: one :class:`~traffictwin.report.claims.ClaimCheck` each, for the verdict
+table on the report's first screen.
+
+Configurations as the findings take them (:func:`traffictwin.fusion.findings.fusion_findings_record`):
+the test configurations in order, the first the noise-free one, the others noisy. The paper's
+Fig. 5 shows KLD(a); the run's headline is KLD(b) (the full mass vector, ``kld_fou_mean``), the
+one with paired intervals of network − naive at every configuration. Of the scores, only occupied
+Dice has paired intervals: precision and recall claims are checked on it alone, and say so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE, NAIVE, NET
+from traffictwin.report import paper_numbers as P
+from traffictwin.report.claims import (
+    HIGHER,
+    LOWER,
+    NO_INTERVAL,
+    ClaimCheck,
+    claim_verdict,
+    fmt_interval,
+    interval_side,
+)
+from traffictwin.report.model import lookup
+
+__all__ = ["PAPER", "fusion_claims"]
+
+PAPER = "Paper 1 — fusion"
+DICE = "dice_occ"
+
+
+def _diff(m: Any, c: str, key: str) -> tuple[Any, Any, Any]:
+    """``(estimate, lo, hi)`` of the paired difference network − naive on ``key`` at ``c``."""
+    d = lookup(m, f"diff.{c}.{NET}.vs_{NAIVE}.{key}")
+    d = d if isinstance(d, Mapping) else {}
+    return d.get("estimate"), d.get("lo"), d.get("hi")
+
+
+def _at(m: Any, configs: Sequence[str], key: str) -> tuple[list[str], str]:
+    """Sides (against zero) of network − naive on ``key`` at ``configs``, and the text
+    ``B −0.131 [−0.153, −0.111]; C …``."""
+    diffs = [(c, _diff(m, c, key)) for c in configs]
+    sides = [interval_side(lo, hi) for _, (_, lo, hi) in diffs]
+    text = "; ".join(f"{c} {fmt_interval(*d)}" for c, d in diffs)
+    return sides, text
+
+
+def _growth(m: Any, first: str, last: str, key: str) -> tuple[list[str], str]:
+    """Side of the interval of network − naive on ``key`` at ``last`` against the one at ``first``
+    (they must not overlap for the gap to have changed), and the text ``A … → D …``."""
+    e0, lo0, hi0 = _diff(m, first, key)
+    e1, lo1, hi1 = _diff(m, last, key)
+    if None in (lo0, hi0):
+        side = NO_INTERVAL
+    else:
+        side = interval_side(lo1, hi1, lo0, hi0)
+    return [side], f"{first} {fmt_interval(e0, lo0, hi0)} → {last} {fmt_interval(e1, lo1, hi1)}"
+
+
+def _iqr(m: Any, c: str, row: str) -> float | None:
+    q25, q75 = lookup(m, f"test.{c}.{row}.kld_fou_q25"), lookup(m, f"test.{c}.{row}.kld_fou_q75")
+    if not all(isinstance(q, (int, float)) for q in (q25, q75)):
+        return None
+    return float(q75) - float(q25)
+
+
+def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
+    """Every claim of :data:`~traffictwin.report.paper_numbers.FUSION_CLAIMS` with this run's
+    numbers (paired 95 % cluster-bootstrap intervals of network − naive from ``fusion.json``)
+    and its verdict; empty when ``fusion.json`` has no test configuration."""
+    m = metrics.get(FUSION_FILE)
+    configs = sorted(lookup(m, "test") or {}) if isinstance(m, Mapping) else []
+    if not configs:
+        return []
+    a, noisy = configs[0], configs[1:]
+    last = configs[-1]
+    kld = "network − naive KLD(b), nats/cell"
+    dice = "network − naive occupied Dice"
+    C = P.FUSION_CLAIMS
+
+    def check(name: str, sides: list[str], expected: str, measured: str) -> ClaimCheck:
+        c = C[name]
+        return ClaimCheck(PAPER, c.text, c.source, measured, claim_verdict(sides, expected))
+
+    out = []
+    sides, text = _at(m, [a], HEADLINE)
+    out.append(check("kld_A_baseline_better", sides, HIGHER, f"{kld}: {text}"))
+    sides, text = _at(m, noisy, HEADLINE)
+    out.append(check("kld_BCD_net_better", sides, LOWER, f"{kld}: {text}"))
+    sides, text = _growth(m, a, last, HEADLINE)
+    out.append(
+        check(
+            "kld_baseline_degrades_faster",
+            sides,
+            LOWER,
+            f"{kld}, the gap at {last} against {a} (intervals must not overlap): {text}",
+        )
+    )
+    spread = [(c, _iqr(m, c, NET), _iqr(m, c, NAIVE)) for c in noisy]
+    out.append(
+        check(
+            "kld_net_less_spread",
+            [NO_INTERVAL],  # the spread has no interval in fusion.json: no verdict
+            LOWER,
+            "KLD(b) interquartile range, network vs naive (point estimates, no interval): "
+            + "; ".join(
+                f"{c} {'n/a' if n is None else f'{n:.3g}'} vs {'n/a' if b is None else f'{b:.3g}'}"
+                for c, n, b in spread
+            ),
+        )
+    )
+    sides, text = _at(m, [a], DICE)
+    out.append(
+        check(
+            "scores_A_baseline_better",
+            sides,
+            LOWER,
+            f"{dice} (the only score with a paired interval): {text}",
+        )
+    )
+    sides, text = _growth(m, a, last, DICE)
+    out.append(
+        check(
+            "scores_flatter_net",
+            sides,
+            HIGHER,
+            f"{dice}, the gap at {last} against {a} (intervals must not overlap): {text}",
+        )
+    )
+    sides, text = _at(m, noisy, DICE)
+    out.append(
+        check(
+            "scores_net_dominant_except",
+            sides,
+            HIGHER,
+            f"{dice} (precision / recall have no interval): {text}",
+        )
+    )
+    return out

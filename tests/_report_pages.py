@@ -1,0 +1,118 @@
+"""The rendered report as its files: the index (``reports/README.md``, ``reports/index.html``) and
+the pages it lists (``reports/pages/<name>.md`` / ``.html``), in the index's order; and a checker
+of every relative link and image source of every page (target file present, anchor present on
+the target page)."""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import unquote
+
+from traffictwin.report import render as R
+
+MD_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(([^)\s]+)\)")
+
+
+def page_files(reports: Path, html: bool = False) -> list[Path]:
+    """The index, then every page its list links (``pages/<name>.md`` or ``.html``), in order."""
+    index = reports / (R.INDEX_HTML if html else R.README)
+    text = index.read_text()
+    ext = "html" if html else "md"
+    pat = (
+        rf'<li><a href="({R.PAGES}/[\w-]+\.{ext})">'
+        if html
+        else rf"^- \[[^\]]+\]\(({R.PAGES}/[\w-]+\.{ext})\)$"
+    )
+    names = re.findall(pat, text, flags=re.M)
+    return [index, *(reports / n for n in dict.fromkeys(names))]
+
+
+def all_md(reports: Path) -> str:
+    """Every Markdown file of the report, the index first, joined in reading order."""
+    return "\n".join(p.read_text() for p in page_files(reports))
+
+
+def all_html(reports: Path) -> str:
+    """Every HTML file of the report, the index first, joined in reading order."""
+    return "\n".join(p.read_text() for p in page_files(reports, html=True))
+
+
+def page_md(reports: Path, name: str) -> str:
+    """``reports/pages/<name>.md``."""
+    return (reports / R.PAGES / f"{name}.md").read_text()
+
+
+def page_html(reports: Path, name: str) -> str:
+    """``reports/pages/<name>.html``."""
+    return (reports / R.PAGES / f"{name}.html").read_text()
+
+
+class _Refs(HTMLParser):
+    """``href`` / ``src`` values and ``id`` attributes of an HTML page."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.refs: list[str] = []
+        self.ids: set[str] = set()
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = dict(attrs)
+        self.refs += [v for k, v in a.items() if k in ("href", "src") and v]
+        if a.get("id"):
+            self.ids.add(str(a["id"]))
+
+
+def md_anchors(text: str) -> set[str]:
+    """The anchors GitHub gives a Markdown page: one per heading (its slug; a repeated slug gets
+    ``-1``, ``-2``, ...), plus any HTML ``id``."""
+    out: set[str] = set()
+    seen: Counter[str] = Counter()
+    for head in re.findall(r"^#{1,6} (.+)$", text, flags=re.M):
+        slug = R._slug(head)
+        out.add(slug if not seen[slug] else f"{slug}-{seen[slug]}")
+        seen[slug] += 1
+    out.update(re.findall(r'id="([^"]+)"', text))
+    return out
+
+
+def _anchors(path: Path) -> set[str]:
+    text = path.read_text()
+    if path.suffix == ".html":
+        p = _Refs()
+        p.feed(text)
+        return p.ids
+    return md_anchors(text)
+
+
+def refs(path: Path) -> list[str]:
+    """Every link and image source of a Markdown or HTML page, as written."""
+    text = path.read_text()
+    if path.suffix == ".html":
+        p = _Refs()
+        p.feed(text)
+        return p.refs
+    return MD_LINK.findall(text)
+
+
+def broken_links(reports: Path) -> list[str]:
+    """``"<page>: <ref> (why)"`` for every relative link or image source of every page of the
+    report (Markdown and HTML) whose target file is missing, or whose ``#anchor`` is not on the
+    target page; external links (``http(s):``, ``mailto:``) and ``data:`` images are skipped."""
+    bad = []
+    pages = [*page_files(reports), *page_files(reports, html=True)]
+    for page in pages:
+        if not page.is_file():  # a listed page that is missing: named by the index's link to it
+            continue
+        for ref in refs(page):
+            if re.match(r"^(?:[a-z]+:)", ref):
+                continue
+            path, _, anchor = ref.partition("#")
+            target = (page.parent / unquote(path)).resolve() if path else page
+            if not target.is_file():
+                bad.append(f"{page.relative_to(reports)}: {ref} (no file {target})")
+            elif anchor and anchor not in _anchors(target):
+                bad.append(f"{page.relative_to(reports)}: {ref} (no anchor #{anchor})")
+    return bad
