@@ -786,3 +786,19 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
     assert "Risk: every predictor on the same test frames" in res and "Risk: targets" in res
     assert "(../figures/risk_roc.png)" in page_md(rep, "risk")
+
+
+def test_critical_errors_follow_the_primary_threshold() -> None:
+    """``*_critical_s`` average over the frames below the first of ``thresholds_s`` (the config's
+    primary threshold), in the point metrics and in the bootstrap alike. Hand-computed: THW of
+    y = [10, 0.5, 0.25, 0.125] s, of p = [0.5, 0.5, 10, 0.125] s, errors [9.5, 0, 9.75, 0] s."""
+    y = np.array([0.0, 0.1, 0.2, 0.4])
+    p = np.array([0.1, 0.1, 0.0, 0.4])
+    assert evaluate(y, p, (1.5, 1.0), 10.0)["test/thw_mae_critical_s"] == pytest.approx(9.75 / 3)
+    assert evaluate(y, p, (0.3, 1.5), 10.0)["test/thw_mae_critical_s"] == pytest.approx(9.75 / 2)
+    assert evaluate(y, p, (0.3,), 10.0)["test/thw_median_error_critical_s"] == pytest.approx(4.875)
+    plan = ClusterBootstrap(np.arange(4), n_boot=20, seed=0)
+    sc = bootstrap_scores(y, p, plan, (0.3, 1.5), 10.0)
+    assert sc["test/thw_mae_critical_s"][0] == pytest.approx(9.75 / 2)
+    with pytest.raises(ValueError, match="at least one THW threshold"):
+        evaluate(y, p, (), 10.0)

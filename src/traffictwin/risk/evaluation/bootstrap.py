@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from traffictwin.config import spec
-from traffictwin.risk.evaluation.scoring import THRESHOLDS_S, check_pair
-from traffictwin.risk.metric import CRITICAL_THW, risk_threshold, risk_to_thw
+from traffictwin.risk.evaluation.scoring import THRESHOLDS_S, check_pair, primary
+from traffictwin.risk.metric import risk_threshold, risk_to_thw
 from traffictwin.stats import Interval, resample_counts
 
 #: a statistic: (estimate on the test frames, (n_boot,) values on the resamples; NaN = undefined)
@@ -163,7 +163,7 @@ def bootstrap_scores(
     e = p - y
     mse = ratio(plan.total(e * e), n)
     dt = np.abs(risk_to_thw(p, thw_cap) - risk_to_thw(y, thw_cap))
-    crit = (y > risk_threshold(CRITICAL_THW)).astype(np.float64)
+    crit = (y > risk_threshold(primary(thresholds_s))).astype(np.float64)
     out: dict[str, Stat] = {
         "test/mse": mse,
         "test/mae": ratio(plan.total(np.abs(e)), n),

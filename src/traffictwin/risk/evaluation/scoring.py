@@ -46,12 +46,23 @@ LOWER_IS_BETTER = (
 )
 
 
-def regression_metrics(y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0) -> dict[str, float]:
-    """``test/mse``, ``test/mae``, ``test/rmse`` (normalised risk) and THW errors in s (capped)."""
+def primary(thresholds_s: Sequence[float]) -> float:
+    """The primary THW threshold (s): the first of ``thresholds_s`` (config
+    ``evaluation.risk.thresholds_s``), the one that defines the critical frames."""
+    if not thresholds_s:
+        raise ValueError("thresholds_s: expected at least one THW threshold (s), got none")
+    return float(thresholds_s[0])
+
+
+def regression_metrics(
+    y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0, critical_s: float = CRITICAL_THW
+) -> dict[str, float]:
+    """``test/mse``, ``test/mae``, ``test/rmse`` (normalised risk) and THW errors in s (capped);
+    the ``*_critical_s`` errors over the frames whose true THW is below ``critical_s`` (s)."""
     y, p = check_pair(y, p)
     e = p - y
     ty, tp = risk_to_thw(y, thw_cap), risk_to_thw(p, thw_cap)
-    crit = y > risk_threshold(CRITICAL_THW)
+    crit = y > risk_threshold(critical_s)
     return {
         "test/mse": float(np.mean(e**2)),
         "test/mae": float(np.mean(np.abs(e))),
@@ -146,9 +157,10 @@ def evaluate(
     thw_cap: float = 10.0,
     cuts: Mapping[float, float] | None = None,
 ) -> dict[str, Any]:
-    """Regression metrics plus ``at_<t>s`` classification metrics for every threshold (decision
+    """Regression metrics (the critical frames: THW below the primary threshold,
+    ``thresholds_s[0]``) plus ``at_<t>s`` classification metrics for every threshold (decision
     cut ``cuts[t]`` where given)."""
-    out: dict[str, Any] = regression_metrics(y, p, thw_cap)
+    out: dict[str, Any] = regression_metrics(y, p, thw_cap, critical_s=primary(thresholds_s))
     for t in thresholds_s:
         out[f"at_{t:g}s"] = classification_metrics(y, p, t, (cuts or {}).get(t))
     return out
