@@ -92,7 +92,8 @@ def _only_docs(f: Path) -> bool:
 @cache
 def closure(module: str, root: Path = ROOT) -> frozenset[Path]:
     """Files of every traffictwin/pipelines module ``module`` needs, transitively (package
-    ``__init__`` files that hold only a docstring are left out: they run no stage code)."""
+    ``__init__`` files that hold only a docstring are left out: they run no stage code), and the
+    Jinja templates those modules render (:func:`_templates`)."""
     seen: set[str] = set()
     todo = [module]
     while todo:
@@ -105,8 +106,21 @@ def closure(module: str, root: Path = ROOT) -> frozenset[Path]:
             todo += sorted(_imports(f, root) - seen)
             parts = m.split(".")  # importing a.b.c runs a/__init__ and a/b/__init__ too
             todo += [".".join(parts[:i]) for i in range(1, len(parts))]
-    files = {module_file(m, root) for m in seen}
-    return frozenset(f for f in files if f is not None and not _only_docs(f))
+    files = {f for f in (module_file(m, root) for m in seen) if f is not None and not _only_docs(f)}
+    return frozenset(files | {t for f in files for t in _templates(f)})
+
+
+def _templates(module: Path) -> list[Path]:
+    """The Jinja templates a module renders: every ``templates/*.j2`` beside it when its source
+    names a ``.j2`` file (a string literal), else none. Templates are code: editing one changes
+    what the stage writes."""
+    folder = module.parent / "templates"
+    if not folder.is_dir() or not any(
+        isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value.endswith(".j2")
+        for n in ast.walk(ast.parse(module.read_text()))
+    ):
+        return []
+    return sorted(folder.glob("*.j2"))
 
 
 def is_code(dep: str) -> bool:

@@ -81,6 +81,28 @@ def test_closure_follows_imports_inside_functions_and_parent_packages(tmp_path: 
     ]
 
 
+def test_closure_holds_the_templates_a_module_renders(tmp_path: Path) -> None:
+    pkg = tmp_path / "src" / "traffictwin"
+    (pkg / "page" / "templates").mkdir(parents=True)
+    (pkg / "page" / "templates" / "a.md.j2").write_text("{{ x }}\n")
+    (pkg / "page" / "templates" / "notes.txt").write_text("not a template\n")
+    (pkg / "page" / "render.py").write_text(
+        'NAME = "a.md.j2"\nfrom traffictwin.page import plain\n'
+    )
+    (pkg / "page" / "plain.py").write_text("X = 1\n")
+    got = sorted(
+        p.relative_to(tmp_path).as_posix()
+        for p in stage_deps.closure("traffictwin.page.render", tmp_path)
+    )
+    assert got == [
+        "src/traffictwin/page/plain.py",
+        "src/traffictwin/page/render.py",
+        "src/traffictwin/page/templates/a.md.j2",
+    ]
+    plain = stage_deps.closure("traffictwin.page.plain", tmp_path)  # renders nothing: no template
+    assert sorted(p.name for p in plain) == ["plain.py"]
+
+
 def test_report_code_retrains_and_regenerates_nothing() -> None:
     """Editing the report's page kit or a report section re-runs only the stages that render the
     report: no data, training or evaluation stage imports them."""
