@@ -901,3 +901,17 @@ def test_smoke_profile_banner_on_report_summary_and_plot_titles(reports: Path) -
                     titles.append(props["title"])
     assert len(titles) >= 10
     assert all(t.endswith("${profile.banner}") for t in titles), titles
+
+
+def test_html_cells_align_numbers_right_and_text_left() -> None:
+    """Text columns read left-aligned; numbers, intervals and percentages right-aligned (class
+    ``num``), n/a greyed: the class a cell gets decides it, the style sheet says so."""
+    cls = {
+        text: re.search(r'class="(\w+)"', R._cell_attrs(M.Cell(text)))
+        for text in ("reproduced", "Sec. V-A, Fig. 5", "hybrid_s2", "A 0.001 vs B 0.002")
+    }
+    assert all(m is None for m in cls.values()), cls
+    for text in ("0.940", "[0.910, 0.965]", "99.73 %", "-0.131", "+0.0010", "1,234", "12.3 ms"):
+        assert 'class="num"' in R._cell_attrs(M.Cell(text)), text
+    assert 'class="na"' in R._cell_attrs(M.Cell(M.NA))
+    assert "text-align:left" in R.CSS.split("td.num")[0] and "td.num{text-align:right" in R.CSS

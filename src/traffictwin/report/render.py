@@ -479,9 +479,9 @@ def _alt(caption: str) -> str:
 CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.5em 0;font-size:.9em}
-th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
-th{background:#f3f3f3} td:first-child,th:first-child{text-align:left}
-td.na{color:#999} caption{text-align:left;font-weight:600;margin-bottom:.3em}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
+th{background:#f3f3f3} td.num{text-align:right;white-space:nowrap}
+td.na{color:#999;text-align:right} caption{text-align:left;font-weight:600;margin-bottom:.3em}
 figure{margin:1em 0} figure img{max-width:100%;border:1px solid #eee}
 figcaption{font-size:.9em;color:#555} p.note{font-size:.85em;color:#555;margin-top:-1em}
 code{background:#f5f5f5;padding:0 .2em}
@@ -515,7 +515,16 @@ def _cell_attrs(c: Cell) -> str:
         a.append(f'title="{html.escape(c.title)}"')
     if c.text == NA:
         a.append('class="na"')
+    elif _NUMBER.match(c.text):
+        a.append('class="num"')  # numbers right-aligned, text left-aligned
     return (" " + " ".join(a)) if a else ""
+
+
+#: a cell that shows a number: a value (with a short unit), a signed difference, a percentage or
+#: an interval "[lo, hi]"
+_NUMBER = re.compile(
+    r"^\[?[-+−]?\.?\d[\d.,eE+\-−% ]*(?:[a-zA-Zµ°/]{1,4})?(?:, [-+−]?\.?\d[\d.eE+\-−% ]*(?:[a-zA-Zµ°/]{1,4})?\])?$"
+)
 
 
 def _img_src(f: Figure, root: str = "", *, reports_dir: Path, embed: bool) -> str:
