@@ -294,10 +294,15 @@ def ci_dag(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
     lock in the run's shared temp folder, the others wait for it (a failed build fails them too)."""
     if worker_id == "master":  # not under xdist
         return _build_ci_dag(tmp_path_factory.mktemp("ci_dag") / "repo")
+    return _shared_ci_dag(tmp_path_factory.getbasetemp().parent / "ci_dag")
+
+
+def _shared_ci_dag(shared: Path) -> Path:
+    """The ci DAG under ``shared`` (built by the first caller, under a file lock; the others
+    wait), for the xdist workers and for the controller's early build (:func:`pytest_sessionstart`)."""
     from filelock import FileLock
 
-    shared = tmp_path_factory.getbasetemp().parent / "ci_dag"
-    shared.mkdir(exist_ok=True)
+    shared.mkdir(parents=True, exist_ok=True)
     failed = shared / "FAILED"
     with FileLock(str(shared / "build.lock")):
         if failed.exists():
@@ -312,6 +317,52 @@ def ci_dag(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
                 raise
             (shared / "DONE").touch()
     return repo
+
+
+def builds_ci_dag_early(config: pytest.Config) -> bool:
+    """Whether this process starts the shared ci DAG at the session's start: the pytest-xdist
+    controller of a whole-suite run (no paths, ``-k`` or ``-m`` given: ``make test``), where the
+    DAG is certainly needed and the workers run every other test while it builds."""
+    return (
+        not hasattr(config, "workerinput")
+        and bool(getattr(config.option, "numprocesses", None))
+        and config.args_source != pytest.Config.ArgsSource.ARGS
+        and not config.option.markexpr
+        and not config.option.keyword
+        and not config.option.collectonly
+    )
+
+
+_EARLY: dict[str, subprocess.Popen] = {}  # the early build's `dvc repro`, stopped at session end
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Start building the ci DAG in the background on the xdist controller of a whole-suite run
+    (:func:`builds_ci_dag_early`); the ``ci_dag`` fixture then finds it built (or waits for it)
+    instead of one worker building it while the other idles. A failed early build is left to the
+    fixture, which reports it."""
+    if not builds_ci_dag_early(session.config):
+        return
+    import threading
+
+    shared = session.config._tmp_path_factory.getbasetemp() / "ci_dag"
+
+    def build() -> None:
+        try:
+            _shared_ci_dag(shared)
+        except BaseException:  # noqa: BLE001 - the workers' fixture raises it with the log
+            pass
+
+    threading.Thread(target=build, name="ci_dag early build", daemon=True).start()
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Stop an early ci DAG build still running (a run that ended early, e.g. ``-x``)."""
+    proc = _EARLY.pop("repro", None)
+    if proc is not None and proc.poll() is None:
+        import signal
+
+        os.killpg(proc.pid, signal.SIGTERM)
 
 
 def ci_dag_log(repo: Path) -> Path:
@@ -329,9 +380,22 @@ def _build_ci_dag(repo: Path) -> Path:
     )  # a user's piped run: the stages must keep a pipe quiet themselves
     log = ci_dag_log(repo)
     with log.open("w") as out:
-        proc = subprocess.run(
-            ["dvc", "repro"], cwd=repo, env=env, stdout=out, stderr=subprocess.STDOUT, timeout=1800
+        proc = subprocess.Popen(
+            ["dvc", "repro"],
+            cwd=repo,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,  # its own process group: pytest_sessionfinish can stop it
         )
+        _EARLY["repro"] = proc
+        try:
+            proc.wait(timeout=1800)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, 9)
+            raise
+        finally:
+            _EARLY.pop("repro", None)
     if proc.returncode != 0:
         raise AssertionError(f"dvc repro failed ({proc.returncode}):\n{log.read_text()[-6000:]}")
     return repo

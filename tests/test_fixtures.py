@@ -8,7 +8,7 @@ import sqlite3
 from pathlib import Path
 
 import pytest
-from conftest import copy_dag, mlflow_uris_kept
+from conftest import _run_order, builds_ci_dag_early, copy_dag, mlflow_uris_kept
 
 
 def test_copy_dag_leaves_dvc_tmp_and_on_request_the_mlflow_store_behind(tmp_path: Path) -> None:
@@ -73,3 +73,49 @@ def test_copy_dag_points_the_copied_mlflow_store_at_its_own_artifacts(tmp_path: 
     # the source store is untouched
     source = mlflow.MlflowClient(tracking_uri=f"sqlite:///{src / 'mlflow.db'}")
     assert source.get_run(run.info.run_id).info.artifact_uri.startswith(src.as_uri())
+
+
+def _config(
+    worker: bool = False, n: int | None = 2, args=pytest.Config.ArgsSource.TESTPATHS, **opt
+):
+    from types import SimpleNamespace
+
+    option = SimpleNamespace(
+        numprocesses=n, markexpr=opt.get("m", ""), keyword=opt.get("k", ""), collectonly=False
+    )
+    cfg = SimpleNamespace(option=option, args_source=args)
+    if worker:
+        cfg.workerinput = {}
+    return cfg
+
+
+def test_only_a_whole_parallel_suite_builds_the_ci_dag_early() -> None:
+    """`make test` (xdist, no paths, no -k / -m) starts the ci DAG at once on the controller; a
+    worker, a serial run, chosen paths and `make test-fast`'s -m never do."""
+    assert builds_ci_dag_early(_config())
+    assert not builds_ci_dag_early(_config(worker=True))
+    assert not builds_ci_dag_early(_config(n=None))
+    assert not builds_ci_dag_early(_config(args=pytest.Config.ArgsSource.ARGS))
+    assert not builds_ci_dag_early(_config(m="not slow and not integration"))
+    assert not builds_ci_dag_early(_config(k="report"))
+
+
+def test_tests_waiting_for_the_ci_dag_run_last_the_longest_first() -> None:
+    from types import SimpleNamespace
+
+    def item(nodeid: str, dag: bool):
+        return SimpleNamespace(nodeid=nodeid, fixturenames=["ci_dag"] if dag else [])
+
+    items = [
+        item("tests/test_a.py::test_unit", False),
+        item("tests/test_b.py::test_on_dag", True),
+        item("tests/test_readme.py::test_readme_ci_blocks_run_as_written", True),
+        item("tests/test_retrain.py::test_retrain_end_to_end_lock_and_failure_restore", False),
+    ]
+    got = [i.nodeid.split("::")[1] for i in sorted(items, key=_run_order)]
+    assert got == [
+        "test_retrain_end_to_end_lock_and_failure_restore",
+        "test_unit",
+        "test_readme_ci_blocks_run_as_written",
+        "test_on_dag",
+    ]
