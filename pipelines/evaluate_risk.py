@@ -217,8 +217,10 @@ def loaded_settings(models: dict, variants: list[str]) -> dict[str, dict]:
 
 
 def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str], ev) -> None:
-    """The figures, the confusion and prediction tables and risk.json."""
+    """The figures (the shipped predictor drawn beside the headline network), the confusion and
+    prediction tables and risk.json."""
     main_v, t0 = ev.main_variant, ev.thresholds_s[0]
+    shipped_from = (metrics.get("selection") or {}).get("shipped_from")
     evaluation_figures(
         source,
         metrics,
@@ -232,6 +234,7 @@ def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str]
             examples=figure_file("risk_examples"),
             roc=figure_file("risk_roc"),
         ),
+        shipped=(SHIPPED, f"shipped ({shipped_from})" if shipped_from else SHIPPED),
     )
     _, y, yhat = main_series(metrics, pred, main_v)
     _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))

@@ -341,6 +341,9 @@ def test_evaluation_figures_plot_the_predictions(
     )
     figs = _capture(monkeypatch, figures)
     metrics["models"]["rgbd"]["objective"] = "log_thw"  # the curves follow the run's objective
+    # a shipped predictor (here: the speed-only rule's predictions under another key)
+    pred["pred_ship"] = pred["pred_speed_only"]
+    metrics["models"]["ship"] = {"at_1.5s": {"roc_auc": 0.625}}
     figures.evaluation_figures(
         src,
         metrics,
@@ -354,6 +357,7 @@ def test_evaluation_figures_plot_the_predictions(
             examples=tmp_path / "e.png",
             roc=tmp_path / "r.png",
         ),
+        shipped=("ship", "shipped (speed rule)"),
     )
     assert set(figs) == {"c.png", "s.png", "m.png", "e.png", "r.png"}
     # training curves: the objective's loss (log THW: no paper MSE there), then the validation
@@ -365,9 +369,13 @@ def test_evaluation_figures_plot_the_predictions(
     assert not any(ln.get_label() == "paper test MSE" for ln in tr.lines)
     assert va.get_title() == "validation MSE of normalised risk (every run)"
     assert any(ln.get_label() == "paper test MSE" for ln in va.lines)
-    # scatter: network, speed-only and geometric SGM baselines, true vs predicted, threshold 1/30
-    axes = figs["s.png"].axes
+    # scatter: the shipped predictor first, then the network, speed-only and geometric SGM
+    # baselines, true vs predicted on symmetric-log axes, threshold 1/30
+    ship_ax, *axes = figs["s.png"].axes
+    assert ship_ax.get_title() == "shipped (speed rule)"
+    assert np.allclose(ship_ax.collections[0].get_offsets()[:, 1], pred["pred_speed_only"])
     assert [a.get_title() for a in axes] == ["rgbd", "speed_only", "geometric_sgm"]
+    assert all(a.get_xscale() == a.get_yscale() == "symlog" for a in figs["s.png"].axes)
     xy = axes[0].collections[0].get_offsets()
     assert np.allclose(xy[:, 0], pred["risk_thw_paper"]) and np.allclose(
         xy[:, 1], pred["pred_rgbd"]
@@ -377,12 +385,23 @@ def test_evaluation_figures_plot_the_predictions(
     # ROC: the network and the three baselines (the oracle dashed) on the same critical frames
     (roc,) = figs["r.png"].axes
     lines = {ln.get_label().split(" (AUC")[0]: ln for ln in roc.lines}
-    assert set(lines) == {"rgbd", "speed_only", "geometric_sgm", "geometric_gt", "chance"}
+    assert set(lines) == {
+        "shipped (speed rule)",
+        "rgbd",
+        "speed_only",
+        "geometric_sgm",
+        "geometric_gt",
+        "chance",
+    }
+    assert roc.lines[0].get_label() == "shipped (speed rule) (AUC 0.625)"
+    assert np.allclose(lines["shipped (speed rule)"].get_ydata(), lines["speed_only"].get_ydata())
     fpr, tpr = roc_curve(pred["risk_thw_paper"] > 1 / 30, pred["pred_geometric_sgm"])
     assert np.allclose(lines["geometric_sgm"].get_xdata(), fpr)
     assert np.allclose(lines["geometric_sgm"].get_ydata(), tpr)
     assert lines["geometric_gt"].get_linestyle() == "--" and lines["rgbd"].get_linestyle() == "-"
-    assert axes[0].get_xlabel() == "true risk" and axes[0].get_ylabel() == "predicted risk"
+    assert axes[0].get_xlabel().startswith("true risk (1") and axes[0].get_ylabel().startswith(
+        "predicted risk (1"
+    )
     assert any(np.allclose(ln.get_xdata(), 1 / 30) for ln in axes[0].lines)
     # confusion matrix: the Table-1 counts of the main variant
     c = metrics["models"]["rgbd"]["at_1.5s"]["confusion"]

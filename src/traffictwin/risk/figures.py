@@ -144,18 +144,23 @@ def plot_scatter(
     threshold: float,
     title: str = "",
 ) -> None:
-    """Predicted vs true normalised risk for one or more predictors; dashed lines = critical threshold."""
+    """Predicted vs true normalised risk for one or more predictors; dashed lines = critical
+    threshold. Most frames have a risk near 0 (nothing close ahead): both axes are symmetric-log,
+    linear below a tenth of the threshold, so the frames around the threshold spread out."""
     fig, axes = plt.subplots(1, len(preds), figsize=(4.2 * len(preds), 4), squeeze=False)
     hi = float(max(np.max(y), *(np.max(p) for p in preds.values()), threshold * 2)) * 1.05
+    lin = threshold / 10
     for ax, (name, p) in zip(axes[0], preds.items()):
         ax.scatter(y, p, s=6, alpha=0.5)
         ax.plot([0, hi], [0, hi], "k-", lw=0.8)
         ax.axvline(threshold, color="r", ls="--", lw=0.8)
         ax.axhline(threshold, color="r", ls="--", lw=0.8)
-        ax.set_xlim(-0.02, hi)
-        ax.set_ylim(min(-0.02, float(np.min(p))), hi)
-        ax.set_xlabel("true risk")
-        ax.set_ylabel("predicted risk")
+        ax.set_xscale("symlog", linthresh=lin)
+        ax.set_yscale("symlog", linthresh=lin)
+        ax.set_xlim(0, hi)
+        ax.set_ylim(min(0.0, float(np.min(p))), hi)
+        ax.set_xlabel(f"true risk (1, symlog: linear below {lin:.3g})")
+        ax.set_ylabel("predicted risk (1, symlog)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
     if title:
@@ -309,6 +314,7 @@ def evaluation_figures(
     histories: Mapping[str, pd.DataFrame],
     main_variant: str,
     paths: EvaluationFigurePaths,
+    shipped: tuple[str, str] | None = None,
 ) -> None:
     """The evaluation's figures from :func:`~traffictwin.risk.evaluation.evaluate_suite`'s
     ``metrics`` and per-frame ``pred`` on ``source`` (a
@@ -316,7 +322,9 @@ def evaluation_figures(
     every variant (``histories``), the ``scatter`` of ``main_variant`` and the speed-only and
     geometric SGM baselines, its ``confusion`` matrix, the Fig. 7 ``examples`` (best critical /
     worst frame) and the ``roc`` curves of the headline (each seed) vs the baselines, at the
-    primary THW threshold. Baselines are shown against the primary label: the headline's when it is."""
+    primary THW threshold. Baselines are shown against the primary label: the headline's when it is.
+    ``shipped``: (model key in ``metrics``/``pred``, legend name) of the shipped predictor, drawn
+    first in the scatter and the ROC when its predictions are there."""
     t0 = metrics["thresholds_s"][0]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
     at = metrics["models"][main_variant][f"at_{t0:g}s"]
@@ -333,9 +341,18 @@ def evaluation_figures(
         paper_test_mse=PAPER["test/mse"],
         objectives={v: metrics["models"].get(v, {}).get("objective") for v in histories},
     )
+    ship = (
+        shipped
+        if shipped
+        and same_label
+        and f"pred_{shipped[0]}" in pred
+        and shipped[0] in metrics["models"]
+        else None
+    )
     plot_scatter(
         y,
         {
+            **({ship[1]: pred[f"pred_{ship[0]}"].to_numpy()} if ship else {}),
             main_variant: yhat,
             **{b: pred[c].to_numpy() for b, c in base_cols.items() if b != "geometric_gt"},
         },
@@ -345,6 +362,10 @@ def evaluation_figures(
     )
     if paths.roc is not None:
         scores, auc = _roc_scores(metrics, pred, main_variant, base_cols)
+        if ship:
+            key, name = ship
+            scores = {name: pred[f"pred_{key}"].to_numpy(), **scores}
+            auc = {name: metrics["models"][key][f"at_{t0:g}s"].get("roc_auc"), **auc}
         plot_roc(
             y > risk_threshold(t0),
             scores,

@@ -55,9 +55,11 @@ FIGURES: dict[str, str] = {
     "orb_outlier_example": "A stereo pair the ORB check flags (Sec. 3.3)",
     "risk_training_curves": "Training and validation loss per variant, one panel per training objective, and every variant's validation MSE of the normalised risk (mirrors Figs. 5 and 6)",
     "risk_confusion": "Confusion matrix of the main variant at THW 1.5 s (mirrors Table 1)",
-    "risk_scatter": "Predicted vs true risk on the test split, with the critical threshold",
+    "risk_scatter": "Predicted vs true risk on the test split (symmetric-log axes), the shipped "
+    "predictor first, with the critical threshold",
     "risk_examples": "Test scenes with true and predicted risk (mirrors Fig. 7)",
-    "risk_roc": "ROC of the headline network (each seed) vs the speed-only baseline and the "
+    "risk_roc": "ROC of the shipped predictor and the headline network (each seed) vs the "
+    "speed-only baseline and the "
     "corridor rule on SGM and on GT disparity (dashed), corridors chosen on validation, at THW 1.5 s",
 }
 FIGURE_PATTERN = r"risk|stereo|disparity|orb|camera|thw"
