@@ -165,6 +165,7 @@ def plot_scatter(
         ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
+    fig.tight_layout()  # the panels' axis labels clear their neighbours
     save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
