@@ -8,6 +8,9 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.install-stamp
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 export PYTHONHASHSEED := 0
+# the suite and the pipeline start hundreds of Python processes: let them reuse compiled bytecode
+# (__pycache__, git-ignored) where the environment turns it off
+unexport PYTHONDONTWRITEBYTECODE
 # an extra package index for torch's CPU wheel on a machine whose pip cannot find it otherwise:
 #   make install TORCH_INDEX=https://download.pytorch.org/whl/cpu
 # empty (the default): pip's own configuration alone (docs/installation.md)
@@ -44,10 +47,10 @@ run: install
 test: install
 	$(PY) -m pytest -n auto --dist loadgroup --durations=25 $(PYTEST_ARGS)
 
-# unit tests only (no stage, DAG, training run or MLflow database), on every core (pytest-xdist);
-# how many: docs/testing.md
+# the quick unit tests only (no stage, DAG, training run or MLflow database, none that took 0.5 s
+# or more in tests/durations.json), on every core (pytest-xdist); how many: docs/testing.md
 test-fast: install
-	$(PY) -m pytest -n auto -m "not slow and not integration" $(PYTEST_ARGS)
+	$(PY) -m pytest -n auto -m "not slow and not integration and not long" $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -34,7 +34,7 @@ TESTS_END = "<!-- tests:end -->"
 #: the help text's width in characters (argparse would otherwise follow $COLUMNS / the terminal)
 WIDTH = 100
 #: the marker expression of `make test-fast` (Makefile); tests/test_docs.py checks they agree
-FAST = "not slow and not integration"
+FAST = "not slow and not integration and not long"
 
 
 # ------------------------------------------------------------------ CLI reference
@@ -109,7 +109,7 @@ def tests_block(fast: int, total: int) -> str:
         [
             TESTS_BEGIN,
             f"`make test` runs **{total:,}** tests; `make test-fast` runs the **{fast:,}** of them "
-            f'that are marked neither `slow` nor `integration` (`-m "{FAST}"`; '
+            f'that are marked neither `slow`, `integration` nor `long` (`-m "{FAST}"`; '
             f"{total - fast:,} left out).",
             TESTS_END,
         ]

@@ -357,7 +357,9 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
-    """Stop an early ci DAG build still running (a run that ended early, e.g. ``-x``)."""
+    """Stop an early ci DAG build still running (a run that ended early, e.g. ``-x``); write the
+    recorded durations (``--record-durations``)."""
+    _write_durations(session.config)
     proc = _EARLY.pop("repro", None)
     if proc is not None and proc.poll() is None:
         import signal
@@ -433,7 +435,7 @@ def single_torch_thread():
 # fixtures that stand for an MLflow database: tests using them are integration tests
 _INTEGRATION_FIXTURES = {"mlflow_uri", "cl"}
 # fixtures that run stages or the whole DAG in a repository copy: tests using them are slow, so
-# `make test-fast` (-m "not slow and not integration") never runs a DAG
+# `make test-fast` (-m "not slow and not integration and not long") never runs a DAG
 _SLOW_FIXTURES = {"ci_dag", "repo_copy", "ci_repo"}
 
 
@@ -456,14 +458,71 @@ def _run_order(item: pytest.Item) -> tuple[bool, int]:
     return waits, rank
 
 
+#: the recorded time of every test (setup + call + teardown, s), written by a whole run with
+#: ``--record-durations tests/durations.json`` (docs/testing.md); read to mark the ``long`` tests
+DURATIONS = ROOT / "tests" / "durations.json"
+#: a test whose recorded time is at least this (s) is ``long``: `make test-fast` leaves it out
+LONG_S = 0.5
+
+
+def recorded_durations(path: Path | None = None) -> dict[str, float]:
+    """``{node id: seconds}`` from ``path`` (default :data:`DURATIONS`); empty when there is none."""
+    import json
+
+    path = DURATIONS if path is None else path
+    if not path.is_file():
+        return {}
+    data = json.loads(path.read_text())
+    if not isinstance(data, dict) or not all(isinstance(v, int | float) for v in data.values()):
+        raise pytest.UsageError(f"{path}: expected a JSON object {{node id: seconds}}")
+    return data
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--record-durations",
+        metavar="PATH",
+        default=None,
+        help="write every test's time (setup + call + teardown, s) to PATH as JSON at the end "
+        "of the run; tests/durations.json is what marks the `long` tests",
+    )
+
+
+@pytest.hookimpl(tryfirst=True)  # before the -m deselection of the mark plugin
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    recorded = recorded_durations()
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
         if _INTEGRATION_FIXTURES & names:
             item.add_marker(pytest.mark.integration)
         if _SLOW_FIXTURES & names:
             item.add_marker(pytest.mark.slow)
+        if recorded.get(item.nodeid, 0.0) >= LONG_S:
+            item.add_marker(pytest.mark.long)
     items.sort(key=_run_order)  # stable: collection order within each kind
+
+
+_TIMES: dict[str, float] = {}  # node id -> seconds of this run (--record-durations)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Add up each test's phases (under pytest-xdist the controller gets every worker's reports)."""
+    _TIMES[report.nodeid] = _TIMES.get(report.nodeid, 0.0) + report.duration
+
+
+def _write_durations(config: pytest.Config) -> None:
+    """``--record-durations PATH``: this run's times, merged over the file's earlier entries (a
+    partial run updates the tests it ran), written atomically, two decimals, sorted."""
+    target = config.getoption("--record-durations", None)
+    if not target or hasattr(config, "workerinput") or not _TIMES:
+        return
+    import json
+
+    from traffictwin.io.atomic import write_text_atomic
+
+    path = Path(target)
+    merged = {**recorded_durations(path), **{k: round(v, 2) for k, v in _TIMES.items()}}
+    write_text_atomic(path, json.dumps(merged, indent=0, sort_keys=True) + "\n")
 
 
 @pytest.hookimpl(wrapper=True)

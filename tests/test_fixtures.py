@@ -7,6 +7,7 @@ import os
 import sqlite3
 from pathlib import Path
 
+import conftest
 import pytest
 from conftest import _run_order, builds_ci_dag_early, copy_dag, mlflow_uris_kept
 
@@ -119,3 +120,72 @@ def test_tests_waiting_for_the_ci_dag_run_last_the_longest_first() -> None:
         "test_readme_ci_blocks_run_as_written",
         "test_on_dag",
     ]
+
+
+def _items(*specs: tuple[str, list[str]]):
+    from types import SimpleNamespace
+
+    def item(nodeid: str, fixtures: list[str]):
+        it = SimpleNamespace(nodeid=nodeid, fixturenames=fixtures, marks=[])
+        it.add_marker = lambda mark: it.marks.append(mark.name)
+        return it
+
+    return [item(n, f) for n, f in specs]
+
+
+def test_long_tests_are_marked_from_the_recorded_durations(tmp_path, monkeypatch) -> None:
+    """A test whose recorded time reaches LONG_S is `long` (make test-fast leaves it out); a
+    quicker one or one not recorded yet is not; the fixture rules still mark slow and
+    integration tests."""
+    durations = tmp_path / "durations.json"
+    durations.write_text(
+        '{"tests/t.py::test_slowish": 0.5, "tests/t.py::test_quick": 0.49, "tests/t.py::test_dag": 9}'
+    )
+    monkeypatch.setattr(conftest, "DURATIONS", durations)
+    items = _items(
+        ("tests/t.py::test_slowish", []),
+        ("tests/t.py::test_quick", []),
+        ("tests/t.py::test_new", []),
+        ("tests/t.py::test_dag", ["ci_dag"]),
+        ("tests/t.py::test_db", ["mlflow_uri"]),
+    )
+    conftest.pytest_collection_modifyitems(None, items)
+    marks = {i.nodeid.split("::")[1]: i.marks for i in items}
+    assert marks == {
+        "test_slowish": ["long"],
+        "test_quick": [],
+        "test_new": [],
+        "test_dag": ["slow", "long"],
+        "test_db": ["integration"],
+    }
+
+
+def test_recorded_durations_add_the_phases_and_keep_earlier_entries(tmp_path, monkeypatch) -> None:
+    """--record-durations: setup + call + teardown of each test of this run, merged over the
+    file's entries for tests this run did not run; a bad file is named."""
+    from types import SimpleNamespace
+
+    out = tmp_path / "durations.json"
+    out.write_text('{"tests/t.py::test_other": 3.0, "tests/t.py::test_a": 9.0}')
+    monkeypatch.setattr(conftest, "_TIMES", {})
+    for phase, seconds in (("setup", 0.25), ("call", 1.0), ("teardown", 0.004)):
+        conftest.pytest_runtest_logreport(
+            SimpleNamespace(nodeid="tests/t.py::test_a", when=phase, duration=seconds)
+        )
+    config = SimpleNamespace(getoption=lambda name, default=None: str(out))
+    conftest._write_durations(config)
+    assert conftest.recorded_durations(out) == {
+        "tests/t.py::test_a": 1.25,
+        "tests/t.py::test_other": 3.0,
+    }
+    out.write_text('["not", "an object"]')
+    with pytest.raises(pytest.UsageError, match="durations.json: expected a JSON object"):
+        conftest.recorded_durations(out)
+
+
+def test_the_committed_durations_file_is_well_formed() -> None:
+    """tests/durations.json is a JSON object of node ids under tests/ and seconds >= 0."""
+    recorded = conftest.recorded_durations()
+    assert recorded, "tests/durations.json is missing or empty: record it (docs/testing.md)"
+    assert all(k.startswith("tests/") and "::" in k for k in recorded)
+    assert all(v >= 0 for v in recorded.values())

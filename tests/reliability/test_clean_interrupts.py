@@ -26,6 +26,13 @@ ENV = {
 }
 
 
+def _ctrl_c_as_a_terminal_sends_it() -> None:
+    """In the stage's process: SIGINT's default disposition, as under a terminal. A runner started
+    in the background by a non-interactive shell (``cmd &``) ignores SIGINT, and its children
+    would inherit that (Python then installs no KeyboardInterrupt handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _lines(err: str) -> list[str]:
     return [ln for ln in err.strip().splitlines() if ln.strip()]
 
@@ -78,6 +85,7 @@ def test_ctrl_c_during_a_worker_pool_is_one_line_and_130(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=_ctrl_c_as_a_terminal_sends_it,
     )
     try:
         assert "started" in proc.stdout.readline()  # a worker is in its task
@@ -185,6 +193,7 @@ def test_ctrl_c_during_evaluate_fusions_registration_pool_is_one_line_and_130(tm
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=_ctrl_c_as_a_terminal_sends_it,
     )
     try:
         assert "pool" in proc.stdout.readline()
