@@ -25,6 +25,7 @@ from pipelines.report import providers
 from traffictwin.report import model as M
 from traffictwin.report import paper_numbers as P
 from traffictwin.report import render as R
+from traffictwin.report.claims import VERDICTS
 
 NUM_RE = re.compile(r"^-?[\d,]*\.?\d+(e[+-]?\d+)?( %)?$|^\d+:\d\d(:\d\d)?$")
 
@@ -589,7 +590,7 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
     first = "\n".join(index.splitlines()[:40])
     verdicts = md_tables(first)[0]
     assert len(verdicts) == len(P.FUSION_CLAIMS) + 4  # fusion's claims, the risk paper's four
-    assert {r[-1] for r in verdicts} <= {"reproduced", "not reproduced", "not comparable"}
+    assert {r[-1] for r in verdicts} <= set(VERDICTS)
     # the list of pages: one per section with a page, in reading order, each page there
     pages = [p.stem for p in page_files(reports)[1:]]
     assert pages == list(dict.fromkeys(s.page for s in rep.sections if s.page))

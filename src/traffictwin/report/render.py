@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.io.atomic import write_json_atomic, write_text_atomic
-from traffictwin.report.claims import NOT_COMPARABLE, NOT_REPRODUCED, REPRODUCED, ClaimCheck
+from traffictwin.report.claims import VERDICTS, ClaimCheck
 from traffictwin.report.model import (
     NA,
     Cell,
@@ -257,15 +257,14 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
     if not claims:
         sec.paragraphs.append("No claim could be checked yet (the evaluation stages have not run).")
         return sec
-    counts = {
-        v: sum(c.verdict == v for c in claims) for v in (REPRODUCED, NOT_REPRODUCED, NOT_COMPARABLE)
-    }
+    counts = {v: sum(c.verdict == v for c in claims) for v in VERDICTS}
     sec.paragraphs.append(
         f"{len(claims)} claims of the papers: "
         + ", ".join(f"{n} {v}" for v, n in counts.items())
         + ". Reproduced: each 95 % interval lies on the side the paper claims (a difference is a "
-        "finding only when its interval excludes 0; a number the paper prints is met when our "
-        "interval reaches it); not comparable: no interval in this run's metrics."
+        "finding only when its interval excludes 0), or reaches the number the paper prints; "
+        "exceeded: our whole interval lies beyond the paper's number on the better side (above "
+        "its accuracy, below its error); not comparable: no interval in this run's metrics."
     )
     t = Table(
         "Paper claims against this run",
