@@ -78,7 +78,9 @@ def stylesheet_problems(page: Path, reports: Path) -> list[str]:
     p.feed(page.read_text())
     name = page.relative_to(reports)
     want = (reports / R.STYLE).resolve()
-    bad = [f"{name}: an inline <style> (the style sheet is {R.STYLE})"] * bool(p.inline_styles)
+    bad = []
+    if p.inline_styles:
+        bad.append(f"{name}: an inline <style> (the style sheet is {R.STYLE})")
     if len(p.sheets) != 1:
         bad.append(f"{name}: {len(p.sheets)} style sheet links (want one, to {R.STYLE})")
     bad += [

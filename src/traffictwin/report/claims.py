@@ -62,7 +62,8 @@ class ClaimCheck:
 
 
 def claim_verdict(sides: Sequence[str], expected: str, *, value: bool = False) -> str:
-    """The verdict of a claim from the :func:`interval_side` of each of its intervals.
+    """The verdict of a claim from the :func:`~traffictwin.interval_rule.interval_side` of each of
+    its intervals.
 
     ``expected``: ``"lower"`` or ``"higher"``, the side the paper claims (for a number the paper
     prints: the better side). ``value``: the reference is a number the paper reports (not a
