@@ -1,5 +1,6 @@
 """Stage `report` (last in the DAG): the index reports/README.md and reports/index.html, one page per
-section under reports/pages/ (.md and .html), reports/results_table.md.
+section under reports/pages/ (.md and .html), their style sheet reports/style.css,
+reports/results_table.md.
 
 Reads params.yaml for what the report shows about the run -- the profile, the seed, the
 pose-noise configurations, and the *scale* parameters (every key that any profile in

@@ -1,7 +1,7 @@
 """The rendered report as its files: the index (``reports/README.md``, ``reports/index.html``) and
 the pages it lists (``reports/pages/<name>.md`` / ``.html``), in the index's order; and a checker
-of every relative link and image source of every page (target file present, anchor present on
-the target page)."""
+of every relative link, image source and style sheet of every page (target file present, anchor
+present on the target page, each HTML page linking the report's one style sheet)."""
 
 from __future__ import annotations
 
@@ -51,18 +51,44 @@ def page_html(reports: Path, name: str) -> str:
 
 
 class _Refs(HTMLParser):
-    """``href`` / ``src`` values and ``id`` attributes of an HTML page."""
+    """``href`` / ``src`` values, ``id`` attributes, the ``<link rel="stylesheet">`` targets and
+    the inline ``<style>`` elements of an HTML page."""
 
     def __init__(self) -> None:
         super().__init__(convert_charrefs=True)
         self.refs: list[str] = []
         self.ids: set[str] = set()
+        self.sheets: list[str] = []
+        self.inline_styles = 0
 
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         a = dict(attrs)
         self.refs += [v for k, v in a.items() if k in ("href", "src") and v]
         if a.get("id"):
             self.ids.add(str(a["id"]))
+        if tag == "link" and a.get("rel") == "stylesheet":
+            self.sheets.append(a.get("href") or "")
+        self.inline_styles += tag == "style"
+
+
+def stylesheet_problems(page: Path, reports: Path) -> list[str]:
+    """``"<page>: ... (why)"`` unless the HTML page links exactly one style sheet, the report's
+    ``reports/style.css`` (by a path relative to the page), and inlines none."""
+    p = _Refs()
+    p.feed(page.read_text())
+    name = page.relative_to(reports)
+    want = (reports / R.STYLE).resolve()
+    bad = []
+    if p.inline_styles:
+        bad.append(f"{name}: an inline <style> (the style sheet is {R.STYLE})")
+    if len(p.sheets) != 1:
+        bad.append(f"{name}: {len(p.sheets)} style sheet links (want one, to {R.STYLE})")
+    bad += [
+        f"{name}: {h} (style sheet is not reports/{R.STYLE})"
+        for h in p.sheets
+        if (page.parent / unquote(h)).resolve() != want
+    ]
+    return bad
 
 
 def md_anchors(text: str) -> set[str]:
@@ -98,14 +124,18 @@ def refs(path: Path) -> list[str]:
 
 
 def broken_links(reports: Path) -> list[str]:
-    """``"<page>: <ref> (why)"`` for every relative link or image source of every page of the
-    report (Markdown and HTML) whose target file is missing, or whose ``#anchor`` is not on the
-    target page; external links (``http(s):``, ``mailto:``) and ``data:`` images are skipped."""
+    """``"<page>: <ref> (why)"`` for every relative link, image source or style sheet of every
+    page of the report (Markdown and HTML) whose target file is missing, or whose ``#anchor`` is
+    not on the target page, and for every HTML page that does not link the report's one style
+    sheet (:func:`stylesheet_problems`); external links (``http(s):``, ``mailto:``) and
+    ``data:`` images are skipped."""
     bad = []
     pages = [*page_files(reports), *page_files(reports, html=True)]
     for page in pages:
         if not page.is_file():  # a listed page that is missing: named by the index's link to it
             continue
+        if page.suffix == ".html":
+            bad += stylesheet_problems(page, reports)
         for ref in refs(page):
             if re.match(r"^(?:[a-z]+:)", ref):
                 continue

@@ -19,12 +19,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from _report_pages import all_html, all_md, broken_links, page_files, page_md
+from _report_pages import all_html, all_md, broken_links, page_files, page_html, page_md
 
 from pipelines.report import providers
 from traffictwin.report import model as M
 from traffictwin.report import paper_numbers as P
 from traffictwin.report import render as R
+from traffictwin.report.claims import VERDICTS
 
 NUM_RE = re.compile(r"^-?[\d,]*\.?\d+(e[+-]?\d+)?( %)?$|^\d+:\d\d(:\d\d)?$")
 
@@ -589,7 +590,7 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
     first = "\n".join(index.splitlines()[:40])
     verdicts = md_tables(first)[0]
     assert len(verdicts) == len(P.FUSION_CLAIMS) + 4  # fusion's claims, the risk paper's four
-    assert {r[-1] for r in verdicts} <= {"reproduced", "not reproduced", "not comparable"}
+    assert {r[-1] for r in verdicts} <= set(VERDICTS)
     # the list of pages: one per section with a page, in reading order, each page there
     pages = [p.stem for p in page_files(reports)[1:]]
     assert pages == list(dict.fromkeys(s.page for s in rep.sections if s.page))
@@ -608,9 +609,14 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
             assert f"### {head}\n" in md, head
         others = [p for p in pages if p != sec.page]  # each section on exactly one page
         assert all(f"## {sec.title}\n" not in page_md(reports, o) for o in others), sec.title
-    # the smaller index: no page inlines an image; the style sheet is not HTML-escaped
+    # the smaller index: no page inlines an image or the style sheet; every page links the one
+    # style sheet reports/style.css (index: style.css, a page: ../style.css), written verbatim
     assert all("data:image" not in p.read_text() for p in page_files(reports, html=True))
-    assert "details>summary{cursor:pointer}" in html and "&gt;" not in html.split("</style>")[0]
+    assert all("<style" not in p.read_text() for p in page_files(reports, html=True))
+    assert '<link rel="stylesheet" href="style.css"/>' in html
+    assert '<link rel="stylesheet" href="../style.css"/>' in page_html(reports, "fusion")
+    css = (reports / R.STYLE).read_text()
+    assert css == R.CSS and "details>summary{cursor:pointer}" in css and "&gt;" not in css
 
 
 def test_link_checker_finds_a_broken_link_and_a_missing_anchor(reports: Path) -> None:
@@ -633,6 +639,33 @@ def test_link_checker_finds_a_broken_link_and_a_missing_anchor(reports: Path) ->
     ok = R._slug("Cooperative twin — risk from N vehicles' fused maps")
     fusion.write_text(text + f"\n[y](twin.md#{ok})\n")
     assert not any("twin.md#" in b for b in broken_links(reports))
+
+
+def test_link_checker_finds_a_missing_or_wrong_style_sheet(reports: Path) -> None:
+    """Every HTML page links the one style sheet reports/style.css by its path from the page's
+    folder; the checker names a missing style.css, a page that links another path (resolving or
+    not), a page without the link and a page that inlines its style again."""
+    R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    assert broken_links(reports) == []
+    link = '<link rel="stylesheet" href="../style.css"/>'
+    risk, twin, run = (reports / R.PAGES / f"{n}.html" for n in ("risk", "twin", "run"))
+    (reports / "pages" / "style.css").write_text(R.CSS)  # resolves, but is not the report's
+    risk.write_text(risk.read_text().replace(link, '<link rel="stylesheet" href="style.css"/>'))
+    twin.write_text(twin.read_text().replace(link, ""))
+    run.write_text(run.read_text().replace(link, link + "<style>body{}</style>"))
+    (reports / R.STYLE).unlink()
+    bad = broken_links(reports)
+    assert any(b.startswith("index.html: style.css (no file") for b in bad), bad
+    assert any(b.startswith("pages/fusion.html: ../style.css (no file") for b in bad), bad
+    assert "pages/risk.html: style.css (style sheet is not reports/style.css)" in bad
+    assert "pages/twin.html: 0 style sheet links (want one, to style.css)" in bad
+    assert "pages/run.html: an inline <style> (the style sheet is style.css)" in bad
+    (reports / R.STYLE).write_text(R.CSS)  # back: only the three edited pages are named
+    assert sorted({b.split(":")[0] for b in broken_links(reports)}) == [
+        "pages/risk.html",
+        "pages/run.html",
+        "pages/twin.html",
+    ]
 
 
 def test_a_page_left_from_an_earlier_rendering_is_removed(reports: Path) -> None:
@@ -903,7 +936,7 @@ def test_smoke_profile_banner_on_report_summary_and_plot_titles(reports: Path) -
     assert all(t.endswith("${profile.banner}") for t in titles), titles
 
 
-def test_html_cells_align_numbers_right_and_text_left() -> None:
+def test_html_cells_align_numbers_right_and_text_left(reports: Path) -> None:
     """Text columns read left-aligned; numbers, intervals and percentages right-aligned (class
     ``num``), n/a greyed: the class a cell gets decides it, the style sheet says so."""
     cls = {
@@ -914,4 +947,6 @@ def test_html_cells_align_numbers_right_and_text_left() -> None:
     for text in ("0.940", "[0.910, 0.965]", "99.73 %", "-0.131", "+0.0010", "1,234", "12.3 ms"):
         assert 'class="num"' in R._cell_attrs(M.Cell(text)), text
     assert 'class="na"' in R._cell_attrs(M.Cell(M.NA))
-    assert "text-align:left" in R.CSS.split("td.num")[0] and "td.num{text-align:right" in R.CSS
+    R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
+    css = (reports / R.STYLE).read_text()
+    assert "text-align:left" in css.split("td.num")[0] and "td.num{text-align:right" in css

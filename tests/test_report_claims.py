@@ -1,20 +1,23 @@
 """The verdicts on the report's first screen: each paper claim against this run's numbers, decided
 by the interval rule (a difference is a finding only when its 95 % interval excludes zero), on
-hand-made numbers: reproduced, not reproduced, not comparable."""
+hand-made numbers: reproduced, exceeded, not reproduced, not comparable."""
 
 from __future__ import annotations
 
 import pytest
 
+from traffictwin.fusion.findings import verdict
 from traffictwin.fusion.report_section.claims import fusion_claims
+from traffictwin.interval_rule import interval_side
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import (
+    EXCEEDED,
     NOT_COMPARABLE,
     NOT_REPRODUCED,
     REPRODUCED,
+    VERDICTS,
     claim_verdict,
     fmt_interval,
-    interval_side,
 )
 from traffictwin.risk.report_section import claims as risk_claims
 
@@ -29,19 +32,40 @@ def test_interval_side_against_zero_a_value_and_an_interval() -> None:
     assert interval_side(0.70, 0.75, 0.7287) == "no difference shown"
     assert interval_side(-0.3, -0.2, -0.1, 0.0) == "lower"  # against another interval
     assert interval_side(-0.3, -0.05, -0.1, 0.0) == "no difference shown"  # they overlap
+    assert interval_side(0.1, 0.3, None) == "n/a"  # no reference: nothing to place against
+    assert interval_side(True, 0.3) == "n/a"  # a flag is no bound
 
 
-def test_claim_verdict_reproduced_not_reproduced_not_comparable() -> None:
-    # a claimed difference: every interval on the claimed side
+@pytest.mark.parametrize(
+    ("lo", "hi"),
+    [(-0.3, -0.1), (0.1, 0.3), (-0.1, 0.2), (0.0, 0.2), (-0.2, 0.0), (None, 0.2), (0.1, "x")],
+)
+def test_fusion_findings_and_claims_place_a_difference_by_the_same_rule(lo, hi) -> None:
+    """The fusion findings' verdict of a paired difference is the interval rule against zero."""
+    assert verdict({"estimate": 0.0, "lo": lo, "hi": hi}) == interval_side(lo, hi)
+    assert verdict(None) == "n/a"
+
+
+def test_claim_verdict_each_verdict_on_hand_made_sides() -> None:
+    assert VERDICTS == (REPRODUCED, EXCEEDED, NOT_REPRODUCED, NOT_COMPARABLE)
+    # a claimed difference: every interval on the claimed side; beyond it is no "exceeded"
     assert claim_verdict(["lower", "lower", "lower"], "lower") == REPRODUCED
+    assert claim_verdict(["higher"], "higher") == REPRODUCED
     assert claim_verdict(["lower", "higher", "lower"], "lower") == NOT_REPRODUCED
     assert claim_verdict(["lower", "no difference shown"], "lower") == NOT_REPRODUCED
     assert claim_verdict(["lower", "n/a"], "lower") == NOT_COMPARABLE
     assert claim_verdict([], "higher") == NOT_COMPARABLE
-    # a paper's number: met when our interval reaches it or lies beyond on the better side
+    # a paper's number: reproduced when our interval reaches it ...
     assert claim_verdict(["no difference shown"], "higher", value=True) == REPRODUCED
-    assert claim_verdict(["higher"], "higher", value=True) == REPRODUCED
+    assert claim_verdict(["no difference shown"], "lower", value=True) == REPRODUCED
+    # ... exceeded when every interval lies wholly beyond it on the better side ...
+    assert claim_verdict(["higher"], "higher", value=True) == EXCEEDED
+    assert claim_verdict(["lower", "lower"], "lower", value=True) == EXCEEDED
+    # ... reproduced when some reach it and the others lie beyond; else not reproduced
+    assert claim_verdict(["higher", "no difference shown"], "higher", value=True) == REPRODUCED
     assert claim_verdict(["lower"], "higher", value=True) == NOT_REPRODUCED
+    assert claim_verdict(["higher", "lower"], "higher", value=True) == NOT_REPRODUCED
+    assert claim_verdict(["n/a"], "higher", value=True) == NOT_COMPARABLE
     with pytest.raises(ValueError, match="expected must be 'lower' or 'higher'"):
         claim_verdict(["lower"], "better")
 
@@ -142,12 +166,17 @@ def _risk(acc: tuple[float, float, float], mse: tuple[float, float, float]) -> d
 
 
 def test_risk_claims_against_the_papers_numbers() -> None:
-    # accuracy 0.80 [0.75, 0.85] > 72.87 % and > 70.77 %; MSE interval contains 0.0147
+    # accuracy 0.80 [0.75, 0.85] wholly above 72.87 %: exceeded; above Wang & Kato's 70.77 %: the
+    # claimed lead (a difference) reproduced; MSE interval contains 0.0147: reproduced
     got = risk_claims(_risk((0.80, 0.75, 0.85), (0.015, 0.012, 0.018)))
-    assert [c.verdict for c in got] == [REPRODUCED, REPRODUCED, REPRODUCED, NOT_COMPARABLE]
+    assert [c.verdict for c in got] == [EXCEEDED, REPRODUCED, REPRODUCED, NOT_COMPARABLE]
     assert [c.where for c in got] == ["Sec. 4, Table 1", "Sec. 4", "Sec. 4 (ref. [20])", "Sec. 3.3"]
     assert got[0].measured == "accuracy 80.00 % [75.00 %, 85.00 %] (network `paper`, test frames)"
     assert got[3].measured.startswith("4.00 % of 1,000 pairs dropped")
+    # accuracy 0.73 [0.70, 0.76] reaches 72.87 %: reproduced; MSE [0.008, 0.012] wholly below
+    # 0.0147 (an error: lower is better): exceeded; [0.70, 0.76] contains 70.77 %: no lead shown
+    got = risk_claims(_risk((0.73, 0.70, 0.76), (0.01, 0.008, 0.012)))
+    assert [c.verdict for c in got][:3] == [REPRODUCED, EXCEEDED, NOT_REPRODUCED]
     # accuracy 0.71 [0.69, 0.72]: below 72.87 %, Wang & Kato's 70.77 % inside: no lead shown;
     # MSE [0.02, 0.03] above the paper's 0.0147
     got = risk_claims(_risk((0.71, 0.69, 0.72), (0.025, 0.02, 0.03)))

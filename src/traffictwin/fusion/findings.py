@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from traffictwin.interval_rule import NO_INTERVAL, SIDES, interval_side
 from traffictwin.report.prose import render_prose
 
 __all__ = ["FusionFindings", "fusion_findings", "fusion_findings_record", "verdict"]
@@ -28,7 +29,7 @@ __all__ = ["FusionFindings", "fusion_findings", "fusion_findings_record", "verdi
 HEADLINE = "kld_fou_mean"
 NET, NAIVE, REG, EGO = "dnn", "naive", "registered", "ego"
 TEMPLATES = Path(__file__).parent / "templates"
-VERDICTS = ("lower", "higher", "no difference shown", "n/a")
+VERDICTS = SIDES
 
 #: configurations grouped by the verdict of a paired difference (keys: :data:`VERDICTS`)
 Groups = dict[str, list[str]]
@@ -68,17 +69,9 @@ def _diff(
 
 def verdict(d: Mapping[str, Any] | None) -> str:
     """``"lower"`` / ``"higher"`` when the paired interval of ``row − base`` excludes 0,
-    ``"no difference shown"`` when it does not, ``"n/a"`` when there is none."""
-    if d is None:
-        return "n/a"
-    lo, hi = _num(d.get("lo")), _num(d.get("hi"))
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return "n/a"
-    if hi < 0:
-        return "lower"
-    if lo > 0:
-        return "higher"
-    return "no difference shown"
+    ``"no difference shown"`` when it does not, ``"n/a"`` when there is none (the interval rule:
+    :func:`traffictwin.interval_rule.interval_side`)."""
+    return NO_INTERVAL if d is None else interval_side(d.get("lo"), d.get("hi"))
 
 
 def _diff_text(d: Mapping[str, Any] | None, digits: int = 3) -> str:

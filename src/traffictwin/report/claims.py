@@ -4,12 +4,17 @@ numbers and their 95 % intervals, never typed in.
 The rule is the report's interval rule: a difference is a finding only when its 95 % interval
 excludes zero. A claim is checked on one or more intervals (e.g. network − naive KLD at B, C and
 D), each placed against a reference (zero for a difference; the paper's printed value for a
-number the paper reports) with :func:`interval_side`; :func:`claim_verdict` turns the sides into
+number the paper reports) with :func:`~traffictwin.interval_rule.interval_side` (the rule's one
+home, :mod:`traffictwin.interval_rule`); :func:`claim_verdict` turns the sides into
 
-- ``reproduced``: every interval lies on the side the paper claims (for a paper's number: our
-  interval reaches the paper's value or lies beyond it on the better side);
-- ``not reproduced``: some interval does not (it lies on the other side, or -- for a claimed
-  difference -- it contains zero: this run shows no difference);
+- ``reproduced``: every interval lies on the side the paper claims (a difference), or -- for a
+  number the paper prints -- every interval reaches the paper's value or lies beyond it on the
+  better side, at least one reaching it;
+- ``exceeded``: a number the paper prints, every interval wholly beyond it on the better side
+  (above the paper's accuracy, below its error): this run does better than the paper, which is
+  no reproduction of the paper's number;
+- ``not reproduced``: some interval lies on the other side, or -- for a claimed difference --
+  contains zero (this run shows no difference);
 - ``not comparable``: a number or its interval is missing (the claim has no interval in this
   run's metrics, or the stage did not run).
 
@@ -19,24 +24,28 @@ Each problem's :class:`~traffictwin.report.model.SectionProvider` lists its clai
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from traffictwin.interval_rule import HIGHER, LOWER, NO_DIFFERENCE, NO_INTERVAL, finite
+
 __all__ = [
+    "EXCEEDED",
     "NOT_COMPARABLE",
     "NOT_REPRODUCED",
     "REPRODUCED",
+    "VERDICTS",
     "ClaimCheck",
     "claim_verdict",
     "fmt_interval",
-    "interval_side",
     "pct",
 ]
 
-REPRODUCED, NOT_REPRODUCED, NOT_COMPARABLE = "reproduced", "not reproduced", "not comparable"
-LOWER, HIGHER, NO_DIFFERENCE, NO_INTERVAL = "lower", "higher", "no difference shown", "n/a"
+REPRODUCED, EXCEEDED = "reproduced", "exceeded"
+NOT_REPRODUCED, NOT_COMPARABLE = "not reproduced", "not comparable"
+#: every verdict, in the order the report counts them
+VERDICTS = (REPRODUCED, EXCEEDED, NOT_REPRODUCED, NOT_COMPARABLE)
 
 
 @dataclass(frozen=True)
@@ -52,38 +61,21 @@ class ClaimCheck:
     verdict: str
 
 
-def _finite(v: Any) -> float | None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return None
-    return float(v) if math.isfinite(float(v)) else None
-
-
-def interval_side(lo: Any, hi: Any, ref_lo: float = 0.0, ref_hi: float | None = None) -> str:
-    """Where the interval ``[lo, hi]`` lies against the reference ``[ref_lo, ref_hi]`` (a point
-    when ``ref_hi`` is None: zero for a difference, a paper's value): ``"lower"`` when entirely
-    below it, ``"higher"`` when entirely above, ``"no difference shown"`` when they overlap,
-    ``"n/a"`` when a bound is missing or not finite."""
-    lo, hi = _finite(lo), _finite(hi)
-    top = ref_lo if ref_hi is None else ref_hi
-    if lo is None or hi is None or _finite(ref_lo) is None or _finite(top) is None:
-        return NO_INTERVAL
-    if hi < ref_lo:
-        return LOWER
-    if lo > top:
-        return HIGHER
-    return NO_DIFFERENCE
-
-
 def claim_verdict(sides: Sequence[str], expected: str, *, value: bool = False) -> str:
-    """The verdict of a claim from the :func:`interval_side` of each of its intervals.
+    """The verdict of a claim from the :func:`~traffictwin.interval_rule.interval_side` of each of
+    its intervals.
 
-    ``expected``: ``"lower"`` or ``"higher"``, the side the paper claims. ``value``: the
-    reference is a number the paper reports (not a difference of zero), so an interval that
-    contains it reproduces it too. No sides, or a side ``"n/a"``: ``not comparable``."""
+    ``expected``: ``"lower"`` or ``"higher"``, the side the paper claims (for a number the paper
+    prints: the better side). ``value``: the reference is a number the paper reports (not a
+    difference of zero): an interval that contains it reproduces it, and when every interval lies
+    beyond it on the better side the verdict is ``exceeded``. No sides, or a side ``"n/a"``:
+    ``not comparable``."""
     if expected not in (LOWER, HIGHER):
         raise ValueError(f"claim_verdict: expected must be 'lower' or 'higher', got {expected!r}")
     if not sides or NO_INTERVAL in sides:
         return NOT_COMPARABLE
+    if all(s == expected for s in sides):
+        return EXCEEDED if value else REPRODUCED
     agree = {expected, NO_DIFFERENCE} if value else {expected}
     return REPRODUCED if all(s in agree for s in sides) else NOT_REPRODUCED
 
@@ -100,11 +92,11 @@ def fmt_interval(
     ``n/a`` for a missing number; the estimate alone without an interval)."""
 
     def f(v: Any) -> str:
-        x = _finite(v)
+        x = finite(v)
         if x is None:
             return "n/a"
         return fmt(x) if callable(fmt) else fmt.format(x)
 
-    if _finite(lo) is None or _finite(hi) is None:
+    if finite(lo) is None or finite(hi) is None:
         return f(estimate)
     return f"{f(estimate)} [{f(lo)}, {f(hi)}]"

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.io.atomic import write_json_atomic, write_text_atomic
-from traffictwin.report.claims import NOT_COMPARABLE, NOT_REPRODUCED, REPRODUCED, ClaimCheck
+from traffictwin.report.claims import VERDICTS, ClaimCheck
 from traffictwin.report.model import (
     NA,
     Cell,
@@ -58,6 +58,7 @@ README = "README.md"
 INDEX_HTML = "index.html"
 PAGES = "pages"  # reports/pages/<name>.md and .html: one page per section
 RESULTS_TABLE = "results_table.md"
+STYLE = "style.css"  # the HTML pages' one style sheet (:data:`CSS`), linked from each page
 TIMINGS_README = "timings/README.md"  # beside the run records: not a DVC output
 SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
 TEMPLATES = Path(__file__).resolve().parent / "templates"
@@ -257,15 +258,14 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
     if not claims:
         sec.paragraphs.append("No claim could be checked yet (the evaluation stages have not run).")
         return sec
-    counts = {
-        v: sum(c.verdict == v for c in claims) for v in (REPRODUCED, NOT_REPRODUCED, NOT_COMPARABLE)
-    }
+    counts = {v: sum(c.verdict == v for c in claims) for v in VERDICTS}
     sec.paragraphs.append(
         f"{len(claims)} claims of the papers: "
         + ", ".join(f"{n} {v}" for v, n in counts.items())
         + ". Reproduced: each 95 % interval lies on the side the paper claims (a difference is a "
-        "finding only when its interval excludes 0; a number the paper prints is met when our "
-        "interval reaches it); not comparable: no interval in this run's metrics."
+        "finding only when its interval excludes 0), or reaches the number the paper prints; "
+        "exceeded: our whole interval lies beyond the paper's number on the better side (above "
+        "its accuracy, below its error); not comparable: no interval in this run's metrics."
     )
     t = Table(
         "Paper claims against this run",
@@ -476,8 +476,8 @@ def _alt(caption: str) -> str:
 
 
 # --------------------------------------------------------------------------- html
-CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
+#: the HTML pages' style sheet, written once to ``reports/style.css`` (:data:`STYLE`)
+CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.5em 0;font-size:.9em}
 th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
 th{background:#f3f3f3} td.num{text-align:right;white-space:nowrap}
@@ -539,16 +539,16 @@ def _img_src(f: Figure, root: str = "", *, reports_dir: Path, embed: bool) -> st
 
 def render_html(report: Report, reports_dir: Path, embed: bool = False) -> dict[str, str]:
     """``{file relative to reports/: HTML}`` of every page (template ``page.html.j2``): the index
-    ``index.html`` and ``pages/<name>.html``; figures referenced by their relative path (inlined
-    as base64 only with ``embed``); secondary tables and the appendix sections in closed
-    ``<details>``."""
+    ``index.html`` and ``pages/<name>.html``, each linking the style sheet :data:`STYLE` of the
+    reports folder; figures referenced by their relative path (inlined as base64 only with
+    ``embed``); secondary tables and the appendix sections in closed ``<details>``."""
     env = _environment(True)
     env.filters["img_src"] = partial(_img_src, reports_dir=reports_dir, embed=embed)
     tpl = env.get_template("page.html.j2")
     out = {}
     for p in report_pages(report):
         out[page_file(p, True)] = _tidy(
-            tpl.render(report=report, page=p, index=INDEX_HTML, ext="html", css=CSS)
+            tpl.render(report=report, page=p, index=INDEX_HTML, ext="html", style=STYLE)
         )
     return out
 
@@ -556,13 +556,14 @@ def render_html(report: Report, reports_dir: Path, embed: bool = False) -> dict[
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
     """Write ``summary.json`` (the headline numbers), the index README.md and index.html, the
-    pages ``pages/<name>.md`` / ``.html`` (a page left from an earlier rendering is removed) and
-    results_table.md into ``inputs.reports_dir`` (each atomically)."""
+    pages ``pages/<name>.md`` / ``.html`` (a page left from an earlier rendering is removed), the
+    HTML pages' style sheet ``style.css`` and results_table.md into ``inputs.reports_dir`` (each
+    atomically)."""
     root = Path(inputs.reports_dir)
     headlines = collect_headlines(Sources(inputs).metrics, providers)
     write_json_atomic(root / SUMMARY, summary_json(headlines, inputs.banner))
     report = build_report(inputs, providers, headlines)
-    files = {**render_markdown(report), **render_html(report, root)}
+    files = {**render_markdown(report), **render_html(report, root), STYLE: CSS}
     res = render_results_markdown(report)
     for rel, text in files.items():
         write_text_atomic(root / rel, text)

@@ -14,16 +14,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import (
-    HIGHER,
-    LOWER,
-    NO_INTERVAL,
     ClaimCheck,
     claim_verdict,
     fmt_interval,
-    interval_side,
     pct,
 )
 from traffictwin.report.model import lookup

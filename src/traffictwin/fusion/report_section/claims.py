@@ -15,15 +15,12 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE, NAIVE, NET
+from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import (
-    HIGHER,
-    LOWER,
-    NO_INTERVAL,
     ClaimCheck,
     claim_verdict,
     fmt_interval,
-    interval_side,
 )
 from traffictwin.report.model import lookup
 
