@@ -80,7 +80,7 @@ class TwinDataParams:
     ism: IsmParams = IsmParams()
     scenario: CooperativeConfig = field(default_factory=CooperativeConfig)
     corridor_margin: float = 0.0
-    predict: PredictSettings = field(default_factory=PredictSettings)
+    predict: PredictSettings = field(kw_only=True)  # TTC settings (the stage passes twin.predict())
 
 
 def twin_risk_config(corridor_margin: float = 0.0) -> RiskConfig:
