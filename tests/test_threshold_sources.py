@@ -113,12 +113,10 @@ def test_report_text_follows_the_threshold(
 
 #: a literal 1.5 s next to a THW / critical / headway word: the critical threshold spelt out
 _LITERAL = re.compile(r"(?i)(thw|critical|headway).*\b1\.5\b|\b1\.5\b.*(thw|critical|headway)")
-#: files that may name 1.5 s near those words for another reason: the paper's printed numbers,
-#: the simulator's scripted braking onset (a scenario design, not the label) and the stereo
-#: evaluation's critical distances (depth bins at urban speeds)
+#: files that may name 1.5 s near those words for another reason: the paper's printed numbers
+#: and the stereo evaluation's critical distances (depth bins at urban speeds)
 _ALLOWED = {
     "report/paper_numbers.py",
-    "sim/cooperative.py",
     "stereo/metrics.py",
     "stereo/report_section.py",
 }

@@ -32,7 +32,7 @@ from traffictwin.twin.targets import targets
 
 GRID = GridSpec(rows=64, cols=48, cell=0.5)
 LIDAR = LidarSpec(azimuth_res_deg=0.8, max_range=50.0)
-CFG = CooperativeConfig(frames=6, vehicles=3)
+CFG = CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3)
 
 
 def _masses(rng: np.random.Generator, shape=(64, 48)) -> np.ndarray:
@@ -73,11 +73,11 @@ def test_occluded_sequences_hide_the_hazard_from_the_ego_at_the_critical_onset()
 
 def test_cooperative_config_rejects_bad_values() -> None:
     with pytest.raises(ValueError, match="vehicles must be >= 2"):
-        CooperativeConfig(vehicles=1)
+        CooperativeConfig(critical_thw=1.5, vehicles=1)
     with pytest.raises(ValueError, match="ego_speed"):
-        CooperativeConfig(ego_speed=(5.0, 2.0))
+        CooperativeConfig(critical_thw=1.5, ego_speed=(5.0, 2.0))
     with pytest.raises(ValueError, match="templates"):
-        CooperativeConfig(templates=("roundabout",))
+        CooperativeConfig(critical_thw=1.5, templates=("roundabout",))
 
 
 def test_sequence_arrays_layout() -> None:

@@ -229,7 +229,7 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     p = TwinDataParams(
         grid=grid,
         lidar=LidarSpec(azimuth_res_deg=0.8, max_range=50.0),
-        scenario=CooperativeConfig(frames=6, vehicles=3),
+        scenario=CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3),
         predict=PredictSettings(warn_s=1.5),
     )
     a = sequence_arrays(5, 0, p)

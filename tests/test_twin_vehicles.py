@@ -27,7 +27,7 @@ GRID = GridSpec(rows=64, cols=48, cell=0.5)
 P = TwinDataParams(
     grid=GRID,
     lidar=LidarSpec(azimuth_res_deg=0.8, max_range=50.0),
-    scenario=CooperativeConfig(frames=6, vehicles=3),
+    scenario=CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3),
     predict=PredictSettings(warn_s=1.5),
 )
 

@@ -52,7 +52,7 @@ ARGUMENTS = [
         "--thw-threshold",
         type=float,
         default=PAPER["threshold_s"],
-        help=f"critical if THW below this (s), default the paper's {PAPER['threshold_s']:g}",
+        help=f"critical if THW below this (s), default {PAPER['threshold_s']}",
     ),
     arg(
         "--params",

@@ -166,6 +166,7 @@ class TwinConfig:
             templates=tuple(self.templates),
             lead_in=(float(self.lead_in[0]), float(self.lead_in[1])),
             hidden_s=self.hidden_s,
+            critical_thw=self.critical_thw,
         )
 
     def predict(self) -> PredictSettings:
