@@ -185,3 +185,14 @@ def test_no_evaluation_code_spells_out_the_pose_success_limits() -> None:
     ]
     assert not hits, "a pose success limit spelt out (take it from the config):\n" + "\n".join(hits)
     assert _POSE_LITERAL.search('"success rate at D (error < 0.5 m and < 1 deg)"')
+
+
+def test_thresholds_must_be_distinct() -> None:
+    """Each threshold names its metrics (``at_<t>s``, ``shipped_balanced_accuracy_<t>s``)."""
+    from traffictwin.config import ConfigError
+    from traffictwin.risk.config import EvalRiskConfig
+
+    node = OmegaConf.create(_composed(None)["evaluation"]["risk"])
+    node.thresholds_s = [1.0, 1.0]
+    with pytest.raises((ConfigError, ValueError), match="must be distinct"):
+        typed(node, EvalRiskConfig, key="evaluation.risk")

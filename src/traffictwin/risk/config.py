@@ -247,6 +247,11 @@ class EvalRiskConfig:
             raise ValueError(
                 f"'thresholds_s' must be a non-empty list of positive seconds, got {list(self.thresholds_s)}"
             )
+        if len(set(self.thresholds_s)) != len(self.thresholds_s):
+            raise ValueError(
+                f"'thresholds_s' must be distinct (each names its metrics, at_<t>s), got "
+                f"{list(self.thresholds_s)}"
+            )
 
     def check_variants(self, variants: list[str]) -> None:
         """``main_variant`` must be one of the evaluated variants (``risk_model.run_variants``)."""

@@ -78,9 +78,11 @@ TARGETS: dict[str, Target] = {
 }
 
 
-def describe(target: Target, thw_s: float) -> str:
+def describe(target: Target, thw_s: float | str) -> str:
     """``target``'s description at THW threshold ``thw_s`` (s; one decimal at least: 1.0, 2.0,
-    1.25)."""
+    1.25; a text stands for a threshold that is not there)."""
+    if isinstance(thw_s, str):
+        return target.description.format(t=thw_s)
     t = f"{thw_s:.1f}" if math.isclose(thw_s, round(thw_s, 1)) else f"{thw_s:g}"
     return target.description.format(t=t)
 
@@ -134,13 +136,11 @@ class _Verdicts:
             **extra,
         }
 
-    def missing(
-        self, name: str, why: str, key: str | None = None, thw_s: float | None = None
-    ) -> None:
-        """Target ``name`` (reported as ``key``, default ``name``; described at THW ``thw_s``,
-        default the primary) could not be evaluated (not met)."""
+    def missing(self, name: str, why: str, thw_s: float | str | None = None) -> None:
+        """Target ``name`` (described at THW ``thw_s``, default the primary) could not be
+        evaluated (not met)."""
         desc = describe(TARGETS[name], self.t0 if thw_s is None else thw_s)
-        self.out[key or name] = {"description": desc, "met": False, "why": why}
+        self.out[name] = {"description": desc, "met": False, "why": why}
 
 
 def _shipped(v: _Verdicts, scorer: Scorer, shipped: str, label: str) -> None:
@@ -157,7 +157,8 @@ def _shipped(v: _Verdicts, scorer: Scorer, shipped: str, label: str) -> None:
                 name, sh[f"at_{t:g}s|balanced_accuracy"], shipped, key=key, thw_s=t, threshold_s=t
             )
         else:
-            v.missing(name, "no second THW threshold (evaluation.risk.thresholds_s)")
+            why = "no second THW threshold (evaluation.risk.thresholds_s)"
+            v.missing(name, why, thw_s="<second threshold>")
     t0 = thresholds[0]
     v.put("shipped_roc_auc", sh[f"at_{t0:g}s|roc_auc"], shipped, threshold_s=t0)
     v.put("shipped_thw_median_error_critical_s", sh["test/thw_median_error_critical_s"], shipped)
