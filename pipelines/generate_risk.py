@@ -1,7 +1,8 @@
 """Stage generate_risk: driving sequences -> stereo frames + risk labels -> data/risk (kind "risk").
 
 One shard per driving sequence (= scenario), rendered in parallel worker processes
-(``risk_data.workers``); splits 70/10/20 by sequence, stratified by the sequence's situation. Also writes
+(``risk_data.workers``); splits 70/10/20 by sequence, stratified by the sequence's situation. A
+frame is ``critical`` when its THW is below the primary ``evaluation.risk.thresholds_s``. Also writes
 reports/metrics/risk_data.json and reports/figures/risk_metric_example.png.
 """
 
@@ -24,6 +25,7 @@ from traffictwin.risk.dataset import (
     make_shard,
     summarise_frames,
 )
+from traffictwin.risk.metric import primary
 from traffictwin.sim.driving import draw_situation
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
@@ -31,14 +33,16 @@ from ._paths import RISK_DATA, figure_file, metrics_file
 
 
 def read_config(cfg) -> tuple[RiskDataConfig, RiskDataSpec, int]:
-    """``risk_data`` validated, the generation spec on the configured grid, and the data seed."""
+    """``risk_data`` validated, the generation spec on the configured grid (frames critical below
+    the primary ``evaluation.risk.thresholds_s``), and the data seed."""
     rd = typed(cfg.get("risk_data"), RiskDataConfig, key="risk_data")
     grid = GridSpec(
         get(cfg, "grid.rows", int, min=8),
         get(cfg, "grid.cols", int, min=8),
         get(cfg, "grid.cell", float, min=0.01),
     )
-    return rd, rd.data_spec(grid), rd.data_seed(get(cfg, "seed", int, min=0))
+    critical_thw_s = primary(get(cfg, "evaluation.risk.thresholds_s", list))
+    return rd, rd.data_spec(grid, critical_thw_s), rd.data_seed(get(cfg, "seed", int, min=0))
 
 
 def _work(index: int) -> tuple[int, str, int, list[dict]]:
@@ -81,7 +85,7 @@ def generate(
         rows_by[index] = rows
     df = frame_table(rows_by, splits)
     writer.add_table("frames.csv", df)
-    summary = summarise_frames(df)
+    summary = summarise_frames(df, spec.critical_thw_s)
     writer.finalize(
         extra={"camera": spec.camera.intrinsics(), "label": spec.label, "summary": summary}
     )

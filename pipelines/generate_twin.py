@@ -54,13 +54,15 @@ def hidden_before_onset_s(seen_ego: np.ndarray, onset: int, fps: float) -> float
     return run / fps
 
 
-def data_summary(ds: Dataset, fps: float, hidden_s: float) -> dict[str, float | int | None]:
+def data_summary(
+    ds: Dataset, fps: float, hidden_s: float, critical_thw: float
+) -> dict[str, float | int | None]:
     """The metrics of a twin dataset: sequences per kind and hazard, critical frames, how often the
     hazard was hidden from the ego at the critical onset (occluded sequences), draws it took, and
     — verified on the data's own (noisy) scans — how long it stayed hidden up to the onset
     (median, share hidden >= ``hidden_s``) and the share seen by another vehicle meanwhile; the
-    share of critical frames of the other vehicles, per role."""
-    from traffictwin.sim.cooperative import CRITICAL_ONSET_S, HAZARDS, KINDS, cooperator_role
+    share of critical frames (THW below ``critical_thw`` s) of the other vehicles, per role."""
+    from traffictwin.sim.cooperative import HAZARDS, KINDS, cooperator_role
 
     rows = []
     by_role: dict[str, list[int]] = {}  # role -> [critical frames, frames]
@@ -69,7 +71,7 @@ def data_summary(ds: Dataset, fps: float, hidden_s: float) -> dict[str, float | 
         v_thw = a.get("vehicle_thw_true")
         for k in range(1, v_thw.shape[1] if v_thw is not None else 0):
             n = by_role.setdefault(cooperator_role(k), [0, 0])
-            n[0] += int((v_thw[:, k] < CRITICAL_ONSET_S).sum())
+            n[0] += int((v_thw[:, k] < critical_thw).sum())
             n[1] += len(v_thw)
         onset = int(a["onset_frame"].reshape(-1)[0])
         seen = a["hazard_seen"]
@@ -81,7 +83,7 @@ def data_summary(ds: Dataset, fps: float, hidden_s: float) -> dict[str, float | 
                 HAZARDS[int(a["hazard"].reshape(-1)[0])],
                 bool(a["hidden_at_onset"].reshape(-1)[0]),
                 int(a["attempts"].reshape(-1)[0]),
-                int((a["thw_true"] < CRITICAL_ONSET_S).sum()),
+                int((a["thw_true"] < critical_thw).sum()),
                 len(a["time"]),
                 int(a["maps"].shape[1]),
                 hid,
@@ -193,7 +195,10 @@ def main() -> None:
             writer.record_shard(idx, shard_name(idx), digest, count, split)
         writer.finalize(extra={"vehicles": tc.vehicles, "fps": tc.fps})
         metrics = data_summary(
-            Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS), tc.fps, tc.hidden_s
+            Dataset(TWIN_DATA, kind="twin", allow_inf=INF_ARRAYS),
+            tc.fps,
+            tc.hidden_s,
+            tc.critical_thw,
         )
         write_json_atomic(METRICS, metrics)
         log.info(  # one line; every figure is in METRICS

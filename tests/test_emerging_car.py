@@ -29,6 +29,7 @@ from traffictwin.sim.world import build_world
 
 LIDAR = LidarSpec(azimuth_res_deg=0.4, max_range=60.0)
 CFG = CooperativeConfig(
+    critical_thw=1.5,
     frames=22,
     fps=5.0,
     lead_in=(3.0, 3.4),
@@ -88,9 +89,9 @@ def test_hazards_follow_the_shares_within_each_kind() -> None:
         "pedestrian",
     ]
     with pytest.raises(ValueError, match="pedestrian_share \\+ emerging_car_share"):
-        CooperativeConfig(pedestrian_share=0.6, emerging_car_share=0.5)
+        CooperativeConfig(critical_thw=1.5, pedestrian_share=0.6, emerging_car_share=0.5)
     with pytest.raises(ValueError, match="emerge_tau"):
-        CooperativeConfig(emerge_tau=(1.0, 0.5))
+        CooperativeConfig(critical_thw=1.5, emerge_tau=(1.0, 0.5))
 
 
 def test_clear_driveway_removes_only_what_blocks_the_way_out() -> None:

@@ -74,12 +74,16 @@ def test_evaluate_prealigned_naive_equals_label_gives_zero_kld():
     inputs = np.concatenate([m1, m2], axis=1)
     label = dempster(m1, m2)
     x = FusionInput(inputs=inputs)
-    frame, auroc = evaluate_method("naive", x, label, EvalSettings(batch_size=2))
+    frame, auroc = evaluate_method(
+        "naive", x, label, EvalSettings(batch_size=2, success_trans_m=0.5, success_rot_deg=1.0)
+    )
     assert len(frame) == 5 and (frame["ms"] >= 0).all()
     np.testing.assert_allclose(frame["kld_fo"], 0, atol=1e-6)
     assert (frame["dice_occ"].fillna(1) == 1).all() and (frame["dice_free"].fillna(1) == 1).all()
     assert auroc.n_wrong == 0 and math.isnan(auroc.value())
-    ego, _ = evaluate_method("ego", x, label, EvalSettings())
+    ego, _ = evaluate_method(
+        "ego", x, label, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
     assert (ego["kld_fo"] > 0).all()
 
 
@@ -106,7 +110,9 @@ def test_evaluate_registered_on_synthetic_pair():
         grid=grid,
         registration=RegistrationParams(),
     )
-    frame, _ = evaluate_method("registered", x, label, EvalSettings())
+    frame, _ = evaluate_method(
+        "registered", x, label, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
     row = frame.iloc[0]
     assert row["reg_accepted"] and row["reg_success"]
     assert row["reg_trans_err_m"] < 0.25 < row["noisy_trans_err_m"]
@@ -156,7 +162,9 @@ def test_a_new_method_is_one_function_and_one_registration():
         m1, m2 = random_masses(rng, 3), random_masses(rng, 3)
         x = FusionInput(inputs=np.concatenate([m1, m2], axis=1))
         np.testing.assert_allclose(methods.fuse("half", x).masses, 0.5 * m1)
-        frame, _ = evaluate_method("half", x, m1, EvalSettings(batch_size=2))
+        frame, _ = evaluate_method(
+            "half", x, m1, EvalSettings(batch_size=2, success_trans_m=0.5, success_rot_deg=1.0)
+        )
         assert len(frame) == 3 and list(methods.METHODS)[-1] == "half"
     finally:
         methods.METHODS.pop("half")
@@ -175,7 +183,9 @@ def test_evaluate_method_subsets_and_registered_diagnostics():
     assert len(sub) == 2 and sub.map1 is None
     np.testing.assert_array_equal(sub.inputs[:, :2], m1[[1, 3]])
     with pytest.raises(ValueError, match="prediction shape"):
-        evaluate_method("ego", x, m1[:, :, :8], EvalSettings())
+        evaluate_method(
+            "ego", x, m1[:, :, :8], EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+        )
 
 
 def test_eval_config_is_typed_and_the_configurations_come_from_configurations():

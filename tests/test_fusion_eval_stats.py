@@ -203,7 +203,7 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
         metrics["test"][c][row] = {k: iv[k].estimate for k in ev.CI_KEYS} | {
             f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS
         }
-    t = ev.fusion_targets(own, metrics, CI)
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
     assert set(t) == set(ev.TARGETS)
     # (a) every pair's ratio is 0.2: the ratio of means is 0.2 in every resample
     a = t["kld_ratio_vs_naive"]["per_config"]["C"]
@@ -224,12 +224,12 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
     # a network that never predicts occupied at A: no relative drop (not a crash, not a pass)
     zero = dict(own)
     zero[("A", "dnn")] = _row(pid, 0.2, tp_occ=0, fn_occ=3)
-    t0 = ev.fusion_targets(zero, metrics, CI)["dice_occ_drop_A_to_D"]["per_config"]["D"]
+    t0 = ev.fusion_targets(zero, metrics, CI, 0.5, 1.0)["dice_occ_drop_A_to_D"]["per_config"]["D"]
     assert t0["status"] == "not evaluated" and "Dice occ at A is 0.0" in t0["why"]
     # a target at a configuration that was not evaluated (B absent) is not a pass
     del own[("A", "dnn")]
     metrics["test"].pop("A")
-    t2 = ev.fusion_targets(own, metrics, CI)
+    t2 = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
     assert t2["dice_occ_at_A"]["status"] == "not evaluated"
     assert t2["dice_occ_drop_A_to_D"]["status"] == "not evaluated"
 
@@ -309,22 +309,28 @@ FLIPS = {
 
 def test_every_verdict_reads_its_threshold_from_the_table(monkeypatch: pytest.MonkeyPatch):
     own, metrics = _target_inputs()
-    base = ev.fusion_targets(own, metrics, CI)
+    base = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
     # u_auroc has no value here (no wrong-cell histograms); every other target is flipped below
     assert set(FLIPS) == set(ev.TARGETS) - {"u_auroc"}
     for name, (c, threshold) in FLIPS.items():
         assert base[name]["per_config"][c]["status"] == "pass", name
         changed = dataclasses.replace(ev.TARGETS[name], threshold=threshold)
         monkeypatch.setitem(ev.TARGETS, name, changed)
-        t = ev.fusion_targets(own, metrics, CI)[name]
+        t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)[name]
         assert t["threshold"] == threshold and t["per_config"][c]["status"] == "fail", name
         monkeypatch.undo()
     # u_auroc: the table's threshold decides a value read from metrics
     metrics["test"]["D"]["dnn"] |= {"u_auroc": 0.9, "u_auroc_ci": {"lo": 0.8, "hi": 0.95}}
-    assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "pass"
+    assert (
+        ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]["status"]
+        == "pass"
+    )
     changed = dataclasses.replace(ev.TARGETS["u_auroc"], threshold=0.95)
     monkeypatch.setitem(ev.TARGETS, "u_auroc", changed)
-    assert ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]["status"] == "fail"
+    assert (
+        ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]["status"]
+        == "fail"
+    )
 
 
 # -- evaluate with networks per row ------------------------------------------------------------------
@@ -727,7 +733,7 @@ def test_the_auroc_target_says_too_few_wrong_cells():
             | {f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS}
             | {"u_auroc_enough": False, "u_auroc_n_wrong": 12, "u_auroc_pairs_wrong": 3}
         )
-    v = ev.fusion_targets(own, metrics, CI)["u_auroc"]["per_config"]["D"]
+    v = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]
     assert v["status"] == "not evaluated"
     assert "too few wrong cells: 12 wrong cells in 3 pairs" in v["why"]
 

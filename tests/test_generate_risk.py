@@ -29,6 +29,7 @@ SPEC = RiskDataSpec(
     StereoCamera(width=96, height=48),
     GridSpec(128, 96, 0.64),
     RiskConfig(subject_length=4.8, subject_width=1.9),
+    1.5,  # critical THW (s)
 )
 
 
@@ -141,7 +142,7 @@ def test_frame_table_and_summary():
     assert df.frame_id.tolist() == list(range(6)) and df.shard.tolist() == [0, 0, 0, 1, 1, 1]
     assert df.split.tolist() == ["train"] * 3 + ["test"] * 3
     assert df.idx.tolist() == [0, 1, 2, 0, 1, 2] and (df.scenario == df.shard).all()
-    s = summarise_frames(df)
+    s = summarise_frames(df, SPEC.critical_thw_s)
     assert s["all/frames"] == 6 and s["train/frames"] == 3 and "val/frames" not in s
     assert s["all/sequences"] == 2
     assert s["all/critical_share"] == pytest.approx(float((df.thw < 1.5).mean()))

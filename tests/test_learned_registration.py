@@ -241,11 +241,13 @@ def test_learned_method_gives_masses_and_the_pose_table_columns() -> None:
         grid=GRID,
         model=hand_net(),
     )
-    frame, _ = evaluate_method(METHODS["learned"], x, map1, EvalSettings())
+    frame, _ = evaluate_method(
+        METHODS["learned"], x, map1, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
     assert len(frame) == 2 and (frame["ms"] > 0).all()
     for k in ("reg_success", "reg_accepted", "reg_trans_err_m", "est_rot_err_deg", "reg_cc_est"):
         assert k in frame
-    s = METHODS["learned"].summary(frame, EvalSettings())
+    s = METHODS["learned"].summary(frame, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0))
     assert (
         0 <= s["fallback_rate"] <= 1 and s["residual_trans_m_p90"] >= s["residual_trans_m_median"]
     )

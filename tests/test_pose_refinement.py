@@ -133,12 +133,18 @@ def test_refined_methods_are_registered_and_finish_the_coarse_pose():
         memo={},
     )
     assert "raw" in METHODS["learned-refined"].needs and "model" in METHODS["learned-refined"].needs
-    coarse, _ = evaluate_method(METHODS["learned"], x, map1, EvalSettings())
-    refined, _ = evaluate_method(METHODS["learned-refined"], x, map1, EvalSettings())
+    coarse, _ = evaluate_method(
+        METHODS["learned"], x, map1, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
+    refined, _ = evaluate_method(
+        METHODS["learned-refined"], x, map1, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
     assert not coarse["reg_success"].any()  # the stub's pose is ~1 m / 3 deg off
     assert refined["reg_success"].all() and refined["reg_accepted"].all()
     assert (refined["reg_trans_err_m"] < 0.25).all() and (refined["ms"] > 0).all()
-    s = METHODS["learned-refined"].summary(refined, EvalSettings())
+    s = METHODS["learned-refined"].summary(
+        refined, EvalSettings(success_trans_m=0.5, success_rot_deg=1.0)
+    )
     assert s["success_rate"] == 1.0 and s["fallback_rate"] == 0.0
     # computed once per pair and shared through memo
     assert sum(1 for k in x.memo if k[0] == "learned-refined") == 1

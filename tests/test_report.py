@@ -324,11 +324,13 @@ def risk_metrics() -> dict:
                 "steps": 12,
                 "best_step": 10 - i,
                 "best_val_mse": 0.02 + i / 100,
-                **evaluate(y, p * (1 - i / 2)),
+                **evaluate(y, p * (1 - i / 2), (1.5, 1.0)),
             }
             for i, (v, inputs) in enumerate((("rgbd", ["rgb", "disp_sgm"]), ("rgb", ["rgb"])))
         },
-        "baselines": {"train_mean": {"label": "risk_thw_paper", "value": 0.1, **evaluate(y, base)}},
+        "baselines": {
+            "train_mean": {"label": "risk_thw_paper", "value": 0.1, **evaluate(y, base, (1.5, 1.0))}
+        },
         "region": {
             "predictors": {
                 "rgbd": {

@@ -41,7 +41,7 @@ def test_every_profile_validates(composed: dict) -> None:
 
 def test_data_spec_carries_every_setting(composed: dict) -> None:
     rd = _risk_data(composed)
-    spec = rd.data_spec(GridSpec(256, 48, 0.32))
+    spec = rd.data_spec(GridSpec(256, 48, 0.32), 1.5)
     c = composed["risk_data"]
     assert (
         spec.camera.width == c["camera"]["width"]
@@ -162,7 +162,7 @@ def test_grid_must_cover_the_look_ahead(max_speed: float, ok: bool) -> None:
     rd = _risk_data(cfg, max_speed=max_speed)
     grid = GridSpec(256, 176, 0.32)
     if ok:
-        rd.data_spec(grid)
+        rd.data_spec(grid, 1.5)
     else:
         with pytest.raises(ConfigError, match=r"'risk_data\.max_speed' 26.0 m/s .* 'grid\.rows'"):
-            rd.data_spec(grid)
+            rd.data_spec(grid, 1.5)

@@ -132,6 +132,7 @@ def test_risk_metric_figure_plots_the_chosen_frame(tmp_path: Path, figs: dict) -
         StereoCamera(width=96, height=48),
         GridSpec(128, 96, 0.64),
         RiskConfig(subject_length=4.8, subject_width=1.9),
+        1.5,  # critical THW (s)
     )
     info = data_figures.risk_metric_figure(3, spec, tmp_path / "rm.png", max_sequences=4)
     cam, grid = figs["rm.png"].axes

@@ -57,7 +57,9 @@ def test_classification_hand_case() -> None:
     assert m1["confusion"] == {"tp": 2, "fp": 1, "fn": 1, "tn": 1}
     # boundary: exactly the threshold is NOT critical (THW < 1.5 s is)
     assert (
-        classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]))["confusion"]["tn"]
+        classification_metrics(np.array([1 / 30, 0.5]), np.array([1 / 30, 0.5]), 1.5)["confusion"][
+            "tn"
+        ]
         == 1
     )
 
@@ -65,10 +67,10 @@ def test_classification_hand_case() -> None:
 def test_undefined_classification_metrics_are_nan() -> None:
     """Recall needs actual critical frames, specificity actual uncritical ones (NaN -> null in
     risk.json, n/a in the report); precision without predicted critical frames is 0."""
-    m = classification_metrics(np.array([0.0, 0.01]), np.array([0.5, 0.0]))
+    m = classification_metrics(np.array([0.0, 0.01]), np.array([0.5, 0.0]), 1.5)
     assert np.isnan(m["recall"]) and np.isnan(m["f1"]) and np.isnan(m["balanced_accuracy"])
     assert m["specificity"] == 0.5 and m["precision"] == 0.0
-    m = classification_metrics(np.array([0.5, 0.5]), np.array([0.0, 0.5]))
+    m = classification_metrics(np.array([0.5, 0.5]), np.array([0.0, 0.5]), 1.5)
     assert np.isnan(m["specificity"]) and m["recall"] == 0.5 and m["precision"] == 1.0
 
 
@@ -89,7 +91,7 @@ def test_paper_table1_reproduces_paper_accuracy() -> None:
 def test_regression_metrics_and_auc_ties() -> None:
     y = np.array([0.0, 0.1, 0.2, 0.4])
     p = np.array([0.1, 0.1, 0.0, 0.4])
-    m = regression_metrics(y, p, thw_cap=10)
+    m = regression_metrics(y, p, thw_cap=10, critical_s=1.5)
     assert m["test/mse"] == pytest.approx((0.01 + 0 + 0.04 + 0) / 4)
     assert m["test/mae"] == pytest.approx(0.3 / 4)
     # THW: y -> [10, 0.5, 0.25, 0.125], p -> [0.5, 0.5, 10, 0.125]
@@ -97,8 +99,8 @@ def test_regression_metrics_and_auc_ties() -> None:
     assert roc_auc(np.array([True, False]), np.array([0.3, 0.3])) == 0.5
     assert np.isnan(roc_auc(np.array([True, True]), np.array([0.1, 0.2])))
     with pytest.raises(ValueError, match="differ in length"):
-        regression_metrics(y, p[:2])
-    agree = label_agreement(np.array([0.5, 0.0, 0.04]), np.array([0.5, 0.1, 0.0]))
+        regression_metrics(y, p[:2], critical_s=1.5)
+    agree = label_agreement(np.array([0.5, 0.0, 0.04]), np.array([0.5, 0.1, 0.0]), (1.5, 1.0))
     assert agree["class_agreement_at_1.5s"] == pytest.approx(1 / 3)
 
 
@@ -107,7 +109,7 @@ def test_constant_baselines_median_is_majority_class() -> None:
     c = constant_predictions(train, 4)
     assert np.allclose(c["train_mean"], 0.2) and np.allclose(c["train_median"], 0.2)
     y = np.array([0.5, 0.0, 0.3, 0.0])
-    m = classification_metrics(y, c["train_median"])
+    m = classification_metrics(y, c["train_median"], 1.5)
     assert m["confusion"] == {"tp": 2, "fp": 2, "fn": 0, "tn": 0}
 
 
@@ -184,7 +186,9 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     models = _tiny_models(tmp_path / "models")
     params = GeometricParams(subject_length=4.5, subject_width=1.8)
     metrics, pred = evaluate_suite(
-        src, models, SuiteSettings(primary_label="risk_thw_paper", geometric=params)
+        src,
+        models,
+        SuiteSettings(thresholds_s=(1.5, 1.0), primary_label="risk_thw_paper", geometric=params),
     )
     test = src.split_frames("test")
     assert sorted(pred["frame_id"]) == sorted(test["frame_id"])
@@ -297,7 +301,7 @@ def test_example_indices_confusion_table_and_tracking_metrics() -> None:
     assert cm.columns.tolist() == ["frame_id", "actual", "predicted"]
     assert cm.actual.tolist() == ["critical", "uncritical", "critical", "uncritical"]
     assert cm.predicted.tolist() == ["critical", "critical", "critical", "uncritical"]
-    e = {**evaluate(y, p), "label": "risk_thw_paper"}
+    e = {**evaluate(y, p, (1.5, 1.0)), "label": "risk_thw_paper"}
     e["at_1.5s"]["roc_auc"] = None
     metrics = {"thresholds_s": [1.5, 1.0], "models": {"v": e}}
     vals = tracking_metrics(metrics, "v")
@@ -334,7 +338,11 @@ def test_evaluation_figures_plot_the_predictions(
     models = {k: v for k, v in _tiny_models(tmp_path / "models").items() if k == "rgbd"}
     geo = GeometricParams(subject_length=4.5, subject_width=1.8)
     metrics, pred = evaluate_suite(
-        src, models, SuiteSettings(primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0)
+        src,
+        models,
+        SuiteSettings(
+            thresholds_s=(1.5, 1.0), primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0
+        ),
     )
     hist = pd.DataFrame(
         {"step": [1, 2, 3], "train/loss": [0.3, 0.2, 0.1], "val/mse": [0.4, 0.3, 0.2]}

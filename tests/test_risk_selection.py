@@ -221,7 +221,7 @@ def test_seed_resampling_widens_the_seed_mean_interval() -> None:
 
 def test_test_mse_is_no_target() -> None:
     assert "test_mse" not in TARGETS
-    assert {"shipped_balanced_accuracy_1.5s", "learned_vs_rule_auc"} <= set(TARGETS)
+    assert {"shipped_balanced_accuracy_primary", "learned_vs_rule_auc"} <= set(TARGETS)
 
 
 # --------------------------------------------------------------------------- predictors
@@ -338,6 +338,7 @@ def test_suite_applies_validation_choices(tmp_path: Path) -> None:
     narrow = GeometricParams(**{**geo.__dict__, "corridor_half_width": 0.75})
     rule = GeometricRiskModel(narrow, cam, {"label": "risk_thw_corridor"})
     settings = SuiteSettings(
+        thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=geo,
         ci=CIConfig(100, 0, 0.95),
@@ -404,6 +405,7 @@ def test_holdout_block_measures_unseen_templates(tmp_path: Path) -> None:
         for name, w in (("ref", 1.0), ("ref_s1", 1.25), ("held", 1.0), ("held_s1", 1.25))
     }
     settings = SuiteSettings(
+        thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=geo,
         main_variant="ref",
@@ -623,6 +625,7 @@ def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
     assert "geometric_learned" not in sel.shipped.candidates
 
     settings = SuiteSettings(
+        thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8),
         ci=CIConfig(100, 0, 0.95),
@@ -678,7 +681,10 @@ def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_needs_its_netwo
         PredictorInputs(("disp_learned",)),
     )
     settings = SuiteSettings(
-        primary_label="risk_thw_corridor", geometric=geo, ci=CIConfig(50, 0, 0.95)
+        thresholds_s=(1.5, 1.0),
+        primary_label="risk_thw_corridor",
+        geometric=geo,
+        ci=CIConfig(50, 0, 0.95),
     )
     rule = GeometricRiskModel(geo, src.camera, {"label": "risk_thw_corridor"})
     metrics, pred = evaluate_suite(src, {"shipped": rule, "hybrid_learned": model}, settings)

@@ -483,7 +483,7 @@ def test_objective_losses_hand_values() -> None:
 def test_objective_needs_matching_outputs_and_valid_name() -> None:
     from traffictwin.risk.dave2 import Dave2
 
-    assert Dave2(Dave2Config(objective="mse_bce")).head[-1].out_features == 2
+    assert Dave2(Dave2Config(objective="mse_bce", critical_thw_s=1.5)).head[-1].out_features == 2
     assert Dave2(Dave2Config(objective="log_thw")).head[-1].out_features == 1
     with pytest.raises(ValueError, match="objective must be one of"):
         Dave2Config(objective="hinge")

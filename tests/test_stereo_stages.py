@@ -27,6 +27,7 @@ SPEC = RiskDataSpec(
     StereoCamera(width=128, height=64),
     GridSpec(128, 96, 0.64),
     RiskConfig(subject_length=4.8, subject_width=1.9),
+    1.5,  # critical THW (s)
 )
 SGM = SgmParams(
     num_disparities=16,

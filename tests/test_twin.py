@@ -26,12 +26,13 @@ from traffictwin.sim.lidar import LidarSpec
 from traffictwin.twin.data import TwinDataParams, sequence_arrays, twin_risk_config
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.fuse import Twin, TwinInputError, TwinOptions, build_twin
+from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.summary import lead_times, step_ms_medians, summarise
 from traffictwin.twin.targets import targets
 
 GRID = GridSpec(rows=64, cols=48, cell=0.5)
 LIDAR = LidarSpec(azimuth_res_deg=0.8, max_range=50.0)
-CFG = CooperativeConfig(frames=6, vehicles=3)
+CFG = CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3)
 
 
 def _masses(rng: np.random.Generator, shape=(64, 48)) -> np.ndarray:
@@ -72,15 +73,15 @@ def test_occluded_sequences_hide_the_hazard_from_the_ego_at_the_critical_onset()
 
 def test_cooperative_config_rejects_bad_values() -> None:
     with pytest.raises(ValueError, match="vehicles must be >= 2"):
-        CooperativeConfig(vehicles=1)
+        CooperativeConfig(critical_thw=1.5, vehicles=1)
     with pytest.raises(ValueError, match="ego_speed"):
-        CooperativeConfig(ego_speed=(5.0, 2.0))
+        CooperativeConfig(critical_thw=1.5, ego_speed=(5.0, 2.0))
     with pytest.raises(ValueError, match="templates"):
-        CooperativeConfig(templates=("roundabout",))
+        CooperativeConfig(critical_thw=1.5, templates=("roundabout",))
 
 
 def test_sequence_arrays_layout() -> None:
-    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG)
+    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG, predict=PredictSettings(warn_s=1.5))
     a = sequence_arrays(5, 0, p)
     assert a["maps"].shape == (6, 3, 2, 64, 48) and a["maps"].dtype == np.float32
     assert np.all(a["maps"] >= 0) and np.all(a["maps"].sum(2) <= 1 + 1e-5)
@@ -233,7 +234,12 @@ def test_lead_times_and_summary_hand_computed() -> None:
     lt = lead_times(f, "twin", fps=10.0).set_index("sequence")
     assert lt.loc[0, "lead_s"] == pytest.approx(0.2)  # twin at 0.2 s, ego at 0.4 s
     assert lt.loc[1, "lead_s"] == pytest.approx(0.0)
-    s = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200))
+    s = summarise(
+        f,
+        ["twin"],
+        10.0,
+        TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200),
+    )
     occ = s["twin"]["occluded"]
     assert occ["recall"] == pytest.approx(
         5 / 6
@@ -249,7 +255,14 @@ def test_lead_times_and_summary_hand_computed() -> None:
     assert occ["warned_before_onset_share"] == pytest.approx(0.5)
     assert occ["false_alarm_share"] == 0.0  # every warning has an episode within 2 s
     assert occ["recall_ci"][0] <= occ["recall"] <= occ["recall_ci"][1]
-    short = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.1))
+    short = summarise(
+        f,
+        ["twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200, horizon_s=0.1
+        ),
+    )
     assert short["twin"]["occluded"]["false_alarm_share"] == pytest.approx(1 / 10)
     assert short["twin"]["occluded"]["lead_vs_ego_s_mean"] == pytest.approx(0.1)  # = the target's
     t = targets({"D": {"methods": s}}, "twin", "D")
@@ -363,7 +376,12 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     from traffictwin.twin import report_section as rs
 
     f = _frame_table()
-    summary = summarise(f, ["twin"], 10.0, TwinEvalSettings(n_boot=200))
+    summary = summarise(
+        f,
+        ["twin"],
+        10.0,
+        TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200),
+    )
     m = {
         "configurations": {"D": {"methods": summary}},
         "targets": targets({"D": {"methods": summary}}, "twin", "D"),
@@ -438,9 +456,16 @@ def test_timeline_figure_plots_the_table() -> None:
 def test_twin_map_figure_shows_every_vehicle() -> None:
     from traffictwin.twin.figures import twin_map_figure, twin_snapshot
 
-    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG)
+    p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG, predict=PredictSettings(warn_s=1.5))
     a = sequence_arrays(5, 1, p)
-    snap = twin_snapshot(a, GRID, (5.0, 20.0), "naive", None, TwinEvalSettings())
+    snap = twin_snapshot(
+        a,
+        GRID,
+        (5.0, 20.0),
+        "naive",
+        None,
+        TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5)),
+    )
     assert snap.contributions.shape == a["maps"].shape[1:]
     fig = twin_map_figure(snap, GRID, 5.0, "naive", "D")
     titles = [ax.get_title() for ax in fig.axes]
@@ -476,7 +501,11 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
 
 # ------------------------------------------------------------------------------------ CLI
 def _write_maps(tmp_path: Path, cells=(0.5, 0.5, 0.5)) -> tuple[list[str], list[str]]:
-    a = sequence_arrays(5, 0, TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG))
+    a = sequence_arrays(
+        5,
+        0,
+        TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG, predict=PredictSettings(warn_s=1.5)),
+    )
     paths, poses = [], []
     for k in range(3):
         p = tmp_path / f"v{k}.npz"

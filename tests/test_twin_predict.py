@@ -77,11 +77,11 @@ def test_stopped_ego_and_empty_input():
 
 def test_settings_checked():
     with pytest.raises(ValueError, match="min_speed"):
-        PredictSettings(min_speed=2.0, max_speed=1.0)
+        PredictSettings(min_speed=2.0, max_speed=1.0, warn_s=1.5)
     with pytest.raises(ValueError, match="step_s"):
-        PredictSettings(step_s=0.0)
+        PredictSettings(step_s=0.0, warn_s=1.5)
     with pytest.raises(ValueError, match="max_extent"):
-        PredictSettings(max_extent=0.0)
+        PredictSettings(max_extent=0.0, warn_s=1.5)
 
 
 def _blob(grid: GridSpec, x: float, y: float, half: float = 0.6) -> np.ndarray:
@@ -197,7 +197,14 @@ def test_predictive_warnings_paired_with_thw_and_targets():
     from traffictwin.twin.targets import targets
 
     # h = 0.3 s: frames 0-6 of the 1 s open sequence are judged (7-9: window past its end)
-    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.3))
+    s = summarise(
+        _pred_table(),
+        ["twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200, horizon_s=0.3
+        ),
+    )
     occ = s["twin"]["occluded"]["predictive"]
     assert occ["lead_s_median"] == pytest.approx(0.3)  # TTC warns at 0.2 s, onset 0.5 s
     assert occ["lead_vs_thw_s_mean"] == pytest.approx(0.3)  # THW warns at the onset
@@ -222,11 +229,12 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     p = TwinDataParams(
         grid=grid,
         lidar=LidarSpec(azimuth_res_deg=0.8, max_range=50.0),
-        scenario=CooperativeConfig(frames=6, vehicles=3),
+        scenario=CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3),
+        predict=PredictSettings(warn_s=1.5),
     )
     a = sequence_arrays(5, 0, p)
     assert a["ttc_true"].shape == (6,)
-    s = TwinEvalSettings(n_boot=50)
+    s = TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50)
     f = evaluate_sequence(a, TwinPass(grid, (0.5, 1.0), ["naive"], {}, s))
     assert {"ttc", "ttc_true", "flagged_ttc"} <= set(f.columns)
     # TTC <= THW wherever the THW is within the horizon (the same cells at tau = 0)
@@ -250,7 +258,14 @@ def test_report_section_shows_the_predictive_table(tmp_path):
     from traffictwin.twin.summary import summarise
     from traffictwin.twin.targets import targets
 
-    s = summarise(_pred_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=100, horizon_s=0.3))
+    s = summarise(
+        _pred_table(),
+        ["twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=100, horizon_s=0.3
+        ),
+    )
     m = {
         "configurations": {"D": {"methods": s}},
         "targets": targets({"D": {"methods": s}}, "twin", "D"),

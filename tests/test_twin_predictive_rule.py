@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 from traffictwin.twin.evaluation import TwinEvalSettings
+from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.predictive_rule import PredictiveRule, apply_rule, confirmed
 from traffictwin.twin.rule_choice import candidate_rules, choose_rule
 
@@ -70,7 +71,9 @@ def test_apply_rule_flags_per_method_and_sequence_in_frame_order() -> None:
 
 
 def test_choose_rule_takes_the_fewest_false_alarms_among_those_that_warn_earlier() -> None:
-    s = TwinEvalSettings(n_boot=50, horizon_s=0.3)
+    s = TwinEvalSettings(
+        critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50, horizon_s=0.3
+    )
     cands = [PredictiveRule(2.5, 1), PredictiveRule(2.5, 2)]
     rule, rows = choose_rule(_table(), "twin", cands, 10.0, s)
     # unconfirmed: first warning at 0.3 s (the window opens at 0.6 - 0.3), THW's at the onset;
@@ -127,7 +130,9 @@ def test_the_report_lists_every_candidate_and_the_one_chosen(tmp_path) -> None:
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
 
-    s = TwinEvalSettings(n_boot=50, horizon_s=0.3)
+    s = TwinEvalSettings(
+        critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50, horizon_s=0.3
+    )
     cands = [PredictiveRule(2.5, 1), PredictiveRule(2.5, 2)]
     _, rows = choose_rule(_table(), "twin", cands, 10.0, s)
     m = {

@@ -19,6 +19,7 @@ from traffictwin.twin.evaluation import (
     map_thw,
 )
 from traffictwin.twin.fuse import TwinOptions, build_twin
+from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.summary import vehicle_summaries
 from traffictwin.twin.vehicle_view import vehicle_view
 
@@ -26,7 +27,8 @@ GRID = GridSpec(rows=64, cols=48, cell=0.5)
 P = TwinDataParams(
     grid=GRID,
     lidar=LidarSpec(azimuth_res_deg=0.8, max_range=50.0),
-    scenario=CooperativeConfig(frames=6, vehicles=3),
+    scenario=CooperativeConfig(critical_thw=1.5, frames=6, vehicles=3),
+    predict=PredictSettings(warn_s=1.5),
 )
 
 
@@ -93,7 +95,7 @@ def test_every_vehicle_has_its_path_and_truth_in_the_data() -> None:
 def test_evaluate_sequence_tables_reads_every_vehicle_s_risk() -> None:
     a = sequence_arrays(5, 0, P)
     T, N = a["maps"].shape[:2]
-    s = TwinEvalSettings(n_boot=50)
+    s = TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50)
     run = TwinPass(GRID, (0.5, 1.0), ["naive"], {}, s)
     tables = evaluate_sequence_tables(a, run, vehicles=True)
     pd.testing.assert_frame_equal(  # the ego's table unchanged (but the wall times)
@@ -143,7 +145,12 @@ def _vehicle_table() -> pd.DataFrame:
 
 def test_vehicle_summaries_pair_the_twin_with_the_vehicle_s_own_map() -> None:
     out = vehicle_summaries(
-        _vehicle_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=50, horizon_s=0.5)
+        _vehicle_table(),
+        ["twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50, horizon_s=0.5
+        ),
     )
     assert list(out) == ["2"] and out["2"]["role"] == "follower"
     own, twin = out["2"]["methods"]["own"]["all"], out["2"]["methods"]["twin"]["all"]
@@ -152,7 +159,15 @@ def test_vehicle_summaries_pair_the_twin_with_the_vehicle_s_own_map() -> None:
     assert twin["lead_s_median"] == pytest.approx(0.2)
     assert twin["lead_vs_ego_s_median"] == pytest.approx(0.2)  # over the vehicle's own map
     assert "by_hazard" not in twin
-    assert vehicle_summaries(_vehicle_table().iloc[:0], ["twin"], 10.0, TwinEvalSettings()) == {}
+    assert (
+        vehicle_summaries(
+            _vehicle_table().iloc[:0],
+            ["twin"],
+            10.0,
+            TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5)),
+        )
+        == {}
+    )
 
 
 def test_the_report_shows_every_vehicle_s_risk(tmp_path) -> None:
@@ -162,7 +177,12 @@ def test_the_report_shows_every_vehicle_s_risk(tmp_path) -> None:
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
 
-    v = vehicle_summaries(_vehicle_table(), ["twin"], 10.0, TwinEvalSettings(n_boot=50))
+    v = vehicle_summaries(
+        _vehicle_table(),
+        ["twin"],
+        10.0,
+        TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50),
+    )
     m = {"configurations": {"D": {"methods": {}, "vehicles": v}}}
     (tmp_path / "metrics").mkdir()
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))

@@ -16,6 +16,7 @@ from traffictwin.twin.alerts import (
 )
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings
 from traffictwin.twin.noise import pose_noise_z
+from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.summary import always_warning_reference, summarise
 from traffictwin.twin.targets import targets
 
@@ -61,7 +62,14 @@ def test_censored_warnings_are_not_false_alarms_in_the_summary() -> None:
         for m in (EGO, "twin")
         for i in range(10)
     ]
-    s = summarise(pd.DataFrame(rows), ["twin"], 10.0, TwinEvalSettings(n_boot=50, horizon_s=0.3))
+    s = summarise(
+        pd.DataFrame(rows),
+        ["twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50, horizon_s=0.3
+        ),
+    )
     opn = s["twin"]["open"]
     assert opn["false_alarm_share"] == pytest.approx(1 / 7)
     assert opn["driving_min"] == pytest.approx(7 / 10 / 60, abs=1e-4)
@@ -173,7 +181,14 @@ def _table() -> pd.DataFrame:
 
 def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
     # h = 0: every frame of these 1 s sequences is judged (a 2 s horizon would judge none)
-    s = summarise(_table(), ["naive", "twin"], 10.0, TwinEvalSettings(n_boot=200, horizon_s=0.0))
+    s = summarise(
+        _table(),
+        ["naive", "twin"],
+        10.0,
+        TwinEvalSettings(
+            critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200, horizon_s=0.0
+        ),
+    )
     opn = s["twin"]["open"]
     assert opn["false_alarm_share"] == pytest.approx(1 / 20)
     # one run of false alarms in 20 frames = 2 s of driving -> 30 per minute
@@ -195,7 +210,9 @@ def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
 def test_a_warning_at_every_frame_reaches_the_most_lead_the_horizon_allows() -> None:
     # the occluded sequence's episode starts at 0.5 s; with h = 0.3 s a constant warning's first
     # warning is at 0.2 s (lead 0.3 s = h), the twin's and naive's at the onset (lead 0)
-    st = TwinEvalSettings(n_boot=200, horizon_s=0.3)
+    st = TwinEvalSettings(
+        critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200, horizon_s=0.3
+    )
     ref = always_warning_reference(_table(), ["naive", "twin"], 10.0, st)
     occ = ref["occluded"]
     assert occ["episodes"] == 1
@@ -221,7 +238,9 @@ def test_the_report_shows_the_constant_warning_beside_the_methods(tmp_path) -> N
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
 
-    st = TwinEvalSettings(n_boot=200, horizon_s=0.3)
+    st = TwinEvalSettings(
+        critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=200, horizon_s=0.3
+    )
     s = summarise(_table(), ["naive", "twin"], 10.0, st)
     ref = always_warning_reference(_table(), ["naive", "twin"], 10.0, st)
     entry = {"methods": s, "always_warns": ref}
@@ -245,7 +264,13 @@ def _twin_cfg(**twin: object):
 
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "twin" / "base.yaml")
     cfg = OmegaConf.merge(cfg, OmegaConf.create(twin))
-    return OmegaConf.create({"twin": cfg, "configurations": {"D": {"r": 5.0, "alpha": 20.0}}})
+    return OmegaConf.create(
+        {
+            "twin": cfg,
+            "configurations": {"D": {"r": 5.0, "alpha": 20.0}},
+            "evaluation": {"risk": {"thresholds_s": [1.5, 1.0]}},  # twin.critical_thw's home
+        }
+    )
 
 
 def test_a_map_warns_a_reaction_time_before_the_critical_threshold() -> None:

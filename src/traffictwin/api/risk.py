@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.risk.metric import CRITICAL_THW, risk_to_thw
+from traffictwin.risk.evaluation.scoring import PAPER
+from traffictwin.risk.metric import risk_to_thw
 
 from .errors import ApiError, ApiWarning, InputValueError, ModelDomainError
 from .images import Frame
@@ -286,7 +287,7 @@ def decision_cut(risk: LoadedRisk, thw_threshold: float) -> float | None:
 def risk_verdict(
     risk: float,
     speed: float | None,
-    thw_threshold: float = CRITICAL_THW,
+    thw_threshold: float = PAPER["threshold_s"],
     cut: float | None = None,
     unreliable: str = "",
 ) -> dict[str, Any]:
@@ -362,7 +363,7 @@ def assess_risk(
     params_path: str | os.PathLike | None = None,
     resize: bool = False,
     batch_size: int = 16,
-    thw_threshold: float = CRITICAL_THW,
+    thw_threshold: float = PAPER["threshold_s"],
 ) -> Iterator[dict[str, Any]]:
     """Stream risk rows for ``frames``: ORB pair check, SGM disparity and the network's risk,
     ``batch_size`` frames at a time (images are read when their batch comes, so memory is

@@ -17,7 +17,7 @@ from typing import Any
 from traffictwin.api import ApiWarning, StereoSettings
 from traffictwin.io.jsonio import json_clean
 from traffictwin.io.outputs import OutputSet
-from traffictwin.risk.metric import CRITICAL_THW
+from traffictwin.risk.evaluation.scoring import PAPER
 
 from .common import CliError, add_arguments, arg, csv_value, model_options, output_options
 
@@ -51,8 +51,8 @@ ARGUMENTS = [
     arg(
         "--thw-threshold",
         type=float,
-        default=CRITICAL_THW,
-        help=f"critical if THW below this (s), default {CRITICAL_THW}",
+        default=PAPER["threshold_s"],
+        help=f"critical if THW below this (s), default {PAPER['threshold_s']}",
     ),
     arg(
         "--params",

@@ -145,9 +145,10 @@ class RiskDataConfig:
         a, b, c = (float(x) for x in self.splits)
         return a, b, c
 
-    def data_spec(self, grid: GridSpec) -> RiskDataSpec:
-        """The generation spec: driving config, camera, ``grid`` and risk metric settings
-        (checks that ``grid`` covers the look-ahead, :meth:`check_grid`)."""
+    def data_spec(self, grid: GridSpec, critical_thw_s: float) -> RiskDataSpec:
+        """The generation spec: driving config, camera, ``grid``, risk metric settings and the
+        critical THW ``critical_thw_s`` (s; the primary ``evaluation.risk.thresholds_s``) (checks
+        that ``grid`` covers the look-ahead, :meth:`check_grid`)."""
         self.check_grid(grid)
         c, f, m = self.camera, self.faults, self.metric
         cam = StereoCamera(
@@ -182,7 +183,9 @@ class RiskDataConfig:
             include_pedestrians=m.include_pedestrians,
             corridor_margin=m.corridor_margin,
         )
-        return RiskDataSpec(drv, cam, grid, risk, label=self.label, ground_res=self.ground_res)
+        return RiskDataSpec(
+            drv, cam, grid, risk, critical_thw_s, label=self.label, ground_res=self.ground_res
+        )
 
 
 @dataclass
@@ -243,6 +246,11 @@ class EvalRiskConfig:
         if not self.thresholds_s or any(t <= 0 for t in self.thresholds_s):
             raise ValueError(
                 f"'thresholds_s' must be a non-empty list of positive seconds, got {list(self.thresholds_s)}"
+            )
+        if len(set(self.thresholds_s)) != len(self.thresholds_s):
+            raise ValueError(
+                f"'thresholds_s' must be distinct (each names its metrics, at_<t>s), got "
+                f"{list(self.thresholds_s)}"
             )
 
     def check_variants(self, variants: list[str]) -> None:

@@ -17,7 +17,6 @@ import pandas as pd
 
 from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import (
-    CRITICAL_THW,
     REGIONS,
     RiskCalculator,
     RiskConfig,
@@ -42,12 +41,15 @@ _LEAD = ("frame_id", "shard", "idx", "scenario", "split")
 @dataclass(frozen=True)
 class RiskDataSpec:
     """Everything a shard needs: driving config, camera, grid, risk config (region set per metric),
-    which metric is the training label, and the ground-texture resolution (m/px)."""
+    the critical THW (s: a frame is ``critical`` below it; the primary
+    ``evaluation.risk.thresholds_s``), which metric is the training label, and the ground-texture
+    resolution (m/px)."""
 
     driving: DrivingConfig
     camera: StereoCamera
     grid: GridSpec
     risk: RiskConfig
+    critical_thw_s: float
     label: str = "thw_corridor"
     ground_res: float = 0.1
 
@@ -155,7 +157,7 @@ def make_shard(
                 **{f"risk_thw_{c}": r.risk_thw for c, r in res.items()},
                 risk_ttc=rc.risk_ttc,
                 risk_wttc=rc.risk_wttc,
-                critical=bool(thw < CRITICAL_THW),
+                critical=bool(thw < spec.critical_thw_s),
                 fault=fr.fault,
                 vertical_px=fr.right_cy_offset,
             )
@@ -202,11 +204,11 @@ def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[st
     return df[list(_LEAD) + [c for c in df.columns if c not in _LEAD]]
 
 
-def summarise_frames(df: pd.DataFrame) -> dict:
-    """Frame counts, critical share (THW < 1.5 s) of the label and of every region, fault and
-    situation shares, per split."""
+def summarise_frames(df: pd.DataFrame, critical_thw_s: float) -> dict:
+    """Frame counts, critical share (THW < ``critical_thw_s`` s) of the label and of every region,
+    fault and situation shares, per split."""
     out: dict = {}
-    thr = risk_threshold(CRITICAL_THW)
+    thr = risk_threshold(critical_thw_s)
     for name, part in [("all", df)] + [(s, df[df.split == s]) for s in SPLITS]:
         if len(part) == 0:
             continue

@@ -21,8 +21,8 @@ normalised risk in [0, 1]; :meth:`Dave2.raw` the head's raw outputs, on which th
   output);
 * ``log_thw``: one output regressing log THW (s), the label's THW clipped to
   [1/20, ``thw_cap_s``] (risk 0 = nothing ahead -> the cap); risk = ``min(1/THW, 20) / 20``, 0 at
-  the cap. Errors near the 1.5 s decision threshold weigh as much as anywhere else, while the
-  MSE on the normalised risk hardly sees them (the threshold is at risk 1/30);
+  the cap. Errors near the critical THW (the decision threshold) weigh as much as anywhere else, while the
+  MSE on the normalised risk hardly sees them (the threshold is at a small risk);
 * ``mse_bce``: the paper's output plus a logit of "critical" (THW < ``critical_thw_s``) trained
   with a binary cross-entropy term (weight ``bce_weight`` in the loss): a classification head at
   the decision threshold that shapes the shared features; the risk output is the regression.
@@ -76,7 +76,7 @@ class Dave2Config:
     ``dropout``: dropout probability before each hidden FC layer (0 = the paper's plain net);
     ``objective``: what the head outputs (:data:`OBJECTIVES`, module docstring); ``thw_cap_s``:
     the THW (s) that stands for "nothing ahead" (``log_thw``); ``critical_thw_s``: the THW
-    threshold (s) of the classification head (``mse_bce``).
+    threshold (s) of the classification head (``mse_bce``; required there, ``None`` = no head).
     """
 
     inputs: tuple[str, ...] = ("rgb", "disp_sgm")
@@ -88,7 +88,7 @@ class Dave2Config:
     dropout: float = 0.0
     objective: str = "mse"
     thw_cap_s: float = 10.0
-    critical_thw_s: float = 1.5
+    critical_thw_s: float | None = None
     conv: tuple[tuple[int, int, int], ...] = field(default=CONV_SPEC)
     fc: tuple[int, ...] = field(default=FC_SPEC)
 
@@ -114,8 +114,13 @@ class Dave2Config:
             raise ValueError(
                 f"Dave2Config.objective must be one of {list(OBJECTIVES)}, got {self.objective!r}"
             )
-        if not self.thw_cap_s > 1.0 / RISK_CLIP or not self.critical_thw_s > 0:
-            raise ValueError("Dave2Config: thw_cap_s must be > 0.05 s and critical_thw_s > 0 s")
+        if not self.thw_cap_s > 1.0 / RISK_CLIP:
+            raise ValueError("Dave2Config: thw_cap_s must be > 0.05 s")
+        if self.critical_thw_s is None:
+            if self.objective == "mse_bce":
+                raise ValueError("Dave2Config: objective 'mse_bce' needs critical_thw_s (s)")
+        elif not self.critical_thw_s > 0:
+            raise ValueError("Dave2Config: critical_thw_s must be > 0 s")
         # normalise list-ish fields (JSON round trips give lists)
         object.__setattr__(self, "inputs", tuple(self.inputs))
         object.__setattr__(self, "conv", tuple(tuple(int(v) for v in c) for c in self.conv))

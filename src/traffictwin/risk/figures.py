@@ -210,7 +210,7 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = 
             )
     ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
-    ax.set_title(title or "confusion matrix (THW 1.5 s)")
+    ax.set_title(title or "confusion matrix")
     save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 

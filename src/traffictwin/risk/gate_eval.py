@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 
 from traffictwin.mlops.gate import GateError
-from traffictwin.risk.evaluation import THRESHOLDS_S
 
 
 def config_incompatibility(meta: Mapping[str, Any]) -> str | None:
@@ -92,7 +91,7 @@ def risk_test_set(
 def risk_evaluator(
     data: Mapping[str, np.ndarray],
     label: str,
-    thresholds_s: Sequence[float] = THRESHOLDS_S,
+    thresholds_s: Sequence[float],
     thw_cap: float = 10.0,
     batch_size: int = 256,
     split: str = "val",

@@ -36,11 +36,13 @@ Metrics (seconds; inf when nothing is ahead / nothing closes in):
   subject at its current speed (cf. Wachenfeld et al. 2016, simplified to current speeds).
 
 Each becomes a risk in [0, 1] as ``min(1 / T, 20) / 20`` (T = inf -> 0, T = 0 -> 1).
-Critical <=> THW < 1.5 s <=> risk > 1/30.
+Critical <=> THW < t <=> risk > :func:`risk_threshold` (t) (t: the primary THW threshold, the first of
+``evaluation.risk.thresholds_s``, :func:`primary`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -51,7 +53,6 @@ from traffictwin.sim.scene import VEHICLE_CLASSES, Boxes
 
 REGIONS = ("corridor", "paper", "camera_fov")
 CLIP = 20.0  # 1/s: the upper limit of 1/T before normalisation
-CRITICAL_THW = 1.5  # s: a frame is critical when THW is below this (the paper's threshold)
 _SHIFT = 4
 
 
@@ -78,9 +79,17 @@ def risk_to_thw(risk: np.ndarray | float, cap: float = 10.0) -> np.ndarray:
     return np.minimum(thw, cap)
 
 
-def risk_threshold(thw_s: float = CRITICAL_THW) -> float:
+def primary(thresholds_s: Sequence[float]) -> float:
+    """The primary THW threshold (s): the first of ``thresholds_s`` (config
+    ``evaluation.risk.thresholds_s``), the one that defines the critical frames."""
+    if not thresholds_s:
+        raise ValueError("thresholds_s: expected at least one THW threshold (s), got none")
+    return float(thresholds_s[0])
+
+
+def risk_threshold(thw_s: float) -> float:
     """Normalised risk above which a frame is critical for a THW threshold ``thw_s`` (s)
-    (``min(1/thw_s, 20) / 20``: 1/30 at the paper's 1.5 s)."""
+    (``min(1/thw_s, 20) / 20``)."""
     if not thw_s > 0:
         raise ValueError(f"THW threshold must be > 0 s, got {thw_s}")
     return min(1.0 / thw_s, CLIP) / CLIP

@@ -16,6 +16,7 @@ from typing import Any
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
+from traffictwin.risk.metric import CLIP
 
 RISK_FILE = "risk.json"
 ORB_FILE = "orb.json"
@@ -68,7 +69,7 @@ def risk_predictors(src: page.Sources) -> list[tuple[str, str, str]]:
 
 def _result_rows(at: str) -> list[tuple[str, Cell | None, str, str, str]]:
     """The results table's rows: (name, the paper's cell or None, key under each predictor,
-    format, paper source); ``at`` is the primary threshold's key (``at_1.5s``)."""
+    format, paper source); ``at`` is the primary threshold's key (``at_<t>s``)."""
     derived = "Table 1 (derived)"
     return [
         ("MSE (normalised risk)", paper_cell("RISK", "test_mse", "g4"), "test/mse", "g4", "Sec. 4"),
@@ -111,8 +112,10 @@ def _result_rows(at: str) -> list[tuple[str, Cell | None, str, str, str]]:
 def _results_table(src: page.Sources, at: str) -> Table:
     """Paper vs our variants vs baselines: MSE, accuracy, … at the primary threshold ``at``."""
     preds = risk_predictors(src)
+    thw = float(at.removeprefix("at_").removesuffix("s"))
     t = Table(
-        "Risk: test results, paper vs this run (critical ⇔ THW < 1.5 s ⇔ risk > 1/30)",
+        f"Risk: test results, paper vs this run (critical ⇔ THW < {thw:g} s ⇔ risk > "
+        f"1/{CLIP * thw:g})",
         ["metric", "paper (Feth et al.)", *[label for _, label, _ in preds], "paper source"],
         note=(
             "The paper's accuracy and confusion matrix are over its whole effective data set "

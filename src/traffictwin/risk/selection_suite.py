@@ -114,7 +114,7 @@ class PredictorChoice:
     collapsed: bool  #: pred_std below ``collapse_std``: a failed run
     roc_auc: float  #: at the primary threshold (NaN without both classes)
     n_frames: int
-    decision: dict[str, Decision]  #: THW threshold (``"1.5"``) → cut
+    decision: dict[str, Decision]  #: THW threshold (s, as ``f"{t:g}"``) → cut
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ The data (:class:`RiskSource`, :func:`prepare_split`, :class:`RiskDataModule`):
 :mod:`traffictwin.risk.model_config` (both re-exported here, where the stages import them).
 The arrays are normalised per batch on the device by the LightningModule (:class:`RiskRegressor`).
 Loss: the variant's objective (:func:`~traffictwin.risk.dave2.risk_loss`: the paper's MSE on the
-normalised risk, MSE on log THW, or MSE + a classification head at 1.5 s); optimiser: Adam with a
+normalised risk, MSE on log THW, or MSE + a classification head at the critical THW); optimiser: Adam with a
 linear learning-rate warm-up over the first ``warmup_steps`` steps; validation every ``val_every_n_steps`` optimiser steps (the paper: every
 10), the checkpoint with the lowest validation loss of the objective is kept (for ``mse`` the
 validation MSE, as in the paper). A run whose

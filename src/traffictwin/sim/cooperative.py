@@ -22,7 +22,7 @@ The other vehicles cooperate: ``oncoming`` ones drive on the target arm towards 
 (they see the hazard head-on), ``follower`` ones drive behind the ego in its lane; roles
 alternate (1: oncoming, 2: follower, 3: oncoming, ...). Their speed is constant; the ego turns
 at a constant speed and brakes only once the hazard is within its reaction distance — a driver
-who reacts late, so that sequences contain critical frames (time headway < 1.5 s).
+who reacts late, so that sequences contain critical frames (time headway < ``critical_thw``).
 
 Every frame carries all vehicles' exact world poses and speeds, every box in the world (static +
 agents, world frame, with velocities), and the ego's path ahead (its lane's centreline) and lane
@@ -50,7 +50,6 @@ ROLES = ("ego", "oncoming", "follower")
 AGENT_ID0 = 800_000  # ids of the cooperating vehicles (ego = AGENT_ID0)
 VAN_ID = AGENT_ID0 + 100
 HAZARD_ID = AGENT_ID0 + 101
-CRITICAL_ONSET_S = 1.5  # s: time headway that makes a frame critical (the risk label's threshold)
 PATH_AHEAD = 60.0  # m of the ego's lane recorded per frame
 PATH_STEP = 0.5  # m between path points
 PATH_POINTS = int(round(PATH_AHEAD / PATH_STEP)) + 1
@@ -68,7 +67,9 @@ class CooperativeConfig:
     vehicles' speed (m/s) and spacing (m); van length (m) and the distance of its near end after
     the end of the turn (m); junction templates to draw from; ``hidden_s`` (s): in ``occluded``
     sequences the hazard must stay hidden from the ego over the ``hidden_s`` seconds up to the
-    critical onset and be seen by another vehicle in that window (0: hidden at the onset only)."""
+    critical onset and be seen by another vehicle in that window (0: hidden at the onset only);
+    ``critical_thw`` (s): the time headway below which a frame is critical (the critical onset: the
+    first such frame; ``twin.critical_thw``, the risk label's threshold)."""
 
     fps: float = 10.0
     frames: int = 30
@@ -91,6 +92,7 @@ class CooperativeConfig:
     templates: tuple[str, ...] = JUNCTIONS
     max_attempts: int = 40
     hidden_s: float = 0.0
+    critical_thw: float = field(kw_only=True)
 
     def __post_init__(self) -> None:
         if self.fps <= 0 or self.frames < 2:
@@ -246,7 +248,7 @@ def generate_cooperative_sequence(
     ``occluded`` sequences are what their name says: with ``lidar`` given, draws are repeated
     (up to ``cfg.max_attempts``, from the same generator) until the ego's own lidar has no return
     from the hazard at the *critical onset* (the first frame whose time headway to the hazard,
-    along the path at the ego's speed, is below ``CRITICAL_ONSET_S``) and, with ``cfg.hidden_s >
+    along the path at the ego's speed, is below ``cfg.critical_thw``) and, with ``cfg.hidden_s >
     0``, at no frame of the ``hidden_s`` seconds before it, while another vehicle's lidar returns
     from it at some frame of that window (noiseless scans); the sequence records whether that
     held (``hidden_at_onset``, ``hidden_window``) and the attempts it took. ``open`` sequences are
@@ -331,7 +333,7 @@ def _draw_sequence(
     else:
         layout = _van_layout(rng, index, kind, hazard, cfg, times)
     roles, tracks = _cooperators(rng, layout, cfg, times)
-    return _assemble(index, kind, hazard, layout, roles, tracks, times)
+    return _assemble(index, kind, hazard, layout, roles, tracks, times, cfg.critical_thw)
 
 
 def draw_world(
@@ -387,7 +389,7 @@ def _van_layout(
         hazard_near = s_h - ped_size[0] / 2
     # the sequence starts lead_in seconds (at constant speed) before the ego's bumper is 1.5 s away
     lead_in = float(rng.uniform(*cfg.lead_in))
-    s0 = hazard_near - half - v_ego * (1.5 + lead_in)
+    s0 = hazard_near - half - v_ego * (cfg.critical_thw + lead_in)  # onset after lead_in s
     s_ego, v_prof = ego_profile(times, s0, v_ego, hazard_near - half, d_react, decel)
     hp = lane.pose_at(np.array([s_h]))[0]
     if hazard == "stopped_car":
@@ -453,8 +455,10 @@ def _assemble(
     roles: list[str],
     tracks: list[tuple[int, np.ndarray, np.ndarray]],
     times: np.ndarray,
+    critical_thw: float,
 ) -> CoopSequence:
-    """The frames of a drawn scenario: vehicle poses and speeds, every box, every vehicle's path."""
+    """The frames of a drawn scenario: vehicle poses and speeds, every box, every vehicle's path;
+    the critical onset is the first frame with THW below ``critical_thw`` (s)."""
     world, lane = layout.world, layout.world.lanes[layout.ego_lane]
     n = len(roles)
     ids = AGENT_ID0 + np.arange(n)
@@ -462,7 +466,7 @@ def _assemble(
     v_prof, s_ego, track = layout.v_ego, layout.s_ego, layout.hazard
     with np.errstate(divide="ignore"):
         thw = np.where(v_prof > 0, (layout.s_stop - s_ego) / np.maximum(v_prof, 1e-9), np.inf)
-    critical = np.flatnonzero(thw < CRITICAL_ONSET_S)
+    critical = np.flatnonzero(thw < critical_thw)
     seq.onset_frame = int(critical[0]) if len(critical) else 0
     size_v = np.array(SUBJECT_SIZE)
     van = Boxes(

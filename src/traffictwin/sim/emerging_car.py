@@ -109,7 +109,7 @@ def draw_emerging_car(
     s_h = hazard_near + car_size[1] / 2
     half = SUBJECT_SIZE[0] / 2
     lead_in = float(rng.uniform(*cfg.lead_in))
-    s0 = hazard_near - half - v_ego * (1.5 + lead_in)
+    s0 = hazard_near - half - v_ego * (cfg.critical_thw + lead_in)  # onset after lead_in s
     s_ego, v_prof = ego_profile(times, s0, v_ego, hazard_near - half, d_react, decel)
     tau = float(rng.uniform(*cfg.emerge_tau))
     speed = float(rng.uniform(*cfg.emerge_speed))

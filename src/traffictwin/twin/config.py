@@ -22,12 +22,12 @@ class TwinEvalSettings:
 
     occ_threshold: float = 0.5
     self_margin: float = 0.5
-    critical_thw: float = 1.5
+    critical_thw: float = field(kw_only=True)
     reaction_s: float = 0.0
     corridor_margin: float = 0.0
     strategy: str = "reference"
     horizon_s: float = 2.0
-    predict: PredictSettings = field(default_factory=PredictSettings)  # TTC (predictive warnings)
+    predict: PredictSettings = field(kw_only=True)  # TTC (predictive warnings)
     n_boot: int = 2000
     seed: int = 0
     level: float = 0.95
@@ -166,6 +166,7 @@ class TwinConfig:
             templates=tuple(self.templates),
             lead_in=(float(self.lead_in[0]), float(self.lead_in[1])),
             hidden_s=self.hidden_s,
+            critical_thw=self.critical_thw,
         )
 
     def predict(self) -> PredictSettings:

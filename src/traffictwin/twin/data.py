@@ -78,9 +78,9 @@ class TwinDataParams:
     grid: GridSpec = GridSpec()
     lidar: LidarSpec = LidarSpec()
     ism: IsmParams = IsmParams()
-    scenario: CooperativeConfig = field(default_factory=CooperativeConfig)
+    scenario: CooperativeConfig = field(kw_only=True)
     corridor_margin: float = 0.0
-    predict: PredictSettings = field(default_factory=PredictSettings)
+    predict: PredictSettings = field(kw_only=True)  # TTC settings (the stage passes twin.predict())
 
 
 def twin_risk_config(corridor_margin: float = 0.0) -> RiskConfig:

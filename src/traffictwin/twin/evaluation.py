@@ -4,7 +4,7 @@ For every sequence, frame and twin method the ego's corridor time headway is com
 (:func:`traffictwin.risk.metric.occupancy_distance` on ``m_O >= occ_threshold``, the ego's own
 footprint ignored) and compared with the truth (``thw_true``: the same metric on the simulator's
 boxes). Row ``ego`` is the ego's own map (no cooperation). A frame is *critical* when the true
-THW is below ``critical_thw`` (1.5 s) and *flagged* (the map warns) when the map's THW is below
+THW is below ``critical_thw`` (s) and *flagged* (the map warns) when the map's THW is below
 ``warn_thw`` = ``critical_thw`` + the reaction time ``twin.reaction_s``: a warning that leaves the
 driver time to react comes before the episode (at constant speed, ``reaction_s`` before the onset
 for a map that sees the hazard); ``reaction_s = 0`` warns at the critical threshold itself.

@@ -32,7 +32,7 @@ with their true velocities. Units: m, s, m/s. Vectorised NumPy / OpenCV, no per-
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -63,7 +63,7 @@ class PredictSettings:
     max_extent: float = 6.0
     step_s: float = 0.1
     horizon_s: float = 2.0
-    warn_s: float = 1.5
+    warn_s: float = field(kw_only=True)
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_speed < self.max_speed:

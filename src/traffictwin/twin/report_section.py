@@ -15,6 +15,7 @@ from typing import Any
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
 from traffictwin.report.summary import Headline, headline, strongest
+from traffictwin.risk.report_tables import RISK_FILE
 
 FILE = "twin.json"
 DATA_FILE = "twin_data.json"
@@ -23,8 +24,8 @@ FIGURES: dict[str, str] = {
     "twin_timeline": (
         "Time headway of the ego over a typical occluded sequence (the twin's lead over the ego "
         "closest to the median) at the target configuration: from its "
-        "own map, from the twin and the truth; shaded = truly critical (THW < 1.5 s), dashed = the "
-        "warning level (1.5 s + twin.reaction_s), ticks = "
+        "own map, from the twin and the truth; shaded = truly critical (THW < twin.critical_thw), "
+        "dashed = the warning level (twin.critical_thw + twin.reaction_s), ticks = "
         "frames in which the ego's own lidar returns from the hazard"
     ),
     "twin_map": (
@@ -41,15 +42,29 @@ LABELS = {
     "registered+network": "registered + network",
     "learned+network": "learned registration + network",
 }
-NOTE = (
-    "Frames are critical when the true time headway (corridor, vehicles and pedestrians, simulator "
-    "boxes) is below 1.5 s; a map warns (flags a frame) when the headway read from its occupied "
-    "cells (m_O >= twin.occ_threshold, the ego's footprint ignored) is below 1.5 s + "
-    "twin.reaction_s (1 s: a warning leaves the driver a reaction time before the episode). Lead: per "
-    "critical episode, onset minus the first warning from twin.horizon_s before the onset (never "
-    "= one frame after the episode); 'lead over ego' pairs it with the ego map's on the same "
-    "episode (median). Intervals: 95 % bootstrap over sequences (traffictwin.stats)."
-)
+
+
+def critical_thw_text(src: page.Sources) -> str:
+    """The critical THW as text (e.g. ``"1 s"``): the primary ``thresholds_s`` of ``risk.json``
+    (``twin.critical_thw`` interpolates it); the key's name when that file lacks it."""
+    ts = src.get(RISK_FILE, "thresholds_s")
+    return f"{float(ts[0]):g} s" if isinstance(ts, list) and ts else "twin.critical_thw"
+
+
+def note(src: page.Sources) -> str:
+    """What the warning tables measure, at the run's critical THW (:func:`critical_thw_text`)."""
+    crit = critical_thw_text(src)
+    return (
+        "Frames are critical when the true time headway (corridor, vehicles and pedestrians, "
+        f"simulator boxes) is below {crit}; a map warns (flags a frame) when the headway read "
+        "from its occupied cells (m_O >= twin.occ_threshold, the ego's footprint ignored) is "
+        f"below {crit} + twin.reaction_s (1 s: a warning leaves the driver a reaction time "
+        "before the episode). Lead: per critical episode, onset minus the first warning from "
+        "twin.horizon_s before the onset (never = one frame after the episode); 'lead over ego' "
+        "pairs it with the ego map's on the same episode (median). Intervals: 95 % bootstrap "
+        "over sequences (traffictwin.stats)."
+    )
+
 
 ALWAYS_LABEL = "reference: a warning at every frame"
 ALWAYS_NOTE = (
@@ -128,7 +143,7 @@ def occluded_table(src: page.Sources) -> Table:
                     Cell("—"),
                 ]
             )
-    t.note = NOTE + ALWAYS_NOTE
+    t.note = note(src) + ALWAYS_NOTE
     return t
 
 
@@ -240,7 +255,7 @@ def hazard_table(src: page.Sources) -> Table:
     t.note = (
         "The targets are on all occluded / open sequences (tables above); this splits them "
         "by what hides: about half the sequences of each kind per hazard (twin_data.json), so the "
-        "intervals are wider. " + NOTE
+        "intervals are wider. " + note(src)
     )
     return t
 
@@ -333,7 +348,8 @@ def predictive_table(src: page.Sources) -> Table:
         "stays below the level of the rule chosen on the validation sequences (next table: "
         "twin.ttc_warn_s + twin.reaction_s or a candidate level); lead and false alarms as for "
         "THW, against the "
-        "same critical episodes (true THW < 1.5 s), paired with the THW warnings of the same maps. "
+        f"same critical episodes (true THW < {critical_thw_text(src)}), paired with the THW "
+        "warnings of the same maps. "
         "'True-TTC frames warned': share of the frames whose TTC on the simulator's boxes and "
         "velocities is below that threshold. Intervals: 95 % bootstrap over sequences."
     )

@@ -3,7 +3,7 @@ block of ``fusion.json``, the per-sample settings and the bootstrap cluster (the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -77,8 +77,8 @@ class EvalSettings:
     batch_size: int = 8
     kld_eps: float = 1e-7
     auroc_bins: int = 4096
-    success_trans_m: float = 0.5
-    success_rot_deg: float = 1.0
+    success_trans_m: float = field(kw_only=True)  # m: registration succeeds within this ...
+    success_rot_deg: float = field(kw_only=True)  # ... and this (deg)
     auroc_min_wrong: int = 100  # AUROC(u) withheld below this many wrong cells ...
     auroc_min_pairs: int = 10  # ... or with wrong cells in fewer pairs than this
 
@@ -88,10 +88,10 @@ class EvalSettings:
             c.batch_size,
             c.kld_eps,
             c.auroc_bins,
-            c.success_trans_m,
-            c.success_rot_deg,
             c.auroc_min_wrong,
             c.auroc_min_pairs,
+            success_trans_m=c.success_trans_m,
+            success_rot_deg=c.success_rot_deg,
         )
 
 

@@ -353,7 +353,7 @@ def evaluate(
         "level": ci.level,
         "cluster": f"scenario = pair_id // {SCENARIO_STRIDE}",
     }
-    targets = fusion_targets(acc.own, metrics, ci)
+    targets = fusion_targets(acc.own, metrics, ci, cfg.success_trans_m, cfg.success_rot_deg)
     metrics["targets"] = {k: v for k, v in targets.items() if k not in TIMING_TARGETS}
     timings = _timings(acc, main, targets)
     samples = samples.drop(columns="ms")

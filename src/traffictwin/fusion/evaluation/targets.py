@@ -110,7 +110,8 @@ TARGETS: dict[str, Target] = {
 TARGETS.update(
     {
         "learned_success_vs_registered": Target(
-            "learned − registered registration success rate (error < 0.5 m and < 1 deg; paired)",
+            "learned − registered registration success rate (error < {trans_m:g} m and < {rot_deg:g} deg; "
+            "paired)",
             0.0,
             ">=",
             None,
@@ -124,7 +125,10 @@ TARGETS.update(
             min_lo=0.05,
         ),
         "learned_success_at_D": Target(
-            "learned registration success rate at D (error < 0.5 m and < 1 deg)", 0.95, ">=", ("D",)
+            "learned registration success rate at D (error < {trans_m:g} m and < {rot_deg:g} deg)",
+            0.95,
+            ">=",
+            ("D",),
         ),
         "learned_kld_vs_registered": Target(
             "learned+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
@@ -157,7 +161,8 @@ TARGETS.update(
             min_lo=0.05,
         ),
         "refined_success_at_D": Target(
-            "learned registration refined by ECC: success rate at D (error < 0.5 m and < 1 deg)",
+            "learned registration refined by ECC: success rate at D (error < {trans_m:g} m and < "
+            "{rot_deg:g} deg)",
             0.95,
             ">=",
             ("D",),
@@ -434,12 +439,18 @@ JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
 
 
 def fusion_targets(
-    own: Mapping[tuple[str, str], pd.DataFrame], metrics: Mapping[str, Any], ci: CIConfig
+    own: Mapping[tuple[str, str], pd.DataFrame],
+    metrics: Mapping[str, Any],
+    ci: CIConfig,
+    success_trans_m: float,
+    success_rot_deg: float,
 ) -> dict[str, Any]:
     """The targets of :data:`TARGETS` from the per-pair frames ``own[(cfg, row)]`` and the
     intervals already in ``metrics`` (``test``, ``diff``): ``{name: {description, threshold, op,
     status, per_config: {cfg: verdict}}}``. A target whose configuration or rows were not
-    evaluated is ``not evaluated`` (never ``pass``)."""
+    evaluated is ``not evaluated`` (never ``pass``). The descriptions name the registration
+    success limits ``success_trans_m`` (m) and ``success_rot_deg`` (deg)
+    (``evaluation.fusion``) in their ``{trans_m}`` / ``{rot_deg}`` fields."""
     ti = TargetInputs(own, metrics["test"], metrics["diff"], ci)
     configs = list(metrics["test"])
     out: dict[str, Any] = {}
@@ -447,7 +458,7 @@ def fusion_targets(
         t = TARGETS[name]
         per = {c: judge_at(ti, c) for c in (t.configs or configs)}
         out[name] = {
-            "description": t.description,
+            "description": t.description.format(trans_m=success_trans_m, rot_deg=success_rot_deg),
             "threshold": t.threshold,
             "op": t.op,
             "status": _overall(per),

@@ -39,7 +39,6 @@ from traffictwin.risk.evaluation.scorer import variant_groups
 from traffictwin.risk.evaluation.scoring import (
     LOWER_IS_BETTER,
     PAPER,
-    THRESHOLDS_S,
     classification_metrics,
     confusion_labels,
     confusion_table,
@@ -72,7 +71,6 @@ __all__ = [
     "REGION_LABELS",
     "SEED_MEAN",
     "TARGETS",
-    "THRESHOLDS_S",
     "CIConfig",
     "ClusterBootstrap",
     "Holdout",

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.config import spec
-from traffictwin.risk.evaluation.scoring import THRESHOLDS_S, check_pair, primary
+from traffictwin.risk.evaluation.scoring import check_pair, primary
 from traffictwin.risk.metric import risk_threshold, risk_to_thw
 from traffictwin.stats import Interval, resample_counts
 
@@ -148,7 +148,7 @@ def bootstrap_scores(
     y: np.ndarray,
     p: np.ndarray,
     plan: ClusterBootstrap,
-    thresholds_s: Sequence[float] = THRESHOLDS_S,
+    thresholds_s: Sequence[float],
     thw_cap: float = 10.0,
     cuts: Mapping[float, float] | None = None,
 ) -> dict[str, Stat]:

@@ -24,13 +24,11 @@ from traffictwin.risk.evaluation.bootstrap import (
 from traffictwin.risk.evaluation.scorer import Roles, Scorer
 from traffictwin.risk.evaluation.scoring import label_agreement
 from traffictwin.risk.evaluation.settings import BASELINES, SEED_MEAN, Holdout
-from traffictwin.risk.metric import CRITICAL_THW, risk_threshold
+from traffictwin.risk.metric import risk_threshold
 from traffictwin.stats import mean_ci
 
 
-def critical_shares(
-    frames: Any, labels: Sequence[str], threshold_s: float = CRITICAL_THW
-) -> dict[str, Any]:
+def critical_shares(frames: Any, labels: Sequence[str], threshold_s: float) -> dict[str, Any]:
     """Critical share (risk > threshold) of each label column per split and over all frames of
     ``frames`` (frames.csv), with the frame and sequence counts."""
     thr = risk_threshold(threshold_s)

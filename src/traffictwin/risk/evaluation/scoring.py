@@ -2,8 +2,8 @@
 
 Risk scale (docs/design.md "Risk metric"; the conversions live in :mod:`traffictwin.risk.metric`):
 ``risk = min(1 / THW, 20) / 20``; no vehicle ahead or speed 0 → risk 0. A situation is *critical*
-when THW < t (paper: t = 1.5 s), i.e. when ``risk > risk_threshold(t)`` (= 1/30 at 1.5 s, 1/20 at
-1.0 s).
+when THW < t (t: the primary of ``evaluation.risk.thresholds_s``, the paper's threshold), i.e. when
+``risk > risk_threshold(t)`` (``min(1/t, 20) / 20``).
 
 Reported per predictor against a label column: MSE and MAE of the normalised risk (the paper's
 "testing average error" is the MSE: 0.01470), the THW error in seconds (risk → THW, both capped at
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.risk.metric import CRITICAL_THW, risk_threshold, risk_to_thw
+from traffictwin.risk.metric import primary, risk_threshold, risk_to_thw
 
 #: the paper's figures (sec. 4, Table 1) and the related work's best accuracy
 PAPER = {
@@ -33,8 +33,6 @@ PAPER = {
     "confusion": {"tp": 67052, "fp": 19069, "fn": 9737, "tn": 10312},
     "n_frames": 106170,
 }
-#: default THW thresholds (s): the paper's critical threshold first, then 1 s
-THRESHOLDS_S = (CRITICAL_THW, 1.0)
 #: metrics where lower is better (every other reported metric: higher is better)
 LOWER_IS_BETTER = (
     "test/mse",
@@ -46,16 +44,8 @@ LOWER_IS_BETTER = (
 )
 
 
-def primary(thresholds_s: Sequence[float]) -> float:
-    """The primary THW threshold (s): the first of ``thresholds_s`` (config
-    ``evaluation.risk.thresholds_s``), the one that defines the critical frames."""
-    if not thresholds_s:
-        raise ValueError("thresholds_s: expected at least one THW threshold (s), got none")
-    return float(thresholds_s[0])
-
-
 def regression_metrics(
-    y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0, critical_s: float = CRITICAL_THW
+    y: np.ndarray, p: np.ndarray, thw_cap: float = 10.0, *, critical_s: float
 ) -> dict[str, float]:
     """``test/mse``, ``test/mae``, ``test/rmse`` (normalised risk) and THW errors in s (capped);
     the ``*_critical_s`` errors over the frames whose true THW is below ``critical_s`` (s)."""
@@ -79,7 +69,7 @@ def regression_metrics(
 
 
 def classification_metrics(
-    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW, cut: float | None = None
+    y: np.ndarray, p: np.ndarray, thw_s: float, cut: float | None = None
 ) -> dict[str, Any]:
     """Critical-vs-uncritical metrics at THW threshold ``thw_s``; the critical class is positive.
     A frame is predicted critical when ``p > cut`` (the predictor's decision threshold chosen on
@@ -153,7 +143,7 @@ def roc_curve(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.n
 def evaluate(
     y: np.ndarray,
     p: np.ndarray,
-    thresholds_s: Sequence[float] = THRESHOLDS_S,
+    thresholds_s: Sequence[float],
     thw_cap: float = 10.0,
     cuts: Mapping[float, float] | None = None,
 ) -> dict[str, Any]:
@@ -166,18 +156,14 @@ def evaluate(
     return out
 
 
-def confusion_labels(
-    y: np.ndarray, p: np.ndarray, thw_s: float = CRITICAL_THW
-) -> tuple[np.ndarray, np.ndarray]:
+def confusion_labels(y: np.ndarray, p: np.ndarray, thw_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame class names (``critical``/``uncritical``) of actual and predicted risk."""
     thr = risk_threshold(thw_s)
     names = np.array(["uncritical", "critical"])
     return names[(np.asarray(y) > thr).astype(int)], names[(np.asarray(p) > thr).astype(int)]
 
 
-def label_agreement(
-    a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float] = THRESHOLDS_S
-) -> dict[str, Any]:
+def label_agreement(a: np.ndarray, b: np.ndarray, thresholds_s: Sequence[float]) -> dict[str, Any]:
     """How two label columns (e.g. paper vs camera_fov region) differ: MSE and class agreement."""
     a, b = check_pair(a, b)
     out: dict[str, Any] = {
@@ -203,9 +189,10 @@ def check_pair(y: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return y, p
 
 
-def summarise_paper_comparison(metrics: Mapping[str, Any]) -> dict[str, float]:
-    """Differences to the paper for one predictor's metrics (positive = worse MSE / better accuracy)."""
-    at = metrics.get(f"at_{CRITICAL_THW:g}s", {})
+def summarise_paper_comparison(metrics: Mapping[str, Any], thw_s: float) -> dict[str, float]:
+    """Differences to the paper for one predictor's metrics (positive = worse MSE / better accuracy;
+    the accuracy at THW threshold ``thw_s`` (s), the primary)."""
+    at = metrics.get(f"at_{thw_s:g}s", {})
     return {
         "mse_minus_paper": float(metrics["test/mse"]) - PAPER["test/mse"],
         "accuracy_minus_paper": float(at.get("accuracy", float("nan"))) - PAPER["accuracy"],

@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from traffictwin.risk.evaluation.bootstrap import CIConfig
-from traffictwin.risk.evaluation.scoring import THRESHOLDS_S
 
 #: label columns of the three regions (docs/design.md "Risk metric"), the headline corridor first
 REGION_LABELS = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov")
@@ -68,8 +67,8 @@ class SuiteSettings:
     (targets); ``holdout``: the unseen-template check (``None``: none)."""
 
     primary_label: str
+    thresholds_s: tuple[float, ...]
     region_labels: tuple[str, ...] = REGION_LABELS
-    thresholds_s: tuple[float, ...] = THRESHOLDS_S
     thw_cap: float = 10.0
     geometric: Any = None
     batch_size: int = 256

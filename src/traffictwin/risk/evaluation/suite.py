@@ -93,7 +93,7 @@ def _model_entry(scorer: Scorer, v: str, model: Any) -> dict[str, Any]:
     }
     entry.update(scorer.point(v, lab))
     scores_with_ci(scorer.scores(v, lab), scorer.plan, into=entry)
-    entry["vs_paper"] = summarise_paper_comparison(entry)
+    entry["vs_paper"] = summarise_paper_comparison(entry, scorer.settings.t0)
     return entry
 
 

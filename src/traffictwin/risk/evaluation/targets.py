@@ -24,23 +24,27 @@ class Target:
     ci_required: bool = False
 
 
+#: descriptions hold ``{t}``: the THW threshold (s) the target is judged at (the primary
+#: ``evaluation.risk.thresholds_s`` unless said), filled in by :func:`describe`. The two
+#: balanced-accuracy targets are judged at the first and second thresholds and reported as
+#: ``shipped_balanced_accuracy_<t>s``.
 TARGETS: dict[str, Target] = {
     # the predictor users get (models/risk/shipped, chosen on validation)
-    "shipped_balanced_accuracy_1.5s": Target(
-        "balanced accuracy of the shipped predictor at THW 1.5 s", 0.95, ">="
+    "shipped_balanced_accuracy_primary": Target(
+        "balanced accuracy of the shipped predictor at THW {t} s", 0.95, ">="
     ),
-    "shipped_balanced_accuracy_1s": Target(
-        "balanced accuracy of the shipped predictor at THW 1.0 s", 0.90, ">="
+    "shipped_balanced_accuracy_second": Target(
+        "balanced accuracy of the shipped predictor at THW {t} s", 0.90, ">="
     ),
-    "shipped_roc_auc": Target("ROC-AUC of the shipped predictor at THW 1.5 s", 0.97, ">="),
+    "shipped_roc_auc": Target("ROC-AUC of the shipped predictor at THW {t} s", 0.97, ">="),
     "shipped_recall_pedestrian": Target(
-        "recall of the shipped predictor at THW 1.5 s, pedestrian situations", 0.85, ">="
+        "recall of the shipped predictor at THW {t} s, pedestrian situations", 0.85, ">="
     ),
     "shipped_recall_cut_in": Target(
-        "recall of the shipped predictor at THW 1.5 s, cut-in situations", 0.85, ">="
+        "recall of the shipped predictor at THW {t} s, cut-in situations", 0.85, ">="
     ),
     "shipped_thw_median_error_critical_s": Target(
-        "median |THW error| (s) of the shipped predictor on truly critical frames (THW < 1.5 s)",
+        "median |THW error| (s) of the shipped predictor on truly critical frames (THW < {t} s)",
         0.2,
         "<=",
     ),
@@ -74,6 +78,15 @@ TARGETS: dict[str, Target] = {
 }
 
 
+def describe(target: Target, thw_s: float | str) -> str:
+    """``target``'s description at THW threshold ``thw_s`` (s; one decimal at least: 1.0, 2.0,
+    1.25; a text stands for a threshold that is not there)."""
+    if isinstance(thw_s, str):
+        return target.description.format(t=thw_s)
+    t = f"{thw_s:.1f}" if math.isclose(thw_s, round(thw_s, 1)) else f"{thw_s:g}"
+    return target.description.format(t=t)
+
+
 def judge(iv: Interval, target: Target, threshold: float | None = None) -> dict[str, Any]:
     """``value``, ``lo``, ``hi``, ``met`` (the estimate — or, for ``ci_required``, the lower /
     upper bound — on the target's side) and ``ci_beyond_threshold`` (the whole interval there)."""
@@ -97,8 +110,9 @@ def judge(iv: Interval, target: Target, threshold: float | None = None) -> dict[
 class _Verdicts:
     """The judged targets, in order (``out``), on the intervals of ``plan``."""
 
-    def __init__(self, plan: ClusterBootstrap) -> None:
+    def __init__(self, plan: ClusterBootstrap, t0: float) -> None:
         self.plan = plan
+        self.t0 = t0  # the primary THW threshold (s): the descriptions' default
         self.out: dict[str, Any] = {}
 
     def put(
@@ -107,32 +121,44 @@ class _Verdicts:
         stat: Stat | Interval,
         predictor: str,
         threshold: float | None = None,
+        key: str | None = None,
+        thw_s: float | None = None,
         **extra: Any,
     ) -> None:
-        """Judge target ``name`` on ``stat`` (a statistic or an interval) of ``predictor``."""
+        """Judge target ``name`` on ``stat`` (a statistic or an interval) of ``predictor``,
+        reported as ``key`` (default ``name``), described at THW ``thw_s`` (default the primary)."""
         t = TARGETS[name]
         iv = stat if isinstance(stat, Interval) else self.plan.interval(stat)
-        self.out[name] = {
-            "description": t.description,
+        self.out[key or name] = {
+            "description": describe(t, self.t0 if thw_s is None else thw_s),
             "predictor": predictor,
             **judge(iv, t, threshold),
             **extra,
         }
 
-    def missing(self, name: str, why: str) -> None:
-        """Target ``name`` could not be evaluated (not met)."""
-        self.out[name] = {"description": TARGETS[name].description, "met": False, "why": why}
+    def missing(self, name: str, why: str, thw_s: float | str | None = None) -> None:
+        """Target ``name`` (described at THW ``thw_s``, default the primary) could not be
+        evaluated (not met)."""
+        desc = describe(TARGETS[name], self.t0 if thw_s is None else thw_s)
+        self.out[name] = {"description": desc, "met": False, "why": why}
 
 
 def _shipped(v: _Verdicts, scorer: Scorer, shipped: str, label: str) -> None:
     """The shipped predictor's balanced accuracy, ROC-AUC and THW error on ``label``."""
     thresholds = [float(t) for t in scorer.settings.thresholds_s]
     sh = scorer.scores(shipped, label)
-    for t, key in ((1.5, "shipped_balanced_accuracy_1.5s"), (1.0, "shipped_balanced_accuracy_1s")):
-        if any(math.isclose(t, x) for x in thresholds):
-            v.put(key, sh[f"at_{t:g}s|balanced_accuracy"], shipped, threshold_s=t)
+    for i, name in enumerate(
+        ("shipped_balanced_accuracy_primary", "shipped_balanced_accuracy_second")
+    ):
+        if i < len(thresholds):
+            t = thresholds[i]
+            key = f"shipped_balanced_accuracy_{t:g}s"
+            v.put(
+                name, sh[f"at_{t:g}s|balanced_accuracy"], shipped, key=key, thw_s=t, threshold_s=t
+            )
         else:
-            v.missing(key, f"THW threshold {t:g} s not evaluated (evaluation.risk.thresholds_s)")
+            why = "no second THW threshold (evaluation.risk.thresholds_s)"
+            v.missing(name, why, thw_s="<second threshold>")
     t0 = thresholds[0]
     v.put("shipped_roc_auc", sh[f"at_{t0:g}s|roc_auc"], shipped, threshold_s=t0)
     v.put("shipped_thw_median_error_critical_s", sh["test/thw_median_error_critical_s"], shipped)
@@ -203,7 +229,7 @@ def targets(
     risk.json (``None``: not evaluated)."""
     shipped = roles.shipped or roles.main_key
     learned = roles.learned or roles.main_key
-    v = _Verdicts(scorer.plan)
+    v = _Verdicts(scorer.plan, float(scorer.settings.t0))
     _shipped(v, scorer, shipped, roles.main_label)
     _situational(v, situations or {}, shipped, float(scorer.settings.t0))
     _learned(v, scorer, learned, roles.main_label)
