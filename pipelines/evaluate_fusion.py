@@ -49,7 +49,7 @@ from traffictwin.io.atomic import (
     write_text_atomic,
 )
 from traffictwin.io.jsonio import json_clean
-from traffictwin.trainer import check_device
+from traffictwin.trainer.settings import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._inference import pin_torch_threads
