@@ -187,7 +187,7 @@ def load_networks(
                 )
             networks[row][c] = net
             runs.append((fusion_model_dir(name), c, row, f"train_fusion_variant@{name}"))
-    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.fusion.registration_io import load_registration_model
 
     if "registration_model" in cfg:
         folder = registration_model_dir()
