@@ -29,6 +29,7 @@ class StereoModelError(RuntimeError):
     """A stereo model folder that cannot be used (missing, edited, wrong architecture)."""
 
 
+@torch.no_grad()
 def predict(
     net: StereoNet,
     left: np.ndarray,

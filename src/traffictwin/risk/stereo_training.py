@@ -278,8 +278,7 @@ class StereoLitModule(common.NetModule):
             m.reset()
 
 
-# -- inference and calibration -------------------------------------------------------------------------
-@torch.no_grad()
+# -- calibration (inference: stereo_io) ------------------------------------------------------------
 def calibrate_spread(
     disp: np.ndarray, spread: np.ndarray, gt: np.ndarray, valid_density: float, max_disparity: float
 ) -> tuple[float, dict[str, float]]:

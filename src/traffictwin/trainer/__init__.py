@@ -57,7 +57,10 @@ def __getattr__(name: str) -> Any:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     import traffictwin.trainer.exports as api
 
+    # bind every re-exported name here, as eager imports would: the function ``publish`` then
+    # replaces the submodule of that name that importing the API set on this package
+    globals().update({k: v for k, v in vars(api).items() if not k.startswith("_")})
     try:
-        return getattr(api, name)
-    except AttributeError:
+        return globals()[name]
+    except KeyError:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
