@@ -49,7 +49,7 @@ from traffictwin.io.atomic import (
     write_text_atomic,
 )
 from traffictwin.io.jsonio import json_clean
-from traffictwin.trainer import check_device
+from traffictwin.trainer.settings import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._inference import pin_torch_threads
@@ -187,7 +187,7 @@ def load_networks(
                 )
             networks[row][c] = net
             runs.append((fusion_model_dir(name), c, row, f"train_fusion_variant@{name}"))
-    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.fusion.registration_io import load_registration_model
 
     if "registration_model" in cfg:
         folder = registration_model_dir()

@@ -37,9 +37,10 @@ from traffictwin.risk.evaluation import (
     tracking_metrics,
 )
 from traffictwin.risk.figures import EvaluationFigurePaths, evaluation_figures
+from traffictwin.risk.model_config import LABELS
 from traffictwin.risk.model_io import load_risk_model
 from traffictwin.risk.predictors import predictor_kind
-from traffictwin.risk.training import LABELS, RiskSource
+from traffictwin.risk.source import RiskSource
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._inference import pin_torch_threads

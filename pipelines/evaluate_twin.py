@@ -81,7 +81,7 @@ def method_models(
     here), so every configuration shares them."""
     from traffictwin.fusion.config import MIXED
     from traffictwin.fusion.model_io import load_fusion_model
-    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.fusion.registration_io import load_registration_model
     from traffictwin.twin.fuse import TWIN_METHODS
 
     cache = {} if cache is None else cache

@@ -44,7 +44,7 @@ from traffictwin.risk.selection_suite import (
     select_on_validation,
     shipped_rule,
 )
-from traffictwin.risk.training import RiskSource
+from traffictwin.risk.source import RiskSource
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import (
@@ -94,7 +94,7 @@ def serving_signature(folder, source: RiskSource) -> tuple[object, np.ndarray]:
 
     from traffictwin.risk.predictor import RiskFrames
     from traffictwin.risk.predictors import packed_for_serving
-    from traffictwin.risk.training import input_keys
+    from traffictwin.risk.source import input_keys
 
     model = load_risk_model(folder)
     frames = source.split_frames("val").iloc[:1]

@@ -84,7 +84,7 @@ def run(
     written when an input is missing or inconsistent. ``holdout_model``: the network trained
     without some road templates (its meta's ``holdout_templates``), scored with the full one and
     SGM on those templates' fault-free test frames (``generalisation``)."""
-    from traffictwin.risk.stereo_training import load_stereo_model, predict
+    from traffictwin.risk.stereo_io import load_stereo_model, predict
     from traffictwin.threads import pin_threads
 
     log = setup_logging()

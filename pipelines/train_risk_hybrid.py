@@ -22,6 +22,7 @@ from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.metric import risk_to_thw
+from traffictwin.risk.model_config import LABELS
 from traffictwin.risk.model_io import save_predictor
 from traffictwin.risk.predictors import (
     HybridConfig,
@@ -30,7 +31,7 @@ from traffictwin.risk.predictors import (
     fit_hybrid,
     source_features,
 )
-from traffictwin.risk.training import LABELS, RiskSource, check_label
+from traffictwin.risk.source import RiskSource, check_label
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, STEREO_LEARNED, hybrid_model_dir

@@ -19,11 +19,13 @@ frames of those templates.
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.io.shards import DatasetError
-from traffictwin.risk.stereo_training import StereoData, StereoModelConfig, fit_stereo
-from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
+
+if TYPE_CHECKING:
+    from traffictwin.risk.stereo_training import StereoModelConfig
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -47,6 +49,8 @@ STEREO_HOLDOUT_MODEL = STEREO_MODEL.parent / "holdout"
 
 def model_config(p) -> StereoModelConfig:
     """The validated ``stereo_model`` group (its architecture builds, the crop fits it)."""
+    from traffictwin.risk.stereo_training import StereoModelConfig
+
     mc = typed(get(p, KEY, dict), StereoModelConfig, key=KEY, source=PARAMS.name)
     mc.net_spec(PARAMS.name)
     return mc
@@ -60,6 +64,11 @@ def main(argv: list[str] | None = None) -> None:
         help="train without stereo_model.holdout_templates -> models/stereo/holdout",
     )
     args = ap.parse_args(argv)
+    # the training modules import Lightning: only here, so that stereo_learned, which imports this
+    # module for STEREO_HOLDOUT_MODEL, does not
+    from traffictwin.risk.stereo_training import StereoData, fit_stereo
+    from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
+
     p = params()
     mc = model_config(p)
     spec = mc.net_spec(PARAMS.name)

@@ -674,11 +674,11 @@ def test_stage_loads_one_row_per_variant(monkeypatch, tmp_path):
     ]
     assert loaded[-1] == ("D/model.ckpt", "D")  # a per-configuration network records its own
     # the learned registration: row learned everywhere, learned+network where a registered-pairs network is
-    from traffictwin.fusion import registration_training
+    from traffictwin.fusion import registration_io
 
     monkeypatch.setattr(stage, "registration_model_dir", lambda: tmp_path / "reg" / "learned")
     monkeypatch.setattr(
-        registration_training,
+        registration_io,
         "load_registration_model",
         lambda path, **kw: f"reg-{kw['expected_cfg']}",
     )

@@ -55,7 +55,7 @@ def load_stereo(model: str | os.PathLike = SGM, *, tracking_uri: str | None = No
     ``train_stereo`` writes it). Either way the files are checked against their sealed SHA-256
     and read weights-only. Raises :class:`ApiError` naming the file or model."""
     from traffictwin.mlops.registry import STEREO_NAME
-    from traffictwin.risk.stereo_training import StereoModelError, load_stereo_model
+    from traffictwin.risk.stereo_io import StereoModelError, load_stereo_model
 
     from .inputs import check_optional_text
     from .registry import _load_model, _split_ref

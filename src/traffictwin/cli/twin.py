@@ -74,7 +74,7 @@ def load_twin_models(
     """The models a twin method needs, from model folders/checkpoints (``--registration-model``:
     a learned registration, ``models/registration/<cfg>``; ``--fusion-model``: a fusion network)."""
     from traffictwin.fusion.model_io import FusionModelError, load_fusion_model
-    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.fusion.registration_io import load_registration_model
     from traffictwin.twin.fuse import TWIN_METHODS
 
     needs = TWIN_METHODS[method].needs

@@ -131,7 +131,7 @@ def registration_evaluator(
     import torch
 
     from traffictwin.fusion import metrics as fm
-    from traffictwin.fusion.registration_training import load_registration_model
+    from traffictwin.fusion.registration_io import load_registration_model
     from traffictwin.mlops.registry import load_registered
 
     def evaluate(uri: str) -> dict[str, float]:

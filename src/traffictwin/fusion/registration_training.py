@@ -13,6 +13,9 @@
   :class:`~traffictwin.fusion.training_data.TrainingSet` (seeding, trainer, MLflow run, best
   checkpoint and early stopping on ``val/loss``, meta, metrics, curves), like
   :func:`traffictwin.fusion.training.fit_fusion`.
+
+Reading a trained registration back (:func:`load_registration_model`, re-exported here) is
+:mod:`traffictwin.fusion.registration_io`, which imports no Lightning.
 """
 
 from __future__ import annotations
@@ -43,6 +46,10 @@ from traffictwin.fusion.learned_registration import (
     warp_by,
 )
 from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.fusion.registration_io import (  # noqa: F401 - re-exported
+    PROBLEM,
+    load_registration_model,
+)
 from traffictwin.fusion.registration_loss import registration_loss
 from traffictwin.fusion.training_data import TrainingSet
 from traffictwin.grid import GridSpec
@@ -55,7 +62,6 @@ log = logging.getLogger(__name__)
 # checkpoint and early stopping: the validation loss. The success rate of a few hundred pairs moves
 # in steps of 0.5 % and plateaus while the pose errors still fall (ties would keep an early epoch).
 SELECTION_METRIC = "val/loss"
-PROBLEM = "registration"
 
 
 # -- config (the ``registration_model`` group, validated by the stage) --------------------------------
@@ -449,52 +455,6 @@ def _publish(
         uri = common.log_fitted_model(fitted, slim, meta, metrics, net.eval(), example, metadata)
     common.publish(fitted, outputs, slim, meta, metrics)
     return common.fit_result(fitted, outputs, meta, metrics, uri)
-
-
-def load_registration_model(
-    path: str | Path, *, expected_grid: GridSpec | None = None, expected_cfg: str | None = None
-) -> LearnedRegistration:
-    """A trained :class:`LearnedRegistration` (eval mode) from ``model.ckpt`` (file or folder);
-    ``model.meta`` holds its meta. Errors name the file and the mismatch."""
-    from traffictwin.fusion.model_io import SEALED_META, FusionModelError
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.ckpt"
-    if not path.exists():
-        raise FusionModelError(
-            f"{path}: learned registration checkpoint not found (run `dvc repro train_registration` first)"
-        )
-    ck = common.read_model_checkpoint(path, PROBLEM, FusionModelError)
-    info = ck["traffictwin"]
-    meta = common.read_model_meta(path.parent / "model_meta.json", FusionModelError)
-    common.check_model_pair(
-        path, meta, FusionModelError, info, (*SEALED_META, "method", "min_gain")
-    )
-    g = GridSpec(**info["grid"])
-    if expected_grid is not None and (g.rows, g.cols, g.cell) != (
-        expected_grid.rows,
-        expected_grid.cols,
-        expected_grid.cell,
-    ):
-        raise FusionModelError(
-            f"{path}: trained on grid {info['grid']}, expected {expected_grid.rows}x{expected_grid.cols} cells of {expected_grid.cell} m"
-        )
-    if expected_cfg is not None and info.get("cfg") != expected_cfg:
-        raise FusionModelError(
-            f"{path}: trained for configuration '{info.get('cfg')}', expected '{expected_cfg}'"
-        )
-    try:
-        net = LearnedRegistration(
-            RegistrationNetSpec.from_dict(info["architecture"]), g, float(info.get("min_gain", 0.0))
-        )
-        net.load_state_dict(common.net_state_dict(ck), strict=True)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise FusionModelError(
-            f"{path}: weights do not fit the learned registration architecture ({str(exc)[:300]})"
-        ) from None
-    net.meta = dict(info)  # type: ignore[attr-defined]
-    return net.eval()
 
 
 def learning_curves(rows: list[dict[str, float]], title: str):

@@ -23,7 +23,7 @@ it) and returns the network's raw output as float32 numpy:
 - ``registration``: ``(N, 4, H, W)`` -> the learned registration network's output;
 - ``stereo``: ``(N, 6[+1], H, W)`` left and right B, G, R planes (0-255) [+ SGM's disparity
   plane, px, for a network that refines SGM] -> ``(N, 2, H, W)`` disparity (px, -1 invalid) and
-  spread (px) (:class:`traffictwin.risk.stereo_training.PackedStereo`).
+  spread (px) (:class:`traffictwin.risk.stereo_io.PackedStereo`).
 
 The requirement list (:func:`pip_requirements`) is what this module and the problem loaders
 import, pinned to the versions installed where the model was logged.
@@ -63,8 +63,8 @@ import numpy as np
 LOADERS = {
     "fusion": ("traffictwin.fusion.model_io", "load_fusion_model"),
     "risk": ("traffictwin.risk.model_io", "load_risk_model"),
-    "registration": ("traffictwin.fusion.registration_training", "load_registration_model"),
-    "stereo": ("traffictwin.risk.stereo_training", "load_stereo_model"),
+    "registration": ("traffictwin.fusion.registration_io", "load_registration_model"),
+    "stereo": ("traffictwin.risk.stereo_io", "load_stereo_model"),
 }
 #: most samples one request may carry (``TRAFFICTWIN_SERVE_MAX_BATCH`` overrides it)
 MAX_BATCH = 64
@@ -135,7 +135,7 @@ def _load(problem: str, folder: Path) -> tuple[Any, dict[str, Any]]:
         packed = importlib.import_module("traffictwin.risk.predictors").PackedPredictor
         return packed(model), meta
     if problem == "stereo":  # the network and its calibrated spread threshold, one input
-        packed = importlib.import_module("traffictwin.risk.stereo_training").PackedStereo
+        packed = importlib.import_module("traffictwin.risk.stereo_io").PackedStereo
         return packed(model, float(meta["spread_threshold_px"])).eval(), meta
     if problem == "risk":  # a RiskModel: the packed single-input network of its signature
         packed = importlib.import_module("traffictwin.risk.dave2").PackedDave2

@@ -62,7 +62,7 @@ def risk_test_set(
     import pandas as pd
 
     from traffictwin.io.shards import sha256_file
-    from traffictwin.risk.training import RiskSource
+    from traffictwin.risk.source import RiskSource
 
     src = RiskSource(risk_root, disparity_root, orb_csv)
     frames = src.split_frames(split).sort_values("frame_id", kind="stable")

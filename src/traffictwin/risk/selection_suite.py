@@ -36,7 +36,7 @@ from traffictwin.risk.metric import RiskConfig, risk_threshold, thw_to_risk
 from traffictwin.risk.predictor import RiskFrames
 from traffictwin.risk.predictors import GeometricRiskModel, predictor_kind
 from traffictwin.risk.selection import best_cut, choose, roc_auc, too_few, tune_half_width
-from traffictwin.risk.training import RiskSource, check_label, input_keys
+from traffictwin.risk.source import RiskSource, check_label, input_keys
 
 #: the corridor rules and the disparity each reads (a rule runs where its source has the disparity:
 #: ``geometric_learned`` needs the learned stereo network's data/stereo_learned); of the rules only

@@ -15,7 +15,7 @@ def load_registered_stereo(uri: str):
     """The :class:`~traffictwin.stereo.network.StereoNet` behind a registry URI (SHA-256 checked,
     ``weights_only``); ``net.meta`` is its sealed meta."""
     from traffictwin.mlops.registry import load_registered
-    from traffictwin.risk.stereo_training import load_stereo_model
+    from traffictwin.risk.stereo_io import load_stereo_model
 
     return load_registered(uri, load_stereo_model)
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.risk.stereo_training import predict
+from traffictwin.risk.stereo_io import predict
 
 
 def spread_threshold(net: Any) -> float:

@@ -35,19 +35,21 @@ from traffictwin import trainer as common
 from traffictwin.config import spec as setting
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.mlops.tracking import DATA_TAG
+from traffictwin.risk.stereo_io import (  # noqa: F401 - re-exported
+    PROBLEM,
+    SEALED_META,
+    PackedStereo,
+    StereoModelError,
+    load_stereo_model,
+    pack_pairs,
+    predict,
+)
 from traffictwin.stereo.network import StereoNet, StereoNetSpec, param_count, stereo_loss, to_input
 from traffictwin.trainer import FitResult, ModelOutputs, TrackingSettings
 
 log = logging.getLogger(__name__)
 
-PROBLEM = "stereo"
 SELECTION_METRIC = "val/epe"
-#: meta keys the loader trusts (the checkpoint's own copy must match model_meta.json)
-SEALED_META = ("architecture", "data_manifest_hash", "spread_threshold_px", "image_size")
-
-
-class StereoModelError(RuntimeError):
-    """A stereo model folder that cannot be used (missing, edited, wrong architecture)."""
 
 
 # -- config (the ``stereo_model`` group) ------------------------------------------------------------
@@ -276,86 +278,7 @@ class StereoLitModule(common.NetModule):
             m.reset()
 
 
-# -- inference and calibration -------------------------------------------------------------------------
-@torch.no_grad()
-def predict(
-    net: StereoNet,
-    left: np.ndarray,
-    right: np.ndarray,
-    batch_size: int = 8,
-    sgm: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Disparity and spread (N, H, W) float32 px of BGR uint8 pairs (N, H, W, 3), in batches;
-    image sides are padded (edge) to a multiple of the network's stride and cropped back. In
-    ``base: sgm`` mode ``sgm`` (N, H, W) px (-1 invalid) is the input refined (padded with -1)."""
-    if left.shape != right.shape or left.ndim != 4:
-        raise ValueError(f"left {left.shape} and right {right.shape} must be equal (N, H, W, 3)")
-    net.eval()
-    n, h, w, _ = left.shape
-    if net.spec.base == "sgm" and (sgm is None or sgm.shape != (n, h, w)):
-        raise ValueError(
-            f"predict: base 'sgm' needs the SGM disparity (N, H, W) = {(n, h, w)}, got "
-            f"{None if sgm is None else sgm.shape}"
-        )
-    s = net.spec.stride if net.spec.base == "cost_volume" else net.spec.refine_stride
-    ph, pw = (-h) % s, (-w) % s
-    disp = np.empty((n, h, w), np.float32)
-    spread = np.empty((n, h, w), np.float32)
-    for a in range(0, n, batch_size):
-        lt, rt = to_input(left[a : a + batch_size]), to_input(right[a : a + batch_size])
-        if ph or pw:
-            lt = torch.nn.functional.pad(lt, (0, pw, 0, ph), mode="replicate")
-            rt = torch.nn.functional.pad(rt, (0, pw, 0, ph), mode="replicate")
-        st = None
-        if net.spec.base == "sgm":
-            st = torch.from_numpy(np.ascontiguousarray(sgm[a : a + batch_size], np.float32))[
-                :, None
-            ]
-            if ph or pw:
-                st = torch.nn.functional.pad(st, (0, pw, 0, ph), value=-1.0)
-        out = net(lt, rt, st)
-        disp[a : a + batch_size] = out["disparity"][:, 0, :h, :w].numpy()
-        spread[a : a + batch_size] = out["spread"][:, 0, :h, :w].numpy()
-    return disp, spread
-
-
-class PackedStereo(torch.nn.Module):
-    """The network as one-input module for the MLflow pyfunc flavour: input (N, 6[+1], H, W)
-    float32 = the left then the right image's B, G, R planes (0-255) and, for a ``base: sgm``
-    network, SGM's disparity plane (px, -1 invalid); output (N, 2, H, W) = the disparity (px,
-    -1 where the spread exceeds ``threshold`` px, as :func:`predict` + the ``stereo_learned``
-    stage) and the spread (px)."""
-
-    def __init__(self, net: StereoNet, threshold: float) -> None:
-        super().__init__()
-        self.net = net
-        self.threshold = float(threshold)
-        self.channels = 7 if net.spec.base == "sgm" else 6
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.ndim != 4 or x.shape[1] != self.channels:
-            raise ValueError(
-                f"packed stereo input must be (N, {self.channels}, H, W) = left BGR, right BGR"
-                f"{', SGM disparity' if self.channels == 7 else ''}, got {tuple(x.shape)}"
-            )
-        left = x[:, 0:3].flip(1) / 255.0  # BGR -> RGB in [0, 1], as to_input
-        right = x[:, 3:6].flip(1) / 255.0
-        sgm = x[:, 6:7] if self.channels == 7 else None
-        out = self.net(left, right, sgm)
-        disp, spread = out["disparity"], out["spread"]
-        disp = torch.where(spread <= self.threshold, disp, torch.full_like(disp, -1.0))
-        return torch.cat([disp, spread], dim=1)
-
-
-def pack_pairs(left: np.ndarray, right: np.ndarray, sgm: np.ndarray | None = None) -> np.ndarray:
-    """The :class:`PackedStereo` input (N, 6[+1], H, W) float32 of BGR uint8 pairs (N, H, W, 3)
-    and, for a ``base: sgm`` network, their SGM disparity (N, H, W) px."""
-    planes = [np.moveaxis(np.asarray(a, np.float32), -1, 1) for a in (left, right)]
-    if sgm is not None:
-        planes.append(np.asarray(sgm, np.float32)[:, None])
-    return np.ascontiguousarray(np.concatenate(planes, axis=1))
-
-
+# -- calibration (inference: stereo_io) ------------------------------------------------------------
 def calibrate_spread(
     disp: np.ndarray, spread: np.ndarray, gt: np.ndarray, valid_density: float, max_disparity: float
 ) -> tuple[float, dict[str, float]]:
@@ -548,29 +471,3 @@ def _publish(
 
 def _first(a: np.ndarray | None) -> np.ndarray | None:
     return None if a is None else a[:1]
-
-
-def load_stereo_model(path: str | Path) -> StereoNet:
-    """The trained :class:`StereoNet` (eval mode) from ``model.ckpt`` (file or folder) through the
-    sealed, weights-only path; ``net.meta`` holds its meta (``spread_threshold_px``). Errors name
-    the file."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.ckpt"
-    if not path.exists():
-        raise StereoModelError(
-            f"{path}: stereo model checkpoint not found (run `dvc repro train_stereo` first)"
-        )
-    ck = common.read_model_checkpoint(path, PROBLEM, StereoModelError)
-    info = ck["traffictwin"]
-    meta = common.read_model_meta(path.parent / "model_meta.json", StereoModelError)
-    common.check_model_pair(path, meta, StereoModelError, info, SEALED_META)
-    try:
-        net = StereoNet(StereoNetSpec.from_dict(info["architecture"]))
-        net.load_state_dict(common.net_state_dict(ck), strict=True)
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise StereoModelError(
-            f"{path}: weights do not fit the stereo architecture ({str(exc)[:300]})"
-        ) from None
-    net.meta = dict(info)  # type: ignore[attr-defined]
-    return net.eval()

@@ -1,8 +1,10 @@
 """Training of the DAVE-2-like risk network with Lightning (Feth et al., sec. 3.5).
 
-The data (:class:`RiskSource`, :func:`prepare_split`, :class:`RiskDataModule`):
-:mod:`traffictwin.risk.source`; the ``risk_model`` config group and :class:`TrainConfig`:
-:mod:`traffictwin.risk.model_config` (both re-exported here, where the stages import them).
+The data (:class:`RiskSource`, :func:`prepare_split`): :mod:`traffictwin.risk.source`, its
+loaders (:class:`RiskDataModule`): :mod:`traffictwin.risk.data_module`; the ``risk_model`` config
+group and :class:`TrainConfig`: :mod:`traffictwin.risk.model_config` (all re-exported here, where
+the training stages import them; stages that train nothing import the light modules themselves,
+so that they do not import Lightning).
 The arrays are normalised per batch on the device by the LightningModule (:class:`RiskRegressor`).
 Loss: the variant's objective (:func:`~traffictwin.risk.dave2.risk_loss`: the paper's MSE on the
 normalised risk, MSE on log THW, or MSE + a classification head at the critical THW); optimiser: Adam with a
@@ -36,6 +38,7 @@ from traffictwin import resume
 from traffictwin.config import flatten
 from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.mlops.tracking import DATA_TAG
+from traffictwin.risk.data_module import RiskDataModule
 from traffictwin.risk.dave2 import (
     Dave2,
     Dave2Config,
@@ -58,7 +61,6 @@ from traffictwin.risk.model_config import (  # noqa: F401 - re-exported: the sta
 from traffictwin.risk.model_io import CKPT, risk_checkpoint, risk_meta, save_risk_model
 from traffictwin.risk.source import (  # noqa: F401 - re-exported: the stages import them here
     RiskArrays,
-    RiskDataModule,
     RiskSource,
     check_label,
     input_keys,

@@ -40,62 +40,27 @@ Stable API (the fusion and the risk stages both use it), re-exported here from t
   :func:`net_state_dict` gives the network's weights. A model folder's ``model.ckpt`` and
   ``model_meta.json`` are one unit: :func:`save_model_files` writes them (meta last, recording
   the checkpoint's SHA-256) and :func:`check_model_pair` refuses a pair that does not match.
+
+The names load on first use (a module ``__getattr__`` imports :mod:`~traffictwin.trainer.exports`),
+so a stage that only needs a light submodule (``from traffictwin.trainer.settings import
+check_device``, :mod:`~traffictwin.trainer.sampling`) does not import Lightning.
 """
 
-from traffictwin.model_format import (  # noqa: F401 - re-exported: the one checkpoint format
-    CKPT_SHA_KEY,
-    MODEL_FORMAT,
-    CheckpointError,
-    check_model_pair,
-    model_checkpoint,
-    net_state_dict,
-    read_model_checkpoint,
-    read_model_meta,
-    save_model_checkpoint,
-    save_model_files,
-)
-from traffictwin.trainer.callbacks import (  # noqa: F401
-    FiniteGuard,
-    History,
-    TrainingDiverged,
-    best_checkpoint,
-    early_stopping,
-)
-from traffictwin.trainer.fit import (  # noqa: F401
-    BEST_DIR,
-    FitLoop,
-    Fitted,
-    NetModule,
-    RunRecord,
-    fit_and_publish,
-    fit_run,
-)
-from traffictwin.trainer.publish import (  # noqa: F401
-    FitResult,
-    ModelOutputs,
-    fit_metrics,
-    fit_result,
-    log_fitted_model,
-    publish,
-    stopped_early,
-)
-from traffictwin.trainer.sampling import RankShardSampler, rank_layout  # noqa: F401
-from traffictwin.trainer.settings import (  # noqa: F401
-    ACCELERATORS,
-    PRECISIONS,
-    TrainerSettings,
-    build_trainer,
-    check_device,
-    native_bf16_cpu,
-    resolve_precision,
-    seed_everything,
-)
-from traffictwin.trainer.tracking import (  # noqa: F401
-    TrackingSettings,
-    global_rank,
-    log_checkpoint,
-    log_final_metrics,
-    log_model,
-    mlflow_logger,
-    tracked_run,
-)
+from __future__ import annotations
+
+from typing import Any
+
+
+def __getattr__(name: str) -> Any:
+    """``name`` from the re-exported API (imports Lightning on the first call)."""
+    if name.startswith("__"):  # dunder probes (copy, pickle, doctest) need not load the API
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import traffictwin.trainer.exports as api
+
+    # bind every re-exported name here, as eager imports would: the function ``publish`` then
+    # replaces the submodule of that name that importing the API set on this package
+    globals().update({k: v for k, v in vars(api).items() if not k.startswith("_")})
+    try:
+        return globals()[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None

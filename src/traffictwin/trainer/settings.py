@@ -1,5 +1,8 @@
 """Where and how Lightning runs: the ``trainer`` config group (:class:`TrainerSettings`), the
-precision it resolves to, device checks, seeding and the ``lightning.Trainer`` it builds."""
+precision it resolves to, device checks, seeding and the ``lightning.Trainer`` it builds.
+
+Lightning is imported inside the functions that use it: a stage that only checks a device
+(:func:`check_device`) imports torch, not Lightning."""
 
 from __future__ import annotations
 
@@ -10,12 +13,10 @@ from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import torch
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.threads import pin_threads
-from traffictwin.trainer.callbacks import FiniteGuard
 
 PRECISIONS = (
     "auto",  # resolved by resolve_precision: bf16-mixed where the hardware has native bf16, else 32-true
@@ -98,6 +99,7 @@ class TrainerSettings:
         """Lightning must accept accelerator/devices/num_nodes/strategy/precision together on this
         machine (e.g. ``mps`` or ``tpu`` that is not there, a device list on CPU, an unknown
         strategy): a throw-away ``Trainer`` is built; its error becomes a ConfigError."""
+        import lightning as L
         from lightning.fabric.utilities.exceptions import MisconfigurationException
 
         # Lightning's startup banners -> warnings only (as in build_trainer)
@@ -206,7 +208,10 @@ def build_trainer(
     """
     import sys
 
+    import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from traffictwin.trainer.callbacks import FiniteGuard
 
     if settings.num_threads > 0:
         pin_threads(settings.num_threads)

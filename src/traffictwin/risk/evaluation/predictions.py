@@ -82,7 +82,7 @@ def _run_predictors(
 ) -> tuple[Any, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """``frames`` in shard order, each model's predictions and the corridor rules' outputs
     (``<rule>``: risk, ``<rule>_distance_m``: distance ahead, m) on them."""
-    from traffictwin.risk.training import input_keys
+    from traffictwin.risk.source import input_keys
 
     have = source.disparity_keys
     rules = [(n, k) for n, k in RULE_INPUTS if k in have] if settings.geometric else []
@@ -113,7 +113,7 @@ def _fit_baselines(
 ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
     """Constant and speed-only baselines of ``label`` fitted on ``train``, predicted at ``speed``
     (m/s, the evaluated frames), and what was fitted."""
-    from traffictwin.risk.training import check_label
+    from traffictwin.risk.source import check_label
 
     ty = check_label(train, label, fpath).astype(np.float64)
     consts = constant_predictions(ty, len(speed))
@@ -138,10 +138,10 @@ def predict_suite(
     source: Any, models: Mapping[str, Any], settings: SuiteSettings
 ) -> SuitePredictions:
     """Predict every model and baseline on ``settings.split`` of ``source``
-    (:class:`traffictwin.risk.training.RiskSource`)."""
+    (:class:`traffictwin.risk.source.RiskSource`)."""
     import pandas as pd
 
-    from traffictwin.risk.training import check_label
+    from traffictwin.risk.source import check_label
 
     frames, fpath = _checked_frames(source, settings.split)
     labels, label_of = _label_columns(models, settings, frames.columns)

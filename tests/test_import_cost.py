@@ -1,0 +1,95 @@
+"""Start-up cost: the stages that train nothing, the CLI's entry module and its help and argument
+errors import no Lightning (~4-9 s a process), and those that run no network import no torch; no
+stage imports MLflow at import time.
+
+One subprocess imports the modules in phases (torch-free first, then Lightning-free), each phase
+checked before the next, so a heavy import in an early module cannot hide behind a later one.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: stage scripts that train a network with Lightning (the only ones that may import it)
+TRAINING = {"train_fusion", "train_registration", "train_risk"}
+#: stage scripts that load or run a torch network at import time (evaluation and training)
+TORCH = TRAINING | {"evaluate_fusion", "evaluate_risk", "select_risk", "train_risk_hybrid"}
+#: library modules the evaluation stages and the CLI load networks and data through
+LIGHT_LIBRARY = (
+    "traffictwin.trainer.settings",
+    "traffictwin.trainer.sampling",
+    "traffictwin.fusion.registration_io",
+    "traffictwin.risk.stereo_io",
+    "traffictwin.risk.source",
+)
+#: CLI invocations that end in argparse (help or a usage error) before any work
+CLI_ARGS = (["--help"], ["fuse", "--help"], ["risk", "--help"], ["twin"], ["--no-such-option"])
+
+_PROBE = r"""
+import contextlib, importlib, io, json, sys
+
+def heavy():
+    return sorted(m for m in ("torch", "lightning", "mlflow") if m in sys.modules)
+
+phases = json.loads(sys.argv[1])
+out = {}
+for name, modules, cli_args in phases:
+    for m in modules:
+        importlib.import_module(m)
+    if cli_args:
+        from traffictwin.cli import main
+
+        for args in cli_args:
+            sink = io.StringIO()
+            with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+                try:
+                    main(args)
+                except SystemExit:
+                    pass
+    out[name] = heavy()
+print(json.dumps(out))
+"""
+
+
+def _stages() -> list[str]:
+    """Every stage script of pipelines/ (no helper module starting with an underscore)."""
+    names = sorted(p.stem for p in (ROOT / "pipelines").glob("*.py"))
+    return [n for n in names if not n.startswith("_")]
+
+
+def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() -> None:
+    stages = _stages()
+    assert TORCH <= set(stages), f"stage scripts missing from pipelines/: {TORCH - set(stages)}"
+    torch_free = ["traffictwin.cli", "traffictwin.cli.__main__"] + [
+        f"pipelines.{s}" for s in stages if s not in TORCH
+    ]
+    lightning_free = list(LIGHT_LIBRARY) + [
+        f"pipelines.{s}" for s in stages if s in TORCH - TRAINING
+    ]
+    phases = [  # torch-free first (with the CLI's argparse paths), then Lightning-free
+        ("torch_free", torch_free, [list(a) for a in CLI_ARGS]),
+        ("lightning_free", lightning_free, []),
+    ]
+    r = subprocess.run(
+        [sys.executable, "-c", _PROBE, json.dumps(phases)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["torch_free"] == [], (
+        f"importing {torch_free} and running traffictwin {CLI_ARGS} (help, usage errors) loaded "
+        f"{got['torch_free']}: a module-level import of torch, Lightning or MLflow crept into a "
+        "stage that runs no network or into the CLI's argument parsing (import it where it is used)"
+    )
+    assert "lightning" not in got["lightning_free"] and "mlflow" not in got["lightning_free"], (
+        f"importing {lightning_free} loaded {got['lightning_free']}: only the training stages "
+        f"({sorted(TRAINING)}) may import Lightning"
+    )
