@@ -109,12 +109,15 @@ _RUNS = itertools.count()
 
 
 def _files(repo: Path) -> set[str]:
-    """Every file of the copy outside git/DVC internals and the MLflow store."""
+    """Every file of the copy outside git/DVC internals, the MLflow store and Python's bytecode
+    caches (``__pycache__``, written by any import where bytecode writing is on)."""
     skip = (".git/", ".dvc/", "mlartifacts/")
     return {
         p.relative_to(repo).as_posix()
         for p in repo.rglob("*")
-        if p.is_file() and not p.relative_to(repo).as_posix().startswith(skip)
+        if p.is_file()
+        and not p.relative_to(repo).as_posix().startswith(skip)
+        and "__pycache__" not in p.parts
     }
 
 
