@@ -446,6 +446,7 @@ _LONGEST = (
     "tests/test_retrain.py::test_retrain_end_to_end_lock_and_failure_restore",
     "tests/reliability/test_rerun_identical.py::",
     "tests/test_experiments.py::",
+    "tests/test_ddp.py::test_ddp_",  # one worker's group (xdist_group): the DDP stage tests
 )
 
 

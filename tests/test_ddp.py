@@ -2,7 +2,7 @@
 publishes, one MLflow run each, and validation over 2 ranks equals validation in one process.
 
 The sampler unit tests (:class:`~traffictwin.trainer.RankShardSampler`) are fast; the stage
-tests are ``slow`` (a repo copy, the ci data, two DDP trainings, eight validation runs: ~3 min
+tests are ``slow`` (a copy of the shared ci DAG, two DDP trainings, eight validation runs: ~2 min
 on 2 cores).
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import copy_repo, run, stage_env
+from conftest import copy_dag, run, stage_env
 from torch.utils.data import RandomSampler, SequentialSampler
 
 from traffictwin.trainer import RankShardSampler
@@ -122,12 +122,14 @@ def _files(repo: Path) -> set[str]:
 
 
 @pytest.fixture(scope="module")
-def ddp_repo(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """A repo copy with the ci data (single process), then both training stages run by
-    `dvc repro` with the DDP trainer; returns the copy, the files the training added and its log."""
-    repo = copy_repo(tmp_path_factory.mktemp("ddp") / "repo")
-    run([sys.executable, "-m", "pipelines.compose_params", "profile=ci"], repo)
-    run(["dvc", "repro", "prealign_mixed", "orb_filter"], repo, timeout=900)
+def ddp_repo(ci_dag: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A copy of the finished ci DAG (its data and DVC cache: nothing is generated again, and a
+    store of its own: the only MLflow runs are the DDP trainings'), the two training stages'
+    outputs removed, then both stages run by `dvc repro` with the DDP trainer; returns the copy,
+    the files the training added and its log."""
+    repo = copy_dag(ci_dag, tmp_path_factory.mktemp("ddp") / "repo", mlflow=False)
+    for rel in PUBLISHED:
+        (repo / rel).unlink(missing_ok=True)
     run([sys.executable, "-m", "pipelines.compose_params", *DDP], repo)
     before = _files(repo)
     proc = run(["dvc", "repro", *STAGES], repo, timeout=1200)
