@@ -69,7 +69,7 @@ def _fusion(p: Any) -> None:
 def _fusion_model(p: Any) -> None:
     from traffictwin.config import typed
     from traffictwin.fusion.config import fusion_variants
-    from traffictwin.fusion.training import FusionModelConfig
+    from traffictwin.fusion.model_config import FusionModelConfig
 
     source = "params.yaml"
     model = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
@@ -80,7 +80,7 @@ def _fusion_model(p: Any) -> None:
 
 
 def _trainer(p: Any) -> None:
-    from traffictwin.trainer import TrainerSettings
+    from traffictwin.trainer.settings import TrainerSettings
 
     # values only: whether this machine has the accelerator is the training stages' own check
     # (the paper profile's data stages run on a machine without a GPU)

@@ -27,7 +27,8 @@ from traffictwin.fusion.config import (
     training_noise,
     training_noise_description,
 )
-from traffictwin.fusion.training import FusionModelConfig, FusionSettings, fit_fusion
+from traffictwin.fusion.model_config import FusionModelConfig
+from traffictwin.fusion.training import FusionSettings, fit_fusion
 from traffictwin.fusion.training_data import TrainingSet
 from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings, global_rank
 

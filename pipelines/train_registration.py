@@ -23,13 +23,9 @@ from traffictwin.fusion.config import (
     training_noise,
     training_noise_description,
 )
-from traffictwin.fusion.registration_training import (
-    RegistrationModelConfig,
-    RegistrationSettings,
-    fit_registration,
-)
-from traffictwin.fusion.training_data import TrainingSet
-from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
+from traffictwin.fusion.model_config import RegistrationModelConfig
+from traffictwin.trainer.settings import TrainerSettings
+from traffictwin.trainer.tracking import TrackingSettings
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -53,6 +49,11 @@ def model_config(p) -> RegistrationModelConfig:
 
 
 def main(argv: list[str] | None = None) -> None:
+    # the training imports Lightning: here, not at module level (check_params reads model_config)
+    from traffictwin.fusion.registration_training import RegistrationSettings, fit_registration
+    from traffictwin.fusion.training_data import TrainingSet
+    from traffictwin.trainer.publish import ModelOutputs
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.parse_args(argv)
     p = params()

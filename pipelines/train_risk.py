@@ -15,14 +15,9 @@ from contextlib import nullcontext
 
 from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.risk.dave2 import Dave2Config, count_parameters
-from traffictwin.risk.training import (
-    RiskModelConfig,
-    RiskSource,
-    RiskVariant,
-    TrainConfig,
-    fit_risk,
-)
-from traffictwin.trainer import TrackingSettings, TrainerSettings, global_rank
+from traffictwin.risk.model_config import RiskModelConfig, TrainConfig
+from traffictwin.trainer.settings import TrainerSettings
+from traffictwin.trainer.tracking import TrackingSettings, global_rank
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -109,6 +104,10 @@ def check_disparity_scale(p, cfg: Dave2Config) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    # the training imports Lightning: here, not at module level (check_params reads the settings)
+    from traffictwin.risk.source import RiskSource
+    from traffictwin.risk.training import RiskVariant, fit_risk
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--variant", required=True)
     args = ap.parse_args(argv)

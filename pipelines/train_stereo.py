@@ -19,13 +19,10 @@ frames of those templates.
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
 
 from traffictwin.config import ConfigError, flatten, get, typed
 from traffictwin.io.shards import DatasetError
-
-if TYPE_CHECKING:
-    from traffictwin.risk.stereo_training import StereoModelConfig
+from traffictwin.stereo.model_config import StereoModelConfig
 
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
@@ -49,8 +46,6 @@ STEREO_HOLDOUT_MODEL = STEREO_MODEL.parent / "holdout"
 
 def model_config(p) -> StereoModelConfig:
     """The validated ``stereo_model`` group (its architecture builds, the crop fits it)."""
-    from traffictwin.risk.stereo_training import StereoModelConfig
-
     mc = typed(get(p, KEY, dict), StereoModelConfig, key=KEY, source=PARAMS.name)
     mc.net_spec(PARAMS.name)
     return mc

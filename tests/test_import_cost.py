@@ -93,3 +93,26 @@ def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() ->
         f"importing {lightning_free} loaded {got['lightning_free']}: only the training stages "
         f"({sorted(TRAINING)}) may import Lightning"
     )
+
+
+def test_the_parameter_check_runs_without_lightning() -> None:
+    """``check_params`` runs first in every `dvc repro` and `dvc exp run`: it validates every
+    group (the networks' settings and architectures included) with torch at most, and no Lightning
+    (~4-9 s a process) or MLflow: the settings classes live apart from the training code."""
+    probe = (
+        "import json, sys\n"
+        "from pathlib import Path\n"
+        "import pipelines.check_params as c\n"
+        "names = c.check(c.params(Path('params.yaml')))\n"
+        "print(json.dumps([names, sorted(m for m in ('lightning', 'torchmetrics', 'mlflow') "
+        "if m in sys.modules)]))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    names, heavy = json.loads(r.stdout.strip().splitlines()[-1])
+    assert len(names) >= 6, names  # every group's check ran
+    assert heavy == [], (
+        f"check_params loaded {heavy}: a settings class moved back beside its training"
+    )

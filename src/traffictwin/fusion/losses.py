@@ -43,6 +43,7 @@ from traffictwin.evidential.masses import (  # noqa: F401 - re-exported (its hom
     NUM_CLASSES,
     evidence_to_masses,
 )
+from traffictwin.fusion.config import LOSSES  # noqa: F401 - re-exported: the loss names' home
 
 KLD_EPS = 1e-7
 
@@ -126,9 +127,6 @@ def _occupied_weighted(per: torch.Tensor, y: torch.Tensor, occupied_weight: floa
         torch.ones((), dtype=per.dtype, device=per.device),
     )
     return w * per
-
-
-LOSSES = ("mass", "paper", "paper_kl")
 
 
 def fusion_loss(

@@ -24,7 +24,7 @@ import json
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import MISSING, asdict, dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,6 @@ from torchmetrics import CatMetric, MeanMetric
 
 from traffictwin import resume
 from traffictwin import trainer as common
-from traffictwin.config import spec as setting
 from traffictwin.evidential.masses import check_masses
 from traffictwin.evidential.noise import noise_sigmas
 from traffictwin.fusion.learned_registration import (
@@ -44,6 +43,10 @@ from traffictwin.fusion.learned_registration import (
     correction_target,
     rotation_about,
     warp_by,
+)
+from traffictwin.fusion.model_config import (  # noqa: F401 - re-exported: the stage's settings
+    RegistrationModelConfig,
+    RegistrationTrainConfig,
 )
 from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.fusion.registration_io import (  # noqa: F401 - re-exported
@@ -62,43 +65,6 @@ log = logging.getLogger(__name__)
 # checkpoint and early stopping: the validation loss. The success rate of a few hundred pairs moves
 # in steps of 0.5 % and plateaus while the pose errors still fall (ties would keep an early epoch).
 SELECTION_METRIC = "val/loss"
-
-
-# -- config (the ``registration_model`` group, validated by the stage) --------------------------------
-@dataclass
-class RegistrationTrainConfig:
-    """``registration_model.train``."""
-
-    batch_size: int = setting(MISSING, min=2)
-    max_epochs: int = setting(MISSING, min=1)
-    train_samples_per_epoch: int = setting(MISSING, min=0)
-    val_samples: int = setting(MISSING, min=0)
-    early_stopping_patience: int = setting(MISSING, min=1)
-    lr: float = setting(MISSING, min=1e-9, max=1.0)
-    weight_decay: float = setting(MISSING, min=0.0)
-    augment_prob: float = setting(MISSING, min=0.0, max=1.0)
-    augment_scale: float = setting(MISSING, min=0.0, max=10.0)
-    map_weight: float = setting(MISSING, min=0.0)
-    # added to the run's ``seed`` for this training only (the seed replicates use 1, 2, ...)
-    seed_offset: int = setting(0, min=0)
-
-
-@dataclass
-class RegistrationModelConfig:
-    """The ``registration_model`` group: the network (:class:`RegistrationNetSpec` fields), the
-    fallback's ``min_gain`` and the training (one network per pose-noise configuration)."""
-
-    architecture: dict[str, Any] = setting(MISSING)
-    min_gain: float = setting(MISSING, min=-1.0, max=1.0)
-    train: RegistrationTrainConfig = setting(MISSING)
-
-    def net_spec(self, source: str, key: str = "registration_model") -> RegistrationNetSpec:
-        from traffictwin.config import ConfigError
-
-        try:
-            return RegistrationNetSpec.from_dict(self.architecture)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{source}: '{key}.architecture' is invalid: {exc}") from None
 
 
 # -- data ------------------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import MISSING, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,6 @@ from torch.utils.data import Dataset as TorchDataset
 from torchmetrics import CatMetric, MeanMetric, SumMetric
 
 from traffictwin import trainer as common
-from traffictwin.config import spec as setting
 from traffictwin.io.shards import Dataset, DatasetError
 from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.risk.stereo_io import (  # noqa: F401 - re-exported
@@ -44,64 +43,16 @@ from traffictwin.risk.stereo_io import (  # noqa: F401 - re-exported
     pack_pairs,
     predict,
 )
+from traffictwin.stereo.model_config import (  # noqa: F401 - re-exported: the stage's settings
+    StereoModelConfig,
+    StereoTrainConfig,
+)
 from traffictwin.stereo.network import StereoNet, StereoNetSpec, param_count, stereo_loss, to_input
 from traffictwin.trainer import FitResult, ModelOutputs, TrackingSettings
 
 log = logging.getLogger(__name__)
 
 SELECTION_METRIC = "val/epe"
-
-
-# -- config (the ``stereo_model`` group) ------------------------------------------------------------
-@dataclass
-class StereoTrainConfig:
-    """``stereo_model.train``."""
-
-    batch_size: int = setting(MISSING, min=1)
-    crop_height: int = setting(MISSING, min=16)
-    crop_width: int = setting(MISSING, min=16)
-    max_epochs: int = setting(MISSING, min=1)
-    steps_per_epoch: int = setting(MISSING, min=1)
-    max_train_frames: int = setting(MISSING, min=0)  # 0 = every fault-free training frame
-    val_frames: int = setting(MISSING, min=1)
-    early_stopping_patience: int = setting(MISSING, min=1)
-    lr: float = setting(MISSING, min=1e-9, max=1.0)
-    weight_decay: float = setting(MISSING, min=0.0)
-    rel_weight: float = setting(MISSING, min=0.0)
-    coarse_weight: float = setting(MISSING, min=0.0)
-    valid_density: float = setting(MISSING, min=0.05, max=1.0)
-
-
-@dataclass
-class StereoModelConfig:
-    """The ``stereo_model`` group: the architecture (:class:`StereoNetSpec` fields) and training."""
-
-    architecture: dict[str, Any] = setting(MISSING)
-    train: StereoTrainConfig = setting(MISSING)
-    #: road templates the generalisation model never sees (stage train_stereo_holdout)
-    holdout_templates: list[str] = setting(MISSING)
-
-    def net_spec(self, source: str, key: str = "stereo_model") -> StereoNetSpec:
-        """The validated architecture; the training crop must be wider than ``max_disparity``."""
-        from traffictwin.config import ConfigError
-
-        try:
-            s = StereoNetSpec.from_dict(self.architecture)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{source}: '{key}.architecture' is invalid: {exc}") from None
-        t = self.train
-        if t.crop_width <= s.max_disparity:
-            raise ConfigError(
-                f"{source}: '{key}.train.crop_width' ({t.crop_width} px) must exceed "
-                f"'{key}.architecture.max_disparity' ({s.max_disparity} px)"
-            )
-        for k in ("crop_height", "crop_width"):
-            if getattr(t, k) % s.stride:
-                raise ConfigError(
-                    f"{source}: '{key}.train.{k}' ({getattr(t, k)} px) must be a multiple of "
-                    f"'{key}.architecture.stride' ({s.stride})"
-                )
-        return s
 
 
 # -- data ---------------------------------------------------------------------------------------------
