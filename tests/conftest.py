@@ -507,13 +507,24 @@ _TIMES: dict[str, float] = {}  # node id -> seconds of this run (--record-durati
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
-    """Add up each test's phases (under pytest-xdist the controller gets every worker's reports)."""
-    _TIMES[report.nodeid] = _TIMES.get(report.nodeid, 0.0) + report.duration
+    """Add up each test's phases (under pytest-xdist the controller gets every worker's reports),
+    when the run records them (``--record-durations``)."""
+    if _RECORDING:
+        _TIMES[report.nodeid] = _TIMES.get(report.nodeid, 0.0) + report.duration
+
+
+_RECORDING: list[bool] = []  # non-empty when this run records durations (pytest_configure)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.getoption("--record-durations", None):
+        _RECORDING.append(True)
 
 
 def _write_durations(config: pytest.Config) -> None:
-    """``--record-durations PATH``: this run's times, merged over the file's earlier entries (a
-    partial run updates the tests it ran), written atomically, two decimals, sorted."""
+    """``--record-durations PATH``: this run's times, written atomically, two decimals, sorted. A
+    whole-suite run (no paths, ``-k`` or ``-m``) replaces the file, so tests that no longer exist
+    leave it; a partial run's times are merged over the file's entries for the tests it ran."""
     target = config.getoption("--record-durations", None)
     if not target or hasattr(config, "workerinput") or not _TIMES:
         return
@@ -522,7 +533,12 @@ def _write_durations(config: pytest.Config) -> None:
     from traffictwin.io.atomic import write_text_atomic
 
     path = Path(target)
-    merged = {**recorded_durations(path), **{k: round(v, 2) for k, v in _TIMES.items()}}
+    option = config.option
+    whole = config.args_source != pytest.Config.ArgsSource.ARGS and not (
+        option.markexpr or option.keyword
+    )
+    merged = {} if whole else recorded_durations(path)
+    merged.update({k: round(v, 2) for k, v in _TIMES.items()})
     write_text_atomic(path, json.dumps(merged, indent=0, sort_keys=True) + "\n")
 
 

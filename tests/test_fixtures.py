@@ -161,23 +161,42 @@ def test_long_tests_are_marked_from_the_recorded_durations(tmp_path, monkeypatch
 
 
 def test_recorded_durations_add_the_phases_and_keep_earlier_entries(tmp_path, monkeypatch) -> None:
-    """--record-durations: setup + call + teardown of each test of this run, merged over the
-    file's entries for tests this run did not run; a bad file is named."""
+    """--record-durations: setup + call + teardown of each test of this run; a partial run (paths,
+    -k or -m) merges them over the file's entries for tests it did not run, a whole run replaces
+    the file (a removed test leaves it); without the option nothing is recorded; a bad file is
+    named."""
     from types import SimpleNamespace
 
     out = tmp_path / "durations.json"
-    out.write_text('{"tests/t.py::test_other": 3.0, "tests/t.py::test_a": 9.0}')
+    earlier = '{"tests/t.py::test_other": 3.0, "tests/t.py::test_a": 9.0}'
     monkeypatch.setattr(conftest, "_TIMES", {})
+    monkeypatch.setattr(conftest, "_RECORDING", [])
+    report = SimpleNamespace(nodeid="tests/t.py::test_a", when="call", duration=5.0)
+    conftest.pytest_runtest_logreport(report)
+    assert conftest._TIMES == {}  # not recording: nothing kept
+    monkeypatch.setattr(conftest, "_RECORDING", [True])
     for phase, seconds in (("setup", 0.25), ("call", 1.0), ("teardown", 0.004)):
         conftest.pytest_runtest_logreport(
             SimpleNamespace(nodeid="tests/t.py::test_a", when=phase, duration=seconds)
         )
-    config = SimpleNamespace(getoption=lambda name, default=None: str(out))
-    conftest._write_durations(config)
-    assert conftest.recorded_durations(out) == {
-        "tests/t.py::test_a": 1.25,
-        "tests/t.py::test_other": 3.0,
-    }
+
+    def config(source: pytest.Config.ArgsSource, markexpr: str = "") -> SimpleNamespace:
+        return SimpleNamespace(
+            getoption=lambda name, default=None: str(out),
+            args_source=source,
+            option=SimpleNamespace(markexpr=markexpr, keyword=""),
+        )
+
+    for partial in (config(pytest.Config.ArgsSource.ARGS), config(None, markexpr="not slow")):
+        out.write_text(earlier)
+        conftest._write_durations(partial)
+        assert conftest.recorded_durations(out) == {
+            "tests/t.py::test_a": 1.25,
+            "tests/t.py::test_other": 3.0,
+        }
+    out.write_text(earlier)
+    conftest._write_durations(config(pytest.Config.ArgsSource.TESTPATHS))
+    assert conftest.recorded_durations(out) == {"tests/t.py::test_a": 1.25}
     out.write_text('["not", "an object"]')
     with pytest.raises(pytest.UsageError, match="durations.json: expected a JSON object"):
         conftest.recorded_durations(out)
