@@ -403,9 +403,32 @@ def _build_ci_dag(repo: Path) -> Path:
     return repo
 
 
+@pytest.fixture(scope="session")
+def mlflow_store_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An empty SQLite MLflow store, made once per worker: a new store's tables and schema
+    migrations take seconds, a copy of it milliseconds (:func:`mlflow_uri` copies it). Made in a
+    process of its own, so this process's MLflow state is untouched."""
+    folder = tmp_path_factory.mktemp("mlflow_template")
+    db = folder / "mlflow.db"
+    code = "import sys; from mlflow import MlflowClient; MlflowClient(sys.argv[1]).search_experiments()"
+    subprocess.run(
+        [sys.executable, "-c", code, f"sqlite:///{db}"],
+        cwd=folder,  # the Default experiment's artifacts: <folder>/mlruns/0, repointed by each copy
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    return db
+
+
 @pytest.fixture
-def mlflow_uri(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
-    """A temp SQLite MLflow backend, exported as MLFLOW_TRACKING_URI."""
+def mlflow_uri(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mlflow_store_template: Path) -> str:
+    """A temp SQLite MLflow backend (a copy of :func:`mlflow_store_template`, its Default
+    experiment's artifacts under ``tmp_path/mlruns``), exported as MLFLOW_TRACKING_URI."""
+    shutil.copyfile(mlflow_store_template, tmp_path / "mlflow.db")
+    _repoint_mlflow_store(
+        tmp_path / "mlflow.db", mlflow_store_template.parent.resolve(), tmp_path.resolve()
+    )
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.setenv("TRAFFICTWIN_MODEL_CACHE", str(tmp_path / "model_cache"))  # per test
