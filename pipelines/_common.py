@@ -159,9 +159,12 @@ def stage_errors() -> tuple[type[BaseException], ...]:
     loading errors), file system errors, bad config keys (KeyError, OmegaConf and Hydra errors),
     numerical blow-ups (FloatingPointError, incl. :class:`traffictwin.trainer.TrainingDiverged`),
     Lightning's MisconfigurationException (e.g. an accelerator this machine lacks) and OpenCV's
-    ``cv2.error``. Anything else (TypeError, AttributeError, ...) is a bug and keeps its traceback."""
+    ``cv2.error``. Anything else (TypeError, AttributeError, ...) is a bug and keeps its traceback.
+
+    Python evaluates this on every exception that reaches :func:`run_stage` (an argparse usage
+    error too): Lightning's exception is added only where Lightning is loaded (elsewhere none can
+    have been raised), so a stage that trains nothing does not import it (~8 s) to print one line."""
     from hydra.errors import HydraException
-    from lightning.fabric.utilities.exceptions import MisconfigurationException
     from omegaconf.errors import OmegaConfBaseException
 
     types: list[type[BaseException]] = [
@@ -172,8 +175,10 @@ def stage_errors() -> tuple[type[BaseException], ...]:
         FloatingPointError,
         OmegaConfBaseException,
         HydraException,
-        MisconfigurationException,
     ]
+    lightning = sys.modules.get("lightning.fabric.utilities.exceptions")
+    if lightning is not None:
+        types.append(lightning.MisconfigurationException)
     try:
         import cv2
 

@@ -116,3 +116,24 @@ def test_the_parameter_check_runs_without_lightning() -> None:
     assert heavy == [], (
         f"check_params loaded {heavy}: a settings class moved back beside its training"
     )
+
+
+def test_a_stage_failing_before_any_training_imports_no_lightning() -> None:
+    """The stage wrapper's error matching (``run_stage``: evaluated on every exception, an
+    argparse usage error too) loads no Lightning where none was loaded: a light stage's one-line
+    error comes without the ~8 s import."""
+    probe = (
+        "import sys\n"
+        "from pipelines._common import run_stage\n"
+        "def main():\n"
+        "    raise ValueError('params.yaml: bad value')\n"
+        "try:\n"
+        "    run_stage(main, 'unit_stage')\n"
+        "except SystemExit as exc:\n"
+        "    print(exc.code, 'lightning' in sys.modules)\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+    assert r.stderr.strip() == "unit_stage: error: ValueError: params.yaml: bad value", r.stderr
+    assert r.stdout.split() == ["2", "False"], r.stdout
