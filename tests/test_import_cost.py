@@ -15,10 +15,18 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: stage scripts that train a network with Lightning (the only ones that may import it)
-TRAINING = {"train_fusion", "train_registration", "train_risk"}
+#: stage scripts that import Lightning when imported (the only ones that may; the other training
+#: stages import their training code in ``main``, so check_params can read their settings)
+TRAINING = {"train_fusion"}
 #: stage scripts that load or run a torch network at import time (evaluation and training)
-TORCH = TRAINING | {"evaluate_fusion", "evaluate_risk", "select_risk", "train_risk_hybrid"}
+TORCH = TRAINING | {
+    "evaluate_fusion",
+    "evaluate_risk",
+    "select_risk",
+    "train_risk_hybrid",
+    "train_registration",
+    "train_risk",
+}
 #: library modules the evaluation stages and the CLI load networks and data through
 LIGHT_LIBRARY = (
     "traffictwin.trainer.settings",
