@@ -319,16 +319,21 @@ def _shared_ci_dag(shared: Path) -> Path:
     return repo
 
 
+def whole_suite(config: pytest.Config) -> bool:
+    """Whether this run selects the whole suite: no paths, ``-k`` or ``-m`` given (``make test``)."""
+    return config.args_source != pytest.Config.ArgsSource.ARGS and not (
+        config.option.markexpr or config.option.keyword
+    )
+
+
 def builds_ci_dag_early(config: pytest.Config) -> bool:
     """Whether this process starts the shared ci DAG at the session's start: the pytest-xdist
-    controller of a whole-suite run (no paths, ``-k`` or ``-m`` given: ``make test``), where the
-    DAG is certainly needed and the workers run every other test while it builds."""
+    controller of a whole-suite run (:func:`whole_suite`), where the DAG is certainly needed and
+    the workers run every other test while it builds."""
     return (
         not hasattr(config, "workerinput")
         and bool(getattr(config.option, "numprocesses", None))
-        and config.args_source != pytest.Config.ArgsSource.ARGS
-        and not config.option.markexpr
-        and not config.option.keyword
+        and whole_suite(config)
         and not config.option.collectonly
     )
 
@@ -556,11 +561,7 @@ def _write_durations(config: pytest.Config) -> None:
     from traffictwin.io.atomic import write_text_atomic
 
     path = Path(target)
-    option = config.option
-    whole = config.args_source != pytest.Config.ArgsSource.ARGS and not (
-        option.markexpr or option.keyword
-    )
-    merged = {} if whole else recorded_durations(path)
+    merged = {} if whole_suite(config) else recorded_durations(path)
     merged.update({k: round(v, 2) for k, v in _TIMES.items()})
     write_text_atomic(path, json.dumps(merged, indent=0, sort_keys=True) + "\n")
 

@@ -64,6 +64,13 @@ print(json.dumps(out))
 """
 
 
+def _fresh_python(code: str, *args: str) -> subprocess.CompletedProcess:
+    """``code`` run by a new Python process in the repository root (nothing imported yet)."""
+    return subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, check=False
+    )
+
+
 def _stages() -> list[str]:
     """Every stage script of pipelines/ (no helper module starting with an underscore)."""
     names = sorted(p.stem for p in (ROOT / "pipelines").glob("*.py"))
@@ -83,13 +90,7 @@ def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() ->
         ("torch_free", torch_free, [list(a) for a in CLI_ARGS]),
         ("lightning_free", lightning_free, []),
     ]
-    r = subprocess.run(
-        [sys.executable, "-c", _PROBE, json.dumps(phases)],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        check=False,
-    )
+    r = _fresh_python(_PROBE, json.dumps(phases))
     assert r.returncode == 0, r.stderr[-2000:]
     got = json.loads(r.stdout.strip().splitlines()[-1])
     assert got["torch_free"] == [], (
@@ -115,9 +116,7 @@ def test_the_parameter_check_runs_without_lightning() -> None:
         "print(json.dumps([names, sorted(m for m in ('lightning', 'torchmetrics', 'mlflow') "
         "if m in sys.modules)]))\n"
     )
-    r = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, check=False
-    )
+    r = _fresh_python(probe)
     assert r.returncode == 0, r.stderr[-2000:]
     names, heavy = json.loads(r.stdout.strip().splitlines()[-1])
     assert len(names) >= 6, names  # every group's check ran
@@ -140,8 +139,6 @@ def test_a_stage_failing_before_any_training_imports_no_lightning() -> None:
         "except SystemExit as exc:\n"
         "    print(exc.code, 'lightning' in sys.modules)\n"
     )
-    r = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, check=False
-    )
+    r = _fresh_python(probe)
     assert r.stderr.strip() == "unit_stage: error: ValueError: params.yaml: bad value", r.stderr
     assert r.stdout.split() == ["2", "False"], r.stdout
