@@ -112,7 +112,9 @@ def _ci(src: page.Sources, key: str, fmt: str) -> Cell:
 
 def _table(title: str, anchor: str, first: Sequence[str], *metrics: Sequence[Metric]) -> Table:
     """An empty table: the ``first`` (label) columns, then each metric's (and interval's)."""
-    heads = [h for ms in metrics for head, _, _, ci in ms for h in (head, "95 % CI")[: 1 + ci]]
+    heads = [
+        h for ms in metrics for head, _, _, ci in ms for h in ((head, "95 % CI") if ci else (head,))
+    ]
     return Table(title, [*first, *heads], anchor=anchor)
 
 
