@@ -12,7 +12,9 @@ from pipelines.report import providers
 from tests.test_report import check_report
 from traffictwin.report import render as R
 from traffictwin.report.model import ReportInputs, Sources
+from traffictwin.stereo import report_learned as L
 from traffictwin.stereo import report_section as S
+from traffictwin.stereo import report_tables as ST
 
 DISPARITY = {
     "all/bad2": 0.0216,
@@ -139,7 +141,7 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
     det, acc, rng, _, speed, sweep, res, diff = sec.tables
     assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
     assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
-    assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES]
+    assert [r[0] for r in _rows(det)] == [ST.RULE_LABELS[r] for r in RULES]
     assert [r[1] for r in _rows(det)] == ["", "", "", "yes"]  # the configured rule drops pairs
     assert _rows(det)[0][2:4] == ["50.00 %", "[40.00 %, 60.00 %]"]
     assert det.rows[0][3].derived.startswith("95 % cluster-bootstrap interval")
@@ -185,7 +187,7 @@ def _stereo_json() -> dict:
     out: dict = {"test/frames": 40, "test/sequences": 10}
     for source, scale in (("sgm", 1.0), ("learned", 0.5)):
         for mask in ("common", "own"):
-            for _, key, _ in S.STEREO_ROWS:
+            for _, key, _ in L.STEREO_ROWS:
                 v = (0.9 if key == "density" else 0.05 if "relerr" in key else 0.3) * scale
                 out[f"{source}/{mask}/{key}"] = v
                 out[f"{source}/{mask}/{key}_lo"], out[f"{source}/{mask}/{key}_hi"] = (
@@ -211,11 +213,12 @@ def _stereo_json() -> dict:
     return out
 
 
-def test_learned_stereo_tables_show_both_sources_their_difference_and_targets(
+def test_learned_stereo_tables_show_both_sources_and_their_difference(
     tmp_path: Path,
 ) -> None:
-    """stereo.json: per mask a table SGM | CI | learned | CI (every number its file's), the paired
-    differences and the targets; without the file the section says which stage has not run."""
+    """stereo.json: per mask a table SGM | CI | learned | CI (every number its file's) and the
+    paired differences; its targets only as a pointer to the acceptance table; without the file
+    the section says which stage has not run."""
     rep = _reports(
         tmp_path,
         {"disparity.json": DISPARITY, "orb.json": ORB, "stereo.json": _stereo_json()},
@@ -238,8 +241,9 @@ def test_learned_stereo_tables_show_both_sources_their_difference_and_targets(
     assert ["density (share of GT pixels with an estimate)", "90.00 %"] == own[3][:2]
     diff = _rows(by["stereo-learned-difference"])
     assert diff[0][2:] == ["-0.100", "[-0.150, -0.050]"]
-    tgt = _rows(by["stereo-learned-targets"])
-    assert tgt[0][:3] == ["learned_crit_obj_relerr_median", "2.50 %", "[2.00 %, 3.00 %]"]
+    # the targets are judged in the acceptance table of the index: one line points there
+    assert "stereo-learned-targets" not in by
+    assert sum("(../README.md#acceptance)" in p for p in sec.paragraphs) == 1
     assert any("figures/stereo_learned_example.png" in f.path for f in sec.figures)
 
     none = _reports(tmp_path / "none", {"disparity.json": DISPARITY, "orb.json": ORB}, ())
@@ -258,7 +262,7 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
     g: dict = {"templates": ["roundabout", "s_curve"], "test/frames": 12, "test/sequences": 3}
     for source, v in (("sgm", 0.3), ("learned", 0.2), ("holdout", 0.25)):
         for mask in ("common", "own"):
-            for _, key, _ in S.GENERALISATION_ROWS:
+            for _, key, _ in L.GENERALISATION_ROWS:
                 g[f"{source}/{mask}/{key}"] = v
                 g[f"{source}/{mask}/{key}_lo"], g[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
     for other, d in (("learned", 0.05), ("sgm", -0.05)):
@@ -349,7 +353,7 @@ def _variants_json(chosen: str) -> dict:
     t: dict = {"test/frames": 700, "test/sequences": 100}
     for source, v in (("configured", 0.22), ("chosen", 0.21)):
         for mask in ("common", "own"):
-            for _, key, _ in S.GENERALISATION_ROWS:
+            for _, key, _ in L.GENERALISATION_ROWS:
                 t[f"{source}/{mask}/{key}"] = v
                 t[f"{source}/{mask}/{key}_lo"], t[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
     for mask in ("common", "own"):

@@ -1,38 +1,32 @@
 """The twin's part of the report: how often the ego's risk read from the twin flags the truly
-critical frames, compared with its own map, in occluded and open sequences, with the targets.
+critical frames, compared with its own map, in occluded and open sequences.
 
 Reads ``twin.json`` (stage evaluate_twin, layout :mod:`traffictwin.twin.evaluation`:
-``configurations.<cfg>.methods.<method>.<kind>.<metric>`` with ``<metric>_ci = [lo, hi]``, and
-``targets``) and ``twin_data.json`` (stage generate_twin). A missing file or key is an ``n/a``
-cell, never an error. Entry point: :func:`provider`.
+``configurations.<cfg>.methods.<method>.<kind>.<metric>`` with ``<metric>_ci = [lo, hi]``) and
+``twin_data.json`` (stage generate_twin). Its targets are judged in the report's acceptance table,
+not here. Tables are built from :data:`Metric` specs, their notes are the macros of
+``templates/report.md.j2``. A missing file or key is an ``n/a`` cell, never an error. Entry
+point: :func:`provider`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
+from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
 from traffictwin.risk.report_tables import RISK_FILE
 
 FILE = "twin.json"
 DATA_FILE = "twin_data.json"
+TEMPLATES = Path(__file__).parent / "templates"
 TITLE = "Cooperative twin — risk from N vehicles' fused maps"
-FIGURES: dict[str, str] = {
-    "twin_timeline": (
-        "Time headway of the ego over a typical occluded sequence (the twin's lead over the ego "
-        "closest to the median) at the target configuration: from its "
-        "own map, from the twin and the truth; shaded = truly critical (THW < twin.critical_thw), "
-        "dashed = the warning level (twin.critical_thw + twin.reaction_s), ticks = "
-        "frames in which the ego's own lidar returns from the hazard"
-    ),
-    "twin_map": (
-        "The twin at the critical onset of that sequence (ego frame) and each vehicle's map where "
-        "the twin put it; true and noisy positions with the configuration's 98 % radius"
-    ),
-}
+#: the figures the section shows, in order; their captions are macros of the same name
+FIGURE_STEMS = ("twin_timeline", "twin_map")
 LABELS = {
     "ego": "ego's own map (no cooperation)",
     "naive": "naive (noisy poses + Dempster)",
@@ -42,6 +36,59 @@ LABELS = {
     "registered+network": "registered + network",
     "learned+network": "learned registration + network",
 }
+HAZARD_LABELS = {
+    "pedestrian": "pedestrian steps out behind a van (ego turns right)",
+    "emerging_car": "car pulls out of a driveway behind a truck and hedge (ego straight)",
+    "stopped_car": "car stopped beside a van (ego turns right)",
+}
+ALWAYS_LABEL = "reference: a warning at every frame"
+DASH = "—"
+
+#: one figure of a table row: (column header, key under the row's base, format, with its
+#: interval ``<key>_ci`` in a "95 % CI" column beside it)
+Metric = tuple[str, str, str, bool]
+FLAGGED: Metric = ("critical frames flagged", "recall", "pct", True)
+WARNED: Metric = ("warned before onset", "warned_before_onset_share", "pct", False)
+FALSE_ALARMS: Metric = ("false alarms (frames)", "false_alarm_share", "pct", True)
+LEAD: Metric = ("median lead over ego (s)", "lead_vs_ego_s_median", "f2", True)
+OCCLUDED: tuple[Metric, ...] = (
+    FLAGGED,
+    ("Δ vs ego map", "recall_vs_ego", "pct", True),
+    LEAD,
+    WARNED,
+    ("vehicles left out", "left_out_share", "pct", False),
+)
+OPEN: tuple[Metric, ...] = (
+    FLAGGED,
+    FALSE_ALARMS,
+    ("false alarms / min", "false_alarms_per_min", "f2", False),
+)
+BIAS: tuple[Metric, ...] = (("under pose bias (frames)", "false_alarm_share", "pct", True),)
+HAZARD: tuple[Metric, ...] = (("episodes", "episodes", "int", False), LEAD, WARNED, FALSE_ALARMS)
+PREDICTIVE: tuple[Metric, ...] = (
+    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", True),
+    ("warned before onset (TTC)", "warned_before_onset_share", "pct", False),
+    ("false alarms (TTC)", "false_alarm_share", "pct", False),
+    ("Δ false alarms vs THW", "false_alarm_share_vs_thw", "pct", True),
+    ("true-TTC frames warned", "ttc_true_recall", "pct", False),
+)
+RULE: tuple[Metric, ...] = (
+    ("warns below TTC (s)", "warn_s", "f2", False),
+    ("confirmed over (frames)", "confirm_frames", "int", False),
+    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", False),
+    ("Δ false alarms vs THW (open)", "false_alarm_share_vs_thw", "pct", False),
+)
+VEHICLE: tuple[Metric, ...] = (
+    ("critical frames", "critical_frames", "int", False),
+    FLAGGED,
+    ("Δ vs own map", "recall_vs_ego", "pct", True),
+    FALSE_ALARMS,
+)
+
+
+def prose(name: str, **context: Any) -> str:
+    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
+    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
 
 
 def critical_thw_text(src: page.Sources) -> str:
@@ -51,30 +98,8 @@ def critical_thw_text(src: page.Sources) -> str:
     return f"{float(ts[0]):g} s" if isinstance(ts, list) and ts else "twin.critical_thw"
 
 
-def note(src: page.Sources) -> str:
-    """What the warning tables measure, at the run's critical THW (:func:`critical_thw_text`)."""
-    crit = critical_thw_text(src)
-    return (
-        "Frames are critical when the true time headway (corridor, vehicles and pedestrians, "
-        f"simulator boxes) is below {crit}; a map warns (flags a frame) when the headway read "
-        "from its occupied cells (m_O >= twin.occ_threshold, the ego's footprint ignored) is "
-        f"below {crit} + twin.reaction_s (1 s: a warning leaves the driver a reaction time "
-        "before the episode). Lead: per critical episode, onset minus the first warning from "
-        "twin.horizon_s before the onset (never = one frame after the episode); 'lead over ego' "
-        "pairs it with the ego map's on the same episode (median). Intervals: 95 % bootstrap "
-        "over sequences (traffictwin.stats)."
-    )
-
-
-ALWAYS_LABEL = "reference: a warning at every frame"
-ALWAYS_NOTE = (
-    " The reference row warns at every frame (a constant, not a method): its lead is the most "
-    "the definition allows (twin.horizon_s, less where a sequence starts later), so a method's "
-    "lead is read beside its false alarms."
-)
-
-
 def _ci(src: page.Sources, key: str, fmt: str) -> Cell:
+    """The interval ``[lo, hi]`` stored at twin.json ``key`` (n/a without one)."""
     v = src.get(FILE, key)
     if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)):
         return Cell(NA, title=f"no interval in reports/metrics/{FILE}: {key}")
@@ -85,435 +110,177 @@ def _ci(src: page.Sources, key: str, fmt: str) -> Cell:
     )
 
 
+def _table(title: str, anchor: str, first: Sequence[str], *metrics: Sequence[Metric]) -> Table:
+    """An empty table: the ``first`` (label) columns, then each metric's (and interval's)."""
+    heads = [
+        h for ms in metrics for head, _, _, ci in ms for h in ((head, "95 % CI") if ci else (head,))
+    ]
+    return Table(title, [*first, *heads], anchor=anchor)
+
+
+def _cells(
+    src: page.Sources, base: str, metrics: Sequence[Metric], dash: Collection[str] = ()
+) -> list[Cell]:
+    """The cells of ``metrics`` under twin.json key ``base``; a metric in ``dash`` shows "—"."""
+    out: list[Cell] = []
+    for _, key, fmt, ci in metrics:
+        if key in dash:
+            out += [Cell(DASH)] * (1 + ci)
+            continue
+        out.append(src.cell(FILE, f"{base}.{key}", fmt))
+        out += [_ci(src, f"{base}.{key}_ci", fmt)] if ci else []
+    return out
+
+
+def _configs(src: page.Sources) -> list[str]:
+    c = src.get(FILE, "configurations")
+    return list(c) if isinstance(c, dict) else []
+
+
 def _methods(src: page.Sources, c: str) -> list[str]:
     m = src.get(FILE, f"configurations.{c}.methods")
     return list(m) if isinstance(m, dict) else []
 
 
 def occluded_table(src: page.Sources) -> Table:
-    cols = [
-        "config",
-        "map the ego reads",
-        "critical frames flagged",
-        "95 % CI",
-        "Δ vs ego map",
-        "95 % CI",
-        "median lead over ego (s)",
-        "95 % CI",
-        "warned before onset",
-        "vehicles left out",
-    ]
-    t = Table(
+    """Per configuration and map: critical frames flagged, gain and lead over the ego's own map."""
+    t = _table(
         "Twin: critical frames flagged in occluded sequences",
-        cols,
-        anchor="twin-occluded",
+        "twin-occluded",
+        ["config", "map the ego reads"],
+        OCCLUDED,
     )
-    configs = src.get(FILE, "configurations")
-    for c in configs if isinstance(configs, dict) else {}:
+    ego_dash = ("recall_vs_ego", "lead_vs_ego_s_median", "left_out_share")
+    for c in _configs(src):
         for m in _methods(src, c):
             k = f"configurations.{c}.methods.{m}.occluded"
-            row = [
-                Cell(c),
-                Cell(LABELS.get(m, m)),
-                src.cell(FILE, f"{k}.recall", "pct"),
-                _ci(src, f"{k}.recall_ci", "pct"),
-            ]
-            if m == "ego":
-                row += [Cell("—")] * 4
-                row += [src.cell(FILE, f"{k}.warned_before_onset_share", "pct"), Cell("—")]
-            else:
-                row += [
-                    src.cell(FILE, f"{k}.recall_vs_ego", "pct"),
-                    _ci(src, f"{k}.recall_vs_ego_ci", "pct"),
-                    src.cell(FILE, f"{k}.lead_vs_ego_s_median", "f2"),
-                    _ci(src, f"{k}.lead_vs_ego_s_median_ci", "f2"),
-                    src.cell(FILE, f"{k}.warned_before_onset_share", "pct"),
-                    src.cell(FILE, f"{k}.left_out_share", "pct"),
-                ]
-            t.rows.append(row)
+            dash = ego_dash if m == "ego" else ()
+            t.rows.append([Cell(c), Cell(LABELS.get(m, m)), *_cells(src, k, OCCLUDED, dash)])
         k = f"configurations.{c}.always_warns.occluded"
         if isinstance(src.get(FILE, k), dict):
-            t.rows.append(
-                [Cell(c), Cell(ALWAYS_LABEL)]
-                + [Cell("—")] * 4
-                + [
-                    src.cell(FILE, f"{k}.lead_vs_ego_s_median", "f2"),
-                    _ci(src, f"{k}.lead_vs_ego_s_median_ci", "f2"),
-                    src.cell(FILE, f"{k}.warned_before_onset_share", "pct"),
-                    Cell("—"),
-                ]
-            )
-    t.note = note(src) + ALWAYS_NOTE
+            dash = ("recall", "recall_vs_ego", "left_out_share")
+            t.rows.append([Cell(c), Cell(ALWAYS_LABEL), *_cells(src, k, OCCLUDED, dash)])
+    t.note = prose("occluded", crit=critical_thw_text(src))
     return t
 
 
 def open_table(src: page.Sources) -> Table:
-    cols = [
-        "config",
-        "map the ego reads",
-        "critical frames flagged",
-        "95 % CI",
-        "false alarms (frames)",
-        "95 % CI",
-        "false alarms / min",
-        "under pose bias (frames)",
-        "95 % CI",
-    ]
-    t = Table(
-        "Twin: open sequences (nothing hidden) — recall and false alarms", cols, anchor="twin-open"
+    """Per configuration and map: recall and false alarms in open sequences, also under bias."""
+    t = _table(
+        "Twin: open sequences (nothing hidden) — recall and false alarms",
+        "twin-open",
+        ["config", "map the ego reads"],
+        OPEN,
+        BIAS,
     )
-    configs = src.get(FILE, "configurations")
-    for c in configs if isinstance(configs, dict) else {}:
+    for c in _configs(src):
         for m in _methods(src, c):
-            k = f"configurations.{c}.methods.{m}.open"
-            kb = f"configurations.{c}.pose_bias.methods.{m}.open"
-            t.rows.append(
-                [
-                    Cell(c),
-                    Cell(LABELS.get(m, m)),
-                    src.cell(FILE, f"{k}.recall", "pct"),
-                    _ci(src, f"{k}.recall_ci", "pct"),
-                    src.cell(FILE, f"{k}.false_alarm_share", "pct"),
-                    _ci(src, f"{k}.false_alarm_share_ci", "pct"),
-                    src.cell(FILE, f"{k}.false_alarms_per_min", "f2"),
-                    src.cell(FILE, f"{kb}.false_alarm_share", "pct"),
-                    _ci(src, f"{kb}.false_alarm_share_ci", "pct"),
-                ]
-            )
+            k, kb = f"configurations.{c}.methods.{m}.open", f"configurations.{c}.pose_bias"
+            row = _cells(src, k, OPEN) + _cells(src, f"{kb}.methods.{m}.open", BIAS)
+            t.rows.append([Cell(c), Cell(LABELS.get(m, m)), *row])
         k = f"configurations.{c}.always_warns.open"
         if isinstance(src.get(FILE, k), dict):
-            t.rows.append(
-                [Cell(c), Cell(ALWAYS_LABEL), Cell("—"), Cell("—")]
-                + [
-                    src.cell(FILE, f"{k}.false_alarm_share", "pct"),
-                    _ci(src, f"{k}.false_alarm_share_ci", "pct"),
-                    src.cell(FILE, f"{k}.false_alarms_per_min", "f2"),
-                    Cell("—"),
-                    Cell("—"),
-                ]
-            )
-    t.note = (
-        "False alarms: warnings with no critical frame within twin.horizon_s, as a share of the "
-        "judged frames and as runs per minute of judged driving (a warning in a sequence's last "
-        "twin.horizon_s with no critical frame up to its end is right-censored: what it announces "
-        "may start after the recording, so it is not judged); 'under pose bias': each vehicle's pose error "
-        "persists over the sequence (twin.bias_share of its variance) besides per-frame jitter. "
-        "Intervals: 95 % bootstrap over sequences (traffictwin.stats)."
-    )
+            row = _cells(src, k, OPEN, ("recall",)) + _cells(src, k, BIAS, ("false_alarm_share",))
+            t.rows.append([Cell(c), Cell(ALWAYS_LABEL), *row])
+    t.note = prose("open")
     return t
-
-
-HAZARD_LABELS = {
-    "pedestrian": "pedestrian steps out behind a van (ego turns right)",
-    "emerging_car": "car pulls out of a driveway behind a truck and hedge (ego straight)",
-    "stopped_car": "car stopped beside a van (ego turns right)",
-}
 
 
 def hazard_table(src: page.Sources) -> Table:
     """Per hazard kind and scenario kind: each method's episodes, median lead over the ego's map,
     episodes warned before the onset and false-alarm frames (``by_hazard`` of twin.json)."""
-    cols = [
-        "config",
-        "scenario",
-        "hazard",
-        "map the ego reads",
-        "episodes",
-        "median lead over ego (s)",
-        "95 % CI",
-        "warned before onset",
-        "false alarms (frames)",
-        "95 % CI",
-    ]
-    t = Table("Twin: each hazard kind separately", cols, anchor="twin-hazards")
-    configs = src.get(FILE, "configurations")
-    for c in configs if isinstance(configs, dict) else {}:
+    t = _table(
+        "Twin: each hazard kind separately",
+        "twin-hazards",
+        ["config", "scenario", "hazard", "map the ego reads"],
+        HAZARD,
+    )
+    for c in _configs(src):
         for kind in ("occluded", "open"):
             for m in _methods(src, c):
-                hz = src.get(FILE, f"configurations.{c}.methods.{m}.{kind}.by_hazard")
+                base = f"configurations.{c}.methods.{m}.{kind}.by_hazard"
+                hz = src.get(FILE, base)
                 for h in sorted(hz) if isinstance(hz, dict) else ():
-                    k = f"configurations.{c}.methods.{m}.{kind}.by_hazard.{h}"
-                    lead = [Cell("—")] * 2
-                    if m != "ego":
-                        lead = [
-                            src.cell(FILE, f"{k}.lead_vs_ego_s_median", "f2"),
-                            _ci(src, f"{k}.lead_vs_ego_s_median_ci", "f2"),
-                        ]
-                    t.rows.append(
-                        [
-                            Cell(c),
-                            Cell(kind),
-                            Cell(HAZARD_LABELS.get(h, h)),
-                            Cell(LABELS.get(m, m)),
-                            src.cell(FILE, f"{k}.episodes", "int"),
-                            *lead,
-                            src.cell(FILE, f"{k}.warned_before_onset_share", "pct"),
-                            src.cell(FILE, f"{k}.false_alarm_share", "pct"),
-                            _ci(src, f"{k}.false_alarm_share_ci", "pct"),
-                        ]
-                    )
-    t.note = (
-        "The targets are on all occluded / open sequences (tables above); this splits them "
-        "by what hides: about half the sequences of each kind per hazard (twin_data.json), so the "
-        "intervals are wider. " + note(src)
-    )
+                    labels = [c, kind, HAZARD_LABELS.get(h, h), LABELS.get(m, m)]
+                    dash = ("lead_vs_ego_s_median",) if m == "ego" else ()
+                    cells = _cells(src, f"{base}.{h}", HAZARD, dash)
+                    t.rows.append([*map(Cell, labels), *cells])
+    t.note = prose("hazards", crit=critical_thw_text(src))
     return t
 
 
-TARGETS = (
-    ("occluded_recall_ge_0.9", "occluded: twin flags >= 90 % of critical frames", "pct"),
-    ("occluded_recall_above_ego", "occluded: twin flags more than the ego map (CI > 0)", "pct"),
-    (
-        "occluded_median_lead_vs_ego_ge_0.8s",
-        "occluded: median lead over the ego map >= 0.8 s (CI > 0)",
-        "f2",
-    ),
-    (
-        "occluded_warned_before_onset_ge_0.95",
-        "occluded: >= 95 % of episodes warned before onset",
-        "pct",
-    ),
-    ("open_false_alarms_le_0.05_frame_noise", "open: false alarms <= 5 % of frames", "pct"),
-    (
-        "open_false_alarms_le_0.05_pose_bias",
-        "open, persistent pose bias: false alarms <= 5 % of frames",
-        "pct",
-    ),
-    ("registration_lead_above_naive", "occluded: mean lead over the naive twin (CI > 0)", "f2"),
-    (
-        "registration_false_alarms_below_naive_frame_noise",
-        "open: false alarms minus the naive twin's (CI < 0)",
-        "pct",
-    ),
-    (
-        "registration_false_alarms_below_naive_pose_bias",
-        "open, pose bias: false alarms minus the naive twin's (CI < 0)",
-        "pct",
-    ),
-    (
-        "predictive_warns_earlier_than_thw",
-        "all kinds: predictive (TTC) warning minus THW's lead, same maps (mean s, CI > 0)",
-        "f2",
-    ),
-    (
-        "predictive_no_more_false_alarms",
-        "open: predictive minus THW false alarms, same frames (CI includes or below 0)",
-        "pct",
-    ),
-)
-
-
 def predictive_table(src: page.Sources) -> Table:
-    cols = [
-        "config",
-        "map the ego reads",
-        "kind",
-        "lead vs THW (mean s)",
-        "95 % CI",
-        "warned before onset (TTC)",
-        "false alarms (TTC)",
-        "Δ false alarms vs THW",
-        "95 % CI",
-        "true-TTC frames warned",
-    ]
-    t = Table(
+    """Per configuration, map and scenario kind: the predictive (TTC) warning against THW's."""
+    t = _table(
         "Twin: predictive warnings (time to conflict) vs THW warnings on the same maps",
-        cols,
-        anchor="twin-predictive",
+        "twin-predictive",
+        ["config", "map the ego reads", "kind"],
+        PREDICTIVE,
     )
-    configs = src.get(FILE, "configurations")
-    for c in configs if isinstance(configs, dict) else {}:
+    for c in _configs(src):
         for m in _methods(src, c):
             for kind in ("occluded", "open"):
                 k = f"configurations.{c}.methods.{m}.{kind}.predictive"
                 t.rows.append(
-                    [
-                        Cell(c),
-                        Cell(LABELS.get(m, m)),
-                        Cell(kind),
-                        src.cell(FILE, f"{k}.lead_vs_thw_s_mean", "f2"),
-                        _ci(src, f"{k}.lead_vs_thw_s_mean_ci", "f2"),
-                        src.cell(FILE, f"{k}.warned_before_onset_share", "pct"),
-                        src.cell(FILE, f"{k}.false_alarm_share", "pct"),
-                        src.cell(FILE, f"{k}.false_alarm_share_vs_thw", "pct"),
-                        _ci(src, f"{k}.false_alarm_share_vs_thw_ci", "pct"),
-                        src.cell(FILE, f"{k}.ttc_true_recall", "pct"),
-                    ]
+                    [Cell(c), Cell(LABELS.get(m, m)), Cell(kind), *_cells(src, k, PREDICTIVE)]
                 )
-    t.note = (
-        "Time to conflict (traffictwin.twin.predict): the motion of the occupied components "
-        "tracked between consecutive maps of the same source (ego motion compensated), "
-        "extrapolated at constant velocity (points behind the ego excluded); the earliest time a "
-        "predicted occupied cell is in the ego's swept corridor. A map warns predictively when it "
-        "stays below the level of the rule chosen on the validation sequences (next table: "
-        "twin.ttc_warn_s + twin.reaction_s or a candidate level); lead and false alarms as for "
-        "THW, against the "
-        f"same critical episodes (true THW < {critical_thw_text(src)}), paired with the THW "
-        "warnings of the same maps. "
-        "'True-TTC frames warned': share of the frames whose TTC on the simulator's boxes and "
-        "velocities is below that threshold. Intervals: 95 % bootstrap over sequences."
-    )
+    t.note = prose("predictive", crit=critical_thw_text(src))
     return t
 
 
 def rule_table(src: page.Sources) -> Table:
     """The predictive rule's candidates on the validation sequences, and the one chosen."""
     n = src.get(FILE, "predictive_rule.validation_sequences")
-    cols = [
-        "warns below TTC (s)",
-        "confirmed over (frames)",
-        "lead vs THW (mean s)",
-        "Δ false alarms vs THW (open)",
-        "eligible",
-        "chosen",
-    ]
-    t = Table(
+    t = _table(
         f"Twin: the predictive rule, chosen on {n if n is not None else NA} validation sequences",
-        cols,
-        anchor="twin-predictive-rule",
+        "twin-predictive-rule",
+        [],
+        RULE,
     )
+    t.columns += ["eligible", "chosen"]
     rows = src.get(FILE, "predictive_rule.candidates")
+    yes_no = {True: "yes", False: "no"}
     for name in rows if isinstance(rows, dict) else {}:
         k = f"predictive_rule.candidates.{name}"
-        yes_no = {True: "yes", False: "no"}
-        t.rows.append(
-            [
-                src.cell(FILE, f"{k}.warn_s", "f2"),
-                src.cell(FILE, f"{k}.confirm_frames", "int"),
-                src.cell(FILE, f"{k}.lead_vs_thw_s_mean", "f2"),
-                src.cell(FILE, f"{k}.false_alarm_share_vs_thw", "pct"),
-                Cell(yes_no.get(src.get(FILE, f"{k}.eligible"), NA)),
-                Cell(yes_no.get(src.get(FILE, f"{k}.selected"), NA)),
-            ]
-        )
-    t.note = (
-        "Chosen before any evaluated sequence is read, on the twin data's validation split (the "
-        "headline twin at the target configuration, per-frame noise), by a criterion fixed "
-        "beforehand: of the candidates whose predictive warning leads the THW warning of the same "
-        "maps (mean over critical episodes > 0 s), the fewest false alarms beyond THW's in open "
-        "sequences. A TTC warns when it stays below the level for the confirming frames "
-        "(traffictwin.twin.predictive_rule); the predictive tables above use the chosen rule."
-    )
+        flags = [Cell(yes_no.get(src.get(FILE, f"{k}.{f}"), NA)) for f in ("eligible", "selected")]
+        t.rows.append(_cells(src, k, RULE) + flags)
+    t.note = prose("rule")
     return t
 
 
 def vehicle_table(src: page.Sources) -> Table:
     """Risk for every other vehicle: its own map vs its view of each twin (all sequences)."""
-    cols = [
-        "config",
-        "vehicle",
-        "map it reads",
-        "critical frames",
-        "critical frames flagged",
-        "95 % CI",
-        "Δ vs own map",
-        "95 % CI",
-        "false alarms (frames)",
-        "95 % CI",
-    ]
-    t = Table("Twin: risk for every other vehicle", cols, anchor="twin-vehicles")
-    configs = src.get(FILE, "configurations")
-    for c in configs if isinstance(configs, dict) else {}:
+    t = _table(
+        "Twin: risk for every other vehicle",
+        "twin-vehicles",
+        ["config", "vehicle", "map it reads"],
+        VEHICLE,
+    )
+    for c in _configs(src):
         vehicles = src.get(FILE, f"configurations.{c}.vehicles")
         for k, entry in (vehicles if isinstance(vehicles, dict) else {}).items():
             for m in entry.get("methods", {}):
                 key = f"configurations.{c}.vehicles.{k}.methods.{m}.all"
                 own = m == "own"
-                t.rows.append(
-                    [
-                        Cell(c),
-                        Cell(f"{k} ({entry.get('role', NA)})"),
-                        Cell("its own map" if own else LABELS.get(m, m)),
-                        src.cell(FILE, f"{key}.critical_frames", "int"),
-                        src.cell(FILE, f"{key}.recall", "pct"),
-                        _ci(src, f"{key}.recall_ci", "pct"),
-                        Cell("—") if own else src.cell(FILE, f"{key}.recall_vs_ego", "pct"),
-                        Cell("—") if own else _ci(src, f"{key}.recall_vs_ego_ci", "pct"),
-                        src.cell(FILE, f"{key}.false_alarm_share", "pct"),
-                        _ci(src, f"{key}.false_alarm_share_ci", "pct"),
-                    ]
-                )
-    t.note = (
-        "Every other vehicle reads the same time headway along its own lane ahead, against its own "
-        "truth (simulator boxes), from its own map and from its view of each twin: its own map "
-        "fused with every map the twin used, placed in its frame by the twin's poses "
-        "(traffictwin.twin.vehicle_view; a vehicle the twin left out sees only its own map). "
-        "Per-frame pose noise, occluded and open sequences together; the hazards are placed for "
-        "the ego, so the others' critical frames are mostly a follower's short headway to the "
-        "ego ahead. False alarms as for the ego. Intervals: 95 % bootstrap over sequences."
-    )
-    return t
-
-
-def targets_table(src: page.Sources) -> Table:
-    c = src.get(FILE, "targets.configuration")
-    m = src.get(FILE, "targets.method")
-    t = Table(
-        f"Twin targets (configuration {c if c is not None else NA}, twin: {m if m is not None else NA})",
-        ["target", "value", "95 % CI", "met"],
-        anchor="twin-targets",
-        headline=True,
-    )
-    for key, label, fmt in TARGETS:
-        ok = src.get(FILE, f"targets.{key}.met")
-        t.rows.append(
-            [
-                Cell(label),
-                src.cell(FILE, f"targets.{key}.value", fmt),
-                _ci(src, f"targets.{key}.ci", fmt),
-                Cell(
-                    NA if ok is None else ("yes" if ok else "no"),
-                    value=ok,
-                    derived=f"metrics/{FILE}#targets.{key}.met",
-                ),
-            ]
-        )
-    key = "targets.registration_lead_above_naive"
-    v, ci = src.get(FILE, f"{key}.always_warns_value"), src.get(FILE, f"{key}.always_warns_ci")
-    if isinstance(v, (int, float)) and isinstance(ci, list) and len(ci) == 2:
-        verdict = "is met by a constant" if ci[0] > 0 else "is not met by a constant"
-        t.note = (
-            f"The lead over the naive twin {verdict}: a warning at every frame leads "
-            f"the naive twin by {fmt_value(v, 'f2')} s [{fmt_value(ci[0], 'f2')}, "
-            f"{fmt_value(ci[1], 'f2')}] on the same episodes (metrics/{FILE}#{key}.always_warns_value). "
-            "A lead is earned only with few false alarms: read it beside the false-alarm rows."
-        )
+                labels = [c, f"{k} ({entry.get('role', NA)})"]
+                labels.append("its own map" if own else LABELS.get(m, m))
+                cells = _cells(src, key, VEHICLE, ("recall_vs_ego",) if own else ())
+                t.rows.append([*map(Cell, labels), *cells])
+    t.note = prose("vehicles")
     return t
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
-    paras = [
-        "Three vehicles share lidar evidential maps at 10 Hz around a junction (stage generate_twin). "
-        "Two hazard kinds: the ego turns right towards a pedestrian who steps out from behind a van "
-        "parked at the kerb, or drives straight past a truck parked at the kerb, behind which a car "
-        "pulls out of a driveway hidden by a hedge. In `occluded` sequences the hazard is hidden "
-        "from the ego for twin.hidden_s up to the critical onset (and seen by another vehicle); in "
-        "`open` ones the van or truck is parked at the far kerb and no hedge stands. Every vehicle's pose "
-        "carries the configuration's noise, drawn per frame or as a persistent bias; the twin "
-        "registers the others' maps onto the ego's (stage evaluate_twin) and the ego's time headway "
-        "is read from its own map and from the twin. Warnings are scored per critical episode: lead "
-        "from the first warning within twin.horizon_s before the onset, false alarms = warnings with "
-        "no episode within the horizon. Beside the time headway, a predictive measure — the time to "
-        "conflict with the motion estimated from consecutive maps — warns from the same maps. See "
-        "the tables for what the twin gains and costs."
-    ]
+    """The twin section: warnings in occluded and open sequences, per hazard, predictive,
+    for the other vehicles; a pointer to the acceptance table where twin.json has targets."""
+    paras = [prose("intro")]
     if not src.has(FILE):
-        paras.append(f"reports/metrics/{FILE} is missing: run `dvc repro evaluate_twin`.")
+        paras.append(prose("missing", file=FILE))
         return page.Section(TITLE, paragraphs=paras, figures=figures)
-    return page.Section(
-        TITLE,
-        paragraphs=paras,
-        tables=[
-            occluded_table(src),
-            open_table(src),
-            hazard_table(src),
-            predictive_table(src),
-            rule_table(src),
-            vehicle_table(src),
-            targets_table(src),
-        ],
-        figures=figures,
-    )
+    if isinstance(src.get(FILE, "targets"), dict):
+        paras.append(prose("acceptance"))
+    tables = (occluded_table, open_table, hazard_table, predictive_table, rule_table, vehicle_table)
+    return page.Section(TITLE, paragraphs=paras, tables=[t(src) for t in tables], figures=figures)
 
 
 def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
@@ -540,22 +307,11 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
         },
         higher_better=True,
     )
-    return headline(
-        "recall",
-        "critical frames flagged",
-        where,
-        occ.get("recall"),
-        occ.get("recall_ci"),
-        "pct",
-        base,
-    ) + headline(
-        "recall_gain",
-        "gain in critical frames flagged over the ego's own map",
-        where,
-        occ.get("recall_vs_ego"),
-        occ.get("recall_vs_ego_ci"),
-        "pct",
-    )
+    value, ci = occ.get("recall"), occ.get("recall_ci")
+    gain, gain_ci = occ.get("recall_vs_ego"), occ.get("recall_vs_ego_ci")
+    what = "gain in critical frames flagged over the ego's own map"
+    recall = headline("recall", "critical frames flagged", where, value, ci, "pct", base)
+    return recall + headline("recall_gain", what, where, gain, gain_ci, "pct")
 
 
 def provider() -> page.SectionProvider:
@@ -564,7 +320,7 @@ def provider() -> page.SectionProvider:
         name="twin",
         headlines=headlines,
         section=section,
-        figures=FIGURES,
+        figures={stem: prose(stem) for stem in FIGURE_STEMS},
         data_files=(DataFile(DATA_FILE, "Twin data (generate_twin)"),),
         shown_files=r"twin\.json",
     )
