@@ -234,6 +234,22 @@ def test_findings_group_turns_markdown_into_bullets(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.parametrize(
+    ("href", "html_href"),
+    [
+        ("risk.md", "risk.html"),
+        ("pages/twin.md#hazards", "pages/twin.html#hazards"),
+        ("../README.md#acceptance", "../index.html#acceptance"),
+        ("../figures/risk_roc.png", "../figures/risk_roc.png"),
+        ("https://example.org/a.md", "https://example.org/a.md"),
+        ("#acceptance", "#acceptance"),
+    ],
+)
+def test_html_links_to_report_pages_point_at_their_html(href: str, html_href: str) -> None:
+    assert R._html_href(href) == html_href
+    assert R._inline(f"see [it]({href})") == f'see <a href="{html_href}">it</a>'
+
+
 def test_report_params_schema() -> None:
     good = {
         "seed": 3,

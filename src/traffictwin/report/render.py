@@ -489,13 +489,24 @@ details>summary{cursor:pointer} details>summary h2{display:inline} details.more{
 """
 
 
+def _html_href(href: str) -> str:
+    """A relative link to a report page in Markdown (``risk.md``, ``../README.md#acceptance``) as
+    the HTML report's (``risk.html``, ``../index.html#acceptance``); other links unchanged."""
+    path, sep, anchor = href.partition("#")
+    if "://" in path or not path.endswith(".md"):
+        return href
+    head, _, name = path.rpartition("/")
+    name = "index.html" if name == README else name[: -len(".md")] + ".html"
+    return (f"{head}/" if head else "") + name + sep + anchor
+
+
 def _inline(text: str) -> str:
     s = html.escape(text, quote=False)
     s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
     s = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", s)
     s = re.sub(
         r"\[([^\]]+)\]\(([^)\s]+)\)",
-        lambda m: f'<a href="{html.escape(m.group(2))}">{m.group(1)}</a>',
+        lambda m: f'<a href="{html.escape(_html_href(m.group(2)))}">{m.group(1)}</a>',
         s,
     )
     return s
