@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from pipelines import readme_results as R
+from pipelines._run_records import sessions
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the pages whose command blocks the documentation test follows, in the order it runs them
@@ -113,7 +114,7 @@ def test_timings_block_adds_up_the_run_records() -> None:
     row = R.timings_block([*records, later]).splitlines()[3]
     assert "| **5.8 min** |" in row
     assert "without the pauses around `report`, run on its own at another time" in row
-    assert [len(s) for s in R.sessions([*records, later])] == [3, 1]
+    assert [len(s) for s in sessions([*records, later])] == [3, 1]
     # a quick stage run an hour before the rest (dvc skipped it this time): named, not the rest
     early = rec("environment", 0.1, "2026-01-01T08:00:00Z", "2026-01-01T08:00:00Z")
     row = R.timings_block([early, *records]).splitlines()[3]

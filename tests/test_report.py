@@ -441,15 +441,6 @@ def test_fmt_value_hand_cases() -> None:
         M.fmt_value(1.0, "x9")
 
 
-def test_lookup_nested_and_flat_keys() -> None:
-    data = {"A": {"net": {"test/kld": 1.5}}, "test/mse": 2.0, "a.b": {"c": 3}, "x": {"y": {"z": 4}}}
-    assert M.lookup(data, "A.net.test/kld") == 1.5
-    assert M.lookup(data, "test/mse") == 2.0
-    assert M.lookup(data, "a.b.c") == 3  # a segment containing '.'
-    assert M.lookup(data, "x.y.z") == 4
-    assert M.lookup(data, "A.missing") is None and M.lookup(None, "A") is None
-
-
 def test_paper_numbers_consistent() -> None:
     d = P.risk_confusion_derived()
     assert d["n"] == P.RISK["n_effective"].value  # Table 1 covers the whole effective data set

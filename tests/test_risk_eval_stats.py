@@ -271,7 +271,7 @@ def test_claims_only_when_the_interval_excludes_zero() -> None:
         "test/mse": {"estimate": 0.002, "lo": -0.001, "hi": 0.004},
     }
     assert (
-        claim(d, "at_1.5s|roc_auc", "ROC-AUC", "X", "Y")
+        claim(d, "at_1.5s.roc_auc", "ROC-AUC", "X", "Y")
         == "X beats Y in ROC-AUC: +0.050 [+0.020, +0.080]"
     )
     assert claim(d, "test/mse", "MSE", "X", "Y") == (
@@ -279,7 +279,7 @@ def test_claims_only_when_the_interval_excludes_zero() -> None:
     )
     d["test/mse"] = {"estimate": 0.002, "lo": 0.001, "hi": 0.004}  # higher MSE: worse
     assert claim(d, "test/mse", "MSE", "X", "Y").startswith("X is worse than Y in MSE")
-    assert beats(d, "test/mse") is False and beats(d, "at_1.5s|roc_auc") is True
+    assert beats(d, "test/mse") is False and beats(d, "at_1.5s.roc_auc") is True
     assert beats({}, "test/mse") is None and "no interval" in claim(
         None, "test/mse", "MSE", "X", "Y"
     )
@@ -609,7 +609,7 @@ def test_findings_never_interpret_a_collapsed_run(suite) -> None:
     for d in metrics["differences"].values():
         iv = d["at_1.5s"]["roc_auc"]
         if iv["lo"] is not None and iv["lo"] <= 0 <= iv["hi"]:
-            assert beats(d, "at_1.5s|roc_auc") is None
+            assert beats(d, "at_1.5s.roc_auc") is None
 
 
 def test_findings_of_a_hand_made_metrics_dict() -> None:
@@ -780,7 +780,7 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert (
         row[-1]
         == {True: "a better", False: "b better", None: "no significant difference"}[
-            beats(metrics["differences"][f"{head}|geometric_gt"], "at_1.5s|roc_auc")
+            beats(metrics["differences"][f"{head}|geometric_gt"], "at_1.5s.roc_auc")
         ]
     )
     sel = tables[anchors.index("risk-selection")]

@@ -24,6 +24,7 @@ from traffictwin.io.shards import (
     build_manifest,
     shard_name,
 )
+from traffictwin.nested import lookup
 
 
 def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
@@ -38,14 +39,6 @@ def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
                 return d
         return None
     return None if a == b else (key or "<root>")
-
-
-def _lookup(tree: Any, dotted: str) -> Any:
-    for k in dotted.split("."):
-        if not isinstance(tree, Mapping) or k not in tree:
-            return "<missing>"
-        tree = tree[k]
-    return tree
 
 
 def _read_part(path: Path) -> dict[str, Any]:
@@ -94,7 +87,8 @@ def _check_part(
     if diff is not None:
         raise DatasetError(
             f"{f}: generated with other parameters: '{diff}' is "
-            f"{_lookup(part['params'], diff)!r} there, {_lookup(params, diff)!r} here"
+            f"{lookup(part['params'], diff, '<missing>')!r} there, "
+            f"{lookup(params, diff, '<missing>')!r} here"
         )
     extra0 = first[2]["extra"]
     if part["extra"] != extra0:

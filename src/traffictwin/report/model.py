@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import ClaimCheck
 from traffictwin.report.summary import Headline
@@ -263,38 +264,6 @@ def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
         fmt=fmt,
         title=f"{num.source}: {num.unit} {num.note}".strip(),
     )
-
-
-ABSENT = object()
-
-
-def lookup(data: Any, key: str, default: Any = None) -> Any:
-    """Nested lookup of ``key`` = segments joined by '.', where a segment may contain '.' or '/'.
-
-    At each level the longest prefix of the remaining key that is a dict key wins, so
-    ``"test.A.dnn.kld_fo_mean"``, ``"models.v.at_1.5s.accuracy"`` and a flat
-    ``{"test/mse": …}`` all resolve. ``default`` when the key is absent (a JSON ``null`` is
-    present and returned as None).
-    """
-    if key == "":
-        return data
-    if isinstance(data, list):  # a list level: the segment is its index ("candidates.0.x")
-        head, _, rest = key.partition(".")
-        if head.isdigit() and int(head) < len(data):
-            return lookup(data[int(head)], rest, default)
-        return default
-    if not isinstance(data, dict):
-        return default
-    if key in data:
-        return data[key]
-    parts = key.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        head = ".".join(parts[:i])
-        if head in data:
-            found = lookup(data[head], ".".join(parts[i:]), ABSENT)
-            if found is not ABSENT:
-                return found
-    return default
 
 
 def flatten_numbers(data: Any, prefix: str = "") -> list[tuple[str, Any]]:

@@ -389,9 +389,10 @@ def _md_cell(c: Cell) -> str:
 
 
 def table_markdown(t: Table) -> str:
-    lines = [
-        f"**{t.title}**",
-        "",
+    """``t`` as a Markdown table: its title in bold (none when empty), the header, the rows, the
+    note."""
+    lines = [f"**{t.title}**", ""] if t.title else []
+    lines += [
         "| " + " | ".join(x.replace("|", "\\|") for x in t.columns) + " |",
         "|" + "|".join(" --- " for _ in t.columns) + "|",
     ]

@@ -12,9 +12,10 @@ output for every frame) is listed as a failed run and never interpreted. The cor
 ground-truth disparity sees perfect stereo but a straight corridor: a reference, not an oracle.
 
 What the findings state is computed in :mod:`traffictwin.risk.findings_data`
-(:class:`~traffictwin.risk.findings_data.RiskFindings`: numbers formatted with their intervals,
-verdicts, flags, names); this module renders it: the sentences are in ``templates/findings.md.j2``
-(one bullet per block) and ``templates/claim.md.j2`` (one comparison) next to it.
+(:class:`~traffictwin.risk.findings_data.RiskFindings`: the metrics entries to quote, verdicts,
+flags, names); this module renders it: the sentences, and the formats of their numbers, are in
+``templates/findings.md.j2`` (one bullet per block) and ``templates/claim.md.j2`` (one comparison)
+next to it.
 """
 
 from __future__ import annotations
@@ -23,16 +24,28 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from traffictwin.nested import lookup
 from traffictwin.report.prose import render_prose, template_macro
+from traffictwin.risk.evaluation import PAPER
 from traffictwin.risk.findings_data import findings_record
-from traffictwin.risk.findings_values import claim_record
+from traffictwin.risk.findings_values import claim_record, formatted, percent, with_ci
 
 TEMPLATES = Path(__file__).parent / "templates"
+#: the template's helpers: the number formats ``ci(entry, key, fmt, pct)`` (value [lo, hi]),
+#: ``pct(share)``, ``num(x, fmt)`` ("n/a" where a number is missing) and ``get(entry, dotted key)``
+HELPERS = {"ci": with_ci, "pct": percent, "num": formatted, "get": lookup}
+#: the paper's numbers the findings quote, with the critical share and the stereo-pair check's
+#: drop share of its data set (76,789 critical of its frames; 110,152 frames before the check)
+PAPER_QUOTED = {
+    **PAPER,
+    "critical_share": 76789 / PAPER["n_frames"],
+    "dropped_share": 1 - PAPER["n_frames"] / 110152,
+}
 
 
 def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> str:
-    """One comparison sentence for the paired difference ``a − b`` of ``metric`` (``at_…|roc_auc``
-    or ``test/mse``): a claim when its interval excludes zero, else "no significant difference"."""
+    """One comparison sentence for the paired difference ``a − b`` of dotted ``metric``
+    (``at_1.5s.roc_auc`` or ``test/mse``): a claim when its interval excludes zero, else "no significant difference"."""
     sentence = template_macro(TEMPLATES, "claim.md.j2", "claim")
     return str(sentence(claim_record(diff, metric, name, a, b)))
 
@@ -41,4 +54,6 @@ def findings(metrics: Mapping[str, Any]) -> str:
     """Markdown bullet list: paper comparison, failed runs, seeds, baselines and paired
     comparisons (claims only where the CI excludes zero), critical shares, the region effect,
     situations, targets, data."""
-    return render_prose(TEMPLATES, "findings.md.j2", f=findings_record(metrics)).rstrip("\n")
+    record = findings_record(metrics)
+    text = render_prose(TEMPLATES, "findings.md.j2", f=record, paper=PAPER_QUOTED, **HELPERS)
+    return text.rstrip("\n")

@@ -13,17 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+from traffictwin.nested import lookup
 from traffictwin.risk.evaluation import LOWER_IS_BETTER, PAPER, SEED_MEAN
 from traffictwin.stats import Interval, excludes_zero
-
-
-def dig(d: Any, path: str) -> Any:
-    """``d[k1][k2]…`` for ``path`` = ``"k1|k2|…"`` (keys hold dots: ``at_1.5s``); None if absent."""
-    for k in path.split("|"):
-        if not isinstance(d, Mapping) or k not in d:
-            return None
-        d = d[k]
-    return d
 
 
 def as_float(x: Any) -> float | None:
@@ -31,20 +23,23 @@ def as_float(x: Any) -> float | None:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else None
 
 
-def percent(x: float | None) -> str:
-    """A share in [0, 1] as ``"12.34 %"``; "n/a" for None."""
-    return "n/a" if x is None else f"{100 * x:.2f} %"
+def percent(x: Any) -> str:
+    """A share in [0, 1] as ``"12.34 %"``; "n/a" unless ``x`` is a number."""
+    v = as_float(x)
+    return "n/a" if v is None else f"{100 * v:.2f} %"
 
 
-def formatted(x: float | None, fmt: str = ".4f") -> str:
-    """``x`` in format ``fmt``; "n/a" for None."""
-    return "n/a" if x is None else format(x, fmt)
+def formatted(x: Any, fmt: str = ".4f") -> str:
+    """``x`` in format ``fmt``; "n/a" unless it is a number."""
+    v = as_float(x)
+    return "n/a" if v is None else format(v, fmt)
 
 
 def with_ci(d: Any, key: str, fmt: str = ".3f", pct: bool = False) -> str:
-    """``value [lo, hi]`` of ``d[key]`` and ``d[key + "_ci"]`` (just the value without interval)."""
-    v = as_float(dig(d, key))
-    ci = dig(d, f"{key}_ci") or {}
+    """``value [lo, hi]`` of ``d``'s dotted ``key`` and ``key + "_ci"`` (just the value without
+    interval; "n/a" without a value)."""
+    v = as_float(lookup(d, key))
+    ci = lookup(d, f"{key}_ci") or {}
     lo, hi = as_float(ci.get("lo")), as_float(ci.get("hi"))
     show = (lambda x: percent(x)) if pct else (lambda x: formatted(x, fmt))
     if v is None:
@@ -74,12 +69,13 @@ def diff_text(iv: Interval | None) -> str | None:
 
 
 def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
-    """True / False when the paired interval of ``metric`` says a is better / worse than b,
+    """True / False when the paired interval of dotted ``metric`` (``at_1.5s.roc_auc``,
+    ``test/mse``) says a is better / worse than b,
     None when it does not exclude zero (or there is none)."""
-    iv = interval_of(dig(diff, metric))
+    iv = interval_of(lookup(diff, metric))
     if iv is None or not excludes_zero(iv):
         return None
-    return (iv.estimate < 0) == (metric.split("|")[-1] in LOWER_IS_BETTER)
+    return (iv.estimate < 0) == (metric.rsplit(".", 1)[-1] in LOWER_IS_BETTER)
 
 
 class Claim(NamedTuple):
@@ -93,9 +89,9 @@ class Claim(NamedTuple):
 
 
 def claim_record(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> Claim:
-    """:class:`Claim` for the paired difference ``a − b`` of ``metric`` (``at_…|roc_auc`` or
-    ``test/mse``)."""
-    return Claim(a, b, name, diff_text(interval_of(dig(diff, metric))), beats(diff, metric))
+    """:class:`Claim` for the paired difference ``a − b`` of dotted ``metric``
+    (``at_1.5s.roc_auc`` or ``test/mse``)."""
+    return Claim(a, b, name, diff_text(interval_of(lookup(diff, metric))), beats(diff, metric))
 
 
 @dataclass(frozen=True)

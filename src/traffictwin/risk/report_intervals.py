@@ -111,7 +111,7 @@ def risk_ci_table(src: page.Sources) -> Table | None:
         if status.startswith("collapsed"):
             row.append(Cell("failed run"))
         elif isinstance(d, dict):
-            v = beats(d, f"{at}|roc_auc")
+            v = beats(d, f"{at}.roc_auc")
             row.append(Cell({True: "beats", False: "worse"}.get(v, "no significant difference")))
         else:
             row.append(Cell(""))
@@ -155,7 +155,7 @@ def risk_difference_table(src: page.Sources) -> Table | None:
         ]
         for k, _, fmt in metrics:
             row += [value_cell(src, f"{pre}.{k}.estimate", fmt), ci_cell(src, f"{pre}.{k}")]
-        v = beats(d, f"{at}|roc_auc")
+        v = beats(d, f"{at}.roc_auc")
         row.append(
             Cell(
                 {True: "a better", False: "b better"}.get(v, "no significant difference"),
