@@ -25,7 +25,7 @@ from traffictwin.risk.evaluation import evaluate
 from traffictwin.risk.model_config import RiskModelConfig
 from traffictwin.risk.report_tables import _results_table, risk_threshold_key
 from traffictwin.twin.config import twin_config
-from traffictwin.twin.report_section import note
+from traffictwin.twin.report_section import critical_thw_text, prose
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,7 +106,8 @@ def test_report_text_follows_the_threshold(
     tmp_path: Path, thresholds: list[float], crit: str, risk: str
 ) -> None:
     src = _sources(tmp_path, thresholds)
-    assert f"below {crit};" in note(src) and f"below {crit} + twin.reaction_s" in note(src)
+    note = prose("warnings", crit=critical_thw_text(src))  # the twin's warning-table note
+    assert f"below {crit};" in note and f"below {crit} + twin.reaction_s" in note
     title = _results_table(src, risk_threshold_key(src)).title
     assert f"THW < {crit} ⇔ risk > {risk})" in title
 
