@@ -67,7 +67,7 @@ def _fusion(p: Any) -> None:
 
 
 def _fusion_model(p: Any) -> None:
-    from traffictwin.config import typed
+    from traffictwin.config import ConfigError, typed
     from traffictwin.fusion.config import fusion_variants
     from traffictwin.fusion.model_config import FusionModelConfig
 
@@ -75,8 +75,11 @@ def _fusion_model(p: Any) -> None:
     model = typed(p["fusion_model"], FusionModelConfig, key="fusion_model", source=source)
     model.deeplab_spec(source)  # train_fusion: the architecture, bounded
     model.hparams(None)
-    for v in fusion_variants(p).values():
-        model.hparams(v.loss)
+    for k, v in fusion_variants(p).items():  # a variant's loss: a registered one, with its block
+        try:
+            model.hparams(v.loss)
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: 'fusion_variants.{k}.loss': {exc}") from None
 
 
 def _trainer(p: Any) -> None:

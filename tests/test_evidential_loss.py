@@ -219,19 +219,99 @@ def test_log_masses_finite_and_gradient_alive_at_zero_and_huge_evidence() -> Non
     assert torch.isfinite(leaf.grad).all() and float(leaf.grad.abs().sum()) > 0
 
 
-def test_fusion_loss_dispatches_by_name_and_rejects_unknown_names() -> None:
-    from traffictwin.fusion.losses import LOSSES, evidential_loss, fusion_loss, mass_loss_map
+def _old_fusion_loss(name, e, y, occupied_weight, kl_weight, kl_anneal_epochs, epoch):
+    """The losses as chosen by name before the registry (an if-chain; the module's annealing)."""
+    from traffictwin.fusion.losses import mass_loss_map
 
-    e, y = cell(3, 1).float(), cell(0.1, 0.6).float()
-    assert LOSSES == ("mass", "paper", "paper_kl")
-    assert float(fusion_loss("mass", e, y, occupied_weight=2.0)) == pytest.approx(
-        float(mass_loss_map(e, y, 2.0).mean())
+    w = 0.0
+    if name == "paper_kl" and kl_weight > 0 and epoch is not None:
+        w = kl_weight * min(1.0, epoch / max(1, kl_anneal_epochs))
+    if name == "mass":
+        return mass_loss_map(e, y, occupied_weight).mean()
+    return evidential_loss(e, y, occupied_weight, w if name == "paper_kl" else 0.0)
+
+
+def test_registered_losses_hand_computed_and_bit_identical_to_the_if_chain() -> None:
+    from scipy.special import digamma
+
+    from traffictwin.fusion.loss_registry import LOSSES
+    from traffictwin.fusion.losses import fusion_loss
+
+    assert tuple(LOSSES) == ("mass", "paper", "paper_kl")
+    # one cell, e = (3, 1): alpha = (4, 2), S = 6, p = (2/3, 1/3); label y = (0.1, 0.6): occupied
+    e, y = cell(3, 1), cell(0.1, 0.6)
+    mass = 0.1 * math.log(0.1 / 0.5) + 0.6 * math.log(0.6 / (1 / 6)) + 0.3 * math.log(0.3 / (1 / 3))
+    eq7 = (0.1 - 2 / 3) ** 2 + (0.6 - 1 / 3) ** 2 + (2 / 9 + 2 / 9) / 7
+    at = np.array([0.1 + 0.9 * 4, 0.6 + 0.4 * 2])  # alpha~ = y + (1 - y) alpha
+    kl = (
+        math.lgamma(at.sum())
+        - math.lgamma(2.0)
+        - sum(math.lgamma(a) for a in at)
+        + float(((at - 1) * (digamma(at) - digamma(at.sum()))).sum())
     )
-    assert float(fusion_loss("paper", e, y, occupied_weight=3.0, kl_weight=5.0)) == pytest.approx(
-        float(evidential_loss(e, y, 3.0, 0.0))  # eq. 7: the KL weight is ignored
-    )
-    assert float(fusion_loss("paper_kl", e, y, occupied_weight=3.0, kl_weight=0.5)) == (
-        pytest.approx(float(evidential_loss(e, y, 3.0, 0.5)))
-    )
+    s = {"occupied_weight": 3.0, "kl_weight": 0.5, "kl_anneal_epochs": 4}
+    mass_s, paper_s = {"occupied_weight": 2.0}, {"occupied_weight": 3.0}
+    assert float(fusion_loss("mass", e, y, mass_s)) == pytest.approx(2.0 * mass, rel=1e-12)
+    assert float(fusion_loss("paper", e, y, paper_s, epoch=9)) == pytest.approx(3 * eq7, rel=1e-12)
+    for epoch, w in ((None, 0.0), (0, 0.0), (2, 0.25), (9, 0.5)):  # ramp 0.5 * min(1, epoch / 4)
+        got = float(fusion_loss("paper_kl", e, y, s, epoch=epoch))
+        assert got == pytest.approx(3 * eq7 + w * kl, rel=1e-12), epoch
+    # a float32 batch as in training: every loss, every epoch, the same bits as the if-chain
+    g = torch.Generator().manual_seed(0)
+    eb = torch.rand(2, 2, 5, 4, generator=g) * 5
+    yb = torch.rand(2, 3, 5, 4, generator=g)
+    yb = (yb / yb.sum(1, keepdim=True))[:, :2]
+    for name, settings in (("mass", mass_s), ("paper", paper_s), ("paper_kl", s)):
+        for epoch in (None, 0, 1, 3, 4, 7):
+            old = _old_fusion_loss(name, eb, yb, **{**s, **settings}, epoch=epoch)
+            new = fusion_loss(name, eb, yb, LOSSES[name].settings(**settings), epoch)
+            assert torch.equal(new, old), (name, epoch)
     with pytest.raises(ValueError, match="unknown fusion loss 'focal'"):
-        fusion_loss("focal", e, y, occupied_weight=1.0)
+        fusion_loss("focal", e, y, {"occupied_weight": 1.0})
+
+
+def test_a_registered_toy_loss_is_selectable_by_config_alone() -> None:
+    """One settings dataclass, one function and one registration: the config check, a variant's
+    loss and the training module's loss accept it, no other file touched."""
+    from dataclasses import dataclass
+
+    from traffictwin.config import ConfigError, compose_config, spec, typed
+    from traffictwin.fusion.config import fusion_variants
+    from traffictwin.fusion.loss_registry import register_loss, unregister_loss
+    from traffictwin.fusion.losses import fusion_loss
+    from traffictwin.fusion.model_config import FusionModelConfig
+
+    @dataclass
+    class Toy:
+        scale: float = spec(min=0.0)
+
+    def toy_loss(e, y, s: Toy, epoch=None):
+        return s.scale * (e - y).abs().mean()
+
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    cfg = compose_config(root / "conf", [])
+    node = cfg["fusion_model"]
+    node["loss"] = {**node["loss"], "name": "toy", "toy": {"scale": 2.0}}
+    with pytest.raises(ConfigError, match="'fusion_model.loss.toy': Key 'toy' not in"):
+        typed(node, FusionModelConfig, key="fusion_model")  # not registered: neither name nor block
+    register_loss("toy", "a test loss", settings=Toy, fn=toy_loss)
+    try:
+        model = typed(node, FusionModelConfig, key="fusion_model")
+        hp = model.hparams()
+        assert (hp.loss, hp.loss_settings) == ("toy", {"scale": 2.0})
+        e, y = cell(3, 1), cell(0.1, 0.6)
+        assert float(fusion_loss("toy", e, y, hp.loss_settings)) == pytest.approx(
+            2 * (2.9 + 0.4) / 2
+        )
+        bad = {**node, "loss": {**node["loss"], "toy": {"scale": -1.0}}}
+        with pytest.raises(ConfigError, match="'fusion_model.loss.toy.scale' must be >= 0.0"):
+            typed(bad, FusionModelConfig, key="fusion_model")
+        bad = {**node, "loss": {**node["loss"], "toy": {"scale": 1.0, "typo": 1}}}
+        with pytest.raises(ConfigError, match="'fusion_model.loss.toy.typo'"):
+            typed(bad, FusionModelConfig, key="fusion_model")
+        cfg["fusion_variants"] = {"t": {"config": "mixed", "inputs": "prealigned", "loss": "toy"}}
+        assert fusion_variants(cfg)["t"].loss == "toy"
+    finally:
+        unregister_loss("toy")
+    with pytest.raises(ConfigError, match="unknown fusion loss 'toy'"):
+        model.hparams("toy")

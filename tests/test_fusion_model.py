@@ -282,7 +282,7 @@ def test_residual_correction_receives_gradients_and_moves_the_output() -> None:
     x = torch.cat([_masses(2, 64, 48, gen), _masses(2, 64, 48, gen)], dim=1)
     y = _masses(2, 64, 48, gen)
     before = net(x).detach()
-    fusion_loss("mass", net(x), y, occupied_weight=1.0).backward()
+    fusion_loss("mass", net(x), y, {"occupied_weight": 1.0}).backward()
     last = net.refine[-1]
     assert float(last.weight.grad.abs().sum()) > 0 and float(last.bias.grad.abs().sum()) > 0
     assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)

@@ -215,7 +215,7 @@ def test_short_overfit_loss_falls(tmp_path: Path) -> None:
     module.train()
     losses = []
     for _ in range(30):
-        loss = evidential_loss(module.net(x), y, module.hp.occupied_weight)
+        loss = evidential_loss(module.net(x), y, 3.0)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -525,10 +525,10 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
     n = node()
     m = typed(n, FusionModelConfig, key="fusion_model")
     hp, data, loop = m.hparams(), m.data(num_workers=3), m.loop()
-    assert (hp.lr, hp.loss, hp.occupied_weight, hp.augment_rotation_deg, hp.channels_last) == (
+    assert (hp.lr, hp.loss, hp.loss_settings, hp.augment_rotation_deg, hp.channels_last) == (
         n["optim"]["lr"],
         n["loss"]["name"],
-        n["loss"][n["loss"]["name"]]["occupied_weight"],
+        n["loss"][n["loss"]["name"]],
         n["augment"]["rotation_deg"],
         n["train"]["channels_last"],
     )
@@ -554,12 +554,8 @@ def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
             typed(bad, FusionModelConfig, key="fusion_model")
     # every loss has its own block; a variant's loss picks that block
     kl = m.hparams("paper_kl")
-    assert (kl.loss, kl.occupied_weight, kl.kl_weight) == (
-        "paper_kl",
-        n["loss"]["paper_kl"]["occupied_weight"],
-        n["loss"]["paper_kl"]["kl_weight"],
-    )
-    assert m.hparams("paper").kl_weight == 0.0
+    assert (kl.loss, kl.loss_settings) == ("paper_kl", n["loss"]["paper_kl"])
+    assert m.hparams("paper").loss_settings == n["loss"]["paper"]
     with pytest.raises(ConfigError, match="unknown fusion loss 'focal'"):
         m.hparams("focal")
     for loss, key, value, msg in [
@@ -678,7 +674,6 @@ def test_fusion_variants_are_checked_against_configurations_and_registered_data(
         ({"x": {"config": "Z", "inputs": "prealigned"}}, "'fusion_variants.x.config' = 'Z'"),
         ({"x": {"config": "A", "inputs": "registered"}}, "registered pairs of 'A'"),
         ({"x": {"config": "D", "inputs": "lidar"}}, "fusion_variants.x.inputs"),
-        ({"x": {"config": "D", "inputs": "prealigned", "loss": "l1"}}, "fusion_variants.x.loss"),
         ({"network": {"config": "D", "inputs": "prealigned"}}, "clashes with the one network"),
     ]:
         with pytest.raises(ConfigError, match=msg):

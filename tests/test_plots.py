@@ -14,13 +14,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from traffictwin.report.plot_data import (
-    drop_collinear,
-    fusion_scores_long,
-    learning_curves,
-    precision_recall_curve,
-)
-from traffictwin.risk.charts import risk_curves
+from traffictwin.report.plot_data import fusion_scores_long, learning_curves
+from traffictwin.risk.charts import pr_points, risk_curves, roc_points
 
 ROOT = Path(__file__).resolve().parents[1]
 PLOTS_DIR = ROOT / ".dvc" / "plots"
@@ -77,24 +72,23 @@ def test_fusion_scores_long_parses_method_names_with_underscores() -> None:
         fusion_scores_long(wide.drop(columns="noise_r_m"))
 
 
-def test_precision_recall_curve_hand_case() -> None:
+def test_roc_and_pr_points_hand_case() -> None:
     # scores 0.9 (pos), 0.8 (neg), 0.8 (pos), 0.1 (neg): thresholds 0.9, 0.8, 0.1
-    rec, prec = precision_recall_curve(
-        np.array([True, False, True, False]), np.array([0.9, 0.8, 0.8, 0.1])
-    )
-    assert rec.tolist() == [0.5, 1.0, 1.0]
-    assert prec.tolist() == [1.0, 2 / 3, 0.5]
-    r0, p0 = precision_recall_curve(np.zeros(3, bool), np.arange(3.0))
+    pos, score = np.array([True, False, True, False]), np.array([0.9, 0.8, 0.8, 0.1])
+    fpr, tpr = roc_points(pos, score)
+    assert fpr.tolist() == [0.0, 0.0, 0.5, 1.0] and tpr.tolist() == [0.0, 0.5, 1.0, 1.0]
+    rec, prec = pr_points(pos, score)  # scikit-learn's start (0, 1), then each threshold
+    assert rec.tolist() == [0.0, 0.5, 1.0, 1.0]
+    assert prec.tolist() == [1.0, 1.0, 2 / 3, 0.5]
+    # a non-finite score is left out; one class: no ROC; no positive: no PR either
+    f2, t2 = roc_points(np.r_[pos, True], np.r_[score, np.nan])
+    assert f2.tolist() == fpr.tolist() and t2.tolist() == tpr.tolist()
+    assert roc_points(np.ones(3, bool), np.arange(3.0))[0].size == 0
+    assert pr_points(np.ones(3, bool), np.arange(3.0))[0].tolist() == [0.0, 1 / 3, 2 / 3, 1.0]
+    r0, p0 = pr_points(np.zeros(3, bool), np.arange(3.0))
     assert r0.size == 0 and p0.size == 0
-
-
-def test_drop_collinear_keeps_the_corners() -> None:
-    x = np.array([0.0, 0.0, 0.0, 0.5, 1.0, 1.0])
-    y = np.array([0.0, 0.5, 1.0, 1.0, 1.0, 1.0])
-    assert drop_collinear(x, y).tolist() == [True, False, True, False, False, True]
-    assert drop_collinear(np.array([0.0, 1.0]), np.array([0.0, 1.0])).tolist() == [True, True]
-    diag = np.linspace(0, 1, 4)  # a diagonal is not a horizontal or vertical run: all kept
-    assert drop_collinear(diag, diag).all()
+    with pytest.raises(ValueError, match="same length"):
+        roc_points(pos, score[:3])
 
 
 def test_risk_curves_per_predictor() -> None:
@@ -104,19 +98,37 @@ def test_risk_curves_per_predictor() -> None:
             "pred_net": [0.0, 0.2, 0.3, 0.1],  # ranks both critical frames first: AUC 1
             "pred_flip": [0.3, 0.1, 0.0, 0.2],  # ranks them last: AUC 0
             "speed": [1.0, 2.0, 3.0, 4.0],  # not a prediction column
+            "pred_gap": [np.nan, 0.2, 0.3, 0.1],  # a missing prediction: that row left out
         }
     )
     roc, pr = risk_curves(pred, "risk_thw_corridor", 1 / 30)
-    assert sorted(roc["predictor"].unique()) == ["flip (AUC 0.000)", "net (AUC 1.000)"]
+    assert list(roc.columns) == ["predictor", "rank", "fpr", "tpr"]
+    assert list(pr.columns) == ["predictor", "rank", "recall", "precision"]
+    assert sorted(roc["predictor"].unique()) == [
+        "flip (AUC 0.000)",
+        "gap (AUC 1.000)",
+        "net (AUC 1.000)",
+    ]
     net = roc[roc["predictor"] == "net (AUC 1.000)"].sort_values("rank")
-    # (0, 0), (0, .5), (0, 1), (.5, 1), (1, 1): the points inside the two straight runs are dropped
-    assert net[["fpr", "tpr"]].to_numpy().tolist() == [[0.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
-    assert net["rank"].tolist() == [0, 2, 4]
+    # thresholds 0.3, 0.2, 0.1, 0.0: (0, .5), (0, 1), (.5, 1), (1, 1) after (0, 0); the point
+    # inside the last straight run is dropped
+    assert net[["fpr", "tpr"]].to_numpy().tolist() == [[0, 0], [0, 0.5], [0, 1], [1, 1]]
+    assert net["rank"].tolist() == [0, 1, 2, 3]
     pnet = pr[pr["predictor"] == "net (AUC 1.000)"].sort_values("rank")
-    # recall .5, 1, 1, 1 at precision 1, 1, 2/3, 1/2: the middle of the vertical run goes
-    assert pnet["precision"].tolist() == [1.0, 1.0, 0.5]
+    # (0, 1), then recall .5, 1, 1, 1 at precision 1, 1, 2/3, 1/2: the middle of the vertical run goes
+    assert pnet[["recall", "precision"]].to_numpy().tolist() == [[0, 1], [0.5, 1], [1, 1], [1, 0.5]]
+    gap = roc[roc["predictor"] == "gap (AUC 1.000)"]
+    assert gap[["fpr", "tpr"]].to_numpy().tolist() == [[0, 0], [0, 0.5], [0, 1], [1, 1]]
+    for name, df in roc.groupby("predictor"):  # the trapezoid area is the AUC in the name
+        area = float(
+            np.sum(np.diff(df["fpr"]) * (df["tpr"].to_numpy()[1:] + df["tpr"].to_numpy()[:-1]) / 2)
+        )
+        assert f"(AUC {area:.3f})" in name
     with pytest.raises(ValueError, match="no label column 'risk_x'"):
         risk_curves(pred, "risk_x", 1 / 30)
+    one_class = pred.assign(risk_thw_corridor=0.0)  # no critical frame: no curve at all
+    roc0, pr0 = risk_curves(one_class, "risk_thw_corridor", 1 / 30)
+    assert roc0.empty and pr0.empty and list(roc0.columns) == list(roc.columns)
 
 
 # --------------------------------------------------------------------------- templates

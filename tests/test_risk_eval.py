@@ -17,6 +17,7 @@ from traffictwin.risk.baselines import (
     geometric_distance,
     geometric_risk,
 )
+from traffictwin.risk.charts import roc_points
 from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.evaluation import (
     PAPER,
@@ -30,7 +31,6 @@ from traffictwin.risk.evaluation import (
     main_series,
     regression_metrics,
     roc_auc,
-    roc_curve,
     tracking_metrics,
 )
 from traffictwin.risk.findings import findings
@@ -403,7 +403,7 @@ def test_evaluation_figures_plot_the_predictions(
     }
     assert roc.lines[0].get_label() == "shipped (speed rule) (AUC 0.625)"
     assert np.allclose(lines["shipped (speed rule)"].get_ydata(), lines["speed_only"].get_ydata())
-    fpr, tpr = roc_curve(pred["risk_thw_paper"] > 1 / 30, pred["pred_geometric_sgm"])
+    fpr, tpr = roc_points(pred["risk_thw_paper"] > 1 / 30, pred["pred_geometric_sgm"])
     assert np.allclose(lines["geometric_sgm"].get_xdata(), fpr)
     assert np.allclose(lines["geometric_sgm"].get_ydata(), tpr)
     assert lines["geometric_gt"].get_linestyle() == "--" and lines["rgbd"].get_linestyle() == "-"

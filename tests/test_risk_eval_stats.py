@@ -33,7 +33,6 @@ from traffictwin.risk.evaluation import (
     judge,
     mean_of_scores,
     roc_auc,
-    roc_curve,
     spread_stat,
     variant_groups,
 )
@@ -285,19 +284,20 @@ def test_claims_only_when_the_interval_excludes_zero() -> None:
     )
 
 
-def test_roc_curve_area_is_the_auc() -> None:
+def test_roc_points_area_is_the_auc_of_the_metrics_and_of_sklearn() -> None:
+    from sklearn.metrics import roc_auc_score
+
+    from traffictwin.risk.charts import roc_points
+
     _, y, p = _sample(seed=9)
-    p = np.round(p, 2)
+    p = np.round(p, 2)  # ties
     pos = y > 1 / 30
-    fpr, tpr = roc_curve(pos, p)
+    fpr, tpr = roc_points(pos, p)
     assert fpr[0] == tpr[0] == 0 and fpr[-1] == tpr[-1] == 1
     assert np.all(np.diff(fpr) >= 0) and np.all(np.diff(tpr) >= 0)
     area = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
-    assert area == pytest.approx(roc_auc(pos, p))
-    assert roc_curve(np.ones(3, bool), np.arange(3.0))[0].size == 0
-    # hand case: scores 0.9 (pos), 0.5 (neg), 0.5 (pos), 0.1 (neg)
-    f, t = roc_curve(np.array([1, 0, 1, 0], bool), np.array([0.9, 0.5, 0.5, 0.1]))
-    assert f.tolist() == [0, 0, 0.5, 1] and t.tolist() == [0, 0.5, 1, 1]
+    assert area == pytest.approx(roc_auc(pos, p), rel=1e-12)
+    assert area == pytest.approx(roc_auc_score(pos, p), rel=1e-12)
 
 
 def test_plot_roc_draws_each_predictor(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

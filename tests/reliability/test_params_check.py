@@ -70,6 +70,7 @@ def test_every_profile_passes_every_check(good) -> None:
         ("risk_data.sgm.num_disparities", 512, "'risk_data.sgm': num_disparities=512"),
         ("fusion_model.optim.lr", float("inf"), "'fusion_model.optim.lr' must be a finite number"),
         ("fusion_model.architecture.backbone.base_width", 4096, "base_width"),
+        ("fusion_model.loss.name", "l1", "'fusion_model.loss.name' must be one of"),
     ],
 )
 def test_a_rejected_value_names_its_key_and_bound(good, key, value, named) -> None:
@@ -78,6 +79,12 @@ def test_a_rejected_value_names_its_key_and_bound(good, key, value, named) -> No
     line = str(info.value)
     assert "\n" not in line and named in line, line
     assert str(value) in line.replace(",", "") or key.endswith("lr"), line
+
+
+def test_a_variant_loss_is_a_registered_loss(good) -> None:
+    variant = {"x": {"config": "mixed", "inputs": "prealigned", "loss": "l1"}}
+    with pytest.raises(ConfigError, match=r"'fusion_variants.x.loss': unknown fusion loss 'l1'"):
+        check_params.check(_with(good, "fusion_variants", variant))
 
 
 #: the two forms of dvc.lock's record of the accepted params.yaml: the md5 of the stage's

@@ -413,7 +413,6 @@ def fusion_eval_config(cfg: Any) -> FusionEvalConfig:
 
 
 # -- fusion_variants -----------------------------------------------------------------------------
-LOSSES = ("mass", "paper", "paper_kl")  # fusion_model.loss.name (traffictwin.fusion.losses.LOSSES)
 INPUT_METHODS = {"prealigned": "dnn", "registered": "registered+network"}  # data family -> method
 
 
@@ -429,12 +428,14 @@ class FusionVariant:
     the classical registration estimate, ``data/registered/<config>``; method
     ``registered+network``, row ``registered+network[registered-trained]``: the default hybrid is
     the one network on registered pairs); loss: ``fusion_model.loss.name`` for this network
-    (null = default).
+    (null = default; a registered loss, :data:`~traffictwin.fusion.loss_registry.LOSSES`: checked
+    with ``fusion_model`` by :meth:`~traffictwin.fusion.model_config.FusionModelConfig.hparams`,
+    so the data stages that read the variants do not depend on the losses).
     """
 
     config: str = spec(MISSING)
     inputs: str = spec(MISSING, choices=tuple(INPUT_METHODS))
-    loss: str | None = spec(None, choices=(*LOSSES, None))
+    loss: str | None = spec(None)
 
     @property
     def method(self) -> str:

@@ -12,7 +12,8 @@ averaged over cells. The KL regulariser of Sensoy et al. (2018), ``KL(Dir(alpha~
 with ``alpha~ = y + (1 - y) alpha``, is available (``kl_weight > 0``) but off by default, as in
 the paper.
 
-Losses by name (:data:`LOSSES`, ``fusion_model.loss.name``):
+Losses by name (registered in :mod:`traffictwin.fusion.loss_registry`, :data:`LOSSES`,
+``fusion_model.loss.name``; :func:`fusion_loss` runs one by name):
 
 - ``mass`` (default): the KL divergence from the label's full mass vector ``(y_F, y_O, y_u)`` to
   the predicted ``(m_F, m_O, u)``, ``L_i = w_i * sum_k y_k (log y_k - log m_k)`` (``y`` clipped to
@@ -34,6 +35,7 @@ the cells whose label is known (label ``m_O > 0.5`` -> occupied, label ``m_F > 0
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -43,7 +45,7 @@ from traffictwin.evidential.masses import (  # noqa: F401 - re-exported (its hom
     NUM_CLASSES,
     evidence_to_masses,
 )
-from traffictwin.fusion.config import LOSSES  # noqa: F401 - re-exported: the loss names' home
+from traffictwin.fusion.loss_registry import LOSSES, MassLoss, PaperKLLoss, PaperLoss
 
 KLD_EPS = 1e-7
 
@@ -129,23 +131,43 @@ def _occupied_weighted(per: torch.Tensor, y: torch.Tensor, occupied_weight: floa
     return w * per
 
 
-def fusion_loss(
-    name: str,
-    e: torch.Tensor,
-    y: torch.Tensor,
-    *,
-    occupied_weight: float,
-    kl_weight: float = 0.0,
+def mass_loss(
+    e: torch.Tensor, y: torch.Tensor, s: MassLoss, epoch: int | None = None
 ) -> torch.Tensor:
-    """Mean over cells and batch of loss ``name`` (:data:`LOSSES`); ``kl_weight`` is the already
-    annealed regulariser weight (used by ``paper_kl`` only)."""
-    if name == "mass":
-        return mass_loss_map(e, y, occupied_weight).mean()
-    if name == "paper":
-        return evidential_loss(e, y, occupied_weight, 0.0)
-    if name == "paper_kl":
-        return evidential_loss(e, y, occupied_weight, kl_weight)
-    raise ValueError(f"unknown fusion loss {name!r}; expected one of {LOSSES}")
+    """Loss ``mass``: mean of :func:`mass_loss_map` with o_w ``s.occupied_weight``."""
+    return mass_loss_map(e, y, s.occupied_weight).mean()
+
+
+def paper_loss(
+    e: torch.Tensor, y: torch.Tensor, s: PaperLoss, epoch: int | None = None
+) -> torch.Tensor:
+    """Loss ``paper``: eq. 7 (:func:`evidential_loss` without the KL term)."""
+    return evidential_loss(e, y, s.occupied_weight, 0.0)
+
+
+def paper_kl_loss(
+    e: torch.Tensor, y: torch.Tensor, s: PaperKLLoss, epoch: int | None = None
+) -> torch.Tensor:
+    """Loss ``paper_kl``: eq. 7 + ``kl_weight * min(1, epoch / kl_anneal_epochs)`` x the KL
+    regulariser; ``epoch`` None (the validation loss): eq. 7 alone."""
+    w = 0.0
+    if epoch is not None and s.kl_weight > 0:
+        w = s.kl_weight * min(1.0, epoch / max(1, s.kl_anneal_epochs))
+    return evidential_loss(e, y, s.occupied_weight, w)
+
+
+def fusion_loss(
+    name: str, e: torch.Tensor, y: torch.Tensor, settings: Any, epoch: int | None = None
+) -> torch.Tensor:
+    """Mean over cells and batch of registered loss ``name`` (:data:`LOSSES`) with ``settings``
+    (its settings dataclass, or a mapping of its fields) at training ``epoch`` (0-based; None:
+    the validation loss, without regularisers)."""
+    if name not in LOSSES:
+        raise ValueError(f"unknown fusion loss {name!r}; expected one of {list(LOSSES)}")
+    loss = LOSSES[name]
+    if isinstance(settings, Mapping):
+        settings = loss.settings(**settings)
+    return loss.function()(e, y, settings, epoch)
 
 
 # ---------------------------------------------------------------------------------------------

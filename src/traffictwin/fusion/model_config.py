@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
-from traffictwin.fusion.config import LOSSES
+from traffictwin.fusion.loss_registry import LOSSES
 
 if TYPE_CHECKING:
     from traffictwin.fusion.deeplab import DeepLabSpec
@@ -35,10 +38,9 @@ class FusionHParams:
     weight_decay: float = 0.0
     lr_factor: float = 0.5
     lr_patience: int = 10
-    loss: str = "mass"  # LOSSES: mass | paper | paper_kl
-    occupied_weight: float = 3.0
-    kl_weight: float = 0.0  # paper_kl's KL regulariser weight (Sensoy et al.)
-    kl_anneal_epochs: int = 10  # its weight ramps as min(1, epoch / kl_anneal_epochs)
+    loss: str = "mass"  # a registered loss (traffictwin.fusion.loss_registry.LOSSES)
+    # its settings (the fields of its settings dataclass, fusion_model.loss.<loss>)
+    loss_settings: dict[str, Any] = field(default_factory=lambda: {"occupied_weight": 3.0})
     augment_flip: bool = True
     augment_rotation_deg: float = 20.0
     channels_last: bool = (
@@ -77,38 +79,12 @@ class OptimConfig:
     lr_patience: int = setting(min=0)
 
 
-@dataclass
-class MassLossConfig:
-    """``fusion_model.loss.mass``: o_w of the full-mass-vector KL loss."""
-
-    occupied_weight: float = setting(min=1.0)
-
-
-@dataclass
-class PaperLossConfig:
-    """``fusion_model.loss.paper``: eq. 7's occupied weight o_w."""
-
-    occupied_weight: float = setting(min=1.0)
-
-
-@dataclass
-class PaperKLLossConfig:
-    """``fusion_model.loss.paper_kl``: eq. 7 + the annealed KL regulariser."""
-
-    occupied_weight: float = setting(min=1.0)
-    kl_weight: float = setting(min=0.0)
-    kl_anneal_epochs: int = setting(min=1)
-
-
-@dataclass
-class LossConfig:
-    """``fusion_model.loss``: ``name`` picks the loss (``mass`` | ``paper`` | ``paper_kl``); each
-    has its own block of weights (a variant with another loss uses that loss's block)."""
-
-    name: str = setting(choices=LOSSES)
-    mass: MassLossConfig = setting()
-    paper: PaperLossConfig = setting()
-    paper_kl: PaperKLLossConfig = setting()
+def loss_schema() -> type:
+    """The schema of ``fusion_model.loss`` from the registry as it is now: ``name`` (a registered
+    loss) and one block per registered loss (its settings dataclass), every block required (a
+    variant may train with any of them)."""
+    blocks = [(n, loss.settings, setting()) for n, loss in LOSSES.items()]
+    return make_dataclass("LossConfig", [("name", str, setting(choices=tuple(LOSSES))), *blocks])
 
 
 @dataclass
@@ -143,9 +119,18 @@ class FusionModelConfig:
     name: str = setting()
     architecture: dict[str, Any] = setting()
     optim: OptimConfig = setting()
-    loss: LossConfig = setting()
+    loss: Any = setting()  # checked against the registry's losses: a :func:`loss_schema` instance
     augment: AugmentConfig = setting()
     train: FusionTrainConfig = setting()
+
+    def __post_init__(self) -> None:
+        try:
+            self.loss = OmegaConf.to_object(
+                OmegaConf.merge(OmegaConf.structured(loss_schema()), self.loss)
+            )
+        except OmegaConfBaseException as exc:  # named from fusion_model's root, like the rest
+            exc.full_key = f"loss.{exc.full_key}" if getattr(exc, "full_key", "") else "loss"
+            raise
 
     def deeplab_spec(self, source: str | Path, key: str = "fusion_model") -> DeepLabSpec:
         """The network's :class:`DeepLabSpec`; an invalid architecture is a ConfigError."""
@@ -159,18 +144,15 @@ class FusionModelConfig:
         """Optimisation and loss settings; ``loss`` overrides ``loss.name`` (a variant's loss)."""
         o, a = self.optim, self.augment
         name = loss or self.loss.name
-        if name not in LOSSES:
-            raise ConfigError(f"unknown fusion loss {name!r}; expected one of {LOSSES}")
-        lo = getattr(self.loss, name)
+        if name not in LOSSES or not hasattr(self.loss, name):
+            raise ConfigError(f"unknown fusion loss {name!r}; expected one of {list(LOSSES)}")
         return FusionHParams(
             lr=o.lr,
             weight_decay=o.weight_decay,
             lr_factor=o.lr_factor,
             lr_patience=o.lr_patience,
             loss=name,
-            occupied_weight=lo.occupied_weight,
-            kl_weight=getattr(lo, "kl_weight", 0.0),
-            kl_anneal_epochs=getattr(lo, "kl_anneal_epochs", 10),
+            loss_settings=asdict(getattr(self.loss, name)),
             augment_flip=a.flip,
             augment_rotation_deg=a.rotation_deg,
             channels_last=self.train.channels_last,

@@ -51,7 +51,6 @@ from traffictwin.fusion.model_config import (  # noqa: F401 - re-exported: the s
     FusionModelConfig,
     FusionTrainConfig,
     LoopSettings,
-    LossConfig,
     OptimConfig,
     spec_from_cfg,
 )
@@ -88,7 +87,7 @@ class FusionLitModule(common.NetModule):
     ) -> None:
         hp = FusionHParams(**hparams)
         if hp.loss not in LOSSES:
-            raise ValueError(f"unknown fusion loss {hp.loss!r}; expected one of {LOSSES}")
+            raise ValueError(f"unknown fusion loss {hp.loss!r}; expected one of {list(LOSSES)}")
         super().__init__(
             DeepLabV3Plus(DeepLabSpec.from_dict(spec)),
             fusion_loss,
@@ -102,6 +101,7 @@ class FusionLitModule(common.NetModule):
         )
         self.spec = self.net.spec
         self.hp = hp
+        self.loss_settings = LOSSES[hp.loss].settings(**hp.loss_settings)
         # NHWC only where oneDNN supports every layer (see channels_last_supported)
         self.channels_last = self.hp.channels_last and channels_last_supported(self.net)
         if self.hp.channels_last and not self.channels_last:
@@ -122,11 +122,6 @@ class FusionLitModule(common.NetModule):
     def _layout(self, x: torch.Tensor) -> torch.Tensor:
         return x.contiguous(memory_format=torch.channels_last) if self.channels_last else x
 
-    def _kl_weight(self) -> float:
-        if self.hp.loss != "paper_kl" or self.hp.kl_weight <= 0:
-            return 0.0
-        return self.hp.kl_weight * min(1.0, self.current_epoch / max(1, self.hp.kl_anneal_epochs))
-
     def on_train_start(self) -> None:
         seed = int(self.hparams["meta"].get("seed", 0)) + 7919 * int(self.global_rank)
         self._aug_gen = torch.Generator().manual_seed(seed)
@@ -144,13 +139,7 @@ class FusionLitModule(common.NetModule):
                 generator=self._aug_gen,
             )
         e = self.net(self._layout(x)).float()
-        loss = self.loss_fn(
-            self.hp.loss,
-            e,
-            y.float(),
-            occupied_weight=self.hp.occupied_weight,
-            kl_weight=self._kl_weight(),
-        )
+        loss = self.loss_fn(self.hp.loss, e, y.float(), self.loss_settings, self.current_epoch)
         self.log(
             "train/loss", loss, on_step=False, on_epoch=True, sync_dist=True, batch_size=x.shape[0]
         )
@@ -160,7 +149,7 @@ class FusionLitModule(common.NetModule):
         x, y = batch
         e = self.net(self._layout(x)).float()
         y = y.float()
-        loss = self.loss_fn(self.hp.loss, e, y, occupied_weight=self.hp.occupied_weight)
+        loss = self.loss_fn(self.hp.loss, e, y, self.loss_settings)  # no regulariser
         m, _ = evidence_to_masses(e)
         # reference: the naive fusion of the same (noisily prealigned) inputs, Dempster's rule
         naive = dempster(x[:, :2].float(), x[:, 2:].float())

@@ -6,8 +6,8 @@ it (templates in ``.dvc/plots/``).
   model; the training and validation loss columns ``train/loss`` / ``val/loss``).
 - :func:`fusion_scores_long`: ``config, noise_r_m, noise_alpha_deg, method, class, metric, value``
   from the wide per-configuration score table (columns ``<method>_<metric>_<occ|free>``).
-- :func:`precision_recall_curve`: the points of a precision-recall curve (the risk section's
-  ``risk_curves`` builds the ROC / PR tables of critical frames with it).
+
+The ROC / precision-recall tables of critical frames: :func:`traffictwin.risk.charts.risk_curves`.
 
 Pure functions on DataFrames; the stage reads and writes the files.
 """
@@ -17,7 +17,6 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 
-import numpy as np
 import pandas as pd
 
 LOSS_COLUMNS = {"train": "train/loss", "val": "val/loss"}
@@ -71,34 +70,3 @@ def fusion_scores_long(wide: pd.DataFrame) -> pd.DataFrame:
     long["metric"] = parts["metric"].map(METRIC_NAMES)
     long = long.dropna(subset=["value"])
     return long[[*ids, "method", "class", "metric", "value"]].reset_index(drop=True)
-
-
-def precision_recall_curve(
-    positive: np.ndarray, score: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(recall, precision)`` flagging the frames with score >= each distinct score, highest
-    first (recall rising from the first threshold to 1). Empty arrays without a positive frame."""
-    pos = np.asarray(positive, bool).ravel()
-    s = np.asarray(score, np.float64).ravel()
-    n_pos = int(pos.sum())
-    if n_pos == 0 or s.size == 0:
-        return np.zeros(0), np.zeros(0)
-    order = np.argsort(-s, kind="stable")
-    s, pos = s[order], pos[order]
-    last = np.r_[np.flatnonzero(np.diff(s)), s.size - 1]
-    tps = np.cumsum(pos)[last]
-    flagged = last + 1.0
-    return tps / n_pos, tps / flagged
-
-
-def drop_collinear(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Mask of the points of the polyline ``(x, y)`` to keep: every point but those inside a
-    horizontal or vertical run (same x or same y as both neighbours), so the drawn line is the same
-    with far fewer points (ROC / PR curves step in x or in y)."""
-    x, y = np.asarray(x), np.asarray(y)
-    keep = np.ones(x.size, bool)
-    if x.size > 2:
-        inner_x = (x[1:-1] == x[:-2]) & (x[1:-1] == x[2:])
-        inner_y = (y[1:-1] == y[:-2]) & (y[1:-1] == y[2:])
-        keep[1:-1] = ~(inner_x | inner_y)
-    return keep

@@ -1,13 +1,63 @@
-"""Risk charts for the DVC plots (stage ``plot_data``): ROC and precision-recall curves of
-critical frames, one per predictor, in long format (:mod:`traffictwin.report.plot_data`)."""
+"""ROC and precision-recall curves of critical frames, the one builder of their points
+(scikit-learn's curves) for the figures (:func:`traffictwin.risk.figures.plot_roc`) and the DVC
+plots (stage ``plot_data``: :func:`risk_curves`, one curve per predictor in long format).
+
+- :func:`roc_points`: ``(fpr, tpr)`` from (0, 0) to (1, 1) (:func:`sklearn.metrics.roc_curve`);
+- :func:`pr_points`: ``(recall, precision)`` from (0, 1) to recall 1
+  (:func:`sklearn.metrics.precision_recall_curve`, recall rising);
+- :func:`risk_curves`: both as tables ``predictor, rank, fpr, tpr`` / ``predictor, rank, recall,
+  precision`` (``rank`` orders the points along a curve: the ``.dvc/plots`` templates draw by it).
+
+Both keep the corner points only (scikit-learn's ``drop_intermediate``: the points inside a
+straight run are left out, the drawn line is the same). The AUC in a predictor's name is the
+metrics' :func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
-from traffictwin.report.plot_data import drop_collinear, precision_recall_curve
-from traffictwin.risk.evaluation import roc_auc, roc_curve
+from traffictwin.risk.evaluation import roc_auc
+
+ROC_COLUMNS = ["predictor", "rank", "fpr", "tpr"]
+PR_COLUMNS = ["predictor", "rank", "recall", "precision"]
+
+
+def _finite(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.asarray(positive, bool).ravel()
+    s = np.asarray(score, np.float64).ravel()
+    if pos.shape != s.shape:
+        raise ValueError(f"positive {pos.shape} and score {s.shape} must have the same length")
+    ok = np.isfinite(s)
+    return pos[ok], s[ok]
+
+
+def roc_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ROC points ``(fpr, tpr)`` (dimensionless) of ``score`` as a detector of ``positive``
+    frames, thresholds descending from (0, 0) to (1, 1); frames with a non-finite score are left
+    out. Empty arrays without both classes (the ROC is undefined)."""
+    from sklearn.metrics import roc_curve
+
+    pos, s = _finite(positive, score)
+    if pos.all() or not pos.any():
+        return np.zeros(0), np.zeros(0)
+    fpr, tpr, _ = roc_curve(pos, s, drop_intermediate=True)
+    return fpr, tpr
+
+
+def pr_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Precision-recall points ``(recall, precision)`` (dimensionless) flagging the frames with
+    score >= each threshold, recall rising: scikit-learn's start (0, 1), then thresholds
+    descending to recall 1; frames with a non-finite score are left out. Empty arrays without a
+    positive frame."""
+    from sklearn.metrics import precision_recall_curve
+
+    pos, s = _finite(positive, score)
+    if not pos.any():
+        return np.zeros(0), np.zeros(0)
+    precision, recall, _ = precision_recall_curve(pos, s, drop_intermediate=True)
+    return recall[::-1], precision[::-1]
 
 
 def risk_curves(
@@ -16,9 +66,8 @@ def risk_curves(
     """ROC and precision-recall tables of critical frames (``label > risk_threshold``), one curve
     per column ``<prefix><name>`` of ``predictions`` (the predictor ``<name> (AUC x.xxx)``).
 
-    ``rank`` orders the points along a curve; points inside a horizontal or vertical run are
-    left out (:func:`~traffictwin.report.plot_data.drop_collinear`: the same line). Rows with a missing label or prediction are left
-    out of that predictor's curve."""
+    Rows with a missing label or prediction are left out of that predictor's curves; a predictor
+    whose ROC is undefined (one class only) has no curve."""
     if label not in predictions.columns:
         raise ValueError(f"risk predictions: no label column {label!r}")
     pred_cols = [c for c in predictions.columns if c.startswith(prefix)]
@@ -30,36 +79,13 @@ def risk_curves(
         p = predictions[c].to_numpy(np.float64)
         ok = np.isfinite(y) & np.isfinite(p)
         positive = y[ok] > risk_threshold
-        fpr, tpr = roc_curve(positive, p[ok])
+        fpr, tpr = roc_points(positive, p[ok])
         if fpr.size == 0:
             continue
         name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p[ok]):.3f})"
-        k = drop_collinear(fpr, tpr)  # the same curve with its corner points only
-        rocs.append(
-            pd.DataFrame(
-                {"predictor": name, "rank": np.arange(fpr.size)[k], "fpr": fpr[k], "tpr": tpr[k]}
-            )
-        )
-        rec, prec = precision_recall_curve(positive, p[ok])
-        k = drop_collinear(rec, prec)
-        prs.append(
-            pd.DataFrame(
-                {
-                    "predictor": name,
-                    "rank": np.arange(rec.size)[k],
-                    "recall": rec[k],
-                    "precision": prec[k],
-                }
-            )
-        )
-    roc = (
-        pd.concat(rocs, ignore_index=True)
-        if rocs
-        else pd.DataFrame(columns=["predictor", "rank", "fpr", "tpr"])
-    )
-    pr = (
-        pd.concat(prs, ignore_index=True)
-        if prs
-        else pd.DataFrame(columns=["predictor", "rank", "recall", "precision"])
-    )
+        rocs.append(pd.DataFrame(dict(zip(ROC_COLUMNS, (name, np.arange(fpr.size), fpr, tpr)))))
+        rec, prec = pr_points(positive, p[ok])
+        prs.append(pd.DataFrame(dict(zip(PR_COLUMNS, (name, np.arange(rec.size), rec, prec)))))
+    roc = pd.concat(rocs, ignore_index=True) if rocs else pd.DataFrame(columns=ROC_COLUMNS)
+    pr = pd.concat(prs, ignore_index=True) if prs else pd.DataFrame(columns=PR_COLUMNS)
     return roc, pr

@@ -26,12 +26,12 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from traffictwin.io.atomic import save_figure  # noqa: E402
+from traffictwin.risk.charts import roc_points  # noqa: E402
 from traffictwin.risk.evaluation import (  # noqa: E402
     GT_INPUT,
     PAPER,
     example_indices,
     main_series,
-    roc_curve,
 )
 from traffictwin.risk.metric import risk_threshold  # noqa: E402
 
@@ -243,7 +243,7 @@ def plot_roc(
         _say_empty(ax, why)
     else:
         for name, score in scores.items():
-            fpr, tpr = roc_curve(pos, score)
+            fpr, tpr = roc_points(pos, score)
             a = (auc or {}).get(name)
             label = f"{name} (AUC {a:.3f})" if a is not None else name
             ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)

@@ -47,7 +47,6 @@ from traffictwin.risk.evaluation.scoring import (
     label_agreement,
     regression_metrics,
     roc_auc,
-    roc_curve,
     summarise_paper_comparison,
 )
 from traffictwin.risk.evaluation.settings import (
@@ -95,7 +94,6 @@ __all__ = [
     "mean_of_scores",
     "regression_metrics",
     "roc_auc",
-    "roc_curve",
     "scores_with_ci",
     "seed_draws",
     "spread_stat",

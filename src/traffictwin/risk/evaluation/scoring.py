@@ -125,21 +125,6 @@ def roc_auc(positive: np.ndarray, score: np.ndarray) -> float:
     return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
 
 
-def roc_curve(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ROC points ``(fpr, tpr)`` from (0, 0) to (1, 1), one per distinct score (descending); the
-    trapezoid area under them is :func:`roc_auc` (ties count half). Empty arrays for one class."""
-    pos = np.asarray(positive, bool).ravel()
-    s = np.asarray(score, np.float64).ravel()
-    n_pos, n_neg = int(pos.sum()), int((~pos).sum())
-    if n_pos == 0 or n_neg == 0:
-        return np.zeros(0), np.zeros(0)
-    order = np.argsort(-s, kind="stable")
-    s, pos = s[order], pos[order]
-    last = np.r_[np.flatnonzero(np.diff(s)), s.size - 1]  # last frame of each distinct score
-    tps, fps = np.cumsum(pos)[last], np.cumsum(~pos)[last]
-    return np.r_[0.0, fps / n_neg], np.r_[0.0, tps / n_pos]
-
-
 def evaluate(
     y: np.ndarray,
     p: np.ndarray,
