@@ -226,3 +226,172 @@ def test_the_literal_check_can_fail(tmp_path: Path) -> None:
     p = tmp_path / "t.py"
     p.write_text("T = {'x': (0.3, '<=')}\nok = 0.0\n")
     assert _threshold_literals(p) == ["t.py:1: 0.3"]
+
+
+# --------------------------------------------------------------------------- the report's table
+def _sources(tmp_path: Path, metrics: dict[str, object]):
+    import json
+
+    from traffictwin.report.model import ReportInputs, Sources
+
+    (tmp_path / "metrics").mkdir()
+    for name, data in metrics.items():
+        (tmp_path / "metrics" / name).write_text(json.dumps(data))
+    return Sources(ReportInputs(tmp_path, "ci", 0, "abc"))
+
+
+FUSION_JSON = {
+    "targets": {
+        "kld_at_A": {
+            "description": "network KLD(b) at A",
+            "op": "<=",
+            "threshold": 0.002,
+            "status": "fail",
+            "per_config": {"A": {"value": 0.003, "lo": 0.0025, "hi": 0.0035, "status": "fail"}},
+        },
+        "dice_occ_vs_ego": {
+            "description": "Dice occ − ego",
+            "op": ">=",
+            "threshold": 0.0,
+            "status": "not evaluated",
+            "per_config": {
+                "B": {"value": 0.1, "lo": 0.05, "hi": 0.15, "status": "pass"},
+                "C": {"value": None, "status": "not evaluated", "why": "ego not evaluated"},
+            },
+        },
+    }
+}
+RISK_JSON = {
+    "targets": {
+        "shipped_roc_auc": {
+            "description": "ROC-AUC at THW 1.5 s",
+            "value": 0.98,
+            "lo": 0.96,
+            "hi": 0.99,
+            "op": ">=",
+            "threshold": 0.97,
+            "met": True,
+        },
+        "shipped_recall_cut_in": {
+            "description": "recall, cut-in",
+            "met": False,
+            "why": "no frames",
+        },
+    }
+}
+STEREO_JSON = {
+    "targets": {
+        "learned_crit_obj_relerr_median": {
+            "metric": "learned/own/crit_obj_relerr_median",
+            "value": 0.03,
+            "value_lo": 0.02,
+            "value_hi": 0.04,
+            "op": "<=",
+            "threshold": 0.035,
+            "format": "pct",
+            "description": "median relative range error",
+            "met": True,
+        }
+    }
+}
+TWIN_JSON = {
+    "targets": {
+        "configuration": "D",
+        "method": "learned",
+        "evaluated": True,
+        "occluded_recall_ge_0.9": {"value": 0.8, "ci": [0.7, 0.9], "met": False},
+    }
+}
+
+
+def test_the_acceptance_table_reads_every_file_shape(tmp_path: Path) -> None:
+    from traffictwin.report.acceptance import acceptance_rows, acceptance_section, count_line
+
+    src = _sources(
+        tmp_path,
+        {
+            "fusion.json": FUSION_JSON,
+            "risk.json": RISK_JSON,
+            "stereo.json": STEREO_JSON,
+            "twin.json": TWIN_JSON,
+        },
+    )
+    th = {p: thresholds(p) for p in ("fusion", "risk", "stereo", "twin")}
+    rows = acceptance_rows(src, th)
+    got = [[c.text for c in r.cells()] for r in rows]
+    assert got[:3] == [
+        [
+            "fusion",
+            "kld_at_A (A)",
+            "network KLD(b) at A",
+            "<= 0.002",
+            "0.003 [0.0025, 0.0035]",
+            "fail",
+        ],
+        ["fusion", "dice_occ_vs_ego (B)", "Dice occ − ego", ">= 0", "0.1 [0.05, 0.15]", "pass"],
+        ["fusion", "dice_occ_vs_ego (C)", "Dice occ − ego", ">= 0", "n/a", "not evaluated"],
+    ]
+    assert rows[2].value.title == "ego not evaluated"
+    assert rows[0].value.derived.endswith("metrics/fusion.json#targets.kld_at_A.per_config.A.value")
+    risk = [g for g in got if g[0] == "risk"]
+    assert risk == [
+        ["risk", "shipped_roc_auc", "ROC-AUC at THW 1.5 s", ">= 0.97", "0.98 [0.96, 0.99]", "pass"],
+        ["risk", "shipped_recall_cut_in", "recall, cut-in", ">= 0.85", "n/a", "not evaluated"],
+    ]
+    stereo = [g for g in got if g[0] == "stereo"]
+    assert stereo == [
+        [
+            "stereo",
+            "learned_crit_obj_relerr_median",
+            "median relative range error",
+            "<= 0.035",
+            "3.00 % [2.00 %, 4.00 %]",
+            "pass",
+        ]
+    ]
+    twin = [g for g in got if g[0] == "twin"]
+    assert twin[0][1:2] + twin[0][3:] == [
+        "occluded_recall_ge_0.9 (D)",
+        ">= 0.9",
+        "0.8 [0.7, 0.9]",
+        "fail",
+    ]
+    # the twin's other thresholds are absent from the block: not evaluated, never a pass
+    assert len(twin) == len(th["twin"]) and all(g[5] == "not evaluated" for g in twin[1:])
+    assert count_line(rows) == f"3 pass, 2 fail, {len(rows) - 5} not evaluated"
+    sec = acceptance_section(src, th)
+    (table,) = sec.tables
+    assert table.note.startswith(count_line(rows) + ".") and table.anchor == "acceptance"
+    # fusion thresholds fusion.json does not judge (wall times) are named, not counted
+    assert "learned_runtime_ms" in table.note
+
+
+def test_a_missing_metrics_file_shows_its_thresholds_not_evaluated(tmp_path: Path) -> None:
+    from traffictwin.report.acceptance import acceptance_rows
+
+    src = _sources(tmp_path, {"risk.json": RISK_JSON})
+    rows = acceptance_rows(src, {"stereo": thresholds("stereo")})
+    stereo = [r for r in rows if r.problem == "stereo"]
+    assert [r.name for r in stereo] == list(thresholds("stereo"))
+    assert all(r.status == "not evaluated" for r in stereo)
+    assert "stereo.json not found" in stereo[0].value.title
+    # without thresholds (an old run's params): the file's own op / threshold
+    assert [r.condition for r in rows if r.problem == "risk"] == [">= 0.97", "n/a"]
+
+
+def test_the_index_ends_with_the_acceptance_table(tmp_path: Path) -> None:
+    from pipelines.report import providers
+    from traffictwin.report.model import ReportInputs
+    from traffictwin.report.render import render_markdown, write_report
+
+    (tmp_path / "metrics").mkdir()
+    (tmp_path / "metrics" / "stereo.json").write_text(__import__("json").dumps(STEREO_JSON))
+    th = {p: thresholds(p) for p in ("fusion", "risk", "stereo", "twin")}
+    inputs = ReportInputs(tmp_path, "ci", 0, "abc", acceptance=th)
+    report = write_report(inputs, providers({}))
+    index = render_markdown(report)["README.md"]
+    sections = [line for line in index.splitlines() if line.startswith("## ")]
+    assert sections[-2:] == ["## Acceptance thresholds", "## Pages"]
+    assert "| stereo | learned_crit_obj_relerr_median |" in index
+    assert "1 pass, 0 fail," in index
+    assert len(index.splitlines()) < 600

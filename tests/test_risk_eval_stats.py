@@ -792,15 +792,18 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert [r[0] for r in sel] == ["geometric_sgm", "headline"]  # the shipped one first
     assert sel[0][-1] == "shipped" and sel[1][-1] == "" and sel[0][3] == "0.94"
     assert sel[1][4] == M.fmt_value(0.027, "g4") and sel[1][5] == "74.00 %"
-    targets = tables[anchors.index("risk-targets")]
-    assert [r[0] for r in targets] == list(metrics["targets"])
-    assert next(r for r in targets if r[0] == "spread")[6] == "no"
+    # the targets: the index's acceptance table (no targets table on the risk page)
+    assert "risk-targets" not in anchors
+    targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
+    assert [r[1] for r in targets] == list(metrics["targets"])
+    assert next(r for r in targets if r[1] == "spread")[5] == "fail"
     shares = tables[anchors.index("risk-critical-share")]
     assert [r[0] for r in shares] == ["train", "val", "test", "all"]
     sit = tables[anchors.index("risk-situations")]
     assert [r[0] for r in sit] == sorted(SITUATIONS)
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
-    assert "Risk: every predictor on the same test frames" in res and "Risk: targets" in res
+    assert "Risk: every predictor on the same test frames" in res
+    assert "Every target of this run against its acceptance threshold" in res
     assert "(../figures/risk_roc.png)" in page_md(rep, "risk")
 
 
