@@ -128,6 +128,17 @@ def _twin(p: Any) -> None:
     twin_config(p).settings()
 
 
+def _acceptance(p: Any) -> None:
+    from traffictwin.acceptance import for_problem
+    from traffictwin.fusion.evaluation import JUDGES
+    from traffictwin.risk.evaluation import TARGET_NAMES as RISK
+    from traffictwin.twin.targets import TARGET_NAMES as TWIN
+
+    # evaluate_fusion, evaluate_risk, stereo_learned, evaluate_twin (and the report's table)
+    for problem, names in (("fusion", JUDGES), ("risk", RISK), ("stereo", None), ("twin", TWIN)):
+        for_problem(p, problem, names)
+
+
 def _report(p: Any) -> None:
     from traffictwin.config import typed
     from traffictwin.report.config import ReportParams
@@ -149,6 +160,7 @@ CHECKS: tuple[tuple[str, Callable[[Any], None]], ...] = (
     ("risk data and models", _risk),
     ("stereo variants and network", _stereo),
     ("twin", _twin),
+    ("acceptance thresholds", _acceptance),
     ("report, ablations and registry", _report),
 )
 

@@ -42,6 +42,7 @@ from typing import Any
 
 import pandas as pd
 
+from traffictwin.acceptance import for_problem
 from traffictwin.fusion.config import fusion_eval_config, grid_config, pose_configurations
 from traffictwin.io.atomic import (
     write_csv_atomic,
@@ -323,6 +324,7 @@ def main() -> None:
     fc = fusion_eval_config(cfg)
     check_device(fc.device, "params.yaml", "evaluation.fusion.device")
     ci = ev.fusion_ci_config(cfg)
+    thresholds = for_problem(cfg, "fusion", ev.JUDGES)
     configs = list(noise)
     with stage_timer(STAGE) as record:
         record["torch_threads"] = pin_torch_threads(cfg)
@@ -332,7 +334,7 @@ def main() -> None:
             {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid
         )
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
-        res = ev.evaluate(data, raw, networks, grid, fc, ci)
+        res = ev.evaluate(data, raw, networks, grid, fc, ci, thresholds)
         metrics = json_clean({**res.metrics, "validation": chosen})
         record.update(json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():

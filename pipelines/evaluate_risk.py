@@ -24,10 +24,12 @@ from dataclasses import replace
 
 import pandas as pd
 
+from traffictwin.acceptance import for_problem
 from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
 from traffictwin.risk.evaluation import (
+    TARGET_NAMES,
     CIConfig,
     Holdout,
     SuiteSettings,
@@ -295,6 +297,7 @@ def main() -> None:
     selection = read_selection()
     _, seeds, holdout = hybrid_settings(p)
     suite = suite_settings(ev, subject, primary, settings, selection, holdout)
+    suite = replace(suite, acceptance=for_problem(p, "risk", TARGET_NAMES))
     with stage_timer("evaluate_risk") as record:
         record["torch_threads"] = pin_torch_threads(p)
         source = RiskSource(

@@ -309,16 +309,18 @@ def _figures(
 
 
 def main() -> None:
+    from traffictwin.acceptance import for_problem
     from traffictwin.io.jsonio import json_clean
     from traffictwin.io.shards import Dataset
     from traffictwin.twin.config import twin_config
     from traffictwin.twin.summary import step_ms_medians
-    from traffictwin.twin.targets import targets
+    from traffictwin.twin.targets import TARGET_NAMES, targets
 
     setup_logging()
     cfg = params()
     noise = pose_configurations(cfg)
     tc = twin_config(cfg)
+    thresholds = for_problem(cfg, "twin", TARGET_NAMES)
     fec = fusion_eval_config(cfg)
     # the classical registration of evaluate_fusion
     run = _Pass(grid_config(cfg), tc.settings(), fec.registration_params, fec.registration_workers)
@@ -364,7 +366,7 @@ def main() -> None:
             "sequences": len(seqs),
             "configurations": summary,
             "predictive_rule": rule_entry,
-            "targets": targets(summary, tc.headline, tc.target_configuration),
+            "targets": targets(summary, tc.headline, tc.target_configuration, thresholds),
         }
         _csv(table, FRAMES)
         _csv(pd.concat(vehicle_frames, ignore_index=True), VEHICLE_FRAMES)

@@ -4,8 +4,8 @@ reports/results_table.md.
 
 Reads params.yaml for what the report shows about the run -- the profile, the seed, the
 pose-noise configurations, and the *scale* parameters (every key that any profile in
-conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) -- and
-hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
+conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) and the
+acceptance thresholds (``acceptance``, the index's last table) -- and hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
 with the git commit and the list of section providers -- one per problem, in the order the
 report shows them (a new problem adds one). Also writes reports/timings/README.md, the summary
 of the stages' run records in DVC stage order (wall times etc.: not a DVC output).
@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from traffictwin.acceptance import for_problem
 from traffictwin.config import flatten, get, typed
 from traffictwin.fusion import report_section as fusion_report
 from traffictwin.mlops.tracking import pipeline_run_id
@@ -122,6 +123,7 @@ def main() -> None:
             pipeline_run=pipeline_run_id(),
             stage_order=stage_order(DVC_YAML, cfg),
             git_dirty=git_dirty(ROOT),
+            acceptance={pr: for_problem(cfg, pr) for pr in ("fusion", "risk", "stereo", "twin")},
         )
         fusion_report.draw_score_figures(
             PLOTS / "fusion_scores.csv", REPORTS / "report_figures", p.pose_noise

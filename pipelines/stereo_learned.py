@@ -28,11 +28,13 @@ params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from traffictwin.acceptance import Threshold, for_problem
 from traffictwin.config import ConfigError, get
 from traffictwin.io.atomic import save_figure, write_json_atomic
 from traffictwin.io.shards import (
@@ -79,11 +81,13 @@ def run(
     figure: Path | None = None,
     record: dict | None = None,
     holdout_model: Path | None = None,
+    thresholds: Mapping[str, Threshold] | None = None,
 ) -> dict[str, Any]:
     """The network on every pair of ``src`` into ``out``; returns the test metrics. Nothing is
     written when an input is missing or inconsistent. ``holdout_model``: the network trained
     without some road templates (its meta's ``holdout_templates``), scored with the full one and
-    SGM on those templates' fault-free test frames (``generalisation``)."""
+    SGM on those templates' fault-free test frames (``generalisation``). ``thresholds``: the
+    targets' acceptance thresholds (``acceptance.stereo``; default: read from params.yaml)."""
     from traffictwin.risk.stereo_io import load_stereo_model, predict
     from traffictwin.threads import pin_threads
 
@@ -163,7 +167,9 @@ def run(
         raise DatasetError(f"{src}: no fault-free test frames to evaluate on")
     metrics: dict[str, Any] = _finite(evaluate(_stack(acc), np.concatenate(seqs), n_boot))
     metrics["learned/spread_threshold_px"] = thr
-    metrics["targets"] = stereo_targets(metrics)
+    if thresholds is None:
+        thresholds = for_problem(params(), "stereo")
+    metrics["targets"] = stereo_targets(metrics, thresholds)
     if held_net is not None:
         metrics["generalisation"] = generalisation(held, gen_acc, gen_seqs, n_boot)
     ms = 1000.0 * seconds / max(n_frames, 1)
@@ -245,8 +251,10 @@ def main() -> None:
     n_boot = get(p, "evaluation.stereo.n_boot", int, min=1)
     if n_boot < 10:
         raise ConfigError(f"params.yaml: 'evaluation.stereo.n_boot' must be >= 10, got {n_boot}")
+    thresholds = for_problem(p, "stereo")
     with stage_timer(STAGE) as record:
         metrics = run(
+            thresholds=thresholds,
             num_threads=threads,
             n_boot=n_boot,
             figure=figure_file("stereo_learned_example"),

@@ -16,7 +16,7 @@ from traffictwin.evidential.dempster import dempster
 from traffictwin.fusion.evaluation import (
     CI_KEYS,
     DIFF_KEYS,
-    TARGETS,
+    JUDGES,
     TIMING_TARGETS,
     EvalSettings,
     evaluate_method,
@@ -569,7 +569,7 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
     )
     assert set(m["bins"]) == {"translation", "rotation"} and "naive" in m["bins"]["translation"]
     # targets judged on wall times are in the stage's run record, not in fusion.json
-    assert set(m["targets"]) == set(TARGETS) - set(TIMING_TARGETS)
+    assert set(m["targets"]) == set(JUDGES) - set(TIMING_TARGETS)
     for t in m["targets"].values():
         assert t["status"] in ("pass", "fail", "not evaluated")
     rec = run_record(ci_dag, "evaluate_fusion")

@@ -11,7 +11,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from _acceptance import thresholds
 
+from traffictwin.acceptance import Threshold
 from traffictwin.fusion import evaluation as ev
 from traffictwin.fusion.evaluation.intervals import lohi, scenario_draws
 from traffictwin.fusion.evaluation.targets import judge
@@ -21,6 +23,7 @@ from traffictwin.io.jsonio import json_clean
 from traffictwin.io.shards import DatasetError, DatasetWriter
 
 CI = ev.CIConfig(n_boot=400, seed=0, level=0.95)
+FUSION = thresholds("fusion")  # acceptance.fusion
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -157,13 +160,14 @@ def test_paired_intervals_align_pairs_and_share_resamples():
 def test_judge_pass_fail_and_whether_the_ci_is_beyond_the_threshold():
     from traffictwin.stats import Interval
 
-    assert judge(Interval(0.2, 0.1, 0.25), 0.3, "<=").status == "pass"
-    assert judge(Interval(0.2, 0.1, 0.25), 0.3, "<=").ci_beyond_threshold
-    assert not judge(Interval(0.2, 0.1, 0.35), 0.3, "<=").ci_beyond_threshold
-    r = judge(Interval(0.8, 0.7, 0.9), 0.85, ">=")
+    le, ge = Threshold("<=", 0.3), Threshold(">=", 0.85)
+    assert judge(Interval(0.2, 0.1, 0.25), le).status == "pass"
+    assert judge(Interval(0.2, 0.1, 0.25), le).ci_beyond_threshold
+    assert not judge(Interval(0.2, 0.1, 0.35), le).ci_beyond_threshold
+    r = judge(Interval(0.8, 0.7, 0.9), ge)
     assert r.status == "fail" and not r.ci_beyond_threshold
-    assert judge(Interval(0.8, 0.7, 0.84), 0.85, ">=").ci_beyond_threshold
-    assert judge(Interval(math.nan, 0, 1), 0.3, "<=").status == "not evaluated"
+    assert judge(Interval(0.8, 0.7, 0.84), ge).ci_beyond_threshold
+    assert judge(Interval(math.nan, 0, 1), le).status == "not evaluated"
 
 
 def _row(pid, kld_fou, tp_occ=10, fp_occ=0, fn_occ=0, u=0.5, label_u=0.5):
@@ -203,8 +207,8 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
         metrics["test"][c][row] = {k: iv[k].estimate for k in ev.CI_KEYS} | {
             f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS
         }
-    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
-    assert set(t) == set(ev.TARGETS)
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)
+    assert set(t) == set(ev.JUDGES)
     # (a) every pair's ratio is 0.2: the ratio of means is 0.2 in every resample
     a = t["kld_ratio_vs_naive"]["per_config"]["C"]
     assert (a["value"], a["lo"], a["hi"], a["status"]) == pytest.approx((0.2, 0.2, 0.2, "pass"))
@@ -224,12 +228,14 @@ def test_targets_by_hand_and_not_evaluated_when_absent():
     # a network that never predicts occupied at A: no relative drop (not a crash, not a pass)
     zero = dict(own)
     zero[("A", "dnn")] = _row(pid, 0.2, tp_occ=0, fn_occ=3)
-    t0 = ev.fusion_targets(zero, metrics, CI, 0.5, 1.0)["dice_occ_drop_A_to_D"]["per_config"]["D"]
+    t0 = ev.fusion_targets(zero, metrics, CI, 0.5, 1.0, FUSION)["dice_occ_drop_A_to_D"][
+        "per_config"
+    ]["D"]
     assert t0["status"] == "not evaluated" and "Dice occ at A is 0.0" in t0["why"]
     # a target at a configuration that was not evaluated (B absent) is not a pass
     del own[("A", "dnn")]
     metrics["test"].pop("A")
-    t2 = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
+    t2 = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)
     assert t2["dice_occ_at_A"]["status"] == "not evaluated"
     assert t2["dice_occ_drop_A_to_D"]["status"] == "not evaluated"
 
@@ -307,30 +313,28 @@ FLIPS = {
 }
 
 
-def test_every_verdict_reads_its_threshold_from_the_table(monkeypatch: pytest.MonkeyPatch):
+def test_every_verdict_reads_its_threshold_from_the_config():
+    """Each target follows its acceptance threshold: moving one value flips its verdict."""
     own, metrics = _target_inputs()
-    base = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)
+    base = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)
     # u_auroc has no value here (no wrong-cell histograms); every other target is flipped below
-    assert set(FLIPS) == set(ev.TARGETS) - {"u_auroc"}
+    assert set(FLIPS) == set(ev.JUDGES) - {"u_auroc"}
     for name, (c, threshold) in FLIPS.items():
         assert base[name]["per_config"][c]["status"] == "pass", name
-        changed = dataclasses.replace(ev.TARGETS[name], threshold=threshold)
-        monkeypatch.setitem(ev.TARGETS, name, changed)
-        t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)[name]
+        moved = {**FUSION, name: dataclasses.replace(FUSION[name], value=threshold)}
+        t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, moved)[name]
         assert t["threshold"] == threshold and t["per_config"][c]["status"] == "fail", name
-        monkeypatch.undo()
-    # u_auroc: the table's threshold decides a value read from metrics
+    # u_auroc: the config's threshold decides a value read from metrics
     metrics["test"]["D"]["dnn"] |= {"u_auroc": 0.9, "u_auroc_ci": {"lo": 0.8, "hi": 0.95}}
-    assert (
-        ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]["status"]
-        == "pass"
-    )
-    changed = dataclasses.replace(ev.TARGETS["u_auroc"], threshold=0.95)
-    monkeypatch.setitem(ev.TARGETS, "u_auroc", changed)
-    assert (
-        ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]["status"]
-        == "fail"
-    )
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)
+    assert t["u_auroc"]["per_config"]["D"]["status"] == "pass"
+    moved = {**FUSION, "u_auroc": dataclasses.replace(FUSION["u_auroc"], value=0.95)}
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, moved)
+    assert t["u_auroc"]["per_config"]["D"]["status"] == "fail"
+    # a missing threshold is named
+    with pytest.raises(ValueError, match="no acceptance threshold for .'u_auroc'"):
+        less = {k: v for k, v in FUSION.items() if k != "u_auroc"}
+        ev.fusion_targets(own, metrics, CI, 0.5, 1.0, less)
 
 
 # -- evaluate with networks per row ------------------------------------------------------------------
@@ -400,7 +404,7 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
         "registered+network": {"C": _tiny_net(8), "D": _tiny_net(9)},
         "dnn[per-config]": {c: _tiny_net(i + 1) for i, c in enumerate(data)},
     }
-    res = ev.evaluate(data, raw, networks, grid, _eval_config(), CI)
+    res = ev.evaluate(data, raw, networks, grid, _eval_config(), CI, FUSION)
     m = res.metrics
     assert "dnn[paper]" in m["test"]["D"] and "dnn[paper]" not in m["test"]["C"]
     assert "registered+network" in m["test"]["C"] and "registered+network" not in m["test"]["A"]
@@ -440,7 +444,7 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
         float(s[(s.config == "A") & (s.method == "naive")].label_u_mean.mean())
     )
     # wall times (and the target judged on them) only in res.timings: never in fusion.json / samples
-    assert set(m["targets"]) == set(ev.TARGETS) - set(ev.TIMING_TARGETS)
+    assert set(m["targets"]) == set(ev.JUDGES) - set(ev.TIMING_TARGETS)
     assert set(res.timings["targets"]) == set(ev.TIMING_TARGETS)
     assert "ms" not in s and "runtime_ms_per_pair" not in m
     assert "ms_per_pair" not in m["test"]["D"]["dnn[paper]"]
@@ -492,7 +496,7 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
 def test_evaluate_with_the_dnn_row_only_and_bad_rows():
     data, raw, grid = _synthetic(configs=("A", "B"), n=4)
     nets = {"dnn": {c: _tiny_net(0) for c in data}}
-    res = ev.evaluate(data, raw, nets, grid, _eval_config(), CI)
+    res = ev.evaluate(data, raw, nets, grid, _eval_config(), CI, FUSION)
     assert sorted(res.metrics["test"]["A"]) == sorted(
         ["ego", "naive", "naive-yager", "naive-cautious", "registered", "dnn"]
     )
@@ -500,11 +504,11 @@ def test_evaluate_with_the_dnn_row_only_and_bad_rows():
     assert t["kld_ratio_vs_naive"]["status"] == "not evaluated"  # no C, D
     assert t["hybrid_vs_registered"]["status"] == "not evaluated"
     with pytest.raises(ValueError, match="no 'dnn' row"):
-        ev.evaluate(data, raw, {"dnn[paper]": nets["dnn"]}, grid, _eval_config(), CI)
+        ev.evaluate(data, raw, {"dnn[paper]": nets["dnn"]}, grid, _eval_config(), CI, FUSION)
     with pytest.raises(ValueError, match="'naive' names no registry method that uses a model"):
-        ev.evaluate(data, raw, {**nets, "naive": {}}, grid, _eval_config(), CI)
+        ev.evaluate(data, raw, {**nets, "naive": {}}, grid, _eval_config(), CI, FUSION)
     with pytest.raises(ValueError, match=r"configuration\(s\) \['Z'\]"):
-        ev.evaluate(data, raw, {"dnn": {"Z": _tiny_net(0)}}, grid, _eval_config(), CI)
+        ev.evaluate(data, raw, {"dnn": {"Z": _tiny_net(0)}}, grid, _eval_config(), CI, FUSION)
 
 
 # -- bad input -------------------------------------------------------------------------------------
@@ -733,7 +737,7 @@ def test_the_auroc_target_says_too_few_wrong_cells():
             | {f"{k}_ci": lohi(iv[k]) for k in ev.CI_KEYS}
             | {"u_auroc_enough": False, "u_auroc_n_wrong": 12, "u_auroc_pairs_wrong": 3}
         )
-    v = ev.fusion_targets(own, metrics, CI, 0.5, 1.0)["u_auroc"]["per_config"]["D"]
+    v = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)["u_auroc"]["per_config"]["D"]
     assert v["status"] == "not evaluated"
     assert "too few wrong cells: 12 wrong cells in 3 pairs" in v["why"]
 
@@ -743,7 +747,7 @@ def test_evaluate_reports_the_cells_behind_each_auroc():
     data, raw, grid = _synthetic(configs=("A",), n=6)
     nets = {"dnn": {"A": _tiny_net(0)}}
     fc = dataclasses.replace(_eval_config(), auroc_min_wrong=1, auroc_min_pairs=1)
-    m = ev.evaluate(data, raw, nets, grid, fc, CI).metrics["test"]["A"]
+    m = ev.evaluate(data, raw, nets, grid, fc, CI, FUSION).metrics["test"]["A"]
     naive, dnn = m["naive"], m["dnn"]
     # naive = Dempster of the inputs = the label: no wrong cell, so no AUROC
     assert naive["u_auroc_n_wrong"] == 0 and not naive["u_auroc_enough"]
@@ -752,6 +756,6 @@ def test_evaluate_reports_the_cells_behind_each_auroc():
     assert dnn["u_auroc_n_wrong"] > 0 and dnn["u_auroc_n_right"] > 0 and dnn["u_auroc_enough"]
     assert 0 <= dnn["u_auroc"] <= 1
     fc = dataclasses.replace(fc, auroc_min_wrong=dnn["u_auroc_n_wrong"] + 1)
-    again = ev.evaluate(data, raw, nets, grid, fc, CI).metrics["test"]["A"]["dnn"]
+    again = ev.evaluate(data, raw, nets, grid, fc, CI, FUSION).metrics["test"]["A"]["dnn"]
     assert not again["u_auroc_enough"] and math.isnan(again["u_auroc"])
     assert again["u_auroc_n_wrong"] == dnn["u_auroc_n_wrong"]

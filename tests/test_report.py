@@ -508,8 +508,12 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     ] * 3
     assert kld_a[1][:6] == ["B", "1", "10", "0.15", "0.25", "0.2"]
     assert "fusion-cross" in anchors and "| A | 0.1 | 0.12 | 0.14 | 0.16 |" in md
-    assert "| u_auroc | A | 0.75 | [0.74, 0.76] | >= | 0.85 | fail | yes |" in md
-    assert "| hybrid_vs_registered | D | n/a | n/a | < | 0 | not evaluated |  |" in md
+    # the targets: the index's acceptance table (none on the fusion page)
+    assert "fusion-targets" not in anchors
+    index_md = (reports / "README.md").read_text()
+    acceptance = [[r[0], r[1], r[3], r[4], r[5]] for r in md_tables(index_md)[-1]]
+    assert ["fusion", "u_auroc (A)", ">= 0.85", "0.75 [0.74, 0.76]", "fail"] in acceptance
+    assert ["fusion", "hybrid_vs_registered (D)", "< 0", "n/a", "not evaluated"] in acceptance
     ablation = md_tables(md)[anchors.index("fusion-loss-ablation")]
     assert [r[:2] for r in ablation] == [["D", "dnn"], ["D", "dnn[paper]"]]
     # label mean u, then the AUROC(u) cells: value, CI, wrong / right cells
@@ -571,13 +575,14 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
     rep = R.write_report(make_inputs(reports), providers(CONFIGURATIONS))
     index, html = (reports / "README.md").read_text(), (reports / "index.html").read_text()
     heads = re.findall(r"^## (.+)$", index, flags=re.M)
-    assert heads == [R.VERDICTS_TITLE, "Headline results", "Pages"]
+    assert heads == [R.VERDICTS_TITLE, "Headline results", "Acceptance thresholds", "Pages"]
     assert [t.anchor for s in rep.sections if not s.page for t in s.tables] == [
         "verdicts",
         "headline",
+        "acceptance",  # the index's last table: every target's verdict
     ]
     assert "![" not in index and "<details" not in index and "### " not in index
-    assert re.findall(r'<table id="([^"]+)"', html) == ["verdicts", "headline"]
+    assert re.findall(r'<table id="([^"]+)"', html) == ["verdicts", "headline", "acceptance"]
     assert "<img" not in html and "<details" not in html
     # the verdict table within the first 40 lines, every claim with a computed verdict
     first = "\n".join(index.splitlines()[:40])
@@ -759,7 +764,7 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     for anchor_title in (
         "Fusion: KLD(b) mean",
         "Fusion: KLD(a) mean",
-        "Fusion: targets",
+        "Every target of this run against its acceptance threshold",
         "Fusion: precision / recall / Dice",
         "Risk: test results",
         "Risk: confusion matrix",

@@ -115,6 +115,7 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
     assert titles == [
         R.VERDICTS_TITLE,
         "Headline results",
+        "Acceptance thresholds",  # the index's last section
         fusion_report.TITLE,
         risk_report.TITLE,
         stereo_report.TITLE,
@@ -191,8 +192,8 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
         markdown_bullets(fusion_findings(metrics)),
     )
     assert sec.bullet_groups[0][1]
-    # the headline tables: only what the sections mark
-    assert [t.anchor for t in R.results_tables(report)] == ["fusion-kld"]
+    # the headline tables: only what the sections mark, and the acceptance table last
+    assert [t.anchor for t in R.results_tables(report)] == ["fusion-kld", "acceptance"]
 
 
 def test_headline_tables_in_section_order(tmp_path: Path) -> None:
@@ -208,6 +209,7 @@ def test_headline_tables_in_section_order(tmp_path: Path) -> None:
         "fusion-kld",
         "risk-results",
         "risk-confusion",
+        "acceptance",  # last, as on the index
     ]
     res = R.render_results_markdown(report)
     assert res.index("Fusion: KLD(b) mean") < res.index("Risk: test results")
@@ -384,7 +386,7 @@ def _one_vs_own(prefix_rows: dict) -> dict:
 def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp_path: Path):
     """The comparison with the per-configuration networks shows this run's numbers when it has
     them, else the ablation experiment's collected results (reports/ablations/<name>.json)."""
-    from traffictwin.fusion.report_section.target_tables import per_config_table
+    from traffictwin.fusion.report_section.ablation_tables import per_config_table
 
     confs = {"D": (5.0, 20.0)}
     rep = _reports(tmp_path / "run", {"fusion.json": _one_vs_own({})})
@@ -426,9 +428,10 @@ def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp
 
 def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path) -> None:
     """A target 'not evaluated' in this run (one_vs_per_config needs the per-configuration
-    networks) shows the ablation experiment's verdict, marked as such, its cells pointing at the
-    ablation's file; the appendix links the ablation's file instead of dumping it."""
-    from traffictwin.fusion.report_section.target_tables import target_table
+    networks) shows the ablation experiment's verdict in the acceptance table, marked as such,
+    its cell pointing at the ablation's file; the appendix links the ablation's file instead of
+    dumping it."""
+    from traffictwin.report.acceptance import acceptance_rows
     from traffictwin.report.render import appendix_section
 
     def targets(entry: dict) -> dict:
@@ -438,8 +441,9 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
 
     run = {"test": {"D": {"dnn": {}}}, "targets": targets({"status": "not evaluated"})}
     rep = _reports(tmp_path / "run", {"fusion.json": run})
-    t = target_table(R.Sources(_inputs(rep)))
-    assert [c.text for c in t.rows[0]][2:] == ["n/a", "n/a", "<=", "0.005", "not evaluated", ""]
+    (row,) = [r for r in acceptance_rows(R.Sources(_inputs(rep)), {}) if r.problem == "fusion"]
+    cells = [c.text for c in row.cells()]
+    assert cells[1] == "one_vs_per_config (D)" and cells[3:] == ["<= 0.005", "n/a", "not evaluated"]
     (rep / "ablations").mkdir()
     verdict = {"value": 0.0077, "lo": 0.0051, "hi": 0.0077, "status": "fail"}
     verdict["ci_beyond_threshold"] = True
@@ -454,16 +458,12 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
         )
     )
     src = R.Sources(_inputs(rep))
-    row = target_table(src).rows[0]
-    assert [c.text for c in row][2:] == [
-        "0.0077",
-        "[0.0051, 0.0077]",
-        "<=",
-        "0.005",
+    (row,) = [r for r in acceptance_rows(src, {}) if r.problem == "fusion"]
+    assert [c.text for c in row.cells()][4:] == [
+        "0.0077 [0.0051, 0.0077]",
         "fail (ablation per_config)",
-        "yes",
     ]
-    assert row[2].src == (
+    assert row.value.derived.endswith(
         "ablations/per_config.json#fusion.targets.one_vs_per_config.per_config.D.value"
     )
     appendix = appendix_section(src, [], [])

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from _acceptance import thresholds
 from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
 
 from traffictwin.risk.baselines import (
@@ -37,6 +38,8 @@ from traffictwin.risk.findings import findings
 from traffictwin.risk.metric import thw_to_risk
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.training import RiskSource
+
+RISK = thresholds("risk")  # acceptance.risk
 
 
 def test_classification_hand_case() -> None:
@@ -188,7 +191,12 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     metrics, pred = evaluate_suite(
         src,
         models,
-        SuiteSettings(thresholds_s=(1.5, 1.0), primary_label="risk_thw_paper", geometric=params),
+        SuiteSettings(
+            thresholds_s=(1.5, 1.0),
+            primary_label="risk_thw_paper",
+            geometric=params,
+            acceptance=RISK,
+        ),
     )
     test = src.split_frames("test")
     assert sorted(pred["frame_id"]) == sorted(test["frame_id"])
@@ -341,7 +349,11 @@ def test_evaluation_figures_plot_the_predictions(
         src,
         models,
         SuiteSettings(
-            thresholds_s=(1.5, 1.0), primary_label="risk_thw_paper", geometric=geo, collapse_std=0.0
+            acceptance=RISK,
+            thresholds_s=(1.5, 1.0),
+            primary_label="risk_thw_paper",
+            geometric=geo,
+            collapse_std=0.0,
         ),
     )
     hist = pd.DataFrame(

@@ -12,19 +12,20 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from _acceptance import thresholds
 from _report_pages import all_md, page_md
 from test_risk_training import SUBJECT_LENGTH, camera_intrinsics, render_frame, thw_risk
 
+from traffictwin.acceptance import Threshold
 from traffictwin.io.shards import DatasetWriter
 from traffictwin.risk.baselines import GeometricParams, fit_speed_only
 from traffictwin.risk.dave2 import Dave2, Dave2Config
 from traffictwin.risk.evaluation import (
     SEED_MEAN,
-    TARGETS,
+    TARGET_NAMES,
     CIConfig,
     ClusterBootstrap,
     SuiteSettings,
-    Target,
     bootstrap_scores,
     critical_shares,
     difference_of_scores,
@@ -42,6 +43,8 @@ from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.predictor import RiskPredictor
 from traffictwin.risk.training import RiskSource
 from traffictwin.stats import Interval, mean_ci, resample_counts
+
+RISK = thresholds("risk")  # acceptance.risk
 
 # --------------------------------------------------------------------------------------------
 # speed-only baseline
@@ -208,7 +211,7 @@ def test_subset_and_spread() -> None:
 
 
 def test_judge_hand_cases() -> None:
-    t = Target("bal acc", 0.90, ">=")
+    t = Threshold(">=", 0.90, name="bal acc", metric="balanced_accuracy")
     assert judge(Interval(0.92, 0.88, 0.95), t) | {} == {
         "value": 0.92,
         "lo": 0.88,
@@ -219,9 +222,9 @@ def test_judge_hand_cases() -> None:
         "ci_beyond_threshold": False,
     }
     assert judge(Interval(0.85, 0.80, 0.89), t)["met"] is False
-    mse = Target("mse", 0.01, "<=")
+    mse = Threshold("<=", 0.01, name="mse", metric="mse")
     assert judge(Interval(0.008, 0.006, 0.0099), mse)["ci_beyond_threshold"] is True
-    vs = TARGETS["auc_vs_speed_only"]  # needs the interval wholly above 0
+    vs = RISK["auc_vs_speed_only"]  # needs the interval wholly above 0
     assert judge(Interval(0.03, -0.01, 0.07), vs)["met"] is False
     assert judge(Interval(0.03, 0.01, 0.05), vs)["met"] is True
     assert judge(Interval(math.nan, math.nan, math.nan), t)["met"] is False
@@ -434,6 +437,7 @@ def test_real_models_load_and_evaluate(tmp_path: Path) -> None:
         src,
         {"m": load_risk_model(tmp_path / "m")},
         SuiteSettings(
+            acceptance=RISK,
             thresholds_s=(1.5, 1.0),
             primary_label="risk_thw_corridor",
             ci=CIConfig(100, 0, 0.95),
@@ -459,6 +463,7 @@ def suite(tmp_path_factory: pytest.TempPathFactory):
     write_sequences(tmp)
     src = RiskSource(tmp / "data" / "risk", tmp / "data" / "disparity", None)
     settings = SuiteSettings(
+        acceptance=RISK,
         thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8),
@@ -543,7 +548,7 @@ def test_suite_differences_targets_and_breakdowns(suite) -> None:
     # the balanced-accuracy targets are reported at the first and second thresholds
     per_threshold = {"shipped_balanced_accuracy_primary", "shipped_balanced_accuracy_second"}
     reported = {"shipped_balanced_accuracy_1.5s", "shipped_balanced_accuracy_1s"}
-    assert set(t) == (set(TARGETS) - per_threshold) | reported
+    assert set(t) == (set(TARGET_NAMES) - per_threshold) | reported
     assert t["shipped_balanced_accuracy_1s"]["description"].endswith("at THW 1.0 s")
     # without a shipped / learned predictor (no select_risk) the targets judge the headline
     assert t["shipped_balanced_accuracy_1.5s"]["value"] == pytest.approx(
@@ -787,15 +792,18 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     assert [r[0] for r in sel] == ["geometric_sgm", "headline"]  # the shipped one first
     assert sel[0][-1] == "shipped" and sel[1][-1] == "" and sel[0][3] == "0.94"
     assert sel[1][4] == M.fmt_value(0.027, "g4") and sel[1][5] == "74.00 %"
-    targets = tables[anchors.index("risk-targets")]
-    assert [r[0] for r in targets] == list(metrics["targets"])
-    assert next(r for r in targets if r[0] == "spread")[6] == "no"
+    # the targets: the index's acceptance table (no targets table on the risk page)
+    assert "risk-targets" not in anchors
+    targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
+    assert [r[1] for r in targets] == list(metrics["targets"])
+    assert next(r for r in targets if r[1] == "spread")[5] == "fail"
     shares = tables[anchors.index("risk-critical-share")]
     assert [r[0] for r in shares] == ["train", "val", "test", "all"]
     sit = tables[anchors.index("risk-situations")]
     assert [r[0] for r in sit] == sorted(SITUATIONS)
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
-    assert "Risk: every predictor on the same test frames" in res and "Risk: targets" in res
+    assert "Risk: every predictor on the same test frames" in res
+    assert "Every target of this run against its acceptance threshold" in res
     assert "(../figures/risk_roc.png)" in page_md(rep, "risk")
 
 

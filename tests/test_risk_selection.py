@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _acceptance import thresholds
 from test_risk_eval_stats import write_sequences
 from test_risk_training import SUBJECT_LENGTH, camera_intrinsics
 
@@ -19,7 +20,7 @@ from traffictwin.risk.baselines import (
     thw_from_distance,
 )
 from traffictwin.risk.evaluation import (
-    TARGETS,
+    TARGET_NAMES,
     CIConfig,
     ClusterBootstrap,
     Holdout,
@@ -50,6 +51,8 @@ from traffictwin.risk.selection import (
     tune_half_width,
 )
 from traffictwin.risk.training import RiskSource
+
+RISK = thresholds("risk")  # acceptance.risk
 
 CAM = camera_intrinsics(96, 48)
 
@@ -220,8 +223,8 @@ def test_seed_resampling_widens_the_seed_mean_interval() -> None:
 
 
 def test_test_mse_is_no_target() -> None:
-    assert "test_mse" not in TARGETS
-    assert {"shipped_balanced_accuracy_primary", "learned_vs_rule_auc"} <= set(TARGETS)
+    assert "test_mse" not in TARGET_NAMES and "test_mse" not in RISK
+    assert {"shipped_balanced_accuracy_primary", "learned_vs_rule_auc"} <= set(TARGET_NAMES)
 
 
 # --------------------------------------------------------------------------- predictors
@@ -338,6 +341,7 @@ def test_suite_applies_validation_choices(tmp_path: Path) -> None:
     narrow = GeometricParams(**{**geo.__dict__, "corridor_half_width": 0.75})
     rule = GeometricRiskModel(narrow, cam, {"label": "risk_thw_corridor"})
     settings = SuiteSettings(
+        acceptance=RISK,
         thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=geo,
@@ -405,6 +409,7 @@ def test_holdout_block_measures_unseen_templates(tmp_path: Path) -> None:
         for name, w in (("ref", 1.0), ("ref_s1", 1.25), ("held", 1.0), ("held_s1", 1.25))
     }
     settings = SuiteSettings(
+        acceptance=RISK,
         thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=geo,
@@ -625,6 +630,7 @@ def test_rule_on_the_learned_disparity_is_tuned_and_evaluated_but_never_ships(
     assert "geometric_learned" not in sel.shipped.candidates
 
     settings = SuiteSettings(
+        acceptance=RISK,
         thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=GeometricParams(subject_length=SUBJECT_LENGTH, subject_width=1.8),
@@ -681,6 +687,7 @@ def test_hybrid_on_the_learned_disparity_reads_it_everywhere_and_needs_its_netwo
         PredictorInputs(("disp_learned",)),
     )
     settings = SuiteSettings(
+        acceptance=RISK,
         thresholds_s=(1.5, 1.0),
         primary_label="risk_thw_corridor",
         geometric=geo,

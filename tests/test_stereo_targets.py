@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from traffictwin.stereo.targets import TARGETS, stereo_targets
+from _acceptance import thresholds
+
+from traffictwin.stereo.targets import stereo_targets
+
+STEREO = thresholds("stereo")  # acceptance.stereo
 
 
 def test_point_targets_and_the_interval_target_by_hand() -> None:
@@ -15,16 +19,27 @@ def test_point_targets_and_the_interval_target_by_hand() -> None:
         "diff_learned_minus_sgm/common/epe_lo": -0.08,
         "diff_learned_minus_sgm/common/epe_hi": 0.01,  # reaches 0: not shown below
     }
-    t = stereo_targets(m)
-    assert set(t) == set(TARGETS)
+    t = stereo_targets(m, STEREO)
+    assert set(t) == set(STEREO)
     assert t["learned_crit_obj_relerr_median"]["met"] is True
     assert t["learned_crit_obj_relerr_median"]["value_hi"] == 0.04
     assert t["learned_crit_obj_relerr_p90"]["met"] is False
     assert t["learned_minus_sgm_epe"]["met"] is False
     m["diff_learned_minus_sgm/common/epe_hi"] = -0.001
-    assert stereo_targets(m)["learned_minus_sgm_epe"]["met"] is True
+    assert stereo_targets(m, STEREO)["learned_minus_sgm_epe"]["met"] is True
 
 
 def test_a_missing_value_is_not_evaluated_never_met() -> None:
-    t = stereo_targets({})
+    t = stereo_targets({}, STEREO)
     assert all(e["met"] is None and e["value"] is None for e in t.values())
+
+
+def test_the_stereo_targets_follow_their_thresholds() -> None:
+    """Moving a threshold in the config moves the verdict, the reported threshold and operator."""
+    import dataclasses
+
+    m = {"learned/own/crit_obj_relerr_median": 0.03}
+    assert stereo_targets(m, STEREO)["learned_crit_obj_relerr_median"]["met"] is True
+    t = {"x": dataclasses.replace(STEREO["learned_crit_obj_relerr_median"], value=0.02)}
+    e = stereo_targets(m, t)["x"]
+    assert e["met"] is False and e["threshold"] == 0.02 and e["op"] == "<="

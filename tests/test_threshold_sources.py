@@ -15,6 +15,7 @@ import torch
 from omegaconf import OmegaConf
 
 from pipelines.generate_risk import read_config
+from traffictwin.acceptance import for_problem
 from traffictwin.config import compose_config, typed
 from traffictwin.fusion import evaluation as fev
 from traffictwin.fusion.config import fusion_eval_config
@@ -159,7 +160,8 @@ def test_the_pose_success_limits_reach_the_metrics_and_the_target_texts() -> Non
         ((0.5, 1.0), "error < 0.5 m and < 1 deg"),
         ((0.3, 2.0), "error < 0.3 m and < 2 deg"),
     ):
-        t = fev.fusion_targets({}, {"test": {}, "diff": {}}, ci, *limits)
+        fusion = for_problem(cfg, "fusion", fev.JUDGES)
+        t = fev.fusion_targets({}, {"test": {}, "diff": {}}, ci, *limits, fusion)
         for name in (
             "learned_success_vs_registered",
             "learned_success_at_D",

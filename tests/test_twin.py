@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _acceptance import thresholds
 from conftest import run_record
 
 from traffictwin.evidential.dempster import dempster
@@ -29,6 +30,8 @@ from traffictwin.twin.fuse import Twin, TwinInputError, TwinOptions, build_twin
 from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.summary import lead_times, step_ms_medians, summarise
 from traffictwin.twin.targets import targets
+
+TWIN = thresholds("twin")
 
 GRID = GridSpec(rows=64, cols=48, cell=0.5)
 LIDAR = LidarSpec(azimuth_res_deg=0.8, max_range=50.0)
@@ -265,11 +268,11 @@ def test_lead_times_and_summary_hand_computed() -> None:
     )
     assert short["twin"]["occluded"]["false_alarm_share"] == pytest.approx(1 / 10)
     assert short["twin"]["occluded"]["lead_vs_ego_s_mean"] == pytest.approx(0.1)  # = the target's
-    t = targets({"D": {"methods": s}}, "twin", "D")
+    t = targets({"D": {"methods": s}}, "twin", "D", TWIN)
     assert t["occluded_recall_ge_0.9"]["met"] is False
     assert t["occluded_median_lead_vs_ego_ge_0.8s"]["met"] is False
     assert t["open_false_alarms_le_0.05_frame_noise"]["value"] is None  # no open sequences here
-    assert targets({}, "twin", "D") == {"configuration": "D", "evaluated": False}
+    assert targets({}, "twin", "D", TWIN) == {"configuration": "D", "evaluated": False}
     assert "step_ms_median" not in occ  # wall time: the stage's run record, not twin.json
 
 
@@ -384,7 +387,7 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     )
     m = {
         "configurations": {"D": {"methods": summary}},
-        "targets": targets({"D": {"methods": summary}}, "twin", "D"),
+        "targets": targets({"D": {"methods": summary}}, "twin", "D", TWIN),
     }
     (tmp_path / "metrics").mkdir()
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))

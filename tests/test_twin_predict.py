@@ -192,9 +192,13 @@ def _pred_table():
 
 
 def test_predictive_warnings_paired_with_thw_and_targets():
+    from _acceptance import thresholds
+
     from traffictwin.twin.evaluation import TwinEvalSettings
     from traffictwin.twin.summary import summarise
     from traffictwin.twin.targets import targets
+
+    TWIN = thresholds("twin")
 
     # h = 0.3 s: frames 0-6 of the 1 s open sequence are judged (7-9: window past its end)
     s = summarise(
@@ -213,7 +217,7 @@ def test_predictive_warnings_paired_with_thw_and_targets():
     assert opn["false_alarm_share_vs_thw"] == pytest.approx(1 / 7)
     assert occ["ttc_true_recall"] == pytest.approx(1.0)
     assert occ["ttc_true_false_alarm_rate"] == pytest.approx(3 / 5)
-    t = targets({"D": {"methods": s}}, "twin", "D")
+    t = targets({"D": {"methods": s}}, "twin", "D", TWIN)
     assert t["predictive_warns_earlier_than_thw"]["value"] == pytest.approx(0.3)
     assert t["predictive_no_more_false_alarms"]["value"] == pytest.approx(1 / 7)
     assert t["predictive_no_more_false_alarms"]["met"] is False  # one sequence: CI [1/7, 1/7]
@@ -251,12 +255,16 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
 def test_report_section_shows_the_predictive_table(tmp_path):
     import json
 
+    from _acceptance import thresholds
+
     from traffictwin.io.jsonio import json_clean
     from traffictwin.report.model import ReportInputs, Sources
     from traffictwin.twin import report_section as rs
     from traffictwin.twin.evaluation import TwinEvalSettings
     from traffictwin.twin.summary import summarise
     from traffictwin.twin.targets import targets
+
+    TWIN = thresholds("twin")
 
     s = summarise(
         _pred_table(),
@@ -268,7 +276,7 @@ def test_report_section_shows_the_predictive_table(tmp_path):
     )
     m = {
         "configurations": {"D": {"methods": s}},
-        "targets": targets({"D": {"methods": s}}, "twin", "D"),
+        "targets": targets({"D": {"methods": s}}, "twin", "D", TWIN),
     }
     (tmp_path / "metrics").mkdir()
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from _acceptance import thresholds
 
 from traffictwin.twin.alerts import (
     alarm_events,
@@ -19,6 +20,8 @@ from traffictwin.twin.noise import pose_noise_z
 from traffictwin.twin.predict import PredictSettings
 from traffictwin.twin.summary import always_warning_reference, summarise
 from traffictwin.twin.targets import targets
+
+TWIN = thresholds("twin")
 
 
 def test_false_alarm_frames_by_horizon() -> None:
@@ -198,12 +201,12 @@ def test_false_alarm_rates_paired_with_naive_and_targets() -> None:
     assert s[EGO]["occluded"]["lead_s_median"] == pytest.approx(-0.5)  # never: 0.5 - 1.0
     assert s["twin"]["occluded"]["lead_vs_ego_s_median"] == pytest.approx(0.5)
     assert s["twin"]["occluded"]["by_hazard"]["pedestrian"]["episodes"] == 1
-    t = targets({"D": {"methods": s, "pose_bias": {"methods": s}}}, "twin", "D")
+    t = targets({"D": {"methods": s, "pose_bias": {"methods": s}}}, "twin", "D", TWIN)
     assert t["open_false_alarms_le_0.05_frame_noise"]["met"] is True
     assert t["open_false_alarms_le_0.05_pose_bias"]["value"] == pytest.approx(0.05)
     assert t["occluded_warned_before_onset_ge_0.95"]["met"] is False  # warned at the onset
     assert t["predictive_warns_earlier_than_thw"]["met"] is None
-    nob = targets({"D": {"methods": s}}, "twin", "D")
+    nob = targets({"D": {"methods": s}}, "twin", "D", TWIN)
     assert nob["open_false_alarms_le_0.05_pose_bias"]["met"] is None  # not evaluated
 
 
@@ -224,7 +227,7 @@ def test_a_warning_at_every_frame_reaches_the_most_lead_the_horizon_allows() -> 
     assert ref["open"]["false_alarm_share"] == pytest.approx(1.0)
     assert ref["open"]["false_alarms_per_min"] == pytest.approx(60.0 * 10.0 / 7)
     s = summarise(_table(), ["naive", "twin"], 10.0, st)
-    t = targets({"D": {"methods": s, "always_warns": ref}}, "twin", "D")
+    t = targets({"D": {"methods": s, "always_warns": ref}}, "twin", "D", TWIN)
     reg = t["registration_lead_above_naive"]
     assert reg["value"] == pytest.approx(0.0)  # the twin and naive both warn at the onset
     assert reg["always_warns_value"] == pytest.approx(0.3)
@@ -244,7 +247,7 @@ def test_the_report_shows_the_constant_warning_beside_the_methods(tmp_path) -> N
     s = summarise(_table(), ["naive", "twin"], 10.0, st)
     ref = always_warning_reference(_table(), ["naive", "twin"], 10.0, st)
     entry = {"methods": s, "always_warns": ref}
-    m = {"configurations": {"D": entry}, "targets": targets({"D": entry}, "twin", "D")}
+    m = {"configurations": {"D": entry}, "targets": targets({"D": entry}, "twin", "D", TWIN)}
     (tmp_path / "metrics").mkdir()
     (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
     src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))

@@ -149,8 +149,10 @@ class ReportInputs:
     ``reports_dir``: folder with ``metrics/``, ``figures/``, ``plots/``, ``timings/``,
     ``environment.json``; the report files are written there. ``run_params``: flattened
     ``{key: value}`` of the parameters to show (profile sizes, seeds). ``stage_order``: DAG
-    order for the timing table. What a problem's section needs beyond these (the fusion
-    section's pose-noise configurations) its :class:`SectionProvider` carries.
+    order for the timing table. ``acceptance``: the acceptance thresholds per problem
+    (``acceptance.<problem>``, :func:`traffictwin.acceptance.thresholds`) of the index's last
+    table. What a problem's section needs beyond these (the fusion section's pose-noise
+    configurations) its :class:`SectionProvider` carries.
     """
 
     reports_dir: Path
@@ -163,6 +165,7 @@ class ReportInputs:
     stage_order: Sequence[str] = ()
     git_dirty: bool = False  # code or config differed from the commit when the report ran
     banner: str = ""  # profile.banner: a smoke run's warning, first in the report and summary.json
+    acceptance: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- sources

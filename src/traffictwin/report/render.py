@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.io.atomic import write_json_atomic, write_text_atomic
+from traffictwin.report.acceptance import ANCHOR as ACCEPTANCE_ANCHOR
+from traffictwin.report.acceptance import acceptance_section
 from traffictwin.report.claims import VERDICTS, ClaimCheck
 from traffictwin.report.model import (
     NA,
@@ -315,7 +317,8 @@ def build_report(
     """Assemble the report model from the files under ``inputs.reports_dir``: the headline
     numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
     (in order, headline tables first), then -- collapsed -- the data section, "This run"
-    (parameters, stage times, machine) and the appendix."""
+    (parameters, stage times, machine) and the appendix. The index ends with the acceptance
+    table (every target's verdict, :mod:`traffictwin.report.acceptance`)."""
     src = Sources(inputs)
     if headlines is None:
         headlines = collect_headlines(src.metrics, providers)
@@ -340,6 +343,7 @@ def build_report(
     sections = [
         claims_section(collect_claims(src.metrics, providers)),
         head,
+        acceptance_section(src, inputs.acceptance),  # the index's last section
         *(  # a problem's page: its provider's name, else its title's slug
             replace(sec, page=prov.name or _slug(sec.title))
             for prov, sec in zip(providers, problems)
@@ -379,8 +383,10 @@ def page_file(page: Page, html_page: bool) -> str:
 
 
 def results_tables(report: Report) -> list[Table]:
-    """The headline tables (for results_table.md / the project README)."""
-    return [t for s in report.sections for t in s.tables if t.headline]
+    """The headline tables (for results_table.md / the project README), the acceptance table
+    last (as on the index)."""
+    tables = [t for s in report.sections for t in s.tables if t.headline]
+    return sorted(tables, key=lambda t: t.anchor == ACCEPTANCE_ANCHOR)
 
 
 # --------------------------------------------------------------------------- markdown

@@ -1,10 +1,11 @@
 """The risk section's tables with 95 % sequence-bootstrap intervals (every predictor on the same
-test frames, paired differences, targets, critical shares, situations) and the choices made on the
+test frames, paired differences, critical shares, situations) and the choices made on the
 validation split (``risk_selection.json``, stage select_risk).
 
 Shown when ``risk.json`` has intervals (``bootstrap``): every metric with its interval
 (``<metric>_ci``), the paired differences (``differences``: a claim only where the interval
-excludes 0), the targets, the critical share of every region per split and the situation breakdown.
+excludes 0), the critical share of every region per split and the situation breakdown (the
+targets: the index's acceptance table, :mod:`traffictwin.report.acceptance`).
 """
 
 from __future__ import annotations
@@ -163,36 +164,6 @@ def risk_difference_table(src: page.Sources) -> Table | None:
             )
         )
         t.rows.append(row)
-    return t
-
-
-def risk_targets_table(src: page.Sources) -> Table | None:
-    """The risk targets: value, interval, threshold, met."""
-    targets = src.get(RISK_FILE, "targets")
-    if not isinstance(targets, dict) or not targets:
-        return None
-    t = Table(
-        "Risk: targets (default profile, test split: the shipped predictor, and the learned model vs the corridor rule)",
-        ["target", "predictor", "value", "95 % CI", "op", "threshold", "met", "description"],
-        anchor="risk-targets",
-        headline=True,
-    )
-    for name, e in targets.items():
-        if not isinstance(e, dict):
-            continue
-        pre = f"targets.{name}"
-        t.rows.append(
-            [
-                Cell(name),
-                Cell(str(e.get("predictor", ""))),
-                value_cell(src, f"{pre}.value"),
-                ci_cell(src, pre),
-                Cell(str(e.get("op", ""))),
-                value_cell(src, f"{pre}.threshold", "g4"),
-                Cell("yes" if e.get("met") else "no", title=str(e.get("why", ""))),
-                Cell(str(e.get("description", ""))),
-            ]
-        )
     return t
 
 

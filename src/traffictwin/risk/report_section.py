@@ -17,6 +17,7 @@ from typing import Any
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
+from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.claims import (
     ClaimCheck,
     claim_verdict,
@@ -33,7 +34,6 @@ from traffictwin.risk.report_intervals import (
     risk_difference_table,
     risk_selection_table,
     risk_situation_table,
-    risk_targets_table,
 )
 from traffictwin.risk.report_tables import (
     ORB_FILE,
@@ -85,12 +85,12 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     sec = page.Section(TITLE)
     sec.paragraphs.append(f"Reference: {P.RISK_CITATION}.")
     if src.has(RISK_FILE):
+        sec.paragraphs.append(ACCEPTANCE_POINTER)
         sec.tables.extend(risk_tables(src))
         for extra in (
             risk_selection_table(src),
             risk_ci_table(src),
             risk_difference_table(src),
-            risk_targets_table(src),
             risk_critical_share_table(src),
             risk_situation_table(src),
         ):

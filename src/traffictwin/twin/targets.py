@@ -1,25 +1,63 @@
-"""The targets on the twin's summary: value, CI and whether met."""
+"""The targets on the twin's summary: value, CI and whether met, judged against their acceptance
+thresholds (``acceptance.twin``, :mod:`traffictwin.acceptance`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
+from traffictwin.acceptance import Threshold, judge
 from traffictwin.twin.evaluation import NAIVE
 
-__all__ = ["targets"]
+__all__ = ["TARGET_NAMES", "targets"]
+
+#: the targets :func:`targets` judges (the registration ones only for a headline that is not
+#: the naive twin)
+TARGET_NAMES = (
+    "occluded_recall_ge_0.9",
+    "occluded_recall_above_ego",
+    "occluded_median_lead_vs_ego_ge_0.8s",
+    "occluded_warned_before_onset_ge_0.95",
+    "open_false_alarms_le_0.05_frame_noise",
+    "open_false_alarms_le_0.05_pose_bias",
+    "registration_lead_above_naive",
+    "registration_false_alarms_below_naive_frame_noise",
+    "registration_false_alarms_below_naive_pose_bias",
+    "predictive_warns_earlier_than_thw",
+    "predictive_no_more_false_alarms",
+)
 
 
-def _entry(value: Any, ci: Any, met: bool | None, **extra: Any) -> dict[str, Any]:
-    return {"value": value, "ci": ci, "met": met, **extra}
+def _met(t: Threshold, value: Any, ci: Any) -> bool | None:
+    """Whether ``value`` with its interval ``ci`` (``[lo, hi]``) meets ``t``: None when the
+    figure ``t`` is judged on is missing (the value, or the interval for a target judged on it),
+    False when it is not a finite number."""
+    if (value if t.judged_on == "estimate" else ci) is None:
+        return None
+    lo, hi = (None, None) if ci is None else (ci[0], ci[1])
+    figure = value if t.judged_on == "estimate" else t.figure(value, lo, hi)
+    return bool(judge(t, figure, lo, hi).met)
 
 
-def targets(summary: dict[str, Any], headline: str, configuration: str) -> dict[str, Any]:
-    """The targets at ``configuration`` for the ``headline`` twin (value, CI, met):
+def _entry(
+    t: Threshold, value: Any, ci: Any, met: bool | None | str = "judge", **extra: Any
+) -> dict[str, Any]:
+    return {"value": value, "ci": ci, "met": _met(t, value, ci) if met == "judge" else met, **extra}
 
-    - occluded: recall >= 0.9 and above the ego's own map (CI excluding 0);
-    - occluded: median lead over the ego's own map (paired per episode) >= 0.8 s with its CI
-      wholly above 0; >= 95 % of critical episodes warned before their onset;
-    - open: false alarms (warnings with no critical frame within the horizon) <= 5 % of frames,
+
+def targets(
+    summary: dict[str, Any],
+    headline: str,
+    configuration: str,
+    thresholds: Mapping[str, Threshold],
+) -> dict[str, Any]:
+    """The targets at ``configuration`` for the ``headline`` twin (value, CI, met), against
+    ``thresholds`` (``acceptance.twin``; the names of :data:`TARGET_NAMES`):
+
+    - occluded: recall and its margin over the ego's own map (CI excluding 0);
+    - occluded: median lead over the ego's own map (paired per episode) with its CI wholly above
+      0; share of critical episodes warned before their onset;
+    - open: false alarms (warnings with no critical frame within the horizon), share of frames,
       under per-frame pose noise and under the persistent bias (``pose_bias``; ``met`` None when
       not evaluated);
     - registration matters: the headline's mean lead over the naive twin's CI above 0 (occluded),
@@ -28,6 +66,9 @@ def targets(summary: dict[str, Any], headline: str, configuration: str) -> dict[
       warns earlier (mean paired lead difference over all critical episodes, CI above 0) without
       more false alarms (open, per-frame noise: paired difference of the false-alarm share, CI
       including or below 0)."""
+    absent = [n for n in TARGET_NAMES if n not in thresholds]
+    if absent:
+        raise ValueError(f"twin targets: no acceptance threshold for {absent} (acceptance.twin)")
     if configuration not in summary:
         return {"configuration": configuration, "evaluated": False}
     entry = summary[configuration]
@@ -41,108 +82,95 @@ def targets(summary: dict[str, Any], headline: str, configuration: str) -> dict[
     }
     if not occ:
         return out
-    out.update(_warning_targets(occ, opn, bias))
+    out.update(_warning_targets(thresholds, occ, opn, bias))
     if headline != NAIVE:
         always = (entry.get("always_warns") or {}).get("occluded", {})
-        out.update(_registration_targets(occ, opn, bias, always))
+        out.update(_registration_targets(thresholds, occ, opn, bias, always))
     pall = entry["methods"].get(headline, {}).get("all", {}).get("predictive", {})
-    out.update(_predictive_targets(pall, opn.get("predictive", {})))
+    out.update(_predictive_targets(thresholds, pall, opn.get("predictive", {})))
     return out
 
 
-def _ge(v: Any, x: float) -> bool | None:
-    return None if v is None else bool(v >= x)
-
-
-def _le(v: Any, x: float) -> bool | None:
-    return None if v is None else bool(v <= x)
-
-
-def _above0(ci: Any) -> bool | None:
-    return None if ci is None else bool(ci[0] > 0)
-
-
-def _below0(ci: Any) -> bool | None:
-    return None if ci is None else bool(ci[1] < 0)
-
-
-def _warning_targets(occ: dict, opn: dict, bias: dict) -> dict[str, Any]:
+def _warning_targets(
+    th: Mapping[str, Threshold], occ: dict, opn: dict, bias: dict
+) -> dict[str, Any]:
     """Recall, lead over the ego's map and warned-before-onset (occluded); false alarms (open)."""
     out: dict[str, Any] = {}
-    r = occ.get("recall")
-    out["occluded_recall_ge_0.9"] = _entry(r, occ.get("recall_ci"), _ge(r, 0.9))
-    d = occ.get("recall_vs_ego")
-    out["occluded_recall_above_ego"] = _entry(
-        d,
-        occ.get("recall_vs_ego_ci"),
-        None if d is None else bool(d > 0 and occ["recall_vs_ego_excludes_zero"]),
+    name = "occluded_recall_ge_0.9"
+    out[name] = _entry(th[name], occ.get("recall"), occ.get("recall_ci"))
+    name = "occluded_recall_above_ego"
+    d, ci = occ.get("recall_vs_ego"), occ.get("recall_vs_ego_ci")
+    ok = _met(th[name], d, ci)  # and the interval excludes 0
+    out[name] = _entry(
+        th[name], d, ci, None if ok is None else bool(ok and occ["recall_vs_ego_excludes_zero"])
     )
-    v, ci = occ.get("lead_vs_ego_s_median"), occ.get("lead_vs_ego_s_median_ci")
-    ok = _ge(v, 0.8)
-    out["occluded_median_lead_vs_ego_ge_0.8s"] = _entry(
-        v, ci, None if ok is None else bool(ok and _above0(ci))
+    name = "occluded_median_lead_vs_ego_ge_0.8s"
+    out[name] = _entry(
+        th[name], occ.get("lead_vs_ego_s_median"), occ.get("lead_vs_ego_s_median_ci")
     )
-    v = occ.get("warned_before_onset_share")
-    out["occluded_warned_before_onset_ge_0.95"] = _entry(
-        v, occ.get("warned_before_onset_share_ci"), _ge(v, 0.95)
+    name = "occluded_warned_before_onset_ge_0.95"
+    out[name] = _entry(
+        th[name], occ.get("warned_before_onset_share"), occ.get("warned_before_onset_share_ci")
     )
-    v = opn.get("false_alarm_share")
-    out["open_false_alarms_le_0.05_frame_noise"] = _entry(
-        v, opn.get("false_alarm_share_ci"), _le(v, 0.05)
-    )
-    v = bias.get("false_alarm_share")
-    out["open_false_alarms_le_0.05_pose_bias"] = _entry(
-        v, bias.get("false_alarm_share_ci"), _le(v, 0.05)
-    )
+    name = "open_false_alarms_le_0.05_frame_noise"
+    out[name] = _entry(th[name], opn.get("false_alarm_share"), opn.get("false_alarm_share_ci"))
+    name = "open_false_alarms_le_0.05_pose_bias"
+    out[name] = _entry(th[name], bias.get("false_alarm_share"), bias.get("false_alarm_share_ci"))
     return out
 
 
-def _registration_targets(occ: dict, opn: dict, bias: dict, always: dict) -> dict[str, Any]:
+def _registration_targets(
+    th: Mapping[str, Threshold], occ: dict, opn: dict, bias: dict, always: dict
+) -> dict[str, Any]:
     """The headline against the naive twin: mean lead (occluded), false alarms (open). Beside the
     lead, what a constant warning (``always``, :func:`traffictwin.twin.summary.always_warning_reference`)
     scores on the same comparison: the lead rewards warning more often."""
-    ci = occ.get(f"lead_vs_{NAIVE}_s_mean_ci")
+    name = "registration_lead_above_naive"
     out = {
-        "registration_lead_above_naive": _entry(
+        name: _entry(
+            th[name],
             occ.get(f"lead_vs_{NAIVE}_s_mean"),
-            ci,
-            _above0(ci),
+            occ.get(f"lead_vs_{NAIVE}_s_mean_ci"),
             always_warns_value=always.get(f"lead_vs_{NAIVE}_s_mean"),
             always_warns_ci=always.get(f"lead_vs_{NAIVE}_s_mean_ci"),
             note="occluded, per critical episode: the headline's lead minus the naive twin's "
             "(mean, s; CI above 0 = met); always_warns_*: the same for a warning at every frame",
         )
     }
-    ci = opn.get(f"false_alarm_share_vs_{NAIVE}_ci")
-    out["registration_false_alarms_below_naive_frame_noise"] = _entry(
-        opn.get(f"false_alarm_share_vs_{NAIVE}"), ci, _below0(ci)
+    name = "registration_false_alarms_below_naive_frame_noise"
+    out[name] = _entry(
+        th[name],
+        opn.get(f"false_alarm_share_vs_{NAIVE}"),
+        opn.get(f"false_alarm_share_vs_{NAIVE}_ci"),
     )
-    ci = bias.get(f"false_alarm_share_vs_{NAIVE}_ci")
-    out["registration_false_alarms_below_naive_pose_bias"] = _entry(
-        bias.get(f"false_alarm_share_vs_{NAIVE}"), ci, _below0(ci)
+    name = "registration_false_alarms_below_naive_pose_bias"
+    out[name] = _entry(
+        th[name],
+        bias.get(f"false_alarm_share_vs_{NAIVE}"),
+        bias.get(f"false_alarm_share_vs_{NAIVE}_ci"),
     )
     return out
 
 
-def _predictive_targets(pall: dict, popen: dict) -> dict[str, Any]:
+def _predictive_targets(th: Mapping[str, Threshold], pall: dict, popen: dict) -> dict[str, Any]:
     """The predictive measure against THW on the headline's maps: earlier, no more false alarms."""
-    ci = pall.get("lead_vs_thw_s_mean_ci")
+    name = "predictive_warns_earlier_than_thw"
     out = {
-        "predictive_warns_earlier_than_thw": _entry(
+        name: _entry(
+            th[name],
             pall.get("lead_vs_thw_s_mean"),
-            ci,
-            _above0(ci),
+            pall.get("lead_vs_thw_s_mean_ci"),
             note="all kinds, per critical episode: predictive (TTC) first warning minus THW's, "
             "same maps (mean, s; CI above 0 = met)",
             median=pall.get("lead_vs_thw_s_median"),
             median_ci=pall.get("lead_vs_thw_s_median_ci"),
         )
     }
-    ci = popen.get("false_alarm_share_vs_thw_ci")
-    out["predictive_no_more_false_alarms"] = _entry(
+    name = "predictive_no_more_false_alarms"
+    out[name] = _entry(
+        th[name],
         popen.get("false_alarm_share_vs_thw"),
-        ci,
-        None if ci is None else bool(ci[0] <= 0),
+        popen.get("false_alarm_share_vs_thw_ci"),
         note="open, per-frame noise: predictive minus THW false-alarm share, same frames "
         "(CI including or below 0 = met)",
     )

@@ -17,7 +17,8 @@ between is in this package, with paths and settings as explicit arguments (names
   intervals, paired differences and the targets: an :class:`Evaluation`;
 - :mod:`.intervals` — :func:`row_intervals`, :func:`paired_intervals`: the statistics
   (:mod:`traffictwin.stats`; cluster = scenario = ``pair_id // 1000``);
-- :mod:`.targets` — :data:`TARGETS`, :func:`fusion_targets` (typed verdicts per configuration);
+- :mod:`.targets` — :data:`JUDGES` (the targets), :func:`fusion_targets` (typed verdicts per
+  configuration against the acceptance thresholds ``acceptance.fusion``);
 - :mod:`.outputs` — :func:`plot_tables`, :func:`figures`, :func:`qualitative_panels`: DVC plot
   data and figures; :func:`mlflow_metrics`, :func:`methods_table`: the flat numbers of one network's MLflow run,
   every method's numbers as one table artifact (JSON-safe values: :mod:`traffictwin.io.jsonio`).
@@ -80,7 +81,7 @@ from traffictwin.fusion.evaluation.outputs import (
     plot_tables,
     qualitative_panels,
 )
-from traffictwin.fusion.evaluation.targets import TARGETS, TIMING_TARGETS, fusion_targets
+from traffictwin.fusion.evaluation.targets import JUDGES, TIMING_TARGETS, fusion_targets
 from traffictwin.fusion.pairs import evenly_spaced  # the one pair selection
 from traffictwin.stats import CIConfig
 
@@ -105,7 +106,7 @@ __all__ = [
     "NETWORK",
     "PER_CONFIG_NETWORK",
     "SCENARIO_STRIDE",
-    "TARGETS",
+    "JUDGES",
     "TIMING_TARGETS",
     "row_method",
     "scenario_of",

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from traffictwin.acceptance import Threshold
 from traffictwin.evidential.masses import unknown_mass
 from traffictwin.fusion.config import FusionEvalConfig
 from traffictwin.fusion.evaluation.intervals import (
@@ -298,6 +299,7 @@ def evaluate(
     grid: GridSpec,
     cfg: FusionEvalConfig,
     ci: CIConfig,
+    thresholds: Mapping[str, Threshold],
 ) -> Evaluation:
     """Every method on every configuration of ``data`` (from :func:`load_test_sets`, in
     configuration order), ``raw`` its raw pairs (:func:`load_raw_pairs`).
@@ -310,7 +312,8 @@ def evaluate(
     shared by the rows that use it. Slow methods run on ``cfg.registered_max_pairs`` pairs (null
     = all: every method on the same pairs), the per-configuration networks on other
     configurations on ``cfg.cross_max_pairs`` (the cross table). Intervals and differences:
-    ``ci`` (see the package docstring).
+    ``ci`` (see the package docstring). Targets: judged against ``thresholds``
+    (``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`).
     """
     configs = list(data)
     _check_networks(networks, configs)
@@ -353,7 +356,9 @@ def evaluate(
         "level": ci.level,
         "cluster": f"scenario = pair_id // {SCENARIO_STRIDE}",
     }
-    targets = fusion_targets(acc.own, metrics, ci, cfg.success_trans_m, cfg.success_rot_deg)
+    targets = fusion_targets(
+        acc.own, metrics, ci, cfg.success_trans_m, cfg.success_rot_deg, thresholds
+    )
     metrics["targets"] = {k: v for k, v in targets.items() if k not in TIMING_TARGETS}
     timings = _timings(acc, main, targets)
     samples = samples.drop(columns="ms")

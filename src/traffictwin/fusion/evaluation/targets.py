@@ -1,7 +1,9 @@
 """The fusion evaluation's targets (network and registration): each target's figure with its
 cluster-bootstrap interval, judged per configuration (:class:`Verdict`), from the per-pair frames
-and the intervals already computed (:class:`TargetInputs`). Status ``pass`` / ``fail`` /
-``not evaluated`` (a target whose configuration or rows were not evaluated: never ``pass``)."""
+and the intervals already computed (:class:`TargetInputs`), against the acceptance thresholds the
+stage passes in (``acceptance.fusion``, :mod:`traffictwin.acceptance`). Status ``pass`` /
+``fail`` / ``not evaluated`` (a target whose configuration or rows were not evaluated: never
+``pass``)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from traffictwin.acceptance import NOT_EVALUATED, Threshold
+from traffictwin.acceptance import judge as judge_threshold
 from traffictwin.fusion.evaluation.intervals import (
     ci_kwargs,
     paired_intervals,
@@ -39,140 +43,9 @@ from traffictwin.stats import (
     statistic_ci,
 )
 
-
-@dataclass(frozen=True)
-class Target:
-    """One target: ``description``; ``threshold`` and the comparison ``op`` ("<=" or ">=") the
-    point estimate must meet; ``configs`` it is judged at (None = every configuration);
-    ``min_lo``: where set, the interval's lower end must also reach it."""
-
-    description: str
-    threshold: float
-    op: str
-    configs: tuple[str, ...] | None
-    min_lo: float | None = None
-
-
-TARGETS: dict[str, Target] = {
-    "kld_ratio_vs_naive": Target(
-        "network KLD(b) / naive KLD(b) (ratio of means, paired cluster-bootstrap CI)",
-        0.3,
-        "<=",
-        ("C", "D"),
-    ),
-    "network_vs_registered": Target(
-        "network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ difference's CI "
-        "not wholly below 0 (the plain network beats classical registration)",
-        0.0,
-        "<",
-        ("C", "D"),
-    ),
-    "one_vs_per_config": Target(
-        "the one network − the configuration's own network (dnn[per-config], the ablation) "
-        "KLD(b), paired: upper CI bound",
-        0.005,
-        "<=",
-        None,
-    ),
-    "kld_at_A": Target(
-        "network KLD(b) at A (no pose noise: Dempster's rule on the aligned pair is the label)",
-        0.002,
-        "<=",
-        ("A",),
-    ),
-    "dice_occ_at_A": Target("network Dice occ at A (pooled)", 0.995, ">=", ("A",)),
-    "dice_occ_drop_A_to_D": Target(
-        "relative drop of the network's Dice occ from A to D, 1 − Dice(D)/Dice(A)",
-        0.10,
-        "<=",
-        ("D",),
-    ),
-    "dice_occ_vs_ego": Target(
-        "network Dice occ − ego-only Dice occ (paired difference)", 0.0, ">=", None
-    ),
-    # judged where pose noise makes wrong cells (at A the few cells the network gets wrong are
-    # where it departs from Dempster's combination: the findings report that AUROC and its counts)
-    "u_auroc": Target(
-        "AUROC of the network's u for wrongly classified cells", 0.85, ">=", ("B", "C", "D")
-    ),
-    "u_mean_vs_label": Target(
-        "|network mean u − label mean u| (paired over pairs)", 0.10, "<=", None
-    ),
-    "hybrid_vs_registered": Target(
-        "registered+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
-        "difference's CI not wholly below 0",
-        0.0,
-        "<",
-        ("C", "D"),
-    ),
-}
-# the learned registration against the classical one (same pairs, paired intervals)
-TARGETS.update(
-    {
-        "learned_success_vs_registered": Target(
-            "learned − registered registration success rate (error < {trans_m:g} m and < {rot_deg:g} deg; "
-            "paired)",
-            0.0,
-            ">=",
-            None,
-        ),
-        "learned_success_gain_at_D": Target(
-            "learned − registered registration success rate at D (paired): estimate >= 0.10 and "
-            "the CI's lower end >= 0.05",
-            0.10,
-            ">=",
-            ("D",),
-            min_lo=0.05,
-        ),
-        "learned_success_at_D": Target(
-            "learned registration success rate at D (error < {trans_m:g} m and < {rot_deg:g} deg)",
-            0.95,
-            ">=",
-            ("D",),
-        ),
-        "learned_kld_vs_registered": Target(
-            "learned+network − registered KLD(b) (paired): CI wholly below 0, and the Dice occ "
-            "difference's CI not wholly below 0",
-            0.0,
-            "<",
-            ("C", "D"),
-        ),
-        "learned_network_kld_at_D": Target(
-            "learned registration + network KLD(b) at D", 0.010, "<=", ("D",)
-        ),
-        "learned_runtime_ms": Target(
-            "learned registration wall time per pair (estimate + fallback check + warp + Dempster, "
-            "batches of evaluation.fusion.batch_size on the evaluation machine), ms",
-            20.0,
-            "<=",
-            None,
-        ),
-    }
-)
-# the learned registration finished by ECC (learned-refined) against the classical one
-TARGETS.update(
-    {
-        "refined_success_gain_at_D": Target(
-            "learned-refined − registered registration success rate at D (paired): estimate >= "
-            "0.10 and the CI's lower end >= 0.05",
-            0.10,
-            ">=",
-            ("D",),
-            min_lo=0.05,
-        ),
-        "refined_success_at_D": Target(
-            "learned registration refined by ECC: success rate at D (error < {trans_m:g} m and < "
-            "{rot_deg:g} deg)",
-            0.95,
-            ">=",
-            ("D",),
-        ),
-    }
-)
 # targets judged on wall times: they differ between identical runs, so not in fusion.json
 # (Evaluation.timings -> the stage's run record; the benchmark benchmarks/registration.py measures it)
 TIMING_TARGETS = ("learned_runtime_ms",)
-NOT_EVALUATED = "not evaluated"
 
 
 @dataclass(frozen=True)
@@ -205,25 +78,12 @@ class Verdict:
         return out | dict(self.extra)
 
 
-def judge(iv: Interval, threshold: float, op: str) -> Verdict:
-    """Pass/fail of the point estimate against ``threshold``; ``ci_beyond_threshold``: the whole
-    interval lies on the side of the verdict (the verdict is not noise)."""
-    if op not in ("<=", ">="):
-        raise ValueError(f"judge: op must be '<=' or '>=', got {op!r}")
-    e, lo, hi = iv.estimate, iv.lo, iv.hi
-    if not math.isfinite(e):
-        return Verdict(e, lo, hi, NOT_EVALUATED, False)
-    ok = e <= threshold if op == "<=" else e >= threshold
-    if op == "<=":
-        beyond = hi <= threshold if ok else lo > threshold
-    else:
-        beyond = lo >= threshold if ok else hi < threshold
-    return Verdict(e, lo, hi, "pass" if ok else "fail", bool(beyond))
-
-
-def _judge_target(iv: Interval, name: str) -> Verdict:
-    t = TARGETS[name]
-    return judge(iv, t.threshold, t.op)
+def judge(iv: Interval, t: Threshold) -> Verdict:
+    """Pass/fail of ``iv`` against threshold ``t`` (:func:`traffictwin.acceptance.judge`);
+    ``ci_beyond_threshold``: the whole interval lies on the side of the verdict (the verdict is
+    not noise)."""
+    j = judge_threshold(t, iv.estimate, iv.lo, iv.hi)
+    return Verdict(iv.estimate, iv.lo, iv.hi, j.status, j.ci_beyond)
 
 
 def missing(why: str) -> Verdict:
@@ -243,12 +103,14 @@ def _overall(per: Mapping[str, Verdict]) -> str:
 @dataclass(frozen=True)
 class TargetInputs:
     """What the targets are judged on: the per-pair frames ``frames[(cfg, row)]``, the ``test``
-    and ``diff`` blocks of fusion.json and the bootstrap settings ``ci``."""
+    and ``diff`` blocks of fusion.json, the bootstrap settings ``ci`` and the acceptance
+    ``thresholds`` (``acceptance.fusion``)."""
 
     frames: Mapping[tuple[str, str], pd.DataFrame]
     test: Mapping[str, Any]
     diff: Mapping[str, Any]
     ci: CIConfig
+    thresholds: Mapping[str, Threshold]
 
     def frame(self, c: str, row: str) -> pd.DataFrame | None:
         return self.frames.get((c, row))
@@ -260,6 +122,10 @@ class TargetInputs:
     def paired(self, c: str, row: str, base: str) -> Mapping[str, Any] | None:
         """``diff.<c>.<row>.vs_<base>`` (None or empty where not both were evaluated)."""
         return self.diff.get(c, {}).get(row, {}).get(f"vs_{base}")
+
+
+def _judge_target(ti: TargetInputs, iv: Interval, name: str) -> Verdict:
+    return judge(iv, ti.thresholds[name])
 
 
 def _ratio(ti: TargetInputs, c: str) -> Verdict:
@@ -276,7 +142,7 @@ def _ratio(ti: TargetInputs, c: str) -> Verdict:
         return float(kn[i].mean() / den) if den > 0 else math.nan
 
     iv = statistic_ci(stat, len(kn), groups, **ci_kwargs(ti.ci))
-    return _judge_target(iv, "kld_ratio_vs_naive")
+    return _judge_target(ti, iv, "kld_ratio_vs_naive")
 
 
 def _value_ci(ti: TargetInputs, c: str, key: str, name: str, row: str = NETWORK) -> Verdict:
@@ -285,7 +151,7 @@ def _value_ci(ti: TargetInputs, c: str, key: str, name: str, row: str = NETWORK)
     if v is None:
         return missing(f"row {row} not evaluated at configuration {c}")
     b = v[f"{key}_ci"]
-    return _judge_target(Interval(v[key], b["lo"], b["hi"], ti.ci.level), name)
+    return _judge_target(ti, Interval(v[key], b["lo"], b["hi"], ti.ci.level), name)
 
 
 TOO_FEW_WRONG = "too few wrong cells"  # the verdict's reason where AUROC(u) is withheld
@@ -318,7 +184,7 @@ def _dice_drop(ti: TargetInputs, c: str) -> Verdict:
         return missing(f"network Dice occ at A is {er}: the relative drop is undefined")
     with np.errstate(invalid="ignore", divide="ignore"):  # resamples with Dice 0 drop out
         iv = percentile_interval(1.0 - eo / er, 1.0 - bo / br, ti.ci.level, g)
-    return _judge_target(iv, "dice_occ_drop_A_to_D")
+    return _judge_target(ti, iv, "dice_occ_drop_A_to_D")
 
 
 def _vs_ego(ti: TargetInputs, c: str) -> Verdict:
@@ -326,7 +192,7 @@ def _vs_ego(ti: TargetInputs, c: str) -> Verdict:
     if n is None or e is None:
         return missing(f"dnn or ego not evaluated at configuration {c}")
     diffs, _ = paired_intervals(n, e, ti.ci)
-    return _judge_target(diffs["dice_occ"], "dice_occ_vs_ego")
+    return _judge_target(ti, diffs["dice_occ"], "dice_occ_vs_ego")
 
 
 def _u_gap(ti: TargetInputs, c: str) -> Verdict:
@@ -342,23 +208,28 @@ def _u_gap(ti: TargetInputs, c: str) -> Verdict:
     )
     # |difference|: the interval of |d| from the interval of d
     lo, hi = (d.lo, d.hi) if d.lo >= 0 else (-d.hi, -d.lo) if d.hi <= 0 else (0.0, max(-d.lo, d.hi))
-    res = _judge_target(Interval(abs(d.estimate), lo, hi, d.level, d.n_groups), "u_mean_vs_label")
+    res = _judge_target(
+        ti, Interval(abs(d.estimate), lo, hi, d.level, d.n_groups), "u_mean_vs_label"
+    )
     return res.with_extra(signed_difference={"estimate": d.estimate, "lo": d.lo, "hi": d.hi})
 
 
 def _beats_registered(ti: TargetInputs, c: str, row: str, name: str) -> Verdict:
-    """KLD(b) of ``row`` − registered: interval wholly below target ``name``'s threshold (op
-    ``<``), Dice occ difference not wholly below 0 (not shown worse)."""
-    t = TARGETS[name]
-    if t.op != "<":
-        raise ValueError(f"target {name}: op must be '<' (the interval's upper end), got {t.op!r}")
+    """KLD(b) of ``row`` − registered: interval wholly below target ``name``'s threshold (judged
+    on the interval, operator ``<``), Dice occ difference not wholly below 0 (not shown worse)."""
+    t = ti.thresholds[name]
+    if t.operator != "<" or t.judged_on != "interval":
+        raise ValueError(
+            f"target {name}: must be judged on the interval with operator '<' (its upper end), "
+            f"got {t.judged_on} {t.operator!r}"
+        )
     dd = ti.paired(c, row, "registered")
     if not dd:
         return missing(f"rows {row} and registered not both evaluated at configuration {c}")
     k, dc = dd[HEADLINE], dd["dice_occ"]
     if not all(math.isfinite(x) for x in (k["lo"], k["hi"], dc["lo"], dc["hi"])):
         return missing(f"no interval of the {row} − registered difference at {c}")
-    below = k["hi"] < t.threshold  # KLD(b) lower, shown
+    below = t.holds(t.figure(k["estimate"], k["lo"], k["hi"]))  # KLD(b) lower, shown
     ok = below and not dc["hi"] < 0  # and Dice occ not shown lower
     return Verdict(
         k["estimate"], k["lo"], k["hi"], "pass" if ok else "fail", bool(below)
@@ -374,21 +245,17 @@ def _one_vs_per_config(ti: TargetInputs, c: str) -> Verdict:
         )
     k = dd[HEADLINE]
     # judged on the interval's upper bound: the one network is not shown worse by more
-    res = _judge_target(Interval(k["hi"], k["lo"], k["hi"], ti.ci.level), "one_vs_per_config")
+    res = _judge_target(ti, Interval(k["hi"], k["lo"], k["hi"], ti.ci.level), "one_vs_per_config")
     return res.with_extra(difference={"estimate": k["estimate"], "lo": k["lo"], "hi": k["hi"]})
 
 
 def _learned_success(ti: TargetInputs, c: str, name: str, row: str = LEARNED) -> Verdict:
-    """``row`` − registered registration success rate (paired), with ``min_lo`` where set."""
+    """``row`` − registered registration success rate (paired), with the threshold's second
+    condition (the interval's lower end) where set."""
     dd = (ti.paired(c, row, "registered") or {}).get("success_rate")
     if not dd:
         return missing(f"rows {row} and registered not both evaluated at configuration {c}")
-    t = TARGETS[name]
-    res = judge(Interval(dd["estimate"], dd["lo"], dd["hi"], ti.ci.level), t.threshold, t.op)
-    if t.min_lo is not None and res.status == "pass" and not dd["lo"] >= t.min_lo:
-        res = replace(
-            res, status="fail"
-        )  # the gain is not shown: its interval reaches below min_lo
+    res = _judge_target(ti, Interval(dd["estimate"], dd["lo"], dd["hi"], ti.ci.level), name)
     return res.with_extra(n_pairs=dd["n_pairs"])
 
 
@@ -398,7 +265,7 @@ def _learned_mean(ti: TargetInputs, c: str, column: str, name: str, row: str = L
     if f is None or (column == "reg_success" and ti.numbers(c, row) is None):
         return missing(f"{row} not evaluated at configuration {c}")
     iv = mean_ci(f[column].to_numpy(np.float64), scenario_of(f["pair_id"]), **ci_kwargs(ti.ci))
-    return _judge_target(iv, name)
+    return _judge_target(ti, iv, name)
 
 
 # every target's judge at one configuration, in the order of fusion.json's ``targets``
@@ -444,23 +311,31 @@ def fusion_targets(
     ci: CIConfig,
     success_trans_m: float,
     success_rot_deg: float,
+    thresholds: Mapping[str, Threshold],
 ) -> dict[str, Any]:
-    """The targets of :data:`TARGETS` from the per-pair frames ``own[(cfg, row)]`` and the
-    intervals already in ``metrics`` (``test``, ``diff``): ``{name: {description, threshold, op,
-    status, per_config: {cfg: verdict}}}``. A target whose configuration or rows were not
-    evaluated is ``not evaluated`` (never ``pass``). The descriptions name the registration
-    success limits ``success_trans_m`` (m) and ``success_rot_deg`` (deg)
-    (``evaluation.fusion``) in their ``{trans_m}`` / ``{rot_deg}`` fields."""
-    ti = TargetInputs(own, metrics["test"], metrics["diff"], ci)
+    """Every target of :data:`JUDGES` against its acceptance threshold (``thresholds``:
+    ``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`), from the per-pair frames
+    ``own[(cfg, row)]`` and the intervals already in ``metrics`` (``test``, ``diff``):
+    ``{name: {description, threshold, op, status, per_config: {cfg: verdict}}}``. A target whose
+    configuration or rows were not evaluated is ``not evaluated`` (never ``pass``). The
+    descriptions name the registration success limits ``success_trans_m`` (m) and
+    ``success_rot_deg`` (deg) (``evaluation.fusion``) in their ``{trans_m}`` / ``{rot_deg}``
+    fields."""
+    absent = [n for n in JUDGES if n not in thresholds]
+    if absent:
+        raise ValueError(
+            f"fusion_targets: no acceptance threshold for {absent} (acceptance.fusion)"
+        )
+    ti = TargetInputs(own, metrics["test"], metrics["diff"], ci, thresholds)
     configs = list(metrics["test"])
     out: dict[str, Any] = {}
     for name, judge_at in JUDGES.items():
-        t = TARGETS[name]
+        t = thresholds[name]
         per = {c: judge_at(ti, c) for c in (t.configs or configs)}
         out[name] = {
             "description": t.description.format(trans_m=success_trans_m, rot_deg=success_rot_deg),
-            "threshold": t.threshold,
-            "op": t.op,
+            "threshold": t.value,
+            "op": t.operator,
             "status": _overall(per),
             "per_config": {c: v.as_dict() for c, v in per.items()},
         }

@@ -5,11 +5,12 @@ Reads ``fusion.json`` (stage evaluate_fusion; layout in :mod:`traffictwin.fusion
 ``test.<cfg>.<row>.<metric>`` with its 95 % interval ``<metric>_ci``, rows in
 :data:`FUSION_METHOD_LABELS` plus the ``fusion_variants`` network rows (``dnn[<loss>]``, …);
 ``diff.<cfg>.<row>.vs_<base>.<metric>`` (paired differences); ``label.<cfg>.u_mean``;
-``targets``; ``cross.dnn-<net>.<cfg>.<metric>``. Also ``train_fusion_<name>.json`` (stage
+``cross.dnn-<net>.<cfg>.<metric>`` (its ``targets``: the index's acceptance table,
+:mod:`traffictwin.report.acceptance`). Also ``train_fusion_<name>.json`` (stage
 train_fusion) and ``fusion_data.json`` (stage generate_fusion), and the learning-curve figures
 ``figures/train_fusion_<name>.png`` that train_fusion writes (captioned here). Entry point:
 :func:`provider`. Tables: :mod:`.method_tables` (every method), :mod:`.pose_tables`
-(registration), :mod:`.target_tables` (targets, ablations), :mod:`.seed_tables` (the seed
+(registration), :mod:`.ablation_tables` (ablations), :mod:`.seed_tables` (the seed
 replicates, ``ablations/fusion_seeds.json``), built of the cells of :mod:`.cells`;
 the report stage's zoomed score figures: :mod:`.score_figures`.
 
@@ -39,6 +40,7 @@ from traffictwin.fusion.report_section.seed_tables import (
 )
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
+from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import lookup
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import files_table, findings_group
@@ -150,6 +152,7 @@ def section(
         "relative pose, then Dempster's rule (the paper's 'naive fusion')."
     )
     if src.has(FUSION_FILE):
+        sec.paragraphs.append(ACCEPTANCE_POINTER)
         sec.tables.extend(fusion_tables(src, configurations))
     else:
         sec.paragraphs.append(

@@ -1,7 +1,7 @@
 """The fusion section's tables of every method per configuration: KLD(b) (headline) and KLD(a),
 the KLD(a) median, every row's intervals, paired differences against naive and registered,
 precision / recall / Dice and the cross table; :func:`fusion_tables` adds the registration,
-target and ablation tables (:mod:`.pose_tables`, :mod:`.target_tables`)."""
+target and ablation tables (:mod:`.pose_tables`, :mod:`.ablation_tables`)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from traffictwin.fusion.findings import verdict
+from traffictwin.fusion.report_section.ablation_tables import (
+    loss_ablation_table,
+    per_config_table,
+)
 from traffictwin.fusion.report_section.cells import (
     AUROC_COLUMNS,
     AUROC_NOTE,
@@ -34,11 +38,6 @@ from traffictwin.fusion.report_section.cells import (
     verdict_cell,
 )
 from traffictwin.fusion.report_section.pose_tables import registration_tables
-from traffictwin.fusion.report_section.target_tables import (
-    loss_ablation_table,
-    per_config_table,
-    target_table,
-)
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, lookup
@@ -283,8 +282,8 @@ def _cross_table(src: page.Sources) -> Table | None:
 
 def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Table]:
     """KLD(b) (headline) and KLD(a) per configuration and method with the network − naive
-    difference, intervals per row, paired differences, P/R/Dice, targets, the loss ablation and
-    the cross table."""
+    difference, intervals per row, paired differences, P/R/Dice, the loss ablation and the cross
+    table (the targets: the index's acceptance table)."""
     cfgs = fusion_configs(src, configurations)
     methods = fusion_methods(src, cfgs)
     tables = [_kld_table(src, configurations, cfgs, methods, spec) for spec in KLD_TABLES]
@@ -294,7 +293,6 @@ def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Tab
     tables.append(_score_table(src, cfgs, methods))
     tables.extend(registration_tables(src, configurations, cfgs))
     optional = (
-        target_table(src),
         loss_ablation_table(src, cfgs),
         per_config_table(src, configurations, cfgs),
         _cross_table(src),

@@ -59,7 +59,7 @@ from traffictwin.risk.evaluation.settings import (
     SuiteSettings,
 )
 from traffictwin.risk.evaluation.suite import evaluate_suite, main_series, tracking_metrics
-from traffictwin.risk.evaluation.targets import TARGETS, Target, judge
+from traffictwin.risk.evaluation.targets import TARGET_NAMES, judge
 
 __all__ = [
     "BASELINES",
@@ -69,13 +69,12 @@ __all__ = [
     "PAPER",
     "REGION_LABELS",
     "SEED_MEAN",
-    "TARGETS",
+    "TARGET_NAMES",
     "CIConfig",
     "ClusterBootstrap",
     "Holdout",
     "Stat",
     "SuiteSettings",
-    "Target",
     "bootstrap_p",
     "bootstrap_scores",
     "classification_metrics",

@@ -64,7 +64,8 @@ class SuiteSettings:
     tuned :class:`GeometricParams` (default ``geometric``); ``decisions``: predictor → {THW
     threshold s: decision cut on its risk} for the primary label; ``shipped``: the model served
     to users (targets); ``learned``: the learned variant group compared with the SGM rule
-    (targets); ``holdout``: the unseen-template check (``None``: none)."""
+    (targets); ``holdout``: the unseen-template check (``None``: none); ``acceptance``: the
+    targets' thresholds (``acceptance.risk``, :func:`traffictwin.acceptance.thresholds`)."""
 
     primary_label: str
     thresholds_s: tuple[float, ...]
@@ -82,6 +83,7 @@ class SuiteSettings:
     shipped: str | None = None
     learned: str | None = None
     holdout: Holdout | None = None
+    acceptance: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def t0(self) -> float:

@@ -1,84 +1,42 @@
-"""The risk targets (default profile, test split, headline) and how they are judged:
-the shipped predictor's own scores and the learned group's paired differences to the rules."""
+"""The risk targets (default profile, test split, headline) and how they are judged against their
+acceptance thresholds (``acceptance.risk``, :mod:`traffictwin.acceptance`): the shipped
+predictor's own scores and the learned group's paired differences to the rules."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
+from traffictwin.acceptance import Threshold
+from traffictwin.acceptance import judge as judge_threshold
 from traffictwin.risk.evaluation.bootstrap import ClusterBootstrap, Stat
 from traffictwin.risk.evaluation.scorer import Roles, Scorer
 from traffictwin.stats import Interval
 
-
-@dataclass(frozen=True)
-class Target:
-    """A risk target (default profile, test split, headline): ``op`` compares the value
-    (or, with ``ci_required``, the whole interval) with ``threshold``."""
-
-    description: str
-    threshold: float
-    op: str
-    ci_required: bool = False
-
-
-#: descriptions hold ``{t}``: the THW threshold (s) the target is judged at (the primary
-#: ``evaluation.risk.thresholds_s`` unless said), filled in by :func:`describe`. The two
-#: balanced-accuracy targets are judged at the first and second thresholds and reported as
-#: ``shipped_balanced_accuracy_<t>s``.
-TARGETS: dict[str, Target] = {
+#: the targets :func:`targets` judges, in order; their thresholds are ``acceptance.risk``
+#: (:mod:`traffictwin.acceptance`), whose descriptions hold ``{t}``: the THW threshold (s) the
+#: target is judged at (the primary ``evaluation.risk.thresholds_s`` unless said), filled in by
+#: :func:`describe`. The two balanced-accuracy targets are judged at the first and second
+#: thresholds and reported as ``shipped_balanced_accuracy_<t>s``.
+TARGET_NAMES = (
     # the predictor users get (models/risk/shipped, chosen on validation)
-    "shipped_balanced_accuracy_primary": Target(
-        "balanced accuracy of the shipped predictor at THW {t} s", 0.95, ">="
-    ),
-    "shipped_balanced_accuracy_second": Target(
-        "balanced accuracy of the shipped predictor at THW {t} s", 0.90, ">="
-    ),
-    "shipped_roc_auc": Target("ROC-AUC of the shipped predictor at THW {t} s", 0.97, ">="),
-    "shipped_recall_pedestrian": Target(
-        "recall of the shipped predictor at THW {t} s, pedestrian situations", 0.85, ">="
-    ),
-    "shipped_recall_cut_in": Target(
-        "recall of the shipped predictor at THW {t} s, cut-in situations", 0.85, ">="
-    ),
-    "shipped_thw_median_error_critical_s": Target(
-        "median |THW error| (s) of the shipped predictor on truly critical frames (THW < {t} s)",
-        0.2,
-        "<=",
-    ),
+    "shipped_balanced_accuracy_primary",
+    "shipped_balanced_accuracy_second",
+    "shipped_roc_auc",
+    "shipped_recall_pedestrian",
+    "shipped_recall_cut_in",
+    "shipped_thw_median_error_critical_s",
     # the learned model (best group on validation, seeds resampled) vs the validation-tuned rule
-    "learned_vs_rule_auc": Target(
-        "ROC-AUC learned − SGM corridor rule (paired, seeds × sequences): interval wholly above 0",
-        0.0,
-        ">",
-        True,
-    ),
-    "learned_vs_rule_balanced_accuracy": Target(
-        "balanced accuracy learned − SGM corridor rule (paired, seeds × sequences): interval wholly above 0",
-        0.0,
-        ">",
-        True,
-    ),
-    "auc_vs_speed_only": Target(
-        "ROC-AUC learned − speed-only baseline (paired): interval wholly above 0", 0.0, ">", True
-    ),
-    "holdout_balanced_accuracy_drop": Target(
-        "balanced accuracy drop: the hybrid on the standard test split − the hybrid trained without "
-        "the held-out road templates on their test frames",
-        0.05,
-        "<=",
-    ),
-    "spread": Target(
-        "smallest standard deviation of a trained variant's test predictions (no collapsed model)",
-        math.nan,
-        ">=",
-    ),
-}
+    "learned_vs_rule_auc",
+    "learned_vs_rule_balanced_accuracy",
+    "auc_vs_speed_only",
+    "holdout_balanced_accuracy_drop",
+    "spread",
+)
 
 
-def describe(target: Target, thw_s: float | str) -> str:
+def describe(target: Threshold, thw_s: float | str) -> str:
     """``target``'s description at THW threshold ``thw_s`` (s; one decimal at least: 1.0, 2.0,
     1.25; a text stands for a threshold that is not there)."""
     if isinstance(thw_s, str):
@@ -87,31 +45,32 @@ def describe(target: Target, thw_s: float | str) -> str:
     return target.description.format(t=t)
 
 
-def judge(iv: Interval, target: Target, threshold: float | None = None) -> dict[str, Any]:
-    """``value``, ``lo``, ``hi``, ``met`` (the estimate — or, for ``ci_required``, the lower /
-    upper bound — on the target's side) and ``ci_beyond_threshold`` (the whole interval there)."""
-    thr = target.threshold if threshold is None else threshold
+def judge(iv: Interval, target: Threshold) -> dict[str, Any]:
+    """``value``, ``lo``, ``hi``, ``threshold``, ``op``, ``met`` (the estimate — or, for a target
+    judged on the interval, its far end — on the target's side; :func:`traffictwin.acceptance.judge`)
+    and ``ci_beyond_threshold`` (the whole interval there)."""
     e, lo, hi = iv.estimate, iv.lo, iv.hi
-    out: dict[str, Any] = {"value": e, "lo": lo, "hi": hi, "threshold": thr, "op": target.op}
-    if not math.isfinite(e):
+    out: dict[str, Any] = {
+        "value": e,
+        "lo": lo,
+        "hi": hi,
+        "threshold": target.value,
+        "op": target.operator,
+    }
+    j = judge_threshold(target, e, lo, hi)
+    if j.met is None:
         return {**out, "met": False, "ci_beyond_threshold": False, "why": "undefined"}
-    side = {
-        ">=": lambda v: v >= thr,
-        ">": lambda v: v > thr,
-        "<=": lambda v: v <= thr,
-        "<": lambda v: v < thr,
-    }[target.op]
-    bound = lo if target.op in (">=", ">") else hi
-    beyond = math.isfinite(bound) and side(bound)
-    met = beyond if target.ci_required else side(e)
-    return {**out, "met": bool(met), "ci_beyond_threshold": bool(beyond)}
+    return {**out, "met": bool(j.met), "ci_beyond_threshold": bool(j.ci_passes)}
 
 
 class _Verdicts:
     """The judged targets, in order (``out``), on the intervals of ``plan``."""
 
-    def __init__(self, plan: ClusterBootstrap, t0: float) -> None:
+    def __init__(
+        self, plan: ClusterBootstrap, t0: float, thresholds: Mapping[str, Threshold]
+    ) -> None:
         self.plan = plan
+        self.thresholds = thresholds
         self.t0 = t0  # the primary THW threshold (s): the descriptions' default
         self.out: dict[str, Any] = {}
 
@@ -120,26 +79,25 @@ class _Verdicts:
         name: str,
         stat: Stat | Interval,
         predictor: str,
-        threshold: float | None = None,
         key: str | None = None,
         thw_s: float | None = None,
         **extra: Any,
     ) -> None:
         """Judge target ``name`` on ``stat`` (a statistic or an interval) of ``predictor``,
         reported as ``key`` (default ``name``), described at THW ``thw_s`` (default the primary)."""
-        t = TARGETS[name]
+        t = self.thresholds[name]
         iv = stat if isinstance(stat, Interval) else self.plan.interval(stat)
         self.out[key or name] = {
             "description": describe(t, self.t0 if thw_s is None else thw_s),
             "predictor": predictor,
-            **judge(iv, t, threshold),
+            **judge(iv, t),
             **extra,
         }
 
     def missing(self, name: str, why: str, thw_s: float | str | None = None) -> None:
         """Target ``name`` (described at THW ``thw_s``, default the primary) could not be
         evaluated (not met)."""
-        desc = describe(TARGETS[name], self.t0 if thw_s is None else thw_s)
+        desc = describe(self.thresholds[name], self.t0 if thw_s is None else thw_s)
         self.out[name] = {"description": desc, "met": False, "why": why}
 
 
@@ -222,14 +180,20 @@ def targets(
     spreads: Mapping[str, Stat],
     situations: Mapping[str, Any] | None = None,
     holdout: Mapping[str, Any] | None = None,
+    thresholds: Mapping[str, Threshold] | None = None,
 ) -> dict[str, Any]:
-    """The targets of :data:`TARGETS`: the shipped predictor's (default the headline) and the
-    learned group's against the rule (default the headline), on the headline's label;
-    ``spreads``: each model's prediction spread; ``situations`` / ``holdout``: those blocks of
-    risk.json (``None``: not evaluated)."""
+    """The targets of :data:`TARGET_NAMES` against their acceptance thresholds (``thresholds``, default
+    ``scorer.settings.acceptance``: ``acceptance.risk``): the shipped predictor's (default the
+    headline) and the learned group's against the rule (default the headline), on the headline's
+    label; ``spreads``: each model's prediction spread; ``situations`` / ``holdout``: those blocks
+    of risk.json (``None``: not evaluated)."""
+    thresholds = scorer.settings.acceptance if thresholds is None else thresholds
+    absent = [n for n in TARGET_NAMES if n not in thresholds]
+    if absent:
+        raise ValueError(f"risk targets: no acceptance threshold for {absent} (acceptance.risk)")
     shipped = roles.shipped or roles.main_key
     learned = roles.learned or roles.main_key
-    v = _Verdicts(scorer.plan, float(scorer.settings.t0))
+    v = _Verdicts(scorer.plan, float(scorer.settings.t0), thresholds)
     _shipped(v, scorer, shipped, roles.main_label)
     _situational(v, situations or {}, shipped, float(scorer.settings.t0))
     _learned(v, scorer, learned, roles.main_label)
@@ -240,7 +204,6 @@ def targets(
         "spread",
         spreads[worst],
         worst,
-        collapse_std,
         variant=worst,
         collapsed=sorted(m for m, st in spreads.items() if st[0] < collapse_std),
     )

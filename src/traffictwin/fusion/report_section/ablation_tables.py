@@ -1,11 +1,11 @@
-"""The fusion section's target and ablation tables: the targets per configuration, the
-loss ablation (``dnn`` beside ``dnn[<loss>]``) and the one network against the per-configuration
-networks (this run's, or an ablation experiment's collected results)."""
+"""The fusion section's ablation tables: the loss ablation (``dnn`` beside ``dnn[<loss>]``) and
+the one network against the per-configuration networks (this run's, or an ablation experiment's
+collected results). The targets' verdicts are in the report index's acceptance table
+(:mod:`traffictwin.report.acceptance`)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
 
 from traffictwin.fusion.report_section.cells import (
     AUROC_COLUMNS,
@@ -17,7 +17,6 @@ from traffictwin.fusion.report_section.cells import (
     PER_CONFIG_ROW,
     Configurations,
     auroc_cells,
-    ci_cell,
     config_cells,
     diff_key,
     fusion_key,
@@ -26,16 +25,8 @@ from traffictwin.fusion.report_section.cells import (
     value_ci_cells,
 )
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, Cell, Table, fmt_value, lookup
+from traffictwin.report.model import NA, Cell, Table, fmt_value
 
-TARGET_NOTE = (
-    "Status from the point estimate against the threshold ('not evaluated' where the row or "
-    "configuration was not evaluated — never a pass); 'CI beyond threshold': the whole interval "
-    "lies on the side of the verdict. hybrid_vs_registered needs the KLD(b) difference's interval "
-    "below 0 and the Dice occ difference's not wholly below 0. '(ablation <name>)': a target this "
-    "run does not evaluate, from that ablation experiment's own evaluation "
-    "(reports/ablations/<name>.json)."
-)
 # the loss ablation's columns with intervals: (metric key, column name)
 ABLATION_COLUMNS = (
     (HEADLINE, "KLD(b)"),
@@ -44,67 +35,6 @@ ABLATION_COLUMNS = (
     ("dice_free", "Dice free"),
     ("u_mean", "mean u"),
 )
-
-
-def _target_row(
-    src: page.Sources, name: str, spec: Mapping[str, Any], c: str, e: Mapping[str, Any]
-) -> list[Cell]:
-    """Target ``name`` at configuration ``c`` (its entry ``e``); a target this run cannot evaluate
-    (e.g. one_vs_per_config needs the per-config networks): the ablation experiment's verdict,
-    where one was collected."""
-    file, key = FUSION_FILE, f"targets.{name}.per_config.{c}"
-    status = str(e.get("status", NA))
-    if e.get("value") is None:
-        for f in (f for f in sorted(src.metrics) if f.startswith("ablations/")):
-            found = src.get(f, f"fusion.{key}")
-            if isinstance(found, dict) and found.get("value") is not None:
-                file, key, e = f, f"fusion.{key}", found
-                status = f"{e.get('status', NA)} (ablation {src.get(f, 'name', f)})"
-                break
-    value = (
-        src.cell(file, f"{key}.value")
-        if e.get("value") is not None
-        else Cell(NA, title=e.get("why", "not evaluated"))
-    )
-    beyond = e.get("ci_beyond_threshold")
-    return [
-        Cell(name, title=str(spec.get("description", ""))),
-        Cell(c),
-        value,
-        ci_cell(src, key, file),
-        Cell(str(spec.get("op", ""))),
-        src.cell(FUSION_FILE, f"targets.{name}.threshold"),
-        Cell(status),
-        Cell("" if beyond is None else ("yes" if beyond else "no")),
-    ]
-
-
-def target_table(src: page.Sources) -> Table | None:
-    """The targets (``targets`` of fusion.json): figure, interval, threshold, status per
-    configuration (None without a ``targets`` block)."""
-    targets = lookup(src.metrics.get(FUSION_FILE), "targets")
-    if not isinstance(targets, dict) or not targets:
-        return None
-    t = Table(
-        "Fusion: targets (test split)",
-        [
-            "target",
-            "config",
-            "value",
-            "95 % CI",
-            "needs",
-            "threshold",
-            "status",
-            "CI beyond threshold",
-        ],
-        note=TARGET_NOTE,
-        anchor="fusion-targets",
-    )
-    for name, spec in targets.items():
-        per = spec.get("per_config", {}) if isinstance(spec, dict) else {}
-        for c, e in per.items():
-            t.rows.append(_target_row(src, name, spec, c, e))
-    return t
 
 
 def loss_ablation_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
@@ -177,6 +107,13 @@ def _per_config_row(
     return row
 
 
+def _upper_limit(src: page.Sources) -> str:
+    """``<= <threshold>`` of target one_vs_per_config as fusion.json has it (n/a without)."""
+    thr = src.get(FUSION_FILE, "targets.one_vs_per_config.threshold")
+    op = src.get(FUSION_FILE, "targets.one_vs_per_config.op") or "<="
+    return f"{op} {fmt_value(thr, 'g4')}" if isinstance(thr, (int, float)) else f"{op} {NA}"
+
+
 def per_config_table(
     src: page.Sources, configurations: Configurations, cfgs: Sequence[str]
 ) -> Table | None:
@@ -209,8 +146,8 @@ def per_config_table(
         note="dnn[per-config] = a network trained on that configuration's noise only (the paper's "
         "setting; `make ablations`, the per_config ablation); the one network "
         "is trained on the mixed noise of every configuration. Δ: paired over the same pairs; "
-        f"target one_vs_per_config: the interval's upper end <= +0.005. Numbers from {origin}. "
-        + CI_NOTE,
+        f"target one_vs_per_config: the interval's upper end {_upper_limit(src)} (the acceptance "
+        f"table at the end of the index). Numbers from {origin}. " + CI_NOTE,
         anchor="fusion-one-vs-per-config",
     )
     for c in cfgs:

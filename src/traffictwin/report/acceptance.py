@@ -1,0 +1,275 @@
+"""The acceptance table at the end of the report's index: every target of this run, one row per
+target and configuration, read from the metrics files' ``targets`` blocks (one small normaliser
+per file shape: fusion.json, risk.json, stereo.json, twin.json), with the condition it must meet
+from the acceptance thresholds the report stage passes in (``acceptance.<problem>``,
+:mod:`traffictwin.acceptance`), and a one-line count of the statuses."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from traffictwin.acceptance import FAIL, NOT_EVALUATED, PASS, Threshold
+from traffictwin.report import model as page
+from traffictwin.report.model import NA, Cell, Section, Table, fmt_value, json_number
+
+TITLE = "Acceptance thresholds"
+#: the line a problem's page shows where its targets table was
+POINTER = (
+    "Targets: every target's verdict against its acceptance threshold is in the acceptance table "
+    "at the end of the report index (`reports/README.md`, section 'Acceptance thresholds')."
+)
+ANCHOR = "acceptance"
+COLUMNS = [
+    "problem",
+    "threshold name",
+    "what it checks",
+    "condition",
+    "this run (value [95 % CI])",
+    "status",
+]
+#: (problem, metrics file) in report order
+FILES = (
+    ("fusion", "fusion.json"),
+    ("risk", "risk.json"),
+    ("stereo", "stereo.json"),
+    ("twin", "twin.json"),
+)
+#: twin.json's ``targets`` keys that are not targets
+_TWIN_META = ("configuration", "method", "evaluated")
+
+Thresholds = Mapping[str, Mapping[str, Threshold]]
+
+
+@dataclass
+class Row:
+    """One target at one configuration (``where``: ``""`` where it has none)."""
+
+    problem: str
+    name: str
+    where: str
+    description: str
+    condition: str
+    value: Cell
+    status: str
+
+    def cells(self) -> list[Cell]:
+        name = f"{self.name} ({self.where})" if self.where else self.name
+        return [
+            Cell(self.problem),
+            Cell(name),
+            Cell(self.description),
+            Cell(self.condition),
+            self.value,
+            Cell(self.status),
+        ]
+
+
+def _condition(t: Threshold | None, e: Mapping[str, Any]) -> str:
+    """The threshold's condition (from the config), else the metrics file's ``op threshold``."""
+    if t is not None:
+        return t.text
+    op, thr = e.get("op"), json_number(e.get("threshold"))
+    return f"{op} {thr:g}" if op and thr is not None else NA
+
+
+def _value_cell(
+    src: page.Sources, file: str, key: str, lo: Any, hi: Any, fmt: str, why: str = ""
+) -> Cell:
+    """``value [lo, hi]`` of the number at ``file#key`` (n/a, with ``why``, where it is missing)."""
+    v = json_number(src.get(file, key))
+    path = src.paths.get(file, f"metrics/{file}")
+    if v is None:
+        return Cell(NA, title=why or "not evaluated")
+    lo, hi = json_number(lo), json_number(hi)
+    if lo is None or hi is None:
+        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt, title=why)
+    return Cell(  # the value and its interval: a derived cell naming where both come from
+        f"{fmt_value(v, fmt)} [{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
+        value=[v, lo, hi],
+        fmt=fmt,
+        title=why,
+        derived=f"value and 95 % interval, {path}#{key}",
+    )
+
+
+def _status(met: Any, value: Any) -> str:
+    """pass / fail / not evaluated of a ``met`` flag (risk, stereo, twin)."""
+    if met is None or json_number(value) is None:
+        return NOT_EVALUATED
+    return PASS if met else FAIL
+
+
+def _ablation_verdict(src: page.Sources, key: str) -> tuple[str, str, Mapping[str, Any]] | None:
+    """A fusion target this run did not evaluate, from an ablation experiment's collected results
+    (``reports/ablations/<name>.json``, blocks under ``fusion.``): (file, key, entry)."""
+    for f in (f for f in sorted(src.metrics) if f.startswith("ablations/")):
+        found = src.get(f, f"fusion.{key}")
+        if isinstance(found, dict) and found.get("value") is not None:
+            return f, f"fusion.{key}", found
+    return None
+
+
+def fusion_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
+    """fusion.json: ``targets.<name>.per_config.<cfg>: {value, lo, hi, status, why}``; a target
+    this run does not evaluate shows an ablation experiment's verdict, marked as such."""
+    rows = []
+    for name, spec in (src.get(file, "targets") or {}).items():
+        if not isinstance(spec, dict):
+            continue
+        for c, e in (spec.get("per_config") or {}).items():
+            f, key, status = file, f"targets.{name}.per_config.{c}", str(e.get("status", NA))
+            if e.get("value") is None and (found := _ablation_verdict(src, key)):
+                f, key, e = found
+                status = f"{e.get('status', NA)} (ablation {src.get(f, 'name', f)})"
+            value = _value_cell(
+                src, f, f"{key}.value", e.get("lo"), e.get("hi"), "g4", e.get("why", "")
+            )
+            desc = str(spec.get("description", "") or getattr(th.get(name), "description", ""))
+            rows.append(Row("fusion", name, c, desc, _condition(th.get(name), spec), value, status))
+    return rows
+
+
+def risk_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
+    """risk.json: ``targets.<name>: {value, lo, hi, op, threshold, met, why, description}`` (the
+    balanced-accuracy targets under ``shipped_balanced_accuracy_<t>s``)."""
+    rows = []
+    for name, e in (src.get(file, "targets") or {}).items():
+        if not isinstance(e, dict):
+            continue
+        key = f"targets.{name}"
+        value = _value_cell(
+            src, file, f"{key}.value", e.get("lo"), e.get("hi"), "g4", e.get("why", "")
+        )
+        desc = str(e.get("description", "") or getattr(th.get(name), "description", ""))
+        status = _status(e.get("met"), e.get("value"))
+        rows.append(Row("risk", name, "", desc, _condition(th.get(name), e), value, status))
+    return rows
+
+
+def stereo_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
+    """stereo.json: ``targets.<name>: {metric, value, value_lo, value_hi, op, threshold, format,
+    description, met}``."""
+    rows = []
+    for name, e in (src.get(file, "targets") or {}).items():
+        if not isinstance(e, dict):
+            continue
+        fmt = str(e.get("format") or "g4")
+        value = _value_cell(
+            src, file, f"targets.{name}.value", e.get("value_lo"), e.get("value_hi"), fmt
+        )
+        desc = str(e.get("description", "") or getattr(th.get(name), "description", ""))
+        status = _status(e.get("met"), e.get("value"))
+        rows.append(Row("stereo", name, "", desc, _condition(th.get(name), e), value, status))
+    return rows
+
+
+def twin_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
+    """twin.json: ``targets: {configuration, method, evaluated, <name>: {value, ci: [lo, hi],
+    met}}``; the thresholds' names absent from the block (not evaluated, or the registration
+    targets of the naive twin) are not evaluated."""
+    block = src.get(file, "targets") or {}
+    c = str(block.get("configuration", ""))
+    rows, seen = [], set()
+    for name, e in block.items():
+        if name in _TWIN_META or not isinstance(e, dict):
+            continue
+        seen.add(name)
+        ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else [None, None]
+        value = _value_cell(src, file, f"targets.{name}.value", ci[0], ci[1], "g4")
+        t = th.get(name)
+        desc = t.description if t is not None else str(e.get("note", ""))
+        rows.append(
+            Row(
+                "twin",
+                name,
+                c,
+                desc,
+                _condition(t, e),
+                value,
+                _status(e.get("met"), e.get("value")),
+            )
+        )
+    why = (
+        f"not evaluated at {c} for {block.get('method', 'the headline')}" if c else "not evaluated"
+    )
+    rows += _absent("twin", th, seen, why, c)
+    return rows
+
+
+def _absent(
+    problem: str, th: Mapping[str, Threshold], seen: set[str], why: str, where: str = ""
+) -> list[Row]:
+    """A row per threshold of ``th`` not in ``seen``: not evaluated, and ``why``."""
+    return [
+        Row(problem, n, where, t.description, t.text, Cell(NA, title=why), NOT_EVALUATED)
+        for n, t in th.items()
+        if n not in seen
+    ]
+
+
+_READERS: dict[str, Callable[[page.Sources, Mapping[str, Threshold], str], list[Row]]] = {
+    "fusion": fusion_rows,
+    "risk": risk_rows,
+    "stereo": stereo_rows,
+    "twin": twin_rows,
+}
+
+
+def acceptance_rows(src: page.Sources, thresholds: Thresholds) -> list[Row]:
+    """Every target of every metrics file of :data:`FILES`, in report order; a problem whose
+    metrics file is missing shows its thresholds (``thresholds``) as not evaluated."""
+    rows: list[Row] = []
+    for problem, file in FILES:
+        th = thresholds.get(problem) or {}
+        if src.has(file):
+            rows += _READERS[problem](src, th, file)
+        else:
+            rows += _absent(problem, th, set(), f"reports/metrics/{file} not found")
+    return rows
+
+
+def count_line(rows: list[Row]) -> str:
+    """``"n pass, n fail, n not evaluated"`` (an ablation's verdict counts as its status)."""
+    n = {s: sum(r.status.split(" (")[0] == s for r in rows) for s in (PASS, FAIL, NOT_EVALUATED)}
+    return f"{n[PASS]} pass, {n[FAIL]} fail, {n[NOT_EVALUATED]} not evaluated"
+
+
+def elsewhere(src: page.Sources, thresholds: Thresholds) -> list[str]:
+    """The fusion thresholds fusion.json does not judge (wall times: the stage's run record)."""
+    block = src.get("fusion.json", "targets")
+    if not isinstance(block, dict):
+        return []
+    return [n for n in thresholds.get("fusion") or {} if n not in block]
+
+
+def acceptance_section(src: page.Sources, thresholds: Thresholds) -> Section:
+    """The index's last section: the acceptance table (one row per target and configuration)
+    and the count of its statuses."""
+    rows = acceptance_rows(src, thresholds)
+    other = elsewhere(src, thresholds)
+    timed = (
+        f" Judged on wall times, which differ between identical runs, so in the run record "
+        f"reports/timings/evaluate_fusion.json and not here: {', '.join(other)}."
+        if other
+        else ""
+    )
+    table = Table(
+        "Every target of this run against its acceptance threshold (default-profile thresholds, "
+        "test split)",
+        COLUMNS,
+        rows=[r.cells() for r in rows],
+        note=count_line(rows) + ". Condition: the point estimate against the threshold unless "
+        "it names the interval ('whole interval': its far end) or one of its ends; 'not "
+        "evaluated' where the figure, its configuration or its rows are missing (never a pass); "
+        "'(ablation <name>)': a target this run does not evaluate, from that ablation "
+        "experiment's own evaluation (reports/ablations/<name>.json)." + timed,
+        anchor=ANCHOR,
+        headline=True,  # with the headline tables in results_table.md (docs/results.md)
+    )
+    intro = (
+        "Every target's verdict, read from the metrics files' `targets` blocks; the thresholds "
+        "are the acceptance config group (`conf/acceptance/default.yaml`)."
+    )
+    return Section(TITLE, [intro], [table])
