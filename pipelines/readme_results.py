@@ -25,7 +25,7 @@ from typing import Any
 
 from traffictwin.io.atomic import write_text_atomic
 from traffictwin.nested import lookup
-from traffictwin.report.model import Cell, Table, fmt_value
+from traffictwin.report.model import NA, Cell, Table, fmt_value
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.render import RESULTS_TABLE, table_markdown
 
@@ -193,8 +193,22 @@ def risk_table(risk: Mapping) -> Table | None:
     )
 
 
-def twin_table(twin: Mapping) -> Table | None:
-    """A few of the twin's targets (``twin.json``: ``targets``): value, interval, met."""
+def _condition_text(acceptance: Mapping, name: str) -> str:
+    """The acceptance condition of the twin's target ``name`` (``acceptance.twin.<name>`` of
+    params.yaml, e.g. ``">= 0.9"``); ``n/a`` when the config has none or it is not valid."""
+    from traffictwin.acceptance import threshold
+    from traffictwin.config import ConfigError
+
+    node = acceptance.get(name)
+    try:
+        return threshold(node, name, f"acceptance.twin.{name}").text if node else NA
+    except ConfigError:
+        return NA
+
+
+def twin_table(twin: Mapping, acceptance: Mapping | None = None) -> Table | None:
+    """A few of the twin's targets (``twin.json``: ``targets``): value, interval, the condition
+    (``acceptance``: params.yaml's ``acceptance.twin``) and whether it is met."""
     targets = lookup(twin, "targets")
     if not isinstance(targets, Mapping):
         return None
@@ -203,18 +217,28 @@ def twin_table(twin: Mapping) -> Table | None:
         t = targets.get(key)
         if isinstance(t, Mapping) and "value" in t:
             met = "yes" if t.get("met") is True else "no" if t.get("met") is False else "n/a"
-            rows.append([Cell(quantity), _ci_cell(t, "value", fmt, "ci"), Cell(met)])
+            cond = Cell(_condition_text(acceptance or {}, key))
+            rows.append([Cell(quantity), _ci_cell(t, "value", fmt, "ci"), cond, Cell(met)])
     if not rows:
         return None
     title = _say("twin", targets.get("method"), targets.get("configuration"))
-    return Table(title, ["quantity", "value [95 % CI]", "met"], rows)
+    return Table(title, ["quantity", "value [95 % CI]", "threshold", "met"], rows)
 
 
 def headline_block(
-    fusion: Mapping, risk: Mapping, twin: Mapping, configurations: Mapping | None = None
+    fusion: Mapping,
+    risk: Mapping,
+    twin: Mapping,
+    configurations: Mapping | None = None,
+    acceptance: Mapping | None = None,
 ) -> str:
-    """The README's three small headline tables between :data:`H_BEGIN` / :data:`H_END`."""
-    tables = [fusion_table(fusion, configurations or {}), risk_table(risk), twin_table(twin)]
+    """The README's three small headline tables between :data:`H_BEGIN` / :data:`H_END`
+    (``acceptance``: params.yaml's ``acceptance.twin``, the twin targets' conditions)."""
+    tables = [
+        fusion_table(fusion, configurations or {}),
+        risk_table(risk),
+        twin_table(twin, acceptance),
+    ]
     body = "\n\n".join(table_markdown(t) for t in tables if t) or _say("no_results")
     return _block(H_BEGIN, H_END, body, "", _say("headline_note"))
 
@@ -268,9 +292,14 @@ def page_blocks(read: Callable[[str], str], records: list[dict]) -> dict[str, li
             return {}
 
     fusion, risk, twin = (js(f"reports/metrics/{f}.json") for f in ("fusion", "risk", "twin"))
-    configurations = lookup(js("params.yaml"), "configurations") or {}
+    params = js("params.yaml")
+    configurations = lookup(params, "configurations") or {}
+    acceptance = lookup(params, "acceptance.twin") or {}
     return {
-        README: [headline_block(fusion, risk, twin, configurations), run_time_block(records)],
+        README: [
+            headline_block(fusion, risk, twin, configurations, acceptance),
+            run_time_block(records),
+        ],
         RESULTS_PAGE: [results_block(read(f"reports/{RESULTS_TABLE}")), timings_block(records)],
         BENCH_PAGE: [benchmarks_block(js("reports/benchmarks.json"))],
     }

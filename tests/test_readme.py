@@ -139,7 +139,10 @@ def test_headline_block_reads_the_metrics_files() -> None:
             "occluded_recall_ge_0.9": {"value": 0.95, "ci": [0.9, 1.0], "met": True},
         }
     }
-    block = R.headline_block(fusion, risk, twin, {"A": {"r": 0.0, "alpha": 0.0}})
+    accept = {
+        "occluded_recall_ge_0.9": {"metric": "occluded.recall", "operator": ">=", "value": 0.9}
+    }
+    block = R.headline_block(fusion, risk, twin, {"A": {"r": 0.0, "alpha": 0.0}}, accept)
     assert block.startswith(R.H_BEGIN) and block.endswith(R.H_END)
     assert "7 test pairs per configuration" in block
     assert "| A (0 m, 0°) | 0.2 [0.1, 0.3] | n/a | 0.2 [0.1, 0.3] | n/a |" in block
@@ -148,7 +151,9 @@ def test_headline_block_reads_the_metrics_files() -> None:
         in block
     )
     assert "corridor rule" not in block  # no baseline in the metrics: no row
-    assert "| 95.00 % [90.00 %, 100.00 %] | yes |" in block
+    assert "| 95.00 % [90.00 %, 100.00 %] | >= 0.9 | yes |" in block  # the acceptance config's
+    without = R.headline_block(fusion, risk, twin, {"A": {"r": 0.0, "alpha": 0.0}})
+    assert "| 95.00 % [90.00 %, 100.00 %] | n/a | yes |" in without  # no config: no condition
     empty = R.headline_block({}, {}, {})
     assert "No results yet" in empty
 
