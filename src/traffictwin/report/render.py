@@ -497,14 +497,12 @@ details>summary{cursor:pointer} details>summary h2{display:inline} details.more{
 
 
 def _html_href(href: str) -> str:
-    """A relative link to a report page in Markdown (``risk.md``, ``../README.md#acceptance``) as
-    the HTML report's (``risk.html``, ``../index.html#acceptance``); other links unchanged."""
+    """A relative link to a Markdown page as the HTML report's (``../README.md#a`` -> ``../index.html#a``)."""
     path, sep, anchor = href.partition("#")
     if "://" in path or not path.endswith(".md"):
         return href
-    head, _, name = path.rpartition("/")
-    name = "index.html" if name == README else name[: -len(".md")] + ".html"
-    return (f"{head}/" if head else "") + name + sep + anchor
+    html_path = path[: -len(README)] + INDEX_HTML if path.endswith(README) else path[:-3] + ".html"
+    return html_path + sep + anchor
 
 
 def _inline(text: str) -> str:
