@@ -358,6 +358,13 @@ def test_the_acceptance_table_reads_every_file_shape(tmp_path: Path) -> None:
     ]
     # the twin's other thresholds are absent from the block: not evaluated, never a pass
     assert len(twin) == len(th["twin"]) and all(g[5] == "not evaluated" for g in twin[1:])
+    # a target a constant can meet says what the constant scores on it
+    lead = {"value": -0.4, "ci": [-0.6, -0.2], "met": False, "always_warns_value": 0.171}
+    twin_json = {"targets": {**TWIN_JSON["targets"], "registration_lead_above_naive": lead}}
+    (tmp_path / "constant").mkdir()
+    src2 = _sources(tmp_path / "constant", {"twin.json": twin_json})
+    (row,) = [r for r in acceptance_rows(src2, th) if r.name == "registration_lead_above_naive"]
+    assert row.description.endswith("; a warning at every frame scores 0.17 on it")
     assert count_line(rows) == f"3 pass, 2 fail, {len(rows) - 5} not evaluated"
     sec = acceptance_section(src, th)
     (table,) = sec.tables

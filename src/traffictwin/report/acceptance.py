@@ -180,6 +180,8 @@ def twin_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list
         value = _value_cell(src, file, f"targets.{name}.value", ci[0], ci[1], "g4")
         t = th.get(name)
         desc = t.description if t is not None else str(e.get("note", ""))
+        if isinstance(always := e.get("always_warns_value"), int | float):  # met by a constant?
+            desc += f"; a warning at every frame scores {always:.2f} on it"
         rows.append(
             Row(
                 "twin",
