@@ -243,7 +243,7 @@ def test_learned_stereo_tables_show_both_sources_and_their_difference(
     assert diff[0][2:] == ["-0.100", "[-0.150, -0.050]"]
     # the targets are judged in the acceptance table of the index: one line points there
     assert "stereo-learned-targets" not in by
-    assert sum("(../README.md#acceptance)" in p for p in sec.paragraphs) == 1
+    assert sum("(../README.md#acceptance-thresholds)" in p for p in sec.paragraphs) == 1
     assert any("figures/stereo_learned_example.png" in f.path for f in sec.figures)
 
     none = _reports(tmp_path / "none", {"disparity.json": DISPARITY, "orb.json": ORB}, ())

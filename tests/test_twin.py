@@ -398,7 +398,7 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     pred, veh = tables["twin-predictive"], tables["twin-vehicles"]
     # the targets are judged in the acceptance table of the index: one line points there
     assert "twin-targets" not in tables
-    assert sum("(../README.md#acceptance)" in p for p in sec.paragraphs) == 1
+    assert sum("(../README.md#acceptance-thresholds)" in p for p in sec.paragraphs) == 1
     assert tables["twin-predictive-rule"].rows == []  # no rule chosen in this summary
     # each hazard kind separately: the table reads by_hazard of the same summary
     assert hz.anchor == "twin-hazards"
