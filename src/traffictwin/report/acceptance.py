@@ -15,10 +15,12 @@ from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Section, Table, fmt_value, json_number
 
 TITLE = "Acceptance thresholds"
-#: the line a problem's page shows where its targets table was
+#: the section's anchor on the index: its heading's slug (Markdown and HTML, report.render)
+SECTION_ANCHOR = TITLE.lower().replace(" ", "-")
+#: the line each problem's page shows where its targets table was (pages sit in reports/pages/)
 POINTER = (
-    "Targets: every target's verdict against its acceptance threshold is in the acceptance table "
-    "at the end of the report index (`reports/README.md`, section 'Acceptance thresholds')."
+    "Targets: every target's verdict against its acceptance threshold is in the "
+    f"[acceptance table](../README.md#{SECTION_ANCHOR}) at the end of the report index."
 )
 ANCHOR = "acceptance"
 COLUMNS = [

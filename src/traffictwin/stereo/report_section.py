@@ -7,6 +7,7 @@ Entry point: :func:`provider`.
 from __future__ import annotations
 
 from traffictwin.report import model as page
+from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import NEVER
 from traffictwin.stereo.report_learned import (
     STEREO_FILE,
@@ -42,7 +43,7 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     has targets."""
     sec = page.Section(TITLE, paragraphs=[prose("intro")], figures=figures)
     if (targets := src.get(STEREO_FILE, "targets")) and isinstance(targets, dict):
-        sec.paragraphs.append(prose("acceptance"))
+        sec.paragraphs.append(ACCEPTANCE_POINTER)
     builds = (disparity_tables, learned_tables, variant_tables, fault_tables)
     res = resolution_tables(src)
     sec.tables = [t for build in builds for t in build(src)] + res

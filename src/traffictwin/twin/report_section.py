@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin.report import model as page
+from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
@@ -278,7 +279,7 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
         paras.append(prose("missing", file=FILE))
         return page.Section(TITLE, paragraphs=paras, figures=figures)
     if isinstance(src.get(FILE, "targets"), dict):
-        paras.append(prose("acceptance"))
+        paras.append(ACCEPTANCE_POINTER)
     tables = (occluded_table, open_table, hazard_table, predictive_table, rule_table, vehicle_table)
     return page.Section(TITLE, paragraphs=paras, tables=[t(src) for t in tables], figures=figures)
 
