@@ -1,15 +1,17 @@
 """Helper of tests/test_ddp.py: ``trainer.validate`` of a trained checkpoint on 1 or N CPU ranks.
 
     python tests/ddp_validate.py fusion --model models/fusion/network --data data/prealigned/mixed \
-        --devices 2 --val-samples 3 --batch-size 1 --out val.json
+        --devices 2 --subset 0:2 --subset 3:1 --out val.json
     python tests/ddp_validate.py risk --model models/risk/headline --repo . \
-        --devices 2 --val-frames 3 --batch-size 2 --out val.json
+        --devices 2 --subset 0:2 --subset 3:1 --out val.json
 
 Loads the published checkpoint into the stage's LightningModule and DataModule, runs Lightning's
 validation loop (``strategy=ddp`` with gloo when ``--devices`` > 1; Lightning's launcher re-runs
-this script for the other ranks) and writes, on rank zero, the ``val/*`` metrics and
-``samples_seen``: the number of validation samples summed over every rank (the set's size when
-no sample was left out or repeated). Not a test module itself (no ``test_`` prefix).
+this script for the other ranks) once per ``--subset N:B`` (the first N validation samples, 0: all,
+in batches of B; one process group for all of them: the ranks start and import once) and writes,
+on rank zero, one entry per subset: the ``val/*`` metrics and ``samples_seen``, the number of
+validation samples summed over every rank (the subset's size when no sample was left out or
+repeated). Not a test module itself (no ``test_`` prefix).
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def _fusion(a: argparse.Namespace) -> tuple[Any, Any]:
     module = FusionLitModule(info["architecture"], info["hparams"], meta={"seed": info["seed"]})
     module.load_state_dict(ck["state_dict"])
     g = info["grid"]
-    settings = DataSettings(batch_size=a.batch_size, val_samples=a.val_samples)
+    settings = DataSettings(batch_size=a.batch_size, val_samples=a.n)
     dm = FusionDataModule(a.data, settings, seed=int(info["seed"]), grid=GridSpec(**g))
     return module, dm
 
@@ -73,14 +75,20 @@ def _risk(a: argparse.Namespace) -> tuple[Any, Any]:
     repo = Path(a.repo)
     src = RiskSource(repo / "data/risk", repo / "data/disparity", None)
     val = prepare_split(src, model.cfg, "val", model.meta["label"])
-    if a.val_frames:
+    if a.n:
         val = RiskArrays(
-            *(getattr(val, k)[: a.val_frames] for k in ("frame_id", "rgb", "disp", "speed", "y"))
+            *(getattr(val, k)[: a.n] for k in ("frame_id", "rgb", "disp", "speed", "y"))
         )
     module = RiskRegressor(model.cfg)
     module.net.load_state_dict(model.net.state_dict())
     dm = RiskDataModule(val, val, eval_batch_size=a.batch_size)
     return module, dm
+
+
+def _subset(text: str) -> tuple[int, int]:
+    """``N:B`` -> (samples, batch size)."""
+    n, b = text.split(":")
+    return int(n), int(b)
 
 
 def main() -> None:
@@ -90,24 +98,26 @@ def main() -> None:
     ap.add_argument("--data", default="")
     ap.add_argument("--repo", default=".")
     ap.add_argument("--devices", type=int, default=1)
-    ap.add_argument("--val-samples", type=int, default=0)
-    ap.add_argument("--val-frames", type=int, default=0)
-    ap.add_argument("--batch-size", type=int, default=4)
+    ap.add_argument("--subset", type=_subset, action="append", required=True, metavar="N:B")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    module, dm = (_fusion if a.problem == "fusion" else _risk)(a)
     settings = TrainerSettings(
         accelerator="cpu", devices=a.devices, strategy="ddp" if a.devices > 1 else "auto"
     )
-    counter = CountSamples()
-    trainer = build_trainer(settings, max_epochs=1, callbacks=[counter])
-    trainer.validate(module, datamodule=dm, verbose=False)
-    if trainer.is_global_zero:
+    results = []
+    for n, batch_size in a.subset:
+        a.n, a.batch_size = n, batch_size
+        module, dm = (_fusion if a.problem == "fusion" else _risk)(a)
+        counter = CountSamples()
+        trainer = build_trainer(settings, max_epochs=1, callbacks=[counter])
+        trainer.validate(module, datamodule=dm, verbose=False)
         out = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
         out["samples_seen"] = counter.total
         out["world_size"] = trainer.world_size
-        Path(a.out).write_text(json.dumps(out, indent=1, sort_keys=True))
+        results.append(out)
+    if trainer.is_global_zero:
+        Path(a.out).write_text(json.dumps(results, indent=1, sort_keys=True))
     print(f"rank {trainer.global_rank} pid {os.getpid()} done", file=sys.stderr)
 
 

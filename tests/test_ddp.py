@@ -140,8 +140,9 @@ def ddp_repo(ci_dag: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     }
 
 
-def _validate(repo: Path, problem: str, devices: int, *args: str) -> dict:
-    """tests/ddp_validate.py in the copy: val/* metrics and samples_seen over all ranks."""
+def _validate(repo: Path, problem: str, devices: int, *args: str) -> list[dict]:
+    """tests/ddp_validate.py in the copy: per ``--subset``, val/* metrics and samples_seen over
+    all ranks."""
     out = repo / f"val-{problem}-{devices}-{next(_RUNS)}.json"
     env = stage_env(repo)
     env["OMP_WAIT_POLICY"] = "PASSIVE"
@@ -235,25 +236,23 @@ def _assert_same(single: dict, ddp: dict, n: int) -> None:
 def test_ddp_fusion_validation_equals_one_process(ddp_repo: dict) -> None:
     repo = ddp_repo["repo"]
     model = ["--model", "models/fusion/network", "--data", "data/prealigned/mixed"]
-    # the whole validation split (4 pairs) in batches of 2: one batch per rank; then 3 pairs in
-    # batches of 1: the ranks get 2 and 1 (Lightning's DistributedSampler would repeat one)
     n_val = json.loads((repo / "data/prealigned/mixed/manifest.json").read_text())["split_counts"][
         "val"
     ]
     assert n_val == 4  # the ci profile's validation split
-    single = {}
-    for subset, n in (
-        (["--val-samples", "0", "--batch-size", "2"], n_val),
-        (["--val-samples", "3", "--batch-size", "1"], 3),
-    ):
-        single[n] = _validate(repo, "fusion", 1, *model, *subset)
-        _assert_same(single[n], _validate(repo, "fusion", 2, *model, *subset), n)
+    # the whole validation split (0: all 4 pairs) in batches of 2: one batch per rank; then 3
+    # pairs in batches of 1: the ranks get 2 and 1 (Lightning's DistributedSampler would repeat one)
+    subsets = ["--subset", "0:2", "--subset", "3:1"]
+    singles = _validate(repo, "fusion", 1, *model, *subsets)
+    ddps = _validate(repo, "fusion", 2, *model, *subsets)
+    for one, two, n in zip(singles, ddps, (n_val, 3), strict=True):
+        _assert_same(one, two, n)
     # what the stage computed on 2 ranks during training for the kept epoch (val_samples 8 >= 4
     # pairs, batches of 2) is one process's validation of the published weights
     stage = json.loads((repo / "reports/metrics/train_fusion_network.json").read_text())
     assert stage["val_pairs"] == n_val
     for k in ("val/loss", "val/kld", "val/kld_full", "val/dice_free", "val/dice_occ"):
-        assert stage[k] == pytest.approx(single[n_val][k], **TOL), k
+        assert stage[k] == pytest.approx(singles[0][k], **TOL), k
 
 
 @pytest.mark.slow
@@ -264,11 +263,10 @@ def test_ddp_risk_validation_equals_one_process(ddp_repo: dict) -> None:
     meta = json.loads((repo / "models/risk/headline/model_meta.json").read_text())
     n_val = meta["n_val"]
     assert n_val == 4  # the ci profile's validation frames
-    for subset, n in (
-        (["--val-frames", "0", "--batch-size", "2"], n_val),
-        (["--val-frames", "3", "--batch-size", "1"], 3),
-    ):
-        single = _validate(repo, "risk", 1, *model, *subset)
-        _assert_same(single, _validate(repo, "risk", 2, *model, *subset), n)
-        if n == n_val:  # the kept checkpoint's validation MSE, computed on 2 ranks during training
-            assert meta["best_val_mse"] == pytest.approx(single["val/mse"], **TOL)
+    subsets = ["--subset", "0:2", "--subset", "3:1"]  # all 4 frames in batches of 2; 3 in 1s
+    singles = _validate(repo, "risk", 1, *model, *subsets)
+    ddps = _validate(repo, "risk", 2, *model, *subsets)
+    for one, two, n in zip(singles, ddps, (n_val, 3), strict=True):
+        _assert_same(one, two, n)
+    # the kept checkpoint's validation MSE, computed on 2 ranks during training
+    assert meta["best_val_mse"] == pytest.approx(singles[0]["val/mse"], **TOL)

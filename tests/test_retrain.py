@@ -18,10 +18,10 @@ from traffictwin.mlops import registry as reg
 from traffictwin.mlops.config import compose_with_seeds, seed_overrides
 from traffictwin.mlops.journal import LockBusy, Snapshot, exclusive_lock
 
-MODELS = [
-    "traffictwin-fusion",
-    "traffictwin-risk",
-]  # the e2e test gates the fusion network and the risk net only
+# the e2e test retrains and gates the risk net only: the gate is one code path for every registered
+# model (tests/test_promote.py gates the fusion network and the others), and the risk chain is the
+# shortest one a new seed re-runs (4 stages; the fusion network's is 9)
+MODELS = ["traffictwin-risk"]
 
 
 # ------------------------------------------------------------------ fast unit tests
@@ -141,8 +141,8 @@ def _cheap_copy(repo: Path) -> Path:
     return repo
 
 
-# the fusion network, its gate set (every configuration's validation pairs) and the risk net
-TARGETS = ["train_fusion", "prealign", "train_risk@headline"]
+# the risk net and what a new seed re-runs under it: generate_risk, disparity, orb_filter
+TARGETS = ["train_risk@headline"]
 
 
 @pytest.mark.slow
@@ -165,7 +165,7 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
     params = yaml.safe_load((repo / "params.yaml").read_text())
     assert params == compose_config(repo / "conf", summary["overrides"])
     assert params["seed"] == seed0 + 1
-    assert set(summary["data_after"]) >= {"data/fusion", "data/risk"}
+    assert summary["data_after"]["data/risk"] != summary["data_before"]["data/risk"]  # new data
     champs = _champions(repo)
     assert all(v == "1" for v in champs.values()), champs
     log = reg.read_log(repo / "reports" / "promotions.jsonl")
@@ -197,7 +197,6 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
             "-m",
             "pipelines.retrain",
             "--targets",
-            "generate_fusion",
             "generate_risk",
         ],
         repo,
@@ -212,12 +211,12 @@ def test_retrain_end_to_end_lock_and_failure_restore(repo_copy: Path):
         failed.stderr[-3000:],
     )
     assert (
-        s2["data_after"]["data/fusion"] != summary["data_after"]["data/fusion"]
+        s2["data_after"]["data/risk"] != summary["data_after"]["data/risk"]
     )  # new data had been made ...
     assert (repo / "dvc.lock").read_text() == lock_before  # ... and were rolled back
     assert (repo / "params.yaml").read_text() == params_before
     assert (repo / "conf" / "config.yaml").read_text() == conf_before
-    status = run(["dvc", "status", "generate_fusion", "generate_risk"], repo)
+    status = run(["dvc", "status", "generate_risk"], repo)
     assert "up to date" in status.stdout, status.stdout
     assert _champions(repo) == champs
     assert len(reg.read_log(repo / "reports" / "promotions.jsonl")) == len(log)
