@@ -1,11 +1,11 @@
-"""DVC experiments and MLflow: two `dvc exp run -S ...` experiments on the ci profile, one in the
-workspace and one queued (run in a temp copy under .dvc/tmp/exps), both appear in `dvc exp show`
-/ `dvc exp diff` and as MLflow runs in the repository's own database, with their artifacts beside it.
+"""DVC experiments and MLflow: a queued `dvc exp run --queue -S ...` experiment on the ci profile
+(run by `--run-all` in a temp copy under .dvc/tmp/exps) appears in `dvc exp show` / `dvc exp diff`
+and as an MLflow run in the repository's own database, with its artifacts beside it.
 
 Cheap on purpose: it starts from the finished ci DAG (`ci_dag`, copied so the shared fixture stays
-untouched) and re-runs a single training stage per experiment. What the docs' own experiments show
-(:func:`check_documented_experiments`) is checked by tests/test_readme.py, in the clone where it has
-just run those experiments as the docs write them: the two experiments run once per test session.
+untouched) and re-runs a single training stage. Workspace experiments are checked by
+tests/test_readme.py, in the clone where it has just run the docs' two experiments as the docs
+write them (:func:`check_documented_experiments`): each experiment runs once per test session.
 """
 
 from __future__ import annotations
@@ -62,18 +62,11 @@ def _exps(show: list[dict]) -> dict[str, dict]:
 
 
 @pytest.mark.slow
-def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
-    ci_dag: Path, tmp_path: Path
-) -> None:
+def test_a_queued_experiment_reaches_dvc_and_mlflow(ci_dag: Path, tmp_path: Path) -> None:
     repo = clone_dag(ci_dag, tmp_path / "exp_repo")
     env = user_env(repo)
     head = run(["git", "rev-parse", "HEAD"], repo, env=env).stdout.strip()
 
-    run(
-        ["dvc", "exp", "run", "-n", "exp-ws", "-S", "profile=ci", "-S", f"{PARAM}=0.002", STAGE],
-        repo,
-        env=env,
-    )
     run(
         [
             "dvc",
@@ -93,37 +86,31 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
     )
     run(["dvc", "exp", "run", "--run-all"], repo, env=env)
 
-    # --- DVC: both experiments, with their parameter
+    # --- DVC: the experiment, with its parameter
     exps = _exps(json.loads(run(["dvc", "exp", "show", "--json"], repo, env=env).stdout))
-    assert {"exp-ws", "exp-q"} <= set(exps), sorted(exps)
-    for name, lr in (("exp-ws", 0.002), ("exp-q", 0.003)):
-        params = exps[name]["data"]["params"]["params.yaml"]["data"]
-        assert params["risk_model"]["train"]["lr"] == lr and params["profile"]["name"] == "ci"
-    diff = json.loads(
-        run(["dvc", "exp", "diff", "exp-ws", "exp-q", "--json"], repo, env=env).stdout
-    )
-    assert diff["params"]["params.yaml"][PARAM] == {
-        "old": 0.002,
-        "new": 0.003,
-        "diff": pytest.approx(0.001),
-    }
+    assert "exp-q" in exps, sorted(exps)
+    params = exps["exp-q"]["data"]["params"]["params.yaml"]["data"]
+    assert params["risk_model"]["train"]["lr"] == 0.003 and params["profile"]["name"] == "ci"
+    diff = json.loads(run(["dvc", "exp", "diff", "HEAD", "exp-q", "--json"], repo, env=env).stdout)
+    assert diff["params"]["params.yaml"][PARAM]["new"] == 0.003, diff["params"]
 
-    # --- MLflow: both runs in the repository's own database (the queued one ran under .dvc/tmp/exps)
+    # --- MLflow: the run in the repository's own database (it ran under .dvc/tmp/exps)
     db = repo / "mlflow.db"
     assert db.exists()
     assert not list((repo / ".dvc").rglob("mlflow.db"))
-    df = compare_runs("risk", uri=f"sqlite:///{db}", filter_string=f"tags.dvc_stage = '{STAGE}'")
-    exp_rows = df[df["dvc_exp_name"].isin(["exp-ws", "exp-q"])].set_index("dvc_exp_name")
-    assert sorted(exp_rows.index) == ["exp-q", "exp-ws"], df[["run_name", "dvc_exp_name"]]
-    assert exp_rows.loc["exp-ws", f"param:{PARAM}"] == "0.002"
-    assert exp_rows.loc["exp-q", f"param:{PARAM}"] == "0.003"
-    for name in ("exp-ws", "exp-q"):
-        row = exp_rows.loc[name]
-        assert row["git_commit"] == head[:8]  # the baseline commit, not the temp copy's
-        assert row["pipeline_run"].startswith(head[:8])
-        assert row["profile"] == "ci"
-    assert exp_rows.loc["exp-ws", "pipeline_run"] != exp_rows.loc["exp-q", "pipeline_run"]
-    q_run = exp_rows.loc["exp-q", "run_id"]
+    df = compare_runs(
+        "risk",
+        uri=f"sqlite:///{db}",
+        filter_string=f"tags.dvc_stage = '{STAGE}'",
+        params=[PARAM],  # one run: no parameter differs, so name the one to show
+    )
+    exp_rows = df[df["dvc_exp_name"] == "exp-q"].set_index("dvc_exp_name")
+    assert list(exp_rows.index) == ["exp-q"], df[["run_name", "dvc_exp_name"]]
+    row = exp_rows.loc["exp-q"]
+    assert row[f"param:{PARAM}"] == "0.003"
+    assert row["git_commit"] == head[:8]  # the baseline commit, not the temp copy's
+    assert row["pipeline_run"].startswith(head[:8]) and row["profile"] == "ci"
+    q_run = row["run_id"]
 
     # artifacts (checkpoint) beside the database, not in the deleted temp copy
     from mlflow.tracking import MlflowClient
@@ -135,8 +122,7 @@ def test_workspace_and_queued_experiments_reach_dvc_and_mlflow(
     assert files, "queued experiment's artifacts missing"
 
     # the CLI-facing formatter shows both experiments
-    text = format_runs(df)
-    assert "exp-ws" in text and "exp-q" in text
+    assert "exp-q" in format_runs(df)
 
 
 def check_documented_experiments(repo: Path, env: dict[str, str]) -> None:
@@ -146,7 +132,8 @@ def check_documented_experiments(repo: Path, env: dict[str, str]) -> None:
     (as the docs run it) fits in 120 columns and shows the changed parameter and the summary
     metrics it moved; `dvc exp diff` compares only the summary; `dvc plots diff` draws two
     learning curves named by the experiments; MLflow's run is named after the experiment and its
-    override and holds the same numbers as DVC's summary."""
+    override, holds the same numbers as DVC's summary and records the baseline commit, the profile
+    and a pipeline run of its own."""
     # the docs page's table (and its printed example) holds its own two experiments: an earlier
     # one (the README's Quick start, named at random by DVC) is removed first
     names = _exps(json.loads(run(["dvc", "exp", "show", "--json"], repo, env=env).stdout))
@@ -181,6 +168,13 @@ def check_documented_experiments(repo: Path, env: dict[str, str]) -> None:
     assert row["run_name"] == "fusion-network [lr-low: fusion_model.optim.lr=0.002]"
     for key in ("val/kld_full", "val/dice_occ", "test/D/kld_fou_mean", "test/D/dice_occ"):
         assert row[key] == vals["lr-low"][key], key
+    # workspace experiments: each its own pipeline run, of the baseline commit, on the ci profile
+    head = run(["git", "rev-parse", "HEAD"], repo, env=env).stdout.strip()
+    ws = df[df["dvc_exp_name"].isin(["lr-low", "lr-high"])].set_index("dvc_exp_name")
+    assert sorted(ws.index) == ["lr-high", "lr-low"], df[["run_name", "dvc_exp_name"]]
+    assert (ws["git_commit"] == head[:8]).all() and (ws["profile"] == "ci").all(), ws
+    assert ws["pipeline_run"].str.startswith(head[:8]).all()
+    assert ws.loc["lr-low", "pipeline_run"] != ws.loc["lr-high", "pipeline_run"]
 
     curves = "reports/plots/train_fusion_network.csv"
     plots = json.loads(
