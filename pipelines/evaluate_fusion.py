@@ -208,7 +208,7 @@ def choose_on_validation(
     """Choose the classical registration's and the learned pose refinement's settings on the
     validation pairs (``evaluation.fusion.validation``: ``max_pairs`` per configuration of
     ``split``, never the evaluated one): every candidate of each grid
-    (:func:`~traffictwin.fusion.methods.parameter_grid`) scored by its registration success rate
+    (:func:`~traffictwin.fusion.registration_tuning.parameter_grid`) scored by its registration success rate
     pooled over the configurations, the highest wins (ties: the earlier candidate). Returns ``fc``
     with the chosen ``registration`` / ``refinement`` and the record for fusion.json's
     ``validation`` block. The refinement is chosen only where the learned registration is
@@ -218,7 +218,8 @@ def choose_on_validation(
     import numpy as np
 
     from traffictwin.fusion import evaluation as ev
-    from traffictwin.fusion.methods import FusionInput, parameter_grid, validation_success
+    from traffictwin.fusion.methods import FusionInput
+    from traffictwin.fusion.registration_tuning import parameter_grid, validation_success
     from traffictwin.io.npz import DatasetError
 
     v = fc.validation

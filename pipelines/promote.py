@@ -212,12 +212,11 @@ def stereo_card(cand: promotion.Candidate) -> promotion.ModelCard:
     )
 
 
-def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
-    """One gate job per task: fusion network, learned registration, risk variant (gate sets load lazily)."""
+def _fusion_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
+    """The fusion network's gate job, and the learned registration's where it is configured."""
     from traffictwin.fusion.gate_eval import fusion_evaluator, fusion_test_set
-    from traffictwin.risk.gate_eval import risk_evaluator, risk_test_set
 
-    f, g, r = rc.fusion, rc.registration, rc.risk
+    f, g = rc.fusion, rc.registration
     roots = [prealigned(c) for c in configurations(cfg)]
 
     def make_fusion_eval(cand):
@@ -256,30 +255,38 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
                 card=fusion_card("learned", cfg),
             )
         )
-    # the learned stereo network: end-point error on the gate split's fault-free pairs
-    if "stereo_model" in cfg:
-        from traffictwin.risk.stereo_gate import stereo_evaluator, stereo_test_set
+    return jobs
 
-        s = rc.stereo
-        base = get(cfg, "stereo_model.architecture.base", str)
 
-        def make_stereo_eval(cand):
-            data, fp = stereo_test_set(
-                RISK_DATA, DISPARITY if base == "sgm" else None, s.split, s.max_frames
-            )
-            return stereo_evaluator(data, s.batch_size, s.split), fp
+def _stereo_job(cfg: DictConfig, rc: RegistryConfig) -> promotion.GateJob:
+    """The learned stereo network's gate job: end-point error on the gate split's fault-free pairs."""
+    from traffictwin.risk.stereo_gate import stereo_evaluator, stereo_test_set
 
-        jobs.append(
-            promotion.GateJob(
-                name=s.name,
-                gate=s.gate(),
-                model_dir=STEREO_MODEL,
-                make_evaluator=make_stereo_eval,
-                record_path=run_record_file("train_stereo"),
-                tags={"model_dir": _rel(STEREO_MODEL)},
-                card=stereo_card,
-            )
+    s = rc.stereo
+    base = get(cfg, "stereo_model.architecture.base", str)
+
+    def make_stereo_eval(cand):
+        data, fp = stereo_test_set(
+            RISK_DATA, DISPARITY if base == "sgm" else None, s.split, s.max_frames
         )
+        return stereo_evaluator(data, s.batch_size, s.split), fp
+
+    return promotion.GateJob(
+        name=s.name,
+        gate=s.gate(),
+        model_dir=STEREO_MODEL,
+        make_evaluator=make_stereo_eval,
+        record_path=run_record_file("train_stereo"),
+        tags={"model_dir": _rel(STEREO_MODEL)},
+        card=stereo_card,
+    )
+
+
+def _risk_job(cfg: DictConfig, rc: RegistryConfig) -> promotion.GateJob:
+    """The risk variant's gate job (the shipped model's, or ``rc.risk.variant``'s)."""
+    from traffictwin.risk.gate_eval import risk_evaluator, risk_test_set
+
+    r = rc.risk
     # keys of other groups the risk gate shares with the evaluate_risk stage
     default_label = get(cfg, "risk_model.label", str)
     ev = typed(cfg["evaluation"]["risk"], EvalRiskConfig, key="evaluation.risk")
@@ -293,17 +300,23 @@ def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
 
     shipped = r.variant == SHIPPED
     risk_dir = SHIPPED_RISK_MODEL if shipped else risk_model_dir(r.variant)
-    jobs.append(
-        promotion.GateJob(
-            name=r.name,
-            gate=r.gate(),
-            model_dir=risk_dir,
-            make_evaluator=make_risk_eval,
-            record_path=run_record_file("select_risk" if shipped else f"train_risk@{r.variant}"),
-            tags={"model_dir": _rel(risk_dir)},
-            card=risk_card(r.variant),
-        )
+    return promotion.GateJob(
+        name=r.name,
+        gate=r.gate(),
+        model_dir=risk_dir,
+        make_evaluator=make_risk_eval,
+        record_path=run_record_file("select_risk" if shipped else f"train_risk@{r.variant}"),
+        tags={"model_dir": _rel(risk_dir)},
+        card=risk_card(r.variant),
     )
+
+
+def build_jobs(cfg: DictConfig, rc: RegistryConfig) -> list[promotion.GateJob]:
+    """One gate job per task: fusion network, learned registration, risk variant (gate sets load lazily)."""
+    jobs = _fusion_jobs(cfg, rc)
+    if "stereo_model" in cfg:
+        jobs.append(_stereo_job(cfg, rc))
+    jobs.append(_risk_job(cfg, rc))
     return jobs
 
 

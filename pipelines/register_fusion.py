@@ -9,7 +9,7 @@ the noisy pose with ``evaluation.fusion.registration`` (the `registered` baselin
 warped by the pose it accepts. ``fusion_data.register.max_train_pairs`` / ``max_val_pairs`` evenly
 spaced pairs of the train / val splits (registration costs ~80 ms per pair); test pairs are
 registered by evaluate_fusion itself. Same shard schema as data/prealigned (+ rel_pose_registered,
-reg_accepted). Library: :func:`traffictwin.fusion.methods.register_prealigned`.
+reg_accepted). Library: :func:`traffictwin.fusion.registration_batches.register_prealigned`.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from traffictwin.fusion.config import (
     grid_config,
     registered_configurations,
 )
-from traffictwin.fusion.methods import register_prealigned
 from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.fusion.registration_batches import register_prealigned
 from traffictwin.io.shards import (
     Dataset,
     DatasetError,

@@ -92,6 +92,33 @@ def _own_figures(disp: np.ndarray, gt: np.ndarray, fx_b: float, obj: np.ndarray)
     return {k: (None if not np.isfinite(st[k]) else st[k]) for k in FIGURES}
 
 
+def _test_comparison(
+    ds: Dataset,
+    frames: pd.DataFrame,
+    best: SgmParams,
+    configured_disp: Dataset,
+    cam: dict[str, float],
+    n_boot: int,
+    src: Path,
+) -> dict[str, Any]:
+    """The chosen variant ``best`` against the configured matcher's data/disparity on the
+    fault-free test frames (:func:`evaluate`, paired chosen - configured; None where not finite)."""
+    fx_b = cam["fx"] * cam["baseline"]
+    test_rows = _select(frames, "test")
+    if test_rows.empty:
+        raise DatasetError(f"{src}: no fault-free test frames to compare on")
+    acc, seqs = [], []
+    for _, g in test_rows.groupby("shard", sort=True):  # a shard at a time: bounded memory
+        t = _load(ds, g, configured_disp)
+        d, _ = disparity_frames(t["left"], t["right"], best)
+        o = critical_objects(t["disp_gt"], fx_b, cam)
+        acc.append(frame_sums({"configured": t["disp_sgm"], "chosen": d}, t["disp_gt"], fx_b, o))
+        seqs.append(g.scenario.to_numpy())
+    sums = {k: {f: np.concatenate([a[k][f] for a in acc]) for f in acc[0][k]} for k in acc[0]}
+    m = evaluate(sums, np.concatenate(seqs), n_boot, pairs=(("chosen", "configured"),))
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in m.items()}
+
+
 def run(
     sgm: SgmParams,
     grid: dict[str, list[Any]],
@@ -144,23 +171,7 @@ def run(
         out["test"] = {"why": "the chosen variant is the configured matcher"}
     else:
         best = next(v for v in variants if variant_name(v) == chosen)
-        test_rows = _select(frames, "test")
-        if test_rows.empty:
-            raise DatasetError(f"{src}: no fault-free test frames to compare on")
-        acc, seqs = [], []
-        for _, g in test_rows.groupby("shard", sort=True):  # a shard at a time: bounded memory
-            t = _load(ds, g, configured_disp)
-            d, _ = disparity_frames(t["left"], t["right"], best)
-            o = critical_objects(t["disp_gt"], fx_b, cam)
-            acc.append(
-                frame_sums({"configured": t["disp_sgm"], "chosen": d}, t["disp_gt"], fx_b, o)
-            )
-            seqs.append(g.scenario.to_numpy())
-        sums = {k: {f: np.concatenate([a[k][f] for a in acc]) for f in acc[0][k]} for k in acc[0]}
-        m = evaluate(sums, np.concatenate(seqs), n_boot, pairs=(("chosen", "configured"),))
-        out["test"] = {
-            k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in m.items()
-        }
+        out["test"] = _test_comparison(ds, frames, best, configured_disp, cam, n_boot, src)
     if record is not None:  # timings vary between identical runs: run record only
         record["ms_per_frame"] = {k: round(1000.0 * s, 3) for k, s in secs.items()}
     f = figures[chosen]

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +70,121 @@ def check_disparity(risk: Dataset, disparity: Path) -> Dataset:
     return disp
 
 
+@dataclass
+class _Inputs:
+    """What :func:`run` reads: the network(s), data/risk, data/disparity (SGM) and the camera."""
+
+    net: Any
+    held_net: Any  # the hold-out network, or None
+    held: list[str]  # its held-out road templates
+    ds: Dataset
+    sgm: Dataset
+    cam: dict
+    fx_b: float  # focal length (px) × baseline (m)
+    thr: float  # the network's spread threshold (px)
+
+
+def _load_inputs(model: Path, src: Path, disparity: Path, holdout_model: Path | None) -> _Inputs:
+    """The networks and datasets of :func:`run`, checked (DatasetError when missing/inconsistent)."""
+    from traffictwin.risk.stereo_io import load_stereo_model
+
+    if not (Path(src) / "manifest.json").exists():
+        raise DatasetError(f"{src}: no manifest.json (run `dvc repro generate_risk` first)")
+    net = load_stereo_model(model)
+    held_net = load_stereo_model(holdout_model) if holdout_model is not None else None
+    held = [str(t) for t in (held_net.meta.get("holdout_templates") or [])] if held_net else []  # type: ignore[attr-defined]
+    if held_net is not None and not held:
+        raise DatasetError(f"{holdout_model}: model_meta.json names no held-out road templates")
+    ds = Dataset(src, kind="risk")  # verifies every shard's SHA-256
+    sgm = check_disparity(ds, disparity)
+    cam = ds.manifest.get("camera") or {}
+    if not {"fx", "baseline", "cy", "fy", "mount_height"} <= set(cam):
+        raise DatasetError(
+            f"{Path(src) / 'manifest.json'}: 'camera' lacks fx/baseline/cy/fy/mount_height"
+        )
+    fx_b = float(cam["fx"]) * float(cam["baseline"])
+    thr = float(net.meta["spread_threshold_px"])  # type: ignore[attr-defined]
+    return _Inputs(net, held_net, held, ds, sgm, cam, fx_b, thr)
+
+
+@dataclass
+class _TestSums:
+    """Per-frame sums of the fault-free test frames (:func:`frame_sums`), their sequences and
+    where they are (shard, rows); ``gen_*``: the same for the held-out templates' frames."""
+
+    acc: list[dict[str, dict[str, Any]]] = field(default_factory=list)
+    seqs: list[np.ndarray] = field(default_factory=list)
+    keep: list[tuple[int, np.ndarray]] = field(default_factory=list)
+    gen_acc: list[dict[str, dict[str, Any]]] = field(default_factory=list)
+    gen_seqs: list[np.ndarray] = field(default_factory=list)
+
+
+def _score_shard(
+    x: _Inputs,
+    i: int,
+    sh: dict[str, np.ndarray],
+    rows: Any,
+    disp: np.ndarray,
+    batch_size: int,
+    sums: _TestSums,
+) -> None:
+    """Add shard ``i``'s fault-free test frames (``rows``: its frames.csv rows by ``idx``) to
+    ``sums``: SGM and the network's ``disp`` (px), and the hold-out network on its templates."""
+    from traffictwin.risk.stereo_io import predict
+
+    sel = ((rows.split == "test") & (rows.fault == "none")).to_numpy()
+    if not sel.any():
+        return
+    d_sgm = x.sgm.load_shard(i)["disp_sgm"][sel]
+    gt = sh["disp_gt"][sel]
+    obj = critical_objects(gt, x.fx_b, x.cam)
+    sums.acc.append(frame_sums({"sgm": d_sgm, "learned": disp[sel]}, gt, x.fx_b, obj))
+    sums.seqs.append(rows.scenario.to_numpy()[sel])
+    sums.keep.append((i, np.flatnonzero(sel)))
+    unseen = rows.template.astype(str).isin(x.held).to_numpy()[sel] if x.held else None
+    if unseen is not None and unseen.any():
+        held_net = x.held_net
+        d_h, spread_h = predict(
+            held_net,
+            sh["left"][sel][unseen],
+            sh["right"][sel][unseen],
+            batch_size,
+            sgm=d_sgm[unseen] if held_net.spec.base == "sgm" else None,
+        )
+        thr_h = float(held_net.meta["spread_threshold_px"])
+        d_h = np.where(spread_h <= thr_h, d_h, -1.0).astype(np.float32)
+        sums.gen_acc.append(
+            frame_sums(
+                {"sgm": d_sgm[unseen], "learned": disp[sel][unseen], "holdout": d_h},
+                gt[unseen],
+                x.fx_b,
+                obj[unseen],
+            )
+        )
+        sums.gen_seqs.append(rows.scenario.to_numpy()[sel][unseen])
+
+
+def _test_metrics(
+    x: _Inputs,
+    sums: _TestSums,
+    src: Path,
+    n_boot: int,
+    thresholds: Mapping[str, Threshold] | None,
+) -> dict[str, Any]:
+    """stereo.json's metrics from the test sums: SGM vs the network, its targets and the
+    hold-out network's ``generalisation``."""
+    if not sums.acc:
+        raise DatasetError(f"{src}: no fault-free test frames to evaluate on")
+    metrics: dict[str, Any] = _finite(evaluate(_stack(sums.acc), np.concatenate(sums.seqs), n_boot))
+    metrics["learned/spread_threshold_px"] = x.thr
+    if thresholds is None:
+        thresholds = for_problem(params(), "stereo")
+    metrics["targets"] = stereo_targets(metrics, thresholds)
+    if x.held_net is not None:
+        metrics["generalisation"] = generalisation(x.held, sums.gen_acc, sums.gen_seqs, n_boot)
+    return metrics
+
+
 def run(
     model: Path = STEREO_MODEL,
     src: Path = RISK_DATA,
@@ -88,26 +204,12 @@ def run(
     without some road templates (its meta's ``holdout_templates``), scored with the full one and
     SGM on those templates' fault-free test frames (``generalisation``). ``thresholds``: the
     targets' acceptance thresholds (``acceptance.stereo``; default: read from params.yaml)."""
-    from traffictwin.risk.stereo_io import load_stereo_model, predict
+    from traffictwin.risk.stereo_io import predict
     from traffictwin.threads import pin_threads
 
     log = setup_logging()
-    if not (Path(src) / "manifest.json").exists():
-        raise DatasetError(f"{src}: no manifest.json (run `dvc repro generate_risk` first)")
-    net = load_stereo_model(model)
-    held_net = load_stereo_model(holdout_model) if holdout_model is not None else None
-    held = [str(t) for t in (held_net.meta.get("holdout_templates") or [])] if held_net else []  # type: ignore[attr-defined]
-    if held_net is not None and not held:
-        raise DatasetError(f"{holdout_model}: model_meta.json names no held-out road templates")
-    ds = Dataset(src, kind="risk")  # verifies every shard's SHA-256
-    sgm = check_disparity(ds, disparity)
-    cam = ds.manifest.get("camera") or {}
-    if not {"fx", "baseline", "cy", "fy", "mount_height"} <= set(cam):
-        raise DatasetError(
-            f"{Path(src) / 'manifest.json'}: 'camera' lacks fx/baseline/cy/fy/mount_height"
-        )
-    fx_b = float(cam["fx"]) * float(cam["baseline"])
-    thr = float(net.meta["spread_threshold_px"])  # type: ignore[attr-defined]
+    x = _load_inputs(model, src, disparity, holdout_model)
+    ds, net, thr = x.ds, x.net, x.thr
     pin_threads(num_threads)
     frames = ds.table("frames.csv")
     writer = DatasetWriter(
@@ -117,14 +219,10 @@ def run(
         ds.manifest.get("seed", 0),
     )
     seconds, n_frames = 0.0, 0
-    acc: list[dict[str, dict[str, Any]]] = []
-    seqs: list[np.ndarray] = []
-    keep: list[tuple[int, np.ndarray]] = []
-    gen_acc: list[dict[str, dict[str, Any]]] = []  # the held-out templates' test frames
-    gen_seqs: list[np.ndarray] = []
+    sums = _TestSums()
     for i, info in enumerate(ds.shards):
         sh = load_stereo_shard(ds, i, ("left", "right", "disp_gt"))
-        d_in = sgm.load_shard(i)["disp_sgm"] if net.spec.base == "sgm" else None
+        d_in = x.sgm.load_shard(i)["disp_sgm"] if net.spec.base == "sgm" else None
         t0 = time.perf_counter()
         disp, spread = predict(net, sh["left"], sh["right"], batch_size, sgm=d_in)
         seconds += time.perf_counter() - t0
@@ -135,50 +233,15 @@ def run(
         )
         writer.record_shard(i, shard_name(i), digest, len(disp), info.get("split"))
         rows = frames[frames.shard == i].sort_values("idx")
-        sel = ((rows.split == "test") & (rows.fault == "none")).to_numpy()
-        if sel.any():
-            d_sgm = sgm.load_shard(i)["disp_sgm"][sel]
-            gt = sh["disp_gt"][sel]
-            obj = critical_objects(gt, fx_b, cam)
-            acc.append(frame_sums({"sgm": d_sgm, "learned": disp[sel]}, gt, fx_b, obj))
-            seqs.append(rows.scenario.to_numpy()[sel])
-            keep.append((i, np.flatnonzero(sel)))
-            unseen = rows.template.astype(str).isin(held).to_numpy()[sel] if held else None
-            if unseen is not None and unseen.any():
-                d_h, spread_h = predict(
-                    held_net,
-                    sh["left"][sel][unseen],
-                    sh["right"][sel][unseen],
-                    batch_size,
-                    sgm=d_sgm[unseen] if held_net.spec.base == "sgm" else None,  # type: ignore[union-attr]
-                )
-                thr_h = float(held_net.meta["spread_threshold_px"])  # type: ignore[union-attr]
-                d_h = np.where(spread_h <= thr_h, d_h, -1.0).astype(np.float32)
-                gen_acc.append(
-                    frame_sums(
-                        {"sgm": d_sgm[unseen], "learned": disp[sel][unseen], "holdout": d_h},
-                        gt[unseen],
-                        fx_b,
-                        obj[unseen],
-                    )
-                )
-                gen_seqs.append(rows.scenario.to_numpy()[sel][unseen])
-    if not acc:
-        raise DatasetError(f"{src}: no fault-free test frames to evaluate on")
-    metrics: dict[str, Any] = _finite(evaluate(_stack(acc), np.concatenate(seqs), n_boot))
-    metrics["learned/spread_threshold_px"] = thr
-    if thresholds is None:
-        thresholds = for_problem(params(), "stereo")
-    metrics["targets"] = stereo_targets(metrics, thresholds)
-    if held_net is not None:
-        metrics["generalisation"] = generalisation(held, gen_acc, gen_seqs, n_boot)
+        _score_shard(x, i, sh, rows, disp, batch_size, sums)
+    metrics = _test_metrics(x, sums, src, n_boot, thresholds)
     ms = 1000.0 * seconds / max(n_frames, 1)
     if record is not None:  # timings vary between identical runs: run record only
         record["ms_per_frame"] = round(ms, 3)
         record["torch_threads"] = num_threads
     writer.finalize(extra={"source_manifest": ds.manifest_hash(), "metrics": metrics})
     if figure is not None:
-        _figure(ds, sgm, Dataset(out, kind="stereo_learned", verify=False), keep, figure)
+        _figure(ds, x.sgm, Dataset(out, kind="stereo_learned", verify=False), sums.keep, figure)
     log.info(
         "%s: test EPE learned %.3f / SGM %.3f px (common pixels), critical objects median "
         "%.1f %% / %.1f %% (own pixels), %.1f ms/frame",

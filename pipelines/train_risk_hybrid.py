@@ -14,6 +14,7 @@ the same hybrid is also trained on the learned stereo network's disparity, one r
 from __future__ import annotations
 
 from dataclasses import fields, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -95,6 +96,60 @@ def learned_disparity(p) -> bool:
     return get(p, "risk_hybrid.learned_disparity", bool)
 
 
+def _split_data(
+    source: RiskSource,
+    configs: dict[str, HybridConfig],
+    camera: dict[str, float],
+    geo: Any,
+    label: str,
+    holdout: list[str],
+    fpath: str,
+) -> dict[str, dict[str, tuple]]:
+    """Per disparity source and split (train, val): ``(features, THW label (s), seen)`` with
+    ``seen`` the frames not of a held-out road template."""
+    data: dict[str, dict[str, tuple]] = {}
+    for disparity, c in configs.items():
+        data[disparity] = {}
+        for split in ("train", "val"):
+            x, rows = source_features(source, source.split_frames(split), camera, geo, c)
+            thw = risk_to_thw(check_label(rows, label, fpath), c.thw_cap_s)
+            seen = ~rows["template"].isin(holdout).to_numpy() if holdout else np.ones(len(x), bool)
+            data[disparity][split] = (x, thw, seen)
+    return data
+
+
+def _run_meta(
+    p: Any,
+    run: tuple,
+    label: str,
+    camera: dict[str, float],
+    n_train: int,
+    n_val: int,
+    history: list[dict],
+) -> dict[str, Any]:
+    """model_meta.json of one run ``(name, seed offset, held-out templates, base, disparity)``."""
+    name, seed, held, base, disparity = run
+    return {
+        "variant": name,
+        "label": label,
+        "objective": "log_thw",
+        "seed_offset": int(seed),
+        "replicate_of": None if name == base else base,
+        "holdout_templates": list(held or []),
+        "disparity": disparity,
+        "n_train": int(n_train),
+        "n_val": int(n_val),
+        "final_val_loss": history[-1].get("val_loss"),
+        "domain": {
+            "camera": {"width": int(camera["width"]), "height": int(camera["height"])},
+            "max_speed": get(p, "risk_data.max_speed", float),
+            "sgm": get(p, "risk_data.sgm", dict),
+            "orb": get(p, "risk_data.orb", dict),
+            "label": label,
+        },
+    }
+
+
 def main() -> None:
     log = setup_logging()
     p = params()
@@ -126,16 +181,7 @@ def main() -> None:
         configs = {"disp_sgm": cfg}
         if learned:
             configs["disp_learned"] = replace(cfg, disparity="disp_learned")
-        data: dict[str, dict[str, tuple]] = {}
-        for disparity, c in configs.items():
-            data[disparity] = {}
-            for split in ("train", "val"):
-                x, rows = source_features(source, source.split_frames(split), camera, geo, c)
-                thw = risk_to_thw(check_label(rows, label, fpath), c.thw_cap_s)
-                seen = (
-                    ~rows["template"].isin(holdout).to_numpy() if holdout else np.ones(len(x), bool)
-                )
-                data[disparity][split] = (x, thw, seen)
+        data = _split_data(source, configs, camera, geo, label, holdout, fpath)
         if len(data["disp_sgm"]["train"][0]) == 0:
             raise ValueError(f"{fpath}: the training split has no frames (after the ORB check)")
         runs = [(n, s, None, HYBRID, "disp_sgm") for n, s in hybrid_runs(seeds).items()]
@@ -145,32 +191,15 @@ def main() -> None:
         runs += [
             (n, s, None, LEARNED, "disp_learned") for n, s in learned_runs(seeds, learned).items()
         ]
-        for name, seed, held, base, disparity in runs:
+        for run in runs:
+            name, seed, held, _, disparity = run
             c = configs[disparity]
             xt, tt, seen_t = data[disparity]["train"]
             xv, tv, seen_v = data[disparity]["val"]
             if held:  # without the held-out templates (training and validation loss alike)
                 xt, tt, xv, tv = xt[seen_t], tt[seen_t], xv[seen_v], tv[seen_v]
             net, history = fit_hybrid(xt, tt, c, base_seed + seed, xv, tv)
-            meta = {
-                "variant": name,
-                "label": label,
-                "objective": "log_thw",
-                "seed_offset": int(seed),
-                "replicate_of": None if name == base else base,
-                "holdout_templates": list(held or []),
-                "disparity": disparity,
-                "n_train": int(len(xt)),
-                "n_val": int(len(xv)),
-                "final_val_loss": history[-1].get("val_loss"),
-                "domain": {
-                    "camera": {"width": int(camera["width"]), "height": int(camera["height"])},
-                    "max_speed": get(p, "risk_data.max_speed", float),
-                    "sgm": get(p, "risk_data.sgm", dict),
-                    "orb": get(p, "risk_data.orb", dict),
-                    "label": label,
-                },
-            }
+            meta = _run_meta(p, run, label, camera, len(xt), len(xv), history)
             out = hybrid_model_dir(name)
             model = HybridRiskModel(net, c, geo, camera, cfg=PredictorInputs(inputs=(disparity,)))
             save_predictor(model, out, meta)

@@ -682,7 +682,7 @@ def test_fusion_variants_are_checked_against_configurations_and_registered_data(
 
 def test_register_prealigned_rewarps_map2_by_the_registration_pose() -> None:
     from traffictwin.evidential.warp import warp_masses
-    from traffictwin.fusion.methods import register_prealigned, registered_fusion
+    from traffictwin.fusion.registration_batches import register_prealigned, registered_fusion
 
     grid = GridSpec(64, 48, 0.5)
     g = np.random.default_rng(0)

@@ -218,7 +218,7 @@ def test_fit_run_keeps_the_resume_folder_when_the_caller_fails(tmp_path: Path) -
 
 # -- registrations computed once ---------------------------------------------------------------------
 def test_classical_registration_runs_once_per_pair_for_every_method(monkeypatch) -> None:
-    from traffictwin.fusion import methods
+    from traffictwin.fusion import methods, registration_batches
     from traffictwin.fusion import registration as reg
 
     calls: list[int] = []
@@ -228,7 +228,7 @@ def test_classical_registration_runs_once_per_pair_for_every_method(monkeypatch)
         calls.append(1)
         return real(*a, **kw)
 
-    monkeypatch.setattr(methods, "register_pair", counting)
+    monkeypatch.setattr(registration_batches, "register_pair", counting)
     rng = np.random.default_rng(1)
     d = rng.dirichlet([1.0, 1.0, 1.0], size=(3, 2, 32, 32)).astype(np.float32)
     maps = np.moveaxis(d[..., :2], -1, 2)

@@ -7,14 +7,8 @@ import numpy as np
 import pytest
 
 from tests.test_registration import GRID, render, structured_world
-from traffictwin.fusion.registration import (
-    RefinementParams,
-    RegistrationParams,
-    ecc_align,
-    pose_error,
-    refine_pose,
-    register_pair,
-)
+from traffictwin.fusion.refinement import RefinementParams, refine_pose
+from traffictwin.fusion.registration import RegistrationParams, ecc_align, pose_error, register_pair
 from traffictwin.geometry import relative_pose
 
 
@@ -156,7 +150,8 @@ def test_refined_methods_are_registered_and_finish_the_coarse_pose():
 
 def test_settings_are_chosen_by_validation_success():
     from traffictwin.evidential.warp import warp_masses
-    from traffictwin.fusion.methods import FusionInput, parameter_grid, validation_success
+    from traffictwin.fusion.methods import FusionInput
+    from traffictwin.fusion.registration_tuning import parameter_grid, validation_success
 
     m1, m2, true = _pair(1)
     noisy = true + np.array([0.8, -0.6, np.radians(3.0)])

@@ -160,7 +160,7 @@ REGISTRATION_STAGE = textwrap.dedent(
     """
     import numpy as np
     from pipelines._common import run_stage
-    from traffictwin.fusion.methods import register_many
+    from traffictwin.fusion.registration_batches import register_many
     from traffictwin.grid import GridSpec
 
     def main():
@@ -219,8 +219,8 @@ def test_registration_pool_workers_leave_ctrl_c_to_the_parent():
     ignores SIGINT, so Ctrl-C prints no traceback per worker (the parent ends the pool)."""
     import cv2
 
-    from traffictwin.fusion.methods import _POOL_STATE, _pool_init
     from traffictwin.fusion.registration import RegistrationParams
+    from traffictwin.fusion.registration_batches import _POOL_STATE, _pool_init
     from traffictwin.grid import GridSpec
 
     before, threads = signal.getsignal(signal.SIGINT), cv2.getNumThreads()

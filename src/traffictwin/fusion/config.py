@@ -19,7 +19,8 @@ from typing import Any
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.evidential.noise import PoseNoise
-from traffictwin.fusion.registration import RefinementParams, RegistrationParams
+from traffictwin.fusion.refinement import RefinementParams
+from traffictwin.fusion.registration import RegistrationParams
 from traffictwin.grid import GridSpec
 
 __all__ = [
@@ -392,7 +393,7 @@ class FusionEvalConfig:
 
     @property
     def refinement_params(self) -> RefinementParams:
-        """``refinement`` as :class:`~traffictwin.fusion.registration.RefinementParams`."""
+        """``refinement`` as :class:`~traffictwin.fusion.refinement.RefinementParams`."""
         try:
             return RefinementParams(**self.refinement)
         except (TypeError, ValueError) as exc:

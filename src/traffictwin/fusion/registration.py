@@ -54,9 +54,9 @@ __all__ = [
     "warp_image",
     "register_pair",
     "ecc_align",
-    "RefinementParams",
-    "RefinementResult",
-    "refine_pose",
+    "masked_cc",
+    "PairFeatures",
+    "pair_features",
     "BoundedPhaseCorrelator",
     "pose_error",
 ]
@@ -184,7 +184,7 @@ def warp_image(
     )
 
 
-def _masked_cc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+def masked_cc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     """Zero-mean normalised correlation of ``a`` and ``b`` over ``mask`` (bool); −1 if undefined."""
     n = int(mask.sum())
     if n < 16:
@@ -322,7 +322,7 @@ def _coarse_alignment(
         w = r @ np.array([[1.0, 0.0, sx], [0.0, 1.0, sy], [0.0, 0.0, 1.0]])  # g2(W p) ≈ f1(p)
         warped = cv2.warpAffine(b2, w[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         kw = cv2.warpAffine(kg2, w[:2], size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        cc = _masked_cc(b1, warped, (k1 > 0) & (kw > 0))
+        cc = masked_cc(b1, warped, (k1 > 0) & (kw > 0))
         if cc > best[0]:
             best = (cc, w, ang)
     _, wc, coarse = best
@@ -389,7 +389,7 @@ def ecc_align(
 
 
 @dataclass
-class _PairFeatures:
+class PairFeatures:
     """Both maps' feature images and known masks, map 2's warped into map 1's pixels by a pose."""
 
     f1: np.ndarray
@@ -402,7 +402,7 @@ class _PairFeatures:
     both: np.ndarray  # cells known in map 1 and in warped map 2
 
 
-def _pair_features(
+def pair_features(
     what: str,
     map1: np.ndarray,
     map2: np.ndarray,
@@ -410,9 +410,10 @@ def _pair_features(
     grid: GridSpec,
     feature: str,
     known_threshold: float,
-) -> _PairFeatures:
+) -> PairFeatures:
     """Shape check (ValueError naming ``what``), feature images, known masks and map 2 warped by
-    ``pose`` (x m, y m, yaw rad): the shared start of :func:`register_pair` and :func:`refine_pose`."""
+    ``pose`` (x m, y m, yaw rad): the shared start of :func:`register_pair` and
+    :func:`~traffictwin.fusion.refinement.refine_pose`."""
     shape = grid.shape
     for name, m in (("map1", map1), ("map2", map2)):
         if np.shape(m) != (2, *shape):
@@ -426,7 +427,7 @@ def _pair_features(
     a0 = pose_to_pixel_affine(pose, grid)
     g2 = warp_image(f2, a0, shape)
     kg2 = warp_image(k2, a0, shape, nearest=True)
-    return _PairFeatures(f1, f2, k1, k2, a0, g2, kg2, (k1 > 0) & (kg2 > 0))
+    return PairFeatures(f1, f2, k1, k2, a0, g2, kg2, (k1 > 0) & (kg2 > 0))
 
 
 def register_pair(
@@ -444,11 +445,11 @@ def register_pair(
     t0 = time.perf_counter()
     shape = grid.shape
     noisy = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(3)
-    pf = _pair_features(
+    pf = pair_features(
         "register_pair", map1, map2, noisy, grid, params.feature, params.known_threshold
     )
     f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
-    cc_noisy = _masked_cc(f1, g2, both)
+    cc_noisy = masked_cc(f1, g2, both)
     min_cells = params.min_overlap * f1.size
 
     def result(
@@ -486,7 +487,7 @@ def register_pair(
     g_est = warp_image(f2, a_est, shape)
     k_est = warp_image(k2, a_est, shape, nearest=True)
     both_est = (k1 > 0) & (k_est > 0)
-    cc_est = _masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    cc_est = masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
     dt, dr = pose_error(est, noisy)
     ok = bool(
         cc_est >= params.min_cc
@@ -495,123 +496,3 @@ def register_pair(
         and dr <= params.max_rot_deg
     )
     return result(est, ok, cc_est, coarse, ecc_ok)
-
-
-# -- refinement of a given pose ---------------------------------------------------------------------
-@dataclass(frozen=True)
-class RefinementParams:
-    """Settings of :func:`refine_pose` (units in the names: m, deg, cells).
-
-    The fallback bound (``max_trans_m``, ``max_rot_deg``) is how far the refinement may move the
-    pose it starts from: set it from the starting estimate's expected error (a refinement that
-    moves further has left the basin it was started in).
-    """
-
-    feature: str = "occ"  # as RegistrationParams.feature
-    known_threshold: float = 0.05  # a cell is "known" where m_F + m_O > this
-    ecc_iterations: int = 60
-    ecc_eps: float = 1e-5
-    ecc_gauss_size: int = 5  # OpenCV's blur inside ECC (odd, cells)
-    ecc_levels: int = 1  # pyramid levels (1 = full resolution only; each further level halves)
-    max_trans_m: float = 1.0  # largest accepted move of the translation from the start (m)
-    max_rot_deg: float = 3.0  # largest accepted move of the yaw from the start (deg)
-    min_gain: float = (
-        0.0  # the refined masked correlation must exceed the start's by more than this
-    )
-    min_overlap: float = 0.05  # minimum fraction of cells known in both maps
-
-    def __post_init__(self) -> None:
-        if self.feature not in FEATURES:
-            raise ValueError(
-                f"RefinementParams.feature must be one of {FEATURES}, got {self.feature!r}"
-            )
-        if self.ecc_gauss_size < 1 or self.ecc_gauss_size % 2 == 0:
-            raise ValueError(
-                f"RefinementParams.ecc_gauss_size must be a positive odd integer, got {self.ecc_gauss_size}"
-            )
-        for name in ("ecc_iterations", "ecc_levels", "max_trans_m", "max_rot_deg"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"RefinementParams.{name} must be > 0, got {getattr(self, name)}")
-
-
-@dataclass
-class RefinementResult:
-    """Outcome of :func:`refine_pose`: ``pose`` (x m, y m, yaw rad) used — the refined estimate if
-    accepted, else the start; ``estimate`` the (possibly rejected) refined pose; ``ecc_ok`` ECC
-    converged at full resolution; ``cc_start`` / ``cc_est`` masked correlation of the feature
-    images under the start / the estimate; ``seconds`` wall time."""
-
-    pose: np.ndarray
-    accepted: bool
-    ecc_ok: bool
-    cc_start: float
-    cc_est: float
-    seconds: float
-    estimate: np.ndarray
-
-
-def refine_pose(
-    map1: np.ndarray,
-    map2: np.ndarray,
-    rel_pose: np.ndarray,
-    grid: GridSpec,
-    params: RefinementParams = RefinementParams(),
-) -> RefinementResult:
-    """Refine a relative pose estimate (e.g. the learned registration's) by ECC on the maps.
-
-    ``map1``, ``map2``: masses (2, H, W), each in its own sensor frame; ``rel_pose``: the starting
-    estimate of map 2's sensor in map 1's frame (x m, y m, yaw rad). Map 2's feature image is
-    warped by it, :func:`ecc_align` (the classical registration's refinement, coarse to fine over
-    ``params.ecc_levels``) aligns it to map 1's from the identity. Fallback to the start when ECC
-    does not converge, the refined pose moves more than ``max_trans_m`` / ``max_rot_deg`` from it,
-    or its masked correlation does not beat the start's by more than ``min_gain``.
-    """
-    t0 = time.perf_counter()
-    shape = grid.shape
-    start = np.asarray(rel_pose, dtype=np.float64).reshape(3)
-    pf = _pair_features(
-        "refine_pose", map1, map2, start, grid, params.feature, params.known_threshold
-    )
-    f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
-    min_cells = params.min_overlap * f1.size
-    cc_start = _masked_cc(f1, g2, both) if both.sum() >= min_cells else -1.0
-
-    def result(est: np.ndarray, ok: bool, ecc_ok: bool, cc_est: float) -> RefinementResult:
-        return RefinementResult(
-            pose=est if ok else start.copy(),
-            accepted=ok,
-            ecc_ok=ecc_ok,
-            cc_start=cc_start,
-            cc_est=cc_est,
-            seconds=time.perf_counter() - t0,
-            estimate=est,
-        )
-
-    if both.sum() < min_cells:
-        return result(start.copy(), False, False, cc_start)
-    w, ecc_ok = ecc_align(
-        f1,
-        g2,
-        k1,
-        kg2,
-        np.eye(3),
-        params.ecc_iterations,
-        params.ecc_eps,
-        params.ecc_gauss_size,
-        params.ecc_levels,
-    )
-    if not ecc_ok:
-        return result(start.copy(), False, False, cc_start)
-    a_est = np.linalg.inv(np.linalg.inv(a0) @ w)  # map2 px → map1 px
-    est = pixel_affine_to_pose(a_est, grid)
-    g_est = warp_image(f2, a_est, shape)
-    k_est = warp_image(k2, a_est, shape, nearest=True)
-    both_est = (k1 > 0) & (k_est > 0)
-    cc_est = _masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
-    dt, dr = pose_error(est, start)
-    ok = bool(
-        dt <= params.max_trans_m
-        and dr <= params.max_rot_deg
-        and cc_est > cc_start + params.min_gain
-    )
-    return result(est, ok, True, cc_est)

@@ -132,6 +132,50 @@ class Route:
     max_bytes: int
 
 
+async def _read_body(receive: Receive, send: Send, limit: int) -> bytes | None:
+    """The request body, read up to ``limit`` bytes; None when the client left or the body is
+    over the limit (answered HTTP 413)."""
+    chunks, size = [], 0
+    while True:
+        msg = await receive()
+        if msg["type"] != "http.request":
+            return None  # the client left
+        chunk = msg.get("body", b"")
+        size += len(chunk)
+        if size > limit:
+            await _answer(
+                send,
+                413,
+                f"request body over the limit of {limit} bytes ({ENV_MAX_BYTES} of the "
+                "server); split the request",
+            )
+            return None
+        chunks.append(chunk)
+        if not msg.get("more_body"):
+            return b"".join(chunks)
+
+
+def _body_problem(body: bytes, route: Route | None, max_depth: int, scope: Scope) -> str | None:
+    """Why ``body`` is refused (HTTP 400): true/false in a model request, or JSON nested deeper
+    than ``max_depth`` levels; None when it passes."""
+    if route is None and (b"true" in body or b"false" in body):
+        return (
+            "request JSON holds true/false; expected numbers (a bool is not a number: "
+            "MLflow would cast it to 1.0 / 0.0)"
+        )
+    depth = nesting_depth(body)
+    if depth > max_depth:
+        expected = (
+            f"the JSON object of {scope['path']}"
+            if route is not None
+            else '{"inputs": <array of the model signature>, "params": {...}}'
+        )
+        return (
+            f"request JSON nested {depth} levels deep, more than {max_depth}; expected " + expected
+        )
+    return None
+
+
 def bounded(
     app: App,
     max_bytes: int,
@@ -158,46 +202,12 @@ def bounded(
                 f"({ENV_MAX_BYTES} of the server); split the request",
             )
             return
-        chunks, size = [], 0
-        while True:
-            msg = await receive()
-            if msg["type"] != "http.request":
-                return  # the client left
-            chunk = msg.get("body", b"")
-            size += len(chunk)
-            if size > limit:
-                await _answer(
-                    send,
-                    413,
-                    f"request body over the limit of {limit} bytes ({ENV_MAX_BYTES} of the "
-                    "server); split the request",
-                )
-                return
-            chunks.append(chunk)
-            if not msg.get("more_body"):
-                break
-        body = b"".join(chunks)
-        if route is None and (b"true" in body or b"false" in body):
-            await _answer(
-                send,
-                400,
-                "request JSON holds true/false; expected numbers (a bool is not a number: "
-                "MLflow would cast it to 1.0 / 0.0)",
-            )
+        body = await _read_body(receive, send, limit)
+        if body is None:
             return
-        depth = nesting_depth(body)
-        if depth > max_depth:
-            expected = (
-                f"the JSON object of {scope['path']}"
-                if route is not None
-                else '{"inputs": <array of the model signature>, "params": {...}}'
-            )
-            await _answer(
-                send,
-                400,
-                f"request JSON nested {depth} levels deep, more than {max_depth}; expected "
-                + expected,
-            )
+        problem = _body_problem(body, route, max_depth, scope)
+        if problem is not None:
+            await _answer(send, 400, problem)
             return
         if route is not None:
             status, payload = await asyncio.to_thread(route.answer, body)

@@ -324,9 +324,9 @@ def classical_registrations(
 ) -> list[dict[int, list[Any]]]:
     """The classical registration of every other vehicle's map onto the ego's, for every frame of
     every sequence at pose noise ``(r m, alpha deg)``: per sequence ``{frame: [result of vehicle 1,
-    2, ...]}``. All in one :func:`~traffictwin.fusion.methods.register_many` call (one pool of
+    2, ...]}``. All in one :func:`~traffictwin.fusion.registration_batches.register_many` call (one pool of
     ``workers`` processes); the results do not depend on ``workers``."""
-    from traffictwin.fusion.methods import register_many
+    from traffictwin.fusion.registration_batches import register_many
 
     tasks, m1, m2, poses = [], [], [], []
     for j, arrays in enumerate(sequences):

@@ -147,7 +147,7 @@ def _register(
     registration: at small pose errors the estimate cannot beat the given pose, which is then
     right); otherwise the vehicle is left out. Noisy-pose methods fuse every vehicle.
     ``precomputed``: the classical registration results of ``maps`` onto ``ref`` (one per map,
-    :func:`traffictwin.fusion.methods.register_many`), used instead of registering again."""
+    :func:`traffictwin.fusion.registration_batches.register_many`), used instead of registering again."""
     from traffictwin.fusion.registration import RegistrationParams
 
     m = len(maps)
@@ -157,7 +157,7 @@ def _register(
         return warped.astype(np.float32), ones, ones, poses.copy()
     registration = RegistrationParams() if registration is None else registration
     if method.pose == "registered":
-        from traffictwin.fusion.methods import registered_fusion
+        from traffictwin.fusion.registration_batches import registered_fusion
 
         memo = keys = None
         if precomputed is not None:
@@ -167,7 +167,8 @@ def _register(
             np.repeat(ref[None], m, 0), maps, poses, grid, registration, memo, keys
         )
     else:
-        from traffictwin.fusion.methods import FusionInput, learned_registration_batch
+        from traffictwin.fusion.methods import FusionInput
+        from traffictwin.fusion.registration_batches import learned_registration_batch
 
         pre = np.stack([warp_masses(maps[i], poses[i], grid) for i in range(m)])
         inputs = np.concatenate([np.repeat(ref[None], m, 0), pre], axis=1).astype(np.float32)

@@ -41,14 +41,10 @@ from traffictwin.fusion.evaluation.method_run import (
     tag_samples,
 )
 from traffictwin.fusion.evaluation.targets import TIMING_TARGETS, fusion_targets
-from traffictwin.fusion.methods import (
-    METHODS,
-    FusionInput,
-    FusionMethod,
-    precompute_registrations,
-)
+from traffictwin.fusion.methods import METHODS, FusionInput, FusionMethod
 from traffictwin.fusion.metrics import auroc_with_counts
 from traffictwin.fusion.pairs import evenly_spaced
+from traffictwin.fusion.registration_batches import precompute_registrations
 from traffictwin.grid import GridSpec
 from traffictwin.stats import CIConfig, mean_ci
 
