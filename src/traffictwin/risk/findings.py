@@ -52,8 +52,8 @@ def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str
 
 def findings(metrics: Mapping[str, Any]) -> str:
     """Markdown bullet list: paper comparison, failed runs, seeds, baselines and paired
-    comparisons (claims only where the CI excludes zero), critical shares, the region effect,
-    situations, targets, data."""
+    comparisons (claims only where the CI excludes zero), the region effect, situations, data
+    (the critical shares and the targets: the report's critical-share and acceptance tables)."""
     record = findings_record(metrics)
     text = render_prose(TEMPLATES, "findings.md.j2", f=record, paper=PAPER_QUOTED, **HELPERS)
     return text.rstrip("\n")

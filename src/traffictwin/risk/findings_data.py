@@ -1,8 +1,8 @@
 """What the risk findings state, as a typed record (:class:`RiskFindings`) built from
 ``reports/metrics/risk.json`` (layout: :mod:`traffictwin.risk.evaluation`).
 
-One record type and one builder per findings group (the shipped predictor, learned model vs rule, seeds, baselines, variants, critical shares, the region effect,
-situations, targets, data); :func:`findings_record` assembles them. Python decides *what* is
+One record type and one builder per findings group (the shipped predictor, learned model vs rule, seeds, baselines, variants, the region effect,
+situations, data); :func:`findings_record` assembles them. Python decides *what* is
 stated: which predictors and metrics entries, the paired comparisons and their verdicts, the
 failed runs. The template ``templates/findings.md.j2`` says it, formatting the numbers of the
 entries (:data:`traffictwin.risk.findings.HELPERS`). A group
@@ -35,9 +35,6 @@ SHOWN_BASELINES = ("speed_only", "geometric_sgm", "geometric_gt", "train_median"
 #: metrics the comparisons quote, with their names
 COMPARED = (("roc_auc", "ROC-AUC"), ("balanced_accuracy", "balanced accuracy"))
 P_LABEL, F_LABEL = "risk_thw_paper", "risk_thw_fov"
-#: the risk labels whose critical share the findings quote, in order (their names: the
-#: template's ``region_names``)
-REGION_LABELS = ("risk_thw_corridor", P_LABEL, F_LABEL)
 
 
 class Shipped(NamedTuple):
@@ -179,16 +176,6 @@ def _other_label(r: FindingsRun) -> list[tuple[str, Any]]:
     ]
 
 
-def _critical(r: FindingsRun) -> list[tuple[str, list[Any]]]:
-    """(label, its critical share on train / val / test) of the labels with a share."""
-    splits = lookup(r.metrics, "critical_share.splits") or {}
-    return [
-        (lab, [(splits.get(s) or {}).get(lab) for s in ("train", "val", "test")])
-        for lab in REGION_LABELS
-        if any(lab in s for s in splits.values())
-    ]
-
-
 @dataclass(frozen=True)
 class Region:
     """The risk metric region: the paper's against the camera's field of view."""
@@ -288,11 +275,8 @@ class RiskFindings:
     variants: list[VariantClaims] = field(default_factory=list)
     objectives: list[VariantClaims] = field(default_factory=list)
     other_label: list[tuple[str, Any]] = field(default_factory=list)
-    critical_share: list[tuple[str, list[Any]]] = field(default_factory=list)
-    critical_threshold: Any = None  #: the THW threshold of the critical shares (s)
     region: Region | None = None
     situations: list[tuple[str, Mapping, Mapping, Mapping]] = field(default_factory=list)
-    targets: list[tuple[str, Mapping[str, Any]]] = field(default_factory=list)
     data: Mapping[str, Any] | None = None  #: frames per split (``n_frames``)
     sequences: Mapping[str, Any] = field(default_factory=dict)  #: sequences per split
 
@@ -325,11 +309,8 @@ def findings_record(metrics: Mapping[str, Any]) -> RiskFindings:
         variants=_variant_claims(r, "variant"),
         objectives=_variant_claims(r, "objective"),
         other_label=_other_label(r),
-        critical_share=_critical(r),
-        critical_threshold=lookup(metrics, "critical_share.threshold_s"),
         region=_region(r),
         situations=_situations(r),
-        targets=list((metrics.get("targets") or {}).items()),
         data=nf if isinstance(nf, Mapping) and nf.get("total") else None,
         sequences=metrics.get("n_sequences") or {},
     )
