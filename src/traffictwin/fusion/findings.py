@@ -95,19 +95,6 @@ def _claims(
     return out
 
 
-class TableRow(NamedTuple):
-    """One configuration's row of the findings table (KLD(b) and occupied Dice with intervals)."""
-
-    config: str
-    naive: str
-    net: str
-    registered: str
-    net_minus_naive: str
-    naive_dice: str
-    net_dice: str
-    registered_dice: str
-
-
 class ConfigA(NamedTuple):
     """Configuration A (no noise): network vs naive."""
 
@@ -151,7 +138,6 @@ class FusionFindings:
     level: str = ""  #: bootstrap level in percent
     cluster: Any = None
     n_boot: Any = None
-    table: list[TableRow] = field(default_factory=list)
     noisy: NoisyFindings | None = None
     kld_a: Groups = field(default_factory=dict)
     kld_a_net: list[tuple[str, str]] = field(default_factory=list)
@@ -163,19 +149,6 @@ class FusionFindings:
     u_above: list[str] = field(default_factory=list)  #: configs whose AUROC interval is above 0.5
     u_mean: list[tuple[str, str, str]] | None = None  #: (cfg, network, label); None: no label
     cross_best: list[tuple[str, str]] = field(default_factory=list)
-
-
-def _table_row(m: Mapping[str, Any], c: str) -> TableRow:
-    return TableRow(
-        c,
-        _with_ci(m, c, NAIVE, HEADLINE),
-        _with_ci(m, c, NET, HEADLINE),
-        _with_ci(m, c, REG, HEADLINE),
-        _diff_text(_diff(m, c, NET, NAIVE, HEADLINE)),
-        _with_ci(m, c, NAIVE, "dice_occ"),
-        _with_ci(m, c, NET, "dice_occ"),
-        _with_ci(m, c, REG, "dice_occ"),
-    )
 
 
 def _iqr(m: Mapping[str, Any], c: str, row: str) -> float:
@@ -286,7 +259,6 @@ def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
         level=_fmt(100 * _num(boot.get("level", 0.95)), 0),
         cluster=boot.get("cluster", "scenario"),
         n_boot=boot.get("n_boot", "?"),
-        table=[_table_row(metrics, c) for c in configs],
         noisy=_noisy(metrics, configs[1:]),
         kld_a=_claims(metrics, configs, NET, NAIVE, "kld_fo_mean"),
         kld_a_net=[(c, _with_ci(metrics, c, NET, "kld_fo_mean")) for c in configs],
