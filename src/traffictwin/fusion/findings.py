@@ -10,9 +10,9 @@ zero; otherwise the text says "no difference shown". Estimates are quoted with t
 
 This module computes what the findings say (:class:`FusionFindings`: formatted numbers with
 their intervals, verdicts, lists of configurations); the sentences are in the template
-``templates/findings.md.j2`` next to it. The learned registration, the other network rows and
-the targets are not restated here: the report's registration, estimate, paired-difference and
-acceptance tables show them.
+``templates/findings.md.j2`` next to it. Configuration A against naive, the learned
+registration, the other network rows and the targets are not restated here: the report's verdict,
+registration, estimate, paired-difference and acceptance tables show them.
 """
 
 from __future__ import annotations
@@ -95,17 +95,6 @@ def _claims(
     return out
 
 
-class ConfigA(NamedTuple):
-    """Configuration A (no noise): network vs naive."""
-
-    config: str
-    verdict: str  #: of network − naive KLD(b)
-    net: str
-    naive: str
-    net_dice: str
-    naive_dice: str
-
-
 class Registered(NamedTuple):
     """The classical registration at one configuration."""
 
@@ -142,7 +131,6 @@ class FusionFindings:
     kld_a: Groups = field(default_factory=dict)
     kld_a_net: list[tuple[str, str]] = field(default_factory=list)
     negative: list[str] = field(default_factory=list)  #: configs with a negative KLD(a)
-    config_a: ConfigA | None = None
     registered: list[Registered] = field(default_factory=list)
     u_auroc: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, "AUROC [CI] (counts)")
     u_too_few: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, counts): withheld
@@ -164,20 +152,6 @@ def _noisy(m: Mapping[str, Any], noisy: list[str]) -> NoisyFindings | None:
         dice=_claims(m, noisy, NET, NAIVE, "dice_occ"),
         diffs=[(c, _diff_text(_diff(m, c, NET, NAIVE, HEADLINE))) for c in noisy],
         narrower=sum(_iqr(m, c, NET) < _iqr(m, c, NAIVE) for c in noisy),
-    )
-
-
-def _config_a(m: Mapping[str, Any], a: str) -> ConfigA | None:
-    if not math.isfinite(_get(m, a, NET, HEADLINE)):
-        return None
-    v = verdict(_diff(m, a, NET, NAIVE, HEADLINE))
-    return ConfigA(
-        a,
-        v,
-        _with_ci(m, a, NET, HEADLINE),
-        _with_ci(m, a, NAIVE, HEADLINE),
-        _with_ci(m, a, NET, "dice_occ"),
-        _with_ci(m, a, NAIVE, "dice_occ"),
     )
 
 
@@ -263,7 +237,6 @@ def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
         kld_a=_claims(metrics, configs, NET, NAIVE, "kld_fo_mean"),
         kld_a_net=[(c, _with_ci(metrics, c, NET, "kld_fo_mean")) for c in configs],
         negative=[c for c in configs if _get(metrics, c, NET, "kld_fo_mean") < 0],
-        config_a=_config_a(metrics, configs[0]),
         registered=[
             _registered(metrics, c)
             for c in configs
