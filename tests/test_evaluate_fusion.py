@@ -334,7 +334,7 @@ def test_findings_claim_only_differences_whose_interval_excludes_zero():
     # configuration A against naive: the verdict table's claim, not the findings
     assert "**Configuration A" not in paper_like
     assert "A 0.800 [0.750, 0.850]" in paper_like and "above 0.5) in 4/4" in paper_like
-    assert "A: dnn-A, B: dnn-B" in paper_like
+    assert "Cross table" not in paper_like  # the report's cross table shows it
     assert "network vs registered: lower" in paper_like
     # the same estimates with wide intervals: nothing is claimed
     noisy = fusion_findings(

@@ -11,8 +11,8 @@ zero; otherwise the text says "no difference shown". Estimates are quoted with t
 This module computes what the findings say (:class:`FusionFindings`: formatted numbers with
 their intervals, verdicts, lists of configurations); the sentences are in the template
 ``templates/findings.md.j2`` next to it. Configuration A against naive, the learned
-registration, the other network rows and the targets are not restated here: the report's verdict,
-registration, estimate, paired-difference and acceptance tables show them.
+registration, the other network rows, the cross table and the targets are not restated here: the
+report's verdict, registration, estimate, paired-difference, cross and acceptance tables show them.
 """
 
 from __future__ import annotations
@@ -136,7 +136,6 @@ class FusionFindings:
     u_too_few: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, counts): withheld
     u_above: list[str] = field(default_factory=list)  #: configs whose AUROC interval is above 0.5
     u_mean: list[tuple[str, str, str]] | None = None  #: (cfg, network, label); None: no label
-    cross_best: list[tuple[str, str]] = field(default_factory=list)
 
 
 def _iqr(m: Mapping[str, Any], c: str, row: str) -> float:
@@ -165,18 +164,6 @@ def _registered(m: Mapping[str, Any], c: str) -> Registered:
         _fmt(_get(m, c, REG, "residual_trans_m_median"), 2),
         _fmt(_get(m, c, REG, "noisy_trans_m_median"), 2),
     )
-
-
-def _cross_best(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, str]]:
-    """(config, the network with the lowest KLD(b) on its test set) from the cross table."""
-    cross = m.get("cross", {})
-    out = []
-    for c in configs:
-        col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in sorted(cross)}
-        col = {n: v for n, v in col.items() if math.isfinite(v)}
-        if col:
-            out.append((c, min(col, key=col.__getitem__)))
-    return out
 
 
 def auroc_counts_text(row: Mapping[str, Any]) -> str:
@@ -243,7 +230,6 @@ def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
             if math.isfinite(_get(metrics, c, REG, HEADLINE))
         ],
         **_uncertainty(metrics, configs),
-        cross_best=_cross_best(metrics, configs),
     )
 
 
