@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from pathlib import Path
 
 import numpy as np
@@ -600,16 +599,16 @@ def test_findings_never_interpret_a_collapsed_run(suite) -> None:
     text = findings(metrics)
     assert text.startswith("- **Paper comparison (headline")
     assert "**Failed runs" in text and "headline_s2 (std" in text
-    assert "headline_s2: failed run (collapsed), not compared" in text
     # no sentence claims anything about the collapsed run
     for line in text.splitlines():
         if "headline_s2" in line and "Failed runs" not in line and "ROC-AUC per run" not in line:
             assert "beats" not in line.split("headline_s2")[1][:80]
-    assert "ground-truth disparity" in text and "oracle" not in text
-    assert re.search(r"\*\*Targets \(\d+/\d+ met\):\*\*", text), text
-    assert "Training objectives" in text and "headline_logthw" in text
+    assert "oracle" not in text
+    assert "**Targets" not in text  # the acceptance table shows them
+    # the variants' and baselines' paired differences: the report's tables, not the findings
+    assert "Training objectives" not in text and "Baselines on the same frames" not in text
     assert "paper: risk_thw_paper" in text  # another label, named, not compared with the headline
-    assert "by situation type" in text and "Critical share" in text
+    assert "by situation type" in text and "per region, train / val / test" not in text  # a table
     # every claim of a difference quotes its interval; "beats" only where it excludes zero
     for d in metrics["differences"].values():
         iv = d["at_1.5s"]["roc_auc"]
@@ -677,14 +676,7 @@ def test_findings_of_a_hand_made_metrics_dict() -> None:
     text = findings(m)
     assert "accuracy at THW 1.5 s 80.00 % [70.00 %, 90.00 %] vs the paper's 72.87 %" in text
     assert "ROC-AUC 0.900 [0.850, 0.950]" in text
-    assert "net beats speed_only in ROC-AUC: +0.100 [+0.050, +0.150]" in text
-    assert (
-        "net vs speed_only: no significant difference in MSE (net − speed_only = −0.010 [−0.020, +0.001])"
-        in text
-    )
-    assert (
-        "net (rgb+disp_sgm + speed, label L): beats it (ΔROC-AUC +0.100 [+0.050, +0.150])" in text
-    )
+    assert "beats speed_only" not in text  # the report's table of paired differences shows it
     assert "every frame above 4.2 m/s critical" in text
     assert "dead (std 0)" in text and "net beats dead" not in text  # collapsed: never interpreted
     assert findings({"models": {}}) == "- No risk network was evaluated."
@@ -797,8 +789,7 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
     assert [r[1] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[1] == "spread")[5] == "fail"
-    shares = tables[anchors.index("risk-critical-share")]
-    assert [r[0] for r in shares] == ["train", "val", "test", "all"]
+    assert "risk-critical-share" not in anchors  # the data section's risk_data.json table
     sit = tables[anchors.index("risk-situations")]
     assert [r[0] for r in sit] == sorted(SITUATIONS)
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.grid import GridSpec
-from traffictwin.io.atomic import save_figure
+from traffictwin.io.atomic import pyplot, save_figure
 from traffictwin.report.colours import legend_handles, show_masses
 
 
@@ -43,11 +43,7 @@ def plot_fusion_samples(
     Each sample: ``map1``, ``map2``, ``label`` (2, H, W), ``pose1``, ``pose2`` (3,) world (m, rad),
     optional ``template`` (str) and ``pair_id`` (int).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     n = len(samples)
     if n == 0:
         raise ValueError("plot_fusion_samples: no samples given")

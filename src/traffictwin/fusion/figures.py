@@ -20,6 +20,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from traffictwin.io.atomic import pyplot as _plt
+
 __all__ = [
     "CONFIG_AXIS",
     "CONFIG_NOTE",
@@ -45,15 +47,6 @@ METHOD_STYLE: dict[str, dict] = {
     "learned-refined": {"color": "#5254a3", "marker": "H"},
     "learned-refined+network": {"color": "#8ca252", "marker": "p"},
 }
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def config_label(name: str, noise: Mapping[str, Sequence[float]] | None = None) -> str:

@@ -2,7 +2,7 @@
 
 Nothing is hand-typed: every statement is read from the metrics dict written by stage
 ``evaluate_fusion`` (layout in :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>``
-with its ``<metric>_ci``, ``diff.<cfg>.<row>.vs_<base>.<metric>``, ``label.<cfg>``, ``targets``).
+with its ``<metric>_ci``, ``diff.<cfg>.<row>.vs_<base>.<metric>``, ``label.<cfg>``).
 
 The headline metric is KLD(b) ``kld_fou_mean`` (KL over the full mass vector). A difference
 between two methods is *claimed* only when its paired 95 % cluster-bootstrap interval excludes
@@ -10,7 +10,9 @@ zero; otherwise the text says "no difference shown". Estimates are quoted with t
 
 This module computes what the findings say (:class:`FusionFindings`: formatted numbers with
 their intervals, verdicts, lists of configurations); the sentences are in the template
-``templates/findings.md.j2`` next to it.
+``templates/findings.md.j2`` next to it. Configuration A against naive, the learned
+registration, the other network rows, the cross table and the targets are not restated here: the
+report's verdict, registration, estimate, paired-difference, cross and acceptance tables show them.
 """
 
 from __future__ import annotations
@@ -93,30 +95,6 @@ def _claims(
     return out
 
 
-class TableRow(NamedTuple):
-    """One configuration's row of the findings table (KLD(b) and occupied Dice with intervals)."""
-
-    config: str
-    naive: str
-    net: str
-    registered: str
-    net_minus_naive: str
-    naive_dice: str
-    net_dice: str
-    registered_dice: str
-
-
-class ConfigA(NamedTuple):
-    """Configuration A (no noise): network vs naive."""
-
-    config: str
-    verdict: str  #: of network − naive KLD(b)
-    net: str
-    naive: str
-    net_dice: str
-    naive_dice: str
-
-
 class Registered(NamedTuple):
     """The classical registration at one configuration."""
 
@@ -127,33 +105,6 @@ class Registered(NamedTuple):
     success_pct: str
     residual_m: str  #: median residual translation
     noisy_m: str  #: median translation error of the noisy pose
-
-
-class Learned(NamedTuple):
-    """The learned registration against the classical one at one configuration."""
-
-    config: str
-    success: str
-    registered_success: str
-    diff: str  #: learned − registered success rate
-    verdict: str
-    fallback_pct: str
-    trans_p90: str
-    rot_p90: str
-    registered_trans_p90: str
-    registered_rot_p90: str
-
-
-class RowAt(NamedTuple):
-    """Another network row (loss ablation, hybrid) at one configuration."""
-
-    config: str
-    kld: str
-    vs_naive: str
-    vs_registered: str
-    dice: str
-    dice_vs_registered: str
-    u_mean: str
 
 
 @dataclass(frozen=True)
@@ -176,35 +127,15 @@ class FusionFindings:
     level: str = ""  #: bootstrap level in percent
     cluster: Any = None
     n_boot: Any = None
-    table: list[TableRow] = field(default_factory=list)
     noisy: NoisyFindings | None = None
     kld_a: Groups = field(default_factory=dict)
     kld_a_net: list[tuple[str, str]] = field(default_factory=list)
     negative: list[str] = field(default_factory=list)  #: configs with a negative KLD(a)
-    config_a: ConfigA | None = None
     registered: list[Registered] = field(default_factory=list)
-    learned: list[Learned] = field(default_factory=list)
-    refined: list[Learned] = field(default_factory=list)  #: learned + ECC refinement vs classical
-    rows: list[tuple[str, list[RowAt]]] = field(default_factory=list)
     u_auroc: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, "AUROC [CI] (counts)")
     u_too_few: list[tuple[str, str]] = field(default_factory=list)  #: (cfg, counts): withheld
     u_above: list[str] = field(default_factory=list)  #: configs whose AUROC interval is above 0.5
     u_mean: list[tuple[str, str, str]] | None = None  #: (cfg, network, label); None: no label
-    targets: Groups | None = None  #: target names by status (pass / fail / not evaluated)
-    cross_best: list[tuple[str, str]] = field(default_factory=list)
-
-
-def _table_row(m: Mapping[str, Any], c: str) -> TableRow:
-    return TableRow(
-        c,
-        _with_ci(m, c, NAIVE, HEADLINE),
-        _with_ci(m, c, NET, HEADLINE),
-        _with_ci(m, c, REG, HEADLINE),
-        _diff_text(_diff(m, c, NET, NAIVE, HEADLINE)),
-        _with_ci(m, c, NAIVE, "dice_occ"),
-        _with_ci(m, c, NET, "dice_occ"),
-        _with_ci(m, c, REG, "dice_occ"),
-    )
 
 
 def _iqr(m: Mapping[str, Any], c: str, row: str) -> float:
@@ -223,20 +154,6 @@ def _noisy(m: Mapping[str, Any], noisy: list[str]) -> NoisyFindings | None:
     )
 
 
-def _config_a(m: Mapping[str, Any], a: str) -> ConfigA | None:
-    if not math.isfinite(_get(m, a, NET, HEADLINE)):
-        return None
-    v = verdict(_diff(m, a, NET, NAIVE, HEADLINE))
-    return ConfigA(
-        a,
-        v,
-        _with_ci(m, a, NET, HEADLINE),
-        _with_ci(m, a, NAIVE, HEADLINE),
-        _with_ci(m, a, NET, "dice_occ"),
-        _with_ci(m, a, NAIVE, "dice_occ"),
-    )
-
-
 def _registered(m: Mapping[str, Any], c: str) -> Registered:
     return Registered(
         c,
@@ -247,69 +164,6 @@ def _registered(m: Mapping[str, Any], c: str) -> Registered:
         _fmt(_get(m, c, REG, "residual_trans_m_median"), 2),
         _fmt(_get(m, c, REG, "noisy_trans_m_median"), 2),
     )
-
-
-def _learned(m: Mapping[str, Any], c: str, row: str = "learned") -> Learned:
-    d = _diff(m, c, row, REG, "success_rate")
-    return Learned(
-        c,
-        _with_ci(m, c, row, "success_rate"),
-        _fmt(_get(m, c, REG, "success_rate")),
-        _diff_text(d, 3),
-        verdict(d),
-        _fmt(100 * _get(m, c, row, "fallback_rate"), 0),
-        _fmt(_get(m, c, row, "residual_trans_m_p90"), 2),
-        _fmt(_get(m, c, row, "residual_rot_deg_p90"), 2),
-        _fmt(_get(m, c, REG, "residual_trans_m_p90"), 2),
-        _fmt(_get(m, c, REG, "residual_rot_deg_p90"), 2),
-    )
-
-
-def _network_rows(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, list[RowAt]]]:
-    """The other network rows (loss ablation, hybrids): per row, per configuration it has, KLD(b)
-    (vs naive, vs registered), occupied Dice (vs registered), mean u."""
-    test = m.get("test", {})
-    rows: list[str] = []
-    for c in configs:
-        rows += [
-            r
-            for r in test.get(c, {})
-            if r != NET
-            and r.split("[")[0]
-            in (NET, "registered+network", "learned+network", "learned-refined+network")
-            and r not in rows
-        ]
-    return [
-        (
-            r,
-            [
-                RowAt(
-                    c,
-                    _with_ci(m, c, r, HEADLINE),
-                    verdict(_diff(m, c, r, NAIVE, HEADLINE)),
-                    verdict(_diff(m, c, r, REG, HEADLINE)),
-                    _with_ci(m, c, r, "dice_occ"),
-                    verdict(_diff(m, c, r, REG, "dice_occ")),
-                    _with_ci(m, c, r, "u_mean"),
-                )
-                for c in configs
-                if r in test.get(c, {})
-            ],
-        )
-        for r in sorted(rows)
-    ]
-
-
-def _cross_best(m: Mapping[str, Any], configs: list[str]) -> list[tuple[str, str]]:
-    """(config, the network with the lowest KLD(b) on its test set) from the cross table."""
-    cross = m.get("cross", {})
-    out = []
-    for c in configs:
-        col = {n: _num(cross.get(n, {}).get(c, {}).get(HEADLINE)) for n in sorted(cross)}
-        col = {n: v for n, v in col.items() if math.isfinite(v)}
-        if col:
-            out.append((c, min(col, key=col.__getitem__)))
-    return out
 
 
 def auroc_counts_text(row: Mapping[str, Any]) -> str:
@@ -361,42 +215,21 @@ def fusion_findings_record(metrics: Mapping[str, Any]) -> FusionFindings:
     if not configs:
         return FusionFindings(configs=[])
     boot = metrics.get("bootstrap", {})
-    targets = metrics.get("targets", {})
     return FusionFindings(
         configs=configs,
         level=_fmt(100 * _num(boot.get("level", 0.95)), 0),
         cluster=boot.get("cluster", "scenario"),
         n_boot=boot.get("n_boot", "?"),
-        table=[_table_row(metrics, c) for c in configs],
         noisy=_noisy(metrics, configs[1:]),
         kld_a=_claims(metrics, configs, NET, NAIVE, "kld_fo_mean"),
         kld_a_net=[(c, _with_ci(metrics, c, NET, "kld_fo_mean")) for c in configs],
         negative=[c for c in configs if _get(metrics, c, NET, "kld_fo_mean") < 0],
-        config_a=_config_a(metrics, configs[0]),
         registered=[
             _registered(metrics, c)
             for c in configs
             if math.isfinite(_get(metrics, c, REG, HEADLINE))
         ],
-        learned=[
-            _learned(metrics, c)
-            for c in configs
-            if math.isfinite(_get(metrics, c, "learned", "success_rate"))
-        ],
-        refined=[
-            _learned(metrics, c, "learned-refined")
-            for c in configs
-            if math.isfinite(_get(metrics, c, "learned-refined", "success_rate"))
-        ],
-        rows=_network_rows(metrics, configs),
         **_uncertainty(metrics, configs),
-        targets={
-            s: [n for n, t in sorted(targets.items()) if t.get("status") == s]
-            for s in ("pass", "fail", "not evaluated")
-        }
-        if targets
-        else None,
-        cross_best=_cross_best(metrics, configs),
     )
 
 

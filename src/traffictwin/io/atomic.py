@@ -103,13 +103,18 @@ def save_figure(
         kwargs["metadata"] = dict(metadata)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, **kwargs)
+    pyplot().close(fig)
+    return path
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (no display): the one place that picks the backend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    plt.close(fig)
-    return path
+    return plt
 
 
 def _json_default(o: Any) -> Any:

@@ -97,14 +97,6 @@ FUSION_CLAIMS: dict[str, PaperClaim] = {
     ),
 }
 
-# Which method the paper's Fig. 5 shows with the lower (better) KLD, per configuration.
-FUSION_KLD_WINNER: dict[str, str] = {
-    "A": "baseline",
-    "B": "network",
-    "C": "network",
-    "D": "network",
-}
-
 # --------------------------------------------------------------------------- risk (Feth et al.)
 RISK_CITATION = (
     "Feth et al., Dynamic Risk Assessment for Vehicles of Higher Automation Levels by Deep Learning "

@@ -51,9 +51,10 @@ def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str
 
 
 def findings(metrics: Mapping[str, Any]) -> str:
-    """Markdown bullet list: paper comparison, failed runs, seeds, baselines and paired
-    comparisons (claims only where the CI excludes zero), critical shares, the region effect,
-    situations, targets, data."""
+    """Markdown bullet list: paper comparison, the shipped predictor, learned model vs rule
+    (claims only where the CI excludes zero), failed runs, seeds, the speed-only baseline's
+    critical speed, the region effect, situations, data (the baselines' scores, the paired
+    differences, the critical shares and the targets: the report's tables)."""
     record = findings_record(metrics)
     text = render_prose(TEMPLATES, "findings.md.j2", f=record, paper=PAPER_QUOTED, **HELPERS)
     return text.rstrip("\n")

@@ -1,8 +1,10 @@
 """What the risk findings state, as a typed record (:class:`RiskFindings`) built from
 ``reports/metrics/risk.json`` (layout: :mod:`traffictwin.risk.evaluation`).
 
-One record type and one builder per findings group (the shipped predictor, learned model vs rule, seeds, baselines, variants, critical shares, the region effect,
-situations, targets, data); :func:`findings_record` assembles them. Python decides *what* is
+One record type and one builder per findings group (the shipped predictor, learned model vs
+rule, seeds, other labels, the region effect, situations, data); :func:`findings_record`
+assembles them. The baselines' scores and the paired differences of the variants are not
+restated: the report's tables of every predictor and of the paired differences show them. Python decides *what* is
 stated: which predictors and metrics entries, the paired comparisons and their verdicts, the
 failed runs. The template ``templates/findings.md.j2`` says it, formatting the numbers of the
 entries (:data:`traffictwin.risk.findings.HELPERS`). A group
@@ -16,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 from traffictwin.nested import lookup
-from traffictwin.risk.evaluation import GT_INPUT, PAPER, SEED_MEAN
+from traffictwin.risk.evaluation import PAPER
 from traffictwin.risk.findings_values import (
     Claim,
     FindingsRun,
@@ -29,15 +31,9 @@ from traffictwin.risk.findings_values import (
 )
 from traffictwin.stats import excludes_zero
 
-#: baselines the headline is compared with, in the order the findings list them (their names:
-#: the template's ``baseline_names``)
-SHOWN_BASELINES = ("speed_only", "geometric_sgm", "geometric_gt", "train_median")
 #: metrics the comparisons quote, with their names
 COMPARED = (("roc_auc", "ROC-AUC"), ("balanced_accuracy", "balanced accuracy"))
 P_LABEL, F_LABEL = "risk_thw_paper", "risk_thw_fov"
-#: the risk labels whose critical share the findings quote, in order (their names: the
-#: template's ``region_names``)
-REGION_LABELS = ("risk_thw_corridor", P_LABEL, F_LABEL)
 
 
 class Shipped(NamedTuple):
@@ -88,84 +84,6 @@ def _learning(r: FindingsRun) -> Learning | None:
     )
 
 
-class Baselines(NamedTuple):
-    """The baselines on the headline's frames (baseline, entry) and the headline against them."""
-
-    scores: list[tuple[str, Mapping[str, Any]]]
-    critical_speed: float | None  #: the speed-only baseline's critical speed (m/s)
-    claims: list[Claim]
-
-
-def _baselines(r: FindingsRun) -> Baselines | None:
-    scores = [(b, e) for b in SHOWN_BASELINES if isinstance(e := r.base.get(b), Mapping)]
-    vmin = as_float((r.base.get("speed_only") or {}).get(f"critical_speed_at_{r.t:g}s"))
-    if not scores and vmin is None:
-        return None
-    claims = []
-    for b in SHOWN_BASELINES if r.main_key not in r.collapsed else ():
-        d = r.diffs.get(f"{r.main_key}|{b}")
-        if d is None:
-            continue
-        nb = b + (" (GT disparity)" if b in GT_INPUT else "")
-        claims.append(claim_record(d, f"{r.at}.roc_auc", "ROC-AUC", r.main_key, nb))
-        claims.append(claim_record(d, "test/mse", "MSE", r.main_key, nb))
-    return Baselines(scores, vmin, claims)
-
-
-class SpeedRow(NamedTuple):
-    """A variant against the speed-only baseline of its own label."""
-
-    name: str
-    variant: Mapping[str, Any] | None  #: its metrics entry; None: a failed run, not compared
-    better: bool | None
-    diff: str | None  #: ΔROC-AUC estimate [lo, hi]
-
-
-def _vs_speed(r: FindingsRun) -> list[SpeedRow]:
-    rows = []
-    for v in sorted(r.models):
-        d = r.diffs.get(f"{v}|speed_only")
-        if v in r.collapsed:
-            rows.append(SpeedRow(v, None, None, None))
-        elif d is not None:
-            roc = f"{r.at}.roc_auc"
-            iv = interval_of(lookup(d, roc))
-            rows.append(SpeedRow(v, r.models[v], beats(d, roc), diff_text(iv)))
-    return rows
-
-
-def _vs_speed_groups(r: FindingsRun) -> list[Claim]:
-    return [
-        claim_record(d, f"{r.at}.roc_auc", "ROC-AUC", f"{b} (seed mean)", "speed_only")
-        for b in sorted(r.groups)
-        if (d := r.diffs.get(f"{b}{SEED_MEAN}|speed_only")) is not None
-    ]
-
-
-class VariantClaims(NamedTuple):
-    """The headline against another variant (or objective) of its label."""
-
-    other: str
-    variant: Mapping[str, Any]  #: its metrics entry (template macro ``describe``)
-    claims: list[Claim]
-
-
-def _variant_claims(r: FindingsRun, kind: str) -> list[VariantClaims]:
-    """The headline − each other ``kind`` ("variant" / "objective") on the headline's label."""
-    out = []
-    for _, d in sorted(r.diffs.items()):
-        if d.get("a") != r.main_key or d.get("kind") != kind:
-            continue
-        b = str(d.get("b"))
-        bv = b.removesuffix(SEED_MEAN)
-        if bv in r.collapsed or r.main_key in r.collapsed:
-            continue
-        claims = [claim_record(d, f"{r.at}.{mk}", name, r.main_key, b) for mk, name in COMPARED]
-        claims.append(claim_record(d, "test/mse", "MSE", r.main_key, b))
-        out.append(VariantClaims(b, r.models.get(bv, {}), claims))
-    return out
-
-
 def _other_label(r: FindingsRun) -> list[tuple[str, Any]]:
     """(variant, its label) of the variants trained on another label than the headline's."""
     label = r.models[r.main].get("label")
@@ -176,16 +94,6 @@ def _other_label(r: FindingsRun) -> list[tuple[str, Any]]:
             for v, e in r.models.items()
             if e.get("label") != label and v not in r.collapsed and e.get("group", v) == v
         )
-    ]
-
-
-def _critical(r: FindingsRun) -> list[tuple[str, list[Any]]]:
-    """(label, its critical share on train / val / test) of the labels with a share."""
-    splits = lookup(r.metrics, "critical_share.splits") or {}
-    return [
-        (lab, [(splits.get(s) or {}).get(lab) for s in ("train", "val", "test")])
-        for lab in REGION_LABELS
-        if any(lab in s for s in splits.values())
     ]
 
 
@@ -282,17 +190,10 @@ class RiskFindings:
     seed_runs: list[tuple[str, Any]] = field(default_factory=list)  #: (run, ROC-AUC) of the group
     shipped: Shipped | None = None
     learning: Learning | None = None
-    baselines: Baselines | None = None
-    vs_speed: list[SpeedRow] = field(default_factory=list)
-    vs_speed_groups: list[Claim] = field(default_factory=list)
-    variants: list[VariantClaims] = field(default_factory=list)
-    objectives: list[VariantClaims] = field(default_factory=list)
+    critical_speed: float | None = None  #: the speed-only baseline's critical speed (m/s)
     other_label: list[tuple[str, Any]] = field(default_factory=list)
-    critical_share: list[tuple[str, list[Any]]] = field(default_factory=list)
-    critical_threshold: Any = None  #: the THW threshold of the critical shares (s)
     region: Region | None = None
     situations: list[tuple[str, Mapping, Mapping, Mapping]] = field(default_factory=list)
-    targets: list[tuple[str, Mapping[str, Any]]] = field(default_factory=list)
     data: Mapping[str, Any] | None = None  #: frames per split (``n_frames``)
     sequences: Mapping[str, Any] = field(default_factory=dict)  #: sequences per split
 
@@ -319,17 +220,10 @@ def findings_record(metrics: Mapping[str, Any]) -> RiskFindings:
         ],
         shipped=_shipped(r),
         learning=_learning(r),
-        baselines=_baselines(r),
-        vs_speed=_vs_speed(r),
-        vs_speed_groups=_vs_speed_groups(r),
-        variants=_variant_claims(r, "variant"),
-        objectives=_variant_claims(r, "objective"),
+        critical_speed=as_float(lookup(r.base.get("speed_only"), f"critical_speed_at_{r.t:g}s")),
         other_label=_other_label(r),
-        critical_share=_critical(r),
-        critical_threshold=lookup(metrics, "critical_share.threshold_s"),
         region=_region(r),
         situations=_situations(r),
-        targets=list((metrics.get("targets") or {}).items()),
         data=nf if isinstance(nf, Mapping) and nf.get("total") else None,
         sequences=metrics.get("n_sequences") or {},
     )

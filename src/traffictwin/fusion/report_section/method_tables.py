@@ -1,12 +1,11 @@
-"""The fusion section's tables of every method per configuration: KLD(b) (headline) and KLD(a),
-the KLD(a) median, every row's intervals, paired differences against naive and registered,
+"""The fusion section's tables of every method per configuration: KLD(b) (headline), the KLD(a)
+median, every row's intervals, paired differences against naive and registered,
 precision / recall / Dice and the cross table; :func:`fusion_tables` adds the registration,
 target and ablation tables (:mod:`.pose_tables`, :mod:`.ablation_tables`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 from traffictwin.fusion.findings import verdict
 from traffictwin.fusion.report_section.ablation_tables import (
@@ -39,48 +38,8 @@ from traffictwin.fusion.report_section.cells import (
 )
 from traffictwin.fusion.report_section.pose_tables import registration_tables
 from traffictwin.report import model as page
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, lookup
 
-
-@dataclass(frozen=True)
-class KldTable:
-    """One KLD table: the ``metric`` per method, the network − naive difference; ``paper``: with
-    the paper's Fig. 5 ranking."""
-
-    metric: str
-    title: str
-    note: str
-    anchor: str
-    headline: bool
-    paper: bool
-
-
-KLD_TABLES = (
-    KldTable(
-        HEADLINE,
-        "Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
-        "KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
-        "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). "
-        "network − naive: paired over the same pairs; 'no difference shown' when its interval "
-        "contains 0. " + CI_NOTE,
-        "fusion-kld",
-        headline=True,
-        paper=False,
-    ),
-    KldTable(
-        "kld_fo_mean",
-        "Fusion: KLD(a) mean per configuration and method, for comparison with the paper "
-        "(test split)",
-        "KLD(a): KL(label‖pred) over (m_F, m_O) only (the definition in the authors' public "
-        "code); the two masses do not sum to 1, so it can be negative and rewards "
-        "over-confidence. Paper column: which of the two Fig. 5 of van Kempen et al. shows "
-        "lower; the paper prints no KLD values. " + CI_NOTE,
-        "fusion-kld-a",
-        headline=False,
-        paper=True,
-    ),
-)
 # every row's intervals: (metric key, column name)
 CI_COLUMNS = (
     (HEADLINE, "KLD(b)"),
@@ -132,29 +91,26 @@ def _network_vs_naive(src: page.Sources, c: str, metric: str) -> list[Cell]:
 
 
 def _kld_table(
-    src: page.Sources,
-    configurations: Configurations,
-    cfgs: Sequence[str],
-    methods: Sequence[str],
-    spec: KldTable,
+    src: page.Sources, configurations: Configurations, cfgs: Sequence[str], methods: Sequence[str]
 ) -> Table:
-    """One KLD table: config, r, α, each method's mean, the network − naive difference with its
-    interval and verdict (and, for KLD(a), the paper's Fig. 5 ranking)."""
+    """The headline table: config, r, α, each method's KLD(b) mean, the network − naive difference
+    with its interval and verdict (KLD(a): the estimates and paired-difference tables)."""
     cols = ["config", "r [m]", "α [deg]", *[label(m) for m in methods]]
     cols += ["network − naive", "95 % CI", "network vs naive (ours)"]
-    if spec.paper:
-        cols.append("network vs naive (paper, Fig. 5)")
-    t = Table(spec.title, cols, note=spec.note, anchor=spec.anchor, headline=spec.headline)
+    t = Table(
+        "Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
+        cols,
+        note="KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
+        "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). "
+        "network − naive: paired over the same pairs; 'no difference shown' when its interval "
+        "contains 0. " + CI_NOTE,
+        anchor="fusion-kld",
+        headline=True,
+    )
     for c in cfgs:
         row = config_cells(configurations, c)
-        row += [row_cell(src, c, m, spec.metric) for m in methods]
-        row += _network_vs_naive(src, c, spec.metric)
-        if spec.paper:
-            w = P.FUSION_KLD_WINNER.get(c)
-            row.append(
-                Cell({"network": "network lower", "baseline": "naive lower"}.get(w or "", NA))
-            )
-        t.rows.append(row)
+        row += [row_cell(src, c, m, HEADLINE) for m in methods]
+        t.rows.append(row + _network_vs_naive(src, c, HEADLINE))
     return t
 
 
@@ -281,13 +237,15 @@ def _cross_table(src: page.Sources) -> Table | None:
 
 
 def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Table]:
-    """KLD(b) (headline) and KLD(a) per configuration and method with the network − naive
-    difference, intervals per row, paired differences, P/R/Dice, the loss ablation and the cross
+    """KLD(b) (headline) per configuration and method with the network − naive difference, the
+    KLD(a) median, intervals per row, paired differences, P/R/Dice, the loss ablation and the cross
     table (the targets: the index's acceptance table)."""
     cfgs = fusion_configs(src, configurations)
     methods = fusion_methods(src, cfgs)
-    tables = [_kld_table(src, configurations, cfgs, methods, spec) for spec in KLD_TABLES]
-    tables.append(_median_table(src, configurations, cfgs, methods))
+    tables = [
+        _kld_table(src, configurations, cfgs, methods),
+        _median_table(src, configurations, cfgs, methods),
+    ]
     optional = (_ci_table(src, cfgs, methods), _diff_table(src, cfgs, methods))
     tables += [t for t in optional if t is not None]
     tables.append(_score_table(src, cfgs, methods))
