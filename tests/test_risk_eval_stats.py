@@ -789,7 +789,8 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
     assert [r[1] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[1] == "spread")[5] == "fail"
-    assert "risk-critical-share" not in anchors  # the data section's risk_data.json table
+    shares = tables[anchors.index("risk-critical-share")]
+    assert [r[0] for r in shares] == ["train", "val", "test", "all"]
     sit = tables[anchors.index("risk-situations")]
     assert [r[0] for r in sit] == sorted(SITUATIONS)
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md

@@ -131,20 +131,24 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
             "stereo-fault-detection",
             "stereo-accuracy",
             "stereo-range-error",
+            "stereo-fault-counts",
+            "stereo-delay-by-speed",
+            "stereo-valid-share-sweep",
             "stereo-resolution",
             "stereo-resolution-difference",
         ]
     )
-    det, acc, rng, res, diff = sec.tables
+    det, acc, rng, _, speed, sweep, res, diff = sec.tables
     assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
     assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
     assert [r[0] for r in _rows(det)] == [ST.RULE_LABELS[r] for r in RULES]
     assert [r[1] for r in _rows(det)] == ["", "", "", "yes"]  # the configured rule drops pairs
     assert _rows(det)[0][2:4] == ["50.00 %", "[40.00 %, 60.00 %]"]
     assert det.rows[0][3].derived.startswith("95 % cluster-bootstrap interval")
-    # the pair counts, detection by speed and threshold sweep: the data section's orb.json table
-    data = next(s for s in report.sections if s.page == "data")
-    assert "reports/metrics/orb.json" in " ".join(t.title for t in data.tables)
+    # speed bins sorted by their lower edge, with the counts first
+    assert speed.columns[1:] == ["v 0–0.5 m/s", "v 0.5–5 m/s", "v 10–15 m/s"]
+    assert _rows(speed)[0] == ["delay faults (count)", "4", "4", "4"]
+    assert [r[0] for r in _rows(sweep)] == ["threshold 0.75", "threshold 0.8"]
     assert res.columns == ["quantity", "width 320 px", "width 640 px"]
     rows = {r[0]: r[1:] for r in _rows(res)}
     assert rows["objects at 12–21 m: median range error"] == ["7.00 %", "14.00 %"]

@@ -1,18 +1,17 @@
 """The risk section's tables with 95 % sequence-bootstrap intervals (every predictor on the same
-test frames, paired differences, situations) and the choices made on the
+test frames, paired differences, critical shares, situations) and the choices made on the
 validation split (``risk_selection.json``, stage select_risk).
 
 Shown when ``risk.json`` has intervals (``bootstrap``): every metric with its interval
 (``<metric>_ci``), the paired differences (``differences``: a claim only where the interval
-excludes 0) and the situation breakdown (the critical share of every region's label per split:
-the data section's risk_data.json table; the targets: the index's acceptance table,
-:mod:`traffictwin.report.acceptance`).
+excludes 0), the critical share of every region per split and the situation breakdown (the
+targets: the index's acceptance table, :mod:`traffictwin.report.acceptance`).
 """
 
 from __future__ import annotations
 
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, Cell, Table
+from traffictwin.report.model import NA, Cell, Table, fmt_value
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings_values import beats
 from traffictwin.risk.report_tables import (
@@ -214,6 +213,40 @@ def risk_selection_table(src: page.Sources) -> Table | None:
         row.append(Cell("shipped" if name == shipped else ""))
         tab.rows.append(row)
     return tab
+
+
+def risk_critical_share_table(src: page.Sources) -> Table | None:
+    """Critical share of every region's label per split (frames.csv, all frames)."""
+    splits = src.get(RISK_FILE, "critical_share.splits")
+    if not isinstance(splits, dict) or not splits:
+        return None
+    labels = [
+        lab
+        for lab in ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
+        if any(isinstance(e, dict) and lab in e for e in splits.values())
+    ]
+    thr = src.get(RISK_FILE, "critical_share.threshold_s")
+    t = Table(
+        f"Risk: critical share (THW < {fmt_value(thr, 'g4')} s) of every region's label per split",
+        ["split", "frames", "sequences", *labels],
+        anchor="risk-critical-share",
+        note=(
+            "All frames of frames.csv (before the ORB check). risk_thw_corridor: objects in the "
+            "subject's driving corridor (the headline label); risk_thw_paper: anything ahead under "
+            "the pessimistic-turn assumption; risk_thw_fov: the part the camera sees."
+        ),
+    )
+    for split in splits:
+        pre = f"critical_share.splits.{split}"
+        t.rows.append(
+            [
+                Cell(split),
+                value_cell(src, f"{pre}.n_frames", "int"),
+                value_cell(src, f"{pre}.n_sequences", "int"),
+                *[value_cell(src, f"{pre}.{lab}", "pct") for lab in labels],
+            ]
+        )
+    return t
 
 
 def risk_situation_table(src: page.Sources) -> Table | None:

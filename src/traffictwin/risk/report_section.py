@@ -30,6 +30,7 @@ from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
 from traffictwin.risk.report_intervals import (
     risk_ci_table,
+    risk_critical_share_table,
     risk_difference_table,
     risk_selection_table,
     risk_situation_table,
@@ -90,6 +91,7 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
             risk_selection_table(src),
             risk_ci_table(src),
             risk_difference_table(src),
+            risk_critical_share_table(src),
             risk_situation_table(src),
         ):
             if extra is not None:

@@ -47,8 +47,6 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     builds = (disparity_tables, learned_tables, variant_tables, fault_tables)
     res = resolution_tables(src)
     sec.tables = [t for build in builds for t in build(src)] + res
-    if any(t.anchor == "stereo-fault-detection" for t in sec.tables):
-        sec.paragraphs.append(prose("orb_data"))
     sec.paragraphs += [
         prose("missing", file=f, stage=stage) for f, stage in STAGES.items() if not src.has(f)
     ]

@@ -47,6 +47,7 @@ RANGE_COLUMNS += (("relerr_median", "pct"), ("relerr_p90", "pct"))
 #: the detection rates per rule in orb.json, their column headers
 FAULTS = ("delay_detection", "vertical_detection", "false_alarm")
 DETECTION = ("delay faults detected", "vertical shifts detected", "false alarms (fault-free)")
+SWEEP = ("false_alarm", "delay_detection", "vertical_detection")  # the sweep's columns
 #: the range error by distance, as the resolution study and the learned stereo show it
 RANGE_ROWS: tuple[Row, ...] = (
     ("0–10 m: median range error", "z0-10m_relerr_median", "pct"),
@@ -143,8 +144,8 @@ def disparity_tables(src: page.Sources) -> list[Table]:
 
 
 def fault_tables(src: page.Sources) -> list[Table]:
-    """Detection / false-alarm rates per rule with intervals (the pairs they are over, the
-    detection by speed and the valid-share threshold sweep: the data section's orb.json table)."""
+    """Detection / false-alarm rates per rule with intervals, the pairs they are over, delay
+    detection by speed, the valid-share threshold sweep."""
     rules = [r for r in RULE_LABELS if src.get(ORB_FILE, f"rule_{r}/false_alarm") is not None]
     if not rules:  # no orb.json, or one of an older stage version: the data section shows it
         return []
@@ -159,7 +160,39 @@ def fault_tables(src: page.Sources) -> list[Table]:
         drops = "yes" if src.get(ORB_FILE, f"rule_{r}/configured") == 1 else ""
         cells = [c for k in FAULTS for c in value_ci(src, ORB_FILE, f"rule_{r}/{k}")]
         det.rows.append([Cell(RULE_LABELS[r]), Cell(drops), *cells])
-    return [det]
+    counts = Table(
+        "Stereo-pair checks: pairs evaluated (reports/metrics/orb.json)",
+        ["pairs", "count"],
+        anchor="stereo-fault-counts",
+    )
+    for k, label in zip(FAULTS, ("with a delay fault", "with a vertical shift", "fault-free")):
+        counts.rows.append([Cell(label), src.cell(ORB_FILE, f"rule_orb/{k}_n", "int")])
+    bins = _keys(src, ORB_FILE, r"rule_orb/(delay_detection_v[0-9p]+-[0-9p]+)")
+    bins.sort(key=lambda b: float(_edges(b, "delay_detection_v")[0]))
+    speed = Table(
+        "Delay faults detected by subject speed (reports/metrics/orb.json)",
+        ["rule"] + ["v {}–{} m/s".format(*_edges(b, "delay_detection_v")) for b in bins],
+        anchor="stereo-delay-by-speed",
+        note=prose("by_speed"),
+    )
+    speed.rows.append(
+        [Cell("delay faults (count)")]
+        + [src.cell(ORB_FILE, f"rule_orb/{b}_n", "int") for b in bins]
+    )
+    for r in rules:
+        cells = [src.cell(ORB_FILE, f"rule_{r}/{b}", "pct") for b in bins]
+        speed.rows.append([Cell(RULE_LABELS[r]), *cells])
+    sweep = Table(
+        "Valid-share rule: threshold sweep (reports/metrics/orb.json)",
+        ["flag when valid share <", "false alarms", "delay detected", "vertical detected"],
+        anchor="stereo-valid-share-sweep",
+    )
+    pattern = r"sweep/min_valid_share_([0-9p]+)_false_alarm_rate"
+    for th in sorted(_keys(src, ORB_FILE, pattern), key=lambda x: float(x.replace("p", "."))):
+        pre = f"sweep/min_valid_share_{th}"
+        cells = [src.cell(ORB_FILE, f"{pre}_{k}_rate", "pct") for k in SWEEP]
+        sweep.rows.append([Cell(f"threshold {th.replace('p', '.')}"), *cells])
+    return [det, counts] + ([speed] if bins else []) + ([sweep] if sweep.rows else [])
 
 
 def resolution_tables(src: page.Sources) -> list[Table]:
