@@ -136,11 +136,11 @@ def test_headline_block_reads_the_metrics_files() -> None:
     twin = {
         "targets": {
             "method": "learned",
-            "occluded_recall_ge_0.9": {"value": 0.95, "ci": [0.9, 1.0], "met": True},
+            "occluded_recall": {"value": 0.95, "ci": [0.9, 1.0], "met": True},
         }
     }
     accept = {
-        "occluded_recall_ge_0.9": {"metric": "occluded.recall", "operator": ">=", "value": 0.9}
+        "occluded_recall": {"metric": "occluded.recall", "operator": ">=", "value": 0.9}
     }
     block = R.headline_block(fusion, risk, twin, {"A": {"r": 0.0, "alpha": 0.0}}, accept)
     assert block.startswith(R.H_BEGIN) and block.endswith(R.H_END)

@@ -269,9 +269,9 @@ def test_lead_times_and_summary_hand_computed() -> None:
     assert short["twin"]["occluded"]["false_alarm_share"] == pytest.approx(1 / 10)
     assert short["twin"]["occluded"]["lead_vs_ego_s_mean"] == pytest.approx(0.1)  # = the target's
     t = targets({"D": {"methods": s}}, "twin", "D", TWIN)
-    assert t["occluded_recall_ge_0.9"]["met"] is False
-    assert t["occluded_median_lead_vs_ego_ge_0.8s"]["met"] is False
-    assert t["open_false_alarms_le_0.05_frame_noise"]["value"] is None  # no open sequences here
+    assert t["occluded_recall"]["met"] is False
+    assert t["occluded_median_lead_vs_ego"]["met"] is False
+    assert t["open_false_alarms_frame_noise"]["value"] is None  # no open sequences here
     assert targets({}, "twin", "D", TWIN) == {"configuration": "D", "evaluated": False}
     assert "step_ms_median" not in occ  # wall time: the stage's run record, not twin.json
 
@@ -357,8 +357,8 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
         assert (ci_dag / "reports" / "figures" / f"{fig}.png").exists()
     assert m["targets"]["configuration"] == params["twin"]["target_configuration"]
     for key in (
-        "occluded_median_lead_vs_ego_ge_0.8s",
-        "open_false_alarms_le_0.05_pose_bias",
+        "occluded_median_lead_vs_ego",
+        "open_false_alarms_pose_bias",
         "predictive_warns_earlier_than_thw",
         "predictive_no_more_false_alarms",
     ):

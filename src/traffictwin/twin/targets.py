@@ -14,12 +14,12 @@ __all__ = ["TARGET_NAMES", "targets"]
 #: the targets :func:`targets` judges (the registration ones only for a headline that is not
 #: the naive twin)
 TARGET_NAMES = (
-    "occluded_recall_ge_0.9",
+    "occluded_recall",
     "occluded_recall_above_ego",
-    "occluded_median_lead_vs_ego_ge_0.8s",
-    "occluded_warned_before_onset_ge_0.95",
-    "open_false_alarms_le_0.05_frame_noise",
-    "open_false_alarms_le_0.05_pose_bias",
+    "occluded_median_lead_vs_ego",
+    "occluded_warned_before_onset",
+    "open_false_alarms_frame_noise",
+    "open_false_alarms_pose_bias",
     "registration_lead_above_naive",
     "registration_false_alarms_below_naive_frame_noise",
     "registration_false_alarms_below_naive_pose_bias",
@@ -96,7 +96,7 @@ def _warning_targets(
 ) -> dict[str, Any]:
     """Recall, lead over the ego's map and warned-before-onset (occluded); false alarms (open)."""
     out: dict[str, Any] = {}
-    name = "occluded_recall_ge_0.9"
+    name = "occluded_recall"
     out[name] = _entry(th[name], occ.get("recall"), occ.get("recall_ci"))
     name = "occluded_recall_above_ego"
     d, ci = occ.get("recall_vs_ego"), occ.get("recall_vs_ego_ci")
@@ -104,17 +104,17 @@ def _warning_targets(
     out[name] = _entry(
         th[name], d, ci, None if ok is None else bool(ok and occ["recall_vs_ego_excludes_zero"])
     )
-    name = "occluded_median_lead_vs_ego_ge_0.8s"
+    name = "occluded_median_lead_vs_ego"
     out[name] = _entry(
         th[name], occ.get("lead_vs_ego_s_median"), occ.get("lead_vs_ego_s_median_ci")
     )
-    name = "occluded_warned_before_onset_ge_0.95"
+    name = "occluded_warned_before_onset"
     out[name] = _entry(
         th[name], occ.get("warned_before_onset_share"), occ.get("warned_before_onset_share_ci")
     )
-    name = "open_false_alarms_le_0.05_frame_noise"
+    name = "open_false_alarms_frame_noise"
     out[name] = _entry(th[name], opn.get("false_alarm_share"), opn.get("false_alarm_share_ci"))
-    name = "open_false_alarms_le_0.05_pose_bias"
+    name = "open_false_alarms_pose_bias"
     out[name] = _entry(th[name], bias.get("false_alarm_share"), bias.get("false_alarm_share_ci"))
     return out
 
