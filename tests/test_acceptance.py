@@ -180,16 +180,12 @@ def test_a_moved_threshold_moves_the_twin_and_risk_verdicts() -> None:
 
     s = {"twin": {"occluded": {"recall": 0.85, "recall_ci": [0.8, 0.9]}}}
     twin = thresholds("twin")
-    assert (
-        targets({"D": {"methods": s}}, "twin", "D", twin)["occluded_recall"]["met"] is False
-    )
+    assert targets({"D": {"methods": s}}, "twin", "D", twin)["occluded_recall"]["met"] is False
     moved = {
         **twin,
         "occluded_recall": dataclasses.replace(twin["occluded_recall"], value=0.8),
     }
-    assert (
-        targets({"D": {"methods": s}}, "twin", "D", moved)["occluded_recall"]["met"] is True
-    )
+    assert targets({"D": {"methods": s}}, "twin", "D", moved)["occluded_recall"]["met"] is True
     risk = thresholds("risk")
     iv = Interval(0.96, 0.9, 0.99)
     assert risk_judge(iv, risk["shipped_roc_auc"])["met"] is False  # >= 0.97

@@ -139,9 +139,7 @@ def test_headline_block_reads_the_metrics_files() -> None:
             "occluded_recall": {"value": 0.95, "ci": [0.9, 1.0], "met": True},
         }
     }
-    accept = {
-        "occluded_recall": {"metric": "occluded.recall", "operator": ">=", "value": 0.9}
-    }
+    accept = {"occluded_recall": {"metric": "occluded.recall", "operator": ">=", "value": 0.9}}
     block = R.headline_block(fusion, risk, twin, {"A": {"r": 0.0, "alpha": 0.0}}, accept)
     assert block.startswith(R.H_BEGIN) and block.endswith(R.H_END)
     assert "7 test pairs per configuration" in block
