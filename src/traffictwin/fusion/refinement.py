@@ -15,9 +15,8 @@ from traffictwin.fusion.registration import (
     ecc_align,
     masked_cc,
     pair_features,
-    pixel_affine_to_pose,
     pose_error,
-    warp_image,
+    scored_estimate,
 )
 from traffictwin.grid import GridSpec
 
@@ -93,12 +92,11 @@ def refine_pose(
     or its masked correlation does not beat the start's by more than ``min_gain``.
     """
     t0 = time.perf_counter()
-    shape = grid.shape
     start = np.asarray(rel_pose, dtype=np.float64).reshape(3)
     pf = pair_features(
         "refine_pose", map1, map2, start, grid, params.feature, params.known_threshold
     )
-    f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
+    f1, k1, a0, g2, kg2, both = pf.f1, pf.k1, pf.a0, pf.g2, pf.kg2, pf.both
     min_cells = params.min_overlap * f1.size
     cc_start = masked_cc(f1, g2, both) if both.sum() >= min_cells else -1.0
 
@@ -129,11 +127,7 @@ def refine_pose(
     if not ecc_ok:
         return result(start.copy(), False, False, cc_start)
     a_est = np.linalg.inv(np.linalg.inv(a0) @ w)  # map2 px → map1 px
-    est = pixel_affine_to_pose(a_est, grid)
-    g_est = warp_image(f2, a_est, shape)
-    k_est = warp_image(k2, a_est, shape, nearest=True)
-    both_est = (k1 > 0) & (k_est > 0)
-    cc_est = masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    est, cc_est = scored_estimate(pf, a_est, grid, min_cells)
     dt, dr = pose_error(est, start)
     ok = bool(
         dt <= params.max_trans_m

@@ -57,6 +57,7 @@ __all__ = [
     "masked_cc",
     "PairFeatures",
     "pair_features",
+    "scored_estimate",
     "BoundedPhaseCorrelator",
     "pose_error",
 ]
@@ -430,6 +431,20 @@ def pair_features(
     return PairFeatures(f1, f2, k1, k2, a0, g2, kg2, (k1 > 0) & (kg2 > 0))
 
 
+def scored_estimate(
+    pf: PairFeatures, a_est: np.ndarray, grid: GridSpec, min_cells: float
+) -> tuple[np.ndarray, float]:
+    """The pose (x m, y m, yaw rad) of ``a_est`` (map 2 px → map 1 px) and the masked correlation
+    of map 1's features with map 2's warped by it (−1 where fewer than ``min_cells`` cells are
+    known in both): how :func:`register_pair` and
+    :func:`~traffictwin.fusion.refinement.refine_pose` score an estimate."""
+    g_est = warp_image(pf.f2, a_est, grid.shape)
+    k_est = warp_image(pf.k2, a_est, grid.shape, nearest=True)
+    both_est = (pf.k1 > 0) & (k_est > 0)
+    cc_est = masked_cc(pf.f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    return pixel_affine_to_pose(a_est, grid), cc_est
+
+
 def register_pair(
     map1: np.ndarray,
     map2: np.ndarray,
@@ -443,12 +458,11 @@ def register_pair(
     (x m, y m, yaw rad) prior; ``grid``: geometry of both maps.
     """
     t0 = time.perf_counter()
-    shape = grid.shape
     noisy = np.asarray(rel_pose_noisy, dtype=np.float64).reshape(3)
     pf = pair_features(
         "register_pair", map1, map2, noisy, grid, params.feature, params.known_threshold
     )
-    f1, f2, k1, k2, a0, g2, kg2, both = pf.f1, pf.f2, pf.k1, pf.k2, pf.a0, pf.g2, pf.kg2, pf.both
+    f1, k1, a0, g2, kg2, both = pf.f1, pf.k1, pf.a0, pf.g2, pf.kg2, pf.both
     cc_noisy = masked_cc(f1, g2, both)
     min_cells = params.min_overlap * f1.size
 
@@ -482,12 +496,7 @@ def register_pair(
         params.ecc_levels,
     )
     w_total = np.linalg.inv(a0) @ wc  # map1 px → map2 px
-    a_est = np.linalg.inv(w_total)  # map2 px → map1 px
-    est = pixel_affine_to_pose(a_est, grid)
-    g_est = warp_image(f2, a_est, shape)
-    k_est = warp_image(k2, a_est, shape, nearest=True)
-    both_est = (k1 > 0) & (k_est > 0)
-    cc_est = masked_cc(f1, g_est, both_est) if both_est.sum() >= min_cells else -1.0
+    est, cc_est = scored_estimate(pf, np.linalg.inv(w_total), grid, min_cells)
     dt, dr = pose_error(est, noisy)
     ok = bool(
         cc_est >= params.min_cc
