@@ -108,7 +108,8 @@ def save_figure(
 
 
 def pyplot() -> Any:
-    """matplotlib.pyplot on the Agg backend (no display): the one place that picks the backend."""
+    """matplotlib.pyplot on the Agg backend (no display), for figure code that imports it only
+    when it draws (risk/figures.py and risk/data_figures.py still pick Agg at import)."""
     import matplotlib
 
     matplotlib.use("Agg")
