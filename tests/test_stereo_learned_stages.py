@@ -60,6 +60,8 @@ TRAIN = StereoTrainConfig(
     val_frames=2,
     early_stopping_patience=2,
     lr=1e-3,
+    lr_factor=0.5,
+    lr_patience=0,
     weight_decay=0.0,
     rel_weight=1.0,
     coarse_weight=0.5,
@@ -177,12 +179,23 @@ def test_train_stereo_rejects_a_crop_narrower_than_the_disparity_range() -> None
         train_stereo.model_config(p)
 
 
+@pytest.mark.parametrize("offsets", [0, 2])
 def test_sgm_mode_trains_on_data_disparity_and_keeps_sgm_validity(
-    data: Path, tmp_path: Path
+    data: Path, tmp_path: Path, offsets: int
 ) -> None:
+    """With or without the local search: SGM's valid pixels only, a correction within its bounds
+    (the residual's, plus the search's half-width), and a spread threshold that keeps them all."""
     spec = StereoNetSpec(
-        base="sgm", refine_channels=4, refine_dilations=(1,), refine_stride=1, max_residual_px=1.0
+        base="sgm",
+        refine_channels=4,
+        refine_dilations=(1,),
+        refine_stride=1,
+        max_residual_px=1.0,
+        local_cost_offsets=offsets,
+        local_cost_step_px=0.25,
+        local_cost_window=3,
     )
+    bound = 0.25 * offsets if offsets else 1.0  # the largest spread it reports
     model = tmp_path / "model"
     outputs = ModelOutputs(model / "model.ckpt", model / "model_meta.json", tmp_path / "m.json")
     settings = TrainerSettings(accelerator="cpu", devices=1, precision="32-true")
@@ -203,13 +216,14 @@ def test_sgm_mode_trains_on_data_disparity_and_keeps_sgm_validity(
         outputs=outputs,
     )
     meta = json.loads((model / "model_meta.json").read_text())
-    assert meta["architecture"]["base"] == "sgm" and meta["spread_threshold_px"] == 1.0
+    assert meta["architecture"]["base"] == "sgm" and meta["spread_threshold_px"] == bound
     m = stage.run(model, data / "risk", data / "disparity", tmp_path / "out", n_boot=20)
     out, sgm = Dataset(tmp_path / "out", kind="stereo_learned"), Dataset(data / "disparity")
     for i in range(len(out.shards)):
         d, s = out.load_shard(i)["disp_learned"], sgm.load_shard(i)["disp_sgm"]
         assert np.array_equal(d < 0, s < 0)  # density = SGM's
-        assert np.abs(d - s)[s >= 0].max() <= 1.0 + 1e-5  # the bounded residual
+        assert np.abs(d - s)[s >= 0].max() <= 1.0 + 0.25 * offsets + 1e-5  # bounded
+        assert (out.load_shard(i)["disp_learned_spread"] <= bound).all()  # none masked
     assert m["learned/own/density"] == pytest.approx(m["sgm/own/density"])
 
 

@@ -11,6 +11,7 @@ from traffictwin.risk.stereo_training import calibrate_spread, predict
 from traffictwin.stereo.network import (
     StereoNet,
     StereoNetSpec,
+    local_costs,
     soft_argmin,
     stereo_loss,
     to_input,
@@ -139,6 +140,9 @@ def test_calibrate_spread_threshold_keeps_the_density_and_tables_the_deciles() -
         ({"stride": 1, "refine_stride": 2}, "refine_stride"),
         ({"base": "sad"}, "base must be one of"),
         ({"max_residual_px": 0.0}, "max_residual_px"),
+        ({"local_cost_offsets": 17}, "local_cost_offsets"),
+        ({"local_cost_step_px": 0.0}, "local_cost_step_px"),
+        ({"local_cost_window": 6}, "local_cost_window must be an odd integer"),
     ],
 )
 def test_spec_bounds(change: dict, match: str) -> None:
@@ -218,3 +222,80 @@ def test_tiny_sgm_refiner_removes_a_subpixel_bias() -> None:
         opt.step()
     net.eval()
     assert epe() < 0.1
+
+
+def _smooth_pair(d: float, h: int = 24, w: int = 64):
+    """A smooth texture (a few sinusoids per colour, values in [0, 1]) seen by two eyes at an exact
+    fractional disparity ``d`` px: ``left(x) = right(x - d)``."""
+    y, x = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+
+    def tex(u: torch.Tensor) -> torch.Tensor:
+        chans = [
+            0.5
+            + 0.2 * torch.sin(0.71 * u + 0.3 * y + c)
+            + 0.15 * torch.cos(0.37 * u - 0.45 * y + 2 * c)
+            for c in range(3)
+        ]
+        return torch.stack(chans)[None].float()
+
+    return tex(x), tex(x + d)
+
+
+def test_local_costs_are_smallest_at_the_true_shift() -> None:
+    left, right = _smooth_pair(5.5)
+    offsets = torch.arange(-4, 5, dtype=torch.float32) * 0.25  # -1 .. 1 px
+    cost = local_costs(left, right, torch.full((1, 1, 24, 64), 5.0), offsets)
+    assert cost.shape == (1, 9, 24, 64)
+    inner = cost[..., 8:-8].mean((0, 2, 3))  # away from the repeated border
+    assert int(inner.argmin()) == 6  # offset +0.5 px: 5.0 + 0.5 = the true 5.5
+    assert inner[6].item() < 0.01 < inner[4].item()  # near zero at the truth, clearly above at 5.0
+
+
+def test_untrained_local_search_finds_the_subpixel_disparity_sgm_missed() -> None:
+    """Before any training, the local search is a classical one (box-aggregated cost, soft-argmin):
+    an SGM estimate locked at 5 px for a true 5.3 px moves to within 0.1 px of it; the spread stays
+    below the search's half-width (the threshold that keeps every SGM pixel)."""
+    left, right = _smooth_pair(5.3)
+    sgm = torch.full((1, 1, 24, 64), 5.0)
+    sgm[..., :6] = -1.0
+    spec = StereoNetSpec(
+        base="sgm",
+        refine_channels=4,
+        refine_dilations=(1,),
+        refine_stride=1,
+        max_residual_px=0.5,
+        local_cost_offsets=4,
+        local_cost_step_px=0.25,
+        local_cost_window=7,
+    )
+    net = StereoNet(spec).eval()
+    with torch.no_grad():
+        out = net(left, right, sgm)
+    inner = out["disparity"][..., 8:-8, 12:-8]
+    assert (inner - 5.3).abs().max().item() < 0.1
+    assert torch.all(out["disparity"][..., :6] == -1.0)
+    assert spec.sgm_spread_bound_px == 1.0
+    assert torch.all(out["spread"] <= spec.sgm_spread_bound_px) and out["spread"].max() > 0
+
+
+def test_local_search_gradients_stay_finite_when_its_distribution_is_one_hot() -> None:
+    left, right = _smooth_pair(5.3)
+    sgm = torch.full((1, 1, 24, 64), 5.0)
+    spec = StereoNetSpec(
+        base="sgm",
+        refine_channels=4,
+        refine_dilations=(1,),
+        refine_stride=1,
+        local_cost_offsets=2,
+        local_cost_window=3,
+    )
+    net = StereoNet(spec)
+    with torch.no_grad():
+        net.cost_log_scale.fill_(30.0)  # exp(30) x cost: every pixel's distribution one-hot
+    out = net(left, right, sgm)
+    assert out["spread"].median().item() == 0.0  # one-hot: a zero spread, sqrt(0)
+    loss, _ = stereo_loss(out, torch.full_like(sgm, 5.3), max_disparity=16)
+    loss.backward()
+    assert all(torch.isfinite(q.grad).all() for q in net.parameters() if q.grad is not None)

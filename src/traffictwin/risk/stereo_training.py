@@ -165,6 +165,9 @@ class StereoLitModule(common.NetModule):
             stereo_loss,
             lr=hparams["lr"],
             weight_decay=hparams.get("weight_decay", 0.0),
+            plateau=(hparams["lr_factor"], hparams["lr_patience"])
+            if "lr_factor" in hparams
+            else None,
             monitor=SELECTION_METRIC,
         )
         self.save_hyperparameters(
@@ -316,6 +319,8 @@ def fit_stereo(
     val_dl = DataLoader(full_frames(va), batch_size=4, shuffle=False)
     hparams = {
         "lr": train.lr,
+        "lr_factor": train.lr_factor,
+        "lr_patience": train.lr_patience,
         "weight_decay": train.weight_decay,
         "rel_weight": train.rel_weight,
         "coarse_weight": train.coarse_weight,
@@ -384,7 +389,7 @@ def _publish(
         gt = np.where(val["disp_sgm"] >= 0, gt, 0.0)
     thr, table = calibrate_spread(disp, spread, gt, train.valid_density, spec.max_disparity)
     if spec.base == "sgm":
-        thr = float(spec.max_residual_px)  # |residual| <= max_residual_px: keeps every SGM pixel
+        thr = spec.sgm_spread_bound_px  # the largest spread it can report: keeps every SGM pixel
     metrics = common.fit_metrics(
         fitted,
         train.max_epochs,

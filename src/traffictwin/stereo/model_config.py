@@ -29,6 +29,9 @@ class StereoTrainConfig:
     val_frames: int = setting(MISSING, min=1)
     early_stopping_patience: int = setting(MISSING, min=1)
     lr: float = setting(MISSING, min=1e-9, max=1.0)
+    #: the learning rate x lr_factor after lr_patience epochs without a val/epe improvement
+    lr_factor: float = setting(MISSING, min=1e-6, max=1.0)
+    lr_patience: int = setting(MISSING, min=0)
     weight_decay: float = setting(MISSING, min=0.0)
     rel_weight: float = setting(MISSING, min=0.0)
     coarse_weight: float = setting(MISSING, min=0.0)

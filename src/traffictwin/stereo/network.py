@@ -13,6 +13,7 @@ with ground truth (``0 < d_gt < max_disparity``), on the refined and the coarse 
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -40,6 +41,13 @@ class StereoNetSpec:
     # adding a residual bounded by max_residual_px (px) on SGM's valid pixels
     base: str = "cost_volume"
     max_residual_px: float = 1.5
+    # sgm mode, a local search around SGM's pixel-locked estimate (0 = none): the matching cost
+    # mean_c |left - right warped by SGM + o| at o = k * local_cost_step_px, k = -offsets..offsets,
+    # aggregated over a local_cost_window (px) box (learned), plus learned logits; the soft-argmin of
+    # its negative adds a sub-pixel offset to SGM, and the distribution's spread is the confidence
+    local_cost_offsets: int = 0
+    local_cost_step_px: float = 0.25
+    local_cost_window: int = 7
 
     def __post_init__(self) -> None:
         from traffictwin.io.limits import check_at_most
@@ -92,6 +100,17 @@ class StereoNetSpec:
                 f"StereoNetSpec.refine_dilations must be 1..64 px each, at least one, got {list(dil)}"
             )
         check_at_most("StereoNetSpec", "refine_dilations (count)", len(dil), 16)
+        k, step, win = self.local_cost_offsets, self.local_cost_step_px, self.local_cost_window
+        if not isinstance(k, int) or not 0 <= k <= 16:
+            raise ValueError(
+                f"StereoNetSpec.local_cost_offsets must be an integer in [0, 16], got {k!r}"
+            )
+        if not isinstance(step, (int, float)) or not 0.0 < float(step) <= 2.0:
+            raise ValueError(f"StereoNetSpec.local_cost_step_px must be in (0, 2] px, got {step!r}")
+        if not isinstance(win, int) or not 1 <= win <= 31 or win % 2 == 0:
+            raise ValueError(
+                f"StereoNetSpec.local_cost_window must be an odd integer in [1, 31] px, got {win!r}"
+            )
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StereoNetSpec:
@@ -105,6 +124,14 @@ class StereoNetSpec:
         out = asdict(self)
         out["refine_dilations"] = list(self.refine_dilations)
         return out
+
+    @property
+    def sgm_spread_bound_px(self) -> float:
+        """sgm mode: the largest spread the network can report (px), so the threshold that keeps
+        every SGM pixel: the local search's half-width, else the residual's bound."""
+        if self.local_cost_offsets:
+            return float(self.local_cost_offsets * self.local_cost_step_px)
+        return float(self.max_residual_px)
 
     @property
     def levels(self) -> int:
@@ -142,6 +169,24 @@ def soft_argmin(cost_logits: torch.Tensor, step: float = 1.0) -> tuple[torch.Ten
     return mean, var.clamp_min(0.0).sqrt()
 
 
+def local_costs(
+    left: torch.Tensor, right: torch.Tensor, disp: torch.Tensor, offsets: torch.Tensor
+) -> torch.Tensor:
+    """Matching cost ``mean_c |left - right(x - disp - o)|`` (B, K, H, W) at each of the K
+    disparity offsets ``offsets`` (px), the right image resampled bicubically (bilinear
+    resampling pulls sub-pixel minima towards whole pixels) with its border repeated; one
+    resampling for all K. ``disp`` (B, 1, H, W) px."""
+    b, c, h, w = right.shape
+    k = offsets.numel()
+    d = (disp.unsqueeze(1) + offsets.to(disp).view(1, k, 1, 1, 1)).reshape(b * k, h, w)
+    xs = torch.arange(w, dtype=d.dtype, device=d.device).view(1, 1, w)
+    ys = torch.arange(h, dtype=d.dtype, device=d.device).view(1, h, 1).expand(b * k, h, w)
+    grid = torch.stack([2.0 * (xs - d) / max(w - 1, 1) - 1.0, 2.0 * ys / max(h - 1, 1) - 1.0], -1)
+    rr = right.unsqueeze(1).expand(b, k, c, h, w).reshape(b * k, c, h, w)
+    warped = F.grid_sample(rr, grid, mode="bicubic", padding_mode="border", align_corners=True)
+    return (left.unsqueeze(1) - warped.view(b, k, c, h, w)).abs().mean(2)
+
+
 def warp_right(right: torch.Tensor, disp: torch.Tensor) -> torch.Tensor:
     """The right image resampled at ``x - disp`` (B, C, H, W; ``disp`` (B, 1, H, W) px): where the
     disparity is right, it reproduces the left image (zeros beyond the border)."""
@@ -163,14 +208,25 @@ class StereoNet(nn.Module):
         super().__init__()
         self.spec = spec
         r = spec.refine_channels
-        if (
-            spec.base == "sgm"
-        ):  # the refinement alone: [left, SGM disparity, validity, left - warped]
-            self.refine_in = _conv(3 + 1 + 1 + 3, r)
+        if spec.base == "sgm":
+            # the refinement alone: [left, SGM disparity, validity, left - warped, local costs]
+            k = spec.local_cost_offsets
+            n_off = 2 * k + 1 if k else 0
+            offsets = torch.arange(-k, k + 1, dtype=torch.float32) * float(spec.local_cost_step_px)
+            self.register_buffer("cost_offsets", offsets[:n_off], persistent=False)
+            self.refine_in = _conv(3 + 1 + 1 + 3 + n_off, r)
             self.refine = nn.Sequential(*[_Res(r, d) for d in spec.refine_dilations])
             self.refine_out = nn.Conv2d(r, 1, 3, padding=1)
-            nn.init.zeros_(self.refine_out.weight)  # untrained: exactly the SGM disparity
+            nn.init.zeros_(self.refine_out.weight)  # untrained: SGM plus the local search
             nn.init.zeros_(self.refine_out.bias)
+            if n_off:  # untrained: the soft-argmin of the box-aggregated cost (a classical search)
+                win = spec.local_cost_window
+                self.cost_aggregate = nn.Conv2d(1, 1, win, padding=win // 2, bias=False)
+                nn.init.constant_(self.cost_aggregate.weight, 1.0 / win**2)
+                self.cost_log_scale = nn.Parameter(torch.tensor(math.log(100.0)))
+                self.cost_logits = nn.Conv2d(r, n_off, 3, padding=1)
+                nn.init.zeros_(self.cost_logits.weight)
+                nn.init.zeros_(self.cost_logits.bias)
             return
         c = spec.feature_channels
         layers: list[nn.Module] = [_conv(3, c, stride=min(spec.stride, 2))]
@@ -227,8 +283,9 @@ class StereoNet(nn.Module):
     def _refine_sgm(
         self, left: torch.Tensor, right: torch.Tensor, sgm: torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        """SGM + ``tanh(residual) * max_residual_px`` on SGM's valid pixels, -1 elsewhere;
-        ``spread`` = |residual| px (0 where SGM is invalid); ``coarse`` = SGM (invalid -> 0)."""
+        """SGM + ``tanh(residual) * max_residual_px`` (+ the local search's soft-argmin offset) on
+        SGM's valid pixels, -1 elsewhere; ``spread`` px = the local search distribution's standard
+        deviation, without one |residual| (0 where SGM is invalid); ``coarse`` = SGM (invalid -> 0)."""
         if sgm.shape[-2:] != left.shape[-2:] or sgm.shape[1] != 1:
             raise ValueError(
                 f"StereoNet: SGM disparity {tuple(sgm.shape)} must be (B, 1) x the image size "
@@ -244,14 +301,32 @@ class StereoNet(nn.Module):
         else:
             lo, ro, dr, vr = left, right, d0, valid.float()
         err = lo - warp_right(ro, dr)
-        x = torch.cat([lo - 0.5, dr * (rs / self.spec.max_disparity), vr, err], 1)
-        raw = self.refine_out(self.refine(self.refine_in(x)))
+        x = [lo - 0.5, dr * (rs / self.spec.max_disparity), vr, err]
+        n_off = self.cost_offsets.numel()
+        if n_off:  # offsets in px of the refinement's resolution
+            cost = local_costs(lo, ro, dr, self.cost_offsets / rs)
+            x.append(cost)
+        z = self.refine(self.refine_in(torch.cat(x, 1)))
+        raw = self.refine_out(z)
+        if n_off:
+            b, _, h, w = cost.shape
+            agg = self.cost_aggregate(cost.reshape(b * n_off, 1, h, w)).view(b, n_off, h, w)
+            logits = self.cost_logits(z) - self.cost_log_scale.exp() * agg
+            step = float(self.spec.local_cost_step_px)
+            offset = soft_argmin(logits, step)[0]  # at offsets 0, step, ... from -k * step
+            # the spread is not trained: without the detach, a one-hot distribution's sqrt(0) would
+            # send 0 * inf = NaN into the gradients
+            spread = soft_argmin(logits.detach(), step)[1]
+            raw = torch.cat([raw, offset - self.spec.local_cost_offsets * step, spread], 1)
         if rs > 1:
             raw = F.interpolate(raw, size=left.shape[-2:], mode="bilinear", align_corners=False)
-        res = torch.tanh(raw) * float(self.spec.max_residual_px)
-        res = torch.where(valid, res, torch.zeros_like(res))
+        res = torch.tanh(raw[:, :1]) * float(self.spec.max_residual_px)
+        res = res + raw[:, 1:2] if n_off else res
+        zero = torch.zeros_like(res)
+        res = torch.where(valid, res, zero)
+        spread = torch.where(valid, raw[:, 2:3], zero) if n_off else res.abs()
         out = torch.where(valid, (d0 + res).clamp_min(0.0), torch.full_like(d0, -1.0))
-        return {"disparity": out, "coarse": d0, "spread": res.abs()}
+        return {"disparity": out, "coarse": d0, "spread": spread}
 
     def _forward(self, left: torch.Tensor, right: torch.Tensor) -> dict[str, torch.Tensor]:
         s = self.spec.stride
@@ -325,6 +400,7 @@ __all__ = [
     "BASES",
     "StereoNet",
     "StereoNetSpec",
+    "local_costs",
     "param_count",
     "soft_argmin",
     "stereo_loss",
