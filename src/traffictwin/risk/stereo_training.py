@@ -317,14 +317,8 @@ def fit_stereo(
     )
     train_dl = DataLoader(crops, batch_size=train.batch_size, sampler=sampler, drop_last=True)
     val_dl = DataLoader(full_frames(va), batch_size=4, shuffle=False)
-    hparams = {
-        "lr": train.lr,
-        "lr_factor": train.lr_factor,
-        "lr_patience": train.lr_patience,
-        "weight_decay": train.weight_decay,
-        "rel_weight": train.rel_weight,
-        "coarse_weight": train.coarse_weight,
-    }
+    hp_keys = ("lr", "lr_factor", "lr_patience", "weight_decay", "rel_weight", "coarse_weight")
+    hparams = {k: getattr(train, k) for k in hp_keys}
     meta_base = {
         "problem": PROBLEM,
         "data_manifest_hash": digest,
