@@ -44,7 +44,8 @@ class StereoNetSpec:
     # sgm mode, a local search around SGM's pixel-locked estimate (0 = none): the matching cost
     # mean_c |left - right warped by SGM + o| at o = k * local_cost_step_px, k = -offsets..offsets,
     # aggregated over a local_cost_window (px) box (learned), plus learned logits; the soft-argmin of
-    # its negative adds a sub-pixel offset to SGM, and the distribution's spread is the confidence
+    # its negative adds a sub-pixel offset to SGM (the distribution's spread is reported, but it is no
+    # confidence: peaked and wrong where SGM is off by more than the search reaches)
     local_cost_offsets: int = 0
     local_cost_step_px: float = 0.25
     local_cost_window: int = 7
