@@ -3,6 +3,8 @@ volume, loss, the float32 guard, a tiny overfit, and the spread calibration."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -154,6 +156,17 @@ def test_spec_bounds(change: dict, match: str) -> None:
 SGM_TINY = StereoNetSpec(
     base="sgm", refine_channels=8, refine_dilations=(1, 2), refine_stride=1, max_residual_px=1.0
 )
+#: the local sub-pixel search around SGM: 9 offsets in 0.25 px steps, a 7 x 7 cost window
+SEARCH_TINY = StereoNetSpec(
+    base="sgm",
+    refine_channels=4,
+    refine_dilations=(1,),
+    refine_stride=1,
+    max_residual_px=0.5,
+    local_cost_offsets=4,
+    local_cost_step_px=0.25,
+    local_cost_window=7,
+)
 
 
 def _sgm_pair(h: int = 16, w: int = 48, d: float = 5.0, bias: float = 0.3):
@@ -260,16 +273,7 @@ def test_untrained_local_search_finds_the_subpixel_disparity_sgm_missed() -> Non
     left, right = _smooth_pair(5.3)
     sgm = torch.full((1, 1, 24, 64), 5.0)
     sgm[..., :6] = -1.0
-    spec = StereoNetSpec(
-        base="sgm",
-        refine_channels=4,
-        refine_dilations=(1,),
-        refine_stride=1,
-        max_residual_px=0.5,
-        local_cost_offsets=4,
-        local_cost_step_px=0.25,
-        local_cost_window=7,
-    )
+    spec = SEARCH_TINY
     net = StereoNet(spec).eval()
     with torch.no_grad():
         out = net(left, right, sgm)
@@ -283,15 +287,7 @@ def test_untrained_local_search_finds_the_subpixel_disparity_sgm_missed() -> Non
 def test_local_search_gradients_stay_finite_when_its_distribution_is_one_hot() -> None:
     left, right = _smooth_pair(5.3)
     sgm = torch.full((1, 1, 24, 64), 5.0)
-    spec = StereoNetSpec(
-        base="sgm",
-        refine_channels=4,
-        refine_dilations=(1,),
-        refine_stride=1,
-        local_cost_offsets=2,
-        local_cost_window=3,
-    )
-    net = StereoNet(spec)
+    net = StereoNet(dataclasses.replace(SEARCH_TINY, local_cost_offsets=2, local_cost_window=3))
     with torch.no_grad():
         net.cost_log_scale.fill_(30.0)  # exp(30) x cost: every pixel's distribution one-hot
     out = net(left, right, sgm)

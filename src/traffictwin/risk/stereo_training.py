@@ -164,10 +164,8 @@ class StereoLitModule(common.NetModule):
             StereoNet(s),
             stereo_loss,
             lr=hparams["lr"],
-            weight_decay=hparams.get("weight_decay", 0.0),
-            plateau=(hparams["lr_factor"], hparams["lr_patience"])
-            if "lr_factor" in hparams
-            else None,
+            weight_decay=hparams["weight_decay"],
+            plateau=(hparams["lr_factor"], hparams["lr_patience"]),
             monitor=SELECTION_METRIC,
         )
         self.save_hyperparameters(

@@ -179,25 +179,25 @@ def local_costs(
     resampling for all K. ``disp`` (B, 1, H, W) px."""
     b, c, h, w = right.shape
     k = offsets.numel()
-    d = (disp.unsqueeze(1) + offsets.to(disp).view(1, k, 1, 1, 1)).reshape(b * k, h, w)
-    xs = torch.arange(w, dtype=d.dtype, device=d.device).view(1, 1, w)
-    ys = torch.arange(h, dtype=d.dtype, device=d.device).view(1, h, 1).expand(b * k, h, w)
-    grid = torch.stack([2.0 * (xs - d) / max(w - 1, 1) - 1.0, 2.0 * ys / max(h - 1, 1) - 1.0], -1)
+    d = (disp.unsqueeze(1) + offsets.to(disp).view(1, k, 1, 1, 1)).reshape(b * k, 1, h, w)
     rr = right.unsqueeze(1).expand(b, k, c, h, w).reshape(b * k, c, h, w)
-    warped = F.grid_sample(rr, grid, mode="bicubic", padding_mode="border", align_corners=True)
+    warped = warp_right(rr, d, mode="bicubic", padding_mode="border")
     return (left.unsqueeze(1) - warped.view(b, k, c, h, w)).abs().mean(2)
 
 
-def warp_right(right: torch.Tensor, disp: torch.Tensor) -> torch.Tensor:
+def warp_right(
+    right: torch.Tensor, disp: torch.Tensor, mode: str = "bilinear", padding_mode: str = "zeros"
+) -> torch.Tensor:
     """The right image resampled at ``x - disp`` (B, C, H, W; ``disp`` (B, 1, H, W) px): where the
-    disparity is right, it reproduces the left image (zeros beyond the border)."""
+    disparity is right, it reproduces the left image (``grid_sample``'s ``mode`` and
+    ``padding_mode``: zeros beyond the border by default)."""
     b, _, h, w = right.shape
     xs = torch.arange(w, dtype=disp.dtype, device=disp.device).view(1, 1, w).expand(b, h, w)
     ys = torch.arange(h, dtype=disp.dtype, device=disp.device).view(1, h, 1).expand(b, h, w)
     gx = 2.0 * (xs - disp[:, 0]) / max(w - 1, 1) - 1.0
     gy = 2.0 * ys / max(h - 1, 1) - 1.0
     grid = torch.stack([gx, gy], -1)
-    return F.grid_sample(right, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return F.grid_sample(right, grid, mode=mode, padding_mode=padding_mode, align_corners=True)
 
 
 class StereoNet(nn.Module):
