@@ -106,11 +106,11 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
-        from traffictwin.fusion.registration_training import learning_curves
+        from traffictwin.fusion.training_figures import registration_learning_curves
         from traffictwin.io.atomic import save_figure
 
         save_figure(
-            learning_curves(res.history, "learned registration, mixed pose noise"),
+            registration_learning_curves(res.history, "learned registration, mixed pose noise"),
             figure_file(name),
         )
         if res.run_id:

@@ -119,6 +119,47 @@ def test_report_code_retrains_and_regenerates_nothing() -> None:
         assert not hits, f"stage {name} depends on report code {hits}"
 
 
+#: the stages that make data or train a model: the expensive ones
+DATA_AND_TRAINING = (
+    "generate_fusion",
+    "prealign",
+    "prealign_mixed",
+    "register",
+    "generate_risk",
+    "disparity",
+    "orb_filter",
+    "generate_twin",
+    "train_fusion",
+    "train_fusion_variant",
+    "train_registration",
+    "train_risk",
+    "train_risk_hybrid",
+    "train_stereo",
+    "train_stereo_holdout",
+)
+#: what evaluation alone uses: the fusion methods compared and the evaluation figures (the twin
+#: methods are not here: the twin's config, which generate_twin reads, checks their names)
+EVALUATION_ONLY = (
+    "src/traffictwin/fusion/methods.py",
+    "src/traffictwin/fusion/figures.py",
+    "src/traffictwin/fusion/map_figures.py",
+    "src/traffictwin/twin/figures.py",
+    "src/traffictwin/risk/figures.py",
+)
+
+
+def test_a_new_method_or_evaluation_figure_regenerates_and_retrains_nothing() -> None:
+    """Adding a method to fusion/methods.py or editing an evaluation figure re-runs the
+    evaluations, never a data or training stage."""
+    stages = _stages()
+    assert set(DATA_AND_TRAINING) <= set(stages), set(DATA_AND_TRAINING) - set(stages)
+    for name in DATA_AND_TRAINING:
+        hits = [d for d in _deps(stages[name]) if d in EVALUATION_ONLY]
+        assert not hits, f"stage {name} depends on evaluation-only code {hits}"
+    assert all((ROOT / f).is_file() for f in EVALUATION_ONLY)
+    assert "src/traffictwin/fusion/methods.py" in _deps(stages["evaluate_fusion"])
+
+
 def test_dvc_lock_holds_only_todays_stages() -> None:
     stale = stage_deps.stale_lock_stages(ROOT / "dvc.yaml", ROOT / "dvc.lock")
     assert not stale, f"dvc.lock has stages dvc.yaml no longer defines: {stale}"

@@ -27,7 +27,8 @@ from traffictwin.fusion.learned_registration import (
 )
 from traffictwin.fusion.methods import METHODS, FusionInput
 from traffictwin.fusion.registration_loss import registration_loss, soft_target
-from traffictwin.fusion.registration_training import correction_errors, learning_curves, perturb
+from traffictwin.fusion.registration_training import correction_errors, perturb
+from traffictwin.fusion.training_figures import registration_learning_curves
 from traffictwin.grid import GridSpec
 
 GRID = GridSpec(rows=128, cols=96, cell=0.32)
@@ -286,13 +287,13 @@ def test_learning_curves_plot_success_errors_and_loss() -> None:
         }
         for e, (s, t, r) in enumerate(((0.2, 2.0, 4.0), (0.6, 0.7, 1.2), (0.8, 0.3, 0.5)))
     ]
-    fig = learning_curves(rows, "t")
+    fig = registration_learning_curves(rows, "t")
     ax1, ax2, ax3 = fig.axes
     np.testing.assert_allclose(ax1.lines[0].get_ydata(), [20, 60, 80])
     assert ax1.get_ylabel() == "success rate (%)" and "m" in ax2.get_ylabel()
     assert [len(line.get_xdata()) for line in ax3.lines] == [3, 3]
     with pytest.raises(ValueError, match="no epochs"):
-        learning_curves([], "t")
+        registration_learning_curves([], "t")
 
 
 # -- training -------------------------------------------------------------------------------------------------

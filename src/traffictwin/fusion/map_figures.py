@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from traffictwin.fusion.figures import _plt
+from traffictwin.io.atomic import pyplot as _plt
 from traffictwin.report.colours import legend_handles, show_masses
 
 __all__ = ["qualitative_grid"]

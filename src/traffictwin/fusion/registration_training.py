@@ -421,35 +421,3 @@ def _publish(
         uri = common.log_fitted_model(fitted, slim, meta, metrics, net.eval(), example, metadata)
     common.publish(fitted, outputs, slim, meta, metrics)
     return common.fit_result(fitted, outputs, meta, metrics, uri)
-
-
-def learning_curves(rows: list[dict[str, float]], title: str):
-    """Figure of a registration run's per-epoch rows: validation success rate, mean pose errors
-    (m, deg) and the training / validation loss; the best epoch (lowest val/loss) is marked."""
-    from traffictwin.fusion.figures import _plt
-
-    if not rows:
-        raise ValueError("learning_curves: no epochs to plot")
-
-    from traffictwin.fusion.training_figures import LOSS_LINES, _series, finish_figure, plot_series
-
-    plt = _plt()
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
-    e, v = _series(rows, "val/success_rate")
-    ax1.plot(e, 100 * v, "o-", label="validation")
-    el, vl = _series(rows, "val/loss")
-    if len(vl):
-        b = int(np.argmin(vl))
-        ax1.axvline(el[b], color="#ff7f0e", ls=":", label=f"best epoch {int(el[b])} (val loss)")
-    ax1.set(
-        xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
-    )
-    pose_lines = (
-        ("val/trans_err_m", "o-", "translation (m)"),
-        ("val/rot_err_deg", "s-", "rotation (deg)"),
-    )
-    plot_series(ax2, rows, pose_lines)
-    ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
-    plot_series(ax3, rows, LOSS_LINES)
-    ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")
-    return finish_figure(fig, (ax1, ax2, ax3), title)

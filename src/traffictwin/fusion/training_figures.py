@@ -1,8 +1,12 @@
-"""Learning curves of one fusion training run (matplotlib Agg; saved by the train stage).
+"""Learning curves of one fusion or registration training run (matplotlib Agg; saved by the
+train stages).
 
 :func:`learning_curves` plots, per epoch, the validation KLD(b) (the selection metric) against the
 naive fusion's on the same validation pairs, the training and validation loss, and the
 validation Dice of occupied cells (network and naive); the best epoch is marked.
+:func:`registration_learning_curves` plots the learned registration's validation success rate,
+mean pose errors and losses per epoch. Nothing here imports the fusion methods or the evaluation
+figures: a new fusion method or an evaluation figure re-runs no training stage.
 """
 
 from __future__ import annotations
@@ -11,9 +15,15 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from traffictwin.fusion.figures import _plt
+from traffictwin.io.atomic import pyplot as _plt
 
-__all__ = ["LOSS_LINES", "finish_figure", "learning_curves", "plot_series"]
+__all__ = [
+    "LOSS_LINES",
+    "finish_figure",
+    "learning_curves",
+    "plot_series",
+    "registration_learning_curves",
+]
 
 # the training and validation loss per epoch: (History key, line style, legend label)
 LOSS_LINES = (("train/loss", "o-", "train"), ("val/loss", "s-", "validation"))
@@ -66,4 +76,31 @@ def learning_curves(
         ax3, rows, (("val/dice_occ", "o-", "network"), ("val/dice_occ_naive", "--", "naive"))
     )
     ax3.set(xlabel="epoch", ylabel="validation Dice, occupied (-)", title="occupied cells")
+    return finish_figure(fig, (ax1, ax2, ax3), title)
+
+
+def registration_learning_curves(rows: Sequence[Mapping[str, float]], title: str):
+    """Figure of a registration run's per-epoch rows: validation success rate, mean pose errors
+    (m, deg) and the training / validation loss; the best epoch (lowest val/loss) is marked."""
+    if not rows:
+        raise ValueError("registration_learning_curves: no epochs to plot")
+    plt = _plt()
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    e, v = _series(rows, "val/success_rate")
+    ax1.plot(e, 100 * v, "o-", label="validation")
+    el, vl = _series(rows, "val/loss")
+    if len(vl):
+        b = int(np.argmin(vl))
+        ax1.axvline(el[b], color="#ff7f0e", ls=":", label=f"best epoch {int(el[b])} (val loss)")
+    ax1.set(
+        xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
+    )
+    pose_lines = (
+        ("val/trans_err_m", "o-", "translation (m)"),
+        ("val/rot_err_deg", "s-", "rotation (deg)"),
+    )
+    plot_series(ax2, rows, pose_lines)
+    ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
+    plot_series(ax3, rows, LOSS_LINES)
+    ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")
     return finish_figure(fig, (ax1, ax2, ax3), title)

@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 
 from traffictwin.evidential.warp import warp_masses
-from traffictwin.fusion.figures import _plt
 from traffictwin.grid import GridSpec
+from traffictwin.io.atomic import pyplot as _plt
 from traffictwin.report.colours import legend_handles, show_masses
 from traffictwin.sim.cooperative import ROLES
 from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_poses, scalar
