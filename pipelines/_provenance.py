@@ -29,6 +29,35 @@ from traffictwin.mlops.tracking import (
 
 from ._paths import PARAMS, ROOT
 
+#: conf/ composed with another profile, one JSON file per state of conf/ and profile (relative to
+#: the repository; git-ignored): every stage of a `dvc exp run -S profile=ci` compares against the
+#: same composition, and Hydra takes about half a second to make it
+COMPOSED = Path(".cache") / "traffictwin" / "composed"
+
+
+def composed_profile(root: str | Path, profile: str) -> dict:
+    """``root``'s conf/ composed with ``profile=<profile>`` (plain containers), read from
+    :data:`COMPOSED` when a stage already composed the same conf/ files for the same profile (the
+    key hashes every file of conf/ and the profile's name); an unknown profile raises as Hydra does."""
+    from traffictwin.config import compose_config
+    from traffictwin.io.atomic import write_text_atomic
+
+    conf = Path(root) / "conf"
+    key = hashlib.sha256(profile.encode() + b"\0")
+    for f in sorted(p for p in conf.rglob("*") if p.is_file()):
+        key.update(f.relative_to(conf).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    cached = Path(root) / COMPOSED / f"{key.hexdigest()}.json"
+    try:
+        return json.loads(cached.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        pass
+    composed = compose_config(conf, [f"profile={profile}"])
+    try:
+        write_text_atomic(cached, json.dumps(composed))
+    except OSError:  # a read-only checkout: composed again next time
+        pass
+    return composed
+
 
 def git_commit(root: str | Path = ROOT) -> str:
     """The commit runs belong to: ``DVC_EXP_BASELINE_REV`` inside a DVC experiment (a queued
@@ -92,10 +121,8 @@ def params_overrides(
     if old_profile != new_profile and (Path(root) / "conf").is_dir():
         # another profile (`-S profile=ci`): one override `profile`, and against the committed
         # conf/ composed with that profile only what else was changed
-        from traffictwin.config import compose_config
-
         try:
-            committed = compose_config(Path(root) / "conf", [f"profile={new_profile}"])
+            committed = composed_profile(root, str(new_profile))
         except Exception:  # noqa: BLE001 - an unknown profile: the plain diff below
             pass
         else:

@@ -16,6 +16,13 @@ from pathlib import Path
 
 import pytest
 
+# OpenMP threads sleep instead of spinning while they wait, in the test processes and every
+# stage or CLI process they start (they inherit the variable; OpenMP reads it when torch loads,
+# so before any torch import): the suite runs two xdist workers, the ci DAG's build and their
+# subprocesses on the same cores, where spinning threads made torch work 3-60x slower
+# (traffictwin.threads.passive_omp_wait, which the CLI calls, does the same)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 _ANYWHERE = shutil.ignore_patterns(
@@ -547,6 +554,13 @@ _RECORDING: list[bool] = []  # non-empty when this run records durations (pytest
 def pytest_configure(config: pytest.Config) -> None:
     if config.getoption("--record-durations", None):
         _RECORDING.append(True)
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if hasattr(config, "workerinput") and workers > 1:
+        # a worker's share of the cores for its in-process torch work (the workers run at once;
+        # more threads than cores only wait on each other). Subprocesses keep their own count.
+        import torch
+
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 
 
 def _write_durations(config: pytest.Config) -> None:

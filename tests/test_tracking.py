@@ -255,6 +255,47 @@ def test_params_overrides_against_the_committed_file(tmp_path: Path, monkeypatch
     assert tracking.params_overrides()["fusion_model.optim.lr"] == ["0.001", "0.002"]
 
 
+def test_another_profile_is_one_override_and_its_composition_is_reused(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A run on another profile than the committed params.yaml's is one override `profile` plus
+    what differs from conf/ composed with that profile; the composition is made once per state of
+    conf/ and profile (Hydra takes ~0.5 s a stage), and a change to conf/ makes it again."""
+    import subprocess
+
+    import yaml
+
+    from traffictwin.config import compose_config
+
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    conf = tmp_path / "conf"
+    (conf / "profile").mkdir(parents=True)
+    (conf / "config.yaml").write_text("defaults:\n  - _self_\n  - profile: default\n\nseed: 1\n")
+    (conf / "profile" / "default.yaml").write_text("name: default\n")
+    (conf / "profile" / "ci.yaml").write_text("name: ci\n")
+    git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump(compose_config(conf)))
+    subprocess.run([*git, "add", "-A"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "p"], cwd=tmp_path, check=True)
+    params.write_text(yaml.safe_dump({**compose_config(conf, ["profile=ci"]), "seed": 2}))
+    calls = []
+
+    def counted(conf_dir, overrides=()):
+        calls.append(list(overrides))
+        return compose_config(conf_dir, overrides)
+
+    monkeypatch.setattr("traffictwin.config.compose_config", counted)
+    want = {"profile": ["default", "ci"], "seed": ["1", "2"]}
+    assert prov.params_overrides(tmp_path, params) == want
+    assert prov.params_overrides(tmp_path, params) == want  # the second stage: from the cache
+    assert calls == [["profile=ci"]]
+    (conf / "profile" / "ci.yaml").write_text("name: ci\nextra: 3\n")  # conf/ changed
+    assert prov.params_overrides(tmp_path, params) == {**want, "extra": ["3", None]}
+    assert len(calls) == 2 and len(list((tmp_path / prov.COMPOSED).iterdir())) == 2
+
+
 def test_run_name_and_description_carry_the_experiment_and_its_overrides(
     mlflow_uri: str, monkeypatch
 ) -> None:
