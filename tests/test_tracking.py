@@ -292,7 +292,7 @@ def test_another_profile_is_one_override_and_its_composition_is_reused(
     assert prov.params_overrides(tmp_path, params) == want  # the second stage: from the cache
     assert calls == [["profile=ci"]]
     (conf / "profile" / "ci.yaml").write_text("name: ci\nextra: 3\n")  # conf/ changed
-    assert prov.params_overrides(tmp_path, params) == {**want, "extra": ["3", None]}
+    assert prov.params_overrides(tmp_path, params) == {**want, "profile.extra": ["3", None]}
     assert len(calls) == 2 and len(list((tmp_path / prov.COMPOSED).iterdir())) == 2
 
 
