@@ -215,14 +215,16 @@ def _bare_env() -> dict[str, str]:
     return env
 
 
-@pytest.mark.integration  # six CLI subprocesses (~7 s)
-def test_no_stray_mlflow_db_outside_the_project(tmp_path, pair):
-    """Run in an empty folder with no URI: one clear line, nothing created."""
+@pytest.mark.integration  # a CLI subprocess
+def test_no_stray_mlflow_db_outside_the_project(tmp_path, pair, monkeypatch, capsys):
+    """Run in an empty folder with no URI: one clear line, nothing created. The first command in a
+    fresh process with the bare environment (nothing inherited from the test session), the rest
+    in-process with the same environment."""
     work = tmp_path / "empty"
     work.mkdir()
     lp, rp = write_pair(tmp_path / "in", "f", *pair)
     m1 = save_map(tmp_path / "in" / "a.npz", *masses(1), cell=np.float64(CELL))
-    cmds = [
+    first, *rest = [
         ["risk", str(lp), str(rp)],
         ["fuse", str(m1), str(m1), "--pose1", POSE1, "--pose2", POSE2, "-o", "o"],
         ["status"],
@@ -230,17 +232,24 @@ def test_no_stray_mlflow_db_outside_the_project(tmp_path, pair):
         ["runs", "compare", "--experiment", "fusion"],
         ["risk", str(lp), str(rp), "--tracking-uri", "sqlite:///other.db"],
     ]
-    for args in cmds:
-        proc = subprocess.run(
-            [sys.executable, "-m", "traffictwin.cli", *args],
-            cwd=work,
-            env=_bare_env(),
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert proc.returncode == 1, (args, proc.stderr)
-        line = _one_error_line(proc.stderr, "error")
+    proc = subprocess.run(
+        [sys.executable, "-m", "traffictwin.cli", *first],
+        cwd=work,
+        env=_bare_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 1, (first, proc.stderr)
+    line = _one_error_line(proc.stderr, "error")
+    assert "--tracking-uri" in line or "not creating" in line, line
+    assert list(work.iterdir()) == []
+    for k in [k for k in os.environ if k.startswith(("MLFLOW_", "TRAFFICTWIN_", "DVC_"))]:
+        monkeypatch.delenv(k)
+    monkeypatch.chdir(work)
+    for args in rest:
+        assert cli.main(args) == 1, (args, capsys.readouterr().err)
+        line = _one_error_line(capsys.readouterr().err, "error")
         assert "--tracking-uri" in line or "not creating" in line, line
         assert list(work.iterdir()) == [], (args, list(work.iterdir()))
 
