@@ -6,6 +6,8 @@ temp copy of the repository; stage tests inspect its outputs instead of re-runni
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 import shutil
 import subprocess
@@ -88,6 +90,20 @@ def committed_tree(rel: str, dest: Path) -> Path:
     with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
         tar.extractall(dest, filter="data")
     return dest / rel
+
+
+@functools.cache
+def _composed(overrides: tuple[str, ...]) -> dict:
+    from traffictwin.config import compose_config
+
+    return compose_config(ROOT / "conf", list(overrides))
+
+
+def composed(*overrides: str) -> dict:
+    """The repository's conf/ composed with ``overrides`` (Hydra, as ``compose_config``), made once
+    per test process for each set of overrides (a composition takes ~0.4 s); a deep copy each call,
+    so a test may change it."""
+    return copy.deepcopy(_composed(overrides))
 
 
 def stage_env(repo: Path, mlflow_db: Path | None = None) -> dict[str, str]:

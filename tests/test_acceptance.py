@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from _acceptance import thresholds
+from conftest import composed
 
 from traffictwin.acceptance import (
     FAIL,
@@ -116,7 +117,7 @@ def test_the_config_group_builds_every_problem() -> None:
 
 
 def test_the_spread_threshold_is_the_collapse_limit() -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci", "evaluation.risk.collapse_std=0.02"])
+    cfg = composed("profile=ci", "evaluation.risk.collapse_std=0.02")
     assert for_problem(cfg, "risk")["spread"].value == 0.02
 
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import composed
 
 from traffictwin.fusion.losses import (
     confusion_counts,
@@ -275,7 +276,7 @@ def test_a_registered_toy_loss_is_selectable_by_config_alone() -> None:
     loss and the training module's loss accept it, no other file touched."""
     from dataclasses import dataclass
 
-    from traffictwin.config import ConfigError, compose_config, spec, typed
+    from traffictwin.config import ConfigError, spec, typed
     from traffictwin.fusion.config import fusion_variants
     from traffictwin.fusion.loss_registry import register_loss, unregister_loss
     from traffictwin.fusion.losses import fusion_loss
@@ -288,8 +289,7 @@ def test_a_registered_toy_loss_is_selectable_by_config_alone() -> None:
     def toy_loss(e, y, s: Toy, epoch=None):
         return s.scale * (e - y).abs().mean()
 
-    root = __import__("pathlib").Path(__file__).resolve().parents[1]
-    cfg = compose_config(root / "conf", [])
+    cfg = composed()
     node = cfg["fusion_model"]
     node["loss"] = {**node["loss"], "name": "toy", "toy": {"scale": 2.0}}
     with pytest.raises(ConfigError, match="'fusion_model.loss.toy': Key 'toy' not in"):

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import composed
 
 from traffictwin.api import DIVISOR, load_masses, read_image
 from traffictwin.cli import parse_pose
-from traffictwin.config import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -21,7 +21,7 @@ PROFILES = ("default", "ci")
 
 @pytest.fixture(scope="module")
 def confs() -> dict[str, dict]:
-    return {p: compose_config(ROOT / "conf", [f"profile={p}"]) for p in PROFILES}
+    return {p: composed(f"profile={p}") for p in PROFILES}
 
 
 @pytest.mark.parametrize("profile", PROFILES)

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import composed
 
 from traffictwin.fusion.deeplab import (
     RESIDUAL_EPS,
@@ -312,13 +313,11 @@ def test_residual_spec_validation_round_trip_and_plain_ablation() -> None:
 
 @pytest.mark.parametrize("profile", ["ci", "default", "paper"])
 def test_every_profile_builds_the_residual_network(profile: str) -> None:
-    from pathlib import Path
 
-    from traffictwin.config import compose_config, typed
+    from traffictwin.config import typed
     from traffictwin.fusion.training import FusionModelConfig
 
-    root = Path(__file__).resolve().parents[1]
-    cfg = compose_config(root / "conf", [f"profile={profile}"])
+    cfg = composed(f"profile={profile}")
     model_cfg = typed(cfg["fusion_model"], FusionModelConfig, key="fusion_model", source="conf")
     spec = model_cfg.deeplab_spec("conf")
     assert (spec.residual, spec.evidence) == ("dempster", "exp")

@@ -13,6 +13,7 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+from conftest import composed
 
 from traffictwin import trainer as common
 from traffictwin.config import ConfigError
@@ -512,15 +513,12 @@ def test_missing_data_fails_and_writes_nothing(tmp_path: Path) -> None:
 
 
 def test_fusion_model_config_is_validated_once_with_full_keys() -> None:
-    import copy
 
-    from traffictwin.config import compose_config, typed
+    from traffictwin.config import typed
     from traffictwin.fusion.training import FusionModelConfig
 
-    root = Path(__file__).resolve().parents[1]
-
     def node() -> dict:
-        return copy.deepcopy(compose_config(root / "conf", [])["fusion_model"])
+        return composed()["fusion_model"]
 
     n = node()
     m = typed(n, FusionModelConfig, key="fusion_model")
@@ -717,9 +715,8 @@ def test_early_stopping_cannot_stop_with_the_best_epoch_in_the_last_fifth(profil
     # with min_delta 0 early stopping counts the same improvements as the checkpoint selection, so
     # a run it ends has run best + 1 + patience epochs; patience >= max_epochs / 5 then keeps the
     # best epoch out of the last fifth of any run that stops early
-    from traffictwin.config import compose_config
 
-    cfg = compose_config(Path(__file__).resolve().parents[1] / "conf", [f"profile={profile}"])
+    cfg = composed(f"profile={profile}")
     t = cfg["fusion_model"]["train"]
     assert t["early_stopping_min_delta"] == 0.0
     assert 5 * t["early_stopping_patience"] >= t["max_epochs"]

@@ -12,11 +12,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import composed
 
 from tests.test_fusion_training import write_prealigned
 from tests.test_risk_training import _source, write_synthetic_risk
 from traffictwin import trainer as common
-from traffictwin.config import compose_config, typed
+from traffictwin.config import typed
 from traffictwin.fusion.training import FusionDataModule, FusionLitModule, FusionModelConfig
 from traffictwin.grid import GridSpec
 from traffictwin.risk.training import RiskModelConfig, fit, prepare_split
@@ -26,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def paper() -> dict:
-    return compose_config(ROOT / "conf", ["profile=paper"])
+    return composed("profile=paper")
 
 
 def test_paper_profile_composes_to_the_papers_sizes(paper: dict) -> None:

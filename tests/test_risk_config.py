@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import conftest
 import pytest
 from omegaconf import OmegaConf
 
-from traffictwin.config import ConfigError, compose_config, typed
+from traffictwin.config import ConfigError, typed
 from traffictwin.grid import GridSpec
 from traffictwin.risk.config import EvalRiskConfig, MetricParams, RiskDataConfig
 from traffictwin.stereo.orb import OrbParams
@@ -18,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module", params=["ci", "default", "paper"])
 def composed(request) -> dict:
-    return compose_config(ROOT / "conf", [f"profile={request.param}"])
+    return conftest.composed(f"profile={request.param}")
 
 
 def _risk_data(cfg: dict, **dotted) -> RiskDataConfig:
@@ -82,13 +83,13 @@ def test_data_spec_carries_every_setting(composed: dict) -> None:
     ],
 )
 def test_bad_risk_data_names_the_key(dotted: dict, match: str) -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     with pytest.raises(ConfigError, match=match):
         _risk_data(cfg, **dotted)
 
 
 def test_missing_key_is_named() -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     del cfg["risk_data"]["sgm"]["gray"]
     with pytest.raises(ConfigError, match=r"risk_data\.sgm\.gray"):
         typed(cfg["risk_data"], RiskDataConfig, key="risk_data")
@@ -105,14 +106,14 @@ def test_missing_key_is_named() -> None:
     ],
 )
 def test_bad_evaluation_risk_names_the_key(change: dict, match: str) -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     node = OmegaConf.merge(cfg["evaluation"]["risk"], change)
     with pytest.raises(ConfigError, match=match):
         typed(node, EvalRiskConfig, key="evaluation.risk")
 
 
 def test_main_variant_must_be_evaluated() -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     ev = typed(cfg["evaluation"]["risk"], EvalRiskConfig, key="evaluation.risk")
     with pytest.raises(ConfigError, match="main_variant"):
         ev.check_variants(["some_other_variant"])
@@ -148,7 +149,7 @@ def test_metric_group_alone() -> None:
 
 
 def test_sgm_settings_opencv_rejects_fail_at_validation() -> None:
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     with pytest.raises(ConfigError, match="multiple of 16"):
         _risk_data(cfg, **{"sgm.num_disparities": 24})
     with pytest.raises(ConfigError, match="odd"):
@@ -158,7 +159,7 @@ def test_sgm_settings_opencv_rejects_fail_at_validation() -> None:
 @pytest.mark.parametrize("max_speed,ok", [(25.0, True), (26.0, False)])
 def test_grid_must_cover_the_look_ahead(max_speed: float, ok: bool) -> None:
     """25 m/s x 1.5 s + 2.4 m = 39.9 m fits the 256 x 0.32 m grid (40.96 m ahead); 26 m/s does not."""
-    cfg = compose_config(ROOT / "conf", ["profile=ci"])
+    cfg = conftest.composed("profile=ci")
     rd = _risk_data(cfg, max_speed=max_speed)
     grid = GridSpec(256, 176, 0.32)
     if ok:

@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from conftest import composed
 
 from traffictwin.io.shards import DatasetError, DatasetWriter
 from traffictwin.risk.dave2 import Dave2Config
@@ -278,12 +279,8 @@ def test_validation_every_n_steps_and_best_checkpoint(tmp_path: Path) -> None:
 
 
 def _risk_model_node() -> dict:
-    import copy
 
-    from traffictwin.config import compose_config
-
-    root = Path(__file__).resolve().parents[1]
-    return copy.deepcopy(compose_config(root / "conf", [])["risk_model"])
+    return composed()["risk_model"]
 
 
 def test_risk_model_config_is_validated_once_with_full_keys() -> None:

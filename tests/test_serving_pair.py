@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 import torch
 from _asgi import asgi_call
+from conftest import composed
 
 from traffictwin import api, cli
-from traffictwin.config import compose_config
 from traffictwin.mlops import model_artifact as art
 from traffictwin.mlops import registry as reg
 from traffictwin.mlops import serving_app
@@ -46,7 +46,7 @@ VOLATILE = {"orb_ms", "sgm_ms", "model_ms", "id", "left", "right"}
 
 def ci_shipped_rule(folder: Path) -> Path:
     """The ci profile's shipped corridor rule, saved as ``select_risk`` saves it."""
-    c = compose_config(ROOT / "conf", ["profile=ci"])
+    c = composed("profile=ci")
     rd, metric = c["risk_data"], c["risk_data"]["metric"]
     g = c["evaluation"]["risk"]["geometric"]
     geo = GeometricConfig(**{k: g[k] for k in GeometricConfig.__dataclass_fields__})

@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import composed
 from omegaconf import OmegaConf
 
-from traffictwin.config import ConfigError, compose_config, typed
+from traffictwin.config import ConfigError, typed
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.scene import Boxes, Cls
@@ -155,7 +156,7 @@ def test_valid_share_sweep_hand_counts() -> None:
 
 
 def _risk_data(**dotted) -> RiskDataConfig:
-    node = OmegaConf.create(compose_config(ROOT / "conf", ["profile=ci"])["risk_data"])
+    node = OmegaConf.create(composed("profile=ci")["risk_data"])
     for k, v in dotted.items():
         OmegaConf.update(node, k, v, force_add=True)
     return typed(node, RiskDataConfig, key="risk_data")

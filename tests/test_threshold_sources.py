@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import composed
 from omegaconf import OmegaConf
 
 from pipelines.generate_risk import read_config
@@ -35,7 +36,7 @@ def _composed(primary: float | None) -> dict:
     over = ["profile=ci"]
     if primary is not None:
         over.append(f"evaluation.risk.thresholds_s=[{primary},0.5]")
-    return compose_config(ROOT / "conf", over)
+    return composed(*over)
 
 
 @pytest.fixture(scope="module")

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import committed
+from conftest import committed, composed
 
 from pipelines import check_params
 from pipelines._common import run_stage
-from traffictwin.config import ConfigError, compose_config
+from traffictwin.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -49,7 +49,7 @@ def _with(params: dict, dotted: str, value) -> dict:
 def test_every_profile_passes_every_check(good) -> None:
     assert check_params.check(good) == [name for name, _ in check_params.CHECKS]
     for profile in ("ci", "paper"):  # paper: ResNet-50, 256 x 176, 10,000 pairs, 110k frames
-        check_params.check(compose_config(ROOT / "conf", [f"profile={profile}"]))
+        check_params.check(composed(f"profile={profile}"))
 
 
 @pytest.mark.parametrize(
