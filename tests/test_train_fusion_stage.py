@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import csv
 import json
-import sys
 from pathlib import Path
 
 import mlflow
 import numpy as np
 import pytest
-from conftest import run, run_record
+from conftest import run, run_record, stage_in_process
 
 from traffictwin.fusion.model_io import FusionModelError, load_fusion_model, predict_masses
 from traffictwin.io.shards import Dataset
@@ -129,11 +128,10 @@ def test_rerun_is_a_dvc_noop(ci_dag: Path) -> None:
 
 
 def test_stage_without_data_fails_clearly_and_writes_nothing(repo_copy: Path) -> None:
-    proc = run([sys.executable, "-m", "pipelines.train_fusion"], repo_copy, check=False)
-    assert proc.returncode != 0
-    assert "data/prealigned/mixed: dataset folder not found" in proc.stderr
+    """In this process (the stage's main under run_stage: the checks end before any work)."""
+    code, err = stage_in_process(repo_copy, "train_fusion")
+    assert code != 0
+    assert "data/prealigned/mixed: dataset folder not found" in err
     assert not (repo_copy / "models" / "fusion" / "network").exists()
-    proc = run(
-        [sys.executable, "-m", "pipelines.train_fusion", "--variant", "Z"], repo_copy, check=False
-    )
-    assert proc.returncode != 0 and "'Z' is not a key of 'fusion_variants'" in proc.stderr
+    code, err = stage_in_process(repo_copy, "train_fusion", ["--variant", "Z"])
+    assert code != 0 and "'Z' is not a key of 'fusion_variants'" in err
