@@ -552,6 +552,35 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if recorded.get(item.nodeid, 0.0) >= LONG_S:
             item.add_marker(pytest.mark.long)
     items.sort(key=_run_order)  # stable: collection order within each kind
+    if hasattr(config, "workerinput") and config.getvalue("loadgroup"):  # set by xdist
+        for item in items:
+            _join_xdist_group(item)
+
+
+def _join_xdist_group(item: pytest.Item) -> None:
+    """Give a test marked ``xdist_group(NAME)`` the node id ``<id>@NAME``, by which
+    pytest-xdist's ``--dist loadgroup`` sends a group to one worker. pytest-xdist 3.8 writes that
+    suffix to ``item._nodeid``, which pytest 9 no longer reads (a node's id is ``item._id``): the
+    groups were silently ignored (the DDP tests' repository was built on both workers, and the
+    ``ci_dag_dvc`` group's DVC commands ran at the same time)."""
+    names = sorted(
+        {
+            str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+            for m in item.iter_markers("xdist_group")
+        }
+    )
+    if not names or item.nodeid.endswith(f"@{'_'.join(names)}"):
+        return
+    from _pytest.nodeid import coerce_node_id
+
+    item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(names)}")
+
+
+def plain_nodeid(nodeid: str) -> str:
+    """``nodeid`` without the ``@group`` suffix :func:`_join_xdist_group` adds (the suffix follows
+    the last ``]`` of a parametrized id, as pytest-xdist splits it)."""
+    at = nodeid.rfind("@")
+    return nodeid[:at] if at > nodeid.rfind("]") else nodeid
 
 
 _TIMES: dict[str, float] = {}  # node id -> seconds of this run (--record-durations)
@@ -561,7 +590,8 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     """Add up each test's phases (under pytest-xdist the controller gets every worker's reports),
     when the run records them (``--record-durations``)."""
     if _RECORDING:
-        _TIMES[report.nodeid] = _TIMES.get(report.nodeid, 0.0) + report.duration
+        nodeid = plain_nodeid(report.nodeid)
+        _TIMES[nodeid] = _TIMES.get(nodeid, 0.0) + report.duration
 
 
 _RECORDING: list[bool] = []  # non-empty when this run records durations (pytest_configure)
