@@ -42,10 +42,11 @@ run: install
 	$(PY) -m pipelines.stage_deps prune-lock
 
 # the whole suite on every core (pytest-xdist; the ci DAG fixture is built once and shared by the
-# workers; tests marked with one xdist_group run on one worker: docs/testing.md), the 25 slowest
-# tests listed so they stay visible
+# workers; tests marked with one xdist_group run on one worker: docs/testing.md; groups keep their
+# place in the collection's order, so none that waits for the DAG is handed out before the rest),
+# the 25 slowest tests listed so they stay visible
 test: install
-	$(PY) -m pytest -n auto --dist loadgroup --durations=25 $(PYTEST_ARGS)
+	$(PY) -m pytest -n auto --dist loadgroup --no-loadscope-reorder --durations=25 $(PYTEST_ARGS)
 
 # the quick unit tests only (no stage, DAG, training run or MLflow database, none that took 0.5 s
 # or more in tests/durations.json), on every core (pytest-xdist); how many: docs/testing.md
