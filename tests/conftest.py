@@ -18,12 +18,13 @@ from pathlib import Path
 
 import pytest
 
+from traffictwin.threads import passive_omp_wait  # imports no torch
+
 # OpenMP threads sleep instead of spinning while they wait, in the test processes and every
-# stage or CLI process they start (they inherit the variable; OpenMP reads it when torch loads,
-# so before any torch import): the suite runs two xdist workers, the ci DAG's build and their
-# subprocesses on the same cores, where spinning threads made torch work 3-60x slower
-# (traffictwin.threads.passive_omp_wait, which the CLI calls, does the same)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# stage or CLI process they start (they inherit OMP_WAIT_POLICY; OpenMP reads it when torch
+# loads, so before any torch import): the suite runs two xdist workers, the ci DAG's build and
+# their subprocesses on the same cores, where spinning threads made torch work 3-60x slower
+passive_omp_wait()
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -563,17 +564,16 @@ def _join_xdist_group(item: pytest.Item) -> None:
     suffix to ``item._nodeid``, which pytest 9 no longer reads (a node's id is ``item._id``): the
     groups were silently ignored (the DDP tests' repository was built on both workers, and the
     ``ci_dag_dvc`` group's DVC commands ran at the same time)."""
-    names = sorted(
-        {
-            str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-            for m in item.iter_markers("xdist_group")
-        }
-    )
-    if not names or item.nodeid.endswith(f"@{'_'.join(names)}"):
+    names = {
+        str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+        for m in item.iter_markers("xdist_group")
+    }
+    suffix = "@" + "_".join(sorted(names))
+    if not names or item.nodeid.endswith(suffix):
         return
     from _pytest.nodeid import coerce_node_id
 
-    item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(names)}")
+    item._id = coerce_node_id(item.nodeid + suffix)
 
 
 def plain_nodeid(nodeid: str) -> str:
