@@ -27,7 +27,10 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m pip install -q --upgrade pip
 	# torch==2.13.0 is the CPU wheel: from pip's configuration (find-links) or TORCH_INDEX;
 	# requirements.lock pins the rest
-	$(PY) -m pip install -q -c requirements.lock $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -e '.[test]'
+	$(PY) -m pip install -q --no-compile -c requirements.lock $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -e '.[test]'
+	# pip would byte-compile every installed module on one core; compileall uses every core (the
+	# same .pyc files). torch's py312_intrinsics.py is Python 3.12 syntax, which pip skips as well
+	$(PY) -m compileall -q -j 0 -x py312_intrinsics $$($(PY) -c 'import sysconfig; print(sysconfig.get_path("purelib"))')
 	@touch $(STAMP)
 
 install: $(STAMP)

@@ -52,10 +52,18 @@ def _logged_risk_model(tmp_path: Path) -> tuple[str, np.ndarray, np.ndarray]:
     return uri, example, eager
 
 
-def test_model_directory_has_pyfunc_code_requirements_and_example(cl, tmp_path: Path) -> None:
+def test_model_directory_has_pyfunc_code_requirements_and_example(
+    cl, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import mlflow
+    import mlflow.models.utils
 
+    validated: list[str] = []  # MLflow's own serving check is off (model_artifact.log_model)
+    monkeypatch.setattr(
+        mlflow.models.utils, "_validate_serving_input", lambda uri, _: validated.append(uri)
+    )
     uri, example, _ = _logged_risk_model(tmp_path)
+    assert validated == []
     folder = Path(mlflow.artifacts.download_artifacts(uri, dst_path=str(tmp_path / "dl")))
     mlmodel = yaml.safe_load((folder / "MLmodel").read_text())
     pyfunc = mlmodel["flavors"]["python_function"]
@@ -75,6 +83,10 @@ def test_model_directory_has_pyfunc_code_requirements_and_example(cl, tmp_path: 
     # the input example is the logged array
     ex = json.loads((folder / mlmodel["saved_input_example_info"]["artifact_path"]).read_text())
     np.testing.assert_array_equal(np.asarray(ex, np.float32), example)
+    # ... and the serving example (what POST /invocations takes) the same array, which the next
+    # test's pyfunc turns into the eager network's output
+    serving_ex = json.loads((folder / "serving_input_example.json").read_text())
+    np.testing.assert_array_equal(np.asarray(serving_ex["inputs"], np.float32), example)
     # every file the flavour wrote is sealed by the SHA-256 record (MLflow
     # adds two descriptive files after the flavour's save_model hook returns)
     lm = cl.get_logged_model(uri.removeprefix("models:/"))
