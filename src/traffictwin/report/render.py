@@ -214,7 +214,8 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
         "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
         "model on the same quantity and frames (fusion: fusion rules without a network or learned "
         "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
-        "other maps). Details on the pages listed below.",
+        "other maps). Details on the report's pages.",
+        headline=True,  # the first table of results_table.md, the project README's
     )
     for problem, items in headlines.items():
         for h in items:
