@@ -148,8 +148,9 @@ class ReportInputs:
 
     ``reports_dir``: folder with ``metrics/``, ``figures/``, ``plots/``, ``timings/``,
     ``environment.json``; the report files are written there. ``run_params``: flattened
-    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``stage_order``: DAG
-    order for the timing table. ``acceptance``: the acceptance thresholds per problem
+    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``git_commit`` is not
+    shown (it differs between identical reruns: the stage's run record holds it). ``acceptance``:
+    the acceptance thresholds per problem
     (``acceptance.<problem>``, :func:`traffictwin.acceptance.thresholds`) of the index's last
     table. What a problem's section needs beyond these (the fusion section's pose-noise
     configurations) its :class:`SectionProvider` carries.
@@ -160,10 +161,6 @@ class ReportInputs:
     seed: int
     git_commit: str
     run_params: Mapping[str, Any] = field(default_factory=dict)
-    dvc_exp_name: str = ""
-    pipeline_run: str = ""
-    stage_order: Sequence[str] = ()
-    git_dirty: bool = False  # code or config differed from the commit when the report ran
     banner: str = ""  # profile.banner: a smoke run's warning, first in the report and summary.json
     acceptance: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 

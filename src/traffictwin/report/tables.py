@@ -1,10 +1,10 @@
 """Tables any section can use: metrics files as key/value grids or side by side, the run's
-stage timings, environment and parameters, and a problem's findings text as bullet points."""
+environment and parameters, and a problem's findings text as bullet points."""
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from traffictwin.report.model import ABSENT, Cell, Sources, Table, flatten_numbers, fmt_value
@@ -93,55 +93,6 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
     else:
         t = Table(title, ["metric", *groups], anchor=anchor)
         t.rows = [[Cell(m)] + [cell(g, m) for g in groups] for m in metrics]
-    return t
-
-
-def ordered_records(src: Sources, order: Sequence[str] = ()) -> list[tuple[str, str, dict]]:
-    """``[(stage, file name, record)]`` of the run records (``reports/timings/*.json`` with a
-    ``seconds`` key) in DAG ``order`` (``name@key`` stages by their base name), the report's own
-    record left out (written after the report, it would always be one run stale)."""
-    items = []
-    for name, d in src.timings.items():
-        if not isinstance(d, dict) or "seconds" not in d:
-            continue
-        stage = str(d.get("stage", name.removesuffix(".json")))
-        if stage == "report":
-            continue
-        items.append((stage, name, d))
-    rank = {s: i for i, s in enumerate(order)}
-
-    def key(it: tuple[str, str, Any]) -> tuple[int, str]:
-        base = it[0].split("@")[0]
-        return (rank.get(it[0], rank.get(base, len(rank))), it[0])
-
-    return sorted(items, key=key)
-
-
-def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
-    t = Table(
-        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
-    )
-    items = [(stage, name, d["seconds"]) for stage, name, d in ordered_records(src, order)]
-    total = 0.0
-    for stage, name, secs in items:
-        total += float(secs)
-        t.rows.append(
-            [
-                Cell(stage),
-                Cell(fmt_value(secs, "f1"), src=f"timings/{name}#seconds", value=secs, fmt="f1"),
-                Cell(fmt_value(secs, "s"), src=f"timings/{name}#seconds", value=secs, fmt="s"),
-            ]
-        )
-    if items:
-        d = "sum of the wall times above"
-        t.rows.append(
-            [
-                Cell("total (sum)"),
-                Cell(fmt_value(total, "f1"), value=total, fmt="f1", derived=d),
-                Cell(fmt_value(total, "s"), value=total, fmt="s", derived=d),
-            ]
-        )
-    t.note = "Sum of the stages' own wall times as recorded by each stage (reports/timings); DVC overhead not included."
     return t
 
 
