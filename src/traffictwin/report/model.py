@@ -26,7 +26,7 @@ from typing import Any
 from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import ClaimCheck
-from traffictwin.report.summary import Headline
+from traffictwin.report.summary import Headline, interval
 
 NA = "n/a"
 NEVER = r"(?!)"  # a regex that matches nothing
@@ -237,17 +237,18 @@ def json_number(v: Any) -> float | None:
 
 
 def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
-    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
-    ``file``, in format ``fmt``: a derived cell, "95 % ``bootstrap`` interval"
-    (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a NaN bound)."""
+    """``[lo, hi]`` of ``<key>_ci`` (``{"lo", "hi"}`` or ``[lo, hi]``; or of ``key`` itself when it
+    holds ``lo``/``hi``) in metrics ``file``, in format ``fmt``: a derived cell, "95 %
+    ``bootstrap`` interval" (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a
+    NaN bound)."""
     base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
     path = src.paths.get(file, f"metrics/{file}")
-    lo, hi = json_number(src.get(file, f"{base}.lo")), json_number(src.get(file, f"{base}.hi"))
-    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+    iv = interval(src.get(file, base))
+    if iv is None:
         return Cell(NA, title=f"no interval in reports/{path}: {base}")
     return Cell(
-        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
-        value=[lo, hi],
+        f"[{fmt_value(iv[0], fmt)}, {fmt_value(iv[1], fmt)}]",
+        value=list(iv),
         derived=f"95 % {bootstrap} interval, {path}#{base}",
     )
 

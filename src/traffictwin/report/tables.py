@@ -12,6 +12,18 @@ from traffictwin.report.model import ABSENT, Cell, Sources, Table, flatten_numbe
 FINDINGS_HEADING = "Findings of this run"
 
 
+def scalar_cell(src: Sources, file: str, key: str, v: Any) -> Cell:
+    """The cell of the scalar ``v`` at metrics ``file``#``key``: a number (``int`` or ``g4``) or a
+    JSON ``null`` (``n/a``) with its source, any other value as text (a list's items joined by
+    commas)."""
+    if v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
+        fmt = "int" if isinstance(v, int) else "g4"
+        why = "undefined (null in the metrics file)" if v is None else ""
+        path = src.paths.get(file, f"metrics/{file}")
+        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt, title=why)
+    return Cell(", ".join(map(str, v)) if isinstance(v, list) else fmt_value(v, "str"))
+
+
 def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | None:
     """Metrics files matching ``pattern`` (a regex with one group naming the column) side by side:
     rows = keys (union, first file's order), columns = files."""
@@ -26,12 +38,7 @@ def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | 
         row = [Cell(k)]
         for _, f in files:
             v = src.get(f, k, ABSENT)
-            if v is ABSENT:
-                row.append(Cell(""))
-            elif isinstance(v, (str, list, bool)):
-                row.append(Cell(str(v)))
-            else:
-                row.append(src.cell(f, k, "int" if isinstance(v, int) else "g4"))
+            row.append(Cell("") if v is ABSENT else scalar_cell(src, f, k, v))
         t.rows.append(row)
     return t
 
@@ -42,21 +49,7 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
     if data is None:
         return None
     t = Table(title, ["key", "value"], anchor=anchor)
-    for key, v in flatten_numbers(data):
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
-            fmt = "int" if isinstance(v, int) else "g4"
-            t.rows.append(
-                [Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)]
-            )
-        else:
-            t.rows.append(
-                [
-                    Cell(key),
-                    Cell(
-                        fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v))
-                    ),
-                ]
-            )
+    t.rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
     return t
 
 
@@ -80,12 +73,7 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
 
     def cell(g: str, m: str) -> Cell:
         key = f"{g}/{m}"
-        if key not in data:
-            return Cell("")
-        v = data[key]
-        if isinstance(v, (str, list, bool)):
-            return Cell(str(v))
-        return src.cell(file, key, "int" if isinstance(v, int) else "g4")
+        return scalar_cell(src, file, key, data[key]) if key in data else Cell("")
 
     if len(metrics) <= len(groups):  # the narrower orientation: groups as rows
         t = Table(title, ["group", *metrics], anchor=anchor)
@@ -108,17 +96,13 @@ def environment_table(src: Sources) -> Table | None:
         "machine: it is in the run record reports/timings/environment.json, not in this report.",
     )
     for k in ("cpu", "cpu_count", "memory_gb", "gpu", "cuda_available", "python", "platform"):
-        if k in env:
-            v = env[k]
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                t.rows.append(
-                    [
-                        Cell(k),
-                        Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4"),
-                    ]
-                )
-            else:
-                t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
+        v = env.get(k, ABSENT)
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            t.rows.append(
+                [Cell(k), Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4")]
+            )
+        elif v is not ABSENT:
+            t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
     for pkg, ver in (env.get("packages") or {}).items():
         t.rows.append([Cell(pkg), Cell(str(ver))])
     return t

@@ -17,7 +17,7 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
+from traffictwin.report.model import NA, Cell, DataFile, Table, interval_cell, lookup
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
 from traffictwin.risk.report_tables import RISK_FILE
@@ -99,18 +99,6 @@ def critical_thw_text(src: page.Sources) -> str:
     return f"{float(ts[0]):g} s" if isinstance(ts, list) and ts else "twin.critical_thw"
 
 
-def _ci(src: page.Sources, key: str, fmt: str) -> Cell:
-    """The interval ``[lo, hi]`` stored at twin.json ``key`` (n/a without one)."""
-    v = src.get(FILE, key)
-    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)):
-        return Cell(NA, title=f"no interval in reports/metrics/{FILE}: {key}")
-    return Cell(
-        f"[{fmt_value(v[0], fmt)}, {fmt_value(v[1], fmt)}]",
-        value=list(v),
-        derived=f"95 % sequence-bootstrap interval, metrics/{FILE}#{key}",
-    )
-
-
 def _table(title: str, anchor: str, first: Sequence[str], *metrics: Sequence[Metric]) -> Table:
     """An empty table: the ``first`` (label) columns, then each metric's (and interval's)."""
     heads = [
@@ -129,7 +117,7 @@ def _cells(
             out += [Cell(DASH)] * (1 + ci)
             continue
         out.append(src.cell(FILE, f"{base}.{key}", fmt))
-        out += [_ci(src, f"{base}.{key}_ci", fmt)] if ci else []
+        out += [interval_cell(src, FILE, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
     return out
 
 
