@@ -16,13 +16,11 @@ the appendix.
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -62,13 +60,6 @@ SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 FIGURE_DIRS = ("figures", "report_figures")  # the stages' figures, the report stage's own
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
-_MIME = {
-    ".png": "image/png",
-    ".svg": "image/svg+xml",
-    ".jpg": "image/jpeg",
-    ".jpeg": "image/jpeg",
-    ".gif": "image/gif",
-}
 
 
 # --------------------------------------------------------------------------- figures
@@ -425,12 +416,17 @@ def _tidy(text: str) -> str:
     return re.sub(r"\n{3,}", "\n\n", text).strip() + "\n"
 
 
-def render_markdown(report: Report) -> dict[str, str]:
-    """``{file relative to reports/: Markdown}`` of every page (template ``page.md.j2``): the index
-    ``README.md`` and ``pages/<name>.md``, sections in order, the appendix material collapsed."""
-    tpl = _environment(False).get_template("page.md.j2")
+def render_pages(report: Report, html_pages: bool = False) -> dict[str, str]:
+    """``{file relative to reports/: text}`` of every page: Markdown (template ``page.md.j2``: the
+    index ``README.md`` and ``pages/<name>.md``) or HTML (``page.html.j2``: ``index.html`` and
+    ``pages/<name>.html``, each linking the style sheet :data:`STYLE`; secondary tables in closed
+    ``<details>``). Sections in order, figures by their path, the appendix material collapsed."""
+    ext, index = ("html", INDEX_HTML) if html_pages else ("md", README)
+    tpl = _environment(html_pages).get_template(f"page.{ext}.j2")
     return {
-        page_file(p, False): _tidy(tpl.render(report=report, page=p, index=README, ext="md"))
+        page_file(p, html_pages): _tidy(
+            tpl.render(report=report, page=p, index=index, ext=ext, style=STYLE)
+        )
         for p in report_pages(report)
     }
 
@@ -511,32 +507,6 @@ _NUMBER = re.compile(
 )
 
 
-def _img_src(f: Figure, root: str = "", *, reports_dir: Path, embed: bool) -> str:
-    """``root`` + the figure's path (``root``: from the page's folder to the reports folder), or
-    the image inlined as a ``data:`` URL when ``embed``."""
-    p = Path(reports_dir) / f.path
-    if not embed:
-        return root + f.path
-    data = base64.b64encode(p.read_bytes()).decode("ascii")
-    return f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
-
-
-def render_html(report: Report, reports_dir: Path, embed: bool = False) -> dict[str, str]:
-    """``{file relative to reports/: HTML}`` of every page (template ``page.html.j2``): the index
-    ``index.html`` and ``pages/<name>.html``, each linking the style sheet :data:`STYLE` of the
-    reports folder; figures referenced by their relative path (inlined as base64 only with
-    ``embed``); secondary tables and the appendix sections in closed ``<details>``."""
-    env = _environment(True)
-    env.filters["img_src"] = partial(_img_src, reports_dir=reports_dir, embed=embed)
-    tpl = env.get_template("page.html.j2")
-    out = {}
-    for p in report_pages(report):
-        out[page_file(p, True)] = _tidy(
-            tpl.render(report=report, page=p, index=INDEX_HTML, ext="html", style=STYLE)
-        )
-    return out
-
-
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
     """Write ``summary.json`` (the headline numbers), the index README.md and index.html, the
@@ -547,7 +517,7 @@ def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> 
     headlines = collect_headlines(Sources(inputs).metrics, providers)
     write_json_atomic(root / SUMMARY, summary_json(headlines, inputs.banner))
     report = build_report(inputs, providers, headlines)
-    files = {**render_markdown(report), **render_html(report, root), STYLE: CSS}
+    files = {**render_pages(report), **render_pages(report, html_pages=True), STYLE: CSS}
     res = render_results_markdown(report)
     for rel, text in files.items():
         write_text_atomic(root / rel, text)
