@@ -121,14 +121,14 @@ def _cells(
     return out
 
 
-def _configs(src: page.Sources) -> list[str]:
-    c = src.get(FILE, "configurations")
-    return list(c) if isinstance(c, dict) else []
+def _keys(src: page.Sources, key: str = "configurations") -> list[str]:
+    """The keys of the object at twin.json ``key`` (none where it is no object)."""
+    v = src.get(FILE, key)
+    return list(v) if isinstance(v, dict) else []
 
 
 def _methods(src: page.Sources, c: str) -> list[str]:
-    m = src.get(FILE, f"configurations.{c}.methods")
-    return list(m) if isinstance(m, dict) else []
+    return _keys(src, f"configurations.{c}.methods")
 
 
 def occluded_table(src: page.Sources) -> Table:
@@ -140,7 +140,7 @@ def occluded_table(src: page.Sources) -> Table:
         OCCLUDED,
     )
     ego_dash = ("recall_vs_ego", "lead_vs_ego_s_median", "left_out_share")
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             k = f"configurations.{c}.methods.{m}.occluded"
             dash = ego_dash if m == "ego" else ()
@@ -162,7 +162,7 @@ def open_table(src: page.Sources) -> Table:
         OPEN,
         BIAS,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             k, kb = f"configurations.{c}.methods.{m}.open", f"configurations.{c}.pose_bias"
             row = _cells(src, k, OPEN) + _cells(src, f"{kb}.methods.{m}.open", BIAS)
@@ -184,12 +184,11 @@ def hazard_table(src: page.Sources) -> Table:
         ["config", "scenario", "hazard", "map the ego reads"],
         HAZARD,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for kind in ("occluded", "open"):
             for m in _methods(src, c):
                 base = f"configurations.{c}.methods.{m}.{kind}.by_hazard"
-                hz = src.get(FILE, base)
-                for h in sorted(hz) if isinstance(hz, dict) else ():
+                for h in sorted(_keys(src, base)):
                     labels = [c, kind, HAZARD_LABELS.get(h, h), LABELS.get(m, m)]
                     dash = ("lead_vs_ego_s_median",) if m == "ego" else ()
                     cells = _cells(src, f"{base}.{h}", HAZARD, dash)
@@ -206,7 +205,7 @@ def predictive_table(src: page.Sources) -> Table:
         ["config", "map the ego reads", "kind"],
         PREDICTIVE,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             for kind in ("occluded", "open"):
                 k = f"configurations.{c}.methods.{m}.{kind}.predictive"
@@ -227,9 +226,8 @@ def rule_table(src: page.Sources) -> Table:
         RULE,
     )
     t.columns += ["eligible", "chosen"]
-    rows = src.get(FILE, "predictive_rule.candidates")
     yes_no = {True: "yes", False: "no"}
-    for name in rows if isinstance(rows, dict) else {}:
+    for name in _keys(src, "predictive_rule.candidates"):
         k = f"predictive_rule.candidates.{name}"
         flags = [Cell(yes_no.get(src.get(FILE, f"{k}.{f}"), NA)) for f in ("eligible", "selected")]
         t.rows.append(_cells(src, k, RULE) + flags)
@@ -245,7 +243,7 @@ def vehicle_table(src: page.Sources) -> Table:
         ["config", "vehicle", "map it reads"],
         VEHICLE,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         vehicles = src.get(FILE, f"configurations.{c}.vehicles")
         for k, entry in (vehicles if isinstance(vehicles, dict) else {}).items():
             for m in entry.get("methods", {}):
