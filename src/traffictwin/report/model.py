@@ -1,8 +1,8 @@
 """The report's page model: cells that remember their source, tables, figures, sections, and
 the loaded input files (:class:`Sources`) the sections read their numbers from.
 
-Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``), stage
-timings (``reports/timings/*.json``), ``reports/environment.json``, the run's parameters (passed
+Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``, the
+ablations' ``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters (passed
 in explicitly by the stage) or :mod:`traffictwin.report.paper_numbers` (the papers' reported
 values, the only hand-typed numbers). Each table cell that holds a number remembers where it came
 from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML carries it as ``data-src`` and
@@ -83,9 +83,7 @@ class Cell:
     value: Any = None
     fmt: str | None = None
     title: str = ""  # tooltip (e.g. why a value is n/a)
-    derived: str = (
-        ""  # how a computed number was derived from sourced cells (e.g. "sum of timings")
-    )
+    derived: str = ""  # how a number was derived from its sources (e.g. "95 % ... interval")
 
 
 @dataclass
@@ -146,14 +144,14 @@ class Page:
 class ReportInputs:
     """Everything the report needs, passed explicitly (the library never reads params.yaml).
 
-    ``reports_dir``: folder with ``metrics/``, ``figures/``, ``plots/``, ``timings/``,
+    ``reports_dir``: folder with ``metrics/``, ``ablations/``, ``figures/``, ``plots/``,
     ``environment.json``; the report files are written there. ``run_params``: flattened
     ``{key: value}`` of the parameters to show (profile sizes, seeds). ``git_commit`` is not
-    shown (it differs between identical reruns: the stage's run record holds it). ``acceptance``:
-    the acceptance thresholds per problem
-    (``acceptance.<problem>``, :func:`traffictwin.acceptance.thresholds`) of the index's last
-    table. What a problem's section needs beyond these (the fusion section's pose-noise
-    configurations) its :class:`SectionProvider` carries.
+    shown (it differs between identical reruns: the stage's run record holds it).
+    ``acceptance``: the acceptance thresholds per problem (``acceptance.<problem>``,
+    :func:`traffictwin.acceptance.thresholds`) of the index's last table. What a problem's
+    section needs beyond these (the fusion section's pose-noise configurations) its
+    :class:`SectionProvider` carries.
     """
 
     reports_dir: Path
@@ -175,22 +173,12 @@ class Sources:
         self.metrics: dict[str, Any] = {}
         self.missing: list[str] = []
         self.paths: dict[str, str] = {}  # metrics file name -> its path under reports/
-        mdir = self.root / "metrics"
-        if mdir.is_dir():
-            for p in sorted(mdir.glob("*.json")):
-                self.metrics[p.name] = _read_json(p)
-                self.paths[p.name] = f"metrics/{p.name}"
-        # results of the ablation experiments (pipelines/ablations.py), where they were collected
-        adir = self.root / "ablations"
-        if adir.is_dir():
-            for p in sorted(adir.glob("*.json")):
-                self.metrics[f"ablations/{p.name}"] = _read_json(p)
-                self.paths[f"ablations/{p.name}"] = f"ablations/{p.name}"
-        self.timings: dict[str, Any] = {}
-        tdir = self.root / "timings"
-        if tdir.is_dir():
-            for p in sorted(tdir.glob("*.json")):
-                self.timings[p.name] = _read_json(p)
+        # the metrics files by name; the ablation experiments' results (pipelines/ablations.py),
+        # where they were collected, as "ablations/<name>"
+        for folder, prefix in (("metrics", ""), ("ablations", "ablations/")):
+            for p in sorted((self.root / folder).glob("*.json")):
+                self.metrics[prefix + p.name] = _read_json(p)
+                self.paths[prefix + p.name] = f"{folder}/{p.name}"
         env = self.root / "environment.json"
         self.environment = _read_json(env) if env.exists() else None
 

@@ -123,17 +123,6 @@ def run_section(src: Sources) -> Section:
     return run
 
 
-def provenance(inputs: ReportInputs) -> str:
-    """One sentence: profile and seed. The git commit, DVC experiment and pipeline run of a
-    rendering differ between identical reruns, so they go to the report stage's run record
-    (``reports/timings/report.json``), never into this DVC output."""
-    return (
-        f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
-        "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "
-        "`reports/timings/report.json`."
-    )
-
-
 def data_section(src: Sources, providers: Sequence[SectionProvider]) -> Section:
     """Every provider's data files, as grids."""
     data = Section("Data and disparity statistics", collapsed=True)
@@ -311,9 +300,11 @@ def build_report(
     if headlines is None:
         headlines = collect_headlines(src.metrics, providers)
     figures, other = collect_figures(src.root, providers)
-    intro = [
+    intro = [  # the commit, experiment and pipeline run differ between identical reruns: not here
         *([f"**{inputs.banner.strip('() ')}.**"] if inputs.banner else []),
-        provenance(inputs),
+        f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
+        "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "
+        "`reports/timings/report.json`.",
         "**The data differs from the papers'.** Both papers used commercial simulators (VTD, GTA V) at full "
         "scale; this run uses traffictwin's own simulator (synthetic road templates, ray-cast lidar, rendered "
         f"stereo camera) at the `{inputs.profile}` profile's scale. Compare trends and rankings, not absolute values.",
