@@ -6,7 +6,7 @@
 - docs/testing.md: how many tests ``make test`` and ``make test-fast`` run, from a fresh
   ``pytest --collect-only``.
 
-Each goes between BEGIN / END markers; the prose around them is written by hand.
+Each goes between BEGIN / END markers (its first and last line); the prose around them is written by hand.
 ``tests/test_docs.py`` regenerates both and fails when the committed pages differ, so they cannot
 drift from the code.
 """
@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from traffictwin.io.atomic import write_text_atomic
 
 from ._paths import ROOT
-from .readme_results import replace_block
+from .readme_results import render
 
 CLI_PAGE = "docs/cli.md"
 TESTING_PAGE = "docs/testing.md"
@@ -124,21 +124,13 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="leave docs/testing.md's test counts as they are (no pytest collection)",
     )
-    a = ap.parse_args(argv)
-    cli = ROOT / CLI_PAGE
-    write_text_atomic(
-        cli,
-        replace_block(cli.read_text(encoding="utf-8"), CLI_BEGIN, CLI_END, cli_block(), CLI_PAGE),
-    )
-    done = [CLI_PAGE]
-    if not a.skip_tests:
-        fast, total = collect_counts()
-        page = ROOT / TESTING_PAGE
-        text = page.read_text(encoding="utf-8")
-        block = tests_block(fast, total)
-        write_text_atomic(page, replace_block(text, TESTS_BEGIN, TESTS_END, block, TESTING_PAGE))
-        done.append(TESTING_PAGE)
-    print(f"{', '.join(done)}: generated blocks updated")
+    blocks = {CLI_PAGE: cli_block()}
+    if not ap.parse_args(argv).skip_tests:
+        blocks[TESTING_PAGE] = tests_block(*collect_counts())
+    for page, block in blocks.items():
+        path = ROOT / page
+        write_text_atomic(path, render(page, path.read_text(encoding="utf-8"), [block]))
+    print(f"{', '.join(blocks)}: generated blocks updated")
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 
 What goes where, each block from files that ``make run`` / ``make bench`` write:
 
-- README.md, *Headline results*: three small tables (fusion, risk, twin) with their 95 % intervals,
-  from ``reports/metrics/{fusion,risk,twin}.json`` and the configurations of ``params.yaml``;
+- README.md, *Headline results*: the report's headline table (``reports/results_table.md``'s
+  first, the numbers of ``reports/summary.json``);
 - README.md, *How long it takes*: the default run's wall time and stage time, from the run records
   ``reports/timings/*.json``;
 - docs/results.md: the report's headline tables (``reports/results_table.md``) and the timing table
@@ -25,7 +25,7 @@ from typing import Any
 
 from traffictwin.io.atomic import write_text_atomic
 from traffictwin.nested import lookup
-from traffictwin.report.model import NA, Cell, Table, fmt_value
+from traffictwin.report.model import Cell, Table
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.render import RESULTS_TABLE, table_markdown
 
@@ -46,7 +46,7 @@ def _markers(block: str, source: str) -> tuple[str, str]:
 
 BEGIN, END = _markers("results", "reports/results_table.md")
 T_BEGIN, T_END = _markers("timings", "reports/timings/*.json")
-H_BEGIN, H_END = _markers("headline", "reports/metrics/{fusion,risk,twin}.json")
+H_BEGIN, H_END = _markers("headline", "reports/results_table.md")
 TS_BEGIN, TS_END = _markers("run-time", "reports/timings/*.json")
 B_BEGIN, B_END = _markers("benchmarks", "reports/benchmarks.json")
 
@@ -139,108 +139,14 @@ def run_time_block(records: list[dict]) -> str:
     return _block(TS_BEGIN, TS_END, _table(["what", "time"], rows))
 
 
-# ------------------------------------------------------------------ the README's headline tables
-def _ci_cell(entry: Mapping, key: str, fmt: str, ci_key: str = "") -> Cell:
-    """``value [lo, hi]`` of ``entry[key]`` and its interval ``entry[ci_key or key + "_ci"]``
-    (``{"lo", "hi"}`` or ``[lo, hi]``; without one the value alone); ``n/a`` without a value."""
-    value, ci = entry.get(key), entry.get(ci_key or f"{key}_ci")
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        return Cell("n/a")
-    text = fmt_value(value, fmt)
-    ci = [ci.get("lo"), ci.get("hi")] if isinstance(ci, Mapping) else ci
-    if isinstance(ci, (list, tuple)) and len(ci) == 2:
-        text += f" [{fmt_value(ci[0], fmt)}, {fmt_value(ci[1], fmt)}]"
-    return Cell(text, value=value, fmt=fmt)
-
-
-def fusion_table(fusion: Mapping, configurations: Mapping) -> Table | None:
-    """KLD(b) per configuration for the baseline, classical registration, the network and the best
-    learned combination (``fusion.json``: ``test.<cfg>.<method>.kld_fou_mean`` and its CI)."""
-    test = lookup(fusion, "test")
-    if not isinstance(test, Mapping) or not test:
-        return None
-    rows, methods = [], _tpl("fusion_methods")
-    for cfg in sorted(test):
-        label = _say("configuration", cfg, lookup(configurations, cfg) or {})
-        kld = [lookup(test, f"{cfg}.{m}") or {} for m in methods]
-        rows.append([Cell(label), *(_ci_cell(k, "kld_fou_mean", "g4") for k in kld)])
-    title = _say("fusion", n=lookup(fusion, "n_pairs.per_config"))
-    return Table(title, ["config (r, α)", *methods.values()], rows)
-
-
-def risk_table(risk: Mapping) -> Table | None:
-    """ROC-AUC and balanced accuracy at the first THW threshold for the shipped predictor, the SGM
-    corridor rule, the DAVE-2 headline network (seed mean) and the speed-only baseline."""
-    ts = lookup(risk, "thresholds_s")
-    if not isinstance(ts, list) or not ts:
-        return None
-    main = lookup(risk, "main_variant") or "headline"
-    n_seeds = lookup(risk, f"groups.{main}.n_seeds")
-    rows = []
-    for label, key in (
-        (_say("shipped", lookup(risk, "selection.shipped_from")), "models.shipped"),
-        ("baseline: corridor rule on SGM disparity", "baselines.geometric_sgm"),
-        (_say("network", main, n_seeds), f"groups.{main}" if n_seeds else f"models.{main}"),
-        ("baseline: speed only", "baselines.speed_only"),
-    ):
-        row = lookup(risk, f"{key}.at_{float(ts[0]):g}s")
-        if isinstance(row, Mapping):
-            scores = [_ci_cell(row, m, "f3") for m in ("roc_auc", "balanced_accuracy")]
-            rows.append([Cell(label), *scores])
-    n = lookup(risk, "n_frames.test"), lookup(risk, "n_sequences.test")
-    return Table(
-        _say("risk", float(ts[0]), *n), ["predictor", "ROC-AUC", "balanced accuracy"], rows
-    )
-
-
-def _condition_text(acceptance: Mapping, name: str) -> str:
-    """The acceptance condition of the twin's target ``name`` (``acceptance.twin.<name>`` of
-    params.yaml, e.g. ``">= 0.9"``); ``n/a`` when the config has none or it is not valid."""
-    from traffictwin.acceptance import threshold
-    from traffictwin.config import ConfigError
-
-    node = acceptance.get(name)
-    try:
-        return threshold(node, name, f"acceptance.twin.{name}").text if node else NA
-    except ConfigError:
-        return NA
-
-
-def twin_table(twin: Mapping, acceptance: Mapping | None = None) -> Table | None:
-    """A few of the twin's targets (``twin.json``: ``targets``): value, interval, the condition
-    (``acceptance``: params.yaml's ``acceptance.twin``) and whether it is met."""
-    targets = lookup(twin, "targets")
-    if not isinstance(targets, Mapping):
-        return None
-    rows = []
-    for key, (fmt, quantity) in _tpl("twin_targets").items():
-        t = targets.get(key)
-        if isinstance(t, Mapping) and "value" in t:
-            met = "yes" if t.get("met") is True else "no" if t.get("met") is False else "n/a"
-            cond = Cell(_condition_text(acceptance or {}, key))
-            rows.append([Cell(quantity), _ci_cell(t, "value", fmt, "ci"), cond, Cell(met)])
-    if not rows:
-        return None
-    title = _say("twin", targets.get("method"), targets.get("configuration"))
-    return Table(title, ["quantity", "value [95 % CI]", "threshold", "met"], rows)
-
-
-def headline_block(
-    fusion: Mapping,
-    risk: Mapping,
-    twin: Mapping,
-    configurations: Mapping | None = None,
-    acceptance: Mapping | None = None,
-) -> str:
-    """The README's three small headline tables between :data:`H_BEGIN` / :data:`H_END`
-    (``acceptance``: params.yaml's ``acceptance.twin``, the twin targets' conditions)."""
-    tables = [
-        fusion_table(fusion, configurations or {}),
-        risk_table(risk),
-        twin_table(twin, acceptance),
-    ]
-    body = "\n\n".join(table_markdown(t) for t in tables if t) or _say("no_results")
-    return _block(H_BEGIN, H_END, body, "", _say("headline_note"))
+# ------------------------------------------------------------------ the README's headline table
+def headline_block(table_md: str) -> str:
+    """The README's headline table: the first table of the report's ``results_table.md`` (the
+    numbers of reports/summary.json with their 95 % intervals and the strongest baseline), with
+    its title and note; a sentence when the report has no table yet."""
+    body = results_block(table_md).splitlines()[1:-1]
+    first = "\n".join(body).split("\n\n")[:3]  # title, table, note
+    return _block(H_BEGIN, H_END, "\n\n".join(first) if "|" in table_md else _say("no_results"))
 
 
 # ------------------------------------------------------------------ benchmarks
@@ -283,25 +189,15 @@ def replace_block(text: str, begin: str, end: str, block: str, name: str = "READ
 def page_blocks(read: Callable[[str], str], records: list[dict]) -> dict[str, list[str]]:
     """``{page: [block, ...]}``: every generated block of every page, from the files ``read``
     returns (paths relative to the repository root) and the run records ``records``."""
-    import yaml
-
-    def js(rel: str) -> Any:  # the file's JSON (YAML), {} when absent or unreadable
-        try:
-            return (yaml.safe_load if rel.endswith(".yaml") else json.loads)(read(rel)) or {}
-        except (OSError, ValueError):
-            return {}
-
-    fusion, risk, twin = (js(f"reports/metrics/{f}.json") for f in ("fusion", "risk", "twin"))
-    params = js("params.yaml")
-    configurations = lookup(params, "configurations") or {}
-    acceptance = lookup(params, "acceptance.twin") or {}
+    try:
+        bench = json.loads(read("reports/benchmarks.json")) or {}
+    except (OSError, ValueError):  # absent or unreadable: no rows
+        bench = {}
+    results = read(f"reports/{RESULTS_TABLE}")
     return {
-        README: [
-            headline_block(fusion, risk, twin, configurations, acceptance),
-            run_time_block(records),
-        ],
-        RESULTS_PAGE: [results_block(read(f"reports/{RESULTS_TABLE}")), timings_block(records)],
-        BENCH_PAGE: [benchmarks_block(js("reports/benchmarks.json"))],
+        README: [headline_block(results), run_time_block(records)],
+        RESULTS_PAGE: [results_block(results), timings_block(records)],
+        BENCH_PAGE: [benchmarks_block(bench)],
     }
 
 
@@ -320,7 +216,7 @@ def main() -> None:
     for page, items in blocks.items():
         path = ROOT / page
         write_text_atomic(path, render(page, path.read_text(encoding="utf-8"), items))
-    print(f"{', '.join(blocks)}: generated blocks updated from reports/ and params.yaml")
+    print(f"{', '.join(blocks)}: generated blocks updated from reports/")
 
 
 if __name__ == "__main__":

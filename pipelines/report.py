@@ -7,8 +7,8 @@ pose-noise configurations, and the *scale* parameters (every key that any profil
 conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) and the
 acceptance thresholds (``acceptance``, the index's last table) -- and hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
 with the git commit and the list of section providers -- one per problem, in the order the
-report shows them (a new problem adds one). Also writes reports/timings/README.md, the summary
-of the stages' run records in DVC stage order (wall times etc.: not a DVC output).
+report shows them (a new problem adds one). The commit, experiment and pipeline run differ
+between identical reruns: they go to the stage's run record, not the report.
 """
 
 from __future__ import annotations
@@ -21,18 +21,18 @@ from typing import Any
 import yaml
 
 from traffictwin.acceptance import for_problem
-from traffictwin.config import flatten, get, typed
+from traffictwin.config import flatten, typed
 from traffictwin.fusion import report_section as fusion_report
 from traffictwin.mlops.tracking import pipeline_run_id
 from traffictwin.report.config import ReportParams
 from traffictwin.report.model import ReportInputs, SectionProvider
-from traffictwin.report.render import write_report, write_timings_readme
+from traffictwin.report.render import write_report
 from traffictwin.risk import report_section as risk_report
 from traffictwin.stereo import report_section as stereo_report
 from traffictwin.twin import report_section as twin_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import CONF, DVC_YAML, PLOTS, REPORTS, ROOT
+from ._paths import CONF, PLOTS, REPORTS, ROOT
 from ._provenance import git_commit
 
 
@@ -75,28 +75,6 @@ def git_dirty(root: Path) -> bool:
     return proc.returncode == 1
 
 
-def stage_order(dvc_yaml: Path, cfg: Any = None) -> list[str]:
-    """Stage names in dvc.yaml order; foreach stages as ``name@key`` (``${a.b}`` resolved in ``cfg``)."""
-    data = yaml.safe_load(dvc_yaml.read_text()) or {}
-    order: list[str] = []
-    for name, st in (data.get("stages") or {}).items():
-        items = st.get("foreach") if isinstance(st, dict) else None
-        if (
-            isinstance(items, str)
-            and items.startswith("${")
-            and items.endswith("}")
-            and cfg is not None
-        ):
-            items = get(cfg, items[2:-1], default=None)
-        if isinstance(items, dict):
-            order += [f"{name}@{k}" for k in items]
-        elif isinstance(items, list):
-            order += [f"{name}@{k}" for k in items]
-        else:
-            order.append(name)
-    return order
-
-
 def providers(configurations: Mapping[str, tuple[float, float]]) -> list[SectionProvider]:
     """The problems' sections, in report order; ``configurations``: ``{name: (r m, alpha deg)}``."""
     return [
@@ -119,10 +97,6 @@ def main() -> None:
             seed=p.seed,
             git_commit=git_commit(ROOT),
             run_params=run_params(cfg, profile_keys(CONF / "profile")),
-            dvc_exp_name=os.environ.get("DVC_EXP_NAME", ""),
-            pipeline_run=pipeline_run_id(),
-            stage_order=stage_order(DVC_YAML, cfg),
-            git_dirty=git_dirty(ROOT),
             acceptance={pr: for_problem(cfg, pr) for pr in ("fusion", "risk", "stereo", "twin")},
         )
         fusion_report.draw_score_figures(
@@ -131,11 +105,10 @@ def main() -> None:
         report = write_report(inputs, providers(p.pose_noise))
         record.update(  # what differs between identical reruns: the run record, not the report
             git_commit=inputs.git_commit,
-            git_dirty=inputs.git_dirty,
-            dvc_exp_name=inputs.dvc_exp_name or None,
-            pipeline_run=inputs.pipeline_run,
+            git_dirty=git_dirty(ROOT),
+            dvc_exp_name=os.environ.get("DVC_EXP_NAME") or None,
+            pipeline_run=pipeline_run_id(),
         )
-        write_timings_readme(inputs)  # the run records' summary, outside DVC
     log = setup_logging()
     log.info(
         "report: %d sections, %d missing values -> reports/README.md, reports/index.html, reports/pages/",

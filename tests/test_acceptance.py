@@ -386,14 +386,14 @@ def test_a_missing_metrics_file_shows_its_thresholds_not_evaluated(tmp_path: Pat
 def test_the_index_ends_with_the_acceptance_table(tmp_path: Path) -> None:
     from pipelines.report import providers
     from traffictwin.report.model import ReportInputs
-    from traffictwin.report.render import render_markdown, write_report
+    from traffictwin.report.render import render_pages, write_report
 
     (tmp_path / "metrics").mkdir()
     (tmp_path / "metrics" / "stereo.json").write_text(__import__("json").dumps(STEREO_JSON))
     th = {p: thresholds(p) for p in ("fusion", "risk", "stereo", "twin")}
     inputs = ReportInputs(tmp_path, "ci", 0, "abc", acceptance=th)
     report = write_report(inputs, providers({}))
-    index = render_markdown(report)["README.md"]
+    index = render_pages(report)["README.md"]
     sections = [line for line in index.splitlines() if line.startswith("## ")]
     assert sections[-2:] == ["## Acceptance thresholds", "## Pages"]
     assert "| stereo | learned_crit_obj_relerr_median |" in index

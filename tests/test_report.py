@@ -6,7 +6,6 @@ report the ci DAG produced (`ci_dag`).
 
 from __future__ import annotations
 
-import base64
 import json
 import math
 import re
@@ -154,21 +153,10 @@ def check_page(
                     ), attrs["data-src"]
                     assert text == M.fmt_value(want, attrs["data-fmt"]), (attrs["data-src"], text)
                     checked += 1
-                elif "data-derived" in attrs:
-                    pass  # checked per table below
-                else:
+                elif "data-derived" not in attrs:
                     assert not NUM_RE.match(text.strip()), (
                         f"number without a source: {text!r} in row {row}"
                     )
-    # derived totals: the sum of the sourced cells above them
-    for table in parser.tables:
-        for row in table:
-            for i, (_text, attrs) in enumerate(row):
-                if attrs.get("data-derived") == "sum of the wall times above":
-                    total = sum(
-                        json.loads(r[i][1]["data-value"]) for r in table if "data-src" in r[i][1]
-                    )
-                    assert json.loads(attrs["data-value"]) == pytest.approx(total)
     # the markdown tables are the same tables, cell for cell
     mt = md_tables(md)
     ht = [
@@ -176,14 +164,11 @@ def check_page(
         for table in parser.tables
     ]
     assert mt == ht
-    # every image referenced exists (the sources relative to the page: broken_links);
-    # embedded images are those files
+    # every image referenced exists (the sources relative to the page: broken_links)
     for img in parser.imgs:
         f = reports / img["data-file"]
         assert f.is_file(), f
-        assert img["src"].endswith(img["data-file"]) or img["src"].startswith("data:")
-        if img["src"].startswith("data:"):
-            assert base64.b64decode(img["src"].split(",", 1)[1]) == f.read_bytes()
+        assert img["src"].endswith(img["data-file"])
     for ref in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md):
         assert (reports / ref.removeprefix("../")).is_file(), ref
     return checked
@@ -419,9 +404,6 @@ def make_inputs(rep: Path) -> M.ReportInputs:
             "grid.cell": 0.64,
             "trainer.accelerator": "cpu",
         },
-        dvc_exp_name="exp-x",
-        pipeline_run="abc12345-0000ffff",
-        stage_order=["generate_fusion", "train_fusion", "report"],
     )
 
 
@@ -522,20 +504,12 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     # the data differs: said plainly, on the index
     index = (reports / "README.md").read_text()
     assert "data differs from the papers'" in index and "own simulator" in index
-    # no commit, experiment, pipeline run or wall times (they differ between identical runs: the
-    # report is a DVC output) -- those are in the run records and reports/timings/README.md
-    assert "abc123" not in md and "exp-x" not in md and "abc12345-0000ffff" not in md
+    # no commit or wall times (they differ between identical runs: the report is a DVC output)
+    # -- those are in the run records reports/timings/<stage>.json
+    assert "abc123" not in md
     assert not any(t.anchor == "timings" for s in rep.sections for t in s.tables)
     assert "Stage wall times" not in md and "30.25" not in md
-    assert "reports/timings/README.md" in page_md(reports, "run")
-    timing = R.write_timings_readme(inputs).read_text()
-    assert md_tables(timing)[0] == [
-        ["generate_fusion", "12.5", "0:12"],  # fmt_value rounds half to even
-        ["train_fusion@A", "30.2", "0:30"],
-        ["total (sum)", "42.8", "0:43"],
-    ]
-    assert "## train_fusion@A\n\n- `run_id`: r0a\n- `train_seconds`: 29.5\n" in timing
-    assert "## generate_fusion" not in timing and "| report |" not in timing
+    assert "reports/timings/<stage>.json" in page_md(reports, "run")
     # NaN in a metrics file is shown as n/a
     assert "n/a" in md
     # figures grouped by paper, referenced as files from the HTML and the markdown of their page
@@ -771,14 +745,10 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
     assert checked > 200
     # the report knows the real files' layout: nothing it looked for is missing
     assert "## Missing values" not in md
-    # every stage that ran recorded its time; reports/timings/README.md (not the report) lists it
-    timed = {json.loads(p.read_text())["stage"] for p in (reports / "timings").glob("*.json")} - {
-        "report"
-    }
-    timings_md = (reports / "timings" / "README.md").read_text()
-    assert "Stage wall times" not in md and "Stage wall times" in timings_md
-    for stage in timed:
-        assert f"| {stage} |" in timings_md, stage
+    # every stage that ran recorded its time in its run record (not in the report)
+    records = [json.loads(p.read_text()) for p in (reports / "timings").glob("*.json")]
+    assert all(r["seconds"] >= 0 for r in records if "stage" in r) and len(records) > 5
+    assert "Stage wall times" not in md
     # the DVC metrics: the two summaries (each problem's headline test numbers and its training's
     # best-epoch validation numbers, what `dvc exp show` compares); every detailed metrics file
     # is an output shown in the report
@@ -828,12 +798,12 @@ def test_report_stage_on_ci_dag(ci_dag: Path, tmp_path: Path) -> None:
 
 
 def test_stage_helpers(tmp_path: Path) -> None:
-    """pipelines.report: dirty check ignores pipeline-written files; stage order expands foreach; profile keys."""
+    """pipelines.report: dirty check ignores pipeline-written files; profile keys."""
     import subprocess
 
     from omegaconf import OmegaConf
 
-    from pipelines.report import git_dirty, profile_keys, run_params, stage_order
+    from pipelines.report import git_dirty, profile_keys, run_params
 
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t", "-c", "commit.gpgsign=false"]
     (tmp_path / "src").mkdir()
@@ -848,10 +818,6 @@ def test_stage_helpers(tmp_path: Path) -> None:
     (tmp_path / "src" / "a.py").write_text("x = 2\n")
     assert git_dirty(tmp_path)
 
-    (tmp_path / "dvc.yaml").write_text(
-        "stages:\n  gen: {cmd: a}\n  train:\n    foreach: ${m.vs}\n    do: {cmd: b}\n"
-        "  ev:\n    foreach: {A: 1, B: 2}\n    do: {cmd: c}\n"
-    )
     cfg = OmegaConf.create(
         {
             "m": {"vs": ["x", "y"]},
@@ -860,7 +826,6 @@ def test_stage_helpers(tmp_path: Path) -> None:
             "data": {"seed": 9, "other": 1},
         }
     )
-    assert stage_order(tmp_path / "dvc.yaml", cfg) == ["gen", "train@x", "train@y", "ev@A", "ev@B"]
     prof = tmp_path / "profile"
     prof.mkdir()
     (prof / "ci.yaml").write_text(
@@ -870,10 +835,10 @@ def test_stage_helpers(tmp_path: Path) -> None:
     assert run_params(cfg, profile_keys(prof)) == {"seed": 3, "sizes.n": 5, "data.seed": 9}
 
 
-def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(reports: Path) -> None:
-    """After ``dvc exp run``, ``dvc repro -f`` re-rendered the report with
-    a new pipeline run id and the experiment's name, so ``dvc.lock`` changed. Those values go to
-    the report stage's run record; the report is the same bytes for any of them."""
+def test_report_bytes_do_not_follow_the_commit(reports: Path) -> None:
+    """The commit (like the experiment's name and the pipeline run id, which the report's inputs
+    do not even hold) goes to the report stage's run record; the report is the same bytes for any
+    commit, so ``dvc repro -f`` leaves ``dvc.lock`` unchanged."""
     from dataclasses import replace
 
     inputs = make_inputs(reports)
@@ -881,18 +846,12 @@ def test_report_bytes_do_not_follow_the_commit_experiment_or_pipeline_run(report
     files = [*page_files(reports), *page_files(reports, html=True)]
     first = {p.relative_to(reports).as_posix(): p.read_bytes() for p in files}
     assert len(first) > 2
-    other = replace(
-        inputs,
-        git_commit="fedcba987654",
-        git_dirty=True,
-        dvc_exp_name="weepy-main",
-        pipeline_run="fedcba98-11112222",
-    )
+    other = replace(inputs, git_commit="fedcba987654")
     R.write_report(other, providers(CONFIGURATIONS))
     for name, data in first.items():
         assert (reports / name).read_bytes() == data, name
     md = first["README.md"].decode()
-    assert "weepy-main" not in md and "exp-x" not in md and "abc12345" not in md
+    assert "abc123" not in md and "fedcba98" not in md
     assert "reports/timings/report.json" in md
 
 

@@ -1,12 +1,13 @@
 """The acceptance table at the end of the report's index: every target of this run, one row per
 target and configuration, read from the metrics files' ``targets`` blocks (one small normaliser
-per file shape: fusion.json, risk.json, stereo.json, twin.json), with the condition it must meet
+for fusion.json's per-configuration targets, one for the flat blocks of risk.json, stereo.json
+and twin.json), with the condition it must meet
 from the acceptance thresholds the report stage passes in (``acceptance.<problem>``,
 :mod:`traffictwin.acceptance`), and a one-line count of the statuses."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,8 +39,8 @@ FILES = (
     ("stereo", "stereo.json"),
     ("twin", "twin.json"),
 )
-#: twin.json's ``targets`` keys that are not targets
-_TWIN_META = ("configuration", "method", "evaluated")
+#: the problems whose thresholds absent from the file's block are shown as not evaluated
+LIST_ABSENT = ("twin",)
 
 Thresholds = Mapping[str, Mapping[str, Threshold]]
 
@@ -96,13 +97,6 @@ def _value_cell(
     )
 
 
-def _status(met: Any, value: Any) -> str:
-    """pass / fail / not evaluated of a ``met`` flag (risk, stereo, twin)."""
-    if met is None or json_number(value) is None:
-        return NOT_EVALUATED
-    return PASS if met else FAIL
-
-
 def _ablation_verdict(src: page.Sources, key: str) -> tuple[str, str, Mapping[str, Any]] | None:
     """A fusion target this run did not evaluate, from an ablation experiment's collected results
     (``reports/ablations/<name>.json``, blocks under ``fusion.``): (file, key, entry)."""
@@ -113,7 +107,9 @@ def _ablation_verdict(src: page.Sources, key: str) -> tuple[str, str, Mapping[st
     return None
 
 
-def fusion_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
+def fusion_rows(
+    src: page.Sources, th: Mapping[str, Threshold], file: str, problem: str
+) -> list[Row]:
     """fusion.json: ``targets.<name>.per_config.<cfg>: {value, lo, hi, status, why}``; a target
     this run does not evaluate shows an ablation experiment's verdict, marked as such."""
     rows = []
@@ -129,76 +125,44 @@ def fusion_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> li
                 src, f, f"{key}.value", e.get("lo"), e.get("hi"), "g4", e.get("why", "")
             )
             desc = str(spec.get("description", "") or getattr(th.get(name), "description", ""))
-            rows.append(Row("fusion", name, c, desc, _condition(th.get(name), spec), value, status))
+            rows.append(Row(problem, name, c, desc, _condition(th.get(name), spec), value, status))
     return rows
 
 
-def risk_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
-    """risk.json: ``targets.<name>: {value, lo, hi, op, threshold, met, why, description}`` (the
-    balanced-accuracy targets under ``shipped_balanced_accuracy_<t>s``)."""
-    rows = []
-    for name, e in (src.get(file, "targets") or {}).items():
-        if not isinstance(e, dict):
-            continue
-        key = f"targets.{name}"
-        value = _value_cell(
-            src, file, f"{key}.value", e.get("lo"), e.get("hi"), "g4", e.get("why", "")
-        )
-        desc = str(e.get("description", "") or getattr(th.get(name), "description", ""))
-        status = _status(e.get("met"), e.get("value"))
-        rows.append(Row("risk", name, "", desc, _condition(th.get(name), e), value, status))
-    return rows
-
-
-def stereo_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
-    """stereo.json: ``targets.<name>: {metric, value, value_lo, value_hi, op, threshold, format,
-    description, met}``."""
-    rows = []
-    for name, e in (src.get(file, "targets") or {}).items():
-        if not isinstance(e, dict):
-            continue
-        fmt = str(e.get("format") or "g4")
-        value = _value_cell(
-            src, file, f"targets.{name}.value", e.get("value_lo"), e.get("value_hi"), fmt
-        )
-        desc = str(e.get("description", "") or getattr(th.get(name), "description", ""))
-        status = _status(e.get("met"), e.get("value"))
-        rows.append(Row("stereo", name, "", desc, _condition(th.get(name), e), value, status))
-    return rows
-
-
-def twin_rows(src: page.Sources, th: Mapping[str, Threshold], file: str) -> list[Row]:
-    """twin.json: ``targets: {configuration, method, evaluated, <name>: {value, ci: [lo, hi],
-    met}}``; the thresholds' names absent from the block (not evaluated, or the registration
-    targets of the naive twin) are not evaluated."""
+def target_rows(
+    src: page.Sources, th: Mapping[str, Threshold], file: str, problem: str
+) -> list[Row]:
+    """risk.json, stereo.json, twin.json: ``targets.<name>: {value, met, ...}`` with the interval
+    as ``lo``/``hi`` (risk), ``value_lo``/``value_hi`` (stereo) or ``ci: [lo, hi]`` (twin), and
+    optional ``format``, ``why``, ``description`` (else the threshold's, else ``note``) and
+    ``always_warns_value`` (what a warning at every frame scores); the block's ``configuration``
+    (twin) is every row's. Non-object entries (the twin's ``method``, ...) are no targets."""
     block = src.get(file, "targets") or {}
-    c = str(block.get("configuration", ""))
-    rows, seen = [], set()
+    where = str(block.get("configuration", ""))
+    rows = []
     for name, e in block.items():
-        if name in _TWIN_META or not isinstance(e, dict):
+        if not isinstance(e, dict):
             continue
-        seen.add(name)
-        ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else [None, None]
-        value = _value_cell(src, file, f"targets.{name}.value", ci[0], ci[1], "g4")
+        ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else None
+        lo, hi = ci or (e.get("lo", e.get("value_lo")), e.get("hi", e.get("value_hi")))
+        fmt, why = str(e.get("format") or "g4"), str(e.get("why", ""))
+        value = _value_cell(src, file, f"targets.{name}.value", lo, hi, fmt, why)
         t = th.get(name)
-        desc = t.description if t is not None else str(e.get("note", ""))
+        desc = str(e.get("description") or getattr(t, "description", "") or e.get("note", ""))
         if isinstance(always := e.get("always_warns_value"), int | float):  # met by a constant?
             desc += f"; a warning at every frame scores {always:.2f} on it"
-        rows.append(
-            Row(
-                "twin",
-                name,
-                c,
-                desc,
-                _condition(t, e),
-                value,
-                _status(e.get("met"), e.get("value")),
-            )
+        met = e.get("met")
+        status = (
+            NOT_EVALUATED
+            if met is None or json_number(e.get("value")) is None
+            else PASS
+            if met
+            else FAIL
         )
-    why = (
-        f"not evaluated at {c} for {block.get('method', 'the headline')}" if c else "not evaluated"
-    )
-    rows += _absent("twin", th, seen, why, c)
+        rows.append(Row(problem, name, where, desc, _condition(t, e), value, status))
+    if problem in LIST_ABSENT:
+        what = f"at {where} for {block.get('method', 'the headline')}" if where else ""
+        rows += _absent(problem, th, {r.name for r in rows}, f"not evaluated {what}".strip(), where)
     return rows
 
 
@@ -213,14 +177,6 @@ def _absent(
     ]
 
 
-_READERS: dict[str, Callable[[page.Sources, Mapping[str, Threshold], str], list[Row]]] = {
-    "fusion": fusion_rows,
-    "risk": risk_rows,
-    "stereo": stereo_rows,
-    "twin": twin_rows,
-}
-
-
 def acceptance_rows(src: page.Sources, thresholds: Thresholds) -> list[Row]:
     """Every target of every metrics file of :data:`FILES`, in report order; a problem whose
     metrics file is missing shows its thresholds (``thresholds``) as not evaluated."""
@@ -228,7 +184,8 @@ def acceptance_rows(src: page.Sources, thresholds: Thresholds) -> list[Row]:
     for problem, file in FILES:
         th = thresholds.get(problem) or {}
         if src.has(file):
-            rows += _READERS[problem](src, th, file)
+            reader = fusion_rows if problem == "fusion" else target_rows
+            rows += reader(src, th, file, problem)
         else:
             rows += _absent(problem, th, set(), f"reports/metrics/{file} not found")
     return rows

@@ -1,8 +1,8 @@
 """The report's page model: cells that remember their source, tables, figures, sections, and
 the loaded input files (:class:`Sources`) the sections read their numbers from.
 
-Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``), stage
-timings (``reports/timings/*.json``), ``reports/environment.json``, the run's parameters (passed
+Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``, the
+ablations' ``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters (passed
 in explicitly by the stage) or :mod:`traffictwin.report.paper_numbers` (the papers' reported
 values, the only hand-typed numbers). Each table cell that holds a number remembers where it came
 from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML carries it as ``data-src`` and
@@ -26,7 +26,7 @@ from typing import Any
 from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import ClaimCheck
-from traffictwin.report.summary import Headline
+from traffictwin.report.summary import Headline, interval
 
 NA = "n/a"
 NEVER = r"(?!)"  # a regex that matches nothing
@@ -83,9 +83,7 @@ class Cell:
     value: Any = None
     fmt: str | None = None
     title: str = ""  # tooltip (e.g. why a value is n/a)
-    derived: str = (
-        ""  # how a computed number was derived from sourced cells (e.g. "sum of timings")
-    )
+    derived: str = ""  # how a number was derived from its sources (e.g. "95 % ... interval")
 
 
 @dataclass
@@ -146,13 +144,14 @@ class Page:
 class ReportInputs:
     """Everything the report needs, passed explicitly (the library never reads params.yaml).
 
-    ``reports_dir``: folder with ``metrics/``, ``figures/``, ``plots/``, ``timings/``,
+    ``reports_dir``: folder with ``metrics/``, ``ablations/``, ``figures/``, ``plots/``,
     ``environment.json``; the report files are written there. ``run_params``: flattened
-    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``stage_order``: DAG
-    order for the timing table. ``acceptance``: the acceptance thresholds per problem
-    (``acceptance.<problem>``, :func:`traffictwin.acceptance.thresholds`) of the index's last
-    table. What a problem's section needs beyond these (the fusion section's pose-noise
-    configurations) its :class:`SectionProvider` carries.
+    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``git_commit`` is not
+    shown (it differs between identical reruns: the stage's run record holds it).
+    ``acceptance``: the acceptance thresholds per problem (``acceptance.<problem>``,
+    :func:`traffictwin.acceptance.thresholds`) of the index's last table. What a problem's
+    section needs beyond these (the fusion section's pose-noise configurations) its
+    :class:`SectionProvider` carries.
     """
 
     reports_dir: Path
@@ -160,10 +159,6 @@ class ReportInputs:
     seed: int
     git_commit: str
     run_params: Mapping[str, Any] = field(default_factory=dict)
-    dvc_exp_name: str = ""
-    pipeline_run: str = ""
-    stage_order: Sequence[str] = ()
-    git_dirty: bool = False  # code or config differed from the commit when the report ran
     banner: str = ""  # profile.banner: a smoke run's warning, first in the report and summary.json
     acceptance: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
@@ -178,22 +173,12 @@ class Sources:
         self.metrics: dict[str, Any] = {}
         self.missing: list[str] = []
         self.paths: dict[str, str] = {}  # metrics file name -> its path under reports/
-        mdir = self.root / "metrics"
-        if mdir.is_dir():
-            for p in sorted(mdir.glob("*.json")):
-                self.metrics[p.name] = _read_json(p)
-                self.paths[p.name] = f"metrics/{p.name}"
-        # results of the ablation experiments (pipelines/ablations.py), where they were collected
-        adir = self.root / "ablations"
-        if adir.is_dir():
-            for p in sorted(adir.glob("*.json")):
-                self.metrics[f"ablations/{p.name}"] = _read_json(p)
-                self.paths[f"ablations/{p.name}"] = f"ablations/{p.name}"
-        self.timings: dict[str, Any] = {}
-        tdir = self.root / "timings"
-        if tdir.is_dir():
-            for p in sorted(tdir.glob("*.json")):
-                self.timings[p.name] = _read_json(p)
+        # the metrics files by name; the ablation experiments' results (pipelines/ablations.py),
+        # where they were collected, as "ablations/<name>"
+        for folder, prefix in (("metrics", ""), ("ablations", "ablations/")):
+            for p in sorted((self.root / folder).glob("*.json")):
+                self.metrics[prefix + p.name] = _read_json(p)
+                self.paths[prefix + p.name] = f"{folder}/{p.name}"
         env = self.root / "environment.json"
         self.environment = _read_json(env) if env.exists() else None
 
@@ -240,17 +225,18 @@ def json_number(v: Any) -> float | None:
 
 
 def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
-    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in metrics
-    ``file``, in format ``fmt``: a derived cell, "95 % ``bootstrap`` interval"
-    (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a NaN bound)."""
+    """``[lo, hi]`` of ``<key>_ci`` (``{"lo", "hi"}`` or ``[lo, hi]``; or of ``key`` itself when it
+    holds ``lo``/``hi``) in metrics ``file``, in format ``fmt``: a derived cell, "95 %
+    ``bootstrap`` interval" (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a
+    NaN bound)."""
     base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
     path = src.paths.get(file, f"metrics/{file}")
-    lo, hi = json_number(src.get(file, f"{base}.lo")), json_number(src.get(file, f"{base}.hi"))
-    if lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
+    iv = interval(src.get(file, base))
+    if iv is None:
         return Cell(NA, title=f"no interval in reports/{path}: {base}")
     return Cell(
-        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
-        value=[lo, hi],
+        f"[{fmt_value(iv[0], fmt)}, {fmt_value(iv[1], fmt)}]",
+        value=list(iv),
         derived=f"95 % {bootstrap} interval, {path}#{base}",
     )
 

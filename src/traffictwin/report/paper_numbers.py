@@ -7,11 +7,11 @@ scale), so the comparison is about trends and rankings, not absolute values.
 
 Sources (``/work/shared/seeds``):
 
-- ``FUSION``: van Kempen, Heidrich, Lampe, Wopen, Eckstein, "Combined Registration and Fusion of
+- ``FUSION_*``: van Kempen, Heidrich, Lampe, Wopen, Eckstein, "Combined Registration and Fusion of
   Evidential Occupancy Grid Maps for Live Digital Twins of Traffic" (RWTH Aachen, ika).
   The paper reports its evaluation as figures only (Fig. 5 KLD box plots, Figs. 6/7 precision /
   recall / Dice curves) -- no numbers are printed -- so its results enter as qualitative claims.
-- ``RISK``: Feth, Akram, Schuster, Wasenmüller, "Dynamic Risk Assessment for Vehicles of Higher
+- ``RISK*``: Feth, Akram, Schuster, Wasenmüller, "Dynamic Risk Assessment for Vehicles of Higher
   Automation Levels by Deep Learning" (Fraunhofer IESE / DFKI).
 """
 
@@ -44,19 +44,6 @@ FUSION_CITATION = (
     "van Kempen et al., Combined Registration and Fusion of Evidential Occupancy Grid Maps "
     "for Live Digital Twins of Traffic (RWTH Aachen, ika)"
 )
-
-FUSION: dict[str, PaperNumber] = {
-    "n_pairs": PaperNumber(10_000, "input-label pairs", "Sec. IV", "generated from >600 scenarios"),
-    "n_scenarios": PaperNumber(600, "scenarios (more than)", "Sec. IV"),
-    "n_templates": PaperNumber(9, "road templates", "Sec. IV", "~400 m road sections"),
-    "split": PaperNumber("80:10:10", "train:val:test", "Sec. IV"),
-    "epochs": PaperNumber(200, "epochs (approx., to minimum val loss)", "Sec. IV"),
-    "lr": PaperNumber(0.01, "initial learning rate", "Sec. IV", "decay 0.5, plateau patience 10"),
-    "batch_size": PaperNumber(80, "max batch size", "Sec. IV"),
-    "occupied_weight": PaperNumber(3.0, "o_w", "Sec. III-A eq. (6), Sec. IV"),
-    "grid": PaperNumber("256 x 176 x 0.32 m", "cells", "Sec. IV"),
-    "backbone": PaperNumber("ResNet-50", "", "Sec. III-A"),
-}
 
 # Configurations A-D (Fig. 3): 98 % intervals r (m) and alpha (deg).
 FUSION_CONFIGURATIONS: dict[str, tuple[float, float]] = {
@@ -138,9 +125,7 @@ RISK: dict[str, PaperNumber] = {
     "split": PaperNumber("70:10:20", "train:val:test (random)", "Sec. 3.5"),
     "epochs": PaperNumber(30, "epochs", "Sec. 3.5", "validation error rises after ~15"),
     "batch_size": PaperNumber(10, "", "Sec. 3.5"),
-    "baseline_m": PaperNumber(0.16, "m stereo baseline", "Sec. 3.3"),
     "thw_threshold_s": PaperNumber(1.5, "s", "Sec. 4"),
-    "risk_clip": PaperNumber(20, "1/s (clip of 1/THW, then /20)", "Sec. 3.4"),
 }
 
 

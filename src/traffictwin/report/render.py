@@ -16,13 +16,11 @@ the appendix.
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +39,6 @@ from traffictwin.report.model import (
     SectionProvider,
     Sources,
     Table,
-    flatten_numbers,
     fmt_value,
 )
 from traffictwin.report.prose import template_environment
@@ -49,10 +46,8 @@ from traffictwin.report.summary import Headline, summary_json
 from traffictwin.report.tables import (
     environment_table,
     generic_table,
-    ordered_records,
     params_table,
     pivot_table,
-    timing_table,
 )
 
 # The files this module writes into the reports folder.
@@ -61,18 +56,10 @@ INDEX_HTML = "index.html"
 PAGES = "pages"  # reports/pages/<name>.md and .html: one page per section
 RESULTS_TABLE = "results_table.md"
 STYLE = "style.css"  # the HTML pages' one style sheet (:data:`CSS`), linked from each page
-TIMINGS_README = "timings/README.md"  # beside the run records: not a DVC output
 SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 FIGURE_DIRS = ("figures", "report_figures")  # the stages' figures, the report stage's own
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
-_MIME = {
-    ".png": "image/png",
-    ".svg": "image/svg+xml",
-    ".jpg": "image/jpeg",
-    ".jpeg": "image/jpeg",
-    ".gif": "image/gif",
-}
 
 
 # --------------------------------------------------------------------------- figures
@@ -121,30 +108,19 @@ def collect_figures(
 
 # --------------------------------------------------------------------------- assemble
 def run_section(src: Sources) -> Section:
-    """ "This run": profile, seed, commit, experiment; the parameters and machine (stage wall
-    times differ between identical runs: :func:`render_timings_markdown`, outside the report)."""
+    """ "This run": the parameters and the software (stage wall times differ between identical
+    runs: they stay in the run records, outside the report)."""
     run = Section("This run: parameters, machine", collapsed=True)
     run.paragraphs.append(
         "The stages' wall times, training times, throughput and MLflow run ids differ between identical "
         "runs, so they are not in this report (a DVC output) but in the run records, "
-        "`reports/timings/` (summary: `reports/timings/README.md`)."
+        "`reports/timings/<stage>.json`."
     )
     run.tables.append(params_table(src))
     env_t = environment_table(src)
     if env_t:
         run.tables.append(env_t)
     return run
-
-
-def provenance(inputs: ReportInputs) -> str:
-    """One sentence: profile and seed. The git commit, DVC experiment and pipeline run of a
-    rendering differ between identical reruns, so they go to the report stage's run record
-    (``reports/timings/report.json``), never into this DVC output."""
-    return (
-        f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
-        "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "
-        "`reports/timings/report.json`."
-    )
 
 
 def data_section(src: Sources, providers: Sequence[SectionProvider]) -> Section:
@@ -214,7 +190,8 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
         "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
         "model on the same quantity and frames (fusion: fusion rules without a network or learned "
         "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
-        "other maps). Details on the pages listed below.",
+        "other maps). Details on the report's pages.",
+        headline=True,  # the first table of results_table.md, the project README's
     )
     for problem, items in headlines.items():
         for h in items:
@@ -323,9 +300,11 @@ def build_report(
     if headlines is None:
         headlines = collect_headlines(src.metrics, providers)
     figures, other = collect_figures(src.root, providers)
-    intro = [
+    intro = [  # the commit, experiment and pipeline run differ between identical reruns: not here
         *([f"**{inputs.banner.strip('() ')}.**"] if inputs.banner else []),
-        provenance(inputs),
+        f"Profile `{inputs.profile}`, seed `{inputs.seed}`. The git commit, DVC experiment and "
+        "pipeline run (MLflow tag `pipeline_run`) of this rendering are in its run record "
+        "`reports/timings/report.json`.",
         "**The data differs from the papers'.** Both papers used commercial simulators (VTD, GTA V) at full "
         "scale; this run uses traffictwin's own simulator (synthetic road templates, ray-cast lidar, rendered "
         f"stereo camera) at the `{inputs.profile}` profile's scale. Compare trends and rankings, not absolute values.",
@@ -428,43 +407,19 @@ def _tidy(text: str) -> str:
     return re.sub(r"\n{3,}", "\n\n", text).strip() + "\n"
 
 
-def render_markdown(report: Report) -> dict[str, str]:
-    """``{file relative to reports/: Markdown}`` of every page (template ``page.md.j2``): the index
-    ``README.md`` and ``pages/<name>.md``, sections in order, the appendix material collapsed."""
-    tpl = _environment(False).get_template("page.md.j2")
+def render_pages(report: Report, html_pages: bool = False) -> dict[str, str]:
+    """``{file relative to reports/: text}`` of every page: Markdown (template ``page.md.j2``: the
+    index ``README.md`` and ``pages/<name>.md``) or HTML (``page.html.j2``: ``index.html`` and
+    ``pages/<name>.html``, each linking the style sheet :data:`STYLE`; secondary tables in closed
+    ``<details>``). Sections in order, figures by their path, the appendix material collapsed."""
+    ext, index = ("html", INDEX_HTML) if html_pages else ("md", README)
+    tpl = _environment(html_pages).get_template(f"page.{ext}.j2")
     return {
-        page_file(p, False): _tidy(tpl.render(report=report, page=p, index=README, ext="md"))
+        page_file(p, html_pages): _tidy(
+            tpl.render(report=report, page=p, index=index, ext=ext, style=STYLE)
+        )
         for p in report_pages(report)
     }
-
-
-def render_timings_markdown(inputs: ReportInputs) -> str:
-    """``reports/timings/README.md``: the stages' run records (``reports/timings/*.json``) as one
-    page — the wall-time table in DAG order (``inputs.stage_order``), then every other number of
-    each record (training seconds, ms per pair or frame, MLflow run ids, ...)."""
-    src = Sources(inputs)
-    out = [
-        "# Run records",
-        "",
-        "<!-- generated by the DVC stage `report` from reports/timings/*.json; not a DVC output -->",
-        "",
-        "What differs between two identical runs of a stage — its wall time, training time and "
-        "throughput, the MLflow run id and model URI of a training run — is written by the stage "
-        "to its run record `reports/timings/<stage>.json` (`@` as `-`), never into a DVC output, so "
-        "an identical `dvc repro -f` leaves `dvc.lock` unchanged. The records are committed with "
-        "the results; the promotion gate reads the MLflow run ids from them.",
-        "",
-        table_markdown(timing_table(src, inputs.stage_order)),
-        "",
-    ]
-    for stage, _name, d in ordered_records(src, inputs.stage_order):
-        rest = [(k, v) for k, v in flatten_numbers(d) if k not in ("stage", "seconds")]
-        if not rest:
-            continue
-        out += [f"## {stage}", ""]
-        out += [f"- `{k}`: {fmt_value(v, 'g4') if isinstance(v, float) else v}" for k, v in rest]
-        out.append("")
-    return "\n".join(out).rstrip() + "\n"
 
 
 def render_results_markdown(report: Report, link: str = README) -> str:
@@ -543,32 +498,6 @@ _NUMBER = re.compile(
 )
 
 
-def _img_src(f: Figure, root: str = "", *, reports_dir: Path, embed: bool) -> str:
-    """``root`` + the figure's path (``root``: from the page's folder to the reports folder), or
-    the image inlined as a ``data:`` URL when ``embed``."""
-    p = Path(reports_dir) / f.path
-    if not embed:
-        return root + f.path
-    data = base64.b64encode(p.read_bytes()).decode("ascii")
-    return f"data:{_MIME.get(p.suffix.lower(), 'application/octet-stream')};base64,{data}"
-
-
-def render_html(report: Report, reports_dir: Path, embed: bool = False) -> dict[str, str]:
-    """``{file relative to reports/: HTML}`` of every page (template ``page.html.j2``): the index
-    ``index.html`` and ``pages/<name>.html``, each linking the style sheet :data:`STYLE` of the
-    reports folder; figures referenced by their relative path (inlined as base64 only with
-    ``embed``); secondary tables and the appendix sections in closed ``<details>``."""
-    env = _environment(True)
-    env.filters["img_src"] = partial(_img_src, reports_dir=reports_dir, embed=embed)
-    tpl = env.get_template("page.html.j2")
-    out = {}
-    for p in report_pages(report):
-        out[page_file(p, True)] = _tidy(
-            tpl.render(report=report, page=p, index=INDEX_HTML, ext="html", style=STYLE)
-        )
-    return out
-
-
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
     """Write ``summary.json`` (the headline numbers), the index README.md and index.html, the
@@ -579,7 +508,7 @@ def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> 
     headlines = collect_headlines(Sources(inputs).metrics, providers)
     write_json_atomic(root / SUMMARY, summary_json(headlines, inputs.banner))
     report = build_report(inputs, providers, headlines)
-    files = {**render_markdown(report), **render_html(report, root), STYLE: CSS}
+    files = {**render_pages(report), **render_pages(report, html_pages=True), STYLE: CSS}
     res = render_results_markdown(report)
     for rel, text in files.items():
         write_text_atomic(root / rel, text)
@@ -589,11 +518,3 @@ def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> 
             old.unlink()
     write_text_atomic(root / RESULTS_TABLE, res)
     return report
-
-
-def write_timings_readme(inputs: ReportInputs) -> Path:
-    """Write :func:`render_timings_markdown` to ``<reports_dir>/timings/README.md`` (atomically);
-    returns the path."""
-    path = Path(inputs.reports_dir) / TIMINGS_README
-    write_text_atomic(path, render_timings_markdown(inputs))
-    return path

@@ -16,10 +16,11 @@ A number that a partial pipeline did not produce is left out, never invented.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+from traffictwin.interval_rule import finite
 
 
 @dataclass(frozen=True)
@@ -52,18 +53,12 @@ class Headline:
     baseline: Baseline | None = None
 
 
-def _num(v: Any) -> float | None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return None
-    return None if math.isnan(float(v)) else float(v)
-
-
 def interval(ci: Any) -> tuple[float, float] | None:
     """``(lo, hi)`` from ``{"lo", "hi"}`` or ``[lo, hi]``; None if absent or not numbers."""
     if isinstance(ci, Mapping):
-        lo, hi = _num(ci.get("lo")), _num(ci.get("hi"))
+        lo, hi = finite(ci.get("lo")), finite(ci.get("hi"))
     elif isinstance(ci, (list, tuple)) and len(ci) == 2:
-        lo, hi = _num(ci[0]), _num(ci[1])
+        lo, hi = finite(ci[0]), finite(ci[1])
     else:
         return None
     return None if lo is None or hi is None else (lo, hi)
@@ -79,7 +74,7 @@ def headline(
     baseline: Baseline | None = None,
 ) -> list[Headline]:
     """``[Headline]`` when ``value`` is a number and ``ci`` an interval, else ``[]``."""
-    v, iv = _num(value), interval(ci)
+    v, iv = finite(value), interval(ci)
     if v is None or iv is None:
         return []
     return [Headline(key, quantity, where, v, iv[0], iv[1], fmt, baseline)]
@@ -93,7 +88,7 @@ def strongest(
     when no candidate has a number. Ties go to the first candidate."""
     best: Baseline | None = None
     for name, (value, ci, src) in candidates.items():
-        v = _num(value)
+        v = finite(value)
         if v is None or (
             best is not None and not (v > best.value if higher_better else v < best.value)
         ):

@@ -1,15 +1,27 @@
 """Tables any section can use: metrics files as key/value grids or side by side, the run's
-stage timings, environment and parameters, and a problem's findings text as bullet points."""
+environment and parameters, and a problem's findings text as bullet points."""
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from traffictwin.report.model import ABSENT, Cell, Sources, Table, flatten_numbers, fmt_value
 
 FINDINGS_HEADING = "Findings of this run"
+
+
+def scalar_cell(src: Sources, file: str, key: str, v: Any) -> Cell:
+    """The cell of the scalar ``v`` at metrics ``file``#``key``: a number (``int`` or ``g4``) or a
+    JSON ``null`` (``n/a``) with its source, any other value as text (a list's items joined by
+    commas)."""
+    if v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
+        fmt = "int" if isinstance(v, int) else "g4"
+        why = "undefined (null in the metrics file)" if v is None else ""
+        path = src.paths.get(file, f"metrics/{file}")
+        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt, title=why)
+    return Cell(", ".join(map(str, v)) if isinstance(v, list) else fmt_value(v, "str"))
 
 
 def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | None:
@@ -26,12 +38,7 @@ def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | 
         row = [Cell(k)]
         for _, f in files:
             v = src.get(f, k, ABSENT)
-            if v is ABSENT:
-                row.append(Cell(""))
-            elif isinstance(v, (str, list, bool)):
-                row.append(Cell(str(v)))
-            else:
-                row.append(src.cell(f, k, "int" if isinstance(v, int) else "g4"))
+            row.append(Cell("") if v is ABSENT else scalar_cell(src, f, k, v))
         t.rows.append(row)
     return t
 
@@ -42,21 +49,7 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
     if data is None:
         return None
     t = Table(title, ["key", "value"], anchor=anchor)
-    for key, v in flatten_numbers(data):
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
-            fmt = "int" if isinstance(v, int) else "g4"
-            t.rows.append(
-                [Cell(key), Cell(fmt_value(v, fmt), src=f"metrics/{file}#{key}", value=v, fmt=fmt)]
-            )
-        else:
-            t.rows.append(
-                [
-                    Cell(key),
-                    Cell(
-                        fmt_value(v, "str") if not isinstance(v, list) else ", ".join(map(str, v))
-                    ),
-                ]
-            )
+    t.rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
     return t
 
 
@@ -80,12 +73,7 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
 
     def cell(g: str, m: str) -> Cell:
         key = f"{g}/{m}"
-        if key not in data:
-            return Cell("")
-        v = data[key]
-        if isinstance(v, (str, list, bool)):
-            return Cell(str(v))
-        return src.cell(file, key, "int" if isinstance(v, int) else "g4")
+        return scalar_cell(src, file, key, data[key]) if key in data else Cell("")
 
     if len(metrics) <= len(groups):  # the narrower orientation: groups as rows
         t = Table(title, ["group", *metrics], anchor=anchor)
@@ -93,55 +81,6 @@ def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table 
     else:
         t = Table(title, ["metric", *groups], anchor=anchor)
         t.rows = [[Cell(m)] + [cell(g, m) for g in groups] for m in metrics]
-    return t
-
-
-def ordered_records(src: Sources, order: Sequence[str] = ()) -> list[tuple[str, str, dict]]:
-    """``[(stage, file name, record)]`` of the run records (``reports/timings/*.json`` with a
-    ``seconds`` key) in DAG ``order`` (``name@key`` stages by their base name), the report's own
-    record left out (written after the report, it would always be one run stale)."""
-    items = []
-    for name, d in src.timings.items():
-        if not isinstance(d, dict) or "seconds" not in d:
-            continue
-        stage = str(d.get("stage", name.removesuffix(".json")))
-        if stage == "report":
-            continue
-        items.append((stage, name, d))
-    rank = {s: i for i, s in enumerate(order)}
-
-    def key(it: tuple[str, str, Any]) -> tuple[int, str]:
-        base = it[0].split("@")[0]
-        return (rank.get(it[0], rank.get(base, len(rank))), it[0])
-
-    return sorted(items, key=key)
-
-
-def timing_table(src: Sources, order: Sequence[str] = ()) -> Table:
-    t = Table(
-        "Stage wall times (this run)", ["stage", "wall time [s]", "wall time"], anchor="timings"
-    )
-    items = [(stage, name, d["seconds"]) for stage, name, d in ordered_records(src, order)]
-    total = 0.0
-    for stage, name, secs in items:
-        total += float(secs)
-        t.rows.append(
-            [
-                Cell(stage),
-                Cell(fmt_value(secs, "f1"), src=f"timings/{name}#seconds", value=secs, fmt="f1"),
-                Cell(fmt_value(secs, "s"), src=f"timings/{name}#seconds", value=secs, fmt="s"),
-            ]
-        )
-    if items:
-        d = "sum of the wall times above"
-        t.rows.append(
-            [
-                Cell("total (sum)"),
-                Cell(fmt_value(total, "f1"), value=total, fmt="f1", derived=d),
-                Cell(fmt_value(total, "s"), value=total, fmt="s", derived=d),
-            ]
-        )
-    t.note = "Sum of the stages' own wall times as recorded by each stage (reports/timings); DVC overhead not included."
     return t
 
 
@@ -157,17 +96,13 @@ def environment_table(src: Sources) -> Table | None:
         "machine: it is in the run record reports/timings/environment.json, not in this report.",
     )
     for k in ("cpu", "cpu_count", "memory_gb", "gpu", "cuda_available", "python", "platform"):
-        if k in env:
-            v = env[k]
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                t.rows.append(
-                    [
-                        Cell(k),
-                        Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4"),
-                    ]
-                )
-            else:
-                t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
+        v = env.get(k, ABSENT)
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            t.rows.append(
+                [Cell(k), Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4")]
+            )
+        elif v is not ABSENT:
+            t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
     for pkg, ver in (env.get("packages") or {}).items():
         t.rows.append([Cell(pkg), Cell(str(ver))])
     return t

@@ -182,14 +182,9 @@ def twin_map_figure(
     fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
     roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
 
-    def show(ax, m, title):
-        show_masses(ax, m, grid.cell, title=title)
-
-    show(axes[0], step.masses, f"twin ({method}), config {configuration}")
-    # vehicle markers in colours the mass map does not use (no green, red or grey)
-    colors = VEHICLE_COLOURS
+    show_masses(axes[0], step.masses, grid.cell, title=f"twin ({method}), config {configuration}")
     for k in range(n):
-        c = colors[k % len(colors)]
+        c = VEHICLE_COLOURS[k % len(VEHICLE_COLOURS)]
         tx, ty = true_rel[k, 0], true_rel[k, 1]
         axes[0].plot(ty, tx, "o", color=c, ms=6, mfc="none", label=f"{k}: {roles[k]} (true)")
         if k:
@@ -199,12 +194,9 @@ def twin_map_figure(
             )
             mark = "+" if step.used[k] else "s"
             axes[0].plot(step.poses[k, 1], step.poses[k, 0], mark, color=c, ms=8)
-        used = (
-            "reference"
-            if k == 0
-            else ("used" if step.used[k] else "left out (registration rejected)")
-        )
-        show(axes[k + 1], snap.contributions[k], f"vehicle {k} ({roles[k]}): {used}")
+        used = "used" if step.used[k] else "left out (registration rejected)"
+        title = f"vehicle {k} ({roles[k]}): {used if k else 'reference'}"
+        show_masses(axes[k + 1], snap.contributions[k], grid.cell, title=title)
         axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")
     axes[0].legend(fontsize=6, loc="lower left")
     fig.suptitle(

@@ -17,7 +17,7 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.model import NA, Cell, DataFile, Table, fmt_value, lookup
+from traffictwin.report.model import NA, Cell, DataFile, Table, interval_cell, lookup
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
 from traffictwin.risk.report_tables import RISK_FILE
@@ -99,18 +99,6 @@ def critical_thw_text(src: page.Sources) -> str:
     return f"{float(ts[0]):g} s" if isinstance(ts, list) and ts else "twin.critical_thw"
 
 
-def _ci(src: page.Sources, key: str, fmt: str) -> Cell:
-    """The interval ``[lo, hi]`` stored at twin.json ``key`` (n/a without one)."""
-    v = src.get(FILE, key)
-    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)):
-        return Cell(NA, title=f"no interval in reports/metrics/{FILE}: {key}")
-    return Cell(
-        f"[{fmt_value(v[0], fmt)}, {fmt_value(v[1], fmt)}]",
-        value=list(v),
-        derived=f"95 % sequence-bootstrap interval, metrics/{FILE}#{key}",
-    )
-
-
 def _table(title: str, anchor: str, first: Sequence[str], *metrics: Sequence[Metric]) -> Table:
     """An empty table: the ``first`` (label) columns, then each metric's (and interval's)."""
     heads = [
@@ -129,18 +117,18 @@ def _cells(
             out += [Cell(DASH)] * (1 + ci)
             continue
         out.append(src.cell(FILE, f"{base}.{key}", fmt))
-        out += [_ci(src, f"{base}.{key}_ci", fmt)] if ci else []
+        out += [interval_cell(src, FILE, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
     return out
 
 
-def _configs(src: page.Sources) -> list[str]:
-    c = src.get(FILE, "configurations")
-    return list(c) if isinstance(c, dict) else []
+def _keys(src: page.Sources, key: str = "configurations") -> list[str]:
+    """The keys of the object at twin.json ``key`` (none where it is no object)."""
+    v = src.get(FILE, key)
+    return list(v) if isinstance(v, dict) else []
 
 
 def _methods(src: page.Sources, c: str) -> list[str]:
-    m = src.get(FILE, f"configurations.{c}.methods")
-    return list(m) if isinstance(m, dict) else []
+    return _keys(src, f"configurations.{c}.methods")
 
 
 def occluded_table(src: page.Sources) -> Table:
@@ -152,7 +140,7 @@ def occluded_table(src: page.Sources) -> Table:
         OCCLUDED,
     )
     ego_dash = ("recall_vs_ego", "lead_vs_ego_s_median", "left_out_share")
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             k = f"configurations.{c}.methods.{m}.occluded"
             dash = ego_dash if m == "ego" else ()
@@ -174,7 +162,7 @@ def open_table(src: page.Sources) -> Table:
         OPEN,
         BIAS,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             k, kb = f"configurations.{c}.methods.{m}.open", f"configurations.{c}.pose_bias"
             row = _cells(src, k, OPEN) + _cells(src, f"{kb}.methods.{m}.open", BIAS)
@@ -196,12 +184,11 @@ def hazard_table(src: page.Sources) -> Table:
         ["config", "scenario", "hazard", "map the ego reads"],
         HAZARD,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for kind in ("occluded", "open"):
             for m in _methods(src, c):
                 base = f"configurations.{c}.methods.{m}.{kind}.by_hazard"
-                hz = src.get(FILE, base)
-                for h in sorted(hz) if isinstance(hz, dict) else ():
+                for h in sorted(_keys(src, base)):
                     labels = [c, kind, HAZARD_LABELS.get(h, h), LABELS.get(m, m)]
                     dash = ("lead_vs_ego_s_median",) if m == "ego" else ()
                     cells = _cells(src, f"{base}.{h}", HAZARD, dash)
@@ -218,7 +205,7 @@ def predictive_table(src: page.Sources) -> Table:
         ["config", "map the ego reads", "kind"],
         PREDICTIVE,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         for m in _methods(src, c):
             for kind in ("occluded", "open"):
                 k = f"configurations.{c}.methods.{m}.{kind}.predictive"
@@ -239,9 +226,8 @@ def rule_table(src: page.Sources) -> Table:
         RULE,
     )
     t.columns += ["eligible", "chosen"]
-    rows = src.get(FILE, "predictive_rule.candidates")
     yes_no = {True: "yes", False: "no"}
-    for name in rows if isinstance(rows, dict) else {}:
+    for name in _keys(src, "predictive_rule.candidates"):
         k = f"predictive_rule.candidates.{name}"
         flags = [Cell(yes_no.get(src.get(FILE, f"{k}.{f}"), NA)) for f in ("eligible", "selected")]
         t.rows.append(_cells(src, k, RULE) + flags)
@@ -257,7 +243,7 @@ def vehicle_table(src: page.Sources) -> Table:
         ["config", "vehicle", "map it reads"],
         VEHICLE,
     )
-    for c in _configs(src):
+    for c in _keys(src):
         vehicles = src.get(FILE, f"configurations.{c}.vehicles")
         for k, entry in (vehicles if isinstance(vehicles, dict) else {}).items():
             for m in entry.get("methods", {}):

@@ -6,9 +6,9 @@ when THW < t (t: the primary of ``evaluation.risk.thresholds_s``, the paper's th
 ``risk > risk_threshold(t)`` (``min(1/t, 20) / 20``).
 
 Reported per predictor against a label column: MSE and MAE of the normalised risk (the paper's
-"testing average error" is the MSE: 0.01470), the THW error in seconds (risk → THW, both capped at
+"testing average error" is the MSE), the THW error in seconds (risk → THW, both capped at
 ``thw_cap`` s so "no vehicle" is finite), and at each threshold the confusion matrix laid out as
-the paper's Table 1 (rows predicted, columns actual), accuracy (paper 72.87 %; Wang & Kato 70.77 %),
+the paper's Table 1 (rows predicted, columns actual), accuracy (the paper's and Wang & Kato's: :data:`PAPER`),
 balanced accuracy, precision/recall/specificity/F1 of the critical class and ROC-AUC of the
 predicted risk as a score for "critical". Recall (specificity) is undefined without actual
 critical (uncritical) frames; precision is 0 without predicted critical frames.
@@ -22,16 +22,18 @@ from typing import Any
 
 import numpy as np
 
+from traffictwin.report import paper_numbers as _P
 from traffictwin.risk.metric import primary, risk_threshold, risk_to_thw
 
-#: the paper's figures (sec. 4, Table 1) and the related work's best accuracy
+#: the paper's figures (sec. 4, Table 1) and the related work's best accuracy, as fractions, from
+#: :mod:`traffictwin.report.paper_numbers` (their one source)
 PAPER = {
-    "test/mse": 0.01470,
-    "accuracy": 0.7287,
-    "wang_kato_accuracy": 0.7077,
-    "threshold_s": 1.5,
-    "confusion": {"tp": 67052, "fp": 19069, "fn": 9737, "tn": 10312},
-    "n_frames": 106170,
+    "test/mse": _P.RISK["test_mse"].value,
+    "accuracy": _P.RISK["accuracy"].value / 100,
+    "wang_kato_accuracy": _P.RISK["wang_kato_accuracy"].value / 100,
+    "threshold_s": _P.RISK["thw_threshold_s"].value,
+    "confusion": {k: n.value for k, n in _P.RISK_CONFUSION.items()},
+    "n_frames": _P.RISK["n_effective"].value,
 }
 #: metrics where lower is better (every other reported metric: higher is better)
 LOWER_IS_BETTER = (
