@@ -21,6 +21,7 @@ from typing import Any
 #: globs (relative to the repository root) of the reporting code
 REPORTING = (
     "src/traffictwin/report/**/*",
+    "src/traffictwin/paper_numbers.py",
     "src/traffictwin/**/report_section.py",
     "src/traffictwin/**/report_section/*.py",
     "src/traffictwin/**/report_*.py",

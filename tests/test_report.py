@@ -21,8 +21,8 @@ import pytest
 from _report_pages import all_html, all_md, broken_links, page_files, page_html, page_md
 
 from pipelines.report import providers
+from traffictwin import paper_numbers as P
 from traffictwin.report import model as M
-from traffictwin.report import paper_numbers as P
 from traffictwin.report import render as R
 from traffictwin.report.claims import VERDICTS
 

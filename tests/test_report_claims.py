@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
+from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import verdict
 from traffictwin.fusion.report_section.claims import fusion_claims
 from traffictwin.interval_rule import interval_side
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import (
     EXCEEDED,
     NOT_COMPARABLE,

@@ -3,7 +3,7 @@ the loaded input files (:class:`Sources`) the sections read their numbers from.
 
 Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``, the
 ablations' ``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters (passed
-in explicitly by the stage) or :mod:`traffictwin.report.paper_numbers` (the papers' reported
+in explicitly by the stage) or :mod:`traffictwin.paper_numbers` (the papers' reported
 values, the only hand-typed numbers). Each table cell that holds a number remembers where it came
 from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML carries it as ``data-src`` and
 the raw value as ``data-value`` so tests can re-check every number against its file.
@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from traffictwin import paper_numbers as P
 from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import ClaimCheck
 from traffictwin.report.summary import Headline, interval
 

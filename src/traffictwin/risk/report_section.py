@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from traffictwin import paper_numbers as P
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
 from traffictwin.report import model as page
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.claims import (
     ClaimCheck,
@@ -203,7 +203,7 @@ PAPER_MODEL = (
 
 
 def claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
-    """The paper's numbers (:data:`~traffictwin.report.paper_numbers.RISK`) against this run's
+    """The paper's numbers (:data:`~traffictwin.paper_numbers.RISK`) against this run's
     network trained as in the paper (``models.paper`` of ``risk.json``; else the main variant)
     on the test frames, with their 95 % sequence-bootstrap intervals: accuracy at the paper's THW
     (reproduced when our interval reaches 72.87 % or lies above it), the test MSE of the

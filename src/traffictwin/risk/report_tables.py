@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
 from traffictwin.risk.metric import CLIP
 

@@ -28,6 +28,7 @@ from dataclasses import replace
 from functools import partial
 from typing import Any
 
+from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.cells import FUSION_FILE, FUSION_METHOD_LABELS, HEADLINE
 from traffictwin.fusion.report_section.claims import fusion_claims
@@ -39,7 +40,6 @@ from traffictwin.fusion.report_section.seed_tables import (
     single_seed_note,
 )
 from traffictwin.report import model as page
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import lookup
 from traffictwin.report.summary import Baseline, Headline, headline, strongest

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import verdict
 from traffictwin.report import model as page
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, fmt_value, interval_cell, lookup
 
 FUSION_FILE = "fusion.json"

@@ -1,4 +1,4 @@
-"""The fusion paper's claims (:data:`traffictwin.report.paper_numbers.FUSION_CLAIMS`) against this
+"""The fusion paper's claims (:data:`traffictwin.paper_numbers.FUSION_CLAIMS`) against this
 run's ``fusion.json``: one :class:`~traffictwin.report.claims.ClaimCheck` each, for the verdict
 table on the report's first screen.
 
@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from traffictwin import paper_numbers as P
 from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE, NAIVE, NET
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
-from traffictwin.report import paper_numbers as P
 from traffictwin.report.claims import (
     ClaimCheck,
     claim_verdict,
@@ -66,7 +66,7 @@ def _iqr(m: Any, c: str, row: str) -> float | None:
 
 
 def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
-    """Every claim of :data:`~traffictwin.report.paper_numbers.FUSION_CLAIMS` with this run's
+    """Every claim of :data:`~traffictwin.paper_numbers.FUSION_CLAIMS` with this run's
     numbers (paired 95 % cluster-bootstrap intervals of network − naive from ``fusion.json``)
     and its verdict; empty when ``fusion.json`` has no test configuration."""
     m = metrics.get(FUSION_FILE)

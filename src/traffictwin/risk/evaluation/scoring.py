@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.report import paper_numbers as _P
+from traffictwin import paper_numbers as _P
 from traffictwin.risk.metric import primary, risk_threshold, risk_to_thw
 
 #: the paper's figures (sec. 4, Table 1) and the related work's best accuracy, as fractions, from
-#: :mod:`traffictwin.report.paper_numbers` (their one source)
+#: :mod:`traffictwin.paper_numbers` (their one source)
 PAPER = {
     "test/mse": _P.RISK["test_mse"].value,
     "accuracy": _P.RISK["accuracy"].value / 100,

@@ -3,9 +3,11 @@
 This is the ONLY place in the project where numbers are typed in by hand; the report puts them
 beside the numbers of our own run, which all come from metrics files. The papers' data differs
 from ours (theirs: VTD and GTA V, real scale; ours: the project's own simulator, profile-dependent
-scale), so the comparison is about trends and rankings, not absolute values.
+scale), so the comparison is about trends and rankings, not absolute values. It lives outside
+``traffictwin.report``: the risk evaluation writes its differences to the paper into risk.json
+(:data:`traffictwin.risk.evaluation.scoring.PAPER`), and no evaluation stage depends on report code.
 
-Sources (``/work/shared/seeds``):
+Sources (the papers in ``shared/seeds/`` beside the repository):
 
 - ``FUSION_*``: van Kempen, Heidrich, Lampe, Wopen, Eckstein, "Combined Registration and Fusion of
   Evidential Occupancy Grid Maps for Live Digital Twins of Traffic" (RWTH Aachen, ika).
