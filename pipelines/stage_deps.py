@@ -62,23 +62,44 @@ def module_file(mod: str, root: Path = ROOT) -> Path | None:
     return None
 
 
-def _imports(path: Path, root: Path) -> set[str]:
-    """Modules of traffictwin / pipelines that ``path`` imports (anywhere in the file)."""
+def _stamp(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return st.st_mtime_ns, st.st_size
+
+
+@cache
+def _parsed(path: Path, stamp: tuple[int, int]) -> ast.Module:
+    """``path`` parsed once per version (``stamp``: mtime, size): every stage's closure reads the
+    same shared modules."""
+    return ast.parse(path.read_text())
+
+
+def _tree(path: Path) -> ast.Module:
+    return _parsed(path, _stamp(path))
+
+
+@cache
+def _imports_of(path: Path, root: Path, stamp: tuple[int, int]) -> frozenset[str]:
     src = root / "src"
     rel = path.relative_to(src if src in path.parents else root).with_suffix("")
     package = ".".join(rel.parts[:-1])
-    return {
+    return frozenset(
         n
-        for n in imported_names(ast.parse(path.read_text()), package)
+        for n in imported_names(_parsed(path, stamp), package)
         if n.split(".")[0] in ("traffictwin", "pipelines") and module_file(n, root)
-    }
+    )
+
+
+def _imports(path: Path, root: Path) -> set[str]:
+    """Modules of traffictwin / pipelines that ``path`` imports (anywhere in the file)."""
+    return set(_imports_of(path, root, _stamp(path)))
 
 
 def _only_docs(f: Path) -> bool:
     """A package ``__init__`` with nothing but a docstring and ``__version__`` runs no stage code."""
     if f.name != "__init__.py":
         return False
-    body = ast.parse(f.read_text()).body
+    body = _tree(f).body
     return all(
         (isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant))
         or (
@@ -117,7 +138,7 @@ def _templates(module: Path) -> list[Path]:
     folder = module.parent / "templates"
     if not folder.is_dir() or not any(
         isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value.endswith(".j2")
-        for n in ast.walk(ast.parse(module.read_text()))
+        for n in ast.walk(_tree(module))
     ):
         return []
     return sorted(folder.glob("*.j2"))

@@ -166,10 +166,13 @@ def test_dvc_lock_holds_only_todays_stages() -> None:
 
 
 def test_prune_lock_removes_only_stale_stages(tmp_path: Path) -> None:
-    for name in ("dvc.yaml", "params.yaml", "dvc.lock"):
+    for name in ("dvc.yaml", "params.yaml"):
         (tmp_path / name).write_text((ROOT / name).read_text())
-    lock = yaml.safe_load((tmp_path / "dvc.lock").read_text())
-    kept = dict(lock["stages"])
+    lock = yaml.safe_load((ROOT / "dvc.lock").read_text())
+    # three of today's stages as the lock records them (a round trip of the whole lock takes
+    # seconds and tests nothing more)
+    kept = dict(list(lock["stages"].items())[:3])
+    lock["stages"] = dict(kept)
     lock["stages"]["train_fusion@Z"] = {"cmd": "python -m pipelines.train_fusion"}
     (tmp_path / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
     assert stage_deps.prune_lock(tmp_path / "dvc.yaml", tmp_path / "dvc.lock") == ["train_fusion@Z"]
