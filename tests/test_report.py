@@ -484,11 +484,9 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
         in md
     )
     assert results[1][:8] == ["Wang & Kato [20]", "—", "paper", "—", "—", "—", "—", "70.77 %"]
-    assert (
-        "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md
-        and "| dropped by the stereo-pair check | 3,982 | 7 |" in md
-    )
-    assert "| share of pairs dropped by ORB | 3.50 % | 4.20 % |" in md
+    # the data per split: frames, sequences (none without critical_share), dropped, kept
+    assert "| paper (Feth et al.) | 110,152 | — | 3,982 | 106,170 |" in md
+    assert "| all | 100 | n/a | 7 |  |" in md and "| test | n/a | n/a |  | 21 |" in md
     assert (
         "| rgbd | 0.01 | 75.00 % | 0.005 | 87.50 % |" in md
     )  # region table: the primary (paper-region) label first

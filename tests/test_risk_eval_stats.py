@@ -794,8 +794,12 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
     assert [r[1] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[1] == "spread")[5] == "fail"
-    shares = tables[anchors.index("risk-critical-share")]
-    assert [r[0] for r in shares] == ["train", "val", "test", "all"]
+    data = tables[anchors.index("risk-data")]  # the paper's row, then every split
+    assert [r[0] for r in data] == ["paper (Feth et al.)", "all", "train", "val", "test"]
+    test = metrics["critical_share"]["splits"]["test"]
+    assert data[-1][1:3] == [str(test["n_frames"]), str(test["n_sequences"])]
+    assert data[-1][4] == M.fmt_value(metrics["n_frames"]["test"], "int")
+    assert data[-1][5] == M.fmt_value(test["risk_thw_corridor"], "pct")
     sit = tables[anchors.index("risk-situations")]  # one row per situation and predictor
     assert list(dict.fromkeys(r[0] for r in sit)) == sorted(SITUATIONS)
     s0 = sorted(SITUATIONS)[0]

@@ -21,7 +21,7 @@ from traffictwin.report.claims import ClaimCheck, claim_verdict, fmt_interval, p
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
-from traffictwin.risk.report_tables import ORB_FILE, RISK_FILE, risk_tables
+from traffictwin.risk.report_tables import RISK_FILE, risk_tables
 
 TITLE = "Paper 2 — dynamic risk assessment from a stereo camera"
 
@@ -52,7 +52,7 @@ DATA_FILES = (
         required=True,
     ),
     page.DataFile(
-        ORB_FILE,
+        "orb.json",
         "ORB stereo-pair check vs injected faults (reports/metrics/orb.json)",
         required=True,
     ),

@@ -20,7 +20,6 @@ from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
 
 RISK_FILE = "risk.json"
-ORB_FILE = "orb.json"
 SELECTION_FILE = "risk_selection.json"
 BASELINE_LABELS = {
     "train_mean": "baseline: train mean",
@@ -276,31 +275,48 @@ def region_table(src: page.Sources) -> Table | None:
     return rt
 
 
-def critical_share_table(src: page.Sources) -> Table | None:
-    """Critical share of every region's label per split (frames.csv, all frames)."""
-    splits = src.get(RISK_FILE, "critical_share.splits")
-    if not isinstance(splits, dict) or not splits:
+def data_table(src: page.Sources) -> Table | None:
+    """Per split: frames, sequences, the frames the stereo-pair check drops and keeps, the critical
+    share of every region's label; the paper's numbers first."""
+    splits = src.get(RISK_FILE, "critical_share.splits") or {}
+    if src.get(RISK_FILE, "n_frames") is None and not splits:
         return None
-    labels = [
-        lab
-        for lab in ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
-        if any(isinstance(e, dict) and lab in e for e in splits.values())
-    ]
-    thr = src.get(RISK_FILE, "critical_share.threshold_s")
+    labels = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
+    labels = [lab for lab in labels if any(lab in e for e in splits.values())]
+    thr = fmt_value(src.get(RISK_FILE, "critical_share.threshold_s"), "g4")
     t = Table(
-        f"Risk: critical share (THW < {fmt_value(thr, 'g4')} s) of every region's label per split",
-        ["split", "frames", "sequences", *labels],
-        anchor="risk-critical-share",
+        f"Risk: data per split, paper vs this run (critical share: THW < {thr} s, every region's "
+        "label)",
+        ["split", "frames", "sequences", "dropped by the stereo-pair check", "kept", *labels],
+        anchor="risk-data",
         note=(
-            "All frames of frames.csv (before the ORB check). risk_thw_corridor: objects in the "
-            "subject's driving corridor (the headline label); risk_thw_paper: anything ahead under "
-            "the pessimistic-turn assumption; risk_thw_fov: the part the camera sees."
+            "Frames, sequences and critical shares: every frame of frames.csv, before the "
+            "stereo-pair (ORB) check. The paper (Sec. 3.3, 3.5) splits random frames "
+            f"{P.RISK['split'].value}; ours by scenario (neighbouring frames are near-duplicates). "
+            "Its frame counts give a drop share of "
+            f"{fmt_value(P.risk_confusion_derived()['orb_outlier_pct'], 'pct_raw')} (it says "
+            "'around 3.5 %'). risk_thw_corridor: objects in the subject's driving corridor (the "
+            "headline label); risk_thw_paper: anything ahead under the pessimistic-turn assumption; "
+            "risk_thw_fov: the part the camera sees."
         ),
     )
-    keys = [("n_frames", "int"), ("n_sequences", "int"), *((lab, "pct") for lab in labels)]
-    for split in splits:
-        pre = f"critical_share.splits.{split}"
-        t.rows.append([Cell(split), *(value_cell(src, f"{pre}.{k}", f) for k, f in keys)])
+    paper = [paper_cell("RISK", "n_frames", "int"), Cell(DASH)]
+    paper += [derived_paper_cell("n_dropped", "int"), paper_cell("RISK", "n_effective", "int")]
+    t.rows.append([Cell("paper (Feth et al.)"), *paper, *(Cell(DASH) for _ in labels)])
+    for split in dict.fromkeys(["all", "train", "val", "test", *splits]):
+        pre, whole = f"critical_share.splits.{split}", split == "all"
+        row = [
+            Cell(split),
+            value_cell(src, "n_frames.total" if whole else f"{pre}.n_frames", "int"),
+        ]
+        row.append(value_cell(src, f"{pre}.n_sequences", "int"))
+        dropped = value_cell(src, "n_frames.orb_outliers_dropped", "int")
+        row += (
+            [dropped, Cell("")]
+            if whole
+            else [Cell(""), value_cell(src, f"n_frames.{split}", "int")]
+        )
+        t.rows.append(row + [value_cell(src, f"{pre}.{lab}", "pct") for lab in labels])
     return t
 
 
@@ -354,36 +370,6 @@ def training_table(src: page.Sources) -> Table | None:
     return t
 
 
-def data_table(src: page.Sources) -> Table | None:
-    """Frames recorded, dropped by the stereo-pair check and per split, paper vs this run."""
-    if src.get(RISK_FILE, "n_frames") is None:
-        return None
-    share = fmt_value(P.risk_confusion_derived()["orb_outlier_pct"], "pct_raw")
-    t = Table(
-        "Risk: data, paper vs this run",
-        ["quantity", "paper", "this run", "paper source"],
-        anchor="risk-data",
-        note=(
-            f"Paper split {P.RISK['split'].value} (random frames); ours by scenario (neighbouring "
-            f"frames are near-duplicates; sequences per split: the critical-share table). The paper's "
-            f"frame counts give a drop share of {share}."
-        ),
-    )
-    dropped = ("dropped by the stereo-pair check", derived_paper_cell("n_dropped", "int"))
-    rows = [("stereo frames", paper_cell("RISK", "n_frames", "int"), "total", "Sec. 3.3")]
-    rows += [(*dropped, "orb_outliers_dropped", "Sec. 3.3, 3.5 (derived)")]
-    rows += [(f"{s} frames", Cell(DASH), s, "") for s in ("train", "val", "test")]
-    t.rows = [
-        [Cell(q), pc, src.cell(RISK_FILE, f"n_frames.{k}", "int"), Cell(ref)]
-        for q, pc, k, ref in rows
-    ]
-    if src.has(ORB_FILE):
-        orb = [paper_cell("RISK", "orb_outlier_pct", "pct_raw")]
-        orb += [src.cell(ORB_FILE, "all/dropped_share", "pct"), Cell("Sec. 3.3 ('around 3.5 %')")]
-        t.rows.append([Cell("share of pairs dropped by ORB"), *orb])
-    return t
-
-
 def risk_tables(src: page.Sources) -> list[Table]:
     """Every table of the risk section, in the order it shows them (those without data left out)."""
     at = risk_threshold_key(src)
@@ -394,7 +380,6 @@ def risk_tables(src: page.Sources) -> list[Table]:
         selection_table(src),
         difference_table(src, at),
         region_table(src),
-        critical_share_table(src),
         situation_table(src),
         training_table(src),
         data_table(src),
