@@ -794,6 +794,10 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
     assert [r[1] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[1] == "spread")[5] == "fail"
+    region = tables[anchors.index("risk-region")]  # per label: MSE, accuracy, skill, its interval
+    reg = metrics["region"]["predictors"][region[0][0]][metrics["primary_label"]]
+    assert region[0][1] == M.fmt_value(reg["test/mse"]) and region[0][3] == f"{reg['skill']:.2f}"
+    assert region[0][4] == f"[{reg['skill_ci']['lo']:.2f}, {reg['skill_ci']['hi']:.2f}]"
     data = tables[anchors.index("risk-data")]  # the paper's row, then every split
     assert [r[0] for r in data] == ["paper (Feth et al.)", "all", "train", "val", "test"]
     test = metrics["critical_share"]["splits"]["test"]

@@ -78,19 +78,16 @@ class Learning(NamedTuple):
     n_secondary: int
 
 
-@dataclass(frozen=True)
-class Region:
-    """The risk metric region: the paper's against the camera's field of view."""
+class Region(NamedTuple):
+    """The risk metric region: the paper's against the camera's field of view (each predictor's
+    skill per label: the report's region table)."""
 
     agreement: Mapping[str, Any]  #: the two labels' class agreement (with its interval)
     critical: tuple[Any, Any]  #: critical share with the paper's / the camera's label
-    nets: list[tuple[str, str, Mapping[str, Any]]]  #: (network, its label, its scores there)
-    sgm: tuple[Any, Any] | None  #: SGM corridor rule's scores on (fov, paper)
     fov_net: str | None
     paper_net: str | None
     skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi]
     skill_verdict: str  #: "higher" / "lower" / "none" (the interval covers zero)
-    labels: tuple[str, str] = (P_LABEL, F_LABEL)
 
 
 @dataclass(frozen=True)
@@ -126,7 +123,7 @@ def _learning(m: Mapping[str, Any], at: str) -> Learning | None:
 
 def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | None:
     reg = m.get("region") if isinstance(m.get("region"), Mapping) else {}
-    labels, preds = reg.get("labels") or {}, reg.get("predictors") or {}
+    labels = reg.get("labels") or {}
     if P_LABEL not in labels or F_LABEL not in labels:
         return None
 
@@ -143,23 +140,15 @@ def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | Non
         ),
         None,
     )
-    paper_net = (sd or {}).get("b") or first(P_LABEL)
     complete = sd and finite(sd.get("estimate")) is not None
     side = interval_side(sd.get("lo"), sd.get("hi")) if complete else NO_INTERVAL
     agreement = reg.get("agreement") or {}
     share = f"critical_fraction_at_{t:g}s"
-    sgm = preds.get("geometric_sgm") or {}
     return Region(
         agreement=agreement.get(f"{P_LABEL}|{F_LABEL}") or agreement,
         critical=(lookup(labels, f"{P_LABEL}.{share}"), lookup(labels, f"{F_LABEL}.{share}")),
-        nets=[
-            (name, lab, e)
-            for name, lab in ((paper_net, P_LABEL), (fov_net, F_LABEL))
-            if name is not None and (e := lookup(preds.get(name), lab)) is not None
-        ],
-        sgm=(sgm.get(F_LABEL), sgm.get(P_LABEL)) if sgm.get(P_LABEL) is not None else None,
         fov_net=fov_net,
-        paper_net=paper_net,
+        paper_net=(sd or {}).get("b") or first(P_LABEL),
         skill_diff=None if side == NO_INTERVAL else _signed(sd),
         skill_verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
     )

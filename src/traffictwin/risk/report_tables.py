@@ -249,7 +249,8 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
 
 
 def region_table(src: page.Sources) -> Table | None:
-    """Each predictor's MSE and accuracy against every region's label (``region.predictors``)."""
+    """Each predictor's MSE, accuracy and skill (1 − MSE / MSE of the training mean, with its
+    interval) against every region's label (``region.predictors``)."""
     region = src.get(RISK_FILE, "region.predictors")
     if not isinstance(region, dict) or not region:
         return None
@@ -258,20 +259,24 @@ def region_table(src: page.Sources) -> Table | None:
     rt = Table(
         "Risk: does the label's region explain the errors? Each predictor scored against the "
         "paper-style region label and against a label restricted to the camera's field of view",
-        ["predictor", *[f"{m} vs {lab}" for lab in labels for m in ("MSE", "accuracy")]],
+        ["predictor", *(c for lab in labels for c in (f"MSE vs {lab}", "accuracy", "skill", CI))],
         anchor="risk-region",
         note=(
             "The paper blames its errors on the metric's region not matching the camera view "
             "(Sec. 4); risk_thw_paper = the paper's region, risk_thw_fov = only what the camera "
-            "sees."
+            "sees. Skill = 1 − MSE / MSE of the training mean of that label."
         ),
     )
-    scores = [(lab, k, f) for lab in labels for k, f in (("test/mse", "g4"), ("accuracy", "pct"))]
     for name in region:
-        pre = f"region.predictors.{name}"
-        rt.rows.append(
-            [Cell(name), *(src.cell(RISK_FILE, f"{pre}.{lab}.{k}", f) for lab, k, f in scores)]
-        )
+        row = [Cell(name)]
+        for lab in labels:
+            pre = f"region.predictors.{name}.{lab}"
+            row += [
+                src.cell(RISK_FILE, f"{pre}.test/mse"),
+                src.cell(RISK_FILE, f"{pre}.accuracy", "pct"),
+            ]
+            row += _with_ci(src, f"{pre}.skill", "f2")
+        rt.rows.append(row)
     return rt
 
 
