@@ -23,6 +23,8 @@ from typing import Any, NamedTuple
 
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, finite, interval_side
 from traffictwin.nested import lookup
+from traffictwin.report.claims import fmt_interval
+from traffictwin.report.model import fmt_value
 from traffictwin.report.prose import render_prose
 from traffictwin.risk.evaluation import LOWER_IS_BETTER, PAPER, SEED_MEAN
 
@@ -30,26 +32,12 @@ TEMPLATES = Path(__file__).parent / "templates"
 P_LABEL, F_LABEL = "risk_thw_paper", "risk_thw_fov"
 
 
-def percent(x: Any) -> str:
-    """A share in [0, 1] as ``"12.34 %"``; "n/a" unless ``x`` is a finite number."""
-    v = finite(x)
-    return "n/a" if v is None else f"{100 * v:.2f} %"
-
-
-def formatted(x: Any, fmt: str = ".4f") -> str:
-    """``x`` in format ``fmt``; "n/a" unless it is a finite number."""
-    v = finite(x)
-    return "n/a" if v is None else format(v, fmt)
-
-
-def with_ci(d: Any, key: str, fmt: str = ".3f", pct: bool = False) -> str:
-    """``value [lo, hi]`` of ``d``'s dotted ``key`` and ``key + "_ci"`` (the value alone without
-    an interval; "n/a" without a value)."""
-    v, ci = lookup(d, key), lookup(d, f"{key}_ci") or {}
-    show = percent if pct else (lambda x: formatted(x, fmt))
-    if finite(v) is None or finite(ci.get("lo")) is None or finite(ci.get("hi")) is None:
-        return show(v)
-    return f"{show(v)} [{show(ci['lo'])}, {show(ci['hi'])}]"
+def with_ci(d: Any, key: str, fmt: str = "f3") -> str:
+    """``value [lo, hi]`` of ``d``'s dotted ``key`` and ``key + "_ci"`` in the report's number
+    format ``fmt`` (:func:`~traffictwin.report.model.fmt_value`; the value alone without an
+    interval, "n/a" for a missing number)."""
+    ci = lookup(d, f"{key}_ci") or {}
+    return fmt_interval(lookup(d, key), ci.get("lo"), ci.get("hi"), lambda x: fmt_value(x, fmt))
 
 
 def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
@@ -194,5 +182,5 @@ def findings(metrics: Mapping[str, Any]) -> str:
     (a claim only where the interval excludes zero), failed runs, seeds, the speed-only
     baseline's critical speed, variants on other labels, the region effect."""
     record = findings_record(metrics)
-    helpers = {"ci": with_ci, "pct": percent, "num": formatted}
-    return render_prose(TEMPLATES, "findings.md.j2", f=record, **helpers).rstrip("\n")
+    text = render_prose(TEMPLATES, "findings.md.j2", f=record, ci=with_ci, num=fmt_value)
+    return text.rstrip("\n")
