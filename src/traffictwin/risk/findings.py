@@ -91,7 +91,6 @@ class RiskFindings:
     collapse_std: Any = None
     collapsed: list[tuple[str, Any]] = field(default_factory=list)  #: (run, prediction std)
     seed_sd: Mapping[str, Any] | None = None  #: the headline's seed sd (None: a single run)
-    shipped: tuple[Any, Any] | None = None  #: (what it was chosen from, its kind)
     learning: Learning | None = None
     critical_speed: float | None = None  #: the speed-only baseline's critical speed (m/s)
     other_label: list[tuple[str, Any]] = field(default_factory=list)  #: (variant, its label)
@@ -152,7 +151,6 @@ def findings_record(m: Mapping[str, Any]) -> RiskFindings:
     collapsed = {v for v, e in models.items() if e.get("collapsed")}
     mse = finite(models[main].get("test/mse"))
     seeds = str(m.get("main_predictor")).endswith(SEED_MEAN) and lookup(m, f"groups.{main}.seed_sd")
-    sel = m.get("selection") or {}
     label = models[main].get("label")
     return RiskFindings(
         main=main,
@@ -163,9 +161,6 @@ def findings_record(m: Mapping[str, Any]) -> RiskFindings:
         collapse_std=m.get("collapse_std"),
         collapsed=[(v, models[v].get("pred_std")) for v in sorted(collapsed)],
         seed_sd=seeds if isinstance(seeds, Mapping) else None,
-        shipped=(sel.get("shipped_from", m["shipped"]), sel.get("shipped_kind", "?"))
-        if isinstance(models.get(m.get("shipped")), Mapping)
-        else None,
         learning=_learning(m, f"at_{t:g}s"),
         critical_speed=finite(lookup(m, f"baselines.speed_only.critical_speed_at_{t:g}s")),
         other_label=[
@@ -178,7 +173,7 @@ def findings_record(m: Mapping[str, Any]) -> RiskFindings:
 
 
 def findings(metrics: Mapping[str, Any]) -> str:
-    """Markdown bullet list: the paper comparison, the shipped predictor, learned model vs rule
+    """Markdown bullet list: the paper comparison, learned model vs rule
     (a claim only where the interval excludes zero), failed runs, seeds, the speed-only
     baseline's critical speed, variants on other labels, the region effect."""
     record = findings_record(metrics)

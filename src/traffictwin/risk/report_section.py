@@ -172,63 +172,38 @@ def claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
     acc = f"accuracy {fmt_interval(acc, acc_ci.get('lo'), acc_ci.get('hi'), pct)}"
     mse = fmt_interval(lookup(row, "test/mse"), mse_ci.get("lo"), mse_ci.get("hi"), "{:.3g}")
     paper = {k: P.RISK[k].value for k in ("accuracy", "test_mse", "wang_kato_accuracy")}
-    checks = [  # (paper number, claim, interval, reference, better side, a printed value, measured)
-        (
-            "accuracy",
-            f"The CNN classifies critical vs uncritical (THW < {t:g} s) with "
-            f"{paper['accuracy']:.2f} % accuracy.",
-            acc_ci,
-            paper["accuracy"] / 100.0,
-            HIGHER,
-            True,
-            acc,
-        ),
-        (
-            "test_mse",
-            f"Testing average error (MSE of the normalised risk) {paper['test_mse']:g}.",
-            mse_ci,
-            paper["test_mse"],
-            LOWER,
-            True,
-            f"test MSE {mse}",
-        ),
-        (
-            "wang_kato_accuracy",
-            f"Its accuracy beats Wang & Kato's {paper['wang_kato_accuracy']:.2f} % "
-            "(another task and data).",
-            acc_ci,
-            paper["wang_kato_accuracy"] / 100.0,
-            HIGHER,
-            False,
-            acc,
-        ),
-    ]
-    out = [
-        ClaimCheck(
-            PAPER,
-            claim,
-            P.RISK[key].source,
-            f"{measured} (network `{name}`, test frames)",
-            claim_verdict([interval_side(ci.get("lo"), ci.get("hi"), ref)], side, value=value),
-        )
-        for key, claim, ci, ref, side, value, measured in checks
-    ]
-    dropped, total = lookup(risk, "n_frames.orb_outliers_dropped"), lookup(risk, "n_frames.total")
-    share = (
-        f"{pct(dropped / total)} of {total:,} pairs dropped"
-        if isinstance(dropped, int) and isinstance(total, int) and total > 0
-        else "n/a"
+
+    who = f"network `{name}`, test frames"
+
+    def check(key: str, claim: str, ci: Mapping, ref: float, side: str, text: str) -> ClaimCheck:
+        """``ci`` against the paper's ``ref`` (a printed number, but for Wang & Kato's lead)."""
+        sides = [interval_side(ci.get("lo"), ci.get("hi"), ref)]
+        verdict = claim_verdict(sides, side, value=key != "wang_kato_accuracy")
+        return ClaimCheck(PAPER, claim, P.RISK[key].source, f"{text} ({who})", verdict)
+
+    acc_claim = (
+        f"The CNN classifies critical vs uncritical (THW < {t:g} s) with "
+        f"{paper['accuracy']:.2f} % accuracy."
     )
-    out.append(
+    mse_claim = f"Testing average error (MSE of the normalised risk) {paper['test_mse']:g}."
+    wk = paper["wang_kato_accuracy"]
+    wk_claim = f"Its accuracy beats Wang & Kato's {wk:.2f} % (another task and data)."
+    dropped, total = lookup(risk, "n_frames.orb_outliers_dropped"), lookup(risk, "n_frames.total")
+    ok = isinstance(dropped, int) and isinstance(total, int) and total > 0
+    share = f"{pct(dropped / total)} of {total:,} pairs dropped" if ok else "n/a"
+    orb = P.RISK["orb_outlier_pct"]
+    return [
+        check("accuracy", acc_claim, acc_ci, paper["accuracy"] / 100.0, HIGHER, acc),
+        check("test_mse", mse_claim, mse_ci, paper["test_mse"], LOWER, f"test MSE {mse}"),
+        check("wang_kato_accuracy", wk_claim, acc_ci, wk / 100.0, HIGHER, acc),
         ClaimCheck(
             PAPER,
-            f"The ORB check drops about {P.RISK['orb_outlier_pct'].value:g} % of the stereo pairs.",
-            P.RISK["orb_outlier_pct"].source,
+            f"The ORB check drops about {orb.value:g} % of the stereo pairs.",
+            orb.source,
             f"{share} (a count without an interval)",
             claim_verdict([NO_INTERVAL], LOWER),
-        )
-    )
-    return out
+        ),
+    ]
 
 
 def provider() -> page.SectionProvider:

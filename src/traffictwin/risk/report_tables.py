@@ -126,9 +126,7 @@ def results_table(src: page.Sources, at: str) -> Table:
             "driving sequence). Seed mean: the metric averaged over the variant's seeds inside each "
             "resample. Baselines are scored on the headline's label; the GT-disparity rule sees "
             "perfect stereo (a reference, not an oracle: its straight band is not the label's curved "
-            "corridor). Decision thresholds and corridors were chosen on the validation split. A "
-            "collapsed model gives one output for every frame and is a failed run. Whether one "
-            "predictor beats another: the table of paired differences."
+            "corridor). Whether one predictor beats another: the table of paired differences."
         ),
     )
     wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
@@ -195,9 +193,10 @@ def selection_table(src: page.Sources) -> Table | None:
             f"half-width of the rule on SGM disparity: {sel('rules.geometric_sgm.half_width')} m, on "
             f"GT disparity: {sel('rules.geometric_gt.half_width')} m (the highest validation ROC-AUC "
             "among evaluation.risk.geometric.half_widths). Each predictor's decision cut maximises "
-            "its validation balanced accuracy. Shipped: the highest validation ROC-AUC among the "
-            "network runs, the hybrid runs and the SGM rule (ties: the simpler)."
-            + (f" Not so here: {fallback}." if fallback else "")
+            "its validation balanced accuracy. Shipped (what `traffictwin risk` and the registered "
+            "risk model serve; its test scores: the results table's `shipped` row): the highest "
+            "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: "
+            "the simpler)." + (f" Not so here: {fallback}." if fallback else "")
         ),
     )
     for name in _first(preds, shipped):
