@@ -693,7 +693,7 @@ def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     assert "`reports/metrics/fusion.json` is missing" in page_md(rep_dir, "fusion")
     assert "metrics/risk.json#models.v.at_1.5s.accuracy" in rep.missing  # named, shown as n/a
     assert "| v | n/a | main | n/a | 0.02 | n/a | n/a | n/a |" in md  # MSE, MAE, THW error, accuracy
-    assert "| baseline: train mean | n/a |  | n/a | 0.03 | n/a |" in md
+    assert "| train_mean | n/a | baseline | n/a | 0.03 | n/a |" in md
 
 
 def test_bad_metrics_file_named(tmp_path: Path) -> None:

@@ -679,6 +679,23 @@ def test_findings_of_a_hand_made_metrics_dict() -> None:
     assert "every frame above 4.2 m/s critical" in text
     assert "dead (std 0)" in text and "net beats dead" not in text  # collapsed: never interpreted
     assert findings({"models": {}}) == "- No risk network was evaluated."
+    # the region: the camera-region network's paired skill difference to the paper-region one
+    m["models"]["fov"] = {"label": "risk_thw_fov", "at_1.5s": at}
+    fov, paper = "risk_thw_fov", "risk_thw_paper"
+    m["region"] = {
+        "labels": {
+            paper: {"critical_fraction_at_1.5s": 0.8},
+            fov: {"critical_fraction_at_1.5s": 0.7},
+        },
+        "agreement": {f"{paper}|{fov}": {"class_agreement_at_1.5s": 0.9}},
+        "skill_differences": {
+            "fov|net": {"a": "fov", "b": "net", "label_a": fov, "label_b": paper, "estimate": -0.05}
+            | {"lo": -0.08, "hi": -0.02}
+        },
+    }
+    text = findings(m)
+    assert "same class on 90.00 % of the test frames (critical share 80.00 % with the" in text
+    assert "fov − net skill −0.050 [−0.080, −0.020] (paired): the camera-region label is" in text
 
 
 def test_stage_config_is_checked() -> None:
@@ -762,7 +779,7 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     head = f"headline{SEED_MEAN}"
     assert [r[0] for r in ci[:2]] == ["paper (Feth et al.)", "Wang & Kato [20]"]
     assert ci[0][4:6] == ["0.0147", "—"] and ci[1][8] == "70.77 %"
-    assert ci[2][0] == "headline (seed mean of 2)" and ci[2][2] == "seed mean"
+    assert ci[2][0] == head and ci[2][2] == "seed mean of 2"
     g = metrics["groups"]["headline"]
     assert ci[2][4] == M.fmt_value(g["test/mse"])
     lo, hi = g["test/mse_ci"]["lo"], g["test/mse_ci"]["hi"]
@@ -773,8 +790,8 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     ]
     dead = next(r for r in ci if r[0] == "headline_s2")
     assert dead[2] == "collapsed: failed run"
-    gt = next(r for r in ci if r[0].startswith("reference: corridor rule on GT"))
-    assert gt[2] == "GT disparity"
+    gt = next(r for r in ci if r[0] == "geometric_gt")
+    assert gt[2] == "reference: GT disparity"
     diff = tables[anchors.index("risk-diff")]
     row = next(r for r in diff if r[:2] == [head, "geometric_gt (GT disparity)"])
     d = metrics["differences"][f"{head}|geometric_gt"]["at_1.5s"]["roc_auc"]

@@ -51,12 +51,6 @@ def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
     return (side == LOWER) == (metric.rsplit(".", 1)[-1] in LOWER_IS_BETTER)
 
 
-def _signed(d: Mapping[str, Any]) -> str:
-    """A paired difference as ``"+0.050 [+0.020, +0.080]"`` (minus signs as −)."""
-    e, lo, hi = (f"{d[k]:+.3f}".replace("-", "−") for k in ("estimate", "lo", "hi"))
-    return f"{e} [{lo}, {hi}]"
-
-
 class Learning(NamedTuple):
     """The primary comparison: the learned model against the SGM corridor rule."""
 
@@ -74,7 +68,7 @@ class Region(NamedTuple):
     critical: tuple[Any, Any]  #: critical share with the paper's / the camera's label
     fov_net: str | None
     paper_net: str | None
-    skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi]
+    skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi] (minus signs as −)
     skill_verdict: str  #: "higher" / "lower" / "none" (the interval covers zero)
 
 
@@ -129,6 +123,7 @@ def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | Non
     )
     complete = sd and finite(sd.get("estimate")) is not None
     side = interval_side(sd.get("lo"), sd.get("hi")) if complete else NO_INTERVAL
+    signed = fmt_interval(*((sd or {}).get(k) for k in ("estimate", "lo", "hi")), "{:+.3f}")
     agreement = reg.get("agreement") or {}
     share = f"critical_fraction_at_{t:g}s"
     return Region(
@@ -136,7 +131,7 @@ def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | Non
         critical=(lookup(labels, f"{P_LABEL}.{share}"), lookup(labels, f"{F_LABEL}.{share}")),
         fov_net=fov_net,
         paper_net=(sd or {}).get("b") or first(P_LABEL),
-        skill_diff=None if side == NO_INTERVAL else _signed(sd),
+        skill_diff=None if side == NO_INTERVAL else signed.replace("-", "−"),
         skill_verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
     )
 

@@ -15,21 +15,12 @@ from __future__ import annotations
 from traffictwin.report import model as page
 from traffictwin.report import paper_numbers as P
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
-from traffictwin.risk.evaluation import GT_INPUT
+from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
 
 RISK_FILE = "risk.json"
 SELECTION_FILE = "risk_selection.json"
-BASELINE_LABELS = {
-    "train_mean": "baseline: train mean",
-    "train_median": "baseline: train median",
-    "speed_only": "baseline: speed only (isotonic fit on train)",
-    "geometric": "baseline: corridor rule (SGM distance / speed)",
-    "geometric_sgm": "baseline: corridor rule (SGM distance / speed, corridor chosen on validation)",
-    "geometric_learned": "corridor rule on the learned stereo network's disparity (corridor chosen on validation)",
-    "geometric_gt": "reference: corridor rule on GT disparity (corridor chosen on validation)",
-}
 DASH = "—"  # the paper reports no such number
 CI = "95 % CI"
 
@@ -75,7 +66,7 @@ def _predictors(src: page.Sources) -> list[tuple[str, str, str]]:
     get = lambda k: src.get(RISK_FILE, k) or {}  # noqa: E731
     main = src.get(RISK_FILE, "main_variant")
     rows = [
-        (f"groups.{g}", f"{g} (seed mean of {get(f'groups.{g}.n_seeds') or NA})", "seed mean")
+        (f"groups.{g}", g + SEED_MEAN, f"seed mean of {get(f'groups.{g}.n_seeds') or NA}")
         for g in _first(get("groups"), main)
         if isinstance(src.get(RISK_FILE, f"groups.{g}.test/mse"), (int, float))
     ]
@@ -84,10 +75,8 @@ def _predictors(src: page.Sources) -> list[tuple[str, str, str]]:
         rows.append(
             (f"models.{v}", v, "collapsed: failed run" if failed else "main" if v == main else "")
         )
-    gt = {b: "GT disparity" for b in GT_INPUT}
-    return rows + [
-        (f"baselines.{b}", BASELINE_LABELS.get(b, b), gt.get(b, "")) for b in get("baselines")
-    ]
+    gt = {b: "reference: GT disparity" for b in GT_INPUT}
+    return rows + [(f"baselines.{b}", b, gt.get(b, "baseline")) for b in get("baselines")]
 
 
 def results_table(src: page.Sources, at: str) -> Table:
@@ -124,9 +113,12 @@ def results_table(src: page.Sources, at: str) -> Table:
             "related work's best. Intervals: "
             f"{src.get(RISK_FILE, 'bootstrap.n_boot')} resamples of the test sequences (cluster = "
             "driving sequence). Seed mean: the metric averaged over the variant's seeds inside each "
-            "resample. Baselines are scored on the headline's label; the GT-disparity rule sees "
-            "perfect stereo (a reference, not an oracle: its straight band is not the label's curved "
-            "corridor). Whether one predictor beats another: the table of paired differences."
+            "resample. Baselines, scored on the headline's label: train_mean / train_median "
+            "(constants), speed_only (isotonic fit on train), geometric_sgm / geometric_learned / "
+            "geometric_gt (the corridor rule on SGM, learned-stereo or GT disparity, corridor chosen "
+            "on validation; on GT disparity it sees perfect stereo: a reference, not an oracle, its "
+            "straight band is not the label's curved corridor). Whether one predictor beats "
+            "another: the table of paired differences."
         ),
     )
     wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
