@@ -209,13 +209,11 @@ def plot_roc(
     path: str | Path,
     title: str = "",
     auc: Mapping[str, float | None] | None = None,
-    oracles: Sequence[str] = GT_INPUT,
-    frames: str = "the test split",
 ) -> None:
     """ROC curves (false vs true positive rate, dimensionless) of each predictor's risk as a score
-    for ``positive`` (critical) frames; ``oracles`` (GT-disparity inputs) dashed, the chance diagonal dotted; legend
-    entries carry ``auc`` when given. Without critical or without uncritical frames (e.g. a small
-    test split) the ROC is undefined: the axes say so (naming ``frames``) and draw no curve."""
+    for ``positive`` (critical) test frames; the GT-disparity rule dashed, the chance diagonal
+    dotted; legend entries carry ``auc`` when given. Without critical or without uncritical frames
+    (e.g. a small test split) the ROC is undefined: the axes say so and draw no curve."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
     pos = np.asarray(positive, bool).ravel()
     n_pos, n_neg = int(pos.sum()), int((~pos).sum())
@@ -223,19 +221,20 @@ def plot_roc(
         if not scores:
             why = "no predictor to draw"
         elif pos.size == 0:
-            why = f"no frames in {frames}: ROC undefined"
+            why = "no frames in the test split: ROC undefined"
         else:
             missing, other = (
                 ("critical", "uncritical") if n_pos == 0 else ("uncritical", "critical")
             )
-            why = f"no {missing} frames in {frames}\n(all {pos.size} are {other}): ROC undefined"
+            why = f"no {missing} frames in the test split\n(all {pos.size} are {other})"
+            why += ": ROC undefined"
         _say_empty(ax, why)
     else:
         for name, score in scores.items():
             fpr, tpr = roc_points(pos, score)
             a = (auc or {}).get(name)
             label = f"{name} (AUC {a:.3f})" if a is not None else name
-            ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)
+            ax.plot(fpr, tpr, ls="--" if name in GT_INPUT else "-", lw=1.4, label=label)
         ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
         ax.legend(fontsize=8, loc="lower right")
     ax.set_xlim(0, 1)

@@ -1,13 +1,12 @@
 """The risk section's tables: every predictor on the same test frames beside the paper, the
 confusion matrix, the choices made on validation, the paired differences, the region check, the
-critical shares, the situations, training and data. Each number is shown in one table.
+situations, training, and the data per split. Each number is shown in one table.
 
 Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
 ``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
 ``test/mse``, ... and ``at_<t>s`` {accuracy, ..., confusion}, their 95 % sequence-bootstrap
 intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region``,
-``critical_share``, ``situations``, ``n_frames``; ``risk_selection.json`` (stage select_risk) and
-``orb.json`` (stage orb_filter).
+``critical_share``, ``situations``, ``n_frames``; and ``risk_selection.json`` (stage select_risk).
 """
 
 from __future__ import annotations
