@@ -190,15 +190,15 @@ def selection_table(src: page.Sources) -> Table | None:
             "the simpler)." + (f" Not so here: {fallback}." if fallback else "")
         ),
     )
+    decisions = [
+        (f"decision.{t:g}.{k}", f)
+        for t in ts
+        for k, f in (("cut", "g4"), ("balanced_accuracy", "pct"))
+    ]
     for name in _first(preds, shipped):
         pre = f"predictors.{name}"
-        keys = [("roc_auc", "g4")]
-        keys += [
-            (f"decision.{t:g}.{k}", f)
-            for t in ts
-            for k, f in (("cut", "g4"), ("balanced_accuracy", "pct"))
-        ]
         row = [Cell(name), *(Cell(str(sel(f"{pre}.{k}") or "")) for k in ("kind", "group"))]
+        keys = [("roc_auc", "g4"), *decisions]
         row += [value_cell(src, f"{pre}.{k}", f, SELECTION_FILE) for k, f in keys]
         tab.rows.append(row + [Cell("shipped" if name == shipped else "")])
     return tab
