@@ -692,7 +692,9 @@ def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     md = all_md(rep_dir)
     assert "`reports/metrics/fusion.json` is missing" in page_md(rep_dir, "fusion")
     assert "metrics/risk.json#models.v.at_1.5s.accuracy" in rep.missing  # named, shown as n/a
-    assert "| v | n/a | main | n/a | 0.02 | n/a | n/a | n/a |" in md  # MSE, MAE, THW error, accuracy
+    assert (
+        "| v | n/a | main | n/a | 0.02 | n/a | n/a | n/a |" in md
+    )  # MSE, MAE, THW error, accuracy
     assert "| train_mean | n/a | baseline | n/a | 0.03 | n/a |" in md
 
 
