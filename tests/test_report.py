@@ -445,12 +445,16 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     # paper numbers and ours side by side, from their sources
     risk = json.loads((reports / "metrics" / "risk.json").read_text())
     main = risk["models"]["rgbd"]
-    mse = M.fmt_value(main["test/mse"])
-    assert f"| MSE (normalised risk) | 0.0147 | {mse} | " in md
     acc = main["at_1.5s"]["accuracy"]
     assert acc == 0.75  # hand count: y > 1/30 at 2, 3, 5, 7; p > 1/30 at 1, 2, 3, 5 -> 6 of 8 agree
-    assert "| accuracy | 72.87 % | 75.00 % |" in md
-    assert "| precision (critical) | 77.86 % | 75.00 % |" in md  # paper: 67052 / (67052 + 19069)
+    # the results table: the paper's row, then every predictor (no intervals in this risk.json);
+    # columns: MSE, MAE, THW error, accuracy, balanced accuracy, precision, recall, ...
+    results = next(t for t in md_tables(md) if t[0][0] == "paper (Feth et al.)")
+    paper, rgbd = results[0], next(r for r in results if r[0] == "rgbd")
+    assert paper[4] == "0.0147" and paper[7] == "72.87 %"
+    assert paper[9] == "77.86 %"  # precision of 'critical': 67052 / (67052 + 19069)
+    assert rgbd[1:5] == ["risk_thw_paper", "main", "n/a", M.fmt_value(main["test/mse"])]
+    assert rgbd[7] == "75.00 %" and rgbd[9] == "75.00 %"  # accuracy; precision: 3 of tp + fp = 4
     cm = main["at_1.5s"]["confusion"]
     assert (cm["tp"], cm["fp"], cm["fn"], cm["tn"]) == (3, 1, 1, 3)
     assert (
@@ -461,15 +465,13 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
         "| predicted uncritical | 9,737 | 9.17 % | 10,312 | 9.71 % | 1 | 12.50 % | 3 | 37.50 % |"
         in md
     )
-    assert "| accuracy, Wang & Kato [20] | 70.77 % |" in md
+    assert results[1][:8] == ["Wang & Kato [20]", "—", "paper", "—", "—", "—", "—", "70.77 %"]
+    # the data per split: frames, sequences (none without critical_share), dropped, kept
+    assert "| paper (Feth et al.) | 110,152 | — | 3,982 | 106,170 |" in md
+    assert "| all | 100 | n/a | 7 |  |" in md and "| test | n/a | n/a |  | 21 |" in md
     assert (
-        "| stereo frames | 110,152 | 100 | Sec. 3.3 |" in md
-        and "| dropped by the stereo-pair check | 3,982 | 7 |" in md
-    )
-    assert "| share of pairs dropped by ORB | 3.50 % | 4.20 % |" in md
-    assert (
-        "| rgbd | 0.01 | 75.00 % | 0.005 | 87.50 % |" in md
-    )  # region table: the primary (paper-region) label first
+        "| rgbd | 0.01 | 75.00 % | n/a | n/a | 0.005 | 87.50 % | n/a | n/a |" in md
+    )  # region table: the primary (paper-region) label first; no skill in this risk.json
     # derived ranking: our numbers say network < baseline for B, paper too
     anchors = [t.anchor for s in rep.sections for t in s.tables]
     kld = md_tables(md)[anchors.index("fusion-kld")]  # the headline: KLD(b)
@@ -530,9 +532,9 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
         "| val/loss | 0.25 | 0.5 |" in md and "| best_epoch |  | 2 |" in md
     )  # training table, configs side by side
     assert (
-        "| variant | inputs | label | parameters |" in md
-        and "| rgbd | rgb+disp_sgm | risk_thw_paper | 250,000 | 60 |" in md
-    )
+        "| variant | inputs | parameters |" in md
+        and "| rgbd | rgb+disp_sgm | 250,000 | 60 | 12 | 10 | 0.02 |" in md
+    )  # the variants' labels: the results table
     assert (
         "reports/metrics/extra.json" in md and "| a.b/c | 1.5 |" in md and "| note | text |" in md
     )
@@ -664,8 +666,10 @@ def test_renderer_robust_to_missing_files(tmp_path: Path) -> None:
     md = all_md(rep_dir)
     assert "`reports/metrics/fusion.json` is missing" in page_md(rep_dir, "fusion")
     assert "metrics/risk.json#models.v.at_1.5s.accuracy" in rep.missing  # named, shown as n/a
-    assert "| MSE (normalised risk) | 0.0147 | 0.02 | 0.03 | Sec. 4 |" in md
-    assert "| accuracy | 72.87 % | n/a | n/a |" in md
+    assert (
+        "| v | n/a | main | n/a | 0.02 | n/a | n/a | n/a |" in md
+    )  # MSE, MAE, THW error, accuracy
+    assert "| train_mean | n/a | baseline | n/a | 0.03 | n/a |" in md
 
 
 def test_bad_metrics_file_named(tmp_path: Path) -> None:

@@ -232,7 +232,8 @@ def test_evaluate_suite_on_synthetic_data(tmp_path: Path) -> None:
     assert gt["risk_thw_fov"]["test/mse"] <= geo["risk_thw_fov"]["test/mse"] + 1e-4
     assert {"pred_speed_only", "pred_geometric_sgm", "pred_geometric_gt"} <= set(pred.columns)
     text = findings(metrics)
-    assert "Paper comparison" in text and f"{metrics['models']['rgbd']['test/mse']:.5f}" in text
+    ratio = metrics["models"]["rgbd"]["test/mse"] / PAPER["test/mse"]
+    assert f"**Paper comparison (rgbd, label risk_thw_paper):** test MSE {ratio:.2f}×" in text
     assert "camera_fov" in text
     reg = metrics["region"]["predictors"]
     for per in reg.values():  # skill = 1 - MSE / MSE(train mean) of the same label
@@ -279,14 +280,15 @@ def test_findings_from_hand_metrics_and_missing_parts() -> None:
         },
     }
     text = findings(metrics)
-    assert "0.01000 vs the paper's 0.01470" in text
-    assert "80.00 %" in text and "72.87 %" in text and "70.77 %" in text
-    # metrics without intervals or differences (an older risk.json): values only, no claims
-    assert "beats" not in text
+    # 0.01 / 0.0147 = 0.68: the test MSE against the paper's; the scores: the results table
+    assert "test MSE 0.68× the paper's (below it)" in text
+    assert "80.00 %" not in text and "72.87 %" not in text
+    # metrics without intervals or differences (an older risk.json): no claims
+    assert "beats" not in text and "Learning vs geometry" not in text
     assert findings({"models": {}}) == "- No risk network was evaluated."
-    # None (undefined metric) is shown as n/a, not crashing
-    metrics["models"]["rgbd"]["at_1.5s"] = {**at, "roc_auc": None}
-    assert "ROC-AUC n/a" in findings(metrics)
+    # None (undefined metric) leaves its part out, not crashing
+    metrics["models"]["rgbd"]["test/mse"] = None
+    assert "Paper comparison" not in findings(metrics)
 
 
 def test_evaluate_reports_thresholds() -> None:

@@ -36,8 +36,7 @@ from traffictwin.risk.evaluation import (
     spread_stat,
     variant_groups,
 )
-from traffictwin.risk.findings import claim, findings
-from traffictwin.risk.findings_values import beats
+from traffictwin.risk.findings import beats, findings
 from traffictwin.risk.model_io import load_risk_model, save_risk_model
 from traffictwin.risk.predictor import RiskPredictor
 from traffictwin.risk.training import RiskSource
@@ -271,19 +270,16 @@ def test_claims_only_when_the_interval_excludes_zero() -> None:
         "at_1.5s": {"roc_auc": {"estimate": 0.05, "lo": 0.02, "hi": 0.08}},
         "test/mse": {"estimate": 0.002, "lo": -0.001, "hi": 0.004},
     }
-    assert (
-        claim(d, "at_1.5s.roc_auc", "ROC-AUC", "X", "Y")
-        == "X beats Y in ROC-AUC: +0.050 [+0.020, +0.080]"
-    )
-    assert claim(d, "test/mse", "MSE", "X", "Y") == (
-        "X vs Y: no significant difference in MSE (X − Y = +0.002 [−0.001, +0.004])"
-    )
+    assert beats(d, "at_1.5s.roc_auc") is True  # higher ROC-AUC: a better
+    assert beats(d, "test/mse") is None  # the interval covers 0: no claim
     d["test/mse"] = {"estimate": 0.002, "lo": 0.001, "hi": 0.004}  # higher MSE: worse
-    assert claim(d, "test/mse", "MSE", "X", "Y").startswith("X is worse than Y in MSE")
-    assert beats(d, "test/mse") is False and beats(d, "at_1.5s.roc_auc") is True
-    assert beats({}, "test/mse") is None and "no interval" in claim(
-        None, "test/mse", "MSE", "X", "Y"
-    )
+    assert beats(d, "test/mse") is False
+    d["test/mse"] = {"estimate": -0.002, "lo": -0.004, "hi": -0.001}  # lower MSE: better
+    assert beats(d, "test/mse") is True
+    d["at_1.5s"]["roc_auc"] = {"estimate": 0.0, "lo": 0.0, "hi": 0.08}  # touching 0: no claim
+    assert beats(d, "at_1.5s.roc_auc") is None
+    assert beats({}, "test/mse") is None and beats(None, "test/mse") is None
+    assert beats({"test/mse": {"estimate": 1.0, "lo": None, "hi": 2.0}}, "test/mse") is None
 
 
 def test_roc_points_area_is_the_auc_of_the_metrics_and_of_sklearn() -> None:
@@ -601,14 +597,16 @@ def test_findings_never_interpret_a_collapsed_run(suite) -> None:
     assert "**Failed runs" in text and "headline_s2 (std" in text
     # no sentence claims anything about the collapsed run
     for line in text.splitlines():
-        if "headline_s2" in line and "Failed runs" not in line and "ROC-AUC per run" not in line:
+        if "headline_s2" in line and "Failed runs" not in line:
             assert "beats" not in line.split("headline_s2")[1][:80]
     assert "oracle" not in text
     assert "**Targets" not in text  # the acceptance table shows them
     # the variants' and baselines' paired differences: the report's tables, not the findings
     assert "Training objectives" not in text and "Baselines on the same frames" not in text
     assert "paper: risk_thw_paper" in text  # another label, named, not compared with the headline
-    assert "by situation type" in text and "per region, train / val / test" not in text  # a table
+    # the situations, the data and every predictor's scores: the report's tables
+    assert "by situation type" not in text and "per region, train / val / test" not in text
+    assert "**Data:**" not in text and "test frames, label" not in text
     # every claim of a difference quotes its interval; "beats" only where it excludes zero
     for d in metrics["differences"].values():
         iv = d["at_1.5s"]["roc_auc"]
@@ -674,12 +672,30 @@ def test_findings_of_a_hand_made_metrics_dict() -> None:
         },
     }
     text = findings(m)
-    assert "accuracy at THW 1.5 s 80.00 % [70.00 %, 90.00 %] vs the paper's 72.87 %" in text
-    assert "ROC-AUC 0.900 [0.850, 0.950]" in text
+    # 0.01 / 0.0147 = 0.680: the test MSE against the paper's (its scores: the results table)
+    assert "**Paper comparison (net, label L):** test MSE 0.68× the paper's (below it)" in text
+    assert "80.00 %" not in text and "0.900" not in text
     assert "beats speed_only" not in text  # the report's table of paired differences shows it
     assert "every frame above 4.2 m/s critical" in text
     assert "dead (std 0)" in text and "net beats dead" not in text  # collapsed: never interpreted
     assert findings({"models": {}}) == "- No risk network was evaluated."
+    # the region: the camera-region network's paired skill difference to the paper-region one
+    m["models"]["fov"] = {"label": "risk_thw_fov", "at_1.5s": at}
+    fov, paper = "risk_thw_fov", "risk_thw_paper"
+    m["region"] = {
+        "labels": {
+            paper: {"critical_fraction_at_1.5s": 0.8},
+            fov: {"critical_fraction_at_1.5s": 0.7},
+        },
+        "agreement": {f"{paper}|{fov}": {"class_agreement_at_1.5s": 0.9}},
+        "skill_differences": {
+            "fov|net": {"a": "fov", "b": "net", "label_a": fov, "label_b": paper, "estimate": -0.05}
+            | {"lo": -0.08, "hi": -0.02}
+        },
+    }
+    text = findings(m)
+    assert "same class on 90.00 % of the test frames (critical share 80.00 % with the" in text
+    assert "fov − net skill −0.050 [−0.080, −0.020] (paired): the camera-region label is" in text
 
 
 def test_stage_config_is_checked() -> None:
@@ -759,17 +775,23 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     md = all_md(rep)  # the index and every page, in the order of out.sections
     anchors = [t.anchor for s in out.sections for t in s.tables]
     tables = md_tables(md)
-    ci = tables[anchors.index("risk-ci")]
+    ci = tables[anchors.index("risk-results")]  # the paper's rows, then every predictor
     head = f"headline{SEED_MEAN}"
-    assert ci[0][0] == "headline (seed mean of 2)" and ci[0][2] == "seed mean"
+    assert [r[0] for r in ci[:2]] == ["paper (Feth et al.)", "Wang & Kato [20]"]
+    assert ci[0][4:6] == ["0.0147", "—"] and ci[1][8] == "70.77 %"
+    assert ci[2][0] == head and ci[2][2] == "seed mean of 2"
     g = metrics["groups"]["headline"]
-    assert ci[0][4] == M.fmt_value(g["test/mse"])
+    assert ci[2][4] == M.fmt_value(g["test/mse"])
     lo, hi = g["test/mse_ci"]["lo"], g["test/mse_ci"]["hi"]
-    assert ci[0][5] == f"[{M.fmt_value(lo)}, {M.fmt_value(hi)}]"
+    assert ci[2][5] == f"[{M.fmt_value(lo)}, {M.fmt_value(hi)}]"
+    acc = g["at_1.5s"]["accuracy_ci"]
+    assert ci[2][8:10] == [M.fmt_value(g["at_1.5s"]["accuracy"], "pct")] + [
+        f"[{M.fmt_value(acc['lo'], 'pct')}, {M.fmt_value(acc['hi'], 'pct')}]"
+    ]
     dead = next(r for r in ci if r[0] == "headline_s2")
-    assert dead[2] == "collapsed: failed run" and dead[-1] == "failed run"
-    gt = next(r for r in ci if r[0].startswith("reference: corridor rule on GT"))
-    assert gt[2] == "GT disparity"
+    assert dead[2] == "collapsed: failed run"
+    gt = next(r for r in ci if r[0] == "geometric_gt")
+    assert gt[2] == "reference: GT disparity"
     diff = tables[anchors.index("risk-diff")]
     row = next(r for r in diff if r[:2] == [head, "geometric_gt (GT disparity)"])
     d = metrics["differences"][f"{head}|geometric_gt"]["at_1.5s"]["roc_auc"]
@@ -789,12 +811,28 @@ def test_report_section_shows_intervals_differences_and_targets(suite, tmp_path:
     targets = [r for r in tables[anchors.index("acceptance")] if r[0] == "risk"]
     assert [r[1] for r in targets] == list(metrics["targets"])
     assert next(r for r in targets if r[1] == "spread")[5] == "fail"
-    shares = tables[anchors.index("risk-critical-share")]
-    assert [r[0] for r in shares] == ["train", "val", "test", "all"]
-    sit = tables[anchors.index("risk-situations")]
-    assert [r[0] for r in sit] == sorted(SITUATIONS)
+    region = tables[anchors.index("risk-region")]  # per label: MSE, accuracy, skill, its interval
+    reg = metrics["region"]["predictors"][region[0][0]][metrics["primary_label"]]
+    assert region[0][1] == M.fmt_value(reg["test/mse"]) and region[0][3] == f"{reg['skill']:.2f}"
+    assert region[0][4] == f"[{reg['skill_ci']['lo']:.2f}, {reg['skill_ci']['hi']:.2f}]"
+    data = tables[anchors.index("risk-data")]  # the paper's row, then every split
+    assert [r[0] for r in data] == ["paper (Feth et al.)", "all", "train", "val", "test"]
+    test = metrics["critical_share"]["splits"]["test"]
+    assert data[-1][1:3] == [str(test["n_frames"]), str(test["n_sequences"])]
+    assert data[-1][4] == M.fmt_value(metrics["n_frames"]["test"], "int")
+    assert data[-1][5] == M.fmt_value(test["risk_thw_corridor"], "pct")
+    sit = tables[anchors.index("risk-situations")]  # one row per situation and predictor
+    assert list(dict.fromkeys(r[0] for r in sit)) == sorted(SITUATIONS)
+    s0 = sorted(SITUATIONS)[0]
+    rows = [r for r in sit if r[0] == s0]
+    e = metrics["situations"][s0]
+    assert [r[4] for r in rows] == sorted(e["predictors"], key=lambda p: (p != "shipped", p))
+    assert rows[0][1:3] == [str(e["n_sequences"]), str(e["n_frames"])]
+    assert all(r[1:4] == ["", "", ""] for r in rows[1:])  # the counts once per situation
+    p0 = e["predictors"][rows[0][4]]
+    assert rows[0][5] == M.fmt_value(p0["recall"], "pct")
     res = (rep / "results_table.md").read_text()  # the headline tables go to docs/results.md
-    assert "Risk: every predictor on the same test frames" in res
+    assert "Risk: test results, paper vs every predictor on the same test frames" in res
     assert "Every target of this run against its acceptance threshold" in res
     assert "(../figures/risk_roc.png)" in page_md(rep, "risk")
 

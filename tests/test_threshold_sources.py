@@ -25,7 +25,7 @@ from traffictwin.risk.dataset import frame_table, make_shard, summarise_frames
 from traffictwin.risk.dave2 import Dave2Config, risk_loss
 from traffictwin.risk.evaluation import evaluate
 from traffictwin.risk.model_config import RiskModelConfig
-from traffictwin.risk.report_tables import _results_table, risk_threshold_key
+from traffictwin.risk.report_tables import results_table, risk_threshold_key
 from traffictwin.twin.config import twin_config
 from traffictwin.twin.report_section import critical_thw_text, prose
 
@@ -110,7 +110,7 @@ def test_report_text_follows_the_threshold(
     src = _sources(tmp_path, thresholds)
     note = prose("warnings", crit=critical_thw_text(src))  # the twin's warning-table note
     assert f"below {crit};" in note and f"below {crit} + twin.reaction_s" in note
-    title = _results_table(src, risk_threshold_key(src)).title
+    title = results_table(src, risk_threshold_key(src)).title
     assert f"THW < {crit} ⇔ risk > {risk})" in title
 
 

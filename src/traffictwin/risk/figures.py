@@ -96,16 +96,12 @@ def plot_training_curves(
     for ax, obj in zip(axes, order):
         for name in (n for n in runs if obj_of[n] == obj):
             h = runs[name]
-            ax.plot(h["step"], h["train/loss"], color=colour[name], lw=1.2, label=name)
-            if "val/loss" in h.columns:
-                ax.plot(
-                    h["step"],
-                    h["val/loss"],
-                    color=colour[name],
-                    lw=1.2,
-                    ls="--",
-                    label=f"{name} (validation)",
-                )
+            for col, ls, label in (
+                ("train/loss", "-", name),
+                ("val/loss", "--", f"{name} (validation)"),
+            ):
+                if col in h.columns:
+                    ax.plot(h["step"], h[col], color=colour[name], lw=1.2, ls=ls, label=label)
         ax.set_title(
             f"{OBJECTIVE_NAME.get(obj, f'objective {obj}')}\n"
             "training loss (solid), validation loss (dashed)",
@@ -198,16 +194,9 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str = 
     n = max(m.sum(), 1.0)
     fig, ax = plt.subplots(figsize=(4.8, 4))
     ax.imshow(m / n, cmap="Blues", vmin=0, vmax=1)
-    for i in range(2):
-        for j in range(2):
-            ax.text(
-                j,
-                i,
-                f"{int(m[i, j])}\n({100 * m[i, j] / n:.2f} %)",
-                ha="center",
-                va="center",
-                color="white" if m[i, j] / n > 0.5 else "black",
-            )
+    for (i, j), c in np.ndenumerate(m):
+        text = f"{int(c)}\n({100 * c / n:.2f} %)"
+        ax.text(j, i, text, ha="center", va="center", color="white" if c / n > 0.5 else "black")
     ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
     ax.set_title(title or "confusion matrix")
@@ -220,13 +209,11 @@ def plot_roc(
     path: str | Path,
     title: str = "",
     auc: Mapping[str, float | None] | None = None,
-    oracles: Sequence[str] = GT_INPUT,
-    frames: str = "the test split",
 ) -> None:
     """ROC curves (false vs true positive rate, dimensionless) of each predictor's risk as a score
-    for ``positive`` (critical) frames; ``oracles`` (GT-disparity inputs) dashed, the chance diagonal dotted; legend
-    entries carry ``auc`` when given. Without critical or without uncritical frames (e.g. a small
-    test split) the ROC is undefined: the axes say so (naming ``frames``) and draw no curve."""
+    for ``positive`` (critical) test frames; the GT-disparity rule dashed, the chance diagonal
+    dotted; legend entries carry ``auc`` when given. Without critical or without uncritical frames
+    (e.g. a small test split) the ROC is undefined: the axes say so and draw no curve."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
     pos = np.asarray(positive, bool).ravel()
     n_pos, n_neg = int(pos.sum()), int((~pos).sum())
@@ -234,19 +221,20 @@ def plot_roc(
         if not scores:
             why = "no predictor to draw"
         elif pos.size == 0:
-            why = f"no frames in {frames}: ROC undefined"
+            why = "no frames in the test split: ROC undefined"
         else:
             missing, other = (
                 ("critical", "uncritical") if n_pos == 0 else ("uncritical", "critical")
             )
-            why = f"no {missing} frames in {frames}\n(all {pos.size} are {other}): ROC undefined"
+            why = f"no {missing} frames in the test split\n(all {pos.size} are {other})"
+            why += ": ROC undefined"
         _say_empty(ax, why)
     else:
         for name, score in scores.items():
             fpr, tpr = roc_points(pos, score)
             a = (auc or {}).get(name)
             label = f"{name} (AUC {a:.3f})" if a is not None else name
-            ax.plot(fpr, tpr, ls="--" if name in oracles else "-", lw=1.4, label=label)
+            ax.plot(fpr, tpr, ls="--" if name in GT_INPUT else "-", lw=1.4, label=label)
         ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
         ax.legend(fontsize=8, loc="lower right")
     ax.set_xlim(0, 1)
@@ -267,21 +255,6 @@ class EvaluationFigurePaths:
     confusion: str | Path
     examples: str | Path
     roc: str | Path | None = None
-
-
-def _roc_scores(
-    metrics: Mapping[str, Any], pred: pd.DataFrame, main_variant: str, base_cols: Mapping[str, str]
-) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """(scores, test ROC-AUC) at the primary threshold of the headline's runs (each seed, the
-    collapsed ones left out unless all are) and of the baselines in ``base_cols``."""
-    at = f"at_{metrics['thresholds_s'][0]:g}s"
-    group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
-    runs = [v for v in group if not metrics["models"].get(v, {}).get("collapsed")] or [main_variant]
-    scores = {v: pred[f"pred_{v}"].to_numpy() for v in runs}
-    scores.update({b: pred[c].to_numpy() for b, c in base_cols.items()})
-    auc = {v: metrics["models"][v][at].get("roc_auc") for v in runs}
-    auc.update({b: metrics["baselines"][b][at].get("roc_auc") for b in base_cols})
-    return scores, auc
 
 
 def _examples(
@@ -327,46 +300,28 @@ def evaluation_figures(
     ``shipped``: (model key in ``metrics``/``pred``, legend name) of the shipped predictor, drawn
     first in the scatter and the ROC when its predictions are there."""
     t0 = metrics["thresholds_s"][0]
+    at, models = f"at_{t0:g}s", metrics["models"]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
-    at = metrics["models"][main_variant][f"at_{t0:g}s"]
     same_label = main_label == metrics.get("primary_label", main_label)
-    base_cols = (
-        {b: f"pred_{b}" for b in ("speed_only", "geometric_sgm", "geometric_gt")}
-        if same_label
-        else {}
-    )
-    base_cols = {b: c for b, c in base_cols.items() if c in pred.columns}
-    plot_training_curves(
-        histories,
-        paths.curves,
-        paper_test_mse=PAPER["test/mse"],
-        objectives={v: metrics["models"].get(v, {}).get("objective") for v in histories},
-    )
-    ship = (
-        shipped
-        if shipped
-        and same_label
-        and f"pred_{shipped[0]}" in pred
-        and shipped[0] in metrics["models"]
-        else None
-    )
+    bases = [b for b in ("speed_only", "geometric_sgm", "geometric_gt") if f"pred_{b}" in pred]
+    bases = bases if same_label else []
+    ok = shipped and same_label and shipped[0] in models and f"pred_{shipped[0]}" in pred
+    ship = shipped if ok else None
+    first = {ship[1]: pred[f"pred_{ship[0]}"].to_numpy()} if ship else {}
+    objectives = {v: models.get(v, {}).get("objective") for v in histories}
+    plot_training_curves(histories, paths.curves, PAPER["test/mse"], objectives)
+    scatter = {b: pred[f"pred_{b}"].to_numpy() for b in bases if b != "geometric_gt"}
+    title = f"test frames, label {main_label}"
     plot_scatter(
-        y,
-        {
-            **({ship[1]: pred[f"pred_{ship[0]}"].to_numpy()} if ship else {}),
-            main_variant: yhat,
-            **{b: pred[c].to_numpy() for b, c in base_cols.items() if b != "geometric_gt"},
-        },
-        paths.scatter,
-        risk_threshold(t0),
-        title=f"test frames, label {main_label}",
+        y, {**first, main_variant: yhat, **scatter}, paths.scatter, risk_threshold(t0), title
     )
-    if paths.roc is not None:
-        scores, auc = _roc_scores(metrics, pred, main_variant, base_cols)
-        if ship:
-            key, name = ship
-            scores = {name: pred[f"pred_{key}"].to_numpy(), **scores}
-            auc = {name: metrics["models"][key][f"at_{t0:g}s"].get("roc_auc"), **auc}
+    if paths.roc is not None:  # the headline's runs: each seed, the collapsed ones left out
+        group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
+        runs = [v for v in group if not models.get(v, {}).get("collapsed")] or [main_variant]
+        scores = {**first, **{v: pred[f"pred_{v}"].to_numpy() for v in [*runs, *bases]}}
+        auc = {ship[1]: models[ship[0]][at].get("roc_auc")} if ship else {}
+        auc |= {v: models[v][at].get("roc_auc") for v in runs}
+        auc |= {b: metrics["baselines"][b][at].get("roc_auc") for b in bases}
         plot_roc(
             y > risk_threshold(t0),
             scores,
@@ -374,9 +329,7 @@ def evaluation_figures(
             title=f"critical (THW < {t0:g} s) on the test frames, label {main_label}",
             auc=auc,
         )
-    plot_confusion(
-        at["confusion"],
-        paths.confusion,
-        title=f"{main_variant}: THW {t0:g} s (accuracy {at['accuracy']:.1%})",
-    )
+    cm = models[main_variant][at]
+    title = f"{main_variant}: THW {t0:g} s (accuracy {cm['accuracy']:.1%})"
+    plot_confusion(cm["confusion"], paths.confusion, title=title)
     plot_examples(_examples(source, pred, y, yhat, t0), paths.examples)

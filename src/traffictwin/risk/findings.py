@@ -1,60 +1,176 @@
-"""Findings of the risk evaluation as markdown bullets, generated from ``reports/metrics/risk.json``.
+"""Findings of the risk evaluation as markdown bullets, generated from ``reports/metrics/risk.json``
+(layout: :mod:`traffictwin.risk.evaluation`); the report stage calls :func:`findings`.
 
-:func:`findings` is called by the report stage (``traffictwin.risk.report_section``); every
-number comes from the metrics dict (layout: :mod:`traffictwin.risk.evaluation`), nothing is typed
-by hand. Missing entries (a variant or a baseline not evaluated, a metric undefined → ``None``)
-are skipped, never invented.
+What is stated is computed here as a typed record (:class:`RiskFindings`: the metrics entries to
+quote, verdicts, flags, names); the sentences and the formats of their numbers are in
+``templates/findings.md.j2``. Every number comes from the metrics, none is typed by hand; a part
+whose metrics are missing is left out, never invented. What the section's tables show (every
+predictor's scores with their intervals, the paired differences, the situations, the data) is
+not restated.
 
-Rules: a difference between two predictors is *claimed* ("X beats Y: +0.05 [0.02, 0.08]") only
-when its paired sequence-bootstrap interval excludes zero (:func:`traffictwin.stats.excludes_zero`);
-otherwise the text says "no significant difference" with the interval. A collapsed model (one
-output for every frame) is listed as a failed run and never interpreted. The corridor rule on
+Rules: a paired difference is a finding only when its 95 % sequence-bootstrap interval excludes
+zero (:func:`beats`, the interval rule of :mod:`traffictwin.interval_rule`). A collapsed model
+(one output for every frame) is listed as a failed run and never interpreted. The corridor rule on
 ground-truth disparity sees perfect stereo but a straight corridor: a reference, not an oracle.
-
-What the findings state is computed in :mod:`traffictwin.risk.findings_data`
-(:class:`~traffictwin.risk.findings_data.RiskFindings`: the metrics entries to quote, verdicts,
-flags, names); this module renders it: the sentences, and the formats of their numbers, are in
-``templates/findings.md.j2`` (one bullet per block) and ``templates/claim.md.j2`` (one comparison)
-next to it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, finite, interval_side
 from traffictwin.nested import lookup
-from traffictwin.report.prose import render_prose, template_macro
-from traffictwin.risk.evaluation import PAPER
-from traffictwin.risk.findings_data import findings_record
-from traffictwin.risk.findings_values import claim_record, formatted, percent, with_ci
+from traffictwin.report.claims import fmt_interval
+from traffictwin.report.model import fmt_value
+from traffictwin.report.prose import render_prose
+from traffictwin.risk.evaluation import LOWER_IS_BETTER, PAPER, SEED_MEAN
 
 TEMPLATES = Path(__file__).parent / "templates"
-#: the template's helpers: the number formats ``ci(entry, key, fmt, pct)`` (value [lo, hi]),
-#: ``pct(share)``, ``num(x, fmt)`` ("n/a" where a number is missing) and ``get(entry, dotted key)``
-HELPERS = {"ci": with_ci, "pct": percent, "num": formatted, "get": lookup}
-#: the paper's numbers the findings quote, with the critical share and the stereo-pair check's
-#: drop share of its data set (76,789 critical of its frames; 110,152 frames before the check)
-PAPER_QUOTED = {
-    **PAPER,
-    "critical_share": 76789 / PAPER["n_frames"],
-    "dropped_share": 1 - PAPER["n_frames"] / 110152,
-}
+P_LABEL, F_LABEL = "risk_thw_paper", "risk_thw_fov"
 
 
-def claim(diff: Mapping[str, Any] | None, metric: str, name: str, a: str, b: str) -> str:
-    """One comparison sentence for the paired difference ``a − b`` of dotted ``metric``
-    (``at_1.5s.roc_auc`` or ``test/mse``): a claim when its interval excludes zero, else "no significant difference"."""
-    sentence = template_macro(TEMPLATES, "claim.md.j2", "claim")
-    return str(sentence(claim_record(diff, metric, name, a, b)))
+def with_ci(d: Any, key: str, fmt: str = "f3") -> str:
+    """``value [lo, hi]`` of ``d``'s dotted ``key`` and ``key + "_ci"`` in the report's number
+    format ``fmt`` (:func:`~traffictwin.report.model.fmt_value`; the value alone without an
+    interval, "n/a" for a missing number)."""
+    ci = lookup(d, f"{key}_ci") or {}
+    return fmt_interval(lookup(d, key), ci.get("lo"), ci.get("hi"), lambda x: fmt_value(x, fmt))
+
+
+def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
+    """True / False when the paired interval ``{lo, hi}`` of dotted ``metric`` of ``diff`` (a − b;
+    ``at_1.5s.roc_auc``, ``test/mse``) says a is better / worse than b; None when it does not
+    exclude zero (or there is none)."""
+    d = lookup(diff, metric)
+    side = interval_side(d.get("lo"), d.get("hi")) if isinstance(d, Mapping) else None
+    if side not in (LOWER, HIGHER):
+        return None
+    return (side == LOWER) == (metric.rsplit(".", 1)[-1] in LOWER_IS_BETTER)
+
+
+class Learning(NamedTuple):
+    """The primary comparison: the learned model against the SGM corridor rule."""
+
+    learned: str
+    better: bool | None  #: the verdict on ROC-AUC (None: no significant difference)
+    held: int  #: secondary differences with Holm-adjusted p < 0.05
+    n_secondary: int
+
+
+class Region(NamedTuple):
+    """The risk metric region: the paper's against the camera's field of view (each predictor's
+    skill per label: the report's region table)."""
+
+    agreement: Mapping[str, Any]  #: the two labels' class agreement (with its interval)
+    critical: tuple[Any, Any]  #: critical share with the paper's / the camera's label
+    fov_net: str | None
+    paper_net: str | None
+    skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi] (minus signs as −)
+    skill_verdict: str  #: "higher" / "lower" / "none" (the interval covers zero)
+
+
+@dataclass(frozen=True)
+class RiskFindings:
+    """Everything the risk findings state (template ``templates/findings.md.j2``); a part is
+    None / empty where its metrics are missing."""
+
+    main: str | None  #: the headline variant; None: no risk network was evaluated
+    label: Any = None  #: its label
+    threshold: str = ""  #: the primary THW threshold (s)
+    at: str = ""  #: its metrics key (``at_1.5s``)
+    mse_ratio: float | None = None  #: its test MSE / the paper's (None: no test MSE)
+    collapse_std: Any = None
+    collapsed: list[tuple[str, Any]] = field(default_factory=list)  #: (run, prediction std)
+    seed_sd: Mapping[str, Any] | None = None  #: the headline's seed sd (None: a single run)
+    learning: Learning | None = None
+    critical_speed: float | None = None  #: the speed-only baseline's critical speed (m/s)
+    other_label: list[tuple[str, Any]] = field(default_factory=list)  #: (variant, its label)
+    region: Region | None = None
+
+
+def _learning(m: Mapping[str, Any], at: str) -> Learning | None:
+    learned = m.get("learned")
+    d = lookup(m, f"differences.{learned}|geometric_sgm") if learned else None
+    if d is None:
+        return None
+    holm = lookup(m, "comparisons.secondary_holm.p_adjusted") or {}
+    return Learning(
+        learned, beats(d, f"{at}.roc_auc"), sum(v < 0.05 for v in holm.values()), len(holm)
+    )
+
+
+def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | None:
+    reg = m.get("region") if isinstance(m.get("region"), Mapping) else {}
+    labels = reg.get("labels") or {}
+    if P_LABEL not in labels or F_LABEL not in labels:
+        return None
+
+    def first(label: str) -> str | None:
+        ok = (v for v, e in sorted(m["models"].items()) if e.get("label") == label)
+        return next((v for v in ok if v not in collapsed), None)
+
+    fov_net = first(F_LABEL)
+    sd = next(
+        (
+            d
+            for d in (reg.get("skill_differences") or {}).values()
+            if (d.get("label_a"), d.get("label_b"), d.get("a")) == (F_LABEL, P_LABEL, fov_net)
+        ),
+        None,
+    )
+    complete = sd and finite(sd.get("estimate")) is not None
+    side = interval_side(sd.get("lo"), sd.get("hi")) if complete else NO_INTERVAL
+    signed = fmt_interval(*((sd or {}).get(k) for k in ("estimate", "lo", "hi")), "{:+.3f}")
+    agreement = reg.get("agreement") or {}
+    share = f"critical_fraction_at_{t:g}s"
+    return Region(
+        agreement=agreement.get(f"{P_LABEL}|{F_LABEL}") or agreement,
+        critical=(lookup(labels, f"{P_LABEL}.{share}"), lookup(labels, f"{F_LABEL}.{share}")),
+        fov_net=fov_net,
+        paper_net=(sd or {}).get("b") or first(P_LABEL),
+        skill_diff=None if side == NO_INTERVAL else signed.replace("-", "−"),
+        skill_verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
+    )
+
+
+def findings_record(m: Mapping[str, Any]) -> RiskFindings:
+    """What the findings of the ``risk.json`` dict ``m`` state (see the module docstring)."""
+    models: Mapping[str, Any] = m.get("models", {})
+    main = m.get("main_variant") or next(iter(models), None)
+    if main is None or main not in models:
+        return RiskFindings(main=None)
+    t = (m.get("thresholds_s") or [PAPER["threshold_s"]])[0]
+    collapsed = {v for v, e in models.items() if e.get("collapsed")}
+    mse = finite(models[main].get("test/mse"))
+    seeds = str(m.get("main_predictor")).endswith(SEED_MEAN) and lookup(m, f"groups.{main}.seed_sd")
+    label = models[main].get("label")
+    return RiskFindings(
+        main=main,
+        label=label,
+        threshold=f"{t:g}",
+        at=f"at_{t:g}s",
+        mse_ratio=None if mse is None else mse / PAPER["test/mse"],
+        collapse_std=m.get("collapse_std"),
+        collapsed=[(v, models[v].get("pred_std")) for v in sorted(collapsed)],
+        seed_sd=seeds if isinstance(seeds, Mapping) else None,
+        learning=_learning(m, f"at_{t:g}s"),
+        critical_speed=finite(lookup(m, f"baselines.speed_only.critical_speed_at_{t:g}s")),
+        other_label=[
+            (v, e.get("label"))
+            for v, e in sorted(models.items())
+            if e.get("label") != label and v not in collapsed and e.get("group", v) == v
+        ],
+        region=_region(m, t, collapsed),
+    )
 
 
 def findings(metrics: Mapping[str, Any]) -> str:
-    """Markdown bullet list: paper comparison, the shipped predictor, learned model vs rule
-    (claims only where the CI excludes zero), failed runs, seeds, the speed-only baseline's
-    critical speed, the region effect, situations, data (the baselines' scores, the paired
-    differences, the critical shares and the targets: the report's tables)."""
+    """Markdown bullet list: the paper comparison, learned model vs rule
+    (a claim only where the interval excludes zero), failed runs, seeds, the speed-only
+    baseline's critical speed, variants on other labels, the region effect."""
     record = findings_record(metrics)
-    text = render_prose(TEMPLATES, "findings.md.j2", f=record, paper=PAPER_QUOTED, **HELPERS)
+    text = render_prose(TEMPLATES, "findings.md.j2", f=record, ci=with_ci, num=fmt_value)
     return text.rstrip("\n")

@@ -3,10 +3,8 @@ figures it shows, and the paper's numbers beside ours. Entry point: :func:`provi
 
 Reads ``risk.json`` (stage evaluate_risk), ``risk_selection.json`` (stage select_risk), plus
 ``orb.json`` (stage orb_filter), ``disparity.json`` (stage disparity) and ``risk_data.json`` (stage
-generate_risk) in the data section. The tables against the paper are in
-:mod:`traffictwin.risk.report_tables`, those with 95 % sequence-bootstrap intervals and the
-validation choices in :mod:`traffictwin.risk.report_intervals`; the findings in
-:mod:`traffictwin.risk.findings`.
+generate_risk) in the data section. The tables are in :mod:`traffictwin.risk.report_tables`, the
+findings in :mod:`traffictwin.risk.findings`.
 """
 
 from __future__ import annotations
@@ -16,32 +14,14 @@ from typing import Any
 
 from traffictwin import paper_numbers as P
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
+from traffictwin.nested import lookup
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.claims import (
-    ClaimCheck,
-    claim_verdict,
-    fmt_interval,
-    pct,
-)
-from traffictwin.report.model import lookup
+from traffictwin.report.claims import ClaimCheck, claim_verdict, fmt_interval, pct
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
-from traffictwin.risk.report_intervals import (
-    risk_ci_table,
-    risk_critical_share_table,
-    risk_difference_table,
-    risk_selection_table,
-    risk_situation_table,
-)
-from traffictwin.risk.report_tables import (
-    ORB_FILE,
-    RISK_FILE,
-    risk_data_table,
-    risk_tables,
-    risk_training_table,
-)
+from traffictwin.risk.report_tables import RISK_FILE, risk_tables
 
 TITLE = "Paper 2 — dynamic risk assessment from a stereo camera"
 
@@ -72,7 +52,7 @@ DATA_FILES = (
         required=True,
     ),
     page.DataFile(
-        ORB_FILE,
+        "orb.json",
         "ORB stereo-pair check vs injected faults (reports/metrics/orb.json)",
         required=True,
     ),
@@ -80,96 +60,66 @@ DATA_FILES = (
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
-    """The risk results section: paper vs variants vs baselines, confusion matrix, region check,
-    training and data tables, this run's findings and ``figures``."""
-    sec = page.Section(TITLE)
-    sec.paragraphs.append(f"Reference: {P.RISK_CITATION}.")
+    """The risk results section: the tables of :func:`~traffictwin.risk.report_tables.risk_tables`,
+    this run's findings and ``figures``."""
+    sec = page.Section(TITLE, [f"Reference: {P.RISK_CITATION}."], figures=figures)
     if src.has(RISK_FILE):
         sec.paragraphs.append(ACCEPTANCE_POINTER)
-        sec.tables.extend(risk_tables(src))
-        for extra in (
-            risk_selection_table(src),
-            risk_ci_table(src),
-            risk_difference_table(src),
-            risk_critical_share_table(src),
-            risk_situation_table(src),
-        ):
-            if extra is not None:
-                sec.tables.append(extra)
-        training = risk_training_table(src)
-        if training:
-            sec.tables.append(training)
+        sec.tables = risk_tables(src)
     else:
         sec.paragraphs.append(
             f"`reports/metrics/{RISK_FILE}` is missing: the risk evaluation has not run."
         )
-    data = risk_data_table(src)
-    if data:
-        sec.tables.append(data)
     sec.bullet_groups.append(findings_group(src, RISK_FILE, findings))
-    sec.figures = figures
     return sec
+
+
+#: the headline numbers at the primary threshold: (key, key under ``at_<t>s``, quantity)
+HEADLINES = (
+    ("auc", "roc_auc", "ROC-AUC of critical frames"),
+    ("balanced_accuracy", "balanced_accuracy", "balanced accuracy of critical frames"),
+    # defined even when the test frames hold one class only (the paper's metric)
+    ("accuracy", "accuracy", "accuracy, critical vs uncritical"),
+)
 
 
 def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
     """The shipped predictor (``shipped``: what users get, chosen on validation; else the main
-    variant, its seed mean when replicates ran) on the ORB-passed test frames: ROC-AUC of critical
-    frames at the first THW threshold (``auc``) and the balanced accuracy there
-    (``balanced_accuracy``, at its validation-chosen decision cut) and the accuracy (``accuracy``),
-    with their sequence-bootstrap intervals. (The MSE is no headline: a constant meets it.)"""
+    variant, its seed mean when replicates ran) on the ORB-passed test frames at the first THW
+    threshold: ROC-AUC of critical frames (``auc``), balanced accuracy (at its validation-chosen
+    decision cut) and accuracy, with their sequence-bootstrap intervals and the strongest
+    baseline. (The MSE is no headline: a constant meets it.)"""
     risk = metrics.get(RISK_FILE)
-    main = lookup(risk, "main_variant")
-    ts = lookup(risk, "thresholds_s")
+    main, ts, shipped = (lookup(risk, k) for k in ("main_variant", "thresholds_s", "shipped"))
     if not isinstance(main, str) or not isinstance(ts, list) or not ts:
         return []
-    shipped = lookup(risk, "shipped")
-    row = lookup(risk, f"models.{shipped}") if isinstance(shipped, str) else None
-    who = f"shipped predictor ({lookup(risk, 'selection.shipped_from') or shipped})"
-    if not isinstance(row, Mapping):
-        row = lookup(risk, f"groups.{main}")
-        who = f"main predictor {main}"
-    if not isinstance(row, Mapping):
-        row = lookup(risk, f"models.{main}")
-    if not isinstance(row, Mapping):
+    rows = [
+        (
+            lookup(risk, f"models.{shipped}") if isinstance(shipped, str) else None,
+            f"shipped predictor ({lookup(risk, 'selection.shipped_from') or shipped})",
+        ),
+        (lookup(risk, f"groups.{main}"), f"main predictor {main}"),
+        (lookup(risk, f"models.{main}"), f"main predictor {main}"),
+    ]
+    row, who = next(((r, w) for r, w in rows if isinstance(r, Mapping)), (None, ""))
+    if row is None:
         return []
     t = float(ts[0])
     at = f"at_{t:g}s"
-    cls = row.get(at)
-    cls = cls if isinstance(cls, Mapping) else {}
-    where = f"{who}, test frames"
-
-    def base(key: str) -> Baseline | None:
-        return _baseline(risk, shipped, at, key)
-
-    return (
-        headline(
-            "auc",
-            f"ROC-AUC of critical frames (THW < {t:g} s)",
-            where,
-            cls.get("roc_auc"),
-            cls.get("roc_auc_ci"),
+    cls = row.get(at) if isinstance(row.get(at), Mapping) else {}
+    return [
+        h
+        for key, m, quantity in HEADLINES
+        for h in headline(
+            key,
+            f"{quantity} (THW < {t:g} s)",
+            f"{who}, test frames",
+            cls.get(m),
+            cls.get(f"{m}_ci"),
             "f3",
-            base("roc_auc"),
+            _baseline(risk, shipped, at, m),
         )
-        + headline(
-            "balanced_accuracy",
-            f"balanced accuracy of critical frames (THW < {t:g} s)",
-            where,
-            cls.get("balanced_accuracy"),
-            cls.get("balanced_accuracy_ci"),
-            "f3",
-            base("balanced_accuracy"),
-        )
-        + headline(  # defined even when the test frames hold one class only (the paper's metric)
-            "accuracy",
-            f"accuracy, critical vs uncritical (THW < {t:g} s)",
-            where,
-            cls.get("accuracy"),
-            cls.get("accuracy_ci"),
-            "f3",
-            base("accuracy"),
-        )
-    )
+    ]
 
 
 def _baseline(risk: Any, shipped: Any, at: str, key: str) -> Baseline | None:
@@ -217,65 +167,43 @@ def claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
     if not isinstance(row, Mapping):
         return []
     t = P.RISK["thw_threshold_s"].value
-    acc, acc_ci = lookup(row, f"at_{t:g}s.accuracy"), lookup(row, f"at_{t:g}s.accuracy_ci") or {}
-    mse, mse_ci = lookup(row, "test/mse"), lookup(row, "test/mse_ci") or {}
-    lo, hi = acc_ci.get("lo"), acc_ci.get("hi")
+    acc_ci, mse_ci = lookup(row, f"at_{t:g}s.accuracy_ci") or {}, lookup(row, "test/mse_ci") or {}
+    acc = lookup(row, f"at_{t:g}s.accuracy")
+    acc = f"accuracy {fmt_interval(acc, acc_ci.get('lo'), acc_ci.get('hi'), pct)}"
+    mse = fmt_interval(lookup(row, "test/mse"), mse_ci.get("lo"), mse_ci.get("hi"), "{:.3g}")
+    paper = {k: P.RISK[k].value for k in ("accuracy", "test_mse", "wang_kato_accuracy")}
+
     who = f"network `{name}`, test frames"
 
-    def check(
-        key: str, claim: str, sides: list[str], expected: str, text: str, value: bool
-    ) -> ClaimCheck:
-        num = P.RISK[key]
-        return ClaimCheck(
-            PAPER, claim, num.source, f"{text} ({who})", claim_verdict(sides, expected, value=value)
-        )
+    def check(key: str, claim: str, ci: Mapping, ref: float, side: str, text: str) -> ClaimCheck:
+        """``ci`` against the paper's ``ref`` (a printed number, but for Wang & Kato's lead)."""
+        sides = [interval_side(ci.get("lo"), ci.get("hi"), ref)]
+        verdict = claim_verdict(sides, side, value=key != "wang_kato_accuracy")
+        return ClaimCheck(PAPER, claim, P.RISK[key].source, f"{text} ({who})", verdict)
 
-    paper_acc = P.RISK["accuracy"].value / 100.0
-    wang_kato = P.RISK["wang_kato_accuracy"].value / 100.0
-    out = [
-        check(
-            "accuracy",
-            f"The CNN classifies critical vs uncritical (THW < {t:g} s) with "
-            f"{P.RISK['accuracy'].value:.2f} % accuracy.",
-            [interval_side(lo, hi, paper_acc)],
-            HIGHER,
-            f"accuracy {fmt_interval(acc, lo, hi, pct)}",
-            True,
-        ),
-        check(
-            "test_mse",
-            f"Testing average error (MSE of the normalised risk) {P.RISK['test_mse'].value:g}.",
-            [interval_side(mse_ci.get("lo"), mse_ci.get("hi"), P.RISK["test_mse"].value)],
-            LOWER,
-            f"test MSE {fmt_interval(mse, mse_ci.get('lo'), mse_ci.get('hi'), '{:.3g}')}",
-            True,
-        ),
-        check(
-            "wang_kato_accuracy",
-            f"Its accuracy beats Wang & Kato's {P.RISK['wang_kato_accuracy'].value:.2f} % "
-            "(another task and data).",
-            [interval_side(lo, hi, wang_kato)],
-            HIGHER,
-            f"accuracy {fmt_interval(acc, lo, hi, pct)}",
-            False,
-        ),
-    ]
-    dropped, total = lookup(risk, "n_frames.orb_outliers_dropped"), lookup(risk, "n_frames.total")
-    share = (
-        f"{pct(dropped / total)} of {total:,} pairs dropped"
-        if isinstance(dropped, int) and isinstance(total, int) and total > 0
-        else "n/a"
+    acc_claim = (
+        f"The CNN classifies critical vs uncritical (THW < {t:g} s) with "
+        f"{paper['accuracy']:.2f} % accuracy."
     )
-    out.append(
+    mse_claim = f"Testing average error (MSE of the normalised risk) {paper['test_mse']:g}."
+    wk = paper["wang_kato_accuracy"]
+    wk_claim = f"Its accuracy beats Wang & Kato's {wk:.2f} % (another task and data)."
+    dropped, total = lookup(risk, "n_frames.orb_outliers_dropped"), lookup(risk, "n_frames.total")
+    ok = isinstance(dropped, int) and isinstance(total, int) and total > 0
+    share = f"{pct(dropped / total)} of {total:,} pairs dropped" if ok else "n/a"
+    orb = P.RISK["orb_outlier_pct"]
+    return [
+        check("accuracy", acc_claim, acc_ci, paper["accuracy"] / 100.0, HIGHER, acc),
+        check("test_mse", mse_claim, mse_ci, paper["test_mse"], LOWER, f"test MSE {mse}"),
+        check("wang_kato_accuracy", wk_claim, acc_ci, wk / 100.0, HIGHER, acc),
         ClaimCheck(
             PAPER,
-            f"The ORB check drops about {P.RISK['orb_outlier_pct'].value:g} % of the stereo pairs.",
-            P.RISK["orb_outlier_pct"].source,
+            f"The ORB check drops about {orb.value:g} % of the stereo pairs.",
+            orb.source,
             f"{share} (a count without an interval)",
             claim_verdict([NO_INTERVAL], LOWER),
-        )
-    )
-    return out
+        ),
+    ]
 
 
 def provider() -> page.SectionProvider:

@@ -1,233 +1,40 @@
-"""The risk section's tables against the paper (results, confusion matrix, region check, training,
-data) and the cells every risk table uses (values and 95 % intervals of ``risk.json``).
+"""The risk section's tables: every predictor on the same test frames beside the paper, the
+confusion matrix, the choices made on validation, the paired differences, the region check, the
+situations, training, and the data per split. Each number is shown in one table.
 
-Reads ``risk.json`` (stage evaluate_risk): ``models[variant]`` and ``baselines[name]`` each with
-``test/mse``, ``test/mae``, ``test/thw_mae_s``, ... and ``at_<t>s`` {accuracy, precision, recall,
-f1, roc_auc, confusion{tp,fp,fn,tn}, confusion_pct, critical_fraction_true}; ``main_variant``;
-``thresholds_s``; ``n_frames``{total, orb_outliers_dropped, train, val, test};
-``region``{labels, agreement, predictors[name][label]}; and ``orb.json`` (stage orb_filter).
-The interval tables are in :mod:`traffictwin.risk.report_intervals`.
+Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
+``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
+``test/mse``, ... and ``at_<t>s`` {accuracy, ..., confusion}, their 95 % sequence-bootstrap
+intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region``,
+``critical_share``, ``situations``, ``n_frames``; and ``risk_selection.json`` (stage select_risk).
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
+from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
+from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
 
 RISK_FILE = "risk.json"
-ORB_FILE = "orb.json"
 SELECTION_FILE = "risk_selection.json"
-RISK_BASELINE_LABELS = {
-    "train_mean": "baseline: train mean",
-    "train_median": "baseline: train median",
-    "speed_only": "baseline: speed only (isotonic fit on train)",
-    "geometric": "baseline: corridor rule (SGM distance / speed)",
-    "geometric_sgm": "baseline: corridor rule (SGM distance / speed, corridor chosen on validation)",
-    "geometric_learned": "corridor rule on the learned stereo network's disparity (corridor chosen on validation)",
-    "geometric_gt": "reference: corridor rule on GT disparity (corridor chosen on validation)",
-}
-PAPER_DASH = "—"
+DASH = "—"  # the paper reports no such number
+CI = "95 % CI"
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
     """Cell with a number derived from the paper's Table 1 (:func:`paper_numbers.risk_confusion_derived`)."""
     v = P.risk_confusion_derived()[key]
-    return Cell(
-        fmt_value(v, fmt),
-        src=f"paper:derived.{key}",
-        value=v,
-        fmt=fmt,
-        title="derived from Table 1 counts",
-    )
+    return Cell(fmt_value(v, fmt), "paper:derived." + key, v, fmt, "derived from Table 1 counts")
 
 
 def risk_threshold_key(src: page.Sources) -> str:
+    """``at_<t>s`` of the primary THW threshold ``t`` (s): risk.json's first, else the paper's."""
     ts = src.get(RISK_FILE, "thresholds_s")
     t = ts[0] if isinstance(ts, list) and ts else P.RISK["thw_threshold_s"].value
     return f"at_{float(t):g}s"
-
-
-def risk_predictors(src: page.Sources) -> list[tuple[str, str, str]]:
-    """``(key prefix in risk.json, column label, name)``: main variant first, other variants, then baselines."""
-    models = src.get(RISK_FILE, "models")
-    baselines = src.get(RISK_FILE, "baselines")
-    main = src.get(RISK_FILE, "main_variant")
-    out = []
-    if isinstance(models, dict):
-        names = sorted(models, key=lambda v: (v != main, v))
-        out += [(f"models.{v}", f"ours: {v}" + (" (main)" if v == main else ""), v) for v in names]
-    if isinstance(baselines, dict):
-        out += [
-            (f"baselines.{b}", RISK_BASELINE_LABELS.get(b, f"baseline: {b}"), b) for b in baselines
-        ]
-    return out
-
-
-def _result_rows(at: str) -> list[tuple[str, Cell | None, str, str, str]]:
-    """The results table's rows: (name, the paper's cell or None, key under each predictor,
-    format, paper source); ``at`` is the primary threshold's key (``at_<t>s``)."""
-    derived = "Table 1 (derived)"
-    return [
-        ("MSE (normalised risk)", paper_cell("RISK", "test_mse", "g4"), "test/mse", "g4", "Sec. 4"),
-        ("MAE (normalised risk)", None, "test/mae", "g4", ""),
-        ("THW abs. error [s] (capped)", None, "test/thw_mae_s", "g4", ""),
-        (
-            "accuracy",
-            paper_cell("RISK", "accuracy", "pct_raw"),
-            f"{at}.accuracy",
-            "pct",
-            "Sec. 4, Table 1",
-        ),
-        ("balanced accuracy", None, f"{at}.balanced_accuracy", "pct", ""),
-        (
-            "precision (critical)",
-            derived_paper_cell("precision_critical_pct"),
-            f"{at}.precision",
-            "pct",
-            derived,
-        ),
-        (
-            "recall (critical)",
-            derived_paper_cell("recall_critical_pct"),
-            f"{at}.recall",
-            "pct",
-            derived,
-        ),
-        ("F1 (critical)", None, f"{at}.f1", "g4", ""),
-        ("ROC-AUC (risk as score for critical)", None, f"{at}.roc_auc", "g4", ""),
-        (
-            "critical share (actual)",
-            derived_paper_cell("critical_share_pct"),
-            f"{at}.critical_fraction_true",
-            "pct",
-            "Sec. 4 (derived)",
-        ),
-    ]
-
-
-def _results_table(src: page.Sources, at: str) -> Table:
-    """Paper vs our variants vs baselines: MSE, accuracy, … at the primary threshold ``at``."""
-    preds = risk_predictors(src)
-    thw = float(at.removeprefix("at_").removesuffix("s"))
-    t = Table(
-        f"Risk: test results, paper vs this run (critical ⇔ THW < {thw:g} s ⇔ risk > "
-        f"1/{CLIP * thw:g})",
-        ["metric", "paper (Feth et al.)", *[label for _, label, _ in preds], "paper source"],
-        note=(
-            "The paper's accuracy and confusion matrix are over its whole effective data set "
-            f"({fmt_value(P.RISK['n_effective'].value, 'int')} frames), "
-            "ours over the test split; '—': the paper reports no such number. Wang & Kato (ref. [20] of the "
-            "paper) solve a different, 3-class task with subjective labels; the paper quotes their accuracy "
-            "as the related work's best."
-        ),
-        anchor="risk-results",
-        headline=True,
-    )
-    for label, pc, key, fmt, ref in _result_rows(at):
-        t.rows.append(
-            [Cell(label), pc or Cell(PAPER_DASH)]
-            + [src.cell(RISK_FILE, f"{pre}.{key}", fmt) for pre, _, _ in preds]
-            + [Cell(ref)]
-        )
-    t.rows.append(
-        [Cell("accuracy, Wang & Kato [20]"), paper_cell("RISK", "wang_kato_accuracy", "pct_raw")]
-        + [Cell(PAPER_DASH) for _ in preds]
-        + [Cell("Sec. 4")]
-    )
-    return t
-
-
-def _confusion_table(src: page.Sources, main: str, at: str) -> Table:
-    """The main variant's confusion matrix beside the paper's Table 1 (rows: predicted class)."""
-    pre = f"models.{main}.{at}"
-    cm = Table(
-        f"Risk: confusion matrix, paper Table 1 (whole effective data set) vs this run's test split ({main})",
-        [
-            "",
-            "paper: actual critical",
-            "paper: share",
-            "paper: actual uncritical",
-            "paper: share",
-            "ours: actual critical",
-            "ours: share",
-            "ours: actual uncritical",
-            "ours: share",
-        ],
-        anchor="risk-confusion",
-        headline=True,
-        note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of all frames.",
-    )
-    for label, (a, b) in (
-        ("predicted critical", ("tp", "fp")),
-        ("predicted uncritical", ("fn", "tn")),
-    ):
-        cm.rows.append(
-            [
-                Cell(label),
-                paper_cell("RISK_CONFUSION", a, "int"),
-                derived_paper_cell(f"share_{a}_pct"),
-                paper_cell("RISK_CONFUSION", b, "int"),
-                derived_paper_cell(f"share_{b}_pct"),
-                src.cell(RISK_FILE, f"{pre}.confusion.{a}", "int"),
-                src.cell(RISK_FILE, f"{pre}.confusion_pct.{a}", "pct_raw"),
-                src.cell(RISK_FILE, f"{pre}.confusion.{b}", "int"),
-                src.cell(RISK_FILE, f"{pre}.confusion_pct.{b}", "pct_raw"),
-            ]
-        )
-    return cm
-
-
-def _region_table(src: page.Sources, region: dict[str, Any]) -> Table:
-    """Each predictor's MSE and accuracy against every region's label (``region.predictors``)."""
-    primary = src.get(RISK_FILE, "primary_label")
-    labels = sorted(
-        {lab for d in region.values() if isinstance(d, dict) for lab in d},
-        key=lambda x: (x != primary, x),
-    )
-    rt = Table(
-        "Risk: does the label's region explain the errors? Each predictor scored against the paper-style "
-        "region label and against a label restricted to the camera's field of view",
-        ["predictor", *[f"{m} vs {lab}" for lab in labels for m in ("MSE", "accuracy")]],
-        anchor="risk-region",
-        note=(
-            "The paper blames its errors on the metric's region not matching the camera view (Sec. 4); "
-            "risk_thw_paper = the paper's region, risk_thw_fov = only what the camera sees."
-        ),
-    )
-    for name in region:
-        rt.rows.append(
-            [Cell(name)]
-            + [
-                src.cell(RISK_FILE, f"region.predictors.{name}.{lab}.{k}", f)
-                for lab in labels
-                for k, f in (("test/mse", "g4"), ("accuracy", "pct"))
-            ]
-        )
-    return rt
-
-
-def risk_tables(src: page.Sources) -> list[Table]:
-    """Paper vs our variants vs baselines (MSE, accuracy, …), the confusion matrix, the risk-region check."""
-    at = risk_threshold_key(src)
-    tables = [_results_table(src, at)]
-    main = src.get(RISK_FILE, "main_variant")
-    if isinstance(main, str):
-        tables.append(_confusion_table(src, main, at))
-    region = src.get(RISK_FILE, "region.predictors")
-    if isinstance(region, dict) and region:
-        tables.append(_region_table(src, region))
-    return tables
-
-
-def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
-    """``[lo, hi]`` of ``<key>_ci`` (or of ``key`` itself when it holds ``lo``/``hi``) in risk.json,
-    in format ``fmt``: the sequence-bootstrap interval cell
-    (:func:`~traffictwin.report.model.interval_cell`)."""
-    return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
 
 
 def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FILE) -> Cell:
@@ -238,78 +45,338 @@ def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FI
     return src.cell(file, key, fmt)
 
 
-def risk_training_table(src: page.Sources) -> Table | None:
-    """Per variant: inputs, label, parameters, steps and best validation MSE (risk.json models;
-    training times are in the run records, reports/timings)."""
+def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
+    """The 95 % sequence-bootstrap interval ``[lo, hi]`` of ``key`` in risk.json."""
+    return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
+
+
+def _with_ci(src: page.Sources, key: str, fmt: str = "g4") -> list[Cell]:
+    """The value of ``key`` (n/a where it does not apply) and its interval."""
+    return [value_cell(src, key, fmt), ci_cell(src, key, fmt)]
+
+
+def _first(names: object, first: object) -> list[str]:
+    """``names`` sorted, ``first`` first."""
+    return sorted(names, key=lambda n: (n != first, n)) if isinstance(names, dict) else []
+
+
+def _predictors(src: page.Sources) -> list[tuple[str, str, str]]:
+    """``(key prefix, row name, status)``: the seed means, every model (main first), every baseline."""
+    get = lambda k: src.get(RISK_FILE, k) or {}  # noqa: E731
+    main = src.get(RISK_FILE, "main_variant")
+    rows = [
+        (f"groups.{g}", g + SEED_MEAN, f"seed mean of {get(f'groups.{g}.n_seeds') or NA}")
+        for g in _first(get("groups"), main)
+        if isinstance(src.get(RISK_FILE, f"groups.{g}.test/mse"), (int, float))
+    ]
+    for v in _first(get("models"), main):
+        failed = get(f"models.{v}.collapsed")
+        rows.append(
+            (f"models.{v}", v, "collapsed: failed run" if failed else "main" if v == main else "")
+        )
+    gt = {b: "reference: GT disparity" for b in GT_INPUT}
+    return rows + [(f"baselines.{b}", b, gt.get(b, "baseline")) for b in get("baselines")]
+
+
+def results_table(src: page.Sources, at: str) -> Table:
+    """The paper beside every predictor on the same test frames at the primary threshold ``at``
+    (``at_<t>s``): MSE, MAE, THW error, accuracy, ..., ROC-AUC and the critical share, with the
+    95 % sequence-bootstrap intervals where risk.json has them."""
+    dp, ci = derived_paper_cell, isinstance(src.get(RISK_FILE, "bootstrap"), dict)
+    metrics = [  # (key, column, format, with its interval, the paper's cell)
+        ("test/mse", "MSE (normalised risk)", "g4", ci, paper_cell("RISK", "test_mse", "g4")),
+        ("test/mae", "MAE (normalised risk)", "g4", False, None),
+        ("test/thw_mae_s", "THW abs. error [s] (capped)", "g4", False, None),
+        (f"{at}.accuracy", "accuracy", "pct", ci, paper_cell("RISK", "accuracy", "pct_raw")),
+        (f"{at}.balanced_accuracy", "balanced accuracy", "pct", ci, None),
+        (f"{at}.precision", "precision (critical)", "pct", False, dp("precision_critical_pct")),
+        (f"{at}.recall", "recall (critical)", "pct", ci, dp("recall_critical_pct")),
+        (f"{at}.f1", "F1 (critical)", "g4", ci, None),
+        (f"{at}.roc_auc", "ROC-AUC", "g4", ci, None),
+        (f"{at}.critical_fraction_true", "critical share", "pct", False, dp("critical_share_pct")),
+    ]
+    thw = float(at[3:-1])
+    t = Table(
+        f"Risk: test results, paper vs every predictor on the same test frames (critical ⇔ THW < "
+        f"{thw:g} s ⇔ risk > 1/{CLIP * thw:g})",
+        ["predictor", "label", "status", "prediction std"]
+        + [c for _, name, _, has_ci, _ in metrics for c in ([name, CI] if has_ci else [name])],
+        anchor="risk-results",
+        headline=True,
+        note=(
+            "The paper's numbers (Sec. 4; precision, recall and critical share derived from its "
+            "Table 1) are over its whole effective data set "
+            f"({fmt_value(P.RISK['n_effective'].value, 'int')} frames), ours over the test split; "
+            "'—': the paper reports no such number. Wang & Kato (ref. [20] of the paper) solve a "
+            "different, 3-class task with subjective labels; the paper quotes their accuracy as the "
+            "related work's best. Intervals: "
+            f"{src.get(RISK_FILE, 'bootstrap.n_boot')} resamples of the test sequences (cluster = "
+            "driving sequence). Seed mean: the metric averaged over the variant's seeds inside each "
+            "resample. Baselines, scored on the headline's label: train_mean / train_median "
+            "(constants), speed_only (isotonic fit on train), geometric_sgm / geometric_learned / "
+            "geometric_gt (the corridor rule on SGM, learned-stereo or GT disparity, corridor chosen "
+            "on validation; on GT disparity it sees perfect stereo: a reference, not an oracle, its "
+            "straight band is not the label's curved corridor). Whether one predictor beats "
+            "another: the table of paired differences."
+        ),
+    )
+    wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
+    for name, cells in (
+        ("paper (Feth et al.)", {k: pc for k, _, _, _, pc in metrics if pc}),
+        ("Wang & Kato [20]", wang_kato),
+    ):
+        row = [Cell(name), Cell(DASH), Cell("paper"), Cell(DASH)]
+        for k, _, _, has_ci, _ in metrics:
+            row += [cells.get(k) or Cell(DASH)] + [Cell(DASH)] * has_ci
+        t.rows.append(row)
+    for pre, name, status in _predictors(src):
+        label = Cell(str(src.get(RISK_FILE, f"{pre}.label") or NA))
+        row = [Cell(name), label, Cell(status), value_cell(src, f"{pre}.pred_std")]
+        for k, _, fmt, has_ci, _ in metrics:
+            row.append(src.cell(RISK_FILE, f"{pre}.{k}", fmt))
+            row += [ci_cell(src, f"{pre}.{k}", fmt)] * has_ci
+        t.rows.append(row)
+    return t
+
+
+def confusion_table(src: page.Sources, main: str, at: str) -> Table:
+    """The main variant's confusion matrix beside the paper's Table 1 (rows: predicted class)."""
+    pre = f"models.{main}.{at}"
+    actual = ("actual critical", "share", "actual uncritical", "share")
+    cm = Table(
+        "Risk: confusion matrix, paper Table 1 (whole effective data set) vs this run's test "
+        f"split ({main})",
+        ["", *(f"{who}: {c}" for who in ("paper", "ours") for c in actual)],
+        anchor="risk-confusion",
+        headline=True,
+        note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of "
+        "all frames.",
+    )
+    for label, pair in (("predicted critical", "tp fp"), ("predicted uncritical", "fn tn")):
+        row = [Cell(label)]
+        for k in pair.split():
+            row += [paper_cell("RISK_CONFUSION", k, "int"), derived_paper_cell(f"share_{k}_pct")]
+        for k in pair.split():
+            row.append(src.cell(RISK_FILE, f"{pre}.confusion.{k}", "int"))
+            row.append(src.cell(RISK_FILE, f"{pre}.confusion_pct.{k}", "pct_raw"))
+        cm.rows.append(row)
+    return cm
+
+
+def selection_table(src: page.Sources) -> Table | None:
+    """Every choice made on the validation split (select_risk): each candidate's validation
+    ROC-AUC and decision cut per THW threshold, the corridor rules' half-widths, the shipped one."""
+    preds = src.get(SELECTION_FILE, "predictors")
+    if not isinstance(preds, dict) or not preds:
+        return None
+    sel = lambda k: src.get(SELECTION_FILE, k)  # noqa: E731
+    shipped, fallback, ts = sel("shipped.predictor"), sel("shipped.note"), sel("thresholds_s") or []
+    cols = [
+        c for t in ts for c in (f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s")
+    ]
+    tab = Table(
+        "Risk: choices made on the validation split (the test split is read once, afterwards)",
+        ["predictor", "kind", "group", "validation ROC-AUC", *cols, "role"],
+        anchor="risk-selection",
+        headline=True,
+        note=(
+            f"{sel('n_frames')} validation frames in {sel('n_sequences')} sequences. Corridor "
+            f"half-width of the rule on SGM disparity: {sel('rules.geometric_sgm.half_width')} m, on "
+            f"GT disparity: {sel('rules.geometric_gt.half_width')} m (the highest validation ROC-AUC "
+            "among evaluation.risk.geometric.half_widths). Each predictor's decision cut maximises "
+            "its validation balanced accuracy. Shipped (what `traffictwin risk` and the registered "
+            "risk model serve; its test scores: the results table's `shipped` row): the highest "
+            "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: "
+            "the simpler)." + (f" Not so here: {fallback}." if fallback else "")
+        ),
+    )
+    decisions = [
+        (f"decision.{t:g}.{k}", f)
+        for t in ts
+        for k, f in (("cut", "g4"), ("balanced_accuracy", "pct"))
+    ]
+    for name in _first(preds, shipped):
+        pre = f"predictors.{name}"
+        row = [Cell(name), *(Cell(str(sel(f"{pre}.{k}") or "")) for k in ("kind", "group"))]
+        keys = [("roc_auc", "g4"), *decisions]
+        row += [value_cell(src, f"{pre}.{k}", f, SELECTION_FILE) for k, f in keys]
+        tab.rows.append(row + [Cell("shipped" if name == shipped else "")])
+    return tab
+
+
+def difference_table(src: page.Sources, at: str) -> Table | None:
+    """Paired differences a − b (MSE, balanced accuracy, ROC-AUC at ``at``) with their intervals
+    and the ROC-AUC verdict (a claim only where the interval excludes 0)."""
+    diffs = src.get(RISK_FILE, "differences")
+    if not isinstance(diffs, dict) or not diffs:
+        return None
+    metrics = {"test/mse": "MSE", f"{at}.balanced_accuracy": "balanced accuracy"}
+    metrics[f"{at}.roc_auc"] = "ROC-AUC"
+    t = Table(
+        "Risk: paired differences a − b on the same test frames (95 % sequence-bootstrap intervals)",
+        ["a", "b", "label", "comparison", *(c for n in metrics.values() for c in (f"Δ {n}", CI))]
+        + ["verdict (ROC-AUC)"],
+        anchor="risk-diff",
+        note=(
+            "A difference is a finding only when its interval excludes 0; lower MSE and higher "
+            "balanced accuracy / ROC-AUC are better. Both predictors are recomputed on every "
+            "resample of the test sequences."
+        ),
+    )
+    for key, d in diffs.items():
+        if not isinstance(d, dict):
+            continue
+        b = str(d.get("b"))
+        row = [Cell(str(d.get("a"))), Cell(b + (" (GT disparity)" if b in GT_INPUT else ""))]
+        row += [Cell(str(d.get("label"))), Cell(str(d.get("kind", "")))]
+        for k in metrics:
+            pre = f"differences.{key}.{k}"
+            row += [value_cell(src, f"{pre}.estimate"), ci_cell(src, pre)]
+        verdict = {True: "a better", False: "b better"}.get(beats(d, f"{at}.roc_auc"))
+        why = "claimed only when the paired 95 % interval excludes 0"
+        t.rows.append(row + [Cell(verdict or "no significant difference", title=why)])
+    return t
+
+
+def region_table(src: page.Sources) -> Table | None:
+    """Each predictor's MSE, accuracy and skill (1 − MSE / MSE of the training mean, with its
+    interval) against every region's label (``region.predictors``)."""
+    region = src.get(RISK_FILE, "region.predictors")
+    if not isinstance(region, dict) or not region:
+        return None
+    labels = {lab: 0 for d in region.values() if isinstance(d, dict) for lab in d}
+    labels = _first(labels, src.get(RISK_FILE, "primary_label"))
+    rt = Table(
+        "Risk: does the label's region explain the errors? Each predictor scored against the "
+        "paper-style region label and against a label restricted to the camera's field of view",
+        ["predictor", *(c for lab in labels for c in (f"MSE vs {lab}", "accuracy", "skill", CI))],
+        anchor="risk-region",
+        note=(
+            "The paper blames its errors on the metric's region not matching the camera view "
+            "(Sec. 4); risk_thw_paper = the paper's region, risk_thw_fov = only what the camera "
+            "sees. Skill = 1 − MSE / MSE of the training mean of that label."
+        ),
+    )
+    for name in region:
+        row = [Cell(name)]
+        for lab in labels:
+            pre = f"region.predictors.{name}.{lab}"
+            row += [
+                src.cell(RISK_FILE, f"{pre}.test/mse"),
+                src.cell(RISK_FILE, f"{pre}.accuracy", "pct"),
+            ]
+            row += _with_ci(src, f"{pre}.skill", "f2")
+        rt.rows.append(row)
+    return rt
+
+
+def data_table(src: page.Sources) -> Table | None:
+    """Per split: frames, sequences, the frames the stereo-pair check drops and keeps, the critical
+    share of every region's label; the paper's numbers first."""
+    splits = src.get(RISK_FILE, "critical_share.splits") or {}
+    if src.get(RISK_FILE, "n_frames") is None and not splits:
+        return None
+    labels = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
+    labels = [lab for lab in labels if any(lab in e for e in splits.values())]
+    thr = fmt_value(src.get(RISK_FILE, "critical_share.threshold_s"), "g4")
+    t = Table(
+        f"Risk: data per split, paper vs this run (critical share: THW < {thr} s, every region's "
+        "label)",
+        ["split", "frames", "sequences", "dropped by the stereo-pair check", "kept", *labels],
+        anchor="risk-data",
+        note=(
+            "Frames, sequences and critical shares: every frame of frames.csv, before the "
+            "stereo-pair (ORB) check. The paper (Sec. 3.3, 3.5) splits random frames "
+            f"{P.RISK['split'].value}; ours by scenario (neighbouring frames are near-duplicates). "
+            "Its frame counts give a drop share of "
+            f"{fmt_value(P.risk_confusion_derived()['orb_outlier_pct'], 'pct_raw')} (it says "
+            "'around 3.5 %'). risk_thw_corridor: objects in the subject's driving corridor (the "
+            "headline label); risk_thw_paper: anything ahead under the pessimistic-turn assumption; "
+            "risk_thw_fov: the part the camera sees."
+        ),
+    )
+    paper = [paper_cell("RISK", "n_frames", "int"), Cell(DASH)]
+    paper += [derived_paper_cell("n_dropped", "int"), paper_cell("RISK", "n_effective", "int")]
+    t.rows.append([Cell("paper (Feth et al.)"), *paper, *(Cell(DASH) for _ in labels)])
+    for split in dict.fromkeys(["all", "train", "val", "test", *splits]):
+        pre, whole = f"critical_share.splits.{split}", split == "all"
+        row = [
+            Cell(split),
+            value_cell(src, "n_frames.total" if whole else f"{pre}.n_frames", "int"),
+        ]
+        row.append(value_cell(src, f"{pre}.n_sequences", "int"))
+        dropped = value_cell(src, "n_frames.orb_outliers_dropped", "int")
+        row += (
+            [dropped, Cell("")]
+            if whole
+            else [Cell(""), value_cell(src, f"n_frames.{split}", "int")]
+        )
+        t.rows.append(row + [value_cell(src, f"{pre}.{lab}", "pct") for lab in labels])
+    return t
+
+
+def situation_table(src: page.Sources) -> Table | None:
+    """Recall, specificity and balanced accuracy of every predictor risk.json breaks down per
+    situation type (the shipped one first), with the intervals over that situation's sequences."""
+    sit = src.get(RISK_FILE, "situations")
+    if not isinstance(sit, dict) or not sit:
+        return None
+    t = Table(
+        "Risk: every predictor by situation type (primary threshold; intervals over that "
+        "situation's sequences)",
+        ["situation", "sequences", "frames", "critical share", "predictor"]
+        + ["recall", CI, "specificity", CI, "bal. acc.", CI],
+        anchor="risk-situations",
+        note="n/a: the situation has no critical (recall) or no uncritical (specificity) test "
+        "frame.",
+    )
+    counts = [("n_sequences", "int"), ("n_frames", "int"), ("critical_share", "pct")]
+    for s in sorted(sit):
+        pre = f"situations.{s}"
+        for i, p in enumerate(_first(sit[s].get("predictors"), src.get(RISK_FILE, "shipped"))):
+            row = [Cell(s), *(value_cell(src, f"{pre}.{k}", f) for k, f in counts), Cell(p)]
+            row[1:4] = row[1:4] if i == 0 else [Cell("")] * 3  # the counts once per situation
+            for k in ("recall", "specificity", "balanced_accuracy"):
+                row += _with_ci(src, f"{pre}.predictors.{p}.{k}", "pct")
+            t.rows.append(row)
+    return t
+
+
+def training_table(src: page.Sources) -> Table | None:
+    """Per variant: inputs, parameters, steps and best validation MSE (risk.json models; the
+    label: the results table; training times: the run records, reports/timings)."""
     models = src.get(RISK_FILE, "models")
     if not isinstance(models, dict) or not models:
         return None
-    cols = [
-        ("n_parameters", "parameters", "int"),
-        ("n_train", "train frames", "int"),
-        ("steps", "steps", "int"),
-        ("best_step", "best step", "int"),
-        ("best_val_mse", "best val MSE", "g4"),
-    ]
+    cols = [("n_parameters", "parameters", "int"), ("n_train", "train frames", "int")]
+    cols += [("steps", "steps", "int"), ("best_step", "best step", "int")]
+    cols += [("best_val_mse", "best val MSE", "g4")]
     t = Table(
         "Risk: training of each variant (DAVE-2-like net; paper: "
         f"{P.RISK['epochs'].value} epochs, batch {P.RISK['batch_size'].value}, Adam)",
-        ["variant", "inputs", "label", *[c[1] for c in cols]],
+        ["variant", "inputs", *[c[1] for c in cols]],
         anchor="risk-training",
     )
-    main = src.get(RISK_FILE, "main_variant")
-    for v in sorted(models, key=lambda v: (v != main, v)):
+    for v in _first(models, src.get(RISK_FILE, "main_variant")):
         m = models[v] if isinstance(models[v], dict) else {}
         inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
-        t.rows.append(
-            [Cell(v), Cell(inputs or NA), Cell(str(m.get("label", NA)))]
-            + [value_cell(src, f"models.{v}.{k}", f) for k, _, f in cols]
-        )
+        cells = [value_cell(src, f"models.{v}.{k}", f) for k, _, f in cols]
+        t.rows.append([Cell(v), Cell(inputs or NA), *cells])
     return t
 
 
-def risk_data_table(src: page.Sources) -> Table | None:
-    """Frames recorded / dropped by ORB / per split, paper vs this run."""
-    if src.get(RISK_FILE, "n_frames") is None:
-        return None
-    t = Table(
-        "Risk: data, paper vs this run",
-        ["quantity", "paper", "this run", "paper source"],
-        anchor="risk-data",
-        note=f"Paper split {P.RISK['split'].value} (random frames); ours by scenario (neighbouring frames are near-duplicates).",
-    )
-    t.rows.append(
-        [
-            Cell("stereo frames"),
-            paper_cell("RISK", "n_frames", "int"),
-            src.cell(RISK_FILE, "n_frames.total", "int"),
-            Cell("Sec. 3.3"),
-        ]
-    )
-    t.rows.append(
-        [
-            Cell("dropped by the stereo-pair check"),
-            derived_paper_cell("n_dropped", "int"),
-            src.cell(RISK_FILE, "n_frames.orb_outliers_dropped", "int"),
-            Cell("Sec. 3.3, 3.5 (derived)"),
-        ]
-    )
-    for split in ("train", "val", "test"):
-        t.rows.append(
-            [
-                Cell(f"{split} frames"),
-                Cell(PAPER_DASH),
-                src.cell(RISK_FILE, f"n_frames.{split}", "int"),
-                Cell(""),
-            ]
-        )
-    if src.has(ORB_FILE):
-        t.rows.append(
-            [
-                Cell("share of pairs dropped by ORB"),
-                paper_cell("RISK", "orb_outlier_pct", "pct_raw"),
-                src.cell(ORB_FILE, "all/dropped_share", "pct"),
-                Cell("Sec. 3.3 ('around 3.5 %')"),
-            ]
-        )
-    return t
+def risk_tables(src: page.Sources) -> list[Table]:
+    """Every table of the risk section, in the order it shows them (those without data left out)."""
+    at = risk_threshold_key(src)
+    main = src.get(RISK_FILE, "main_variant")
+    tables = [
+        results_table(src, at),
+        confusion_table(src, main, at) if isinstance(main, str) else None,
+        selection_table(src),
+        difference_table(src, at),
+        region_table(src),
+        situation_table(src),
+        training_table(src),
+        data_table(src),
+    ]
+    return [t for t in tables if t is not None]
