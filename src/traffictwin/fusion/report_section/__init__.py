@@ -24,7 +24,7 @@ from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.claims import fusion_claims
 from traffictwin.fusion.report_section.score_figures import draw_score_figures
 from traffictwin.fusion.report_section.seed_tables import (
-    seed_findings,
+    seed_diff_table,
     seed_row_table,
     single_seed_note,
 )
@@ -131,10 +131,7 @@ def section(
     sec.bullet_groups.append(findings_group(src, FUSION_FILE, fusion_findings))
     if note := single_seed_note(src):
         sec.paragraphs.append(note)
-    else:
-        heading = "Seed replicates: the findings with training seeds in their intervals"
-        sec.bullet_groups.append((heading, seed_findings(src)))
-        sec.tables += [t for t in (seed_row_table(src),) if t]
+    sec.tables += [t for t in (seed_diff_table(src), seed_row_table(src)) if t]
     return sec
 
 
