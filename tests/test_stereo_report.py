@@ -132,10 +132,9 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
             "stereo-delay-by-speed",
             "stereo-valid-share-sweep",
             "stereo-resolution",
-            "stereo-resolution-difference",
         ]
     )
-    det, acc, rng, speed, sweep, res, diff = sec.tables
+    det, acc, rng, speed, sweep, res = sec.tables
     assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
     assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
     assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES] + ["pairs evaluated"]
@@ -155,9 +154,19 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
         "[6.50 %, 7.50 %]",
         "[13.00 %, 15.00 %]",
     ]
-    assert _rows(diff) == [
-        ["objects at 12–21 m", "width 640 px − width 320 px", "-4.00 %", "[-4.50 %, -3.50 %]"]
+    # the paired difference between widths: the last rows, in the larger width's column
+    assert _rows(res)[-2:] == [
+        ["objects at 12–21 m: median range error, width 640 − 320 px", "", "-4.00 %"],
+        [
+            "objects at 12–21 m: median range error, width 640 − 320 px, 95 % CI",
+            "",
+            "[-4.50 %, -3.50 %]",
+        ],
     ]
+    assert (
+        res.rows[-2][2].src
+        == "metrics/stereo_resolution.json#diff_w640_minus_w320/crit_obj_relerr_median"
+    )
     assert [f.path for f in sec.figures] == ["figures/stereo_resolution.png"]
     assert report.missing == []
     appendix = next(s for s in report.sections if s.title.startswith("Appendix"))

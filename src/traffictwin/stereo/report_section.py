@@ -2,20 +2,12 @@
 SGM, the SGM variants, stereo-pair fault detection per rule, and the camera-resolution study.
 Entry point: :func:`provider`.
 
-Reads ``disparity.json`` (stage disparity: ``<group>/<bin>_relerr_median|_p90|_valid_share|
-_gt_pixels`` with bins like ``z0-10m``, and ``<group>/bad2|d1|density|epe``), ``orb.json`` (stage
-orb_filter: ``rule_<rule>/<fault>_detection[_lo|_hi|_n]``, ``rule_<rule>/false_alarm[...]``,
-``rule_<rule>/delay_detection_v<lo>-<hi>[...]``, ``rule_<rule>/configured``,
-``sweep/min_valid_share_<t>_*``), ``stereo.json`` (stage stereo_learned:
-``<sgm|learned>/<common|own>/<metric>[_lo|_hi]``, ``diff_learned_minus_sgm/<mask>/<metric>``,
-``generalisation``; its ``targets``: the report's acceptance table), ``sgm_variants.json`` (stage
-sgm_variants: ``validation.variants``, ``choice``, ``test``) and ``stereo_resolution.json``
-(benchmarks/stereo_resolution.py: ``w<width>/<metric>``, ``diff_w<a>_minus_w<b>/<metric>``).
-Intervals are the ``<key>_lo`` / ``<key>_hi`` beside a key. The learned network refines SGM on
-SGM's valid pixels, so both estimate the same pixels: the ``common`` and ``own`` masks hold the
-same numbers, shown once (``own``, with the density; the paired differences on ``common``).
-Notes and paragraphs are the macros of ``templates/report.md.j2`` (:func:`prose`). A missing
-file or key is an ``n/a`` cell.
+Reads the metrics files of :data:`WRITERS` (their keys: ``<group>/<metric>`` and
+``<source>/<mask>/<metric>``, with an interval's ``<key>_lo`` / ``<key>_hi`` beside a key). The
+learned network refines SGM on SGM's valid pixels, so both estimate the same pixels: stereo.json's
+``common`` and ``own`` masks hold the same numbers, shown once (``own``, with the density; the
+paired differences on ``common``). Notes and paragraphs are the macros of
+``templates/report.md.j2`` (:func:`prose`). A missing file or key is an ``n/a`` cell.
 """
 
 from __future__ import annotations
@@ -36,12 +28,13 @@ ORB_FILE = "orb.json"
 RESOLUTION_FILE = "stereo_resolution.json"
 STEREO_FILE = "stereo.json"
 VARIANTS_FILE = "sgm_variants.json"
-#: the stage that writes each metrics file the section reads
-STAGES = {
-    DISPARITY_FILE: "disparity",
-    STEREO_FILE: "stereo_learned",
-    VARIANTS_FILE: "sgm_variants",
-    ORB_FILE: "orb_filter",
+#: what writes each metrics file the section reads
+WRITERS = {
+    DISPARITY_FILE: "stage disparity has not run",
+    STEREO_FILE: "stage stereo_learned has not run",
+    VARIANTS_FILE: "stage sgm_variants has not run",
+    ORB_FILE: "stage orb_filter has not run",
+    RESOLUTION_FILE: "run `python -m benchmarks.stereo_resolution`",
 }
 #: the figures the section shows, in order; their captions are macros of the same name
 FIGURE_STEMS = ("stereo_learned_example", "stereo_resolution")
@@ -255,7 +248,8 @@ def fault_tables(src: page.Sources) -> list[Table]:
 
 
 def resolution_tables(src: page.Sources) -> list[Table]:
-    """The camera-resolution study: one column per width; the paired differences between widths."""
+    """The camera-resolution study: one column per width; the paired differences between widths
+    (the last rows, in the column of the larger width)."""
     data = src.metrics.get(RESOLUTION_FILE)
     if not isinstance(data, dict):
         return []
@@ -297,23 +291,16 @@ def resolution_tables(src: page.Sources) -> list[Table]:
                 [Cell(f"{label}, 95 % CI")] + [ci_cell(src, RESOLUTION_FILE, k) for k in keys]
             )
     pattern = r"(diff_w(\d+)_minus_w(\d+)/(crit_obj|crit_all)_relerr_median)"
-    diffs = [m for k in sorted(data) if (m := re.fullmatch(pattern, k))]
-    if not diffs:
-        return [t]
-    d = Table(
-        "Camera resolution study: paired difference of the median range error at the critical "
-        "distance (reports/metrics/stereo_resolution.json)",
-        ["pixels", "widths", "difference", "95 % CI"],
-        anchor="stereo-resolution-difference",
-        note=prose("resolution_difference"),
-    )
-    for m in diffs:
+    for m in [m for k in sorted(data) if (m := re.fullmatch(pattern, k))]:
         what = "objects" if m.group(4) == "crit_obj" else "all surfaces"
-        widths_cell = Cell(f"width {m.group(2)} px − width {m.group(3)} px")
-        d.rows.append(
-            [Cell(f"{what} at {crit}"), widths_cell, *value_ci(src, RESOLUTION_FILE, m.group(1))]
-        )
-    return [t, d]
+        label = f"{what} at {crit}: median range error, width {m.group(2)} − {m.group(3)} px"
+        for name, c in (
+            (label, src.cell(RESOLUTION_FILE, m.group(1), "pct")),
+            (f"{label}, 95 % CI", ci_cell(src, RESOLUTION_FILE, m.group(1))),
+        ):
+            cells = [c if f"{w}" == m.group(2) else Cell("") for w in widths]
+            t.rows.append([Cell(name), *cells])
+    return [t]
 
 
 def learned_tables(src: page.Sources) -> list[Table]:
@@ -351,10 +338,10 @@ def variant_tables(src: page.Sources) -> list[Table]:
         return float("inf") if v is None else v
 
     def role(n: str) -> str:
-        if n == chosen == configured:
-            return "configured and chosen"
         if n in (chosen, configured):
-            return "chosen" if n == chosen else "configured"
+            return " and ".join(
+                r for r, x in (("configured", configured), ("chosen", chosen)) if x == n
+            )
         density = json_number(figs[n].get("crit_obj_density"))
         below = guard is not None and density is not None and density < guard
         return "below the density guard" if below else ""
@@ -434,14 +421,11 @@ def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     sec = page.Section(TITLE, paragraphs=[prose("intro")], figures=figures)
     if (targets := src.get(STEREO_FILE, "targets")) and isinstance(targets, dict):
         sec.paragraphs.append(ACCEPTANCE_POINTER)
-    builds = (disparity_tables, learned_tables, variant_tables, fault_tables)
-    res = resolution_tables(src)
-    sec.tables = [t for build in builds for t in build(src)] + res
+    builds = (disparity_tables, learned_tables, variant_tables, fault_tables, resolution_tables)
+    sec.tables = [t for build in builds for t in build(src)]
     sec.paragraphs += [
-        prose("missing", file=f, stage=stage) for f, stage in STAGES.items() if not src.has(f)
+        prose("missing", file=f, why=w) for f, w in WRITERS.items() if not src.has(f)
     ]
-    if not res:
-        sec.paragraphs.append(prose("resolution_missing", file=RESOLUTION_FILE))
     return sec
 
 

@@ -76,7 +76,6 @@ POSE_COLUMNS = (
     (f"vs_{REG}.success_rate_ci", "95 % CI"),
 )
 AUROC_COLUMNS = ("AUROC(u)", "95 % CI", "wrong / right cells")
-TOO_FEW_WRONG = "too few wrong cells"
 
 
 def label(m: str) -> str:
@@ -139,7 +138,7 @@ def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
         counts = Cell(NA, title="fusion.json has no cell counts (an older run)")
     if src.get(FUSION_FILE, f"{base}_enough") is False:
         return [
-            Cell(TOO_FEW_WRONG, title="AUROC(u) withheld: too few wrong cells behind it"),
+            Cell("too few wrong cells", title="AUROC(u) withheld: too few wrong cells behind it"),
             Cell(NA),
             counts,
         ]
@@ -267,14 +266,7 @@ def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
 def registration_tables(src: page.Sources, cfgs: Sequence[str]) -> list[Table]:
     """The pose error of every row that estimates a pose, per configuration, and its success
     rate per bin of the drawn translation and yaw error (none without such a row)."""
-    rows = [
-        m
-        for m in POSE_ROWS
-        if any(
-            isinstance(src.get(FUSION_FILE, f"test.{c}.{m}.success_rate"), (int, float))
-            for c in cfgs
-        )
-    ]
+    rows = [m for m in POSE_ROWS if m in fusion_methods(src, cfgs)]
     if not rows:
         return []
     table = row_table(
@@ -302,33 +294,23 @@ def per_config_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
     candidates = [(FUSION_FILE, "")] + [
         (f, "fusion.") for f in sorted(src.metrics) if f.startswith("ablations/")
     ]
-    has = [
+    has = (
         (f, pre)
         for f, pre in candidates
         if any(isinstance(src.get(f, f"{pre}test.{c}.{PER_CONFIG_ROW}"), dict) for c in cfgs)
-    ]
-    if not has:
+    )
+    if (found := next(has, None)) is None:
         return None
-    f, pre = has[0]
+    f, pre = found
     origin = (
         "this run"
         if f == FUSION_FILE
-        else (
-            f"the ablation experiment {src.get(f, 'experiment', '?')} (commit "
-            f"{str(src.get(f, 'commit', '?'))[:8]}, `{f}`; its own evaluation of both networks)"
-        )
+        else f"`reports/{src.paths.get(f, f)}` (the ablation's own evaluation of both networks; its experiment and commit: the appendix)"
     )
     t = Table(
-        "Fusion: the one network against a network per configuration (test split, same pairs)",
-        [
-            "config",
-            "KLD(b) one network",
-            "95 % CI",
-            "KLD(b) own network",
-            "95 % CI",
-            "Δ one − own",
-            "95 % CI",
-        ],
+        "Fusion: KLD(b) of the one network against a network per configuration (test split, same pairs)",
+        ["config"]
+        + [h for n in ("one network", "own network", "Δ one − own") for h in (n, "95 % CI")],
         note="dnn[per-config] = a network trained on that configuration's noise only (the paper's "
         "setting; `make ablations`, the per_config ablation); the one network is trained on the "
         "mixed noise of every configuration. Δ: paired over the same pairs; its target "
