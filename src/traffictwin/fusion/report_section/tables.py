@@ -12,11 +12,12 @@ configuration is ``n/a``; a "lower" / "higher" verdict only where the paired int
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import verdict
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, lookup
+from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, json_number, lookup
 
 FUSION_FILE = "fusion.json"
 FUSION_METHOD_LABELS: dict[str, str] = {
@@ -120,6 +121,12 @@ def cell(src: page.Sources, c: str, m: str, key: str) -> Cell:
     return src.cell(FUSION_FILE, f"test.{c}.{m}.{key}")
 
 
+def _has(src: page.Sources, key: str) -> bool:
+    """fusion.json has a row or a number (not null) at ``key``."""
+    v = src.get(FUSION_FILE, key)
+    return isinstance(v, dict) or json_number(v) is not None
+
+
 def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
     """Row ``m``'s AUROC(u) at ``c``: value, interval and the cells behind it
     (:data:`AUROC_COLUMNS`); "too few wrong cells" where fusion.json withholds the value."""
@@ -150,15 +157,17 @@ def row_table(
     cfgs: Sequence[str],
     rows: Sequence[str],
     columns: Sequence[tuple[str, str]],
-    **table: str,
+    require: str = "",
+    **table: Any,
 ) -> Table:
-    """One row per configuration and evaluated row of ``rows``: config, method, then ``columns``
-    (``(key, header)``, cells of :func:`cell`); ``table``: :class:`Table`'s other fields."""
+    """One row per configuration and evaluated row of ``rows`` (that has metric ``require``):
+    config, method, then ``columns`` (``(key, header)``, cells of :func:`cell`); ``table``:
+    :class:`Table`'s other fields."""
     heads = [h for k, name in columns for h in (AUROC_COLUMNS if k == "u_auroc" else [name])]
     t = Table(columns=["config", "method", *heads], **table)
     for c in cfgs:
         for m in rows:
-            if isinstance(src.get(FUSION_FILE, f"test.{c}.{m}"), dict):
+            if _has(src, f"test.{c}.{m}" + (f".{require}" if require else "")):
                 cells = [
                     x
                     for k, _ in columns
@@ -266,7 +275,7 @@ def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
 def registration_tables(src: page.Sources, cfgs: Sequence[str]) -> list[Table]:
     """The pose error of every row that estimates a pose, per configuration, and its success
     rate per bin of the drawn translation and yaw error (none without such a row)."""
-    rows = [m for m in POSE_ROWS if m in fusion_methods(src, cfgs)]
+    rows = [m for m in POSE_ROWS if any(_has(src, f"test.{c}.{m}.success_rate") for c in cfgs)]
     if not rows:
         return []
     table = row_table(
@@ -274,6 +283,8 @@ def registration_tables(src: page.Sources, cfgs: Sequence[str]) -> list[Table]:
         cfgs,
         rows,
         POSE_COLUMNS,
+        "success_rate",
+        headline=True,
         title="Registration: pose error of every method that estimates a pose (test split, same pairs)",
         note="Error of the pose used (the estimate, or the noisy pose where the estimate was "
         "rejected: 'fallback', counted in the success rate like any other pose) against the "
@@ -283,7 +294,6 @@ def registration_tables(src: page.Sources, cfgs: Sequence[str]) -> list[Table]:
         "benchmarks/registration.py. Δ: paired over the same pairs. " + CI_NOTE,
         anchor="fusion-registration",
     )
-    table.headline = True
     return [table, *_bin_tables(src, rows)]
 
 
