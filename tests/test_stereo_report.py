@@ -314,7 +314,7 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
         "[0.030, 0.070]",
     ]
     assert diff[-1] == [
-        "critical objects: median range error (without − SGM)",
+        "objects at the critical distances: median range error (without − SGM)",
         *blank,
         "-5.00 %",
         "[-7.00 %, -3.00 %]",

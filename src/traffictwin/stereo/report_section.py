@@ -86,11 +86,8 @@ STEREO_ROWS: tuple[Row, ...] = (
 #: the rows of the generalisation and chosen-variant tables, on each source's own pixels
 GENERALISATION_ROWS = tuple(STEREO_ROWS[i] for i in (0, 1, 8, 9))
 GENERALISATION_SOURCES = {"sgm": "SGM", "learned": "full network", "holdout": "without them"}
-#: the paired differences shown, on the pixels both sources estimate: (label, metric key, format)
-DIFF_ROWS: tuple[Row, ...] = (
-    ("end-point error [px]", "epe", "f3"),
-    ("critical objects: median range error", "crit_obj_relerr_median", "pct"),
-)
+#: the paired differences shown, on the pixels both sources estimate
+DIFF_ROWS = tuple(r for r in STEREO_ROWS if r[1] in ("epe", "crit_obj_relerr_median"))
 #: the SGM variants table's columns: (header, figure key, format)
 VARIANT_COLUMNS: tuple[Row, ...] = (
     ("EPE [px]", "epe", "f3"),

@@ -22,7 +22,9 @@ from typing import Any
 from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.claims import fusion_claims
-from traffictwin.fusion.report_section.score_figures import draw_score_figures
+from traffictwin.fusion.report_section.score_figures import (
+    draw_score_figures as draw_score_figures,  # the report stage draws them
+)
 from traffictwin.fusion.report_section.seed_tables import (
     seed_diff_table,
     seed_row_table,
@@ -34,17 +36,6 @@ from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import lookup
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import files_table, findings_group
-
-__all__ = [
-    "FIGURES",
-    "TITLE",
-    "draw_score_figures",
-    "fusion_claims",
-    "fusion_tables",
-    "headlines",
-    "provider",
-    "section",
-]
 
 TRAINING_FILES = r"train_fusion_(\w+)\.json"  # the one network and each variant, side by side
 REGISTRATION_FILES = r"train_(registration)\.json"  # the one learned registration

@@ -255,10 +255,8 @@ def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
             cells = []
             for lab in labels:
                 key = f"bins.{axis}.{m}.{lab}"
-                sr, n = (
-                    src.get(FUSION_FILE, f"{key}.success_rate"),
-                    src.get(FUSION_FILE, f"{key}.n"),
-                )
+                sr = src.get(FUSION_FILE, f"{key}.success_rate")
+                n = src.get(FUSION_FILE, f"{key}.n")
                 if not isinstance(sr, (int, float)):
                     cells.append(Cell(NA))
                     continue
