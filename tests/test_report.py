@@ -438,8 +438,9 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     inputs = make_inputs(reports)
     rep = R.write_report(inputs, providers(CONFIGURATIONS))
     checked = check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
-    # fusion: 2 tables x 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
-    assert checked >= 2 * 4 * 5 + 12 * 6 + 16 + 10 + 6 + 8
+    # fusion: the KLD table 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 12 rows x
+    # (KLD(a), its median, mean u) + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
+    assert checked >= 4 * 5 + 12 * 6 + 12 * 3 + 16 + 10 + 6 + 8
     md = all_md(reports)  # the index and every page, in reading order
     page = all_html(reports)
     # paper numbers and ours side by side, from their sources
