@@ -67,17 +67,13 @@ def score_figure(
         ax.set_xlabel(CONFIG_AXIS, fontsize=9)
         ax.set_ylabel(f"{metric} ({cls} cells)")
         ax.grid(alpha=0.3)
-    legend: dict[str, Any] = {}  # every method once, the first panel's handle
-    for ax in axes:
+    handles, labels = axes[0].get_legend_handles_labels()
+    for ax in axes[1:]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
-            legend.setdefault(lab, h)
-    fig.legend(
-        list(legend.values()),
-        list(legend),
-        fontsize=7,
-        loc="upper left",
-        bbox_to_anchor=(1.0, 0.95),
-    )
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95))
     fig.suptitle(
         f"Classification of {cls} cells vs pose-noise configuration (test split)\n{CONFIG_NOTE}",
         fontsize=11,
