@@ -589,15 +589,18 @@ def test_learning_curve_figures_are_claimed_and_captioned():
     from traffictwin.report.model import Figure
 
     assert re.search(rs.FIGURE_PATTERN, "train_fusion_d_paper")  # the fusion section claims them
-    figs = rs._captioned(
-        [
+    figs = [
+        rs._captioned(f)
+        for f in (
             Figure("figures/train_fusion_d_paper.png", "`figures/train_fusion_d_paper.png`"),
             Figure("figures/fusion_kld_boxplot.png", "box"),
-        ]
-    )
+            Figure("figures/train_registration.png", "`figures/train_registration.png`"),
+        )
+    ]
     assert figs[0].caption.startswith("Learning curves of fusion network d_paper (")
     assert figs[0].caption.endswith("`figures/train_fusion_d_paper.png`")
     assert figs[1].caption == "box"
+    assert figs[2].caption.startswith("Learning curves of the learned registration (")
 
 
 # -- stage: networks per row ---------------------------------------------------------------------

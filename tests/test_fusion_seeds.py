@@ -19,7 +19,7 @@ from traffictwin.fusion.evaluation.seeds import (
 )
 from traffictwin.fusion.report_section.seed_tables import (
     SEEDS_FILE,
-    seed_findings,
+    seed_diff_table,
     seed_row_table,
     single_seed_note,
 )
@@ -136,7 +136,7 @@ def _sources(tmp_path, seeds: dict | None) -> Sources:
 def test_report_says_single_seed_until_the_replicates_are_collected(tmp_path) -> None:
     src = _sources(tmp_path, None)
     assert "one training seed" in single_seed_note(src).lower()
-    assert seed_row_table(src) is None and seed_findings(src) == []
+    assert seed_row_table(src) is None and seed_diff_table(src) is None
 
 
 def test_report_shows_each_row_and_finding_of_the_replicates(tmp_path) -> None:
@@ -149,7 +149,14 @@ def test_report_shows_each_row_and_finding_of_the_replicates(tmp_path) -> None:
     assert r[3].src == f"{SEEDS_FILE}#rows.D.dnn.kld_fou_mean.estimate"
     assert r[5].text.count(",") == 2  # three seeds' values
     assert ("D", "learned", "success") in cells
-    bullets = seed_findings(src)
-    b = next(x for x in bullets if x.startswith("**dnn − registered, KLD(b) (3 seeds)"))
-    assert "D -0.003333 [-0.01, +0.01] (no difference shown; one seed: higher)" in b
-    assert "the verdict changes with seeds at B, D" in b
+    diffs = {(r[0].text, r[1].text, r[2].text): r for r in seed_diff_table(src).rows}
+    d = diffs[("dnn − registered", "KLD(b)", "D")]
+    assert [c.text for c in d[3:]] == [
+        "-0.003333",
+        "[-0.01, 0.01]",
+        "no difference shown",
+        "higher",
+    ]
+    assert d[3].src == f"{SEEDS_FILE}#findings.dnn_vs_registered.kld_fou_mean.D.seeds.estimate"
+    b = diffs[("dnn − registered", "KLD(b)", "B")]
+    assert b[5].text != b[6].text  # the verdict changes with seeds at B, as at D

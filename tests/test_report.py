@@ -438,8 +438,9 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     inputs = make_inputs(reports)
     rep = R.write_report(inputs, providers(CONFIGURATIONS))
     checked = check_report(reports, dict(inputs.run_params), CONFIGURATIONS)
-    # fusion: 2 tables x 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
-    assert checked >= 2 * 4 * 5 + 12 * 6 + 16 + 10 + 6 + 8
+    # fusion: the KLD table 4 configs x (r, alpha, 3 methods) + 12 rows x 6 scores + 12 rows x
+    # (KLD(a), its median, mean u) + 16 cross; risk: 5 x 2 + 6 paper + 4 + 4
+    assert checked >= 4 * 5 + 12 * 6 + 12 * 3 + 16 + 10 + 6 + 8
     md = all_md(reports)  # the index and every page, in reading order
     page = all_html(reports)
     # paper numbers and ours side by side, from their sources
@@ -475,11 +476,13 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     # derived ranking: our numbers say network < baseline for B, paper too
     anchors = [t.anchor for s in rep.sections for t in s.tables]
     kld = md_tables(md)[anchors.index("fusion-kld")]  # the headline: KLD(b)
-    assert [r[-3:] for r in kld] == [["0.02", "[0.015, 0.025]", "naive lower"]] + [
+    diffs = md_tables(md)[anchors.index("fusion-diff")]  # network − naive with its verdict
+    vs_naive = [r[3:6] for r in diffs if r[1:3] == ["network", "naive"]]
+    assert vs_naive == [["0.02", "[0.015, 0.025]", "higher"]] + [
         [
             f"{-0.1 * i:.1f}".rstrip("0"),
             f"[{-0.1 * i - 0.005:.3f}, {-0.1 * i + 0.005:.3f}]",
-            "network lower",
+            "lower",
         ]
         for i in (1, 2, 3)
     ]
@@ -495,13 +498,10 @@ def test_renderer_on_synthetic_metrics(reports: Path) -> None:
     acceptance = [[r[0], r[1], r[3], r[4], r[5]] for r in md_tables(index_md)[-1]]
     assert ["fusion", "u_auroc (A)", ">= 0.85", "0.75 [0.74, 0.76]", "fail"] in acceptance
     assert ["fusion", "hybrid_vs_registered (D)", "< 0", "n/a", "not evaluated"] in acceptance
-    ablation = md_tables(md)[anchors.index("fusion-loss-ablation")]
-    assert [r[:2] for r in ablation] == [["D", "dnn"], ["D", "dnn[paper]"]]
-    # label mean u, then the AUROC(u) cells: value, CI, wrong / right cells
-    assert ablation[1][2:4] == ["0.425", "[0.415, 0.435]"] and ablation[1][-4] == "0.5"
-    diffs = md_tables(md)[anchors.index("fusion-diff")]
-    b_vs_naive = next(r for r in diffs if r[:3] == ["B", "network", "naive"])
-    assert b_vs_naive[3:6] == ["-0.1", "[-0.105, -0.095]", "lower"]
+    # the loss variant dnn[paper]: its own rows in the estimates and difference tables
+    estimates = md_tables(md)[anchors.index("fusion-ci")]
+    paper = next(r for r in estimates if r[:2] == ["D", "dnn[paper]"])
+    assert paper[2] == "[0.415, 0.435]" and "fusion-loss-ablation" not in anchors
     assert ["D", "dnn[paper]", "registered"] in [r[:3] for r in diffs]
     # the data differs: said plainly, on the index
     index = (reports / "README.md").read_text()

@@ -165,17 +165,18 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
     sec = _section(report, fusion_report.TITLE)
     assert not any("is missing" in p for p in sec.paragraphs)
     kld = next(t for t in sec.tables if t.anchor == "fusion-kld")
-    assert [c.text for c in kld.rows[0]] == [
+    assert [c.text for c in kld.rows[0]] == ["A", "0", "0", "0.25", "0.5"]
+    # network − naive: the paired-difference table, with its verdict
+    diff = next(t for t in sec.tables if t.anchor == "fusion-diff")
+    assert [c.text for c in diff.rows[0][:6]] == [
         "A",
-        "0",
-        "0",
-        "0.25",
-        "0.5",
+        "network",
+        "naive",
         "-0.25",
         "[-0.3, -0.2]",
-        "network lower",
+        "lower",
     ]
-    assert kld.rows[0][6].derived.endswith("fusion.json#diff.A.dnn.vs_naive.kld_fou_mean")
+    assert diff.rows[0][4].derived.endswith("fusion.json#diff.A.dnn.vs_naive.kld_fou_mean")
     # an interval containing 0 is no finding
     wide = json.loads(json.dumps(metrics))
     wide["diff"]["A"]["dnn"]["vs_naive"]["kld_fou_mean"]["hi"] = 0.01
@@ -183,8 +184,8 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
     sec2 = _section(
         R.build_report(_inputs(again), providers({"A": (0.0, 0.0)})), fusion_report.TITLE
     )
-    kld2 = next(t for t in sec2.tables if t.anchor == "fusion-kld")
-    assert kld2.rows[0][-1].text == "no difference shown"
+    diff2 = next(t for t in sec2.tables if t.anchor == "fusion-diff")
+    assert diff2.rows[0][5].text == "no difference shown"
     assert kld.rows[0][1].src == "params#configurations.A.r"
     # findings come from fusion.findings, as bullets
     assert sec.bullet_groups[0] == (
@@ -296,7 +297,7 @@ def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
 def test_registration_tables_show_pose_errors_and_bins(
     tmp_path: Path,
 ) -> None:
-    from traffictwin.fusion.report_section.pose_tables import registration_tables
+    from traffictwin.fusion.report_section.tables import registration_tables
 
     def row(success: float, p90: float) -> dict:
         return {
@@ -336,18 +337,18 @@ def test_registration_tables_show_pose_errors_and_bins(
     }
     rep = _reports(tmp_path, {"fusion.json": metrics})
     src = R.Sources(_inputs(rep))
-    table, tbins, bins = registration_tables(src, {"D": (5.0, 20.0)}, ["D"])
+    table, tbins, bins = registration_tables(src, ["D"])
     assert [[c.text for c in r] for r in tbins.rows] == [
         ["registered (FM + ECC) + Dempster", "n/a"],
         ["learned registration + Dempster", "0.5 (30)"],
     ]
     texts = [[c.text for c in r] for r in table.rows]
-    assert [t[3] for t in texts] == [
-        "registered (FM + ECC) + Dempster",
-        "learned registration + Dempster",
+    assert [t[:2] for t in texts] == [
+        ["D", "registered (FM + ECC) + Dempster"],
+        ["D", "learned registration + Dempster"],
     ]
     learned = texts[1]
-    assert learned[4:6] == ["0.94", "[0.89, 0.97]"] and learned[7] == "0.2" and learned[8] == "0.3"
+    assert learned[2:4] == ["0.94", "[0.89, 0.97]"] and learned[5] == "0.2" and learned[6] == "0.3"
     assert learned[-2:] == ["0.12", "[0.05, 0.19]"] and texts[0][-2:] == ["n/a", "n/a"]
     assert [[c.text for c in r] for r in bins.rows] == [
         ["registered (FM + ECC) + Dempster", "0.9 (40)"],
@@ -355,7 +356,7 @@ def test_registration_tables_show_pose_errors_and_bins(
     ]
     assert (
         registration_tables(
-            R.Sources(_inputs(_reports(tmp_path / "x", {"fusion.json": {"test": {}}}))), {}, ["D"]
+            R.Sources(_inputs(_reports(tmp_path / "x", {"fusion.json": {"test": {}}}))), ["D"]
         )
         == []
     )
@@ -386,17 +387,14 @@ def _one_vs_own(prefix_rows: dict) -> dict:
 def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp_path: Path):
     """The comparison with the per-configuration networks shows this run's numbers when it has
     them, else the ablation experiment's collected results (reports/ablations/<name>.json)."""
-    from traffictwin.fusion.report_section.ablation_tables import per_config_table
+    from traffictwin.fusion.report_section.tables import per_config_table
 
-    confs = {"D": (5.0, 20.0)}
     rep = _reports(tmp_path / "run", {"fusion.json": _one_vs_own({})})
-    t = per_config_table(R.Sources(_inputs(rep)), confs, ["D"])
+    t = per_config_table(R.Sources(_inputs(rep)), ["D"])
     texts = [[c.text for c in r] for r in t.rows]
     assert texts == [
         [
             "D",
-            "5",
-            "20",
             "0.02",
             "[0.01, 0.03]",
             "0.025",
@@ -415,15 +413,18 @@ def test_one_network_vs_per_configuration_table_from_the_run_or_the_ablation(tmp
         )
     )
     src = R.Sources(_inputs(rep))
-    t = per_config_table(src, confs, ["D"])
+    t = per_config_table(src, ["D"])
     assert (
-        t.rows[0][3].text == "0.02"
-        and t.rows[0][3].src == "ablations/fusion.json#fusion.test.D.dnn.kld_fou_mean"
+        t.rows[0][1].text == "0.02"
+        and t.rows[0][1].src == "ablations/fusion.json#fusion.test.D.dnn.kld_fou_mean"
     )
-    assert "ablation-fusion" in t.note and "abcdef12" in t.note
+    assert t.rows[0][-1].derived.endswith(
+        "ablations/fusion.json#fusion.diff.D.dnn.vs_dnn[per-config].kld_fou_mean"
+    )
+    assert "`reports/ablations/fusion.json`" in t.note
     # neither: no table
     rep = _reports(tmp_path / "none", {"fusion.json": {"test": {"D": {"dnn": {}}}}})
-    assert per_config_table(R.Sources(_inputs(rep)), confs, ["D"]) is None
+    assert per_config_table(R.Sources(_inputs(rep)), ["D"]) is None
 
 
 def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path) -> None:
@@ -473,47 +474,8 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
     )
 
 
-def test_training_stops_say_where_each_training_ended_and_why(tmp_path: Path) -> None:
-    from traffictwin.fusion.report_section import training_stops
-
-    rep = _reports(
-        tmp_path,
-        {
-            "train_fusion_network.json": {
-                "epochs": 30,
-                "max_epochs": 36,
-                "best_epoch": 23,
-                "stopped_early": True,
-            },
-            "train_fusion_paper.json": {
-                "epochs": 36,
-                "max_epochs": 36,
-                "best_epoch": 35,
-                "stopped_early": False,
-            },
-            "train_registration.json": {
-                "epochs": 20,
-                "max_epochs": 30,
-                "best_epoch": 18,
-                "stopped_early": True,
-            },
-            "fusion.json": {},
-        },
-    )
-    lines = training_stops(R.Sources(_inputs(rep)))
-    assert lines == [
-        "Training of fusion network `network`: early stopping ended it after 30 of at most 36 epochs "
-        "(its validation metric had stopped improving); best epoch 24 of 30 (`metrics/train_fusion_network.json`).",
-        "Training of fusion network `paper`: it ran all 36 of its 36 epochs (not converged by the "
-        "early-stopping rule); best epoch 36 of 36 (in the last 20 % of the epochs run) (`metrics/train_fusion_paper.json`).",
-        "Training of the learned registration: early stopping ended it after 20 of at most 30 epochs "
-        "(its validation metric had stopped improving); best epoch 19 of 20 (in the last 20 % of the "
-        "epochs run) (`metrics/train_registration.json`).",
-    ]
-
-
 def test_auroc_cells_give_the_cells_behind_it_or_too_few_wrong_cells(tmp_path: Path) -> None:
-    from traffictwin.fusion.report_section.method_tables import _ci_table
+    from traffictwin.fusion.report_section.tables import ESTIMATE_COLUMNS, row_table
 
     ci = {"lo": 0.1, "hi": 0.2}
     base = {"kld_fou_mean": 0.15, "kld_fou_mean_ci": ci}
@@ -544,10 +506,19 @@ def test_auroc_cells_give_the_cells_behind_it_or_too_few_wrong_cells(tmp_path: P
         }
     }
     rep = _reports(tmp_path, {"fusion.json": metrics})
-    t = _ci_table(R.Sources(_inputs(rep)), ["A", "D"], ["dnn", "naive"])
+    t = row_table(
+        R.Sources(_inputs(rep)), ["A", "D"], ["dnn", "naive"], ESTIMATE_COLUMNS, title="t"
+    )
     assert t.columns[-3:] == ["AUROC(u)", "95 % CI", "wrong / right cells"]
     rows = {(r[0].text, r[1].text): [c.text for c in r[-3:]] for r in t.rows}
     assert rows[("A", "network")] == ["too few wrong cells", "n/a", "37 in 4 pairs / 600,000"]
     assert rows[("D", "network")] == ["0.86", "[0.84, 0.88]", "12,345 in 190 pairs / 987,654"]
     assert rows[("D", "naive (noisy pose + Dempster)")][-1] == "n/a"
-    assert "too few wrong cells" in t.note and "auroc_min_wrong" in t.note
+    assert ("A", "naive (noisy pose + Dempster)") not in rows  # not evaluated at A: no row
+    # the section's estimates table: these columns, and the note says what 'too few' means
+    src = R.Sources(_inputs(rep))
+    shown = next(t for t in fusion_report.fusion_tables(src, {}) if t.anchor == "fusion-ci")
+    assert shown.columns == t.columns and [c.text for c in shown.rows[0]] == [
+        c.text for c in t.rows[0]
+    ]
+    assert "too few wrong cells" in shown.note and "auroc_min_wrong" in shown.note

@@ -12,9 +12,7 @@ from pipelines.report import providers
 from tests.test_report import check_report
 from traffictwin.report import render as R
 from traffictwin.report.model import ReportInputs, Sources
-from traffictwin.stereo import report_learned as L
 from traffictwin.stereo import report_section as S
-from traffictwin.stereo import report_tables as ST
 
 DISPARITY = {
     "all/bad2": 0.0216,
@@ -131,18 +129,18 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
             "stereo-fault-detection",
             "stereo-accuracy",
             "stereo-range-error",
-            "stereo-fault-counts",
             "stereo-delay-by-speed",
             "stereo-valid-share-sweep",
             "stereo-resolution",
-            "stereo-resolution-difference",
         ]
     )
-    det, acc, rng, _, speed, sweep, res, diff = sec.tables
+    det, acc, rng, speed, sweep, res = sec.tables
     assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
     assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
-    assert [r[0] for r in _rows(det)] == [ST.RULE_LABELS[r] for r in RULES]
-    assert [r[1] for r in _rows(det)] == ["", "", "", "yes"]  # the configured rule drops pairs
+    assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES] + ["pairs evaluated"]
+    assert [r[1] for r in _rows(det)] == ["", "", "", "yes", ""]  # the configured rule drops pairs
+    assert _rows(det)[-1][2:] == ["10", "", "10", "", "10", ""]  # the pairs each rate is over
+    assert det.rows[-1][2].src == "metrics/orb.json#rule_orb/delay_detection_n"
     assert _rows(det)[0][2:4] == ["50.00 %", "[40.00 %, 60.00 %]"]
     assert det.rows[0][3].derived.startswith("95 % cluster-bootstrap interval")
     # speed bins sorted by their lower edge, with the counts first
@@ -156,9 +154,19 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
         "[6.50 %, 7.50 %]",
         "[13.00 %, 15.00 %]",
     ]
-    assert _rows(diff) == [
-        ["objects at 12–21 m", "width 640 px − width 320 px", "-4.00 %", "[-4.50 %, -3.50 %]"]
+    # the paired difference between widths: the last rows, in the larger width's column
+    assert _rows(res)[-2:] == [
+        ["objects at 12–21 m: median range error, width 640 − 320 px", "", "-4.00 %"],
+        [
+            "objects at 12–21 m: median range error, width 640 − 320 px, 95 % CI",
+            "",
+            "[-4.50 %, -3.50 %]",
+        ],
     ]
+    assert (
+        res.rows[-2][2].src
+        == "metrics/stereo_resolution.json#diff_w640_minus_w320/crit_obj_relerr_median"
+    )
     assert [f.path for f in sec.figures] == ["figures/stereo_resolution.png"]
     assert report.missing == []
     appendix = next(s for s in report.sections if s.title.startswith("Appendix"))
@@ -187,17 +195,17 @@ def _stereo_json() -> dict:
     out: dict = {"test/frames": 40, "test/sequences": 10}
     for source, scale in (("sgm", 1.0), ("learned", 0.5)):
         for mask in ("common", "own"):
-            for _, key, _ in L.STEREO_ROWS:
+            for _, key, _ in S.STEREO_ROWS:
                 v = (0.9 if key == "density" else 0.05 if "relerr" in key else 0.3) * scale
                 out[f"{source}/{mask}/{key}"] = v
                 out[f"{source}/{mask}/{key}_lo"], out[f"{source}/{mask}/{key}_hi"] = (
                     v * 0.9,
                     v * 1.1,
                 )
-    for mask in ("common", "own"):
+    for mask, d in (("common", -0.1), ("own", -0.2)):
         for key in ("epe", "crit_obj_relerr_median"):
             k = f"diff_learned_minus_sgm/{mask}/{key}"
-            out[k], out[k + "_lo"], out[k + "_hi"] = -0.1, -0.15, -0.05
+            out[k], out[k + "_lo"], out[k + "_hi"] = d, d - 0.05, d + 0.05
     out["targets"] = {
         "learned_crit_obj_relerr_median": {
             "description": "learned stereo: median range error on critical-distance objects",
@@ -216,9 +224,10 @@ def _stereo_json() -> dict:
 def test_learned_stereo_tables_show_both_sources_and_their_difference(
     tmp_path: Path,
 ) -> None:
-    """stereo.json: per mask a table SGM | CI | learned | CI (every number its file's) and the
-    paired differences; its targets only as a pointer to the acceptance table; without the file
-    the section says which stage has not run."""
+    """stereo.json: one table SGM | CI | learned | CI on each source's own pixels (the same pixels
+    for both: every number its file's), then the paired differences on the pixels both estimate;
+    its targets only as a pointer to the acceptance table; without the file the section says
+    which stage has not run."""
     rep = _reports(
         tmp_path,
         {"disparity.json": DISPARITY, "orb.json": ORB, "stereo.json": _stereo_json()},
@@ -228,19 +237,21 @@ def test_learned_stereo_tables_show_both_sources_and_their_difference(
     check_report(rep, {}, {})
     sec = next(s for s in report.sections if s.title == S.TITLE)
     by = {t.anchor: t for t in sec.tables}
-    common = _rows(by["stereo-learned-common"])
-    assert common[0] == [
-        "end-point error [px]",
-        "0.300",
-        "[0.270, 0.330]",
-        "0.150",
-        "[0.135, 0.165]",
+    t = by["stereo-learned"]
+    rows = _rows(t)
+    assert rows[0] == ["end-point error [px]", "0.300", "[0.270, 0.330]", "0.150", "[0.135, 0.165]"]
+    assert t.rows[0][3].src == "metrics/stereo.json#learned/own/epe"
+    assert ["density (share of GT pixels with an estimate)", "90.00 %"] == rows[3][:2]
+    # the paired differences: the last rows, in the learned columns, on the common mask
+    assert rows[-2] == [
+        "end-point error [px] (learned − SGM)",
+        "",
+        "",
+        "-0.100",
+        "[-0.150, -0.050]",
     ]
-    assert "density (share of GT pixels with an estimate)" not in [r[0] for r in common]
-    own = _rows(by["stereo-learned-own"])
-    assert ["density (share of GT pixels with an estimate)", "90.00 %"] == own[3][:2]
-    diff = _rows(by["stereo-learned-difference"])
-    assert diff[0][2:] == ["-0.100", "[-0.150, -0.050]"]
+    assert t.rows[-2][3].src == "metrics/stereo.json#diff_learned_minus_sgm/common/epe"
+    assert len(rows) == len(S.STEREO_ROWS) + len(S.DIFF_ROWS)
     # the targets are judged in the acceptance table of the index: one line points there
     assert "stereo-learned-targets" not in by
     assert sum("(../README.md#acceptance-thresholds)" in p for p in sec.paragraphs) == 1
@@ -262,14 +273,13 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
     g: dict = {"templates": ["roundabout", "s_curve"], "test/frames": 12, "test/sequences": 3}
     for source, v in (("sgm", 0.3), ("learned", 0.2), ("holdout", 0.25)):
         for mask in ("common", "own"):
-            for _, key, _ in L.GENERALISATION_ROWS:
+            for _, key, _ in S.GENERALISATION_ROWS:
                 g[f"{source}/{mask}/{key}"] = v
                 g[f"{source}/{mask}/{key}_lo"], g[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
     for other, d in (("learned", 0.05), ("sgm", -0.05)):
-        for mask in ("common", "own"):
-            for key in ("epe", "crit_obj_relerr_median"):
-                k = f"diff_holdout_minus_{other}/{mask}/{key}"
-                g[k], g[k + "_lo"], g[k + "_hi"] = d, d - 0.02, d + 0.02
+        for key in ("epe", "crit_obj_relerr_median"):
+            k = f"diff_holdout_minus_{other}/common/{key}"
+            g[k], g[k + "_lo"], g[k + "_hi"] = d, d - 0.02, d + 0.02
     rep = _reports(
         tmp_path,
         {
@@ -294,15 +304,21 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
         "0.250",
         "[0.240, 0.260]",
     ]
-    diff = _rows(by["stereo-generalisation-difference"])
+    # the paired differences: the last rows, in the 'without them' columns
+    diff = _rows(t)[len(S.GENERALISATION_ROWS) :]
+    blank = [""] * 4
     assert diff[0] == [
-        "without − full network",
-        "pixels both sources estimate",
-        "end-point error [px]",
+        "end-point error [px] (without − full network)",
+        *blank,
         "0.050",
         "[0.030, 0.070]",
     ]
-    assert diff[-1][0] == "without − SGM" and diff[-1][3:] == ["-5.00 %", "[-7.00 %, -3.00 %]"]
+    assert diff[-1] == [
+        "objects at the critical distances: median range error (without − SGM)",
+        *blank,
+        "-5.00 %",
+        "[-7.00 %, -3.00 %]",
+    ]
 
     why = {
         "templates": ["roundabout"],
@@ -322,7 +338,6 @@ def test_generalisation_tables_show_the_three_sources_and_the_paired_differences
     )
     rows = _rows(next(t for t in sec.tables if t.anchor == "stereo-generalisation"))
     assert rows == [["not measured", why["why"]]]
-    assert "stereo-generalisation-difference" not in {t.anchor for t in sec.tables}
 
 
 def _variants_json(chosen: str) -> dict:
@@ -353,7 +368,7 @@ def _variants_json(chosen: str) -> dict:
     t: dict = {"test/frames": 700, "test/sequences": 100}
     for source, v in (("configured", 0.22), ("chosen", 0.21)):
         for mask in ("common", "own"):
-            for _, key, _ in L.GENERALISATION_ROWS:
+            for _, key, _ in S.GENERALISATION_ROWS:
                 t[f"{source}/{mask}/{key}"] = v
                 t[f"{source}/{mask}/{key}_lo"], t[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
     for mask in ("common", "own"):

@@ -180,7 +180,7 @@ _POSE_SCOPE = (
     "fusion/methods.py",
     "fusion/registration_batches.py",
     "fusion/registration_tuning.py",
-    "fusion/report_section/pose_tables.py",
+    "fusion/report_section/tables.py",
 )
 
 

@@ -15,13 +15,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from traffictwin import paper_numbers as P
-from traffictwin.fusion.report_section.cells import FUSION_FILE, HEADLINE, NAIVE, NET
+from traffictwin.fusion.report_section.tables import FUSION_FILE, HEADLINE, NAIVE, NET
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, interval_side
-from traffictwin.report.claims import (
-    ClaimCheck,
-    claim_verdict,
-    fmt_interval,
-)
+from traffictwin.report.claims import ClaimCheck, claim_verdict, fmt_interval
 from traffictwin.report.model import lookup
 
 __all__ = ["PAPER", "fusion_claims"]
@@ -58,11 +54,16 @@ def _growth(m: Any, first: str, last: str, key: str) -> tuple[list[str], str]:
     return [side], f"{first} {fmt_interval(e0, lo0, hi0)} → {last} {fmt_interval(e1, lo1, hi1)}"
 
 
-def _iqr(m: Any, c: str, row: str) -> float | None:
-    q25, q75 = lookup(m, f"test.{c}.{row}.kld_fou_q25"), lookup(m, f"test.{c}.{row}.kld_fou_q75")
-    if not all(isinstance(q, (int, float)) for q in (q25, q75)):
-        return None
-    return float(q75) - float(q25)
+def _spread(m: Any, configs: Sequence[str]) -> tuple[list[str], str]:
+    """No side (the interquartile range has no interval in fusion.json) and the text of the
+    network's against naive's KLD(b) interquartile range at ``configs``."""
+
+    def iqr(c: str, row: str) -> str:
+        q25, q75 = (lookup(m, f"test.{c}.{row}.kld_fou_{q}") for q in ("q25", "q75"))
+        ok = all(isinstance(q, (int, float)) for q in (q25, q75))
+        return f"{float(q75) - float(q25):.3g}" if ok else "n/a"
+
+    return [NO_INTERVAL], "; ".join(f"{c} {iqr(c, NET)} vs {iqr(c, NAIVE)}" for c in configs)
 
 
 def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
@@ -73,68 +74,37 @@ def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
     configs = sorted(lookup(m, "test") or {}) if isinstance(m, Mapping) else []
     if not configs:
         return []
-    a, noisy = configs[0], configs[1:]
-    last = configs[-1]
-    kld = "network − naive KLD(b), nats/cell"
-    dice = "network − naive occupied Dice"
-    C = P.FUSION_CLAIMS
-
-    def check(name: str, sides: list[str], expected: str, measured: str) -> ClaimCheck:
-        c = C[name]
-        return ClaimCheck(PAPER, c.text, c.source, measured, claim_verdict(sides, expected))
-
-    out = []
-    sides, text = _at(m, [a], HEADLINE)
-    out.append(check("kld_A_baseline_better", sides, HIGHER, f"{kld}: {text}"))
-    sides, text = _at(m, noisy, HEADLINE)
-    out.append(check("kld_BCD_net_better", sides, LOWER, f"{kld}: {text}"))
-    sides, text = _growth(m, a, last, HEADLINE)
-    out.append(
-        check(
-            "kld_baseline_degrades_faster",
-            sides,
-            LOWER,
-            f"{kld}, the gap at {last} against {a} (intervals must not overlap): {text}",
-        )
-    )
-    spread = [(c, _iqr(m, c, NET), _iqr(m, c, NAIVE)) for c in noisy]
-    out.append(
-        check(
+    a, noisy, last = configs[0], configs[1:], configs[-1]
+    kld, dice = "network − naive KLD(b), nats/cell", "network − naive occupied Dice"
+    gap = f", the gap at {last} against {a} (intervals must not overlap)"
+    checks = (  # (claim, (sides, numbers), the side that confirms it, what the numbers are)
+        ("kld_A_baseline_better", _at(m, [a], HEADLINE), HIGHER, kld),
+        ("kld_BCD_net_better", _at(m, noisy, HEADLINE), LOWER, kld),
+        ("kld_baseline_degrades_faster", _growth(m, a, last, HEADLINE), LOWER, kld + gap),
+        (
             "kld_net_less_spread",
-            [NO_INTERVAL],  # the spread has no interval in fusion.json: no verdict
+            _spread(m, noisy),
             LOWER,
-            "KLD(b) interquartile range, network vs naive (point estimates, no interval): "
-            + "; ".join(
-                f"{c} {'n/a' if n is None else f'{n:.3g}'} vs {'n/a' if b is None else f'{b:.3g}'}"
-                for c, n, b in spread
-            ),
-        )
-    )
-    sides, text = _at(m, [a], DICE)
-    out.append(
-        check(
+            "KLD(b) interquartile range, network vs naive (point estimates, no interval)",
+        ),
+        (
             "scores_A_baseline_better",
-            sides,
+            _at(m, [a], DICE),
             LOWER,
-            f"{dice} (the only score with a paired interval): {text}",
-        )
-    )
-    sides, text = _growth(m, a, last, DICE)
-    out.append(
-        check(
-            "scores_flatter_net",
-            sides,
-            HIGHER,
-            f"{dice}, the gap at {last} against {a} (intervals must not overlap): {text}",
-        )
-    )
-    sides, text = _at(m, noisy, DICE)
-    out.append(
-        check(
+            f"{dice} (the only score with a paired interval)",
+        ),
+        ("scores_flatter_net", _growth(m, a, last, DICE), HIGHER, dice + gap),
+        (
             "scores_net_dominant_except",
-            sides,
+            _at(m, noisy, DICE),
             HIGHER,
-            f"{dice} (precision / recall have no interval): {text}",
-        )
+            f"{dice} (precision / recall have no interval)",
+        ),
     )
+    out = []
+    for name, (sides, text), expected, what in checks:
+        c = P.FUSION_CLAIMS[name]
+        out.append(
+            ClaimCheck(PAPER, c.text, c.source, f"{what}: {text}", claim_verdict(sides, expected))
+        )
     return out

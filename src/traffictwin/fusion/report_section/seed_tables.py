@@ -63,38 +63,40 @@ def seed_row_table(src: page.Sources) -> Table | None:
     return t
 
 
-def seed_findings(src: page.Sources) -> list[str]:
-    """One bullet per compared claim: the single-seed and the seeds × scenarios difference, each
-    with its verdict, and whether the claim holds with seeds in its interval."""
+def seed_diff_table(src: page.Sources) -> Table | None:
+    """Every compared claim's paired difference with seeds in its interval (mean over seeds,
+    seeds × scenarios interval, verdict) beside this run's single-seed verdict."""
     found = src.get(SEEDS_FILE, "findings")
     if not isinstance(found, dict):
-        return []
-    n = len(src.get(SEEDS_FILE, "seeds", []))
-    out = []
+        return None
+    t = Table(
+        f"Fusion: the findings with {len(src.get(SEEDS_FILE, 'seeds', []))} training seeds in "
+        "their intervals (paired differences on the same test pairs)",
+        ["difference", "metric", "config", "mean over seeds", "95 % CI", "verdict"]
+        + ["verdict with one seed"],
+        note=f"Interval: {BOOTSTRAP}; 'lower' / 'higher' only when it excludes 0. One seed: this "
+        "run's paired difference (its numbers: the paired-difference table). Rates as fractions. "
+        f"Source: reports/{SEEDS_FILE}.",
+        anchor="fusion-seed-findings",
+    )
     for pair, per_metric in found.items():
-        a, _, b = pair.partition("_vs_")
         for metric, per_cfg in per_metric.items():
             label, fmt = METRICS.get(metric, (metric, "g4"))
-            if fmt == "pct":
-                fmt = "f3"  # a difference of rates: as a fraction, signed
-            parts, changed = [], []
-            for cfg, e in per_cfg.items():
-                one, many = e["single_seed"], e["seeds"]
-                parts.append(
-                    f"{cfg} {_signed(many['estimate'], fmt)} [{_signed(many['lo'], fmt)}, "
-                    f"{_signed(many['hi'], fmt)}] ({many['verdict']}; one seed: {one['verdict']})"
+            fmt = "f3" if fmt == "pct" else fmt  # a difference of rates: as a fraction
+            for cfg in per_cfg:
+                key = f"findings.{pair}.{metric}.{cfg}"
+                verdicts = [
+                    Cell(str(src.get(SEEDS_FILE, f"{key}.{k}.verdict")))
+                    for k in ("seeds", "single_seed")
+                ]
+                t.rows.append(
+                    [
+                        Cell(pair.replace("_vs_", " − ")),
+                        Cell(label),
+                        Cell(cfg),
+                        src.cell(SEEDS_FILE, f"{key}.seeds.estimate", fmt),
+                        interval_cell(src, SEEDS_FILE, f"{key}.seeds", BOOTSTRAP, fmt),
+                        *verdicts,
+                    ]
                 )
-                if not e["holds"]:
-                    changed.append(cfg)
-            held = (
-                "every verdict holds with seeds"
-                if not changed
-                else f"the verdict changes with seeds at {', '.join(changed)}"
-            )
-            out.append(f"**{a} − {b}, {label} ({n} seeds):** {'; '.join(parts)} — {held}.")
-    return out
-
-
-def _signed(v: float, fmt: str) -> str:
-    s = fmt_value(v, fmt)
-    return s if s.startswith("-") or s == "n/a" else f"+{s}"
+    return t
