@@ -328,8 +328,13 @@ def test_registration_tables_show_pose_errors_and_bins(
             }
         },
         "bins": {
-            "rotation": {
-                "learned": {"0-2deg": {"n": 40, "success_rate": 1.0}},
+            "rotation": {  # keys in string order, as a metrics file keeps them
+                "learned": {
+                    "0-2deg": {"n": 40, "success_rate": 1.0},
+                    ">=15deg": {"n": 5, "success_rate": 0.2},
+                    "10-15deg": {"n": 8, "success_rate": 0.5},
+                    "2-5deg": {"n": 20, "success_rate": 0.75},
+                },
                 "registered": {"0-2deg": {"n": 40, "success_rate": 0.9}},
             },
             "translation": {"learned": {"0-1m": {"n": 30, "success_rate": 0.5}}},
@@ -350,9 +355,11 @@ def test_registration_tables_show_pose_errors_and_bins(
     learned = texts[1]
     assert learned[2:4] == ["0.94", "[0.89, 0.97]"] and learned[5] == "0.2" and learned[6] == "0.3"
     assert learned[-2:] == ["0.12", "[0.05, 0.19]"] and texts[0][-2:] == ["n/a", "n/a"]
+    # bins by their lower edge, not in the metrics file's string order
+    assert bins.columns == ["method", "0-2deg (n)", "2-5deg (n)", "10-15deg (n)", ">=15deg (n)"]
     assert [[c.text for c in r] for r in bins.rows] == [
-        ["registered (FM + ECC) + Dempster", "0.9 (40)"],
-        ["learned registration + Dempster", "1 (40)"],
+        ["registered (FM + ECC) + Dempster", "0.9 (40)", "n/a", "n/a", "n/a"],
+        ["learned registration + Dempster", "1 (40)", "0.75 (20)", "0.5 (8)", "0.2 (5)"],
     ]
     assert (
         registration_tables(

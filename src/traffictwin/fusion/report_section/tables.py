@@ -11,6 +11,8 @@ configuration is ``n/a``; a "lower" / "higher" verdict only where the paired int
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -233,6 +235,13 @@ def _diff_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) 
     return t
 
 
+def _bin_start(label: str) -> float:
+    """A bin label's lower edge (``"2-5deg"`` -> 2, ``">=15deg"`` -> 15): bins in numeric order
+    (metrics files keep their keys sorted as strings, where ``10-15deg`` comes before ``2-5deg``)."""
+    m = re.match(r"[<>=]*\s*(\d+(?:\.\d+)?)", label)
+    return float(m.group(1)) if m else math.inf
+
+
 def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
     """Success rate (pairs) per bin of the drawn translation and yaw error, configurations pooled."""
     out = []
@@ -241,7 +250,9 @@ def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
         bins = {
             m: bins[m] for m in rows if isinstance(bins, dict) and isinstance(bins.get(m), dict)
         }
-        labels = list(dict.fromkeys(lab for per_bin in bins.values() for lab in per_bin))
+        labels = sorted(
+            dict.fromkeys(lab for per_bin in bins.values() for lab in per_bin), key=_bin_start
+        )
         if not labels:
             continue
         t = Table(
