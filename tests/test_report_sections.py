@@ -186,6 +186,20 @@ def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
     )
     diff2 = next(t for t in sec2.tables if t.anchor == "fusion-diff")
     assert diff2.rows[0][5].text == "no difference shown"
+    # registered − naive and naive − registered: one row (the same numbers, signs turned)
+    both = json.loads(json.dumps(metrics))
+    d = {"kld_fou_mean": {"estimate": -0.1, "lo": -0.2, "hi": -0.05}}
+    both["test"]["A"]["registered"] = {"kld_fou_mean": 0.4}
+    both["diff"]["A"]["registered"] = {"vs_naive": d}
+    both["diff"]["A"]["naive"] = {"vs_registered": {"kld_fou_mean": {"estimate": 0.1}}}
+    sec3 = _section(
+        R.build_report(_inputs(_reports(tmp_path / "d", {"fusion.json": both})), providers({})),
+        fusion_report.TITLE,
+    )
+    diff3 = next(t for t in sec3.tables if t.anchor == "fusion-diff")
+    pairs = [(r[1].text, r[2].text) for r in diff3.rows]
+    assert ("naive (noisy pose + Dempster)", "registered") not in pairs
+    assert pairs.count(("registered (FM + ECC) + Dempster", "naive")) == 1
     assert kld.rows[0][1].src == "params#configurations.A.r"
     # findings come from fusion.findings, as bullets
     assert sec.bullet_groups[0] == (

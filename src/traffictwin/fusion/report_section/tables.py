@@ -214,13 +214,17 @@ def _diff_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) 
         ["config", "method", "baseline", "Δ KLD(b)", "95 % CI", "KLD(b) verdict", "Δ KLD(a)"]
         + ["95 % CI", "Δ Dice occ", "95 % CI", "Dice occ verdict"],
         note="Negative Δ KLD / positive Δ Dice favour the method. 'lower' / 'higher' only when the "
-        "interval excludes 0, else 'no difference shown'. " + CI_NOTE,
+        "interval excludes 0, else 'no difference shown'. naive − registered is registered − naive "
+        "with the signs turned: one row. " + CI_NOTE,
         anchor="fusion-diff",
     )
     for c in cfgs:
         for m in methods:
             for b in (NAIVE, REG):
-                if not isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict):
+                if not isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict) or (
+                    (m, b) == (NAIVE, REG)  # registered − naive negated: shown once
+                    and isinstance(src.get(FUSION_FILE, f"diff.{c}.{REG}.vs_{NAIVE}"), dict)
+                ):
                     continue
                 row = [Cell(c), Cell(label(m)), Cell(b)]
                 for k in (HEADLINE, "kld_fo_mean", "dice_occ"):
