@@ -17,8 +17,7 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from traffictwin.io.yamlio import safe_load
 from traffictwin.mlops import registry as reg
 from traffictwin.mlops.journal import Journal, Snapshot
 
@@ -35,7 +34,7 @@ def _dvc(root: Path, *args: str) -> subprocess.CompletedProcess:
 
 def _locked_stages(root: Path) -> dict[str, Any]:
     lock = root / "dvc.lock"
-    return ((yaml.safe_load(lock.read_text()) or {}).get("stages") or {}) if lock.exists() else {}
+    return ((safe_load(lock.read_text()) or {}).get("stages") or {}) if lock.exists() else {}
 
 
 def _lock_outs(root: Path) -> list[dict[str, Any]]:

@@ -20,6 +20,7 @@ from pathlib import Path
 import yaml
 
 from traffictwin.config import flatten
+from traffictwin.io.yamlio import safe_load
 from traffictwin.mlops.tracking import (
     ENV_DVC_BASELINE,
     ENV_GIT_COMMIT,
@@ -100,7 +101,7 @@ def params_overrides(
     path = Path(params)
     try:
         rel = path.resolve().relative_to(Path(root).resolve()).as_posix()
-        now = yaml.safe_load(path.read_text(encoding="utf-8"))
+        now = safe_load(path.read_text(encoding="utf-8"))
         out = subprocess.run(
             ["git", "show", f"{commit}:{rel}"],
             cwd=root,
@@ -110,7 +111,7 @@ def params_overrides(
         )
         if out.returncode != 0:
             return {}
-        committed = yaml.safe_load(out.stdout)
+        committed = safe_load(out.stdout)
     except (OSError, ValueError, subprocess.SubprocessError, yaml.YAMLError):
         return {}
     if not isinstance(now, dict) or not isinstance(committed, dict):

@@ -18,6 +18,8 @@ from typing import Any, TypeVar
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
+from traffictwin.io.yamlio import safe_load
+
 PROFILES = ("ci", "default", "paper")
 _MISSING = object()
 T = TypeVar("T")
@@ -57,7 +59,7 @@ def load_params(path: str | Path) -> DictConfig:
     if not path.exists():
         raise ConfigError(f"{path}: not found (run `make params` to compose it from conf/)")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):

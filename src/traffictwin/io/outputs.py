@@ -144,8 +144,10 @@ def _dvc_out_patterns(pipeline_file: str, _mtime_ns: int) -> tuple[str, ...]:
     ``*``. An unreadable file gives no patterns (DVC itself reports it)."""
     import yaml
 
+    from traffictwin.io.yamlio import safe_load
+
     try:
-        doc = yaml.safe_load(Path(pipeline_file).read_text(encoding="utf-8"))
+        doc = safe_load(Path(pipeline_file).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return ()
     stages = doc.get("stages") if isinstance(doc, dict) else None
