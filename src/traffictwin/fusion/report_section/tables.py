@@ -240,9 +240,10 @@ def _diff_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) 
 
 
 def _bin_start(label: str) -> float:
-    """A bin label's lower edge (``"2-5deg"`` -> 2, ``">=15deg"`` -> 15): bins in numeric order
-    (metrics files keep their keys sorted as strings, where ``10-15deg`` comes before ``2-5deg``)."""
-    m = re.match(r"[<>=]*\s*(\d+(?:\.\d+)?)", label)
+    """A bin label's lower edge, as :func:`traffictwin.fusion.metrics.pose_error_bins` writes them
+    (``"2-5deg"`` -> 2, ``">=15deg"`` -> 15): bins in numeric order (metrics files keep their keys
+    sorted as strings, where ``10-15deg`` comes before ``2-5deg``); another label sorts last."""
+    m = re.match(r"(?:>=)?(\d+(?:\.\d+)?)", label)
     return float(m.group(1)) if m else math.inf
 
 
