@@ -41,6 +41,8 @@ DISPARITY = DATA / "disparity"
 ORB_CSV = DATA / "orb" / "orb.csv"
 STEREO_LEARNED = DATA / "stereo_learned"
 STEREO_MODEL = MODELS / "stereo" / "learned"
+#: the same network trained without the held-out road templates (generalisation)
+STEREO_HOLDOUT_MODEL = MODELS / "stereo" / "holdout"
 RISK_MODELS = MODELS / "risk"
 
 

@@ -28,7 +28,7 @@ from traffictwin.io.shards import (
 )
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import stereo_example_figure
-from traffictwin.risk.dataset import SPLITS, load_stereo_shard
+from traffictwin.risk.stereo_shards import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.metrics import (
     accuracy_table,

@@ -20,10 +20,10 @@ import pandas as pd
 
 from traffictwin.config import typed
 from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.io.shards import Dataset, DatasetError, derived_dataset
 from traffictwin.risk.config import RiskDataConfig
 from traffictwin.risk.data_figures import orb_example_figure
-from traffictwin.risk.dataset import SPLITS, load_stereo_shard
+from traffictwin.risk.stereo_shards import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.check import (
     RULES,
@@ -49,13 +49,7 @@ def _work(i: int):
 def valid_shares(risk: Dataset, disparity: Path = DISPARITY) -> pd.DataFrame:
     """``frame_id``, ``valid_share`` of every frame of ``risk`` from the disparity stage's
     frames.csv; a clear error when data/disparity is missing, stale or lacks the column."""
-    disp = Dataset(disparity, kind="disparity", verify=False)
-    src = disp.params.get("source")
-    if src != risk.manifest_hash():
-        raise DatasetError(
-            f"{disparity / 'manifest.json'}: made from another data/risk (source {src}, "
-            f"data/risk is {risk.manifest_hash()}): run the disparity stage first"
-        )
+    disp = derived_dataset(disparity, "disparity", risk, "data/risk", "disparity")
     table = disp.table("frames.csv")
     if "valid_share" not in table.columns:
         raise DatasetError(

@@ -31,11 +31,11 @@ from dataclasses import asdict
 
 import numpy as np
 
-from traffictwin.api.risk import PACKAGED_STEREO
 from traffictwin.config import get
 from traffictwin.io.atomic import write_bytes_atomic, write_json_atomic
 from traffictwin.model_format import CKPT_SHA_KEY
 from traffictwin.risk.model_io import CKPT, META, load_risk_model, save_predictor
+from traffictwin.risk.predictor import PACKAGED_STEREO
 from traffictwin.risk.selection_suite import (
     RULES,
     Selection,

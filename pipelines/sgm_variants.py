@@ -31,9 +31,9 @@ import pandas as pd
 
 from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import write_json_atomic
-from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.io.shards import Dataset, DatasetError, derived_dataset
 from traffictwin.risk.config import RiskDataConfig
-from traffictwin.risk.dataset import load_stereo_shard
+from traffictwin.risk.stereo_shards import load_stereo_shard
 from traffictwin.stereo.evaluation import critical_objects, evaluate, frame_sums, statistics
 from traffictwin.stereo.sgm import SgmParams, disparity_frames
 from traffictwin.stereo.variants import (
@@ -47,7 +47,6 @@ from traffictwin.stereo.variants import (
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, PARAMS, RISK_DATA, metrics_file
-from .stereo_learned import check_disparity
 
 STAGE = "sgm_variants"
 #: the validation figures of a variant (its own pixels)
@@ -133,7 +132,7 @@ def run(
     if not (Path(src) / "manifest.json").exists():
         raise DatasetError(f"{src}: no manifest.json (run `dvc repro generate_risk` first)")
     ds = Dataset(src, kind="risk")  # verifies every shard's SHA-256
-    configured_disp = check_disparity(ds, disparity)
+    configured_disp = derived_dataset(disparity, "disparity", ds, "data/risk", "disparity")
     variants = variant_grid(sgm, grid)
     cam = _camera(ds)
     fx_b = cam["fx"] * cam["baseline"]

@@ -42,32 +42,26 @@ from traffictwin.io.shards import (
     Dataset,
     DatasetError,
     DatasetWriter,
+    derived_dataset,
     shard_name,
     write_npz_deterministic,
 )
-from traffictwin.risk.dataset import load_stereo_shard
+from traffictwin.risk.stereo_shards import load_stereo_shard
 from traffictwin.stereo.evaluation import critical_objects, evaluate, frame_sums
 from traffictwin.stereo.targets import stereo_targets
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, RISK_DATA, STEREO_LEARNED, STEREO_MODEL, figure_file, metrics_file
-from .train_stereo import STEREO_HOLDOUT_MODEL
+from ._paths import (
+    DISPARITY,
+    RISK_DATA,
+    STEREO_HOLDOUT_MODEL,
+    STEREO_LEARNED,
+    STEREO_MODEL,
+    figure_file,
+    metrics_file,
+)
 
 STAGE = "stereo_learned"
-
-
-def check_disparity(risk: Dataset, disparity: Path) -> Dataset:
-    """data/disparity, checked to be made from ``risk`` (the SGM source of the comparison)."""
-    if not (Path(disparity) / "manifest.json").exists():
-        raise DatasetError(f"{disparity}: no manifest.json (run `dvc repro disparity` first)")
-    disp = Dataset(disparity, kind="disparity", verify=False)
-    src = disp.params.get("source")
-    if src != risk.manifest_hash():
-        raise DatasetError(
-            f"{Path(disparity) / 'manifest.json'}: made from another data/risk (source {src}, "
-            f"data/risk is {risk.manifest_hash()}): run the disparity stage first"
-        )
-    return disp
 
 
 @dataclass
@@ -96,7 +90,7 @@ def _load_inputs(model: Path, src: Path, disparity: Path, holdout_model: Path | 
     if held_net is not None and not held:
         raise DatasetError(f"{holdout_model}: model_meta.json names no held-out road templates")
     ds = Dataset(src, kind="risk")  # verifies every shard's SHA-256
-    sgm = check_disparity(ds, disparity)
+    sgm = derived_dataset(disparity, "disparity", ds, "data/risk", "disparity")
     cam = ds.manifest.get("camera") or {}
     if not {"fx", "baseline", "cy", "fy", "mount_height"} <= set(cam):
         raise DatasetError(

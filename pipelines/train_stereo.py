@@ -29,6 +29,7 @@ from ._paths import (
     DISPARITY,
     PARAMS,
     RISK_DATA,
+    STEREO_HOLDOUT_MODEL,
     STEREO_MODEL,
     figure_file,
     metrics_file,
@@ -39,9 +40,6 @@ from ._paths import (
 KEY = "stereo_model"
 STAGE = "train_stereo"
 HOLDOUT_STAGE = "train_stereo_holdout"
-#: the same network trained without the held-out road templates (generalisation); defined here,
-#: not in _paths (every stage imports _paths: a new path there would re-run the whole DAG)
-STEREO_HOLDOUT_MODEL = STEREO_MODEL.parent / "holdout"
 
 
 def model_config(p) -> StereoModelConfig:
@@ -59,8 +57,7 @@ def main(argv: list[str] | None = None) -> None:
         help="train without stereo_model.holdout_templates -> models/stereo/holdout",
     )
     args = ap.parse_args(argv)
-    # the training modules import Lightning: only here, so that stereo_learned, which imports this
-    # module for STEREO_HOLDOUT_MODEL, does not
+    # the training modules import Lightning: only here (the argument checks above stay light)
     from traffictwin.risk.stereo_training import StereoData, fit_stereo
     from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings
 

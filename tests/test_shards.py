@@ -14,6 +14,7 @@ from traffictwin.io.shards import (
     Dataset,
     DatasetError,
     DatasetWriter,
+    derived_dataset,
     read_npz,
     write_npz_deterministic,
 )
@@ -219,3 +220,20 @@ def test_load_all_refuses_a_shard_of_another_shape_and_a_tampered_one(tmp_path: 
     p.write_bytes(bytes(data))
     with pytest.raises(DatasetError, match=r"shard-00001\.npz.*SHA-256 mismatch"):
         Dataset(tmp_path / "ds", kind="unit", verify=False).load_all("train", keys=["id"])
+
+
+def test_derived_dataset_checks_its_source_and_names_the_stage(tmp_path: Path) -> None:
+    _write(tmp_path / "src", seed=0)
+    _write(tmp_path / "other", seed=1)
+    source, other = Dataset(tmp_path / "src"), Dataset(tmp_path / "other")
+    w = DatasetWriter(tmp_path / "derived", "unit", {"source": source.manifest_hash()}, seed=0)
+    w.add_shard(0, _arrays(0), split="train")
+    w.finalize()
+    derived = derived_dataset(tmp_path / "derived", "unit", source, "data/src", "derive")
+    assert derived.params["source"] == source.manifest_hash()
+    with pytest.raises(DatasetError, match=r"made from another data/src .*run the derive stage"):
+        derived_dataset(tmp_path / "derived", "unit", other, "data/src", "derive")
+    with pytest.raises(DatasetError, match=r"no manifest.json \(run `dvc repro derive` first\)"):
+        derived_dataset(tmp_path / "none", "unit", source, "data/src", "derive")
+    with pytest.raises(DatasetError, match="kind 'unit' \\(expected 'disparity'\\)"):
+        derived_dataset(tmp_path / "derived", "disparity", source, "data/src", "derive")

@@ -16,6 +16,7 @@ import numpy as np
 
 from traffictwin.risk.evaluation.scoring import PAPER
 from traffictwin.risk.metric import risk_to_thw
+from traffictwin.risk.predictor import PACKAGED_STEREO
 
 from .errors import ApiError, ApiWarning, InputValueError, ModelDomainError
 from .images import Frame
@@ -43,8 +44,6 @@ from .stereo import LoadedStereo, check_stereo_size
 
 MAX_THW_THRESHOLD_S = 10.0  # a larger THW threshold calls almost every frame critical
 UNKNOWN = "unknown"  # the verdict of a pair that failed the stereo pair check
-#: where a risk model folder that reads the learned disparity packages its stereo network
-PACKAGED_STEREO = "stereo"
 
 
 @dataclass

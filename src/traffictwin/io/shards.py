@@ -487,3 +487,23 @@ class Dataset:
         if entry is None:
             raise DatasetError(f"{self.root / MANIFEST}: no table '{name}'")
         return pd.read_csv(self._check(name, entry["sha256"]))
+
+
+def derived_dataset(
+    root: str | Path, kind: str, source: Dataset, source_label: str, stage: str
+) -> Dataset:
+    """The dataset at ``root`` (not re-verified) that a stage derived from ``source``: its
+    manifest's ``params.source`` must be ``source``'s manifest hash. ``source_label`` names the
+    source and ``stage`` the stage that writes ``root`` in the errors (a clear
+    :class:`DatasetError` when ``root`` has no manifest or was made from other data)."""
+    root = Path(root)
+    if not (root / MANIFEST).exists():
+        raise DatasetError(f"{root}: no {MANIFEST} (run `dvc repro {stage}` first)")
+    derived = Dataset(root, kind=kind, verify=False)
+    made_from, expected = derived.params.get("source"), source.manifest_hash()
+    if made_from != expected:
+        raise DatasetError(
+            f"{root / MANIFEST}: made from another {source_label} (source {made_from}, "
+            f"{source_label} is {expected}): run the {stage} stage first"
+        )
+    return derived

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from traffictwin.risk.evaluation import roc_auc
+from traffictwin.risk.evaluation.scoring import roc_auc
 
 ROC_COLUMNS = ["predictor", "rank", "fpr", "tpr"]
 PR_COLUMNS = ["predictor", "rank", "recall", "precision"]

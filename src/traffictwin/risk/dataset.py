@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -22,18 +21,14 @@ from traffictwin.risk.metric import (
     RiskConfig,
     risk_threshold,
 )
+from traffictwin.risk.stereo_shards import SPLITS
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
-
-if TYPE_CHECKING:
-    from traffictwin.io.shards import Dataset
 
 #: training labels (``risk_data.label``): THW in a region (metric.REGIONS), or TTC/WTTC in the corridor
 LABELS = ("thw_corridor", "thw_paper", "thw_fov", "ttc", "wttc")
 #: the region column suffix of each region (frames.csv ``thw_<suffix>``, ``risk_thw_<suffix>``)
 REGION_COLUMN = {"corridor": "corridor", "paper": "paper", "camera_fov": "fov"}
-#: the splits, assigned per sequence (:func:`assign_splits`)
-SPLITS = ("train", "val", "test")
 #: frames.csv: these columns first, then the per-frame values of :func:`make_shard` in its order
 _LEAD = ("frame_id", "shard", "idx", "scenario", "split")
 
@@ -170,25 +165,6 @@ def make_shard(
         "risk": np.array([r["risk"] for r in rows], np.float32),
     }
     return arrays, rows
-
-
-def load_stereo_shard(
-    ds: Dataset, index: int, keys: tuple[str, ...] = ("left", "right")
-) -> dict[str, np.ndarray]:
-    """Shard ``index`` of a ``data/risk`` dataset, checked: every array of ``keys`` present and
-    left/right images of one size. Raises :class:`DatasetError` naming the shard file."""
-    from traffictwin.io.shards import DatasetError
-
-    sh = ds.load_shard(index)
-    name = ds.root / ds.shards[index]["name"]
-    for key in keys:
-        if key not in sh:
-            raise DatasetError(f"{name}: array '{key}' missing (has {sorted(sh)})")
-    if sh["left"].shape != sh["right"].shape:
-        raise DatasetError(
-            f"{name}: left {sh['left'].shape} and right {sh['right'].shape} differ in size"
-        )
-    return sh
 
 
 def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[str]) -> pd.DataFrame:

@@ -17,6 +17,8 @@ import numpy as np
 
 #: the disparity keys a frame can carry: SGM's, the exact one, the learned stereo network's
 DISPARITY_KEYS = ("disp_sgm", "disp_gt", "disp_learned")
+#: where a risk model folder whose predictor reads the learned disparity packages its stereo network
+PACKAGED_STEREO = "stereo"
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from traffictwin.risk.baselines import thw_from_distance
+from traffictwin.risk.evaluation.scoring import roc_auc
 from traffictwin.risk.metric import risk_threshold, thw_to_risk
 
 #: tie-break order of :func:`choose` (simplest first)
@@ -44,13 +45,6 @@ def too_few(positive: np.ndarray, min_class: int = MIN_CLASS_FRAMES) -> str | No
             f"{min_class} needed)"
         )
     return None
-
-
-def roc_auc(positive: np.ndarray, score: np.ndarray) -> float:
-    """ROC-AUC (Mann–Whitney, ties half) of ``score`` for ``positive``; NaN without both classes."""
-    from traffictwin.risk.evaluation import roc_auc as _auc
-
-    return float(_auc(np.asarray(positive, bool), np.asarray(score, np.float64)))
 
 
 def balanced_accuracy(positive: np.ndarray, predicted: np.ndarray) -> float:

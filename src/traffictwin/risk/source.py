@@ -26,8 +26,8 @@ import torch
 from torch.utils.data import TensorDataset
 
 from traffictwin.io.shards import Dataset, DatasetError
-from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.dave2 import Dave2Config, prepare_channels
+from traffictwin.risk.stereo_shards import SPLITS
 
 _FRAME_COLS = ("frame_id", "shard", "idx", "split", "speed")
 #: the disparity arrays read from a dataset beside data/risk: array name → dataset kind

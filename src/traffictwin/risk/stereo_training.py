@@ -32,7 +32,7 @@ from torch.utils.data import Dataset as TorchDataset
 from torchmetrics import CatMetric, MeanMetric, SumMetric
 
 from traffictwin import trainer as common
-from traffictwin.io.shards import Dataset, DatasetError
+from traffictwin.io.shards import Dataset, DatasetError, derived_dataset
 from traffictwin.mlops.tracking import DATA_TAG
 from traffictwin.risk.stereo_io import (  # noqa: F401 - re-exported
     PROBLEM,
@@ -77,7 +77,7 @@ def load_pairs(
     with ``disparity`` (a ``data/disparity`` folder aligned 1:1 with ``root``) also ``disp_sgm``
     (N, H, W) float32 px, -1 invalid: SGM of the full frames. ``exclude_templates``: road
     templates whose frames are left out (a generalisation run). Errors name the folder."""
-    from traffictwin.risk.dataset import load_stereo_shard
+    from traffictwin.risk.stereo_shards import load_stereo_shard
 
     ds = Dataset(root, kind="risk", verify=False)
     frames = ds.table("frames.csv")
@@ -97,12 +97,7 @@ def load_pairs(
     parts: dict[str, list[np.ndarray]] = {"left": [], "right": [], "disp_gt": []}
     sgm = None
     if disparity is not None:
-        sgm = Dataset(disparity, kind="disparity", verify=False)
-        if sgm.params.get("source") != ds.manifest_hash():
-            raise DatasetError(
-                f"{Path(disparity) / 'manifest.json'}: made from another data/risk (source "
-                f"{sgm.params.get('source')}, {root} is {ds.manifest_hash()}): run the disparity stage"
-            )
+        sgm = derived_dataset(disparity, "disparity", ds, str(root), "disparity")
         parts["disp_sgm"] = []
     for shard, g in sel.groupby("shard", sort=True):
         sh = load_stereo_shard(ds, int(shard), ("left", "right", "disp_gt"))

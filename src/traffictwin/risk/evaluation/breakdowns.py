@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.evaluation.bootstrap import (
     ClusterBootstrap,
     Stat,
@@ -25,6 +24,7 @@ from traffictwin.risk.evaluation.scorer import Roles, Scorer
 from traffictwin.risk.evaluation.scoring import label_agreement
 from traffictwin.risk.evaluation.settings import BASELINES, SEED_MEAN, Holdout
 from traffictwin.risk.metric import risk_threshold
+from traffictwin.risk.stereo_shards import SPLITS
 from traffictwin.stats import mean_ci
 
 

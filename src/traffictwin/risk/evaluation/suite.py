@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 
 from traffictwin.io.jsonio import json_clean
-from traffictwin.risk.dataset import SPLITS
 from traffictwin.risk.evaluation.bootstrap import (
     ClusterBootstrap,
     difference_json,
@@ -36,6 +35,7 @@ from traffictwin.risk.evaluation.settings import (
     SuiteSettings,
 )
 from traffictwin.risk.evaluation.targets import targets
+from traffictwin.risk.stereo_shards import SPLITS
 
 #: what risk.json keeps of a model's training metadata (when present)
 _MODEL_META = ("n_parameters", "best_val_mse", "best_step", "steps", "n_train")
