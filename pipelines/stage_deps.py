@@ -1,21 +1,31 @@
-"""Each DVC stage's code deps, computed from the imports of its script (not a DVC stage).
+"""Each DVC stage's code deps, computed from the imports of its script (not a DVC stage's script
+itself, except for ``manifests``, the ``stage_code`` stage).
 
-A stage re-runs when a file it imports changes, and only then: its ``deps`` in dvc.yaml list every
-file of ``pipelines/`` and ``src/traffictwin/`` in the import closure of its ``python -m`` module
-(imports anywhere in a file, module level or inside functions, read with ``ast``), one file each,
-never a folder. Data, model and config deps (any other path) are kept as written.
+A stage re-runs when a file it imports changes, and only then. The import closure of a stage's
+``python -m`` module is every file of ``pipelines/`` and ``src/traffictwin/`` it imports
+(imports anywhere in a file, module level or inside functions, read with ``ast``) and the Jinja
+templates those modules render. It is recorded once per script, in that script's *code manifest*
+``stage_code/<script>.md5`` (``md5sum`` lines: the MD5 and path of every file of the closure,
+script first; ``md5sum -c stage_code/train_fusion.md5`` checks them). The ``stage_code`` stage
+writes the manifests; its deps are every code file some stage runs, one file each. Every other
+stage depends on its script's manifest, which changes exactly when a file of its closure does:
+dvc.lock records each code file's hash once instead of once per stage that imports it. Data,
+model and config deps (any other path) are kept as written.
 
     python -m pipelines.stage_deps check        # exit 1 and list the stages whose deps differ
-    python -m pipelines.stage_deps write        # rewrite the code deps of dvc.yaml in place
+    python -m pipelines.stage_deps write        # rewrite the code deps (and manifest outs) of dvc.yaml
+    python -m pipelines.stage_deps manifests    # write stage_code/*.md5 (the stage_code stage)
     python -m pipelines.stage_deps prune-lock   # drop dvc.lock entries of stages dvc.yaml no longer has
 
-``make run`` prunes the lock after ``dvc repro``; tests/test_dvc_deps.py runs the check.
+After editing code, ``dvc repro stage_code`` and then ``dvc status`` lists the stages the edit
+re-runs. ``make run`` prunes the lock after ``dvc repro``; tests/test_dvc_deps.py runs the check.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import hashlib
 import io
 import re
 import sys
@@ -25,13 +35,17 @@ from pathlib import Path
 from typing import Any
 
 from ruamel.yaml import YAML
-from ruamel.yaml.comments import CommentedSeq
+from ruamel.yaml.comments import CommentedMap, CommentedSeq
 
 from pipelines._paths import DVC_YAML, ROOT
 
 SRC = ROOT / "src"
 DVC_LOCK = ROOT / "dvc.lock"
 CODE_ROOTS = ("src", "pipelines")
+#: the folder of the code manifests and the stage that writes them
+MANIFESTS = CODE_STAGE = "stage_code"
+#: the module the ``stage_code`` stage runs
+CODE_STAGE_MODULE = "pipelines.stage_deps"
 
 
 def imported_names(tree: ast.Module, package: str) -> set[str]:
@@ -167,10 +181,84 @@ def code_deps(module: str, root: Path = ROOT) -> list[str]:
     return ([script.relative_to(root).as_posix()] if script else []) + files
 
 
-def wanted_deps(stage: Mapping[str, Any], root: Path = ROOT) -> list[str]:
-    """A stage's deps as they should read: code deps from the imports, then its other deps."""
-    others = [d for d in stage.get("deps", []) if not is_code(dep_path(d))]
-    return code_deps(stage_module(stage), root) + others
+def manifest_path(module: str) -> str:
+    """The code manifest of the stages that run ``module``, relative to the repository root
+    (``pipelines.train_fusion`` -> ``stage_code/train_fusion.md5``)."""
+    return f"{MANIFESTS}/{module.rsplit('.', 1)[-1]}.md5"
+
+
+def is_manifest(dep: str) -> bool:
+    """Whether a dvc.yaml dep is a code manifest (:func:`manifest_path`)."""
+    return dep.startswith(f"{MANIFESTS}/")
+
+
+def manifest_text(module: str, root: Path = ROOT) -> str:
+    """``md5sum`` lines (``<md5>  <path>``, paths relative to ``root``) of every file of
+    :func:`code_deps` of ``module``, in that order: what a stage running ``module`` depends on."""
+    return "".join(
+        f"{hashlib.md5((root / p).read_bytes(), usedforsecurity=False).hexdigest()}  {p}\n"
+        for p in code_deps(module, root)
+    )
+
+
+def stage_modules(doc: Mapping[str, Any]) -> list[str]:
+    """The ``python -m`` modules of dvc.yaml's stages (``doc``), each once, sorted; the
+    ``stage_code`` stage's own module left out."""
+    bodies = _stage_bodies(doc).values()
+    return sorted({stage_module(b) for b in bodies} - {CODE_STAGE_MODULE})
+
+
+def all_code(modules: Iterable[str], root: Path = ROOT) -> list[str]:
+    """The ``stage_code`` stage's code deps: its own script and closure first, then every other
+    file of the closures of ``modules``, sorted."""
+    own = code_deps(CODE_STAGE_MODULE, root)
+    rest = {p for m in modules for p in code_deps(m, root)} - set(own)
+    return own + sorted(rest)
+
+
+def wanted_deps(
+    stage: Mapping[str, Any], root: Path = ROOT, modules: Iterable[str] = ()
+) -> list[str]:
+    """A stage's deps as they should read: its script's code manifest (the ``stage_code`` stage:
+    every code file of ``modules``, the stage modules of dvc.yaml), then its other deps."""
+    others = [
+        d
+        for d in stage.get("deps", [])
+        if not is_code(dep_path(d)) and not is_manifest(dep_path(d))
+    ]
+    module = stage_module(stage)
+    if module == CODE_STAGE_MODULE:
+        return all_code(modules, root) + others
+    return [manifest_path(module)] + others
+
+
+def wanted_outs(modules: Iterable[str]) -> list[str]:
+    """The ``stage_code`` stage's outs: one code manifest per stage module."""
+    return [manifest_path(m) for m in modules]
+
+
+def write_manifests(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
+    """Write the code manifest of every stage module of ``dvc_yaml`` that differs from what the
+    code gives (atomically; an unchanged one is left as it is) and remove manifests of modules no
+    stage runs; returns the paths written or removed."""
+    from traffictwin.io.atomic import write_text_atomic
+
+    _, doc = _load(dvc_yaml)
+    root = root or dvc_yaml.resolve().parent
+    modules = stage_modules(doc)
+    changed: list[str] = []
+    for m in modules:
+        path = root / manifest_path(m)
+        text = manifest_text(m, root)
+        if not path.is_file() or path.read_text() != text:
+            write_text_atomic(path, text)
+            changed.append(manifest_path(m))
+    wanted = {root / p for p in wanted_outs(modules)}
+    for stale in sorted((root / MANIFESTS).glob("*.md5")):
+        if stale not in wanted:
+            stale.unlink()
+            changed.append(stale.relative_to(root).as_posix())
+    return changed
 
 
 def _load(path: Path) -> tuple[YAML, Any]:
@@ -189,14 +277,19 @@ def _stage_bodies(doc: Mapping[str, Any]) -> dict[str, Any]:
 def differences(
     dvc_yaml: Path = DVC_YAML, root: Path | None = None
 ) -> dict[str, tuple[list[str], list[str]]]:
-    """Stages whose deps are not what the imports say: name -> (missing, stale). ``root``: the
-    repository whose code the stages run (default: the folder of ``dvc_yaml``)."""
+    """Stages whose deps (the ``stage_code`` stage: deps and outs) are not what the imports say:
+    name -> (missing, stale). ``root``: the repository whose code the stages run (default: the
+    folder of ``dvc_yaml``)."""
     _, doc = _load(dvc_yaml)
     root = root or dvc_yaml.resolve().parent
+    modules = stage_modules(doc)
     out: dict[str, tuple[list[str], list[str]]] = {}
     for name, body in _stage_bodies(doc).items():
         have = [dep_path(d) for d in body.get("deps", [])]
-        want = wanted_deps(body, root)
+        want = wanted_deps(body, root, modules)
+        if stage_module(body) == CODE_STAGE_MODULE:
+            have += [dep_path(o) for o in body.get("outs", [])]
+            want += wanted_outs(modules)
         missing = [d for d in want if d not in have]
         stale = [d for d in have if d not in want]
         if missing or stale:
@@ -205,30 +298,33 @@ def differences(
 
 
 def write(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
-    """Rewrite the code deps of every stage in ``dvc_yaml``; returns the names of the stages changed.
+    """Rewrite the code deps of every stage in ``dvc_yaml`` (and the ``stage_code`` stage's
+    outs); returns the names of the stages changed.
 
     The file is replaced atomically; a stage's non-code deps keep their order after the code.
     ``root``: the repository whose code the stages run (default: the folder of ``dvc_yaml``)."""
     yaml, doc = _load(dvc_yaml)
     root = root or dvc_yaml.resolve().parent
+    modules = stage_modules(doc)
     changed: list[str] = []
     done: set[int] = set()  # a YAML anchor shared by two stages is one list: rewrite it once
     for name, body in _stage_bodies(doc).items():
         deps = body.get("deps")
+        if stage_module(body) == CODE_STAGE_MODULE:
+            outs = [{p: _flow({"cache": False})} for p in wanted_outs(modules)]
+            if [dep_path(o) for o in body.get("outs", [])] != wanted_outs(modules):
+                body["outs"] = _block(body.get("outs"), outs)
+                changed.append(name)
         if deps is None or id(deps) in done:
             continue
         done.add(id(deps))
-        want = wanted_deps(body, root)
+        want = wanted_deps(body, root, modules)
         if [dep_path(d) for d in deps] == want:
             continue
         keep = {dep_path(d): d for d in deps if not is_code(dep_path(d))}
-        new = [keep.get(d, d) for d in want]
-        if isinstance(deps, CommentedSeq):
-            deps[:] = new
-            deps.fa.set_block_style()
-        else:
-            body["deps"] = new
-        changed.append(name)
+        body["deps"] = _block(deps, [keep.get(d, d) for d in want])
+        if name not in changed:
+            changed.append(name)
     if changed:
         buf = io.StringIO()
         yaml.dump(doc, buf)
@@ -239,6 +335,23 @@ def write(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
         tmp.write_text(text)
         tmp.replace(dvc_yaml)
     return changed
+
+
+def _flow(mapping: dict[str, Any]) -> CommentedMap:
+    """``mapping`` written in flow style (``{cache: false}``)."""
+    out = CommentedMap(mapping)
+    out.fa.set_flow_style()
+    return out
+
+
+def _block(seq: Any, items: list[Any]) -> Any:
+    """``items`` in place of the YAML sequence ``seq`` (kept, with its anchor, when it is one),
+    in block style."""
+    if isinstance(seq, CommentedSeq):
+        seq[:] = items
+        seq.fa.set_block_style()
+        return seq
+    return items
 
 
 def expanded_stage_names(doc: Mapping[str, Any], params: Mapping[str, Any]) -> set[str]:
@@ -288,7 +401,7 @@ def prune_lock(dvc_yaml: Path = DVC_YAML, dvc_lock: Path = DVC_LOCK) -> list[str
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipelines.stage_deps", description=__doc__)
-    parser.add_argument("action", choices=["check", "write", "prune-lock"])
+    parser.add_argument("action", choices=["check", "write", "manifests", "prune-lock"])
     args = parser.parse_args(argv)
     if args.action == "check":
         diff = differences()
@@ -300,6 +413,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.action == "write":
         changed = write()
         print(f"dvc.yaml: code deps rewritten for {len(changed)} stage(s) {changed}")
+        return 0
+    if args.action == "manifests":
+        changed = write_manifests()
+        print(f"{MANIFESTS}: {len(changed)} code manifest(s) written or removed {changed}")
         return 0
     pruned = prune_lock()
     print(f"dvc.lock: {len(pruned)} stale stage(s) removed {pruned}")

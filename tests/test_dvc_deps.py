@@ -1,10 +1,13 @@
-"""dvc.yaml lists, for every stage, exactly the code files its script imports (directly or through
-other modules), one file each: a change to a module re-runs the stages that import it, and only
-those. ``python -m pipelines.stage_deps write`` computes the lists; these tests keep them from
-drifting, and keep dvc.lock free of stages dvc.yaml no longer has."""
+"""Every stage re-runs when a code file its script imports changes, and only then: dvc.yaml's
+``stage_code`` stage depends on every code file some stage runs and writes one code manifest per
+script (``stage_code/<script>.md5``: the MD5 of every file of its import closure), and every other
+stage depends on its script's manifest. ``python -m pipelines.stage_deps write`` computes the lists;
+these tests keep them from drifting, check that a manifest changes exactly when a file of its
+closure does, and keep dvc.lock free of stages dvc.yaml no longer has."""
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import pytest
@@ -24,6 +27,11 @@ def _deps(s: dict) -> list[str]:
     return [stage_deps.dep_path(d) for d in s.get("deps", [])]
 
 
+def _code(s: dict) -> list[str]:
+    """The code files a stage runs: its script's import closure (what its manifest lists)."""
+    return stage_deps.code_deps(stage_deps.stage_module(s), ROOT)
+
+
 def test_every_stage_lists_exactly_the_code_it_imports() -> None:
     diff = stage_deps.differences(ROOT / "dvc.yaml")
     assert not diff, (
@@ -34,32 +42,105 @@ def test_every_stage_lists_exactly_the_code_it_imports() -> None:
 
 @pytest.mark.parametrize("stage", sorted(_stages()))
 def test_code_deps_are_files_never_folders(stage: str) -> None:
-    for dep in filter(stage_deps.is_code, _deps(_stages()[stage])):
+    body = _stages()[stage]
+    code = [d for d in _deps(body) if stage_deps.is_code(d) or stage_deps.is_manifest(d)]
+    for dep in code:
         assert (ROOT / dep).is_file(), f"dvc.yaml stage {stage}: {dep} is not a file"
+    if stage != stage_deps.CODE_STAGE:  # the others depend on their script's manifest only
+        module = stage_deps.stage_module(body)
+        assert code == [stage_deps.manifest_path(module)], (stage, code)
 
 
 def test_a_dropped_or_stale_dep_is_reported(tmp_path: Path) -> None:
-    """The check names a module a stage imports but does not list, and a listed one it does not
-    import; rewriting restores the list."""
+    """The check names a code file the ``stage_code`` stage lacks or lists needlessly, and a stage
+    that lists code instead of its manifest; rewriting restores the lists."""
     doc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    code = doc["stages"]["stage_code"]["deps"]
+    assert "src/traffictwin/risk/dave2.py" in code and "pipelines/reset.py" not in code
+    code.remove("src/traffictwin/risk/dave2.py")
+    code.append("pipelines/reset.py")  # no stage runs it
     deps = doc["stages"]["train_risk"]["do"]["deps"]
-    assert "src/traffictwin/risk/dave2.py" in deps
-    deps.remove("src/traffictwin/risk/dave2.py")
-    deps.append("src/traffictwin/fusion/deeplab.py")
+    assert deps[0] == "stage_code/train_risk.md5"
+    deps[0] = "src/traffictwin/risk/dave2.py"
     broken = tmp_path / "dvc.yaml"
     broken.write_text(yaml.safe_dump(doc, sort_keys=False))
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
     diff = stage_deps.differences(broken, root=ROOT)
     assert diff == {
-        "train_risk": (["src/traffictwin/risk/dave2.py"], ["src/traffictwin/fusion/deeplab.py"])
+        "stage_code": (["src/traffictwin/risk/dave2.py"], ["pipelines/reset.py"]),
+        "train_risk": (["stage_code/train_risk.md5"], ["src/traffictwin/risk/dave2.py"]),
     }
-    assert stage_deps.write(broken, root=ROOT) == ["train_risk"]
+    assert stage_deps.write(broken, root=ROOT) == ["stage_code", "train_risk"]
     assert stage_deps.differences(broken, root=ROOT) == {}
     # data deps survive the rewrite, after the code
     rewritten = yaml.safe_load(broken.read_text())["stages"]["train_risk"]["do"]["deps"]
-    assert [d for d in rewritten if not stage_deps.is_code(d)] == [
-        d for d in deps if not stage_deps.is_code(d)
+    assert rewritten[0] == "stage_code/train_risk.md5"
+    assert rewritten[1:] == [d for d in deps if not stage_deps.is_code(d)]
+
+
+def _tree(root: Path) -> None:
+    """Two stage scripts sharing one module, and a dvc.yaml that runs them."""
+    pkg = root / "src" / "traffictwin"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text('"""docs only."""\n')
+    (pkg / "shared.py").write_text("X = 1\n")
+    (pkg / "only_b.py").write_text("")
+    (root / "pipelines").mkdir()
+    (root / "pipelines" / "a.py").write_text("from traffictwin import shared\n")
+    (root / "pipelines" / "b.py").write_text("from traffictwin import shared, only_b\n")
+    stages = {
+        "stage_code": {"cmd": "python -m pipelines.stage_deps manifests", "deps": [], "outs": []},
+        "a": {"cmd": "python -m pipelines.a", "deps": ["data/in"]},
+        "b": {"foreach": [1, 2], "do": {"cmd": "python -m pipelines.b --n ${item}", "deps": []}},
+    }
+    (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
+    (root / "params.yaml").write_text("seed: 1\n")
+
+
+def test_manifests_are_md5sum_lines_of_the_closure_and_change_with_it(tmp_path: Path) -> None:
+    _tree(tmp_path)
+    # stage_deps' own closure is read from the repository; the stages' from the tree
+    own = stage_deps.code_deps(stage_deps.CODE_STAGE_MODULE, ROOT)
+    for rel in own:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes((ROOT / rel).read_bytes())
+    assert stage_deps.write(tmp_path / "dvc.yaml") == ["stage_code", "a", "b"]
+    doc = yaml.safe_load((tmp_path / "dvc.yaml").read_text())["stages"]
+    assert doc["a"]["deps"] == ["stage_code/a.md5", "data/in"]
+    assert doc["b"]["do"]["deps"] == ["stage_code/b.md5"]
+    assert doc["stage_code"]["outs"] == [
+        {"stage_code/a.md5": {"cache": False}},
+        {"stage_code/b.md5": {"cache": False}},
     ]
+    assert doc["stage_code"]["deps"][len(own) :] == [
+        "pipelines/a.py",
+        "pipelines/b.py",
+        "src/traffictwin/only_b.py",
+        "src/traffictwin/shared.py",
+    ]
+    assert stage_deps.write_manifests(tmp_path / "dvc.yaml") == [
+        "stage_code/a.md5",
+        "stage_code/b.md5",
+    ]
+    md5_x1 = "67febd88df9610701ace8ce092f0eb6b"  # `printf "X = 1\\n" | md5sum`
+    assert hashlib.md5(b"X = 1\n").hexdigest() == md5_x1
+    md5_empty = "d41d8cd98f00b204e9800998ecf8427e"
+    md5_a = hashlib.md5(b"from traffictwin import shared\n").hexdigest()
+    assert (tmp_path / "stage_code" / "a.md5").read_text() == (
+        f"{md5_a}  pipelines/a.py\n{md5_x1}  src/traffictwin/shared.py\n"
+    )
+    assert (
+        f"{md5_empty}  src/traffictwin/only_b.py\n" in (tmp_path / "stage_code/b.md5").read_text()
+    )
+    assert stage_deps.write_manifests(tmp_path / "dvc.yaml") == []  # nothing changed: untouched
+    # an edit changes exactly the manifests of the scripts that import the file
+    (tmp_path / "src" / "traffictwin" / "only_b.py").write_text("Y = 2\n")
+    (tmp_path / "stage_code" / "gone.md5").write_text("")  # a script no stage runs any more
+    assert stage_deps.write_manifests(tmp_path / "dvc.yaml") == [
+        "stage_code/b.md5",
+        "stage_code/gone.md5",
+    ]
+    assert not (tmp_path / "stage_code" / "gone.md5").exists()
 
 
 def test_closure_follows_imports_inside_functions_and_parent_packages(tmp_path: Path) -> None:
@@ -109,11 +190,11 @@ def test_report_code_retrains_and_regenerates_nothing() -> None:
     report_only = ("src/traffictwin/report/", "report_section", "report_tables", "findings_")
     kit = ("src/traffictwin/report/colours.py", "src/traffictwin/report/prose.py")
     for name, s in _stages().items():
-        if name in ("report", "plot_data", "check_params"):
+        if name in ("report", "plot_data", "check_params", stage_deps.CODE_STAGE):
             continue
         hits = [
             d
-            for d in _deps(s)
+            for d in _code(s)
             if any(k in d for k in report_only) and d not in kit  # figure colours, finding prose
         ]
         assert not hits, f"stage {name} depends on report code {hits}"
@@ -154,10 +235,10 @@ def test_a_new_method_or_evaluation_figure_regenerates_and_retrains_nothing() ->
     stages = _stages()
     assert set(DATA_AND_TRAINING) <= set(stages), set(DATA_AND_TRAINING) - set(stages)
     for name in DATA_AND_TRAINING:
-        hits = [d for d in _deps(stages[name]) if d in EVALUATION_ONLY]
+        hits = [d for d in _code(stages[name]) if d in EVALUATION_ONLY]
         assert not hits, f"stage {name} depends on evaluation-only code {hits}"
     assert all((ROOT / f).is_file() for f in EVALUATION_ONLY)
-    assert "src/traffictwin/fusion/methods.py" in _deps(stages["evaluate_fusion"])
+    assert "src/traffictwin/fusion/methods.py" in _code(stages["evaluate_fusion"])
 
 
 def test_dvc_lock_holds_only_todays_stages() -> None:
