@@ -282,7 +282,7 @@ def _read_json(path: Path) -> Any:
 # --------------------------------------------------------------------------- section providers
 @dataclass(frozen=True)
 class DataFile:
-    """A metrics file shown in the report's data section (as :func:`~traffictwin.report.tables.pivot_table`)."""
+    """A problem's data file, shown first in the report's appendix under ``title``."""
 
     file: str  # name in reports/metrics, e.g. "orb.json"
     title: str
@@ -296,7 +296,7 @@ class SectionProvider:
     ``section(src, figures)`` builds the problem's section from the loaded files and the figures
     that were assigned to it. ``figures``: ``{file stem: caption}`` of the figures the problem's
     stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
-    that claims any other image for this problem. ``data_files``: its files in the data section.
+    that claims any other image for this problem. ``data_files``: its data files (first in the appendix).
     ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
     appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
     new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their

@@ -43,12 +43,7 @@ from traffictwin.report.model import (
 )
 from traffictwin.report.prose import template_environment
 from traffictwin.report.summary import Headline, summary_json
-from traffictwin.report.tables import (
-    environment_table,
-    generic_table,
-    params_table,
-    pivot_table,
-)
+from traffictwin.report.tables import environment_table, generic_table, params_table
 
 # The files this module writes into the reports folder.
 README = "README.md"
@@ -123,26 +118,20 @@ def run_section(src: Sources) -> Section:
     return run
 
 
-def data_section(src: Sources, providers: Sequence[SectionProvider]) -> Section:
-    """Every provider's data files, as grids."""
-    data = Section("Data and disparity statistics", collapsed=True)
-    for df in (df for prov in providers for df in prov.data_files):
-        t = pivot_table(src, df.file, df.title, anchor=f"data-{Path(df.file).stem}")
-        if t:
-            data.tables.append(t)
-        elif df.required:
-            data.paragraphs.append(f"`reports/metrics/{df.file}` is missing.")
-    return data
-
-
 def appendix_section(
     src: Sources, providers: Sequence[SectionProvider], figures: list[Figure]
 ) -> Section:
-    """Every metrics file no section shows in full, as a key/value table; unclaimed figures."""
+    """Every metrics file no section shows in full, as a key/value table (the providers' data
+    files first, under their titles; a required one that is missing said so); unclaimed figures."""
     appendix = Section("Appendix — every metrics file", collapsed=True)
-    shown = {df.file for prov in providers for df in prov.data_files}
-    for file in src.metrics:
-        if file in shown or any(re.fullmatch(prov.shown_files, file) for prov in providers):
+    data = {df.file: df for prov in providers for df in prov.data_files}
+    appendix.paragraphs += [
+        f"`reports/metrics/{f}` is missing."
+        for f, df in data.items()
+        if df.required and not src.has(f)
+    ]
+    for file in [*(f for f in data if src.has(f)), *(f for f in src.metrics if f not in data)]:
+        if any(re.fullmatch(prov.shown_files, file) for prov in providers):
             continue
         if file.startswith("ablations/"):  # an experiment's own results: linked, not dumped
             appendix.paragraphs.append(
@@ -151,9 +140,8 @@ def appendix_section(
                 "the sections above show what they compare."
             )
             continue
-        t = generic_table(src, file, f"reports/metrics/{file}", anchor=f"m-{Path(file).stem}")
-        if t:
-            appendix.tables.append(t)
+        title = data[file].title if file in data else f"reports/metrics/{file}"
+        appendix.tables.append(generic_table(src, file, title, anchor=f"m-{Path(file).stem}"))
     appendix.figures = figures
     return appendix
 
@@ -327,7 +315,6 @@ def build_report(
             replace(sec, page=prov.name or _slug(sec.title))
             for prov, sec in zip(providers, problems)
         ),
-        replace(data_section(src, providers), page="data"),
         replace(run_section(src), page="run"),
         replace(appendix_section(src, providers, other), page="appendix"),
     ]
