@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin import paper_numbers as P
+from traffictwin.interval_rule import finite
 from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
 from traffictwin.report.claims import ClaimCheck
 from traffictwin.report.summary import Headline, interval
@@ -224,6 +225,14 @@ def json_number(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 
+def span_cell(lo: Any, hi: Any, fmt: str, derived: str, why: str = "no interval") -> Cell:
+    """``[lo, hi]`` in format ``fmt``, a cell ``derived`` from the files it names; ``n/a`` (with
+    ``why``) when a bound is not a finite number."""
+    if finite(lo) is None or finite(hi) is None:
+        return Cell(NA, title=why)
+    return Cell(f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]", value=[lo, hi], derived=derived)
+
+
 def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
     """``[lo, hi]`` of ``<key>_ci`` (``{"lo", "hi"}`` or ``[lo, hi]``; or of ``key`` itself when it
     holds ``lo``/``hi``) in metrics ``file``, in format ``fmt``: a derived cell, "95 %
@@ -231,14 +240,9 @@ def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = 
     NaN bound)."""
     base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
     path = src.paths.get(file, f"metrics/{file}")
-    iv = interval(src.get(file, base))
-    if iv is None:
-        return Cell(NA, title=f"no interval in reports/{path}: {base}")
-    return Cell(
-        f"[{fmt_value(iv[0], fmt)}, {fmt_value(iv[1], fmt)}]",
-        value=list(iv),
-        derived=f"95 % {bootstrap} interval, {path}#{base}",
-    )
+    lo, hi = interval(src.get(file, base)) or (None, None)
+    why = f"no interval in reports/{path}: {base}"
+    return span_cell(lo, hi, fmt, f"95 % {bootstrap} interval, {path}#{base}", why)
 
 
 def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:

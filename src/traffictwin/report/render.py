@@ -3,8 +3,8 @@ run reproduce the papers, the headline numbers, links to the pages), one page pe
 ``reports/pages/`` (``<name>.md`` for GitHub, ``<name>.html`` with the figures referenced as
 files), and ``reports/results_table.md`` (the headline tables, included by the project README).
 
-This module only assembles: the page skeleton (intro, the verdict table, "This run", data
-section, appendix), the figures found under ``reports/figures``, the split into pages and the
+This module only assembles: the page skeleton (intro, the verdict table, "This run",
+appendix), the figures found under ``reports/figures``, the split into pages and the
 Markdown / HTML writers (one Jinja template per format renders every page). Each problem's
 results section, its headline numbers and its paper's claims come from its
 :class:`~traffictwin.report.model.SectionProvider` (``traffictwin.fusion.report_section``,
@@ -20,7 +20,7 @@ import html
 import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import astuple, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,7 @@ from traffictwin.report.model import (
     Sources,
     Table,
     fmt_value,
+    span_cell,
 )
 from traffictwin.report.prose import template_environment
 from traffictwin.report.summary import Headline, summary_json
@@ -157,47 +158,44 @@ def collect_headlines(
     }
 
 
+HEADLINE_NOTE = (
+    "Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
+    "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
+    "model on the same quantity and frames (fusion: fusion rules without a network or learned "
+    "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: "
+    "the other maps). Details on the report's pages."
+)
+
+
 def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
-    """Every provider's headline numbers (those of ``reports/summary.json``) as one table; each
-    value cell's source is its key in summary.json."""
+    """Every provider's headline numbers (those of ``reports/summary.json``) as one table, each
+    beside its strongest baseline; a value cell's source is its key in summary.json."""
     sec = Section("Headline results")
-    t = Table(
-        "Headline results (reports/summary.json, the DVC metrics file)",
-        [
-            "problem",
-            "quantity",
-            "where",
-            "value",
-            "95 % CI",
-            "strongest baseline",
-            "its value",
-            "95 % CI",
-        ],
-        anchor="headline",
-        note="Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
-        "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
-        "model on the same quantity and frames (fusion: fusion rules without a network or learned "
-        "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
-        "other maps). Details on the report's pages.",
-        headline=True,  # the first table of results_table.md, the project README's
-    )
+    columns = ["problem", "quantity", "where", "value", "95 % CI"]
+    columns += ["strongest baseline", "its value", "95 % CI"]
+    title = "Headline results (reports/summary.json, the DVC metrics file)"
+    # headline: the first table of results_table.md, the project README's
+    t = Table(title, columns, anchor="headline", note=HEADLINE_NOTE, headline=True)
     for problem, items in headlines.items():
         for h in items:
-            path = f"{problem}.{h.key}"
+            path, b = f"{problem}.{h.key}", h.baseline
+            base = [Cell("—") for _ in range(3)]
+            if b is not None:
+                why = f"no interval beside {b.src}"
+                base = [
+                    Cell(b.name),
+                    Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt),
+                    span_cell(b.lo, b.hi, h.fmt, f"95 % bootstrap interval of {b.src}", why),
+                ]
+            ci = f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi"
             t.rows.append(
                 [
-                    Cell(problem),
-                    Cell(h.quantity),
-                    Cell(h.where),
+                    *map(Cell, (problem, h.quantity, h.where)),
                     Cell(
                         fmt_value(h.value, h.fmt), src=f"{SUMMARY}#{path}", value=h.value, fmt=h.fmt
                     ),
-                    Cell(
-                        f"[{fmt_value(h.lo, h.fmt)}, {fmt_value(h.hi, h.fmt)}]",
-                        value=[h.lo, h.hi],
-                        derived=f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi",
-                    ),
-                    *_baseline_cells(h),
+                    span_cell(h.lo, h.hi, h.fmt, ci),
+                    *base,
                 ]
             )
     if t.rows:
@@ -241,29 +239,9 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
         note="Our data is the project's own simulator at this profile's scale, not the papers': "
         "the verdicts compare trends and rankings. Details on each paper's page.",
     )
-    for c in claims:
-        t.rows.append(
-            [Cell(c.paper), Cell(c.claim), Cell(c.where), Cell(c.measured), Cell(c.verdict)]
-        )
+    t.rows = [list(map(Cell, astuple(c))) for c in claims]  # paper, claim, where, measured, verdict
     sec.tables.append(t)
     return sec
-
-
-def _baseline_cells(h: Headline) -> list[Cell]:
-    """The headline row's baseline cells: name, value (sourced from its metrics file), interval."""
-    b = h.baseline
-    if b is None:
-        return [Cell("—"), Cell("—"), Cell("—")]
-    ci = (
-        Cell(
-            f"[{fmt_value(b.lo, h.fmt)}, {fmt_value(b.hi, h.fmt)}]",
-            value=[b.lo, b.hi],
-            derived=f"95 % bootstrap interval of {b.src}",
-        )
-        if b.lo is not None and b.hi is not None
-        else Cell(NA, title=f"no interval beside {b.src}")
-    )
-    return [Cell(b.name), Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt), ci]
 
 
 def _headline_first(sec: Section) -> Section:
@@ -281,8 +259,8 @@ def build_report(
 ) -> Report:
     """Assemble the report model from the files under ``inputs.reports_dir``: the headline
     numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
-    (in order, headline tables first), then -- collapsed -- the data section, "This run"
-    (parameters, stage times, machine) and the appendix. The index ends with the acceptance
+    (in order, headline tables first), then -- collapsed -- "This run" (parameters, software)
+    and the appendix (the data files first). The index ends with the acceptance
     table (every target's verdict, :mod:`traffictwin.report.acceptance`)."""
     src = Sources(inputs)
     if headlines is None:
