@@ -180,8 +180,9 @@ class Sources:
             for p in sorted((self.root / folder).glob("*.json")):
                 self.metrics[prefix + p.name] = _read_json(p)
                 self.paths[prefix + p.name] = f"{folder}/{p.name}"
-        env = self.root / "environment.json"
-        self.environment = _read_json(env) if env.exists() else None
+        if (self.root / "environment.json").exists():  # the software (the appendix shows it)
+            self.metrics["environment.json"] = _read_json(self.root / "environment.json")
+            self.paths["environment.json"] = "environment.json"
 
     def has(self, file: str) -> bool:
         return file in self.metrics

@@ -44,7 +44,7 @@ from traffictwin.report.model import (
 )
 from traffictwin.report.prose import template_environment
 from traffictwin.report.summary import Headline, summary_json
-from traffictwin.report.tables import environment_table, generic_table, params_table
+from traffictwin.report.tables import generic_table, params_table
 
 # The files this module writes into the reports folder.
 README = "README.md"
@@ -104,8 +104,8 @@ def collect_figures(
 
 # --------------------------------------------------------------------------- assemble
 def run_section(src: Sources) -> Section:
-    """ "This run": the parameters and the software (stage wall times differ between identical
-    runs: they stay in the run records, outside the report)."""
+    """ "This run": the parameters (stage wall times differ between identical runs: they stay in
+    the run records, outside the report; the software is in the appendix)."""
     run = Section("This run: parameters, machine", collapsed=True)
     run.paragraphs.append(
         "The stages' wall times, training times, throughput and MLflow run ids differ between identical "
@@ -113,9 +113,6 @@ def run_section(src: Sources) -> Section:
         "`reports/timings/<stage>.json`."
     )
     run.tables.append(params_table(src))
-    env_t = environment_table(src)
-    if env_t:
-        run.tables.append(env_t)
     return run
 
 
@@ -141,7 +138,7 @@ def appendix_section(
                 "the sections above show what they compare."
             )
             continue
-        title = data[file].title if file in data else f"reports/metrics/{file}"
+        title = data[file].title if file in data else f"reports/{src.paths[file]}"
         appendix.tables.append(generic_table(src, file, title, anchor=f"m-{Path(file).stem}"))
     appendix.figures = figures
     return appendix
@@ -259,8 +256,8 @@ def build_report(
 ) -> Report:
     """Assemble the report model from the files under ``inputs.reports_dir``: the headline
     numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
-    (in order, headline tables first), then -- collapsed -- "This run" (parameters, software)
-    and the appendix (the data files first). The index ends with the acceptance
+    (in order, headline tables first), then -- collapsed -- "This run" (parameters) and the
+    appendix (the data files first, the software last). The index ends with the acceptance
     table (every target's verdict, :mod:`traffictwin.report.acceptance`)."""
     src = Sources(inputs)
     if headlines is None:

@@ -1,5 +1,5 @@
 """Tables any section can use: metrics files as key/value tables or side by side, the run's
-environment and parameters, and a problem's findings text as bullet points."""
+parameters, and a problem's findings text as bullet points."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from traffictwin.report.model import (
     Table,
     flatten_numbers,
     fmt_value,
-    json_number,
 )
 
 FINDINGS_HEADING = "Findings of this run"
@@ -58,24 +57,6 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
         return None
     t = Table(title, ["key", "value"], anchor=anchor)
     t.rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
-    return t
-
-
-def environment_table(src: Sources) -> Table | None:
-    """The software of ``reports/environment.json`` (Python, the packages' versions)."""
-    if not isinstance(src.environment, dict):
-        return None
-    t = Table(
-        "Software of this run",
-        ["item", "value"],
-        anchor="environment",
-        note="The machine (CPU, memory, kernel) can change between identical runs of a virtual "
-        "machine: it is in the run record reports/timings/environment.json, not in this report.",
-    )
-    for k, v in flatten_numbers(src.environment):
-        num = json_number(v) is not None
-        src_k = {"src": f"environment.json#{k}", "value": v, "fmt": "g4"} if num else {}
-        t.rows.append([Cell(k), Cell(fmt_value(v, "g4" if num else "str"), **src_k)])
     return t
 
 
