@@ -565,7 +565,7 @@ def test_index_holds_only_the_verdicts_the_headline_and_the_links(reports: Path)
     # the list of pages: one per section with a page, in reading order, each page there
     pages = [p.stem for p in page_files(reports)[1:]]
     assert pages == list(dict.fromkeys(s.page for s in rep.sections if s.page))
-    assert pages == ["fusion", "risk", "stereo", "twin", "data", "run", "appendix"]
+    assert pages == ["fusion", "risk", "stereo", "twin", "run", "appendix"]
     for sec in rep.sections:
         if not sec.page:
             continue

@@ -1,5 +1,5 @@
 """The report assembles what the problems' section providers give it: figures by provider, the
-data section and appendix from their declarations, findings through explicit functions, and a
+appendix from their declarations, findings through explicit functions, and a
 new problem is one more provider."""
 
 from __future__ import annotations
@@ -80,8 +80,8 @@ def test_collect_figures_known_first_then_by_name(tmp_path: Path) -> None:
 
 
 def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
-    """One more provider (a problem beyond the four) gets its section (after the others), its figures, its data file in the
-    data section and keeps the files it shows out of the appendix."""
+    """One more provider (a problem beyond the four) gets its section (after the others), its
+    figures, its data file first in the appendix and keeps the files it shows out of it."""
     seen: dict[str, object] = {}
 
     def fleet_section(src, figures: list[Figure]) -> Section:
@@ -121,19 +121,16 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
         stereo_report.TITLE,
         twin_report.TITLE,
         "Fleet",
-        "Data and disparity statistics",
         "This run: parameters, machine",
         "Appendix — every metrics file",
     ]
     assert seen["figures"] == ["figures/fleet_map.png", "figures/fleet_other.png"]
     assert _section(report, "Fleet").paragraphs == ["3 vehicles"]
-    data = _section(report, "Data and disparity statistics")
-    assert [t.title for t in data.tables] == ["Fleet data"]
-    assert data.tables[0].columns == ["group", "frames"]
-    assert [[c.text for c in row] for row in data.tables[0].rows] == [["all", "5"]]
-    assert "`reports/metrics/fleet_more.json` is missing." in data.paragraphs
     appendix = _section(report, "Appendix — every metrics file")
-    assert [t.title for t in appendix.tables] == ["reports/metrics/other.json"]
+    # the provider's data files first, under their titles; a required one that is missing said so
+    assert [t.title for t in appendix.tables] == ["Fleet data", "reports/metrics/other.json"]
+    assert [[c.text for c in row] for row in appendix.tables[0].rows] == [["all/frames", "5"]]
+    assert "`reports/metrics/fleet_more.json` is missing." in appendix.paragraphs
     assert _section(report, "Fleet").page == "fleet"  # a provider's page is its name
     md = page_md(rep, "fleet")
     assert "## Fleet" in md and "(../figures/fleet_map.png)" in md

@@ -59,14 +59,8 @@ class Row:
 
     def cells(self) -> list[Cell]:
         name = f"{self.name} ({self.where})" if self.where else self.name
-        return [
-            Cell(self.problem),
-            Cell(name),
-            Cell(self.description),
-            Cell(self.condition),
-            self.value,
-            Cell(self.status),
-        ]
+        texts = (self.problem, name, self.description, self.condition)
+        return [*map(Cell, texts), self.value, Cell(self.status)]
 
 
 def _condition(t: Threshold | None, e: Mapping[str, Any]) -> str:
@@ -151,14 +145,9 @@ def target_rows(
         desc = str(e.get("description") or getattr(t, "description", "") or e.get("note", ""))
         if isinstance(always := e.get("always_warns_value"), int | float):  # met by a constant?
             desc += f"; a warning at every frame scores {always:.2f} on it"
-        met = e.get("met")
-        status = (
-            NOT_EVALUATED
-            if met is None or json_number(e.get("value")) is None
-            else PASS
-            if met
-            else FAIL
-        )
+        status = PASS if e.get("met") else FAIL
+        if e.get("met") is None or json_number(e.get("value")) is None:
+            status = NOT_EVALUATED
         rows.append(Row(problem, name, where, desc, _condition(t, e), value, status))
     if problem in LIST_ABSENT:
         what = f"at {where} for {block.get('method', 'the headline')}" if where else ""

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from traffictwin import paper_numbers as P
+from traffictwin.interval_rule import finite
 from traffictwin.nested import ABSENT, lookup  # the sections import them from here too
 from traffictwin.report.claims import ClaimCheck
 from traffictwin.report.summary import Headline, interval
@@ -179,8 +180,9 @@ class Sources:
             for p in sorted((self.root / folder).glob("*.json")):
                 self.metrics[prefix + p.name] = _read_json(p)
                 self.paths[prefix + p.name] = f"{folder}/{p.name}"
-        env = self.root / "environment.json"
-        self.environment = _read_json(env) if env.exists() else None
+        if (self.root / "environment.json").exists():  # the software (the appendix shows it)
+            self.metrics["environment.json"] = _read_json(self.root / "environment.json")
+            self.paths["environment.json"] = "environment.json"
 
     def has(self, file: str) -> bool:
         return file in self.metrics
@@ -224,6 +226,14 @@ def json_number(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 
+def span_cell(lo: Any, hi: Any, fmt: str, derived: str, why: str = "no interval") -> Cell:
+    """``[lo, hi]`` in format ``fmt``, a cell ``derived`` from the files it names; ``n/a`` (with
+    ``why``) when a bound is not a finite number."""
+    if finite(lo) is None or finite(hi) is None:
+        return Cell(NA, title=why)
+    return Cell(f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]", value=[lo, hi], derived=derived)
+
+
 def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
     """``[lo, hi]`` of ``<key>_ci`` (``{"lo", "hi"}`` or ``[lo, hi]``; or of ``key`` itself when it
     holds ``lo``/``hi``) in metrics ``file``, in format ``fmt``: a derived cell, "95 %
@@ -231,14 +241,9 @@ def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = 
     NaN bound)."""
     base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
     path = src.paths.get(file, f"metrics/{file}")
-    iv = interval(src.get(file, base))
-    if iv is None:
-        return Cell(NA, title=f"no interval in reports/{path}: {base}")
-    return Cell(
-        f"[{fmt_value(iv[0], fmt)}, {fmt_value(iv[1], fmt)}]",
-        value=list(iv),
-        derived=f"95 % {bootstrap} interval, {path}#{base}",
-    )
+    lo, hi = interval(src.get(file, base)) or (None, None)
+    why = f"no interval in reports/{path}: {base}"
+    return span_cell(lo, hi, fmt, f"95 % {bootstrap} interval, {path}#{base}", why)
 
 
 def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
@@ -282,7 +287,7 @@ def _read_json(path: Path) -> Any:
 # --------------------------------------------------------------------------- section providers
 @dataclass(frozen=True)
 class DataFile:
-    """A metrics file shown in the report's data section (as :func:`~traffictwin.report.tables.pivot_table`)."""
+    """A problem's data file, shown first in the report's appendix under ``title``."""
 
     file: str  # name in reports/metrics, e.g. "orb.json"
     title: str
@@ -296,7 +301,7 @@ class SectionProvider:
     ``section(src, figures)`` builds the problem's section from the loaded files and the figures
     that were assigned to it. ``figures``: ``{file stem: caption}`` of the figures the problem's
     stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
-    that claims any other image for this problem. ``data_files``: its files in the data section.
+    that claims any other image for this problem. ``data_files``: its data files (first in the appendix).
     ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
     appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
     new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their

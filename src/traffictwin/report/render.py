@@ -3,8 +3,8 @@ run reproduce the papers, the headline numbers, links to the pages), one page pe
 ``reports/pages/`` (``<name>.md`` for GitHub, ``<name>.html`` with the figures referenced as
 files), and ``reports/results_table.md`` (the headline tables, included by the project README).
 
-This module only assembles: the page skeleton (intro, the verdict table, "This run", data
-section, appendix), the figures found under ``reports/figures``, the split into pages and the
+This module only assembles: the page skeleton (intro, the verdict table, "This run",
+appendix), the figures found under ``reports/figures``, the split into pages and the
 Markdown / HTML writers (one Jinja template per format renders every page). Each problem's
 results section, its headline numbers and its paper's claims come from its
 :class:`~traffictwin.report.model.SectionProvider` (``traffictwin.fusion.report_section``,
@@ -20,7 +20,7 @@ import html
 import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import astuple, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,15 +40,11 @@ from traffictwin.report.model import (
     Sources,
     Table,
     fmt_value,
+    span_cell,
 )
 from traffictwin.report.prose import template_environment
 from traffictwin.report.summary import Headline, summary_json
-from traffictwin.report.tables import (
-    environment_table,
-    generic_table,
-    params_table,
-    pivot_table,
-)
+from traffictwin.report.tables import generic_table, params_table
 
 # The files this module writes into the reports folder.
 README = "README.md"
@@ -108,8 +104,8 @@ def collect_figures(
 
 # --------------------------------------------------------------------------- assemble
 def run_section(src: Sources) -> Section:
-    """ "This run": the parameters and the software (stage wall times differ between identical
-    runs: they stay in the run records, outside the report)."""
+    """ "This run": the parameters (stage wall times differ between identical runs: they stay in
+    the run records, outside the report; the software is in the appendix)."""
     run = Section("This run: parameters, machine", collapsed=True)
     run.paragraphs.append(
         "The stages' wall times, training times, throughput and MLflow run ids differ between identical "
@@ -117,32 +113,23 @@ def run_section(src: Sources) -> Section:
         "`reports/timings/<stage>.json`."
     )
     run.tables.append(params_table(src))
-    env_t = environment_table(src)
-    if env_t:
-        run.tables.append(env_t)
     return run
-
-
-def data_section(src: Sources, providers: Sequence[SectionProvider]) -> Section:
-    """Every provider's data files, as grids."""
-    data = Section("Data and disparity statistics", collapsed=True)
-    for df in (df for prov in providers for df in prov.data_files):
-        t = pivot_table(src, df.file, df.title, anchor=f"data-{Path(df.file).stem}")
-        if t:
-            data.tables.append(t)
-        elif df.required:
-            data.paragraphs.append(f"`reports/metrics/{df.file}` is missing.")
-    return data
 
 
 def appendix_section(
     src: Sources, providers: Sequence[SectionProvider], figures: list[Figure]
 ) -> Section:
-    """Every metrics file no section shows in full, as a key/value table; unclaimed figures."""
+    """Every metrics file no section shows in full, as a key/value table (the providers' data
+    files first, under their titles; a required one that is missing said so); unclaimed figures."""
     appendix = Section("Appendix — every metrics file", collapsed=True)
-    shown = {df.file for prov in providers for df in prov.data_files}
-    for file in src.metrics:
-        if file in shown or any(re.fullmatch(prov.shown_files, file) for prov in providers):
+    data = {df.file: df for prov in providers for df in prov.data_files}
+    appendix.paragraphs += [
+        f"`reports/metrics/{f}` is missing."
+        for f, df in data.items()
+        if df.required and not src.has(f)
+    ]
+    for file in [*(f for f in data if src.has(f)), *(f for f in src.metrics if f not in data)]:
+        if any(re.fullmatch(prov.shown_files, file) for prov in providers):
             continue
         if file.startswith("ablations/"):  # an experiment's own results: linked, not dumped
             appendix.paragraphs.append(
@@ -151,9 +138,8 @@ def appendix_section(
                 "the sections above show what they compare."
             )
             continue
-        t = generic_table(src, file, f"reports/metrics/{file}", anchor=f"m-{Path(file).stem}")
-        if t:
-            appendix.tables.append(t)
+        title = data[file].title if file in data else f"reports/{src.paths[file]}"
+        appendix.tables.append(generic_table(src, file, title, anchor=f"m-{Path(file).stem}"))
     appendix.figures = figures
     return appendix
 
@@ -169,47 +155,44 @@ def collect_headlines(
     }
 
 
+HEADLINE_NOTE = (
+    "Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
+    "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
+    "model on the same quantity and frames (fusion: fusion rules without a network or learned "
+    "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: "
+    "the other maps). Details on the report's pages."
+)
+
+
 def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
-    """Every provider's headline numbers (those of ``reports/summary.json``) as one table; each
-    value cell's source is its key in summary.json."""
+    """Every provider's headline numbers (those of ``reports/summary.json``) as one table, each
+    beside its strongest baseline; a value cell's source is its key in summary.json."""
     sec = Section("Headline results")
-    t = Table(
-        "Headline results (reports/summary.json, the DVC metrics file)",
-        [
-            "problem",
-            "quantity",
-            "where",
-            "value",
-            "95 % CI",
-            "strongest baseline",
-            "its value",
-            "95 % CI",
-        ],
-        anchor="headline",
-        note="Intervals: the sections' 95 % bootstrap intervals (fusion: scenarios resampled; risk and "
-        "twin: driving sequences resampled). Strongest baseline: the best method without the shipped "
-        "model on the same quantity and frames (fusion: fusion rules without a network or learned "
-        "registration; risk: rules and constant predictors, not the oracle on exact disparity; twin: the "
-        "other maps). Details on the report's pages.",
-        headline=True,  # the first table of results_table.md, the project README's
-    )
+    columns = ["problem", "quantity", "where", "value", "95 % CI"]
+    columns += ["strongest baseline", "its value", "95 % CI"]
+    title = "Headline results (reports/summary.json, the DVC metrics file)"
+    # headline: the first table of results_table.md, the project README's
+    t = Table(title, columns, anchor="headline", note=HEADLINE_NOTE, headline=True)
     for problem, items in headlines.items():
         for h in items:
-            path = f"{problem}.{h.key}"
+            path, b = f"{problem}.{h.key}", h.baseline
+            base = [Cell("—") for _ in range(3)]
+            if b is not None:
+                why = f"no interval beside {b.src}"
+                base = [
+                    Cell(b.name),
+                    Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt),
+                    span_cell(b.lo, b.hi, h.fmt, f"95 % bootstrap interval of {b.src}", why),
+                ]
+            ci = f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi"
             t.rows.append(
                 [
-                    Cell(problem),
-                    Cell(h.quantity),
-                    Cell(h.where),
+                    *map(Cell, (problem, h.quantity, h.where)),
                     Cell(
                         fmt_value(h.value, h.fmt), src=f"{SUMMARY}#{path}", value=h.value, fmt=h.fmt
                     ),
-                    Cell(
-                        f"[{fmt_value(h.lo, h.fmt)}, {fmt_value(h.hi, h.fmt)}]",
-                        value=[h.lo, h.hi],
-                        derived=f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi",
-                    ),
-                    *_baseline_cells(h),
+                    span_cell(h.lo, h.hi, h.fmt, ci),
+                    *base,
                 ]
             )
     if t.rows:
@@ -253,29 +236,9 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
         note="Our data is the project's own simulator at this profile's scale, not the papers': "
         "the verdicts compare trends and rankings. Details on each paper's page.",
     )
-    for c in claims:
-        t.rows.append(
-            [Cell(c.paper), Cell(c.claim), Cell(c.where), Cell(c.measured), Cell(c.verdict)]
-        )
+    t.rows = [list(map(Cell, astuple(c))) for c in claims]  # paper, claim, where, measured, verdict
     sec.tables.append(t)
     return sec
-
-
-def _baseline_cells(h: Headline) -> list[Cell]:
-    """The headline row's baseline cells: name, value (sourced from its metrics file), interval."""
-    b = h.baseline
-    if b is None:
-        return [Cell("—"), Cell("—"), Cell("—")]
-    ci = (
-        Cell(
-            f"[{fmt_value(b.lo, h.fmt)}, {fmt_value(b.hi, h.fmt)}]",
-            value=[b.lo, b.hi],
-            derived=f"95 % bootstrap interval of {b.src}",
-        )
-        if b.lo is not None and b.hi is not None
-        else Cell(NA, title=f"no interval beside {b.src}")
-    )
-    return [Cell(b.name), Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt), ci]
 
 
 def _headline_first(sec: Section) -> Section:
@@ -293,8 +256,8 @@ def build_report(
 ) -> Report:
     """Assemble the report model from the files under ``inputs.reports_dir``: the headline
     numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
-    (in order, headline tables first), then -- collapsed -- the data section, "This run"
-    (parameters, stage times, machine) and the appendix. The index ends with the acceptance
+    (in order, headline tables first), then -- collapsed -- "This run" (parameters) and the
+    appendix (the data files first, the software last). The index ends with the acceptance
     table (every target's verdict, :mod:`traffictwin.report.acceptance`)."""
     src = Sources(inputs)
     if headlines is None:
@@ -327,7 +290,6 @@ def build_report(
             replace(sec, page=prov.name or _slug(sec.title))
             for prov, sec in zip(providers, problems)
         ),
-        replace(data_section(src, providers), page="data"),
         replace(run_section(src), page="run"),
         replace(appendix_section(src, providers, other), page="appendix"),
     ]

@@ -1,5 +1,5 @@
-"""Tables any section can use: metrics files as key/value grids or side by side, the run's
-environment and parameters, and a problem's findings text as bullet points."""
+"""Tables any section can use: metrics files as key/value tables or side by side, the run's
+parameters, and a problem's findings text as bullet points."""
 
 from __future__ import annotations
 
@@ -7,7 +7,14 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from traffictwin.report.model import ABSENT, Cell, Sources, Table, flatten_numbers, fmt_value
+from traffictwin.report.model import (
+    ABSENT,
+    Cell,
+    Sources,
+    Table,
+    flatten_numbers,
+    fmt_value,
+)
 
 FINDINGS_HEADING = "Findings of this run"
 
@@ -50,61 +57,6 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
         return None
     t = Table(title, ["key", "value"], anchor=anchor)
     t.rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
-    return t
-
-
-def pivot_table(src: Sources, file: str, title: str, anchor: str = "") -> Table | None:
-    """Metrics ``file`` as a grid: flat ``"<group>/<metric>"`` keys → rows = groups, columns = metrics.
-
-    Falls back to :func:`generic_table` when the keys are not of that form. None if the file is absent.
-    """
-    data = src.metrics.get(file)
-    if data is None:
-        return None
-    flat = [(k, v) for k, v in flatten_numbers(data)]
-    if not flat or not all("/" in k and "." not in k for k, _ in flat):
-        return generic_table(src, file, title, anchor)
-    groups: list[str] = []
-    metrics: list[str] = []
-    for k, _ in flat:
-        g, m = k.split("/", 1)
-        groups += [g] if g not in groups else []
-        metrics += [m] if m not in metrics else []
-
-    def cell(g: str, m: str) -> Cell:
-        key = f"{g}/{m}"
-        return scalar_cell(src, file, key, data[key]) if key in data else Cell("")
-
-    if len(metrics) <= len(groups):  # the narrower orientation: groups as rows
-        t = Table(title, ["group", *metrics], anchor=anchor)
-        t.rows = [[Cell(g)] + [cell(g, m) for m in metrics] for g in groups]
-    else:
-        t = Table(title, ["metric", *groups], anchor=anchor)
-        t.rows = [[Cell(m)] + [cell(g, m) for g in groups] for m in metrics]
-    return t
-
-
-def environment_table(src: Sources) -> Table | None:
-    env = src.environment
-    if not isinstance(env, dict):
-        return None
-    t = Table(
-        "Software of this run",
-        ["item", "value"],
-        anchor="environment",
-        note="The machine (CPU, memory, kernel) can change between identical runs of a virtual "
-        "machine: it is in the run record reports/timings/environment.json, not in this report.",
-    )
-    for k in ("cpu", "cpu_count", "memory_gb", "gpu", "cuda_available", "python", "platform"):
-        v = env.get(k, ABSENT)
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
-            t.rows.append(
-                [Cell(k), Cell(fmt_value(v, "g4"), src=f"environment.json#{k}", value=v, fmt="g4")]
-            )
-        elif v is not ABSENT:
-            t.rows.append([Cell(k), Cell(fmt_value(v, "str"))])
-    for pkg, ver in (env.get("packages") or {}).items():
-        t.rows.append([Cell(pkg), Cell(str(ver))])
     return t
 
 
