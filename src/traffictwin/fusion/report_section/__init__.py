@@ -11,11 +11,8 @@ appendix. The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector,
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
-from dataclasses import replace
 from functools import partial
-from pathlib import PurePath
 from typing import Any
 
 from traffictwin import paper_numbers as P
@@ -49,30 +46,20 @@ FIGURES: dict[str, str] = {
     "score axis zoomed to its data (mirrors Fig. 7; drawn by the report stage)",
     "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
     "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
+    "train_fusion_network": "Learning curves of the fusion network (training / validation loss and "
+    "validation KLD(b) per epoch)",
+    "train_registration": "Learning curves of the learned registration (one model for every "
+    "pose-noise level; validation success rate, mean pose errors, training / validation loss per "
+    "epoch)",
 }
 # figures the report stage redraws (:func:`draw_score_figures`): shown instead of evaluate_fusion's
 REPLACES = {
     "fusion_scores_occupied_zoomed": "fusion_scores_occupied",
     "fusion_scores_free_zoomed": "fusion_scores_free",
 }
+# the other images of the fusion stages (a loss variant's learning curves train_fusion_<name>)
 FIGURE_PATTERN = r"fusion|prealign|pose|ogm|registration"
 DATA_FILES = (page.DataFile("fusion_data.json", "Fusion data (reports/metrics/fusion_data.json)"),)
-# figures/train_fusion_<name>.png (train_fusion and its variants), train_registration.png
-LEARNING_CURVE = re.compile(r"train_(fusion|registration)_?(\w*)")
-
-
-def _captioned(f: page.Figure) -> page.Figure:
-    """A learning-curve figure (:data:`LEARNING_CURVE`) with its caption; others as they are."""
-    m = LEARNING_CURVE.fullmatch(PurePath(f.path).stem)
-    if not m:
-        return f
-    what = (
-        f"fusion network {m.group(2)} (training / validation loss and validation KLD(b) per epoch)"
-        if m.group(1) == "fusion"
-        else "the learned registration (one model for every pose-noise level; validation success "
-        "rate, mean pose errors, training / validation loss per epoch)"
-    )
-    return replace(f, caption=f"Learning curves of {what} — `{f.path}`")
 
 
 def section(
@@ -83,7 +70,7 @@ def section(
     """The fusion results section: the tables of :func:`fusion_tables`, this run's findings, the
     seed replicates and ``figures``. ``configurations``: ``{name: (r m, alpha deg)}`` of this run
     (empty: the paper's A-D). The paper's claims: the index's verdict table."""
-    sec = page.Section(TITLE, figures=[_captioned(f) for f in figures])
+    sec = page.Section(TITLE, figures=figures)
     sec.paragraphs.append(
         f"Reference: {P.FUSION_CITATION}. Baseline: the second map transformed by the noisy "
         "relative pose, then Dempster's rule (the paper's 'naive fusion')."
