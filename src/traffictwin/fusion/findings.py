@@ -1,13 +1,18 @@
-"""Markdown findings of the fusion evaluation, computed from the numbers in ``fusion.json``
-(layout in :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>`` with its
-``<metric>_ci``, ``diff.<cfg>.<row>.vs_<base>.<metric>``, ``label.<cfg>``); written by stage
-``evaluate_fusion`` (``reports/fusion_findings.md``) and shown in the report's fusion section.
+"""Markdown findings of the fusion evaluation, computed from the numbers in ``fusion.json``.
 
-The headline is KLD(b) ``kld_fou_mean``. A difference is *claimed* only when its paired 95 %
-cluster-bootstrap interval excludes zero, else "no difference shown"; estimates come with their
-intervals. :class:`FusionFindings` holds what the findings state (formatted numbers, verdicts,
-configurations); the sentences are in ``templates/findings.md.j2``. What the report's tables
-show (configuration A against naive, the other rows, the targets) is not restated.
+Nothing is hand-typed: every statement is read from the metrics dict written by stage
+``evaluate_fusion`` (layout in :mod:`traffictwin.fusion.evaluation`: ``test.<cfg>.<row>.<metric>``
+with its ``<metric>_ci``, ``diff.<cfg>.<row>.vs_<base>.<metric>``, ``label.<cfg>``).
+
+The headline metric is KLD(b) ``kld_fou_mean`` (KL over the full mass vector). A difference
+between two methods is *claimed* only when its paired 95 % cluster-bootstrap interval excludes
+zero; otherwise the text says "no difference shown". Estimates are quoted with their intervals.
+
+This module computes what the findings say (:class:`FusionFindings`: formatted numbers with
+their intervals, verdicts, lists of configurations); the sentences are in the template
+``templates/findings.md.j2`` next to it. Configuration A against naive, the learned
+registration, the other network rows, the cross table and the targets are not restated here: the
+report's verdict, registration, estimate, paired-difference, cross and acceptance tables show them.
 """
 
 from __future__ import annotations
@@ -19,7 +24,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from traffictwin.interval_rule import NO_INTERVAL, SIDES, interval_side
-from traffictwin.nested import lookup
 from traffictwin.report.prose import render_prose
 
 __all__ = ["FusionFindings", "fusion_findings", "fusion_findings_record", "verdict"]
@@ -45,13 +49,13 @@ def _fmt(v: float, digits: int = 3) -> str:
 
 
 def _get(metrics: Mapping[str, Any], cfg: str, row: str, key: str) -> float:
-    return _num(lookup(metrics, f"test.{cfg}.{row}.{key}"))
+    return _num(metrics.get("test", {}).get(cfg, {}).get(row, {}).get(key))
 
 
 def _with_ci(metrics: Mapping[str, Any], cfg: str, row: str, key: str, digits: int = 3) -> str:
     """``estimate [lo, hi]`` of ``test.<cfg>.<row>.<key>`` (just the estimate without an interval)."""
     v = _get(metrics, cfg, row, key)
-    ci = lookup(metrics, f"test.{cfg}.{row}.{key}_ci") or {}
+    ci = metrics.get("test", {}).get(cfg, {}).get(row, {}).get(f"{key}_ci") or {}
     lo, hi = _num(ci.get("lo")), _num(ci.get("hi"))
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return _fmt(v, digits)
@@ -61,7 +65,7 @@ def _with_ci(metrics: Mapping[str, Any], cfg: str, row: str, key: str, digits: i
 def _diff(
     metrics: Mapping[str, Any], cfg: str, row: str, base: str, key: str
 ) -> Mapping[str, Any] | None:
-    d = lookup(metrics, f"diff.{cfg}.{row}.vs_{base}.{key}")
+    d = metrics.get("diff", {}).get(cfg, {}).get(row, {}).get(f"vs_{base}", {}).get(key)
     return d if isinstance(d, Mapping) else None
 
 
@@ -162,7 +166,7 @@ def _registered(m: Mapping[str, Any], c: str) -> Registered:
     )
 
 
-def _counts(row: Mapping[str, Any]) -> str:
+def auroc_counts_text(row: Mapping[str, Any]) -> str:
     """The cells behind a row's AUROC(u): ``"12,345 wrong cells in 150 pairs, 1,234,567 right"``
     (`` in N pairs`` where the pairs are counted); empty where fusion.json has no counts."""
     wrong, right = row.get("u_auroc_n_wrong"), row.get("u_auroc_n_right")
@@ -173,20 +177,25 @@ def _counts(row: Mapping[str, Any]) -> str:
     return f"{int(wrong):,} wrong cells{where}, {int(right):,} right"
 
 
+def auroc_withheld(row: Mapping[str, Any]) -> bool:
+    """Whether fusion.json withholds a row's AUROC(u) for too few wrong cells."""
+    return row.get("u_auroc_enough") is False
+
+
 def _uncertainty(m: Mapping[str, Any], configs: list[str]) -> dict[str, Any]:
     test, label = m.get("test", {}), m.get("label", {})
     finite = [c for c in configs if math.isfinite(_get(m, c, NET, "u_auroc"))]
 
-    counts = {c: _counts(test[c][NET]) for c in finite}
+    def counts(c: str) -> str:
+        text = auroc_counts_text(test[c][NET])
+        return f" ({text})" if text else ""
+
     return {
-        "u_auroc": [
-            (c, _with_ci(m, c, NET, "u_auroc") + (f" ({counts[c]})" if counts[c] else ""))
-            for c in finite
-        ],
-        "u_too_few": [  # AUROC(u) withheld for too few wrong cells
-            (c, _counts(test[c][NET]))
+        "u_auroc": [(c, _with_ci(m, c, NET, "u_auroc") + counts(c)) for c in finite],
+        "u_too_few": [
+            (c, auroc_counts_text(test[c][NET]))
             for c in configs
-            if test.get(c, {}).get(NET, {}).get("u_auroc_enough") is False
+            if NET in test.get(c, {}) and auroc_withheld(test[c][NET])
         ],
         "u_above": [
             c for c in finite if _num((test[c][NET].get("u_auroc_ci") or {}).get("lo")) > 0.5
