@@ -582,25 +582,24 @@ def test_gate_evaluator_produces_the_configured_fusion_metric(monkeypatch):
     assert out[gate["metric"]] == pytest.approx(fm.kld_fou(data["A"]["label"], pred).mean())
 
 
-def test_learning_curve_figures_are_claimed_and_captioned():
-    import re
-
+def test_learning_curve_figures_are_claimed_and_captioned(tmp_path):
+    """The network's and the registration's learning curves have their captions; a loss
+    variant's (train_fusion_<name>) is claimed by the fusion section's pattern."""
     from traffictwin.fusion import report_section as rs
-    from traffictwin.report.model import Figure
+    from traffictwin.report.render import collect_figures
 
-    assert re.search(rs.FIGURE_PATTERN, "train_fusion_d_paper")  # the fusion section claims them
-    figs = [
-        rs._captioned(f)
-        for f in (
-            Figure("figures/train_fusion_d_paper.png", "`figures/train_fusion_d_paper.png`"),
-            Figure("figures/fusion_kld_boxplot.png", "box"),
-            Figure("figures/train_registration.png", "`figures/train_registration.png`"),
-        )
+    (tmp_path / "figures").mkdir()
+    for stem in ("train_registration", "train_fusion_d_paper", "train_fusion_network"):
+        (tmp_path / "figures" / f"{stem}.png").write_bytes(b"\x89PNG")
+    (figs,), other = collect_figures(tmp_path, [rs.provider({})])
+    assert other == [] and [f.path for f in figs] == [
+        "figures/train_fusion_network.png",
+        "figures/train_registration.png",
+        "figures/train_fusion_d_paper.png",
     ]
-    assert figs[0].caption.startswith("Learning curves of fusion network d_paper (")
-    assert figs[0].caption.endswith("`figures/train_fusion_d_paper.png`")
-    assert figs[1].caption == "box"
-    assert figs[2].caption.startswith("Learning curves of the learned registration (")
+    assert figs[0].caption.startswith("Learning curves of the fusion network (")
+    assert figs[1].caption.startswith("Learning curves of the learned registration (")
+    assert figs[2].caption == "`figures/train_fusion_d_paper.png`"
 
 
 # -- stage: networks per row ---------------------------------------------------------------------

@@ -138,12 +138,15 @@ def test_a_new_problem_is_one_more_provider(tmp_path: Path) -> None:
 
 
 def test_fusion_section_missing_evaluation(tmp_path: Path) -> None:
-    """'fusion.json is missing' is said when it is, whether or not the training files are there."""
+    """'fusion.json is missing' is said when it is, whether or not the training files are there
+    (those: the appendix)."""
     only_training = _reports(tmp_path / "a", {"train_fusion_A.json": {"val/loss": 0.5}})
-    sec = _section(R.build_report(_inputs(only_training), providers({})), fusion_report.TITLE)
+    report = R.build_report(_inputs(only_training), providers({}))
+    sec = _section(report, fusion_report.TITLE)
     assert any("`reports/metrics/fusion.json` is missing" in p for p in sec.paragraphs)
-    assert [t.anchor for t in sec.tables] == ["fusion-training"]
-    assert [[c.text for c in row] for row in sec.tables[0].rows] == [["val/loss", "0.5"]]
+    assert sec.tables == []
+    appendix = _section(report, "Appendix — every metrics file")
+    assert [t.title for t in appendix.tables] == ["reports/metrics/train_fusion_A.json"]
     assert sec.bullet_groups[0] == (
         "Findings of this run",
         ["(no fusion.json: findings need the evaluation metrics)"],
@@ -305,10 +308,8 @@ def test_report_package_knows_no_problem_and_no_repo_layout() -> None:
                 ), (path.name, mod)
 
 
-def test_registration_tables_show_pose_errors_and_bins(
-    tmp_path: Path,
-) -> None:
-    from traffictwin.fusion.report_section.tables import registration_tables
+def test_registration_table_shows_every_pose_estimating_row(tmp_path: Path) -> None:
+    from traffictwin.fusion.report_section.tables import fusion_tables
 
     def row(success: float, p90: float) -> dict:
         return {
@@ -338,26 +339,11 @@ def test_registration_tables_show_pose_errors_and_bins(
                 }
             }
         },
-        "bins": {
-            "rotation": {  # keys in string order, as a metrics file keeps them
-                "learned": {
-                    "0-2deg": {"n": 40, "success_rate": 1.0},
-                    ">=15deg": {"n": 5, "success_rate": 0.2},
-                    "10-15deg": {"n": 8, "success_rate": 0.5},
-                    "2-5deg": {"n": 20, "success_rate": 0.75},
-                },
-                "registered": {"0-2deg": {"n": 40, "success_rate": 0.9}},
-            },
-            "translation": {"learned": {"0-1m": {"n": 30, "success_rate": 0.5}}},
-        },
     }
     rep = _reports(tmp_path, {"fusion.json": metrics})
-    src = R.Sources(_inputs(rep))
-    table, tbins, bins = registration_tables(src, ["D"])
-    assert [[c.text for c in r] for r in tbins.rows] == [
-        ["registered (FM + ECC) + Dempster", "n/a"],
-        ["learned registration + Dempster", "0.5 (30)"],
-    ]
+    tables = fusion_tables(R.Sources(_inputs(rep)), {"D": (5.0, 20.0)})
+    table = next(t for t in tables if t.anchor == "fusion-registration")
+    assert table.headline
     texts = [[c.text for c in r] for r in table.rows]
     assert [t[:2] for t in texts] == [
         ["D", "registered (FM + ECC) + Dempster"],
@@ -366,18 +352,10 @@ def test_registration_tables_show_pose_errors_and_bins(
     learned = texts[1]
     assert learned[2:4] == ["0.94", "[0.89, 0.97]"] and learned[5] == "0.2" and learned[6] == "0.3"
     assert learned[-2:] == ["0.12", "[0.05, 0.19]"] and texts[0][-2:] == ["n/a", "n/a"]
-    # bins by their lower edge, not in the metrics file's string order
-    assert bins.columns == ["method", "0-2deg (n)", "2-5deg (n)", "10-15deg (n)", ">=15deg (n)"]
-    assert [[c.text for c in r] for r in bins.rows] == [
-        ["registered (FM + ECC) + Dempster", "0.9 (40)", "n/a", "n/a", "n/a"],
-        ["learned registration + Dempster", "1 (40)", "0.75 (20)", "0.5 (8)", "0.2 (5)"],
-    ]
-    assert (
-        registration_tables(
-            R.Sources(_inputs(_reports(tmp_path / "x", {"fusion.json": {"test": {}}}))), ["D"]
-        )
-        == []
-    )
+    # no row that estimates a pose: no table
+    rep = _reports(tmp_path / "x", {"fusion.json": {"test": {"D": {"naive": {"n": 1}}}}})
+    tables = fusion_tables(R.Sources(_inputs(rep)), {})
+    assert "fusion-registration" not in [t.anchor for t in tables]
 
 
 def _one_vs_own(prefix_rows: dict) -> dict:
@@ -492,51 +470,39 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
     )
 
 
-def test_auroc_cells_give_the_cells_behind_it_or_too_few_wrong_cells(tmp_path: Path) -> None:
-    from traffictwin.fusion.report_section.tables import ESTIMATE_COLUMNS, row_table
+def test_row_table_hand_case(tmp_path: Path) -> None:
+    """The generic row builder: label cells, then one cell per (key, header); ``{base}`` is the
+    row's baseline, ``_ci`` an interval, ``_verdict`` the interval rule; n/a where not evaluated."""
+    from traffictwin.fusion.report_section.tables import row_table
 
-    ci = {"lo": 0.1, "hi": 0.2}
-    base = {"kld_fou_mean": 0.15, "kld_fou_mean_ci": ci}
     metrics = {
-        "test": {
-            "A": {
-                "dnn": {
-                    **base,
-                    "u_auroc": None,  # NaN in fusion.json after json_clean
-                    "u_auroc_enough": False,
-                    "u_auroc_n_wrong": 37,
-                    "u_auroc_n_right": 600000,
-                    "u_auroc_pairs_wrong": 4,
-                }
-            },
-            "D": {
-                "dnn": {
-                    **base,
-                    "u_auroc": 0.86,
-                    "u_auroc_ci": {"lo": 0.84, "hi": 0.88},
-                    "u_auroc_enough": True,
-                    "u_auroc_n_wrong": 12345,
-                    "u_auroc_n_right": 987654,
-                    "u_auroc_pairs_wrong": 190,
-                },
-                "naive": base,  # an older run: no counts
-            },
-        }
+        "test": {"A": {"dnn": {"kld_fou_mean": 0.15, "kld_fou_mean_ci": {"lo": 0.1, "hi": 0.2}}}},
+        "diff": {
+            "A": {"dnn": {"vs_naive": {"kld_fou_mean": {"estimate": -0.1, "lo": -0.2, "hi": 0.05}}}}
+        },
     }
-    rep = _reports(tmp_path, {"fusion.json": metrics})
+    src = R.Sources(_inputs(_reports(tmp_path, {"fusion.json": metrics})))
     t = row_table(
-        R.Sources(_inputs(rep)), ["A", "D"], ["dnn", "naive"], ESTIMATE_COLUMNS, title="t"
+        src,
+        [("A", "dnn"), ("B", "dnn")],
+        [("kld_fou_mean", "KLD(b)"), ("kld_fou_mean_ci", "95 % CI")],
+        title="t",
     )
-    assert t.columns[-3:] == ["AUROC(u)", "95 % CI", "wrong / right cells"]
-    rows = {(r[0].text, r[1].text): [c.text for c in r[-3:]] for r in t.rows}
-    assert rows[("A", "network")] == ["too few wrong cells", "n/a", "37 in 4 pairs / 600,000"]
-    assert rows[("D", "network")] == ["0.86", "[0.84, 0.88]", "12,345 in 190 pairs / 987,654"]
-    assert rows[("D", "naive (noisy pose + Dempster)")][-1] == "n/a"
-    assert ("A", "naive (noisy pose + Dempster)") not in rows  # not evaluated at A: no row
-    # the section's estimates table: these columns, and the note says what 'too few' means
-    src = R.Sources(_inputs(rep))
-    shown = next(t for t in fusion_report.fusion_tables(src, {}) if t.anchor == "fusion-ci")
-    assert shown.columns == t.columns and [c.text for c in shown.rows[0]] == [
-        c.text for c in t.rows[0]
+    assert t.columns == ["config", "method", "KLD(b)", "95 % CI"]
+    assert [[c.text for c in r] for r in t.rows] == [
+        ["A", "network", "0.15", "[0.1, 0.2]"],
+        ["B", "network", "n/a", "n/a"],
     ]
-    assert "too few wrong cells" in shown.note and "auroc_min_wrong" in shown.note
+    assert t.rows[0][2].src == "metrics/fusion.json#test.A.dnn.kld_fou_mean"
+    d = row_table(
+        src,
+        [("A", "dnn", "naive"), ("A", "dnn", "registered")],
+        [("vs_{base}.kld_fou_mean", "Δ"), ("vs_{base}.kld_fou_mean_ci", "CI")]
+        + [("vs_{base}.kld_fou_mean_verdict", "verdict")],
+        ("config", "method", "baseline"),
+        title="d",
+    )
+    assert [[c.text for c in r] for r in d.rows] == [
+        ["A", "network", "naive", "-0.1", "[-0.2, 0.05]", "no difference shown"],
+        ["A", "network", "registered", "n/a", "n/a", "n/a"],
+    ]

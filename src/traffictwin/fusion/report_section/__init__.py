@@ -3,20 +3,16 @@ metrics and figures it shows; entry point :func:`provider`.
 
 Reads ``fusion.json`` (stage evaluate_fusion; layout in :mod:`traffictwin.fusion.evaluation`,
 its tables: :mod:`.tables`; its ``targets``: the index's acceptance table,
-:mod:`traffictwin.report.acceptance`), ``train_fusion_<name>.json`` and
-``train_registration.json`` (the trainings), ``fusion_data.json`` (stage generate_fusion) and the
+:mod:`traffictwin.report.acceptance`), ``fusion_data.json`` (stage generate_fusion) and the
 seed replicates (:mod:`.seed_tables`); the paper's claims against the run: :mod:`.claims`; the
-report stage's zoomed score figures: :mod:`.score_figures`. The headline is KLD(b)
-``kld_fou_mean`` (KL over the full mass vector, nats per cell).
+report stage's zoomed score figures: :mod:`.score_figures`. The trainings' metrics files: the
+appendix. The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector, nats per cell).
 """
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
-from dataclasses import replace
 from functools import partial
-from pathlib import PurePath
 from typing import Any
 
 from traffictwin import paper_numbers as P
@@ -35,10 +31,8 @@ from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import lookup
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
-from traffictwin.report.tables import files_table, findings_group
+from traffictwin.report.tables import findings_group
 
-TRAINING_FILES = r"train_fusion_(\w+)\.json"  # the one network and each variant, side by side
-REGISTRATION_FILES = r"train_(registration)\.json"  # the one learned registration
 TITLE = "Paper 1 — cooperative evidential occupancy-grid fusion"
 
 # The figures the fusion stages write: file stem -> caption, in the order the section shows them.
@@ -52,50 +46,20 @@ FIGURES: dict[str, str] = {
     "score axis zoomed to its data (mirrors Fig. 7; drawn by the report stage)",
     "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
     "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
+    "train_fusion_network": "Learning curves of the fusion network (training / validation loss and "
+    "validation KLD(b) per epoch)",
+    "train_registration": "Learning curves of the learned registration (one model for every "
+    "pose-noise level; validation success rate, mean pose errors, training / validation loss per "
+    "epoch)",
 }
 # figures the report stage redraws (:func:`draw_score_figures`): shown instead of evaluate_fusion's
 REPLACES = {
     "fusion_scores_occupied_zoomed": "fusion_scores_occupied",
     "fusion_scores_free_zoomed": "fusion_scores_free",
 }
+# the other images of the fusion stages (a loss variant's learning curves train_fusion_<name>)
 FIGURE_PATTERN = r"fusion|prealign|pose|ogm|registration"
 DATA_FILES = (page.DataFile("fusion_data.json", "Fusion data (reports/metrics/fusion_data.json)"),)
-# figures/train_fusion_<name>.png (train_fusion and its variants), train_registration.png
-LEARNING_CURVE = re.compile(r"train_(fusion|registration)_?(\w*)")
-
-
-def _captioned(f: page.Figure) -> page.Figure:
-    """A learning-curve figure (:data:`LEARNING_CURVE`) with its caption; others as they are."""
-    m = LEARNING_CURVE.fullmatch(PurePath(f.path).stem)
-    if not m:
-        return f
-    what = (
-        f"fusion network {m.group(2)} (training / validation loss and validation KLD(b) per epoch)"
-        if m.group(1) == "fusion"
-        else "the learned registration (one model for every pose-noise level; validation success "
-        "rate, mean pose errors, training / validation loss per epoch)"
-    )
-    return replace(f, caption=f"Learning curves of {what} — `{f.path}`")
-
-
-#: the trainings' tables: (metrics files, title, anchor)
-TRAININGS = (
-    (
-        TRAINING_FILES,
-        "Fusion: training of the one network and the variants (validation split of their own "
-        "training noise; `_naive` = the naive fusion on the same pairs; `stopped_early`: early "
-        "stopping ended the run before `max_epochs`, i.e. val KLD(b) had plateaued; `best_epoch` "
-        "counts from 0)",
-        "fusion-training",
-    ),
-    (
-        REGISTRATION_FILES,
-        "Learned registration: training of the one model (validation split of the mixed noise; "
-        "success = error < 0.5 m and < 1°, before the fallback check; `stopped_early`: early "
-        "stopping ended the run, i.e. val/loss had plateaued; `best_epoch` counts from 0)",
-        "registration-training",
-    ),
-)
 
 
 def section(
@@ -103,10 +67,10 @@ def section(
     figures: list[page.Figure],
     configurations: Mapping[str, tuple[float, float]],
 ) -> page.Section:
-    """The fusion results section: the tables of :func:`fusion_tables`, the trainings, this run's
-    findings, the seed replicates and ``figures``. ``configurations``: ``{name: (r m, alpha
-    deg)}`` of this run (empty: the paper's A-D). The paper's claims: the index's verdict table."""
-    sec = page.Section(TITLE, figures=[_captioned(f) for f in figures])
+    """The fusion results section: the tables of :func:`fusion_tables`, this run's findings, the
+    seed replicates and ``figures``. ``configurations``: ``{name: (r m, alpha deg)}`` of this run
+    (empty: the paper's A-D). The paper's claims: the index's verdict table."""
+    sec = page.Section(TITLE, figures=figures)
     sec.paragraphs.append(
         f"Reference: {P.FUSION_CITATION}. Baseline: the second map transformed by the noisy "
         "relative pose, then Dempster's rule (the paper's 'naive fusion')."
@@ -118,7 +82,6 @@ def section(
         sec.paragraphs.append(
             f"`reports/metrics/{FUSION_FILE}` is missing: the fusion evaluation has not run."
         )
-    sec.tables += [t for args in TRAININGS if (t := files_table(src, *args))]
     sec.bullet_groups.append(findings_group(src, FUSION_FILE, fusion_findings))
     if note := single_seed_note(src):
         sec.paragraphs.append(note)
@@ -176,6 +139,5 @@ def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionP
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
         data_files=DATA_FILES,
-        shown_files=f"(?:{TRAINING_FILES})|(?:{REGISTRATION_FILES})",
         replaces=REPLACES,
     )

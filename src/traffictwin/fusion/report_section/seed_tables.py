@@ -29,6 +29,14 @@ def single_seed_note(src: page.Sources) -> str | None:
     )
 
 
+def _mean(src: page.Sources, key: str, fmt: str) -> list[Cell]:
+    """The mean over seeds at ``key`` of the seeds file and its seeds × scenarios interval."""
+    return [
+        src.cell(SEEDS_FILE, f"{key}.estimate", fmt),
+        interval_cell(src, SEEDS_FILE, key, BOOTSTRAP, fmt),
+    ]
+
+
 def seed_row_table(src: page.Sources) -> Table | None:
     """Every seed-dependent row's KLD(b), occupied Dice and success per configuration: the mean
     over seeds with its seeds × scenarios interval, each seed's value and the seed SD."""
@@ -47,18 +55,12 @@ def seed_row_table(src: page.Sources) -> Table | None:
     for cfg, per_row in rows.items():
         for row, per_metric in per_row.items():
             for metric, entry in per_metric.items():
-                label, fmt = METRICS.get(metric, (metric, "g4"))
+                name, fmt = METRICS.get(metric, (metric, "g4"))
                 key = f"rows.{cfg}.{row}.{metric}"
                 t.rows.append(
-                    [
-                        Cell(cfg),
-                        Cell(row),
-                        Cell(label),
-                        src.cell(SEEDS_FILE, f"{key}.estimate", fmt),
-                        interval_cell(src, SEEDS_FILE, key, BOOTSTRAP, fmt),
-                        Cell(", ".join(fmt_value(v, fmt) for v in entry.get("per_seed", []))),
-                        src.cell(SEEDS_FILE, f"{key}.seed_sd", fmt),
-                    ]
+                    [Cell(cfg), Cell(row), Cell(name), *_mean(src, key, fmt)]
+                    + [Cell(", ".join(fmt_value(v, fmt) for v in entry.get("per_seed", [])))]
+                    + [src.cell(SEEDS_FILE, f"{key}.seed_sd", fmt)]
                 )
     return t
 
@@ -81,22 +83,15 @@ def seed_diff_table(src: page.Sources) -> Table | None:
     )
     for pair, per_metric in found.items():
         for metric, per_cfg in per_metric.items():
-            label, fmt = METRICS.get(metric, (metric, "g4"))
+            name, fmt = METRICS.get(metric, (metric, "g4"))
             fmt = "f3" if fmt == "pct" else fmt  # a difference of rates: as a fraction
             for cfg in per_cfg:
                 key = f"findings.{pair}.{metric}.{cfg}"
                 verdicts = [
-                    Cell(str(src.get(SEEDS_FILE, f"{key}.{k}.verdict")))
-                    for k in ("seeds", "single_seed")
+                    src.get(SEEDS_FILE, f"{key}.{k}.verdict") for k in ("seeds", "single_seed")
                 ]
                 t.rows.append(
-                    [
-                        Cell(pair.replace("_vs_", " − ")),
-                        Cell(label),
-                        Cell(cfg),
-                        src.cell(SEEDS_FILE, f"{key}.seeds.estimate", fmt),
-                        interval_cell(src, SEEDS_FILE, f"{key}.seeds", BOOTSTRAP, fmt),
-                        *verdicts,
-                    ]
+                    [Cell(pair.replace("_vs_", " − ")), Cell(name), Cell(cfg)]
+                    + [*_mean(src, f"{key}.seeds", fmt), *(Cell(str(v)) for v in verdicts)]
                 )
     return t

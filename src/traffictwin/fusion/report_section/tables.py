@@ -1,18 +1,17 @@
 """The fusion section's tables, each number once: KLD(b) per configuration and method (the
-headline), every row's other estimates, precision / recall / Dice, the paired differences, the
-registration's pose error (per configuration and per bin of the drawn noise), the one network
-against the per-configuration networks, and the cross table.
+headline), every row's estimates with their intervals, the paired differences, the
+registration's pose error and the one network against the per-configuration networks.
 
 Cells read ``fusion.json`` (:func:`cell`): ``test.<cfg>.<row>.<metric>`` with the 95 %
 cluster-bootstrap interval ``<metric>_ci``, and the paired differences
 ``diff.<cfg>.<row>.vs_<base>.<metric>`` (``estimate``, ``lo``, ``hi``). A row not evaluated at a
 configuration is ``n/a``; a "lower" / "higher" verdict only where the paired interval excludes 0.
+Every other number of fusion.json (precision / recall, AUROC(u), the success per bin of the drawn
+pose error, the cross table): the report's appendix.
 """
 
 from __future__ import annotations
 
-import math
-import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -46,26 +45,28 @@ CI_NOTE = (
 )
 Configurations = Mapping[str, tuple[float, float]]  # {name: (r m, alpha deg)}
 
-#: the per-row tables' columns, (key, header) with the keys of :func:`cell`; ``u_auroc``: AUROC(u),
-#: its interval and the cells behind it (:func:`auroc_cells`)
+#: the tables' columns, (key, header) with the keys of :func:`cell` (``{base}``: the baseline of a
+#: paired difference)
 ESTIMATE_COLUMNS = (
     ("kld_fou_mean_ci", "KLD(b) 95 % CI"),
     ("kld_fo_mean", "KLD(a)"),
     ("kld_fo_mean_ci", "95 % CI"),
-    ("kld_fo_median", "KLD(a) median"),
+    ("dice_occ", "Dice occ"),
+    ("dice_occ_ci", "95 % CI"),
+    ("dice_free", "Dice free"),
+    ("dice_free_ci", "95 % CI"),
     ("u_mean", "mean u"),
     ("u_mean_ci", "95 % CI"),
-    ("u_auroc", "AUROC(u)"),
 )
-SCORE_COLUMNS = tuple(
-    col
-    for c in ("occ", "free")
-    for col in (
-        (f"precision_{c}", f"precision {c}"),
-        (f"recall_{c}", f"recall {c}"),
-        (f"dice_{c}", f"Dice {c}"),
-        (f"dice_{c}_ci", "95 % CI"),
-    )
+DIFF_COLUMNS = (
+    (f"vs_{{base}}.{HEADLINE}", "Δ KLD(b)"),
+    (f"vs_{{base}}.{HEADLINE}_ci", "95 % CI"),
+    (f"vs_{{base}}.{HEADLINE}_verdict", "KLD(b) verdict"),
+    ("vs_{base}.kld_fo_mean", "Δ KLD(a)"),
+    ("vs_{base}.kld_fo_mean_ci", "95 % CI"),
+    ("vs_{base}.dice_occ", "Δ Dice occ"),
+    ("vs_{base}.dice_occ_ci", "95 % CI"),
+    ("vs_{base}.dice_occ_verdict", "Dice occ verdict"),
 )
 POSE_COLUMNS = (
     ("success_rate", "success"),
@@ -78,7 +79,6 @@ POSE_COLUMNS = (
     (f"vs_{REG}.success_rate", "Δ success vs registered"),
     (f"vs_{REG}.success_rate_ci", "95 % CI"),
 )
-AUROC_COLUMNS = ("AUROC(u)", "95 % CI", "wrong / right cells")
 
 
 def label(m: str) -> str:
@@ -106,13 +106,17 @@ def fusion_methods(src: page.Sources, cfgs: Sequence[str]) -> list[str]:
 
 def cell(src: page.Sources, c: str, m: str, key: str) -> Cell:
     """Row ``m`` at configuration ``c``: ``<metric>`` (``test.<c>.<m>.<metric>``), ``<metric>_ci``
-    (its interval), ``vs_<base>.<metric>`` / ``vs_<base>.<metric>_ci`` (the paired difference
-    ``m − base``: estimate / interval). ``n/a`` for a row or difference not evaluated at ``c``."""
-    metric = key.removesuffix("_ci")
+    (its interval), ``vs_<base>.<metric>`` / ``vs_<base>.<metric>_ci`` /
+    ``vs_<base>.<metric>_verdict`` (the paired difference ``m − base``: estimate / interval /
+    :func:`~traffictwin.fusion.findings.verdict`). ``n/a`` for a row or difference not evaluated
+    at ``c``."""
+    metric = key.removesuffix("_ci").removesuffix("_verdict")
     if key.startswith("vs_"):
         base = f"diff.{c}.{m}.{metric}"
-        if not isinstance(src.get(FUSION_FILE, base), dict):
+        if not isinstance(d := src.get(FUSION_FILE, base), dict):
             return Cell(NA, title=f"no paired difference {m} {metric} at configuration {c}")
+        if key.endswith("_verdict"):
+            return Cell(verdict(d), title="claimed only when the paired 95 % interval excludes 0")
         if key.endswith("_ci"):
             return interval_cell(src, FUSION_FILE, base, BOOTSTRAP)
         return src.cell(FUSION_FILE, f"{base}.estimate")
@@ -129,53 +133,21 @@ def _has(src: page.Sources, key: str) -> bool:
     return isinstance(v, dict) or json_number(v) is not None
 
 
-def auroc_cells(src: page.Sources, c: str, m: str) -> list[Cell]:
-    """Row ``m``'s AUROC(u) at ``c``: value, interval and the cells behind it
-    (:data:`AUROC_COLUMNS`); "too few wrong cells" where fusion.json withholds the value."""
-    base = f"test.{c}.{m}.u_auroc"
-    wrong, right, pairs = (
-        src.get(FUSION_FILE, f"{base}_{k}") for k in ("n_wrong", "n_right", "pairs_wrong")
-    )
-    if isinstance(wrong, (int, float)) and isinstance(right, (int, float)):
-        where = f" in {int(pairs)} pairs" if isinstance(pairs, (int, float)) else ""
-        counts = Cell(  # composite text: no single source value
-            f"{int(wrong):,}{where} / {int(right):,}",
-            title=f"wrong cells (pairs with any) / right cells, label-known cells only "
-            f"(fusion.json {base}_n_wrong, _n_right, _pairs_wrong)",
-        )
-    else:
-        counts = Cell(NA, title="fusion.json has no cell counts (an older run)")
-    if src.get(FUSION_FILE, f"{base}_enough") is False:
-        return [
-            Cell("too few wrong cells", title="AUROC(u) withheld: too few wrong cells behind it"),
-            Cell(NA),
-            counts,
-        ]
-    return [cell(src, c, m, "u_auroc"), cell(src, c, m, "u_auroc_ci"), counts]
-
-
 def row_table(
     src: page.Sources,
-    cfgs: Sequence[str],
-    rows: Sequence[str],
+    rows: Sequence[tuple[str, ...]],
     columns: Sequence[tuple[str, str]],
-    require: str = "",
+    lead: Sequence[str] = ("config", "method"),
     **table: Any,
 ) -> Table:
-    """One row per configuration and evaluated row of ``rows`` (that has metric ``require``):
-    config, method, then ``columns`` (``(key, header)``, cells of :func:`cell`); ``table``:
-    :class:`Table`'s other fields."""
-    heads = [h for k, name in columns for h in (AUROC_COLUMNS if k == "u_auroc" else [name])]
-    t = Table(columns=["config", "method", *heads], **table)
-    for c in cfgs:
-        for m in rows:
-            if _has(src, f"test.{c}.{m}" + (f".{require}" if require else "")):
-                cells = [
-                    x
-                    for k, _ in columns
-                    for x in (auroc_cells(src, c, m) if k == "u_auroc" else [cell(src, c, m, k)])
-                ]
-                t.rows.append([Cell(c), Cell(label(m)), *cells])
+    """One table row per ``(config, row)`` or ``(config, row, baseline)`` of ``rows``: their
+    labels (headers ``lead``), then ``columns`` (``(key, header)``, cells of :func:`cell`, with
+    ``{base}`` in a key the row's baseline); ``table``: :class:`Table`'s other fields."""
+    t = Table(columns=[*lead, *(h for _, h in columns)], **table)
+    for c, m, *base in rows:
+        keys = [k.format(base=base[0] if base else "") for k, _ in columns]
+        labels = [Cell(c), Cell(label(m)), *map(Cell, base)]
+        t.rows.append(labels + [cell(src, c, m, k) for k in keys])
     return t
 
 
@@ -207,108 +179,17 @@ def _kld_table(
     return t
 
 
-def _diff_table(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> Table:
-    """Paired differences of every row against naive and registered."""
-    t = Table(
-        "Fusion: paired differences (method − baseline) on the same test pairs",
-        ["config", "method", "baseline", "Δ KLD(b)", "95 % CI", "KLD(b) verdict", "Δ KLD(a)"]
-        + ["95 % CI", "Δ Dice occ", "95 % CI", "Dice occ verdict"],
-        note="Negative Δ KLD / positive Δ Dice favour the method. 'lower' / 'higher' only when the "
-        "interval excludes 0, else 'no difference shown'. naive − registered is registered − naive "
-        "with the signs turned: one row. " + CI_NOTE,
-        anchor="fusion-diff",
-    )
-    for c in cfgs:
-        for m in methods:
-            for b in (NAIVE, REG):
-                if not isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict) or (
-                    (m, b) == (NAIVE, REG)  # registered − naive negated: shown once
-                    and isinstance(src.get(FUSION_FILE, f"diff.{c}.{REG}.vs_{NAIVE}"), dict)
-                ):
-                    continue
-                row = [Cell(c), Cell(label(m)), Cell(b)]
-                for k in (HEADLINE, "kld_fo_mean", "dice_occ"):
-                    row += [cell(src, c, m, f"vs_{b}.{k}"), cell(src, c, m, f"vs_{b}.{k}_ci")]
-                    if k != "kld_fo_mean":
-                        d = src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}.{k}")
-                        v = verdict(d if isinstance(d, dict) else None)
-                        row.append(
-                            Cell(v, title="claimed only when the paired 95 % interval excludes 0")
-                        )
-                t.rows.append(row)
-    return t
-
-
-def _bin_start(label: str) -> float:
-    """A bin label's lower edge, as :func:`traffictwin.fusion.metrics.pose_error_bins` writes them
-    (``"2-5deg"`` -> 2, ``">=15deg"`` -> 15): bins in numeric order (metrics files keep their keys
-    sorted as strings, where ``10-15deg`` comes before ``2-5deg``); another label sorts last."""
-    m = re.match(r"(?:>=)?(\d+(?:\.\d+)?)", label)
-    return float(m.group(1)) if m else math.inf
-
-
-def _bin_tables(src: page.Sources, rows: Sequence[str]) -> list[Table]:
-    """Success rate (pairs) per bin of the drawn translation and yaw error, configurations pooled."""
-    out = []
-    for axis, what in (("translation", "translation"), ("rotation", "yaw")):
-        bins = src.get(FUSION_FILE, f"bins.{axis}")
-        bins = {
-            m: bins[m] for m in rows if isinstance(bins, dict) and isinstance(bins.get(m), dict)
-        }
-        labels = sorted(
-            dict.fromkeys(lab for per_bin in bins.values() for lab in per_bin), key=_bin_start
-        )
-        if not labels:
-            continue
-        t = Table(
-            f"Registration: success rate per bin of the drawn {what} error (all configurations pooled)",
-            ["method", *[f"{lab} (n)" for lab in labels]],
-            note="Bins of the drawn pose noise (evaluation.fusion.trans_bins_m / rot_bins_deg); "
-            "n = pairs in the bin.",
-            anchor=f"fusion-registration-{axis}-bins",
-        )
-        for m in rows:
-            cells = []
-            for lab in labels:
-                key = f"bins.{axis}.{m}.{lab}"
-                sr = src.get(FUSION_FILE, f"{key}.success_rate")
-                n = src.get(FUSION_FILE, f"{key}.n")
-                if not isinstance(sr, (int, float)):
-                    cells.append(Cell(NA))
-                    continue
-                count = int(n) if isinstance(n, (int, float)) else "?"
-                derived = f"metrics/{FUSION_FILE}#{key}.success_rate (n: .n)"
-                cells.append(
-                    Cell(f"{fmt_value(sr, 'g4')} ({count})", value=[sr, n], derived=derived)
-                )
-            t.rows.append([Cell(label(m)), *cells])
-        out.append(t)
-    return out
-
-
-def registration_tables(src: page.Sources, cfgs: Sequence[str]) -> list[Table]:
-    """The pose error of every row that estimates a pose, per configuration, and its success
-    rate per bin of the drawn translation and yaw error (none without such a row)."""
-    rows = [m for m in POSE_ROWS if any(_has(src, f"test.{c}.{m}.success_rate") for c in cfgs)]
-    if not rows:
-        return []
-    table = row_table(
-        src,
-        cfgs,
-        rows,
-        POSE_COLUMNS,
-        "success_rate",
-        headline=True,
-        title="Registration: pose error of every method that estimates a pose (test split, same pairs)",
-        note="Error of the pose used (the estimate, or the noisy pose where the estimate was "
-        "rejected: 'fallback', counted in the success rate like any other pose) against the "
-        "simulator's true relative pose; success = translation error <= "
-        "evaluation.fusion.success_trans_m (m) and yaw error <= evaluation.fusion.success_rot_deg "
-        "(deg). Wall time per pair: reports/timings/evaluate_fusion.json (this run) and "
-        "benchmarks/registration.py. Δ: paired over the same pairs. " + CI_NOTE,
-        anchor="fusion-registration",
-    )
-    return [table, *_bin_tables(src, rows)]
+def _diff_rows(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> list[tuple]:
+    """``(config, row, baseline)`` of every paired difference against naive and registered;
+    naive − registered (registered − naive with the signs turned) only without the latter."""
+    return [
+        (c, m, b)
+        for c in cfgs
+        for m in methods
+        for b in (NAIVE, REG)
+        if isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict)
+        and not ((m, b) == (NAIVE, REG) and _has(src, f"diff.{c}.{REG}.vs_{NAIVE}"))
+    ]
 
 
 def per_config_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
@@ -352,66 +233,56 @@ def per_config_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
     return t
 
 
-def _cross_table(src: page.Sources) -> Table | None:
-    """KLD(b) of each per-configuration network on the other configurations (None without any)."""
-    cross = src.get(FUSION_FILE, "cross")
-    if not isinstance(cross, dict) or not cross:
-        return None
-    tcfgs = sorted({tc for n in cross.values() if isinstance(n, dict) for tc in n})
-    t = Table(
-        "Fusion: cross table, KLD(b) mean of the per-configuration networks (the ablation) "
-        "trained on one configuration (rows) tested on another (columns)",
-        ["network trained on", *[f"test {tc}" for tc in tcfgs]],
-        anchor="fusion-cross",
-        note="Own configuration: all test pairs; others: a subset "
-        "(evaluation.fusion.cross_max_pairs). The one network (row dnn of the KLD table) is "
-        "evaluated at every configuration on all pairs.",
-    )
-    for n in sorted(cross):
-        t.rows.append(
-            [Cell(n)] + [src.cell(FUSION_FILE, f"cross.{n}.{tc}.{HEADLINE}") for tc in tcfgs]
-        )
-    return t
-
-
 def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Table]:
-    """KLD(b) per configuration and method (the headline), every row's other estimates and its
-    scores, the paired differences, the registration tables, the one network against the
-    per-configuration networks and the cross table (the targets: the index's acceptance table)."""
+    """KLD(b) per configuration and method (the headline), every row's estimates with their
+    intervals, the paired differences, the registration's pose error and the one network against
+    the per-configuration networks (the targets: the index's acceptance table)."""
     cfgs = fusion_configs(src, configurations)
     methods = fusion_methods(src, cfgs)
-    estimates = row_table(
-        src,
-        cfgs,
-        methods,
-        ESTIMATE_COLUMNS,
-        title="Fusion: estimates with 95 % intervals per configuration and method (test split)",
-        note="KLD(b) means: the KLD table; KLD(a) over (m_F, m_O) only, for comparison with the "
-        "paper (median over test pairs: the line in its Fig. 5 boxes). AUROC(u): u as a detector "
-        "of wrongly classified label-known cells, with the wrong and right cells behind it; 'too "
-        "few wrong cells' where fewer than evaluation.fusion.auroc_min_wrong wrong cells, or wrong "
-        "cells in fewer than auroc_min_pairs pairs, stand behind it (an AUROC of a handful of "
-        "cells says nothing about u). The dnn[<loss>] rows: the fusion_variants networks, trained "
-        "with another loss on the same data. " + CI_NOTE,
-        anchor="fusion-ci",
-    )
-    scores = row_table(
-        src,
-        cfgs,
-        methods,
-        SCORE_COLUMNS,
-        title="Fusion: precision / recall / Dice per class (test split, pooled over cells; higher is better)",
-        note="A cell is predicted occupied where p_O > 0.5 and free where p_O < 0.5 (docs/design.md; "
-        "the paper's sentence swaps the words); only label-known cells count. The paper shows "
-        "these as Figs. 6 and 7 without printed values. " + CI_NOTE,
-        anchor="fusion-scores",
-    )
+    rows = [(c, m) for c in cfgs for m in methods if _has(src, f"test.{c}.{m}")]
+    pose = [(c, m) for c, m in rows if m in POSE_ROWS and _has(src, f"test.{c}.{m}.success_rate")]
     tables = [
         _kld_table(src, configurations, cfgs, methods),
-        estimates,
-        _diff_table(src, cfgs, methods),
-        scores,
+        row_table(
+            src,
+            rows,
+            ESTIMATE_COLUMNS,
+            title="Fusion: estimates with 95 % intervals per configuration and method (test split)",
+            note="KLD(b) means: the KLD table; KLD(a) over (m_F, m_O) only, for comparison with "
+            "the paper. Dice over label-known cells, pooled; a cell is predicted occupied where "
+            "p_O > 0.5 and free where p_O < 0.5 (docs/design.md; the paper's sentence swaps the "
+            "words). Precision and recall (the paper's Figs. 6 and 7): the score figures; they, "
+            "AUROC(u) and the KLD(a) median of every row: the appendix (the network's AUROC(u): "
+            "the findings). The dnn[<loss>] rows: the fusion_variants networks, trained with "
+            "another loss on the same data. " + CI_NOTE,
+            anchor="fusion-ci",
+        ),
+        row_table(
+            src,
+            _diff_rows(src, cfgs, methods),
+            DIFF_COLUMNS,
+            ("config", "method", "baseline"),
+            title="Fusion: paired differences (method − baseline) on the same test pairs",
+            note="Negative Δ KLD / positive Δ Dice favour the method. 'lower' / 'higher' only "
+            "when the interval excludes 0, else 'no difference shown'. naive − registered is "
+            "registered − naive with the signs turned: one row. " + CI_NOTE,
+            anchor="fusion-diff",
+        ),
+        row_table(
+            src,
+            pose,
+            POSE_COLUMNS,
+            headline=True,
+            title="Registration: pose error of every method that estimates a pose (test split, same pairs)",
+            note="Error of the pose used (the estimate, or the noisy pose where the estimate was "
+            "rejected: 'fallback', counted in the success rate like any other pose) against the "
+            "simulator's true relative pose; success = translation error <= "
+            "evaluation.fusion.success_trans_m (m) and yaw error <= "
+            "evaluation.fusion.success_rot_deg (deg). Wall time per pair: "
+            "reports/timings/evaluate_fusion.json (this run) and benchmarks/registration.py. Δ: "
+            "paired over the same pairs. " + CI_NOTE,
+            anchor="fusion-registration",
+        ),
     ]
-    tables += registration_tables(src, cfgs)
-    optional = (per_config_table(src, cfgs), _cross_table(src))
-    return [t for t in tables + [t for t in optional if t is not None] if t.rows]
+    optional = per_config_table(src, cfgs)
+    return [t for t in tables + ([optional] if optional else []) if t.rows]
