@@ -17,7 +17,7 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.model import NA, Cell, DataFile, Table, interval_cell, lookup
+from traffictwin.report.model import Cell, DataFile, Table, interval_cell, lookup
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
 from traffictwin.risk.report_tables import RISK_FILE
@@ -36,11 +36,6 @@ LABELS = {
     "dnn": "network on noisy poses",
     "registered+network": "registered + network",
     "learned+network": "learned registration + network",
-}
-HAZARD_LABELS = {
-    "pedestrian": "pedestrian steps out behind a van (ego turns right)",
-    "emerging_car": "car pulls out of a driveway behind a truck and hedge (ego straight)",
-    "stopped_car": "car stopped beside a van (ego turns right)",
 }
 ALWAYS_LABEL = "reference: a warning at every frame"
 DASH = "—"
@@ -65,26 +60,6 @@ OPEN: tuple[Metric, ...] = (
     ("false alarms / min", "false_alarms_per_min", "f2", False),
 )
 BIAS: tuple[Metric, ...] = (("under pose bias (frames)", "false_alarm_share", "pct", True),)
-HAZARD: tuple[Metric, ...] = (("episodes", "episodes", "int", False), LEAD, WARNED, FALSE_ALARMS)
-PREDICTIVE: tuple[Metric, ...] = (
-    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", True),
-    ("warned before onset (TTC)", "warned_before_onset_share", "pct", False),
-    ("false alarms (TTC)", "false_alarm_share", "pct", False),
-    ("Δ false alarms vs THW", "false_alarm_share_vs_thw", "pct", True),
-    ("true-TTC frames warned", "ttc_true_recall", "pct", False),
-)
-RULE: tuple[Metric, ...] = (
-    ("warns below TTC (s)", "warn_s", "f2", False),
-    ("confirmed over (frames)", "confirm_frames", "int", False),
-    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", False),
-    ("Δ false alarms vs THW (open)", "false_alarm_share_vs_thw", "pct", False),
-)
-VEHICLE: tuple[Metric, ...] = (
-    ("critical frames", "critical_frames", "int", False),
-    FLAGGED,
-    ("Δ vs own map", "recall_vs_ego", "pct", True),
-    FALSE_ALARMS,
-)
 
 
 def prose(name: str, **context: Any) -> str:
@@ -175,99 +150,17 @@ def open_table(src: page.Sources) -> Table:
     return t
 
 
-def hazard_table(src: page.Sources) -> Table:
-    """Per hazard kind and scenario kind: each method's episodes, median lead over the ego's map,
-    episodes warned before the onset and false-alarm frames (``by_hazard`` of twin.json)."""
-    t = _table(
-        "Twin: each hazard kind separately",
-        "twin-hazards",
-        ["config", "scenario", "hazard", "map the ego reads"],
-        HAZARD,
-    )
-    for c in _keys(src):
-        for kind in ("occluded", "open"):
-            for m in _methods(src, c):
-                base = f"configurations.{c}.methods.{m}.{kind}.by_hazard"
-                for h in sorted(_keys(src, base)):
-                    labels = [c, kind, HAZARD_LABELS.get(h, h), LABELS.get(m, m)]
-                    dash = ("lead_vs_ego_s_median",) if m == "ego" else ()
-                    cells = _cells(src, f"{base}.{h}", HAZARD, dash)
-                    t.rows.append([*map(Cell, labels), *cells])
-    t.note = prose("hazards", crit=critical_thw_text(src))
-    return t
-
-
-def predictive_table(src: page.Sources) -> Table:
-    """Per configuration, map and scenario kind: the predictive (TTC) warning against THW's."""
-    t = _table(
-        "Twin: predictive warnings (time to conflict) vs THW warnings on the same maps",
-        "twin-predictive",
-        ["config", "map the ego reads", "kind"],
-        PREDICTIVE,
-    )
-    for c in _keys(src):
-        for m in _methods(src, c):
-            for kind in ("occluded", "open"):
-                k = f"configurations.{c}.methods.{m}.{kind}.predictive"
-                t.rows.append(
-                    [Cell(c), Cell(LABELS.get(m, m)), Cell(kind), *_cells(src, k, PREDICTIVE)]
-                )
-    t.note = prose("predictive", crit=critical_thw_text(src))
-    return t
-
-
-def rule_table(src: page.Sources) -> Table:
-    """The predictive rule's candidates on the validation sequences, and the one chosen."""
-    n = src.get(FILE, "predictive_rule.validation_sequences")
-    t = _table(
-        f"Twin: the predictive rule, chosen on {n if n is not None else NA} validation sequences",
-        "twin-predictive-rule",
-        [],
-        RULE,
-    )
-    t.columns += ["eligible", "chosen"]
-    yes_no = {True: "yes", False: "no"}
-    for name in _keys(src, "predictive_rule.candidates"):
-        k = f"predictive_rule.candidates.{name}"
-        flags = [Cell(yes_no.get(src.get(FILE, f"{k}.{f}"), NA)) for f in ("eligible", "selected")]
-        t.rows.append(_cells(src, k, RULE) + flags)
-    t.note = prose("rule")
-    return t
-
-
-def vehicle_table(src: page.Sources) -> Table:
-    """Risk for every other vehicle: its own map vs its view of each twin (all sequences)."""
-    t = _table(
-        "Twin: risk for every other vehicle",
-        "twin-vehicles",
-        ["config", "vehicle", "map it reads"],
-        VEHICLE,
-    )
-    for c in _keys(src):
-        vehicles = src.get(FILE, f"configurations.{c}.vehicles")
-        for k, entry in (vehicles if isinstance(vehicles, dict) else {}).items():
-            for m in entry.get("methods", {}):
-                key = f"configurations.{c}.vehicles.{k}.methods.{m}.all"
-                own = m == "own"
-                labels = [c, f"{k} ({entry.get('role', NA)})"]
-                labels.append("its own map" if own else LABELS.get(m, m))
-                cells = _cells(src, key, VEHICLE, ("recall_vs_ego",) if own else ())
-                t.rows.append([*map(Cell, labels), *cells])
-    t.note = prose("vehicles")
-    return t
-
-
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
-    """The twin section: warnings in occluded and open sequences, per hazard, predictive,
-    for the other vehicles; a pointer to the acceptance table where twin.json has targets."""
+    """The twin section: warnings in occluded and open sequences; a pointer to the acceptance
+    table where twin.json has targets."""
     paras = [prose("intro")]
     if not src.has(FILE):
         paras.append(prose("missing", file=FILE))
         return page.Section(TITLE, paragraphs=paras, figures=figures)
     if isinstance(src.get(FILE, "targets"), dict):
         paras.append(ACCEPTANCE_POINTER)
-    tables = (occluded_table, open_table, hazard_table, predictive_table, rule_table, vehicle_table)
-    return page.Section(TITLE, paragraphs=paras, tables=[t(src) for t in tables], figures=figures)
+    tables = [occluded_table(src), open_table(src)]
+    return page.Section(TITLE, paragraphs=paras, tables=tables, figures=figures)
 
 
 def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
@@ -302,12 +195,13 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
 
 
 def provider() -> page.SectionProvider:
-    """The twin section's provider for the report (after the fusion and risk sections)."""
+    """The twin section's provider for the report (after the fusion and risk sections); twin.json
+    is in the appendix in full (each hazard kind, the predictive warnings and their rule, the
+    other vehicles' risk)."""
     return page.SectionProvider(
         name="twin",
         headlines=headlines,
         section=section,
         figures={stem: prose(stem) for stem in FIGURE_STEMS},
         data_files=(DataFile(DATA_FILE, "Twin data (generate_twin)"),),
-        shown_files=r"twin\.json",
     )
