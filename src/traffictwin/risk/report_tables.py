@@ -1,6 +1,7 @@
 """The risk section's tables: every predictor on the same test frames beside the paper, the
-confusion matrix, the choices made on validation, the paired differences, the region check, the
-situations, training, and the data per split. Each number is shown in one table.
+confusion matrix, the choices made on validation and the paired differences. The rest of
+risk.json (each predictor against every region's label, by situation type, the training of each
+variant, the data per split) is in the report's appendix.
 
 Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
 ``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
@@ -48,11 +49,6 @@ def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FI
 def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
     """The 95 % sequence-bootstrap interval ``[lo, hi]`` of ``key`` in risk.json."""
     return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
-
-
-def _with_ci(src: page.Sources, key: str, fmt: str = "g4") -> list[Cell]:
-    """The value of ``key`` (n/a where it does not apply) and its interval."""
-    return [value_cell(src, key, fmt), ci_cell(src, key, fmt)]
 
 
 def _first(names: object, first: object) -> list[str]:
@@ -238,133 +234,6 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
     return t
 
 
-def region_table(src: page.Sources) -> Table | None:
-    """Each predictor's MSE, accuracy and skill (1 − MSE / MSE of the training mean, with its
-    interval) against every region's label (``region.predictors``)."""
-    region = src.get(RISK_FILE, "region.predictors")
-    if not isinstance(region, dict) or not region:
-        return None
-    labels = {lab: 0 for d in region.values() if isinstance(d, dict) for lab in d}
-    labels = _first(labels, src.get(RISK_FILE, "primary_label"))
-    rt = Table(
-        "Risk: does the label's region explain the errors? Each predictor scored against the "
-        "paper-style region label and against a label restricted to the camera's field of view",
-        ["predictor", *(c for lab in labels for c in (f"MSE vs {lab}", "accuracy", "skill", CI))],
-        anchor="risk-region",
-        note=(
-            "The paper blames its errors on the metric's region not matching the camera view "
-            "(Sec. 4); risk_thw_paper = the paper's region, risk_thw_fov = only what the camera "
-            "sees. Skill = 1 − MSE / MSE of the training mean of that label."
-        ),
-    )
-    for name in region:
-        row = [Cell(name)]
-        for lab in labels:
-            pre = f"region.predictors.{name}.{lab}"
-            row += [
-                src.cell(RISK_FILE, f"{pre}.test/mse"),
-                src.cell(RISK_FILE, f"{pre}.accuracy", "pct"),
-            ]
-            row += _with_ci(src, f"{pre}.skill", "f2")
-        rt.rows.append(row)
-    return rt
-
-
-def data_table(src: page.Sources) -> Table | None:
-    """Per split: frames, sequences, the frames the stereo-pair check drops and keeps, the critical
-    share of every region's label; the paper's numbers first."""
-    splits = src.get(RISK_FILE, "critical_share.splits") or {}
-    if src.get(RISK_FILE, "n_frames") is None and not splits:
-        return None
-    labels = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
-    labels = [lab for lab in labels if any(lab in e for e in splits.values())]
-    thr = fmt_value(src.get(RISK_FILE, "critical_share.threshold_s"), "g4")
-    t = Table(
-        f"Risk: data per split, paper vs this run (critical share: THW < {thr} s, every region's "
-        "label)",
-        ["split", "frames", "sequences", "dropped by the stereo-pair check", "kept", *labels],
-        anchor="risk-data",
-        note=(
-            "Frames, sequences and critical shares: every frame of frames.csv, before the "
-            "stereo-pair (ORB) check. The paper (Sec. 3.3, 3.5) splits random frames "
-            f"{P.RISK['split'].value}; ours by scenario (neighbouring frames are near-duplicates). "
-            "Its frame counts give a drop share of "
-            f"{fmt_value(P.risk_confusion_derived()['orb_outlier_pct'], 'pct_raw')} (it says "
-            "'around 3.5 %'). risk_thw_corridor: objects in the subject's driving corridor (the "
-            "headline label); risk_thw_paper: anything ahead under the pessimistic-turn assumption; "
-            "risk_thw_fov: the part the camera sees."
-        ),
-    )
-    paper = [paper_cell("RISK", "n_frames", "int"), Cell(DASH)]
-    paper += [derived_paper_cell("n_dropped", "int"), paper_cell("RISK", "n_effective", "int")]
-    t.rows.append([Cell("paper (Feth et al.)"), *paper, *(Cell(DASH) for _ in labels)])
-    for split in dict.fromkeys(["all", "train", "val", "test", *splits]):
-        pre, whole = f"critical_share.splits.{split}", split == "all"
-        row = [
-            Cell(split),
-            value_cell(src, "n_frames.total" if whole else f"{pre}.n_frames", "int"),
-        ]
-        row.append(value_cell(src, f"{pre}.n_sequences", "int"))
-        dropped = value_cell(src, "n_frames.orb_outliers_dropped", "int")
-        row += (
-            [dropped, Cell("")]
-            if whole
-            else [Cell(""), value_cell(src, f"n_frames.{split}", "int")]
-        )
-        t.rows.append(row + [value_cell(src, f"{pre}.{lab}", "pct") for lab in labels])
-    return t
-
-
-def situation_table(src: page.Sources) -> Table | None:
-    """Recall, specificity and balanced accuracy of every predictor risk.json breaks down per
-    situation type (the shipped one first), with the intervals over that situation's sequences."""
-    sit = src.get(RISK_FILE, "situations")
-    if not isinstance(sit, dict) or not sit:
-        return None
-    t = Table(
-        "Risk: every predictor by situation type (primary threshold; intervals over that "
-        "situation's sequences)",
-        ["situation", "sequences", "frames", "critical share", "predictor"]
-        + ["recall", CI, "specificity", CI, "bal. acc.", CI],
-        anchor="risk-situations",
-        note="n/a: the situation has no critical (recall) or no uncritical (specificity) test "
-        "frame.",
-    )
-    counts = [("n_sequences", "int"), ("n_frames", "int"), ("critical_share", "pct")]
-    for s in sorted(sit):
-        pre = f"situations.{s}"
-        for i, p in enumerate(_first(sit[s].get("predictors"), src.get(RISK_FILE, "shipped"))):
-            row = [Cell(s), *(value_cell(src, f"{pre}.{k}", f) for k, f in counts), Cell(p)]
-            row[1:4] = row[1:4] if i == 0 else [Cell("")] * 3  # the counts once per situation
-            for k in ("recall", "specificity", "balanced_accuracy"):
-                row += _with_ci(src, f"{pre}.predictors.{p}.{k}", "pct")
-            t.rows.append(row)
-    return t
-
-
-def training_table(src: page.Sources) -> Table | None:
-    """Per variant: inputs, parameters, steps and best validation MSE (risk.json models; the
-    label: the results table; training times: the run records, reports/timings)."""
-    models = src.get(RISK_FILE, "models")
-    if not isinstance(models, dict) or not models:
-        return None
-    cols = [("n_parameters", "parameters", "int"), ("n_train", "train frames", "int")]
-    cols += [("steps", "steps", "int"), ("best_step", "best step", "int")]
-    cols += [("best_val_mse", "best val MSE", "g4")]
-    t = Table(
-        "Risk: training of each variant (DAVE-2-like net; paper: "
-        f"{P.RISK['epochs'].value} epochs, batch {P.RISK['batch_size'].value}, Adam)",
-        ["variant", "inputs", *[c[1] for c in cols]],
-        anchor="risk-training",
-    )
-    for v in _first(models, src.get(RISK_FILE, "main_variant")):
-        m = models[v] if isinstance(models[v], dict) else {}
-        inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
-        cells = [value_cell(src, f"models.{v}.{k}", f) for k, _, f in cols]
-        t.rows.append([Cell(v), Cell(inputs or NA), *cells])
-    return t
-
-
 def risk_tables(src: page.Sources) -> list[Table]:
     """Every table of the risk section, in the order it shows them (those without data left out)."""
     at = risk_threshold_key(src)
@@ -374,9 +243,5 @@ def risk_tables(src: page.Sources) -> list[Table]:
         confusion_table(src, main, at) if isinstance(main, str) else None,
         selection_table(src),
         difference_table(src, at),
-        region_table(src),
-        situation_table(src),
-        training_table(src),
-        data_table(src),
     ]
     return [t for t in tables if t is not None]
