@@ -12,6 +12,8 @@ intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region`
 
 from __future__ import annotations
 
+from collections.abc import Collection, Sequence
+
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
@@ -23,6 +25,31 @@ RISK_FILE = "risk.json"
 SELECTION_FILE = "risk_selection.json"
 DASH = "—"  # the paper reports no such number
 CI = "95 % CI"
+
+
+#: one figure of a spec-driven table row: (column header, key under the row's base, format, with
+#: its 95 % sequence-bootstrap interval ``<key>_ci`` in a "95 % CI" column beside it)
+Column = tuple[str, str, str, bool]
+
+
+def spec_columns(*specs: Sequence[Column]) -> list[str]:
+    """The column headers of ``specs``: each header, and "95 % CI" after those with an interval."""
+    return [h for cols in specs for head, _, _, ci in cols for h in ((head, CI) if ci else (head,))]
+
+
+def spec_cells(
+    src: page.Sources, file: str, base: str, specs: Sequence[Column], dash: Collection[str] = ()
+) -> list[Cell]:
+    """The cells of ``specs`` at ``file``#``<base>.<key>`` (and the interval where a spec has
+    one), in the order of :func:`spec_columns`; a key in ``dash`` shows "—" (its interval too)."""
+    out: list[Cell] = []
+    for _, key, fmt, ci in specs:
+        if key in dash:
+            out += [Cell(DASH)] * (1 + ci)
+            continue
+        out.append(src.cell(file, f"{base}.{key}", fmt))
+        out += [interval_cell(src, file, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
+    return out
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
@@ -78,25 +105,31 @@ def results_table(src: page.Sources, at: str) -> Table:
     """The paper beside every predictor on the same test frames at the primary threshold ``at``
     (``at_<t>s``): MSE, MAE, THW error, accuracy, ..., ROC-AUC and the critical share, with the
     95 % sequence-bootstrap intervals where risk.json has them."""
-    dp, ci = derived_paper_cell, isinstance(src.get(RISK_FILE, "bootstrap"), dict)
-    metrics = [  # (key, column, format, with its interval, the paper's cell)
-        ("test/mse", "MSE (normalised risk)", "g4", ci, paper_cell("RISK", "test_mse", "g4")),
-        ("test/mae", "MAE (normalised risk)", "g4", False, None),
-        ("test/thw_mae_s", "THW abs. error [s] (capped)", "g4", False, None),
-        (f"{at}.accuracy", "accuracy", "pct", ci, paper_cell("RISK", "accuracy", "pct_raw")),
-        (f"{at}.balanced_accuracy", "balanced accuracy", "pct", ci, None),
-        (f"{at}.precision", "precision (critical)", "pct", False, dp("precision_critical_pct")),
-        (f"{at}.recall", "recall (critical)", "pct", ci, dp("recall_critical_pct")),
-        (f"{at}.f1", "F1 (critical)", "g4", ci, None),
-        (f"{at}.roc_auc", "ROC-AUC", "g4", ci, None),
-        (f"{at}.critical_fraction_true", "critical share", "pct", False, dp("critical_share_pct")),
+    ci = isinstance(src.get(RISK_FILE, "bootstrap"), dict)
+    metrics: list[Column] = [
+        ("MSE (normalised risk)", "test/mse", "g4", ci),
+        ("MAE (normalised risk)", "test/mae", "g4", False),
+        ("THW abs. error [s] (capped)", "test/thw_mae_s", "g4", False),
+        ("accuracy", f"{at}.accuracy", "pct", ci),
+        ("balanced accuracy", f"{at}.balanced_accuracy", "pct", ci),
+        ("precision (critical)", f"{at}.precision", "pct", False),
+        ("recall (critical)", f"{at}.recall", "pct", ci),
+        ("F1 (critical)", f"{at}.f1", "g4", ci),
+        ("ROC-AUC", f"{at}.roc_auc", "g4", ci),
+        ("critical share", f"{at}.critical_fraction_true", "pct", False),
     ]
+    paper = {  # the paper's cells: printed in Sec. 4 or derived from its Table 1
+        "test/mse": paper_cell("RISK", "test_mse", "g4"),
+        f"{at}.accuracy": paper_cell("RISK", "accuracy", "pct_raw"),
+        f"{at}.precision": derived_paper_cell("precision_critical_pct"),
+        f"{at}.recall": derived_paper_cell("recall_critical_pct"),
+        f"{at}.critical_fraction_true": derived_paper_cell("critical_share_pct"),
+    }
     thw = float(at[3:-1])
     t = Table(
         f"Risk: test results, paper vs every predictor on the same test frames (critical ⇔ THW < "
         f"{thw:g} s ⇔ risk > 1/{CLIP * thw:g})",
-        ["predictor", "label", "status", "prediction std"]
-        + [c for _, name, _, has_ci, _ in metrics for c in ([name, CI] if has_ci else [name])],
+        ["predictor", "label", "status", "prediction std", *spec_columns(metrics)],
         anchor="risk-results",
         headline=True,
         note=(
@@ -117,21 +150,15 @@ def results_table(src: page.Sources, at: str) -> Table:
         ),
     )
     wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
-    for name, cells in (
-        ("paper (Feth et al.)", {k: pc for k, _, _, _, pc in metrics if pc}),
-        ("Wang & Kato [20]", wang_kato),
-    ):
+    for name, cells in (("paper (Feth et al.)", paper), ("Wang & Kato [20]", wang_kato)):
         row = [Cell(name), Cell(DASH), Cell("paper"), Cell(DASH)]
-        for k, _, _, has_ci, _ in metrics:
+        for _, k, _, has_ci in metrics:
             row += [cells.get(k) or Cell(DASH)] + [Cell(DASH)] * has_ci
         t.rows.append(row)
     for pre, name, status in _predictors(src):
         label = Cell(str(src.get(RISK_FILE, f"{pre}.label") or NA))
         row = [Cell(name), label, Cell(status), value_cell(src, f"{pre}.pred_std")]
-        for k, _, fmt, has_ci, _ in metrics:
-            row.append(src.cell(RISK_FILE, f"{pre}.{k}", fmt))
-            row += [ci_cell(src, f"{pre}.{k}", fmt)] * has_ci
-        t.rows.append(row)
+        t.rows.append(row + spec_cells(src, RISK_FILE, pre, metrics))
     return t
 
 
