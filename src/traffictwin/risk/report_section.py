@@ -10,7 +10,6 @@ findings in :mod:`traffictwin.risk.findings`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from traffictwin import paper_numbers as P
@@ -20,14 +19,12 @@ from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.claims import ClaimCheck, claim_verdict, fmt_interval, pct
 from traffictwin.report.model import fmt_value
-from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
-from traffictwin.risk.report_tables import RISK_FILE, risk_tables
+from traffictwin.risk.report_tables import RISK_FILE, prose, risk_tables
 
 TITLE = "Paper 2 — dynamic risk assessment from a stereo camera"
-TEMPLATES = Path(__file__).parent / "templates"
 
 # The figures the risk stages write: file stem -> caption, in the order the section shows them.
 FIGURES: dict[str, str] = {
@@ -61,11 +58,6 @@ DATA_FILES = (
         required=True,
     ),
 )
-
-
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:

@@ -13,10 +13,13 @@ intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region`
 from __future__ import annotations
 
 from collections.abc import Collection, Sequence
+from pathlib import Path
+from typing import Any
 
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
+from traffictwin.report.prose import oneline, template_macro
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
@@ -25,6 +28,7 @@ RISK_FILE = "risk.json"
 SELECTION_FILE = "risk_selection.json"
 DASH = "—"  # the paper reports no such number
 CI = "95 % CI"
+TEMPLATES = Path(__file__).parent / "templates"
 
 
 #: one figure of a spec-driven table row: (column header, key under the row's base, format, with
@@ -50,6 +54,11 @@ def spec_cells(
         out.append(src.cell(file, f"{base}.{key}", fmt))
         out += [interval_cell(src, file, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
     return out
+
+
+def prose(name: str, **context: Any) -> str:
+    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
+    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
@@ -132,21 +141,10 @@ def results_table(src: page.Sources, at: str) -> Table:
         ["predictor", "label", "status", "prediction std", *spec_columns(metrics)],
         anchor="risk-results",
         headline=True,
-        note=(
-            "The paper's numbers (Sec. 4; precision, recall and critical share derived from its "
-            "Table 1) are over its whole effective data set "
-            f"({fmt_value(P.RISK['n_effective'].value, 'int')} frames), ours over the test split; "
-            "'—': the paper reports no such number. Wang & Kato (ref. [20] of the paper) solve a "
-            "different, 3-class task with subjective labels; the paper quotes their accuracy as the "
-            "related work's best. Intervals: "
-            f"{src.get(RISK_FILE, 'bootstrap.n_boot')} resamples of the test sequences (cluster = "
-            "driving sequence). Seed mean: the metric averaged over the variant's seeds inside each "
-            "resample. Baselines, scored on the headline's label: train_mean / train_median "
-            "(constants), speed_only (isotonic fit on train), geometric_sgm / geometric_learned / "
-            "geometric_gt (the corridor rule on SGM, learned-stereo or GT disparity, corridor chosen "
-            "on validation; on GT disparity it sees perfect stereo: a reference, not an oracle, its "
-            "straight band is not the label's curved corridor). Whether one predictor beats "
-            "another: the table of paired differences."
+        note=prose(
+            "results",
+            n_effective=fmt_value(P.RISK["n_effective"].value, "int"),
+            n_boot=src.get(RISK_FILE, "bootstrap.n_boot"),
         ),
     )
     wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
@@ -172,8 +170,7 @@ def confusion_table(src: page.Sources, main: str, at: str) -> Table:
         ["", *(f"{who}: {c}" for who in ("paper", "ours") for c in actual)],
         anchor="risk-confusion",
         headline=True,
-        note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of "
-        "all frames.",
+        note=prose("confusion"),
     )
     for label, pair in (("predicted critical", "tp fp"), ("predicted uncritical", "fn tn")):
         row = [Cell(label)]
@@ -193,7 +190,7 @@ def selection_table(src: page.Sources) -> Table | None:
     if not isinstance(preds, dict) or not preds:
         return None
     sel = lambda k: src.get(SELECTION_FILE, k)  # noqa: E731
-    shipped, fallback, ts = sel("shipped.predictor"), sel("shipped.note"), sel("thresholds_s") or []
+    shipped, ts = sel("shipped.predictor"), sel("thresholds_s") or []
     cols = [
         c for t in ts for c in (f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s")
     ]
@@ -202,16 +199,7 @@ def selection_table(src: page.Sources) -> Table | None:
         ["predictor", "kind", "group", "validation ROC-AUC", *cols, "role"],
         anchor="risk-selection",
         headline=True,
-        note=(
-            f"{sel('n_frames')} validation frames in {sel('n_sequences')} sequences. Corridor "
-            f"half-width of the rule on SGM disparity: {sel('rules.geometric_sgm.half_width')} m, on "
-            f"GT disparity: {sel('rules.geometric_gt.half_width')} m (the highest validation ROC-AUC "
-            "among evaluation.risk.geometric.half_widths). Each predictor's decision cut maximises "
-            "its validation balanced accuracy. Shipped (what `traffictwin risk` and the registered "
-            "risk model serve; its test scores: the results table's `shipped` row): the highest "
-            "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: "
-            "the simpler)." + (f" Not so here: {fallback}." if fallback else "")
-        ),
+        note=prose("selection", sel=sel),
     )
     decisions = [
         (f"decision.{t:g}.{k}", f)
@@ -240,11 +228,7 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
         ["a", "b", "label", "comparison", *(c for n in metrics.values() for c in (f"Δ {n}", CI))]
         + ["verdict (ROC-AUC)"],
         anchor="risk-diff",
-        note=(
-            "A difference is a finding only when its interval excludes 0; lower MSE and higher "
-            "balanced accuracy / ROC-AUC are better. Both predictors are recomputed on every "
-            "resample of the test sequences."
-        ),
+        note=prose("differences"),
     )
     for key, d in diffs.items():
         if not isinstance(d, dict):
