@@ -6,8 +6,8 @@ variant, the data per split) is in the report's appendix.
 Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
 ``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
 ``test/mse``, ... and ``at_<t>s`` {accuracy, ..., confusion}, their 95 % sequence-bootstrap
-intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region``,
-``critical_share``, ``situations``, ``n_frames``; and ``risk_selection.json`` (stage select_risk).
+intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``; and
+``risk_selection.json`` (stage select_risk). Notes: the macros of ``templates/report.md.j2``.
 """
 
 from __future__ import annotations
@@ -80,11 +80,6 @@ def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FI
     if src.get(file, key, page.ABSENT) is page.ABSENT:
         return Cell(NA, title=f"not applicable: {key}")
     return src.cell(file, key, fmt)
-
-
-def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
-    """The 95 % sequence-bootstrap interval ``[lo, hi]`` of ``key`` in risk.json."""
-    return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
 
 
 def _first(names: object, first: object) -> list[str]:
@@ -238,7 +233,8 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
         row += [Cell(str(d.get("label"))), Cell(str(d.get("kind", "")))]
         for k in metrics:
             pre = f"differences.{key}.{k}"
-            row += [value_cell(src, f"{pre}.estimate"), ci_cell(src, pre)]
+            ci = interval_cell(src, RISK_FILE, pre, "sequence-bootstrap")
+            row += [value_cell(src, f"{pre}.estimate"), ci]
         verdict = {True: "a better", False: "b better"}.get(beats(d, f"{at}.roc_auc"))
         why = "claimed only when the paired 95 % interval excludes 0"
         t.rows.append(row + [Cell(verdict or "no significant difference", title=why)])
