@@ -506,3 +506,29 @@ def test_row_table_hand_case(tmp_path: Path) -> None:
         ["A", "network", "naive", "-0.1", "[-0.2, 0.05]", "no difference shown"],
         ["A", "network", "registered", "n/a", "n/a", "n/a"],
     ]
+
+
+def test_spec_columns_and_cells_by_hand(tmp_path: Path) -> None:
+    """The spec-driven table builder of the risk and twin sections: a column per spec, a "95 % CI"
+    column after those with an interval; the cells of one row read ``<base>.<key>`` and
+    ``<key>_ci``, a dashed key shows "—" in both."""
+    from traffictwin.report.model import Sources
+    from traffictwin.risk.report_tables import spec_cells, spec_columns
+
+    specs = (("share", "a", "pct", True), ("count", "n", "int", False), ("lead", "b", "f2", True))
+    assert spec_columns(specs[:1], specs[1:]) == ["share", "95 % CI", "count", "lead", "95 % CI"]
+    row = {"a": 0.25, "a_ci": [0.2, 0.3], "n": 1234, "b": 1.5, "b_ci": {"lo": 1.0, "hi": 2.0}}
+    src = Sources(_inputs(_reports(tmp_path, {"x.json": {"r": row}})))
+    cells = spec_cells(src, "x.json", "r", specs)
+    assert [c.text for c in cells] == [
+        "25.00 %",
+        "[20.00 %, 30.00 %]",
+        "1,234",
+        "1.50",
+        "[1.00, 2.00]",
+    ]
+    assert cells[0].src == "metrics/x.json#r.a" and cells[1].value == [0.2, 0.3]
+    dashed = spec_cells(src, "x.json", "r", specs, dash=("a",))
+    assert [c.text for c in dashed][:3] == ["—", "—", "1,234"]
+    assert [c.text for c in spec_cells(src, "x.json", "gone", specs[1:2])] == ["n/a"]
+    assert src.missing == ["metrics/x.json#gone.n"]

@@ -1,5 +1,6 @@
-"""The stereo section of the report: range-error, fault-detection and resolution tables from the
-metrics files, every number traceable to its file, old or missing files handled."""
+"""The stereo section of the report: the fault-detection and learned-stereo tables from the
+metrics files, every number traceable to its file, old or missing files handled, the other
+stereo files in the appendix."""
 
 from __future__ import annotations
 
@@ -115,78 +116,46 @@ def _rows(table) -> list[list[str]]:
 def test_stereo_section_tables(tmp_path: Path) -> None:
     rep = _reports(
         tmp_path,
-        {"disparity.json": DISPARITY, "orb.json": ORB, "stereo_resolution.json": RESOLUTION},
+        {
+            "disparity.json": DISPARITY,
+            "orb.json": ORB,
+            "stereo_resolution.json": RESOLUTION,
+            "sgm_variants.json": {"validation": {"frames": 160}, "choice": {"chosen": "bs3"}},
+        },
         ("stereo_resolution.png", "stereo_example.png"),
     )
     report = R.write_report(_inputs(rep), providers({}))
     check_report(rep, {}, {})  # every number cell equals its file's value
     sec = next(s for s in report.sections if s.title == S.TITLE)
-    anchors = [t.anchor for t in sec.tables]
     assert sec.shown == 1
-    assert (
-        anchors
-        == [  # the headline table first (the others under "More tables"), then report order
-            "stereo-fault-detection",
-            "stereo-accuracy",
-            "stereo-range-error",
-            "stereo-delay-by-speed",
-            "stereo-valid-share-sweep",
-            "stereo-resolution",
-        ]
-    )
-    det, acc, rng, speed, sweep, res = sec.tables
-    assert _rows(acc)[0] == ["all pairs", "2.16 %", "1.55 %", "86.30 %", "0.34"]
-    assert _rows(rng)[0] == ["fault-free pairs", "0–10 m", "1,000", "88.00 %", "1.40 %", "4.20 %"]
+    assert [t.anchor for t in sec.tables] == ["stereo-fault-detection"]
+    (det,) = sec.tables
     assert [r[0] for r in _rows(det)] == [S.RULE_LABELS[r] for r in RULES] + ["pairs evaluated"]
     assert [r[1] for r in _rows(det)] == ["", "", "", "yes", ""]  # the configured rule drops pairs
     assert _rows(det)[-1][2:] == ["10", "", "10", "", "10", ""]  # the pairs each rate is over
     assert det.rows[-1][2].src == "metrics/orb.json#rule_orb/delay_detection_n"
     assert _rows(det)[0][2:4] == ["50.00 %", "[40.00 %, 60.00 %]"]
     assert det.rows[0][3].derived.startswith("95 % cluster-bootstrap interval")
-    # speed bins sorted by their lower edge, with the counts first
-    assert speed.columns[1:] == ["v 0–0.5 m/s", "v 0.5–5 m/s", "v 10–15 m/s"]
-    assert _rows(speed)[0] == ["delay faults (count)", "4", "4", "4"]
-    assert [r[0] for r in _rows(sweep)] == ["threshold 0.75", "threshold 0.8"]
-    assert res.columns == ["quantity", "width 320 px", "width 640 px"]
-    rows = {r[0]: r[1:] for r in _rows(res)}
-    assert rows["objects at 12–21 m: median range error"] == ["7.00 %", "14.00 %"]
-    assert rows["objects at 12–21 m: median range error, 95 % CI"] == [
-        "[6.50 %, 7.50 %]",
-        "[13.00 %, 15.00 %]",
-    ]
-    # the paired difference between widths: the last rows, in the larger width's column
-    assert _rows(res)[-2:] == [
-        ["objects at 12–21 m: median range error, width 640 − 320 px", "", "-4.00 %"],
-        [
-            "objects at 12–21 m: median range error, width 640 − 320 px, 95 % CI",
-            "",
-            "[-4.50 %, -3.50 %]",
-        ],
-    ]
-    assert (
-        res.rows[-2][2].src
-        == "metrics/stereo_resolution.json#diff_w640_minus_w320/crit_obj_relerr_median"
-    )
     assert [f.path for f in sec.figures] == ["figures/stereo_resolution.png"]
     assert report.missing == []
     appendix = next(s for s in report.sections if s.title.startswith("Appendix"))
     titles = [t.title for t in appendix.tables]
-    assert "reports/metrics/stereo_resolution.json" not in titles  # shown in full by the section
+    # the resolution study: its figure here, its numbers in the appendix
+    assert "reports/metrics/stereo_resolution.json" in titles
+    assert "| validation.frames | 160 |" in page_md(rep, "appendix")  # sgm_variants.json
     assert "reports/metrics/orb.json" not in titles  # the data section shows it
 
 
 def test_stereo_section_with_missing_or_old_files(tmp_path: Path) -> None:
-    old = {"all/bad2": 0.071, "all/density": 0.83, "all/frames": 40}  # an older disparity.json
-    rep = _reports(tmp_path, {"disparity.json": old, "orb.json": {"all/dropped_share": 0.04}})
+    old = {"all/dropped_share": 0.04}  # an older orb.json, without the rules
+    rep = _reports(tmp_path, {"disparity.json": DISPARITY, "orb.json": old})
     src = Sources(_inputs(rep))
     sec = S.section(src, [])
-    assert [t.anchor for t in sec.tables] == ["stereo-accuracy"]
-    assert sec.tables[0].columns == ["pairs", "bad-2 (> 2 px)", "density"]
+    assert sec.tables == []
     assert src.missing == []  # what an old file lacks is left out, not reported missing
-    assert any("stereo_resolution.json` is missing" in p for p in sec.paragraphs)
+    assert any("stereo.json` is missing" in p for p in sec.paragraphs)
     empty = S.section(Sources(_inputs(_reports(tmp_path / "e", {}))), [])
     assert empty.tables == []
-    assert any("disparity.json` is missing" in p for p in empty.paragraphs)
     assert any("orb.json` is missing" in p for p in empty.paragraphs)
 
 
@@ -262,167 +231,3 @@ def test_learned_stereo_tables_show_both_sources_and_their_difference(
     sec = next(s for s in report.sections if s.title == S.TITLE)
     assert not any(t.anchor.startswith("stereo-learned") for t in sec.tables)
     assert any("stereo.json` is missing: stage stereo_learned" in p for p in sec.paragraphs)
-
-
-def test_generalisation_tables_show_the_three_sources_and_the_paired_differences(
-    tmp_path: Path,
-) -> None:
-    """stereo.json's ``generalisation``: SGM | full network | without the templates (each with its
-    interval) on the held-out templates' frames, then the paired differences; a block without
-    frames shows its reason instead of numbers."""
-    g: dict = {"templates": ["roundabout", "s_curve"], "test/frames": 12, "test/sequences": 3}
-    for source, v in (("sgm", 0.3), ("learned", 0.2), ("holdout", 0.25)):
-        for mask in ("common", "own"):
-            for _, key, _ in S.GENERALISATION_ROWS:
-                g[f"{source}/{mask}/{key}"] = v
-                g[f"{source}/{mask}/{key}_lo"], g[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
-    for other, d in (("learned", 0.05), ("sgm", -0.05)):
-        for key in ("epe", "crit_obj_relerr_median"):
-            k = f"diff_holdout_minus_{other}/common/{key}"
-            g[k], g[k + "_lo"], g[k + "_hi"] = d, d - 0.02, d + 0.02
-    rep = _reports(
-        tmp_path,
-        {
-            "disparity.json": DISPARITY,
-            "orb.json": ORB,
-            "stereo.json": {**_stereo_json(), "generalisation": g},
-        },
-        ("stereo_learned_example.png",),
-    )
-    report = R.write_report(_inputs(rep), providers({}))
-    check_report(rep, {}, {})
-    sec = next(s for s in report.sections if s.title == S.TITLE)
-    by = {t.anchor: t for t in sec.tables}
-    t = by["stereo-generalisation"]
-    assert "roundabout, s_curve" in t.title and "12 frames of 3 sequences" in t.note
-    assert _rows(t)[0] == [
-        "end-point error [px]",
-        "0.300",
-        "[0.290, 0.310]",
-        "0.200",
-        "[0.190, 0.210]",
-        "0.250",
-        "[0.240, 0.260]",
-    ]
-    # the paired differences: the last rows, in the 'without them' columns
-    diff = _rows(t)[len(S.GENERALISATION_ROWS) :]
-    blank = [""] * 4
-    assert diff[0] == [
-        "end-point error [px] (without − full network)",
-        *blank,
-        "0.050",
-        "[0.030, 0.070]",
-    ]
-    assert diff[-1] == [
-        "objects at the critical distances: median range error (without − SGM)",
-        *blank,
-        "-5.00 %",
-        "[-7.00 %, -3.00 %]",
-    ]
-
-    why = {
-        "templates": ["roundabout"],
-        "why": "no fault-free test frame of the held-out road templates",
-    }
-    rep = _reports(
-        tmp_path / "why",
-        {
-            "disparity.json": DISPARITY,
-            "orb.json": ORB,
-            "stereo.json": {**_stereo_json(), "generalisation": why},
-        },
-        ("stereo_learned_example.png",),
-    )
-    sec = next(
-        s for s in R.write_report(_inputs(rep), providers({})).sections if s.title == S.TITLE
-    )
-    rows = _rows(next(t for t in sec.tables if t.anchor == "stereo-generalisation"))
-    assert rows == [["not measured", why["why"]]]
-
-
-def _variants_json(chosen: str) -> dict:
-    """An sgm_variants.json as the stage writes it (made-up figures)."""
-    figs = {}
-    for i, n in enumerate(["bs5-ur10-sw100-colour", "bs3-ur10-sw100-colour", "bs7-ur5-sw0-grey"]):
-        figs[n] = {
-            "settings": {"block_size": int(n[2])},
-            "epe": 0.2 + 0.01 * i,
-            "bad1": 0.02,
-            "density": 0.9,
-            "crit_obj_relerr_median": 0.07 - 0.01 * i,
-            "crit_obj_relerr_p90": 0.17,
-            "crit_obj_density": 0.8 - 0.1 * (i == 2),
-        }
-    out: dict = {
-        "validation": {"frames": 160, "variants": figs},
-        "choice": {
-            "chosen": chosen,
-            "configured": "bs5-ur10-sw100-colour",
-            "is_configured": chosen == "bs5-ur10-sw100-colour",
-            "rule": "lowest validation crit_obj_relerr_median among the 2 of 3 variants ...",
-        },
-    }
-    if chosen == "bs5-ur10-sw100-colour":
-        out["test"] = {"why": "the chosen variant is the configured matcher"}
-        return out
-    t: dict = {"test/frames": 700, "test/sequences": 100}
-    for source, v in (("configured", 0.22), ("chosen", 0.21)):
-        for mask in ("common", "own"):
-            for _, key, _ in S.GENERALISATION_ROWS:
-                t[f"{source}/{mask}/{key}"] = v
-                t[f"{source}/{mask}/{key}_lo"], t[f"{source}/{mask}/{key}_hi"] = v - 0.01, v + 0.01
-    for mask in ("common", "own"):
-        for key in ("epe", "crit_obj_relerr_median"):
-            k = f"diff_chosen_minus_configured/{mask}/{key}"
-            t[k], t[k + "_lo"], t[k + "_hi"] = -0.01, -0.02, 0.0
-    out["test"] = t
-    return out
-
-
-def test_sgm_variant_tables_show_the_configured_the_chosen_and_the_test_comparison(
-    tmp_path: Path,
-) -> None:
-    """sgm_variants.json: the configured matcher first, the chosen one, the others by the
-    criterion with the ones below the density guard marked; the test comparison when a variant
-    won, only its reason when the configured matcher did; the file is not dumped again."""
-    rep = _reports(
-        tmp_path,
-        {
-            "disparity.json": DISPARITY,
-            "orb.json": ORB,
-            "sgm_variants.json": _variants_json("bs3-ur10-sw100-colour"),
-        },
-        (),
-    )
-    report = R.write_report(_inputs(rep), providers({}))
-    check_report(rep, {}, {})
-    sec = next(s for s in report.sections if s.title == S.TITLE)
-    by = {t.anchor: t for t in sec.tables}
-    rows = _rows(by["stereo-sgm-variants"])
-    assert [r[:2] for r in rows] == [
-        ["bs5-ur10-sw100-colour", "configured"],
-        ["bs3-ur10-sw100-colour", "chosen"],
-        ["bs7-ur5-sw0-grey", "below the density guard"],
-    ]
-    assert rows[0][2:] == ["0.200", "2.00 %", "90.00 %", "7.00 %", "17.00 %", "80.00 %"]
-    cmp = _rows(by["stereo-sgm-chosen"])
-    assert cmp[0] == ["end-point error [px]", "0.220", "[0.210, 0.230]", "0.210", "[0.200, 0.220]"]
-    assert cmp[-2][3:] == ["-0.010", "[-0.020, 0.000]"]
-    assert "sgm_variants.json" not in page_md(rep, "appendix").split("## Appendix")[-1]
-
-    rep = _reports(
-        tmp_path / "kept",
-        {
-            "disparity.json": DISPARITY,
-            "orb.json": ORB,
-            "sgm_variants.json": _variants_json("bs5-ur10-sw100-colour"),
-        },
-        (),
-    )
-    sec = next(
-        s for s in R.write_report(_inputs(rep), providers({})).sections if s.title == S.TITLE
-    )
-    t = next(t for t in sec.tables if t.anchor == "stereo-sgm-variants")
-    assert _rows(t)[0][:2] == ["bs5-ur10-sw100-colour", "configured and chosen"]
-    assert "the chosen variant is the configured matcher" in t.note
-    assert "stereo-sgm-chosen" not in {t.anchor for t in sec.tables}

@@ -252,19 +252,9 @@ def test_evaluate_sequence_reads_ttc_beside_thw():
     assert (r["critical"] == (r["thw_true"] < s.critical_thw)).all()
 
 
-def test_report_section_shows_the_predictive_table(tmp_path):
-    import json
-
-    from _acceptance import thresholds
-
-    from traffictwin.io.jsonio import json_clean
-    from traffictwin.report.model import ReportInputs, Sources
-    from traffictwin.twin import report_section as rs
+def test_the_summary_holds_the_predictive_lead() -> None:
     from traffictwin.twin.evaluation import TwinEvalSettings
     from traffictwin.twin.summary import summarise
-    from traffictwin.twin.targets import targets
-
-    TWIN = thresholds("twin")
 
     s = summarise(
         _pred_table(),
@@ -274,13 +264,4 @@ def test_report_section_shows_the_predictive_table(tmp_path):
             critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=100, horizon_s=0.3
         ),
     )
-    m = {
-        "configurations": {"D": {"methods": s}},
-        "targets": targets({"D": {"methods": s}}, "twin", "D", TWIN),
-    }
-    (tmp_path / "metrics").mkdir()
-    (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
-    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
-    pred = next(t for t in rs.section(src, []).tables if t.anchor == "twin-predictive")
-    row = next(r for r in pred.rows if r[1].text == "twin" and r[2].text == "occluded")
-    assert row[3].value == pytest.approx(0.3)
+    assert s["twin"]["occluded"]["predictive"]["lead_vs_thw_s_mean"] == pytest.approx(0.3)

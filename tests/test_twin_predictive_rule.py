@@ -121,34 +121,3 @@ def test_twin_config_lists_the_configured_rule_first_and_checks_the_candidates()
     bad = OmegaConf.merge(base, {"twin": {"ttc_confirm_candidates": [0]}})
     with pytest.raises((ValueError, ConfigError), match="ttc_confirm_candidates"):
         twin_config(bad)
-
-
-def test_the_report_lists_every_candidate_and_the_one_chosen(tmp_path) -> None:
-    import json
-
-    from traffictwin.io.jsonio import json_clean
-    from traffictwin.report.model import ReportInputs, Sources
-    from traffictwin.twin import report_section as rs
-
-    s = TwinEvalSettings(
-        critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50, horizon_s=0.3
-    )
-    cands = [PredictiveRule(2.5, 1), PredictiveRule(2.5, 2)]
-    _, rows = choose_rule(_table(), "twin", cands, 10.0, s)
-    m = {
-        "configurations": {},
-        "predictive_rule": {
-            "validation_sequences": 2,
-            "candidates": {c.key: r for c, r in zip(cands, rows)},
-        },
-    }
-    (tmp_path / "metrics").mkdir()
-    (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
-    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
-    t = next(t for t in rs.section(src, []).tables if t.anchor == "twin-predictive-rule")
-    assert "2 validation sequences" in t.title
-    assert [(r[0].text, r[1].text, r[5].text) for r in t.rows] == [
-        ("2.50", "1", "no"),
-        ("2.50", "2", "yes"),
-    ]
-    assert t.rows[0][3].value == pytest.approx(1 / 7)

@@ -170,25 +170,14 @@ def test_vehicle_summaries_pair_the_twin_with_the_vehicle_s_own_map() -> None:
     )
 
 
-def test_the_report_shows_every_vehicle_s_risk(tmp_path) -> None:
-    import json
-
-    from traffictwin.io.jsonio import json_clean
-    from traffictwin.report.model import ReportInputs, Sources
-    from traffictwin.twin import report_section as rs
-
+def test_every_vehicle_s_risk_is_summarised() -> None:
     v = vehicle_summaries(
         _vehicle_table(),
         ["twin"],
         10.0,
         TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50),
     )
-    m = {"configurations": {"D": {"methods": {}, "vehicles": v}}}
-    (tmp_path / "metrics").mkdir()
-    (tmp_path / "metrics" / "twin.json").write_text(json.dumps(json_clean(m)))
-    src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
-    t = next(t for t in rs.section(src, []).tables if t.anchor == "twin-vehicles")
-    rows = {r[2].text: r for r in t.rows}
-    assert set(rows) == {"its own map", "twin"}
-    assert rows["twin"][1].text == "2 (follower)" and rows["twin"][3].value == 10
-    assert rows["twin"][4].value == 1.0 and rows["its own map"][6].text == "—"
+    follower = v["2"]
+    assert follower["role"] == "follower" and set(follower["methods"]) == {"own", "twin"}
+    assert follower["methods"]["twin"]["all"]["critical_frames"] == 10
+    assert follower["methods"]["twin"]["all"]["recall"] == 1.0

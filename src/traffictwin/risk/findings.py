@@ -5,8 +5,7 @@ What is stated is computed here as a typed record (:class:`RiskFindings`: the me
 quote, verdicts, flags, names); the sentences and the formats of their numbers are in
 ``templates/findings.md.j2``. Every number comes from the metrics, none is typed by hand; a part
 whose metrics are missing is left out, never invented. What the section's tables show (every
-predictor's scores with their intervals, the paired differences, the situations, the data) is
-not restated.
+predictor's scores with their intervals, the paired differences) is not restated.
 
 Rules: a paired difference is a finding only when its 95 % sequence-bootstrap interval excludes
 zero (:func:`beats`, the interval rule of :mod:`traffictwin.interval_rule`). A collapsed model
@@ -62,7 +61,7 @@ class Learning(NamedTuple):
 
 class Region(NamedTuple):
     """The risk metric region: the paper's against the camera's field of view (each predictor's
-    skill per label: the report's region table)."""
+    skill per label: risk.json ``region``, in the report's appendix)."""
 
     agreement: Mapping[str, Any]  #: the two labels' class agreement (with its interval)
     critical: tuple[Any, Any]  #: critical share with the paper's / the camera's label

@@ -18,10 +18,11 @@ from traffictwin.nested import lookup
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.claims import ClaimCheck, claim_verdict, fmt_interval, pct
+from traffictwin.report.model import fmt_value
 from traffictwin.report.summary import Baseline, Headline, headline, strongest
 from traffictwin.report.tables import findings_group
 from traffictwin.risk.findings import findings
-from traffictwin.risk.report_tables import RISK_FILE, risk_tables
+from traffictwin.risk.report_tables import RISK_FILE, prose, risk_tables
 
 TITLE = "Paper 2 — dynamic risk assessment from a stereo camera"
 
@@ -60,11 +61,11 @@ DATA_FILES = (
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
-    """The risk results section: the tables of :func:`~traffictwin.risk.report_tables.risk_tables`,
-    this run's findings and ``figures``."""
+    """The risk results section: the paper's data, the tables of
+    :func:`~traffictwin.risk.report_tables.risk_tables`, this run's findings and ``figures``."""
     sec = page.Section(TITLE, [f"Reference: {P.RISK_CITATION}."], figures=figures)
     if src.has(RISK_FILE):
-        sec.paragraphs.append(ACCEPTANCE_POINTER)
+        sec.paragraphs += [ACCEPTANCE_POINTER, prose("paper_data", P=P, num=fmt_value)]
         sec.tables = risk_tables(src)
     else:
         sec.paragraphs.append(

@@ -1,19 +1,25 @@
 """The risk section's tables: every predictor on the same test frames beside the paper, the
-confusion matrix, the choices made on validation, the paired differences, the region check, the
-situations, training, and the data per split. Each number is shown in one table.
+confusion matrix, the choices made on validation and the paired differences. The rest of
+risk.json (each predictor against every region's label, by situation type, the training of each
+variant, the data per split) is in the report's appendix.
 
 Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
 ``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
 ``test/mse``, ... and ``at_<t>s`` {accuracy, ..., confusion}, their 95 % sequence-bootstrap
-intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``, ``region``,
-``critical_share``, ``situations``, ``n_frames``; and ``risk_selection.json`` (stage select_risk).
+intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``; and
+``risk_selection.json`` (stage select_risk). Notes: the macros of ``templates/report.md.j2``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Collection, Sequence
+from pathlib import Path
+from typing import Any
+
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
+from traffictwin.report.prose import oneline, template_macro
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
@@ -22,6 +28,37 @@ RISK_FILE = "risk.json"
 SELECTION_FILE = "risk_selection.json"
 DASH = "—"  # the paper reports no such number
 CI = "95 % CI"
+TEMPLATES = Path(__file__).parent / "templates"
+
+
+#: one figure of a spec-driven table row: (column header, key under the row's base, format, with
+#: its 95 % sequence-bootstrap interval ``<key>_ci`` in a "95 % CI" column beside it)
+Column = tuple[str, str, str, bool]
+
+
+def spec_columns(*specs: Sequence[Column]) -> list[str]:
+    """The column headers of ``specs``: each header, and "95 % CI" after those with an interval."""
+    return [h for cols in specs for head, _, _, ci in cols for h in ((head, CI) if ci else (head,))]
+
+
+def spec_cells(
+    src: page.Sources, file: str, base: str, specs: Sequence[Column], dash: Collection[str] = ()
+) -> list[Cell]:
+    """The cells of ``specs`` at ``file``#``<base>.<key>`` (and the interval where a spec has
+    one), in the order of :func:`spec_columns`; a key in ``dash`` shows "—" (its interval too)."""
+    out: list[Cell] = []
+    for _, key, fmt, ci in specs:
+        if key in dash:
+            out += [Cell(DASH)] * (1 + ci)
+            continue
+        out.append(src.cell(file, f"{base}.{key}", fmt))
+        out += [interval_cell(src, file, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
+    return out
+
+
+def prose(name: str, **context: Any) -> str:
+    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
+    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
@@ -43,16 +80,6 @@ def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FI
     if src.get(file, key, page.ABSENT) is page.ABSENT:
         return Cell(NA, title=f"not applicable: {key}")
     return src.cell(file, key, fmt)
-
-
-def ci_cell(src: page.Sources, key: str, fmt: str = "g4") -> Cell:
-    """The 95 % sequence-bootstrap interval ``[lo, hi]`` of ``key`` in risk.json."""
-    return interval_cell(src, RISK_FILE, key, "sequence-bootstrap", fmt)
-
-
-def _with_ci(src: page.Sources, key: str, fmt: str = "g4") -> list[Cell]:
-    """The value of ``key`` (n/a where it does not apply) and its interval."""
-    return [value_cell(src, key, fmt), ci_cell(src, key, fmt)]
 
 
 def _first(names: object, first: object) -> list[str]:
@@ -82,60 +109,49 @@ def results_table(src: page.Sources, at: str) -> Table:
     """The paper beside every predictor on the same test frames at the primary threshold ``at``
     (``at_<t>s``): MSE, MAE, THW error, accuracy, ..., ROC-AUC and the critical share, with the
     95 % sequence-bootstrap intervals where risk.json has them."""
-    dp, ci = derived_paper_cell, isinstance(src.get(RISK_FILE, "bootstrap"), dict)
-    metrics = [  # (key, column, format, with its interval, the paper's cell)
-        ("test/mse", "MSE (normalised risk)", "g4", ci, paper_cell("RISK", "test_mse", "g4")),
-        ("test/mae", "MAE (normalised risk)", "g4", False, None),
-        ("test/thw_mae_s", "THW abs. error [s] (capped)", "g4", False, None),
-        (f"{at}.accuracy", "accuracy", "pct", ci, paper_cell("RISK", "accuracy", "pct_raw")),
-        (f"{at}.balanced_accuracy", "balanced accuracy", "pct", ci, None),
-        (f"{at}.precision", "precision (critical)", "pct", False, dp("precision_critical_pct")),
-        (f"{at}.recall", "recall (critical)", "pct", ci, dp("recall_critical_pct")),
-        (f"{at}.f1", "F1 (critical)", "g4", ci, None),
-        (f"{at}.roc_auc", "ROC-AUC", "g4", ci, None),
-        (f"{at}.critical_fraction_true", "critical share", "pct", False, dp("critical_share_pct")),
+    ci = isinstance(src.get(RISK_FILE, "bootstrap"), dict)
+    metrics: list[Column] = [
+        ("MSE (normalised risk)", "test/mse", "g4", ci),
+        ("MAE (normalised risk)", "test/mae", "g4", False),
+        ("THW abs. error [s] (capped)", "test/thw_mae_s", "g4", False),
+        ("accuracy", f"{at}.accuracy", "pct", ci),
+        ("balanced accuracy", f"{at}.balanced_accuracy", "pct", ci),
+        ("precision (critical)", f"{at}.precision", "pct", False),
+        ("recall (critical)", f"{at}.recall", "pct", ci),
+        ("F1 (critical)", f"{at}.f1", "g4", ci),
+        ("ROC-AUC", f"{at}.roc_auc", "g4", ci),
+        ("critical share", f"{at}.critical_fraction_true", "pct", False),
     ]
+    paper = {  # the paper's cells: printed in Sec. 4 or derived from its Table 1
+        "test/mse": paper_cell("RISK", "test_mse", "g4"),
+        f"{at}.accuracy": paper_cell("RISK", "accuracy", "pct_raw"),
+        f"{at}.precision": derived_paper_cell("precision_critical_pct"),
+        f"{at}.recall": derived_paper_cell("recall_critical_pct"),
+        f"{at}.critical_fraction_true": derived_paper_cell("critical_share_pct"),
+    }
     thw = float(at[3:-1])
     t = Table(
         f"Risk: test results, paper vs every predictor on the same test frames (critical ⇔ THW < "
         f"{thw:g} s ⇔ risk > 1/{CLIP * thw:g})",
-        ["predictor", "label", "status", "prediction std"]
-        + [c for _, name, _, has_ci, _ in metrics for c in ([name, CI] if has_ci else [name])],
+        ["predictor", "label", "status", "prediction std", *spec_columns(metrics)],
         anchor="risk-results",
         headline=True,
-        note=(
-            "The paper's numbers (Sec. 4; precision, recall and critical share derived from its "
-            "Table 1) are over its whole effective data set "
-            f"({fmt_value(P.RISK['n_effective'].value, 'int')} frames), ours over the test split; "
-            "'—': the paper reports no such number. Wang & Kato (ref. [20] of the paper) solve a "
-            "different, 3-class task with subjective labels; the paper quotes their accuracy as the "
-            "related work's best. Intervals: "
-            f"{src.get(RISK_FILE, 'bootstrap.n_boot')} resamples of the test sequences (cluster = "
-            "driving sequence). Seed mean: the metric averaged over the variant's seeds inside each "
-            "resample. Baselines, scored on the headline's label: train_mean / train_median "
-            "(constants), speed_only (isotonic fit on train), geometric_sgm / geometric_learned / "
-            "geometric_gt (the corridor rule on SGM, learned-stereo or GT disparity, corridor chosen "
-            "on validation; on GT disparity it sees perfect stereo: a reference, not an oracle, its "
-            "straight band is not the label's curved corridor). Whether one predictor beats "
-            "another: the table of paired differences."
+        note=prose(
+            "results",
+            n_effective=fmt_value(P.RISK["n_effective"].value, "int"),
+            n_boot=src.get(RISK_FILE, "bootstrap.n_boot"),
         ),
     )
     wang_kato = {f"{at}.accuracy": paper_cell("RISK", "wang_kato_accuracy", "pct_raw")}
-    for name, cells in (
-        ("paper (Feth et al.)", {k: pc for k, _, _, _, pc in metrics if pc}),
-        ("Wang & Kato [20]", wang_kato),
-    ):
+    for name, cells in (("paper (Feth et al.)", paper), ("Wang & Kato [20]", wang_kato)):
         row = [Cell(name), Cell(DASH), Cell("paper"), Cell(DASH)]
-        for k, _, _, has_ci, _ in metrics:
+        for _, k, _, has_ci in metrics:
             row += [cells.get(k) or Cell(DASH)] + [Cell(DASH)] * has_ci
         t.rows.append(row)
     for pre, name, status in _predictors(src):
         label = Cell(str(src.get(RISK_FILE, f"{pre}.label") or NA))
         row = [Cell(name), label, Cell(status), value_cell(src, f"{pre}.pred_std")]
-        for k, _, fmt, has_ci, _ in metrics:
-            row.append(src.cell(RISK_FILE, f"{pre}.{k}", fmt))
-            row += [ci_cell(src, f"{pre}.{k}", fmt)] * has_ci
-        t.rows.append(row)
+        t.rows.append(row + spec_cells(src, RISK_FILE, pre, metrics))
     return t
 
 
@@ -149,8 +165,7 @@ def confusion_table(src: page.Sources, main: str, at: str) -> Table:
         ["", *(f"{who}: {c}" for who in ("paper", "ours") for c in actual)],
         anchor="risk-confusion",
         headline=True,
-        note="Rows: predicted class, columns: actual class, as in the paper's Table 1; shares of "
-        "all frames.",
+        note=prose("confusion"),
     )
     for label, pair in (("predicted critical", "tp fp"), ("predicted uncritical", "fn tn")):
         row = [Cell(label)]
@@ -170,7 +185,7 @@ def selection_table(src: page.Sources) -> Table | None:
     if not isinstance(preds, dict) or not preds:
         return None
     sel = lambda k: src.get(SELECTION_FILE, k)  # noqa: E731
-    shipped, fallback, ts = sel("shipped.predictor"), sel("shipped.note"), sel("thresholds_s") or []
+    shipped, ts = sel("shipped.predictor"), sel("thresholds_s") or []
     cols = [
         c for t in ts for c in (f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s")
     ]
@@ -179,16 +194,7 @@ def selection_table(src: page.Sources) -> Table | None:
         ["predictor", "kind", "group", "validation ROC-AUC", *cols, "role"],
         anchor="risk-selection",
         headline=True,
-        note=(
-            f"{sel('n_frames')} validation frames in {sel('n_sequences')} sequences. Corridor "
-            f"half-width of the rule on SGM disparity: {sel('rules.geometric_sgm.half_width')} m, on "
-            f"GT disparity: {sel('rules.geometric_gt.half_width')} m (the highest validation ROC-AUC "
-            "among evaluation.risk.geometric.half_widths). Each predictor's decision cut maximises "
-            "its validation balanced accuracy. Shipped (what `traffictwin risk` and the registered "
-            "risk model serve; its test scores: the results table's `shipped` row): the highest "
-            "validation ROC-AUC among the network runs, the hybrid runs and the SGM rule (ties: "
-            "the simpler)." + (f" Not so here: {fallback}." if fallback else "")
-        ),
+        note=prose("selection", sel=sel),
     )
     decisions = [
         (f"decision.{t:g}.{k}", f)
@@ -217,11 +223,7 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
         ["a", "b", "label", "comparison", *(c for n in metrics.values() for c in (f"Δ {n}", CI))]
         + ["verdict (ROC-AUC)"],
         anchor="risk-diff",
-        note=(
-            "A difference is a finding only when its interval excludes 0; lower MSE and higher "
-            "balanced accuracy / ROC-AUC are better. Both predictors are recomputed on every "
-            "resample of the test sequences."
-        ),
+        note=prose("differences"),
     )
     for key, d in diffs.items():
         if not isinstance(d, dict):
@@ -231,137 +233,11 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
         row += [Cell(str(d.get("label"))), Cell(str(d.get("kind", "")))]
         for k in metrics:
             pre = f"differences.{key}.{k}"
-            row += [value_cell(src, f"{pre}.estimate"), ci_cell(src, pre)]
+            ci = interval_cell(src, RISK_FILE, pre, "sequence-bootstrap")
+            row += [value_cell(src, f"{pre}.estimate"), ci]
         verdict = {True: "a better", False: "b better"}.get(beats(d, f"{at}.roc_auc"))
         why = "claimed only when the paired 95 % interval excludes 0"
         t.rows.append(row + [Cell(verdict or "no significant difference", title=why)])
-    return t
-
-
-def region_table(src: page.Sources) -> Table | None:
-    """Each predictor's MSE, accuracy and skill (1 − MSE / MSE of the training mean, with its
-    interval) against every region's label (``region.predictors``)."""
-    region = src.get(RISK_FILE, "region.predictors")
-    if not isinstance(region, dict) or not region:
-        return None
-    labels = {lab: 0 for d in region.values() if isinstance(d, dict) for lab in d}
-    labels = _first(labels, src.get(RISK_FILE, "primary_label"))
-    rt = Table(
-        "Risk: does the label's region explain the errors? Each predictor scored against the "
-        "paper-style region label and against a label restricted to the camera's field of view",
-        ["predictor", *(c for lab in labels for c in (f"MSE vs {lab}", "accuracy", "skill", CI))],
-        anchor="risk-region",
-        note=(
-            "The paper blames its errors on the metric's region not matching the camera view "
-            "(Sec. 4); risk_thw_paper = the paper's region, risk_thw_fov = only what the camera "
-            "sees. Skill = 1 − MSE / MSE of the training mean of that label."
-        ),
-    )
-    for name in region:
-        row = [Cell(name)]
-        for lab in labels:
-            pre = f"region.predictors.{name}.{lab}"
-            row += [
-                src.cell(RISK_FILE, f"{pre}.test/mse"),
-                src.cell(RISK_FILE, f"{pre}.accuracy", "pct"),
-            ]
-            row += _with_ci(src, f"{pre}.skill", "f2")
-        rt.rows.append(row)
-    return rt
-
-
-def data_table(src: page.Sources) -> Table | None:
-    """Per split: frames, sequences, the frames the stereo-pair check drops and keeps, the critical
-    share of every region's label; the paper's numbers first."""
-    splits = src.get(RISK_FILE, "critical_share.splits") or {}
-    if src.get(RISK_FILE, "n_frames") is None and not splits:
-        return None
-    labels = ("risk_thw_corridor", "risk_thw_paper", "risk_thw_fov", "risk")
-    labels = [lab for lab in labels if any(lab in e for e in splits.values())]
-    thr = fmt_value(src.get(RISK_FILE, "critical_share.threshold_s"), "g4")
-    t = Table(
-        f"Risk: data per split, paper vs this run (critical share: THW < {thr} s, every region's "
-        "label)",
-        ["split", "frames", "sequences", "dropped by the stereo-pair check", "kept", *labels],
-        anchor="risk-data",
-        note=(
-            "Frames, sequences and critical shares: every frame of frames.csv, before the "
-            "stereo-pair (ORB) check. The paper (Sec. 3.3, 3.5) splits random frames "
-            f"{P.RISK['split'].value}; ours by scenario (neighbouring frames are near-duplicates). "
-            "Its frame counts give a drop share of "
-            f"{fmt_value(P.risk_confusion_derived()['orb_outlier_pct'], 'pct_raw')} (it says "
-            "'around 3.5 %'). risk_thw_corridor: objects in the subject's driving corridor (the "
-            "headline label); risk_thw_paper: anything ahead under the pessimistic-turn assumption; "
-            "risk_thw_fov: the part the camera sees."
-        ),
-    )
-    paper = [paper_cell("RISK", "n_frames", "int"), Cell(DASH)]
-    paper += [derived_paper_cell("n_dropped", "int"), paper_cell("RISK", "n_effective", "int")]
-    t.rows.append([Cell("paper (Feth et al.)"), *paper, *(Cell(DASH) for _ in labels)])
-    for split in dict.fromkeys(["all", "train", "val", "test", *splits]):
-        pre, whole = f"critical_share.splits.{split}", split == "all"
-        row = [
-            Cell(split),
-            value_cell(src, "n_frames.total" if whole else f"{pre}.n_frames", "int"),
-        ]
-        row.append(value_cell(src, f"{pre}.n_sequences", "int"))
-        dropped = value_cell(src, "n_frames.orb_outliers_dropped", "int")
-        row += (
-            [dropped, Cell("")]
-            if whole
-            else [Cell(""), value_cell(src, f"n_frames.{split}", "int")]
-        )
-        t.rows.append(row + [value_cell(src, f"{pre}.{lab}", "pct") for lab in labels])
-    return t
-
-
-def situation_table(src: page.Sources) -> Table | None:
-    """Recall, specificity and balanced accuracy of every predictor risk.json breaks down per
-    situation type (the shipped one first), with the intervals over that situation's sequences."""
-    sit = src.get(RISK_FILE, "situations")
-    if not isinstance(sit, dict) or not sit:
-        return None
-    t = Table(
-        "Risk: every predictor by situation type (primary threshold; intervals over that "
-        "situation's sequences)",
-        ["situation", "sequences", "frames", "critical share", "predictor"]
-        + ["recall", CI, "specificity", CI, "bal. acc.", CI],
-        anchor="risk-situations",
-        note="n/a: the situation has no critical (recall) or no uncritical (specificity) test "
-        "frame.",
-    )
-    counts = [("n_sequences", "int"), ("n_frames", "int"), ("critical_share", "pct")]
-    for s in sorted(sit):
-        pre = f"situations.{s}"
-        for i, p in enumerate(_first(sit[s].get("predictors"), src.get(RISK_FILE, "shipped"))):
-            row = [Cell(s), *(value_cell(src, f"{pre}.{k}", f) for k, f in counts), Cell(p)]
-            row[1:4] = row[1:4] if i == 0 else [Cell("")] * 3  # the counts once per situation
-            for k in ("recall", "specificity", "balanced_accuracy"):
-                row += _with_ci(src, f"{pre}.predictors.{p}.{k}", "pct")
-            t.rows.append(row)
-    return t
-
-
-def training_table(src: page.Sources) -> Table | None:
-    """Per variant: inputs, parameters, steps and best validation MSE (risk.json models; the
-    label: the results table; training times: the run records, reports/timings)."""
-    models = src.get(RISK_FILE, "models")
-    if not isinstance(models, dict) or not models:
-        return None
-    cols = [("n_parameters", "parameters", "int"), ("n_train", "train frames", "int")]
-    cols += [("steps", "steps", "int"), ("best_step", "best step", "int")]
-    cols += [("best_val_mse", "best val MSE", "g4")]
-    t = Table(
-        "Risk: training of each variant (DAVE-2-like net; paper: "
-        f"{P.RISK['epochs'].value} epochs, batch {P.RISK['batch_size'].value}, Adam)",
-        ["variant", "inputs", *[c[1] for c in cols]],
-        anchor="risk-training",
-    )
-    for v in _first(models, src.get(RISK_FILE, "main_variant")):
-        m = models[v] if isinstance(models[v], dict) else {}
-        inputs = "+".join(m.get("inputs", [])) + (" + speed" if m.get("speed") else "")
-        cells = [value_cell(src, f"models.{v}.{k}", f) for k, _, f in cols]
-        t.rows.append([Cell(v), Cell(inputs or NA), *cells])
     return t
 
 
@@ -374,9 +250,5 @@ def risk_tables(src: page.Sources) -> list[Table]:
         confusion_table(src, main, at) if isinstance(main, str) else None,
         selection_table(src),
         difference_table(src, at),
-        region_table(src),
-        situation_table(src),
-        training_table(src),
-        data_table(src),
     ]
     return [t for t in tables if t is not None]

@@ -4,7 +4,7 @@ critical frames, compared with its own map, in occluded and open sequences.
 Reads ``twin.json`` (stage evaluate_twin, layout :mod:`traffictwin.twin.evaluation`:
 ``configurations.<cfg>.methods.<method>.<kind>.<metric>`` with ``<metric>_ci = [lo, hi]``) and
 ``twin_data.json`` (stage generate_twin). Its targets are judged in the report's acceptance table,
-not here. Tables are built from :data:`Metric` specs, their notes are the macros of
+not here. Tables are built from column specs (:data:`OCCLUDED_PARTS`, :data:`OPEN_PARTS`), their notes are the macros of
 ``templates/report.md.j2``. A missing file or key is an ``n/a`` cell, never an error. Entry
 point: :func:`provider`.
 """
@@ -17,10 +17,10 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.model import NA, Cell, DataFile, Table, interval_cell, lookup
+from traffictwin.report.model import Cell, DataFile, Table, lookup
 from traffictwin.report.prose import oneline, template_macro
 from traffictwin.report.summary import Headline, headline, strongest
-from traffictwin.risk.report_tables import RISK_FILE
+from traffictwin.risk.report_tables import RISK_FILE, Column, spec_cells, spec_columns
 
 FILE = "twin.json"
 DATA_FILE = "twin_data.json"
@@ -37,53 +37,37 @@ LABELS = {
     "registered+network": "registered + network",
     "learned+network": "learned registration + network",
 }
-HAZARD_LABELS = {
-    "pedestrian": "pedestrian steps out behind a van (ego turns right)",
-    "emerging_car": "car pulls out of a driveway behind a truck and hedge (ego straight)",
-    "stopped_car": "car stopped beside a van (ego turns right)",
-}
 ALWAYS_LABEL = "reference: a warning at every frame"
-DASH = "—"
 
-#: one figure of a table row: (column header, key under the row's base, format, with its
-#: interval ``<key>_ci`` in a "95 % CI" column beside it)
-Metric = tuple[str, str, str, bool]
-FLAGGED: Metric = ("critical frames flagged", "recall", "pct", True)
-WARNED: Metric = ("warned before onset", "warned_before_onset_share", "pct", False)
-FALSE_ALARMS: Metric = ("false alarms (frames)", "false_alarm_share", "pct", True)
-LEAD: Metric = ("median lead over ego (s)", "lead_vs_ego_s_median", "f2", True)
-OCCLUDED: tuple[Metric, ...] = (
+FLAGGED: Column = ("critical frames flagged", "recall", "pct", True)
+FALSE_ALARMS: Column = ("false alarms (frames)", "false_alarm_share", "pct", True)
+OCCLUDED: tuple[Column, ...] = (
     FLAGGED,
     ("Δ vs ego map", "recall_vs_ego", "pct", True),
-    LEAD,
-    WARNED,
+    ("median lead over ego (s)", "lead_vs_ego_s_median", "f2", True),
+    ("warned before onset", "warned_before_onset_share", "pct", False),
     ("vehicles left out", "left_out_share", "pct", False),
 )
-OPEN: tuple[Metric, ...] = (
+OPEN: tuple[Column, ...] = (
     FLAGGED,
     FALSE_ALARMS,
     ("false alarms / min", "false_alarms_per_min", "f2", False),
 )
-BIAS: tuple[Metric, ...] = (("under pose bias (frames)", "false_alarm_share", "pct", True),)
-HAZARD: tuple[Metric, ...] = (("episodes", "episodes", "int", False), LEAD, WARNED, FALSE_ALARMS)
-PREDICTIVE: tuple[Metric, ...] = (
-    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", True),
-    ("warned before onset (TTC)", "warned_before_onset_share", "pct", False),
-    ("false alarms (TTC)", "false_alarm_share", "pct", False),
-    ("Δ false alarms vs THW", "false_alarm_share_vs_thw", "pct", True),
-    ("true-TTC frames warned", "ttc_true_recall", "pct", False),
+BIAS: tuple[Column, ...] = (("under pose bias (frames)", "false_alarm_share", "pct", True),)
+#: a table's column groups: (twin.json key under a configuration, ``{m}`` the map, its columns,
+#: the keys "—" for the ego's own map, the keys "—" for the warning at every frame)
+Part = tuple[str, Sequence[Column], Collection[str], Collection[str]]
+OCCLUDED_PARTS: tuple[Part, ...] = (
+    (
+        "methods.{m}.occluded",
+        OCCLUDED,
+        ("recall_vs_ego", "lead_vs_ego_s_median", "left_out_share"),
+        ("recall", "recall_vs_ego", "left_out_share"),
+    ),
 )
-RULE: tuple[Metric, ...] = (
-    ("warns below TTC (s)", "warn_s", "f2", False),
-    ("confirmed over (frames)", "confirm_frames", "int", False),
-    ("lead vs THW (mean s)", "lead_vs_thw_s_mean", "f2", False),
-    ("Δ false alarms vs THW (open)", "false_alarm_share_vs_thw", "pct", False),
-)
-VEHICLE: tuple[Metric, ...] = (
-    ("critical frames", "critical_frames", "int", False),
-    FLAGGED,
-    ("Δ vs own map", "recall_vs_ego", "pct", True),
-    FALSE_ALARMS,
+OPEN_PARTS: tuple[Part, ...] = (
+    ("methods.{m}.open", OPEN, (), ("recall",)),
+    ("pose_bias.methods.{m}.open", BIAS, (), ("false_alarm_share",)),
 )
 
 
@@ -99,175 +83,64 @@ def critical_thw_text(src: page.Sources) -> str:
     return f"{float(ts[0]):g} s" if isinstance(ts, list) and ts else "twin.critical_thw"
 
 
-def _table(title: str, anchor: str, first: Sequence[str], *metrics: Sequence[Metric]) -> Table:
-    """An empty table: the ``first`` (label) columns, then each metric's (and interval's)."""
-    heads = [
-        h for ms in metrics for head, _, _, ci in ms for h in ((head, "95 % CI") if ci else (head,))
-    ]
-    return Table(title, [*first, *heads], anchor=anchor)
-
-
-def _cells(
-    src: page.Sources, base: str, metrics: Sequence[Metric], dash: Collection[str] = ()
-) -> list[Cell]:
-    """The cells of ``metrics`` under twin.json key ``base``; a metric in ``dash`` shows "—"."""
-    out: list[Cell] = []
-    for _, key, fmt, ci in metrics:
-        if key in dash:
-            out += [Cell(DASH)] * (1 + ci)
-            continue
-        out.append(src.cell(FILE, f"{base}.{key}", fmt))
-        out += [interval_cell(src, FILE, f"{base}.{key}", "sequence-bootstrap", fmt)] if ci else []
-    return out
-
-
 def _keys(src: page.Sources, key: str = "configurations") -> list[str]:
     """The keys of the object at twin.json ``key`` (none where it is no object)."""
     v = src.get(FILE, key)
     return list(v) if isinstance(v, dict) else []
 
 
-def _methods(src: page.Sources, c: str) -> list[str]:
-    return _keys(src, f"configurations.{c}.methods")
-
-
-def occluded_table(src: page.Sources) -> Table:
-    """Per configuration and map: critical frames flagged, gain and lead over the ego's own map."""
-    t = _table(
-        "Twin: critical frames flagged in occluded sequences",
-        "twin-occluded",
-        ["config", "map the ego reads"],
-        OCCLUDED,
-    )
-    ego_dash = ("recall_vs_ego", "lead_vs_ego_s_median", "left_out_share")
+def map_table(src: page.Sources, kind: str, parts: Sequence[Part], title: str, note: str) -> Table:
+    """One row per configuration and map the ego reads (then the warning at every frame, where
+    twin.json has it), the columns of ``parts``; ``kind``: occluded / open sequences."""
+    heads = spec_columns(*(cols for _, cols, _, _ in parts))
+    t = Table(title, ["config", "map the ego reads", *heads], anchor=f"twin-{kind}", note=note)
     for c in _keys(src):
-        for m in _methods(src, c):
-            k = f"configurations.{c}.methods.{m}.occluded"
-            dash = ego_dash if m == "ego" else ()
-            t.rows.append([Cell(c), Cell(LABELS.get(m, m)), *_cells(src, k, OCCLUDED, dash)])
-        k = f"configurations.{c}.always_warns.occluded"
-        if isinstance(src.get(FILE, k), dict):
-            dash = ("recall", "recall_vs_ego", "left_out_share")
-            t.rows.append([Cell(c), Cell(ALWAYS_LABEL), *_cells(src, k, OCCLUDED, dash)])
-    t.note = prose("occluded", crit=critical_thw_text(src))
-    return t
-
-
-def open_table(src: page.Sources) -> Table:
-    """Per configuration and map: recall and false alarms in open sequences, also under bias."""
-    t = _table(
-        "Twin: open sequences (nothing hidden) — recall and false alarms",
-        "twin-open",
-        ["config", "map the ego reads"],
-        OPEN,
-        BIAS,
-    )
-    for c in _keys(src):
-        for m in _methods(src, c):
-            k, kb = f"configurations.{c}.methods.{m}.open", f"configurations.{c}.pose_bias"
-            row = _cells(src, k, OPEN) + _cells(src, f"{kb}.methods.{m}.open", BIAS)
-            t.rows.append([Cell(c), Cell(LABELS.get(m, m)), *row])
-        k = f"configurations.{c}.always_warns.open"
-        if isinstance(src.get(FILE, k), dict):
-            row = _cells(src, k, OPEN, ("recall",)) + _cells(src, k, BIAS, ("false_alarm_share",))
-            t.rows.append([Cell(c), Cell(ALWAYS_LABEL), *row])
-    t.note = prose("open")
-    return t
-
-
-def hazard_table(src: page.Sources) -> Table:
-    """Per hazard kind and scenario kind: each method's episodes, median lead over the ego's map,
-    episodes warned before the onset and false-alarm frames (``by_hazard`` of twin.json)."""
-    t = _table(
-        "Twin: each hazard kind separately",
-        "twin-hazards",
-        ["config", "scenario", "hazard", "map the ego reads"],
-        HAZARD,
-    )
-    for c in _keys(src):
-        for kind in ("occluded", "open"):
-            for m in _methods(src, c):
-                base = f"configurations.{c}.methods.{m}.{kind}.by_hazard"
-                for h in sorted(_keys(src, base)):
-                    labels = [c, kind, HAZARD_LABELS.get(h, h), LABELS.get(m, m)]
-                    dash = ("lead_vs_ego_s_median",) if m == "ego" else ()
-                    cells = _cells(src, f"{base}.{h}", HAZARD, dash)
-                    t.rows.append([*map(Cell, labels), *cells])
-    t.note = prose("hazards", crit=critical_thw_text(src))
-    return t
-
-
-def predictive_table(src: page.Sources) -> Table:
-    """Per configuration, map and scenario kind: the predictive (TTC) warning against THW's."""
-    t = _table(
-        "Twin: predictive warnings (time to conflict) vs THW warnings on the same maps",
-        "twin-predictive",
-        ["config", "map the ego reads", "kind"],
-        PREDICTIVE,
-    )
-    for c in _keys(src):
-        for m in _methods(src, c):
-            for kind in ("occluded", "open"):
-                k = f"configurations.{c}.methods.{m}.{kind}.predictive"
-                t.rows.append(
-                    [Cell(c), Cell(LABELS.get(m, m)), Cell(kind), *_cells(src, k, PREDICTIVE)]
-                )
-    t.note = prose("predictive", crit=critical_thw_text(src))
-    return t
-
-
-def rule_table(src: page.Sources) -> Table:
-    """The predictive rule's candidates on the validation sequences, and the one chosen."""
-    n = src.get(FILE, "predictive_rule.validation_sequences")
-    t = _table(
-        f"Twin: the predictive rule, chosen on {n if n is not None else NA} validation sequences",
-        "twin-predictive-rule",
-        [],
-        RULE,
-    )
-    t.columns += ["eligible", "chosen"]
-    yes_no = {True: "yes", False: "no"}
-    for name in _keys(src, "predictive_rule.candidates"):
-        k = f"predictive_rule.candidates.{name}"
-        flags = [Cell(yes_no.get(src.get(FILE, f"{k}.{f}"), NA)) for f in ("eligible", "selected")]
-        t.rows.append(_cells(src, k, RULE) + flags)
-    t.note = prose("rule")
-    return t
-
-
-def vehicle_table(src: page.Sources) -> Table:
-    """Risk for every other vehicle: its own map vs its view of each twin (all sequences)."""
-    t = _table(
-        "Twin: risk for every other vehicle",
-        "twin-vehicles",
-        ["config", "vehicle", "map it reads"],
-        VEHICLE,
-    )
-    for c in _keys(src):
-        vehicles = src.get(FILE, f"configurations.{c}.vehicles")
-        for k, entry in (vehicles if isinstance(vehicles, dict) else {}).items():
-            for m in entry.get("methods", {}):
-                key = f"configurations.{c}.vehicles.{k}.methods.{m}.all"
-                own = m == "own"
-                labels = [c, f"{k} ({entry.get('role', NA)})"]
-                labels.append("its own map" if own else LABELS.get(m, m))
-                cells = _cells(src, key, VEHICLE, ("recall_vs_ego",) if own else ())
-                t.rows.append([*map(Cell, labels), *cells])
-    t.note = prose("vehicles")
+        for m in _keys(src, f"configurations.{c}.methods"):
+            bases = [
+                (f"configurations.{c}.{key.format(m=m)}", cols, ego) for key, cols, ego, _ in parts
+            ]
+            cells = [
+                x
+                for base, cols, ego in bases
+                for x in spec_cells(src, FILE, base, cols, ego if m == "ego" else ())
+            ]
+            t.rows.append([Cell(c), Cell(LABELS.get(m, m)), *cells])
+        always = f"configurations.{c}.always_warns.{kind}"
+        if isinstance(src.get(FILE, always), dict):
+            cells = [
+                x for _, cols, _, dash in parts for x in spec_cells(src, FILE, always, cols, dash)
+            ]
+            t.rows.append([Cell(c), Cell(ALWAYS_LABEL), *cells])
     return t
 
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
-    """The twin section: warnings in occluded and open sequences, per hazard, predictive,
-    for the other vehicles; a pointer to the acceptance table where twin.json has targets."""
+    """The twin section: warnings in occluded and open sequences; a pointer to the acceptance
+    table where twin.json has targets."""
     paras = [prose("intro")]
     if not src.has(FILE):
         paras.append(prose("missing", file=FILE))
         return page.Section(TITLE, paragraphs=paras, figures=figures)
     if isinstance(src.get(FILE, "targets"), dict):
         paras.append(ACCEPTANCE_POINTER)
-    tables = (occluded_table, open_table, hazard_table, predictive_table, rule_table, vehicle_table)
-    return page.Section(TITLE, paragraphs=paras, tables=[t(src) for t in tables], figures=figures)
+    crit = critical_thw_text(src)
+    tables = [
+        map_table(
+            src,
+            "occluded",
+            OCCLUDED_PARTS,
+            "Twin: critical frames flagged in occluded sequences",
+            prose("occluded", crit=crit),
+        ),
+        map_table(
+            src,
+            "open",
+            OPEN_PARTS,
+            "Twin: open sequences (nothing hidden) — recall and false alarms",
+            prose("open"),
+        ),
+    ]
+    return page.Section(TITLE, paragraphs=paras, tables=tables, figures=figures)
 
 
 def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
@@ -302,12 +175,13 @@ def headlines(metrics: Mapping[str, Any]) -> list[Headline]:
 
 
 def provider() -> page.SectionProvider:
-    """The twin section's provider for the report (after the fusion and risk sections)."""
+    """The twin section's provider for the report (after the fusion and risk sections); twin.json
+    is in the appendix in full (each hazard kind, the predictive warnings and their rule, the
+    other vehicles' risk)."""
     return page.SectionProvider(
         name="twin",
         headlines=headlines,
         section=section,
         figures={stem: prose(stem) for stem in FIGURE_STEMS},
         data_files=(DataFile(DATA_FILE, "Twin data (generate_twin)"),),
-        shown_files=r"twin\.json",
     )
