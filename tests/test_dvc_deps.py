@@ -8,10 +8,12 @@ closure does, and keep dvc.lock free of stages dvc.yaml no longer has."""
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import copy_dag, run
 
 from pipelines import stage_deps
 
@@ -259,3 +261,27 @@ def test_prune_lock_removes_only_stale_stages(tmp_path: Path) -> None:
     assert stage_deps.prune_lock(tmp_path / "dvc.yaml", tmp_path / "dvc.lock") == ["train_fusion@Z"]
     assert yaml.safe_load((tmp_path / "dvc.lock").read_text())["stages"] == kept
     assert stage_deps.prune_lock(tmp_path / "dvc.yaml", tmp_path / "dvc.lock") == []
+
+
+def _status_after_edit(repo: Path, rel: str) -> set[str]:
+    """The stages ``dvc status`` lists after appending a comment to ``rel`` and re-running
+    ``stage_code`` (the code manifests), in the finished DAG ``repo``."""
+    with (repo / rel).open("a") as f:
+        f.write("# an edit that changes no behaviour\n")
+    run(["dvc", "repro", "stage_code"], repo)
+    status = json.loads(run(["dvc", "status", "--json"], repo).stdout or "{}")
+    return {name.split("@")[0] for name in status}  # a foreach stage as its template
+
+
+def test_an_edit_re_runs_only_the_stages_that_import_it(ci_dag: Path, tmp_path: Path) -> None:
+    """End to end on the finished ci DAG: after a report edit only ``report`` is out of date, after
+    a new fusion method only the stages that import fusion/methods.py (evaluations, never a data
+    or training stage)."""
+    repo = copy_dag(ci_dag, tmp_path / "repo", mlflow=False)
+    assert _status_after_edit(repo, "src/traffictwin/report/render.py") == {"report"}
+    stale = _status_after_edit(repo, "src/traffictwin/fusion/methods.py")
+    importers = {
+        name for name, s in _stages().items() if "src/traffictwin/fusion/methods.py" in _code(s)
+    }
+    assert "evaluate_fusion" in stale and not stale & set(DATA_AND_TRAINING), stale
+    assert stale <= importers | {"report"}, stale - importers
