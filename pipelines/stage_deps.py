@@ -150,12 +150,19 @@ def _templates(module: Path) -> list[Path]:
     names a ``.j2`` file (a string literal), else none. Templates are code: editing one changes
     what the stage writes."""
     folder = module.parent / "templates"
-    if not folder.is_dir() or not any(
-        isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value.endswith(".j2")
-        for n in ast.walk(_tree(module))
-    ):
+    if not folder.is_dir() or not _names_a_template(module, _stamp(module)):
         return []
     return sorted(folder.glob("*.j2"))
+
+
+@cache
+def _names_a_template(module: Path, stamp: tuple[int, int]) -> bool:
+    """Whether ``module`` (at version ``stamp``) holds a string literal ending in ``.j2``; read
+    once per version, as every stage's closure asks about the shared modules."""
+    return any(
+        isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value.endswith(".j2")
+        for n in ast.walk(_parsed(module, stamp))
+    )
 
 
 def is_code(dep: str) -> bool:
