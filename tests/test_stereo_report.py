@@ -143,7 +143,7 @@ def test_stereo_section_tables(tmp_path: Path) -> None:
     # the resolution study: its figure here, its numbers in the appendix
     assert "reports/metrics/stereo_resolution.json" in titles
     assert "| validation.frames | 160 |" in page_md(rep, "appendix")  # sgm_variants.json
-    assert "reports/metrics/orb.json" not in titles  # the data section shows it
+    assert "reports/metrics/orb.json" not in titles  # in the appendix under its data title
 
 
 def test_stereo_section_with_missing_or_old_files(tmp_path: Path) -> None:

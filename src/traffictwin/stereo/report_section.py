@@ -6,9 +6,8 @@ Reads ``stereo.json`` (stage stereo_learned; keys ``<source>/<mask>/<metric>``) 
 beside a key. The learned network refines SGM on SGM's valid pixels, so both estimate the same
 pixels: stereo.json's ``common`` and ``own`` masks hold the same numbers, shown once (``own``,
 with the density; the paired differences on ``common``). SGM's accuracy per distance bin and the
-ORB check's speed bins and threshold sweep are on the data page (``disparity.json``,
-``orb.json``); the SGM variants, the generalisation to unseen road templates and the
-camera-resolution study are in the appendix. Notes and paragraphs are the macros of
+ORB check's speed bins and threshold sweep (``disparity.json``, ``orb.json``), the SGM variants,
+the generalisation to unseen road templates and the camera-resolution study are in the appendix. Notes and paragraphs are the macros of
 ``templates/report.md.j2`` (:func:`prose`). A missing file or key is an ``n/a`` cell.
 """
 
