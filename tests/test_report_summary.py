@@ -432,3 +432,17 @@ def test_cli_preview_and_data_figure_use_the_same_colours() -> None:
     # the data figure draws with the shared map (no colours of its own)
     assert data_figure.show_masses is C.show_masses
     assert not hasattr(data_figure, "masses_to_rgb")
+
+
+def test_span_cell_hand_cases() -> None:
+    """An interval cell: both bounds in the format, the raw bounds kept for the checks, and n/a
+    with the reason when a bound is missing or not finite."""
+    from traffictwin.report.model import NA, span_cell
+
+    cell = span_cell(0.25, 0.5, "pct", "95 % x interval, metrics/a.json#k_ci")
+    assert (cell.text, cell.value) == ("[25.00 %, 50.00 %]", [0.25, 0.5])
+    assert cell.derived == "95 % x interval, metrics/a.json#k_ci"
+    assert span_cell(1234.5, 2000, "g4", "d").text == "[1234, 2000]"  # 4 significant digits
+    for lo, hi in ((None, 1.0), (0.1, float("nan")), (float("inf"), 2.0)):
+        missing = span_cell(lo, hi, "g4", "d", why="no interval in reports/metrics/a.json: k")
+        assert (missing.text, missing.title) == (NA, "no interval in reports/metrics/a.json: k")
