@@ -1,5 +1,5 @@
-"""Each DVC stage's code deps, computed from the imports of its script (not a DVC stage's script
-itself, except for ``manifests``, the ``stage_code`` stage).
+"""Each DVC stage's code deps, computed from the imports of its script (``manifests`` is the
+``stage_code`` stage's command; the other actions are developer tools).
 
 A stage re-runs when a file it imports changes, and only then. The import closure of a stage's
 ``python -m`` module is every file of ``pipelines/`` and ``src/traffictwin/`` it imports

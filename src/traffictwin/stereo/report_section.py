@@ -18,7 +18,7 @@ from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
-from traffictwin.report.model import NA, NEVER, Cell, Table, fmt_value, json_number
+from traffictwin.report.model import NEVER, Cell, Table, json_number
 from traffictwin.report.prose import oneline, template_macro
 
 TITLE = "Stereo — SGM and the learned stereo network's range accuracy, stereo-pair fault detection"
@@ -72,12 +72,12 @@ def prose(name: str, **context: Any) -> str:
 def ci_cell(src: page.Sources, file: str, key: str, fmt: str = "pct") -> Cell:
     """``[lo, hi]`` of ``<key>_lo`` / ``<key>_hi`` in ``file``: a derived cell (n/a if absent)."""
     lo, hi = json_number(src.get(file, f"{key}_lo")), json_number(src.get(file, f"{key}_hi"))
-    if lo is None or hi is None:
-        return Cell(NA, title=f"no interval in reports/metrics/{file}: {key}_lo/_hi")
-    return Cell(
-        f"[{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
-        value=[lo, hi],
-        derived=f"95 % cluster-bootstrap interval, metrics/{file}#{key}_lo/_hi",
+    return page.span_cell(
+        lo,
+        hi,
+        fmt,
+        f"95 % cluster-bootstrap interval, metrics/{file}#{key}_lo/_hi",
+        f"no interval in reports/metrics/{file}: {key}_lo/_hi",
     )
 
 
