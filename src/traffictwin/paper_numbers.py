@@ -94,7 +94,7 @@ RISK: dict[str, PaperNumber] = {
     "test_mse": PaperNumber(0.01470, "MSE (normalised risk)", "Sec. 4", "'testing average error'"),
     "accuracy": PaperNumber(72.87, "%", "Sec. 4, Table 1", "critical vs uncritical at THW 1.5 s"),
     "wang_kato_accuracy": PaperNumber(
-        70.77, "%", "Sec. 4 (ref. [20])", "Wang & Kato, DICTA 2017: 3-class dashcam risk rating"
+        70.77, "%", "Sec. 4 (ref. [20])", "Wang & Kato, DICTA 2017: dashcam risk rating, other task"
     ),
     "n_frames": PaperNumber(110_152, "stereo frames recorded", "Sec. 3.3, 3.5"),
     "n_effective": PaperNumber(106_170, "frames after the ORB filter", "Sec. 3.5"),
