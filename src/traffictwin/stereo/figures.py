@@ -54,26 +54,37 @@ def example_figure(
     plt = _plt()
     n = len(left)
     fig, axes = plt.subplots(n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False)
+    titles = (
+        "left image",
+        "exact disparity (px)",
+        "SGM (px)",
+        "learned (px)",
+        "|learned - exact| (px)",
+    )
     for i in range(n):
-        known, est = exact[i] > 0, learned[i] >= 0
-        panels = {  # title: (disparity map, colour map, upper end of its scale)
-            "exact disparity (px)": (np.where(known, exact[i], np.nan), "viridis", vmax),
-            "SGM (px)": (np.where(sgm[i] >= 0, sgm[i], np.nan), "viridis", vmax),
-            "learned (px)": (np.where(est, learned[i], np.nan), "viridis", vmax),
-            "|learned - exact| (px)": (
-                np.where(known & est, np.abs(learned[i] - exact[i]), np.nan),
-                "magma",
-                2.0,
-            ),
-        }
-        axes[i, 0].imshow(left[i][..., ::-1])
-        for ax, (m, cmap, top) in zip(axes[i, 1:], panels.values()):
-            im = ax.imshow(m, cmap=cmap, vmin=0, vmax=top)
-            fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
-        for ax, title in zip(axes[i], ["left image", *panels]):
+        g = np.where(exact[i] > 0, exact[i], np.nan)
+        err = np.where((exact[i] > 0) & (learned[i] >= 0), np.abs(learned[i] - exact[i]), np.nan)
+        maps = (
+            None,
+            g,
+            np.where(sgm[i] >= 0, sgm[i], np.nan),
+            np.where(learned[i] >= 0, learned[i], np.nan),
+            err,
+        )
+        for j, ax in enumerate(axes[i]):
+            if j == 0:
+                ax.imshow(left[i][..., ::-1])
+            else:
+                im = ax.imshow(
+                    maps[j],
+                    cmap="magma" if j == 4 else "viridis",
+                    vmin=0,
+                    vmax=2.0 if j == 4 else vmax,
+                )
+                fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                ax.set_title(title, fontsize=9)
+                ax.set_title(titles[j], fontsize=9)
     fig.tight_layout()
     return fig
