@@ -42,21 +42,13 @@ FIGURES: dict[str, str] = {
     "primary THW threshold",
 }
 FIGURE_PATTERN = r"risk|stereo|disparity|orb|camera|thw"
-DATA_FILES = (
-    page.DataFile(
-        "risk_data.json",
-        "Risk data: stereo frames and risk labels (reports/metrics/risk_data.json)",
-    ),
-    page.DataFile(
-        "disparity.json",
-        "SGM disparity vs exact disparity (reports/metrics/disparity.json)",
-        required=True,
-    ),
-    page.DataFile(
-        "orb.json",
-        "ORB stereo-pair check vs injected faults (reports/metrics/orb.json)",
-        required=True,
-    ),
+DATA_FILES = tuple(  # the data section's metrics files: all but risk_data.json required
+    page.DataFile(f, f"{what} (reports/metrics/{f})", required=f != "risk_data.json")
+    for f, what in (
+        ("risk_data.json", "Risk data: stereo frames and risk labels"),
+        ("disparity.json", "SGM disparity vs exact disparity"),
+        ("orb.json", "ORB stereo-pair check vs injected faults"),
+    )
 )
 
 
