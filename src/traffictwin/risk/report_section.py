@@ -36,10 +36,9 @@ FIGURES: dict[str, str] = {
     "risk_scatter": "Predicted vs true risk on the test split (symmetric-log axes), the shipped "
     "predictor first, with the critical threshold",
     "risk_examples": "Test scenes with true and predicted risk (mirrors Fig. 7)",
-    "risk_roc": "ROC of the shipped predictor and the headline network (each seed) vs the "
-    "speed-only baseline and the "
-    "corridor rule on SGM and on GT disparity (dashed), corridors chosen on validation, at the "
-    "primary THW threshold",
+    "risk_roc": "ROC of the shipped predictor and the headline network (each seed) vs the speed-only "
+    "baseline and the corridor rule on SGM and on GT disparity (dashed), corridors chosen on "
+    "validation, at the primary THW threshold",
 }
 FIGURE_PATTERN = r"risk|stereo|disparity|orb|camera|thw"
 DATA_FILES = tuple(  # the data section's metrics files: all but risk_data.json required
