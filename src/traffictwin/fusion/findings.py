@@ -9,8 +9,9 @@ between two methods is *claimed* only when its paired 95 % cluster-bootstrap int
 zero; otherwise the text says "no difference shown". The sentences are in the template
 ``templates/findings.md.j2``, which reads the numbers through the accessors of
 :func:`fusion_findings` (formatted with their intervals). Configuration A against naive, the
-learned registration, the other network rows, the cross table and the targets are not restated
-here: the report's verdict, registration, estimate, paired-difference and acceptance tables show them.
+classical and the learned registration, the other network rows, the cross table and the targets
+are not restated here: the report's verdict, estimate, paired-difference, registration and
+acceptance tables show them.
 """
 
 from __future__ import annotations
@@ -48,11 +49,11 @@ def _get(m: Mapping[str, Any], cfg: str, row: str, key: str) -> float:
     return _num(_row(m, cfg, row).get(key))
 
 
-def _with_ci(m: Mapping[str, Any], cfg: str, row: str, key: str, digits: int = 3) -> str:
+def _with_ci(m: Mapping[str, Any], cfg: str, row: str, key: str) -> str:
     """``estimate [lo, hi]`` of ``test.<cfg>.<row>.<key>`` (just the estimate without an interval)."""
     ci = _row(m, cfg, row).get(f"{key}_ci") or {}
     lo, hi = _num(ci.get("lo")), _num(ci.get("hi"))
-    est = _fmt(_get(m, cfg, row, key), digits)
+    est = _fmt(_get(m, cfg, row, key))
     return (
         est if not (math.isfinite(lo) and math.isfinite(hi)) else f"{est} [{_fmt(lo)}, {_fmt(hi)}]"
     )
@@ -108,7 +109,6 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
         "get": _get,
         "ci": _with_ci,
         "diff": _diff_text,
-        "verdict": lambda m, *a: verdict(_diff(m, *a)),
         "groups": _groups,
         "iqr": _iqr,
         "row": _row,
