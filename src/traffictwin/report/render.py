@@ -164,9 +164,9 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
                 bci, why = f"95 % bootstrap interval of {b.src}", f"no interval beside {b.src}"
                 base = [Cell(b.name), number_cell(b.value, h.fmt, b.src)]
                 base.append(span_cell(b.lo, b.hi, h.fmt, bci, why))
+            labels = map(Cell, (problem, h.quantity, h.where))
             value = number_cell(h.value, h.fmt, f"{SUMMARY}#{path}")
-            t.rows.append([*map(Cell, (problem, h.quantity, h.where))])
-            t.rows[-1] += [value, span_cell(h.lo, h.hi, h.fmt, ci), *base]
+            t.rows.append([*labels, value, span_cell(h.lo, h.hi, h.fmt, ci), *base])
     if t.rows:
         return Section("Headline results", tables=[t])
     return Section(
@@ -272,13 +272,6 @@ def report_pages(report: Report) -> list[Page]:
     return out
 
 
-def page_file(page: Page, html_page: bool) -> str:
-    """The page's file, relative to the reports folder (``README.md``, ``pages/fusion.html``, ...)."""
-    if not page.name:
-        return INDEX_HTML if html_page else README
-    return f"{PAGES}/{page.name}.{'html' if html_page else 'md'}"
-
-
 def results_tables(report: Report) -> list[Table]:
     """The headline tables (for results_table.md / the project README), the acceptance table
     last (as on the index)."""
@@ -329,7 +322,7 @@ def render_pages(report: Report, html_pages: bool = False) -> dict[str, str]:
     ext, index = ("html", INDEX_HTML) if html_pages else ("md", README)
     tpl = _environment(html_pages).get_template(f"page.{ext}.j2")
     return {
-        page_file(p, html_pages): _tidy(
+        f"{PAGES}/{p.name}.{ext}" if p.name else index: _tidy(
             tpl.render(report=report, page=p, index=index, ext=ext, style=STYLE)
         )
         for p in report_pages(report)
