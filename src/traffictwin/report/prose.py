@@ -1,12 +1,7 @@
-"""Prose templates: the sentences of a problem's findings, kept in Jinja templates that the
-problem's package owns (``traffictwin/<problem>/templates/``), filled from a typed record the
-problem computes from its metrics (numbers, verdicts, flags; no sentences).
-
-The page kit knows no problem: it only loads a folder of templates with the settings findings
-need. Markdown, not HTML (no escaping); a missing field is an error (``StrictUndefined``).
-Long sentences are wrapped in the template source and joined again by the ``oneline`` filter
-(a line break and the indentation around it become one space; before a line that starts with
-``.``, ``,`` or ``;`` nothing), so a bullet is one line of Markdown however its template is laid out.
+"""Prose templates: a problem's findings sentences in Jinja templates its package owns
+(``traffictwin/<problem>/templates/``), filled from a typed record of numbers, verdicts and
+flags. Markdown, not HTML (no escaping); a missing field is an error. Long sentences are wrapped
+in the template source and joined again by the ``oneline`` filter.
 """
 
 from __future__ import annotations
@@ -15,8 +10,6 @@ import re
 from functools import cache
 from pathlib import Path
 from typing import Any
-
-__all__ = ["oneline", "template_environment", "render_prose", "template_macro"]
 
 
 def oneline(text: str) -> str:
