@@ -107,16 +107,17 @@ def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() ->
 
 
 #: what the parameter check must not import: torch (~3-4 s a process on 2 cores), Lightning
-#: (~4-9 s), MLflow, matplotlib (~1 s)
-CHECK_FREE = ("torch", "lightning", "torchmetrics", "mlflow", "matplotlib")
+#: (~4-9 s), MLflow, matplotlib (~1 s), pandas (~0.6 s)
+CHECK_FREE = ("torch", "lightning", "torchmetrics", "mlflow", "matplotlib", "pandas")
 
 
 def test_the_parameter_check_runs_without_torch_lightning_mlflow_or_matplotlib() -> None:
     """``check_params`` runs first in every `dvc repro` and `dvc exp run`: it validates every
-    group (the networks' settings and architectures included) without torch, Lightning, MLflow or
-    matplotlib: the settings and spec classes live apart from the networks and the training code
-    (``fusion.deeplab_spec``, ``stereo.network_spec``, ``risk.dave2_config``, ...), and the stages
-    it imports for their settings load their figures, models and networks in ``main``."""
+    group (the networks' settings and architectures included) without torch, Lightning, MLflow,
+    matplotlib or pandas: the settings and spec classes live apart from the networks and the
+    training code (``fusion.deeplab_spec``, ``stereo.network_spec``, ``risk.dave2_config``, ...),
+    the stages it imports for their settings load their figures, models and networks in ``main``,
+    and the modules it reads settings from build their tables (pandas) inside functions."""
     probe = (
         "import json, sys\n"
         "from pathlib import Path\n"
