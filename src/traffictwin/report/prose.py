@@ -7,6 +7,7 @@ in the template source and joined again by the ``oneline`` filter.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -50,3 +51,13 @@ def render_prose(folder: Path, name: str, **context: Any) -> str:
 def template_macro(folder: Path, name: str, macro: str) -> Any:
     """Macro ``macro`` of template ``name`` in ``folder``, callable from Python (returns text)."""
     return getattr(_environment(str(folder)).get_template(name).module, macro)
+
+
+def macro_prose(folder: Path, name: str = "report.md.j2") -> Callable[..., str]:
+    """``prose(macro, **context)``: macro ``macro`` of template ``name`` in ``folder`` filled with
+    ``context``, on one line (each section's prose helper)."""
+
+    def prose(macro: str, **context: Any) -> str:
+        return oneline(template_macro(folder, name, macro)(**context))
+
+    return prose

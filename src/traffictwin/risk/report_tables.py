@@ -11,12 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from pathlib import Path
-from typing import Any
 
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
-from traffictwin.report.prose import oneline, template_macro
+from traffictwin.report.prose import macro_prose
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
@@ -53,9 +52,8 @@ def spec_cells(
     return out
 
 
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
+#: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
+prose = macro_prose(TEMPLATES)
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:

@@ -10,12 +10,11 @@ beside a key; the rest of both files is in the appendix. The prose is the macros
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import NEVER, Cell, Table, json_number
-from traffictwin.report.prose import oneline, template_macro
+from traffictwin.report.prose import macro_prose
 
 TITLE = "Stereo — SGM and the learned stereo network's range accuracy, stereo-pair fault detection"
 ORB_FILE = "orb.json"
@@ -54,9 +53,8 @@ STEREO_ROWS: tuple[tuple[str, str, str], ...] = (
 DIFF_ROWS = tuple(r for r in STEREO_ROWS if r[1] in ("epe", "crit_obj_relerr_median"))
 
 
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
+#: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
+prose = macro_prose(TEMPLATES)
 
 
 def value_ci(src: page.Sources, file: str, key: str, fmt: str = "pct") -> list[Cell]:

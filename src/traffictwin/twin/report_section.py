@@ -14,7 +14,7 @@ from typing import Any
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import Cell, DataFile, Table, lookup
-from traffictwin.report.prose import oneline, template_macro
+from traffictwin.report.prose import macro_prose
 from traffictwin.report.summary import Headline, headline, strongest
 from traffictwin.risk.report_tables import RISK_FILE, Column, spec_cells, spec_columns
 
@@ -48,9 +48,8 @@ EGO_DASH = ("occluded.recall_vs_ego", "occluded.lead_vs_ego_s_median", "occluded
 ALWAYS_DASH = ("occluded.recall", "occluded.recall_vs_ego", "occluded.left_out_share")
 
 
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
+#: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
+prose = macro_prose(TEMPLATES)
 
 
 def critical_thw_text(src: page.Sources) -> str:
