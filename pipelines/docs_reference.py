@@ -1,14 +1,10 @@
-"""Generated reference pages in docs/ (``make docs``; ``python -m pipelines.docs_reference``).
+"""Generated reference pages in docs/ (``make docs``; ``python -m pipelines.docs_reference``),
+each between BEGIN / END markers, so that ``tests/test_docs.py`` fails when they drift:
 
 - docs/cli.md: the help of every ``traffictwin`` command, from the argparse parser
-  (:func:`traffictwin.cli.build_parser`), formatted at a fixed width so that the text depends on
-  neither the terminal nor the machine;
+  (:func:`traffictwin.cli.build_parser`), at a fixed width (the text depends on no terminal);
 - docs/testing.md: how many tests ``make test`` and ``make test-fast`` run, from a fresh
   ``pytest --collect-only``.
-
-Each goes between BEGIN / END markers (its first and last line); the prose around them is written by hand.
-``tests/test_docs.py`` regenerates both and fails when the committed pages differ, so they cannot
-drift from the code.
 """
 
 from __future__ import annotations
@@ -20,10 +16,8 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
-from traffictwin.io.atomic import write_text_atomic
-
 from ._paths import ROOT
-from .readme_results import render
+from .readme_results import write_blocks
 
 CLI_PAGE = "docs/cli.md"
 TESTING_PAGE = "docs/testing.md"
@@ -67,8 +61,7 @@ def cli_block() -> str:
     parts = [CLI_BEGIN]
     for name, parser in commands(build_parser()):
         parts += [f"### `{name}`", "", "```text", help_text(parser).rstrip("\n"), "```", ""]
-    parts[-1] = CLI_END
-    return "\n".join(parts)
+    return "\n".join([*parts[:-1], CLI_END])
 
 
 # ------------------------------------------------------------------ test counts
@@ -88,14 +81,8 @@ def parse_collected(output: str) -> tuple[int, int]:
 def collect_counts() -> tuple[int, int]:
     """``(fast, total)``: the tests `make test-fast` runs (marker expression :data:`FAST`) and every
     test `make test` runs, from one ``pytest --collect-only`` of tests/ (nothing runs)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"]
-        + ["-m", FAST],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        check=False,
-    )
+    cmd = [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"]
+    proc = subprocess.run([*cmd, "-m", FAST], cwd=ROOT, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(
             f"pytest --collect-only failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
@@ -105,15 +92,12 @@ def collect_counts() -> tuple[int, int]:
 
 def tests_block(fast: int, total: int) -> str:
     """docs/testing.md's generated block from the two counts."""
-    return "\n".join(
-        [
-            TESTS_BEGIN,
-            f"`make test` runs **{total:,}** tests; `make test-fast` runs the **{fast:,}** of them "
-            f'that are marked neither `slow`, `integration` nor `long` (`-m "{FAST}"`; '
-            f"{total - fast:,} left out).",
-            TESTS_END,
-        ]
+    text = (
+        f"`make test` runs **{total:,}** tests; `make test-fast` runs the **{fast:,}** of them "
+        f'that are marked neither `slow`, `integration` nor `long` (`-m "{FAST}"`; '
+        f"{total - fast:,} left out)."
     )
+    return "\n".join([TESTS_BEGIN, text, TESTS_END])
 
 
 # ------------------------------------------------------------------ pages
@@ -127,9 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     blocks = {CLI_PAGE: cli_block()}
     if not ap.parse_args(argv).skip_tests:
         blocks[TESTING_PAGE] = tests_block(*collect_counts())
-    for page, block in blocks.items():
-        path = ROOT / page
-        write_text_atomic(path, render(page, path.read_text(encoding="utf-8"), [block]))
+    write_blocks({page: [block] for page, block in blocks.items()})
     print(f"{', '.join(blocks)}: generated blocks updated")
 
 

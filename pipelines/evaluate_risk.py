@@ -21,8 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from traffictwin.acceptance import for_problem
 from traffictwin.config import ConfigError, get, typed
@@ -38,11 +37,7 @@ from traffictwin.risk.evaluation import (
     main_series,
     tracking_metrics,
 )
-from traffictwin.risk.figures import EvaluationFigurePaths, evaluation_figures
 from traffictwin.risk.model_config import LABELS
-from traffictwin.risk.model_io import load_risk_model
-from traffictwin.risk.predictors import predictor_kind
-from traffictwin.risk.source import RiskSource
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
 from ._inference import pin_torch_threads
@@ -67,6 +62,9 @@ from .train_risk_hybrid import (
     learned_disparity,
     learned_runs,
 )
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 METRICS = metrics_file("risk")
 SELECTION = metrics_file("risk_selection")
@@ -197,6 +195,7 @@ def suite_settings(ev, subject, primary: str, variants: dict, selection: dict, h
 
 def load_models(variants: list[str], hybrids: list[str]) -> dict:
     """The trained variants, the hybrid runs and the shipped predictor (select_risk)."""
+    from traffictwin.risk.model_io import load_risk_model
 
     def model_dir(v: str):
         if v in hybrids:
@@ -222,6 +221,10 @@ def loaded_settings(models: dict, variants: list[str]) -> dict[str, dict]:
 def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str], ev) -> None:
     """The figures (the shipped predictor drawn beside the headline network), the confusion and
     prediction tables and risk.json."""
+    import pandas as pd
+
+    from traffictwin.risk.figures import EvaluationFigurePaths, evaluation_figures
+
     main_v, t0 = ev.main_variant, ev.thresholds_s[0]
     shipped_from = (metrics.get("selection") or {}).get("shipped_from")
     evaluation_figures(
@@ -291,6 +294,10 @@ def _log_summary(log: logging.Logger, metrics: dict, ev) -> None:
 
 
 def main() -> None:
+    # the evaluation's own imports (torch, matplotlib): the settings above are read without them
+    from traffictwin.risk.predictors import predictor_kind
+    from traffictwin.risk.source import RiskSource
+
     log = setup_logging()
     p = params()
     ev, subject, variants, settings, primary, orb_filter = risk_stage_settings(p)

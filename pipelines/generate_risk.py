@@ -17,7 +17,6 @@ from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import DatasetWriter, shard_name, write_npz_deterministic
 from traffictwin.risk.config import RiskDataConfig
-from traffictwin.risk.data_figures import risk_metric_figure
 from traffictwin.risk.dataset import (
     RiskDataSpec,
     assign_splits,
@@ -94,6 +93,8 @@ def generate(
 
 
 def main() -> None:
+    from traffictwin.risk.data_figures import risk_metric_figure  # matplotlib: not for check_params
+
     cfg = params()
     rd, spec, seed = read_config(cfg)
     with stage_timer("generate_risk"):

@@ -1,15 +1,10 @@
-"""Stage `plot_data`: long-format CSVs under reports/charts/ for the top-level DVC plots of dvc.yaml.
-
-Reads what earlier stages of this run wrote (no model, no data set; only the files params.yaml
-names, never whatever else lies in the folder): the training curves
-(reports/plots/train_fusion_<network or variant>.csv, train_registration.csv,
-risk_training_<variant>.csv of ``risk_model.run_variants``), the wide fusion
-score table (reports/plots/fusion_scores.csv), the risk predictions on the test frames
-(reports/plots/risk_predictions.csv) and, from reports/metrics/risk.json, the label and the first
-THW threshold of the critical-frame curves. Writes
-``fusion_learning_curves.csv``, ``registration_learning_curves.csv``, ``risk_learning_curves.csv``,
-``fusion_scores.csv`` (traffictwin.report.plot_data), ``risk_roc.csv`` and ``risk_pr.csv``
-(traffictwin.risk.charts.risk_curves).
+"""Stage `plot_data`: long-format CSVs under reports/charts/ for the top-level DVC plots of dvc.yaml,
+from what earlier stages of this run wrote (only the files params.yaml names): the training
+curves (reports/plots/train_fusion_<network or variant>.csv, train_registration.csv,
+risk_training_<variant>.csv) as ``*_learning_curves.csv``, the fusion score table as
+``fusion_scores.csv`` (traffictwin.report.plot_data), and the risk predictions on the test frames
+with reports/metrics/risk.json's label and first THW threshold as ``risk_roc.csv`` and
+``risk_pr.csv`` (traffictwin.risk.charts.risk_curves).
 """
 
 from __future__ import annotations
@@ -72,11 +67,10 @@ def main() -> None:
             raise ValueError(
                 f"plot_data: {risk_file}: expected 'primary_label' and a list 'thresholds_s'"
             )
-        roc, pr = risk_curves(
-            _read_csv(PLOTS / "risk_predictions.csv"), label, risk_threshold(float(ts[0]))
-        )
-        _write(roc, "risk_roc.csv")
-        _write(pr, "risk_pr.csv")
+        predictions = _read_csv(PLOTS / "risk_predictions.csv")
+        curves = risk_curves(predictions, label, risk_threshold(float(ts[0])))
+        for df, name in zip(curves, ("risk_roc.csv", "risk_pr.csv"), strict=True):
+            _write(df, name)
     log.info("plot_data: %d charts -> %s", len(charts) + 3, CHARTS)
 
 

@@ -1,19 +1,12 @@
-"""Copy the committed results into README.md and docs/ between markers (``make readme``).
+"""Copy the committed results into README.md and docs/ between markers (``make readme``):
 
-What goes where, each block from files that ``make run`` / ``make bench`` write:
-
-- README.md, *Headline results*: the report's headline table (``reports/results_table.md``'s
-  first, the numbers of ``reports/summary.json``);
-- README.md, *How long it takes*: the default run's wall time and stage time, from the run records
-  ``reports/timings/*.json``;
-- docs/results.md: the report's headline tables (``reports/results_table.md``) and the timing table
-  per part of the pipeline (the run records);
+- README.md: the report's headline table (the first of ``reports/results_table.md``) and the
+  default run's wall time and longest stages (the run records ``reports/timings/*.json``);
+- docs/results.md: the report's headline tables and the timing table per part of the pipeline;
 - docs/benchmarks.md: the figures of ``reports/benchmarks.json``.
 
-Tables are the report's :class:`~traffictwin.report.model.Table` (rendered by its
+Tables are the report's :class:`~traffictwin.report.model.Table` (rendered by
 :func:`~traffictwin.report.render.table_markdown`), sentences macros of ``templates/readme.md.j2``.
-``tests/test_readme.py`` fails when a page shows other numbers than the committed files.
-``make docs`` also runs :mod:`pipelines.docs_reference` (CLI reference, test counts).
 """
 
 from __future__ import annotations
@@ -57,8 +50,8 @@ LONGEST_SHOWN = 3
 
 
 def _tpl(name: str) -> Any:
-    """Macro or table of rows ``name`` of ``templates/readme.md.j2`` (which rows the tables show,
-    their labels and sentences: ``timing_groups``, ``fusion_methods``, ``twin_targets``, ...)."""
+    """Macro or table of rows ``name`` of ``templates/readme.md.j2`` (``timing_groups``,
+    ``bench_rows``, a sentence's macro)."""
     return template_macro(TEMPLATES, "readme.md.j2", name)
 
 
@@ -69,10 +62,6 @@ def _say(macro: str, *args: Any, **kwargs: Any) -> str:
 
 def _block(begin: str, end: str, *parts: str) -> str:
     return "\n".join([begin, *parts, end])
-
-
-def _table(columns: list[str], rows: list[list[Cell]]) -> str:
-    return table_markdown(Table("", columns, rows))
 
 
 # ------------------------------------------------------------------ the results page's block
@@ -87,8 +76,8 @@ def results_block(table_md: str, reports_link: str = "../reports/README.md") -> 
 
 
 # ------------------------------------------------------------------ timings
-def _minutes(seconds: float) -> str:
-    return f"{seconds / 60:.1f} min"
+def _minutes(s: float) -> str:
+    return f"{s / 60:.1f} min"
 
 
 def _time_rows(records: list[dict]) -> list[list[Cell]]:
@@ -121,7 +110,7 @@ def timings_block(records: list[dict]) -> str:
         if secs:
             label = ", ".join(f"`{s}`" for s in stages.split())
             rows.append([Cell(f"— {what}: {label}"), Cell(_minutes(sum(secs)))])
-    return _block(T_BEGIN, T_END, _table(["what", "time"], rows))
+    return _block(T_BEGIN, T_END, table_markdown(Table("", ["what", "time"], rows)))
 
 
 def run_time_block(records: list[dict]) -> str:
@@ -136,7 +125,7 @@ def run_time_block(records: list[dict]) -> str:
     if span is not None:
         budget = _say("budget", budget=RUN_BUDGET_MIN, over=span / 60 - RUN_BUDGET_MIN)
         rows.append([Cell("the budget of `make run` on a 2-core machine"), Cell(budget)])
-    return _block(TS_BEGIN, TS_END, _table(["what", "time"], rows))
+    return _block(TS_BEGIN, TS_END, table_markdown(Table("", ["what", "time"], rows)))
 
 
 # ------------------------------------------------------------------ the README's headline table
@@ -172,20 +161,11 @@ def benchmarks_block(results: Mapping) -> str:
     env, bench = lookup(results, "environment"), lookup(results, "benchmarks")
     rows = _bench_rows(bench if isinstance(bench, Mapping) else {})
     intro = [_say("bench_intro", env), ""] if isinstance(env, Mapping) and env else []
-    return _block(B_BEGIN, B_END, *intro, _table(["what", "figure", "machine"], rows))
+    table = table_markdown(Table("", ["what", "figure", "machine"], rows))
+    return _block(B_BEGIN, B_END, *intro, table)
 
 
 # ------------------------------------------------------------------ pages
-def replace_block(text: str, begin: str, end: str, block: str, name: str = "README.md") -> str:
-    """``text`` with everything from ``begin`` to ``end`` (the markers included) replaced by
-    ``block`` (which starts with ``begin`` and ends with ``end``)."""
-    if begin not in text or end not in text:
-        raise ValueError(f"{name}: markers missing ({begin!r} … {end!r})")
-    head, rest = text.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    return head + block + tail
-
-
 def page_blocks(read: Callable[[str], str], records: list[dict]) -> dict[str, list[str]]:
     """``{page: [block, ...]}``: every generated block of every page, from the files ``read``
     returns (paths relative to the repository root) and the run records ``records``."""
@@ -203,19 +183,27 @@ def page_blocks(read: Callable[[str], str], records: list[dict]) -> dict[str, li
 
 def render(page: str, text: str, blocks: list[str]) -> str:
     """``text`` of ``page`` with each of ``blocks`` put between its markers (each block's first and
-    last line)."""
+    last line, which the block replaces with everything between them)."""
     for block in blocks:
-        lines = block.splitlines()
-        text = replace_block(text, lines[0], lines[-1], block, page)
+        begin, end = block.splitlines()[0], block.splitlines()[-1]
+        if begin not in text or end not in text:
+            raise ValueError(f"{page}: markers missing ({begin!r} … {end!r})")
+        head, rest = text.split(begin, 1)
+        text = head + block + rest.split(end, 1)[1]
     return text
+
+
+def write_blocks(blocks: Mapping[str, list[str]]) -> None:
+    """Each page's generated ``blocks`` (``{page: [block, ...]}``) into its file (:func:`render`)."""
+    for page, items in blocks.items():
+        path = ROOT / page
+        write_text_atomic(path, render(page, path.read_text(encoding="utf-8"), items))
 
 
 def main() -> None:
     records = read_records(REPORTS / "timings")
     blocks = page_blocks(lambda rel: (ROOT / rel).read_text(encoding="utf-8"), records)
-    for page, items in blocks.items():
-        path = ROOT / page
-        write_text_atomic(path, render(page, path.read_text(encoding="utf-8"), items))
+    write_blocks(blocks)
     print(f"{', '.join(blocks)}: generated blocks updated from reports/")
 
 

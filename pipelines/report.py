@@ -2,13 +2,11 @@
 section under reports/pages/ (.md and .html), their style sheet reports/style.css,
 reports/results_table.md.
 
-Reads params.yaml for what the report shows about the run -- the profile, the seed, the
-pose-noise configurations, and the *scale* parameters (every key that any profile in
-conf/profile/ overrides, i.e. what makes ci / default / paper differ, plus every seed) and the
-acceptance thresholds (``acceptance``, the index's last table) -- and hands them to :func:`traffictwin.report.render.write_report` as explicit values, together
-with the git commit and the list of section providers -- one per problem, in the order the
-report shows them (a new problem adds one). The commit, experiment and pipeline run differ
-between identical reruns: they go to the stage's run record, not the report.
+Hands :func:`traffictwin.report.render.write_report` what the report shows about the run, read
+from params.yaml -- the profile, the seed, the pose-noise configurations, the *scale* parameters
+(every key some profile in conf/profile/ overrides, plus every seed) and the acceptance
+thresholds -- and the section providers, one per problem in report order. The commit,
+experiment and pipeline run differ between identical reruns: they go to the stage's run record.
 """
 
 from __future__ import annotations
@@ -41,21 +39,18 @@ def profile_keys(conf_profile_dir: Path) -> set[str]:
     keys: set[str] = set()
     for p in sorted(conf_profile_dir.glob("*.yaml")):
         data = yaml.safe_load(p.read_text()) or {}
-        data.pop("defaults", None)
-        keys.update(flatten(data))
+        keys.update(flatten({k: v for k, v in data.items() if k != "defaults"}))
     return keys
 
 
 def run_params(cfg: Any, keys: set[str]) -> dict[str, Any]:
     """Values of ``keys`` in params (a key that is a dict in params is expanded) plus every ``*seed*`` key."""
-    flat = flatten(cfg)
-    out: dict[str, Any] = {}
-    for k, v in flat.items():
-        leaf = k.rsplit(".", 1)[-1]
-        if k in keys or any(k.startswith(p + ".") for p in keys) or "seed" in leaf:
-            out[k] = v
-    out.pop("profile.name", None)
-    return out
+    return {
+        k: v
+        for k, v in flatten(cfg).items()
+        if k != "profile.name"
+        and (k in keys or any(k.startswith(p + ".") for p in keys) or "seed" in k.rsplit(".")[-1])
+    }
 
 
 def git_dirty(root: Path) -> bool:

@@ -24,10 +24,9 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import write_json_atomic
@@ -47,6 +46,9 @@ from traffictwin.stereo.variants import (
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, PARAMS, RISK_DATA, metrics_file
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 STAGE = "sgm_variants"
 #: the validation figures of a variant (its own pixels)

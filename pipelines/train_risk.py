@@ -14,7 +14,7 @@ import argparse
 from contextlib import nullcontext
 
 from traffictwin.config import ConfigError, flatten, get, typed
-from traffictwin.risk.dave2 import Dave2Config, count_parameters
+from traffictwin.risk.dave2_config import Dave2Config
 from traffictwin.risk.model_config import RiskModelConfig, TrainConfig
 from traffictwin.trainer.settings import TrainerSettings
 from traffictwin.trainer.tracking import TrackingSettings, global_rank
@@ -104,7 +104,9 @@ def check_disparity_scale(p, cfg: Dave2Config) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    # the training imports Lightning: here, not at module level (check_params reads the settings)
+    # the training imports torch and Lightning: here, not at module level (check_params reads
+    # the settings)
+    from traffictwin.risk.dave2 import count_parameters
     from traffictwin.risk.source import RiskSource
     from traffictwin.risk.training import RiskVariant, fit_risk
 

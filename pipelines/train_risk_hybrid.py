@@ -14,28 +14,22 @@ the same hybrid is also trained on the learned stereo network's disparity, one r
 from __future__ import annotations
 
 from dataclasses import fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.config import ConfigError, get, typed
 from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.risk.config import EvalRiskConfig, MetricParams
+from traffictwin.risk.hybrid_config import HybridConfig
 from traffictwin.risk.metric import risk_to_thw
 from traffictwin.risk.model_config import LABELS
-from traffictwin.risk.model_io import save_predictor
-from traffictwin.risk.predictors import (
-    HybridConfig,
-    HybridRiskModel,
-    PredictorInputs,
-    fit_hybrid,
-    source_features,
-)
-from traffictwin.risk.source import RiskSource, check_label
 
 from ._common import params, run_stage, setup_logging, stage_timer
 from ._paths import DISPARITY, ORB_CSV, PARAMS, RISK_DATA, STEREO_LEARNED, hybrid_model_dir
+
+if TYPE_CHECKING:
+    from traffictwin.risk.source import RiskSource
 
 HYBRID = "hybrid"
 HOLDOUT = "hybrid_holdout"
@@ -107,6 +101,9 @@ def _split_data(
 ) -> dict[str, dict[str, tuple]]:
     """Per disparity source and split (train, val): ``(features, THW label (s), seen)`` with
     ``seen`` the frames not of a held-out road template."""
+    from traffictwin.risk.predictors import source_features
+    from traffictwin.risk.source import check_label
+
     data: dict[str, dict[str, tuple]] = {}
     for disparity, c in configs.items():
         data[disparity] = {}
@@ -151,6 +148,13 @@ def _run_meta(
 
 
 def main() -> None:
+    # the training's own imports (torch, pandas): the settings above are read without them
+    import pandas as pd
+
+    from traffictwin.risk.model_io import save_predictor
+    from traffictwin.risk.predictors import HybridRiskModel, PredictorInputs, fit_hybrid
+    from traffictwin.risk.source import RiskSource
+
     log = setup_logging()
     p = params()
     cfg, seeds, holdout = hybrid_settings(p)

@@ -1,6 +1,7 @@
 """Start-up cost: the stages that train nothing, the CLI's entry module and its help and argument
-errors import no Lightning (~4-9 s a process), and those that run no network import no torch; no
-stage imports MLflow at import time.
+errors import no Lightning (~4-9 s a process), and those that run no network import no torch (the
+CLI's no matplotlib either); no stage imports MLflow at import time; the parameter check (the first stage of every `dvc repro`)
+imports none of torch, Lightning, MLflow or matplotlib.
 
 One subprocess imports the modules in phases (torch-free first, then Lightning-free), each phase
 checked before the next, so a heavy import in an early module cannot hide behind a later one.
@@ -18,15 +19,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: stage scripts that import Lightning when imported (the only ones that may; the other training
 #: stages import their training code in ``main``, so check_params can read their settings)
 TRAINING = {"train_fusion"}
-#: stage scripts that load or run a torch network at import time (evaluation and training)
-TORCH = TRAINING | {
-    "evaluate_fusion",
-    "evaluate_risk",
-    "select_risk",
-    "train_risk_hybrid",
-    "train_registration",
-    "train_risk",
-}
+#: stage scripts that load or run a torch network at import time (the others, the training and
+#: evaluation stages that check_params imports for their settings among them, import torch in the
+#: functions that use it)
+TORCH = TRAINING | {"select_risk"}
 #: library modules the evaluation stages and the CLI load networks and data through
 LIGHT_LIBRARY = (
     "traffictwin.trainer.settings",
@@ -42,7 +38,7 @@ _PROBE = r"""
 import contextlib, importlib, io, json, sys
 
 def heavy():
-    return sorted(m for m in ("torch", "lightning", "mlflow") if m in sys.modules)
+    return sorted(m for m in ("torch", "lightning", "mlflow", "matplotlib") if m in sys.modules)
 
 phases = json.loads(sys.argv[1])
 out = {}
@@ -80,23 +76,29 @@ def _stages() -> list[str]:
 def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() -> None:
     stages = _stages()
     assert TORCH <= set(stages), f"stage scripts missing from pipelines/: {TORCH - set(stages)}"
-    torch_free = ["traffictwin.cli", "traffictwin.cli.__main__"] + [
-        f"pipelines.{s}" for s in stages if s not in TORCH
-    ]
+    cli = ["traffictwin.cli", "traffictwin.cli.__main__"]
+    torch_free = [f"pipelines.{s}" for s in stages if s not in TORCH]
     lightning_free = list(LIGHT_LIBRARY) + [
         f"pipelines.{s}" for s in stages if s in TORCH - TRAINING
     ]
-    phases = [  # torch-free first (with the CLI's argparse paths), then Lightning-free
-        ("torch_free", torch_free, [list(a) for a in CLI_ARGS]),
+    phases = [  # the CLI's argparse paths first, then torch-free, then Lightning-free
+        ("cli", cli, [list(a) for a in CLI_ARGS]),
+        ("torch_free", torch_free, []),
         ("lightning_free", lightning_free, []),
     ]
     r = _fresh_python(_PROBE, json.dumps(phases))
     assert r.returncode == 0, r.stderr[-2000:]
     got = json.loads(r.stdout.strip().splitlines()[-1])
-    assert got["torch_free"] == [], (
-        f"importing {torch_free} and running traffictwin {CLI_ARGS} (help, usage errors) loaded "
-        f"{got['torch_free']}: a module-level import of torch, Lightning or MLflow crept into a "
-        "stage that runs no network or into the CLI's argument parsing (import it where it is used)"
+    assert got["cli"] == [], (
+        f"importing {cli} and running traffictwin {CLI_ARGS} (help, usage errors) loaded "
+        f"{got['cli']}: a module-level import of torch, Lightning, MLflow or matplotlib crept "
+        "into the CLI's argument parsing (import it where it is used)"
+    )
+    # stages that draw figures may import matplotlib; none of them torch, Lightning or MLflow
+    stage_heavy = [m for m in got["torch_free"] if m != "matplotlib"]
+    assert stage_heavy == [], (
+        f"importing {torch_free} loaded {stage_heavy}: a module-level import of torch, Lightning "
+        "or MLflow crept into a stage that runs no network (import it where it is used)"
     )
     assert "lightning" not in got["lightning_free"] and "mlflow" not in got["lightning_free"], (
         f"importing {lightning_free} loaded {got['lightning_free']}: only the training stages "
@@ -104,24 +106,33 @@ def test_stages_that_train_nothing_import_no_lightning_and_the_cli_no_torch() ->
     )
 
 
-def test_the_parameter_check_runs_without_lightning() -> None:
+#: what the parameter check must not import: torch (~3-4 s a process on 2 cores), Lightning
+#: (~4-9 s), MLflow, matplotlib (~1 s), pandas (~0.6 s)
+CHECK_FREE = ("torch", "lightning", "torchmetrics", "mlflow", "matplotlib", "pandas")
+
+
+def test_the_parameter_check_runs_without_torch_lightning_mlflow_or_matplotlib() -> None:
     """``check_params`` runs first in every `dvc repro` and `dvc exp run`: it validates every
-    group (the networks' settings and architectures included) with torch at most, and no Lightning
-    (~4-9 s a process) or MLflow: the settings classes live apart from the training code."""
+    group (the networks' settings and architectures included) without torch, Lightning, MLflow,
+    matplotlib or pandas: the settings and spec classes live apart from the networks and the
+    training code (``fusion.deeplab_spec``, ``stereo.network_spec``, ``risk.dave2_config``, ...),
+    the stages it imports for their settings load their figures, models and networks in ``main``,
+    and the modules it reads settings from build their tables (pandas) inside functions."""
     probe = (
         "import json, sys\n"
         "from pathlib import Path\n"
         "import pipelines.check_params as c\n"
         "names = c.check(c.params(Path('params.yaml')))\n"
-        "print(json.dumps([names, sorted(m for m in ('lightning', 'torchmetrics', 'mlflow') "
-        "if m in sys.modules)]))\n"
+        f"print(json.dumps([names, sorted(m for m in {CHECK_FREE!r} if m in sys.modules)]))\n"
     )
     r = _fresh_python(probe)
     assert r.returncode == 0, r.stderr[-2000:]
     names, heavy = json.loads(r.stdout.strip().splitlines()[-1])
     assert len(names) >= 6, names  # every group's check ran
     assert heavy == [], (
-        f"check_params loaded {heavy}: a settings class moved back beside its training"
+        f"check_params loaded {heavy}: a spec or settings class moved back beside its network or "
+        "training, or a stage it imports for its settings imports its figures or models at "
+        "module level (import them in main)"
     )
 
 

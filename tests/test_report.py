@@ -423,6 +423,18 @@ def test_fmt_value_hand_cases() -> None:
         M.fmt_value(1.0, "x9")
 
 
+def test_number_cell_keeps_its_source_value_and_format() -> None:
+    c = M.number_cell(0.8125, "pct", "metrics/risk.json#test/acc", "why")
+    assert (c.text, c.src, c.value, c.fmt, c.title) == (
+        "81.25 %",
+        "metrics/risk.json#test/acc",
+        0.8125,
+        "pct",
+        "why",
+    )
+    assert M.number_cell(None, "g4", "metrics/x.json#k").text == "n/a"
+
+
 def test_paper_numbers_consistent() -> None:
     d = P.risk_confusion_derived()
     assert d["n"] == P.RISK["n_effective"].value  # Table 1 covers the whole effective data set

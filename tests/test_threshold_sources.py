@@ -108,7 +108,7 @@ def test_report_text_follows_the_threshold(
     tmp_path: Path, thresholds: list[float], crit: str, risk: str
 ) -> None:
     src = _sources(tmp_path, thresholds)
-    note = prose("warnings", crit=critical_thw_text(src))  # the twin's warning-table note
+    note = prose("note", crit=critical_thw_text(src))  # the twin table's note
     assert f"below {crit};" in note and f"below {crit} + twin.reaction_s" in note
     title = results_table(src, risk_threshold_key(src)).title
     assert f"THW < {crit} ⇔ risk > {risk})" in title

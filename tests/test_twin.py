@@ -394,8 +394,8 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     src = Sources(ReportInputs(reports_dir=tmp_path, profile="ci", seed=1, git_commit="x"))
     sec = rs.section(src, [])
     tables = {t.anchor: t for t in sec.tables}
-    assert list(tables) == ["twin-occluded", "twin-open"]
-    occ, opn = tables["twin-occluded"], tables["twin-open"]
+    assert list(tables) == ["twin-maps"]
+    occ = tables["twin-maps"]
     # the targets are judged in the acceptance table of the index: one line points there
     assert "twin-targets" not in tables
     assert sum("(../README.md#acceptance-thresholds)" in p for p in sec.paragraphs) == 1
@@ -404,7 +404,8 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     assert rows["twin"][2].src == "metrics/twin.json#configurations.D.methods.twin.occluded.recall"
     assert rows["twin"][2].value == pytest.approx(5 / 6)
     assert rows["twin"][6].value == pytest.approx(0.25)  # median lead over the ego map (s)
-    assert len(opn.rows) == 2
+    assert rows["twin"][10].src.endswith("methods.twin.open.false_alarm_share")
+    assert [c.text for c in rows[rs.LABELS["ego"]][4:8]] == ["—"] * 4  # no gain over itself
     # the rest of twin.json (each hazard kind, the predictive warnings): the appendix
     from pipelines.report import providers
     from traffictwin.report import render as R

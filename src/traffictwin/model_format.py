@@ -5,7 +5,8 @@
 plain containers only: nothing unpickled runs code) and checks it, :func:`net_state_dict` gives
 the network's weights. It lives here rather than in :mod:`traffictwin.trainer` so that loading a
 model for inference (CLI, :mod:`traffictwin.api`) imports torch but not Lightning or MLflow;
-:mod:`traffictwin.trainer` re-exports every name.
+:mod:`traffictwin.trainer` re-exports every name. torch itself loads in the functions that save
+or read a checkpoint, so importing the module (the training settings do) costs nothing.
 """
 
 from __future__ import annotations
@@ -14,12 +15,13 @@ import io
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from traffictwin.io.atomic import write_bytes_atomic
 from traffictwin.io.outputs import check_regular_file
+
+if TYPE_CHECKING:
+    import torch
 
 MODEL_FORMAT = "traffictwin-model/1"
 
@@ -60,6 +62,8 @@ def save_model_checkpoint(path: str | Path, ckpt: Mapping[str, Any]) -> Path:
     Serialised through a buffer, so the zip archive inside is always named ``archive`` (given a
     file name, torch.save names it after the temp file): the same checkpoint gives the same bytes.
     """
+    import torch
+
     buf = io.BytesIO()
     torch.save(dict(ckpt), buf)
     write_bytes_atomic(path, buf.getvalue())
@@ -77,6 +81,8 @@ def read_model_checkpoint(
     ``problem``: the ``traffictwin.problem`` it must have (a checkpoint without that key is
     accepted as any problem).
     """
+    import torch
+
     path = Path(path)
     _regular(path, "a torch checkpoint", error)
     try:

@@ -1,20 +1,10 @@
-"""Numbers and claims the two papers report, with the section / figure / table they come from.
-
-This is the ONLY place in the project where numbers are typed in by hand; the report puts them
-beside the numbers of our own run, which all come from metrics files. The papers' data differs
-from ours (theirs: VTD and GTA V, real scale; ours: the project's own simulator, profile-dependent
-scale), so the comparison is about trends and rankings, not absolute values. It lives outside
-``traffictwin.report``: the risk evaluation writes its differences to the paper into risk.json
-(:data:`traffictwin.risk.evaluation.scoring.PAPER`), and no evaluation stage depends on report code.
-
-Sources (the papers in ``shared/seeds/`` beside the repository):
-
-- ``FUSION_*``: van Kempen, Heidrich, Lampe, Wopen, Eckstein, "Combined Registration and Fusion of
-  Evidential Occupancy Grid Maps for Live Digital Twins of Traffic" (RWTH Aachen, ika).
-  The paper reports its evaluation as figures only (Fig. 5 KLD box plots, Figs. 6/7 precision /
-  recall / Dice curves) -- no numbers are printed -- so its results enter as qualitative claims.
-- ``RISK*``: Feth, Akram, Schuster, Wasenmüller, "Dynamic Risk Assessment for Vehicles of Higher
-  Automation Levels by Deep Learning" (Fraunhofer IESE / DFKI).
+"""Numbers and claims the two papers report, with where they print them: the only numbers typed
+in by hand (the report shows them beside this run's, which come from metrics files). The papers'
+data differ from ours (VTD and GTA V at real scale, vs the project's own simulator), so the
+comparison is of trends and rankings. Outside ``traffictwin.report``: the risk evaluation writes
+its differences to the paper into risk.json (:data:`traffictwin.risk.evaluation.scoring.PAPER`).
+The papers are in ``shared/seeds/`` beside the repository; the fusion paper prints no numbers
+(Fig. 5 KLD box plots, Figs. 6/7 score curves), so it enters as qualitative claims.
 """
 
 from __future__ import annotations
@@ -92,37 +82,23 @@ RISK_CITATION = (
     "(Fraunhofer IESE / DFKI)"
 )
 
-# Table 1: confusion matrix of the CNN over the whole effective data set (106,170 situations),
-# critical <=> time headway < 1.5 s. Counts; the paper prints the shares in brackets.
+# Table 1: the CNN's confusion matrix over the whole effective data set, critical <=> THW < 1.5 s
 RISK_CONFUSION = {
-    "tp": PaperNumber(
-        67_052, "situations", "Table 1", "predicted critical, actually critical (63.16 %)"
-    ),
-    "fp": PaperNumber(
-        19_069, "situations", "Table 1", "predicted critical, actually uncritical (17.96 %)"
-    ),
-    "fn": PaperNumber(
-        9_737, "situations", "Table 1", "predicted uncritical, actually critical (9.17 %)"
-    ),
-    "tn": PaperNumber(
-        10_312, "situations", "Table 1", "predicted uncritical, actually uncritical (9.71 %)"
-    ),
+    "tp": PaperNumber(67_052, "situations", "Table 1", "predicted critical, actually critical"),
+    "fp": PaperNumber(19_069, "situations", "Table 1", "predicted critical, actually uncritical"),
+    "fn": PaperNumber(9_737, "situations", "Table 1", "predicted uncritical, actually critical"),
+    "tn": PaperNumber(10_312, "situations", "Table 1", "predicted uncritical, actually uncritical"),
 }
 
 RISK: dict[str, PaperNumber] = {
     "test_mse": PaperNumber(0.01470, "MSE (normalised risk)", "Sec. 4", "'testing average error'"),
     "accuracy": PaperNumber(72.87, "%", "Sec. 4, Table 1", "critical vs uncritical at THW 1.5 s"),
     "wang_kato_accuracy": PaperNumber(
-        70.77,
-        "%",
-        "Sec. 4 (ref. [20])",
-        "Wang & Kato, DICTA 2017: max accuracy of a 3-class subjective risk rating from dashcam video (another task and data)",
+        70.77, "%", "Sec. 4 (ref. [20])", "Wang & Kato, DICTA 2017: dashcam risk rating, other task"
     ),
     "n_frames": PaperNumber(110_152, "stereo frames recorded", "Sec. 3.3, 3.5"),
     "n_effective": PaperNumber(106_170, "frames after the ORB filter", "Sec. 3.5"),
-    "orb_outlier_pct": PaperNumber(
-        3.5, "% of pairs flagged by ORB (approx.)", "Sec. 3.3", "1 - 106,170 / 110,152 = 3.6 %"
-    ),
+    "orb_outlier_pct": PaperNumber(3.5, "% of pairs flagged by ORB (approx.)", "Sec. 3.3"),
     "n_critical": PaperNumber(76_789, "critical situations", "Sec. 4"),
     "split": PaperNumber("70:10:20", "train:val:test (random)", "Sec. 3.5"),
     "epochs": PaperNumber(30, "epochs", "Sec. 3.5", "validation error rises after ~15"),
@@ -132,10 +108,8 @@ RISK: dict[str, PaperNumber] = {
 
 
 def risk_confusion_derived() -> dict[str, float]:
-    """Scores derived from :data:`RISK_CONFUSION` (shares in %; precision/recall of 'critical' in %).
-
-    Accuracy reproduces the paper's 72.87 %, so the table is read the right way round.
-    """
+    """Scores derived from :data:`RISK_CONFUSION` and the frame counts, in %: the accuracy
+    reproduces the paper's 72.87 % (the table is read the right way round)."""
     tp, fp, fn, tn = (RISK_CONFUSION[k].value for k in ("tp", "fp", "fn", "tn"))
     n = tp + fp + fn + tn
     return {

@@ -43,36 +43,26 @@ def plot_fusion_samples(
     Each sample: ``map1``, ``map2``, ``label`` (2, H, W), ``pose1``, ``pose2`` (3,) world (m, rad),
     optional ``template`` (str) and ``pair_id`` (int).
     """
-    plt = pyplot()
-    n = len(samples)
-    if n == 0:
+    if not samples:
         raise ValueError("plot_fusion_samples: no samples given")
-    fig, axes = plt.subplots(n, 3, figsize=(9, 4.6 * n), squeeze=False)
+    fig, axes = pyplot().subplots(len(samples), 3, figsize=(9, 4.6 * len(samples)), squeeze=False)
     for i, s in enumerate(samples):
-        p1, p2 = s["pose1"], s["pose2"]
-        head = f"{s.get('template', '')} pair {int(s.get('pair_id', i))}".strip()
-        for j, (key, name, pose) in enumerate(
-            (
-                ("map1", "input map 1", p1),
-                ("map2", "input map 2", p2),
-                ("label", "label (fused, map 1's frame)", None),
-            )
+        heads = [
+            f"input map {k}\npose x={p[0]:.1f} m, y={p[1]:.1f} m, yaw={np.rad2deg(p[2]):.0f} deg"
+            for k, p in ((1, s["pose1"]), (2, s["pose2"]))
+        ]
+        for ax, key, head in zip(
+            axes[i], ("map1", "map2", "label"), [*heads, "label (fused, map 1's frame)"]
         ):
-            ax = axes[i, j]
             show_masses(ax, s[key], grid.cell)
             ax.plot(0, 0, marker=(3, 0, 0), color="k", markersize=8)
-            if pose is not None:
-                ax.set_title(
-                    f"{name}\npose x={pose[0]:.1f} m, y={pose[1]:.1f} m, yaw={np.rad2deg(pose[2]):.0f} deg",
-                    fontsize=8,
-                )
-            else:
-                ax.set_title(name, fontsize=8)
+            ax.set_title(head, fontsize=8)
             ax.xaxis.label.set_fontsize(7)
             ax.yaxis.label.set_fontsize(7)
             ax.tick_params(labelsize=6)
+        name = f"{s.get('template', '')} pair {int(s.get('pair_id', i))}".strip()
         axes[i, 0].text(
-            -0.35, 0.5, head, transform=axes[i, 0].transAxes, rotation=90, va="center", fontsize=8
+            -0.35, 0.5, name, transform=axes[i, 0].transAxes, rotation=90, va="center", fontsize=8
         )
     fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8)
     fig.suptitle(title, fontsize=10)

@@ -1,17 +1,9 @@
-"""Figures of the fusion evaluation (paper Figs. 4–7), matplotlib Agg.
-
-Each figure function returns the matplotlib ``Figure`` (so tests can check what it plots);
-:func:`traffictwin.io.atomic.save_figure` writes it atomically as PNG and closes it.
-
-- :func:`kld_boxplot` — KLD distribution per configuration, network vs baselines (Fig. 5);
-- :func:`scores_plot` — precision / recall / Dice vs configuration for one class (Figs. 6, 7);
-
-Maps (Fig. 4) are drawn by :mod:`traffictwin.fusion.map_figures` in the project's one mass colour
-map (:mod:`traffictwin.report.colours`).
-
-Legend labels are the methods' ``label`` in :data:`traffictwin.fusion.methods.METHODS` (a network
-row ``<method>[<loss>]`` of ``fusion_variants``: the method's label + ``[<loss> loss]``); colours
-and markers are :data:`METHOD_STYLE`.
+"""Figures of the fusion evaluation (paper Figs. 5–7), matplotlib Agg: :func:`kld_boxplot` (KLD
+per configuration and method) and :func:`scores_plot` (precision / recall / Dice per
+configuration); the maps (Fig. 4): :mod:`traffictwin.fusion.map_figures`. Each returns the
+``Figure`` (tests check what it plots); :func:`traffictwin.io.atomic.save_figure` writes it.
+Legend labels: the methods' ``label`` (:data:`traffictwin.fusion.methods.METHODS`; a network row
+``<method>[<loss>]``: + ``[<loss> loss]``); colours and markers: :data:`METHOD_STYLE`.
 """
 
 from __future__ import annotations
@@ -21,15 +13,6 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from traffictwin.io.atomic import pyplot as _plt
-
-__all__ = [
-    "CONFIG_AXIS",
-    "CONFIG_NOTE",
-    "config_label",
-    "kld_boxplot",
-    "scores_plot",
-    "METHOD_STYLE",
-]
 
 METHOD_STYLE: dict[str, dict] = {
     "dnn": {"color": "#1f77b4", "marker": "o"},
@@ -97,6 +80,20 @@ def _log_threshold(data: Sequence[np.ndarray]) -> float | None:
     return float(np.clip(10.0 ** np.floor(np.log10(np.quantile(v, 0.05))), 1e-6, 1e-3))
 
 
+def config_axis(ax, configs: Sequence[str], noise, xlabel: str, **kw) -> None:
+    """x ticks at 0, 1, ... labelled by :func:`config_label`, and the axis label ``xlabel``."""
+    ax.set_xticks(range(len(configs)))
+    ax.set_xticklabels([config_label(c, noise) for c in configs])
+    ax.set_xlabel(xlabel, **kw)
+
+
+def method_line(ax, x, y, meth: str) -> None:
+    """``meth``'s line in its :data:`METHOD_STYLE` (solid for network and naive), ``gid`` = it."""
+    st = _style(meth)
+    ls = "-" if meth in ("dnn", "naive") else "--"
+    ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
+
+
 def kld_boxplot(
     values: Mapping[str, Mapping[str, Sequence[float]]],
     configs: Sequence[str],
@@ -106,37 +103,25 @@ def kld_boxplot(
     noise: Mapping[str, Sequence[float]] | None = None,
     unit: str = "nats per cell",
 ):
-    """Box plots: ``values[method][config]`` = per-sample KLDs; one group per configuration,
-    one box per (configuration, method) with data, labelled ``gid = "<method>/<config>"`` (its
-    median line ``"<method>/<config>/median"``); ``noise[config] = (r m, α deg)`` labels the
-    configuration axis (:func:`config_label`).
-
-    The y axis is logarithmic (matplotlib ``symlog``: KLD ≥ 0, exact zeros occur, e.g. the naive
-    fusion without pose noise), linear only below a small threshold (:func:`_log_threshold`),
-    so a row far above the others (a degenerate network at ~2 nats) no longer squashes the
-    boxes near 0.01; the axis label names the quantity, its ``unit`` and the scale. Without
-    any value the axes say so."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(1.9 * len(configs) + 2, 4.2))
+    """Box plots of ``values[method][config]`` (per-sample KLDs): one group per configuration,
+    one box per (configuration, method) with data, ``gid = "<method>/<config>"`` (its median line
+    ``"<method>/<config>/median"``); ``noise[config] = (r m, α deg)`` labels the configuration
+    axis. The y axis is ``symlog`` (KLD ≥ 0 with exact zeros, linear below
+    :func:`_log_threshold`), so a degenerate row at ~2 nats does not squash the boxes near 0.01;
+    its label names the quantity, ``unit`` and scale. Without any value the axes say so."""
+    fig, ax = _plt().subplots(figsize=(1.9 * len(configs) + 2, 4.2))
     width = 0.8 / max(len(methods), 1)
-    handles = []
-    drawn: list[np.ndarray] = []
+    handles, drawn = [], []
     for j, meth in enumerate(methods):
-        data, pos, cfgs = [], [], []
-        for i, cfg in enumerate(configs):
-            v = np.asarray(values.get(meth, {}).get(cfg, []), dtype=float)
-            v = v[np.isfinite(v)]
-            if v.size:
-                cfgs.append(cfg)
-                data.append(v)
-                pos.append(i + (j - (len(methods) - 1) / 2) * width)
-        if not data:
+        got = {c: np.asarray(values.get(meth, {}).get(c, []), dtype=float) for c in configs}
+        got = {c: v[np.isfinite(v)] for c, v in got.items()}
+        cfgs = [c for c in configs if got[c].size]
+        if not cfgs:
             continue
-        drawn += data
-        handles.append(_method_boxes(ax, meth, data, pos, cfgs, width))
-    ax.set_xticks(range(len(configs)))
-    ax.set_xticklabels([config_label(c, noise) for c in configs])
-    ax.set_xlabel(f"{CONFIG_AXIS}\n{CONFIG_NOTE}" if noise else "configuration")
+        pos = [configs.index(c) + (j - (len(methods) - 1) / 2) * width for c in cfgs]
+        drawn += [got[c] for c in cfgs]
+        handles.append(_method_boxes(ax, meth, [got[c] for c in cfgs], pos, cfgs, width))
+    config_axis(ax, configs, noise, f"{CONFIG_AXIS}\n{CONFIG_NOTE}" if noise else "configuration")
     lin = _log_threshold(drawn)
     if lin is not None:
         ax.set_yscale("symlog", linthresh=lin, linscale=0.3)
@@ -146,15 +131,32 @@ def kld_boxplot(
         ax.set_ylabel(f"{ylabel} ({unit})")
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
-    _box_legend(ax, handles)
+    if handles:
+        ax.legend(
+            handles=handles,
+            fontsize=8,
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),
+            borderaxespad=0.0,
+        )
+    else:
+        empty = "no KLD values to draw (no pair evaluated for these methods)"
+        ax.text(
+            0.5,
+            0.5,
+            empty,
+            transform=ax.transAxes,
+            ha="center",
+            va="center",
+            color="0.25",
+            gid="empty",
+        )
     return fig
 
 
-def _method_boxes(
-    ax, meth: str, data: list[np.ndarray], pos: list[float], cfgs: list[str], width: float
-):
-    """One method's boxes at positions ``pos`` (one per configuration of ``cfgs`` with data),
-    ``gid`` = ``"<method>/<config>"`` (median ``"…/median"``); returns the legend handle."""
+def _method_boxes(ax, meth: str, data: list, pos: list[float], cfgs: list[str], width: float):
+    """One method's boxes at ``pos`` (one per configuration of ``cfgs``), ``gid`` as in
+    :func:`kld_boxplot`; returns the legend handle."""
     st = _style(meth)
     bp = ax.boxplot(
         data,
@@ -165,38 +167,11 @@ def _method_boxes(
         flierprops={"markersize": 2, "markeredgecolor": st["color"]},
         medianprops={"color": "black"},
     )
-    for med, cfg in zip(bp["medians"], cfgs):
+    for med, box, cfg in zip(bp["medians"], bp["boxes"], cfgs):
         med.set_gid(f"{meth}/{cfg}/median")
-    for b, cfg in zip(bp["boxes"], cfgs):
-        b.set_gid(f"{meth}/{cfg}")
-        b.set_facecolor(st["color"])
-        b.set_alpha(0.6)
-    handle = bp["boxes"][0]
-    handle.set_label(st["label"])
-    return handle
-
-
-def _box_legend(ax, handles: list) -> None:
-    """The methods' legend right of the axes, or a note that there was nothing to draw."""
-    if handles:
-        ax.legend(
-            handles=handles,
-            fontsize=8,
-            loc="upper left",
-            bbox_to_anchor=(1.01, 1.0),
-            borderaxespad=0.0,
-        )
-    else:
-        ax.text(
-            0.5,
-            0.5,
-            "no KLD values to draw (no pair evaluated for these methods)",
-            transform=ax.transAxes,
-            ha="center",
-            va="center",
-            color="0.25",
-            gid="empty",
-        )
+        box.set(gid=f"{meth}/{cfg}", facecolor=st["color"], alpha=0.6)
+    bp["boxes"][0].set_label(st["label"])
+    return bp["boxes"][0]
 
 
 def scores_plot(
@@ -206,22 +181,15 @@ def scores_plot(
     cls: str,
     noise: Mapping[str, Sequence[float]] | None = None,
 ):
-    """Precision / recall / Dice vs configuration for ``cls`` ("occ" or "free"); ``scores[method][config][metric]``.
-    Three axes (precision, recall, Dice), one line per method (``gid`` = the method);
-    ``noise[config] = (r m, α deg)`` labels the configuration axis (:func:`config_label`)."""
-    plt = _plt()
+    """Precision / recall / Dice (``scores[method][config][<metric>_<cls>]``, ``cls`` "occ" or
+    "free") per configuration: three axes, one line per method (``gid`` = the method)."""
     name = {"occ": "occupied", "free": "free"}.get(cls, cls)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), sharey=True)
-    x = np.arange(len(configs))
+    fig, axes = _plt().subplots(1, 3, figsize=(12, 3.8), sharey=True)
     for ax, metric in zip(axes, ("precision", "recall", "dice")):
         for meth in methods:
             y = [scores.get(meth, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs]
-            st = _style(meth)
-            ls = "-" if meth in ("dnn", "naive") else "--"
-            ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
-        ax.set_xticks(x)
-        ax.set_xticklabels([config_label(c, noise) for c in configs])
-        ax.set_xlabel(CONFIG_AXIS if noise else "configuration", fontsize=9)
+            method_line(ax, np.arange(len(configs)), y, meth)
+        config_axis(ax, configs, noise, CONFIG_AXIS if noise else "configuration", fontsize=9)
         ax.set_title(f"{metric.capitalize()} ({name} cells)")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("score")

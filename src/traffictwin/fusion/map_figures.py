@@ -1,9 +1,6 @@
-"""Map figures of the fusion evaluation (paper Fig. 4): evidential maps in the project's one mass
-colour map (:mod:`traffictwin.report.colours`), axes in metres, with its legend.
-
-Kept apart from :mod:`traffictwin.fusion.figures` (score plots, shared by the training stages) so
-that the training stages do not depend on the map colour code.
-"""
+"""Map figures of the fusion evaluation (paper Fig. 4) in the project's one mass colour map
+(:mod:`traffictwin.report.colours`), axes in metres; apart from :mod:`traffictwin.fusion.figures`
+so that no stage depends on the map colour code through the score plots."""
 
 from __future__ import annotations
 
@@ -13,8 +10,6 @@ import numpy as np
 
 from traffictwin.io.atomic import pyplot as _plt
 from traffictwin.report.colours import legend_handles, show_masses
-
-__all__ = ["qualitative_grid"]
 
 
 def qualitative_grid(
@@ -28,10 +23,9 @@ def qualitative_grid(
     one column per config; :func:`traffictwin.report.colours.show_masses` (axes in metres,
     ``cell`` m per cell) and the colour map's legend below the panels; ``noise[config] = (r m,
     α deg)`` goes into the column titles."""
-    plt = _plt()
     names = list(rows)
     h, w = np.asarray(rows[names[0]][0]).shape[-2:]
-    fig, axes = plt.subplots(
+    fig, axes = _plt().subplots(
         len(names),
         len(configs),
         figsize=(2.3 * len(configs) + 0.8, 2.3 * len(names) * h / w + 1.4),
@@ -44,10 +38,8 @@ def qualitative_grid(
             ax = axes[r][c]
             show_masses(ax, rows[name][c], cell)
             ax.tick_params(labelsize=7)
-            head = f"config {cfg}"
-            if noise and cfg in noise:
-                head += f": r {noise[cfg][0]:g} m, α {noise[cfg][1]:g}°"
-            ax.set_title(head if r == 0 else "", fontsize=9)
+            head = f": r {noise[cfg][0]:g} m, α {noise[cfg][1]:g}°" if cfg in (noise or {}) else ""
+            ax.set_title(f"config {cfg}{head}" if r == 0 else "", fontsize=9)
             ax.set_xlabel("y (m, + = left)" if r == len(names) - 1 else "", fontsize=8)
             ax.set_ylabel(f"{name}\nx (m, forward)" if c == 0 else "", fontsize=8)
     fig.legend(handles=legend_handles(), loc="lower center", ncol=3, fontsize=8, frameon=False)

@@ -2,9 +2,11 @@
 DeepLabV3+: :class:`FusionModelConfig`, its :class:`FusionHParams`, :func:`spec_from_cfg`) and
 ``registration_model`` (the learned registration: :class:`RegistrationModelConfig`).
 
-Importable without torch or Lightning (the network and data classes load inside the methods that
-build them): ``check_params`` validates every group before any stage runs, and its start-up is
-paid by each `dvc repro`. The training itself: :mod:`traffictwin.fusion.training` and
+Importable without torch or Lightning, and it validates the architectures without them too (the
+networks' specs live in the torch-free :mod:`~traffictwin.fusion.deeplab_spec` and
+:mod:`~traffictwin.fusion.registration_spec`; the data settings load inside :meth:`FusionModelConfig.data`):
+``check_params`` validates every group before any stage runs, and its start-up is paid by each
+`dvc repro`. The training itself: :mod:`traffictwin.fusion.training` and
 :mod:`traffictwin.fusion.registration_training`.
 """
 
@@ -21,11 +23,11 @@ from omegaconf.errors import OmegaConfBaseException
 
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
+from traffictwin.fusion.deeplab_spec import DeepLabSpec
 from traffictwin.fusion.loss_registry import LOSSES
+from traffictwin.fusion.registration_spec import RegistrationNetSpec
 
 if TYPE_CHECKING:
-    from traffictwin.fusion.deeplab import DeepLabSpec
-    from traffictwin.fusion.learned_registration import RegistrationNetSpec
     from traffictwin.fusion.training_data import DataSettings
 
 
@@ -50,8 +52,6 @@ class FusionHParams:
 
 def spec_from_cfg(model_cfg: Mapping[str, Any], in_channels: int = 4) -> DeepLabSpec:
     """DeepLabSpec from the ``fusion_model.architecture`` mapping (``backbone: {block, layers, base_width}``, ...)."""
-    from traffictwin.fusion.deeplab import DeepLabSpec
-
     d = json.loads(json.dumps(dict(model_cfg)))
     bb = dict(d.pop("backbone", {}))
     bb.setdefault("in_channels", in_channels)
@@ -212,8 +212,6 @@ class RegistrationModelConfig:
     train: RegistrationTrainConfig = setting(MISSING)
 
     def net_spec(self, source: str, key: str = "registration_model") -> RegistrationNetSpec:
-        from traffictwin.fusion.learned_registration import RegistrationNetSpec
-
         try:
             return RegistrationNetSpec.from_dict(self.architecture)
         except (TypeError, ValueError) as exc:

@@ -1,12 +1,8 @@
 """Learning curves of one fusion or registration training run (matplotlib Agg; saved by the
-train stages).
-
-:func:`learning_curves` plots, per epoch, the validation KLD(b) (the selection metric) against the
-naive fusion's on the same validation pairs, the training and validation loss, and the
-validation Dice of occupied cells (network and naive); the best epoch is marked.
-:func:`registration_learning_curves` plots the learned registration's validation success rate,
-mean pose errors and losses per epoch. Nothing here imports the fusion methods or the evaluation
-figures: a new fusion method or an evaluation figure re-runs no training stage.
+train stages): :func:`learning_curves` (validation KLD(b), the selection metric, against the naive
+fusion's; training / validation loss; validation occupied Dice; the best epoch marked) and
+:func:`registration_learning_curves` (validation success rate, mean pose errors, losses). Nothing
+here imports the fusion methods or the evaluation figures: those re-run no training stage.
 """
 
 from __future__ import annotations
@@ -17,23 +13,13 @@ import numpy as np
 
 from traffictwin.io.atomic import pyplot as _plt
 
-__all__ = [
-    "LOSS_LINES",
-    "finish_figure",
-    "learning_curves",
-    "plot_series",
-    "registration_learning_curves",
-]
-
 # the training and validation loss per epoch: (History key, line style, legend label)
 LOSS_LINES = (("train/loss", "o-", "train"), ("val/loss", "s-", "validation"))
 
 
 def _series(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
-    pts = [(r["epoch"], r[key]) for r in rows if key in r and r[key] is not None]
-    if not pts:
-        return np.empty(0), np.empty(0)
-    e, v = np.array(pts, dtype=np.float64).T
+    pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
+    e, v = np.array(pts, dtype=np.float64).reshape(-1, 2).T
     return e, v
 
 
@@ -42,6 +28,13 @@ def plot_series(ax, rows: Sequence[Mapping[str, float]], lines: Sequence[tuple[s
     for key, style, lab in lines:
         ek, vk = _series(rows, key)
         ax.plot(ek, vk, style, label=lab)
+
+
+def three_panels(rows: Sequence[Mapping[str, float]], what: str):
+    """A figure with three axes side by side for ``rows``; ``ValueError`` without epochs."""
+    if not rows:
+        raise ValueError(f"{what}: no epochs to plot")
+    return _plt().subplots(1, 3, figsize=(13, 3.6))
 
 
 def finish_figure(fig, axes, title: str):
@@ -58,10 +51,7 @@ def learning_curves(
     rows: Sequence[Mapping[str, float]], title: str, selection: str = "val/kld_full"
 ):
     """Figure of a run's per-epoch ``rows`` (the History callback's rows: ``epoch``, ``val/*``, ``train/loss``)."""
-    if not rows:
-        raise ValueError("learning_curves: no epochs to plot")
-    plt = _plt()
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, (ax1, ax2, ax3) = three_panels(rows, "learning_curves")
     e, v = _series(rows, selection)
     ax1.plot(e, v, "o-", color="#1f77b4", label="network")
     en, vn = _series(rows, f"{selection}_naive")
@@ -82,10 +72,7 @@ def learning_curves(
 def registration_learning_curves(rows: Sequence[Mapping[str, float]], title: str):
     """Figure of a registration run's per-epoch rows: validation success rate, mean pose errors
     (m, deg) and the training / validation loss; the best epoch (lowest val/loss) is marked."""
-    if not rows:
-        raise ValueError("registration_learning_curves: no epochs to plot")
-    plt = _plt()
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, (ax1, ax2, ax3) = three_panels(rows, "registration_learning_curves")
     e, v = _series(rows, "val/success_rate")
     ax1.plot(e, 100 * v, "o-", label="validation")
     el, vl = _series(rows, "val/loss")
@@ -95,11 +82,11 @@ def registration_learning_curves(rows: Sequence[Mapping[str, float]], title: str
     ax1.set(
         xlabel="epoch", ylabel="success rate (%)", title="error < 0.5 m and < 1 deg", ylim=(0, 100)
     )
-    pose_lines = (
+    pose = (
         ("val/trans_err_m", "o-", "translation (m)"),
         ("val/rot_err_deg", "s-", "rotation (deg)"),
     )
-    plot_series(ax2, rows, pose_lines)
+    plot_series(ax2, rows, pose)
     ax2.set(xlabel="epoch", ylabel="mean validation error (m | deg)", title="pose error")
     plot_series(ax3, rows, LOSS_LINES)
     ax3.set(xlabel="epoch", ylabel="loss (-)", title="training loss")

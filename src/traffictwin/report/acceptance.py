@@ -1,9 +1,7 @@
-"""The acceptance table at the end of the report's index: every target of this run, one row per
-target and configuration, read from the metrics files' ``targets`` blocks (one small normaliser
-for fusion.json's per-configuration targets, one for the flat blocks of risk.json, stereo.json
-and twin.json), with the condition it must meet
-from the acceptance thresholds the report stage passes in (``acceptance.<problem>``,
-:mod:`traffictwin.acceptance`), and a one-line count of the statuses."""
+"""The acceptance table at the end of the report's index: one row per target (and configuration)
+of the metrics files' ``targets`` blocks, with the condition it must meet from the acceptance
+thresholds the report stage passes in (``acceptance.<problem>``, :mod:`traffictwin.acceptance`),
+and a count of the statuses."""
 
 from __future__ import annotations
 
@@ -13,15 +11,14 @@ from typing import Any
 
 from traffictwin.acceptance import FAIL, NOT_EVALUATED, PASS, Threshold
 from traffictwin.report import model as page
-from traffictwin.report.model import NA, Cell, Section, Table, fmt_value, json_number
+from traffictwin.report.model import NA, Cell, Section, Table, fmt_value, json_number, number_cell
 
 TITLE = "Acceptance thresholds"
-#: the section's anchor on the index: its heading's slug (Markdown and HTML, report.render)
-SECTION_ANCHOR = TITLE.lower().replace(" ", "-")
-#: the line each problem's page shows where its targets table was (pages sit in reports/pages/)
+#: the line each problem's page shows where its targets table was (pages sit in reports/pages/);
+#: the anchor is the section heading's slug
 POINTER = (
     "Targets: every target's verdict against its acceptance threshold is in the "
-    f"[acceptance table](../README.md#{SECTION_ANCHOR}) at the end of the report index."
+    f"[acceptance table](../README.md#{TITLE.lower().replace(' ', '-')}) at the end of the report index."
 )
 ANCHOR = "acceptance"
 COLUMNS = [
@@ -32,13 +29,8 @@ COLUMNS = [
     "this run (value [95 % CI])",
     "status",
 ]
-#: (problem, metrics file) in report order
-FILES = (
-    ("fusion", "fusion.json"),
-    ("risk", "risk.json"),
-    ("stereo", "stereo.json"),
-    ("twin", "twin.json"),
-)
+#: the problems in report order, each with its metrics file ``<problem>.json``
+PROBLEMS = ("fusion", "risk", "stereo", "twin")
 #: the problems whose thresholds absent from the file's block are shown as not evaluated
 LIST_ABSENT = ("twin",)
 
@@ -71,24 +63,22 @@ def _condition(t: Threshold | None, e: Mapping[str, Any]) -> str:
     return f"{op} {thr:g}" if op and thr is not None else NA
 
 
-def _value_cell(
-    src: page.Sources, file: str, key: str, lo: Any, hi: Any, fmt: str, why: str = ""
-) -> Cell:
-    """``value [lo, hi]`` of the number at ``file#key`` (n/a, with ``why``, where it is missing)."""
-    v = json_number(src.get(file, key))
-    path = src.paths.get(file, f"metrics/{file}")
+def _value_cell(src: page.Sources, file: str, key: str, e: Mapping[str, Any], fmt: str) -> Cell:
+    """``value [lo, hi]`` of the number at ``file#key`` and the interval of its entry ``e``
+    (``ci: [lo, hi]``, ``lo``/``hi`` or ``value_lo``/``value_hi``); n/a, with the entry's ``why``,
+    where it is missing."""
+    v, src_key = json_number(src.get(file, key)), f"{src.path(file)}#{key}"
+    why = str(e.get("why", ""))
     if v is None:
         return Cell(NA, title=why or "not evaluated")
+    ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else None
+    lo, hi = ci or (e.get("lo", e.get("value_lo")), e.get("hi", e.get("value_hi")))
     lo, hi = json_number(lo), json_number(hi)
     if lo is None or hi is None:
-        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt, title=why)
-    return Cell(  # the value and its interval: a derived cell naming where both come from
-        f"{fmt_value(v, fmt)} [{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]",
-        value=[v, lo, hi],
-        fmt=fmt,
-        title=why,
-        derived=f"value and 95 % interval, {path}#{key}",
-    )
+        return number_cell(v, fmt, src_key, why)
+    text = f"{fmt_value(v, fmt)} [{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]"
+    derived = f"value and 95 % interval, {src_key}"  # a derived cell naming where both come from
+    return Cell(text, value=[v, lo, hi], fmt=fmt, title=why, derived=derived)
 
 
 def _ablation_verdict(src: page.Sources, key: str) -> tuple[str, str, Mapping[str, Any]] | None:
@@ -110,15 +100,13 @@ def fusion_rows(
     for name, spec in (src.get(file, "targets") or {}).items():
         if not isinstance(spec, dict):
             continue
+        desc = str(spec.get("description", "") or getattr(th.get(name), "description", ""))
         for c, e in (spec.get("per_config") or {}).items():
             f, key, status = file, f"targets.{name}.per_config.{c}", str(e.get("status", NA))
             if e.get("value") is None and (found := _ablation_verdict(src, key)):
                 f, key, e = found
                 status = f"{e.get('status', NA)} (ablation {src.get(f, 'name', f)})"
-            value = _value_cell(
-                src, f, f"{key}.value", e.get("lo"), e.get("hi"), "g4", e.get("why", "")
-            )
-            desc = str(spec.get("description", "") or getattr(th.get(name), "description", ""))
+            value = _value_cell(src, f, f"{key}.value", e, "g4")
             rows.append(Row(problem, name, c, desc, _condition(th.get(name), spec), value, status))
     return rows
 
@@ -126,21 +114,15 @@ def fusion_rows(
 def target_rows(
     src: page.Sources, th: Mapping[str, Threshold], file: str, problem: str
 ) -> list[Row]:
-    """risk.json, stereo.json, twin.json: ``targets.<name>: {value, met, ...}`` with the interval
-    as ``lo``/``hi`` (risk), ``value_lo``/``value_hi`` (stereo) or ``ci: [lo, hi]`` (twin), and
+    """risk.json, stereo.json, twin.json: ``targets.<name>: {value, met, ...}`` with its interval,
     optional ``format``, ``why``, ``description`` (else the threshold's, else ``note``) and
     ``always_warns_value`` (what a warning at every frame scores); the block's ``configuration``
     (twin) is every row's. Non-object entries (the twin's ``method``, ...) are no targets."""
     block = src.get(file, "targets") or {}
     where = str(block.get("configuration", ""))
     rows = []
-    for name, e in block.items():
-        if not isinstance(e, dict):
-            continue
-        ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else None
-        lo, hi = ci or (e.get("lo", e.get("value_lo")), e.get("hi", e.get("value_hi")))
-        fmt, why = str(e.get("format") or "g4"), str(e.get("why", ""))
-        value = _value_cell(src, file, f"targets.{name}.value", lo, hi, fmt, why)
+    for name, e in ((n, e) for n, e in block.items() if isinstance(e, dict)):
+        value = _value_cell(src, file, f"targets.{name}.value", e, str(e.get("format") or "g4"))
         t = th.get(name)
         desc = str(e.get("description") or getattr(t, "description", "") or e.get("note", ""))
         if isinstance(always := e.get("always_warns_value"), int | float):  # met by a constant?
@@ -167,16 +149,15 @@ def _absent(
 
 
 def acceptance_rows(src: page.Sources, thresholds: Thresholds) -> list[Row]:
-    """Every target of every metrics file of :data:`FILES`, in report order; a problem whose
-    metrics file is missing shows its thresholds (``thresholds``) as not evaluated."""
+    """Every target of every problem's metrics file, in report order; a problem whose metrics
+    file is missing shows its thresholds (``thresholds``) as not evaluated."""
     rows: list[Row] = []
-    for problem, file in FILES:
+    for problem, file in ((p, f"{p}.json") for p in PROBLEMS):
         th = thresholds.get(problem) or {}
-        if src.has(file):
-            reader = fusion_rows if problem == "fusion" else target_rows
-            rows += reader(src, th, file, problem)
-        else:
+        if not src.has(file):
             rows += _absent(problem, th, set(), f"reports/metrics/{file} not found")
+        else:
+            rows += (fusion_rows if problem == "fusion" else target_rows)(src, th, file, problem)
     return rows
 
 
@@ -195,8 +176,7 @@ def elsewhere(src: page.Sources, thresholds: Thresholds) -> list[str]:
 
 
 def acceptance_section(src: page.Sources, thresholds: Thresholds) -> Section:
-    """The index's last section: the acceptance table (one row per target and configuration)
-    and the count of its statuses."""
+    """The index's last section: the acceptance table and the count of its statuses."""
     rows = acceptance_rows(src, thresholds)
     other = elsewhere(src, thresholds)
     timed = (
@@ -205,19 +185,16 @@ def acceptance_section(src: page.Sources, thresholds: Thresholds) -> Section:
         if other
         else ""
     )
-    table = Table(
-        "Every target of this run against its acceptance threshold (default-profile thresholds, "
-        "test split)",
-        COLUMNS,
-        rows=[r.cells() for r in rows],
-        note=count_line(rows) + ". Condition: the point estimate against the threshold unless "
+    note = (
+        count_line(rows) + ". Condition: the point estimate against the threshold unless "
         "it names the interval ('whole interval': its far end) or one of its ends; 'not "
         "evaluated' where the figure, its configuration or its rows are missing (never a pass); "
         "'(ablation <name>)': a target this run does not evaluate, from that ablation "
-        "experiment's own evaluation (reports/ablations/<name>.json)." + timed,
-        anchor=ANCHOR,
-        headline=True,  # with the headline tables in results_table.md (docs/results.md)
+        "experiment's own evaluation (reports/ablations/<name>.json)." + timed
     )
+    title = "Every target of this run against its acceptance threshold (default-profile thresholds, test split)"
+    # headline: with the headline tables in results_table.md (docs/results.md)
+    table = Table(title, COLUMNS, [r.cells() for r in rows], note, ANCHOR, headline=True)
     intro = (
         "Every target's verdict, read from the metrics files' `targets` blocks; the thresholds "
         "are the acceptance config group (`conf/acceptance/default.yaml`)."

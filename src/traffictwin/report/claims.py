@@ -1,25 +1,12 @@
 """Does this run reproduce the papers? One verdict per claim of a paper, computed from this run's
 numbers and their 95 % intervals, never typed in.
 
-The rule is the report's interval rule: a difference is a finding only when its 95 % interval
-excludes zero. A claim is checked on one or more intervals (e.g. network − naive KLD at B, C and
-D), each placed against a reference (zero for a difference; the paper's printed value for a
-number the paper reports) with :func:`~traffictwin.interval_rule.interval_side` (the rule's one
-home, :mod:`traffictwin.interval_rule`); :func:`claim_verdict` turns the sides into
-
-- ``reproduced``: every interval lies on the side the paper claims (a difference), or -- for a
-  number the paper prints -- every interval reaches the paper's value or lies beyond it on the
-  better side, at least one reaching it;
-- ``exceeded``: a number the paper prints, every interval wholly beyond it on the better side
-  (above the paper's accuracy, below its error): this run does better than the paper, which is
-  no reproduction of the paper's number;
-- ``not reproduced``: some interval lies on the other side, or -- for a claimed difference --
-  contains zero (this run shows no difference);
-- ``not comparable``: a number or its interval is missing (the claim has no interval in this
-  run's metrics, or the stage did not run).
-
-Each problem's :class:`~traffictwin.report.model.SectionProvider` lists its claims
-(``claims``: metrics files -> :class:`ClaimCheck` list); this module knows none of them.
+A claim is checked on one or more intervals (e.g. network − naive KLD at B, C and D), each placed
+against a reference (zero for a difference, the paper's printed value for a number) by
+:func:`~traffictwin.interval_rule.interval_side`, the report's one interval rule (a difference
+is a finding only when its 95 % interval excludes zero); :func:`claim_verdict` turns the sides
+into a verdict. Each problem's :class:`~traffictwin.report.model.SectionProvider` lists its
+claims (``claims``: metrics files -> :class:`ClaimCheck` list); this module knows none of them.
 """
 
 from __future__ import annotations
@@ -29,18 +16,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from traffictwin.interval_rule import HIGHER, LOWER, NO_DIFFERENCE, NO_INTERVAL, finite
-
-__all__ = [
-    "EXCEEDED",
-    "NOT_COMPARABLE",
-    "NOT_REPRODUCED",
-    "REPRODUCED",
-    "VERDICTS",
-    "ClaimCheck",
-    "claim_verdict",
-    "fmt_interval",
-    "pct",
-]
 
 REPRODUCED, EXCEEDED = "reproduced", "exceeded"
 NOT_REPRODUCED, NOT_COMPARABLE = "not reproduced", "not comparable"
@@ -63,13 +38,17 @@ class ClaimCheck:
 
 def claim_verdict(sides: Sequence[str], expected: str, *, value: bool = False) -> str:
     """The verdict of a claim from the :func:`~traffictwin.interval_rule.interval_side` of each of
-    its intervals.
+    its intervals; ``expected``: ``"lower"`` or ``"higher"``, the side the paper claims (for a
+    number the paper prints, ``value=True``: the better side).
 
-    ``expected``: ``"lower"`` or ``"higher"``, the side the paper claims (for a number the paper
-    prints: the better side). ``value``: the reference is a number the paper reports (not a
-    difference of zero): an interval that contains it reproduces it, and when every interval lies
-    beyond it on the better side the verdict is ``exceeded``. No sides, or a side ``"n/a"``:
-    ``not comparable``."""
+    - ``reproduced``: every interval on the claimed side (a difference), or -- a printed number
+      -- every interval reaching it or beyond it on the better side, at least one reaching it;
+    - ``exceeded``: a printed number, every interval wholly beyond it on the better side (this
+      run does better than the paper, which is no reproduction of its number);
+    - ``not reproduced``: some interval on the other side, or -- a claimed difference --
+      containing zero;
+    - ``not comparable``: no sides, or a side ``"n/a"`` (a number or its interval missing).
+    """
     if expected not in (LOWER, HIGHER):
         raise ValueError(f"claim_verdict: expected must be 'lower' or 'higher', got {expected!r}")
     if not sides or NO_INTERVAL in sides:

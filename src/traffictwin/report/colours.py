@@ -1,10 +1,6 @@
-"""The one colour map of evidential masses, shared by every figure and preview that shows a map.
-
-free = green, occupied = red, unknown = grey, mixed by mass:
-``RGB = m_F * FREE + m_O * OCC + u * UNKNOWN`` (``u = 1 - m_F - m_O`` unless given). A pure
-free cell is green, a pure occupied cell red, an unobserved cell grey; a cell split between
-free and occupied is olive. :func:`legend_handles` gives the matching legend entries and
-:func:`show_masses` draws a map on matplotlib axes in metres of the sensor frame.
+"""The one colour map of evidential masses, shared by every figure and preview that shows a map:
+``RGB = m_F * FREE + m_O * OCC + u * UNKNOWN`` (``u = 1 - m_F - m_O`` unless given), so free is
+green, occupied red, unknown grey and a cell split between free and occupied olive.
 """
 
 from __future__ import annotations
@@ -39,22 +35,13 @@ def legend_strip_bgr8(width: int, height: int = 22) -> np.ndarray:
     import cv2
 
     strip = np.full((height, width, 3), 255, np.uint8)
-    x, pad = 4, max(2, height // 5)
+    x, pad, font = 4, max(2, height // 5), cv2.FONT_HERSHEY_SIMPLEX
     for label, colour in LEGEND:
         bgr = tuple(int(v) for v in np.round(colour[::-1] * 255))
         cv2.rectangle(strip, (x, pad), (x + height - 2 * pad, height - pad), bgr, thickness=-1)
         x += height - 2 * pad + 4
-        cv2.putText(
-            strip,
-            label,
-            (x, height - pad - 1),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4,
-            (0, 0, 0),
-            1,
-            cv2.LINE_AA,
-        )
-        x += cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)[0][0] + 12
+        cv2.putText(strip, label, (x, height - pad - 1), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        x += cv2.getTextSize(label, font, 0.4, 1)[0][0] + 12
     return strip
 
 

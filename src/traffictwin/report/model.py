@@ -1,16 +1,13 @@
 """The report's page model: cells that remember their source, tables, figures, sections, and
 the loaded input files (:class:`Sources`) the sections read their numbers from.
 
-Every number in the report comes from a file: metrics JSON (``reports/metrics/*.json``, the
-ablations' ``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters (passed
-in explicitly by the stage) or :mod:`traffictwin.paper_numbers` (the papers' reported
-values, the only hand-typed numbers). Each table cell that holds a number remembers where it came
-from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML carries it as ``data-src`` and
-the raw value as ``data-value`` so tests can re-check every number against its file.
-
-A missing file or key gives an ``n/a`` cell (recorded in :attr:`Sources.missing`), never an
-error, so a partial pipeline still reports. Each problem (fusion, risk, ...) contributes its
-part through a :class:`SectionProvider`; this module knows none of them.
+Every number comes from a file: metrics JSON (``reports/metrics/*.json``, the ablations'
+``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters or
+:mod:`traffictwin.paper_numbers` (the papers' values, the only hand-typed numbers). A number
+cell remembers where it came from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML
+carries it as ``data-src`` with the raw ``data-value``, so tests re-check every number against
+its file. A missing file or key gives an ``n/a`` cell (recorded in :attr:`Sources.missing`),
+never an error. Each problem contributes a :class:`SectionProvider`; this module knows none.
 """
 
 from __future__ import annotations
@@ -31,47 +28,41 @@ from traffictwin.report.summary import Headline, interval
 
 NA = "n/a"
 NEVER = r"(?!)"  # a regex that matches nothing
+NULL = "undefined (null in the metrics file)"  # the title of a JSON null's n/a cell
+
+_FORMATS: dict[str, Callable[[float], str]] = {
+    "g4": lambda v: f"{v:.4g}",
+    "int": lambda v: f"{int(round(v)):,}",
+    "pct": lambda v: f"{100.0 * v:.2f} %",
+    "pct_raw": lambda v: f"{v:.2f} %",
+}
 
 
-# --------------------------------------------------------------------------- formatting
 def fmt_value(value: Any, fmt: str = "g4") -> str:
-    """Format one number for a table cell.
-
-    ``fmt``: ``g4`` (4 significant digits), ``f<k>`` (k decimals), ``int`` (thousands
-    separator ``,``), ``pct`` (a fraction shown as percent, 2 decimals), ``pct_raw`` (already a
-    percent, 2 decimals), ``s`` (seconds → ``m:ss`` / ``h:mm:ss``), ``str`` (as is).
-    NaN / None → ``n/a``.
-    """
+    """One number as a table cell's text. ``fmt``: ``g4`` (4 significant digits), ``f<k>`` (k
+    decimals), ``int`` (thousands separator ``,``), ``pct`` (a fraction as percent, 2 decimals),
+    ``pct_raw`` (already a percent), ``s`` (seconds as ``m:ss`` / ``h:mm:ss``), ``str`` (as is).
+    NaN / None: ``n/a``."""
     if value is None:
         return NA
-    if fmt == "str":
+    if fmt == "str" or isinstance(value, str):
         return str(value)
     if isinstance(value, bool):
         return str(value).lower()
-    if isinstance(value, str):
-        return value
     v = float(value)
     if math.isnan(v):
         return NA
     if math.isinf(v):
         return "inf" if v > 0 else "-inf"
-    if fmt == "g4":
-        return f"{v:.4g}"
-    if fmt == "int":
-        return f"{int(round(v)):,}"
-    if fmt == "pct":
-        return f"{100.0 * v:.2f} %"
-    if fmt == "pct_raw":
-        return f"{v:.2f} %"
     if fmt == "s":
-        t = int(round(v))
-        h, rem = divmod(t, 3600)
-        m, s = divmod(rem, 60)
+        m, s = divmod(int(round(v)), 60)
+        h, m = divmod(m, 60)
         return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
-    m = re.fullmatch(r"f(\d)", fmt)
-    if m:
+    if m := re.fullmatch(r"f(\d)", fmt):
         return f"{v:.{int(m.group(1))}f}"
-    raise ValueError(f"fmt_value: unknown format {fmt!r}")
+    if fmt not in _FORMATS:
+        raise ValueError(f"fmt_value: unknown format {fmt!r}")
+    return _FORMATS[fmt](v)
 
 
 # --------------------------------------------------------------------------- model
@@ -85,6 +76,11 @@ class Cell:
     fmt: str | None = None
     title: str = ""  # tooltip (e.g. why a value is n/a)
     derived: str = ""  # how a number was derived from its sources (e.g. "95 % ... interval")
+
+
+def number_cell(value: Any, fmt: str, src: str, title: str = "") -> Cell:
+    """The cell of ``value`` read from ``src`` (``file#key``), in format ``fmt``."""
+    return Cell(fmt_value(value, fmt), src=src, value=value, fmt=fmt, title=title)
 
 
 @dataclass
@@ -126,11 +122,10 @@ class Report:
 
 @dataclass
 class Page:
-    """One file of the report: the index (``name`` ``""``: ``reports/README.md`` /
-    ``index.html``) or ``reports/pages/<name>.md`` / ``.html``. ``root``: the path from the page's
-    folder to the reports folder (``""`` or ``"../"``), for figures and links; ``links``:
-    ``(title, page name)`` of the other pages (the index's list); ``missing``: the metrics keys
-    looked for and not found (on the page that lists them)."""
+    """One file of the report: the index (``name`` ``""``) or ``reports/pages/<name>.md`` /
+    ``.html``. ``root``: the path from the page's folder to the reports folder (``""`` or
+    ``"../"``); ``links``: ``(title, page name)`` of the pages (the index's list); ``missing``: the
+    metrics keys looked for and not found (on the page that lists them)."""
 
     name: str
     title: str
@@ -146,13 +141,10 @@ class ReportInputs:
     """Everything the report needs, passed explicitly (the library never reads params.yaml).
 
     ``reports_dir``: folder with ``metrics/``, ``ablations/``, ``figures/``, ``plots/``,
-    ``environment.json``; the report files are written there. ``run_params``: flattened
-    ``{key: value}`` of the parameters to show (profile sizes, seeds). ``git_commit`` is not
-    shown (it differs between identical reruns: the stage's run record holds it).
-    ``acceptance``: the acceptance thresholds per problem (``acceptance.<problem>``,
-    :func:`traffictwin.acceptance.thresholds`) of the index's last table. What a problem's
-    section needs beyond these (the fusion section's pose-noise configurations) its
-    :class:`SectionProvider` carries.
+    ``environment.json``, where the report is written. ``run_params``: flattened ``{key: value}``
+    of the parameters to show. ``git_commit`` is not shown (it differs between identical reruns).
+    ``acceptance``: the acceptance thresholds per problem (``acceptance.<problem>``) of the
+    index's last table.
     """
 
     reports_dir: Path
@@ -174,18 +166,23 @@ class Sources:
         self.metrics: dict[str, Any] = {}
         self.missing: list[str] = []
         self.paths: dict[str, str] = {}  # metrics file name -> its path under reports/
-        # the metrics files by name; the ablation experiments' results (pipelines/ablations.py),
-        # where they were collected, as "ablations/<name>"
-        for folder, prefix in (("metrics", ""), ("ablations", "ablations/")):
-            for p in sorted((self.root / folder).glob("*.json")):
-                self.metrics[prefix + p.name] = _read_json(p)
-                self.paths[prefix + p.name] = f"{folder}/{p.name}"
-        if (self.root / "environment.json").exists():  # the software (the appendix shows it)
-            self.metrics["environment.json"] = _read_json(self.root / "environment.json")
-            self.paths["environment.json"] = "environment.json"
+        # the metrics files by name, the ablation experiments' results as "ablations/<name>",
+        # the software (the appendix shows it)
+        env = self.root / "environment.json"
+        files = [
+            p for d in ("metrics", "ablations") for p in sorted((self.root / d).glob("*.json"))
+        ]
+        for p in [*files, *([env] if env.exists() else [])]:
+            rel = p.relative_to(self.root).as_posix()
+            name = rel.removeprefix("metrics/")
+            self.metrics[name], self.paths[name] = _read_json(p), rel
 
     def has(self, file: str) -> bool:
         return file in self.metrics
+
+    def path(self, file: str) -> str:
+        """Metrics ``file``'s path under reports/."""
+        return self.paths.get(file, f"metrics/{file}")
 
     def get(self, file: str, key: str, default: Any = None) -> Any:
         """Value at dotted ``key`` in metrics ``file`` (segments may themselves contain '/' or '.')."""
@@ -193,32 +190,21 @@ class Sources:
         return lookup(data, key, default) if data is not None else default
 
     def cell(self, file: str, key: str, fmt: str = "g4", *, record: bool = True) -> Cell:
-        """Number cell from metrics ``file``#``key``.
-
-        Absent key: ``n/a`` without a source, recorded in :attr:`missing`. JSON ``null`` (the
-        writers' spelling of NaN, e.g. precision with no positive prediction): ``n/a`` with its source.
-        """
+        """Number cell from metrics ``file``#``key``: ``n/a`` without a source where the key is
+        absent (recorded in :attr:`missing`), ``n/a`` with its source for a JSON ``null`` (the
+        writers' NaN, e.g. precision with no positive prediction)."""
         v = self.get(file, key, ABSENT)
-        path = self.paths.get(file, f"metrics/{file}")
         if v is ABSENT or isinstance(v, (dict, list)):
             if record:
-                self.missing.append(f"{path}#{key}")
-            return Cell(NA, title=f"not in reports/{path}: {key}")
-        if v is None:
-            return Cell(
-                NA,
-                src=f"{path}#{key}",
-                value=None,
-                fmt=fmt,
-                title="undefined (null in the metrics file)",
-            )
-        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt)
+                self.missing.append(f"{self.path(file)}#{key}")
+            return Cell(NA, title=f"not in reports/{self.path(file)}: {key}")
+        return number_cell(v, fmt, f"{self.path(file)}#{key}", NULL if v is None else "")
 
     def param_cell(self, key: str, fmt: str = "str") -> Cell:
         v = self.inputs.run_params.get(key)
         if v is None:
             return Cell(NA, title=f"parameter {key} not set in this run")
-        return Cell(fmt_value(v, fmt), src=f"params#{key}", value=v, fmt=fmt)
+        return number_cell(v, fmt, f"params#{key}")
 
 
 def json_number(v: Any) -> float | None:
@@ -236,45 +222,34 @@ def span_cell(lo: Any, hi: Any, fmt: str, derived: str, why: str = "no interval"
 
 def interval_cell(src: Sources, file: str, key: str, bootstrap: str, fmt: str = "g4") -> Cell:
     """``[lo, hi]`` of ``<key>_ci`` (``{"lo", "hi"}`` or ``[lo, hi]``; or of ``key`` itself when it
-    holds ``lo``/``hi``) in metrics ``file``, in format ``fmt``: a derived cell, "95 %
-    ``bootstrap`` interval" (e.g. ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a
-    NaN bound)."""
+    holds ``lo``/``hi``) in metrics ``file``: a derived cell, "95 % ``bootstrap`` interval" (e.g.
+    ``"cluster-bootstrap"``); ``n/a`` when there is no interval (or a NaN bound)."""
     base = key if isinstance(src.get(file, f"{key}.lo"), (int, float)) else f"{key}_ci"
-    path = src.paths.get(file, f"metrics/{file}")
     lo, hi = interval(src.get(file, base)) or (None, None)
-    why = f"no interval in reports/{path}: {base}"
-    return span_cell(lo, hi, fmt, f"95 % {bootstrap} interval, {path}#{base}", why)
+    why = f"no interval in reports/{src.path(file)}: {base}"
+    return span_cell(lo, hi, fmt, f"95 % {bootstrap} interval, {src.path(file)}#{base}", why)
 
 
 def paper_cell(table: str, key: str, fmt: str = "g4") -> Cell:
     """Cell with a paper's reported number (``paper_numbers.<table>[key]``)."""
     num = getattr(P, table)[key]
-    v = num.value
-    fmt = "str" if isinstance(v, str) else fmt
-    return Cell(
-        fmt_value(v, fmt),
-        src=f"paper:{table}.{key}",
-        value=v,
-        fmt=fmt,
-        title=f"{num.source}: {num.unit} {num.note}".strip(),
-    )
+    fmt = "str" if isinstance(num.value, str) else fmt
+    title = f"{num.source}: {num.unit} {num.note}".strip()
+    return number_cell(num.value, fmt, f"paper:{table}.{key}", title)
 
 
 def flatten_numbers(data: Any, prefix: str = "") -> list[tuple[str, Any]]:
-    """``[(dotted key, scalar)]`` for every scalar leaf (numbers, bools, strings) in JSON ``data``."""
-    out: list[tuple[str, Any]] = []
+    """``[(dotted key, scalar)]`` for every scalar leaf (numbers, bools, strings) in JSON ``data``;
+    a list of at most 12 scalars is one leaf."""
     if isinstance(data, dict):
-        for k, v in data.items():
-            out.extend(flatten_numbers(v, f"{prefix}{k}."))
-    elif isinstance(data, list):
-        if all(not isinstance(v, (dict, list)) for v in data) and len(data) <= 12:
-            out.append((prefix[:-1], data))
-        else:
-            for i, v in enumerate(data):
-                out.extend(flatten_numbers(v, f"{prefix}{i}."))
+        items: Any = data.items()
+    elif isinstance(data, list) and (
+        len(data) > 12 or any(isinstance(v, (dict, list)) for v in data)
+    ):
+        items = enumerate(data)
     else:
-        out.append((prefix[:-1], data))
-    return out
+        return [(prefix[:-1], data)]
+    return [kv for k, v in items for kv in flatten_numbers(v, f"{prefix}{k}.")]
 
 
 def _read_json(path: Path) -> Any:
@@ -296,20 +271,17 @@ class DataFile:
 
 @dataclass(frozen=True)
 class SectionProvider:
-    """What one problem (fusion, risk; a cooperative twin later) contributes to the report.
+    """What one problem contributes to the report; the report iterates the providers in order.
 
-    ``section(src, figures)`` builds the problem's section from the loaded files and the figures
-    that were assigned to it. ``figures``: ``{file stem: caption}`` of the figures the problem's
-    stages write, in the order the section shows them; ``figure_pattern``: a regex on a file stem
-    that claims any other image for this problem. ``data_files``: its data files (first in the appendix).
-    ``shown_files``: a regex of metrics files the section already shows in full (kept out of the
-    appendix). ``replaces``: ``{stem: older stem}``, figures the report stage redraws; where the
-    new one exists the older one is left out. ``name`` and ``headlines``: the problem's few headline numbers with their
-    intervals (``{metrics file name: parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline`
-    list), written to ``reports/summary.json`` under ``name`` and shown first in the report;
-    ``name`` is also its page (``reports/pages/<name>.md``). ``claims``: the paper's claims with
-    this run's verdicts (same input -> :class:`~traffictwin.report.claims.ClaimCheck` list), the
-    report's first table. The report iterates the providers in order; adding a problem adds a provider.
+    ``section(src, figures)``: the problem's section from the loaded files and its figures.
+    ``figures``: ``{file stem: caption}`` of its stages' figures, in the order shown;
+    ``figure_pattern``: a regex on a file stem that claims any other image. ``data_files``: shown
+    first in the appendix. ``shown_files``: a regex of metrics files the section shows in full
+    (kept out of the appendix). ``replaces``: ``{stem: older stem}``, figures the report stage
+    redraws (the older one is left out). ``name``: its page (``reports/pages/<name>.md``) and its
+    key in ``reports/summary.json``; ``headlines``: its headline numbers (``{metrics file:
+    parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline` list); ``claims``: the paper's
+    claims with this run's verdicts (-> :class:`~traffictwin.report.claims.ClaimCheck` list).
     """
 
     section: Callable[[Sources, list[Figure]], Section]

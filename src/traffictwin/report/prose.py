@@ -1,22 +1,16 @@
-"""Prose templates: the sentences of a problem's findings, kept in Jinja templates that the
-problem's package owns (``traffictwin/<problem>/templates/``), filled from a typed record the
-problem computes from its metrics (numbers, verdicts, flags; no sentences).
-
-The page kit knows no problem: it only loads a folder of templates with the settings findings
-need. Markdown, not HTML (no escaping); a missing field is an error (``StrictUndefined``).
-Long sentences are wrapped in the template source and joined again by the ``oneline`` filter
-(a line break and the indentation around it become one space; before a line that starts with
-``.``, ``,`` or ``;`` nothing), so a bullet is one line of Markdown however its template is laid out.
+"""Prose templates: a problem's findings sentences in Jinja templates its package owns
+(``traffictwin/<problem>/templates/``), filled from a typed record of numbers, verdicts and
+flags. Markdown, not HTML (no escaping); a missing field is an error. Long sentences are wrapped
+in the template source and joined again by the ``oneline`` filter.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Any
-
-__all__ = ["oneline", "template_environment", "render_prose", "template_macro"]
 
 
 def oneline(text: str) -> str:
@@ -57,3 +51,13 @@ def render_prose(folder: Path, name: str, **context: Any) -> str:
 def template_macro(folder: Path, name: str, macro: str) -> Any:
     """Macro ``macro`` of template ``name`` in ``folder``, callable from Python (returns text)."""
     return getattr(_environment(str(folder)).get_template(name).module, macro)
+
+
+def macro_prose(folder: Path, name: str = "report.md.j2") -> Callable[..., str]:
+    """``prose(macro, **context)``: macro ``macro`` of template ``name`` in ``folder`` filled with
+    ``context``, on one line (each section's prose helper)."""
+
+    def prose(macro: str, **context: Any) -> str:
+        return oneline(template_macro(folder, name, macro)(**context))
+
+    return prose

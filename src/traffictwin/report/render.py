@@ -1,17 +1,13 @@
-"""The pipeline's report: a short index ``reports/README.md`` / ``reports/index.html`` (does this
-run reproduce the papers, the headline numbers, links to the pages), one page per section under
-``reports/pages/`` (``<name>.md`` for GitHub, ``<name>.html`` with the figures referenced as
-files), and ``reports/results_table.md`` (the headline tables, included by the project README).
+"""The pipeline's report: the index ``reports/README.md`` / ``reports/index.html`` (does this run
+reproduce the papers, the headline numbers, the acceptance table, links to the pages), one page
+per section under ``reports/pages/`` (``<name>.md`` and ``<name>.html``, figures as files) and
+``reports/results_table.md`` (the headline tables, included by the project README).
 
-This module only assembles: the page skeleton (intro, the verdict table, "This run",
-appendix), the figures found under ``reports/figures``, the split into pages and the
-Markdown / HTML writers (one Jinja template per format renders every page). Each problem's
-results section, its headline numbers and its paper's claims come from its
-:class:`~traffictwin.report.model.SectionProvider` (``traffictwin.fusion.report_section``,
-``traffictwin.risk.report_section``, ...), passed in by the caller in the order the report shows
-them; a provider's page is its ``name``. The page model and the sources of every number:
-:mod:`traffictwin.report.model`. Anything in ``reports/metrics`` that no section shows appears in
-the appendix.
+This module only assembles (the intro, the verdict and headline tables, "This run", the appendix
+of every metrics file no section shows, the figures under ``reports/figures``) and writes (one
+Jinja template per format renders every page). Each problem's section, headline numbers and
+paper claims come from its :class:`~traffictwin.report.model.SectionProvider`, in the caller's
+order; a provider's page is its ``name``.
 """
 
 from __future__ import annotations
@@ -39,7 +35,7 @@ from traffictwin.report.model import (
     SectionProvider,
     Sources,
     Table,
-    fmt_value,
+    number_cell,
     span_cell,
 )
 from traffictwin.report.prose import template_environment
@@ -62,12 +58,9 @@ IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
 def collect_figures(
     reports_dir: Path, providers: Sequence[SectionProvider]
 ) -> tuple[list[list[Figure]], list[Figure]]:
-    """Images under ``reports/figures`` (the stages') and ``reports/report_figures`` (drawn by the
-    report stage), one list per provider plus the unclaimed ones.
-
-    First every provider's known figures (its ``figures`` order, with their captions), then any
-    other image goes to the first provider whose ``figure_pattern`` matches its name, or to the
-    unclaimed list (the appendix). A figure that a present one ``replaces`` is left out."""
+    """The images of :data:`FIGURE_DIRS`, one list per provider (its known ``figures`` first, in
+    order, with their captions; then the images its ``figure_pattern`` claims) and the unclaimed
+    ones (the appendix's). A figure that a present one ``replaces`` is left out."""
     out: list[list[Figure]] = [[] for _ in providers]
     other: list[Figure] = []
     files = {
@@ -87,33 +80,23 @@ def collect_figures(
                 if p.stem == stem and rel not in done:
                     figs.append(Figure(rel, f"{caption} — `{rel}`"))
                     done.add(rel)
-    for rel, p in files.items():
-        if rel in done:
-            continue
-        owner = next(
-            (
-                figs
-                for figs, prov in zip(out, providers)
-                if re.search(prov.figure_pattern, p.stem.lower())
-            ),
-            other,
+    for rel, p in ((rel, p) for rel, p in files.items() if rel not in done):
+        claims = (
+            f for f, prov in zip(out, providers) if re.search(prov.figure_pattern, p.stem.lower())
         )
-        owner.append(Figure(rel, f"`{rel}`"))
+        next(claims, other).append(Figure(rel, f"`{rel}`"))
     return out, other
 
 
 # --------------------------------------------------------------------------- assemble
 def run_section(src: Sources) -> Section:
-    """ "This run": the parameters (stage wall times differ between identical runs: they stay in
-    the run records, outside the report; the software is in the appendix)."""
-    run = Section("This run: parameters, machine", collapsed=True)
-    run.paragraphs.append(
+    """ "This run": the parameters (the software is in the appendix)."""
+    note = (
         "The stages' wall times, training times, throughput and MLflow run ids differ between identical "
         "runs, so they are not in this report (a DVC output) but in the run records, "
         "`reports/timings/<stage>.json`."
     )
-    run.tables.append(params_table(src))
-    return run
+    return Section("This run: parameters, machine", [note], [params_table(src)], collapsed=True)
 
 
 def appendix_section(
@@ -167,7 +150,6 @@ HEADLINE_NOTE = (
 def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
     """Every provider's headline numbers (those of ``reports/summary.json``) as one table, each
     beside its strongest baseline; a value cell's source is its key in summary.json."""
-    sec = Section("Headline results")
     columns = ["problem", "quantity", "where", "value", "95 % CI"]
     columns += ["strongest baseline", "its value", "95 % CI"]
     title = "Headline results (reports/summary.json, the DVC metrics file)"
@@ -176,37 +158,20 @@ def headline_section(headlines: Mapping[str, Sequence[Headline]]) -> Section:
     for problem, items in headlines.items():
         for h in items:
             path, b = f"{problem}.{h.key}", h.baseline
-            base = [Cell("—") for _ in range(3)]
-            if b is not None:
-                why = f"no interval beside {b.src}"
-                base = [
-                    Cell(b.name),
-                    Cell(fmt_value(b.value, h.fmt), src=b.src, value=b.value, fmt=h.fmt),
-                    span_cell(b.lo, b.hi, h.fmt, f"95 % bootstrap interval of {b.src}", why),
-                ]
             ci = f"95 % bootstrap interval, {SUMMARY}#{path}_lo / {path}_hi"
-            t.rows.append(
-                [
-                    *map(Cell, (problem, h.quantity, h.where)),
-                    Cell(
-                        fmt_value(h.value, h.fmt), src=f"{SUMMARY}#{path}", value=h.value, fmt=h.fmt
-                    ),
-                    span_cell(h.lo, h.hi, h.fmt, ci),
-                    *base,
-                ]
-            )
+            base = [Cell("—"), Cell("—"), Cell("—")]
+            if b is not None:
+                bci, why = f"95 % bootstrap interval of {b.src}", f"no interval beside {b.src}"
+                base = [Cell(b.name), number_cell(b.value, h.fmt, b.src)]
+                base.append(span_cell(b.lo, b.hi, h.fmt, bci, why))
+            labels = map(Cell, (problem, h.quantity, h.where))
+            value = number_cell(h.value, h.fmt, f"{SUMMARY}#{path}")
+            t.rows.append([*labels, value, span_cell(h.lo, h.hi, h.fmt, ci), *base])
     if t.rows:
-        sec.tables.append(t)
-    else:
-        sec.paragraphs.append("No headline numbers yet (the evaluation stages have not run).")
-    return sec
-
-
-def collect_claims(
-    metrics: Mapping[str, Any], providers: Sequence[SectionProvider]
-) -> list[ClaimCheck]:
-    """Every provider's paper claims with this run's verdicts, in provider order."""
-    return [c for prov in providers if prov.claims is not None for c in prov.claims(metrics)]
+        return Section("Headline results", tables=[t])
+    return Section(
+        "Headline results", ["No headline numbers yet (the evaluation stages have not run)."]
+    )
 
 
 VERDICTS_TITLE = "Does this run reproduce the papers?"
@@ -216,12 +181,12 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
     """The verdict table: one row per claim of a paper (its text and where the paper makes it),
     this run's numbers with their 95 % intervals and the verdict computed from them
     (:mod:`traffictwin.report.claims`), then a count of the verdicts."""
-    sec = Section(VERDICTS_TITLE)
     if not claims:
-        sec.paragraphs.append("No claim could be checked yet (the evaluation stages have not run).")
-        return sec
+        return Section(
+            VERDICTS_TITLE, ["No claim could be checked yet (the evaluation stages have not run)."]
+        )
     counts = {v: sum(c.verdict == v for c in claims) for v in VERDICTS}
-    sec.paragraphs.append(
+    count = (
         f"{len(claims)} claims of the papers: "
         + ", ".join(f"{n} {v}" for v, n in counts.items())
         + ". Reproduced: each 95 % interval lies on the side the paper claims (a difference is a "
@@ -237,8 +202,7 @@ def claims_section(claims: Sequence[ClaimCheck]) -> Section:
         "the verdicts compare trends and rankings. Details on each paper's page.",
     )
     t.rows = [list(map(Cell, astuple(c))) for c in claims]  # paper, claim, where, measured, verdict
-    sec.tables.append(t)
-    return sec
+    return Section(VERDICTS_TITLE, [count], [t])
 
 
 def _headline_first(sec: Section) -> Section:
@@ -254,11 +218,9 @@ def build_report(
     providers: Sequence[SectionProvider],
     headlines: Mapping[str, Sequence[Headline]] | None = None,
 ) -> Report:
-    """Assemble the report model from the files under ``inputs.reports_dir``: the headline
-    numbers (``headlines``, default: :func:`collect_headlines`), one section per provider
-    (in order, headline tables first), then -- collapsed -- "This run" (parameters) and the
-    appendix (the data files first, the software last). The index ends with the acceptance
-    table (every target's verdict, :mod:`traffictwin.report.acceptance`)."""
+    """The report model from the files under ``inputs.reports_dir``: the index (the verdicts, the
+    headline numbers (``headlines``, default: :func:`collect_headlines`), the acceptance table),
+    one page per provider (headline tables first), then "This run" and the appendix."""
     src = Sources(inputs)
     if headlines is None:
         headlines = collect_headlines(src.metrics, providers)
@@ -283,7 +245,9 @@ def build_report(
     )
     problems = [_headline_first(prov.section(src, figs)) for prov, figs in zip(providers, figures)]
     sections = [
-        claims_section(collect_claims(src.metrics, providers)),
+        claims_section(
+            [c for p in providers if p.claims is not None for c in p.claims(src.metrics)]
+        ),
         head,
         acceptance_section(src, inputs.acceptance),  # the index's last section
         *(  # a problem's page: its provider's name, else its title's slug
@@ -297,30 +261,15 @@ def build_report(
 
 
 def report_pages(report: Report) -> list[Page]:
-    """The report split into its files: the index (the sections without a page: the verdict and
-    headline tables, then the list of pages) and one page per page name, in reading order; the
-    missing values on the last page (the appendix)."""
+    """The report split into its files: the index (the sections without a page, then the list of
+    pages) and one page per page name, in reading order; the missing values on the last page."""
     names = list(dict.fromkeys(s.page for s in report.sections if s.page))
-    index = Page(
-        "",
-        report.title,
-        report.intro,
-        [s for s in report.sections if not s.page],
-        links=[(next(s.title for s in report.sections if s.page == n), n) for n in names],
-    )
-    out = [index]
-    for n in names:
-        secs = [s for s in report.sections if s.page == n]
-        out.append(Page(n, secs[0].title, [], secs, root="../", links=index.links))
+    pages = {n: [s for s in report.sections if s.page == n] for n in ["", *names]}
+    links = [(pages[n][0].title, n) for n in names]
+    out = [Page("", report.title, report.intro, pages[""], links=links)]
+    out += [Page(n, pages[n][0].title, [], pages[n], root="../", links=links) for n in names]
     out[-1].missing = list(report.missing)
     return out
-
-
-def page_file(page: Page, html_page: bool) -> str:
-    """The page's file, relative to the reports folder (``README.md``, ``pages/fusion.html``, ...)."""
-    if not page.name:
-        return INDEX_HTML if html_page else README
-    return f"{PAGES}/{page.name}.{'html' if html_page else 'md'}"
 
 
 def results_tables(report: Report) -> list[Table]:
@@ -331,20 +280,16 @@ def results_tables(report: Report) -> list[Table]:
 
 
 # --------------------------------------------------------------------------- markdown
-def _md_cell(c: Cell) -> str:
-    return c.text.replace("|", "\\|").replace("\n", " ")
-
-
 def table_markdown(t: Table) -> str:
     """``t`` as a Markdown table: its title in bold (none when empty), the header, the rows, the
     note."""
+
+    def row(cells: Any) -> str:
+        return "| " + " | ".join(x.replace("|", "\\|") for x in cells) + " |"
+
     lines = [f"**{t.title}**", ""] if t.title else []
-    lines += [
-        "| " + " | ".join(x.replace("|", "\\|") for x in t.columns) + " |",
-        "|" + "|".join(" --- " for _ in t.columns) + "|",
-    ]
-    for row in t.rows:
-        lines.append("| " + " | ".join(_md_cell(c) for c in row) + " |")
+    lines += [row(t.columns), "|" + "|".join(" --- " for _ in t.columns) + "|"]
+    lines += [row(c.text.replace("\n", " ") for c in r) for r in t.rows]
     if t.note:
         lines += ["", f"<sub>{t.note}</sub>"]
     return "\n".join(lines)
@@ -373,11 +318,11 @@ def render_pages(report: Report, html_pages: bool = False) -> dict[str, str]:
     """``{file relative to reports/: text}`` of every page: Markdown (template ``page.md.j2``: the
     index ``README.md`` and ``pages/<name>.md``) or HTML (``page.html.j2``: ``index.html`` and
     ``pages/<name>.html``, each linking the style sheet :data:`STYLE`; secondary tables in closed
-    ``<details>``). Sections in order, figures by their path, the appendix material collapsed."""
+    ``<details>``)."""
     ext, index = ("html", INDEX_HTML) if html_pages else ("md", README)
     tpl = _environment(html_pages).get_template(f"page.{ext}.j2")
     return {
-        page_file(p, html_pages): _tidy(
+        f"{PAGES}/{p.name}.{ext}" if p.name else index: _tidy(
             tpl.render(report=report, page=p, index=index, ext=ext, style=STYLE)
         )
         for p in report_pages(report)
@@ -436,21 +381,16 @@ def _inline(text: str) -> str:
 
 def _cell_attrs(c: Cell) -> str:
     """`` data-src=... data-value=...`` of a table cell (its source, for the tests' re-check)."""
-    a = []
+    a: list[tuple[str, str]] = []
     if c.src:
-        a.append(f'data-src="{html.escape(c.src)}"')
-        a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
-        a.append(f'data-fmt="{html.escape(c.fmt or "")}"')
+        a += [("data-src", c.src), ("data-value", json.dumps(c.value)), ("data-fmt", c.fmt or "")]
     if c.derived:
-        a.append(f'data-derived="{html.escape(c.derived)}"')
-        a.append(f'data-value="{html.escape(json.dumps(c.value))}"')
+        a += [("data-derived", c.derived), ("data-value", json.dumps(c.value))]
     if c.title:
-        a.append(f'title="{html.escape(c.title)}"')
-    if c.text == NA:
-        a.append('class="na"')
-    elif _NUMBER.match(c.text):
-        a.append('class="num"')  # numbers right-aligned, text left-aligned
-    return (" " + " ".join(a)) if a else ""
+        a.append(("title", c.title))
+    if c.text == NA or _NUMBER.match(c.text):  # numbers right-aligned, text left-aligned
+        a.append(("class", "na" if c.text == NA else "num"))
+    return "".join(f' {k}="{html.escape(v)}"' for k, v in a)
 
 
 #: a cell that shows a number: a value (with a short unit), a signed difference, a percentage or
@@ -462,21 +402,19 @@ _NUMBER = re.compile(
 
 # --------------------------------------------------------------------------- write
 def write_report(inputs: ReportInputs, providers: Sequence[SectionProvider]) -> Report:
-    """Write ``summary.json`` (the headline numbers), the index README.md and index.html, the
-    pages ``pages/<name>.md`` / ``.html`` (a page left from an earlier rendering is removed), the
-    HTML pages' style sheet ``style.css`` and results_table.md into ``inputs.reports_dir`` (each
-    atomically)."""
+    """Write ``summary.json``, the index README.md and index.html, the pages (a page left from an
+    earlier rendering is removed), ``style.css`` and results_table.md into ``inputs.reports_dir``
+    (each atomically)."""
     root = Path(inputs.reports_dir)
     headlines = collect_headlines(Sources(inputs).metrics, providers)
     write_json_atomic(root / SUMMARY, summary_json(headlines, inputs.banner))
     report = build_report(inputs, providers, headlines)
     files = {**render_pages(report), **render_pages(report, html_pages=True), STYLE: CSS}
-    res = render_results_markdown(report)
+    files[RESULTS_TABLE] = render_results_markdown(report)
     for rel, text in files.items():
         write_text_atomic(root / rel, text)
     pages = root / PAGES
     for old in sorted(pages.glob("*")) if pages.is_dir() else ():
         if old.is_file() and f"{PAGES}/{old.name}" not in files:
             old.unlink()
-    write_text_atomic(root / RESULTS_TABLE, res)
     return report

@@ -1,17 +1,12 @@
-"""The headline metrics file (``reports/summary.json``): the few numbers a reader compares between
-experiments, each with its 95 % interval, taken from the detailed metrics files. The report's
-headline table shows the strongest baseline beside each (:class:`Baseline`; not in the file).
-
-It is the only file DVC declares as ``metrics`` (``dvc metrics show`` / ``dvc exp show`` stay
-readable); the detailed files (``reports/metrics/*.json``) stay committed outputs. Each problem's
-:class:`~traffictwin.report.model.SectionProvider` names its headline numbers (``headlines``:
-metrics files -> :class:`Headline` list); this module knows none of them. Layout: one object per
-problem, every leaf a number (DVC shows it as one column)::
+"""The headline metrics file ``reports/summary.json``, the only file DVC declares as ``metrics``:
+the few numbers a reader compares between experiments, each with its 95 % interval, from the
+detailed metrics files (each problem's :class:`~traffictwin.report.model.SectionProvider` names
+them: ``headlines``). One object per problem, every leaf a number; a dotted ``<key>`` nests::
 
     {"<problem>": {"<key>": value, "<key>_lo": lo, "<key>_hi": hi, ...}, ...}
 
-where ``<key>`` may be dotted (``"A.kld"`` -> ``{"A": {"kld": ..., "kld_lo": ..., "kld_hi": ...}}``).
-A number that a partial pipeline did not produce is left out, never invented.
+A number that a partial pipeline did not produce is left out, never invented. The report's
+headline table shows the strongest baseline beside each (:class:`Baseline`; not in the file).
 """
 
 from __future__ import annotations
@@ -25,10 +20,9 @@ from traffictwin.interval_rule import finite
 
 @dataclass(frozen=True)
 class Baseline:
-    """The strongest baseline beside a headline number (the report's headline table only, not
-    ``summary.json``): its name, estimate and 95 % interval (None when it has none) on the same
-    quantity and frames, and ``src``, the metrics file and key it was read from
-    (``metrics/risk.json#baselines.speed_only.at_1.5s.roc_auc``)."""
+    """The strongest baseline beside a headline number: its name, estimate and 95 % interval (None
+    when it has none) on the same quantity and frames, and ``src``, the metrics file#key it was
+    read from."""
 
     name: str
     value: float
@@ -40,8 +34,7 @@ class Baseline:
 @dataclass(frozen=True)
 class Headline:
     """One headline number: ``key`` (dotted, within its problem), what it is, where it was
-    measured, the estimate and its 95 % interval, the report's number format
-    (:func:`~traffictwin.report.model.fmt_value`) and the strongest baseline beside it (if any)."""
+    measured, the estimate, its 95 % interval, the number format and the strongest baseline."""
 
     key: str
     quantity: str
@@ -56,11 +49,10 @@ class Headline:
 def interval(ci: Any) -> tuple[float, float] | None:
     """``(lo, hi)`` from ``{"lo", "hi"}`` or ``[lo, hi]``; None if absent or not numbers."""
     if isinstance(ci, Mapping):
-        lo, hi = finite(ci.get("lo")), finite(ci.get("hi"))
-    elif isinstance(ci, (list, tuple)) and len(ci) == 2:
-        lo, hi = finite(ci[0]), finite(ci[1])
-    else:
+        ci = (ci.get("lo"), ci.get("hi"))
+    if not isinstance(ci, (list, tuple)) or len(ci) != 2:
         return None
+    lo, hi = finite(ci[0]), finite(ci[1])
     return None if lo is None or hi is None else (lo, hi)
 
 
@@ -93,8 +85,7 @@ def strongest(
             best is not None and not (v > best.value if higher_better else v < best.value)
         ):
             continue
-        iv = interval(ci)
-        best = Baseline(name, v, iv[0] if iv else None, iv[1] if iv else None, src)
+        best = Baseline(name, v, *(interval(ci) or (None, None)), src)
     return best
 
 

@@ -1,53 +1,23 @@
-"""Tables any section can use: metrics files as key/value tables or side by side, the run's
-parameters, and a problem's findings text as bullet points."""
+"""Tables any section can use: a metrics file as a key/value table, the run's parameters, and a
+problem's findings text as bullet points."""
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from traffictwin.report.model import (
-    ABSENT,
-    Cell,
-    Sources,
-    Table,
-    flatten_numbers,
-    fmt_value,
-)
+from traffictwin.report.model import NULL, Cell, Sources, Table, flatten_numbers, number_cell
 
 FINDINGS_HEADING = "Findings of this run"
 
 
 def scalar_cell(src: Sources, file: str, key: str, v: Any) -> Cell:
     """The cell of the scalar ``v`` at metrics ``file``#``key``: a number (``int`` or ``g4``) or a
-    JSON ``null`` (``n/a``) with its source, any other value as text (a list's items joined by
-    commas)."""
+    JSON ``null`` (``n/a``) with its source, any other value as text (a list's items joined)."""
     if v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
         fmt = "int" if isinstance(v, int) else "g4"
-        why = "undefined (null in the metrics file)" if v is None else ""
-        path = src.paths.get(file, f"metrics/{file}")
-        return Cell(fmt_value(v, fmt), src=f"{path}#{key}", value=v, fmt=fmt, title=why)
-    return Cell(", ".join(map(str, v)) if isinstance(v, list) else fmt_value(v, "str"))
-
-
-def files_table(src: Sources, pattern: str, title: str, anchor: str) -> Table | None:
-    """Metrics files matching ``pattern`` (a regex with one group naming the column) side by side:
-    rows = keys (union, first file's order), columns = files."""
-    files = [(m.group(1), f) for f in src.metrics if (m := re.fullmatch(pattern, f))]
-    if not files:
-        return None
-    keys: list[str] = []
-    for _, f in files:
-        keys += [k for k, v in flatten_numbers(src.metrics[f]) if k not in keys]
-    t = Table(title, ["key", *[name for name, _ in files]], anchor=anchor)
-    for k in keys:
-        row = [Cell(k)]
-        for _, f in files:
-            v = src.get(f, k, ABSENT)
-            row.append(Cell("") if v is ABSENT else scalar_cell(src, f, k, v))
-        t.rows.append(row)
-    return t
+        return number_cell(v, fmt, f"{src.path(file)}#{key}", NULL if v is None else "")
+    return Cell(", ".join(map(str, v)) if isinstance(v, list) else str(v))
 
 
 def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Table | None:
@@ -55,21 +25,15 @@ def generic_table(src: Sources, file: str, title: str, anchor: str = "") -> Tabl
     data = src.metrics.get(file)
     if data is None:
         return None
-    t = Table(title, ["key", "value"], anchor=anchor)
-    t.rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
-    return t
+    rows = [[Cell(key), scalar_cell(src, file, key, v)] for key, v in flatten_numbers(data)]
+    return Table(title, ["key", "value"], rows, anchor=anchor)
 
 
 def params_table(src: Sources) -> Table:
-    t = Table(
-        "Parameters of this run (scale and seeds)",
-        ["parameter", "value"],
-        anchor="params",
-        note="The parameters the profiles override (their sizes) and every seed, from params.yaml.",
-    )
-    for k in sorted(src.inputs.run_params):
-        t.rows.append([Cell(k), src.param_cell(k)])
-    return t
+    rows = [[Cell(k), src.param_cell(k)] for k in sorted(src.inputs.run_params)]
+    note = "The parameters the profiles override (their sizes) and every seed, from params.yaml."
+    title = "Parameters of this run (scale and seeds)"
+    return Table(title, ["parameter", "value"], rows, note=note, anchor="params")
 
 
 # --------------------------------------------------------------------------- findings
@@ -85,17 +49,15 @@ def findings_group(
 
 
 def markdown_bullets(text: str) -> list[str]:
-    """Statements of a markdown findings text: bullets and paragraph lines; headings and tables dropped
-    (the report's own tables show those numbers with their sources)."""
+    """Statements of a markdown findings text: bullets and paragraph lines; headings and tables
+    dropped (the report's own tables show those numbers with their sources)."""
     out: list[str] = []
     for ln in text.splitlines():
         t = ln.strip()
-        if not t or t.startswith("#") or t.startswith("|"):
+        if not t or t.startswith(("#", "|")):
             continue
-        if t[:2] in ("- ", "* "):
-            out.append(t[2:].strip())
-        elif ln.startswith((" ", "\t")) and out:  # continuation of a bullet
+        if ln.startswith((" ", "\t")) and t[:2] not in ("- ", "* ") and out:  # a continuation
             out[-1] += " " + t
         else:
-            out.append(t)
+            out.append(t[2:].strip() if t[:2] in ("- ", "* ") else t)
     return out

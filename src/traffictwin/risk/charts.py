@@ -1,16 +1,8 @@
-"""ROC and precision-recall curves of critical frames, the one builder of their points
-(scikit-learn's curves) for the figures (:func:`traffictwin.risk.figures.plot_roc`) and the DVC
-plots (stage ``plot_data``: :func:`risk_curves`, one curve per predictor in long format).
-
-- :func:`roc_points`: ``(fpr, tpr)`` from (0, 0) to (1, 1) (:func:`sklearn.metrics.roc_curve`);
-- :func:`pr_points`: ``(recall, precision)`` from (0, 1) to recall 1
-  (:func:`sklearn.metrics.precision_recall_curve`, recall rising);
-- :func:`risk_curves`: both as tables ``predictor, rank, fpr, tpr`` / ``predictor, rank, recall,
-  precision`` (``rank`` orders the points along a curve: the ``.dvc/plots`` templates draw by it).
-
-Both keep the corner points only (scikit-learn's ``drop_intermediate``: the points inside a
-straight run are left out, the drawn line is the same). The AUC in a predictor's name is the
-metrics' :func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points.
+"""ROC and precision-recall curves of critical frames (scikit-learn's curves, corner points only:
+``drop_intermediate``), the one builder of their points for the figures
+(:func:`traffictwin.risk.figures.plot_roc`) and the DVC plots (stage ``plot_data``:
+:func:`risk_curves`). The AUC in a predictor's name is the metrics'
+:func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points.
 """
 
 from __future__ import annotations
@@ -34,9 +26,8 @@ def _finite(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def roc_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ROC points ``(fpr, tpr)`` (dimensionless) of ``score`` as a detector of ``positive``
-    frames, thresholds descending from (0, 0) to (1, 1); frames with a non-finite score are left
-    out. Empty arrays without both classes (the ROC is undefined)."""
+    """ROC points ``(fpr, tpr)`` of ``score`` as a detector of ``positive`` frames, from (0, 0)
+    to (1, 1); frames with a non-finite score left out. Empty without both classes."""
     from sklearn.metrics import roc_curve
 
     pos, s = _finite(positive, score)
@@ -47,10 +38,9 @@ def roc_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def pr_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Precision-recall points ``(recall, precision)`` (dimensionless) flagging the frames with
-    score >= each threshold, recall rising: scikit-learn's start (0, 1), then thresholds
-    descending to recall 1; frames with a non-finite score are left out. Empty arrays without a
-    positive frame."""
+    """Precision-recall points ``(recall, precision)`` of ``score >=`` each threshold, recall
+    rising from scikit-learn's start (0, 1); frames with a non-finite score left out. Empty
+    without a positive frame."""
     from sklearn.metrics import precision_recall_curve
 
     pos, s = _finite(positive, score)
@@ -63,11 +53,11 @@ def pr_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.n
 def risk_curves(
     predictions: pd.DataFrame, label: str, risk_threshold: float, prefix: str = "pred_"
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """ROC and precision-recall tables of critical frames (``label > risk_threshold``), one curve
-    per column ``<prefix><name>`` of ``predictions`` (the predictor ``<name> (AUC x.xxx)``).
-
-    Rows with a missing label or prediction are left out of that predictor's curves; a predictor
-    whose ROC is undefined (one class only) has no curve."""
+    """ROC and precision-recall tables (:data:`ROC_COLUMNS`, :data:`PR_COLUMNS`; ``rank`` orders
+    the points along a curve: the ``.dvc/plots`` templates draw by it) of critical frames
+    (``label > risk_threshold``), one curve per column ``<prefix><name>`` of ``predictions``
+    (the predictor ``<name> (AUC x.xxx)``). Rows with a missing label or prediction are left out
+    of that predictor's curves; a predictor whose ROC is undefined (one class only) has none."""
     if label not in predictions.columns:
         raise ValueError(f"risk predictions: no label column {label!r}")
     pred_cols = [c for c in predictions.columns if c.startswith(prefix)]

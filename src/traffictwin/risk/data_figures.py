@@ -1,23 +1,19 @@
-"""Figures of the risk data part: grid-map risk metric (paper Fig. 3), stereo image + disparity
-(paper Fig. 2) and an ORB-flagged stereo pair. Matplotlib with the Agg backend."""
+"""Figures of the risk data part (matplotlib, Agg): grid-map risk metric (paper Fig. 3), stereo
+image + disparity (paper Fig. 2) and an ORB-flagged stereo pair."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
 
-import matplotlib
+import cv2
+import numpy as np
+import pandas as pd
 
-matplotlib.use("Agg")
-import cv2  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-
-from traffictwin.io.atomic import save_figure  # noqa: E402
-from traffictwin.io.shards import Dataset  # noqa: E402
-from traffictwin.risk.dataset import RiskDataSpec  # noqa: E402
-from traffictwin.risk.metric import (  # noqa: E402
+from traffictwin.io.atomic import pyplot, save_figure
+from traffictwin.io.shards import Dataset
+from traffictwin.risk.dataset import RiskDataSpec
+from traffictwin.risk.metric import (
     RiskCalculator,
     path_to_subject_frame,
     rasterise,
@@ -25,10 +21,13 @@ from traffictwin.risk.metric import (  # noqa: E402
     swept_cells,
     to_subject_frame,
 )
-from traffictwin.sim.camera import GroundTexture  # noqa: E402
-from traffictwin.sim.driving import generate_sequence  # noqa: E402
-from traffictwin.sim.scene import Boxes  # noqa: E402
-from traffictwin.stereo.orb import OrbParams, cross_checked_matches  # noqa: E402
+from traffictwin.sim.camera import GroundTexture
+from traffictwin.sim.driving import generate_sequence
+from traffictwin.sim.scene import Boxes
+from traffictwin.stereo.orb import OrbParams, cross_checked_matches
+
+plt = pyplot()
+N_MATCHES = 40  # the ORB figure's matches drawn (the best by descriptor distance)
 
 
 def risk_metric_figure(
@@ -40,16 +39,13 @@ def risk_metric_figure(
     green), the subject (red), the nearest object found and its distance (orange)."""
     grid = spec.grid
     calc = RiskCalculator(grid, replace(spec.risk, region="corridor"))
-    chosen = None
-    for i in range(max_sequences):
-        seq = generate_sequence(seed, i, spec.driving)
-        for fr in seq.frames:
-            r = calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width)
-            if 0.4 < r.thw < 3.0:
-                chosen = (seq, fr, r)
-                break
-        if chosen:
-            break
+    frames = (
+        (seq, fr, calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width))
+        for i in range(max_sequences)
+        for seq in [generate_sequence(seed, i, spec.driving)]
+        for fr in seq.frames
+    )
+    chosen = next((c for c in frames if 0.4 < c[2].thw < 3.0), None)
     if chosen is None:  # fall back to the first frame
         seq = generate_sequence(seed, 0, spec.driving)
         fr = seq.frames[0]
@@ -93,12 +89,7 @@ def risk_metric_figure(
         fontsize=9,
     )
     save_figure(fig, path, dpi=110, bbox_inches="tight")
-    return {
-        "thw": r.thw,
-        "risk": r.risk_thw,
-        "template": seq.world.template,
-        "situation": seq.situation,
-    }
+    return dict(thw=r.thw, risk=r.risk_thw, template=seq.world.template, situation=seq.situation)
 
 
 def _show_disparity(fig, ax, d: np.ma.MaskedArray, vmax: float, title: str):
@@ -123,10 +114,9 @@ def stereo_figure(
     invalid black; colour scale 0 to the 99th percentile of the GT), like the paper's Fig. 2."""
     vmax = float(np.percentile(gt[gt > 0], 99)) if (gt > 0).any() else 1.0
     fig, ax = plt.subplots(2, 2, figsize=(10.8, 5.2))
-    ax[0, 0].imshow(cv2.cvtColor(left, cv2.COLOR_BGR2RGB))
-    ax[0, 0].set_title("left image")
-    ax[0, 1].imshow(cv2.cvtColor(right, cv2.COLOR_BGR2RGB))
-    ax[0, 1].set_title("right image")
+    for a, img, name in ((ax[0, 0], left, "left image"), (ax[0, 1], right, "right image")):
+        a.imshow(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+        a.set_title(name)
     gt_sky = np.ma.masked_less_equal(gt, 0.0)  # no surface hit: disparity 0
     sgm_invalid = np.ma.masked_less(sgm, 0.0)  # OpenCV's invalid value is negative
     _show_disparity(fig, ax[1, 0], gt_sky, vmax, "ground-truth disparity f·B/Z (black: sky)")
@@ -139,20 +129,14 @@ def stereo_figure(
     save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
-def orb_figure(
-    left: np.ndarray,
-    right: np.ndarray,
-    path: str | Path,
-    title: str = "",
-    n_show: int = 40,
-    **orb_kw,
-) -> None:
-    """Left and right image side by side with the best ORB matches drawn (a flagged pair)."""
+def orb_figure(left: np.ndarray, right: np.ndarray, path: str | Path, title: str, **orb_kw) -> None:
+    """Left and right image side by side with the best :data:`N_MATCHES` ORB matches drawn (a
+    flagged pair); ``orb_kw``: the detector's settings."""
     kl, kr, matches = cross_checked_matches(left, right, **orb_kw)
     W = left.shape[1]
     fig, ax = plt.subplots(figsize=(11, 3.4))
     ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
-    for m in sorted(matches, key=lambda m: m.distance)[:n_show]:
+    for m in sorted(matches, key=lambda m: m.distance)[:N_MATCHES]:
         (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
         ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
     ax.axis("off")
@@ -168,14 +152,8 @@ def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -
     row = (clean if len(clean) else frames).iloc[0]
     sh, sd = risk.load_shard(int(row.shard)), disparity.load_shard(int(row.shard))
     k = int(row.idx)
-    stereo_figure(
-        sh["left"][k],
-        sh["right"][k],
-        sh["disp_gt"][k],
-        sd["disp_sgm"][k],
-        path,
-        f"frame {int(row.frame_id)} ({row.template}, {row.situation}), v = {row.speed:.1f} m/s",
-    )
+    title = f"frame {int(row.frame_id)} ({row.template}, {row.situation}), v = {row.speed:.1f} m/s"
+    stereo_figure(sh["left"][k], sh["right"][k], sh["disp_gt"][k], sd["disp_sgm"][k], path, title)
 
 
 def orb_example_figure(
@@ -190,13 +168,8 @@ def orb_example_figure(
     fid = int(flagged.frame_id.iloc[0])
     frames = risk.table("frames.csv")
     row = frames[frames.frame_id == fid].iloc[0]
-    sh = risk.load_shard(int(row.shard))
+    sh, k = risk.load_shard(int(row.shard)), int(row.idx)
     o = out[out.frame_id == fid].iloc[0]
-    orb_figure(
-        sh["left"][int(row.idx)],
-        sh["right"][int(row.idx)],
-        path,
-        f"frame {fid}: fault '{row.fault}', mean |dx| {o.mean_dx:.2f} px, mean |dy| {o.mean_dy:.2f} px, "
-        f"outlier={bool(o.outlier)}",
-        **params.detector(),
-    )
+    title = f"frame {fid}: fault '{row.fault}', mean |dx| {o.mean_dx:.2f} px, mean |dy| "
+    title += f"{o.mean_dy:.2f} px, outlier={bool(o.outlier)}"
+    orb_figure(sh["left"][k], sh["right"][k], path, title, **params.detector())

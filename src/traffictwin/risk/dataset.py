@@ -10,9 +10,9 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.grid import GridSpec
 from traffictwin.risk.metric import (
@@ -24,6 +24,9 @@ from traffictwin.risk.metric import (
 from traffictwin.risk.stereo_shards import SPLITS
 from traffictwin.sim.camera import GroundTexture, StereoCamera
 from traffictwin.sim.driving import DrivingConfig, generate_sequence
+
+if TYPE_CHECKING:  # the tables' library loads where a table is built (risk_data is read without it)
+    import pandas as pd
 
 #: training labels (``risk_data.label``): THW in a region (metric.REGIONS), or TTC/WTTC in the corridor
 LABELS = ("thw_corridor", "thw_paper", "thw_fov", "ttc", "wttc")
@@ -170,6 +173,8 @@ def make_shard(
 def frame_table(rows_by_shard: Mapping[int, Sequence[dict]], splits: Sequence[str]) -> pd.DataFrame:
     """The frames table (frames.csv): every row of :func:`make_shard` of shards ``0..n-1`` in order,
     numbered by ``frame_id``, with its shard and the shard's split; lead columns first."""
+    import pandas as pd
+
     table = []
     fid = 0
     for index in range(len(splits)):

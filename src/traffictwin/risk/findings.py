@@ -1,11 +1,10 @@
 """Findings of the risk evaluation as markdown bullets, generated from ``reports/metrics/risk.json``
 (layout: :mod:`traffictwin.risk.evaluation`); the report stage calls :func:`findings`.
 
-What is stated is computed here as a typed record (:class:`RiskFindings`: the metrics entries to
-quote, verdicts, flags, names); the sentences and the formats of their numbers are in
-``templates/findings.md.j2``. Every number comes from the metrics, none is typed by hand; a part
-whose metrics are missing is left out, never invented. What the section's tables show (every
-predictor's scores with their intervals, the paired differences) is not restated.
+:func:`findings_record` computes what is stated (the metrics entries to quote, verdicts, flags,
+names; a part whose metrics are missing is None or empty, never invented); the sentences and the
+formats of their numbers are in ``templates/findings.md.j2``. What the section's tables show
+(every predictor's scores with their intervals) is not restated.
 
 Rules: a paired difference is a finding only when its 95 % sequence-bootstrap interval excludes
 zero (:func:`beats`, the interval rule of :mod:`traffictwin.interval_rule`). A collapsed model
@@ -16,9 +15,8 @@ ground-truth disparity sees perfect stereo but a straight corridor: a reference,
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from traffictwin.interval_rule import HIGHER, LOWER, NO_INTERVAL, finite, interval_side
 from traffictwin.nested import lookup
@@ -39,6 +37,13 @@ def with_ci(d: Any, key: str, fmt: str = "f3") -> str:
     return fmt_interval(lookup(d, key), ci.get("lo"), ci.get("hi"), lambda x: fmt_value(x, fmt))
 
 
+def signed(d: Mapping[str, Any] | None) -> str:
+    """A paired difference ``{estimate, lo, hi}`` as ``+0.012 [−0.003, +0.027]`` (minus as −)."""
+    return fmt_interval(*((d or {}).get(k) for k in ("estimate", "lo", "hi")), "{:+.3f}").replace(
+        "-", "−"
+    )
+
+
 def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
     """True / False when the paired interval ``{lo, hi}`` of dotted ``metric`` of ``diff`` (a − b;
     ``at_1.5s.roc_auc``, ``test/mse``) says a is better / worse than b; None when it does not
@@ -50,58 +55,27 @@ def beats(diff: Mapping[str, Any] | None, metric: str) -> bool | None:
     return (side == LOWER) == (metric.rsplit(".", 1)[-1] in LOWER_IS_BETTER)
 
 
-class Learning(NamedTuple):
-    """The primary comparison: the learned model against the SGM corridor rule."""
-
-    learned: str
-    better: bool | None  #: the verdict on ROC-AUC (None: no significant difference)
-    held: int  #: secondary differences with Holm-adjusted p < 0.05
-    n_secondary: int
-
-
-class Region(NamedTuple):
-    """The risk metric region: the paper's against the camera's field of view (each predictor's
-    skill per label: risk.json ``region``, in the report's appendix)."""
-
-    agreement: Mapping[str, Any]  #: the two labels' class agreement (with its interval)
-    critical: tuple[Any, Any]  #: critical share with the paper's / the camera's label
-    fov_net: str | None
-    paper_net: str | None
-    skill_diff: str | None  #: fov_net − paper_net skill, estimate [lo, hi] (minus signs as −)
-    skill_verdict: str  #: "higher" / "lower" / "none" (the interval covers zero)
-
-
-@dataclass(frozen=True)
-class RiskFindings:
-    """Everything the risk findings state (template ``templates/findings.md.j2``); a part is
-    None / empty where its metrics are missing."""
-
-    main: str | None  #: the headline variant; None: no risk network was evaluated
-    label: Any = None  #: its label
-    threshold: str = ""  #: the primary THW threshold (s)
-    at: str = ""  #: its metrics key (``at_1.5s``)
-    mse_ratio: float | None = None  #: its test MSE / the paper's (None: no test MSE)
-    collapse_std: Any = None
-    collapsed: list[tuple[str, Any]] = field(default_factory=list)  #: (run, prediction std)
-    seed_sd: Mapping[str, Any] | None = None  #: the headline's seed sd (None: a single run)
-    learning: Learning | None = None
-    critical_speed: float | None = None  #: the speed-only baseline's critical speed (m/s)
-    other_label: list[tuple[str, Any]] = field(default_factory=list)  #: (variant, its label)
-    region: Region | None = None
-
-
-def _learning(m: Mapping[str, Any], at: str) -> Learning | None:
+def _learning(m: Mapping[str, Any], at: str) -> dict[str, Any] | None:
+    """The primary comparison: the learned model against the SGM corridor rule (paired ROC-AUC;
+    ``better`` None: no significant difference), and how many of the secondary differences keep
+    a Holm-adjusted p < 0.05."""
     learned = m.get("learned")
     d = lookup(m, f"differences.{learned}|geometric_sgm") if learned else None
     if d is None:
         return None
     holm = lookup(m, "comparisons.secondary_holm.p_adjusted") or {}
-    return Learning(
-        learned, beats(d, f"{at}.roc_auc"), sum(v < 0.05 for v in holm.values()), len(holm)
+    return dict(
+        learned=learned,
+        better=beats(d, f"{at}.roc_auc"),
+        held=sum(v < 0.05 for v in holm.values()),
+        n_secondary=len(holm),
     )
 
 
-def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | None:
+def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> dict[str, Any] | None:
+    """The risk metric region, the paper's against the camera's field of view: the two labels'
+    class agreement and critical shares, and the camera-region network's paired skill difference
+    to the paper-region one (``verdict`` higher / lower / none: the interval covers zero)."""
     reg = m.get("region") if isinstance(m.get("region"), Mapping) else {}
     labels = reg.get("labels") or {}
     if P_LABEL not in labels or F_LABEL not in labels:
@@ -122,31 +96,31 @@ def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> Region | Non
     )
     complete = sd and finite(sd.get("estimate")) is not None
     side = interval_side(sd.get("lo"), sd.get("hi")) if complete else NO_INTERVAL
-    signed = fmt_interval(*((sd or {}).get(k) for k in ("estimate", "lo", "hi")), "{:+.3f}")
     agreement = reg.get("agreement") or {}
     share = f"critical_fraction_at_{t:g}s"
-    return Region(
+    return dict(
         agreement=agreement.get(f"{P_LABEL}|{F_LABEL}") or agreement,
         critical=(lookup(labels, f"{P_LABEL}.{share}"), lookup(labels, f"{F_LABEL}.{share}")),
         fov_net=fov_net,
         paper_net=(sd or {}).get("b") or first(P_LABEL),
-        skill_diff=None if side == NO_INTERVAL else signed.replace("-", "−"),
-        skill_verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
+        skill_diff=None if side == NO_INTERVAL else signed(sd),
+        verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
     )
 
 
-def findings_record(m: Mapping[str, Any]) -> RiskFindings:
-    """What the findings of the ``risk.json`` dict ``m`` state (see the module docstring)."""
+def findings_record(m: Mapping[str, Any]) -> dict[str, Any]:
+    """What the findings of the ``risk.json`` dict ``m`` state (see the module docstring):
+    ``main`` None when no risk network was evaluated."""
     models: Mapping[str, Any] = m.get("models", {})
     main = m.get("main_variant") or next(iter(models), None)
     if main is None or main not in models:
-        return RiskFindings(main=None)
+        return dict(main=None)
     t = (m.get("thresholds_s") or [PAPER["threshold_s"]])[0]
     collapsed = {v for v, e in models.items() if e.get("collapsed")}
     mse = finite(models[main].get("test/mse"))
     seeds = str(m.get("main_predictor")).endswith(SEED_MEAN) and lookup(m, f"groups.{main}.seed_sd")
     label = models[main].get("label")
-    return RiskFindings(
+    return dict(
         main=main,
         label=label,
         threshold=f"{t:g}",

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from traffictwin.config import spec as setting
-from traffictwin.risk.dave2 import OBJECTIVES, Dave2Config
+from traffictwin.risk.dave2_config import OBJECTIVES, Dave2Config
 
 LABELS = (
     "risk",
@@ -54,7 +54,7 @@ class TrainConfig:
 @dataclass
 class VariantConfig:
     """``risk_model.variants.<name>``: input channel groups, speed input, label (None = ``label``),
-    training objective (:data:`~traffictwin.risk.dave2.OBJECTIVES`), the seed offset added to the
+    training objective (:data:`~traffictwin.risk.dave2_config.OBJECTIVES`), the seed offset added to the
     training seed, and ``replicate_of``: the variant this one repeats with another seed (None)."""
 
     inputs: list[str] = setting()  # checked by Dave2Config (rgb, disp_sgm, disp_gt)

@@ -1,12 +1,9 @@
 """The risk section's tables: every predictor on the same test frames beside the paper, the
-confusion matrix, the choices made on validation and the paired differences. The rest of
-risk.json (each predictor against every region's label, by situation type, the training of each
-variant, the data per split) is in the report's appendix.
+confusion matrix beside the paper's Table 1, the choices made on validation and the paired
+differences. The rest of risk.json (each predictor by region label and situation type, the
+training of each variant, the data per split) is in the report's appendix.
 
-Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`):
-``models[variant]``, ``groups[variant]`` (seed means) and ``baselines[name]``, each with
-``test/mse``, ... and ``at_<t>s`` {accuracy, ..., confusion}, their 95 % sequence-bootstrap
-intervals ``<key>_ci`` (when ``bootstrap`` is there), ``differences``; and
+Reads ``risk.json`` (stage evaluate_risk; layout: :mod:`traffictwin.risk.evaluation`) and
 ``risk_selection.json`` (stage select_risk). Notes: the macros of ``templates/report.md.j2``.
 """
 
@@ -14,12 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from pathlib import Path
-from typing import Any
 
 from traffictwin import paper_numbers as P
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Table, fmt_value, interval_cell, paper_cell
-from traffictwin.report.prose import oneline, template_macro
+from traffictwin.report.prose import macro_prose
 from traffictwin.risk.evaluation import GT_INPUT, SEED_MEAN
 from traffictwin.risk.findings import beats
 from traffictwin.risk.metric import CLIP
@@ -56,9 +52,8 @@ def spec_cells(
     return out
 
 
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
+#: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
+prose = macro_prose(TEMPLATES)
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:
@@ -72,14 +67,6 @@ def risk_threshold_key(src: page.Sources) -> str:
     ts = src.get(RISK_FILE, "thresholds_s")
     t = ts[0] if isinstance(ts, list) and ts else P.RISK["thw_threshold_s"].value
     return f"at_{float(t):g}s"
-
-
-def value_cell(src: page.Sources, key: str, fmt: str = "g4", file: str = RISK_FILE) -> Cell:
-    """``key`` of ``file`` when present (a JSON null → n/a with its source), else n/a without
-    recording it as missing (a metric that does not apply to this row)."""
-    if src.get(file, key, page.ABSENT) is page.ABSENT:
-        return Cell(NA, title=f"not applicable: {key}")
-    return src.cell(file, key, fmt)
 
 
 def _first(names: object, first: object) -> list[str]:
@@ -107,8 +94,7 @@ def _predictors(src: page.Sources) -> list[tuple[str, str, str]]:
 
 def results_table(src: page.Sources, at: str) -> Table:
     """The paper beside every predictor on the same test frames at the primary threshold ``at``
-    (``at_<t>s``): MSE, MAE, THW error, accuracy, ..., ROC-AUC and the critical share, with the
-    95 % sequence-bootstrap intervals where risk.json has them."""
+    (``at_<t>s``), with the 95 % sequence-bootstrap intervals where risk.json has them."""
     ci = isinstance(src.get(RISK_FILE, "bootstrap"), dict)
     metrics: list[Column] = [
         ("MSE (normalised risk)", "test/mse", "g4", ci),
@@ -150,7 +136,8 @@ def results_table(src: page.Sources, at: str) -> Table:
         t.rows.append(row)
     for pre, name, status in _predictors(src):
         label = Cell(str(src.get(RISK_FILE, f"{pre}.label") or NA))
-        row = [Cell(name), label, Cell(status), value_cell(src, f"{pre}.pred_std")]
+        std = src.cell(RISK_FILE, f"{pre}.pred_std", record=False)
+        row = [Cell(name), label, Cell(status), std]
         t.rows.append(row + spec_cells(src, RISK_FILE, pre, metrics))
     return t
 
@@ -180,15 +167,16 @@ def confusion_table(src: page.Sources, main: str, at: str) -> Table:
 
 def selection_table(src: page.Sources) -> Table | None:
     """Every choice made on the validation split (select_risk): each candidate's validation
-    ROC-AUC and decision cut per THW threshold, the corridor rules' half-widths, the shipped one."""
+    ROC-AUC and decision cut per THW threshold, the shipped one."""
     preds = src.get(SELECTION_FILE, "predictors")
     if not isinstance(preds, dict) or not preds:
         return None
     sel = lambda k: src.get(SELECTION_FILE, k)  # noqa: E731
     shipped, ts = sel("shipped.predictor"), sel("thresholds_s") or []
-    cols = [
-        c for t in ts for c in (f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s")
-    ]
+    keys, cols = [("roc_auc", "g4")], []
+    for t in ts:
+        keys += [(f"decision.{t:g}.cut", "g4"), (f"decision.{t:g}.balanced_accuracy", "pct")]
+        cols += [f"cut at THW {t:g} s (risk)", f"validation bal. acc. at {t:g} s"]
     tab = Table(
         "Risk: choices made on the validation split (the test split is read once, afterwards)",
         ["predictor", "kind", "group", "validation ROC-AUC", *cols, "role"],
@@ -196,16 +184,10 @@ def selection_table(src: page.Sources) -> Table | None:
         headline=True,
         note=prose("selection", sel=sel),
     )
-    decisions = [
-        (f"decision.{t:g}.{k}", f)
-        for t in ts
-        for k, f in (("cut", "g4"), ("balanced_accuracy", "pct"))
-    ]
     for name in _first(preds, shipped):
         pre = f"predictors.{name}"
         row = [Cell(name), *(Cell(str(sel(f"{pre}.{k}") or "")) for k in ("kind", "group"))]
-        keys = [("roc_auc", "g4"), *decisions]
-        row += [value_cell(src, f"{pre}.{k}", f, SELECTION_FILE) for k, f in keys]
+        row += [src.cell(SELECTION_FILE, f"{pre}.{k}", f, record=False) for k, f in keys]
         tab.rows.append(row + [Cell("shipped" if name == shipped else "")])
     return tab
 
@@ -225,18 +207,15 @@ def difference_table(src: page.Sources, at: str) -> Table | None:
         anchor="risk-diff",
         note=prose("differences"),
     )
-    for key, d in diffs.items():
-        if not isinstance(d, dict):
-            continue
+    why = "claimed only when the paired 95 % interval excludes 0"
+    for key, d in ((k, d) for k, d in diffs.items() if isinstance(d, dict)):
         b = str(d.get("b"))
         row = [Cell(str(d.get("a"))), Cell(b + (" (GT disparity)" if b in GT_INPUT else ""))]
         row += [Cell(str(d.get("label"))), Cell(str(d.get("kind", "")))]
-        for k in metrics:
-            pre = f"differences.{key}.{k}"
-            ci = interval_cell(src, RISK_FILE, pre, "sequence-bootstrap")
-            row += [value_cell(src, f"{pre}.estimate"), ci]
+        for pre in (f"differences.{key}.{k}" for k in metrics):
+            row.append(src.cell(RISK_FILE, f"{pre}.estimate", record=False))
+            row.append(interval_cell(src, RISK_FILE, pre, "sequence-bootstrap"))
         verdict = {True: "a better", False: "b better"}.get(beats(d, f"{at}.roc_auc"))
-        why = "claimed only when the paired 95 % interval excludes 0"
         t.rows.append(row + [Cell(verdict or "no significant difference", title=why)])
     return t
 

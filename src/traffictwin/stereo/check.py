@@ -20,11 +20,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.config import spec
+
+if TYPE_CHECKING:  # the rules work on data frames they are given (risk_data.check reads none)
+    import pandas as pd
 
 #: rule names -> the flag columns they OR together
 RULES: dict[str, tuple[str, ...]] = {

@@ -14,9 +14,12 @@ share of GT pixels with a valid estimate (:func:`depth_error_counts`, :func:`dep
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # tables load pandas where one is built
+    import pandas as pd
 
 #: the accumulated sums of :func:`disparity_errors`
 SUM_KEYS = ("n_gt", "n_valid", "n_bad2", "n_d1", "sum_abs")
@@ -57,6 +60,8 @@ def accuracy_table(
 ) -> pd.DataFrame:
     """``frames`` (one row per stereo frame: ``shard``, ``idx``, ``split``, ``fault``, ...) joined
     with the per-frame :func:`disparity_errors` sums, ``per_frame[shard][idx]``."""
+    import pandas as pd
+
     rows = [
         {"shard": i, "idx": k, **e} for i in sorted(per_frame) for k, e in enumerate(per_frame[i])
     ]

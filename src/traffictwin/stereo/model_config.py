@@ -1,19 +1,17 @@
 """Settings of the learned stereo network, the parameter group ``stereo_model``
-(:class:`StereoModelConfig`): importable without torch or Lightning (the network's spec loads
-inside :meth:`StereoModelConfig.net_spec`), so that ``check_params``, which validates every group
+(:class:`StereoModelConfig`): importable without torch or Lightning (the network's spec lives in
+the torch-free :mod:`~traffictwin.stereo.network_spec`), so that ``check_params``, which validates every group
 before any stage runs, starts quickly. The training: :mod:`traffictwin.risk.stereo_training`.
 """
 
 from __future__ import annotations
 
 from dataclasses import MISSING, dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from traffictwin.config import ConfigError
 from traffictwin.config import spec as setting
-
-if TYPE_CHECKING:
-    from traffictwin.stereo.network import StereoNetSpec
+from traffictwin.stereo.network_spec import StereoNetSpec
 
 
 @dataclass
@@ -49,8 +47,6 @@ class StereoModelConfig:
 
     def net_spec(self, source: str, key: str = "stereo_model") -> StereoNetSpec:
         """The validated architecture; the training crop must be wider than ``max_disparity``."""
-        from traffictwin.stereo.network import StereoNetSpec
-
         try:
             s = StereoNetSpec.from_dict(self.architecture)
         except (TypeError, ValueError) as exc:

@@ -1,38 +1,27 @@
-"""The stereo part of the report: the learned stereo network beside SGM, and stereo-pair fault
-detection per rule. Entry point: :func:`provider`.
+"""The stereo part of the report: stereo-pair fault detection per rule, and the learned stereo
+network beside SGM. Entry point: :func:`provider`.
 
-Reads ``stereo.json`` (stage stereo_learned; keys ``<source>/<mask>/<metric>``) and ``orb.json``
-(stage orb_filter; keys ``rule_<rule>/<metric>``), with an interval's ``<key>_lo`` / ``<key>_hi``
-beside a key. The learned network refines SGM on SGM's valid pixels, so both estimate the same
-pixels: stereo.json's ``common`` and ``own`` masks hold the same numbers, shown once (``own``,
-with the density; the paired differences on ``common``). SGM's accuracy per distance bin and the
-ORB check's speed bins and threshold sweep (``disparity.json``, ``orb.json``), the SGM variants,
-the generalisation to unseen road templates and the camera-resolution study are in the appendix. Notes and paragraphs are the macros of
-``templates/report.md.j2`` (:func:`prose`). A missing file or key is an ``n/a`` cell.
+Reads ``orb.json`` (stage orb_filter; keys ``rule_<rule>/<metric>``) and ``stereo.json`` (stage
+stereo_learned; keys ``<source>/<mask>/<metric>``), an interval as ``<key>_lo`` / ``<key>_hi``
+beside a key; the rest of both files is in the appendix. The prose is the macros of
+``templates/report.md.j2``. A missing file or key is an ``n/a`` cell.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import NEVER, Cell, Table, json_number
-from traffictwin.report.prose import oneline, template_macro
+from traffictwin.report.prose import macro_prose
 
 TITLE = "Stereo — SGM and the learned stereo network's range accuracy, stereo-pair fault detection"
 ORB_FILE = "orb.json"
 STEREO_FILE = "stereo.json"
-#: what writes each metrics file the section reads
-WRITERS = {
-    STEREO_FILE: "stage stereo_learned has not run",
-    ORB_FILE: "stage orb_filter has not run",
-}
 #: the figures the section shows, in order; their captions are macros of the same name
 FIGURE_STEMS = ("stereo_learned_example", "stereo_resolution")
 TEMPLATES = Path(__file__).parent / "templates"
-
 #: rule key in orb.json -> row label
 RULE_LABELS = {
     "orb_paper": "ORB, paper's rule over all cross-checked matches",
@@ -40,14 +29,14 @@ RULE_LABELS = {
     "valid_share": "SGM valid share below threshold",
     "orb_or_valid_share": "robust ORB OR valid share",
 }
-#: the detection rates per rule in orb.json, their column headers
-FAULTS = ("delay_detection", "vertical_detection", "false_alarm")
-DETECTION = ("delay faults detected", "vertical shifts detected", "false alarms (fault-free)")
-
-#: a table row: (label, metric key, format)
-Row = tuple[str, str, str]
-#: the rows of the learned-stereo comparison
-STEREO_ROWS: tuple[Row, ...] = (
+#: the detection rates per rule in orb.json: (key, column header)
+FAULTS = (
+    ("delay_detection", "delay faults detected"),
+    ("vertical_detection", "vertical shifts detected"),
+    ("false_alarm", "false alarms (fault-free)"),
+)
+#: the rows of the learned-stereo comparison: (label, metric key, format)
+STEREO_ROWS: tuple[tuple[str, str, str], ...] = (
     ("end-point error [px]", "epe", "f3"),
     ("bad-1 (> 1 px)", "bad1", "pct"),
     ("bad-2 (> 2 px)", "bad2", "pct"),
@@ -64,26 +53,17 @@ STEREO_ROWS: tuple[Row, ...] = (
 DIFF_ROWS = tuple(r for r in STEREO_ROWS if r[1] in ("epe", "crit_obj_relerr_median"))
 
 
-def prose(name: str, **context: Any) -> str:
-    """Macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line."""
-    return oneline(template_macro(TEMPLATES, "report.md.j2", name)(**context))
-
-
-def ci_cell(src: page.Sources, file: str, key: str, fmt: str = "pct") -> Cell:
-    """``[lo, hi]`` of ``<key>_lo`` / ``<key>_hi`` in ``file``: a derived cell (n/a if absent)."""
-    lo, hi = json_number(src.get(file, f"{key}_lo")), json_number(src.get(file, f"{key}_hi"))
-    return page.span_cell(
-        lo,
-        hi,
-        fmt,
-        f"95 % cluster-bootstrap interval, metrics/{file}#{key}_lo/_hi",
-        f"no interval in reports/metrics/{file}: {key}_lo/_hi",
-    )
+#: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
+prose = macro_prose(TEMPLATES)
 
 
 def value_ci(src: page.Sources, file: str, key: str, fmt: str = "pct") -> list[Cell]:
-    """The number at ``file``#``key`` and its interval."""
-    return [src.cell(file, key, fmt), ci_cell(src, file, key, fmt)]
+    """The number at ``file``#``key`` and its interval ``[<key>_lo, <key>_hi]`` (a derived cell)."""
+    lo, hi = (json_number(src.get(file, f"{key}_{b}")) for b in ("lo", "hi"))
+    where = f"metrics/{file}#{key}_lo/_hi"
+    why = f"no interval in reports/metrics/{file}: {key}_lo/_hi"
+    ci = page.span_cell(lo, hi, fmt, f"95 % cluster-bootstrap interval, {where}", why)
+    return [src.cell(file, key, fmt), ci]
 
 
 def fault_table(src: page.Sources) -> Table | None:
@@ -94,16 +74,16 @@ def fault_table(src: page.Sources) -> Table | None:
         return None
     det = Table(
         "Stereo-pair fault detection per rule (reports/metrics/orb.json)",
-        ["rule", "drops pairs"] + [h for name in DETECTION for h in (name, "95 % CI")],
+        ["rule", "drops pairs"] + [h for _, name in FAULTS for h in (name, "95 % CI")],
         anchor="stereo-fault-detection",
         headline=True,
         note=prose("detection"),
     )
     for r in rules:
         drops = "yes" if src.get(ORB_FILE, f"rule_{r}/configured") == 1 else ""
-        cells = [c for k in FAULTS for c in value_ci(src, ORB_FILE, f"rule_{r}/{k}")]
+        cells = [c for k, _ in FAULTS for c in value_ci(src, ORB_FILE, f"rule_{r}/{k}")]
         det.rows.append([Cell(RULE_LABELS[r]), Cell(drops), *cells])
-    counts = [src.cell(ORB_FILE, f"rule_orb/{k}_n", "int") for k in FAULTS]
+    counts = [src.cell(ORB_FILE, f"rule_orb/{k}_n", "int") for k, _ in FAULTS]
     det.rows.append(
         [Cell("pairs evaluated"), Cell(""), *[x for n in counts for x in (n, Cell(""))]]
     )
@@ -134,22 +114,22 @@ def learned_table(src: page.Sources) -> Table | None:
 
 def section(src: page.Sources, figures: list[page.Figure]) -> page.Section:
     """The stereo section: fault detection and the learned network beside SGM; a pointer to the
-    acceptance table where stereo.json has targets."""
+    acceptance table where stereo.json has targets; which stage has not run, where a file is
+    missing."""
     sec = page.Section(TITLE, paragraphs=[prose("intro")], figures=figures)
-    if (targets := src.get(STEREO_FILE, "targets")) and isinstance(targets, dict):
+    if isinstance(src.get(STEREO_FILE, "targets"), dict):
         sec.paragraphs.append(ACCEPTANCE_POINTER)
     sec.tables = [t for t in (fault_table(src), learned_table(src)) if t is not None]
-    sec.paragraphs += [
-        prose("missing", file=f, why=w) for f, w in WRITERS.items() if not src.has(f)
-    ]
+    for file, stage in ((STEREO_FILE, "stereo_learned"), (ORB_FILE, "orb_filter")):
+        sec.paragraphs += [] if src.has(file) else [prose("missing", file=file, stage=stage)]
     return sec
 
 
 def provider() -> page.SectionProvider:
-    """The stereo section's provider for the report (after the risk section). Its metrics files
-    are in the appendix in full (the section shows a part of stereo.json)."""
+    """The stereo section's provider for the report (after the risk section); its page
+    reports/pages/stereo.md, no headline numbers."""
     return page.SectionProvider(
-        name="stereo",  # its page, reports/pages/stereo.md (no headline numbers)
+        name="stereo",
         section=section,
         figures={stem: prose(stem) for stem in FIGURE_STEMS},
         figure_pattern=NEVER,

@@ -1,8 +1,9 @@
 """Where and how Lightning runs: the ``trainer`` config group (:class:`TrainerSettings`), the
 precision it resolves to, device checks, seeding and the ``lightning.Trainer`` it builds.
 
-Lightning is imported inside the functions that use it: a stage that only checks a device
-(:func:`check_device`) imports torch, not Lightning."""
+Lightning and torch are imported inside the functions that use them: a stage that only checks a
+device (:func:`check_device`) imports torch, not Lightning, and reading the settings
+(:meth:`TrainerSettings.from_cfg`, as ``check_params`` does) imports neither on a CPU machine."""
 
 from __future__ import annotations
 
@@ -12,8 +13,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
-
-import torch
 
 from traffictwin.config import ConfigError, spec, typed
 from traffictwin.threads import pin_threads
@@ -77,6 +76,8 @@ class TrainerSettings:
         is available."""
         want = self.devices if isinstance(self.devices, int) and self.devices > 0 else None
         if self.accelerator in ("gpu", "cuda"):
+            import torch
+
             if not torch.cuda.is_available():
                 raise ConfigError(
                     f"{source}: '{key}.accelerator' is {self.accelerator!r} but this machine has no "
@@ -156,8 +157,11 @@ def resolve_precision(
     0.258 s in fp32, 0.153 s in bf16 autocast at batch 8 (README, *How long it takes*)."""
     if precision != "auto":
         return precision
-    if accelerator in ("gpu", "cuda", "auto") and torch.cuda.is_available():
-        return "bf16-mixed" if torch.cuda.is_bf16_supported() else "32-true"
+    if accelerator in ("gpu", "cuda", "auto"):
+        import torch
+
+        if torch.cuda.is_available():
+            return "bf16-mixed" if torch.cuda.is_bf16_supported() else "32-true"
     if accelerator in ("cpu", "auto"):
         return "bf16-mixed" if native_bf16_cpu(cpuinfo) else "32-true"
     return "32-true"
@@ -166,6 +170,8 @@ def resolve_precision(
 def check_device(device: str, source: str | Path, key: str) -> None:
     """A torch device setting (``cpu``, ``cuda``, ``cuda:1``, ...) must name a device this machine
     has; ConfigError naming ``key`` otherwise (stages call it before any output is touched)."""
+    import torch
+
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as exc:

@@ -1,5 +1,8 @@
 """MLflow around a training run: the run on rank zero only, its Lightning logger, final
-metrics, the checkpoint artifact and the network as an MLflow model (weights + JSON)."""
+metrics, the checkpoint artifact and the network as an MLflow model (weights + JSON).
+
+MLflow, Lightning and torch load inside the functions that use them: the stages' settings
+(:class:`TrackingSettings`, :func:`global_rank`) are read by ``check_params`` without them."""
 
 from __future__ import annotations
 
@@ -10,10 +13,9 @@ from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from traffictwin.model_format import (
     CKPT_SHA_KEY,
@@ -21,6 +23,9 @@ from traffictwin.model_format import (
     CheckpointError,
     save_model_checkpoint,
 )
+
+if TYPE_CHECKING:
+    import torch
 
 
 def global_rank() -> int:
@@ -117,6 +122,7 @@ def log_model(
     """
     import tempfile
 
+    import torch
     from mlflow.models import infer_signature
 
     from traffictwin.mlops import model_artifact as art

@@ -16,10 +16,9 @@ The aggregation over sequences (recall, lead times, false alarms, with CIs) is
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.evidential.noise import apply_pose_noise, scale_noise
 from traffictwin.geometry import relative_pose
@@ -43,6 +42,10 @@ __all__ = [
     "predictive_frame",
     "classical_registrations",
 ]
+
+if TYPE_CHECKING:  # the frame tables load pandas where one is built: the twin's targets and
+    # settings (check_params) are read without it
+    import pandas as pd
 
 EGO = "ego"
 NAIVE = "naive"
@@ -197,6 +200,8 @@ class _VehicleRisk:
             self._add(t, k, method, view, int(n - step.used.sum()))
 
     def table(self) -> pd.DataFrame:
+        import pandas as pd
+
         v = pd.DataFrame(self.rows)
         if len(v):
             v["critical"] = v["thw_true"] < self.run.settings.critical_thw
@@ -293,6 +298,8 @@ def evaluate_sequence_tables(
             others.twin(t, m, step)
             left_out, ms = int(N - step.used.sum()), 1000.0 * step.seconds
             rows.append(risk_row(m, step.masses, t, common, left_out=left_out, step_ms=ms))
+    import pandas as pd
+
     f = pd.DataFrame(rows)
     f["critical"] = f["thw_true"] < s.critical_thw
     f["flagged"] = f["thw"] < s.warn_thw
@@ -304,6 +311,8 @@ def predictive_frame(frame: pd.DataFrame) -> pd.DataFrame:
     """``frame`` with, for every method ``m``, rows ``m + TTC`` (``"+ttc"``): the same frames with
     ``flagged`` = the predictive warning (``flagged_ttc``), so warnings of both measures on the
     same maps are compared by :func:`warning_metrics` (baseline ``m``)."""
+    import pandas as pd
+
     p = frame.copy()
     p["method"] = p["method"] + TTC
     p["flagged"] = p["flagged_ttc"]

@@ -18,15 +18,6 @@ from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_po
 from traffictwin.twin.fuse import TwinOptions, build_twin
 from traffictwin.twin.summary import lead_times
 
-__all__ = [
-    "pick_timeline_sequence",
-    "timeline_table",
-    "timeline_figure",
-    "TwinSnapshot",
-    "twin_snapshot",
-    "twin_map_figure",
-]
-
 THW_CAP = 5.0  # s: THW above this (or inf) is drawn at the cap
 # vehicle markers on the twin map: blue, orange, purple, cyan, pink, brown (none of the mass
 # colour map's green, red or grey, so a marker stays visible on free, occupied and unknown cells)
@@ -63,17 +54,13 @@ def timeline_table(
     """Long table (time s, series, thw s capped at :data:`THW_CAP`) of one sequence: truth, ego,
     twin, and the twin's time to conflict (series ``... TTC``, column ``thw``) where the table has it."""
     f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
-    ego = f[f["method"] == EGO]
-    tw = f[f["method"] == method]
-    parts = [
-        pd.DataFrame({"time": ego["time"], "series": "truth", "thw": ego["thw_true"]}),
-        pd.DataFrame({"time": ego["time"], "series": "ego map", "thw": ego["thw"]}),
-        pd.DataFrame({"time": tw["time"], "series": f"twin ({method})", "thw": tw["thw"]}),
-    ]
+    ego, tw = f[f["method"] == EGO], f[f["method"] == method]
+    series = {"truth": (ego, "thw_true"), "ego map": (ego, "thw"), f"twin ({method})": (tw, "thw")}
     if "ttc" in tw:  # the predictive measure read from the same twin (time to conflict, s)
-        parts.append(
-            pd.DataFrame({"time": tw["time"], "series": f"twin ({method}) TTC", "thw": tw["ttc"]})
-        )
+        series[f"twin ({method}) TTC"] = (tw, "ttc")
+    parts = [
+        pd.DataFrame({"time": d["time"], "series": k, "thw": d[c]}) for k, (d, c) in series.items()
+    ]
     out = pd.concat(parts, ignore_index=True)
     out["thw"] = np.minimum(out["thw"].to_numpy(float), THW_CAP)
     return out
@@ -92,11 +79,8 @@ def timeline_figure(
     ego's lidar sees the hazard marked."""
     plt = _plt()
     tt = timeline_table(table, configuration, method, sequence)
-    f = table[
-        (table["configuration"] == configuration)
-        & (table["sequence"] == sequence)
-        & (table["method"] == EGO)
-    ]
+    f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
+    f = f[f["method"] == EGO]
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     styles = {"truth": ("k", "-", "o"), "ego map": ("#7f7f7f", "--", "x")}
     for name, g in tt.groupby("series", sort=False):
@@ -107,14 +91,8 @@ def timeline_figure(
     for t in f.loc[f["critical"], "time"]:
         ax.axvspan(t - dt / 2, t + dt / 2, color="#ffd8b0", lw=0)
     seen = f.loc[f["ego_sees_hazard"], "time"]
-    ax.plot(
-        seen,
-        np.full(len(seen), THW_CAP * 0.97),
-        "|",
-        color="#1f77b4",
-        ms=10,
-        label="ego's lidar sees the hazard",
-    )
+    label = "ego's lidar sees the hazard"
+    ax.plot(seen, np.full(len(seen), THW_CAP * 0.97), "|", color="#1f77b4", ms=10, label=label)
     ax.axhline(critical_thw, color="#ff7f0e", lw=1, label=f"critical: THW < {critical_thw:g} s")
     if warn_thw != critical_thw:
         ax.axhline(warn_thw, color="#2ca02c", lw=1, ls="--", label=f"warning: THW < {warn_thw:g} s")
@@ -132,10 +110,9 @@ def timeline_figure(
 
 @dataclass(frozen=True)
 class TwinSnapshot:
-    """The twin at one frame of a sequence, what :func:`twin_map_figure` draws: the frame index,
-    every vehicle's noisy ``rel (N, 3)`` and true ``true_rel (N, 3)`` pose in the ego's frame
-    (x m, y m, yaw rad), the twin step (fused masses, the poses it used, which vehicles) and each
-    vehicle's map where the twin put it, ``contributions (N, 2, H, W)``."""
+    """What :func:`twin_map_figure` draws: the frame, every vehicle's noisy and true pose in the
+    ego's frame (N, 3: x m, y m, yaw rad), the twin step and each vehicle's map where the twin put
+    it (N, 2, H, W)."""
 
     frame: int
     rel: np.ndarray
@@ -189,9 +166,8 @@ def twin_map_figure(
         axes[0].plot(ty, tx, "o", color=c, ms=6, mfc="none", label=f"{k}: {roles[k]} (true)")
         if k:
             axes[0].plot(rel[k, 1], rel[k, 0], "x", color=c, ms=6)
-            axes[0].add_patch(
-                Circle((rel[k, 1], rel[k, 0]), radius, fill=False, color=c, ls=":", lw=1)
-            )
+            ring = Circle((rel[k, 1], rel[k, 0]), radius, fill=False, color=c, ls=":", lw=1)
+            axes[0].add_patch(ring)
             mark = "+" if step.used[k] else "s"
             axes[0].plot(step.poses[k, 1], step.poses[k, 0], mark, color=c, ms=8)
         used = "used" if step.used[k] else "left out (registration rejected)"

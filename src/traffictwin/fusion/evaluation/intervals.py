@@ -5,9 +5,9 @@ common pairs, and the pooled Dice / AUROC(u) recomputed in each resample (same d
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.fusion.evaluation.keys import scenario_of
 from traffictwin.fusion.metrics import auroc_from_hist, prf
@@ -18,6 +18,9 @@ from traffictwin.stats import (
     paired_mean_difference_ci,
     resample_counts,
 )
+
+if TYPE_CHECKING:  # pandas loads where a table is built: check_params imports this package
+    import pandas as pd
 
 
 def ci_kwargs(ci: CIConfig) -> dict[str, float | int]:

@@ -7,10 +7,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.acceptance import Threshold
 from traffictwin.evidential.masses import unknown_mass
@@ -47,6 +46,9 @@ from traffictwin.fusion.pairs import evenly_spaced
 from traffictwin.fusion.registration_batches import precompute_registrations
 from traffictwin.grid import GridSpec
 from traffictwin.stats import CIConfig, mean_ci
+
+if TYPE_CHECKING:  # pandas loads where a table is built: check_params imports this package
+    import pandas as pd
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
 
@@ -311,6 +313,8 @@ def evaluate(
     ``ci`` (see the package docstring). Targets: judged against ``thresholds``
     (``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`).
     """
+    import pandas as pd
+
     configs = list(data)
     _check_networks(networks, configs)
     n = len(next(iter(data.values()))["pair_id"])

@@ -6,15 +6,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.evidential.masses import unknown_mass
 from traffictwin.fusion.evaluation.keys import BIN_KEYS, CROSS_KEYS, SUMMARY_KEYS, EvalSettings
 from traffictwin.fusion.methods import METHODS, FusionInput, FusionMethod
 from traffictwin.fusion.metrics import UncertaintyAUROC, aggregate
+
+if TYPE_CHECKING:  # pandas loads where a table is built: check_params imports this package
+    import pandas as pd
 
 
 def _batches(n: int, size: int):
@@ -32,6 +34,8 @@ def evaluate_method(
     plus the method's diagnostic ``columns``) and the streaming u-AUROC of the whole set (with the
     per-pair histograms of u, :meth:`~traffictwin.fusion.metrics.UncertaintyAUROC.sample_histograms`).
     """
+    import pandas as pd
+
     from traffictwin.fusion.metrics import per_sample_metrics
 
     method = METHODS[method] if isinstance(method, str) else method
@@ -115,6 +119,8 @@ def pose_bins(
     frame: pd.DataFrame, trans_bins_m: Sequence[float], rot_bins_deg: Sequence[float]
 ) -> tuple[dict[str, Any], pd.DataFrame]:
     """Metrics per method and bin of the drawn translation / rotation error (dict and table)."""
+    import pandas as pd
+
     from traffictwin.fusion.metrics import pose_error_bins
 
     noise = frame[["noise_dx", "noise_dy", "noise_dyaw"]].to_numpy()

@@ -7,10 +7,9 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.fusion.config import PoseNoise
 from traffictwin.fusion.evaluation.keys import (
@@ -22,6 +21,9 @@ from traffictwin.fusion.evaluation.keys import (
 )
 from traffictwin.fusion.evaluation.loop import Evaluation
 from traffictwin.grid import GridSpec
+
+if TYPE_CHECKING:  # pandas loads where a table is built: check_params imports this package
+    import pandas as pd
 
 
 def qualitative_panels(
@@ -66,6 +68,8 @@ def _rows(ev: Evaluation, base: Sequence[str]) -> list[str]:
 def plot_tables(ev: Evaluation, noise: Mapping[str, PoseNoise]) -> dict[str, pd.DataFrame]:
     """DVC plot data: ``fusion_kld`` (per pair), ``fusion_scores`` (per configuration and row),
     ``fusion_pose_bins`` (per bin)."""
+    import pandas as pd
+
     samples = ev.samples
     main = samples[~samples["method"].str.startswith(f"{NETWORK}-")]
     score_rows = []
@@ -179,6 +183,8 @@ def methods_table(metrics: Mapping[str, Any], cfg: str) -> pd.DataFrame:
     """Every method's and network row's test numbers at configuration ``cfg``, one row each
     (column ``method`` first, then the metrics sorted; intervals as ``<k>_ci_lo`` / ``<k>_ci_hi``;
     missing or non-finite values empty): the baselines' table artifact of a network's run."""
+    import pandas as pd
+
     rows = [{"method": m, **_flat_row(vals)} for m, vals in metrics["test"][cfg].items()]
     frame = pd.DataFrame(rows)
     cols = ["method", *sorted(c for c in frame.columns if c != "method")]

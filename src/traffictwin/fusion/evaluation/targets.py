@@ -10,10 +10,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from traffictwin.acceptance import NOT_EVALUATED, Threshold
 from traffictwin.acceptance import judge as judge_threshold
@@ -42,6 +41,9 @@ from traffictwin.stats import (
     paired_mean_difference_ci,
     statistic_ci,
 )
+
+if TYPE_CHECKING:  # pandas loads where a table is built: check_params imports this package
+    import pandas as pd
 
 # targets judged on wall times: they differ between identical runs, so not in fusion.json
 # (Evaluation.timings -> the stage's run record; the benchmark benchmarks/registration.py measures it)

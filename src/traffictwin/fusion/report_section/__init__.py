@@ -1,11 +1,7 @@
-"""The fusion part of the report (van Kempen et al.): what the results section says, which
-metrics and figures it shows; entry point :func:`provider`.
-
-Reads ``fusion.json`` (stage evaluate_fusion; layout in :mod:`traffictwin.fusion.evaluation`,
-its tables: :mod:`.tables`; its ``targets``: the index's acceptance table,
-:mod:`traffictwin.report.acceptance`), ``fusion_data.json`` (stage generate_fusion) and the
-seed replicates (:mod:`.seed_tables`); the paper's claims against the run: :mod:`.claims`; the
-report stage's zoomed score figures: :mod:`.score_figures`. The trainings' metrics files: the
+"""The fusion part of the report (van Kempen et al.), entry point :func:`provider`: the section
+(tables of ``fusion.json``: :mod:`.tables`; seed replicates: :mod:`.seed_tables`), the headline
+numbers, the paper's claims (:mod:`.claims`) and the report stage's zoomed score figures
+(:mod:`.score_figures`). The targets: the index's acceptance table; every other number: the
 appendix. The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector, nats per cell).
 """
 
@@ -92,9 +88,8 @@ def section(
 def headlines(
     metrics: Mapping[str, Any], configurations: Mapping[str, tuple[float, float]]
 ) -> list[Headline]:
-    """Per configuration: the one network (``dnn``) on the configuration's test pairs, KL(label‖pred)
-    over ``(m_F, m_O, u)`` (nats per cell, the headline) and occupied-cell Dice, with their
-    scenario-bootstrap intervals (keys ``<cfg>.kld``, ``<cfg>.dice``: occupied cells)."""
+    """Per configuration: the one network's KLD(b) and occupied Dice on its test pairs with their
+    intervals (keys ``<cfg>.kld``, ``<cfg>.dice``) beside the strongest baseline's."""
     out: list[Headline] = []
     for c, (r, a) in configurations.items():
         row = lookup(metrics.get(FUSION_FILE), f"test.{c}.dnn")

@@ -1,12 +1,8 @@
 """The fusion paper's claims (:data:`traffictwin.paper_numbers.FUSION_CLAIMS`) against this
-run's ``fusion.json``: one :class:`~traffictwin.report.claims.ClaimCheck` each, for the verdict
-table on the report's first screen.
-
-Configurations as the findings take them (:func:`traffictwin.fusion.findings.fusion_findings_record`):
-the test configurations in order, the first the noise-free one, the others noisy. The paper's
-Fig. 5 shows KLD(a); the run's headline is KLD(b) (the full mass vector, ``kld_fou_mean``), the
-one with paired intervals of network − naive at every configuration. Of the scores, only occupied
-Dice has paired intervals: precision and recall claims are checked on it alone, and say so.
+run's ``fusion.json``, one :class:`~traffictwin.report.claims.ClaimCheck` each (the verdict table
+on the report's first screen). Configurations: the test ones in order, the first noise-free. The
+paper's Fig. 5 shows KLD(a); the run checks KLD(b) (the full mass vector), which has paired
+intervals of network − naive; of the scores only occupied Dice has them, and the text says so.
 """
 
 from __future__ import annotations
@@ -47,10 +43,7 @@ def _growth(m: Any, first: str, last: str, key: str) -> tuple[list[str], str]:
     (they must not overlap for the gap to have changed), and the text ``A … → D …``."""
     e0, lo0, hi0 = _diff(m, first, key)
     e1, lo1, hi1 = _diff(m, last, key)
-    if None in (lo0, hi0):
-        side = NO_INTERVAL
-    else:
-        side = interval_side(lo1, hi1, lo0, hi0)
+    side = NO_INTERVAL if None in (lo0, hi0) else interval_side(lo1, hi1, lo0, hi0)
     return [side], f"{first} {fmt_interval(e0, lo0, hi0)} → {last} {fmt_interval(e1, lo1, hi1)}"
 
 

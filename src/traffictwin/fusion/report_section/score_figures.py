@@ -31,49 +31,32 @@ def zoomed_limits(
 def score_figure(
     scores: pd.DataFrame, configurations: Mapping[str, tuple[float, float]], cls: str
 ) -> Any:
-    """Precision / recall / Dice of ``cls`` cells (``occupied`` / ``free``) per configuration, one
-    line per method (colours and markers of :data:`traffictwin.fusion.figures.METHOD_STYLE`), each
-    panel's y axis zoomed to its data (:func:`zoomed_limits`); x: the configurations with their
-    pose noise r (m) and α (deg). ``scores``: the long table of
+    """Precision / recall / Dice of ``cls`` cells (``occupied`` / ``free``) per configuration
+    (ticks: r and α), one line per method (:func:`traffictwin.fusion.figures.method_line`), each
+    panel's y axis zoomed to its data (:func:`zoomed_limits`). ``scores``: the long table of
     :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
-    from traffictwin.fusion.figures import CONFIG_AXIS, CONFIG_NOTE, _plt, _style, config_label
+    from traffictwin.fusion.figures import CONFIG_AXIS, CONFIG_NOTE, _plt, config_axis, method_line
 
-    plt = _plt()
     d = scores[scores["class"] == cls]
     cfgs = [c for c in configurations if c in set(d["config"])]
-    x = {c: i for i, c in enumerate(cfgs)}
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.9))
+    fig, axes = _plt().subplots(1, 3, figsize=(13, 3.9))
     methods = sorted(set(d["method"]), key=lambda m: (m not in ("dnn", "naive"), m))
     for ax, metric in zip(axes, SCORE_METRICS):
         dm = d[(d["metric"] == metric) & d["config"].isin(cfgs)]
         for meth in methods:
-            dd = dm[dm["method"] == meth]
-            if dd.empty:
-                continue
-            st = _style(meth)
-            ls = "-" if meth in ("dnn", "naive") else "--"
-            ax.plot(
-                dd["config"].map(x),
-                dd["value"],
-                ls,
-                marker=st["marker"],
-                color=st["color"],
-                label=st["label"],
-                gid=meth,
-            )
+            if not (dd := dm[dm["method"] == meth]).empty:
+                method_line(ax, dd["config"].map(cfgs.index), dd["value"], meth)
         ax.set_ylim(*zoomed_limits(dm["value"].to_numpy()))
-        ax.set_xticks(range(len(cfgs)))
-        ax.set_xticklabels([config_label(c, configurations) for c in cfgs])
-        ax.set_xlabel(CONFIG_AXIS, fontsize=9)
+        config_axis(ax, cfgs, configurations, CONFIG_AXIS, fontsize=9)
         ax.set_ylabel(f"{metric} ({cls} cells)")
         ax.grid(alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    for ax in axes[1:]:
+    legend: dict[str, Any] = {}  # every method once, in the order of first appearance
+    for ax in axes:
         for h, lab in zip(*ax.get_legend_handles_labels()):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
-    fig.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95))
+            legend.setdefault(lab, h)
+    fig.legend(
+        legend.values(), legend.keys(), fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95)
+    )
     fig.suptitle(
         f"Classification of {cls} cells vs pose-noise configuration (test split)\n{CONFIG_NOTE}",
         fontsize=11,

@@ -37,6 +37,11 @@ def _mean(src: page.Sources, key: str, fmt: str) -> list[Cell]:
     ]
 
 
+def _paths(nested: dict) -> list[tuple[str, str, str]]:
+    """The ``(a, b, c)`` key paths of a dict of dicts of dicts, in its order."""
+    return [(a, b, c) for a, x in nested.items() for b, y in x.items() for c in y]
+
+
 def seed_row_table(src: page.Sources) -> Table | None:
     """Every seed-dependent row's KLD(b), occupied Dice and success per configuration: the mean
     over seeds with its seeds × scenarios interval, each seed's value and the seed SD."""
@@ -52,16 +57,12 @@ def seed_row_table(src: page.Sources) -> Table | None:
         f"seeds in order: {', '.join(map(str, seeds))}. Source: reports/{SEEDS_FILE}.",
         anchor="fusion-seeds",
     )
-    for cfg, per_row in rows.items():
-        for row, per_metric in per_row.items():
-            for metric, entry in per_metric.items():
-                name, fmt = METRICS.get(metric, (metric, "g4"))
-                key = f"rows.{cfg}.{row}.{metric}"
-                t.rows.append(
-                    [Cell(cfg), Cell(row), Cell(name), *_mean(src, key, fmt)]
-                    + [Cell(", ".join(fmt_value(v, fmt) for v in entry.get("per_seed", [])))]
-                    + [src.cell(SEEDS_FILE, f"{key}.seed_sd", fmt)]
-                )
+    for cfg, row, metric in _paths(rows):
+        name, fmt = METRICS.get(metric, (metric, "g4"))
+        key = f"rows.{cfg}.{row}.{metric}"
+        per_seed = ", ".join(fmt_value(v, fmt) for v in src.get(SEEDS_FILE, f"{key}.per_seed", []))
+        t.rows.append([Cell(cfg), Cell(row), Cell(name), *_mean(src, key, fmt), Cell(per_seed)])
+        t.rows[-1].append(src.cell(SEEDS_FILE, f"{key}.seed_sd", fmt))
     return t
 
 
@@ -81,17 +82,11 @@ def seed_diff_table(src: page.Sources) -> Table | None:
         f"Source: reports/{SEEDS_FILE}.",
         anchor="fusion-seed-findings",
     )
-    for pair, per_metric in found.items():
-        for metric, per_cfg in per_metric.items():
-            name, fmt = METRICS.get(metric, (metric, "g4"))
-            fmt = "f3" if fmt == "pct" else fmt  # a difference of rates: as a fraction
-            for cfg in per_cfg:
-                key = f"findings.{pair}.{metric}.{cfg}"
-                verdicts = [
-                    src.get(SEEDS_FILE, f"{key}.{k}.verdict") for k in ("seeds", "single_seed")
-                ]
-                t.rows.append(
-                    [Cell(pair.replace("_vs_", " − ")), Cell(name), Cell(cfg)]
-                    + [*_mean(src, f"{key}.seeds", fmt), *(Cell(str(v)) for v in verdicts)]
-                )
+    for pair, metric, cfg in _paths(found):
+        name, fmt = METRICS.get(metric, (metric, "g4"))
+        fmt = "f3" if fmt == "pct" else fmt  # a difference of rates: as a fraction
+        key = f"findings.{pair}.{metric}.{cfg}"
+        verdicts = [src.get(SEEDS_FILE, f"{key}.{k}.verdict") for k in ("seeds", "single_seed")]
+        t.rows.append([Cell(pair.replace("_vs_", " − ")), Cell(name), Cell(cfg)])
+        t.rows[-1] += [*_mean(src, f"{key}.seeds", fmt), *(Cell(str(v)) for v in verdicts)]
     return t

@@ -1,13 +1,9 @@
 """The fusion section's tables, each number once: KLD(b) per configuration and method (the
-headline), every row's estimates with their intervals, the paired differences, the
-registration's pose error and the one network against the per-configuration networks.
-
-Cells read ``fusion.json`` (:func:`cell`): ``test.<cfg>.<row>.<metric>`` with the 95 %
-cluster-bootstrap interval ``<metric>_ci``, and the paired differences
-``diff.<cfg>.<row>.vs_<base>.<metric>`` (``estimate``, ``lo``, ``hi``). A row not evaluated at a
-configuration is ``n/a``; a "lower" / "higher" verdict only where the paired interval excludes 0.
-Every other number of fusion.json (precision / recall, AUROC(u), the success per bin of the drawn
-pose error, the cross table): the report's appendix.
+headline), every row's estimates and the paired differences with their intervals, the
+registration's pose error, and the one network against the per-configuration networks. Cells
+(:func:`cell`) read ``fusion.json``: ``test.<cfg>.<row>.<metric>`` with its 95 % interval
+``<metric>_ci``, and ``diff.<cfg>.<row>.vs_<base>.<metric>`` (``estimate``, ``lo``, ``hi``); a row
+not evaluated at a configuration is ``n/a``. Its other numbers: the report's appendix.
 """
 
 from __future__ import annotations
