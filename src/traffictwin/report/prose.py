@@ -53,7 +53,7 @@ def template_macro(folder: Path, name: str, macro: str) -> Any:
     return getattr(_environment(str(folder)).get_template(name).module, macro)
 
 
-def macro_prose(folder: Path, name: str = "report.md.j2") -> Callable[..., str]:
+def macro_prose(folder: Path, name: str) -> Callable[..., str]:
     """``prose(macro, **context)``: macro ``macro`` of template ``name`` in ``folder`` filled with
     ``context``, on one line (each section's prose helper)."""
 

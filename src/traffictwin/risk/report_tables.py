@@ -53,7 +53,7 @@ def spec_cells(
 
 
 #: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
-prose = macro_prose(TEMPLATES)
+prose = macro_prose(TEMPLATES, "report.md.j2")
 
 
 def derived_paper_cell(key: str, fmt: str = "pct_raw") -> Cell:

@@ -54,7 +54,7 @@ DIFF_ROWS = tuple(r for r in STEREO_ROWS if r[1] in ("epe", "crit_obj_relerr_med
 
 
 #: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
-prose = macro_prose(TEMPLATES)
+prose = macro_prose(TEMPLATES, "report.md.j2")
 
 
 def value_ci(src: page.Sources, file: str, key: str, fmt: str = "pct") -> list[Cell]:

@@ -49,7 +49,7 @@ ALWAYS_DASH = ("occluded.recall", "occluded.recall_vs_ego", "occluded.left_out_s
 
 
 #: macro ``name`` of ``templates/report.md.j2`` filled with ``context``, on one line
-prose = macro_prose(TEMPLATES)
+prose = macro_prose(TEMPLATES, "report.md.j2")
 
 
 def critical_thw_text(src: page.Sources) -> str:
