@@ -103,6 +103,22 @@ def _counts(m: Mapping[str, Any], cfg: str, row: str) -> str:
     return f"{int(wrong):,} wrong cells{where}, {int(right):,} right"
 
 
+def _selections(m: Mapping[str, Any], configs: Sequence[str]) -> dict[str, Any]:
+    """The configurations each bullet names: ``narrower`` (how many noisy ones have a narrower
+    network KLD(b) IQR than naive), ``negative`` (negative network KLD(a)), ``finite`` (an AUROC(u)),
+    ``above`` (its interval above 0.5), ``few`` (AUROC withheld: too few wrong cells)."""
+    finite = [c for c in configs if math.isfinite(_get(m, c, "dnn", "u_auroc"))]
+    return {
+        "narrower": sum(_iqr(m, c, "dnn") < _iqr(m, c, "naive") for c in configs[1:]),
+        "negative": [c for c in configs if _get(m, c, "dnn", "kld_fo_mean") < 0],
+        "finite": finite,
+        "above": [
+            c for c in finite if _num((_row(m, c, "dnn").get("u_auroc_ci") or {}).get("lo")) > 0.5
+        ],
+        "few": [c for c in configs if _row(m, c, "dnn").get("u_auroc_enough") is False],
+    }
+
+
 def fusion_findings(metrics: Mapping[str, Any]) -> str:
     """Markdown findings from the ``fusion.json`` dict (see module docstring)."""
     accessors = {
@@ -110,14 +126,14 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
         "ci": _with_ci,
         "diff": _diff_text,
         "groups": _groups,
-        "iqr": _iqr,
         "row": _row,
         "counts": _counts,
     }
     return render_prose(
         TEMPLATES,
         "findings.md.j2",
-        configs=sorted(metrics.get("test", {})),
+        configs=(configs := sorted(metrics.get("test", {}))),
+        sel=_selections(metrics, configs),
         boot=(boot := metrics.get("bootstrap", {})),
         level=_fmt(100 * _num(boot.get("level", 0.95)), 0),
         label=metrics.get("label", {}),
