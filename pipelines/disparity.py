@@ -5,8 +5,8 @@ Shards are aligned 1:1 with data/risk (same index, split and frame order): ``dis
 ``valid_share`` (read by the stage orb_filter). Accuracy against the GT disparity (density,
 bad-2.0, D1, EPE; the relative depth error |Z - Z_gt| / Z_gt per range bin of
 ``risk_data.check.depth_bins_m``: median, 90th percentile, valid share; per split and per fault
-type) and ms/frame -> reports/metrics/disparity.json; a figure like the paper's Fig. 2 ->
-reports/figures/stereo_example.png.
+type) and ms/frame -> reports/metrics/disparity.json (the figure like the paper's Fig. 2 is
+plot_data's).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from traffictwin.io.shards import (
     write_npz_deterministic,
 )
 from traffictwin.risk.config import RiskDataConfig
-from traffictwin.risk.data_figures import stereo_example_figure
 from traffictwin.risk.stereo_shards import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.metrics import (
@@ -42,7 +41,7 @@ from traffictwin.stereo.metrics import (
 from traffictwin.stereo.sgm import SgmParams, disparity_frames, valid_share
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, RISK_DATA, figure_file, metrics_file
+from ._paths import DISPARITY, RISK_DATA, metrics_file
 
 
 def _work(i: int):
@@ -158,11 +157,6 @@ def main() -> None:
     with stage_timer("disparity") as record:
         metrics = run(rd.sgm, rd.workers, rd.check.depth_bins_m, record=record)
         write_json_atomic(metrics_file("disparity"), metrics)
-        stereo_example_figure(
-            Dataset(RISK_DATA, kind="risk", verify=False),
-            Dataset(DISPARITY, kind="disparity", verify=False),
-            figure_file("stereo_example"),
-        )
 
 
 if __name__ == "__main__":

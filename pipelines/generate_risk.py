@@ -3,7 +3,7 @@
 One shard per driving sequence (= scenario), rendered in parallel worker processes
 (``risk_data.workers``); splits 70/10/20 by sequence, stratified by the sequence's situation. A
 frame is ``critical`` when its THW is below the primary ``evaluation.risk.thresholds_s``. Also writes
-reports/metrics/risk_data.json and reports/figures/risk_metric_example.png.
+reports/metrics/risk_data.json (the risk-metric example figure is plot_data's).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from traffictwin.risk.metric import primary
 from traffictwin.sim.driving import draw_situation
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
-from ._paths import RISK_DATA, figure_file, metrics_file
+from ._paths import RISK_DATA, metrics_file
 
 
 def read_config(cfg) -> tuple[RiskDataConfig, RiskDataSpec, int]:
@@ -93,14 +93,11 @@ def generate(
 
 
 def main() -> None:
-    from traffictwin.risk.data_figures import risk_metric_figure  # matplotlib: not for check_params
-
     cfg = params()
     rd, spec, seed = read_config(cfg)
     with stage_timer("generate_risk"):
         summary = generate(rd, spec, seed, recorded_params(cfg))
         write_json_atomic(metrics_file("risk_data"), summary)
-        risk_metric_figure(seed, spec, figure_file("risk_metric_example"))
 
 
 if __name__ == "__main__":

@@ -8,8 +8,8 @@ rule -- ``flag_orb_paper``, ``flag_orb``, ``flag_valid_share`` -- and ``outlier`
 reports/metrics/orb.json: for ``outlier`` the detection rate per injected fault type, the
 false-alarm rate on fault-free pairs and the share dropped; for every rule the detection /
 false-alarm table with scenario-cluster bootstrap 95 % intervals (delay faults also per subject
-speed); the |dy| and valid-share threshold sweeps. An ORB-flagged pair ->
-reports/figures/orb_outlier_example.png.
+speed); the |dy| and valid-share threshold sweeps (the figure of an ORB-flagged pair is
+plot_data's).
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from traffictwin.config import typed
 from traffictwin.io.atomic import write_csv_atomic, write_json_atomic
 from traffictwin.io.shards import Dataset, DatasetError, derived_dataset
 from traffictwin.risk.config import RiskDataConfig
-from traffictwin.risk.data_figures import orb_example_figure
 from traffictwin.risk.stereo_shards import SPLITS, load_stereo_shard
 from traffictwin.sim.driving import FAULTS
 from traffictwin.stereo.check import (
@@ -37,7 +36,7 @@ from traffictwin.stereo.detection import detection_table
 from traffictwin.stereo.orb import TABLE_COLUMNS, OrbParams, check_pairs, orb_frames, orb_metrics
 
 from ._common import WORKER_STATE, map_shards, params, run_stage, setup_logging, stage_timer
-from ._paths import DISPARITY, ORB_CSV, RISK_DATA, figure_file, metrics_file
+from ._paths import DISPARITY, ORB_CSV, RISK_DATA, metrics_file
 
 
 def _work(i: int):
@@ -133,12 +132,6 @@ def main() -> None:
         out, metrics = run(rd.orb, rd.check, rd.workers, record=record)
         write_csv_atomic(ORB_CSV, out, float_format="%.6g", lineterminator="\n")
         write_json_atomic(metrics_file("orb"), metrics)
-        orb_example_figure(  # a pair the ORB check flags (the figure shows ORB matches)
-            Dataset(RISK_DATA, kind="risk", verify=False),
-            out.assign(outlier=out.flag_orb),
-            rd.orb,
-            figure_file("orb_outlier_example"),
-        )
 
 
 if __name__ == "__main__":

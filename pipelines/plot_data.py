@@ -1,10 +1,21 @@
-"""Stage `plot_data`: long-format CSVs under reports/charts/ for the top-level DVC plots of dvc.yaml,
-from what earlier stages of this run wrote (only the files params.yaml names): the training
-curves (reports/plots/train_fusion_<network or variant>.csv, train_registration.csv,
-risk_training_<variant>.csv) as ``*_learning_curves.csv``, the fusion score table as
-``fusion_scores.csv`` (traffictwin.report.plot_data), and the risk predictions on the test frames
-with reports/metrics/risk.json's label and first THW threshold as ``risk_roc.csv`` and
-``risk_pr.csv`` (traffictwin.risk.charts.risk_curves).
+"""Stage `plot_data`: the charts and figures of what the data and training stages wrote, drawn here
+so that editing a figure re-runs only this stage (and ``report``), never a data or training stage.
+
+Reads only the files params.yaml names and writes:
+
+- ``reports/charts/``: long-format CSVs for the top-level DVC plots of dvc.yaml: the training
+  curves (reports/plots/train_fusion_<network or variant>.csv, train_registration.csv,
+  risk_training_<variant>.csv) as ``*_learning_curves.csv``, the fusion score table as
+  ``fusion_scores.csv`` (traffictwin.report.plot_data), and the risk predictions on the test frames
+  with reports/metrics/risk.json's label and first THW threshold as ``risk_roc.csv`` and
+  ``risk_pr.csv`` (traffictwin.risk.charts.risk_curves);
+- ``reports/figures/learning_curves/``: one PNG per trained fusion network, the learned
+  registration and the learned stereo network, from their reports/plots CSVs
+  (traffictwin.fusion.training_figures, traffictwin.stereo.figures);
+- the data figures: ``reports/figures/fusion_data_samples.png`` (data/fusion),
+  ``risk_metric_example.png`` (a sequence simulated from ``risk_data`` and ``seed``),
+  ``stereo_example.png`` (data/risk, data/disparity) and ``orb_outlier_example.png``
+  (data/orb/orb.csv) (traffictwin.fusion.data_figure, traffictwin.risk.data_figures).
 """
 
 from __future__ import annotations
@@ -14,21 +25,32 @@ from pathlib import Path
 
 import pandas as pd
 
+from traffictwin.config import get
 from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.report.plot_data import fusion_scores_long, learning_curves
 from traffictwin.risk.charts import risk_curves
 from traffictwin.risk.metric import risk_threshold
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import METRICS, PLOTS, REPORTS, fusion_model_dir
+from ._paths import (
+    DISPARITY,
+    FIGURES,
+    FUSION_DATA,
+    METRICS,
+    ORB_CSV,
+    PLOTS,
+    REPORTS,
+    RISK_DATA,
+    figure_file,
+    fusion_model_dir,
+)
 
 CHARTS = REPORTS / "charts"
+LEARNING_CURVES = FIGURES / "learning_curves"
 
 
 def curve_files(cfg) -> dict[str, dict[str, Path]]:
     """Chart file -> {model name: its training-curve CSV} of the models this run trains."""
-    from traffictwin.config import get
-
     variants = cfg.get("fusion_variants") or {}
     fusion = [fusion_model_dir().name, *(str(k) for k in variants)]
     risk = get(cfg, "risk_model.run_variants", list)
@@ -49,29 +71,127 @@ def _write(df: pd.DataFrame, name: str) -> None:
     write_csv_atomic(CHARTS / name, df, float_format="%.6g")  # "\n": os.linesep on POSIX
 
 
+def charts(cfg) -> int:
+    """The long-format CSVs of ``reports/charts``; returns how many."""
+    CHARTS.mkdir(parents=True, exist_ok=True)
+    files = curve_files(cfg)
+    for out, by_model in files.items():
+        curves = {name: _read_csv(path) for name, path in by_model.items()}
+        _write(learning_curves(curves, x="epoch"), out)
+    _write(fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv")), "fusion_scores.csv")
+    risk_file = METRICS / "risk.json"
+    if not risk_file.is_file():
+        raise RuntimeError(f"plot_data: {risk_file} is missing (run evaluate_risk first)")
+    risk = json.loads(risk_file.read_text())
+    label, ts = risk.get("primary_label"), risk.get("thresholds_s")
+    if not isinstance(label, str) or not isinstance(ts, list) or not ts:
+        raise ValueError(
+            f"plot_data: {risk_file}: expected 'primary_label' and a list 'thresholds_s'"
+        )
+    predictions = _read_csv(PLOTS / "risk_predictions.csv")
+    curves = risk_curves(predictions, label, risk_threshold(float(ts[0])))
+    for df, name in zip(curves, ("risk_roc.csv", "risk_pr.csv"), strict=True):
+        _write(df, name)
+    return len(files) + 3
+
+
+def history_rows(path: Path) -> list[dict[str, float]]:
+    """A training-curve CSV (reports/plots) as the History rows the learning-curve figures take
+    (one dict per epoch; a metric missing in an epoch is left out of its row)."""
+    return [
+        {k: v for k, v in row.items() if pd.notna(v)} for row in _read_csv(path).to_dict("records")
+    ]
+
+
+def fusion_curve_titles(cfg) -> dict[str, str]:
+    """Model name -> learning-curve title of each fusion network this run trains (inputs, the
+    training noise, the loss)."""
+    from traffictwin.fusion.config import MIXED, NETWORK_MODEL, fusion_variants
+
+    default_loss = get(cfg, "fusion_model.loss.name", str)
+    targets = {NETWORK_MODEL: ("prealigned", MIXED, default_loss)}
+    for name, v in fusion_variants(cfg).items():
+        targets[name] = (v.inputs, v.config, v.loss or default_loss)
+    return {
+        name: f"{name}: {inputs} inputs, "
+        + ("the mixed pose noise" if config == MIXED else f"configuration {config}")
+        + f", loss {loss}"
+        for name, (inputs, config, loss) in targets.items()
+    }
+
+
+def training_figures(cfg) -> int:
+    """One learning-curve PNG per trained network under ``reports/figures/learning_curves``
+    (only those of this run: stale ones are removed); returns how many."""
+    from traffictwin.fusion.training_figures import learning_curves as fusion_curves
+    from traffictwin.fusion.training_figures import registration_learning_curves
+    from traffictwin.io.atomic import save_figure
+    from traffictwin.stereo.figures import learning_curves as stereo_curves
+
+    figures = {
+        f"train_fusion_{name}": (fusion_curves, title)
+        for name, title in fusion_curve_titles(cfg).items()
+    }
+    figures["train_registration"] = (
+        registration_learning_curves,
+        "learned registration, mixed pose noise",
+    )
+    figures["train_stereo"] = (stereo_curves, "learned stereo network")
+    LEARNING_CURVES.mkdir(parents=True, exist_ok=True)
+    for old in LEARNING_CURVES.glob("*.png"):
+        if old.stem not in figures:
+            old.unlink()
+    for stem, (draw, title) in figures.items():
+        save_figure(
+            draw(history_rows(PLOTS / f"{stem}.csv"), title), LEARNING_CURVES / f"{stem}.png"
+        )
+    return len(figures)
+
+
+def data_figures(cfg) -> int:
+    """The figures of the fusion and risk data (see the module docstring); returns how many."""
+    from traffictwin.fusion.config import fusion_data_config, grid_config
+    from traffictwin.fusion.data_figure import pick_samples, plot_fusion_samples
+    from traffictwin.io.shards import Dataset
+    from traffictwin.risk.data_figures import (
+        orb_example_figure,
+        risk_metric_figure,
+        stereo_example_figure,
+    )
+
+    from .generate_risk import read_config
+
+    samples = pick_samples(
+        Dataset(FUSION_DATA, kind="fusion"), fusion_data_config(cfg).figure.samples
+    )
+    plot_fusion_samples(
+        figure_file("fusion_data_samples"),
+        samples,
+        grid_config(cfg),
+        title="Fusion data: two input maps with poses and the Dempster label",
+    )
+    rd, spec, seed = read_config(cfg)
+    risk_metric_figure(seed, spec, figure_file("risk_metric_example"))
+    risk = Dataset(RISK_DATA, kind="risk", verify=False)
+    stereo_example_figure(
+        risk, Dataset(DISPARITY, kind="disparity", verify=False), figure_file("stereo_example")
+    )
+    orb = _read_csv(ORB_CSV)
+    orb_example_figure(  # a pair the ORB check flags (the figure shows ORB matches)
+        risk,
+        orb.assign(outlier=orb.flag_orb),
+        rd.orb,
+        figure_file("orb_outlier_example"),
+    )
+    return 4
+
+
 def main() -> None:
     log = setup_logging()
+    cfg = params()
     with stage_timer("plot_data"):
-        CHARTS.mkdir(parents=True, exist_ok=True)
-        charts = curve_files(params())
-        for out, files in charts.items():
-            curves = {name: _read_csv(path) for name, path in files.items()}
-            _write(learning_curves(curves, x="epoch"), out)
-        _write(fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv")), "fusion_scores.csv")
-        risk_file = METRICS / "risk.json"
-        if not risk_file.is_file():
-            raise RuntimeError(f"plot_data: {risk_file} is missing (run evaluate_risk first)")
-        risk = json.loads(risk_file.read_text())
-        label, ts = risk.get("primary_label"), risk.get("thresholds_s")
-        if not isinstance(label, str) or not isinstance(ts, list) or not ts:
-            raise ValueError(
-                f"plot_data: {risk_file}: expected 'primary_label' and a list 'thresholds_s'"
-            )
-        predictions = _read_csv(PLOTS / "risk_predictions.csv")
-        curves = risk_curves(predictions, label, risk_threshold(float(ts[0])))
-        for df, name in zip(curves, ("risk_roc.csv", "risk_pr.csv"), strict=True):
-            _write(df, name)
-    log.info("plot_data: %d charts -> %s", len(charts) + 3, CHARTS)
+        n = charts(cfg), training_figures(cfg), data_figures(cfg)
+    log.info("plot_data: %d charts -> %s, %d learning curves, %d data figures", *n, CHARTS)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,8 @@ Usage: ``python -m pipelines.train_fusion`` (the one network: default loss, trai
 ``models/fusion/paper``). Reads params.yaml (``fusion_model``, ``trainer``, ``grid``, ``seed``,
 ``configurations``, ``training_noise``, ``fusion_variants``) and writes, each atomically and only
 after training succeeded: ``models/fusion/<name>/model.ckpt`` (best on val/kld_full = KLD(b)),
-``models/fusion/<name>/model_meta.json``, ``reports/metrics/train_fusion_<name>.json``,
-``reports/plots/train_fusion_<name>.csv`` and the learning curves
-``reports/figures/train_fusion_<name>.png``.
+``models/fusion/<name>/model_meta.json``, ``reports/metrics/train_fusion_<name>.json``
+and ``reports/plots/train_fusion_<name>.csv`` (the learning curves, which plot_data draws).
 MLflow: experiment ``fusion``, run ``fusion-<name>``.
 """
 
@@ -35,7 +34,6 @@ from traffictwin.trainer import ModelOutputs, TrackingSettings, TrainerSettings,
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
     PARAMS,
-    figure_file,
     fusion_data_dir,
     fusion_model_dir,
     metrics_file,
@@ -119,16 +117,6 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out_dir / "model.ckpt"))
     if res is not None:
-        from traffictwin.fusion.training_figures import learning_curves
-        from traffictwin.io.atomic import save_figure
-
-        noise_name = "the mixed pose noise" if cfg_name == MIXED else f"configuration {cfg_name}"
-        title = f"{name}: {inputs} inputs, {noise_name}, loss {hparams.loss}"
-        save_figure(learning_curves(res.history, title), figure_file(f"train_fusion_{name}"))
-        if res.run_id:
-            from traffictwin.mlops.tracking import log_run_artifact
-
-            log_run_artifact(res.run_id, figure_file(f"train_fusion_{name}"), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val KLD(b) %.4f (naive %.4f), val loss %.4f, %.1f s",

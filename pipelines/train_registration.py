@@ -6,8 +6,8 @@ Usage: ``python -m pipelines.train_registration``. Reads params.yaml (``registra
 ``training_noise`` mixture); the augmentation draws from the mixture's largest configuration
 (× ``registration_model.train.augment_scale``). Writes, each atomically and only after training
 succeeded: ``models/registration/learned/model.ckpt`` (best on val/loss), ``model_meta.json``,
-``reports/metrics/train_registration.json``, ``reports/plots/train_registration.csv`` and the
-learning curves ``reports/figures/train_registration.png``. MLflow: experiment ``registration``,
+``reports/metrics/train_registration.json`` and ``reports/plots/train_registration.csv`` (the
+learning curves, which plot_data draws). MLflow: experiment ``registration``,
 run ``registration``. Library: :mod:`traffictwin.fusion.registration_training`.
 """
 
@@ -30,7 +30,6 @@ from traffictwin.trainer.tracking import TrackingSettings
 from ._common import params, run_stage, setup_logging, stage_timer, training_record
 from ._paths import (
     PARAMS,
-    figure_file,
     metrics_file,
     plot_file,
     prealigned,
@@ -106,17 +105,6 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
-        from traffictwin.fusion.training_figures import registration_learning_curves
-        from traffictwin.io.atomic import save_figure
-
-        save_figure(
-            registration_learning_curves(res.history, "learned registration, mixed pose noise"),
-            figure_file(name),
-        )
-        if res.run_id:
-            from traffictwin.mlops.tracking import log_run_artifact
-
-            log_run_artifact(res.run_id, figure_file(name), "figures")
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val success %.2f, trans err %.2f m, rot err %.2f deg, %.1f s",

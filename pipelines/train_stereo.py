@@ -6,7 +6,7 @@ whole) and, for ``architecture.base: sgm`` (the refiner of SGM), ``data/disparit
 same frames (full-frame SGM, cropped like the images). Writes, each atomically and only after training succeeded:
 ``models/stereo/learned/model.ckpt`` (best on val/epe), ``model_meta.json`` (with the spread
 threshold calibrated on validation), ``reports/metrics/train_stereo.json``,
-``reports/plots/train_stereo.csv`` and the learning curves ``reports/figures/train_stereo.png``.
+and ``reports/plots/train_stereo.csv`` (the learning curves, which plot_data draws).
 MLflow: experiment ``stereo``, run ``stereo``. Library: :mod:`traffictwin.risk.stereo_training`.
 
 ``--holdout`` (stage ``train_stereo_holdout``): the same network and training without the frames
@@ -31,7 +31,6 @@ from ._paths import (
     RISK_DATA,
     STEREO_HOLDOUT_MODEL,
     STEREO_MODEL,
-    figure_file,
     metrics_file,
     plot_file,
     resume_dir,
@@ -106,11 +105,6 @@ def main(argv: list[str] | None = None) -> None:
         if res is not None:
             record.update(training_record(res, out / "model.ckpt"))
     if res is not None:
-        if not args.holdout:  # the learning curves of the model that ships
-            from traffictwin.io.atomic import save_figure
-            from traffictwin.stereo.figures import learning_curves
-
-            save_figure(learning_curves(res.history, "learned stereo network"), figure_file(STAGE))
         m = res.metrics
         log.info(
             "%s: best epoch %s of %s, val EPE %.3f px, bad-1 %.3f, spread threshold %.2f px, %.1f s",

@@ -96,7 +96,6 @@ PUBLISHED = {
     "models/fusion/network/model_meta.json",
     "reports/metrics/train_fusion_network.json",
     "reports/plots/train_fusion_network.csv",
-    "reports/figures/train_fusion_network.png",
     "reports/timings/train_fusion.json",
     "models/risk/headline/model.ckpt",
     "models/risk/headline/model_meta.json",

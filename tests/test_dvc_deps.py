@@ -231,6 +231,26 @@ EVALUATION_ONLY = (
 )
 
 
+#: the figures of the data and the learning curves: drawn by plot_data alone
+DATA_AND_TRAINING_FIGURES = (
+    "src/traffictwin/fusion/data_figure.py",
+    "src/traffictwin/fusion/training_figures.py",
+    "src/traffictwin/risk/data_figures.py",
+    "src/traffictwin/stereo/figures.py",
+)
+
+
+def test_a_data_or_learning_curve_figure_regenerates_and_retrains_nothing() -> None:
+    """Editing the figure of a data set or a network's learning curves re-runs plot_data (and the
+    evaluations that draw their own examples with it), never a data or training stage."""
+    stages = _stages()
+    assert all((ROOT / f).is_file() for f in DATA_AND_TRAINING_FIGURES)
+    for name in DATA_AND_TRAINING:
+        hits = [d for d in _code(stages[name]) if d in DATA_AND_TRAINING_FIGURES]
+        assert not hits, f"stage {name} depends on figure code {hits}"
+    assert set(DATA_AND_TRAINING_FIGURES) <= set(_code(stages["plot_data"]))
+
+
 def test_a_new_method_or_evaluation_figure_regenerates_and_retrains_nothing() -> None:
     """Adding a method to fusion/methods.py or editing an evaluation figure re-runs the
     evaluations, never a data or training stage."""
@@ -276,12 +296,16 @@ def _status_after_edit(repo: Path, rel: str) -> set[str]:
 def test_an_edit_re_runs_only_the_stages_that_import_it(ci_dag: Path, tmp_path: Path) -> None:
     """End to end on the finished ci DAG: after a report edit only ``report`` is out of date, after
     a new fusion method only the stages that import fusion/methods.py (evaluations, never a data
-    or training stage)."""
+    or training stage), after a learning-curve or data-figure edit only ``plot_data``."""
     repo = copy_dag(ci_dag, tmp_path / "repo", mlflow=False)
     assert _status_after_edit(repo, "src/traffictwin/report/render.py") == {"report"}
+    # the edits add up: each status also lists the stages the edits before made stale
+    drawn = {"report", "plot_data"}
+    assert _status_after_edit(repo, "src/traffictwin/fusion/training_figures.py") == drawn
+    assert _status_after_edit(repo, "src/traffictwin/risk/data_figures.py") == drawn
     stale = _status_after_edit(repo, "src/traffictwin/fusion/methods.py")
     importers = {
         name for name, s in _stages().items() if "src/traffictwin/fusion/methods.py" in _code(s)
     }
     assert "evaluate_fusion" in stale and not stale & set(DATA_AND_TRAINING), stale
-    assert stale <= importers | {"report"}, stale - importers
+    assert stale <= importers | drawn, stale - importers

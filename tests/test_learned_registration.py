@@ -415,7 +415,7 @@ def test_train_registration_stage_and_evaluation_rows(ci_dag: Path) -> None:
     metrics = json.loads((ci_dag / "reports" / "metrics" / "train_registration.json").read_text())
     assert 0 <= metrics["val/success_rate"] <= 1 and np.isfinite(metrics["val/trans_err_m"])
     assert metrics["samples_seen"] > 0 and "train_seconds" not in metrics
-    assert (ci_dag / "reports" / "figures" / "train_registration.png").exists()
+    assert (ci_dag / "reports" / "figures" / "learning_curves" / "train_registration.png").exists()
     fusion = json.loads((ci_dag / "reports" / "metrics" / "fusion.json").read_text())
     for cfg in ("A", "B", "C", "D"):
         row = fusion["test"][cfg]["learned"]

@@ -168,7 +168,7 @@ def _declared_plots(dvc: dict) -> list[tuple[str, str, list[str], str | None]]:
         body = st.get("do", st)
         for entry in body.get("plots", []):
             path, props = (entry, {}) if isinstance(entry, str) else next(iter(entry.items()))
-            if path.endswith(".png"):
+            if path.endswith(".png") or path.startswith("reports/figures/"):  # images
                 continue
             props = props or {}
             out.append((f"{name}:{path}", path, [props.get("y")], props.get("x")))
