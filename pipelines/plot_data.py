@@ -190,8 +190,14 @@ def main() -> None:
     log = setup_logging()
     cfg = params()
     with stage_timer("plot_data"):
-        n = charts(cfg), training_figures(cfg), data_figures(cfg)
-    log.info("plot_data: %d charts -> %s, %d learning curves, %d data figures", *n, CHARTS)
+        n_charts, n_curves, n_data = charts(cfg), training_figures(cfg), data_figures(cfg)
+    log.info(
+        "plot_data: %d charts -> %s, %d learning curves, %d data figures",
+        n_charts,
+        CHARTS,
+        n_curves,
+        n_data,
+    )
 
 
 if __name__ == "__main__":

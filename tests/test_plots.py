@@ -132,6 +132,75 @@ def test_risk_curves_per_predictor() -> None:
 
 
 # --------------------------------------------------------------------------- templates
+# --------------------------------------------------------------------------- plot_data figures
+def test_history_rows_leave_out_a_metric_an_epoch_lacks(tmp_path: Path) -> None:
+    from pipelines.plot_data import history_rows
+
+    f = tmp_path / "curve.csv"
+    f.write_text("epoch,train/loss,val/loss\n0,1.5,\n1,1.25,0.75\n")
+    assert history_rows(f) == [
+        {"epoch": 0, "train/loss": 1.5},
+        {"epoch": 1, "train/loss": 1.25, "val/loss": 0.75},
+    ]
+
+
+def test_fusion_curve_titles_name_inputs_noise_and_loss() -> None:
+    from omegaconf import OmegaConf
+
+    from pipelines._common import params
+    from pipelines.plot_data import fusion_curve_titles
+
+    cfg = params()
+    loss = cfg.fusion_model.loss.name
+    cfg.fusion_variants = OmegaConf.create({"d_own": {"config": "D", "inputs": "prealigned"}})
+    assert fusion_curve_titles(cfg) == {
+        "network": f"network: prealigned inputs, the mixed pose noise, loss {loss}",
+        "d_own": f"d_own: prealigned inputs, configuration D, loss {loss}",
+    }
+
+
+def test_training_figures_draw_each_network_once_and_drop_stale_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One PNG per trained network from its curve CSV; a PNG of a network this run no longer
+    trains is removed; the fusion figure plots the CSV's validation KLD(b) per epoch."""
+    from matplotlib import pyplot as plt
+
+    import pipelines.plot_data as pd_stage
+    from pipelines._common import params
+    from traffictwin.fusion.training_figures import learning_curves as fusion_curves
+
+    plots, out = tmp_path / "plots", tmp_path / "figures" / "learning_curves"
+    plots.mkdir()
+    rows = (
+        "epoch,train/loss,val/loss,val/kld_full,val/kld_full_naive,val/dice_occ,val/dice_occ_naive"
+    )
+    (plots / "train_fusion_network.csv").write_text(
+        rows + "\n0,0.5,0.4,0.03,0.2,0.9,0.8\n1,0.3,0.2,0.01,0.2,0.95,0.8\n"
+    )
+    (plots / "train_registration.csv").write_text(
+        "epoch,train/loss,val/loss,val/success_rate,val/trans_err_m,val/rot_err_deg\n"
+        "0,2.0,1.5,0.5,0.4,1.2\n1,1.0,1.2,0.8,0.2,0.6\n"
+    )
+    (plots / "train_stereo.csv").write_text(
+        "epoch,train/loss,val/loss,val/epe,val/bad1\n0,0.3,0.35,0.4,0.02\n1,0.2,0.25,0.3,0.01\n"
+    )
+    out.mkdir(parents=True)
+    (out / "train_fusion_gone.png").write_bytes(b"\x89PNG")
+    monkeypatch.setattr(pd_stage, "PLOTS", plots)
+    monkeypatch.setattr(pd_stage, "LEARNING_CURVES", out)
+    assert pd_stage.training_figures(params()) == 3
+    assert sorted(p.name for p in out.iterdir()) == [
+        "train_fusion_network.png",
+        "train_registration.png",
+        "train_stereo.png",
+    ]
+    fig = fusion_curves(pd_stage.history_rows(plots / "train_fusion_network.csv"), "t")
+    line = fig.axes[0].lines[0]
+    assert list(line.get_xdata()) == [0, 1] and list(line.get_ydata()) == [0.03, 0.01]
+    plt.close(fig)
+
+
 def test_page_template_is_offline_and_declares_its_charset() -> None:
     cfg = (ROOT / ".dvc" / "config").read_text()
     m = re.search(r"^\s*html_template\s*=\s*(\S+)\s*$", cfg, re.M)
@@ -231,3 +300,12 @@ def test_every_declared_plot_has_x_and_y_columns_in_its_file(ci_dag: Path) -> No
                 assert (rows > 0) == (0 < critical.sum() < len(critical)), (pid, rows)
             else:
                 assert rows > 0, (pid, path.name, "no rows")
+
+
+def test_plot_data_draws_the_learning_curves_of_the_networks_the_run_trained(ci_dag: Path) -> None:
+    curves = ci_dag / "reports" / "figures" / "learning_curves"
+    assert sorted(p.stem for p in curves.glob("*.png")) == [
+        "train_fusion_network",
+        "train_registration",
+        "train_stereo",
+    ]

@@ -20,7 +20,7 @@ TITLE = "Stereo — SGM and the learned stereo network's range accuracy, stereo-
 ORB_FILE = "orb.json"
 STEREO_FILE = "stereo.json"
 #: the figures the section shows, in order; their captions are macros of the same name
-FIGURE_STEMS = ("stereo_learned_example", "stereo_resolution")
+FIGURE_STEMS = ("stereo_learned_example", "train_stereo", "stereo_resolution")
 TEMPLATES = Path(__file__).parent / "templates"
 #: rule key in orb.json -> row label
 RULE_LABELS = {
