@@ -446,11 +446,3 @@ def log_dataset(
         digest=manifest_hash[:DATASET_DIGEST_CHARS],
     )
     mlflow.log_input(ds, context=context, tags={DATA_TAG: manifest_hash})
-
-
-def log_run_artifact(run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
-    """Attach the file ``path`` to the (finished or running) run ``run_id`` of :func:`tracking_uri`
-    (e.g. a figure a stage drew after training)."""
-    from mlflow import MlflowClient
-
-    MlflowClient(tracking_uri=tracking_uri()).log_artifact(run_id, str(path), artifact_path)
