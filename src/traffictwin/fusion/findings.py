@@ -138,6 +138,5 @@ def fusion_findings(metrics: Mapping[str, Any]) -> str:
         level=_fmt(100 * _num(boot.get("level", 0.95)), 0),
         label=metrics.get("label", {}),
         fmt=_fmt,
-        finite=math.isfinite,
         **{k: partial(f, metrics) for k, f in accessors.items()},
     )
