@@ -20,7 +20,10 @@ read only when there are variants) and ``models/registration/learned`` (rows ``l
   ``cross.dnn-<net>.<cfg>.<metric>``, ``bins.{translation,rotation}.<row>.<bin>.<metric>``;
 - ``reports/fusion_eval_samples.csv`` — one row per (test config, method, pair);
 - ``reports/plots/fusion_kld.csv``, ``fusion_scores.csv``, ``fusion_pose_bins.csv`` — DVC plot data;
-- ``reports/figures/fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png``;
+- ``data/figure_inputs/fusion.npz`` — Fig. 4's maps of one pair (label, naive, network per
+  configuration) and the figures' metadata: plot_data draws
+  ``reports/figures/fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png`` from it,
+  fusion.json and ``fusion_kld.csv``;
 - ``reports/fusion_findings.md`` — findings computed from fusion.json;
 - its run record ``reports/timings/evaluate_fusion.json`` (outside DVC) — the wall times
   ``ms_per_pair.<cfg>.<row>``, ``runtime_ms_per_pair.<row>`` and the runtime target;
@@ -53,11 +56,11 @@ from traffictwin.io.jsonio import json_clean
 from traffictwin.trainer.settings import check_device
 
 from ._common import params, read_run_record, run_stage, setup_logging, stage_timer
+from ._figure_inputs import figure_input
 from ._inference import pin_torch_threads
 from ._paths import (
     FUSION_DATA,
     REPORTS,
-    figure_file,
     fusion_model_dir,
     metrics_file,
     plot_file,
@@ -70,6 +73,7 @@ METRICS = metrics_file("fusion")
 SUMMARY = metrics_file("summary_fusion")  # the DVC metrics file: what `dvc exp show` compares
 SAMPLES = REPORTS / "fusion_eval_samples.csv"
 FINDINGS = REPORTS / "fusion_findings.md"
+FIGURE_INPUTS = figure_input("fusion")
 METHODS_TABLE = "evaluation/test_methods_{cfg}.json"  # MLflow table artifact of a network's run
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
@@ -316,7 +320,7 @@ def summary(metrics: dict[str, Any], meta: dict[str, Any], configs: list[str]) -
 def main() -> None:
     from traffictwin.fusion import evaluation as ev
     from traffictwin.fusion.findings import fusion_findings
-    from traffictwin.io.atomic import save_figure
+    from traffictwin.io.figure_inputs import write_arrays_with_meta
 
     setup_logging()
     cfg = params()
@@ -341,9 +345,10 @@ def main() -> None:
         for name, frame in ev.plot_tables(res, noise).items():
             _csv(frame, plot_file(name))
         _csv(res.samples, SAMPLES)
-        figs = ev.figures(res, noise, grid, fc.qualitative_pair, fc.qualitative_fraction)
-        for name, fig in figs.items():
-            save_figure(fig, figure_file(name))
+        panels, meta = ev.figure_inputs(
+            res, noise, grid, fc.qualitative_pair, fc.qualitative_fraction
+        )
+        write_arrays_with_meta(FIGURE_INPUTS, panels, meta)
         write_text_atomic(FINDINGS, fusion_findings(metrics))
         write_json_atomic(METRICS, metrics)
         meta = json.loads((fusion_model_dir() / "model_meta.json").read_text(encoding="utf-8"))

@@ -11,8 +11,8 @@ with its sequence-bootstrap interval, the baselines speed-only / geometric SGM /
 (oracle) / train mean / median, paired differences, seed groups, collapse flags, targets, critical
 shares per split and region, the situation breakdown), ``reports/plots/risk_predictions.csv``
 (per-frame predictions), ``reports/plots/risk_confusion.csv`` (actual/predicted class per test
-frame of the main variant, for the ``dvc plots`` confusion template), and the figures
-``reports/figures/risk_*.png``. Test metrics are also logged into each variant's MLflow training
+frame of the main variant, for the ``dvc plots`` confusion template; the figures
+``reports/figures/risk_*.png`` are drawn from these by ``plot_data``). Test metrics are also logged into each variant's MLflow training
 run when it is in the store.
 """
 
@@ -47,7 +47,6 @@ from ._paths import (
     RISK_DATA,
     SHIPPED_RISK_MODEL,
     STEREO_LEARNED,
-    figure_file,
     hybrid_model_dir,
     metrics_file,
     plot_file,
@@ -218,32 +217,13 @@ def loaded_settings(models: dict, variants: list[str]) -> dict[str, dict]:
     }
 
 
-def write_outputs(source, metrics: dict, pred: pd.DataFrame, variants: list[str], ev) -> None:
-    """The figures (the shipped predictor drawn beside the headline network), the confusion and
-    prediction tables and risk.json."""
-    import pandas as pd
-
-    from traffictwin.risk.figures import EvaluationFigurePaths, evaluation_figures
-
-    main_v, t0 = ev.main_variant, ev.thresholds_s[0]
-    shipped_from = (metrics.get("selection") or {}).get("shipped_from")
-    evaluation_figures(
-        source,
-        metrics,
-        pred,
-        {v: pd.read_csv(risk_model_dir(v) / "history.csv") for v in variants},
-        main_v,
-        EvaluationFigurePaths(
-            curves=figure_file("risk_training_curves"),
-            scatter=figure_file("risk_scatter"),
-            confusion=figure_file("risk_confusion"),
-            examples=figure_file("risk_examples"),
-            roc=figure_file("risk_roc"),
-        ),
-        shipped=(SHIPPED, f"shipped ({shipped_from})" if shipped_from else SHIPPED),
+def write_outputs(metrics: dict, pred: pd.DataFrame, ev) -> None:
+    """The confusion and prediction tables and risk.json (the figures are drawn from them by
+    plot_data)."""
+    _, y, yhat = main_series(metrics, pred, ev.main_variant)
+    _write_csv(
+        confusion_table(pred["frame_id"], y, yhat, ev.thresholds_s[0]), plot_file("risk_confusion")
     )
-    _, y, yhat = main_series(metrics, pred, main_v)
-    _write_csv(confusion_table(pred["frame_id"], y, yhat, t0), plot_file("risk_confusion"))
     _write_csv(pred, plot_file("risk_predictions"))
     write_json_atomic(METRICS, metrics)
 
@@ -325,7 +305,7 @@ def main() -> None:
             "shipped_kind": predictor_kind(models[SHIPPED]),
             "rules": {r: e["half_width"] for r, e in selection["rules"].items()},
         }
-        write_outputs(source, metrics, pred, variants, ev)
+        write_outputs(metrics, pred, ev)
         write_json_atomic(SUMMARY, summary(metrics, selection, ev.thresholds_s[0]))
         _log_to_mlflow(models, metrics, log)
         _log_summary(log, metrics, ev)

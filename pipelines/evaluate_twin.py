@@ -19,7 +19,9 @@ at every configuration; a method whose model is missing is skipped and listed. F
 - ``reports/twin_eval_frames.csv`` — one row per (configuration, noise model, method, sequence,
   frame) of the ``test`` split; ``reports/twin_vehicle_frames.csv`` — the other vehicles' rows;
 - ``reports/plots/twin_timeline.csv`` — DVC plot: THW over time of the timeline sequence;
-- ``reports/figures/twin_map.png``, ``twin_timeline.png``;
+- ``data/figure_inputs/twin_map.npz`` — the twin at the onset of the timeline sequence (its
+  sequence, configuration, method and thresholds in the metadata): plot_data draws
+  ``reports/figures/twin_map.png`` and ``twin_timeline.png`` from it and the frames table;
 - its run record ``reports/timings/evaluate_twin.json`` (outside DVC): ``step_ms_median`` (median
   wall time of a twin update per configuration, method and scenario kind).
 
@@ -36,11 +38,11 @@ from typing import Any
 import pandas as pd
 
 from pipelines._common import params, run_stage, setup_logging, stage_timer
+from pipelines._figure_inputs import figure_input
 from pipelines._inference import pin_torch_threads
 from pipelines._paths import (
     REPORTS,
     TWIN_DATA,
-    figure_file,
     fusion_model_dir,
     metrics_file,
     plot_file,
@@ -62,6 +64,7 @@ METRICS = metrics_file("twin")
 FRAMES = REPORTS / "twin_eval_frames.csv"
 VEHICLE_FRAMES = REPORTS / "twin_vehicle_frames.csv"
 TIMELINE = plot_file("twin_timeline")
+SNAPSHOT = figure_input("twin_map")
 
 log = logging.getLogger("traffictwin.evaluate_twin")
 
@@ -272,7 +275,7 @@ def _evaluate_configuration(
     return frames, v, entry
 
 
-def _figures(
+def _figure_inputs(
     run: _Pass,
     table: pd.DataFrame,
     seqs: list[dict[str, Any]],
@@ -281,31 +284,28 @@ def _figures(
     pn: Any,
     model: Any,
 ) -> None:
-    """The timeline (a typical occluded sequence) and the twin map at its onset, configuration
-    ``c_fig``, per-frame noise."""
-    from traffictwin.io.atomic import save_figure
+    """What plot_data draws the timeline and the twin map from: the timeline of a typical
+    occluded sequence (:data:`TIMELINE`) and the twin at its onset (:data:`SNAPSHOT`, with the
+    sequence, configuration ``c_fig``, method and thresholds), per-frame noise."""
+    from traffictwin.io.figure_inputs import write_arrays_with_meta
     from traffictwin.twin.evaluation import scalar
-    from traffictwin.twin.figures import (
-        pick_timeline_sequence,
-        timeline_figure,
-        timeline_table,
-        twin_map_figure,
-        twin_snapshot,
-    )
+    from traffictwin.twin.figure_inputs import pick_timeline_sequence, timeline_table, twin_snapshot
 
     s = run.settings
     table = table[table["noise"] == "frame"]
     seq = pick_timeline_sequence(table, c_fig, tc.headline, tc.fps, tc.figure.sequence, s.horizon_s)
     _csv(timeline_table(table, c_fig, tc.headline, seq), TIMELINE)
-    save_figure(
-        timeline_figure(table, c_fig, tc.headline, seq, s.critical_thw, s.warn_thw),
-        figure_file("twin_timeline"),
-    )
     a = next(x for x in seqs if scalar(x["sequence"]) == seq)
-    noise = (pn.r, pn.alpha)
-    snap = twin_snapshot(a, run.grid, noise, tc.headline, model, s, run.reg_params)
-    fig = twin_map_figure(snap, run.grid, noise[0], tc.headline, c_fig)
-    save_figure(fig, figure_file("twin_map"))
+    snap = twin_snapshot(a, run.grid, (pn.r, pn.alpha), tc.headline, model, s, run.reg_params)
+    meta = {
+        "sequence": seq,
+        "configuration": c_fig,
+        "method": tc.headline,
+        "radius_m": float(pn.r),
+        "critical_thw_s": float(s.critical_thw),
+        "warn_thw_s": float(s.warn_thw),
+    }
+    write_arrays_with_meta(SNAPSHOT, snap.arrays(), meta)
 
 
 def main() -> None:
@@ -374,7 +374,7 @@ def main() -> None:
             tc.target_configuration if tc.target_configuration in evaluated else list(evaluated)[-1]
         )
         model = models_by_cfg[c_fig].get(tc.headline)
-        _figures(run, table, seqs, tc, c_fig, noise[c_fig], model)
+        _figure_inputs(run, table, seqs, tc, c_fig, noise[c_fig], model)
         write_json_atomic(METRICS, json_clean(metrics))
         tg = metrics["targets"]
         checked = [v for v in tg.values() if isinstance(v, dict) and "met" in v]

@@ -1,5 +1,5 @@
-"""Stage `plot_data`: the charts and figures of what the data and training stages wrote, drawn here
-so that editing a figure re-runs only this stage (and ``report``), never a data or training stage.
+"""Stage `plot_data`: the charts and figures of what the data, training and evaluation stages wrote,
+drawn here so that editing a figure re-runs only this stage (and ``report``), never another stage.
 
 Reads only the files params.yaml names and writes:
 
@@ -15,7 +15,14 @@ Reads only the files params.yaml names and writes:
 - the data figures: ``reports/figures/fusion_data_samples.png`` (data/fusion),
   ``risk_metric_example.png`` (a sequence simulated from ``risk_data`` and ``seed``),
   ``stereo_example.png`` (data/risk, data/disparity) and ``orb_outlier_example.png``
-  (data/orb/orb.csv) (traffictwin.fusion.data_figure, traffictwin.risk.data_figures).
+  (data/orb/orb.csv) (traffictwin.fusion.data_figure, traffictwin.risk.data_figures);
+- the evaluation figures: ``fusion_{kld_boxplot,scores_occupied,scores_free,qualitative}.png``
+  (reports/plots/fusion_kld.csv, reports/metrics/fusion.json, data/figure_inputs/fusion.npz),
+  ``twin_timeline.png`` and ``twin_map.png`` (reports/twin_eval_frames.csv,
+  data/figure_inputs/twin_map.npz), ``stereo_learned_example.png`` (data/risk, data/disparity,
+  data/stereo_learned) and ``risk_{training_curves,scatter,confusion,examples,roc}.png``
+  (reports/metrics/risk.json, reports/plots/risk_predictions.csv and risk_training_*.csv, data/risk,
+  data/disparity) (traffictwin.{fusion,twin,stereo,risk}.figures).
 """
 
 from __future__ import annotations
@@ -26,12 +33,14 @@ from pathlib import Path
 import pandas as pd
 
 from traffictwin.config import get
+from traffictwin.fusion.config import grid_config
 from traffictwin.io.atomic import write_csv_atomic
 from traffictwin.report.plot_data import fusion_scores_long, learning_curves
 from traffictwin.risk.charts import risk_curves
 from traffictwin.risk.metric import risk_threshold
 
 from ._common import params, run_stage, setup_logging, stage_timer
+from ._figure_inputs import figure_input
 from ._paths import (
     DISPARITY,
     FIGURES,
@@ -41,11 +50,13 @@ from ._paths import (
     PLOTS,
     REPORTS,
     RISK_DATA,
+    STEREO_LEARNED,
     figure_file,
     fusion_model_dir,
 )
 
 CHARTS = REPORTS / "charts"
+TWIN_FRAMES = REPORTS / "twin_eval_frames.csv"  # evaluate_twin's frames table
 LEARNING_CURVES = FIGURES / "learning_curves"
 
 
@@ -150,7 +161,7 @@ def training_figures(cfg) -> int:
 
 def data_figures(cfg) -> int:
     """The figures of the fusion and risk data (see the module docstring); returns how many."""
-    from traffictwin.fusion.config import fusion_data_config, grid_config
+    from traffictwin.fusion.config import fusion_data_config
     from traffictwin.fusion.data_figure import pick_samples, plot_fusion_samples
     from traffictwin.io.shards import Dataset
     from traffictwin.risk.data_figures import (
@@ -186,17 +197,84 @@ def data_figures(cfg) -> int:
     return 4
 
 
+def _metrics(name: str) -> dict:
+    path = METRICS / f"{name}.json"
+    if not path.is_file():
+        raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
+    return json.loads(path.read_text())
+
+
+def _figure_input(name: str) -> tuple[dict, dict]:
+    from traffictwin.io.figure_inputs import read_arrays_with_meta
+
+    path = figure_input(name)
+    if not path.is_file():
+        raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
+    return read_arrays_with_meta(path)
+
+
+def evaluation_figures(cfg) -> int:
+    """The figures of the evaluation stages' outputs (see the module docstring); returns how many."""
+    from traffictwin.fusion.evaluation_figures import evaluation_figures as fusion_figures
+    from traffictwin.io.atomic import save_figure
+    from traffictwin.io.shards import Dataset
+    from traffictwin.risk import figures as risk_figures
+    from traffictwin.stereo.figures import fault_free_test_examples
+    from traffictwin.twin.figure_inputs import TwinSnapshot
+    from traffictwin.twin.figures import timeline_figure, twin_map_figure
+
+    panels, meta = _figure_input("fusion")
+    figures = fusion_figures(_read_csv(PLOTS / "fusion_kld.csv"), _metrics("fusion"), panels, meta)
+    arrays, tw = _figure_input("twin_map")
+    frames = _read_csv(TWIN_FRAMES)
+    frames = frames[frames["noise"] == "frame"]
+    c, method, seq = tw["configuration"], tw["method"], tw["sequence"]
+    figures["twin_timeline"] = timeline_figure(
+        frames, c, method, seq, tw["critical_thw_s"], tw["warn_thw_s"]
+    )
+    figures["twin_map"] = twin_map_figure(
+        TwinSnapshot.from_arrays(arrays), grid_config(cfg), tw["radius_m"], method, c
+    )
+    risk, disparity = (
+        Dataset(RISK_DATA, kind="risk", verify=False),
+        Dataset(DISPARITY, kind="disparity", verify=False),
+    )
+    learned = Dataset(STEREO_LEARNED, kind="stereo_learned", verify=False)
+    figures["stereo_learned_example"] = fault_free_test_examples(risk, disparity, learned)
+    for name, fig in figures.items():
+        save_figure(fig, figure_file(name))
+    m = _metrics("risk")
+    shipped_from = (m.get("selection") or {}).get("shipped_from")
+    variants = get(cfg, "risk_model.run_variants", list)
+    risk_figures.evaluation_figures(
+        risk,
+        disparity,
+        m,
+        _read_csv(PLOTS / "risk_predictions.csv"),
+        {v: _read_csv(PLOTS / f"risk_training_{v}.csv") for v in variants},
+        m["main_variant"],
+        risk_figures.EvaluationFigurePaths(
+            **{k: figure_file(f"risk_{k}") for k in ("scatter", "confusion", "examples", "roc")},
+            curves=figure_file("risk_training_curves"),
+        ),
+        shipped=(m["shipped"], f"shipped ({shipped_from})" if shipped_from else m["shipped"]),
+    )
+    return len(figures) + 5
+
+
 def main() -> None:
     log = setup_logging()
     cfg = params()
     with stage_timer("plot_data"):
         n_charts, n_curves, n_data = charts(cfg), training_figures(cfg), data_figures(cfg)
+        n_eval = evaluation_figures(cfg)
     log.info(
-        "plot_data: %d charts -> %s, %d learning curves, %d data figures",
+        "plot_data: %d charts -> %s, %d learning curves, %d data figures, %d evaluation figures",
         n_charts,
         CHARTS,
         n_curves,
         n_data,
+        n_eval,
     )
 
 

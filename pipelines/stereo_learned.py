@@ -21,8 +21,7 @@ params.yaml ``evaluation.num_threads`` (torch threads of the inference) and
   ``learned/ms_per_frame`` (batch inference, this CPU) goes to the run record; ``generalisation``:
   the same figures for SGM, the full network and ``models/stereo/holdout`` (trained without its
   meta's ``holdout_templates``) on those templates' fault-free test frames, with the paired
-  differences holdout − learned and holdout − SGM;
-- ``reports/figures/stereo_learned_example.png``: left | exact | SGM | learned | error for test frames.
+  differences holdout − learned and holdout − SGM (the example figure is drawn by plot_data).
 """
 
 from __future__ import annotations
@@ -37,7 +36,7 @@ import numpy as np
 
 from traffictwin.acceptance import Threshold, for_problem
 from traffictwin.config import ConfigError, get
-from traffictwin.io.atomic import save_figure, write_json_atomic
+from traffictwin.io.atomic import write_json_atomic
 from traffictwin.io.shards import (
     Dataset,
     DatasetError,
@@ -57,7 +56,6 @@ from ._paths import (
     STEREO_HOLDOUT_MODEL,
     STEREO_LEARNED,
     STEREO_MODEL,
-    figure_file,
     metrics_file,
 )
 
@@ -103,12 +101,11 @@ def _load_inputs(model: Path, src: Path, disparity: Path, holdout_model: Path | 
 
 @dataclass
 class _TestSums:
-    """Per-frame sums of the fault-free test frames (:func:`frame_sums`), their sequences and
-    where they are (shard, rows); ``gen_*``: the same for the held-out templates' frames."""
+    """Per-frame sums of the fault-free test frames (:func:`frame_sums`) and their sequences;
+    ``gen_*``: the same for the held-out templates' frames."""
 
     acc: list[dict[str, dict[str, Any]]] = field(default_factory=list)
     seqs: list[np.ndarray] = field(default_factory=list)
-    keep: list[tuple[int, np.ndarray]] = field(default_factory=list)
     gen_acc: list[dict[str, dict[str, Any]]] = field(default_factory=list)
     gen_seqs: list[np.ndarray] = field(default_factory=list)
 
@@ -134,7 +131,6 @@ def _score_shard(
     obj = critical_objects(gt, x.fx_b, x.cam)
     sums.acc.append(frame_sums({"sgm": d_sgm, "learned": disp[sel]}, gt, x.fx_b, obj))
     sums.seqs.append(rows.scenario.to_numpy()[sel])
-    sums.keep.append((i, np.flatnonzero(sel)))
     unseen = rows.template.astype(str).isin(x.held).to_numpy()[sel] if x.held else None
     if unseen is not None and unseen.any():
         held_net = x.held_net
@@ -188,7 +184,6 @@ def run(
     num_threads: int = 0,
     n_boot: int = 1000,
     batch_size: int = 8,
-    figure: Path | None = None,
     record: dict | None = None,
     holdout_model: Path | None = None,
     thresholds: Mapping[str, Threshold] | None = None,
@@ -234,8 +229,6 @@ def run(
         record["ms_per_frame"] = round(ms, 3)
         record["torch_threads"] = num_threads
     writer.finalize(extra={"source_manifest": ds.manifest_hash(), "metrics": metrics})
-    if figure is not None:
-        _figure(ds, x.sgm, Dataset(out, kind="stereo_learned", verify=False), sums.keep, figure)
     log.info(
         "%s: test EPE learned %.3f / SGM %.3f px (common pixels), critical objects median "
         "%.1f %% / %.1f %% (own pixels), %.1f ms/frame",
@@ -284,24 +277,6 @@ def _sha(model: Path) -> str:
     return sha256_file(p / "model.ckpt" if p.is_dir() else p)
 
 
-def _figure(risk: Dataset, sgm: Dataset, learned: Dataset, keep, path: Path, rows: int = 3) -> None:
-    """A few evenly spaced fault-free test frames (:func:`traffictwin.stereo.figures.example_figure`)."""
-    from traffictwin.stereo.figures import example_figure
-
-    picks = [(i, int(k)) for i, ks in keep for k in ks]
-    picks = [picks[j] for j in np.unique(np.linspace(0, len(picks) - 1, rows).round().astype(int))]
-    parts: dict[str, list[np.ndarray]] = {"left": [], "gt": [], "sgm": [], "learned": []}
-    for i, k in picks:
-        sh = risk.load_shard(i)
-        parts["left"].append(sh["left"][k])
-        parts["gt"].append(sh["disp_gt"][k])
-        parts["sgm"].append(sgm.load_shard(i)["disp_sgm"][k])
-        parts["learned"].append(learned.load_shard(i)["disp_learned"][k])
-    a = {k: np.stack(v) for k, v in parts.items()}
-    vmax = float(max(np.percentile(a["gt"][a["gt"] > 0], 99), 1.0)) if (a["gt"] > 0).any() else 1.0
-    save_figure(example_figure(a["left"], a["gt"], a["sgm"], a["learned"], vmax), path)
-
-
 def main() -> None:
     p = params()
     threads = get(p, "evaluation.num_threads", int, min=0)
@@ -314,7 +289,6 @@ def main() -> None:
             thresholds=thresholds,
             num_threads=threads,
             n_boot=n_boot,
-            figure=figure_file("stereo_learned_example"),
             record=record,
             holdout_model=STEREO_HOLDOUT_MODEL,
         )

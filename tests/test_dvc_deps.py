@@ -220,40 +220,39 @@ DATA_AND_TRAINING = (
     "train_stereo",
     "train_stereo_holdout",
 )
-#: what evaluation alone uses: the fusion methods compared and the evaluation figures (the twin
-#: methods are not here: the twin's config, which generate_twin reads, checks their names)
-EVALUATION_ONLY = (
-    "src/traffictwin/fusion/methods.py",
-    "src/traffictwin/fusion/figures.py",
-    "src/traffictwin/fusion/map_figures.py",
-    "src/traffictwin/twin/figures.py",
-    "src/traffictwin/risk/figures.py",
-)
+#: what evaluation alone uses: the fusion methods compared (the twin methods are not here: the
+#: twin's config, which generate_twin reads, checks their names)
+EVALUATION_ONLY = ("src/traffictwin/fusion/methods.py",)
+#: the stages that draw figures: plot_data (every chart and figure of the run) and report (its
+#: own zoomed views)
+DRAWING = ("plot_data", "report")
 
 
-#: the figures of the data and the learning curves: drawn by plot_data alone
-DATA_AND_TRAINING_FIGURES = (
-    "src/traffictwin/fusion/data_figure.py",
-    "src/traffictwin/fusion/training_figures.py",
-    "src/traffictwin/risk/data_figures.py",
-    "src/traffictwin/stereo/figures.py",
-)
+def _figure_modules() -> list[str]:
+    """Every figure module: ``figures.py``, ``*_figures.py``, ``*_figure.py`` under src/traffictwin."""
+    src = ROOT / "src" / "traffictwin"
+    pats = ("figures.py", "*_figures.py", "*_figure.py")
+    return sorted({p.relative_to(ROOT).as_posix() for pat in pats for p in src.rglob(pat)})
 
 
-def test_a_data_or_learning_curve_figure_regenerates_and_retrains_nothing() -> None:
-    """Editing the figure of a data set or a network's learning curves re-runs plot_data (and the
-    evaluations that draw their own examples with it), never a data or training stage."""
-    stages = _stages()
-    assert all((ROOT / f).is_file() for f in DATA_AND_TRAINING_FIGURES)
-    for name in DATA_AND_TRAINING:
-        hits = [d for d in _code(stages[name]) if d in DATA_AND_TRAINING_FIGURES]
+def test_a_figure_edit_reruns_only_the_stages_that_draw() -> None:
+    """Editing any figure (of the data, a learning curve or an evaluation) re-runs plot_data (and
+    the report), never a data, training or evaluation stage."""
+    stages, figures = _stages(), _figure_modules()
+    for f in ("fusion/data_figure.py", "fusion/figures.py", "twin/figures.py", "risk/figures.py"):
+        assert f"src/traffictwin/{f}" in figures
+    for name, s in stages.items():
+        if name in (*DRAWING, stage_deps.CODE_STAGE):
+            continue
+        hits = [d for d in _code(s) if d in figures]
         assert not hits, f"stage {name} depends on figure code {hits}"
-    assert set(DATA_AND_TRAINING_FIGURES) <= set(_code(stages["plot_data"]))
+    drawn = {d for n in DRAWING for d in _code(stages[n])}
+    assert set(figures) <= drawn, set(figures) - drawn
 
 
-def test_a_new_method_or_evaluation_figure_regenerates_and_retrains_nothing() -> None:
-    """Adding a method to fusion/methods.py or editing an evaluation figure re-runs the
-    evaluations, never a data or training stage."""
+def test_a_new_method_regenerates_and_retrains_nothing() -> None:
+    """Adding a method to fusion/methods.py re-runs the evaluations, never a data or training
+    stage."""
     stages = _stages()
     assert set(DATA_AND_TRAINING) <= set(stages), set(DATA_AND_TRAINING) - set(stages)
     for name in DATA_AND_TRAINING:
@@ -296,13 +295,16 @@ def _status_after_edit(repo: Path, rel: str) -> set[str]:
 def test_an_edit_re_runs_only_the_stages_that_import_it(ci_dag: Path, tmp_path: Path) -> None:
     """End to end on the finished ci DAG: after a report edit only ``report`` is out of date, after
     a new fusion method only the stages that import fusion/methods.py (evaluations, never a data
-    or training stage), after a learning-curve or data-figure edit only ``plot_data``."""
+    or training stage), after a learning-curve, data-figure or evaluation-figure edit only
+    ``plot_data``."""
     repo = copy_dag(ci_dag, tmp_path / "repo", mlflow=False)
     assert _status_after_edit(repo, "src/traffictwin/report/render.py") == {"report"}
     # the edits add up: each status also lists the stages the edits before made stale
     drawn = {"report", "plot_data"}
     assert _status_after_edit(repo, "src/traffictwin/fusion/training_figures.py") == drawn
     assert _status_after_edit(repo, "src/traffictwin/risk/data_figures.py") == drawn
+    assert _status_after_edit(repo, "src/traffictwin/twin/figures.py") == drawn
+    assert _status_after_edit(repo, "src/traffictwin/risk/figures.py") == drawn
     stale = _status_after_edit(repo, "src/traffictwin/fusion/methods.py")
     importers = {
         name for name, s in _stages().items() if "src/traffictwin/fusion/methods.py" in _code(s)

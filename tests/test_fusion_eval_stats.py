@@ -474,7 +474,13 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     tables = ev.plot_tables(res, noise)
     assert "dnn[paper]_kld_fou_mean" in tables["fusion_scores"].columns
     assert pd.isna(tables["fusion_scores"].set_index("config").loc["C", "dnn[paper]_kld_fou_mean"])
-    figs = ev.figures(res, noise, grid, 0, 0.5)
+    panels, meta = ev.figure_inputs(res, noise, grid, 0, 0.5)
+    assert meta["configs"] == list(data) and meta["network_rows"] == list(networks)
+    assert panels["network"].shape == (len(data), *raw["label"][0].shape)
+    np.testing.assert_array_equal(panels["label"][0], raw["label"][0])
+    from traffictwin.fusion.evaluation_figures import evaluation_figures
+
+    figs = evaluation_figures(tables["fusion_kld"], json_clean(res.metrics), panels, meta)
     ax = figs["fusion_kld_boxplot"].axes[0]
     boxes = {p.get_gid(): p for p in ax.patches if p.get_gid()}
     assert (

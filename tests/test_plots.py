@@ -309,3 +309,53 @@ def test_plot_data_draws_the_learning_curves_of_the_networks_the_run_trained(ci_
         "train_registration",
         "train_stereo",
     ]
+
+
+#: the figures of the evaluations, drawn by plot_data from their outputs
+EVALUATION_FIGURES = (
+    "fusion_kld_boxplot",
+    "fusion_scores_occupied",
+    "fusion_scores_free",
+    "fusion_qualitative",
+    "twin_map",
+    "twin_timeline",
+    "stereo_learned_example",
+    "risk_training_curves",
+    "risk_scatter",
+    "risk_examples",
+    "risk_confusion",
+    "risk_roc",
+)
+
+
+def test_plot_data_draws_the_evaluation_figures_from_their_outputs(ci_dag: Path) -> None:
+    from test_evaluate_fusion import png_ok
+
+    from traffictwin.io.figure_inputs import read_arrays_with_meta
+
+    stages = yaml.safe_load((ci_dag / "dvc.yaml").read_text())["stages"]
+
+    def declared(stage: str) -> set[str]:
+        items = [*stages[stage].get("outs", []), *stages[stage].get("plots", [])]
+        return {next(iter(i)) if isinstance(i, dict) else i for i in items}
+
+    drawn = declared("plot_data")
+    for name in EVALUATION_FIGURES:
+        path = f"reports/figures/{name}.png"
+        assert path in drawn, path
+        png_ok(ci_dag / path)
+    for stage in ("evaluate_fusion", "evaluate_twin", "evaluate_risk", "stereo_learned"):
+        assert not [p for p in declared(stage) if p.endswith(".png")], stage
+    # the twin's timeline figure and DVC plot show the same sequence: the one the snapshot keeps
+    _, meta = read_arrays_with_meta(ci_dag / "data" / "figure_inputs" / "twin_map.npz")
+    frames = pd.read_csv(ci_dag / "reports" / "twin_eval_frames.csv")
+    timeline = pd.read_csv(ci_dag / "reports" / "plots" / "twin_timeline.csv")
+    ego = frames[
+        (frames.noise == "frame")
+        & (frames.configuration == meta["configuration"])
+        & (frames.sequence == meta["sequence"])
+        & (frames.method == "ego")
+    ]
+    truth = timeline[timeline.series == "truth"]
+    np.testing.assert_allclose(truth["time"], ego["time"])
+    np.testing.assert_allclose(truth["thw"], np.minimum(ego["thw_true"], 5.0), rtol=1e-5)

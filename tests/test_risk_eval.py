@@ -12,6 +12,7 @@ import torch
 from _acceptance import thresholds
 from test_risk_training import camera_intrinsics, render_frame, write_synthetic_risk
 
+from traffictwin.io.shards import Dataset
 from traffictwin.risk.baselines import (
     GeometricParams,
     constant_predictions,
@@ -367,7 +368,8 @@ def test_evaluation_figures_plot_the_predictions(
     pred["pred_ship"] = pred["pred_speed_only"]
     metrics["models"]["ship"] = {"at_1.5s": {"roc_auc": 0.625}}
     figures.evaluation_figures(
-        src,
+        Dataset(tmp_path / "data" / "risk", kind="risk"),
+        Dataset(tmp_path / "data" / "disparity", kind="disparity"),
         metrics,
         pred,
         {"rgbd": hist},
@@ -438,3 +440,11 @@ def test_evaluation_figures_plot_the_predictions(
     assert titles[0].startswith(f"well predicted (frame {pred.frame_id[good]})")
     assert titles[-1].startswith(f"worst prediction (frame {pred.frame_id[bad]})")
     assert f"true {pred['risk_thw_paper'][bad]:.2f}" in titles[-1]
+    # each example shows its own frame's left image (RGB) and SGM disparity
+    frames = src.frames.set_index(src.frames["frame_id"].astype(str))
+    for row, i in zip((ex[0:2], ex[2:4]), (good, bad)):  # colour bars follow the panels
+        (arr,) = list(src.iter_arrays(frames.loc[[str(pred.frame_id[i])]], ["left", "disp_sgm"]))
+        assert np.array_equal(row[0].images[0].get_array(), arr[1]["left"][0][..., ::-1])
+        disp = arr[1]["disp_sgm"][0]
+        shown = np.ma.filled(np.ma.masked_invalid(row[1].images[0].get_array()), 0.0)
+        assert np.allclose(shown, np.where(disp > 0, disp, 0.0))

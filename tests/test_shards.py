@@ -42,6 +42,24 @@ def test_same_arrays_give_identical_bytes(tmp_path: Path) -> None:
     np.testing.assert_array_equal(got["x"], _arrays(3)["x"])
 
 
+def test_arrays_with_meta_round_trip_deterministically(tmp_path: Path) -> None:
+    from traffictwin.io.figure_inputs import read_arrays_with_meta, write_arrays_with_meta
+
+    meta = {"sequence": 7, "method": "learned+network", "radius_m": 5.0}
+    a = write_arrays_with_meta(tmp_path / "a.npz", _arrays(1), meta)
+    b = write_arrays_with_meta(tmp_path / "b.npz", _arrays(1), dict(reversed(meta.items())))
+    assert a == b  # key order of the metadata does not change the bytes
+    arrays, got = read_arrays_with_meta(tmp_path / "a.npz")
+    assert got == meta and set(arrays) == {"x", "id"}
+    np.testing.assert_array_equal(arrays["id"], [0, 1, 2])
+    write_npz_deterministic(tmp_path / "plain.npz", _arrays(1))
+    with pytest.raises(DatasetError, match="plain.npz: no 'meta_json' array"):
+        read_arrays_with_meta(tmp_path / "plain.npz")
+    with pytest.raises(ValueError):  # NaN is no JSON: refused before anything is written
+        write_arrays_with_meta(tmp_path / "nan.npz", _arrays(1), {"x": float("nan")})
+    assert not (tmp_path / "nan.npz").exists()
+
+
 def test_round_trip_and_splits(tmp_path: Path) -> None:
     m = _write(tmp_path / "ds")
     assert m["count"] == 6 and m["split_counts"] == {"train": 3, "test": 3}

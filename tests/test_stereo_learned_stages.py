@@ -29,6 +29,7 @@ from traffictwin.risk.stereo_training import (
 from traffictwin.sim.camera import StereoCamera
 from traffictwin.sim.driving import DrivingConfig
 from traffictwin.stereo import evaluation as E
+from traffictwin.stereo.figures import fault_free_test_examples
 from traffictwin.stereo.network import StereoNetSpec
 from traffictwin.stereo.sgm import SgmParams
 from traffictwin.trainer import ModelOutputs, TrainerSettings
@@ -119,10 +120,7 @@ def test_train_writes_a_sealed_model_with_its_spread_threshold(data: Path) -> No
 
 
 def test_stereo_learned_writes_aligned_shards_and_test_metrics(data: Path) -> None:
-    fig = data / "example.png"
-    m = stage.run(
-        data / "model", data / "risk", data / "disparity", data / "out", n_boot=20, figure=fig
-    )
+    m = stage.run(data / "model", data / "risk", data / "disparity", data / "out", n_boot=20)
     risk, out = Dataset(data / "risk", kind="risk"), Dataset(data / "out", kind="stereo_learned")
     assert len(out.shards) == len(risk.shards)
     thr = json.loads((data / "model" / "model_meta.json").read_text())["spread_threshold_px"]
@@ -149,7 +147,19 @@ def test_stereo_learned_writes_aligned_shards_and_test_metrics(data: Path) -> No
     assert m["sgm/common/density"] == pytest.approx(m["learned/common/density"])
     assert "diff_learned_minus_sgm/common/epe_hi" in m and m["test/frames"] > 0
     json.dumps(m, allow_nan=False)
-    assert fig.stat().st_size > 1000
+    # the example figure (plot_data): evenly spaced fault-free test frames, the learned column
+    # showing the stage's output for them
+    fig = fault_free_test_examples(risk, Dataset(data / "disparity", kind="disparity"), out, rows=2)
+    frames = risk.table("frames.csv").sort_values(["shard", "idx"])
+    picks = frames[(frames.split == "test") & (frames.fault == "none")]
+    first = picks.iloc[0]
+    learned = out.load_shard(int(first.shard))["disp_learned"][int(first.idx)]
+    rows = len(np.unique(np.linspace(0, len(picks) - 1, 2).round()))
+    assert len(fig.axes) == 5 * rows + 4 * rows  # five panels and four colour bars per row
+    shown = fig.axes[3].images[0].get_array()
+    assert np.allclose(
+        np.ma.filled(np.ma.masked_invalid(shown), -1.0), np.where(learned >= 0, learned, -1.0)
+    )
 
 
 def test_stereo_learned_refuses_bad_inputs_and_writes_nothing(data: Path, tmp_path: Path) -> None:

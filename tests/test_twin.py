@@ -422,7 +422,8 @@ def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
 
 
 def test_timeline_figure_plots_the_table() -> None:
-    from traffictwin.twin.figures import THW_CAP, pick_timeline_sequence, timeline_figure
+    from traffictwin.twin.figure_inputs import THW_CAP, pick_timeline_sequence
+    from traffictwin.twin.figures import timeline_figure
 
     f = _frame_table()
     f.insert(0, "configuration", "D")
@@ -454,7 +455,8 @@ def test_timeline_figure_plots_the_table() -> None:
 
 
 def test_twin_map_figure_shows_every_vehicle() -> None:
-    from traffictwin.twin.figures import twin_map_figure, twin_snapshot
+    from traffictwin.twin.figure_inputs import TwinSnapshot, twin_snapshot
+    from traffictwin.twin.figures import twin_map_figure
 
     p = TwinDataParams(grid=GRID, lidar=LIDAR, scenario=CFG, predict=PredictSettings(warn_s=1.5))
     a = sequence_arrays(5, 1, p)
@@ -467,7 +469,12 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
         TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5)),
     )
     assert snap.contributions.shape == a["maps"].shape[1:]
-    fig = twin_map_figure(snap, GRID, 5.0, "naive", "D")
+    # the snapshot as evaluate_twin keeps it (arrays) and plot_data reads it back
+    back = TwinSnapshot.from_arrays(snap.arrays())
+    assert back.frame == snap.frame and isinstance(back.frame, int)
+    for k in ("rel", "true_rel", "masses", "poses", "used", "contributions"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(snap, k))
+    fig = twin_map_figure(back, GRID, 5.0, "naive", "D")
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0].startswith("twin (naive)") and len(titles) == 4
     assert titles[1].startswith("vehicle 0 (ego)") and "used" in titles[2]

@@ -1,5 +1,6 @@
 """Figures of the risk network (matplotlib, Agg): the paper's Figs. 5–7 and Table 1 as images, and
-the ROC of every predictor; :func:`evaluation_figures` draws them all for the evaluate_risk stage."""
+the ROC of every predictor; :func:`evaluation_figures` draws them all
+from the evaluate_risk stage's outputs (stage plot_data)."""
 
 from __future__ import annotations
 
@@ -212,26 +213,33 @@ class EvaluationFigurePaths:
     roc: str | Path | None = None
 
 
-def _examples(source: Any, pred: pd.DataFrame, y: np.ndarray, yhat: np.ndarray, t0: float) -> list:
+def _examples(
+    risk: Any, disparity: Any, pred: pd.DataFrame, y: np.ndarray, yhat: np.ndarray, t0: float
+) -> list:
     """The Fig. 7 examples (:func:`plot_examples`): the best-predicted critical frame, then the
-    worst-predicted frame (:func:`~traffictwin.risk.evaluation.example_indices`, THW ``t0`` s)."""
+    worst-predicted frame (:func:`~traffictwin.risk.evaluation.example_indices`, THW ``t0`` s),
+    their left image from the risk data ``risk`` and SGM disparity from ``disparity`` (Datasets)."""
     good, bad = example_indices(y, yhat, t0)
-    wanted = {str(pred.at[i, "frame_id"]): i for i in (good, bad)}
-    sel = source.frames[source.frames["frame_id"].astype(str).isin(wanted)]
-    raw = {}
-    for rows, arr in source.iter_arrays(sel, ["left", "disp_sgm"]):
-        for j, fid in enumerate(rows["frame_id"].astype(str)):
-            raw[fid] = dict(left=arr["left"][j], disp=arr["disp_sgm"][j])
-    return [
-        raw[f]
-        | dict(true=float(y[i]), pred=float(yhat[i]))
-        | dict(title=("well predicted" if i == good else "worst prediction") + f" (frame {f})")
-        for f, i in sorted(wanted.items(), key=lambda kv: kv[1] != good)
-    ]
+    table = risk.table("frames.csv")
+    frames = table.set_index(table["frame_id"].astype(str))
+    out = []
+    for i in dict.fromkeys((good, bad)):
+        f = str(pred.at[i, "frame_id"])
+        shard, k = int(frames.at[f, "shard"]), int(frames.at[f, "idx"])
+        out.append(
+            dict(
+                left=risk.load_shard(shard)["left"][k],
+                disp=disparity.load_shard(shard)["disp_sgm"][k],
+            )
+            | dict(true=float(y[i]), pred=float(yhat[i]))
+            | dict(title=("well predicted" if i == good else "worst prediction") + f" (frame {f})")
+        )
+    return out
 
 
 def evaluation_figures(
-    source: Any,
+    risk: Any,
+    disparity: Any,
     metrics: Mapping[str, Any],
     pred: pd.DataFrame,
     histories: Mapping[str, pd.DataFrame],
@@ -240,8 +248,8 @@ def evaluation_figures(
     shipped: tuple[str, str] | None = None,
 ) -> None:
     """The figures of :func:`~traffictwin.risk.evaluation.evaluate_suite`'s ``metrics`` and
-    per-frame ``pred`` on ``source`` (a :class:`~traffictwin.risk.training.RiskSource`) at the
-    primary THW threshold, to ``paths``: every variant's training ``curves`` (``histories``);
+    per-frame ``pred`` (as risk.json and risk_predictions.csv) on the risk data ``risk`` and its
+    SGM ``disparity`` (Datasets: the examples' images) at the primary THW threshold, to ``paths``: every variant's training ``curves`` (``histories``);
     ``main_variant``'s ``scatter`` beside the speed-only and SGM-rule baselines, ``confusion``
     matrix and Fig. 7 ``examples``; the ``roc`` of its seeds and the baselines (baselines only
     when the headline is on the primary label). ``shipped`` (model key, legend name): the shipped
@@ -272,4 +280,4 @@ def evaluation_figures(
     cm = models[main_variant][at]
     title = f"{main_variant}: THW {t0:g} s (accuracy {cm['accuracy']:.1%})"
     plot_confusion(cm["confusion"], paths.confusion, title)
-    plot_examples(_examples(source, pred, y, yhat, t0), paths.examples)
+    plot_examples(_examples(risk, disparity, pred, y, yhat, t0), paths.examples)

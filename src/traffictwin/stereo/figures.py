@@ -88,3 +88,25 @@ def example_figure(
                 ax.set_title(titles[j], fontsize=9)
     fig.tight_layout()
     return fig
+
+
+def fault_free_test_examples(risk, sgm, learned, rows: int = 3):
+    """:func:`example_figure` of ``rows`` evenly spaced fault-free test frames of the risk data
+    ``risk`` (Dataset: left image, exact disparity), with their SGM (``sgm``) and learned
+    (``learned``) disparities (Datasets of the same shards); colour scale: the 99th percentile of
+    their exact disparity (px, at least 1)."""
+    frames = risk.table("frames.csv").sort_values(["shard", "idx"])
+    picks = frames[(frames.split == "test") & (frames.fault == "none")]
+    if not len(picks):
+        raise ValueError(f"{risk.root}: no fault-free test frame to show")
+    at = np.unique(np.linspace(0, len(picks) - 1, rows).round().astype(int))
+    parts: dict[str, list[np.ndarray]] = {"left": [], "gt": [], "sgm": [], "learned": []}
+    for i, k in picks[["shard", "idx"]].to_numpy()[at]:
+        sh = risk.load_shard(int(i))
+        parts["left"].append(sh["left"][k])
+        parts["gt"].append(sh["disp_gt"][k])
+        parts["sgm"].append(sgm.load_shard(int(i))["disp_sgm"][k])
+        parts["learned"].append(learned.load_shard(int(i))["disp_learned"][k])
+    a = {k: np.stack(v) for k, v in parts.items()}
+    vmax = float(max(np.percentile(a["gt"][a["gt"] > 0], 99), 1.0)) if (a["gt"] > 0).any() else 1.0
+    return example_figure(a["left"], a["gt"], a["sgm"], a["learned"], vmax)

@@ -3,67 +3,19 @@ timeline of the ego's time headway from its own map, from the twin and from the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 import pandas as pd
 
-from traffictwin.evidential.warp import warp_masses
 from traffictwin.grid import GridSpec
 from traffictwin.io.atomic import pyplot as _plt
 from traffictwin.report.colours import legend_handles, show_masses
 from traffictwin.sim.cooperative import ROLES
-from traffictwin.twin.evaluation import EGO, TwinEvalSettings, noisy_relative_poses, scalar
-from traffictwin.twin.fuse import TwinOptions, build_twin
-from traffictwin.twin.summary import lead_times
+from traffictwin.twin.evaluation import EGO
+from traffictwin.twin.figure_inputs import THW_CAP, TwinSnapshot, timeline_table
 
-THW_CAP = 5.0  # s: THW above this (or inf) is drawn at the cap
 # vehicle markers on the twin map: blue, orange, purple, cyan, pink, brown (none of the mass
 # colour map's green, red or grey, so a marker stays visible on free, occupied and unknown cells)
 VEHICLE_COLOURS = ("#1f77b4", "#ff7f0e", "#9467bd", "#17becf", "#e377c2", "#8c564b")
-
-
-def pick_timeline_sequence(
-    table: pd.DataFrame,
-    configuration: str,
-    method: str,
-    fps: float,
-    sequence: int | None = None,
-    horizon_s: float = 0.0,
-) -> int:
-    """``sequence`` if given (must exist), else a typical occluded sequence: the one whose lead time
-    of ``method`` over the ego at ``configuration`` (warnings from ``horizon_s`` s before the onset)
-    is closest to the median lead (ties: the lowest index)."""
-    f = table[table["configuration"] == configuration]
-    if sequence is not None:
-        if sequence not in set(f["sequence"]):
-            raise ValueError(f"twin.figure.sequence: sequence {sequence} is not in data/twin")
-        return int(sequence)
-    lt = lead_times(f, method, fps, horizon_s)
-    occ = lt[lt["kind"] == "occluded"] if len(lt) else lt
-    if len(occ) == 0:
-        return int(f["sequence"].min())
-    off = (occ["lead_s"] - float(occ["lead_s"].median())).abs().round(9)
-    return int(occ.assign(off=off).sort_values(["off", "sequence"])["sequence"].iloc[0])
-
-
-def timeline_table(
-    table: pd.DataFrame, configuration: str, method: str, sequence: int
-) -> pd.DataFrame:
-    """Long table (time s, series, thw s capped at :data:`THW_CAP`) of one sequence: truth, ego,
-    twin, and the twin's time to conflict (series ``... TTC``, column ``thw``) where the table has it."""
-    f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
-    ego, tw = f[f["method"] == EGO], f[f["method"] == method]
-    series = {"truth": (ego, "thw_true"), "ego map": (ego, "thw"), f"twin ({method})": (tw, "thw")}
-    if "ttc" in tw:  # the predictive measure read from the same twin (time to conflict, s)
-        series[f"twin ({method}) TTC"] = (tw, "ttc")
-    parts = [
-        pd.DataFrame({"time": d["time"], "series": k, "thw": d[c]}) for k, (d, c) in series.items()
-    ]
-    out = pd.concat(parts, ignore_index=True)
-    out["thw"] = np.minimum(out["thw"].to_numpy(float), THW_CAP)
-    return out
 
 
 def timeline_figure(
@@ -108,42 +60,6 @@ def timeline_figure(
     return fig
 
 
-@dataclass(frozen=True)
-class TwinSnapshot:
-    """What :func:`twin_map_figure` draws: the frame, every vehicle's noisy and true pose in the
-    ego's frame (N, 3: x m, y m, yaw rad), the twin step and each vehicle's map where the twin put
-    it (N, 2, H, W)."""
-
-    frame: int
-    rel: np.ndarray
-    true_rel: np.ndarray
-    step: Any
-    contributions: np.ndarray
-
-
-def twin_snapshot(
-    arrays: dict[str, np.ndarray],
-    grid: GridSpec,
-    noise: tuple[float, float],
-    method: str,
-    models: dict[str, Any] | None,
-    s: TwinEvalSettings,
-    registration: Any = None,
-) -> TwinSnapshot:
-    """The twin of ``method`` at the critical onset of one sequence at pose noise ``(r m, alpha
-    deg)``, with each vehicle's map warped where the twin put it."""
-    t = max(0, scalar(arrays["onset_frame"]))
-    maps = arrays["maps"][t]
-    rel = noisy_relative_poses(arrays["poses"], arrays["noise_z"], *noise)[t]
-    options = TwinOptions(method, strategy=s.strategy, models=models, registration=registration)
-    step = build_twin(maps, rel, grid, options)
-    true_rel = noisy_relative_poses(arrays["poses"], np.zeros_like(arrays["noise_z"]), 0.0, 0.0)[t]
-    contributions = np.stack(
-        [maps[0]] + [warp_masses(maps[k], step.poses[k], grid) for k in range(1, len(maps))]
-    )
-    return TwinSnapshot(t, rel, true_rel, step, contributions)
-
-
 def twin_map_figure(
     snap: TwinSnapshot, grid: GridSpec, radius: float, method: str, configuration: str
 ):
@@ -154,12 +70,12 @@ def twin_map_figure(
     plt = _plt()
     from matplotlib.patches import Circle
 
-    step, rel, true_rel = snap.step, snap.rel, snap.true_rel
+    rel, true_rel = snap.rel, snap.true_rel
     n = len(snap.contributions)
     fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
     roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
 
-    show_masses(axes[0], step.masses, grid.cell, title=f"twin ({method}), config {configuration}")
+    show_masses(axes[0], snap.masses, grid.cell, title=f"twin ({method}), config {configuration}")
     for k in range(n):
         c = VEHICLE_COLOURS[k % len(VEHICLE_COLOURS)]
         tx, ty = true_rel[k, 0], true_rel[k, 1]
@@ -168,9 +84,9 @@ def twin_map_figure(
             axes[0].plot(rel[k, 1], rel[k, 0], "x", color=c, ms=6)
             ring = Circle((rel[k, 1], rel[k, 0]), radius, fill=False, color=c, ls=":", lw=1)
             axes[0].add_patch(ring)
-            mark = "+" if step.used[k] else "s"
-            axes[0].plot(step.poses[k, 1], step.poses[k, 0], mark, color=c, ms=8)
-        used = "used" if step.used[k] else "left out (registration rejected)"
+            mark = "+" if snap.used[k] else "s"
+            axes[0].plot(snap.poses[k, 1], snap.poses[k, 0], mark, color=c, ms=8)
+        used = "used" if snap.used[k] else "left out (registration rejected)"
         title = f"vehicle {k} ({roles[k]}): {used if k else 'reference'}"
         show_masses(axes[k + 1], snap.contributions[k], grid.cell, title=title)
         axes[k + 1].plot(ty, tx, "o", color=c, ms=6, mfc="none")

@@ -75,7 +75,7 @@ from traffictwin.fusion.evaluation.keys import (
 from traffictwin.fusion.evaluation.loop import Evaluation, evaluate
 from traffictwin.fusion.evaluation.method_run import evaluate_method, pose_bins
 from traffictwin.fusion.evaluation.outputs import (
-    figures,
+    figure_inputs,
     methods_table,
     mlflow_metrics,
     plot_tables,
@@ -122,7 +122,7 @@ __all__ = [
     "pose_bins",
     "qualitative_panels",
     "plot_tables",
-    "figures",
+    "figure_inputs",
     "mlflow_metrics",
     "methods_table",
 ]

@@ -14,7 +14,6 @@ import numpy as np
 from traffictwin.fusion.config import PoseNoise
 from traffictwin.fusion.evaluation.keys import (
     CROSS_ROWS,
-    FIGURE_METHODS,
     NETWORK,
     SCORE_KEYS,
     SCORE_METHODS,
@@ -92,52 +91,29 @@ def plot_tables(ev: Evaluation, noise: Mapping[str, PoseNoise]) -> dict[str, pd.
     }
 
 
-def figures(
+def figure_inputs(
     ev: Evaluation,
     noise: Mapping[str, PoseNoise],
     grid: GridSpec,
     pair: int,
     fraction: float,
-) -> dict[str, Any]:
-    """The evaluation's matplotlib figures by file stem: ``fusion_kld_boxplot`` (KLD(b); cf. Fig. 5),
-    ``fusion_scores_occupied`` / ``fusion_scores_free`` (Figs. 6, 7), ``fusion_qualitative`` (Fig. 4).
-    Network rows of ``fusion_variants`` appear beside the methods where they exist."""
-    from traffictwin.fusion.figures import kld_boxplot, scores_plot
-    from traffictwin.fusion.map_figures import qualitative_grid
-
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """What :func:`traffictwin.fusion.figures.evaluation_figures` needs beside fusion.json and
+    the ``fusion_kld`` plot table: Fig. 4's panels (:func:`qualitative_panels`; arrays
+    ``label`` / ``naive`` / ``network``: one (2, H, W) map per configuration) and the metadata
+    (configurations in order, their noise (r m, α deg), the network rows, the pair shown, the
+    pose-error ``fraction``, the cell size m)."""
+    panels = qualitative_panels(ev, noise, grid, pair, fraction)
     configs = list(ev.data)
-    samples = ev.samples
-    main = samples[~samples["method"].str.startswith(f"{NETWORK}-")]
-    n = ev.metrics["n_pairs"]
-    box_rows = _rows(ev, FIGURE_METHODS)
-    kvals = {
-        m: {c: main[(main.method == m) & (main.config == c)]["kld_fou"].to_numpy() for c in configs}
-        for m in box_rows
+    meta = {
+        "configs": configs,
+        "noise": {c: [noise[c].r, noise[c].alpha] for c in configs},
+        "network_rows": list(ev.networks),
+        "pair_id": int(ev.data[configs[0]]["pair_id"][pair]),
+        "fraction": float(fraction),
+        "cell_m": float(grid.cell),
     }
-    score_rows = _rows(ev, SCORE_METHODS)
-    scores = {m: {c: ev.metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}
-    slow = "" if n["registered"] == n["per_config"] else f"; registered on {n['registered']}"
-    r_alpha = {c: (noise[c].r, noise[c].alpha) for c in configs}
-    return {
-        "fusion_kld_boxplot": kld_boxplot(
-            kvals,
-            configs,
-            box_rows,
-            ylabel="KLD(b): KL(label ‖ prediction) over (m_F, m_O, u)",
-            title=f"KLD(b) per configuration (test set, {n['per_config']} pairs{slow})",
-            noise=r_alpha,
-        ),
-        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ", r_alpha),
-        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free", r_alpha),
-        "fusion_qualitative": qualitative_grid(
-            qualitative_panels(ev, noise, grid, pair, fraction),
-            configs,
-            grid.cell,
-            title=f"pair {int(ev.data[configs[0]]['pair_id'][pair])}: pose error = "
-            f"{fraction:.0%} of (r, r, α)",
-            noise=r_alpha,
-        ),
-    }
+    return {k: np.stack(v).astype(np.float32) for k, v in panels.items()}, meta
 
 
 def _mlflow_key(key: str) -> str:

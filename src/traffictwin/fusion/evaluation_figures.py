@@ -1,0 +1,62 @@
+"""The fusion evaluation's figures from its outputs (stage plot_data): the KLD(b) box plot, the
+score plots (:mod:`traffictwin.fusion.figures`) and the maps of Fig. 4
+(:mod:`traffictwin.fusion.map_figures`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from traffictwin.fusion.evaluation.keys import FIGURE_METHODS, NETWORK, SCORE_METHODS
+from traffictwin.fusion.figures import kld_boxplot, scores_plot
+from traffictwin.fusion.map_figures import qualitative_grid
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+def evaluation_figures(
+    kld: pd.DataFrame,
+    metrics: Mapping[str, Any],
+    panels: Mapping[str, np.ndarray],
+    meta: Mapping[str, Any],
+) -> dict[str, Any]:
+    """The fusion evaluation's figures by file stem, from its outputs: ``fusion_kld_boxplot``
+    (KLD(b) per pair: ``kld``, the ``fusion_kld`` plot table; cf. Fig. 5),
+    ``fusion_scores_occupied`` / ``fusion_scores_free`` (fusion.json ``metrics``; Figs. 6, 7) and
+    ``fusion_qualitative`` (Fig. 4: ``panels`` and ``meta`` of
+    :func:`traffictwin.fusion.evaluation.figure_inputs`). Network rows (variants) appear beside
+    the methods where they exist."""
+    configs, nets = list(meta["configs"]), list(meta["network_rows"])
+    r_alpha = {c: tuple(v) for c, v in meta["noise"].items()}
+    main = kld[~kld["method"].str.startswith(f"{NETWORK}-")]
+    box_rows = [*FIGURE_METHODS, *(r for r in nets if r not in FIGURE_METHODS)]
+    kvals = {
+        m: {c: main[(main.method == m) & (main.config == c)]["kld_fou"].to_numpy() for c in configs}
+        for m in box_rows
+    }
+    score_rows = [*SCORE_METHODS, *(r for r in nets if r not in SCORE_METHODS)]
+    scores = {m: {c: metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}
+    n = metrics["n_pairs"]
+    slow = "" if n["registered"] == n["per_config"] else f"; registered on {n['registered']}"
+    return {
+        "fusion_kld_boxplot": kld_boxplot(
+            kvals,
+            configs,
+            box_rows,
+            ylabel="KLD(b): KL(label ‖ prediction) over (m_F, m_O, u)",
+            title=f"KLD(b) per configuration (test set, {n['per_config']} pairs{slow})",
+            noise=r_alpha,
+        ),
+        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ", r_alpha),
+        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free", r_alpha),
+        "fusion_qualitative": qualitative_grid(
+            {k: list(v) for k, v in panels.items()},
+            configs,
+            meta["cell_m"],
+            title=f"pair {meta['pair_id']}: pose error = {meta['fraction']:.0%} of (r, r, α)",
+            noise=r_alpha,
+        ),
+    }
