@@ -454,7 +454,7 @@ def test_timeline_figure_plots_the_table() -> None:
         pick_timeline_sequence(f, "D", "learned", 10.0, sequence=7)
 
 
-def test_twin_map_figure_shows_every_vehicle() -> None:
+def test_twin_map_figure_shows_every_vehicle(tmp_path: Path) -> None:
     from traffictwin.twin.figure_inputs import TwinSnapshot, twin_snapshot
     from traffictwin.twin.figures import twin_map_figure
 
@@ -469,8 +469,13 @@ def test_twin_map_figure_shows_every_vehicle() -> None:
         TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5)),
     )
     assert snap.contributions.shape == a["maps"].shape[1:]
-    # the snapshot as evaluate_twin keeps it (arrays) and plot_data reads it back
-    back = TwinSnapshot.from_arrays(snap.arrays())
+    # the snapshot as evaluate_twin keeps it (an .npz) and plot_data reads it back
+    from traffictwin.io.figure_inputs import read_arrays_with_meta, write_arrays_with_meta
+
+    write_arrays_with_meta(tmp_path / "snap.npz", snap.arrays(), {"sequence": 5})
+    arrays, meta = read_arrays_with_meta(tmp_path / "snap.npz")
+    back = TwinSnapshot.from_arrays(arrays)
+    assert meta == {"sequence": 5}
     assert back.frame == snap.frame and isinstance(back.frame, int)
     for k in ("rel", "true_rel", "masses", "poses", "used", "contributions"):
         np.testing.assert_array_equal(getattr(back, k), getattr(snap, k))

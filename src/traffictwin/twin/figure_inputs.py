@@ -77,13 +77,15 @@ class TwinSnapshot:
     contributions: np.ndarray
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The fields as arrays (``TwinSnapshot.from_arrays`` reads them back)."""
+        """The fields as arrays (``TwinSnapshot.from_arrays`` reads them back, also from an
+        ``.npz``, which keeps the frame as a 1-element array)."""
         return {k: np.asarray(v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> TwinSnapshot:
         return cls(
-            **{f.name: arrays[f.name] for f in fields(cls)} | {"frame": int(arrays["frame"])}
+            **{f.name: arrays[f.name] for f in fields(cls)}
+            | {"frame": int(np.ravel(arrays["frame"])[0])}
         )
 
 
