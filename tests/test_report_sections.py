@@ -470,10 +470,11 @@ def test_targets_this_run_cannot_evaluate_come_from_the_ablation(tmp_path: Path)
     )
 
 
-def test_row_table_hand_case(tmp_path: Path) -> None:
-    """The generic row builder: label cells, then one cell per (key, header); ``{base}`` is the
-    row's baseline, ``_ci`` an interval, ``_verdict`` the interval rule; n/a where not evaluated."""
-    from traffictwin.fusion.report_section.tables import row_table
+def test_spec_table_hand_case(tmp_path: Path) -> None:
+    """The fusion tables' generic builder: label cells, then one cell per ``(header, key)`` with
+    the row's names filled in; ``_ci`` an interval, ``_verdict`` the interval rule, a paired
+    difference's estimate; n/a where the row or difference was not evaluated."""
+    from traffictwin.fusion.report_section.tables import D, T, spec_table, with_ci
 
     metrics = {
         "test": {"A": {"dnn": {"kld_fou_mean": 0.15, "kld_fou_mean_ci": {"lo": 0.1, "hi": 0.2}}}},
@@ -482,30 +483,28 @@ def test_row_table_hand_case(tmp_path: Path) -> None:
         },
     }
     src = R.Sources(_inputs(_reports(tmp_path, {"fusion.json": metrics})))
-    t = row_table(
-        src,
-        [("A", "dnn"), ("B", "dnn")],
-        [("kld_fou_mean", "KLD(b)"), ("kld_fou_mean_ci", "95 % CI")],
-        title="t",
-    )
-    assert t.columns == ["config", "method", "KLD(b)", "95 % CI"]
-    assert [[c.text for c in r] for r in t.rows] == [
-        ["A", "network", "0.15", "[0.1, 0.2]"],
-        ["B", "network", "n/a", "n/a"],
+    assert with_ci("KLD(b)", "k") == [("KLD(b)", "k"), ("95 % CI", "k_ci")]
+    rows = [([c], {"c": c, "m": "dnn"}) for c in ("A", "B")]
+    t = spec_table(src, rows, with_ci("KLD(b)", f"{T}kld_fou_mean"), ("config",), title="t")
+    assert t.columns == ["config", "KLD(b)", "95 % CI"]
+    assert [[getattr(c, "text", c) for c in r] for r in t.rows] == [
+        ["A", "0.15", "[0.1, 0.2]"],
+        ["B", "n/a", "n/a"],
     ]
-    assert t.rows[0][2].src == "metrics/fusion.json#test.A.dnn.kld_fou_mean"
-    d = row_table(
+    assert t.rows[0][1].src == "metrics/fusion.json#test.A.dnn.kld_fou_mean"
+    d = spec_table(
         src,
-        [("A", "dnn", "naive"), ("A", "dnn", "registered")],
-        [("vs_{base}.kld_fou_mean", "Δ"), ("vs_{base}.kld_fou_mean_ci", "CI")]
-        + [("vs_{base}.kld_fou_mean_verdict", "verdict")],
-        ("config", "method", "baseline"),
+        [([b], {"c": "A", "m": "dnn", "b": b}) for b in ("naive", "registered")],
+        [*with_ci("Δ", f"{D}kld_fou_mean"), ("verdict", f"{D}kld_fou_mean_verdict")],
+        ("baseline",),
         title="d",
     )
-    assert [[c.text for c in r] for r in d.rows] == [
-        ["A", "network", "naive", "-0.1", "[-0.2, 0.05]", "no difference shown"],
-        ["A", "network", "registered", "n/a", "n/a", "n/a"],
+    assert [[getattr(c, "text", c) for c in r] for r in d.rows] == [
+        ["naive", "-0.1", "[-0.2, 0.05]", "no difference shown"],
+        ["registered", "n/a", "n/a", "n/a"],
     ]
+    assert d.rows[0][1].src == "metrics/fusion.json#diff.A.dnn.vs_naive.kld_fou_mean.estimate"
+    assert src.missing == []
 
 
 def test_spec_columns_and_cells_by_hand(tmp_path: Path) -> None:

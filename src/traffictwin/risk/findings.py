@@ -74,36 +74,26 @@ def _learning(m: Mapping[str, Any], at: str) -> dict[str, Any] | None:
 
 def _region(m: Mapping[str, Any], t: float, collapsed: set[str]) -> dict[str, Any] | None:
     """The risk metric region, the paper's against the camera's field of view: the two labels'
-    class agreement and critical shares, and the camera-region network's paired skill difference
-    to the paper-region one (``verdict`` higher / lower / none: the interval covers zero)."""
+    class agreement and critical shares, and the paired skill difference of the first
+    camera-region network (not collapsed) to the paper-region one (``skill``, None without an
+    interval; ``verdict`` higher / lower / none: the interval covers zero)."""
     reg = m.get("region") if isinstance(m.get("region"), Mapping) else {}
     labels = reg.get("labels") or {}
     if P_LABEL not in labels or F_LABEL not in labels:
         return None
-
-    def first(label: str) -> str | None:
-        ok = (v for v, e in sorted(m["models"].items()) if e.get("label") == label)
-        return next((v for v in ok if v not in collapsed), None)
-
-    fov_net = first(F_LABEL)
-    sd = next(
-        (
-            d
-            for d in (reg.get("skill_differences") or {}).values()
-            if (d.get("label_a"), d.get("label_b"), d.get("a")) == (F_LABEL, P_LABEL, fov_net)
-        ),
-        None,
-    )
-    complete = sd and finite(sd.get("estimate")) is not None
+    fov = sorted(v for v, e in m["models"].items() if e.get("label") == F_LABEL)
+    fov_net = next((v for v in fov if v not in collapsed), None)
+    pair = (F_LABEL, P_LABEL, fov_net)
+    diffs = (reg.get("skill_differences") or {}).values()
+    sd = next((d for d in diffs if (d.get("label_a"), d.get("label_b"), d.get("a")) == pair), {})
+    complete = finite(sd.get("estimate")) is not None
     side = interval_side(sd.get("lo"), sd.get("hi")) if complete else NO_INTERVAL
     agreement = reg.get("agreement") or {}
     share = f"critical_fraction_at_{t:g}s"
     return dict(
         agreement=agreement.get(f"{P_LABEL}|{F_LABEL}") or agreement,
-        critical=(lookup(labels, f"{P_LABEL}.{share}"), lookup(labels, f"{F_LABEL}.{share}")),
-        fov_net=fov_net,
-        paper_net=(sd or {}).get("b") or first(P_LABEL),
-        skill_diff=None if side == NO_INTERVAL else signed(sd),
+        critical=[lookup(labels, f"{lab}.{share}") for lab in (P_LABEL, F_LABEL)],
+        skill=None if side == NO_INTERVAL else (sd.get("a"), sd.get("b"), signed(sd)),
         verdict={HIGHER: "higher", LOWER: "lower"}.get(side, "none"),
     )
 

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from traffictwin.fusion.report_section.tables import FUSION_METHOD_LABELS
 from traffictwin.report import model as page
 from traffictwin.report.acceptance import POINTER as ACCEPTANCE_POINTER
 from traffictwin.report.model import Cell, DataFile, Table, lookup
@@ -23,14 +24,11 @@ TEMPLATES = Path(__file__).parent / "templates"
 TITLE = "Cooperative twin — risk from N vehicles' fused maps"
 #: the figures the section shows, in order; their captions are macros of the same name
 FIGURE_STEMS = ("twin_timeline", "twin_map")
-LABELS = {
+LABELS = {  # the fusion tables' labels, where the twin's maps differ
+    **FUSION_METHOD_LABELS,
     "ego": "ego's own map (no cooperation)",
     "naive": "naive (noisy poses + Dempster)",
-    "registered": "registered (FM + ECC) + Dempster",
-    "learned": "learned registration + Dempster",
     "dnn": "network on noisy poses",
-    "registered+network": "registered + network",
-    "learned+network": "learned registration + network",
 }
 ALWAYS_LABEL = "reference: a warning at every frame"
 #: the table's columns under ``configurations.<cfg>.methods.<map>`` (and ``.always_warns``): what

@@ -22,43 +22,6 @@ PAPER = "Paper 1 — fusion"
 DICE = "dice_occ"
 
 
-def _diff(m: Any, c: str, key: str) -> tuple[Any, Any, Any]:
-    """``(estimate, lo, hi)`` of the paired difference network − naive on ``key`` at ``c``."""
-    d = lookup(m, f"diff.{c}.{NET}.vs_{NAIVE}.{key}")
-    d = d if isinstance(d, Mapping) else {}
-    return d.get("estimate"), d.get("lo"), d.get("hi")
-
-
-def _at(m: Any, configs: Sequence[str], key: str) -> tuple[list[str], str]:
-    """Sides (against zero) of network − naive on ``key`` at ``configs``, and the text
-    ``B −0.131 [−0.153, −0.111]; C …``."""
-    diffs = [(c, _diff(m, c, key)) for c in configs]
-    sides = [interval_side(lo, hi) for _, (_, lo, hi) in diffs]
-    text = "; ".join(f"{c} {fmt_interval(*d)}" for c, d in diffs)
-    return sides, text
-
-
-def _growth(m: Any, first: str, last: str, key: str) -> tuple[list[str], str]:
-    """Side of the interval of network − naive on ``key`` at ``last`` against the one at ``first``
-    (they must not overlap for the gap to have changed), and the text ``A … → D …``."""
-    e0, lo0, hi0 = _diff(m, first, key)
-    e1, lo1, hi1 = _diff(m, last, key)
-    side = NO_INTERVAL if None in (lo0, hi0) else interval_side(lo1, hi1, lo0, hi0)
-    return [side], f"{first} {fmt_interval(e0, lo0, hi0)} → {last} {fmt_interval(e1, lo1, hi1)}"
-
-
-def _spread(m: Any, configs: Sequence[str]) -> tuple[list[str], str]:
-    """No side (the interquartile range has no interval in fusion.json) and the text of the
-    network's against naive's KLD(b) interquartile range at ``configs``."""
-
-    def iqr(c: str, row: str) -> str:
-        q25, q75 = (lookup(m, f"test.{c}.{row}.kld_fou_{q}") for q in ("q25", "q75"))
-        ok = all(isinstance(q, (int, float)) for q in (q25, q75))
-        return f"{float(q75) - float(q25):.3g}" if ok else "n/a"
-
-    return [NO_INTERVAL], "; ".join(f"{c} {iqr(c, NET)} vs {iqr(c, NAIVE)}" for c in configs)
-
-
 def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
     """Every claim of :data:`~traffictwin.paper_numbers.FUSION_CLAIMS` with this run's
     numbers (paired 95 % cluster-bootstrap intervals of network − naive from ``fusion.json``)
@@ -68,34 +31,53 @@ def fusion_claims(metrics: Mapping[str, Any]) -> list[ClaimCheck]:
     if not configs:
         return []
     a, noisy, last = configs[0], configs[1:], configs[-1]
+
+    def diff(c: str, key: str) -> tuple[Any, Any, Any]:
+        """``(estimate, lo, hi)`` of network − naive on ``key`` at ``c``."""
+        d = lookup(m, f"diff.{c}.{NET}.vs_{NAIVE}.{key}")
+        return tuple((d if isinstance(d, Mapping) else {}).get(k) for k in ("estimate", "lo", "hi"))
+
+    def at(cfgs: Sequence[str], key: str) -> tuple[list[str], str]:
+        """Sides (against zero) of network − naive at ``cfgs``, and ``B −0.131 [−0.153, …]; C …``."""
+        sides = [interval_side(*diff(c, key)[1:]) for c in cfgs]
+        return sides, "; ".join(f"{c} {fmt_interval(*diff(c, key))}" for c in cfgs)
+
+    def growth(key: str) -> tuple[list[str], str]:
+        """Side of network − naive's interval at the last configuration against the first one's
+        (they must not overlap for the gap to have changed), and ``A … → D …``."""
+        (e0, lo0, hi0), (e1, lo1, hi1) = diff(a, key), diff(last, key)
+        side = NO_INTERVAL if None in (lo0, hi0) else interval_side(lo1, hi1, lo0, hi0)
+        return [side], f"{a} {fmt_interval(e0, lo0, hi0)} → {last} {fmt_interval(e1, lo1, hi1)}"
+
+    def iqr(c: str, row: str) -> str:
+        """KLD(b) interquartile range of ``row`` at ``c`` (no interval in fusion.json)."""
+        q25, q75 = (lookup(m, f"test.{c}.{row}.kld_fou_{q}") for q in ("q25", "q75"))
+        ok = all(isinstance(q, (int, float)) for q in (q25, q75))
+        return f"{float(q75) - float(q25):.3g}" if ok else "n/a"
+
     kld, dice = "network − naive KLD(b), nats/cell", "network − naive occupied Dice"
     gap = f", the gap at {last} against {a} (intervals must not overlap)"
-    checks = (  # (claim, (sides, numbers), the side that confirms it, what the numbers are)
-        ("kld_A_baseline_better", _at(m, [a], HEADLINE), HIGHER, kld),
-        ("kld_BCD_net_better", _at(m, noisy, HEADLINE), LOWER, kld),
-        ("kld_baseline_degrades_faster", _growth(m, a, last, HEADLINE), LOWER, kld + gap),
-        (
-            "kld_net_less_spread",
-            _spread(m, noisy),
-            LOWER,
-            "KLD(b) interquartile range, network vs naive (point estimates, no interval)",
-        ),
-        (
-            "scores_A_baseline_better",
-            _at(m, [a], DICE),
+    spread = "; ".join(f"{c} {iqr(c, NET)} vs {iqr(c, NAIVE)}" for c in noisy)
+    iqr_text = "KLD(b) interquartile range, network vs naive (point estimates, no interval)"
+    checks = {  # claim: ((sides, numbers), the side that confirms it, what the numbers are)
+        "kld_A_baseline_better": (at([a], HEADLINE), HIGHER, kld),
+        "kld_BCD_net_better": (at(noisy, HEADLINE), LOWER, kld),
+        "kld_baseline_degrades_faster": (growth(HEADLINE), LOWER, kld + gap),
+        "kld_net_less_spread": (([NO_INTERVAL], spread), LOWER, iqr_text),
+        "scores_A_baseline_better": (
+            at([a], DICE),
             LOWER,
             f"{dice} (the only score with a paired interval)",
         ),
-        ("scores_flatter_net", _growth(m, a, last, DICE), HIGHER, dice + gap),
-        (
-            "scores_net_dominant_except",
-            _at(m, noisy, DICE),
+        "scores_flatter_net": (growth(DICE), HIGHER, dice + gap),
+        "scores_net_dominant_except": (
+            at(noisy, DICE),
             HIGHER,
             f"{dice} (precision / recall have no interval)",
         ),
-    )
+    }
     out = []
-    for name, (sides, text), expected, what in checks:
+    for name, ((sides, text), expected, what) in checks.items():
         c = P.FUSION_CLAIMS[name]
         out.append(
             ClaimCheck(PAPER, c.text, c.source, f"{what}: {text}", claim_verdict(sides, expected))

@@ -1,9 +1,12 @@
 """The fusion section's tables, each number once: KLD(b) per configuration and method (the
 headline), every row's estimates and the paired differences with their intervals, the
-registration's pose error, and the one network against the per-configuration networks. Cells
-(:func:`cell`) read ``fusion.json``: ``test.<cfg>.<row>.<metric>`` with its 95 % interval
-``<metric>_ci``, and ``diff.<cfg>.<row>.vs_<base>.<metric>`` (``estimate``, ``lo``, ``hi``); a row
-not evaluated at a configuration is ``n/a``. Its other numbers: the report's appendix.
+registration's pose error, and the one network against the per-configuration networks.
+
+Every table is a list of column specs ``(header, key)`` built by :func:`spec_table`: ``key`` a
+path in ``fusion.json`` (``test.<cfg>.<row>.<metric>``, ``diff.<cfg>.<row>.vs_<base>.<metric>``)
+with ``{c}`` the configuration, ``{m}`` the row, ``{b}`` the baseline and ``{p}`` the prefix of an
+ablation's file; :func:`cell` reads it. A row not evaluated at a configuration is ``n/a``. Its
+other numbers: the report's appendix.
 """
 
 from __future__ import annotations
@@ -35,46 +38,48 @@ POSE_ROWS = ("registered", "learned", "learned-refined")  # rows with their own 
 NET, NAIVE, REG = "dnn", "naive", "registered"
 HEADLINE = "kld_fou_mean"
 BOOTSTRAP = "cluster-bootstrap"
+CI = "95 % CI"
 CI_NOTE = (
     "Brackets: 95 % cluster-bootstrap interval (scenario = pair_id // 1000 resampled; "
     "evaluation.fusion_ci)."
 )
 Configurations = Mapping[str, tuple[float, float]]  # {name: (r m, alpha deg)}
+T, D = "{p}test.{c}.{m}.", "{p}diff.{c}.{m}.vs_{b}."  # a row's estimates, its paired differences
 
-#: the tables' columns, (key, header) with the keys of :func:`cell` (``{base}``: the baseline of a
-#: paired difference)
-ESTIMATE_COLUMNS = (
-    ("kld_fou_mean_ci", "KLD(b) 95 % CI"),
-    ("kld_fo_mean", "KLD(a)"),
-    ("kld_fo_mean_ci", "95 % CI"),
-    ("dice_occ", "Dice occ"),
-    ("dice_occ_ci", "95 % CI"),
-    ("dice_free", "Dice free"),
-    ("dice_free_ci", "95 % CI"),
-    ("u_mean", "mean u"),
-    ("u_mean_ci", "95 % CI"),
-)
-DIFF_COLUMNS = (
-    (f"vs_{{base}}.{HEADLINE}", "Δ KLD(b)"),
-    (f"vs_{{base}}.{HEADLINE}_ci", "95 % CI"),
-    (f"vs_{{base}}.{HEADLINE}_verdict", "KLD(b) verdict"),
-    ("vs_{base}.kld_fo_mean", "Δ KLD(a)"),
-    ("vs_{base}.kld_fo_mean_ci", "95 % CI"),
-    ("vs_{base}.dice_occ", "Δ Dice occ"),
-    ("vs_{base}.dice_occ_ci", "95 % CI"),
-    ("vs_{base}.dice_occ_verdict", "Dice occ verdict"),
-)
-POSE_COLUMNS = (
-    ("success_rate", "success"),
-    ("success_rate_ci", "95 % CI"),
-    ("fallback_rate", "fallback"),
-    ("residual_trans_m_median", "median Δt [m]"),
-    ("residual_trans_m_p90", "p90 Δt [m]"),
-    ("residual_rot_deg_median", "median Δψ [deg]"),
-    ("residual_rot_deg_p90", "p90 Δψ [deg]"),
-    (f"vs_{REG}.success_rate", "Δ success vs registered"),
-    (f"vs_{REG}.success_rate_ci", "95 % CI"),
-)
+
+def with_ci(header: str, key: str) -> list[tuple[str, str]]:
+    """The column specs of ``key`` and of its interval."""
+    return [(header, key), (CI, f"{key}_ci")]
+
+
+ESTIMATE_COLUMNS = [
+    ("KLD(b) 95 % CI", f"{T}{HEADLINE}_ci"),
+    *with_ci("KLD(a)", f"{T}kld_fo_mean"),
+    *with_ci("Dice occ", f"{T}dice_occ"),
+    *with_ci("Dice free", f"{T}dice_free"),
+    *with_ci("mean u", f"{T}u_mean"),
+]
+DIFF_COLUMNS = [
+    *with_ci("Δ KLD(b)", f"{D}{HEADLINE}"),
+    ("KLD(b) verdict", f"{D}{HEADLINE}_verdict"),
+    *with_ci("Δ KLD(a)", f"{D}kld_fo_mean"),
+    *with_ci("Δ Dice occ", f"{D}dice_occ"),
+    ("Dice occ verdict", f"{D}dice_occ_verdict"),
+]
+POSE_COLUMNS = [
+    *with_ci("success", f"{T}success_rate"),
+    ("fallback", f"{T}fallback_rate"),
+    ("median Δt [m]", f"{T}residual_trans_m_median"),
+    ("p90 Δt [m]", f"{T}residual_trans_m_p90"),
+    ("median Δψ [deg]", f"{T}residual_rot_deg_median"),
+    ("p90 Δψ [deg]", f"{T}residual_rot_deg_p90"),
+    *with_ci("Δ success vs registered", f"{D.replace('{b}', REG)}success_rate"),
+]
+PER_CONFIG_COLUMNS = [
+    *with_ci("one network", f"{T}{HEADLINE}"),
+    *with_ci("own network", f"{{p}}test.{{c}}.{{b}}.{HEADLINE}"),
+    *with_ci("Δ one − own", f"{D}{HEADLINE}"),
+]
 
 
 def label(m: str) -> str:
@@ -92,35 +97,45 @@ def fusion_configs(src: page.Sources, configurations: Configurations) -> list[st
 
 def fusion_methods(src: page.Sources, cfgs: Sequence[str]) -> list[str]:
     """Every evaluated row, in the order of :data:`FUSION_METHOD_LABELS`, then by name."""
-    found: list[str] = []
-    for c in cfgs:
-        d = src.get(FUSION_FILE, f"test.{c}")
-        found += [m for m in d if m not in found] if isinstance(d, dict) else []
+    found = {m for c in cfgs if isinstance(d := src.get(FUSION_FILE, f"test.{c}"), dict) for m in d}
     order = list(FUSION_METHOD_LABELS)
     return sorted(found, key=lambda m: (order.index(m) if m in order else len(order), m))
 
 
-def cell(src: page.Sources, c: str, m: str, key: str) -> Cell:
-    """Row ``m`` at configuration ``c``: ``<metric>`` (``test.<c>.<m>.<metric>``), ``<metric>_ci``
-    (its interval), ``vs_<base>.<metric>`` / ``vs_<base>.<metric>_ci`` /
-    ``vs_<base>.<metric>_verdict`` (the paired difference ``m − base``: estimate / interval /
-    :func:`~traffictwin.fusion.findings.verdict`). ``n/a`` for a row or difference not evaluated
-    at ``c``."""
-    metric = key.removesuffix("_ci").removesuffix("_verdict")
-    if key.startswith("vs_"):
-        base = f"diff.{c}.{m}.{metric}"
-        if not isinstance(d := src.get(FUSION_FILE, base), dict):
-            return Cell(NA, title=f"no paired difference {m} {metric} at configuration {c}")
-        if key.endswith("_verdict"):
-            return Cell(verdict(d), title="claimed only when the paired 95 % interval excludes 0")
-        if key.endswith("_ci"):
-            return interval_cell(src, FUSION_FILE, base, BOOTSTRAP)
-        return src.cell(FUSION_FILE, f"{base}.estimate")
-    if not isinstance(src.get(FUSION_FILE, f"test.{c}.{m}"), dict):
-        return Cell(NA, title=f"{m} not evaluated at configuration {c}")
+def cell(src: page.Sources, key: str, file: str = FUSION_FILE) -> Cell:
+    """The cell of ``key`` in ``file``: the number at ``key`` (a paired difference's
+    ``estimate``), its interval where ``key`` ends in ``_ci``, the interval rule's verdict
+    (:func:`~traffictwin.fusion.findings.verdict`) where it ends in ``_verdict``; ``n/a`` where
+    the row or difference it belongs to was not evaluated."""
+    path = key.removesuffix("_ci").removesuffix("_verdict")
+    row = path.rsplit(".", 1)[0]
+    if not isinstance(src.get(file, row), dict):
+        return Cell(NA, title=f"not evaluated: {row}")
+    value = src.get(file, path)
+    if key.endswith("_verdict"):
+        d = value if isinstance(value, dict) else None
+        return Cell(verdict(d), title="claimed only when the paired 95 % interval excludes 0")
     if key.endswith("_ci"):
-        return interval_cell(src, FUSION_FILE, f"test.{c}.{m}.{metric}", BOOTSTRAP)
-    return src.cell(FUSION_FILE, f"test.{c}.{m}.{key}")
+        return interval_cell(src, file, path, BOOTSTRAP)
+    return src.cell(file, f"{path}.estimate" if isinstance(value, dict) else path)
+
+
+def spec_table(
+    src: page.Sources,
+    rows: Sequence[tuple[Sequence[Cell], Mapping[str, str]]],
+    columns: Sequence[tuple[str, str]],
+    lead: Sequence[str] = ("config", "method"),
+    file: str = FUSION_FILE,
+    **table: Any,
+) -> Table:
+    """One table row per ``(labels, names)`` of ``rows``: its label cells (headers ``lead``),
+    then per column spec ``(header, key)`` the :func:`cell` of ``key`` filled with ``names``
+    (``c``, ``m``, ``b``, ``p``; empty where not given); ``table``: :class:`Table`'s other fields."""
+    t = Table(columns=[*lead, *(h for h, _ in columns)], **table)
+    for labels, names in rows:
+        fill = {"c": "", "m": "", "b": "", "p": "", **names}
+        t.rows.append([*labels, *(cell(src, k.format(**fill), file) for _, k in columns)])
+    return t
 
 
 def _has(src: page.Sources, key: str) -> bool:
@@ -129,62 +144,14 @@ def _has(src: page.Sources, key: str) -> bool:
     return isinstance(v, dict) or json_number(v) is not None
 
 
-def row_table(
-    src: page.Sources,
-    rows: Sequence[tuple[str, ...]],
-    columns: Sequence[tuple[str, str]],
-    lead: Sequence[str] = ("config", "method"),
-    **table: Any,
-) -> Table:
-    """One table row per ``(config, row)`` or ``(config, row, baseline)`` of ``rows``: their
-    labels (headers ``lead``), then ``columns`` (``(key, header)``, cells of :func:`cell`, with
-    ``{base}`` in a key the row's baseline); ``table``: :class:`Table`'s other fields."""
-    t = Table(columns=[*lead, *(h for _, h in columns)], **table)
-    for c, m, *base in rows:
-        keys = [k.format(base=base[0] if base else "") for k, _ in columns]
-        labels = [Cell(c), Cell(label(m)), *map(Cell, base)]
-        t.rows.append(labels + [cell(src, c, m, k) for k in keys])
-    return t
-
-
-def _kld_table(
-    src: page.Sources, configurations: Configurations, cfgs: Sequence[str], methods: Sequence[str]
-) -> Table:
-    """The headline: config, r [m], α [deg] (this run's, else the paper's), each method's KLD(b)."""
-    t = Table(
-        "Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
-        ["config", "r [m]", "α [deg]", *[label(m) for m in methods]],
-        note="KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
-        "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). Its "
-        "intervals: the estimates table; network − naive: the paired differences.",
-        anchor="fusion-kld",
-        headline=True,
-    )
-    conf = configurations or P.FUSION_CONFIGURATIONS
-    for c in cfgs:
-        base = (
-            f"params#configurations.{c}"
-            if c in configurations
-            else f"paper:FUSION_CONFIGURATIONS.{c}"
-        )
-        geometry = [
-            Cell(fmt_value(v, "g4"), src=f"{base}.{k}", value=v, fmt="g4")
-            for k, v in zip(("r", "alpha"), conf.get(c, (float("nan"), float("nan"))))
-        ]
-        t.rows.append([Cell(c), *geometry, *[cell(src, c, m, HEADLINE) for m in methods]])
-    return t
-
-
-def _diff_rows(src: page.Sources, cfgs: Sequence[str], methods: Sequence[str]) -> list[tuple]:
-    """``(config, row, baseline)`` of every paired difference against naive and registered;
-    naive − registered (registered − naive with the signs turned) only without the latter."""
+def _geometry(c: str, configurations: Configurations) -> list[Cell]:
+    """r [m] and α [deg] of configuration ``c``: this run's, else the paper's."""
+    ours = c in configurations
+    base = f"params#configurations.{c}" if ours else f"paper:FUSION_CONFIGURATIONS.{c}"
+    values = (configurations if ours else P.FUSION_CONFIGURATIONS).get(c, (float("nan"),) * 2)
     return [
-        (c, m, b)
-        for c in cfgs
-        for m in methods
-        for b in (NAIVE, REG)
-        if isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict)
-        and not ((m, b) == (NAIVE, REG) and _has(src, f"diff.{c}.{REG}.vs_{NAIVE}"))
+        Cell(fmt_value(v, "g4"), src=f"{base}.{k}", value=v, fmt="g4")
+        for k, v in zip(("r", "alpha"), values)
     ]
 
 
@@ -195,23 +162,26 @@ def per_config_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
     candidates = [(FUSION_FILE, "")] + [
         (f, "fusion.") for f in sorted(src.metrics) if f.startswith("ablations/")
     ]
-    has = (
-        (f, pre)
-        for f, pre in candidates
-        if any(isinstance(src.get(f, f"{pre}test.{c}.{PER_CONFIG_ROW}"), dict) for c in cfgs)
-    )
-    if (found := next(has, None)) is None:
+    found = [
+        (f, p, [c for c in cfgs if isinstance(src.get(f, f"{p}test.{c}.{PER_CONFIG_ROW}"), dict)])
+        for f, p in candidates
+    ]
+    f, p, have = next((x for x in found if x[2]), (None, "", []))
+    if f is None:
         return None
-    f, pre = found
     origin = (
         "this run"
         if f == FUSION_FILE
         else f"`reports/{src.paths.get(f, f)}` (the ablation's own evaluation of both networks; its experiment and commit: the appendix)"
     )
-    t = Table(
-        "Fusion: KLD(b) of the one network against a network per configuration (test split, same pairs)",
-        ["config"]
-        + [h for n in ("one network", "own network", "Δ one − own") for h in (n, "95 % CI")],
+    names = {"m": NET, "b": PER_CONFIG_ROW, "p": p}
+    return spec_table(
+        src,
+        [([Cell(c)], {"c": c, **names}) for c in have],
+        PER_CONFIG_COLUMNS,
+        ("config",),
+        f,
+        title="Fusion: KLD(b) of the one network against a network per configuration (test split, same pairs)",
         note="dnn[per-config] = a network trained on that configuration's noise only (the paper's "
         "setting; `make ablations`, the per_config ablation); the one network is trained on the "
         "mixed noise of every configuration. Δ: paired over the same pairs; its target "
@@ -219,29 +189,40 @@ def per_config_table(src: page.Sources, cfgs: Sequence[str]) -> Table | None:
         + CI_NOTE,
         anchor="fusion-one-vs-per-config",
     )
-    for c in cfgs:
-        if isinstance(src.get(f, f"{pre}test.{c}.{PER_CONFIG_ROW}"), dict):
-            keys = [f"{pre}test.{c}.{m}.{HEADLINE}" for m in (NET, PER_CONFIG_ROW)]
-            dk = f"{pre}diff.{c}.{NET}.vs_{PER_CONFIG_ROW}.{HEADLINE}"
-            cells = [x for k in keys for x in (src.cell(f, k), interval_cell(src, f, k, BOOTSTRAP))]
-            cells += [src.cell(f, f"{dk}.estimate"), interval_cell(src, f, dk, BOOTSTRAP)]
-            t.rows.append([Cell(c), *cells])
-    return t
 
 
 def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Table]:
     """KLD(b) per configuration and method (the headline), every row's estimates with their
-    intervals, the paired differences, the registration's pose error and the one network against
-    the per-configuration networks (the targets: the index's acceptance table)."""
+    intervals, the paired differences against naive and registered (naive − registered only
+    without registered − naive), the registration's pose error and the one network against the
+    per-configuration networks (the targets: the index's acceptance table)."""
     cfgs = fusion_configs(src, configurations)
     methods = fusion_methods(src, cfgs)
     rows = [(c, m) for c in cfgs for m in methods if _has(src, f"test.{c}.{m}")]
     pose = [(c, m) for c, m in rows if m in POSE_ROWS and _has(src, f"test.{c}.{m}.success_rate")]
+    diffs = [
+        (c, m, b)
+        for c, m in rows
+        for b in (NAIVE, REG)
+        if isinstance(src.get(FUSION_FILE, f"diff.{c}.{m}.vs_{b}"), dict)
+        and not ((m, b) == (NAIVE, REG) and _has(src, f"diff.{c}.{REG}.vs_{NAIVE}"))
+    ]
     tables = [
-        _kld_table(src, configurations, cfgs, methods),
-        row_table(
+        spec_table(
             src,
-            rows,
+            [([Cell(c), *_geometry(c, configurations)], {"c": c}) for c in cfgs],
+            [(label(m), f"test.{{c}}.{m}.{HEADLINE}") for m in methods],
+            ("config", "r [m]", "α [deg]"),
+            title="Fusion: KLD(b) mean per pose-noise configuration and method (test split; lower is better)",
+            note="KLD(b): KL(label‖pred) over the full mass vector (m_F, m_O, u), clipped to [1e-7, 1], "
+            "averaged over cells, then over test pairs — a divergence of distributions (≥ 0). Its "
+            "intervals: the estimates table; network − naive: the paired differences.",
+            anchor="fusion-kld",
+            headline=True,
+        ),
+        spec_table(
+            src,
+            [([Cell(c), Cell(label(m))], {"c": c, "m": m}) for c, m in rows],
             ESTIMATE_COLUMNS,
             title="Fusion: estimates with 95 % intervals per configuration and method (test split)",
             note="KLD(b) means: the KLD table; KLD(a) over (m_F, m_O) only, for comparison with "
@@ -253,9 +234,9 @@ def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Tab
             "another loss on the same data. " + CI_NOTE,
             anchor="fusion-ci",
         ),
-        row_table(
+        spec_table(
             src,
-            _diff_rows(src, cfgs, methods),
+            [([Cell(c), Cell(label(m)), Cell(b)], {"c": c, "m": m, "b": b}) for c, m, b in diffs],
             DIFF_COLUMNS,
             ("config", "method", "baseline"),
             title="Fusion: paired differences (method − baseline) on the same test pairs",
@@ -264,9 +245,9 @@ def fusion_tables(src: page.Sources, configurations: Configurations) -> list[Tab
             "registered − naive with the signs turned: one row. " + CI_NOTE,
             anchor="fusion-diff",
         ),
-        row_table(
+        spec_table(
             src,
-            pose,
+            [([Cell(c), Cell(label(m))], {"c": c, "m": m}) for c, m in pose],
             POSE_COLUMNS,
             headline=True,
             title="Registration: pose error of every method that estimates a pose (test split, same pairs)",
