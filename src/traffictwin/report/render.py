@@ -5,9 +5,10 @@ per section under ``reports/pages/`` (``<name>.md`` and ``<name>.html``, figures
 
 This module only assembles (the intro, the verdict and headline tables, "This run", the appendix
 of every metrics file no section shows, the figures under ``reports/figures``) and writes (one
-Jinja template renders every page's Markdown; markdown-it renders its HTML from that). Each problem's section, headline numbers and
-paper claims come from its :class:`~traffictwin.report.model.SectionProvider`, in the caller's
-order; a provider's page is its ``name``.
+Jinja template renders every page's Markdown, markdown-it its HTML from that Markdown). Each
+problem's section, headline numbers and paper claims come from its
+:class:`~traffictwin.report.model.SectionProvider`, in the caller's order; a provider's page is
+its ``name``.
 """
 
 from __future__ import annotations
@@ -344,7 +345,8 @@ CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max
 table{border-collapse:collapse;margin:0 0 .5em 0;font-size:.9em}
 th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
 th{background:#f3f3f3} td.num{text-align:right;white-space:nowrap}
-td.na{color:#999;text-align:right} p>sub{display:block;font-size:.95em;color:#555;margin-bottom:1.5em}
+td.na{color:#999;text-align:right}
+p>sub{display:block;font-size:.95em;color:#555;margin-bottom:1.5em}
 img{max-width:100%;border:1px solid #eee} code{background:#f5f5f5;padding:0 .2em}
 details>summary{cursor:pointer} details{margin:.5em 0 1.5em 0}
 """
