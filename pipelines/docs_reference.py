@@ -17,14 +17,12 @@ import sys
 from collections.abc import Iterator
 
 from ._paths import ROOT
-from .readme_results import write_blocks
+from .readme_results import markers, write_blocks
 
 CLI_PAGE = "docs/cli.md"
 TESTING_PAGE = "docs/testing.md"
-CLI_BEGIN = "<!-- cli:begin (generated from traffictwin.cli.build_parser() by `make docs`) -->"
-CLI_END = "<!-- cli:end -->"
-TESTS_BEGIN = "<!-- tests:begin (generated from `pytest --collect-only` by `make docs`) -->"
-TESTS_END = "<!-- tests:end -->"
+CLI_BEGIN, CLI_END = markers("cli", "traffictwin.cli.build_parser()", "docs")
+TESTS_BEGIN, TESTS_END = markers("tests", "`pytest --collect-only`", "docs")
 #: the help text's width in characters (argparse would otherwise follow $COLUMNS / the terminal)
 WIDTH = 100
 #: the marker expression of `make test-fast` (Makefile); tests/test_docs.py checks they agree

@@ -29,19 +29,19 @@ README, RESULTS_PAGE, BENCH_PAGE = "README.md", "docs/results.md", "docs/benchma
 TEMPLATES = Path(__file__).parent / "templates"
 
 
-def _markers(block: str, source: str) -> tuple[str, str]:
-    """The begin and end markers of a generated ``block`` written from ``source``."""
+def markers(block: str, source: str, make: str = "readme") -> tuple[str, str]:
+    """The markers around a generated ``block`` written from ``source`` by ``make <make>``."""
     return (
-        f"<!-- {block}:begin (generated from {source} by `make readme`) -->",
+        f"<!-- {block}:begin (generated from {source} by `make {make}`) -->",
         f"<!-- {block}:end -->",
     )
 
 
-BEGIN, END = _markers("results", "reports/results_table.md")
-T_BEGIN, T_END = _markers("timings", "reports/timings/*.json")
-H_BEGIN, H_END = _markers("headline", "reports/results_table.md")
-TS_BEGIN, TS_END = _markers("run-time", "reports/timings/*.json")
-B_BEGIN, B_END = _markers("benchmarks", "reports/benchmarks.json")
+BEGIN, END = markers("results", "reports/results_table.md")
+T_BEGIN, T_END = markers("timings", "reports/timings/*.json")
+H_BEGIN, H_END = markers("headline", "reports/results_table.md")
+TS_BEGIN, TS_END = markers("run-time", "reports/timings/*.json")
+B_BEGIN, B_END = markers("benchmarks", "reports/benchmarks.json")
 
 #: the wall time (min) `make run` (the default DAG) should take on a 2-core machine
 RUN_BUDGET_MIN = 25.0

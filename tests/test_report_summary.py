@@ -275,19 +275,21 @@ def test_write_report_writes_the_summary_and_shows_it_first(reports: Path) -> No
     assert rep.sections[0].page == rep.sections[1].page == ""  # both on the index
     page = all_html(reports)  # the index, then every page in reading order
     md = (reports / "README.md").read_text()
-    order = ['<table id="verdicts"', '<table id="headline"', f"<h2>{F.TITLE}</h2>", "<h2>Appendix"]
+    order = ["<strong>Paper claims against this run</strong>", "<strong>Headline results ("]
+    order += [f'<h2 id="{R._slug(F.TITLE)}">', '<h2 id="appendix--every-metrics-file">']
     assert [page.index(x) for x in order] == sorted(page.index(x) for x in order)
-    assert 'data-src="summary.json#risk.auc"' in page and 'data-value="0.84"' in page
+    cells = [c for s in rep.sections for t in s.tables for r in t.rows for c in r]
+    assert any(c.src == "summary.json#risk.auc" and c.value == 0.84 for c in cells)
     assert "| risk | ROC-AUC of critical frames (THW < 1.5 s) |" in md
     assert "[0.790, 0.880]" in md
     # parameters, stage times and the metrics dump: each in a closed <details>, after the results
     for title in ("This run: parameters, machine", "Appendix — every metrics file"):
-        m = re.search(r"<details><summary><h2>" + re.escape(title) + "</h2></summary>", page)
+        m = re.search(f"<details><summary>{re.escape(title)} \\(click to open\\)</summary>", page)
         assert m, title
-        assert m.start() > page.index('<table id="headline"')
-    appendix = page[page.index("<h2>Appendix") :]
+        assert m.start() > page.index("<strong>Headline results (")
+    appendix = page[page.index('<h2 id="appendix--every-metrics-file">') :]
     assert "reports/metrics/extra.json" in appendix and "</details>" in appendix
-    assert "<details" not in page[: page.index('<table id="headline"')]
+    assert "<details" not in page[: page.index("<strong>Headline results (")]
     assert "<details><summary>Appendix — every metrics file (click to open)</summary>" in page_md(
         reports, "appendix"
     )

@@ -12,6 +12,7 @@ from typing import Any
 from traffictwin.acceptance import FAIL, NOT_EVALUATED, PASS, Threshold
 from traffictwin.report import model as page
 from traffictwin.report.model import NA, Cell, Section, Table, fmt_value, json_number, number_cell
+from traffictwin.report.summary import interval
 
 TITLE = "Acceptance thresholds"
 #: the line each problem's page shows where its targets table was (pages sit in reports/pages/);
@@ -21,14 +22,8 @@ POINTER = (
     f"[acceptance table](../README.md#{TITLE.lower().replace(' ', '-')}) at the end of the report index."
 )
 ANCHOR = "acceptance"
-COLUMNS = [
-    "problem",
-    "threshold name",
-    "what it checks",
-    "condition",
-    "this run (value [95 % CI])",
-    "status",
-]
+COLUMNS = ["problem", "threshold name", "what it checks", "condition"]
+COLUMNS += ["this run (value [95 % CI])", "status"]
 #: the problems in report order, each with its metrics file ``<problem>.json``
 PROBLEMS = ("fusion", "risk", "stereo", "twin")
 #: the problems whose thresholds absent from the file's block are shown as not evaluated
@@ -71,11 +66,12 @@ def _value_cell(src: page.Sources, file: str, key: str, e: Mapping[str, Any], fm
     why = str(e.get("why", ""))
     if v is None:
         return Cell(NA, title=why or "not evaluated")
-    ci = e.get("ci") if isinstance(e.get("ci"), list) and len(e["ci"]) == 2 else None
-    lo, hi = ci or (e.get("lo", e.get("value_lo")), e.get("hi", e.get("value_hi")))
-    lo, hi = json_number(lo), json_number(hi)
-    if lo is None or hi is None:
+    iv = interval(e.get("ci")) or interval(
+        (e.get("lo", e.get("value_lo")), e.get("hi", e.get("value_hi")))
+    )
+    if iv is None:
         return number_cell(v, fmt, src_key, why)
+    lo, hi = iv
     text = f"{fmt_value(v, fmt)} [{fmt_value(lo, fmt)}, {fmt_value(hi, fmt)}]"
     derived = f"value and 95 % interval, {src_key}"  # a derived cell naming where both come from
     return Cell(text, value=[v, lo, hi], fmt=fmt, title=why, derived=derived)

@@ -4,9 +4,8 @@ the loaded input files (:class:`Sources`) the sections read their numbers from.
 Every number comes from a file: metrics JSON (``reports/metrics/*.json``, the ablations'
 ``reports/ablations/*.json``), ``reports/environment.json``, the run's parameters or
 :mod:`traffictwin.paper_numbers` (the papers' values, the only hand-typed numbers). A number
-cell remembers where it came from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``); the HTML
-carries it as ``data-src`` with the raw ``data-value``, so tests re-check every number against
-its file. A missing file or key gives an ``n/a`` cell (recorded in :attr:`Sources.missing`),
+cell remembers where it came from (``Cell.src``, e.g. ``metrics/risk.json#test/mse``), so tests
+re-check every number the pages show against its file. A missing file or key gives an ``n/a`` cell (recorded in :attr:`Sources.missing`),
 never an error. Each problem contributes a :class:`SectionProvider`; this module knows none.
 """
 

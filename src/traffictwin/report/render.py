@@ -5,18 +5,19 @@ per section under ``reports/pages/`` (``<name>.md`` and ``<name>.html``, figures
 
 This module only assembles (the intro, the verdict and headline tables, "This run", the appendix
 of every metrics file no section shows, the figures under ``reports/figures``) and writes (one
-Jinja template per format renders every page). Each problem's section, headline numbers and
-paper claims come from its :class:`~traffictwin.report.model.SectionProvider`, in the caller's
-order; a provider's page is its ``name``.
+Jinja template renders every page's Markdown, markdown-it its HTML from that Markdown). Each
+problem's section, headline numbers and paper claims come from its
+:class:`~traffictwin.report.model.SectionProvider`, in the caller's order; a provider's page is
+its ``name``.
 """
 
 from __future__ import annotations
 
 import html
-import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import astuple, replace
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -295,17 +296,10 @@ def table_markdown(t: Table) -> str:
     return "\n".join(lines)
 
 
-def _environment(html_page: bool) -> Any:
+def _environment() -> Any:
     """The Jinja2 environment of the report templates (``templates/`` next to this module)."""
-    import jinja2
-
-    env = template_environment(TEMPLATES, autoescape=html_page)
-    env.filters.update(slug=_slug, alt=_alt, table_md=table_markdown)
-    if html_page:
-        env.filters.update(
-            inline=lambda text: jinja2.utils.markupsafe.Markup(_inline(str(text))),
-            cell_attrs=lambda c: jinja2.utils.markupsafe.Markup(_cell_attrs(c)),
-        )
+    env = template_environment(TEMPLATES)
+    env.filters.update(alt=_alt, table_md=table_markdown)
     return env
 
 
@@ -316,22 +310,23 @@ def _tidy(text: str) -> str:
 
 def render_pages(report: Report, html_pages: bool = False) -> dict[str, str]:
     """``{file relative to reports/: text}`` of every page: Markdown (template ``page.md.j2``: the
-    index ``README.md`` and ``pages/<name>.md``) or HTML (``page.html.j2``: ``index.html`` and
-    ``pages/<name>.html``, each linking the style sheet :data:`STYLE`; secondary tables in closed
-    ``<details>``)."""
-    ext, index = ("html", INDEX_HTML) if html_pages else ("md", README)
-    tpl = _environment(html_pages).get_template(f"page.{ext}.j2")
-    return {
-        f"{PAGES}/{p.name}.{ext}" if p.name else index: _tidy(
-            tpl.render(report=report, page=p, index=index, ext=ext, style=STYLE)
-        )
-        for p in report_pages(report)
-    }
+    index ``README.md`` and ``pages/<name>.md``) or HTML (``index.html`` and
+    ``pages/<name>.html``: each page's Markdown rendered by :func:`html_page`)."""
+    tpl = _environment().get_template("page.md.j2")
+    out = {}
+    for p in report_pages(report):
+        md = _tidy(tpl.render(report=report, page=p))
+        if not html_pages:
+            out[f"{PAGES}/{p.name}.md" if p.name else README] = md
+            continue
+        title = f"{report.title}: {p.title}" if p.name else report.title
+        out[f"{PAGES}/{p.name}.html" if p.name else INDEX_HTML] = html_page(md, title, p.root)
+    return out
 
 
 def render_results_markdown(report: Report, link: str = README) -> str:
     """``reports/results_table.md`` (template ``results_table.md.j2``): the headline tables."""
-    tpl = _environment(False).get_template("results_table.md.j2")
+    tpl = _environment().get_template("results_table.md.j2")
     return _tidy(tpl.render(tables=results_tables(report), link=link))
 
 
@@ -347,15 +342,71 @@ def _alt(caption: str) -> str:
 # --------------------------------------------------------------------------- html
 #: the HTML pages' style sheet, written once to ``reports/style.css`` (:data:`STYLE`)
 CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em 0;font-size:.9em}
+table{border-collapse:collapse;margin:0 0 .5em 0;font-size:.9em}
 th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
 th{background:#f3f3f3} td.num{text-align:right;white-space:nowrap}
-td.na{color:#999;text-align:right} caption{text-align:left;font-weight:600;margin-bottom:.3em}
-figure{margin:1em 0} figure img{max-width:100%;border:1px solid #eee}
-figcaption{font-size:.9em;color:#555} p.note{font-size:.85em;color:#555;margin-top:-1em}
-code{background:#f5f5f5;padding:0 .2em}
-details>summary{cursor:pointer} details>summary h2{display:inline} details.more{margin:.5em 0 1.5em 0}
+td.na{color:#999;text-align:right}
+p>sub{display:block;font-size:.95em;color:#555;margin-bottom:1.5em}
+img{max-width:100%;border:1px solid #eee} code{background:#f5f5f5;padding:0 .2em}
+details>summary{cursor:pointer} details{margin:.5em 0 1.5em 0}
 """
+
+#: an HTML page around its rendered Markdown ``body``, linking the style sheet
+HTML_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8"/>
+<meta name="viewport" content="width=device-width, initial-scale=1"/>
+<title>{title}</title>
+<link rel="stylesheet" href="{root}{style}"/>
+</head>
+<body>
+{body}</body>
+</html>
+"""
+
+
+def html_page(markdown: str, title: str, root: str) -> str:
+    """A page's Markdown as HTML (markdown-it: CommonMark with tables; raw HTML such as
+    ``<details>`` passes through), with :func:`_html_tokens`' changes, linking the style sheet
+    from ``root`` (the path from the page's folder to the reports folder)."""
+    body = _markdown_it().render(markdown)
+    return HTML_PAGE.format(title=html.escape(title), root=root, style=STYLE, body=body)
+
+
+@cache
+def _markdown_it() -> Any:
+    from markdown_it import MarkdownIt
+
+    md = MarkdownIt("commonmark", {"xhtmlOut": True}).enable("table")
+    md.core.ruler.push("report_html", _html_tokens)
+    return md
+
+
+def _html_tokens(state: Any) -> None:
+    """Headings get the ids GitHub gives them (their slugs: the anchors the pages link), links to
+    the Markdown pages point at the HTML ones, table cells that show a number (or n/a) get the
+    style sheet's class ``num`` (``na``): right-aligned; text stays left-aligned. Inline HTML other
+    than ``<sub>`` (the tables' notes) is text."""
+    tokens = state.tokens
+    for tok, nxt in zip(tokens, tokens[1:]):
+        if tok.type == "heading_open":
+            tok.attrSet("id", _slug(nxt.content))
+        elif tok.type == "td_open" and (cls := cell_class(nxt.content)):
+            tok.attrSet("class", cls)
+        for child in nxt.children or ():
+            if child.type == "link_open":
+                child.attrSet("href", _html_href(str(child.attrGet("href"))))
+            elif child.type == "html_inline" and not re.match(r"</?sub>$", child.content):
+                child.type = "text"  # a placeholder such as <name> in prose: shown as written
+
+
+def cell_class(text: str) -> str | None:
+    """The class of a table cell showing ``text``: ``na`` for n/a, ``num`` for a number, an
+    interval or a percentage, None for text."""
+    if text == NA:
+        return "na"
+    return "num" if _NUMBER.match(text) else None
 
 
 def _html_href(href: str) -> str:
@@ -365,32 +416,6 @@ def _html_href(href: str) -> str:
         return href
     html_path = path[: -len(README)] + INDEX_HTML if path.endswith(README) else path[:-3] + ".html"
     return html_path + sep + anchor
-
-
-def _inline(text: str) -> str:
-    s = html.escape(text, quote=False)
-    s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
-    s = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", s)
-    s = re.sub(
-        r"\[([^\]]+)\]\(([^)\s]+)\)",
-        lambda m: f'<a href="{html.escape(_html_href(m.group(2)))}">{m.group(1)}</a>',
-        s,
-    )
-    return s
-
-
-def _cell_attrs(c: Cell) -> str:
-    """`` data-src=... data-value=...`` of a table cell (its source, for the tests' re-check)."""
-    a: list[tuple[str, str]] = []
-    if c.src:
-        a += [("data-src", c.src), ("data-value", json.dumps(c.value)), ("data-fmt", c.fmt or "")]
-    if c.derived:
-        a += [("data-derived", c.derived), ("data-value", json.dumps(c.value))]
-    if c.title:
-        a.append(("title", c.title))
-    if c.text == NA or _NUMBER.match(c.text):  # numbers right-aligned, text left-aligned
-        a.append(("class", "na" if c.text == NA else "num"))
-    return "".join(f' {k}="{html.escape(v)}"' for k, v in a)
 
 
 #: a cell that shows a number: a value (with a short unit), a signed difference, a percentage or
