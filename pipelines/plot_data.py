@@ -72,10 +72,18 @@ def curve_files(cfg) -> dict[str, dict[str, Path]]:
     }
 
 
-def _read_csv(path: Path) -> pd.DataFrame:
+def _need(path: Path) -> Path:
     if not path.is_file():
         raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
-    return pd.read_csv(path)
+    return path
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    return pd.read_csv(_need(path))
+
+
+def _metrics(name: str) -> dict:
+    return json.loads(_need(METRICS / f"{name}.json").read_text())
 
 
 def _write(df: pd.DataFrame, name: str) -> None:
@@ -90,14 +98,11 @@ def charts(cfg) -> int:
         curves = {name: _read_csv(path) for name, path in by_model.items()}
         _write(learning_curves(curves, x="epoch"), out)
     _write(fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv")), "fusion_scores.csv")
-    risk_file = METRICS / "risk.json"
-    if not risk_file.is_file():
-        raise RuntimeError(f"plot_data: {risk_file} is missing (run evaluate_risk first)")
-    risk = json.loads(risk_file.read_text())
+    risk = _metrics("risk")
     label, ts = risk.get("primary_label"), risk.get("thresholds_s")
     if not isinstance(label, str) or not isinstance(ts, list) or not ts:
         raise ValueError(
-            f"plot_data: {risk_file}: expected 'primary_label' and a list 'thresholds_s'"
+            f"plot_data: {METRICS / 'risk.json'}: expected 'primary_label' and a list 'thresholds_s'"
         )
     predictions = _read_csv(PLOTS / "risk_predictions.csv")
     curves = risk_curves(predictions, label, risk_threshold(float(ts[0])))
@@ -197,20 +202,10 @@ def data_figures(cfg) -> int:
     return 4
 
 
-def _metrics(name: str) -> dict:
-    path = METRICS / f"{name}.json"
-    if not path.is_file():
-        raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
-    return json.loads(path.read_text())
-
-
 def _figure_input(name: str) -> tuple[dict, dict]:
     from traffictwin.io.figure_inputs import read_arrays_with_meta
 
-    path = figure_input(name)
-    if not path.is_file():
-        raise RuntimeError(f"plot_data: {path} is missing (run the stage that writes it first)")
-    return read_arrays_with_meta(path)
+    return read_arrays_with_meta(_need(figure_input(name)))
 
 
 def evaluation_figures(cfg) -> int:
