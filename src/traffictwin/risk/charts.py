@@ -63,19 +63,16 @@ def risk_curves(
     pred_cols = [c for c in predictions.columns if c.startswith(prefix)]
     if not pred_cols:
         raise ValueError(f"risk predictions: no prediction column {prefix}*")
-    rocs, prs = [], []
+    roc, pr = [], []  # rows
     y = predictions[label].to_numpy(np.float64)
     for c in pred_cols:
         p = predictions[c].to_numpy(np.float64)
         ok = np.isfinite(y) & np.isfinite(p)
-        positive = y[ok] > risk_threshold
-        fpr, tpr = roc_points(positive, p[ok])
+        positive, p = y[ok] > risk_threshold, p[ok]
+        fpr, tpr = roc_points(positive, p)
         if fpr.size == 0:
             continue
-        name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p[ok]):.3f})"
-        rocs.append(pd.DataFrame(dict(zip(ROC_COLUMNS, (name, np.arange(fpr.size), fpr, tpr)))))
-        rec, prec = pr_points(positive, p[ok])
-        prs.append(pd.DataFrame(dict(zip(PR_COLUMNS, (name, np.arange(rec.size), rec, prec)))))
-    roc = pd.concat(rocs, ignore_index=True) if rocs else pd.DataFrame(columns=ROC_COLUMNS)
-    pr = pd.concat(prs, ignore_index=True) if prs else pd.DataFrame(columns=PR_COLUMNS)
-    return roc, pr
+        name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p):.3f})"
+        for rows, (a, b) in ((roc, (fpr, tpr)), (pr, pr_points(positive, p))):
+            rows.extend((name, rank, *ab) for rank, ab in enumerate(zip(a, b)))
+    return pd.DataFrame(roc, columns=ROC_COLUMNS), pd.DataFrame(pr, columns=PR_COLUMNS)
