@@ -87,12 +87,7 @@ def risk_metric_figure(
 
 
 def stereo_figure(
-    left: np.ndarray,
-    right: np.ndarray,
-    gt: np.ndarray,
-    sgm: np.ndarray,
-    path: str | Path,
-    title: str = "",
+    left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.ndarray, path: str | Path, title=""
 ) -> None:
     """Left/right image, GT disparity and SGM disparity (px, one colour bar each: yellow = near,
     invalid black; colour scale 0 to the 99th percentile of the GT), like the paper's Fig. 2."""
@@ -117,21 +112,6 @@ def stereo_figure(
     save_figure(fig, path)
 
 
-def orb_figure(left: np.ndarray, right: np.ndarray, path: str | Path, title: str, **orb_kw) -> None:
-    """Left and right image side by side with the best :data:`N_MATCHES` ORB matches drawn (a
-    flagged pair); ``orb_kw``: the detector's settings."""
-    kl, kr, matches = cross_checked_matches(left, right, **orb_kw)
-    W = left.shape[1]
-    fig, ax = plt.subplots(figsize=(11, 3.4))
-    ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
-    for m in sorted(matches, key=lambda m: m.distance)[:N_MATCHES]:
-        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
-        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
-    ax.axis("off")
-    ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
-    save_figure(fig, path)
-
-
 def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -> None:
     """:func:`stereo_figure` of the first fault-free frame faster than 3 m/s (else the first frame)
     of the risk data ``risk`` and its SGM disparity ``disparity``."""
@@ -147,14 +127,25 @@ def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -
 def orb_example_figure(
     risk: Dataset, orb_table: pd.DataFrame, params: OrbParams, path: str | Path
 ) -> None:
-    """:func:`orb_figure` of the first flagged pair with an injected fault (else the first flagged,
-    else the first pair); ``orb_table``: the orb.csv rows of ``risk``'s frames."""
+    """The first flagged pair with an injected fault (else the first flagged, else the first pair;
+    ``orb_table``: the orb.csv rows of ``risk``'s frames), left and right image side by side with
+    the best :data:`N_MATCHES` ORB matches drawn (``params``: the detector's settings)."""
     t = orb_table
     o = next(x for x in (t[t.outlier & (t.fault != "none")], t[t.outlier], t) if len(x)).iloc[0]
     fid = int(o.frame_id)
     frames = risk.table("frames.csv")
     row = frames[frames.frame_id == fid].iloc[0]
     sh, k = risk.load_shard(int(row.shard)), int(row.idx)
+    left, right = sh["left"][k], sh["right"][k]
+    W = left.shape[1]
+    kl, kr, matches = cross_checked_matches(left, right, **params.detector())
+    fig, ax = plt.subplots(figsize=(11, 3.4))
+    ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
+    for m in sorted(matches, key=lambda m: m.distance)[:N_MATCHES]:
+        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
+        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
+    ax.axis("off")
     title = f"frame {fid}: fault '{row.fault}', mean |dx| {o.mean_dx:.2f} px, mean |dy| "
-    title += f"{o.mean_dy:.2f} px, outlier={bool(o.outlier)}"
-    orb_figure(sh["left"][k], sh["right"][k], path, title, **params.detector())
+    title += f"{o.mean_dy:.2f} px, outlier={bool(o.outlier)}  (yellow: |dy| <= 2 px, red: larger)"
+    ax.set_title(title, fontsize=9)
+    save_figure(fig, path)
