@@ -138,10 +138,9 @@ def plot_examples(
         img.imshow(risk.load_shard(shard)["left"][k][..., ::-1])
         img.set_title(f"{what} (frame {f}): true {y[i]:.2f}, predicted {yhat[i]:.2f}", fontsize=9)
         d = disparity.load_shard(shard)["disp_sgm"][k]
-        d = np.where(d > 0, d, np.nan)
-        im = disp.imshow(
-            d, cmap="viridis", vmin=0, vmax=np.nanmax(d) if np.isfinite(d).any() else 1
-        )
+        d = np.where(d > 0, d, np.nan)  # ≤ 0: invalid
+        vmax = np.nanmax(d) if np.isfinite(d).any() else 1
+        im = disp.imshow(d, cmap="viridis", vmin=0, vmax=vmax)
         disp.set_title("SGM disparity (px; yellow = near)", fontsize=9)
         fig.colorbar(im, ax=disp, fraction=0.025)
         img.axis("off")
