@@ -2,8 +2,7 @@
 ``drop_intermediate``), the one builder of their points for the figures
 (:func:`traffictwin.risk.figures.plot_roc`) and the DVC plots (stage ``plot_data``:
 :func:`risk_curves`). The AUC in a predictor's name is the metrics'
-:func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points.
-"""
+:func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points."""
 
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ def roc_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.
     pos, s = _finite(positive, score)
     if pos.all() or not pos.any():
         return np.zeros(0), np.zeros(0)
-    fpr, tpr, _ = roc_curve(pos, s, drop_intermediate=True)
-    return fpr, tpr
+    return roc_curve(pos, s, drop_intermediate=True)[:2]
 
 
 def pr_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

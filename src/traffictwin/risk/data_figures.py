@@ -48,9 +48,8 @@ def risk_metric_figure(
     )
     first = next(frames)  # the fall-back
     seq, fr, r = next((c for c in chain([first], frames) if 0.4 < c[2].thw < 3.0), first)
-    img = spec.camera.render_eye(
-        fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res)
-    )[0]
+    texture = GroundTexture.from_world(seq.world, res=spec.ground_res)
+    img = spec.camera.render_eye(fr.pose, fr.boxes, texture)[0]
     obstacles = calc.obstacles(fr.boxes)
     rel = to_subject_frame(fr.boxes.subset(obstacles), fr.pose)
     lab = rasterise(rel, grid, "border")

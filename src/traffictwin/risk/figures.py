@@ -1,6 +1,6 @@
 """Figures of the risk network (matplotlib, Agg): the paper's Figs. 5–7 and Table 1 as images, and
-the ROC of every predictor; :func:`evaluation_figures` draws them all
-from the evaluate_risk stage's outputs (stage plot_data)."""
+the ROC of every predictor; :func:`evaluation_figures` draws them all from the evaluate_risk stage's
+outputs (stage plot_data)."""
 
 from __future__ import annotations
 
@@ -222,12 +222,12 @@ def evaluation_figures(
     shipped: tuple[str, str] | None = None,
 ) -> None:
     """The figures of :func:`~traffictwin.risk.evaluation.evaluate_suite`'s ``metrics`` and
-    per-frame ``pred`` (as risk.json and risk_predictions.csv) on the risk data ``risk`` and its
-    SGM ``disparity`` (Datasets: the examples' images) at the primary THW threshold, to ``paths``: every variant's training ``curves`` (``histories``);
-    ``main_variant``'s ``scatter`` beside the speed-only and SGM-rule baselines, ``confusion``
-    matrix and Fig. 7 ``examples``; the ``roc`` of its seeds and the baselines (baselines only
-    when the headline is on the primary label). ``shipped`` (model key, legend name): the shipped
-    predictor, drawn first in the scatter and the ROC when its predictions are there."""
+    per-frame ``pred`` (as risk.json and risk_predictions.csv) at the primary THW threshold, to
+    ``paths``: every variant's training ``curves`` (``histories``); ``main_variant``'s ``scatter``
+    beside the speed-only and SGM-rule baselines, ``confusion`` matrix and Fig. 7 ``examples``
+    (images from the Datasets ``risk`` and its SGM ``disparity``); the ``roc`` of its seeds and the
+    baselines (baselines only when the headline is on the primary label). ``shipped`` (model key,
+    legend name): the shipped predictor, drawn first in the scatter and the ROC when there."""
     t0 = metrics["thresholds_s"][0]
     at, models = f"at_{t0:g}s", metrics["models"]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
