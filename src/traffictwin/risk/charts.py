@@ -2,8 +2,7 @@
 ``drop_intermediate``), the one builder of their points for the figures
 (:func:`traffictwin.risk.figures.plot_roc`) and the DVC plots (stage ``plot_data``:
 :func:`risk_curves`). The AUC in a predictor's name is the metrics'
-:func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points.
-"""
+:func:`~traffictwin.risk.evaluation.roc_auc`, the trapezoid area under its ROC points."""
 
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ def roc_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.
     pos, s = _finite(positive, score)
     if pos.all() or not pos.any():
         return np.zeros(0), np.zeros(0)
-    fpr, tpr, _ = roc_curve(pos, s, drop_intermediate=True)
-    return fpr, tpr
+    return roc_curve(pos, s, drop_intermediate=True)[:2]
 
 
 def pr_points(positive: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -63,19 +61,16 @@ def risk_curves(
     pred_cols = [c for c in predictions.columns if c.startswith(prefix)]
     if not pred_cols:
         raise ValueError(f"risk predictions: no prediction column {prefix}*")
-    rocs, prs = [], []
+    roc, pr = [], []  # rows
     y = predictions[label].to_numpy(np.float64)
     for c in pred_cols:
         p = predictions[c].to_numpy(np.float64)
         ok = np.isfinite(y) & np.isfinite(p)
-        positive = y[ok] > risk_threshold
-        fpr, tpr = roc_points(positive, p[ok])
+        positive, p = y[ok] > risk_threshold, p[ok]
+        fpr, tpr = roc_points(positive, p)
         if fpr.size == 0:
             continue
-        name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p[ok]):.3f})"
-        rocs.append(pd.DataFrame(dict(zip(ROC_COLUMNS, (name, np.arange(fpr.size), fpr, tpr)))))
-        rec, prec = pr_points(positive, p[ok])
-        prs.append(pd.DataFrame(dict(zip(PR_COLUMNS, (name, np.arange(rec.size), rec, prec)))))
-    roc = pd.concat(rocs, ignore_index=True) if rocs else pd.DataFrame(columns=ROC_COLUMNS)
-    pr = pd.concat(prs, ignore_index=True) if prs else pd.DataFrame(columns=PR_COLUMNS)
-    return roc, pr
+        name = f"{c[len(prefix) :]} (AUC {roc_auc(positive, p):.3f})"
+        for rows, (a, b) in ((roc, (fpr, tpr)), (pr, pr_points(positive, p))):
+            rows.extend((name, rank, *ab) for rank, ab in enumerate(zip(a, b)))
+    return pd.DataFrame(roc, columns=ROC_COLUMNS), pd.DataFrame(pr, columns=PR_COLUMNS)

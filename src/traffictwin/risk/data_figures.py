@@ -4,6 +4,7 @@ image + disparity (paper Fig. 2) and an ORB-flagged stereo pair."""
 from __future__ import annotations
 
 from dataclasses import replace
+from itertools import chain
 from pathlib import Path
 
 import cv2
@@ -45,19 +46,13 @@ def risk_metric_figure(
         for seq in [generate_sequence(seed, i, spec.driving)]
         for fr in seq.frames
     )
-    chosen = next((c for c in frames if 0.4 < c[2].thw < 3.0), None)
-    if chosen is None:  # fall back to the first frame
-        seq = generate_sequence(seed, 0, spec.driving)
-        fr = seq.frames[0]
-        chosen = (seq, fr, calc(fr.pose, fr.speed, fr.boxes, fr.path, fr.lane_width))
-    seq, fr, r = chosen
-    img = spec.camera.render_eye(
-        fr.pose, fr.boxes, GroundTexture.from_world(seq.world, res=spec.ground_res)
-    )[0]
-    obs = fr.boxes.subset(calc.obstacles(fr.boxes))
-    rel = to_subject_frame(obs, fr.pose)
+    first = next(frames)  # the fall-back
+    seq, fr, r = next((c for c in chain([first], frames) if 0.4 < c[2].thw < 3.0), first)
+    texture = GroundTexture.from_world(seq.world, res=spec.ground_res)
+    img = spec.camera.render_eye(fr.pose, fr.boxes, texture)[0]
+    obstacles = calc.obstacles(fr.boxes)
+    rel = to_subject_frame(fr.boxes.subset(obstacles), fr.pose)
     lab = rasterise(rel, grid, "border")
-    swept = swept_cells(rel, grid) & (lab == 0)
     rgb = np.ones(grid.shape + (3,))
     rgb[region_mask(grid, replace(spec.risk, region="paper"))] = [0.93, 0.93, 0.93]
     corridor = region_mask(
@@ -66,11 +61,10 @@ def risk_metric_figure(
         path_to_subject_frame(fr.path, fr.pose),
     )
     rgb[corridor] = [0.85, 0.97, 0.85]
-    rgb[swept] = [0.45, 0.6, 1.0]
-    rgb[lab > 0] = [0.0, 0.0, 0.0]
+    rgb[swept_cells(rel, grid)] = [0.45, 0.6, 1.0]
+    rgb[lab > 0] = [0.0, 0.0, 0.0]  # over the swept cells
     if r.target >= 0:
-        ti = int(np.flatnonzero(calc.obstacles(fr.boxes) == r.target)[0])
-        rgb[lab == ti + 1] = [1.0, 0.55, 0.0]
+        rgb[lab == 1 + int(np.flatnonzero(obstacles == r.target)[0])] = [1.0, 0.55, 0.0]
     L, W = spec.risk.subject_length, spec.risk.subject_width
     sub = rasterise(Boxes([[0.0, 0.0]], [[L, W, 1.5]], [0.0], [0]), grid, "filled") > 0
     rgb[sub] = [0.85, 0.1, 0.1]
@@ -80,68 +74,41 @@ def risk_metric_figure(
     ax[0].axis("off")
     ext = [grid.width / 2, -grid.width / 2, -grid.length / 2, grid.length / 2]  # col 0 = +y (left)
     ax[1].imshow(rgb, extent=ext, interpolation="nearest")
-    ax[1].set_xlabel("y (m, + = left)")
-    ax[1].set_ylabel("x (m, forward)")
+    ax[1].set(xlabel="y (m, + = left)", ylabel="x (m, forward)")
     ax[1].set_title(f"THW {r.thw:.2f} s, d = {r.distance:.1f} m, risk {r.risk_thw:.3f}")
     fig.suptitle(
         "Risk metric calculator: grid map (black: object border cells, blue: next 3 s, "
         "green: driving corridor, grey: paper region, orange: nearest object, red: subject)",
         fontsize=9,
     )
-    save_figure(fig, path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path)
     return dict(thw=r.thw, risk=r.risk_thw, template=seq.world.template, situation=seq.situation)
 
 
-def _show_disparity(fig, ax, d: np.ma.MaskedArray, vmax: float, title: str):
-    """Disparity (px) in viridis from 0 to ``vmax`` px (yellow = near), masked cells (invalid or
-    sky) black, with a colour bar in px."""
-    cmap = plt.get_cmap("viridis").with_extremes(bad="black")
-    img = ax.imshow(d, cmap=cmap, vmin=0.0, vmax=vmax)
-    ax.set_title(title)
-    fig.colorbar(img, ax=ax, fraction=0.046, pad=0.02, label="disparity (px)")
-    return img
-
-
 def stereo_figure(
-    left: np.ndarray,
-    right: np.ndarray,
-    gt: np.ndarray,
-    sgm: np.ndarray,
-    path: str | Path,
-    title: str = "",
+    left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.ndarray, path: str | Path, title=""
 ) -> None:
     """Left/right image, GT disparity and SGM disparity (px, one colour bar each: yellow = near,
     invalid black; colour scale 0 to the 99th percentile of the GT), like the paper's Fig. 2."""
     vmax = float(np.percentile(gt[gt > 0], 99)) if (gt > 0).any() else 1.0
-    fig, ax = plt.subplots(2, 2, figsize=(10.8, 5.2))
-    for a, img, name in ((ax[0, 0], left, "left image"), (ax[0, 1], right, "right image")):
-        a.imshow(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    panels = (
+        (left, "left image"),
+        (right, "right image"),
+        (np.ma.masked_less_equal(gt, 0.0), "ground-truth disparity f·B/Z (black: sky)"),
+        (np.ma.masked_less(sgm, 0.0), "SGM disparity (black: invalid)"),  # OpenCV's invalid: < 0
+    )
+    cmap = plt.get_cmap("viridis").with_extremes(bad="black")
+    fig, ax = plt.subplots(2, 2, figsize=(10.8, 5.2), subplot_kw=dict(xticks=[], yticks=[]))
+    for a, (img, name) in zip(ax.ravel(), panels):
+        if img.ndim == 3:
+            a.imshow(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+        else:  # disparity (px) from 0 to vmax, masked cells black
+            im = a.imshow(img, cmap=cmap, vmin=0.0, vmax=vmax)
+            fig.colorbar(im, ax=a, fraction=0.046, pad=0.02, label="disparity (px)")
         a.set_title(name)
-    gt_sky = np.ma.masked_less_equal(gt, 0.0)  # no surface hit: disparity 0
-    sgm_invalid = np.ma.masked_less(sgm, 0.0)  # OpenCV's invalid value is negative
-    _show_disparity(fig, ax[1, 0], gt_sky, vmax, "ground-truth disparity f·B/Z (black: sky)")
-    _show_disparity(fig, ax[1, 1], sgm_invalid, vmax, "SGM disparity (black: invalid)")
-    for a in ax.ravel():
-        a.set_xticks([])
-        a.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=9)
-    save_figure(fig, path, dpi=110, bbox_inches="tight")
-
-
-def orb_figure(left: np.ndarray, right: np.ndarray, path: str | Path, title: str, **orb_kw) -> None:
-    """Left and right image side by side with the best :data:`N_MATCHES` ORB matches drawn (a
-    flagged pair); ``orb_kw``: the detector's settings."""
-    kl, kr, matches = cross_checked_matches(left, right, **orb_kw)
-    W = left.shape[1]
-    fig, ax = plt.subplots(figsize=(11, 3.4))
-    ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
-    for m in sorted(matches, key=lambda m: m.distance)[:N_MATCHES]:
-        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
-        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
-    ax.axis("off")
-    ax.set_title(title + "  (yellow: |dy| <= 2 px, red: larger)", fontsize=9)
-    save_figure(fig, path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path)
 
 
 def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -> None:
@@ -159,17 +126,25 @@ def stereo_example_figure(risk: Dataset, disparity: Dataset, path: str | Path) -
 def orb_example_figure(
     risk: Dataset, orb_table: pd.DataFrame, params: OrbParams, path: str | Path
 ) -> None:
-    """:func:`orb_figure` of the first flagged pair with an injected fault (else the first flagged,
-    else the first pair); ``orb_table``: the orb.csv rows of ``risk``'s frames."""
-    out = orb_table
-    flagged = out[out.outlier & (out.fault != "none")]
-    if not len(flagged):
-        flagged = out[out.outlier] if out.outlier.any() else out
-    fid = int(flagged.frame_id.iloc[0])
+    """The first flagged pair with an injected fault (else the first flagged, else the first pair;
+    ``orb_table``: the orb.csv rows of ``risk``'s frames), left and right image side by side with
+    the best :data:`N_MATCHES` ORB matches drawn (``params``: the detector's settings)."""
+    t = orb_table
+    o = next(x for x in (t[t.outlier & (t.fault != "none")], t[t.outlier], t) if len(x)).iloc[0]
+    fid = int(o.frame_id)
     frames = risk.table("frames.csv")
     row = frames[frames.frame_id == fid].iloc[0]
     sh, k = risk.load_shard(int(row.shard)), int(row.idx)
-    o = out[out.frame_id == fid].iloc[0]
+    left, right = sh["left"][k], sh["right"][k]
+    W = left.shape[1]
+    kl, kr, matches = cross_checked_matches(left, right, **params.detector())
+    fig, ax = plt.subplots(figsize=(11, 3.4))
+    ax.imshow(cv2.cvtColor(np.concatenate([left, right], 1), cv2.COLOR_BGR2RGB))
+    for m in sorted(matches, key=lambda m: m.distance)[:N_MATCHES]:
+        (x0, y0), (x1, y1) = kl[m.queryIdx].pt, kr[m.trainIdx].pt
+        ax.plot([x0, x1 + W], [y0, y1], "-", lw=0.7, color="yellow" if abs(y0 - y1) <= 2 else "red")
+    ax.axis("off")
     title = f"frame {fid}: fault '{row.fault}', mean |dx| {o.mean_dx:.2f} px, mean |dy| "
-    title += f"{o.mean_dy:.2f} px, outlier={bool(o.outlier)}"
-    orb_figure(sh["left"][k], sh["right"][k], path, title, **params.detector())
+    title += f"{o.mean_dy:.2f} px, outlier={bool(o.outlier)}  (yellow: |dy| <= 2 px, red: larger)"
+    ax.set_title(title, fontsize=9)
+    save_figure(fig, path)

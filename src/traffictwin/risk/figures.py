@@ -1,11 +1,12 @@
 """Figures of the risk network (matplotlib, Agg): the paper's Figs. 5–7 and Table 1 as images, and
-the ROC of every predictor; :func:`evaluation_figures` draws them all
-from the evaluate_risk stage's outputs (stage plot_data)."""
+the ROC of every predictor; :func:`evaluation_figures` draws them all from the evaluate_risk stage's
+outputs (stage plot_data)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
+from itertools import product
 from pathlib import Path
 from typing import Any
 
@@ -35,16 +36,13 @@ OBJECTIVE_NAME: dict[str, str] = {
 }
 VAL_MSE_LABEL = "MSE of normalised risk (dimensionless)"
 VALIDATION = " (validation)"  # a validation loss's legend label ends so (left out of the legend)
+LOSS_LINES = (("train/loss", "-", ""), ("val/loss", "--", VALIDATION))  # column, style, label tail
 EMPTY = dict(ha="center", va="center", wrap=True, fontsize=10, color="0.25", gid="empty")
 
 
 def _say_empty(ax: Any, text: str) -> None:
     """An empty chart says why, centred in its axes (``gid`` ``"empty"``), instead of drawing nothing."""
     ax.text(0.5, 0.5, text, transform=ax.transAxes, **EMPTY)
-
-
-def _save(fig: Any, path: str | Path) -> None:
-    save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_training_curves(
@@ -66,27 +64,23 @@ def plot_training_curves(
     order = [o for o in OBJECTIVE_LOSS if o in obj_of.values()]
     order += sorted({o for o in obj_of.values() if o not in OBJECTIVE_LOSS})
     colour = {n: f"C{i % 10}" for i, n in enumerate(histories)}
+    has_val = any("val/mse" in h.columns for h in runs.values())
     fig, axes = plt.subplots(1, len(order) + 1, figsize=(5.5 * len(order) + 5.5, 4), squeeze=False)
-    *panels, val = axes = axes[0]
-    paper = dict(color="k", ls=":", lw=1, label="paper test MSE")
-    for ax, obj in zip(panels, order):
-        for name in (n for n in runs if obj_of[n] == obj):
-            h = runs[name]
-            for col, ls, tail in (("train/loss", "-", ""), ("val/loss", "--", VALIDATION)):
-                if col in h.columns:
-                    ax.plot(h["step"], h[col], color=colour[name], lw=1.2, ls=ls, label=name + tail)
-        name = OBJECTIVE_NAME.get(obj, f"objective {obj}")
-        ax.set_title(f"{name}\ntraining loss (solid), validation loss (dashed)", fontsize=10)
-        ax.set_ylabel(OBJECTIVE_LOSS.get(obj, f"loss of objective {obj}"))
-        if obj == "mse" and paper_test_mse is not None:
-            ax.axhline(paper_test_mse, **paper)
-    for name, h in ((n, h) for n, h in runs.items() if "val/mse" in h.columns):
-        val.plot(h["step"], h["val/mse"], color=colour[name], lw=1.2, label=name)
-    val.set_title("validation MSE of normalised risk (every run)", fontsize=10)
-    val.set_ylabel(VAL_MSE_LABEL)
-    if paper_test_mse is not None and val.lines:
-        val.axhline(paper_test_mse, **paper)
-    for ax in axes:
+    for ax, obj in zip(axes[0], [*order, None]):  # None: the validation MSE of every run
+        cols = LOSS_LINES if obj else [("val/mse", "-", "")]
+        for name, (col, ls, tail) in product([n for n in runs if obj in (None, obj_of[n])], cols):
+            if col in runs[name].columns:
+                h = runs[name]
+                ax.plot(h["step"], h[col], color=colour[name], lw=1.2, ls=ls, label=name + tail)
+        if obj:
+            name = OBJECTIVE_NAME.get(obj, f"objective {obj}")
+            ax.set_title(f"{name}\ntraining loss (solid), validation loss (dashed)", fontsize=10)
+            ax.set_ylabel(OBJECTIVE_LOSS.get(obj, f"loss of objective {obj}"))
+        else:
+            ax.set_title("validation MSE of normalised risk (every run)", fontsize=10)
+            ax.set_ylabel(VAL_MSE_LABEL)
+        if paper_test_mse is not None and (obj == "mse" or (obj is None and has_val)):
+            ax.axhline(paper_test_mse, color="k", ls=":", lw=1, label="paper test MSE")
         ax.set_xlabel("training step")
         if ax.lines:
             ax.set_yscale("log")
@@ -94,15 +88,15 @@ def plot_training_curves(
             ax.legend(handles=shown, fontsize=8)
         ax.grid(alpha=0.3)
     if not runs:
-        _say_empty(val, "no training history to draw")
-    elif not any("val/mse" in h.columns for h in runs.values()):
-        _say_empty(val, "no validation MSE in the training histories")
+        _say_empty(axes[0, -1], "no training history to draw")
+    elif not has_val:
+        _say_empty(axes[0, -1], "no validation MSE in the training histories")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_scatter(
-    y: np.ndarray, preds: Mapping[str, np.ndarray], path: str | Path, threshold: float, title=""
+    y: np.ndarray, preds: Mapping[str, np.ndarray], path: str | Path, threshold: float, title: str
 ) -> None:
     """Predicted vs true normalised risk, one panel per predictor; dashed lines = critical
     threshold. Most frames have a risk near 0 (nothing close ahead): both axes are symmetric-log,
@@ -117,35 +111,41 @@ def plot_scatter(
         ax.axhline(threshold, color="r", ls="--", lw=0.8)
         ax.set_xscale("symlog", linthresh=lin)
         ax.set_yscale("symlog", linthresh=lin)
-        ax.set_xlim(0, hi)
-        ax.set_ylim(min(0.0, float(np.min(p))), hi)
+        ax.set(xlim=(0, hi), ylim=(min(0.0, float(np.min(p))), hi), title=name)
         ax.set_xlabel(f"true risk (1, symlog: linear below {lin:.3g})")
         ax.set_ylabel("predicted risk (1, symlog)")
-        ax.set_title(name)
         ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
+    fig.suptitle(title)
     fig.tight_layout()  # the panels' axis labels clear their neighbours
-    _save(fig, path)
+    save_figure(fig, path)
 
 
-def plot_examples(examples: Sequence[dict], path: str | Path) -> None:
-    """Each example: ``left`` (H,W,3) BGR uint8, ``disp`` (H,W) px (≤0 invalid), ``true``, ``pred``, ``title``."""
-    fig, axes = plt.subplots(len(examples), 2, figsize=(10, 2.8 * len(examples)), squeeze=False)
-    for (img, disp), ex in zip(axes, examples):
-        img.imshow(ex["left"][..., ::-1])
-        img.set_title(
-            f"{ex['title']}: true {ex['true']:.2f}, predicted {ex['pred']:.2f}", fontsize=9
-        )
-        d = np.where(ex["disp"] > 0, ex["disp"], np.nan)
-        im = disp.imshow(
-            d, cmap="viridis", vmin=0, vmax=np.nanmax(d) if np.isfinite(d).any() else 1
-        )
+def plot_examples(
+    risk: Any, disparity: Any, pred: pd.DataFrame, y: np.ndarray, yhat: np.ndarray, t0: float, path
+) -> None:
+    """Paper Fig. 7 of the predictions ``pred`` (true ``y``, predicted ``yhat``): the best-predicted
+    critical frame, then the worst-predicted one (:func:`~traffictwin.risk.evaluation.example_indices`,
+    THW ``t0`` s), each its left image (risk data ``risk``) beside its SGM disparity (``disparity``)."""
+    good, bad = example_indices(y, yhat, t0)
+    table = risk.table("frames.csv")
+    frames = table.set_index(table["frame_id"].astype(str))
+    rows = list(dict.fromkeys((good, bad)))
+    fig, axes = plt.subplots(len(rows), 2, figsize=(10, 2.8 * len(rows)), squeeze=False)
+    for (img, disp), i in zip(axes, rows):
+        f = str(pred.at[i, "frame_id"])
+        shard, k = int(frames.at[f, "shard"]), int(frames.at[f, "idx"])
+        what = "well predicted" if i == good else "worst prediction"
+        img.imshow(risk.load_shard(shard)["left"][k][..., ::-1])
+        img.set_title(f"{what} (frame {f}): true {y[i]:.2f}, predicted {yhat[i]:.2f}", fontsize=9)
+        d = disparity.load_shard(shard)["disp_sgm"][k]
+        d = np.where(d > 0, d, np.nan)  # ≤ 0: invalid
+        vmax = np.nanmax(d) if np.isfinite(d).any() else 1
+        im = disp.imshow(d, cmap="viridis", vmin=0, vmax=vmax)
         disp.set_title("SGM disparity (px; yellow = near)", fontsize=9)
         fig.colorbar(im, ax=disp, fraction=0.025)
         img.axis("off")
         disp.axis("off")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str) -> None:
@@ -160,7 +160,7 @@ def plot_confusion(confusion: Mapping[str, int], path: str | Path, title: str) -
     ax.set_xticks([0, 1], ["actual critical", "actual uncritical"])
     ax.set_yticks([0, 1], ["predicted\ncritical", "predicted\nuncritical"])
     ax.set_title(title)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_roc(
@@ -176,15 +176,15 @@ def plot_roc(
     ROC is undefined: the axes say so and draw no curve."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
     pos = np.asarray(positive, bool).ravel()
-    n_pos = int(pos.sum())
-    missing = ("critical", "uncritical") if n_pos == 0 else ("uncritical", "critical")
     if not scores:
         _say_empty(ax, "no predictor to draw")
     elif pos.size == 0:
         _say_empty(ax, "no frames in the test split: ROC undefined")
-    elif n_pos in (0, pos.size):
-        why = "no {} frames in the test split\n(all {} are {}): ROC undefined"
-        _say_empty(ax, why.format(missing[0], pos.size, missing[1]))
+    elif pos.all() or not pos.any():
+        lack, have = ("uncritical", "critical") if pos.all() else ("critical", "uncritical")
+        _say_empty(
+            ax, f"no {lack} frames in the test split\n(all {pos.size} are {have}): ROC undefined"
+        )
     else:
         for name, score in scores.items():
             a = (auc or {}).get(name)
@@ -193,48 +193,22 @@ def plot_roc(
             ax.plot(*roc_points(pos, score), ls=ls, lw=1.4, label=label)
         ax.plot([0, 1], [0, 1], color="0.6", ls=":", lw=1, label="chance")
         ax.legend(fontsize=8, loc="lower right")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.01)
+    ax.set(xlim=(0, 1), ylim=(0, 1.01), title=title)
     ax.set_xlabel("false positive rate (uncritical frames called critical)")
     ax.set_ylabel("true positive rate (critical frames detected)")
-    ax.set_title(title)
     ax.grid(alpha=0.3)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 @dataclass(frozen=True)
 class EvaluationFigurePaths:
-    """Where :func:`evaluation_figures` writes each figure (PNG); no ROC figure when ``roc`` is None."""
+    """Where :func:`evaluation_figures` writes each figure (PNG)."""
 
     curves: str | Path
     scatter: str | Path
     confusion: str | Path
     examples: str | Path
-    roc: str | Path | None = None
-
-
-def _examples(
-    risk: Any, disparity: Any, pred: pd.DataFrame, y: np.ndarray, yhat: np.ndarray, t0: float
-) -> list:
-    """The Fig. 7 examples (:func:`plot_examples`): the best-predicted critical frame, then the
-    worst-predicted frame (:func:`~traffictwin.risk.evaluation.example_indices`, THW ``t0`` s),
-    their left image from the risk data ``risk`` and SGM disparity from ``disparity`` (Datasets)."""
-    good, bad = example_indices(y, yhat, t0)
-    table = risk.table("frames.csv")
-    frames = table.set_index(table["frame_id"].astype(str))
-    out = []
-    for i in dict.fromkeys((good, bad)):
-        f = str(pred.at[i, "frame_id"])
-        shard, k = int(frames.at[f, "shard"]), int(frames.at[f, "idx"])
-        out.append(
-            dict(
-                left=risk.load_shard(shard)["left"][k],
-                disp=disparity.load_shard(shard)["disp_sgm"][k],
-            )
-            | dict(true=float(y[i]), pred=float(yhat[i]))
-            | dict(title=("well predicted" if i == good else "worst prediction") + f" (frame {f})")
-        )
-    return out
+    roc: str | Path
 
 
 def evaluation_figures(
@@ -248,12 +222,12 @@ def evaluation_figures(
     shipped: tuple[str, str] | None = None,
 ) -> None:
     """The figures of :func:`~traffictwin.risk.evaluation.evaluate_suite`'s ``metrics`` and
-    per-frame ``pred`` (as risk.json and risk_predictions.csv) on the risk data ``risk`` and its
-    SGM ``disparity`` (Datasets: the examples' images) at the primary THW threshold, to ``paths``: every variant's training ``curves`` (``histories``);
-    ``main_variant``'s ``scatter`` beside the speed-only and SGM-rule baselines, ``confusion``
-    matrix and Fig. 7 ``examples``; the ``roc`` of its seeds and the baselines (baselines only
-    when the headline is on the primary label). ``shipped`` (model key, legend name): the shipped
-    predictor, drawn first in the scatter and the ROC when its predictions are there."""
+    per-frame ``pred`` (as risk.json and risk_predictions.csv) at the primary THW threshold, to
+    ``paths``: every variant's training ``curves`` (``histories``); ``main_variant``'s ``scatter``
+    beside the speed-only and SGM-rule baselines, ``confusion`` matrix and Fig. 7 ``examples``
+    (images from the Datasets ``risk`` and its SGM ``disparity``); the ``roc`` of its seeds and the
+    baselines (baselines only when the headline is on the primary label). ``shipped`` (model key,
+    legend name): the shipped predictor, drawn first in the scatter and the ROC when there."""
     t0 = metrics["thresholds_s"][0]
     at, models = f"at_{t0:g}s", metrics["models"]
     main_label, y, yhat = main_series(metrics, pred, main_variant)
@@ -268,16 +242,16 @@ def evaluation_figures(
     scatter = {b: pred[f"pred_{b}"].to_numpy() for b in bases if b != "geometric_gt"}
     preds = {**first, main_variant: yhat, **scatter}
     plot_scatter(y, preds, paths.scatter, risk_threshold(t0), f"test frames, label {main_label}")
-    if paths.roc is not None:  # the headline's runs: each seed, the collapsed ones left out
-        group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
-        runs = [v for v in group if not models.get(v, {}).get("collapsed")] or [main_variant]
-        scores = {**first, **{v: pred[f"pred_{v}"].to_numpy() for v in [*runs, *bases]}}
-        auc = {ship[1]: models[ship[0]][at].get("roc_auc")} if ship else {}
-        auc |= {v: models[v][at].get("roc_auc") for v in runs}
-        auc |= {b: metrics["baselines"][b][at].get("roc_auc") for b in bases}
-        title = f"critical (THW < {t0:g} s) on the test frames, label {main_label}"
-        plot_roc(y > risk_threshold(t0), scores, paths.roc, title, auc)
+    # the ROC of the headline's runs: each seed, the collapsed ones left out
+    group = metrics.get("groups", {}).get(main_variant, {}).get("members") or [main_variant]
+    runs = [v for v in group if not models.get(v, {}).get("collapsed")] or [main_variant]
+    scores = {**first, **{v: pred[f"pred_{v}"].to_numpy() for v in [*runs, *bases]}}
+    auc = {ship[1]: models[ship[0]][at].get("roc_auc")} if ship else {}
+    auc |= {v: models[v][at].get("roc_auc") for v in runs}
+    auc |= {b: metrics["baselines"][b][at].get("roc_auc") for b in bases}
+    title = f"critical (THW < {t0:g} s) on the test frames, label {main_label}"
+    plot_roc(y > risk_threshold(t0), scores, paths.roc, title, auc)
     cm = models[main_variant][at]
     title = f"{main_variant}: THW {t0:g} s (accuracy {cm['accuracy']:.1%})"
     plot_confusion(cm["confusion"], paths.confusion, title)
-    plot_examples(_examples(risk, disparity, pred, y, yhat, t0), paths.examples)
+    plot_examples(risk, disparity, pred, y, yhat, t0, paths.examples)
