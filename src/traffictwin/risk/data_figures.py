@@ -86,7 +86,12 @@ def risk_metric_figure(
 
 
 def stereo_figure(
-    left: np.ndarray, right: np.ndarray, gt: np.ndarray, sgm: np.ndarray, path: str | Path, title=""
+    left: np.ndarray,
+    right: np.ndarray,
+    gt: np.ndarray,
+    sgm: np.ndarray,
+    path: str | Path,
+    title: str = "",
 ) -> None:
     """Left/right image, GT disparity and SGM disparity (px, one colour bar each: yellow = near,
     invalid black; colour scale 0 to the 99th percentile of the GT), like the paper's Fig. 2."""
