@@ -1,4 +1,6 @@
-"""Figures of the learned stereo network: learning curves and test-frame examples."""
+"""Figures of the learned stereo network: learning curves and test-frame examples; the
+learning-curve kit (:func:`per_epoch`, :func:`plot_series`, :func:`mark_best`,
+:func:`three_panels`, :func:`finish_figure`) is also the fusion networks' (below fusion)."""
 
 from __future__ import annotations
 
@@ -8,38 +10,61 @@ import numpy as np
 
 from traffictwin.io.atomic import pyplot as _plt
 
+#: the training and validation loss per epoch: (row key, line style, legend label)
+LOSS_LINES = (("train/loss", "o-", "train"), ("val/loss", "s-", "validation"))
 
-def _per_epoch(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
+
+def per_epoch(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
     """(epochs, values) of the rows that have ``key``."""
     pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
-    return tuple(np.array(pts, dtype=np.float64).T) if pts else (np.empty(0), np.empty(0))
+    return tuple(np.array(pts, dtype=np.float64).reshape(-1, 2).T)
 
 
-def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
-    """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
-    epoch (lowest val/epe) is marked."""
-    if not rows:
-        raise ValueError("learning_curves: no epochs to plot")
-    plt = _plt()
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
-    e, v = _per_epoch(rows, "val/epe")
-    ax1.plot(e, v, "o-", label="validation")
+def plot_series(ax, rows: Sequence[Mapping[str, float]], lines, scale: float = 1.0):
+    """One line per ``(key, style, label)`` of ``lines``: ``rows``' values of ``key`` (times
+    ``scale``) per epoch; returns the last line's (epochs, values)."""
+    for key, style, label in lines:
+        e, v = per_epoch(rows, key)
+        ax.plot(e, scale * v, style, label=label)
+    return e, v
+
+
+def mark_best(ax, e: np.ndarray, v: np.ndarray, note: str = "") -> None:
+    """A dotted line at the epoch of the lowest ``v`` (none without values)."""
     if len(v):
         b = int(np.argmin(v))
-        ax1.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}")
-    ax1.set(xlabel="epoch", ylabel="end-point error (px)", title="validation EPE")
-    e, v = _per_epoch(rows, "val/bad1")
-    ax2.plot(e, 100 * v, "s-", label="validation")
-    ax2.set(xlabel="epoch", ylabel="pixels with error > 1 px (%)", title="validation bad-1")
-    for key, style, label in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
-        ax3.plot(*_per_epoch(rows, key), style, label=label)
-    ax3.set(xlabel="epoch", ylabel="loss (-)", title="loss")
-    for ax in (ax1, ax2, ax3):
+        ax.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}{note}")
+
+
+def three_panels(rows: Sequence[Mapping[str, float]], what: str):
+    """A figure with three axes side by side for ``rows``; ``ValueError`` without epochs."""
+    if not rows:
+        raise ValueError(f"{what}: no epochs to plot")
+    return _plt().subplots(1, 3, figsize=(13, 3.6))
+
+
+def finish_figure(fig, title: str):
+    """x label "epoch", grid and legend on every axis, ``title`` over the figure; returns ``fig``."""
+    for ax in fig.axes:
+        ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
+    """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
+    epoch (lowest val/epe) is marked."""
+    fig, (ax1, ax2, ax3) = three_panels(rows, "learning_curves")
+    mark_best(ax1, *plot_series(ax1, rows, (("val/epe", "o-", "validation"),)))
+    ax1.set(ylabel="end-point error (px)", title="validation EPE")
+    plot_series(ax2, rows, (("val/bad1", "s-", "validation"),), scale=100)
+    ax2.set(ylabel="pixels with error > 1 px (%)", title="validation bad-1")
+    plot_series(ax3, rows, LOSS_LINES)
+    ax3.set(ylabel="loss (-)", title="loss")
+    return finish_figure(fig, title)
 
 
 def example_figure(
