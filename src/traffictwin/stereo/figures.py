@@ -76,41 +76,23 @@ def example_figure(
 ):
     """Rows of frames, columns left | exact | SGM | learned | |learned - exact| (px, colour bars);
     invalid (< 0) disparities and pixels without ground truth are shown blank."""
-    plt = _plt()
     n = len(left)
-    fig, axes = plt.subplots(n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False)
-    titles = (
-        "left image",
-        "exact disparity (px)",
-        "SGM (px)",
-        "learned (px)",
-        "|learned - exact| (px)",
+    fig, axes = _plt().subplots(
+        n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False, subplot_kw={"xticks": [], "yticks": []}
     )
+    titles = ("left image", "exact disparity (px)", "SGM (px)", "learned (px)")
+    for ax, head in zip(axes[0], (*titles, "|learned - exact| (px)")):
+        ax.set_title(head, fontsize=9)
     for i in range(n):
-        g = np.where(exact[i] > 0, exact[i], np.nan)
         err = np.where((exact[i] > 0) & (learned[i] >= 0), np.abs(learned[i] - exact[i]), np.nan)
-        maps = (
-            None,
-            g,
-            np.where(sgm[i] >= 0, sgm[i], np.nan),
-            np.where(learned[i] >= 0, learned[i], np.nan),
-            err,
-        )
-        for j, ax in enumerate(axes[i]):
-            if j == 0:
-                ax.imshow(left[i][..., ::-1])
-            else:
-                im = ax.imshow(
-                    maps[j],
-                    cmap="magma" if j == 4 else "viridis",
-                    vmin=0,
-                    vmax=2.0 if j == 4 else vmax,
-                )
-                fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if i == 0:
-                ax.set_title(titles[j], fontsize=9)
+        axes[i, 0].imshow(left[i][..., ::-1])
+        valid = [np.where(d[i] >= 0, d[i], np.nan) for d in (sgm, learned)]
+        maps = (np.where(exact[i] > 0, exact[i], np.nan), *valid, err)
+        for ax, img, cmap, top in zip(
+            axes[i, 1:], maps, ("viridis",) * 3 + ("magma",), (vmax,) * 3 + (2.0,)
+        ):
+            im = ax.imshow(img, cmap=cmap, vmin=0, vmax=top)
+            fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
     fig.tight_layout()
     return fig
 
