@@ -80,8 +80,7 @@ def _log_threshold(data: Sequence[np.ndarray]) -> float | None:
 
 def config_axis(ax, configs: Sequence[str], noise, xlabel: str, **kw) -> None:
     """x ticks at 0, 1, ... labelled by :func:`config_label`, and the axis label ``xlabel``."""
-    ax.set_xticks(range(len(configs)))
-    ax.set_xticklabels([config_label(c, noise) for c in configs])
+    ax.set_xticks(range(len(configs)), [config_label(c, noise) for c in configs])
     ax.set_xlabel(xlabel, **kw)
 
 
