@@ -107,13 +107,10 @@ def fault_free_test_examples(risk, sgm, learned, rows: int = 3):
     if not len(picks):
         raise ValueError(f"{risk.root}: no fault-free test frame to show")
     at = np.unique(np.linspace(0, len(picks) - 1, rows).round().astype(int))
-    parts: dict[str, list[np.ndarray]] = {"left": [], "gt": [], "sgm": [], "learned": []}
-    for i, k in picks[["shard", "idx"]].to_numpy()[at]:
-        sh = risk.load_shard(int(i))
-        parts["left"].append(sh["left"][k])
-        parts["gt"].append(sh["disp_gt"][k])
-        parts["sgm"].append(sgm.load_shard(int(i))["disp_sgm"][k])
-        parts["learned"].append(learned.load_shard(int(i))["disp_learned"][k])
-    a = {k: np.stack(v) for k, v in parts.items()}
-    vmax = float(max(np.percentile(a["gt"][a["gt"] > 0], 99), 1.0)) if (a["gt"] > 0).any() else 1.0
-    return example_figure(a["left"], a["gt"], a["sgm"], a["learned"], vmax)
+    picked = picks[["shard", "idx"]].to_numpy()[at]
+    sources = ((risk, "left"), (risk, "disp_gt"), (sgm, "disp_sgm"), (learned, "disp_learned"))
+    left, gt, sgm_d, learned_d = (
+        np.stack([ds.load_shard(int(i), [key])[key][k] for i, k in picked]) for ds, key in sources
+    )
+    vmax = float(max(np.percentile(gt[gt > 0], 99), 1.0)) if (gt > 0).any() else 1.0
+    return example_figure(left, gt, sgm_d, learned_d, vmax)
