@@ -52,10 +52,8 @@ def score_figure(
     fig.legend(
         legend.values(), legend.keys(), fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95)
     )
-    fig.suptitle(
-        f"Classification of {cls} cells vs pose-noise configuration (test split)\n{CONFIG_NOTE}",
-        fontsize=11,
-    )
+    head = f"Classification of {cls} cells vs pose-noise configuration (test split)"
+    fig.suptitle(f"{head}\n{CONFIG_NOTE}", fontsize=11)
     fig.tight_layout()
     return fig
 
@@ -71,9 +69,8 @@ def draw_score_figures(
 
     if not Path(wide_csv).is_file():
         return []
-    scores = fusion_scores_long(pd.read_csv(wide_csv))
-    out = []
-    for cls in ("occupied", "free"):
-        fig = score_figure(scores, configurations, cls)
-        out.append(save_figure(fig, Path(out_dir) / f"fusion_scores_{cls}_zoomed.png"))
-    return out
+    scores, out = fusion_scores_long(pd.read_csv(wide_csv)), Path(out_dir)
+    return [
+        save_figure(score_figure(scores, configurations, c), out / f"fusion_scores_{c}_zoomed.png")
+        for c in ("occupied", "free")
+    ]
