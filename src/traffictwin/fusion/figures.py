@@ -86,9 +86,7 @@ def config_axis(ax, configs: Sequence[str], noise, xlabel: str, **kw) -> None:
 
 def method_line(ax, x, y, meth: str) -> None:
     """``meth``'s line in its :data:`METHOD_STYLE` (solid for network and naive), ``gid`` = it."""
-    st = _style(meth)
-    ls = "-" if meth in ("dnn", "naive") else "--"
-    ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
+    ax.plot(x, y, "-" if meth in ("dnn", "naive") else "--", **_style(meth), gid=meth)
 
 
 def score_axes(ax, lines, configs: Sequence[str], noise, **props) -> None:
