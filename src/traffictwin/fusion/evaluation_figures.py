@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from traffictwin.fusion.evaluation.keys import FIGURE_METHODS, NETWORK, SCORE_METHODS
+from traffictwin.fusion.evaluation.keys import FIGURE_METHODS, SCORE_METHODS
 from traffictwin.fusion.figures import kld_boxplot, scores_plot
 from traffictwin.fusion.map_figures import qualitative_grid
 
@@ -31,11 +31,10 @@ def evaluation_figures(
     the methods where they exist."""
     configs, nets = list(meta["configs"]), list(meta["network_rows"])
     r_alpha = {c: tuple(v) for c, v in meta["noise"].items()}
-    main = kld[~kld["method"].str.startswith(f"{NETWORK}-")]
     box_rows = [*FIGURE_METHODS, *(r for r in nets if r not in FIGURE_METHODS)]
     kvals = {
-        m: {c: main[(main.method == m) & (main.config == c)]["kld_fou"].to_numpy() for c in configs}
-        for m in box_rows
+        m: {c: g["kld_fou"].to_numpy() for c, g in rows.groupby("config")}
+        for m, rows in kld.groupby("method")
     }
     score_rows = [*SCORE_METHODS, *(r for r in nets if r not in SCORE_METHODS)]
     scores = {m: {c: metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}

@@ -42,23 +42,16 @@ def config_label(name: str, noise: Mapping[str, Sequence[float]] | None = None) 
     return f"{name}\nr {r:g} m\nα {alpha:g}°"
 
 
-def _label(row: str) -> str:
-    """Legend label of a method or network row (``dnn[paper]`` → the dnn label + ``[paper loss]``)."""
+def _style(method: str) -> dict:
+    """Colour, marker and legend label of a method or network row (``dnn[paper]``: the dnn label
+    + `` [paper loss]``)."""
     from traffictwin.fusion.methods import METHODS
 
-    base, _, loss = row.partition("[")
-    if base not in METHODS:
-        return row
-    return METHODS[base].label + (f" [{loss.rstrip(']')} loss]" if loss else "")
-
-
-def _style(method: str) -> dict:
-    return {
-        "color": "#000000",
-        "marker": "o",
-        **METHOD_STYLE.get(method, {}),
-        "label": _label(method),
-    }
+    base, _, loss = method.partition("[")
+    style = {"color": "#000000", "marker": "o", **METHOD_STYLE.get(method, {}), "label": method}
+    if base in METHODS:
+        style["label"] = METHODS[base].label + (f" [{loss.rstrip(']')} loss]" if loss else "")
+    return style
 
 
 #: the configuration axis in plain words (the tick labels carry each configuration's r and α) ...
@@ -68,6 +61,11 @@ CONFIG_NOTE = (
     "pose error bounds, per axis: 98 % of the noisy poses are off by less than r (m) in x, "
     "r in y and α (°) in heading"
 )
+
+
+#: what an empty KLD box plot says, and how (centred, grey, ``gid`` "empty")
+EMPTY_BOX = "no KLD values to draw (no pair evaluated for these methods)"
+EMPTY_NOTE = {"ha": "center", "va": "center", "color": "0.25", "gid": "empty"}
 
 
 def _log_threshold(data: Sequence[np.ndarray]) -> float | None:
@@ -82,16 +80,23 @@ def _log_threshold(data: Sequence[np.ndarray]) -> float | None:
 
 def config_axis(ax, configs: Sequence[str], noise, xlabel: str, **kw) -> None:
     """x ticks at 0, 1, ... labelled by :func:`config_label`, and the axis label ``xlabel``."""
-    ax.set_xticks(range(len(configs)))
-    ax.set_xticklabels([config_label(c, noise) for c in configs])
+    ax.set_xticks(range(len(configs)), [config_label(c, noise) for c in configs])
     ax.set_xlabel(xlabel, **kw)
 
 
 def method_line(ax, x, y, meth: str) -> None:
     """``meth``'s line in its :data:`METHOD_STYLE` (solid for network and naive), ``gid`` = it."""
-    st = _style(meth)
-    ls = "-" if meth in ("dnn", "naive") else "--"
-    ax.plot(x, y, ls, marker=st["marker"], color=st["color"], label=st["label"], gid=meth)
+    ax.plot(x, y, "-" if meth in ("dnn", "naive") else "--", **_style(meth), gid=meth)
+
+
+def score_axes(ax, lines, configs: Sequence[str], noise, **props) -> None:
+    """A score panel: one :func:`method_line` per ``(method, x, y)`` of ``lines``, the
+    configuration axis (:func:`config_axis`), ``ax.set(**props)`` and a grid."""
+    for meth, x, y in lines:
+        method_line(ax, x, y, meth)
+    config_axis(ax, configs, noise, CONFIG_AXIS if noise else "configuration", fontsize=9)
+    ax.set(**props)
+    ax.grid(alpha=0.3)
 
 
 def kld_boxplot(
@@ -101,77 +106,47 @@ def kld_boxplot(
     ylabel: str = "KLD(label ‖ prediction)",
     title: str = "Fusion quality per configuration (test set)",
     noise: Mapping[str, Sequence[float]] | None = None,
-    unit: str = "nats per cell",
 ):
     """Box plots of ``values[method][config]`` (per-sample KLDs): one group per configuration,
     one box per (configuration, method) with data, ``gid = "<method>/<config>"`` (its median line
     ``"<method>/<config>/median"``); ``noise[config] = (r m, α deg)`` labels the configuration
     axis. The y axis is ``symlog`` (KLD ≥ 0 with exact zeros, linear below
     :func:`_log_threshold`), so a degenerate row at ~2 nats does not squash the boxes near 0.01;
-    its label names the quantity, ``unit`` and scale. Without any value the axes say so."""
+    its label names the quantity, unit and scale. Without any value the axes say so."""
     fig, ax = _plt().subplots(figsize=(1.9 * len(configs) + 2, 4.2))
     width = 0.8 / max(len(methods), 1)
-    handles, drawn = [], []
+    drawn = []
     for j, meth in enumerate(methods):
         got = {c: np.asarray(values.get(meth, {}).get(c, []), dtype=float) for c in configs}
-        got = {c: v[np.isfinite(v)] for c, v in got.items()}
-        cfgs = [c for c in configs if got[c].size]
-        if not cfgs:
+        got = {c: v[np.isfinite(v)] for c, v in got.items() if np.isfinite(v).any()}
+        if not got:
             continue
-        pos = [configs.index(c) + (j - (len(methods) - 1) / 2) * width for c in cfgs]
-        drawn += [got[c] for c in cfgs]
-        handles.append(_method_boxes(ax, meth, [got[c] for c in cfgs], pos, cfgs, width))
+        st = _style(meth)
+        bp = ax.boxplot(
+            list(got.values()),
+            positions=[configs.index(c) + (j - (len(methods) - 1) / 2) * width for c in got],
+            widths=width * 0.85,
+            patch_artist=True,
+            flierprops={"markersize": 2, "markeredgecolor": st["color"]},
+            medianprops={"color": "black"},
+        )
+        for med, box, cfg in zip(bp["medians"], bp["boxes"], got):
+            med.set_gid(f"{meth}/{cfg}/median")
+            box.set(gid=f"{meth}/{cfg}", facecolor=st["color"], alpha=0.6)
+        bp["boxes"][0].set_label(st["label"])  # the legend's one entry per method
+        drawn += got.values()
     config_axis(ax, configs, noise, f"{CONFIG_AXIS}\n{CONFIG_NOTE}" if noise else "configuration")
-    lin = _log_threshold(drawn)
-    if lin is not None:
+    if lin := _log_threshold(drawn):
         ax.set_yscale("symlog", linthresh=lin, linscale=0.3)
         ax.set_ylim(bottom=0)
-        ax.set_ylabel(f"{ylabel}\n({unit}; log scale, linear below {lin:g})")
-    else:
-        ax.set_ylabel(f"{ylabel} ({unit})")
-    ax.set_title(title)
+    unit = f"\n(nats per cell; log scale, linear below {lin:g})" if lin else " (nats per cell)"
+    ax.set(ylabel=f"{ylabel}{unit}", title=title)
     ax.grid(axis="y", alpha=0.3)
-    if handles:
-        ax.legend(
-            handles=handles,
-            fontsize=8,
-            loc="upper left",
-            bbox_to_anchor=(1.01, 1.0),
-            borderaxespad=0.0,
-        )
+    if drawn:
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     else:
-        empty = "no KLD values to draw (no pair evaluated for these methods)"
-        ax.text(
-            0.5,
-            0.5,
-            empty,
-            transform=ax.transAxes,
-            ha="center",
-            va="center",
-            color="0.25",
-            gid="empty",
-        )
+        ax.text(0.5, 0.5, EMPTY_BOX, transform=ax.transAxes, **EMPTY_NOTE)
     return fig
-
-
-def _method_boxes(ax, meth: str, data: list, pos: list[float], cfgs: list[str], width: float):
-    """One method's boxes at ``pos`` (one per configuration of ``cfgs``), ``gid`` as in
-    :func:`kld_boxplot`; returns the legend handle."""
-    st = _style(meth)
-    bp = ax.boxplot(
-        data,
-        positions=pos,
-        widths=width * 0.85,
-        patch_artist=True,
-        showfliers=True,
-        flierprops={"markersize": 2, "markeredgecolor": st["color"]},
-        medianprops={"color": "black"},
-    )
-    for med, box, cfg in zip(bp["medians"], bp["boxes"], cfgs):
-        med.set_gid(f"{meth}/{cfg}/median")
-        box.set(gid=f"{meth}/{cfg}", facecolor=st["color"], alpha=0.6)
-    bp["boxes"][0].set_label(st["label"])
-    return bp["boxes"][0]
 
 
 def scores_plot(
@@ -185,13 +160,13 @@ def scores_plot(
     "free") per configuration: three axes, one line per method (``gid`` = the method)."""
     name = {"occ": "occupied", "free": "free"}.get(cls, cls)
     fig, axes = _plt().subplots(1, 3, figsize=(12, 3.8), sharey=True)
+    x = np.arange(len(configs))
     for ax, metric in zip(axes, ("precision", "recall", "dice")):
-        for meth in methods:
-            y = [scores.get(meth, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs]
-            method_line(ax, np.arange(len(configs)), y, meth)
-        config_axis(ax, configs, noise, CONFIG_AXIS if noise else "configuration", fontsize=9)
-        ax.set_title(f"{metric.capitalize()} ({name} cells)")
-        ax.grid(alpha=0.3)
+        lines = [
+            (m, x, [scores.get(m, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs])
+            for m in methods
+        ]
+        score_axes(ax, lines, configs, noise, title=f"{metric.capitalize()} ({name} cells)")
     axes[0].set_ylabel("score")
     axes[0].set_ylim(0, 1.02)
     axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)

@@ -1,4 +1,6 @@
-"""Figures of the learned stereo network: learning curves and test-frame examples."""
+"""Figures of the learned stereo network: learning curves and test-frame examples; the
+learning-curve kit (:func:`per_epoch`, :func:`plot_series`, :func:`mark_best`,
+:func:`three_panels`, :func:`finish_figure`) is also the fusion networks' (below fusion)."""
 
 from __future__ import annotations
 
@@ -8,38 +10,61 @@ import numpy as np
 
 from traffictwin.io.atomic import pyplot as _plt
 
+#: the training and validation loss per epoch: (row key, line style, legend label)
+LOSS_LINES = (("train/loss", "o-", "train"), ("val/loss", "s-", "validation"))
 
-def _per_epoch(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
+
+def per_epoch(rows: Sequence[Mapping[str, float]], key: str) -> tuple[np.ndarray, np.ndarray]:
     """(epochs, values) of the rows that have ``key``."""
     pts = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
-    return tuple(np.array(pts, dtype=np.float64).T) if pts else (np.empty(0), np.empty(0))
+    return tuple(np.array(pts, dtype=np.float64).reshape(-1, 2).T)
 
 
-def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
-    """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
-    epoch (lowest val/epe) is marked."""
-    if not rows:
-        raise ValueError("learning_curves: no epochs to plot")
-    plt = _plt()
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(13, 3.6))
-    e, v = _per_epoch(rows, "val/epe")
-    ax1.plot(e, v, "o-", label="validation")
+def plot_series(ax, rows: Sequence[Mapping[str, float]], lines, scale: float = 1.0):
+    """One line per ``(key, style, label)`` of ``lines``: ``rows``' values of ``key`` (times
+    ``scale``) per epoch; returns the last line's (epochs, values)."""
+    for key, style, label in lines:
+        e, v = per_epoch(rows, key)
+        ax.plot(e, scale * v, style, label=label)
+    return e, v
+
+
+def mark_best(ax, e: np.ndarray, v: np.ndarray, note: str = "") -> None:
+    """A dotted line at the epoch of the lowest ``v`` (none without values)."""
     if len(v):
         b = int(np.argmin(v))
-        ax1.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}")
-    ax1.set(xlabel="epoch", ylabel="end-point error (px)", title="validation EPE")
-    e, v = _per_epoch(rows, "val/bad1")
-    ax2.plot(e, 100 * v, "s-", label="validation")
-    ax2.set(xlabel="epoch", ylabel="pixels with error > 1 px (%)", title="validation bad-1")
-    for key, style, label in (("train/loss", "o-", "train"), ("val/loss", "s-", "validation")):
-        ax3.plot(*_per_epoch(rows, key), style, label=label)
-    ax3.set(xlabel="epoch", ylabel="loss (-)", title="loss")
-    for ax in (ax1, ax2, ax3):
+        ax.axvline(e[b], color="#ff7f0e", ls=":", label=f"best epoch {int(e[b])}{note}")
+
+
+def three_panels(rows: Sequence[Mapping[str, float]], what: str):
+    """A figure with three axes side by side for ``rows``; ``ValueError`` without epochs."""
+    if not rows:
+        raise ValueError(f"{what}: no epochs to plot")
+    return _plt().subplots(1, 3, figsize=(13, 3.6))
+
+
+def finish_figure(fig, title: str):
+    """x label "epoch", grid and legend on every axis, ``title`` over the figure; returns ``fig``."""
+    for ax in fig.axes:
+        ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def learning_curves(rows: Sequence[Mapping[str, float]], title: str):
+    """Per-epoch validation EPE (px) and bad-1 (%), and the training / validation loss; the best
+    epoch (lowest val/epe) is marked."""
+    fig, (ax1, ax2, ax3) = three_panels(rows, "learning_curves")
+    mark_best(ax1, *plot_series(ax1, rows, (("val/epe", "o-", "validation"),)))
+    ax1.set(ylabel="end-point error (px)", title="validation EPE")
+    plot_series(ax2, rows, (("val/bad1", "s-", "validation"),), scale=100)
+    ax2.set(ylabel="pixels with error > 1 px (%)", title="validation bad-1")
+    plot_series(ax3, rows, LOSS_LINES)
+    ax3.set(ylabel="loss (-)", title="loss")
+    return finish_figure(fig, title)
 
 
 def example_figure(
@@ -51,41 +76,23 @@ def example_figure(
 ):
     """Rows of frames, columns left | exact | SGM | learned | |learned - exact| (px, colour bars);
     invalid (< 0) disparities and pixels without ground truth are shown blank."""
-    plt = _plt()
     n = len(left)
-    fig, axes = plt.subplots(n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False)
-    titles = (
-        "left image",
-        "exact disparity (px)",
-        "SGM (px)",
-        "learned (px)",
-        "|learned - exact| (px)",
+    fig, axes = _plt().subplots(
+        n, 5, figsize=(16, 2.1 * n + 0.6), squeeze=False, subplot_kw={"xticks": [], "yticks": []}
     )
+    titles = ("left image", "exact disparity (px)", "SGM (px)", "learned (px)")
+    for ax, head in zip(axes[0], (*titles, "|learned - exact| (px)")):
+        ax.set_title(head, fontsize=9)
     for i in range(n):
-        g = np.where(exact[i] > 0, exact[i], np.nan)
         err = np.where((exact[i] > 0) & (learned[i] >= 0), np.abs(learned[i] - exact[i]), np.nan)
-        maps = (
-            None,
-            g,
-            np.where(sgm[i] >= 0, sgm[i], np.nan),
-            np.where(learned[i] >= 0, learned[i], np.nan),
-            err,
-        )
-        for j, ax in enumerate(axes[i]):
-            if j == 0:
-                ax.imshow(left[i][..., ::-1])
-            else:
-                im = ax.imshow(
-                    maps[j],
-                    cmap="magma" if j == 4 else "viridis",
-                    vmin=0,
-                    vmax=2.0 if j == 4 else vmax,
-                )
-                fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if i == 0:
-                ax.set_title(titles[j], fontsize=9)
+        axes[i, 0].imshow(left[i][..., ::-1])
+        valid = [np.where(d[i] >= 0, d[i], np.nan) for d in (sgm, learned)]
+        maps = (np.where(exact[i] > 0, exact[i], np.nan), *valid, err)
+        for ax, img, cmap, top in zip(
+            axes[i, 1:], maps, ("viridis",) * 3 + ("magma",), (vmax,) * 3 + (2.0,)
+        ):
+            im = ax.imshow(img, cmap=cmap, vmin=0, vmax=top)
+            fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="px")
     fig.tight_layout()
     return fig
 
@@ -100,13 +107,10 @@ def fault_free_test_examples(risk, sgm, learned, rows: int = 3):
     if not len(picks):
         raise ValueError(f"{risk.root}: no fault-free test frame to show")
     at = np.unique(np.linspace(0, len(picks) - 1, rows).round().astype(int))
-    parts: dict[str, list[np.ndarray]] = {"left": [], "gt": [], "sgm": [], "learned": []}
-    for i, k in picks[["shard", "idx"]].to_numpy()[at]:
-        sh = risk.load_shard(int(i))
-        parts["left"].append(sh["left"][k])
-        parts["gt"].append(sh["disp_gt"][k])
-        parts["sgm"].append(sgm.load_shard(int(i))["disp_sgm"][k])
-        parts["learned"].append(learned.load_shard(int(i))["disp_learned"][k])
-    a = {k: np.stack(v) for k, v in parts.items()}
-    vmax = float(max(np.percentile(a["gt"][a["gt"] > 0], 99), 1.0)) if (a["gt"] > 0).any() else 1.0
-    return example_figure(a["left"], a["gt"], a["sgm"], a["learned"], vmax)
+    picked = picks[["shard", "idx"]].to_numpy()[at]
+    sources = ((risk, "left"), (risk, "disp_gt"), (sgm, "disp_sgm"), (learned, "disp_learned"))
+    left, gt, sgm_d, learned_d = (
+        np.stack([ds.load_shard(int(i), [key])[key][k] for i, k in picked]) for ds, key in sources
+    )
+    vmax = float(max(np.percentile(gt[gt > 0], 99), 1.0)) if (gt > 0).any() else 1.0
+    return example_figure(left, gt, sgm_d, learned_d, vmax)

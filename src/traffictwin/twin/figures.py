@@ -29,11 +29,10 @@ def timeline_figure(
     """THW (s) over time (s) of one sequence: truth, the ego's own map and the twin; critical frames
     (true THW < ``critical_thw``) shaded, the warning level ``warn_thw`` (s) drawn, frames where the
     ego's lidar sees the hazard marked."""
-    plt = _plt()
     tt = timeline_table(table, configuration, method, sequence)
     f = table[(table["configuration"] == configuration) & (table["sequence"] == sequence)]
     f = f[f["method"] == EGO]
-    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    fig, ax = _plt().subplots(figsize=(7.5, 3.6))
     styles = {"truth": ("k", "-", "o"), "ego map": ("#7f7f7f", "--", "x")}
     for name, g in tt.groupby("series", sort=False):
         default = ("#9467bd", ":", "^") if str(name).endswith("TTC") else ("#d62728", "-", "s")
@@ -67,23 +66,20 @@ def twin_map_figure(
     with the configuration's pose error bound (circle of ``radius`` r m: 98 % of the noisy
     positions are off by less than r per axis) and the pose the twin used; beside it each
     vehicle's own map where the twin put it. Draws only."""
-    plt = _plt()
     from matplotlib.patches import Circle
 
-    rel, true_rel = snap.rel, snap.true_rel
     n = len(snap.contributions)
-    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
+    fig, axes = _plt().subplots(1, n + 1, figsize=(3.2 * (n + 1), 4.9))
     roles = ["ego"] + [ROLES[1] if k % 2 == 1 else ROLES[2] for k in range(1, n)]
-
     show_masses(axes[0], snap.masses, grid.cell, title=f"twin ({method}), config {configuration}")
     for k in range(n):
         c = VEHICLE_COLOURS[k % len(VEHICLE_COLOURS)]
-        tx, ty = true_rel[k, 0], true_rel[k, 1]
+        tx, ty = snap.true_rel[k, :2]
         axes[0].plot(ty, tx, "o", color=c, ms=6, mfc="none", label=f"{k}: {roles[k]} (true)")
         if k:
-            axes[0].plot(rel[k, 1], rel[k, 0], "x", color=c, ms=6)
-            ring = Circle((rel[k, 1], rel[k, 0]), radius, fill=False, color=c, ls=":", lw=1)
-            axes[0].add_patch(ring)
+            x, y = snap.rel[k, :2]
+            axes[0].plot(y, x, "x", color=c, ms=6)
+            axes[0].add_patch(Circle((y, x), radius, fill=False, color=c, ls=":", lw=1))
             mark = "+" if snap.used[k] else "s"
             axes[0].plot(snap.poses[k, 1], snap.poses[k, 0], mark, color=c, ms=8)
         used = "used" if snap.used[k] else "left out (registration rejected)"

@@ -35,7 +35,7 @@ def score_figure(
     (ticks: r and α), one line per method (:func:`traffictwin.fusion.figures.method_line`), each
     panel's y axis zoomed to its data (:func:`zoomed_limits`). ``scores``: the long table of
     :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
-    from traffictwin.fusion.figures import CONFIG_AXIS, CONFIG_NOTE, _plt, config_axis, method_line
+    from traffictwin.fusion.figures import CONFIG_NOTE, _plt, score_axes
 
     d = scores[scores["class"] == cls]
     cfgs = [c for c in configurations if c in set(d["config"])]
@@ -43,24 +43,17 @@ def score_figure(
     methods = sorted(set(d["method"]), key=lambda m: (m not in ("dnn", "naive"), m))
     for ax, metric in zip(axes, SCORE_METRICS):
         dm = d[(d["metric"] == metric) & d["config"].isin(cfgs)]
-        for meth in methods:
-            if not (dd := dm[dm["method"] == meth]).empty:
-                method_line(ax, dd["config"].map(cfgs.index), dd["value"], meth)
-        ax.set_ylim(*zoomed_limits(dm["value"].to_numpy()))
-        config_axis(ax, cfgs, configurations, CONFIG_AXIS, fontsize=9)
-        ax.set_ylabel(f"{metric} ({cls} cells)")
-        ax.grid(alpha=0.3)
-    legend: dict[str, Any] = {}  # every method once, in the order of first appearance
-    for ax in axes:
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            legend.setdefault(lab, h)
+        by = {m: dm[dm["method"] == m] for m in methods}
+        lines = [(m, g["config"].map(cfgs.index), g["value"]) for m, g in by.items() if len(g)]
+        limits = zoomed_limits(dm["value"].to_numpy())
+        score_axes(ax, lines, cfgs, configurations, ylim=limits, ylabel=f"{metric} ({cls} cells)")
+    # every method once, in the order of first appearance
+    legend = {lab: h for ax in axes for h, lab in zip(*ax.get_legend_handles_labels())}
     fig.legend(
         legend.values(), legend.keys(), fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95)
     )
-    fig.suptitle(
-        f"Classification of {cls} cells vs pose-noise configuration (test split)\n{CONFIG_NOTE}",
-        fontsize=11,
-    )
+    head = f"Classification of {cls} cells vs pose-noise configuration (test split)"
+    fig.suptitle(f"{head}\n{CONFIG_NOTE}", fontsize=11)
     fig.tight_layout()
     return fig
 
@@ -76,9 +69,8 @@ def draw_score_figures(
 
     if not Path(wide_csv).is_file():
         return []
-    scores = fusion_scores_long(pd.read_csv(wide_csv))
-    out = []
-    for cls in ("occupied", "free"):
-        fig = score_figure(scores, configurations, cls)
-        out.append(save_figure(fig, Path(out_dir) / f"fusion_scores_{cls}_zoomed.png"))
-    return out
+    scores, out = fusion_scores_long(pd.read_csv(wide_csv)), Path(out_dir)
+    return [
+        save_figure(score_figure(scores, configurations, c), out / f"fusion_scores_{c}_zoomed.png")
+        for c in ("occupied", "free")
+    ]
