@@ -219,7 +219,10 @@ def evaluation_figures(cfg) -> int:
     from traffictwin.twin.figures import timeline_figure, twin_map_figure
 
     panels, meta = _figure_input("fusion")
-    figures = fusion_figures(_read_csv(PLOTS / "fusion_kld.csv"), _metrics("fusion"), panels, meta)
+    scores = fusion_scores_long(_read_csv(PLOTS / "fusion_scores.csv"))
+    figures = fusion_figures(
+        _read_csv(PLOTS / "fusion_kld.csv"), scores, _metrics("fusion"), panels, meta
+    )
     arrays, tw = _figure_input("twin_map")
     frames = _read_csv(TWIN_FRAMES)
     frames = frames[frames["noise"] == "frame"]

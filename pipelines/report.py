@@ -30,7 +30,7 @@ from traffictwin.stereo import report_section as stereo_report
 from traffictwin.twin import report_section as twin_report
 
 from ._common import params, run_stage, setup_logging, stage_timer
-from ._paths import CONF, PLOTS, REPORTS, ROOT
+from ._paths import CONF, REPORTS, ROOT
 from ._provenance import git_commit
 
 
@@ -93,9 +93,6 @@ def main() -> None:
             git_commit=git_commit(ROOT),
             run_params=run_params(cfg, profile_keys(CONF / "profile")),
             acceptance={pr: for_problem(cfg, pr) for pr in ("fusion", "risk", "stereo", "twin")},
-        )
-        fusion_report.draw_score_figures(
-            PLOTS / "fusion_scores.csv", REPORTS / "report_figures", p.pose_noise
         )
         report = write_report(inputs, providers(p.pose_noise))
         record.update(  # what differs between identical reruns: the run record, not the report

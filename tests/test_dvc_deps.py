@@ -223,9 +223,8 @@ DATA_AND_TRAINING = (
 #: what evaluation alone uses: the fusion methods compared (the twin methods are not here: the
 #: twin's config, which generate_twin reads, checks their names)
 EVALUATION_ONLY = ("src/traffictwin/fusion/methods.py",)
-#: the stages that draw figures: plot_data (every chart and figure of the run) and report (its
-#: own zoomed views)
-DRAWING = ("plot_data", "report")
+#: the one stage that draws figures: every chart and figure of the run
+DRAWING = ("plot_data",)
 
 
 def _figure_modules() -> list[str]:

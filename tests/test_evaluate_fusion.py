@@ -414,36 +414,6 @@ def test_kld_boxplot_plots_one_box_per_config_and_method(tmp_path):
     png_ok(save_figure(fig, tmp_path / "box.png"))
 
 
-def test_scores_plot_lines_are_the_metrics(tmp_path):
-    from traffictwin.fusion.figures import scores_plot
-    from traffictwin.io.atomic import save_figure
-
-    rng = np.random.default_rng(3)
-    scores = {
-        m: {c: {f"{k}_occ": rng.random() for k in ("precision", "recall", "dice")} for c in CFGS}
-        for m in ("naive", "dnn")
-    }
-    fig = scores_plot(scores, CFGS, ["naive", "dnn"], "occ")
-    assert [ax.get_title() for ax in fig.axes[:3]] == [
-        "Precision (occupied cells)",
-        "Recall (occupied cells)",
-        "Dice (occupied cells)",
-    ]
-    for ax, metric in zip(fig.axes, ("precision", "recall", "dice")):
-        assert ax.get_xlabel() == "configuration"
-        assert [t.get_text() for t in ax.get_xticklabels()] == list(CFGS)
-        lines = {line.get_gid(): line for line in ax.lines}
-        assert sorted(lines) == ["dnn", "naive"]
-        for m, line in lines.items():
-            np.testing.assert_allclose(line.get_xdata(), np.arange(len(CFGS)))
-            np.testing.assert_allclose(
-                line.get_ydata(), [scores[m][c][f"{metric}_occ"] for c in CFGS]
-            )
-            assert line.get_label() == REGISTRY[m].label
-    assert fig.axes[0].get_ylabel() == "score" and fig.axes[0].get_ylim() == (0, 1.02)
-    png_ok(save_figure(fig, tmp_path / "occ.png"))
-
-
 def test_configuration_axes_carry_the_pose_noise() -> None:
     """With the configurations' (r m, α deg), every configuration axis says what they are."""
     from traffictwin.fusion.figures import (
@@ -451,15 +421,20 @@ def test_configuration_axes_carry_the_pose_noise() -> None:
         CONFIG_NOTE,
         config_label,
         kld_boxplot,
-        scores_plot,
+        score_figure,
     )
+    from traffictwin.report.plot_data import fusion_scores_long
 
     noise = {"A": (0.0, 0.0), "D": (5.0, 20.0)}
     assert config_label("D", noise) == "D\nr 5 m\nα 20°"
     assert config_label("B", noise) == "B" and config_label("D") == "D"
     want = ["A\nr 0 m\nα 0°", "D\nr 5 m\nα 20°"]
     box = kld_boxplot({"dnn": {c: [0.1, 0.2] for c in noise}}, list(noise), ["dnn"], noise=noise)
-    occ = scores_plot({"dnn": {c: {} for c in noise}}, list(noise), ["dnn"], "occ", noise)
+    wide = pd.DataFrame(
+        {"config": list(noise), "noise_r_m": [0.0, 5.0], "noise_alpha_deg": [0.0, 20.0]}
+        | {"dnn_dice_occ": [0.9, 0.8]}
+    )
+    occ = score_figure(fusion_scores_long(wide), noise, "occupied")
     for ax in (box.axes[0], *occ.axes):
         assert [t.get_text() for t in ax.get_xticklabels()] == want
         assert ax.get_xlabel().startswith(CONFIG_AXIS)

@@ -479,8 +479,10 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert panels["network"].shape == (len(data), *raw["label"][0].shape)
     np.testing.assert_array_equal(panels["label"][0], raw["label"][0])
     from traffictwin.fusion.evaluation_figures import evaluation_figures
+    from traffictwin.report.plot_data import fusion_scores_long
 
-    figs = evaluation_figures(tables["fusion_kld"], json_clean(res.metrics), panels, meta)
+    scores = fusion_scores_long(tables["fusion_scores"])
+    figs = evaluation_figures(tables["fusion_kld"], scores, json_clean(res.metrics), panels, meta)
     ax = figs["fusion_kld_boxplot"].axes[0]
     boxes = {p.get_gid(): p for p in ax.patches if p.get_gid()}
     assert (
@@ -492,6 +494,9 @@ def test_evaluate_runs_each_row_where_it_has_a_network():
     assert ax.get_ylabel().startswith("KLD(b)")
     legend = [t.get_text() for t in ax.get_legend().get_texts()]
     assert "network (own config) [paper loss]" in legend and "registered + network" in legend
+    # the score figures: a line per row of the score table, the variants included
+    occ = {ln.get_gid() for a in figs["fusion_scores_occupied"].axes for ln in a.get_lines()}
+    assert {"dnn", "naive", "dnn[paper]", "registered+network"} <= occ
     import matplotlib.pyplot as plt
 
     for fig in figs.values():

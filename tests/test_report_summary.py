@@ -1,5 +1,5 @@
 """reports/summary.json (the headline numbers, the only DVC metrics file), the report's page layout
-(headline first, appendix collapsed), the report stage's zoomed score figures and the shared mass
+(headline first, appendix collapsed), the zoomed fusion score figures and the shared mass
 colour map. Synthetic inputs with hand-computed expectations."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import pytest
 from _report_pages import all_html, page_md
 
 from pipelines.report import providers
+from traffictwin.fusion import figures as SF
 from traffictwin.fusion import report_section as F
-from traffictwin.fusion.report_section import score_figures as SF
 from traffictwin.report import colours as C
 from traffictwin.report import render as R
 from traffictwin.report.model import ReportInputs
@@ -350,46 +350,6 @@ def test_score_figure_zooms_each_panel_and_labels_configurations() -> None:
         assert labels == [_style(m)["label"] for m in ("dnn", "naive")]  # one entry per method
     finally:
         plt.close(fig)
-
-
-def test_draw_score_figures_writes_both_classes(tmp_path: Path) -> None:
-    wide = pd.DataFrame(
-        {
-            "config": ["A", "D"],
-            "noise_r_m": [0.0, 5.0],
-            "noise_alpha_deg": [0, 20],
-            "dnn_dice_occ": [0.99, 0.9],
-            "dnn_dice_free": [0.999, 0.997],
-        }
-    )
-    wide.to_csv(tmp_path / "fusion_scores.csv", index=False)
-    out = F.draw_score_figures(tmp_path / "fusion_scores.csv", tmp_path / "fig", CONFS)
-    assert [p.name for p in out] == [
-        "fusion_scores_occupied_zoomed.png",
-        "fusion_scores_free_zoomed.png",
-    ]
-    assert all(p.read_bytes()[:4] == b"\x89PNG" for p in out)
-    assert F.draw_score_figures(tmp_path / "absent.csv", tmp_path / "fig2", CONFS) == []
-
-
-def test_redrawn_figures_replace_the_stages_ones(tmp_path: Path) -> None:
-    rep = tmp_path / "reports"
-    (rep / "figures").mkdir(parents=True)
-    (rep / "report_figures").mkdir()
-    for rel in (
-        "figures/fusion_scores_free.png",
-        "figures/fusion_scores_occupied.png",
-        "report_figures/fusion_scores_free_zoomed.png",
-    ):
-        (rep / rel).write_bytes(b"\x89PNG")
-    figs, other = R.collect_figures(rep, providers(CONFS))
-    paths = [f.path for f in figs[0]]
-    # the free panel is redrawn (the stage's is left out); the occupied one is not: kept
-    assert paths == [
-        "report_figures/fusion_scores_free_zoomed.png",
-        "figures/fusion_scores_occupied.png",
-    ]
-    assert other == []
 
 
 # --------------------------------------------------------------------------- mass colours

@@ -1,5 +1,5 @@
 """The fusion evaluation's figures from its outputs (stage plot_data): the KLD(b) box plot, the
-score plots (:mod:`traffictwin.fusion.figures`) and the maps of Fig. 4
+zoomed score plots (:mod:`traffictwin.fusion.figures`) and the maps of Fig. 4
 (:mod:`traffictwin.fusion.map_figures`)."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from traffictwin.fusion.evaluation.keys import FIGURE_METHODS, SCORE_METHODS
-from traffictwin.fusion.figures import kld_boxplot, scores_plot
+from traffictwin.fusion.evaluation.keys import FIGURE_METHODS
+from traffictwin.fusion.figures import kld_boxplot, score_figure
 from traffictwin.fusion.map_figures import qualitative_grid
 
 if TYPE_CHECKING:
@@ -19,25 +19,26 @@ if TYPE_CHECKING:
 
 def evaluation_figures(
     kld: pd.DataFrame,
+    scores: pd.DataFrame,
     metrics: Mapping[str, Any],
     panels: Mapping[str, np.ndarray],
     meta: Mapping[str, Any],
 ) -> dict[str, Any]:
     """The fusion evaluation's figures by file stem, from its outputs: ``fusion_kld_boxplot``
     (KLD(b) per pair: ``kld``, the ``fusion_kld`` plot table; cf. Fig. 5),
-    ``fusion_scores_occupied`` / ``fusion_scores_free`` (fusion.json ``metrics``; Figs. 6, 7) and
+    ``fusion_scores_occupied`` / ``fusion_scores_free`` (``scores``: the long score table of
+    :func:`traffictwin.report.plot_data.fusion_scores_long`; Figs. 6, 7; the pair counts:
+    fusion.json ``metrics``) and
     ``fusion_qualitative`` (Fig. 4: ``panels`` and ``meta`` of
     :func:`traffictwin.fusion.evaluation.figure_inputs`). Network rows (variants) appear beside
     the methods where they exist."""
     configs, nets = list(meta["configs"]), list(meta["network_rows"])
-    r_alpha = {c: tuple(v) for c, v in meta["noise"].items()}
+    r_alpha = {c: tuple(meta["noise"][c]) for c in configs}
     box_rows = [*FIGURE_METHODS, *(r for r in nets if r not in FIGURE_METHODS)]
     kvals = {
         m: {c: g["kld_fou"].to_numpy() for c, g in rows.groupby("config")}
         for m, rows in kld.groupby("method")
     }
-    score_rows = [*SCORE_METHODS, *(r for r in nets if r not in SCORE_METHODS)]
-    scores = {m: {c: metrics["test"][c].get(m, {}) for c in configs} for m in score_rows}
     n = metrics["n_pairs"]
     slow = "" if n["registered"] == n["per_config"] else f"; registered on {n['registered']}"
     return {
@@ -49,8 +50,8 @@ def evaluation_figures(
             title=f"KLD(b) per configuration (test set, {n['per_config']} pairs{slow})",
             noise=r_alpha,
         ),
-        "fusion_scores_occupied": scores_plot(scores, configs, score_rows, "occ", r_alpha),
-        "fusion_scores_free": scores_plot(scores, configs, score_rows, "free", r_alpha),
+        "fusion_scores_occupied": score_figure(scores, r_alpha, "occupied"),
+        "fusion_scores_free": score_figure(scores, r_alpha, "free"),
         "fusion_qualitative": qualitative_grid(
             {k: list(v) for k, v in panels.items()},
             configs,

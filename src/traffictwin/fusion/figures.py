@@ -1,6 +1,6 @@
 """Figures of the fusion evaluation (paper Figs. 5–7), matplotlib Agg: :func:`kld_boxplot` (KLD
-per configuration and method) and :func:`scores_plot` (precision / recall / Dice per
-configuration); the maps (Fig. 4): :mod:`traffictwin.fusion.map_figures`. Each returns the
+per configuration and method) and :func:`score_figure` (precision / recall / Dice per
+configuration, each panel's score axis zoomed to its data); the maps (Fig. 4): :mod:`traffictwin.fusion.map_figures`. Each returns the
 ``Figure`` (tests check what it plots); :func:`traffictwin.io.atomic.save_figure` writes it.
 Legend labels: the methods' ``label`` (:data:`traffictwin.fusion.methods.METHODS`; a network row
 ``<method>[<loss>]``: + ``[<loss> loss]``); colours and markers: :data:`METHOD_STYLE`.
@@ -9,8 +9,10 @@ Legend labels: the methods' ``label`` (:data:`traffictwin.fusion.methods.METHODS
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from traffictwin.io.atomic import pyplot as _plt
 
@@ -149,28 +151,47 @@ def kld_boxplot(
     return fig
 
 
-def scores_plot(
-    scores: Mapping[str, Mapping[str, Mapping[str, float]]],
-    configs: Sequence[str],
-    methods: Sequence[str],
-    cls: str,
-    noise: Mapping[str, Sequence[float]] | None = None,
-):
-    """Precision / recall / Dice (``scores[method][config][<metric>_<cls>]``, ``cls`` "occ" or
-    "free") per configuration: three axes, one line per method (``gid`` = the method)."""
-    name = {"occ": "occupied", "free": "free"}.get(cls, cls)
-    fig, axes = _plt().subplots(1, 3, figsize=(12, 3.8), sharey=True)
-    x = np.arange(len(configs))
-    for ax, metric in zip(axes, ("precision", "recall", "dice")):
-        lines = [
-            (m, x, [scores.get(m, {}).get(c, {}).get(f"{metric}_{cls}", np.nan) for c in configs])
-            for m in methods
-        ]
-        score_axes(ax, lines, configs, noise, title=f"{metric.capitalize()} ({name} cells)")
-    axes[0].set_ylabel("score")
-    axes[0].set_ylim(0, 1.02)
-    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
-    head = f"Classification scores for {name} cells vs pose-noise configuration (test set)"
-    fig.suptitle(f"{head}\n{CONFIG_NOTE}" if noise else head, fontsize=11 if noise else None)
+SCORE_METRICS = ("precision", "recall", "Dice")
+
+
+def zoomed_limits(
+    values: np.ndarray, pad: float = 0.15, min_span: float = 0.01, top: float = 1.0
+) -> tuple[float, float]:
+    """y limits around the finite ``values``: their range widened by ``pad`` of itself on each
+    side (at least ``min_span`` in all), never above ``top``; (0, top) without a finite value."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return 0.0, top
+    lo, hi = float(v.min()), float(v.max())
+    margin = max((hi - lo) * pad, (min_span - (hi - lo)) / 2, 0.0)
+    upper = min(hi + margin, top)
+    return min(lo - margin, upper - min_span), upper
+
+
+def score_figure(
+    scores: pd.DataFrame, configurations: Mapping[str, tuple[float, float]], cls: str
+) -> Any:
+    """Precision / recall / Dice of ``cls`` cells (``occupied`` / ``free``) per configuration
+    (ticks: r and α), one line per method (:func:`method_line`), each
+    panel's y axis zoomed to its data (:func:`zoomed_limits`). ``scores``: the long table of
+    :func:`traffictwin.report.plot_data.fusion_scores_long`. Returns the matplotlib figure."""
+    d = scores[scores["class"] == cls]
+    cfgs = [c for c in configurations if c in set(d["config"])]
+    fig, axes = _plt().subplots(1, 3, figsize=(13, 3.9))
+    methods = sorted(set(d["method"]), key=lambda m: (m not in ("dnn", "naive"), m))
+    for ax, metric in zip(axes, SCORE_METRICS):
+        dm = d[(d["metric"] == metric) & d["config"].isin(cfgs)]
+        by = {m: dm[dm["method"] == m] for m in methods}
+        lines = [(m, g["config"].map(cfgs.index), g["value"]) for m, g in by.items() if len(g)]
+        limits = zoomed_limits(dm["value"].to_numpy())
+        score_axes(ax, lines, cfgs, configurations, ylim=limits, ylabel=f"{metric} ({cls} cells)")
+    # every method once, in the order of first appearance
+    legend = {lab: h for ax in axes for h, lab in zip(*ax.get_legend_handles_labels())}
+    fig.legend(
+        legend.values(), legend.keys(), fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.95)
+    )
+    head = f"Classification of {cls} cells vs pose-noise configuration (test split)"
+    fig.suptitle(f"{head}\n{CONFIG_NOTE}", fontsize=11)
     fig.tight_layout()
     return fig

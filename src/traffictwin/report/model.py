@@ -276,8 +276,7 @@ class SectionProvider:
     ``figures``: ``{file stem: caption}`` of its stages' figures, in the order shown;
     ``figure_pattern``: a regex on a file stem that claims any other image. ``data_files``: shown
     first in the appendix. ``shown_files``: a regex of metrics files the section shows in full
-    (kept out of the appendix). ``replaces``: ``{stem: older stem}``, figures the report stage
-    redraws (the older one is left out). ``name``: its page (``reports/pages/<name>.md``) and its
+    (kept out of the appendix). ``name``: its page (``reports/pages/<name>.md``) and its
     key in ``reports/summary.json``; ``headlines``: its headline numbers (``{metrics file:
     parsed JSON}`` -> :class:`~traffictwin.report.summary.Headline` list); ``claims``: the paper's
     claims with this run's verdicts (-> :class:`~traffictwin.report.claims.ClaimCheck` list).
@@ -288,7 +287,6 @@ class SectionProvider:
     figure_pattern: str = NEVER
     data_files: Sequence[DataFile] = ()
     shown_files: str = NEVER
-    replaces: Mapping[str, str] = field(default_factory=dict)  # {figure stem: stem it supersedes}
     name: str = ""
     headlines: Callable[[Mapping[str, Any]], Sequence[Headline]] | None = None
     claims: Callable[[Mapping[str, Any]], Sequence[ClaimCheck]] | None = None

@@ -51,7 +51,7 @@ RESULTS_TABLE = "results_table.md"
 STYLE = "style.css"  # the HTML pages' one style sheet (:data:`CSS`), linked from each page
 SUMMARY = "summary.json"  # the headline numbers: the only DVC metrics file
 TEMPLATES = Path(__file__).resolve().parent / "templates"
-FIGURE_DIRS = ("figures", "report_figures")  # the stages' figures, the report stage's own
+FIGURE_DIRS = ("figures",)  # the figures plot_data draws
 IMAGE_SUFFIXES = (".png", ".svg", ".jpg", ".jpeg", ".gif")
 
 
@@ -61,7 +61,7 @@ def collect_figures(
 ) -> tuple[list[list[Figure]], list[Figure]]:
     """The images of :data:`FIGURE_DIRS`, one list per provider (its known ``figures`` first, in
     order, with their captions; then the images its ``figure_pattern`` claims) and the unclaimed
-    ones (the appendix's). A figure that a present one ``replaces`` is left out."""
+    ones (the appendix's)."""
     out: list[list[Figure]] = [[] for _ in providers]
     other: list[Figure] = []
     files = {
@@ -71,9 +71,6 @@ def collect_figures(
         for p in sorted((Path(reports_dir) / d).rglob("*"))
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
     }
-    stems = {p.stem for p in files.values()}
-    superseded = {old for prov in providers for new, old in prov.replaces.items() if new in stems}
-    files = {rel: p for rel, p in files.items() if p.stem not in superseded}
     done: set[str] = set()
     for figs, prov in zip(out, providers):
         for stem, caption in prov.figures.items():

@@ -1,7 +1,6 @@
 """The fusion part of the report (van Kempen et al.), entry point :func:`provider`: the section
 (tables of ``fusion.json``: :mod:`.tables`; seed replicates: :mod:`.seed_tables`), the headline
-numbers, the paper's claims (:mod:`.claims`) and the report stage's zoomed score figures
-(:mod:`.score_figures`). The targets: the index's acceptance table; every other number: the
+numbers and the paper's claims (:mod:`.claims`). The targets: the index's acceptance table; every other number: the
 appendix. The headline is KLD(b) ``kld_fou_mean`` (KL over the full mass vector, nats per cell).
 """
 
@@ -14,9 +13,6 @@ from typing import Any
 from traffictwin import paper_numbers as P
 from traffictwin.fusion.findings import fusion_findings
 from traffictwin.fusion.report_section.claims import fusion_claims
-from traffictwin.fusion.report_section.score_figures import (
-    draw_score_figures as draw_score_figures,  # the report stage draws them
-)
 from traffictwin.fusion.report_section.seed_tables import (
     seed_diff_table,
     seed_row_table,
@@ -36,22 +32,15 @@ FIGURES: dict[str, str] = {
     "fusion_data_samples": "Input maps and label of sample pairs from our simulator (cf. the paper's Fig. 2)",
     "fusion_qualitative": "Label, naive fusion and network per configuration (mirrors the paper's Fig. 4)",
     "fusion_kld_boxplot": "KLD(b) distribution over the test set per configuration and method (cf. Fig. 5, which shows KLD(a))",
-    "fusion_scores_occupied_zoomed": "Precision / recall / Dice of occupied cells per configuration, each "
-    "panel's score axis zoomed to its data (mirrors Fig. 6; drawn by the report stage)",
-    "fusion_scores_free_zoomed": "Precision / recall / Dice of free cells per configuration, each panel's "
-    "score axis zoomed to its data (mirrors Fig. 7; drawn by the report stage)",
-    "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration (mirrors Fig. 6)",
-    "fusion_scores_free": "Precision / recall / Dice of free cells per configuration (mirrors Fig. 7)",
+    "fusion_scores_occupied": "Precision / recall / Dice of occupied cells per configuration, each "
+    "panel's score axis zoomed to its data (mirrors Fig. 6)",
+    "fusion_scores_free": "Precision / recall / Dice of free cells per configuration, each panel's "
+    "score axis zoomed to its data (mirrors Fig. 7)",
     "train_fusion_network": "Learning curves of the fusion network (training / validation loss and "
     "validation KLD(b) per epoch)",
     "train_registration": "Learning curves of the learned registration (one model for every "
     "pose-noise level; validation success rate, mean pose errors, training / validation loss per "
     "epoch)",
-}
-# figures the report stage redraws (:func:`draw_score_figures`): shown instead of evaluate_fusion's
-REPLACES = {
-    "fusion_scores_occupied_zoomed": "fusion_scores_occupied",
-    "fusion_scores_free_zoomed": "fusion_scores_free",
 }
 # the other images of the fusion stages (a loss variant's learning curves train_fusion_<name>)
 FIGURE_PATTERN = r"fusion|prealign|pose|ogm|registration"
@@ -134,5 +123,4 @@ def provider(configurations: Mapping[str, tuple[float, float]]) -> page.SectionP
         figures=FIGURES,
         figure_pattern=FIGURE_PATTERN,
         data_files=DATA_FILES,
-        replaces=REPLACES,
     )
