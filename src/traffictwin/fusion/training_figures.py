@@ -1,5 +1,5 @@
 """Learning curves of one fusion or registration training run (drawn by plot_data from its
-reports/plots CSV, with the kit of :mod:`traffictwin.stereo.figures`): :func:`learning_curves`
+reports/plots CSV, with the kit of :mod:`traffictwin.report.curve_figures`): :func:`learning_curves`
 (validation KLD(b), the selection metric, against the naive fusion's; training / validation loss;
 validation occupied Dice; the best epoch marked) and :func:`registration_learning_curves`
 (validation success rate, mean pose errors, losses)."""
@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from traffictwin.stereo.figures import (
+from traffictwin.report.curve_figures import (
     LOSS_LINES,
     finish_figure,
     mark_best,

@@ -98,7 +98,7 @@ def figure_inputs(
     pair: int,
     fraction: float,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """What :func:`traffictwin.fusion.figures.evaluation_figures` needs beside fusion.json and
+    """What :func:`traffictwin.fusion.evaluation_figures.evaluation_figures` needs beside fusion.json and
     the ``fusion_kld`` plot table: Fig. 4's panels (:func:`qualitative_panels`; arrays
     ``label`` / ``naive`` / ``network``: one (2, H, W) map per configuration) and the metadata
     (configurations in order, their noise (r m, α deg), the network rows, the pair shown, the
