@@ -121,6 +121,19 @@ def test_timings_block_adds_up_the_run_records() -> None:
     assert "around `environment`, run on its own" in row and "generate_fusion" not in row
 
 
+def test_every_timed_stage_is_in_one_timing_group() -> None:
+    """The results page's per-part timing rows cover every stage that writes a run record (the
+    committed ``reports/timings/<stage>.json``), each in exactly one part, so the parts add up
+    to the stages' own time."""
+    groups = [set(stages.split()) for _, stages in R._tpl("timing_groups")]
+    names = [{s.split("@")[0] for s in g} for g in groups]
+    records = (json.loads(p.read_text()) for p in (ROOT / "reports" / "timings").glob("*.json"))
+    stages = {str(r["stage"]).split("@")[0] for r in records if "seconds" in r}
+    for stage in sorted(stages):
+        owners = [i for i, g in enumerate(names) if stage in g]
+        assert len(owners) == 1, f"stage {stage}: in timing groups {owners}, expected exactly one"
+
+
 def test_headline_block_is_the_reports_first_table() -> None:
     """The README's headline block: the first table of results_table.md with its title and note,
     none of the tables after it, no generated-file comment or link line."""
