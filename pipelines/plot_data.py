@@ -28,6 +28,8 @@ Reads only the files params.yaml names and writes:
 from __future__ import annotations
 
 import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pandas as pd
@@ -264,8 +266,13 @@ def main() -> None:
     log = setup_logging()
     cfg = params()
     with stage_timer("plot_data"):
-        n_charts, n_curves, n_data = charts(cfg), training_figures(cfg), data_figures(cfg)
-        n_eval = evaluation_figures(cfg)
+        # the evaluation figures (about half the stage) in a second process, forked before this
+        # one draws anything: the two halves write disjoint files, each figure as drawn alone
+        fork = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(max_workers=1, mp_context=fork) as pool:
+            evaluation = pool.submit(evaluation_figures, cfg)
+            n_charts, n_curves, n_data = charts(cfg), training_figures(cfg), data_figures(cfg)
+            n_eval = evaluation.result()
     log.info(
         "plot_data: %d charts -> %s, %d learning curves, %d data figures, %d evaluation figures",
         n_charts,
