@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import fields
 from pathlib import Path
 
 import pandas as pd
@@ -246,6 +247,10 @@ def evaluation_figures(cfg) -> int:
     m = _metrics("risk")
     shipped_from = (m.get("selection") or {}).get("shipped_from")
     variants = get(cfg, "risk_model.run_variants", list)
+    risk_paths = risk_figures.EvaluationFigurePaths(
+        **{k: figure_file(f"risk_{k}") for k in ("scatter", "confusion", "examples", "roc")},
+        curves=figure_file("risk_training_curves"),
+    )
     risk_figures.evaluation_figures(
         risk,
         disparity,
@@ -253,13 +258,10 @@ def evaluation_figures(cfg) -> int:
         _read_csv(PLOTS / "risk_predictions.csv"),
         {v: _read_csv(PLOTS / f"risk_training_{v}.csv") for v in variants},
         m["main_variant"],
-        risk_figures.EvaluationFigurePaths(
-            **{k: figure_file(f"risk_{k}") for k in ("scatter", "confusion", "examples", "roc")},
-            curves=figure_file("risk_training_curves"),
-        ),
+        risk_paths,
         shipped=(m["shipped"], f"shipped ({shipped_from})" if shipped_from else m["shipped"]),
     )
-    return len(figures) + 5
+    return len(figures) + len(fields(risk_paths))
 
 
 def main() -> None:

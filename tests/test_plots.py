@@ -359,3 +359,28 @@ def test_plot_data_draws_the_evaluation_figures_from_their_outputs(ci_dag: Path)
     truth = timeline[timeline.series == "truth"]
     np.testing.assert_allclose(truth["time"], ego["time"])
     np.testing.assert_allclose(truth["thw"], np.minimum(ego["thw_true"], 5.0), rtol=1e-5)
+
+
+def test_plot_data_fails_naming_a_missing_evaluation_input(ci_dag: Path, tmp_path: Path) -> None:
+    """The evaluation figures are drawn in a forked second process: an input missing there still
+    fails the stage (non-zero exit) with an error naming the file, and no figure is left
+    half-written."""
+    import subprocess
+    import sys
+
+    from conftest import copy_dag, stage_env
+
+    repo = copy_dag(ci_dag, tmp_path / "repo", mlflow=False)
+    (repo / "data" / "figure_inputs" / "twin_map.npz").unlink()
+    before = {p.name: p.read_bytes() for p in (repo / "reports" / "figures").glob("*.png")}
+    p = subprocess.run(
+        [sys.executable, "-m", "pipelines.plot_data"],
+        cwd=repo,
+        env=stage_env(repo),
+        capture_output=True,
+        text=True,
+    )
+    assert p.returncode != 0
+    assert "data/figure_inputs/twin_map.npz is missing" in p.stderr, p.stderr[-2000:]
+    after = {p.name: p.read_bytes() for p in (repo / "reports" / "figures").glob("*.png")}
+    assert after == before  # every figure drawn again byte for byte or not at all
