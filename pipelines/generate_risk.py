@@ -46,17 +46,19 @@ def read_config(cfg) -> tuple[RiskDataConfig, RiskDataSpec, int]:
 
 def _work(index: int) -> tuple[int, str, int, list[dict]]:
     arrays, rows = make_shard(WORKER_STATE["seed"], index, WORKER_STATE["spec"])
-    digest = write_npz_deterministic(WORKER_STATE["root"] / shard_name(index), arrays)
+    digest = write_npz_deterministic(
+        WORKER_STATE["root"] / shard_name(index), arrays, compresslevel=WORKER_STATE["level"]
+    )
     return index, digest, len(rows), rows
 
 
 def recorded_params(cfg) -> dict:
-    """What the data version records: ``risk_data`` as in params.yaml (less ``workers``, which
-    does not change the data) and ``grid``."""
+    """What the data version records: ``risk_data`` as in params.yaml (less ``workers`` and
+    ``compresslevel``, which do not change the data) and ``grid``."""
     rec = {
         k: v
         for k, v in OmegaConf.to_container(cfg.risk_data, resolve=True).items()
-        if k != "workers"
+        if k not in ("workers", "compresslevel")
     }
     rec["grid"] = OmegaConf.to_container(cfg.grid, resolve=True)
     return rec
@@ -71,7 +73,7 @@ def generate(
     splits = assign_splits(rd.sequences, seed, rd.split_fractions(), strata=situations)
     writer = DatasetWriter(out, "risk", recorded, seed)
     rows_by: dict[int, list[dict]] = {}
-    state = {"spec": spec, "seed": seed, "root": Path(out)}
+    state = {"spec": spec, "seed": seed, "root": Path(out), "level": rd.compresslevel}
     for index, digest, count, rows in map_shards(
         _work,
         range(rd.sequences),

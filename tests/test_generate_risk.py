@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tests.conftest import run, stage_in_process
+from tests.conftest import composed, run, stage_in_process
 from traffictwin.grid import GridSpec
 from traffictwin.io.shards import Dataset
 from traffictwin.risk.dataset import (
@@ -157,6 +157,25 @@ def test_frame_table_and_summary():
         assert s[f"situation/{sit}/critical_share"] == pytest.approx(float(part.critical.mean()))
     assert sum(v for k, v in s.items() if k.startswith("all/fault_share_")) == pytest.approx(1.0)
     assert sum(v for k, v in s.items() if k.startswith("all/sequences_")) == 2
+
+
+def test_shard_compresslevel_is_checked_and_left_out_of_the_data_version():
+    """``risk_data.compresslevel`` (zlib level of the shards) must be 0..9; it changes the files'
+    bytes, not the arrays, so the data version's recorded params leave it out (like ``workers``)."""
+    from omegaconf import OmegaConf
+
+    from pipelines.generate_risk import read_config, recorded_params
+    from traffictwin.config import ConfigError
+
+    cfg = OmegaConf.create(composed())
+    rd, _, _ = read_config(cfg)
+    assert rd.compresslevel == cfg.risk_data.compresslevel
+    assert "compresslevel" not in recorded_params(cfg) and "workers" not in recorded_params(cfg)
+    assert "sequences" in recorded_params(cfg)
+    for bad in (10, -1, "fast"):
+        cfg.risk_data.compresslevel = bad
+        with pytest.raises(ConfigError, match="compresslevel"):
+            read_config(cfg)
 
 
 @pytest.mark.slow

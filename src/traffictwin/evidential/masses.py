@@ -83,9 +83,12 @@ def clean_masses(m: Any) -> Any:
         return torch.where(s > 1, m / s.clamp_min(1.0), m)
     m = np.asarray(m)
     dtype = m.dtype if np.issubdtype(m.dtype, np.floating) else np.dtype(np.float32)
-    m = np.clip(m, 0.0, 1.0).astype(dtype, copy=False)
+    m = np.clip(m, 0.0, 1.0).astype(dtype, copy=False)  # a new array: divided in place below
     s = m.sum(axis=-3, keepdims=True)
-    return np.where(s > 1, m / np.maximum(s, 1), m).astype(dtype, copy=False)
+    over = s > 1
+    if over.any():  # most maps have no such cell: skip the full-grid pass
+        np.divide(m, s, out=m, where=over)
+    return m
 
 
 def unknown_mass(m: np.ndarray) -> np.ndarray:

@@ -61,4 +61,5 @@ def warp_masses(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=(0.0, 0.0, 0.0, 0.0),
     )
-    return np.ascontiguousarray(clean_masses(out.transpose(2, 0, 1)))  # float rounding only
+    # float rounding only; on a contiguous copy (twice as fast as on the strided transpose)
+    return clean_masses(np.ascontiguousarray(out.transpose(2, 0, 1)))

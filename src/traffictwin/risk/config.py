@@ -93,6 +93,7 @@ class RiskDataConfig:
     label: str = spec(choices=LABELS)
     splits: list[float] = spec()
     workers: int = spec(min=1)
+    compresslevel: int = spec(min=0, max=9)
     ground_res: float = spec(min=0.02, max=1.0)
     camera: CameraParams = spec()
     faults: FaultParams = spec()

@@ -205,10 +205,12 @@ def project_on_path(xy: np.ndarray, path: np.ndarray) -> tuple[np.ndarray, np.nd
     if len(seg) == 0:
         raise ValueError("corridor path needs at least two distinct points")
     cum = np.r_[0.0, np.cumsum(seg)[:-1]]
-    ap = xy[:, None, :] - a[None]  # (M, S, 2)
-    t = np.clip((ap[..., 0] * ab[:, 0] + ap[..., 1] * ab[:, 1]) / (seg * seg), 0.0, 1.0)
-    off = ap - t[..., None] * ab[None]
-    d2 = off[..., 0] ** 2 + off[..., 1] ** 2
+    apx = xy[:, 0, None] - a[:, 0]  # (M, S): x and y apart, no (M, S, 2) temporaries
+    apy = xy[:, 1, None] - a[:, 1]
+    t = np.clip((apx * ab[:, 0] + apy * ab[:, 1]) / (seg * seg), 0.0, 1.0)
+    apx -= t * ab[:, 0]  # now the offset from the projection
+    apy -= t * ab[:, 1]
+    d2 = apx**2 + apy**2
     j = np.argmin(d2, axis=1)
     m = np.arange(len(xy))
     tangent = ab[j] / seg[j, None]
