@@ -176,7 +176,7 @@ def _frame_table(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The ego's frame table of ``seqs`` at pose noise ``pn`` and (``vehicles``) every other
     vehicle's: the classical registrations of every sequence at once (one pool of processes),
-    then every sequence's twin and risk."""
+    then every sequence's twin and risk (another pool; the tables do not depend on its size)."""
     from traffictwin.twin import evaluation as ev
 
     tp = ev.TwinPass(
@@ -187,9 +187,7 @@ def _frame_table(
         if ev.uses_classical(methods, run.settings)
         else [None] * len(seqs)
     )
-    tables = [
-        ev.evaluate_sequence_tables(a, tp, r, include_ego, vehicles) for a, r in zip(seqs, reg)
-    ]
+    tables = ev.evaluate_sequences_tables(seqs, tp, reg, include_ego, vehicles)
     return (
         pd.concat([t.frames for t in tables], ignore_index=True),
         pd.concat([t.vehicles for t in tables], ignore_index=True),

@@ -372,6 +372,49 @@ def test_twin_stages_on_ci_dag(ci_dag: Path) -> None:
     assert shard["ttc_true"].shape == shard["thw_true"].shape
 
 
+def test_learned_twin_tables_do_not_follow_the_worker_count(ci_dag: Path) -> None:
+    """The learned registration (torch) in two worker processes gives the ci run's sequences the
+    same tables as one process (the models reach the workers; the order is kept)."""
+    import torch
+    import yaml
+
+    from traffictwin.fusion.config import MIXED, grid_config
+    from traffictwin.fusion.registration_io import load_registration_model
+    from traffictwin.io.shards import Dataset
+    from traffictwin.twin.config import twin_config
+    from traffictwin.twin.data import INF_ARRAYS
+    from traffictwin.twin.evaluation import TwinPass, evaluate_sequences_tables
+
+    cfg = yaml.safe_load((ci_dag / "params.yaml").read_text())
+    grid, settings = grid_config(cfg), twin_config(cfg).settings()
+    model = load_registration_model(
+        ci_dag / "models" / "registration" / "learned" / "model.ckpt",
+        expected_grid=grid,
+        expected_cfg=MIXED,
+    )
+    ds = Dataset(ci_dag / "data" / "twin", kind="twin", allow_inf=INF_ARRAYS)
+    seqs = [ds.load_shard(i) for i in ds.shard_indices("test")]
+    models = {"learned": {"registration": model}}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        tables = [
+            evaluate_sequences_tables(
+                seqs,
+                TwinPass(grid, (5.0, 20.0), ["learned"], models, settings, workers=w),
+                [None] * len(seqs),
+            )
+            for w in (1, 2)
+        ]
+    finally:
+        torch.set_num_threads(threads)
+    for one, two in zip(*tables):
+        pd.testing.assert_frame_equal(
+            one.frames.drop(columns="step_ms"), two.frames.drop(columns="step_ms")
+        )
+        assert (one.frames["method"] == "learned").any()
+
+
 # ------------------------------------------------------------------------------------ report and figures
 def test_report_section_shows_the_metrics_file(tmp_path: Path) -> None:
     from traffictwin.io.jsonio import json_clean

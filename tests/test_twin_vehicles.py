@@ -16,6 +16,7 @@ from traffictwin.twin.evaluation import (
     TwinPass,
     evaluate_sequence,
     evaluate_sequence_tables,
+    evaluate_sequences_tables,
     map_thw,
 )
 from traffictwin.twin.fuse import TwinOptions, build_twin
@@ -113,6 +114,51 @@ def test_evaluate_sequence_tables_reads_every_vehicle_s_risk() -> None:
     assert (v["critical"] == (v["thw_true"] < s.critical_thw)).all()
     assert (v["flagged"] == (v["thw"] < s.warn_thw)).all()
     assert evaluate_sequence_tables(a, run).vehicles.empty  # not asked for
+
+
+def _without_wall_times(tables: list) -> list[pd.DataFrame]:
+    return [t.frames.drop(columns="step_ms") for t in tables] + [t.vehicles for t in tables]
+
+
+def test_sequences_in_worker_processes_give_the_same_tables() -> None:
+    """Two worker processes return every sequence's tables, in the sequences' order, equal to
+    one process's (but the wall times)."""
+    seqs = [sequence_arrays(5, i, P) for i in range(3)]
+    s = TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5), n_boot=50)
+    one = TwinPass(GRID, (0.5, 1.0), ["naive"], {}, s, workers=1)
+    two = TwinPass(GRID, (0.5, 1.0), ["naive"], {}, s, workers=2)
+    serial = evaluate_sequences_tables(seqs, one, [None] * 3, vehicles=True)
+    pooled = evaluate_sequences_tables(seqs, two, [None] * 3, vehicles=True)
+    assert [int(t.frames["sequence"].iloc[0]) for t in pooled] == [
+        int(a["sequence"].reshape(-1)[0]) for a in seqs
+    ]
+    for a, b in zip(_without_wall_times(serial), _without_wall_times(pooled)):
+        pd.testing.assert_frame_equal(a, b)
+    with pytest.raises(ValueError, match="2 registrations for 3 sequences"):
+        evaluate_sequences_tables(seqs, two, [None] * 2)
+
+
+def test_a_sequence_worker_runs_torch_on_the_parent_s_thread_count() -> None:
+    """Torch's float sums follow its intra-op thread count, so each worker process sets the
+    parent's (0: torch not loaded in the parent, the worker's default is left)."""
+    import signal
+
+    import torch
+
+    from traffictwin.twin.evaluation import _WORKER, _sequence_worker_init
+
+    n, sigint = torch.get_num_threads(), signal.getsignal(signal.SIGINT)
+    s = TwinEvalSettings(critical_thw=1.5, predict=PredictSettings(warn_s=1.5))
+    run = TwinPass(GRID, (0.5, 1.0), ["naive"], {}, s)
+    try:
+        _sequence_worker_init(run, 3)
+        assert torch.get_num_threads() == 3 and _WORKER["run"] is run
+        _sequence_worker_init(run, 0)
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(n)
+        signal.signal(signal.SIGINT, sigint)  # the worker ignores Ctrl-C; this process must not
+        _WORKER.clear()
 
 
 def _vehicle_table() -> pd.DataFrame:

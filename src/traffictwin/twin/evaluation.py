@@ -15,6 +15,7 @@ The aggregation over sequences (recall, lead times, false alarms, with CIs) is
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,7 @@ __all__ = [
     "evaluate_sequence",
     "SequenceTables",
     "evaluate_sequence_tables",
+    "evaluate_sequences_tables",
     "predictive_frame",
     "classical_registrations",
 ]
@@ -124,7 +126,8 @@ def ttc_reader(grid: GridSpec, s: TwinEvalSettings, fps: float) -> Any:
 class TwinPass:
     """One evaluation pass over sequences: the ``grid``, the pose ``noise`` (r m, alpha deg), the
     twin ``methods`` and ``models[method]`` (the models each needs), the evaluation ``settings``,
-    the classical ``registration``'s parameters and its ``workers`` processes."""
+    the classical ``registration``'s parameters and the ``workers`` processes of the pass (the
+    classical registrations, then the sequences)."""
 
     grid: GridSpec
     noise: tuple[float, float]
@@ -305,6 +308,77 @@ def evaluate_sequence_tables(
     f["flagged"] = f["thw"] < s.warn_thw
     f["flagged_ttc"] = f["ttc"] < s.predict.warn_s
     return SequenceTables(f, others.table())
+
+
+_WORKER: dict[str, Any] = {}  # the pass of :func:`evaluate_sequences_tables`' worker processes
+
+
+def _sequence_worker_init(run: TwinPass, threads: int) -> None:
+    import signal
+
+    from traffictwin.threads import pin_threads
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends the pool
+    if threads:
+        pin_threads(threads)
+    _WORKER["run"] = run
+
+
+def _sequence_task(task: tuple[int, dict[str, np.ndarray], Any, bool, bool]) -> tuple[int, Any]:
+    j, arrays, registered, include_ego, vehicles = task
+    return j, evaluate_sequence_tables(arrays, _WORKER["run"], registered, include_ego, vehicles)
+
+
+def evaluate_sequences_tables(
+    sequences: list[dict[str, np.ndarray]],
+    run: TwinPass,
+    registered: list[dict[int, list[Any]] | None],
+    include_ego: bool = True,
+    vehicles: bool = False,
+) -> list[SequenceTables]:
+    """:func:`evaluate_sequence_tables` of every sequence (``registered[j]``: sequence ``j``'s
+    classical registrations, or None), in ``run.workers`` processes when there are several.
+
+    The sequences are independent, so the tables are the same for any number of workers: each
+    worker runs torch on this process's intra-op thread count (:mod:`traffictwin.threads`: the
+    networks' float sums follow it). Only ``step_ms``, a wall time, differs. The workers are
+    spawned (a fork of this process could inherit a lock held by one of its threads)."""
+    import multiprocessing as mp
+    import sys
+
+    n = len(sequences)
+    if len(registered) != n:
+        raise ValueError(
+            f"evaluate_sequences_tables: {len(registered)} registrations for {n} sequences"
+        )
+    if run.workers <= 1 or n <= 1:
+        return [
+            evaluate_sequence_tables(a, run, r, include_ego, vehicles)
+            for a, r in zip(sequences, registered)
+        ]
+    torch = sys.modules.get("torch")  # not imported: no network in this pass
+    threads = torch.get_num_threads() if torch is not None else 0
+    tasks = (
+        (j, a, r, include_ego, vehicles) for j, (a, r) in enumerate(zip(sequences, registered))
+    )
+    out: list[Any] = [None] * n
+    # spawned workers start with this environment: OpenMP threads that sleep while they wait,
+    # since the workers' torch threads share the cores (spinning ones starve the other worker)
+    wait = os.environ.get("OMP_WAIT_POLICY")
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    try:
+        pool = mp.get_context("spawn").Pool(
+            min(run.workers, n), initializer=_sequence_worker_init, initargs=(run, threads)
+        )
+    finally:
+        if wait is None:
+            del os.environ["OMP_WAIT_POLICY"]
+        else:
+            os.environ["OMP_WAIT_POLICY"] = wait
+    with pool:
+        for j, tables in pool.imap_unordered(_sequence_task, tasks):
+            out[j] = tables
+    return out
 
 
 def predictive_frame(frame: pd.DataFrame) -> pd.DataFrame:
