@@ -15,7 +15,6 @@ The aggregation over sequences (recall, lead times, false alarms, with CIs) is
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -346,6 +345,8 @@ def evaluate_sequences_tables(
     import multiprocessing as mp
     import sys
 
+    from traffictwin.threads import passive_omp_wait
+
     n = len(sequences)
     if len(registered) != n:
         raise ValueError(
@@ -362,20 +363,13 @@ def evaluate_sequences_tables(
         (j, a, r, include_ego, vehicles) for j, (a, r) in enumerate(zip(sequences, registered))
     )
     out: list[Any] = [None] * n
-    # spawned workers start with this environment: OpenMP threads that sleep while they wait,
-    # since the workers' torch threads share the cores (spinning ones starve the other worker)
-    wait = os.environ.get("OMP_WAIT_POLICY")
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-    try:
-        pool = mp.get_context("spawn").Pool(
-            min(run.workers, n), initializer=_sequence_worker_init, initargs=(run, threads)
-        )
-    finally:
-        if wait is None:
-            del os.environ["OMP_WAIT_POLICY"]
-        else:
-            os.environ["OMP_WAIT_POLICY"] = wait
-    with pool:
+    # spawned workers inherit this environment: their torch threads share the cores, and
+    # spinning OpenMP threads starve the other worker (a user's own policy is kept)
+    passive_omp_wait()
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(
+        min(run.workers, n), initializer=_sequence_worker_init, initargs=(run, threads)
+    ) as pool:
         for j, tables in pool.imap_unordered(_sequence_task, tasks):
             out[j] = tables
     return out
