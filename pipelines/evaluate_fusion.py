@@ -74,6 +74,7 @@ SUMMARY = metrics_file("summary_fusion")  # the DVC metrics file: what `dvc exp 
 SAMPLES = REPORTS / "fusion_eval_samples.csv"
 FINDINGS = REPORTS / "fusion_findings.md"
 FIGURE_INPUTS = figure_input("fusion")
+TRAINING = metrics_file("train_fusion_network")  # the one network's training record (train_fusion)
 METHODS_TABLE = "evaluation/test_methods_{cfg}.json"  # MLflow table artifact of a network's run
 
 log = logging.getLogger("traffictwin.evaluate_fusion")
@@ -339,7 +340,9 @@ def main() -> None:
             {c: prealigned(c) for c in configs}, fc.split, fc.max_pairs, grid
         )
         raw = ev.load_raw_pairs(FUSION_DATA, pair_ids, fc.split, grid)
-        res = ev.evaluate(data, raw, networks, grid, fc, ci, thresholds)
+        # the training target reads it; a tree without it (no train_fusion) leaves that one unjudged
+        training = json.loads(TRAINING.read_text(encoding="utf-8")) if TRAINING.is_file() else None
+        res = ev.evaluate(data, raw, networks, grid, fc, ci, thresholds, training)
         metrics = json_clean({**res.metrics, "validation": chosen})
         record.update(json_clean(res.timings))  # wall times: run record only
         for name, frame in ev.plot_tables(res, noise).items():

@@ -318,7 +318,8 @@ def test_every_verdict_reads_its_threshold_from_the_config():
     own, metrics = _target_inputs()
     base = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION)
     # u_auroc has no value here (no wrong-cell histograms); every other target is flipped below
-    assert set(FLIPS) == set(ev.JUDGES) - {"u_auroc"}
+    # (training_converged: judged on the training record, its own test below)
+    assert set(FLIPS) == set(ev.JUDGES) - {"u_auroc", "training_converged"}
     for name, (c, threshold) in FLIPS.items():
         assert base[name]["per_config"][c]["status"] == "pass", name
         moved = {**FUSION, name: dataclasses.replace(FUSION[name], value=threshold)}
@@ -335,6 +336,42 @@ def test_every_verdict_reads_its_threshold_from_the_config():
     with pytest.raises(ValueError, match="no acceptance threshold for .'u_auroc'"):
         less = {k: v for k, v in FUSION.items() if k != "u_auroc"}
         ev.fusion_targets(own, metrics, CI, 0.5, 1.0, less)
+
+
+@pytest.mark.parametrize(
+    ("training", "status", "value"),
+    [
+        ({"best_epoch": 31, "epochs": 44, "stopped_early": True}, "pass", 32 / 44),
+        ({"best_epoch": 35, "epochs": 45, "stopped_early": True}, "pass", 0.8),  # on the line
+        ({"best_epoch": 40, "epochs": 44, "stopped_early": True}, "fail", 41 / 44),
+        ({"best_epoch": 10, "epochs": 35, "stopped_early": False}, "fail", 11 / 35),  # the cap
+        ({"best_epoch": 44, "epochs": 44, "stopped_early": True}, "not evaluated", None),
+        (None, "not evaluated", None),
+    ],
+)
+def test_training_converged_is_judged_on_the_best_epoch_s_place_and_early_stopping(
+    training, status, value
+):
+    """(best_epoch + 1) / epochs <= 0.8, and early stopping ended the run; a run the epoch cap
+    ended fails whatever its best epoch (it may still have been improving)."""
+    own, metrics = _target_inputs()
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, FUSION, training)["training_converged"]
+    v = t["per_config"]["mixed"]
+    assert (t["threshold"], t["op"]) == (0.8, "<=")
+    assert v["status"] == status and t["status"] == status
+    assert v["value"] == pytest.approx(value) if value is not None else v["value"] is None
+    if training and not training["stopped_early"]:
+        assert "epoch cap (35)" in v["why"]
+    if status != "not evaluated":
+        assert (v["best_epoch"], v["epochs"]) == (training["best_epoch"], training["epochs"])
+    # the threshold comes from the config
+    moved = {
+        **FUSION,
+        "training_converged": dataclasses.replace(FUSION["training_converged"], value=0.7),
+    }
+    ok = {"best_epoch": 31, "epochs": 44, "stopped_early": True}
+    t = ev.fusion_targets(own, metrics, CI, 0.5, 1.0, moved, ok)["training_converged"]
+    assert t["per_config"]["mixed"]["status"] == "fail"
 
 
 # -- evaluate with networks per row ------------------------------------------------------------------

@@ -298,6 +298,7 @@ def evaluate(
     cfg: FusionEvalConfig,
     ci: CIConfig,
     thresholds: Mapping[str, Threshold],
+    training: Mapping[str, Any] | None = None,
 ) -> Evaluation:
     """Every method on every configuration of ``data`` (from :func:`load_test_sets`, in
     configuration order), ``raw`` its raw pairs (:func:`load_raw_pairs`).
@@ -311,7 +312,8 @@ def evaluate(
     = all: every method on the same pairs), the per-configuration networks on other
     configurations on ``cfg.cross_max_pairs`` (the cross table). Intervals and differences:
     ``ci`` (see the package docstring). Targets: judged against ``thresholds``
-    (``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`).
+    (``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`); the training target on
+    the one network's ``training`` record (train_fusion_network.json).
     """
     import pandas as pd
 
@@ -357,7 +359,7 @@ def evaluate(
         "cluster": f"scenario = pair_id // {SCENARIO_STRIDE}",
     }
     targets = fusion_targets(
-        acc.own, metrics, ci, cfg.success_trans_m, cfg.success_rot_deg, thresholds
+        acc.own, metrics, ci, cfg.success_trans_m, cfg.success_rot_deg, thresholds, training
     )
     metrics["targets"] = {k: v for k, v in targets.items() if k not in TIMING_TARGETS}
     timings = _timings(acc, main, targets)

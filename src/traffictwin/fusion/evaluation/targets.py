@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from traffictwin.acceptance import NOT_EVALUATED, Threshold
+from traffictwin.acceptance import FAIL, NOT_EVALUATED, Threshold
 from traffictwin.acceptance import judge as judge_threshold
 from traffictwin.fusion.evaluation.intervals import (
     ci_kwargs,
@@ -105,14 +105,16 @@ def _overall(per: Mapping[str, Verdict]) -> str:
 @dataclass(frozen=True)
 class TargetInputs:
     """What the targets are judged on: the per-pair frames ``frames[(cfg, row)]``, the ``test``
-    and ``diff`` blocks of fusion.json, the bootstrap settings ``ci`` and the acceptance
-    ``thresholds`` (``acceptance.fusion``)."""
+    and ``diff`` blocks of fusion.json, the bootstrap settings ``ci``, the acceptance
+    ``thresholds`` (``acceptance.fusion``) and the one network's ``training`` record
+    (train_fusion_network.json: ``best_epoch`` (0-based), ``epochs`` run, ``stopped_early``)."""
 
     frames: Mapping[tuple[str, str], pd.DataFrame]
     test: Mapping[str, Any]
     diff: Mapping[str, Any]
     ci: CIConfig
     thresholds: Mapping[str, Threshold]
+    training: Mapping[str, Any] = field(default_factory=dict)
 
     def frame(self, c: str, row: str) -> pd.DataFrame | None:
         return self.frames.get((c, row))
@@ -270,6 +272,25 @@ def _learned_mean(ti: TargetInputs, c: str, column: str, name: str, row: str = L
     return _judge_target(ti, iv, name)
 
 
+def _training_converged(ti: TargetInputs, c: str) -> Verdict:
+    """The one network's training (``ti.training``; ``c``: the noise it was trained on): the
+    figure is its best epoch's place in the run, (best_epoch + 1) / epochs (1: the last epoch
+    run); it fails whatever that place where early stopping did not end the run (the epoch cap
+    did: the network may still have been improving). No interval: one training run."""
+    best, epochs = ti.training.get("best_epoch"), ti.training.get("epochs")
+    if not isinstance(best, int) or not isinstance(epochs, int) or not 0 <= best < epochs:
+        return missing(f"no training record of the network trained on {c} (best_epoch, epochs)")
+    place = (best + 1) / epochs
+    j = judge_threshold(ti.thresholds["training_converged"], place)
+    stopped = ti.training.get("stopped_early") is True
+    v = Verdict(place, None, None, j.status if stopped else FAIL)
+    if not stopped:
+        v = replace(
+            v, why=f"the run reached its epoch cap ({epochs}): early stopping did not end it"
+        )
+    return v.with_extra(best_epoch=best, epochs=epochs, stopped_early=stopped)
+
+
 # every target's judge at one configuration, in the order of fusion.json's ``targets``
 JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
     "kld_ratio_vs_naive": _ratio,
@@ -304,6 +325,7 @@ JUDGES: dict[str, Callable[[TargetInputs, str], Verdict]] = {
     "refined_success_at_D": lambda ti, c: _learned_mean(
         ti, c, "reg_success", "refined_success_at_D", LEARNED_REFINED
     ),
+    "training_converged": _training_converged,
 }
 
 
@@ -314,10 +336,12 @@ def fusion_targets(
     success_trans_m: float,
     success_rot_deg: float,
     thresholds: Mapping[str, Threshold],
+    training: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Every target of :data:`JUDGES` against its acceptance threshold (``thresholds``:
     ``acceptance.fusion``, :func:`traffictwin.acceptance.thresholds`), from the per-pair frames
-    ``own[(cfg, row)]`` and the intervals already in ``metrics`` (``test``, ``diff``):
+    ``own[(cfg, row)]``, the intervals already in ``metrics`` (``test``, ``diff``) and the one
+    network's ``training`` record (train_fusion_network.json; None: that target not evaluated):
     ``{name: {description, threshold, op, status, per_config: {cfg: verdict}}}``. A target whose
     configuration or rows were not evaluated is ``not evaluated`` (never ``pass``). The
     descriptions name the registration success limits ``success_trans_m`` (m) and
@@ -328,7 +352,7 @@ def fusion_targets(
         raise ValueError(
             f"fusion_targets: no acceptance threshold for {absent} (acceptance.fusion)"
         )
-    ti = TargetInputs(own, metrics["test"], metrics["diff"], ci, thresholds)
+    ti = TargetInputs(own, metrics["test"], metrics["diff"], ci, thresholds, training or {})
     configs = list(metrics["test"])
     out: dict[str, Any] = {}
     for name, judge_at in JUDGES.items():
