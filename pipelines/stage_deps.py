@@ -7,10 +7,12 @@ A stage re-runs when a file it imports changes, and only then. The import closur
 templates those modules render. It is recorded once per script, in that script's *code manifest*
 ``stage_code/<script>.md5`` (``md5sum`` lines: the MD5 and path of every file of the closure,
 script first; ``md5sum -c stage_code/train_fusion.md5`` checks them). The ``stage_code`` stage
-writes the manifests; its deps are every code file some stage runs, one file each. Every other
-stage depends on its script's manifest, which changes exactly when a file of its closure does:
-dvc.lock records each code file's hash once instead of once per stage that imports it. Data,
-model and config deps (any other path) are kept as written.
+writes the manifests; its deps are the two code folders (:data:`CODE_FOLDERS`, their
+``__pycache__`` left out by ``.dvcignore``), so it re-runs (in a fraction of a second) after any
+code edit. Every other stage depends on its script's manifest, which changes exactly when a file
+of its closure does: dvc.lock records two folder hashes instead of each code file's hash once per
+stage that imports it (DVC re-reads and rewrites the whole lock after every stage, so its length is
+paid per stage). Data, model and config deps (any other path) are kept as written.
 
     python -m pipelines.stage_deps check        # exit 1 and list the stages whose deps differ
     python -m pipelines.stage_deps write        # rewrite the code deps (and manifest outs) of dvc.yaml
@@ -46,6 +48,8 @@ CODE_ROOTS = ("src", "pipelines")
 MANIFESTS = CODE_STAGE = "stage_code"
 #: the module the ``stage_code`` stage runs
 CODE_STAGE_MODULE = "pipelines.stage_deps"
+#: the ``stage_code`` stage's code deps: the folders that hold every file of every closure
+CODE_FOLDERS = ("pipelines", "src/traffictwin")
 
 
 def imported_names(tree: ast.Module, package: str) -> set[str]:
@@ -215,19 +219,9 @@ def stage_modules(doc: Mapping[str, Any]) -> list[str]:
     return sorted({stage_module(b) for b in bodies} - {CODE_STAGE_MODULE})
 
 
-def all_code(modules: Iterable[str], root: Path = ROOT) -> list[str]:
-    """The ``stage_code`` stage's code deps: its own script and closure first, then every other
-    file of the closures of ``modules``, sorted."""
-    own = code_deps(CODE_STAGE_MODULE, root)
-    rest = {p for m in modules for p in code_deps(m, root)} - set(own)
-    return own + sorted(rest)
-
-
-def wanted_deps(
-    stage: Mapping[str, Any], root: Path = ROOT, modules: Iterable[str] = ()
-) -> list[str]:
+def wanted_deps(stage: Mapping[str, Any]) -> list[str]:
     """A stage's deps as they should read: its script's code manifest (the ``stage_code`` stage:
-    every code file of ``modules``, the stage modules of dvc.yaml), then its other deps."""
+    the code folders, :data:`CODE_FOLDERS`), then its other deps."""
     others = [
         d
         for d in stage.get("deps", [])
@@ -235,7 +229,7 @@ def wanted_deps(
     ]
     module = stage_module(stage)
     if module == CODE_STAGE_MODULE:
-        return all_code(modules, root) + others
+        return [*CODE_FOLDERS, *others]
     return [manifest_path(module)] + others
 
 
@@ -281,19 +275,15 @@ def _stage_bodies(doc: Mapping[str, Any]) -> dict[str, Any]:
     return {name: (s["do"] if "do" in s else s) for name, s in doc["stages"].items()}
 
 
-def differences(
-    dvc_yaml: Path = DVC_YAML, root: Path | None = None
-) -> dict[str, tuple[list[str], list[str]]]:
-    """Stages whose deps (the ``stage_code`` stage: deps and outs) are not what the imports say:
-    name -> (missing, stale). ``root``: the repository whose code the stages run (default: the
-    folder of ``dvc_yaml``)."""
+def differences(dvc_yaml: Path = DVC_YAML) -> dict[str, tuple[list[str], list[str]]]:
+    """Stages whose deps (the ``stage_code`` stage: deps and outs) are not as they should read
+    (:func:`wanted_deps`, :func:`wanted_outs`): name -> (missing, stale)."""
     _, doc = _load(dvc_yaml)
-    root = root or dvc_yaml.resolve().parent
     modules = stage_modules(doc)
     out: dict[str, tuple[list[str], list[str]]] = {}
     for name, body in _stage_bodies(doc).items():
         have = [dep_path(d) for d in body.get("deps", [])]
-        want = wanted_deps(body, root, modules)
+        want = wanted_deps(body)
         if stage_module(body) == CODE_STAGE_MODULE:
             have += [dep_path(o) for o in body.get("outs", [])]
             want += wanted_outs(modules)
@@ -304,14 +294,12 @@ def differences(
     return out
 
 
-def write(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
+def write(dvc_yaml: Path = DVC_YAML) -> list[str]:
     """Rewrite the code deps of every stage in ``dvc_yaml`` (and the ``stage_code`` stage's
     outs); returns the names of the stages changed.
 
-    The file is replaced atomically; a stage's non-code deps keep their order after the code.
-    ``root``: the repository whose code the stages run (default: the folder of ``dvc_yaml``)."""
+    The file is replaced atomically; a stage's non-code deps keep their order after the code."""
     yaml, doc = _load(dvc_yaml)
-    root = root or dvc_yaml.resolve().parent
     modules = stage_modules(doc)
     changed: list[str] = []
     done: set[int] = set()  # a YAML anchor shared by two stages is one list: rewrite it once
@@ -325,7 +313,7 @@ def write(dvc_yaml: Path = DVC_YAML, root: Path | None = None) -> list[str]:
         if deps is None or id(deps) in done:
             continue
         done.add(id(deps))
-        want = wanted_deps(body, root, modules)
+        want = wanted_deps(body)
         if [dep_path(d) for d in deps] == want:
             continue
         keep = {dep_path(d): d for d in deps if not is_code(dep_path(d))}

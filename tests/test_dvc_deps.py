@@ -1,6 +1,6 @@
 """Every stage re-runs when a code file its script imports changes, and only then: dvc.yaml's
-``stage_code`` stage depends on every code file some stage runs and writes one code manifest per
-script (``stage_code/<script>.md5``: the MD5 of every file of its import closure), and every other
+``stage_code`` stage depends on the code folders and writes one code manifest per script
+(``stage_code/<script>.md5``: the MD5 of every file of its import closure), and every other
 stage depends on its script's manifest. ``python -m pipelines.stage_deps write`` computes the lists;
 these tests keep them from drifting, check that a manifest changes exactly when a file of its
 closure does, and keep dvc.lock free of stages dvc.yaml no longer has."""
@@ -43,37 +43,47 @@ def test_every_stage_lists_exactly_the_code_it_imports() -> None:
 
 
 @pytest.mark.parametrize("stage", sorted(_stages()))
-def test_code_deps_are_files_never_folders(stage: str) -> None:
+def test_a_stage_depends_on_its_manifest_and_stage_code_on_the_folders_of_every_closure(
+    stage: str,
+) -> None:
+    """A stage's only code dep is its script's manifest (a file); the ``stage_code`` stage's are
+    the code folders, which hold every file of every stage's closure (so no edit escapes it)."""
     body = _stages()[stage]
     code = [d for d in _deps(body) if stage_deps.is_code(d) or stage_deps.is_manifest(d)]
-    for dep in code:
-        assert (ROOT / dep).is_file(), f"dvc.yaml stage {stage}: {dep} is not a file"
-    if stage != stage_deps.CODE_STAGE:  # the others depend on their script's manifest only
+    if stage != stage_deps.CODE_STAGE:
         module = stage_deps.stage_module(body)
         assert code == [stage_deps.manifest_path(module)], (stage, code)
+        assert (ROOT / code[0]).is_file(), f"dvc.yaml stage {stage}: {code[0]} is not a file"
+        return
+    assert code == list(stage_deps.CODE_FOLDERS) and all((ROOT / d).is_dir() for d in code)
+    modules = stage_deps.stage_modules(yaml.safe_load((ROOT / "dvc.yaml").read_text()))
+    files = {f for m in [*modules, stage_deps.CODE_STAGE_MODULE] for f in stage_deps.code_deps(m)}
+    outside = [f for f in files if not any(f.startswith(f"{d}/") for d in code)]
+    assert len(files) > 100 and not outside, outside
 
 
 def test_a_dropped_or_stale_dep_is_reported(tmp_path: Path) -> None:
-    """The check names a code file the ``stage_code`` stage lacks or lists needlessly, and a stage
-    that lists code instead of its manifest; rewriting restores the lists."""
+    """The check names a code folder the ``stage_code`` stage lacks and a code file it lists
+    needlessly, and a stage that lists code instead of its manifest; rewriting restores the
+    lists."""
     doc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
     code = doc["stages"]["stage_code"]["deps"]
-    assert "src/traffictwin/risk/dave2.py" in code and "pipelines/reset.py" not in code
-    code.remove("src/traffictwin/risk/dave2.py")
-    code.append("pipelines/reset.py")  # no stage runs it
+    assert code == ["pipelines", "src/traffictwin"]
+    code.remove("src/traffictwin")
+    code.append("pipelines/reset.py")  # inside a folder it already lists
     deps = doc["stages"]["train_risk"]["do"]["deps"]
     assert deps[0] == "stage_code/train_risk.md5"
     deps[0] = "src/traffictwin/risk/dave2.py"
     broken = tmp_path / "dvc.yaml"
     broken.write_text(yaml.safe_dump(doc, sort_keys=False))
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
-    diff = stage_deps.differences(broken, root=ROOT)
+    diff = stage_deps.differences(broken)
     assert diff == {
-        "stage_code": (["src/traffictwin/risk/dave2.py"], ["pipelines/reset.py"]),
+        "stage_code": (["src/traffictwin"], ["pipelines/reset.py"]),
         "train_risk": (["stage_code/train_risk.md5"], ["src/traffictwin/risk/dave2.py"]),
     }
-    assert stage_deps.write(broken, root=ROOT) == ["stage_code", "train_risk"]
-    assert stage_deps.differences(broken, root=ROOT) == {}
+    assert stage_deps.write(broken) == ["stage_code", "train_risk"]
+    assert stage_deps.differences(broken) == {}
     # data deps survive the rewrite, after the code
     rewritten = yaml.safe_load(broken.read_text())["stages"]["train_risk"]["do"]["deps"]
     assert rewritten[0] == "stage_code/train_risk.md5"
@@ -101,11 +111,6 @@ def _tree(root: Path) -> None:
 
 def test_manifests_are_md5sum_lines_of_the_closure_and_change_with_it(tmp_path: Path) -> None:
     _tree(tmp_path)
-    # stage_deps' own closure is read from the repository; the stages' from the tree
-    own = stage_deps.code_deps(stage_deps.CODE_STAGE_MODULE, ROOT)
-    for rel in own:
-        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
-        (tmp_path / rel).write_bytes((ROOT / rel).read_bytes())
     assert stage_deps.write(tmp_path / "dvc.yaml") == ["stage_code", "a", "b"]
     doc = yaml.safe_load((tmp_path / "dvc.yaml").read_text())["stages"]
     assert doc["a"]["deps"] == ["stage_code/a.md5", "data/in"]
@@ -114,12 +119,7 @@ def test_manifests_are_md5sum_lines_of_the_closure_and_change_with_it(tmp_path: 
         {"stage_code/a.md5": {"cache": False}},
         {"stage_code/b.md5": {"cache": False}},
     ]
-    assert doc["stage_code"]["deps"][len(own) :] == [
-        "pipelines/a.py",
-        "pipelines/b.py",
-        "src/traffictwin/only_b.py",
-        "src/traffictwin/shared.py",
-    ]
+    assert doc["stage_code"]["deps"] == ["pipelines", "src/traffictwin"]
     assert stage_deps.write_manifests(tmp_path / "dvc.yaml") == [
         "stage_code/a.md5",
         "stage_code/b.md5",
@@ -297,6 +297,13 @@ def test_an_edit_re_runs_only_the_stages_that_import_it(ci_dag: Path, tmp_path: 
     or training stage), after a learning-curve, data-figure or evaluation-figure edit only
     ``plot_data``."""
     repo = copy_dag(ci_dag, tmp_path / "repo", mlflow=False)
+    # byte-compiled code beside the sources is no edit (.dvcignore): nothing is out of date
+    for folder in stage_deps.CODE_FOLDERS:
+        cache = repo / folder / "__pycache__"
+        cache.mkdir(exist_ok=True)
+        (cache / "new_module.cpython-311.pyc").write_bytes(b"\x00")
+    (repo / "src/traffictwin/fusion/stray.pyc").write_bytes(b"\x00")
+    assert json.loads(run(["dvc", "status", "--json"], repo).stdout or "{}") == {}
     assert _status_after_edit(repo, "src/traffictwin/report/render.py") == {"report"}
     # the edits add up: each status also lists the stages the edits before made stale
     drawn = {"report", "plot_data"}
