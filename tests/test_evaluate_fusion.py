@@ -538,6 +538,11 @@ def test_stage_metrics_layout_and_values(ci_dag: Path):
     assert set(m["targets"]) == set(JUDGES) - set(TIMING_TARGETS)
     for t in m["targets"].values():
         assert t["status"] in ("pass", "fail", "not evaluated")
+    # the training target reads the one network's training record (judged, never left unjudged)
+    trained = json.loads((ci_dag / "reports/metrics/train_fusion_network.json").read_text())
+    conv = m["targets"]["training_converged"]["per_config"]["mixed"]
+    assert (conv["best_epoch"], conv["epochs"]) == (trained["best_epoch"], trained["epochs"])
+    assert conv["stopped_early"] is trained["stopped_early"] and conv["status"] != "not evaluated"
     rec = run_record(ci_dag, "evaluate_fusion")
     assert set(rec["targets"]) == set(TIMING_TARGETS) and "runtime_ms_per_pair" not in m
     assert rec["runtime_ms_per_pair"]["naive"] > 0

@@ -215,17 +215,19 @@ def test_ctrl_c_during_evaluate_fusions_registration_pool_is_one_line_and_130(tm
 
 
 def test_registration_pool_workers_leave_ctrl_c_to_the_parent():
-    """``evaluate_fusion``'s registration pool (a fork server's workers): the worker set-up
-    ignores SIGINT, so Ctrl-C prints no traceback per worker (the parent ends the pool)."""
+    """``evaluate_fusion``'s registration pool (a fork server's workers, set up by
+    :func:`traffictwin.processes.map_indexed`): the worker set-up ignores SIGINT, so Ctrl-C
+    prints no traceback per worker (the parent ends the pool)."""
     import cv2
 
     from traffictwin.fusion.registration import RegistrationParams
     from traffictwin.fusion.registration_batches import _POOL_STATE, _pool_init
     from traffictwin.grid import GridSpec
+    from traffictwin.processes import _worker_init
 
     before, threads = signal.getsignal(signal.SIGINT), cv2.getNumThreads()
     try:
-        _pool_init(GridSpec(rows=8, cols=8, cell=0.5), RegistrationParams())
+        _worker_init(_pool_init, (GridSpec(rows=8, cols=8, cell=0.5), RegistrationParams()))
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, before)

@@ -103,11 +103,7 @@ _POOL_STATE: dict[str, Any] = {}  # grid and settings of :func:`register_many`'s
 
 
 def _pool_init(grid: GridSpec, params: RegistrationParams) -> None:
-    import signal
-
     import cv2
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends the pool
 
     cv2.setNumThreads(1)  # one process per core: OpenCV's own threads would compete
     _POOL_STATE.update(grid=grid, params=params)
@@ -132,7 +128,7 @@ def register_many(
     this process (whose torch / OpenCV / logging threads could hold a lock at the fork and
     deadlock the child), and each task carries its own pair. The results are the same for any
     number of workers; each result's ``seconds`` is its own single-thread wall time."""
-    import multiprocessing as mp
+    from traffictwin.processes import map_indexed
 
     params = RegistrationParams() if params is None else params
     n = len(map1)
@@ -140,12 +136,16 @@ def register_many(
     if workers <= 1 or n <= 1:
         return [register_pair(map1[i], map2[i], poses[i], grid, params) for i in range(n)]
     tasks = ((i, map1[i], map2[i], poses[i]) for i in range(n))
-    out: list[Any] = [None] * n
-    ctx = mp.get_context("forkserver")
-    with ctx.Pool(min(workers, n), initializer=_pool_init, initargs=(grid, params)) as pool:
-        for i, r in pool.imap_unordered(_register_task, tasks, chunksize=4):
-            out[i] = r
-    return out
+    return map_indexed(
+        _register_task,
+        tasks,
+        n,
+        workers,
+        method="forkserver",
+        initializer=_pool_init,
+        initargs=(grid, params),
+        chunksize=4,
+    )
 
 
 def precompute_registrations(x: FusionInput, workers: int = 1) -> None:

@@ -313,11 +313,8 @@ _WORKER: dict[str, Any] = {}  # the pass of :func:`evaluate_sequences_tables`' w
 
 
 def _sequence_worker_init(run: TwinPass, threads: int) -> None:
-    import signal
-
     from traffictwin.threads import pin_threads
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends the pool
     if threads:
         pin_threads(threads)
     _WORKER["run"] = run
@@ -342,9 +339,9 @@ def evaluate_sequences_tables(
     worker runs torch on this process's intra-op thread count (:mod:`traffictwin.threads`: the
     networks' float sums follow it). Only ``step_ms``, a wall time, differs. The workers are
     spawned (a fork of this process could inherit a lock held by one of its threads)."""
-    import multiprocessing as mp
     import sys
 
+    from traffictwin.processes import map_indexed
     from traffictwin.threads import passive_omp_wait
 
     n = len(sequences)
@@ -362,17 +359,18 @@ def evaluate_sequences_tables(
     tasks = (
         (j, a, r, include_ego, vehicles) for j, (a, r) in enumerate(zip(sequences, registered))
     )
-    out: list[Any] = [None] * n
     # spawned workers inherit this environment: their torch threads share the cores, and
     # spinning OpenMP threads starve the other worker (a user's own policy is kept)
     passive_omp_wait()
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(
-        min(run.workers, n), initializer=_sequence_worker_init, initargs=(run, threads)
-    ) as pool:
-        for j, tables in pool.imap_unordered(_sequence_task, tasks):
-            out[j] = tables
-    return out
+    return map_indexed(
+        _sequence_task,
+        tasks,
+        n,
+        run.workers,
+        method="spawn",
+        initializer=_sequence_worker_init,
+        initargs=(run, threads),
+    )
 
 
 def predictive_frame(frame: pd.DataFrame) -> pd.DataFrame:
