@@ -6,6 +6,7 @@ report the ci DAG produced (`ci_dag`).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
@@ -105,8 +106,16 @@ def resolve(
             _, cfg, which = key.split(".")
             return configurations[cfg][0 if which == "r" else 1]
         return run_params[key]
-    data = json.loads((reports / path).read_text())
-    return M.lookup(data, key, M.ABSENT)
+    file = reports / path
+    stat = file.stat()
+    return M.lookup(_json_file(file, stat.st_mtime_ns, stat.st_size), key, M.ABSENT)
+
+
+@functools.lru_cache(maxsize=64)
+def _json_file(path: Path, mtime_ns: int, size: int) -> Any:
+    """A JSON file's content, read once per version (every cell of a table names the same
+    file: reading it per cell took most of a whole report's check). Callers must not mutate it."""
+    return json.loads(path.read_text())
 
 
 def rebuilt_report(
