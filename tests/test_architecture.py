@@ -4,6 +4,7 @@ nothing of the workflow layer (no params.yaml, no pipelines, no subprocess)."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -48,10 +49,17 @@ def _imports(name: str, tree: ast.Module, known: set[str]) -> set[str]:
     return out
 
 
-def _graph() -> dict[str, set[str]]:
-    mods = _modules()
+@functools.cache
+def _import_graph() -> tuple[tuple[str, frozenset[str]], ...]:
+    mods = MODULES  # parsed once, at collection
     known = set(mods)
-    return {m: _imports(m, t, known) - {PKG} for m, t in mods.items()}
+    return tuple((m, frozenset(_imports(m, t, known) - {PKG})) for m, t in mods.items())
+
+
+def _graph() -> dict[str, set[str]]:
+    """``{module: the traffictwin modules it imports}``, parsed once per test process (a fresh
+    copy each call)."""
+    return {m: set(deps) for m, deps in _import_graph()}
 
 
 def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
